@@ -1,0 +1,226 @@
+"""The one way datasets come in and go out: CSV files as spec/datasets.md describes them.
+
+Reading validates every cell the command uses and names file, row and column on refusal.
+Writing goes to a temporary file in the target's folder and is renamed into place, so a
+failure never leaves a half-written file. Unknown extra columns are kept as text and passed
+through to outputs.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import tempfile
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from service.errors import InputError
+
+KINDS = ("stage", "rotation", "scale", "turntable")
+SINE_MARGIN = 1e-3
+
+# Known columns of each kind (spec/datasets.md); order is the order outputs are written in.
+KIND_COLUMNS: dict[str, tuple[str, ...]] = {
+    "stage": ("point", "stage_x_deg", "stage_y_deg", "target_x_deg", "target_y_deg", "dir_x", "dir_y",
+              "ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg", "temp_c", "t_s"),
+    "rotation": ("point", "theta_ref_deg", "sx", "sy", "sz"),
+    "scale": ("point", "ref_arcsec", "ref_deg", "reading", "temp_c", "t_s"),
+    "turntable": ("cycle", "azimuth_deg", "n1_a", "n2_a", "n1_b", "n2_b", "ref_north_arcsec", "ref_east_arcsec"),
+}
+
+
+def _range_for(kind: str, col: str) -> tuple[float, float] | None:
+    if col in ("sx", "sy", "sz"):
+        return (-1.0 - SINE_MARGIN, 1.0 + SINE_MARGIN)
+    if col == "temp_c":
+        return (-50.0, 150.0)
+    if kind == "stage" and col.endswith("_deg"):
+        return (-90.0, 90.0)
+    if col in ("target_x_deg", "target_y_deg"):
+        return (-90.0, 90.0)
+    if col == "theta_ref_deg":
+        return (-360.0, 360.0)
+    if col == "azimuth_deg":
+        return (-360.0, 720.0)
+    return None
+
+
+@dataclass
+class Dataset:
+    """A validated table: numeric columns the command uses, everything else as text."""
+
+    source: str
+    kind: str
+    header: list[str]
+    text: dict[str, list[str]]
+    numeric: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_rows(self) -> int:
+        return len(next(iter(self.text.values()))) if self.text else 0
+
+    def has(self, col: str) -> bool:
+        return col in self.text
+
+    def __getitem__(self, col: str) -> np.ndarray:
+        return self.numeric[col]
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return dict(self.numeric)
+
+    def passthrough(self, exclude: Iterable[str] = ()) -> dict[str, list[str]]:
+        ex = set(exclude)
+        return {c: self.text[c] for c in self.header if c not in ex}
+
+
+def _where(source: str, row: int, col: str) -> str:
+    return f"{source}, row {row} (line {row + 1}), column {col!r}"
+
+
+def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str, ...]] = (),
+                 optional: Sequence[str] = ()) -> Dataset:
+    """Read and validate a dataset.
+
+    `required` items are column names or tuples of alternatives (the first present is used,
+    e.g. ("ref_arcsec", "ref_deg")). `optional` columns are validated when present.
+    """
+    source = str(path)
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.reader(fh))
+    except FileNotFoundError:
+        raise InputError(f"{source}: no such file") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{source}: cannot read as CSV: {exc}") from None
+    rows = [r for r in rows if any(c.strip() for c in r)]
+    if not rows:
+        raise InputError(f"{source}: empty file (a header row is required)")
+    header = [c.strip() for c in rows[0]]
+    if any(not c for c in header):
+        raise InputError(f"{source}: header has an empty column name at position {header.index('') + 1}")
+    dup = sorted({c for c in header if header.count(c) > 1})
+    if dup:
+        raise InputError(f"{source}: column {dup[0]!r} appears more than once in the header")
+    body = rows[1:]
+    if not body:
+        raise InputError(f"{source}: no data rows under the header")
+    for i, r in enumerate(body, start=1):
+        if len(r) != len(header):
+            raise InputError(f"{source}, row {i} (line {i + 1}): {len(r)} cells where the header has {len(header)}")
+    text = {c: [r[j].strip() for r in body] for j, c in enumerate(header)}
+    ds = Dataset(source, kind, header, text)
+
+    use: list[str] = []
+    for item in required:
+        alts = (item,) if isinstance(item, str) else tuple(item)
+        found = next((a for a in alts if a in text), None)
+        if found is None:
+            names = " or ".join(repr(a) for a in alts)
+            raise InputError(f"{source}: missing required column {names} for kind {kind!r}")
+        use.append(found)
+    use += [c for c in optional if c in text and c not in use]
+    for col in use:
+        ds.numeric[col] = _numeric_column(source, kind, col, text[col])
+    return ds
+
+
+def _numeric_column(source: str, kind: str, col: str, cells: list[str]) -> np.ndarray:
+    values = np.empty(len(cells))
+    for i, cell in enumerate(cells):
+        if cell == "":
+            raise InputError(f"{_where(source, i + 1, col)}: empty cell")
+        try:
+            v = float(cell)
+        except ValueError:
+            raise InputError(f"{_where(source, i + 1, col)}: {cell!r} is not a number") from None
+        if not math.isfinite(v):
+            raise InputError(f"{_where(source, i + 1, col)}: {cell!r} is not a finite number")
+        values[i] = v
+    rng = _range_for(kind, col)
+    if rng is not None:
+        lo, hi = rng
+        bad = np.flatnonzero((values < lo) | (values > hi))
+        if bad.size:
+            i = int(bad[0])
+            raise InputError(f"{_where(source, i + 1, col)}: {cells[i]} is outside [{lo:g}, {hi:g}]")
+    if col.startswith("dir_"):
+        bad = np.flatnonzero(~np.isin(values, (-1.0, 0.0, 1.0)))
+        if bad.size:
+            i = int(bad[0])
+            raise InputError(f"{_where(source, i + 1, col)}: {cells[i]} is not one of -1, 0, 1")
+    if col == "t_s":
+        dec = np.flatnonzero(np.diff(values) < 0)
+        if dec.size:
+            i = int(dec[0]) + 1
+            raise InputError(f"{_where(source, i + 1, col)}: {cells[i]} is earlier than the row before "
+                             f"({cells[i - 1]}); t_s must not decrease")
+    if col in ("point", "cycle"):
+        bad = np.flatnonzero((values != np.round(values)) | (values < 0))
+        if bad.size:
+            i = int(bad[0])
+            raise InputError(f"{_where(source, i + 1, col)}: {cells[i]} is not a non-negative whole number")
+    return values
+
+
+_INTEGER_COLUMNS = {"point", "cycle", "dir_x", "dir_y", "reading"}
+
+
+def format_value(col: str, v) -> str:
+    if isinstance(v, str):
+        return v
+    f = float(v)
+    if col in _INTEGER_COLUMNS and f == round(f):
+        return str(int(round(f)))
+    return f"{f:.12g}"
+
+
+def write_dataset(path: str | Path, columns: Mapping[str, Sequence | np.ndarray]) -> None:
+    """Write columns (numeric arrays or text lists) atomically."""
+    names = list(columns)
+    if not names:
+        raise ValueError("nothing to write")
+    n = len(columns[names[0]])
+    for c in names:
+        if len(columns[c]) != n:
+            raise ValueError(f"column {c!r} has {len(columns[c])} values, expected {n}")
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.exists():
+        raise InputError(f"{path}: folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(names)
+            cols = [columns[c] for c in names]
+            for i in range(n):
+                w.writerow([format_value(names[j], cols[j][i]) for j in range(len(names))])
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.exists():
+        raise InputError(f"{path}: folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise

@@ -1,0 +1,55 @@
+"""Electrolytic tilt sensor read through a 12-bit ADC (seed 003).
+
+Designed for ±0.5 deg over 0-5 V: 3600 arcsec over 4096 counts, 0.88 arcsec per count
+(seed 003 §2: 1.22 mV per count, 0.72 arcsec per mV). The bridge output follows tan(ε),
+which is linear to far better than the ADC step over ±0.5 deg.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.physics.effects import EffectSet
+
+ARCSEC_PER_RAD = 180.0 * 3600.0 / np.pi
+
+
+@dataclass(frozen=True)
+class AnalogSensor:
+    adc_bits: int = 12
+    full_scale_v: float = 5.0
+    range_arcsec: float = 3600.0  # ±0.5 deg over the full scale
+    null_counts: float = 2048.0  # output at the sensor's own null (VCC/2)
+    temp_ref_c: float = 20.0
+
+    @property
+    def counts(self) -> int:
+        return 2**self.adc_bits
+
+    @property
+    def counts_per_arcsec(self) -> float:
+        return self.counts / self.range_arcsec
+
+
+def simulate_scale(sensor: AnalogSensor, fx: EffectSet, ref_arcsec, start_arcsec: float,
+                   temp_c=None, rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
+    """ADC readings at reference angles (relative, zero at the first point) and the reference's readings.
+
+    `start_arcsec` is the sensor's tilt from its own null at the reference's zero.
+    """
+    ref = np.atleast_1d(np.asarray(ref_arcsec, dtype=float))
+    eps = ref + start_arcsec  # angle from the sensor's null
+    k = sensor.counts_per_arcsec * (1.0 + fx.get("scale_factor", "k"))
+    counts = sensor.null_counts + k * np.tan(eps / ARCSEC_PER_RAD) * ARCSEC_PER_RAD
+    counts = counts + fx.get("sensor_nonlinearity", "counts_per_arcsec2") * eps**2 + fx.get("zero_offset", "counts")
+    if temp_c is not None:
+        counts = counts + fx.get("temperature_drift", "counts_per_k") * (np.asarray(temp_c) - sensor.temp_ref_c)
+    sigma = fx.get("noise", "reading_sigma_counts")
+    if rng is not None and sigma > 0:
+        counts = counts + rng.normal(0.0, sigma, counts.shape)
+    reading = np.clip(np.floor(counts), 0, sensor.counts - 1)
+    ref_sigma = fx.get("noise", "ref_sigma_arcsec")
+    ref_read = ref + (rng.normal(0.0, ref_sigma, ref.shape) if rng is not None and ref_sigma > 0 else 0.0)
+    return {"ref_arcsec": ref_read, "reading": reading, "true_ref_arcsec": ref}

@@ -1,0 +1,202 @@
+"""Forward model of two stacked swing stages carrying a reference and a measurement sensor.
+
+spec/models.md §2: the lower stage tilts the assembly about the table X axis (the stage y
+angle), the upper stage rides on it and tilts the table about Y (the stage x angle); ideal
+orientation R = Rx(-θy)·Ry(θx). Here every effect of §5 is a separately switchable term.
+
+The chain, world ← table:  R_desk · Rot(u_lower, θy) · Rot(u_upper, θx) · R_top, and a sensor
+axis a = R_world_table · R_seat · axis. Only a_z is needed (reading = asin(-a_z)), and a_z is a
+linear functional of the rotated vector, so the whole chain reduces to a few (N, 3) products:
+this is what keeps the model above a million points per second.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.physics.effects import EffectSet
+from service.physics.inclinometer import apply_reading_errors, sensor_axes
+from service.physics.rotations import plane_tilt, rx, ry, rz, unit
+
+SENSORS = ("ref", "meas")
+
+
+@dataclass(frozen=True)
+class StageBench:
+    """Fixed hardware of a stacked swing-stage bench (seed 000 §1)."""
+
+    upper_gear_ratio: float = 320.0
+    lower_gear_ratio: float = 450.0
+    step_angle_deg: float = 1.8
+    microsteps: int = 8
+    travel_deg: float = 15.0
+    meas_flip: str = "none"
+    temp_ref_c: float = 20.0
+
+    @property
+    def pulse_x_deg(self) -> float:
+        """One pulse of the upper stage: φ / (x · c) (0.000703 deg at 320:1)."""
+        return self.step_angle_deg / (self.microsteps * self.upper_gear_ratio)
+
+    @property
+    def pulse_y_deg(self) -> float:
+        return self.step_angle_deg / (self.microsteps * self.lower_gear_ratio)
+
+    @property
+    def worm_period_x_deg(self) -> float:
+        """Output angle per worm turn: 360 deg / gear ratio (1.125 deg at 320:1)."""
+        return 360.0 / self.upper_gear_ratio
+
+    @property
+    def worm_period_y_deg(self) -> float:
+        return 360.0 / self.lower_gear_ratio
+
+    def quantise(self, cmd_x_deg, cmd_y_deg) -> tuple[np.ndarray, np.ndarray]:
+        """Commands as the controller executes them: whole pulses."""
+        px, py = self.pulse_x_deg, self.pulse_y_deg
+        return np.rint(np.asarray(cmd_x_deg) / px) * px, np.rint(np.asarray(cmd_y_deg) / py) * py
+
+    def check_travel(self, cmd_x_deg, cmd_y_deg) -> None:
+        for name, c in (("stage_x_deg", cmd_x_deg), ("stage_y_deg", cmd_y_deg)):
+            c = np.asarray(c)
+            if c.size and np.max(np.abs(c)) > self.travel_deg + 1e-9:
+                raise ValueError(f"{name} {float(np.max(np.abs(c))):g} deg is beyond the stage travel of "
+                                 f"±{self.travel_deg:g} deg")
+
+
+@dataclass(frozen=True)
+class StageGeometry:
+    """The constant rotations of the chain, resolved from the effect set once per bench."""
+
+    desk: np.ndarray
+    top: np.ndarray
+    u_lower: np.ndarray
+    u_upper: np.ndarray
+    seat: dict[str, np.ndarray]
+    axes: dict[str, np.ndarray]  # per sensor: (2, 3) x and y sensing axes in the seat frame
+    truth_axes: np.ndarray  # orthogonal reference axes: the definition of table tilt
+    coupling: bool
+
+    @classmethod
+    def from_effects(cls, bench: StageBench, fx: EffectSet) -> "StageGeometry":
+        r = np.radians
+        g = lambda e, p: float(fx.get(e, p))  # noqa: E731
+        desk = plane_tilt(r(g("mounting_tilt", "desk_x_deg")), r(g("mounting_tilt", "desk_y_deg")))
+        top = plane_tilt(r(g("mounting_tilt", "top_x_deg")), r(g("mounting_tilt", "top_y_deg")))
+        u_lower = unit(rz(r(g("axis_misalignment", "lower_yaw_deg")))
+                       @ ry(r(g("axis_misalignment", "lower_pitch_deg"))) @ np.array([-1.0, 0.0, 0.0]))
+        u_upper = unit(rz(r(g("axis_misalignment", "perpendicularity_deg")))
+                       @ rx(r(g("axis_misalignment", "upper_pitch_deg"))) @ np.array([0.0, 1.0, 0.0]))
+        seat, axes = {}, {}
+        for s in SENSORS:
+            seat[s] = plane_tilt(r(g("mounting_tilt", f"{s}_x_deg")), r(g("mounting_tilt", f"{s}_y_deg")))
+            flip = bench.meas_flip if s == "meas" else "none"
+            axes[s] = sensor_axes(r(g("sensor_yaw", f"{s}_deg")), r(g("non_orthogonality", f"{s}_deg")), flip)
+        truth_axes = sensor_axes(r(g("sensor_yaw", "ref_deg")), 0.0)
+        return cls(desk, top, u_lower, u_upper, seat, axes, truth_axes, bool(fx.get("offaxis_coupling", "enabled")))
+
+    def axis_z(self, vectors_table: np.ndarray, theta_x: np.ndarray, theta_y: np.ndarray) -> np.ndarray:
+        """World z of table-frame vectors (K, 3) at stage angles (N,) [rad] -> (N, K)."""
+        d = self.desk[2]
+        ul, uu = self.u_lower, self.u_upper
+        cy, sy = np.cos(theta_y), np.sin(theta_y)
+        # d · Rot(ul, θy) w = w · g(θy)
+        g = cy[:, None] * d + sy[:, None] * np.cross(d, ul) + ((1.0 - cy) * (ul @ d))[:, None] * ul
+        v = vectors_table
+        a = g @ v.T
+        b = g @ np.cross(uu, v).T
+        p = g @ uu
+        cx, sx = np.cos(theta_x), np.sin(theta_x)
+        return cx[:, None] * a + sx[:, None] * b + ((1.0 - cx) * p)[:, None] * (v @ uu)[None, :]
+
+    def readings_deg(self, theta_x: np.ndarray, theta_y: np.ndarray) -> dict[str, np.ndarray]:
+        """Geometric (error-free) readings of every sensor axis and the true table tilt."""
+        if not self.coupling:
+            theta_x = np.arcsin(np.clip(np.sin(theta_x) / np.cos(theta_y), -1.0, 1.0))
+        vecs = [self.top @ self.seat[s] @ self.axes[s].T for s in SENSORS]
+        vecs.append(self.top @ self.seat["ref"] @ self.truth_axes.T)
+        v = np.concatenate(vecs, axis=1).T  # (6, 3)
+        deg = np.degrees(np.arcsin(np.clip(-self.axis_z(v, theta_x, theta_y), -1.0, 1.0)))
+        names = ("ref_x", "ref_y", "meas_x", "meas_y", "tilt_x", "tilt_y")
+        return {n: deg[:, i] for i, n in enumerate(names)}
+
+
+def stage_angles_deg(bench: StageBench, fx: EffectSet, cmd_x_deg, cmd_y_deg, dir_x=0, dir_y=0,
+                     rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Angles the stages really reach for the given commands and approach directions."""
+    nom_x, nom_y = bench.quantise(cmd_x_deg, cmd_y_deg)
+    out = []
+    for ax, nom, d, period in (("x", nom_x, dir_x, bench.worm_period_x_deg),
+                               ("y", nom_y, dir_y, bench.worm_period_y_deg)):
+        ang = nom * (1.0 + fx.get("stage_scale", ax))
+        ang = ang - np.asarray(d, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
+        amp = fx.get("periodic_error", f"{ax}_amp_deg")
+        if amp:
+            ang = ang + amp * np.sin(2 * np.pi * nom / period + np.radians(fx.get("periodic_error", f"{ax}_phase_deg")))
+        sigma = fx.get("noise", "stage_sigma_deg")
+        if rng is not None and sigma > 0:
+            ang = ang + rng.normal(0.0, sigma, np.shape(ang))
+        out.append(np.asarray(ang, dtype=float))
+    return out[0], out[1]
+
+
+def _drift(fx: EffectSet, sensor: str, axis: str, t_s: np.ndarray, rng) -> np.ndarray:
+    drift = fx.get("time_drift", f"{sensor}_{axis}_deg_per_h") * t_s / 3600.0
+    rw = fx.get("time_drift", "random_walk_deg_per_sqrt_h")
+    if rng is not None and rw > 0 and t_s.size:
+        dt_h = np.diff(t_s, prepend=t_s[0]) / 3600.0
+        drift = drift + np.cumsum(rng.normal(0.0, 1.0, t_s.shape) * rw * np.sqrt(dt_h))
+    return drift
+
+
+def simulate_stage(bench: StageBench, fx: EffectSet, cmd_x_deg, cmd_y_deg, dir_x=0, dir_y=0,
+                   temp_c=None, t_s=None, rng: np.random.Generator | None = None,
+                   geometry: StageGeometry | None = None) -> dict[str, np.ndarray]:
+    """Readings of both sensors (and the true table tilt) at each commanded point.
+
+    `rng=None` gives the noiseless bench. Returns arrays keyed by dataset column names plus
+    `tilt_x_deg`, `tilt_y_deg` (truth) and `actual_x_deg`, `actual_y_deg` (stage angles).
+    """
+    cmd_x = np.atleast_1d(np.asarray(cmd_x_deg, dtype=float))
+    cmd_y = np.atleast_1d(np.asarray(cmd_y_deg, dtype=float))
+    n = np.broadcast_shapes(cmd_x.shape, cmd_y.shape)
+    temp = np.broadcast_to(np.asarray(bench.temp_ref_c if temp_c is None else temp_c, dtype=float), n)
+    t = np.broadcast_to(np.asarray(0.0 if t_s is None else t_s, dtype=float), n)
+    geometry = geometry or StageGeometry.from_effects(bench, fx)
+    act_x, act_y = stage_angles_deg(bench, fx, cmd_x, cmd_y, dir_x, dir_y, rng)
+    geo = geometry.readings_deg(np.radians(np.broadcast_to(act_x, n)), np.radians(np.broadcast_to(act_y, n)))
+    dT = temp - bench.temp_ref_c
+    out = {"tilt_x_deg": geo["tilt_x"], "tilt_y_deg": geo["tilt_y"],
+           "actual_x_deg": np.broadcast_to(act_x, n).copy(), "actual_y_deg": np.broadcast_to(act_y, n).copy()}
+    for s in SENSORS:
+        sigma = fx.get("noise", f"{s}_sigma_deg")
+        for a in ("x", "y"):
+            noise = rng.normal(0.0, sigma, n) if (rng is not None and sigma > 0) else 0.0
+            out[f"{s}_{a}_deg"] = apply_reading_errors(
+                geo[f"{s}_{a}"],
+                zero_deg=fx.get("zero_offset", f"{s}_{a}_deg"),
+                scale=fx.get("scale_factor", f"{s}_{a}"),
+                quad_per_deg=fx.get("sensor_nonlinearity", f"{s}_{a}_per_deg"),
+                temp_delta_k=dT,
+                zero_per_k=fx.get("temperature_drift", f"{s}_{a}_deg_per_k"),
+                scale_per_k=fx.get("temperature_drift", f"{s}_scale_per_k"),
+                drift_deg=_drift(fx, s, a, t, rng),
+                noise_deg=noise,
+                resolution_deg=fx.get("noise", f"{s}_resolution_deg"),
+            )
+    return out
+
+
+def offaxis_reading_deg(theta_x_deg, theta_y_deg):
+    """Ideal x reading of the stacked bench: asin(sin θx · cos θy) (seed 000 eq. 9)."""
+    tx, ty = np.radians(theta_x_deg), np.radians(theta_y_deg)
+    return np.degrees(np.arcsin(np.sin(tx) * np.cos(ty)))
+
+
+def offaxis_error_deg(theta_x_deg, theta_y_deg):
+    """Seed 000 eq. (10): error = θx - (signed) atan(sqrt(sin²θx cos²θy / (1 - sin²θx cos²θy)))."""
+    tx, ty = np.radians(theta_x_deg), np.radians(theta_y_deg)
+    q = np.sin(tx) ** 2 * np.cos(ty) ** 2
+    return np.degrees(tx - np.sign(tx) * np.arctan(np.sqrt(q / (1.0 - q))))

@@ -1,0 +1,55 @@
+"""Biaxial inclinometer on a turntable read in symmetric positions (seed 004, spec §4)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.physics.effects import EffectSet
+
+
+@dataclass(frozen=True)
+class TurntableInclinometer:
+    """Parameters that calibration estimates (β, ε in degrees; m in reading units per arcsec)."""
+
+    beta_deg: float
+    epsilon_deg: float
+    m1: float
+    m2: float
+
+
+def turntable_readings(p: TurntableInclinometer, azimuth_deg, north_arcsec, east_arcsec, z1=0.0, z2=0.0):
+    """n1(A), n2(A) of spec §4 for axis tilt (ξ north, η east) in arcsec."""
+    a = np.radians(np.asarray(azimuth_deg, dtype=float) + p.beta_deg)
+    e = np.radians(p.epsilon_deg)
+    xi, eta = np.asarray(north_arcsec, dtype=float), np.asarray(east_arcsec, dtype=float)
+    n1 = p.m1 * (xi * np.cos(a) + eta * np.sin(a)) + z1
+    n2 = p.m2 * (-xi * np.sin(a + e) + eta * np.cos(a + e)) + z2
+    return n1, n2
+
+
+def simulate_turntable(p: TurntableInclinometer, fx: EffectSet, azimuth_deg, north_arcsec, east_arcsec,
+                       rotation_deg: float = 180.0, pair_interval_s: float = 120.0,
+                       rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
+    """One row per symmetric pair: readings at A and at A + φ (the true φ, which may differ from 180)."""
+    az = np.atleast_1d(np.asarray(azimuth_deg, dtype=float))
+    xi = np.broadcast_to(np.asarray(north_arcsec, dtype=float), az.shape)
+    eta = np.broadcast_to(np.asarray(east_arcsec, dtype=float), az.shape)
+    z1, z2 = fx.get("zero_offset", "z1"), fx.get("zero_offset", "z2")
+    drift = fx.get("time_drift", "reading_per_h") * pair_interval_s / 3600.0
+    sigma, res = fx.get("noise", "reading_sigma"), fx.get("noise", "resolution")
+    out: dict[str, np.ndarray] = {"azimuth_deg": az}
+    for tag, a, dz in (("a", az, 0.0), ("b", az + rotation_deg, drift)):
+        n1, n2 = turntable_readings(p, a, xi, eta, z1 + dz, z2 + dz)
+        for name, n in (("n1", n1), ("n2", n2)):
+            if rng is not None and sigma > 0:
+                n = n + rng.normal(0.0, sigma, n.shape)
+            if res > 0:
+                n = np.round(n / res) * res
+            out[f"{name}_{tag}"] = n
+    ref_sigma = fx.get("noise", "ref_sigma_arcsec")
+    for col, v in (("ref_north_arcsec", xi), ("ref_east_arcsec", eta)):
+        out[col] = v + (rng.normal(0.0, ref_sigma, v.shape) if rng is not None and ref_sigma > 0 else 0.0)
+    out["true_north_arcsec"], out["true_east_arcsec"] = xi.copy(), eta.copy()
+    return out

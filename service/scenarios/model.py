@@ -1,0 +1,293 @@
+"""Scenario files: a bench, its effect magnitudes, the point grid, the environment and a seed.
+
+The pydantic models are built from the effect registry (service.physics.effects), so the
+allowed names and ranges, the JSON Schema in docs/ and the error messages share one source.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, model_validator
+
+from service.errors import InputError
+from service.physics.effects import EFFECTS_BY_KIND
+
+PRESET_DIR = Path(__file__).parent / "presets"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def _effects_model(kind: str) -> type[BaseModel]:
+    fields: dict[str, Any] = {}
+    for eff in EFFECTS_BY_KIND[kind].values():
+        pf: dict[str, Any] = {}
+        for p in eff.params:
+            if p.is_bool:
+                pf[p.name] = (bool, Field(p.default, description=p.doc or p.unit))
+            else:
+                desc = f"[{p.unit}] {p.doc}".strip()
+                pf[p.name] = (float, Field(p.default, ge=p.lo, le=p.hi, description=desc, allow_inf_nan=False))
+        m = create_model(f"{kind.title()}_{eff.name}", __config__=ConfigDict(extra="forbid"), **pf)
+        m.__doc__ = eff.doc
+        fields[eff.name] = (m | None, Field(None, description=eff.doc))
+    model = create_model(f"{kind.title()}Effects", __config__=ConfigDict(extra="forbid"), **fields)
+    model.__doc__ = f"Effects of a {kind} bench; an effect is on when it is named (offaxis_coupling is on unless disabled)."
+    return model
+
+
+StageEffects = _effects_model("stage")
+RotationEffects = _effects_model("rotation")
+ScaleEffects = _effects_model("scale")
+TurntableEffects = _effects_model("turntable")
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class AxisRange(_Strict):
+    """Evenly spaced values from start to stop inclusive, by step or by count."""
+
+    start: Finite
+    stop: Finite
+    step: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    count: Annotated[int, Field(ge=1, le=100_000)] | None = None
+
+    @model_validator(mode="after")
+    def _one_of(self):
+        if (self.step is None) == (self.count is None):
+            raise ValueError("give exactly one of step or count")
+        return self
+
+    def values(self) -> list[float]:
+        import numpy as np
+
+        if self.count is not None:
+            return [float(v) for v in np.linspace(self.start, self.stop, self.count)]
+        n = int(round(abs(self.stop - self.start) / self.step)) + 1
+        sign = 1.0 if self.stop >= self.start else -1.0
+        return [float(self.start + sign * i * self.step) for i in range(n)]
+
+
+Axis = Annotated[list[Finite], Field(min_length=1, max_length=100_000)] | AxisRange
+
+
+def axis_values(a) -> list[float]:
+    return a.values() if isinstance(a, AxisRange) else list(a)
+
+
+class Environment(_Strict):
+    """Sensor temperature during the run: start + rate * t + amplitude * sin(2π t / period)."""
+
+    temp_c: Annotated[float, Field(ge=-50, le=150)] = 20.0
+    temp_rate_c_per_h: Annotated[float, Field(ge=-20, le=20)] = 0.0
+    temp_amp_c: Annotated[float, Field(ge=0, le=50)] = 0.0
+    temp_period_h: Annotated[float, Field(gt=0, le=1000)] = 24.0
+
+
+class StageBenchSpec(_Strict):
+    upper_gear_ratio: Annotated[float, Field(gt=1, le=10_000)] = 320.0
+    lower_gear_ratio: Annotated[float, Field(gt=1, le=10_000)] = 450.0
+    step_angle_deg: Annotated[float, Field(gt=0, le=90)] = 1.8
+    microsteps: Annotated[int, Field(ge=1, le=256)] = 8
+    travel_deg: Annotated[float, Field(gt=0, le=90)] = 15.0
+    meas_flip: Literal["none", "x", "y"] = "none"
+    temp_ref_c: Annotated[float, Field(ge=-50, le=150)] = 20.0
+
+
+class StageGrid(_Strict):
+    """Commanded stage points; every (x, y) combination, visited in the given order."""
+
+    x_deg: Axis
+    y_deg: Axis
+    repeats: Annotated[int, Field(ge=1, le=1000)] = 1
+    order: Literal["serpentine", "raster", "random"] = "serpentine"
+    settle_s: Annotated[float, Field(ge=0, le=3600)] = 10.0
+
+
+class StageScenario(_Strict):
+    kind: Literal["stage"]
+    name: str = "custom"
+    description: str = ""
+    seed: Annotated[int, Field(ge=0)] = 0
+    bench: StageBenchSpec = StageBenchSpec()
+    effects: StageEffects = Field(default_factory=StageEffects)  # type: ignore[valid-type]
+    grid: StageGrid
+    environment: Environment = Environment()
+
+
+class RotationBenchSpec(_Strict):
+    alpha_deg: Annotated[float, Field(ge=-180, le=180)]
+    beta_deg: Annotated[float, Field(ge=-89, le=89)]
+    gamma_deg: Annotated[float, Field(ge=-45, le=45)]
+
+
+class RotationGrid(_Strict):
+    theta_deg: Axis
+    repeats: Annotated[int, Field(ge=1, le=1000)] = 1
+
+
+class RotationScenario(_Strict):
+    kind: Literal["rotation"]
+    name: str = "custom"
+    description: str = ""
+    seed: Annotated[int, Field(ge=0)] = 0
+    bench: RotationBenchSpec
+    effects: RotationEffects = Field(default_factory=RotationEffects)  # type: ignore[valid-type]
+    grid: RotationGrid
+
+
+class ScaleBenchSpec(_Strict):
+    adc_bits: Annotated[int, Field(ge=8, le=24)] = 12
+    full_scale_v: Annotated[float, Field(gt=0, le=100)] = 5.0
+    range_arcsec: Annotated[float, Field(gt=0, le=36_000)] = 3600.0
+    null_counts: Annotated[float, Field(ge=0)] = 2048.0
+    start_arcsec: Annotated[float, Field(ge=-18_000, le=18_000)] = -1780.0
+    temp_ref_c: Annotated[float, Field(ge=-50, le=150)] = 20.0
+
+
+class ScaleGrid(_Strict):
+    ref_arcsec: Axis
+    repeats: Annotated[int, Field(ge=1, le=1000)] = 1
+
+
+class ScaleScenario(_Strict):
+    kind: Literal["scale"]
+    name: str = "custom"
+    description: str = ""
+    seed: Annotated[int, Field(ge=0)] = 0
+    bench: ScaleBenchSpec = ScaleBenchSpec()
+    effects: ScaleEffects = Field(default_factory=ScaleEffects)  # type: ignore[valid-type]
+    grid: ScaleGrid
+    environment: Environment = Environment()
+
+
+class TurntableBenchSpec(_Strict):
+    beta_deg: Annotated[float, Field(ge=-180, le=180)]
+    epsilon_deg: Annotated[float, Field(ge=-5, le=5)] = 0.0
+    m1: Annotated[float, Field(gt=0, le=1000)]
+    m2: Annotated[float, Field(gt=0, le=1000)]
+    rotation_deg: Annotated[float, Field(ge=90, le=270)] = 180.0
+    reading_unit: str = "mrad"
+
+
+class AxisTilt(_Strict):
+    north_arcsec: Annotated[float, Field(ge=-3600, le=3600)]
+    east_arcsec: Annotated[float, Field(ge=-3600, le=3600)]
+
+
+class TurntableGrid(_Strict):
+    """Each cycle is one levelling of the instrument (one axis tilt) read at every azimuth."""
+
+    azimuth_deg: Axis
+    cycles: Annotated[list[AxisTilt], Field(min_length=1, max_length=10_000)]
+    pair_interval_s: Annotated[float, Field(ge=0, le=3600)] = 120.0
+
+
+class TurntableScenario(_Strict):
+    kind: Literal["turntable"]
+    name: str = "custom"
+    description: str = ""
+    seed: Annotated[int, Field(ge=0)] = 0
+    bench: TurntableBenchSpec
+    effects: TurntableEffects = Field(default_factory=TurntableEffects)  # type: ignore[valid-type]
+    grid: TurntableGrid
+
+
+class ScenarioFile(BaseModel):
+    """A tiltlab scenario (one of four kinds, told apart by `kind`)."""
+
+    model_config = ConfigDict(title="tiltlab scenario")
+    root: Annotated[Union[StageScenario, RotationScenario, ScaleScenario, TurntableScenario],
+                    Field(discriminator="kind")]
+
+
+Scenario = StageScenario | RotationScenario | ScaleScenario | TurntableScenario
+
+
+def effects_dict(scenario: Scenario) -> dict[str, dict[str, Any]]:
+    """The effects the scenario names, with every parameter filled in."""
+    return {name: dict(val) for name, val in scenario.effects.model_dump(exclude_none=True).items()}
+
+
+def _format_error(source: str, err: ValidationError) -> str:
+    e = err.errors()[0]
+    loc = [str(x) for x in e["loc"]]
+    if loc and loc[0] == "root":
+        loc = loc[1:]
+    # drop pydantic's union-branch tags ("stage", "AxisRange", "list[...]") from the path
+    loc = [x for x in loc if x not in ("stage", "rotation", "scale", "turntable") and not x[:1].isupper()
+           and not x.startswith("list[") and not x.startswith("function-")]
+    field = ".".join(loc) or "(top level)"
+    msg = e["msg"]
+    if e["type"] == "extra_forbidden":
+        parent = ".".join(loc[:-1])
+        if parent == "effects":
+            msg = f"unknown effect {loc[-1]!r}"
+        else:
+            msg = f"unknown field {loc[-1]!r}"
+    elif e["type"] == "missing":
+        msg = "missing required field"
+    elif "input" in e and not isinstance(e["input"], (dict, list)):
+        msg = f"{msg} (got {e['input']!r})"
+    more = len(err.errors()) - 1
+    return f"{source}: field {field}: {msg}" + (f" (and {more} more problem{'s' * (more > 1)})" if more else "")
+
+
+def parse_scenario(data: Any, source: str = "scenario") -> Scenario:
+    if not isinstance(data, dict):
+        raise InputError(f"{source}: a scenario is a JSON object, not {type(data).__name__}")
+    if "kind" not in data:
+        raise InputError(f"{source}: field kind: missing required field (one of stage, rotation, scale, turntable)")
+    if data.get("kind") not in ("stage", "rotation", "scale", "turntable"):
+        raise InputError(f"{source}: field kind: {data.get('kind')!r} is not one of stage, rotation, scale, turntable")
+    try:
+        sc = ScenarioFile.model_validate({"root": data}).root
+    except ValidationError as err:
+        raise InputError(_format_error(source, err)) from None
+    if isinstance(sc, StageScenario):
+        travel = sc.bench.travel_deg
+        for ax in ("x_deg", "y_deg"):
+            vals = axis_values(getattr(sc.grid, ax))
+            worst = max(abs(v) for v in vals)
+            if worst > travel + 1e-9:
+                raise InputError(f"{source}: field grid.{ax}: {worst:g} deg is beyond the stage travel of ±{travel:g} deg")
+    return sc
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.json"))
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """A preset by name, or a scenario JSON file."""
+    p = Path(name_or_path)
+    if not p.suffix and (PRESET_DIR / f"{p.name}.json").exists() and not p.exists():
+        p = PRESET_DIR / f"{p.name}.json"
+    elif not p.exists():
+        raise InputError(f"scenario {str(name_or_path)!r}: no such preset or file (presets: {', '.join(preset_names())})")
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{p}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: cannot read: {exc}") from None
+    return parse_scenario(data, source=str(p))
+
+
+def json_schema() -> dict:
+    schema = ScenarioFile.model_json_schema()
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["$id"] = "https://tiltlab.example/schemas/scenario.schema.json"
+    # the file is the scenario object itself, not the wrapper
+    root = schema["properties"]["root"]
+    schema.pop("properties", None)
+    schema.pop("required", None)
+    schema.update({k: v for k, v in root.items() if k != "title"})
+    schema["description"] = (
+        "A tiltlab scenario: bench parameters, per-effect magnitudes (names of spec/models.md §5 with "
+        "units in the parameter names or descriptions), the point grid, environment and random seed.")
+    return schema

@@ -1,0 +1,140 @@
+"""Turn a scenario into the rows a bench would have recorded (and the truth behind them)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.physics.analog import AnalogSensor, simulate_scale
+from service.physics.effects import EffectSet
+from service.physics.rotation_axis import RotationBench, simulate_rotation
+from service.physics.stage import StageBench, simulate_stage
+from service.physics.turntable import TurntableInclinometer, simulate_turntable
+from service.scenarios.model import (
+    Environment,
+    RotationScenario,
+    ScaleScenario,
+    Scenario,
+    StageScenario,
+    TurntableScenario,
+    axis_values,
+    effects_dict,
+)
+
+# Column order of each kind's dataset as written by `tiltlab simulate`.
+STAGE_COLUMNS = ("point", "stage_x_deg", "stage_y_deg", "dir_x", "dir_y", "ref_x_deg", "ref_y_deg",
+                 "meas_x_deg", "meas_y_deg", "temp_c", "t_s")
+ROTATION_COLUMNS = ("point", "theta_ref_deg", "sx", "sy", "sz")
+SCALE_COLUMNS = ("point", "ref_arcsec", "reading")
+TURNTABLE_COLUMNS = ("cycle", "azimuth_deg", "n1_a", "n2_a", "n1_b", "n2_b", "ref_north_arcsec", "ref_east_arcsec")
+
+
+@dataclass
+class SimulatedRun:
+    kind: str
+    columns: dict[str, np.ndarray]  # what the bench recorded, in dataset order
+    truth: dict[str, np.ndarray] = field(default_factory=dict)  # what it could not record
+    bench: Any = None
+    effects: EffectSet | None = None
+
+
+def bench_of(scenario: Scenario):
+    b = scenario.bench
+    if isinstance(scenario, StageScenario):
+        return StageBench(**b.model_dump())
+    if isinstance(scenario, RotationScenario):
+        return RotationBench(**b.model_dump())
+    if isinstance(scenario, ScaleScenario):
+        d = b.model_dump()
+        d.pop("start_arcsec")
+        return AnalogSensor(**d)
+    return TurntableInclinometer(beta_deg=b.beta_deg, epsilon_deg=b.epsilon_deg, m1=b.m1, m2=b.m2)
+
+
+def effect_set(scenario: Scenario) -> EffectSet:
+    return EffectSet.from_mapping(scenario.kind, effects_dict(scenario))
+
+
+def temperature(env: Environment, t_s: np.ndarray) -> np.ndarray:
+    t_h = t_s / 3600.0
+    return env.temp_c + env.temp_rate_c_per_h * t_h + env.temp_amp_c * np.sin(2 * np.pi * t_h / env.temp_period_h)
+
+
+def move_directions(cmd: np.ndarray, start: float) -> np.ndarray:
+    """Direction of the last move that reached each command (+1/-1); a point not moved to keeps the last."""
+    prev = np.concatenate([[start], cmd[:-1]])
+    d = np.sign(cmd - prev)
+    last = 1.0
+    out = np.empty_like(d)
+    for i, v in enumerate(d):
+        last = v if v != 0 else last
+        out[i] = last
+    return out
+
+
+def stage_sequence(scenario: StageScenario, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Commanded (x, y) in visiting order and each row's grid-point index."""
+    xs = np.array(axis_values(scenario.grid.x_deg))
+    ys = np.array(axis_values(scenario.grid.y_deg))
+    gx, gy, gi = [], [], []
+    for j, y in enumerate(ys):
+        row = range(len(xs))
+        if scenario.grid.order == "serpentine" and j % 2:
+            row = reversed(range(len(xs)))
+        for i in row:
+            gx.append(xs[i])
+            gy.append(y)
+            gi.append(j * len(xs) + i)
+    gx, gy, gi = np.array(gx), np.array(gy), np.array(gi)
+    parts = []
+    for _ in range(scenario.grid.repeats):
+        order = rng.permutation(len(gx)) if scenario.grid.order == "random" else np.arange(len(gx))
+        parts.append(order)
+    order = np.concatenate(parts)
+    return gx[order], gy[order], gi[order]
+
+
+def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = False) -> SimulatedRun:
+    rng = np.random.default_rng(scenario.seed if seed is None else seed)
+    fx = effect_set(scenario)
+    bench = bench_of(scenario)
+    noise_rng = None if noiseless else rng
+    if isinstance(scenario, StageScenario):
+        cx, cy, point = stage_sequence(scenario, rng)
+        t_s = np.arange(len(cx)) * scenario.grid.settle_s
+        temp = temperature(scenario.environment, t_s)
+        dx = move_directions(cx, -bench.travel_deg)
+        dy = move_directions(cy, -bench.travel_deg)
+        sim = simulate_stage(bench, fx, cx, cy, dx, dy, temp, t_s, noise_rng)
+        cols = {"point": point, "stage_x_deg": cx, "stage_y_deg": cy, "dir_x": dx, "dir_y": dy,
+                **{k: sim[k] for k in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg")},
+                "temp_c": temp, "t_s": t_s}
+        truth = {k: sim[k] for k in ("tilt_x_deg", "tilt_y_deg", "actual_x_deg", "actual_y_deg")}
+        return SimulatedRun("stage", cols, truth, bench, fx)
+    if isinstance(scenario, RotationScenario):
+        theta = np.tile(np.array(axis_values(scenario.grid.theta_deg)), scenario.grid.repeats)
+        sim = simulate_rotation(bench, fx, theta, noise_rng)
+        cols = {"point": np.arange(len(theta)) % (len(theta) // scenario.grid.repeats),
+                **{k: sim[k] for k in ("theta_ref_deg", "sx", "sy", "sz")}}
+        return SimulatedRun("rotation", cols, {"theta_true_deg": sim["theta_true_deg"]}, bench, fx)
+    if isinstance(scenario, ScaleScenario):
+        ref = np.tile(np.array(axis_values(scenario.grid.ref_arcsec)), scenario.grid.repeats)
+        temp = np.full(ref.shape, scenario.environment.temp_c)
+        sim = simulate_scale(bench, fx, ref, scenario.bench.start_arcsec, temp, noise_rng)
+        cols = {"point": np.arange(len(ref)) % (len(ref) // scenario.grid.repeats),
+                "ref_arcsec": sim["ref_arcsec"], "reading": sim["reading"]}
+        return SimulatedRun("scale", cols, {"true_ref_arcsec": sim["true_ref_arcsec"]}, bench, fx)
+    assert isinstance(scenario, TurntableScenario)
+    az = np.array(axis_values(scenario.grid.azimuth_deg))
+    cyc = scenario.grid.cycles
+    azimuth = np.tile(az, len(cyc))
+    cycle = np.repeat(np.arange(len(cyc)), len(az))
+    north = np.repeat([c.north_arcsec for c in cyc], len(az))
+    east = np.repeat([c.east_arcsec for c in cyc], len(az))
+    sim = simulate_turntable(bench, fx, azimuth, north, east, scenario.bench.rotation_deg,
+                             scenario.grid.pair_interval_s, noise_rng)
+    cols = {"cycle": cycle, **{k: sim[k] for k in TURNTABLE_COLUMNS[1:]}}
+    truth = {"true_north_arcsec": sim["true_north_arcsec"], "true_east_arcsec": sim["true_east_arcsec"]}
+    return SimulatedRun("turntable", cols, truth, bench, fx)
