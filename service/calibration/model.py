@@ -1,0 +1,169 @@
+"""The fitted calibration model: one record layout for every kind and method (MODEL.json).
+
+A model carries what a metrologist needs to trust and reuse it: named parameters with
+units, their covariance (with the order of the names), the columns it was fitted on, the
+fit residuals and statistics, and notes on what was fixed or merged and why. The JSON
+layout is documented by docs/model.schema.json.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.errors import InputError
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class Parameter:
+    value: float
+    unit: str
+    fixed: bool = False  # held at this value, not fitted (the data cannot separate it)
+    note: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"value": _num(self.value), "unit": self.unit}
+        if self.fixed:
+            d["fixed"] = True
+        if self.note:
+            d["note"] = self.note
+        return d
+
+
+@dataclass
+class CalibrationModel:
+    kind: str
+    method: str
+    columns: list[str]
+    parameters: dict[str, Parameter]
+    covariance_names: list[str] = field(default_factory=list)
+    covariance: np.ndarray | None = None
+    residuals: dict[str, Any] = field(default_factory=dict)  # {"unit":..., "columns": {col: {"rms":..,"max_abs":..,"values":[..]}}}
+    fit: dict[str, Any] = field(default_factory=dict)  # n_points, dof, sigma, converged, ...
+    notes: list[str] = field(default_factory=list)
+    state: dict[str, Any] = field(default_factory=dict)  # method-specific, JSON-serialisable
+    options: dict[str, Any] = field(default_factory=dict)
+
+    # --- parameter access -------------------------------------------------------------
+    def value(self, name: str) -> float:
+        return float(self.parameters[name].value)
+
+    def values(self, names) -> np.ndarray:
+        return np.array([self.value(n) for n in names], dtype=float)
+
+    def cov_of(self, names) -> np.ndarray | None:
+        """Covariance sub-matrix for `names` (zero rows for fixed / unlisted parameters)."""
+        if self.covariance is None:
+            return None
+        idx = {n: i for i, n in enumerate(self.covariance_names)}
+        k = len(names)
+        out = np.zeros((k, k))
+        for a, na in enumerate(names):
+            for b, nb in enumerate(names):
+                if na in idx and nb in idx:
+                    out[a, b] = self.covariance[idx[na], idx[nb]]
+        return out
+
+    def std(self, name: str) -> float | None:
+        if self.covariance is None or name not in self.covariance_names:
+            return None
+        i = self.covariance_names.index(name)
+        return float(math.sqrt(max(self.covariance[i, i], 0.0)))
+
+    # --- JSON -------------------------------------------------------------------------
+    def to_json_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {
+            "format_version": FORMAT_VERSION,
+            "kind": self.kind,
+            "method": self.method,
+            "columns": list(self.columns),
+            "parameters": {k: p.to_dict() for k, p in self.parameters.items()},
+            "covariance": None,
+            "residuals": _jsonable(self.residuals),
+            "fit": _jsonable(self.fit),
+            "notes": list(self.notes),
+            "options": _jsonable(self.options),
+            "state": _jsonable(self.state),
+        }
+        if self.covariance is not None:
+            d["covariance"] = {"names": list(self.covariance_names),
+                               "matrix": [[_num(v) for v in row] for row in np.asarray(self.covariance)]}
+        return d
+
+    @classmethod
+    def from_json_dict(cls, d: Any, source: str = "model") -> "CalibrationModel":
+        if not isinstance(d, dict):
+            raise InputError(f"{source}: a model is a JSON object")
+        fv = d.get("format_version")
+        if fv != FORMAT_VERSION:
+            raise InputError(f"{source}: field format_version: {fv!r} is not supported (expected {FORMAT_VERSION})")
+        for key in ("kind", "method", "columns", "parameters"):
+            if key not in d:
+                raise InputError(f"{source}: field {key}: missing required field")
+        params = {}
+        if not isinstance(d["parameters"], dict):
+            raise InputError(f"{source}: field parameters: must be an object")
+        for name, p in d["parameters"].items():
+            if not isinstance(p, dict) or "value" not in p or "unit" not in p:
+                raise InputError(f"{source}: field parameters.{name}: needs value and unit")
+            v = p["value"]
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(float(v)):
+                raise InputError(f"{source}: field parameters.{name}.value: {v!r} is not a finite number")
+            params[name] = Parameter(float(v), str(p["unit"]), bool(p.get("fixed", False)), str(p.get("note", "")))
+        cov = d.get("covariance")
+        names: list[str] = []
+        matrix = None
+        if cov is not None:
+            try:
+                names = [str(n) for n in cov["names"]]
+                matrix = np.array(cov["matrix"], dtype=float)
+            except (KeyError, TypeError, ValueError):
+                raise InputError(f"{source}: field covariance: needs names and a numeric matrix") from None
+            if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
+                raise InputError(f"{source}: field covariance.matrix: must be a finite {len(names)}x{len(names)} matrix")
+            unknown = [n for n in names if n not in params]
+            if unknown:
+                raise InputError(f"{source}: field covariance.names: {unknown[0]!r} is not a parameter")
+        return cls(kind=str(d["kind"]), method=str(d["method"]), columns=list(d["columns"]), parameters=params,
+                   covariance_names=names, covariance=matrix, residuals=d.get("residuals") or {},
+                   fit=d.get("fit") or {}, notes=list(d.get("notes") or []), state=d.get("state") or {},
+                   options=d.get("options") or {})
+
+
+def _num(v: float) -> float | None:
+    f = float(v)
+    return f if math.isfinite(f) else None
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return _num(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def residual_summary(residuals: dict[str, np.ndarray], unit: str, keep_values: bool = True) -> dict[str, Any]:
+    """RMS, max |r| (and the values) of each residual column: what every model reports."""
+    cols = {}
+    for name, r in residuals.items():
+        r = np.asarray(r, dtype=float)
+        entry: dict[str, Any] = {"rms": float(np.sqrt(np.mean(r**2))) if r.size else 0.0,
+                                 "max_abs": float(np.max(np.abs(r))) if r.size else 0.0}
+        if keep_values:
+            entry["values"] = r.tolist()
+        cols[name] = entry
+    return {"unit": unit, "columns": cols}

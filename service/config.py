@@ -1,0 +1,85 @@
+"""Service configuration: environment variables `TILTLAB_*`, an optional TOML file, defaults.
+
+Precedence, highest first: explicit keyword arguments, environment variables, the TOML file
+named by `TILTLAB_CONFIG`, the defaults below. The defaults suit a single bench on one PC.
+"""
+
+from __future__ import annotations
+
+import os
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+import platformdirs
+from pydantic import Field, model_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+from service.errors import InputError
+
+CONFIG_ENV = "TILTLAB_CONFIG"
+
+
+def default_data_dir() -> Path:
+    return Path(platformdirs.user_data_dir("tiltlab"))
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="TILTLAB_", extra="ignore")
+
+    data_dir: Path = Field(default_factory=default_data_dir)
+    # Empty means the SQLite file `tiltlab.db` in data_dir.
+    database_url: str = ""
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+
+    # Free-running monitoring samples older than this are thinned or dropped; calibration data never are.
+    monitoring_retention_days: float = Field(30.0, gt=0)
+    monitoring_retention_policy: Literal["thin", "drop"] = "thin"
+    # "thin" keeps the first sample per device in each interval of this length.
+    monitoring_thin_interval_s: float = Field(60.0, gt=0)
+
+    # SampleWriter: at most queue + one batch of handed-over samples can be lost on a hard kill.
+    sample_queue_capacity: int = Field(50_000, ge=1)
+    sample_batch_size: int = Field(5_000, ge=1)
+    sample_put_timeout_s: float = Field(5.0, gt=0)
+
+    sqlite_busy_timeout_ms: int = Field(5_000, ge=0)
+
+    @model_validator(mode="after")
+    def _fill_database_url(self) -> Settings:
+        self.data_dir = Path(self.data_dir).expanduser()
+        if not self.database_url:
+            self.database_url = f"sqlite:///{(self.data_dir / 'tiltlab.db').as_posix()}"
+        if self.sample_batch_size > self.sample_queue_capacity:
+            raise ValueError("sample_batch_size must not exceed sample_queue_capacity")
+        return self
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
+        config_file = os.environ.get(CONFIG_ENV, "")
+        if config_file:
+            path = Path(config_file).expanduser()
+            if not path.is_file():
+                raise InputError(f"{CONFIG_ENV}={config_file}: no such configuration file")
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=path))
+        return tuple(sources)
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process-wide settings (cached; call `get_settings.cache_clear()` after changing the environment)."""
+    return Settings()

@@ -1,0 +1,266 @@
+"""The database schema as typed SQLAlchemy models.
+
+The migrations in `migrations/versions` must describe exactly this schema (a test compares them).
+Tables named in APPEND_ONLY_TABLES are guarded by database triggers created in the migration:
+no UPDATE or DELETE ever reaches them.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy import event
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
+
+from service.storage.errors import AppendOnlyViolation
+
+APPEND_ONLY_TABLES = ("calibration_records", "audit_events", "active_calibration_history", "settled_points")
+JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+SAMPLE_SOURCES = ("calibration", "monitoring")
+GENESIS_SHA256 = "0" * 64
+
+NAMING = {
+    "ix": "ix_%(table_name)s_%(column_0_N_name)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_N_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+class UTCDateTime(sa.TypeDecorator[dt.datetime]):
+    """Timezone-aware UTC on the way in and out, on every backend (SQLite keeps no zone)."""
+
+    impl = sa.DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: dt.datetime | None, dialect: sa.Dialect) -> dt.datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError("naive datetime: storage takes timezone-aware UTC times only")
+        value = value.astimezone(dt.UTC)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: dt.datetime | None, dialect: sa.Dialect) -> dt.datetime | None:
+        if value is None:
+            return None
+        return value.replace(tzinfo=dt.UTC) if value.tzinfo is None else value.astimezone(dt.UTC)
+
+
+# 64-bit keys where volume needs them; SQLite only aliases the rowid for exactly "INTEGER".
+BigId = sa.BigInteger().with_variant(sa.Integer(), "sqlite")
+Sha256 = sa.String(64)
+
+
+def utc_now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
+
+
+class Base(DeclarativeBase):
+    metadata = sa.MetaData(naming_convention=NAMING)
+    type_annotation_map = {dt.datetime: UTCDateTime(), float: sa.Double(), dict[str, Any]: sa.JSON(), list[Any]: sa.JSON()}
+
+
+class Bench(Base):
+    __tablename__ = "benches"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(sa.String(100), unique=True)
+    stage_model: Mapped[str | None] = mapped_column(sa.String(100))
+    stage_serial: Mapped[str | None] = mapped_column(sa.String(100))
+    port: Mapped[str | None] = mapped_column(sa.String(200))
+    port_settings: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
+
+
+class Device(Base):
+    __tablename__ = "devices"
+    __table_args__ = (sa.UniqueConstraint("model", "serial"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    model: Mapped[str] = mapped_column(sa.String(100))
+    serial: Mapped[str] = mapped_column(sa.String(100))
+    # e.g. "dut" (device under test), "reference", "stage-sensor".
+    role: Mapped[str] = mapped_column(sa.String(40))
+    bench_id: Mapped[int | None] = mapped_column(sa.ForeignKey("benches.id"))
+    port: Mapped[str | None] = mapped_column(sa.String(200))
+    port_settings: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
+
+
+class CalibrationJob(Base):
+    __tablename__ = "calibration_jobs"
+    __table_args__ = (
+        sa.CheckConstraint(sa.text("state IN ('queued', 'running', 'succeeded', 'failed', 'cancelled')"), name="state"),
+        sa.CheckConstraint(sa.text("progress >= 0 AND progress <= 1"), name="progress"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    device_id: Mapped[int] = mapped_column(sa.ForeignKey("devices.id"), index=True)
+    bench_id: Mapped[int | None] = mapped_column(sa.ForeignKey("benches.id"))
+    kind: Mapped[str] = mapped_column(sa.String(40))
+    method: Mapped[str] = mapped_column(sa.String(80))
+    state: Mapped[str] = mapped_column(sa.String(16), default="queued")
+    progress: Mapped[float] = mapped_column(sa.Double(), default=0.0)
+    parameters: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    failure_reason: Mapped[str | None] = mapped_column(sa.Text)
+    created_by: Mapped[str] = mapped_column(sa.String(100))
+    created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
+    started_at: Mapped[dt.datetime | None]
+    finished_at: Mapped[dt.datetime | None]
+
+
+class CalibrationRecord(Base):
+    """One immutable calibration version of (device, kind); hashed and chained to its predecessor."""
+
+    __tablename__ = "calibration_records"
+    __table_args__ = (
+        sa.UniqueConstraint("device_id", "kind", "version"),
+        # Target of the active pointer's composite key: a pointer can only name a record of its own device+kind.
+        sa.UniqueConstraint("id", "device_id", "kind"),
+        sa.CheckConstraint(sa.text("version >= 1"), name="version"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    device_id: Mapped[int] = mapped_column(sa.ForeignKey("devices.id"))
+    kind: Mapped[str] = mapped_column(sa.String(40))
+    version: Mapped[int]
+    content_format: Mapped[int] = mapped_column(sa.SmallInteger, default=1)
+    method: Mapped[str] = mapped_column(sa.String(80))
+    # The fitted model document: parameters, covariance, residual statistics.
+    model: Mapped[dict[str, Any]]
+    validation: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    temp_c: Mapped[float | None] = mapped_column(sa.Double())
+    # [{"name", "serial", "certificate_id"}] of the reference standards used.
+    reference_standards: Mapped[list[Any]] = mapped_column(default=list)
+    operator: Mapped[str] = mapped_column(sa.String(100))
+    created_at: Mapped[dt.datetime] = mapped_column(index=True)
+    job_id: Mapped[int | None] = mapped_column(sa.ForeignKey("calibration_jobs.id"), index=True)
+    # Which raw data the fit came from (job points hash and counts, or an offline dataset's hash).
+    raw_data: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    supersedes_id: Mapped[int | None] = mapped_column(sa.ForeignKey("calibration_records.id"))
+    prev_sha256: Mapped[str] = mapped_column(Sha256)
+    content_sha256: Mapped[str] = mapped_column(Sha256, unique=True)
+
+
+class ActiveCalibration(Base):
+    """The one active version per (device, kind): the primary key makes a second pointer impossible."""
+
+    __tablename__ = "active_calibrations"
+    __table_args__ = (
+        sa.ForeignKeyConstraint(
+            ["record_id", "device_id", "kind"],
+            ["calibration_records.id", "calibration_records.device_id", "calibration_records.kind"],
+        ),
+    )
+
+    device_id: Mapped[int] = mapped_column(sa.ForeignKey("devices.id"), primary_key=True)
+    kind: Mapped[str] = mapped_column(sa.String(40), primary_key=True)
+    record_id: Mapped[int]
+    set_at: Mapped[dt.datetime]
+    set_by: Mapped[str] = mapped_column(sa.String(100))
+    reason: Mapped[str] = mapped_column(sa.Text)
+
+
+class ActiveCalibrationHistory(Base):
+    __tablename__ = "active_calibration_history"
+    __table_args__ = (sa.Index(None, "device_id", "kind", "id"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    device_id: Mapped[int] = mapped_column(sa.ForeignKey("devices.id"))
+    kind: Mapped[str] = mapped_column(sa.String(40))
+    record_id: Mapped[int | None] = mapped_column(sa.ForeignKey("calibration_records.id"))
+    previous_record_id: Mapped[int | None] = mapped_column(sa.ForeignKey("calibration_records.id"))
+    changed_at: Mapped[dt.datetime]
+    changed_by: Mapped[str] = mapped_column(sa.String(100))
+    reason: Mapped[str] = mapped_column(sa.Text)
+
+
+class AuditEvent(Base):
+    """Who did what, when; one global hash chain (a unique predecessor makes forks impossible)."""
+
+    __tablename__ = "audit_events"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    at: Mapped[dt.datetime] = mapped_column(index=True)
+    actor: Mapped[str] = mapped_column(sa.String(100))
+    action: Mapped[str] = mapped_column(sa.String(60))
+    entity: Mapped[str] = mapped_column(sa.String(60))
+    entity_id: Mapped[str] = mapped_column(sa.String(100))
+    details: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    prev_sha256: Mapped[str] = mapped_column(Sha256, unique=True)
+    sha256: Mapped[str] = mapped_column(Sha256, unique=True)
+
+
+class Sample(Base):
+    """One raw reading. High volume: written through `samples.insert_samples`, not the ORM."""
+
+    __tablename__ = "samples"
+    __table_args__ = (
+        sa.CheckConstraint(sa.text("source IN ('calibration', 'monitoring')"), name="source"),
+        sa.CheckConstraint(sa.text("source = 'monitoring' OR job_id IS NOT NULL"), name="calibration_job"),
+        sa.Index(None, "device_id", "t_s"),
+        sa.Index(
+            None,
+            "job_id",
+            "point",
+            sqlite_where=sa.text("job_id IS NOT NULL"),
+            postgresql_where=sa.text("job_id IS NOT NULL"),
+        ),
+    )
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    device_id: Mapped[int] = mapped_column(sa.ForeignKey("devices.id"))
+    # Seconds since the Unix epoch, UTC.
+    t_s: Mapped[float] = mapped_column(sa.Double())
+    ch_x: Mapped[float] = mapped_column(sa.Double())
+    ch_y: Mapped[float] = mapped_column(sa.Double())
+    ch_z: Mapped[float | None] = mapped_column(sa.Double())
+    temp_c: Mapped[float | None] = mapped_column(sa.Double())
+    job_id: Mapped[int | None] = mapped_column(sa.ForeignKey("calibration_jobs.id"))
+    point: Mapped[int | None]
+    source: Mapped[str] = mapped_column(sa.String(12))
+
+
+class SettledPoint(Base):
+    """The settled average of one grid point of a job: what calibrations are fitted on."""
+
+    __tablename__ = "settled_points"
+    __table_args__ = (sa.UniqueConstraint("job_id", "device_id", "point"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    job_id: Mapped[int] = mapped_column(sa.ForeignKey("calibration_jobs.id"))
+    device_id: Mapped[int] = mapped_column(sa.ForeignKey("devices.id"))
+    point: Mapped[int]
+    # Commanded stage tilt of the grid point, if the job has a stage.
+    cmd_x_deg: Mapped[float | None] = mapped_column(sa.Double())
+    cmd_y_deg: Mapped[float | None] = mapped_column(sa.Double())
+    n_samples: Mapped[int]
+    t_start_s: Mapped[float] = mapped_column(sa.Double())
+    t_end_s: Mapped[float] = mapped_column(sa.Double())
+    ch_x_mean: Mapped[float] = mapped_column(sa.Double())
+    ch_y_mean: Mapped[float] = mapped_column(sa.Double())
+    ch_z_mean: Mapped[float | None] = mapped_column(sa.Double())
+    ch_x_std: Mapped[float | None] = mapped_column(sa.Double())
+    ch_y_std: Mapped[float | None] = mapped_column(sa.Double())
+    ch_z_std: Mapped[float | None] = mapped_column(sa.Double())
+    temp_c_mean: Mapped[float | None] = mapped_column(sa.Double())
+    created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
+
+
+_APPEND_ONLY_CLASSES = (CalibrationRecord, AuditEvent, ActiveCalibrationHistory, SettledPoint)
+
+
+@event.listens_for(Session, "before_flush")
+def _refuse_append_only_changes(session: Session, flush_context: Any, instances: Any) -> None:
+    """Refuse in the code what the triggers refuse in the database, with a clearer message."""
+    for obj in list(session.dirty) + list(session.deleted):
+        if isinstance(obj, _APPEND_ONLY_CLASSES) and (obj in session.deleted or session.is_modified(obj)):
+            verb = "delete" if obj in session.deleted else "update"
+            raise AppendOnlyViolation(
+                f"refused: {obj.__tablename__} is append-only; cannot {verb} row id={obj.id}"
+                " (add a new version instead)"
+            )
