@@ -1,0 +1,159 @@
+"""Fit effect parameters of the stacked-stage forward model to recorded points.
+
+The bench model a lab fits is the simulator itself (service.physics.stage) with some effect
+parameters free: the kinematic calibration and the discrepancy workflow's kinematic
+baseline are both this fit with different free sets. Readings are predicted noise-free; the
+covariance of the free parameters is the Gauss-Newton one, (JᵀJ)⁻¹ s², with s² the residual
+variance per degree of freedom.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from service.errors import DegenerateDataError, FitError
+from service.physics.effects import STAGE_EFFECTS, EffectSet
+from service.physics.stage import StageBench, StageGeometry, simulate_stage
+
+ParamKey = tuple[str, str]  # (effect, parameter)
+
+
+def param_label(key: ParamKey) -> str:
+    return f"{key[0]}.{key[1]}"
+
+
+def typical_scale(key: ParamKey) -> float:
+    """Magnitude used to scale a parameter in the solver (and its finite-difference step)."""
+    unit = STAGE_EFFECTS[key[0]].param(key[1]).unit
+    return {"deg": 0.1, "1": 1e-3, "1/deg": 1e-4, "deg/K": 1e-3, "1/K": 1e-4, "deg/h": 1e-2}.get(unit, 1e-2)
+
+
+@dataclass
+class StagePoints:
+    """The covariates of recorded stage points, with the defaults a missing column means."""
+
+    stage_x_deg: np.ndarray
+    stage_y_deg: np.ndarray
+    dir_x: np.ndarray
+    dir_y: np.ndarray
+    temp_c: np.ndarray | None = None
+    t_s: np.ndarray | None = None
+
+    @classmethod
+    def from_columns(cls, data: Mapping[str, np.ndarray]) -> "StagePoints":
+        x = np.asarray(data["stage_x_deg"], dtype=float)
+        y = np.asarray(data["stage_y_deg"], dtype=float)
+        z = np.zeros_like(x)
+        return cls(x, y, np.asarray(data.get("dir_x", z), dtype=float), np.asarray(data.get("dir_y", z), dtype=float),
+                   None if "temp_c" not in data else np.asarray(data["temp_c"], dtype=float),
+                   None if "t_s" not in data else np.asarray(data["t_s"], dtype=float))
+
+    def __len__(self) -> int:
+        return self.stage_x_deg.size
+
+
+@dataclass
+class BenchModel:
+    """A bench with some effects fixed and others free: predicts sensor readings."""
+
+    bench: StageBench
+    fixed: dict[str, dict[str, float]]
+    free: list[ParamKey]
+
+    def effect_set(self, values: Sequence[float]) -> EffectSet:
+        eff: dict[str, dict[str, float]] = {k: dict(v) for k, v in self.fixed.items()}
+        for (e, p), v in zip(self.free, values):
+            eff.setdefault(e, {})[p] = float(v)
+        eff.pop("noise", None)
+        return EffectSet.from_mapping("stage", eff)
+
+    def predict(self, values: Sequence[float], pts: StagePoints, outputs: Sequence[str]) -> np.ndarray:
+        """Noise-free predictions (N, len(outputs)); outputs are column names such as ref_x_deg or tilt_x_deg."""
+        fx = self.effect_set(values)
+        sim = simulate_stage(self.bench, fx, pts.stage_x_deg, pts.stage_y_deg, pts.dir_x, pts.dir_y,
+                             pts.temp_c, pts.t_s, rng=None, geometry=StageGeometry.from_effects(self.bench, fx))
+        return np.column_stack([sim[o] for o in outputs])
+
+
+@dataclass
+class BenchFit:
+    model: BenchModel
+    values: np.ndarray
+    covariance: np.ndarray
+    residuals: dict[str, np.ndarray]
+    sigma: float
+    dof: int
+    cost: float
+    converged: bool
+    nfev: int
+    message: str
+    jac_singular_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def value(self, key: ParamKey) -> float:
+        return float(self.values[self.model.free.index(key)])
+
+    def std(self, key: ParamKey) -> float:
+        i = self.model.free.index(key)
+        return float(np.sqrt(max(self.covariance[i, i], 0.0)))
+
+    @property
+    def rss(self) -> float:
+        return float(sum(np.sum(r**2) for r in self.residuals.values()))
+
+    @property
+    def n_obs(self) -> int:
+        return int(sum(r.size for r in self.residuals.values()))
+
+
+def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, np.ndarray],
+              x0: Sequence[float] | None = None, loss: str = "linear", f_scale: float | None = None,
+              max_nfev: int = 2000) -> BenchFit:
+    """Least-squares fit of the free parameters to the observed columns (e.g. ref_x_deg, ref_y_deg)."""
+    outputs = list(observed)
+    obs = np.column_stack([np.asarray(observed[o], dtype=float) for o in outputs])
+    n_obs, n_par = obs.size, len(model.free)
+    if n_obs <= n_par:
+        raise DegenerateDataError(f"{len(pts)} points give {n_obs} readings, fewer than the {n_par} free parameters "
+                                  f"of the bench model ({', '.join(param_label(k) for k in model.free)})")
+    x0 = np.zeros(n_par) if x0 is None else np.asarray(x0, dtype=float)
+    scales = np.array([typical_scale(k) for k in model.free])
+
+    def resid(x):
+        return (model.predict(x, pts, outputs) - obs).ravel()
+
+    if n_par == 0:
+        r = resid(x0)
+        return _result(model, x0, np.zeros((0, 0)), r, outputs, obs.shape, 0.0, True, 1, "no free parameters", None)
+    kw = {}
+    if loss != "linear":
+        kw["f_scale"] = f_scale if f_scale is not None else 3 * max(np.std(resid(x0)), 1e-6)
+    try:
+        sol = least_squares(resid, x0, x_scale=scales, diff_step=1e-4 * scales / np.maximum(np.abs(x0), scales),
+                            loss=loss, method="trf", max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12, **kw)
+    except ValueError as exc:
+        raise FitError(f"bench fit failed: {exc}") from exc
+    if not np.all(np.isfinite(sol.x)):
+        raise FitError("bench fit diverged (non-finite parameters)")
+    J = sol.jac
+    r = sol.fun if loss == "linear" else resid(sol.x)
+    dof = max(n_obs - n_par, 1)
+    s2 = float(r @ r) / dof
+    sv = np.linalg.svd(J * scales, compute_uv=False)
+    if sv[-1] <= 1e-8 * sv[0]:
+        raise DegenerateDataError("the data do not separate the free bench parameters "
+                                  f"({', '.join(param_label(k) for k in model.free)}): the fit is singular")
+    cov = np.linalg.pinv(J.T @ J) * s2
+    return _result(model, sol.x, cov, r, outputs, obs.shape, s2, bool(sol.status > 0), int(sol.nfev),
+                   str(sol.message), sv)
+
+
+def _result(model, x, cov, r, outputs, shape, s2, ok, nfev, msg, sv) -> BenchFit:
+    rr = np.asarray(r).reshape(shape)
+    res = {o: rr[:, i] for i, o in enumerate(outputs)}
+    dof = max(rr.size - len(model.free), 1)
+    return BenchFit(model, np.asarray(x, dtype=float), cov, res, float(np.sqrt(s2)), dof, float(np.sum(rr**2) / 2),
+                    ok, nfev, msg, np.zeros(0) if sv is None else sv)
