@@ -1,0 +1,168 @@
+"""Raw samples: the fast bulk path, the reads the service needs, and retention.
+
+Samples are plain tuples (`Sample`) and go to the database with the driver's own bulk path
+on SQLAlchemy's connection (executemany for SQLite, COPY for PostgreSQL): building ORM
+objects for millions of readings would cost more than the database does.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import sqlalchemy as sa
+
+from service.errors import InputError
+from service.storage.models import SAMPLE_SOURCES
+from service.storage.models import Sample as SampleRow
+
+COLUMNS = ("device_id", "t_s", "ch_x", "ch_y", "ch_z", "temp_c", "job_id", "point", "source")
+
+
+class Sample(NamedTuple):
+    device_id: int
+    t_s: float  # seconds since the Unix epoch, UTC
+    ch_x: float
+    ch_y: float
+    ch_z: float | None = None
+    temp_c: float | None = None
+    job_id: int | None = None
+    point: int | None = None
+    source: str = "monitoring"  # or "calibration" (then job_id is required)
+
+
+def check_sample(s: Sample) -> None:
+    """Cheap checks at the producer, so a bad reading is refused where it is made, not in a batch later."""
+    if len(s) != len(COLUMNS):
+        raise InputError(f"sample has {len(s)} fields, expected {len(COLUMNS)}: {COLUMNS}")
+    if s.source not in SAMPLE_SOURCES:
+        raise InputError(f"sample source {s.source!r} is not one of {SAMPLE_SOURCES}")
+    if s.source == "calibration" and s.job_id is None:
+        raise InputError("a calibration sample needs its job_id")
+    if not isinstance(s.t_s, int | float) or not math.isfinite(s.t_s):
+        raise InputError(f"sample t_s={s.t_s!r} is not a finite time in seconds")
+
+
+_INSERT_SQL = {
+    "qmark": f"INSERT INTO samples ({', '.join(COLUMNS)}) VALUES ({', '.join('?' * len(COLUMNS))})",
+    "format": f"INSERT INTO samples ({', '.join(COLUMNS)}) VALUES ({', '.join(['%s'] * len(COLUMNS))})",
+}
+_COPY_SQL = f"COPY samples ({', '.join(COLUMNS)}) FROM STDIN"
+
+
+def insert_samples(conn: sa.Connection, rows: Sequence[Sequence[object]]) -> int:
+    """Insert in the caller's transaction with the driver's bulk path; returns the count."""
+    if not rows:
+        return 0
+    if conn.dialect.name == "postgresql":
+        dbapi_conn = conn.connection.driver_connection
+        with dbapi_conn.cursor() as cur, cur.copy(_COPY_SQL) as copy:  # type: ignore[union-attr]
+            for row in rows:
+                copy.write_row(row)
+        return len(rows)
+    sql = _INSERT_SQL.get(conn.dialect.paramstyle) or _INSERT_SQL["format"]
+    conn.exec_driver_sql(sql, rows if isinstance(rows, list) else list(rows))
+    return len(rows)
+
+
+def write_samples(engine: sa.Engine, rows: Iterable[Sample], *, batch_size: int = 5000) -> int:
+    """Synchronous convenience: check and insert, one transaction per batch."""
+    from service.storage.engine import write_engine
+
+    total, batch = 0, []
+    weng = write_engine(engine)
+    for s in rows:
+        check_sample(s)
+        batch.append(s)
+        if len(batch) >= batch_size:
+            with weng.begin() as conn:
+                total += insert_samples(conn, batch)
+            batch = []
+    if batch:
+        with weng.begin() as conn:
+            total += insert_samples(conn, batch)
+    return total
+
+
+_t = SampleRow.__table__
+_SELECT_COLS = [_t.c[name] for name in COLUMNS]
+
+
+def latest_samples(conn: sa.Connection, device_id: int, n: int = 1000) -> list[Sample]:
+    """The newest n samples of a device, newest first (served by the (device_id, t_s) index)."""
+    stmt = sa.select(*_SELECT_COLS).where(_t.c.device_id == device_id).order_by(_t.c.t_s.desc()).limit(n)
+    return [Sample(*row) for row in conn.execute(stmt)]
+
+
+def samples_between(conn: sa.Connection, device_id: int, t0_s: float, t1_s: float) -> list[Sample]:
+    stmt = (
+        sa.select(*_SELECT_COLS)
+        .where(_t.c.device_id == device_id, _t.c.t_s >= t0_s, _t.c.t_s < t1_s)
+        .order_by(_t.c.t_s)
+    )
+    return [Sample(*row) for row in conn.execute(stmt)]
+
+
+def job_samples(conn: sa.Connection, job_id: int, point: int | None = None) -> list[Sample]:
+    stmt = sa.select(*_SELECT_COLS).where(_t.c.job_id == job_id)
+    if point is not None:
+        stmt = stmt.where(_t.c.point == point)
+    return [Sample(*row) for row in conn.execute(stmt.order_by(_t.c.point, _t.c.t_s, _t.c.id))]
+
+
+def count_samples(conn: sa.Connection, **where: object) -> int:
+    stmt = sa.select(sa.func.count()).select_from(_t)
+    for key, value in where.items():
+        stmt = stmt.where(_t.c[key] == value)
+    return int(conn.execute(stmt).scalar_one())
+
+
+@dataclass(frozen=True)
+class RetentionResult:
+    cutoff_s: float
+    policy: str
+    deleted: int
+    kept_thinned: int
+
+
+def apply_retention(
+    conn: sa.Connection,
+    *,
+    older_than: dt.timedelta,
+    policy: str = "thin",
+    thin_interval_s: float = 60.0,
+    now: dt.datetime | None = None,
+) -> RetentionResult:
+    """Drop, or thin to one sample per device per interval, the monitoring samples older than the age.
+
+    Only rows with source='monitoring' are touched; the database triggers refuse the deletion of
+    any other sample, so a mistake here cannot reach calibration data.
+    """
+    if policy not in ("thin", "drop"):
+        raise InputError(f"retention policy {policy!r} is not 'thin' or 'drop'")
+    if older_than <= dt.timedelta(0):
+        raise InputError("retention age must be positive")
+    if policy == "thin" and not (thin_interval_s > 0):
+        raise InputError("thin interval must be positive")
+    now = now or dt.datetime.now(dt.UTC)
+    cutoff_s = (now - older_than).timestamp()
+    old = sa.and_(_t.c.source == "monitoring", _t.c.t_s < cutoff_s)
+    kept = 0
+    devices = [d for (d,) in conn.execute(sa.select(_t.c.device_id).where(old).distinct())]
+    deleted = 0
+    for device_id in devices:  # one device at a time: each delete walks the (device_id, t_s) index
+        scope = sa.and_(_t.c.device_id == device_id, old)
+        if policy == "drop":
+            deleted += conn.execute(sa.delete(_t).where(scope)).rowcount
+            continue
+        if conn.dialect.name == "postgresql":
+            bucket = sa.func.floor(_t.c.t_s / thin_interval_s)
+        else:
+            bucket = sa.cast(_t.c.t_s / thin_interval_s, sa.Integer)  # t_s > 0: truncation is floor
+        keep = sa.select(sa.func.min(_t.c.id)).where(scope).group_by(bucket)
+        deleted += conn.execute(sa.delete(_t).where(scope, _t.c.id.not_in(keep))).rowcount
+        kept += int(conn.execute(sa.select(sa.func.count()).select_from(_t).where(scope)).scalar_one())
+    return RetentionResult(cutoff_s=cutoff_s, policy=policy, deleted=deleted, kept_thinned=kept)

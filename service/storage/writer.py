@@ -1,0 +1,227 @@
+"""SampleWriter: samples from acquisition threads to the database in batches, off their thread.
+
+Producers call `put`/`put_many`; a background thread takes up to `batch_size` samples at a
+time from a bounded queue and commits each batch in one transaction. When the database falls
+behind, the queue fills and `put` blocks (back-pressure) for at most `put_timeout_s`, then raises
+`BackPressureTimeout`: acquisition learns that it is losing data instead of memory growing.
+
+Loss bound. A sample is *handed over* when `put`/`put_many` has returned for it. At any moment
+the handed-over samples not yet committed are those in the queue (at most `capacity`) plus the
+batch being written (at most `batch_size`). So if the process is killed (SIGKILL, power loss)
+at most `capacity + batch_size` handed-over samples are lost, and the committed ones are exactly
+the oldest handed-over ones (batches commit in order). `close()` (also run at interpreter exit)
+and `flush()` lose nothing.
+"""
+
+from __future__ import annotations
+
+import atexit
+import collections
+import logging
+import queue
+import threading
+import time
+from collections.abc import Iterable, Sequence
+
+import sqlalchemy as sa
+
+from service.storage.engine import write_engine
+from service.storage.errors import BackPressureTimeout, SampleWriteError
+from service.storage.samples import Sample, check_sample, insert_samples
+
+log = logging.getLogger(__name__)
+
+
+class _SampleQueue(queue.Queue):  # type: ignore[type-arg]
+    """A bounded queue.Queue of sample chunks whose size, and bound, count samples, not chunks."""
+
+    def _init(self, maxsize: int) -> None:
+        self.queue: collections.deque[Sequence[Sample]] = collections.deque()
+        self.samples = 0
+
+    def _qsize(self) -> int:
+        return self.samples
+
+    def put_chunk(self, chunk: Sequence[Sample], timeout: float) -> None:
+        """Block until the whole chunk fits (len(chunk) <= maxsize), or raise queue.Full."""
+        deadline = time.monotonic() + timeout
+        with self.not_full:
+            while self.samples + len(chunk) > self.maxsize:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise queue.Full
+                self.not_full.wait(remaining)
+            self.queue.append(chunk)
+            self.samples += len(chunk)
+            self.not_empty.notify()
+
+    def get_batch(self, max_n: int, timeout: float) -> list[Sample]:
+        """Up to max_n samples in put order; [] if none arrived within the timeout."""
+        with self.not_empty:
+            if not self.samples:
+                self.not_empty.wait(timeout)
+            batch: list[Sample] = []
+            while self.queue and len(batch) < max_n:
+                chunk = self.queue[0]
+                room = max_n - len(batch)
+                if len(chunk) <= room:
+                    self.queue.popleft()
+                    batch.extend(chunk)
+                else:
+                    batch.extend(chunk[:room])
+                    self.queue[0] = chunk[room:]
+            self.samples -= len(batch)
+            if batch:
+                self.not_full.notify_all()
+            return batch
+
+
+class SampleWriter:
+    def __init__(
+        self,
+        engine: sa.Engine,
+        *,
+        capacity: int = 50_000,
+        batch_size: int = 5_000,
+        put_timeout_s: float = 5.0,
+        validate: bool = True,
+        retry_for_s: float = 30.0,
+    ) -> None:
+        if batch_size < 1 or capacity < batch_size:
+            raise ValueError("need 1 <= batch_size <= capacity")
+        self.capacity = capacity
+        self.batch_size = batch_size
+        self.put_timeout_s = put_timeout_s
+        self.validate = validate
+        self.retry_for_s = retry_for_s
+        self._engine = write_engine(engine)
+        self._queue = _SampleQueue(capacity)
+        self._progress = threading.Condition()
+        self.handed_over = 0
+        self.committed = 0
+        self.rejected: list[tuple[Sample, str]] = []
+        self._stopping = threading.Event()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="tiltlab-sample-writer", daemon=True)
+        self._thread.start()
+        atexit.register(self.close)
+
+    @classmethod
+    def from_settings(cls, engine: sa.Engine, settings) -> SampleWriter:  # type: ignore[no-untyped-def]
+        return cls(
+            engine,
+            capacity=settings.sample_queue_capacity,
+            batch_size=settings.sample_batch_size,
+            put_timeout_s=settings.sample_put_timeout_s,
+        )
+
+    @property
+    def loss_bound(self) -> int:
+        """Most handed-over samples a hard kill can lose."""
+        return self.capacity + self.batch_size
+
+    def put(self, sample: Sample) -> None:
+        self.put_many((sample,))
+
+    def put_many(self, samples: Iterable[Sample]) -> None:
+        """Hand samples over; blocks while the queue is full, up to put_timeout_s per batch-sized chunk."""
+        if self._closed or self._stopping.is_set():
+            raise RuntimeError("SampleWriter is closed")
+        rows = samples if isinstance(samples, list) else list(samples)
+        if self.validate:
+            for s in rows:
+                check_sample(s)
+        accepted = 0
+        for i in range(0, len(rows), self.batch_size):
+            chunk = rows[i : i + self.batch_size]
+            try:
+                self._queue.put_chunk(chunk, self.put_timeout_s)
+            except queue.Full:
+                raise BackPressureTimeout(
+                    f"sample queue full for {self.put_timeout_s} s: the database is not keeping up;"
+                    f" {accepted} of these {len(rows)} samples were accepted, the rest were not"
+                ) from None
+            accepted += len(chunk)
+            with self._progress:
+                self.handed_over += len(chunk)
+
+    def flush(self, timeout: float | None = None) -> None:
+        """Wait until every sample handed over so far is committed (or rejected)."""
+        with self._progress:
+            target = self.handed_over
+            done = self._progress.wait_for(
+                lambda: self.committed + len(self.rejected) >= target or not self._thread.is_alive(), timeout
+            )
+        if not done:
+            raise TimeoutError(f"flush: {target - self.committed} samples still uncommitted after {timeout} s")
+        self._raise_rejected()
+
+    def close(self, timeout: float | None = None) -> None:
+        """Write everything handed over, stop the thread. Idempotent."""
+        if self._closed:
+            return
+        self._stopping.set()
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            raise TimeoutError(f"close: writer still busy after {timeout} s; {self.pending} samples pending")
+        self._closed = True
+        atexit.unregister(self.close)
+        self._raise_rejected()
+
+    @property
+    def pending(self) -> int:
+        with self._progress:
+            return self.handed_over - self.committed - len(self.rejected)
+
+    def __enter__(self) -> SampleWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _raise_rejected(self) -> None:
+        if self.rejected:
+            sample, reason = self.rejected[0]
+            raise SampleWriteError(
+                f"{len(self.rejected)} samples were refused by the database; first: {sample} ({reason})"
+            )
+
+    def _run(self) -> None:
+        while True:
+            batch = self._queue.get_batch(self.batch_size, timeout=0.05)
+            if batch:
+                self._write(batch)
+            elif self._stopping.is_set() and self._queue.qsize() == 0:
+                return
+
+    def _write(self, batch: list[Sample]) -> None:
+        deadline = time.monotonic() + self.retry_for_s
+        delay = 0.05
+        while True:
+            try:
+                with self._engine.begin() as conn:
+                    insert_samples(conn, batch)
+                with self._progress:
+                    self.committed += len(batch)
+                    self._progress.notify_all()
+                return
+            except sa.exc.OperationalError as exc:  # locked or unreachable: worth waiting for
+                if time.monotonic() >= deadline:
+                    log.error("sample batch failed after retries: %s", exc)
+                    break
+                time.sleep(delay)
+                delay = min(delay * 2, 1.0)
+            except sa.exc.DBAPIError as exc:  # a bad row in the batch: find it, keep the others
+                log.warning("sample batch refused (%s); writing it row by row", exc.orig)
+                break
+        for row in batch:
+            try:
+                with self._engine.begin() as conn:
+                    insert_samples(conn, [row])
+                with self._progress:
+                    self.committed += 1
+                    self._progress.notify_all()
+            except sa.exc.DBAPIError as exc:
+                with self._progress:
+                    self.rejected.append((row, str(exc.orig).splitlines()[0]))
+                    self._progress.notify_all()

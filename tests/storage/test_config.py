@@ -1,0 +1,42 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from service.config import Settings
+from service.errors import InputError
+
+
+def test_defaults_put_sqlite_file_in_data_dir(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.delenv("TILTLAB_DATABASE_URL", raising=False)
+    monkeypatch.delenv("TILTLAB_CONFIG", raising=False)
+    monkeypatch.setenv("TILTLAB_DATA_DIR", str(tmp_path / "d"))
+    s = Settings()
+    assert s.data_dir == tmp_path / "d"
+    assert s.database_url == f"sqlite:///{(tmp_path / 'd' / 'tiltlab.db').as_posix()}"
+    assert (s.host, s.port) == ("127.0.0.1", 8000)
+
+
+def test_environment_overrides_config_file(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    cfg = tmp_path / "tiltlab.toml"
+    cfg.write_text('port = 9001\nmonitoring_retention_days = 7\ndatabase_url = "sqlite:////tmp/x.db"\n')
+    monkeypatch.setenv("TILTLAB_CONFIG", str(cfg))
+    monkeypatch.setenv("TILTLAB_PORT", "9002")
+    monkeypatch.delenv("TILTLAB_DATABASE_URL", raising=False)
+    s = Settings()
+    assert s.port == 9002
+    assert s.monitoring_retention_days == 7
+    assert s.database_url == "sqlite:////tmp/x.db"
+
+
+def test_missing_config_file_is_an_input_error(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("TILTLAB_CONFIG", str(tmp_path / "nope.toml"))
+    with pytest.raises(InputError, match="nope.toml"):
+        Settings()
+
+
+def test_batch_larger_than_queue_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TILTLAB_CONFIG", raising=False)
+    with pytest.raises(ValueError, match="sample_batch_size"):
+        Settings(sample_queue_capacity=10, sample_batch_size=100)
