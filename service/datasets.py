@@ -175,7 +175,7 @@ def format_value(col: str, v) -> str:
     f = float(v)
     if col in _INTEGER_COLUMNS and f == round(f):
         return str(int(round(f)))
-    return f"{f:.12g}"
+    return repr(f)  # shortest text that reads back to the same float
 
 
 def write_dataset(path: str | Path, columns: Mapping[str, Sequence | np.ndarray]) -> None:

@@ -213,16 +213,22 @@ def effects_dict(scenario: Scenario) -> dict[str, dict[str, Any]]:
     return {name: dict(val) for name, val in scenario.effects.model_dump(exclude_none=True).items()}
 
 
+def _union_tag(x: str) -> bool:
+    return x[:1].isupper() or x.startswith("list[") or x.startswith("function-")
+
+
 def _format_error(source: str, err: ValidationError) -> str:
-    e = err.errors()[0]
+    errors = err.errors()
+    # For a union (a list or a range), the branch whose shape matched says the useful thing.
+    errors.sort(key=lambda e: e["type"].endswith("_type") and any(_union_tag(str(x)) for x in e["loc"]))
+    e = errors[0]
     loc = [str(x) for x in e["loc"]]
     if loc and loc[0] == "root":
         loc = loc[1:]
     # drop pydantic's union-branch tags ("stage", "AxisRange", "list[...]") from the path
-    loc = [x for x in loc if x not in ("stage", "rotation", "scale", "turntable") and not x[:1].isupper()
-           and not x.startswith("list[") and not x.startswith("function-")]
+    loc = [x for x in loc if x not in ("stage", "rotation", "scale", "turntable") and not _union_tag(x)]
     field = ".".join(loc) or "(top level)"
-    msg = e["msg"]
+    msg = e["msg"].removeprefix("Value error, ")
     if e["type"] == "extra_forbidden":
         parent = ".".join(loc[:-1])
         if parent == "effects":

@@ -1,0 +1,86 @@
+"""Scenario files: presets, validation messages, and the JSON Schema in docs/."""
+
+import json
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+
+from service.errors import InputError
+from service.physics.effects import EFFECTS_BY_KIND
+from service.scenarios import json_schema, load_scenario, parse_scenario, preset_names, run_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+PRESETS = ["seed000", "seed002-b55", "seed002-b75", "seed002-sim", "seed003", "seed004"]
+
+
+def test_every_preset_the_issue_names_is_shipped():
+    assert set(PRESETS) <= set(preset_names())
+
+
+def test_schema_in_docs_is_current():
+    on_disk = json.loads((ROOT / "docs" / "scenario.schema.json").read_text())
+    assert on_disk == json_schema(), "regenerate: python -m service.scenarios schema > docs/scenario.schema.json"
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_presets_validate_against_the_published_schema(name):
+    data = json.loads((ROOT / "service" / "scenarios" / "presets" / f"{name}.json").read_text())
+    jsonschema.validate(data, json_schema())
+
+
+def test_schema_states_every_effect_range():
+    schema = json.dumps(json_schema())
+    for kind, table in EFFECTS_BY_KIND.items():
+        for eff in table.values():
+            assert f"{kind.title()}_{eff.name}" in schema
+
+
+def _stage(**over):
+    d = {"kind": "stage", "grid": {"x_deg": [0, 3], "y_deg": [0, 3]}}
+    d.update(over)
+    return d
+
+
+@pytest.mark.parametrize("data,field,words", [
+    (_stage(effects={"gremlins": {}}), "effects.gremlins", "unknown effect"),
+    (_stage(effects={"backlash": {"x_deg": 5}}), "effects.backlash.x_deg", "less than or equal to 0.5"),
+    (_stage(effects={"backlash": {"z_deg": 0.1}}), "effects.backlash.z_deg", "unknown field"),
+    ({"kind": "stage"}, "grid", "missing"),
+    (_stage(grid={"x_deg": [0, 20], "y_deg": [0]}), "grid.x_deg", "beyond the stage travel"),
+    (_stage(grid={"x_deg": {"start": 0, "stop": 3}, "y_deg": [0]}), "grid.x_deg", "exactly one of step or count"),
+    (_stage(seed=-1), "seed", "greater than or equal to 0"),
+    ({"kind": "rotation", "grid": {"theta_deg": [0]}}, "bench", "missing"),
+    ({"kind": "warp"}, "kind", "not one of"),
+    (_stage(effects={"noise": {"ref_sigma_deg": "lots"}}), "effects.noise.ref_sigma_deg", "valid number"),
+])
+def test_bad_scenarios_get_one_line_naming_the_field(data, field, words):
+    with pytest.raises(InputError) as exc:
+        parse_scenario(data, source="s.json")
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert f"field {field}:" in msg and words in msg
+
+
+def test_same_seed_same_data_other_seed_other_noise():
+    sc = load_scenario("seed000")
+    a, b, c = run_scenario(sc), run_scenario(sc), run_scenario(sc, seed=1)
+    assert np.array_equal(a.columns["ref_x_deg"], b.columns["ref_x_deg"])
+    assert not np.array_equal(a.columns["ref_x_deg"], c.columns["ref_x_deg"])
+    assert np.array_equal(a.columns["stage_x_deg"], c.columns["stage_x_deg"])
+
+
+def test_seed000_preset_has_papers_grid_and_uncorrected_errors_of_a_few_tenths():
+    r = run_scenario(load_scenario("seed000"))
+    c = r.columns
+    assert len(c["point"]) == 81 and set(np.unique(c["stage_x_deg"])) == set(np.arange(-12, 13, 3.0))
+    err_x = np.max(np.abs(c["stage_x_deg"] - c["meas_x_deg"]))
+    err_y = np.max(np.abs(c["stage_y_deg"] - c["meas_y_deg"]))
+    assert 0.2 < err_x < 0.9 and 0.1 < err_y < 0.5  # seed 000 §4.4: 0.559 and 0.216 deg
+
+
+def test_serpentine_order_alternates_the_approach_of_the_upper_stage():
+    r = run_scenario(load_scenario("seed000"))
+    d = r.columns["dir_x"].reshape(9, 9)
+    assert np.all(d[0, 1:] == 1) and np.all(d[1, 1:] == -1)
