@@ -1,0 +1,38 @@
+"""The tiltlab service: FastAPI application factory."""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from service import __version__
+from service.api import problems
+from service.api.routers import health, tilt
+from service.bench.simulated import SimulatedStageBench
+from service.config import Settings, get_settings
+from service.storage.migrate import bootstrap
+
+log = logging.getLogger("tiltlab")
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        s = settings or get_settings()
+        app.state.settings = s
+        app.state.engine = bootstrap(s)  # brings the database to the current schema
+        app.state.bench = SimulatedStageBench(getattr(s, "bench_scenario", "seed000"))
+        log.info("tiltlab %s: database %s, bench %s", __version__, app.state.engine.url, app.state.bench.name)
+        try:
+            yield
+        finally:
+            app.state.engine.dispose()
+
+    app = FastAPI(title="tiltlab", version=__version__, lifespan=lifespan,
+                  description="Calibration, measurement and control of tilt with biaxial inclinometers.")
+    problems.install(app)
+    app.include_router(health.router)
+    app.include_router(tilt.router)
+    return app

@@ -1,0 +1,70 @@
+"""The service as people start it: schema upgraded at start-up, health, tilt, problem+json."""
+
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+
+from service.api.app import create_app
+from service.config import Settings
+
+
+@pytest.fixture
+def client(tmp_path):
+    app = create_app(Settings(data_dir=tmp_path))
+    with TestClient(app) as c:
+        yield c
+
+
+def test_health_reports_schema_at_head_and_the_bench(client):
+    r = client.get("/health")
+    assert r.status_code == 200
+    body = r.json()
+    assert body["status"] == "ok" and body["schema_revision"] and body["bench"] == "simulated:seed000"
+    assert body["database"].startswith("sqlite")
+
+
+def test_tilt_serves_readings_and_says_when_uncorrected(client):
+    body = client.get("/tilt").json()
+    assert abs(body["meas_x_deg"]) < 1.0 and abs(body["ref_y_deg"]) < 1.0  # stage at zero, mounting errors < 1 deg
+    assert body["tilt_x_deg"] is None and "no active calibration" in body["note"]
+
+
+def test_unknown_route_is_problem_json(client):
+    r = client.get("/nope")
+    assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
+    assert r.json()["status"] == 404
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_tiltlab_serve_starts_on_a_fresh_data_dir(tmp_path):
+    """The README's first command, minus the install: the console entry point serves /health."""
+    port = _free_port()
+    env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data")}
+    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                r = httpx.get(f"http://127.0.0.1:{port}/health", timeout=2)
+                break
+            except httpx.TransportError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise AssertionError(f"service did not start: {proc.stdout.read() if proc.poll() is not None else ''}")
+                time.sleep(0.2)
+        assert r.status_code == 200 and r.json()["status"] == "ok"
+        assert (tmp_path / "data" / "tiltlab.db").exists()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
