@@ -59,9 +59,13 @@ def insert_samples(conn: sa.Connection, rows: Sequence[Sequence[object]]) -> int
         return 0
     if conn.dialect.name == "postgresql":
         dbapi_conn = conn.connection.driver_connection
-        with dbapi_conn.cursor() as cur, cur.copy(_COPY_SQL) as copy:  # type: ignore[union-attr]
-            for row in rows:
-                copy.write_row(row)
+        dbapi = conn.dialect.loaded_dbapi
+        try:
+            with dbapi_conn.cursor() as cur, cur.copy(_COPY_SQL) as copy:  # type: ignore[union-attr]
+                for row in rows:
+                    copy.write_row(row)
+        except dbapi.Error as exc:  # same exception types as every other statement
+            raise sa.exc.DBAPIError.instance(_COPY_SQL, None, exc, dbapi.Error) from exc
         return len(rows)
     sql = _INSERT_SQL.get(conn.dialect.paramstyle) or _INSERT_SQL["format"]
     conn.exec_driver_sql(sql, rows if isinstance(rows, list) else list(rows))

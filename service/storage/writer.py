@@ -211,8 +211,8 @@ class SampleWriter:
                     break
                 time.sleep(delay)
                 delay = min(delay * 2, 1.0)
-            except sa.exc.DBAPIError as exc:  # a bad row in the batch: find it, keep the others
-                log.warning("sample batch refused (%s); writing it row by row", exc.orig)
+            except Exception as exc:  # noqa: BLE001 - a bad row in the batch: find it, keep the others
+                log.warning("sample batch refused (%s); writing it row by row", _reason(exc))
                 break
         for row in batch:
             try:
@@ -221,7 +221,13 @@ class SampleWriter:
                 with self._progress:
                     self.committed += 1
                     self._progress.notify_all()
-            except sa.exc.DBAPIError as exc:
+            except Exception as exc:  # noqa: BLE001 - recorded, and raised to the producer at flush/close
                 with self._progress:
-                    self.rejected.append((row, str(exc.orig).splitlines()[0]))
+                    self.rejected.append((row, _reason(exc)))
                     self._progress.notify_all()
+
+
+def _reason(exc: BaseException) -> str:
+    orig = getattr(exc, "orig", None) or exc
+    lines = str(orig).strip().splitlines()
+    return lines[0] if lines else type(orig).__name__

@@ -9,6 +9,7 @@ from alembic.runtime.migration import MigrationContext
 
 from service import cli
 from service.config import get_settings
+from service.storage.engine import make_engine
 from service.storage.migrate import current_revision, downgrade, head_revision, upgrade
 from service.storage.models import APPEND_ONLY_TABLES, Base
 
@@ -59,14 +60,18 @@ def test_models_and_migrations_describe_the_same_schema(engine: sa.Engine) -> No
     assert diff == []
 
 
-def test_sqlite_connections_use_wal_and_foreign_keys(engine: sa.Engine) -> None:
-    if engine.dialect.name != "sqlite":
-        pytest.skip("SQLite pragmas")
+def test_sqlite_connections_use_wal_and_foreign_keys(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    engine = make_engine(f"sqlite:///{tmp_path / 'sub' / 'x.db'}")  # creates the directory too
     with engine.connect() as conn:
         assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
         assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
         assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() == 5000
         assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 1  # NORMAL
+    engine.dispose()
+
+
+def test_postgresql_urls_get_psycopg3() -> None:
+    assert make_engine("postgresql://u@h/db").dialect.driver == "psycopg"
 
 
 def test_db_commands(db_url: str, tmp_path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # type: ignore[no-untyped-def]

@@ -1,0 +1,186 @@
+"""Raw samples: bulk path, latest-N read, SampleWriter (no loss on close, back-pressure), settled points, retention."""
+
+from __future__ import annotations
+
+import datetime as dt
+import threading
+
+import pytest
+import sqlalchemy as sa
+from storage_helpers import MODEL, STANDARDS, count
+
+from service.errors import InputError
+from service.storage import BackPressureTimeout, IllegalTransition, write_engine, Sample, SampleWriteError, SampleWriter, Store, latest_samples, verify
+from service.storage.samples import count_samples, job_samples, write_samples
+
+NOW = dt.datetime(2026, 3, 1, 12, 0, tzinfo=dt.UTC)
+DAY_S = 86400.0
+
+
+def test_latest_samples_newest_first(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    other = store.add_device("NS-25/E2", "SN2", "dut", actor="a")
+    rows = [Sample(device.id, 1000.0 + i, i * 1e-3, -i * 1e-3, None, 21.0) for i in range(2500)]
+    rows += [Sample(other.id, 5000.0 + i, 0.0, 0.0) for i in range(10)]
+    assert write_samples(store.engine, rows, batch_size=1000) == 2510
+    with store.engine.connect() as conn:
+        latest = latest_samples(conn, device.id, 1000)
+    assert len(latest) == 1000
+    assert latest[0] == rows[2499] and latest[-1] == rows[1500]
+
+
+def test_writer_loses_nothing_on_clean_close(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    producers, per_producer = 4, 6000
+    writer = SampleWriter(store.engine, capacity=3000, batch_size=700, put_timeout_s=30)
+
+    def produce(k: int) -> None:
+        for start in range(0, per_producer, 250):
+            writer.put_many([Sample(device.id, k * 1e6 + i, float(k), float(i)) for i in range(start, start + 250)])
+        writer.put(Sample(device.id, k * 1e6 + per_producer, float(k), -1.0))
+
+    threads = [threading.Thread(target=produce, args=(k,)) for k in range(producers)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    writer.close()
+    expected = producers * (per_producer + 1)
+    assert writer.handed_over == writer.committed == expected
+    assert count(store.engine, "samples") == expected
+    with store.engine.connect() as conn:
+        per_k = conn.execute(sa.text("SELECT ch_x, count(*) FROM samples GROUP BY ch_x ORDER BY ch_x")).all()
+    assert [tuple(r) for r in per_k] == [(float(k), per_producer + 1) for k in range(producers)]
+
+
+def test_flush_makes_everything_visible(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    with SampleWriter(store.engine, capacity=100, batch_size=10) as writer:
+        writer.put_many([Sample(device.id, float(i), 0.0, 0.0) for i in range(55)])
+        writer.flush(timeout=30)
+        assert count(store.engine, "samples") == 55
+    with pytest.raises(RuntimeError, match="closed"):
+        writer.put(Sample(device.id, 1.0, 0.0, 0.0))
+
+
+def _hold_write_lock(engine: sa.Engine) -> sa.Connection:
+    conn = write_engine(engine).connect()
+    conn.begin()  # SQLite: BEGIN IMMEDIATE takes the write lock
+    if engine.dialect.name == "postgresql":
+        conn.exec_driver_sql("LOCK TABLE samples IN ACCESS EXCLUSIVE MODE")
+    return conn
+
+
+def test_back_pressure_blocks_then_times_out(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    engine = store.engine
+    holder = _hold_write_lock(engine)
+    writer = SampleWriter(engine, capacity=200, batch_size=50, put_timeout_s=0.3, retry_for_s=60)
+    try:
+        writer.put_many([Sample(device.id, float(i), 0.0, 0.0) for i in range(250)])  # queue + one batch in flight
+        with pytest.raises(BackPressureTimeout, match="not keeping up"):
+            writer.put_many([Sample(device.id, 1e6 + i, 0.0, 0.0) for i in range(50)])
+        assert writer.handed_over == 250
+    finally:
+        holder.rollback()
+        holder.close()
+    writer.close()
+    assert writer.committed == 250 and count(store.engine, "samples") == 250
+
+
+def test_writer_isolates_a_bad_sample(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    writer = SampleWriter(store.engine, capacity=100, batch_size=20)
+    good = [Sample(device.id, float(i), 0.0, 0.0) for i in range(30)]
+    writer.put_many([*good[:10], Sample(999, 5.5, 0.0, 0.0), *good[10:]])
+    with pytest.raises(SampleWriteError, match="1 samples were refused"):
+        writer.close()
+    assert writer.committed == 30 and count(store.engine, "samples") == 30
+
+
+def test_bad_samples_are_refused_at_the_producer(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    with SampleWriter(store.engine, capacity=10, batch_size=5) as writer:
+        with pytest.raises(InputError, match="needs its job_id"):
+            writer.put(Sample(device.id, 1.0, 0.0, 0.0, source="calibration"))
+        with pytest.raises(InputError, match="source"):
+            writer.put(Sample(device.id, 1.0, 0.0, 0.0, source="other"))
+        with pytest.raises(InputError, match="finite"):
+            writer.put(Sample(device.id, float("nan"), 0.0, 0.0))
+    assert writer.handed_over == 0
+
+
+def test_settled_points_and_record_provenance(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    job = store.create_job(device.id, "scale", "linear", actor="alice")
+    store.start_job(job.id, actor="alice")
+    raw = [Sample(device.id, 100.0 * p + i, 0.1 * p + 1e-4 * (i % 3), -0.1 * p, None, 20.0 + 0.01 * i, job.id, p,
+                  "calibration") for p in range(4) for i in range(20)]  # fmt: skip
+    write_samples(store.engine, raw)
+    points = store.settle_from_samples(job.id, device.id, actor="alice", skip_s=5.0,
+                                       commands={p: (p * 1.0, 0.0) for p in range(4)})  # fmt: skip
+    assert [p.n_samples for p in points] == [15] * 4
+    assert points[2].cmd_x_deg == 2.0 and abs(points[2].ch_y_mean + 0.2) < 1e-12
+    with store.engine.connect() as conn:
+        assert len(job_samples(conn, job.id, point=1)) == 20
+    rec = store.add_record(device.id, "scale", "linear", MODEL, operator="alice", reference_standards=STANDARDS,
+                           job_id=job.id, activate=True)  # fmt: skip
+    store.succeed_job(job.id, actor="alice")
+    assert rec.raw_data["points"] == 4 and rec.raw_data["samples"] == 80 and rec.raw_data["job_id"] == job.id
+    assert verify(store.engine).ok
+    with pytest.raises(IllegalTransition, match="succeeded"):
+        store.add_settled_points(job.id, device.id, [], actor="alice")  # the job no longer runs
+
+
+def test_changed_settled_points_are_reported(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    job = store.create_job(device.id, "scale", "linear", actor="alice")
+    store.start_job(job.id, actor="alice")
+    store.add_settled_points(job.id, device.id, [
+        {"point": p, "n_samples": 10, "t_start_s": p, "t_end_s": p + 1.0, "ch_x_mean": p * 0.1, "ch_y_mean": 0.0}
+        for p in range(3)
+    ], actor="alice")  # fmt: skip
+    rec = store.add_record(device.id, "scale", "linear", MODEL, operator="alice", job_id=job.id)
+    with store.engine.begin() as conn:
+        if store.engine.dialect.name == "sqlite":
+            conn.exec_driver_sql("DROP TRIGGER trg_settled_points_no_update")
+        else:
+            conn.exec_driver_sql("ALTER TABLE settled_points DISABLE TRIGGER USER")
+        conn.exec_driver_sql("UPDATE settled_points SET ch_x_mean = 0.5 WHERE point = 1")
+    assert [(p.row_id, p.kind) for p in verify(store.engine).problems] == [(rec.id, "raw_data_changed")]
+
+
+def _t(days_ago: float) -> float:
+    return NOW.timestamp() - days_ago * DAY_S
+
+
+def test_retention_drops_only_old_monitoring_samples(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    job = store.create_job(device.id, "scale", "linear", actor="alice")
+    old_cal = [Sample(device.id, _t(400) + i, 0.0, 0.0, None, None, job.id, 0, "calibration") for i in range(50)]
+    old_mon = [Sample(device.id, _t(40) + i, 0.0, 0.0) for i in range(300)]
+    new_mon = [Sample(device.id, _t(1) + i, 0.0, 0.0) for i in range(70)]
+    write_samples(store.engine, old_cal + old_mon + new_mon)
+    result = store.apply_retention(actor="retention", older_than=dt.timedelta(days=30), policy="drop", now=NOW)
+    assert result.deleted == 300
+    with store.engine.connect() as conn:
+        assert count_samples(conn, source="calibration") == 50
+        assert count_samples(conn, source="monitoring") == 70
+    assert store.audit_events(entity="samples")[0].details["deleted"] == 300
+
+
+def test_retention_thins_old_monitoring_samples(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    other = store.add_device("NS-25/E2", "SN2", "dut", actor="a")
+    job = store.create_job(device.id, "scale", "linear", actor="alice")
+    start = (int(_t(40)) // 60) * 60.0  # minute-aligned, so the buckets are exact
+    old = [Sample(d, start + i * 0.5, 0.0, 0.0) for d in (device.id, other.id) for i in range(600)]  # 5 min each
+    cal = [Sample(device.id, start + i * 0.5, 0.0, 0.0, None, None, job.id, 1, "calibration") for i in range(600)]
+    new = [Sample(device.id, _t(0.5) + i, 0.0, 0.0) for i in range(100)]
+    write_samples(store.engine, old + cal + new)
+    result = store.apply_retention(actor="retention", older_than=dt.timedelta(days=30), policy="thin",
+                                   thin_interval_s=60.0, now=NOW)  # fmt: skip
+    assert result.kept_thinned == 10 and result.deleted == 1190
+    with store.engine.connect() as conn:
+        assert count_samples(conn, source="calibration") == 600
+        assert count_samples(conn, device_id=device.id, source="monitoring") == 5 + 100
+        kept = conn.execute(sa.text("SELECT t_s FROM samples WHERE device_id = :d AND source = 'monitoring' "
+                                    "AND t_s < :c ORDER BY t_s"), {"d": other.id, "c": _t(30)}).scalars().all()  # fmt: skip
+    assert kept == [start + 60.0 * k for k in range(5)]
+
+
+def test_retention_refuses_nonsense(store: Store) -> None:
+    with pytest.raises(InputError):
+        store.apply_retention(actor="r", older_than=dt.timedelta(days=-1))
+    with pytest.raises(InputError):
+        store.apply_retention(actor="r", older_than=dt.timedelta(days=1), policy="shred")
