@@ -1,0 +1,316 @@
+"""Rotation about an inclined axis (seed 002): methods `direct`, `iodsra` and `iodsra-combined`.
+
+Geometry (spec/models.md §3): the outputs S = (Sx, Sy, Sz) are the vertical expressed in the
+sensor frame, so as the body turns about the fixed axis L they run on a circle of the unit
+sphere: the plane of eq. (10), unit normal n = (sin α cos γ, cos α cos γ, -sin γ) (L in the
+sensor frame) at distance sin β from the origin. α, β, γ come from a least-squares plane
+through the points (the orthogonal-distance fit eq. 10 allows; three points give the paper's
+exact solution), and θ from the rotation equations (7)-(9).
+
+* `direct`: the baseline of seed 002 §2.1 (its ref. [12]): Sz from eq. (6) with Sz ≥ 0 (any
+  measured sz is ignored). Beyond the angle where the true Sz changes sign it is wrong.
+* `iodsra`: the measured sz, with the 45° rule of §2.2 (a component whose magnitude exceeds
+  sin 45° is replaced by the value from eq. (6), keeping its sign), then θ by the paper's
+  choice: eq. (9) near ±90° (45° < |θ| < 135°), eq. (7) elsewhere, each equation's branch or
+  sign taken from the other.
+* `iodsra-combined`: the same points and fit, θ from all three equations together: the
+  least-squares angle on the circle, θ = atan2(S·e2, S·e1), i.e. atan2 of eq. (7) and of
+  eq. (9)·cos γ + eq. (8)·sin γ. Never worse than the switch, √2 better at |θ| = 45°, 135°.
+
+The sense of the axis (L or -L) is a convention the points alone cannot fix: β ≥ 0 unless a
+`theta_ref_deg` column says otherwise (then the sense that reproduces it is taken).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.registry import Columns, FitOptions, register
+from service.calibration.uncertainty import expanded, propagate
+from service.errors import DegenerateDataError
+
+SIN45 = float(np.sin(np.radians(45.0)))
+PARAM_NAMES = ("alpha_deg", "beta_deg", "gamma_deg")
+
+
+# --- points -------------------------------------------------------------------------------------
+
+def direct_points(sx, sy) -> np.ndarray:
+    """(Sx, Sy, Sz) with Sz = +sqrt(1 - Sx² - Sy²) (eq. 6 and the direct method's Sz ≥ 0 rule)."""
+    sx, sy = np.asarray(sx, dtype=float), np.asarray(sy, dtype=float)
+    sz = np.sqrt(np.clip(1.0 - sx**2 - sy**2, 0.0, None))
+    return np.column_stack([sx, sy, sz])
+
+
+def iodsra_points(sx, sy, sz) -> tuple[np.ndarray, np.ndarray]:
+    """Seed 002 §2.2 (2): the one component above sin 45° (if any) replaced by eq. (6), sign kept.
+
+    Returns the points and, per point, the index of the replaced component (-1: none). Noise
+    can push two components just above sin 45°; then the larger is the one replaced.
+    """
+    p = np.column_stack([np.asarray(v, dtype=float) for v in (sx, sy, sz)])
+    mag = np.abs(p)
+    big = np.argmax(mag, axis=1)
+    rows = np.arange(p.shape[0])
+    replaced = np.where(mag[rows, big] > SIN45, big, -1)
+    out = p.copy()
+    for c in range(3):
+        sel = replaced == c
+        if np.any(sel):
+            others = np.delete(p[sel], c, axis=1)
+            val = np.sqrt(np.clip(1.0 - np.sum(others**2, axis=1), 0.0, None))
+            out[sel, c] = np.where(p[sel, c] < 0, -val, val)
+    return out, replaced
+
+
+def _noise_gain(points: np.ndarray, replaced: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """|∂r/∂(raw outputs)|² of the plane residual r = n·S - sin β: its variance per unit output variance.
+
+    A component computed from eq. (6) carries the others' noise scaled by S_other / S_c, which is
+    why the direct method's Sz is poor where Sz is near 0 (seed 002 eqs. 14-15).
+    """
+    grad = np.tile(normal, (points.shape[0], 1))
+    for c in range(3):
+        sel = replaced == c
+        if np.any(sel):
+            pc = points[sel, c]
+            safe = np.where(np.abs(pc) > 1e-6, pc, np.copysign(1e-6, pc + 0.0))
+            for o in range(3):
+                if o != c:
+                    grad[sel, o] = normal[o] - normal[c] * points[sel, o] / safe
+            grad[sel, c] = 0.0
+    return np.sum(grad**2, axis=1)
+
+
+# --- geometry ------------------------------------------------------------------------------------
+
+def plane_normal(alpha_rad, gamma_rad) -> np.ndarray:
+    return np.array([np.sin(alpha_rad) * np.cos(gamma_rad), np.cos(alpha_rad) * np.cos(gamma_rad), -np.sin(gamma_rad)])
+
+
+def fit_plane(points: np.ndarray) -> tuple[float, float, float]:
+    """α, β, γ (radians, β ≥ 0) of the least-squares plane n·S = sin β through the points (eq. 10).
+
+    Minimises Σ (n·S_i - d)² over unit n: the normal is the right singular vector of the
+    centred points with the smallest singular value. Refuses points that do not fix the plane.
+    """
+    n_pts = points.shape[0]
+    if n_pts < 3:
+        raise DegenerateDataError(
+            f"rotation: {n_pts} point(s); eq. (10) needs at least 3 points at different rotation angles "
+            "to determine alpha, beta and gamma")
+    distinct = np.unique(np.round(points, 12), axis=0).shape[0]
+    if distinct < 3:
+        raise DegenerateDataError(
+            f"rotation: only {distinct} distinct point(s) among {n_pts}; eq. (10) needs the sensor read at "
+            "3 or more different rotation angles")
+    centre = points.mean(axis=0)
+    _, sv, vt = np.linalg.svd(points - centre, full_matrices=False)
+    if sv[1] <= 1e-9 * max(sv[0], 1e-300) or sv[0] < 1e-12:
+        raise DegenerateDataError(
+            "rotation: the points lie on one line (or coincide), so they do not determine the plane of "
+            "eq. (10); read the sensor at 3 or more rotation angles spread over the arc (and check the axis "
+            "is not vertical)")
+    if sv[2] > 0.5 * sv[1]:
+        raise DegenerateDataError(
+            f"rotation: the points scatter as much across the plane of eq. (10) as along it "
+            f"(singular values {sv[1]:.3g} and {sv[2]:.3g}); they do not determine the rotation axis: read "
+            "more angles over a wider arc, and check that sx, sy, sz are the sines of one sensor turning "
+            "about one fixed axis")
+    n = vt[2]
+    d = float(n @ centre)
+    if d < 0:
+        n, d = -n, -d
+    gamma = float(np.arcsin(np.clip(-n[2], -1.0, 1.0)))
+    alpha = float(np.arctan2(n[0], n[1]))
+    beta = float(np.arcsin(np.clip(d, -1.0, 1.0)))
+    return alpha, beta, gamma
+
+
+def flip_sense(alpha: float, beta: float, gamma: float) -> tuple[float, float, float]:
+    """The same plane described with the axis reversed (-L): θ changes sign."""
+    a = alpha + np.pi
+    a = (a + np.pi) % (2 * np.pi) - np.pi
+    return a, -beta, -gamma
+
+
+def rotation_equations(points: np.ndarray, alpha, beta, gamma) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """sin θ from eq. (7), cos θ from eq. (9), cos θ from eq. (8): each solved for the angle's function."""
+    sx, sy, sz = points[:, 0], points[:, 1], points[:, 2]
+    cb = np.cos(beta)
+    sin7 = -(sx * np.cos(alpha) - sy * np.sin(alpha)) / cb
+    cos9 = (sz + np.sin(gamma) * np.sin(beta)) / (np.cos(gamma) * cb)
+    sg = np.sin(gamma)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cos8 = (sx * np.sin(alpha) + sy * np.cos(alpha) - np.cos(gamma) * np.sin(beta)) / (sg * cb)
+    return sin7, cos9, cos8
+
+
+def equation9_region(points, alpha, beta, gamma) -> np.ndarray:
+    """Where the paper takes eq. (9): near ±90°, i.e. where |sin θ| > sin 45° (45° < |θ| < 135°)."""
+    sin7, cos9, _ = rotation_equations(points, alpha, beta, gamma)
+    return np.abs(np.sin(np.arctan2(sin7, cos9))) > SIN45
+
+
+def theta_switch(points, alpha, beta, gamma, use9: np.ndarray | None = None) -> np.ndarray:
+    """θ (radians, ±π) by seed 002 §2.3: eq. (9) near ±90° with the sign of sin θ from eq. (7),
+    eq. (7) elsewhere with the branch (|θ| < 90° or not) from the sign of cos θ in eq. (9)."""
+    sin7, cos9, _ = rotation_equations(points, alpha, beta, gamma)
+    if use9 is None:
+        use9 = np.abs(np.sin(np.arctan2(sin7, cos9))) > SIN45
+    t7 = np.arcsin(np.clip(sin7, -1.0, 1.0))
+    t7 = np.where(cos9 < 0, np.copysign(np.pi, t7) - t7, t7)
+    t9 = np.arccos(np.clip(cos9, -1.0, 1.0))
+    t9 = np.where(sin7 < 0, -t9, t9)
+    return np.where(use9, t9, t7)
+
+
+def theta_combined(points, alpha, beta, gamma) -> np.ndarray:
+    """θ (radians) minimising |S - S(θ)|²: atan2 of the projections on the circle's two in-plane axes.
+
+    e2 = (-cos α, sin α, 0) is eq. (7); e1 = (sin α sin γ, cos α sin γ, cos γ) is eq. (9)·cos γ +
+    eq. (8)·sin γ. With γ = 0 this is atan2 of eqs. (7) and (9).
+    """
+    e1 = np.array([np.sin(alpha) * np.sin(gamma), np.cos(alpha) * np.sin(gamma), np.cos(gamma)])
+    e2 = np.array([-np.cos(alpha), np.sin(alpha), 0.0])
+    return np.arctan2(points @ e2, points @ e1)
+
+
+def wrap_deg(x):
+    return (np.asarray(x, dtype=float) + 180.0) % 360.0 - 180.0
+
+
+# --- the methods --------------------------------------------------------------------------------
+
+class _RotationMethod:
+    kind = "rotation"
+    fit_optional = ("theta_ref_deg",)
+    correct_optional = ()
+    outputs = ("theta_deg", "u_theta_deg")
+    uses_sz = True
+    estimator = "switch"  # or "combined"
+    doc = ""
+
+    def __init__(self, name: str, uses_sz: bool, estimator: str, doc: str):
+        self.name = name
+        self.uses_sz = uses_sz
+        self.estimator = estimator
+        self.doc = doc
+        self.fit_required = ("sx", "sy", "sz") if uses_sz else ("sx", "sy")
+        self.correct_required = self.fit_required
+
+    # points as the method sees them, and which component (if any) it computed from eq. (6)
+    def points(self, data: Columns) -> tuple[np.ndarray, np.ndarray]:
+        if self.uses_sz:
+            return iodsra_points(data["sx"], data["sy"], data["sz"])
+        p = direct_points(data["sx"], data["sy"])
+        return p, np.full(p.shape[0], 2)
+
+    def theta(self, points, alpha, beta, gamma, use9=None) -> np.ndarray:
+        if self.estimator == "combined":
+            return theta_combined(points, alpha, beta, gamma)
+        return theta_switch(points, alpha, beta, gamma, use9)
+
+    def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
+        pts, replaced = self.points(data)
+        alpha, beta, gamma = fit_plane(pts)
+        notes = []
+        theta_ref = data.get("theta_ref_deg") if hasattr(data, "get") else None
+        sense = "beta >= 0 (no theta_ref_deg column to fix the sense of the axis)"
+        if theta_ref is not None:
+            cand = [(alpha, beta, gamma), flip_sense(alpha, beta, gamma)]
+            rms = [float(np.sqrt(np.mean(wrap_deg(np.degrees(self.theta(pts, *c)) - theta_ref) ** 2))) for c in cand]
+            if rms[1] < rms[0]:
+                alpha, beta, gamma = cand[1]
+            sense = "the sense of the axis that reproduces theta_ref_deg"
+        notes.append(f"axis sense: {sense}")
+        if not np.isfinite(beta) or abs(np.cos(beta)) < 1e-6:
+            raise DegenerateDataError("rotation: the fitted axis is vertical (beta = ±90°): turning about it does not "
+                                      "change the tilt, so θ cannot be measured")
+        n = plane_normal(alpha, gamma)
+        r = pts @ n - np.sin(beta)
+        gain = _noise_gain(pts, replaced, n)
+        n_pts = pts.shape[0]
+        dof = n_pts - 3
+        # Jacobian of r wrt (α, β, γ) in degrees
+        dn_da = np.array([np.cos(alpha) * np.cos(gamma), -np.sin(alpha) * np.cos(gamma), 0.0])
+        dn_dg = np.array([-np.sin(alpha) * np.sin(gamma), -np.cos(alpha) * np.sin(gamma), -np.cos(gamma)])
+        J = np.column_stack([pts @ dn_da, np.full(n_pts, -np.cos(beta)), pts @ dn_dg]) * (np.pi / 180.0)
+        cov = None
+        sigma_s = None
+        if dof > 0:
+            sigma_s = float(np.sqrt(np.sum(r**2 / gain) / dof))
+            jtj = J.T @ J
+            if np.linalg.cond(jtj) > 1e14:
+                raise DegenerateDataError("rotation: the points do not separate alpha, beta and gamma (the normal "
+                                          "equations are singular); read the sensor over a wider arc")
+            inv = np.linalg.inv(jtj)
+            cov = inv @ (J.T @ (J * (sigma_s**2 * gain)[:, None])) @ inv  # sandwich: per-point variance
+            cov = 0.5 * (cov + cov.T)
+        else:
+            notes.append("exactly 3 points: the plane is solved, not fitted; no residuals, so no covariance "
+                         "and no u_theta_deg")
+        values = np.degrees([alpha, beta, gamma])
+        params = {
+            "alpha_deg": Parameter(float(values[0]), "deg", note="angle between the y axis and L's projection on the sensor plane"),
+            "beta_deg": Parameter(float(values[1]), "deg", note="inclination of the rotation axis L to the horizontal"),
+            "gamma_deg": Parameter(float(values[2]), "deg", note="angle between L and the sensor plane"),
+        }
+        theta = np.degrees(self.theta(pts, alpha, beta, gamma))
+        plane = residual_summary({"plane": r}, "1")
+        fit = {"n_points": n_pts, "dof": dof, "sigma_s": sigma_s,
+               "plane_residual": plane["columns"]["plane"],
+               "estimator": self.estimator, "sz_source": "measured (45° rule)" if self.uses_sz else "eq. (6), Sz >= 0",
+               "n_replaced_by_eq6": int(np.sum(replaced >= 0)) if self.uses_sz else n_pts}
+        if theta_ref is not None:
+            res_theta = wrap_deg(theta - theta_ref)
+            residuals = residual_summary({"theta_deg": res_theta}, "deg")
+        else:
+            residuals = plane
+        if not self.uses_sz:
+            notes.append("direct method: Sz from eq. (6) taken as >= 0; angles where the sensor normal points "
+                         "below the horizontal (true Sz < 0) are measured wrongly")
+        if sigma_s is not None:
+            notes.append(f"output noise sigma_s = {sigma_s:.3g} (sine units) from the plane residuals, used for "
+                         "u_theta_deg")
+        return CalibrationModel(kind=self.kind, method=self.name, columns=list(self.fit_required) + (
+            ["theta_ref_deg"] if theta_ref is not None else []), parameters=params,
+            covariance_names=list(PARAM_NAMES) if cov is not None else [], covariance=cov, residuals=residuals,
+            fit=fit, notes=notes, state={"sigma_s": sigma_s})
+
+    def theta_deg(self, model: CalibrationModel, data: Columns) -> np.ndarray:
+        a, b, g = np.radians(model.values(PARAM_NAMES))
+        pts, _ = self.points(data)
+        return np.degrees(self.theta(pts, a, b, g))
+
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+        p0 = model.values(PARAM_NAMES)
+        a, b, g = np.radians(p0)
+        pts, _ = self.points(data)
+        use9 = equation9_region(pts, a, b, g)
+        theta0 = np.degrees(self.theta(pts, a, b, g, use9))
+        out = {"theta_deg": theta0}
+        sigma = model.state.get("sigma_s") if isinstance(model.state, Mapping) else None
+        if model.covariance is not None and sigma is not None:
+            inputs = {c: np.asarray(data[c], dtype=float) for c in self.fit_required}
+
+            def f(p, x):
+                pp, _ = self.points(x)
+                t = np.degrees(self.theta(pp, *np.radians(p), use9))
+                return theta0 + wrap_deg(t - theta0)  # no jump at ±180° inside the differences
+
+            u = propagate(f, p0, model.cov_of(list(PARAM_NAMES)), inputs,
+                          {c: float(sigma) for c in self.fit_required})
+            out["u_theta_deg"] = expanded(u)
+        return out
+
+
+DIRECT = register(_RotationMethod("direct", uses_sz=False, estimator="switch",
+                                  doc="seed 002 §2.1: Sz from eq. (6) (Sz >= 0), θ by eqs. (7)/(9)"))
+IODSRA = register(_RotationMethod("iodsra", uses_sz=True, estimator="switch",
+                                  doc="seed 002 §2.2-2.3: measured Sz with the 45° rule, θ by eqs. (7)/(9)"))
+IODSRA_COMBINED = register(_RotationMethod("iodsra-combined", uses_sz=True, estimator="combined",
+                                           doc="IODSRA points, θ = least-squares angle on the circle (eqs. 7-9 together)"))

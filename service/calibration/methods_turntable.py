@@ -1,0 +1,274 @@
+"""Inclinometer on a turntable read in symmetric pairs (seed 004): method `reversal`.
+
+Model (spec/models.md §4). With the pair A, A + φ the half-differences cancel the zeros:
+
+    d1 = (n1(A) - n1(A+φ)) / 2 = m1 sin(φ/2) [ ξ sin(A+β+φ/2)   - η cos(A+β+φ/2)   ]
+    d2 = (n2(A) - n2(A+φ)) / 2 = m2 sin(φ/2) [ ξ cos(A+β+ε+φ/2) + η sin(A+β+ε+φ/2) ]
+
+For each pair the 2×2 system gives the compensation (ξ̂, η̂) from the readings; calibration
+(seed 004 §3.1, eqs. 9-11) compares it with the star-derived reference (ξ, η) and corrects
+β, m1, m2, ε by Gauss-Newton steps (B Δx = b) until they are stable. The start values come
+from the same equations solved linearly (they are linear in m·cos and m·sin of β + φ/2), or
+from `FitOptions.extra["initial"]` to follow the paper's "assign initial values".
+
+φ is not fitted: only β + φ/2 and m·sin(φ/2) enter, so an error Δφ in the assumed rotation
+moves β by -Δφ/2 and scales m1, m2 by 1/cos(Δφ/2) with exactly the same residuals (seed 004
+§3.2: 1° of φ moves β by 0.5°). The model says so in its notes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.registry import Columns, FitOptions, register
+from service.calibration.uncertainty import expanded, propagate
+from service.errors import DegenerateDataError, InputError
+
+PARAM_NAMES = ("beta_deg", "m1_per_arcsec", "m2_per_arcsec", "epsilon_deg")
+READING_COLUMNS = ("n1_a", "n2_a", "n1_b", "n2_b")
+MAX_ITERATIONS = 50
+
+
+def half_differences(data: Columns) -> tuple[np.ndarray, np.ndarray]:
+    d1 = (np.asarray(data["n1_a"], dtype=float) - np.asarray(data["n1_b"], dtype=float)) / 2.0
+    d2 = (np.asarray(data["n2_a"], dtype=float) - np.asarray(data["n2_b"], dtype=float)) / 2.0
+    return d1, d2
+
+
+def compensation(p, azimuth_deg, d1, d2, rotation_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(ξ̂, η̂) in arcsec from the half-differences: the inverse of the 2×2 pair model."""
+    beta, m1, m2, eps = (float(v) for v in p)
+    s = np.sin(np.radians(rotation_deg) / 2.0)
+    u = np.radians(np.asarray(azimuth_deg, dtype=float) + beta + rotation_deg / 2.0)
+    v = u + np.radians(eps)
+    k = s * np.cos(np.radians(eps))
+    a1, a2 = d1 / m1, d2 / m2
+    xi = (np.sin(v) * a1 + np.cos(u) * a2) / k
+    eta = (-np.cos(v) * a1 + np.sin(u) * a2) / k
+    return xi, eta
+
+
+def pair_model(p, azimuth_deg, xi, eta, rotation_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """The forward model of the half-differences (used by tests and reports)."""
+    beta, m1, m2, eps = (float(v) for v in p)
+    s = np.sin(np.radians(rotation_deg) / 2.0)
+    u = np.radians(np.asarray(azimuth_deg, dtype=float) + beta + rotation_deg / 2.0)
+    v = u + np.radians(eps)
+    return m1 * s * (xi * np.sin(u) - eta * np.cos(u)), m2 * s * (xi * np.cos(v) + eta * np.sin(v))
+
+
+def _tilt_in_instrument_frame(az, xi, eta) -> np.ndarray:
+    """The reference tilt as the turntable sees it (rotated by -A): what separates β from m."""
+    a = np.radians(az)
+    return np.column_stack([xi * np.sin(a) - eta * np.cos(a), xi * np.cos(a) + eta * np.sin(a)])
+
+
+def check_design(az, xi, eta) -> None:
+    """Refuse pairs that cannot separate β, m1, m2, ε, saying what is missing."""
+    n = az.size
+    if n < 3:
+        raise DegenerateDataError(
+            f"turntable: {n} symmetric pair(s); beta, m1, m2 and epsilon need at least 3 pairs (2 equations per "
+            "pair, and some left over to estimate the scatter)")
+    tilt = np.hypot(xi, eta)
+    n_az = np.unique(np.round(np.mod(az, 180.0), 6)).size
+    n_tilt = np.unique(np.round(np.column_stack([xi, eta]), 6), axis=0).shape[0]
+    if np.max(tilt) <= 0.0:
+        raise DegenerateDataError(
+            "turntable: every reference tilt (ref_north_arcsec, ref_east_arcsec) is zero: with a plumb axis the "
+            "readings carry no information on the scale factors or the installation angle; level the instrument "
+            "off plumb (several reference tilts) before calibrating")
+    g = _tilt_in_instrument_frame(az, xi, eta)
+    ev = np.linalg.eigvalsh(g.T @ g)
+    if ev[0] <= 1e-8 * ev[1]:
+        raise DegenerateDataError(
+            f"turntable: the {n} pairs see the axis tilt along a single direction of the instrument "
+            f"({n_az} distinct azimuth(s) modulo 180°, {n_tilt} distinct reference tilt(s)), so beta cannot be "
+            "separated from m1 and m2: add pairs at another azimuth (not 180° from the first) or at another "
+            "levelling of the instrument with the tilt in another direction")
+
+
+def _initial(az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
+    """β, m1, m2, ε solved linearly from the half-differences (start of the Gauss-Newton steps)."""
+    g = _tilt_in_instrument_frame(az, xi, eta)  # columns f1, f2
+    s = np.sin(np.radians(rotation_deg) / 2.0)
+    (P, Q), *_ = np.linalg.lstsq(g, d1, rcond=None)
+    (R, T), *_ = np.linalg.lstsq(np.column_stack([g[:, 1], -g[:, 0]]), d2, rcond=None)
+    b_half = np.degrees(np.arctan2(Q, P))
+    c_half = np.degrees(np.arctan2(T, R))
+    beta = b_half - rotation_deg / 2.0
+    eps = c_half - b_half
+    beta = (beta + 180.0) % 360.0 - 180.0
+    eps = (eps + 180.0) % 360.0 - 180.0
+    return np.array([beta, np.hypot(P, Q) / s, np.hypot(R, T) / s, eps])
+
+
+def _residuals(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
+    xh, eh = compensation(p, az, d1, d2, rotation_deg)
+    return np.concatenate([xh - xi, eh - eta])
+
+
+def _jacobian(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
+    steps = np.array([1e-5, 1e-6 * abs(p[1]) or 1e-9, 1e-6 * abs(p[2]) or 1e-9, 1e-5])
+    cols = []
+    for i, h in enumerate(steps):
+        pp, pm = p.copy(), p.copy()
+        pp[i] += h
+        pm[i] -= h
+        cols.append((_residuals(pp, az, d1, d2, xi, eta, rotation_deg)
+                     - _residuals(pm, az, d1, d2, xi, eta, rotation_deg)) / (2 * h))
+    return np.column_stack(cols)
+
+
+def gauss_newton(p0, az, d1, d2, xi, eta, rotation_deg, max_iterations: int | None = None):
+    """Seed 004 eqs. (9)-(11): x ← x + Δx with B Δx = b, until the parameters are stable."""
+    max_iterations = MAX_ITERATIONS if max_iterations is None else max_iterations
+    p = np.asarray(p0, dtype=float).copy()
+    history = []
+    for it in range(1, max_iterations + 1):
+        r = _residuals(p, az, d1, d2, xi, eta, rotation_deg)
+        J = _jacobian(p, az, d1, d2, xi, eta, rotation_deg)
+        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+            break
+        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        p = p + step
+        p[1], p[2] = abs(p[1]), abs(p[2])
+        scale = np.array([1e-7, 1e-9 * max(abs(p[1]), 1e-300), 1e-9 * max(abs(p[2]), 1e-300), 1e-7])
+        history.append(float(np.max(np.abs(step) / scale)))
+        if np.all(np.abs(step) <= scale):
+            return p, it, True
+    return p, len(history), False
+
+
+def zero_scatter(data: Columns) -> float | None:
+    """Noise of one reading from the half-sums (the zero offsets z1, z2, constant over a cycle).
+
+    var((n_a + n_b)/2) = σ²/2 for white noise; pooled over both axes and, when a `cycle` column
+    is present, within cycles (a slow zero drift between cycles does not count as noise).
+    """
+    s1 = (np.asarray(data["n1_a"], dtype=float) + np.asarray(data["n1_b"], dtype=float)) / 2.0
+    s2 = (np.asarray(data["n2_a"], dtype=float) + np.asarray(data["n2_b"], dtype=float)) / 2.0
+    groups = np.asarray(data["cycle"]) if "cycle" in data else np.zeros(s1.size)
+    ss, dof = 0.0, 0
+    for g in np.unique(groups):
+        sel = groups == g
+        k = int(np.sum(sel))
+        if k < 2:
+            continue
+        for h in (s1[sel], s2[sel]):
+            ss += float(np.sum((h - h.mean()) ** 2))
+            dof += k - 1
+    if dof < 2:
+        return None
+    return float(np.sqrt(2.0 * ss / dof))
+
+
+class ReversalMethod:
+    kind = "turntable"
+    name = "reversal"
+    fit_required = ("azimuth_deg", "n1_a", "n2_a", "n1_b", "n2_b", "ref_north_arcsec", "ref_east_arcsec")
+    fit_optional = ("cycle",)
+    correct_required = ("azimuth_deg", "n1_a", "n2_a", "n1_b", "n2_b")
+    correct_optional = ()
+    outputs = ("north_arcsec", "east_arcsec", "u_north_arcsec", "u_east_arcsec")
+
+    def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
+        phi = float(options.rotation_deg)
+        if not np.isfinite(phi) or abs(np.sin(np.radians(phi) / 2.0)) < 0.05:
+            raise InputError(f"turntable: --rotation-deg {phi:g}: the two positions of a pair must be turned apart "
+                             "(φ near 180°); at φ near 0° or 360° the half-difference carries no tilt")
+        az = np.asarray(data["azimuth_deg"], dtype=float)
+        xi = np.asarray(data["ref_north_arcsec"], dtype=float)
+        eta = np.asarray(data["ref_east_arcsec"], dtype=float)
+        d1, d2 = half_differences(data)
+        check_design(az, xi, eta)
+        init = (options.extra or {}).get("initial")
+        p0 = (np.array([float(init[k]) for k in PARAM_NAMES]) if init is not None
+              else _initial(az, d1, d2, xi, eta, phi))
+        if p0[1] <= 0 or p0[2] <= 0:
+            raise DegenerateDataError("turntable: the half-differences do not follow the reference tilts (a scale "
+                                      "factor comes out zero): check the pairing of n*_a and n*_b and the reference columns")
+        p, iterations, converged = gauss_newton(p0, az, d1, d2, xi, eta, phi)
+        if not converged or not np.all(np.isfinite(p)):
+            raise DegenerateDataError(
+                f"turntable: the iterated least squares (seed 004 eqs. 9-11) did not converge in {iterations} "
+                "iterations: the pairs do not determine beta, m1, m2, epsilon (more pairs, azimuths and reference "
+                "tilts are needed)")
+        p[0] = (p[0] + 180.0) % 360.0 - 180.0
+        r = _residuals(p, az, d1, d2, xi, eta, phi)
+        J = _jacobian(p, az, d1, d2, xi, eta, phi)
+        n = az.size
+        dof = 2 * n - 4
+        jtj = J.T @ J
+        scale = np.sqrt(np.diag(jtj))
+        if np.any(scale == 0) or np.linalg.cond(jtj / np.outer(scale, scale)) > 1e12:
+            raise DegenerateDataError("turntable: the pairs do not separate beta, m1, m2 and epsilon (singular normal "
+                                      "equations): add pairs at other azimuths and reference tilts")
+        s2 = float(r @ r) / dof
+        cov = s2 * np.linalg.inv(jtj)
+        cov = 0.5 * (cov + cov.T)
+        m_mean = 0.5 * (p[1] + p[2])
+        bound_residual = float(np.sqrt(2.0 * s2) * m_mean)
+        bound_halfsum = zero_scatter(data)
+        reading_sigma = bound_residual if bound_halfsum is None else min(bound_residual, bound_halfsum)
+        reading_sigma_from = ("half-sums" if bound_halfsum is not None and bound_halfsum <= bound_residual
+                              else "residuals")
+        units = ("deg", "reading/arcsec", "reading/arcsec", "deg")
+        notes_p = ("installation angle of the X axis from the instrument's reference direction (CCD)",
+                   "scale factor of the X axis, reading units per arcsec",
+                   "scale factor of the Y axis, reading units per arcsec",
+                   "non-orthogonality of the two axes")
+        params = {nm: Parameter(float(v), u, note=nt) for nm, v, u, nt in zip(PARAM_NAMES, p, units, notes_p)}
+        params["rotation_deg"] = Parameter(phi, "deg", fixed=True,
+                                           note="assumed rotation φ between the two positions of a pair; not fitted")
+        n_az = int(np.unique(np.round(np.mod(az, 360.0), 6)).size)
+        n_tilt = int(np.unique(np.round(np.column_stack([xi, eta]), 6), axis=0).shape[0])
+        notes = [
+            f"beta and the pair rotation phi cannot be told apart from symmetric pairs: only beta + phi/2 enters, so "
+            f"phi is held at the assumed {phi:g} deg; if the true rotation is {phi:g} + d deg, the true beta is this "
+            "beta + d/2 and m1, m2 are smaller by cos(d/2), with identical residuals (seed 004 §3.2)",
+            f"reading noise {reading_sigma:.3g} (reading units, one reading) from the {reading_sigma_from}: the "
+            "scatter of the half-sums (n_a + n_b)/2, which are the zero offsets, within each cycle, or the fit "
+            "residuals with all their scatter charged to the readings, whichever is smaller (both are upper "
+            "bounds); used for u_north_arcsec and u_east_arcsec",
+        ]
+        ref_var = s2 - (reading_sigma / m_mean) ** 2 / 2.0
+        ref_sigma = float(np.sqrt(ref_var)) if ref_var > 0 else 0.0
+        fit = {"n_pairs": n, "dof": dof, "iterations": iterations, "converged": True,
+               "initial": {nm: float(v) for nm, v in zip(PARAM_NAMES, p0)},
+               "initial_from": "given" if init is not None else "linear solution of the half-difference equations",
+               "residual_sigma_arcsec": float(np.sqrt(s2)), "n_azimuths": n_az, "n_reference_tilts": n_tilt,
+               "rotation_deg": phi, "reading_sigma": reading_sigma, "reading_sigma_from": reading_sigma_from,
+               "reference_sigma_arcsec": ref_sigma}
+        return CalibrationModel(
+            kind="turntable", method=self.name, columns=list(self.fit_required), parameters=params,
+            covariance_names=list(PARAM_NAMES), covariance=cov,
+            residuals=residual_summary({"north_arcsec": r[:n], "east_arcsec": r[n:]}, "arcsec"),
+            fit=fit, notes=notes, options={"rotation_deg": phi},
+            state={"reading_sigma": reading_sigma})
+
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+        p0 = model.values(PARAM_NAMES)
+        phi = model.value("rotation_deg") if "rotation_deg" in model.parameters else 180.0
+        az = np.asarray(data["azimuth_deg"], dtype=float)
+        d1, d2 = half_differences(data)
+        xi, eta = compensation(p0, az, d1, d2, phi)
+        out = {"north_arcsec": xi, "east_arcsec": eta}
+        sigma = model.state.get("reading_sigma") if isinstance(model.state, Mapping) else None
+        if model.covariance is not None and sigma is not None:
+            inputs = {c: np.asarray(data[c], dtype=float) for c in READING_COLUMNS}
+
+            def f(p, x):
+                h1, h2 = half_differences(x)
+                return np.column_stack(compensation(p, az, h1, h2, phi))
+
+            u = propagate(f, p0, model.cov_of(list(PARAM_NAMES)), inputs, {c: float(sigma) for c in READING_COLUMNS})
+            U = expanded(u)
+            out["u_north_arcsec"], out["u_east_arcsec"] = U[:, 0], U[:, 1]
+        return out
+
+
+REVERSAL = register(ReversalMethod())
