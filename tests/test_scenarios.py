@@ -84,3 +84,9 @@ def test_serpentine_order_alternates_the_approach_of_the_upper_stage():
     r = run_scenario(load_scenario("seed000"))
     d = r.columns["dir_x"].reshape(9, 9)
     assert np.all(d[0, 1:] == 1) and np.all(d[1, 1:] == -1)
+
+
+def test_physics_doc_lists_the_registry_as_it_is():
+    from service.physics.effects import markdown_tables
+
+    assert markdown_tables() in (ROOT / "docs" / "physics.md").read_text()

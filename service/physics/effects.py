@@ -225,3 +225,16 @@ class EffectSet:
             if e.default_on and n not in names:
                 keep[n] = {p.name: (False if p.is_bool else 0.0) for p in e.params}
         return EffectSet.from_mapping(self.kind, keep)
+
+
+def markdown_tables() -> str:
+    """The registry as Markdown tables (docs/physics.md embeds this text; a test keeps it current)."""
+    out = []
+    for kind, table in EFFECTS_BY_KIND.items():
+        out.append(f"#### kind `{kind}`\n\n| effect | parameter | unit | range | default |\n| --- | --- | --- | --- | --- |")
+        for eff in table.values():
+            for p in eff.params:
+                rng = "true/false" if p.is_bool else f"{p.lo:g} .. {p.hi:g}"
+                out.append(f"| `{eff.name}` | `{p.name}` | {p.unit} | {rng} | {str(p.default).lower() if p.is_bool else f'{p.default:g}'} |")
+        out.append("")
+    return "\n".join(out)
