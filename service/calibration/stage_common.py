@@ -1,0 +1,265 @@
+"""Pieces every stage method shares: eq. (10) and its exact inverse, the sensor geometry in
+the reference (table-tilt) frame, mirrored-axis detection, column checks and a vectorised
+2-D Newton solver.
+
+Frames: the *truth frame* is the reference sensor's orthogonal axes (spec §2: table tilt is
+what the reference reads without noise). An inclinometer reading depends only on the up
+vector n expressed in the frame of the body carrying it (spec §1: reading = asin(-a·n)), so a
+table tilt (X, Y) is the same thing as n = (-sin X, -sin Y, +sqrt(1 - sin²X - sin²Y)).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import numpy as np
+
+from service.errors import DegenerateDataError, InputError
+
+STAGE_COLUMNS = ("stage_x_deg", "stage_y_deg")
+REF_COLUMNS = ("ref_x_deg", "ref_y_deg")
+MEAS_COLUMNS = ("meas_x_deg", "meas_y_deg")
+TILT_OUTPUTS = ("tilt_x_deg", "tilt_y_deg", "u_tilt_x_deg", "u_tilt_y_deg")
+LEVEL_OUTPUTS = ("stage_x_deg", "stage_y_deg")
+GRID_12_DEG = np.arange(-12.0, 12.0 + 1e-9, 3.0)  # seed 000's validation grid (§4.4)
+ROBUST_LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")
+
+
+# --- seed 000 eq. (10) --------------------------------------------------------------------
+def offaxis_error_deg(theta_x_deg, theta_y_deg) -> np.ndarray:
+    """Eq. (10): θx - asin(sin θx cos θy), the x reading lost to the lower stage's tilt."""
+    tx, ty = np.radians(theta_x_deg), np.radians(theta_y_deg)
+    return np.degrees(tx - np.arcsin(np.sin(tx) * np.cos(ty)))
+
+
+def decouple_x_deg(stage_x_deg, stage_y_deg) -> np.ndarray:
+    """The upper-stage angle an uncoupled bench would need for the same x reading: asin(sin x cos y)."""
+    tx, ty = np.radians(stage_x_deg), np.radians(stage_y_deg)
+    return np.degrees(np.arcsin(np.clip(np.sin(tx) * np.cos(ty), -1.0, 1.0)))
+
+
+def offaxis_exact_inverse_deg(x_decoupled_deg, stage_y_deg) -> np.ndarray:
+    """Upper-stage command giving x reading X at lower angle y: asin(sin X / cos y), eq. (9) inverted exactly."""
+    s = np.sin(np.radians(x_decoupled_deg)) / np.cos(np.radians(stage_y_deg))
+    if np.any(np.abs(s) > 1.0):
+        raise InputError("a target is out of reach of the upper stage: |sin X / cos y| > 1")
+    return np.degrees(np.arcsin(s))
+
+
+def offaxis_paper_forward_deg(x_decoupled_deg, stage_y_deg) -> np.ndarray:
+    """Seed 000's compensation as printed: add eq. (10)'s error, evaluated at the wanted angle, to x."""
+    return np.asarray(x_decoupled_deg, dtype=float) + offaxis_error_deg(x_decoupled_deg, stage_y_deg)
+
+
+def offaxis_forward_vs_exact_deg(grid_deg: np.ndarray = GRID_12_DEG) -> dict[str, float]:
+    """How far the paper's forward form lands from the exact inverse over a square grid of (x', y)."""
+    X, Y = np.meshgrid(grid_deg, grid_deg)
+    d = offaxis_paper_forward_deg(X, Y) - offaxis_exact_inverse_deg(X, Y)
+    i = int(np.argmax(np.abs(d)))
+    # The command difference is also (to first order) the x tilt error it causes: dX/dx = cos y·cos x/cos X ≈ 1.
+    reached = decouple_x_deg(offaxis_paper_forward_deg(X, Y), Y) - X
+    return {"grid_min_deg": float(grid_deg.min()), "grid_max_deg": float(grid_deg.max()),
+            "max_abs_command_difference_deg": float(np.abs(d).max()),
+            "rms_command_difference_deg": float(np.sqrt(np.mean(d**2))),
+            "at_x_deg": float(X.ravel()[i]), "at_y_deg": float(Y.ravel()[i]),
+            "max_abs_x_tilt_error_deg": float(np.abs(reached).max())}
+
+
+# --- tilt <-> up vector in the truth frame --------------------------------------------------
+def up_from_tilt(tilt_x_deg, tilt_y_deg) -> np.ndarray:
+    """Up vector (N, 3) in the truth frame for table tilts (X, Y)."""
+    sx, sy = np.sin(np.radians(tilt_x_deg)), np.sin(np.radians(tilt_y_deg))
+    nz = np.sqrt(np.clip(1.0 - sx**2 - sy**2, 0.0, None))
+    return np.stack([-sx, -sy, nz], axis=-1)
+
+
+def tilt_from_up(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return (np.degrees(np.arcsin(np.clip(-n[..., 0], -1.0, 1.0))),
+            np.degrees(np.arcsin(np.clip(-n[..., 1], -1.0, 1.0))))
+
+
+def plane_tilt_matrix(tilt_x_deg: float, tilt_y_deg: float) -> np.ndarray:
+    """Same composition as service.physics.rotations.plane_tilt: Rx(-tilt_y)·Ry(tilt_x)."""
+    from service.physics.rotations import plane_tilt
+
+    return plane_tilt(np.radians(tilt_x_deg), np.radians(tilt_y_deg))
+
+
+# --- measurement sensor in the truth frame (kinematic) --------------------------------------
+MEAS_PARAMS = (  # (name in MODEL.json, unit, typical magnitude for the solver)
+    ("zero_offset.meas_x_deg", "deg", 0.1),
+    ("zero_offset.meas_y_deg", "deg", 0.1),
+    ("scale_factor.meas_x", "1", 1e-3),
+    ("scale_factor.meas_y", "1", 1e-3),
+    ("sensor_yaw.meas_deg", "deg", 0.1),
+    ("non_orthogonality.meas_deg", "deg", 0.1),
+    ("mounting_tilt.meas_x_deg", "deg", 0.1),
+    ("mounting_tilt.meas_y_deg", "deg", 0.1),
+)
+MEAS_NAMES = tuple(p[0] for p in MEAS_PARAMS)
+
+
+def meas_axes(p: np.ndarray) -> np.ndarray:
+    """Sensing axes (2, 3) of the measurement sensor in the truth frame: seat tilt · yaw · (x, y at 90° + ν)."""
+    yaw, nu = np.radians(p[4]), np.radians(p[5])
+    seat = plane_tilt_matrix(p[6], p[7])
+    c, s = np.cos(yaw), np.sin(yaw)
+    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    base = np.array([[1.0, 0.0, 0.0], [-np.sin(nu), np.cos(nu), 0.0]])
+    return (seat @ rz @ base.T).T
+
+
+def meas_forward(p: np.ndarray, sign: np.ndarray, tilt_x_deg, tilt_y_deg) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free measurement-sensor readings at table tilts (X, Y) for parameters p (MEAS_PARAMS order)."""
+    n = up_from_tilt(tilt_x_deg, tilt_y_deg)
+    m = meas_axes(p)
+    geo = np.degrees(np.arcsin(np.clip(-(n @ m.T), -1.0, 1.0)))  # (N, 2)
+    a = p[0] + (1.0 + p[2]) * sign[0] * geo[..., 0]
+    b = p[1] + (1.0 + p[3]) * sign[1] * geo[..., 1]
+    return a, b
+
+
+def meas_inverse(p: np.ndarray, sign: np.ndarray, meas_x_deg, meas_y_deg) -> tuple[np.ndarray, np.ndarray]:
+    """Table tilt from measurement readings, in closed form.
+
+    Each axis reading fixes m·n (a plane); two planes and |n| = 1 leave two points, and the one
+    with the table's normal up is the answer. Exact, vectorised, no iteration.
+    """
+    ga = sign[0] * (np.asarray(meas_x_deg, dtype=float) - p[0]) / (1.0 + p[2])
+    gb = sign[1] * (np.asarray(meas_y_deg, dtype=float) - p[1]) / (1.0 + p[3])
+    rhs = -np.stack([np.sin(np.radians(ga)), np.sin(np.radians(gb))], axis=-1)  # m_i · n = rhs_i
+    m = meas_axes(p)
+    G = m @ m.T
+    n0 = (rhs @ np.linalg.inv(G).T) @ m  # minimum-norm point on both planes
+    w = np.cross(m[0], m[1])
+    w = w / np.linalg.norm(w)
+    if w[2] < 0:
+        w = -w
+    t = np.sqrt(np.clip(1.0 - np.einsum("...i,...i->...", n0, n0), 0.0, None))
+    n = n0 + t[..., None] * w
+    return tilt_from_up(n)
+
+
+# --- mirrored axes ---------------------------------------------------------------------------
+def detect_mirror(sensor_x, sensor_y, ref_x, ref_y, what: str = "measurement sensor") -> np.ndarray:
+    """Sign of each sensor axis against the matching reference axis: -1 for an axis mounted mirrored.
+
+    An upside-down sensor (spec §2) mirrors one axis; the slope of that axis against the
+    reference is then near -1 instead of +1, which no small mounting error can produce.
+    """
+    out = []
+    for s, r, ax in ((sensor_x, ref_x, "x"), (sensor_y, ref_y, "y")):
+        s = np.asarray(s, dtype=float)
+        r = np.asarray(r, dtype=float)
+        rc = r - r.mean()
+        if float(rc @ rc) <= 1e-12:
+            raise DegenerateDataError(f"the {what}'s {ax} axis cannot be related to the reference: "
+                                      f"ref_{ax}_deg does not change over the points (move the "
+                                      f"{'upper' if ax == 'x' else 'lower'} stage)")
+        slope = float(rc @ (s - s.mean()) / (rc @ rc))
+        if abs(abs(slope) - 1.0) > 0.5:
+            raise DegenerateDataError(f"the {what}'s {ax} reading does not follow ref_{ax}_deg (slope {slope:.3g}); "
+                                      f"its axes may be swapped or the columns mislabelled")
+        out.append(1.0 if slope > 0 else -1.0)
+    return np.array(out)
+
+
+def mirror_note(sign) -> str | None:
+    sx, sy = float(sign[0]), float(sign[1])
+    if sx > 0 and sy > 0:
+        return None
+    if sx < 0 and sy < 0:
+        return "measurement sensor turned 180 deg about its normal: both axes read against the reference"
+    ax, about = ("y", "x") if sy < 0 else ("x", "y")
+    return (f"measurement sensor mounted upside down (turned about its {about} axis): its {ax} axis is "
+            f"mirrored against the reference; modelled as a sign on that axis")
+
+
+def sign_from_options(options_extra: Mapping, detected: np.ndarray) -> tuple[np.ndarray, str]:
+    """The lab may state the mounting ('none', 'x', 'y': the axis it was turned about); otherwise detect it."""
+    flip = options_extra.get("meas_flip", "auto")
+    if flip == "auto":
+        return detected, "detected from the data"
+    table = {"none": (1.0, 1.0), "x": (1.0, -1.0), "y": (-1.0, 1.0)}
+    if flip not in table:
+        raise InputError(f"option meas_flip: {flip!r} is not one of auto, none, x, y")
+    sign = np.array(table[flip])
+    if not np.array_equal(sign, detected):
+        raise DegenerateDataError(f"option meas_flip={flip!r} contradicts the data: the measurement readings "
+                                  f"run with signs {detected.tolist()} against the reference")
+    return sign, "as stated by the lab"
+
+
+# --- input checks ----------------------------------------------------------------------------
+def columns(data: Mapping[str, np.ndarray], names) -> list[np.ndarray]:
+    missing = [n for n in names if n not in data]
+    if missing:
+        raise InputError(f"missing required column {missing[0]!r}")
+    return [np.asarray(data[n], dtype=float) for n in names]
+
+
+def has_meas(data: Mapping[str, np.ndarray]) -> bool:
+    return all(c in data for c in MEAS_COLUMNS)
+
+
+def require_spread(stage_x, stage_y, min_points: int, what: str) -> None:
+    """Both stages must move, at enough distinct points, for any stage model to be determined."""
+    pts = np.unique(np.round(np.column_stack([stage_x, stage_y]), 6), axis=0)
+    if len(pts) < min_points:
+        raise DegenerateDataError(f"{what} needs at least {min_points} distinct stage points, got {len(pts)}")
+    for name, v, stage in (("stage_x_deg", stage_x, "upper"), ("stage_y_deg", stage_y, "lower")):
+        if np.unique(np.round(v, 6)).size < 2:
+            raise DegenerateDataError(f"{what}: {name} never changes; the data need points with the {stage} stage "
+                                      "at two or more angles")
+
+
+def check_loss(loss: str) -> str:
+    if loss not in ROBUST_LOSSES:
+        raise InputError(f"option --loss: {loss!r} is not one of {', '.join(ROBUST_LOSSES)}")
+    return loss
+
+
+def model_needs_meas(model) -> None:
+    if not model.state.get("has_meas", False):
+        raise InputError(f"this {model.method} model was calibrated without meas_x_deg/meas_y_deg, so it cannot "
+                         "correct measurement readings; recalibrate with the measurement sensor's columns")
+
+
+# --- vectorised 2-D Newton -------------------------------------------------------------------
+def newton_2d(fun: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
+              target_a: np.ndarray, target_b: np.ndarray, u0: np.ndarray, v0: np.ndarray,
+              step_deg: float = 1e-5, tol_deg: float = 1e-10, max_iter: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """Solve fun(u, v) = (a, b) for every point at once (forward-difference Jacobian, 2x2 solves).
+
+    All points iterate together: the cost is a handful of vectorised model evaluations, never a
+    Python loop over points. Points that fail to converge raise InputError naming them.
+    """
+    u = np.array(u0, dtype=float, copy=True)
+    v = np.array(v0, dtype=float, copy=True)
+    a = np.asarray(target_a, dtype=float)
+    b = np.asarray(target_b, dtype=float)
+    for _ in range(max_iter):
+        fa, fb = fun(u, v)
+        ra, rb = fa - a, fb - b
+        if np.all(np.abs(ra) < tol_deg) and np.all(np.abs(rb) < tol_deg):
+            return u, v
+        fua, fub = fun(u + step_deg, v)
+        fva, fvb = fun(u, v + step_deg)
+        j11, j21 = (fua - fa) / step_deg, (fub - fb) / step_deg
+        j12, j22 = (fva - fa) / step_deg, (fvb - fb) / step_deg
+        det = j11 * j22 - j12 * j21
+        bad = ~np.isfinite(det) | (np.abs(det) < 1e-12)
+        det = np.where(bad, 1.0, det)
+        du = (j22 * ra - j12 * rb) / det
+        dv = (-j21 * ra + j11 * rb) / det
+        du = np.where(bad, 0.0, np.clip(du, -5.0, 5.0))
+        dv = np.where(bad, 0.0, np.clip(dv, -5.0, 5.0))
+        u, v = u - du, v - dv
+    fa, fb = fun(u, v)
+    worst = np.maximum(np.abs(fa - a), np.abs(fb - b))
+    bad_rows = np.flatnonzero(~(worst < 1e-7))
+    if bad_rows.size:
+        rows = ", ".join(str(i + 1) for i in bad_rows[:5])
+        raise InputError(f"no stage angles reach the wanted value at row(s) {rows} "
+                         f"(worst miss {np.nanmax(worst):.3g} deg): outside what the bench can do")
+    return u, v
