@@ -66,21 +66,22 @@ def iodsra_points(sx, sy, sz) -> tuple[np.ndarray, np.ndarray]:
     return out, replaced
 
 
-def _noise_gain(points: np.ndarray, replaced: np.ndarray, normal: np.ndarray) -> np.ndarray:
+def _noise_gain(points: np.ndarray, replaced: np.ndarray, normal: np.ndarray, sigma: float) -> np.ndarray:
     """|∂r/∂(raw outputs)|² of the plane residual r = n·S - sin β: its variance per unit output variance.
 
     A component computed from eq. (6) carries the others' noise scaled by S_other / S_c, which is
-    why the direct method's Sz is poor where Sz is near 0 (seed 002 eqs. 14-15).
+    why the direct method's Sz is poor where Sz is near 0 (seed 002 eqs. 14-15). Where S_c² is not
+    large against its own noise (about 2σ) the derivative overstates it, so S_c² is floored there.
     """
     grad = np.tile(normal, (points.shape[0], 1))
     for c in range(3):
         sel = replaced == c
         if np.any(sel):
             pc = points[sel, c]
-            safe = np.where(np.abs(pc) > 1e-6, pc, np.copysign(1e-6, pc + 0.0))
+            eff = np.sqrt(pc**2 + 2.0 * sigma + 1e-12)
             for o in range(3):
                 if o != c:
-                    grad[sel, o] = normal[o] - normal[c] * points[sel, o] / safe
+                    grad[sel, o] = normal[o] - normal[c] * points[sel, o] / eff * np.where(pc < 0, -1.0, 1.0)
             grad[sel, c] = 0.0
     return np.sum(grad**2, axis=1)
 
@@ -232,9 +233,12 @@ class _RotationMethod:
                                       "change the tilt, so θ cannot be measured")
         n = plane_normal(alpha, gamma)
         r = pts @ n - np.sin(beta)
-        gain = _noise_gain(pts, replaced, n)
         n_pts = pts.shape[0]
         dof = n_pts - 3
+        sigma_guess = float(np.sqrt(np.sum(r**2) / dof)) if dof > 0 else 0.0
+        gain = _noise_gain(pts, replaced, n, sigma_guess)
+        if dof > 0:  # once more with the noise the gains imply
+            gain = _noise_gain(pts, replaced, n, float(np.sqrt(np.sum(r**2 / gain) / dof)))
         # Jacobian of r wrt (α, β, γ) in degrees
         dn_da = np.array([np.cos(alpha) * np.cos(gamma), -np.sin(alpha) * np.cos(gamma), 0.0])
         dn_dg = np.array([-np.sin(alpha) * np.sin(gamma), -np.cos(alpha) * np.sin(gamma), -np.cos(gamma)])
