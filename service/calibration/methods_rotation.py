@@ -270,7 +270,7 @@ class _RotationMethod:
                "estimator": self.estimator, "sz_source": "measured (45° rule)" if self.uses_sz else "eq. (6), Sz >= 0",
                "n_replaced_by_eq6": int(np.sum(replaced >= 0)) if self.uses_sz else n_pts}
         if theta_ref is not None:
-            res_theta = wrap_deg(theta - theta_ref)
+            res_theta = wrap_deg(theta_ref - theta)  # measured (dividing head) minus model
             residuals = residual_summary({"theta_deg": res_theta}, "deg")
         else:
             residuals = plane

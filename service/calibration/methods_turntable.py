@@ -108,7 +108,7 @@ def _initial(az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
 
 def _residuals(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
     xh, eh = compensation(p, az, d1, d2, rotation_deg)
-    return np.concatenate([xh - xi, eh - eta])
+    return np.concatenate([xi - xh, eta - eh])  # reference (star solution) minus model
 
 
 def _jacobian(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
@@ -133,7 +133,7 @@ def gauss_newton(p0, az, d1, d2, xi, eta, rotation_deg, max_iterations: int | No
         J = _jacobian(p, az, d1, d2, xi, eta, rotation_deg)
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
             break
-        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        step, *_ = np.linalg.lstsq(J, -r, rcond=None)  # B Δx = b
         p = p + step
         p[1], p[2] = abs(p[1]), abs(p[2])
         scale = np.array([1e-7, 1e-9 * max(abs(p[1]), 1e-300), 1e-9 * max(abs(p[2]), 1e-300), 1e-7])
