@@ -277,9 +277,11 @@ class CouplingMethod:
             state["meas_sign"] = sign.tolist()
             mx, my = columns(data, MEAS_COLUMNS)
             res.update({"meas_x_deg": sign[0] * mx - rx, "meas_y_deg": sign[1] * my - ry})
+            state["meas_misfit_rms_deg"] = [float(np.sqrt(np.mean(res[c] ** 2))) for c in ("meas_x_deg", "meas_y_deg")]
             notes.append("this model cannot describe the measurement sensor: its H2-like step takes the measurement "
                          "reading as the table tilt (the model has no installation errors); the meas_* residuals "
-                         "show what that leaves")
+                         "show what that leaves, and u_tilt is twice their RMS (the unmodelled installation error "
+                         "taken as an uncertainty, not a GUM propagation)")
             if (mn := mirror_note(sign)) is not None:
                 notes.append(f"{mn} ({how})")
         return _model(self.name, _used_columns(data), params, notes, covariance_names=["offaxis_coupling.kappa"],
@@ -297,7 +299,9 @@ class CouplingMethod:
         model_needs_meas(model)
         sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
         mx, my = columns(data, MEAS_COLUMNS)
-        return {"tilt_x_deg": sign[0] * mx, "tilt_y_deg": sign[1] * my}
+        ux, uy = model.state.get("meas_misfit_rms_deg", [0.0, 0.0])
+        return {"tilt_x_deg": sign[0] * mx, "tilt_y_deg": sign[1] * my,
+                "u_tilt_x_deg": np.full(mx.shape, 2.0 * ux), "u_tilt_y_deg": np.full(my.shape, 2.0 * uy)}
 
 
 # --- axis-transform (seed 000 ref. [10]) -----------------------------------------------------------
