@@ -27,7 +27,7 @@ import sqlalchemy as sa
 
 from service.storage.engine import write_engine
 from service.storage.errors import BackPressureTimeout, SampleWriteError
-from service.storage.samples import Sample, check_sample, insert_samples
+from service.storage.samples import Sample, check_samples, insert_samples
 
 log = logging.getLogger(__name__)
 
@@ -129,8 +129,7 @@ class SampleWriter:
             raise RuntimeError("SampleWriter is closed")
         rows = samples if isinstance(samples, list) else list(samples)
         if self.validate:
-            for s in rows:
-                check_sample(s)
+            check_samples(rows)
         accepted = 0
         for i in range(0, len(rows), self.batch_size):
             chunk = rows[i : i + self.batch_size]
