@@ -1,0 +1,120 @@
+"""`tiltlab discrepancy`: read the dataset, run the workflow, write the JSON report and the report page.
+
+Contract (spec/datasets.md): --kind stage|scale, --input, --out REPORT.json, --sensor ref|meas,
+--baseline linear|kinematic, --html (default: REPORT.html next to --out). Both files are
+written atomically, and only after both are rendered, so a failure leaves nothing behind.
+
+The instrument's noise level, when the lab knows it, comes from optional constant columns
+(`noise_ref_x_deg`, `noise_ref_y_deg` or `noise_meas_*` for stage data, `noise_arcsec` for
+scale data: 1-sigma of one reading) or from an optional `--noise` option where the parser
+offers one; repeated points take precedence over both.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from service.datasets import read_dataset, write_text_atomic
+from service.errors import InputError
+
+
+def _clean(o):
+    """JSON-safe: numpy scalars to Python, non-finite numbers to null."""
+    if isinstance(o, dict):
+        return {str(k): _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if isinstance(o, (np.floating, float)):
+        f = float(o)
+        return f if math.isfinite(f) else None
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, np.ndarray):
+        return _clean(o.tolist())
+    return o
+
+
+def _constant_column(ds, col: str) -> float | None:
+    if col not in ds.numeric:
+        return None
+    v = ds.numeric[col]
+    bad = np.flatnonzero(v <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise InputError(f"{ds.source}, row {i + 1} (line {i + 2}), column {col!r}: a noise level must be positive, "
+                         f"got {ds.text[col][i]}")
+    diff = np.flatnonzero(v != v[0])
+    if diff.size:
+        i = int(diff[0])
+        raise InputError(f"{ds.source}, row {i + 1} (line {i + 2}), column {col!r}: {ds.text[col][i]} differs from "
+                         f"the first row's {ds.text[col][0]}; the instrument's noise level is one value per axis")
+    return float(v[0])
+
+
+def run(args: argparse.Namespace) -> int:
+    kind = args.kind
+    baseline = getattr(args, "baseline", None) or "linear"
+    option_noise = getattr(args, "noise", None)
+    inputs = {"input": str(args.input)}
+    if kind == "stage":
+        from service.discrepancy.stage import stage_report
+
+        sensor = getattr(args, "sensor", None) or "ref"
+        nx, ny = f"noise_{sensor}_x_deg", f"noise_{sensor}_y_deg"
+        ds = read_dataset(args.input, "stage",
+                          ("stage_x_deg", "stage_y_deg", f"{sensor}_x_deg", f"{sensor}_y_deg"),
+                          ("dir_x", "dir_y", "temp_c", "t_s", "point", nx, ny))
+        noise = None
+        cx, cy = _constant_column(ds, nx), _constant_column(ds, ny)
+        if cx is not None or cy is not None:
+            if cx is None or cy is None:
+                raise InputError(f"{ds.source}: give both {nx!r} and {ny!r} (one noise level per axis), or neither")
+            noise = [cx, cy]
+        elif option_noise is not None:
+            noise = option_noise
+        report, result, fam = stage_report(ds.arrays(), sensor, baseline, noise, inputs=inputs)
+    elif kind == "scale":
+        from service.discrepancy.scale import scale_report
+
+        if baseline not in ("linear", "poly1"):
+            raise InputError(f"kind 'scale' has one baseline, poly1 (a straight line); --baseline {baseline} "
+                             "applies to stage data")
+        ds = read_dataset(args.input, "scale", (("ref_arcsec", "ref_deg"), "reading"),
+                          ("point", "temp_c", "t_s", "noise_arcsec"))
+        noise = _constant_column(ds, "noise_arcsec")
+        if noise is None:
+            noise = option_noise
+        report, result, fam = scale_report(ds.arrays(), noise, inputs=inputs)
+    else:
+        raise InputError(f"discrepancy supports kinds stage and scale, not {kind!r}")
+
+    from service.discrepancy.report import render_html
+
+    out = Path(args.out)
+    html_path = Path(args.html) if getattr(args, "html", None) else out.with_suffix(".html")
+    if html_path.resolve() == out.resolve():
+        raise InputError(f"--html {html_path} would overwrite the JSON report --out {out}")
+    report = _clean(report)
+    text = json.dumps(report, indent=1, ensure_ascii=False, allow_nan=False)
+    page = render_html(report, result, fam)
+    for p in (out, html_path):
+        folder = p.parent if str(p.parent) else Path(".")
+        if not folder.is_dir():
+            raise InputError(f"{p}: folder {folder} does not exist")
+    write_text_atomic(out, text + "\n")
+    write_text_atomic(html_path, page)
+    chain = " → ".join(report["chain"])
+    print(f"{kind}/{report['baseline']}: {chain}; final RMS {', '.join(f'{v:.3g}' for v in report['final_rms'])} "
+          f"{report['unit']} (noise {', '.join(f'{v:.3g}' for v in report['noise_level'])}, "
+          f"{report['noise_source']}); wrote {out} and {html_path}", file=sys.stderr)
+    for s in report["skipped"]:
+        print(f"  skipped {s['effect']}: {s['reason']}", file=sys.stderr)
+    return 0

@@ -1,0 +1,241 @@
+"""A bench model as a baseline plus named effect terms, fitted by weighted least squares.
+
+A family (stage/linear, stage/kinematic, scale/poly) says which parameters each effect adds
+(in the effect's own units, names from the registry where it has them) and how the model
+predicts the readings; this module does the fitting, the covariance, and the check that a
+term is separable from what the model already holds on the data at hand.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from service.errors import DegenerateDataError, FitError
+
+
+@dataclass(frozen=True)
+class Block:
+    """The parameters one effect (or the baseline) adds to the model."""
+
+    effect: str  # "baseline" for the baseline's own parameters
+    labels: tuple[str, ...]
+    units: tuple[str, ...]
+    scales: tuple[float, ...]  # typical magnitudes: solver scaling and finite-difference steps
+    init: tuple[float, ...]
+
+    @property
+    def size(self) -> int:
+        return len(self.labels)
+
+
+@dataclass
+class Fit:
+    """A fitted model: parameter values, covariance, residuals (observed - predicted) per axis."""
+
+    effects: tuple[str, ...]
+    blocks: list[Block]
+    values: np.ndarray
+    covariance: np.ndarray
+    residuals: np.ndarray  # (N, A) in the data's unit
+    predicted: np.ndarray  # (N, A)
+    rss_w: float  # noise-weighted residual sum of squares
+    n_obs: int
+    jacobian_w: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
+
+    @property
+    def k(self) -> int:
+        return int(self.values.size)
+
+    @property
+    def dof(self) -> int:
+        return self.n_obs - self.k
+
+    def block_slice(self, effect: str, occurrence: int = 0) -> slice:
+        i, seen = 0, 0
+        for b in self.blocks:
+            if b.effect == effect:
+                if seen == occurrence:
+                    return slice(i, i + b.size)
+                seen += 1
+            i += b.size
+        raise KeyError(effect)
+
+    def block(self, effect: str, occurrence: int = 0) -> Block:
+        seen = 0
+        for b in self.blocks:
+            if b.effect == effect:
+                if seen == occurrence:
+                    return b
+                seen += 1
+        raise KeyError(effect)
+
+    def rms(self) -> list[float]:
+        return [float(np.sqrt(np.mean(self.residuals[:, a] ** 2))) for a in range(self.residuals.shape[1])]
+
+
+class Family:
+    """Baseline + candidate terms of one data kind. Subclasses define `blocks` and `predict`."""
+
+    kind: str = ""
+    baseline: str = ""
+    unit: str = ""
+    axes: tuple[str, ...] = ()
+
+    def __init__(self, observed: np.ndarray, weights: np.ndarray):
+        self.observed = np.asarray(observed, dtype=float).reshape(len(observed), -1)
+        self.weights = np.asarray(weights, dtype=float)
+        # per effect, the parameters the data can separate (all when absent)
+        self.active: dict[str, tuple[str, ...]] = {}
+        # with a known noise level the weighted residual has unit variance; otherwise the
+        # covariance is scaled by the residual variance of the fit
+        self.noise_known = False
+
+    # -- to be provided by a family ------------------------------------------------------------
+    def full_blocks(self, effects: tuple[str, ...]) -> list[Block]:
+        """Every parameter the effects could add, before dropping what the data cannot separate."""
+        raise NotImplementedError
+
+    def predict_params(self, effects: tuple[str, ...], params: dict[str, dict[str, float]]) -> np.ndarray:
+        """Noise-free readings (N, A); a parameter missing from `params` means its effect-free value."""
+        raise NotImplementedError
+
+    def magnitude(self, fit: "Fit", effect: str) -> dict:
+        """The fitted size of an effect in its own units, with standard uncertainties."""
+        raise NotImplementedError
+
+    # -- parameters --------------------------------------------------------------------------------
+    def blocks(self, effects: tuple[str, ...]) -> list[Block]:
+        out = []
+        for b in self.full_blocks(effects):
+            keep = self.active.get(b.effect)
+            if keep is not None:
+                idx = [i for i, lab in enumerate(b.labels) if lab in keep]
+                b = Block(b.effect, tuple(b.labels[i] for i in idx), tuple(b.units[i] for i in idx),
+                          tuple(b.scales[i] for i in idx), tuple(b.init[i] for i in idx))
+            out.append(b)
+        return out
+
+    @staticmethod
+    def unpack(blocks: list[Block], theta: np.ndarray) -> dict[str, dict[str, float]]:
+        params: dict[str, dict[str, float]] = {}
+        i = 0
+        for b in blocks:
+            d = params.setdefault(b.effect, {})
+            for lab in b.labels:
+                d[lab] = float(theta[i])
+                i += 1
+        return params
+
+    def predict(self, effects: tuple[str, ...], theta: np.ndarray, blocks: list[Block] | None = None) -> np.ndarray:
+        return self.predict_params(effects, self.unpack(blocks or self.blocks(effects), theta))
+
+    def initial(self, effects: tuple[str, ...], blocks: list[Block], start: Fit | None) -> np.ndarray:
+        """Start values: the previous fit's values where the parameter is the same, block init elsewhere."""
+        x = np.concatenate([np.asarray(b.init, dtype=float) for b in blocks]) if blocks else np.zeros(0)
+        if start is None:
+            return x
+        i = 0
+        prev = {}
+        j = 0
+        for b in start.blocks:
+            for lab in b.labels:
+                prev[(b.effect, lab)] = start.values[j]
+                j += 1
+        for b in blocks:
+            for lab in b.labels:
+                if (b.effect, lab) in prev:
+                    x[i] = prev[(b.effect, lab)]
+                i += 1
+        return x
+
+    # -- generic machinery ---------------------------------------------------------------------
+    @property
+    def n_obs(self) -> int:
+        return int(self.observed.size)
+
+    def weighted_residual(self, effects: tuple[str, ...], theta: np.ndarray,
+                          blocks: list[Block] | None = None) -> np.ndarray:
+        return ((self.observed - self.predict(effects, theta, blocks)) * self.weights).ravel()
+
+    def fit(self, effects: tuple[str, ...], start: Fit | None = None, x0: np.ndarray | None = None) -> Fit:
+        blocks = self.blocks(effects)
+        k = sum(b.size for b in blocks)
+        if self.n_obs <= k:
+            raise DegenerateDataError(f"{self.n_obs // max(self.observed.shape[1], 1)} points give {self.n_obs} "
+                                      f"readings, not more than the {k} parameters of the model "
+                                      f"({self.baseline} + {', '.join(effects) or 'nothing'})")
+        theta0 = self.initial(effects, blocks, start) if x0 is None else np.asarray(x0, dtype=float)
+        scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
+
+        def fun(q):
+            return self.weighted_residual(effects, q * scales, blocks)
+
+        q0 = theta0 / scales
+        with np.errstate(all="ignore"):
+            r0 = fun(q0)
+        if not np.all(np.isfinite(r0)):
+            raise FitError(f"model {self.baseline} + {', '.join(effects)} cannot be evaluated at its start values")
+        try:
+            sol = least_squares(fun, q0, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200 * (k + 1))
+        except ValueError as exc:  # pragma: no cover - scipy refuses e.g. non-finite residuals
+            raise FitError(f"fit of {self.baseline} + {', '.join(effects)} failed: {exc}") from exc
+        if not np.all(np.isfinite(sol.x)):
+            raise FitError(f"fit of {self.baseline} + {', '.join(effects)} diverged")
+        theta = sol.x * scales
+        J = np.asarray(sol.jac) / scales  # d(weighted residual)/d(theta)
+        pred = self.predict(effects, theta, blocks)
+        resid = self.observed - pred
+        rss_w = float(np.sum((resid * self.weights) ** 2))
+        s2 = rss_w / max(self.n_obs - k, 1)
+        # known noise: the noise variance, raised (Birge ratio) if the residual says it is larger
+        cov = _covariance(J) * (max(1.0, s2) if self.noise_known else s2)
+        return Fit(tuple(effects), blocks, theta, cov, resid, pred, rss_w, self.n_obs, J)
+
+    def separability(self, current: Fit, effect: str) -> list[float]:
+        """For each parameter of `effect`: the fraction of its signature the current model cannot absorb.
+
+        The signature is the column of the (weighted) Jacobian at the current fit; the
+        fraction is the norm of its component orthogonal to the current model's columns over
+        its own norm. Zero means the data cannot tell the term from what is fitted already.
+        """
+        effects = current.effects + (effect,)
+        full = [b for b in self.full_blocks(effects) if b.effect == effect]
+        blocks = self.blocks(current.effects) + full[-1:]
+        theta = self.initial(effects, blocks, current)
+        scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
+        new = blocks[-1]
+        n0 = theta.size - new.size
+        base_r = self.weighted_residual(effects, theta, blocks)
+        cols = []
+        for j in range(theta.size):
+            h = 1e-4 * scales[j]
+            tp = theta.copy()
+            tp[j] += h
+            cols.append((self.weighted_residual(effects, tp, blocks) - base_r) / h * scales[j])
+        J = np.column_stack(cols)
+        Jm, Jc = J[:, :n0], J[:, n0:]
+        if Jm.size:
+            u, s, _ = np.linalg.svd(Jm, full_matrices=False)
+            u = u[:, s > 1e-10 * s[0]] if s.size and s[0] > 0 else u[:, :0]
+        out = []
+        for c in Jc.T:
+            nc = float(np.linalg.norm(c))
+            if nc == 0.0 or not np.isfinite(nc):
+                out.append(0.0)
+                continue
+            rest = c - u @ (u.T @ c) if Jm.size else c
+            out.append(float(np.linalg.norm(rest) / nc))
+        return out
+
+
+def _covariance(J: np.ndarray) -> np.ndarray:
+    """(JᵀJ)⁻¹ of the weighted problem; pseudo-inverse where a direction is not determined."""
+    if J.size == 0:
+        return np.zeros((0, 0))
+    JtJ = J.T @ J
+    d = np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
+    C = np.linalg.pinv(JtJ / np.outer(d, d), rcond=1e-12)
+    return C / np.outer(d, d)

@@ -1,0 +1,88 @@
+"""The discrepancy workflow on stacked swing-stage data (kind `stage`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from service.discrepancy import noise as noise_mod
+from service.discrepancy.stage_common import StageData, common_skips, largest_residuals, stage_structure
+from service.discrepancy.workflow import DEFAULT_ALPHA, Result, find_missing_effects, to_report
+from service.errors import InputError
+from service.physics.stage import StageBench
+
+
+def stage_noise(data: StageData, spec_sigma=None) -> noise_mod.NoiseLevel | None:
+    """Repeated points first, then the instrument specification; None means 'from the final residual'."""
+    if data.point is not None:
+        keys = [data.point]
+        for d in (data.dir_x, data.dir_y):
+            if d is not None:
+                keys.append(d)
+        n = noise_mod.from_repeats(data.observed, np.column_stack(keys))
+        if n is not None:
+            return n
+    if spec_sigma is not None:
+        s = np.broadcast_to(np.asarray(spec_sigma, dtype=float), (2,)).copy()
+        if np.any(s <= 0) or not np.all(np.isfinite(s)):
+            raise InputError(f"noise level must be positive, got {s.tolist()}")
+        return noise_mod.from_specification(s)
+    return None
+
+
+def _explain_drop(data: StageData):
+    def explain(effect: str, label: str) -> str | None:
+        ax = label[:1]
+        if effect == "backlash" and ax in "xy":
+            if data.dir(ax) is None:
+                return f"no dir_{ax} column"
+            if not data.both_directions(ax):
+                return f"every point was reached moving the {ax} stage the same way (dir_{ax} has one sign)"
+        if effect == "periodic_error" and ax in "xy":
+            return (f"the grid samples the {ax} stage's worm at too few phases to tell its periodic error from a "
+                    "constant or a scale (grid step a whole or half number of worm turns)")
+        return None
+    return explain
+
+
+def analyse_stage(columns: Mapping[str, np.ndarray], sensor: str = "ref", baseline: str = "linear",
+                  noise_sigma=None, bench: StageBench | None = None, alpha: float = DEFAULT_ALPHA,
+                  candidates: tuple[str, ...] | None = None) -> tuple[Result, object]:
+    """Run the workflow on stage columns; returns the result and the fitted family (for the report)."""
+    data = StageData.from_columns(columns, sensor, bench)
+    if len(data) < 6:
+        raise InputError(f"{len(data)} rows: the discrepancy workflow needs at least 6 points for a baseline "
+                         "and a test")
+    noise = stage_noise(data, noise_sigma)
+    weights = np.ones(2) if noise is None else 1.0 / noise.sigma
+    if baseline == "linear":
+        from service.discrepancy.stage_linear import StageLinear
+
+        fam = StageLinear(data, weights)
+    elif baseline == "kinematic":
+        from service.discrepancy.stage_kinematic import StageKinematic
+
+        fam = StageKinematic(data, weights)
+    else:
+        raise InputError(f"unknown baseline {baseline!r} for kind 'stage' (linear or kinematic)")
+    fam.noise_known = noise is not None
+    cands = tuple(c for c in (candidates or fam.candidates) if c in fam.candidates)
+    skips = common_skips(data)
+    res = find_missing_effects(fam, cands, skips, noise or noise_mod.NoiseLevel(None, "final residual", np.inf, ""),
+                               lambda r: stage_structure(data, r), alpha=alpha, explain_drop=_explain_drop(data))
+    res.extra["where_largest"] = largest_residuals(data, res.fits[0].residuals)
+    res.extra["bench"] = {"upper_gear_ratio": data.bench.upper_gear_ratio,
+                          "lower_gear_ratio": data.bench.lower_gear_ratio,
+                          "pulse_x_deg": data.bench.pulse_x_deg, "pulse_y_deg": data.bench.pulse_y_deg,
+                          "worm_period_x_deg": data.bench.worm_period_x_deg,
+                          "worm_period_y_deg": data.bench.worm_period_y_deg}
+    res.extra.update(getattr(fam, "report_extra", {}))
+    return res, fam
+
+
+def stage_report(columns, sensor="ref", baseline="linear", noise_sigma=None, bench=None, alpha=DEFAULT_ALPHA,
+                 inputs: dict | None = None) -> tuple[dict, Result, object]:
+    res, fam = analyse_stage(columns, sensor, baseline, noise_sigma, bench, alpha)
+    rep = to_report(res, fam, {"sensor": sensor, "n_rows": len(fam.data), **(inputs or {})})
+    return rep, res, fam

@@ -1,0 +1,152 @@
+"""What stage data carry (stage angles, the other axis, approach direction, temperature, time) and
+the residual structure tests that locate a disagreement in that covariate space."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.discrepancy import stats
+from service.physics.stage import StageBench
+
+# Candidate effects of spec/models.md §5 a stage bench model can lack, in a fixed order.
+STAGE_CANDIDATES = ("offaxis_coupling", "backlash", "periodic_error", "sensor_nonlinearity",
+                    "temperature_drift", "time_drift")
+
+TEMP_MIN_SPAN_K = 0.05  # below this the temperature is treated as constant
+TIME_MIN_SPAN_S = 1.0
+
+
+@dataclass
+class StageData:
+    """One sensor's readings at the commanded stage points, with the covariates present."""
+
+    sensor: str
+    cmd_x_deg: np.ndarray
+    cmd_y_deg: np.ndarray
+    observed: np.ndarray  # (N, 2): sensor x and y readings, deg
+    dir_x: np.ndarray | None
+    dir_y: np.ndarray | None
+    temp_c: np.ndarray | None
+    t_s: np.ndarray | None
+    point: np.ndarray | None
+    bench: StageBench
+
+    @classmethod
+    def from_columns(cls, cols: Mapping[str, np.ndarray], sensor: str = "ref",
+                     bench: StageBench | None = None) -> "StageData":
+        g = lambda c: None if c not in cols else np.asarray(cols[c], dtype=float)  # noqa: E731
+        obs = np.column_stack([g(f"{sensor}_x_deg"), g(f"{sensor}_y_deg")])
+        return cls(sensor, g("stage_x_deg"), g("stage_y_deg"), obs, g("dir_x"), g("dir_y"), g("temp_c"),
+                   g("t_s"), g("point"), bench or StageBench())
+
+    def __len__(self) -> int:
+        return self.cmd_x_deg.size
+
+    def quantised(self) -> tuple[np.ndarray, np.ndarray]:
+        """The stage angles the controller executes: whole pulses (seed 000 §1)."""
+        return self.bench.quantise(self.cmd_x_deg, self.cmd_y_deg)
+
+    def dir(self, axis: str) -> np.ndarray | None:
+        return self.dir_x if axis == "x" else self.dir_y
+
+    def both_directions(self, axis: str) -> bool:
+        d = self.dir(axis)
+        return d is not None and bool(np.any(d > 0)) and bool(np.any(d < 0))
+
+    def temp_varies(self) -> bool:
+        return self.temp_c is not None and float(np.ptp(self.temp_c)) >= TEMP_MIN_SPAN_K
+
+    def time_varies(self) -> bool:
+        return self.t_s is not None and float(np.ptp(self.t_s)) >= TIME_MIN_SPAN_S
+
+    def worm_phase(self, axis: str) -> tuple[np.ndarray, float]:
+        """Phase of the worm (rad) at each point and the worm period in output degrees."""
+        qx, qy = self.quantised()
+        period = self.bench.worm_period_x_deg if axis == "x" else self.bench.worm_period_y_deg
+        c = qx if axis == "x" else qy
+        return 2.0 * np.pi * c / period, period
+
+
+def common_skips(data: StageData) -> dict[str, str]:
+    """Candidates the data cannot support at all, with the reason in the lab's words."""
+    skip: dict[str, str] = {}
+    if data.dir_x is None and data.dir_y is None:
+        skip["backlash"] = "no dir_x/dir_y columns: the direction of the last move is not recorded"
+    elif not (data.both_directions("x") or data.both_directions("y")):
+        skip["backlash"] = ("a single approach direction per stage: every point was reached moving the same "
+                            "way, so lost motion is a constant offset the model already has")
+    if data.temp_c is None:
+        skip["temperature_drift"] = "no temp_c column"
+    elif not data.temp_varies():
+        skip["temperature_drift"] = (f"temperature constant within {np.ptp(data.temp_c):.3g} K "
+                                     f"(at {np.mean(data.temp_c):.2f} °C): a temperature coefficient cannot be "
+                                     "told from a zero offset")
+    if data.t_s is None:
+        skip["time_drift"] = "no t_s column: the time of each point is not recorded"
+    elif not data.time_varies():
+        skip["time_drift"] = "all points recorded at the same time (t_s constant)"
+    return skip
+
+
+_SHAPE_TERMS = ("θx²", "θx·θy", "θy²", "θx³", "θx²·θy", "θx·θy²", "θy³")
+_SHAPE_WORDS = {
+    "θx²": "grows with |θx|, same sign on both sides",
+    "θx·θy": "changes sign across the diagonals (twist)",
+    "θy²": "grows with |θy|, same sign on both sides",
+    "θx³": "grows with |θx| faster than linearly, with the sign of θx",
+    "θx²·θy": "grows with |θx| at large |θy|, with the sign of θy",
+    "θx·θy²": "grows with |θy| at large |θx|, with the sign of θx",
+    "θy³": "grows with |θy| faster than linearly, with the sign of θy",
+}
+
+
+def stage_structure(data: StageData, resid: np.ndarray, alpha: float = 0.01) -> list[stats.StructureTest]:
+    """Residual structure tests per axis against every covariate the data carry."""
+    x, y = data.cmd_x_deg, data.cmd_y_deg
+    s = max(float(np.max(np.abs(np.concatenate([x, y])))), 1e-9)
+    u, v = x / s, y / s
+    terms = np.column_stack([u * u, u * v, v * v, u**3, u * u * v, u * v * v, v**3])
+    tests: list[stats.StructureTest] = []
+    for a, name in enumerate(("x", "y")):
+        r = resid[:, a]
+        if len(data) >= 12 and np.unique(np.round(np.column_stack([x, y]), 6), axis=0).shape[0] >= 10:
+            # the linear part is what any baseline fits; test the shape beyond it
+            base_r = r - np.column_stack([np.ones_like(u), u, v]) @ np.linalg.lstsq(
+                np.column_stack([np.ones_like(u), u, v]), r, rcond=None)[0]
+            tests.append(stats.shape_test(base_r, list(_SHAPE_TERMS), terms, name, "deg", _SHAPE_WORDS))
+        for st in ("x", "y"):
+            if data.both_directions(st):
+                t = stats.direction_test(r, data.dir(st), name, st, "deg")
+                if t:
+                    tests.append(t)
+        if data.temp_varies():
+            t = stats.correlation_test(r, data.temp_c, name, "temp_c", "temperature", "K", "deg")
+            if t:
+                tests.append(t)
+        if data.time_varies():
+            t = stats.correlation_test(r, data.t_s / 3600.0, name, "t_s", "time", "h", "deg")
+            if t:
+                tests.append(t)
+            t = stats.runs_test(r, data.t_s, name)
+            if t:
+                tests.append(t)
+        for st in ("x", "y"):
+            ph, period = data.worm_phase(st)
+            t = stats.periodic_test(r, ph, name, st, period, "deg")
+            if t:
+                tests.append(t)
+    return stats.mark_significant(tests, alpha)
+
+
+def largest_residuals(data: StageData, resid: np.ndarray, n: int = 3) -> list[str]:
+    """Where the largest disagreements sit on the grid, per axis (a sentence each)."""
+    out = []
+    for a, name in enumerate(("x", "y")):
+        idx = np.argsort(-np.abs(resid[:, a]))[:n]
+        where = ", ".join(f"({data.cmd_x_deg[i]:g}, {data.cmd_y_deg[i]:g})" for i in idx)
+        out.append(f"largest {name} residuals ({', '.join(f'{resid[i, a]:+.3g}' for i in idx)} deg) at stage "
+                   f"(θx, θy) = {where} deg")
+    return out

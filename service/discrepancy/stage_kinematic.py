@@ -1,0 +1,160 @@
+"""The `kinematic` baseline of a stage bench: the physical forward model without the candidate effects.
+
+The model is the simulator itself (service.physics.stage, through the bench fitter's
+`BenchModel`), with the mounting and geometry parameters free; a candidate adds its own
+effect's parameters, in the registry's names and units, to the free set. So "add the
+effect" means literally switching the simulator's term on and fitting its size.
+
+The free geometry is the largest set the readings of one sensor can separate (pivoted QR of
+the model's Jacobian on a 9 × 9 grid): the sensor's zero offsets, both stage scales, the
+sensor's yaw and non-orthogonality, the desk tilt seen by y readings and the sensor seat's
+tilt seen by x readings, and three axis-misalignment angles. The other geometry parameters
+are exact symmetries of these on stage data (a yaw of the lower axis, the table top against
+the seat, ...) and are left at zero; the sensor's own scale factor is represented by the
+stage scale to first order (they differ only through the off-axis coupling).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.calibration.benchfit import BenchModel, StagePoints, typical_scale
+from service.discrepancy.model import Block, Family, Fit
+from service.discrepancy.stage_common import StageData
+from service.discrepancy.stage_linear import stage_magnitude
+from service.errors import InputError
+from service.physics.effects import STAGE_EFFECTS
+from service.physics.stage import StageBench, StageGeometry
+
+CANDIDATES = ("backlash", "periodic_error", "sensor_nonlinearity", "temperature_drift", "time_drift")
+
+ALREADY_IN_MODEL = {
+    "offaxis_coupling": "the kinematic model is the stacked-stage geometry itself: the coupling is built in",
+    "zero_offset": "the sensor's zero offsets are free parameters of the baseline",
+    "scale_factor": "the stage scales are free; a sensor gain differs from them only through the coupling "
+                    "(second order), so it is represented to first order",
+    "sensor_yaw": "free parameter of the baseline",
+    "non_orthogonality": "free parameter of the baseline",
+    "mounting_tilt": "desk tilt (y) and sensor-seat tilt (x) are free; the other plane tilts are exact "
+                     "symmetries of these on one sensor's readings",
+    "axis_misalignment": "lower-axis pitch, upper-axis pitch and perpendicularity are free; the lower axis' "
+                         "yaw is an exact symmetry of the sensor yaw on these readings",
+    "stage_scale": "free parameter of the baseline (both stages)",
+}
+
+GEOMETRY_PARAMS = lambda s: (  # noqa: E731
+    ("zero_offset", f"{s}_x_deg"), ("zero_offset", f"{s}_y_deg"),
+    ("stage_scale", "x"), ("stage_scale", "y"),
+    ("sensor_yaw", f"{s}_deg"), ("non_orthogonality", f"{s}_deg"),
+    ("mounting_tilt", "desk_y_deg"), ("mounting_tilt", f"{s}_x_deg"),
+    ("axis_misalignment", "upper_pitch_deg"), ("axis_misalignment", "perpendicularity_deg"),
+    ("axis_misalignment", "lower_pitch_deg"),
+)
+
+_GEOMETRY_EFFECTS = {"mounting_tilt", "axis_misalignment", "sensor_yaw", "non_orthogonality", "offaxis_coupling"}
+
+
+def detect_flip(data: StageData) -> str:
+    """How the sensor is mounted (spec §2: the measurement sensor may be upside down), from the slopes."""
+    if data.sensor != "meas":
+        return "none"
+    sx = np.polyfit(data.cmd_x_deg, data.observed[:, 0], 1)[0] if np.ptp(data.cmd_x_deg) > 0 else 1.0
+    sy = np.polyfit(data.cmd_y_deg, data.observed[:, 1], 1)[0] if np.ptp(data.cmd_y_deg) > 0 else 1.0
+    if sx < 0 and sy < 0:
+        raise InputError("both measurement-sensor axes read against their stages: the kinematic model supports a "
+                         "sensor turned over about one of its axes, not one turned half round (use --baseline linear)")
+    return "y" if sx < 0 else ("x" if sy < 0 else "none")
+
+
+class StageKinematic(Family):
+    kind = "stage"
+    baseline = "kinematic"
+    unit = "deg"
+    axes = ("x", "y")
+    candidates = CANDIDATES
+    already_in_model = ALREADY_IN_MODEL
+
+    def __init__(self, data: StageData, weights: np.ndarray):
+        super().__init__(data.observed, weights)
+        self.data = data
+        b = data.bench
+        flip = detect_flip(data)
+        temp_ref = float(np.mean(data.temp_c)) if data.temp_c is not None else b.temp_ref_c
+        self.bench = StageBench(b.upper_gear_ratio, b.lower_gear_ratio, b.step_angle_deg, b.microsteps,
+                                max(b.travel_deg, 90.0), flip, temp_ref)
+        cols = {"stage_x_deg": data.cmd_x_deg, "stage_y_deg": data.cmd_y_deg}
+        for c in ("dir_x", "dir_y", "temp_c"):
+            v = getattr(data, c)
+            if v is not None:
+                cols[c] = v
+        if data.t_s is not None:
+            cols["t_s"] = data.t_s - float(data.t_s[0])
+        self.pts = StagePoints.from_columns(cols)
+        self.outputs = [f"{data.sensor}_x_deg", f"{data.sensor}_y_deg"]
+        self.geometry_keys = GEOMETRY_PARAMS(data.sensor)
+        s = data.sensor
+        self.names = {
+            "sensor_nonlinearity": (f"{s}_x_per_deg", f"{s}_y_per_deg"),
+            "temperature_drift": (f"{s}_x_deg_per_k", f"{s}_y_deg_per_k", f"{s}_scale_per_k"),
+            "time_drift": (f"{s}_x_deg_per_h", f"{s}_y_deg_per_h"),
+        }
+        self._geo_cache: tuple[tuple, StageGeometry] | None = None
+        self.report_extra = {"kinematic": {"meas_flip": flip, "temp_ref_c": temp_ref,
+                                           "free_geometry": [f"{e}.{p}" for e, p in self.geometry_keys]}}
+
+    def full_blocks(self, effects):
+        keys = self.geometry_keys
+        out = [Block("baseline", tuple(f"{e}.{p}" for e, p in keys),
+                     tuple(STAGE_EFFECTS[e].param(p).unit for e, p in keys),
+                     tuple(typical_scale(k) for k in keys), (0.0,) * len(keys))]
+        for e in effects:
+            if e == "backlash":
+                out.append(Block(e, ("x_deg", "y_deg"), ("deg", "deg"), (0.01, 0.01), (0.0, 0.0)))
+            elif e == "periodic_error":
+                out.append(Block(e, ("x_sin_deg", "x_cos_deg", "y_sin_deg", "y_cos_deg"), ("deg",) * 4,
+                                 (0.01,) * 4, (0.0,) * 4))
+            elif e == "sensor_nonlinearity":
+                out.append(Block(e, self.names[e], ("1/deg", "1/deg"), (1e-4, 1e-4), (0.0, 0.0)))
+            elif e == "temperature_drift":
+                out.append(Block(e, self.names[e], ("deg/K", "deg/K", "1/K"), (1e-3, 1e-3, 1e-4), (0.0,) * 3))
+            elif e == "time_drift":
+                out.append(Block(e, self.names[e], ("deg/h", "deg/h"), (1e-2, 1e-2), (0.0, 0.0)))
+            else:
+                raise KeyError(f"the kinematic baseline has no candidate term for {e!r}")
+        return out
+
+    def effects_mapping(self, effects, p) -> dict[str, dict[str, float]]:
+        """The registry's effect mapping (what a scenario would say) for these parameter values."""
+        eff: dict[str, dict[str, float]] = {}
+        for lab, v in p.get("baseline", {}).items():
+            e, par = lab.split(".", 1)
+            eff.setdefault(e, {})[par] = v
+        for e in effects:
+            q = p.get(e, {})
+            if e == "periodic_error":
+                d = {}
+                for ax in ("x", "y"):
+                    a, b = q.get(f"{ax}_sin_deg", 0.0), q.get(f"{ax}_cos_deg", 0.0)
+                    d[f"{ax}_amp_deg"] = float(np.hypot(a, b))
+                    d[f"{ax}_phase_deg"] = float(np.degrees(np.arctan2(b, a)))
+                eff[e] = d
+            else:
+                eff[e] = dict(q)
+        return eff
+
+    def predict_params(self, effects, p):
+        eff = self.effects_mapping(effects, p)
+        model = BenchModel(self.bench, eff, [])
+        fx = model.effect_set(())
+        key = tuple(sorted((e, tuple(sorted(fx.values[e].items()))) for e in _GEOMETRY_EFFECTS if e in fx.on))
+        if self._geo_cache is None or self._geo_cache[0] != key:
+            self._geo_cache = (key, StageGeometry.from_effects(self.bench, fx))
+        from service.physics.stage import simulate_stage
+
+        pts = self.pts
+        sim = simulate_stage(self.bench, fx, pts.stage_x_deg, pts.stage_y_deg, pts.dir_x, pts.dir_y, pts.temp_c,
+                             pts.t_s, rng=None, geometry=self._geo_cache[1])
+        return np.column_stack([sim[o] for o in self.outputs])
+
+    def magnitude(self, fit: Fit, effect: str) -> dict:
+        return stage_magnitude(self, fit, effect)

@@ -1,0 +1,245 @@
+"""Statistics of the discrepancy workflow: significance of an added term and structure in residuals.
+
+Why these tests: a candidate effect is a nested extension of the current model, so the
+classical extra-sum-of-squares F-test (or its chi-square limit when the noise level is
+known) says whether the drop in residual is more than noise could produce. The workflow
+tests several candidates at each step, so the level is Bonferroni-corrected; a BIC gain
+is required as well so that a large data set cannot make a negligible term "significant".
+
+Residual structure tests answer "where do model and measurement disagree": each one is a
+regression of the residual on one covariate (stage-angle shape, approach direction,
+temperature, time, worm phase) with a statistic and a p-value, not a judgement by eye.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats as sps
+
+
+@dataclass
+class Significance:
+    """Outcome of testing one added term against the noise level."""
+
+    delta_rss: float  # drop of the (noise-weighted) residual sum of squares
+    df_added: int  # parameters the term adds
+    f_stat: float
+    df_denominator: float  # inf when the noise level is taken as known
+    p_value: float
+    alpha: float  # per-test level after the multiple-comparison correction
+    bic_before: float
+    bic_after: float
+    denominator_source: str  # "noise level" or "residual of the extended model"
+
+    @property
+    def delta_bic(self) -> float:
+        return self.bic_after - self.bic_before
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.p_value < self.alpha and self.delta_bic < 0.0)
+
+    def as_dict(self) -> dict:
+        return {
+            "delta_rss_weighted": self.delta_rss,
+            "df_added": self.df_added,
+            "f_stat": self.f_stat,
+            "df_denominator": None if math.isinf(self.df_denominator) else self.df_denominator,
+            "test": "chi2" if math.isinf(self.df_denominator) else "F",
+            "p_value": self.p_value,
+            "alpha": self.alpha,
+            "bic_before": self.bic_before,
+            "bic_after": self.bic_after,
+            "delta_bic": self.delta_bic,
+            "denominator": self.denominator_source,
+            "significant": self.significant,
+        }
+
+
+def bic(rss_w: float, n_obs: int, k: int, noise_known: bool) -> float:
+    """BIC of a least-squares fit: chi-square form when the noise is known, Gaussian likelihood otherwise."""
+    if noise_known:
+        return float(rss_w + k * math.log(n_obs))
+    return float(n_obs * math.log(max(rss_w, 1e-300) / n_obs) + k * math.log(n_obs))
+
+
+def nested_test(rss0: float, k0: int, rss1: float, k1: int, n_obs: int, alpha: float,
+                noise_var: float | None, noise_df: float) -> Significance:
+    """Extra-sum-of-squares test of model 1 (k1 parameters) against nested model 0 (k0 < k1).
+
+    Residual sums of squares are noise-weighted when `noise_var` is given (then noise_var is
+    the variance of a weighted residual, 1 for a known instrument noise, with `noise_df`
+    degrees of freedom, inf when known exactly). The denominator is the larger of that noise
+    variance and the residual variance of model 1, so structure that no candidate explains
+    cannot be mistaken for the candidate that happens to absorb a bit of it.
+    """
+    p = k1 - k0
+    dof1 = n_obs - k1
+    if p <= 0 or dof1 <= 0:
+        return Significance(0.0, max(p, 0), 0.0, max(dof1, 0), 1.0, alpha, 0.0, 0.0, "none")
+    resid_var = rss1 / dof1
+    known = noise_var is not None
+    if known and noise_var >= resid_var:
+        denom, df2, source = noise_var, noise_df, "noise level"
+    else:
+        denom, df2, source = resid_var, float(dof1), "residual of the extended model"
+    drop = max(rss0 - rss1, 0.0)
+    f = (drop / p) / denom if denom > 0 else math.inf
+    if math.isinf(df2):
+        pv = float(sps.chi2.sf(f * p, p))
+    else:
+        pv = float(sps.f.sf(f, p, df2))
+    scale = noise_var if known else 1.0
+    return Significance(drop, p, float(f), float(df2), pv, alpha,
+                        bic(rss0 / scale, n_obs, k0, known), bic(rss1 / scale, n_obs, k1, known), source)
+
+
+def goodness_of_fit(rss_w: float, dof: int, noise_df: float) -> dict:
+    """Is the final residual consistent with the noise level? (chi-square or F of the variance ratio)."""
+    if dof <= 0:
+        return {"reduced_chi2": None, "dof": dof, "p_value": None}
+    ratio = rss_w / dof
+    if math.isinf(noise_df):
+        pv = float(sps.chi2.sf(rss_w, dof))
+    else:
+        pv = float(sps.f.sf(ratio, dof, noise_df))
+    return {"reduced_chi2": float(ratio), "dof": int(dof), "p_value": pv}
+
+
+# --- residual structure -----------------------------------------------------------------------
+
+
+@dataclass
+class StructureTest:
+    axis: str
+    covariate: str
+    test: str
+    statistic: float
+    p_value: float
+    sentence: str
+    detail: dict = field(default_factory=dict)
+    significant: bool = False
+
+    def as_dict(self) -> dict:
+        return {"axis": self.axis, "covariate": self.covariate, "test": self.test, "statistic": self.statistic,
+                "p_value": self.p_value, "significant": self.significant, "sentence": self.sentence,
+                **({"detail": self.detail} if self.detail else {})}
+
+
+def _ols_f(r: np.ndarray, base: np.ndarray, extra: np.ndarray) -> tuple[float, float, np.ndarray, int]:
+    """F-test of `extra` regressors on r beyond `base` regressors; returns F, p, coefficients, dof."""
+    X0 = base
+    X1 = np.column_stack([base, extra])
+    n = r.size
+    if n <= X1.shape[1] + 1:
+        return 0.0, 1.0, np.zeros(extra.shape[1]), 0
+    c0, *_ = np.linalg.lstsq(X0, r, rcond=None)
+    c1, *_ = np.linalg.lstsq(X1, r, rcond=None)
+    rss0 = float(np.sum((r - X0 @ c0) ** 2))
+    rss1 = float(np.sum((r - X1 @ c1) ** 2))
+    rank1 = np.linalg.matrix_rank(X1)
+    rank0 = np.linalg.matrix_rank(X0)
+    p = rank1 - rank0
+    dof = n - rank1
+    if p <= 0 or dof <= 0 or rss1 <= 0:
+        return 0.0, 1.0, c1[X0.shape[1]:], dof
+    f = ((rss0 - rss1) / p) / (rss1 / dof)
+    return float(f), float(sps.f.sf(f, p, dof)), c1[X0.shape[1]:], dof
+
+
+def shape_test(r: np.ndarray, names: list[str], terms: np.ndarray, axis: str, unit: str,
+               describe: dict[str, str] | None = None) -> StructureTest:
+    """Does the residual follow a smooth function of the stage angles (beyond what the model fitted)?"""
+    base = np.ones((r.size, 1))
+    f, p, coef, _ = _ols_f(r, base, terms)
+    # the single term that explains most on its own
+    best, best_f = None, -1.0
+    for j, nm in enumerate(names):
+        fj, _, cj, _ = _ols_f(r, base, terms[:, j:j + 1])
+        if fj > best_f:
+            best, best_f, best_c, best_col = nm, fj, float(cj[0]), terms[:, j]
+    desc = (describe or {}).get(best, best)
+    span = float(np.ptp(best_c * best_col)) if best is not None else 0.0
+    sentence = (f"{axis} residual follows {best} ({desc}): about {span:.3g} {unit} peak to peak over the grid"
+                if best is not None else f"{axis} residual: no smooth shape")
+    return StructureTest(axis, "stage angles", "F (cubic polynomial in the stage angles)", f, p, sentence,
+                         {"strongest_term": best, "strongest_term_span": span})
+
+
+def direction_test(r: np.ndarray, d: np.ndarray, axis: str, stage: str, unit: str) -> StructureTest | None:
+    """Welch t-test of the residual between the two approach directions of one stage."""
+    plus, minus = r[d > 0], r[d < 0]
+    if plus.size < 2 or minus.size < 2:
+        return None
+    t, p = sps.ttest_ind(plus, minus, equal_var=False)
+    jump = float(plus.mean() - minus.mean())
+    sentence = (f"{axis} residual jumps by {jump:.3g} {unit} with the approach direction of the {stage} stage "
+                f"(mean after a + move minus mean after a - move)")
+    return StructureTest(axis, f"dir_{stage}", "Welch t", float(t), float(p), sentence, {"jump": jump})
+
+
+def correlation_test(r: np.ndarray, c: np.ndarray, axis: str, covariate: str, what: str, per: str,
+                     unit: str) -> StructureTest | None:
+    """Pearson correlation of the residual with a covariate, with the slope in the lab's units."""
+    if c.size < 4 or np.ptp(c) <= 0 or np.ptp(r) <= 0:
+        return None
+    res = sps.pearsonr(c, r)
+    slope = float(np.polyfit(c, r, 1)[0])
+    sentence = f"{axis} residual follows {what} (r = {res.statistic:.2f}, slope {slope:.3g} {unit}/{per})"
+    return StructureTest(axis, covariate, "Pearson r", float(res.statistic), float(res.pvalue), sentence,
+                         {"slope": slope, "slope_unit": f"{unit}/{per}"})
+
+
+def runs_test(r: np.ndarray, order: np.ndarray, axis: str) -> StructureTest | None:
+    """Wald-Wolfowitz runs test of residual signs in time order: too few runs means slow wander."""
+    s = r[np.argsort(order, kind="stable")] - np.median(r)
+    s = s[s != 0]
+    n1, n2 = int(np.sum(s > 0)), int(np.sum(s < 0))
+    if n1 < 2 or n2 < 2:
+        return None
+    runs = 1 + int(np.sum(np.diff(np.sign(s)) != 0))
+    n = n1 + n2
+    mu = 2.0 * n1 * n2 / n + 1.0
+    var = 2.0 * n1 * n2 * (2.0 * n1 * n2 - n) / (n * n * (n - 1.0))
+    if var <= 0:
+        return None
+    z = (runs - mu) / math.sqrt(var)
+    p = float(sps.norm.cdf(z))  # one-sided: wander gives too few runs
+    sentence = f"{axis} residual wanders slowly in time ({runs} runs of one sign where {mu:.0f} are expected)"
+    return StructureTest(axis, "t_s (order)", "runs (one-sided)", float(z), p, sentence, {"runs": runs, "expected": mu})
+
+
+def periodic_test(r: np.ndarray, phase_rad: np.ndarray, axis: str, stage: str, period_deg: float,
+                  unit: str) -> StructureTest | None:
+    """Periodogram value of the residual at the worm period of one stage (sine and cosine regression)."""
+    if r.size < 6:
+        return None
+    base = np.ones((r.size, 1))
+    extra = np.column_stack([np.sin(phase_rad), np.cos(phase_rad)])
+    if np.linalg.matrix_rank(np.column_stack([base, extra])) < 3:
+        return None
+    f, p, c, _ = _ols_f(r, base, extra)
+    amp = float(np.hypot(*c))
+    sentence = (f"{axis} residual oscillates with the {stage} stage's worm period ({period_deg:g} deg of stage "
+                f"angle), amplitude {amp:.3g} {unit}")
+    return StructureTest(axis, f"worm phase {stage}", "F (periodogram at the worm period)", f, p, sentence,
+                         {"amplitude": amp, "period_deg": period_deg})
+
+
+def mark_significant(tests: list[StructureTest], alpha: float) -> list[StructureTest]:
+    """Bonferroni over the tests of one residual set: flags what a metrologist should read first."""
+    m = max(len(tests), 1)
+    for t in tests:
+        t.significant = bool(t.p_value < alpha / m)
+    return tests
+
+
+def where_summary(tests: list[StructureTest]) -> list[str]:
+    """Sentences of the significant tests, strongest first; 'noise' when there are none."""
+    sig = sorted((t for t in tests if t.significant), key=lambda t: t.p_value)
+    if not sig:
+        return ["no structure left: the residuals pass every test for a trend with the covariates"]
+    return [f"{t.sentence} [p = {t.p_value:.2g}]" for t in sig]
