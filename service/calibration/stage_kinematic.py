@@ -107,6 +107,13 @@ def select_identifiable(J: np.ndarray, scales: np.ndarray, rel_tol: float = IDEN
     return Selection(kept, fixed, merged, rels)
 
 
+def robust_scale(residuals: np.ndarray) -> float:
+    """Soft threshold of a robust loss: 3 x the MAD-based standard deviation of the residuals."""
+    r = np.asarray(residuals, dtype=float)
+    mad = float(np.median(np.abs(r - np.median(r))))
+    return max(3.0 * 1.4826 * mad, 1e-5)
+
+
 def numeric_jacobian(fun, x0: np.ndarray, scales: np.ndarray) -> np.ndarray:
     cols = []
     for i in range(x0.size):
@@ -167,7 +174,14 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: np.ndarray, ref_y: np.
     model = BenchModel(bench, {}, free)
     observed = {"ref_x_deg": ref_x, "ref_y_deg": ref_y}
     try:
-        fit = fit_bench(model, pts, observed, x0=x0, loss=loss, max_nfev=max_nfev)
+        f_scale = None
+        if loss != "linear":
+            # A robust loss needs the scale of good residuals: take it (robustly, by the MAD) from a plain
+            # fit first, and start the robust fit there. Residuals at the nominal bench are no guide.
+            pre = fit_bench(model, pts, observed, x0=x0, loss="linear", max_nfev=max_nfev)
+            f_scale = robust_scale(np.concatenate(list(pre.residuals.values())))
+            x0 = pre.values
+        fit = fit_bench(model, pts, observed, x0=x0, loss=loss, f_scale=f_scale, max_nfev=max_nfev)
     except FitError as exc:
         raise DegenerateDataError(f"the kinematic fit failed on these points: {exc}") from None
     if not fit.converged:
@@ -281,10 +295,13 @@ def fit_meas(ref_x, ref_y, meas_x, meas_y, sign: np.ndarray, loss: str = "linear
     def resid(q):
         return pred_all(full(q)) - obs
 
+    q0 = np.zeros(len(kept))
     kw = {}
     if loss != "linear":
-        kw["f_scale"] = 3 * max(float(np.std(resid(np.zeros(len(kept))))), 1e-4)
-    sol = least_squares(resid, np.zeros(len(kept)), x_scale=scales[kept], loss=loss, method="trf",
+        pre = least_squares(resid, q0, x_scale=scales[kept], method="trf", max_nfev=max_nfev)
+        kw["f_scale"] = robust_scale(pre.fun)
+        q0 = pre.x
+    sol = least_squares(resid, q0, x_scale=scales[kept], loss=loss, method="trf",
                         max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12, **kw)
     if not sol.status > 0 or not np.all(np.isfinite(sol.x)):
         raise DegenerateDataError(f"the measurement-sensor fit did not converge ({sol.message}); "
