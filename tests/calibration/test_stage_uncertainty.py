@@ -1,0 +1,73 @@
+"""GUM (JCGM 100) uncertainty of corrected tilts against a Monte Carlo propagation (JCGM 101)."""
+
+import numpy as np
+import pytest
+
+from service.calibration.projective import apply_projective
+from service.calibration.registry import FitOptions, get_method
+from service.calibration.stage_common import MEAS_NAMES, meas_inverse
+from service.calibration.stage_validation import Oracle, execute, paper_grid
+from service.scenarios import load_scenario, run_scenario
+
+N_MC = 4000
+
+
+def _mc_std(model, names, tilt_of, meas_x, meas_y, rng):
+    """Standard deviation of the corrected tilt when parameters and readings are drawn from their distributions."""
+    p = model.values(names)
+    cov = model.cov_of(names)
+    sigma = model.state["meas_sigma_deg"]
+    draws = rng.multivariate_normal(p, cov, size=N_MC, method="eigh")
+    out = np.empty((N_MC, 2, meas_x.size))
+    for i, q in enumerate(draws):
+        a = meas_x + rng.normal(0.0, sigma, meas_x.size)
+        b = meas_y + rng.normal(0.0, sigma, meas_y.size)
+        out[i] = tilt_of(q, a, b)
+    return out.std(axis=0, ddof=1)
+
+
+def _readings(seed):
+    sc = load_scenario("seed000")
+    run = run_scenario(sc, seed=seed)
+    tx, ty = paper_grid()
+    pick = np.arange(0, tx.size, 4)  # 21 points over the grid
+    oracle = Oracle(run.bench, run.effects, sc.environment.temp_c)
+    cx, cy = oracle.level(tx[pick], ty[pick])
+    val = execute(run.bench, run.effects, cx, cy, 90_000 + seed, sc.environment.temp_c)
+    return run, val
+
+
+@pytest.mark.parametrize("seed", [201, 202])
+def test_kinematic_gum_matches_monte_carlo(seed):
+    run, val = _readings(seed)
+    m = get_method("stage", "kinematic")
+    model = m.fit(run.columns, FitOptions())
+    out = m.correct(model, {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]})
+    u_gum = np.stack([out["u_tilt_x_deg"], out["u_tilt_y_deg"]]) / 2.0  # back to standard uncertainty
+    sign = np.asarray(model.state["meas_sign"])
+
+    def tilt_of(q, a, b):
+        return np.stack(meas_inverse(q, sign, a, b))
+
+    u_mc = _mc_std(model, list(MEAS_NAMES), tilt_of, val["meas_x_deg"], val["meas_y_deg"], np.random.default_rng(seed))
+    # MC standard deviation from 4000 draws is good to ~1.1 % (1 sigma)
+    assert np.max(np.abs(u_mc / u_gum - 1.0)) < 0.06
+    # the expanded uncertainty covers the true error (conservative: the reading noise taken from the fit
+    # residual also holds the reference's own noise)
+    err = np.stack([out["tilt_x_deg"] - val["tilt_x_deg"], out["tilt_y_deg"] - val["tilt_y_deg"]])
+    assert np.mean(np.abs(err) <= 2.0 * u_gum) >= 0.9
+
+
+def test_homography_gum_matches_monte_carlo():
+    run, val = _readings(203)
+    m = get_method("stage", "homography")
+    model = m.fit(run.columns, FitOptions())
+    out = m.correct(model, {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]})
+    u_gum = np.stack([out["u_tilt_x_deg"], out["u_tilt_y_deg"]]) / 2.0
+    names = [f"H2.{k}" for k in ("h11", "h12", "h13", "h21", "h22", "h23", "h31", "h32")]
+
+    def tilt_of(q, a, b):
+        return np.stack(apply_projective(np.append(q, 1.0).reshape(3, 3), a, b))
+
+    u_mc = _mc_std(model, names, tilt_of, val["meas_x_deg"], val["meas_y_deg"], np.random.default_rng(7))
+    assert np.max(np.abs(u_mc / u_gum - 1.0)) < 0.06
