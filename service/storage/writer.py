@@ -166,6 +166,8 @@ class SampleWriter:
         self._closed = True
         atexit.unregister(self.close)
         self._raise_rejected()
+        if self.pending:
+            raise SampleWriteError(f"writer stopped with {self.pending} samples not written")
 
     @property
     def pending(self) -> int:
