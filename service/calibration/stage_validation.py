@@ -106,14 +106,17 @@ class SeedResult:
     errors: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)  # method -> kind -> (ex, ey)
     models: dict = field(default_factory=dict)
 
-    def stats(self, method: str, kind: str) -> dict[str, float]:
+    def stats(self, method: str, kind: str, mask: np.ndarray | None = None) -> dict[str, float]:
         ex, ey = self.errors[method][kind]
-        return summary(ex, ey)
+        return summary(ex, ey) if mask is None else summary(ex[mask], ey[mask])
 
 
 def evaluate_seed(scenario, seed: int, methods=STAGE_METHODS, targets=None, fit_options: dict | None = None,
                   keep_models: bool = False) -> SeedResult:
-    """Calibrate each method on the scenario's run with `seed`, validate on fresh noise at `targets`."""
+    """Calibrate each method on the scenario's run with `seed`, validate on fresh noise at `targets`.
+
+    `methods` holds method names, or (label, method name, extra fit options) for variants.
+    """
     cal = run_scenario(scenario, seed=seed)
     bench, fx = cal.bench, cal.effects
     temp = float(scenario.environment.temp_c)
@@ -124,21 +127,22 @@ def evaluate_seed(scenario, seed: int, methods=STAGE_METHODS, targets=None, fit_
     # shared readings for the correction errors: the table at the targets (oracle-levelled)
     ox, oy = oracle.level(tx, ty)
     shared = execute(bench, fx, ox, oy, val_seed + 1, temp)
-    runs: dict[str, dict] = {}
     corr: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for name in methods:
+    for spec in methods:
+        label, name, extra = (spec, spec, {}) if isinstance(spec, str) else spec
         m = get_method("stage", name)
-        model = m.fit(cal.columns, FitOptions(**(fit_options or {}).get(name, {})))
+        opts = dict((fit_options or {}).get(label, {}))
+        opts["extra"] = {**opts.get("extra", {}), **extra}
+        model = m.fit(cal.columns, FitOptions(**opts))
         if keep_models:
-            out.models[name] = model
+            out.models[label] = model
         cmd = m.level(model, {"target_x_deg": tx, "target_y_deg": ty})
         run = execute(bench, fx, cmd["stage_x_deg"], cmd["stage_y_deg"], val_seed, temp)
         own = m.correct(model, {"meas_x_deg": run["meas_x_deg"], "meas_y_deg": run["meas_y_deg"]})
         c = m.correct(model, {"meas_x_deg": shared["meas_x_deg"], "meas_y_deg": shared["meas_y_deg"]})
-        runs[name] = run
-        corr[name] = (c["tilt_x_deg"] - shared["tilt_x_deg"], c["tilt_y_deg"] - shared["tilt_y_deg"])
-        out.errors[name] = {"level": (run["tilt_x_deg"] - tx, run["tilt_y_deg"] - ty),
-                            "correct": corr[name],
+        corr[label] = (c["tilt_x_deg"] - shared["tilt_x_deg"], c["tilt_y_deg"] - shared["tilt_y_deg"])
+        out.errors[label] = {"level": (run["tilt_x_deg"] - tx, run["tilt_y_deg"] - ty),
+                            "correct": corr[label],
                             "flow": (tx - own["tilt_x_deg"], ty - own["tilt_y_deg"])}
     run = execute(bench, fx, ox, oy, val_seed, temp)
     cx, cy = oracle.correct(run["meas_x_deg"], run["meas_y_deg"])
@@ -154,11 +158,11 @@ def evaluate_seed(scenario, seed: int, methods=STAGE_METHODS, targets=None, fit_
     return out
 
 
-def oracle_ratios(result: SeedResult, method: str = "kinematic") -> dict[str, float]:
+def oracle_ratios(result: SeedResult, method: str = "kinematic", mask: np.ndarray | None = None) -> dict[str, float]:
     """RMS and max of `method` over the oracle's, per error kind and axis."""
     out = {}
     for kind in ("level", "correct"):
-        a, o = result.stats(method, kind), result.stats("oracle", kind)
+        a, o = result.stats(method, kind, mask), result.stats("oracle", kind, mask)
         for stat in ("rms_x", "rms_y", "max_x", "max_y"):
             out[f"{kind}_{stat}"] = a[stat] / o[stat]
     return out
