@@ -8,8 +8,8 @@ squares (parameters c0_arcsec, c1_arcsec_per_count, …), applied directly, no i
 paper's own direction (reading on angle) is fitted too and reported in `fit.reading_on_angle`.
 
 Treating the readings as exact in the angle-on-reading fit attenuates the slope by
-σ²_reading / var(reading) (≈ 5e-5 for seed 003's table), far below its standard error; the
-direction is chosen for use, not for bias.
+σ²_reading / var(reading) (≈ 4e-4 for seed 003's table, whose scatter is about 25 counts),
+below its standard error of 0.6 %; the direction is chosen for use.
 
 Each model reports the residuals, standard errors (covariance s²(VᵀV)⁻¹), the residual norm
 (what seed 003 calls the residual level: its 67.38 and 66.99 are ‖r‖ in arcsec), and F-tests:
