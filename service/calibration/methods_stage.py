@@ -458,7 +458,9 @@ class KinematicMethod:
             "stages' zero offsets",
         ]
         notes += [f"{param_label(k)}: {why}" for k, why in chain.fixed.items()]
-        notes += [f"{a} and {b} are correlated {c:+.3f} (near-degenerate; kept, both enter levelling)"
+        notes += [f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - cos of the "
+                  "other stage's angle; kept, since holding either leaves that difference as model error; their sum "
+                  "is well determined)"
                   for a, b, c in chain.correlations]
         fit_info: dict[str, Any] = {
             "n_points": int(sx.size), "chain": {"dof": chain.dof, "sigma_deg": chain.sigma, "converged": chain.converged,
@@ -487,7 +489,9 @@ class KinematicMethod:
                          "closed form; u_tilt from its covariance and the fit's residual as reading noise "
                          "(which also holds the reference's noise: conservative)")
             notes += [f"{n}: {why}" for n, why in meas.fixed.items()]
-            notes += [f"{a} and {b} are correlated {c:+.3f}" for a, b, c in meas.correlations]
+            notes += [f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - cos of the "
+                      "tilt; kept, their sum is well determined)"
+                      for a, b, c in meas.correlations]
             if (mn := mirror_note(sign)) is not None:
                 notes.append(f"{mn} ({how})")
         else:

@@ -256,9 +256,9 @@ def run(out_dir: Path, seeds: tuple[int, ...] = SEEDS) -> dict[str, Any]:
         u = km.std(name)
         L.append(f"| {name} | {p.value:+.6g} {p.unit} | {'held' if p.fixed else f'{u:.2g}'} | {p.note} |")
     L += ["", "Kinematic notes:", ""] + [f"- {n}" for n in km.notes] + [""]
-    L += ["Comparison methods as read from seed 000 (their own papers are not in the corpus):", ""]
+    L += ["Comparison methods as read from seed 000 §0 and §4.5 (the texts of refs. [9] and [10] were not available):", ""]
     for m in ("coupling", "axis-transform"):
-        L += [f"- **{m}**: " + " ".join(r0.models[m].notes[:2]) if m in r0.models else ""]
+        L += [f"- **{m}**: " + "; ".join(r0.models[m].notes[:2])]
     L.append("")
     (out_dir / "seed000.md").write_text("\n".join(L), encoding="utf-8")
     return {"paper_before": PAPER_BEFORE, "paper_after": PAPER_AFTER, "seeds": list(seeds),
