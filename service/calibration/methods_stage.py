@@ -33,6 +33,7 @@ from service.calibration.stage_common import (
     detect_mirror,
     has_meas,
     meas_inverse,
+    meas_inverse_with_u,
     mirror_note,
     model_needs_meas,
     newton_2d,
@@ -526,13 +527,10 @@ class KinematicMethod:
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
         model_needs_meas(model)
         sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
-
-        def f(p, inp):
-            a, b = meas_inverse(p, sign, inp["meas_x_deg"], inp["meas_y_deg"])
-            return np.column_stack([a, b])
-
-        return _uncertain_correct(f, model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)), data,
-                                  float(model.state.get("meas_sigma_deg", 0.0)))
+        mx, my = columns(data, MEAS_COLUMNS)
+        X, Y, ux, uy = meas_inverse_with_u(model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)), sign, mx, my,
+                                           float(model.state.get("meas_sigma_deg", 0.0)))
+        return {"tilt_x_deg": X, "tilt_y_deg": Y, "u_tilt_x_deg": expanded(ux), "u_tilt_y_deg": expanded(uy)}
 
 
 HOMOGRAPHY = register(HomographyMethod())

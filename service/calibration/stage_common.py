@@ -144,6 +144,52 @@ def meas_inverse(p: np.ndarray, sign: np.ndarray, meas_x_deg, meas_y_deg) -> tup
     return (np.degrees(np.arcsin(np.clip(-nx, -1.0, 1.0))), np.degrees(np.arcsin(np.clip(-ny, -1.0, 1.0))))
 
 
+def meas_inverse_with_u(p: np.ndarray, cov: np.ndarray | None, sign: np.ndarray, meas_x_deg, meas_y_deg,
+                        sigma_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """meas_inverse plus its GUM standard uncertainties (JCGM 100 §5.1.2), vectorised over readings.
+
+    Same law as service.calibration.uncertainty.propagate (central differences), but the zero
+    and scale sensitivities follow from the reading's own (reading a enters only as
+    (a - zero)/(1 + scale)), so 13 evaluations replace 21: this is what keeps correct above
+    10^5 readings per second.
+    """
+    a = np.asarray(meas_x_deg, dtype=float)
+    b = np.asarray(meas_y_deg, dtype=float)
+    X, Y = meas_inverse(p, sign, a, b)
+    ha = 1e-6 * np.maximum(1.0, np.abs(a))
+    hb = 1e-6 * np.maximum(1.0, np.abs(b))
+    xp, yp = meas_inverse(p, sign, a + ha, b)
+    xm, ym = meas_inverse(p, sign, a - ha, b)
+    dXa, dYa = (xp - xm) / (2 * ha), (yp - ym) / (2 * ha)
+    xp, yp = meas_inverse(p, sign, a, b + hb)
+    xm, ym = meas_inverse(p, sign, a, b - hb)
+    dXb, dYb = (xp - xm) / (2 * hb), (yp - ym) / (2 * hb)
+    var_x = sigma_deg**2 * (dXa**2 + dXb**2)
+    var_y = sigma_deg**2 * (dYa**2 + dYb**2)
+    if cov is not None and np.any(cov):
+        ka = -(a - p[0]) / (1.0 + p[2])  # d/dscale = d/da * ka, d/dzero = -d/da
+        kb = -(b - p[1]) / (1.0 + p[3])
+        jx = [-dXa, -dXb, dXa * ka, dXb * kb]
+        jy = [-dYa, -dYb, dYa * ka, dYb * kb]
+        for i in range(4, p.size):
+            if not np.any(cov[i]):
+                jx.append(np.zeros_like(a))
+                jy.append(np.zeros_like(a))
+                continue
+            h = 1e-6 * max(1.0, abs(p[i]))
+            pp, pm = p.copy(), p.copy()
+            pp[i] += h
+            pm[i] -= h
+            xp, yp = meas_inverse(pp, sign, a, b)
+            xm, ym = meas_inverse(pm, sign, a, b)
+            jx.append((xp - xm) / (2 * h))
+            jy.append((yp - ym) / (2 * h))
+        Jx, Jy = np.stack(jx, axis=-1), np.stack(jy, axis=-1)
+        var_x = var_x + np.einsum("ni,ij,nj->n", Jx, cov, Jx)
+        var_y = var_y + np.einsum("ni,ij,nj->n", Jy, cov, Jy)
+    return X, Y, np.sqrt(var_x), np.sqrt(var_y)
+
+
 # --- mirrored axes ---------------------------------------------------------------------------
 def detect_mirror(sensor_x, sensor_y, ref_x, ref_y, what: str = "measurement sensor") -> np.ndarray:
     """Sign of each sensor axis against the matching reference axis: -1 for an axis mounted mirrored.

@@ -71,3 +71,23 @@ def test_homography_gum_matches_monte_carlo():
 
     u_mc = _mc_std(model, names, tilt_of, val["meas_x_deg"], val["meas_y_deg"], np.random.default_rng(7))
     assert np.max(np.abs(u_mc / u_gum - 1.0)) < 0.06
+
+
+def test_kinematic_fast_gum_equals_the_generic_propagation():
+    """correct's specialised propagation (zero/scale sensitivities from the reading's) = uncertainty.propagate."""
+    from service.calibration.uncertainty import propagate
+
+    cols = run_scenario(load_scenario("seed000"), seed=204).columns
+    m = get_method("stage", "kinematic")
+    model = m.fit(cols, FitOptions())
+    out = m.correct(model, cols)
+    sign = np.asarray(model.state["meas_sign"])
+    sigma = model.state["meas_sigma_deg"]
+
+    def f(p, inp):
+        return np.column_stack(meas_inverse(p, sign, inp["meas_x_deg"], inp["meas_y_deg"]))
+
+    u = propagate(f, model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)),
+                  {k: cols[k] for k in ("meas_x_deg", "meas_y_deg")}, {"meas_x_deg": sigma, "meas_y_deg": sigma})
+    assert np.allclose(out["u_tilt_x_deg"] / 2, u[:, 0], rtol=1e-6, atol=0)
+    assert np.allclose(out["u_tilt_y_deg"] / 2, u[:, 1], rtol=1e-6, atol=0)
