@@ -49,7 +49,8 @@ def fit_projective(src_x, src_y, dst_x, dst_y, refine: bool = True, what: str = 
     A[0::2, 6:9] = -u[:, None] * np.column_stack([X, Y, np.ones(n)])
     A[1::2, 3:6] = np.column_stack([X, Y, np.ones(n)])
     A[1::2, 6:9] = -v[:, None] * np.column_stack([X, Y, np.ones(n)])
-    _, s, vt = np.linalg.svd(A)
+    # U is not needed (2n x 2n: O(n²) memory); all 9 rows of V are, also with only 4 points
+    _, s, vt = np.linalg.svd(A, full_matrices=A.shape[0] < A.shape[1])
     if s.size >= 9 and s[-2] <= 1e-12 * s[0]:
         raise DegenerateDataError(f"{what}: the points do not determine a homography (rank-deficient system)")
     Hn = vt[-1].reshape(3, 3)
