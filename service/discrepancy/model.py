@@ -194,6 +194,50 @@ class Family:
         cov = _covariance(J) * (max(1.0, s2) if self.noise_known else s2)
         return Fit(tuple(effects), blocks, theta, cov, resid, pred, rss_w, self.n_obs, J)
 
+    def jacobian(self, effects: tuple[str, ...], blocks: list[Block], theta: np.ndarray,
+                 columns: range | None = None, base: np.ndarray | None = None) -> np.ndarray:
+        """Forward-difference Jacobian of the weighted residual, d r / d theta (selected columns)."""
+        scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
+        r0 = self.weighted_residual(effects, theta, blocks) if base is None else base
+        cols = []
+        for j in (range(theta.size) if columns is None else columns):
+            h = 1e-4 * scales[j]
+            tp = theta.copy()
+            tp[j] += h
+            cols.append((self.weighted_residual(effects, tp, blocks) - r0) / h)
+        return np.column_stack(cols) if cols else np.zeros((r0.size, 0))
+
+    def extended(self, current: Fit, effect: str, full: bool = False):
+        """Effects, blocks and start values of the current model plus `effect` (all its parameters if `full`)."""
+        effects = current.effects + (effect,)
+        if full:
+            new = [b for b in self.full_blocks(effects) if b.effect == effect][-1:]
+            blocks = self.blocks(current.effects) + new
+        else:
+            blocks = self.blocks(effects)
+        return effects, blocks, self.initial(effects, blocks, current)
+
+    def linearised_rss(self, current: Fit, effect: str) -> tuple[float, int]:
+        """Weighted RSS after one Gauss-Newton step of the extended model from its start values.
+
+        A cheap and, near the current optimum, accurate preview of the full refit: used to
+        screen candidates so that only promising ones pay for a nonlinear fit.
+        """
+        effects, blocks, theta = self.extended(current, effect)
+        r0 = self.weighted_residual(effects, theta, blocks)
+        k0 = current.k
+        same_start = (theta.size > k0 and np.array_equal(theta[:k0], current.values)
+                      and current.jacobian_w.shape == (r0.size, k0))
+        if same_start:
+            # the current model's columns are unchanged: reuse them
+            J_new = self.jacobian(effects, blocks, theta, range(k0, theta.size), base=r0)
+            J = np.column_stack([current.jacobian_w, J_new])
+        else:
+            J = self.jacobian(effects, blocks, theta, base=r0)
+        delta, *_ = np.linalg.lstsq(J, -r0, rcond=1e-12)
+        r1 = r0 + J @ delta
+        return float(min(r1 @ r1, r0 @ r0)), int(theta.size)
+
     def separability(self, current: Fit, effect: str) -> list[float]:
         """For each parameter of `effect`: the fraction of its signature the current model cannot absorb.
 
@@ -201,22 +245,14 @@ class Family:
         fraction is the norm of its component orthogonal to the current model's columns over
         its own norm. Zero means the data cannot tell the term from what is fitted already.
         """
-        effects = current.effects + (effect,)
-        full = [b for b in self.full_blocks(effects) if b.effect == effect]
-        blocks = self.blocks(current.effects) + full[-1:]
-        theta = self.initial(effects, blocks, current)
-        scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
-        new = blocks[-1]
-        n0 = theta.size - new.size
-        base_r = self.weighted_residual(effects, theta, blocks)
-        cols = []
-        for j in range(theta.size):
-            h = 1e-4 * scales[j]
-            tp = theta.copy()
-            tp[j] += h
-            cols.append((self.weighted_residual(effects, tp, blocks) - base_r) / h * scales[j])
-        J = np.column_stack(cols)
-        Jm, Jc = J[:, :n0], J[:, n0:]
+        effects, blocks, theta = self.extended(current, effect, full=True)
+        n0 = theta.size - blocks[-1].size
+        if np.array_equal(theta[:n0], current.values) and current.jacobian_w.shape[1] == n0:
+            Jm = current.jacobian_w
+            Jc = self.jacobian(effects, blocks, theta, range(n0, theta.size))
+        else:
+            J = self.jacobian(effects, blocks, theta)
+            Jm, Jc = J[:, :n0], J[:, n0:]
         if Jm.size:
             u, s, _ = np.linalg.svd(Jm, full_matrices=False)
             u = u[:, s > 1e-10 * s[0]] if s.size and s[0] > 0 else u[:, :0]

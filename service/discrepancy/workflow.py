@@ -25,6 +25,7 @@ from service.errors import DegenerateDataError, FitError
 DEFAULT_ALPHA = 0.01  # family-wise level of one selection step
 SEPARABLE_MIN = 1e-3  # a parameter whose signature the model absorbs to within this fraction is dropped
 MIN_DOF_LEFT = 3  # a candidate must leave at least this many residual degrees of freedom
+PRESCREEN_P = 0.05  # candidates whose one-step preview is above this p-value are not refitted
 
 
 @dataclass
@@ -131,6 +132,17 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
         m = max(len(testable), 1)
         for e in testable:
             try:
+                rss_lin, k1 = family.linearised_rss(current, e)
+                pre = stats.nested_test(current.rss_w, current.k, rss_lin, k1, family.n_obs, alpha / m,
+                                        noise_var, noise_df)
+            except (DegenerateDataError, FitError, np.linalg.LinAlgError, ValueError):
+                pre = None
+            if pre is not None and pre.p_value >= PRESCREEN_P:
+                # far from significant even by the one-step preview: not worth a nonlinear fit
+                tried.append((e, None, pre))
+                scores.append({"effect": e, "approximate": True, **pre.as_dict()})
+                continue
+            try:
                 f1 = family.fit(current.effects + (e,), start=current)
             except (DegenerateDataError, FitError) as exc:
                 scores.append({"effect": e, "error": str(exc)})
@@ -139,7 +151,7 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
                                     noise_var, noise_df)
             tried.append((e, f1, sig))
             scores.append({"effect": e, "rms_after": f1.rms(), **sig.as_dict()})
-        winners = [t for t in tried if t[2].significant]
+        winners = [t for t in tried if t[1] is not None and t[2].significant]
         if not winners:
             stop_scores = scores
             stop_reason = _stop_sentence(tried, alpha, m)
