@@ -250,7 +250,7 @@ def main() -> None:
     directory = Path(args.dir)
     directory.mkdir(parents=True, exist_ok=True)
     print(f"python {sys.version.split()[0]}, sqlite {sqlite3.sqlite_version}, sqlalchemy {sa.__version__}, "
-          f"{os.cpu_count()} cores, files in {directory}", flush=True)  # fmt: skip
+          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, files in {directory}", flush=True)  # fmt: skip
     if not args.skip_ingest:
         bench_ingest(directory, args.samples, args.batch, args.repeats)
     if args.postgres:

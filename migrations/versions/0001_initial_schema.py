@@ -292,7 +292,7 @@ _PG_FUNCTIONS = (
 
 
 def _create_guards() -> None:
-    dialect = op.get_bind().dialect.name
+    dialect = op.get_context().dialect.name
     if dialect == "sqlite":
         for table in APPEND_ONLY:
             for verb in ("UPDATE", "DELETE"):
@@ -327,7 +327,7 @@ def _create_guards() -> None:
 
 
 def _drop_guards() -> None:
-    dialect = op.get_bind().dialect.name
+    dialect = op.get_context().dialect.name
     if dialect == "sqlite":
         for table in APPEND_ONLY:
             op.execute(f"DROP TRIGGER IF EXISTS trg_{table}_no_update")

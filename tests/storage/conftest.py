@@ -7,15 +7,20 @@ through the connection's search_path and dropped afterwards; skipped only if no 
 
 from __future__ import annotations
 
+import io
 import os
+import shutil
 import uuid
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import sqlalchemy as sa
 
 from service.storage.engine import make_engine, redacted
-from service.storage.migrate import upgrade
+from alembic import command
+
+from service.storage.migrate import alembic_config, upgrade
 from service.storage.store import Store
 
 PG_URL = os.environ.get("TILTLAB_TEST_POSTGRES_URL", "postgresql+psycopg://root@127.0.0.1:5432/test")
@@ -25,7 +30,7 @@ _pg_state: dict[str, object] = {}
 
 def _pg_admin() -> sa.Engine:
     if "engine" not in _pg_state:
-        engine = make_engine(PG_URL, poolclass=sa.pool.NullPool, connect_args={"connect_timeout": 3})
+        engine = make_engine(PG_URL, connect_args={"connect_timeout": 3, "options": "-csynchronous_commit=off"})
         try:
             with engine.connect() as conn:
                 conn.execute(sa.text("SELECT 1"))
@@ -52,7 +57,9 @@ def db_url(backend: str, tmp_path) -> Iterator[str]:  # type: ignore[no-untyped-
     schema = f"tiltlab_test_{uuid.uuid4().hex[:12]}"
     with admin.begin() as conn:
         conn.execute(sa.text(f'CREATE SCHEMA "{schema}"'))
-    url = sa.make_url(PG_URL).update_query_dict({"options": f"-csearch_path={schema}"})
+    # synchronous_commit=off: tests need no durability, and DDL-heavy commits wait less.
+    options = f"-csearch_path={schema} -csynchronous_commit=off"
+    url = sa.make_url(PG_URL).update_query_dict({"options": options})
     try:
         yield url.render_as_string(hide_password=False)
     finally:
@@ -67,10 +74,44 @@ def empty_engine(db_url: str) -> Iterator[sa.Engine]:
     engine.dispose()
 
 
+@pytest.fixture(scope="session")
+def sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A database migrated to head once per session; each test gets a copy of the file."""
+    path = tmp_path_factory.mktemp("template") / "tiltlab.db"
+    engine = make_engine(f"sqlite:///{path}")
+    upgrade(engine)
+    with engine.connect() as conn:
+        conn.exec_driver_sql("PRAGMA wal_checkpoint(TRUNCATE)")
+    engine.dispose()
+    return path
+
+
+@pytest.fixture(scope="session")
+def postgres_schema_sql() -> str:
+    """The migrations to head rendered as one SQL script (Alembic offline mode), run per test schema."""
+    buffer = io.StringIO()
+    cfg = alembic_config()
+    cfg.output_buffer = buffer
+    cfg.set_main_option("sqlalchemy.url", "postgresql+psycopg://")
+    command.upgrade(cfg, "head", sql=True)
+    return buffer.getvalue()
+
+
 @pytest.fixture
-def engine(empty_engine: sa.Engine) -> sa.Engine:
-    upgrade(empty_engine)
-    return empty_engine
+def engine(db_url: str, backend: str, request: pytest.FixtureRequest) -> Iterator[sa.Engine]:
+    """A database at the head revision. The real `upgrade` is exercised by test_migrations.py;
+    here the same migrations are applied from a session-wide copy to keep the suite fast."""
+    if backend == "sqlite":
+        shutil.copyfile(request.getfixturevalue("sqlite_template"), sa.make_url(db_url).database)
+        engine = make_engine(db_url)
+    else:
+        script = request.getfixturevalue("postgres_schema_sql")
+        engine = make_engine(db_url)
+        with engine.connect() as conn:
+            conn.connection.driver_connection.execute(script)  # several statements: simple query protocol
+            conn.commit()
+    yield engine
+    engine.dispose()
 
 
 @pytest.fixture

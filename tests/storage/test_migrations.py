@@ -43,7 +43,9 @@ def test_upgrade_from_empty(empty_engine: sa.Engine) -> None:
     assert current_revision(empty_engine) == head_revision()
 
 
-def test_downgrade_to_base_and_upgrade_again(engine: sa.Engine) -> None:
+def test_downgrade_to_base_and_upgrade_again(empty_engine: sa.Engine) -> None:
+    engine = empty_engine
+    upgrade(engine)
     downgrade(engine, "base")
     assert current_revision(engine) is None
     assert _tables(engine) == set()
@@ -53,8 +55,9 @@ def test_downgrade_to_base_and_upgrade_again(engine: sa.Engine) -> None:
     assert _tables(engine) == TABLES
 
 
-def test_models_and_migrations_describe_the_same_schema(engine: sa.Engine) -> None:
-    with engine.connect() as conn:
+def test_models_and_migrations_describe_the_same_schema(empty_engine: sa.Engine) -> None:
+    upgrade(empty_engine)
+    with empty_engine.connect() as conn:
         ctx = MigrationContext.configure(conn, opts={"compare_type": True, "compare_server_default": True})
         diff = compare_metadata(ctx, Base.metadata)
     assert diff == []
