@@ -263,8 +263,9 @@ def _tiltlab(*args, cwd):
 
 
 def test_cli_calibrate_and_correct_round_trip(tmp_path):
-    r = _tiltlab("simulate", "--scenario", "seed002-b75", "--out", "run.csv", "--seed", "3", cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
+    from service.datasets import write_dataset
+
+    write_dataset(tmp_path / "run.csv", run_scenario(load_scenario("seed002-b75"), seed=3).columns)
     r = _tiltlab("calibrate", "--kind", "rotation", "--method", "iodsra", "--input", "run.csv", "--out", "m.json",
                  cwd=tmp_path)
     assert r.returncode == 0, r.stderr

@@ -159,7 +159,9 @@ def _tiltlab(*args, cwd):
 
 
 def test_cli_round_trip_with_the_assumed_rotation(tmp_path):
-    assert _tiltlab("simulate", "--scenario", "seed004", "--out", "run.csv", cwd=tmp_path).returncode == 0
+    from service.datasets import write_dataset
+
+    write_dataset(tmp_path / "run.csv", run_scenario(load_scenario("seed004")).columns)
     r = _tiltlab("calibrate", "--kind", "turntable", "--method", "reversal", "--input", "run.csv", "--out", "m.json",
                  "--rotation-deg", "179", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
