@@ -32,7 +32,6 @@ from service.calibration.stage_common import (
     decouple_x_deg,
     detect_mirror,
     has_meas,
-    meas_inverse,
     meas_inverse_with_u,
     mirror_note,
     model_needs_meas,
@@ -521,7 +520,14 @@ class KinematicMethod:
         ap = model.state.get("approach", [1.0, 1.0])
         dx = np.asarray(data.get("dir_x", ap[0]), dtype=float)
         dy = np.asarray(data.get("dir_y", ap[1]), dtype=float)
-        x, y = self.chain_model(model).level(tx, ty, dx, dy)
+        chain = self.chain_model(model)
+        x, y = chain.level(tx, ty, dx, dy)
+        travel = chain.bench.travel_deg
+        beyond = np.flatnonzero((np.abs(x) > travel) | (np.abs(y) > travel))
+        if beyond.size:
+            rows = ", ".join(str(i + 1) for i in beyond[:5])
+            raise InputError(f"target row(s) {rows} need stage angles beyond the bench's travel of ±{travel:g} deg "
+                             f"(e.g. stage_x_deg {x[beyond[0]]:.3f}, stage_y_deg {y[beyond[0]]:.3f})")
         return {"stage_x_deg": x, "stage_y_deg": y}
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
