@@ -225,7 +225,7 @@ def test_degenerate_inputs_are_refused_with_what_is_missing():
         get_method("stage", "kinematic").fit(cols, FitOptions(extra={"max_nfev": 1}))
     km = get_method("stage", "kinematic")
     with pytest.raises(InputError, match="travel"):
-        km.level(km.fit(cols, FitOptions()), {"target_x_deg": np.array([0.0, 14.9]), "target_y_deg": np.array([0.0, 0.0])})
+        km.level(km.fit(cols, FitOptions()), {"target_x_deg": np.array([0.0, 14.9]), "target_y_deg": np.array([0.0, 14.0])})
     no_meas = {k: v for k, v in cols.items() if not k.startswith("meas_")}
     for method in STAGE_METHODS:
         m = get_method("stage", method)
