@@ -104,8 +104,10 @@ def _simulated_check(n_seeds: int = 300) -> dict:
         se.append(lin.fit["standard_errors"]["c1_arcsec_per_count"])
         alarms += bool(lin.fit["f_test_next_degree"]["significant_at_5pct"])
     c1 = np.array(c1)
+    noise = sc.effects.noise
     return {"truth": truth, "mean": float(c1.mean()), "sd": float(c1.std(ddof=1)), "mean_se": float(np.mean(se)),
-            "false_alarm": alarms / n_seeds, "n": n_seeds}
+            "false_alarm": alarms / n_seeds, "n": n_seeds, "reading_sigma_counts": noise.reading_sigma_counts,
+            "ref_sigma_arcsec": noise.ref_sigma_arcsec}
 
 
 def run(out_dir: Path) -> dict:
@@ -210,8 +212,8 @@ def run(out_dir: Path) -> dict:
         "",
         "## Check of the method on the simulated seed003 bench",
         "",
-        f"{sim['n']} simulated calibrations of the `seed003` preset (12 points over 0-3461″, reading noise 8 counts, "
-        "reference 0.5″):",
+        f"{sim['n']} simulated calibrations of the `seed003` preset (12 points over 0-3461″, reading noise "
+        f"{sim['reading_sigma_counts']:g} counts as in Table 1's residuals, reference {sim['ref_sigma_arcsec']:g}″):",
         "",
         md_table(["quantity", "value"], [
             ["true scale of the bench", f"{sim['truth']:.5f} ″/count"],
