@@ -14,12 +14,22 @@ import io
 import numpy as np
 
 
+def _figure(w: float, h: float, rows: int = 1, cols: int = 1, **adjust):
+    """A bare Agg figure (no pyplot: nothing global, and a lighter import) with a grid of axes."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(w, h))
+    FigureCanvasAgg(fig)
+    axs = fig.subplots(rows, cols, squeeze=False)
+    if adjust:
+        fig.subplots_adjust(**adjust)
+    return fig, axs
+
+
 def _png(fig) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=72)
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
@@ -32,13 +42,12 @@ def _labels(report: dict) -> list[str]:
 
 
 def _rms_figure(report: dict) -> str:
-    import matplotlib.pyplot as plt
-
     labels = _labels(report)
     rms = [report["baseline_rms"]] + [s["rms_after"] for s in report["steps"]]
     rms = np.array(rms)
     noise = np.array(report["noise_level"])
-    fig, ax = plt.subplots(figsize=(6.5, 3.2))
+    fig, axs = _figure(6.5, 3.4, left=0.15, right=0.97, bottom=0.2, top=0.9)
+    ax = axs[0, 0]
     width = 0.8 / rms.shape[1]
     x = np.arange(len(labels))
     for a, name in enumerate(report["axes"]):
@@ -49,17 +58,16 @@ def _rms_figure(report: dict) -> str:
     ax.set_ylabel(f"residual RMS [{report['unit']}]")
     ax.set_title("the gap between model and measurement, step by step")
     ax.legend(fontsize=7)
-    fig.tight_layout()
     return _png(fig)
 
 
 def _stage_maps(fam, fits, titles, unit: str) -> str:
     """All residual maps in one figure: a row per stage of the chain, x and y side by side."""
-    import matplotlib.pyplot as plt
-
     x, y = fam.data.cmd_x_deg, fam.data.cmd_y_deg
     n = len(fits)
-    fig, axs = plt.subplots(n, 2, figsize=(8.0, 3.1 * n), squeeze=False)
+    h = 3.1 * n
+    fig, axs = _figure(8.0, h, n, 2, left=0.08, right=0.97, bottom=0.5 / h, top=1 - 0.35 / h, hspace=0.45,
+                       wspace=0.5)
     for i, (fit, title) in enumerate(zip(fits, titles)):
         r = fit.residuals
         for a, name in enumerate(("x", "y")):
@@ -72,15 +80,13 @@ def _stage_maps(fam, fits, titles, unit: str) -> str:
             ax.set_title(f"{title}: {name} residual, RMS {np.sqrt(np.mean(r[:, a] ** 2)):.3g} {unit}", fontsize=8)
             ax.set_aspect("equal", adjustable="datalim")
             fig.colorbar(sc, ax=ax, label=unit, shrink=0.85)
-    fig.tight_layout()
     return _png(fig)
 
 
 def _scale_plots(fam, fits, titles, unit: str) -> str:
-    import matplotlib.pyplot as plt
-
     n = len(fits)
-    fig, axs = plt.subplots(n, 1, figsize=(6.0, 2.4 * n), squeeze=False)
+    h = 2.4 * n
+    fig, axs = _figure(6.0, h, n, 1, left=0.14, right=0.97, bottom=0.45 / h, top=1 - 0.3 / h, hspace=0.6)
     for i, (fit, title) in enumerate(zip(fits, titles)):
         ax = axs[i, 0]
         ax.axhline(0, color="k", lw=0.5)
@@ -88,16 +94,13 @@ def _scale_plots(fam, fits, titles, unit: str) -> str:
         ax.set_xlabel("sensor output [count]", fontsize=8)
         ax.set_ylabel(f"residual [{unit}]", fontsize=8)
         ax.set_title(f"{title}: RMS {np.sqrt(np.mean(fit.residuals[:, 0] ** 2)):.3g} {unit}", fontsize=9)
-    fig.tight_layout()
     return _png(fig)
 
 
 def _histogram(report: dict, fit) -> str:
-    import matplotlib.pyplot as plt
-
     r = fit.residuals
     noise = np.array(report["noise_level"])
-    fig, axs = plt.subplots(1, r.shape[1], figsize=(3.4 * r.shape[1], 2.8), squeeze=False)
+    fig, axs = _figure(3.4 * r.shape[1], 3.0, 1, r.shape[1], left=0.1, right=0.97, bottom=0.18, top=0.85)
     for a, name in enumerate(report["axes"]):
         ax = axs[0, a]
         z = r[:, a] / noise[a]
@@ -106,7 +109,6 @@ def _histogram(report: dict, fit) -> str:
         ax.plot(g, np.exp(-g**2 / 2) / np.sqrt(2 * np.pi), "k-", lw=1)
         ax.set_xlabel(f"final {name} residual / noise level")
     fig.suptitle("final residual against the noise level (curve: the noise alone)", fontsize=9)
-    fig.tight_layout()
     return _png(fig)
 
 
@@ -134,9 +136,6 @@ details{margin:.3em 0}code{background:#f3f3f3}"""
 
 def render_html(report: dict, result, fam) -> str:
     """The whole page as one string (no external resources)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     unit = report["unit"]
     e = html.escape
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>tiltlab discrepancy: {e(report['kind'])}"

@@ -6,6 +6,9 @@ known) says whether the drop in residual is more than noise could produce. The w
 tests several candidates at each step, so the level is Bonferroni-corrected; a BIC gain
 is required as well so that a large data set cannot make a negligible term "significant".
 
+Distributions come from scipy.special (not scipy.stats, whose import alone costs more than
+a whole workflow run).
+
 Residual structure tests answer "where do model and measurement disagree": each one is a
 regression of the residual on one covariate (stage-angle shape, approach direction,
 temperature, time, worm phase) with a statistic and a p-value, not a judgement by eye.
@@ -17,7 +20,46 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats as sps
+from scipy import special
+
+
+def chi2_sf(x: float, k: float) -> float:
+    return float(special.chdtrc(k, max(x, 0.0)))
+
+
+def f_sf(f: float, d1: float, d2: float) -> float:
+    if not math.isfinite(f):
+        return 0.0
+    return float(special.fdtrc(d1, d2, max(f, 0.0)))
+
+
+def t_two_sided(t: float, df: float) -> float:
+    return float(2.0 * special.stdtr(df, -abs(t)))
+
+
+def welch_t(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """Welch's two-sample t statistic and two-sided p-value."""
+    va, vb = a.var(ddof=1) / a.size, b.var(ddof=1) / b.size
+    se2 = va + vb
+    if se2 <= 0:
+        return 0.0, 1.0
+    t = (a.mean() - b.mean()) / math.sqrt(se2)
+    df = se2**2 / (va**2 / (a.size - 1) + vb**2 / (b.size - 1))
+    return float(t), t_two_sided(t, df)
+
+
+def pearson(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Pearson correlation and its two-sided p-value (t with n - 2 degrees of freedom)."""
+    n = x.size
+    xc, yc = x - x.mean(), y - y.mean()
+    den = math.sqrt(float(xc @ xc) * float(yc @ yc))
+    if den == 0 or n < 3:
+        return 0.0, 1.0
+    r = max(-1.0, min(1.0, float(xc @ yc) / den))
+    if abs(r) >= 1.0:
+        return r, 0.0
+    t = r * math.sqrt((n - 2) / (1.0 - r * r))
+    return r, t_two_sided(t, n - 2)
 
 
 @dataclass
@@ -88,10 +130,7 @@ def nested_test(rss0: float, k0: int, rss1: float, k1: int, n_obs: int, alpha: f
         denom, df2, source = resid_var, float(dof1), "residual of the extended model"
     drop = max(rss0 - rss1, 0.0)
     f = (drop / p) / denom if denom > 0 else math.inf
-    if math.isinf(df2):
-        pv = float(sps.chi2.sf(f * p, p))
-    else:
-        pv = float(sps.f.sf(f, p, df2))
+    pv = chi2_sf(f * p, p) if math.isinf(df2) else f_sf(f, p, df2)
     scale = noise_var if known else 1.0
     return Significance(drop, p, float(f), float(df2), pv, alpha,
                         bic(rss0 / scale, n_obs, k0, known), bic(rss1 / scale, n_obs, k1, known), source)
@@ -102,10 +141,7 @@ def goodness_of_fit(rss_w: float, dof: int, noise_df: float) -> dict:
     if dof <= 0:
         return {"reduced_chi2": None, "dof": dof, "p_value": None}
     ratio = rss_w / dof
-    if math.isinf(noise_df):
-        pv = float(sps.chi2.sf(rss_w, dof))
-    else:
-        pv = float(sps.f.sf(ratio, dof, noise_df))
+    pv = chi2_sf(rss_w, dof) if math.isinf(noise_df) else f_sf(ratio, dof, noise_df)
     return {"reduced_chi2": float(ratio), "dof": int(dof), "p_value": pv}
 
 
@@ -147,7 +183,7 @@ def _ols_f(r: np.ndarray, base: np.ndarray, extra: np.ndarray) -> tuple[float, f
     if p <= 0 or dof <= 0 or rss1 <= 0:
         return 0.0, 1.0, c1[X0.shape[1]:], dof
     f = ((rss0 - rss1) / p) / (rss1 / dof)
-    return float(f), float(sps.f.sf(f, p, dof)), c1[X0.shape[1]:], dof
+    return float(f), f_sf(f, p, dof), c1[X0.shape[1]:], dof
 
 
 def shape_test(r: np.ndarray, names: list[str], terms: np.ndarray, axis: str, unit: str,
@@ -174,7 +210,7 @@ def direction_test(r: np.ndarray, d: np.ndarray, axis: str, stage: str, unit: st
     plus, minus = r[d > 0], r[d < 0]
     if plus.size < 2 or minus.size < 2:
         return None
-    t, p = sps.ttest_ind(plus, minus, equal_var=False)
+    t, p = welch_t(plus, minus)
     jump = float(plus.mean() - minus.mean())
     sentence = (f"{axis} residual jumps by {jump:.3g} {unit} with the approach direction of the {stage} stage "
                 f"(mean after a + move minus mean after a - move)")
@@ -186,10 +222,10 @@ def correlation_test(r: np.ndarray, c: np.ndarray, axis: str, covariate: str, wh
     """Pearson correlation of the residual with a covariate, with the slope in the lab's units."""
     if c.size < 4 or np.ptp(c) <= 0 or np.ptp(r) <= 0:
         return None
-    res = sps.pearsonr(c, r)
+    rho, pv = pearson(c, r)
     slope = float(np.polyfit(c, r, 1)[0])
-    sentence = f"{axis} residual follows {what} (r = {res.statistic:.2f}, slope {slope:.3g} {unit}/{per})"
-    return StructureTest(axis, covariate, "Pearson r", float(res.statistic), float(res.pvalue), sentence,
+    sentence = f"{axis} residual follows {what} (r = {rho:.2f}, slope {slope:.3g} {unit}/{per})"
+    return StructureTest(axis, covariate, "Pearson r", rho, pv, sentence,
                          {"slope": slope, "slope_unit": f"{unit}/{per}"})
 
 
@@ -207,7 +243,7 @@ def runs_test(r: np.ndarray, order: np.ndarray, axis: str) -> StructureTest | No
     if var <= 0:
         return None
     z = (runs - mu) / math.sqrt(var)
-    p = float(sps.norm.cdf(z))  # one-sided: wander gives too few runs
+    p = float(special.ndtr(z))  # one-sided: wander gives too few runs
     sentence = f"{axis} residual wanders slowly in time ({runs} runs of one sign where {mu:.0f} are expected)"
     return StructureTest(axis, "t_s (order)", "runs (one-sided)", float(z), p, sentence, {"runs": runs, "expected": mu})
 

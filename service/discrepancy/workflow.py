@@ -25,6 +25,7 @@ from service.errors import DegenerateDataError, FitError
 DEFAULT_ALPHA = 0.01  # family-wise level of one selection step
 SEPARABLE_MIN = 1e-3  # a parameter whose signature the model absorbs to within this fraction is dropped
 MIN_DOF_LEFT = 3  # a candidate must leave at least this many residual degrees of freedom
+POOR_SEPARABILITY = 0.05  # below this fraction a remaining candidate is flagged as hard to see
 PRESCREEN_P = 0.05  # candidates whose one-step preview is above this p-value are not refitted
 
 
@@ -166,12 +167,26 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
     if not stop_reason:
         stop_reason = ("no further effect: every candidate the data can support is in the model" if not remaining
                        else f"stopped after {max_steps} steps")
+    separability: dict[str, dict[str, float]] = {}
+    for e in remaining:
+        try:
+            frac = family.separability(current, e)
+        except (DegenerateDataError, FitError, np.linalg.LinAlgError, ValueError):
+            continue
+        labels = family.blocks(current.effects + (e,))[-1].labels
+        separability[e] = dict(zip(labels, frac))
+        for lab, f in zip(labels, frac):
+            if f < POOR_SEPARABILITY:
+                notes.append(f"{e}: parameter {lab} is poorly separable from the final model: "
+                             f"{100 * (1 - f):.1f} % of its signature (in norm) is a change of parameters already "
+                             f"fitted; only the remaining {100 * f:.1f} % is visible to the test")
     if not noise.known:
         noise = from_residual(current.residuals, current.k)
     where_first = stats.where_summary(steps[0].structure_before if steps else struct_now)
     return Result(family.kind, family.baseline, family.unit, family.axes, fits, steps, skipped,
                   [{"effect": e, "reason": r} for e, r in getattr(family, "already_in_model", {}).items()],
-                  notes, noise, stop_scores, stop_reason, struct_now, where_first, alpha)
+                  notes, noise, stop_scores, stop_reason, struct_now, where_first, alpha,
+                  {"separability": separability})
 
 
 def _stop_sentence(tried, alpha: float, m: int) -> str:
