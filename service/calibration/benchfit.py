@@ -109,6 +109,13 @@ class BenchFit:
         return int(sum(r.size for r in self.residuals.values()))
 
 
+def robust_scale(residuals: np.ndarray) -> float:
+    """Soft threshold of a robust loss: 3 x the MAD-based standard deviation of the residuals."""
+    r = np.asarray(residuals, dtype=float)
+    mad = float(np.median(np.abs(r - np.median(r))))
+    return max(3.0 * 1.4826 * mad, 1e-5)
+
+
 def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, np.ndarray],
               x0: Sequence[float] | None = None, loss: str = "linear", f_scale: float | None = None,
               max_nfev: int = 2000) -> BenchFit:
@@ -130,7 +137,13 @@ def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, np.nda
         return _result(model, x0, np.zeros((0, 0)), r, outputs, obs.shape, 0.0, True, 1, "no free parameters", None)
     kw = {}
     if loss != "linear":
-        kw["f_scale"] = f_scale if f_scale is not None else 3 * max(np.std(resid(x0)), 1e-6)
+        if f_scale is None:
+            # Residuals at the starting bench are no guide to the scale of good residuals: fit plainly
+            # first, take the scale robustly (MAD) from that fit, and start the robust fit there.
+            pre = fit_bench(model, pts, observed, x0=x0, loss="linear", max_nfev=max_nfev)
+            f_scale = robust_scale(np.concatenate(list(pre.residuals.values())))
+            x0 = pre.values
+        kw["f_scale"] = f_scale
     try:
         sol = least_squares(resid, x0, x_scale=scales, diff_step=1e-4 * scales / np.maximum(np.abs(x0), scales),
                             loss=loss, method="trf", max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12, **kw)

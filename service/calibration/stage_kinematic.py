@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from service.calibration.benchfit import BenchModel, StagePoints, fit_bench, param_label, typical_scale
+from service.calibration.benchfit import BenchModel, StagePoints, fit_bench, param_label, robust_scale, typical_scale
 from service.calibration.stage_common import (
     MEAS_PARAMS,
     meas_forward,
@@ -107,13 +107,6 @@ def select_identifiable(J: np.ndarray, scales: np.ndarray, rel_tol: float = IDEN
     return Selection(kept, fixed, merged, rels)
 
 
-def robust_scale(residuals: np.ndarray) -> float:
-    """Soft threshold of a robust loss: 3 x the MAD-based standard deviation of the residuals."""
-    r = np.asarray(residuals, dtype=float)
-    mad = float(np.median(np.abs(r - np.median(r))))
-    return max(3.0 * 1.4826 * mad, 1e-5)
-
-
 def numeric_jacobian(fun, x0: np.ndarray, scales: np.ndarray) -> np.ndarray:
     cols = []
     for i in range(x0.size):
@@ -174,14 +167,7 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: np.ndarray, ref_y: np.
     model = BenchModel(bench, {}, free)
     observed = {"ref_x_deg": ref_x, "ref_y_deg": ref_y}
     try:
-        f_scale = None
-        if loss != "linear":
-            # A robust loss needs the scale of good residuals: take it (robustly, by the MAD) from a plain
-            # fit first, and start the robust fit there. Residuals at the nominal bench are no guide.
-            pre = fit_bench(model, pts, observed, x0=x0, loss="linear", max_nfev=max_nfev)
-            f_scale = robust_scale(np.concatenate(list(pre.residuals.values())))
-            x0 = pre.values
-        fit = fit_bench(model, pts, observed, x0=x0, loss=loss, f_scale=f_scale, max_nfev=max_nfev)
+        fit = fit_bench(model, pts, observed, x0=x0, loss=loss, max_nfev=max_nfev)  # robust scale: see fit_bench
     except FitError as exc:
         raise DegenerateDataError(f"the kinematic fit failed on these points: {exc}") from None
     if not fit.converged:
