@@ -7,7 +7,7 @@ import sys
 
 from service.config import get_settings
 from service.storage.engine import make_engine, redacted
-from service.storage.migrate import current_revision, downgrade, head_revision, upgrade
+from service.storage.migrate import current_revision, downgrade, head_revision
 
 
 def run(args: argparse.Namespace) -> int:

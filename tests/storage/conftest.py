@@ -16,10 +16,9 @@ from pathlib import Path
 
 import pytest
 import sqlalchemy as sa
-
-from service.storage.engine import make_engine, redacted
 from alembic import command
 
+from service.storage.engine import make_engine, redacted
 from service.storage.migrate import alembic_config, upgrade
 from service.storage.store import Store
 

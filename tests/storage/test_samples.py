@@ -10,7 +10,17 @@ import sqlalchemy as sa
 from storage_helpers import MODEL, STANDARDS, count
 
 from service.errors import InputError
-from service.storage import BackPressureTimeout, IllegalTransition, write_engine, Sample, SampleWriteError, SampleWriter, Store, latest_samples, verify
+from service.storage import (
+    BackPressureTimeout,
+    IllegalTransition,
+    Sample,
+    SampleWriteError,
+    SampleWriter,
+    Store,
+    latest_samples,
+    verify,
+    write_engine,
+)
 from service.storage.samples import count_samples, job_samples, write_samples
 
 NOW = dt.datetime(2026, 3, 1, 12, 0, tzinfo=dt.UTC)
