@@ -178,6 +178,25 @@ def format_value(col: str, v) -> str:
     return repr(f)  # shortest text that reads back to the same float
 
 
+def _atomic_write(path: str | Path, write) -> None:
+    """Write through `write(fh)` to a temporary file beside `path`, then rename it into place."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.exists():
+        raise InputError(f"{path}: folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
 def write_dataset(path: str | Path, columns: Mapping[str, Sequence | np.ndarray]) -> None:
     """Write columns (numeric arrays or text lists) atomically."""
     names = list(columns)
@@ -187,40 +206,16 @@ def write_dataset(path: str | Path, columns: Mapping[str, Sequence | np.ndarray]
     for c in names:
         if len(columns[c]) != n:
             raise ValueError(f"column {c!r} has {len(columns[c])} values, expected {n}")
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.exists():
-        raise InputError(f"{path}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh, lineterminator="\n")
-            w.writerow(names)
-            cols = [columns[c] for c in names]
-            for i in range(n):
-                w.writerow([format_value(names[j], cols[j][i]) for j in range(len(names))])
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+
+    def write(fh) -> None:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(names)
+        cols = [columns[c] for c in names]
+        for i in range(n):
+            w.writerow([format_value(names[j], cols[j][i]) for j in range(len(names))])
+
+    _atomic_write(path, write)
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.exists():
-        raise InputError(f"{path}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    _atomic_write(path, lambda fh: fh.write(text))

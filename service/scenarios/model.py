@@ -108,11 +108,14 @@ class StageGrid(_Strict):
     settle_s: Annotated[float, Field(ge=0, le=3600)] = 10.0
 
 
-class StageScenario(_Strict):
-    kind: Literal["stage"]
+class _ScenarioBase(_Strict):
     name: str = "custom"
     description: str = ""
     seed: Annotated[int, Field(ge=0)] = 0
+
+
+class StageScenario(_ScenarioBase):
+    kind: Literal["stage"]
     bench: StageBenchSpec = StageBenchSpec()
     effects: StageEffects = Field(default_factory=StageEffects)  # type: ignore[valid-type]
     grid: StageGrid
@@ -130,11 +133,8 @@ class RotationGrid(_Strict):
     repeats: Annotated[int, Field(ge=1, le=1000)] = 1
 
 
-class RotationScenario(_Strict):
+class RotationScenario(_ScenarioBase):
     kind: Literal["rotation"]
-    name: str = "custom"
-    description: str = ""
-    seed: Annotated[int, Field(ge=0)] = 0
     bench: RotationBenchSpec
     effects: RotationEffects = Field(default_factory=RotationEffects)  # type: ignore[valid-type]
     grid: RotationGrid
@@ -154,11 +154,8 @@ class ScaleGrid(_Strict):
     repeats: Annotated[int, Field(ge=1, le=1000)] = 1
 
 
-class ScaleScenario(_Strict):
+class ScaleScenario(_ScenarioBase):
     kind: Literal["scale"]
-    name: str = "custom"
-    description: str = ""
-    seed: Annotated[int, Field(ge=0)] = 0
     bench: ScaleBenchSpec = ScaleBenchSpec()
     effects: ScaleEffects = Field(default_factory=ScaleEffects)  # type: ignore[valid-type]
     grid: ScaleGrid
@@ -187,11 +184,8 @@ class TurntableGrid(_Strict):
     pair_interval_s: Annotated[float, Field(ge=0, le=3600)] = 120.0
 
 
-class TurntableScenario(_Strict):
+class TurntableScenario(_ScenarioBase):
     kind: Literal["turntable"]
-    name: str = "custom"
-    description: str = ""
-    seed: Annotated[int, Field(ge=0)] = 0
     bench: TurntableBenchSpec
     effects: TurntableEffects = Field(default_factory=TurntableEffects)  # type: ignore[valid-type]
     grid: TurntableGrid
