@@ -1,4 +1,4 @@
-"""Shared constants and helpers of the storage tests (a distinct name: tests/ has no packages)."""
+"""Shared constants and helpers of the storage tests."""
 
 from __future__ import annotations
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 import sqlalchemy as sa
-from storage_helpers import MODEL, STANDARDS, count
 
 from service.storage import AppendOnlyViolation, Sample, Store
 from service.storage.samples import write_samples
+from tests.storage.storage_helpers import MODEL, STANDARDS, count
 
 REFUSED = (sa.exc.IntegrityError, sa.exc.OperationalError, sa.exc.InternalError)
 

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import pytest
-from storage_helpers import count
 
 from service.errors import InputError
 from service.storage import IllegalTransition, Store, UnknownEntity
+from tests.storage.storage_helpers import count
 
 
 def test_happy_path_with_progress(store: Store, device) -> None:  # type: ignore[no-untyped-def]

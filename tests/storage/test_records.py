@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import pytest
 import sqlalchemy as sa
-from storage_helpers import MODEL, STANDARDS, count
 
 from service import cli
 from service.config import get_settings
@@ -13,6 +12,7 @@ from service.storage import ConflictError, IllegalTransition, RefusedWrite, Stor
 from service.storage.canonical import sha256_hex
 from service.storage.models import GENESIS_SHA256
 from service.storage.store import record_content
+from tests.storage.storage_helpers import MODEL, STANDARDS, count
 
 WRITE_TABLES = ("calibration_records", "audit_events", "active_calibrations", "active_calibration_history")
 

@@ -7,7 +7,6 @@ import threading
 
 import pytest
 import sqlalchemy as sa
-from storage_helpers import MODEL, STANDARDS, count
 
 from service.errors import InputError
 from service.storage import (
@@ -22,6 +21,7 @@ from service.storage import (
     write_engine,
 )
 from service.storage.samples import count_samples, job_samples, write_samples
+from tests.storage.storage_helpers import MODEL, STANDARDS, count
 
 NOW = dt.datetime(2026, 3, 1, 12, 0, tzinfo=dt.UTC)
 DAY_S = 86400.0
