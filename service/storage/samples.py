@@ -40,12 +40,15 @@ def check_sample(s: Sample) -> None:
     """Cheap checks at the producer, so a bad reading is refused where it is made, not in a batch later."""
     if len(s) != len(COLUMNS):
         raise InputError(f"sample has {len(s)} fields, expected {len(COLUMNS)}: {COLUMNS}")
-    if s.source not in SAMPLE_SOURCES:
-        raise InputError(f"sample source {s.source!r} is not one of {SAMPLE_SOURCES}")
-    if s.source == "calibration" and s.job_id is None:
+    device_id, t_s, _, _, _, _, job_id, _, source = s  # plain tuples in COLUMNS order are fine too
+    if source not in SAMPLE_SOURCES:
+        raise InputError(f"sample source {source!r} is not one of {SAMPLE_SOURCES}")
+    if source == "calibration" and job_id is None:
         raise InputError("a calibration sample needs its job_id")
-    if not isinstance(s.t_s, int | float) or not math.isfinite(s.t_s):
-        raise InputError(f"sample t_s={s.t_s!r} is not a finite time in seconds")
+    if isinstance(t_s, bool) or not isinstance(t_s, int | float) or not math.isfinite(t_s):
+        raise InputError(f"sample t_s={t_s!r} is not a finite time in seconds")
+    if not isinstance(device_id, int):
+        raise InputError(f"sample device_id={device_id!r} is not an integer id")
 
 
 def check_samples(rows: Sequence[Sample]) -> None:
