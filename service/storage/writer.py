@@ -7,9 +7,10 @@ behind, the queue fills and `put` blocks (back-pressure) for at most `put_timeou
 
 Loss bound. A sample is *handed over* when `put`/`put_many` has returned for it. At any moment
 the handed-over samples not yet committed are those in the queue (at most `capacity`) plus the
-batch being written (at most `batch_size`). So if the process is killed (SIGKILL, power loss)
+batch being written (at most `batch_size`). So if the process is killed (SIGKILL, a crash)
 at most `capacity + batch_size` handed-over samples are lost, and the committed ones are exactly
-the oldest handed-over ones (batches commit in order). `close()` (also run at interpreter exit)
+the oldest handed-over ones (batches commit in order). A power loss may also roll back the last
+commits on SQLite with synchronous=NORMAL (see docs/storage.md). `close()` (also run at interpreter exit)
 and `flush()` lose nothing.
 """
 
