@@ -125,8 +125,10 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
             k_new = current.k + sum(b.size for b in family.blocks(current.effects + (e,))) - sum(
                 b.size for b in family.blocks(current.effects))
             if family.n_obs - k_new < MIN_DOF_LEFT:
-                skipped.append({"effect": e, "reason": f"too few points: {family.n_obs} readings leave "
-                                f"{family.n_obs - k_new} degrees of freedom for a model with {k_new} parameters"})
+                left = family.n_obs - k_new
+                skipped.append({"effect": e, "reason": f"too few points: {family.n_obs} readings leave {left} "
+                                f"degree{'s' * (left != 1)} of freedom for a model with {k_new} parameters "
+                                f"(at least {MIN_DOF_LEFT} needed)"})
                 continue
             testable.append(e)
         remaining = [e for e in remaining if e in testable]
