@@ -217,11 +217,12 @@ class Family:
             blocks = self.blocks(effects)
         return effects, blocks, self.initial(effects, blocks, current)
 
-    def linearised_rss(self, current: Fit, effect: str) -> tuple[float, int]:
-        """Weighted RSS after one Gauss-Newton step of the extended model from its start values.
+    def linearised_fit(self, current: Fit, effect: str) -> Fit:
+        """The extended model after one Gauss-Newton step from its start values (an approximate fit).
 
         A cheap and, near the current optimum, accurate preview of the full refit: used to
-        screen candidates so that only promising ones pay for a nonlinear fit.
+        screen candidates so that only promising ones pay for a nonlinear fit, and to state
+        the size of a candidate the data do not support (its value and uncertainty).
         """
         effects, blocks, theta = self.extended(current, effect)
         r0 = self.weighted_residual(effects, theta, blocks)
@@ -236,7 +237,17 @@ class Family:
             J = self.jacobian(effects, blocks, theta, base=r0)
         delta, *_ = np.linalg.lstsq(J, -r0, rcond=1e-12)
         r1 = r0 + J @ delta
-        return float(min(r1 @ r1, r0 @ r0)), int(theta.size)
+        if r1 @ r1 > r0 @ r0:
+            delta, r1 = np.zeros_like(delta), r0
+        rss_w = float(r1 @ r1)
+        s2 = rss_w / max(self.n_obs - theta.size, 1)
+        cov = _covariance(J) * (max(1.0, s2) if self.noise_known else s2)
+        resid = r1.reshape(self.observed.shape) / self.weights
+        return Fit(effects, blocks, theta + delta, cov, resid, self.observed - resid, rss_w, self.n_obs, J)
+
+    def linearised_rss(self, current: Fit, effect: str) -> tuple[float, int]:
+        f = self.linearised_fit(current, effect)
+        return f.rss_w, f.k
 
     def separability(self, current: Fit, effect: str) -> list[float]:
         """For each parameter of `effect`: the fraction of its signature the current model cannot absorb.

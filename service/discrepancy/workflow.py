@@ -135,15 +135,16 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
         m = max(len(testable), 1)
         for e in testable:
             try:
-                rss_lin, k1 = family.linearised_rss(current, e)
-                pre = stats.nested_test(current.rss_w, current.k, rss_lin, k1, family.n_obs, alpha / m,
+                lin = family.linearised_fit(current, e)
+                pre = stats.nested_test(current.rss_w, current.k, lin.rss_w, lin.k, family.n_obs, alpha / m,
                                         noise_var, noise_df)
             except (DegenerateDataError, FitError, np.linalg.LinAlgError, ValueError):
                 pre = None
             if pre is not None and pre.p_value >= PRESCREEN_P:
                 # far from significant even by the one-step preview: not worth a nonlinear fit
                 tried.append((e, None, pre))
-                scores.append({"effect": e, "approximate": True, **pre.as_dict()})
+                scores.append({"effect": e, "approximate": True, "rms_after": lin.rms(),
+                               "magnitude": _safe_magnitude(family, lin, e), **pre.as_dict()})
                 continue
             try:
                 f1 = family.fit(current.effects + (e,), start=current)
@@ -153,7 +154,8 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
             sig = stats.nested_test(current.rss_w, current.k, f1.rss_w, f1.k, family.n_obs, alpha / m,
                                     noise_var, noise_df)
             tried.append((e, f1, sig))
-            scores.append({"effect": e, "rms_after": f1.rms(), **sig.as_dict()})
+            scores.append({"effect": e, "rms_after": f1.rms(), "magnitude": _safe_magnitude(family, f1, e),
+                           **sig.as_dict()})
         winners = [t for t in tried if t[1] is not None and t[2].significant]
         if not winners:
             stop_scores = scores
@@ -189,6 +191,13 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
                   [{"effect": e, "reason": r} for e, r in getattr(family, "already_in_model", {}).items()],
                   notes, noise, stop_scores, stop_reason, struct_now, where_first, alpha,
                   {"separability": separability})
+
+
+def _safe_magnitude(family: Family, fit: Fit, effect: str) -> dict:
+    try:
+        return family.magnitude(fit, effect)
+    except (KeyError, ValueError, IndexError, ZeroDivisionError, FloatingPointError):
+        return {}
 
 
 def _stop_sentence(tried, alpha: float, m: int) -> str:
@@ -273,7 +282,8 @@ def magnitude_sentence(effect: str, mag: dict) -> str:
     for k, v in mag.items():
         if not isinstance(v, dict) or "value" not in v:
             continue
-        parts.append(f"{k} = {_fmt(v['value'])} ± {_fmt(v['uncertainty'])} {v['unit']}")
+        unit = "" if v["unit"] == "1" else f" {v['unit']}"
+        parts.append(f"{k} = {_fmt(v['value'])} ± {_fmt(v['uncertainty'])}{unit}")
     return f"{effect}: " + "; ".join(parts)
 
 
