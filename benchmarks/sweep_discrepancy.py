@@ -61,10 +61,11 @@ def effect_of(variant: str) -> str:
 def one_run(task: dict) -> dict:
     """One simulated bench, one workflow run: what was named, and how close the end came to the noise."""
     hidden = task["hidden"]
-    hb = bench_with_hidden(task["seed"], hidden, task["design"])
+    sensor = task.get("sensor", "ref")
+    hb = bench_with_hidden(task["seed"], hidden, task["design"], sensor)
     noise = None if task.get("noise") == "residual" else hb.sigma_deg
     t0 = time.perf_counter()
-    rep, _, _ = stage_report(hb.columns, "ref", task["baseline"], noise)
+    rep, _, _ = stage_report(hb.columns, sensor, task["baseline"], noise)
     dt = time.perf_counter() - t0
     named = [e for e in rep["named_effects"] if e != "offaxis_coupling"]
     want = {effect_of(v) for v in hidden}
@@ -74,8 +75,8 @@ def one_run(task: dict) -> dict:
     if len(hidden) == 1:
         (variant,) = hidden
         label, truth = TRUE_PARAM[variant]
-        label = label.format(s="ref")
-        true_value = truth(hb.params, "ref")
+        label = label.format(s=sensor)
+        true_value = truth(hb.params, sensor)
         for st in rep["steps"]:
             if st["effect"] == effect_of(variant) and label in st["magnitude"]:
                 m = st["magnitude"][label]
@@ -99,7 +100,7 @@ def summarise_gap(rows) -> str:
             f"(95th pct {np.percentile(ratios.max(axis=1), 95):.2f}); chi2 p >= 0.01 in {100 * ok:.0f} %")
 
 
-def ladder(pool, baseline, design, seeds, variants, singles: dict) -> dict:
+def ladder(pool, base_task: dict, seeds, variants, singles: dict) -> dict:
     """Smallest multiple of the noise named in >= 95 % of runs, per variant (None if not within the ladder)."""
     state = {}
     for v in variants:
@@ -123,8 +124,7 @@ def ladder(pool, baseline, design, seeds, variants, singles: dict) -> dict:
                 todo[v] = nxt
         if not todo:
             break
-        tasks = [{"baseline": baseline, "design": design, "hidden": {v: m}, "seed": s}
-                 for v, m in todo.items() for s in range(seeds)]
+        tasks = [{**base_task, "hidden": {v: m}, "seed": s} for v, m in todo.items() for s in range(seeds)]
         res = run_tasks(pool, tasks)
         for v, m in todo.items():
             r = rate([x for x in res if x["hidden"] == {v: m}])
@@ -184,25 +184,30 @@ def main(argv=None) -> int:
     ap.add_argument("--baselines", default="linear,kinematic")
     ap.add_argument("--designs", default="serpentine,random")
     ap.add_argument("--no-ladder", action="store_true")
+    ap.add_argument("--sensor", default="ref", choices=["ref", "meas"], help="sensor whose readings are compared")
+    ap.add_argument("--null-only", action="store_true", help="only the no-hidden-effect runs")
+    ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--out", default=str(ROOT / "docs/examples/discrepancy/sweep_results.json"))
     args = ap.parse_args(argv)
     workers = max(1, min(args.workers, 2))
     results: dict = {"seeds": args.seeds, "null_seeds": args.null_seeds, "target_rate": TARGET_RATE, "runs": {}}
     t_start = time.time()
-    print(f"timing of one 81-point run with all candidates (tiltlab discrepancy, wall clock, {os.cpu_count()} cores "
-          "shared):", flush=True)
-    results["timing"] = timing_cli()
-    for b, t in results["timing"].items():
-        print(f"  {b}: median {t['median_s']:.2f} s of {', '.join(f'{w:.2f}' for w in t['wall_s'])}; "
-              f"chain {' -> '.join(t['chain'])}", flush=True)
+    results["sensor"] = args.sensor
+    if not args.no_timing:
+        print(f"timing of one 81-point run with all candidates (tiltlab discrepancy, wall clock, {os.cpu_count()} "
+              "cores shared):", flush=True)
+        results["timing"] = timing_cli()
+        for b, t in results["timing"].items():
+            print(f"  {b}: median {t['median_s']:.2f} s of {', '.join(f'{w:.2f}' for w in t['wall_s'])}; "
+                  f"chain {' -> '.join(t['chain'])}", flush=True)
     with Pool(workers) as pool:
         for baseline, design in itertools.product(args.baselines.split(","), args.designs.split(",")):
             key = f"{baseline}/{design}"
             print(f"\n=== baseline {baseline}, design {design} ===", flush=True)
             block: dict = {}
             # no hidden effect
-            null = run_tasks(pool, [{"baseline": baseline, "design": design, "hidden": {}, "seed": s}
-                                    for s in range(args.null_seeds)])
+            base_task = {"baseline": baseline, "design": design, "sensor": args.sensor}
+            null = run_tasks(pool, [{**base_task, "hidden": {}, "seed": s} for s in range(args.null_seeds)])
             fp = sum(bool(r["false"]) for r in null)
             per = {}
             for r in null:
@@ -215,14 +220,17 @@ def main(argv=None) -> int:
                   f"{per or ''}; off-axis coupling named first in {100 * rate(null, 'coupling_named'):.0f} %; "
                   f"{block['null']['gap']}; {block['null']['mean_seconds']:.2f} s/run", flush=True)
             if baseline == "linear" and design == "serpentine":
-                nr = run_tasks(pool, [{"baseline": baseline, "design": design, "hidden": {}, "seed": s,
-                                       "noise": "residual"} for s in range(args.null_seeds)])
+                nr = run_tasks(pool, [{**base_task, "hidden": {}, "seed": s, "noise": "residual"}
+                                      for s in range(args.null_seeds)])
                 fpr = sum(bool(r["false"]) for r in nr)
                 block["null_residual_noise"] = {"runs": len(nr), "false_named": fpr, "rate": fpr / len(nr)}
                 print(f"no hidden effect, noise from the final residual (F-tests): false effect named in "
                       f"{fpr}/{len(nr)} runs ({100 * fpr / len(nr):.1f} %)", flush=True)
+            if args.null_only:
+                results["runs"][key] = block
+                continue
             # singles at 5x
-            singles_rows = run_tasks(pool, [{"baseline": baseline, "design": design, "hidden": {v: 5.0}, "seed": s}
+            singles_rows = run_tasks(pool, [{**base_task, "hidden": {v: 5.0}, "seed": s}
                                             for v in VARIANTS for s in range(args.seeds)])
             singles = {v: [r for r in singles_rows if r["hidden"] == {v: 5.0}] for v in VARIANTS}
             block["singles_5x"] = {}
@@ -240,7 +248,7 @@ def main(argv=None) -> int:
                       f"{100 * cover:5.1f} % (median rel. bias {bias if bias is None else f'{bias:+.3f}'})  "
                       f"{block['singles_5x'][v]['gap']}", flush=True)
             # pairs at 5x
-            pair_rows = run_tasks(pool, [{"baseline": baseline, "design": design, "hidden": {a: 5.0, b: 5.0}, "seed": s}
+            pair_rows = run_tasks(pool, [{**base_task, "hidden": {a: 5.0, b: 5.0}, "seed": s}
                                          for a, b in itertools.combinations(PAIR_EFFECTS, 2)
                                          for s in range(args.seeds)])
             block["pairs_5x"] = {}
@@ -256,7 +264,7 @@ def main(argv=None) -> int:
                       f"{100 * block['pairs_5x'][f'{a}+{b}']['false_rate']:4.1f} %  {summarise_gap(rows)}", flush=True)
             if not args.no_ladder:
                 print("detection limits (smallest multiple of the noise named in >= 95 % of runs):", flush=True)
-                lad = ladder(pool, baseline, design, args.seeds, list(VARIANTS), singles)
+                lad = ladder(pool, base_task, args.seeds, list(VARIANTS), singles)
                 block["ladder"] = lad
                 for v in VARIANTS:
                     lim = lad["limits"][v]

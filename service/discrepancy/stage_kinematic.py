@@ -24,7 +24,7 @@ from service.discrepancy.stage_common import StageData
 from service.discrepancy.stage_linear import stage_magnitude
 from service.errors import InputError
 from service.physics.effects import STAGE_EFFECTS
-from service.physics.stage import StageBench, StageGeometry
+from service.physics.stage import StageBench, StageGeometry, simulate_stage
 
 CANDIDATES = ("backlash", "periodic_error", "sensor_nonlinearity", "temperature_drift", "time_drift")
 
@@ -149,8 +149,6 @@ class StageKinematic(Family):
         key = tuple(sorted((e, tuple(sorted(fx.values[e].items()))) for e in _GEOMETRY_EFFECTS if e in fx.on))
         if self._geo_cache is None or self._geo_cache[0] != key:
             self._geo_cache = (key, StageGeometry.from_effects(self.bench, fx))
-        from service.physics.stage import simulate_stage
-
         pts = self.pts
         sim = simulate_stage(self.bench, fx, pts.stage_x_deg, pts.stage_y_deg, pts.dir_x, pts.dir_y, pts.temp_c,
                              pts.t_s, rng=None, geometry=self._geo_cache[1])

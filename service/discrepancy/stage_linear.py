@@ -38,10 +38,6 @@ ALREADY_IN_MODEL = {
 }
 
 
-def _deg(x):
-    return np.degrees(x)
-
-
 class StageLinear(Family):
     kind = "stage"
     baseline = "linear"
@@ -114,7 +110,7 @@ class StageLinear(Family):
         xa = np.radians(tx + c.get("level_x_deg", 0.0))
         yb = np.radians(ty + c.get("level_y_deg", 0.0))
         coupled = np.arcsin(np.clip(np.sin(xa) * np.cos(yb), -1.0, 1.0))
-        return _deg(xa + c.get("kappa", 1.0) * (coupled - xa)), _deg(yb)
+        return np.degrees(xa + c.get("kappa", 1.0) * (coupled - xa)), np.degrees(yb)
 
     def predict_params(self, effects, p):
         tx, ty = self.stage_angles(effects, p)
@@ -192,8 +188,6 @@ def stage_magnitude(fam, fit: Fit, effect: str) -> dict:
             period = fam.data.bench.worm_period_x_deg if ax == "x" else fam.data.bench.worm_period_y_deg
             out[f"{ax}_amp_deg"] = _entry(amp, u_amp, "deg", f"amplitude at the worm period {period:g} deg")
             out[f"{ax}_phase_deg"] = _entry(float(np.degrees(np.arctan2(b, a))), u_ph, "deg")
-        return out
-    if effect == "periodic_error_kinematic":  # pragma: no cover - handled by the kinematic family
         return out
     for lab, unit, v, s in zip(blk.labels, blk.units, vals, std):
         out[lab] = _entry(v, s, unit)
