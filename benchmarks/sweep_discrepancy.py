@@ -188,7 +188,11 @@ def main(argv=None) -> int:
     ap.add_argument("--null-only", action="store_true", help="only the no-hidden-effect runs")
     ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--out", default=str(ROOT / "docs/examples/discrepancy/sweep_results.json"))
+    ap.add_argument("--markdown", metavar="RESULTS.json", help="print the tables of a finished sweep and exit")
     args = ap.parse_args(argv)
+    if args.markdown:
+        print(markdown(args.markdown))
+        return 0
     workers = max(1, min(args.workers, 2))
     results: dict = {"seeds": args.seeds, "null_seeds": args.null_seeds, "target_rate": TARGET_RATE, "runs": {}}
     t_start = time.time()
@@ -278,6 +282,48 @@ def main(argv=None) -> int:
     Path(args.out).write_text(json.dumps(results, indent=1))
     print(f"\nwrote {args.out}; {results['elapsed_s'] / 60:.1f} min", flush=True)
     return 0
+
+
+def markdown(path: str) -> str:
+    """The sweep's figures as the Markdown tables of docs/discrepancy.md."""
+    res = json.loads(Path(path).read_text())
+    out = []
+    keys = list(res["runs"])
+    pct = lambda x: "—" if x is None else f"{100 * x:.0f} %"  # noqa: E731
+    out.append(f"Seeds per case: {res['seeds']} (no hidden effect: {res['null_seeds']}); target rate "
+               f"{100 * res['target_rate']:.0f} %; sensor {res.get('sensor', 'ref')}.\n")
+    out.append("| case | " + " | ".join(keys) + " |")
+    out.append("| --- |" + " --- |" * len(keys))
+    row = lambda name, f: out.append(f"| {name} | " + " | ".join(f(res["runs"][k]) for k in keys) + " |")  # noqa: E731
+    row("no hidden effect: a false effect named", lambda b: f"{b['null']['false_named']}/{b['null']['runs']} "
+        f"({100 * b['null']['rate']:.1f} %)")
+    row("no hidden effect, noise from the final residual", lambda b: (
+        f"{b['null_residual_noise']['false_named']}/{b['null_residual_noise']['runs']}" if "null_residual_noise" in b
+        else "—"))
+    row("no hidden effect: final χ² p ≥ 0.01", lambda b: b["null"]["gap"].split("; ")[-1].replace("chi2 p >= 0.01 in ", ""))
+    variants = list(next(iter(res["runs"].values())).get("singles_5x", {}))
+    for v in variants:
+        row(f"`{v}` at 5×: named", lambda b, v=v: pct(b["singles_5x"][v]["named_rate"]) if "singles_5x" in b else "—")
+    for v in variants:
+        row(f"`{v}` at 5×: other effect named", lambda b, v=v: pct(b["singles_5x"][v]["false_rate"])
+            if "singles_5x" in b else "—")
+    for v in variants:
+        row(f"`{v}`: magnitude within ±2u of truth", lambda b, v=v: pct(b["singles_5x"][v]["estimate_within_2u"])
+            if "singles_5x" in b and b["singles_5x"][v]["named_rate"] > 0 else "—")
+    pairs = list(next(iter(res["runs"].values())).get("pairs_5x", {}))
+    for pr in pairs:
+        row(f"pair `{pr}` at 5×: both named", lambda b, pr=pr: pct(b["pairs_5x"][pr]["both_named"])
+            if "pairs_5x" in b else "—")
+    row("pairs: other effect named (worst pair)", lambda b: pct(max(x["false_rate"] for x in b["pairs_5x"].values()))
+        if "pairs_5x" in b else "—")
+    for v in variants:
+        def lim(b, v=v):
+            if "ladder" not in b:
+                return "—"
+            m = b["ladder"]["limits"][v]
+            return f"> {LADDER[-1]:g}×" if m is None else f"{m:g}×"
+        row(f"`{v}`: detection limit", lim)
+    return "\n".join(out)
 
 
 def _count(rows) -> dict:
