@@ -178,6 +178,12 @@ def format_value(col: str, v) -> str:
     return repr(f)  # shortest text that reads back to the same float
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _atomic_write(path: str | Path, write) -> None:
     """Write through `write(fh)` to a temporary file beside `path`, then rename it into place."""
     path = Path(path)
@@ -186,6 +192,8 @@ def _atomic_write(path: str | Path, write) -> None:
         raise InputError(f"{path}: folder {folder} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
     try:
+        # mkstemp makes the file private (0600); a result file gets the usual umask-based mode
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
             write(fh)
         os.replace(tmp, path)

@@ -112,3 +112,13 @@ def test_round_trip(tmp_path):
     write_dataset(p, {"point": np.array([0, 1]), "stage_x_deg": np.array([0.1, -12.123456789012]), "note": ["a", "b"]})
     ds = read_dataset(p, "stage", ("stage_x_deg",))
     assert ds["stage_x_deg"][1] == -12.123456789012 and ds.text["point"] == ["0", "1"]
+
+
+def test_written_file_has_the_umask_mode_not_a_private_one(tmp_path):
+    old = os.umask(0o022)
+    try:
+        p = tmp_path / "shared.csv"
+        write_dataset(p, {"a": np.arange(3.0)})
+    finally:
+        os.umask(old)
+    assert (p.stat().st_mode & 0o777) == 0o644

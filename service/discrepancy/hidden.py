@@ -14,13 +14,12 @@ sampled peak depends on its phase, the size is its amplitude.
 from __future__ import annotations
 
 import copy
-import json
 from dataclasses import dataclass
 
 import numpy as np
 
 from service.scenarios import parse_scenario, run_scenario
-from service.scenarios.model import PRESET_DIR
+from service.scenarios.model import scenario_data
 
 # hidden-effect variants: name -> (effect, parameter that carries it); "_y" variants act on the y axis
 VARIANTS: dict[str, tuple[str, str]] = {
@@ -38,8 +37,10 @@ ENVIRONMENT = {"temp_c": 21.0, "temp_rate_c_per_h": 1.0, "temp_amp_c": 1.5, "tem
 
 
 def base_scenario() -> dict:
-    with open(PRESET_DIR / "seed000.json", encoding="utf-8") as fh:
-        return json.load(fh)
+    """The seed000 preset as a mutable dict, validated before anything is changed."""
+    data, source = scenario_data("seed000")
+    parse_scenario(data, source=source)
+    return data
 
 
 def noise_sigma_deg(sc: dict | None = None, sensor: str = "ref") -> float:

@@ -262,8 +262,8 @@ def preset_names() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.json"))
 
 
-def load_scenario(name_or_path: str | Path) -> Scenario:
-    """A preset by name, or a scenario JSON file."""
+def scenario_data(name_or_path: str | Path) -> tuple[dict, str]:
+    """The raw JSON object of a preset (by name) or a scenario file, and where it came from."""
     p = Path(name_or_path)
     if not p.suffix and (PRESET_DIR / f"{p.name}.json").exists() and not p.exists():
         p = PRESET_DIR / f"{p.name}.json"
@@ -275,7 +275,13 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         raise InputError(f"{p}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{p}: cannot read: {exc}") from None
-    return parse_scenario(data, source=str(p))
+    return data, str(p)
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """A preset by name, or a scenario JSON file, validated."""
+    data, source = scenario_data(name_or_path)
+    return parse_scenario(data, source=source)
 
 
 def json_schema() -> dict:
