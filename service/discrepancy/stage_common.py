@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.discrepancy import stats
+from service.discrepancy.model import Block
 from service.physics.stage import StageBench
 
 # Candidate effects of spec/models.md §5 a stage bench model can lack, in a fixed order.
@@ -69,6 +70,31 @@ class StageData:
         c = qx if axis == "x" else qy
         return 2.0 * np.pi * c / period, period
 
+
+
+def sensor_param_names(sensor: str) -> dict[str, tuple[str, ...]]:
+    """Registry parameter names of the sensor-side candidates, for the sensor being modelled."""
+    s = sensor
+    return {
+        "sensor_nonlinearity": (f"{s}_x_per_deg", f"{s}_y_per_deg"),
+        "temperature_drift": (f"{s}_x_deg_per_k", f"{s}_y_deg_per_k", f"{s}_scale_per_k"),
+        "time_drift": (f"{s}_x_deg_per_h", f"{s}_y_deg_per_h"),
+    }
+
+
+def candidate_block(effect: str, names: Mapping[str, tuple[str, ...]]) -> Block | None:
+    """The parameters a candidate adds, the same on every stage baseline; None for one it does not know."""
+    if effect == "backlash":
+        return Block(effect, ("x_deg", "y_deg"), ("deg", "deg"), (0.01, 0.01), (0.0, 0.0))
+    if effect == "periodic_error":
+        return Block(effect, ("x_sin_deg", "x_cos_deg", "y_sin_deg", "y_cos_deg"), ("deg",) * 4, (0.01,) * 4, (0.0,) * 4)
+    if effect == "sensor_nonlinearity":
+        return Block(effect, names[effect], ("1/deg", "1/deg"), (1e-4, 1e-4), (0.0, 0.0))
+    if effect == "temperature_drift":
+        return Block(effect, names[effect], ("deg/K", "deg/K", "1/K"), (1e-3, 1e-3, 1e-4), (0.0,) * 3)
+    if effect == "time_drift":
+        return Block(effect, names[effect], ("deg/h", "deg/h"), (1e-2, 1e-2), (0.0, 0.0))
+    return None
 
 def common_skips(data: StageData) -> dict[str, str]:
     """Candidates the data cannot support at all, with the reason in the lab's words."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from service.calibration.benchfit import BenchModel, StagePoints, typical_scale
 from service.discrepancy.model import Block, Family, Fit
-from service.discrepancy.stage_common import StageData
+from service.discrepancy.stage_common import StageData, candidate_block, sensor_param_names
 from service.discrepancy.stage_linear import stage_magnitude
 from service.errors import InputError
 from service.physics.effects import STAGE_EFFECTS
@@ -92,12 +92,7 @@ class StageKinematic(Family):
         self.pts = StagePoints.from_columns(cols)
         self.outputs = [f"{data.sensor}_x_deg", f"{data.sensor}_y_deg"]
         self.geometry_keys = GEOMETRY_PARAMS(data.sensor)
-        s = data.sensor
-        self.names = {
-            "sensor_nonlinearity": (f"{s}_x_per_deg", f"{s}_y_per_deg"),
-            "temperature_drift": (f"{s}_x_deg_per_k", f"{s}_y_deg_per_k", f"{s}_scale_per_k"),
-            "time_drift": (f"{s}_x_deg_per_h", f"{s}_y_deg_per_h"),
-        }
+        self.names = sensor_param_names(data.sensor)
         self._geo_cache: tuple[tuple, StageGeometry] | None = None
         self.report_extra = {"kinematic": {"meas_flip": flip, "temp_ref_c": temp_ref,
                                            "free_geometry": [f"{e}.{p}" for e, p in self.geometry_keys]}}
@@ -108,17 +103,8 @@ class StageKinematic(Family):
                      tuple(STAGE_EFFECTS[e].param(p).unit for e, p in keys),
                      tuple(typical_scale(k) for k in keys), (0.0,) * len(keys))]
         for e in effects:
-            if e == "backlash":
-                out.append(Block(e, ("x_deg", "y_deg"), ("deg", "deg"), (0.01, 0.01), (0.0, 0.0)))
-            elif e == "periodic_error":
-                out.append(Block(e, ("x_sin_deg", "x_cos_deg", "y_sin_deg", "y_cos_deg"), ("deg",) * 4,
-                                 (0.01,) * 4, (0.0,) * 4))
-            elif e == "sensor_nonlinearity":
-                out.append(Block(e, self.names[e], ("1/deg", "1/deg"), (1e-4, 1e-4), (0.0, 0.0)))
-            elif e == "temperature_drift":
-                out.append(Block(e, self.names[e], ("deg/K", "deg/K", "1/K"), (1e-3, 1e-3, 1e-4), (0.0,) * 3))
-            elif e == "time_drift":
-                out.append(Block(e, self.names[e], ("deg/h", "deg/h"), (1e-2, 1e-2), (0.0, 0.0)))
+            if (block := candidate_block(e, self.names)) is not None:
+                out.append(block)
             else:
                 raise KeyError(f"the kinematic baseline has no candidate term for {e!r}")
         return out

@@ -22,7 +22,7 @@ import numpy as np
 
 from service.calibration.projective import fit_projective
 from service.discrepancy.model import Block, Family, Fit
-from service.discrepancy.stage_common import STAGE_CANDIDATES, StageData
+from service.discrepancy.stage_common import STAGE_CANDIDATES, StageData, candidate_block, sensor_param_names
 
 ALREADY_IN_MODEL = {
     "zero_offset": "the map's translation terms (h13, h23) are the sensor's zero offsets",
@@ -53,12 +53,7 @@ class StageLinear(Family):
         self.t_h = None if data.t_s is None else (data.t_s - float(np.mean(data.t_s))) / 3600.0
         self.wx = 2.0 * np.pi * self.qx / data.bench.worm_period_x_deg
         self.wy = 2.0 * np.pi * self.qy / data.bench.worm_period_y_deg
-        s = data.sensor
-        self.names = {
-            "sensor_nonlinearity": (f"{s}_x_per_deg", f"{s}_y_per_deg"),
-            "temperature_drift": (f"{s}_x_deg_per_k", f"{s}_y_deg_per_k", f"{s}_scale_per_k"),
-            "time_drift": (f"{s}_x_deg_per_h", f"{s}_y_deg_per_h"),
-        }
+        self.names = sensor_param_names(data.sensor)
 
     candidates = STAGE_CANDIDATES
     already_in_model = ALREADY_IN_MODEL
@@ -70,17 +65,8 @@ class StageLinear(Family):
             if e == "offaxis_coupling":
                 out.append(Block(e, ("kappa", "level_x_deg", "level_y_deg"), ("1", "deg", "deg"),
                                  (1.0, 0.1, 0.1), (1.0, 0.0, 0.0)))
-            elif e == "backlash":
-                out.append(Block(e, ("x_deg", "y_deg"), ("deg", "deg"), (0.01, 0.01), (0.0, 0.0)))
-            elif e == "periodic_error":
-                out.append(Block(e, ("x_sin_deg", "x_cos_deg", "y_sin_deg", "y_cos_deg"), ("deg",) * 4,
-                                 (0.01,) * 4, (0.0,) * 4))
-            elif e == "sensor_nonlinearity":
-                out.append(Block(e, self.names[e], ("1/deg", "1/deg"), (1e-4, 1e-4), (0.0, 0.0)))
-            elif e == "temperature_drift":
-                out.append(Block(e, self.names[e], ("deg/K", "deg/K", "1/K"), (1e-3, 1e-3, 1e-4), (0.0,) * 3))
-            elif e == "time_drift":
-                out.append(Block(e, self.names[e], ("deg/h", "deg/h"), (1e-2, 1e-2), (0.0, 0.0)))
+            elif (block := candidate_block(e, self.names)) is not None:
+                out.append(block)
             else:
                 raise KeyError(f"the linear baseline has no term for {e!r}")
         return out
