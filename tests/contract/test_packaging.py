@@ -1,5 +1,11 @@
-"""A regular (non-editable) install carries every file the program reads at run time."""
+"""A regular (non-editable) install carries every file the program reads at run time.
 
+Checked twice: a wheel built from the repository, and one built from only what
+docker/Dockerfile copies into the image (so the image cannot silently lose its migrations).
+"""
+
+import shlex
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -10,11 +16,30 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(scope="module")
-def wheel_names(tmp_path_factory):
+def docker_build_context(dest: Path) -> Path:
+    """The files the Dockerfile's COPY lines put in its WORKDIR, laid out as the image has them."""
+    for line in (ROOT / "docker" / "Dockerfile").read_text().splitlines():
+        words = shlex.split(line)
+        if not words or words[0] != "COPY":
+            continue
+        *sources, target = [w for w in words[1:] if not w.startswith("--")]
+        for src in sources:
+            origin = ROOT / src
+            into = dest / target / origin.name if target.endswith("/") or len(sources) > 1 else dest / target
+            into.parent.mkdir(parents=True, exist_ok=True)
+            if origin.is_dir():
+                shutil.copytree(origin, into, ignore=shutil.ignore_patterns("__pycache__"))
+            else:
+                shutil.copy2(origin, into)
+    return dest
+
+
+@pytest.fixture(scope="module", params=["repository", "docker image"])
+def wheel_names(request, tmp_path_factory):
     out = tmp_path_factory.mktemp("wheel")
+    source = ROOT if request.param == "repository" else docker_build_context(tmp_path_factory.mktemp("image"))
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w",
-                        str(out), str(ROOT)], capture_output=True, text=True)
+                        str(out), str(source)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     (whl,) = out.glob("tiltlab-*.whl")
     return set(zipfile.ZipFile(whl).namelist())
