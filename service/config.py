@@ -37,6 +37,8 @@ class Settings(BaseSettings):
     database_url: str = ""
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
+    # The simulated bench the service drives: a stage scenario preset name or a scenario file.
+    bench_scenario: str = "seed000"
 
     # Free-running monitoring samples older than this are thinned or dropped; calibration data never are.
     monitoring_retention_days: float = Field(30.0, gt=0)

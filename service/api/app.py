@@ -23,7 +23,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         s = settings or get_settings()
         app.state.settings = s
         app.state.engine = bootstrap(s)  # brings the database to the current schema
-        app.state.bench = SimulatedStageBench(getattr(s, "bench_scenario", "seed000"))
+        app.state.bench = SimulatedStageBench(s.bench_scenario)
         log.info("tiltlab %s: database %s, bench %s", __version__, app.state.engine.url, app.state.bench.name)
         try:
             yield

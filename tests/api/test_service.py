@@ -41,6 +41,19 @@ def test_unknown_route_is_problem_json(client):
     assert r.json()["status"] == 404
 
 
+def test_bench_scenario_setting_chooses_the_simulated_bench(tmp_path):
+    import json
+
+    from service.scenarios.model import scenario_data
+
+    data, _ = scenario_data("seed000")
+    data["name"] = "my-bench"
+    path = tmp_path / "my-bench.json"
+    path.write_text(json.dumps(data))
+    with TestClient(create_app(Settings(data_dir=tmp_path, bench_scenario=str(path)))) as c:
+        assert c.get("/health").json()["bench"] == "simulated:my-bench"
+
+
 def _free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
