@@ -51,7 +51,8 @@ def fit_projective(src_x, src_y, dst_x, dst_y, refine: bool = True, what: str = 
     A[1::2, 6:9] = -v[:, None] * np.column_stack([X, Y, np.ones(n)])
     # U is not needed (2n x 2n: O(n²) memory); all 9 rows of V are, also with only 4 points
     _, s, vt = np.linalg.svd(A, full_matrices=A.shape[0] < A.shape[1])
-    if s.size >= 9 and s[-2] <= 1e-12 * s[0]:
+    # the 8 free entries of H need rank 8 (s[7] is the 8th singular value, with 4 points the last)
+    if s[7] <= 1e-12 * s[0]:
         raise DegenerateDataError(f"{what}: the points do not determine a homography (rank-deficient system)")
     Hn = vt[-1].reshape(3, 3)
     H = np.linalg.inv(Td) @ Hn @ Ts

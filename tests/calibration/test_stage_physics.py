@@ -1,6 +1,7 @@
 """Stage calibration building blocks pinned to seed 000 and to independent derivations."""
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -14,6 +15,7 @@ from service.calibration.stage_common import (
     offaxis_forward_vs_exact_deg,
     offaxis_paper_forward_deg,
 )
+from service.errors import DegenerateDataError
 from service.physics import stage as physics_stage
 from service.physics.effects import EffectSet
 from service.physics.stage import StageBench, StageGeometry, simulate_stage
@@ -102,3 +104,10 @@ def test_measurement_model_matches_the_simulator_and_inverts(flip, yaw, nonorth,
     assert np.allclose(a, sim["meas_x_deg"], atol=1e-9) and np.allclose(b, sim["meas_y_deg"], atol=1e-9)
     X, Y = meas_inverse(p, sign, sim["meas_x_deg"], sim["meas_y_deg"])
     assert np.allclose(X, sim["tilt_x_deg"], atol=1e-9) and np.allclose(Y, sim["tilt_y_deg"], atol=1e-9)
+
+
+def test_four_points_with_three_on_one_line_do_not_determine_a_homography():
+    """Three collinear points of four leave a one-parameter family of homographies: refused, not guessed."""
+    x, y = np.array([0.0, 1.0, 2.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0])
+    with pytest.raises(DegenerateDataError, match="do not determine a homography"):
+        fit_projective(x + 0.02 * x * y, y + 0.003 * x, x, y)
