@@ -60,8 +60,9 @@ def _meas_sign(data: Columns, options: FitOptions) -> tuple[np.ndarray, str]:
 
 
 def _stats(r: np.ndarray, n_par: int) -> dict[str, Any]:
-    dof = max(r.size - n_par, 1)
-    return {"dof": dof, "sigma_deg": float(np.sqrt(r @ r / dof))}
+    """Degrees of freedom and residual sigma; no sigma when the points only just determine the parameters."""
+    dof = r.size - n_par
+    return {"dof": dof, "sigma_deg": float(np.sqrt(r @ r / dof)) if dof > 0 else None}
 
 
 def _numeric_cov(fun, p: np.ndarray, scales: np.ndarray, s2: float) -> np.ndarray:
@@ -197,16 +198,21 @@ class HomographyMethod:
 
             r = r2(h2)
             st = _stats(r, 8)
-            cov = _numeric_cov(r2, h2, H_SCALES, st["sigma_deg"] ** 2)
-            cov_names = [f"H2.{k}" for k in H_KEYS]
             params.update(_h_params("H2", H2, "H2 maps measurement readings (a, b) to reference angles (X, Y)"))
             n = mx.size
             residuals.update({"ref_x_deg": r[:n], "ref_y_deg": r[n:]})
             fit_info["h2"] = st
-            state["meas_sigma_deg"] = st["sigma_deg"]
-            notes.append(f"H2 (measurement -> reference) fitted by normalised DLT on all {n} points: both sensors ride "
-                         "on the table, so the stage coupling does not enter between them; u_tilt from H2's covariance "
-                         "and the H2 residual as reading noise (which also holds the reference's noise: conservative)")
+            h2_note = (f"H2 (measurement -> reference) fitted by normalised DLT on all {n} points: both sensors ride "
+                       "on the table, so the stage coupling does not enter between them; ")
+            if st["sigma_deg"] is not None:
+                cov = _numeric_cov(r2, h2, H_SCALES, st["sigma_deg"] ** 2)
+                cov_names = [f"H2.{k}" for k in H_KEYS]
+                state["meas_sigma_deg"] = st["sigma_deg"]
+                notes.append(h2_note + "u_tilt from H2's covariance and the H2 residual as reading noise (which also "
+                             "holds the reference's noise: conservative)")
+            else:
+                notes.append(h2_note + f"the {n} points determine its 8 parameters exactly and leave no residual to "
+                             "estimate the noise: no covariance and no u_tilt")
         else:
             notes.append("no meas_x_deg/meas_y_deg columns: H2 not fitted, this model can level but not correct")
         return _model(self.name, _used_columns(data), params, notes, covariance_names=cov_names, covariance=cov,

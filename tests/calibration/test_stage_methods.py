@@ -233,3 +233,17 @@ def test_degenerate_inputs_are_refused_with_what_is_missing():
         m.level(model, {"target_x_deg": np.array([1.0]), "target_y_deg": np.array([2.0])})
         with pytest.raises(InputError, match="without meas_x_deg"):
             m.correct(model, {"meas_x_deg": np.array([1.0]), "meas_y_deg": np.array([2.0])})
+
+
+def test_homography_on_four_points_has_no_covariance_rather_than_a_zero_one():
+    """Four points solve H2 exactly: no residual is left to estimate the noise, so no u_tilt is claimed."""
+    sx, sy = np.array([-3.0, 3.0, -3.0, 3.0]), np.array([-3.0, -3.0, 3.0, 3.0])
+    cols = {"stage_x_deg": sx, "stage_y_deg": sy, "ref_x_deg": sx + 0.01 * sy, "ref_y_deg": sy,
+            "meas_x_deg": sx + 0.003 * sy + 0.1, "meas_y_deg": sy - 0.002 * sx}
+    m = get_method("stage", "homography")
+    model = m.fit(cols, FitOptions(extra={"points": "all"}))
+    assert model.covariance is None and model.fit["h2"]["dof"] == 0 and model.fit["h2"]["sigma_deg"] is None
+    out = m.correct(model, {"meas_x_deg": np.array([1.0]), "meas_y_deg": np.array([2.0])})
+    assert set(out) == {"tilt_x_deg", "tilt_y_deg"}
+    back = CalibrationModel.from_json_dict(json.loads(json.dumps(model.to_json_dict())))
+    assert set(m.correct(back, {"meas_x_deg": np.array([1.0]), "meas_y_deg": np.array([2.0])})) == set(out)
