@@ -39,22 +39,38 @@ class _SampleQueue(queue.Queue):  # type: ignore[type-arg]
     def _init(self, maxsize: int) -> None:
         self.queue: collections.deque[Sequence[Sample]] = collections.deque()
         self.samples = 0
+        self.closed = False
 
     def _qsize(self) -> int:
         return self.samples
 
-    def put_chunk(self, chunk: Sequence[Sample], timeout: float) -> None:
-        """Block until the whole chunk fits (len(chunk) <= maxsize), or raise queue.Full."""
+    def close(self) -> None:
+        """Take no more chunks; producers waiting for room are released and refused."""
+        with self.mutex:
+            self.closed = True
+            self.not_full.notify_all()
+            self.not_empty.notify_all()
+
+    def drained(self) -> bool:
+        """Closed and empty: nothing can arrive any more."""
+        with self.mutex:
+            return self.closed and not self.samples
+
+    def put_chunk(self, chunk: Sequence[Sample], timeout: float) -> bool:
+        """Block until the whole chunk fits (len(chunk) <= maxsize), or raise queue.Full; False if closed."""
         deadline = time.monotonic() + timeout
         with self.not_full:
-            while self.samples + len(chunk) > self.maxsize:
+            while not self.closed and self.samples + len(chunk) > self.maxsize:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     raise queue.Full
                 self.not_full.wait(remaining)
+            if self.closed:
+                return False
             self.queue.append(chunk)
             self.samples += len(chunk)
             self.not_empty.notify()
+            return True
 
     def get_batch(self, max_n: int, timeout: float) -> list[Sample]:
         """Up to max_n samples in put order; [] if none arrived within the timeout."""
@@ -101,7 +117,6 @@ class SampleWriter:
         self.handed_over = 0
         self.committed = 0
         self.rejected: list[tuple[Sample, str]] = []
-        self._stopping = threading.Event()
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="tiltlab-sample-writer", daemon=True)
         self._thread.start()
@@ -126,7 +141,7 @@ class SampleWriter:
 
     def put_many(self, samples: Iterable[Sample]) -> None:
         """Hand samples over; blocks while the queue is full, up to put_timeout_s per batch-sized chunk."""
-        if self._closed or self._stopping.is_set():
+        if self._queue.closed:
             raise RuntimeError("SampleWriter is closed")
         rows = samples if isinstance(samples, list) else list(samples)
         if self.validate:
@@ -135,7 +150,10 @@ class SampleWriter:
         for i in range(0, len(rows), self.batch_size):
             chunk = rows[i : i + self.batch_size]
             try:
-                self._queue.put_chunk(chunk, self.put_timeout_s)
+                if not self._queue.put_chunk(chunk, self.put_timeout_s):
+                    raise RuntimeError(
+                        f"SampleWriter is closed; {accepted} of these {len(rows)} samples were accepted, the rest were not"
+                    )
             except queue.Full:
                 raise BackPressureTimeout(
                     f"sample queue full for {self.put_timeout_s} s: the database is not keeping up;"
@@ -160,7 +178,7 @@ class SampleWriter:
         """Write everything handed over, stop the thread. Idempotent."""
         if self._closed:
             return
-        self._stopping.set()
+        self._queue.close()
         self._thread.join(timeout)
         if self._thread.is_alive():
             raise TimeoutError(f"close: writer still busy after {timeout} s; {self.pending} samples pending")
@@ -193,7 +211,7 @@ class SampleWriter:
             batch = self._queue.get_batch(self.batch_size, timeout=0.05)
             if batch:
                 self._write(batch)
-            elif self._stopping.is_set() and self._queue.qsize() == 0:
+            elif self._queue.drained():
                 return
 
     def _write(self, batch: list[Sample]) -> None:

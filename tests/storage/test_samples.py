@@ -194,3 +194,20 @@ def test_retention_refuses_nonsense(store: Store) -> None:
         store.apply_retention(actor="r", older_than=dt.timedelta(days=-1))
     with pytest.raises(InputError):
         store.apply_retention(actor="r", older_than=dt.timedelta(days=1), policy="shred")
+
+
+def test_put_racing_close_is_refused_not_lost(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    """A producer still handing over when another thread closes the writer is told so; nothing vanishes."""
+    writer = SampleWriter(store.engine, capacity=100, batch_size=10)
+
+    def samples():  # type: ignore[no-untyped-def]
+        closer = threading.Thread(target=writer.close)  # closes while this put_many is under way
+        closer.start()
+        closer.join()
+        yield Sample(device.id, 1.0, 0.0, 0.0)
+
+    with pytest.raises(RuntimeError, match="closed"):
+        writer.put_many(samples())
+    assert writer.handed_over == 0 and writer.pending == 0
+    assert count(store.engine, "samples") == 0
+
