@@ -227,8 +227,13 @@ class SampleWriter:
                 return
             except sa.exc.OperationalError as exc:  # locked or unreachable: worth waiting for
                 if time.monotonic() >= deadline:
+                    # Not the rows' fault: trying them one by one would only wait out the same lock or
+                    # outage once per row while the queue fills.
                     log.error("sample batch failed after retries: %s", exc)
-                    break
+                    with self._progress:
+                        self.rejected.extend((row, _reason(exc)) for row in batch)
+                        self._progress.notify_all()
+                    return
                 time.sleep(delay)
                 delay = min(delay * 2, 1.0)
             except Exception as exc:  # noqa: BLE001 - a bad row in the batch: find it, keep the others

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import threading
+from types import SimpleNamespace
 
 import pytest
 import sqlalchemy as sa
@@ -20,6 +21,7 @@ from service.storage import (
     verify,
     write_engine,
 )
+from service.storage.engine import make_engine
 from service.storage.samples import count_samples, job_samples, write_samples
 from tests.storage.storage_helpers import MODEL, STANDARDS, count
 
@@ -211,3 +213,33 @@ def test_put_racing_close_is_refused_not_lost(store: Store, device) -> None:  # 
     assert writer.handed_over == 0 and writer.pending == 0
     assert count(store.engine, "samples") == 0
 
+
+def test_unavailable_database_fails_whole_batches_not_row_by_row(store: Store, device, db_url: str) -> None:  # type: ignore[no-untyped-def]
+    """When the retries run out the batch is reported as not written; retrying each row would stall the writer."""
+    if store.engine.dialect.name == "sqlite":
+        engine = make_engine(db_url, busy_timeout_ms=20)
+    else:
+        url = sa.make_url(db_url)
+        engine = make_engine(url.update_query_dict({"options": f"{url.query['options']} -clock_timeout=20ms"}))
+    holder = _hold_write_lock(store.engine)
+    writer = SampleWriter(engine, capacity=200, batch_size=100, retry_for_s=0.2)
+    attempts = []
+    transactions = writer._engine.begin
+
+    def begin():  # type: ignore[no-untyped-def]
+        attempts.append(1)
+        return transactions()
+
+    writer._engine = SimpleNamespace(begin=begin)
+    try:
+        writer.put_many([Sample(device.id, float(i), 0.0, 0.0) for i in range(200)])
+        with pytest.raises(SampleWriteError, match="200 samples"):
+            writer.flush(timeout=60)
+    finally:
+        holder.rollback()
+        holder.close()
+        with pytest.raises(SampleWriteError):
+            writer.close()
+        engine.dispose()
+    assert writer.committed == 0 and len(writer.rejected) == 200
+    assert len(attempts) < 100  # a few attempts per batch, not one per sample
