@@ -95,15 +95,16 @@ def _initial(az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
     """β, m1, m2, ε solved linearly from the half-differences (start of the Gauss-Newton steps)."""
     g = _tilt_in_instrument_frame(az, xi, eta)  # columns f1, f2
     s = np.sin(np.radians(rotation_deg) / 2.0)
-    (P, Q), *_ = np.linalg.lstsq(g, d1, rcond=None)
-    (R, T), *_ = np.linalg.lstsq(np.column_stack([g[:, 1], -g[:, 0]]), d2, rcond=None)
+    # m·cos and m·sin of β + φ/2 (divided by sin(φ/2) with its sign: φ may be negative)
+    (P, Q), *_ = np.linalg.lstsq(g, d1 / s, rcond=None)
+    (R, T), *_ = np.linalg.lstsq(np.column_stack([g[:, 1], -g[:, 0]]), d2 / s, rcond=None)
     b_half = np.degrees(np.arctan2(Q, P))
     c_half = np.degrees(np.arctan2(T, R))
     beta = b_half - rotation_deg / 2.0
     eps = c_half - b_half
     beta = (beta + 180.0) % 360.0 - 180.0
     eps = (eps + 180.0) % 360.0 - 180.0
-    return np.array([beta, np.hypot(P, Q) / s, np.hypot(R, T) / s, eps])
+    return np.array([beta, np.hypot(P, Q), np.hypot(R, T), eps])
 
 
 def _residuals(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:

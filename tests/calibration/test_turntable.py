@@ -105,6 +105,16 @@ def test_beta_follows_the_assumed_rotation_at_minus_half_and_the_residuals_canno
     assert fits[0].parameters["rotation_deg"].fixed and "rotation_deg" not in fits[0].covariance_names
 
 
+def test_pairs_turned_the_other_way_give_the_same_instrument():
+    """φ = -180° (the turntable turned back) is the same pair geometry as +180°: same β, m1, m2, ε."""
+    tilts = [(40.0, 10.0), (-25.0, 35.0), (5.0, -45.0)]
+    cols = _pairs(12.0, 0.3, 0.005, 0.0052, [0, 45, 90, 135], tilts, rotation_deg=-180.0)
+    model = REVERSAL.fit(cols, FitOptions(rotation_deg=-180.0))
+    got = model.values(PARAMS)
+    assert got[0] == pytest.approx(12.0, abs=1e-7) and got[3] == pytest.approx(0.3, abs=1e-7)
+    assert got[1] == pytest.approx(0.005, rel=1e-9) and got[2] == pytest.approx(0.0052, rel=1e-9)
+
+
 # --- refusals -----------------------------------------------------------------------------------
 
 def test_pairs_that_cannot_separate_the_parameters_are_refused():
