@@ -27,7 +27,7 @@ from service.calibration.stage_kinematic import ChainModel
 from service.physics.effects import EffectSet
 from service.physics.inclinometer import apply_reading_errors
 from service.physics.stage import StageBench, simulate_stage
-from service.scenarios import load_scenario, run_scenario
+from service.scenarios import run_scenario
 
 STAGE_METHODS = ("homography", "coupling", "axis-transform", "kinematic")
 
@@ -166,8 +166,3 @@ def oracle_ratios(result: SeedResult, method: str = "kinematic", mask: np.ndarra
         for stat in ("rms_x", "rms_y", "max_x", "max_y"):
             out[f"{kind}_{stat}"] = a[stat] / o[stat]
     return out
-
-
-def many_seeds(seeds, scenario_name: str = "seed000", methods=STAGE_METHODS, targets=None) -> list[SeedResult]:
-    sc = load_scenario(scenario_name)
-    return [evaluate_seed(sc, s, methods, targets) for s in seeds]
