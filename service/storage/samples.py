@@ -36,19 +36,30 @@ class Sample(NamedTuple):
     source: str = "monitoring"  # or "calibration" (then job_id is required)
 
 
+def _finite_number(value: object) -> bool:
+    return not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
+
+
 def check_sample(s: Sample) -> None:
-    """Cheap checks at the producer, so a bad reading is refused where it is made, not in a batch later."""
+    """Cheap checks at the producer, so a bad reading is refused where it is made, not in a batch later.
+
+    Every number must be a finite int or float: SQLite would keep text in a REAL column, turn NaN
+    into NULL and refuse it in a required column, where PostgreSQL stores NaN.
+    """
     if len(s) != len(COLUMNS):
         raise InputError(f"sample has {len(s)} fields, expected {len(COLUMNS)}: {COLUMNS}")
-    device_id, t_s, _, _, _, _, job_id, _, source = s  # plain tuples in COLUMNS order are fine too
+    device_id, t_s, ch_x, ch_y, ch_z, temp_c, job_id, _, source = s  # plain tuples in COLUMNS order are fine too
     if source not in SAMPLE_SOURCES:
         raise InputError(f"sample source {source!r} is not one of {SAMPLE_SOURCES}")
     if source == "calibration" and job_id is None:
         raise InputError("a calibration sample needs its job_id")
-    if isinstance(t_s, bool) or not isinstance(t_s, int | float) or not math.isfinite(t_s):
+    if not _finite_number(t_s):
         raise InputError(f"sample t_s={t_s!r} is not a finite time in seconds")
-    if not isinstance(device_id, int):
+    if isinstance(device_id, bool) or not isinstance(device_id, int):
         raise InputError(f"sample device_id={device_id!r} is not an integer id")
+    for name, value, optional in (("ch_x", ch_x, False), ("ch_y", ch_y, False), ("ch_z", ch_z, True), ("temp_c", temp_c, True)):
+        if not (optional and value is None) and not _finite_number(value):
+            raise InputError(f"sample {name}={value!r} at t_s={t_s!r} is not a finite number")
 
 
 def check_samples(rows: Sequence[Sample]) -> None:
@@ -56,7 +67,11 @@ def check_samples(rows: Sequence[Sample]) -> None:
     try:
         ok = (
             set(map(len, rows)) <= {len(COLUMNS)}
-            and math.isfinite(math.fsum(map(itemgetter(1), rows)))  # a NaN or inf anywhere spoils the sum
+            and type(sum(map(itemgetter(0), rows))) is int  # a str or None raises, a float spoils the type
+            # A NaN or inf anywhere spoils the sum, text raises; the optional columns drop None (and zeros).
+            and math.isfinite(sum(chain(map(itemgetter(1), rows), map(itemgetter(2), rows), map(itemgetter(3), rows))))
+            and math.isfinite(sum(chain(filter(None, map(itemgetter(4), rows)), filter(None, map(itemgetter(5), rows)))))
+            and set(map(type, map(itemgetter(1), rows))) <= {float, int}  # not bool
             and set(map(itemgetter(8), rows)) <= set(SAMPLE_SOURCES)
             and not any(s[6] is None for s in rows if s[8] == "calibration")
         )

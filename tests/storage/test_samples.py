@@ -243,3 +243,27 @@ def test_unavailable_database_fails_whole_batches_not_row_by_row(store: Store, d
         engine.dispose()
     assert writer.committed == 0 and len(writer.rejected) == 200
     assert len(attempts) < 100  # a few attempts per batch, not one per sample
+
+
+@pytest.mark.parametrize(
+    ("sample", "match"),
+    [
+        (Sample(1, 1.0, float("nan"), 0.0), "ch_x"),  # SQLite would refuse it late, PostgreSQL store it
+        (Sample(1, 1.0, 0.0, float("-inf")), "ch_y"),
+        (Sample(1, 1.0, 0.0, 0.0, float("nan")), "ch_z"),  # SQLite would store NULL, PostgreSQL NaN
+        (Sample(1, 1.0, 0.0, 0.0, None, float("inf")), "temp_c"),
+        (Sample(1, 1.0, "0.1", 0.0), "ch_x"),  # SQLite would keep the text in a REAL column
+        (Sample("1", 1.0, 0.0, 0.0), "device_id"),
+        (Sample(None, 1.0, 0.0, 0.0), "device_id"),
+        (Sample(1, True, 0.0, 0.0), "t_s"),
+    ],
+)
+def test_non_numeric_or_non_finite_values_are_refused_at_the_producer(store: Store, device, sample, match) -> None:  # type: ignore[no-untyped-def]
+    sample = sample._replace(device_id=device.id) if sample.device_id == 1 else sample
+    with SampleWriter(store.engine, capacity=10, batch_size=5) as writer:
+        with pytest.raises(InputError, match=match):
+            writer.put(sample)
+        with pytest.raises(InputError, match=match):
+            writer.put_many([Sample(device.id, 0.5, 0.0, 0.0), sample])
+    assert writer.handed_over == 0 and count(store.engine, "samples") == 0
+
