@@ -154,6 +154,8 @@ def latest_samples(conn: sa.Connection, device_id: int, n: int = 1000) -> list[S
     Runs on the driver's cursor of SQLAlchemy's connection: wrapping 1,000 result rows costs
     about as much as the query itself.
     """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise InputError(f"latest_samples: n={n!r} is not a count of samples (an integer >= 0)")
     sql = _LATEST.get(conn.dialect.paramstyle) or _LATEST["format"]
     dbapi = conn.dialect.loaded_dbapi
     cursor = conn.connection.dbapi_connection.cursor()  # type: ignore[union-attr]

@@ -267,3 +267,10 @@ def test_non_numeric_or_non_finite_values_are_refused_at_the_producer(store: Sto
             writer.put_many([Sample(device.id, 0.5, 0.0, 0.0), sample])
     assert writer.handed_over == 0 and count(store.engine, "samples") == 0
 
+
+def test_latest_samples_refuses_a_negative_count(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    write_samples(store.engine, [Sample(device.id, float(i), 0.0, 0.0) for i in range(5)])
+    with store.engine.connect() as conn:
+        assert latest_samples(conn, device.id, 0) == []
+        with pytest.raises(InputError, match="n=-1"):
+            latest_samples(conn, device.id, -1)  # SQLite would read the whole table, PostgreSQL fail
