@@ -146,7 +146,7 @@ class PolyMethod:
         }
         if n > 1:
             fit["measuring_unit_note"] = "slope d(angle)/d(reading) at the middle of the reading range"
-        lower = polyfit(reading, ref, n - 1) if n - 1 >= 0 else None
+        lower = polyfit(reading, ref, n - 1)
         fit["f_test_highest_term"] = dict(against_degree=n - 1, **(f_test(lower["rss"], main["rss"], main["dof"]) or {}))
         if reading.size - (n + 2) >= 1 and n + 1 < min(n_read, n_ref) and n + 1 <= MAX_DEGREE:
             higher = polyfit(reading, ref, n + 1)
