@@ -117,6 +117,10 @@ def _text(name: str, value: object, max_len: int = 100) -> str:
     return value
 
 
+def _optional_text(name: str, value: object, max_len: int) -> str | None:
+    return None if value is None else _text(name, value, max_len)
+
+
 def _finite(name: str, value: object, *, optional: bool = True) -> float | None:
     if value is None and optional:
         return None
@@ -235,10 +239,11 @@ class Store:
             name = _text("bench name", name)
             if s.scalar(sa.select(Bench.id).where(Bench.name == name)) is not None:
                 raise ConflictError(f"a bench named {name!r} already exists")
+            port = _optional_text("port", port, 200)
             bench = Bench(
                 name=name,
-                stage_model=stage_model,
-                stage_serial=stage_serial,
+                stage_model=_optional_text("stage_model", stage_model, 100),
+                stage_serial=_optional_text("stage_serial", stage_serial, 100),
                 port=port,
                 port_settings=_doc("port_settings", port_settings or {}),
             )
@@ -260,6 +265,7 @@ class Store:
     ) -> Device:
         with self._tx() as s:
             model, serial, role = _text("model", model), _text("serial", serial), _text("role", role, 40)
+            port = _optional_text("port", port, 200)
             if bench_id is not None and s.get(Bench, bench_id) is None:
                 raise UnknownEntity(f"bench {bench_id} does not exist")
             existing = s.scalar(sa.select(Device.id).where(Device.model == model, Device.serial == serial))
@@ -292,6 +298,8 @@ class Store:
                 raise UnknownEntity(f"bench {changes['bench_id']} does not exist")
             if "role" in changes:
                 changes["role"] = _text("role", changes["role"], 40)
+            if "port" in changes:
+                changes["port"] = _optional_text("port", changes["port"], 200)
             if "port_settings" in changes:
                 changes["port_settings"] = _doc("port_settings", changes["port_settings"] or {})
             before = {k: getattr(device, k) for k in changes}

@@ -243,3 +243,22 @@ def test_duplicate_device_and_unknown_bench_are_refused(store: Store, device) ->
     with pytest.raises(InputError, match="cannot change"):
         store.update_device(device.id, actor="alice", serial="SN9")
     assert count(store.engine, "devices") == 1
+
+
+def test_optional_text_fields_are_checked_the_same_on_every_backend(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    """SQLite does not enforce column lengths or types; PostgreSQL does: the store checks first, for both."""
+    tables = ("benches", "devices", "audit_events")
+    before = [count(store.engine, t) for t in tables]
+    with pytest.raises(InputError, match="port is longer than 200"):
+        store.add_bench("bench-1", actor="carol", port="p" * 201)
+    with pytest.raises(InputError, match="stage_model is longer than 100"):
+        store.add_bench("bench-1", actor="carol", stage_model="m" * 101)
+    with pytest.raises(InputError, match="stage_serial must be"):
+        store.add_bench("bench-1", actor="carol", stage_serial=5)
+    with pytest.raises(InputError, match="port is longer than 200"):
+        store.add_device("NS-25/E2", "SN1009", "dut", actor="carol", port="q" * 201)
+    with pytest.raises(InputError, match="port must be"):
+        store.update_device(device.id, actor="carol", port=7)
+    assert [count(store.engine, t) for t in tables] == before
+    store.update_device(device.id, actor="carol", port=None)  # None still clears it
+    assert store.get_device(device.id).port is None
