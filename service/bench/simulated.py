@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 
+from service.errors import InputError
 from service.physics.stage import simulate_stage
 from service.scenarios import load_scenario
 from service.scenarios.model import StageScenario
@@ -21,7 +22,7 @@ class SimulatedStageBench:
     def __init__(self, scenario_name: str = "seed000", seed: int | None = None):
         sc = load_scenario(scenario_name)
         if not isinstance(sc, StageScenario):
-            raise ValueError(f"scenario {scenario_name!r} is a {sc.kind} scenario; the service bench needs a stage one")
+            raise InputError(f"scenario {scenario_name!r} is a {sc.kind} scenario; the service bench needs a stage one")
         self.scenario = sc
         self.bench = bench_of(sc)
         self.effects = effect_set(sc)

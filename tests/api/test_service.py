@@ -81,3 +81,22 @@ def test_tiltlab_serve_starts_on_a_fresh_data_dir(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=20)
+
+
+@pytest.mark.parametrize(
+    ("env", "match"),
+    [
+        ({"TILTLAB_BENCH_SCENARIO": "nope"}, "TILTLAB_BENCH_SCENARIO.*no such preset"),
+        ({"TILTLAB_BENCH_SCENARIO": "seed002-b55"}, "TILTLAB_BENCH_SCENARIO.*needs a stage"),
+        ({"TILTLAB_DATABASE_URL": "mysql://u@h/db"}, "only sqlite and postgresql"),
+    ],
+)
+def test_tiltlab_serve_refuses_unusable_settings_with_one_line(tmp_path, env, match):
+    """Exit 2 and a message naming the setting, before serving; no start-up traceback."""
+    import re
+
+    env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data"), **env}
+    proc = subprocess.run([sys.executable, "-m", "service", "serve", "--port", str(_free_port())], env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr and re.search(match, proc.stderr), proc.stderr
