@@ -14,6 +14,17 @@ import numpy as np
 K_EXPANDED = 2.0
 
 
+def _step(value, variance, rel_step: float):
+    """Finite-difference step: small against the value and against its own uncertainty.
+
+    Relative to the value, so parameters in any unit (counts per arcsec, rad, deg) are stepped
+    alike; at least a thousandth of the standard uncertainty, so a value near zero is not
+    stepped by less than its own noise can resolve; rel_step where both are zero.
+    """
+    h = np.maximum(rel_step * np.abs(value), 1e-3 * np.sqrt(max(float(variance), 0.0)))
+    return np.where(h > 0, h, rel_step)
+
+
 def propagate(
     f: Callable[[np.ndarray, Mapping[str, np.ndarray]], np.ndarray],
     params: np.ndarray,
@@ -34,7 +45,7 @@ def propagate(
     if cov is not None and params.size:
         jac = []
         for i in range(params.size):
-            h = rel_step * max(1.0, abs(params[i]))
+            h = _step(params[i], cov[i][i], rel_step)
             pp, pm = params.copy(), params.copy()
             pp[i] += h
             pm[i] -= h
@@ -45,7 +56,7 @@ def propagate(
         if not sigma:
             continue
         x = np.asarray(inputs[name], dtype=float)
-        h = 1e-6 * np.maximum(1.0, np.abs(x))
+        h = _step(x, sigma ** 2, rel_step)
         up = dict(inputs)
         dn = dict(inputs)
         up[name] = x + h
