@@ -7,12 +7,13 @@ named by `TILTLAB_CONFIG`, the defaults below. The defaults suit a single bench 
 from __future__ import annotations
 
 import os
+import tomllib
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import platformdirs
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationError, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -53,6 +54,15 @@ class Settings(BaseSettings):
 
     sqlite_busy_timeout_ms: int = Field(5_000, ge=0)
 
+    def __init__(self, **values: Any) -> None:
+        """As BaseSettings, but an unusable value or file is an InputError of one line naming it."""
+        try:
+            super().__init__(**values)
+        except ValidationError as exc:
+            raise InputError(_describe(exc)) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(f"{CONFIG_ENV}={os.environ.get(CONFIG_ENV, '')}: not valid TOML: {exc}") from None
+
     @model_validator(mode="after")
     def _fill_database_url(self) -> Settings:
         self.data_dir = Path(self.data_dir).expanduser()
@@ -79,6 +89,18 @@ class Settings(BaseSettings):
                 raise InputError(f"{CONFIG_ENV}={config_file}: no such configuration file")
             sources.append(TomlConfigSettingsSource(settings_cls, toml_file=path))
         return tuple(sources)
+
+
+def _describe(exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["loc"]:
+            name = str(err["loc"][0])
+            parts.append(f"{name} (TILTLAB_{name.upper()}): {msg}; got {err['input']!r}")
+        else:
+            parts.append(msg)
+    return "configuration: " + "; ".join(parts)
 
 
 @lru_cache(maxsize=1)

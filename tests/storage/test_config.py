@@ -40,3 +40,19 @@ def test_batch_larger_than_queue_is_refused(monkeypatch: pytest.MonkeyPatch) -> 
     monkeypatch.delenv("TILTLAB_CONFIG", raising=False)
     with pytest.raises(ValueError, match="sample_batch_size"):
         Settings(sample_queue_capacity=10, sample_batch_size=100)
+
+
+def test_unusable_value_is_one_line_naming_the_setting(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TILTLAB_CONFIG", raising=False)
+    monkeypatch.setenv("TILTLAB_PORT", "abc")
+    with pytest.raises(InputError, match="TILTLAB_PORT.*'abc'") as err:
+        Settings()
+    assert "\n" not in str(err.value)
+
+
+def test_unparsable_config_file_is_named(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    cfg = tmp_path / "tiltlab.toml"
+    cfg.write_text("port = \n")
+    monkeypatch.setenv("TILTLAB_CONFIG", str(cfg))
+    with pytest.raises(InputError, match="tiltlab.toml.*not valid TOML"):
+        Settings()
