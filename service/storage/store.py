@@ -188,12 +188,8 @@ class Store:
                     if s.bind.dialect.name == "postgresql":  # type: ignore[union-attr]
                         s.execute(sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": _PG_WRITE_LOCK})
                     yield s
-            except (sa.exc.IntegrityError, sa.exc.DataError) as exc:
+            except (sa.exc.IntegrityError, sa.exc.DataError) as exc:  # the guard triggers' refusals included
                 raise _translate(exc) from exc
-            except sa.exc.OperationalError as exc:
-                if exc.orig is not None and "append-only" in str(exc.orig):
-                    raise _translate(exc) from exc
-                raise
 
     # ------------------------------------------------------------ audit
 
