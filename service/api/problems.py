@@ -30,6 +30,11 @@ def install(app: FastAPI) -> None:
         return problem(422, "Invalid request", f"{where}: {first['msg']}", instance=str(request.url.path),
                        errors=[{"loc": list(map(str, e["loc"])), "msg": e["msg"]} for e in errs])
 
+    @app.exception_handler(Exception)
+    async def _internal(request: Request, exc: Exception):  # the server still logs the traceback
+        return problem(500, "Internal Server Error", f"the service failed on this request ({type(exc).__name__});"
+                       " the service log has the details", instance=str(request.url.path))
+
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
         return problem(exc.status_code, str(exc.detail), str(exc.detail), instance=str(request.url.path))

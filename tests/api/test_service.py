@@ -100,3 +100,15 @@ def test_tiltlab_serve_refuses_unusable_settings_with_one_line(tmp_path, env, ma
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr and re.search(match, proc.stderr), proc.stderr
+
+
+def test_unexpected_failure_is_problem_json_without_internals(tmp_path):
+    from service.storage.engine import make_engine
+
+    app = create_app(Settings(data_dir=tmp_path))
+    with TestClient(app, raise_server_exceptions=False) as c:
+        app.state.engine = make_engine(f"sqlite:///{tmp_path}")  # a directory: the database cannot be opened
+        r = c.get("/health")
+    assert r.status_code == 500 and r.headers["content-type"].startswith("application/problem+json")
+    body = r.json()
+    assert body["status"] == 500 and body["instance"] == "/health" and "Traceback" not in body["detail"]
