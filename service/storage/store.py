@@ -466,6 +466,9 @@ class Store:
         commands: Mapping[int, tuple[float, float]] | None = None,
     ) -> list[SettledPoint]:  # fmt: skip
         """Average each grid point's raw samples after discarding the first skip_s seconds (settling)."""
+        skip_s = _finite("skip_s", skip_s, optional=False)  # type: ignore[assignment]
+        if skip_s < 0:
+            raise InputError(f"skip_s={skip_s} is negative; it is the settling time discarded at each point")
         with self._read() as s:
             t = SampleRow.__table__
             rows = s.execute(

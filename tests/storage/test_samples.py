@@ -274,3 +274,14 @@ def test_latest_samples_refuses_a_negative_count(store: Store, device) -> None: 
         assert latest_samples(conn, device.id, 0) == []
         with pytest.raises(InputError, match="n=-1"):
             latest_samples(conn, device.id, -1)  # SQLite would read the whole table, PostgreSQL fail
+
+
+@pytest.mark.parametrize("skip_s", [float("nan"), -1.0, "5"])
+def test_settling_time_must_be_a_non_negative_number(store: Store, device, skip_s) -> None:  # type: ignore[no-untyped-def]
+    job = store.create_job(device.id, "scale", "linear", actor="alice")
+    store.start_job(job.id, actor="alice")
+    write_samples(store.engine, [Sample(device.id, float(i), 0.0, 0.0, None, None, job.id, 0, "calibration")
+                                 for i in range(10)])  # fmt: skip
+    with pytest.raises(InputError, match="skip_s"):
+        store.settle_from_samples(job.id, device.id, actor="alice", skip_s=skip_s)
+    assert store.settled_points(job.id) == []
