@@ -214,8 +214,12 @@ def apply_retention(
     """
     if policy not in ("thin", "drop"):
         raise InputError(f"retention policy {policy!r} is not 'thin' or 'drop'")
+    if not isinstance(older_than, dt.timedelta):
+        raise InputError(f"retention age {older_than!r} must be a datetime.timedelta")
     if older_than <= dt.timedelta(0):
         raise InputError("retention age must be positive")
+    if now is not None and now.tzinfo is None:
+        raise InputError(f"retention time now={now.isoformat()} has no timezone; give it in UTC")
     if policy == "thin" and not (thin_interval_s > 0):
         raise InputError("thin interval must be positive")
     now = now or dt.datetime.now(dt.UTC)

@@ -285,3 +285,13 @@ def test_settling_time_must_be_a_non_negative_number(store: Store, device, skip_
     with pytest.raises(InputError, match="skip_s"):
         store.settle_from_samples(job.id, device.id, actor="alice", skip_s=skip_s)
     assert store.settled_points(job.id) == []
+
+
+def test_retention_refuses_a_naive_now_and_an_age_that_is_not_a_timedelta(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    write_samples(store.engine, [Sample(device.id, _t(40), 0.0, 0.0)])
+    with pytest.raises(InputError, match="timezone"):  # a naive time would be read as local time
+        store.apply_retention(actor="r", older_than=dt.timedelta(days=30), now=NOW.replace(tzinfo=None))
+    with pytest.raises(InputError, match="timedelta"):
+        store.apply_retention(actor="r", older_than=30)  # type: ignore[arg-type]
+    with store.engine.connect() as conn:
+        assert count_samples(conn) == 1
