@@ -17,8 +17,17 @@ Handler = Callable[[argparse.Namespace], int | None]
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # usage errors are input errors: exit 2, one line
-        self.print_usage(sys.stderr)
-        raise SystemExit(f"{self.prog}: error: {message}")
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a seed is a whole number >= 0")
+    return value
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -77,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="write a dataset from a scenario (preset name or JSON file)")
     p.add_argument("--scenario", required=True, help="preset name (see --list) or path to a scenario JSON")
     p.add_argument("--out", required=True, help="CSV file to write")
-    p.add_argument("--seed", type=int, default=None, help="override the scenario's random seed")
+    p.add_argument("--seed", type=_seed, default=None, help="override the scenario's random seed")
     p.set_defaults(handler=_cmd_simulate)
 
     p = sub.add_parser("calibrate", help="fit a calibration model to a dataset")

@@ -1,0 +1,97 @@
+"""Bad input a lab really produces, through the command line: exit 2, one line naming where, nothing left behind.
+
+The CLI runs in-process (service.cli.main) to keep this fast; stage data are a small 5 x 5 grid.
+"""
+
+import json
+import os
+import re
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from service.cli import main
+from service.datasets import read_dataset, write_dataset
+from service.errors import InputError
+from service.scenarios import parse_scenario, run_scenario
+
+SCALE = "point,ref_arcsec,reading\n" + "".join(f"{i},{100.0 * i + 0.5 * (i % 2)},{16 + 104 * i}\n" for i in range(8))
+TARGETS = "target_x_deg,target_y_deg,note\n0,0,a\n2.5,-1.5,b\n"
+
+
+def _stage_text() -> str:
+    sc = parse_scenario({"kind": "stage", "grid": {"x_deg": [-10, -5, 0, 5, 10], "y_deg": [-10, -5, 0, 5, 10]}})
+    cols = run_scenario(sc, seed=1).columns
+    names = list(cols)
+    rows = zip(*(cols[c] for c in names))
+    return ",".join(names) + "\n" + "".join(",".join(repr(float(v)) for v in r) + "\n" for r in rows)
+
+
+STAGE = _stage_text()
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    d = tmp_path_factory.mktemp("models")
+    (d / "scale.csv").write_text(SCALE)
+    (d / "stage.csv").write_text(STAGE)
+    assert main(["calibrate", "--kind", "scale", "--method", "poly1", "--input", str(d / "scale.csv"),
+                 "--out", str(d / "scale.json")]) == 0
+    assert main(["calibrate", "--kind", "stage", "--method", "homography", "--input", str(d / "stage.csv"),
+                 "--out", str(d / "stage.json")]) == 0
+    return {"scale": d / "scale.json", "stage": d / "stage.json"}
+
+
+def run(capsys, *argv) -> tuple[int, str]:
+    capsys.readouterr()
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse's own exits
+        rc = exc.code
+    return rc, capsys.readouterr().err
+
+
+def refused(capsys, folder, *argv) -> str:
+    """Run; assert exit 2, one line of stderr, no traceback, and no new file (output or temporary) in `folder`."""
+    before = sorted(os.listdir(folder))
+    rc, err = run(capsys, *argv)
+    assert rc == 2, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(os.listdir(folder)) == before
+    return err.strip()
+
+
+def commands(tmp_path, models, data: str, kind: str = "scale"):
+    """Every command that reads `data` as its dataset, writing into tmp_path."""
+    p = tmp_path / "in.csv"
+    p.write_text(data, newline="") if isinstance(data, str) else p.write_bytes(data)
+    if kind == "scale":
+        return {
+            "calibrate": ["calibrate", "--kind", "scale", "--method", "poly1", "--input", p, "--out", tmp_path / "m.json"],
+            "correct": ["correct", "--model", models["scale"], "--input", p, "--out", tmp_path / "o.csv"],
+            "discrepancy": ["discrepancy", "--kind", "scale", "--input", p, "--out", tmp_path / "r.json"],
+        }
+    return {
+        "calibrate": ["calibrate", "--kind", "stage", "--method", "homography", "--input", p, "--out", tmp_path / "m.json"],
+        "correct": ["correct", "--model", models["stage"], "--input", p, "--out", tmp_path / "o.csv"],
+        "level": ["level", "--model", models["stage"], "--targets", p, "--out", tmp_path / "o.csv"],
+    }
+
+
+# --- options ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv,words", [
+    ([], "required: command"),
+    (["simulate", "--scenario", "seed003"], "required: --out"),
+    (["simulate", "--scenario", "seed003", "--out", "{d}/o.csv", "--seed", "-1"], "a seed is a whole number >= 0"),
+    (["simulate", "--scenario", "seed003", "--out", "{d}/o.csv", "--seed", "1.5"], "is not a whole number"),
+    (["calibrate", "--kind", "bench", "--method", "poly1", "--input", "x", "--out", "y"], "invalid choice"),
+    (["discrepancy", "--kind", "scale", "--input", "x", "--out", "y", "--sensor", "both"], "invalid choice"),
+])
+def test_usage_errors_exit_2_on_one_line(capsys, tmp_path, argv, words):
+    msg = refused(capsys, tmp_path, *[a.format(d=tmp_path) for a in argv])
+    assert words in msg and "usage" not in msg, msg
+
+
