@@ -184,12 +184,39 @@ def _umask() -> int:
     return mask
 
 
-def _atomic_write(path: str | Path, write) -> None:
-    """Write through `write(fh)` to a temporary file beside `path`, then rename it into place."""
+def check_output_path(path: str | Path) -> Path:
+    """Refuse, before any work, an output path that cannot become a file."""
+    if str(path) == "":
+        raise InputError("the output path is empty; give a file name")
     path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; give the name of a file to write")
+    folder = path.parent
     if not folder.exists():
         raise InputError(f"{path}: folder {folder} does not exist")
+    if not folder.is_dir():
+        raise InputError(f"{path}: {folder} is not a folder")
+    return path
+
+
+def check_not_overwriting(out: str | Path, option: str = "--out", **inputs: str | Path | None) -> None:
+    """Refuse an output path that is one of the command's input files (which it would replace)."""
+    for name, inp in inputs.items():
+        if inp is None:
+            continue
+        try:
+            same = os.path.samefile(out, inp)
+        except OSError:  # one of them does not exist (yet)
+            same = False
+        if same:
+            raise InputError(f"{option} {out} is the input file --{name.replace('_', '-')} {inp}; "
+                             "write the result to another file so the input is kept")
+
+
+def _atomic_write(path: str | Path, write) -> None:
+    """Write through `write(fh)` to a temporary file beside `path`, then rename it into place."""
+    path = check_output_path(path)
+    folder = path.parent
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
     try:
         # mkstemp makes the file private (0600); a result file gets the usual umask-based mode

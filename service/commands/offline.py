@@ -6,12 +6,14 @@ import argparse
 import sys
 
 from service.calibration.registry import FitOptions, get_method
-from service.datasets import read_dataset, write_dataset
+from service.datasets import check_not_overwriting, check_output_path, read_dataset, write_dataset
 from service.errors import InputError
 from service.modelio import read_model, write_model
 
 
 def calibrate(args: argparse.Namespace) -> int:
+    check_output_path(args.out)
+    check_not_overwriting(args.out, input=args.input)
     method = get_method(args.kind, args.method)
     ds = read_dataset(args.input, args.kind, method.fit_required, method.fit_optional)
     options = FitOptions(rotation_deg=args.rotation_deg, loss=args.loss)
@@ -26,6 +28,8 @@ def calibrate(args: argparse.Namespace) -> int:
 
 
 def correct(args: argparse.Namespace) -> int:
+    check_output_path(args.out)
+    check_not_overwriting(args.out, model=args.model, input=args.input)
     model = read_model(args.model)
     method = get_method(model.kind, model.method)
     ds = read_dataset(args.input, model.kind, method.correct_required, method.correct_optional)
@@ -37,6 +41,8 @@ def correct(args: argparse.Namespace) -> int:
 
 
 def level(args: argparse.Namespace) -> int:
+    check_output_path(args.out)
+    check_not_overwriting(args.out, model=args.model, targets=args.targets)
     model = read_model(args.model)
     if model.kind != "stage":
         raise InputError(f"{args.model}: level needs a stage model, this one is {model.kind!r}")

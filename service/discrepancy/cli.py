@@ -16,11 +16,10 @@ import argparse
 import json
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 
-from service.datasets import read_dataset, write_text_atomic
+from service.datasets import check_not_overwriting, check_output_path, read_dataset, write_text_atomic
 from service.errors import InputError
 
 
@@ -64,6 +63,13 @@ def run(args: argparse.Namespace) -> int:
     baseline = getattr(args, "baseline", None) or "linear"
     option_noise = getattr(args, "noise", None)
     inputs = {"input": str(args.input)}
+    # Both output paths are checked before the work, so a bad one leaves neither file behind.
+    out = check_output_path(args.out)
+    html_path = check_output_path(args.html if getattr(args, "html", None) else out.with_suffix(".html"))
+    if html_path.resolve() == out.resolve():
+        raise InputError(f"--html {html_path} would overwrite the JSON report --out {out}")
+    check_not_overwriting(out, input=args.input)
+    check_not_overwriting(html_path, "--html", input=args.input)
     if kind == "stage":
         from service.discrepancy.stage import stage_report
 
@@ -98,19 +104,15 @@ def run(args: argparse.Namespace) -> int:
 
     from service.discrepancy.report import render_html
 
-    out = Path(args.out)
-    html_path = Path(args.html) if getattr(args, "html", None) else out.with_suffix(".html")
-    if html_path.resolve() == out.resolve():
-        raise InputError(f"--html {html_path} would overwrite the JSON report --out {out}")
     report = _clean(report)
     text = json.dumps(report, indent=1, ensure_ascii=False, allow_nan=False)
     page = render_html(report, result, fam)
-    for p in (out, html_path):
-        folder = p.parent if str(p.parent) else Path(".")
-        if not folder.is_dir():
-            raise InputError(f"{p}: folder {folder} does not exist")
     write_text_atomic(out, text + "\n")
-    write_text_atomic(html_path, page)
+    try:
+        write_text_atomic(html_path, page)
+    except BaseException:
+        out.unlink(missing_ok=True)  # a report without its page is half the result
+        raise
     chain = " → ".join(report["chain"])
     print(f"{kind}/{report['baseline']}: {chain}; final RMS {', '.join(f'{v:.3g}' for v in report['final_rms'])} "
           f"{report['unit']} (noise {', '.join(f'{v:.3g}' for v in report['noise_level'])}, "

@@ -80,6 +80,72 @@ def commands(tmp_path, models, data: str, kind: str = "scale"):
     }
 
 
+# --- output paths -----------------------------------------------------------------------------
+
+def _all_commands(tmp_path, models, out):
+    (tmp_path / "in.csv").write_text(SCALE)
+    (tmp_path / "t.csv").write_text(TARGETS)
+    return {
+        "simulate": ["simulate", "--scenario", "seed003", "--out", out],
+        "calibrate": ["calibrate", "--kind", "scale", "--method", "poly1", "--input", tmp_path / "in.csv", "--out", out],
+        "correct": ["correct", "--model", models["scale"], "--input", tmp_path / "in.csv", "--out", out],
+        "level": ["level", "--model", models["stage"], "--targets", tmp_path / "t.csv", "--out", out],
+        "discrepancy": ["discrepancy", "--kind", "scale", "--input", tmp_path / "in.csv", "--out", out],
+    }
+
+
+@pytest.mark.parametrize("where,words", [
+    ("missing/out.x", "does not exist"),
+    ("adir", "is a folder"),
+    ("afile/out.x", "is not a folder"),
+    ("", "output path is empty"),
+])
+def test_an_output_path_that_cannot_be_a_file_is_refused(capsys, tmp_path, models, where, words):
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "afile").write_text("x")
+    out = str(tmp_path / where) if where else ""
+    for name, argv in _all_commands(tmp_path, models, out).items():
+        msg = refused(capsys, tmp_path, *argv)
+        assert words in msg, (name, msg)
+    assert (tmp_path / "afile").read_text() == "x" and not os.listdir(tmp_path / "adir")
+
+
+def test_an_output_that_is_an_input_is_refused_and_the_input_kept(capsys, tmp_path, models):
+    data, targets = tmp_path / "in.csv", tmp_path / "t.csv"
+    data.write_text(SCALE)
+    targets.write_text(TARGETS)
+    model = tmp_path / "m.json"
+    model.write_text(models["scale"].read_text())
+    stage_model = tmp_path / "sm.json"
+    stage_model.write_text(models["stage"].read_text())
+    scenario = tmp_path / "sc.json"
+    scenario.write_text(json.dumps({"kind": "scale", "grid": {"ref_arcsec": [0, 100, 200]}}))
+    before = {p: p.read_bytes() for p in (data, targets, model, stage_model, scenario)}
+    cases = [
+        ["calibrate", "--kind", "scale", "--method", "poly1", "--input", data, "--out", data],
+        ["correct", "--model", model, "--input", data, "--out", data],
+        ["correct", "--model", model, "--input", data, "--out", tmp_path / "." / "m.json"],
+        ["level", "--model", stage_model, "--targets", targets, "--out", targets],
+        ["level", "--model", stage_model, "--targets", targets, "--out", stage_model],
+        ["discrepancy", "--kind", "scale", "--input", data, "--out", data],
+        ["discrepancy", "--kind", "scale", "--input", data, "--out", tmp_path / "r.json", "--html", data],
+        ["simulate", "--scenario", scenario, "--out", scenario],
+    ]
+    for argv in cases:
+        msg = refused(capsys, tmp_path, *argv)
+        assert "so the input is kept" in msg, msg
+    assert {p: p.read_bytes() for p in before} == before
+
+
+def test_discrepancy_with_an_unwritable_page_leaves_no_report(capsys, tmp_path, models):
+    (tmp_path / "in.csv").write_text(SCALE)
+    (tmp_path / "page").mkdir()
+    refused(capsys, tmp_path, "discrepancy", "--kind", "scale", "--input", tmp_path / "in.csv",
+            "--out", tmp_path / "r.json", "--html", tmp_path / "page")
+    (tmp_path / "r.html").mkdir()  # the default page path is a folder
+    refused(capsys, tmp_path, "discrepancy", "--kind", "scale", "--input", tmp_path / "in.csv", "--out", tmp_path / "r.json")
+
+
 # --- options ---------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("argv,words", [
