@@ -13,6 +13,7 @@ import math
 import os
 import tempfile
 from collections.abc import Iterable, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -176,6 +177,17 @@ def format_value(col: str, v) -> str:
     if col in _INTEGER_COLUMNS and f == round(f):
         return str(int(round(f)))
     return repr(f)  # shortest text that reads back to the same float
+
+
+@contextmanager
+def about(path):
+    """Name the file a refusal from the methods is about, where their message does not already."""
+    try:
+        yield
+    except InputError as exc:
+        if str(path) in str(exc):
+            raise
+        raise type(exc)(f"{path}: {exc}") from None
 
 
 def _umask() -> int:

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from service.calibration.registry import FitOptions, get_method
-from service.datasets import check_not_overwriting, check_output_path, read_dataset, write_dataset
+from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
 from service.errors import InputError
 from service.modelio import read_model, write_model
 
@@ -17,7 +17,8 @@ def calibrate(args: argparse.Namespace) -> int:
     method = get_method(args.kind, args.method)
     ds = read_dataset(args.input, args.kind, method.fit_required, method.fit_optional)
     options = FitOptions(rotation_deg=args.rotation_deg, loss=args.loss)
-    model = method.fit(ds.arrays(), options)
+    with about(args.input):
+        model = method.fit(ds.arrays(), options)
     write_model(args.out, model)
     stats = ", ".join(f"{c} rms {v['rms']:.4g}" for c, v in model.residuals.get("columns", {}).items())
     print(f"{args.kind}/{args.method}: fitted on {ds.n_rows} rows of {args.input}; {stats}; wrote {args.out}",
@@ -31,7 +32,8 @@ def correct(args: argparse.Namespace) -> int:
     check_output_path(args.out)
     check_not_overwriting(args.out, model=args.model, input=args.input)
     model = read_model(args.model)
-    method = get_method(model.kind, model.method)
+    with about(args.model):
+        method = get_method(model.kind, model.method)
     ds = read_dataset(args.input, model.kind, method.correct_required, method.correct_optional)
     out = method.correct(model, ds.arrays())
     cols = {**ds.passthrough(exclude=out), **out}
@@ -46,9 +48,11 @@ def level(args: argparse.Namespace) -> int:
     model = read_model(args.model)
     if model.kind != "stage":
         raise InputError(f"{args.model}: level needs a stage model, this one is {model.kind!r}")
-    method = get_method(model.kind, model.method)
+    with about(args.model):
+        method = get_method(model.kind, model.method)
     ds = read_dataset(args.targets, "stage", ("target_x_deg", "target_y_deg"))
-    out = method.level(model, ds.arrays())
+    with about(args.targets):
+        out = method.level(model, ds.arrays())
     cols = {**ds.passthrough(exclude=out), **out}
     write_dataset(args.out, cols)
     print(f"stage/{model.method}: stage commands for {ds.n_rows} targets; wrote {args.out}", file=sys.stderr)

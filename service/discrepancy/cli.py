@@ -19,7 +19,7 @@ import sys
 
 import numpy as np
 
-from service.datasets import check_not_overwriting, check_output_path, read_dataset, write_text_atomic
+from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_text_atomic
 from service.errors import InputError
 
 
@@ -86,7 +86,8 @@ def run(args: argparse.Namespace) -> int:
             noise = [cx, cy]
         elif option_noise is not None:
             noise = option_noise
-        report, result, fam = stage_report(ds.arrays(), sensor, baseline, noise, inputs=inputs)
+        with about(args.input):
+            report, result, fam = stage_report(ds.arrays(), sensor, baseline, noise, inputs=inputs)
     elif kind == "scale":
         from service.discrepancy.scale import scale_report
 
@@ -98,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
         noise = _constant_column(ds, "noise_arcsec")
         if noise is None:
             noise = option_noise
-        report, result, fam = scale_report(ds.arrays(), noise, inputs=inputs)
+        with about(args.input):
+            report, result, fam = scale_report(ds.arrays(), noise, inputs=inputs)
     else:
         raise InputError(f"discrepancy supports kinds stage and scale, not {kind!r}")
 

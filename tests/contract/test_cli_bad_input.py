@@ -161,3 +161,36 @@ def test_usage_errors_exit_2_on_one_line(capsys, tmp_path, argv, words):
     assert words in msg and "usage" not in msg, msg
 
 
+# --- model and scenario files -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda t: t[: len(t) // 2], "not valid JSON"),
+    (lambda t: "kind,method\nstage,homography\n", "not valid JSON"),
+    (lambda t: json.dumps({**json.loads(t), "format_version": 2}), "format_version: 2 is not supported"),
+    (lambda t: json.dumps({**json.loads(t), "kind": "scale"}), "unknown method 'homography' for kind 'scale'"),
+    (lambda t: json.dumps([json.loads(t)]), "a model is a JSON object"),
+], ids=["truncated", "not-json", "future-version", "other-kind", "not-an-object"])
+def test_a_broken_model_file_is_named(capsys, tmp_path, models, edit, words):
+    model = tmp_path / "m.json"
+    model.write_text(edit(models["stage"].read_text()))
+    (tmp_path / "in.csv").write_text(STAGE)
+    (tmp_path / "t.csv").write_text(TARGETS)
+    for argv in (["correct", "--model", model, "--input", tmp_path / "in.csv", "--out", tmp_path / "o.csv"],
+                 ["level", "--model", model, "--targets", tmp_path / "t.csv", "--out", tmp_path / "o.csv"]):
+        msg = refused(capsys, tmp_path, *argv)
+        assert str(model) in msg and (words in msg or "level needs a stage model" in msg), msg
+
+
+def test_degenerate_data_are_refused_naming_the_file(capsys, tmp_path, models):
+    one_point = "point,ref_arcsec,reading\n0,0,16\n0,0,16\n"
+    for argv in commands(tmp_path, models, one_point).values():
+        if argv[0] == "correct":
+            continue
+        msg = refused(capsys, tmp_path, *argv)
+        assert str(tmp_path / "in.csv") in msg, msg
+    (tmp_path / "t.csv").write_text("target_x_deg,target_y_deg\n89,89\n")
+    msg = refused(capsys, tmp_path, "level", "--model", models["stage"], "--targets", tmp_path / "t.csv",
+                  "--out", tmp_path / "o.csv")
+    assert str(tmp_path / "t.csv") in msg, msg
+
+
