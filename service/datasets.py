@@ -9,8 +9,10 @@ through to outputs.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
+import re
 import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from contextlib import contextmanager
@@ -59,6 +61,11 @@ class Dataset:
     header: list[str]
     text: dict[str, list[str]]
     numeric: dict[str, np.ndarray] = field(default_factory=dict)
+    lines: list[int] = field(default_factory=list)  # line of the file each data row starts on
+
+    def where(self, row: int, col: str) -> str:
+        """File, row (1-based, data rows only) and column, as every refusal names them."""
+        return _where(self.source, row, col, self.lines[row - 1] if self.lines else None)
 
     @property
     def n_rows(self) -> int:
@@ -78,8 +85,35 @@ class Dataset:
         return {c: self.text[c] for c in self.header if c not in ex}
 
 
-def _where(source: str, row: int, col: str) -> str:
-    return f"{source}, row {row} (line {row + 1}), column {col!r}"
+def _where(source: str, row: int, col: str, line: int | None = None) -> str:
+    return f"{source}, row {row} (line {row + 1 if line is None else line}), column {col!r}"
+
+
+# A number as the contract writes it: ASCII digits, '.' as the decimal mark, optional exponent.
+# (float() alone would also take '1_000', non-ASCII digits and 'nan'/'inf'.)
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_DECIMAL_COMMA = re.compile(r"[+-]?[0-9]*,[0-9]+")
+_NON_FINITE = {"nan", "inf", "infinity"}
+
+
+def _decode(source: str, data: bytes) -> str:
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise InputError(f"{source}: the file is UTF-16 text; save it as CSV in UTF-8 (comma-separated)")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        start = exc.start + (3 if data.startswith(b"\xef\xbb\xbf") else 0)
+        line = data[:start].count(b"\n") + 1
+        raise InputError(f"{source}, line {line}: byte 0x{data[start]:02x} is not UTF-8 text; "
+                         "save the file as CSV in UTF-8") from None
+
+
+def _separator_error(source: str, header_cell: str) -> InputError | None:
+    for sep, name in ((";", "semicolon"), ("\t", "tab")):
+        if sep in header_cell:
+            return InputError(f"{source}, line 1: the header is separated by {name}s ({header_cell[:40]!r}...); "
+                              "the separator must be a comma (',') and the decimal mark a point ('.')")
+    return None
 
 
 def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str, ...]] = (),
@@ -91,29 +125,41 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
     """
     source = str(path)
     try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.reader(fh))
+        data = Path(path).read_bytes()
     except FileNotFoundError:
         raise InputError(f"{source}: no such file") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"{source}: cannot read as CSV: {exc}") from None
-    rows = [r for r in rows if any(c.strip() for c in r)]
+    except OSError as exc:
+        raise InputError(f"{source}: cannot read: {exc.strerror or exc}") from None
+    rows: list[list[str]] = []
+    lines: list[int] = []  # the line each kept row starts on
+    reader = csv.reader(io.StringIO(_decode(source, data), newline=""))
+    try:
+        start = 1
+        for r in reader:
+            if any(c.strip() for c in r):
+                rows.append(r)
+                lines.append(start)
+            start = reader.line_num + 1
+    except csv.Error as exc:
+        raise InputError(f"{source}, line {reader.line_num}: cannot read as CSV: {exc}") from None
     if not rows:
         raise InputError(f"{source}: empty file (a header row is required)")
+    if len(rows[0]) == 1 and (err := _separator_error(source, rows[0][0])):
+        raise err
     header = [c.strip() for c in rows[0]]
     if any(not c for c in header):
         raise InputError(f"{source}: header has an empty column name at position {header.index('') + 1}")
     dup = sorted({c for c in header if header.count(c) > 1})
     if dup:
         raise InputError(f"{source}: column {dup[0]!r} appears more than once in the header")
-    body = rows[1:]
+    body, lines = rows[1:], lines[1:]
     if not body:
         raise InputError(f"{source}: no data rows under the header")
     for i, r in enumerate(body, start=1):
         if len(r) != len(header):
-            raise InputError(f"{source}, row {i} (line {i + 1}): {len(r)} cells where the header has {len(header)}")
+            raise InputError(f"{source}, row {i} (line {lines[i - 1]}): {len(r)} cells where the header has {len(header)}")
     text = {c: [r[j].strip() for r in body] for j, c in enumerate(header)}
-    ds = Dataset(source, kind, header, text)
+    ds = Dataset(source, kind, header, text, lines=lines)
 
     use: list[str] = []
     for item in required:
@@ -125,21 +171,26 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
         use.append(found)
     use += [c for c in optional if c in text and c not in use]
     for col in use:
-        ds.numeric[col] = _numeric_column(source, kind, col, text[col])
+        ds.numeric[col] = _numeric_column(ds, col)
     return ds
 
 
-def _numeric_column(source: str, kind: str, col: str, cells: list[str]) -> np.ndarray:
+def _numeric_column(ds: Dataset, col: str) -> np.ndarray:
+    kind, cells = ds.kind, ds.text[col]
     values = np.empty(len(cells))
     for i, cell in enumerate(cells):
         if cell == "":
-            raise InputError(f"{_where(source, i + 1, col)}: empty cell")
-        try:
-            v = float(cell)
-        except ValueError:
-            raise InputError(f"{_where(source, i + 1, col)}: {cell!r} is not a number") from None
+            if not any(cells):
+                raise InputError(f"{ds.where(i + 1, col)}: empty cell (the column is empty in every row)")
+            raise InputError(f"{ds.where(i + 1, col)}: empty cell")
+        if not _NUMBER.fullmatch(cell):
+            if cell.lower().lstrip("+-") in _NON_FINITE:
+                raise InputError(f"{ds.where(i + 1, col)}: {cell!r} is not a finite number")
+            hint = " (the decimal mark must be '.')" if _DECIMAL_COMMA.fullmatch(cell) else ""
+            raise InputError(f"{ds.where(i + 1, col)}: {cell!r} is not a number{hint}")
+        v = float(cell)
         if not math.isfinite(v):
-            raise InputError(f"{_where(source, i + 1, col)}: {cell!r} is not a finite number")
+            raise InputError(f"{ds.where(i + 1, col)}: {cell!r} is not a finite number")
         values[i] = v
     rng = _range_for(kind, col)
     if rng is not None:
@@ -147,23 +198,23 @@ def _numeric_column(source: str, kind: str, col: str, cells: list[str]) -> np.nd
         bad = np.flatnonzero((values < lo) | (values > hi))
         if bad.size:
             i = int(bad[0])
-            raise InputError(f"{_where(source, i + 1, col)}: {cells[i]} is outside [{lo:g}, {hi:g}]")
+            raise InputError(f"{ds.where(i + 1, col)}: {cells[i]} is outside [{lo:g}, {hi:g}]")
     if col.startswith("dir_"):
         bad = np.flatnonzero(~np.isin(values, (-1.0, 0.0, 1.0)))
         if bad.size:
             i = int(bad[0])
-            raise InputError(f"{_where(source, i + 1, col)}: {cells[i]} is not one of -1, 0, 1")
+            raise InputError(f"{ds.where(i + 1, col)}: {cells[i]} is not one of -1, 0, 1")
     if col == "t_s":
         dec = np.flatnonzero(np.diff(values) < 0)
         if dec.size:
             i = int(dec[0]) + 1
-            raise InputError(f"{_where(source, i + 1, col)}: {cells[i]} is earlier than the row before "
+            raise InputError(f"{ds.where(i + 1, col)}: {cells[i]} is earlier than the row before "
                              f"({cells[i - 1]}); t_s must not decrease")
     if col in ("point", "cycle"):
         bad = np.flatnonzero((values != np.round(values)) | (values < 0))
         if bad.size:
             i = int(bad[0])
-            raise InputError(f"{_where(source, i + 1, col)}: {cells[i]} is not a non-negative whole number")
+            raise InputError(f"{ds.where(i + 1, col)}: {cells[i]} is not a non-negative whole number")
     return values
 
 

@@ -48,12 +48,12 @@ def _constant_column(ds, col: str) -> float | None:
     bad = np.flatnonzero(v <= 0)
     if bad.size:
         i = int(bad[0])
-        raise InputError(f"{ds.source}, row {i + 1} (line {i + 2}), column {col!r}: a noise level must be positive, "
+        raise InputError(f"{ds.where(i + 1, col)}: a noise level must be positive, "
                          f"got {ds.text[col][i]}")
     diff = np.flatnonzero(v != v[0])
     if diff.size:
         i = int(diff[0])
-        raise InputError(f"{ds.source}, row {i + 1} (line {i + 2}), column {col!r}: {ds.text[col][i]} differs from "
+        raise InputError(f"{ds.where(i + 1, col)}: {ds.text[col][i]} differs from "
                          f"the first row's {ds.text[col][0]}; the instrument's noise level is one value per axis")
     return float(v[0])
 

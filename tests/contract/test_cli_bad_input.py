@@ -80,6 +80,125 @@ def commands(tmp_path, models, data: str, kind: str = "scale"):
     }
 
 
+# --- how Excel and other lab software write CSV -----------------------------------------
+
+def _semicolon(text):
+    return text.replace(",", ";")
+
+
+def _decimal_comma(text):
+    return text.replace(",", ";").replace(".", ",")
+
+
+@pytest.mark.parametrize("kind,base", [("scale", SCALE), ("stage", STAGE), ("stage", TARGETS)], ids=["scale", "stage", "targets"])
+@pytest.mark.parametrize("dialect", [_semicolon, _decimal_comma, lambda t: t.replace(",", "\t")],
+                         ids=["semicolon", "decimal-comma", "tab"])
+def test_a_file_not_separated_by_commas_is_refused_naming_the_separator(capsys, tmp_path, models, kind, base, dialect):
+    cmds = commands(tmp_path, models, dialect(base), kind)
+    names = ["level"] if base is TARGETS else [c for c in cmds if c != "level"]
+    for name in names:
+        msg = refused(capsys, tmp_path, *cmds[name])
+        assert str(tmp_path / "in.csv") in msg and "line 1" in msg and "separator must be a comma" in msg, msg
+
+
+def test_a_decimal_comma_in_a_quoted_cell_is_named(capsys, tmp_path, models):
+    lines = SCALE.splitlines()
+    lines[3] = '2,"200,5",224'
+    msg = refused(capsys, tmp_path, *commands(tmp_path, models, "\n".join(lines) + "\n")["calibrate"])
+    assert "row 3 (line 4), column 'ref_arcsec'" in msg and "decimal mark must be '.'" in msg, msg
+
+
+@pytest.mark.parametrize("dialect", [
+    lambda t: "\ufeff" + t,                                        # Excel's "CSV UTF-8"
+    lambda t: t.replace("\n", "\r\n"),                             # Windows line endings
+    lambda t: "\n".join(",".join(f'"{c}"' for c in line.split(",")) for line in t.splitlines()) + "\n",
+    lambda t: "\n".join(" , ".join(f" {c} " for c in line.split(",")) for line in t.splitlines()) + "\n",
+], ids=["bom", "crlf", "quoted", "spaces"])
+def test_what_spreadsheets_add_is_accepted_and_reads_the_same(tmp_path, dialect):
+    plain, other = tmp_path / "plain.csv", tmp_path / "other.csv"
+    plain.write_text(STAGE, newline="")
+    other.write_text(dialect(STAGE), newline="")
+    cols = ("stage_x_deg", "stage_y_deg", "ref_x_deg", "ref_y_deg")
+    a, b = read_dataset(plain, "stage", cols, ("t_s", "dir_x")), read_dataset(other, "stage", cols, ("t_s", "dir_x"))
+    assert a.header == b.header and all(np.array_equal(a[c], b[c]) for c in a.numeric)
+
+
+# --- cells ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cell,words", [
+    ("1_0", "is not a number"),          # float() would read 10
+    ("\u0661\u0662", "is not a number"),  # Arabic-Indic digits: float() would read 12
+    ("0x10", "is not a number"),
+    ("NaN", "not a finite number"),
+    ("-inf", "not a finite number"),
+    ("Infinity", "not a finite number"),
+    ("1e400", "not a finite number"),
+    ("", "empty cell"),
+])
+def test_a_bad_number_is_named_by_file_row_and_column(capsys, tmp_path, models, cell, words):
+    lines = SCALE.splitlines()
+    lines[4] = f'3,"{cell}",328'
+    for name, argv in commands(tmp_path, models, "\n".join(lines) + "\n").items():
+        if name == "correct":  # correct does not use the reference column
+            continue
+        msg = refused(capsys, tmp_path, *argv)
+        assert f"{tmp_path / 'in.csv'}, row 4 (line 5), column 'ref_arcsec'" in msg and words in msg, msg
+
+
+_PLAIN = r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?"
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(cell=st.one_of(st.text(st.characters(blacklist_characters="\r\n"), max_size=12),
+                      st.from_regex(_PLAIN, fullmatch=True),
+                      st.floats(allow_nan=True, allow_infinity=True).map(repr)))
+def test_a_cell_reads_as_its_plain_decimal_value_or_is_refused_by_row_and_column(tmp_path, cell):
+    p = tmp_path / "c.csv"
+    write_dataset(p, {"ref_arcsec": [cell], "reading": ["1"]})
+    try:
+        ds = read_dataset(p, "scale", ("ref_arcsec",))
+    except InputError as exc:
+        assert f"{p}, row 1 (line 2), column 'ref_arcsec'" in str(exc), str(exc)
+        return
+    assert re.fullmatch(_PLAIN, cell.strip())
+    assert ds["ref_arcsec"][0] == float(cell) and np.isfinite(ds["ref_arcsec"][0])
+
+
+def test_row_and_line_stay_right_past_blank_lines(capsys, tmp_path, models):
+    lines = SCALE.splitlines()
+    lines[5] = "4,400,xyz"
+    text = lines[0] + "\n\n" + "\n".join(lines[1:3]) + "\n,,\n" + "\n".join(lines[3:]) + "\n"
+    msg = refused(capsys, tmp_path, *commands(tmp_path, models, text)["calibrate"])
+    assert "row 5 (line 8), column 'reading'" in msg, msg
+
+
+def test_a_column_that_is_entirely_empty_says_so(capsys, tmp_path, models):
+    text = "point,ref_arcsec,reading\n" + "".join(f"{i},,{i}\n" for i in range(4))
+    msg = refused(capsys, tmp_path, *commands(tmp_path, models, text)["calibrate"])
+    assert "row 1 (line 2), column 'ref_arcsec'" in msg and "empty in every row" in msg, msg
+
+
+@pytest.mark.parametrize("data,words", [
+    ("", "empty file"),
+    ("point,ref_arcsec,reading\n", "no data rows"),
+    ("point,ref_arcsec,reading,reading\n0,0,1,1\n1,1,2,2\n", "'reading' appears more than once"),
+], ids=["empty", "header-only", "duplicate-column"])
+def test_unusable_files_are_refused_by_every_command(capsys, tmp_path, models, data, words):
+    for argv in commands(tmp_path, models, data).values():
+        msg = refused(capsys, tmp_path, *argv)
+        assert str(tmp_path / "in.csv") in msg and words in msg, msg
+
+
+@pytest.mark.parametrize("data,words", [
+    ("point,ref_arcsec,reading\n0,0,1\n".encode("utf-16"), "UTF-16"),
+    ("point,ref_arcsec,reading,note\n0,0,16,ok\n1,100,120,Temp 20\xb0C\n".encode("cp1252"), "line 3"),
+], ids=["utf-16", "windows-1252"])
+def test_text_that_is_not_utf8_is_refused_naming_where(capsys, tmp_path, models, data, words):
+    for argv in commands(tmp_path, models, data).values():
+        msg = refused(capsys, tmp_path, *argv)
+        assert str(tmp_path / "in.csv") in msg and words in msg and "UTF-8" in msg, msg
+
+
 # --- output paths -----------------------------------------------------------------------------
 
 def _all_commands(tmp_path, models, out):
