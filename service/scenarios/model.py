@@ -46,6 +46,8 @@ ScaleEffects = _effects_model("scale")
 TurntableEffects = _effects_model("turntable")
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
+MAX_AXIS_VALUES = 100_000  # values of one grid axis
+MAX_ROWS = 1_000_000  # rows of a simulated dataset: far beyond any bench run, and still a file of tens of MB
 
 
 class AxisRange(_Strict):
@@ -54,13 +56,19 @@ class AxisRange(_Strict):
     start: Finite
     stop: Finite
     step: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
-    count: Annotated[int, Field(ge=1, le=100_000)] | None = None
+    count: Annotated[int, Field(ge=1, le=MAX_AXIS_VALUES)] | None = None
 
     @model_validator(mode="after")
     def _one_of(self):
         if (self.step is None) == (self.count is None):
             raise ValueError("give exactly one of step or count")
+        if self.step is not None and abs(self.stop - self.start) / self.step + 1 > MAX_AXIS_VALUES:
+            raise ValueError(f"step {self.step:g} from {self.start:g} to {self.stop:g} gives more than "
+                             f"{MAX_AXIS_VALUES:,} values")
         return self
+
+    def size(self) -> int:
+        return self.count if self.count is not None else int(round(abs(self.stop - self.start) / self.step)) + 1
 
     def values(self) -> list[float]:
         import numpy as np
@@ -72,11 +80,27 @@ class AxisRange(_Strict):
         return [float(self.start + sign * i * self.step) for i in range(n)]
 
 
-Axis = Annotated[list[Finite], Field(min_length=1, max_length=100_000)] | AxisRange
+Axis = Annotated[list[Finite], Field(min_length=1, max_length=MAX_AXIS_VALUES)] | AxisRange
 
 
 def axis_values(a) -> list[float]:
     return a.values() if isinstance(a, AxisRange) else list(a)
+
+
+def axis_size(a) -> int:
+    return a.size() if isinstance(a, AxisRange) else len(a)
+
+
+def _rows(sc) -> tuple[int, str]:
+    """Rows the scenario would simulate, and the grid fields that set them."""
+    g = sc.grid
+    if isinstance(sc, StageScenario):
+        return axis_size(g.x_deg) * axis_size(g.y_deg) * g.repeats, "grid.x_deg × grid.y_deg × grid.repeats"
+    if isinstance(sc, RotationScenario):
+        return axis_size(g.theta_deg) * g.repeats, "grid.theta_deg × grid.repeats"
+    if isinstance(sc, ScaleScenario):
+        return axis_size(g.ref_arcsec) * g.repeats, "grid.ref_arcsec × grid.repeats"
+    return axis_size(g.azimuth_deg) * len(g.cycles), "grid.azimuth_deg × grid.cycles"
 
 
 class Environment(_Strict):
@@ -248,6 +272,10 @@ def parse_scenario(data: Any, source: str = "scenario") -> Scenario:
         sc = ScenarioFile.model_validate({"root": data}).root
     except ValidationError as err:
         raise InputError(_format_error(source, err)) from None
+    n, fields = _rows(sc)
+    if n > MAX_ROWS:
+        raise InputError(f"{source}: field grid: {fields} gives {n:,} rows, more than the {MAX_ROWS:,} "
+                         "a scenario may simulate")
     if isinstance(sc, StageScenario):
         travel = sc.bench.travel_deg
         for ax in ("x_deg", "y_deg"):
@@ -270,9 +298,11 @@ def scenario_data(name_or_path: str | Path) -> tuple[dict, str]:
     elif not p.exists():
         raise InputError(f"scenario {str(name_or_path)!r}: no such preset or file (presets: {', '.join(preset_names())})")
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
+        data = json.loads(p.read_text(encoding="utf-8-sig"))  # a byte-order mark from an editor is harmless
     except json.JSONDecodeError as exc:
         raise InputError(f"{p}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    except RecursionError:
+        raise InputError(f"{p}: not a scenario: JSON nested too deeply") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{p}: cannot read: {exc}") from None
     return data, str(p)

@@ -313,3 +313,39 @@ def test_degenerate_data_are_refused_naming_the_file(capsys, tmp_path, models):
     assert str(tmp_path / "t.csv") in msg, msg
 
 
+@pytest.mark.parametrize("scenario,field", [
+    ({"kind": "scale", "grid": {"ref_arcsec": {"start": 0, "stop": 1e6, "step": 1e-6}}}, "grid.ref_arcsec"),
+    ({"kind": "stage", "grid": {"x_deg": {"start": -10, "stop": 10, "count": 100000},
+                                "y_deg": {"start": -10, "stop": 10, "count": 100000}}}, "grid"),
+    ({"kind": "turntable", "bench": {"beta_deg": 0, "m1": 1, "m2": 1},
+      "grid": {"azimuth_deg": {"start": 0, "stop": 359, "count": 100000}, "cycles": [{"north_arcsec": 0, "east_arcsec": 0}] * 11}},
+     "grid"),
+    ({"kind": "scale", "grid": "0..200"}, "grid"),
+    ({"kind": "scale", "grid": {"ref_arcsec": [0], "repeats": 2.5}}, "grid.repeats"),
+    ({"kind": "stage", "grid": {"x_deg": [0], "y_deg": [0]}, "effects": {"backlash": True}}, "effects.backlash"),
+], ids=["step-too-fine", "grid-too-large", "cycles-too-many", "grid-not-object", "repeats-fraction", "effect-not-object"])
+def test_a_scenario_with_wrong_values_is_refused_by_field_and_quickly(capsys, tmp_path, scenario, field):
+    sc = tmp_path / "sc.json"
+    sc.write_text(json.dumps(scenario))
+    msg = refused(capsys, tmp_path, "simulate", "--scenario", sc, "--out", tmp_path / "o.csv")
+    assert f"{sc}: field {field}" in msg, msg
+
+
+@pytest.mark.parametrize("text,words", [
+    ("[" * 100_000, "nested too deeply"),
+    ('{"kind": "scale", "grid": ', "not valid JSON"),
+    ("", "not valid JSON"),
+], ids=["deep", "truncated", "empty"])
+def test_a_scenario_file_that_is_not_json_is_refused(capsys, tmp_path, text, words):
+    sc = tmp_path / "sc.json"
+    sc.write_text(text)
+    msg = refused(capsys, tmp_path, "simulate", "--scenario", sc, "--out", tmp_path / "o.csv")
+    assert str(sc) in msg and words in msg, msg
+
+
+def test_a_scenario_saved_with_a_byte_order_mark_is_accepted(capsys, tmp_path):
+    sc = tmp_path / "sc.json"
+    sc.write_text("\ufeff" + json.dumps({"kind": "scale", "grid": {"ref_arcsec": [0, 100, 200]}}), encoding="utf-8")
+    rc, err = run(capsys, "simulate", "--scenario", sc, "--out", tmp_path / "o.csv")
+    assert rc == 0, err
+    assert read_dataset(tmp_path / "o.csv", "scale", ("ref_arcsec", "reading")).n_rows == 3
