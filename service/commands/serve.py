@@ -15,6 +15,7 @@ def run(args: argparse.Namespace) -> int:
     settings = get_settings()
     host = args.host or settings.host
     port = args.port or settings.port
+    app = create_app(settings)  # refuses an unusable bench scenario or database URL before anything is said
     print(f"tiltlab: serving on http://{host}:{port} (data in {settings.data_dir})", file=sys.stderr)
-    uvicorn.run(create_app(settings), host=host, port=port, log_level="info")
+    uvicorn.run(app, host=host, port=port, log_level="info")
     return 0
