@@ -12,13 +12,15 @@ from service.errors import InputError
 
 def read_model(path: str | Path) -> CalibrationModel:
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
+        data = json.loads(Path(path).read_text(encoding="utf-8-sig"))  # a BOM from a Windows editor is harmless
     except FileNotFoundError:
         raise InputError(f"{path}: no such model file") from None
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read: {exc}") from None
+    except RecursionError:
+        raise InputError(f"{path}: not a model: JSON nested too deeply") from None
     return CalibrationModel.from_json_dict(data, source=str(path))
 
 

@@ -105,6 +105,14 @@ class CalibrationModel:
         for key in ("kind", "method", "columns", "parameters"):
             if key not in d:
                 raise InputError(f"{source}: field {key}: missing required field")
+        for key in ("kind", "method"):
+            if not isinstance(d[key], str):
+                raise InputError(f"{source}: field {key}: must be a string")
+        if not isinstance(d["columns"], list) or not all(isinstance(c, str) for c in d["columns"]):
+            raise InputError(f"{source}: field columns: must be a list of column names")
+        for key, kind in (("residuals", dict), ("fit", dict), ("state", dict), ("options", dict), ("notes", list)):
+            if d.get(key) is not None and not isinstance(d[key], kind):
+                raise InputError(f"{source}: field {key}: must be {'an object' if kind is dict else 'a list'}")
         params = {}
         if not isinstance(d["parameters"], dict):
             raise InputError(f"{source}: field parameters: must be an object")

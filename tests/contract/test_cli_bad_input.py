@@ -349,3 +349,38 @@ def test_a_scenario_saved_with_a_byte_order_mark_is_accepted(capsys, tmp_path):
     rc, err = run(capsys, "simulate", "--scenario", sc, "--out", tmp_path / "o.csv")
     assert rc == 0, err
     assert read_dataset(tmp_path / "o.csv", "scale", ("ref_arcsec", "reading")).n_rows == 3
+
+
+@pytest.mark.parametrize("change, words", [
+    (lambda m: m.update(columns=5), "field columns"),
+    (lambda m: m.update(columns="abc"), "field columns"),
+    (lambda m: m.update(kind=["scale"]), "field kind"),
+    (lambda m: m.update(notes="a note"), "field notes"),
+    (lambda m: m.update(options=[1]), "field options"),
+    (lambda m: m.update(residuals=3), "field residuals"),
+])
+def test_a_model_file_with_a_field_of_the_wrong_type_is_refused_by_field(capsys, tmp_path, models, change, words):
+    model = json.loads(models["scale"].read_text())
+    change(model)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(model))
+    (tmp_path / "in.csv").write_text(SCALE)
+    msg = refused(capsys, tmp_path, "correct", "--model", bad, "--input", tmp_path / "in.csv", "--out", tmp_path / "o.csv")
+    assert words in msg and "bad.json" in msg
+
+
+def test_a_model_file_nested_too_deeply_is_refused(capsys, tmp_path):
+    bad = tmp_path / "deep.json"
+    bad.write_text("[" * 100_000 + "]" * 100_000)
+    (tmp_path / "in.csv").write_text(SCALE)
+    msg = refused(capsys, tmp_path, "correct", "--model", bad, "--input", tmp_path / "in.csv", "--out", tmp_path / "o.csv")
+    assert "deep.json" in msg
+
+
+def test_a_model_file_saved_with_a_byte_order_mark_is_read(capsys, tmp_path, models):
+    bom = tmp_path / "bom.json"
+    bom.write_bytes(b"\xef\xbb\xbf" + models["scale"].read_bytes())
+    (tmp_path / "in.csv").write_text(SCALE)
+    rc, err = run(capsys, "correct", "--model", bom, "--input", tmp_path / "in.csv", "--out", tmp_path / "o.csv")
+    assert rc == 0, err
+    assert "angle_arcsec" in (tmp_path / "o.csv").read_text().splitlines()[0]
