@@ -295,6 +295,20 @@ def _atomic_write(path: str | Path, write) -> None:
         raise
 
 
+class _RowLines:
+    """Rows end in a plain newline, yet a cell holding a bare carriage return is still quoted.
+
+    The csv writer quotes only cells holding characters of its line terminator, so it writes
+    with "\r\n" and each row (one write call) has that ending replaced by "\n".
+    """
+
+    def __init__(self, fh):
+        self._fh = fh
+
+    def write(self, row: str) -> int:
+        return self._fh.write(row[:-2] + "\n")
+
+
 def write_dataset(path: str | Path, columns: Mapping[str, Sequence | np.ndarray]) -> None:
     """Write columns (numeric arrays or text lists) atomically."""
     names = list(columns)
@@ -306,7 +320,7 @@ def write_dataset(path: str | Path, columns: Mapping[str, Sequence | np.ndarray]
             raise ValueError(f"column {c!r} has {len(columns[c])} values, expected {n}")
 
     def write(fh) -> None:
-        w = csv.writer(fh, lineterminator="\n")
+        w = csv.writer(_RowLines(fh), lineterminator="\r\n")
         w.writerow(names)
         cols = [columns[c] for c in names]
         for i in range(n):
