@@ -54,6 +54,11 @@ def _stage(**over):
     ({"kind": "rotation", "grid": {"theta_deg": [0]}}, "bench", "missing"),
     ({"kind": "warp"}, "kind", "not one of"),
     (_stage(effects={"noise": {"ref_sigma_deg": "lots"}}), "effects.noise.ref_sigma_deg", "valid number"),
+    # JSON types are kept: a quoted number or a true is not an integer, "no" is not a boolean
+    (_stage(seed="5"), "seed", "valid integer"),
+    (_stage(seed=True), "seed", "valid integer"),
+    (_stage(grid={"x_deg": [0], "y_deg": [0], "repeats": "2"}), "grid.repeats", "valid integer"),
+    (_stage(effects={"noise": {"ref_sigma_deg": "0.001"}}), "effects.noise.ref_sigma_deg", "valid number"),
 ])
 def test_bad_scenarios_get_one_line_naming_the_field(data, field, words):
     with pytest.raises(InputError) as exc:
@@ -61,6 +66,11 @@ def test_bad_scenarios_get_one_line_naming_the_field(data, field, words):
     msg = str(exc.value)
     assert "\n" not in msg
     assert f"field {field}:" in msg and words in msg
+
+
+def test_an_integer_is_a_valid_number_of_degrees():
+    sc = parse_scenario(_stage(effects={"backlash": {"x_deg": 0}}, grid={"x_deg": [-3, 0, 3], "y_deg": [0]}))
+    assert sc.grid.x_deg == [-3.0, 0.0, 3.0]
 
 
 def test_same_seed_same_data_other_seed_other_noise():

@@ -19,7 +19,7 @@ PRESET_DIR = Path(__file__).parent / "presets"
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
 def _effects_model(kind: str) -> type[BaseModel]:
@@ -32,10 +32,10 @@ def _effects_model(kind: str) -> type[BaseModel]:
             else:
                 desc = f"[{p.unit}] {p.doc}".strip()
                 pf[p.name] = (float, Field(p.default, ge=p.lo, le=p.hi, description=desc, allow_inf_nan=False))
-        m = create_model(f"{kind.title()}_{eff.name}", __config__=ConfigDict(extra="forbid"), **pf)
+        m = create_model(f"{kind.title()}_{eff.name}", __config__=ConfigDict(extra="forbid", strict=True), **pf)
         m.__doc__ = eff.doc
         fields[eff.name] = (m | None, Field(None, description=eff.doc))
-    model = create_model(f"{kind.title()}Effects", __config__=ConfigDict(extra="forbid"), **fields)
+    model = create_model(f"{kind.title()}Effects", __config__=ConfigDict(extra="forbid", strict=True), **fields)
     model.__doc__ = f"Effects of a {kind} bench; an effect is on when it is named (offaxis_coupling is on unless disabled)."
     return model
 
