@@ -92,6 +92,25 @@ def _uncertain_correct(f, p: np.ndarray, cov: np.ndarray | None, data: Columns, 
     return out
 
 
+def stage_commands(model: CalibrationModel, x: np.ndarray, y: np.ndarray) -> dict[str, np.ndarray]:
+    """Levelling output of every stage method: refused where the bench cannot go.
+
+    The travel is the bench's the model was fitted for (the kinematic model keeps it), else the
+    stacked bench of spec/models.md §2 (±15°).
+    """
+    travel = float(model.state.get("bench", {}).get("travel_deg", StageBench().travel_deg))
+    bad = ~(np.isfinite(x) & np.isfinite(y))
+    if bad.any():
+        rows = ", ".join(str(i + 1) for i in np.flatnonzero(bad)[:5])
+        raise InputError(f"target row(s) {rows}: no stage angles reach the wanted tilt under this model")
+    beyond = np.flatnonzero((np.abs(x) > travel) | (np.abs(y) > travel))
+    if beyond.size:
+        rows = ", ".join(str(i + 1) for i in beyond[:5])
+        raise InputError(f"target row(s) {rows} need stage angles beyond the bench's travel of ±{travel:g} deg "
+                         f"(e.g. stage_x_deg {x[beyond[0]]:.3f}, stage_y_deg {y[beyond[0]]:.3f})")
+    return {"stage_x_deg": x, "stage_y_deg": y}
+
+
 def _targets(data: Columns) -> tuple[np.ndarray, np.ndarray]:
     return tuple(columns(data, ("target_x_deg", "target_y_deg")))  # type: ignore[return-value]
 
@@ -164,6 +183,12 @@ class HomographyMethod:
         res_h1 = {"stage_x_deg": px[use] - xd[use], "stage_y_deg": py[use] - sy[use]}
         # the whole levelling model on every point: command predicted from the reference reading
         cmd_x = offaxis_exact_inverse_deg(px, py) if offaxis == "exact" else offaxis_paper_forward_deg(px, py)
+        unreachable = np.flatnonzero(~np.isfinite(cmd_x))
+        if unreachable.size:
+            rows = ", ".join(str(i + 1) for i in unreachable[:5])
+            raise DegenerateDataError(f"H1 maps the reference reading of row(s) {rows} to an x angle no upper-stage "
+                                      "command reaches (|sin x' / cos y| > 1): the homography does not describe "
+                                      "these points; calibrate over a range the stages can level")
         level_res = {"stage_x_deg": cmd_x - sx, "stage_y_deg": py - sy}
         fwd = offaxis_forward_vs_exact_deg()
         notes += [
@@ -226,7 +251,7 @@ class HomographyMethod:
             x = offaxis_paper_forward_deg(xd, y)
         else:
             x = offaxis_exact_inverse_deg(xd, y)
-        return {"stage_x_deg": x, "stage_y_deg": y}
+        return stage_commands(model, x, y)
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
         model_needs_meas(model)
@@ -299,7 +324,7 @@ class CouplingMethod:
         k = model.value("offaxis_coupling.kappa")
         x0 = np.degrees(np.arcsin(np.clip(np.sin(np.radians(tx)) / np.cos(np.radians(ty)), -1.0, 1.0)))
         x, y = newton_2d(lambda u, v: (u - k * offaxis_error_deg(u, v), v), tx, ty, x0, ty.copy())
-        return {"stage_x_deg": x, "stage_y_deg": y}
+        return stage_commands(model, x, y)
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
         model_needs_meas(model)
@@ -408,7 +433,7 @@ class AxisTransformMethod:
         tx, ty = _targets(data)
         p = model.values(["stage_to_ref.x_axis_angle_deg", "stage_to_ref.y_axis_angle_deg"])
         x, y = _axis_inverse(p, tx, ty)
-        return {"stage_x_deg": x, "stage_y_deg": y}
+        return stage_commands(model, x, y)
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
         model_needs_meas(model)
@@ -528,13 +553,7 @@ class KinematicMethod:
         dy = np.asarray(data.get("dir_y", ap[1]), dtype=float)
         chain = self.chain_model(model)
         x, y = chain.level(tx, ty, dx, dy)
-        travel = chain.bench.travel_deg
-        beyond = np.flatnonzero((np.abs(x) > travel) | (np.abs(y) > travel))
-        if beyond.size:
-            rows = ", ".join(str(i + 1) for i in beyond[:5])
-            raise InputError(f"target row(s) {rows} need stage angles beyond the bench's travel of ±{travel:g} deg "
-                             f"(e.g. stage_x_deg {x[beyond[0]]:.3f}, stage_y_deg {y[beyond[0]]:.3f})")
-        return {"stage_x_deg": x, "stage_y_deg": y}
+        return stage_commands(model, x, y)
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
         model_needs_meas(model)

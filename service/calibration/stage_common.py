@@ -39,10 +39,12 @@ def decouple_x_deg(stage_x_deg, stage_y_deg) -> np.ndarray:
 
 
 def offaxis_exact_inverse_deg(x_decoupled_deg, stage_y_deg) -> np.ndarray:
-    """Upper-stage command giving x reading X at lower angle y: asin(sin X / cos y), eq. (9) inverted exactly."""
+    """Upper-stage command giving x reading X at lower angle y: asin(sin X / cos y), eq. (9) inverted exactly.
+
+    NaN where no upper-stage angle gives X (|sin X / cos y| > 1); the caller names those rows.
+    """
     s = np.sin(np.radians(x_decoupled_deg)) / np.cos(np.radians(stage_y_deg))
-    if np.any(np.abs(s) > 1.0):
-        raise InputError("a target is out of reach of the upper stage: |sin X / cos y| > 1")
+    s = np.where(np.abs(s) > 1.0, np.nan, s)
     return np.degrees(np.arcsin(s))
 
 

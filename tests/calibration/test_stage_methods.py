@@ -247,3 +247,17 @@ def test_homography_on_four_points_has_no_covariance_rather_than_a_zero_one():
     assert set(out) == {"tilt_x_deg", "tilt_y_deg"}
     back = CalibrationModel.from_json_dict(json.loads(json.dumps(model.to_json_dict())))
     assert set(m.correct(back, {"meas_x_deg": np.array([1.0]), "meas_y_deg": np.array([2.0])})) == set(out)
+
+
+@pytest.mark.parametrize("method", STAGE_METHODS)
+def test_every_stage_method_refuses_targets_the_bench_cannot_reach(method):
+    from service.scenarios import run_scenario
+
+    cols = run_scenario(load_scenario("seed000"), seed=2).columns
+    m = get_method("stage", method)
+    model = m.fit(cols, FitOptions())
+    out = m.level(model, {"target_x_deg": np.array([-12.0, 12.0]), "target_y_deg": np.array([12.0, -12.0])})
+    assert np.all(np.abs(out["stage_x_deg"]) <= 15.0) and np.all(np.abs(out["stage_y_deg"]) <= 15.0)
+    for tx, ty in ((20.0, 0.0), (0.0, -16.0), (89.0, 89.0)):
+        with pytest.raises(InputError, match="row"):
+            m.level(model, {"target_x_deg": np.array([0.0, tx]), "target_y_deg": np.array([0.0, ty])})
