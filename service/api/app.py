@@ -9,7 +9,7 @@ from fastapi import FastAPI
 
 from service import __version__
 from service.api import problems
-from service.api.routers import health, tilt
+from service.api.routers import dashboard, health, tilt
 from service.bench.simulated import SimulatedStageBench
 from service.config import Settings, get_settings
 from service.errors import InputError
@@ -44,4 +44,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     problems.install(app)
     app.include_router(health.router)
     app.include_router(tilt.router)
+    dashboard.install(app)
     return app

@@ -7,7 +7,6 @@ transaction, on SQLite too, so a failed step leaves the schema as it was.
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import sqlalchemy as sa
@@ -16,6 +15,7 @@ from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 
+from service.resources import shipped_dir
 from service.storage.engine import make_engine, write_engine
 
 _PG_MIGRATION_LOCK = 0x7417_1AB0  # serialises concurrent start-ups on one PostgreSQL database
@@ -27,14 +27,7 @@ def _is_ours(path: Path) -> bool:
 
 
 def migrations_dir() -> Path:
-    spec = importlib.util.find_spec("service.migrations")
-    for location in (spec.submodule_search_locations or []) if spec else []:
-        if _is_ours(Path(location)):
-            return Path(location)
-    source_tree = Path(__file__).resolve().parents[2] / "migrations"
-    if _is_ours(source_tree):
-        return source_tree
-    raise RuntimeError("the tiltlab migrations are missing from this installation")
+    return shipped_dir("service.migrations", "migrations", _is_ours)
 
 
 def alembic_config(connection: sa.Connection | None = None) -> Config:

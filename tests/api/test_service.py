@@ -1,10 +1,8 @@
 """The service as people start it: schema upgraded at start-up, health, tilt, problem+json."""
 
 import os
-import socket
 import subprocess
 import sys
-import time
 
 import httpx
 import pytest
@@ -12,6 +10,7 @@ from fastapi.testclient import TestClient
 
 from service.api.app import create_app
 from service.config import Settings
+from tests.api.running_service import free_port, running_service
 
 
 @pytest.fixture
@@ -54,33 +53,23 @@ def test_bench_scenario_setting_chooses_the_simulated_bench(tmp_path):
         assert c.get("/health").json()["bench"] == "simulated:my-bench"
 
 
-def _free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_tiltlab_serve_starts_on_a_fresh_data_dir(tmp_path):
     """The README's first command, minus the install: the console entry point serves /health."""
-    port = _free_port()
-    env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data")}
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port)], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                r = httpx.get(f"http://127.0.0.1:{port}/health", timeout=2)
-                break
-            except httpx.TransportError:
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    raise AssertionError(f"service did not start: {proc.stdout.read() if proc.poll() is not None else ''}")
-                time.sleep(0.2)
-        assert r.status_code == 200 and r.json()["status"] == "ok"
-        assert (tmp_path / "data" / "tiltlab.db").exists()
-    finally:
-        proc.terminate()
-        proc.wait(timeout=20)
+    with running_service(tmp_path / "data") as base:
+        r = httpx.get(f"{base}/health", timeout=5)
+    assert r.status_code == 200 and r.json()["status"] == "ok"
+    assert (tmp_path / "data" / "tiltlab.db").exists()
+
+
+def test_dashboard_page_and_assets_are_served(client):
+    page = client.get("/")
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+    assert '<script src="/web/dashboard.js">' in page.text
+    for asset, kind in (("/web/dashboard.js", "javascript"), ("/web/dashboard.css", "text/css")):
+        r = client.get(asset)
+        assert r.status_code == 200 and kind in r.headers["content-type"]
+    missing = client.get("/web/nope.js")
+    assert missing.status_code == 404 and missing.headers["content-type"].startswith("application/problem+json")
 
 
 @pytest.mark.parametrize(
@@ -96,7 +85,7 @@ def test_tiltlab_serve_refuses_unusable_settings_with_one_line(tmp_path, env, ma
     import re
 
     env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data"), **env}
-    proc = subprocess.run([sys.executable, "-m", "service", "serve", "--port", str(_free_port())], env=env,
+    proc = subprocess.run([sys.executable, "-m", "service", "serve", "--port", str(free_port())], env=env,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr and re.search(match, proc.stderr), proc.stderr

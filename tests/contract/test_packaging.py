@@ -60,3 +60,8 @@ def test_wheel_has_data_and_migrations(wheel_names):
 def test_wheel_has_every_python_module(wheel_names):
     src = {p.relative_to(ROOT).as_posix() for p in (ROOT / "service").rglob("*.py") if "__pycache__" not in p.parts}
     assert src <= wheel_names
+
+
+def test_wheel_has_the_dashboard(wheel_names):
+    web = sorted(p.name for p in (ROOT / "web").iterdir() if p.is_file())
+    assert "index.html" in web and all(f"service/web/{w}" in wheel_names for w in web)
