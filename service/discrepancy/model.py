@@ -83,6 +83,8 @@ class Family:
     baseline: str = ""
     unit: str = ""
     axes: tuple[str, ...] = ()
+    # per candidate: what would let data like these show it, said when the model barely sees it
+    separability_hints: dict[str, str] = {}
 
     def __init__(self, observed: np.ndarray, weights: np.ndarray):
         self.observed = np.asarray(observed, dtype=float).reshape(len(observed), -1)

@@ -16,6 +16,14 @@ from service.physics.stage import StageBench
 STAGE_CANDIDATES = ("offaxis_coupling", "backlash", "periodic_error", "sensor_nonlinearity",
                     "temperature_drift", "time_drift")
 
+# Said beside a candidate the final model barely sees (see workflow.WEAK_SEPARABILITY).
+STAGE_SEPARABILITY_HINTS = {
+    "time_drift": "time runs with the stage angles on this grid, so a drift looks mostly like the bench's own "
+                  "geometry; visiting the points in random order, or repeating the grid, separates the two",
+    "temperature_drift": "the temperature follows the stage angles or the time on this grid; a run in which it "
+                         "changes independently of both (the grid repeated, in random order) separates it",
+}
+
 TEMP_MIN_SPAN_K = 0.05  # below this the temperature is treated as constant
 TIME_MIN_SPAN_S = 1.0
 

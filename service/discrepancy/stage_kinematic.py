@@ -20,7 +20,7 @@ import numpy as np
 
 from service.calibration.benchfit import BenchModel, StagePoints, typical_scale
 from service.discrepancy.model import Block, Family, Fit
-from service.discrepancy.stage_common import StageData, candidate_block, sensor_param_names
+from service.discrepancy.stage_common import STAGE_SEPARABILITY_HINTS, StageData, candidate_block, sensor_param_names
 from service.discrepancy.stage_linear import stage_magnitude
 from service.errors import InputError
 from service.physics.effects import STAGE_EFFECTS
@@ -73,6 +73,7 @@ class StageKinematic(Family):
     axes = ("x", "y")
     candidates = CANDIDATES
     already_in_model = ALREADY_IN_MODEL
+    separability_hints = STAGE_SEPARABILITY_HINTS
 
     def __init__(self, data: StageData, weights: np.ndarray):
         super().__init__(data.observed, weights)

@@ -22,7 +22,13 @@ import numpy as np
 
 from service.calibration.projective import fit_projective
 from service.discrepancy.model import Block, Family, Fit
-from service.discrepancy.stage_common import STAGE_CANDIDATES, StageData, candidate_block, sensor_param_names
+from service.discrepancy.stage_common import (
+    STAGE_CANDIDATES,
+    STAGE_SEPARABILITY_HINTS,
+    StageData,
+    candidate_block,
+    sensor_param_names,
+)
 
 ALREADY_IN_MODEL = {
     "zero_offset": "the map's translation terms (h13, h23) are the sensor's zero offsets",
@@ -57,6 +63,12 @@ class StageLinear(Family):
 
     candidates = STAGE_CANDIDATES
     already_in_model = ALREADY_IN_MODEL
+    separability_hints = {
+        **STAGE_SEPARABILITY_HINTS,
+        "sensor_nonlinearity": "the map's perspective terms and the coupling's level point take most of a "
+                               "quadratic up; the kinematic baseline (--baseline kinematic) has no perspective "
+                               "terms and separates it",
+    }
 
     def full_blocks(self, effects):
         out = [Block("baseline", tuple(f"h{i}" for i in ("11", "12", "13", "21", "22", "23", "31", "32")),

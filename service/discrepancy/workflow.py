@@ -26,6 +26,7 @@ DEFAULT_ALPHA = 0.01  # family-wise level of one selection step
 SEPARABLE_MIN = 1e-3  # a parameter whose signature the model absorbs to within this fraction is dropped
 MIN_DOF_LEFT = 3  # a candidate must leave at least this many residual degrees of freedom
 POOR_SEPARABILITY = 0.05  # below this fraction a remaining candidate is flagged as hard to see
+WEAK_SEPARABILITY = 0.25  # below this, the note says how much larger it must be to show, and what would help
 PRESCREEN_P = 0.05  # candidates whose one-step preview is above this p-value are not refitted
 
 
@@ -180,10 +181,8 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
         labels = family.blocks(current.effects + (e,))[-1].labels
         separability[e] = dict(zip(labels, frac))
         for lab, f in zip(labels, frac):
-            if f < POOR_SEPARABILITY:
-                notes.append(f"{e}: parameter {lab} is poorly separable from the final model: "
-                             f"{100 * (1 - f):.1f} % of its signature (in norm) is a change of parameters already "
-                             f"fitted; only the remaining {100 * f:.1f} % is visible to the test")
+            if f < WEAK_SEPARABILITY:
+                notes.append(_separability_note(family, e, lab, f))
     if not noise.known:
         noise = from_residual(current.residuals, current.k)
     where_first = stats.where_summary(steps[0].structure_before if steps else struct_now)
@@ -191,6 +190,20 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
                   [{"effect": e, "reason": r} for e, r in getattr(family, "already_in_model", {}).items()],
                   notes, noise, stop_scores, stop_reason, struct_now, where_first, alpha,
                   {"separability": separability})
+
+
+def _separability_note(family: Family, effect: str, label: str, frac: float) -> str:
+    """Why a remaining candidate may be in the data unseen: a term only `frac` visible must be ~1/frac larger."""
+    if frac < POOR_SEPARABILITY:
+        text = (f"{effect}: parameter {label} is poorly separable from the final model: {100 * (1 - frac):.1f} % "
+                f"of its signature (in norm) is a change of parameters already fitted; only the remaining "
+                f"{100 * frac:.1f} % is visible to the test")
+    else:
+        text = (f"{effect}: parameter {label} is only {100 * frac:.1f} % visible on these data (the rest of its "
+                f"signature is a change of parameters already fitted), so it shows only when about "
+                f"{1 / frac:.0f} times larger than a term the data separate fully")
+    hint = family.separability_hints.get(effect)
+    return f"{text}; {hint}" if hint else text
 
 
 def _safe_magnitude(family: Family, fit: Fit, effect: str) -> dict:

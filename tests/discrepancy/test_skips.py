@@ -106,3 +106,20 @@ def test_without_repeats_or_specification_the_noise_is_the_final_residual(bench)
     rep, _, _ = stage_report(_cols(bench), noise_sigma=None)
     assert rep["noise_source"] == "final residual"
     assert rep["steps"][0]["evidence"]["test"] == "F"
+
+
+@pytest.mark.parametrize("baseline", ["linear", "kinematic"])
+def test_a_candidate_the_design_hides_is_said_with_what_would_show_it(bench, baseline):
+    """On one serpentine pass time runs with the rows: a drift is mostly the bench's geometry, and the report
+    says how much of it the test can see and which design would separate it; in random order it is not flagged."""
+    rep, _, _ = stage_report(_cols(bench), noise_sigma=bench.sigma_deg, baseline=baseline)
+    frac = rep["separability"]["time_drift"]["ref_x_deg_per_h"]
+    assert 0.02 < frac < 0.25
+    (note,) = [n for n in rep["notes"] if n.startswith("time_drift: parameter ref_x_deg_per_h")]
+    assert f"{100 * frac:.1f} % visible" in note and "random order" in note
+    assert f"about {1 / frac:.0f} times larger" in note
+
+    shuffled = bench_with_hidden(0, {}, design="random")
+    rep, _, _ = stage_report(_cols(shuffled), noise_sigma=shuffled.sigma_deg, baseline=baseline)
+    assert rep["separability"]["time_drift"]["ref_x_deg_per_h"] > 0.25
+    assert not any(n.startswith("time_drift") for n in rep["notes"])
