@@ -18,10 +18,12 @@ STAGE_CANDIDATES = ("offaxis_coupling", "backlash", "periodic_error", "sensor_no
 
 # Said beside a candidate the final model barely sees (see workflow.WEAK_SEPARABILITY).
 STAGE_SEPARABILITY_HINTS = {
-    "time_drift": "time runs with the stage angles on this grid, so a drift looks mostly like the bench's own "
-                  "geometry; visiting the points in random order, or repeating the grid, separates the two",
-    "temperature_drift": "the temperature follows the stage angles or the time on this grid; a run in which it "
-                         "changes independently of both (the grid repeated, in random order) separates it",
+    "time_drift": "a linear drift is told from the bench's geometry (and from a temperature ramp) only by time "
+                  "that does not follow the stage angles: on one serpentine pass it mostly does; visiting the "
+                  "points in random order, or repeating the grid, separates them",
+    "temperature_drift": "temperature drift is told from geometry and time drift only by temperature changes "
+                         "that follow neither the stage angles nor the time; the grid repeated in random order, "
+                         "over a larger temperature swing, separates it",
 }
 
 TEMP_MIN_SPAN_K = 0.05  # below this the temperature is treated as constant

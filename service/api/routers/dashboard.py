@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import cache
 from pathlib import Path
 
 from fastapi import APIRouter, FastAPI
@@ -13,6 +14,7 @@ from service.resources import shipped_dir
 router = APIRouter(tags=["dashboard"])
 
 
+@cache
 def web_dir() -> Path:
     return shipped_dir("service.web", "web", lambda p: (p / "index.html").is_file() and (p / "dashboard.js").is_file())
 
