@@ -1,0 +1,143 @@
+"""What every instrument driver offers the daemon, whatever its byte protocol.
+
+The one reading model (`Reading`), the device's identity and health as `/devices` reports
+them, and the driver protocols per role. Drivers convert units at their edge: angles
+leave a driver in degrees, whatever the wire carried (BCD degrees, milliradians, pulses).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+DeviceState = Literal["connected", "reconnecting", "failed"]
+AxisState = Literal["ready", "moving", "homing", "hard_limit", "error"]
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One reading of one instrument, stamped when its last byte arrived.
+
+    `bench_s` is bench time (service.clock), `time_utc` real time. Only the fields the
+    instrument measures are set: a biaxial inclinometer x_deg/y_deg (and temp_c where the
+    protocol carries it in the same answer), the triaxial module sx/sy/sz (sines, in g),
+    the ADC counts.
+    """
+
+    role: str
+    bench_s: float
+    time_utc: dt.datetime
+    x_deg: float | None = None
+    y_deg: float | None = None
+    sx: float | None = None
+    sy: float | None = None
+    sz: float | None = None
+    counts: float | None = None
+    temp_c: float | None = None
+    # Family (B) status: 0 valid, 1 out of range, 2 not settled.
+    status: int | None = None
+
+
+@dataclass(frozen=True)
+class DeviceIdentity:
+    """What the instrument says it is; recorded on the device record and in certificates."""
+
+    model: str
+    serial: str
+    firmware: str | None = None
+
+
+@dataclass
+class DeviceCounters:
+    frames: int = 0
+    bad_checksum: int = 0
+    resyncs: int = 0
+    timeouts: int = 0
+    reconnects: int = 0
+
+
+@dataclass
+class DeviceStatus:
+    """One device's health as GET /devices reports it."""
+
+    role: str
+    port: str
+    protocol: str
+    state: DeviceState = "reconnecting"
+    last_frame_utc: dt.datetime | None = None
+    counters: DeviceCounters = field(default_factory=DeviceCounters)
+    identity: DeviceIdentity | None = None
+    error: str | None = None  # the last failure, in words
+
+
+class Driver(Protocol):
+    role: str
+
+    @property
+    def status(self) -> DeviceStatus: ...
+
+    async def start(self) -> None: ...
+
+    async def close(self) -> None: ...
+
+    async def identify(self) -> DeviceIdentity: ...
+
+
+class TiltSensor(Driver, Protocol):
+    """reference_sensor, measurement_sensor (family A) and turntable_sensor (family B)."""
+
+    def latest(self) -> Reading | None:
+        """The newest reading from the instrument's automatic output or polling; no I/O."""
+        ...
+
+    async def read_tilt(self) -> Reading: ...
+
+    async def read_temperature(self) -> float: ...
+
+    async def set_relative_zero(self) -> None: ...
+
+    async def set_absolute_zero(self) -> None: ...
+
+
+class TriaxialSensor(Driver, Protocol):
+    """triaxial_sensor: family (A) with command 0x07 (sines of the three axes)."""
+
+    def latest(self) -> Reading | None: ...
+
+    async def read_sines(self) -> Reading: ...
+
+
+class AnalogSensor(Driver, Protocol):
+    """adc_sensor: family (C)."""
+
+    def latest(self) -> Reading | None: ...
+
+    async def read_counts(self, conversions: int = 1) -> Reading: ...
+
+
+class MotionAxis(Driver, Protocol):
+    """One axis of a family (D) controller: a swing stage (1 upper x, 2 lower y) or the rotary table (3)."""
+
+    axis: int
+    pulse_deg: float
+
+    async def move_to_pulses(self, pulses: int) -> None: ...
+
+    async def move_to_deg(self, angle_deg: float) -> int:
+        """Start a move to the nearest whole pulse; returns the pulses commanded."""
+        ...
+
+    async def position_pulses(self) -> int: ...
+
+    async def position_deg(self) -> float: ...
+
+    async def state(self) -> AxisState: ...
+
+    async def wait_until_idle(self, timeout_s: float) -> None:
+        """Return once the axis is ready; raise on a hard limit, an error, or the timeout (bench seconds)."""
+        ...
+
+    async def stop(self) -> None: ...
+
+    async def home(self) -> None: ...
