@@ -1,4 +1,4 @@
-"""Throughput of the stacked-stage forward model (spec §2 with every effect of the seed000 preset on).
+"""Throughput of the stacked-stage forward model (docs/models.md §2 with every effect of the seed000 preset on).
 
     python benchmarks/bench_forward.py [--points 1000000] [--repeats 5]
 
@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from service.scenarios import load_scenario, run_scenario
 from service.physics.stage import StageGeometry, simulate_stage
+from service.scenarios import load_scenario, run_scenario
 
 
 def main() -> None:

@@ -10,7 +10,7 @@ serpentine pass; random: the same 81 points in random order):
 * a magnitude ladder per candidate: the detection limit, the smallest multiple of the noise
   named in at least 95 % of runs.
 
-Sizes are defined in service.discrepancy.hidden (largest mean-free change of a reading over
+Sizes are defined in benchmarks/hidden_effects.py (largest mean-free change of a reading over
 the grid; amplitude for the periodic error). The noise level is given to the workflow as
 the instrument's specification (1-sigma of one reading), except in the `null-residual` case.
 
@@ -37,7 +37,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.discrepancy.hidden import VARIANTS, bench_with_hidden  # noqa: E402
+from benchmarks.hidden_effects import VARIANTS, bench_with_hidden  # noqa: E402
 from service.discrepancy.stage import stage_report  # noqa: E402
 
 PAIR_EFFECTS = ("backlash", "periodic_error", "sensor_nonlinearity", "temperature_drift", "time_drift")

@@ -287,3 +287,31 @@ def load_bench_config(path: str | Path) -> BenchesFile:
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{p}: cannot read: {exc}") from None
     return parse_bench_config(data, source=str(p))
+
+
+def load_stage_bench(path: str | Path) -> tuple[StageBench, str]:
+    """The stacked stages' hardware from a bench configuration (TOML) or a scenario file's `bench` section (JSON).
+
+    Returns the bench and where it came from, as MODEL.json and the reports record it. A
+    configuration with several stage benches is refused: name the file of the one the data came from.
+    """
+    p = Path(path).expanduser()
+    if p.suffix.lower() == ".toml":
+        benches = [b for b in load_bench_config(p).benches.values() if b.kind == "stage"]
+        if len(benches) != 1:
+            names = ", ".join(b.name for b in benches) or "none"
+            raise InputError(f"{p}: --bench needs a configuration with one stage bench, this one has {len(benches)} "
+                             f"({names})")
+        return benches[0].stage_bench(), f"{p} (bench {benches[0].name!r}, hardware table)"
+    if p.suffix.lower() == ".json":
+        from service.scenarios import load_scenario
+        from service.scenarios.model import StageScenario
+
+        if not p.is_file():
+            raise InputError(f"{p}: no such scenario file")
+        scenario = load_scenario(p)
+        if not isinstance(scenario, StageScenario):
+            raise InputError(f"{p}: a {scenario.kind} scenario has no stacked stages; --bench needs a stage bench")
+        return StageBench(**scenario.bench.model_dump()), f"{p} (scenario's bench section)"
+    raise InputError(f"{p}: --bench takes a bench configuration (.toml) or a scenario file (.json)")
+

@@ -30,6 +30,8 @@ def default_data_dir() -> Path:
     return Path(platformdirs.user_data_dir("tiltlab"))
 
 
+_STAGE_ONLY: tuple[Literal["stage", "rotary"], ...] = ("stage",)
+
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="TILTLAB_", extra="ignore")
 
@@ -40,6 +42,16 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=1, le=65535)
     # The simulated bench the service drives: a stage scenario preset name or a scenario file.
     bench_scenario: str = "seed000"
+    # Without a bench configuration: the simulated benches to run ("stage", "rotary" or both).
+    sim_benches: list[Literal["stage", "rotary"]] = Field(default_factory=lambda: list(_STAGE_ONLY), min_length=1)
+    # The scenario of the simulated rotary bench (rotation and turntable physics).
+    rotary_scenario: str = "seed002-sim"
+    # The simulated bench runs this many times faster than real time (motion, settling, output intervals).
+    sim_speed: float = Field(1.0, gt=0, le=1000)
+    # A bench configuration (TOML) naming real ports; empty means the simulated stage bench.
+    bench_config: Path | None = None
+    # "token": bearer tokens with scopes; "none": no authentication, refused unless bound to loopback.
+    auth: Literal["token", "none"] = "token"
 
     # Free-running monitoring samples older than this are thinned or dropped; calibration data never are.
     monitoring_retention_days: float = Field(30.0, gt=0)
@@ -53,6 +65,27 @@ class Settings(BaseSettings):
     sample_put_timeout_s: float = Field(5.0, gt=0)
 
     sqlite_busy_timeout_ms: int = Field(5_000, ge=0)
+    # At start-up an unreachable database is retried with back-off for this long before giving up.
+    database_wait_s: float = Field(30.0, ge=0, allow_inf_nan=False)
+
+    # The laboratory as its certificates name it (a certificate is refused until name, city and country are set).
+    lab_name: str = ""
+    lab_city: str = ""
+    lab_country_code: str = Field("", pattern=r"^([A-Z]{2})?$")
+    lab_street: str = ""
+    lab_post_code: str = ""
+    lab_email: str = ""
+    # Accreditation number printed as the calibration laboratory code, if any.
+    lab_accreditation: str = ""
+    # Certificate numbers are PREFIX-YEAR-RECORD (e.g. TL-2026-000042).
+    certificate_prefix: str = Field("TL", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,19}$")
+    # A standard.due_soon event is sent this many days before a reference standard is due.
+    standards_due_soon_days: int = Field(30, ge=0)
+    # Webhook deliveries: first retry after this long, doubling each time, at most this many attempts.
+    webhook_retry_base_s: float = Field(5.0, gt=0, allow_inf_nan=False)
+    webhook_retry_max_s: float = Field(3600.0, gt=0, allow_inf_nan=False)
+    webhook_max_attempts: int = Field(12, ge=1)
+    webhook_timeout_s: float = Field(10.0, gt=0, allow_inf_nan=False)
 
     def __init__(self, **values: Any) -> None:
         """As BaseSettings, but an unusable value or file is an InputError of one line naming it."""
@@ -101,6 +134,21 @@ def _describe(exc: ValidationError) -> str:
         else:
             parts.append(msg)
     return "configuration: " + "; ".join(parts)
+
+
+def ensure_data_dir(settings: Settings) -> Path:
+    """The data directory, created if missing and proved writable, or a one-line InputError naming it."""
+    import tempfile
+
+    path = Path(settings.data_dir)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise InputError(f"TILTLAB_DATA_DIR={path}: cannot create or write this folder ({exc.strerror}); "
+                         "set TILTLAB_DATA_DIR to a folder this user can write") from None
+    return path
 
 
 @lru_cache(maxsize=1)

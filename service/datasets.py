@@ -1,4 +1,4 @@
-"""The one way datasets come in and go out: CSV files as spec/datasets.md describes them.
+"""The one way datasets come in and go out: CSV files as docs/datasets.md describes them.
 
 Reading validates every cell the command uses and names file, row and column on refusal.
 Writing goes to a temporary file in the target's folder and is renamed into place, so a
@@ -18,22 +18,15 @@ from collections.abc import Iterable, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from service.columns import INTEGER_COLUMNS
 from service.errors import InputError
 
 KINDS = ("stage", "rotation", "scale", "turntable")
 SINE_MARGIN = 1e-3
-
-# Known columns of each kind (spec/datasets.md); order is the order outputs are written in.
-KIND_COLUMNS: dict[str, tuple[str, ...]] = {
-    "stage": ("point", "stage_x_deg", "stage_y_deg", "target_x_deg", "target_y_deg", "dir_x", "dir_y",
-              "ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg", "temp_c", "t_s"),
-    "rotation": ("point", "theta_ref_deg", "sx", "sy", "sz"),
-    "scale": ("point", "ref_arcsec", "ref_deg", "reading", "temp_c", "t_s"),
-    "turntable": ("cycle", "azimuth_deg", "n1_a", "n2_a", "n1_b", "n2_b", "ref_north_arcsec", "ref_east_arcsec"),
-}
 
 
 def _range_for(kind: str, col: str) -> tuple[float, float] | None:
@@ -218,16 +211,39 @@ def _numeric_column(ds: Dataset, col: str) -> np.ndarray:
     return values
 
 
-_INTEGER_COLUMNS = {"point", "cycle", "dir_x", "dir_y", "reading"}
+_INTEGER_COLUMNS = INTEGER_COLUMNS
 
 
-def format_value(col: str, v) -> str:
+# Decimals an output column is written with, by its unit: 1/100 of the finest resolution that
+# quantity has on any bench here (stage pulse 0.0005°, sensor resolution 0.2″, sines of 1e-8),
+# so rounding never shows in a result and no digit beyond the instruments' is invented.
+DECIMALS_BY_SUFFIX = (("_deg", 7), ("_arcsec", 4), ("_rad", 9))
+DECIMALS_BY_COLUMN = {"sx": 10, "sy": 10, "sz": 10}
+SIGNIFICANT_DIGITS = 10  # columns in other units (readings in the instrument's unit, times, temperatures)
+
+
+def format_value(col: str, v, *, exact: bool = False) -> str:
+    """A cell as text, with the digits its unit merits (docs/models.md, "Digits").
+
+    `exact`: the shortest text that reads back to the same double, for exports whose purpose is
+    an identical re-fit (a record's stored points), not a result for people.
+    """
     if isinstance(v, str):
         return v
     f = float(v)
     if col in _INTEGER_COLUMNS and f == round(f):
         return str(int(round(f)))
-    return repr(f)  # shortest text that reads back to the same float
+    if exact or not math.isfinite(f):
+        return repr(f)
+    decimals = DECIMALS_BY_COLUMN.get(col)
+    if decimals is None:
+        decimals = next((d for suffix, d in DECIMALS_BY_SUFFIX if col.endswith(suffix)), None)
+    if decimals is None:
+        text = f"{f:.{SIGNIFICANT_DIGITS}g}"
+        return "0" if text == "-0" else text
+    text = f"{f:.{decimals}f}".rstrip("0")
+    text = text + "0" if text.endswith(".") else text
+    return "0.0" if text in ("-0.0", "0.0") else text
 
 
 @contextmanager
@@ -317,7 +333,7 @@ class _RowLines:
         return self._fh.write(row[:-2] + "\n")
 
 
-def write_dataset(path: str | Path, columns: Mapping[str, Sequence | np.ndarray]) -> None:
+def write_dataset(path: str | Path, columns: Mapping[str, Sequence[Any] | np.ndarray]) -> None:
     """Write columns (numeric arrays or text lists) atomically."""
     names = list(columns)
     if not names:

@@ -111,9 +111,12 @@ def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
 
 def test_round_trip(tmp_path):
     p = tmp_path / "rt.csv"
-    write_dataset(p, {"point": np.array([0, 1]), "stage_x_deg": np.array([0.1, -12.123456789012]), "note": ["a", "b"]})
+    write_dataset(p, {"point": np.array([0, 1]), "stage_x_deg": np.array([0.1, -12.1234568]), "note": ["a", "b"]})
     ds = read_dataset(p, "stage", ("stage_x_deg",))
-    assert ds["stage_x_deg"][1] == -12.123456789012 and ds.text["point"] == ["0", "1"]
+    assert ds["stage_x_deg"][1] == -12.1234568 and ds.text["point"] == ["0", "1"]
+    # degrees are written to 7 decimals (docs/models.md, "Digits"): more digits are not kept
+    write_dataset(p, {"stage_x_deg": np.array([-12.123456789012])})
+    assert read_dataset(p, "stage", ("stage_x_deg",))["stage_x_deg"][0] == -12.1234568
 
 
 def test_written_file_has_the_umask_mode_not_a_private_one(tmp_path):

@@ -84,7 +84,10 @@ def test_same_seed_same_data_other_seed_other_noise():
 def test_seed000_preset_has_papers_grid_and_uncorrected_errors_of_a_few_tenths():
     r = run_scenario(load_scenario("seed000"))
     c = r.columns
-    assert len(c["point"]) == 81 and set(np.unique(c["stage_x_deg"])) == set(np.arange(-12, 13, 3.0))
+    # the commands are recorded as executed: the 3-deg grid in whole pulses of the bench
+    grid_x, _ = r.bench.quantise(np.arange(-12, 13, 3.0), 0.0)
+    assert len(c["point"]) == 81 and set(np.unique(c["stage_x_deg"])) == set(grid_x)
+    assert r.bench.pulse_mismatch(c["stage_x_deg"], c["stage_y_deg"]) is None
     err_x = np.max(np.abs(c["stage_x_deg"] - c["meas_x_deg"]))
     err_y = np.max(np.abs(c["stage_y_deg"] - c["meas_y_deg"]))
     assert 0.2 < err_x < 0.9 and 0.1 < err_y < 0.5  # seed 000 §4.4: 0.559 and 0.216 deg

@@ -11,6 +11,14 @@ let lastReadingAt = 0;
 
 const $ = (id) => document.getElementById(id);
 
+// The token arrives in the URL fragment (#token=...) and is kept for the session only.
+const fragmentToken = new URLSearchParams(location.hash.slice(1)).get("token");
+if (fragmentToken) {
+  sessionStorage.setItem("tiltlab-token", fragmentToken);
+  history.replaceState(null, "", location.pathname + location.search);
+}
+const token = sessionStorage.getItem("tiltlab-token");
+
 function showProblem(text) {
   const b = $("banner");
   b.textContent = text;
@@ -24,7 +32,9 @@ function clearProblem() {
 async function fetchJson(path) {
   let response;
   try {
-    response = await fetch(path, { headers: { Accept: "application/json" }, cache: "no-store" });
+    const headers = { Accept: "application/json" };
+    if (token) headers.Authorization = `Bearer ${token}`;
+    response = await fetch(path, { headers, cache: "no-store" });
   } catch (err) {
     throw new Error(`no answer from the service at ${path}`);
   }
@@ -71,12 +81,24 @@ function drawTrace() {
   $("trace_span_arcsec").textContent = (2 * halfSpanDeg * 3600).toFixed(1);
 }
 
+// GET /tilt nests its values; the page shows them flat.
+function flatten(t) {
+  const m = t.raw.measurement_sensor || {}, f = t.raw.reference_sensor || {}, s = t.stage || {};
+  const tt = t.table_tilt || {};
+  return {
+    time_utc: t.time_utc, temp_c: t.temp_c, note: t.note,
+    calibration: t.calibration ? `record ${t.calibration.record_id} v${t.calibration.version} (${t.calibration.method})` : null,
+    ref_x_deg: f.x_deg, ref_y_deg: f.y_deg, meas_x_deg: m.x_deg, meas_y_deg: m.y_deg,
+    stage_x_deg: s.x_deg, stage_y_deg: s.y_deg, tilt_x_deg: tt.x_deg, tilt_y_deg: tt.y_deg,
+  };
+}
+
 function showReading(r) {
   for (const k of ["ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg", "stage_x_deg", "stage_y_deg",
     "tilt_x_deg", "tilt_y_deg"]) {
     $(k).textContent = fmtDeg(r[k]);
   }
-  $("temp_c").textContent = r.temp_c.toFixed(2);
+  $("temp_c").textContent = r.temp_c === null || r.temp_c === undefined ? "—" : r.temp_c.toFixed(2);
   $("note").textContent = r.calibration ? `calibration ${r.calibration}` : r.note;
   $("updated").textContent = `at ${new Date(r.time_utc).toISOString().slice(11, 19)} UTC`;
   trace.push(r);
@@ -99,7 +121,7 @@ async function loadHealth() {
 
 async function poll() {
   try {
-    showReading(await fetchJson("/tilt"));
+    showReading(flatten(await fetchJson("/tilt")));
     lastReadingAt = Date.now();
     clearProblem();
   } catch (err) {

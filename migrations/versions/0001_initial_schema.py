@@ -259,10 +259,10 @@ def downgrade() -> None:
 
 # Raw samples: never updated; only free-running monitoring samples may be deleted (retention).
 _SQLITE_SAMPLES = (
-    "CREATE TRIGGER trg_samples_no_update BEFORE UPDATE ON samples "
-    "BEGIN SELECT RAISE(ABORT, 'samples are raw data: UPDATE refused'); END",
-    "CREATE TRIGGER trg_samples_keep_calibration BEFORE DELETE ON samples WHEN OLD.source <> 'monitoring' "
-    "BEGIN SELECT RAISE(ABORT, 'samples of calibration jobs are kept: DELETE refused'); END",
+    ("CREATE TRIGGER trg_samples_no_update BEFORE UPDATE ON samples "
+    "BEGIN SELECT RAISE(ABORT, 'samples are raw data: UPDATE refused'); END"),
+    ("CREATE TRIGGER trg_samples_keep_calibration BEFORE DELETE ON samples WHEN OLD.source <> 'monitoring' "
+    "BEGIN SELECT RAISE(ABORT, 'samples of calibration jobs are kept: DELETE refused'); END"),
 )
 
 _PG_FUNCTIONS = (

@@ -1,48 +1,190 @@
-"""The tiltlab service: FastAPI application factory."""
+"""The tiltlab daemon: FastAPI application factory and its lifespan (database, tokens, benches, jobs)."""
 
 from __future__ import annotations
 
 import logging
+import os
+import sys
 from contextlib import asynccontextmanager
+from pathlib import Path
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
+from fastapi_offline import FastAPIOffline
 
 from service import __version__
-from service.api import problems
-from service.api.routers import dashboard, health, tilt
-from service.bench.simulated import SimulatedStageBench
+from service.api import http_details, problems
+from service.api.auth import TokenCache, is_loopback
+from service.api.routers import benches, calibrations, dashboard, health, lims, records, stage, tilt
+from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering
+from service.bench.startup import plan_benches
 from service.config import Settings, get_settings
 from service.errors import InputError
+from service.instruments.transport import DeviceError
+from service.jobs.manager import JobManager, RequestProblem
+from service.lims.runtime import LimsRuntime
+from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
 from service.storage.engine import normalise_url
+from service.storage.errors import ConflictError, UnknownEntity
 from service.storage.migrate import bootstrap
 
 log = logging.getLogger("tiltlab")
 
+ADMIN_TOKEN_FILE = "admin.token"
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """The application; an unusable database URL or bench scenario is refused here (InputError), before serving."""
-    s = settings or get_settings()
-    normalise_url(s.database_url)
+
+def _check_benches(s: Settings) -> None:
+    """Refuse an unusable scenario or bench configuration before anything is started."""
+    if s.bench_config is not None:
+        from service.benchconfig import load_bench_config
+
+        load_bench_config(s.bench_config)
+        return
+    from service.instruments.sim.world import rotary_scenarios, stage_scenario
+
     try:
-        bench = SimulatedStageBench(s.bench_scenario)
+        if "stage" in s.sim_benches:
+            stage_scenario(s.bench_scenario)
     except InputError as exc:
         raise InputError(f"TILTLAB_BENCH_SCENARIO: {exc}") from exc
+    try:
+        if "rotary" in s.sim_benches:
+            rotary_scenarios(s.rotary_scenario)
+    except InputError as exc:
+        raise InputError(f"TILTLAB_ROTARY_SCENARIO: {exc}") from exc
+
+
+def write_admin_token(data_dir: Path, token: str) -> Path:
+    """The first admin token, readable by the daemon's user only (0600), written whole or not at all."""
+    path = Path(data_dir) / ADMIN_TOKEN_FILE
+    tmp = path.with_suffix(".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.write(fd, (token + "\n").encode())
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.chmod(tmp, 0o600)
+    os.replace(tmp, path)
+    return path
+
+
+def dashboard_url(s: Settings) -> str:
+    host = s.host if ":" not in s.host else f"[{s.host}]"
+    return f"http://{'127.0.0.1' if host in ('0.0.0.0', '[::]') else host}:{s.port}/"
+
+
+async def _register(store: DaemonStore, bench: BenchRuntime) -> None:
+    """Benches and identified instruments get their rows (records and jobs refer to them)."""
+    row = store.ensure_bench(bench.name, actor="daemon")
+    bench.bench_id = row.id
+    for role, ident in bench.identities.items():
+        serial = ident.serial
+        if serial.startswith("address "):  # no serial of its own: the instrument is known by bench, role, address
+            serial = f"{bench.name}.{role} ({serial.split(' on ')[0]})"
+        dev = store.find_device(ident.model, serial)
+        if dev is None:
+            dev = store.add_device(ident.model, serial, role, actor="daemon", bench_id=row.id,
+                                   port=bench.port_of(role))
+        elif dev.bench_id != row.id or dev.port != bench.port_of(role) or dev.role != role:
+            dev = store.update_device(dev.id, actor="daemon", bench_id=row.id, port=bench.port_of(role), role=role)
+        bench.device_ids[role] = dev.id
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The application; unusable settings are refused here (InputError, one line), before serving."""
+    s = settings or get_settings()
+    normalise_url(s.database_url)
+    if s.auth == "none" and not is_loopback(s.host):
+        raise InputError(f"TILTLAB_AUTH=none is refused on {s.host}: without authentication the daemon"
+                         " binds only a loopback address (127.0.0.1, ::1)")
+    _check_benches(s)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         app.state.settings = s
-        app.state.engine = bootstrap(s)  # brings the database to the current schema
-        app.state.bench = bench
-        log.info("tiltlab %s: database %s, bench %s", __version__, app.state.engine.url, app.state.bench.name)
+        app.state.engine = engine = bootstrap(s)  # brings the database to the current schema
+        store = app.state.store = DaemonStore(engine)
+        app.state.token_cache = TokenCache()
+        left = store.mark_interrupted(actor="daemon")
+        if left:
+            log.warning("jobs %s were left unfinished by the previous run: marked interrupted (resumable)", left)
+        if s.auth == "token" and not store.has_tokens():
+            _, token = store.create_token("admin", "admin", actor="daemon first start")
+            path = write_admin_token(s.data_dir, token)
+            print(f"tiltlab: first start: admin token written to {path} (mode 0600)\n"
+                  f"tiltlab: dashboard: {dashboard_url(s)}#token={token}", file=sys.stderr, flush=True)
+        runtimes = plan_benches(s)
+        started: list[BenchRuntime] = []
+        try:
+            for bench in runtimes:
+                await bench.start()
+                started.append(bench)
+                await _register(store, bench)
+        except BaseException:
+            for bench in runtimes:
+                await bench.close()
+            engine.dispose()
+            raise
+        app.state.benches = {b.name: b for b in runtimes}
+        app.state.bench = runtimes[0]
+        jobs = app.state.jobs = JobManager(store, app.state.benches)
+        for bench in runtimes:
+            jobs.load_active(bench)
+        lims = LimsRuntime(store, s)  # webhook deliveries from the outbox, reference standards coming due
+        app.state.webhooks = lims.dispatcher
+        await lims.start()
+        log.info("tiltlab %s: database %s, benches %s", __version__, engine.url, ", ".join(app.state.benches))
         try:
             yield
         finally:
-            app.state.engine.dispose()
+            await lims.stop()
+            await jobs.shutdown()
+            for bench in runtimes:
+                await bench.close()
+            engine.dispose()
 
-    app = FastAPI(title="tiltlab", version=__version__, lifespan=lifespan,
-                  description="Calibration, measurement and control of tilt with biaxial inclinometers.")
+    # /docs and /redoc with their scripts and styles served from the installed package, not a CDN:
+    # lab networks are often air-gapped.
+    app = FastAPIOffline(title="tiltlab", version=__version__, lifespan=lifespan, static_url="/docs-assets",
+                         description="Calibration, measurement and control of tilt with biaxial inclinometers. "
+                                     "Every route but /health and the dashboard needs `Authorization: Bearer <token>`"
+                                     " (scopes read, operate, admin). Errors are RFC 9457 problem+json.")
     problems.install(app)
-    app.include_router(health.router)
-    app.include_router(tilt.router)
+    http_details.install(app)
+    _install_errors(app)
+    for r in (health, benches, tilt, stage, calibrations, records, lims):
+        app.include_router(r.router)
     dashboard.install(app)
     return app
+
+
+def _install_errors(app: FastAPI) -> None:
+    P = problems.problem
+
+    @app.exception_handler(RequestProblem)
+    async def _request(request: Request, exc: RequestProblem):
+        return P(exc.status, "Unusable request" if exc.status == 422 else "Conflict", str(exc),
+                 instance=str(request.url.path), field=exc.field)
+
+    for cls, status, title, field in _ERRORS:
+        app.add_exception_handler(cls, _answer(status, title, field))
+
+
+# Our exceptions as problems: (class, status, title, the field at fault if one is).
+_ERRORS = (
+    (IdempotencyMismatch, 422, "Idempotency-Key reused", "Idempotency-Key"),
+    (BenchBusy, 409, "Bench busy", "bench"),
+    (ConflictError, 409, "Conflict", None),
+    (UnknownEntity, 404, "Not found", None),
+    (DeviceNotAnswering, 503, "Device not answering", None),
+    (DeviceError, 503, "Device error", None),
+    (TimeoutError, 503, "Device did not settle", None),
+)
+
+
+def _answer(status: int, title: str, field: str | None):  # type: ignore[no-untyped-def]
+    async def handler(request: Request, exc: Exception):
+        extra = {"field": field} if field else {}
+        return problems.problem(status, title, str(exc), instance=str(request.url.path), **extra)
+
+    return handler

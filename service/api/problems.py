@@ -17,7 +17,22 @@ def problem(status: int, title: str, detail: str, type_: str = "about:blank", **
                         status_code=status, media_type=PROBLEM)
 
 
+class ProblemError(Exception):
+    """Raised by routes and dependencies to answer with a problem body (status, title, detail)."""
+
+    def __init__(self, status: int, title: str, detail: str, headers: dict[str, str] | None = None, **extra) -> None:
+        super().__init__(detail)
+        self.status, self.title, self.detail, self.headers, self.extra = status, title, detail, headers, extra
+
+
 def install(app: FastAPI) -> None:
+    @app.exception_handler(ProblemError)
+    async def _problem(request: Request, exc: ProblemError):
+        response = problem(exc.status, exc.title, exc.detail, instance=str(request.url.path), **exc.extra)
+        for k, v in (exc.headers or {}).items():
+            response.headers[k] = v
+        return response
+
     @app.exception_handler(InputError)
     async def _input(request: Request, exc: InputError):
         return problem(422, "Unusable input", str(exc), instance=str(request.url.path))

@@ -44,7 +44,7 @@ class StagePoints:
     t_s: np.ndarray | None = None
 
     @classmethod
-    def from_columns(cls, data: Mapping[str, np.ndarray]) -> "StagePoints":
+    def from_columns(cls, data: Mapping[str, np.ndarray]) -> StagePoints:
         x = np.asarray(data["stage_x_deg"], dtype=float)
         y = np.asarray(data["stage_y_deg"], dtype=float)
         z = np.zeros_like(x)
@@ -117,7 +117,7 @@ def robust_scale(residuals: np.ndarray) -> float:
 
 
 def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, np.ndarray],
-              x0: Sequence[float] | None = None, loss: str = "linear", f_scale: float | None = None,
+              x0: Sequence[float] | np.ndarray | None = None, loss: str = "linear", f_scale: float | None = None,
               max_nfev: int = 2000) -> BenchFit:
     """Least-squares fit of the free parameters to the observed columns (e.g. ref_x_deg, ref_y_deg)."""
     outputs = list(observed)
@@ -126,26 +126,26 @@ def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, np.nda
     if n_obs <= n_par:
         raise DegenerateDataError(f"{len(pts)} points give {n_obs} readings, fewer than the {n_par} free parameters "
                                   f"of the bench model ({', '.join(param_label(k) for k in model.free)})")
-    x0 = np.zeros(n_par) if x0 is None else np.asarray(x0, dtype=float)
+    start = np.zeros(n_par) if x0 is None else np.asarray(x0, dtype=float)
     scales = np.array([typical_scale(k) for k in model.free])
 
     def resid(x):
         return (model.predict(x, pts, outputs) - obs).ravel()
 
     if n_par == 0:
-        r = resid(x0)
-        return _result(model, x0, np.zeros((0, 0)), r, outputs, obs.shape, 0.0, True, 1, "no free parameters", None)
+        r = resid(start)
+        return _result(model, start, np.zeros((0, 0)), r, outputs, obs.shape, 0.0, True, 1, "no free parameters", None)
     kw = {}
     if loss != "linear":
         if f_scale is None:
             # Residuals at the starting bench are no guide to the scale of good residuals: fit plainly
             # first, take the scale robustly (MAD) from that fit, and start the robust fit there.
-            pre = fit_bench(model, pts, observed, x0=x0, loss="linear", max_nfev=max_nfev)
+            pre = fit_bench(model, pts, observed, x0=start, loss="linear", max_nfev=max_nfev)
             f_scale = robust_scale(np.concatenate(list(pre.residuals.values())))
-            x0 = pre.values
+            start = pre.values
         kw["f_scale"] = f_scale
     try:
-        sol = least_squares(resid, x0, x_scale=scales, diff_step=1e-4 * scales / np.maximum(np.abs(x0), scales),
+        sol = least_squares(resid, start, x_scale=scales, diff_step=1e-4 * scales / np.maximum(np.abs(start), scales),
                             loss=loss, method="trf", max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12, **kw)
     except ValueError as exc:
         raise FitError(f"bench fit failed: {exc}") from exc

@@ -1,6 +1,6 @@
 """Rotation about an inclined axis (seed 002): methods `direct`, `iodsra` and `iodsra-combined`.
 
-Geometry (spec/models.md §3): the outputs S = (Sx, Sy, Sz) are the vertical expressed in the
+Geometry (docs/models.md §3): the outputs S = (Sx, Sy, Sz) are the vertical expressed in the
 sensor frame, so as the body turns about the fixed axis L they run on a circle of the unit
 sphere: the plane of eq. (10), unit normal n = (sin α cos γ, cos α cos γ, -sin γ) (L in the
 sensor frame) at distance sin β from the origin. α, β, γ come from a least-squares plane
@@ -29,7 +29,7 @@ import numpy as np
 
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions, register
-from service.calibration.uncertainty import expanded, propagate
+from service.calibration.uncertainty import propagate_gum
 from service.errors import DegenerateDataError
 
 SIN45 = float(np.sin(np.radians(45.0)))
@@ -259,7 +259,8 @@ class _RotationMethod:
                          "and no u_theta_deg")
         values = np.degrees([alpha, beta, gamma])
         params = {
-            "alpha_deg": Parameter(float(values[0]), "deg", note="angle between the y axis and L's projection on the sensor plane"),
+            "alpha_deg": Parameter(float(values[0]), "deg",
+                                   note="angle between the y axis and L's projection on the sensor plane"),
             "beta_deg": Parameter(float(values[1]), "deg", note="inclination of the rotation axis L to the horizontal"),
             "gamma_deg": Parameter(float(values[2]), "deg", note="angle between L and the sensor plane"),
         }
@@ -306,9 +307,10 @@ class _RotationMethod:
                 t = np.degrees(self.theta(pp, *np.radians(p), use9))
                 return theta0 + wrap_deg(t - theta0)  # no jump at ±180° inside the differences
 
-            u = propagate(f, p0, model.cov_of(list(PARAM_NAMES)), inputs,
-                          {c: float(sigma) for c in self.fit_required})
-            out["u_theta_deg"] = expanded(u)
+            dof = float(model.fit.get("dof") or np.inf)  # cov and sigma_s both from the plane residuals
+            g = propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs,
+                              {c: float(sigma) for c in self.fit_required}, dof, dof)
+            out["u_theta_deg"] = g.expanded()
         return out
 
 

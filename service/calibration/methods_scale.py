@@ -25,7 +25,7 @@ import numpy as np
 
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions, register_pattern
-from service.calibration.uncertainty import expanded, propagate
+from service.calibration.uncertainty import propagate_gum
 from service.errors import DegenerateDataError, InputError
 
 MAX_DEGREE = 6  # beyond this the monomial coefficients of 12-bit readings lose float64 precision
@@ -178,7 +178,7 @@ class PolyMethod:
             kind="scale", method=self.name, columns=[ref_col, "reading"], parameters=params,
             covariance_names=names if main["cov"] is not None else [], covariance=main["cov"],
             residuals=residual_summary({"angle_arcsec": main["resid"]}, "arcsec"), fit=fit, notes=notes,
-            state={"degree": n, "reading_sigma_counts": reading_sigma})
+            state={"degree": n, "reading_sigma_counts": reading_sigma, "dof": main["dof"]})
 
     def angle(self, model: CalibrationModel, reading) -> np.ndarray:
         coef = model.values(coefficient_names(self.degree))
@@ -194,10 +194,17 @@ class PolyMethod:
         out = {"angle_arcsec": np.polyval(p0[::-1], reading)}
         sigma = model.state.get("reading_sigma_counts") if isinstance(model.state, Mapping) else None
         if model.covariance is not None and sigma is not None:
-            u = propagate(lambda p, x: np.polyval(np.asarray(p)[::-1], x["reading"]), p0, model.cov_of(names),
-                          {"reading": reading}, {"reading": float(sigma)})
-            out["u_angle_arcsec"] = expanded(u)
+            dof = _dof(model)  # the covariance and the reading noise both come from the fit's residual
+            g = propagate_gum(lambda p, x: np.polyval(np.asarray(p)[::-1], x["reading"]), p0, model.cov_of(names),
+                              {"reading": reading}, {"reading": float(sigma)}, dof, dof)
+            out["u_angle_arcsec"] = g.expanded()
         return out
+
+
+def _dof(model: CalibrationModel) -> float:
+    """Degrees of freedom of the fit (infinite when the model does not say)."""
+    dof = model.state.get("dof", model.fit.get("dof"))
+    return float(dof) if dof else float("inf")
 
 
 register_pattern("scale", r"poly(\d+)", lambda m: PolyMethod(int(m.group(1))))

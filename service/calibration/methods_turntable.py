@@ -1,6 +1,6 @@
 """Inclinometer on a turntable read in symmetric pairs (seed 004): method `reversal`.
 
-Model (spec/models.md §4). With the pair A, A + φ the half-differences cancel the zeros:
+Model (docs/models.md §4). With the pair A, A + φ the half-differences cancel the zeros:
 
     d1 = (n1(A) - n1(A+φ)) / 2 = m1 sin(φ/2) [ ξ sin(A+β+φ/2)   - η cos(A+β+φ/2)   ]
     d2 = (n2(A) - n2(A+φ)) / 2 = m2 sin(φ/2) [ ξ cos(A+β+ε+φ/2) + η sin(A+β+ε+φ/2) ]
@@ -22,13 +22,15 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from service.calibration.differences import central_jacobian
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions, register
-from service.calibration.uncertainty import expanded, propagate
+from service.calibration.uncertainty import propagate_gum
+from service.columns import TURNTABLE_READINGS
 from service.errors import DegenerateDataError, InputError
 
 PARAM_NAMES = ("beta_deg", "m1_per_arcsec", "m2_per_arcsec", "epsilon_deg")
-READING_COLUMNS = ("n1_a", "n2_a", "n1_b", "n2_b")
+READING_COLUMNS = TURNTABLE_READINGS
 MAX_ITERATIONS = 50
 
 
@@ -50,14 +52,6 @@ def compensation(p, azimuth_deg, d1, d2, rotation_deg: float) -> tuple[np.ndarra
     eta = (-np.cos(v) * a1 + np.sin(u) * a2) / k
     return xi, eta
 
-
-def pair_model(p, azimuth_deg, xi, eta, rotation_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """The forward model of the half-differences (used by tests and reports)."""
-    beta, m1, m2, eps = (float(v) for v in p)
-    s = np.sin(np.radians(rotation_deg) / 2.0)
-    u = np.radians(np.asarray(azimuth_deg, dtype=float) + beta + rotation_deg / 2.0)
-    v = u + np.radians(eps)
-    return m1 * s * (xi * np.sin(u) - eta * np.cos(u)), m2 * s * (xi * np.cos(v) + eta * np.sin(v))
 
 
 def _tilt_in_instrument_frame(az, xi, eta) -> np.ndarray:
@@ -112,16 +106,11 @@ def _residuals(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
     return np.concatenate([xi - xh, eta - eh])  # reference (star solution) minus model
 
 
+JACOBIAN_TYPICAL = np.array([10.0, 0.0, 0.0, 10.0])  # beta, eps in deg; the gains relative to themselves
+
+
 def _jacobian(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
-    steps = np.array([1e-5, 1e-6 * abs(p[1]) or 1e-9, 1e-6 * abs(p[2]) or 1e-9, 1e-5])
-    cols = []
-    for i, h in enumerate(steps):
-        pp, pm = p.copy(), p.copy()
-        pp[i] += h
-        pm[i] -= h
-        cols.append((_residuals(pp, az, d1, d2, xi, eta, rotation_deg)
-                     - _residuals(pm, az, d1, d2, xi, eta, rotation_deg)) / (2 * h))
-    return np.column_stack(cols)
+    return central_jacobian(lambda q: _residuals(q, az, d1, d2, xi, eta, rotation_deg), p, JACOBIAN_TYPICAL)
 
 
 def gauss_newton(p0, az, d1, d2, xi, eta, rotation_deg, max_iterations: int | None = None):
@@ -144,8 +133,8 @@ def gauss_newton(p0, az, d1, d2, xi, eta, rotation_deg, max_iterations: int | No
     return p, len(history), False
 
 
-def zero_scatter(data: Columns) -> float | None:
-    """Noise of one reading from the half-sums (the zero offsets z1, z2, constant over a cycle).
+def zero_scatter(data: Columns) -> tuple[float, int] | None:
+    """Noise of one reading from the half-sums (the zero offsets z1, z2, constant over a cycle), with its dof.
 
     var((n_a + n_b)/2) = σ²/2 for white noise; pooled over both axes and, when a `cycle` column
     is present, within cycles (a slow zero drift between cycles does not count as noise).
@@ -164,7 +153,7 @@ def zero_scatter(data: Columns) -> float | None:
             dof += k - 1
     if dof < 2:
         return None
-    return float(np.sqrt(2.0 * ss / dof))
+    return float(np.sqrt(2.0 * ss / dof)), dof
 
 
 class ReversalMethod:
@@ -213,10 +202,12 @@ class ReversalMethod:
         cov = 0.5 * (cov + cov.T)
         m_mean = 0.5 * (p[1] + p[2])
         bound_residual = float(np.sqrt(2.0 * s2) * m_mean)
-        bound_halfsum = zero_scatter(data)
+        halfsum = zero_scatter(data)
+        bound_halfsum = None if halfsum is None else halfsum[0]
         reading_sigma = bound_residual if bound_halfsum is None else min(bound_residual, bound_halfsum)
-        reading_sigma_from = ("half-sums" if bound_halfsum is not None and bound_halfsum <= bound_residual
-                              else "residuals")
+        from_halfsums = halfsum is not None and halfsum[0] <= bound_residual
+        reading_sigma_from = "half-sums" if from_halfsums else "residuals"
+        reading_sigma_dof = halfsum[1] if from_halfsums and halfsum is not None else dof
         units = ("deg", "reading/arcsec", "reading/arcsec", "deg")
         notes_p = ("installation angle of the X axis from the instrument's reference direction (CCD)",
                    "scale factor of the X axis, reading units per arcsec",
@@ -228,13 +219,13 @@ class ReversalMethod:
         n_az = int(np.unique(np.round(np.mod(az, 360.0), 6)).size)
         n_tilt = int(np.unique(np.round(np.column_stack([xi, eta]), 6), axis=0).shape[0])
         notes = [
-            f"beta and the pair rotation phi cannot be told apart from symmetric pairs: only beta + phi/2 enters, so "
+            (f"beta and the pair rotation phi cannot be told apart from symmetric pairs: only beta + phi/2 enters, so "
             f"phi is held at the assumed {phi:g} deg; if the true rotation is {phi:g} + d deg, the true beta is this "
-            "beta + d/2 and m1, m2 are smaller by cos(d/2), with identical residuals (seed 004 §3.2)",
-            f"reading noise {reading_sigma:.3g} (reading units, one reading) from the {reading_sigma_from}: the "
+            "beta + d/2 and m1, m2 are smaller by cos(d/2), with identical residuals (seed 004 §3.2)"),
+            (f"reading noise {reading_sigma:.3g} (reading units, one reading) from the {reading_sigma_from}: the "
             "scatter of the half-sums (n_a + n_b)/2, which are the zero offsets, within each cycle, or the fit "
             "residuals with all their scatter charged to the readings, whichever is smaller (both are upper "
-            "bounds); used for u_north_arcsec and u_east_arcsec",
+            "bounds); used for u_north_arcsec and u_east_arcsec"),
         ]
         ref_var = s2 - (reading_sigma / m_mean) ** 2 / 2.0
         ref_sigma = float(np.sqrt(ref_var)) if ref_var > 0 else 0.0
@@ -249,7 +240,7 @@ class ReversalMethod:
             covariance_names=list(PARAM_NAMES), covariance=cov,
             residuals=residual_summary({"north_arcsec": r[:n], "east_arcsec": r[n:]}, "arcsec"),
             fit=fit, notes=notes, options={"rotation_deg": phi},
-            state={"reading_sigma": reading_sigma})
+            state={"reading_sigma": reading_sigma, "reading_sigma_dof": reading_sigma_dof, "dof": dof})
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
         p0 = model.values(PARAM_NAMES)
@@ -266,8 +257,10 @@ class ReversalMethod:
                 h1, h2 = half_differences(x)
                 return np.column_stack(compensation(p, az, h1, h2, phi))
 
-            u = propagate(f, p0, model.cov_of(list(PARAM_NAMES)), inputs, {c: float(sigma) for c in READING_COLUMNS})
-            U = expanded(u)
+            dof = float(model.state.get("dof") or model.fit.get("dof") or np.inf)
+            sigma_dof = float(model.state.get("reading_sigma_dof") or np.inf)
+            U = propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs, {c: float(sigma) for c in READING_COLUMNS},
+                              dof, sigma_dof).expanded()
             out["u_north_arcsec"], out["u_east_arcsec"] = U[:, 0], U[:, 1]
         return out
 

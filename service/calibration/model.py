@@ -43,11 +43,13 @@ class CalibrationModel:
     parameters: dict[str, Parameter]
     covariance_names: list[str] = field(default_factory=list)
     covariance: np.ndarray | None = None
-    residuals: dict[str, Any] = field(default_factory=dict)  # {"unit":..., "columns": {col: {"rms":..,"max_abs":..,"values":[..]}}}
+    # {"unit": ..., "columns": {col: {"rms": .., "max_abs": .., "values": [..]}}}
+    residuals: dict[str, Any] = field(default_factory=dict)
     fit: dict[str, Any] = field(default_factory=dict)  # n_points, dof, sigma, converged, ...
     notes: list[str] = field(default_factory=list)
     state: dict[str, Any] = field(default_factory=dict)  # method-specific, JSON-serialisable
     options: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)  # version, UTC time, command, inputs' SHA-256
 
     # --- parameter access -------------------------------------------------------------
     def value(self, name: str) -> float:
@@ -93,10 +95,12 @@ class CalibrationModel:
         if self.covariance is not None:
             d["covariance"] = {"names": list(self.covariance_names),
                                "matrix": [[_num(v) for v in row] for row in np.asarray(self.covariance)]}
+        if self.provenance:
+            d["provenance"] = _jsonable(self.provenance)
         return d
 
     @classmethod
-    def from_json_dict(cls, d: Any, source: str = "model") -> "CalibrationModel":
+    def from_json_dict(cls, d: Any, source: str = "model") -> CalibrationModel:
         if not isinstance(d, dict):
             raise InputError(f"{source}: a model is a JSON object")
         fv = d.get("format_version")
@@ -110,7 +114,8 @@ class CalibrationModel:
                 raise InputError(f"{source}: field {key}: must be a string")
         if not isinstance(d["columns"], list) or not all(isinstance(c, str) for c in d["columns"]):
             raise InputError(f"{source}: field columns: must be a list of column names")
-        for key, kind in (("residuals", dict), ("fit", dict), ("state", dict), ("options", dict), ("notes", list)):
+        for key, kind in (("residuals", dict), ("fit", dict), ("state", dict), ("options", dict), ("notes", list),
+                          ("provenance", dict)):
             if d.get(key) is not None and not isinstance(d[key], kind):
                 raise InputError(f"{source}: field {key}: must be {'an object' if kind is dict else 'a list'}")
         params = {}
@@ -140,10 +145,10 @@ class CalibrationModel:
         return cls(kind=str(d["kind"]), method=str(d["method"]), columns=list(d["columns"]), parameters=params,
                    covariance_names=names, covariance=matrix, residuals=d.get("residuals") or {},
                    fit=d.get("fit") or {}, notes=list(d.get("notes") or []), state=d.get("state") or {},
-                   options=d.get("options") or {})
+                   options=d.get("options") or {}, provenance=d.get("provenance") or {})
 
 
-def _num(v: float) -> float | None:
+def _num(v: float | np.floating) -> float | None:
     f = float(v)
     return f if math.isfinite(f) else None
 

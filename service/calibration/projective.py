@@ -75,8 +75,3 @@ def apply_projective(H: np.ndarray, x, y) -> tuple[np.ndarray, np.ndarray]:
     y = np.asarray(y, dtype=float)
     w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
     return (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
-
-
-def invert_projective(H: np.ndarray) -> np.ndarray:
-    Hi = np.linalg.inv(H)
-    return Hi / Hi[2, 2]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -39,6 +39,21 @@ class Method(Protocol):
     def fit(self, data: Columns, options: FitOptions) -> CalibrationModel: ...
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]: ...
+
+
+@runtime_checkable
+class LevellingMethod(Method, Protocol):
+    """A stage method: it also levels (wanted table tilt -> stage commands)."""
+
+    def level(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]: ...
+
+
+def levelling_method(kind: str, name: str) -> LevellingMethod:
+    """The method of a stage model, as one that levels; refused for a method that cannot."""
+    method = get_method(kind, name)
+    if not isinstance(method, LevellingMethod):
+        raise InputError(f"method {kind}/{name} does not level; levelling needs a stage model")
+    return method
 
 
 _METHODS: dict[tuple[str, str], Method] = {}

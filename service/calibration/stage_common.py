@@ -1,10 +1,11 @@
-"""Pieces every stage method shares: eq. (10) and its exact inverse, the sensor geometry in
+"""Pieces every stage method shares: seed 000's printed eq. (10) compensation against the exact
+inverse (the relation itself is service.physics.stage's), the sensor geometry in
 the reference (table-tilt) frame, mirrored-axis detection, column checks and a vectorised
 2-D Newton solver.
 
-Frames: the *truth frame* is the reference sensor's orthogonal axes (spec §2: table tilt is
+Frames: the *truth frame* is the reference sensor's orthogonal axes (docs/models.md §2: table tilt is
 what the reference reads without noise). An inclinometer reading depends only on the up
-vector n expressed in the frame of the body carrying it (spec §1: reading = asin(-a·n)), so a
+vector n expressed in the frame of the body carrying it (docs/models.md §1: reading = asin(-a·n)), so a
 table tilt (X, Y) is the same thing as n = (-sin X, -sin Y, +sqrt(1 - sin²X - sin²Y)).
 """
 
@@ -14,40 +15,20 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
+from service import columns as columns_
+from service.calibration.differences import fd_step
+from service.calibration.uncertainty import Propagated, welch_satterthwaite
 from service.errors import DegenerateDataError, InputError
+from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg, offaxis_reading_deg
 
-STAGE_COLUMNS = ("stage_x_deg", "stage_y_deg")
-REF_COLUMNS = ("ref_x_deg", "ref_y_deg")
-MEAS_COLUMNS = ("meas_x_deg", "meas_y_deg")
-TILT_OUTPUTS = ("tilt_x_deg", "tilt_y_deg", "u_tilt_x_deg", "u_tilt_y_deg")
-LEVEL_OUTPUTS = ("stage_x_deg", "stage_y_deg")
+STAGE_COLUMNS, REF_COLUMNS, MEAS_COLUMNS = columns_.STAGE, columns_.REF, columns_.MEAS
+TILT_OUTPUTS = columns_.TILT_OUTPUTS
+LEVEL_OUTPUTS = columns_.STAGE  # what `level` writes: the stage commands
 GRID_12_DEG = np.arange(-12.0, 12.0 + 1e-9, 3.0)  # seed 000's validation grid (§4.4)
 ROBUST_LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")
 
 
-# --- seed 000 eq. (10) --------------------------------------------------------------------
-def offaxis_error_deg(theta_x_deg, theta_y_deg) -> np.ndarray:
-    """Eq. (10): θx - asin(sin θx cos θy), the x reading lost to the lower stage's tilt."""
-    tx, ty = np.radians(theta_x_deg), np.radians(theta_y_deg)
-    return np.degrees(tx - np.arcsin(np.sin(tx) * np.cos(ty)))
-
-
-def decouple_x_deg(stage_x_deg, stage_y_deg) -> np.ndarray:
-    """The upper-stage angle an uncoupled bench would need for the same x reading: asin(sin x cos y)."""
-    tx, ty = np.radians(stage_x_deg), np.radians(stage_y_deg)
-    return np.degrees(np.arcsin(np.clip(np.sin(tx) * np.cos(ty), -1.0, 1.0)))
-
-
-def offaxis_exact_inverse_deg(x_decoupled_deg, stage_y_deg) -> np.ndarray:
-    """Upper-stage command giving x reading X at lower angle y: asin(sin X / cos y), eq. (9) inverted exactly.
-
-    NaN where no upper-stage angle gives X (|sin X / cos y| > 1); the caller names those rows.
-    """
-    s = np.sin(np.radians(x_decoupled_deg)) / np.cos(np.radians(stage_y_deg))
-    s = np.where(np.abs(s) > 1.0, np.nan, s)
-    return np.degrees(np.arcsin(s))
-
-
+# --- seed 000's printed compensation against the exact inverse of eq. (9) (service.physics.stage) -------------
 def offaxis_paper_forward_deg(x_decoupled_deg, stage_y_deg) -> np.ndarray:
     """Seed 000's compensation as printed: add eq. (10)'s error, evaluated at the wanted angle, to x."""
     return np.asarray(x_decoupled_deg, dtype=float) + offaxis_error_deg(x_decoupled_deg, stage_y_deg)
@@ -56,10 +37,10 @@ def offaxis_paper_forward_deg(x_decoupled_deg, stage_y_deg) -> np.ndarray:
 def offaxis_forward_vs_exact_deg(grid_deg: np.ndarray = GRID_12_DEG) -> dict[str, float]:
     """How far the paper's forward form lands from the exact inverse over a square grid of (x', y)."""
     X, Y = np.meshgrid(grid_deg, grid_deg)
-    d = offaxis_paper_forward_deg(X, Y) - offaxis_exact_inverse_deg(X, Y)
+    d = offaxis_paper_forward_deg(X, Y) - offaxis_inverse_deg(X, Y)
     i = int(np.argmax(np.abs(d)))
     # The command difference is also (to first order) the x tilt error it causes: dX/dx = cos y·cos x/cos X ≈ 1.
-    reached = decouple_x_deg(offaxis_paper_forward_deg(X, Y), Y) - X
+    reached = offaxis_reading_deg(offaxis_paper_forward_deg(X, Y), Y) - X
     return {"grid_min_deg": float(grid_deg.min()), "grid_max_deg": float(grid_deg.max()),
             "max_abs_command_difference_deg": float(np.abs(d).max()),
             "rms_command_difference_deg": float(np.sqrt(np.mean(d**2))),
@@ -73,11 +54,6 @@ def up_from_tilt(tilt_x_deg, tilt_y_deg) -> np.ndarray:
     sx, sy = np.sin(np.radians(tilt_x_deg)), np.sin(np.radians(tilt_y_deg))
     nz = np.sqrt(np.clip(1.0 - sx**2 - sy**2, 0.0, None))
     return np.stack([-sx, -sy, nz], axis=-1)
-
-
-def tilt_from_up(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return (np.degrees(np.arcsin(np.clip(-n[..., 0], -1.0, 1.0))),
-            np.degrees(np.arcsin(np.clip(-n[..., 1], -1.0, 1.0))))
 
 
 def plane_tilt_matrix(tilt_x_deg: float, tilt_y_deg: float) -> np.ndarray:
@@ -148,26 +124,34 @@ def meas_inverse(p: np.ndarray, sign: np.ndarray, meas_x_deg, meas_y_deg) -> tup
 
 def meas_inverse_with_u(p: np.ndarray, cov: np.ndarray | None, sign: np.ndarray, meas_x_deg, meas_y_deg,
                         sigma_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """meas_inverse plus its GUM standard uncertainties (JCGM 100 §5.1.2), vectorised over readings.
+    """meas_inverse plus its GUM standard uncertainties (JCGM 100 §5.1.2), vectorised over readings."""
+    X, Y, gx, gy = meas_inverse_gum(p, cov, sign, meas_x_deg, meas_y_deg, sigma_deg)
+    return X, Y, gx.u, gy.u
 
-    Same law as service.calibration.uncertainty.propagate (central differences), but the zero
-    and scale sensitivities follow from the reading's own (reading a enters only as
-    (a - zero)/(1 + scale)), so 13 evaluations replace 21: this is what keeps correct above
-    10^5 readings per second.
+
+def meas_inverse_gum(p: np.ndarray, cov: np.ndarray | None, sign: np.ndarray, meas_x_deg, meas_y_deg,
+                     sigma_deg: float, dof: float = np.inf) -> tuple[np.ndarray, np.ndarray, Propagated, Propagated]:
+    """meas_inverse with the standard uncertainty and effective degrees of freedom of each output.
+
+    Same law as service.calibration.uncertainty.propagate_gum (central differences; each reading
+    and the parameters' covariance one component, all from one fit with `dof` degrees of
+    freedom), but the zero and scale sensitivities follow from the reading's own (reading a
+    enters only as (a - zero)/(1 + scale)), so 13 evaluations replace 21: this is what keeps
+    correct above 10^5 readings per second.
     """
     a = np.asarray(meas_x_deg, dtype=float)
     b = np.asarray(meas_y_deg, dtype=float)
     X, Y = meas_inverse(p, sign, a, b)
-    ha = 1e-6 * np.maximum(1.0, np.abs(a))
-    hb = 1e-6 * np.maximum(1.0, np.abs(b))
+    ha = fd_step(a, 1.0)
+    hb = fd_step(b, 1.0)
     xp, yp = meas_inverse(p, sign, a + ha, b)
     xm, ym = meas_inverse(p, sign, a - ha, b)
     dXa, dYa = (xp - xm) / (2 * ha), (yp - ym) / (2 * ha)
     xp, yp = meas_inverse(p, sign, a, b + hb)
     xm, ym = meas_inverse(p, sign, a, b - hb)
     dXb, dYb = (xp - xm) / (2 * hb), (yp - ym) / (2 * hb)
-    var_x = sigma_deg**2 * (dXa**2 + dXb**2)
-    var_y = sigma_deg**2 * (dYa**2 + dYb**2)
+    parts_x = [((sigma_deg * dXa) ** 2, dof), ((sigma_deg * dXb) ** 2, dof)]
+    parts_y = [((sigma_deg * dYa) ** 2, dof), ((sigma_deg * dYb) ** 2, dof)]
     if cov is not None and np.any(cov):
         ka = -(a - p[0]) / (1.0 + p[2])  # d/dscale = d/da * ka, d/dzero = -d/da
         kb = -(b - p[1]) / (1.0 + p[3])
@@ -178,7 +162,7 @@ def meas_inverse_with_u(p: np.ndarray, cov: np.ndarray | None, sign: np.ndarray,
                 jx.append(np.zeros_like(a))
                 jy.append(np.zeros_like(a))
                 continue
-            h = 1e-6 * max(1.0, abs(p[i]))
+            h = float(fd_step(p[i], 1.0))
             pp, pm = p.copy(), p.copy()
             pp[i] += h
             pm[i] -= h
@@ -187,16 +171,18 @@ def meas_inverse_with_u(p: np.ndarray, cov: np.ndarray | None, sign: np.ndarray,
             jx.append((xp - xm) / (2 * h))
             jy.append((yp - ym) / (2 * h))
         Jx, Jy = np.stack(jx, axis=-1), np.stack(jy, axis=-1)
-        var_x = var_x + np.einsum("ni,ij,nj->n", Jx, cov, Jx)
-        var_y = var_y + np.einsum("ni,ij,nj->n", Jy, cov, Jy)
-    return X, Y, np.sqrt(var_x), np.sqrt(var_y)
+        parts_x.append((np.einsum("ni,ij,nj->n", Jx, cov, Jx), dof))
+        parts_y.append((np.einsum("ni,ij,nj->n", Jy, cov, Jy), dof))
+    gx = Propagated(np.sqrt(sum(v for v, _ in parts_x)), welch_satterthwaite(parts_x))
+    gy = Propagated(np.sqrt(sum(v for v, _ in parts_y)), welch_satterthwaite(parts_y))
+    return X, Y, gx, gy
 
 
 # --- mirrored axes ---------------------------------------------------------------------------
 def detect_mirror(sensor_x, sensor_y, ref_x, ref_y, what: str = "measurement sensor") -> np.ndarray:
     """Sign of each sensor axis against the matching reference axis: -1 for an axis mounted mirrored.
 
-    An upside-down sensor (spec §2) mirrors one axis; the slope of that axis against the
+    An upside-down sensor (docs/models.md §2) mirrors one axis; the slope of that axis against the
     reference is then near -1 instead of +1, which no small mounting error can produce.
     """
     out = []

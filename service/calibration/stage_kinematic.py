@@ -1,4 +1,4 @@
-"""The kinematic chain of spec §2 as a calibration: which parameters the data can separate,
+"""The kinematic chain of docs/models.md §2 as a calibration: which parameters the data can separate,
 the fit itself (service.calibration.benchfit), and the chain run forwards and backwards.
 
 Identifiability. Only the up vector in the reference frame is observable, so the chain
@@ -25,14 +25,16 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from service.calibration.benchfit import BenchModel, StagePoints, fit_bench, param_label, robust_scale, typical_scale
+from service.calibration.differences import central_jacobian
 from service.calibration.stage_common import (
     MEAS_PARAMS,
     meas_forward,
     newton_2d,
 )
+from service.columns import REF
 from service.errors import DegenerateDataError, FitError
 from service.physics.effects import STAGE_EFFECTS, EffectSet
-from service.physics.stage import StageBench, StageGeometry
+from service.physics.stage import StageBench, StageGeometry, offaxis_inverse_deg
 
 ParamKey = tuple[str, str]
 IDENTIFIABLE_REL = 1e-3  # a column closer than this (relative) to the span of the kept ones is not separable
@@ -59,7 +61,7 @@ PERIODIC: tuple[ParamKey, ...] = (("periodic_error", "x_amp_deg"), ("periodic_er
                                   ("periodic_error", "y_amp_deg"), ("periodic_error", "y_phase_deg"))
 ESSENTIAL = (("stage_scale", "x"), ("stage_scale", "y"), ("mounting_tilt", "desk_x_deg"),
              ("mounting_tilt", "desk_y_deg"))
-REF_OBS = ("ref_x_deg", "ref_y_deg")
+REF_OBS = REF
 
 
 def unit_of(key: ParamKey) -> str:
@@ -108,13 +110,9 @@ def select_identifiable(J: np.ndarray, scales: np.ndarray, rel_tol: float = IDEN
 
 
 def numeric_jacobian(fun, x0: np.ndarray, scales: np.ndarray) -> np.ndarray:
-    cols = []
-    for i in range(x0.size):
-        h = 1e-3 * scales[i]
-        e = np.zeros_like(x0)
-        e[i] = h
-        cols.append((fun(x0 + e) - fun(x0 - e)) / (2 * h))
-    return np.column_stack(cols)
+    """The chain's Jacobian for identifiability and covariance: the one finite-difference rule, stepping
+    a thousandth of each parameter's typical magnitude (the linearisation the selection judges)."""
+    return central_jacobian(fun, x0, 1e3 * np.asarray(scales))
 
 
 # --- the chain fit -----------------------------------------------------------------------------
@@ -209,7 +207,7 @@ class ChainModel:
         self.geometry = StageGeometry.from_effects(bench, fx)
 
     @classmethod
-    def from_values(cls, bench: StageBench, values: Mapping[ParamKey, float]) -> "ChainModel":
+    def from_values(cls, bench: StageBench, values: Mapping[ParamKey, float]) -> ChainModel:
         eff: dict[str, dict[str, float]] = {}
         for (e, p), v in values.items():
             if e == "noise":
@@ -227,7 +225,7 @@ class ChainModel:
         tx = np.atleast_1d(np.asarray(target_x, dtype=float))
         ty = np.atleast_1d(np.asarray(target_y, dtype=float))
         y0 = ty.copy()
-        x0 = np.degrees(np.arcsin(np.clip(np.sin(np.radians(tx)) / np.cos(np.radians(ty)), -1.0, 1.0)))
+        x0 = offaxis_inverse_deg(tx, ty, clip=True)
         return newton_2d(lambda u, v: self.tilt(u, v, dir_x, dir_y), tx, ty, x0, y0)
 
 

@@ -1,31 +1,162 @@
-"""`tiltlab calibrate | correct | level | discrepancy`: the offline contract of spec/datasets.md."""
+"""`tiltlab calibrate | correct | level`: fit a model to a recorded run, apply it, level the stage.
+
+The files they read and write are described in docs/datasets.md and docs/models.md.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
-from service.calibration.registry import FitOptions, get_method
+from service.calibration.registry import FitOptions, get_method, levelling_method
+from service.commands._args import add_command, finite
 from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
 from service.errors import InputError
 from service.modelio import read_model, write_model
+from service.provenance import provenance
+
+KINDS = ("stage", "rotation", "scale", "turntable")
+
+# What each method is, in a line, for `tiltlab calibrate --help` (docs/calibration-*.md say more).
+METHOD_HELP = {
+    "stage": {
+        "homography": "two plane-to-plane maps (reference sensor to stage, measurement to reference sensor), "
+                      "fitted linearly; fast, no bench needed",
+        "kinematic": "the stacked stages' full kinematic chain (sensor mounting, axis offsets and tilts, scale) "
+                     "by nonlinear least squares, with uncertainties; uses --bench and --loss",
+        "axis-transform": "comparison method: each sensing axis skewed against the stage axes, one linear "
+                          "axis transformation",
+        "coupling": "comparison method: the off-axis coupling of the two stages alone, no mounting errors",
+    },
+    "rotation": {
+        "direct": "rotation angle from the two horizontal axes, the vertical one assumed positive",
+        "iodsra": "rotation angle from all three axes, switching equations near ±90° (inclined axis)",
+        "iodsra-combined": "as iodsra, but the least-squares angle from all three axes together; "
+                           "never worse, better near ±45° and ±135°",
+    },
+    "scale": {
+        "polyN": "polynomial of degree N (poly1 to poly6) turning ADC counts into angle, with F-tests for "
+                 "the degree",
+    },
+    "turntable": {
+        "reversal": "zero, scale and axis errors from readings at azimuth pairs A and A + --rotation-deg, "
+                    "iterated against a reference tilt",
+    },
+}
+LOSSES = ("linear", "soft_l1", "huber", "cauchy")
+
+
+def _methods_text() -> str:
+    import textwrap
+
+    lines = ["methods per kind:"]
+    for kind in KINDS:
+        lines.append(f"  {kind}:")
+        for name, text in METHOD_HELP[kind].items():
+            lines += textwrap.wrap(text, 92, initial_indent=f"    {name:17s}", subsequent_indent=" " * 21)
+    return "\n".join(lines)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = add_command(sub, "calibrate", "fit a calibration model (MODEL.json) to a recorded run",
+                    description="Fit a calibration model to a dataset CSV and write it as MODEL.json "
+                                "(docs/models.md).\nThe dataset's columns per kind are in docs/datasets.md.\n\n"
+                                + _methods_text(),
+                    examples=[("tiltlab calibrate --kind stage --method kinematic --input seed000.csv "
+                              "--out model.json --bench bench.toml"),
+                              "tiltlab calibrate --kind scale --method poly2 --input adc.csv --out scale.json"])
+    p.add_argument("--kind", required=True, choices=KINDS, help="what was calibrated")
+    p.add_argument("--method", required=True, help="the method, one of those listed above for the kind")
+    p.add_argument("--input", required=True, metavar="FILE", help="the dataset CSV")
+    p.add_argument("--out", required=True, metavar="FILE", help="MODEL.json to write")
+    p.add_argument("--rotation-deg", type=finite("an angle in degrees"), default=None, metavar="DEG",
+                   help="turntable only: the rotation between the two positions of a pair (default: 180)")
+    p.add_argument("--loss", choices=LOSSES, default=None,
+                   help="kinematic only: robust loss; soft_l1, huber or cauchy weigh outlying points down "
+                        "(default: linear, plain least squares)")
+    p.add_argument("--bench", default=None, metavar="FILE",
+                   help="stage only: the bench the data came from: a bench configuration (.toml, its hardware "
+                        "table) or a scenario file (.json, its bench section) (default: the seed 000 bench, "
+                        "said on stderr and recorded in the model)")
+    p.set_defaults(handler=calibrate)
+
+    p = add_command(sub, "correct", "apply a model to readings: corrected tilt with its uncertainty",
+                    description="Apply MODEL.json to a dataset CSV of readings; the output keeps every input "
+                                "column and adds the\ncorrected values and their expanded uncertainties "
+                                "(columns per kind in docs/datasets.md).",
+                    examples=["tiltlab correct --model model.json --input readings.csv --out corrected.csv"])
+    p.add_argument("--model", required=True, metavar="FILE", help="MODEL.json from `tiltlab calibrate`")
+    p.add_argument("--input", required=True, metavar="FILE", help="the readings CSV")
+    p.add_argument("--out", required=True, metavar="FILE", help="the CSV to write")
+    p.set_defaults(handler=correct)
+
+    p = add_command(sub, "level", "stage commands that give wanted table tilts (stage models only)",
+                    description="For each wanted table tilt in the targets CSV (columns target_x_deg, "
+                                "target_y_deg;\ndocs/datasets.md) write the stage commands that produce it, by "
+                                "the model's inverse.",
+                    examples=["tiltlab level --model model.json --targets targets.csv --out commands.csv"])
+    p.add_argument("--model", required=True, metavar="FILE", help="a stage MODEL.json")
+    p.add_argument("--targets", required=True, metavar="FILE", help="targets CSV")
+    p.add_argument("--out", required=True, metavar="FILE", help="the CSV of stage commands to write")
+    p.set_defaults(handler=level)
+
+
+def _refuse_options_that_do_not_apply(args: argparse.Namespace) -> None:
+    if args.rotation_deg is not None and args.kind != "turntable":
+        raise InputError(f"--rotation-deg applies to kind turntable only, not {args.kind!r}; leave it out")
+    if args.loss is not None and not (args.kind == "stage" and args.method == "kinematic"):
+        raise InputError(f"--loss applies to the stage method kinematic only, not {args.kind}/{args.method}; "
+                         "leave it out")
+    if args.bench is not None and args.kind != "stage":
+        raise InputError(f"--bench describes a bench of stacked stages; kind {args.kind!r} has none")
 
 
 def calibrate(args: argparse.Namespace) -> int:
     check_output_path(args.out)
     check_not_overwriting(args.out, input=args.input)
     method = get_method(args.kind, args.method)
+    _refuse_options_that_do_not_apply(args)
     ds = read_dataset(args.input, args.kind, method.fit_required, method.fit_optional)
-    options = FitOptions(rotation_deg=args.rotation_deg, loss=args.loss)
+    options = FitOptions(rotation_deg=180.0 if args.rotation_deg is None else args.rotation_deg,
+                         loss=args.loss or "linear",
+                         extra=stage_bench_options(args.kind, getattr(args, "bench", None)))
     with about(args.input):
         model = method.fit(ds.arrays(), options)
+    if args.kind == "stage":  # the table tilts the model has seen: `level` warns beyond them
+        arrays = ds.arrays()
+        model.fit["table_tilt_range_deg"] = {
+            axis: [float(min(arrays[f"ref_{axis}_deg"])), float(max(arrays[f"ref_{axis}_deg"]))] for axis in "xy"}
+    model.provenance = provenance(getattr(args, "command_line", "tiltlab calibrate"),
+                                  {"input": args.input, "bench": args.bench})
     write_model(args.out, model)
     stats = ", ".join(f"{c} rms {v['rms']:.4g}" for c, v in model.residuals.get("columns", {}).items())
     print(f"{args.kind}/{args.method}: fitted on {ds.n_rows} rows of {args.input}; {stats}; wrote {args.out}",
           file=sys.stderr)
+    if args.kind == "stage" and getattr(args, "bench", None) is None:
+        print(assumed_bench_note(), file=sys.stderr)
     for note in model.notes:
         print(f"  note: {note}", file=sys.stderr)
     return 0
+
+
+def assumed_bench_note() -> str:
+    from service.physics.stage import StageBench
+
+    return (f"  bench: none stated (--bench FILE): the seed 000 bench was assumed ({StageBench().describe()}); "
+            "the output records it")
+
+
+def stage_bench_options(kind: str, bench_path: str | None) -> dict:
+    """`--bench FILE` as fit options (empty without it: the methods then assume seed 000's and record so)."""
+    if bench_path is None:
+        return {}
+    if kind != "stage":
+        raise InputError(f"--bench describes a bench of stacked stages; kind {kind!r} has none")
+    from service.benchconfig import load_stage_bench
+
+    bench, source = load_stage_bench(bench_path)
+    return {"bench": bench, "bench_source": source}
 
 
 def correct(args: argparse.Namespace) -> int:
@@ -36,7 +167,7 @@ def correct(args: argparse.Namespace) -> int:
         method = get_method(model.kind, model.method)
     ds = read_dataset(args.input, model.kind, method.correct_required, method.correct_optional)
     out = method.correct(model, ds.arrays())
-    cols = {**ds.passthrough(exclude=out), **out}
+    cols: dict[str, Any] = {**ds.passthrough(exclude=out), **out}
     write_dataset(args.out, cols)
     print(f"{model.kind}/{model.method}: corrected {ds.n_rows} rows; wrote {args.out}", file=sys.stderr)
     return 0
@@ -49,17 +180,31 @@ def level(args: argparse.Namespace) -> int:
     if model.kind != "stage":
         raise InputError(f"{args.model}: level needs a stage model, this one is {model.kind!r}")
     with about(args.model):
-        method = get_method(model.kind, model.method)
+        method = levelling_method(model.kind, model.method)
     ds = read_dataset(args.targets, "stage", ("target_x_deg", "target_y_deg"))
     with about(args.targets):
         out = method.level(model, ds.arrays())
-    cols = {**ds.passthrough(exclude=out), **out}
+    _warn_outside_calibrated_range(model, ds, args.targets)
+    cols: dict[str, Any] = {**ds.passthrough(exclude=out), **out}
     write_dataset(args.out, cols)
     print(f"stage/{model.method}: stage commands for {ds.n_rows} targets; wrote {args.out}", file=sys.stderr)
     return 0
 
 
-def discrepancy(args: argparse.Namespace) -> int:
-    from service.discrepancy import cli as discrepancy_cli
-
-    return discrepancy_cli.run(args)
+def _warn_outside_calibrated_range(model, ds, targets_path: str) -> None:  # type: ignore[no-untyped-def]
+    """A target beyond the table tilts the model was fitted on is an extrapolation: say which rows."""
+    seen = model.fit.get("table_tilt_range_deg")
+    if not isinstance(seen, dict):
+        return
+    arrays = ds.arrays()
+    outside = []
+    for axis in "xy":
+        lo, hi = seen[axis]
+        values = arrays[f"target_{axis}_deg"]
+        outside += [i for i, v in enumerate(values) if not lo <= v <= hi]
+    if outside:
+        rows = sorted(set(outside))
+        shown = ", ".join(str(r + 1) for r in rows[:5]) + (", …" if len(rows) > 5 else "")
+        print(f"  warning: {targets_path}: {len(rows)} target(s) outside the calibrated table tilts "
+              f"(x {seen['x'][0]:g} to {seen['x'][1]:g}°, y {seen['y'][0]:g} to {seen['y'][1]:g}°), rows {shown}: "
+              "the commands there are extrapolated", file=sys.stderr)

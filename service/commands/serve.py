@@ -1,21 +1,194 @@
-"""`tiltlab serve`: run the service (database upgraded at start-up, simulated bench by default)."""
+"""`tiltlab serve`: check the settings, bind, reach the database, start, and only then announce.
+
+Every start-up failure is one line naming the setting and what to do: exit 2 when a setting can
+never work (port out of range, unknown host address, unwritable data directory, unusable bench
+scenario or database URL, credentials refused), exit 1 when the surroundings are at fault and
+may mend (port held by another program, database not answering within TILTLAB_DATABASE_WAIT_S).
+"""
 
 from __future__ import annotations
 
 import argparse
+import errno
+import logging
+import socket
 import sys
+from contextlib import asynccontextmanager
+from typing import Any
+
+from service.commands._args import add_command, port, seconds, speed
+from service.errors import InputError
+
+
+class StartupFailure(RuntimeError):
+    """The service cannot start for a reason outside its settings (exit 1)."""
+
+
+def _say(text: str) -> None:
+    print(f"tiltlab serve: {text}", file=sys.stderr, flush=True)
+
+
+def bind_socket(host: str, port: int) -> socket.socket:
+    """A listening-ready socket on host:port, or a one-line error naming --host/--port."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise InputError(f"--host {host} (TILTLAB_HOST): not an address of this machine ({exc.strerror}); "
+                         "give 127.0.0.1 for this computer only, or 0.0.0.0 for every network") from None
+    family, kind, proto, _, address = infos[0]
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+    except OSError as exc:
+        sock.close()
+        if exc.errno == errno.EADDRINUSE:
+            raise StartupFailure(f"--port {port} (TILTLAB_PORT): {host}:{port} is already in use by another "
+                                 "program; stop it, or choose another port with --port") from None
+        if exc.errno == errno.EACCES:
+            raise InputError(f"--port {port} (TILTLAB_PORT): this user may not listen on {host}:{port} "
+                             "(ports below 1024 need privileges); choose a port of 1024 or above") from None
+        if exc.errno == errno.EADDRNOTAVAIL:
+            raise InputError(f"--host {host} (TILTLAB_HOST): not an address of this machine; "
+                             "give 127.0.0.1, 0.0.0.0 or one of this machine's addresses") from None
+        raise StartupFailure(f"--host {host} --port {port}: cannot listen ({exc.strerror})") from None
+    sock.set_inheritable(True)
+    return sock
+
+
+def _prepare_database(settings: Any) -> None:
+    """Wait for the database (with back-off) and bring it to the current schema, before serving."""
+    from alembic.util.exc import CommandError
+
+    from service.storage.engine import make_engine
+    from service.storage.migrate import upgrade
+    from service.storage.reachable import DatabaseUnreachable, wait_for_database
+
+    engine = make_engine(settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms)
+    try:
+        wait_for_database(engine, settings.database_wait_s, _say)
+        try:
+            upgrade(engine)
+        except CommandError as exc:
+            raise InputError(f"TILTLAB_DATABASE_URL: the database's schema is not one this tiltlab knows ({exc}); "
+                             "it was written by a newer tiltlab: run that version, or restore a backup") from None
+    except DatabaseUnreachable as exc:
+        raise StartupFailure(str(exc)) from None
+    finally:
+        engine.dispose()
+
+
+class _StartupGuard(logging.Filter):
+    """Until start-up succeeds, the application's start-up traceback is ours to report in one line."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.failure: BaseException | None = None
+        self.active = True
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self.active and self.failure is not None:
+            return False
+        return True
+
+
+def _guard_lifespan(app: Any, guard: _StartupGuard) -> None:
+    inner = app.router.lifespan_context
+
+    @asynccontextmanager
+    async def guarded(a: Any):  # type: ignore[no-untyped-def]
+        entered = False
+        try:
+            async with inner(a) as state:
+                entered = True
+                yield state
+        except Exception as exc:
+            if not entered:
+                guard.failure = exc
+            raise
+
+    app.router.lifespan_context = guarded
 
 
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.api.app import create_app
-    from service.config import get_settings
+    from service.config import ensure_data_dir, get_settings
 
     settings = get_settings()
-    host = args.host or settings.host
-    port = args.port or settings.port
-    app = create_app(settings)  # refuses an unusable bench scenario or database URL before anything is said
-    print(f"tiltlab: serving on http://{host}:{port} (data in {settings.data_dir})", file=sys.stderr)
-    uvicorn.run(app, host=host, port=port, log_level="info")
-    return 0
+    # command-line options override the environment; validated like it (one line naming the setting)
+    overrides = {name: getattr(args, name, None)
+                 for name in ("host", "port", "database_wait_s", "sim_speed", "bench_config")}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if overrides:
+        settings = type(settings)(**overrides)
+    host, port = settings.host, settings.port
+    try:
+        ensure_data_dir(settings)
+        app = create_app(settings)  # refuses an unusable bench scenario or database URL
+        sock = bind_socket(host, port)
+    except StartupFailure as exc:
+        _say(str(exc))
+        return 1
+    try:
+        try:
+            _prepare_database(settings)
+        except StartupFailure as exc:
+            _say(str(exc))
+            return 1
+        guard = _StartupGuard()
+        _guard_lifespan(app, guard)
+        logging.getLogger("uvicorn.error").addFilter(guard)
+        announced: list[bool] = []
+
+        class _Server(uvicorn.Server):
+            async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+                try:
+                    await super().startup(sockets=sockets)
+                except SystemExit:  # the application failed to start; the guard holds why
+                    self.should_exit = True
+                    return
+                guard.active = False
+                shown = f"[{host}]" if ":" in host else host
+                _say(f"serving on http://{shown}:{port} (data in {settings.data_dir})")
+                announced.append(True)
+
+        server = _Server(uvicorn.Config(app, log_level="info", lifespan="on"))
+        try:
+            server.run(sockets=[sock])
+        except KeyboardInterrupt:  # Ctrl-C after a clean shutdown
+            if announced:
+                _say("stopped")
+                return 0
+            raise
+        if not announced:
+            failure = guard.failure
+            reason = f"{type(failure).__name__}: {failure}" if failure is not None else "the application did not start"
+            _say(f"start-up failed: {' '.join(reason.split())}")
+            return 2 if isinstance(failure, InputError) else 1
+        return 0
+    finally:
+        sock.close()
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = add_command(sub, "serve", "run the lab service: HTTP API and dashboard on a simulated or real bench",
+                    description="Run the lab service. Settings come from TILTLAB_* environment variables or "
+                                "the TOML file named\nby TILTLAB_CONFIG (docs/storage.md); the options below "
+                                "override them. Start-up failures\nare one line: exit 2 for a setting that "
+                                "cannot work, 1 when the surroundings are at fault.",
+                    examples=["tiltlab serve", "tiltlab serve --host 0.0.0.0 --port 8080",
+                              "tiltlab serve --bench-config bench.toml"])
+    p.add_argument("--host", default=None,
+                   help="address to listen on (default: TILTLAB_HOST, else 127.0.0.1: this computer only)")
+    p.add_argument("--port", type=port, default=None, help="TCP port (default: TILTLAB_PORT, else 8000)")
+    p.add_argument("--database-wait-s", type=seconds, default=None, metavar="SECONDS",
+                   help="how long to retry an unreachable database at start-up "
+                        "(default: TILTLAB_DATABASE_WAIT_S, else 30)")
+    p.add_argument("--sim-speed", type=speed, default=None, metavar="N",
+                   help="run the simulated bench N times faster than real time (default: TILTLAB_SIM_SPEED, else 1)")
+    p.add_argument("--bench-config", default=None, metavar="FILE",
+                   help="bench configuration (TOML) naming the instruments' ports "
+                        "(default: TILTLAB_BENCH_CONFIG, else the simulated stage bench)")
+    p.set_defaults(handler=run)

@@ -1,8 +1,8 @@
 """Model-discrepancy workflow: where a bench model and the measurement disagree, which effect of
-spec/models.md §5 is missing, and how much the gap shrinks when it is added.
+docs/models.md §5 is missing, and how much the gap shrinks when it is added.
 
 `stage_report(columns, ...)` and `scale_report(columns, ...)` run it on in-memory columns and
-return the JSON report (spec/datasets.md, `discrepancy`); `service.discrepancy.cli.run` is the
+return the JSON report (docs/datasets.md, `discrepancy`); `service.commands.discrepancy.run` is the
 `tiltlab discrepancy` command; `service.discrepancy.report.render_html` the report page.
 """
 

@@ -104,7 +104,7 @@ class Family:
         """Noise-free readings (N, A); a parameter missing from `params` means its effect-free value."""
         raise NotImplementedError
 
-    def magnitude(self, fit: "Fit", effect: str) -> dict:
+    def magnitude(self, fit: Fit, effect: str) -> dict:
         """The fitted size of an effect in its own units, with standard uncertainties."""
         raise NotImplementedError
 

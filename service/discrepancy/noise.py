@@ -31,13 +31,13 @@ def from_repeats(observed: np.ndarray, groups: np.ndarray | None) -> NoiseLevel 
     dof = int(np.sum(counts[counts > 1] - 1))
     if dof < MIN_REPEAT_DOF:
         return None
-    sig = []
+    per_axis = []
     for a in range(observed.shape[1]):
         col = observed[:, a]
         means = np.bincount(inv, weights=col) / counts
         ss = float(np.sum((col - means[inv]) ** 2))
-        sig.append(np.sqrt(ss / dof))
-    sig = np.array(sig)
+        per_axis.append(np.sqrt(ss / dof))
+    sig = np.array(per_axis)
     if np.any(sig <= 0):
         return None
     n_rep = int(np.sum(counts > 1))

@@ -7,30 +7,20 @@ where the disagreement was and why the workflow stopped.
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 
 import numpy as np
 
+from service.figures import new_figure, png_data_uri
 
-def _figure(w: float, h: float, rows: int = 1, cols: int = 1, **adjust):
-    """A bare Agg figure (no pyplot: nothing global, and a lighter import) with a grid of axes."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(w, h))
-    FigureCanvasAgg(fig)
-    axs = fig.subplots(rows, cols, squeeze=False)
-    if adjust:
-        fig.subplots_adjust(**adjust)
-    return fig, axs
+def _figure(w: float, h: float, rows: int = 1, cols: int = 1, **_margins):
+    """A grid of axes from the one figure helper (constrained layout: margins are its business)."""
+    return new_figure(rows, cols, (w, h), squeeze=False)
 
 
 def _png(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=72)
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+    return png_data_uri(fig)
 
 
 def _img(uri: str, alt: str) -> str:
@@ -43,8 +33,7 @@ def _labels(report: dict) -> list[str]:
 
 def _rms_figure(report: dict) -> str:
     labels = _labels(report)
-    rms = [report["baseline_rms"]] + [s["rms_after"] for s in report["steps"]]
-    rms = np.array(rms)
+    rms = np.array([report["baseline_rms"]] + [s["rms_after"] for s in report["steps"]])
     noise = np.array(report["noise_level"])
     fig, axs = _figure(6.5, 3.4, left=0.15, right=0.97, bottom=0.2, top=0.9)
     ax = axs[0, 0]
@@ -118,6 +107,13 @@ def _table(rows: list[list[str]], head: list[str]) -> str:
     return f"<table><tr>{h}</tr>{b}</table>"
 
 
+def _p(v) -> str:
+    """A p-value; one below the smallest double (computed as 0) is shown as the bound it is."""
+    if v is None:
+        return "—"
+    return "< 1e-300" if float(v) < 1e-300 else f"{float(v):.2g}"
+
+
 def _fmt(v) -> str:
     if v is None:
         return "—"
@@ -138,8 +134,8 @@ def render_html(report: dict, result, fam) -> str:
     """The whole page as one string (no external resources)."""
     unit = report["unit"]
     e = html.escape
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>tiltlab discrepancy: {e(report['kind'])}"
-             f"</title><style>{CSS}</style></head><body>"]
+    parts = [(f"<!doctype html><html><head><meta charset='utf-8'><title>tiltlab discrepancy: {e(report['kind'])}"
+             f"</title><style>{CSS}</style></head><body>")]
     parts.append(f"<h1>Where the {e(report['baseline'])} model and the measurement disagree</h1>")
     src = report.get("input", "")
     parts.append(f"<p>Data: <code>{e(str(src))}</code>, kind <b>{e(report['kind'])}</b>"
@@ -151,7 +147,7 @@ def render_html(report: dict, result, fam) -> str:
     for i, s in enumerate(report["steps"], 1):
         ev = s["evidence"]
         rows.append([str(i), s["effect"], s["summary"].split(": ", 1)[-1], _fmt(s["rms_before"]),
-                     _fmt(s["rms_after"]), f"{ev['test']} {ev['f_stat']:.3g}", f"{ev['p_value']:.2g}",
+                     _fmt(s["rms_after"]), f"{ev['test']} {ev['f_stat']:.3g}", _p(ev['p_value']),
                      f"{ev['alpha']:.2g}", f"{ev['delta_bic']:+.1f}"])
     if rows:
         parts.append(_table(rows, ["step", "effect", "fitted magnitude (± standard uncertainty)",
@@ -163,6 +159,10 @@ def render_html(report: dict, result, fam) -> str:
     parts.append(f"<p><b>Noise level</b> {e(_fmt(report['noise_level']))} {e(unit)} from the "
                  f"<b>{e(report['noise_source'])}</b>: {e(report['noise_detail'])}</p>")
     parts.append(f"<p><b>Final residual against the noise:</b> {e(report['final_vs_noise']['sentence'])}</p>")
+    if (bench := report.get("bench")) is not None:
+        parts.append(f"<p><b>Bench</b> ({e(bench['source'])}): upper {bench['upper_gear_ratio']:g}:1, lower "
+                     f"{bench['lower_gear_ratio']:g}:1, {bench['microsteps']} microsteps of {bench['step_angle_deg']:g}°; "
+                     f"worm periods {bench['worm_period_x_deg']:.6g}° / {bench['worm_period_y_deg']:.6g}°</p>")
 
     parts.append("<h2>Where they disagree</h2><p>Before the first step (strongest first):</p><ul>")
     parts += [f"<li>{e(w)}</li>" for w in report["where"]]
@@ -182,13 +182,13 @@ def render_html(report: dict, result, fam) -> str:
 
     parts.append("<h2>Candidates at each step</h2>")
     for i, s in enumerate(report["steps"], 1):
-        rows = [[c["effect"], _fmt(c.get("rms_after")), _fmt(c.get("f_stat")), _fmt(c.get("p_value")),
+        rows = [[c["effect"], _fmt(c.get("rms_after")), _fmt(c.get("f_stat")), _p(c.get("p_value")),
                  _fmt(c.get("delta_bic")), "yes" if c.get("significant") else c.get("error", "no")]
                 for c in s["evidence"]["candidates"]]
         parts.append(f"<details><summary>step {i}: {e(s['effect'])} chosen</summary>"
                      + _table(rows, ["candidate", f"RMS after [{unit}]", "statistic", "p", "ΔBIC", "significant"])
                      + "</details>")
-    rows = [[c["effect"], _fmt(c.get("rms_after")), _fmt(c.get("f_stat")), _fmt(c.get("p_value")),
+    rows = [[c["effect"], _fmt(c.get("rms_after")), _fmt(c.get("f_stat")), _p(c.get("p_value")),
              _fmt(c.get("delta_bic")), "yes" if c.get("significant") else c.get("error", "no")]
             for c in report["stop"]["candidates"]]
     if rows:
@@ -205,5 +205,11 @@ def render_html(report: dict, result, fam) -> str:
         parts.append("<ul>" + "".join(f"<li>{e(n)}</li>" for n in report["notes"]) + "</ul>")
     parts.append(f"<p style='font-size:80%'>Significance: extra-sum-of-squares test at level {report['alpha']:g} "
                  "per step, Bonferroni-corrected over the candidates of the step, and a BIC gain. Names of effects "
-                 "are those of spec/models.md §5.</p></body></html>")
+                 "are those of docs/models.md §5.</p>")
+    if (prov := report.get("provenance")):
+        from service.provenance import provenance_lines
+
+        parts.append("<h2>Provenance</h2><p style='font-size:80%'>"
+                     + "<br>".join(e(line) for line in provenance_lines(prov)) + "</p>")
+    parts.append("</body></html>")
     return "\n".join(parts)

@@ -155,7 +155,7 @@ def analyse_scale(columns: Mapping[str, np.ndarray], noise_sigma=None, alpha: fl
         if not s > 0:
             raise InputError(f"noise level must be positive, got {s}")
         noise = noise_mod.from_specification([s])
-    fam = ScalePoly(reading, ref, temp, 1.0 if noise is None else 1.0 / float(noise.sigma[0]))
+    fam = ScalePoly(reading, ref, temp, 1.0 if noise is None or noise.sigma is None else 1.0 / float(noise.sigma[0]))
     fam.noise_known = noise is not None
     skips = {}
     if temp is None:

@@ -7,10 +7,11 @@ from collections.abc import Mapping
 import numpy as np
 
 from service.discrepancy import noise as noise_mod
+from service.discrepancy.model import Family
 from service.discrepancy.stage_common import StageData, common_skips, largest_residuals, stage_structure
 from service.discrepancy.workflow import DEFAULT_ALPHA, Result, find_missing_effects, to_report
 from service.errors import InputError
-from service.physics.stage import StageBench
+from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
 
 def stage_noise(data: StageData, spec_sigma=None) -> noise_mod.NoiseLevel | None:
@@ -48,14 +49,19 @@ def _explain_drop(data: StageData):
 
 def analyse_stage(columns: Mapping[str, np.ndarray], sensor: str = "ref", baseline: str = "linear",
                   noise_sigma=None, bench: StageBench | None = None, alpha: float = DEFAULT_ALPHA,
-                  candidates: tuple[str, ...] | None = None) -> tuple[Result, object]:
+                  candidates: tuple[str, ...] | None = None, bench_source: str | None = None) -> tuple[Result, Family]:
     """Run the workflow on stage columns; returns the result and the fitted family (for the report)."""
     data = StageData.from_columns(columns, sensor, bench)
+    if bench is None and (mismatch := data.bench.pulse_mismatch(data.cmd_x_deg, data.cmd_y_deg)) is not None:
+        raise InputError(f"{mismatch}. The worm period and the pulse quantisation of the stage model depend on the "
+                         f"bench's hardware and none was stated ({data.bench.describe()} assumed): give the bench "
+                         "the data came from with --bench FILE")
     if len(data) < 6:
         raise InputError(f"{len(data)} rows: the discrepancy workflow needs at least 6 points for a baseline "
                          "and a test")
     noise = stage_noise(data, noise_sigma)
-    weights = np.ones(2) if noise is None else 1.0 / noise.sigma
+    weights = np.ones(2) if noise is None or noise.sigma is None else 1.0 / noise.sigma
+    fam: Family
     if baseline == "linear":
         from service.discrepancy.stage_linear import StageLinear
 
@@ -72,17 +78,14 @@ def analyse_stage(columns: Mapping[str, np.ndarray], sensor: str = "ref", baseli
     res = find_missing_effects(fam, cands, skips, noise or noise_mod.NoiseLevel(None, "final residual", np.inf, ""),
                                lambda r: stage_structure(data, r), alpha=alpha, explain_drop=_explain_drop(data))
     res.extra["where_largest"] = largest_residuals(data, res.fits[0].residuals)
-    res.extra["bench"] = {"upper_gear_ratio": data.bench.upper_gear_ratio,
-                          "lower_gear_ratio": data.bench.lower_gear_ratio,
-                          "pulse_x_deg": data.bench.pulse_x_deg, "pulse_y_deg": data.bench.pulse_y_deg,
-                          "worm_period_x_deg": data.bench.worm_period_x_deg,
-                          "worm_period_y_deg": data.bench.worm_period_y_deg}
+    res.extra["bench"] = data.bench.record(bench_source or (ASSUMED_BENCH_SOURCE if bench is None
+                                                            else "stated by the caller"))
     res.extra.update(getattr(fam, "report_extra", {}))
     return res, fam
 
 
 def stage_report(columns, sensor="ref", baseline="linear", noise_sigma=None, bench=None, alpha=DEFAULT_ALPHA,
-                 inputs: dict | None = None) -> tuple[dict, Result, object]:
-    res, fam = analyse_stage(columns, sensor, baseline, noise_sigma, bench, alpha)
-    rep = to_report(res, fam, {"sensor": sensor, "n_rows": len(fam.data), **(inputs or {})})
+                 inputs: dict | None = None, bench_source: str | None = None) -> tuple[dict, Result, Family]:
+    res, fam = analyse_stage(columns, sensor, baseline, noise_sigma, bench, alpha, bench_source=bench_source)
+    rep = to_report(res, fam, {"sensor": sensor, "n_rows": len(fam.observed), **(inputs or {})})
     return rep, res, fam

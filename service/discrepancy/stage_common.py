@@ -12,7 +12,7 @@ from service.discrepancy import stats
 from service.discrepancy.model import Block
 from service.physics.stage import StageBench
 
-# Candidate effects of spec/models.md §5 a stage bench model can lack, in a fixed order.
+# Candidate effects of docs/models.md §5 a stage bench model can lack, in a fixed order.
 STAGE_CANDIDATES = ("offaxis_coupling", "backlash", "periodic_error", "sensor_nonlinearity",
                     "temperature_drift", "time_drift")
 
@@ -47,10 +47,15 @@ class StageData:
 
     @classmethod
     def from_columns(cls, cols: Mapping[str, np.ndarray], sensor: str = "ref",
-                     bench: StageBench | None = None) -> "StageData":
-        g = lambda c: None if c not in cols else np.asarray(cols[c], dtype=float)  # noqa: E731
-        obs = np.column_stack([g(f"{sensor}_x_deg"), g(f"{sensor}_y_deg")])
-        return cls(sensor, g("stage_x_deg"), g("stage_y_deg"), obs, g("dir_x"), g("dir_y"), g("temp_c"),
+                     bench: StageBench | None = None) -> StageData:
+        def g(c: str) -> np.ndarray | None:
+            return None if c not in cols else np.asarray(cols[c], dtype=float)
+
+        def req(c: str) -> np.ndarray:
+            return np.asarray(cols[c], dtype=float)
+
+        obs = np.column_stack([req(f"{sensor}_x_deg"), req(f"{sensor}_y_deg")])
+        return cls(sensor, req("stage_x_deg"), req("stage_y_deg"), obs, g("dir_x"), g("dir_y"), g("temp_c"),
                    g("t_s"), g("point"), bench or StageBench())
 
     def __len__(self) -> int:
@@ -154,15 +159,16 @@ def stage_structure(data: StageData, resid: np.ndarray, alpha: float = 0.01) -> 
                 np.column_stack([np.ones_like(u), u, v]), r, rcond=None)[0]
             tests.append(stats.shape_test(base_r, list(_SHAPE_TERMS), terms, name, "deg", _SHAPE_WORDS))
         for st in ("x", "y"):
-            if data.both_directions(st):
-                t = stats.direction_test(r, data.dir(st), name, st, "deg")
+            d = data.dir(st)
+            if d is not None and data.both_directions(st):
+                t = stats.direction_test(r, d, name, st, "deg")
                 if t:
                     tests.append(t)
-        if data.temp_varies():
+        if data.temp_c is not None and data.temp_varies():
             t = stats.correlation_test(r, data.temp_c, name, "temp_c", "temperature", "K", "deg")
             if t:
                 tests.append(t)
-        if data.time_varies():
+        if data.t_s is not None and data.time_varies():
             t = stats.correlation_test(r, data.t_s / 3600.0, name, "t_s", "time", "h", "deg")
             if t:
                 tests.append(t)

@@ -16,6 +16,8 @@ stage scale to first order (they differ only through the off-axis coupling).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from service.calibration.benchfit import BenchModel, StagePoints, typical_scale
@@ -24,7 +26,7 @@ from service.discrepancy.stage_common import STAGE_SEPARABILITY_HINTS, StageData
 from service.discrepancy.stage_linear import stage_magnitude
 from service.errors import InputError
 from service.physics.effects import STAGE_EFFECTS
-from service.physics.stage import StageBench, StageGeometry, simulate_stage
+from service.physics.stage import StageGeometry, simulate_stage
 
 CANDIDATES = ("backlash", "periodic_error", "sensor_nonlinearity", "temperature_drift", "time_drift")
 
@@ -55,7 +57,7 @@ _GEOMETRY_EFFECTS = {"mounting_tilt", "axis_misalignment", "sensor_yaw", "non_or
 
 
 def detect_flip(data: StageData) -> str:
-    """How the sensor is mounted (spec §2: the measurement sensor may be upside down), from the slopes."""
+    """How the sensor is mounted (docs/models.md §2: the measurement sensor may be upside down), from the slopes."""
     if data.sensor != "meas":
         return "none"
     sx = np.polyfit(data.cmd_x_deg, data.observed[:, 0], 1)[0] if np.ptp(data.cmd_x_deg) > 0 else 1.0
@@ -81,8 +83,7 @@ class StageKinematic(Family):
         b = data.bench
         flip = detect_flip(data)
         temp_ref = float(np.mean(data.temp_c)) if data.temp_c is not None else b.temp_ref_c
-        self.bench = StageBench(b.upper_gear_ratio, b.lower_gear_ratio, b.step_angle_deg, b.microsteps,
-                                max(b.travel_deg, 90.0), flip, temp_ref)
+        self.bench = dataclasses.replace(b, travel_deg=max(b.travel_deg, 90.0), meas_flip=flip, temp_ref_c=temp_ref)
         cols = {"stage_x_deg": data.cmd_x_deg, "stage_y_deg": data.cmd_y_deg}
         for c in ("dir_x", "dir_y", "temp_c"):
             v = getattr(data, c)

@@ -29,6 +29,7 @@ from service.discrepancy.stage_common import (
     candidate_block,
     sensor_param_names,
 )
+from service.physics.stage import offaxis_error_deg
 
 ALREADY_IN_MODEL = {
     "zero_offset": "the map's translation terms (h13, h23) are the sensor's zero offsets",
@@ -105,10 +106,9 @@ class StageLinear(Family):
         if "offaxis_coupling" not in effects:
             return tx, ty
         c = p["offaxis_coupling"]
-        xa = np.radians(tx + c.get("level_x_deg", 0.0))
-        yb = np.radians(ty + c.get("level_y_deg", 0.0))
-        coupled = np.arcsin(np.clip(np.sin(xa) * np.cos(yb), -1.0, 1.0))
-        return np.degrees(xa + c.get("kappa", 1.0) * (coupled - xa)), np.degrees(yb)
+        xa = tx + c.get("level_x_deg", 0.0)
+        yb = ty + c.get("level_y_deg", 0.0)
+        return xa - c.get("kappa", 1.0) * offaxis_error_deg(xa, yb), yb
 
     def predict_params(self, effects, p):
         tx, ty = self.stage_angles(effects, p)
@@ -192,8 +192,7 @@ def stage_magnitude(fam, fit: Fit, effect: str) -> dict:
     if effect == "offaxis_coupling" and "kappa" in out:
         out["kappa"]["what"] = "1 = the stacked-stage geometry of seed 000 eq. (9)"
         x, y = fam.data.cmd_x_deg, fam.data.cmd_y_deg
-        tx, ty = np.radians(x), np.radians(y)
-        err = np.degrees(np.arcsin(np.sin(tx) * np.cos(ty)) - tx) * out["kappa"]["value"]
+        err = -offaxis_error_deg(x, y) * out["kappa"]["value"]
         out["peak_offaxis_error_deg"] = _entry(float(np.max(np.abs(err))), float(
             np.max(np.abs(err)) * out["kappa"]["uncertainty"] / max(abs(out["kappa"]["value"]), 1e-12)), "deg",
             "largest off-axis error of the x reading over the grid (seed 000 eq. 10)")

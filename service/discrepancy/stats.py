@@ -124,14 +124,14 @@ def nested_test(rss0: float, k0: int, rss1: float, k1: int, n_obs: int, alpha: f
         return Significance(0.0, max(p, 0), 0.0, max(dof1, 0), 1.0, alpha, 0.0, 0.0, "none")
     resid_var = rss1 / dof1
     known = noise_var is not None
-    if known and noise_var >= resid_var:
+    if noise_var is not None and noise_var >= resid_var:
         denom, df2, source = noise_var, noise_df, "noise level"
     else:
         denom, df2, source = resid_var, float(dof1), "residual of the extended model"
     drop = max(rss0 - rss1, 0.0)
     f = (drop / p) / denom if denom > 0 else math.inf
     pv = chi2_sf(f * p, p) if math.isinf(df2) else f_sf(f, p, df2)
-    scale = noise_var if known else 1.0
+    scale = noise_var if noise_var is not None else 1.0
     return Significance(drop, p, float(f), float(df2), pv, alpha,
                         bic(rss0 / scale, n_obs, k0, known), bic(rss1 / scale, n_obs, k1, known), source)
 
@@ -197,7 +197,7 @@ def shape_test(r: np.ndarray, names: list[str], terms: np.ndarray, axis: str, un
         fj, _, cj, _ = _ols_f(r, base, terms[:, j:j + 1])
         if fj > best_f:
             best, best_f, best_c, best_col = nm, fj, float(cj[0]), terms[:, j]
-    desc = (describe or {}).get(best, best)
+    desc = (describe or {}).get(best, best) if best is not None else ""
     span = float(np.ptp(best_c * best_col)) if best is not None else 0.0
     sentence = (f"{axis} residual follows {best} ({desc}): about {span:.3g} {unit} peak to peak over the grid"
                 if best is not None else f"{axis} residual: no smooth shape")

@@ -1,13 +1,13 @@
 """Fit the baseline, find where it disagrees with the data, name the missing effect, add it, repeat.
 
-Forward selection over the candidate effects of spec/models.md §5 that the baseline lacks.
+Forward selection over the candidate effects of docs/models.md §5 that the baseline lacks.
 At each step every remaining candidate is added in turn and refitted; a candidate counts
 when its extra-sum-of-squares test against the noise level passes at the Bonferroni-corrected
 level (alpha over the number of candidates tested in that step) *and* it lowers the BIC. The
 best of those (largest BIC gain) is named and kept. The loop ends when no candidate passes:
 the report then says "no further effect" instead of inventing one.
 
-Pure computation: no file I/O here (service.discrepancy.cli does that).
+Pure computation: no file I/O here (service.commands.discrepancy does that).
 """
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
     stop_reason = ""
     while remaining and len(steps) < max_steps:
         scores = []
-        tried: list[tuple[str, Fit, stats.Significance]] = []
+        tried: list[tuple[str, Fit | None, stats.Significance]] = []
         testable = []
         for e in remaining:
             k_new = current.k + sum(b.size for b in family.blocks(current.effects + (e,))) - sum(
@@ -157,7 +157,7 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
             tried.append((e, f1, sig))
             scores.append({"effect": e, "rms_after": f1.rms(), "magnitude": _safe_magnitude(family, f1, e),
                            **sig.as_dict()})
-        winners = [t for t in tried if t[1] is not None and t[2].significant]
+        winners = [(e, f, s) for e, f, s in tried if f is not None and s.significant]
         if not winners:
             stop_scores = scores
             stop_reason = _stop_sentence(tried, alpha, m)
@@ -232,7 +232,7 @@ def _rms(fit: Fit) -> list[float]:
 
 
 def to_report(res: Result, family: Family, inputs: dict | None = None) -> dict:
-    """The JSON report of spec/datasets.md (`discrepancy`), plus the evidence behind each step."""
+    """The JSON report of docs/datasets.md (`discrepancy`), plus the evidence behind each step."""
     steps = []
     for s in res.steps:
         mag = family.magnitude(s.after, s.effect)
@@ -252,6 +252,7 @@ def to_report(res: Result, family: Family, inputs: dict | None = None) -> dict:
             },
         })
     final = res.final
+    assert res.noise.sigma is not None  # the workflow sets it from the final residual when nothing else did
     sigma = [float(v) for v in np.atleast_1d(res.noise.sigma)]
     noise_var, noise_df = _noise_var(res.noise) if res.noise.source != "final residual" else (None, res.noise.df)
     rss_w_final = float(np.sum((final.residuals / np.asarray(sigma)) ** 2))
@@ -320,6 +321,7 @@ def conclusion(res: Result, steps: list[dict]) -> str:
         first = steps[0]["rms_before"]
         last = steps[-1]["rms_after"]
         gap = ", ".join(f"{a:.3g} → {b:.3g}" for a, b in zip(first, last))
+        assert res.noise.sigma is not None
         return (f"{chain}: RMS {gap} {res.unit} per axis (noise {', '.join(f'{s:.3g}' for s in np.atleast_1d(res.noise.sigma))} "
                 f"{res.unit}, from the {res.noise.source}); {res.stop_reason}")
     return f"the {res.baseline} baseline already describes the data: {res.stop_reason}"

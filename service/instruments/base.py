@@ -55,6 +55,8 @@ class DeviceCounters:
     resyncs: int = 0
     timeouts: int = 0
     reconnects: int = 0
+    # Good frames from an address (or controller axis) that no driver on the port owns.
+    wrong_address: int = 0
 
 
 @dataclass

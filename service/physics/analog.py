@@ -7,7 +7,7 @@ which is linear to far better than the ADC step over ±0.5 deg.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -18,11 +18,13 @@ ARCSEC_PER_RAD = 180.0 * 3600.0 / np.pi
 
 @dataclass(frozen=True)
 class AnalogSensor:
-    adc_bits: int = 12
-    full_scale_v: float = 5.0
-    range_arcsec: float = 3600.0  # ±0.5 deg over the full scale
-    null_counts: float = 2048.0  # output at the sensor's own null (VCC/2)
-    temp_ref_c: float = 20.0
+    """The ADC-read sensor's hardware; the one definition a scale scenario's `bench` is validated against."""
+
+    adc_bits: int = field(default=12, metadata={"ge": 8, "le": 24})
+    full_scale_v: float = field(default=5.0, metadata={"gt": 0, "le": 100})
+    range_arcsec: float = field(default=3600.0, metadata={"gt": 0, "le": 36_000})  # ±0.5 deg over the full scale
+    null_counts: float = field(default=2048.0, metadata={"ge": 0})  # output at the sensor's own null (VCC/2)
+    temp_ref_c: float = field(default=20.0, metadata={"ge": -50, "le": 150})
 
     @property
     def counts(self) -> int:

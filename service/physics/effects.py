@@ -1,4 +1,4 @@
-"""The one registry of physical effects (spec/models.md §5), per dataset kind.
+"""The one registry of physical effects (docs/models.md §5), per dataset kind.
 
 Every effect is a named group of parameters with units and allowed ranges. A scenario
 switches an effect on by naming it; parameters it leaves out take their default. The
@@ -66,7 +66,7 @@ def _per_sensor(fmt: str, unit: str, lo: float, hi: float, doc: str, sensors=("r
     return tuple(_p(fmt.format(s=s, a=a), unit, lo, hi, doc.format(s=s, a=a)) for s in sensors for a in axes)
 
 
-# --- stacked swing stages (seed 000, spec §2) ---------------------------------------------
+# --- stacked swing stages (seed 000, docs/models.md §2) ---------------------------------------------
 STAGE_EFFECTS: dict[str, Effect] = {
     e.name: e
     for e in (
@@ -92,7 +92,7 @@ STAGE_EFFECTS: dict[str, Effect] = {
         Effect("stage_scale", "stage angle per command differs from nominal: angle = (1 + k) * command",
                (_p("x", "1", -0.05, 0.05, "upper stage"), _p("y", "1", -0.05, 0.05, "lower stage"))),
         Effect("offaxis_coupling",
-               "the stacked-stage geometry of spec §2 (x = asin(sin θx cos θy)); geometry, so on by default; "
+               "the stacked-stage geometry of docs/models.md §2 (x = asin(sin θx cos θy)); geometry, so on by default; "
                "off only builds an idealised bench whose upper stage is decoupled",
                (_p("enabled", "bool", 0, 1, "", default=True),), default_on=True),
         Effect("backlash",
@@ -123,7 +123,7 @@ STAGE_EFFECTS: dict[str, Effect] = {
 
 _S_AXES = ("sx", "sy", "sz")
 
-# --- rotation about an inclined axis (seed 002, spec §3); sensor errors in the sine domain ---
+# --- rotation about an inclined axis (seed 002, docs/models.md §3); sensor errors in the sine domain ---
 ROTATION_EFFECTS: dict[str, Effect] = {
     e.name: e
     for e in (
@@ -155,7 +155,7 @@ SCALE_EFFECTS: dict[str, Effect] = {
     )
 }
 
-# --- inclinometer on a turntable (seed 004, spec §4) ------------------------------------------
+# --- inclinometer on a turntable (seed 004, docs/models.md §4) ------------------------------------------
 TURNTABLE_EFFECTS: dict[str, Effect] = {
     e.name: e
     for e in (
@@ -189,7 +189,7 @@ class EffectSet:
     on: frozenset[str] = frozenset()
 
     @classmethod
-    def from_mapping(cls, kind: str, effects: Mapping[str, Mapping[str, Any]] | None = None) -> "EffectSet":
+    def from_mapping(cls, kind: str, effects: Mapping[str, Mapping[str, Any]] | None = None) -> EffectSet:
         table = EFFECTS_BY_KIND[kind]
         effects = dict(effects or {})
         unknown = [n for n in effects if n not in table]
@@ -217,7 +217,7 @@ class EffectSet:
             return p.default if not eff.default_on else (False if p.is_bool else 0.0)
         return self.values[effect][param]
 
-    def with_only(self, names) -> "EffectSet":
+    def with_only(self, names) -> EffectSet:
         """A copy with only the named effects on (others at their 'absent' value)."""
         keep = {n: self.values[n] for n in names if n in self.on}
         table = EFFECTS_BY_KIND[self.kind]
@@ -235,6 +235,7 @@ def markdown_tables() -> str:
         for eff in table.values():
             for p in eff.params:
                 rng = "true/false" if p.is_bool else f"{p.lo:g} .. {p.hi:g}"
-                out.append(f"| `{eff.name}` | `{p.name}` | {p.unit} | {rng} | {str(p.default).lower() if p.is_bool else f'{p.default:g}'} |")
+                default = str(p.default).lower() if p.is_bool else f"{p.default:g}"
+                out.append(f"| `{eff.name}` | `{p.name}` | {p.unit} | {rng} | {default} |")
         out.append("")
     return "\n".join(out)

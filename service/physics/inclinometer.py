@@ -1,4 +1,4 @@
-"""What an inclinometer axis reads (spec §1): the angle between the axis and the horizontal."""
+"""What an inclinometer axis reads (docs/models.md §1): the angle between the axis and the horizontal."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def apply_reading_errors(
     noise_deg: np.ndarray | float = 0.0,
     resolution_deg: float = 0.0,
 ) -> np.ndarray:
-    """The error terms a real sensor adds to the geometric angle (spec §1, named in §5)."""
+    """The error terms a real sensor adds to the geometric angle (docs/models.md §1, named in §5)."""
     r = (
         true_deg * (1.0 + scale + scale_per_k * temp_delta_k)
         + quad_per_deg * true_deg**2

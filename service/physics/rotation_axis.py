@@ -1,12 +1,12 @@
-"""Triaxial inclinometer rotating about an axis inclined β to the horizontal (seed 002, spec §3).
+"""Triaxial inclinometer rotating about an axis inclined β to the horizontal (seed 002, docs/models.md §3).
 
 The outputs are the sines S of the axes' angles to the horizontal with seed 002's signs;
-spec §3's three output equations are the contract and are written here as they stand.
+docs/models.md §3's three output equations are the contract and are written here as they stand.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -15,9 +15,12 @@ from service.physics.effects import EffectSet
 
 @dataclass(frozen=True)
 class RotationBench:
-    alpha_deg: float
-    beta_deg: float
-    gamma_deg: float
+    """Orientation of the triaxial module on the inclined rotation axis; the one definition a rotation
+    scenario's `bench` is validated against."""
+
+    alpha_deg: float = field(metadata={"ge": -180, "le": 180})
+    beta_deg: float = field(metadata={"ge": -89, "le": 89})
+    gamma_deg: float = field(metadata={"ge": -45, "le": 45})
 
 
 def rotation_outputs(alpha_deg, beta_deg, gamma_deg, theta_deg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -23,7 +23,7 @@ def rz(a: float) -> np.ndarray:
 def plane_tilt(tilt_x: float, tilt_y: float) -> np.ndarray:
     """Orientation of a plane tilted so that it adds about (tilt_x, tilt_y) to (x, y) readings.
 
-    Same composition as the stacked stage of spec §2: R = Rx(-tilt_y) · Ry(tilt_x).
+    Same composition as the stacked stage of docs/models.md §2: R = Rx(-tilt_y) · Ry(tilt_x).
     """
     return rx(-tilt_y) @ ry(tilt_x)
 

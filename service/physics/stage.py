@@ -1,6 +1,6 @@
 """Forward model of two stacked swing stages carrying a reference and a measurement sensor.
 
-spec/models.md §2: the lower stage tilts the assembly about the table X axis (the stage y
+docs/models.md §2: the lower stage tilts the assembly about the table X axis (the stage y
 angle), the upper stage rides on it and tilts the table about Y (the stage x angle); ideal
 orientation R = Rx(-θy)·Ry(θx). Here every effect of §5 is a separately switchable term.
 
@@ -12,7 +12,7 @@ this is what keeps the model above a million points per second.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -21,19 +21,28 @@ from service.physics.inclinometer import apply_reading_errors, sensor_axes
 from service.physics.rotations import plane_tilt, rx, ry, rz, unit
 
 SENSORS = ("ref", "meas")
+ASSUMED_BENCH_SOURCE = "assumed (none stated): the seed 000 bench"
+PULSE_TOL = 0.01  # of a pulse: commands written with 6 decimals still read back as whole pulses
+COMMON_GEAR_RATIOS = (30, 45, 50, 60, 90, 100, 120, 144, 180, 200, 240, 250, 288, 300, 320, 360, 400, 450, 500, 540,
+                      600, 720, 900)
 
 
 @dataclass(frozen=True)
 class StageBench:
-    """Fixed hardware of a stacked swing-stage bench (seed 000 §1)."""
+    """Fixed hardware of a stacked swing-stage bench (seed 000 §1).
 
-    upper_gear_ratio: float = 320.0
-    lower_gear_ratio: float = 450.0
-    step_angle_deg: float = 1.8
-    microsteps: int = 8
-    travel_deg: float = 15.0
-    meas_flip: str = "none"
-    temp_ref_c: float = 20.0
+    The one definition of the stage hardware: the scenario files' `bench` section and the bench
+    configuration's `hardware` table are validated against these fields and bounds.
+    """
+
+    upper_gear_ratio: float = field(default=320.0, metadata={"gt": 1, "le": 10_000})
+    lower_gear_ratio: float = field(default=450.0, metadata={"gt": 1, "le": 10_000})
+    step_angle_deg: float = field(default=1.8, metadata={"gt": 0, "le": 90})
+    microsteps: int = field(default=8, metadata={"ge": 1, "le": 256})
+    travel_deg: float = field(default=15.0, metadata={"gt": 0, "le": 90})
+    # measurement sensor mounted upside down, turned about its "x" or "y" axis
+    meas_flip: str = field(default="none", metadata={"choices": ("none", "x", "y")})
+    temp_ref_c: float = field(default=20.0, metadata={"ge": -50, "le": 150})
 
     @property
     def pulse_x_deg(self) -> float:
@@ -58,12 +67,56 @@ class StageBench:
         px, py = self.pulse_x_deg, self.pulse_y_deg
         return np.rint(np.asarray(cmd_x_deg) / px) * px, np.rint(np.asarray(cmd_y_deg) / py) * py
 
-    def check_travel(self, cmd_x_deg, cmd_y_deg) -> None:
-        for name, c in (("stage_x_deg", cmd_x_deg), ("stage_y_deg", cmd_y_deg)):
-            c = np.asarray(c)
-            if c.size and np.max(np.abs(c)) > self.travel_deg + 1e-9:
-                raise ValueError(f"{name} {float(np.max(np.abs(c))):g} deg is beyond the stage travel of "
-                                 f"±{self.travel_deg:g} deg")
+    def describe(self) -> str:
+        """The hardware in the lab's words, for messages and reports."""
+        flip = "" if self.meas_flip == "none" else f", measurement sensor turned about {self.meas_flip}"
+        return (f"upper {self.upper_gear_ratio:g}:1, lower {self.lower_gear_ratio:g}:1, {self.step_angle_deg:g} deg "
+                f"steps at {self.microsteps} microsteps (pulses {self.pulse_x_deg:.9g} / {self.pulse_y_deg:.9g} deg), "
+                f"travel ±{self.travel_deg:g} deg{flip}")
+
+    def record(self, source: str) -> dict:
+        """The bench as models and reports record it: hardware, derived pulses and worm periods, and its source."""
+        return {**asdict(self), "pulse_x_deg": self.pulse_x_deg, "pulse_y_deg": self.pulse_y_deg,
+                "worm_period_x_deg": self.worm_period_x_deg, "worm_period_y_deg": self.worm_period_y_deg,
+                "source": source}
+
+    def pulse_mismatch(self, cmd_x_deg, cmd_y_deg) -> str | None:
+        """Why recorded commands are not whole pulses of this bench (None when they are).
+
+        A controller executes whole pulses, so commands recorded from a bench of this hardware
+        are whole multiples of its pulse; commands that are not came from another bench (other
+        gear ratio or microsteps) or were recorded as requested rather than executed.
+        """
+        for axis, name, cmd, pulse, ratio in (
+                ("x", "stage_x_deg", cmd_x_deg, self.pulse_x_deg, self.upper_gear_ratio),
+                ("y", "stage_y_deg", cmd_y_deg, self.pulse_y_deg, self.lower_gear_ratio)):
+            c = np.asarray(cmd, dtype=float)
+            frac = np.abs(c / pulse - np.rint(c / pulse))
+            off = np.flatnonzero(frac > PULSE_TOL)
+            if off.size == 0:
+                continue
+            i = int(off[0])
+            fits = sorted((g for g in COMMON_GEAR_RATIOS
+                           if np.all(_whole(c, self.step_angle_deg / (self.microsteps * g)))),
+                          key=lambda g: abs(np.log(g / ratio)))  # nearest to the assumed ratio first
+            fits_micro = [m for m in (1, 2, 4, 8, 16, 32, 64, 128, 256)
+                          if np.all(_whole(c, self.step_angle_deg / (m * ratio)))]
+            if fits:
+                hint = (f"they are whole pulses at gear ratio {', '.join(f'{g:g}:1' for g in fits[:4])} "
+                        f"({self.microsteps} microsteps of {self.step_angle_deg:g} deg)")
+            elif fits_micro:
+                hint = f"they are whole pulses at {', '.join(map(str, fits_micro[:3]))} microsteps ({ratio:g}:1)"
+            else:
+                hint = "they are whole pulses of no common gear ratio: they may be requested rather than executed angles"
+            return (f"{name} {c[i]:.9g} at row {i + 1} is {c[i] / pulse:.3f} pulses of the {axis} stage "
+                    f"({pulse:.9g} deg = {self.step_angle_deg:g} deg / ({self.microsteps} microsteps x {ratio:g}:1)), "
+                    f"not a whole number ({off.size} of {c.size} rows): the data likely come from a bench with "
+                    f"another gear ratio or microstepping; {hint}")
+        return None
+
+
+def _whole(cmd: np.ndarray, pulse: float) -> np.ndarray:
+    return np.abs(cmd / pulse - np.rint(cmd / pulse)) <= PULSE_TOL
 
 
 @dataclass(frozen=True)
@@ -80,7 +133,7 @@ class StageGeometry:
     coupling: bool
 
     @classmethod
-    def from_effects(cls, bench: StageBench, fx: EffectSet) -> "StageGeometry":
+    def from_effects(cls, bench: StageBench, fx: EffectSet) -> StageGeometry:
         r = np.radians
         g = lambda e, p: float(fx.get(e, p))  # noqa: E731
         desk = plane_tilt(r(g("mounting_tilt", "desk_x_deg")), r(g("mounting_tilt", "desk_y_deg")))
@@ -114,7 +167,7 @@ class StageGeometry:
     def readings_deg(self, theta_x: np.ndarray, theta_y: np.ndarray) -> dict[str, np.ndarray]:
         """Geometric (error-free) readings of every sensor axis and the true table tilt."""
         if not self.coupling:
-            theta_x = np.arcsin(np.clip(np.sin(theta_x) / np.cos(theta_y), -1.0, 1.0))
+            theta_x = np.radians(offaxis_inverse_deg(np.degrees(theta_x), np.degrees(theta_y), clip=True))
         vecs = [self.top @ self.seat[s] @ self.axes[s].T for s in SENSORS]
         vecs.append(self.top @ self.seat["ref"] @ self.truth_axes.T)
         v = np.concatenate(vecs, axis=1).T  # (6, 3)
@@ -189,14 +242,31 @@ def simulate_stage(bench: StageBench, fx: EffectSet, cmd_x_deg, cmd_y_deg, dir_x
     return out
 
 
-def offaxis_reading_deg(theta_x_deg, theta_y_deg):
-    """Ideal x reading of the stacked bench: asin(sin θx · cos θy) (seed 000 eq. 9)."""
+# --- seed 000 eqs. (9) and (10): the off-axis relation of the stacked stages, the one place it is written ---
+def offaxis_reading_deg(theta_x_deg, theta_y_deg) -> np.ndarray:
+    """Eq. (9): the x reading of an ideal stacked bench, asin(sin θx · cos θy).
+
+    The lower stage tilts the upper stage's axis with it, so the upper stage's angle reaches the
+    table's x tilt only scaled by cos θy; this is also the angle an uncoupled bench would need.
+    """
     tx, ty = np.radians(theta_x_deg), np.radians(theta_y_deg)
-    return np.degrees(np.arcsin(np.sin(tx) * np.cos(ty)))
+    return np.degrees(np.arcsin(np.clip(np.sin(tx) * np.cos(ty), -1.0, 1.0)))
 
 
-def offaxis_error_deg(theta_x_deg, theta_y_deg):
-    """Seed 000 eq. (10): error = θx - (signed) atan(sqrt(sin²θx cos²θy / (1 - sin²θx cos²θy)))."""
-    tx, ty = np.radians(theta_x_deg), np.radians(theta_y_deg)
-    q = np.sin(tx) ** 2 * np.cos(ty) ** 2
-    return np.degrees(tx - np.sign(tx) * np.arctan(np.sqrt(q / (1.0 - q))))
+def offaxis_error_deg(theta_x_deg, theta_y_deg) -> np.ndarray:
+    """Eq. (10): θx − asin(sin θx cos θy), the x reading lost to the lower stage's tilt.
+
+    Seed 000 prints it as θx − sign(θx)·atan(sqrt(q / (1 − q))) with q = sin²θx cos²θy: the same value.
+    """
+    return np.asarray(theta_x_deg, dtype=float) - offaxis_reading_deg(theta_x_deg, theta_y_deg)
+
+
+def offaxis_inverse_deg(x_reading_deg, theta_y_deg, *, clip: bool = False) -> np.ndarray:
+    """Eq. (9) inverted exactly: the upper-stage angle giving x reading X at lower angle θy, asin(sin X / cos θy).
+
+    NaN where no upper-stage angle gives X (|sin X / cos θy| > 1; the caller names those rows), or
+    with clip=True the nearest reachable angle (a starting point for a solver).
+    """
+    s = np.sin(np.radians(x_reading_deg)) / np.cos(np.radians(theta_y_deg))
+    s = np.clip(s, -1.0, 1.0) if clip else np.where(np.abs(s) > 1.0, np.nan, s)
+    return np.degrees(np.arcsin(s))

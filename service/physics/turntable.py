@@ -1,8 +1,8 @@
-"""Biaxial inclinometer on a turntable read in symmetric positions (seed 004, spec §4)."""
+"""Biaxial inclinometer on a turntable read in symmetric positions (seed 004, docs/models.md §4)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -11,16 +11,20 @@ from service.physics.effects import EffectSet
 
 @dataclass(frozen=True)
 class TurntableInclinometer:
-    """Parameters that calibration estimates (β, ε in degrees; m in reading units per arcsec)."""
+    """Parameters that calibration estimates (β, ε in degrees; m in reading units per arcsec).
 
-    beta_deg: float
-    epsilon_deg: float
-    m1: float
-    m2: float
+    The one definition a turntable scenario's `bench` is validated against (`default`: the
+    scenario's default where the physics has none).
+    """
+
+    beta_deg: float = field(metadata={"ge": -180, "le": 180})
+    epsilon_deg: float = field(metadata={"ge": -5, "le": 5, "default": 0.0})
+    m1: float = field(metadata={"gt": 0, "le": 1000})
+    m2: float = field(metadata={"gt": 0, "le": 1000})
 
 
 def turntable_readings(p: TurntableInclinometer, azimuth_deg, north_arcsec, east_arcsec, z1=0.0, z2=0.0):
-    """n1(A), n2(A) of spec §4 for axis tilt (ξ north, η east) in arcsec."""
+    """n1(A), n2(A) of docs/models.md §4 for axis tilt (ξ north, η east) in arcsec."""
     a = np.radians(np.asarray(azimuth_deg, dtype=float) + p.beta_deg)
     e = np.radians(p.epsilon_deg)
     xi, eta = np.asarray(north_arcsec, dtype=float), np.asarray(east_arcsec, dtype=float)

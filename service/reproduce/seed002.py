@@ -22,7 +22,7 @@ from service.calibration.methods_rotation import (
     wrap_deg,
 )
 from service.calibration.registry import FitOptions, get_method
-from service.calibration.uncertainty import propagate
+from service.calibration.uncertainty import coverage_factor, propagate
 from service.datasets import write_text_atomic
 from service.physics.rotation_axis import rotation_outputs
 from service.reproduce._report_kit import md_table, new_figure, save_figure
@@ -59,7 +59,7 @@ def _raw(sx, sy, sz):
 def parameter_errors(sc, n: int, solver=_fit_params, iodsra=iodsra_points) -> dict[str, np.ndarray]:
     """|error| of α, β, γ of both methods over n repeats of a scenario (one row per repeat)."""
     truth = np.array([sc.bench.alpha_deg, sc.bench.beta_deg, sc.bench.gamma_deg])
-    out = {"direct": [], "iodsra": []}
+    out: dict[str, list] = {"direct": [], "iodsra": []}
     for seed in range(n):
         c = run_scenario(sc, seed=seed).columns
         for name, pts in (("direct", direct_points(c["sx"], c["sy"])),
@@ -86,7 +86,7 @@ def _reduction_interval(err, rng, n_boot: int = 400) -> np.ndarray:
 
 def _sz_errors(sc, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """RMS error of Sz per point: from eq. (6) (direct) and as measured (IODSRA)."""
-    theta = None
+    theta = np.zeros(0)
     d, i = [], []
     for seed in range(n):
         run = run_scenario(sc, seed=seed)
@@ -100,7 +100,7 @@ def _sz_errors(sc, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _theta_errors_sim(sc, n: int) -> dict[str, np.ndarray]:
     """θ error at the simulation's 18 points, each method applying its own fitted parameters (§3, Table 2)."""
-    out = {"direct": [], "iodsra": [], "iodsra-combined": []}
+    out: dict[str, list] = {"direct": [], "iodsra": [], "iodsra-combined": []}
     for seed in range(n):
         cal = run_scenario(sc, seed=seed).columns
         meas = run_scenario(sc, seed=100_000 + seed)
@@ -114,7 +114,7 @@ def _theta_errors_sim(sc, n: int) -> dict[str, np.ndarray]:
 def bench_errors(preset: str, n: int) -> dict:
     """θ errors over ±180° on a §4 bench: calibrate on one run, measure another, n times."""
     sc = load_scenario(preset)
-    res = {"direct": [], "iodsra": [], "iodsra-combined": []}
+    res: dict[str, list] = {"direct": [], "iodsra": [], "iodsra-combined": []}
     theta = None
     example = {}
     for k in range(n):
@@ -180,7 +180,8 @@ def fig4_curves(alpha=30.0, beta=60.0, gamma=10.0, sigma_s=0.0005, sigma_param_d
 def combined_benefit(preset: str, n: int) -> dict:
     """RMS θ error of the paper's switch and of the combined estimator, same fitted parameters, over n repeats."""
     sc = load_scenario(preset)
-    sw, co = [], []
+    sw_list: list[np.ndarray] = []
+    co_list: list[np.ndarray] = []
     theta = None
     for k in range(n):
         cal = run_scenario(sc, seed=k).columns
@@ -188,9 +189,9 @@ def combined_benefit(preset: str, n: int) -> dict:
         theta = meas.truth["theta_true_deg"]
         a, b, g = fit_plane(iodsra_points(cal["sx"], cal["sy"], cal["sz"])[0])
         pts, _ = iodsra_points(meas.columns["sx"], meas.columns["sy"], meas.columns["sz"])
-        sw.append(wrap_deg(np.degrees(theta_switch(pts, a, b, g)) - theta))
-        co.append(wrap_deg(np.degrees(theta_combined(pts, a, b, g)) - theta))
-    sw, co = np.array(sw), np.array(co)
+        sw_list.append(wrap_deg(np.degrees(theta_switch(pts, a, b, g)) - theta))
+        co_list.append(wrap_deg(np.degrees(theta_combined(pts, a, b, g)) - theta))
+    sw, co = np.array(sw_list), np.array(co_list)
     return {"theta": theta, "rms_switch": np.sqrt(np.mean(sw**2, axis=0)), "rms_combined": np.sqrt(np.mean(co**2, axis=0)),
             "max_switch": np.max(np.abs(sw)), "max_combined": np.max(np.abs(co))}
 
@@ -307,12 +308,13 @@ def run(out_dir: Path) -> dict:
             rows.append([f"{t:.0f}"] + [f"{b['example'][n][1]['theta_deg'][j]:.3f} ({b['errors'][n][0, j]:+.3f})"
                                         for n in ("iodsra", "iodsra-combined", "direct")]
                         + [f"{b['example']['iodsra'][1]['u_theta_deg'][j]:.3f}"])
-        return md_table(["standard θ / deg", "IODSRA (error)", "combined (error)", "direct (error)", "IODSRA U(k=2)"], rows)
+        return md_table(["standard θ / deg", "IODSRA (error)", "combined (error)", "direct (error)", "IODSRA U (95 %)"], rows)
 
     def params_row(preset):
         m = benches[preset]["example"]["iodsra"][0]
         sc = benches[preset]["scenario"]
-        return [preset] + [f"{m.value(n):.3f} ± {2 * m.std(n):.3f} (true {t:g})"
+        k = float(coverage_factor(m.fit["dof"]))
+        return [preset] + [f"{m.value(n):.3f} ± {k * m.std(n):.3f} (true {t:g})"
                            for n, t in zip(("alpha_deg", "beta_deg", "gamma_deg"),
                                            (sc.bench.alpha_deg, sc.bench.beta_deg, sc.bench.gamma_deg))]
 
@@ -334,37 +336,37 @@ def run(out_dir: Path) -> dict:
     md = [
         "# Seed 002: direct method against IODSRA, and the rotation angle over ±180°",
         "",
-        "Rerun of seed 002 §3 (simulation) and §4 (dividing-head experiments) on the simulated benches "
+        ("Rerun of seed 002 §3 (simulation) and §4 (dividing-head experiments) on the simulated benches "
         "`seed002-sim`, `seed002-b55`, `seed002-b75` with `tiltlab calibrate --kind rotation --method "
         "direct|iodsra|iodsra-combined`. α, β, γ come from the least-squares plane of eq. (10) through the points "
         "(both methods alike); the methods differ in Sz (eq. 6 with Sz ≥ 0 against the measured Sz with the 45° "
-        "rule) and, for `iodsra-combined`, in how θ is taken from eqs. (7)-(9).",
+        "rule) and, for `iodsra-combined`, in how θ is taken from eqs. (7)-(9)."),
         "",
         "## §3 simulation: parameter errors (the paper's Table 1)",
         "",
-        f"α = -23°, β = 75°, γ = 3.2°, 18 evenly spaced points over ±70°, normal noise σ = 2.5e-4 (0.025 % of the "
+        (f"α = -23°, β = 75°, γ = 3.2°, 18 evenly spaced points over ±70°, normal noise σ = 2.5e-4 (0.025 % of the "
         f"full-scale sine) on Sx, Sy, Sz; {N_SIM} repeats. Mean absolute errors in degrees; reduction = 1 - "
-        "MAE(IODSRA) / MAE(direct), with a 95 % bootstrap interval over the repeats.",
+        "MAE(IODSRA) / MAE(direct), with a 95 % bootstrap interval over the repeats."),
         "",
         md_table(["parameter", "MAE direct / deg", "MAE IODSRA / deg", "reduction (95 % interval)", "paper"], table1),
         "",
-        "The paper's Table 1 (the MAE values themselves) did not survive the conversion of the text; only the "
-        "reductions are quoted in its prose. Its simulation leaves out three details, read here as follows:",
+        ("The paper's Table 1 (the MAE values themselves) did not survive the conversion of the text; only the "
+        "reductions are quoted in its prose. Its simulation leaves out three details, read here as follows:"),
         "",
-        "* **Range of the 18 points.** \"均匀分布的18个样本点\" gives no range. The direct method's Sz ≥ 0 rule breaks "
+        ("* **Range of the 18 points.** \"均匀分布的18个样本点\" gives no range. The direct method's Sz ≥ 0 rule breaks "
         "where the true Sz changes sign, at θ ≈ ±78° for this geometry, and the paper says its baseline reached only "
-        "±70°; so the 18 points are taken evenly over ±70°.",
-        "* **The direct method's sign of Sz.** The text that gives the rule is cut after \"直接假定Sz为非负值, "
-        "因为由式(5)可知, 当cosθ\"; read as: Sz = +sqrt(1 - Sx² - Sy²) always, which holds while cos θ > tan γ tan β.",
-        "* **How many points the solution uses.** §2.1 derives the 3-point solution (eqs. 11-13, lost) and says more "
+        "±70°; so the 18 points are taken evenly over ±70°."),
+        ("* **The direct method's sign of Sz.** The text that gives the rule is cut after \"直接假定Sz为非负值, "
+        "因为由式(5)可知, 当cosθ\"; read as: Sz = +sqrt(1 - Sx² - Sy²) always, which holds while cos θ > tan γ tan β."),
+        ("* **How many points the solution uses.** §2.1 derives the 3-point solution (eqs. 11-13, lost) and says more "
         "points reduce the error; the least-squares plane through all 18 points is used for both methods, and the "
-        "average of 3-point solutions is shown as a variant.",
+        "average of 3-point solutions is shown as a variant."),
         "",
         "Variants (MAE of α / β / γ in degrees, reductions in %):",
         "",
         md_table(["variant", "direct", "IODSRA", "reduction α / β / γ"], var_rows),
         "",
-        f"The α reduction matches the paper ({red[0]:.0f} % against 84 %). β and γ come out higher than its 83 % and "
+        (f"The α reduction matches the paper ({red[0]:.0f} % against 84 %). β and γ come out higher than its 83 % and "
         f"74 % ({red[1]:.0f} %, {red[2]:.0f} %) for every reasonable reading of the range; only a narrower arc "
         "(±50-60°) or the averaged 3-point solutions bring β and γ down to the low 80s, and no variant of the "
         "paper's method reaches 74 % for γ. Likely reasons: the paper's Table 1 comes from an unknown, possibly "
@@ -377,34 +379,34 @@ def run(out_dir: Path) -> dict:
         f"{no_rule.max():.0f} %. The paper's "
         "74-84 % lie between the two, so how much the rule gains in its simulation (it depends on whether its noise "
         "is constant in the sine, as read here, or in the angle) is one more detail the text does not fix. The "
-        "conclusion is the paper's: the measured Sz cuts the parameter errors several-fold.",
+        "conclusion is the paper's: the measured Sz cuts the parameter errors several-fold."),
         "",
         f"![Sz error]({f5})",
         "",
-        "Like the paper's Fig. 5: the direct method's Sz error grows sharply where Sz approaches 0 at the ends of "
-        "the arc (eq. 15), while IODSRA's is the added noise.",
+        ("Like the paper's Fig. 5: the direct method's Sz error grows sharply where Sz approaches 0 at the ends of "
+        "the arc (eq. 15), while IODSRA's is the added noise."),
         "",
-        "θ error at the 18 points with each method's own parameters (independent calibration and measurement runs, "
+        ("θ error at the 18 points with each method's own parameters (independent calibration and measurement runs, "
         "200 repeats): RMS "
         f"{rms_sim['direct']:.3f}° (direct), {rms_sim['iodsra']:.3f}° (IODSRA), {rms_sim['iodsra-combined']:.3f}° "
         f"(combined): IODSRA reduces the θ error by {100 * (1 - rms_sim['iodsra'] / rms_sim['direct']):.0f} % "
         f"({100 * (1 - rms45['iodsra'] / rms45['direct']):.0f} % within ±45°, where the direct method's Sz is "
         "not near zero). The paper's Table 2 gives 30-40 % for its limit-error estimate at several sensor accuracies "
         "(its values are lost); the simulation here, with the end points where the direct Sz fails included, "
-        "shows a larger gain.",
+        "shows a larger gain."),
         "",
         "## §4 experiments: θ over ±180° on the β = 55° and β = 75° benches (Tables 4-5, Fig. 6)",
         "",
-        f"Each bench is calibrated on one run of 25 angles (±180° at 15°) and measured on another, {N_BENCH} times "
+        (f"Each bench is calibrated on one run of 25 angles (±180° at 15°) and measured on another, {N_BENCH} times "
         "(different noise draws; the benches also carry constant zero offsets and scale errors of the outputs, as in "
         f"the presets). The direct method is calibrated on the points within ±{DIRECT_CAL_RANGE_DEG:.0f}° of its "
-        "range. Worst |error| per repeat: median / maximum over the repeats.",
+        "range. Worst |error| per repeat: median / maximum over the repeats."),
         "",
         md_table(["bench", "IODSRA worst error / deg", "combined worst error / deg",
                   "direct: arc where the median error stays within 0.4°",
                   "direct: worst error within ±70° / deg", "direct: worst error over ±180° / deg"], bench_rows),
         "",
-        f"IODSRA stays within 0.2° over the full ±180° on both benches in every repeat (largest error "
+        (f"IODSRA stays within 0.2° over the full ±180° on both benches in every repeat (largest error "
         f"{summary['seed002-b55']['iodsra_max']:.3f}° at β = 55°, {summary['seed002-b75']['iodsra_max']:.3f}° at "
         "β = 75°; the paper: within 0.2°). The direct method measures only the arc where the sensor normal points "
         "up (Sz > 0: |θ| < 84° at β = 55°, |θ| < 75° at β = 75° for γ = 4°) and is wrong by up to 180° beyond it, "
@@ -413,14 +415,14 @@ def run(out_dir: Path) -> dict:
         "accurate than IODSRA: its "
         "Sz from eq. (6) turns the outputs' zero and scale errors and noise into large Sz errors where Sz is small, "
         f"and those spoil its α, β, γ (more so at β = 75°, where Sz never exceeds {sz_max75:.2f}). Fitted parameters of "
-        "IODSRA (first repeat, U with k = 2):"
+        "IODSRA (first repeat, U = k·u with k from Student's t at the fit's degrees of freedom, 95 %):"),
         "",
         md_table(["bench", "α / deg", "β / deg", "γ / deg"], [params_row(p) for p in benches]),
         "",
-        "The U of the parameters comes from the fit's scatter only. The benches' constant zero and scale errors of "
+        ("The U of the parameters comes from the fit's scatter only. The benches' constant zero and scale errors of "
         "the outputs (about 1e-4 and 2e-4) bias α, β, γ by about 0.01°, more than that U and invisible in the "
         "scatter; the θ errors above include that bias, and the u_theta_deg the method reports covers noise and "
-        "fit only, not uncorrected output errors.",
+        "fit only, not uncorrected output errors."),
         "",
         f"![theta error]({f6})",
         "",
@@ -438,18 +440,18 @@ def run(out_dir: Path) -> dict:
         "",
         f"![equation errors]({f4})",
         "",
-        "With the paper's Fig. 4 inputs (α = 30°, β = 60°, γ = 10°, output error 0.0005, parameter errors 0.1°) the "
+        ("With the paper's Fig. 4 inputs (α = 30°, β = 60°, γ = 10°, output error 0.0005, parameter errors 0.1°) the "
         "composite error of eq. (7) peaks at ±90° (1/cos θ), those of eqs. (8) and (9) at 0° and ±180° (1/sin θ), "
         "eq. (8) far above eq. (9) (1/sin γ): hence the paper's rule, eq. (9) near ±90° and eq. (7) elsewhere "
         "(the crossover is at |θ| = 45° and 135°). The curves here combine the terms by root-sum-square "
-        "(GUM); the paper's eqs. (16)-(18) were lost, so its curves may add them linearly.",
+        "(GUM); the paper's eqs. (16)-(18) were lost, so its curves may add them linearly."),
         "",
-        "The combined estimator takes θ as the least-squares angle on the circle the outputs run on: "
+        ("The combined estimator takes θ as the least-squares angle on the circle the outputs run on: "
         "θ = atan2(S·e2, S·e1), where e2 is eq. (7) and e1 = cos γ·eq. (9) + sin γ·eq. (8). It never needs a switch, "
         f"and its output-noise error is that of the better equation at 0°, 90°, 180° and √2 smaller at the "
         f"crossovers; with the parameter terms of Fig. 4 included it gives {fig4['combined'][i45]:.3f}° at 45° "
         f"against {min(fig4['eq. (7)'][i45], fig4['eq. (9)'][i45]):.3f}° for the better single equation. On the "
-        "benches, same fitted parameters, 200 repeats:",
+        "benches, same fitted parameters, 200 repeats:"),
         "",
         "β = 55°:",
         "",
@@ -461,12 +463,12 @@ def run(out_dir: Path) -> dict:
         "",
         f"![combined estimator]({fc})",
         "",
-        "The combined estimator is better where the switch sits on a single equation at its weakest, around |θ| = "
+        ("The combined estimator is better where the switch sits on a single equation at its weakest, around |θ| = "
         "45° and 135°, by up to √2 in the noise part; elsewhere the two agree. Two more reasons to prefer it: the "
         "switch makes θ jump by the difference of the two equations when the choice flips, so at the crossovers the "
         "GUM linearisation of the switch does not hold (the Monte Carlo test in tests/calibration/test_rotation.py "
         "excludes ±5° around them for `iodsra` and needs no exclusion for `iodsra-combined`); and it uses all "
-        "three outputs at every angle. It is available as the method `iodsra-combined`.",
+        "three outputs at every angle. It is available as the method `iodsra-combined`."),
         "",
     ]
     write_text_atomic(out_dir / "seed002.md", "\n".join(md))

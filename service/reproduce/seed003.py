@@ -8,11 +8,13 @@ simulated seed003 bench.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from service.calibration.data import SEED003_TABLE1
 from service.calibration.registry import FitOptions, get_method
+from service.calibration.uncertainty import coverage_factor
 from service.datasets import read_dataset, write_text_atomic
 from service.reproduce._report_kit import md_table, new_figure, save_figure
 from service.scenarios import load_scenario, run_scenario
@@ -22,9 +24,9 @@ PAPER = {"a1_linear": 0.8756, "a1_quadratic": 0.884, "a2_quadratic": 1.93e-6, "r
 DESIGN_ARCSEC_PER_COUNT = 3600.0 / 4096.0  # ±0.5° over 0-5 V into 12 bits (seed 003 §2)
 
 
-def load_table1() -> dict[str, np.ndarray]:
+def load_table1() -> dict[str, Any]:
     ds = read_dataset(SEED003_TABLE1, "scale", [("ref_arcsec", "ref_deg"), "reading"])
-    cols = ds.arrays()
+    cols: dict[str, Any] = dict(ds.arrays())
     cols["t3a_reading"] = ds.text["t3a_reading"]
     cols["adc_hex"] = ds.text["adc_hex"]
     return cols
@@ -96,14 +98,16 @@ def _simulated_check(n_seeds: int = 300) -> dict:
     sc = load_scenario("seed003")
     k = sc.effects.scale_factor.k if sc.effects.scale_factor is not None else 0.0
     truth = DESIGN_ARCSEC_PER_COUNT / (1.0 + k)
-    c1, se, alarms = [], [], 0
+    c1_list: list[float] = []
+    se: list[float] = []
+    alarms = 0
     for seed in range(n_seeds):
         cols = run_scenario(sc, seed=seed).columns
         lin = get_method("scale", "poly1").fit(cols, FitOptions())
-        c1.append(lin.value("c1_arcsec_per_count"))
+        c1_list.append(lin.value("c1_arcsec_per_count"))
         se.append(lin.fit["standard_errors"]["c1_arcsec_per_count"])
         alarms += bool(lin.fit["f_test_next_degree"]["significant_at_5pct"])
-    c1 = np.array(c1)
+    c1 = np.array(c1_list)
     noise = sc.effects.noise
     return {"truth": truth, "mean": float(c1.mean()), "sd": float(c1.std(ddof=1)), "mean_se": float(np.mean(se)),
             "false_alarm": alarms / n_seeds, "n": n_seeds, "reading_sigma_counts": noise.reading_sigma_counts,
@@ -148,13 +152,14 @@ def run(out_dir: Path) -> dict:
     lin = main["lin"]
     c0 = lin.value("c0_arcsec")
     se = lin.fit["standard_errors"]
+    k95 = float(coverage_factor(lin.fit['dof']))
     md = [
         "# Seed 003: measuring unit of the electrolytic tilt sensor by least squares",
         "",
-        "Rerun of seed 003 §2.2 on its own Table 1 (shipped as `service/calibration/data/seed003_table1.csv`), with "
+        ("Rerun of seed 003 §2.2 on its own Table 1 (shipped as `service/calibration/data/seed003_table1.csv`), with "
         "`tiltlab calibrate --kind scale --method poly1|poly2`. The model is angle on reading (the direction the "
         "paper's measuring unit 0.8756 ″/count has and the direction `correct` uses); the paper's written direction, "
-        "reading on angle, is reported beside it.",
+        "reading on angle, is reported beside it."),
         "",
         "## Table 1 as shipped",
         "",
@@ -176,24 +181,25 @@ def run(out_dir: Path) -> dict:
             ["design value (3600″ / 4096 counts)", f"{DESIGN_ARCSEC_PER_COUNT:.5f} ″/count"],
         ]),
         "",
-        f"The data support the measuring unit to about three decimals: {main['a1_linear']:.3f} ± "
-        f"{2 * se['c1_arcsec_per_count']:.3f} ″/count (k = 2); the fifth decimal of 0.87787 is arithmetic, not "
+        (f"The data support the measuring unit to about three decimals: {main['a1_linear']:.3f} ± "
+        f"{k95 * se['c1_arcsec_per_count']:.3f} ″/count (95 %, k = {k95:.2f} from Student's t at "
+        f"{lin.fit['dof']} degrees of freedom); the fifth decimal of 0.87787 is arithmetic, not "
         "metrology. It agrees with the design value 0.8789 ″/count. The quadratic term is not needed "
-        f"(p = {main['f_p']:.2f}), which is the paper's conclusion too (\"倾角与所测量电压呈线性关系\").",
+        f"(p = {main['f_p']:.2f}), which is the paper's conclusion too (\"倾角与所测量电压呈线性关系\")."),
         "",
         f"![Table 1 fits]({fig_name})",
         "",
         "## The variants of the disputed cells, and the paper's figures",
         "",
-        "Each variant below is fitted with the same methods (angle on reading). ‖r‖ is the residual norm "
-        "sqrt(Σ r²) in arcsec, the quantity the paper's \"残余误差水平\" turns out to be.",
+        ("Each variant below is fitted with the same methods (angle on reading). ‖r‖ is the residual norm "
+        "sqrt(Σ r²) in arcsec, the quantity the paper's \"残余误差水平\" turns out to be."),
         "",
         md_table(["rows", "row 9 reference", "rows 3-4 counts", "poly1 c1 ″/count", "poly1 ‖r‖ ″", "poly2 c1",
                   "poly2 c2", "poly2 ‖r‖ ″", "F-test p"], [vrow(v) for v in variants]
                  + [["paper", "", "", f"{PAPER['a1_linear']}", f"{PAPER['resid_linear']}", f"{PAPER['a1_quadratic']}",
                      f"{PAPER['a2_quadratic']:.2e}", f"{PAPER['resid_quadratic']}", ""]]),
         "",
-        "With all 12 rows no reading of the disputed cells gives the paper's numbers: the slope stays at "
+        ("With all 12 rows no reading of the disputed cells gives the paper's numbers: the slope stays at "
         f"{min(v['a1_linear'] for v in variants if v['rows'] == 'all'):.4f}-"
         f"{max(v['a1_linear'] for v in variants if v['rows'] == 'all'):.4f} ″/count against the printed 0.8756, and "
         "the quadratic c2 comes out negative. Leaving out row 0, the \"start state\" (开始状态), with the angle column "
@@ -202,18 +208,18 @@ def run(out_dir: Path) -> dict:
         f"quadratic c1 = {paper_reading['a1_quadratic']:.3f} (0.884), c2 = {paper_reading['a2_quadratic']:.3e} "
         f"(printed 1.93 × 10⁻⁶: the magnitude matches; the sign is negative in the data, so the minus sign was "
         f"lost), ‖r‖ = {paper_reading['resid_quadratic']:.2f} (66.99). So the paper fitted angle on reading over "
-        "rows 1-11, and its residual level is the residual norm (what MATLAB's polyfit reports as normr).",
+        "rows 1-11, and its residual level is the residual norm (what MATLAB's polyfit reports as normr)."),
         "",
-        "We use all 12 rows (row 0 is a measurement like the others; its residual, "
+        ("We use all 12 rows (row 0 is a measurement like the others; its residual, "
         f"{lin.residuals['columns']['angle_arcsec']['values'][0]:.1f}″, is ordinary), the 2871″ angle column and "
         "the decimal readings: 0.87787 ″/count. The paper's 0.8756 differs from it by "
         f"{(main['a1_linear'] - PAPER['a1_linear']) / se['c1_arcsec_per_count']:.1f} standard errors, so the two "
-        "agree within the data's uncertainty; the choice of rows matters less than the scatter of the readings.",
+        "agree within the data's uncertainty; the choice of rows matters less than the scatter of the readings."),
         "",
         "## Check of the method on the simulated seed003 bench",
         "",
-        f"{sim['n']} simulated calibrations of the `seed003` preset (12 points over 0-3461″, reading noise "
-        f"{sim['reading_sigma_counts']:g} counts as in Table 1's residuals, reference {sim['ref_sigma_arcsec']:g}″):",
+        (f"{sim['n']} simulated calibrations of the `seed003` preset (12 points over 0-3461″, reading noise "
+        f"{sim['reading_sigma_counts']:g} counts as in Table 1's residuals, reference {sim['ref_sigma_arcsec']:g}″):"),
         "",
         md_table(["quantity", "value"], [
             ["true scale of the bench", f"{sim['truth']:.5f} ″/count"],
@@ -224,8 +230,8 @@ def run(out_dir: Path) -> dict:
              f"{100 * sim['false_alarm']:.1f} % of runs"],
         ]),
         "",
-        "The estimator is unbiased to well within its standard error, the reported standard error matches the "
-        "actual spread, and the F-test raises the alarm at about its nominal rate.",
+        ("The estimator is unbiased to well within its standard error, the reported standard error matches the "
+        "actual spread, and the F-test raises the alarm at about its nominal rate."),
         "",
     ]
     write_text_atomic(out_dir / "seed003.md", "\n".join(md))

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from service.calibration.registry import FitOptions, get_method
+from service.calibration.uncertainty import coverage_factor
 from service.datasets import write_text_atomic
 from service.reproduce._report_kit import md_table, new_figure, save_figure
 from service.scenarios import load_scenario, run_scenario
@@ -54,11 +55,11 @@ def run(out_dir: Path) -> dict:
     wrong = _fit(run181.columns, 180.0)
     right = _fit(run181.columns, 181.0)
     n_seeds = 200
-    shifts = []
+    shift_list = []
     for seed in range(n_seeds):
         c = run_scenario(parse_scenario(data), seed=seed).columns
-        shifts.append(_fit(c, 180.0).value("beta_deg") - _fit(c, 181.0).value("beta_deg"))
-    shifts = np.array(shifts)
+        shift_list.append(_fit(c, 180.0).value("beta_deg") - _fit(c, 181.0).value("beta_deg"))
+    shifts = np.array(shift_list)
 
     # the paper's initial-value iteration: from rough start values
     rough = {"beta_deg": 0.0, "m1_per_arcsec": 0.005, "m2_per_arcsec": 0.005, "epsilon_deg": 0.0}
@@ -89,33 +90,35 @@ def run(out_dir: Path) -> dict:
 
     def prow(n, fmt):
         v, u = base.value(n), base.std(n)
-        return [n, fmt.format(truth[n]), fmt.format(v), fmt.format(2 * u), f"{(v - truth[n]) / u:+.2f}"]
+        return [n, fmt.format(truth[n]), fmt.format(v), fmt.format(k95 * u), f"{(v - truth[n]) / u:+.2f}"]
+
+    k95 = float(coverage_factor(base.fit["dof"]))
 
     i180 = int(np.argmin(np.abs(PHI_SWEEP - 180.0)))
     rel_m = {d: 1.0 / np.cos(np.radians(d) / 2.0) - 1.0 for d in (1.0, 2.0, 5.0)}
     md = [
         "# Seed 004: inclinometer parameters from symmetric pairs, and the assumed rotation",
         "",
-        "Rerun of seed 004 §3 on the simulated `seed004` bench (Nivel210-like inclinometer in mrad, 0.2″ "
+        ("Rerun of seed 004 §3 on the simulated `seed004` bench (Nivel210-like inclinometer in mrad, 0.2″ "
         "resolution; 6 levellings × 8 pairs at azimuths 0°, 45°, 90°, 135° as in the paper's 16-image cycle; star "
         "reference 0.3″) with `tiltlab calibrate --kind turntable --method reversal [--rotation-deg φ]`: half-"
         "differences of each pair, the compensation (ξ̂, η̂) they give, and Gauss-Newton steps on β, m1, m2, ε "
         "against the star reference (eqs. 9-11). The paper's own readings (its Table 1) did not survive the "
-        "conversion of the text, so the bench is simulated with the parameters in the preset.",
+        "conversion of the text, so the bench is simulated with the parameters in the preset."),
         "",
         "## Calibration at the nominal φ = 180°",
         "",
-        md_table(["parameter", "bench truth", "fitted", "U (k = 2)", "(fit - truth) / u"],
+        md_table(["parameter", "bench truth", "fitted", f"U (95 %, k = {k95:.2f})", "(fit - truth) / u"],
                  [prow("beta_deg", "{:.4f}"), prow("m1_per_arcsec", "{:.7f}"), prow("m2_per_arcsec", "{:.7f}"),
                   prow("epsilon_deg", "{:.4f}")]),
         "",
-        f"Residual σ {base.fit['residual_sigma_arcsec']:.3f}″ on {base.fit['dof']} degrees of freedom (the star "
+        (f"Residual σ {base.fit['residual_sigma_arcsec']:.3f}″ on {base.fit['dof']} degrees of freedom (the star "
         f"reference's 0.3″ dominates; estimated reference scatter {base.fit['reference_sigma_arcsec']:.3f}″, "
         f"reading noise {base.fit['reading_sigma']:.5f} mrad from the half-sums). Converged in "
         f"{base.fit['iterations']} iterations from the linear start values; from the rough start values "
         "β = 0°, m = 0.005 mrad/″, ε = 0° (the paper's \"assign initial values\") in "
         f"{from_rough.fit['iterations']} iterations to the same values "
-        f"(largest difference {np.max(np.abs(from_rough.values(PARAMS) - base.values(PARAMS))):.1e}).",
+        f"(largest difference {np.max(np.abs(from_rough.values(PARAMS) - base.values(PARAMS))):.1e})."),
         "",
         f"![residuals]({res_name})",
         "",
@@ -128,20 +131,20 @@ def run(out_dir: Path) -> dict:
                    f"{vals['m2_per_arcsec'][i]:.7f}", f"{vals['epsilon_deg'][i]:.4f}", f"{rms[i]:.6f}"]
                   for i, p in enumerate(PHI_SWEEP) if abs(p - round(p)) < 1e-9]),
         "",
-        f"* β moves by {slope:+.6f}° per degree of assumed φ: a rotation error of 1° moves β by 0.5°, as seed 004 "
-        "§3.2 finds (\"旋转角度每改变1°,标定出来的安装角度β改变0.5°\").",
-        f"* m1 and m2 are symmetric about φ = 180° (they scale as 1/cos(Δφ/2): +{rel_m[1.0]:.1e} relative at "
+        (f"* β moves by {slope:+.6f}° per degree of assumed φ: a rotation error of 1° moves β by 0.5°, as seed 004 "
+        "§3.2 finds (\"旋转角度每改变1°,标定出来的安装角度β改变0.5°\")."),
+        (f"* m1 and m2 are symmetric about φ = 180° (they scale as 1/cos(Δφ/2): +{rel_m[1.0]:.1e} relative at "
         f"Δφ = 1°, +{rel_m[2.0]:.1e} at 2°, +{rel_m[5.0]:.1e} at 5°), and ε does not move (spread "
         f"{np.ptp(vals['epsilon_deg']):.1e}°), the paper's other two observations. Reading its lost eq. (14) as "
         "\"sum of the squared relative scale-factor errors below 10⁻⁶\", the condition holds up to "
-        f"Δφ ≈ {2 * np.degrees(np.arccos(1 / (1 + np.sqrt(0.5e-6)))):.1f}°, consistent with its 2° statement.",
-        f"* The residuals are the same for every assumed φ (rms {rms.min():.9f}″ to {rms.max():.9f}″): the data "
+        f"Δφ ≈ {2 * np.degrees(np.arccos(1 / (1 + np.sqrt(0.5e-6)))):.1f}°, consistent with its 2° statement."),
+        (f"* The residuals are the same for every assumed φ (rms {rms.min():.9f}″ to {rms.max():.9f}″): the data "
         "cannot tell β from φ. Only β + φ/2 and m·sin(φ/2) enter the half-differences, so a pair rotation of "
         "180° + Δ is indistinguishable from β + Δ/2 with m·cos(Δ/2). The method therefore holds φ at the assumed "
-        "value (a fixed parameter in MODEL.json) and says so in the model's notes instead of fitting it.",
-        f"* For the same reason the corrected axis tilt is the same whichever φ is assumed, as long as calibration "
+        "value (a fixed parameter in MODEL.json) and says so in the model's notes instead of fitting it."),
+        (f"* For the same reason the corrected axis tilt is the same whichever φ is assumed, as long as calibration "
         f"and use assume the same one: `correct` on these pairs differs by at most {spread_corr:.1e}″ across the "
-        "sweep. β itself is only wrong by Δφ/2 if it is used outside the pair geometry.",
+        "sweep. β itself is only wrong by Δφ/2 if it is used outside the pair geometry."),
         "",
         "## A turntable that really turns 181°",
         "",
@@ -151,9 +154,9 @@ def run(out_dir: Path) -> dict:
                   ["φ = 181° (the truth)", f"{right.value('beta_deg'):.4f}", f"{right.value('m1_per_arcsec'):.7f}",
                    f"{right.fit['residual_sigma_arcsec']:.4f}"]]),
         "",
-        f"Over {n_seeds} simulated calibrations the β shift between the two assumptions is "
+        (f"Over {n_seeds} simulated calibrations the β shift between the two assumptions is "
         f"{shifts.mean():.9f}° ± {shifts.std():.1e}°: exactly half the rotation error, for every noise draw, with "
-        "nothing in the residuals to reveal it (true β = 32.5°).",
+        "nothing in the residuals to reveal it (true β = 32.5°)."),
         "",
     ]
     write_text_atomic(out_dir / "seed004.md", "\n".join(md))

@@ -6,14 +6,20 @@ allowed names and ranges, the JSON Schema in docs/ and the error messages share 
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import typing
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeAlias
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, model_validator
 
 from service.errors import InputError
+from service.physics.analog import AnalogSensor
 from service.physics.effects import EFFECTS_BY_KIND
+from service.physics.rotation_axis import RotationBench
+from service.physics.stage import StageBench
+from service.physics.turntable import TurntableInclinometer
 
 PRESET_DIR = Path(__file__).parent / "presets"
 
@@ -40,10 +46,40 @@ def _effects_model(kind: str) -> type[BaseModel]:
     return model
 
 
-StageEffects = _effects_model("stage")
-RotationEffects = _effects_model("rotation")
-ScaleEffects = _effects_model("scale")
-TurntableEffects = _effects_model("turntable")
+def hardware_model(name: str, hardware: type, **run_fields: Any) -> type[BaseModel]:
+    """A scenario's `bench` section as a strict model of a physics hardware dataclass.
+
+    Field names, types, defaults and bounds (the fields' metadata) are the dataclass's own, so the
+    hardware is defined once, in service.physics; `run_fields` adds what a scenario says about the
+    run rather than the hardware.
+    """
+    hints = typing.get_type_hints(hardware)
+    fields: dict[str, Any] = {}
+    for f in dataclasses.fields(hardware):
+        meta = dict(f.metadata)
+        typ: Any = hints[f.name]
+        if "choices" in meta:
+            typ = Literal[tuple(meta.pop("choices"))]
+        default = f.default if f.default is not dataclasses.MISSING else meta.pop("default", ...)
+        meta.pop("default", None)
+        fields[f.name] = (Annotated[typ, Field(**meta)] if meta else typ, default)
+    return create_model(name, __base__=_Strict, **fields, **run_fields)
+
+
+if TYPE_CHECKING:  # built at import time from the registries; a type checker sees them as any model
+    StageEffects: TypeAlias = Any
+    RotationEffects: TypeAlias = Any
+    ScaleEffects: TypeAlias = Any
+    TurntableEffects: TypeAlias = Any
+    StageBenchSpec: TypeAlias = Any
+    RotationBenchSpec: TypeAlias = Any
+    ScaleBenchSpec: TypeAlias = Any
+    TurntableBenchSpec: TypeAlias = Any
+else:
+    StageEffects = _effects_model("stage")
+    RotationEffects = _effects_model("rotation")
+    ScaleEffects = _effects_model("scale")
+    TurntableEffects = _effects_model("turntable")
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 MAX_AXIS_VALUES = 100_000  # values of one grid axis
@@ -68,16 +104,19 @@ class AxisRange(_Strict):
         return self
 
     def size(self) -> int:
-        return self.count if self.count is not None else int(round(abs(self.stop - self.start) / self.step)) + 1
+        if self.count is not None:
+            return self.count
+        assert self.step is not None  # the validator requires exactly one of them
+        return int(round(abs(self.stop - self.start) / self.step)) + 1
 
     def values(self) -> list[float]:
         import numpy as np
 
         if self.count is not None:
             return [float(v) for v in np.linspace(self.start, self.stop, self.count)]
-        n = int(round(abs(self.stop - self.start) / self.step)) + 1
+        assert self.step is not None
         sign = 1.0 if self.stop >= self.start else -1.0
-        return [float(self.start + sign * i * self.step) for i in range(n)]
+        return [float(self.start + sign * i * self.step) for i in range(self.size())]
 
 
 Axis = Annotated[list[Finite], Field(min_length=1, max_length=MAX_AXIS_VALUES)] | AxisRange
@@ -112,14 +151,8 @@ class Environment(_Strict):
     temp_period_h: Annotated[float, Field(gt=0, le=1000)] = 24.0
 
 
-class StageBenchSpec(_Strict):
-    upper_gear_ratio: Annotated[float, Field(gt=1, le=10_000)] = 320.0
-    lower_gear_ratio: Annotated[float, Field(gt=1, le=10_000)] = 450.0
-    step_angle_deg: Annotated[float, Field(gt=0, le=90)] = 1.8
-    microsteps: Annotated[int, Field(ge=1, le=256)] = 8
-    travel_deg: Annotated[float, Field(gt=0, le=90)] = 15.0
-    meas_flip: Literal["none", "x", "y"] = "none"
-    temp_ref_c: Annotated[float, Field(ge=-50, le=150)] = 20.0
+if not TYPE_CHECKING:
+    StageBenchSpec = hardware_model("StageBenchSpec", StageBench)
 
 
 class StageGrid(_Strict):
@@ -141,15 +174,13 @@ class _ScenarioBase(_Strict):
 class StageScenario(_ScenarioBase):
     kind: Literal["stage"]
     bench: StageBenchSpec = StageBenchSpec()
-    effects: StageEffects = Field(default_factory=StageEffects)  # type: ignore[valid-type]
+    effects: StageEffects = Field(default_factory=StageEffects)
     grid: StageGrid
     environment: Environment = Environment()
 
 
-class RotationBenchSpec(_Strict):
-    alpha_deg: Annotated[float, Field(ge=-180, le=180)]
-    beta_deg: Annotated[float, Field(ge=-89, le=89)]
-    gamma_deg: Annotated[float, Field(ge=-45, le=45)]
+if not TYPE_CHECKING:
+    RotationBenchSpec = hardware_model("RotationBenchSpec", RotationBench)
 
 
 class RotationGrid(_Strict):
@@ -160,17 +191,14 @@ class RotationGrid(_Strict):
 class RotationScenario(_ScenarioBase):
     kind: Literal["rotation"]
     bench: RotationBenchSpec
-    effects: RotationEffects = Field(default_factory=RotationEffects)  # type: ignore[valid-type]
+    effects: RotationEffects = Field(default_factory=RotationEffects)
     grid: RotationGrid
 
 
-class ScaleBenchSpec(_Strict):
-    adc_bits: Annotated[int, Field(ge=8, le=24)] = 12
-    full_scale_v: Annotated[float, Field(gt=0, le=100)] = 5.0
-    range_arcsec: Annotated[float, Field(gt=0, le=36_000)] = 3600.0
-    null_counts: Annotated[float, Field(ge=0)] = 2048.0
-    start_arcsec: Annotated[float, Field(ge=-18_000, le=18_000)] = -1780.0
-    temp_ref_c: Annotated[float, Field(ge=-50, le=150)] = 20.0
+if not TYPE_CHECKING:
+    ScaleBenchSpec = hardware_model(
+        "ScaleBenchSpec", AnalogSensor,
+        start_arcsec=(Annotated[float, Field(ge=-18_000, le=18_000)], -1780.0))  # where the run starts, not hardware
 
 
 class ScaleGrid(_Strict):
@@ -181,18 +209,16 @@ class ScaleGrid(_Strict):
 class ScaleScenario(_ScenarioBase):
     kind: Literal["scale"]
     bench: ScaleBenchSpec = ScaleBenchSpec()
-    effects: ScaleEffects = Field(default_factory=ScaleEffects)  # type: ignore[valid-type]
+    effects: ScaleEffects = Field(default_factory=ScaleEffects)
     grid: ScaleGrid
     environment: Environment = Environment()
 
 
-class TurntableBenchSpec(_Strict):
-    beta_deg: Annotated[float, Field(ge=-180, le=180)]
-    epsilon_deg: Annotated[float, Field(ge=-5, le=5)] = 0.0
-    m1: Annotated[float, Field(gt=0, le=1000)]
-    m2: Annotated[float, Field(gt=0, le=1000)]
-    rotation_deg: Annotated[float, Field(ge=90, le=270)] = 180.0
-    reading_unit: str = "mrad"
+if not TYPE_CHECKING:
+    TurntableBenchSpec = hardware_model(
+        "TurntableBenchSpec", TurntableInclinometer,
+        rotation_deg=(Annotated[float, Field(ge=90, le=270)], 180.0),  # the run's pair geometry, not the sensor
+        reading_unit=(str, "mrad"))
 
 
 class AxisTilt(_Strict):
@@ -211,7 +237,7 @@ class TurntableGrid(_Strict):
 class TurntableScenario(_ScenarioBase):
     kind: Literal["turntable"]
     bench: TurntableBenchSpec
-    effects: TurntableEffects = Field(default_factory=TurntableEffects)  # type: ignore[valid-type]
+    effects: TurntableEffects = Field(default_factory=TurntableEffects)
     grid: TurntableGrid
 
 
@@ -219,7 +245,7 @@ class ScenarioFile(BaseModel):
     """A tiltlab scenario (one of four kinds, told apart by `kind`)."""
 
     model_config = ConfigDict(title="tiltlab scenario")
-    root: Annotated[Union[StageScenario, RotationScenario, ScaleScenario, TurntableScenario],
+    root: Annotated[StageScenario | RotationScenario | ScaleScenario | TurntableScenario,
                     Field(discriminator="kind")]
 
 
@@ -324,6 +350,6 @@ def json_schema() -> dict:
     schema.pop("required", None)
     schema.update({k: v for k, v in root.items() if k != "title"})
     schema["description"] = (
-        "A tiltlab scenario: bench parameters, per-effect magnitudes (names of spec/models.md §5 with "
+        "A tiltlab scenario: bench parameters, per-effect magnitudes (names of docs/models.md §5 with "
         "units in the parameter names or descriptions), the point grid, environment and random seed.")
     return schema

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from service import columns
 from service.physics.analog import AnalogSensor, simulate_scale
 from service.physics.effects import EffectSet
 from service.physics.rotation_axis import RotationBench, simulate_rotation
@@ -22,13 +23,6 @@ from service.scenarios.model import (
     axis_values,
     effects_dict,
 )
-
-# Column order of each kind's dataset as written by `tiltlab simulate`.
-STAGE_COLUMNS = ("point", "stage_x_deg", "stage_y_deg", "dir_x", "dir_y", "ref_x_deg", "ref_y_deg",
-                 "meas_x_deg", "meas_y_deg", "temp_c", "t_s")
-ROTATION_COLUMNS = ("point", "theta_ref_deg", "sx", "sy", "sz")
-SCALE_COLUMNS = ("point", "ref_arcsec", "reading")
-TURNTABLE_COLUMNS = ("cycle", "azimuth_deg", "n1_a", "n2_a", "n1_b", "n2_b", "ref_north_arcsec", "ref_east_arcsec")
 
 
 @dataclass
@@ -78,20 +72,21 @@ def stage_sequence(scenario: StageScenario, rng: np.random.Generator) -> tuple[n
     """Commanded (x, y) in visiting order and each row's grid-point index."""
     xs = np.array(axis_values(scenario.grid.x_deg))
     ys = np.array(axis_values(scenario.grid.y_deg))
-    gx, gy, gi = [], [], []
+    px: list[float] = []
+    py: list[float] = []
+    pi: list[int] = []
     for j, y in enumerate(ys):
-        row = range(len(xs))
+        row = list(range(len(xs)))
         if scenario.grid.order == "serpentine" and j % 2:
-            row = reversed(range(len(xs)))
+            row.reverse()
         for i in row:
-            gx.append(xs[i])
-            gy.append(y)
-            gi.append(j * len(xs) + i)
-    gx, gy, gi = np.array(gx), np.array(gy), np.array(gi)
+            px.append(xs[i])
+            py.append(y)
+            pi.append(j * len(xs) + i)
+    gx, gy, gi = np.array(px), np.array(py), np.array(pi)
     parts = []
     for _ in range(scenario.grid.repeats):
-        order = rng.permutation(len(gx)) if scenario.grid.order == "random" else np.arange(len(gx))
-        parts.append(order)
+        parts.append(rng.permutation(len(gx)) if scenario.grid.order == "random" else np.arange(len(gx)))
     order = np.concatenate(parts)
     return gx[order], gy[order], gi[order]
 
@@ -103,21 +98,22 @@ def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = 
     noise_rng = None if noiseless else rng
     if isinstance(scenario, StageScenario):
         cx, cy, point = stage_sequence(scenario, rng)
+        # The dataset records what the controller executes: whole pulses of this bench.
+        cx, cy = bench.quantise(cx, cy)
         t_s = np.arange(len(cx)) * scenario.grid.settle_s
         temp = temperature(scenario.environment, t_s)
         dx = move_directions(cx, -bench.travel_deg)
         dy = move_directions(cy, -bench.travel_deg)
         sim = simulate_stage(bench, fx, cx, cy, dx, dy, temp, t_s, noise_rng)
         cols = {"point": point, "stage_x_deg": cx, "stage_y_deg": cy, "dir_x": dx, "dir_y": dy,
-                **{k: sim[k] for k in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg")},
-                "temp_c": temp, "t_s": t_s}
+                **{k: sim[k] for k in columns.REF + columns.MEAS}, "temp_c": temp, "t_s": t_s}
         truth = {k: sim[k] for k in ("tilt_x_deg", "tilt_y_deg", "actual_x_deg", "actual_y_deg")}
         return SimulatedRun("stage", cols, truth, bench, fx)
     if isinstance(scenario, RotationScenario):
         theta = np.tile(np.array(axis_values(scenario.grid.theta_deg)), scenario.grid.repeats)
         sim = simulate_rotation(bench, fx, theta, noise_rng)
         cols = {"point": np.arange(len(theta)) % (len(theta) // scenario.grid.repeats),
-                **{k: sim[k] for k in ("theta_ref_deg", "sx", "sy", "sz")}}
+                **{k: sim[k] for k in columns.ROTATION_DATASET[1:]}}
         return SimulatedRun("rotation", cols, {"theta_true_deg": sim["theta_true_deg"]}, bench, fx)
     if isinstance(scenario, ScaleScenario):
         ref = np.tile(np.array(axis_values(scenario.grid.ref_arcsec)), scenario.grid.repeats)
@@ -135,6 +131,6 @@ def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = 
     east = np.repeat([c.east_arcsec for c in cyc], len(az))
     sim = simulate_turntable(bench, fx, azimuth, north, east, scenario.bench.rotation_deg,
                              scenario.grid.pair_interval_s, noise_rng)
-    cols = {"cycle": cycle, **{k: sim[k] for k in TURNTABLE_COLUMNS[1:]}}
+    cols = {"cycle": cycle, **{k: sim[k] for k in columns.TURNTABLE_DATASET[1:]}}
     truth = {"true_north_arcsec": sim["true_north_arcsec"], "true_east_arcsec": sim["true_east_arcsec"]}
     return SimulatedRun("turntable", cols, truth, bench, fx)

@@ -16,7 +16,8 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 
 from service.storage.errors import AppendOnlyViolation
 
-APPEND_ONLY_TABLES = ("calibration_records", "audit_events", "active_calibration_history", "settled_points")
+APPEND_ONLY_TABLES = ("calibration_records", "audit_events", "active_calibration_history", "settled_points",
+                      "record_approvals", "certificates", "feed_events")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 SAMPLE_SOURCES = ("calibration", "monitoring")
 GENESIS_SHA256 = "0" * 64
@@ -111,6 +112,15 @@ class CalibrationJob(Base):
     created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
     started_at: Mapped[dt.datetime | None]
     finished_at: Mapped[dt.datetime | None]
+    # Persisted at every step by the daemon, so a restart knows where a job stood.
+    points_done: Mapped[int] = mapped_column(default=0, server_default="0")
+    points_total: Mapped[int] = mapped_column(default=0, server_default="0")
+    phase: Mapped[str | None] = mapped_column(sa.String(16))
+    # Set when a daemon restart found the job running: it is then failed and may be resumed.
+    interrupted: Mapped[bool] = mapped_column(default=False, server_default=sa.false())
+    updated_at: Mapped[dt.datetime | None] = mapped_column(index=True, default=utc_now, onupdate=utc_now)
+    # The LIMS order the job works on, if any.
+    order_id: Mapped[int | None] = mapped_column(sa.ForeignKey("orders.id"), index=True)
 
 
 class CalibrationRecord(Base):
@@ -251,7 +261,174 @@ class SettledPoint(Base):
     created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
 
 
-_APPEND_ONLY_CLASSES = (CalibrationRecord, AuditEvent, ActiveCalibrationHistory, SettledPoint)
+class ApiToken(Base):
+    """A bearer token of the HTTP API: only its SHA-256 is kept; the token itself is shown once."""
+
+    __tablename__ = "api_tokens"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(sa.String(100), unique=True)
+    token_sha256: Mapped[str] = mapped_column(Sha256, unique=True)
+    scopes: Mapped[list[Any]]
+    created_at: Mapped[dt.datetime]
+    created_by: Mapped[str] = mapped_column(sa.String(100))
+    revoked_at: Mapped[dt.datetime | None]
+
+
+class IdempotencyKey(Base):
+    """A client's Idempotency-Key of a POST route, the hash of its body and the job it created."""
+
+    __tablename__ = "idempotency_keys"
+    __table_args__ = (sa.UniqueConstraint("route", "key"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    key: Mapped[str] = mapped_column(sa.String(200))
+    route: Mapped[str] = mapped_column(sa.String(100))
+    request_sha256: Mapped[str] = mapped_column(Sha256)
+    job_id: Mapped[int | None] = mapped_column(sa.ForeignKey("calibration_jobs.id"))
+    created_at: Mapped[dt.datetime]
+
+
+# ---------------------------------------------------------------- LIMS integration
+
+
+class ReferenceStandard(Base):
+    """One certificate of one of the lab's reference standards; a recalibration is a new row."""
+
+    __tablename__ = "reference_standards"
+    __table_args__ = (sa.UniqueConstraint("serial", "certificate_number"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(sa.String(100))
+    serial: Mapped[str] = mapped_column(sa.String(100))
+    model: Mapped[str | None] = mapped_column(sa.String(100))
+    certificate_number: Mapped[str] = mapped_column(sa.String(100))
+    certificate_sha256: Mapped[str] = mapped_column(Sha256)
+    calibrated_on: Mapped[dt.date] = mapped_column(sa.Date())
+    due_on: Mapped[dt.date] = mapped_column(sa.Date())
+    uncertainty: Mapped[str] = mapped_column(sa.Text)
+    created_at: Mapped[dt.datetime]
+    created_by: Mapped[str] = mapped_column(sa.String(100))
+    # The due date a standard.due_soon event was last sent for (once per due date).
+    due_soon_notified_on: Mapped[dt.date | None] = mapped_column(sa.Date())
+
+
+class Order(Base):
+    """A LIMS order: what the customer wants calibrated; its state follows its jobs, records and certificates."""
+
+    __tablename__ = "orders"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    lims_order_id: Mapped[str] = mapped_column(sa.String(100), unique=True)
+    item_serial: Mapped[str] = mapped_column(sa.String(100))
+    customer: Mapped[dict[str, Any]]
+    procedure: Mapped[str] = mapped_column(sa.String(40))
+    method: Mapped[str] = mapped_column(sa.String(80))
+    due_on: Mapped[dt.date | None] = mapped_column(sa.Date())
+    created_at: Mapped[dt.datetime]
+    created_by: Mapped[str] = mapped_column(sa.String(100))
+    idempotency_key: Mapped[str | None] = mapped_column(sa.String(200), unique=True)
+    request_sha256: Mapped[str] = mapped_column(Sha256)
+
+
+class RecordApproval(Base):
+    """A review, approval or rejection of a record: who, when, meaning, bound to the record's hash; chained."""
+
+    __tablename__ = "record_approvals"
+    __table_args__ = (sa.CheckConstraint(sa.text("decision IN ('approve', 'reject')"), name="decision"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    record_id: Mapped[int] = mapped_column(sa.ForeignKey("calibration_records.id"), index=True)
+    decision: Mapped[str] = mapped_column(sa.String(16))
+    # The meaning of the signature (21 CFR 11.50): "review" or "approval" for approve, "rejection" for reject.
+    meaning: Mapped[str] = mapped_column(sa.String(40))
+    note: Mapped[str] = mapped_column(sa.Text)
+    actor: Mapped[str] = mapped_column(sa.String(100))
+    at: Mapped[dt.datetime]
+    record_sha256: Mapped[str] = mapped_column(Sha256)
+    prev_sha256: Mapped[str] = mapped_column(Sha256, unique=True)
+    sha256: Mapped[str] = mapped_column(Sha256, unique=True)
+
+
+class Certificate(Base):
+    """Issued certificate bytes with their SHA-256: stored once, never regenerated."""
+
+    __tablename__ = "certificates"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    record_id: Mapped[int] = mapped_column(sa.ForeignKey("calibration_records.id"), unique=True)
+    number: Mapped[str] = mapped_column(sa.String(100), unique=True)
+    xml: Mapped[bytes] = mapped_column(sa.LargeBinary)
+    sha256: Mapped[str] = mapped_column(Sha256)
+    approval_id: Mapped[int] = mapped_column(sa.ForeignKey("record_approvals.id"))
+    replaces_id: Mapped[int | None] = mapped_column(sa.ForeignKey("certificates.id"))
+    issued_at: Mapped[dt.datetime]
+    issued_by: Mapped[str] = mapped_column(sa.String(100))
+
+
+class FeedEvent(Base):
+    """One event of the LIMS feed, written in the transaction of the change it reports (id order = commit order)."""
+
+    __tablename__ = "feed_events"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    type: Mapped[str] = mapped_column(sa.String(40), index=True)
+    at: Mapped[dt.datetime]
+    data: Mapped[dict[str, Any]]
+    # The audit event it reports (no foreign key: the audit log's own checks must see a removal).
+    audit_event_id: Mapped[int | None] = mapped_column(BigId)
+
+
+class WebhookEndpoint(Base):
+    __tablename__ = "webhook_endpoints"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    url: Mapped[str] = mapped_column(sa.Text)
+    events: Mapped[list[Any]]
+    # The signing secret ("whsec_" + base64), needed in clear to sign; shown to the client once.
+    secret: Mapped[str] = mapped_column(sa.String(100))
+    created_at: Mapped[dt.datetime]
+    created_by: Mapped[str] = mapped_column(sa.String(100))
+    disabled_at: Mapped[dt.datetime | None]
+
+
+class WebhookDelivery(Base):
+    """The durable outbox: one row per (endpoint, event), written with the event; retried until delivered."""
+
+    __tablename__ = "webhook_deliveries"
+    __table_args__ = (
+        sa.UniqueConstraint("endpoint_id", "event_id"),
+        sa.CheckConstraint(sa.text("state IN ('pending', 'delivered', 'failed')"), name="state"),
+        sa.Index(None, "state", "next_attempt_at"),
+    )
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    endpoint_id: Mapped[int] = mapped_column(sa.ForeignKey("webhook_endpoints.id"))
+    event_id: Mapped[int] = mapped_column(BigId, sa.ForeignKey("feed_events.id"))
+    state: Mapped[str] = mapped_column(sa.String(12))
+    attempts: Mapped[int]
+    next_attempt_at: Mapped[dt.datetime | None]
+    last_status_code: Mapped[int | None]
+    last_error: Mapped[str | None] = mapped_column(sa.Text)
+    delivered_at: Mapped[dt.datetime | None]
+    created_at: Mapped[dt.datetime]
+
+
+class WebhookAttempt(Base):
+    """The delivery log: every attempt with its answer."""
+
+    __tablename__ = "webhook_attempts"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    delivery_id: Mapped[int] = mapped_column(BigId, sa.ForeignKey("webhook_deliveries.id"), index=True)
+    at: Mapped[dt.datetime]
+    status_code: Mapped[int | None]
+    error: Mapped[str | None] = mapped_column(sa.Text)
+    duration_s: Mapped[float] = mapped_column(sa.Double())
+
+
+_APPEND_ONLY_CLASSES = (CalibrationRecord, AuditEvent, ActiveCalibrationHistory, SettledPoint, RecordApproval,
+                        Certificate, FeedEvent)
 
 
 @event.listens_for(Session, "before_flush")

@@ -13,7 +13,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from itertools import chain
 from operator import itemgetter
-from typing import NamedTuple
+from typing import Any, NamedTuple, cast
 
 import sqlalchemy as sa
 
@@ -140,7 +140,7 @@ def write_samples(engine: sa.Engine, rows: Iterable[Sample], *, batch_size: int 
     return total
 
 
-_t = SampleRow.__table__
+_t = cast(sa.Table, SampleRow.__table__)
 _SELECT_COLS = [_t.c[name] for name in COLUMNS]
 
 
@@ -233,6 +233,7 @@ def apply_retention(
         if policy == "drop":
             deleted += conn.execute(sa.delete(_t).where(scope)).rowcount
             continue
+        bucket: sa.ColumnElement[Any]
         if conn.dialect.name == "postgresql":
             bucket = sa.func.floor(_t.c.t_s / thin_interval_s)
         else:

@@ -67,6 +67,7 @@ def verify(engine: sa.Engine) -> VerifyReport:
         _verify_records(s, report)
         created = _verify_audit(s, report)
         _cross_check(s, report, created)
+        _verify_approvals_and_certificates(s, report)
     return report
 
 
@@ -129,3 +130,26 @@ def _cross_check(s: Session, report: VerifyReport, created: dict[int, str]) -> N
     for record_id in sorted(set(stored) - set(created)):
         report.problems.append(Problem("calibration_records", record_id, "missing",
             "no audit event records its creation"))  # fmt: skip
+
+
+def _verify_approvals_and_certificates(s: Session, report: VerifyReport) -> None:
+    """Approvals: content against hash and the chain; issued certificates: stored bytes against their SHA-256."""
+    import hashlib
+
+    from service.storage.canonical import normalise
+    from service.storage.lims import approval_content
+    from service.storage.models import Certificate, RecordApproval
+
+    prev = GENESIS_SHA256
+    for a in s.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):
+        if sha256_hex(normalise(approval_content(a))) != a.sha256:
+            report.problems.append(Problem("record_approvals", a.id, "tampered",
+                f"{a.decision} of record {a.record_id} by {a.actor}: content does not match its SHA-256"))  # fmt: skip
+        if a.prev_sha256 != prev:
+            report.problems.append(Problem("record_approvals", a.id, "broken_chain",
+                "predecessor hash does not match the previous approval; one was removed or altered"))  # fmt: skip
+        prev = a.sha256
+    for c in s.scalars(sa.select(Certificate).order_by(Certificate.id)):
+        if hashlib.sha256(c.xml).hexdigest() != c.sha256:
+            report.problems.append(Problem("certificates", c.id, "tampered",
+                f"certificate {c.number}: stored bytes do not match the SHA-256 recorded at issue"))  # fmt: skip

@@ -34,10 +34,10 @@ def running_service(data_dir: Path, **env: str) -> Iterator[str]:
             try:
                 httpx.get(f"{base}/health", timeout=2)
                 break
-            except httpx.TransportError:
+            except httpx.TransportError as exc:
                 if proc.poll() is not None or time.monotonic() > deadline:
                     out = proc.stdout.read() if proc.poll() is not None else ""
-                    raise AssertionError(f"service did not start: {out}")
+                    raise AssertionError(f"service did not start: {out}") from exc
                 time.sleep(0.2)
         yield base
     finally:

@@ -81,10 +81,14 @@ def seen(dom: str) -> _TextById:
 
 def test_dashboard_shows_the_live_bench(tmp_path):
     with running_service(tmp_path / "data") as base:
-        page = seen(browse(f"{base}/", tmp_path / "profile"))
-        now = httpx.get(f"{base}/tilt", timeout=5).json()
+        token = (tmp_path / "data" / "admin.token").read_text().strip()
+        page = seen(browse(f"{base}/#token={token}", tmp_path / "profile"))
+        t = httpx.get(f"{base}/tilt", timeout=5, headers={"Authorization": f"Bearer {token}"}).json()
+    now = {"ref_x_deg": t["raw"]["reference_sensor"]["x_deg"], "ref_y_deg": t["raw"]["reference_sensor"]["y_deg"],
+           "meas_x_deg": t["raw"]["measurement_sensor"]["x_deg"], "meas_y_deg": t["raw"]["measurement_sensor"]["y_deg"],
+           "stage_x_deg": t["stage"]["x_deg"], "stage_y_deg": t["stage"]["y_deg"]}
 
-    assert page.text["bench"] == "simulated:seed000" and page.text["schema"].strip()
+    assert page.text["bench"] == "sim-stage" and page.text["schema"].strip()
     assert "banner" in page.attrs and "hidden" in page.attrs["banner"], page.text.get("banner")
     for k in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg", "stage_x_deg", "stage_y_deg"):
         assert NUMBER.match(page.text[k].strip()), (k, page.text[k])

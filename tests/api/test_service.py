@@ -24,14 +24,18 @@ def test_health_reports_schema_at_head_and_the_bench(client):
     r = client.get("/health")
     assert r.status_code == 200
     body = r.json()
-    assert body["status"] == "ok" and body["schema_revision"] and body["bench"] == "simulated:seed000"
+    assert body["status"] == "ok" and body["schema_revision"] and body["bench"] == "sim-stage"
     assert body["database"].startswith("sqlite")
 
 
-def test_tilt_serves_readings_and_says_when_uncorrected(client):
-    body = client.get("/tilt").json()
-    assert abs(body["meas_x_deg"]) < 1.0 and abs(body["ref_y_deg"]) < 1.0  # stage at zero, mounting errors < 1 deg
-    assert body["tilt_x_deg"] is None and "no active calibration" in body["note"]
+def test_tilt_serves_readings_and_says_when_uncorrected(client, tmp_path):
+    assert client.get("/tilt").status_code == 401
+    token = (tmp_path / "admin.token").read_text().strip()
+    body = client.get("/tilt", headers={"Authorization": f"Bearer {token}"}).json()
+    raw = body["raw"]
+    # stage at zero, mounting errors < 1 deg
+    assert abs(raw["measurement_sensor"]["x_deg"]) < 1.0 and abs(raw["reference_sensor"]["y_deg"]) < 1.0
+    assert body["table_tilt"] is None and "no active calibration" in body["note"]
 
 
 def test_unknown_route_is_problem_json(client):
@@ -50,7 +54,9 @@ def test_bench_scenario_setting_chooses_the_simulated_bench(tmp_path):
     path = tmp_path / "my-bench.json"
     path.write_text(json.dumps(data))
     with TestClient(create_app(Settings(data_dir=tmp_path, bench_scenario=str(path)))) as c:
-        assert c.get("/health").json()["bench"] == "simulated:my-bench"
+        token = (tmp_path / "admin.token").read_text().strip()
+        benches = c.get("/benches", headers={"Authorization": f"Bearer {token}"}).json()["benches"]
+        assert benches[0]["simulated"]["scenario"] == "my-bench"
 
 
 def test_tiltlab_serve_starts_on_a_fresh_data_dir(tmp_path):

@@ -27,6 +27,7 @@ from service.errors import DegenerateDataError
 from service.physics.rotation_axis import rotation_outputs
 from service.scenarios import load_scenario, run_scenario
 from service.scenarios.model import parse_scenario
+from tests.calibration.gum import Z95, without_dof
 
 PARAMS = ["alpha_deg", "beta_deg", "gamma_deg"]
 
@@ -321,11 +322,11 @@ def test_gum_uncertainty_of_theta_matches_monte_carlo(name):
         model = m.fit(cal, FitOptions())
         meas = run_scenario(sc, seed=seed + 100).columns
         x = {c: meas[c] for c in ("sx", "sy", "sz")}
-        u_gum = m.correct(model, x)["u_theta_deg"] / 2.0
+        u_gum = m.correct(without_dof(model), x)["u_theta_deg"] / Z95
         p0 = model.values(PARAMS)
         theta0 = m.correct(model, x)["theta_deg"]
 
-        def f(p, xx):
+        def f(p, xx, theta0=theta0):
             pts, _ = m.points(xx)
             return wrap_deg(np.degrees(m.theta(pts, *np.radians(p))) - theta0)
 
@@ -352,8 +353,8 @@ def test_theta_uncertainty_covers_the_error_of_repeated_calibrations():
     for k in range(150):
         model = m.fit(run_scenario(sc, seed=k).columns, FitOptions())
         meas = run_scenario(sc, seed=10_000 + k)
-        out = m.correct(model, meas.columns)
+        out = m.correct(without_dof(model), meas.columns)
         errs.append(wrap_deg(out["theta_deg"] - meas.truth["theta_true_deg"]))
-        us.append(out["u_theta_deg"] / 2.0)
+        us.append(out["u_theta_deg"] / Z95)
     ratio = np.std(np.array(errs), axis=0) / np.mean(np.array(us), axis=0)
     assert 0.8 < np.median(ratio) < 1.2, ratio

@@ -18,6 +18,7 @@ from service.datasets import read_dataset
 from service.errors import DegenerateDataError, InputError
 from service.scenarios import load_scenario, run_scenario
 from service.scenarios.model import parse_scenario
+from tests.calibration.gum import Z95, without_dof
 
 
 def _table1():
@@ -214,7 +215,7 @@ def test_gum_uncertainty_of_the_angle_matches_monte_carlo(deg):
     names = coefficient_names(deg)
     for seed in (1, 2, 3):
         model = m.fit(run_scenario(sc, seed=seed).columns, FitOptions())
-        u_gum = m.correct(model, readings)["u_angle_arcsec"] / 2.0
+        u_gum = m.correct(without_dof(model), readings)["u_angle_arcsec"] / Z95
         rng = np.random.default_rng(seed)
         ps = rng.multivariate_normal(model.values(names), model.cov_of(names), size=20000)
         xs = readings["reading"] + rng.normal(0.0, model.state["reading_sigma_counts"], (20000, 5))
@@ -236,8 +237,8 @@ def test_angle_uncertainty_covers_the_error_of_repeated_calibrations():
     for k in range(300):
         model = m.fit(run_scenario(sc, seed=k).columns, FitOptions())
         meas = run_scenario(meas_sc, seed=50_000 + k).columns
-        out = m.correct(model, meas)
+        out = m.correct(without_dof(model), meas)
         errs.append(out["angle_arcsec"] - true_angle)
-        us.append(out["u_angle_arcsec"] / 2.0)
+        us.append(out["u_angle_arcsec"] / Z95)
     ratio = np.std(np.array(errs), axis=0) / np.mean(np.array(us), axis=0)
     assert np.all((ratio > 0.85) & (ratio < 1.15)), ratio

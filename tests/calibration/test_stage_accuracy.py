@@ -8,8 +8,8 @@ A few seeds only; docs/calibration-stage.md reports the means over 30 seeds
 import numpy as np
 import pytest
 
-from service.calibration.stage_common import offaxis_error_deg
-from service.calibration.stage_validation import evaluate_seed, offset_grid, oracle_ratios, paper_grid
+from service.physics.stage import offaxis_error_deg
+from service.reproduce.stage_validation import evaluate_seed, offset_grid, oracle_ratios, paper_grid
 from service.scenarios import load_scenario
 
 SEEDS = (101, 102, 103)

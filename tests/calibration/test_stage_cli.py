@@ -1,4 +1,4 @@
-"""The offline contract for stage methods through the real console script (spec/datasets.md)."""
+"""The offline contract for stage methods through the real console script (docs/datasets.md)."""
 
 import csv
 import subprocess

@@ -7,18 +7,22 @@ from hypothesis import strategies as st
 
 from service.calibration.projective import apply_projective, fit_projective
 from service.calibration.stage_common import (
-    decouple_x_deg,
     meas_forward,
     meas_inverse,
-    offaxis_error_deg,
-    offaxis_exact_inverse_deg,
     offaxis_forward_vs_exact_deg,
     offaxis_paper_forward_deg,
 )
 from service.errors import DegenerateDataError
 from service.physics import stage as physics_stage
 from service.physics.effects import EffectSet
-from service.physics.stage import StageBench, StageGeometry, simulate_stage
+from service.physics.stage import (
+    StageBench,
+    StageGeometry,
+    offaxis_error_deg,
+    offaxis_inverse_deg,
+    offaxis_reading_deg,
+    simulate_stage,
+)
 
 angle12 = st.floats(min_value=-12.0, max_value=12.0, allow_nan=False)
 angle15 = st.floats(min_value=-15.0, max_value=15.0, allow_nan=False)
@@ -44,8 +48,8 @@ def test_eq10_error_is_theta_x_minus_asin_sin_cos(tx, ty):
 @settings(max_examples=300, deadline=None)
 @given(angle12, angle12)
 def test_exact_inverse_inverts_the_forward_model(x_wanted, y):
-    x_cmd = offaxis_exact_inverse_deg(x_wanted, y)
-    assert abs(decouple_x_deg(x_cmd, y) - x_wanted) < 1e-10
+    x_cmd = offaxis_inverse_deg(x_wanted, y)
+    assert abs(offaxis_reading_deg(x_cmd, y) - x_wanted) < 1e-10
     # and the simulator's ideal geometry (commands not rounded to pulses) then reads the wanted x
     geo = StageGeometry.from_effects(StageBench(), EffectSet.from_mapping("stage", {}))
     r = geo.readings_deg(np.radians(np.atleast_1d(x_cmd)), np.radians([y]))
@@ -63,7 +67,7 @@ def test_paper_forward_form_vs_exact_inverse_on_the_12_deg_grid():
     assert 0.006 < d["max_abs_command_difference_deg"] < 0.0065
     assert abs(abs(d["at_x_deg"]) - 12) < 1e-12 and abs(abs(d["at_y_deg"]) - 12) < 1e-12
     # on the axes both forms agree exactly (eq. 10's error vanishes there)
-    assert offaxis_paper_forward_deg(7.0, 0.0) == offaxis_exact_inverse_deg(7.0, 0.0) == 7.0
+    assert offaxis_paper_forward_deg(7.0, 0.0) == offaxis_inverse_deg(7.0, 0.0) == 7.0
 
 
 def test_dlt_recovers_a_known_homography_exactly():

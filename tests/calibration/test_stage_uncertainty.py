@@ -6,8 +6,9 @@ import pytest
 from service.calibration.projective import apply_projective
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.stage_common import MEAS_NAMES, meas_inverse
-from service.calibration.stage_validation import Oracle, execute, paper_grid
+from service.reproduce.stage_validation import Oracle, execute, paper_grid
 from service.scenarios import load_scenario, run_scenario
+from tests.calibration.gum import Z95, without_dof
 
 N_MC = 4000
 
@@ -42,8 +43,10 @@ def test_kinematic_gum_matches_monte_carlo(seed):
     run, val = _readings(seed)
     m = get_method("stage", "kinematic")
     model = m.fit(run.columns, FitOptions())
-    out = m.correct(model, {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]})
-    u_gum = np.stack([out["u_tilt_x_deg"], out["u_tilt_y_deg"]]) / 2.0  # back to standard uncertainty
+    readings = {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]}
+    out = m.correct(model, readings)
+    std = m.correct(without_dof(model), readings)
+    u_gum = np.stack([std["u_tilt_x_deg"], std["u_tilt_y_deg"]]) / Z95  # back to standard uncertainty
     sign = np.asarray(model.state["meas_sign"])
 
     def tilt_of(q, a, b):
@@ -55,15 +58,15 @@ def test_kinematic_gum_matches_monte_carlo(seed):
     # the expanded uncertainty covers the true error (conservative: the reading noise taken from the fit
     # residual also holds the reference's own noise)
     err = np.stack([out["tilt_x_deg"] - val["tilt_x_deg"], out["tilt_y_deg"] - val["tilt_y_deg"]])
-    assert np.mean(np.abs(err) <= 2.0 * u_gum) >= 0.9
+    assert np.mean(np.abs(err) <= np.stack([out["u_tilt_x_deg"], out["u_tilt_y_deg"]])) >= 0.9
 
 
 def test_homography_gum_matches_monte_carlo():
     run, val = _readings(203)
     m = get_method("stage", "homography")
     model = m.fit(run.columns, FitOptions())
-    out = m.correct(model, {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]})
-    u_gum = np.stack([out["u_tilt_x_deg"], out["u_tilt_y_deg"]]) / 2.0
+    out = m.correct(without_dof(model), {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]})
+    u_gum = np.stack([out["u_tilt_x_deg"], out["u_tilt_y_deg"]]) / Z95
     names = [f"H2.{k}" for k in ("h11", "h12", "h13", "h21", "h22", "h23", "h31", "h32")]
 
     def tilt_of(q, a, b):
@@ -74,8 +77,9 @@ def test_homography_gum_matches_monte_carlo():
 
 
 def test_kinematic_fast_gum_equals_the_generic_propagation():
-    """correct's specialised propagation (zero/scale sensitivities from the reading's) = uncertainty.propagate."""
-    from service.calibration.uncertainty import propagate
+    """correct's specialised propagation (zero/scale sensitivities from the reading's) = uncertainty.propagate_gum,
+    degrees of freedom and coverage factors included."""
+    from service.calibration.uncertainty import propagate_gum
 
     cols = run_scenario(load_scenario("seed000"), seed=204).columns
     m = get_method("stage", "kinematic")
@@ -87,7 +91,11 @@ def test_kinematic_fast_gum_equals_the_generic_propagation():
     def f(p, inp):
         return np.column_stack(meas_inverse(p, sign, inp["meas_x_deg"], inp["meas_y_deg"]))
 
-    u = propagate(f, model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)),
-                  {k: cols[k] for k in ("meas_x_deg", "meas_y_deg")}, {"meas_x_deg": sigma, "meas_y_deg": sigma})
-    assert np.allclose(out["u_tilt_x_deg"] / 2, u[:, 0], rtol=1e-6, atol=0)
-    assert np.allclose(out["u_tilt_y_deg"] / 2, u[:, 1], rtol=1e-6, atol=0)
+    dof = model.state["meas_dof"]
+    g = propagate_gum(f, model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)),
+                      {k: cols[k] for k in ("meas_x_deg", "meas_y_deg")}, {"meas_x_deg": sigma, "meas_y_deg": sigma},
+                      dof, dof)
+    U = g.expanded()
+    assert np.allclose(out["u_tilt_x_deg"], U[:, 0], rtol=1e-6, atol=0)
+    assert np.allclose(out["u_tilt_y_deg"], U[:, 1], rtol=1e-6, atol=0)
+    assert np.all(g.dof_eff >= dof) and np.all(U < 2.0 * g.u)  # 160 degrees of freedom: k just under 2

@@ -19,13 +19,14 @@ from service.physics.effects import EffectSet
 from service.physics.turntable import TurntableInclinometer, simulate_turntable
 from service.scenarios import load_scenario, run_scenario
 from service.scenarios.model import parse_scenario
+from tests.calibration.gum import Z95, without_dof
 
 PARAMS = ["beta_deg", "m1_per_arcsec", "m2_per_arcsec", "epsilon_deg"]
 REVERSAL = get_method("turntable", "reversal")
 
 
 def _pairs(beta, eps, m1, m2, azimuths, tilts, rotation_deg=180.0, z=(0.0, 0.0)):
-    """Noise-free pairs from the physics module (spec §4), one row per (azimuth, tilt)."""
+    """Noise-free pairs from the physics module (docs/models.md §4), one row per (azimuth, tilt)."""
     p = TurntableInclinometer(beta, eps, m1, m2)
     az = np.tile(np.asarray(azimuths, dtype=float), len(tilts))
     xi = np.repeat([t[0] for t in tilts], len(azimuths))
@@ -205,8 +206,8 @@ def test_gum_uncertainty_of_the_compensation_matches_monte_carlo():
         run = run_scenario(load_scenario("seed004"), seed=seed)
         model = REVERSAL.fit(run.columns, FitOptions())
         meas = {c: run.columns[c][:8] for c in REVERSAL.correct_required}
-        out = REVERSAL.correct(model, meas)
-        u_gum = np.column_stack([out["u_north_arcsec"], out["u_east_arcsec"]]) / 2.0
+        out = REVERSAL.correct(without_dof(model), meas)
+        u_gum = np.column_stack([out["u_north_arcsec"], out["u_east_arcsec"]]) / Z95
         rng = np.random.default_rng(seed)
         sigma = model.state["reading_sigma"]
         draws = []
@@ -229,8 +230,8 @@ def test_compensation_uncertainty_covers_the_error_of_repeated_calibrations():
     for k in range(150):
         model = REVERSAL.fit(run_scenario(sc, seed=k).columns, FitOptions())
         meas = run_scenario(meas_sc, seed=90_000 + k)
-        out = REVERSAL.correct(model, meas.columns)
+        out = REVERSAL.correct(without_dof(model), meas.columns)
         errs.append(np.column_stack([out["north_arcsec"] - 20.0, out["east_arcsec"] + 15.0]))
-        us.append(np.column_stack([out["u_north_arcsec"], out["u_east_arcsec"]]) / 2.0)
+        us.append(np.column_stack([out["u_north_arcsec"], out["u_east_arcsec"]]) / Z95)
     ratio = np.std(np.array(errs), axis=0) / np.mean(np.array(us), axis=0)
     assert np.all((ratio > 0.75) & (ratio < 1.25)), ratio

@@ -268,7 +268,6 @@ def test_discrepancy_with_an_unwritable_page_leaves_no_report(capsys, tmp_path, 
 # --- options ---------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("argv,words", [
-    ([], "required: command"),
     (["simulate", "--scenario", "seed003"], "required: --out"),
     (["simulate", "--scenario", "seed003", "--out", "{d}/o.csv", "--seed", "-1"], "a seed is a whole number >= 0"),
     (["simulate", "--scenario", "seed003", "--out", "{d}/o.csv", "--seed", "1.5"], "is not a whole number"),

@@ -19,6 +19,8 @@ ROOT = Path(__file__).resolve().parents[2]
 def docker_build_context(dest: Path) -> Path:
     """The files the Dockerfile's COPY lines put in its WORKDIR, laid out as the image has them."""
     for line in (ROOT / "docker" / "Dockerfile").read_text().splitlines():
+        if not line.startswith("COPY "):  # other instructions may span lines or quote shell text
+            continue
         words = shlex.split(line)
         if not words or words[0] != "COPY":
             continue
@@ -65,3 +67,10 @@ def test_wheel_has_every_python_module(wheel_names):
 def test_wheel_has_the_dashboard(wheel_names):
     web = sorted(p.name for p in (ROOT / "web").iterdir() if p.is_file())
     assert "index.html" in web and all(f"service/web/{w}" in wheel_names for w in web)
+
+
+def test_wheel_has_the_certificate_schemas_and_their_licence(wheel_names):
+    folder = ROOT / "service" / "lims" / "schemas" / "dcc-3.3.0"
+    shipped = sorted(p.name for p in folder.iterdir() if p.is_file())
+    assert {"dcc.xsd", "SI_Format.xsd", "README.md", "COPYING.LESSER"} <= set(shipped)
+    assert all(f"service/lims/schemas/dcc-3.3.0/{name}" in wheel_names for name in shipped)

@@ -1,12 +1,12 @@
 """The workflow names what the simulator hid, and nothing else (a few seeds of every case).
 
 The many-seed figures are benchmarks/sweep_discrepancy.py's; these seeds only guard the
-behaviour. Sizes are multiples of the noise (service.discrepancy.hidden).
+behaviour. Sizes are multiples of the noise (benchmarks/hidden_effects.py).
 """
 
 import pytest
 
-from service.discrepancy.hidden import VARIANTS, bench_with_hidden
+from benchmarks.hidden_effects import VARIANTS, bench_with_hidden
 from service.discrepancy.stage import stage_report
 
 SEEDS = (0, 1)

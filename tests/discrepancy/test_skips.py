@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from service.discrepancy.hidden import bench_with_hidden
+from benchmarks.hidden_effects import bench_with_hidden
 from service.discrepancy.stage import stage_report
 from service.errors import InputError
 

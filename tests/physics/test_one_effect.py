@@ -15,7 +15,7 @@ EVERYTHING_DOWNSTREAM = READINGS | TRUTH
 
 
 def expected_outputs(effect: str, param: str) -> set[str]:
-    """What a lab engineer would say each parameter moves; written from spec §2/§5, not read off the model."""
+    """What a lab engineer would say each parameter moves; written from docs/models.md §2/§5, not read off the model."""
     sensor_axis = re.match(r"(ref|meas)_(x|y)", param)
     if effect in ("zero_offset", "scale_factor", "sensor_nonlinearity") or (
         effect in ("temperature_drift", "time_drift") and sensor_axis and "scale" not in param

@@ -1,4 +1,4 @@
-"""Seed 002's rotation model: spec §3 outputs against an independent construction and eqs. (6)-(10)."""
+"""Seed 002's rotation model: docs/models.md §3 outputs against an independent construction and eqs. (6)-(10)."""
 
 import numpy as np
 from hypothesis import given, settings

@@ -34,7 +34,7 @@ def test_x_reading_is_seed000_eq9_and_the_chain_of_eq8(tx, ty):
     assert abs(r["ref_x"][0] - offaxis_reading_deg(tx, ty)) < 1e-9
     # eq. (10): error = θx - reading
     assert abs((tx - r["ref_x"][0]) - offaxis_error_deg(tx, ty)) < 1e-9
-    # the lower stage's axis reads its own angle exactly (spec §2: y = θy)
+    # the lower stage's axis reads its own angle exactly (docs/models.md §2: y = θy)
     assert abs(r["ref_y"][0] - ty) < 1e-9
 
 

@@ -89,7 +89,7 @@ def test_db_commands(db_url: str, tmp_path, monkeypatch: pytest.MonkeyPatch, cap
         assert f"at revision {head_revision()}" in capsys.readouterr().out
         assert cli.main(["db", "verify"]) == 0
         assert "OK" in capsys.readouterr().out
-        assert cli.main(["db", "downgrade", "base"]) == 0
+        assert cli.main(["db", "downgrade", "base", "--yes"]) == 0
         assert cli.main(["db", "current"]) == 0
         assert "revision none" in capsys.readouterr().out
         assert cli.main(["db", "upgrade"]) == 0

@@ -1,37 +1,64 @@
+"""GET /tilt: the corrected table tilt from the latest reading, never waiting for a stage move."""
+
 from __future__ import annotations
 
 import datetime as dt
 
-from fastapi import APIRouter
-from pydantic import BaseModel
+import numpy as np
+from fastapi import APIRouter, Request
 
-from service.api.deps import BenchDep
+from service.api.auth import Reader
+from service.api.deps import BenchQuery
 
 router = APIRouter(tags=["tilt"])
 
-
-class TiltReading(BaseModel):
-    time_utc: dt.datetime
-    bench: str
-    stage_x_deg: float
-    stage_y_deg: float
-    meas_x_deg: float
-    meas_y_deg: float
-    ref_x_deg: float
-    ref_y_deg: float
-    temp_c: float
-    tilt_x_deg: float | None
-    tilt_y_deg: float | None
-    calibration: str | None
-    note: str
+STALE_INTERVALS = 3  # a reading older than this many output intervals (plus 0.25 s) is stale
 
 
-@router.get("/tilt", response_model=TiltReading)
-def tilt(bench: BenchDep) -> TiltReading:
-    """The bench's current readings. Corrected table tilt needs an active calibration: until one is
-    active the tilt fields are null and the raw sensor readings are given as they are."""
-    r = bench.read()
-    return TiltReading(time_utc=dt.datetime.now(dt.timezone.utc), bench=bench.name, tilt_x_deg=None, tilt_y_deg=None,
-                       calibration=None, note="no active calibration: raw sensor readings only",
-                       **{k: r[k] for k in ("stage_x_deg", "stage_y_deg", "meas_x_deg", "meas_y_deg", "ref_x_deg",
-                                            "ref_y_deg", "temp_c")})
+def _pair(r) -> dict | None:  # type: ignore[no-untyped-def]
+    return None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}
+
+
+@router.get("/tilt")
+async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
+    """Table tilt: the measurement sensor's latest reading through the active record, in the reference
+    sensor's frame, with its expanded uncertainty (GUM, k = 2) from the record's covariance; null with
+    the reason in `note` when no record is active or the sensor is not answering. `stale` is true
+    when the latest reading is older than three output intervals plus 0.25 s."""
+    now = dt.datetime.now(dt.UTC)
+    meas = bench.latest("measurement_sensor")
+    ref = bench.latest("reference_sensor")
+    active = request.app.state.jobs.active.get(bench.name)
+    age_s = stale = None
+    notes = []
+    table = None
+    if bench.kind != "stage":
+        notes.append(f"{bench.name} is a {bench.kind} bench: table tilt is served for stage benches")
+    elif meas is None:
+        st = bench.devices["measurement_sensor"].status
+        notes.append(f"no reading from measurement_sensor on {st.port} ({st.state})")
+    else:
+        age_s = max(0.0, (now - meas.time_utc).total_seconds())
+        limit = STALE_INTERVALS * bench.clock.real_seconds(bench.output_interval_s("measurement_sensor")) + 0.25
+        stale = age_s > limit
+        if stale:
+            st = bench.devices["measurement_sensor"].status
+            notes.append(f"measurement_sensor on {st.port} has sent nothing for {age_s:.2f} s ({st.state})")
+        if active is None:
+            notes.append("no active calibration record: raw readings only (POST /records/{id}/activate)")
+        elif not stale:
+            out = active.method.correct(active.model, {"meas_x_deg": np.array([meas.x_deg]),
+                                                       "meas_y_deg": np.array([meas.y_deg])})
+            u = lambda k: None if k not in out or not np.isfinite(out[k][0]) else float(out[k][0])  # noqa: E731
+            table = {"x_deg": float(out["tilt_x_deg"][0]), "y_deg": float(out["tilt_y_deg"][0]),
+                     "u_x_deg": u("u_tilt_x_deg"), "u_y_deg": u("u_tilt_y_deg"), "k": 2}
+            notes.append(f"corrected through record {active.record_id} v{active.version} ({active.method_name})")
+    pose = bench.pose
+    return {"bench": bench.name, "time_utc": meas.time_utc if meas else now, "age_s": age_s, "stale": stale,
+            "table_tilt": table,
+            "raw": {"measurement_sensor": _pair(meas), "reference_sensor": _pair(ref)},
+            "temp_c": (meas.temp_c if meas and meas.temp_c is not None else ref.temp_c if ref else None),
+            "stage": {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None,
+            "calibration": None if active is None else {"record_id": active.record_id, "version": active.version,
+                                                        "method": active.method_name},
+            "note": "; ".join(notes)}

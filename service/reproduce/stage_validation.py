@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.calibration.registry import FitOptions, get_method
+from service.calibration.registry import FitOptions, levelling_method
 from service.calibration.stage_common import newton_2d
 from service.calibration.stage_kinematic import ChainModel
 from service.physics.effects import EffectSet
@@ -119,6 +119,7 @@ def evaluate_seed(scenario, seed: int, methods=STAGE_METHODS, targets=None, fit_
     """
     cal = run_scenario(scenario, seed=seed)
     bench, fx = cal.bench, cal.effects
+    assert fx is not None  # a stage run carries its effect set
     temp = float(scenario.environment.temp_c)
     tx, ty = targets if targets is not None else paper_grid()
     val_seed = 1_000_003 + 7919 * seed  # independent of the calibration draws
@@ -130,7 +131,7 @@ def evaluate_seed(scenario, seed: int, methods=STAGE_METHODS, targets=None, fit_
     corr: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for spec in methods:
         label, name, extra = (spec, spec, {}) if isinstance(spec, str) else spec
-        m = get_method("stage", name)
+        m = levelling_method("stage", name)
         opts = dict((fit_options or {}).get(label, {}))
         opts["extra"] = {**opts.get("extra", {}), **extra}
         model = m.fit(cal.columns, FitOptions(**opts))

@@ -2,7 +2,7 @@
 
 A stacked-stage bench like seed 000's (its mounting and geometry effects drawn per seed
 around the preset, coupling always on, its noise) with none, one or two candidate effects
-of spec/models.md §5 switched on at a chosen multiple of the noise level. The workflow is
+of docs/models.md §5 switched on at a chosen multiple of the noise level. The workflow is
 then asked to name what is hidden without being told.
 
 Size of a hidden effect: the largest change it makes to a reading over the grid, once its

@@ -1,13 +1,16 @@
 """`tiltlab discrepancy`: read the dataset, run the workflow, write the JSON report and the report page.
 
-Contract (spec/datasets.md): --kind stage|scale, --input, --out REPORT.json, --sensor ref|meas,
+Options (docs/datasets.md): --kind stage|scale, --input, --out REPORT.json, --sensor ref|meas,
 --baseline linear|kinematic, --html (default: REPORT.html next to --out). Both files are
 written atomically, and only after both are rendered, so a failure leaves nothing behind.
 
 The instrument's noise level, when the lab knows it, comes from optional constant columns
 (`noise_ref_x_deg`, `noise_ref_y_deg` or `noise_meas_*` for stage data, `noise_arcsec` for
-scale data: 1-sigma of one reading) or from an optional `--noise` option where the parser
-offers one; repeated points take precedence over both.
+scale data: 1-sigma of one reading); repeated points take precedence.
+
+`--bench FILE` (stage) states the bench the data came from; without it the seed 000 bench is
+assumed, said on stderr and recorded in the report, and data that are not whole pulses of it
+are refused.
 """
 
 from __future__ import annotations
@@ -19,8 +22,12 @@ import sys
 
 import numpy as np
 
+from service.commands._args import add_command
 from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_text_atomic
 from service.errors import InputError
+from service.provenance import provenance
+
+REPORT_SIGNIFICANT_DIGITS = 8
 
 
 def _clean(o):
@@ -31,7 +38,8 @@ def _clean(o):
         return [_clean(v) for v in o]
     if isinstance(o, (np.floating, float)):
         f = float(o)
-        return f if math.isfinite(f) else None
+        # 8 significant digits: more than any statistic or magnitude here is known to (docs/models.md, "Digits")
+        return float(f"{f:.{REPORT_SIGNIFICANT_DIGITS}g}") if math.isfinite(f) else None
     if isinstance(o, (np.integer,)):
         return int(o)
     if isinstance(o, np.bool_):
@@ -61,7 +69,6 @@ def _constant_column(ds, col: str) -> float | None:
 def run(args: argparse.Namespace) -> int:
     kind = args.kind
     baseline = getattr(args, "baseline", None) or "linear"
-    option_noise = getattr(args, "noise", None)
     inputs = {"input": str(args.input)}
     # Both output paths are checked before the work, so a bad one leaves neither file behind.
     out = check_output_path(args.out)
@@ -84,28 +91,36 @@ def run(args: argparse.Namespace) -> int:
             if cx is None or cy is None:
                 raise InputError(f"{ds.source}: give both {nx!r} and {ny!r} (one noise level per axis), or neither")
             noise = [cx, cy]
-        elif option_noise is not None:
-            noise = option_noise
+        from service.commands.offline import stage_bench_options
+
+        stated = stage_bench_options("stage", getattr(args, "bench", None))
         with about(args.input):
-            report, result, fam = stage_report(ds.arrays(), sensor, baseline, noise, inputs=inputs)
+            report, result, fam = stage_report(ds.arrays(), sensor, baseline, noise, bench=stated.get("bench"),
+                                               inputs=inputs, bench_source=stated.get("bench_source"))
     elif kind == "scale":
         from service.discrepancy.scale import scale_report
+
+        if getattr(args, "bench", None) is not None:
+            raise InputError("--bench describes a bench of stacked stages; kind 'scale' has none")
+        if getattr(args, "sensor", None) is not None:
+            raise InputError("--sensor chooses between the two sensors of stage data; kind 'scale' has one "
+                             "sensor, leave it out")
 
         if baseline not in ("linear", "poly1"):
             raise InputError(f"kind 'scale' has one baseline, poly1 (a straight line); --baseline {baseline} "
                              "applies to stage data")
         ds = read_dataset(args.input, "scale", (("ref_arcsec", "ref_deg"), "reading"),
                           ("point", "temp_c", "t_s", "noise_arcsec"))
-        noise = _constant_column(ds, "noise_arcsec")
-        if noise is None:
-            noise = option_noise
+        noise_arcsec = _constant_column(ds, "noise_arcsec")
         with about(args.input):
-            report, result, fam = scale_report(ds.arrays(), noise, inputs=inputs)
+            report, result, fam = scale_report(ds.arrays(), noise_arcsec, inputs=inputs)
     else:
         raise InputError(f"discrepancy supports kinds stage and scale, not {kind!r}")
 
     from service.discrepancy.report import render_html
 
+    report["provenance"] = provenance(getattr(args, "command_line", "tiltlab discrepancy"),
+                                      {"input": args.input, "bench": getattr(args, "bench", None)})
     report = _clean(report)
     text = json.dumps(report, indent=1, ensure_ascii=False, allow_nan=False)
     page = render_html(report, result, fam)
@@ -121,4 +136,33 @@ def run(args: argparse.Namespace) -> int:
           f"{report['noise_source']}); wrote {out} and {html_path}", file=sys.stderr)
     for s in report["skipped"]:
         print(f"  skipped {s['effect']}: {s['reason']}", file=sys.stderr)
+    if kind == "stage" and getattr(args, "bench", None) is None:
+        from service.commands.offline import assumed_bench_note
+
+        print(assumed_bench_note(), file=sys.stderr)
     return 0
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = add_command(sub, "discrepancy", "find, name and add the effects a bench model is missing",
+                    description="Fit a baseline model to a recorded run, look for structure left in the "
+                                "residuals, name the\nmissing effects one by one with their significance, and "
+                                "write a JSON report and its\nHTML page (docs/discrepancy.md; dataset columns "
+                                "in docs/datasets.md).",
+                    examples=[("tiltlab discrepancy --kind stage --input seed000.csv --out report.json "
+                              "--bench bench.toml"),
+                              "tiltlab discrepancy --kind scale --input adc.csv --out scale-report.json"])
+    p.add_argument("--kind", required=True, choices=["stage", "scale"], help="what was calibrated")
+    p.add_argument("--input", required=True, metavar="FILE", help="the dataset CSV")
+    p.add_argument("--out", required=True, metavar="FILE", help="the JSON report to write")
+    p.add_argument("--sensor", choices=["ref", "meas"], default=None,
+                   help="stage only: which sensor's readings to explain (default: ref)")
+    p.add_argument("--baseline", choices=["linear", "kinematic"], default=None,
+                   help="stage only: the model the search starts from (default: linear; scale data always "
+                        "start from a straight line)")
+    p.add_argument("--bench", default=None, metavar="FILE",
+                   help="stage only: the bench the data came from (.toml bench configuration or .json "
+                        "scenario) (default: the seed 000 bench, said on stderr and in the report)")
+    p.add_argument("--html", default=None, metavar="FILE",
+                   help="the report page to write (default: the --out name with .html)")
+    p.set_defaults(handler=run)

@@ -1,0 +1,106 @@
+"""Bearer tokens and scopes on every route but /health, /ready and the dashboard's files.
+
+`Authorization: Bearer <token>` on HTTP, the `token` query parameter on WebSockets (browsers
+cannot set headers there). 401 without a valid token, 403 without the scope the route needs.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import time
+from typing import Annotated
+
+from fastapi import Depends, Request, WebSocket
+
+from service.api.problems import ProblemError
+from service.storage.tokens import SCOPES, Principal
+
+EVERYONE = Principal("anonymous (authentication off)", frozenset(SCOPES))
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _bearer(request: Request) -> str | None:
+    header = request.headers.get("authorization", "")
+    scheme, _, value = header.partition(" ")
+    if scheme.lower() == "bearer" and value.strip():
+        return value.strip()
+    return None
+
+
+def _principal(app, token: str | None) -> Principal:  # type: ignore[no-untyped-def]
+    if app.state.settings.auth == "none":
+        return EVERYONE
+    if not token:
+        raise ProblemError(401, "Unauthorized", "this route needs a token: send 'Authorization: Bearer <token>'"
+                           " (tiltlab token create, or the admin token file in the data directory)",
+                           headers={"WWW-Authenticate": 'Bearer realm="tiltlab"'})
+    cache = getattr(app.state, "token_cache", None)
+    if cache is None:
+        cache = app.state.token_cache = TokenCache()
+    principal = cache.lookup(token, app.state.store.authenticate)
+    if principal is None:
+        raise ProblemError(401, "Unauthorized", "the token is unknown or revoked",
+                           headers={"WWW-Authenticate": 'Bearer realm="tiltlab", error="invalid_token"'})
+    return principal
+
+
+class TokenCache:
+    """Recently seen tokens, so a busy reader costs no database query per request.
+
+    An entry lives `ttl_s` seconds; a revocation through this daemon clears the cache at once, one
+    made by `tiltlab token revoke` elsewhere takes effect within `ttl_s`.
+    """
+
+    def __init__(self, ttl_s: float = 5.0) -> None:
+        self.ttl_s = ttl_s
+        self._seen: dict[str, tuple[float, Principal | None]] = {}
+
+    def lookup(self, token: str, authenticate) -> Principal | None:  # type: ignore[no-untyped-def]
+        now = time.monotonic()
+        hit = self._seen.get(token)
+        if hit is not None and now - hit[0] < self.ttl_s:
+            return hit[1]
+        principal = authenticate(token)
+        if len(self._seen) > 10_000:
+            self._seen.clear()
+        self._seen[token] = (now, principal)
+        return principal
+
+    def clear(self) -> None:
+        self._seen.clear()
+
+
+def requires(scope: str):  # type: ignore[no-untyped-def]
+    """A dependency giving the request's principal, refusing it without `scope`."""
+    assert scope in SCOPES
+
+    async def dependency(request: Request) -> Principal:
+        principal = _principal(request.app, _bearer(request))
+        if not principal.may(scope):
+            raise ProblemError(403, "Forbidden", f"the token {principal.name!r} lacks the scope {scope!r}"
+                               f" (it has {', '.join(sorted(principal.scopes))})")
+        return principal
+
+    return dependency
+
+
+def websocket_principal(websocket: WebSocket, scope: str = "read") -> Principal | None:
+    """The principal of a WebSocket from its `token` query parameter; None if it may not connect."""
+    try:
+        principal = _principal(websocket.app, websocket.query_params.get("token"))
+    except ProblemError:
+        return None
+    return principal if principal.may(scope) else None
+
+
+Reader = Annotated[Principal, Depends(requires("read"))]
+Operator = Annotated[Principal, Depends(requires("operate"))]
+Admin = Annotated[Principal, Depends(requires("admin"))]

@@ -1,0 +1,109 @@
+"""Readings the daemon waits for (fresh ones after a move), their settling and their robust mean.
+
+Outlier rule, stated once: a sample whose modified z-score |0.6745 (v - median) / MAD| exceeds
+3.5 on any channel is rejected (Iglewicz and Hoaglin); the point's value is the mean of the rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.bench.runtime import BenchRuntime, DeviceNotAnswering
+from service.instruments.base import Reading
+
+OUTLIER_Z = 3.5
+OUTLIER_RULE = "modified z-score |0.6745 (v - median) / MAD| > 3.5 on any channel rejects a sample"
+
+
+def channels(r: Reading) -> tuple[float, ...]:
+    if r.x_deg is not None:
+        return (r.x_deg, r.y_deg)  # type: ignore[return-value]
+    if r.sx is not None:
+        return (r.sx, r.sy, r.sz)  # type: ignore[return-value]
+    return (r.counts,)  # type: ignore[return-value]
+
+
+async def fresh_readings(bench: BenchRuntime, role: str, n: int, *, after_bench_s: float,
+                         timeout_s: float) -> list[Reading]:
+    """The next `n` readings of a role stamped after `after_bench_s` (bench seconds)."""
+    out: list[Reading] = []
+    last = after_bench_s
+    interval = bench.output_interval_s(role)
+    # At least 2 s of real time: a sped-up simulation on a loaded machine may lag its bench clock.
+    timeout_s = max(timeout_s, bench.clock.bench_seconds(2.0))
+    deadline = bench.clock.monotonic() + timeout_s
+    while len(out) < n:
+        r = bench.latest(role)
+        if r is not None and r.bench_s > last:
+            out.append(r)
+            last = r.bench_s
+        elif bench.clock.monotonic() > deadline:
+            st = bench.devices[role].status
+            raise DeviceNotAnswering(f"{role} on {st.port}: no reading for {timeout_s:g} s ({st.state}"
+                                     + (f": {st.error}" if st.error else "") + ")")
+        else:
+            await bench.clock.sleep(interval / 2)
+    return out
+
+
+@dataclass
+class Averaged:
+    mean: tuple[float, ...]
+    std: tuple[float | None, ...]
+    n_used: int
+    n_rejected: int
+    temp_c: float | None
+    t_start_s: float
+    t_end_s: float
+
+
+def robust_mean(readings: list[Reading]) -> Averaged:
+    v = np.array([channels(r) for r in readings], dtype=float)
+    med = np.median(v, axis=0)
+    mad = np.median(np.abs(v - med), axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(mad > 0, 0.6745 * np.abs(v - med) / mad, 0.0)
+    keep = ~(z > OUTLIER_Z).any(axis=1)
+    kept = v[keep]
+    temps = [r.temp_c for r, k in zip(readings, np.atleast_1d(keep)) if k and r.temp_c is not None]
+    std = tuple(float(s) for s in kept.std(axis=0, ddof=1)) if len(kept) > 1 else (None,) * v.shape[1]
+    return Averaged(tuple(float(m) for m in kept.mean(axis=0)), std, int(keep.sum()), int((~keep).sum()),
+                    float(np.mean(temps)) if temps else None, readings[0].bench_s, readings[-1].bench_s)
+
+
+async def settle(bench: BenchRuntime, roles: tuple[str, ...], *, tolerance_deg: float, window_s: float,
+                 timeout_s: float) -> float:
+    """Wait until every role's mean over the last `window_s` differs from its mean over the window
+    before by at most `tolerance_deg` on every channel (a drift criterion: reading noise averages out).
+
+    Returns the bench time at which they settled; raises TimeoutError naming the roles that did not.
+    """
+    start = bench.clock.monotonic()
+    timeout_s = max(timeout_s, bench.clock.bench_seconds(5.0))  # a sped-up simulation may lag under load
+    history: dict[str, list[Reading]] = {r: [] for r in roles}
+    while True:
+        now = bench.clock.monotonic()
+        moving = []
+        for role in roles:
+            r = bench.latest(role)
+            h = history[role]
+            if r is not None and (not h or r.bench_s > h[-1].bench_s) and r.bench_s >= start:
+                h.append(r)
+            while h and h[0].bench_s < now - 2 * window_s:
+                h.pop(0)
+            if now - start < 2 * window_s:
+                moving.append(role)
+                continue
+            older = [channels(x) for x in h if x.bench_s < now - window_s]
+            newer = [channels(x) for x in h if x.bench_s >= now - window_s]
+            if not older or not newer or \
+                    np.abs(np.mean(newer, axis=0) - np.mean(older, axis=0)).max() > tolerance_deg:
+                moving.append(role)
+        if not moving:
+            return now
+        if now - start > timeout_s:
+            raise TimeoutError(f"readings of {', '.join(moving)} did not settle within {tolerance_deg:g} deg"
+                               f" between windows of {window_s:g} s in {timeout_s:g} s")
+        await bench.clock.sleep(min(bench.output_interval_s(r) for r in roles) / 2)

@@ -1,0 +1,186 @@
+"""A bench as the daemon owns it: its drivers, the latest readings and stage pose, and who holds it.
+
+Readings come from the drivers' own streams (automatic output, polling), the stage pose from a
+poller here, so `/tilt` and `/devices` read memory and never wait behind a move. One job holds a
+bench at a time; `stop()` reaches the controller at once whatever holds it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import logging
+from dataclasses import dataclass
+
+from service.benchconfig import BenchConfig
+from service.clock import Clock
+from service.instruments.base import DeviceIdentity, Reading
+from service.instruments.bench import BenchDevices, open_bench
+from service.instruments.transport import DeviceError
+
+log = logging.getLogger("tiltlab.bench")
+
+STAGE_POLL_S = 0.1  # bench seconds between pose queries
+SENSOR_ROLES = ("reference_sensor", "measurement_sensor", "triaxial_sensor", "turntable_sensor", "adc_sensor")
+MOTION_ROLES = ("stage", "rotary_table")
+
+
+class BenchBusy(Exception):
+    """A job or a levelling holds the bench."""
+
+
+class DeviceNotAnswering(Exception):
+    """A device a request needs does not answer; the message names the role and port."""
+
+
+@dataclass
+class StagePose:
+    x_deg: float | None = None
+    y_deg: float | None = None
+    moving: bool = False
+    time_utc: dt.datetime | None = None
+    # Sign of the last move of each axis (the side backlash is taken up on).
+    dir_x: float = 1.0
+    dir_y: float = 1.0
+
+
+class BenchRuntime:
+    def __init__(self, config: BenchConfig, clock: Clock, devices: BenchDevices | None = None, sim=None) -> None:  # type: ignore[no-untyped-def]
+        self.config = config
+        self.name = config.name
+        self.kind = config.kind
+        self.clock = clock
+        self.devices = devices or open_bench(config, clock)
+        self.sim = sim  # the simulated bench behind the ports, if any (its truth is for tests)
+        self.pose = StagePose()
+        self.rotary_deg: float | None = None
+        self.identities: dict[str, DeviceIdentity] = {}
+        self.device_ids: dict[str, int] = {}
+        self.bench_id: int | None = None
+        self.holder: str | None = None  # "job 12" or "level"
+        self.stop_requested = asyncio.Event()
+        self._stage_task: asyncio.Task | None = None
+        self._motion_lock = asyncio.Lock()
+
+    # ------------------------------------------------------------ life
+
+    async def start(self) -> None:
+        await self.devices.start()
+        for role in self.devices:
+            with contextlib.suppress(DeviceError, asyncio.TimeoutError):
+                self.identities[role] = await asyncio.wait_for(self.devices[role].identify(), 5.0)
+        self._stage_task = asyncio.get_running_loop().create_task(self._poll_motion())
+
+    async def close(self) -> None:
+        if self._stage_task is not None:
+            self._stage_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._stage_task
+        await self.devices.close()
+        if self.sim is not None:
+            self.sim.close()
+
+    def roles(self) -> list[str]:
+        return list(self.devices)
+
+    def port_of(self, role: str) -> str:
+        return self.config.role(role).where
+
+    # ------------------------------------------------------------ latest values, no I/O
+
+    def latest(self, role: str) -> Reading | None:
+        return self.devices[role].latest() if role in self.devices else None
+
+    def output_interval_s(self, role: str) -> float:
+        """How often the role's readings arrive (bench seconds): what `stale` is judged against."""
+        spec = self.config.role(role)
+        rate = getattr(spec, "output_rate_hz", None)
+        if isinstance(rate, int | float) and rate > 0:
+            return 1.0 / rate
+        if rate == "continuous":
+            return 0.01
+        poll = getattr(spec, "poll_rate_hz", None)
+        return 1.0 / poll if poll else 1.0
+
+    def state(self) -> str:
+        states = [s.state for s in self.devices.status()]
+        if "failed" in states:
+            return "degraded"
+        if "reconnecting" in states:
+            return "connecting"
+        return "busy" if self.holder else "ready"
+
+    async def _poll_motion(self) -> None:
+        while True:
+            with contextlib.suppress(DeviceError):
+                await self.refresh_pose()
+            await self.clock.sleep(STAGE_POLL_S)
+
+    async def refresh_pose(self) -> None:
+        if "stage" in self.devices:
+            stage = self.devices["stage"]
+            x, y = await stage.position_deg()
+            moving = "moving" in (await stage.x.state(), await stage.y.state())
+            self.pose.x_deg, self.pose.y_deg, self.pose.moving = x, y, moving
+            self.pose.time_utc = self.clock.utc()
+        if "rotary_table" in self.devices:
+            self.rotary_deg = await self.devices["rotary_table"].position_deg()
+
+    # ------------------------------------------------------------ ownership and motion
+
+    @contextlib.asynccontextmanager
+    async def hold(self, holder: str):  # type: ignore[no-untyped-def]
+        if self.holder is not None:
+            raise BenchBusy(f"bench {self.name!r} is held by {self.holder}")
+        self.holder = holder
+        self.stop_requested.clear()
+        try:
+            yield
+        finally:
+            self.holder = None
+
+    def require(self, role: str) -> None:
+        if role not in self.devices:
+            raise DeviceNotAnswering(f"bench {self.name!r} has no {role}")
+        st = self.devices[role].status
+        if st.state != "connected":
+            raise DeviceNotAnswering(f"{role} on {st.port} is {st.state}" + (f": {st.error}" if st.error else ""))
+
+    async def move_stage(self, x_deg: float, y_deg: float, *, timeout_s: float = 600.0) -> tuple[float, float]:
+        """Move both stages and wait until they stand; returns the position reached (degrees)."""
+        self.require("stage")
+        stage = self.devices["stage"]
+        async with self._motion_lock:
+            if self.pose.x_deg is not None:
+                if x_deg != self.pose.x_deg:
+                    self.pose.dir_x = 1.0 if x_deg > self.pose.x_deg else -1.0
+                if self.pose.y_deg is not None and y_deg != self.pose.y_deg:
+                    self.pose.dir_y = 1.0 if y_deg > self.pose.y_deg else -1.0
+            await stage.move_to_deg(x_deg, y_deg)
+            self.pose.moving = True
+            await stage.wait_until_idle(timeout_s)
+            self._check_stopped()
+            await self.refresh_pose()
+            return self.pose.x_deg, self.pose.y_deg  # type: ignore[return-value]
+
+    async def move_rotary(self, angle_deg: float, *, timeout_s: float = 600.0) -> float:
+        self.require("rotary_table")
+        table = self.devices["rotary_table"]
+        async with self._motion_lock:
+            await table.move_to_deg(angle_deg)
+            await table.wait_until_idle(timeout_s)
+            self._check_stopped()
+            self.rotary_deg = await table.position_deg()
+            return self.rotary_deg
+
+    def _check_stopped(self) -> None:
+        if self.stop_requested.is_set():
+            raise DeviceError(f"bench {self.name!r}: motion stopped by request")
+
+    async def stop(self) -> None:
+        """Stop every axis now, whatever holds the bench (the motion lock is not waited for)."""
+        self.stop_requested.set()
+        for role in MOTION_ROLES:
+            if role in self.devices:
+                await self.devices[role].stop()

@@ -1,0 +1,36 @@
+"""Which benches the daemon runs: those of a bench configuration (real ports), or by default a
+simulated stage bench on pseudo-terminals, reached through the same drivers as hardware."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from service.bench.runtime import BenchRuntime
+from service.benchconfig import load_bench_config
+from service.clock import Clock
+from service.config import Settings
+from service.errors import InputError
+
+
+def plan_benches(settings: Settings) -> list[BenchRuntime]:
+    """Open (but not start) every bench; an unusable configuration is an InputError naming it."""
+    if settings.bench_config is not None:
+        benches_file = load_bench_config(settings.bench_config)
+        speed = benches_file.sim_speed or settings.sim_speed
+        clock = Clock(speed)
+        return [BenchRuntime(cfg, clock) for cfg in benches_file.benches.values()]
+    from service.instruments.sim import start_simulated_bench
+
+    clock = Clock(settings.sim_speed)
+    runtimes: list[Any] = []
+    for kind in settings.sim_benches:
+        scenario = settings.bench_scenario if kind == "stage" else settings.rotary_scenario
+        try:
+            sim = start_simulated_bench(scenario, kind, clock, adc=(kind == "stage"))
+        except InputError as exc:
+            var = "TILTLAB_BENCH_SCENARIO" if kind == "stage" else "TILTLAB_ROTARY_SCENARIO"
+            for r in runtimes:
+                r.sim.close()
+            raise InputError(f"{var}: {exc}") from exc
+        runtimes.append(BenchRuntime(sim.config, clock, sim=sim))
+    return runtimes

@@ -1,0 +1,19 @@
+"""Stage calibration methods (kind `stage`): homography (seed 000), coupling (its ref. [9]),
+axis-transform (its ref. [10]) and kinematic (the full chain of docs/models.md §2), one module each on
+the shared base class `StageMethod`.
+
+Every method levels (wanted table tilt -> stage commands) and corrects (measurement-sensor
+reading -> table tilt). The readings of refs. [9] and [10] are written out in
+docs/calibration-stage.md and in each model's notes.
+"""
+
+from service.calibration.methods_stage.axis_transform import AXIS_TRANSFORM, AxisTransformMethod
+from service.calibration.methods_stage.base import StageMethod, bench_of, bench_state, stage_commands
+from service.calibration.methods_stage.coupling import COUPLING, CouplingMethod
+from service.calibration.methods_stage.homography import HOMOGRAPHY, HomographyMethod
+from service.calibration.methods_stage.kinematic import KINEMATIC, KinematicMethod
+from service.calibration.stage_common import LEVEL_OUTPUTS
+
+__all__ = ["AXIS_TRANSFORM", "COUPLING", "HOMOGRAPHY", "KINEMATIC", "LEVEL_OUTPUTS", "AxisTransformMethod",
+           "CouplingMethod", "HomographyMethod", "KinematicMethod", "StageMethod", "bench_of", "bench_state",
+           "stage_commands"]

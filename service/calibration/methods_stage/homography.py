@@ -1,0 +1,175 @@
+"""Seed 000: two homographies (H1 reference -> stage, H2 measurement -> reference) and eq. (10)'s off-axis
+compensation of the upper stage."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from service.calibration.methods_stage.base import (
+    CROSS_TOL_DEG,
+    FIT_REQUIRED,
+    Columns,
+    StageMethod,
+    bench_of,
+    bench_state,
+    fit_stats,
+    meas_dof,
+    numeric_cov,
+    stage_model,
+    targets,
+    uncertain_correct,
+    used_columns,
+)
+from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.projective import apply_projective, fit_projective
+from service.calibration.registry import FitOptions, register
+from service.calibration.stage_common import (
+    MEAS_COLUMNS,
+    columns,
+    has_meas,
+    model_needs_meas,
+    offaxis_forward_vs_exact_deg,
+    offaxis_paper_forward_deg,
+)
+from service.errors import DegenerateDataError, InputError
+from service.physics.stage import offaxis_inverse_deg, offaxis_reading_deg
+
+H_UNITS = {"h11": "1", "h12": "1", "h13": "deg", "h21": "1", "h22": "1", "h23": "deg", "h31": "1/deg", "h32": "1/deg"}
+H_KEYS = tuple(H_UNITS)
+H_SCALES = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1e-2, 1e-2])
+
+
+def _h_params(prefix: str, H: np.ndarray, note: str = "") -> dict[str, Parameter]:
+    return {f"{prefix}.{k}": Parameter(float(v), H_UNITS[k], note=note if k == "h11" else "")
+            for k, v in zip(H_KEYS, H.ravel()[:8])}
+
+
+def _h_of(model: CalibrationModel, prefix: str) -> np.ndarray:
+    return np.append(model.values([f"{prefix}.{k}" for k in H_KEYS]), 1.0).reshape(3, 3)
+
+
+def _apply_h(h8: np.ndarray, x, y) -> tuple[np.ndarray, np.ndarray]:
+    return apply_projective(np.append(h8, 1.0).reshape(3, 3), x, y)
+
+
+class HomographyMethod(StageMethod):
+    """Seed 000: H1 (reference -> stage, eq. 11) and H2 (measurement -> reference) by normalised DLT,
+    then eq. (10)'s off-axis compensation of the upper stage, applied as its exact inverse."""
+
+    name = "homography"
+
+    def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
+        sx, sy, rx, ry = columns(data, FIT_REQUIRED)
+        points = options.extra.get("points", "cross")
+        offaxis = options.extra.get("offaxis", "exact")
+        if points not in ("cross", "all"):
+            raise InputError(f"option points: {points!r} is not one of cross, all")
+        if offaxis not in ("exact", "paper"):
+            raise InputError(f"option offaxis: {offaxis!r} is not one of exact, paper")
+        notes = []
+        cross = (np.abs(sx) < CROSS_TOL_DEG) | (np.abs(sy) < CROSS_TOL_DEG)
+        use = cross if points == "cross" else np.ones_like(cross)
+        used_what = "the cross (points with stage_x_deg = 0 or stage_y_deg = 0)"
+        if points == "cross":
+            on_x = np.unique(np.round(sx[cross & (np.abs(sy) < CROSS_TOL_DEG)], 6))
+            on_y = np.unique(np.round(sy[cross & (np.abs(sx) < CROSS_TOL_DEG)], 6))
+            if on_x.size < 3 or on_y.size < 3:
+                use = np.ones_like(cross)
+                used_what = "all points (the data have no usable cross: fewer than 3 stage angles on a zero line)"
+                notes.append("H1: the data lack the cross seed 000 recommends (points on the θx = 0 and θy = 0 lines); "
+                             "fitted on all points with the stage x angles decoupled by eq. (9) instead")
+        else:
+            used_what = "all points, stage x decoupled by eq. (9) (x' = asin(sin x cos y)) before the DLT"
+        # x' = asin(sin x cos y): the x reading an uncoupled bench would give; on the cross x' = x exactly.
+        xd = offaxis_reading_deg(sx, sy)
+        H1 = fit_projective(rx[use], ry[use], xd[use], sy[use], what="H1 (reference -> stage)")
+        px, py = apply_projective(H1, rx, ry)
+        res_h1 = {"stage_x_deg": px[use] - xd[use], "stage_y_deg": py[use] - sy[use]}
+        # the whole levelling model on every point: command predicted from the reference reading
+        cmd_x = offaxis_inverse_deg(px, py) if offaxis == "exact" else offaxis_paper_forward_deg(px, py)
+        unreachable = np.flatnonzero(~np.isfinite(cmd_x))
+        if unreachable.size:
+            rows = ", ".join(str(i + 1) for i in unreachable[:5])
+            raise DegenerateDataError(f"H1 maps the reference reading of row(s) {rows} to an x angle no upper-stage "
+                                      "command reaches (|sin x' / cos y| > 1): the homography does not describe "
+                                      "these points; calibrate over a range the stages can level")
+        level_res = {"stage_x_deg": cmd_x - sx, "stage_y_deg": py - sy}
+        fwd = offaxis_forward_vs_exact_deg()
+        notes += [
+            (f"H1 (reference -> stage angles, seed 000 eq. 11) fitted by normalised DLT on {int(use.sum())} points: "
+            f"{used_what}. Seed 000 §3: on those lines eq. (10)'s error vanishes, so H1 sees only the near-linear "
+            "installation errors"),
+            "levelling = H1 then eq. (10) for the upper stage: H1 gives (x', y) with x' the angle an uncoupled "
+            "upper stage would need; the command is x = asin(sin x' / cos y), the exact inverse of eq. (9)"
+            + (" (option offaxis=paper: x = x' + error(x', y) as seed 000 prints it)" if offaxis == "paper" else ""),
+            (f"eq. (10) applied forwards (x' + error) differs from the exact inverse by up to "
+            f"{fwd['max_abs_command_difference_deg']:.4f} deg (rms {fwd['rms_command_difference_deg']:.4f}) on the "
+            f"±12 deg grid, largest at x' = {fwd['at_x_deg']:g}, y = {fwd['at_y_deg']:g}"),
+        ]
+        params = _h_params("H1", H1, "H1 maps reference angles (X, Y) to stage angles (x', y), h33 = 1")
+        residuals = dict(res_h1)
+        fit_info: dict[str, Any] = {"n_points": int(sx.size), "n_points_h1": int(use.sum()), "points": points,
+                                    "offaxis": offaxis, "h1": fit_stats(np.concatenate(list(res_h1.values())), 8),
+                                    "levelling_residual_all_points": residual_summary(level_res, "deg", False),
+                                    "offaxis_forward_vs_exact": fwd}
+        cov = None
+        cov_names: list[str] = []
+        state: dict[str, Any] = {"has_meas": has_meas(data), "offaxis": offaxis, **bench_state(*bench_of(options)[:2])}
+        if has_meas(data):
+            mx, my = columns(data, MEAS_COLUMNS)
+            # Two sensors on one table: no stage coupling between them, so every point serves H2.
+            H2 = fit_projective(mx, my, rx, ry, what="H2 (measurement -> reference)")
+            h2 = H2.ravel()[:8]
+
+            def r2(h):
+                qx, qy = _apply_h(h, mx, my)
+                return np.concatenate([qx - rx, qy - ry])
+
+            r = r2(h2)
+            st = fit_stats(r, 8)
+            params.update(_h_params("H2", H2, "H2 maps measurement readings (a, b) to reference angles (X, Y)"))
+            n = mx.size
+            residuals.update({"ref_x_deg": r[:n], "ref_y_deg": r[n:]})
+            fit_info["h2"] = st
+            h2_note = (f"H2 (measurement -> reference) fitted by normalised DLT on all {n} points: both sensors ride "
+                       "on the table, so the stage coupling does not enter between them; ")
+            if st["sigma_deg"] is not None:
+                cov = numeric_cov(r2, h2, H_SCALES, st["sigma_deg"] ** 2)
+                cov_names = [f"H2.{k}" for k in H_KEYS]
+                state["meas_sigma_deg"] = st["sigma_deg"]
+                state["meas_dof"] = st["dof"]
+                notes.append(h2_note + "u_tilt from H2's covariance and the H2 residual as reading noise (which also "
+                             "holds the reference's noise: conservative)")
+            else:
+                notes.append(h2_note + f"the {n} points determine its 8 parameters exactly and leave no residual to "
+                             "estimate the noise: no covariance and no u_tilt")
+        else:
+            notes.append("no meas_x_deg/meas_y_deg columns: H2 not fitted, this model can level but not correct")
+        return stage_model(self.name, used_columns(data), params, notes, covariance_names=cov_names, covariance=cov,
+                      residuals=residual_summary(residuals, "deg"), fit=fit_info, state=state,
+                      options={"points": points, "offaxis": offaxis})
+
+    def commands(self, model: CalibrationModel, data: Columns) -> tuple[np.ndarray, np.ndarray]:
+        tx, ty = targets(data)
+        xd, y = apply_projective(_h_of(model, "H1"), tx, ty)
+        if model.state.get("offaxis", "exact") == "paper":
+            x = offaxis_paper_forward_deg(xd, y)
+        else:
+            x = offaxis_inverse_deg(xd, y)
+        return x, y
+
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+        model_needs_meas(model)
+        names = [f"H2.{k}" for k in H_KEYS]
+
+        def f(p, inp):
+            a, b = _apply_h(p, inp["meas_x_deg"], inp["meas_y_deg"])
+            return np.column_stack([a, b])
+
+        return uncertain_correct(f, model.values(names), model.cov_of(names), data,
+                                  float(model.state.get("meas_sigma_deg", 0.0)), meas_dof(model))
+
+
+HOMOGRAPHY = register(HomographyMethod())

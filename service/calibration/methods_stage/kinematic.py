@@ -1,0 +1,158 @@
+"""The kinematic chain of docs/models.md §2 fitted by nonlinear least squares, with the measurement sensor's
+mounting fitted against the reference; the bench's hardware is an input."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from service.calibration.benchfit import StagePoints, param_label
+from service.calibration.methods_stage.base import (
+    FIT_REQUIRED,
+    Columns,
+    StageMethod,
+    bench_of,
+    bench_state,
+    meas_dof,
+    meas_sign,
+    stage_model,
+    targets,
+    used_columns,
+)
+from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.registry import FitOptions, register
+from service.calibration.stage_common import (
+    MEAS_COLUMNS,
+    MEAS_NAMES,
+    MEAS_PARAMS,
+    check_loss,
+    columns,
+    has_meas,
+    meas_inverse_gum,
+    mirror_note,
+    model_needs_meas,
+    require_spread,
+)
+from service.calibration.stage_kinematic import ChainModel, fit_chain, fit_meas, unit_of
+from service.errors import InputError
+from service.physics.stage import StageBench
+
+
+class KinematicMethod(StageMethod):
+    """The chain of docs/models.md §2 fitted by nonlinear least squares; the measurement sensor's own mounting
+    fitted against the reference. Parameters the points cannot separate are held and said so."""
+
+    name = "kinematic"
+
+    def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
+        sx, sy, rx, ry = columns(data, FIT_REQUIRED)
+        loss = check_loss(options.loss)
+        require_spread(sx, sy, 5, "the kinematic model")
+        bench, source, stated = bench_of(options)
+        if not stated and (mismatch := bench.pulse_mismatch(sx, sy)) is not None:
+            raise InputError(f"{mismatch}. The kinematic model depends on the bench's hardware and none was stated "
+                             f"({bench.describe()} assumed): give the bench the data came from with --bench FILE")
+        pts = StagePoints.from_columns(data)
+        chain = fit_chain(bench, pts, rx, ry, loss=loss, periodic=bool(options.extra.get("periodic_error", False)),
+                          max_nfev=int(options.extra.get("max_nfev", 200)))
+        params: dict[str, Parameter] = {}
+        for k, v in zip(chain.keys, chain.values):
+            params[param_label(k)] = Parameter(float(v), unit_of(k))
+        for k, why in chain.fixed.items():
+            params[param_label(k)] = Parameter(0.0, unit_of(k), fixed=True, note=why)
+        cov_names = [param_label(k) for k in chain.keys]
+        blocks = [chain.covariance]
+        residuals = dict(chain.residuals)
+        notes = [
+            ("chain (docs/models.md §2): desk · Rot(lower axis, y) · Rot(upper axis, x) · top · reference seat · reference yaw, "
+            "with stage scale and backlash on the commands; fitted to ref_x_deg/ref_y_deg with "
+            f"scipy.optimize.least_squares (loss {loss}); the reference is the lab's standard, so its own "
+            "zero, scale and non-orthogonality are not fitted (its readings are the table tilt)"),
+            ("gauge: a common rotation of desk, stage axes and table top changes no reading, so one parameter "
+            "of each of (lower yaw, perpendicularity, ref yaw), (desk x, lower pitch, top x), (desk y, "
+            "upper pitch, top y) and the reference seat (composes with the top) is held; the fitted "
+            "perpendicularity and ref yaw are then relative to the lower axis, desk tilts include the "
+            "stages' zero offsets"),
+        ]
+        notes.append(f"bench: {bench.describe()}; {source}")
+        if stated and (mismatch := bench.pulse_mismatch(sx, sy)) is not None:
+            notes.append(f"the commands are not whole pulses of the stated bench ({mismatch.split(':')[0]}): taken "
+                         "as requested angles, executed as the nearest whole pulses")
+        notes += [f"{param_label(k)}: {why}" for k, why in chain.fixed.items()]
+        notes += [f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - cos of the "
+                  "other stage's angle; kept, since holding either leaves that difference as model error; their sum "
+                  "is well determined)"
+                  for a, b, c in chain.correlations]
+        fit_info: dict[str, Any] = {
+            "n_points": int(sx.size), "chain": {"dof": chain.dof, "sigma_deg": chain.sigma, "converged": chain.converged,
+                                                "nfev": chain.nfev, "loss": loss,
+                                                "scaled_jacobian_singular_values": chain.singular_values.tolist()},
+        }
+        state: dict[str, Any] = {"has_meas": has_meas(data), **bench_state(bench, source),
+                                 "chain_parameters": [param_label(k) for k in list(chain.keys) + list(chain.fixed)],
+                                 "approach": [1.0, 1.0]}
+        if has_meas(data):
+            sign, how = meas_sign(data, options)
+            mx, my = columns(data, MEAS_COLUMNS)
+            meas = fit_meas(rx, ry, mx, my, sign, loss=loss)
+            units = {p[0]: p[1] for p in MEAS_PARAMS}
+            for name, v in zip(MEAS_NAMES, meas.values):
+                fixed = name in meas.fixed
+                params[name] = Parameter(float(v), units[name], fixed=fixed, note=meas.fixed.get(name, ""))
+            cov_names += meas.names
+            blocks.append(meas.covariance)
+            residuals.update(meas.residuals)
+            state.update({"meas_sign": sign.tolist(), "meas_sigma_deg": meas.sigma, "meas_dof": meas.dof})
+            fit_info["meas"] = {"dof": meas.dof, "sigma_deg": meas.sigma, "nfev": meas.nfev}
+            notes.append("measurement sensor: zero offsets, scales, yaw, non-orthogonality and seat tilt, all relative "
+                         "to the reference sensor's frame (the table-tilt frame), fitted to meas_* against ref_* "
+                         "(no stage parameter enters, stage repeatability stays out); correct inverts it in "
+                         "closed form; u_tilt from its covariance and the fit's residual as reading noise "
+                         "(which also holds the reference's noise: conservative)")
+            notes += [f"{n}: {why}" for n, why in meas.fixed.items()]
+            notes += [f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - cos of the "
+                      "tilt; kept, their sum is well determined)"
+                      for a, b, c in meas.correlations]
+            if (mn := mirror_note(sign)) is not None:
+                notes.append(f"{mn} ({how})")
+        else:
+            notes.append("no meas_x_deg/meas_y_deg columns: this model can level but not correct")
+        notes.append("the covariance is block-diagonal between the chain and the measurement sensor (separate fits)")
+        k = sum(b.shape[0] for b in blocks)
+        cov = np.zeros((k, k))
+        i = 0
+        for b in blocks:
+            cov[i:i + b.shape[0], i:i + b.shape[0]] = b
+            i += b.shape[0]
+        return stage_model(self.name, used_columns(data), params, notes, covariance_names=cov_names, covariance=cov,
+                      residuals=residual_summary(residuals, "deg"), fit=fit_info, state=state, options={"loss": loss})
+
+    @staticmethod
+    def chain_model(model: CalibrationModel) -> ChainModel:
+        bench = StageBench(**model.state.get("bench", {}))
+        values = {}
+        for name in model.state.get("chain_parameters", []):
+            e, p = name.split(".", 1)
+            values[(e, p)] = model.value(name)
+        return ChainModel.from_values(bench, values)
+
+    def commands(self, model: CalibrationModel, data: Columns) -> tuple[np.ndarray, np.ndarray]:
+        tx, ty = targets(data)
+        ap = model.state.get("approach", [1.0, 1.0])
+        dx = np.asarray(data.get("dir_x", ap[0]), dtype=float)
+        dy = np.asarray(data.get("dir_y", ap[1]), dtype=float)
+        chain = self.chain_model(model)
+        x, y = chain.level(tx, ty, dx, dy)
+        return x, y
+
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+        model_needs_meas(model)
+        sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
+        mx, my = columns(data, MEAS_COLUMNS)
+        X, Y, gx, gy = meas_inverse_gum(model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)), sign, mx, my,
+                                        float(model.state.get("meas_sigma_deg", 0.0)), meas_dof(model))
+        return {"tilt_x_deg": X, "tilt_y_deg": Y, "u_tilt_x_deg": gx.expanded(), "u_tilt_y_deg": gy.expanded()}
+
+
+KINEMATIC = register(KinematicMethod())

@@ -1,0 +1,134 @@
+"""`tiltlab devices`: ask every role of a bench configuration who is there, and say what answered.
+
+Each role is probed with its own family's request at its own address, without changing the
+instrument's settings. A role that does not answer as expected gets one line naming the
+role, the port and what was expected; then the exit status is 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+
+from service.benchconfig import (
+    BinaryInclinometerRole,
+    PortRole,
+    Rs485InclinometerRole,
+    load_bench_config,
+)
+from service.clock import Clock
+from service.commands._args import add_command
+from service.instruments.bench import make_driver
+from service.instruments.drivers import StageController
+from service.instruments.transport import DeviceError, PortRegistry
+
+EXPECTED = {
+    "reference_sensor": "a 0x68 binary inclinometer",
+    "measurement_sensor": "a 0x68 binary inclinometer",
+    "triaxial_sensor": "a 0x68 triaxial module (command 0x07)",
+    "turntable_sensor": "an RS-485 inclinometer",
+    "adc_sensor": "an ADC answering ID?",
+    "stage": "a stage controller answering on axes 1 and 2",
+    "rotary_table": "a controller answering on the rotary axis",
+}
+
+
+def expected(role: str, spec: PortRole) -> str:
+    what = EXPECTED[role]
+    if isinstance(spec, BinaryInclinometerRole):
+        what += f" at address 0x{spec.address:02X}"
+    elif isinstance(spec, Rs485InclinometerRole):
+        what += f" at address {spec.address.upper()}"
+    elif role == "rotary_table":
+        what = f"a controller answering on axis {spec.axis}"  # type: ignore[attr-defined]
+    return what
+
+
+async def _probe(role: str, driver) -> str:
+    """What answered, in words; raises DeviceError with the reason otherwise."""
+    if isinstance(driver, StageController):
+        ident = await driver.x.identify()
+        await driver.y.position_pulses()
+        return (f"{ident.model} serial {ident.serial}, axes 1 and 2 at {await driver.x.position_deg():.4f}, "
+                f"{await driver.y.position_deg():.4f} deg")
+    if role == "rotary_table":
+        ident = await driver.identify()
+        return f"{ident.model} serial {ident.serial}, axis {driver.axis} at {await driver.position_deg():.3f} deg"
+    if role == "triaxial_sensor":
+        r = await driver.read_sines()
+        return f"triaxial module at address 0x{driver.address:02X}: sines {r.sx:+.6f} {r.sy:+.6f} {r.sz:+.6f} g"
+    if role in ("reference_sensor", "measurement_sensor"):
+        r = await driver.read_tilt()
+        return f"binary inclinometer at address 0x{driver.address:02X}: x {r.x_deg:+.4f} y {r.y_deg:+.4f} deg"
+    ident = await driver.identify()
+    if role == "turntable_sensor":
+        r = await driver.read_tilt()
+        return (f"{ident.model} serial {ident.serial} firmware {ident.firmware} at address {driver.address:02X}: "
+                f"x {r.x_deg:+.5f} y {r.y_deg:+.5f} deg")
+    r = await driver.read_counts(1)
+    return f"{ident.model} serial {ident.serial}: {r.counts:.0f} counts"
+
+
+def _why(role: str, spec: PortRole, driver) -> str:
+    port = driver.x.port if isinstance(driver, StageController) else driver.port
+    if port.state != "connected":
+        return f"cannot be opened ({port.error or 'not found'})"
+    addresses = sorted(port.foreign_senders)
+    if addresses and isinstance(spec, BinaryInclinometerRole | Rs485InclinometerRole):
+        return "answered from address " + ", ".join(f"0x{a:02X}" if isinstance(spec, BinaryInclinometerRole)
+                                                    else f"{a:02X}" for a in addresses)
+    axes = sorted(port.foreign_senders)
+    if axes and role in ("stage", "rotary_table"):
+        return "answered on axis " + ", ".join(map(str, axes))
+    st = port.decoder.stats
+    if st.resyncs or st.bad_checksum or port.decoder.pending:
+        return f"sent {port.bytes_read} bytes in another protocol"
+    return f"no answer within {spec.timeout_s:g} s"
+
+
+async def probe_bench(config, clock: Clock) -> list[tuple[str, str, bool, str]]:
+    """(role, port, answered, what answered or why not) for every role."""
+    registry = PortRegistry()
+    results = []
+    drivers = {role: make_driver(role, spec, config, clock, registry) for role, spec in config.role_specs.items()}
+    ports = {id(p): p for d in drivers.values() for p in ([d.x.port] if isinstance(d, StageController) else [d.port])}
+    for p in ports.values():
+        p.start()
+    try:
+        await asyncio.gather(*(asyncio.to_thread(p.wait_connected, 2.0) for p in ports.values()))
+        for role, d in drivers.items():
+            spec = config.role(role)
+            try:
+                results.append((role, spec.where, True, await _probe(role, d)))
+            except DeviceError:
+                results.append((role, spec.where, False, (f"{_why(role, spec, d)}; "
+                                f"expected {expected(role, spec)}")))
+    finally:
+        for p in ports.values():
+            p.stop()
+    return results
+
+
+def run(args: argparse.Namespace) -> int:
+    benches = load_bench_config(args.config)
+    config = benches.bench(args.bench)
+    results = asyncio.run(probe_bench(config, Clock(benches.sim_speed or 1.0)))
+    width = max(len(r[0]) for r in results)
+    bad = 0
+    for role, where, ok, text in results:
+        if ok:
+            print(f"{role:<{width}}  {where}  {text}")
+        else:
+            bad += 1
+            print(f"tiltlab devices: error: role {role} on port {where}: {text}", file=sys.stderr)
+    return 2 if bad else 0  # a role that does not answer as configured is bad configuration
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = add_command(sub, "devices", "probe every role of a bench configuration and say what answered",
+                    examples=["tiltlab devices --config bench.toml"])
+    p.add_argument("--config", required=True, metavar="FILE", help="bench configuration file (TOML)")
+    p.add_argument("--bench", default=None, metavar="NAME",
+                   help="bench name, when the file describes several (default: the only one)")
+    p.set_defaults(handler=run)

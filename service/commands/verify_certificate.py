@@ -1,0 +1,68 @@
+"""`tiltlab verify-certificate FILE`: is this a certificate we issued, unchanged, resting on an approved record?
+
+Checks offline: validity against the DCC 3.3.0 schema. With the lab's database (TILTLAB_DATABASE_URL
+or the data directory's): that the file's SHA-256 equals the one stored at issue, that the stored
+copy still matches it, that the record still matches its hash and that the approval is bound to it.
+Exit 0 when every check passes, 1 when one fails, 2 for an unreadable file or configuration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from service.errors import InputError
+
+
+def add_parser(sub) -> None:  # type: ignore[no-untyped-def]
+    from service.commands._args import add_command
+
+    p = add_command(sub, "verify-certificate", "check a DCC certificate: schema, stored hash, record and approval",
+                    examples=["tiltlab verify-certificate certificate.xml",
+                              "tiltlab verify-certificate --offline certificate.xml"])
+    p.add_argument("file", metavar="FILE", help="the certificate XML file")
+    p.add_argument("--offline", action="store_true",
+                   help="check only the schema (no database: for a customer who has just the file)")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.config import get_settings
+    from service.lims.certificates import verify_certificate
+    from service.storage.backup import database_exists, sqlite_path
+    from service.storage.daemon_jobs import DaemonStore
+    from service.storage.engine import make_engine, redacted
+    from service.storage.migrate import current_revision
+
+    path = Path(args.file)
+    try:
+        xml = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror}") from None
+    store = engine = None
+    if not args.offline:
+        settings = get_settings()
+        where = redacted(settings.database_url)
+        if not database_exists(settings.database_url):
+            raise InputError(f"{where}: no database file at {sqlite_path(settings.database_url)};"
+                             " use --offline to check only the schema")
+        engine = make_engine(settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms)
+        if current_revision(engine) is None:
+            engine.dispose()
+            raise InputError(f"{where}: no schema yet; use --offline to check only the schema")
+        store = DaemonStore(engine)
+    try:
+        report = verify_certificate(xml, store)
+    finally:
+        if engine is not None:
+            engine.dispose()
+    print(f"{path}: certificate {report.number or '(unknown)'}, SHA-256 {report.sha256}")
+    for fact in report.facts:
+        print(f"  ok: {fact}")
+    for problem in report.problems:
+        print(f"  FAILED: {problem}")
+    print("OK" if report.ok else f"FAILED: {len(report.problems)} problem(s)", file=sys.stdout if report.ok else sys.stderr)
+    return 0 if report.ok else 1

@@ -1,0 +1,179 @@
+"""A whole simulated bench on pseudo-terminals: the instruments' firmware speaking their real bytes,
+driven by the scenario's physics, behind stable paths a bench configuration can name.
+
+    bench = start_simulated_bench("seed000", "stage", Clock(20))
+    devices = open_bench(bench.config, clock)       # the same drivers as on hardware
+    bench.faults("stage").disconnect(0.5)           # the back door
+    bench.world.pose_deg                            # the simulated truth
+    bench.close()
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Literal
+
+from service.benchconfig import BenchConfig, parse_bench_config
+from service.clock import Clock
+from service.errors import InputError
+from service.instruments import binary
+from service.instruments.sim.firmware import AdcFirmware, BinaryFirmware, ControllerFirmware, Rs485BusFirmware
+from service.instruments.sim.pty import Faults, SimPort
+from service.instruments.sim.world import RotaryWorld, StageWorld, rotary_scenarios, stage_scenario
+from service.scenarios import load_scenario
+from service.scenarios.model import ScaleScenario
+
+SIM_BAUD = {"binary": 115200, "rs485": 115200, "adc": 9600, "controller": 57600}
+
+
+class SimulatedBench:
+    """Running simulated instruments; `.config` points a bench configuration at their ports."""
+
+    def __init__(self, kind: str, world, ports: dict[str, SimPort], directory: Path, clock: Clock,
+                 toml_text: str, bench_name: str, own_directory: bool) -> None:
+        self.kind = kind
+        self.world = world
+        self.ports = ports
+        self.directory = directory
+        self.clock = clock
+        self.toml = toml_text
+        self.bench_name = bench_name
+        self._own_directory = own_directory
+        self.config: BenchConfig = parse_bench_config(_toml_loads(toml_text), "simulated bench").bench(bench_name)
+
+    def faults(self, role: str) -> Faults:
+        if role not in self.ports:
+            raise KeyError(f"the simulated {self.kind} bench has no role {role!r}; it has {', '.join(self.ports)}")
+        return self.ports[role].faults
+
+    def port_path(self, role: str) -> str:
+        return self.ports[role].path
+
+    def close(self) -> None:
+        for port in {id(p): p for p in self.ports.values()}.values():
+            port.close()
+        if self._own_directory:
+            shutil.rmtree(self.directory, ignore_errors=True)
+
+    def __enter__(self) -> SimulatedBench:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _toml_loads(text: str):
+    import tomllib
+
+    return tomllib.loads(text)
+
+
+def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock: Clock, *,
+                          directory: str | Path | None = None, adc: bool = False,
+                          output_rate_hz: int | str = 25, bus_addresses: tuple[int, ...] = (1, 2, 3),
+                          bench_name: str | None = None) -> SimulatedBench:
+    """Start every instrument of a simulated bench; ports appear as symlinks in `directory`.
+
+    stage: reference_sensor, measurement_sensor (family A), stage (family D, axes 1 and 2),
+    and with `adc` the analog sensor behind the ADC (family C, physics of the seed003 preset).
+    rotary: rotary_table (family D axis 3), triaxial_sensor (family A, 0x07) and an RS-485 bus
+    with inclinometers at `bus_addresses`; the configuration names the first as turntable_sensor.
+    """
+    if kind not in ("stage", "rotary"):
+        raise InputError(f"bench kind {kind!r} is not stage or rotary")
+    own = directory is None
+    folder = Path(tempfile.mkdtemp(prefix="tiltlab-sim-")) if directory is None else Path(directory)
+    folder.mkdir(parents=True, exist_ok=True)
+    name = bench_name or f"sim-{kind}"
+    ports: dict[str, SimPort] = {}
+    try:
+        if kind == "stage":
+            world, ports, roles = _stage(scenario, clock, folder, adc, output_rate_hz)
+        else:
+            world, ports, roles = _rotary(scenario, clock, folder, output_rate_hz, bus_addresses)
+    except BaseException:
+        for p in ports.values():
+            p.close()
+        if own:
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
+    lines = [f"# Simulated {kind} bench, scenario {scenario}, {clock.speed:g} times real time.",
+             f"sim_speed = {clock.speed:g}", "", f"[benches.{name}]", f'kind = "{kind}"',
+             f'description = "simulated {kind} bench, scenario {scenario}"', ""]
+    for role, table in roles.items():
+        lines.append(f"[benches.{name}.roles.{role}]")
+        for k, v in table.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+        lines.append("")
+    return SimulatedBench(kind, world, ports, folder, clock, "\n".join(lines), name, own)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool, rate):
+    sc = stage_scenario(scenario)
+    adc_sc = load_scenario("seed003") if with_adc else None
+    assert adc_sc is None or isinstance(adc_sc, ScaleScenario)  # the seed003 preset is a scale scenario
+    world = StageWorld(sc, clock, adc_scenario=adc_sc)
+    ports: dict[str, SimPort] = {}
+    roles: dict[str, dict] = {}
+    for role, prefix in (("reference_sensor", "ref"), ("measurement_sensor", "meas")):
+        def read_xy(p: str = prefix) -> tuple[float, float]:
+            return _pair(world.sample(), p)
+
+        fw = BinaryFirmware(clock, read_xy, world.temp_c, address=0,
+                            baud=SIM_BAUD["binary"], output_mode=_mode(rate))
+        ports[role] = SimPort(folder / role, fw)
+        roles[role] = {"port": ports[role].path, "baud": SIM_BAUD["binary"], "address": 0, "output_rate_hz": rate}
+    ports["stage"] = SimPort(folder / "stage", ControllerFirmware(world.axes))
+    roles["stage"] = {"port": ports["stage"].path, "baud": SIM_BAUD["controller"]}
+    if with_adc:
+        ports["adc_sensor"] = SimPort(folder / "adc_sensor", AdcFirmware(world.adc_counts))
+        roles["adc_sensor"] = {"port": ports["adc_sensor"].path, "baud": SIM_BAUD["adc"]}
+    return world, ports, roles
+
+
+def _mode(rate) -> int:
+    """The output mode the instrument keeps from its last configuration (as instruments store it)."""
+    for code, hz in binary.OUTPUT_MODES.items():
+        if hz == rate or (rate == "continuous" and hz is None):
+            return code
+    raise InputError(f"output rate {rate!r} is not one of the instrument's modes")
+
+
+def _pair(sample: dict[str, float], prefix: str) -> tuple[float, float]:
+    return sample[f"{prefix}_x_deg"], sample[f"{prefix}_y_deg"]
+
+
+def _rotary(scenario: str, clock: Clock, folder: Path, rate, bus_addresses):
+    rot, tt = rotary_scenarios(scenario)
+    world = RotaryWorld(rot, tt, clock, bus_addresses=bus_addresses)
+    ports: dict[str, SimPort] = {}
+    roles: dict[str, dict] = {}
+    ports["rotary_table"] = SimPort(folder / "rotary_table", ControllerFirmware(world.axes, model="RT-360SIM"))
+    roles["rotary_table"] = {"port": ports["rotary_table"].path, "baud": SIM_BAUD["controller"], "axis": 3}
+    tri = BinaryFirmware(clock, lambda: (0.0, 0.0), world.temp_c, address=0, baud=SIM_BAUD["binary"],
+                         read_sines=world.sines, output_mode=_mode(rate))
+    ports["triaxial_sensor"] = SimPort(folder / "triaxial_sensor", tri)
+    roles["triaxial_sensor"] = {"port": ports["triaxial_sensor"].path, "baud": SIM_BAUD["binary"], "address": 0,
+                                "output_rate_hz": rate}
+    def reader(a: int) -> Callable[[], tuple[float, float]]:
+        return lambda: world.turntable_mrad(a)
+
+    bus = Rs485BusFirmware({a: reader(a) for a in bus_addresses}, world.temp_c)
+    ports["turntable_sensor"] = SimPort(folder / "rs485_bus", bus)
+    roles["turntable_sensor"] = {"port": ports["turntable_sensor"].path, "baud": SIM_BAUD["rs485"],
+                                 "address": f"{bus_addresses[0]:02X}"}
+    return world, ports, roles
+
+
+__all__ = ["SimulatedBench", "start_simulated_bench"]

@@ -1,0 +1,262 @@
+"""The simulated physical truth behind the simulated firmware: stage axes that move in bench
+time, and the scenario's physics read at the present pose.
+
+Everything is computed on demand from the bench clock, so a move at 4000 pulses/s takes the
+same bench time at any speed factor, and several firmware threads see one consistent world.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+
+from service.clock import Clock
+from service.errors import InputError
+from service.instruments import controller as ctl
+from service.physics.analog import ARCSEC_PER_RAD, AnalogSensor, simulate_scale
+from service.physics.effects import EffectSet
+from service.physics.rotation_axis import simulate_rotation
+from service.physics.stage import StageGeometry, simulate_stage
+from service.physics.turntable import TurntableInclinometer, turntable_readings
+from service.scenarios import load_scenario
+from service.scenarios.model import RotationScenario, ScaleScenario, StageScenario, TurntableScenario
+from service.scenarios.run import bench_of, effect_set, temperature
+
+NO_LIMIT = 2_147_483_647
+
+
+class Axis:
+    """One controller axis: position in pulses, moving at the set velocity on the bench clock."""
+
+    def __init__(self, clock: Clock, pulse_deg: float, velocity_pps: float, soft: tuple[int, int] | None,
+                 hard: tuple[int, int] | None) -> None:
+        self.clock = clock
+        self.pulse_deg = pulse_deg
+        self.velocity_pps = float(velocity_pps)
+        self.soft = soft
+        self.hard = hard
+        self.homed = True
+        self.error = ctl.ERR_NONE
+        self.direction = 1.0  # sign of the last move: the side backlash is taken up on
+        self._pos = 0.0
+        self._target = 0.0
+        self._t0 = 0.0
+        self._start = 0.0
+        self._mode = ctl.STATE_READY
+        self._lock = threading.RLock()
+
+    def _update(self) -> None:
+        if self._mode not in (ctl.STATE_MOVING, ctl.STATE_HOMING):
+            return
+        t = self.clock.monotonic()
+        span = self._target - self._start
+        done = min(self.velocity_pps * (t - self._t0), abs(span))
+        p = self._start + math.copysign(done, span)
+        if self.hard is not None and not self.hard[0] <= p <= self.hard[1]:
+            self._pos = float(min(max(p, self.hard[0]), self.hard[1]))
+            self._mode, self.error = ctl.STATE_HARD_LIMIT, ctl.ERR_HARD_LIMIT
+            return
+        self._pos = p
+        if done >= abs(span):
+            self._pos = self._target
+            if self._mode == ctl.STATE_HOMING:
+                self.homed = True
+            self._mode = ctl.STATE_READY
+
+    @property
+    def position(self) -> float:
+        with self._lock:
+            self._update()
+            return self._pos
+
+    @property
+    def state(self) -> int:
+        with self._lock:
+            self._update()
+            return self._mode
+
+    def position_pulses(self) -> int:
+        return int(round(self.position))
+
+    def _go(self, target: float, mode: int) -> None:
+        self._start, self._target, self._t0, self._mode = self._pos, float(target), self.clock.monotonic(), mode
+        if target != self._pos:
+            self.direction = 1.0 if target > self._pos else -1.0
+
+    def move_to(self, target: int) -> int:
+        """Start a move; the error code (0 when started)."""
+        with self._lock:
+            self._update()
+            if self._mode in (ctl.STATE_MOVING, ctl.STATE_HOMING):
+                return ctl.ERR_BUSY
+            if not self.homed:
+                return ctl.ERR_NOT_HOMED
+            if self.soft is not None and not self.soft[0] <= target <= self.soft[1]:
+                return ctl.ERR_SOFT_LIMIT
+            if self._mode == ctl.STATE_HARD_LIMIT and self.hard is not None:
+                at_low = self._pos <= self.hard[0]
+                if (at_low and target <= self._pos) or (not at_low and target >= self._pos):
+                    return ctl.ERR_HARD_LIMIT
+            self._go(target, ctl.STATE_MOVING)
+            return ctl.ERR_NONE
+
+    def home(self) -> int:
+        with self._lock:
+            self._update()
+            if self._mode in (ctl.STATE_MOVING, ctl.STATE_HOMING):
+                return ctl.ERR_BUSY
+            self._go(0.0, ctl.STATE_HOMING)
+            return ctl.ERR_NONE
+
+    def stop(self) -> None:
+        with self._lock:
+            self._update()
+            if self._mode in (ctl.STATE_MOVING, ctl.STATE_HOMING):
+                self._pos = float(round(self._pos))
+                self._mode = ctl.STATE_READY
+
+    @property
+    def deg(self) -> float:
+        return self.position * self.pulse_deg
+
+
+class StageWorld:
+    """Two stacked swing stages (axis 1 upper x, axis 2 lower y) carrying a reference and a
+    measurement sensor (and optionally an analog sensor behind an ADC), as the scenario describes."""
+
+    def __init__(self, scenario: StageScenario, clock: Clock, velocity_pps: int = 4000,
+                 adc_scenario: ScaleScenario | None = None) -> None:
+        self.scenario = scenario
+        self.clock = clock
+        self.bench = bench_of(scenario)
+        self.effects: EffectSet = effect_set(scenario)
+        self.geometry = StageGeometry.from_effects(self.bench, self.effects)
+        self.rng = np.random.default_rng(scenario.seed)
+        self.t0 = clock.monotonic()
+        self._lock = threading.Lock()
+        travel = self.bench.travel_deg
+        self.axes: dict[int, Axis] = {}
+        for n, pulse in ((1, self.bench.pulse_x_deg), (2, self.bench.pulse_y_deg)):
+            soft = round(travel / pulse)
+            hard = round((travel + 0.5) / pulse)
+            self.axes[n] = Axis(clock, pulse, velocity_pps, (-soft, soft), (-hard, hard))
+        self.adc_scenario = adc_scenario
+        if adc_scenario is not None:
+            self.analog: AnalogSensor = bench_of(adc_scenario)
+            self.analog_effects = effect_set(adc_scenario)
+
+    def t_s(self) -> float:
+        return self.clock.monotonic() - self.t0
+
+    def temp_c(self) -> float:
+        return float(temperature(self.scenario.environment, np.array([self.t_s()]))[0])
+
+    @property
+    def pose_deg(self) -> tuple[float, float]:
+        """Where the stages are (x upper, y lower), in degrees."""
+        return self.axes[1].deg, self.axes[2].deg
+
+    def sample(self, noisy: bool = True) -> dict[str, float]:
+        """Both sensors' readings and the true table tilt at the present pose."""
+        x_deg, y_deg = self.pose_deg
+        with self._lock:
+            out = simulate_stage(self.bench, self.effects, [x_deg], [y_deg], [self.axes[1].direction],
+                                 [self.axes[2].direction], [self.temp_c()], [self.t_s()],
+                                 rng=self.rng if noisy else None, geometry=self.geometry)
+        return {k: float(v[0]) for k, v in out.items()}
+
+    def true_tilt_deg(self) -> tuple[float, float]:
+        s = self.sample(noisy=False)
+        return s["tilt_x_deg"], s["tilt_y_deg"]
+
+    def adc_counts(self, conversions: int) -> float:
+        """The analog sensor on the table (sensing x) behind the 12-bit ADC: one or a mean of n conversions."""
+        assert self.adc_scenario is not None
+        tilt_arcsec = self.true_tilt_deg()[0] * 3600.0
+        with self._lock:
+            out = simulate_scale(self.analog, self.analog_effects, np.full(conversions, tilt_arcsec),
+                                 self.adc_scenario.bench.start_arcsec, np.full(conversions, self.temp_c()),
+                                 self.rng)
+        return float(np.mean(out["reading"]))
+
+
+class RotaryWorld:
+    """A rotary table (controller axis 3, no limits) carrying a triaxial module about an inclined
+    axis (rotation scenario) and RS-485 inclinometers read in symmetric positions (turntable scenario)."""
+
+    def __init__(self, rotation: RotationScenario, turntable: TurntableScenario, clock: Clock,
+                 velocity_pps: int = 20_000, pulse_deg: float = 0.001, bus_addresses: tuple[int, ...] = (1, 2, 3)) -> None:
+        self.clock = clock
+        self.rotation = rotation
+        self.turntable = turntable
+        self.rot_bench = bench_of(rotation)
+        self.rot_effects = effect_set(rotation)
+        self.tt_effects = effect_set(turntable)
+        base: TurntableInclinometer = bench_of(turntable)
+        # Each instrument on the bus sits at its own azimuth on the table.
+        self.tt_sensors = {a: TurntableInclinometer(base.beta_deg + 40.0 * i, base.epsilon_deg, base.m1, base.m2)
+                           for i, a in enumerate(bus_addresses)}
+        cycle = turntable.grid.cycles[0]
+        self.axis_tilt_arcsec = (cycle.north_arcsec, cycle.east_arcsec)
+        self.rng = np.random.default_rng(rotation.seed)
+        self._lock = threading.Lock()
+        self.axes = {3: Axis(clock, pulse_deg, velocity_pps, None, None)}
+        self.t0 = clock.monotonic()
+
+    @property
+    def table_deg(self) -> float:
+        return self.axes[3].deg
+
+    @property
+    def pose_deg(self) -> float:
+        return self.table_deg
+
+    def temp_c(self) -> float:
+        return 20.0
+
+    def sines(self, noisy: bool = True) -> tuple[float, float, float]:
+        with self._lock:
+            out = simulate_rotation(self.rot_bench, self.rot_effects, [self.table_deg], self.rng if noisy else None)
+        return float(out["sx"][0]), float(out["sy"][0]), float(out["sz"][0])
+
+    def turntable_mrad(self, address: int, noisy: bool = True) -> tuple[float, float]:
+        p = self.tt_sensors[address]
+        fx = self.tt_effects
+        n1, n2 = turntable_readings(p, self.table_deg, *self.axis_tilt_arcsec, fx.get("zero_offset", "z1"),
+                                    fx.get("zero_offset", "z2"))
+        sigma, res = fx.get("noise", "reading_sigma"), fx.get("noise", "resolution")
+        out = []
+        with self._lock:
+            for n in (float(n1), float(n2)):
+                if noisy and sigma > 0:
+                    n += float(self.rng.normal(0.0, sigma))
+                if res > 0:
+                    n = round(n / res) * res
+                out.append(n)
+        return out[0], out[1]
+
+
+def stage_scenario(name: str) -> StageScenario:
+    sc = load_scenario(name)
+    if not isinstance(sc, StageScenario):
+        raise InputError(f"scenario {name!r} is a {sc.kind} scenario; a stage bench needs a stage scenario")
+    return sc
+
+
+def rotary_scenarios(name: str) -> tuple[RotationScenario, TurntableScenario]:
+    """The scenario named drives its instrument; the other instrument of the rotary bench follows its preset."""
+    sc = load_scenario(name)
+    if isinstance(sc, RotationScenario):
+        other = load_scenario("seed004")
+        assert isinstance(other, TurntableScenario)
+        return sc, other
+    if isinstance(sc, TurntableScenario):
+        other = load_scenario("seed002-sim")
+        assert isinstance(other, RotationScenario)
+        return other, sc
+    raise InputError(f"scenario {name!r} is a {sc.kind} scenario; a rotary bench needs a rotation or turntable scenario")
+
+
+__all__ = ["ARCSEC_PER_RAD", "NO_LIMIT", "Axis", "RotaryWorld", "StageWorld", "rotary_scenarios", "stage_scenario"]

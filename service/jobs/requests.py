@@ -1,0 +1,97 @@
+"""The body of POST /calibrations and its checks (a bad grid is refused before anything starts)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+PROCEDURES = ("stage-grid", "scale", "rotation", "turntable")
+KIND_OF_PROCEDURE = {"stage-grid": "stage", "scale": "scale", "rotation": "rotation", "turntable": "turntable"}
+# The fewest fit points each stage method needs (parameters it determines, with one spare).
+MIN_POINTS = {"kinematic": 6, "homography": 5, "axis_transform": 4, "coupling": 3}
+
+
+class Settle(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    tolerance_deg: Annotated[float, Field(gt=0, le=1.0)] = 0.002
+    window_s: Annotated[float, Field(gt=0, le=600)] = 0.5
+    timeout_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
+
+
+class Validation(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    n_points: Annotated[int, Field(ge=0, le=1000)] = 4
+
+
+class Grid(BaseModel):
+    """Either a rectangle `x_deg`, `y_deg`, `n_x`, `n_y` or explicit `points`."""
+
+    model_config = ConfigDict(extra="forbid")
+    x_deg: Annotated[list[float], Field(min_length=2, max_length=2)] | None = None
+    y_deg: Annotated[list[float], Field(min_length=2, max_length=2)] | None = None
+    n_x: Annotated[int, Field(ge=1, le=1000)] | None = None
+    n_y: Annotated[int, Field(ge=1, le=1000)] | None = None
+    points: Annotated[list[Annotated[list[float], Field(min_length=2, max_length=2)]], Field(max_length=100_000)] | None = None
+    # scale (stage x angles) and rotation (rotary table angles): the procedure's own points
+    angles_deg: Annotated[list[float], Field(min_length=1, max_length=100_000)] | None = None
+    range_deg: Annotated[list[float], Field(min_length=2, max_length=2)] | None = None
+    n: Annotated[int, Field(ge=1, le=100_000)] | None = None
+
+    def angles(self) -> list[float]:
+        if self.angles_deg is not None:
+            return [float(a) for a in self.angles_deg]
+        assert self.range_deg is not None and self.n is not None  # checked by the validator
+        return [float(a) for a in np.linspace(self.range_deg[0], self.range_deg[1], self.n)]
+
+    def is_angles(self) -> bool:
+        return self.angles_deg is not None or self.range_deg is not None
+
+    @model_validator(mode="after")
+    def _one_form(self) -> Grid:
+        if self.angles_deg is not None or self.range_deg is not None or self.n is not None:
+            if any(v is not None for v in (self.x_deg, self.y_deg, self.n_x, self.n_y, self.points)):
+                raise ValueError("give either angles (angles_deg, or range_deg and n) or a stage grid, not both")
+            if self.angles_deg is None and (self.range_deg is None or self.n is None):
+                raise ValueError("angles need angles_deg, or range_deg and n")
+            return self
+        rect = [self.x_deg, self.y_deg, self.n_x, self.n_y]
+        if self.points is not None and any(v is not None for v in rect):
+            raise ValueError("give either points or x_deg, y_deg, n_x, n_y, not both")
+        if self.points is None and any(v is None for v in rect):
+            raise ValueError("a grid needs x_deg, y_deg, n_x and n_y (or points)")
+        return self
+
+    def stage_points(self) -> list[tuple[float, float]]:
+        if self.points is not None:
+            return [(float(x), float(y)) for x, y in self.points]
+        assert self.x_deg is not None and self.y_deg is not None and self.n_x and self.n_y  # checked by the validator
+        xs = np.linspace(self.x_deg[0], self.x_deg[1], self.n_x)
+        ys = np.linspace(self.y_deg[0], self.y_deg[1], self.n_y)
+        # Serpentine order: rows alternate direction, each point still approached from below (see the job).
+        return [(float(x), float(y)) for j, y in enumerate(ys) for x in (xs if j % 2 == 0 else xs[::-1])]
+
+
+class AxisReference(BaseModel):
+    """turntable: the turntable axis tilt measured independently (e.g. from star observations)."""
+
+    model_config = ConfigDict(extra="forbid")
+    north_arcsec: float
+    east_arcsec: float
+
+
+class CalibrationRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    bench: str | None = None
+    procedure: Literal["stage-grid", "scale", "rotation", "turntable"]
+    method: str
+    grid: Grid | None = None
+    samples_per_point: Annotated[int, Field(ge=1, le=10_000)] = 10
+    settle: Settle = Field(default_factory=Settle)
+    validation: Validation = Field(default_factory=Validation)
+    reference_standards: list[int] = Field(default_factory=list, description="ids of registered reference standards"
+                                           " (GET /standards); one past its due date refuses the job")
+    order_id: int | None = Field(None, description="the LIMS order (POST /orders) this job works on")
+    reference: AxisReference | None = None
+    note: Annotated[str, Field(max_length=10_000)] | None = None

@@ -1,0 +1,170 @@
+"""Issuing and verifying certificates: gathers a record's facts from storage, builds through
+`content` and `dcc`, stores the bytes once; verification re-checks a file against the schema,
+the stored hash, the record and its approval."""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+from dataclasses import dataclass, field
+from typing import Any
+
+from service import __version__
+from service.lims import dcc
+from service.lims.content import Approval, Laboratory, build_certificate
+from service.storage.canonical import sha256_hex
+from service.storage.errors import UnknownEntity
+from service.storage.models import CalibrationRecord, Certificate
+from service.storage.store.hashing import record_content
+
+
+class NotApproved(Exception):
+    """A certificate was asked for a record that is a draft or rejected."""
+
+
+class NotConfigured(Exception):
+    """The laboratory's identity, which every certificate names, is not configured."""
+
+
+class IntegrityFailure(Exception):
+    """Stored certificate bytes no longer match their SHA-256 (or the record its hash)."""
+
+
+def laboratory(settings) -> Laboratory:  # type: ignore[no-untyped-def]
+    missing = [f"TILTLAB_{n.upper()}" for n in ("lab_name", "lab_city", "lab_country_code") if not getattr(settings, n)]
+    if missing:
+        raise NotConfigured(f"certificates name the laboratory: set {', '.join(missing)} (see docs/lims.md)")
+    return Laboratory(name=settings.lab_name, city=settings.lab_city, country_code=settings.lab_country_code,
+                      street=settings.lab_street or None, post_code=settings.lab_post_code or None,
+                      email=settings.lab_email or None, accreditation=settings.lab_accreditation or None,
+                      certificate_prefix=settings.certificate_prefix)  # fmt: skip
+
+
+def _record_json(r: CalibrationRecord) -> dict[str, Any]:
+    return {"id": r.id, "version": r.version, "kind": r.kind, "method": r.method, "model": r.model,
+            "validation": r.validation, "temp_c": r.temp_c, "content_sha256": r.content_sha256,
+            "created_at": r.created_at}  # fmt: skip
+
+
+def _device_json(store, r: CalibrationRecord) -> dict[str, Any]:  # type: ignore[no-untyped-def]
+    device = store.get_device(r.device_id)
+    conditions = (r.raw_data or {}).get("conditions") or {}
+    firmware = conditions.get("firmware")
+    if isinstance(firmware, dict):  # per role, as the daemon keeps it
+        firmware = firmware.get(device.role) or firmware.get("measurement_sensor")
+    return {"model": device.model, "serial": device.serial, "firmware": firmware if isinstance(firmware, str) else None}
+
+
+def _standards_of(store, r: CalibrationRecord, job) -> list[Any]:  # type: ignore[no-untyped-def]
+    """The registered standards the job named (by id), else those the record lists (by certificate number)."""
+    registered = {s.id: s for s in store.standards()}
+    ids: list[Any] = []
+    if job is not None:
+        request = (job.parameters or {}).get("request") or {}
+        ids = request.get("reference_standards") or (job.parameters or {}).get("reference_standards") or []
+    out = [registered[int(i)] for i in ids if str(i).isdigit() and int(i) in registered]
+    if not out:
+        by_number = {s.certificate_number: s for s in registered.values()}
+        out = [by_number[s["certificate_id"]] for s in r.reference_standards or [] if s.get("certificate_id") in by_number]
+    return [{"name": s.name, "serial": s.serial, "model": s.model, "certificate_number": s.certificate_number,
+             "certificate_sha256": s.certificate_sha256, "calibrated_on": s.calibrated_on, "due_on": s.due_on,
+             "uncertainty": s.uncertainty} for s in out]  # fmt: skip
+
+
+def issue_certificate(store, record_id: int, settings, *, actor: str,  # type: ignore[no-untyped-def]
+                      today: dt.date | None = None) -> Certificate:
+    """The record's certificate: the stored one if it was issued before (after checking its hash), else a new
+    one, validated against the DCC schema before it is stored. Raises NotApproved for a draft or rejected record."""
+    existing = store.certificate_of(record_id)
+    if existing is not None:
+        check_stored(existing)
+        return existing
+    record = store.get_record(record_id)
+    if sha256_hex(record_content(record)) != record.content_sha256:
+        raise IntegrityFailure(f"record {record_id} does not match its hash (tampered); no certificate is issued")
+    approvals = store.approvals(record_id)
+    status = store.status_of(approvals)
+    if status != "approved":
+        raise NotApproved(f"record {record_id} is {status}; a certificate is issued only for an approved record"
+                          " (POST /records/{id}/approve by a second person)")
+    approval = [a for a in approvals if a.decision == "approve" and a.meaning == "approval"][-1]
+    lab = laboratory(settings)
+    job = store.get_job(record.job_id) if record.job_id is not None else None
+    order = store.order(job.order_id) if job is not None and job.order_id is not None else None
+    replaced = store.replaced_certificate(record_id)
+    today = today or dt.datetime.now(dt.UTC).date()
+    begin = (job.started_at or job.created_at) if job is not None else record.created_at
+    content = build_certificate(
+        number=f"{lab.certificate_prefix}-{today.year}-{record.id:06d}",
+        record=_record_json(record), device=_device_json(store, record),
+        approval=Approval(actor=approval.actor, at=approval.at, meaning=approval.meaning,
+                          record_sha256=approval.record_sha256, event_sha256=approval.sha256, note=approval.note),
+        operator=record.operator, laboratory=lab, software_version=__version__, issued_on=today,
+        begin_on=begin.astimezone(dt.UTC).date(), standards=_standards_of(store, record, job),
+        order={"lims_order_id": order.lims_order_id, "item_serial": order.item_serial, "customer": order.customer}
+        if order is not None else None,
+        replaces=replaced.number if replaced is not None else None,
+    )  # fmt: skip
+    xml = dcc.issue(content)  # refuses an invalid document: nothing is stored then
+    row, _ = store.store_certificate(record_id, number=content.number, xml=xml, approval_id=approval.id,
+                                     replaces_id=replaced.id if replaced is not None else None, actor=actor)
+    check_stored(row)
+    return row
+
+
+def check_stored(cert: Certificate) -> None:
+    if hashlib.sha256(cert.xml).hexdigest() != cert.sha256:
+        raise IntegrityFailure(f"stored certificate {cert.number} no longer matches its SHA-256 {cert.sha256};"
+                               " it is not served (restore it from a backup; it is never regenerated)")
+
+
+@dataclass
+class Verification:
+    number: str = ""
+    sha256: str = ""
+    problems: list[str] = field(default_factory=list)
+    facts: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+def verify_certificate(xml: bytes, store=None) -> Verification:  # type: ignore[no-untyped-def]
+    """Schema validity, and with a store: the stored hash, the record's hash and the approval it rests on."""
+    v = Verification(sha256=hashlib.sha256(xml).hexdigest())
+    errors = dcc.certificate_errors(xml)
+    if errors:
+        v.problems.append(f"not a valid DCC {dcc.DCC_VERSION} document: {errors[0]}")
+        return v
+    v.facts.append(f"valid DCC {dcc.DCC_VERSION} document (checked offline against the shipped schemas)")
+    v.number = dcc.unique_identifier(xml)
+    if store is None:
+        return v
+    stored = store.certificate_by_number(v.number)
+    if stored is None:
+        v.problems.append(f"certificate {v.number} was not issued by this laboratory's database")
+        return v
+    if hashlib.sha256(stored.xml).hexdigest() != stored.sha256:
+        v.problems.append(f"the stored copy of {v.number} no longer matches its SHA-256 (the database was altered)")
+    if v.sha256 != stored.sha256:
+        v.problems.append(f"this file's SHA-256 {v.sha256} differs from the one stored at issue {stored.sha256}:"
+                          " the file was altered")
+    else:
+        v.facts.append(f"SHA-256 {v.sha256} equals the one stored when it was issued")
+    try:
+        record = store.get_record(stored.record_id)
+    except UnknownEntity:
+        v.problems.append(f"record {stored.record_id} of {v.number} is missing")
+        return v
+    if sha256_hex(record_content(record)) != record.content_sha256:
+        v.problems.append(f"record {record.id} no longer matches its hash (tampered)")
+    approvals = {a.id: a for a in store.approvals(record.id)}
+    approval = approvals.get(stored.approval_id)
+    if approval is None or approval.record_sha256 != record.content_sha256:
+        v.problems.append(f"the approval of record {record.id} is missing or bound to another hash")
+    else:
+        v.facts.append(f"record {record.id} v{record.version} (SHA-256 {record.content_sha256}) approved by "
+                       f"{approval.actor} at {approval.at:%Y-%m-%d %H:%M:%S} UTC ({approval.meaning})")
+    v.problems += store.verify_approvals()
+    return v

@@ -1,0 +1,38 @@
+"""Where an artefact came from: tiltlab version, UTC time, the command, and the SHA-256 of each input
+file, so a model or report found on a share years later can be traced to the data it was made from."""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+
+def sha256_of(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def provenance(command: str, inputs: Mapping[str, str | Path | None]) -> dict[str, Any]:
+    """The provenance record; `inputs` maps each input's role (option name) to its file."""
+    from service import __version__
+
+    files = {role: {"path": str(path), "sha256": sha256_of(path)}
+             for role, path in inputs.items() if path is not None and Path(path).is_file()}
+    return {"tiltlab_version": __version__,
+            "utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
+            "command": command, "inputs": files}
+
+
+def provenance_lines(record: Mapping[str, Any]) -> list[str]:
+    """The record as short lines for a page or a report."""
+    lines = [f"tiltlab {record.get('tiltlab_version', '?')}, {record.get('utc', '?')}",
+             f"command: {record.get('command', '?')}"]
+    for role, f in (record.get("inputs") or {}).items():
+        lines.append(f"{role}: {f['path']} (SHA-256 {f['sha256']})")
+    return lines

@@ -1,0 +1,119 @@
+"""The LIMS event feed and the webhook outbox, written in the transaction of the change they report.
+
+Every state change already writes an audit event inside the store's serialised write
+transaction; `append_for_audit` turns the ones a LIMS cares about into a feed event in that same
+transaction, and queues one webhook delivery per subscribed endpoint. Because write transactions
+are serialised, feed ids grow in commit order: a reader that has seen id n has seen every event
+before it, so paging by id never misses or repeats one, even while events are being written.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+from collections.abc import Mapping
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy.orm import Session
+
+from service.errors import InputError
+from service.storage.models import AuditEvent, CalibrationJob, CalibrationRecord, FeedEvent, WebhookDelivery, WebhookEndpoint
+
+EVENT_TYPES = (
+    "job.state", "record.created", "record.reviewed", "record.approved", "record.rejected", "record.activated",
+    "certificate.issued", "standard.due_soon", "order.created",
+)  # fmt: skip
+_JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+
+
+def _job_event(s: Session, e: AuditEvent, state: str) -> dict[str, Any]:
+    job = s.get(CalibrationJob, int(e.entity_id))
+    return {"job_id": int(e.entity_id), "state": state, "previous_state": e.details.get("from"),
+            "failure_reason": e.details.get("failure_reason"), "order_id": job.order_id if job else None,
+            "bench_id": job.bench_id if job else None}  # fmt: skip
+
+
+def _record_event(s: Session, record_id: int, extra: Mapping[str, Any]) -> dict[str, Any]:
+    r = s.get(CalibrationRecord, record_id)
+    job = s.get(CalibrationJob, r.job_id) if r is not None and r.job_id is not None else None
+    base: dict[str, Any] = {"record_id": record_id}
+    if r is not None:
+        base.update({"device_id": r.device_id, "kind": r.kind, "version": r.version, "method": r.method,
+                     "content_sha256": r.content_sha256, "job_id": r.job_id,
+                     "order_id": job.order_id if job else None})  # fmt: skip
+    return {**base, **extra}
+
+
+def event_for(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
+    """The feed event (type, data) an audit event stands for, or None if a LIMS need not hear of it."""
+    action, d = e.action, e.details
+    if action == "job.create":
+        return "job.state", _job_event(s, e, "queued")
+    if action.startswith("job.") and action.removeprefix("job.") in _JOB_STATES:
+        return "job.state", _job_event(s, e, action.removeprefix("job."))
+    if action == "job.resume":
+        return "job.state", _job_event(s, e, "running")
+    if action == "record.create":
+        return "record.created", _record_event(s, int(e.entity_id), {})
+    if action == "pointer.set":
+        return "record.activated", _record_event(s, int(d["record_id"]), {"previous_record_id": d.get("previous_record_id")})
+    if action in ("record.review", "record.approve", "record.reject"):
+        kind = {"record.review": "record.reviewed", "record.approve": "record.approved",
+                "record.reject": "record.rejected"}[action]  # fmt: skip
+        return kind, _record_event(s, int(e.entity_id), {k: d.get(k) for k in ("approval_id", "actor", "meaning", "note", "record_sha256")})
+    if action in ("certificate.issue", "standard.due_soon", "order.create"):
+        return {"certificate.issue": "certificate.issued", "standard.due_soon": "standard.due_soon",
+                "order.create": "order.created"}[action], dict(d)  # fmt: skip
+    return None
+
+
+def append_for_audit(s: Session, e: AuditEvent) -> FeedEvent | None:
+    """Called for every audit event inside its transaction: the feed event and its outbox rows."""
+    found = event_for(s, e)
+    if found is None:
+        return None
+    kind, data = found
+    event = FeedEvent(type=kind, at=e.at, data=data, audit_event_id=e.id)
+    s.add(event)
+    s.flush()
+    endpoints = s.execute(sa.select(WebhookEndpoint.id, WebhookEndpoint.events).where(WebhookEndpoint.disabled_at.is_(None)))
+    for endpoint_id, events in endpoints:
+        if "*" in events or kind in events:
+            s.add(WebhookDelivery(endpoint_id=endpoint_id, event_id=event.id, state="pending", attempts=0,
+                                  next_attempt_at=e.at, created_at=e.at))  # fmt: skip
+    return event
+
+
+def event_json(e: FeedEvent) -> dict[str, Any]:
+    """An event as the feed and the webhooks show it."""
+    return {"id": event_id(e.id), "type": e.type, "time_utc": e.at.strftime("%Y-%m-%dT%H:%M:%S.%fZ"), "data": e.data}
+
+
+def event_id(n: int) -> str:
+    return f"evt_{n}"
+
+
+# ---------------------------------------------------------------- cursors
+
+_CURSOR_PREFIX = "f1."
+
+
+def encode_cursor(last_id: int) -> str:
+    """Opaque to clients: they only hand it back."""
+    return _CURSOR_PREFIX + base64.urlsafe_b64encode(str(last_id).encode()).decode().rstrip("=")
+
+
+def decode_cursor(cursor: str | None) -> int:
+    if cursor is None or cursor == "":
+        return 0
+    try:
+        if not cursor.startswith(_CURSOR_PREFIX):
+            raise ValueError
+        body = cursor.removeprefix(_CURSOR_PREFIX)
+        value = int(base64.urlsafe_b64decode(body + "=" * (-len(body) % 4)).decode("ascii"))
+        if value < 0:
+            raise ValueError
+        return value
+    except (ValueError, binascii.Error, UnicodeDecodeError):
+        raise InputError(f"cursor {cursor[:40]!r} is not a cursor this feed gave out; start without one") from None

@@ -1,0 +1,69 @@
+"""Input checks shared by the write methods, and the translation of database refusals into our errors."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import sqlalchemy as sa
+
+from service.errors import InputError
+from service.storage.canonical import normalise
+from service.storage.errors import AppendOnlyViolation, ConflictError, RefusedWrite, UnknownEntity
+
+
+def _text(name: str, value: object, max_len: int = 100) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"{name} must be a non-empty string")
+    if len(value) > max_len:
+        raise InputError(f"{name} is longer than {max_len} characters")
+    return value
+
+
+def _optional_text(name: str, value: object, max_len: int) -> str | None:
+    return None if value is None else _text(name, value, max_len)
+
+
+def _finite(name: str, value: object, *, optional: bool = True) -> float | None:
+    if value is None and optional:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise InputError(f"{name}={value!r} is not a finite number")
+    return float(value)
+
+
+def _doc(name: str, value: object) -> dict[str, Any]:
+    if not isinstance(value, Mapping):
+        raise InputError(f"{name} must be a JSON object (dict)")
+    return normalise(dict(value))
+
+
+def _standards(value: object) -> list[dict[str, Any]]:
+    if not isinstance(value, list | tuple):
+        raise InputError("reference_standards must be a list of {name, serial, certificate_id}")
+    out = []
+    for i, item in enumerate(value):
+        if not isinstance(item, Mapping):
+            raise InputError(f"reference_standards[{i}] must be an object")
+        cert = item.get("certificate_id")
+        if not isinstance(cert, str) or not cert.strip():
+            raise InputError(f"reference_standards[{i}] has no certificate_id: traceability needs it")
+        if not (item.get("name") or item.get("serial")):
+            raise InputError(f"reference_standards[{i}] needs a name or a serial")
+        out.append(dict(item))
+    return normalise(out)
+
+
+def _translate(exc: sa.exc.DBAPIError) -> RefusedWrite:
+    orig = exc.orig
+    message = str(orig).strip().splitlines()[0] if orig is not None else str(exc)
+    code = getattr(orig, "sqlstate", None)
+    lower = message.lower()
+    if "append-only" in lower or "raw data" in lower or "are kept" in lower:
+        return AppendOnlyViolation(f"refused by the database: {message}")
+    if code == "23503" or "foreign key" in lower:
+        return UnknownEntity(f"refused by the database: a referenced row does not exist ({message})")
+    if code == "23505" or "unique" in lower:
+        return ConflictError(f"refused by the database: duplicate ({message})")
+    return RefusedWrite(f"refused by the database: {message}")

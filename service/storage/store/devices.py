@@ -1,0 +1,115 @@
+"""Benches and devices: registration, changes (audited with before/after) and lookups."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import sqlalchemy as sa
+
+from service.errors import InputError
+from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.models import Bench, Device
+from service.storage.store.base import StoreBase
+from service.storage.store.checks import _doc, _optional_text, _text
+
+
+class DevicesStore(StoreBase):
+    def add_bench(
+        self,
+        name: str,
+        *,
+        actor: str,
+        stage_model: str | None = None,
+        stage_serial: str | None = None,
+        port: str | None = None,
+        port_settings: Mapping | None = None,
+    ) -> Bench:
+        with self._tx() as s:
+            name = _text("bench name", name)
+            if s.scalar(sa.select(Bench.id).where(Bench.name == name)) is not None:
+                raise ConflictError(f"a bench named {name!r} already exists")
+            port = _optional_text("port", port, 200)
+            bench = Bench(
+                name=name,
+                stage_model=_optional_text("stage_model", stage_model, 100),
+                stage_serial=_optional_text("stage_serial", stage_serial, 100),
+                port=port,
+                port_settings=_doc("port_settings", port_settings or {}),
+            )
+            s.add(bench)
+            s.flush()
+            self._audit(s, actor, "bench.create", "bench", bench.id, {"name": name, "port": port})
+            return bench
+
+    def add_device(
+        self,
+        model: str,
+        serial: str,
+        role: str,
+        *,
+        actor: str,
+        bench_id: int | None = None,
+        port: str | None = None,
+        port_settings: Mapping | None = None,
+    ) -> Device:
+        with self._tx() as s:
+            model, serial, role = _text("model", model), _text("serial", serial), _text("role", role, 40)
+            port = _optional_text("port", port, 200)
+            if bench_id is not None and s.get(Bench, bench_id) is None:
+                raise UnknownEntity(f"bench {bench_id} does not exist")
+            existing = s.scalar(sa.select(Device.id).where(Device.model == model, Device.serial == serial))
+            if existing is not None:
+                raise ConflictError(f"device {model} s/n {serial} already exists (id {existing})")
+            device = Device(
+                model=model,
+                serial=serial,
+                role=role,
+                bench_id=bench_id,
+                port=port,
+                port_settings=_doc("port_settings", port_settings or {}),
+            )
+            s.add(device)
+            s.flush()
+            self._audit(
+                s, actor, "device.create", "device", device.id,
+                {"model": model, "serial": serial, "role": role, "bench_id": bench_id, "port": port},
+            )  # fmt: skip
+            return device
+
+    def update_device(self, device_id: int, *, actor: str, **changes: Any) -> Device:
+        allowed = {"role", "bench_id", "port", "port_settings"}
+        unknown = set(changes) - allowed
+        if unknown:
+            raise InputError(f"cannot change {sorted(unknown)} of a device; changeable: {sorted(allowed)}")
+        with self._tx() as s:
+            device = self._device(s, device_id)
+            if changes.get("bench_id") is not None and s.get(Bench, changes["bench_id"]) is None:
+                raise UnknownEntity(f"bench {changes['bench_id']} does not exist")
+            if "role" in changes:
+                changes["role"] = _text("role", changes["role"], 40)
+            if "port" in changes:
+                changes["port"] = _optional_text("port", changes["port"], 200)
+            if "port_settings" in changes:
+                changes["port_settings"] = _doc("port_settings", changes["port_settings"] or {})
+            before = {k: getattr(device, k) for k in changes}
+            for key, value in changes.items():
+                setattr(device, key, value)
+            self._audit(s, actor, "device.update", "device", device.id, {"before": before, "after": changes})
+            return device
+
+    def get_device(self, device_id: int) -> Device:
+        with self._read() as s:
+            return self._device(s, device_id)
+
+    def find_device(self, model: str, serial: str) -> Device | None:
+        with self._read() as s:
+            return s.scalar(sa.select(Device).where(Device.model == model, Device.serial == serial))
+
+    def devices(self) -> list[Device]:
+        with self._read() as s:
+            return list(s.scalars(sa.select(Device).order_by(Device.id)))
+
+    def benches(self) -> list[Bench]:
+        with self._read() as s:
+            return list(s.scalars(sa.select(Bench).order_by(Bench.id)))

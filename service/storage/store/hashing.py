@@ -1,0 +1,56 @@
+"""What a record, an audit event and a settled point assert: the content their SHA-256 covers (rule in canonical.py)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from service.storage.canonical import sha256_hex, utc_iso
+from service.storage.models import AuditEvent, CalibrationRecord, SettledPoint
+
+_POINT_FIELDS = (
+    "point", "cmd_x_deg", "cmd_y_deg", "n_samples", "t_start_s", "t_end_s", "ch_x_mean", "ch_y_mean",
+    "ch_z_mean", "ch_x_std", "ch_y_std", "ch_z_std", "temp_c_mean",
+)  # fmt: skip
+_POINT_REQUIRED = ("point", "n_samples", "t_start_s", "t_end_s", "ch_x_mean", "ch_y_mean")
+
+
+def record_content(r: CalibrationRecord) -> dict[str, Any]:
+    """Everything a record asserts; its SHA-256 is `content_sha256` (rule in canonical.py)."""
+    return {
+        "content_format": r.content_format,
+        "device_id": r.device_id,
+        "kind": r.kind,
+        "version": r.version,
+        "method": r.method,
+        "model": r.model,
+        "validation": r.validation,
+        "temp_c": r.temp_c,
+        "reference_standards": r.reference_standards,
+        "operator": r.operator,
+        "created_at": utc_iso(r.created_at),
+        "job_id": r.job_id,
+        "raw_data": r.raw_data,
+        "supersedes_id": r.supersedes_id,
+        "prev_sha256": r.prev_sha256,
+    }
+
+
+def audit_content(e: AuditEvent) -> dict[str, Any]:
+    return {
+        "at": utc_iso(e.at),
+        "actor": e.actor,
+        "action": e.action,
+        "entity": e.entity,
+        "entity_id": e.entity_id,
+        "details": e.details,
+        "prev_sha256": e.prev_sha256,
+    }
+
+
+def point_content(p: SettledPoint) -> dict[str, Any]:
+    return {name: getattr(p, name) for name in _POINT_FIELDS}
+
+
+def points_sha256(points: Sequence[SettledPoint]) -> str:
+    return sha256_hex([point_content(p) for p in sorted(points, key=lambda p: p.point)])

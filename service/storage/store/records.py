@@ -1,0 +1,143 @@
+"""Calibration records: append-only versions per (device, kind), hash-chained, optionally activated at once."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import sqlalchemy as sa
+
+from service.errors import InputError
+from service.storage.canonical import sha256_hex
+from service.storage.errors import IllegalTransition, UnknownEntity
+from service.storage.models import (
+    GENESIS_SHA256,
+    ActiveCalibration,
+    ActiveCalibrationHistory,
+    CalibrationRecord,
+    SettledPoint,
+    utc_now,
+)
+from service.storage.models import Sample as SampleRow
+from service.storage.store.activation import ActivationStore
+from service.storage.store.checks import _doc, _finite, _standards, _text
+from service.storage.store.hashing import points_sha256, record_content
+
+_UNSET: Any = object()
+
+
+class RecordsStore(ActivationStore):
+    def add_record(
+        self,
+        device_id: int,
+        kind: str,
+        method: str,
+        model: Mapping[str, Any],
+        *,
+        operator: str,
+        reference_standards: Sequence[Mapping[str, Any]] = (),
+        validation: Mapping[str, Any] | None = None,
+        temp_c: float | None = None,
+        job_id: int | None = None,
+        raw_data: Mapping[str, Any] | None = None,
+        supersedes_id: int | None = _UNSET,
+        activate: bool = False,
+        reason: str | None = None,
+    ) -> CalibrationRecord:
+        """Append a new version for (device, kind). By default it supersedes the active version.
+
+        With activate=True the new version also becomes the active one in the same transaction.
+        """
+        with self._tx() as s:
+            self._device(s, device_id)
+            kind, method = _text("kind", kind, 40), _text("method", method, 80)
+            operator = _text("operator", operator)
+            model_doc = _doc("model", model)
+            for key, expected in (("kind", kind), ("method", method)):
+                if key in model_doc and model_doc[key] != expected:
+                    raise InputError(f"model document says {key}={model_doc[key]!r} but the record is {expected!r}")
+            raw = _doc("raw_data", raw_data or {})
+            if job_id is not None:
+                job = self._job(s, job_id)
+                if job.device_id != device_id:
+                    raise InputError(f"job {job_id} calibrates device {job.device_id}, not device {device_id}")
+                if job.state not in ("running", "succeeded"):
+                    raise IllegalTransition(f"job {job_id} is {job.state}; a record comes from a running or succeeded job")
+                pts = list(s.scalars(sa.select(SettledPoint).where(
+                    SettledPoint.job_id == job_id, SettledPoint.device_id == device_id)))  # fmt: skip
+                n_samples = s.scalar(
+                    sa.select(sa.func.count()).select_from(SampleRow)
+                    .where(SampleRow.job_id == job_id, SampleRow.device_id == device_id)
+                )  # fmt: skip
+                raw.update({"job_id": job_id, "points": len(pts), "points_sha256": points_sha256(pts), "samples": n_samples})
+            active = s.get(ActiveCalibration, (device_id, kind))
+            if supersedes_id is _UNSET:
+                supersedes_id = active.record_id if active else None
+            elif supersedes_id is not None:
+                old = s.get(CalibrationRecord, supersedes_id)
+                if old is None or (old.device_id, old.kind) != (device_id, kind):
+                    raise UnknownEntity(f"record {supersedes_id} is not a {kind} record of device {device_id}")
+            last = s.execute(
+                sa.select(CalibrationRecord.version, CalibrationRecord.content_sha256)
+                .where(CalibrationRecord.device_id == device_id, CalibrationRecord.kind == kind)
+                .order_by(CalibrationRecord.version.desc()).limit(1)
+            ).first()  # fmt: skip
+            record = CalibrationRecord(
+                device_id=device_id,
+                kind=kind,
+                version=(last.version + 1) if last else 1,
+                content_format=1,
+                method=method,
+                model=model_doc,
+                validation=_doc("validation", validation or {}),
+                temp_c=_finite("temp_c", temp_c),
+                reference_standards=_standards(list(reference_standards)),
+                operator=operator,
+                created_at=utc_now(),
+                job_id=job_id,
+                raw_data=raw,
+                supersedes_id=supersedes_id,
+                prev_sha256=last.content_sha256 if last else GENESIS_SHA256,
+            )
+            record.content_sha256 = sha256_hex(record_content(record))
+            s.add(record)
+            s.flush()
+            self._audit(
+                s, operator, "record.create", "calibration_record", record.id,
+                {"device_id": device_id, "kind": kind, "version": record.version,
+                 "content_sha256": record.content_sha256, "supersedes_id": supersedes_id},
+            )  # fmt: skip
+            if activate:
+                self._activate(s, record, actor=operator, reason=reason or f"new version {record.version}",
+                               replaces=active.record_id if active else None)  # fmt: skip
+            return record
+
+    def get_record(self, record_id: int) -> CalibrationRecord:
+        with self._read() as s:
+            record = s.get(CalibrationRecord, record_id)
+            if record is None:
+                raise UnknownEntity(f"calibration record {record_id} does not exist")
+            return record
+
+    def records(self, device_id: int, kind: str | None = None) -> list[CalibrationRecord]:
+        with self._read() as s:
+            stmt = sa.select(CalibrationRecord).where(CalibrationRecord.device_id == device_id)
+            if kind is not None:
+                stmt = stmt.where(CalibrationRecord.kind == kind)
+            return list(s.scalars(stmt.order_by(CalibrationRecord.kind, CalibrationRecord.version)))
+
+    def active_record(self, device_id: int, kind: str) -> CalibrationRecord | None:
+        with self._read() as s:
+            return s.scalar(
+                sa.select(CalibrationRecord).join(
+                    ActiveCalibration, ActiveCalibration.record_id == CalibrationRecord.id
+                ).where(ActiveCalibration.device_id == device_id, ActiveCalibration.kind == kind)
+            )  # fmt: skip
+
+    def pointer_history(self, device_id: int, kind: str) -> list[ActiveCalibrationHistory]:
+        with self._read() as s:
+            return list(s.scalars(
+                sa.select(ActiveCalibrationHistory)
+                .where(ActiveCalibrationHistory.device_id == device_id, ActiveCalibrationHistory.kind == kind)
+                .order_by(ActiveCalibrationHistory.id)
+            ))  # fmt: skip

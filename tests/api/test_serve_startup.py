@@ -1,0 +1,117 @@
+"""`tiltlab serve` start-up: it binds before it announces, and every start-up failure is one line
+naming the setting and what to do (exit 2 for a setting that cannot work, 1 for surroundings)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from tests.api.running_service import free_port
+
+
+def _serve(tmp_path: Path, *args: str, **env: str) -> subprocess.CompletedProcess[str]:
+    full_env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data"), **env}
+    full_env.pop("TILTLAB_CONFIG", None)
+    return subprocess.run([sys.executable, "-m", "service", "serve", *args], env=full_env,
+                          capture_output=True, text=True, timeout=120)
+
+
+def _one_line(r: subprocess.CompletedProcess[str], *words: str) -> str:
+    lines = [x for x in r.stderr.splitlines() if x.strip()]
+    assert "Traceback" not in r.stderr, r.stderr
+    assert "serving on" not in r.stderr
+    last = lines[-1]
+    for w in words:
+        assert w in last, last
+    return last
+
+
+def test_port_out_of_range(tmp_path: Path) -> None:
+    r = _serve(tmp_path, "--port", "70000")
+    assert r.returncode == 2
+    _one_line(r, "--port", "70000", "1 to 65535")
+    r = _serve(tmp_path, TILTLAB_PORT="70000")
+    assert r.returncode == 2
+    _one_line(r, "TILTLAB_PORT", "70000")
+
+
+def test_port_in_use(tmp_path: Path) -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        r = _serve(tmp_path, "--port", str(port))
+    assert r.returncode == 1
+    _one_line(r, f"--port {port}", "already in use", "another port")
+
+
+def test_unknown_host(tmp_path: Path) -> None:
+    r = _serve(tmp_path, "--host", "no-such-host.invalid", "--port", str(free_port()))
+    assert r.returncode == 2
+    _one_line(r, "--host no-such-host.invalid", "TILTLAB_HOST")
+
+
+def test_unwritable_data_directory(tmp_path: Path) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    r = _serve(tmp_path, "--port", str(free_port()), TILTLAB_DATA_DIR=str(blocker / "data"))
+    assert r.returncode == 2
+    _one_line(r, "TILTLAB_DATA_DIR", "writable")
+    assert blocker.read_text() == "not a folder"
+
+
+def test_unreachable_database_is_retried_then_one_line(tmp_path: Path) -> None:
+    dead = free_port()  # nothing listens there
+    r = _serve(tmp_path, "--port", str(free_port()), "--database-wait-s", "1",
+               TILTLAB_DATABASE_URL=f"postgresql+psycopg://lab@127.0.0.1:{dead}/tiltlab")
+    assert r.returncode == 1
+    assert "retrying for up to 1 s" in r.stderr
+    _one_line(r, "TILTLAB_DATABASE_URL", "no answer after 1 s", "TILTLAB_DATABASE_WAIT_S")
+
+
+def test_wait_setting_is_validated(tmp_path: Path) -> None:
+    r = _serve(tmp_path, "--database-wait-s", "nan")
+    assert r.returncode == 2
+    _one_line(r, "--database-wait-s")
+    r = _serve(tmp_path, TILTLAB_DATABASE_WAIT_S="-1")
+    assert r.returncode == 2
+    _one_line(r, "TILTLAB_DATABASE_WAIT_S")
+
+
+def test_announces_only_once_listening(tmp_path: Path) -> None:
+    port = free_port()
+    env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data")}
+    env.pop("TILTLAB_CONFIG", None)
+    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    killer = threading.Timer(90, proc.kill)  # a hung start-up fails the test instead of hanging it
+    killer.start()
+    try:
+        seen = []
+        for line in proc.stderr:
+            seen.append(line)
+            if "serving on" in line:
+                assert f"http://127.0.0.1:{port}" in line
+                # the moment it says so, a client must get through: no retry here
+                with socket.create_connection(("127.0.0.1", port), timeout=5) as conn:
+                    conn.sendall(b"GET /health HTTP/1.0\r\n\r\n")
+                    assert conn.recv(12).startswith(b"HTTP/1.")
+                break
+        else:
+            pytest.fail("the service never announced itself: " + "".join(seen))
+        proc.send_signal(signal.SIGINT)
+        rest = proc.stderr.read()
+        assert proc.wait(timeout=30) == 0
+        assert "Traceback" not in rest
+    finally:
+        killer.cancel()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -1,0 +1,36 @@
+"""A daemon on a simulated bench over pseudo-terminals with the real drivers, sped up."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.api.app import create_app
+from service.config import Settings
+
+
+def make_client(tmp_path, **overrides) -> TestClient:
+    settings = Settings(data_dir=tmp_path, **{"sim_speed": 20.0, **overrides})
+    return TestClient(create_app(settings))
+
+
+def admin_headers(tmp_path) -> dict[str, str]:
+    return {"Authorization": "Bearer " + (tmp_path / "admin.token").read_text().strip()}
+
+
+def wait_job(client, job_id, headers, states=("succeeded", "failed", "cancelled"), timeout_s=240.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        job = client.get(f"/calibrations/{job_id}", headers=headers).json()
+        if job["state"] in states:
+            return job
+        assert time.monotonic() < deadline, f"job still {job['state']}: {job}"
+        time.sleep(0.2)
+
+
+@pytest.fixture
+def daemon(tmp_path):
+    with make_client(tmp_path) as client:
+        yield client, admin_headers(tmp_path)

@@ -1,0 +1,62 @@
+"""End to end on the simulated stage bench: calibrate, activate, corrected tilt against the truth, level."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from service import cli
+from tests.daemon.conftest import wait_job
+
+GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
+
+
+@pytest.mark.parametrize("method", ["kinematic", "homography"])
+def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
+    client, h = daemon
+    r = client.post("/calibrations", headers=h, json={"procedure": "stage-grid", "method": method, "grid": GRID,
+                                                      "samples_per_point": 8, "validation": {"n_points": 3}})
+    assert r.status_code == 202, r.text
+    assert r.headers["location"] == f"/calibrations/{r.json()['id']}"
+    job = wait_job(client, r.json()["id"], h)
+    assert job["state"] == "succeeded", job
+    assert job["progress"] == {"points_done": 12, "points_total": 12, "phase": "validating"}
+    assert job["validation"]["n_points"] == 3 and job["validation"]["rms_deg"] < 0.01
+    rec = job["record"]
+    assert client.post(f"/records/{rec['id']}/activate", headers=h).status_code == 200
+    sim = client.app.state.bench.sim
+    for pose in [(0.0, 0.0), (1.5, -1.0), (-1.2, 1.7)]:
+        assert client.post("/stage/move", headers=h, json={"x_deg": pose[0], "y_deg": pose[1]}).status_code == 200
+        import time
+
+        time.sleep(0.3)
+        t = client.get("/tilt", headers=h).json()
+        truth = sim.world.true_tilt_deg()
+        assert t["table_tilt"] is not None, t
+        assert abs(t["table_tilt"]["x_deg"] - truth[0]) < 0.01 and abs(t["table_tilt"]["y_deg"] - truth[1]) < 0.01, (t, truth)
+        assert t["table_tilt"]["k"] == 2 and t["table_tilt"]["u_x_deg"] > 0
+        assert t["calibration"]["record_id"] == rec["id"]
+    for target in [(0.0, 0.0), (1.0, 0.5), (-0.8, -1.2)]:
+        r = client.post("/stage/level", headers=h, json={"x_deg": target[0], "y_deg": target[1],
+                                                         "tolerance_deg": 0.005, "max_iterations": 5})
+        assert r.status_code == 200, r.text
+        out = r.json()
+        assert out["within_tolerance"], out
+        truth = sim.world.true_tilt_deg()
+        assert np.hypot(truth[0] - target[0], truth[1] - target[1]) < 0.02, (truth, target)
+    # The record's points reproduce its parameters through the command line's calibration code.
+    csv = client.get(f"/records/{rec['id']}/points", headers=h)
+    assert csv.status_code == 200 and csv.headers["content-type"].startswith("text/csv")
+    model = client.get(f"/records/{rec['id']}/model", headers=h).json()
+    assert model["method"] == method
+    data, out = tmp_path / "points.csv", tmp_path / "refit.json"
+    data.write_bytes(csv.content)
+    assert cli.main(["calibrate", "--kind", "stage", "--method", method, "--input", str(data), "--out", str(out)]) == 0
+    refit = json.loads(out.read_text())
+    assert {k: p["value"] for k, p in refit["parameters"].items()} == {k: p["value"] for k, p in model["parameters"].items()}
+    # the MODEL.json works with `tiltlab correct`
+    (tmp_path / "model.json").write_text(json.dumps(model))
+    assert cli.main(["correct", "--model", str(tmp_path / "model.json"), "--input", str(data),
+                     "--out", str(tmp_path / "corrected.csv")]) == 0

@@ -1,0 +1,158 @@
+"""Faults: a sensor lost mid-job, stop during a move, and a daemon killed mid-job then resumed."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import httpx
+import numpy as np
+import sqlalchemy as sa
+
+from service.instruments import controller
+from tests.api.running_service import free_port
+from tests.daemon.conftest import wait_job
+
+GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
+BODY = {"procedure": "stage-grid", "method": "kinematic", "grid": GRID, "samples_per_point": 6,
+        "validation": {"n_points": 2}}
+
+
+def _wait_points(get, n, timeout_s=120.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        job = get()
+        if job["progress"]["points_done"] >= n or job["state"] != "running":
+            return job
+        assert time.monotonic() < deadline, job
+        time.sleep(0.05)
+
+
+def _settled(engine, job_id) -> int:
+    with engine.connect() as c:
+        return c.execute(sa.text("SELECT count(*) FROM settled_points WHERE job_id = :j"), {"j": job_id}).scalar()
+
+
+def test_sensor_lost_mid_job_fails_it_naming_role_and_port_and_keeps_points(daemon):
+    client, h = daemon
+    bench = client.app.state.bench
+    job_id = client.post("/calibrations", headers=h, json=BODY).json()["id"]
+    _wait_points(lambda: client.get(f"/calibrations/{job_id}", headers=h).json(), 2)
+    bench.sim.faults("measurement_sensor").disconnect(4.0)
+    job = wait_job(client, job_id, h)
+    port = bench.port_of("measurement_sensor")
+    assert job["state"] == "failed" and "measurement_sensor" in job["error"] and port in job["error"], job
+    assert _settled(client.app.state.engine, job_id) >= 4  # two sensors per measured point, kept
+    deadline = time.monotonic() + 60
+    while True:
+        devs = {d["role"]: d for d in client.get("/devices", headers=h).json()["devices"]}
+        if devs["measurement_sensor"]["state"] == "connected" and devs["measurement_sensor"]["counters"]["reconnects"] >= 1:
+            break
+        assert time.monotonic() < deadline, devs
+        time.sleep(0.2)
+    again = client.post("/calibrations", headers=h, json=BODY)
+    assert again.status_code == 202, again.text
+    assert wait_job(client, again.json()["id"], h)["state"] == "succeeded"
+
+
+def test_stop_during_a_move_acts_at_once_and_fails_the_job(daemon):
+    client, h = daemon
+    bench = client.app.state.bench
+    job_id = client.post("/calibrations", headers=h, json=BODY).json()["id"]
+    deadline = time.monotonic() + 30
+    while not bench.pose.moving:  # catch it mid-move
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+    r = client.post("/stage/stop", headers=h, json={})
+    assert r.status_code == 200 and r.json()["failed_job"] == job_id
+    job = client.get(f"/calibrations/{job_id}", headers=h).json()
+    assert job["state"] == "failed" and "stopped by POST /stage/stop" in job["error"], job
+    world = bench.sim.world
+    pose = world.pose_deg
+    time.sleep(0.3)
+    assert world.pose_deg == pose  # standing
+    assert all(a.state == controller.STATE_READY for a in world.axes.values())
+    # the bench is free again
+    assert client.get("/benches", headers=h).json()["benches"][0]["held_by"] is None
+
+
+class _Daemon:
+    def __init__(self, data_dir) -> None:
+        self.port = free_port()
+        self.base = f"http://127.0.0.1:{self.port}"
+        self.proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(self.port),
+                                      "--sim-speed", "20"],
+                                     env={**os.environ, "TILTLAB_DATA_DIR": str(data_dir)},
+                                     stdout=subprocess.DEVNULL, stderr=open(data_dir / f"daemon-{self.port}.log", "w"))
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                httpx.get(f"{self.base}/health", timeout=2)
+                break
+            except httpx.TransportError:
+                assert self.proc.poll() is None and time.monotonic() < deadline, "daemon did not start"
+                time.sleep(0.2)
+        self.h = {"Authorization": "Bearer " + (data_dir / "admin.token").read_text().strip()}
+
+    def get(self, path):
+        return httpx.get(self.base + path, headers=self.h, timeout=10)
+
+    def post(self, path, json=None):
+        return httpx.post(self.base + path, headers=self.h, json=json, timeout=120)
+
+    def wait(self, job_id):
+        deadline = time.monotonic() + 240
+        while True:
+            job = self.get(f"/calibrations/{job_id}").json()
+            if job["state"] in ("succeeded", "failed", "cancelled"):
+                return job
+            assert time.monotonic() < deadline, job
+            time.sleep(0.2)
+
+    def stop(self):
+        self.proc.terminate()
+        self.proc.wait(timeout=30)
+
+
+def test_sigkill_mid_job_restart_and_resume_matches_an_uninterrupted_run(tmp_path):
+    d = _Daemon(tmp_path)
+    try:
+        job_id = d.post("/calibrations", BODY).json()["id"]
+        _wait_points(lambda: d.get(f"/calibrations/{job_id}").json(), 4)
+        d.proc.send_signal(signal.SIGKILL)
+        d.proc.wait(timeout=10)
+    except BaseException:
+        d.stop()
+        raise
+    d = _Daemon(tmp_path)
+    try:
+        job = d.get(f"/calibrations/{job_id}").json()
+        assert job["state"] == "failed" and job["interrupted"] and "interrupted" in job["error"], job
+        assert not d.get("/calibrations?state=running").json()["jobs"]
+        done_before = job["progress"]["points_done"]
+        assert done_before >= 4
+        r = d.post(f"/calibrations/{job_id}/resume")
+        assert r.status_code == 202, r.text
+        resumed = d.wait(job_id)
+        assert resumed["state"] == "succeeded", resumed["error"]
+        full_id = d.post("/calibrations", BODY).json()["id"]
+        full = d.wait(full_id)
+        assert full["state"] == "succeeded", full
+        ma = d.get(f"/records/{resumed['record']['id']}/model").json()
+        mb = d.get(f"/records/{full['record']['id']}/model").json()
+        a, b = ma["parameters"], mb["parameters"]
+        assert a.keys() == b.keys()
+        cov = mb["covariance"]
+        std = {n: np.sqrt(cov["matrix"][i][i]) for i, n in enumerate(cov["names"])}
+        for k in a:
+            if a[k].get("fixed"):
+                assert a[k]["value"] == b[k]["value"]
+                continue
+            # two runs of the same grid differ by the reading noise only: within 5 standard uncertainties
+            assert abs(a[k]["value"] - b[k]["value"]) <= 5 * np.sqrt(2) * std[k], (k, a[k], b[k], std[k])
+        assert d.post(f"/calibrations/{full_id}/resume").status_code == 409
+    finally:
+        d.stop()

@@ -1,0 +1,107 @@
+"""Tokens kept as hashes with implied scopes, the token commands, and the daemon's job bookkeeping."""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+import sqlalchemy as sa
+
+from service import cli
+from service.config import get_settings
+from service.errors import InputError
+from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
+from service.storage.engine import make_engine
+from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.migrate import upgrade
+
+
+@pytest.fixture
+def dstore(tmp_path):
+    engine = make_engine(f"sqlite:///{tmp_path / 'd.db'}")
+    upgrade(engine)
+    yield DaemonStore(engine)
+    engine.dispose()
+
+
+def test_token_is_stored_only_as_its_hash_and_scopes_imply(dstore):
+    row, token = dstore.create_token("lims", "operate", actor="t")
+    with dstore.engine.connect() as c:
+        stored = c.execute(sa.text("SELECT token_sha256 FROM api_tokens")).scalar()
+        dump = "\n".join(str(r) for r in c.execute(sa.text("SELECT * FROM api_tokens")))
+    assert token not in dump and stored == hashlib.sha256(token.encode()).hexdigest()
+    p = dstore.authenticate(token)
+    assert p.name == "lims" and p.may("read") and p.may("operate") and not p.may("admin")
+    assert dstore.authenticate(token + "x") is None
+    _, admin = dstore.create_token("boss", ["admin"], actor="t")
+    assert dstore.authenticate(admin).scopes == {"read", "operate", "admin"}
+    dstore.revoke_token("lims", actor="t")
+    assert dstore.authenticate(token) is None
+    with pytest.raises(UnknownEntity):
+        dstore.revoke_token("lims", actor="t")
+    assert [e.action for e in dstore.audit_events(entity="api_token")][:3] == ["token.revoke", "token.create", "token.create"]
+
+
+@pytest.mark.parametrize("name,scopes", [("a b", "read"), ("ok", "write"), ("ok", ""), ("", "read")])
+def test_bad_token_requests_are_refused(dstore, name, scopes):
+    with pytest.raises(InputError):
+        dstore.create_token(name, scopes, actor="t")
+    assert dstore.tokens() == []
+
+
+def test_duplicate_name_refused(dstore):
+    dstore.create_token("x", "read", actor="t")
+    with pytest.raises(ConflictError):
+        dstore.create_token("x", "read", actor="t")
+
+
+def test_token_commands(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("TILTLAB_DATA_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    try:
+        assert cli.main(["token", "create", "--name", "lims", "--scopes", "read,operate"]) == 0
+        token = capsys.readouterr().out.strip()
+        assert token.startswith("tl_")
+        assert cli.main(["token", "list"]) == 0
+        out = capsys.readouterr().out
+        assert "lims\tread,operate" in out and token not in out
+        assert cli.main(["token", "create", "--name", "x", "--scopes", "root"]) == 2
+        assert "root unknown" in capsys.readouterr().err
+        assert cli.main(["token", "revoke", "lims"]) == 0
+        assert cli.main(["token", "revoke", "lims"]) == 2
+        capsys.readouterr()
+        assert cli.main(["token", "list", "--all"]) == 0
+        assert "revoked" in capsys.readouterr().out
+    finally:
+        get_settings.cache_clear()
+
+
+def test_job_idempotency_interruption_and_resume(dstore):
+    bench = dstore.ensure_bench("b1", actor="t")
+    dev = dstore.add_device("M", "1", "measurement_sensor", actor="t", bench_id=bench.id)
+    body = {"bench": "b1", "procedure": "stage-grid"}
+    job, created = dstore.create_calibration_job(bench_id=bench.id, device_id=dev.id, kind="stage", method="kinematic",
+                                                 parameters=body, actor="t", points_total=9, idempotency_key="k1",
+                                                 request=body)
+    assert created
+    again, created = dstore.create_calibration_job(bench_id=bench.id, device_id=dev.id, kind="stage",
+                                                   method="kinematic", parameters=body, actor="t", points_total=9,
+                                                   idempotency_key="k1", request=body)
+    assert not created and again.id == job.id
+    with pytest.raises(IdempotencyMismatch):
+        dstore.create_calibration_job(bench_id=bench.id, device_id=dev.id, kind="stage", method="homography",
+                                      parameters=body, actor="t", points_total=9, idempotency_key="k1",
+                                      request={**body, "method": "homography"})
+    assert len(dstore.jobs()) == 1
+    dstore.start_job(job.id, actor="t")
+    dstore.set_job_progress(job.id, points_done=4, points_total=9, phase="measuring")
+    assert dstore.mark_interrupted(actor="restart") == [job.id]
+    j = dstore.get_job(job.id)
+    assert j.state == "failed" and j.interrupted and j.points_done == 4 and "interrupted" in j.failure_reason
+    r = dstore.resume_job(job.id, actor="t")
+    assert r.state == "running" and not r.interrupted
+    dstore.fail_job(job.id, "sensor gone", actor="t")
+    with pytest.raises(ConflictError):
+        dstore.resume_job(job.id, actor="t")
+    assert [j.id for j in dstore.list_jobs(state="failed", bench_id=bench.id)] == [job.id]
+    assert dstore.list_jobs(before_id=job.id) == []

@@ -1,0 +1,56 @@
+"""Simulated benches on real pseudo-terminals, shared by the instrument tests."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from service.clock import Clock
+from service.instruments.bench import open_bench
+from service.instruments.sim import start_simulated_bench
+
+SPEED = 20.0  # bench seconds per real second: moves and output intervals are short, the rules the same
+
+
+@pytest.fixture
+def stage_sim(tmp_path):
+    clock = Clock(SPEED)
+    bench = start_simulated_bench("seed000", "stage", clock, directory=tmp_path / "ports", adc=True,
+                                  output_rate_hz=5)
+    yield bench
+    bench.close()
+
+
+@pytest.fixture
+def rotary_sim(tmp_path):
+    clock = Clock(SPEED)
+    bench = start_simulated_bench("seed002-sim", "rotary", clock, directory=tmp_path / "ports", output_rate_hz=5)
+    yield bench
+    bench.close()
+
+
+def run_with_devices(sim, body, config=None):
+    """Open the bench's drivers (as the daemon would), run `await body(devices)`, close them."""
+
+    async def main():
+        devices = open_bench(config or sim.config, sim.clock)
+        await devices.start()
+        try:
+            return await body(devices)
+        finally:
+            await devices.close()
+
+    return asyncio.run(main())
+
+
+async def eventually(check, what: str, attempts: int = 200, pause_s: float = 0.02):
+    """Poll an async or plain condition until it holds (no wall-clock assertion: a bounded number of tries)."""
+    for _ in range(attempts):
+        got = check()
+        if asyncio.iscoroutine(got):
+            got = await got
+        if got:
+            return got
+        await asyncio.sleep(pause_s)
+    raise AssertionError(f"never happened: {what}")
