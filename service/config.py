@@ -64,7 +64,8 @@ class Settings(BaseSettings):
     sample_batch_size: int = Field(5_000, ge=1)
     sample_put_timeout_s: float = Field(5.0, gt=0)
 
-    sqlite_busy_timeout_ms: int = Field(5_000, ge=0)
+    # A writer waits this long for the SQLite write lock; a loaded disk can hold a checkpoint for seconds.
+    sqlite_busy_timeout_ms: int = Field(30_000, ge=0)
     # At start-up an unreachable database is retried with back-off for this long before giving up.
     database_wait_s: float = Field(30.0, ge=0, allow_inf_nan=False)
 

@@ -32,7 +32,7 @@ def normalise_url(url: str) -> sa.URL:
     return u
 
 
-def make_engine(url: str | sa.URL, *, busy_timeout_ms: int = 5000, **kwargs: Any) -> sa.Engine:
+def make_engine(url: str | sa.URL, *, busy_timeout_ms: int = 30_000, **kwargs: Any) -> sa.Engine:
     u = normalise_url(url) if isinstance(url, str) else url
     if u.get_backend_name() == "sqlite":
         return _sqlite_engine(u, busy_timeout_ms, **kwargs)
