@@ -52,6 +52,10 @@ class Settings(BaseSettings):
     bench_config: Path | None = None
     # "token": bearer tokens with scopes; "none": no authentication, refused unless bound to loopback.
     auth: Literal["token", "none"] = "token"
+    # Live streams (WebSocket): messages waiting per client; a client whose queue has stayed full (every
+    # message dropped) for stream_slow_close_s real seconds is closed (1013).
+    stream_queue_size: int = Field(100, ge=2, le=100_000)
+    stream_slow_close_s: float = Field(10.0, gt=0, allow_inf_nan=False)
 
     # Free-running monitoring samples older than this are thinned or dropped; calibration data never are.
     monitoring_retention_days: float = Field(30.0, gt=0)

@@ -14,7 +14,7 @@ from fastapi_offline import FastAPIOffline
 from service import __version__
 from service.api import http_details, problems
 from service.api.auth import TokenCache, is_loopback
-from service.api.routers import benches, calibrations, dashboard, health, lims, records, stage, tilt
+from service.api.routers import benches, calibrations, dashboard, health, lims, records, stage, streams, tilt
 from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering
 from service.bench.startup import plan_benches
 from service.config import Settings, get_settings
@@ -26,6 +26,7 @@ from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
 from service.storage.engine import normalise_url
 from service.storage.errors import ConflictError, UnknownEntity
 from service.storage.migrate import bootstrap
+from service.streams.readings import StreamHub
 
 log = logging.getLogger("tiltlab")
 
@@ -130,6 +131,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         jobs = app.state.jobs = JobManager(store, app.state.benches)
         for bench in runtimes:
             jobs.load_active(bench)
+        hub = app.state.streams = StreamHub(app.state.benches, jobs, queue_size=s.stream_queue_size,
+                                            slow_close_s=s.stream_slow_close_s)
+        hub.start()  # one reading producer per bench
         lims = LimsRuntime(store, s)  # webhook deliveries from the outbox, reference standards coming due
         app.state.webhooks = lims.dispatcher
         await lims.start()
@@ -137,6 +141,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            await hub.stop()
             await lims.stop()
             await jobs.shutdown()
             for bench in runtimes:
@@ -152,7 +157,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     problems.install(app)
     http_details.install(app)
     _install_errors(app)
-    for r in (health, benches, tilt, stage, calibrations, records, lims):
+    for r in (health, benches, tilt, stage, calibrations, records, lims, streams):
         app.include_router(r.router)
     dashboard.install(app)
     return app

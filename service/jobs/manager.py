@@ -26,6 +26,7 @@ from service.calibration.uncertainty import COVERAGE
 from service.errors import InputError
 from service.instruments.transport import DeviceError
 from service.jobs import angles
+from service.jobs.events import JobEvents
 from service.jobs.requests import KIND_OF_PROCEDURE, MIN_POINTS, CalibrationRequest
 from service.storage.daemon_jobs import DaemonStore
 from service.storage.errors import UnknownEntity
@@ -95,6 +96,7 @@ class JobManager:
         self.tasks: dict[int, asyncio.Task] = {}
         self.stop_reasons: dict[int, str] = {}
         self.active: dict[str, ActiveModel | None] = {}
+        self.events = JobEvents()  # watchers hear of every stored state, progress and point
 
     # ------------------------------------------------------------ active record per bench
 
@@ -304,6 +306,11 @@ class JobManager:
             self.store.cancel_job(job_id, actor="daemon", reason=reason)
         else:
             self.store.fail_job(job_id, reason, actor="daemon")
+        self.events.changed(job_id)
+
+    def _progress(self, job_id: int, *, points_done: int, points_total: int, phase: str) -> None:
+        self.store.set_job_progress(job_id, points_done=points_done, points_total=points_total, phase=phase)
+        self.events.changed(job_id)
 
     async def shutdown(self) -> None:
         """Daemon stopping: running jobs are left as interrupted (resumable), not failed for good."""
@@ -322,6 +329,7 @@ class JobManager:
             job = self.store.get_job(job_id)
             if job.state == "queued":
                 self.store.start_job(job_id, actor="daemon")
+                self.events.changed(job_id)
             if job.parameters["request"]["procedure"] in angles.PROCEDURES:
                 await self._angle_job(job_id, bench, angles.PROCEDURES[job.parameters["request"]["procedure"]])
             else:
@@ -343,6 +351,7 @@ class JobManager:
         finally:
             if bench.holder == f"job {job_id}":
                 bench.holder = None
+            self.events.changed(job_id)
 
     @staticmethod
     def _reason(bench: BenchRuntime, exc: Exception) -> str:
@@ -381,6 +390,7 @@ class JobManager:
         for role in SENSORS:  # a point half stored when the daemon was killed keeps its stored half
             if bench.device_ids[role] not in have:
                 self.store.add_settled_points(job_id, bench.device_ids[role], [settled[role]], actor="daemon")
+        self.events.changed(job_id)
 
     async def _stage_grid(self, job_id: int, bench: BenchRuntime) -> None:
         job = self.store.get_job(job_id)
@@ -398,27 +408,27 @@ class JobManager:
                              " its points cannot be continued with other instruments")
         done = {p.point for p in self.store.settled_points(job_id, meas_dev)} & \
             {p.point for p in self.store.settled_points(job_id, ref_dev)}
-        self.store.set_job_progress(job_id, points_done=len(done), points_total=total, phase="measuring")
+        self._progress(job_id, points_done=len(done), points_total=total, phase="measuring")
         for i, (x, y) in enumerate(fit_pts):
             if i in done:
                 continue
             await self._measure_point(job_id, bench, i, x, y, req)
             done.add(i)
-            self.store.set_job_progress(job_id, points_done=len(done), points_total=total, phase="measuring")
-        self.store.set_job_progress(job_id, points_done=len(done), points_total=total, phase="fitting")
+            self._progress(job_id, points_done=len(done), points_total=total, phase="measuring")
+        self._progress(job_id, points_done=len(done), points_total=total, phase="fitting")
         method = get_method("stage", job.method)
         cols = self.fit_columns(job_id, bench, len(fit_pts))
         options = FitOptions(extra={"bench": bench.config.stage_bench(),
                                     "bench_source": f"bench configuration {bench.name}"})
         model = await asyncio.to_thread(method.fit, cols, options)
-        self.store.set_job_progress(job_id, points_done=len(done), points_total=total, phase="validating")
+        self._progress(job_id, points_done=len(done), points_total=total, phase="validating")
         for k, (x, y) in enumerate(val_pts):
             i = len(fit_pts) + k
             if i in done:
                 continue
             await self._measure_point(job_id, bench, i, x, y, req)
             done.add(i)
-            self.store.set_job_progress(job_id, points_done=len(done), points_total=total, phase="validating")
+            self._progress(job_id, points_done=len(done), points_total=total, phase="validating")
         validation = self.validate(job_id, bench, len(fit_pts), method, model)
         conditions = job_conditions(bench, req, list(cols.get("temp_c", [])))
         self.store.add_record(meas_dev, "stage", job.method, model.to_json_dict(), operator=job.created_by,
@@ -441,21 +451,21 @@ class JobManager:
             sets = [{p.point for p in by_dev.get(bench.device_ids[r], [])} for r in proc.read_roles]
             return set.intersection(*sets)
         finished = done()
-        self.store.set_job_progress(job_id, points_done=len(finished), points_total=total, phase="measuring")
+        self._progress(job_id, points_done=len(finished), points_total=total, phase="measuring")
         method = get_method(proc.kind, job.method)
         model = None
         for i, a in enumerate(fit_pts + val_pts):
             if i == len(fit_pts):
-                self.store.set_job_progress(job_id, points_done=len(finished), points_total=total, phase="fitting")
+                self._progress(job_id, points_done=len(finished), points_total=total, phase="fitting")
                 model = await asyncio.to_thread(method.fit, self.fit_columns(job_id, None, len(fit_pts)), FitOptions())
             if i in finished:
                 continue
             await angles.measure_angle(self.store, job_id, bench, proc, i, a, req)
             finished.add(i)
             phase = "measuring" if i < len(fit_pts) else "validating"
-            self.store.set_job_progress(job_id, points_done=len(finished), points_total=total, phase=phase)
+            self._progress(job_id, points_done=len(finished), points_total=total, phase=phase)
         if model is None:
-            self.store.set_job_progress(job_id, points_done=len(finished), points_total=total, phase="fitting")
+            self._progress(job_id, points_done=len(finished), points_total=total, phase="fitting")
             model = await asyncio.to_thread(method.fit, self.fit_columns(job_id, None, len(fit_pts)), FitOptions())
         by_dev = self._points_by_device(job_id)
         cols = angles.columns(proc, {d: [p for p in ps if p.point >= len(fit_pts)] for d, ps in by_dev.items()},

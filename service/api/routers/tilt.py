@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import datetime as dt
 
-import numpy as np
 from fastapi import APIRouter, Request
 
 from service.api.auth import Reader
 from service.api.deps import BenchQuery
+from service.bench.corrected import corrected_tilt
 
 router = APIRouter(tags=["tilt"])
 
@@ -47,11 +47,7 @@ async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
         if active is None:
             notes.append("no active calibration record: raw readings only (POST /records/{id}/activate)")
         elif not stale:
-            out = active.method.correct(active.model, {"meas_x_deg": np.array([meas.x_deg]),
-                                                       "meas_y_deg": np.array([meas.y_deg])})
-            u = lambda k: None if k not in out or not np.isfinite(out[k][0]) else float(out[k][0])  # noqa: E731
-            table = {"x_deg": float(out["tilt_x_deg"][0]), "y_deg": float(out["tilt_y_deg"][0]),
-                     "u_x_deg": u("u_tilt_x_deg"), "u_y_deg": u("u_tilt_y_deg"), "k": 2}
+            table = corrected_tilt(active, meas)
             notes.append(f"corrected through record {active.record_id} v{active.version} ({active.method_name})")
     pose = bench.pose
     return {"bench": bench.name, "time_utc": meas.time_utc if meas else now, "age_s": age_s, "stale": stale,

@@ -1,0 +1,74 @@
+"""The live stream of one calibration job: its state and progress on every change, its points as
+they are measured, then its end. Woken by the job manager's events (service/jobs/events.py), it
+reads the job once per change; a slow safety re-read covers a change made by another process."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncGenerator, Callable
+from typing import Any
+
+from service.jobs.events import JobEvents
+from service.storage.daemon_jobs import DaemonStore
+from service.storage.models import CalibrationJob
+
+ENDED = frozenset({"succeeded", "failed", "cancelled"})
+SAFETY_REREAD_S = 5.0  # real seconds between re-reads when no event came
+
+
+def job_points(store: DaemonStore, job: CalibrationJob, have: set[int] | None = None) -> list[dict]:
+    """The job's points measured so far (every instrument of the job has its mean), by index, leaving
+    out those in `have`: {"index", "x_deg", "y_deg" (commanded stage angles; y null on a one-axis
+    procedure), and per role {"x_deg", "y_deg", "z_deg", "x_std_deg", "y_std_deg", "z_std_deg",
+    "n_samples", "temp_c"} of the robust means}."""
+    roles = {dev: role for role, dev in (job.parameters or {}).get("device_ids", {}).items() if dev is not None}
+    if not roles:
+        roles = {job.device_id: "measurement_sensor"}
+    by_point: dict[int, dict[str, Any]] = {}
+    for p in store.settled_points(job.id):
+        if have is not None and p.point in have:
+            continue
+        role = roles.get(p.device_id)
+        if role is None:
+            continue
+        pt = by_point.setdefault(p.point, {"index": p.point, "x_deg": p.cmd_x_deg, "y_deg": p.cmd_y_deg})
+        pt[role] = {"x_deg": p.ch_x_mean, "y_deg": p.ch_y_mean, "z_deg": p.ch_z_mean, "x_std_deg": p.ch_x_std,
+                    "y_std_deg": p.ch_y_std, "z_std_deg": p.ch_z_std, "n_samples": p.n_samples,
+                    "temp_c": p.temp_c_mean}
+    return [pt for i, pt in sorted(by_point.items()) if all(r in pt for r in roles.values())]
+
+
+async def job_messages(store: DaemonStore, events: JobEvents, job_id: int,
+                       body: Callable[[CalibrationJob], dict]) -> AsyncGenerator[dict, None]:
+    """The messages of one job's stream without seq, ending with its `end` (UnknownEntity if no such job)."""
+    event = events.subscribe(job_id)
+    try:
+        job = store.get_job(job_id)
+        last = body(job)
+        points = job_points(store, job)
+        have = {p["index"] for p in points}
+        yield {"type": "snapshot", "job": last, "points": points}
+        while job.state not in ENDED:
+            with_timeout = asyncio.wait_for(event.wait(), SAFETY_REREAD_S)
+            try:
+                await with_timeout
+            except TimeoutError:
+                pass
+            event.clear()
+            job = store.get_job(job_id)
+            for p in job_points(store, job, have):
+                have.add(p["index"])
+                yield {"type": "point", "point": p}
+            now = body(job)
+            if _changed(last, now):
+                yield {"type": "job", "job": now}
+            last = now
+        yield {"type": "end", "job": last}
+    finally:
+        events.unsubscribe(job_id, event)
+
+
+def _changed(a: dict, b: dict) -> bool:
+    """State, progress, error, record or validation differ (not only the update time)."""
+    keys = ("state", "interrupted", "progress", "error", "record", "validation", "started_utc", "finished_utc")
+    return any(a.get(k) != b.get(k) for k in keys)

@@ -1,0 +1,308 @@
+"""The live reading stream of a bench: one producer builds each message once and fans it out.
+
+The producer polls the bench's latest readings (memory, no I/O) on the bench clock, and whenever
+the measurement sensor has a new reading it builds one message (raw readings, the corrected table
+tilt through the active record, stage pose, temperature), serialises it once, keeps it in a ring
+buffer (history for snapshots) and offers it to every client whose rate makes it due. Each client
+has a bounded queue: a full queue drops the message (counted; a `dropped` message follows when
+room returns), so a slow client never slows the producer, the bench or the other clients. A
+client whose queue stays full for `slow_close_s` real seconds is told to go (close 1013).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.bench.corrected import corrected_tilt
+from service.bench.runtime import SENSOR_ROLES, BenchRuntime
+from service.instruments.base import Reading
+
+log = logging.getLogger("tiltlab.streams")
+
+HISTORY_MAX_S = 3600.0  # the longest history a snapshot may ask for (bench seconds)
+HISTORY_DEFAULT_S = 60.0
+STALE_INTERVALS = 3  # a sensor silent this many output intervals counts as not answering
+MIN_WAKE_S = 0.004  # the producer wakes at most 250 times a real second (a sped-up simulation)
+CLOSE_SLOW = 1013  # try again later: the client could not take the messages
+CLOSE_GOING_AWAY = 1001
+
+# History ring columns (NaN for "none").
+_COLS = ("bench_s", "epoch", "mx", "my", "rx", "ry", "tx", "ty", "ux", "uy", "table", "sx", "sy", "moving", "stage",
+         "temp")
+_C = {name: i for i, name in enumerate(_COLS)}
+
+
+def utc_text(t: dt.datetime) -> str:
+    """ISO 8601 in UTC with a Z, as the HTTP routes give times."""
+    return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
+
+
+def _num(v: float) -> float | None:
+    return None if math.isnan(v) else float(v)
+
+
+class HistoryRing:
+    """The last `capacity` readings as rows of floats (about 130 bytes each), oldest overwritten first."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = max(16, capacity)
+        self._rows = np.full((self.capacity, len(_COLS)), np.nan)
+        self._n = 0  # rows ever written
+
+    def append(self, row: list[float]) -> None:
+        self._rows[self._n % self.capacity] = row
+        self._n += 1
+
+    def __len__(self) -> int:
+        return min(self._n, self.capacity)
+
+    def since(self, bench_s: float) -> np.ndarray:
+        """Rows stamped at or after `bench_s`, oldest first."""
+        n = len(self)
+        if n == 0:
+            return self._rows[:0]
+        start = self._n - n
+        idx = np.arange(start, self._n) % self.capacity
+        rows = self._rows[idx]
+        return rows[rows[:, _C["bench_s"]] >= bench_s]
+
+
+def due(t: float, next_t: float, period: float, eps: float) -> float | None:
+    """Decimation to a rate: the next due time if a message stamped `t` is due, else None."""
+    if t + eps < next_t:
+        return None
+    return next_t + period if next_t + period > t else t + period
+
+
+def history_objects(rows: np.ndarray, rate_hz: float, eps: float) -> list[dict]:
+    """Reading-shaped objects (no seq) of history rows, decimated to at most `rate_hz` (bench time)."""
+    out: list[dict] = []
+    next_t = -math.inf
+    period = 1.0 / rate_hz
+    for r in rows:
+        nxt = due(r[_C["bench_s"]], next_t, period, eps)
+        if nxt is None:
+            continue
+        next_t = nxt
+        out.append(_row_object(r))
+    return out
+
+
+def _row_object(r: np.ndarray) -> dict:
+    def c(name: str) -> float | None:
+        return _num(r[_C[name]])
+
+    def pair(a: str, b: str) -> dict | None:
+        return None if math.isnan(r[_C[a]]) else {"x_deg": c(a), "y_deg": c(b)}
+
+    return {"time_utc": utc_text(dt.datetime.fromtimestamp(r[_C["epoch"]], dt.UTC)), "type": "reading",
+            "raw": {"measurement_sensor": pair("mx", "my"), "reference_sensor": pair("rx", "ry")},
+            "table_tilt": None if math.isnan(r[_C["table"]]) else
+            {"x_deg": c("tx"), "y_deg": c("ty"), "u_x_deg": c("ux"), "u_y_deg": c("uy"), "k": 2},
+            "stage": None if math.isnan(r[_C["stage"]]) else
+            {"x_deg": c("sx"), "y_deg": c("sy"), "moving": bool(r[_C["moving"]])},
+            "temp_c": c("temp")}
+
+
+@dataclass(eq=False)
+class Client:
+    """One connected reader: its queue, its rate and its sequence numbers."""
+
+    rate_hz: float
+    queue: asyncio.Queue[str]
+    seq: int = 0  # the last sequence number given (sent or dropped)
+    next_bench_s: float = -math.inf  # when its next message is due (bench time)
+    pending_drops: int = 0  # dropped since the last `dropped` message
+    dropped_total: int = 0
+    dropping_since: float | None = None  # real time of the first drop of the current run
+    close_code: int | None = None
+    close_reason: str = ""
+    kicked: asyncio.Event = field(default_factory=asyncio.Event)
+
+    def kick(self, code: int, reason: str) -> None:
+        if self.close_code is None:
+            self.close_code, self.close_reason = code, reason
+        self.kicked.set()
+
+
+class ReadingProducer:
+    """The one producer of a bench's reading stream."""
+
+    def __init__(self, bench: BenchRuntime, active_of: Any, *, queue_size: int, slow_close_s: float) -> None:
+        self.bench = bench
+        self._active_of = active_of  # () -> the bench's ActiveModel or None
+        self.queue_size = queue_size
+        self.slow_close_s = slow_close_s
+        self.role = next((r for r in ("measurement_sensor", *SENSOR_ROLES) if r in bench.devices), None)
+        self.interval_s = bench.output_interval_s(self.role) if self.role else 1.0
+        self.sensor_rate_hz = 1.0 / self.interval_s
+        self.history = HistoryRing(int(HISTORY_MAX_S * self.sensor_rate_hz * 1.05) + 16)
+        self.clients: set[Client] = set()
+        self.messages = 0
+        self._latest: dict | None = None  # the last message built (without seq)
+        self._task: asyncio.Task | None = None
+
+    # ------------------------------------------------------------ life
+
+    def start(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._run(), name=f"readings {self.bench.name}")
+
+    async def stop(self) -> None:
+        for c in list(self.clients):
+            c.kick(CLOSE_GOING_AWAY, "daemon shutting down")
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    @property
+    def running(self) -> bool:
+        return self._task is not None and not self._task.done()
+
+    # ------------------------------------------------------------ clients
+
+    def clamp_rate(self, rate_hz: float | None) -> float:
+        """A client's rate: at most the sensors' output rate (higher asks are clamped to it)."""
+        return self.sensor_rate_hz if rate_hz is None else min(rate_hz, self.sensor_rate_hz)
+
+    def connect(self, rate_hz: float, history_s: float) -> Client:
+        """Register a client; its queue holds the snapshot (seq 0) already."""
+        client = Client(rate_hz, asyncio.Queue(self.queue_size))
+        client.queue.put_nowait(json.dumps(self.snapshot(rate_hz, history_s)))
+        self.clients.add(client)
+        return client
+
+    def disconnect(self, client: Client) -> None:
+        self.clients.discard(client)
+
+    def snapshot(self, rate_hz: float, history_s: float) -> dict:
+        latest = self._latest or self._build(self.bench.clock.monotonic())[0]
+        active = self._active_of()
+        rows = self.history.since(self.bench.clock.monotonic() - history_s)
+        return {"type": "snapshot", "seq": 0, "time_utc": latest["time_utc"], "bench": self.bench.name,
+                "rate_hz": rate_hz, "raw": latest["raw"], "table_tilt": latest["table_tilt"],
+                "stage": latest["stage"], "temp_c": latest["temp_c"],
+                "calibration": None if active is None else {"record_id": active.record_id,
+                                                            "version": active.version, "method": active.method_name},
+                "history": history_objects(rows, rate_hz, 0.25 * self.interval_s)}
+
+    # ------------------------------------------------------------ producing
+
+    async def _run(self) -> None:
+        bench = self.bench
+        last_seen: float | None = None
+        last_emit = bench.clock.monotonic()
+        wake = max(bench.clock.real_seconds(self.interval_s / 2), MIN_WAKE_S)
+        while True:
+            await asyncio.sleep(wake)
+            try:
+                now = bench.clock.monotonic()
+                r = bench.latest(self.role) if self.role else None
+                if r is not None and r.bench_s != last_seen:
+                    last_seen = r.bench_s
+                elif now - last_emit < self.interval_s:
+                    continue  # nothing new yet; a silent sensor still gets one message per interval
+                last_emit = now
+                self._emit(now)
+            except Exception:  # noqa: BLE001 - one bad message must not end the stream
+                log.exception("reading stream of %s: a message could not be built", bench.name)
+
+    def _emit(self, now_bench_s: float) -> None:
+        msg, row = self._build(now_bench_s)
+        self._latest = msg
+        self.history.append(row)
+        self.messages += 1
+        body = json.dumps(msg)[1:]  # serialised once; each client's seq goes in front
+        t = row[0]
+        loop_now = asyncio.get_running_loop().time()
+        eps = 0.25 * self.interval_s
+        for c in list(self.clients):
+            nxt = due(t, c.next_bench_s, 1.0 / c.rate_hz, eps)
+            if nxt is not None:
+                c.next_bench_s = nxt
+                self._offer(c, body, loop_now)
+
+    def _offer(self, c: Client, body: str, loop_now: float) -> None:
+        q = c.queue
+        if c.pending_drops and q.maxsize - q.qsize() >= 2:
+            c.seq += 1
+            q.put_nowait(json.dumps({"seq": c.seq, "type": "dropped", "count": c.pending_drops}))
+            c.pending_drops = 0
+        c.seq += 1
+        if not c.pending_drops and not q.full():
+            q.put_nowait(f'{{"seq":{c.seq},{body}')
+            c.dropping_since = None
+            return
+        c.pending_drops += 1
+        c.dropped_total += 1
+        if c.dropping_since is None:
+            c.dropping_since = loop_now
+        elif loop_now - c.dropping_since >= self.slow_close_s:
+            c.kick(CLOSE_SLOW, f"too slow: every message dropped for {self.slow_close_s:g} s")
+            self.clients.discard(c)
+
+    def _build(self, now_bench_s: float) -> tuple[dict, list[float]]:
+        bench = self.bench
+        clock = bench.clock
+        limit = STALE_INTERVALS * self.interval_s
+
+        def fresh(role: str) -> Reading | None:
+            r = bench.latest(role)
+            if r is None or r.x_deg is None or r.y_deg is None or now_bench_s - r.bench_s > limit:
+                return None
+            return r
+
+        meas, ref = fresh("measurement_sensor"), fresh("reference_sensor")
+        active = self._active_of()
+        table = corrected_tilt(active, meas) if meas is not None and active is not None and \
+            bench.kind == "stage" else None
+        pose = bench.pose
+        stage = {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None
+        temp = meas.temp_c if meas is not None and meas.temp_c is not None else ref.temp_c if ref is not None else None
+        when = meas.time_utc if meas is not None else clock.utc()
+        t_bench = meas.bench_s if meas is not None else now_bench_s
+        pair = lambda r: None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}  # noqa: E731
+        msg = {"time_utc": utc_text(when), "type": "reading",
+               "raw": {"measurement_sensor": pair(meas), "reference_sensor": pair(ref)},
+               "table_tilt": table, "stage": stage, "temp_c": temp}
+        nan = math.nan
+        f = lambda v: nan if v is None else float(v)  # noqa: E731
+        row = [t_bench, when.timestamp(),
+               f(meas.x_deg if meas else None), f(meas.y_deg if meas else None),
+               f(ref.x_deg if ref else None), f(ref.y_deg if ref else None),
+               f(table["x_deg"] if table else None), f(table["y_deg"] if table else None),
+               f(table["u_x_deg"] if table else None), f(table["u_y_deg"] if table else None),
+               1.0 if table else nan,
+               f(stage["x_deg"] if stage else None), f(stage["y_deg"] if stage else None),
+               1.0 if stage and stage["moving"] else 0.0, 1.0 if stage else nan, f(temp)]
+        return msg, row
+
+
+class StreamHub:
+    """The producers of every bench, started and stopped with the daemon."""
+
+    def __init__(self, benches: dict[str, BenchRuntime], jobs: Any, *, queue_size: int, slow_close_s: float) -> None:
+        self.producers = {name: ReadingProducer(b, (lambda n=name: jobs.active.get(n)), queue_size=queue_size,
+                                                slow_close_s=slow_close_s)
+                          for name, b in benches.items()}
+
+    def start(self) -> None:
+        for p in self.producers.values():
+            p.start()
+
+    async def stop(self) -> None:
+        for p in self.producers.values():
+            await p.stop()
+
+    def client_count(self) -> int:
+        return sum(len(p.clients) for p in self.producers.values())
