@@ -1,135 +1,694 @@
-// tiltlab dashboard: polls the service's /tilt and /health and draws what it answers.
+// tiltlab dashboard: live readings over /ws/readings drawn with uPlot, bench and device status,
+// calibration jobs followed over /ws/jobs/{id}, levelling, stop, and records with their residual maps.
 "use strict";
 
-const POLL_MS = 1000;
-const STALE_MS = 3000;
-const TRACE_LENGTH = 120;
-const LEVEL_RANGES_DEG = [0.01, 0.1, 1, 5, 15, 90];  // the level's outer ring snaps to one of these
-
-const trace = [];
-let lastReadingAt = 0;
-
 const $ = (id) => document.getElementById(id);
+const TOKEN_KEY = "tiltlab-token";
+const BACKOFF_MIN_MS = 500;
+const BACKOFF_MAX_MS = 15000;
+const STATUS_POLL_MS = 2000;
+const MAX_RATE_HZ = 50;
+const MAX_WINDOW_S = 3600;
 
-// The token arrives in the URL fragment (#token=...) and is kept for the session only.
-const fragmentToken = new URLSearchParams(location.hash.slice(1)).get("token");
-if (fragmentToken) {
-  sessionStorage.setItem("tiltlab-token", fragmentToken);
+// ------------------------------------------------------------------ token
+
+const fragment = new URLSearchParams(location.hash.slice(1));
+if (fragment.get("token")) {
+  sessionStorage.setItem(TOKEN_KEY, fragment.get("token"));
   history.replaceState(null, "", location.pathname + location.search);
 }
-const token = sessionStorage.getItem("tiltlab-token");
+const token = sessionStorage.getItem(TOKEN_KEY);
 
-function showProblem(text) {
-  const b = $("banner");
-  b.textContent = text;
-  b.hidden = false;
+function showAuth(title, detail) {
+  $("auth-title").textContent = title;
+  $("auth-detail").textContent = detail || "";
+  $("auth").hidden = false;
+  document.body.classList.add("locked");
+  stopEverything();
 }
 
-function clearProblem() {
-  $("banner").hidden = true;
+// ------------------------------------------------------------------ formatting (every number with its unit)
+
+const isNum = (v) => typeof v === "number" && Number.isFinite(v);
+const deg = (v, d = 4) => (isNum(v) ? `${v.toFixed(d)}°` : "—");
+const arcsec = (vDeg, d = 1) => (isNum(vDeg) ? `${(vDeg * 3600).toFixed(d)}″` : "—");
+const degArc = (v) => (isNum(v) ? `${v.toFixed(5)}° (${(v * 3600).toFixed(1)}″)` : "—");
+const utcTime = (t) => (t ? new Date(t).toISOString().slice(11, 23) + " UTC" : "—");
+const utcDate = (t) => (t ? new Date(t).toISOString().slice(0, 19).replace("T", " ") : "—");
+const ageText = (t) => {
+  if (!t) return "never";
+  const s = (Date.now() - new Date(t).getTime()) / 1000;
+  return `${utcTime(t)} (${Math.max(0, s).toFixed(1)} s ago)`;
+};
+
+function el(tag, attrs = {}, ...children) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k === "onclick") e.addEventListener("click", v);
+    else if (v !== null && v !== undefined) e.setAttribute(k, v);
+  }
+  for (const c of children) e.append(c instanceof Node ? c : document.createTextNode(String(c)));
+  return e;
 }
 
-async function fetchJson(path) {
-  let response;
+function svgEl(tag, attrs = {}, text) {
+  const e = document.createElementNS("http://www.w3.org/2000/svg", tag);
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+  if (text !== undefined) e.textContent = text;
+  return e;
+}
+
+// ------------------------------------------------------------------ HTTP
+
+class ApiError extends Error {
+  constructor(status, detail) { super(detail); this.status = status; }
+}
+
+async function api(method, path, body) {
+  const headers = { Accept: "application/json", Authorization: `Bearer ${token}` };
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  let r;
   try {
-    const headers = { Accept: "application/json" };
-    if (token) headers.Authorization = `Bearer ${token}`;
-    response = await fetch(path, { headers, cache: "no-store" });
+    r = await fetch(path, { method, headers, cache: "no-store", body: body === undefined ? undefined : JSON.stringify(body) });
+  } catch (_) {
+    throw new ApiError(0, `no answer from the service at ${path}`);
+  }
+  if (!r.ok) {
+    let detail = r.statusText;
+    try { const p = await r.json(); detail = p.detail || p.title || detail; } catch (_) { /* not problem+json */ }
+    if (r.status === 401) showAuth("The token was not accepted", `${path} answered 401: ${detail}`);
+    if (r.status === 403 && method === "GET") showAuth("The token lacks a scope this page needs", `${path} answered 403: ${detail}`);
+    throw new ApiError(r.status, `${method} ${path} answered HTTP ${r.status}: ${detail}`);
+  }
+  const type = r.headers.get("content-type") || "";
+  return type.includes("json") ? r.json() : r.blob();
+}
+
+function showProblem(text) { $("banner").textContent = text; $("banner").hidden = !text; }
+
+function wsUrl(path, params) {
+  const q = new URLSearchParams({ ...params, token });
+  return `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${path}?${q}`;
+}
+
+// A WebSocket that reconnects with exponential back-off and says when it is lost.
+class Stream {
+  constructor(name, urlFn, { onMessage, onState, shouldReconnect = () => true }) {
+    Object.assign(this, { name, urlFn, onMessage, onState, shouldReconnect });
+    this.attempt = 0; this.ws = null; this.timer = null; this.closed = false;
+  }
+  open() {
+    this.closed = false;
+    clearTimeout(this.timer);
+    const ws = new WebSocket(this.urlFn());
+    this.ws = ws;
+    ws.onopen = () => { this.attempt = 0; };
+    ws.onmessage = (ev) => {
+      if (ws !== this.ws) return;
+      this.attempt = 0;
+      this.onState("open");
+      this.onMessage(JSON.parse(ev.data));
+    };
+    ws.onclose = (ev) => {
+      if (ws !== this.ws || this.closed) return;
+      this.ws = null;
+      if (ev.code === 1008) {  // policy: the token was refused
+        showAuth("The token was not accepted", `${this.name} stream closed: ${ev.reason || "token refused"}`);
+        return;
+      }
+      if (!this.shouldReconnect(ev)) { this.onState("ended", ev); return; }
+      const delay = Math.min(BACKOFF_MAX_MS, BACKOFF_MIN_MS * 2 ** this.attempt);
+      this.attempt += 1;
+      this.onState("lost", { code: ev.code, reason: ev.reason, delay, attempt: this.attempt });
+      this.timer = setTimeout(() => this.open(), delay);
+    };
+  }
+  close() {
+    this.closed = true;
+    clearTimeout(this.timer);
+    if (this.ws) { const ws = this.ws; this.ws = null; ws.close(1000); }
+  }
+}
+
+// ------------------------------------------------------------------ state
+
+const state = {
+  bench: null, benches: [], readings: null, job: null, jobStream: null, jobPoints: new Map(), jobEnded: false,
+  moving: false, actionInFlight: 0, records: [], selectedRecord: null, statusTimer: null,
+};
+
+function stopEverything() {
+  if (state.readings) state.readings.close();
+  if (state.jobStream) state.jobStream.close();
+  clearTimeout(state.statusTimer);
+}
+
+// ------------------------------------------------------------------ ring buffer of readings
+
+// Columns in a linear buffer of twice the capacity: appends are O(1) amortised and the newest
+// `capacity` values are always one contiguous subarray (what uPlot draws without copying).
+const SERIES = ["t", "tx", "ty", "txlo", "txhi", "tylo", "tyhi", "mx", "my", "rx", "ry"];
+class Ring {
+  constructor(capacity) {
+    this.capacity = capacity; this.len = 0;
+    this.cols = Object.fromEntries(SERIES.map((k) => [k, new Float64Array(2 * capacity)]));
+  }
+  get lastT() { return this.len ? this.cols.t[this.len - 1] : -Infinity; }
+  push(row) {
+    if (this.len === 2 * this.capacity) {
+      for (const k of SERIES) this.cols[k].copyWithin(0, this.capacity, 2 * this.capacity);
+      this.len = this.capacity;
+    }
+    for (const k of SERIES) this.cols[k][this.len] = row[k];
+    this.len += 1;
+  }
+  clear() { this.len = 0; }
+  // index of the first value with t >= t0
+  lowerBound(t0) {
+    let lo = Math.max(0, this.len - this.capacity), hi = this.len;
+    while (lo < hi) { const mid = (lo + hi) >> 1; if (this.cols.t[mid] < t0) lo = mid + 1; else hi = mid; }
+    return lo;
+  }
+  view(t0) {
+    const i0 = this.lowerBound(t0);
+    return Object.fromEntries(SERIES.map((k) => [k, this.cols[k].subarray(i0, this.len)]));
+  }
+  get size() { return Math.min(this.len, this.capacity); }
+}
+
+const ring = new Ring(Math.ceil(MAX_WINDOW_S * MAX_RATE_HZ * 1.1));
+const live = { received: 0, dropped: 0, draws: 0, dirty: false, latest: null, windowS: 60, snapshots: 0, snapshotT: null };
+window.tiltlab = { ring, live, state };  // for inspection from the browser's console (and the browser tests)
+
+function toRow(m) {
+  const t = new Date(m.time_utc).getTime() / 1000;
+  const tt = m.table_tilt, raw = m.raw || {};
+  const meas = raw.measurement_sensor || {}, ref = raw.reference_sensor || {};
+  const v = (x) => (isNum(x) ? x : NaN);
+  const ux = tt && isNum(tt.u_x_deg) ? tt.u_x_deg : NaN, uy = tt && isNum(tt.u_y_deg) ? tt.u_y_deg : NaN;
+  const tx = tt ? v(tt.x_deg) : NaN, ty = tt ? v(tt.y_deg) : NaN;
+  return { t, tx, ty, txlo: tx - ux, txhi: tx + ux, tylo: ty - uy, tyhi: ty + uy,
+    mx: v(meas.x_deg), my: v(meas.y_deg), rx: v(ref.x_deg), ry: v(ref.y_deg) };
+}
+
+function addReading(m) {
+  const row = toRow(m);
+  if (!(row.t > ring.lastT)) return false;  // already have it (a reconnect's history overlaps)
+  ring.push(row);
+  live.latest = m;
+  live.dirty = true;
+  return true;
+}
+
+function onReadingMessage(m) {
+  if (m.type === "snapshot") {
+    // the history fills the gap since the last reading we hold (oldest first); then the snapshot itself
+    for (const h of m.history || []) addReading(h);
+    addReading(m);
+    live.snapshots += 1;
+    live.snapshotT = ring.lastT;
+    live.calibration = m.calibration;
+    $("stream-state").textContent = `${m.bench}, ${isNum(m.rate_hz) ? m.rate_hz.toFixed(1) : "?"} Hz`;
+  } else if (m.type === "reading") {
+    live.received += 1;
+    addReading(m);
+  } else if (m.type === "dropped") {
+    live.dropped += m.count || 0;
+  }
+}
+
+// ------------------------------------------------------------------ charts (uPlot), redrawn once per animation frame
+
+let tiltChart = null, rawChart = null;
+
+function chartSize(div) {
+  const w = Math.max(260, div.clientWidth || 600);
+  return { width: w, height: w < 600 ? 180 : 220 };
+}
+
+function axisDeg() {
+  return { label: "°", size: 70, values: (u, vals) => vals.map((v) => (v === null ? "" : `${+v.toPrecision(6)}°`)) };
+}
+
+function makeCharts() {
+  if (typeof uPlot === "undefined") { showProblem("the chart library did not load (/web/vendor/uplot)"); return; }
+  const x = { time: true };
+  const common = {
+    scales: { x: { time: true, range: () => [xRange[0], xRange[1]] }, y: { auto: true } },
+    axes: [{}, axisDeg()], legend: { live: true }, cursor: { drag: { x: false, y: false } },
+  };
+  const band = (c) => ({ stroke: c, width: 0, fill: c + "22", points: { show: false }, legend: false });
+  tiltChart = new uPlot({
+    ...chartSize($("chart-tilt")), ...common,
+    series: [x, { label: "X", stroke: "#1f5fbf", width: 1.5, points: { show: false } },
+      { label: "Y", stroke: "#c0392b", width: 1.5, points: { show: false } },
+      { label: "X − U", ...band("#1f5fbf") }, { label: "X + U", ...band("#1f5fbf") },
+      { label: "Y − U", ...band("#c0392b") }, { label: "Y + U", ...band("#c0392b") }],
+    bands: [{ series: [4, 3], fill: "#1f5fbf30" }, { series: [6, 5], fill: "#c0392b30" }],
+  }, [[], [], [], [], [], [], []], $("chart-tilt"));
+  rawChart = new uPlot({
+    ...chartSize($("chart-raw")), ...common,
+    series: [x, { label: "meas X", stroke: "#1f5fbf", width: 1.2, points: { show: false } },
+      { label: "meas Y", stroke: "#c0392b", width: 1.2, points: { show: false } },
+      { label: "ref X", stroke: "#1f5fbf", dash: [4, 3], width: 1.2, points: { show: false } },
+      { label: "ref Y", stroke: "#c0392b", dash: [4, 3], width: 1.2, points: { show: false } }],
+  }, [[], [], [], [], []], $("chart-raw"));
+  window.addEventListener("resize", () => {
+    tiltChart.setSize(chartSize($("chart-tilt")));
+    rawChart.setSize(chartSize($("chart-raw")));
+  });
+}
+
+let xRange = [0, 1];
+
+function frame() {
+  if (live.dirty && tiltChart && !$("view-live").hidden) {
+    live.dirty = false;
+    const end = ring.lastT;
+    xRange = [end - live.windowS, end];
+    const v = ring.view(end - live.windowS);
+    const hasTilt = v.tx.some(Number.isFinite);
+    tiltChart.setData([v.t, v.tx, v.ty, v.txlo, v.txhi, v.tylo, v.tyhi]);
+    rawChart.setData([v.t, v.mx, v.my, v.rx, v.ry]);
+    live.draws += 1;
+    $("chart-tilt").dataset.points = String(v.t.length);
+    $("chart-raw").dataset.points = String(v.t.length);
+    $("tilt-note").textContent = hasTilt ? "" : "no corrected table tilt in this window (no active calibration record, or the sensor is silent)";
+    showLatest(live.latest);
+  }
+  $("n-readings").textContent = String(live.received);
+  $("n-buffer").textContent = String(ring.size);
+  $("n-dropped").textContent = String(live.dropped);
+  $("n-draws").textContent = String(live.draws);
+  requestAnimationFrame(frame);
+}
+
+function showLatest(m) {
+  if (!m) return;
+  const raw = m.raw || {}, meas = raw.measurement_sensor || {}, ref = raw.reference_sensor || {}, st = m.stage || {};
+  $("ref_x").textContent = deg(ref.x_deg); $("ref_y").textContent = deg(ref.y_deg);
+  $("meas_x").textContent = deg(meas.x_deg); $("meas_y").textContent = deg(meas.y_deg);
+  $("stage_x").textContent = deg(st.x_deg); $("stage_y").textContent = deg(st.y_deg);
+  $("stage_moving").textContent = st.moving ? "moving" : "standing";
+  $("temp_c").textContent = isNum(m.temp_c) ? `${m.temp_c.toFixed(2)} °C` : "—";
+  $("updated").textContent = `at ${utcTime(m.time_utc)}`;
+  const tt = m.table_tilt;
+  const pm = (v, u) => (isNum(v) ? `${v.toFixed(4)}°${isNum(u) ? ` ± ${u.toFixed(4)}°` : ""}` : "—");
+  $("tilt_x").textContent = tt ? pm(tt.x_deg, tt.u_x_deg) : "—";
+  $("tilt_y").textContent = tt ? pm(tt.y_deg, tt.u_y_deg) : "—";
+  const c = live.calibration;
+  $("calibration-note").textContent = tt ? `k = ${tt.k ?? 2}; ${c ? `record ${c.record_id} v${c.version} (${c.method})` : ""}`
+    : "no corrected tilt: no active calibration record, or the measurement sensor is silent";
+  setMoving(!!st.moving, "stream");
+}
+
+function openReadings() {
+  if (state.readings) state.readings.close();
+  ring.clear();
+  live.latest = null; live.dirty = true;
+  state.readings = new Stream("readings", () => wsUrl("/ws/readings", {
+    bench: state.bench, rate_hz: $("rate").value,
+    // ask for the window, or for the time since the last reading we hold when that is shorter (the gap)
+    history_s: String(Math.ceil(ring.len ? Math.min(live.windowS, Date.now() / 1000 - ring.lastT + 2) : live.windowS)),
+  }), {
+    onMessage: onReadingMessage,
+    onState: (s, info) => {
+      const b = $("stream-banner");
+      if (s === "open") { b.hidden = true; document.body.classList.remove("stale"); return; }
+      if (s === "lost") {
+        b.textContent = `Live stream lost (${info.code}${info.reason ? `: ${info.reason}` : ""}); reconnecting in ${(info.delay / 1000).toFixed(1)} s (attempt ${info.attempt}).`;
+        b.hidden = false;
+        document.body.classList.add("stale");
+        $("stream-state").textContent = "disconnected";
+      }
+    },
+  });
+  state.readings.open();
+}
+
+// ------------------------------------------------------------------ status: benches, devices, active records
+
+const ROLE_OF_KIND = { stage: "measurement_sensor", scale: "adc_sensor", rotation: "triaxial_sensor", turntable: "turntable_sensor" };
+
+async function loadBenches() {
+  const b = await api("GET", "/benches");
+  state.benches = b.benches;
+  const sel = $("bench-select");
+  if (!sel.options.length) {
+    for (const x of b.benches) sel.append(el("option", { value: x.name }, x.name));
+    const first = b.benches.find((x) => x.kind === "stage") || b.benches[0];
+    state.bench = first ? first.name : null;
+    sel.value = state.bench;
+  }
+  return b;
+}
+
+async function refreshStatus() {
+  clearTimeout(state.statusTimer);
+  try {
+    const [b, d, r] = await Promise.all([api("GET", "/benches"), api("GET", `/devices?bench=${encodeURIComponent(state.bench)}`),
+      api("GET", `/records?bench=${encodeURIComponent(state.bench)}`)]);
+    state.benches = b.benches;
+    const me = b.benches.find((x) => x.name === state.bench);
+    $("bench-state").textContent = me ? `${me.state}${me.held_by ? `: ${me.held_by}` : ""}` : "?";
+    $("bench-state").className = `pill ${me ? me.state : ""}`;
+    setMoving(!!(me && me.held_by), "bench");
+    const tb = $("benches").tBodies[0];
+    tb.replaceChildren(...b.benches.map((x) => el("tr", {}, el("td", {}, x.name), el("td", {}, x.kind),
+      el("td", { class: `st-${x.state}` }, x.state), el("td", {}, x.held_by || "—"),
+      el("td", {}, x.simulated ? `${x.simulated.scenario || "yes"}, ${x.simulated.speed}× speed` : "no"))));
+    const active = {};
+    for (const rec of r.records) if (rec.active) active[ROLE_OF_KIND[rec.kind]] = rec;
+    const td = $("devices").tBodies[0];
+    td.replaceChildren(...d.devices.map((x) => {
+      const c = x.counters, a = active[x.role];
+      return el("tr", { "data-role": x.role }, el("td", {}, x.role), el("td", {}, x.port), el("td", {}, x.protocol),
+        el("td", { class: `st-${x.state}` }, x.state), el("td", {}, ageText(x.last_frame_utc)),
+        el("td", {}, `${c.frames}`), el("td", {}, `${c.bad_checksum}`), el("td", {}, `${c.resyncs}`),
+        el("td", {}, `${c.timeouts}`), el("td", {}, `${c.reconnects}`),
+        el("td", {}, x.identity ? `${x.identity.model} s/n ${x.identity.serial} fw ${x.identity.firmware}` : "—"),
+        el("td", {}, a ? `record ${a.id} v${a.version} (${a.method})` : "none"), el("td", {}, x.error || "—"));
+    }));
+    $("devices-updated").textContent = `at ${utcTime(new Date().toISOString())}`;
+    state.records = r.records;
+    if (!$("view-records").hidden) drawRecords();
+    showProblem("");
   } catch (err) {
-    throw new Error(`no answer from the service at ${path}`);
+    if (err.status !== 401 && err.status !== 403) showProblem(err.message);
   }
-  if (!response.ok) {
-    let detail = response.statusText;
-    try { detail = (await response.json()).detail || detail; } catch (_) { /* not problem+json */ }
-    throw new Error(`${path} answered HTTP ${response.status}: ${detail}`);
-  }
-  return response.json();
+  if ($("auth").hidden) state.statusTimer = setTimeout(refreshStatus, STATUS_POLL_MS);
 }
 
-function fmtDeg(value) {
-  return value === null || value === undefined ? "—" : value.toFixed(4);
+// ------------------------------------------------------------------ the stop button: visible while anything moves
+
+const movingBy = {};
+function setMoving(on, source) {
+  movingBy[source] = on;
+  const any = Object.values(movingBy).some(Boolean) || state.actionInFlight > 0 || (state.job && !state.jobEnded);
+  $("stop").hidden = !any;
 }
 
-function levelRange(values) {
-  const largest = Math.max(...values.map(Math.abs));
-  return LEVEL_RANGES_DEG.find((r) => largest <= r) ?? LEVEL_RANGES_DEG[LEVEL_RANGES_DEG.length - 1];
-}
-
-function drawLevel(r) {
-  const range = levelRange([r.ref_x_deg, r.ref_y_deg, r.meas_x_deg, r.meas_y_deg]);
-  const place = (dot, x, y) => {  // screen y grows downwards; +Y is up on the level
-    dot.setAttribute("cx", (100 * x / range).toFixed(2));
-    dot.setAttribute("cy", (-100 * y / range).toFixed(2));
-  };
-  place($("dot-ref"), r.ref_x_deg, r.ref_y_deg);
-  place($("dot-meas"), r.meas_x_deg, r.meas_y_deg);
-  $("level_range_deg").textContent = String(range);
-}
-
-function drawTrace() {
-  const mean = (k) => trace.reduce((s, r) => s + r[k], 0) / trace.length;
-  const mx = mean("ref_x_deg"), my = mean("ref_y_deg");
-  const dev = trace.flatMap((r) => [Math.abs(r.ref_x_deg - mx), Math.abs(r.ref_y_deg - my)]);
-  const halfSpanDeg = Math.max(...dev, 1e-6);
-  const step = 600 / (TRACE_LENGTH - 1);
-  const line = (k, m) => trace
-    .map((r, i) => `${(i * step).toFixed(1)},${(80 - 75 * (r[k] - m) / halfSpanDeg).toFixed(1)}`)
-    .join(" ");
-  $("trace-x").setAttribute("points", line("ref_x_deg", mx));
-  $("trace-y").setAttribute("points", line("ref_y_deg", my));
-  $("trace_count").textContent = String(trace.length);
-  $("trace_span_arcsec").textContent = (2 * halfSpanDeg * 3600).toFixed(1);
-}
-
-// GET /tilt nests its values; the page shows them flat.
-function flatten(t) {
-  const m = t.raw.measurement_sensor || {}, f = t.raw.reference_sensor || {}, s = t.stage || {};
-  const tt = t.table_tilt || {};
-  return {
-    time_utc: t.time_utc, temp_c: t.temp_c, note: t.note,
-    calibration: t.calibration ? `record ${t.calibration.record_id} v${t.calibration.version} (${t.calibration.method})` : null,
-    ref_x_deg: f.x_deg, ref_y_deg: f.y_deg, meas_x_deg: m.x_deg, meas_y_deg: m.y_deg,
-    stage_x_deg: s.x_deg, stage_y_deg: s.y_deg, tilt_x_deg: tt.x_deg, tilt_y_deg: tt.y_deg,
-  };
-}
-
-function showReading(r) {
-  for (const k of ["ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg", "stage_x_deg", "stage_y_deg",
-    "tilt_x_deg", "tilt_y_deg"]) {
-    $(k).textContent = fmtDeg(r[k]);
-  }
-  $("temp_c").textContent = r.temp_c === null || r.temp_c === undefined ? "—" : r.temp_c.toFixed(2);
-  $("note").textContent = r.calibration ? `calibration ${r.calibration}` : r.note;
-  $("updated").textContent = `at ${new Date(r.time_utc).toISOString().slice(11, 19)} UTC`;
-  trace.push(r);
-  if (trace.length > TRACE_LENGTH) trace.shift();
-  drawLevel(r);
-  drawTrace();
-}
-
-async function loadHealth() {
+async function stopAll() {
   try {
-    const h = await fetchJson("/health");
-    $("bench").textContent = h.bench;
-    $("database").textContent = h.database;
-    $("schema").textContent = h.schema_revision + (h.status === "ok" ? "" : " (not at head)");
-    $("version").textContent = h.version;
+    const out = await api("POST", "/stage/stop", { bench: state.bench });
+    $("move-result").textContent = `stopped${out.failed_job ? `; job ${out.failed_job} failed` : ""}`;
+    $("stop").dataset.stopped = "1";
   } catch (err) {
     showProblem(err.message);
   }
 }
 
-async function poll() {
-  try {
-    showReading(flatten(await fetchJson("/tilt")));
-    lastReadingAt = Date.now();
-    clearProblem();
-  } catch (err) {
-    showProblem(err.message);
+async function action(button, fn) {
+  state.actionInFlight += 1; setMoving(true, "action");
+  button.disabled = true;
+  try { return await fn(); } finally {
+    button.disabled = false;
+    state.actionInFlight -= 1;
+    setMoving(false, "action");
   }
-  document.body.classList.toggle("stale", Date.now() - lastReadingAt > STALE_MS);
-  setTimeout(poll, POLL_MS);
 }
 
-loadHealth();
-poll();
+const operateMessage = (err) => (err.status === 403 ? `${err.message} (this needs a token with the operate scope)` : err.message);
+
+// ------------------------------------------------------------------ run: calibration jobs
+
+function planned(grid) {
+  if (!grid) return [];
+  if (grid.points) return grid.points.map(([x, y]) => [x, y]);
+  const lin = (a, b, n) => Array.from({ length: n }, (_, i) => (n === 1 ? a : a + (b - a) * i / (n - 1)));
+  const out = [];
+  for (const y of lin(grid.y_deg[0], grid.y_deg[1], grid.n_y)) for (const x of lin(grid.x_deg[0], grid.x_deg[1], grid.n_x)) out.push([x, y]);
+  return out;
+}
+
+function drawGrid() {
+  const svg = $("grid");
+  const job = state.job;
+  svg.replaceChildren();
+  if (!job) return;
+  const plan = planned((job.request || {}).grid);
+  const pts = [...state.jobPoints.values()];
+  const all = [...plan, ...pts.map((p) => [p.x_deg, p.y_deg ?? 0])];
+  const span = Math.max(1e-9, ...all.map(([x, y]) => Math.max(Math.abs(x), Math.abs(y))));
+  const sx = (x) => (100 * x / span).toFixed(2), sy = (y) => (-100 * y / span).toFixed(2);
+  svg.append(svgEl("line", { x1: -110, y1: 0, x2: 110, y2: 0, class: "axis" }), svgEl("line", { x1: 0, y1: -110, x2: 0, y2: 110, class: "axis" }));
+  svg.append(svgEl("text", { x: 108, y: 112, class: "tick", "text-anchor": "end" }, `X ±${+span.toPrecision(4)}°`));
+  svg.append(svgEl("text", { x: 4, y: -108, class: "tick" }, `Y ±${+span.toPrecision(4)}°`));
+  for (const [x, y] of plan) svg.append(svgEl("circle", { cx: sx(x), cy: sy(y), r: 5, class: "planned" }));
+  let last = null;
+  for (const p of pts) {
+    const c = svgEl("circle", { cx: sx(p.x_deg), cy: sy(p.y_deg ?? 0), r: 5, class: "measured", "data-index": p.index });
+    c.append(svgEl("title", {}, `point ${p.index}: X ${deg(p.x_deg)}, Y ${deg(p.y_deg)}`));
+    svg.append(c);
+    if (!last || p.index > last.index) last = p;
+  }
+  if (last) svg.append(svgEl("circle", { cx: sx(last.x_deg), cy: sy(last.y_deg ?? 0), r: 9, class: "current" }));
+  svg.dataset.measured = String(pts.length);
+}
+
+function showJob(job) {
+  state.job = job;
+  const p = job.progress || {};
+  $("job-id").textContent = `#${job.id}`;
+  $("job-state").textContent = job.state;
+  $("job-state").className = `st-${job.state}`;
+  $("job-phase").textContent = p.phase || "—";
+  $("job-progress").textContent = `${p.points_done ?? 0} of ${p.points_total ?? "?"}`;
+  const done = ["succeeded", "failed", "cancelled"].includes(job.state);
+  $("job-cancel").hidden = done;
+  const v = job.validation;
+  $("job-result").textContent = job.error ? `error: ${job.error}` : v ? `validation RMS ${degArc(v.rms_deg)}, max ${degArc(v.max_deg)} over ${v.n_points} points` : "";
+  $("job-open-record").hidden = !job.record;
+  if (done) { state.jobEnded = true; setMoving(false, "job"); } else setMoving(true, "job");
+  drawGrid();
+}
+
+function followJob(id) {
+  if (state.jobStream) state.jobStream.close();
+  state.jobPoints = new Map(); state.jobEnded = false;
+  state.jobStream = new Stream("job", () => wsUrl(`/ws/jobs/${id}`, {}), {
+    onMessage: (m) => {
+      if (m.type === "snapshot") { for (const p of m.points || []) state.jobPoints.set(p.index, p); showJob(m.job); }
+      else if (m.type === "point") { state.jobPoints.set(m.point.index, m.point); drawGrid(); }
+      else if (m.type === "job") showJob(m.job);
+      else if (m.type === "end") { state.jobEnded = true; showJob(m.job); loadRecords(); }
+    },
+    onState: (s, info) => {
+      const b = $("stream-banner");
+      if (s === "lost") { b.textContent = `Job stream lost (${info.code}); reconnecting in ${(info.delay / 1000).toFixed(1)} s.`; b.hidden = false; }
+    },
+    shouldReconnect: () => !state.jobEnded,
+  });
+  state.jobStream.open();
+}
+
+async function startCalibration(ev) {
+  ev.preventDefault();
+  const f = new FormData($("cal-form"));
+  const n = (k) => Number(f.get(k));
+  const body = { bench: state.bench, procedure: f.get("procedure"), method: f.get("method"),
+    grid: { x_deg: [n("x_min"), n("x_max")], y_deg: [n("y_min"), n("y_max")], n_x: n("n_x"), n_y: n("n_y") },
+    samples_per_point: n("samples_per_point"), validation: { n_points: n("n_validation") } };
+  $("cal-error").hidden = true;
+  try {
+    const job = await action($("cal-start"), () => api("POST", "/calibrations", body));
+    state.jobPoints = new Map();
+    showJob(job);
+    followJob(job.id);
+  } catch (err) {
+    $("cal-error").textContent = operateMessage(err); $("cal-error").hidden = false;
+  }
+}
+
+async function cancelJob() {
+  if (!state.job) return;
+  try { showJob(await api("POST", `/calibrations/${state.job.id}/cancel`)); } catch (err) { $("cal-error").textContent = operateMessage(err); $("cal-error").hidden = false; }
+}
+
+async function levelTable(ev) {
+  ev.preventDefault();
+  const f = new FormData($("level-form"));
+  const body = { bench: state.bench, x_deg: Number(f.get("x_deg")), y_deg: Number(f.get("y_deg")),
+    tolerance_deg: Number(f.get("tolerance_deg")), max_iterations: Number(f.get("max_iterations")) };
+  const out = $("level-result");
+  out.className = ""; out.textContent = "levelling…";
+  try {
+    const r = await action($("level-go"), () => api("POST", "/stage/level", body));
+    out.textContent = `${r.within_tolerance ? "within tolerance" : "NOT within tolerance"}: table X ${deg(r.achieved.x_deg)}, Y ${deg(r.achieved.y_deg)} after ${r.iterations} iteration(s); stage X ${deg(r.stage.x_deg)}, Y ${deg(r.stage.y_deg)}`;
+    out.className = r.within_tolerance ? "ok" : "error";
+    out.dataset.within = String(r.within_tolerance);
+  } catch (err) {
+    out.textContent = operateMessage(err); out.className = "error";
+  }
+}
+
+async function moveStage(ev) {
+  ev.preventDefault();
+  const f = new FormData($("move-form"));
+  const out = $("move-result");
+  out.textContent = "moving…"; out.className = "";
+  try {
+    const r = await action($("move-go"), () => api("POST", "/stage/move", { bench: state.bench, x_deg: Number(f.get("x_deg")), y_deg: Number(f.get("y_deg")) }));
+    out.textContent = `stage stands at X ${deg(r.stage.x_deg)}, Y ${deg(r.stage.y_deg)}`;
+  } catch (err) {
+    out.textContent = operateMessage(err); out.className = "error";
+  }
+}
+
+// ------------------------------------------------------------------ records: judge a calibration
+
+async function loadRecords() {
+  try { state.records = (await api("GET", `/records?bench=${encodeURIComponent(state.bench)}`)).records; drawRecords(); } catch (err) { showProblem(err.message); }
+}
+
+function drawRecords() {
+  const tb = $("records").tBodies[0];
+  tb.replaceChildren(...state.records.map((r) => el("tr", { class: r.id === state.selectedRecord ? "selected" : "", "data-id": r.id,
+    onclick: () => openRecord(r.id) },
+  el("td", {}, `${r.id}`), el("td", {}, `${r.device_id}`), el("td", {}, r.kind), el("td", {}, `v${r.version}`), el("td", {}, r.method),
+  el("td", {}, utcDate(r.created_utc)), el("td", {}, r.validation ? degArc(r.validation.rms_deg) : "—"),
+  el("td", {}, r.status || "—"), el("td", {}, r.active ? "active" : ""))));
+}
+
+async function openRecord(id) {
+  state.selectedRecord = id;
+  drawRecords();
+  const rec = await api("GET", `/records/${id}`);
+  $("record-detail").hidden = false;
+  $("rec-title").textContent = `${rec.id}: device ${rec.device_id} ${rec.kind} v${rec.version} (${rec.method})${rec.active ? ", active" : ""}, ${rec.status}`;
+  const v = rec.validation || {};
+  const c = rec.conditions || {};
+  const rows = [["RMS error", degArc(v.rms_deg)], ["largest error", degArc(v.max_deg)], ["validation points", v.n_points ?? "—"],
+    ["compared with", v.compared_with || "—"], ["mean temperature", isNum(c.temp_c_mean) ? `${c.temp_c_mean.toFixed(2)} °C` : "—"],
+    ["samples per point", c.samples_per_point ?? "—"], ["created", `${utcDate(rec.created_utc)} UTC by ${rec.operator || "?"}`]];
+  $("rec-validation").tBodies[0].replaceChildren(...rows.map(([k, x]) => el("tr", {}, el("th", {}, k), el("td", {}, String(x)))));
+  // the previous version of the same device
+  const prev = state.records.find((r) => r.id === rec.supersedes_id) ||
+    state.records.filter((r) => r.device_id === rec.device_id && r.kind === rec.kind && r.version < rec.version).sort((a, b) => b.version - a.version)[0];
+  const pv = prev && prev.validation;
+  if (!prev) $("rec-compare").textContent = "first version of this device: nothing to compare with";
+  else if (pv && isNum(pv.rms_deg) && isNum(v.rms_deg)) {
+    const d = v.rms_deg - pv.rms_deg;
+    $("rec-compare").textContent = `v${prev.version} (record ${prev.id}, ${prev.method}): RMS ${degArc(pv.rms_deg)}, max ${degArc(pv.max_deg)}; this version's RMS is ${d <= 0 ? "smaller" : "larger"} by ${arcsec(Math.abs(d), 2)}`;
+  } else $("rec-compare").textContent = `v${prev.version} (record ${prev.id}) has no validation figures`;
+  $("dl-cert").disabled = rec.status !== "approved";
+  $("dl-cert").title = rec.status === "approved" ? "" : "certificates are issued for approved records only";
+  $("rec-activate").disabled = rec.active;
+  $("rec-msg").textContent = "";
+  $("record-detail").dataset.id = String(rec.id);
+  $("dl-model").onclick = () => download(`/records/${id}/model`, `record-${id}-MODEL.json`);
+  $("dl-points").onclick = () => download(`/records/${id}/points`, `record-${id}-points.csv`);
+  $("dl-cert").onclick = () => download(`/records/${id}/certificate`, `record-${id}-certificate.xml`);
+  $("rec-activate").onclick = async () => {
+    try { await api("POST", `/records/${id}/activate`); $("rec-msg").textContent = `record ${id} is now active`; await loadRecords(); openRecord(id); } catch (err) { $("rec-msg").textContent = operateMessage(err); }
+  };
+  $("res-before").replaceChildren(); $("res-after").replaceChildren();
+  $("res-rms-before").textContent = "—"; $("res-rms-after").textContent = "—";
+  if (rec.kind !== "stage") { $("res-scale").textContent = "(residual maps are drawn for stage records)"; return; }
+  try {
+    const res = await api("GET", `/records/${id}/residuals`);
+    $("res-scale").textContent = `(${res.points.length} points)`;
+    $("res-rms-before").textContent = degArc(res.rms_before_deg);
+    $("res-rms-after").textContent = degArc(res.rms_after_deg);
+    drawResiduals($("res-before"), res.points, "before");
+    drawResiduals($("res-after"), res.points, "after");
+  } catch (err) {
+    $("res-scale").textContent = `(${err.message})`;
+  }
+}
+
+function colour(f) {  // 0 green .. 1 red
+  const h = 120 * (1 - Math.min(1, Math.max(0, f)));
+  return `hsl(${h.toFixed(0)} 70% 42%)`;
+}
+
+function drawResiduals(svg, points, which) {
+  svg.replaceChildren();
+  const span = Math.max(1e-9, ...points.map((p) => Math.max(Math.abs(p.stage_x_deg), Math.abs(p.stage_y_deg))));
+  const mag = points.map((p) => Math.hypot(p[`${which}_x_deg`], p[`${which}_y_deg`]));
+  const big = Math.max(1e-12, ...mag);
+  // the largest arrow is a quarter of the grid's half-width
+  const gain = 0.25 * span / big;
+  const sx = (x) => 100 * x / span, sy = (y) => -100 * y / span;
+  svg.append(svgEl("rect", { x: -110, y: -110, width: 220, height: 220, class: "frame" }));
+  svg.append(svgEl("defs", {}));
+  svg.append(svgEl("text", { x: -108, y: -100, class: "tick" }, `longest arrow ${arcsec(big, 1)}`));
+  svg.append(svgEl("text", { x: 108, y: 116, class: "tick", "text-anchor": "end" }, `stage X ±${+span.toPrecision(3)}°`));
+  points.forEach((p, i) => {
+    const x0 = sx(p.stage_x_deg), y0 = sy(p.stage_y_deg);
+    const x1 = sx(p.stage_x_deg + gain * p[`${which}_x_deg`]), y1 = sy(p.stage_y_deg + gain * p[`${which}_y_deg`]);
+    const c = colour(mag[i] / big);
+    const g = svgEl("g", { class: `res ${p.role}`, "data-point": p.point });
+    g.append(svgEl("title", {}, `point ${p.point} (${p.role}): ${which} ${arcsec(p[`${which}_x_deg`], 2)} in X, ${arcsec(p[`${which}_y_deg`], 2)} in Y`));
+    g.append(svgEl("circle", { cx: x0.toFixed(2), cy: y0.toFixed(2), r: 3, fill: p.role === "fit" ? c : "#fff", stroke: c }));
+    g.append(svgEl("line", { x1: x0.toFixed(2), y1: y0.toFixed(2), x2: x1.toFixed(2), y2: y1.toFixed(2), stroke: c, "stroke-width": 2 }));
+    const a = Math.atan2(y1 - y0, x1 - x0), L = 6;
+    if (Math.hypot(x1 - x0, y1 - y0) > 2) {
+      g.append(svgEl("polygon", { fill: c, points: [[x1, y1], [x1 - L * Math.cos(a - 0.4), y1 - L * Math.sin(a - 0.4)],
+        [x1 - L * Math.cos(a + 0.4), y1 - L * Math.sin(a + 0.4)]].map((q) => q.map((v) => v.toFixed(2)).join(",")).join(" ") }));
+    }
+    svg.append(g);
+  });
+  svg.dataset.points = String(points.length);
+}
+
+async function download(path, name) {
+  try {
+    const blob = await api("GET", path);
+    const data = blob instanceof Blob ? blob : new Blob([JSON.stringify(blob, null, 2)], { type: "application/json" });
+    const url = URL.createObjectURL(data);
+    const a = el("a", { href: url, download: name });
+    document.body.append(a); a.click(); a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 10000);
+    $("rec-msg").textContent = `downloaded ${name}`;
+  } catch (err) {
+    $("rec-msg").textContent = err.message;
+  }
+}
+
+// ------------------------------------------------------------------ views and start-up
+
+function showView(name) {
+  for (const b of $("tabs").querySelectorAll("button")) b.setAttribute("aria-selected", String(b.dataset.view === name));
+  for (const v of document.querySelectorAll(".view")) v.hidden = v.id !== `view-${name}`;
+  if (name === "live") {
+    live.dirty = true;
+    if (tiltChart) { tiltChart.setSize(chartSize($("chart-tilt"))); rawChart.setSize(chartSize($("chart-raw"))); }
+  }
+  if (name === "records") loadRecords();
+}
+
+async function start() {
+  if (!token) {
+    showAuth("No access token", "This page needs a token: the address tiltlab serve prints ends in #token=…");
+    return;
+  }
+  try {
+    await loadBenches();
+  } catch (err) {
+    if (err.status !== 401 && err.status !== 403) showProblem(err.message);
+    return;
+  }
+  if (!state.bench) { showProblem("the daemon runs no bench"); return; }
+  for (const b of $("tabs").querySelectorAll("button")) b.addEventListener("click", () => showView(b.dataset.view));
+  $("bench-select").addEventListener("change", (e) => { state.bench = e.target.value; openReadings(); refreshStatus(); });
+  $("window").addEventListener("change", (e) => { live.windowS = Number(e.target.value); live.dirty = true; openReadings(); });
+  $("rate").addEventListener("change", () => openReadings());
+  $("stop").addEventListener("click", stopAll);
+  $("cal-form").addEventListener("submit", startCalibration);
+  $("job-cancel").addEventListener("click", cancelJob);
+  $("job-open-record").addEventListener("click", () => { showView("records"); openRecord(state.job.record.id); });
+  $("level-form").addEventListener("submit", levelTable);
+  $("move-form").addEventListener("submit", moveStage);
+  makeCharts();
+  openReadings();
+  refreshStatus();
+  requestAnimationFrame(frame);
+  // a job already running on the bench: follow it
+  try {
+    const running = (await api("GET", `/calibrations?state=running&bench=${encodeURIComponent(state.bench)}&limit=1`)).jobs[0];
+    if (running) { showJob(running); followJob(running.id); }
+  } catch (_) { /* shown by the status poll */ }
+}
+
+start();

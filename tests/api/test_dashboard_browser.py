@@ -1,139 +1,262 @@
-"""The dashboard in a real headless browser (Debian's chromium), against a real server.
+"""The dashboard in headless Chromium (Playwright, Debian's chromium) against `tiltlab serve` on the simulated bench.
 
-Chromium loads the page, runs its script for a few seconds of virtual time and prints the
-DOM it then holds; the tests read what a person would see from that DOM.
+One daemon (sped up) and one browser serve the whole module; the tests run in file order: the live
+chart, a lost and recovered stream, a calibration followed to its end and judged, levelling, the stop
+button, and the page without a token. Screenshots of the main views go to TILTLAB_SCREENSHOT_DIR
+(default: a pytest temporary folder).
 """
 
 from __future__ import annotations
 
-import functools
-import http.server
-import json
-import re
+import os
 import shutil
-import subprocess
-import threading
-from html.parser import HTMLParser
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
 
-from service.api.routers.dashboard import web_dir
 from tests.api.running_service import running_service
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-pytestmark = pytest.mark.skipif(
-    CHROMIUM is None, reason="needs Debian's chromium for browser tests (apt-get install chromium; .ci/run installs it)")
+try:
+    from playwright.sync_api import Browser, Page, expect, sync_playwright
+except ImportError:  # pragma: no cover - playwright is a dev dependency
+    sync_playwright = None  # type: ignore[assignment]
 
-NUMBER = re.compile(r"^-?\d+\.\d{4}$")
+pytestmark = [
+    pytest.mark.skipif(CHROMIUM is None, reason="needs Debian's chromium for browser tests (apt-get install chromium)"),
+    pytest.mark.skipif(sync_playwright is None, reason="needs playwright for Python (the dev dependencies)"),
+]
 
-
-def browse(url: str, profile: Path, *, virtual_ms: int = 6000, screenshot: Path | None = None) -> str:
-    """The DOM after the page has run for virtual_ms of virtual time (or a screenshot of it)."""
-    args = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync",
-            f"--user-data-dir={profile}", "--window-size=1200,800", f"--virtual-time-budget={virtual_ms}"]
-    args += [f"--screenshot={screenshot}"] if screenshot else ["--dump-dom"]
-    r = subprocess.run([*args, url], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr[-2000:]
-    return r.stdout
+SIM_SPEED = "8"
+GRID = {"x_min": "-1.5", "x_max": "1.5", "n_x": "3", "y_min": "-1.5", "y_max": "1.5", "n_y": "3"}
+T = 30_000  # ms: how long a wait for something the page shows may take on a loaded machine
 
 
-_VOID = ("circle", "line", "link", "meta", "polyline")  # no text inside; self-closed or void in the dumped DOM
+class Bench:
+    def __init__(self, base: str, token: str, shots: Path) -> None:
+        self.base, self.token, self.shots = base, token, shots
+
+    def get(self, path: str) -> dict:
+        r = httpx.get(self.base + path, headers={"Authorization": f"Bearer {self.token}"}, timeout=30)
+        r.raise_for_status()
+        return r.json()
+
+    def shot(self, page: Page, name: str) -> None:
+        self.shots.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(self.shots / f"{name}.png"), full_page=True)
 
 
-class _TextById(HTMLParser):
-    """Text content and attributes of every element that has an id."""
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory) -> Iterator[Bench]:
+    data = tmp_path_factory.mktemp("data")
+    shots = Path(os.environ.get("TILTLAB_SCREENSHOT_DIR") or tmp_path_factory.mktemp("screenshots"))
+    with running_service(data, TILTLAB_SIM_SPEED=SIM_SPEED) as base:
+        yield Bench(base, (data / "admin.token").read_text().strip(), shots)
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.text: dict[str, str] = {}
-        self.attrs: dict[str, dict[str, str | None]] = {}
-        self._open: list[str | None] = []
 
-    def handle_starttag(self, tag, attrs):
-        a = dict(attrs)
-        if tag in _VOID:
-            if "id" in a:
-                self.attrs[a["id"]] = a
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"])
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def page(browser, bench) -> Iterator[Page]:
+    """One signed-in page for the operator's tests (the session keeps the token)."""
+    ctx = browser.new_context(viewport={"width": 1280, "height": 900}, accept_downloads=True)
+    pg = ctx.new_page()
+    pg.goto(f"{bench.base}/#token={bench.token}")
+    yield pg
+    ctx.close()
+
+
+def readings_in_buffer(page: Page) -> int:
+    return page.evaluate("window.tiltlab.ring.size")
+
+
+def test_token_is_kept_for_the_session_and_leaves_the_address_bar(page, bench):
+    expect(page.locator("#bench-select")).to_have_value("sim-stage", timeout=T)
+    assert "token" not in page.url
+    assert page.evaluate("sessionStorage.getItem('tiltlab-token')") == bench.token
+    page.reload()  # the session still has it
+    expect(page.locator("#bench-select")).to_have_value("sim-stage", timeout=T)
+    expect(page.locator("#auth")).to_be_hidden()
+
+
+def test_live_chart_receives_and_draws_readings(page, bench):
+    page.wait_for_function("window.tiltlab.live.received > 50", timeout=T)
+    # uPlot drew into both charts: its canvas, and the points the last redraw held
+    expect(page.locator("#chart-tilt canvas")).to_have_count(1)
+    expect(page.locator("#chart-raw canvas")).to_have_count(1)
+    page.wait_for_function("Number(document.getElementById('chart-raw').dataset.points) > 50", timeout=T)
+    # redraws are batched per animation frame: never more redraws than messages
+    live = page.evaluate("({received: window.tiltlab.live.received, draws: window.tiltlab.live.draws})")
+    assert 0 < live["draws"] <= live["received"] + 1, live
+    # the numbers shown are the bench's, with their units
+    ref_x = page.locator("#ref_x").inner_text()
+    assert ref_x.endswith("°"), ref_x
+    tilt = bench.get("/tilt")
+    now = tilt["raw"]["reference_sensor"]["x_deg"]
+    assert abs(float(ref_x.rstrip("°")) - now) < 0.05, (ref_x, now)
+    temp = page.locator("#temp_c").inner_text()
+    assert temp.endswith("°C") if tilt["temp_c"] is not None else temp == "—", (temp, tilt["temp_c"])
+    # the window: ten seconds keeps what the chart draws within ten seconds of the newest reading
+    page.select_option("#window", "10")
+    page.wait_for_function("window.tiltlab.live.snapshots >= 2", timeout=T)
+    page.wait_for_function("Number(document.getElementById('chart-raw').dataset.points) > 10", timeout=T)
+    span = page.evaluate("""() => { const r = window.tiltlab.ring; const t = r.view(r.lastT - window.tiltlab.live.windowS).t;
+                                    return t[t.length - 1] - t[0]; }""")
+    assert 0 < span <= 10
+    page.select_option("#window", "60")
+    page.wait_for_function("window.tiltlab.live.snapshots >= 3", timeout=T)
+    page.wait_for_function("Number(document.getElementById('chart-raw').dataset.points) > 50", timeout=T)
+    bench.shot(page, "live")
+
+
+def test_lost_stream_is_shown_and_recovered_with_the_gap_filled(page, bench):
+    sockets = []
+    blocked = {"on": False}
+
+    def handler(ws):  # type: ignore[no-untyped-def]
+        if blocked["on"]:
+            ws.close(code=1011, reason="blocked by the test")
             return
-        self._open.append(a.get("id"))
-        if a.get("id"):
-            self.attrs[a["id"]] = a
-            self.text.setdefault(a["id"], "")
+        ws.connect_to_server()
+        sockets.append(ws)
 
-    def handle_endtag(self, tag):
-        if tag not in _VOID and self._open:
-            self._open.pop()
-
-    def handle_data(self, data):
-        for ident in self._open:
-            if ident:
-                self.text[ident] += data
-
-
-def seen(dom: str) -> _TextById:
-    p = _TextById()
-    p.feed(dom)
-    return p
-
-
-def test_dashboard_shows_the_live_bench(tmp_path):
-    with running_service(tmp_path / "data") as base:
-        token = (tmp_path / "data" / "admin.token").read_text().strip()
-        page = seen(browse(f"{base}/#token={token}", tmp_path / "profile"))
-        t = httpx.get(f"{base}/tilt", timeout=5, headers={"Authorization": f"Bearer {token}"}).json()
-    now = {"ref_x_deg": t["raw"]["reference_sensor"]["x_deg"], "ref_y_deg": t["raw"]["reference_sensor"]["y_deg"],
-           "meas_x_deg": t["raw"]["measurement_sensor"]["x_deg"], "meas_y_deg": t["raw"]["measurement_sensor"]["y_deg"],
-           "stage_x_deg": t["stage"]["x_deg"], "stage_y_deg": t["stage"]["y_deg"]}
-
-    assert page.text["bench"] == "sim-stage" and page.text["schema"].strip()
-    assert "banner" in page.attrs and "hidden" in page.attrs["banner"], page.text.get("banner")
-    for k in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg", "stage_x_deg", "stage_y_deg"):
-        assert NUMBER.match(page.text[k].strip()), (k, page.text[k])
-        # the readings are noisy (a few thousandths of a degree), the mounting errors they show are not
-        assert abs(float(page.text[k]) - now[k]) < 0.02, (k, page.text[k], now[k])
-    # no active calibration: the tilt is not invented, and the page says why
-    assert page.text["tilt_x_deg"].strip() == "—" and "no active calibration" in page.text["note"]
-    # it keeps polling: several readings in the trace, one point per reading on each axis
-    count = int(page.text["trace_count"])
-    assert count >= 2
-    for axis in ("trace-x", "trace-y"):
-        assert len(page.attrs[axis]["points"].split()) == count
-    # the level's dots sit where the reference reading says, on its scale
-    scale = float(page.text["level_range_deg"])
-    assert float(page.attrs["dot-ref"]["cx"]) == pytest.approx(100 * float(page.text["ref_x_deg"]) / scale, abs=0.05)
-    assert float(page.attrs["dot-ref"]["cy"]) == pytest.approx(-100 * float(page.text["ref_y_deg"]) / scale, abs=0.05)
+    page.route_web_socket("**/ws/readings**", handler)
+    # reconnect so the stream goes through the route, then cut it and keep it cut for a while
+    page.select_option("#rate", "10")
+    page.wait_for_function("window.tiltlab.live.snapshots >= 4", timeout=T)
+    assert sockets
+    page.wait_for_function("window.tiltlab.live.received > 0", timeout=T)
+    blocked["on"] = True
+    t_lost = page.evaluate("window.tiltlab.ring.lastT")
+    sockets[-1].close(code=1011, reason="connection cut by the test")
+    banner = page.locator("#stream-banner")
+    expect(banner).to_be_visible(timeout=T)
+    expect(banner).to_contain_text("Live stream lost")
+    expect(banner).to_contain_text("reconnecting in")
+    page.wait_for_function("document.getElementById('stream-banner').textContent.includes('attempt 3')", timeout=T)
+    bench.shot(page, "stream-lost")
+    snapshots = page.evaluate("window.tiltlab.live.snapshots")
+    blocked["on"] = False
+    expect(banner).to_be_hidden(timeout=T)
+    page.wait_for_function(f"window.tiltlab.live.snapshots > {snapshots}", timeout=T)
+    # the reconnect snapshot's history filled the time the stream was cut
+    filled = page.evaluate(f"""() => {{ const r = window.tiltlab.ring, t = r.view(0).t, t1 = window.tiltlab.live.snapshotT;
+                                     let n = 0; for (const v of t) if (v > {t_lost} && v < t1) n++; return n; }}""")
+    assert filled > 0
+    page.unroute_all()
 
 
-class _PageOnlyHandler(http.server.SimpleHTTPRequestHandler):
-    """Serves the dashboard's files like the service, but every API call fails as a broken service would."""
+def test_calibration_followed_to_its_end_and_its_residual_map(page, bench):
+    page.get_by_role("tab", name="Run").click()
+    form = page.locator("#cal-form")
+    for name, value in GRID.items():
+        form.locator(f"input[name={name}]").fill(value)
+    form.locator("input[name=samples_per_point]").fill("5")
+    form.locator("input[name=n_validation]").fill("2")
+    page.click("#cal-start")
+    # the stop button is there while the job moves the stage
+    expect(page.locator("#stop")).to_be_visible(timeout=T)
+    page.wait_for_function("Number(document.getElementById('grid').dataset.measured) >= 2", timeout=T)
+    bench.shot(page, "calibration-running")
+    expect(page.locator("#job-state")).to_have_text("succeeded", timeout=180_000)
+    job_id = int(page.locator("#job-id").inner_text().lstrip("#"))
+    job = bench.get(f"/calibrations/{job_id}")
+    assert job["state"] == "succeeded"
+    # every measured point is on the picture of the grid
+    expect(page.locator("#grid circle.measured")).to_have_count(job["progress"]["points_total"])
+    expect(page.locator("#job-result")).to_contain_text("validation RMS")
+    bench.shot(page, "calibration-done")
 
-    def do_GET(self):  # noqa: N802 (http.server's name)
-        if self.path == "/" or self.path.startswith("/web/"):
-            self.path = "/index.html" if self.path == "/" else self.path[len("/web"):]
-            return super().do_GET()
-        body = json.dumps({"type": "about:blank", "title": "Service Unavailable", "status": 503,
-                           "detail": "bench not connected"}).encode()
-        self.send_response(503)
-        self.send_header("Content-Type", "application/problem+json")
-        self.send_header("Content-Length", str(len(body)))
-        self.end_headers()
-        self.wfile.write(body)
+    page.click("#job-open-record")
+    rec_id = job["record"]["id"]
+    expect(page.locator("#record-detail")).to_have_attribute("data-id", str(rec_id), timeout=T)
+    residuals = bench.get(f"/records/{rec_id}/residuals")
+    for which in ("before", "after"):
+        expect(page.locator(f"#res-{which} g.res")).to_have_count(len(residuals["points"]), timeout=T)
+    assert page.locator("#res-rms-after").inner_text().endswith("″)")
+    expect(page.locator("#rec-validation")).to_contain_text("RMS error")
+    expect(page.locator("#rec-compare")).to_contain_text("first version")
+    expect(page.locator("#dl-cert")).to_be_disabled()  # a draft has no certificate
+    with page.expect_download() as dl:
+        page.click("#dl-model")
+    assert dl.value.suggested_filename == f"record-{rec_id}-MODEL.json"
+    assert Path(dl.value.path()).read_text().strip().startswith("{")
+    with page.expect_download() as dl:
+        page.click("#dl-points")
+    assert Path(dl.value.path()).read_text().startswith("point,")
+    page.click("#rec-activate")
+    expect(page.locator("#rec-msg")).to_contain_text(f"record {rec_id} is now active", timeout=T)
+    bench.shot(page, "record")
 
-    def log_message(self, *args):
-        pass
+
+def test_table_is_levelled(page, bench):
+    assert bench.get("/tilt")["calibration"] is not None, "the calibration test activates its record"
+    page.get_by_role("tab", name="Run").click()
+    form = page.locator("#level-form")
+    form.locator("input[name=x_deg]").fill("0.4")
+    form.locator("input[name=y_deg]").fill("-0.3")
+    form.locator("input[name=tolerance_deg]").fill("0.005")
+    page.click("#level-go")
+    expect(page.locator("#level-result")).to_have_attribute("data-within", "true", timeout=120_000)
+    expect(page.locator("#level-result")).to_contain_text("within tolerance")
+    t = bench.get("/tilt")["table_tilt"]
+    assert abs(t["x_deg"] - 0.4) < 0.02 and abs(t["y_deg"] + 0.3) < 0.02, t
+    page.get_by_role("tab", name="Live").click()
+    page.wait_for_function("window.tiltlab.live.latest && window.tiltlab.live.latest.table_tilt", timeout=T)
+    expect(page.locator("#tilt_x")).to_contain_text("±")
+    bench.shot(page, "levelled")
 
 
-def test_dashboard_says_what_failed_when_the_service_answers_with_a_problem(tmp_path):
-    handler = functools.partial(_PageOnlyHandler, directory=str(web_dir()))
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        page = seen(browse(f"http://127.0.0.1:{server.server_address[1]}/", tmp_path / "profile", virtual_ms=4000))
-    finally:
-        server.shutdown()
-    assert "hidden" not in page.attrs["banner"]
-    assert re.search(r"/(tilt|health) answered HTTP 503: bench not connected", page.text["banner"]), page.text["banner"]
-    assert page.text["ref_x_deg"].strip() == "—"  # nothing shown that was not read
+def test_stop_button_stops_a_move(page, bench):
+    page.get_by_role("tab", name="Run").click()
+    form = page.locator("#move-form")
+    start = bench.get("/tilt")["stage"]
+    target = -14.0 if start["x_deg"] > 0 else 14.0
+    form.locator("input[name=x_deg]").fill(str(target))
+    form.locator("input[name=y_deg]").fill(str(target))
+    page.click("#move-go")
+    stop = page.locator("#stop")
+    expect(stop).to_be_visible(timeout=T)
+    stop.click()
+    expect(stop).to_have_attribute("data-stopped", "1", timeout=T)
+    expect(page.locator("#move-go")).to_be_enabled(timeout=T)  # the move's request came back
+    # the stage stands short of the target
+    page.wait_for_function("window.tiltlab.live.latest && !window.tiltlab.live.latest.stage.moving", timeout=T)
+    stage = bench.get("/tilt")["stage"]
+    assert not stage["moving"] and abs(stage["x_deg"] - target) > 0.5, (stage, target)
+    expect(stop).to_be_hidden(timeout=T)
+
+
+def test_status_view_shows_each_device(page, bench):
+    page.get_by_role("tab", name="Status").click()
+    devices = bench.get("/devices")["devices"]
+    for d in devices:
+        row = page.locator(f"#devices tr[data-role={d['role']}]")
+        expect(row).to_contain_text(d["port"], timeout=T)
+        expect(row).to_contain_text(d["state"])
+    expect(page.locator("#devices tr[data-role=measurement_sensor]")).to_contain_text("record ")
+    expect(page.locator("#benches")).to_contain_text("sim-stage")
+    bench.shot(page, "status")
+
+
+def test_missing_and_invalid_tokens_get_a_clear_page(browser, bench):
+    ctx = browser.new_context(viewport={"width": 820, "height": 1100})  # a tablet
+    pg = ctx.new_page()
+    pg.goto(f"{bench.base}/")
+    expect(pg.locator("#auth")).to_be_visible(timeout=T)
+    expect(pg.locator("#auth-title")).to_have_text("No access token")
+    expect(pg.locator("header")).to_be_hidden()
+    bench.shot(pg, "no-token")
+    pg.goto(f"{bench.base}/#token=not-a-token")
+    pg.reload()
+    expect(pg.locator("#auth-title")).to_have_text("The token was not accepted", timeout=T)
+    assert "401" in pg.locator("#auth-detail").inner_text()
+    ctx.close()
