@@ -30,7 +30,7 @@ log = logging.getLogger("tiltlab.streams")
 
 HISTORY_MAX_S = 3600.0  # the longest history a snapshot may ask for (bench seconds)
 HISTORY_DEFAULT_S = 60.0
-STALE_INTERVALS = 3  # a sensor silent this many output intervals counts as not answering
+STALE_INTERVALS = 3  # a sensor silent this many output intervals (plus 0.25 s) counts as not answering
 MIN_WAKE_S = 0.004  # the producer wakes at most 250 times a real second (a sped-up simulation)
 CLOSE_SLOW = 1013  # try again later: the client could not take the messages
 CLOSE_GOING_AWAY = 1001
@@ -227,6 +227,9 @@ class ReadingProducer:
         loop_now = asyncio.get_running_loop().time()
         eps = 0.25 * self.interval_s
         for c in list(self.clients):
+            if c.rate_hz >= self.sensor_rate_hz:  # the full rate: every reading
+                self._offer(c, body, loop_now)
+                continue
             nxt = due(t, c.next_bench_s, 1.0 / c.rate_hz, eps)
             if nxt is not None:
                 c.next_bench_s = nxt
@@ -254,7 +257,7 @@ class ReadingProducer:
     def _build(self, now_bench_s: float) -> tuple[dict, list[float]]:
         bench = self.bench
         clock = bench.clock
-        limit = STALE_INTERVALS * self.interval_s
+        limit = STALE_INTERVALS * self.interval_s + clock.bench_seconds(0.25)  # the rule of GET /tilt
 
         def fresh(role: str) -> Reading | None:
             r = bench.latest(role)

@@ -12,10 +12,11 @@ import asyncio
 import contextlib
 import json
 import math
+import socket
 from typing import Any, cast
 
 from fastapi import APIRouter, Request, WebSocket
-from fastapi.encoders import jsonable_encoder
+from pydantic_core import to_jsonable_python
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from service.api.auth import websocket_principal
@@ -28,6 +29,7 @@ router = APIRouter(tags=["streams"])
 
 CLOSE_NORMAL = 1000
 CLOSE_POLICY = 1008
+SEND_BUFFER_BYTES = 32_768  # per reading client: kernel send buffer and transport buffer (see _bound_buffers)
 CLOSE_TIMEOUT_S = 5.0  # a close frame that cannot be written in this long (a peer that reads nothing) is dropped
 
 
@@ -57,6 +59,32 @@ def _number(ws: WebSocket, name: str, default: float | None) -> float | None:
     if not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name}: {text[:20]!r} must be a number > 0")
     return value
+
+
+def _bound_buffers(ws: WebSocket) -> None:
+    """Bound what a reading client's connection buffers below our queue (kernel send buffer, transport
+    buffer): left to autotuning, Linux grows a socket's send buffer to 4 MB, minutes of readings, before a
+    client that reads nothing is even noticed. The server's transport is found behind the ASGI `send`
+    callable; a server that hides it keeps its defaults."""
+    stack: list[Any] = [getattr(ws, "_send", None)]
+    seen: set[int] = set()
+    while stack:
+        f = stack.pop()
+        if f is None or id(f) in seen:
+            continue
+        seen.add(id(f))
+        transport = getattr(getattr(f, "__self__", None), "transport", None)
+        if isinstance(transport, asyncio.WriteTransport):
+            with contextlib.suppress(Exception):
+                transport.set_write_buffer_limits(high=SEND_BUFFER_BYTES)
+                sock = transport.get_extra_info("socket")
+                if sock is not None:
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
+            return
+        for cell in getattr(f, "__closure__", None) or ():
+            with contextlib.suppress(ValueError):
+                if callable(cell.cell_contents):
+                    stack.append(cell.cell_contents)
 
 
 async def _until_disconnect(ws: WebSocket) -> None:
@@ -98,6 +126,7 @@ async def readings(ws: WebSocket) -> None:
     except ValueError as exc:
         return await _refuse(ws, str(exc))
     await ws.accept()
+    _bound_buffers(ws)
     client = producer.connect(rate, history_s)
     try:
         await _serve_client(ws, client)
@@ -134,7 +163,7 @@ async def job_stream(ws: WebSocket, job_id: str) -> None:
     as_request = cast(Request, ws)  # job_json reads only app.state, which a WebSocket has too
 
     def body(job: Any) -> dict:
-        return jsonable_encoder(job_json(as_request, job))
+        return to_jsonable_python(job_json(as_request, job))  # as the HTTP route serialises it
 
     try:
         store.get_job(int(job_id))
