@@ -15,6 +15,7 @@ from service import __version__
 from service.api import http_details, problems
 from service.api.auth import TokenCache, is_loopback
 from service.api.routers import benches, calibrations, dashboard, health, lims, records, stage, streams, tilt
+from service.api.routers.health import SchemaRevision
 from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering
 from service.bench.startup import plan_benches
 from service.config import Settings, get_settings
@@ -106,6 +107,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.engine = engine = bootstrap(s)  # brings the database to the current schema
         store = app.state.store = DaemonStore(engine)
         app.state.token_cache = TokenCache()
+        app.state.schema_revision = SchemaRevision()  # /health and /ready ask the database at most once a second
         left = store.mark_interrupted(actor="daemon")
         if left:
             log.warning("jobs %s were left unfinished by the previous run: marked interrupted (resumable)", left)
@@ -114,6 +116,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             path = write_admin_token(s.data_dir, token)
             print(f"tiltlab: first start: admin token written to {path} (mode 0600)\n"
                   f"tiltlab: dashboard: {dashboard_url(s)}#token={token}", file=sys.stderr, flush=True)
+        elif s.auth == "token":  # later starts: where the dashboard is and where a token comes from
+            path = Path(s.data_dir) / ADMIN_TOKEN_FILE
+            where = (f"token: the admin token in {path}" if path.exists()
+                     else "token: one of `tiltlab token create`")
+            print(f"tiltlab: dashboard: {dashboard_url(s)} ({where})", file=sys.stderr, flush=True)
+        else:
+            print(f"tiltlab: dashboard: {dashboard_url(s)} (authentication off)", file=sys.stderr, flush=True)
         runtimes = plan_benches(s)
         started: list[BenchRuntime] = []
         try:

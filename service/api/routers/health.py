@@ -1,23 +1,66 @@
 from __future__ import annotations
 
+import asyncio
+import time
 from functools import cache
 
+import sqlalchemy as sa
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
 
 from service import __version__
-from service.api.deps import EngineDep
 from service.storage.engine import redacted
 from service.storage.migrate import current_revision, head_revision
 
 router = APIRouter(tags=["health"])
 _head = cache(head_revision)  # the migration scripts do not change while the daemon runs
 
+REVISION_TTL_S = 1.0  # how old the schema revision /health and /ready report may be
+
+
+class SchemaRevision:
+    """The database's schema revision, asked at most once per `ttl_s` however many requests come.
+
+    The query runs in the worker thread pool, never on the event loop, and requests arriving
+    while it runs wait for that one answer instead of queueing their own. A query that fails is
+    not kept: the next request asks again and the failure reaches its caller.
+    """
+
+    def __init__(self, ttl_s: float = REVISION_TTL_S) -> None:
+        self.ttl_s = ttl_s
+        self.queries = 0
+        self._value: str | None = None
+        self._at: float | None = None
+        self._lock = asyncio.Lock()
+
+    def _fresh(self) -> bool:
+        return self._at is not None and time.monotonic() - self._at < self.ttl_s
+
+    async def get(self, engine: sa.Engine) -> str | None:
+        if self._fresh():
+            return self._value
+        async with self._lock:
+            if not self._fresh():
+                self.queries += 1
+                value = await run_in_threadpool(current_revision, engine)
+                self._value, self._at = value, time.monotonic()
+            return self._value
+
+
+def _revision(request: Request) -> SchemaRevision:
+    rev = getattr(request.app.state, "schema_revision", None)
+    if rev is None:
+        rev = request.app.state.schema_revision = SchemaRevision()
+    return rev
+
 
 @router.get("/health")
-def health(engine: EngineDep, request: Request) -> dict:
-    """Liveness plus what the service runs on: version, database and schema revision, benches. No token needed."""
-    rev = current_revision(engine)
+async def health(request: Request) -> dict:
+    """Liveness plus what the service runs on: version, database and schema revision (as read at most
+    one second ago), benches. No token needed."""
+    engine = request.app.state.engine
+    rev = await _revision(request).get(engine)
     benches = list(request.app.state.benches)
     return {"status": "ok" if rev == _head() else "degraded", "version": __version__,
             "database": redacted(engine.url), "schema_revision": rev,
@@ -25,11 +68,11 @@ def health(engine: EngineDep, request: Request) -> dict:
 
 
 @router.get("/ready")
-def ready(engine: EngineDep, request: Request) -> JSONResponse:
+async def ready(request: Request) -> JSONResponse:
     """Ready for work: the schema at head and every instrument of every bench connected (503 with the
     reasons otherwise). No token needed, like /health."""
     reasons = []
-    rev = current_revision(engine)
+    rev = await _revision(request).get(request.app.state.engine)
     if rev != _head():
         reasons.append(f"database schema at {rev}, not {_head()}")
     for bench in request.app.state.benches.values():
