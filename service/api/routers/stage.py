@@ -6,6 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Request
 from pydantic import BaseModel, ConfigDict, Field
+from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Operator
 from service.api.deps import find_bench
@@ -37,6 +38,13 @@ class Stop(BaseModel):
     bench: str | None = None
 
 
+async def _audit(request: Request, actor: str, action: str, bench: str, details: dict) -> None:
+    """The audit event of a stage action, written in the worker thread pool: a write waiting for the
+    database's write lock (a job storing its points) must not hold up the event loop, which serves
+    /tilt and keeps the instruments' streams read."""
+    await run_in_threadpool(request.app.state.store.audit_action, actor, action, "bench", bench, details)
+
+
 def _stage_bench(request: Request, name: str | None):  # type: ignore[no-untyped-def]
     bench = find_bench(request, name)
     if bench.kind != "stage":
@@ -55,7 +63,7 @@ async def move(body: Move, request: Request, who: Operator) -> dict:
                                f" of ±{travel:g} deg", field=f)
     async with bench.hold("a stage move"):
         x, y = await bench.move_stage(body.x_deg, body.y_deg)
-    request.app.state.store.audit_action(who.name, "stage.move", "bench", bench.name, body.model_dump())
+    await _audit(request, who.name, "stage.move", bench.name, body.model_dump())
     return {"stage": {"x_deg": x, "y_deg": y, "moving": False}}
 
 
@@ -75,8 +83,8 @@ async def level(body: Level, request: Request, who: Operator) -> dict:
     bench.require("reference_sensor")
     async with bench.hold("levelling"):
         out = await levelling.level(bench, active, body.x_deg, body.y_deg, body.tolerance_deg, body.max_iterations)
-    request.app.state.store.audit_action(who.name, "stage.level", "bench", bench.name,
-                                         {**body.model_dump(), "within_tolerance": out["within_tolerance"]})
+    await _audit(request, who.name, "stage.level", bench.name,
+                 {**body.model_dump(), "within_tolerance": out["within_tolerance"]})
     return out
 
 
@@ -85,5 +93,5 @@ async def stop(request: Request, who: Operator, body: Stop | None = None) -> dic
     """Stop all motion at once, whatever holds the bench; a running job fails with the reason."""
     bench = find_bench(request, body.bench if body else None)
     failed = await request.app.state.jobs.stop_bench(bench, who)
-    request.app.state.store.audit_action(who.name, "stage.stop", "bench", bench.name, {"failed_job": failed})
+    await _audit(request, who.name, "stage.stop", bench.name, {"failed_job": failed})
     return {"stopped": True, "failed_job": failed}
