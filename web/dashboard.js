@@ -234,7 +234,7 @@ function makeCharts() {
   if (typeof uPlot === "undefined") { showProblem("the chart library did not load (/web/vendor/uplot)"); return; }
   const x = { time: true };
   const common = {
-    scales: { x: { time: true, range: () => [xRange[0], xRange[1]] }, y: { auto: true } },
+    scales: { x: { time: true, range: () => [xRange[0], xRange[1]] }, y: { auto: true, range: (u) => yRange(u) } },
     axes: [{}, axisDeg()], legend: { live: true }, cursor: { drag: { x: false, y: false } },
   };
   const band = (c) => ({ stroke: c, width: 0, fill: c + "22", points: { show: false }, legend: false });
@@ -261,6 +261,18 @@ function makeCharts() {
 
 let xRange = [0, 1];
 
+// The y range over the finite values of a chart's series (NaN marks a missing value in the typed arrays).
+function yRange(u) {
+  let lo = Infinity, hi = -Infinity;
+  for (let i = 1; i < u.data.length; i++) {
+    const d = u.data[i];
+    for (let j = 0; j < d.length; j++) { const v = d[j]; if (v < lo) lo = v; if (v > hi) hi = v; }
+  }
+  if (!(lo <= hi)) return [-1, 1];
+  const pad = Math.max((hi - lo) * 0.08, 1e-4);
+  return [lo - pad, hi + pad];
+}
+
 function frame() {
   if (live.dirty && tiltChart && !$("view-live").hidden) {
     live.dirty = false;
@@ -268,7 +280,11 @@ function frame() {
     xRange = [end - live.windowS, end];
     const v = ring.view(end - live.windowS);
     const hasTilt = v.tx.some(Number.isFinite);
-    tiltChart.setData([v.t, v.tx, v.ty, v.txlo, v.txhi, v.tylo, v.tyhi]);
+    // the corrected tilt from its first value in the window on (before a record is active there is none)
+    let i0 = 0;
+    while (i0 < v.tx.length && !Number.isFinite(v.tx[i0])) i0++;
+    const s = (a) => a.subarray(i0);
+    tiltChart.setData([s(v.t), s(v.tx), s(v.ty), s(v.txlo), s(v.txhi), s(v.tylo), s(v.tyhi)]);
     rawChart.setData([v.t, v.mx, v.my, v.rx, v.ry]);
     live.draws += 1;
     $("chart-tilt").dataset.points = String(v.t.length);
@@ -297,7 +313,7 @@ function showLatest(m) {
   $("tilt_x").textContent = tt ? pm(tt.x_deg, tt.u_x_deg) : "—";
   $("tilt_y").textContent = tt ? pm(tt.y_deg, tt.u_y_deg) : "—";
   const c = live.calibration;
-  $("calibration-note").textContent = tt ? `k = ${tt.k ?? 2}; ${c ? `record ${c.record_id} v${c.version} (${c.method})` : ""}`
+  $("calibration-note").textContent = tt ? `uncertainty expanded with k = ${tt.k ?? 2}${c ? `; record ${c.record_id} v${c.version} (${c.method})` : ""}`
     : "no corrected tilt: no active calibration record, or the measurement sensor is silent";
   setMoving(!!st.moving, "stream");
 }
@@ -488,7 +504,8 @@ async function startCalibration(ev) {
   const n = (k) => Number(f.get(k));
   const body = { bench: state.bench, procedure: f.get("procedure"), method: f.get("method"),
     grid: { x_deg: [n("x_min"), n("x_max")], y_deg: [n("y_min"), n("y_max")], n_x: n("n_x"), n_y: n("n_y") },
-    samples_per_point: n("samples_per_point"), validation: { n_points: n("n_validation") } };
+    samples_per_point: n("samples_per_point"), validation: { n_points: n("n_validation") },
+    settle: { tolerance_deg: n("settle_tolerance_deg") } };
   $("cal-error").hidden = true;
   try {
     const job = await action($("cal-start"), () => api("POST", "/calibrations", body));
