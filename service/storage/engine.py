@@ -44,7 +44,13 @@ def _sqlite_engine(u: sa.URL, busy_timeout_ms: int, **kwargs: Any) -> sa.Engine:
     database = u.database or ""
     in_memory = database in ("", ":memory:") or database.startswith("file::memory:")
     if not in_memory:
-        Path(database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+        folder = Path(database).expanduser().parent
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # a setting that cannot work: one line naming it, not a traceback
+            raise InputError(f"TILTLAB_DATABASE_URL: the SQLite file {database} cannot be made, its folder {folder} "
+                             f"cannot be created ({exc.strerror}); set TILTLAB_DATABASE_URL (or TILTLAB_DATA_DIR) "
+                             "to a file in a folder this user can write") from None
     connect_args = kwargs.pop("connect_args", {})
     connect_args.setdefault("timeout", busy_timeout_ms / 1000)
     connect_args.setdefault("check_same_thread", False)

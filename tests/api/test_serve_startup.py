@@ -67,6 +67,15 @@ def test_unwritable_data_directory(tmp_path: Path) -> None:
     assert blocker.read_text() == "not a folder"
 
 
+def test_sqlite_file_in_an_impossible_folder(tmp_path: Path) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    r = _serve(tmp_path, "--port", str(free_port()), TILTLAB_DATABASE_URL=f"sqlite:///{blocker}/db/tiltlab.db")
+    assert r.returncode == 2
+    _one_line(r, "TILTLAB_DATABASE_URL", str(blocker / "db"), "a folder this user can write")
+    assert blocker.read_text() == "not a folder"
+
+
 def test_unreachable_database_is_retried_then_one_line(tmp_path: Path) -> None:
     dead = free_port()  # nothing listens there
     r = _serve(tmp_path, "--port", str(free_port()), "--database-wait-s", "1",
