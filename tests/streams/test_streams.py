@@ -168,7 +168,8 @@ def test_sequence_has_no_gaps_and_rate_is_clamped(daemon: Daemon) -> None:
                 assert m["seq"] == expected and m["type"] == "reading", m
                 assert set(m) == READING_KEYS
                 assert set(m["raw"]) == {"measurement_sensor", "reference_sensor"}
-                assert set(m["raw"]["measurement_sensor"]) == {"x_deg", "y_deg"}
+                for pair in m["raw"].values():  # null while a sensor is silent (a loaded machine lags the simulation)
+                    assert pair is None or set(pair) == {"x_deg", "y_deg"}
                 assert set(m["stage"]) == {"x_deg", "y_deg", "moving"}
             assert daemon.hub.client_count() == 1
 
