@@ -216,11 +216,24 @@ def test_table_is_levelled(page, bench):
     bench.shot(page, "levelled")
 
 
-def test_stop_button_stops_a_move(page, bench):
+@pytest.fixture(scope="module")
+def real_time_bench(tmp_path_factory) -> Iterator[Bench]:
+    """A bench whose stage moves at its real speed (2-3 deg/s), so a long move is still under way
+    when the stop is clicked, however loaded the machine."""
+    data = tmp_path_factory.mktemp("data-real-time")
+    with running_service(data, TILTLAB_SIM_SPEED="1") as base:
+        yield Bench(base, (data / "admin.token").read_text().strip(), Path(tmp_path_factory.mktemp("unused")))
+
+
+def test_stop_button_stops_a_move(browser, real_time_bench):
+    bench = real_time_bench
+    ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+    page = ctx.new_page()
+    page.goto(f"{bench.base}/#token={bench.token}")
     page.get_by_role("tab", name="Run").click()
     form = page.locator("#move-form")
     start = bench.get("/tilt")["stage"]
-    target = -14.0 if start["x_deg"] > 0 else 14.0
+    target = -14.0 if (start["x_deg"] or 0.0) > 0 else 14.0
     form.locator("input[name=x_deg]").fill(str(target))
     form.locator("input[name=y_deg]").fill(str(target))
     page.click("#move-go")
@@ -234,6 +247,7 @@ def test_stop_button_stops_a_move(page, bench):
     stage = bench.get("/tilt")["stage"]
     assert not stage["moving"] and abs(stage["x_deg"] - target) > 0.5, (stage, target)
     expect(stop).to_be_hidden(timeout=T)
+    ctx.close()
 
 
 def test_status_view_shows_each_device(page, bench):
