@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import threading
 
+import pytest
 import sqlalchemy as sa
 from fastapi.testclient import TestClient
 
@@ -53,11 +54,31 @@ def test_a_changed_revision_is_seen_once_the_interval_is_over(tmp_path):
         first = (await kept.get(engine), await fresh.get(engine))
         with engine.begin() as c:
             c.execute(sa.text("UPDATE alembic_version SET version_num = '0002'"))
-        return first, (await kept.get(engine), await fresh.get(engine)), fresh.queries
+        # the stale answer is served at once while one refresh runs; the next request sees the new one
+        served = await asyncio.gather(*(fresh.get(engine) for _ in range(20)))
+        await fresh.refreshed()
+        return first, served, (await kept.get(engine), await fresh.get(engine)), kept.queries, fresh
 
-    first, second, queries = asyncio.run(go())
-    assert first == ("0001", "0001")
-    assert second == ("0001", "0002") and queries == 2
+    first, served, second, kept_queries, fresh = asyncio.run(go())
+    assert first == ("0001", "0001") and served == ["0001"] * 20
+    assert second == ("0001", "0002") and kept_queries == 1 and fresh.queries >= 2
+
+
+def test_a_failed_refresh_is_not_kept_and_the_next_request_sees_the_failure(tmp_path):
+    engine = _engine(tmp_path, "0001")
+
+    async def go():  # type: ignore[no-untyped-def]
+        rev = SchemaRevision(ttl_s=0)
+        assert await rev.get(engine) == "0001"
+        with engine.begin() as c:
+            c.execute(sa.text("DROP TABLE alembic_version"))
+            c.execute(sa.text("CREATE TABLE alembic_version (other INTEGER)"))
+        assert await rev.get(engine) == "0001"  # served while the refresh fails in the background
+        await rev.refreshed()
+        with pytest.raises(sa.exc.OperationalError):
+            await rev.get(engine)
+
+    asyncio.run(go())
 
 
 def test_health_says_degraded_when_the_schema_is_not_at_head(tmp_path):

@@ -22,9 +22,11 @@ REVISION_TTL_S = 1.0  # how old the schema revision /health and /ready report ma
 class SchemaRevision:
     """The database's schema revision, asked at most once per `ttl_s` however many requests come.
 
-    The query runs in the worker thread pool, never on the event loop, and requests arriving
-    while it runs wait for that one answer instead of queueing their own. A query that fails is
-    not kept: the next request asks again and the failure reaches its caller.
+    Requests never wait for the database once a revision is known: an answer older than `ttl_s`
+    is served while one refresh runs in the worker thread pool (a request waiting on it would
+    also wait behind every request the event loop has queued meanwhile). Only the first request
+    waits for a query. A refresh that fails is not kept: the next request asks the database
+    itself, and the failure reaches its caller.
     """
 
     def __init__(self, ttl_s: float = REVISION_TTL_S) -> None:
@@ -33,19 +35,32 @@ class SchemaRevision:
         self._value: str | None = None
         self._at: float | None = None
         self._lock = asyncio.Lock()
+        self._refresh: asyncio.Task | None = None
 
-    def _fresh(self) -> bool:
-        return self._at is not None and time.monotonic() - self._at < self.ttl_s
+    async def _query(self, engine: sa.Engine) -> None:
+        self.queries += 1
+        try:
+            value = await run_in_threadpool(current_revision, engine)
+        except BaseException:
+            self._at = None
+            raise
+        self._value, self._at = value, time.monotonic()
 
     async def get(self, engine: sa.Engine) -> str | None:
-        if self._fresh():
+        if self._at is None:
+            async with self._lock:
+                if self._at is None:
+                    await self._query(engine)
             return self._value
-        async with self._lock:
-            if not self._fresh():
-                self.queries += 1
-                value = await run_in_threadpool(current_revision, engine)
-                self._value, self._at = value, time.monotonic()
-            return self._value
+        if time.monotonic() - self._at >= self.ttl_s and (self._refresh is None or self._refresh.done()):
+            self._refresh = asyncio.create_task(self._query(engine))
+            self._refresh.add_done_callback(lambda t: t.cancelled() or t.exception())  # failure: see _query
+        return self._value
+
+    async def refreshed(self) -> None:
+        """Wait for a refresh under way, if any (its failure is not raised here)."""
+        if self._refresh is not None:
+            await asyncio.gather(self._refresh, return_exceptions=True)
 
 
 def _revision(request: Request) -> SchemaRevision:
