@@ -33,7 +33,10 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
                                                       "2020-01-01", "due_on": "2021-01-01"}, headers=h["admin"]).json()
             order = client.post("/orders", json=ORDER, headers={**h["lims"], "Idempotency-Key": "lims-118"}).json()
             body = {"procedure": "stage-grid", "method": "homography", "grid": GRID, "samples_per_point": 8,
-                    "validation": {"n_points": 3}, "order_id": order["id"]}  # fmt: skip
+                    "validation": {"n_points": 3}, "order_id": order["id"],
+                # windows of 2 bench seconds (0.1 s at 20x): a loaded machine lags the sped-up readings by more
+                # than the default 0.5 s window, which then holds no reading and never settles
+                "settle": {"tolerance_deg": 0.002, "window_s": 2.0, "timeout_s": 600.0}}  # fmt: skip
 
             r = client.post("/calibrations", json={**body, "reference_standards": [good["id"], expired["id"]]},
                             headers=h["alice"])
