@@ -87,3 +87,17 @@ def test_non_finite_numbers_are_named(argv, words, tmp_path, capsys) -> None:  #
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert all(w in err for w in words) and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("command", ["simulate", "calibrate", "correct", "level", "discrepancy", "reproduce"])
+def test_the_readme_summary_names_every_option(command) -> None:  # type: ignore[no-untyped-def]
+    """The README's summary of the offline command line shows each command with all its options."""
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
+    section = readme.split("## The offline command line", 1)[1].split("\n## ", 1)[0]
+    line = next(ln for ln in section.splitlines() if ln.strip().startswith(f"tiltlab {command} "))  # the summary
+    parser = dict((" ".join(p), q) for p, q in ALL)[command]
+    options = [a.option_strings[-1] for a in parser._actions
+               if a.option_strings and not isinstance(a, argparse._HelpAction)]
+    assert options and [o for o in options if o not in line] == [], line
