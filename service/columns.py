@@ -16,6 +16,9 @@ MEAS = ("meas_x_deg", "meas_y_deg")
 TEMP = "temp_c"
 TIME = "t_s"
 TILT_OUTPUTS = ("tilt_x_deg", "tilt_y_deg", "u_tilt_x_deg", "u_tilt_y_deg")  # what `correct` adds
+# Coverage factors of u_tilt_x_deg / u_tilt_y_deg (95 %, effective degrees of freedom): returned by a
+# stage method's `correct` beside TILT_OUTPUTS for the daemon, not written to dataset files.
+K_OUTPUTS = ("k_tilt_x", "k_tilt_y")
 STAGE_DATASET = (POINT, *STAGE, *DIRECTION, *REF, *MEAS, TEMP, TIME)
 
 # rotation: a triaxial module on a rotary table

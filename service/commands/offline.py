@@ -166,7 +166,7 @@ def correct(args: argparse.Namespace) -> int:
     with about(args.model):
         method = get_method(model.kind, model.method)
     ds = read_dataset(args.input, model.kind, method.correct_required, method.correct_optional)
-    out = method.correct(model, ds.arrays())
+    out = {c: v for c, v in method.correct(model, ds.arrays()).items() if c in method.outputs}
     cols: dict[str, Any] = {**ds.passthrough(exclude=out), **out}
     write_dataset(args.out, cols)
     print(f"{model.kind}/{model.method}: corrected {ds.n_rows} rows; wrote {args.out}", file=sys.stderr)

@@ -37,7 +37,7 @@ CLOSE_GOING_AWAY = 1001
 
 # History ring columns (NaN for "none").
 _COLS = ("bench_s", "epoch", "mx", "my", "rx", "ry", "tx", "ty", "ux", "uy", "table", "sx", "sy", "moving", "stage",
-         "temp")
+         "temp", "kx", "ky", "coverage")
 _C = {name: i for i, name in enumerate(_COLS)}
 
 
@@ -107,7 +107,8 @@ def _row_object(r: np.ndarray) -> dict:
     return {"time_utc": utc_text(dt.datetime.fromtimestamp(r[_C["epoch"]], dt.UTC)), "type": "reading",
             "raw": {"measurement_sensor": pair("mx", "my"), "reference_sensor": pair("rx", "ry")},
             "table_tilt": None if math.isnan(r[_C["table"]]) else
-            {"x_deg": c("tx"), "y_deg": c("ty"), "u_x_deg": c("ux"), "u_y_deg": c("uy"), "k": 2},
+            {"x_deg": c("tx"), "y_deg": c("ty"), "u_x_deg": c("ux"), "u_y_deg": c("uy"), "k": c("kx"), "k_y": c("ky"),
+             "coverage_probability": c("coverage")},
             "stage": None if math.isnan(r[_C["stage"]]) else
             {"x_deg": c("sx"), "y_deg": c("sy"), "moving": bool(r[_C["moving"]])},
             "temp_c": c("temp")}
@@ -287,7 +288,9 @@ class ReadingProducer:
                f(table["u_x_deg"] if table else None), f(table["u_y_deg"] if table else None),
                1.0 if table else nan,
                f(stage["x_deg"] if stage else None), f(stage["y_deg"] if stage else None),
-               1.0 if stage and stage["moving"] else 0.0, 1.0 if stage else nan, f(temp)]
+               1.0 if stage and stage["moving"] else 0.0, 1.0 if stage else nan, f(temp),
+               f(table["k"] if table else None), f(table["k_y"] if table else None),
+               f(table["coverage_probability"] if table else None)]
         return msg, row
 
 

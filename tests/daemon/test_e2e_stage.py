@@ -36,7 +36,10 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
         truth = sim.world.true_tilt_deg()
         assert t["table_tilt"] is not None, t
         assert abs(t["table_tilt"]["x_deg"] - truth[0]) < 0.01 and abs(t["table_tilt"]["y_deg"] - truth[1]) < 0.01, (t, truth)
-        assert t["table_tilt"]["k"] == 2 and t["table_tilt"]["u_x_deg"] > 0
+        # coverage factors from the effective degrees of freedom: Student's t for 95 %, above the normal 1.96
+        tt = t["table_tilt"]
+        assert tt["coverage_probability"] == 0.95 and 1.96 <= tt["k"] < 2.6 and 1.96 <= tt["k_y"] < 2.6, tt
+        assert tt["u_x_deg"] > 0 and tt["u_y_deg"] > 0
         assert t["calibration"]["record_id"] == rec["id"]
     for target in [(0.0, 0.0), (1.0, 0.5), (-0.8, -1.2)]:
         r = client.post("/stage/level", headers=h, json={"x_deg": target[0], "y_deg": target[1],

@@ -22,7 +22,8 @@ def _pair(r) -> dict | None:  # type: ignore[no-untyped-def]
 @router.get("/tilt")
 async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
     """Table tilt: the measurement sensor's latest reading through the active record, in the reference
-    sensor's frame, with its expanded uncertainty (GUM, k = 2) from the record's covariance; null with
+    sensor's frame, with its expanded uncertainty (GUM, 95 %; coverage factors k, k_y from the effective degrees of
+    freedom) from the record's covariance; null with
     the reason in `note` when no record is active or the sensor is not answering. `stale` is true
     when the latest reading is older than three output intervals plus 0.25 s."""
     now = dt.datetime.now(dt.UTC)

@@ -21,7 +21,8 @@ from service.calibration.stage_common import (
     detect_mirror,
     sign_from_options,
 )
-from service.calibration.uncertainty import propagate_gum
+from service.calibration.uncertainty import coverage_factor, propagate_gum
+from service.columns import K_OUTPUTS
 from service.errors import DegenerateDataError, InputError
 from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
@@ -76,8 +77,10 @@ def uncertain_correct(f, p: np.ndarray, cov: np.ndarray | None, data: Columns, s
     y = f(p, inputs)
     out = {"tilt_x_deg": y[:, 0], "tilt_y_deg": y[:, 1]}
     if cov is not None:
-        U = propagate_gum(f, p, cov, inputs, {c: sigma_deg for c in MEAS_COLUMNS}, dof, dof).expanded()
+        gum = propagate_gum(f, p, cov, inputs, {c: sigma_deg for c in MEAS_COLUMNS}, dof, dof)
+        U, k = gum.expanded(), np.broadcast_to(coverage_factor(gum.dof_eff), gum.u.shape)
         out["u_tilt_x_deg"], out["u_tilt_y_deg"] = U[:, 0], U[:, 1]
+        out[K_OUTPUTS[0]], out[K_OUTPUTS[1]] = k[:, 0], k[:, 1]
     return out
 
 

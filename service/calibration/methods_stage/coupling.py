@@ -31,6 +31,7 @@ from service.calibration.stage_common import (
     require_spread,
 )
 from service.calibration.uncertainty import coverage_factor
+from service.columns import K_OUTPUTS
 from service.errors import DegenerateDataError
 from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg
 
@@ -97,7 +98,8 @@ class CouplingMethod(StageMethod):
         ux, uy = model.state.get("meas_misfit_rms_deg", [0.0, 0.0])
         k = float(coverage_factor(meas_dof(model)))
         return {"tilt_x_deg": sign[0] * mx, "tilt_y_deg": sign[1] * my,
-                "u_tilt_x_deg": np.full(mx.shape, k * ux), "u_tilt_y_deg": np.full(my.shape, k * uy)}
+                "u_tilt_x_deg": np.full(mx.shape, k * ux), "u_tilt_y_deg": np.full(my.shape, k * uy),
+                K_OUTPUTS[0]: np.full(mx.shape, k), K_OUTPUTS[1]: np.full(my.shape, k)}
 
 
 COUPLING = register(CouplingMethod())

@@ -35,6 +35,8 @@ from service.calibration.stage_common import (
     require_spread,
 )
 from service.calibration.stage_kinematic import ChainModel, fit_chain, fit_meas, unit_of
+from service.calibration.uncertainty import coverage_factor
+from service.columns import K_OUTPUTS
 from service.errors import InputError
 from service.physics.stage import StageBench
 
@@ -152,7 +154,9 @@ class KinematicMethod(StageMethod):
         mx, my = columns(data, MEAS_COLUMNS)
         X, Y, gx, gy = meas_inverse_gum(model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)), sign, mx, my,
                                         float(model.state.get("meas_sigma_deg", 0.0)), meas_dof(model))
-        return {"tilt_x_deg": X, "tilt_y_deg": Y, "u_tilt_x_deg": gx.expanded(), "u_tilt_y_deg": gy.expanded()}
+        return {"tilt_x_deg": X, "tilt_y_deg": Y, "u_tilt_x_deg": gx.expanded(), "u_tilt_y_deg": gy.expanded(),
+                K_OUTPUTS[0]: np.broadcast_to(coverage_factor(gx.dof_eff), X.shape),
+                K_OUTPUTS[1]: np.broadcast_to(coverage_factor(gy.dof_eff), Y.shape)}
 
 
 KINEMATIC = register(KinematicMethod())
