@@ -35,10 +35,10 @@ async def fresh_readings(bench: BenchRuntime, role: str, n: int, *, after_bench_
     timeout_s = max(timeout_s, bench.clock.bench_seconds(2.0))
     deadline = bench.clock.monotonic() + timeout_s
     while len(out) < n:
-        r = bench.latest(role)
-        if r is not None and r.bench_s > last:
-            out.append(r)
-            last = r.bench_s
+        new = bench.readings_after(role, last)[:n - len(out)]
+        if new:
+            out += new
+            last = new[-1].bench_s
         elif bench.clock.monotonic() > deadline:
             st = bench.devices[role].status
             raise DeviceNotAnswering(f"{role} on {st.port}: no reading for {timeout_s:g} s ({st.state}"
@@ -87,10 +87,8 @@ async def settle(bench: BenchRuntime, roles: tuple[str, ...], *, tolerance_deg: 
         now = bench.clock.monotonic()
         moving = []
         for role in roles:
-            r = bench.latest(role)
             h = history[role]
-            if r is not None and (not h or r.bench_s > h[-1].bench_s) and r.bench_s >= start:
-                h.append(r)
+            h += bench.readings_after(role, h[-1].bench_s if h else start)
             while h and h[0].bench_s < now - 2 * window_s:
                 h.pop(0)
             if now - start < 2 * window_s:

@@ -92,6 +92,18 @@ class BenchRuntime:
     def latest(self, role: str) -> Reading | None:
         return self.devices[role].latest() if role in self.devices else None
 
+    def readings_after(self, role: str, bench_s: float) -> list[Reading]:
+        """Every kept reading of the role stamped after `bench_s`, oldest first (the latest only, for a
+        device that keeps no history)."""
+        dev = self.devices[role] if role in self.devices else None
+        if dev is None:
+            return []
+        after = getattr(dev, "readings_after", None)
+        if after is not None:
+            return after(bench_s)
+        r = dev.latest()
+        return [r] if r is not None and r.bench_s > bench_s else []
+
     def output_interval_s(self, role: str) -> float:
         """How often the role's readings arrive (bench seconds): what `stale` is judged against."""
         spec = self.config.role(role)

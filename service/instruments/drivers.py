@@ -7,6 +7,7 @@ in, degrees leave. A driver never knows whether a simulator or an instrument ans
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import datetime as dt
 from dataclasses import replace
@@ -25,6 +26,9 @@ def _present(value: Any, what: str) -> Any:
     return value
 
 
+RECENT_READINGS = 4096  # per driver: over 8 s of a sped-up bench's continuous output
+
+
 class _Driver:
     """What every driver shares: its port, its counters, its identity and latest reading."""
 
@@ -37,8 +41,26 @@ class _Driver:
         self.timeout_s = timeout_s
         self.identity: DeviceIdentity | None = None
         self.timeouts = 0
-        self._latest: Reading | None = None
+        # Every reading, not only the latest: waiting for settled readings must not depend on how
+        # often the waiting side looks (a sped-up bench sends hundreds a second).
+        self.recent: collections.deque[Reading] = collections.deque(maxlen=RECENT_READINGS)
+        self._last: Reading | None = None
         self._poll_task: asyncio.Task | None = None
+
+    @property
+    def _latest(self) -> Reading | None:
+        return self._last
+
+    @_latest.setter
+    def _latest(self, reading: Reading | None) -> None:
+        self._last = reading
+        if reading is not None:
+            self.recent.append(reading)
+
+    def readings_after(self, bench_s: float) -> list[Reading]:
+        """The readings kept that are stamped after `bench_s` (bench seconds), oldest first."""
+        kept = list(self.recent)  # one C call under the GIL: safe against the reader thread appending
+        return [r for r in kept if r.bench_s > bench_s]
 
     @property
     def status(self) -> DeviceStatus:
