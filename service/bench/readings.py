@@ -78,7 +78,8 @@ async def settle(bench: BenchRuntime, roles: tuple[str, ...], *, tolerance_deg: 
     """Wait until every role's mean over the last `window_s` differs from its mean over the window
     before by at most `tolerance_deg` on every channel (a drift criterion: reading noise averages out).
 
-    Returns the bench time at which they settled; raises TimeoutError naming the roles that did not.
+    Returns the bench time at which they settled; raises TimeoutError naming the roles that did not,
+    DeviceNotAnswering (role and port) as soon as one of them is not connected.
     """
     start = bench.clock.monotonic()
     timeout_s = max(timeout_s, bench.clock.bench_seconds(5.0))  # a sped-up simulation may lag under load
@@ -87,6 +88,7 @@ async def settle(bench: BenchRuntime, roles: tuple[str, ...], *, tolerance_deg: 
         now = bench.clock.monotonic()
         moving = []
         for role in roles:
+            bench.require(role)  # a sensor lost while waiting fails the wait at once, naming role and port
             h = history[role]
             h += bench.readings_after(role, h[-1].bench_s if h else start)
             while h and h[0].bench_s < now - 2 * window_s:
