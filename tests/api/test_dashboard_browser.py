@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -35,8 +37,8 @@ T = 30_000  # ms: how long a wait for something the page shows may take on a loa
 
 
 class Bench:
-    def __init__(self, base: str, token: str, shots: Path) -> None:
-        self.base, self.token, self.shots = base, token, shots
+    def __init__(self, base: str, token: str, shots: Path, data: Path | None = None) -> None:
+        self.base, self.token, self.shots, self.data = base, token, shots, data
 
     def get(self, path: str) -> dict:
         r = httpx.get(self.base + path, headers={"Authorization": f"Bearer {self.token}"}, timeout=30)
@@ -53,7 +55,7 @@ def bench(tmp_path_factory) -> Iterator[Bench]:
     data = tmp_path_factory.mktemp("data")
     shots = Path(os.environ.get("TILTLAB_SCREENSHOT_DIR") or tmp_path_factory.mktemp("screenshots"))
     with running_service(data, TILTLAB_SIM_SPEED=SIM_SPEED) as base:
-        yield Bench(base, (data / "admin.token").read_text().strip(), shots)
+        yield Bench(base, (data / "admin.token").read_text().strip(), shots, data)
 
 
 @pytest.fixture(scope="module")
@@ -274,4 +276,26 @@ def test_missing_and_invalid_tokens_get_a_clear_page(browser, bench):
     pg.reload()
     expect(pg.locator("#auth-title")).to_have_text("The token was not accepted", timeout=T)
     assert "401" in pg.locator("#auth-detail").inner_text()
+    ctx.close()
+
+
+def test_a_read_only_token_watches_and_is_told_what_it_lacks(browser, bench):
+    """A token with the read scope alone sees the bench live; operating it says the operate scope is needed."""
+    made = subprocess.run([sys.executable, "-m", "service", "token", "create", "--name", "viewer", "--scopes", "read"],
+                          env={**os.environ, "TILTLAB_DATA_DIR": str(bench.data)}, capture_output=True, text=True,
+                          timeout=60)
+    assert made.returncode == 0, made.stderr
+    viewer = made.stdout.strip()
+    jobs_before = bench.get("/calibrations")["jobs"]
+    ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+    pg = ctx.new_page()
+    pg.goto(f"{bench.base}/#token={viewer}")
+    pg.wait_for_function("window.tiltlab.live.received > 5", timeout=T)  # reading is allowed
+    expect(pg.locator("#auth")).to_be_hidden()
+    pg.get_by_role("tab", name="Run").click()
+    pg.click("#cal-start")
+    error = pg.locator("#cal-error")
+    expect(error).to_be_visible(timeout=T)
+    expect(error).to_contain_text("operate scope")
+    assert bench.get("/calibrations")["jobs"] == jobs_before  # the refused request started nothing
     ctx.close()
