@@ -163,7 +163,9 @@ def test_model_json_round_trip_gives_identical_predictions(method, extra):
     back = CalibrationModel.from_json_dict(json.loads(json.dumps(model.to_json_dict(), allow_nan=False)))
     meas = {"meas_x_deg": cols["meas_x_deg"], "meas_y_deg": cols["meas_y_deg"]}
     a, b = m.correct(model, meas), m.correct(back, meas)
-    assert set(a) == set(b) == {"tilt_x_deg", "tilt_y_deg", "u_tilt_x_deg", "u_tilt_y_deg"}
+    # the tilt, its expanded uncertainties and their coverage factors (95 %: Student's t, at least the normal 1.96)
+    assert set(a) == set(b) == {"tilt_x_deg", "tilt_y_deg", "u_tilt_x_deg", "u_tilt_y_deg", "k_tilt_x", "k_tilt_y"}
+    assert np.all(a["k_tilt_x"] >= 1.959) and np.all(a["k_tilt_y"] >= 1.959)
     for k in a:
         assert np.array_equal(a[k], b[k]), k
     t = {"target_x_deg": np.array([0.0, 11.0, -7.5]), "target_y_deg": np.array([0.0, -11.0, 9.0])}

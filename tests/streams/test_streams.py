@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import datetime as dt
 import json
 import os
 import socket
@@ -261,7 +262,11 @@ def test_reconnect_gets_a_snapshot_with_history(daemon: Daemon) -> None:
     assert all("seq" not in h and set(h) == READING_KEYS - {"seq"} and h["type"] == "reading" for h in hist)
     times = [h["time_utc"] for h in hist]
     assert times == sorted(times) and times[-1] <= snap["time_utc"]
-    assert last["time_utc"] in times or times[-1] >= last["time_utc"]  # what the first connection saw is history now
+    # what the first connection saw is history now: the history spans its time, and, being decimated to
+    # 5 Hz of bench time, its newest entry is at most one period (real time: 0.2 s / SPEED) before it
+    at = lambda t: dt.datetime.fromisoformat(t.replace("Z", "+00:00"))  # noqa: E731
+    assert at(times[0]) <= at(last["time_utc"])
+    assert at(times[-1]) >= at(last["time_utc"]) - dt.timedelta(seconds=0.2 / SPEED + 0.005), (times[-1], last)
     wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty after reconnects")
 
 
