@@ -22,7 +22,6 @@ from service.instruments.transport import DeviceError
 log = logging.getLogger("tiltlab.bench")
 
 STAGE_POLL_S = 0.1  # bench seconds between pose queries
-TEMPERATURE_POLL_S = 5.0  # bench seconds between temperature queries of sensors whose frames carry none
 SENSOR_ROLES = ("reference_sensor", "measurement_sensor", "triaxial_sensor", "turntable_sensor", "adc_sensor")
 MOTION_ROLES = ("stage", "rotary_table")
 
@@ -125,22 +124,10 @@ class BenchRuntime:
         return "busy" if self.holder else "ready"
 
     async def _poll_motion(self) -> None:
-        next_temperature = self.clock.monotonic()
         while True:
             with contextlib.suppress(DeviceError):
                 await self.refresh_pose()
-            if self.clock.monotonic() >= next_temperature:
-                next_temperature = self.clock.monotonic() + TEMPERATURE_POLL_S
-                await self._refresh_temperatures()
             await self.clock.sleep(STAGE_POLL_S)
-
-    async def _refresh_temperatures(self) -> None:
-        """Binary inclinometers answer temperature only when asked (0x06); their readings carry the last answer."""
-        for role in ("reference_sensor", "measurement_sensor", "triaxial_sensor"):
-            driver = self.devices[role] if role in self.devices else None
-            if driver is not None and hasattr(driver, "temp_c") and driver.status.state == "connected":
-                with contextlib.suppress(DeviceError, asyncio.TimeoutError):
-                    await driver.read_temperature()
 
     async def refresh_pose(self) -> None:
         if "stage" in self.devices:

@@ -125,13 +125,8 @@ class BinaryInclinometer(_Driver):
         super().__init__(role, port, clock, timeout_s)
         self.address = address
         self.output_rate_hz = output_rate_hz
-        # The last temperature answered (0x06): angle frames carry none, so readings carry this one.
-        self.temp_c: float | None = None
         port.own(address)
         port.add_listener(self._on_message)
-
-    def _stamp(self, **fields: Any) -> Reading:
-        return super()._stamp(temp_c=self.temp_c, **fields)
 
     def _on_message(self, msg, _utc) -> None:
         if isinstance(msg, binary.BinaryAnswer) and msg.address == self.address:
@@ -140,8 +135,6 @@ class BinaryInclinometer(_Driver):
             elif msg.command == binary.READ_SINES | binary.ANSWER and msg.sines is not None:
                 sx, sy, sz = msg.sines
                 self._latest = self._stamp(sx=sx, sy=sy, sz=sz)
-            elif msg.command == binary.READ_TEMP | binary.ANSWER and msg.temp_c is not None:
-                self.temp_c = float(msg.temp_c)
 
     def _match(self, command: int):
         return lambda m: isinstance(m, binary.BinaryAnswer) and m.address == self.address and m.command == command
@@ -181,9 +174,8 @@ class BinaryInclinometer(_Driver):
         return reading
 
     async def read_temperature(self) -> float:
-        self.temp_c = float(_present((await self._command(binary.READ_TEMP, None, "read temperature")).temp_c,
-                                     "read temperature"))
-        return self.temp_c
+        return float(_present((await self._command(binary.READ_TEMP, None, "read temperature")).temp_c,
+                              "read temperature"))
 
     async def set_relative_zero(self) -> None:
         await self._status_command(binary.SET_ZERO, binary.ZERO_RELATIVE, "set relative zero")

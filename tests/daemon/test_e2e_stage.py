@@ -40,8 +40,6 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
         tt = t["table_tilt"]
         assert tt["coverage_probability"] == 0.95 and 1.96 <= tt["k"] < 2.6 and 1.96 <= tt["k_y"] < 2.6, tt
         assert tt["u_x_deg"] > 0 and tt["u_y_deg"] > 0
-        # the sensors' temperature (asked for by 0x06 every few bench seconds) comes with the tilt
-        assert t["temp_c"] is not None and 0 < t["temp_c"] < 60, t
         assert t["calibration"]["record_id"] == rec["id"]
     for target in [(0.0, 0.0), (1.0, 0.5), (-0.8, -1.2)]:
         r = client.post("/stage/level", headers=h, json={"x_deg": target[0], "y_deg": target[1],
