@@ -16,7 +16,7 @@ ENDED = frozenset({"succeeded", "failed", "cancelled"})
 SAFETY_REREAD_S = 5.0  # real seconds between re-reads when no event came
 
 
-def job_points(store: DaemonStore, job: CalibrationJob, have: set[int] | None = None) -> list[dict]:
+def job_points(store: DaemonStore, job: CalibrationJob, have: frozenset[int] | set[int] | None = None) -> list[dict]:
     """The job's points measured so far (every instrument of the job has its mean), by index, leaving
     out those in `have`: {"index", "x_deg", "y_deg" (commanded stage angles; y null on a one-axis
     procedure), and per role {"x_deg", "y_deg", "z_deg", "x_std_deg", "y_std_deg", "z_std_deg",
@@ -43,9 +43,9 @@ async def job_messages(store: DaemonStore, events: JobEvents, job_id: int,
     """The messages of one job's stream without seq, ending with its `end` (UnknownEntity if no such job)."""
     event = events.subscribe(job_id)
     try:
-        job = store.get_job(job_id)
+        job = await asyncio.to_thread(store.get_job, job_id)  # database reads off the event loop
         last = body(job)
-        points = job_points(store, job)
+        points = await asyncio.to_thread(job_points, store, job)
         have = {p["index"] for p in points}
         yield {"type": "snapshot", "job": last, "points": points}
         while job.state not in ENDED:
@@ -55,8 +55,8 @@ async def job_messages(store: DaemonStore, events: JobEvents, job_id: int,
             except TimeoutError:
                 pass
             event.clear()
-            job = store.get_job(job_id)
-            for p in job_points(store, job, have):
+            job = await asyncio.to_thread(store.get_job, job_id)
+            for p in await asyncio.to_thread(job_points, store, job, frozenset(have)):
                 have.add(p["index"])
                 yield {"type": "point", "point": p}
             now = body(job)

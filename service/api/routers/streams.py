@@ -166,7 +166,7 @@ async def job_stream(ws: WebSocket, job_id: str) -> None:
         return to_jsonable_python(job_json(as_request, job))  # as the HTTP route serialises it
 
     try:
-        store.get_job(int(job_id))
+        await asyncio.to_thread(store.get_job, int(job_id))
     except UnknownEntity:
         return await _refuse(ws, f"id: no calibration job {job_id}")
     await ws.accept()
