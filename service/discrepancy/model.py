@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from service.calibration.differences import central_jacobian
 from service.errors import DegenerateDataError, FitError
 
 
@@ -187,7 +188,7 @@ class Family:
         if not np.all(np.isfinite(sol.x)):
             raise FitError(f"fit of {self.baseline} + {', '.join(effects)} diverged")
         theta = sol.x * scales
-        J = np.asarray(sol.jac) / scales  # d(weighted residual)/d(theta)
+        J = self.jacobian(effects, blocks, theta)  # d(weighted residual)/d(theta), by the shared rule
         pred = self.predict(effects, theta, blocks)
         resid = self.observed - pred
         rss_w = float(np.sum((resid * self.weights) ** 2))
@@ -197,17 +198,19 @@ class Family:
         return Fit(tuple(effects), blocks, theta, cov, resid, pred, rss_w, self.n_obs, J)
 
     def jacobian(self, effects: tuple[str, ...], blocks: list[Block], theta: np.ndarray,
-                 columns: range | None = None, base: np.ndarray | None = None) -> np.ndarray:
-        """Forward-difference Jacobian of the weighted residual, d r / d theta (selected columns)."""
+                 columns: range | None = None) -> np.ndarray:
+        """Jacobian of the weighted residual, d r / d theta (selected columns), by the shared rule."""
         scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
-        r0 = self.weighted_residual(effects, theta, blocks) if base is None else base
-        cols = []
-        for j in (range(theta.size) if columns is None else columns):
-            h = 1e-4 * scales[j]
-            tp = theta.copy()
-            tp[j] += h
-            cols.append((self.weighted_residual(effects, tp, blocks) - r0) / h)
-        return np.column_stack(cols) if cols else np.zeros((r0.size, 0))
+        cols = np.arange(theta.size) if columns is None else np.asarray(list(columns), dtype=int)
+        if cols.size == 0:
+            return np.zeros((self.n_obs, 0))
+
+        def fun(sub: np.ndarray) -> np.ndarray:
+            t = theta.copy()
+            t[cols] = sub
+            return self.weighted_residual(effects, t, blocks)
+
+        return central_jacobian(fun, theta[cols], scales[cols])
 
     def extended(self, current: Fit, effect: str, full: bool = False):
         """Effects, blocks and start values of the current model plus `effect` (all its parameters if `full`)."""
@@ -233,10 +236,10 @@ class Family:
                       and current.jacobian_w.shape == (r0.size, k0))
         if same_start:
             # the current model's columns are unchanged: reuse them
-            J_new = self.jacobian(effects, blocks, theta, range(k0, theta.size), base=r0)
+            J_new = self.jacobian(effects, blocks, theta, range(k0, theta.size))
             J = np.column_stack([current.jacobian_w, J_new])
         else:
-            J = self.jacobian(effects, blocks, theta, base=r0)
+            J = self.jacobian(effects, blocks, theta)
         delta, *_ = np.linalg.lstsq(J, -r0, rcond=1e-12)
         r1 = r0 + J @ delta
         if r1 @ r1 > r0 @ r0:
