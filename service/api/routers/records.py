@@ -15,6 +15,7 @@ from service.api.deps import find_bench
 from service.api.problems import ProblemError
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import get_method
+from service.calibration.residual_map import stage_residual_map
 from service.columns import ROTATION_DATASET, SCALE_DATASET, STAGE_DATASET, TURNTABLE_DATASET
 from service.datasets import format_value
 from service.storage.errors import UnknownEntity
@@ -106,22 +107,9 @@ def residuals(record_id: int, request: Request, _: Reader) -> dict:
         raise ProblemError(409, "No points", f"record {record_id} was not measured by a job of this daemon")
     n_fit = int((r.raw_data or {}).get("fit_points", 10**9))
     cols = request.app.state.jobs.fit_columns(r.job_id, None, 10**9)
-    out = get_method("stage", r.method).correct(CalibrationModel.from_json_dict(r.model, f"record {r.id}"), cols)
-    ref_x, ref_y = cols["ref_x_deg"], cols["ref_y_deg"]
-    before = np.hypot(cols["meas_x_deg"] - ref_x, cols["meas_y_deg"] - ref_y)
-    after = np.hypot(out["tilt_x_deg"] - ref_x, out["tilt_y_deg"] - ref_y)
-    pts: list[dict] = []
-    for i in range(cols["point"].size):
-        p = {"point": int(cols["point"][i]), "role": "fit" if cols["point"][i] < n_fit else "validation",
-             "stage_x_deg": float(cols["stage_x_deg"][i]), "stage_y_deg": float(cols["stage_y_deg"][i]),
-             "ref_x_deg": float(cols["ref_x_deg"][i]), "ref_y_deg": float(cols["ref_y_deg"][i])}
-        for axis in ("x", "y"):
-            p[f"before_{axis}_deg"] = float(cols[f"meas_{axis}_deg"][i] - cols[f"ref_{axis}_deg"][i])
-            p[f"after_{axis}_deg"] = float(out[f"tilt_{axis}_deg"][i] - cols[f"ref_{axis}_deg"][i])
-        pts.append(p)
-    rms = lambda e: float(np.sqrt(np.mean(e**2))) if e.size else None  # noqa: E731
-    return {"record_id": r.id, "method": r.method, "n_fit": min(n_fit, len(pts)), "rms_before_deg": rms(before),
-            "rms_after_deg": rms(after), "points": pts}
+    model = CalibrationModel.from_json_dict(r.model, f"record {r.id}")
+    return {"record_id": r.id, "method": r.method,
+            **stage_residual_map(get_method("stage", r.method), model, cols, n_fit)}
 
 
 @router.post("/{record_id}/activate")
