@@ -1,6 +1,7 @@
-"""The corrected table tilt of a measurement-sensor reading through the active calibration record.
+"""What `GET /tilt` and the live reading stream serve of a bench's latest readings: the corrected
+table tilt through the active calibration record, when a reading is stale, and the temperature.
 
-One function, used by `GET /tilt` and the live reading stream alike, so both serve the same numbers.
+One place for each, used by both, so they serve the same numbers by the same rules.
 """
 
 from __future__ import annotations
@@ -12,6 +13,21 @@ import numpy as np
 from service.calibration.uncertainty import COVERAGE
 from service.columns import K_OUTPUTS
 from service.instruments.base import Reading
+
+STALE_INTERVALS = 3  # a reading older than this many output intervals (plus STALE_SLACK_S) is stale
+STALE_SLACK_S = 0.25  # real seconds: a loaded machine's delay in handing a reading on
+
+
+def stale_after_s(bench: Any, role: str) -> float:
+    """Real seconds after which the role's latest reading is stale (the sensor counts as silent)."""
+    return STALE_INTERVALS * bench.clock.real_seconds(bench.output_interval_s(role)) + STALE_SLACK_S
+
+
+def sensor_temp_c(meas: Reading | None, ref: Reading | None) -> float | None:
+    """The measurement sensor's temperature, else the reference sensor's, else none."""
+    if meas is not None and meas.temp_c is not None:
+        return meas.temp_c
+    return ref.temp_c if ref is not None else None
 
 
 def corrected_tilt(active: Any, meas: Reading) -> dict:

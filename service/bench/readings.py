@@ -78,10 +78,12 @@ async def settle(bench: BenchRuntime, roles: tuple[str, ...], *, tolerance_deg: 
     """Wait until every role's mean over the last `window_s` differs from its mean over the window
     before by at most `tolerance_deg` on every channel (a drift criterion: reading noise averages out).
 
-    Returns the bench time at which they settled; raises TimeoutError naming the roles that did not,
-    DeviceNotAnswering (role and port) as soon as one of them is not connected.
+    Only readings made after the call count (`bench.sync`). Returns the bench time at which they
+    settled; raises TimeoutError naming the roles that did not, DeviceNotAnswering (role and port)
+    as soon as one of them is not connected.
     """
-    start = bench.clock.monotonic()
+    # only readings made after the call count: a lagging reader may still hold some from the move
+    start = await bench.sync(roles)
     timeout_s = max(timeout_s, bench.clock.bench_seconds(5.0))  # a sped-up simulation may lag under load
     history: dict[str, list[Reading]] = {r: [] for r in roles}
     while True:

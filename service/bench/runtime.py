@@ -22,6 +22,7 @@ from service.instruments.transport import DeviceError
 log = logging.getLogger("tiltlab.bench")
 
 STAGE_POLL_S = 0.1  # bench seconds between pose queries
+TEMPERATURE_POLL_S = 10.0  # bench seconds between temperature queries of sensors whose frames carry none
 SENSOR_ROLES = ("reference_sensor", "measurement_sensor", "triaxial_sensor", "turntable_sensor", "adc_sensor")
 MOTION_ROLES = ("stage", "rotary_table")
 
@@ -61,6 +62,7 @@ class BenchRuntime:
         self.holder: str | None = None  # "job 12" or "level"
         self.stop_requested = asyncio.Event()
         self._stage_task: asyncio.Task | None = None
+        self._temperature_task: asyncio.Task | None = None
         self._motion_lock = asyncio.Lock()
 
     # ------------------------------------------------------------ life
@@ -70,13 +72,16 @@ class BenchRuntime:
         for role in self.devices:
             with contextlib.suppress(DeviceError, asyncio.TimeoutError):
                 self.identities[role] = await asyncio.wait_for(self.devices[role].identify(), 5.0)
-        self._stage_task = asyncio.get_running_loop().create_task(self._poll_motion())
+        loop = asyncio.get_running_loop()
+        self._stage_task = loop.create_task(self._poll_motion())
+        self._temperature_task = loop.create_task(self._poll_temperatures())
 
     async def close(self) -> None:
-        if self._stage_task is not None:
-            self._stage_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._stage_task
+        for task in (self._stage_task, self._temperature_task):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
         await self.devices.close()
         if self.sim is not None:
             self.sim.close()
@@ -129,6 +134,20 @@ class BenchRuntime:
                 await self.refresh_pose()
             await self.clock.sleep(STAGE_POLL_S)
 
+    async def _poll_temperatures(self) -> None:
+        """Binary inclinometers send angles only; their temperature (0x06) is asked now and then, so
+        GET /tilt and the streams carry one between jobs too (a job asks at every point)."""
+        roles = [r for r in ("reference_sensor", "measurement_sensor", "triaxial_sensor")
+                 if r in self.devices and hasattr(self.devices[r], "answers_temperature")]
+        while roles:
+            for role in roles:
+                driver = self.devices[role]
+                if driver.status.state == "connected" and driver.answers_temperature:
+                    with contextlib.suppress(DeviceError):
+                        await driver.read_temperature()
+            # bench time (a sped-up bench is asked more often), but never more than once a real second
+            await asyncio.sleep(max(self.clock.real_seconds(TEMPERATURE_POLL_S), 1.0))
+
     async def refresh_pose(self) -> None:
         if "stage" in self.devices:
             stage = self.devices["stage"]
@@ -151,6 +170,14 @@ class BenchRuntime:
             yield
         finally:
             self.holder = None
+
+    async def sync(self, roles: tuple[str, ...]) -> float:
+        """A mark after which every reading of `roles` was made after this call (bench seconds)."""
+        marks = []
+        for role in roles:
+            self.require(role)
+            marks.append(await self.devices[role].sync())
+        return max(marks, default=self.clock.monotonic())
 
     def require(self, role: str) -> None:
         if role not in self.devices:

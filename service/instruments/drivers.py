@@ -26,6 +26,8 @@ def _present(value: Any, what: str) -> Any:
     return value
 
 
+IDLE_POLL_MISSES = 3  # unanswered state queries in a row before waiting for a move gives up
+SYNC_ASKS = 3  # temperature requests a sync mark makes before it takes the firmware to lack 0x06
 RECENT_READINGS = 4096  # per driver: over 8 s of a sped-up bench's continuous output
 
 
@@ -46,6 +48,7 @@ class _Driver:
         self.recent: collections.deque[Reading] = collections.deque(maxlen=RECENT_READINGS)
         self._last: Reading | None = None
         self._poll_task: asyncio.Task | None = None
+        self._poll_read = None  # the read a polling driver repeats
 
     @property
     def _latest(self) -> Reading | None:
@@ -75,6 +78,20 @@ class _Driver:
 
     def latest(self) -> Reading | None:
         return self._latest
+
+    async def sync(self) -> float:
+        """A mark in the reading stream (bench seconds): every reading stamped after it was produced
+        after this call. Readings are stamped when they are parsed, so a reader that lags (a loaded
+        machine, a sped-up bench) hands out, after a move, readings the instrument made during it;
+        a caller that needs readings of the present pose counts only those after the mark.
+
+        A polling driver reads once more: requests on a port go one at a time, so every reading
+        stamped after this one was asked for after it. A driver that reads only when asked: the
+        present time (nothing older can arrive later).
+        """
+        if self._poll_read is not None and self._poll_task is not None:
+            return float((await self._poll_read()).bench_s)
+        return self.clock.monotonic()
 
     def _stamp(self, **fields: Any) -> Reading:
         return Reading(role=self.role, bench_s=self.clock.monotonic(), time_utc=dt.datetime.now(dt.UTC), **fields)
@@ -107,6 +124,8 @@ class _Driver:
         self.port.stop()
 
     def _start_polling(self, rate_hz: float, read) -> None:
+        self._poll_read = read
+
         async def poll() -> None:
             while self._poll_task is not None:
                 with contextlib.suppress(DeviceError):
@@ -125,16 +144,27 @@ class BinaryInclinometer(_Driver):
         super().__init__(role, port, clock, timeout_s)
         self.address = address
         self.output_rate_hz = output_rate_hz
+        # The last temperature answered (0x06): angle frames carry none, so readings carry this one.
+        self.temp_c: float | None = None
+        self.temp_answered_s: float | None = None  # bench time its answer was parsed: a mark in the stream
+        self.answers_temperature = True  # until an instrument of the family is found that does not
         port.own(address)
         port.add_listener(self._on_message)
 
+    def _stamp(self, **fields: Any) -> Reading:
+        return super()._stamp(temp_c=self.temp_c, **fields)
+
     def _on_message(self, msg, _utc) -> None:
+        # the reader thread, in the order the bytes came: stamps here order answers and automatic output
         if isinstance(msg, binary.BinaryAnswer) and msg.address == self.address:
             if msg.command == binary.READ_XY | binary.ANSWER:
                 self._latest = self._stamp(x_deg=msg.x_deg, y_deg=msg.y_deg)
             elif msg.command == binary.READ_SINES | binary.ANSWER and msg.sines is not None:
                 sx, sy, sz = msg.sines
                 self._latest = self._stamp(sx=sx, sy=sy, sz=sz)
+            elif msg.command == binary.READ_TEMP | binary.ANSWER and msg.temp_c is not None:
+                self.temp_c = float(msg.temp_c)
+                self.temp_answered_s = self.clock.monotonic()
 
     def _match(self, command: int):
         return lambda m: isinstance(m, binary.BinaryAnswer) and m.address == self.address and m.command == command
@@ -169,13 +199,41 @@ class BinaryInclinometer(_Driver):
 
     async def read_tilt(self) -> Reading:
         ans = await self._command(binary.READ_XY, None, "read tilt")
-        reading = self._stamp(x_deg=ans.x_deg, y_deg=ans.y_deg)
-        self._latest = reading
-        return reading
+        # the reader's listener has kept this answer already (an 0x84 is an 0x84): not a second time
+        return self._stamp(x_deg=ans.x_deg, y_deg=ans.y_deg)
 
     async def read_temperature(self) -> float:
-        return float(_present((await self._command(binary.READ_TEMP, None, "read temperature")).temp_c,
-                              "read temperature"))
+        self.temp_c = float(_present((await self._command(binary.READ_TEMP, None, "read temperature")).temp_c,
+                                     "read temperature"))
+        return self.temp_c
+
+    async def sync(self) -> float:
+        """Ask the temperature: the instrument answers between its automatic frames, so the answer
+        marks the stream (and the readings after it carry a temperature of the present).
+
+        An answer lost on the line (a damaged frame) is asked again; an instrument that lets
+        SYNC_ASKS requests in a row go unanswered while its angles keep coming is taken for a
+        firmware without 0x06, and is not asked again. One that sends nothing at all through
+        those requests is not answering (a single silent request may be a loaded machine's reader
+        held up, not the instrument).
+        """
+        if self.answers_temperature:
+            angles_came = False
+            for _ in range(SYNC_ASKS):
+                asked_s = self.clock.monotonic()
+                try:
+                    await self.read_temperature()
+                except DeviceTimeout:
+                    last = self._latest
+                    angles_came = angles_came or (last is not None and last.bench_s > asked_s)
+                    continue
+                assert self.temp_answered_s is not None  # set by the reader before the answer is handed over
+                return self.temp_answered_s
+            if not angles_came:
+                raise DeviceTimeout(f"{self.role}: neither a temperature answer nor an angle frame on "
+                                    f"{self.port.where} through {SYNC_ASKS} requests of {self.timeout_s:g} s")
+            self.answers_temperature = False
+        return self.clock.monotonic()
 
     async def set_relative_zero(self) -> None:
         await self._status_command(binary.SET_ZERO, binary.ZERO_RELATIVE, "set relative zero")
@@ -196,8 +254,7 @@ class TriaxialModule(BinaryInclinometer):
     async def read_sines(self) -> Reading:
         ans = await self._command(binary.READ_SINES, None, "read sines")
         sx, sy, sz = _present(ans.sines, "read sines")
-        self._latest = self._stamp(sx=sx, sy=sy, sz=sz)
-        return self._latest
+        return self._stamp(sx=sx, sy=sy, sz=sz)  # kept by the reader's listener already
 
 
 class Rs485Inclinometer(_Driver):
@@ -362,9 +419,19 @@ class ControllerAxis(_Driver):
         return controller.STATE_NAMES.get(code, "error")  # type: ignore[return-value]
 
     async def wait_until_idle(self, timeout_s: float, poll_s: float = 0.05) -> None:
+        """Poll the state until ready. A state query left unanswered (an answer lost on the line) is
+        polled again; IDLE_POLL_MISSES of them in a row raise."""
         deadline = self.clock.monotonic() + timeout_s
+        misses = 0
         while True:
-            s = await self.state()
+            try:
+                s = await self.state()
+            except DeviceTimeout:
+                misses += 1
+                if misses >= IDLE_POLL_MISSES or self.clock.monotonic() > deadline:
+                    raise
+                continue
+            misses = 0
             if s == "ready":
                 return
             if s in ("hard_limit", "error"):

@@ -10,7 +10,8 @@ thread), and a family (A) instrument in continuous output delivers ~900 frames a
 that would otherwise wake the event loop for every few bytes. A thread doing blocking
 reads with a short timeout works for every URL handler alike, parses off the loop, and
 hands over only complete messages (`call_soon_threadsafe`). The event loop never blocks
-on a port: writes go through a worker thread and answers arrive as futures.
+on a port: writes go through the port's own writer thread (never the shared worker pool, where
+they would queue behind database work) and answers arrive as futures.
 
 The reader also owns the connection: a port that fails (cable pulled, adapter gone, pty
 closed) is closed, every waiting request fails at once, and the port is reopened with
@@ -21,6 +22,7 @@ been unreachable for `fail_after_s`).
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import datetime as dt
 import threading
 import time
@@ -93,6 +95,7 @@ class SerialPort:
         self._stop = threading.Event()
         self._connected = threading.Event()
         self._thread: threading.Thread | None = None
+        self._writer: concurrent.futures.ThreadPoolExecutor | None = None
         self._request_lock: asyncio.Lock | None = None
         self._users = 0
         self.bytes_read = 0
@@ -121,6 +124,9 @@ class SerialPort:
         self._thread.join(timeout=5)
         self._thread = None
         self._close()
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            writer.shutdown(wait=False)
 
     def wait_connected(self, timeout_s: float) -> bool:
         return self._connected.wait(timeout_s)
@@ -230,10 +236,17 @@ class SerialPort:
         except Exception as exc:  # noqa: BLE001
             raise DeviceUnavailable(f"port {self.where}: write failed: {exc}") from None
 
+    async def _write_off_loop(self, data: bytes) -> None:
+        """A write in the port's own thread: a stuck adapter blocks it, not the loop, and a write
+        never waits for a worker of the shared pool (busy with database work under load)."""
+        if self._writer is None:
+            self._writer = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"write {self.where}")
+        await asyncio.get_running_loop().run_in_executor(self._writer, self._write, data)
+
     async def send(self, data: bytes) -> None:
         """A command that is not answered (family D set commands)."""
         async with self._lock_for_requests():
-            await asyncio.to_thread(self._write, data)
+            await self._write_off_loop(data)
 
     async def request(self, data: bytes, match: Callable[[Any], bool], timeout_s: float, what: str) -> Any:
         """Write a request and wait for the first message `match` accepts; one request in flight per port."""
@@ -244,9 +257,13 @@ class SerialPort:
                 self._pending.append(pending)
             try:
                 async with asyncio.timeout(timeout_s):  # (wait_for may swallow a cancellation before 3.12)
-                    await asyncio.to_thread(self._write, data)  # a stuck adapter blocks a worker, not the loop
+                    await self._write_off_loop(data)
                     return await pending.future
             except TimeoutError:
+                if pending.future.done() and not pending.future.cancelled():
+                    # the answer came in time, but the loop ran the timer before this task saw it
+                    # (a loop held up past the deadline runs both in one pass)
+                    return pending.future.result()
                 raise DeviceTimeout(f"{what}: no answer on {self.where} within {timeout_s:g} s") from None
             finally:
                 with self._lock:

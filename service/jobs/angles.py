@@ -18,6 +18,7 @@ from service.bench.readings import fresh_readings, robust_mean, settle
 from service.bench.runtime import BenchRuntime
 from service.calibration.uncertainty import COVERAGE
 from service.errors import InputError
+from service.jobs.points import store_point
 from service.storage.samples import Sample
 
 APPROACH_SCALE_DEG = 0.1
@@ -90,13 +91,8 @@ async def measure_angle(store, job_id: int, bench: BenchRuntime, proc: AngleProc
                          "t_start_s": to_epoch(a.t_start_s), "t_end_s": to_epoch(a.t_end_s),
                          "ch_x_mean": m[0], "ch_y_mean": m[1], "ch_z_mean": m[2],
                          "ch_x_std": sd[0], "ch_y_std": sd[1], "ch_z_std": sd[2], "temp_c_mean": a.temp_c}
-    from service.storage.samples import write_samples
-
-    await asyncio.to_thread(write_samples, store.engine, rows)
-    have = {p.device_id for p in store.settled_points(job_id) if p.point == index}
-    for role in proc.read_roles:
-        if bench.device_ids[role] not in have:
-            store.add_settled_points(job_id, bench.device_ids[role], [settled[role]], actor="daemon")
+    await asyncio.to_thread(store_point, store, job_id, index, rows,
+                            {bench.device_ids[role]: settled[role] for role in proc.read_roles})
 
 
 def _channels(r) -> tuple[float, float, float | None]:  # type: ignore[no-untyped-def]

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from service.bench.corrected import corrected_tilt
+from service.bench.corrected import corrected_tilt, sensor_temp_c, stale_after_s
 from service.bench.runtime import SENSOR_ROLES, BenchRuntime
 from service.instruments.base import Reading
 
@@ -30,7 +30,6 @@ log = logging.getLogger("tiltlab.streams")
 
 HISTORY_MAX_S = 3600.0  # the longest history a snapshot may ask for (bench seconds)
 HISTORY_DEFAULT_S = 60.0
-STALE_INTERVALS = 3  # a sensor silent this many output intervals (plus 0.25 s) counts as not answering
 MIN_WAKE_S = 0.004  # the producer wakes at most 250 times a real second (a sped-up simulation)
 CLOSE_SLOW = 1013  # try again later: the client could not take the messages
 CLOSE_GOING_AWAY = 1001
@@ -258,7 +257,7 @@ class ReadingProducer:
     def _build(self, now_bench_s: float) -> tuple[dict, list[float]]:
         bench = self.bench
         clock = bench.clock
-        limit = STALE_INTERVALS * self.interval_s + clock.bench_seconds(0.25)  # the rule of GET /tilt
+        limit = clock.bench_seconds(stale_after_s(bench, self.role)) if self.role else math.inf  # GET /tilt's rule
 
         def fresh(role: str) -> Reading | None:
             r = bench.latest(role)
@@ -272,7 +271,7 @@ class ReadingProducer:
             bench.kind == "stage" else None
         pose = bench.pose
         stage = {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None
-        temp = meas.temp_c if meas is not None and meas.temp_c is not None else ref.temp_c if ref is not None else None
+        temp = sensor_temp_c(meas, ref)
         when = meas.time_utc if meas is not None else clock.utc()
         t_bench = meas.bench_s if meas is not None else now_bench_s
         pair = lambda r: None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}  # noqa: E731

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -11,6 +12,21 @@ from service import cli
 from tests.daemon.conftest import wait_job
 
 GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
+
+
+def sim_temp(client) -> float:
+    return client.app.state.bench.sim.world.temp_c()
+
+
+def fresh_tilt(client, h, attempts: int = 40) -> dict:
+    """GET /tilt until it is not stale: a test client sharing its process with a sped-up bench may
+    see the reader a few tenths of a second behind on a loaded machine, and /tilt rightly says so."""
+    for _ in range(attempts):
+        t = client.get("/tilt", headers=h).json()
+        if not t["stale"]:
+            return t
+        time.sleep(0.05)
+    raise AssertionError(f"every GET /tilt was stale: {t}")
 
 
 @pytest.mark.parametrize("method", ["kinematic", "homography"])
@@ -25,14 +41,14 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
     assert job["progress"] == {"points_done": 12, "points_total": 12, "phase": "validating"}
     assert job["validation"]["n_points"] == 3 and job["validation"]["rms_deg"] < 0.01
     rec = job["record"]
+    conditions = client.get(f"/records/{rec['id']}", headers=h).json()
+    assert conditions["temp_c"] == pytest.approx(sim_temp(client), abs=0.5), conditions
     assert client.post(f"/records/{rec['id']}/activate", headers=h).status_code == 200
     sim = client.app.state.bench.sim
     for pose in [(0.0, 0.0), (1.5, -1.0), (-1.2, 1.7)]:
         assert client.post("/stage/move", headers=h, json={"x_deg": pose[0], "y_deg": pose[1]}).status_code == 200
-        import time
-
         time.sleep(0.3)
-        t = client.get("/tilt", headers=h).json()
+        t = fresh_tilt(client, h)
         truth = sim.world.true_tilt_deg()
         assert t["table_tilt"] is not None, t
         assert abs(t["table_tilt"]["x_deg"] - truth[0]) < 0.01 and abs(t["table_tilt"]["y_deg"] - truth[1]) < 0.01, (t, truth)
@@ -40,6 +56,8 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
         tt = t["table_tilt"]
         assert tt["coverage_probability"] == 0.95 and 1.96 <= tt["k"] < 2.6 and 1.96 <= tt["k_y"] < 2.6, tt
         assert tt["u_x_deg"] > 0 and tt["u_y_deg"] > 0
+        # the sensors' temperature (asked for by 0x06 at every point and now and then) comes with the tilt
+        assert t["temp_c"] == pytest.approx(sim.world.temp_c(), abs=0.5), t
         assert t["calibration"]["record_id"] == rec["id"]
     for target in [(0.0, 0.0), (1.0, 0.5), (-0.8, -1.2)]:
         r = client.post("/stage/level", headers=h, json={"x_deg": target[0], "y_deg": target[1],

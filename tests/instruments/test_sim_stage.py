@@ -193,3 +193,17 @@ def test_an_axis_that_is_not_homed_refuses_moves_until_homed(stage_sim):
         assert await x.position_deg() == pytest.approx(1.0, abs=0.001)
 
     run_with_devices(stage_sim, body)
+
+
+def test_a_lost_state_answer_during_a_move_is_polled_again(stage_sim):
+    """One state answer lost on the line (sent from a wrong axis, so the driver may not take it)
+    costs one more poll, not the move; the loss is counted."""
+    async def body(dev):
+        axis = dev.stage.x
+        await axis.move_to_deg(2.0)
+        stage_sim.faults("stage").wrong_address(1)
+        await axis.wait_until_idle(60)
+        assert axis.timeouts == 1 and axis.status.counters.wrong_address >= 1
+        assert await axis.position_deg() == pytest.approx(2.0, abs=axis.pulse_deg)
+
+    run_with_devices(stage_sim, body)

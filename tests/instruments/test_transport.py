@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import socket
 import threading
+import time
 from types import SimpleNamespace
 
 import pytest
@@ -184,3 +185,54 @@ def test_an_instrument_behind_an_rfc2217_server(stage_sim):
         server.join(5)
         server.serial.close()
         server.server.close()
+
+
+def _with_tcp_table(timeout_s: float, body) -> None:  # type: ignore[no-untyped-def]
+    """Run `body(table)` against a rotary table behind a TCP serial server."""
+    clock = Clock(1.0)
+    server = _TcpController(clock)
+    server.start()
+
+    async def main():
+        port = SerialPort(f"socket://127.0.0.1:{server.port}", controller.parse_answers, baud=57600)
+        table = ControllerAxis("rotary_table", port, clock, timeout_s, axis=3, pulse_deg=0.001)
+        await table.start()
+        try:
+            await body(table)
+        finally:
+            await table.close()
+
+    try:
+        asyncio.run(main())
+    finally:
+        server.stop.set()
+        server.server.close()
+
+
+def test_requests_do_not_wait_for_the_shared_worker_pool():
+    """Every worker of the loop's default pool held (as database writes waiting for a lock would
+    hold them): a request still goes out and is answered, because writes use the port's own thread."""
+    async def body(table):
+        loop = asyncio.get_running_loop()
+        release = threading.Event()
+        held = [loop.run_in_executor(None, release.wait, 30) for _ in range(64)]
+        try:
+            assert (await table.identify()).model == "RT-360SIM"
+        finally:
+            release.set()
+            await asyncio.gather(*held)
+
+    _with_tcp_table(1.0, body)
+
+
+def test_an_answer_in_time_is_kept_when_the_event_loop_runs_late():
+    """The loop held up past a request's deadline (a blocking call elsewhere): the answer that came
+    meanwhile is returned, not a timeout."""
+    async def body(table):
+        asked = asyncio.get_running_loop().create_task(table.identify())
+        await asyncio.sleep(0)  # the request runs up to its write, in the port's thread
+        time.sleep(1.0)  # the loop blocked for longer than the 0.3 s timeout; the reader thread gets the answer
+        assert (await asked).model == "RT-360SIM"
+        assert table.timeouts == 0
+
+    _with_tcp_table(0.3, body)

@@ -8,11 +8,10 @@ from fastapi import APIRouter, Request
 
 from service.api.auth import Reader
 from service.api.deps import BenchQuery
-from service.bench.corrected import corrected_tilt
+from service.bench.corrected import corrected_tilt, sensor_temp_c, stale_after_s
 
 router = APIRouter(tags=["tilt"])
 
-STALE_INTERVALS = 3  # a reading older than this many output intervals (plus 0.25 s) is stale
 
 
 def _pair(r) -> dict | None:  # type: ignore[no-untyped-def]
@@ -40,7 +39,7 @@ async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
         notes.append(f"no reading from measurement_sensor on {st.port} ({st.state})")
     else:
         age_s = max(0.0, (now - meas.time_utc).total_seconds())
-        limit = STALE_INTERVALS * bench.clock.real_seconds(bench.output_interval_s("measurement_sensor")) + 0.25
+        limit = stale_after_s(bench, "measurement_sensor")
         stale = age_s > limit
         if stale:
             st = bench.devices["measurement_sensor"].status
@@ -54,7 +53,7 @@ async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
     return {"bench": bench.name, "time_utc": meas.time_utc if meas else now, "age_s": age_s, "stale": stale,
             "table_tilt": table,
             "raw": {"measurement_sensor": _pair(meas), "reference_sensor": _pair(ref)},
-            "temp_c": (meas.temp_c if meas and meas.temp_c is not None else ref.temp_c if ref else None),
+            "temp_c": sensor_temp_c(meas, ref),
             "stage": {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None,
             "calibration": None if active is None else {"record_id": active.record_id, "version": active.version,
                                                         "method": active.method_name},
