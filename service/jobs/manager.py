@@ -27,11 +27,12 @@ from service.errors import InputError
 from service.instruments.transport import DeviceError
 from service.jobs import angles
 from service.jobs.events import JobEvents
+from service.jobs.points import store_point
 from service.jobs.requests import KIND_OF_PROCEDURE, MIN_POINTS, CalibrationRequest
 from service.storage.daemon_jobs import DaemonStore
 from service.storage.errors import UnknownEntity
 from service.storage.lims import StandardNotUsable
-from service.storage.samples import Sample, write_samples
+from service.storage.samples import Sample
 from service.storage.tokens import Principal
 
 log = logging.getLogger("tiltlab.jobs")
@@ -198,13 +199,11 @@ class JobManager:
                  "certificate_sha256": st.certificate_sha256}
                 for st in map(self.store.standard, req.get("reference_standards") or [])]
 
-    def submit(self, req: CalibrationRequest, bench: BenchRuntime, principal: Principal,
-               idempotency_key: str | None):  # type: ignore[no-untyped-def]
-        points, val = self.check(req, bench)
+    async def submit(self, req: CalibrationRequest, bench: BenchRuntime, principal: Principal,
+                     idempotency_key: str | None):  # type: ignore[no-untyped-def]
+        points, val = await asyncio.to_thread(self.check, req, bench)
         body = req.model_dump(mode="json")
         body["bench"] = bench.name
-        if idempotency_key is None and bench.holder is not None:
-            raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
         proc = angles.PROCEDURES.get(req.procedure)
         role = proc.device_role if proc else "measurement_sensor"
         roles = proc.read_roles if proc else SENSORS
@@ -218,17 +217,26 @@ class JobManager:
                       "device_ids": {r: bench.device_ids.get(r) for r in roles}}
         if bench.bench_id is None:
             raise BenchBusy(f"bench {bench.name!r} is not registered in the database yet")
-        if idempotency_key is not None:
-            job, created = self.store.create_calibration_job(
-                bench_id=bench.bench_id, device_id=dev, kind=kind, method=req.method, parameters=parameters,
-                actor=principal.name, points_total=len(points) + len(val), idempotency_key=idempotency_key,
-                request=body, order_id=req.order_id) if bench.holder is None else self._replay_or_busy(bench, idempotency_key, body)
-        else:
-            job, created = self.store.create_calibration_job(
-                bench_id=bench.bench_id, device_id=dev, kind=kind, method=req.method, parameters=parameters,
-                actor=principal.name, points_total=len(points) + len(val), order_id=req.order_id)
+        if bench.holder is not None:
+            if idempotency_key is None:
+                raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
+            return await asyncio.to_thread(self._replay_or_busy, bench, idempotency_key, body)
+        # The bench is taken before the database is: a second request while the job is being
+        # written finds it busy rather than making a second job.
+        bench.holder = "a job being created"
+        try:
+            job, created = await asyncio.to_thread(
+                self.store.create_calibration_job, bench_id=bench.bench_id, device_id=dev, kind=kind,
+                method=req.method, parameters=parameters, actor=principal.name,
+                points_total=len(points) + len(val), order_id=req.order_id, idempotency_key=idempotency_key,
+                request=body if idempotency_key is not None else None)
+        except BaseException:
+            bench.holder = None
+            raise
         if created:
             self._start(job.id, bench)
+        else:
+            bench.holder = None  # the key's earlier job, already run or running elsewhere
         return job, created
 
     def _replay_or_busy(self, bench: BenchRuntime, key: str, body: dict):  # type: ignore[no-untyped-def]
@@ -257,48 +265,61 @@ class JobManager:
         task = asyncio.get_running_loop().create_task(self._run(job_id, bench, resume))
         self.tasks[job_id] = task
 
-    def resume(self, job_id: int, principal: Principal):  # type: ignore[no-untyped-def]
-        job = self.store.get_job(job_id)
+    async def resume(self, job_id: int, principal: Principal):  # type: ignore[no-untyped-def]
+        job = await asyncio.to_thread(self.store.get_job, job_id)
         bench = next((b for b in self.benches.values() if b.bench_id == job.bench_id), None)
         if bench is None:
             raise RequestProblem("id", f"job {job_id} ran on a bench this daemon does not run", status=409)
         if bench.holder is not None:
             raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
-        job = self.store.resume_job(job_id, actor=principal.name)
+        bench.holder = f"job {job_id} (resuming)"
+        try:
+            job = await asyncio.to_thread(self.store.resume_job, job_id, actor=principal.name)
+        except BaseException:
+            bench.holder = None
+            raise
         self._start(job_id, bench, resume=True)
         return job
 
     async def cancel(self, job_id: int, principal: Principal):  # type: ignore[no-untyped-def]
-        job = self.store.get_job(job_id)
+        job = await asyncio.to_thread(self.store.get_job, job_id)
         if job.state not in ("queued", "running"):
             raise RequestProblem("id", f"job {job_id} is {job.state}; only a queued or running job can be cancelled",
                                  status=409)
         await self._end_task(job_id, f"cancelled by {principal.name}", state="cancelled")
-        return self.store.get_job(job_id)
+        return await asyncio.to_thread(self.store.get_job, job_id)
 
     async def stop_bench(self, bench: BenchRuntime, principal: Principal) -> int | None:
         """Stop motion now; a running job fails with the reason. Returns the failed job's id."""
-        await bench.stop()
+        # The job is named before the stop: once the axes stand, the job may end by itself (its move
+        # fails) and let go of the bench before this coroutine runs again.
         job_id = next((j for j, t in self.tasks.items() if bench.holder == f"job {j}" and not t.done()), None)
+        reason = f"stopped by POST /stage/stop ({principal.name}) while the job ran"
         if job_id is not None:
-            await self._end_task(job_id, f"stopped by POST /stage/stop ({principal.name}) while the job ran",
-                                 state="failed")
+            self.stop_reasons[job_id] = f"failed:{reason}"  # the job's own failure, if first, says why
+        await bench.stop()
+        if job_id is not None:
+            await self._end_task(job_id, reason, state="failed")
             await bench.stop()  # again: a move the job had half sent (one axis) before it ended is stopped too
         return job_id
 
     async def _end_task(self, job_id: int, reason: str, state: str) -> None:
-        self.stop_reasons[job_id] = f"{state}:{reason}"
         task = self.tasks.get(job_id)
         if task is not None and not task.done():
+            self.stop_reasons[job_id] = f"{state}:{reason}"
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
         else:
-            job = self.store.get_job(job_id)
+            job = await asyncio.to_thread(self.store.get_job, job_id)
             if job.state in ("queued", "running"):
-                self._finish(job_id, state, reason)
+                await self._finish(job_id, state, reason)
 
-    def _finish(self, job_id: int, state: str, reason: str) -> None:
+    async def _finish(self, job_id: int, state: str, reason: str) -> None:
+        await asyncio.to_thread(self._end_job, job_id, state, reason)
+        self.events.changed(job_id)
+
+    def _end_job(self, job_id: int, state: str, reason: str) -> None:
         job = self.store.get_job(job_id)
         if job.state == "queued" and state != "cancelled":
             self.store.start_job(job_id, actor="daemon")
@@ -306,10 +327,10 @@ class JobManager:
             self.store.cancel_job(job_id, actor="daemon", reason=reason)
         else:
             self.store.fail_job(job_id, reason, actor="daemon")
-        self.events.changed(job_id)
 
-    def _progress(self, job_id: int, *, points_done: int, points_total: int, phase: str) -> None:
-        self.store.set_job_progress(job_id, points_done=points_done, points_total=points_total, phase=phase)
+    async def _progress(self, job_id: int, *, points_done: int, points_total: int, phase: str) -> None:
+        await asyncio.to_thread(self.store.set_job_progress, job_id, points_done=points_done,
+                                points_total=points_total, phase=phase)
         self.events.changed(job_id)
 
     async def shutdown(self) -> None:
@@ -320,15 +341,15 @@ class JobManager:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
-        self.store.mark_interrupted(actor="daemon")
+        await asyncio.to_thread(self.store.mark_interrupted, actor="daemon")
 
     # ------------------------------------------------------------ running
 
     async def _run(self, job_id: int, bench: BenchRuntime, resume: bool) -> None:
         try:
-            job = self.store.get_job(job_id)
+            job = await asyncio.to_thread(self.store.get_job, job_id)
             if job.state == "queued":
-                self.store.start_job(job_id, actor="daemon")
+                await asyncio.to_thread(self.store.start_job, job_id, actor="daemon")
                 self.events.changed(job_id)
             if job.parameters["request"]["procedure"] in angles.PROCEDURES:
                 await self._angle_job(job_id, bench, angles.PROCEDURES[job.parameters["request"]["procedure"]])
@@ -339,16 +360,20 @@ class JobManager:
             state, _, reason = why.partition(":")
             if state != "shutdown":
                 with contextlib.suppress(Exception):
-                    self._finish(job_id, state, reason)
+                    await self._finish(job_id, state, reason)
         except (DeviceError, DeviceNotAnswering, TimeoutError, InputError) as exc:
             log.warning("job %s failed: %s", job_id, exc)
-            with contextlib.suppress(Exception):
-                self._finish(job_id, "failed", self._reason(bench, exc))
+            stopped = self.stop_reasons.pop(job_id, None)  # a stop by request that the job saw first
+            state, _, reason = (stopped or "").partition(":")
+            if state != "shutdown":  # (a daemon stopping leaves the job interrupted, to be resumed)
+                with contextlib.suppress(Exception):
+                    await self._finish(job_id, state or "failed", reason or self._reason(bench, exc))
         except Exception as exc:  # noqa: BLE001 - a job must never be left running
             log.exception("job %s failed", job_id)
             with contextlib.suppress(Exception):
-                self._finish(job_id, "failed", f"internal error: {type(exc).__name__}: {exc}")
+                await self._finish(job_id, "failed", f"internal error: {type(exc).__name__}: {exc}")
         finally:
+            self.stop_reasons.pop(job_id, None)
             if bench.holder == f"job {job_id}":
                 bench.holder = None
             self.events.changed(job_id)
@@ -385,15 +410,12 @@ class JobManager:
                              "t_start_s": to_epoch(a.t_start_s), "t_end_s": to_epoch(a.t_end_s),
                              "ch_x_mean": a.mean[0], "ch_y_mean": a.mean[1], "ch_z_mean": None,
                              "ch_x_std": a.std[0], "ch_y_std": a.std[1], "ch_z_std": None, "temp_c_mean": a.temp_c}
-        await asyncio.to_thread(write_samples, self.store.engine, rows)
-        have = {p.device_id for p in self.store.settled_points(job_id) if p.point == index}
-        for role in SENSORS:  # a point half stored when the daemon was killed keeps its stored half
-            if bench.device_ids[role] not in have:
-                self.store.add_settled_points(job_id, bench.device_ids[role], [settled[role]], actor="daemon")
+        await asyncio.to_thread(store_point, self.store, job_id, index, rows,
+                                {bench.device_ids[role]: settled[role] for role in SENSORS})
         self.events.changed(job_id)
 
     async def _stage_grid(self, job_id: int, bench: BenchRuntime) -> None:
-        job = self.store.get_job(job_id)
+        job = await asyncio.to_thread(self.store.get_job, job_id)
         params = job.parameters
         req = params["request"]
         fit_pts = [tuple(p) for p in params["fit_points"]]
@@ -406,39 +428,35 @@ class JobManager:
         if started_with and started_with != {r: bench.device_ids.get(r) for r in SENSORS}:
             raise InputError(f"the bench's sensors are not those the job started with ({started_with});"
                              " its points cannot be continued with other instruments")
-        done = {p.point for p in self.store.settled_points(job_id, meas_dev)} & \
-            {p.point for p in self.store.settled_points(job_id, ref_dev)}
-        self._progress(job_id, points_done=len(done), points_total=total, phase="measuring")
+        stored = await asyncio.to_thread(self._points_by_device, job_id)
+        done = {p.point for p in stored.get(meas_dev, [])} & {p.point for p in stored.get(ref_dev, [])}
+        await self._progress(job_id, points_done=len(done), points_total=total, phase="measuring")
         for i, (x, y) in enumerate(fit_pts):
             if i in done:
                 continue
             await self._measure_point(job_id, bench, i, x, y, req)
             done.add(i)
-            self._progress(job_id, points_done=len(done), points_total=total, phase="measuring")
-        self._progress(job_id, points_done=len(done), points_total=total, phase="fitting")
+            await self._progress(job_id, points_done=len(done), points_total=total, phase="measuring")
+        await self._progress(job_id, points_done=len(done), points_total=total, phase="fitting")
         method = get_method("stage", job.method)
-        cols = self.fit_columns(job_id, bench, len(fit_pts))
+        cols = await asyncio.to_thread(self.fit_columns, job_id, bench, len(fit_pts))
         options = FitOptions(extra={"bench": bench.config.stage_bench(),
                                     "bench_source": f"bench configuration {bench.name}"})
         model = await asyncio.to_thread(method.fit, cols, options)
-        self._progress(job_id, points_done=len(done), points_total=total, phase="validating")
+        await self._progress(job_id, points_done=len(done), points_total=total, phase="validating")
         for k, (x, y) in enumerate(val_pts):
             i = len(fit_pts) + k
             if i in done:
                 continue
             await self._measure_point(job_id, bench, i, x, y, req)
             done.add(i)
-            self._progress(job_id, points_done=len(done), points_total=total, phase="validating")
-        validation = self.validate(job_id, bench, len(fit_pts), method, model)
+            await self._progress(job_id, points_done=len(done), points_total=total, phase="validating")
+        validation = await asyncio.to_thread(self.validate, job_id, bench, len(fit_pts), method, model)
         conditions = job_conditions(bench, req, list(cols.get("temp_c", [])))
-        self.store.add_record(meas_dev, "stage", job.method, model.to_json_dict(), operator=job.created_by,
-                              validation=validation, temp_c=conditions["temp_c_mean"], job_id=job_id,
-                              reference_standards=self._standards(req),
-                              raw_data={"conditions": conditions, "fit_points": len(fit_pts)})
-        self.store.succeed_job(job_id, actor="daemon")
+        await asyncio.to_thread(self._conclude, job, meas_dev, "stage", model, validation, conditions, len(fit_pts))
 
     async def _angle_job(self, job_id: int, bench: BenchRuntime, proc: angles.AngleProcedure) -> None:
-        job = self.store.get_job(job_id)
+        job = await asyncio.to_thread(self.store.get_job, job_id)
         params = job.parameters
         req = params["request"]
         fit_pts, val_pts = list(params["fit_points"]), list(params["validation_points"])
@@ -446,38 +464,46 @@ class JobManager:
         started_with = params.get("device_ids", {})
         if started_with != {r: bench.device_ids.get(r) for r in proc.read_roles}:
             raise InputError(f"the bench's instruments are not those the job started with ({started_with})")
-        def done() -> set[int]:  # noqa: E306
-            by_dev = self._points_by_device(job_id)
-            sets = [{p.point for p in by_dev.get(bench.device_ids[r], [])} for r in proc.read_roles]
-            return set.intersection(*sets)
-        finished = done()
-        self._progress(job_id, points_done=len(finished), points_total=total, phase="measuring")
+        by_dev = await asyncio.to_thread(self._points_by_device, job_id)
+        finished = set.intersection(*[{p.point for p in by_dev.get(bench.device_ids[r], [])} for r in proc.read_roles])
+        await self._progress(job_id, points_done=len(finished), points_total=total, phase="measuring")
         method = get_method(proc.kind, job.method)
         model = None
         for i, a in enumerate(fit_pts + val_pts):
             if i == len(fit_pts):
-                self._progress(job_id, points_done=len(finished), points_total=total, phase="fitting")
-                model = await asyncio.to_thread(method.fit, self.fit_columns(job_id, None, len(fit_pts)), FitOptions())
+                await self._progress(job_id, points_done=len(finished), points_total=total, phase="fitting")
+                model = await asyncio.to_thread(self._fit, method, job_id, len(fit_pts))
             if i in finished:
                 continue
             await angles.measure_angle(self.store, job_id, bench, proc, i, a, req)
             finished.add(i)
             phase = "measuring" if i < len(fit_pts) else "validating"
-            self._progress(job_id, points_done=len(finished), points_total=total, phase=phase)
+            await self._progress(job_id, points_done=len(finished), points_total=total, phase=phase)
         if model is None:
-            self._progress(job_id, points_done=len(finished), points_total=total, phase="fitting")
-            model = await asyncio.to_thread(method.fit, self.fit_columns(job_id, None, len(fit_pts)), FitOptions())
-        by_dev = self._points_by_device(job_id)
+            await self._progress(job_id, points_done=len(finished), points_total=total, phase="fitting")
+            model = await asyncio.to_thread(self._fit, method, job_id, len(fit_pts))
+        by_dev = await asyncio.to_thread(self._points_by_device, job_id)
         cols = angles.columns(proc, {d: [p for p in ps if p.point >= len(fit_pts)] for d, ps in by_dev.items()},
                               bench.device_ids, req.get("reference"))
         validation = angles.validation(proc, method, model, cols)
         conditions = job_conditions(bench, req, [p.temp_c_mean for ps in by_dev.values() for p in ps
                                                  if p.temp_c_mean is not None])
-        self.store.add_record(job.device_id, proc.kind, job.method, model.to_json_dict(), operator=job.created_by,
-                              validation=validation, temp_c=conditions["temp_c_mean"], job_id=job_id,
+        await asyncio.to_thread(self._conclude, job, job.device_id, proc.kind, model, validation, conditions,
+                                len(fit_pts))
+
+    def _fit(self, method, job_id: int, n_fit: int):  # type: ignore[no-untyped-def]
+        """Blocking (database and the fit): through `asyncio.to_thread`."""
+        return method.fit(self.fit_columns(job_id, None, n_fit), FitOptions())
+
+    def _conclude(self, job, device_id: int, kind: str, model, validation: dict, conditions: dict,  # type: ignore[no-untyped-def]
+                  n_fit: int) -> None:
+        """Blocking (database): the record version, then the job succeeded."""
+        req = job.parameters["request"]
+        self.store.add_record(device_id, kind, job.method, model.to_json_dict(), operator=job.created_by,
+                              validation=validation, temp_c=conditions["temp_c_mean"], job_id=job.id,
                               reference_standards=self._standards(req),
-                              raw_data={"conditions": conditions, "fit_points": len(fit_pts)})
-        self.store.succeed_job(job_id, actor="daemon")
+                              raw_data={"conditions": conditions, "fit_points": n_fit})
+        self.store.succeed_job(job.id, actor="daemon")
 
     def _points_by_device(self, job_id: int) -> dict[int, list]:
         out: dict[int, list] = {}

@@ -25,7 +25,10 @@ def job_points(store: DaemonStore, job: CalibrationJob, have: frozenset[int] | s
     if not roles:
         roles = {job.device_id: "measurement_sensor"}
     by_point: dict[int, dict[str, Any]] = {}
-    for p in store.settled_points(job.id):
+    # Points are measured in index order: only those from the first one not yet had are read, so a
+    # follower's reads stay small however long the job (not all its points on every change).
+    first_missing = 0 if have is None else next(i for i in range(len(have) + 1) if i not in have)
+    for p in store.settled_points(job.id, from_point=first_missing):
         if have is not None and p.point in have:
             continue
         role = roles.get(p.device_id)

@@ -76,3 +76,22 @@ def test_scopes_busy_bench_and_idempotency(daemon):
     _problem(client.get("/calibrations/999", headers=h), 404, "999")
     _problem(client.get("/records/999", headers=h), 404, "999")
     _problem(client.get("/devices?bench=nope", headers=h), 404, "bench")
+
+
+def test_simultaneous_requests_make_one_job(daemon):
+    """Four clients ask for a job on the same bench at once: one job is made, the others are told
+    the bench is busy (the bench is taken before the job row is written)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    client, h = daemon
+    before = _counts(client)
+    ok = {"procedure": "stage-grid", "method": "kinematic", "grid": GRID, "samples_per_point": 4}
+    with ThreadPoolExecutor(4) as pool:
+        answers = list(pool.map(lambda _: client.post("/calibrations", headers=h, json=ok), range(4)))
+    assert sorted(r.status_code for r in answers) == [202, 409, 409, 409], [r.text for r in answers]
+    for r in answers:
+        if r.status_code == 409:
+            _problem(r, 409, "held by")
+    assert _counts(client)["calibration_jobs"] == before["calibration_jobs"] + 1
+    job_id = next(r.json()["id"] for r in answers if r.status_code == 202)
+    assert wait_job(client, job_id, h)["state"] == "succeeded"

@@ -25,7 +25,7 @@ def _wait_points(get, n, timeout_s=120.0) -> dict:
     deadline = time.monotonic() + timeout_s
     while True:
         job = get()
-        if job["progress"]["points_done"] >= n or job["state"] != "running":
+        if job["progress"]["points_done"] >= n or job["state"] not in ("queued", "running"):
             return job
         assert time.monotonic() < deadline, job
         time.sleep(0.05)
@@ -77,6 +77,34 @@ def test_stop_during_a_move_acts_at_once_and_fails_the_job(daemon):
     assert all(a.state == controller.STATE_READY for a in world.axes.values())
     # the bench is free again
     assert client.get("/benches", headers=h).json()["benches"][0]["held_by"] is None
+
+
+def test_stop_names_the_job_even_when_the_job_ends_before_the_stop_returns(daemon):
+    """The job sees its move stopped and ends, letting go of the bench, while the stop is still
+    being sent: the stop still names it, and the job's error says it was stopped by request."""
+    import asyncio
+
+    client, h = daemon
+    bench = client.app.state.bench
+    jobs = client.app.state.jobs
+    job_id = client.post("/calibrations", headers=h, json=BODY).json()["id"]
+    deadline = time.monotonic() + 30
+    while not bench.pose.moving:
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+    stop = bench.stop
+
+    async def stop_then_let_the_job_end_first():
+        await stop()
+        await asyncio.wait({jobs.tasks[job_id]}, timeout=10.0)
+
+    bench.stop = stop_then_let_the_job_end_first
+    r = client.post("/stage/stop", headers=h, json={})
+    assert jobs.tasks[job_id].done()  # the job had ended before the route looked again
+    assert r.status_code == 200 and r.json()["failed_job"] == job_id, r.json()
+    job = client.get(f"/calibrations/{job_id}", headers=h).json()
+    assert job["state"] == "failed" and "stopped by POST /stage/stop" in job["error"], job
+    assert not jobs.stop_reasons  # nothing left behind for a later job
 
 
 class _Daemon:

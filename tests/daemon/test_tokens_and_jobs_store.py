@@ -105,3 +105,38 @@ def test_job_idempotency_interruption_and_resume(dstore):
         dstore.resume_job(job.id, actor="t")
     assert [j.id for j in dstore.list_jobs(state="failed", bench_id=bench.id)] == [job.id]
     assert dstore.list_jobs(before_id=job.id) == []
+
+
+def test_a_job_follower_reads_only_the_points_it_has_not_had(dstore, monkeypatch):
+    """The job stream's point reads start at the first point it lacks; a point half stored (one
+    instrument of two) waits until both are; points had earlier are never sent again."""
+    from service.streams.jobs import job_points
+
+    bench = dstore.ensure_bench("b1", actor="t")
+    ref = dstore.add_device("R", "1", "reference_sensor", actor="t", bench_id=bench.id)
+    meas = dstore.add_device("M", "1", "measurement_sensor", actor="t", bench_id=bench.id)
+    params = {"device_ids": {"reference_sensor": ref.id, "measurement_sensor": meas.id}}
+    job, _ = dstore.create_calibration_job(bench_id=bench.id, device_id=meas.id, kind="stage", method="kinematic",
+                                           parameters=params, actor="t", points_total=6)
+    dstore.start_job(job.id, actor="t")
+
+    def point(i):
+        return {"point": i, "cmd_x_deg": float(i), "cmd_y_deg": 0.0, "n_samples": 4, "t_start_s": 1.0 * i,
+                "t_end_s": 1.0 * i + 0.5, "ch_x_mean": 0.1 * i, "ch_y_mean": 0.0}
+
+    for i in (0, 1, 2):
+        dstore.add_settled_points(job.id, ref.id, [point(i)], actor="t")
+        dstore.add_settled_points(job.id, meas.id, [point(i)], actor="t")
+    dstore.add_settled_points(job.id, ref.id, [point(3)], actor="t")  # point 3: one instrument so far
+    job = dstore.get_job(job.id)
+    asked = []
+    read = dstore.settled_points
+    monkeypatch.setattr(dstore, "settled_points", lambda *a, **k: asked.append(k.get("from_point")) or read(*a, **k))
+    assert [p["index"] for p in job_points(dstore, job)] == [0, 1, 2]
+    assert [p["index"] for p in job_points(dstore, job, {0, 1, 2})] == []
+    dstore.add_settled_points(job.id, meas.id, [point(3)], actor="t")
+    got = job_points(dstore, job, {0, 1, 2})
+    assert [p["index"] for p in got] == [3] and got[0]["measurement_sensor"]["x_deg"] == pytest.approx(0.3)
+    assert asked == [0, 3, 3]
+    # a gap (a resumed job measures a point it skipped): reads start at the gap, the rest is not resent
+    assert [p["index"] for p in job_points(dstore, job, {0, 2, 3})] == [1]

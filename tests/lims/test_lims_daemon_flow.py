@@ -81,6 +81,11 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
                      for q in results[1]["dcc:data"]["dcc:list"][1]["dcc:quantity"]}
             assert len(table["error_x_deg"]["si:valueXMLList"]) == 3
             assert [p["measured_x_deg"] for p in record["validation"]["points"]] == table["measured_x_deg"]["si:valueXMLList"]
+            # a stage bench's record has the sensors' temperature (0x06 at every point), and so its certificate
+            assert record["temp_c"] is not None and 0 < record["temp_c"] < 60, record
+            conditions = mr["dcc:influenceConditions"]["dcc:influenceCondition"]
+            temperature = next(c for c in conditions if c["@refType"] == ["basic_temperature"])
+            assert np.isclose(temperature["dcc:data"]["dcc:quantity"][0]["si:real"]["si:value"], record["temp_c"])
             eq = mr["dcc:measuringEquipments"]["dcc:measuringEquipment"]
             assert [e["dcc:certificate"]["dcc:value"] for e in eq] == [STANDARD["certificate_sha256"]]
             assert client.get(f"/orders/{order['id']}", headers=h["lims"]).json()["state"] == "certified"

@@ -6,6 +6,7 @@ import datetime as dt
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
 
 from service.api.auth import Operator, Reader
 from service.api.deps import find_bench
@@ -36,6 +37,11 @@ def job_json(request: Request, job: CalibrationJob) -> dict:
             "request": req}
 
 
+def _job_json_of(request: Request, job_id: int) -> dict:
+    """Blocking (database): from async routes through the thread pool."""
+    return job_json(request, request.app.state.store.get_job(job_id))
+
+
 def _job(request: Request, job_id: int) -> CalibrationJob:
     try:
         return request.app.state.store.get_job(job_id)
@@ -49,11 +55,11 @@ async def start(body: CalibrationRequest, request: Request, response: Response, 
     """Start a calibration job: 202 with the job and its Location. A repeated Idempotency-Key returns that
     job (200); the same key with another body is 422; a busy bench is 409; a bad grid is 422 and starts nothing."""
     bench = find_bench(request, body.bench)
-    job, created = request.app.state.jobs.submit(body, bench, who, idempotency_key)
+    job, created = await request.app.state.jobs.submit(body, bench, who, idempotency_key)
     response.headers["Location"] = f"/calibrations/{job.id}"
     if not created:
         response.status_code = 200
-    return job_json(request, request.app.state.store.get_job(job.id))
+    return await run_in_threadpool(_job_json_of, request, job.id)
 
 
 @router.get("")
@@ -80,14 +86,15 @@ def read(job_id: int, request: Request, _: Reader) -> dict:
 @router.post("/{job_id}/cancel")
 async def cancel(job_id: int, request: Request, who: Operator) -> dict:
     """Stop a queued or running job; what it measured is kept."""
-    _job(request, job_id)
-    return job_json(request, await request.app.state.jobs.cancel(job_id, who))
+    await run_in_threadpool(_job, request, job_id)
+    job = await request.app.state.jobs.cancel(job_id, who)
+    return await run_in_threadpool(job_json, request, job)
 
 
 @router.post("/{job_id}/resume", status_code=202)
 async def resume(job_id: int, request: Request, response: Response, who: Operator) -> dict:
     """Continue a job a restart interrupted, from its stored points."""
-    _job(request, job_id)
-    job = request.app.state.jobs.resume(job_id, who)
+    await run_in_threadpool(_job, request, job_id)
+    job = await request.app.state.jobs.resume(job_id, who)
     response.headers["Location"] = f"/calibrations/{job.id}"
-    return job_json(request, request.app.state.store.get_job(job_id))
+    return await run_in_threadpool(_job_json_of, request, job_id)

@@ -88,11 +88,15 @@ class PointsStore(StoreBase):
             raise InputError(f"job {job_id} has no raw samples of device {device_id} with a grid point")
         return self.add_settled_points(job_id, device_id, points, actor=actor)
 
-    def settled_points(self, job_id: int, device_id: int | None = None) -> list[SettledPoint]:
+    def settled_points(self, job_id: int, device_id: int | None = None,
+                       from_point: int | None = None) -> list[SettledPoint]:
+        """A job's settled points (of one device; from a point index on: what a follower has not seen)."""
         with self._read() as s:
             stmt = sa.select(SettledPoint).where(SettledPoint.job_id == job_id)
             if device_id is not None:
                 stmt = stmt.where(SettledPoint.device_id == device_id)
+            if from_point is not None:
+                stmt = stmt.where(SettledPoint.point >= from_point)
             return list(s.scalars(stmt.order_by(SettledPoint.device_id, SettledPoint.point)))
 
 
