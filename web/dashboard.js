@@ -498,8 +498,16 @@ function followJob(id) {
   state.jobStream.open();
 }
 
+// a form sent before the bench list has come: said where the answer would be, nothing is sent
+function benchNotYet(out) {
+  if (state.bench) return false;
+  out.textContent = "the bench list is still loading; send again in a moment"; out.className = "error"; out.hidden = false;
+  return true;
+}
+
 async function startCalibration(ev) {
   ev.preventDefault();
+  if (benchNotYet($("cal-error"))) return;
   const f = new FormData($("cal-form"));
   const n = (k) => Number(f.get(k));
   const body = { bench: state.bench, procedure: f.get("procedure"), method: f.get("method"),
@@ -524,6 +532,7 @@ async function cancelJob() {
 
 async function levelTable(ev) {
   ev.preventDefault();
+  if (benchNotYet($("level-result"))) return;
   const f = new FormData($("level-form"));
   const body = { bench: state.bench, x_deg: Number(f.get("x_deg")), y_deg: Number(f.get("y_deg")),
     tolerance_deg: Number(f.get("tolerance_deg")), max_iterations: Number(f.get("max_iterations")) };
@@ -541,6 +550,7 @@ async function levelTable(ev) {
 
 async function moveStage(ev) {
   ev.preventDefault();
+  if (benchNotYet($("move-result"))) return;
   const f = new FormData($("move-form"));
   const out = $("move-result");
   out.textContent = "moving…"; out.className = "";
@@ -680,13 +690,8 @@ async function start() {
     showAuth("No access token", "This page needs a token: the address tiltlab serve prints ends in #token=…");
     return;
   }
-  try {
-    await loadBenches();
-  } catch (err) {
-    if (err.status !== 401 && err.status !== 403) showProblem(err.message);
-    return;
-  }
-  if (!state.bench) { showProblem("the daemon runs no bench"); return; }
+  // every control answers from the first moment (a tab clicked while the bench list loads opens it;
+  // a form sent then says the list is still loading rather than reloading the page)
   for (const b of $("tabs").querySelectorAll("button")) b.addEventListener("click", () => showView(b.dataset.view));
   $("bench-select").addEventListener("change", (e) => { state.bench = e.target.value; openReadings(); refreshStatus(); });
   $("window").addEventListener("change", (e) => { live.windowS = Number(e.target.value); live.dirty = true; openReadings(); });
@@ -697,6 +702,14 @@ async function start() {
   $("job-open-record").addEventListener("click", () => { showView("records"); openRecord(state.job.record.id); });
   $("level-form").addEventListener("submit", levelTable);
   $("move-form").addEventListener("submit", moveStage);
+  try {
+    await loadBenches();
+  } catch (err) {
+    if (err.status !== 401 && err.status !== 403) showProblem(err.message);
+    return;
+  }
+  if (!state.bench) { showProblem("the daemon runs no bench"); return; }
+  document.body.dataset.bench = state.bench;  // the page knows its bench: its actions can be sent
   makeCharts();
   openReadings();
   refreshStatus();

@@ -232,8 +232,10 @@ def test_stop_button_stops_a_move(browser, real_time_bench):
     ctx = browser.new_context(viewport={"width": 1280, "height": 900})
     page = ctx.new_page()
     page.goto(f"{bench.base}/#token={bench.token}")
-    page.get_by_role("tab", name="Run").click()
+    page.get_by_role("tab", name="Run").click()  # the tabs answer before the bench list has come
     form = page.locator("#move-form")
+    expect(form).to_be_visible(timeout=T)
+    expect(page.locator("body")).to_have_attribute("data-bench", "sim-stage", timeout=T)
     start = bench.get("/tilt")["stage"]
     target = -14.0 if (start["x_deg"] or 0.0) > 0 else 14.0
     form.locator("input[name=x_deg]").fill(str(target))
@@ -249,6 +251,28 @@ def test_stop_button_stops_a_move(browser, real_time_bench):
     stage = bench.get("/tilt")["stage"]
     assert not stage["moving"] and abs(stage["x_deg"] - target) > 0.5, (stage, target)
     expect(stop).to_be_hidden(timeout=T)
+    ctx.close()
+
+
+def test_controls_answer_while_the_bench_list_loads(browser, bench):
+    """Held back /benches: a tab opens at once and a form sent says the list is still loading, sending nothing."""
+    ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+    pg = ctx.new_page()
+    held = []
+    pg.route("**/benches", lambda route: held.append(route))
+    sent = []
+    pg.on("request", lambda req: sent.append(req.url) if "/stage/" in req.url else None)
+    pg.goto(f"{bench.base}/#token={bench.token}")
+    pg.wait_for_function("document.getElementById('bench-select') !== null")
+    pg.get_by_role("tab", name="Run").click()
+    expect(pg.locator("#move-form")).to_be_visible(timeout=T)
+    pg.click("#move-go")
+    expect(pg.locator("#move-result")).to_have_text("the bench list is still loading; send again in a moment", timeout=T)
+    assert not sent, sent
+    assert held, "the page asked for /benches"
+    for route in held:
+        route.continue_()
+    expect(pg.locator("body")).to_have_attribute("data-bench", "sim-stage", timeout=T)
     ctx.close()
 
 
