@@ -18,7 +18,7 @@ from service.bench.readings import fresh_readings, robust_mean, settle
 from service.bench.runtime import BenchRuntime
 from service.calibration.uncertainty import COVERAGE
 from service.errors import InputError
-from service.jobs.points import store_point
+from service.jobs.points import store_point, write_in_thread
 from service.storage.samples import Sample
 
 APPROACH_SCALE_DEG = 0.1
@@ -91,7 +91,7 @@ async def measure_angle(store, job_id: int, bench: BenchRuntime, proc: AngleProc
                          "t_start_s": to_epoch(a.t_start_s), "t_end_s": to_epoch(a.t_end_s),
                          "ch_x_mean": m[0], "ch_y_mean": m[1], "ch_z_mean": m[2],
                          "ch_x_std": sd[0], "ch_y_std": sd[1], "ch_z_std": sd[2], "temp_c_mean": a.temp_c}
-    await asyncio.to_thread(store_point, store, job_id, index, rows,
+    await write_in_thread(store_point, store, job_id, index, rows,
                             {bench.device_ids[role]: settled[role] for role in proc.read_roles})
 
 

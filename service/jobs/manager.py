@@ -27,7 +27,7 @@ from service.errors import InputError
 from service.instruments.transport import DeviceError
 from service.jobs import angles
 from service.jobs.events import JobEvents
-from service.jobs.points import store_point
+from service.jobs.points import store_point, write_in_thread
 from service.jobs.requests import KIND_OF_PROCEDURE, MIN_POINTS, CalibrationRequest
 from service.storage.daemon_jobs import DaemonStore
 from service.storage.errors import UnknownEntity
@@ -316,7 +316,7 @@ class JobManager:
                 await self._finish(job_id, state, reason)
 
     async def _finish(self, job_id: int, state: str, reason: str) -> None:
-        await asyncio.to_thread(self._end_job, job_id, state, reason)
+        await write_in_thread(self._end_job, job_id, state, reason)
         self.events.changed(job_id)
 
     def _end_job(self, job_id: int, state: str, reason: str) -> None:
@@ -329,7 +329,7 @@ class JobManager:
             self.store.fail_job(job_id, reason, actor="daemon")
 
     async def _progress(self, job_id: int, *, points_done: int, points_total: int, phase: str) -> None:
-        await asyncio.to_thread(self.store.set_job_progress, job_id, points_done=points_done,
+        await write_in_thread(self.store.set_job_progress, job_id, points_done=points_done,
                                 points_total=points_total, phase=phase)
         self.events.changed(job_id)
 
@@ -341,7 +341,7 @@ class JobManager:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
-        await asyncio.to_thread(self.store.mark_interrupted, actor="daemon")
+        await write_in_thread(self.store.mark_interrupted, actor="daemon")
 
     # ------------------------------------------------------------ running
 
@@ -349,7 +349,7 @@ class JobManager:
         try:
             job = await asyncio.to_thread(self.store.get_job, job_id)
             if job.state == "queued":
-                await asyncio.to_thread(self.store.start_job, job_id, actor="daemon")
+                await write_in_thread(self.store.start_job, job_id, actor="daemon")
                 self.events.changed(job_id)
             if job.parameters["request"]["procedure"] in angles.PROCEDURES:
                 await self._angle_job(job_id, bench, angles.PROCEDURES[job.parameters["request"]["procedure"]])
@@ -410,7 +410,7 @@ class JobManager:
                              "t_start_s": to_epoch(a.t_start_s), "t_end_s": to_epoch(a.t_end_s),
                              "ch_x_mean": a.mean[0], "ch_y_mean": a.mean[1], "ch_z_mean": None,
                              "ch_x_std": a.std[0], "ch_y_std": a.std[1], "ch_z_std": None, "temp_c_mean": a.temp_c}
-        await asyncio.to_thread(store_point, self.store, job_id, index, rows,
+        await write_in_thread(store_point, self.store, job_id, index, rows,
                                 {bench.device_ids[role]: settled[role] for role in SENSORS})
         self.events.changed(job_id)
 
@@ -453,7 +453,7 @@ class JobManager:
             await self._progress(job_id, points_done=len(done), points_total=total, phase="validating")
         validation = await asyncio.to_thread(self.validate, job_id, bench, len(fit_pts), method, model)
         conditions = job_conditions(bench, req, list(cols.get("temp_c", [])))
-        await asyncio.to_thread(self._conclude, job, meas_dev, "stage", model, validation, conditions, len(fit_pts))
+        await write_in_thread(self._conclude, job, meas_dev, "stage", model, validation, conditions, len(fit_pts))
 
     async def _angle_job(self, job_id: int, bench: BenchRuntime, proc: angles.AngleProcedure) -> None:
         job = await asyncio.to_thread(self.store.get_job, job_id)
@@ -488,8 +488,8 @@ class JobManager:
         validation = angles.validation(proc, method, model, cols)
         conditions = job_conditions(bench, req, [p.temp_c_mean for ps in by_dev.values() for p in ps
                                                  if p.temp_c_mean is not None])
-        await asyncio.to_thread(self._conclude, job, job.device_id, proc.kind, model, validation, conditions,
-                                len(fit_pts))
+        await write_in_thread(self._conclude, job, job.device_id, proc.kind, model, validation, conditions,
+                              len(fit_pts))
 
     def _fit(self, method, job_id: int, n_fit: int):  # type: ignore[no-untyped-def]
         """Blocking (database and the fit): through `asyncio.to_thread`."""

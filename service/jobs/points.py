@@ -1,17 +1,41 @@
-"""Storing one measured point of a job: its raw samples and its settled means, in a worker thread."""
+"""A job's database writes: one measured point (its raw samples and settled means), and the
+worker-thread call every write of a job goes through."""
 
 from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 from service.storage.daemon_jobs import DaemonStore
 from service.storage.samples import Sample, write_samples
 
+log = logging.getLogger("tiltlab.jobs")
+T = TypeVar("T")
+
 
 def store_point(store: DaemonStore, job_id: int, index: int, samples: list[Sample],
                 settled_by_device: dict[int, dict]) -> None:
-    """Blocking (database): call through `asyncio.to_thread`. A point half stored when the daemon
+    """Blocking (database): call through `write_in_thread`. A point half stored when the daemon
     was killed keeps its stored half; only the devices it lacks are added."""
     write_samples(store.engine, samples)
     have = {p.device_id for p in store.settled_points(job_id) if p.point == index}
     for device_id, point in settled_by_device.items():
         if device_id not in have:
             store.add_settled_points(job_id, device_id, [point], actor="daemon")
+
+
+async def write_in_thread(write: Callable[..., T], /, *args: Any, **kwargs: Any) -> T:
+    """A job's database write in a worker thread, run to its end even if the job is cancelled
+    meanwhile. A thread cannot be stopped: a cancellation that left it running would let whoever
+    cancelled the job (and waited for it) read the job before the write landed. The cancellation
+    waits for the write, then goes on."""
+    work = asyncio.ensure_future(asyncio.to_thread(write, *args, **kwargs))
+    try:
+        return await asyncio.shield(work)
+    except asyncio.CancelledError:
+        await asyncio.wait({work})
+        if not work.cancelled() and work.exception() is not None:
+            log.warning("a job's database write failed while the job was being cancelled: %s", work.exception())
+        raise

@@ -107,6 +107,42 @@ def test_stop_names_the_job_even_when_the_job_ends_before_the_stop_returns(daemo
     assert not jobs.stop_reasons  # nothing left behind for a later job
 
 
+def test_stop_answers_after_the_job_s_end_is_written(daemon, monkeypatch):
+    """The job sees its move stopped and is writing its end, in a worker thread a slow disk holds up,
+    when the stop cancels it: the stop answers only once that write has landed, so the job read
+    right after is failed, with the reason."""
+    import asyncio
+    import threading
+
+    client, h = daemon
+    bench = client.app.state.bench
+    store = client.app.state.jobs.store
+    fail_job, writing = store.fail_job, threading.Event()
+
+    def slow_fail_job(*args, **kwargs):  # type: ignore[no-untyped-def]
+        writing.set()
+        time.sleep(0.5)
+        return fail_job(*args, **kwargs)
+
+    monkeypatch.setattr(store, "fail_job", slow_fail_job)
+    stop = bench.stop
+
+    async def stop_then_wait_for_the_job_to_write_its_end():
+        await stop()
+        assert await asyncio.to_thread(writing.wait, 30.0), "the job never wrote its end"
+
+    job_id = client.post("/calibrations", headers=h, json=BODY).json()["id"]
+    deadline = time.monotonic() + 30
+    while not bench.pose.moving:
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+    bench.stop = stop_then_wait_for_the_job_to_write_its_end
+    r = client.post("/stage/stop", headers=h, json={})
+    assert r.status_code == 200 and r.json()["failed_job"] == job_id
+    job = client.get(f"/calibrations/{job_id}", headers=h).json()
+    assert job["state"] == "failed" and "stopped by POST /stage/stop" in job["error"], job
+
+
 class _Daemon:
     def __init__(self, data_dir) -> None:
         self.port = free_port()
