@@ -70,21 +70,18 @@ class _TcpController(threading.Thread):
                     conn.sendall(answer)
 
 
-def test_an_instrument_behind_a_tcp_serial_server():
-    clock = Clock(20.0)
+def _with_tcp_table(timeout_s: float, body, speed: float = 1.0) -> None:  # type: ignore[no-untyped-def]
+    """Run `body(table, server)` against a rotary table behind a TCP serial server."""
+    clock = Clock(speed)
     server = _TcpController(clock)
     server.start()
 
     async def main():
         port = SerialPort(f"socket://127.0.0.1:{server.port}", controller.parse_answers, baud=57600)
-        table = ControllerAxis("rotary_table", port, clock, 1.0, axis=3, pulse_deg=0.001)
+        table = ControllerAxis("rotary_table", port, clock, timeout_s, axis=3, pulse_deg=0.001)
         await table.start()
         try:
-            assert (await table.identify()).model == "RT-360SIM"
-            await table.move_to_deg(90.0)
-            await table.wait_until_idle(60)
-            assert await table.position_deg() == pytest.approx(90.0)
-            assert server.axis.deg == pytest.approx(90.0)
+            await body(table, server)
         finally:
             await table.close()
 
@@ -93,6 +90,17 @@ def test_an_instrument_behind_a_tcp_serial_server():
     finally:
         server.stop.set()
         server.server.close()
+
+
+def test_an_instrument_behind_a_tcp_serial_server():
+    async def body(table, server):
+        assert (await table.identify()).model == "RT-360SIM"
+        await table.move_to_deg(90.0)
+        await table.wait_until_idle(60)
+        assert await table.position_deg() == pytest.approx(90.0)
+        assert server.axis.deg == pytest.approx(90.0)
+
+    _with_tcp_table(1.0, body, speed=20.0)
 
 
 def test_a_port_that_never_opens_is_failed_and_says_why(tmp_path):
@@ -187,32 +195,10 @@ def test_an_instrument_behind_an_rfc2217_server(stage_sim):
         server.server.close()
 
 
-def _with_tcp_table(timeout_s: float, body) -> None:  # type: ignore[no-untyped-def]
-    """Run `body(table)` against a rotary table behind a TCP serial server."""
-    clock = Clock(1.0)
-    server = _TcpController(clock)
-    server.start()
-
-    async def main():
-        port = SerialPort(f"socket://127.0.0.1:{server.port}", controller.parse_answers, baud=57600)
-        table = ControllerAxis("rotary_table", port, clock, timeout_s, axis=3, pulse_deg=0.001)
-        await table.start()
-        try:
-            await body(table)
-        finally:
-            await table.close()
-
-    try:
-        asyncio.run(main())
-    finally:
-        server.stop.set()
-        server.server.close()
-
-
 def test_requests_do_not_wait_for_the_shared_worker_pool():
     """Every worker of the loop's default pool held (as database writes waiting for a lock would
     hold them): a request still goes out and is answered, because writes use the port's own thread."""
-    async def body(table):
+    async def body(table, _server):
         loop = asyncio.get_running_loop()
         release = threading.Event()
         held = [loop.run_in_executor(None, release.wait, 30) for _ in range(64)]
@@ -228,7 +214,7 @@ def test_requests_do_not_wait_for_the_shared_worker_pool():
 def test_an_answer_in_time_is_kept_when_the_event_loop_runs_late():
     """The loop held up past a request's deadline (a blocking call elsewhere): the answer that came
     meanwhile is returned, not a timeout."""
-    async def body(table):
+    async def body(table, _server):
         asked = asyncio.get_running_loop().create_task(table.identify())
         await asyncio.sleep(0)  # the request runs up to its write, in the port's thread
         time.sleep(1.0)  # the loop blocked for longer than the 0.3 s timeout; the reader thread gets the answer
