@@ -92,7 +92,7 @@ async def measure_angle(store, job_id: int, bench: BenchRuntime, proc: AngleProc
                          "ch_x_mean": m[0], "ch_y_mean": m[1], "ch_z_mean": m[2],
                          "ch_x_std": sd[0], "ch_y_std": sd[1], "ch_z_std": sd[2], "temp_c_mean": a.temp_c}
     await write_in_thread(store_point, store, job_id, index, rows,
-                            {bench.device_ids[role]: settled[role] for role in proc.read_roles})
+                          {bench.device_ids[role]: settled[role] for role in proc.read_roles})
 
 
 def _channels(r) -> tuple[float, float, float | None]:  # type: ignore[no-untyped-def]

@@ -330,7 +330,7 @@ class JobManager:
 
     async def _progress(self, job_id: int, *, points_done: int, points_total: int, phase: str) -> None:
         await write_in_thread(self.store.set_job_progress, job_id, points_done=points_done,
-                                points_total=points_total, phase=phase)
+                              points_total=points_total, phase=phase)
         self.events.changed(job_id)
 
     async def shutdown(self) -> None:
@@ -411,7 +411,7 @@ class JobManager:
                              "ch_x_mean": a.mean[0], "ch_y_mean": a.mean[1], "ch_z_mean": None,
                              "ch_x_std": a.std[0], "ch_y_std": a.std[1], "ch_z_std": None, "temp_c_mean": a.temp_c}
         await write_in_thread(store_point, self.store, job_id, index, rows,
-                                {bench.device_ids[role]: settled[role] for role in SENSORS})
+                              {bench.device_ids[role]: settled[role] for role in SENSORS})
         self.events.changed(job_id)
 
     async def _stage_grid(self, job_id: int, bench: BenchRuntime) -> None:
