@@ -13,7 +13,6 @@ from service.bench.corrected import corrected_tilt, sensor_temp_c, stale_after_s
 router = APIRouter(tags=["tilt"])
 
 
-
 def _pair(r) -> dict | None:  # type: ignore[no-untyped-def]
     return None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}
 
