@@ -577,7 +577,7 @@ function drawRecords() {
   el("td", {}, r.status || "—"), el("td", {}, r.active ? "active" : ""))));
 }
 
-async function openRecord(id) {
+async function openRecord(id, message = "") {
   state.selectedRecord = id;
   drawRecords();
   const rec = await api("GET", `/records/${id}`);
@@ -601,13 +601,18 @@ async function openRecord(id) {
   $("dl-cert").disabled = rec.status !== "approved";
   $("dl-cert").title = rec.status === "approved" ? "" : "certificates are issued for approved records only";
   $("rec-activate").disabled = rec.active;
-  $("rec-msg").textContent = "";
+  $("rec-msg").textContent = message;  // what was just done to this record stays said after the redraw
   $("record-detail").dataset.id = String(rec.id);
   $("dl-model").onclick = () => download(`/records/${id}/model`, `record-${id}-MODEL.json`);
   $("dl-points").onclick = () => download(`/records/${id}/points`, `record-${id}-points.csv`);
   $("dl-cert").onclick = () => download(`/records/${id}/certificate`, `record-${id}-certificate.xml`);
   $("rec-activate").onclick = async () => {
-    try { await api("POST", `/records/${id}/activate`); $("rec-msg").textContent = `record ${id} is now active`; await loadRecords(); openRecord(id); } catch (err) { $("rec-msg").textContent = operateMessage(err); }
+    try {
+      await api("POST", `/records/${id}/activate`);
+      $("rec-msg").textContent = `record ${id} is now active`;
+      await loadRecords();
+      await openRecord(id, `record ${id} is now active`);
+    } catch (err) { $("rec-msg").textContent = operateMessage(err); }
   };
   $("res-before").replaceChildren(); $("res-after").replaceChildren();
   $("res-rms-before").textContent = "—"; $("res-rms-after").textContent = "—";

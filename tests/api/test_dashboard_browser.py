@@ -196,7 +196,8 @@ def test_calibration_followed_to_its_end_and_its_residual_map(page, bench):
         page.click("#dl-points")
     assert Path(dl.value.path()).read_text().startswith("point,")
     page.click("#rec-activate")
-    expect(page.locator("#rec-msg")).to_contain_text(f"record {rec_id} is now active", timeout=T)
+    expect(page.locator("#rec-activate")).to_be_disabled(timeout=T)  # the record redrawn, now active
+    expect(page.locator("#rec-msg")).to_contain_text(f"record {rec_id} is now active")  # and it still says so
     bench.shot(page, "record")
 
 
