@@ -148,6 +148,9 @@ class BinaryInclinometer(_Driver):
         self.temp_c: float | None = None
         self.temp_answered_s: float | None = None  # bench time its answer was parsed: a mark in the stream
         self.answers_temperature = True  # until an instrument of the family is found that does not
+        # A temperature request timed out: its answer may still come, and be taken for the next
+        # request's (answers carry no sequence number).
+        self.temp_answer_owed = False
         port.own(address)
         port.add_listener(self._on_message)
 
@@ -203,8 +206,13 @@ class BinaryInclinometer(_Driver):
         return self._stamp(x_deg=ans.x_deg, y_deg=ans.y_deg)
 
     async def read_temperature(self) -> float:
-        self.temp_c = float(_present((await self._command(binary.READ_TEMP, None, "read temperature")).temp_c,
-                                     "read temperature"))
+        try:
+            ans = await self._command(binary.READ_TEMP, None, "read temperature")
+        except DeviceTimeout:
+            self.temp_answer_owed = True
+            raise
+        self.temp_answer_owed = False
+        self.temp_c = float(_present(ans.temp_c, "read temperature"))
         return self.temp_c
 
     async def sync(self) -> float:
@@ -218,8 +226,11 @@ class BinaryInclinometer(_Driver):
         held up, not the instrument).
         """
         if self.answers_temperature:
+            # An answer owed from before the call may be taken for the first request's; it was made
+            # before the call, so it cannot mark the stream: then the second answer does.
+            answers_needed = 2 if self.temp_answer_owed else 1
             angles_came = False
-            for _ in range(SYNC_ASKS):
+            for _ in range(SYNC_ASKS + answers_needed - 1):
                 asked_s = self.clock.monotonic()
                 try:
                     await self.read_temperature()
@@ -227,8 +238,10 @@ class BinaryInclinometer(_Driver):
                     last = self._latest
                     angles_came = angles_came or (last is not None and last.bench_s > asked_s)
                     continue
-                assert self.temp_answered_s is not None  # set by the reader before the answer is handed over
-                return self.temp_answered_s
+                answers_needed -= 1
+                if answers_needed == 0:
+                    assert self.temp_answered_s is not None  # set by the reader before the answer is handed over
+                    return self.temp_answered_s
             if not angles_came:
                 raise DeviceTimeout(f"{self.role}: neither a temperature answer nor an angle frame on "
                                     f"{self.port.where} through {SYNC_ASKS} requests of {self.timeout_s:g} s")

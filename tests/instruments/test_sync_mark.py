@@ -64,6 +64,37 @@ def test_readings_after_the_mark_are_of_the_new_pose(stage_sim, target):
     run_with_devices(stage_sim, body)
 
 
+def test_an_answer_owed_from_before_the_call_does_not_mark_the_stream(stage_sim):
+    """A temperature request timed out before the call (the reader held up), and its answer waits in
+    the line behind it with frames made during a move. The first answer the mark's request gets is
+    that old one; readings counted after the mark are still of the new pose only."""
+    async def body(dev):
+        sensor = dev.reference_sensor
+        await eventually(sensor.latest, "a first automatic-output frame")
+        release = _hold_reader(sensor.port)
+        with pytest.raises(DeviceTimeout):
+            await sensor.read_temperature()  # answered on the line, but the held reader does not see it
+        await dev.stage.move_to_deg(4.0, -3.0)  # frames of the motion queue up behind that answer
+        await dev.stage.wait_until_idle(60)
+        truth = stage_sim.world.sample(noisy=False)
+        # the answer to the mark's own request leaves late, after the reader is let go: the old
+        # answer is then the only one the reader has parsed when the request is resolved
+        stage_sim.faults("reference_sensor").slow(0.3)
+        called_s = sensor.clock.monotonic()
+        threading.Timer(0.2, release.set).start()
+        mark = await sensor.sync()
+        await eventually(lambda: len(sensor.readings_after(mark)) >= 5, "five readings after the mark")
+        assert any(abs(r.x_deg - truth["ref_x_deg"]) > 0.5 for r in sensor.readings_after(called_s)), \
+            "the held reader delivered no reading of the motion after the call: nothing was tested"
+        fresh = sensor.readings_after(mark)
+        off = [r for r in fresh if abs(r.x_deg - truth["ref_x_deg"]) > NOISE_TOL_DEG or
+               abs(r.y_deg - truth["ref_y_deg"]) > NOISE_TOL_DEG]
+        assert not off, (f"{len(off)} of {len(fresh)} readings after the mark are not of the new pose", off[:3], truth)
+        assert not sensor.temp_answer_owed
+
+    run_with_devices(stage_sim, body)
+
+
 def test_an_instrument_without_a_temperature_answer_still_gives_a_mark(stage_sim, monkeypatch):
     """A family (A) firmware that ignores 0x06: after SYNC_ASKS requests the mark falls back to the
     present time, and the firmware is not asked again."""
