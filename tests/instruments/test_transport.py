@@ -215,9 +215,14 @@ def test_an_answer_in_time_is_kept_when_the_event_loop_runs_late():
     """The loop held up past a request's deadline (a blocking call elsewhere): the answer that came
     meanwhile is returned, not a timeout."""
     async def body(table, _server):
+        frames = table.port.decoder.stats.frames
         asked = asyncio.get_running_loop().create_task(table.identify())
         await asyncio.sleep(0)  # the request runs up to its write, in the port's thread
-        time.sleep(1.0)  # the loop blocked for longer than the 0.3 s timeout; the reader thread gets the answer
+        # the loop blocked past the 0.3 s timeout and until the reader thread has parsed the answer
+        blocked_from = time.monotonic()
+        while time.monotonic() - blocked_from < 0.6 or table.port.decoder.stats.frames == frames:
+            assert time.monotonic() - blocked_from < 30, "no answer was parsed"
+            time.sleep(0.01)
         assert (await asked).model == "RT-360SIM"
         assert table.timeouts == 0
 
