@@ -1,0 +1,51 @@
+"""Child process of the many-writers test: one daemon's worth of appends to a shared database.
+
+Usage: python fleet_writer.py URL NAME SHARED_DEVICE_ID SECONDS
+For SECONDS it appends, in turn: a record version to the device all writers share (one hash
+chain contended by every process), a record version to a device of its own, an approval of a
+draft some writer made (the global approval chain), and an audit event (a bench registration).
+Each append it saw committed is counted; at the end it prints one JSON line of those counts,
+which the parent compares with the rows the database holds.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+from service.storage import make_engine
+from service.storage.daemon_jobs import DaemonStore
+from service.storage.errors import ConflictError
+
+MODEL = {"kind": "scale", "method": "linear", "parameters": {"gain_x": 1.0012, "gain_y": 0.9987},
+         "covariance": [[1e-8, 0.0], [0.0, 1.1e-8]], "residuals": {"rms_deg": 0.0021}}  # fmt: skip
+
+
+def main() -> None:
+    url, name, shared_device, seconds = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+    engine = make_engine(url)
+    store = DaemonStore(engine)
+    own = store.add_device("fleet-writer", f"{name}-own", "measurement_sensor", actor=name)
+    counts = {"records": 0, "approvals": 0, "benches": 0, "conflicts": 0}
+    deadline = time.monotonic() + seconds
+    turn = 0
+    while time.monotonic() < deadline:
+        turn += 1
+        shared = store.add_record(shared_device, "scale", "linear", MODEL, operator=name)
+        store.add_record(own.id, "scale", "linear", MODEL, operator=name)
+        counts["records"] += 2
+        try:  # another writer may decide the same draft first: a decision is final, the loser is refused
+            store.decide(shared.id - 1 if shared.id > 1 else shared.id, decision="approve", meaning="approval",
+                         note="", actor=f"{name}-reviewer")
+            counts["approvals"] += 1
+        except ConflictError:
+            counts["conflicts"] += 1
+        store.ensure_bench(f"{name}-bench-{turn}", actor=name)
+        counts["benches"] += 1
+    engine.dispose()
+    print(json.dumps(counts), flush=True)
+
+
+if __name__ == "__main__":
+    main()
