@@ -14,7 +14,9 @@ from fastapi_offline import FastAPIOffline
 from service import __version__
 from service.api import http_details, problems
 from service.api.auth import TokenCache, is_loopback
+from service.api.metrics import Metrics, MetricsMiddleware
 from service.api.routers import benches, calibrations, dashboard, health, lims, records, stage, streams, tilt
+from service.api.routers import metrics as metrics_router
 from service.api.routers.health import SchemaRevision
 from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering
 from service.bench.startup import plan_benches
@@ -22,6 +24,7 @@ from service.config import Settings, get_settings
 from service.errors import InputError
 from service.instruments.transport import DeviceError
 from service.jobs.manager import JobManager, RequestProblem
+from service.jobs.points import writes_in_flight
 from service.lims.runtime import LimsRuntime
 from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
 from service.storage.engine import normalise_url
@@ -143,6 +146,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         hub = app.state.streams = StreamHub(app.state.benches, jobs, queue_size=s.stream_queue_size,
                                             slow_close_s=s.stream_slow_close_s)
         hub.start()  # one reading producer per bench
+        metrics.sources.update(benches=app.state.benches, streams=hub, writes_in_flight=writes_in_flight)
         lims = LimsRuntime(store, s)  # webhook deliveries from the outbox, reference standards coming due
         app.state.webhooks = lims.dispatcher
         await lims.start()
@@ -163,10 +167,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                          description="Calibration, measurement and control of tilt with biaxial inclinometers. "
                                      "Every route but /health and the dashboard needs `Authorization: Bearer <token>`"
                                      " (scopes read, operate, admin). Errors are RFC 9457 problem+json.")
+    app.state.metrics = metrics = Metrics()
+    app.add_middleware(MetricsMiddleware, metrics=metrics)
     problems.install(app)
     http_details.install(app)
     _install_errors(app)
-    for r in (health, benches, tilt, stage, calibrations, records, lims, streams):
+    for r in (health, metrics_router, benches, tilt, stage, calibrations, records, lims, streams):
         app.include_router(r.router)
     dashboard.install(app)
     return app

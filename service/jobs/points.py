@@ -13,6 +13,12 @@ from service.storage.samples import Sample, write_samples
 
 log = logging.getLogger("tiltlab.jobs")
 T = TypeVar("T")
+_writes_in_flight = 0
+
+
+def writes_in_flight() -> int:
+    """Job writes handed to worker threads and not yet stored (the daemon's metrics show it)."""
+    return _writes_in_flight
 
 
 def store_point(store: DaemonStore, job_id: int, index: int, samples: list[Sample],
@@ -31,7 +37,10 @@ async def write_in_thread(write: Callable[..., T], /, *args: Any, **kwargs: Any)
     meanwhile. A thread cannot be stopped: a cancellation that left it running would let whoever
     cancelled the job (and waited for it) read the job before the write landed. The cancellation
     waits for the write, then goes on."""
+    global _writes_in_flight
+    _writes_in_flight += 1
     work = asyncio.ensure_future(asyncio.to_thread(write, *args, **kwargs))
+    work.add_done_callback(_written)
     try:
         return await asyncio.shield(work)
     except asyncio.CancelledError:
@@ -39,3 +48,8 @@ async def write_in_thread(write: Callable[..., T], /, *args: Any, **kwargs: Any)
         if not work.cancelled() and work.exception() is not None:
             log.warning("a job's database write failed while the job was being cancelled: %s", work.exception())
         raise
+
+
+def _written(_: object) -> None:
+    global _writes_in_flight
+    _writes_in_flight -= 1

@@ -147,6 +147,7 @@ class ReadingProducer:
         self.sensor_rate_hz = 1.0 / self.interval_s
         self.history = HistoryRing(int(HISTORY_MAX_S * self.sensor_rate_hz * 1.05) + 16)
         self.clients: set[Client] = set()
+        self.dropped_total = 0  # messages dropped for slow clients since start (the daemon's metrics)
         self.messages = 0
         self._latest: dict | None = None  # the last message built (without seq)
         self._task: asyncio.Task | None = None
@@ -248,6 +249,7 @@ class ReadingProducer:
             return
         c.pending_drops += 1
         c.dropped_total += 1
+        self.dropped_total += 1
         if c.dropping_since is None:
             c.dropping_since = loop_now
         elif loop_now - c.dropping_since >= self.slow_close_s:

@@ -68,6 +68,12 @@ class JobsStore(StoreBase):
                 stmt = stmt.where(CalibrationJob.state == state)
             return list(s.scalars(stmt))
 
+    def job_counts_by_state(self) -> dict[str, int]:
+        """How many jobs are in each state (one grouped query; for the daemon's metrics)."""
+        with self._read() as s:
+            rows = s.execute(sa.select(CalibrationJob.state, sa.func.count()).group_by(CalibrationJob.state))
+            return {str(state): int(n) for state, n in rows}
+
     def transition_job(
         self, job_id: int, to_state: str, *, actor: str, failure_reason: str | None = None
     ) -> CalibrationJob:

@@ -1,0 +1,135 @@
+"""Prometheus metrics of one daemon: its HTTP traffic, its instruments, its jobs and its streams.
+
+HTTP requests are counted as they are answered, by route template (never the raw path, so an id
+does not make a new series) and status, with a latency histogram. Everything else is read when
+Prometheus scrapes, from where the daemon already keeps it: the drivers' frame counters, the jobs
+table, the stream producers and the job writes in flight. Nothing is polled in between.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Iterator
+from typing import Annotated, Any
+
+from fastapi import Depends, Request
+from prometheus_client import CollectorRegistry, Counter, Histogram
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+from prometheus_client.registry import Collector
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+# Latency buckets for a local service: /tilt answers in milliseconds, a job start in tens of them.
+LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+
+JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
+
+
+class DaemonState(Collector):
+    """Scrape-time readings of the daemon's own state; `sources` gives the live objects (or None before start-up)."""
+
+    def __init__(self, sources: Callable[[], dict[str, Any]]) -> None:
+        self._sources = sources
+
+    def collect(self) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
+        src = self._sources()
+        yield from _device_families(src.get("benches") or {})
+        yield from _job_families(src.get("job_counts"))
+        yield from _stream_families(src.get("streams"))
+        in_flight = src.get("writes_in_flight")
+        writes = GaugeMetricFamily("tiltlab_sample_writer_queue_depth",
+                                   "Job database writes (samples and settled points) handed over and not yet stored")
+        writes.add_metric([], float(in_flight() if callable(in_flight) else 0))
+        yield writes
+
+
+def _device_families(benches: dict[str, Any]) -> Iterable[CounterMetricFamily | GaugeMetricFamily]:
+    labels = ["bench", "role", "port"]
+    families = {name: CounterMetricFamily(f"tiltlab_serial_{name}", help_text, labels=labels)
+                for name, help_text in (("frames", "Frames received from the instrument"),
+                                        ("bad_checksums", "Frames refused for a bad checksum"),
+                                        ("resyncs", "Times the framing lost and regained the frame boundary"),
+                                        ("timeouts", "Requests the instrument did not answer in time"),
+                                        ("reconnects", "Times the port was reopened"))}
+    connected = GaugeMetricFamily("tiltlab_device_connected", "1 while the instrument answers, else 0", labels=labels)
+    for bench_name, bench in benches.items():
+        for st in bench.devices.status():
+            key = [bench_name, st.role, str(st.port)]
+            c = st.counters
+            for name, value in (("frames", c.frames), ("bad_checksums", c.bad_checksum), ("resyncs", c.resyncs),
+                                ("timeouts", c.timeouts), ("reconnects", c.reconnects)):
+                families[name].add_metric(key, float(value))
+            connected.add_metric(key, 1.0 if st.state == "connected" else 0.0)
+    yield from families.values()
+    yield connected
+
+
+def _job_families(job_counts: Callable[[], dict[str, int]] | None) -> Iterable[GaugeMetricFamily]:
+    jobs = GaugeMetricFamily("tiltlab_jobs", "Calibration jobs in the database by state", labels=["state"])
+    counts = job_counts() if job_counts is not None else {}
+    for state in sorted(set(JOB_STATES) | set(counts)):
+        jobs.add_metric([state], float(counts.get(state, 0)))
+    yield jobs
+
+
+def _stream_families(hub: Any) -> Iterable[GaugeMetricFamily | CounterMetricFamily]:
+    clients = GaugeMetricFamily("tiltlab_websocket_clients", "Open reading streams", labels=["bench"])
+    dropped = CounterMetricFamily("tiltlab_websocket_dropped_messages",
+                                  "Reading messages dropped for clients that read too slowly", labels=["bench"])
+    for bench_name, producer in (getattr(hub, "producers", None) or {}).items():
+        clients.add_metric([bench_name], float(len(producer.clients)))
+        dropped.add_metric([bench_name], float(getattr(producer, "dropped_total", 0)))
+    yield clients
+    yield dropped
+
+
+class Metrics:
+    """One registry per application (tests run several daemons in one process)."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        self.requests = Counter("tiltlab_http_requests", "HTTP requests answered", ["route", "method", "status"],
+                                registry=self.registry)
+        self.latency = Histogram("tiltlab_http_request_duration_seconds", "Time from request to the answer's start",
+                                 ["route", "method"], buckets=LATENCY_BUCKETS_S, registry=self.registry)
+        self.sources: dict[str, Any] = {}
+        self.registry.register(DaemonState(lambda: self.sources))
+
+    def observe(self, route: str, method: str, status: int, seconds: float) -> None:
+        self.requests.labels(route, method, str(status)).inc()
+        self.latency.labels(route, method).observe(seconds)
+
+
+class MetricsMiddleware:
+    """Counts every HTTP request by route template and status; WebSocket and lifespan pass through."""
+
+    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        status = 500  # what the client gets if the application raises before answering
+
+        async def send_status(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = int(message["status"])
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            route = scope.get("route")
+            template = getattr(route, "path", None) or "(unmatched)"
+            self.metrics.observe(template, scope["method"], status, time.perf_counter() - start)
+
+
+def get_metrics(request: Request) -> Metrics:
+    metrics: Metrics = request.app.state.metrics
+    return metrics
+
+
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
