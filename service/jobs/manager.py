@@ -196,7 +196,8 @@ class JobManager:
     def _standards(self, req: dict) -> list[dict]:
         """The registered standards a job named, as its record keeps them (traceability of the result)."""
         return [{"id": st.id, "name": st.name, "serial": st.serial, "certificate_id": st.certificate_number,
-                 "certificate_sha256": st.certificate_sha256}
+                 "certificate_sha256": st.certificate_sha256, "expanded_uncertainty_deg": st.expanded_uncertainty_deg,
+                 "coverage_factor": st.coverage_factor}
                 for st in map(self.store.standard, req.get("reference_standards") or [])]
 
     async def submit(self, req: CalibrationRequest, bench: BenchRuntime, principal: Principal,

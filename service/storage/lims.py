@@ -7,6 +7,7 @@ from __future__ import annotations
 import base64
 import datetime as dt
 import hashlib
+import math
 import re
 import secrets
 from collections.abc import Mapping, Sequence
@@ -17,6 +18,7 @@ from urllib.parse import urlsplit
 import sqlalchemy as sa
 
 from service.errors import InputError
+from service.lims.stated_uncertainty import parse_stated_uncertainty
 from service.storage.canonical import normalise, sha256_hex, utc_iso
 from service.storage.errors import ConflictError, RefusedWrite, UnknownEntity
 from service.storage.feed import EVENT_TYPES
@@ -77,6 +79,26 @@ def _date(name: str, value: object) -> dt.date:
     raise InputError(f"{name}: {value!r} is not a date (YYYY-MM-DD)")
 
 
+def _number(name: str, value: object, *, above: float | None = None, least: float | None = None) -> float:
+    ok = not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value) \
+        and (above is None or value > above) and (least is None or value >= least)
+    if not ok:
+        raise InputError(f"{name}: {value!r} is not a number {f'> {above:g}' if above is not None else f'>= {least:g}'}")
+    return float(value)  # type: ignore[arg-type]
+
+
+def _stated_uncertainty(fields: Mapping[str, Any], remark: str) -> tuple[float | None, float | None]:
+    """U (degrees) and k as given, else read from the remark's wording; (None, None) when neither says."""
+    U, k = fields.get("expanded_uncertainty_deg"), fields.get("coverage_factor")
+    if U is None:
+        if k is not None:
+            raise InputError("coverage_factor: given without expanded_uncertainty_deg")
+        parsed = parse_stated_uncertainty(remark)
+        return parsed if parsed is not None else (None, None)
+    return (_number("expanded_uncertainty_deg", U, above=0.0),
+            _number("coverage_factor", 2.0 if k is None else k, least=1.0))
+
+
 def webhook_url(url: object) -> str:
     """An http(s) URL with a host; anything else is refused before it is stored."""
     text = _text("url", url, 2000)
@@ -107,12 +129,15 @@ class LimsStore(StoreBase):
         if due <= calibrated:
             raise InputError(f"due_on {due} must be after calibrated_on {calibrated}")
         model = fields.get("model")
+        remark = fields.get("uncertainty")
+        remark = _text("uncertainty", remark, 500) if remark not in (None, "") else ""
+        U, k = _stated_uncertainty(fields, remark)
         row = ReferenceStandard(
             name=_text("name", fields.get("name")), serial=_text("serial", fields.get("serial")),
             model=_text("model", model) if model is not None else None,
             certificate_number=_text("certificate_number", fields.get("certificate_number")),
             certificate_sha256=sha, calibrated_on=calibrated, due_on=due,
-            uncertainty=_text("uncertainty", fields.get("uncertainty"), 500), created_at=utc_now(),
+            uncertainty=remark, expanded_uncertainty_deg=U, coverage_factor=k, created_at=utc_now(),
             created_by=_text("actor", actor),
         )  # fmt: skip
         with self._tx() as s:
@@ -124,7 +149,8 @@ class LimsStore(StoreBase):
             s.flush()
             self._audit(s, actor, "standard.create", "reference_standard", row.id,
                         {"name": row.name, "serial": row.serial, "certificate_number": row.certificate_number,
-                         "certificate_sha256": sha, "due_on": due.isoformat()})  # fmt: skip
+                         "certificate_sha256": sha, "due_on": due.isoformat(),
+                         "expanded_uncertainty_deg": U, "coverage_factor": k})  # fmt: skip
             return row
 
     def standards(self) -> list[ReferenceStandard]:
@@ -152,6 +178,12 @@ class LimsStore(StoreBase):
                     raise StandardNotUsable(
                         f"reference_standards[{i}]", f"standard {row.id} ({row.name}, serial {row.serial}, certificate "
                         f"{row.certificate_number}) was due for calibration on {row.due_on}; it cannot be used")
+                if row.expanded_uncertainty_deg is None or row.coverage_factor is None:
+                    raise StandardNotUsable(
+                        f"reference_standards[{i}]", f"standard {row.id} ({row.name}, serial {row.serial}, certificate "
+                        f"{row.certificate_number}) states no numeric uncertainty (its text {row.uncertainty!r} does not "
+                        "read as an angle with its coverage factor); register it again with expanded_uncertainty_deg "
+                        "and coverage_factor")
                 out.append(row)
         return out
 

@@ -306,7 +306,11 @@ class ReferenceStandard(Base):
     certificate_sha256: Mapped[str] = mapped_column(Sha256)
     calibrated_on: Mapped[dt.date] = mapped_column(sa.Date())
     due_on: Mapped[dt.date] = mapped_column(sa.Date())
-    uncertainty: Mapped[str] = mapped_column(sa.Text)
+    uncertainty: Mapped[str] = mapped_column(sa.Text)  # the certificate's wording, a remark
+    # U (degrees) and its coverage factor k: u = U / k enters every result calibrated against the standard;
+    # empty for a standard whose stated uncertainty could not be read as an angle (refused where used)
+    expanded_uncertainty_deg: Mapped[float | None] = mapped_column(sa.Double())
+    coverage_factor: Mapped[float | None] = mapped_column(sa.Double())
     created_at: Mapped[dt.datetime]
     created_by: Mapped[str] = mapped_column(sa.String(100))
     # The due date a standard.due_soon event was last sent for (once per due date).

@@ -43,14 +43,22 @@ class StandardIn(BaseModel):
     certificate_sha256: str = Field(description="SHA-256 of the standard's calibration certificate file (64 hex digits)")
     calibrated_on: dt.date
     due_on: dt.date
-    uncertainty: str = Field(max_length=500, examples=["0.001 deg (k = 2)"])
+    expanded_uncertainty_deg: float | None = Field(
+        None, gt=0, allow_inf_nan=False, examples=[0.001],
+        description="expanded uncertainty U of the standard's angle, in degrees, as its certificate states it; "
+                    "u = U / coverage_factor enters every result calibrated against it. Read from `uncertainty` "
+                    "when not given; a standard with neither cannot be named by a job (422)")
+    coverage_factor: float = Field(2.0, ge=1, allow_inf_nan=False, description="the coverage factor k of U")
+    uncertainty: str = Field("", max_length=500, examples=["0.001 deg (k = 2)"],
+                             description="the certificate's wording of the uncertainty (a remark)")
 
 
 def standard_json(s: ReferenceStandard, today: dt.date, due_soon_days: int) -> dict[str, Any]:
     days = (s.due_on - today).days
     return {"id": s.id, "name": s.name, "serial": s.serial, "model": s.model, "certificate_number": s.certificate_number,
             "certificate_sha256": s.certificate_sha256, "calibrated_on": s.calibrated_on, "due_on": s.due_on,
-            "uncertainty": s.uncertainty, "created_utc": s.created_at, "created_by": s.created_by,
+            "uncertainty": s.uncertainty, "expanded_uncertainty_deg": s.expanded_uncertainty_deg,
+            "coverage_factor": s.coverage_factor, "created_utc": s.created_at, "created_by": s.created_by,
             "status": "past_due" if days < 0 else ("due_soon" if days <= due_soon_days else "valid")}  # fmt: skip
 
 
@@ -58,7 +66,10 @@ def standard_json(s: ReferenceStandard, today: dt.date, due_soon_days: int) -> d
 def add_standard(body: StandardIn, request: Request, who: Admin) -> JSONResponse:
     """Register one certificate of a reference standard (scope admin). A recalibration is a new entry."""
     try:
-        row = _store(request).add_standard(body.model_dump(), actor=who.name)
+        fields = body.model_dump()
+        if "coverage_factor" not in body.model_fields_set:
+            fields["coverage_factor"] = None if body.expanded_uncertainty_deg is None else 2.0
+        row = _store(request).add_standard(fields, actor=who.name)
     except ConflictError as exc:
         raise ProblemError(409, "Standard already registered", str(exc)) from None
     s = request.app.state.settings
