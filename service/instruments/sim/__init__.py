@@ -92,8 +92,10 @@ def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock
     try:
         if kind == "stage":
             world, ports, roles = _stage(scenario, clock, folder, adc, output_rate_hz)
+            hardware = world.scenario.bench.model_dump()
         else:
             world, ports, roles = _rotary(scenario, clock, folder, output_rate_hz, bus_addresses)
+            hardware = None
     except BaseException:
         for p in ports.values():
             p.close()
@@ -103,6 +105,10 @@ def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock
     lines = [f"# Simulated {kind} bench, scenario {scenario}, {clock.speed:g} times real time.",
              f"sim_speed = {clock.speed:g}", "", f"[benches.{name}]", f'kind = "{kind}"',
              f'description = "simulated {kind} bench, scenario {scenario}"', ""]
+    if hardware is not None:  # the scenario's stages: the daemon converts degrees to pulses with its gearing
+        lines.append(f"[benches.{name}.hardware]")
+        lines.extend(f"{k} = {_toml_value(v)}" for k, v in hardware.items())
+        lines.append("")
     for role, table in roles.items():
         lines.append(f"[benches.{name}.roles.{role}]")
         for k, v in table.items():
