@@ -10,25 +10,23 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-
-from alembic.script import ScriptDirectory
-from alembic.util.exc import CommandError
+from typing import TYPE_CHECKING
 
 from service.commands._args import add_command, add_subcommands
-from service.config import Settings, get_settings
 from service.errors import InputError
-from service.storage.backup import (
-    backup_sqlite,
-    database_exists,
-    pg_dump_command,
-    sqlite_path,
-    timestamped_backup_path,
-)
-from service.storage.engine import make_engine, redacted
-from service.storage.migrate import alembic_config, current_revision, downgrade, head_revision
+
+if TYPE_CHECKING:  # storage and migrations are imported by the commands that use them, not by --help
+    from alembic.script import ScriptDirectory
+
+    from service.config import Settings
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.config import get_settings
+    from service.storage.backup import database_exists, sqlite_path
+    from service.storage.engine import make_engine, redacted
+    from service.storage.migrate import current_revision, head_revision
+
     settings = get_settings()
     command = args.db_command
     if command == "upgrade":
@@ -78,6 +76,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _scripts() -> ScriptDirectory:
+    from alembic.script import ScriptDirectory
+
+    from service.storage.migrate import alembic_config
+
     return ScriptDirectory.from_config(alembic_config())
 
 
@@ -93,6 +95,12 @@ def _known_revisions() -> str:
 
 
 def _downgrade(settings: Settings, engine, target: str, yes: bool) -> int:  # type: ignore[no-untyped-def]
+    from alembic.util.exc import CommandError
+
+    from service.storage.backup import backup_sqlite, pg_dump_command, sqlite_path, timestamped_backup_path
+    from service.storage.engine import redacted
+    from service.storage.migrate import current_revision, downgrade
+
     where = redacted(settings.database_url)
     scripts = _scripts()
     if target != "base":
@@ -137,6 +145,9 @@ def _downgrade(settings: Settings, engine, target: str, yes: bool) -> int:  # ty
 
 
 def _backup(settings: Settings, out: str) -> int:
+    from service.storage.backup import backup_sqlite, pg_dump_command, sqlite_path
+    from service.storage.engine import redacted
+
     path = sqlite_path(settings.database_url)
     if path is None:
         print("tiltlab does not dump PostgreSQL itself (use the server's own pg_dump, which matches its "

@@ -8,20 +8,14 @@ role, the port and what was expected; then the exit status is 2.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import sys
+from typing import TYPE_CHECKING
 
-from service.benchconfig import (
-    BinaryInclinometerRole,
-    PortRole,
-    Rs485InclinometerRole,
-    load_bench_config,
-)
-from service.clock import Clock
 from service.commands._args import add_command
-from service.instruments.bench import make_driver
-from service.instruments.drivers import StageController
-from service.instruments.transport import DeviceError, PortRegistry
+
+if TYPE_CHECKING:  # the bench and its drivers are imported when the command runs, not by --help
+    from service.benchconfig import PortRole
+    from service.clock import Clock
 
 EXPECTED = {
     "reference_sensor": "a 0x68 binary inclinometer",
@@ -35,6 +29,8 @@ EXPECTED = {
 
 
 def expected(role: str, spec: PortRole) -> str:
+    from service.benchconfig import BinaryInclinometerRole, Rs485InclinometerRole
+
     what = EXPECTED[role]
     if isinstance(spec, BinaryInclinometerRole):
         what += f" at address 0x{spec.address:02X}"
@@ -47,6 +43,8 @@ def expected(role: str, spec: PortRole) -> str:
 
 async def _probe(role: str, driver) -> str:
     """What answered, in words; raises DeviceError with the reason otherwise."""
+    from service.instruments.drivers import StageController
+
     if isinstance(driver, StageController):
         ident = await driver.x.identify()
         await driver.y.position_pulses()
@@ -71,6 +69,9 @@ async def _probe(role: str, driver) -> str:
 
 
 def _why(role: str, spec: PortRole, driver) -> str:
+    from service.benchconfig import BinaryInclinometerRole, Rs485InclinometerRole
+    from service.instruments.drivers import StageController
+
     port = driver.x.port if isinstance(driver, StageController) else driver.port
     if port.state != "connected":
         return f"cannot be opened ({port.error or 'not found'})"
@@ -89,6 +90,12 @@ def _why(role: str, spec: PortRole, driver) -> str:
 
 async def probe_bench(config, clock: Clock) -> list[tuple[str, str, bool, str]]:
     """(role, port, answered, what answered or why not) for every role."""
+    import asyncio
+
+    from service.instruments.bench import make_driver
+    from service.instruments.drivers import StageController
+    from service.instruments.transport import DeviceError, PortRegistry
+
     registry = PortRegistry()
     results = []
     drivers = {role: make_driver(role, spec, config, clock, registry) for role, spec in config.role_specs.items()}
@@ -111,6 +118,11 @@ async def probe_bench(config, clock: Clock) -> list[tuple[str, str, bool, str]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from service.benchconfig import load_bench_config
+    from service.clock import Clock
+
     benches = load_bench_config(args.config)
     config = benches.bench(args.bench)
     results = asyncio.run(probe_bench(config, Clock(benches.sim_speed or 1.0)))

@@ -20,18 +20,18 @@ import json
 import math
 import sys
 
-import numpy as np
-
 from service.commands._args import add_command
-from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_text_atomic
 from service.errors import InputError
-from service.provenance import provenance
+
+# numpy, the dataset reader and the workflow are imported when the command runs, not by --help.
 
 REPORT_SIGNIFICANT_DIGITS = 8
 
 
 def _clean(o):
     """JSON-safe: numpy scalars to Python, non-finite numbers to null."""
+    import numpy as np
+
     if isinstance(o, dict):
         return {str(k): _clean(v) for k, v in o.items()}
     if isinstance(o, (list, tuple)):
@@ -50,6 +50,8 @@ def _clean(o):
 
 
 def _constant_column(ds, col: str) -> float | None:
+    import numpy as np
+
     if col not in ds.numeric:
         return None
     v = ds.numeric[col]
@@ -67,6 +69,9 @@ def _constant_column(ds, col: str) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_text_atomic
+    from service.provenance import provenance
+
     kind = args.kind
     baseline = getattr(args, "baseline", None) or "linear"
     inputs = {"input": str(args.input)}

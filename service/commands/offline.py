@@ -9,12 +9,11 @@ import argparse
 import sys
 from typing import Any
 
-from service.calibration.registry import FitOptions, get_method, levelling_method
 from service.commands._args import add_command, finite
-from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
 from service.errors import InputError
-from service.modelio import read_model, write_model
-from service.provenance import provenance
+
+# The methods, the dataset reader and numpy are imported by the commands that use them, so that
+# `--help` starts at once.
 
 KINDS = ("stage", "rotation", "scale", "turntable")
 
@@ -113,6 +112,11 @@ def _refuse_options_that_do_not_apply(args: argparse.Namespace) -> None:
 
 
 def calibrate(args: argparse.Namespace) -> int:
+    from service.calibration.registry import FitOptions, get_method
+    from service.datasets import about, check_not_overwriting, check_output_path, read_dataset
+    from service.modelio import write_model
+    from service.provenance import provenance
+
     check_output_path(args.out)
     check_not_overwriting(args.out, input=args.input)
     method = get_method(args.kind, args.method)
@@ -160,6 +164,10 @@ def stage_bench_options(kind: str, bench_path: str | None) -> dict:
 
 
 def correct(args: argparse.Namespace) -> int:
+    from service.calibration.registry import get_method
+    from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
+    from service.modelio import read_model
+
     check_output_path(args.out)
     check_not_overwriting(args.out, model=args.model, input=args.input)
     model = read_model(args.model)
@@ -174,6 +182,10 @@ def correct(args: argparse.Namespace) -> int:
 
 
 def level(args: argparse.Namespace) -> int:
+    from service.calibration.registry import levelling_method
+    from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
+    from service.modelio import read_model
+
     check_output_path(args.out)
     check_not_overwriting(args.out, model=args.model, targets=args.targets)
     model = read_model(args.model)

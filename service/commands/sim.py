@@ -13,10 +13,7 @@ import sys
 import threading
 from pathlib import Path
 
-from service.benchconfig import PROTOCOL_OF_ROLE
-from service.clock import Clock
 from service.commands._args import add_command, seconds, speed
-from service.datasets import check_output_path, write_text_atomic
 from service.errors import InputError
 
 FAMILY_WORDS = {"binary": "0x68 binary frames", "rs485": "RS-485 ASCII", "adc": "ADC ASCII",
@@ -24,6 +21,9 @@ FAMILY_WORDS = {"binary": "0x68 binary frames", "rs485": "RS-485 ASCII", "adc": 
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.benchconfig import PROTOCOL_OF_ROLE
+    from service.clock import Clock
+    from service.datasets import check_output_path, write_text_atomic
     from service.instruments.sim import start_simulated_bench
 
     if not 0 < args.speed <= 10_000:

@@ -6,10 +6,6 @@ import argparse
 import getpass
 import sys
 
-from service.config import get_settings
-from service.storage.migrate import bootstrap
-from service.storage.tokens import TokenStore
-
 
 def operator_name() -> str:
     try:
@@ -19,6 +15,10 @@ def operator_name() -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.config import get_settings
+    from service.storage.migrate import bootstrap
+    from service.storage.tokens import TokenStore
+
     engine = bootstrap(get_settings())
     store = TokenStore(engine)
     try:
