@@ -589,6 +589,7 @@ async function openRecord(id, message = "") {
     ["compared with", v.compared_with || "—"], ["mean temperature", isNum(c.temp_c_mean) ? `${c.temp_c_mean.toFixed(2)} °C` : "—"],
     ["samples per point", c.samples_per_point ?? "—"], ["created", `${utcDate(rec.created_utc)} UTC by ${rec.operator || "?"}`]];
   $("rec-validation").tBodies[0].replaceChildren(...rows.map(([k, x]) => el("tr", {}, el("th", {}, k), el("td", {}, String(x)))));
+  drawBudget(rec.budget);
   // the previous version of the same device
   const prev = state.records.find((r) => r.id === rec.supersedes_id) ||
     state.records.filter((r) => r.device_id === rec.device_id && r.kind === rec.kind && r.version < rec.version).sort((a, b) => b.version - a.version)[0];
@@ -627,6 +628,24 @@ async function openRecord(id, message = "") {
   } catch (err) {
     $("res-scale").textContent = `(${err.message})`;
   }
+}
+
+// every result's GUM budget: each contribution's standard uncertainty, then u_c, k and U at 95 %
+function drawBudget(budget) {
+  const tb = $("rec-budget").tBodies[0];
+  const results = (budget && budget.results) || [];
+  if (!results.length) { tb.replaceChildren(el("tr", {}, el("td", { colspan: "4" }, "no budget kept with this record"))); return; }
+  const g = (x) => (isNum(x) ? x.toPrecision(2) : "—");
+  const nu = (x) => (isNum(x) ? x.toFixed(0) : "∞");
+  const rows = [];
+  for (const r of results) {
+    const unit = r.unit === "deg" ? "°" : ` ${r.unit}`;
+    r.contributions.forEach((c, i) => rows.push(el("tr", {}, el("td", {}, i === 0 ? r.name : ""),
+      el("td", {}, c.source === "fit" ? "fit (covariance, reading noise)" : c.name || c.source), el("td", {}, `${g(c.u)}${unit}`), el("td", {}, nu(c.dof)))));
+    rows.push(el("tr", { class: "total" }, el("td", {}, ""), el("th", {}, `combined: U = ${g(r.U)}${unit} (k = ${r.k.toFixed(2)}, ${Math.round(100 * r.coverage_probability)} %)`),
+      el("td", {}, `${g(r.u)}${unit}`), el("td", {}, nu(r.dof_eff))));
+  }
+  tb.replaceChildren(...rows);
 }
 
 function colour(f) {  // 0 green .. 1 red

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from service.calibration.uncertainty import COVERAGE
+from service.calibration.budget import combine, reading_components
+from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor
 from service.columns import K_OUTPUTS
 from service.instruments.base import Reading
 
@@ -35,15 +36,26 @@ def corrected_tilt(active: Any, meas: Reading) -> dict:
     the record's covariance: {"x_deg", "y_deg", "u_x_deg", "u_y_deg", "k", "k_y", "coverage_probability"};
     `k` is the coverage factor of u_x_deg and `k_y` that of u_y_deg, Student's t at the effective
     degrees of freedom (Welch-Satterthwaite), near 2 for a well-determined record; an uncertainty the
-    method cannot give is None, and so is its factor. `active` is the job manager's ActiveModel of the bench."""
+    method cannot give is None, and so is its factor. `active` is the job manager's ActiveModel of the bench.
+
+    The fit's part (covariance and reading noise, from the method) combines with the rest of the record's
+    uncertainty budget: the reference standards' u = U/k, the sensors' resolution, the temperature's influence."""
     out = active.method.correct(active.model, {"meas_x_deg": np.array([meas.x_deg], dtype=float),
                                                "meas_y_deg": np.array([meas.y_deg], dtype=float)})
 
     def u(k: str) -> float | None:
         return None if k not in out or not np.isfinite(out[k][0]) else float(out[k][0])
 
+    others = reading_components(getattr(active, "budget", None))
+    expanded: dict[str, float | None] = {}
+    factors: dict[str, float | None] = {}
+    for axis, key in (("x", K_OUTPUTS[0]), ("y", K_OUTPUTS[1])):
+        U_fit, k_fit = u(f"u_tilt_{axis}_deg"), u(key)
+        if U_fit is None or k_fit is None:
+            expanded[axis], factors[axis] = U_fit, None if U_fit is None else k_fit
+            continue
+        c = combine(np.array([U_fit / k_fit]), dof_of_coverage_factor(np.array([k_fit]), COVERAGE), others, COVERAGE)
+        expanded[axis], factors[axis] = float(c.U[0]), float(c.k[0])
     return {"x_deg": float(out["tilt_x_deg"][0]), "y_deg": float(out["tilt_y_deg"][0]),
-            "u_x_deg": u("u_tilt_x_deg"), "u_y_deg": u("u_tilt_y_deg"),
-            "k": u(K_OUTPUTS[0]) if u("u_tilt_x_deg") is not None else None,
-            "k_y": u(K_OUTPUTS[1]) if u("u_tilt_y_deg") is not None else None,
+            "u_x_deg": expanded["x"], "u_y_deg": expanded["y"], "k": factors["x"], "k_y": factors["y"],
             "coverage_probability": COVERAGE}

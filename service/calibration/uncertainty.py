@@ -57,6 +57,16 @@ def coverage_factor(dof_eff, coverage: float = COVERAGE) -> np.ndarray:
 _TABLE_ABOVE = 256
 
 
+def dof_of_coverage_factor(k, coverage: float = COVERAGE) -> np.ndarray:
+    """The degrees of freedom ν whose Student's t factor is k (coverage_factor's inverse; infinite at the normal's)."""
+    kk = np.asarray(k, dtype=float)
+    q = 0.5 + coverage / 2.0
+    normal = float(special.ndtri(q))
+    with np.errstate(all="ignore"):
+        nu = special.stdtridf(q, np.maximum(kk, normal))
+    return np.asarray(np.where(kk <= normal * (1 + 1e-9), np.inf, nu), dtype=float)
+
+
 @functools.lru_cache(maxsize=4)
 def _coverage_table(q: float) -> tuple[np.ndarray, np.ndarray]:
     """Student's t quantile q tabulated on 1/ν in [0, 1] (ν from infinity down to 1)."""

@@ -10,6 +10,7 @@ import asyncio
 import collections
 import contextlib
 import datetime as dt
+import math
 from dataclasses import replace
 from typing import Any
 
@@ -139,6 +140,7 @@ class BinaryInclinometer(_Driver):
     """reference_sensor / measurement_sensor (family A). Automatic output keeps `latest()` fresh."""
 
     protocol = "binary"
+    resolution_deg = 1e-4  # packed BCD with four decimals of a degree: an uncertainty budget's resolution
 
     def __init__(self, role, port, clock, timeout_s, address: int, output_rate_hz: int | str = 0) -> None:
         super().__init__(role, port, clock, timeout_s)
@@ -274,6 +276,7 @@ class Rs485Inclinometer(_Driver):
     """turntable_sensor (family B): one address on a bus that other instruments may share."""
 
     protocol = "rs485"
+    resolution_deg = 1e-6 * 180.0 / math.pi  # milliradians with three decimals: 1 µrad
 
     def __init__(self, role, port, clock, timeout_s, address: int, poll_rate_hz: float | None = None) -> None:
         super().__init__(role, port, clock, timeout_s)

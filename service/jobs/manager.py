@@ -26,6 +26,7 @@ from service.calibration.uncertainty import COVERAGE
 from service.errors import InputError
 from service.instruments.transport import DeviceError
 from service.jobs import angles
+from service.jobs.budgets import budget_of_record, resolutions_deg
 from service.jobs.events import JobEvents
 from service.jobs.points import store_point, write_in_thread
 from service.jobs.requests import KIND_OF_PROCEDURE, MIN_POINTS, CalibrationRequest
@@ -63,6 +64,7 @@ class ActiveModel:
     method_name: str
     model: CalibrationModel
     method: Any
+    budget: dict[str, Any] | None = None  # the record's uncertainty budget (what adds to the fit's part)
 
 
 def stage_columns(points_ref, points_meas) -> dict[str, np.ndarray]:  # type: ignore[no-untyped-def]
@@ -86,6 +88,7 @@ def job_conditions(bench: BenchRuntime, req: dict, temps_c: list[float]) -> dict
     return {"temp_c_mean": float(np.mean(temps_c)) if len(temps_c) else None, "software_version": __version__,
             "firmware": {r: (i.firmware if i else None) for r, i in bench.identities.items()},
             "instruments": {r: (f"{i.model} s/n {i.serial}" if i else None) for r, i in bench.identities.items()},
+            "resolution_deg": resolutions_deg(bench),
             "bench": bench.name, "clock_speed": bench.clock.speed, "outlier_rule": OUTLIER_RULE,
             "samples_per_point": req["samples_per_point"], "settle": req["settle"]}
 
@@ -106,7 +109,7 @@ class JobManager:
         rec = self.store.active_record(dev, "stage") if dev is not None else None
         self.active[bench.name] = None if rec is None else ActiveModel(
             rec.id, rec.version, rec.method, CalibrationModel.from_json_dict(rec.model, f"record {rec.id}"),
-            get_method("stage", rec.method))
+            get_method("stage", rec.method), (rec.raw_data or {}).get("budget"))
         return self.active[bench.name]
 
     def bench_of_device(self, device_id: int) -> BenchRuntime | None:
@@ -500,10 +503,14 @@ class JobManager:
                   n_fit: int) -> None:
         """Blocking (database): the record version, then the job succeeded."""
         req = job.parameters["request"]
+        standards = self._standards(req)
+        method = get_method(kind, job.method)
+        budget = budget_of_record(method, model, self.fit_columns(job.id, None, n_fit) if kind == "stage" else None,
+                                  standards, conditions.get("resolution_deg") or {})
         self.store.add_record(device_id, kind, job.method, model.to_json_dict(), operator=job.created_by,
                               validation=validation, temp_c=conditions["temp_c_mean"], job_id=job.id,
-                              reference_standards=self._standards(req),
-                              raw_data={"conditions": conditions, "fit_points": n_fit})
+                              reference_standards=standards,
+                              raw_data={"conditions": conditions, "fit_points": n_fit, "budget": budget})
         self.store.succeed_job(job.id, actor="daemon")
 
     def _points_by_device(self, job_id: int) -> dict[int, list]:

@@ -15,6 +15,7 @@ from typing import Any, cast
 
 import numpy as np
 
+from service.calibration.budget import model_dof
 from service.calibration.uncertainty import COVERAGE, coverage_factor
 from service.lims import dcc
 
@@ -77,28 +78,6 @@ class Approval:
     record_sha256: str
     event_sha256: str
     note: str = ""
-
-
-def model_dof(model: Mapping[str, Any]) -> float:
-    """Degrees of freedom of the fit behind the parameters' covariance: the smallest any part states.
-
-    A model may state several (a kinematic chain and the measurement sensor fit separately); the
-    smallest gives the largest coverage factor, so the interval is never too narrow. Infinite when
-    the model states none (k = 1.96 at 95 %).
-    """
-    found: list[float] = []
-
-    def walk(node: Any) -> None:
-        if isinstance(node, Mapping):
-            for k, v in node.items():
-                if k in ("dof", "meas_dof") and isinstance(v, int | float) and not isinstance(v, bool) and v > 0:
-                    found.append(float(v))
-                else:
-                    walk(v)
-
-    walk(model.get("fit") or {})
-    walk(model.get("state") or {})
-    return min(found) if found else math.inf
 
 
 def parameter_values(model: Mapping[str, Any], probability: float = COVERAGE) -> tuple[dcc.Value, ...]:

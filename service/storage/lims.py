@@ -18,7 +18,6 @@ from urllib.parse import urlsplit
 import sqlalchemy as sa
 
 from service.errors import InputError
-from service.lims.stated_uncertainty import parse_stated_uncertainty
 from service.storage.canonical import normalise, sha256_hex, utc_iso
 from service.storage.errors import ConflictError, RefusedWrite, UnknownEntity
 from service.storage.feed import EVENT_TYPES
@@ -36,6 +35,7 @@ from service.storage.models import (
     WebhookEndpoint,
     utc_now,
 )
+from service.storage.stated_uncertainty import parse_stated_uncertainty
 from service.storage.store.base import StoreBase
 from service.storage.store.checks import _text
 from service.storage.store.hashing import record_content

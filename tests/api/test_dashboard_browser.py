@@ -187,6 +187,9 @@ def test_calibration_followed_to_its_end_and_its_residual_map(page, bench):
     assert page.locator("#res-rms-after").inner_text().endswith("″)")
     expect(page.locator("#rec-validation")).to_contain_text("RMS error")
     expect(page.locator("#rec-compare")).to_contain_text("first version")
+    # the record's uncertainty budget: each contribution, then the combination
+    expect(page.locator("#rec-budget")).to_contain_text("measurement sensor resolution")
+    expect(page.locator("#rec-budget")).to_contain_text("combined: U =")
     expect(page.locator("#dl-cert")).to_be_disabled()  # a draft has no certificate
     with page.expect_download() as dl:
         page.click("#dl-model")

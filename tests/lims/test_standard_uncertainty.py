@@ -9,9 +9,9 @@ import pytest
 import sqlalchemy as sa
 
 from service.errors import InputError
-from service.lims.stated_uncertainty import parse_stated_uncertainty
 from service.storage.lims import StandardNotUsable
 from service.storage.migrate import downgrade, upgrade
+from service.storage.stated_uncertainty import parse_stated_uncertainty
 
 BASE = {"name": "reference inclinometer", "serial": "REF-77", "certificate_number": "C-1",
         "certificate_sha256": "ab" * 32, "calibrated_on": "2026-01-10", "due_on": "2027-01-10"}  # fmt: skip

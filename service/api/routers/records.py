@@ -29,7 +29,8 @@ def record_json(request: Request, r: CalibrationRecord, active: bool) -> dict:
     return {"id": r.id, "device_id": r.device_id, "bench": bench.name if bench else None, "kind": r.kind,
             "version": r.version, "method": r.method, "created_utc": r.created_at, "operator": r.operator,
             "job_id": r.job_id, "active": active, "validation": r.validation, "temp_c": r.temp_c,
-            "conditions": (r.raw_data or {}).get("conditions"), "raw_data": r.raw_data,
+            "conditions": (r.raw_data or {}).get("conditions"), "budget": (r.raw_data or {}).get("budget"),
+            "raw_data": r.raw_data,
             "supersedes_id": r.supersedes_id, "content_sha256": r.content_sha256,
             "reference_standards": r.reference_standards,
             "status": request.app.state.store.record_status(r.id)}  # draft | approved | rejected (LIMS approvals)

@@ -1,0 +1,53 @@
+"""The uncertainty budget a new record keeps (service.calibration.budget): gathered from the fit, the
+calibration points, the reference standards the job named and the sensors' resolution."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from service.calibration.budget import model_dof, record_budget
+from service.calibration.model import CalibrationModel
+from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor
+from service.columns import K_OUTPUTS
+
+ROLE_WORDS = {"measurement_sensor": "measurement sensor", "reference_sensor": "reference sensor"}
+
+
+def resolutions_deg(bench: Any) -> dict[str, float | None]:
+    """Each sensor's output resolution (degrees) as its driver states it; None where it states none."""
+    out: dict[str, float | None] = {}
+    for role in bench.devices:
+        r = getattr(bench.devices[role], "resolution_deg", None)
+        out[role] = float(r) if isinstance(r, int | float) and r > 0 else None
+    return out
+
+
+def budget_of_record(method: Any, model: CalibrationModel, fit_columns: Mapping[str, np.ndarray] | None,
+                     standards: Sequence[Mapping[str, Any]], resolutions: Mapping[str, float | None]) -> dict[str, Any]:
+    """The record's budget; the corrected tilt's entries where the method corrects readings (stage records)."""
+    model_json = model.to_json_dict()
+    dof = model_dof(model_json)
+    parameter_u = {n: s for n in model.parameters if (s := model.std(n)) is not None}
+    tilt_u = tilt_dof = temps = errors = None
+    if fit_columns is not None and method.kind == "stage" and "meas_x_deg" in fit_columns:
+        out = method.correct(model, fit_columns)
+        if "u_tilt_x_deg" in out:
+            u_fit, nus = [], []
+            for axis, key in (("x", K_OUTPUTS[0]), ("y", K_OUTPUTS[1])):
+                k = np.asarray(out[key], dtype=float)
+                u = np.asarray(out[f"u_tilt_{axis}_deg"], dtype=float) / k
+                u_fit.append(float(np.sqrt(np.mean(u**2))))
+                nus.append(float(np.min(dof_of_coverage_factor(k, COVERAGE))))
+            tilt_u, tilt_dof = (u_fit[0], u_fit[1]), (nus[0], nus[1])
+        if "temp_c" in fit_columns:
+            temps = np.asarray(fit_columns["temp_c"], dtype=float)
+            errors = np.column_stack([out["tilt_x_deg"] - fit_columns["ref_x_deg"],
+                                      out["tilt_y_deg"] - fit_columns["ref_y_deg"]])
+    words = {ROLE_WORDS.get(role, role.replace("_", " ")): r for role, r in resolutions.items()
+             if role in ROLE_WORDS or role.endswith("_sensor")}
+    return record_budget(parameters=model_json.get("parameters") or {}, parameter_u=parameter_u, dof_fit=dof,
+                         standards=standards, resolutions_deg=words, tilt_u_fit_deg=tilt_u, tilt_dof_fit=tilt_dof,
+                         temps_c=temps, errors_deg=errors)
