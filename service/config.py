@@ -7,6 +7,7 @@ named by `TILTLAB_CONFIG`, the defaults below. The defaults suit a single bench 
 from __future__ import annotations
 
 import os
+import socket
 import tomllib
 from functools import lru_cache
 from pathlib import Path
@@ -91,6 +92,20 @@ class Settings(BaseSettings):
     webhook_retry_max_s: float = Field(3600.0, gt=0, allow_inf_nan=False)
     webhook_max_attempts: int = Field(12, ge=1)
     webhook_timeout_s: float = Field(10.0, gt=0, allow_inf_nan=False)
+
+    # The fleet: this daemon's name among the lab's daemons, and the NATS server (JetStream) they share.
+    # Without a broker URL the daemon runs alone.
+    node: str = Field(default_factory=socket.gethostname, min_length=1, max_length=64,
+                      pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
+    broker_url: str | None = Field(None, pattern=r"^(nats|tls)://")
+    # A node renews its benches' leases this often (lease_s / 3); a node silent for lease_s is offline.
+    fleet_lease_s: float = Field(6.0, ge=1, le=600, allow_inf_nan=False)
+    # Readings published to the fleet per bench and second (decimated from the sensors' rate).
+    fleet_rate_hz: float = Field(10.0, gt=0, le=100, allow_inf_nan=False)
+    # A bench command carried to another node waits this long for its answer (levelling can take a while).
+    fleet_command_timeout_s: float = Field(120.0, gt=0, allow_inf_nan=False)
+    # The simulated stage bench's name (bench names are unique in a fleet); empty keeps the scenario's.
+    sim_bench_name: str = Field("", max_length=64, pattern=r"^([A-Za-z0-9][A-Za-z0-9_-]*)?$")
 
     def __init__(self, **values: Any) -> None:
         """As BaseSettings, but an unusable value or file is an InputError of one line naming it."""

@@ -6,6 +6,7 @@ import logging
 import os
 import sys
 from contextlib import asynccontextmanager
+from functools import partial
 from pathlib import Path
 
 from fastapi import FastAPI, Request
@@ -14,6 +15,7 @@ from fastapi_offline import FastAPIOffline
 from service import __version__
 from service.api import http_details, problems
 from service.api.auth import TokenCache, is_loopback
+from service.api.fleet_routing import FleetRouting, run_forwarded
 from service.api.metrics import Metrics, MetricsMiddleware
 from service.api.routers import benches, calibrations, dashboard, health, lims, records, stage, streams, tilt
 from service.api.routers import metrics as metrics_router
@@ -22,6 +24,7 @@ from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering
 from service.bench.startup import plan_benches
 from service.config import Settings, get_settings
 from service.errors import InputError
+from service.fleet import Fleet
 from service.instruments.transport import DeviceError
 from service.jobs.manager import JobManager, RequestProblem
 from service.jobs.points import writes_in_flight
@@ -147,6 +150,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                             slow_close_s=s.stream_slow_close_s)
         hub.start()  # one reading producer per bench
         metrics.sources.update(benches=app.state.benches, streams=hub, writes_in_flight=writes_in_flight)
+        app.state.fleet = fleet = None
+        if s.broker_url:  # joins the fleet: claims this node's benches (exit 2 if a live node owns one)
+            fleet = Fleet(s, app.state.benches, lambda name: hub.producers[name].latest_message,
+                          partial(run_forwarded, app))
+            try:
+                await fleet.start()
+            except BaseException:
+                await hub.stop()
+                await jobs.shutdown()
+                for bench in runtimes:
+                    await bench.close()
+                engine.dispose()
+                raise
+            app.state.fleet = fleet
         lims = LimsRuntime(store, s)  # webhook deliveries from the outbox, reference standards coming due
         app.state.webhooks = lims.dispatcher
         await lims.start()
@@ -154,6 +171,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            if fleet is not None:
+                await fleet.stop()
             await hub.stop()
             await lims.stop()
             await jobs.shutdown()
@@ -168,6 +187,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                      "Every route but /health and the dashboard needs `Authorization: Bearer <token>`"
                                      " (scopes read, operate, admin). Errors are RFC 9457 problem+json.")
     app.state.metrics = metrics = Metrics()
+    app.add_middleware(FleetRouting)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     problems.install(app)
     http_details.install(app)

@@ -32,5 +32,8 @@ def plan_benches(settings: Settings) -> list[BenchRuntime]:
             for r in runtimes:
                 r.sim.close()
             raise InputError(f"{var}: {exc}") from exc
-        runtimes.append(BenchRuntime(sim.config, clock, sim=sim))
+        config = sim.config
+        if kind == "stage" and settings.sim_bench_name:
+            config = config.model_copy(update={"name": settings.sim_bench_name})
+        runtimes.append(BenchRuntime(config, clock, sim=sim))
     return runtimes

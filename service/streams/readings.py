@@ -167,6 +167,11 @@ class ReadingProducer:
                 await task
 
     @property
+    def latest_message(self) -> dict | None:
+        """The newest reading message built (without seq), the one the fleet publishes."""
+        return self._latest
+
+    @property
     def running(self) -> bool:
         return self._task is not None and not self._task.done()
 

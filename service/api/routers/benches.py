@@ -13,8 +13,12 @@ router = APIRouter(tags=["benches"])
 @router.get("/benches")
 def benches(request: Request, _: Reader) -> dict:
     """Every bench with its kind, roles and state (ready, busy, connecting, degraded) and who holds it."""
-    return {"benches": [{"name": b.name, "kind": b.kind, "roles": b.roles(), "state": b.state(), "held_by": b.holder,
-                         "description": b.config.description, "simulated": _simulated(b)} for b in request.app.state.benches.values()]}
+    node = request.app.state.settings.node
+    fleet = request.app.state.fleet
+    local = [{"name": b.name, "kind": b.kind, "roles": b.roles(), "state": b.state(), "held_by": b.holder,
+              "description": b.config.description, "simulated": _simulated(b), "node": node, "online": True}
+             for b in request.app.state.benches.values()]
+    return {"benches": local + (fleet.benches() if fleet is not None else [])}
 
 
 @router.get("/devices")

@@ -1,0 +1,129 @@
+"""Requests for another node's bench, carried to that node and answered as if asked there.
+
+A pure ASGI middleware in front of the routers: a bench command (`POST /calibrations`,
+`/stage/*`) or a bench read (`GET /tilt`, `GET /devices`) naming a bench of another live node
+goes to its owner over the broker (request/reply) with the caller's own headers, so the owner
+checks the same token against the same database and audits the same person. The owner runs it
+through its own application, and the answer comes back unchanged except that `GET /tilt` gains
+the `node` it came from and its `age_s` grows by the round trip. Everything else passes through.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+from urllib.parse import parse_qs
+
+import httpx
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.api import problems
+from service.fleet.node import Fleet, FleetUnavailable
+
+BENCH_READS = frozenset({"/tilt", "/devices"})
+BENCH_COMMANDS = frozenset({"/calibrations", "/stage/move", "/stage/level", "/stage/stop", "/stage/home"})
+FORWARDED_HEADERS = ("authorization", "content-type", "idempotency-key", "accept")
+ANSWER_HEADERS = ("content-type", "location")
+MAX_FORWARDED_BODY = 1 << 20
+
+
+class FleetRouting:
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        fleet: Fleet | None = getattr(scope["app"].state, "fleet", None) if "app" in scope else None
+        path, method = scope.get("path", ""), scope.get("method", "")
+        if (scope["type"] != "http" or fleet is None
+                or not ((method == "GET" and path in BENCH_READS) or (method == "POST" and path in BENCH_COMMANDS))):
+            await self.app(scope, receive, send)
+            return
+        query = scope.get("query_string", b"").decode("latin-1")
+        bench = (parse_qs(query).get("bench") or [None])[0]
+        body = b""
+        if method == "POST":
+            body = await _read_body(receive)
+            if bench is None:
+                bench = _bench_of(body)
+        if not fleet.is_remote(bench):
+            await self.app(scope, _replay(body, receive), send)
+            return
+        assert bench is not None
+        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"]}
+        request = {"method": method, "path": path, "query": query, "body": body.decode("utf-8", "replace"),
+                   "headers": {k: headers[k] for k in FORWARDED_HEADERS if k in headers}}
+        try:
+            answer, round_trip_s = await fleet.forward(bench, request)
+        except FleetUnavailable as exc:
+            response = problems.problem(503, "Bench's node not reachable", str(exc), instance=path, field="bench")
+            await response(scope, receive, send)
+            return
+        content = answer.get("body", "").encode()
+        if path == "/tilt" and answer.get("status") == 200:
+            content = _tilt_via(content, fleet.remote[bench].node, round_trip_s)
+        out_headers = [(k.encode(), str(v).encode()) for k, v in answer.get("headers", {}).items()
+                       if k in ANSWER_HEADERS]
+        out_headers.append((b"content-length", str(len(content)).encode()))
+        await send({"type": "http.response.start", "status": int(answer.get("status", 502)), "headers": out_headers})
+        await send({"type": "http.response.body", "body": content})
+
+
+def _tilt_via(content: bytes, node: str, round_trip_s: float) -> bytes:
+    """The owner's /tilt answer, honest about the path: from which node, and older by the round trip."""
+    tilt = json.loads(content)
+    tilt["node"] = node
+    if isinstance(tilt.get("age_s"), int | float):
+        tilt["age_s"] = tilt["age_s"] + round_trip_s
+    return json.dumps(tilt).encode()
+
+
+async def _read_body(receive: Receive) -> bytes:
+    chunks: list[bytes] = []
+    size = 0
+    while True:
+        message = await receive()
+        if message["type"] != "http.request":
+            break
+        chunk = message.get("body", b"")
+        size += len(chunk)
+        if size > MAX_FORWARDED_BODY:  # far beyond any bench command; the routers refuse it with their own rules
+            chunks.append(chunk)
+            break
+        chunks.append(chunk)
+        if not message.get("more_body", False):
+            break
+    return b"".join(chunks)
+
+
+def _bench_of(body: bytes) -> str | None:
+    try:
+        doc: Any = json.loads(body)
+    except ValueError:
+        return None
+    bench = doc.get("bench") if isinstance(doc, dict) else None
+    return bench if isinstance(bench, str) else None
+
+
+def _replay(body: bytes, receive: Receive) -> Receive:
+    """The body already read, handed to the application as if it came now; then the client's own messages."""
+    sent = False
+
+    async def again() -> Message:
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+
+    return again
+
+
+async def run_forwarded(app: ASGIApp, request: dict[str, Any]) -> dict[str, Any]:
+    """On the bench's owner: a request another node carried here, run through this daemon's own application."""
+    transport = httpx.ASGITransport(app=app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://fleet.invalid") as client:
+        url = request["path"] + (f"?{request['query']}" if request.get("query") else "")
+        answer = await client.request(request["method"], url, headers=request.get("headers", {}),
+                                      content=request.get("body", "").encode())
+    return {"status": answer.status_code, "body": answer.text,
+            "headers": {k: answer.headers[k] for k in ANSWER_HEADERS if k in answer.headers}}

@@ -1,0 +1,354 @@
+"""One node of the fleet: its leases, its published readings, its view of the other nodes' benches.
+
+Names on the broker:
+* key-value bucket `tiltlab_bench_leases` (entries expire after `fleet_lease_s`): bench -> its owner
+  node and state, renewed every third of the lease while the node lives. A bench without an entry
+  belongs to no live node.
+* key-value bucket `tiltlab_benches` (kept): bench -> the node that last owned it, its kind and roles,
+  so the fleet view still lists a bench whose node died (as offline).
+* stream `TILTLAB_READINGS`, subjects `tiltlab.readings.<bench>`: each node's readings, decimated to
+  `fleet_rate_hz`, kept for a minute, each with the node's `fleet_seq`.
+* subject `tiltlab.commands.<node>`: request/reply carrying a bench command to the bench's owner.
+
+The broker may come and go: the nats client reconnects by itself, leases are renewed and the fleet
+view refreshed on the next tick, and readings published while it is away are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import nats
+from nats.aio.client import Client as NatsClient
+from nats.aio.msg import Msg
+from nats.errors import NoRespondersError
+from nats.errors import TimeoutError as NatsTimeout
+from nats.js.api import DiscardPolicy, KeyValueConfig, StorageType
+from nats.js.errors import BadRequestError, BucketNotFoundError, KeyNotFoundError, KeyWrongLastSequenceError, NoKeysError
+from nats.js.kv import KeyValue
+
+from service.bench.runtime import BenchRuntime
+from service.config import Settings
+from service.errors import InputError
+from service.storage.engine import redacted
+
+log = logging.getLogger("tiltlab.fleet")
+
+LEASES = "tiltlab_bench_leases"
+BENCHES = "tiltlab_benches"
+READINGS_STREAM = "TILTLAB_READINGS"
+READINGS_KEEP_S = 60.0
+CONNECT_TIMEOUT_S = 2.0
+
+
+def readings_subject(bench: str) -> str:
+    return f"tiltlab.readings.{bench}"
+
+
+def commands_subject(node: str) -> str:
+    return f"tiltlab.commands.{node}"
+
+
+class FleetConflict(InputError):
+    """A bench this node would start is owned by another live node (the daemon exits 2)."""
+
+
+class FleetUnavailable(Exception):
+    """A command for another node's bench cannot be carried: its node is offline or the broker away (503)."""
+
+
+@dataclass
+class RemoteBench:
+    """Another node's bench as this node knows it: who owns it, whether that node lives, its last reading."""
+
+    name: str
+    node: str
+    kind: str = ""
+    roles: list[str] = field(default_factory=list)
+    description: str = ""
+    state: str = "offline"
+    online: bool = False
+    latest: dict[str, Any] | None = None  # the last reading message received
+    received_at: float | None = None  # time.monotonic() when it came
+    listeners: set[Callable[[dict[str, Any]], None]] = field(default_factory=set)
+
+    def listing(self) -> dict[str, Any]:
+        return {"name": self.name, "kind": self.kind, "roles": self.roles, "description": self.description,
+                "state": self.state if self.online else "offline", "held_by": None, "simulated": None,
+                "node": self.node, "online": self.online}
+
+
+Handler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
+
+
+class Fleet:
+    """This daemon's membership of the fleet (only made when `broker_url` is set)."""
+
+    def __init__(self, settings: Settings, benches: dict[str, BenchRuntime],
+                 latest_message: Callable[[str], dict[str, Any] | None], handler: Handler) -> None:
+        assert settings.broker_url
+        self.node = settings.node
+        self.url = settings.broker_url
+        self.lease_s = settings.fleet_lease_s
+        self.period_s = 1.0 / settings.fleet_rate_hz
+        self.command_timeout_s = settings.fleet_command_timeout_s
+        self.local = benches
+        self._latest_message = latest_message
+        self._handler = handler
+        self.remote: dict[str, RemoteBench] = {}
+        self.published = 0
+        self.dropped = 0  # readings not published because the broker was away
+        self._nc: NatsClient | None = None
+        self._leases: KeyValue | None = None
+        self._benches: KeyValue | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._ready = asyncio.Event()  # buckets, stream and subscriptions are set up
+
+    # ------------------------------------------------------------ life cycle
+
+    async def start(self) -> None:
+        """Join: claim this node's benches (FleetConflict if a live node owns one), then serve.
+
+        A broker that does not answer at start-up does not stop the daemon: its own benches are served
+        and the node joins when the broker comes (claiming its benches then)."""
+        try:
+            await self._connect()
+            await self._setup()
+        except FleetConflict:
+            await self.stop()
+            raise
+        except (TimeoutError, OSError, nats.errors.Error) as exc:
+            log.warning("fleet: the broker at %s does not answer (%s); serving this node's benches alone"
+                        " until it does", redacted(self.url), exc)
+        self._tasks.append(asyncio.create_task(self._keep(), name="fleet leases and view"))
+        self._tasks.append(asyncio.create_task(self._publish(), name="fleet readings"))
+
+    async def stop(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        self._tasks.clear()
+        nc, self._nc = self._nc, None
+        if nc is None:
+            return
+        if nc.is_connected and self._leases is not None:  # a clean stop frees the benches at once
+            for name in self.local:
+                with contextlib.suppress(Exception):
+                    await self._leases.delete(name)
+        with contextlib.suppress(Exception):
+            await nc.drain()
+
+    @property
+    def connected(self) -> bool:
+        return self._nc is not None and self._nc.is_connected and self._ready.is_set()
+
+    async def _connect(self) -> None:
+        async def disconnected() -> None:
+            log.warning("fleet: lost the broker at %s; serving this node's benches alone", redacted(self.url))
+
+        async def reconnected() -> None:
+            log.warning("fleet: the broker at %s is back", redacted(self.url))
+
+        self._nc = await nats.connect(self.url, name=f"tiltlab {self.node}", connect_timeout=CONNECT_TIMEOUT_S,
+                                      allow_reconnect=True, max_reconnect_attempts=-1, reconnect_time_wait=1,
+                                      disconnected_cb=disconnected, reconnected_cb=reconnected)
+
+    async def _setup(self) -> None:
+        """Buckets, stream, claims and subscriptions; again after a broker that lost its storage came back."""
+        nc = self._nc
+        assert nc is not None
+        js = nc.jetstream()
+        self._leases = await self._bucket(js, KeyValueConfig(bucket=LEASES, ttl=self.lease_s, history=1,
+                                                             storage=StorageType.MEMORY))
+        self._benches = await self._bucket(js, KeyValueConfig(bucket=BENCHES, history=1))
+        with contextlib.suppress(BadRequestError):  # already there (perhaps made by another version): keep it
+            await js.add_stream(name=READINGS_STREAM, subjects=[readings_subject("*")], max_age=READINGS_KEEP_S,
+                                max_msgs_per_subject=int(READINGS_KEEP_S * 100), storage=StorageType.MEMORY,
+                                discard=DiscardPolicy.OLD)
+        for name in self.local:
+            await self._claim(name)
+        if not self._ready.is_set():
+            await nc.subscribe(readings_subject("*"), cb=self._on_reading)
+            await nc.subscribe(commands_subject(self.node), cb=self._on_command)
+            self._ready.set()
+        await self._refresh_view()
+
+    @staticmethod
+    async def _bucket(js: Any, config: KeyValueConfig) -> KeyValue:
+        try:
+            kv: KeyValue = await js.key_value(config.bucket)
+        except BucketNotFoundError:
+            kv = await js.create_key_value(config=config)
+        return kv
+
+    # ------------------------------------------------------------ leases
+
+    def _lease(self, name: str) -> bytes:
+        bench = self.local[name]
+        return json.dumps({"node": self.node, "state": bench.state(), "kind": bench.kind, "roles": bench.roles(),
+                           "description": bench.config.description}).encode()
+
+    async def _claim(self, name: str) -> None:
+        assert self._leases is not None and self._benches is not None
+        try:
+            entry = await self._leases.get(name)
+        except KeyNotFoundError:
+            entry = None
+        owner = json.loads(entry.value)["node"] if entry is not None and entry.value else None
+        if owner is not None and owner != self.node:
+            raise FleetConflict(f"bench {name!r} is owned by node {owner!r}, which is online; bench names are unique"
+                                f" in a fleet: rename this node's bench or stop node {owner!r} first")
+        if entry is None:
+            try:
+                await self._leases.create(name, self._lease(name))
+            except KeyWrongLastSequenceError:  # another node claimed it between our read and our write
+                return await self._claim(name)
+        else:
+            await self._leases.put(name, self._lease(name))
+        static = json.loads(self._lease(name))
+        static.pop("state")
+        await self._benches.put(name, json.dumps(static).encode())
+
+    async def _keep(self) -> None:
+        """Renew the leases and refresh the fleet view every third of a lease, whatever the broker does."""
+        while True:
+            await asyncio.sleep(self.lease_s / 3)
+            try:
+                if self._nc is None:
+                    await self._connect()
+                if not self._nc.is_connected:  # type: ignore[union-attr]
+                    self._mark_unreachable()
+                    continue
+                if not self._ready.is_set():
+                    await self._setup()
+                    continue
+                for name in self.local:
+                    await self._leases.put(name, self._lease(name))  # type: ignore[union-attr]
+                await self._refresh_view()
+            except FleetConflict as exc:
+                log.error("fleet: %s", exc)
+            except BucketNotFoundError:  # the broker came back without its storage: set it up again
+                with contextlib.suppress(Exception):
+                    await self._setup()
+            except Exception as exc:  # noqa: BLE001 - the broker's troubles never stop the node
+                log.debug("fleet: renewing leases failed: %s", exc)
+
+    def _mark_unreachable(self) -> None:
+        for bench in self.remote.values():
+            bench.online = False
+
+    async def _refresh_view(self) -> None:
+        """Every bench of the fleet with its node, from the two buckets."""
+        assert self._leases is not None and self._benches is not None
+        try:
+            names = await self._benches.keys()
+        except NoKeysError:
+            names = []
+        for name in names:
+            if name in self.local:
+                continue
+            try:
+                static = json.loads((await self._benches.get(name)).value or b"{}")
+            except KeyNotFoundError:
+                continue
+            try:
+                lease = json.loads((await self._leases.get(name)).value or b"{}")
+            except KeyNotFoundError:
+                lease = {}
+            bench = self.remote.get(name) or RemoteBench(name, static.get("node", "?"))
+            bench.node = lease.get("node") or static.get("node", bench.node)
+            bench.kind, bench.roles = static.get("kind", ""), list(static.get("roles", []))
+            bench.description = static.get("description", "")
+            bench.online = bool(lease)
+            bench.state = lease.get("state", "offline")
+            self.remote[name] = bench
+
+    # ------------------------------------------------------------ the fleet view
+
+    def benches(self) -> list[dict[str, Any]]:
+        """The other nodes' benches, as GET /benches lists them."""
+        return [b.listing() for b in sorted(self.remote.values(), key=lambda b: b.name)]
+
+    def is_remote(self, name: str | None) -> bool:
+        return name is not None and name not in self.local and name in self.remote
+
+    # ------------------------------------------------------------ readings
+
+    async def _publish(self) -> None:
+        """Each local bench's newest reading message, at most `fleet_rate_hz` a second, with a fleet sequence number."""
+        last: dict[str, int] = {}
+        seq = 0
+        while True:
+            await asyncio.sleep(self.period_s)
+            for name in self.local:
+                msg = self._latest_message(name)
+                if msg is None or last.get(name) == id(msg):
+                    continue  # nothing new since the last publication
+                last[name] = id(msg)
+                if not self.connected:
+                    self.dropped += 1
+                    continue
+                seq += 1
+                payload = {**msg, "bench": name, "node": self.node, "fleet_seq": seq}
+                try:
+                    await self._nc.publish(readings_subject(name), json.dumps(payload).encode())  # type: ignore[union-attr]
+                    self.published += 1
+                except Exception:  # noqa: BLE001 - a broker going away while publishing: counted, not fatal
+                    self.dropped += 1
+
+    async def _on_reading(self, msg: Msg) -> None:
+        try:
+            payload = json.loads(msg.data)
+            name = payload["bench"]
+        except (ValueError, KeyError, TypeError):
+            return
+        if name in self.local:
+            return
+        bench = self.remote.get(name)
+        if bench is None:
+            bench = self.remote[name] = RemoteBench(name, payload.get("node", "?"), online=True, state="ready")
+        bench.latest, bench.received_at = payload, time.monotonic()
+        for listener in list(bench.listeners):
+            listener(payload)
+
+    # ------------------------------------------------------------ commands
+
+    async def _on_command(self, msg: Msg) -> None:
+        try:
+            answer = await self._handler(json.loads(msg.data))
+        except Exception as exc:  # noqa: BLE001 - the caller gets a problem, never silence
+            log.exception("fleet: a command from another node failed")
+            answer = {"status": 500, "headers": {"content-type": "application/problem+json"},
+                      "body": json.dumps({"title": "Command failed on the bench's node", "status": 500,
+                                          "detail": f"node {self.node}: {type(exc).__name__}: {exc}"})}
+        await msg.respond(json.dumps(answer).encode())
+
+    async def forward(self, bench_name: str, request: dict[str, Any]) -> tuple[dict[str, Any], float]:
+        """Carry a request for another node's bench to its owner; its answer and the round trip in seconds."""
+        bench = self.remote[bench_name]
+        if not self.connected:
+            raise FleetUnavailable(f"bench {bench_name!r} belongs to node {bench.node!r}, and the fleet's broker is"
+                                   " not reachable from this node")
+        if not bench.online:
+            raise FleetUnavailable(f"bench {bench_name!r} belongs to node {bench.node!r}, which is offline")
+        start = time.monotonic()
+        try:
+            reply = await self._nc.request(commands_subject(bench.node), json.dumps(request).encode(),  # type: ignore[union-attr]
+                                           timeout=self.command_timeout_s)
+        except NoRespondersError:
+            bench.online = False
+            raise FleetUnavailable(f"bench {bench_name!r} belongs to node {bench.node!r}, which is offline") from None
+        except NatsTimeout:
+            raise FleetUnavailable(f"node {bench.node!r} did not answer for bench {bench_name!r} within"
+                                   f" {self.command_timeout_s:g} s") from None
+        answer: dict[str, Any] = json.loads(reply.data)
+        return answer, time.monotonic() - start
