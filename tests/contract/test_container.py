@@ -56,6 +56,27 @@ def test_compose_file_is_valid_and_starts_reliably() -> None:
     assert "POSTGRES_PASSWORD=" in example and "TILTLAB_DATABASE_URL=" in example
 
 
+def test_compose_fleet_profile_runs_two_bench_nodes_on_one_database_and_one_broker() -> None:
+    compose_spec = pytest.importorskip("compose_spec", reason="compose-spec is part of the dev extra")
+    raw = (DOCKER / "compose.yaml").read_text()
+    services = compose_spec.PyCompose.from_yaml(_interpolated(raw)).to_dict()["services"]
+    nats, nodes = services["nats"], [services["bench-1"], services["bench-2"]]
+    assert nats["profiles"] == ["fleet"] and "-js" in nats["command"]  # JetStream on
+    assert "healthz" in str(nats["healthcheck"]["test"])
+    names, benches = set(), set()
+    for node in nodes:
+        assert node["profiles"] == ["fleet"] and node["restart"] == "unless-stopped"
+        env = node["environment"]
+        assert env["TILTLAB_BROKER_URL"] == "nats://nats:4222"
+        names.add(env["TILTLAB_NODE"])
+        benches.add(env["TILTLAB_SIM_BENCH_NAME"])
+        assert node["depends_on"] == {"db": {"condition": "service_healthy"}, "nats": {"condition": "service_healthy"}}
+        assert "tiltlab.env" in str(node["env_file"])
+        assert all(str(p).startswith("127.0.0.1:") for p in node["ports"])
+    assert len(names) == len(benches) == 2  # node and bench names are unique in a fleet
+    assert "profiles" not in services["tiltlab"]  # the single daemon stays the default
+
+
 def test_build_context_is_kept_small() -> None:
     ignored = (ROOT / ".dockerignore").read_text().split()
     for heavy in (".git", ".venv", "tests", "docs", "benchmarks", "docker/tiltlab.env"):
