@@ -163,7 +163,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                     await bench.close()
                 engine.dispose()
                 raise
-            app.state.fleet = fleet
+            app.state.fleet = hub.remote = fleet
         lims = LimsRuntime(store, s)  # webhook deliveries from the outbox, reference standards coming due
         app.state.webhooks = lims.dispatcher
         await lims.start()

@@ -38,6 +38,7 @@ from service.bench.runtime import BenchRuntime
 from service.config import Settings
 from service.errors import InputError
 from service.storage.engine import redacted
+from service.streams.readings import Client, ReadingProducer, due
 
 log = logging.getLogger("tiltlab.fleet")
 
@@ -103,6 +104,7 @@ class Fleet:
         self._latest_message = latest_message
         self._handler = handler
         self.remote: dict[str, RemoteBench] = {}
+        self._producers: dict[str, RemoteProducer] = {}
         self.published = 0
         self.dropped = 0  # readings not published because the broker was away
         self._nc: NatsClient | None = None
@@ -281,6 +283,16 @@ class Fleet:
     def is_remote(self, name: str | None) -> bool:
         return name is not None and name not in self.local and name in self.remote
 
+    def producer(self, name: str, *, queue_size: int, slow_close_s: float) -> RemoteProducer | None:
+        """The reading stream of another node's bench (one per bench, made on first use); None if unknown."""
+        if not self.is_remote(name):
+            return None
+        producer = self._producers.get(name)
+        if producer is None:
+            producer = self._producers[name] = RemoteProducer(self.remote[name], rate_hz=1.0 / self.period_s,
+                                                              queue_size=queue_size, slow_close_s=slow_close_s)
+        return producer
+
     # ------------------------------------------------------------ readings
 
     async def _publish(self) -> None:
@@ -352,3 +364,55 @@ class Fleet:
                                    f" {self.command_timeout_s:g} s") from None
         answer: dict[str, Any] = json.loads(reply.data)
         return answer, time.monotonic() - start
+
+
+class RemoteProducer(ReadingProducer):
+    """Another node's bench as a reading stream of this node: the owner's published readings, fanned out
+    to this node's clients with their own `seq` and the same queue, drop and close rules as a local
+    bench's stream. Its rate is the fleet's publication rate."""
+
+    def __init__(self, bench: RemoteBench, *, rate_hz: float, queue_size: int, slow_close_s: float) -> None:
+        # no BenchRuntime here: the readings come from the broker, not from instruments
+        self.remote = bench
+        self.queue_size = queue_size
+        self.slow_close_s = slow_close_s
+        self.sensor_rate_hz = rate_hz
+        self.interval_s = 1.0 / rate_hz
+        self.clients: set[Client] = set()
+        self.dropped_total = 0
+        self.messages = 0
+        self._latest = None
+        self._task = None
+
+    def connect(self, rate_hz: float, history_s: float) -> Client:
+        client = super().connect(rate_hz, history_s)
+        self.remote.listeners.add(self._on_reading)
+        return client
+
+    def disconnect(self, client: Client) -> None:
+        super().disconnect(client)
+        if not self.clients:
+            self.remote.listeners.discard(self._on_reading)
+
+    def snapshot(self, rate_hz: float, history_s: float) -> dict[str, Any]:
+        """The newest reading the owner published; no history (the owner's dashboard has it)."""
+        latest = self.remote.latest or {}
+        return {"type": "snapshot", "seq": 0, "time_utc": latest.get("time_utc"), "bench": self.remote.name,
+                "node": self.remote.node, "rate_hz": rate_hz, "raw": latest.get("raw"),
+                "table_tilt": latest.get("table_tilt"), "stage": latest.get("stage"), "temp_c": latest.get("temp_c"),
+                "calibration": latest.get("calibration"), "history": []}
+
+    def _on_reading(self, payload: dict[str, Any]) -> None:
+        msg = {k: v for k, v in payload.items() if k not in ("bench", "node", "fleet_seq")}
+        self._latest = msg
+        self.messages += 1
+        body = json.dumps(msg)[1:]
+        loop_now = asyncio.get_running_loop().time()
+        for c in list(self.clients):
+            if c.rate_hz >= self.sensor_rate_hz:
+                self._offer(c, body, loop_now)
+                continue
+            nxt = due(loop_now, c.next_bench_s, 1.0 / c.rate_hz, 0.25 * self.interval_s)
+            if nxt is not None:
+                c.next_bench_s = nxt
+                self._offer(c, body, loop_now)

@@ -307,6 +307,8 @@ class StreamHub:
         self.producers = {name: ReadingProducer(b, (lambda n=name: jobs.active.get(n)), queue_size=queue_size,
                                                 slow_close_s=slow_close_s)
                           for name, b in benches.items()}
+        self.queue_size, self.slow_close_s = queue_size, slow_close_s
+        self.remote: Any = None  # the fleet, when the daemon is part of one: other nodes' benches
 
     def start(self) -> None:
         for p in self.producers.values():
@@ -315,6 +317,16 @@ class StreamHub:
     async def stop(self) -> None:
         for p in self.producers.values():
             await p.stop()
+
+    def find(self, name: str) -> ReadingProducer | None:
+        """The stream of a bench of this daemon or, in a fleet, of another node's bench."""
+        if name in self.producers:
+            return self.producers[name]
+        if self.remote is not None:
+            producer: ReadingProducer | None = self.remote.producer(name, queue_size=self.queue_size,
+                                                                   slow_close_s=self.slow_close_s)
+            return producer
+        return None
 
     def client_count(self) -> int:
         return sum(len(p.clients) for p in self.producers.values())

@@ -25,6 +25,8 @@ from tests.fleet.fleet_helpers import Daemon, NatsServer, eventually, postgres_s
 pytestmark = [pytest.mark.postgres, pytest.mark.slow]
 
 GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
+# 2-s windows: two simulated benches at 20x share the machine with the test, and readings may lag
+SETTLE = {"tolerance_deg": 0.002, "window_s": 2.0, "timeout_s": 600.0}
 
 
 @pytest.fixture
@@ -59,7 +61,8 @@ def test_two_daemons_serve_one_fleet(tmp_path: Path, nats_server: NatsServer, da
             for bench in ("bench-a", "bench-b"):
                 answer = httpx.post(f"{a.url}/calibrations", headers=auth, timeout=30,
                                     json={"bench": bench, "procedure": "stage-grid", "method": "kinematic",
-                                          "grid": GRID, "samples_per_point": 8, "validation": {"n_points": 2}})
+                                          "grid": GRID, "samples_per_point": 8, "validation": {"n_points": 2},
+                                          "settle": SETTLE})
                 assert answer.status_code == 202, answer.text
                 jobs[bench] = answer.json()["id"]
             for bench, job_id in jobs.items():

@@ -113,10 +113,11 @@ async def readings(ws: WebSocket) -> None:
             return await _refuse(ws, f"bench: the daemon runs {len(hub.producers)} benches"
                                      f" ({', '.join(hub.producers)}); name one")
         producer = next(iter(hub.producers.values()))
-    elif name not in hub.producers:
-        return await _refuse(ws, f"bench: no bench named {name[:30]!r}; benches: {', '.join(hub.producers)}")
     else:
-        producer = hub.producers[name]
+        found = hub.find(name)
+        if found is None:
+            return await _refuse(ws, f"bench: no bench named {name[:30]!r}; benches: {', '.join(hub.producers)}")
+        producer = found
     try:
         rate = producer.clamp_rate(_number(ws, "rate_hz", None))
         history_s = _number(ws, "history_s", HISTORY_DEFAULT_S)
