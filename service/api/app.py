@@ -17,7 +17,18 @@ from service.api import http_details, problems
 from service.api.auth import TokenCache, is_loopback
 from service.api.fleet_routing import FleetRouting, run_forwarded
 from service.api.metrics import Metrics, MetricsMiddleware
-from service.api.routers import benches, calibrations, dashboard, health, lims, records, stage, streams, tilt
+from service.api.routers import (
+    benches,
+    calibrations,
+    dashboard,
+    diagnoses,
+    health,
+    lims,
+    records,
+    stage,
+    streams,
+    tilt,
+)
 from service.api.routers import metrics as metrics_router
 from service.api.routers.health import SchemaRevision
 from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering
@@ -26,6 +37,7 @@ from service.config import Settings, get_settings
 from service.errors import InputError
 from service.fleet import Fleet
 from service.instruments.transport import DeviceError
+from service.jobs.diagnosis import DiagnosisRunner
 from service.jobs.manager import JobManager, RequestProblem
 from service.jobs.points import writes_in_flight
 from service.lims.runtime import LimsRuntime
@@ -117,6 +129,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         left = store.mark_interrupted(actor="daemon")
         if left:
             log.warning("jobs %s were left unfinished by the previous run: marked interrupted (resumable)", left)
+        lost = store.mark_diagnoses_interrupted(actor="daemon")
+        if lost:
+            log.warning("diagnoses %s were left unfinished by the previous run: marked failed", lost)
         if s.auth == "token" and not store.has_tokens():
             _, token = store.create_token("admin", "admin", actor="daemon first start")
             path = write_admin_token(s.data_dir, token)
@@ -146,6 +161,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         jobs = app.state.jobs = JobManager(store, app.state.benches)
         for bench in runtimes:
             jobs.load_active(bench)
+        # the workflow on stored points, in a worker process: never the bench, never the event loop
+        app.state.diagnoses = DiagnosisRunner(store, lambda job_id, n_fit: jobs.fit_columns(job_id, None, n_fit))
         hub = app.state.streams = StreamHub(app.state.benches, jobs, queue_size=s.stream_queue_size,
                                             slow_close_s=s.stream_slow_close_s)
         hub.start()  # one reading producer per bench
@@ -176,6 +193,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await hub.stop()
             await lims.stop()
             await jobs.shutdown()
+            await app.state.diagnoses.shutdown()
             for bench in runtimes:
                 await bench.close()
             engine.dispose()
@@ -192,7 +210,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     problems.install(app)
     http_details.install(app)
     _install_errors(app)
-    for r in (health, metrics_router, benches, tilt, stage, calibrations, records, lims, streams):
+    for r in (health, metrics_router, benches, tilt, stage, calibrations, records, diagnoses, lims, streams):
         app.include_router(r.router)
     dashboard.install(app)
     return app

@@ -17,36 +17,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 
 from service.commands._args import add_command
 from service.errors import InputError
 
 # numpy, the dataset reader and the workflow are imported when the command runs, not by --help.
-
-REPORT_SIGNIFICANT_DIGITS = 8
-
-
-def _clean(o):
-    """JSON-safe: numpy scalars to Python, non-finite numbers to null."""
-    import numpy as np
-
-    if isinstance(o, dict):
-        return {str(k): _clean(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_clean(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        f = float(o)
-        # 8 significant digits: more than any statistic or magnitude here is known to (docs/models.md, "Digits")
-        return float(f"{f:.{REPORT_SIGNIFICANT_DIGITS}g}") if math.isfinite(f) else None
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if isinstance(o, np.ndarray):
-        return _clean(o.tolist())
-    return o
 
 
 def _constant_column(ds, col: str) -> float | None:
@@ -82,8 +58,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--html {html_path} would overwrite the JSON report --out {out}")
     check_not_overwriting(out, input=args.input)
     check_not_overwriting(html_path, "--html", input=args.input)
+    prov = provenance(getattr(args, "command_line", "tiltlab discrepancy"),
+                      {"input": args.input, "bench": getattr(args, "bench", None)})
     if kind == "stage":
-        from service.discrepancy.stage import stage_report
+        from service.discrepancy.stage import stage_diagnosis
 
         sensor = getattr(args, "sensor", None) or "ref"
         nx, ny = f"noise_{sensor}_x_deg", f"noise_{sensor}_y_deg"
@@ -100,8 +78,9 @@ def run(args: argparse.Namespace) -> int:
 
         stated = stage_bench_options("stage", getattr(args, "bench", None))
         with about(args.input):
-            report, result, fam = stage_report(ds.arrays(), sensor, baseline, noise, bench=stated.get("bench"),
-                                               inputs=inputs, bench_source=stated.get("bench_source"))
+            report, page, _, _ = stage_diagnosis(ds.arrays(), sensor, baseline, noise, bench=stated.get("bench"),
+                                                 inputs=inputs, bench_source=stated.get("bench_source"),
+                                                 provenance=prov)
     elif kind == "scale":
         from service.discrepancy.scale import scale_report
 
@@ -117,18 +96,16 @@ def run(args: argparse.Namespace) -> int:
         ds = read_dataset(args.input, "scale", (("ref_arcsec", "ref_deg"), "reading"),
                           ("point", "temp_c", "t_s", "noise_arcsec"))
         noise_arcsec = _constant_column(ds, "noise_arcsec")
+        from service.discrepancy.report import clean, render_html
+
         with about(args.input):
             report, result, fam = scale_report(ds.arrays(), noise_arcsec, inputs=inputs)
+        report["provenance"] = prov
+        report = clean(report)
+        page = render_html(report, result, fam)
     else:
         raise InputError(f"discrepancy supports kinds stage and scale, not {kind!r}")
-
-    from service.discrepancy.report import render_html
-
-    report["provenance"] = provenance(getattr(args, "command_line", "tiltlab discrepancy"),
-                                      {"input": args.input, "bench": getattr(args, "bench", None)})
-    report = _clean(report)
     text = json.dumps(report, indent=1, ensure_ascii=False, allow_nan=False)
-    page = render_html(report, result, fam)
     write_text_atomic(out, text + "\n")
     try:
         write_text_atomic(html_path, page)

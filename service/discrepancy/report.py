@@ -8,10 +8,32 @@ where the disagreement was and why the workflow stopped.
 from __future__ import annotations
 
 import html
+import math
 
 import numpy as np
 
 from service.figures import new_figure, png_data_uri
+
+REPORT_SIGNIFICANT_DIGITS = 8
+
+
+def clean(o):
+    """JSON-safe: numpy scalars to Python, non-finite numbers to null, 8 significant digits."""
+    if isinstance(o, dict):
+        return {str(k): clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [clean(v) for v in o]
+    if isinstance(o, (np.floating, float)):
+        f = float(o)
+        # 8 significant digits: more than any statistic or magnitude here is known to (docs/models.md, "Digits")
+        return float(f"{f:.{REPORT_SIGNIFICANT_DIGITS}g}") if math.isfinite(f) else None
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, np.ndarray):
+        return clean(o.tolist())
+    return o
 
 
 def _figure(w: float, h: float, rows: int = 1, cols: int = 1, **_margins):

@@ -15,7 +15,13 @@ from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
 
 def stage_noise(data: StageData, spec_sigma=None) -> noise_mod.NoiseLevel | None:
-    """Repeated points first, then the instrument specification; None means 'from the final residual'."""
+    """Repeated points first, then the stated noise level (the instrument specification, or a NoiseLevel the
+    caller measured); None means 'from the final residual'."""
+    if isinstance(spec_sigma, noise_mod.NoiseLevel):
+        stated: noise_mod.NoiseLevel | None = spec_sigma
+        spec_sigma = spec_sigma.sigma
+    else:
+        stated = None
     if data.point is not None:
         keys = [data.point]
         for d in (data.dir_x, data.dir_y):
@@ -28,6 +34,8 @@ def stage_noise(data: StageData, spec_sigma=None) -> noise_mod.NoiseLevel | None
         s = np.broadcast_to(np.asarray(spec_sigma, dtype=float), (2,)).copy()
         if np.any(s <= 0) or not np.all(np.isfinite(s)):
             raise InputError(f"noise level must be positive, got {s.tolist()}")
+        if stated is not None:
+            return noise_mod.NoiseLevel(s, stated.source, stated.df, stated.detail)
         return noise_mod.from_specification(s)
     return None
 
@@ -89,3 +97,18 @@ def stage_report(columns, sensor="ref", baseline="linear", noise_sigma=None, ben
     res, fam = analyse_stage(columns, sensor, baseline, noise_sigma, bench, alpha, bench_source=bench_source)
     rep = to_report(res, fam, {"sensor": sensor, "n_rows": len(fam.observed), **(inputs or {})})
     return rep, res, fam
+
+
+def stage_diagnosis(columns, sensor: str = "ref", baseline: str = "linear", noise_sigma=None,
+                    bench: StageBench | None = None, inputs: dict | None = None, bench_source: str | None = None,
+                    provenance: dict | None = None) -> tuple[dict, str, Result, Family]:
+    """The whole workflow on stage columns as `tiltlab discrepancy` and the daemon's diagnosis run it: the JSON-ready
+    report (with its provenance) and its HTML page, plus the result and fitted family behind them."""
+    from service.discrepancy.report import clean, render_html
+
+    report, result, fam = stage_report(columns, sensor, baseline, noise_sigma, bench, inputs=inputs,
+                                       bench_source=bench_source)
+    if provenance is not None:
+        report["provenance"] = provenance
+    report = clean(report)
+    return report, render_html(report, result, fam), result, fam

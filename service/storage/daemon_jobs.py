@@ -11,6 +11,7 @@ import sqlalchemy as sa
 
 from service.errors import InputError
 from service.storage.canonical import sha256_hex
+from service.storage.diagnoses import DiagnosisStore
 from service.storage.errors import ConflictError, IllegalTransition, UnknownEntity
 from service.storage.lims import LimsStore
 from service.storage.models import Bench, CalibrationJob, IdempotencyKey, utc_now
@@ -127,5 +128,5 @@ class JobRuntimeStore(Store):
             return None
 
 
-class DaemonStore(LimsStore, TokenStore, JobRuntimeStore):
+class DaemonStore(LimsStore, TokenStore, DiagnosisStore, JobRuntimeStore):
     """Everything the daemon writes and reads: the lab's records, its jobs, its tokens and the LIMS tables."""

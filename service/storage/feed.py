@@ -22,7 +22,7 @@ from service.storage.models import AuditEvent, CalibrationJob, CalibrationRecord
 
 EVENT_TYPES = (
     "job.state", "record.created", "record.reviewed", "record.approved", "record.rejected", "record.activated",
-    "certificate.issued", "standard.due_soon", "order.created",
+    "certificate.issued", "standard.due_soon", "order.created", "diagnosis.finished",
 )  # fmt: skip
 _JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 
@@ -62,6 +62,8 @@ def event_for(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
         kind = {"record.review": "record.reviewed", "record.approve": "record.approved",
                 "record.reject": "record.rejected"}[action]  # fmt: skip
         return kind, _record_event(s, int(e.entity_id), {k: d.get(k) for k in ("approval_id", "actor", "meaning", "note", "record_sha256")})
+    if action == "diagnosis.finish":
+        return "diagnosis.finished", dict(d)
     if action in ("certificate.issue", "standard.due_soon", "order.create"):
         return {"certificate.issue": "certificate.issued", "standard.due_soon": "standard.due_soon",
                 "order.create": "order.created"}[action], dict(d)  # fmt: skip

@@ -17,7 +17,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 from service.storage.errors import AppendOnlyViolation
 
 APPEND_ONLY_TABLES = ("calibration_records", "audit_events", "active_calibration_history", "settled_points",
-                      "record_approvals", "certificates", "feed_events")
+                      "record_approvals", "certificates", "feed_events", "diagnoses", "diagnosis_results")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 SAMPLE_SOURCES = ("calibration", "monitoring")
 GENESIS_SHA256 = "0" * 64
@@ -431,8 +431,38 @@ class WebhookAttempt(Base):
     duration_s: Mapped[float] = mapped_column(sa.Double())
 
 
+class Diagnosis(Base):
+    """A request to run the model-discrepancy workflow on a stored record's points (never changed)."""
+
+    __tablename__ = "diagnoses"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    record_id: Mapped[int] = mapped_column(sa.ForeignKey("calibration_records.id"), index=True)
+    sensor: Mapped[str] = mapped_column(sa.String(8))
+    baseline: Mapped[str] = mapped_column(sa.String(20))
+    created_by: Mapped[str] = mapped_column(sa.String(100))
+    created_at: Mapped[dt.datetime]
+
+
+class DiagnosisResult(Base):
+    """How a diagnosis ended, written once: the workflow's report (JSON and its HTML page) or why it failed."""
+
+    __tablename__ = "diagnosis_results"
+    __table_args__ = (sa.CheckConstraint(sa.text("state IN ('succeeded', 'failed')"), name="state"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    diagnosis_id: Mapped[int] = mapped_column(sa.ForeignKey("diagnoses.id"), unique=True)
+    state: Mapped[str] = mapped_column(sa.String(16))
+    started_at: Mapped[dt.datetime | None]
+    finished_at: Mapped[dt.datetime]
+    # named_effects, gap_before_deg, gap_after_deg, noise_deg, steps and the full report
+    summary: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    report_html: Mapped[str | None] = mapped_column(sa.Text)
+    error: Mapped[str | None] = mapped_column(sa.Text)
+
+
 _APPEND_ONLY_CLASSES = (CalibrationRecord, AuditEvent, ActiveCalibrationHistory, SettledPoint, RecordApproval,
-                        Certificate, FeedEvent)
+                        Certificate, FeedEvent, Diagnosis, DiagnosisResult)
 
 
 @event.listens_for(Session, "before_flush")

@@ -1,0 +1,87 @@
+"""Diagnoses of stored records: asked for once, ended once (both rows append-only).
+
+A diagnosis without a result is queued or running in the daemon that accepted it; one the
+daemon lost by a restart is ended as failed when the daemon starts again.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Mapping
+from typing import Any
+
+import sqlalchemy as sa
+
+from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.models import CalibrationRecord, Diagnosis, DiagnosisResult, utc_now
+from service.storage.store.base import StoreBase
+from service.storage.store.checks import _doc, _text
+
+INTERRUPTED_DIAGNOSIS = "interrupted: the daemon stopped while the diagnosis ran; start it again"
+
+
+class DiagnosisStore(StoreBase):
+    def create_diagnosis(self, record_id: int, *, sensor: str, baseline: str, actor: str) -> Diagnosis:
+        with self._tx() as s:
+            if s.get(CalibrationRecord, record_id) is None:
+                raise UnknownEntity(f"record {record_id!r} does not exist")
+            d = Diagnosis(record_id=record_id, sensor=_text("sensor", sensor, 8), baseline=_text("baseline", baseline, 20),
+                          created_by=_text("actor", actor), created_at=utc_now())
+            s.add(d)
+            s.flush()
+            self._audit(s, actor, "diagnosis.create", "diagnosis", d.id,
+                        {"record_id": record_id, "sensor": sensor, "baseline": baseline})
+            return d
+
+    def finish_diagnosis(self, diagnosis_id: int, *, state: str, started_at: dt.datetime | None,
+                         summary: Mapping[str, Any], report_html: str | None, error: str | None,
+                         actor: str) -> DiagnosisResult:
+        """The one result of a diagnosis; its event `diagnosis.finished` goes to the feed and webhooks."""
+        with self._tx() as s:
+            d = s.get(Diagnosis, diagnosis_id)
+            if d is None:
+                raise UnknownEntity(f"diagnosis {diagnosis_id!r} does not exist")
+            if s.scalar(sa.select(DiagnosisResult.id).where(DiagnosisResult.diagnosis_id == diagnosis_id)) is not None:
+                raise ConflictError(f"diagnosis {diagnosis_id} has already ended")
+            r = DiagnosisResult(diagnosis_id=diagnosis_id, state=state, started_at=started_at, finished_at=utc_now(),
+                                summary=_doc("summary", summary), report_html=report_html, error=error)
+            s.add(r)
+            s.flush()
+            self._audit(s, actor, "diagnosis.finish", "diagnosis", diagnosis_id,
+                        {"diagnosis_id": diagnosis_id, "record_id": d.record_id, "state": state,
+                         "named_effects": list(summary.get("named_effects", [])), "error": error})
+            return r
+
+    def get_diagnosis(self, diagnosis_id: int) -> tuple[Diagnosis, DiagnosisResult | None]:
+        with self._read() as s:
+            d = s.get(Diagnosis, diagnosis_id) if isinstance(diagnosis_id, int) else None
+            if d is None:
+                raise UnknownEntity(f"diagnosis {diagnosis_id!r} does not exist")
+            r = s.scalar(sa.select(DiagnosisResult).where(DiagnosisResult.diagnosis_id == diagnosis_id))
+            return d, r
+
+    def list_diagnoses(self, record_id: int | None = None,
+                       limit: int = 100) -> list[tuple[Diagnosis, DiagnosisResult | None]]:
+        """Newest first, of one record or of all."""
+        with self._read() as s:
+            stmt = (sa.select(Diagnosis, DiagnosisResult)
+                    .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
+                    .order_by(Diagnosis.id.desc()).limit(limit))
+            if record_id is not None:
+                stmt = stmt.where(Diagnosis.record_id == record_id)
+            return [(d, r) for d, r in s.execute(stmt).all()]
+
+    def unfinished_diagnoses(self) -> list[int]:
+        with self._read() as s:
+            stmt = (sa.select(Diagnosis.id)
+                    .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
+                    .where(DiagnosisResult.id.is_(None)))
+            return list(s.scalars(stmt))
+
+    def mark_diagnoses_interrupted(self, *, actor: str) -> list[int]:
+        """At start-up: diagnoses a previous run left without a result end as failed."""
+        ids = self.unfinished_diagnoses()
+        for i in ids:
+            self.finish_diagnosis(i, state="failed", started_at=None, summary={}, report_html=None,
+                                  error=INTERRUPTED_DIAGNOSIS, actor=actor)
+        return ids
