@@ -33,12 +33,21 @@ const isNum = (v) => typeof v === "number" && Number.isFinite(v);
 const deg = (v, d = 4) => (isNum(v) ? `${v.toFixed(d)}°` : "—");
 const arcsec = (vDeg, d = 1) => (isNum(vDeg) ? `${(vDeg * 3600).toFixed(d)}″` : "—");
 const degArc = (v) => (isNum(v) ? `${v.toFixed(5)}° (${(v * 3600).toFixed(1)}″)` : "—");
+// GUM 7.2.6: an expanded uncertainty to two significant digits, the value to the same decimal place
+function uDecimals(u) { return isNum(u) && u > 0 ? Math.max(0, 1 - Math.floor(Math.log10(u))) : 4; }
+function gumDeg(v, u) {
+  if (!isNum(v)) return "—";
+  if (!isNum(u) || !(u > 0)) return `${v.toFixed(4)}°`;
+  const d = uDecimals(u);
+  return `${v.toFixed(d)}° ± ${u.toFixed(d)}°`;
+}
+const kText = (k) => (isNum(k) ? k.toPrecision(3) : "—");  // a coverage factor to three digits
 const utcTime = (t) => (t ? new Date(t).toISOString().slice(11, 23) + " UTC" : "—");
 const utcDate = (t) => (t ? new Date(t).toISOString().slice(0, 19).replace("T", " ") : "—");
-const ageText = (t) => {
+const ageText = (t, zone = true) => {
   if (!t) return "never";
   const s = (Date.now() - new Date(t).getTime()) / 1000;
-  return `${utcTime(t)} (${Math.max(0, s).toFixed(1)} s ago)`;
+  return `${zone ? utcTime(t) : utcTime(t).replace(" UTC", "")} (${Math.max(0, s).toFixed(1)} s ago)`;
 };
 
 function el(tag, attrs = {}, ...children) {
@@ -211,6 +220,8 @@ function onReadingMessage(m) {
     $("stream-state").textContent = `${m.bench}, ${isNum(m.rate_hz) ? m.rate_hz.toFixed(1) : "?"} Hz`;
   } else if (m.type === "reading") {
     live.received += 1;
+    // each reading names the record that corrected it: an activation shows with the next reading
+    if (m.calibration !== undefined) live.calibration = m.calibration;
     addReading(m);
   } else if (m.type === "dropped") {
     live.dropped += m.count || 0;
@@ -230,14 +241,26 @@ function axisDeg() {
   return { label: "°", size: 70, values: (u, vals) => vals.map((v) => (v === null ? "" : `${+v.toPrecision(6)}°`)) };
 }
 
+// the page speaks UTC: the time axis says UTC time of day, 24 h, never the browser's zone
+function utcClock(t, ms = 0) {
+  const s = new Date(t * 1e3).toISOString();
+  return ms ? s.slice(11, 20 + ms) : s.slice(11, 19);
+}
+function axisUtc() {
+  return { label: "time (UTC)", labelSize: 20, values: (u, splits, ax, space, incr) => splits.map((t) => (t === null ? "" : utcClock(t, incr < 1 ? 1 : 0))) };
+}
+
 function makeCharts() {
   if (typeof uPlot === "undefined") { showProblem("the chart library did not load (/web/vendor/uplot)"); return; }
-  const x = { time: true };
+  const x = { label: "time (UTC)", value: (u, t) => (isNum(t) ? utcClock(t, 3) : "—") };
   const common = {
     scales: { x: { time: true, range: () => [xRange[0], xRange[1]] }, y: { auto: true, range: (u) => yRange(u) } },
-    axes: [{}, axisDeg()], legend: { live: true }, cursor: { drag: { x: false, y: false } },
+    tzDate: (t) => uPlot.tzDate(new Date(t * 1e3), "Etc/UTC"),  // ticks on whole UTC seconds and minutes
+    axes: [axisUtc(), axisDeg()], legend: { live: true }, cursor: { drag: { x: false, y: false } },
   };
-  const band = (c) => ({ stroke: c, width: 0, fill: c + "22", points: { show: false }, legend: false });
+  // a bound of the band is drawn by no line and filled by nothing of its own: uPlot fills a series'
+  // own `fill` down to zero; the band between reading − U and reading + U is filled by `bands` alone
+  const band = (c) => ({ stroke: c, width: 0, points: { show: false }, legend: false });
   tiltChart = new uPlot({
     ...chartSize($("chart-tilt")), ...common,
     series: [x, { label: "X", stroke: "#1f5fbf", width: 1.5, points: { show: false } },
@@ -253,6 +276,7 @@ function makeCharts() {
       { label: "ref X", stroke: "#1f5fbf", dash: [4, 3], width: 1.2, points: { show: false } },
       { label: "ref Y", stroke: "#c0392b", dash: [4, 3], width: 1.2, points: { show: false } }],
   }, [[], [], [], [], []], $("chart-raw"));
+  window.tiltlab.charts = { tilt: tiltChart, raw: rawChart };
   window.addEventListener("resize", () => {
     tiltChart.setSize(chartSize($("chart-tilt")));
     rawChart.setSize(chartSize($("chart-raw")));
@@ -309,11 +333,12 @@ function showLatest(m) {
   $("temp_c").textContent = isNum(m.temp_c) ? `${m.temp_c.toFixed(2)} °C` : "—";
   $("updated").textContent = `at ${utcTime(m.time_utc)}`;
   const tt = m.table_tilt;
-  const pm = (v, u) => (isNum(v) ? `${v.toFixed(4)}°${isNum(u) ? ` ± ${u.toFixed(4)}°` : ""}` : "—");
-  $("tilt_x").textContent = tt ? pm(tt.x_deg, tt.u_x_deg) : "—";
-  $("tilt_y").textContent = tt ? pm(tt.y_deg, tt.u_y_deg) : "—";
+  $("tilt_x").textContent = tt ? gumDeg(tt.x_deg, tt.u_x_deg) : "—";
+  $("tilt_y").textContent = tt ? gumDeg(tt.y_deg, tt.u_y_deg) : "—";
   const c = live.calibration;
-  $("calibration-note").textContent = tt ? `uncertainty expanded with k = ${tt.k ?? 2}${c ? `; record ${c.record_id} v${c.version} (${c.method})` : ""}`
+  const ks = tt ? `k = ${kText(tt.k)} in X, k_y = ${kText(tt.k_y)} in Y` : "";
+  const p = tt && isNum(tt.coverage_probability) ? ` (${+(tt.coverage_probability * 100).toPrecision(3)} % coverage)` : "";
+  $("calibration-note").textContent = tt ? `uncertainty expanded with ${ks}${p}${c ? `; record ${c.record_id} v${c.version} (${c.method})` : ""}`
     : "no corrected tilt: no active calibration record, or the measurement sensor is silent";
   setMoving(!!st.moving, "stream");
 }
@@ -378,13 +403,13 @@ async function refreshStatus() {
     const td = $("devices").tBodies[0];
     td.replaceChildren(...d.devices.map((x) => {
       const c = x.counters, a = active[x.role];
-      return el("tr", { "data-role": x.role }, el("td", {}, x.role), el("td", {}, x.port), el("td", {}, x.protocol),
-        el("td", { class: `st-${x.state}` }, x.state), el("td", {}, ageText(x.last_frame_utc)),
-        el("td", {}, `${c.frames}`), el("td", {}, `${c.bad_checksum}`), el("td", {}, `${c.resyncs}`),
-        el("td", {}, `${c.timeouts}`), el("td", {}, `${c.reconnects}`),
-        el("td", {}, x.identity ? `${x.identity.model} s/n ${x.identity.serial} fw ${x.identity.firmware}` : "—"),
-        el("td", {}, a ? `record ${a.id} v${a.version} (${a.method})` : "none"), el("td", {}, x.error || "—"));
+      return el("tr", { "data-role": x.role }, el("td", {}, x.role.replace(/_/g, " ")), el("td", { class: "port" }, x.port),
+        el("td", {}, x.protocol), el("td", { class: `st-${x.state}` }, x.state), el("td", {}, ageText(x.last_frame_utc, false)),
+        el("td", {}, `${c.frames}`), el("td", {}, `${c.bad_checksum} / ${c.resyncs} / ${c.timeouts} / ${c.reconnects}`),
+        el("td", { class: "wrap" }, x.identity ? `${x.identity.model} s/n ${x.identity.serial} fw ${x.identity.firmware}` : "—"),
+        el("td", { class: "wrap" }, a ? `record ${a.id} v${a.version} (${a.method})` : "none"), el("td", { class: "wrap" }, x.error || "—"));
     }));
+    state.devices = d.devices;
     $("devices-updated").textContent = `at ${utcTime(new Date().toISOString())}`;
     state.records = r.records;
     if (!$("view-records").hidden) drawRecords();
@@ -568,11 +593,19 @@ async function loadRecords() {
   try { state.records = (await api("GET", `/records?bench=${encodeURIComponent(state.bench)}`)).records; drawRecords(); } catch (err) { showProblem(err.message); }
 }
 
+// a record's instrument in the lab's words: the role it serves on the bench and, when known, the instrument
+function instrumentOf(r) {
+  const role = ROLE_OF_KIND[r.kind] || r.kind;
+  const d = (state.devices || []).find((x) => x.role === role);
+  const id = d && d.identity ? ` (${d.identity.model} s/n ${d.identity.serial})` : "";
+  return `${role.replace(/_/g, " ")}${id}`;
+}
+
 function drawRecords() {
   const tb = $("records").tBodies[0];
   tb.replaceChildren(...state.records.map((r) => el("tr", { class: r.id === state.selectedRecord ? "selected" : "", "data-id": r.id,
     onclick: () => openRecord(r.id) },
-  el("td", {}, `${r.id}`), el("td", {}, `${r.device_id}`), el("td", {}, r.kind), el("td", {}, `v${r.version}`), el("td", {}, r.method),
+  el("td", {}, `${r.id}`), el("td", { title: `device ${r.device_id}` }, instrumentOf(r)), el("td", {}, r.kind), el("td", {}, `v${r.version}`), el("td", {}, r.method),
   el("td", {}, utcDate(r.created_utc)), el("td", {}, r.validation ? degArc(r.validation.rms_deg) : "—"),
   el("td", {}, r.status || "—"), el("td", {}, r.active ? "active" : ""))));
 }
@@ -582,7 +615,7 @@ async function openRecord(id, message = "") {
   drawRecords();
   const rec = await api("GET", `/records/${id}`);
   $("record-detail").hidden = false;
-  $("rec-title").textContent = `${rec.id}: device ${rec.device_id} ${rec.kind} v${rec.version} (${rec.method})${rec.active ? ", active" : ""}, ${rec.status}`;
+  $("rec-title").textContent = `${rec.id}: ${instrumentOf(rec)}, ${rec.kind} v${rec.version} (${rec.method})${rec.active ? ", active" : ""}, ${rec.status}`;
   const v = rec.validation || {};
   const c = rec.conditions || {};
   const rows = [["RMS error", degArc(v.rms_deg)], ["largest error", degArc(v.max_deg)], ["validation points", v.n_points ?? "—"],
@@ -653,21 +686,41 @@ function colour(f) {  // 0 green .. 1 red
   return `hsl(${h.toFixed(0)} 70% 42%)`;
 }
 
+// The residual map: points at most 80 units from the centre, the longest arrow 20 units long, so
+// every arrow stays inside the frame (±110); labels and the colour scale sit outside the frame.
+const MAP_R = 80, MAP_ARROW = 20, MAP_FRAME = 110;
+
 function drawResiduals(svg, points, which) {
   svg.replaceChildren();
   const span = Math.max(1e-9, ...points.map((p) => Math.max(Math.abs(p.stage_x_deg), Math.abs(p.stage_y_deg))));
   const mag = points.map((p) => Math.hypot(p[`${which}_x_deg`], p[`${which}_y_deg`]));
   const big = Math.max(1e-12, ...mag);
-  // the largest arrow is a quarter of the grid's half-width
-  const gain = 0.25 * span / big;
-  const sx = (x) => 100 * x / span, sy = (y) => -100 * y / span;
-  svg.append(svgEl("rect", { x: -110, y: -110, width: 220, height: 220, class: "frame" }));
-  svg.append(svgEl("defs", {}));
-  svg.append(svgEl("text", { x: -108, y: -100, class: "tick" }, `longest arrow ${arcsec(big, 1)}`));
-  svg.append(svgEl("text", { x: 108, y: 116, class: "tick", "text-anchor": "end" }, `stage X ±${+span.toPrecision(3)}°`));
+  const sx = (x) => MAP_R * x / span, sy = (y) => -MAP_R * y / span;
+  const gain = MAP_ARROW / big;  // map units per degree of residual
+  const F = MAP_FRAME;
+  const gid = `scale-${svg.id}`;
+  const grad = svgEl("linearGradient", { id: gid, x1: 0, y1: 1, x2: 0, y2: 0 });
+  for (const f of [0, 0.25, 0.5, 0.75, 1]) grad.append(svgEl("stop", { offset: f, "stop-color": colour(f) }));
+  const defs = svgEl("defs", {});
+  defs.append(grad);
+  svg.append(defs);
+  svg.append(svgEl("rect", { x: -F, y: -F, width: 2 * F, height: 2 * F, class: "frame" }));
+  svg.append(svgEl("line", { x1: -F, y1: 0, x2: F, y2: 0, class: "axis" }), svgEl("line", { x1: 0, y1: -F, x2: 0, y2: F, class: "axis" }));
+  // axes: X under the frame, Y along its left side
+  svg.append(svgEl("text", { x: 0, y: F + 11, class: "tick x-label", "text-anchor": "middle" }, `stage X / ° (edge points ±${+span.toPrecision(3)}°)`));
+  svg.append(svgEl("text", { x: -F - 5, y: 0, class: "tick y-label", "text-anchor": "middle", transform: `rotate(-90 ${-F - 5} 0)` },
+    `stage Y / ° (edge points ±${+span.toPrecision(3)}°)`));
+  // the arrow scale under the frame: a bar as long as the longest arrow, its length in arc seconds
+  svg.append(svgEl("line", { x1: -F, y1: F + 24, x2: -F + MAP_ARROW, y2: F + 24, stroke: "#1d232a", "stroke-width": 2, class: "arrow-scale" }));
+  svg.append(svgEl("text", { x: -F + MAP_ARROW + 4, y: F + 27, class: "res-label longest" }, `longest arrow ${arcsec(big, 1)}`));
+  // the colour scale at the right of the frame: 0 at the bottom, the longest arrow at the top
+  const cx = F + 6;
+  svg.append(svgEl("rect", { x: cx, y: -F, width: 7, height: 2 * F, fill: `url(#${gid})`, class: "colour-scale" }));
+  svg.append(svgEl("text", { x: cx + 10, y: -F + 7, class: "tick" }, arcsec(big, 1)));
+  svg.append(svgEl("text", { x: cx + 10, y: F, class: "tick" }, "0″"));
   points.forEach((p, i) => {
     const x0 = sx(p.stage_x_deg), y0 = sy(p.stage_y_deg);
-    const x1 = sx(p.stage_x_deg + gain * p[`${which}_x_deg`]), y1 = sy(p.stage_y_deg + gain * p[`${which}_y_deg`]);
+    const x1 = x0 + gain * p[`${which}_x_deg`], y1 = y0 - gain * p[`${which}_y_deg`];
     const c = colour(mag[i] / big);
     const g = svgEl("g", { class: `res ${p.role}`, "data-point": p.point });
     g.append(svgEl("title", {}, `point ${p.point} (${p.role}): ${which} ${arcsec(p[`${which}_x_deg`], 2)} in X, ${arcsec(p[`${which}_y_deg`], 2)} in Y`));

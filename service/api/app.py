@@ -26,12 +26,13 @@ from service.api.routers import (
     lims,
     records,
     stage,
+    stage_home,
     streams,
     tilt,
 )
 from service.api.routers import metrics as metrics_router
 from service.api.routers.health import SchemaRevision
-from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering
+from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering, StageNotHomed
 from service.bench.startup import plan_benches
 from service.config import Settings, get_settings
 from service.errors import InputError
@@ -210,7 +211,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     problems.install(app)
     http_details.install(app)
     _install_errors(app)
-    for r in (health, metrics_router, benches, tilt, stage, calibrations, records, diagnoses, lims, streams):
+    for r in (health, metrics_router, benches, tilt, stage, stage_home, calibrations, records, diagnoses, lims, streams):
         app.include_router(r.router)
     dashboard.install(app)
     return app
@@ -235,6 +236,7 @@ _ERRORS = (
     (ConflictError, 409, "Conflict", None),
     (UnknownEntity, 404, "Not found", None),
     (DeviceNotAnswering, 503, "Device not answering", None),
+    (StageNotHomed, 409, "Stage not homed", None),
     (DeviceError, 503, "Device error", None),
     (TimeoutError, 503, "Device did not settle", None),
 )

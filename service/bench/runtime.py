@@ -15,9 +15,10 @@ from dataclasses import dataclass
 
 from service.benchconfig import BenchConfig
 from service.clock import Clock
+from service.instruments import controller
 from service.instruments.base import DeviceIdentity, Reading
 from service.instruments.bench import BenchDevices, open_bench
-from service.instruments.transport import DeviceError
+from service.instruments.transport import DeviceError, DeviceRefused
 
 log = logging.getLogger("tiltlab.bench")
 
@@ -33,6 +34,20 @@ class BenchBusy(Exception):
 
 class DeviceNotAnswering(Exception):
     """A device a request needs does not answer; the message names the role and port."""
+
+
+class StageNotHomed(DeviceError):
+    """The stage controller has not found its reference switches since power-up and refuses moves."""
+
+
+NOT_HOMED = controller.ERROR_NAMES[controller.ERR_NOT_HOMED]  # the controller's refusal, as the driver names it
+
+
+def _not_homed(bench: str, exc: DeviceRefused) -> Exception:
+    if NOT_HOMED in str(exc):
+        return StageNotHomed(f"bench {bench!r}: the stage is not homed (its controller refuses moves until it has"
+                             f" found its reference switches); home it first (POST /stage/home): {exc}")
+    return exc
 
 
 @dataclass
@@ -196,12 +211,44 @@ class BenchRuntime:
                     self.pose.dir_x = 1.0 if x_deg > self.pose.x_deg else -1.0
                 if self.pose.y_deg is not None and y_deg != self.pose.y_deg:
                     self.pose.dir_y = 1.0 if y_deg > self.pose.y_deg else -1.0
-            await stage.move_to_deg(x_deg, y_deg)
+            try:
+                await stage.move_to_deg(x_deg, y_deg)
+            except DeviceRefused as exc:
+                raise _not_homed(self.name, exc) from exc
             self.pose.moving = True
             await stage.wait_until_idle(timeout_s)
             self._check_stopped()
             await self.refresh_pose()
             return self.pose.x_deg, self.pose.y_deg  # type: ignore[return-value]
+
+    async def home_stage(self, *, timeout_s: float = 600.0) -> tuple[float, float]:
+        """Home both stage axes (each finds its reference switch; its position becomes 0) and wait
+        until they stand; returns the position reached (degrees)."""
+        self.require("stage")
+        stage = self.devices["stage"]
+        async with self._motion_lock:
+            await stage.home()
+            self.pose.moving = True
+            await stage.wait_until_idle(timeout_s)
+            self._check_stopped()
+            await self.refresh_pose()
+            return self.pose.x_deg, self.pose.y_deg  # type: ignore[return-value]
+
+    async def stage_homed(self) -> bool:
+        """Whether the stage controller takes moves: a move of each axis to where it stands is
+        refused "not homed" when it has not been homed since power-up, and moves nothing otherwise."""
+        self.require("stage")
+        stage = self.devices["stage"]
+        async with self._motion_lock:
+            for axis in (stage.x, stage.y):
+                try:
+                    await axis.move_to_pulses(await axis.position_pulses())
+                except DeviceRefused as exc:
+                    if NOT_HOMED in str(exc):
+                        return False
+                    raise
+            await stage.wait_until_idle(30.0)
+        return True
 
     async def move_rotary(self, angle_deg: float, *, timeout_s: float = 600.0) -> float:
         self.require("rotary_table")

@@ -418,6 +418,13 @@ class JobManager:
                               {bench.device_ids[role]: settled[role] for role in SENSORS})
         self.events.changed(job_id)
 
+    async def _home_if_needed(self, job_id: int, bench: BenchRuntime, points_done: int, total: int) -> None:
+        """A controller that reports "not homed" (after power-up) is homed before the first move."""
+        if not await bench.stage_homed():
+            log.info("job %s: the stage of %s is not homed; homing it", job_id, bench.name)
+            await self._progress(job_id, points_done=points_done, points_total=total, phase="homing")
+            await bench.home_stage()
+
     async def _stage_grid(self, job_id: int, bench: BenchRuntime) -> None:
         job = await asyncio.to_thread(self.store.get_job, job_id)
         params = job.parameters
@@ -434,6 +441,7 @@ class JobManager:
                              " its points cannot be continued with other instruments")
         stored = await asyncio.to_thread(self._points_by_device, job_id)
         done = {p.point for p in stored.get(meas_dev, [])} & {p.point for p in stored.get(ref_dev, [])}
+        await self._home_if_needed(job_id, bench, len(done), total)
         await self._progress(job_id, points_done=len(done), points_total=total, phase="measuring")
         for i, (x, y) in enumerate(fit_pts):
             if i in done:
@@ -470,6 +478,8 @@ class JobManager:
             raise InputError(f"the bench's instruments are not those the job started with ({started_with})")
         by_dev = await asyncio.to_thread(self._points_by_device, job_id)
         finished = set.intersection(*[{p.point for p in by_dev.get(bench.device_ids[r], [])} for r in proc.read_roles])
+        if "stage" in bench.devices:
+            await self._home_if_needed(job_id, bench, len(finished), total)
         await self._progress(job_id, points_done=len(finished), points_total=total, phase="measuring")
         method = get_method(proc.kind, job.method)
         model = None

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 PROCEDURES = ("stage-grid", "scale", "rotation", "turntable")
 KIND_OF_PROCEDURE = {"stage-grid": "stage", "scale": "scale", "rotation": "rotation", "turntable": "turntable"}
 # The fewest fit points each stage method needs (parameters it determines, with one spare).
-MIN_POINTS = {"kinematic": 6, "homography": 5, "axis_transform": 4, "coupling": 3}
+MIN_POINTS = {"kinematic": 6, "homography": 5, "axis-transform": 4, "coupling": 3}
 
 
 class Settle(BaseModel):

@@ -177,6 +177,9 @@ class StageScenario(_ScenarioBase):
     effects: StageEffects = Field(default_factory=StageEffects)
     grid: StageGrid
     environment: Environment = Environment()
+    controller_homed: bool = Field(
+        True, description="whether the stage controller has found its reference switches when the simulated bench "
+                          "starts; false: as after power-up, it refuses moves ('not homed') until it is homed")
 
 
 if not TYPE_CHECKING:

@@ -19,7 +19,7 @@ from service.storage.store import Store
 from service.storage.store.checks import _doc, _text
 from service.storage.tokens import TokenStore
 
-PHASES = ("measuring", "fitting", "validating")
+PHASES = ("homing", "measuring", "fitting", "validating")  # a succeeded job's phase is "done"
 INTERRUPTED = "interrupted: the daemon stopped while the job ran; POST /calibrations/{id}/resume continues it"
 
 

@@ -45,6 +45,13 @@ def utc_text(t: dt.datetime) -> str:
     return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
 
 
+def calibration_of(active: Any) -> dict | None:
+    """The record a message's corrected tilt comes from (None: no active record)."""
+    if active is None:
+        return None
+    return {"record_id": active.record_id, "version": active.version, "method": active.method_name}
+
+
 def _num(v: float) -> float | None:
     return None if math.isnan(v) else float(v)
 
@@ -198,8 +205,7 @@ class ReadingProducer:
         return {"type": "snapshot", "seq": 0, "time_utc": latest["time_utc"], "bench": self.bench.name,
                 "rate_hz": rate_hz, "raw": latest["raw"], "table_tilt": latest["table_tilt"],
                 "stage": latest["stage"], "temp_c": latest["temp_c"],
-                "calibration": None if active is None else {"record_id": active.record_id,
-                                                            "version": active.version, "method": active.method_name},
+                "calibration": calibration_of(active),
                 "history": history_objects(rows, rate_hz, 0.25 * self.interval_s)}
 
     # ------------------------------------------------------------ producing
@@ -284,7 +290,8 @@ class ReadingProducer:
         pair = lambda r: None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}  # noqa: E731
         msg = {"time_utc": utc_text(when), "type": "reading",
                "raw": {"measurement_sensor": pair(meas), "reference_sensor": pair(ref)},
-               "table_tilt": table, "stage": stage, "temp_c": temp}
+               "table_tilt": table, "stage": stage, "temp_c": temp,
+               "calibration": calibration_of(active)}  # an activation shows with the next reading
         nan = math.nan
         f = lambda v: nan if v is None else float(v)  # noqa: E731
         row = [t_bench, when.timestamp(),

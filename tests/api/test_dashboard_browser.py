@@ -8,7 +8,10 @@ button, and the page without a token. Screenshots of the main views go to TILTLA
 
 from __future__ import annotations
 
+import datetime
+import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -18,6 +21,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service.calibration.registry import methods_for
 from tests.api.running_service import running_service
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -204,6 +208,55 @@ def test_calibration_followed_to_its_end_and_its_residual_map(page, bench):
     bench.shot(page, "record")
 
 
+def test_live_card_names_a_record_activated_while_the_stream_is_open(page, bench):
+    """The calibration test activated its record with the live stream open since before: the Live card
+    names that record from the next reading on, with no new snapshot (no reload, no reconnect)."""
+    active = bench.get("/tilt")["calibration"]
+    assert active is not None, "the calibration test activates its record"
+    snapshots = page.evaluate("window.tiltlab.live.snapshots")
+    page.get_by_role("tab", name="Live").click()
+    expect(page.locator("#calibration-note")).to_contain_text(f"record {active['record_id']} v{active['version']}",
+                                                              timeout=T)
+    assert page.evaluate("window.tiltlab.live.snapshots") == snapshots
+
+
+def test_records_are_named_by_role_and_instrument(page, bench):
+    page.get_by_role("tab", name="Records").click()
+    rec = bench.get("/records?bench=sim-stage")["records"][0]
+    ident = next(d["identity"] for d in bench.get("/devices")["devices"] if d["role"] == "measurement_sensor")
+    cell = page.locator(f"#records tr[data-id='{rec['id']}'] td").nth(1)
+    expect(cell).to_contain_text("measurement sensor", timeout=T)
+    expect(cell).to_contain_text(f"{ident['model']} s/n {ident['serial']}")
+    assert "device" not in cell.inner_text()
+
+
+def test_residual_maps_keep_arrows_in_the_frame_and_label_both_axes(page, bench):
+    rec_id = bench.get("/tilt")["calibration"]["record_id"]
+    page.get_by_role("tab", name="Records").click()
+    page.locator(f"#records tr[data-id='{rec_id}']").click()
+    expect(page.locator("#record-detail")).to_have_attribute("data-id", str(rec_id), timeout=T)
+    n = len(bench.get(f"/records/{rec_id}/residuals")["points"])
+    for which in ("before", "after"):
+        svg = page.locator(f"#res-{which}")
+        expect(svg.locator("g.res")).to_have_count(n, timeout=T)
+        geo = svg.evaluate("""(svg) => {
+            const box = (e) => { const b = e.getBBox(); return [b.x, b.y, b.x + b.width, b.y + b.height]; };
+            return { frame: box(svg.querySelector("rect.frame")),
+                     tips: [...svg.querySelectorAll("g.res line, g.res polygon")].map(box),
+                     points: [...svg.querySelectorAll("g.res circle")].map(box),
+                     longest: box(svg.querySelector(".longest")),
+                     y: svg.querySelector(".y-label") && svg.querySelector(".y-label").textContent,
+                     scale: svg.querySelectorAll(".colour-scale").length }; }""")
+        fx0, fy0, fx1, fy1 = geo["frame"]
+        for x0, y0, x1, y1 in geo["tips"]:  # every arrow, shaft and head, inside the frame
+            assert fx0 <= x0 and x1 <= fx1 and fy0 <= y0 and y1 <= fy1, (which, geo["frame"], (x0, y0, x1, y1))
+        lx0, ly0, lx1, ly1 = geo["longest"]  # the longest-arrow label covers no point
+        for x0, y0, x1, y1 in geo["points"]:
+            assert x1 < lx0 or lx1 < x0 or y1 < ly0 or ly1 < y0, (which, geo["longest"], (x0, y0, x1, y1))
+        assert geo["y"] and "Y" in geo["y"], geo["y"]
+        assert geo["scale"] == 1
+
+
 def test_table_is_levelled(page, bench):
     assert bench.get("/tilt")["calibration"] is not None, "the calibration test activates its record"
     page.get_by_role("tab", name="Run").click()
@@ -220,6 +273,61 @@ def test_table_is_levelled(page, bench):
     page.wait_for_function("window.tiltlab.live.latest && window.tiltlab.live.latest.table_tilt", timeout=T)
     expect(page.locator("#tilt_x")).to_contain_text("±")
     bench.shot(page, "levelled")
+
+
+def test_uncertainty_band_spans_the_reading_plus_minus_u(page, bench):
+    """After levelling the table reads about (0.4, -0.3) deg: the band of each axis covers reading ± U
+    on the chart's canvas, not the space between the reading and zero."""
+    page.get_by_role("tab", name="Live").click()
+    page.wait_for_function("window.tiltlab.live.latest && window.tiltlab.live.latest.table_tilt", timeout=T)
+    page.wait_for_function("Number(document.getElementById('chart-tilt').dataset.points) > 20", timeout=T)
+    got = page.evaluate("""() => {
+        const u = window.tiltlab.charts.tilt, d = u.data, i = d[0].length - 3;
+        const px = Math.round(u.valToPos(d[0][i], "x", true));
+        const h = u.ctx.canvas.height, col = u.ctx.getImageData(px, 0, 1, h).data;
+        const tinted = { x: [], y: [] };
+        for (let r = 0; r < h; r++) {
+            const [R, G, B, A] = col.slice(4 * r, 4 * r + 4);
+            if (A > 0 && B > R + 60) tinted.x.push(r);
+            if (A > 0 && R > B + 60) tinted.y.push(r);
+        }
+        const pos = (v) => u.valToPos(v, "y", true);
+        return { tinted, x: [pos(d[4][i]), pos(d[3][i])], y: [pos(d[6][i]), pos(d[5][i])],
+                 ux: (d[4][i] - d[3][i]) / 2, uy: (d[6][i] - d[5][i]) / 2, tx: d[1][i], ty: d[2][i] }; }""")
+    tt = page.evaluate("window.tiltlab.live.latest.table_tilt")
+    assert got["ux"] == pytest.approx(tt["u_x_deg"], rel=0.5) and got["uy"] == pytest.approx(tt["u_y_deg"], rel=0.5)
+    assert abs(got["tx"]) > 0.2 and abs(got["ty"]) > 0.2, got  # far from zero against the band's width
+    margin = 4  # canvas pixels: the line's width and anti-aliasing
+    for axis in ("x", "y"):
+        top, bottom = got[axis]
+        rows = got["tinted"][axis]
+        assert rows, (axis, got)
+        outside = [r for r in rows if r < top - margin or r > bottom + margin]
+        assert not outside, (axis, top, bottom, outside[:5], len(outside))
+
+
+def test_live_card_rounds_as_gum_and_keeps_each_label_with_its_value(page, bench):
+    page.get_by_role("tab", name="Live").click()
+    page.wait_for_function("window.tiltlab.live.latest && window.tiltlab.live.latest.table_tilt", timeout=T)
+    for axis in ("x", "y"):
+        text = page.locator(f"#tilt_{axis}").inner_text()
+        m = re.fullmatch(r"(-?\d+(?:\.(\d+))?)° ± (\d+(?:\.(\d+))?)°", text)
+        assert m, text
+        value, u = float(m.group(1)), float(m.group(3))
+        decimals = len(m.group(4) or "")
+        assert len(m.group(2) or "") == decimals, text  # the value to the uncertainty's last digit
+        digits = m.group(3).replace(".", "").lstrip("0")
+        assert len(digits) == 2, text  # U to two significant digits
+        assert u > 0 and 10 <= u * 10 ** decimals < 100, text
+        tt = bench.get("/tilt")["table_tilt"]
+        assert abs(value - tt[f"{axis}_deg"]) < 0.02 and math.isclose(u, tt[f"u_{axis}_deg"], rel_tol=0.1, abs_tol=10 ** -decimals), (text, tt)
+        # the axis name stands on the line where its value begins, left of it
+        label, first = page.locator(f"#tilt_{axis}").evaluate("""(o) => {
+            const l = o.parentElement.querySelector('.axis-name') || o.previousElementSibling, a = l.getBoundingClientRect();
+            const b = o.getClientRects()[0]; return [[a.left, a.top, a.right, a.bottom], [b.left, b.top, b.right, b.bottom]]; }""")
+        assert label[2] <= first[0] + 1 and label[1] < first[3] and first[1] < label[3], (axis, label, first)
+    note = page.locator("#calibration-note").inner_text()
+    assert re.search(r"k = \d\.\d\d in X, k_y = \d\.\d\d in Y", note), note
 
 
 @pytest.fixture(scope="module")
@@ -290,6 +398,38 @@ def test_status_view_shows_each_device(page, bench):
     expect(page.locator("#devices tr[data-role=measurement_sensor]")).to_contain_text("record ")
     expect(page.locator("#benches")).to_contain_text("sim-stage")
     bench.shot(page, "status")
+
+
+def test_devices_table_fits_its_box(page, bench):
+    page.get_by_role("tab", name="Status").click()
+    expect(page.locator("#devices tbody tr")).not_to_have_count(0, timeout=T)
+    widths = page.locator("#devices").evaluate("(t) => [t.scrollWidth, t.parentElement.clientWidth]")
+    assert widths[0] <= widths[1], widths
+
+
+def test_run_tab_offers_only_methods_the_api_accepts(page, bench):
+    offered = page.locator("#cal-form select[name=method] option").evaluate_all("(os) => os.map((o) => o.value)")
+    assert offered
+    accepted = methods_for("stage")
+    assert set(offered) <= set(accepted), (offered, accepted)
+
+
+def test_chart_time_axis_speaks_utc_in_any_browser_zone(browser, bench):
+    ctx = browser.new_context(viewport={"width": 1280, "height": 900}, timezone_id="Asia/Kolkata")  # UTC+05:30
+    pg = ctx.new_page()
+    pg.goto(f"{bench.base}/#token={bench.token}")
+    pg.wait_for_function("window.tiltlab.charts && Number(document.getElementById('chart-raw').dataset.points) > 20",
+                         timeout=T)
+    pg.wait_for_function("(window.tiltlab.charts.raw.axes[0]._values || []).length > 1", timeout=T)
+    axis = pg.evaluate("(() => { const a = window.tiltlab.charts.raw.axes[0]; return [a._splits, a._values, a.label]; })()")
+    splits, values, label = axis
+    assert "UTC" in label
+    for t, text in zip(splits, values, strict=True):
+        if t is None or not text:
+            continue
+        utc = datetime.datetime.fromtimestamp(t, datetime.UTC).strftime("%H:%M:%S")
+        assert text.startswith(utc), (t, text, utc)
+    ctx.close()
 
 
 def test_missing_and_invalid_tokens_get_a_clear_page(browser, bench):

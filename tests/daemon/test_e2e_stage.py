@@ -38,7 +38,7 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
     assert r.headers["location"] == f"/calibrations/{r.json()['id']}"
     job = wait_job(client, r.json()["id"], h)
     assert job["state"] == "succeeded", job
-    assert job["progress"] == {"points_done": 12, "points_total": 12, "phase": "validating"}
+    assert job["progress"] == {"points_done": 12, "points_total": 12, "phase": "done"}
     assert job["validation"]["n_points"] == 3 and job["validation"]["rms_deg"] < 0.01
     rec = job["record"]
     conditions = client.get(f"/records/{rec['id']}", headers=h).json()

@@ -32,7 +32,7 @@ from tests.api.running_service import free_port
 SPEED = 10.0
 SLOW_CLOSE_S = 2.0
 QUEUE = 40
-READING_KEYS = {"seq", "time_utc", "type", "raw", "table_tilt", "stage", "temp_c"}
+READING_KEYS = {"seq", "time_utc", "type", "raw", "table_tilt", "stage", "temp_c", "calibration"}
 SNAPSHOT_KEYS = {"type", "seq", "time_utc", "bench", "rate_hz", "raw", "table_tilt", "stage", "temp_c",
                  "calibration", "history"}
 
@@ -259,7 +259,7 @@ def test_reconnect_gets_a_snapshot_with_history(daemon: Daemon) -> None:
     assert snap["type"] == "snapshot" and snap["seq"] == 0 and snap["rate_hz"] == 5
     hist = snap["history"]
     assert len(hist) >= 2
-    assert all("seq" not in h and set(h) == READING_KEYS - {"seq"} and h["type"] == "reading" for h in hist)
+    assert all("seq" not in h and set(h) == READING_KEYS - {"seq", "calibration"} and h["type"] == "reading" for h in hist)
     times = [h["time_utc"] for h in hist]
     assert times == sorted(times) and times[-1] <= snap["time_utc"]
     # what the first connection saw is history now: the history spans its time, and, being decimated to

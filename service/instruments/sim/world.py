@@ -142,6 +142,7 @@ class StageWorld:
             soft = round(travel / pulse)
             hard = round((travel + 0.5) / pulse)
             self.axes[n] = Axis(clock, pulse, velocity_pps, (-soft, soft), (-hard, hard))
+            self.axes[n].homed = scenario.controller_homed  # false: moves are refused until homed
         self.adc_scenario = adc_scenario
         if adc_scenario is not None:
             self.analog: AnalogSensor = bench_of(adc_scenario)

@@ -98,6 +98,7 @@ class JobsStore(StoreBase):
                 job.failure_reason = failure_reason
                 if to_state == "succeeded":
                     job.progress = 1.0
+                    job.phase = "done"  # a failed or cancelled job keeps the phase it ended in
             self._audit(
                 s, actor, f"job.{to_state}", "job", job.id,
                 {"from": previous, "to": to_state, "failure_reason": failure_reason},

@@ -1,0 +1,32 @@
+"""Homing the stage: after power-up a controller refuses moves ("not homed") until each axis has
+found its reference switch; `POST /stage/home` does that and answers once both axes stand at 0."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+from pydantic import BaseModel, ConfigDict
+from starlette.concurrency import run_in_threadpool
+
+from service.api.auth import Operator
+from service.api.deps import find_bench
+from service.api.problems import ProblemError
+
+router = APIRouter(prefix="/stage", tags=["stage"])
+
+
+class Home(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    bench: str | None = None
+
+
+@router.post("/home")
+async def home(request: Request, who: Operator, body: Home | None = None) -> dict:
+    """Home both stage axes and answer once they stand (409 while a job holds the bench)."""
+    bench = find_bench(request, body.bench if body else None)
+    if bench.kind != "stage":
+        raise ProblemError(422, "Not a stage bench", f"bench: {bench.name!r} is a {bench.kind} bench", field="bench")
+    async with bench.hold("homing"):
+        x, y = await bench.home_stage()
+    await run_in_threadpool(request.app.state.store.audit_action, who.name, "stage.home", "bench", bench.name,
+                            {"bench": bench.name})
+    return {"homed": True, "stage": {"x_deg": x, "y_deg": y, "moving": False}}

@@ -1,0 +1,90 @@
+"""Homing a stage whose controller starts as after power-up ("not homed"), through `tiltlab serve`.
+
+A simulated bench whose scenario says `controller_homed: false` refuses moves until homed: a move
+is 409 naming the cause and the route to use; `POST /stage/home` homes both axes; a calibration job
+on such a bench homes the stage itself before its first point and succeeds.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.api.running_service import running_service
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def unhomed_scenario(folder: Path) -> Path:
+    data = json.loads((ROOT / "service" / "scenarios" / "presets" / "seed000.json").read_text())
+    data["controller_homed"] = False
+    path = folder / "unhomed.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+class Daemon:
+    def __init__(self, base: str, token: str) -> None:
+        self.base, self.h = base, {"Authorization": f"Bearer {token}"}
+
+    def get(self, path: str) -> httpx.Response:
+        return httpx.get(self.base + path, headers=self.h, timeout=60)
+
+    def post(self, path: str, body: dict | None = None) -> httpx.Response:
+        return httpx.post(self.base + path, headers=self.h, json=body, timeout=120)
+
+
+@pytest.fixture()
+def daemon(tmp_path) -> Iterator[Daemon]:
+    data = tmp_path / "data"
+    data.mkdir()
+    with running_service(data, TILTLAB_SIM_SPEED="20", TILTLAB_BENCH_SCENARIO=str(unhomed_scenario(tmp_path))) as base:
+        d = Daemon(base, (data / "admin.token").read_text().strip())
+        deadline = time.monotonic() + 60
+        while d.get("/benches").json()["benches"][0]["state"] != "ready":
+            assert time.monotonic() < deadline, "the bench did not come up"
+            time.sleep(0.2)
+        yield d
+
+
+def test_a_stage_that_is_not_homed_is_homed_by_the_route(daemon: Daemon) -> None:
+    refused = daemon.post("/stage/move", {"x_deg": 1.0, "y_deg": 0.5})
+    assert refused.status_code == 409, refused.text
+    problem = refused.json()
+    assert problem["title"] == "Stage not homed" and "POST /stage/home" in problem["detail"], problem
+
+    homed = daemon.post("/stage/home", {})
+    assert homed.status_code == 200, homed.text
+    assert homed.json()["homed"] is True
+    assert homed.json()["stage"] == {"x_deg": 0.0, "y_deg": 0.0, "moving": False}
+
+    moved = daemon.post("/stage/move", {"x_deg": 1.0, "y_deg": 0.5})
+    assert moved.status_code == 200, moved.text
+    stage = moved.json()["stage"]
+    assert stage["x_deg"] == pytest.approx(1.0, abs=1e-3) and stage["y_deg"] == pytest.approx(0.5, abs=1e-3)
+    assert daemon.post("/stage/home", {"bench": "no-such-bench"}).status_code == 404
+
+
+def test_a_job_homes_the_stage_before_its_first_point(daemon: Daemon) -> None:
+    body = {"procedure": "stage-grid", "method": "coupling", "samples_per_point": 3, "validation": {"n_points": 1},
+            "grid": {"x_deg": [-1, 1], "y_deg": [-1, 1], "n_x": 2, "n_y": 2}, "settle": {"tolerance_deg": 0.005}}
+    r = daemon.post("/calibrations", body)
+    assert r.status_code == 202, r.text
+    job_id = r.json()["id"]
+    phases = set()
+    deadline = time.monotonic() + 240
+    while True:
+        job = daemon.get(f"/calibrations/{job_id}").json()
+        phases.add(job["progress"]["phase"])
+        if job["state"] in ("succeeded", "failed", "cancelled"):
+            break
+        assert time.monotonic() < deadline, job
+        time.sleep(0.1)
+    assert job["state"] == "succeeded", job
+    assert job["progress"]["phase"] == "done", job
+    assert daemon.post("/stage/move", {"x_deg": 0.2, "y_deg": 0.2}).status_code == 200  # homed for good
