@@ -234,22 +234,6 @@ class BenchRuntime:
             await self.refresh_pose()
             return self.pose.x_deg, self.pose.y_deg  # type: ignore[return-value]
 
-    async def stage_homed(self) -> bool:
-        """Whether the stage controller takes moves: a move of each axis to where it stands is
-        refused "not homed" when it has not been homed since power-up, and moves nothing otherwise."""
-        self.require("stage")
-        stage = self.devices["stage"]
-        async with self._motion_lock:
-            for axis in (stage.x, stage.y):
-                try:
-                    await axis.move_to_pulses(await axis.position_pulses())
-                except DeviceRefused as exc:
-                    if NOT_HOMED in str(exc):
-                        return False
-                    raise
-            await stage.wait_until_idle(30.0)
-        return True
-
     async def move_rotary(self, angle_deg: float, *, timeout_s: float = 600.0) -> float:
         self.require("rotary_table")
         table = self.devices["rotary_table"]

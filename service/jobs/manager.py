@@ -19,7 +19,7 @@ import numpy as np
 
 from service import __version__
 from service.bench.readings import OUTLIER_RULE, fresh_readings, robust_mean, settle
-from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering
+from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering, StageNotHomed
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.uncertainty import COVERAGE
@@ -393,7 +393,12 @@ class JobManager:
     async def _measure_point(self, job_id: int, bench: BenchRuntime, index: int, x: float, y: float,
                              req: dict) -> None:
         travel = bench.config.stage_bench().travel_deg
-        await bench.move_stage(max(x - APPROACH_DEG, -travel), max(y - APPROACH_DEG, -travel))
+        approach = (max(x - APPROACH_DEG, -travel), max(y - APPROACH_DEG, -travel))
+        try:
+            await bench.move_stage(*approach)
+        except StageNotHomed:
+            await self._home_stage(job_id, bench)
+            await bench.move_stage(*approach)
         cx, cy = await bench.move_stage(x, y)
         st = req["settle"]
         t0 = await settle(bench, SENSORS, tolerance_deg=st["tolerance_deg"], window_s=st["window_s"],
@@ -418,12 +423,14 @@ class JobManager:
                               {bench.device_ids[role]: settled[role] for role in SENSORS})
         self.events.changed(job_id)
 
-    async def _home_if_needed(self, job_id: int, bench: BenchRuntime, points_done: int, total: int) -> None:
-        """A controller that reports "not homed" (after power-up) is homed before the first move."""
-        if not await bench.stage_homed():
-            log.info("job %s: the stage of %s is not homed; homing it", job_id, bench.name)
-            await self._progress(job_id, points_done=points_done, points_total=total, phase="homing")
-            await bench.home_stage()
+    async def _home_stage(self, job_id: int, bench: BenchRuntime) -> None:
+        """The controller refused a move as "not homed" (after power-up): home the stage, then go on."""
+        log.info("job %s: the stage of %s is not homed; homing it", job_id, bench.name)
+        job = await asyncio.to_thread(self.store.get_job, job_id)
+        done, total, phase = job.points_done or 0, job.points_total or 0, job.phase or "measuring"
+        await self._progress(job_id, points_done=done, points_total=total, phase="homing")
+        await bench.home_stage()
+        await self._progress(job_id, points_done=done, points_total=total, phase=phase)
 
     async def _stage_grid(self, job_id: int, bench: BenchRuntime) -> None:
         job = await asyncio.to_thread(self.store.get_job, job_id)
@@ -441,7 +448,6 @@ class JobManager:
                              " its points cannot be continued with other instruments")
         stored = await asyncio.to_thread(self._points_by_device, job_id)
         done = {p.point for p in stored.get(meas_dev, [])} & {p.point for p in stored.get(ref_dev, [])}
-        await self._home_if_needed(job_id, bench, len(done), total)
         await self._progress(job_id, points_done=len(done), points_total=total, phase="measuring")
         for i, (x, y) in enumerate(fit_pts):
             if i in done:
@@ -478,8 +484,6 @@ class JobManager:
             raise InputError(f"the bench's instruments are not those the job started with ({started_with})")
         by_dev = await asyncio.to_thread(self._points_by_device, job_id)
         finished = set.intersection(*[{p.point for p in by_dev.get(bench.device_ids[r], [])} for r in proc.read_roles])
-        if "stage" in bench.devices:
-            await self._home_if_needed(job_id, bench, len(finished), total)
         await self._progress(job_id, points_done=len(finished), points_total=total, phase="measuring")
         method = get_method(proc.kind, job.method)
         model = None
