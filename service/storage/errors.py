@@ -21,6 +21,10 @@ class ConflictError(RefusedWrite):
     """The write conflicts with the current state (e.g. a second active pointer); re-read and retry."""
 
 
+class RecordNotUsable(ConflictError):
+    """A record that must never correct a reading: rejected, or its stored content no longer matches its hash."""
+
+
 class AppendOnlyViolation(RefusedWrite):
     """An update or delete of an append-only row (calibration records, audit events, ...)."""
 

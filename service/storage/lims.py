@@ -23,6 +23,7 @@ from service.storage.errors import ConflictError, RefusedWrite, UnknownEntity
 from service.storage.feed import EVENT_TYPES
 from service.storage.models import (
     GENESIS_SHA256,
+    ActiveCalibration,
     CalibrationJob,
     CalibrationRecord,
     Certificate,
@@ -36,7 +37,7 @@ from service.storage.models import (
     utc_now,
 )
 from service.storage.stated_uncertainty import parse_stated_uncertainty
-from service.storage.store.base import StoreBase
+from service.storage.store.activation import ActivationStore
 from service.storage.store.checks import _text
 from service.storage.store.hashing import record_content
 
@@ -118,7 +119,7 @@ class DueDelivery:
     event: FeedEvent
 
 
-class LimsStore(StoreBase):
+class LimsStore(ActivationStore):
     # ------------------------------------------------------------ reference standards
 
     def add_standard(self, fields: Mapping[str, Any], *, actor: str) -> ReferenceStandard:
@@ -259,6 +260,11 @@ class LimsStore(StoreBase):
             self._audit(s, actor, action, "calibration_record", record_id,
                         {"approval_id": row.id, "actor": actor, "meaning": meaning, "note": note,
                          "record_sha256": record.content_sha256, "approval_sha256": row.sha256})  # fmt: skip
+            active = s.get(ActiveCalibration, (record.device_id, record.kind))
+            if decision == "reject" and active is not None and active.record_id == record_id:
+                # a rejected record is never used: withdrawn in the same transaction as the rejection
+                self._deactivate(s, record.device_id, record.kind, actor=actor, replaces=record_id,
+                                 reason=f"record {record_id} v{record.version} was rejected: {note}")
             return row
 
     def verify_approvals(self) -> list[str]:

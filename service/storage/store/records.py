@@ -6,6 +6,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import sqlalchemy as sa
+from sqlalchemy.orm import Session
 
 from service.errors import InputError
 from service.storage.canonical import sha256_hex
@@ -69,7 +70,8 @@ class RecordsStore(ActivationStore):
                     sa.select(sa.func.count()).select_from(SampleRow)
                     .where(SampleRow.job_id == job_id, SampleRow.device_id == device_id)
                 )  # fmt: skip
-                raw.update({"job_id": job_id, "points": len(pts), "points_sha256": points_sha256(pts), "samples": n_samples})
+                raw.update({"job_id": job_id, "points": len(pts), "points_sha256": points_sha256(pts), "samples": n_samples,
+                            "settled_points_sha256": _points_by_device_sha256(s, job_id)})
             active = s.get(ActiveCalibration, (device_id, kind))
             if supersedes_id is _UNSET:
                 supersedes_id = active.record_id if active else None
@@ -141,3 +143,12 @@ class RecordsStore(ActivationStore):
                 .where(ActiveCalibrationHistory.device_id == device_id, ActiveCalibrationHistory.kind == kind)
                 .order_by(ActiveCalibrationHistory.id)
             ))  # fmt: skip
+
+
+def _points_by_device_sha256(s: Session, job_id: int) -> dict[str, str]:
+    """The SHA-256 of every device's settled points in the job (the reference sensor's too: a fit uses them),
+    keyed by device id: what `db verify` checks the job's points against."""
+    by_device: dict[int, list[SettledPoint]] = {}
+    for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == job_id)):
+        by_device.setdefault(p.device_id, []).append(p)
+    return {str(device): points_sha256(pts) for device, pts in sorted(by_device.items())}
