@@ -82,7 +82,7 @@ class ActivationStore(StoreBase):
     def _unusable(s: Session, record: CalibrationRecord) -> str | None:
         if sha256_hex(record_content(record)) != record.content_sha256:
             return (f"record {record.id} v{record.version}: its stored content does not match its SHA-256"
-                    " (changed after it was made)")
+                    " (tampered: changed after it was made)")
         rejection = s.scalar(sa.select(RecordApproval).where(
             RecordApproval.record_id == record.id, RecordApproval.decision == "reject").limit(1))  # fmt: skip
         if rejection is not None:
