@@ -59,3 +59,27 @@ def corrected_tilt(active: Any, meas: Reading) -> dict:
     return {"x_deg": float(out["tilt_x_deg"][0]), "y_deg": float(out["tilt_y_deg"][0]),
             "u_x_deg": expanded["x"], "u_y_deg": expanded["y"], "k": factors["x"], "k_y": factors["y"],
             "coverage_probability": COVERAGE}
+
+
+def in_calibrated_range(active: Any, table: dict | None) -> bool | None:
+    """Whether a corrected table tilt lies within the table tilts the active record was fitted on (per axis,
+    the reference sensor's frame); None when there is no corrected tilt or the record states no range."""
+    seen = getattr(active, "table_tilt_range_deg", None) if active is not None else None
+    if table is None or seen is None:
+        return None
+    return bool(seen["x"][0] <= table["x_deg"] <= seen["x"][1] and seen["y"][0] <= table["y_deg"] <= seen["y"][1])
+
+
+def calibrated_range_note(active: Any, table: dict) -> str:
+    """What `note` says of a corrected tilt outside the calibrated range: served, but extrapolated."""
+    seen = active.table_tilt_range_deg
+    return (f"outside the calibrated range of record {active.record_id} (x {seen['x'][0]:.4g} to {seen['x'][1]:.4g}°,"
+            f" y {seen['y'][0]:.4g} to {seen['y'][1]:.4g}°): the corrected tilt is extrapolated")
+
+
+def calibration_json(active: Any) -> dict | None:
+    """The `calibration` object of /tilt and the stream's snapshot: which record corrects, and its status."""
+    if active is None:
+        return None
+    return {"record_id": active.record_id, "version": active.version, "method": active.method_name,
+            "status": active.status}

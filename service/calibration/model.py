@@ -169,6 +169,33 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
+def table_tilt_range(columns: dict[str, Any]) -> dict[str, list[float]] | None:
+    """The table tilts a stage model was fitted on: per axis [min, max] of the reference sensor's readings
+    (the frame the model corrects to), as MODEL.json `fit.table_tilt_range_deg` keeps them; None without them."""
+    out: dict[str, list[float]] = {}
+    for axis in "xy":
+        values = np.asarray(columns.get(f"ref_{axis}_deg", []), dtype=float)
+        values = values[np.isfinite(values)]
+        if values.size == 0:
+            return None
+        out[axis] = [float(values.min()), float(values.max())]
+    return out
+
+
+def stored_table_tilt_range(model: CalibrationModel) -> dict[str, list[float]] | None:
+    """MODEL.json `fit.table_tilt_range_deg` when it is there and well formed (older models do not have it)."""
+    seen = model.fit.get("table_tilt_range_deg")
+    if not isinstance(seen, dict):
+        return None
+    out = {}
+    for axis in "xy":
+        pair = seen.get(axis)
+        if not (isinstance(pair, list) and len(pair) == 2 and all(isinstance(v, int | float) for v in pair)):
+            return None
+        out[axis] = [float(pair[0]), float(pair[1])]
+    return out
+
+
 def residual_summary(residuals: dict[str, np.ndarray], unit: str, keep_values: bool = True) -> dict[str, Any]:
     """RMS, max |r| (and the values) of each residual column: what every model reports."""
     cols = {}

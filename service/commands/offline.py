@@ -112,6 +112,7 @@ def _refuse_options_that_do_not_apply(args: argparse.Namespace) -> None:
 
 
 def calibrate(args: argparse.Namespace) -> int:
+    from service.calibration.model import table_tilt_range
     from service.calibration.registry import FitOptions, get_method
     from service.datasets import about, check_not_overwriting, check_output_path, read_dataset
     from service.modelio import write_model
@@ -128,9 +129,7 @@ def calibrate(args: argparse.Namespace) -> int:
     with about(args.input):
         model = method.fit(ds.arrays(), options)
     if args.kind == "stage":  # the table tilts the model has seen: `level` warns beyond them
-        arrays = ds.arrays()
-        model.fit["table_tilt_range_deg"] = {
-            axis: [float(min(arrays[f"ref_{axis}_deg"])), float(max(arrays[f"ref_{axis}_deg"]))] for axis in "xy"}
+        model.fit["table_tilt_range_deg"] = table_tilt_range(ds.arrays())
     model.provenance = provenance(getattr(args, "command_line", "tiltlab calibrate"),
                                   {"input": args.input, "bench": args.bench})
     write_model(args.out, model)

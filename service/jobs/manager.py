@@ -20,7 +20,7 @@ import numpy as np
 from service import __version__
 from service.bench.readings import OUTLIER_RULE, fresh_readings, robust_mean, settle
 from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering, StageNotHomed
-from service.calibration.model import CalibrationModel
+from service.calibration.model import CalibrationModel, stored_table_tilt_range, table_tilt_range
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.uncertainty import COVERAGE
 from service.errors import InputError
@@ -31,7 +31,7 @@ from service.jobs.events import JobEvents
 from service.jobs.points import store_point, write_in_thread
 from service.jobs.requests import KIND_OF_PROCEDURE, MIN_POINTS, CalibrationRequest
 from service.storage.daemon_jobs import DaemonStore
-from service.storage.errors import UnknownEntity
+from service.storage.errors import ConflictError, UnknownEntity
 from service.storage.lims import StandardNotUsable
 from service.storage.samples import Sample
 from service.storage.tokens import Principal
@@ -65,6 +65,9 @@ class ActiveModel:
     model: CalibrationModel
     method: Any
     budget: dict[str, Any] | None = None  # the record's uncertainty budget (what adds to the fit's part)
+    status: str = "draft"  # draft | approved (a rejected record is never loaded)
+    # the table tilts (reference sensor's frame) the record was fitted on: {"x": [min, max], "y": [min, max]}
+    table_tilt_range_deg: dict[str, list[float]] | None = None
 
 
 def stage_columns(points_ref, points_meas) -> dict[str, np.ndarray]:  # type: ignore[no-untyped-def]
@@ -100,17 +103,46 @@ class JobManager:
         self.tasks: dict[int, asyncio.Task] = {}
         self.stop_reasons: dict[int, str] = {}
         self.active: dict[str, ActiveModel | None] = {}
+        self.inactive_notes: dict[str, str | None] = {}  # why a bench corrects nothing, when a record was withdrawn
         self.events = JobEvents()  # watchers hear of every stored state, progress and point
 
     # ------------------------------------------------------------ active record per bench
 
     def load_active(self, bench: BenchRuntime) -> ActiveModel | None:
+        """The bench's active stage record, checked before use: a record whose stored content no longer
+        matches its hash is refused (the bench stays uncorrected, `inactive_notes` says why), and a rejected
+        one is withdrawn. Called at start-up and whenever a record is activated, approved or rejected."""
         dev = bench.device_ids.get("measurement_sensor")
         rec = self.store.active_record(dev, "stage") if dev is not None else None
-        self.active[bench.name] = None if rec is None else ActiveModel(
-            rec.id, rec.version, rec.method, CalibrationModel.from_json_dict(rec.model, f"record {rec.id}"),
-            get_method("stage", rec.method), (rec.raw_data or {}).get("budget"))
-        return self.active[bench.name]
+        loaded, note = None, None
+        if rec is None:
+            note = self.store.inactive_reason(dev, "stage") if dev is not None else None
+        elif (why := self.store.unusable_reason(rec.id)) is not None:
+            note = f"the active record is refused: {why}"
+            log.warning("bench %s: %s", bench.name, note)
+            if self.store.record_status(rec.id) == "rejected" and dev is not None:
+                with contextlib.suppress(ConflictError):  # a rejected record is never used: withdraw it
+                    self.store.deactivate(dev, "stage", actor="daemon", replaces=rec.id,
+                                          reason=f"{why}; a rejected record is never used")
+        else:
+            model = CalibrationModel.from_json_dict(rec.model, f"record {rec.id}")
+            loaded = ActiveModel(rec.id, rec.version, rec.method, model, get_method("stage", rec.method),
+                                 (rec.raw_data or {}).get("budget"), status=self.store.record_status(rec.id),
+                                 table_tilt_range_deg=self.table_tilt_range_of(rec, model))
+        self.active[bench.name], self.inactive_notes[bench.name] = loaded, note
+        return loaded
+
+    def table_tilt_range_of(self, rec: Any, model: CalibrationModel | None = None) -> dict[str, list[float]] | None:
+        """The table tilts a stage record was fitted on: from its model, else (records made before models
+        kept it) from the settled points its job fitted; None for other kinds or without either."""
+        if rec.kind != "stage":
+            return None
+        model = model or CalibrationModel.from_json_dict(rec.model, f"record {rec.id}")
+        seen = stored_table_tilt_range(model)
+        if seen is None and rec.job_id is not None:
+            with contextlib.suppress(UnknownEntity, KeyError):
+                seen = table_tilt_range(self.fit_columns(rec.job_id, None, int((rec.raw_data or {}).get("fit_points", 10**9))))
+        return seen
 
     def bench_of_device(self, device_id: int) -> BenchRuntime | None:
         return next((b for b in self.benches.values() if device_id in b.device_ids.values()), None)
@@ -461,6 +493,7 @@ class JobManager:
         options = FitOptions(extra={"bench": bench.config.stage_bench(),
                                     "bench_source": f"bench configuration {bench.name}"})
         model = await asyncio.to_thread(method.fit, cols, options)
+        model.fit["table_tilt_range_deg"] = table_tilt_range(cols)  # the calibrated range, kept with the record
         await self._progress(job_id, points_done=len(done), points_total=total, phase="validating")
         for k, (x, y) in enumerate(val_pts):
             i = len(fit_pts) + k

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from service.bench.corrected import corrected_tilt, sensor_temp_c, stale_after_s
+from service.bench.corrected import calibration_json, corrected_tilt, in_calibrated_range, sensor_temp_c, stale_after_s
 from service.bench.runtime import SENSOR_ROLES, BenchRuntime
 from service.instruments.base import Reading
 
@@ -46,10 +46,8 @@ def utc_text(t: dt.datetime) -> str:
 
 
 def calibration_of(active: Any) -> dict | None:
-    """The record a message's corrected tilt comes from (None: no active record)."""
-    if active is None:
-        return None
-    return {"record_id": active.record_id, "version": active.version, "method": active.method_name}
+    """The record a message's corrected tilt comes from, with its status (None: no active record)."""
+    return calibration_json(active)
 
 
 def _num(v: float) -> float | None:
@@ -206,6 +204,7 @@ class ReadingProducer:
                 "rate_hz": rate_hz, "raw": latest["raw"], "table_tilt": latest["table_tilt"],
                 "stage": latest["stage"], "temp_c": latest["temp_c"],
                 "calibration": calibration_of(active),
+                "in_calibrated_range": latest.get("in_calibrated_range"),
                 "history": history_objects(rows, rate_hz, 0.25 * self.interval_s)}
 
     # ------------------------------------------------------------ producing
@@ -290,8 +289,8 @@ class ReadingProducer:
         pair = lambda r: None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}  # noqa: E731
         msg = {"time_utc": utc_text(when), "type": "reading",
                "raw": {"measurement_sensor": pair(meas), "reference_sensor": pair(ref)},
-               "table_tilt": table, "stage": stage, "temp_c": temp,
-               "calibration": calibration_of(active)}  # an activation shows with the next reading
+               "table_tilt": table, "in_calibrated_range": in_calibrated_range(active, table), "stage": stage,
+               "temp_c": temp, "calibration": calibration_of(active)}  # an activation shows with the next reading
         nan = math.nan
         f = lambda v: nan if v is None else float(v)  # noqa: E731
         row = [t_bench, when.timestamp(),

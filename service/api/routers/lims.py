@@ -122,6 +122,10 @@ def _decide(request: Request, record_id: int, actor: str, **kw: Any) -> dict[str
         raise ProblemError(403, "Segregation of duties", str(exc)) from None
     except ConflictError as exc:
         raise ProblemError(409, "Decision already made", str(exc)) from None
+    # the bench's record in use follows the decision: its status, or (rejected) withdrawn
+    bench = request.app.state.jobs.bench_of_device(store.get_record(record_id).device_id)
+    if bench is not None:
+        request.app.state.jobs.load_active(bench)
     return {"approval": approval_json(row), "record": {"id": record_id, "status": store.record_status(record_id)}}
 
 

@@ -18,6 +18,7 @@ from service.calibration.registry import get_method
 from service.calibration.residual_map import stage_residual_map
 from service.columns import ROTATION_DATASET, SCALE_DATASET, STAGE_DATASET, TURNTABLE_DATASET
 from service.datasets import format_value
+from service.errors import InputError
 from service.storage.errors import UnknownEntity
 from service.storage.models import ActiveCalibration, CalibrationRecord
 
@@ -33,7 +34,19 @@ def record_json(request: Request, r: CalibrationRecord, active: bool) -> dict:
             "raw_data": r.raw_data,
             "supersedes_id": r.supersedes_id, "content_sha256": r.content_sha256,
             "reference_standards": r.reference_standards,
-            "status": request.app.state.store.record_status(r.id)}  # draft | approved | rejected (LIMS approvals)
+            "status": request.app.state.store.record_status(r.id),  # draft | approved | rejected (LIMS approvals)
+            "calibrated_range": calibrated_range(request, r)}
+
+
+def calibrated_range(request: Request, r: CalibrationRecord) -> dict | None:
+    """The table tilts a stage record was fitted on, per axis [min, max] in the reference sensor's frame."""
+    try:
+        seen = request.app.state.jobs.table_tilt_range_of(r)
+    except InputError:  # a model this version cannot read states no range it can show
+        return None
+    if seen is None:
+        return None
+    return {"frame": "reference_sensor", "x_deg": seen["x"], "y_deg": seen["y"]}
 
 
 def _record(request: Request, record_id: int) -> CalibrationRecord:
@@ -115,9 +128,13 @@ def residuals(record_id: int, request: Request, _: Reader) -> dict:
 
 @router.post("/{record_id}/activate")
 def activate(record_id: int, request: Request, who: Operator) -> dict:
-    """Make the record the active version of its device: /tilt and levelling use it from now on."""
+    """Make the record the active version of its device: /tilt and levelling use it from now on. A rejected
+    record, or one whose stored content no longer matches its hash, is refused (409)."""
     r = _record(request, record_id)
     store = request.app.state.store
+    why = store.unusable_reason(r.id)
+    if why is not None:
+        raise ProblemError(409, "Record not usable", f"{why}; it cannot be activated")
     current = store.active_record(r.device_id, r.kind)
     if current is None or current.id != r.id:
         store.activate(r.id, actor=who.name, reason="activated over HTTP", replaces=current.id if current else None)

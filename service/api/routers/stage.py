@@ -73,8 +73,9 @@ async def level(body: Level, request: Request, who: Operator) -> dict:
     bench = _stage_bench(request, body.bench)
     active = request.app.state.jobs.active.get(bench.name)
     if active is None:
+        why = request.app.state.jobs.inactive_notes.get(bench.name)
         raise ProblemError(409, "No active calibration", f"bench {bench.name!r} has no active record to level with"
-                           " (POST /records/{id}/activate)")
+                           " (POST /records/{id}/activate)" + (f"; {why}" if why else ""))
     try:
         levelling.commands(active, body.x_deg, body.y_deg)
     except InputError as exc:

@@ -8,7 +8,14 @@ from fastapi import APIRouter, Request
 
 from service.api.auth import Reader
 from service.api.deps import BenchQuery
-from service.bench.corrected import corrected_tilt, sensor_temp_c, stale_after_s
+from service.bench.corrected import (
+    calibrated_range_note,
+    calibration_json,
+    corrected_tilt,
+    in_calibrated_range,
+    sensor_temp_c,
+    stale_after_s,
+)
 
 router = APIRouter(tags=["tilt"])
 
@@ -22,7 +29,9 @@ async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
     """Table tilt: the measurement sensor's latest reading through the active record, in the reference
     sensor's frame, with its expanded uncertainty (GUM, 95 %; coverage factors k, k_y from the effective degrees of
     freedom) from the record's covariance; null with
-    the reason in `note` when no record is active or the sensor is not answering. `stale` is true
+    the reason in `note` when no record is active (or the active one was withdrawn or refused) or the sensor
+    is not answering. `in_calibrated_range` says whether the corrected tilt lies within the table tilts the
+    record was fitted on; outside them it is still served, and `note` says so. `stale` is true
     when the latest reading is older than three output intervals plus 0.25 s."""
     now = dt.datetime.now(dt.UTC)
     meas = bench.latest("measurement_sensor")
@@ -44,16 +53,21 @@ async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
             st = bench.devices["measurement_sensor"].status
             notes.append(f"measurement_sensor on {st.port} has sent nothing for {age_s:.2f} s ({st.state})")
         if active is None:
-            notes.append("no active calibration record: raw readings only (POST /records/{id}/activate)")
+            why = request.app.state.jobs.inactive_notes.get(bench.name)
+            notes.append("no active calibration record: raw readings only (POST /records/{id}/activate)"
+                         + (f"; {why}" if why else ""))
         elif not stale:
             table = corrected_tilt(active, meas)
-            notes.append(f"corrected through record {active.record_id} v{active.version} ({active.method_name})")
+            notes.append(f"corrected through record {active.record_id} v{active.version} ({active.method_name},"
+                         f" {active.status})")
+            if in_calibrated_range(active, table) is False:
+                notes.append(calibrated_range_note(active, table))
     pose = bench.pose
     return {"bench": bench.name, "time_utc": meas.time_utc if meas else now, "age_s": age_s, "stale": stale,
             "table_tilt": table,
             "raw": {"measurement_sensor": _pair(meas), "reference_sensor": _pair(ref)},
             "temp_c": sensor_temp_c(meas, ref),
             "stage": {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None,
-            "calibration": None if active is None else {"record_id": active.record_id, "version": active.version,
-                                                        "method": active.method_name},
+            "calibration": calibration_json(active),
+            "in_calibrated_range": in_calibrated_range(active, table),
             "note": "; ".join(notes)}
