@@ -88,6 +88,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, metavar="FILE", help="MODEL.json from `tiltlab calibrate`")
     p.add_argument("--input", required=True, metavar="FILE", help="the readings CSV")
     p.add_argument("--out", required=True, metavar="FILE", help="the CSV to write")
+    p.add_argument("--calibrated-range-column", action="store_true",
+                   help="stage models only: also write `in_calibrated_range` (true or false): whether the "
+                        "corrected tilt lies within the table tilts the model was fitted on "
+                        "(MODEL.json fit.table_tilt_range_deg)")
     p.set_defaults(handler=correct)
 
     p = add_command(sub, "level", "stage commands that give wanted table tilts (stage models only)",
@@ -163,6 +167,7 @@ def stage_bench_options(kind: str, bench_path: str | None) -> dict:
 
 
 def correct(args: argparse.Namespace) -> int:
+    from service.calibration.model import stored_table_tilt_range
     from service.calibration.registry import get_method
     from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
     from service.modelio import read_model
@@ -172,8 +177,21 @@ def correct(args: argparse.Namespace) -> int:
     model = read_model(args.model)
     with about(args.model):
         method = get_method(model.kind, model.method)
+    seen = None
+    if getattr(args, "calibrated_range_column", False):
+        if model.kind != "stage":
+            raise InputError(f"--calibrated-range-column applies to stage models only, not {model.kind!r}; leave it out")
+        seen = stored_table_tilt_range(model)
+        if seen is None:
+            raise InputError(f"{args.model}: --calibrated-range-column: the model states no calibrated range "
+                             "(fit.table_tilt_range_deg; models made before it was kept): fit it again with "
+                             "`tiltlab calibrate`")
     ds = read_dataset(args.input, model.kind, method.correct_required, method.correct_optional)
-    out = {c: v for c, v in method.correct(model, ds.arrays()).items() if c in method.outputs}
+    out: dict[str, Any] = {c: v for c, v in method.correct(model, ds.arrays()).items() if c in method.outputs}
+    if seen is not None:
+        inside = ((seen["x"][0] <= out["tilt_x_deg"]) & (out["tilt_x_deg"] <= seen["x"][1])
+                  & (seen["y"][0] <= out["tilt_y_deg"]) & (out["tilt_y_deg"] <= seen["y"][1]))
+        out["in_calibrated_range"] = ["true" if v else "false" for v in inside]
     cols: dict[str, Any] = {**ds.passthrough(exclude=out), **out}
     write_dataset(args.out, cols)
     print(f"{model.kind}/{model.method}: corrected {ds.n_rows} rows; wrote {args.out}", file=sys.stderr)
