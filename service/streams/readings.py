@@ -36,7 +36,7 @@ CLOSE_GOING_AWAY = 1001
 
 # History ring columns (NaN for "none").
 _COLS = ("bench_s", "epoch", "mx", "my", "rx", "ry", "tx", "ty", "ux", "uy", "table", "sx", "sy", "moving", "stage",
-         "temp", "kx", "ky", "coverage")
+         "temp", "kx", "ky", "coverage", "in_range")
 _C = {name: i for i, name in enumerate(_COLS)}
 
 
@@ -113,6 +113,7 @@ def _row_object(r: np.ndarray) -> dict:
             "table_tilt": None if math.isnan(r[_C["table"]]) else
             {"x_deg": c("tx"), "y_deg": c("ty"), "u_x_deg": c("ux"), "u_y_deg": c("uy"), "k": c("kx"), "k_y": c("ky"),
              "coverage_probability": c("coverage")},
+            "in_calibrated_range": None if math.isnan(r[_C["in_range"]]) else bool(r[_C["in_range"]]),
             "stage": None if math.isnan(r[_C["stage"]]) else
             {"x_deg": c("sx"), "y_deg": c("sy"), "moving": bool(r[_C["moving"]])},
             "temp_c": c("temp")}
@@ -287,10 +288,11 @@ class ReadingProducer:
         when = meas.time_utc if meas is not None else clock.utc()
         t_bench = meas.bench_s if meas is not None else now_bench_s
         pair = lambda r: None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}  # noqa: E731
+        in_range = in_calibrated_range(active, table)
         msg = {"time_utc": utc_text(when), "type": "reading",
                "raw": {"measurement_sensor": pair(meas), "reference_sensor": pair(ref)},
-               "table_tilt": table, "in_calibrated_range": in_calibrated_range(active, table), "stage": stage,
-               "temp_c": temp, "calibration": calibration_of(active)}  # an activation shows with the next reading
+               "table_tilt": table, "in_calibrated_range": in_range, "stage": stage, "temp_c": temp,
+               "calibration": calibration_of(active)}  # an activation shows with the next reading
         nan = math.nan
         f = lambda v: nan if v is None else float(v)  # noqa: E731
         row = [t_bench, when.timestamp(),
@@ -302,7 +304,7 @@ class ReadingProducer:
                f(stage["x_deg"] if stage else None), f(stage["y_deg"] if stage else None),
                1.0 if stage and stage["moving"] else 0.0, 1.0 if stage else nan, f(temp),
                f(table["k"] if table else None), f(table["k_y"] if table else None),
-               f(table["coverage_probability"] if table else None)]
+               f(table["coverage_probability"] if table else None), nan if in_range is None else float(in_range)]
         return msg, row
 
 

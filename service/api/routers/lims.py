@@ -123,9 +123,9 @@ def _decide(request: Request, record_id: int, actor: str, **kw: Any) -> dict[str
     except ConflictError as exc:
         raise ProblemError(409, "Decision already made", str(exc)) from None
     # the bench's record in use follows the decision: its status, or (rejected) withdrawn
-    bench = request.app.state.jobs.bench_of_device(store.get_record(record_id).device_id)
-    if bench is not None:
-        request.app.state.jobs.load_active(bench)
+    jobs = getattr(request.app.state, "jobs", None)  # none in a LIMS-only application
+    if jobs is not None and (bench := jobs.bench_of_device(store.get_record(record_id).device_id)) is not None:
+        jobs.load_active(bench)
     return {"approval": approval_json(row), "record": {"id": record_id, "status": store.record_status(record_id)}}
 
 
