@@ -35,6 +35,7 @@ def _stream_reading(client, token: str, ok, limit: int = 400) -> dict:  # type: 
         for _ in range(limit):
             msg = ws.receive_json()
             if msg["type"] == "reading" and ok(msg):
+                ws.close()
                 return msg
     raise AssertionError("no reading on the stream satisfied the condition")
 
