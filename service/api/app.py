@@ -163,7 +163,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         for bench in runtimes:
             jobs.load_active(bench)
         # the workflow on stored points, in a worker process: never the bench, never the event loop
-        app.state.diagnoses = DiagnosisRunner(store, lambda job_id, n_fit: jobs.fit_columns(job_id, None, n_fit))
+        app.state.diagnoses = DiagnosisRunner(
+            store, lambda job_id, n_fit: jobs.fit_columns(job_id, None, n_fit),
+            lambda job_id, n_fit, method, model: jobs.validate(job_id, None, n_fit, method, model))  # type: ignore[arg-type]  # the bench is not read
         hub = app.state.streams = StreamHub(app.state.benches, jobs, queue_size=s.stream_queue_size,
                                             slow_close_s=s.stream_slow_close_s)
         hub.start()  # one reading producer per bench

@@ -32,7 +32,7 @@ from service.calibration.stage_common import (
     newton_2d,
 )
 from service.columns import REF
-from service.errors import DegenerateDataError, FitError
+from service.errors import DegenerateDataError, FitError, InputError
 from service.physics.effects import STAGE_EFFECTS, EffectSet
 from service.physics.stage import StageBench, StageGeometry, offaxis_inverse_deg
 
@@ -59,6 +59,15 @@ CHAIN_CANDIDATES: tuple[ParamKey, ...] = (
 )
 PERIODIC: tuple[ParamKey, ...] = (("periodic_error", "x_amp_deg"), ("periodic_error", "x_phase_deg"),
                                   ("periodic_error", "y_amp_deg"), ("periodic_error", "y_phase_deg"))
+# Effects a record may add to the chain (a diagnosis names them): their registry parameters become free, with
+# the start values the fit needs (a periodic error's phase is undefined at zero amplitude). The reference sensor's
+# own terms, because the chain is fitted to its readings; backlash and the coupling are in the chain already.
+EXTRA_EFFECTS: dict[str, tuple[tuple[ParamKey, float], ...]] = {
+    "periodic_error": tuple(zip(PERIODIC, (0.002, 0.0, 0.002, 0.0))),
+    "sensor_nonlinearity": ((("sensor_nonlinearity", "ref_x_per_deg"), 0.0),
+                            (("sensor_nonlinearity", "ref_y_per_deg"), 0.0)),
+}
+IN_CHAIN = ("backlash", "offaxis_coupling")
 ESSENTIAL = (("stage_scale", "x"), ("stage_scale", "y"), ("mounting_tilt", "desk_x_deg"),
              ("mounting_tilt", "desk_y_deg"))
 REF_OBS = REF
@@ -132,8 +141,13 @@ class ChainFit:
 
 
 def fit_chain(bench: StageBench, pts: StagePoints, ref_x: np.ndarray, ref_y: np.ndarray, loss: str = "linear",
-              periodic: bool = False, max_nfev: int = 200) -> ChainFit:
-    """Least-squares fit of the identifiable chain parameters to the reference readings."""
+              periodic: bool = False, max_nfev: int = 200, effects: Sequence[str] = ()) -> ChainFit:
+    """Least-squares fit of the identifiable chain parameters to the reference readings, with the parameters of
+    the extra `effects` (EXTRA_EFFECTS) free as well."""
+    unknown = [e for e in effects if e not in EXTRA_EFFECTS and e not in IN_CHAIN]
+    if unknown:
+        raise InputError(f"effects: {', '.join(unknown)} cannot be added to the kinematic chain; it takes "
+                         f"{', '.join(EXTRA_EFFECTS)} (and has {', '.join(IN_CHAIN)} already)")
     candidates = list(CHAIN_CANDIDATES)
     all_model = BenchModel(bench, {}, candidates)
     scales = np.array([typical_scale(k) for k in candidates])
@@ -159,9 +173,11 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: np.ndarray, ref_y: np.
             why = "these points do not exercise it; held at 0"
         fixed[candidates[i]] = why
     x0 = np.zeros(len(free))
-    if periodic:
-        free += list(PERIODIC)
-        x0 = np.concatenate([x0, [0.002, 0.0, 0.002, 0.0]])
+    extra = ["periodic_error"] if periodic else []
+    extra += [e for e in effects if e in EXTRA_EFFECTS and e not in extra]
+    for e in extra:
+        free += [k for k, _ in EXTRA_EFFECTS[e]]
+        x0 = np.concatenate([x0, [v for _, v in EXTRA_EFFECTS[e]]])
     model = BenchModel(bench, {}, free)
     observed = {"ref_x_deg": ref_x, "ref_y_deg": ref_y}
     try:

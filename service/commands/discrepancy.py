@@ -58,6 +58,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--html {html_path} would overwrite the JSON report --out {out}")
     check_not_overwriting(out, input=args.input)
     check_not_overwriting(html_path, "--html", input=args.input)
+    adopt_path = None
+    adopted = None
+    if getattr(args, "adopt", None):
+        if kind != "stage":
+            raise InputError("--adopt writes a kinematic stage model; kind 'scale' has none")
+        adopt_path = check_output_path(args.adopt)
+        if adopt_path.resolve() in (out.resolve(), html_path.resolve()):
+            raise InputError(f"--adopt {adopt_path} would overwrite the report")
+        check_not_overwriting(adopt_path, "--adopt", input=args.input)
     prov = provenance(getattr(args, "command_line", "tiltlab discrepancy"),
                       {"input": args.input, "bench": getattr(args, "bench", None)})
     if kind == "stage":
@@ -81,6 +90,15 @@ def run(args: argparse.Namespace) -> int:
             report, page, _, _ = stage_diagnosis(ds.arrays(), sensor, baseline, noise, bench=stated.get("bench"),
                                                  inputs=inputs, bench_source=stated.get("bench_source"),
                                                  provenance=prov)
+            if adopt_path is not None:  # the last step: the calibration with the named effects added
+                from service.discrepancy.adopt import adopted_model
+                from service.physics.stage import StageBench
+
+                adopted = adopted_model(ds.arrays(), report["named_effects"], sensor,
+                                        stated.get("bench") or StageBench(),
+                                        str(stated.get("bench_source") or report["bench"]["source"]),
+                                        {"what": f"the discrepancy report {out}", "report": str(out),
+                                         "input": str(args.input), "sensor": sensor, "baseline": baseline})
     elif kind == "scale":
         from service.discrepancy.scale import scale_report
 
@@ -109,8 +127,14 @@ def run(args: argparse.Namespace) -> int:
     write_text_atomic(out, text + "\n")
     try:
         write_text_atomic(html_path, page)
+        if adopt_path is not None and adopted is not None:
+            from service.modelio import write_model
+
+            adopted.provenance = prov
+            write_model(adopt_path, adopted)
     except BaseException:
-        out.unlink(missing_ok=True)  # a report without its page is half the result
+        out.unlink(missing_ok=True)  # a report without its page (or the model asked for) is half the result
+        html_path.unlink(missing_ok=True)
         raise
     chain = " → ".join(report["chain"])
     print(f"{kind}/{report['baseline']}: {chain}; final RMS {', '.join(f'{v:.3g}' for v in report['final_rms'])} "
@@ -147,4 +171,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "scenario) (default: the seed 000 bench, said on stderr and in the report)")
     p.add_argument("--html", default=None, metavar="FILE",
                    help="the report page to write (default: the --out name with .html)")
+    p.add_argument("--adopt", default=None, metavar="MODEL.json",
+                   help="stage only: also write the kinematic calibration of the data with the named effects "
+                        "added (its state says which and from which report); refused when nothing was named")
     p.set_defaults(handler=run)

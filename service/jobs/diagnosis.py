@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import datetime as dt
 import logging
 import multiprocessing
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -96,18 +98,33 @@ def run_workflow(columns: dict[str, np.ndarray], sensor: str, baseline: str, noi
     return summary, page
 
 
+def fit_adopted(columns: dict[str, np.ndarray], named: list[str], sensor: str, bench: dict[str, Any],
+                bench_source: str, diagnosis: dict[str, Any]) -> dict[str, Any]:
+    """In the worker process: the kinematic calibration with the named effects added, as MODEL.json."""
+    from service.discrepancy.adopt import adopted_model
+
+    return adopted_model(columns, named, sensor, bench, bench_source, diagnosis).to_json_dict()
+
+
+def _lower_priority() -> None:
+    """The worker yields the CPU to the daemon: the bench's serial exchanges and jobs come first."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(10)
+
+
 class DiagnosisRunner:
     """Starts diagnoses and follows them until their result is stored. One worker process serves them in turn."""
 
-    def __init__(self, store, columns_of) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, store, columns_of, validate) -> None:  # type: ignore[no-untyped-def]
         self.store = store
         self._columns_of = columns_of  # (job_id, n_fit) -> the record's dataset columns
+        self._validate = validate  # (job_id, n_fit, method, model) -> the validation figures of a stage record
         self.running: dict[int, Running] = {}
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
-            self._pool = concurrent.futures.ProcessPoolExecutor(max_workers=1,
+            self._pool = concurrent.futures.ProcessPoolExecutor(max_workers=1, initializer=_lower_priority,
                                                                 mp_context=multiprocessing.get_context("spawn"))
         return self._pool
 
@@ -187,6 +204,48 @@ class DiagnosisRunner:
                 "steps": summary.get("steps", []), "untestable": summary.get("untestable", []),
                 "conclusion": summary.get("conclusion"),
                 "error": result.error if result is not None else None}
+
+    async def adopt(self, diagnosis_id: int, actor: str) -> CalibrationRecord:
+        """A new record version of the diagnosed record's device whose model has the named effects, fitted on the
+        same points through the calibration code, with its validation figures (a draft like any new record)."""
+        from service.calibration.model import CalibrationModel
+        from service.calibration.registry import get_method
+        from service.discrepancy.adopt import effects_to_add
+        from service.storage.errors import ConflictError
+
+        d, result = await asyncio.to_thread(self.store.get_diagnosis, diagnosis_id)
+        if result is None or result.state != "succeeded":
+            state = "running" if result is None else f"failed ({result.error})"
+            raise ConflictError(f"diagnosis {diagnosis_id} is {state}: only a finished diagnosis can be adopted")
+        named = list(result.summary.get("named_effects", []))
+        try:
+            effects_to_add(named, d.sensor)
+        except InputError as exc:
+            raise ConflictError(str(exc)) from None
+        record = await asyncio.to_thread(self.store.get_record, d.record_id)
+        assert record.job_id is not None  # a diagnosed record has stored points
+        raw = dict(record.raw_data or {})
+        n_fit = int(raw.get("fit_points", 10**9))
+        cols = await asyncio.to_thread(self._columns_of, record.job_id, n_fit)
+        state = (record.model or {}).get("state", {})
+        if "bench" not in state:
+            raise ConflictError(f"record {record.id} does not state the bench it was calibrated on")
+        source = f"record {record.id}'s bench ({state.get('bench_source', 'as calibrated')})"
+        origin = {"id": d.id, "record_id": record.id, "sensor": d.sensor, "baseline": d.baseline,
+                  "what": f"diagnosis {d.id} of record {record.id} (v{record.version})"}
+        loop = asyncio.get_running_loop()
+        model_doc = await loop.run_in_executor(self._executor(), fit_adopted, cols, named, d.sensor, state["bench"],
+                                               source, origin)
+        method = get_method("stage", "kinematic")
+        model = CalibrationModel.from_json_dict(model_doc, f"diagnosis {d.id}")
+        validation = await asyncio.to_thread(self._validate, record.job_id, n_fit, method, model)
+        raw.pop("job_id", None)
+        raw.update({"diagnosis_id": d.id, "added_effects": model.state.get("added_effects", []),
+                    "adopted_from_record_id": record.id})
+        return await asyncio.to_thread(
+            self.store.add_record, record.device_id, "stage", "kinematic", model_doc, operator=actor,
+            validation=validation, temp_c=record.temp_c, job_id=record.job_id,
+            reference_standards=record.reference_standards, raw_data=raw)
 
     async def wait(self, diagnosis_id: int) -> None:
         run = self.running.get(diagnosis_id)

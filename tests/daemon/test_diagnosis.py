@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import time
 
+import numpy as np
+
 from tests.benches.conftest import scenario
 from tests.daemon.conftest import admin_headers, make_client, wait_job
 
@@ -55,28 +57,94 @@ def diagnose(client, h, record_id: int, **body) -> dict:
     return d
 
 
-def test_periodic_error_named_and_gap_closed_to_the_noise(tmp_path):
-    with start_daemon(tmp_path, PERIODIC_X) as client:
+def level_errors(client, h, record_id: int) -> np.ndarray:
+    """Open-loop levelling (one move, no correction) to each target with the record active: the distance of the
+    simulator's true table tilt from the target."""
+    assert client.post(f"/records/{record_id}/activate", headers=h).status_code == 200
+    world = client.app.state.bench.sim.world
+    errors = []
+    for tx, ty in TARGETS:
+        r = client.post("/stage/level", headers=h, json={"x_deg": tx, "y_deg": ty, "tolerance_deg": 0.01,
+                                                         "max_iterations": 1})
+        assert r.status_code == 200, r.text
+        assert r.json()["iterations"] == 1
+        truth = world.true_tilt_deg()
+        errors.append(np.hypot(truth[0] - tx, truth[1] - ty))
+    return np.array(errors)
+
+
+def named_adopted_and_levelled(tmp_path, effects: dict, effect: str) -> None:
+    """Calibrate, diagnose (the effect is named, the gap closes to the noise), adopt, and level open loop with
+    the first record and with the adopted one."""
+    with start_daemon(tmp_path, effects) as client:
         h = admin_headers(tmp_path)
         rec = calibrate(client, h)
         d = diagnose(client, h, rec["id"])
-        assert "periodic_error" in d["named_effects"], d
+        assert effect in d["named_effects"], d
         assert d["gap_after_deg"]["rms"] <= 1.5 * d["noise_deg"], d
         assert d["gap_before_deg"]["rms"] > 2 * d["gap_after_deg"]["rms"], d
         assert d["gap_after_deg"]["max"] >= d["gap_after_deg"]["rms"] > 0
-        step = next(s for s in d["effects"] if s["effect"] == "periodic_error")
-        amp = step["magnitude"]["x_amp_deg"]
-        assert abs(amp["value"] - 0.010) <= 4 * amp["uncertainty"] + 0.001, step
-        assert step["evidence"]["p_value"] < 0.01
+        step = next(s for s in d["effects"] if s["effect"] == effect)
+        assert step["evidence"]["p_value"] < 0.01 and step["magnitude"], step
         page = client.get(f"/diagnoses/{d['id']}/report", headers=h)
         assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
-        assert "periodic_error" in page.text
+        assert effect in page.text
         listed = client.get("/diagnoses", headers=h, params={"record": rec["id"]}).json()["diagnoses"]
         assert [x["id"] for x in listed] == [d["id"]]
         events = client.get("/feed", headers=h, params={"limit": 500}).json()["events"]
         finished = [e for e in events if e["type"] == "diagnosis.finished"]
         assert finished and finished[-1]["data"]["diagnosis_id"] == d["id"]
         assert finished[-1]["data"]["named_effects"] == d["named_effects"]
+
+        before = level_errors(client, h, rec["id"])
+        r = client.post(f"/diagnoses/{d['id']}/adopt", headers=h)
+        assert r.status_code == 201, r.text
+        new = r.json()
+        assert new["device_id"] == client.get(f"/records/{rec['id']}", headers=h).json()["device_id"]
+        assert new["version"] == rec["version"] + 1 and new["status"] == "draft" and new["method"] == "kinematic"
+        assert new["raw_data"]["diagnosis_id"] == d["id"] and effect in new["raw_data"]["added_effects"]
+        assert new["validation"]["n_points"] == BODY["validation"]["n_points"]
+        model = client.get(f"/records/{new['id']}/model", headers=h).json()
+        assert effect in model["state"]["added_effects"] and model["state"]["diagnosis"]["id"] == d["id"]
+        assert any(name.startswith(f"{effect}.") for name in model["state"]["chain_parameters"])
+        after = level_errors(client, h, new["id"])
+        # the adopted record levels at least 40 % closer to the truth
+        assert after.mean() <= 0.6 * before.mean(), (before, after)
+        # the first job still shows its own record
+        job = client.get(f"/calibrations/{rec['id']}", headers=h).json()
+        assert job["record"]["id"] == rec["id"]
+
+
+def test_worm_periodic_error_is_named_adopted_and_levels_closer_to_the_truth(tmp_path):
+    named_adopted_and_levelled(tmp_path, PERIODIC_X, "periodic_error")
+
+
+def test_sensor_nonlinearity_is_named_adopted_and_levels_closer_to_the_truth(tmp_path):
+    named_adopted_and_levelled(tmp_path, {"sensor_nonlinearity": {"ref_x_per_deg": 3e-4}}, "sensor_nonlinearity")
+
+
+def test_nothing_hidden_names_nothing_and_does_not_hold_the_bench(tmp_path):
+    with start_daemon(tmp_path, None) as client:
+        h = admin_headers(tmp_path)
+        rec = calibrate(client, h)
+        r = client.post(f"/records/{rec['id']}/diagnose", headers=h, json={})
+        assert r.status_code == 202, r.text
+        diagnosis_id = r.json()["id"]
+        # a calibration job takes the bench while the diagnosis runs: the diagnosis never holds it
+        job = client.post("/calibrations", headers=h, json={**BODY, "grid": {"x_deg": [-2, 2], "y_deg": [-2, 2],
+                                                                              "n_x": 3, "n_y": 3}})
+        state_then = client.get(f"/diagnoses/{diagnosis_id}", headers=h).json()["state"]
+        assert job.status_code == 202, job.text
+        assert state_then in ("queued", "running"), state_then
+        tilt = client.get("/tilt", headers=h)
+        assert tilt.status_code == 200 and tilt.json()["stage"] is not None
+        d = wait_diagnosis(client, h, diagnosis_id)
+        assert d["state"] == "succeeded", d
+        assert d["named_effects"] == [], d
+        assert d["gap_after_deg"]["rms"] <= 1.5 * d["noise_deg"], d
+        r = client.post(f"/diagnoses/{diagnosis_id}/adopt", headers=h)
+        assert r.status_code == 409 and "nothing to adopt" in r.json()["detail"], r.text
+        assert wait_job(client, job.json()["id"], h)["state"] == "succeeded"
 
 
 def test_bad_requests_name_the_field(tmp_path):

@@ -22,7 +22,8 @@ def job_json(request: Request, job: CalibrationJob) -> dict:
     store = request.app.state.store
     bench = next((b.name for b in request.app.state.benches.values() if b.bench_id == job.bench_id), None)
     with store.session() as s:
-        rec = s.query(CalibrationRecord).filter(CalibrationRecord.job_id == job.id).one_or_none()
+        # the job's own record: the first made from its points (an adopted diagnosis adds later versions)
+        rec = s.query(CalibrationRecord).filter(CalibrationRecord.job_id == job.id).order_by(CalibrationRecord.id).first()
     params = job.parameters or {}
     req = params.get("request", {})
     v = rec.validation if rec else None

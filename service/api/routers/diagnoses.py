@@ -80,3 +80,15 @@ def report(diagnosis_id: int, request: Request, _: Reader) -> HTMLResponse:
         state = "failed" if r is not None else "not finished"
         raise ProblemError(409, "No report", f"diagnosis {diagnosis_id} is {state}: it has no report")
     return HTMLResponse(r.report_html)
+
+
+@router.post("/diagnoses/{diagnosis_id}/adopt", status_code=201)
+async def adopt(diagnosis_id: int, request: Request, response: Response, who: Operator) -> dict:
+    """A new record version of the same device whose model includes the named effects, fitted on the same points
+    (with validation figures); a draft like any new record. 409 when the diagnosis named nothing to add."""
+    from service.api.routers.records import record_json
+
+    await run_in_threadpool(_diagnosis, request, diagnosis_id)
+    record = await request.app.state.diagnoses.adopt(diagnosis_id, who.name)
+    response.headers["Location"] = f"/records/{record.id}"
+    return await run_in_threadpool(record_json, request, record, False)

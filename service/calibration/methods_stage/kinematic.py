@@ -56,8 +56,9 @@ class KinematicMethod(StageMethod):
             raise InputError(f"{mismatch}. The kinematic model depends on the bench's hardware and none was stated "
                              f"({bench.describe()} assumed): give the bench the data came from with --bench FILE")
         pts = StagePoints.from_columns(data)
+        added = [str(e) for e in options.extra.get("effects", ())]
         chain = fit_chain(bench, pts, rx, ry, loss=loss, periodic=bool(options.extra.get("periodic_error", False)),
-                          max_nfev=int(options.extra.get("max_nfev", 200)))
+                          max_nfev=int(options.extra.get("max_nfev", 200)), effects=added)
         params: dict[str, Parameter] = {}
         for k, v in zip(chain.keys, chain.values):
             params[param_label(k)] = Parameter(float(v), unit_of(k))
@@ -91,6 +92,8 @@ class KinematicMethod(StageMethod):
                                                 "nfev": chain.nfev, "loss": loss,
                                                 "scaled_jacobian_singular_values": chain.singular_values.tolist()},
         }
+        if added:
+            notes.append(f"effects added to the chain: {', '.join(added)} (their parameters fitted with the rest)")
         state: dict[str, Any] = {"has_meas": has_meas(data), **bench_state(bench, source),
                                  "chain_parameters": [param_label(k) for k in list(chain.keys) + list(chain.fixed)],
                                  "approach": [1.0, 1.0]}
@@ -128,7 +131,8 @@ class KinematicMethod(StageMethod):
             cov[i:i + b.shape[0], i:i + b.shape[0]] = b
             i += b.shape[0]
         return stage_model(self.name, used_columns(data), params, notes, covariance_names=cov_names, covariance=cov,
-                      residuals=residual_summary(residuals, "deg"), fit=fit_info, state=state, options={"loss": loss})
+                      residuals=residual_summary(residuals, "deg"), fit=fit_info, state=state,
+                          options={"loss": loss, **({"effects": added} if added else {})})
 
     @staticmethod
     def chain_model(model: CalibrationModel) -> ChainModel:
