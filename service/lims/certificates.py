@@ -43,7 +43,26 @@ def laboratory(settings) -> Laboratory:  # type: ignore[no-untyped-def]
 def _record_json(r: CalibrationRecord) -> dict[str, Any]:
     return {"id": r.id, "version": r.version, "kind": r.kind, "method": r.method, "model": r.model,
             "validation": r.validation, "temp_c": r.temp_c, "content_sha256": r.content_sha256,
-            "created_at": r.created_at}  # fmt: skip
+            "created_at": r.created_at, "budget": (r.raw_data or {}).get("budget"),
+            "calibrated_range": (r.raw_data or {}).get("calibrated_range")}  # fmt: skip
+
+
+def _calibration_points(store, r: CalibrationRecord) -> list[dict[str, float]]:  # type: ignore[no-untyped-def]
+    """The points the record's model was fitted on: the reference's value and the item's indication at each."""
+    if r.job_id is None:
+        return []
+    n_fit = int((r.raw_data or {}).get("fit_points", 10**9))
+    points = [p for p in store.settled_points(r.job_id) if p.point < n_fit]
+    item = {p.point: p for p in points if p.device_id == r.device_id}
+    if r.kind != "stage":
+        return [{"commanded_angle_deg": float(p.cmd_x_deg)} for _, p in sorted(item.items()) if p.cmd_x_deg is not None]
+    out = []
+    for ref in sorted((p for p in points if p.device_id != r.device_id), key=lambda p: p.point):
+        m = item.get(ref.point)
+        if m is not None:
+            out.append({"reference_x_deg": ref.ch_x_mean, "reference_y_deg": ref.ch_y_mean,
+                        "indication_x_deg": m.ch_x_mean, "indication_y_deg": m.ch_y_mean})
+    return out
 
 
 def _device_json(store, r: CalibrationRecord) -> dict[str, Any]:  # type: ignore[no-untyped-def]
@@ -52,7 +71,8 @@ def _device_json(store, r: CalibrationRecord) -> dict[str, Any]:  # type: ignore
     firmware = conditions.get("firmware")
     if isinstance(firmware, dict):  # per role, as the daemon keeps it
         firmware = firmware.get(device.role) or firmware.get("measurement_sensor")
-    return {"model": device.model, "serial": device.serial, "firmware": firmware if isinstance(firmware, str) else None}
+    return {"id": device.id, "model": device.model, "serial": device.serial,
+            "firmware": firmware if isinstance(firmware, str) else None}
 
 
 def _standards_of(store, r: CalibrationRecord, job) -> list[Any]:  # type: ignore[no-untyped-def]
@@ -101,8 +121,9 @@ def issue_certificate(store, record_id: int, settings, *, actor: str,  # type: i
                           record_sha256=approval.record_sha256, event_sha256=approval.sha256, note=approval.note),
         operator=record.operator, laboratory=lab, software_version=__version__, issued_on=today,
         begin_on=begin.astimezone(dt.UTC).date(), standards=_standards_of(store, record, job),
-        order={"lims_order_id": order.lims_order_id, "item_serial": order.item_serial, "customer": order.customer}
-        if order is not None else None,
+        order={"lims_order_id": order.lims_order_id, "item_serial": order.item_serial, "customer": order.customer,
+               "item_manufacturer": order.item_manufacturer, "item_model": order.item_model}
+        if order is not None else None, calibration_points=_calibration_points(store, record),
         replaces=replaced.number if replaced is not None else None,
     )  # fmt: skip
     xml = dcc.issue(content)  # refuses an invalid document: nothing is stored then

@@ -8,16 +8,23 @@ gather those facts; nothing here reads them.
 from __future__ import annotations
 
 import datetime as dt
-import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, cast
-
-import numpy as np
+from typing import Any
 
 from service.calibration.budget import model_dof
 from service.calibration.uncertainty import COVERAGE, coverage_factor
 from service.lims import dcc
+from service.lims.content_results import (
+    CertificateRefused,
+    budget_result,
+    calibration_points_result,
+    parameter_result,
+    temperature_condition,
+    validation_result,
+)
+
+__all__ = ["Approval", "CertificateRefused", "Laboratory", "build_certificate", "model_dof", "standards_of"]
 
 # The papers each kind of calibration follows, and the procedure name the daemon runs it under.
 PAPERS: dict[str, tuple[str, str]] = {
@@ -49,10 +56,6 @@ KIND_TEXT = {
 }
 
 
-class CertificateRefused(ValueError):
-    """The record cannot be certified as it stands (the message says what is missing)."""
-
-
 @dataclass(frozen=True)
 class Laboratory:
     name: str
@@ -80,103 +83,30 @@ class Approval:
     note: str = ""
 
 
-def parameter_values(model: Mapping[str, Any], probability: float = COVERAGE) -> tuple[dcc.Value, ...]:
-    """Every parameter with its expanded uncertainty U = k·u (u from the covariance's diagonal)."""
-    params = model.get("parameters") or {}
-    cov = model.get("covariance") or None
-    std: dict[str, float] = {}
-    if cov:
-        matrix = np.asarray(cov["matrix"], dtype=float)
-        std = {n: math.sqrt(max(float(matrix[i, i]), 0.0)) for i, n in enumerate(cov["names"])}
-    k = float(coverage_factor(model_dof(model), probability))
-    out = []
-    for name, p in params.items():
-        note = str(p.get("note") or "")
-        if p.get("fixed"):
-            out.append(dcc.Value(name, f"{name} (held fixed, not fitted)", float(p["value"]), str(p["unit"]), note=note))
-        elif name in std:
-            out.append(dcc.Value(name, name, float(p["value"]), str(p["unit"]), std[name] * k, k, probability, note))
-        else:
-            out.append(dcc.Value(name, name, float(p["value"]), str(p["unit"]), note=note))
-    if not out:
-        raise CertificateRefused("the record's model has no parameters")
-    return tuple(out)
-
-
-def _quantities(points: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
-    """(quantity, unit) pairs that every validation point gives as reference_<q>_<unit> and measured_<q>_<unit>."""
-    first = points[0]
-    out = []
-    for key in first:
-        if key.startswith("reference_"):
-            rest = key.removeprefix("reference_")
-            q, _, unit = rest.rpartition("_")
-            if q and f"measured_{rest}" in first:
-                out.append((q, unit))
-    return out
-
-
-def validation_result(validation: Mapping[str, Any], probability: float = COVERAGE,
-                      k_bound: float | None = None) -> dcc.Result | None:
-    """The validation table (reference, measured, error, each error's expanded uncertainty) and its summary.
-
-    Reads `validation["points"]`: one row per validation point with `reference_<q>_<unit>`,
-    `measured_<q>_<unit>`, optionally `u_<q>_<unit>` (expanded uncertainty of the measured value)
-    and `k_<q>` or `k` (its coverage factor). The error is measured − reference.
-    """
-    summary = []
-    for key, name in (("rms_deg", "RMS of the errors"), ("max_deg", "largest |error|")):
-        if isinstance(validation.get(key), int | float):
-            summary.append(dcc.Value(key, name, float(validation[key]), "deg"))
-    points = validation.get("points") or []
-    if isinstance(validation.get("coverage_probability"), int | float):
-        probability = float(validation["coverage_probability"])
-    if isinstance(validation.get("n_points"), int):
-        summary.append(dcc.Value("n_points", "validation points", float(validation["n_points"]), "1"))
-    columns: list[dcc.Column] = []
-    if points:
-        quantities = _quantities(points)
-        if not quantities:
-            raise CertificateRefused("validation points name no reference_<quantity>_<unit>/measured_... pair")
-        for q, unit in quantities:
-            ref = tuple(float(p[f"reference_{q}_{unit}"]) for p in points)
-            meas = tuple(float(p[f"measured_{q}_{unit}"]) for p in points)
-            err = tuple(m - r for m, r in zip(meas, ref, strict=True))
-            ukey = f"u_{q}_{unit}"
-            has_u = all(isinstance(p.get(ukey), int | float) for p in points)
-            U = tuple(float(p[ukey]) for p in points) if has_u else None
-            stated = [p.get(f"k_{q}", p.get("k", validation.get("k"))) for p in points]
-            if has_u and any(k is None for k in stated) and k_bound is None:
-                raise CertificateRefused(f"validation points give {ukey} without its coverage factor")
-            # a missing k falls back to the bound, which the refusal above guarantees is there
-            ks = tuple(float(k) if k is not None else float(cast(float, k_bound)) for k in stated) if has_u else None
-            columns += [
-                dcc.Column(f"reference_{q}_{unit}", f"reference {q}", ref, unit, ref_type="basic_referenceValue"),
-                dcc.Column(f"measured_{q}_{unit}", f"measured {q} (corrected)", meas, unit, U, ks,
-                           probability if has_u else None, ref_type="basic_measuredValue"),
-                dcc.Column(f"error_{q}_{unit}", f"error {q} (measured − reference)", err, unit, U, ks,
-                           probability if has_u else None, ref_type="basic_measurementError"),
-            ]  # fmt: skip
-    if not summary and not columns:
-        return None
-    return dcc.Result(
-        "Validation on points not used in the fit",
-        "Each validation point was measured after the fit and corrected with the fitted parameters; the error "
-        "is the corrected reading minus the reference. The uncertainty of the error is that of the corrected "
-        "reading (GUM propagation of the parameters' covariance and the reading noise)"
-        + ("; where a point does not state its own coverage factor (Welch-Satterthwaite), the one shown is Student's "
-           "t at the fit's degrees of freedom, an upper bound of it, and U covers the stated probability." if k_bound
-           else "."),
-        values=tuple(summary), columns=tuple(columns),
-    )
-
-
 def _date(value: Any) -> dt.date:
     if isinstance(value, dt.datetime):
         return value.astimezone(dt.UTC).date()
     if isinstance(value, dt.date):
         return value
     return dt.date.fromisoformat(str(value)[:10])
+
+
+def item_of(device: Mapping[str, Any], order: Mapping[str, Any] | None) -> dcc.Item:
+    """What identifies the item: the order's item serial, and the instrument's own serial where it reports one;
+    manufacturer and model from the order, else from the instrument's identification. Never a port or role."""
+    reported = bool(device.get("firmware"))  # only an instrument that answers an identification states these
+    ids: list[dcc.Identification] = []
+    if order is not None and order.get("item_serial"):
+        ids.append(dcc.Identification("manufacturer", str(order["item_serial"]), "serial number"))
+    if reported and device.get("serial") and (not ids or ids[0].value != str(device["serial"])):
+        ids.append(dcc.Identification("manufacturer", str(device["serial"]), "serial number reported by the instrument"))
+    if not ids:
+        ids.append(dcc.Identification("calibrationLaboratory", f"device {device.get('id')}",
+                                      "the laboratory's device record (the instrument reports no serial number)"))
+    model = (order or {}).get("item_model") or (str(device["model"]) if reported and device.get("model") else None)
+    maker = (order or {}).get("item_manufacturer") or device.get("manufacturer") or None
+    return dcc.Item(name=f"inclinometer {model}" if model else "inclinometer", identifications=tuple(ids),
+                    model=model, manufacturer=maker, firmware=device.get("firmware") or None)
 
 
 def standards_of(rows: Iterable[Mapping[str, Any]]) -> tuple[dcc.ReferenceStandard, ...]:
@@ -204,25 +134,28 @@ def build_certificate(
     standards: Sequence[Mapping[str, Any]] = (),
     order: Mapping[str, Any] | None = None,
     replaces: str | None = None,
+    calibration_points: Sequence[Mapping[str, Any]] = (),
 ) -> dcc.Certificate:
-    """The certificate of an approved record. `record` holds id, version, kind, method, model,
-    validation, temp_c, content_sha256, created_at; `device` model, serial, firmware, manufacturer."""
+    """The certificate of an approved record. `record` holds id, version, kind, method, model, validation,
+    temp_c, content_sha256, created_at and optionally budget and calibrated_range; `device` id, model, serial,
+    firmware (the instrument's identity: model and serial count as its own only where it reports firmware,
+    i.e. answers an identification), manufacturer; `order` lims_order_id, item_serial, item_manufacturer,
+    item_model, customer; `calibration_points` the fit points (`reference_x_deg`, `indication_x_deg`, ...)."""
     kind, method = str(record["kind"]), str(record["method"])
     model = record["model"]
+    budget = record.get("budget") or None
     paper, procedure = PAPERS.get(kind, ("", kind))
-    results = [dcc.Result(
-        "Calibration parameters",
-        f"Parameters of the {method} model fitted by least squares; expanded uncertainties from the fit's "
-        f"covariance, coverage factor from Student's t at the fit's degrees of freedom.",
-        values=parameter_values(model),
-    )]  # fmt: skip
-    validation = validation_result(record.get("validation") or {}, k_bound=float(coverage_factor(model_dof(model))))
+    results = [parameter_result(model, budget)]
+    validation = validation_result(record.get("validation") or {}, k_bound=float(coverage_factor(model_dof(model))),
+                                   budget=budget)
     if validation is not None:
         results.append(validation)
-    conditions = []
-    if isinstance(record.get("temp_c"), int | float):
-        conditions.append(dcc.Value("temperature", "ambient temperature (mean during the measurement)",
-                                    float(record["temp_c"]), "degC"))
+    points = calibration_points_result(calibration_points, record.get("calibrated_range"))
+    if points is not None:
+        results.append(points)
+    if (b := budget_result(budget)) is not None:
+        results.append(b)
+    conditions = [c for c in (temperature_condition(record, budget),) if c is not None]
     if order is not None:
         c = order["customer"]
         customer = dcc.Contact(str(c["name"]), dcc.Address(str(c["city"]), str(c["country_code"]),
@@ -239,8 +172,10 @@ def build_certificate(
     if order is not None:
         ids.insert(0, dcc.Identification("customer", str(order["lims_order_id"]), "order"))
     statements = [
-        (f"Expanded uncertainties U = k·u are stated with the coverage factor k for a coverage probability of "
-        f"about {COVERAGE:.0%} (normal distribution)."),
+        (f"Expanded uncertainties U = k·u are stated for a coverage probability of {COVERAGE:.0%}; k is Student's t "
+         "at the degrees of freedom of each uncertainty (the fit's, or the Welch-Satterthwaite effective degrees of "
+         "freedom of a combination), which each quantity's description states. Uncertainties are rounded to two "
+         "significant digits and values to the same decimal place (GUM 7.2.6)."),
         (f"The results relate only to the item calibrated. This certificate was approved by {approval.actor} on "
         f"{approval.at.astimezone(dt.UTC):%Y-%m-%d %H:%M} UTC ({approval.meaning}), bound to the record hash "
         f"{approval.record_sha256}."),
@@ -263,14 +198,7 @@ def build_certificate(
         laboratory=laboratory.contact(),
         laboratory_code=laboratory.accreditation or None,
         customer=customer,
-        item=dcc.Item(
-            name=str(device.get("name") or f"inclinometer {device['model']}"),
-            model=str(device["model"]),
-            serial=str(device["serial"]),
-            manufacturer=device.get("manufacturer") or None,
-            firmware=device.get("firmware") or None,
-            customer_reference=str(order["item_serial"]) if order and order.get("item_serial") else None,
-        ),
+        item=item_of(device, order),
         persons=persons,
         methods=(dcc.Method(
             name=f"{kind} calibration, method {method}",

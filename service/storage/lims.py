@@ -348,7 +348,10 @@ class LimsStore(ActivationStore):
             clash = s.scalar(sa.select(Order.id).where(Order.lims_order_id == lims_id))
             if clash is not None:
                 raise ConflictError(f"lims_order_id {lims_id!r} is already order {clash}")
+            maker, model = body.get("item_manufacturer"), body.get("item_model")
             row = Order(lims_order_id=lims_id, item_serial=_text("item_serial", body.get("item_serial")),
+                        item_manufacturer=_text("item_manufacturer", maker) if maker is not None else None,
+                        item_model=_text("item_model", model) if model is not None else None,
                         customer=dict(customer), procedure=_text("procedure", body.get("procedure"), 40),
                         method=_text("method", body.get("method"), 80),
                         due_on=_date("due_on", due) if due is not None else None, created_at=utc_now(),

@@ -325,6 +325,9 @@ class Order(Base):
     id: Mapped[int] = mapped_column(primary_key=True)
     lims_order_id: Mapped[str] = mapped_column(sa.String(100), unique=True)
     item_serial: Mapped[str] = mapped_column(sa.String(100))
+    # what the item is, as the customer states it: certificates name it (many instruments do not report it)
+    item_manufacturer: Mapped[str | None] = mapped_column(sa.String(100))
+    item_model: Mapped[str | None] = mapped_column(sa.String(100))
     customer: Mapped[dict[str, Any]]
     procedure: Mapped[str] = mapped_column(sa.String(40))
     method: Mapped[str] = mapped_column(sa.String(80))

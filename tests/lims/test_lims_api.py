@@ -119,7 +119,8 @@ def test_approval_segregation_and_certificate(lab, tmp_path) -> None:  # type: i
     assert dcc.certificate_errors(xml) == []
     doc = dcc.dcc_schema().to_dict(xml.decode())
     item = doc["dcc:administrativeData"]["dcc:items"]["dcc:item"][0]
-    assert item["dcc:identifications"]["dcc:identification"][0]["dcc:value"] == "SN-4711"
+    # the item by the order's serial, then the instrument's own (it reported firmware: it identifies itself)
+    assert [i["dcc:value"] for i in item["dcc:identifications"]["dcc:identification"]] == [ORDER["item_serial"], "SN-4711"]
     signer = [p for p in doc["dcc:administrativeData"]["dcc:respPersons"]["dcc:respPerson"] if p["dcc:mainSigner"]]
     assert signer[0]["dcc:person"]["dcc:name"]["dcc:content"][0]["$"] == "bob"
     again = client.get(f"/records/{record.id}/certificate", headers=h["alice"])

@@ -31,7 +31,8 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
             good = client.post("/standards", json=STANDARD, headers=h["admin"]).json()
             expired = client.post("/standards", json={**STANDARD, "certificate_number": "OLD-2020", "calibrated_on":
                                                       "2020-01-01", "due_on": "2021-01-01"}, headers=h["admin"]).json()
-            order = client.post("/orders", json=ORDER, headers={**h["lims"], "Idempotency-Key": "lims-118"}).json()
+            order = client.post("/orders", json={**ORDER, "item_manufacturer": "Example Sensors", "item_model": "NS-25"},
+                                headers={**h["lims"], "Idempotency-Key": "lims-118"}).json()
             body = {"procedure": "stage-grid", "method": "homography", "grid": GRID, "samples_per_point": 8,
                     "validation": {"n_points": 3}, "order_id": order["id"],
                 # windows of 2 bench seconds (0.1 s at 20x): a loaded machine lags the sped-up readings by more
@@ -66,26 +67,37 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
             doc = dcc.dcc_schema().to_dict(xml.decode())
             device = store.get_device(record["device_id"])
             item = doc["dcc:administrativeData"]["dcc:items"]["dcc:item"][0]
-            assert item["dcc:model"] == device.model
-            assert item["dcc:identifications"]["dcc:identification"][0]["dcc:value"] == device.serial
+            # the item as the order names it: never the bench's port or role, nor the protocol's name as a model
+            assert item["dcc:model"] == "NS-25" and item["dcc:manufacturer"]["dcc:name"]["dcc:content"][0]["$"] == \
+                "Example Sensors"
+            ids = [i["dcc:value"] for i in item["dcc:identifications"]["dcc:identification"]]
+            assert ids == [ORDER["item_serial"]] and device.serial not in xml.decode()
             model = client.get(f"/records/{rid}/model", headers=h["lims"]).json()
             mr = doc["dcc:measurementResults"]
             results = mr["dcc:measurementResult"][0]["dcc:results"]["dcc:result"]
             reals = {q["si:real"]["si:label"]: q["si:real"] for q in results[0]["dcc:data"]["dcc:list"][0]["dcc:quantity"]}
-            assert {k: r["si:value"] for k, r in reals.items()} == {k: p["value"] for k, p in model["parameters"].items()}
+            assert set(reals) == set(model["parameters"])  # a homography has no bench-only parameters
             cov = model["covariance"]
             for i, name in enumerate(cov["names"]):
                 mu = reals[name]["si:measurementUncertaintyUnivariate"]["si:expandedMU"]
-                assert np.isclose(mu["si:valueExpandedMU"], mu["si:coverageFactor"] * np.sqrt(cov["matrix"][i][i]))
+                half_digit = 0.5 * 10 ** (np.floor(np.log10(mu["si:valueExpandedMU"])) - 1) * (1 + 1e-9)
+                assert abs(reals[name]["si:value"] - model["parameters"][name]["value"]) <= half_digit  # GUM-rounded
+                assert abs(mu["si:valueExpandedMU"] - mu["si:coverageFactor"] * np.sqrt(cov["matrix"][i][i])) \
+                    <= half_digit + 0.01 * mu["si:valueExpandedMU"]
             table = {q["si:realListXMLList"]["si:labelXMLList"][0]: q["si:realListXMLList"]
                      for q in results[1]["dcc:data"]["dcc:list"][1]["dcc:quantity"]}
             assert len(table["error_x_deg"]["si:valueXMLList"]) == 3
-            assert [p["measured_x_deg"] for p in record["validation"]["points"]] == table["measured_x_deg"]["si:valueXMLList"]
+            us = table["measured_x_deg"]["si:measurementUncertaintyUnivariateXMLList"]["si:expandedMUXMLList"][
+                "si:valueExpandedMUXMLList"]
+            for p, m, U in zip(record["validation"]["points"], table["measured_x_deg"]["si:valueXMLList"], us, strict=True):
+                assert abs(p["measured_x_deg"] - m) <= 0.5 * 10 ** (np.floor(np.log10(U)) - 1) * (1 + 1e-9)
             # a stage bench's record has the sensors' temperature (0x06 at every point), and so its certificate
             assert record["temp_c"] is not None and 0 < record["temp_c"] < 60, record
             conditions = mr["dcc:influenceConditions"]["dcc:influenceCondition"]
             temperature = next(c for c in conditions if c["@refType"] == ["basic_temperature"])
-            assert np.isclose(temperature["dcc:data"]["dcc:quantity"][0]["si:real"]["si:value"], record["temp_c"])
+            mean = temperature["dcc:data"]["dcc:quantity"][0]["si:real"]
+            assert abs(mean["si:value"] - record["temp_c"]) <= 0.5 * 10 ** (np.floor(np.log10(
+                mean["si:measurementUncertaintyUnivariate"]["si:expandedMU"]["si:valueExpandedMU"])) - 1) + 1e-9
             eq = mr["dcc:measuringEquipments"]["dcc:measuringEquipment"]
             assert [e["dcc:certificate"]["dcc:value"] for e in eq] == [STANDARD["certificate_sha256"]]
             assert client.get(f"/orders/{order['id']}", headers=h["lims"]).json()["state"] == "certified"

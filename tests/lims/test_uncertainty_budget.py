@@ -133,3 +133,9 @@ def test_a_standard_of_U_0_02_deg_reaches_tilt_and_the_record_through_the_daemon
         assert client.post(f"/records/{rid}/activate", headers=h["alice"]).status_code == 200
         t = fresh_tilt(client, h["alice"])["table_tilt"]
         assert t["u_x_deg"] >= 0.02 and t["u_y_deg"] >= 0.02, t
+        # the certificate states the budget, naming the standard, and the zero offsets' U carries it
+        assert client.post(f"/records/{rid}/approve", json={"meaning": "approval"}, headers=h["bob"]).status_code == 200
+        xml = client.get(f"/records/{rid}/certificate", headers=h["bob"]).content.decode()
+        budget_part = xml[xml.index("Uncertainty budget"):]
+        assert "autocollimator (serial AC-7, certificate DAkkS-2026-7)" in budget_part
+        assert "measurement sensor resolution" in budget_part

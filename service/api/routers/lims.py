@@ -204,6 +204,8 @@ class OrderIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     lims_order_id: str = Field(max_length=100)
     item_serial: str = Field(max_length=100)
+    item_manufacturer: str | None = Field(None, max_length=100, description="the item's manufacturer (its certificate names it)")
+    item_model: str | None = Field(None, max_length=100, description="the item's model (its certificate names it)")
     customer: CustomerIn
     procedure: Literal["stage-grid", "scale", "rotation", "turntable"]
     method: str = Field(max_length=80)
@@ -212,7 +214,8 @@ class OrderIn(BaseModel):
 
 def order_json(request: Request, o: Order) -> dict[str, Any]:
     links = _store(request).order_links(o.id)
-    return {"id": o.id, "lims_order_id": o.lims_order_id, "item_serial": o.item_serial, "customer": o.customer,
+    return {"id": o.id, "lims_order_id": o.lims_order_id, "item_serial": o.item_serial,
+            "item_manufacturer": o.item_manufacturer, "item_model": o.item_model, "customer": o.customer,
             "procedure": o.procedure, "method": o.method, "due_on": o.due_on, "created_utc": o.created_at,
             "created_by": o.created_by, **links}  # fmt: skip
 

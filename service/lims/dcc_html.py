@@ -1,0 +1,213 @@
+"""A printable page of an issued DCC certificate, made from its XML (so both always say the same)."""
+
+from __future__ import annotations
+
+import html
+import math
+import re
+import xml.etree.ElementTree as ET
+
+from service.lims.dcc_schema import DCC_NS, SI_NS
+
+_NS = {"dcc": DCC_NS, "si": SI_NS}
+
+
+def _t(e: ET.Element | None, path: str) -> str:
+    if e is None:
+        return ""
+    found = e.find(path, _NS)
+    return (found.text or "").strip() if found is not None else ""
+
+
+def render_html(xml: bytes) -> str:
+    """A printable page of an issued certificate, made from its XML (so both always say the same)."""
+    root = ET.fromstring(xml)
+    adm = root.find("dcc:administrativeData", _NS)
+    core = adm.find("dcc:coreData", _NS) if adm is not None else None
+    esc = html.escape
+    number = _t(core, "dcc:uniqueIdentifier")
+    out: list[str] = []
+    w = out.append
+    w("<!doctype html><html lang='en'><head><meta charset='utf-8'>")
+    w(f"<title>Calibration certificate {esc(number)}</title><style>{_CSS}</style></head><body>")
+    w(f"<h1>Calibration certificate</h1><p class='number'>{esc(number)}</p>")
+    ras = core.find("dcc:reportAmendedSubstituted", _NS) if core is not None else None
+    if ras is not None:
+        w(f"<p class='notice'>This certificate substitutes certificate "
+          f"{esc(_t(ras, 'dcc:replacedUniqueIdentifier'))}, which is withdrawn.</p>")
+    rows = [
+        ("Issued", _t(core, "dcc:issueDate")),
+        ("Calibration performed", f"{_t(core, 'dcc:beginPerformanceDate')} to {_t(core, 'dcc:endPerformanceDate')}"),
+        ("Location", _t(core, "dcc:performanceLocation")),
+    ]
+    for ident in core.findall("dcc:identifications/dcc:identification", _NS) if core is not None else []:
+        rows.append((_t(ident, "dcc:name/dcc:content"), _t(ident, "dcc:value")))
+    _table(w, "Certificate", rows)
+    item = adm.find("dcc:items/dcc:item", _NS) if adm is not None else None
+    rows = [("Item", _t(item, "dcc:name/dcc:content")), ("Model", _t(item, "dcc:model")),
+            ("Manufacturer", _t(item, "dcc:manufacturer/dcc:name/dcc:content"))]
+    for ident in item.findall("dcc:identifications/dcc:identification", _NS) if item is not None else []:
+        rows.append((_t(ident, "dcc:name/dcc:content").capitalize(), _t(ident, "dcc:value")))
+    fw = _t(item, "dcc:installedSoftwares/dcc:software/dcc:release")
+    if fw:
+        rows.append(("Firmware", fw))
+    _table(w, "Calibration item", rows)
+    lab = adm.find("dcc:calibrationLaboratory", _NS) if adm is not None else None
+    cust = adm.find("dcc:customer", _NS) if adm is not None else None
+    _table(w, "Laboratory and customer", [
+        ("Laboratory", _contact_text(lab.find("dcc:contact", _NS) if lab is not None else None)),
+        ("Accreditation", _t(lab, "dcc:calibrationLaboratoryCode")),
+        ("Customer", _contact_text(cust)),
+    ])
+    rows = []
+    for p in adm.findall("dcc:respPersons/dcc:respPerson", _NS) if adm is not None else []:
+        main = " (main signer)" if _t(p, "dcc:mainSigner") == "true" else ""
+        rows.append((_t(p, "dcc:role") + main, _t(p, "dcc:person/dcc:name/dcc:content") + " — "
+                     + _t(p, "dcc:description/dcc:content")))
+    _table(w, "Responsible persons", rows)
+    results = root.find("dcc:measurementResults", _NS)
+    if results is not None:
+        rows = [(_t(m, "dcc:name/dcc:content"), " ".join(filter(None, [
+            _t(m, "dcc:description/dcc:content"), _t(m, "dcc:norm"),
+            "; ".join((r.text or "") for r in m.findall("dcc:reference", _NS))])))
+            for m in results.findall("dcc:usedMethods/dcc:usedMethod", _NS)]  # fmt: skip
+        _table(w, "Method", rows)
+        rows = []
+        for eq in results.findall("dcc:measuringEquipments/dcc:measuringEquipment", _NS):
+            rows.append((_t(eq, "dcc:name/dcc:content"),
+                         (f"serial {_t(eq, 'dcc:identifications/dcc:identification/dcc:value')}; certificate "
+                         f"{_t(eq, 'dcc:certificate/dcc:referralID')} (SHA-256 {_t(eq, 'dcc:certificate/dcc:value')}); "
+                         f"{_t(eq, 'dcc:description/dcc:content')}")))
+        _table(w, "Reference standards", rows)
+        rows = [(_t(c, "dcc:name/dcc:content"), _real_text(c.find("dcc:data/dcc:quantity/si:real", _NS)))
+                for c in results.findall("dcc:influenceConditions/dcc:influenceCondition", _NS)]
+        _table(w, "Conditions", rows)
+        for mr in results.findall("dcc:measurementResult", _NS):
+            w(f"<h2>{esc(_t(mr, 'dcc:name/dcc:content'))}</h2>")
+            desc = _t(mr, "dcc:description/dcc:content")
+            if desc:
+                w(f"<p>{esc(desc)}</p>")
+            for r in mr.findall("dcc:results/dcc:result", _NS):
+                _render_result(w, r)
+    stmts = [(_t(s, "dcc:declaration/dcc:content")) for s in adm.findall("dcc:statements/dcc:statement", _NS)] \
+        if adm is not None else []  # fmt: skip
+    if stmts:
+        w("<h2>Statements</h2>" + "".join(f"<p>{esc(s)}</p>" for s in stmts))
+    sw = adm.find("dcc:dccSoftware/dcc:software", _NS) if adm is not None else None
+    w(f"<p class='foot'>Issued by {esc(_t(sw, 'dcc:name/dcc:content'))} {esc(_t(sw, 'dcc:release'))} as a "
+      f"DCC {esc(root.get('schemaVersion', ''))} document; the XML certificate is the authoritative version.</p>")
+    w("</body></html>\n")
+    return "".join(out)
+
+
+_CSS = (
+    "body{font:11pt/1.4 system-ui,sans-serif;margin:2em auto;max-width:60em;color:#111}"
+    "h1{margin:0}.number{font-size:1.3em;margin-top:.2em}h2{margin-top:1.4em;border-bottom:1px solid #888}"
+    "table{border-collapse:collapse;width:100%;margin:.4em 0}th,td{border:1px solid #bbb;padding:.2em .5em;"
+    "text-align:left;vertical-align:top;overflow-wrap:anywhere}td.n{text-align:right;font-variant-numeric:tabular-nums}"
+    "th{background:#eee}.notice{border:2px solid #a00;padding:.4em}.foot{margin-top:2em;font-size:.9em;color:#444}"
+    "@media print{body{margin:0;max-width:none}h2{break-after:avoid}tr{break-inside:avoid}}"
+)
+
+_UNIT_TEXT = {r"\degree": "°", r"\arcsecond": "″", r"\arcminute": "′", r"\one": "", r"\degreecelsius": "°C",
+              r"\radian": "rad"}  # fmt: skip
+
+
+def _unit_text(unit: str) -> str:
+    if unit in _UNIT_TEXT:
+        return _UNIT_TEXT[unit]
+    return re.sub(r"\\tothe\{(-?\d+)\}", r"^\1", unit).replace("\\", " ").strip()
+
+
+def _contact_text(c: ET.Element | None) -> str:
+    if c is None:
+        return ""
+    loc = c.find("dcc:location", _NS)
+    parts = [_t(c, "dcc:name/dcc:content"), _t(loc, "dcc:street"),
+             f"{_t(loc, 'dcc:postCode')} {_t(loc, 'dcc:city')}".strip(), _t(loc, "dcc:countryCode")]
+    return ", ".join(p for p in parts if p)
+
+
+def _real_text(real: ET.Element | None) -> str:
+    if real is None:
+        return ""
+    unit = _unit_text(_t(real, "si:unit"))
+    text = f"{_t(real, 'si:value')} {unit}".strip()
+    mu = real.find("si:measurementUncertaintyUnivariate/si:expandedMU", _NS)
+    if mu is not None:
+        text += (f" ± {_t(mu, 'si:valueExpandedMU')} {unit} (k = {_t(mu, 'si:coverageFactor')},"
+                 f" p = {_t(mu, 'si:coverageProbability')})")
+    return text
+
+
+def _table(w, title: str, rows: list[tuple[str, str]]) -> None:  # type: ignore[no-untyped-def]
+    rows = [(k, v) for k, v in rows if v and v.strip(" —")]
+    if not rows:
+        return
+    w(f"<h2>{html.escape(title)}</h2><table>")
+    for k, v in rows:
+        w(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>")
+    w("</table>")
+
+
+def _render_result(w, r: ET.Element) -> None:  # type: ignore[no-untyped-def]
+    esc = html.escape
+    w(f"<h3>{esc(_t(r, 'dcc:name/dcc:content'))}</h3>")
+    desc = _t(r, "dcc:description/dcc:content")
+    if desc:
+        w(f"<p>{esc(desc)}</p>")
+    for lst in r.findall("dcc:data/dcc:list", _NS):
+        quantities = lst.findall("dcc:quantity", _NS)
+        if lst.get("refType") == "tiltlab_table":
+            cols = []
+            for q in quantities:
+                xl = q.find("si:realListXMLList", _NS)
+                unit = _unit_text(_t(xl, "si:unitXMLList"))
+                values = _t(xl, "si:valueXMLList").split()
+                us = _t(xl, "si:measurementUncertaintyUnivariateXMLList/si:expandedMUXMLList/si:valueExpandedMUXMLList").split()
+                ks = _t(xl, "si:measurementUncertaintyUnivariateXMLList/si:expandedMUXMLList/si:coverageFactorXMLList").split()
+                head = _t(q, "dcc:name/dcc:content") + (f" / {unit}" if unit else "")
+                cols.append((head, values))
+                if us:
+                    cols.append((f"U / {unit}" if unit else "U", us))
+                    cols.append(("k", ks))
+            w("<table><tr>" + "".join(f"<th>{esc(h)}</th>" for h, _ in cols) + "</tr>")
+            for i in range(max((len(v) for _, v in cols), default=0)):
+                w("<tr>" + "".join(f"<td class='n'>{esc(v[i] if i < len(v) else '')}</td>" for _, v in cols) + "</tr>")
+            w("</table>")
+        else:
+            w("<table><tr><th>Quantity</th><th>Value</th><th>U</th><th>k</th><th>Unit</th><th>Note</th></tr>")
+            for q in quantities:
+                real = q.find("si:real", _NS)
+                if real is None:
+                    continue
+                mu = "si:measurementUncertaintyUnivariate/si:expandedMU/"
+                w(f"<tr><td>{esc(_t(q, 'dcc:name/dcc:content'))}</td><td class='n'>{esc(_t(real, 'si:value'))}</td>"
+                  f"<td class='n'>{esc(_t(real, mu + 'si:valueExpandedMU'))}</td>"
+                  f"<td class='n'>{esc(_t(real, mu + 'si:coverageFactor'))}</td>"
+                  f"<td>{esc(_unit_text(_t(real, 'si:unit')))}</td>"
+                  f"<td>{esc(_t(q, 'dcc:description/dcc:content'))}</td></tr>")
+            w("</table>")
+            for q in quantities:
+                if q.get("refType") == "tiltlab_parameterVector":
+                    _render_correlations(w, q)
+
+
+def _render_correlations(w, q: ET.Element) -> None:  # type: ignore[no-untyped-def]
+    """The parameters' covariance as correlation coefficients (what a reader looks for first)."""
+    esc = html.escape
+    xl = q.find("si:realListXMLList", _NS)
+    labels = _t(xl, "si:labelXMLList").split()
+    cols = [[float(v) for v in _t(c, "si:covarianceXMLList/si:valueXMLList").split()]
+            for c in (xl.findall("si:measurementUncertaintyMultivariateXMLList/si:ellipsoidalRegionMUXMLList/"
+                                 "si:covarianceMatrixXMLList/si:columnXMLList", _NS) if xl is not None else [])]
+    if not labels or len(cols) != len(labels):
+        return
+    sd = [math.sqrt(cols[i][i]) if cols[i][i] > 0 else 0.0 for i in range(len(labels))]
+    w("<p>Correlation coefficients of the parameters (the certificate's XML carries their full covariance matrix):</p>")
+    w("<table><tr><th></th>" + "".join(f"<th>{esc(n)}</th>" for n in labels) + "</tr>")
+    for i, n in enumerate(labels):
+        cells = "".join(f"<td class='n'>{cols[j][i] / (sd[i] * sd[j]):+.4f}</td>" if sd[i] and sd[j] else "<td></td>"
+                        for j in range(len(labels)))
+        w(f"<tr><th>{esc(n)}</th>{cells}</tr>")
+    w("</table>")
