@@ -1,7 +1,7 @@
 """Orders name the item's manufacturer and model, which certificates state (the instrument may not report them).
 
-Revision ID: 0005_certs
-Revises: 0004_certs
+Revision ID: 0006_certs
+Revises: 0005_diagnosis
 Create Date: 2026-11-24
 """
 
@@ -12,8 +12,8 @@ from collections.abc import Sequence
 import sqlalchemy as sa
 from alembic import op
 
-revision: str = "0005_certs"
-down_revision: str | Sequence[str] | None = "0004_certs"
+revision: str = "0006_certs"
+down_revision: str | Sequence[str] | None = "0005_diagnosis"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
