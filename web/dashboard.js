@@ -587,6 +587,24 @@ async function moveStage(ev) {
   }
 }
 
+// ------------------------------------------------------------------ a token for a LIMS (admin)
+
+async function makeToken(ev) {
+  ev.preventDefault();
+  const f = new FormData($("token-form"));
+  const out = $("token-result");
+  out.className = ""; out.textContent = "making the token…";
+  try {
+    const t = await action($("token-make"), () => api("POST", "/tokens", { name: f.get("name"), scopes: [f.get("scope")] }));
+    out.replaceChildren(`token ${t.name} (${t.scopes.join(", ")}): `, el("code", { id: "token-text" }, t.token),
+      " (shown this once)");
+    out.className = "ok";
+  } catch (err) {
+    out.textContent = err.status === 403 ? `${err.message} (making tokens needs a token with the admin scope)` : err.message;
+    out.className = "error";
+  }
+}
+
 // ------------------------------------------------------------------ records: judge a calibration
 
 async function loadRecords() {
@@ -779,6 +797,7 @@ async function start() {
   $("job-open-record").addEventListener("click", () => { showView("records"); openRecord(state.job.record.id); });
   $("level-form").addEventListener("submit", levelTable);
   $("move-form").addEventListener("submit", moveStage);
+  $("token-form").addEventListener("submit", makeToken);
   try {
     await loadBenches();
   } catch (err) {

@@ -29,6 +29,7 @@ from service.api.routers import (
     stage_home,
     streams,
     tilt,
+    tokens,
 )
 from service.api.routers import metrics as metrics_router
 from service.api.routers.health import SchemaRevision
@@ -213,7 +214,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     problems.install(app)
     http_details.install(app)
     _install_errors(app)
-    for r in (health, metrics_router, benches, tilt, stage, stage_home, calibrations, records, diagnoses, lims, streams):
+    for r in (health, metrics_router, benches, tilt, stage, stage_home, calibrations, records, diagnoses, lims,
+              streams, tokens):
         app.include_router(r.router)
     dashboard.install(app)
     return app

@@ -14,6 +14,7 @@ import logging
 import socket
 import sys
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
 from service.commands._args import add_command, port, seconds, speed
@@ -124,6 +125,15 @@ def run(args: argparse.Namespace) -> int:
     if overrides:
         settings = type(settings)(**overrides)
     host, port = settings.host, settings.port
+    tls = {"ssl_certfile": getattr(args, "ssl_certfile", None), "ssl_keyfile": getattr(args, "ssl_keyfile", None)}
+    if bool(tls["ssl_certfile"]) != bool(tls["ssl_keyfile"]):
+        _say("--ssl-certfile and --ssl-keyfile go together: give both, or neither for plain HTTP")
+        return 2
+    for opt, path in tls.items():
+        if path and not Path(path).is_file():
+            _say(f"--{opt.replace('_', '-')} {path}: no such file")
+            return 2
+    scheme = "https" if tls["ssl_certfile"] else "http"
     try:
         ensure_data_dir(settings)
         app = create_app(settings)  # refuses an unusable bench scenario or database URL
@@ -151,10 +161,13 @@ def run(args: argparse.Namespace) -> int:
                     return
                 guard.active = False
                 shown = f"[{host}]" if ":" in host else host
-                _say(f"serving on http://{shown}:{port} (data in {settings.data_dir})")
+                _say(f"serving on {scheme}://{shown}:{port} (data in {settings.data_dir})")
+                for line in silent_devices(app):
+                    _say(line)
                 announced.append(True)
 
-        server = _Server(uvicorn.Config(app, log_level="info", lifespan="on"))
+        server = _Server(uvicorn.Config(app, log_level="info", lifespan="on",
+                                        **{k: v for k, v in tls.items() if v}))
         try:
             server.run(sockets=[sock])
         except KeyboardInterrupt:  # Ctrl-C after a clean shutdown
@@ -170,6 +183,20 @@ def run(args: argparse.Namespace) -> int:
         return 0
     finally:
         sock.close()
+
+
+def silent_devices(app: Any) -> list[str]:
+    """One line per instrument that did not answer at start-up (not connected, or it never identified
+    itself), naming bench, role and port: a bench of dead ports must not start in silence."""
+    lines = []
+    for bench in app.state.benches.values():
+        for st in bench.devices.status():
+            if st.state == "connected" and st.role in bench.identities:
+                continue
+            why = st.state if st.state != "connected" else "connected but did not identify itself"
+            lines.append(f"bench {bench.name}: {st.role} on {st.port} does not answer ({why}"
+                         + (f": {st.error}" if st.error else "") + "); GET /ready lists what is not ready")
+    return lines
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -191,4 +218,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bench-config", default=None, metavar="FILE",
                    help="bench configuration (TOML) naming the instruments' ports "
                         "(default: TILTLAB_BENCH_CONFIG, else the simulated stage bench)")
+    p.add_argument("--ssl-certfile", default=None, metavar="FILE",
+                   help="serve HTTPS with this certificate (PEM; with --ssl-keyfile): tokens then never cross the"
+                        " network in clear")
+    p.add_argument("--ssl-keyfile", default=None, metavar="FILE", help="the certificate's private key (PEM)")
     p.set_defaults(handler=run)

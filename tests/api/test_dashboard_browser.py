@@ -407,6 +407,23 @@ def test_devices_table_fits_its_box(page, bench):
     assert widths[0] <= widths[1], widths
 
 
+def test_status_view_makes_a_read_only_token_for_a_lims(page, bench):
+    page.get_by_role("tab", name="Status").click()
+    form = page.locator("#token-form")
+    form.locator("input[name=name]").fill("lims-dashboard")
+    form.locator("select[name=scope]").select_option("read")
+    page.click("#token-make")
+    shown = page.locator("#token-text")
+    expect(shown).to_be_visible(timeout=T)
+    token = shown.inner_text().strip()
+    row = next(t for t in bench.get("/tokens")["tokens"] if t["name"] == "lims-dashboard")
+    assert row["scopes"] == ["read"]
+    h = {"Authorization": f"Bearer {token}"}
+    assert httpx.get(bench.base + "/benches", headers=h, timeout=30).status_code == 200
+    assert httpx.post(bench.base + "/stage/stop", headers=h, json={}, timeout=30).status_code == 403
+    bench.shot(page, "token")
+
+
 def test_run_tab_offers_only_methods_the_api_accepts(page, bench):
     offered = page.locator("#cal-form select[name=method] option").evaluate_all("(os) => os.map((o) => o.value)")
     assert offered

@@ -4,6 +4,7 @@ naming the setting and what to do (exit 2 for a setting that cannot work, 1 for 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -11,6 +12,7 @@ import sys
 import threading
 from pathlib import Path
 
+import httpx
 import pytest
 
 from tests.api.running_service import free_port
@@ -124,3 +126,77 @@ def test_announces_only_once_listening(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_names_each_device_that_does_not_answer(tmp_path: Path) -> None:
+    """A bench whose ports lead nowhere starts, and says on the console which role on which port is silent."""
+    config = tmp_path / "bench.toml"
+    config.write_text('[benches.lab-1]\nkind = "stage"\n'
+                      f'[benches.lab-1.roles.reference_sensor]\nport = "{tmp_path}/no-reference"\n'
+                      f'[benches.lab-1.roles.measurement_sensor]\nport = "{tmp_path}/no-measurement"\n'
+                      f'[benches.lab-1.roles.stage]\nport = "{tmp_path}/no-stage"\n')
+    port = free_port()
+    env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data")}
+    env.pop("TILTLAB_CONFIG", None)
+    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port), "--bench-config",
+                             str(config)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    killer = threading.Timer(120, proc.kill)
+    killer.start()
+    try:
+        seen: list[str] = []
+        for line in proc.stderr:  # type: ignore[union-attr]
+            seen.append(line)
+            if "serving on" in line:
+                break
+        after = [proc.stderr.readline() for _ in range(3)]  # type: ignore[union-attr]
+        text = "".join(after)
+        for role, path in (("reference_sensor", "no-reference"), ("measurement_sensor", "no-measurement"),
+                           ("stage", "no-stage")):
+            line = next((x for x in after if f" {role} on " in x), None)
+            assert line is not None, (role, seen, text)
+            assert "bench lab-1" in line and f"{tmp_path}/{path}" in line and "does not answer" in line, line
+    finally:
+        killer.cancel()
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="makes its test certificate with openssl")
+def test_serves_https_with_a_certificate(tmp_path: Path) -> None:
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=127.0.0.1",
+                    "-addext", "subjectAltName=IP:127.0.0.1",
+                    "-keyout", str(key), "-out", str(cert)], check=True, capture_output=True, timeout=60)
+    port = free_port()
+    env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data")}
+    env.pop("TILTLAB_CONFIG", None)
+    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port), "--ssl-certfile", str(cert),
+                             "--ssl-keyfile", str(key)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    killer = threading.Timer(120, proc.kill)
+    killer.start()
+    try:
+        for line in proc.stderr:  # type: ignore[union-attr]
+            if "serving on" in line:
+                assert f"https://127.0.0.1:{port}" in line, line
+                break
+        r = httpx.get(f"https://127.0.0.1:{port}/health", verify=str(cert), timeout=30)
+        assert r.status_code == 200 and r.json()["version"]
+    finally:
+        killer.cancel()
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def test_half_a_certificate_is_refused(tmp_path: Path) -> None:
+    r = _serve(tmp_path, "--port", str(free_port()), "--ssl-certfile", str(tmp_path / "cert.pem"))
+    assert r.returncode == 2
+    _one_line(r, "--ssl-certfile", "--ssl-keyfile")
