@@ -133,6 +133,10 @@ def test_an_altered_active_record_is_refused_at_start_up_and_on_activation(tmp_p
         other = store.add_record(meas, "stage", "kinematic", model, operator="alice")
         assert client.post(f"/records/{good.id}/activate", headers=h).status_code == 200
         assert fresh_tilt(client, h)["calibration"]["record_id"] == good.id
+        # approved by someone other than its operator: /tilt's calibration says so from then on
+        r = client.post(f"/records/{good.id}/approve", json={"meaning": "approval", "note": "ok"}, headers=h)
+        assert r.status_code == 200, r.text
+        assert fresh_tilt(client, h)["calibration"]["status"] == "approved"
         _tamper(store.engine, good.id)
         _tamper(store.engine, other.id)
         # activation checks the hash: the altered record is refused, whether active already or not
