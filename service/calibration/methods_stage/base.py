@@ -59,7 +59,12 @@ def fit_stats(r: np.ndarray, n_par: int) -> dict[str, Any]:
 
 def numeric_cov(fun, p: np.ndarray, scales: np.ndarray, s2: float) -> np.ndarray:
     """Gauss-Newton covariance s²(JᵀJ)⁻¹ of parameters p of a residual function (scaled for conditioning)."""
-    J = central_jacobian(fun, p, scales) * scales
+    return jacobian_cov(central_jacobian(fun, p, scales), scales, s2)
+
+
+def jacobian_cov(J: np.ndarray, scales: np.ndarray, s2: float) -> np.ndarray:
+    """s²(JᵀJ)⁻¹ from the residuals' Jacobian J (unscaled), scaled by `scales` for conditioning."""
+    J = J * scales
     sv = np.linalg.svd(J, compute_uv=False)
     if sv[-1] <= 1e-10 * sv[0]:
         raise DegenerateDataError("the points do not determine every parameter of the model (singular fit)")

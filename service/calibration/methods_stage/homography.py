@@ -3,6 +3,7 @@ compensation of the upper stage."""
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -15,15 +16,15 @@ from service.calibration.methods_stage.base import (
     bench_of,
     bench_state,
     fit_stats,
+    jacobian_cov,
     meas_dof,
-    numeric_cov,
     stage_model,
     targets,
     uncertain_correct,
     used_columns,
 )
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
-from service.calibration.projective import apply_projective, fit_projective
+from service.calibration.projective import apply_projective, fit_projective, transfer_residuals
 from service.calibration.registry import FitOptions, register
 from service.calibration.stage_common import (
     MEAS_COLUMNS,
@@ -48,6 +49,12 @@ def _h_params(prefix: str, H: np.ndarray, note: str = "") -> dict[str, Parameter
 
 def _h_of(model: CalibrationModel, prefix: str) -> np.ndarray:
     return np.append(model.values([f"{prefix}.{k}" for k in H_KEYS]), 1.0).reshape(3, 3)
+
+
+@lru_cache(maxsize=1)
+def _forward_vs_exact() -> dict[str, float]:
+    """The same for every fit (a fixed grid): computed once."""
+    return offaxis_forward_vs_exact_deg()
 
 
 def _apply_h(h8: np.ndarray, x, y) -> tuple[np.ndarray, np.ndarray]:
@@ -96,7 +103,7 @@ class HomographyMethod(StageMethod):
                                       "command reaches (|sin x' / cos y| > 1): the homography does not describe "
                                       "these points; calibrate over a range the stages can level")
         level_res = {"stage_x_deg": cmd_x - sx, "stage_y_deg": py - sy}
-        fwd = offaxis_forward_vs_exact_deg()
+        fwd = dict(_forward_vs_exact())
         notes += [
             (f"H1 (reference -> stage angles, seed 000 eq. 11) fitted by normalised DLT on {int(use.sum())} points: "
             f"{used_what}. Seed 000 §3: on those lines eq. (10)'s error vanishes, so H1 sees only the near-linear "
@@ -123,11 +130,7 @@ class HomographyMethod(StageMethod):
             H2 = fit_projective(mx, my, rx, ry, what="H2 (measurement -> reference)")
             h2 = H2.ravel()[:8]
 
-            def r2(h):
-                qx, qy = _apply_h(h, mx, my)
-                return np.concatenate([qx - rx, qy - ry])
-
-            r = r2(h2)
+            r, J2 = transfer_residuals(h2, mx, my, rx, ry)
             st = fit_stats(r, 8)
             params.update(_h_params("H2", H2, "H2 maps measurement readings (a, b) to reference angles (X, Y)"))
             n = mx.size
@@ -136,7 +139,7 @@ class HomographyMethod(StageMethod):
             h2_note = (f"H2 (measurement -> reference) fitted by normalised DLT on all {n} points: both sensors ride "
                        "on the table, so the stage coupling does not enter between them; ")
             if st["sigma_deg"] is not None:
-                cov = numeric_cov(r2, h2, H_SCALES, st["sigma_deg"] ** 2)
+                cov = jacobian_cov(J2, H_SCALES, st["sigma_deg"] ** 2)
                 cov_names = [f"H2.{k}" for k in H_KEYS]
                 state["meas_sigma_deg"] = st["sigma_deg"]
                 state["meas_dof"] = st["dof"]
