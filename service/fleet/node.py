@@ -32,6 +32,7 @@ from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeout
 from nats.js.api import DiscardPolicy, KeyValueConfig, StorageType
 from nats.js.errors import BadRequestError, BucketNotFoundError, KeyNotFoundError, KeyWrongLastSequenceError, NoKeysError
+from nats.js.errors import Error as JetStreamError
 from nats.js.kv import KeyValue
 
 from service.bench.runtime import BenchRuntime
@@ -169,8 +170,7 @@ class Fleet:
         nc = self._nc
         assert nc is not None
         js = nc.jetstream()
-        self._leases = await self._bucket(js, KeyValueConfig(bucket=LEASES, ttl=self.lease_s, history=1,
-                                                             storage=StorageType.MEMORY))
+        self._leases = await self._bucket(js, KeyValueConfig(bucket=LEASES, ttl=self.lease_s, history=1))
         self._benches = await self._bucket(js, KeyValueConfig(bucket=BENCHES, history=1))
         with contextlib.suppress(BadRequestError):  # already there (perhaps made by another version): keep it
             await js.add_stream(name=READINGS_STREAM, subjects=[readings_subject("*")], max_age=READINGS_KEEP_S,
@@ -238,11 +238,16 @@ class Fleet:
                 await self._refresh_view()
             except FleetConflict as exc:
                 log.error("fleet: %s", exc)
-            except BucketNotFoundError:  # the broker came back without its storage: set it up again
-                with contextlib.suppress(Exception):
+            except JetStreamError as exc:  # e.g. a broker that came back without its storage: set it up again
+                log.info("fleet: %s; setting up the buckets and the stream again", exc)
+                try:
                     await self._setup()
+                except FleetConflict as conflict:
+                    log.error("fleet: %s", conflict)
+                except Exception as again:  # noqa: BLE001 - tried again on the next tick
+                    log.info("fleet: setting up again failed: %s", again)
             except Exception as exc:  # noqa: BLE001 - the broker's troubles never stop the node
-                log.debug("fleet: renewing leases failed: %s", exc)
+                log.info("fleet: renewing leases failed: %s", exc)
 
     def _mark_unreachable(self) -> None:
         for bench in self.remote.values():

@@ -128,6 +128,8 @@ class Daemon:
             time.sleep(0.2)
 
     def __exit__(self, *exc: object) -> None:
+        if exc and exc[0] is not None:  # the test failed inside: its daemons' last words go into the report
+            print(f"--- {self.log.name} ---\n" + "\n".join(self.log.read_text().splitlines()[-40:]), file=sys.stderr)
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             try:
