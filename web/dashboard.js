@@ -625,7 +625,8 @@ function drawRecords() {
     onclick: () => openRecord(r.id) },
   el("td", {}, `${r.id}`), el("td", { title: `device ${r.device_id}` }, instrumentOf(r)), el("td", {}, r.kind), el("td", {}, `v${r.version}`), el("td", {}, r.method),
   el("td", {}, utcDate(r.created_utc)), el("td", {}, r.validation ? degArc(r.validation.rms_deg) : "—"),
-  el("td", {}, r.status || "—"), el("td", {}, r.active ? "active" : ""))));
+  el("td", {}, r.status || "—"), el("td", {}, r.active ? "active" : ""),
+  el("td", {}, r.raw_data && r.raw_data.diagnosis_id ? `diagnosis ${r.raw_data.diagnosis_id} (+ ${(r.raw_data.added_effects || []).join(", ")})` : ""))));
 }
 
 async function openRecord(id, message = "") {
@@ -666,6 +667,7 @@ async function openRecord(id, message = "") {
       await openRecord(id, `record ${id} is now active`);
     } catch (err) { $("rec-msg").textContent = operateMessage(err); }
   };
+  setupDiagnosis(rec);
   $("res-before").replaceChildren(); $("res-after").replaceChildren();
   $("res-rms-before").textContent = "—"; $("res-rms-after").textContent = "—";
   if (rec.kind !== "stage") { $("res-scale").textContent = "(residual maps are drawn for stage records)"; return; }
@@ -679,6 +681,62 @@ async function openRecord(id, message = "") {
   } catch (err) {
     $("res-scale").textContent = `(${err.message})`;
   }
+}
+
+// ------------------------------------------------------------------ diagnosis: the discrepancy workflow on a record
+
+function gapText(g) { return g ? `RMS ${degArc(g.rms)}, max ${degArc(g.max)}` : "—"; }
+
+function drawDiagnosis(d) {
+  const running = d.state === "queued" || d.state === "running";
+  $("diag-state").textContent = running ? `diagnosis ${d.id}: ${d.state}${d.phase ? ` (${d.phase})` : ""}…`
+    : d.state === "failed" ? `diagnosis ${d.id} failed: ${d.error}` : `diagnosis ${d.id}: ${d.conclusion || "done"}`;
+  $("diag-state").dataset.state = d.state;
+  $("diag-result").hidden = d.state !== "succeeded";
+  $("diag-report").hidden = d.state !== "succeeded";
+  $("diag-adopt").hidden = d.state !== "succeeded" || !(d.named_effects || []).length;
+  if (d.state !== "succeeded") return;
+  const rows = [["named effects", d.named_effects.length ? d.named_effects.join(", ") : "none beyond the baseline"],
+    ...d.effects.map((e) => [e.effect, e.summary]),
+    ["gap before", gapText(d.gap_before_deg)], ["gap after", gapText(d.gap_after_deg)],
+    ["noise of a point", degArc(d.noise_deg)]];
+  $("diag-result").tBodies[0].replaceChildren(...rows.map(([k, x]) => el("tr", {}, el("th", {}, k), el("td", {}, String(x)))));
+  $("diag-report").onclick = () => download(`/diagnoses/${d.id}/report`, `diagnosis-${d.id}.html`);
+  $("diag-adopt").onclick = async () => {
+    try {
+      const r = await action($("diag-adopt"), () => api("POST", `/diagnoses/${d.id}/adopt`));
+      await loadRecords();
+      await openRecord(r.id, `record ${r.id} (v${r.version}) made from diagnosis ${d.id}: ${d.named_effects.join(", ")} added`);
+    } catch (err) { $("diag-msg").textContent = operateMessage(err); }
+  };
+}
+
+async function followDiagnosis(recordId, id) {
+  for (;;) {
+    if (state.selectedRecord !== recordId) return;  // another record opened: stop following
+    const d = await api("GET", `/diagnoses/${id}`);
+    if (state.selectedRecord !== recordId) return;
+    drawDiagnosis(d);
+    if (d.state !== "queued" && d.state !== "running") return;
+    await new Promise((res) => setTimeout(res, 1000));
+  }
+}
+
+async function setupDiagnosis(rec) {
+  $("diag-state").textContent = ""; $("diag-msg").textContent = "";
+  $("diag-result").hidden = true; $("diag-adopt").hidden = true; $("diag-report").hidden = true;
+  $("diag-start").disabled = rec.kind !== "stage" || !rec.job_id;
+  $("diag-start").onclick = async () => {
+    $("diag-msg").textContent = "";
+    try {
+      const d = await action($("diag-start"), () => api("POST", `/records/${rec.id}/diagnose`, { sensor: "ref", baseline: "kinematic" }));
+      followDiagnosis(rec.id, d.id);
+    } catch (err) { $("diag-msg").textContent = operateMessage(err); }
+  };
+  try {  // the latest diagnosis of this record, if any
+    const list = (await api("GET", `/diagnoses?record=${rec.id}&limit=1`)).diagnoses;
+    if (list.length) followDiagnosis(rec.id, list[0].id);
+  } catch (err) { $("diag-msg").textContent = err.message; }
 }
 
 // every result's GUM budget: each contribution's standard uncertainty, then u_c, k and U at 95 %

@@ -1,0 +1,65 @@
+"""The dashboard diagnoses a record and adopts it (headless Chromium, as test_dashboard_browser.py): on a
+180:1 / 360:1 bench with a worm periodic error, "Diagnose" follows the diagnosis to its end, shows the named
+effect and the gap figures, and "Adopt as new version" makes the next version, listed as made from it."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+
+import httpx
+import pytest
+
+from tests.api.running_service import running_service
+from tests.api.test_dashboard_browser import CHROMIUM, T, pytestmark, sync_playwright  # noqa: F401
+from tests.benches.conftest import scenario
+from tests.daemon.test_diagnosis import BODY, PERIODIC_X
+
+if sync_playwright is not None:
+    from playwright.sync_api import expect
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory) -> Iterator[tuple[str, dict[str, str]]]:
+    data = tmp_path_factory.mktemp("data")
+    path = data.parent / "periodic-bench.json"
+    path.write_text(json.dumps(scenario("180-360", PERIODIC_X)))
+    with running_service(data, TILTLAB_SIM_SPEED="5", TILTLAB_BENCH_SCENARIO=str(path)) as base:
+        yield base, {"Authorization": f"Bearer {(data / 'admin.token').read_text().strip()}"}
+
+
+def test_diagnose_from_the_dashboard_and_adopt(daemon):
+    base, h = daemon
+    r = httpx.post(f"{base}/calibrations", headers=h, json=BODY, timeout=30)
+    assert r.status_code == 202, r.text
+    deadline = time.monotonic() + 600
+    while (job := httpx.get(f"{base}/calibrations/{r.json()['id']}", headers=h, timeout=30).json())["state"] in (
+            "queued", "running"):
+        assert time.monotonic() < deadline, job
+        time.sleep(0.5)
+    assert job["state"] == "succeeded", job
+    rec_id = job["record"]["id"]
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"])
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 900})
+            page.goto(f"{base}/#token={h['Authorization'].split()[1]}")
+            page.get_by_role("tab", name="Records").click()
+            page.locator(f"#records tr[data-id='{rec_id}']").click()
+            expect(page.locator("#record-detail")).to_have_attribute("data-id", str(rec_id), timeout=T)
+            expect(page.locator("#diag-start")).to_be_enabled(timeout=T)
+            page.click("#diag-start")
+            expect(page.locator("#diag-state")).to_have_attribute("data-state", "succeeded", timeout=10 * T)
+            expect(page.locator("#diag-result")).to_contain_text("periodic_error")
+            expect(page.locator("#diag-result")).to_contain_text("gap after")
+            expect(page.locator("#diag-adopt")).to_be_visible()
+            page.click("#diag-adopt")
+            expect(page.locator("#rec-msg")).to_contain_text("made from diagnosis", timeout=5 * T)
+            records = httpx.get(f"{base}/records", headers=h, timeout=30).json()["records"]
+            adopted = next(x for x in records if x["raw_data"].get("diagnosis_id"))
+            assert "periodic_error" in adopted["raw_data"]["added_effects"]
+            expect(page.locator("#record-detail")).to_have_attribute("data-id", str(adopted["id"]), timeout=T)
+            expect(page.locator(f"#records tr[data-id='{adopted['id']}']")).to_contain_text("periodic_error")
+        finally:
+            browser.close()
