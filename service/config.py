@@ -57,6 +57,8 @@ class Settings(BaseSettings):
     # message dropped) for stream_slow_close_s real seconds is closed (1013).
     stream_queue_size: int = Field(100, ge=2, le=100_000)
     stream_slow_close_s: float = Field(10.0, gt=0, allow_inf_nan=False)
+    # A request body larger than this is refused (413) before it is read, with or without a token.
+    max_body_bytes: int = Field(1_048_576, ge=1024)
 
     # Free-running monitoring samples older than this are thinned or dropped; calibration data never are.
     monitoring_retention_days: float = Field(30.0, gt=0)
@@ -140,8 +142,22 @@ class Settings(BaseSettings):
             path = Path(config_file).expanduser()
             if not path.is_file():
                 raise InputError(f"{CONFIG_ENV}={config_file}: no such configuration file")
-            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=path))
+            toml = TomlConfigSettingsSource(settings_cls, toml_file=path)
+            _refuse_unknown_keys(config_file, toml.toml_data, set(settings_cls.model_fields))
+            sources.append(toml)
         return tuple(sources)
+
+
+def _refuse_unknown_keys(config_file: str, data: dict[str, Any], known: set[str]) -> None:
+    """A key the settings do not have (a typo such as `sim_sped`) is refused, not silently ignored."""
+    import difflib
+
+    for key in data:
+        if key not in known:
+            near = difflib.get_close_matches(key.lower(), sorted(known), n=1)
+            hint = f" (did you mean {near[0]}?)" if near else ""
+            raise InputError(f"{CONFIG_ENV}={config_file}: {key}: no such setting{hint}; "
+                             "the settings are listed in docs/storage.md")
 
 
 def _describe(exc: ValidationError) -> str:

@@ -95,10 +95,16 @@ async function api(method, path, body) {
 
 function showProblem(text) { $("banner").textContent = text; $("banner").hidden = !text; }
 
+// The token travels as the subprotocol bearer.<token>, never in the URL (URLs end up in logs).
+// Text a subprotocol cannot carry goes in the query, so the daemon can say why it was refused.
+const SUBPROTOCOL_SAFE = /^[A-Za-z0-9._~-]+$/;
+
 function wsUrl(path, params) {
-  const q = new URLSearchParams({ ...params, token });
+  const q = new URLSearchParams(SUBPROTOCOL_SAFE.test(token || "") ? params : { ...params, token });
   return `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${path}?${q}`;
 }
+
+function wsProtocols() { return SUBPROTOCOL_SAFE.test(token || "") ? [`bearer.${token}`] : []; }
 
 // A WebSocket that reconnects with exponential back-off and says when it is lost.
 class Stream {
@@ -109,7 +115,7 @@ class Stream {
   open() {
     this.closed = false;
     clearTimeout(this.timer);
-    const ws = new WebSocket(this.urlFn());
+    const ws = new WebSocket(this.urlFn(), wsProtocols());
     this.ws = ws;
     ws.onopen = () => { this.attempt = 0; };
     ws.onmessage = (ev) => {

@@ -16,7 +16,9 @@ from service import __version__
 from service.api import http_details, problems
 from service.api.auth import TokenCache, is_loopback
 from service.api.fleet_routing import FleetRouting, run_forwarded
+from service.api.limits import BodySizeLimit
 from service.api.metrics import Metrics, MetricsMiddleware
+from service.api.redact import install_log_redaction
 from service.api.routers import (
     benches,
     calibrations,
@@ -120,6 +122,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         raise InputError(f"TILTLAB_AUTH=none is refused on {s.host}: without authentication the daemon"
                          " binds only a loopback address (127.0.0.1, ::1)")
     _check_benches(s)
+    install_log_redaction()  # the access log prints query strings; a WebSocket's may carry its token
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -210,6 +213,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                      " (scopes read, operate, admin). Errors are RFC 9457 problem+json.")
     app.state.metrics = metrics = Metrics()
     app.add_middleware(FleetRouting)
+    # outside the fleet's forwarding (which reads bodies) and every route: a large body is refused unread
+    app.add_middleware(BodySizeLimit, max_bytes=s.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     problems.install(app)
     http_details.install(app)

@@ -1,7 +1,8 @@
 """Bearer tokens and scopes on every route but /health, /ready and the dashboard's files.
 
-`Authorization: Bearer <token>` on HTTP, the `token` query parameter on WebSockets (browsers
-cannot set headers there). 401 without a valid token, 403 without the scope the route needs.
+`Authorization: Bearer <token>` on HTTP. On WebSockets (browsers cannot set headers there) the
+subprotocol `bearer.<token>` (`Sec-WebSocket-Protocol`, kept out of URLs and so out of logs) or the
+`token` query parameter. 401 without a valid token, 403 without the scope the route needs.
 """
 
 from __future__ import annotations
@@ -92,10 +93,32 @@ def requires(scope: str):  # type: ignore[no-untyped-def]
     return dependency
 
 
+SUBPROTOCOL_PREFIX = "bearer."
+
+
+def websocket_subprotocol(websocket: WebSocket) -> str | None:
+    """The `bearer.<token>` subprotocol the client offered, if any (the accept must name it back)."""
+    for offered in websocket.scope.get("subprotocols") or ():
+        if offered.startswith(SUBPROTOCOL_PREFIX):
+            return str(offered)
+    return None
+
+
+def websocket_token(websocket: WebSocket) -> str | None:
+    """A WebSocket's token: from its `bearer.<token>` subprotocol, else its `token` query parameter."""
+    offered = websocket_subprotocol(websocket)
+    if offered is not None:
+        return offered.removeprefix(SUBPROTOCOL_PREFIX)
+    return websocket.query_params.get("token")
+
+
 def websocket_principal(websocket: WebSocket, scope: str = "read") -> Principal | None:
-    """The principal of a WebSocket from its `token` query parameter; None if it may not connect."""
+    """The principal of a WebSocket from its token (subprotocol or query); None if it may not connect.
+
+    Asked again while a stream is open, so a revoked token's streams end (the token cache keeps
+    this to one database query per token every few seconds)."""
     try:
-        principal = _principal(websocket.app, websocket.query_params.get("token"))
+        principal = _principal(websocket.app, websocket_token(websocket))
     except ProblemError:
         return None
     return principal if principal.may(scope) else None

@@ -31,6 +31,8 @@ def _say(text: str) -> None:
 
 def bind_socket(host: str, port: int) -> socket.socket:
     """A listening-ready socket on host:port, or a one-line error naming --host/--port."""
+    from service.api.limits import bound_send_buffer
+
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except socket.gaierror as exc:
@@ -40,6 +42,7 @@ def bind_socket(host: str, port: int) -> socket.socket:
     sock = socket.socket(family, kind, proto)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        bound_send_buffer(sock)  # every connection's send buffer: how much a stalled stream client can hold
         sock.bind(address)
     except OSError as exc:
         sock.close()

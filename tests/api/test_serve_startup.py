@@ -200,3 +200,18 @@ def test_half_a_certificate_is_refused(tmp_path: Path) -> None:
     r = _serve(tmp_path, "--port", str(free_port()), "--ssl-certfile", str(tmp_path / "cert.pem"))
     assert r.returncode == 2
     _one_line(r, "--ssl-certfile", "--ssl-keyfile")
+
+
+@pytest.mark.parametrize(("typo", "meant"), [("sim_sped = 5.0", "sim_speed"),
+                                             ('databse_url = "sqlite:////tmp/x.db"', "database_url")])
+def test_unknown_key_in_the_settings_file_is_refused(tmp_path: Path, typo: str, meant: str) -> None:
+    """A typo in TILTLAB_CONFIG is not silently ignored (the daemon would start on defaults): exit 2 naming it."""
+    cfg = tmp_path / "tiltlab.toml"
+    cfg.write_text(f"port = {free_port()}\n{typo}\n")
+    env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data"), "TILTLAB_CONFIG": str(cfg)}
+    r = subprocess.run([sys.executable, "-m", "service", "serve"], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2, r.stderr
+    key = typo.split(" ")[0]
+    _one_line(r, "TILTLAB_CONFIG", str(cfg), f"{key}: no such setting", f"did you mean {meant}?")
+    assert not (tmp_path / "data" / "tiltlab.db").exists()  # refused before anything was made

@@ -56,3 +56,16 @@ def test_unparsable_config_file_is_named(monkeypatch: pytest.MonkeyPatch, tmp_pa
     monkeypatch.setenv("TILTLAB_CONFIG", str(cfg))
     with pytest.raises(InputError, match="tiltlab.toml.*not valid TOML"):
         Settings()
+
+
+def test_known_keys_of_the_settings_file_are_taken(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    cfg = tmp_path / "tiltlab.toml"
+    cfg.write_text("max_body_bytes = 65536\nsim_speed = 4.0\n")
+    monkeypatch.setenv("TILTLAB_CONFIG", str(cfg))
+    monkeypatch.delenv("TILTLAB_MAX_BODY_BYTES", raising=False)
+    monkeypatch.delenv("TILTLAB_SIM_SPEED", raising=False)
+    s = Settings()
+    assert (s.max_body_bytes, s.sim_speed) == (65536, 4.0)
+    cfg.write_text("max_body_bytes = 65536\nmax_body_byte = 1\n")
+    with pytest.raises(InputError, match=r"max_body_byte: no such setting \(did you mean max_body_bytes\?\)"):
+        Settings()

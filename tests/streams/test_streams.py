@@ -26,6 +26,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from service.api.app import create_app
+from service.commands.serve import bind_socket
 from service.config import Settings
 from tests.api.running_service import free_port
 
@@ -67,8 +68,9 @@ def daemon(tmp_path_factory) -> Iterator[Daemon]:
     settings = Settings(data_dir=data, sim_speed=SPEED, stream_slow_close_s=SLOW_CLOSE_S, stream_queue_size=QUEUE)
     app = create_app(settings)
     port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
+    sock = bind_socket("127.0.0.1", port)  # as `tiltlab serve` makes it: every connection's send buffer bounded
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     wait_until(lambda: server.started, 60, "server started")
     token = (data / "admin.token").read_text().strip()
@@ -78,6 +80,7 @@ def daemon(tmp_path_factory) -> Iterator[Daemon]:
         producers = list(app.state.streams.producers.values())  # type: ignore[attr-defined]
         server.should_exit = True
         thread.join(30)
+        sock.close()
         assert not thread.is_alive()
         assert producers and not any(p.running for p in producers), "a producer outlived the daemon"
 

@@ -1,9 +1,16 @@
 """Live streams over WebSocket: a bench's readings (`/ws/readings`) and a calibration job (`/ws/jobs/{id}`).
 
-The token comes in the `token` query parameter (scope read). A refused connection is accepted and
-closed at once with a code and a reason naming what was wrong (browsers see no HTTP status):
-1008 for a missing, unknown or scope-less token and for an unusable parameter; 1013 for a client
-that could not take its messages; 1001 when the daemon stops; 1000 after a job's end.
+The token comes as the subprotocol `bearer.<token>` (echoed in the accept) or in the `token` query
+parameter (scope read); it is asked again every few seconds, so a revoked token's streams end.
+A refused connection is accepted and closed at once with a code and a reason naming what was wrong
+(browsers see no HTTP status): 1008 for a missing, unknown, revoked or scope-less token and for an
+unusable parameter; 1013 for a client that could not take its messages; 1001 when the daemon
+stops; 1000 after a job's end.
+
+A client that stops reading is found by the send itself, not by looking inside the server: each
+message must be handed to the connection within the slow-close time, else the client is closed
+(1013). What the connection buffers below the send is bounded where the daemon's listening socket
+is made (service/api/limits.py: `bound_send_buffer`).
 """
 
 from __future__ import annotations
@@ -12,39 +19,52 @@ import asyncio
 import contextlib
 import json
 import math
-import socket
 from typing import Any, cast
 
 from fastapi import APIRouter, Request, WebSocket
 from pydantic_core import to_jsonable_python
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from service.api.auth import websocket_principal
+from service.api.auth import websocket_principal, websocket_subprotocol
 from service.api.routers.calibrations import job_json
 from service.storage.errors import UnknownEntity
 from service.streams.jobs import job_messages
-from service.streams.readings import HISTORY_DEFAULT_S, HISTORY_MAX_S, Client, StreamHub
+from service.streams.readings import CLOSE_SLOW, HISTORY_DEFAULT_S, HISTORY_MAX_S, Client, ReadingProducer, StreamHub
 
 router = APIRouter(tags=["streams"])
 
 CLOSE_NORMAL = 1000
 CLOSE_POLICY = 1008
-SEND_BUFFER_BYTES = 32_768  # per reading client: kernel send buffer and transport buffer (see _bound_buffers)
 CLOSE_TIMEOUT_S = 5.0  # a close frame that cannot be written in this long (a peer that reads nothing) is dropped
+TOKEN_RECHECK_S = 2.0  # an open stream asks for its token again this often (through the token cache)
+REVOKED = "token: revoked (or no longer valid)"
+
+
+async def _accept(ws: WebSocket) -> None:
+    """Accept, naming back the `bearer.<token>` subprotocol if the client offered it (browsers insist)."""
+    await ws.accept(subprotocol=websocket_subprotocol(ws))
 
 
 async def _refuse(ws: WebSocket, reason: str) -> None:
-    await ws.accept()
+    await _accept(ws)
     await ws.close(CLOSE_POLICY, reason[:120])
 
 
 async def _authorised(ws: WebSocket) -> bool:
     if websocket_principal(ws, "read") is not None:
         return True
-    token = ws.query_params.get("token")
-    await _refuse(ws, "token: missing (give ?token=...)" if not token else
-                  "token: unknown, revoked, or without the read scope")
+    given = websocket_subprotocol(ws) is not None or ws.query_params.get("token")
+    await _refuse(ws, "token: unknown, revoked, or without the read scope" if given else
+                  "token: missing (give the subprotocol bearer.<token>, or ?token=...)")
     return False
+
+
+async def _until_token_invalid(ws: WebSocket) -> None:
+    """Return once the stream's token no longer lets it read (revoked here or by `tiltlab token revoke`)."""
+    while True:
+        await asyncio.sleep(TOKEN_RECHECK_S)
+        if await asyncio.to_thread(websocket_principal, ws, "read") is None:
+            return
 
 
 def _number(ws: WebSocket, name: str, default: float | None) -> float | None:
@@ -59,32 +79,6 @@ def _number(ws: WebSocket, name: str, default: float | None) -> float | None:
     if not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name}: {text[:20]!r} must be a number > 0")
     return value
-
-
-def _bound_buffers(ws: WebSocket) -> None:
-    """Bound what a reading client's connection buffers below our queue (kernel send buffer, transport
-    buffer): left to autotuning, Linux grows a socket's send buffer to 4 MB, minutes of readings, before a
-    client that reads nothing is even noticed. The server's transport is found behind the ASGI `send`
-    callable; a server that hides it keeps its defaults."""
-    stack: list[Any] = [getattr(ws, "_send", None)]
-    seen: set[int] = set()
-    while stack:
-        f = stack.pop()
-        if f is None or id(f) in seen:
-            continue
-        seen.add(id(f))
-        transport = getattr(getattr(f, "__self__", None), "transport", None)
-        if isinstance(transport, asyncio.WriteTransport):
-            with contextlib.suppress(Exception):
-                transport.set_write_buffer_limits(high=SEND_BUFFER_BYTES)
-                sock = transport.get_extra_info("socket")
-                if sock is not None:
-                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
-            return
-        for cell in getattr(f, "__closure__", None) or ():
-            with contextlib.suppress(ValueError):
-                if callable(cell.cell_contents):
-                    stack.append(cell.cell_contents)
 
 
 async def _until_disconnect(ws: WebSocket) -> None:
@@ -126,28 +120,39 @@ async def readings(ws: WebSocket) -> None:
             raise ValueError(f"history_s: {history_s:g} is above the maximum of {HISTORY_MAX_S:g} s")
     except ValueError as exc:
         return await _refuse(ws, str(exc))
-    await ws.accept()
-    _bound_buffers(ws)
+    await _accept(ws)
     client = producer.connect(rate, history_s)
     try:
-        await _serve_client(ws, client)
+        await _serve_client(ws, producer, client)
     finally:
         producer.disconnect(client)
 
 
-async def _serve_client(ws: WebSocket, client: Client) -> None:
+async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client) -> None:
+    slow_close_s = producer.slow_close_s
+
     async def send() -> None:
         while True:
-            await ws.send_text(await client.queue.get())
+            text = await client.queue.get()
+            try:  # a send that cannot be handed over: the client stopped reading and its buffers are full
+                await asyncio.wait_for(ws.send_text(text), slow_close_s)
+            except TimeoutError:
+                client.kick(CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s")
+                return
+
+    async def token() -> None:
+        await _until_token_invalid(ws)
+        client.kick(CLOSE_POLICY, REVOKED)
 
     tasks = [asyncio.create_task(send()), asyncio.create_task(_until_disconnect(ws)),
-             asyncio.create_task(client.kicked.wait())]
+             asyncio.create_task(client.kicked.wait()), asyncio.create_task(token())]
     try:
         await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
     finally:
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+    producer.disconnect(client)  # it gets nothing more, even while its close frame waits to be written
     if client.close_code is not None:
         await _close(ws, client.close_code, client.close_reason)
 
@@ -170,30 +175,39 @@ async def job_stream(ws: WebSocket, job_id: str) -> None:
         await asyncio.to_thread(store.get_job, int(job_id))
     except UnknownEntity:
         return await _refuse(ws, f"id: no calibration job {job_id}")
-    await ws.accept()
+    await _accept(ws)
     waiter = asyncio.create_task(_until_disconnect(ws))
+    revoked = asyncio.create_task(_until_token_invalid(ws))
     stream = job_messages(store, jobs.events, int(job_id), body)
+    slow_close_s: float = ws.app.state.settings.stream_slow_close_s
     seq = 0
     try:
         while True:
             nxt = asyncio.ensure_future(anext(stream))
-            done, _ = await asyncio.wait({nxt, waiter}, return_when=asyncio.FIRST_COMPLETED)
+            done, _ = await asyncio.wait({nxt, waiter, revoked}, return_when=asyncio.FIRST_COMPLETED)
             if nxt not in done:
                 nxt.cancel()
                 with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
                     await nxt
-                return  # the client went
+                if revoked in done:
+                    await _close(ws, CLOSE_POLICY, REVOKED)
+                return  # the client went, or its token did
             try:
                 msg = nxt.result()
             except StopAsyncIteration:
                 break
-            await ws.send_text(json.dumps({"seq": seq, **msg}))
+            try:
+                await asyncio.wait_for(ws.send_text(json.dumps({"seq": seq, **msg})), slow_close_s)
+            except TimeoutError:
+                await _close(ws, CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s")
+                return
             seq += 1
         await _close(ws, CLOSE_NORMAL, "job ended")
     except WebSocketDisconnect:
         return
     finally:
-        waiter.cancel()
-        with contextlib.suppress(asyncio.CancelledError, Exception):
-            await waiter
+        for task in (waiter, revoked):
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
         await stream.aclose()
