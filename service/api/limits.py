@@ -22,6 +22,9 @@ from service.api.problems import PROBLEM
 # the value asked for (its bookkeeping), so a connection holds at most 64 kB there; the server's
 # own write buffer holds at most 64 kB more before a send waits.
 SEND_BUFFER_BYTES = 32_768
+SERVER_WRITE_BUFFER_BYTES = 65_536  # the ASGI server's WebSocket write buffer (its high-water mark)
+# The most the daemon holds for one stream client that has stopped reading before its sends wait.
+STREAM_HELD_BYTES = 2 * SEND_BUFFER_BYTES + SERVER_WRITE_BUFFER_BYTES
 
 
 def bound_send_buffer(sock: socket.socket) -> None:

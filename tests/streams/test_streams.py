@@ -26,6 +26,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from service.api.app import create_app
+from service.api.limits import STREAM_HELD_BYTES
 from service.commands.serve import bind_socket
 from service.config import Settings
 from tests.api.running_service import free_port
@@ -97,14 +98,17 @@ class RawClient:
         self.sock.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade"
                           f"\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
         self.buf = b""
+        self.received = 0
         while b"\r\n\r\n" not in self.buf:
             self.buf += self._recv()
         head, self.buf = self.buf.split(b"\r\n\r\n", 1)
         assert head.startswith(b"HTTP/1.1 101"), head
+        self.received = len(self.buf)  # bytes of frames received so far
 
     def _recv(self) -> bytes:
         data = self.sock.recv(65536)
         assert data, "connection closed without a close frame"
+        self.received += len(data)
         return data
 
     def _take(self, n: int) -> bytes:
@@ -337,3 +341,65 @@ def test_dropped_connections_leave_nothing_behind(daemon: Daemon) -> None:
     asyncio.run(run())
     wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty after aborted connections")
     assert websockets.__version__  # the client library the tests speak through
+
+
+def test_a_client_that_never_reads_is_closed_in_time_while_a_reader_sees_no_gap(daemon: Daemon) -> None:
+    """The bound of docs/api.md: the daemon holds at most STREAM_HELD_BYTES for a client that reads
+    nothing, and once its send has waited TILTLAB_STREAM_SLOW_CLOSE_S it is closed (1013)."""
+    seqs: list[int] = []
+    received = [0]
+    stop = asyncio.Event()
+
+    async def reader() -> None:
+        async with connect(daemon.url("/ws/readings", token=None, history_s=1),
+                           subprotocols=[f"bearer.{daemon.token}"]) as ws:  # type: ignore[list-item]
+            while not stop.is_set():
+                text = await asyncio.wait_for(ws.recv(), 10)
+                received[0] += len(text)
+                seqs.append(json.loads(text)["seq"])
+
+    async def stalled() -> tuple[float, float, RawClient]:
+        raw = RawClient(daemon, "/ws/readings?history_s=1&token=" + daemon.token)  # never reads a message
+        while daemon.hub.client_count() < 2:  # registered just after the handshake
+            await asyncio.sleep(0.01)
+        t0 = time.monotonic()
+        bytes0 = received[0]
+        rcvbuf = raw.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        while daemon.hub.client_count() > 1:
+            elapsed = time.monotonic() - t0
+            rate = (received[0] - bytes0) / max(elapsed, 1e-3)  # the stream's bytes per real second
+            # documented: closed SLOW_CLOSE_S after the daemon's buffers and the client's are full;
+            # a grace for a loaded machine, far below what unbounded (megabyte) buffers would take
+            allowed = 1.5 * (SLOW_CLOSE_S + (STREAM_HELD_BYTES + rcvbuf) / max(rate, 1.0)) + 3.0
+            assert elapsed < allowed or rate == 0, f"not closed after {elapsed:.1f} s ({rate:.0f} B/s)"
+            await asyncio.sleep(0.05)
+        return time.monotonic() - t0, (received[0] - bytes0) / (time.monotonic() - t0), raw
+
+    async def run() -> tuple[float, float, RawClient]:
+        task = asyncio.create_task(reader())
+        while len(seqs) < 5:
+            await asyncio.sleep(0.05)
+        try:
+            return await stalled()
+        finally:
+            stop.set()
+            await task
+
+    closed_after_s, rate, raw = asyncio.run(run())
+    assert closed_after_s > SLOW_CLOSE_S  # its send waited the whole slow-close time first
+    try:  # what the daemon had handed over before giving up: at most its buffers' worth, then the close
+        got: list[dict] = []
+        raw.sock.settimeout(10)
+        while True:
+            m = raw.message()
+            if m["type"] == "close":
+                break
+            got.append(m)
+    finally:
+        raw.sock.close()
+    assert m["code"] == 1013 and m["reason"].startswith("too slow"), m
+    held = raw.received
+    assert got and got[0]["type"] == "snapshot" and [x["seq"] for x in got] == list(range(len(got)))
+    assert held <= STREAM_HELD_BYTES + 4 * 4096 + 2048, f"{held} bytes were held for a client reading nothing"
+    assert seqs == list(range(len(seqs))) and len(seqs) > 20, "the reading client saw a gap"
+    wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import math
 from typing import Any, cast
 
@@ -32,9 +33,11 @@ from service.streams.jobs import job_messages
 from service.streams.readings import CLOSE_SLOW, HISTORY_DEFAULT_S, HISTORY_MAX_S, Client, ReadingProducer, StreamHub
 
 router = APIRouter(tags=["streams"])
+log = logging.getLogger("tiltlab.streams")
 
 CLOSE_NORMAL = 1000
 CLOSE_POLICY = 1008
+CLOSE_INTERNAL = 1011
 CLOSE_TIMEOUT_S = 5.0  # a close frame that cannot be written in this long (a peer that reads nothing) is dropped
 TOKEN_RECHECK_S = 2.0  # an open stream asks for its token again this often (through the token cache)
 REVOKED = "token: revoked (or no longer valid)"
@@ -63,7 +66,13 @@ async def _until_token_invalid(ws: WebSocket) -> None:
     """Return once the stream's token no longer lets it read (revoked here or by `tiltlab token revoke`)."""
     while True:
         await asyncio.sleep(TOKEN_RECHECK_S)
-        if await asyncio.to_thread(websocket_principal, ws, "read") is None:
+        try:
+            principal = await asyncio.to_thread(websocket_principal, ws, "read")
+        except Exception:  # noqa: BLE001 - a database that did not answer this once: ask again next time
+            log.warning("a stream's token could not be checked; asking again in %g s", TOKEN_RECHECK_S,
+                        exc_info=True)
+            continue
+        if principal is None:
             return
 
 
@@ -92,7 +101,8 @@ async def _until_disconnect(ws: WebSocket) -> None:
 async def _close(ws: WebSocket, code: int, reason: str) -> None:
     if ws.application_state == WebSocketState.CONNECTED and ws.client_state == WebSocketState.CONNECTED:
         with contextlib.suppress(Exception):
-            await asyncio.wait_for(ws.close(code, reason[:120]), CLOSE_TIMEOUT_S)
+            async with asyncio.timeout(CLOSE_TIMEOUT_S):
+                await ws.close(code, reason[:120])
 
 
 @router.websocket("/ws/readings")
@@ -135,7 +145,10 @@ async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client
         while True:
             text = await client.queue.get()
             try:  # a send that cannot be handed over: the client stopped reading and its buffers are full
-                await asyncio.wait_for(ws.send_text(text), slow_close_s)
+                # (asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation that
+                # meets a finished send, leaving this task waiting on a queue nobody fills)
+                async with asyncio.timeout(slow_close_s):
+                    await ws.send_text(text)
             except TimeoutError:
                 client.kick(CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s")
                 return
@@ -153,6 +166,10 @@ async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
     producer.disconnect(client)  # it gets nothing more, even while its close frame waits to be written
+    for t in tasks:
+        if not t.cancelled() and not isinstance(t.exception(), (type(None), WebSocketDisconnect, OSError)):
+            log.error("reading stream failed", exc_info=t.exception())
+            client.kick(CLOSE_INTERNAL, "the stream failed; reconnect")
     if client.close_code is not None:
         await _close(ws, client.close_code, client.close_reason)
 
@@ -197,7 +214,8 @@ async def job_stream(ws: WebSocket, job_id: str) -> None:
             except StopAsyncIteration:
                 break
             try:
-                await asyncio.wait_for(ws.send_text(json.dumps({"seq": seq, **msg})), slow_close_s)
+                async with asyncio.timeout(slow_close_s):
+                    await ws.send_text(json.dumps({"seq": seq, **msg}))
             except TimeoutError:
                 await _close(ws, CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s")
                 return
