@@ -134,7 +134,7 @@ def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool, rate):
     roles: dict[str, dict] = {}
     for role, prefix in (("reference_sensor", "ref"), ("measurement_sensor", "meas")):
         def read_xy(p: str = prefix) -> tuple[float, float]:
-            return _pair(world.sample(), p)
+            return world.reading_deg(p)
 
         fw = BinaryFirmware(clock, read_xy, world.temp_c, address=0,
                             baud=SIM_BAUD["binary"], output_mode=_mode(rate))

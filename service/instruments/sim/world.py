@@ -26,6 +26,20 @@ from service.scenarios.run import bench_of, effect_set, temperature
 
 NO_LIMIT = 2_147_483_647
 
+# A sensor at rest outputs a batch of readings computed at once (vectorised over the samples
+# of its coming output intervals): the physics costs about the same for 1 point as for 32.
+READINGS_PER_BATCH = 32
+
+
+class _Batch:
+    """One sensor's coming readings at one pose: bench times and (x, y) per sample."""
+
+    def __init__(self, pose: tuple[float, float, float, float], t_s: np.ndarray, x: np.ndarray, y: np.ndarray):
+        self.pose = pose
+        self.t_s = t_s
+        self.xy = list(zip(x.tolist(), y.tolist()))
+        self.next = 0
+
 
 class Axis:
     """One controller axis: position in pulses, moving at the set velocity on the bench clock."""
@@ -136,6 +150,8 @@ class StageWorld:
         self.rng = np.random.default_rng(scenario.seed)
         self.t0 = clock.monotonic()
         self._lock = threading.Lock()
+        self._batches: dict[str, _Batch] = {}
+        self._last_read: dict[str, tuple[float, tuple[float, float, float, float]]] = {}
         travel = self.bench.travel_deg
         self.axes: dict[int, Axis] = {}
         for n, pulse in ((1, self.bench.pulse_x_deg), (2, self.bench.pulse_y_deg)):
@@ -167,6 +183,43 @@ class StageWorld:
                                  [self.axes[2].direction], [self.temp_c()], [self.t_s()],
                                  rng=self.rng if noisy else None, geometry=self.geometry)
         return {k: float(v[0]) for k, v in out.items()}
+
+    def reading_deg(self, prefix: str) -> tuple[float, float]:
+        """One sensor's reading (`ref` or `meas`) now. At rest the sensor's next readings are computed
+        in one batch, at the bench times its output interval will ask for them, and handed out in
+        turn; a move, a read outside the batch's time span or its end starts a new one. So every
+        reading belongs to the pose it is read at, and to its time within the batch's span
+        (READINGS_PER_BATCH output intervals; what changes with time, temperature, drifts by hours)."""
+        x_deg, y_deg = self.pose_deg
+        pose = (x_deg, y_deg, self.axes[1].direction, self.axes[2].direction)
+        t = self.t_s()
+        with self._lock:
+            last = self._last_read.get(prefix)
+            self._last_read[prefix] = (t, pose)
+            b = self._batches.get(prefix)
+            if (b is not None and b.pose == pose and b.next < len(b.xy)
+                    and b.t_s[0] - self._dt_s(b) <= t <= b.t_s[-1] + self._dt_s(b)):
+                b.next += 1
+                return b.xy[b.next - 1]
+            # the interval the sensor asks at, from its last two reads at rest; one point while moving
+            at_rest = last is not None and last[1] == pose and 0.0 < t - last[0] < 1.0
+            n = READINGS_PER_BATCH if at_rest else 1
+            assert last is not None or n == 1
+            dt = (t - last[0]) if at_rest and last is not None else 0.0
+            times = t + dt * np.arange(n)
+            out = simulate_stage(self.bench, self.effects, np.full(n, x_deg), np.full(n, y_deg),
+                                 np.full(n, pose[2]), np.full(n, pose[3]),
+                                 temperature(self.scenario.environment, times), times,
+                                 rng=self.rng, geometry=self.geometry)
+            b = _Batch(pose, times, out[f"{prefix}_x_deg"], out[f"{prefix}_y_deg"])
+            b.next = 1
+            self._batches[prefix] = b
+            return b.xy[0]
+
+    @staticmethod
+    def _dt_s(b: _Batch) -> float:
+        """The batch's spacing: one output interval."""
+        return float(b.t_s[1] - b.t_s[0]) if len(b.t_s) > 1 else 0.0
 
     def true_tilt_deg(self) -> tuple[float, float]:
         s = self.sample(noisy=False)
