@@ -377,12 +377,18 @@ function openReadings() {
 
 const ROLE_OF_KIND = { stage: "measurement_sensor", scale: "adc_sensor", rotation: "triaxial_sensor", turntable: "turntable_sensor" };
 
+// A bench in the selector: its name, and in a fleet the node it hangs off (and whether that node is offline).
+function benchLabel(x) {
+  if (!x.node) return x.name;
+  return `${x.name} · ${x.node}${x.online === false ? " (offline)" : ""}`;
+}
+
 async function loadBenches() {
   const b = await api("GET", "/benches");
   state.benches = b.benches;
   const sel = $("bench-select");
   if (!sel.options.length) {
-    for (const x of b.benches) sel.append(el("option", { value: x.name }, x.name));
+    for (const x of b.benches) sel.append(el("option", { value: x.name }, benchLabel(x)));
     const first = b.benches.find((x) => x.kind === "stage") || b.benches[0];
     state.bench = first ? first.name : null;
     sel.value = state.bench;
@@ -393,17 +399,27 @@ async function loadBenches() {
 async function refreshStatus() {
   clearTimeout(state.statusTimer);
   try {
-    const [b, d, r] = await Promise.all([api("GET", "/benches"), api("GET", `/devices?bench=${encodeURIComponent(state.bench)}`),
-      api("GET", `/records?bench=${encodeURIComponent(state.bench)}`)]);
+    // the bench list first: in a fleet another node's bench may not answer, and the list says why
+    const devicesAsked = api("GET", `/devices?bench=${encodeURIComponent(state.bench)}`);
+    const recordsAsked = api("GET", `/records?bench=${encodeURIComponent(state.bench)}`);
+    devicesAsked.catch(() => {});
+    recordsAsked.catch(() => {});
+    const b = await api("GET", "/benches");
     state.benches = b.benches;
+    for (const opt of $("bench-select").options) {  // a fleet's benches come and go with their nodes
+      const x = b.benches.find((y) => y.name === opt.value);
+      if (x) opt.textContent = benchLabel(x);
+    }
     const me = b.benches.find((x) => x.name === state.bench);
     $("bench-state").textContent = me ? `${me.state}${me.held_by ? `: ${me.held_by}` : ""}` : "?";
     $("bench-state").className = `pill ${me ? me.state : ""}`;
     setMoving(!!(me && me.held_by), "bench");
     const tb = $("benches").tBodies[0];
-    tb.replaceChildren(...b.benches.map((x) => el("tr", {}, el("td", {}, x.name), el("td", {}, x.kind),
+    tb.replaceChildren(...b.benches.map((x) => el("tr", { "data-bench": x.name }, el("td", {}, x.name),
+      el("td", {}, x.node ? `${x.node}${x.online === false ? " (offline)" : ""}` : "—"), el("td", {}, x.kind),
       el("td", { class: `st-${x.state}` }, x.state), el("td", {}, x.held_by || "—"),
       el("td", {}, x.simulated ? `${x.simulated.scenario || "yes"}, ${x.simulated.speed}× speed` : "no"))));
+    const [d, r] = await Promise.all([devicesAsked, recordsAsked]);
     const active = {};
     for (const rec of r.records) if (rec.active) active[ROLE_OF_KIND[rec.kind]] = rec;
     const td = $("devices").tBodies[0];
