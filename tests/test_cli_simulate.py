@@ -64,3 +64,19 @@ def test_unknown_preset_and_broken_json(tmp_path):
     bad.write_text("{not json")
     r = tiltlab("simulate", "--scenario", str(bad), "--out", str(tmp_path / "x.csv"))
     assert r.returncode == 2 and "not valid JSON" in r.stderr
+
+
+def test_list_gives_each_description_in_full():
+    import subprocess
+    import sys
+
+    from service.scenarios import load_scenario, preset_names
+
+    out = subprocess.run([sys.executable, "-m", "service", "simulate", "--list"], capture_output=True, text=True,
+                         timeout=120, env={**__import__("os").environ, "COLUMNS": "80"})
+    assert out.returncode == 0, out.stderr
+    words = " ".join(out.stdout.split())
+    assert "…" not in out.stdout
+    for name in preset_names():
+        about = " ".join((load_scenario(name).description or "").split())
+        assert about in words, (name, about)

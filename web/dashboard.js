@@ -428,7 +428,7 @@ async function refreshStatus() {
       return el("tr", { "data-role": x.role }, el("td", {}, x.role.replace(/_/g, " ")), el("td", { class: "port" }, x.port),
         el("td", {}, x.protocol), el("td", { class: `st-${x.state}` }, x.state), el("td", {}, ageText(x.last_frame_utc, false)),
         el("td", {}, `${c.frames}`), el("td", {}, `${c.bad_checksum} / ${c.resyncs} / ${c.timeouts} / ${c.reconnects}`),
-        el("td", { class: "wrap" }, x.identity ? `${x.identity.model} s/n ${x.identity.serial} fw ${x.identity.firmware}` : "—"),
+        el("td", { class: "wrap" }, x.identity ? `${x.identity.model} s/n ${x.identity.serial}${x.identity.firmware ? ` fw ${x.identity.firmware}` : ""}` : "—"),
         el("td", { class: "wrap" }, a ? `record ${a.id} v${a.version} (${a.method})` : "none"), el("td", { class: "wrap" }, x.error || "—"));
     }));
     state.devices = d.devices;
@@ -637,15 +637,20 @@ async function loadRecords() {
 function instrumentOf(r) {
   const role = ROLE_OF_KIND[r.kind] || r.kind;
   const d = (state.devices || []).find((x) => x.role === role);
-  const id = d && d.identity ? ` (${d.identity.model} s/n ${d.identity.serial})` : "";
+  const id = d && d.identity ? ` (${d.identity.model})` : "";  // the serial number is in the row's tooltip
   return `${role.replace(/_/g, " ")}${id}`;
+}
+
+function instrumentTitle(r) {
+  const d = (state.devices || []).find((x) => x.role === (ROLE_OF_KIND[r.kind] || r.kind));
+  return d && d.identity ? `${d.identity.model} s/n ${d.identity.serial}, device ${r.device_id}` : `device ${r.device_id}`;
 }
 
 function drawRecords() {
   const tb = $("records").tBodies[0];
   tb.replaceChildren(...state.records.map((r) => el("tr", { class: r.id === state.selectedRecord ? "selected" : "", "data-id": r.id,
     onclick: () => openRecord(r.id) },
-  el("td", {}, `${r.id}`), el("td", { title: `device ${r.device_id}` }, instrumentOf(r)), el("td", {}, r.kind), el("td", {}, `v${r.version}`), el("td", {}, r.method),
+  el("td", {}, `${r.id}`), el("td", { title: instrumentTitle(r) }, instrumentOf(r)), el("td", {}, r.kind), el("td", {}, `v${r.version}`), el("td", {}, r.method),
   el("td", {}, utcDate(r.created_utc)), el("td", {}, r.validation ? degArc(r.validation.rms_deg) : "—"),
   el("td", {}, r.status || "—"), el("td", {}, r.active ? "active" : ""),
   el("td", {}, r.raw_data && r.raw_data.diagnosis_id ? `diagnosis ${r.raw_data.diagnosis_id} (+ ${(r.raw_data.added_effects || []).join(", ")})` : ""))));

@@ -13,7 +13,7 @@ from fastapi import FastAPI, Request
 from fastapi_offline import FastAPIOffline
 
 from service import __version__
-from service.api import http_details, problems
+from service.api import http_details, problems, redoc
 from service.api.auth import TokenCache, is_loopback
 from service.api.fleet_routing import FleetRouting, run_forwarded
 from service.api.limits import BodySizeLimit
@@ -218,6 +218,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     problems.install(app)
     http_details.install(app)
+    redoc.install(app, "/docs-assets")
     _install_errors(app)
     for r in (health, metrics_router, benches, tilt, stage, stage_home, calibrations, records, diagnoses, lims,
               streams, tokens):

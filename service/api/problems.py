@@ -42,7 +42,14 @@ def install(app: FastAPI) -> None:
         errs = exc.errors()
         first = errs[0] if errs else {"loc": (), "msg": "invalid request"}
         where = ".".join(str(x) for x in first["loc"])
-        return problem(422, "Invalid request", f"{where}: {first['msg']}", instance=str(request.url.path),
+        detail = f"{where}: {first['msg']}"
+        if first.get("type") == "json_invalid":  # the body is no JSON document: say where it breaks
+            at = first["loc"][1] if len(first["loc"]) > 1 else None
+            ctx = first.get("ctx")
+            why = ctx.get("error", "") if isinstance(ctx, dict) else ""
+            detail = (f"body: not valid JSON{f' at character {at}' if at is not None else ''}"
+                      f"{f' ({why})' if why else ''}; send one JSON object with Content-Type: application/json")
+        return problem(422, "Invalid request", detail, instance=str(request.url.path),
                        errors=[{"loc": list(map(str, e["loc"])), "msg": e["msg"]} for e in errs])
 
     @app.exception_handler(Exception)

@@ -28,12 +28,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def list_presets() -> int:
+    import shutil
+    import textwrap
+
     from service.scenarios import load_scenario, preset_names
 
+    # each description in full, wrapped to the terminal under its own column (never cut)
+    width = max(60, shutil.get_terminal_size((100, 24)).columns)
+    indent = " " * 24
     for name in preset_names():
         s = load_scenario(name)
         about = " ".join((s.description or "").split())
-        print(f"{name:12s} {s.kind:10s} {about[:100]}{'…' if len(about) > 100 else ''}")
+        print(textwrap.fill(about, width=width, initial_indent=f"{name:12s} {s.kind:10s} ", subsequent_indent=indent,
+                            break_on_hyphens=False))
     return 0
 
 

@@ -7,6 +7,7 @@ import numpy as np
 
 from service.bench.readings import fresh_readings, robust_mean, settle
 from service.bench.runtime import BenchRuntime
+from service.errors import InputError
 from service.jobs.manager import ActiveModel
 
 READBACK_SAMPLES = 10
@@ -14,7 +15,11 @@ READBACK_SAMPLES = 10
 
 def commands(active: ActiveModel, x_deg: float, y_deg: float) -> tuple[float, float]:
     """Stage angles for a wanted table tilt (InputError beyond the travel or out of reach)."""
-    out = active.method.level(active.model, {"target_x_deg": np.array([x_deg]), "target_y_deg": np.array([y_deg])})
+    try:
+        out = active.method.level(active.model, {"target_x_deg": np.array([x_deg]), "target_y_deg": np.array([y_deg])})
+    except InputError as exc:  # the method speaks of rows of a targets file; here there is one target
+        text = str(exc).replace("target row(s) 1 need ", "target row(s) 1 needs ")
+        raise InputError(text.replace("target row(s) 1", f"the target x_deg {x_deg:g}, y_deg {y_deg:g}")) from None
     return float(out["stage_x_deg"][0]), float(out["stage_y_deg"][0])
 
 
