@@ -42,8 +42,9 @@ from service.errors import InputError
 from service.fleet import Fleet
 from service.instruments.transport import DeviceError
 from service.jobs.diagnosis import DiagnosisRunner
-from service.jobs.manager import JobManager, RequestProblem
+from service.jobs.manager import JobManager
 from service.jobs.points import writes_in_flight
+from service.jobs.requests import RequestProblem
 from service.lims.runtime import LimsRuntime
 from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
 from service.storage.engine import normalise_url
@@ -167,9 +168,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         for bench in runtimes:
             jobs.load_active(bench)
         # the workflow on stored points, in a worker process: never the bench, never the event loop
-        app.state.diagnoses = DiagnosisRunner(
-            store, lambda job_id, n_fit: jobs.fit_columns(job_id, None, n_fit),
-            lambda job_id, n_fit, method, model: jobs.validate(job_id, None, n_fit, method, model))  # type: ignore[arg-type]  # the bench is not read
+        app.state.diagnoses = DiagnosisRunner(store, jobs.fit_columns, jobs.validate)
         hub = app.state.streams = StreamHub(app.state.benches, jobs, queue_size=s.stream_queue_size,
                                             slow_close_s=s.stream_slow_close_s)
         hub.start()  # one reading producer per bench

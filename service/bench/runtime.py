@@ -11,7 +11,9 @@ import asyncio
 import contextlib
 import datetime as dt
 import logging
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
+from enum import StrEnum
 
 from service.benchconfig import BenchConfig
 from service.clock import Clock
@@ -50,6 +52,40 @@ def _not_homed(bench: str, exc: DeviceRefused) -> Exception:
     return exc
 
 
+class Hold(StrEnum):
+    """What holds a bench: one at a time."""
+
+    JOB = "job"
+    JOB_RESUMING = "job resuming"
+    JOB_BEING_CREATED = "job being created"
+    STAGE_MOVE = "stage move"
+    LEVELLING = "levelling"
+    HOMING = "homing"
+
+
+_HOLD_TEXT = {Hold.JOB_BEING_CREATED: "a job being created", Hold.STAGE_MOVE: "a stage move",
+              Hold.LEVELLING: "levelling", Hold.HOMING: "homing"}
+
+
+@dataclass(frozen=True)
+class BenchHold:
+    """Who holds a bench; its text ("job 12", "levelling") is what GET /benches and a 409 name."""
+
+    kind: Hold
+    job_id: int | None = None
+
+    def __str__(self) -> str:
+        if self.kind is Hold.JOB:
+            return f"job {self.job_id}"
+        if self.kind is Hold.JOB_RESUMING:
+            return f"job {self.job_id} (resuming)"
+        return _HOLD_TEXT[self.kind]
+
+    @classmethod
+    def job(cls, job_id: int) -> BenchHold:
+        return cls(Hold.JOB, job_id)
+
+
 @dataclass
 class StagePose:
     x_deg: float | None = None
@@ -74,7 +110,7 @@ class BenchRuntime:
         self.identities: dict[str, DeviceIdentity] = {}
         self.device_ids: dict[str, int] = {}
         self.bench_id: int | None = None
-        self.holder: str | None = None  # "job 12" or "level"
+        self.holder: BenchHold | None = None
         self.stop_requested = asyncio.Event()
         self._stage_task: asyncio.Task | None = None
         self._temperature_task: asyncio.Task | None = None
@@ -176,7 +212,7 @@ class BenchRuntime:
     # ------------------------------------------------------------ ownership and motion
 
     @contextlib.asynccontextmanager
-    async def hold(self, holder: str):  # type: ignore[no-untyped-def]
+    async def hold(self, holder: BenchHold) -> AsyncIterator[None]:
         if self.holder is not None:
             raise BenchBusy(f"bench {self.name!r} is held by {self.holder}")
         self.holder = holder

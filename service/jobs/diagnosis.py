@@ -38,10 +38,10 @@ class Running:
     state: str = "queued"
     phase: str | None = None
     started_at: dt.datetime | None = None
-    task: asyncio.Task | None = field(default=None, repr=False)
+    task: asyncio.Task[None] | None = field(default=None, repr=False)
 
 
-def point_noise(points: list, n_points: int) -> np.ndarray | None:
+def point_noise(points: list[Any], n_points: int) -> np.ndarray | None:
     """Per axis, the 1-sigma noise of a settled point (a mean of n readings): the readings' scatter within
     each point, pooled over the points, divided by sqrt(n). None without a scatter (one reading per point)."""
     var = [(p.ch_x_std ** 2 / p.n_samples, p.ch_y_std ** 2 / p.n_samples) for p in points
@@ -140,7 +140,7 @@ class DiagnosisRunner:
 
     async def submit(self, record: CalibrationRecord, sensor: str, baseline: str, actor: str) -> Diagnosis:
         self.check(record, sensor, baseline)
-        d = await asyncio.to_thread(self.store.create_diagnosis, record.id, sensor=sensor, baseline=baseline,
+        d: Diagnosis = await asyncio.to_thread(self.store.create_diagnosis, record.id, sensor=sensor, baseline=baseline,
                                     actor=actor)
         run = self.running[d.id] = Running()
         run.task = asyncio.create_task(self._run(d, record), name=f"diagnosis {d.id}")
@@ -171,7 +171,7 @@ class DiagnosisRunner:
         finally:
             self.running.pop(d.id, None)
 
-    def _inputs(self, d: Diagnosis, record: CalibrationRecord) -> tuple:
+    def _inputs(self, d: Diagnosis, record: CalibrationRecord) -> tuple[Any, ...]:
         """Blocking (database): the record's points, the noise of a point and the bench the points came from."""
         assert record.job_id is not None
         n_fit = int((record.raw_data or {}).get("fit_points", 10**9))

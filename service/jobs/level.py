@@ -3,18 +3,23 @@ back, and aim again by the remaining error until within tolerance."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from service.bench.readings import fresh_readings, robust_mean, settle
 from service.bench.runtime import BenchRuntime
+from service.calibration.registry import LevellingMethod
 from service.errors import InputError
-from service.jobs.manager import ActiveModel
+from service.jobs.active import ActiveModel
 
 READBACK_SAMPLES = 10
 
 
 def commands(active: ActiveModel, x_deg: float, y_deg: float) -> tuple[float, float]:
     """Stage angles for a wanted table tilt (InputError beyond the travel or out of reach)."""
+    if not isinstance(active.method, LevellingMethod):
+        raise InputError(f"method {active.method_name} does not level; levelling needs a stage model")
     try:
         out = active.method.level(active.model, {"target_x_deg": np.array([x_deg]), "target_y_deg": np.array([y_deg])})
     except InputError as exc:  # the method speaks of rows of a targets file; here there is one target
@@ -24,7 +29,7 @@ def commands(active: ActiveModel, x_deg: float, y_deg: float) -> tuple[float, fl
 
 
 async def level(bench: BenchRuntime, active: ActiveModel, x_deg: float, y_deg: float, tolerance_deg: float,
-                max_iterations: int) -> dict:
+                max_iterations: int) -> dict[str, Any]:
     aim_x, aim_y = x_deg, y_deg
     sx, sy = commands(active, aim_x, aim_y)  # refused before anything moves
     achieved = (float("nan"), float("nan"))
@@ -45,7 +50,7 @@ async def level(bench: BenchRuntime, active: ActiveModel, x_deg: float, y_deg: f
     return _answer(achieved, max_iterations, (sx, sy), False)
 
 
-def _answer(achieved, iterations, stage, ok) -> dict:  # type: ignore[no-untyped-def]
+def _answer(achieved: tuple[float, float], iterations: int, stage: tuple[float, float], ok: bool) -> dict[str, Any]:
     return {"achieved": {"x_deg": achieved[0], "y_deg": achieved[1]}, "iterations": iterations,
             "stage": {"x_deg": stage[0], "y_deg": stage[1]}, "within_tolerance": ok,
             "measured_by": "reference sensor, mean of the settled read-back"}

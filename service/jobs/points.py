@@ -22,7 +22,7 @@ def writes_in_flight() -> int:
 
 
 def store_point(store: DaemonStore, job_id: int, index: int, samples: list[Sample],
-                settled_by_device: dict[int, dict]) -> None:
+                settled_by_device: dict[int, dict[str, Any]]) -> None:
     """Blocking (database): call through `write_in_thread`. A point half stored when the daemon
     was killed keeps its stored half; only the devices it lacks are added."""
     write_samples(store.engine, samples)

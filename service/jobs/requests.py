@@ -7,10 +7,20 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from service.errors import InputError
+
 PROCEDURES = ("stage-grid", "scale", "rotation", "turntable")
 KIND_OF_PROCEDURE = {"stage-grid": "stage", "scale": "scale", "rotation": "rotation", "turntable": "turntable"}
 # The fewest fit points each stage method needs (parameters it determines, with one spare).
 MIN_POINTS = {"kinematic": 6, "homography": 5, "axis-transform": 4, "coupling": 3}
+
+
+class RequestProblem(InputError):
+    """A request that cannot be used; `field` names what was wrong (422, or 409 for a conflict)."""
+
+    def __init__(self, field: str, message: str, status: int = 422) -> None:
+        super().__init__(f"{field}: {message}")
+        self.field, self.status = field, status
 
 
 class Settle(BaseModel):

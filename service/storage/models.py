@@ -8,6 +8,7 @@ no UPDATE or DELETE ever reaches them.
 from __future__ import annotations
 
 import datetime as dt
+from enum import StrEnum
 from typing import Any
 
 import sqlalchemy as sa
@@ -18,7 +19,19 @@ from service.storage.errors import AppendOnlyViolation
 
 APPEND_ONLY_TABLES = ("calibration_records", "audit_events", "active_calibration_history", "settled_points",
                       "record_approvals", "certificates", "feed_events", "diagnoses", "diagnosis_results")
-JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+
+
+class JobState(StrEnum):
+    """A calibration job's state: queued -> running -> succeeded | failed | cancelled."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
+JOB_STATES = tuple(JobState)
 SAMPLE_SOURCES = ("calibration", "monitoring")
 GENESIS_SHA256 = "0" * 64
 

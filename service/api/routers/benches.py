@@ -15,7 +15,8 @@ def benches(request: Request, _: Reader) -> dict:
     """Every bench with its kind, roles and state (ready, busy, connecting, degraded) and who holds it."""
     node = request.app.state.settings.node
     fleet = request.app.state.fleet
-    local = [{"name": b.name, "kind": b.kind, "roles": b.roles(), "state": b.state(), "held_by": b.holder,
+    local = [{"name": b.name, "kind": b.kind, "roles": b.roles(), "state": b.state(),
+              "held_by": None if b.holder is None else str(b.holder),
               "description": b.config.description, "simulated": _simulated(b), "node": node, "online": True}
              for b in request.app.state.benches.values()]
     return {"benches": local + (fleet.benches() if fleet is not None else [])}

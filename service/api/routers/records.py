@@ -96,7 +96,7 @@ def points(record_id: int, request: Request, _: Reader) -> Response:
     r = _record(request, record_id)
     if r.job_id is None:
         raise ProblemError(409, "No points", f"record {record_id} was not measured by a job of this daemon")
-    cols = request.app.state.jobs.fit_columns(r.job_id, None, int((r.raw_data or {}).get("fit_points", 10**9)))
+    cols = request.app.state.jobs.fit_columns(r.job_id, int((r.raw_data or {}).get("fit_points", 10**9)))
     buf = io.StringIO()
     order = {"stage": STAGE_DATASET, "scale": SCALE_DATASET, "rotation": ROTATION_DATASET,
              "turntable": TURNTABLE_DATASET}.get(r.kind, tuple(cols))
@@ -120,7 +120,7 @@ def residuals(record_id: int, request: Request, _: Reader) -> dict:
     if r.job_id is None:
         raise ProblemError(409, "No points", f"record {record_id} was not measured by a job of this daemon")
     n_fit = int((r.raw_data or {}).get("fit_points", 10**9))
-    cols = request.app.state.jobs.fit_columns(r.job_id, None, 10**9)
+    cols = request.app.state.jobs.fit_columns(r.job_id, 10**9)
     model = CalibrationModel.from_json_dict(r.model, f"record {r.id}")
     return {"record_id": r.id, "method": r.method,
             **stage_residual_map(get_method("stage", r.method), model, cols, n_fit)}

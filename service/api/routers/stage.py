@@ -11,6 +11,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api.auth import Operator
 from service.api.deps import find_bench
 from service.api.problems import ProblemError
+from service.bench.runtime import BenchHold, Hold
 from service.errors import InputError
 from service.jobs import level as levelling
 
@@ -61,7 +62,7 @@ async def move(body: Move, request: Request, who: Operator) -> dict:
         if abs(getattr(body, f)) > travel:
             raise ProblemError(422, "Outside travel", f"{f}: {getattr(body, f):g} deg is outside the stage travel"
                                f" of ±{travel:g} deg", field=f)
-    async with bench.hold("a stage move"):
+    async with bench.hold(BenchHold(Hold.STAGE_MOVE)):
         x, y = await bench.move_stage(body.x_deg, body.y_deg)
     await _audit(request, who.name, "stage.move", bench.name, body.model_dump())
     return {"stage": {"x_deg": x, "y_deg": y, "moving": False}}
@@ -82,7 +83,7 @@ async def level(body: Level, request: Request, who: Operator) -> dict:
         raise ProblemError(422, "Target out of reach", f"x_deg, y_deg: {exc}", field="x_deg") from None
     bench.require("stage")
     bench.require("reference_sensor")
-    async with bench.hold("levelling"):
+    async with bench.hold(BenchHold(Hold.LEVELLING)):
         out = await levelling.level(bench, active, body.x_deg, body.y_deg, body.tolerance_deg, body.max_iterations)
     await _audit(request, who.name, "stage.level", bench.name,
                  {**body.model_dump(), "within_tolerance": out["within_tolerance"]})

@@ -10,6 +10,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api.auth import Operator
 from service.api.deps import find_bench
 from service.api.problems import ProblemError
+from service.bench.runtime import BenchHold, Hold
 
 router = APIRouter(prefix="/stage", tags=["stage"])
 
@@ -25,7 +26,7 @@ async def home(request: Request, who: Operator, body: Home | None = None) -> dic
     bench = find_bench(request, body.bench if body else None)
     if bench.kind != "stage":
         raise ProblemError(422, "Not a stage bench", f"bench: {bench.name!r} is a {bench.kind} bench", field="bench")
-    async with bench.hold("homing"):
+    async with bench.hold(BenchHold(Hold.HOMING)):
         x, y = await bench.home_stage()
     await run_in_threadpool(request.app.state.store.audit_action, who.name, "stage.home", "bench", bench.name,
                             {"bench": bench.name})

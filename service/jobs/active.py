@@ -1,0 +1,71 @@
+"""The active calibration of a bench's measurement sensor: what GET /tilt corrects with and levelling aims by."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from service.bench.runtime import BenchRuntime
+from service.calibration.model import CalibrationModel, stored_table_tilt_range, table_tilt_range
+from service.calibration.registry import Method, get_method
+from service.jobs.state import DAEMON
+from service.storage.daemon_jobs import DaemonStore
+from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.models import CalibrationRecord
+
+log = logging.getLogger("tiltlab.jobs")
+
+
+@dataclass(frozen=True)
+class ActiveModel:
+    record_id: int
+    version: int
+    method_name: str
+    model: CalibrationModel
+    method: Method
+    budget: dict[str, Any] | None = None  # the record's uncertainty budget (what adds to the fit's part)
+    status: str = "draft"  # draft | approved (a rejected record is never loaded)
+    # the table tilts (reference sensor's frame) the record was fitted on: {"x": [min, max], "y": [min, max]}
+    table_tilt_range_deg: dict[str, list[float]] | None = None
+
+
+def load_active(store: DaemonStore, bench: BenchRuntime,
+                fit_columns: Callable[[int, int], dict[str, np.ndarray]]) -> tuple[ActiveModel | None, str | None]:
+    """Blocking (database): the bench's active stage record, checked before use, and why there is none.
+    A record whose stored content no longer matches its hash is refused (the bench stays uncorrected),
+    and a rejected one is withdrawn."""
+    dev = bench.device_ids.get("measurement_sensor")
+    rec = store.active_record(dev, "stage") if dev is not None else None
+    if rec is None:
+        return None, store.inactive_reason(dev, "stage") if dev is not None else None
+    if (why := store.unusable_reason(rec.id)) is not None:
+        note = f"the active record is refused: {why}"
+        log.warning("bench %s: %s", bench.name, note)
+        if store.record_status(rec.id) == "rejected" and dev is not None:
+            with contextlib.suppress(ConflictError):  # a rejected record is never used: withdraw it
+                store.deactivate(dev, "stage", actor=DAEMON, replaces=rec.id,
+                                 reason=f"{why}; a rejected record is never used")
+        return None, note
+    model = CalibrationModel.from_json_dict(rec.model, f"record {rec.id}")
+    return ActiveModel(rec.id, rec.version, rec.method, model, get_method("stage", rec.method),
+                       (rec.raw_data or {}).get("budget"), status=store.record_status(rec.id),
+                       table_tilt_range_deg=table_tilt_range_of(rec, fit_columns, model)), None
+
+
+def table_tilt_range_of(rec: CalibrationRecord, fit_columns: Callable[[int, int], dict[str, np.ndarray]],
+                        model: CalibrationModel | None = None) -> dict[str, list[float]] | None:
+    """The table tilts a stage record was fitted on: from its model, else (records made before models
+    kept it) from the settled points its job fitted; None for other kinds or without either."""
+    if rec.kind != "stage":
+        return None
+    model = model or CalibrationModel.from_json_dict(rec.model, f"record {rec.id}")
+    seen = stored_table_tilt_range(model)
+    if seen is None and rec.job_id is not None:
+        with contextlib.suppress(UnknownEntity, KeyError):
+            seen = table_tilt_range(fit_columns(rec.job_id, int((rec.raw_data or {}).get("fit_points", 10**9))))
+    return seen

@@ -1,0 +1,81 @@
+"""Admission of a calibration request, before anything moves: the procedure's checks against the
+bench, the traceability of the named reference standards and order, and what a repeated
+Idempotency-Key answers.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+import sqlalchemy as sa
+
+from service.bench.readings import OUTLIER_RULE
+from service.bench.runtime import BenchBusy, BenchRuntime
+from service.jobs import registry
+from service.jobs.procedure import Plan
+from service.jobs.requests import CalibrationRequest, RequestProblem
+from service.jobs.stage_grid import APPROACH_DEG
+from service.storage.canonical import sha256_hex
+from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
+from service.storage.errors import UnknownEntity
+from service.storage.lims import StandardNotUsable
+from service.storage.models import CalibrationJob, IdempotencyKey
+
+IDEMPOTENCY_ROUTE = "calibrations"
+
+
+class Admission:
+    def __init__(self, store: DaemonStore) -> None:
+        self.store = store
+
+    def plan(self, req: CalibrationRequest, bench: BenchRuntime) -> Plan[Any]:
+        """Blocking (database): the points a request will measure; RequestProblem names the field that cannot be used."""
+        self.check_traceability(req)
+        procedure = registry.procedure_named(req.procedure)
+        if procedure is None:
+            raise RequestProblem("procedure", f"{req.procedure!r} jobs are not run by this daemon version; "
+                                 f"it runs {registry.names()} jobs")
+        return procedure.plan(req, bench)
+
+    def check_traceability(self, req: CalibrationRequest) -> None:
+        """Every reference standard the job names is registered and not past its due date; the order exists."""
+        try:
+            self.store.usable_standards(req.reference_standards, on=dt.datetime.now(dt.UTC).date())
+        except StandardNotUsable as exc:
+            raise RequestProblem(exc.field, exc.reason) from None
+        if req.order_id is not None:
+            try:
+                self.store.order(req.order_id)
+            except UnknownEntity:
+                raise RequestProblem("order_id", f"there is no order {req.order_id} (POST /orders)") from None
+
+    def standards(self, ids: list[int]) -> list[dict[str, Any]]:
+        """Blocking (database): the registered standards a job named, as its record keeps them (the
+        traceability of the result)."""
+        return [{"id": st.id, "name": st.name, "serial": st.serial, "certificate_id": st.certificate_number,
+                 "certificate_sha256": st.certificate_sha256, "expanded_uncertainty_deg": st.expanded_uncertainty_deg,
+                 "coverage_factor": st.coverage_factor}
+                for st in map(self.store.standard, ids)]
+
+    @staticmethod
+    def parameters(body: dict[str, Any], bench: BenchRuntime, plan: Plan[Any]) -> dict[str, Any]:
+        """What a job keeps of its request: the request, its points and how they are measured."""
+        return {"request": body, "fit_points": plan.fit_points, "validation_points": plan.validation_points,
+                "outlier_rule": OUTLIER_RULE, "approach": f"from below on both axes by {APPROACH_DEG} deg",
+                "device_ids": {r: bench.device_ids.get(r) for r in plan.read_roles}}
+
+    def replay(self, bench: BenchRuntime, key: str, body: dict[str, Any]) -> CalibrationJob:
+        """Blocking (database): the job an earlier request with this Idempotency-Key made. A busy bench
+        still answers a repeated request with its job; a key the database does not know is 409."""
+        with self.store.session() as s:
+            seen = s.scalar(sa.select(IdempotencyKey).where(IdempotencyKey.route == IDEMPOTENCY_ROUTE,
+                                                             IdempotencyKey.key == key))
+        if seen is None:
+            raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
+        if seen.request_sha256 != sha256_hex(body):
+            raise IdempotencyMismatch(f"Idempotency-Key {key!r} was used for another request body (job {seen.job_id});"
+                                      " use a new key for a new request")
+        if seen.job_id is None:
+            raise IdempotencyMismatch(f"Idempotency-Key {key!r} belongs to a request that made no job")
+        return self.store.get_job(seen.job_id)

@@ -1,0 +1,199 @@
+"""What a job procedure offers the job manager, and the measure -> fit -> validate flow of the
+procedures that measure point by point.
+
+A procedure is one object in a module of its own (stage grid, the angle procedures), registered in
+`service.jobs.registry`. `plan` checks a request against a bench before anything starts (a
+`RequestProblem` names the field) and says which points the job will measure; `run` does the
+work and answers the `Outcome` the manager keeps as a record version. The manager owns everything
+around it: admission, the bench hold, the job's states, cancel and stop.
+
+Procedures that measure fit points, fit, then measure validation points the fit has not seen
+derive from `PointProcedure` and give only how a point is measured, the dataset columns of the
+stored points and how a model is validated against them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from abc import ABC, abstractmethod
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any, Generic, Protocol, TypeVar
+
+import numpy as np
+
+from service import __version__
+from service.bench.readings import OUTLIER_RULE
+from service.bench.runtime import BenchRuntime
+from service.calibration.model import CalibrationModel
+from service.calibration.registry import FitOptions, Method, get_method
+from service.errors import InputError
+from service.jobs.budgets import resolutions_deg
+from service.jobs.requests import CalibrationRequest
+from service.storage.daemon_jobs import DaemonStore
+from service.storage.models import CalibrationJob, SettledPoint
+
+P = TypeVar("P")
+Columns = dict[str, np.ndarray]
+
+
+class Phase(StrEnum):
+    """What a running job is doing (its progress says which)."""
+
+    HOMING = "homing"
+    MEASURING = "measuring"
+    FITTING = "fitting"
+    VALIDATING = "validating"
+
+
+@dataclass(frozen=True)
+class Plan(Generic[P]):
+    """What an admitted request will do: its points, and the instruments it calibrates and reads."""
+
+    fit_points: list[P]
+    validation_points: list[P]
+    device_role: str  # the instrument calibrated: the job's and the record's device
+    read_roles: tuple[str, ...]  # every instrument read at each point (all must have identified)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a finished procedure gives the manager to store as a record version."""
+
+    device_id: int
+    kind: str
+    model: CalibrationModel
+    validation: dict[str, Any]
+    conditions: dict[str, Any]
+    n_fit: int  # the first n_fit points were fitted, the rest validated
+
+
+@dataclass(frozen=True)
+class JobContext:
+    """A running job as a procedure sees it."""
+
+    store: DaemonStore
+    job: CalibrationJob
+    bench: BenchRuntime
+    request: CalibrationRequest
+    report: Callable[[int, int, Phase], Awaitable[None]]  # (points done, points total, phase): stored and announced
+
+    @property
+    def job_id(self) -> int:
+        return self.job.id
+
+
+class Procedure(Protocol):
+    """One kind of job. `name` is the request's `procedure`, `kind` the kind of record it makes."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def kind(self) -> str: ...
+
+    def plan(self, req: CalibrationRequest, bench: BenchRuntime) -> Plan[Any]: ...
+
+    async def run(self, ctx: JobContext) -> Outcome: ...
+
+
+def validation_rng(n_points: int, n_validation: int) -> np.random.Generator:
+    """Validation points are drawn reproducibly from the request's size (a repeated request measures the same)."""
+    return np.random.default_rng(n_points * 7919 + n_validation)
+
+
+def job_conditions(bench: BenchRuntime, req: CalibrationRequest, temps_c: Sequence[float]) -> dict[str, Any]:
+    """What a record keeps of the conditions it was measured under."""
+    return {"temp_c_mean": float(np.mean(temps_c)) if len(temps_c) else None, "software_version": __version__,
+            "firmware": {r: (i.firmware if i else None) for r, i in bench.identities.items()},
+            "instruments": {r: (f"{i.model} s/n {i.serial}" if i else None) for r, i in bench.identities.items()},
+            "resolution_deg": resolutions_deg(bench),
+            "bench": bench.name, "clock_speed": bench.clock.speed, "outlier_rule": OUTLIER_RULE,
+            "samples_per_point": req.samples_per_point, "settle": req.settle.model_dump()}
+
+
+def bench_epoch(bench: BenchRuntime) -> Callable[[float], float]:
+    """Bench seconds -> POSIX seconds (how samples and settled points are stamped)."""
+    epoch = bench.clock.utc().timestamp() - bench.clock.real_seconds(bench.clock.monotonic())
+    return lambda bench_s: epoch + bench.clock.real_seconds(bench_s)
+
+
+class PointProcedure(ABC, Generic[P]):
+    """Fit points measured (resuming after those already stored), a fit, validation points measured,
+    the model validated against them."""
+
+    name: str
+    kind: str
+    read_roles: tuple[str, ...]  # the instruments settled and read at every point
+
+    @abstractmethod
+    def plan(self, req: CalibrationRequest, bench: BenchRuntime) -> Plan[P]: ...
+
+    @abstractmethod
+    def stored_point(self, value: Any) -> P:
+        """A point as the job's parameters keep it (JSON) -> as `measure` takes it."""
+
+    @abstractmethod
+    async def measure(self, ctx: JobContext, index: int, point: P) -> None:
+        """Approach, settle, read and store point `index` (its samples and settled means)."""
+
+    @abstractmethod
+    def columns(self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool) -> Columns:
+        """The dataset columns of settled points, as `tiltlab calibrate` reads them."""
+
+    @abstractmethod
+    def validation(self, method: Method, model: CalibrationModel, cols: Columns) -> dict[str, Any]:
+        """The fitted model against the validation points' columns."""
+
+    def fit_options(self, bench: BenchRuntime) -> FitOptions:
+        return FitOptions()
+
+    def fitted(self, model: CalibrationModel, fit_cols: Columns) -> None:
+        """What the model keeps of its fit points beyond the fit (a procedure's own)."""
+
+    def temperatures_c(self, fit_cols: Columns, points: Sequence[SettledPoint]) -> list[float]:
+        """The temperatures a record's mean temperature is taken over."""
+        return [p.temp_c_mean for p in points if p.temp_c_mean is not None]
+
+    async def run(self, ctx: JobContext) -> Outcome:
+        job, bench = ctx.job, ctx.bench
+        fit_pts = [self.stored_point(p) for p in job.parameters["fit_points"]]
+        val_pts = [self.stored_point(p) for p in job.parameters["validation_points"]]
+        n_fit, total = len(fit_pts), len(fit_pts) + len(val_pts)
+        devices = {r: bench.device_ids.get(r) for r in self.read_roles}
+        missing = [r for r, d in devices.items() if d is None]
+        if missing:
+            raise InputError(f"bench {bench.name!r} has no registered {', '.join(missing)}")
+        started_with = job.parameters.get("device_ids", {})
+        if started_with and started_with != devices:
+            raise InputError(f"the bench's instruments are not those the job started with ({started_with});"
+                             " its points cannot be continued with other instruments")
+        stored = await asyncio.to_thread(ctx.store.settled_points, job.id)
+        done = set.intersection(*({p.point for p in stored if p.device_id == d} for d in devices.values()))
+        await ctx.report(len(done), total, Phase.MEASURING)
+        for i, point in enumerate(fit_pts):
+            if i not in done:
+                await self.measure(ctx, i, point)
+                done.add(i)
+                await ctx.report(len(done), total, Phase.MEASURING)
+        await ctx.report(len(done), total, Phase.FITTING)
+        method = get_method(self.kind, job.method)
+        fit_cols = await asyncio.to_thread(self.stored_columns, ctx.store, job, n_fit)
+        model = await asyncio.to_thread(method.fit, fit_cols, self.fit_options(bench))
+        self.fitted(model, fit_cols)
+        await ctx.report(len(done), total, Phase.VALIDATING)
+        for k, point in enumerate(val_pts):
+            if n_fit + k not in done:
+                await self.measure(ctx, n_fit + k, point)
+                done.add(n_fit + k)
+                await ctx.report(len(done), total, Phase.VALIDATING)
+        points = await asyncio.to_thread(ctx.store.settled_points, job.id)
+        val_cols = self.columns(job, [p for p in points if p.point >= n_fit], for_fit=False)
+        validation = await asyncio.to_thread(self.validation, method, model, val_cols)
+        conditions = job_conditions(bench, ctx.request, self.temperatures_c(fit_cols, points))
+        return Outcome(job.device_id, self.kind, model, validation, conditions, n_fit)
+
+    def stored_columns(self, store: DaemonStore, job: CalibrationJob, n_fit: int) -> Columns:
+        """Blocking (database): the fit columns of the job's first `n_fit` stored points."""
+        return self.columns(job, [p for p in store.settled_points(job.id) if p.point < n_fit], for_fit=True)

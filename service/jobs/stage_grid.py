@@ -1,0 +1,182 @@
+"""The stage-grid procedure: the measurement sensor against the reference sensor over a grid of stage tilts.
+
+Every point is approached from below on both axes (backlash taken up on one side), both sensors
+settle, `samples_per_point` readings of each are averaged after the stated outlier rule, and the
+raw samples and the per-point means are stored as they come. The fit is the stage method of
+`tiltlab calibrate` with the bench's stage geometry.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from service.bench.readings import fresh_readings, robust_mean, settle
+from service.bench.runtime import BenchRuntime, StageNotHomed
+from service.calibration.model import CalibrationModel, table_tilt_range
+from service.calibration.registry import FitOptions, Method, get_method
+from service.calibration.uncertainty import COVERAGE
+from service.errors import InputError
+from service.instruments.transport import DeviceError
+from service.jobs.points import store_point, write_in_thread
+from service.jobs.procedure import Columns, JobContext, Phase, Plan, PointProcedure, bench_epoch, validation_rng
+from service.jobs.requests import MIN_POINTS, CalibrationRequest, RequestProblem
+from service.storage.models import CalibrationJob, SettledPoint
+from service.storage.samples import Sample
+
+log = logging.getLogger("tiltlab.jobs")
+
+APPROACH_DEG = 0.1  # every point is approached from this far below on both axes
+SENSORS = ("reference_sensor", "measurement_sensor")
+
+StagePoint = tuple[float, float]
+
+
+def _tilt(value: float | None) -> float:
+    """A sensor reading's angle; an inclinometer reading always has both."""
+    if value is None:
+        raise DeviceError("an inclinometer reading came without its angle")
+    return value
+
+
+async def _home_stage(ctx: JobContext) -> None:
+    """The controller refused a move as "not homed" (after power-up): home the stage, then go on."""
+    log.info("job %s: the stage of %s is not homed; homing it", ctx.job_id, ctx.bench.name)
+    job = await asyncio.to_thread(ctx.store.get_job, ctx.job_id)
+    done, total = job.points_done or 0, job.points_total or 0
+    await ctx.report(done, total, Phase.HOMING)
+    await ctx.bench.home_stage()
+    await ctx.report(done, total, Phase(job.phase) if job.phase in tuple(Phase) else Phase.MEASURING)
+
+
+def stage_columns(points_ref: Sequence[SettledPoint], points_meas: Sequence[SettledPoint]) -> Columns:
+    """The dataset columns of a job's settled points (reference and measurement rows by point)."""
+    meas = {p.point: p for p in points_meas}
+    rows = [(r, meas[r.point]) for r in points_ref if r.point in meas]
+
+    def col(f: Callable[[SettledPoint, SettledPoint], Any]) -> np.ndarray:
+        return np.array([f(r, m) for r, m in rows], dtype=float)
+
+    return {
+        "point": col(lambda r, m: r.point),
+        "stage_x_deg": col(lambda r, m: r.cmd_x_deg), "stage_y_deg": col(lambda r, m: r.cmd_y_deg),
+        "dir_x": col(lambda r, m: 1.0), "dir_y": col(lambda r, m: 1.0),
+        "ref_x_deg": col(lambda r, m: r.ch_x_mean), "ref_y_deg": col(lambda r, m: r.ch_y_mean),
+        "meas_x_deg": col(lambda r, m: m.ch_x_mean), "meas_y_deg": col(lambda r, m: m.ch_y_mean),
+        "temp_c": col(lambda r, m: m.temp_c_mean if m.temp_c_mean is not None else np.nan),
+        "t_s": col(lambda r, m: r.t_end_s),
+    }
+
+
+class StageGrid(PointProcedure[StagePoint]):
+    name = "stage-grid"
+    kind = "stage"
+    read_roles = SENSORS
+
+    def plan(self, req: CalibrationRequest, bench: BenchRuntime) -> Plan[StagePoint]:
+        if bench.kind != "stage":
+            raise RequestProblem("bench", f"{bench.name!r} is a {bench.kind} bench; stage-grid needs a stage bench")
+        try:
+            get_method("stage", req.method)
+        except InputError as exc:
+            raise RequestProblem("method", str(exc)) from None
+        if req.grid is None:
+            raise RequestProblem("grid", "a stage-grid job needs a grid")
+        points = req.grid.stage_points()
+        travel = bench.config.stage_bench().travel_deg
+        for i, (x, y) in enumerate(points):
+            if abs(x) > travel or abs(y) > travel:
+                field = "grid.points" if req.grid.points is not None else "grid.x_deg" if abs(x) > travel else "grid.y_deg"
+                raise RequestProblem(field, f"point {i} ({x:g}, {y:g}) deg is outside the stage travel of ±{travel:g} deg")
+        need = MIN_POINTS.get(req.method, 6)
+        if len(points) < need:
+            raise RequestProblem("grid", f"{len(points)} points; {req.method} needs at least {need}")
+        xs, ys = np.array(points).T
+        rng = validation_rng(len(points), req.validation.n_points)
+        val = [(float(round(x, 4)), float(round(y, 4))) for x, y in zip(
+            rng.uniform(xs.min(), xs.max(), req.validation.n_points),
+            rng.uniform(ys.min(), ys.max(), req.validation.n_points))]
+        return Plan(points, val, "measurement_sensor", SENSORS)
+
+    def stored_point(self, value: Any) -> StagePoint:
+        x, y = value
+        return float(x), float(y)
+
+    async def measure(self, ctx: JobContext, index: int, point: StagePoint) -> None:
+        bench, req = ctx.bench, ctx.request
+        x, y = point
+        travel = bench.config.stage_bench().travel_deg
+        approach = (max(x - APPROACH_DEG, -travel), max(y - APPROACH_DEG, -travel))
+        try:
+            await bench.move_stage(*approach)
+        except StageNotHomed:
+            await _home_stage(ctx)
+            await bench.move_stage(*approach)
+        cx, cy = await bench.move_stage(x, y)
+        t0 = await settle(bench, SENSORS, tolerance_deg=req.settle.tolerance_deg, window_s=req.settle.window_s,
+                          timeout_s=req.settle.timeout_s)
+        n = req.samples_per_point
+        timeout = max(5.0, 20 * n * max(bench.output_interval_s(r) for r in SENSORS))
+        got = await asyncio.gather(*(fresh_readings(bench, r, n, after_bench_s=t0, timeout_s=timeout)
+                                     for r in SENSORS))
+        to_epoch = bench_epoch(bench)
+        rows: list[Sample] = []
+        settled: dict[int, dict[str, Any]] = {}
+        for role, readings in zip(SENSORS, got):
+            dev = bench.device_ids[role]
+            rows += [Sample(dev, to_epoch(r.bench_s), _tilt(r.x_deg), _tilt(r.y_deg), None, r.temp_c, ctx.job_id, index,
+                            "calibration") for r in readings]
+            a = robust_mean(readings)
+            settled[dev] = {"point": index, "cmd_x_deg": cx, "cmd_y_deg": cy, "n_samples": a.n_used,
+                            "t_start_s": to_epoch(a.t_start_s), "t_end_s": to_epoch(a.t_end_s),
+                            "ch_x_mean": a.mean[0], "ch_y_mean": a.mean[1], "ch_z_mean": None,
+                            "ch_x_std": a.std[0], "ch_y_std": a.std[1], "ch_z_std": None, "temp_c_mean": a.temp_c}
+        await write_in_thread(store_point, ctx.store, ctx.job_id, index, rows, settled)
+
+    def fit_options(self, bench: BenchRuntime) -> FitOptions:
+        return FitOptions(extra={"bench": bench.config.stage_bench(), "bench_source": f"bench configuration {bench.name}"})
+
+    def fitted(self, model: CalibrationModel, fit_cols: Columns) -> None:
+        model.fit["table_tilt_range_deg"] = table_tilt_range(fit_cols)  # the calibrated range, kept with the record
+
+    def temperatures_c(self, fit_cols: Columns, points: Sequence[SettledPoint]) -> list[float]:
+        return [float(t) for t in fit_cols.get("temp_c", [])]
+
+    def columns(self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool) -> Columns:
+        meas = [p for p in points if p.device_id == job.device_id]
+        ref = [p for p in points if p.device_id != job.device_id]
+        cols = stage_columns(ref, meas)
+        if for_fit and not np.isfinite(cols["temp_c"]).all():
+            del cols["temp_c"]  # the same columns the points CSV carries
+        return cols
+
+    def validation(self, method: Method, model: CalibrationModel, cols: Columns) -> dict[str, Any]:
+        if cols["point"].size == 0:
+            return {"n_points": 0, "rms_deg": None, "max_deg": None}
+        out = method.correct(model, cols)
+        err = np.hypot(out["tilt_x_deg"] - cols["ref_x_deg"], out["tilt_y_deg"] - cols["ref_y_deg"])
+        return {"n_points": int(err.size), "rms_deg": float(np.sqrt(np.mean(err**2))), "max_deg": float(err.max()),
+                "compared_with": "reference sensor reading at each validation point",
+                # the coverage probability of the points' expanded uncertainties u_x_deg/u_y_deg
+                "coverage_probability": COVERAGE,
+                "points": [_validation_point(cols, out, i, float(err[i])) for i in range(err.size)]}
+
+
+def _validation_point(cols: Columns, out: dict[str, np.ndarray], i: int, error_deg: float) -> dict[str, Any]:
+    """One validation point: the reference sensor's reading, the corrected measurement and its expanded
+    uncertainty per axis (what a certificate's validation table shows), and the error's magnitude."""
+    point: dict[str, Any] = {"point": int(cols["point"][i]), "stage_x_deg": float(cols["stage_x_deg"][i]),
+                             "stage_y_deg": float(cols["stage_y_deg"][i]), "error_deg": error_deg}
+    for axis in ("x", "y"):
+        point[f"reference_{axis}_deg"] = float(cols[f"ref_{axis}_deg"][i])
+        point[f"measured_{axis}_deg"] = float(out[f"tilt_{axis}_deg"][i])
+        if f"u_tilt_{axis}_deg" in out:
+            point[f"u_{axis}_deg"] = float(out[f"u_tilt_{axis}_deg"][i])
+    return point
+
+
+STAGE_GRID = StageGrid()
