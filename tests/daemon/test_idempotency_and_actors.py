@@ -50,7 +50,6 @@ def test_concurrent_repeats_of_one_idempotency_key_answer_the_first_job(daemon, 
     assert all(r.headers["Location"] == f"/calibrations/{answers[0].json()['id']}" for r in answers)
     assert _count(client, "calibration_jobs") == jobs_before + 1
     assert _count(client, "idempotency_keys") == keys_before + 1
-    assert wait_job(client, answers[0].json()["id"], h)["state"] == "succeeded"
 
 
 def _operator(client, name: str) -> dict[str, str]:
