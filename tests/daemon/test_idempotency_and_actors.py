@@ -9,8 +9,6 @@ from concurrent.futures import ThreadPoolExecutor
 
 import sqlalchemy as sa
 
-from tests.daemon.conftest import wait_job
-
 GRID = {"x_deg": [-1.0, 1.0], "y_deg": [-1.0, 1.0], "n_x": 3, "n_y": 3}
 BODY = {"procedure": "stage-grid", "method": "kinematic", "grid": GRID, "samples_per_point": 4,
         "validation": {"n_points": 1}}
