@@ -85,6 +85,10 @@ class Settings(BaseSettings):
     lab_email: str = ""
     # Accreditation number printed as the calibration laboratory code, if any.
     lab_accreditation: str = ""
+    # The lab's key and X.509 certificate (PEM files) that sign every certificate it issues (an enveloped
+    # XML signature: the file itself is tamper-evident); both or neither.
+    certificate_signing_key: str = ""
+    certificate_signing_cert: str = ""
     # Certificate numbers are PREFIX-YEAR-RECORD (e.g. TL-2026-000042).
     certificate_prefix: str = Field("TL", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,19}$")
     # A standard.due_soon event is sent this many days before a reference standard is due.

@@ -1,7 +1,8 @@
 """`tiltlab verify-certificate FILE`: is this a certificate we issued, unchanged, resting on an approved record?
 
-Checks offline: validity against the DCC 3.3.0 schema. With the lab's database (TILTLAB_DATABASE_URL
-or the data directory's): that the file's SHA-256 equals the one stored at issue, that the stored
+Checks offline: validity against the DCC 3.3.0 schema and the enveloped XML signature (over the
+whole file: a change of any byte fails; with --signer-cert, made by the lab's own certificate).
+With the lab's database (TILTLAB_DATABASE_URL or the data directory's): that the file's SHA-256 equals the one stored at issue, that the stored
 copy still matches it, that the record still matches its hash and that the approval is bound to it.
 Exit 0 when every check passes, 1 when one fails, 2 for an unreadable file or configuration.
 """
@@ -18,12 +19,15 @@ from service.errors import InputError
 def add_parser(sub) -> None:  # type: ignore[no-untyped-def]
     from service.commands._args import add_command
 
-    p = add_command(sub, "verify-certificate", "check a DCC certificate: schema, stored hash, record and approval",
+    p = add_command(sub, "verify-certificate", "check a DCC certificate: schema, signature, stored hash, record and approval",
                     examples=["tiltlab verify-certificate certificate.xml",
                               "tiltlab verify-certificate --offline certificate.xml"])
     p.add_argument("file", metavar="FILE", help="the certificate XML file")
     p.add_argument("--offline", action="store_true",
-                   help="check only the schema (no database: for a customer who has just the file)")
+                   help="check only the file: schema and signature (no database: for a customer who has just the file)")
+    p.add_argument("--signer-cert", metavar="PEM",
+                   help="the laboratory's signing certificate: the signature must be made with it (an unsigned file "
+                        "then fails); without it, the certificate the signature carries is used")
     p.set_defaults(handler=run)
 
 
@@ -42,6 +46,12 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{path}: no such file") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read: {exc.strerror}") from None
+    trusted = None
+    if args.signer_cert:
+        try:
+            trusted = Path(args.signer_cert).read_bytes()
+        except OSError as exc:
+            raise InputError(f"{args.signer_cert}: cannot read: {exc.strerror}") from None
     store = engine = None
     if not args.offline:
         settings = get_settings()
@@ -55,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"{where}: no schema yet; use --offline to check only the schema")
         store = DaemonStore(engine)
     try:
-        report = verify_certificate(xml, store)
+        report = verify_certificate(xml, store, trusted)
     finally:
         if engine is not None:
             engine.dispose()

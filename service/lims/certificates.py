@@ -40,6 +40,22 @@ def laboratory(settings) -> Laboratory:  # type: ignore[no-untyped-def]
                       certificate_prefix=settings.certificate_prefix)  # fmt: skip
 
 
+def signer(settings):  # type: ignore[no-untyped-def]
+    """The lab's certificate signer, None when it signs none; NotConfigured when half or wrongly configured."""
+    key, cert = settings.certificate_signing_key, settings.certificate_signing_cert
+    if not key and not cert:
+        return None
+    if not key or not cert:
+        raise NotConfigured("certificates are signed with a key and its certificate: set both "
+                            "TILTLAB_CERTIFICATE_SIGNING_KEY and TILTLAB_CERTIFICATE_SIGNING_CERT (see docs/lims.md)")
+    from service.lims.signature import SigningNotConfigured, load_signer
+
+    try:
+        return load_signer(key, cert)
+    except SigningNotConfigured as exc:
+        raise NotConfigured(f"certificate signing: {exc}") from None
+
+
 def _record_json(r: CalibrationRecord) -> dict[str, Any]:
     return {"id": r.id, "version": r.version, "kind": r.kind, "method": r.method, "model": r.model,
             "validation": r.validation, "temp_c": r.temp_c, "content_sha256": r.content_sha256,
@@ -126,7 +142,7 @@ def issue_certificate(store, record_id: int, settings, *, actor: str,  # type: i
         if order is not None else None, calibration_points=_calibration_points(store, record),
         replaces=replaced.number if replaced is not None else None,
     )  # fmt: skip
-    xml = dcc.issue(content)  # refuses an invalid document: nothing is stored then
+    xml = dcc.issue(content, signer(settings))  # refuses an invalid document: nothing is stored then
     row, _ = store.store_certificate(record_id, number=content.number, xml=xml, approval_id=approval.id,
                                      replaces_id=replaced.id if replaced is not None else None, actor=actor)
     check_stored(row)
@@ -151,8 +167,10 @@ class Verification:
         return not self.problems
 
 
-def verify_certificate(xml: bytes, store=None) -> Verification:  # type: ignore[no-untyped-def]
-    """Schema validity, and with a store: the stored hash, the record's hash and the approval it rests on."""
+def verify_certificate(xml: bytes, store=None, trusted_cert_pem: bytes | None = None) -> Verification:  # type: ignore[no-untyped-def]
+    """Schema validity and the enveloped signature (offline; with `trusted_cert_pem` the signer must be that
+    certificate, and an unsigned file fails), and with a store: the stored hash, the record's hash and the
+    approval it rests on."""
     v = Verification(sha256=hashlib.sha256(xml).hexdigest())
     errors = dcc.certificate_errors(xml)
     if errors:
@@ -160,6 +178,16 @@ def verify_certificate(xml: bytes, store=None) -> Verification:  # type: ignore[
         return v
     v.facts.append(f"valid DCC {dcc.DCC_VERSION} document (checked offline against the shipped schemas)")
     v.number = dcc.unique_identifier(xml)
+    from service.lims import signature  # signxml and lxml load only when a certificate is checked
+
+    sig = signature.check(xml, trusted_cert_pem)
+    if sig.ok:
+        v.facts.append(f"{sig.detail}; signed by {sig.signer} (certificate SHA-256 {sig.cert_sha256})"
+                       + (", the certificate given" if trusted_cert_pem else ""))
+    elif sig.signed or trusted_cert_pem is not None:
+        v.problems.append(f"signature: {sig.detail}")
+    else:
+        v.facts.append("not signed: only the laboratory's database can tell whether it was altered")
     if store is None:
         return v
     stored = store.certificate_by_number(v.number)

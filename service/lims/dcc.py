@@ -13,6 +13,8 @@ from __future__ import annotations
 import re
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
+from dataclasses import replace
+from typing import Any
 
 from service.lims.dcc_model import (
     REFTYPE_LINK,
@@ -61,6 +63,8 @@ __all__ = [
     "InvalidCertificate", "certificate_errors", "dcc_schema", "dsi_unit", "issue", "render_html",
     "unique_identifier", "validate",
 ]
+
+SIGNING_CERT_NAME = "SHA-256 of the certificate that signs this file"
 
 ET.register_namespace("dcc", DCC_NS)
 ET.register_namespace("si", SI_NS)
@@ -279,7 +283,10 @@ def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
     _el(core, "usedLangCodeISO639_1", lang)
     _el(core, "mandatoryLangCodeISO639_1", lang)
     _el(core, "uniqueIdentifier", c.number)
-    _identifications(core, c.identifications, lang)
+    ids = list(c.identifications)
+    if c.signing_cert_sha256:
+        ids.append(Identification("calibrationLaboratory", c.signing_cert_sha256, SIGNING_CERT_NAME))
+    _identifications(core, ids, lang)
     _el(core, "beginPerformanceDate", c.begin_on.isoformat())
     _el(core, "endPerformanceDate", c.end_on.isoformat())
     _el(core, "performanceLocation", c.location)
@@ -392,9 +399,15 @@ def build_xml(c: Certificate) -> bytes:
     return ('<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n").encode("utf-8")
 
 
-def issue(c: Certificate) -> bytes:
-    """Build and validate: the only way certificate bytes leave this module."""
+def issue(c: Certificate, signer: Any = None) -> bytes:
+    """Build, sign (when the lab signs its certificates: a service.lims.signature.Signer) and validate: the only
+    way certificate bytes leave this module. The signed content names the signing certificate's SHA-256, so
+    the certificate the signature carries cannot be exchanged unnoticed."""
+    if signer is not None:
+        c = replace(c, signing_cert_sha256=signer.cert_sha256)
     xml = build_xml(c)
+    if signer is not None:
+        xml = signer(xml)
     validate(xml)
     return xml
 

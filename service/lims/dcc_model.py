@@ -182,5 +182,6 @@ class Certificate:
     replaces: str | None = None  # unique identifier of the certificate this one substitutes
     statements: tuple[str, ...] = field(default_factory=tuple)
     comment: str = ""
+    signing_cert_sha256: str | None = None  # SHA-256 of the certificate that signs the file (inside what it signs)
 
 

@@ -4,13 +4,18 @@ identity, and (when the certificate is signed) its signature."""
 
 from __future__ import annotations
 
+import datetime as dt
 import re
 import warnings
 import xml.etree.ElementTree as ET
 
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import rsa
+from cryptography.x509.oid import NameOID
 from dsi_unit import DsiUnit
 
-from service.lims import dcc
+from service.lims import dcc, signature
 
 NS = {"dcc": dcc.DCC_NS, "si": dcc.SI_NS, "ds": dcc.DSIG_NS}
 SI = "{" + dcc.SI_NS + "}"
@@ -33,9 +38,27 @@ def units_of(root: ET.Element) -> list[str]:
     return out
 
 
-def problems(xml: bytes) -> list[str]:
-    """Every reason a reviewer would refuse the certificate ([] when none)."""
+def self_signed(common_name: str) -> tuple[bytes, bytes]:
+    """A new RSA key and a self-signed X.509 certificate for it (PEM), valid for a year from now."""
+    key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
+    now = dt.datetime.now(dt.UTC)
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
+            .serial_number(x509.random_serial_number()).not_valid_before(now - dt.timedelta(days=1))
+            .not_valid_after(now + dt.timedelta(days=365)).sign(key, hashes.SHA256()))
+    return (key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                              serialization.NoEncryption()),
+            cert.public_bytes(serialization.Encoding.PEM))
+
+
+def problems(xml: bytes, signed_by: bytes | None = None) -> list[str]:
+    """Every reason a reviewer would refuse the certificate ([] when none); with `signed_by` (a PEM certificate)
+    the file must carry a valid signature made with it."""
     found = [f"schema: {e}" for e in dcc.certificate_errors(xml)]
+    if signed_by is not None:
+        sig = signature.check(xml, signed_by)
+        if not sig.ok:
+            found.append(f"signature: {sig.detail}")
     root = ET.fromstring(xml)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

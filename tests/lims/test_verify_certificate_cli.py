@@ -43,7 +43,8 @@ def test_an_altered_file_fails(issued, capsys) -> None:  # type: ignore[no-untyp
     path.write_bytes(path.read_bytes().replace(b"SN-4711", b"SN-4712"))
     assert cli.main(["verify-certificate", str(path)]) == 1
     assert "the file was altered" in capsys.readouterr().out
-    assert cli.main(["verify-certificate", "--offline", str(path)]) == 0  # still a valid DCC, only altered
+    # still a valid DCC, but its signature no longer verifies: the file alone shows the change
+    assert cli.main(["verify-certificate", "--offline", str(path)]) == 1
 
 
 def test_an_altered_database_fails(issued, capsys) -> None:  # type: ignore[no-untyped-def]
@@ -67,3 +68,75 @@ def test_invalid_or_unknown_files(issued, tmp_path, capsys) -> None:  # type: ig
     assert "was not issued by this laboratory" in capsys.readouterr().out
     assert cli.main(["verify-certificate", str(tmp_path / "missing.xml")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_a_signed_certificate_verifies_offline_and_any_changed_byte_fails(issued, lab_signing_files,
+                                                                         capsys) -> None:  # type: ignore[no-untyped-def]
+    from service.lims.certificates import verify_certificate
+
+    _, path = issued
+    good = path.read_bytes()
+    _, cert = lab_signing_files
+    assert cli.main(["verify-certificate", "--offline", "--signer-cert", str(cert), str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "enveloped XML signature verifies over the whole certificate" in out and "the certificate given" in out
+    # one byte changed anywhere: the declaration, the signed content, the signature, its certificate, the last line
+    stride = max(1, len(good) // 150)
+    positions = sorted({*range(0, len(good), stride), 0, 20, len(good) - 1, good.index(b"<ds:SignatureValue") + 30,
+                        good.index(b"<ds:X509Certificate>") + 40, good.index(b"<ds:DigestValue>") + 20})
+    for i in positions:
+        bad = bytearray(good)
+        bad[i] = ord("x") if bad[i] != ord("x") else ord("y")
+        report = verify_certificate(bytes(bad))
+        assert not report.ok, (i, good[max(0, i - 20):i + 20])
+    path.write_bytes(good[:5000] + (b"1" if good[5000:5001] != b"1" else b"2") + good[5001:])
+    assert cli.main(["verify-certificate", "--offline", str(path)]) == 1
+    assert "FAILED" in capsys.readouterr().out
+
+
+def test_the_signer_is_the_labs_own(issued, lab_signing_files, tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from lxml import etree
+
+    from service.lims.signature import DSIG_NS, Signer, written
+    from tests.lims.reviewer import self_signed
+
+    _, path = issued
+    other_key, other_cert = self_signed("someone else")
+    (tmp_path / "other.pem").write_bytes(other_cert)
+    assert cli.main(["verify-certificate", "--offline", "--signer-cert", str(tmp_path / "other.pem"), str(path)]) == 1
+    assert "does not verify" in capsys.readouterr().out
+    # re-signed by someone else after a change: valid by itself, not by the lab's certificate
+    root = etree.fromstring(path.read_bytes())
+    root.remove(root.find(f"{{{DSIG_NS}}}Signature"))
+    unsigned = written(root)
+    forged = tmp_path / "forged.xml"
+    lab_signer, forger = Signer(b"", lab_signing_files[1].read_bytes()), Signer(other_key, other_cert)
+    changed = unsigned.replace(b"Braunschweig", b"Wolfsburg")
+    forged.write_bytes(forger(changed))  # the content still names the lab's signing certificate
+    assert cli.main(["verify-certificate", "--offline", str(forged)]) == 1
+    assert "names the signing certificate" in capsys.readouterr().out
+    forged.write_bytes(forger(changed.replace(lab_signer.cert_sha256.encode(), forger.cert_sha256.encode())))
+    assert cli.main(["verify-certificate", "--offline", str(forged)]) == 0  # signed, by someone
+    assert "CN=someone else" in capsys.readouterr().out  # and says by whom
+    cert = tmp_path / "lab.pem"
+    cert.write_bytes(etree.fromstring(path.read_bytes()).findtext(f".//{{{DSIG_NS}}}X509Certificate").encode())
+    lab_cert = b"-----BEGIN CERTIFICATE-----\n" + cert.read_bytes().strip() + b"\n-----END CERTIFICATE-----\n"
+    cert.write_bytes(lab_cert)
+    assert cli.main(["verify-certificate", "--offline", "--signer-cert", str(cert), str(forged)]) == 1
+    stripped = tmp_path / "unsigned.xml"
+    stripped.write_bytes(unsigned)
+    assert cli.main(["verify-certificate", "--offline", "--signer-cert", str(cert), str(stripped)]) == 1
+    assert "carries no signature" in capsys.readouterr().out
+
+
+def test_half_configured_signing_is_refused_naming_the_setting(issued, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    from service.lims.certificates import NotConfigured, signer
+
+    monkeypatch.delenv("TILTLAB_CERTIFICATE_SIGNING_CERT")
+    get_settings.cache_clear()
+    with pytest.raises(NotConfigured, match="TILTLAB_CERTIFICATE_SIGNING_CERT"):
+        signer(get_settings())
+    monkeypatch.setenv("TILTLAB_CERTIFICATE_SIGNING_CERT", "/nonexistent/cert.pem")
+    get_settings.cache_clear()
+    with pytest.raises(NotConfigured, match="/nonexistent/cert.pem"):
+        signer(get_settings())
