@@ -175,7 +175,7 @@ def _render_result(w, r: ET.Element) -> None:  # type: ignore[no-untyped-def]
             for i in range(max((len(v) for _, v in cols), default=0)):
                 w("<tr>" + "".join(f"<td class='n'>{esc(v[i] if i < len(v) else '')}</td>" for _, v in cols) + "</tr>")
             w("</table>")
-        else:
+        elif any(q.find("si:real", _NS) is not None for q in quantities):
             w("<table><tr><th>Quantity</th><th>Value</th><th>U</th><th>k</th><th>Unit</th><th>Note</th></tr>")
             for q in quantities:
                 real = q.find("si:real", _NS)
@@ -188,9 +188,9 @@ def _render_result(w, r: ET.Element) -> None:  # type: ignore[no-untyped-def]
                   f"<td>{esc(_unit_text(_t(real, 'si:unit')))}</td>"
                   f"<td>{esc(_t(q, 'dcc:description/dcc:content'))}</td></tr>")
             w("</table>")
-            for q in quantities:
-                if q.get("refType") == "tiltlab_parameterVector":
-                    _render_correlations(w, q)
+        for q in quantities:
+            if q.get("refType") == "tiltlab_parameterVector":
+                _render_correlations(w, q)
 
 
 def _render_correlations(w, q: ET.Element) -> None:  # type: ignore[no-untyped-def]
