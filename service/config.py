@@ -59,6 +59,9 @@ class Settings(BaseSettings):
     stream_slow_close_s: float = Field(10.0, gt=0, allow_inf_nan=False)
     # A request body larger than this is refused (413) before it is read, with or without a token.
     max_body_bytes: int = Field(1_048_576, ge=1024)
+    # The most points a calibration job's grid may have (more is refused with 422): a huge grid would
+    # take days and make rows the job list must read.
+    max_grid_points: int = Field(10_000, ge=1, le=1_000_000)
 
     # Free-running monitoring samples older than this are thinned or dropped; calibration data never are.
     monitoring_retention_days: float = Field(30.0, gt=0)

@@ -5,20 +5,22 @@ from __future__ import annotations
 import logging
 import os
 import sys
+from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from functools import partial
 from pathlib import Path
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, Request, Response
 from fastapi_offline import FastAPIOffline
 
 from service import __version__
-from service.api import http_details, problems, redoc
+from service.api import http_details, openapi, problems, redoc
 from service.api.auth import TokenCache, is_loopback
 from service.api.fleet_routing import FleetRouting, run_forwarded
 from service.api.limits import BodySizeLimit
 from service.api.metrics import Metrics, MetricsMiddleware
 from service.api.redact import install_log_redaction
+from service.api.revision import SchemaRevision
 from service.api.routers import (
     benches,
     calibrations,
@@ -34,7 +36,6 @@ from service.api.routers import (
     tokens,
 )
 from service.api.routers import metrics as metrics_router
-from service.api.routers.health import SchemaRevision
 from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering, StageNotHomed
 from service.bench.startup import plan_benches
 from service.config import Settings, get_settings
@@ -48,7 +49,7 @@ from service.jobs.requests import RequestProblem
 from service.lims.runtime import LimsRuntime
 from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
 from service.storage.engine import normalise_url
-from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.errors import ConflictError
 from service.storage.migrate import bootstrap
 from service.streams.readings import StreamHub
 
@@ -126,7 +127,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_log_redaction()  # the access log prints query strings; a WebSocket's may carry its token
 
     @asynccontextmanager
-    async def lifespan(app: FastAPI):
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.settings = s
         app.state.engine = engine = bootstrap(s)  # brings the database to the current schema
         store = app.state.store = DaemonStore(engine)
@@ -209,13 +210,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPIOffline(title="tiltlab", version=__version__, lifespan=lifespan, static_url="/docs-assets",
                          description="Calibration, measurement and control of tilt with biaxial inclinometers. "
                                      "Every route but /health and the dashboard needs `Authorization: Bearer <token>`"
-                                     " (scopes read, operate, admin). Errors are RFC 9457 problem+json.")
+                                     " (scopes read, operate, admin). Errors are RFC 9457 problem+json (the `Problem`"
+                                     " schema).")
     app.state.metrics = metrics = Metrics()
     app.add_middleware(FleetRouting)
     # outside the fleet's forwarding (which reads bodies) and every route: a large body is refused unread
     app.add_middleware(BodySizeLimit, max_bytes=s.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
-    problems.install(app)
+    problems.install(app)  # with the one mapping of an unknown entity to 404
+    openapi.install(app)
     http_details.install(app)
     redoc.install(app, "/docs-assets")
     _install_errors(app)
@@ -230,7 +233,7 @@ def _install_errors(app: FastAPI) -> None:
     P = problems.problem
 
     @app.exception_handler(RequestProblem)
-    async def _request(request: Request, exc: RequestProblem):
+    async def _request(request: Request, exc: RequestProblem) -> Response:
         return P(exc.status, "Unusable request" if exc.status == 422 else "Conflict", str(exc),
                  instance=str(request.url.path), field=exc.field)
 
@@ -243,7 +246,6 @@ _ERRORS = (
     (IdempotencyMismatch, 422, "Idempotency-Key reused", "Idempotency-Key"),
     (BenchBusy, 409, "Bench busy", "bench"),
     (ConflictError, 409, "Conflict", None),
-    (UnknownEntity, 404, "Not found", None),
     (DeviceNotAnswering, 503, "Device not answering", None),
     (StageNotHomed, 409, "Stage not homed", None),
     (DeviceError, 503, "Device error", None),
@@ -251,8 +253,8 @@ _ERRORS = (
 )
 
 
-def _answer(status: int, title: str, field: str | None):  # type: ignore[no-untyped-def]
-    async def handler(request: Request, exc: Exception):
+def _answer(status: int, title: str, field: str | None) -> Callable[[Request, Exception], Awaitable[Response]]:
+    async def handler(request: Request, exc: Exception) -> Response:
         extra = {"field": field} if field else {}
         return problems.problem(status, title, str(exc), instance=str(request.url.path), **extra)
 

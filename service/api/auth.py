@@ -9,14 +9,21 @@ from __future__ import annotations
 
 import ipaddress
 import time
-from typing import Annotated
+from collections.abc import Awaitable, Callable
+from typing import Annotated, Any
 
 from fastapi import Depends, Request, WebSocket
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.api.problems import ProblemError
 from service.storage.tokens import SCOPES, Principal
 
 EVERYONE = Principal("anonymous (authentication off)", frozenset(SCOPES))
+
+# The OpenAPI document's security scheme (`bearerAuth`); the header itself is read by `_bearer` so that a
+# missing or malformed one is a 401 problem, not FastAPI's own answer.
+BEARER = HTTPBearer(scheme_name="bearerAuth", auto_error=False,
+                    description="a token of `tiltlab token create` (or the admin token file); scopes read, operate, admin")
 
 
 def is_loopback(host: str) -> bool:
@@ -36,7 +43,7 @@ def _bearer(request: Request) -> str | None:
     return None
 
 
-def _principal(app, token: str | None) -> Principal:  # type: ignore[no-untyped-def]
+def _principal(app: Any, token: str | None) -> Principal:
     if app.state.settings.auth == "none":
         return EVERYONE
     if not token:
@@ -64,7 +71,7 @@ class TokenCache:
         self.ttl_s = ttl_s
         self._seen: dict[str, tuple[float, Principal | None]] = {}
 
-    def lookup(self, token: str, authenticate) -> Principal | None:  # type: ignore[no-untyped-def]
+    def lookup(self, token: str, authenticate: Callable[[str], Principal | None]) -> Principal | None:
         now = time.monotonic()
         hit = self._seen.get(token)
         if hit is not None and now - hit[0] < self.ttl_s:
@@ -79,11 +86,12 @@ class TokenCache:
         self._seen.clear()
 
 
-def requires(scope: str):  # type: ignore[no-untyped-def]
+def requires(scope: str) -> Callable[..., Awaitable[Principal]]:
     """A dependency giving the request's principal, refusing it without `scope`."""
     assert scope in SCOPES
 
-    async def dependency(request: Request) -> Principal:
+    async def dependency(request: Request,
+                         _: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)]) -> Principal:
         principal = _principal(request.app, _bearer(request))
         if not principal.may(scope):
             raise ProblemError(403, "Forbidden", f"the token {principal.name!r} lacks the scope {scope!r}"

@@ -1,49 +1,156 @@
-"""Shared dependencies of the routers: engine, store, benches and the job manager."""
+"""What routes are given rather than fetch: settings, the store, benches, the job manager, the streams
+and the webhook dispatcher, each as an `Annotated[..., Depends(...)]` type. The application's lifespan
+puts them on `app.state`; only this module reads it (routes, tests and other apps stay decoupled from
+where they live). The caller (token and scope) comes from service.api.auth: Reader, Operator, Admin."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, cast
 
 import sqlalchemy as sa
-from fastapi import Depends, Query, Request
+from fastapi import Depends, Path, Query
+from starlette.requests import HTTPConnection
 
+from service.api.auth import TokenCache
 from service.api.problems import ProblemError
+from service.api.revision import SchemaRevision
 from service.bench.runtime import BenchRuntime
+from service.config import Settings
+from service.fleet import Fleet
+from service.jobs.diagnosis import DiagnosisRunner
+from service.jobs.manager import JobManager
+from service.jobs.requests import DB_ID_MAX
+from service.lims.webhooks import Dispatcher
 from service.storage.daemon_jobs import DaemonStore
+from service.streams.readings import StreamHub
 
 
-def get_engine(request: Request) -> sa.Engine:
-    return request.app.state.engine
+def get_settings(conn: HTTPConnection) -> Settings:
+    return cast(Settings, conn.app.state.settings)
 
 
-def get_store(request: Request) -> DaemonStore:
-    return request.app.state.store
+def get_engine(conn: HTTPConnection) -> sa.Engine:
+    return cast(sa.Engine, conn.app.state.engine)
 
 
-def find_bench(request: Request, name: str | None, field: str = "bench") -> BenchRuntime:
+def get_store(conn: HTTPConnection) -> DaemonStore:
+    return cast(DaemonStore, conn.app.state.store)
+
+
+def get_benches(conn: HTTPConnection) -> dict[str, BenchRuntime]:
+    return cast(dict[str, BenchRuntime], conn.app.state.benches)
+
+
+def get_jobs(conn: HTTPConnection) -> JobManager:
+    return cast(JobManager, conn.app.state.jobs)
+
+
+def get_jobs_if_any(conn: HTTPConnection) -> JobManager | None:
+    """The job manager, None in an application that runs no benches (the LIMS routes alone)."""
+    return cast(JobManager | None, getattr(conn.app.state, "jobs", None))
+
+
+def get_streams(conn: HTTPConnection) -> StreamHub:
+    return cast(StreamHub, conn.app.state.streams)
+
+
+def get_schema_revision(conn: HTTPConnection) -> SchemaRevision:
+    """The application's one SchemaRevision (made on first use where the lifespan made none)."""
+    rev = getattr(conn.app.state, "schema_revision", None)
+    if not isinstance(rev, SchemaRevision):
+        rev = conn.app.state.schema_revision = SchemaRevision()
+    return rev
+
+
+def get_fleet(conn: HTTPConnection) -> Fleet | None:
+    """This daemon's membership of the fleet; None when it runs alone."""
+    return cast(Fleet | None, getattr(conn.app.state, "fleet", None))
+
+
+def get_token_cache(conn: HTTPConnection) -> TokenCache | None:
+    """The cache of recently seen tokens, cleared when one is revoked."""
+    return cast(TokenCache | None, getattr(conn.app.state, "token_cache", None))
+
+
+def get_diagnoses(conn: HTTPConnection) -> DiagnosisRunner:
+    return cast(DiagnosisRunner, conn.app.state.diagnoses)
+
+
+def get_webhooks(conn: HTTPConnection) -> Dispatcher | None:
+    """The webhook dispatcher, None where the application runs none."""
+    return cast(Dispatcher | None, getattr(conn.app.state, "webhooks", None))
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+EngineDep = Annotated[sa.Engine, Depends(get_engine)]
+StoreDep = Annotated[DaemonStore, Depends(get_store)]
+BenchesDep = Annotated[dict[str, BenchRuntime], Depends(get_benches)]
+JobsDep = Annotated[JobManager, Depends(get_jobs)]
+JobsIfAnyDep = Annotated[JobManager | None, Depends(get_jobs_if_any)]
+StreamsDep = Annotated[StreamHub, Depends(get_streams)]
+RevisionDep = Annotated[SchemaRevision, Depends(get_schema_revision)]
+FleetDep = Annotated[Fleet | None, Depends(get_fleet)]
+TokenCacheDep = Annotated[TokenCache | None, Depends(get_token_cache)]
+DiagnosesDep = Annotated[DiagnosisRunner, Depends(get_diagnoses)]
+WebhooksDep = Annotated[Dispatcher | None, Depends(get_webhooks)]
+
+
+def find_bench(benches: dict[str, BenchRuntime], name: str | None, field: str = "bench") -> BenchRuntime:
     """The named bench, or the only one when the daemon runs one and no name is given."""
-    benches: dict[str, BenchRuntime] = request.app.state.benches
     if name is None:
         if len(benches) == 1:
             return next(iter(benches.values()))
         raise ProblemError(422, "Bench not named", f"{field}: the daemon runs {len(benches)} benches"
                            f" ({', '.join(benches)}); name one", field=field)
     if name not in benches:
-        raise ProblemError(404, "Unknown bench", f"{field}: no bench named {name!r}; benches: {', '.join(benches)}",
+        raise ProblemError(404, "Unknown bench", f"{field}: no bench named {name[:100]!r}; benches: {', '.join(benches)}",
                            field=field)
     return benches[name]
 
 
-async def bench_from_query(request: Request,
-                     bench: Annotated[str | None, Query(description="bench name; may be left out when the daemon "
-                                                        "runs a single bench")] = None) -> BenchRuntime:
-    return find_bench(request, bench)
+def bench_from_query(benches: BenchesDep,
+                     bench: Annotated[str | None, Query(max_length=100, description="bench name; may be left out when"
+                                                        " the daemon runs a single bench")] = None) -> BenchRuntime:
+    return find_bench(benches, bench)
 
 
-def get_jobs(request: Request):  # type: ignore[no-untyped-def]
-    return request.app.state.jobs
-
-
-EngineDep = Annotated[sa.Engine, Depends(get_engine)]
-StoreDep = Annotated[DaemonStore, Depends(get_store)]
 BenchQuery = Annotated[BenchRuntime, Depends(bench_from_query)]
+
+
+# Ids in paths: one the database cannot hold names nothing (404), rather than reaching the database.
+def _known_range(value: int, what: str) -> int:
+    if not 1 <= value <= DB_ID_MAX:
+        raise ProblemError(404, "Not found", f"id: no {what} {value}", field="id")
+    return value
+
+
+def _job_id(job_id: Annotated[int, Path(description="the job's id")]) -> int:
+    return _known_range(job_id, "calibration job")
+
+
+def _record_id(record_id: Annotated[int, Path(description="the record's id")]) -> int:
+    return _known_range(record_id, "calibration record")
+
+
+def _standard_id(standard_id: Annotated[int, Path(description="the reference standard's id")]) -> int:
+    return _known_range(standard_id, "reference standard")
+
+
+def _order_id(order_id: Annotated[int, Path(description="the order's id")]) -> int:
+    return _known_range(order_id, "order")
+
+
+def _diagnosis_id(diagnosis_id: Annotated[int, Path(description="the diagnosis's id")]) -> int:
+    return _known_range(diagnosis_id, "diagnosis")
+
+
+def _webhook_id(webhook_id: Annotated[int, Path(description="the webhook's id")]) -> int:
+    return _known_range(webhook_id, "webhook")
+
+
+JobId = Annotated[int, Depends(_job_id)]
+RecordId = Annotated[int, Depends(_record_id)]
+StandardId = Annotated[int, Depends(_standard_id)]
+OrderId = Annotated[int, Depends(_order_id)]
+DiagnosisId = Annotated[int, Depends(_diagnosis_id)]
+WebhookId = Annotated[int, Depends(_webhook_id)]

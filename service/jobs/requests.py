@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import re
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, model_validator
 
 from service.errors import InputError
 
@@ -23,31 +24,66 @@ class RequestProblem(InputError):
         self.field, self.status = field, status
 
 
-class Settle(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    tolerance_deg: Annotated[float, Field(gt=0, le=1.0)] = 0.002
-    window_s: Annotated[float, Field(gt=0, le=600)] = 0.5
-    timeout_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
+# Ids are INTEGER columns: 32-bit on PostgreSQL, the narrower of the two databases.
+DB_ID_MAX = 2**31 - 1
+_CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f]")
 
 
-class Validation(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    n_points: Annotated[int, Field(ge=0, le=1000)] = 4
+def _printable(text: str) -> str:
+    """Text as a lab person typed it: tabs and line breaks, but no NUL or other control character
+    (PostgreSQL refuses NUL, and a certificate cannot carry one)."""
+    found = _CONTROL.search(text)
+    if found:
+        raise ValueError(f"control character U+{ord(found.group()):04X} at position {found.start()}; text must be printable")
+    return text
 
 
-class Grid(BaseModel):
+# Request field types: a number is a finite JSON number (not a boolean, NaN or an infinity), a count an
+# integer (not a boolean), an id one the database can hold, text free of control characters.
+Finite = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+Count = Annotated[int, Strict()]
+DbId = Annotated[int, Strict(), Field(ge=1, le=DB_ID_MAX)]
+Text = Annotated[str, AfterValidator(_printable)]
+
+
+class RequestBody(BaseModel):
+    """A request body: unknown fields refused, numbers finite."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class Settle(RequestBody):
+    tolerance_deg: Annotated[Finite, Field(gt=0, le=1.0)] = 0.002
+    window_s: Annotated[Finite, Field(gt=0, le=600)] = 0.5
+    timeout_s: Annotated[Finite, Field(gt=0, le=3600)] = 30.0
+
+
+class Validation(RequestBody):
+    n_points: Annotated[Count, Field(ge=0, le=1000)] = 4
+
+
+class Grid(RequestBody):
     """Either a rectangle `x_deg`, `y_deg`, `n_x`, `n_y` or explicit `points`."""
 
-    model_config = ConfigDict(extra="forbid")
-    x_deg: Annotated[list[float], Field(min_length=2, max_length=2)] | None = None
-    y_deg: Annotated[list[float], Field(min_length=2, max_length=2)] | None = None
-    n_x: Annotated[int, Field(ge=1, le=1000)] | None = None
-    n_y: Annotated[int, Field(ge=1, le=1000)] | None = None
-    points: Annotated[list[Annotated[list[float], Field(min_length=2, max_length=2)]], Field(max_length=100_000)] | None = None
+    x_deg: Annotated[list[Finite], Field(min_length=2, max_length=2)] | None = None
+    y_deg: Annotated[list[Finite], Field(min_length=2, max_length=2)] | None = None
+    n_x: Annotated[Count, Field(ge=1, le=1000)] | None = None
+    n_y: Annotated[Count, Field(ge=1, le=1000)] | None = None
+    points: Annotated[list[Annotated[list[Finite], Field(min_length=2, max_length=2)]], Field(max_length=100_000)] | None = None
     # scale (stage x angles) and rotation (rotary table angles): the procedure's own points
-    angles_deg: Annotated[list[float], Field(min_length=1, max_length=100_000)] | None = None
-    range_deg: Annotated[list[float], Field(min_length=2, max_length=2)] | None = None
-    n: Annotated[int, Field(ge=1, le=100_000)] | None = None
+    angles_deg: Annotated[list[Finite], Field(min_length=1, max_length=100_000)] | None = None
+    range_deg: Annotated[list[Finite], Field(min_length=2, max_length=2)] | None = None
+    n: Annotated[Count, Field(ge=1, le=100_000)] | None = None
+
+    def size(self) -> int:
+        """How many points the grid has, counted without making them."""
+        if self.points is not None:
+            return len(self.points)
+        if self.angles_deg is not None:
+            return len(self.angles_deg)
+        if self.n is not None:
+            return self.n
+        return (self.n_x or 0) * (self.n_y or 0)
 
     def angles(self) -> list[float]:
         if self.angles_deg is not None:
@@ -83,25 +119,24 @@ class Grid(BaseModel):
         return [(float(x), float(y)) for j, y in enumerate(ys) for x in (xs if j % 2 == 0 else xs[::-1])]
 
 
-class AxisReference(BaseModel):
+class AxisReference(RequestBody):
     """turntable: the turntable axis tilt measured independently (e.g. from star observations)."""
 
-    model_config = ConfigDict(extra="forbid")
-    north_arcsec: float
-    east_arcsec: float
+    north_arcsec: Finite
+    east_arcsec: Finite
 
 
-class CalibrationRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    bench: str | None = None
+class CalibrationRequest(RequestBody):
+    bench: Annotated[Text, Field(max_length=100)] | None = None
     procedure: Literal["stage-grid", "scale", "rotation", "turntable"]
-    method: str
+    method: Annotated[Text, Field(max_length=80)]
     grid: Grid | None = None
-    samples_per_point: Annotated[int, Field(ge=1, le=10_000)] = 10
+    samples_per_point: Annotated[Count, Field(ge=1, le=10_000)] = 10
     settle: Settle = Field(default_factory=Settle)
     validation: Validation = Field(default_factory=Validation)
-    reference_standards: list[int] = Field(default_factory=list, description="ids of registered reference standards"
-                                           " (GET /standards); one past its due date refuses the job")
-    order_id: int | None = Field(None, description="the LIMS order (POST /orders) this job works on")
+    reference_standards: Annotated[list[DbId], Field(max_length=100)] = Field(
+        default_factory=list, description="ids of registered reference standards (GET /standards); one past its due"
+        " date refuses the job")
+    order_id: DbId | None = Field(None, description="the LIMS order (POST /orders) this job works on")
     reference: AxisReference | None = None
-    note: Annotated[str, Field(max_length=10_000)] | None = None
+    note: Annotated[Text, Field(max_length=10_000)] | None = None

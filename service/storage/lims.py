@@ -223,6 +223,14 @@ class LimsStore(ActivationStore):
     def record_status(self, record_id: int) -> str:
         return self.status_of(self.approvals(record_id))
 
+    def record_statuses(self, record_ids: Sequence[int]) -> dict[int, str]:
+        """The status of each of these records, in one query."""
+        if not record_ids:
+            return {}
+        with self._read() as s:
+            rows = list(s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id.in_(list(record_ids)))))
+        return {rid: self.status_of([a for a in rows if a.record_id == rid]) for rid in record_ids}
+
     def decide(self, record_id: int, *, decision: str, meaning: str, note: str, actor: str) -> RecordApproval:
         """Approve (meaning review or approval) or reject a draft record; never by who started or ran its job."""
         if decision not in ("approve", "reject"):

@@ -10,7 +10,7 @@ import sqlalchemy as sa
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.api.routers.health import SchemaRevision
+from service.api.revision import SchemaRevision
 from service.config import Settings
 from service.storage.migrate import head_revision
 
@@ -26,7 +26,7 @@ def _engine(tmp_path, revision: str) -> sa.Engine:
 def test_concurrent_requests_share_one_query_and_it_runs_off_the_loop(tmp_path, monkeypatch):
     engine = _engine(tmp_path, "0001")
     threads = []
-    import service.api.routers.health as health
+    import service.api.revision as health
 
     real = health.current_revision
 

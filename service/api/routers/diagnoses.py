@@ -2,93 +2,77 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated
 
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse
-from pydantic import BaseModel, ConfigDict
 
 from service.api.auth import Operator, Reader
+from service.api.deps import DiagnosesDep, DiagnosisId, JobsDep, RecordId, StoreDep
+from service.api.models.diagnoses import DiagnoseRequest, Diagnoses, DiagnosisBody
+from service.api.models.problem import READ, WRITE, problem_responses
+from service.api.models.records import Record
 from service.api.problems import ProblemError
-from service.storage.errors import UnknownEntity
-from service.storage.models import CalibrationRecord, Diagnosis, DiagnosisResult
+from service.api.routers.records import record_bodies
+from service.jobs.diagnosis import DiagnosisRunner
+from service.jobs.requests import DB_ID_MAX
+from service.storage.daemon_jobs import DaemonStore
 
 router = APIRouter(tags=["diagnoses"])
 
 
-class DiagnoseRequest(BaseModel):
-    """Which sensor's readings to explain, and the model the search starts from."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    sensor: Literal["ref", "meas"] = "ref"
-    baseline: Literal["kinematic", "linear"] = "kinematic"
+def _body(store: DaemonStore, runner: DiagnosisRunner, diagnosis_id: int) -> DiagnosisBody:
+    d, r = store.get_diagnosis(diagnosis_id)
+    return DiagnosisBody.model_validate(runner.state_of(d, r))
 
 
-def _record(request: Request, record_id: int) -> CalibrationRecord:
-    try:
-        return request.app.state.store.get_record(record_id)
-    except UnknownEntity:
-        raise ProblemError(404, "Unknown record", f"id: no calibration record {record_id}", field="id") from None
-
-
-def _diagnosis(request: Request, diagnosis_id: int) -> tuple[Diagnosis, DiagnosisResult | None]:
-    try:
-        return request.app.state.store.get_diagnosis(diagnosis_id)
-    except UnknownEntity:
-        raise ProblemError(404, "Unknown diagnosis", f"id: no diagnosis {diagnosis_id}", field="id") from None
-
-
-def _json(request: Request, diagnosis_id: int) -> dict:
-    d, r = _diagnosis(request, diagnosis_id)
-    return request.app.state.diagnoses.state_of(d, r)
-
-
-@router.post("/records/{record_id}/diagnose", status_code=202)
-async def diagnose(record_id: int, request: Request, response: Response, who: Operator,
-                   body: DiagnoseRequest | None = None) -> dict:
+@router.post("/records/{record_id}/diagnose", status_code=202, response_model=DiagnosisBody,
+             responses=problem_responses(*WRITE, 404, 409))
+async def diagnose(record_id: RecordId, response: Response, store: StoreDep, runner: DiagnosesDep, who: Operator,
+                   body: DiagnoseRequest | None = None) -> DiagnosisBody:
     """Run the model-discrepancy workflow (the one of `tiltlab discrepancy`) on the record's stored points, in the
     background and without the bench: 202 with the diagnosis and its Location."""
     body = body or DiagnoseRequest()
-    record = await run_in_threadpool(_record, request, record_id)
-    d = await request.app.state.diagnoses.submit(record, body.sensor, body.baseline, who.name)
+    record = await run_in_threadpool(store.get_record, record_id)
+    d = await runner.submit(record, body.sensor, body.baseline, who.name)
     response.headers["Location"] = f"/diagnoses/{d.id}"
-    return await run_in_threadpool(_json, request, d.id)
+    return await run_in_threadpool(_body, store, runner, d.id)
 
 
-@router.get("/diagnoses")
-def list_diagnoses(request: Request, _: Reader, record: Annotated[int | None, Query(ge=1)] = None,
-                   limit: Annotated[int, Query(ge=1, le=500)] = 100) -> dict:
+@router.get("/diagnoses", response_model=Diagnoses, responses=problem_responses(*READ))
+def list_diagnoses(store: StoreDep, runner: DiagnosesDep, _: Reader,
+                   record: Annotated[int | None, Query(ge=1, le=DB_ID_MAX)] = None,
+                   limit: Annotated[int, Query(ge=1, le=500)] = 100) -> Diagnoses:
     """Diagnoses newest first, of one record or of all."""
-    runner = request.app.state.diagnoses
-    rows = request.app.state.store.list_diagnoses(record, limit=limit)
-    return {"diagnoses": [runner.state_of(d, r) for d, r in rows]}
+    rows = store.list_diagnoses(record, limit=limit)
+    return Diagnoses(diagnoses=[DiagnosisBody.model_validate(runner.state_of(d, r)) for d, r in rows])
 
 
-@router.get("/diagnoses/{diagnosis_id}")
-def read(diagnosis_id: int, request: Request, _: Reader) -> dict:
-    return _json(request, diagnosis_id)
+@router.get("/diagnoses/{diagnosis_id}", response_model=DiagnosisBody, responses=problem_responses(*READ, 404))
+def read(diagnosis_id: DiagnosisId, store: StoreDep, runner: DiagnosesDep, _: Reader) -> DiagnosisBody:
+    return _body(store, runner, diagnosis_id)
 
 
-@router.get("/diagnoses/{diagnosis_id}/report", response_class=HTMLResponse,
-            responses={200: {"content": {"text/html": {}}, "description": "the workflow's report page"}})
-def report(diagnosis_id: int, request: Request, _: Reader) -> HTMLResponse:
+@router.get("/diagnoses/{diagnosis_id}/report", response_class=HTMLResponse, responses={
+    200: {"content": {"text/html": {"schema": {"type": "string"}}}, "description": "the workflow's report page"},
+    **problem_responses(*READ, 404, 409)})
+def report(diagnosis_id: DiagnosisId, store: StoreDep, _: Reader) -> HTMLResponse:
     """The workflow's HTML report (the page `tiltlab discrepancy --html` writes): figures inline."""
-    d, r = _diagnosis(request, diagnosis_id)
+    _d, r = store.get_diagnosis(diagnosis_id)
     if r is None or r.report_html is None:
         state = "failed" if r is not None else "not finished"
         raise ProblemError(409, "No report", f"diagnosis {diagnosis_id} is {state}: it has no report")
     return HTMLResponse(r.report_html)
 
 
-@router.post("/diagnoses/{diagnosis_id}/adopt", status_code=201)
-async def adopt(diagnosis_id: int, request: Request, response: Response, who: Operator) -> dict:
+@router.post("/diagnoses/{diagnosis_id}/adopt", status_code=201, response_model=Record,
+             responses=problem_responses(401, 403, 404, 409, 422))
+async def adopt(diagnosis_id: DiagnosisId, response: Response, store: StoreDep, runner: DiagnosesDep, jobs: JobsDep,
+                who: Operator) -> Record:
     """A new record version of the same device whose model includes the named effects, fitted on the same points
     (with validation figures); a draft like any new record. 409 when the diagnosis named nothing to add."""
-    from service.api.routers.records import record_json
-
-    await run_in_threadpool(_diagnosis, request, diagnosis_id)
-    record = await request.app.state.diagnoses.adopt(diagnosis_id, who.name)
+    await run_in_threadpool(store.get_diagnosis, diagnosis_id)
+    record = await runner.adopt(diagnosis_id, who.name)
     response.headers["Location"] = f"/records/{record.id}"
-    return await run_in_threadpool(record_json, request, record, False)
+    return (await run_in_threadpool(record_bodies, store, jobs, [record]))[0]

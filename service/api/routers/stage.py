@@ -1,62 +1,43 @@
-"""Stage motion: raw moves, closed-loop levelling from the active record, and stop."""
+"""Stage motion: move to raw stage angles, level the table in closed loop, stop everything."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Any
 
-from fastapi import APIRouter, Request
-from pydantic import BaseModel, ConfigDict, Field
+from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Operator
-from service.api.deps import find_bench
+from service.api.deps import BenchesDep, JobsDep, StoreDep, find_bench
+from service.api.models.problem import WRITE, problem_responses
+from service.api.models.stage import Level, Levelled, Move, Moved, Stop, Stopped
 from service.api.problems import ProblemError
-from service.bench.runtime import BenchHold, Hold
+from service.bench.runtime import BenchHold, BenchRuntime, Hold
 from service.errors import InputError
 from service.jobs import level as levelling
+from service.storage.daemon_jobs import DaemonStore
 
 router = APIRouter(prefix="/stage", tags=["stage"])
 
 
-class Move(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    bench: str | None = None
-    x_deg: float
-    y_deg: float
-
-
-class Level(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    bench: str | None = None
-    x_deg: float
-    y_deg: float
-    tolerance_deg: Annotated[float, Field(gt=0, le=1)] = 0.005
-    max_iterations: Annotated[int, Field(ge=1, le=50)] = 5
-
-
-class Stop(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    bench: str | None = None
-
-
-async def _audit(request: Request, actor: str, action: str, bench: str, details: dict) -> None:
+async def _audit(store: DaemonStore, actor: str, action: str, bench: str, details: dict[str, Any]) -> None:
     """The audit event of a stage action, written in the worker thread pool: a write waiting for the
     database's write lock (a job storing its points) must not hold up the event loop, which serves
     /tilt and keeps the instruments' streams read."""
-    await run_in_threadpool(request.app.state.store.audit_action, actor, action, "bench", bench, details)
+    await run_in_threadpool(store.audit_action, actor, action, "bench", bench, details)
 
 
-def _stage_bench(request: Request, name: str | None):  # type: ignore[no-untyped-def]
-    bench = find_bench(request, name)
+def _stage_bench(benches: dict[str, BenchRuntime], name: str | None) -> BenchRuntime:
+    bench = find_bench(benches, name)
     if bench.kind != "stage":
         raise ProblemError(422, "Not a stage bench", f"bench: {bench.name!r} is a {bench.kind} bench", field="bench")
     return bench
 
 
-@router.post("/move")
-async def move(body: Move, request: Request, who: Operator) -> dict:
+@router.post("/move", response_model=Moved, responses=problem_responses(*WRITE, 404, 409, 503))
+async def move(body: Move, benches: BenchesDep, store: StoreDep, who: Operator) -> Moved:
     """Move both stages to raw stage angles and answer once they stand (409 while a job holds the bench)."""
-    bench = _stage_bench(request, body.bench)
+    bench = _stage_bench(benches, body.bench)
     travel = bench.config.stage_bench().travel_deg
     for f in ("x_deg", "y_deg"):
         if abs(getattr(body, f)) > travel:
@@ -64,17 +45,17 @@ async def move(body: Move, request: Request, who: Operator) -> dict:
                                f" of ±{travel:g} deg", field=f)
     async with bench.hold(BenchHold(Hold.STAGE_MOVE)):
         x, y = await bench.move_stage(body.x_deg, body.y_deg)
-    await _audit(request, who.name, "stage.move", bench.name, body.model_dump())
-    return {"stage": {"x_deg": x, "y_deg": y, "moving": False}}
+    await _audit(store, who.name, "stage.move", bench.name, body.model_dump())
+    return Moved.model_validate({"stage": {"x_deg": x, "y_deg": y, "moving": False}})
 
 
-@router.post("/level")
-async def level(body: Level, request: Request, who: Operator) -> dict:
+@router.post("/level", response_model=Levelled, responses=problem_responses(*WRITE, 404, 409, 503))
+async def level(body: Level, benches: BenchesDep, jobs: JobsDep, store: StoreDep, who: Operator) -> Levelled:
     """Level the table to a wanted tilt in closed loop (422 out of reach, 409 while a job holds the bench)."""
-    bench = _stage_bench(request, body.bench)
-    active = request.app.state.jobs.active.get(bench.name)
+    bench = _stage_bench(benches, body.bench)
+    active = jobs.active.get(bench.name)
     if active is None:
-        why = request.app.state.jobs.inactive_notes.get(bench.name)
+        why = jobs.inactive_notes.get(bench.name)
         raise ProblemError(409, "No active calibration", f"bench {bench.name!r} has no active record to level with"
                            " (POST /records/{id}/activate)" + (f"; {why}" if why else ""))
     try:
@@ -85,15 +66,15 @@ async def level(body: Level, request: Request, who: Operator) -> dict:
     bench.require("reference_sensor")
     async with bench.hold(BenchHold(Hold.LEVELLING)):
         out = await levelling.level(bench, active, body.x_deg, body.y_deg, body.tolerance_deg, body.max_iterations)
-    await _audit(request, who.name, "stage.level", bench.name,
+    await _audit(store, who.name, "stage.level", bench.name,
                  {**body.model_dump(), "within_tolerance": out["within_tolerance"]})
-    return out
+    return Levelled.model_validate(out)
 
 
-@router.post("/stop")
-async def stop(request: Request, who: Operator, body: Stop | None = None) -> dict:
+@router.post("/stop", response_model=Stopped, responses=problem_responses(*WRITE, 404))
+async def stop(benches: BenchesDep, jobs: JobsDep, store: StoreDep, who: Operator, body: Stop | None = None) -> Stopped:
     """Stop all motion at once, whatever holds the bench; a running job fails with the reason."""
-    bench = find_bench(request, body.bench if body else None)
-    failed = await request.app.state.jobs.stop_bench(bench, who)
-    await _audit(request, who.name, "stage.stop", bench.name, {"failed_job": failed})
-    return {"stopped": True, "failed_job": failed}
+    bench = find_bench(benches, body.bench if body else None)
+    failed = await jobs.stop_bench(bench, who)
+    await _audit(store, who.name, "stage.stop", bench.name, {"failed_job": failed})
+    return Stopped(stopped=True, failed_job=failed)

@@ -3,31 +3,26 @@ found its reference switch; `POST /stage/home` does that and answers once both a
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
-from pydantic import BaseModel, ConfigDict
+from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Operator
-from service.api.deps import find_bench
+from service.api.deps import BenchesDep, StoreDep, find_bench
+from service.api.models.problem import WRITE, problem_responses
+from service.api.models.stage import Home, Homed
 from service.api.problems import ProblemError
 from service.bench.runtime import BenchHold, Hold
 
 router = APIRouter(prefix="/stage", tags=["stage"])
 
 
-class Home(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    bench: str | None = None
-
-
-@router.post("/home")
-async def home(request: Request, who: Operator, body: Home | None = None) -> dict:
+@router.post("/home", response_model=Homed, responses=problem_responses(*WRITE, 404, 409, 503))
+async def home(benches: BenchesDep, store: StoreDep, who: Operator, body: Home | None = None) -> Homed:
     """Home both stage axes and answer once they stand (409 while a job holds the bench)."""
-    bench = find_bench(request, body.bench if body else None)
+    bench = find_bench(benches, body.bench if body else None)
     if bench.kind != "stage":
         raise ProblemError(422, "Not a stage bench", f"bench: {bench.name!r} is a {bench.kind} bench", field="bench")
     async with bench.hold(BenchHold(Hold.HOMING)):
         x, y = await bench.home_stage()
-    await run_in_threadpool(request.app.state.store.audit_action, who.name, "stage.home", "bench", bench.name,
-                            {"bench": bench.name})
-    return {"homed": True, "stage": {"x_deg": x, "y_deg": y, "moving": False}}
+    await run_in_threadpool(store.audit_action, who.name, "stage.home", "bench", bench.name, {"bench": bench.name})
+    return Homed.model_validate({"homed": True, "stage": {"x_deg": x, "y_deg": y, "moving": False}})

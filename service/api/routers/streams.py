@@ -20,17 +20,20 @@ import contextlib
 import json
 import logging
 import math
-from typing import Any, cast
+import re
+from typing import Any
 
-from fastapi import APIRouter, Request, WebSocket
-from pydantic_core import to_jsonable_python
+from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from service.api.auth import websocket_principal, websocket_subprotocol
-from service.api.routers.calibrations import job_json
+from service.api.deps import BenchesDep, JobsDep, SettingsDep, StoreDep, StreamsDep
+from service.api.routers.calibrations import job_body
+from service.jobs.requests import DB_ID_MAX
 from service.storage.errors import UnknownEntity
+from service.storage.models import CalibrationJob
 from service.streams.jobs import job_messages
-from service.streams.readings import CLOSE_SLOW, HISTORY_DEFAULT_S, HISTORY_MAX_S, Client, ReadingProducer, StreamHub
+from service.streams.readings import CLOSE_SLOW, HISTORY_DEFAULT_S, HISTORY_MAX_S, Client, ReadingProducer
 
 router = APIRouter(tags=["streams"])
 log = logging.getLogger("tiltlab.streams")
@@ -48,9 +51,14 @@ async def _accept(ws: WebSocket) -> None:
     await ws.accept(subprotocol=websocket_subprotocol(ws))
 
 
+def _reason(text: str) -> str:
+    """A close reason within the 123 bytes of UTF-8 a close frame has room for."""
+    return text.encode("utf-8")[:120].decode("utf-8", errors="ignore")
+
+
 async def _refuse(ws: WebSocket, reason: str) -> None:
     await _accept(ws)
-    await ws.close(CLOSE_POLICY, reason[:120])
+    await ws.close(CLOSE_POLICY, _reason(reason))
 
 
 async def _authorised(ws: WebSocket) -> bool:
@@ -102,15 +110,14 @@ async def _close(ws: WebSocket, code: int, reason: str) -> None:
     if ws.application_state == WebSocketState.CONNECTED and ws.client_state == WebSocketState.CONNECTED:
         with contextlib.suppress(Exception):
             async with asyncio.timeout(CLOSE_TIMEOUT_S):
-                await ws.close(code, reason[:120])
+                await ws.close(code, _reason(reason))
 
 
 @router.websocket("/ws/readings")
-async def readings(ws: WebSocket) -> None:
+async def readings(ws: WebSocket, hub: StreamsDep) -> None:
     """Snapshot (with history), then one reading per interval at `rate_hz`; see docs/api.md."""
     if not await _authorised(ws):
         return
-    hub: StreamHub = ws.app.state.streams
     name = ws.query_params.get("bench")
     if name is None or name == "":
         if len(hub.producers) != 1:
@@ -175,18 +182,17 @@ async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client
 
 
 @router.websocket("/ws/jobs/{job_id}")
-async def job_stream(ws: WebSocket, job_id: str) -> None:
+async def job_stream(ws: WebSocket, job_id: str, store: StoreDep, jobs: JobsDep, benches: BenchesDep,
+                     settings: SettingsDep) -> None:
     """Snapshot (job and points so far), then `job` and `point` messages, then `end` and close 1000."""
     if not await _authorised(ws):
         return
-    if not job_id.isdigit():
-        return await _refuse(ws, f"id: {job_id[:20]!r} is not a job id")
-    store = ws.app.state.store
-    jobs = ws.app.state.jobs
-    as_request = cast(Request, ws)  # job_json reads only app.state, which a WebSocket has too
+    if not re.fullmatch(r"[0-9]{1,10}", job_id) or not 1 <= int(job_id) <= DB_ID_MAX:
+        return await _refuse(ws, f"id: {ascii(job_id[:20])} is not a job id")
 
-    def body(job: Any) -> dict:
-        return to_jsonable_python(job_json(as_request, job))  # as the HTTP route serialises it
+    def body(job: CalibrationJob) -> dict[str, Any]:
+        record = store.records_of_jobs([job.id]).get(job.id)
+        return job_body(job, record, benches).model_dump(mode="json")  # as the HTTP route serialises it
 
     try:
         await asyncio.to_thread(store.get_job, int(job_id))
@@ -196,7 +202,7 @@ async def job_stream(ws: WebSocket, job_id: str) -> None:
     waiter = asyncio.create_task(_until_disconnect(ws))
     revoked = asyncio.create_task(_until_token_invalid(ws))
     stream = job_messages(store, jobs.events, int(job_id), body)
-    slow_close_s: float = ws.app.state.settings.stream_slow_close_s
+    slow_close_s = settings.stream_slow_close_s
     seq = 0
     try:
         while True:

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import datetime as dt
+from typing import Any
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 
 from service.api.auth import Reader
-from service.api.deps import BenchQuery
+from service.api.deps import BenchQuery, JobsDep
+from service.api.models.problem import READ, problem_responses
+from service.api.models.tilt import Tilt
 from service.bench.corrected import (
     calibrated_range_note,
     calibration_json,
@@ -20,12 +23,12 @@ from service.bench.corrected import (
 router = APIRouter(tags=["tilt"])
 
 
-def _pair(r) -> dict | None:  # type: ignore[no-untyped-def]
+def _pair(r: Any) -> dict[str, float] | None:
     return None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}
 
 
-@router.get("/tilt")
-async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
+@router.get("/tilt", response_model=Tilt, responses=problem_responses(*READ, 404))
+async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader) -> Tilt:
     """Table tilt: the measurement sensor's latest reading through the active record, in the reference
     sensor's frame, with its expanded uncertainty (GUM, 95 %; coverage factors k, k_y from the effective degrees of
     freedom) from the record's covariance; null with
@@ -36,9 +39,9 @@ async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
     now = dt.datetime.now(dt.UTC)
     meas = bench.latest("measurement_sensor")
     ref = bench.latest("reference_sensor")
-    active = request.app.state.jobs.active.get(bench.name)
+    active = jobs.active.get(bench.name)
     age_s = stale = None
-    notes = []
+    notes: list[str] = []
     table = None
     if bench.kind != "stage":
         notes.append(f"{bench.name} is a {bench.kind} bench: table tilt is served for stage benches")
@@ -53,7 +56,7 @@ async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
             st = bench.devices["measurement_sensor"].status
             notes.append(f"measurement_sensor on {st.port} has sent nothing for {age_s:.2f} s ({st.state})")
         if active is None:
-            why = request.app.state.jobs.inactive_notes.get(bench.name)
+            why = jobs.inactive_notes.get(bench.name)
             notes.append("no active calibration record: raw readings only (POST /records/{id}/activate)"
                          + (f"; {why}" if why else ""))
         elif not stale:
@@ -63,11 +66,12 @@ async def tilt(bench: BenchQuery, request: Request, _: Reader) -> dict:
             if in_calibrated_range(active, table) is False:
                 notes.append(calibrated_range_note(active, table))
     pose = bench.pose
-    return {"bench": bench.name, "time_utc": meas.time_utc if meas else now, "age_s": age_s, "stale": stale,
-            "table_tilt": table,
-            "raw": {"measurement_sensor": _pair(meas), "reference_sensor": _pair(ref)},
-            "temp_c": sensor_temp_c(meas, ref),
-            "stage": {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None,
-            "calibration": calibration_json(active),
-            "in_calibrated_range": in_calibrated_range(active, table),
-            "note": "; ".join(notes)}
+    return Tilt.model_validate({
+        "bench": bench.name, "time_utc": meas.time_utc if meas else now, "age_s": age_s, "stale": stale,
+        "table_tilt": table,
+        "raw": {"measurement_sensor": _pair(meas), "reference_sensor": _pair(ref)},
+        "temp_c": sensor_temp_c(meas, ref),
+        "stage": {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None,
+        "calibration": calibration_json(active),
+        "in_calibrated_range": in_calibrated_range(active, table),
+        "note": "; ".join(notes)})

@@ -6,40 +6,29 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request
-from fastapi.encoders import jsonable_encoder
-from fastapi.responses import JSONResponse
-from pydantic import BaseModel, ConfigDict, Field
+from fastapi import APIRouter, Path, Query, Response
 from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Admin
+from service.api.deps import StoreDep, TokenCacheDep
+from service.api.models.problem import READ, WRITE, problem_responses
+from service.api.models.tokens import CreatedToken, NewToken, Token, Tokens
 from service.api.problems import ProblemError
 from service.errors import InputError
-from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.errors import ConflictError
 from service.storage.models import ApiToken
-from service.storage.tokens import SCOPES
 
 router = APIRouter(prefix="/tokens", tags=["tokens"])
 
 
-class NewToken(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    name: Annotated[str, Field(description="1-100 letters, digits, '.', '_', '@' or '-', unique among active and "
-                                           "revoked tokens", examples=["lims-reader"])]
-    scopes: Annotated[list[str], Field(min_length=1, description=f"some of {', '.join(SCOPES)}; "
-                                                                 "admin implies operate, operate implies read",
-                                       examples=[["read"]])]
+def token_body(row: ApiToken) -> Token:
+    return Token(name=row.name, scopes=list(row.scopes), created_utc=row.created_at, created_by=row.created_by,
+                 revoked_utc=row.revoked_at)
 
 
-def token_json(row: ApiToken) -> dict:
-    return {"name": row.name, "scopes": list(row.scopes), "created_utc": row.created_at, "created_by": row.created_by,
-            "revoked_utc": row.revoked_at}
-
-
-@router.post("", status_code=201)
-async def create(body: NewToken, request: Request, who: Admin) -> JSONResponse:
+@router.post("", status_code=201, response_model=CreatedToken, responses=problem_responses(*WRITE, 409))
+async def create(body: NewToken, response: Response, store: StoreDep, who: Admin) -> CreatedToken:
     """A new token; its text is in this answer only (store it now: it cannot be shown again)."""
-    store = request.app.state.store
     try:
         row, token = await run_in_threadpool(store.create_token, body.name, body.scopes, actor=who.name)
     except ConflictError as exc:
@@ -47,28 +36,23 @@ async def create(body: NewToken, request: Request, who: Admin) -> JSONResponse:
     except InputError as exc:
         field = "scopes" if str(exc).startswith("scopes") else "name"
         raise ProblemError(422, "Unusable token", str(exc), field=field) from None
-    out = {**token_json(row), "token": token}
-    return JSONResponse(jsonable_encoder(out), status_code=201, headers={"Location": f"/tokens/{row.name}",
-                                                                 "Cache-Control": "no-store"})
+    response.headers["Location"] = f"/tokens/{row.name}"
+    response.headers["Cache-Control"] = "no-store"
+    return CreatedToken(**token_body(row).model_dump(), token=token)
 
 
-@router.get("")
-async def list_tokens(request: Request, _: Admin,
-                      include_revoked: Annotated[bool, Query(description="list revoked tokens too")] = False) -> dict:
+@router.get("", response_model=Tokens, responses=problem_responses(*READ))
+async def list_tokens(store: StoreDep, _: Admin,
+                      include_revoked: Annotated[bool, Query(description="list revoked tokens too")] = False) -> Tokens:
     """Every token's name, scopes, creation and revocation; never a token's text."""
-    rows = await run_in_threadpool(request.app.state.store.tokens, include_revoked=include_revoked)
-    return {"tokens": [token_json(r) for r in rows]}
+    rows = await run_in_threadpool(store.tokens, include_revoked=include_revoked)
+    return Tokens(tokens=[token_body(r) for r in rows])
 
 
-@router.delete("/{name}")
-async def revoke(name: str, request: Request, who: Admin) -> dict:
+@router.delete("/{name}", response_model=Token, responses=problem_responses(*READ, 404))
+async def revoke(name: Annotated[str, Path(max_length=100)], store: StoreDep, cache: TokenCacheDep, who: Admin) -> Token:
     """Revoke a token: requests with it are refused (401) from this answer on."""
-    try:
-        row = await run_in_threadpool(request.app.state.store.revoke_token, name, actor=who.name)
-    except UnknownEntity as exc:
-        raise ProblemError(404, "Unknown token", f"name: {exc}", field="name") from None
-    cache = getattr(request.app.state, "token_cache", None)
+    row = await run_in_threadpool(store.revoke_token, name, actor=who.name)
     if cache is not None:
         cache.clear()  # the revoked token stops working now, not when its cache entry runs out
-    return token_json(row)
-
+    return token_body(row)

@@ -121,6 +121,24 @@ class RecordsStore(ActivationStore):
                 raise UnknownEntity(f"calibration record {record_id} does not exist")
             return record
 
+    def records_of_jobs(self, job_ids: Sequence[int]) -> dict[int, CalibrationRecord]:
+        """The record each of these jobs made, the first made from its points (an adopted diagnosis adds later
+        versions); jobs that made none are left out. One query."""
+        if not job_ids:
+            return {}
+        out: dict[int, CalibrationRecord] = {}
+        with self._read() as s:
+            for r in s.scalars(sa.select(CalibrationRecord).where(CalibrationRecord.job_id.in_(list(job_ids)))
+                               .order_by(CalibrationRecord.id)):
+                if r.job_id is not None:
+                    out.setdefault(r.job_id, r)
+        return out
+
+    def active_record_ids(self) -> set[int]:
+        """The ids of every record in use (one per device and kind)."""
+        with self._read() as s:
+            return set(s.scalars(sa.select(ActiveCalibration.record_id)))
+
     def records(self, device_id: int, kind: str | None = None) -> list[CalibrationRecord]:
         with self._read() as s:
             stmt = sa.select(CalibrationRecord).where(CalibrationRecord.device_id == device_id)

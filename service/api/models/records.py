@@ -1,0 +1,89 @@
+"""Bodies of the calibration record routes."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any, Literal
+
+from pydantic import Field
+
+from service.api.models.base import Answer
+
+RecordStatus = Literal["draft", "approved", "rejected"]
+
+
+class CalibratedRange(Answer):
+    frame: str = Field(description="the frame of the tilts: reference_sensor")
+    x_deg: list[float] = Field(description="[min, max]")
+    y_deg: list[float] = Field(description="[min, max]")
+
+
+class Record(Answer):
+    id: int
+    device_id: int
+    bench: str | None
+    kind: str
+    version: int
+    method: str
+    created_utc: dt.datetime
+    operator: str
+    job_id: int | None
+    active: bool = Field(description="whether /tilt and levelling use this record")
+    validation: dict[str, Any] | None
+    temp_c: float | None
+    conditions: dict[str, Any] | None
+    raw_data: dict[str, Any] | None
+    supersedes_id: int | None
+    content_sha256: str
+    reference_standards: list[Any] | None
+    status: RecordStatus
+    budget: Any = Field(None, description="the uncertainty budget of the record's results")
+    calibrated_range: CalibratedRange | None = Field(None, description="the table tilts a stage record was fitted on")
+
+
+class RecordList(Answer):
+    records: list[Record]
+
+
+class Covariance(Answer):
+    names: list[str]
+    matrix: list[list[float | None]]
+
+
+class ModelFile(Answer):
+    """MODEL.json: the fitted model as `tiltlab correct --model` reads it."""
+
+    format_version: int
+    kind: str
+    method: str
+    columns: list[str]
+    parameters: dict[str, dict[str, Any]]
+    covariance: Covariance | None = None
+    residuals: Any = None
+    fit: Any = None
+    notes: list[str] | None = None
+    options: Any = None
+    state: Any = None
+    provenance: Any = None
+
+
+class ResidualPoint(Answer):
+    point: int
+    role: Literal["fit", "validation"]
+    stage_x_deg: float
+    stage_y_deg: float
+    ref_x_deg: float
+    ref_y_deg: float
+    before_x_deg: float
+    before_y_deg: float
+    after_x_deg: float
+    after_y_deg: float
+
+
+class Residuals(Answer):
+    record_id: int
+    method: str
+    n_fit: int
+    rms_before_deg: float | None
+    rms_after_deg: float | None
+    points: list[ResidualPoint]
