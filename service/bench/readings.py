@@ -6,6 +6,7 @@ Outlier rule, stated once: a sample whose modified z-score |0.6745 (v - median) 
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,19 +28,20 @@ def channels(r: Reading) -> tuple[float, ...]:
 
 async def fresh_readings(bench: BenchRuntime, role: str, n: int, *, after_bench_s: float,
                          timeout_s: float) -> list[Reading]:
-    """The next `n` readings of a role stamped after `after_bench_s` (bench seconds)."""
+    """The next `n` readings of a role stamped after `after_bench_s` (bench seconds). `timeout_s` is
+    bench time (what the readings take to come), waited for in real time, and never less than 2 real
+    seconds: a sped-up simulation on a loaded machine lags its bench clock."""
     out: list[Reading] = []
     last = after_bench_s
     interval = bench.output_interval_s(role)
-    # At least 2 s of real time: a sped-up simulation on a loaded machine may lag its bench clock.
-    timeout_s = max(timeout_s, bench.clock.bench_seconds(2.0))
-    deadline = bench.clock.monotonic() + timeout_s
+    timeout_s = max(bench.clock.real_seconds(timeout_s), 2.0)
+    deadline = time.monotonic() + timeout_s
     while len(out) < n:
         new = bench.readings_after(role, last)[:n - len(out)]
         if new:
             out += new
             last = new[-1].bench_s
-        elif bench.clock.monotonic() > deadline:
+        elif time.monotonic() > deadline:
             st = bench.devices[role].status
             raise DeviceNotAnswering(f"{role} on {st.port}: no reading for {timeout_s:g} s ({st.state}"
                                      + (f": {st.error}" if st.error else "") + ")")
@@ -78,13 +80,14 @@ async def settle(bench: BenchRuntime, roles: tuple[str, ...], *, tolerance_deg: 
     """Wait until every role's mean over the last `window_s` differs from its mean over the window
     before by at most `tolerance_deg` on every channel (a drift criterion: reading noise averages out).
 
-    Only readings made after the call count (`bench.sync`). Returns the bench time at which they
-    settled; raises TimeoutError naming the roles that did not, DeviceNotAnswering (role and port)
-    as soon as one of them is not connected.
+    `timeout_s` is real seconds, whatever the simulation speed: a loaded machine running a sped-up
+    simulation must not run out of it while its bench clock lags. Only readings made after the call
+    count (`bench.sync`). Returns the bench time at which they settled; raises TimeoutError naming
+    the roles that did not, DeviceNotAnswering (role and port) as soon as one of them is not connected.
     """
     # only readings made after the call count: a lagging reader may still hold some from the move
     start = await bench.sync(roles)
-    timeout_s = max(timeout_s, bench.clock.bench_seconds(5.0))  # a sped-up simulation may lag under load
+    waited_from = time.monotonic()
     history: dict[str, list[Reading]] = {r: [] for r in roles}
     while True:
         now = bench.clock.monotonic()
@@ -105,7 +108,7 @@ async def settle(bench: BenchRuntime, roles: tuple[str, ...], *, tolerance_deg: 
                 moving.append(role)
         if not moving:
             return now
-        if now - start > timeout_s:
+        if time.monotonic() - waited_from > timeout_s:
             raise TimeoutError(f"readings of {', '.join(moving)} did not settle within {tolerance_deg:g} deg"
                                f" between windows of {window_s:g} s in {timeout_s:g} s")
         await bench.clock.sleep(min(bench.output_interval_s(r) for r in roles) / 2)

@@ -11,18 +11,21 @@ import asyncio
 import contextlib
 import datetime as dt
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import TypeVar
 
 from service.benchconfig import BenchConfig
 from service.clock import Clock
 from service.instruments import controller
 from service.instruments.base import DeviceIdentity, Reading
 from service.instruments.bench import BenchDevices, open_bench
-from service.instruments.transport import DeviceError, DeviceRefused
+from service.instruments.drivers import IDLE_POLL_MISSES
+from service.instruments.transport import DeviceError, DeviceRefused, DeviceTimeout
 
 log = logging.getLogger("tiltlab.bench")
+T = TypeVar("T")
 
 STAGE_POLL_S = 0.1  # bench seconds between pose queries
 TEMPERATURE_POLL_S = 10.0  # bench seconds between temperature queries of sensors whose frames carry none
@@ -84,6 +87,18 @@ class BenchHold:
     @classmethod
     def job(cls, job_id: int) -> BenchHold:
         return cls(Hold.JOB, job_id)
+
+
+async def polled(query: Callable[[], Awaitable[T]], misses: int = IDLE_POLL_MISSES) -> T:
+    """A poll of a device's state or position, asked again when its answer is lost on the line:
+    only `misses` unanswered in a row raise (a single lost answer under load is not a lost device)."""
+    for attempt in range(1, misses + 1):
+        try:
+            return await query()
+        except DeviceTimeout:
+            if attempt == misses:
+                raise
+    raise AssertionError("unreachable")
 
 
 @dataclass
@@ -202,12 +217,12 @@ class BenchRuntime:
     async def refresh_pose(self) -> None:
         if "stage" in self.devices:
             stage = self.devices["stage"]
-            x, y = await stage.position_deg()
-            moving = "moving" in (await stage.x.state(), await stage.y.state())
+            x, y = await polled(stage.position_deg)
+            moving = "moving" in (await polled(stage.x.state), await polled(stage.y.state))
             self.pose.x_deg, self.pose.y_deg, self.pose.moving = x, y, moving
             self.pose.time_utc = self.clock.utc()
         if "rotary_table" in self.devices:
-            self.rotary_deg = await self.devices["rotary_table"].position_deg()
+            self.rotary_deg = await polled(self.devices["rotary_table"].position_deg)
 
     # ------------------------------------------------------------ ownership and motion
 

@@ -18,6 +18,14 @@ def sim_temp(client) -> float:
     return client.app.state.bench.sim.world.temp_c()
 
 
+def _wait_bench_seconds(bench, seconds: float, timeout_s: float = 30.0) -> None:
+    """Until the bench's clock has run `seconds` (bench time), within a real-time deadline."""
+    until, deadline = bench.clock.monotonic() + seconds, time.monotonic() + timeout_s
+    while bench.clock.monotonic() < until:
+        assert time.monotonic() < deadline, "the bench clock did not advance"
+        time.sleep(0.01)
+
+
 def fresh_tilt(client, h, attempts: int = 40) -> dict:
     """GET /tilt until it is not stale: a test client sharing its process with a sped-up bench may
     see the reader a few tenths of a second behind on a loaded machine, and /tilt rightly says so."""
@@ -47,7 +55,7 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
     sim = client.app.state.bench.sim
     for pose in [(0.0, 0.0), (1.5, -1.0), (-1.2, 1.7)]:
         assert client.post("/stage/move", headers=h, json={"x_deg": pose[0], "y_deg": pose[1]}).status_code == 200
-        time.sleep(0.3)
+        _wait_bench_seconds(client.app.state.bench, 6.0)  # the sensors' readings after the move
         t = fresh_tilt(client, h)
         truth = sim.world.true_tilt_deg()
         assert t["table_tilt"] is not None, t

@@ -31,6 +31,14 @@ def _wait_points(get, n, timeout_s=120.0) -> dict:
         time.sleep(0.05)
 
 
+def _wait_bench_seconds(bench, seconds: float, timeout_s: float = 30.0) -> None:
+    """Until the bench's clock has run `seconds` (bench time), within a real-time deadline."""
+    until, deadline = bench.clock.monotonic() + seconds, time.monotonic() + timeout_s
+    while bench.clock.monotonic() < until:
+        assert time.monotonic() < deadline, "the bench clock did not advance"
+        time.sleep(0.01)
+
+
 def _settled(engine, job_id) -> int:
     with engine.connect() as c:
         return c.execute(sa.text("SELECT count(*) FROM settled_points WHERE job_id = :j"), {"j": job_id}).scalar()
@@ -72,7 +80,7 @@ def test_stop_during_a_move_acts_at_once_and_fails_the_job(daemon):
     assert job["state"] == "failed" and "stopped by POST /stage/stop" in job["error"], job
     world = bench.sim.world
     pose = world.pose_deg
-    time.sleep(0.3)
+    _wait_bench_seconds(bench, 6.0)
     assert world.pose_deg == pose  # standing
     assert all(a.state == controller.STATE_READY for a in world.axes.values())
     # the bench is free again

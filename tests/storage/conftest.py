@@ -58,11 +58,16 @@ def db_url(backend: str, tmp_path) -> Iterator[str]:  # type: ignore[no-untyped-
         conn.execute(sa.text(f'CREATE SCHEMA "{schema}"'))
     # synchronous_commit=off: tests need no durability, and DDL-heavy commits wait less.
     options = f"-csearch_path={schema} -csynchronous_commit=off"
-    url = sa.make_url(PG_URL).update_query_dict({"options": options})
+    # application_name marks the schema's connections, so teardown can end them (a killed writer's
+    # backend may still hold locks that DROP SCHEMA would wait on for ever)
+    url = sa.make_url(PG_URL).update_query_dict({"options": options, "application_name": schema})
     try:
         yield url.render_as_string(hide_password=False)
     finally:
         with admin.begin() as conn:
+            conn.execute(sa.text("SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
+                                 " WHERE application_name = :schema"), {"schema": schema})
+            conn.execute(sa.text("SET lock_timeout = '20s'"))
             conn.execute(sa.text(f'DROP SCHEMA "{schema}" CASCADE'))
 
 

@@ -225,7 +225,10 @@ def test_slow_client_gets_drops_then_closed_others_see_no_gap(daemon: Daemon) ->
 
     async def run() -> tuple[list[dict], int, str]:
         tasks = [asyncio.create_task(fast(0)), asyncio.create_task(fast(1))]
-        await asyncio.sleep(0.3)
+        deadline = time.monotonic() + 30
+        while daemon.hub.client_count() < 2:  # both reading clients connected before the stuck one
+            assert time.monotonic() < deadline, "the reading clients did not connect"
+            await asyncio.sleep(0.02)
         try:
             return await slow()
         finally:
