@@ -40,6 +40,10 @@ def field_path(loc: Sequence[int | str]) -> str:
     return out or (str(loc[0]) if loc else "")
 
 
+# FastAPI's 400 for a body it could not even decode; a body that cannot be used is a 422 here, like any other
+BODY_NOT_PARSED = "There was an error parsing the body"
+
+
 def install(app: FastAPI) -> None:
     """Every error of the application as a problem: ours, FastAPI's validation, Starlette's HTTP errors."""
 
@@ -81,4 +85,7 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code == 400 and exc.detail == BODY_NOT_PARSED:  # e.g. bytes that are not UTF-8 text
+            return problem(422, "Invalid request", "body: not valid JSON (the bytes are not UTF-8 text); send one JSON"
+                           " object with Content-Type: application/json", instance=str(request.url.path), field="body")
         return problem(exc.status_code, str(exc.detail), str(exc.detail), instance=str(request.url.path))
