@@ -70,10 +70,16 @@ def test_two_daemons_serve_one_fleet(tmp_path: Path, nats_server: NatsServer, da
                                  lambda j: j["state"] in ("succeeded", "failed", "cancelled"), timeout_s=300)
                 assert job["state"] == "succeeded", (job["error"], job)
                 assert job["bench"] == bench
+                for node in (a, b):  # the jobs of either bench, listed through either node
+                    listed = httpx.get(f"{node.url}/calibrations", headers=auth, params={"bench": bench}).json()
+                    assert [j["id"] for j in listed["jobs"]] == [job_id]
                 record_id = job["record"]["id"]
                 for node in (a, b):  # the records of both benches, read through either node
                     record = httpx.get(f"{node.url}/records/{record_id}", headers=auth)
                     assert record.status_code == 200, record.text
+                    assert record.json()["bench"] == bench
+                    listed = httpx.get(f"{node.url}/records", headers=auth, params={"bench": bench}).json()["records"]
+                    assert [r["id"] for r in listed] == [record_id]
 
             # node b's bench through node a: /tilt (with the node it came from) and its live readings
             tilt = httpx.get(f"{a.url}/tilt", headers=auth, params={"bench": "bench-b"})

@@ -81,7 +81,11 @@ def list_jobs(benches: BenchesDep, store: StoreDep, _: Reader,
               cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description="next_cursor of the previous page")] = None,
               limit: Annotated[int, Query(ge=1, le=500)] = 50) -> JobList:
     """Jobs newest first, filtered by state, bench and last change; `next_cursor` pages on."""
-    bench_id = find_bench(benches, bench).bench_id if bench is not None else None
+    bench_id = None
+    if bench is not None:  # a bench of this daemon, or of another daemon of the lab (the database knows it)
+        bench_id = benches[bench].bench_id if bench in benches else store.bench_id_of(bench)
+        if bench_id is None:
+            find_bench(benches, bench)  # the 404 naming the benches there are
     if updated_since is not None and updated_since.tzinfo is None:
         raise ProblemError(422, "Invalid request", "updated_since: give a time zone (e.g. Z)", field="updated_since")
     found = store.list_jobs(state=state, bench_id=bench_id, updated_since=updated_since, before_id=cursor, limit=limit)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from typing import Any
 
 import sqlalchemy as sa
@@ -109,6 +109,29 @@ class DevicesStore(StoreBase):
     def devices(self) -> list[Device]:
         with self._read() as s:
             return list(s.scalars(sa.select(Device).order_by(Device.id)))
+
+    def bench_names_of_devices(self, device_ids: Collection[int]) -> dict[int, str]:
+        """device id -> the name of the bench it was last registered on, for devices of any daemon of the lab."""
+        if not device_ids:
+            return {}
+        with self._read() as s:
+            rows = s.execute(sa.select(Device.id, Bench.name).join(Bench, Device.bench_id == Bench.id)
+                             .where(Device.id.in_(list(device_ids))))
+            return {int(device_id): str(name) for device_id, name in rows}
+
+    def bench_id_of(self, name: str) -> int | None:
+        """The id of the bench of that name, whichever daemon of the lab runs it."""
+        with self._read() as s:
+            bench_id: int | None = s.scalar(sa.select(Bench.id).where(Bench.name == name))
+            return bench_id
+
+    def device_ids_of_bench(self, name: str) -> list[int] | None:
+        """The devices registered on the bench of that name (whichever daemon runs it); None if no bench has it."""
+        with self._read() as s:
+            bench_id = s.scalar(sa.select(Bench.id).where(Bench.name == name))
+            if bench_id is None:
+                return None
+            return list(s.scalars(sa.select(Device.id).where(Device.bench_id == bench_id)))
 
     def benches(self) -> list[Bench]:
         with self._read() as s:
