@@ -377,9 +377,10 @@ function openReadings() {
 
 const ROLE_OF_KIND = { stage: "measurement_sensor", scale: "adc_sensor", rotation: "triaxial_sensor", turntable: "turntable_sensor" };
 
-// A bench in the selector: its name, and in a fleet the node it hangs off (and whether that node is offline).
-function benchLabel(x) {
-  if (!x.node) return x.name;
+// A bench in the selector: its name, and in a fleet (benches on more than one node) the node it hangs off
+// and whether that node is offline. A daemon alone names only its benches.
+function benchLabel(x, benches) {
+  if (!x.node || new Set(benches.map((y) => y.node)).size < 2) return x.name;
   return `${x.name} · ${x.node}${x.online === false ? " (offline)" : ""}`;
 }
 
@@ -388,7 +389,7 @@ async function loadBenches() {
   state.benches = b.benches;
   const sel = $("bench-select");
   if (!sel.options.length) {
-    for (const x of b.benches) sel.append(el("option", { value: x.name }, benchLabel(x)));
+    for (const x of b.benches) sel.append(el("option", { value: x.name }, benchLabel(x, b.benches)));
     const first = b.benches.find((x) => x.kind === "stage") || b.benches[0];
     state.bench = first ? first.name : null;
     sel.value = state.bench;
@@ -408,7 +409,7 @@ async function refreshStatus() {
     state.benches = b.benches;
     for (const opt of $("bench-select").options) {  // a fleet's benches come and go with their nodes
       const x = b.benches.find((y) => y.name === opt.value);
-      if (x) opt.textContent = benchLabel(x);
+      if (x) opt.textContent = benchLabel(x, b.benches);
     }
     const me = b.benches.find((x) => x.name === state.bench);
     $("bench-state").textContent = me ? `${me.state}${me.held_by ? `: ${me.held_by}` : ""}` : "?";

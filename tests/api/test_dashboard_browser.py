@@ -94,6 +94,10 @@ def test_token_is_kept_for_the_session_and_leaves_the_address_bar(page, bench):
     expect(page.locator("#auth")).to_be_hidden()
 
 
+def test_a_daemon_alone_names_its_benches_without_a_node(page, bench):
+    expect(page.locator("#bench-select option[value=sim-stage]")).to_have_text("sim-stage", timeout=T)
+
+
 def test_live_chart_receives_and_draws_readings(page, bench):
     page.wait_for_function("window.tiltlab.live.received > 50", timeout=T)
     # uPlot drew into both charts: its canvas, and the points the last redraw held
