@@ -62,6 +62,7 @@ def test_the_contracts_families_are_there_and_move_with_the_bench(daemon) -> Non
                 break
             assert time.monotonic() < deadline, "no new frame counted in 30 s"
         assert value(later, "tiltlab_websocket_clients", "tiltlab_websocket_clients") == 1
+        ws.close()  # closed here, not by leaving the block while the stream's sender may be mid-send
     tilt_requests = value(later, "tiltlab_http_requests", "tiltlab_http_requests_total", route="/tilt",
                           method="GET", status="200")
     assert tilt_requests == 3  # by route template and status, one per request
