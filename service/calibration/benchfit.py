@@ -9,10 +9,11 @@ variance per degree of freedom.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
 from service.errors import DegenerateDataError, FitError
@@ -36,15 +37,15 @@ def typical_scale(key: ParamKey) -> float:
 class StagePoints:
     """The covariates of recorded stage points, with the defaults a missing column means."""
 
-    stage_x_deg: np.ndarray
-    stage_y_deg: np.ndarray
-    dir_x: np.ndarray
-    dir_y: np.ndarray
-    temp_c: np.ndarray | None = None
-    t_s: np.ndarray | None = None
+    stage_x_deg: NDArray[np.float64]
+    stage_y_deg: NDArray[np.float64]
+    dir_x: NDArray[np.float64]
+    dir_y: NDArray[np.float64]
+    temp_c: NDArray[np.float64] | None = None
+    t_s: NDArray[np.float64] | None = None
 
     @classmethod
-    def from_columns(cls, data: Mapping[str, np.ndarray]) -> StagePoints:
+    def from_columns(cls, data: Mapping[str, NDArray[np.float64]]) -> StagePoints:
         x = np.asarray(data["stage_x_deg"], dtype=float)
         y = np.asarray(data["stage_y_deg"], dtype=float)
         z = np.zeros_like(x)
@@ -64,14 +65,14 @@ class BenchModel:
     fixed: dict[str, dict[str, float]]
     free: list[ParamKey]
 
-    def effect_set(self, values: Sequence[float]) -> EffectSet:
+    def effect_set(self, values: Iterable[float]) -> EffectSet:
         eff: dict[str, dict[str, float]] = {k: dict(v) for k, v in self.fixed.items()}
         for (e, p), v in zip(self.free, values):
             eff.setdefault(e, {})[p] = float(v)
         eff.pop("noise", None)
         return EffectSet.from_mapping("stage", eff)
 
-    def predict(self, values: Sequence[float], pts: StagePoints, outputs: Sequence[str]) -> np.ndarray:
+    def predict(self, values: Iterable[float], pts: StagePoints, outputs: Sequence[str]) -> NDArray[np.float64]:
         """Noise-free predictions (N, len(outputs)); outputs are column names such as ref_x_deg or tilt_x_deg."""
         fx = self.effect_set(values)
         sim = simulate_stage(self.bench, fx, pts.stage_x_deg, pts.stage_y_deg, pts.dir_x, pts.dir_y,
@@ -82,16 +83,16 @@ class BenchModel:
 @dataclass
 class BenchFit:
     model: BenchModel
-    values: np.ndarray
-    covariance: np.ndarray
-    residuals: dict[str, np.ndarray]
+    values: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    residuals: dict[str, NDArray[np.float64]]
     sigma: float
     dof: int
     cost: float
     converged: bool
     nfev: int
     message: str
-    jac_singular_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    jac_singular_values: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
     def value(self, key: ParamKey) -> float:
         return float(self.values[self.model.free.index(key)])
@@ -109,15 +110,15 @@ class BenchFit:
         return int(sum(r.size for r in self.residuals.values()))
 
 
-def robust_scale(residuals: np.ndarray) -> float:
+def robust_scale(residuals: NDArray[np.float64]) -> float:
     """Soft threshold of a robust loss: 3 x the MAD-based standard deviation of the residuals."""
     r = np.asarray(residuals, dtype=float)
     mad = float(np.median(np.abs(r - np.median(r))))
     return max(3.0 * 1.4826 * mad, 1e-5)
 
 
-def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, np.ndarray],
-              x0: Sequence[float] | np.ndarray | None = None, loss: str = "linear", f_scale: float | None = None,
+def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, NDArray[np.float64]],
+              x0: Sequence[float] | NDArray[np.float64] | None = None, loss: str = "linear", f_scale: float | None = None,
               max_nfev: int = 2000) -> BenchFit:
     """Least-squares fit of the free parameters to the observed columns (e.g. ref_x_deg, ref_y_deg)."""
     outputs = list(observed)
@@ -129,8 +130,9 @@ def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, np.nda
     start = np.zeros(n_par) if x0 is None else np.asarray(x0, dtype=float)
     scales = np.array([typical_scale(k) for k in model.free])
 
-    def resid(x):
-        return (model.predict(x, pts, outputs) - obs).ravel()
+    def resid(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        r: NDArray[np.float64] = (model.predict(x, pts, outputs) - obs).ravel()
+        return r
 
     if n_par == 0:
         r = resid(start)
@@ -164,7 +166,8 @@ def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, np.nda
                    str(sol.message), sv)
 
 
-def _result(model, x, cov, r, outputs, shape, s2, ok, nfev, msg, sv) -> BenchFit:
+def _result(model: BenchModel, x: ArrayLike, cov: NDArray[np.float64], r: ArrayLike, outputs: Sequence[str], shape: tuple[int, ...],
+            s2: float, ok: bool, nfev: int, msg: str, sv: NDArray[np.float64] | None) -> BenchFit:
     rr = np.asarray(r).reshape(shape)
     res = {o: rr[:, i] for i, o in enumerate(outputs)}
     dof = max(rr.size - len(model.free), 1)

@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.uncertainty import COVERAGE, coverage_factor, dof_of_coverage_factor
 
@@ -78,7 +79,7 @@ def resolution_component(name: str, resolution_deg: float) -> Component:
                      note=f"resolution {resolution_deg:.3g} deg: u = r/√12")
 
 
-def temperature_component(temps_c: np.ndarray, errors_deg: np.ndarray) -> tuple[Component | None, dict[str, Any]]:
+def temperature_component(temps_c: NDArray[np.float64], errors_deg: NDArray[np.float64]) -> tuple[Component | None, dict[str, Any]]:
     """The temperature's influence left in the fit's residuals, and the temperature's statistics.
 
     Returns (None, stats) where the temperature did not vary (span below TEMPERATURE_VARIED_C) or
@@ -106,18 +107,18 @@ def temperature_component(temps_c: np.ndarray, errors_deg: np.ndarray) -> tuple[
 
 @dataclass(frozen=True)
 class Combined:
-    u: np.ndarray
-    dof_eff: np.ndarray
-    k: np.ndarray
-    U: np.ndarray
+    u: NDArray[np.float64]
+    dof_eff: NDArray[np.float64]
+    k: NDArray[np.float64]
+    U: NDArray[np.float64]
 
 
-def combine(u_fit: np.ndarray | float, dof_fit: np.ndarray | float, others: Sequence[Component],
+def combine(u_fit: NDArray[np.float64] | float, dof_fit: NDArray[np.float64] | float, others: Sequence[Component],
             coverage: float = COVERAGE) -> Combined:
     """u_c = √(u_fit² + Σ u_i²) with Welch-Satterthwaite degrees of freedom and U = k·u_c (vectorised over u_fit)."""
     uf = np.asarray(u_fit, dtype=float)
     nu = np.broadcast_to(np.asarray(dof_fit, dtype=float), uf.shape)
-    parts: list[tuple[np.ndarray, float]] = []
+    parts: list[tuple[NDArray[np.float64], float]] = []
     var = uf**2
     total = var.copy()
     for c in others:
@@ -189,8 +190,8 @@ def record_budget(
     resolutions_deg: Mapping[str, float | None],
     tilt_u_fit_deg: tuple[float, float] | None = None,
     tilt_dof_fit: tuple[float, float] | None = None,
-    temps_c: np.ndarray | None = None,
-    errors_deg: np.ndarray | None = None,
+    temps_c: NDArray[np.float64] | None = None,
+    errors_deg: NDArray[np.float64] | None = None,
     coverage: float = COVERAGE,
 ) -> dict[str, Any]:
     """The budget a record keeps: the shared components and one entry per result.

@@ -11,17 +11,18 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 REL_STEP = 1e-6
 
 
-def fd_step(value, typical=0.0) -> np.ndarray:
+def fd_step(value: ArrayLike, typical: ArrayLike = 0.0) -> NDArray[np.float64]:
     """Finite-difference step for `value` (array or scalar) whose typical magnitude is `typical`."""
     h = REL_STEP * np.maximum(np.abs(np.asarray(value, dtype=float)), np.asarray(typical, dtype=float))
     return np.where(h > 0, h, REL_STEP)
 
 
-def central_jacobian(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray, typical) -> np.ndarray:
+def central_jacobian(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], x: NDArray[np.float64], typical: ArrayLike) -> NDArray[np.float64]:
     """d fun / d x by central differences, the parameter axis last: (..., n) for fun(x) of shape (...)."""
     x = np.asarray(x, dtype=float)
     steps = np.broadcast_to(fd_step(x, typical), x.shape)

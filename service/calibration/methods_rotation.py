@@ -26,6 +26,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions, register
@@ -38,14 +39,14 @@ PARAM_NAMES = ("alpha_deg", "beta_deg", "gamma_deg")
 
 # --- points -------------------------------------------------------------------------------------
 
-def direct_points(sx, sy) -> np.ndarray:
+def direct_points(sx: ArrayLike, sy: ArrayLike) -> NDArray[np.float64]:
     """(Sx, Sy, Sz) with Sz = +sqrt(1 - Sx² - Sy²) (eq. 6 and the direct method's Sz ≥ 0 rule)."""
-    sx, sy = np.asarray(sx, dtype=float), np.asarray(sy, dtype=float)
-    sz = np.sqrt(np.clip(1.0 - sx**2 - sy**2, 0.0, None))
-    return np.column_stack([sx, sy, sz])
+    x, y = np.asarray(sx, dtype=float), np.asarray(sy, dtype=float)
+    z = np.sqrt(np.clip(1.0 - x**2 - y**2, 0.0, None))
+    return np.column_stack([x, y, z])
 
 
-def iodsra_points(sx, sy, sz) -> tuple[np.ndarray, np.ndarray]:
+def iodsra_points(sx: ArrayLike, sy: ArrayLike, sz: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
     """Seed 002 §2.2 (2): the one component above sin 45° (if any) replaced by eq. (6), sign kept.
 
     Returns the points and, per point, the index of the replaced component (-1: none). Noise
@@ -66,7 +67,7 @@ def iodsra_points(sx, sy, sz) -> tuple[np.ndarray, np.ndarray]:
     return out, replaced
 
 
-def _noise_gain(points: np.ndarray, replaced: np.ndarray, normal: np.ndarray, sigma: float) -> np.ndarray:
+def _noise_gain(points: NDArray[np.float64], replaced: NDArray[np.intp], normal: NDArray[np.float64], sigma: float) -> NDArray[np.float64]:
     """|∂r/∂(raw outputs)|² of the plane residual r = n·S - sin β: its variance per unit output variance.
 
     A component computed from eq. (6) carries the others' noise scaled by S_other / S_c, which is
@@ -83,16 +84,17 @@ def _noise_gain(points: np.ndarray, replaced: np.ndarray, normal: np.ndarray, si
                 if o != c:
                     grad[sel, o] = normal[o] - normal[c] * points[sel, o] / eff * np.where(pc < 0, -1.0, 1.0)
             grad[sel, c] = 0.0
-    return np.sum(grad**2, axis=1)
+    gain: NDArray[np.float64] = np.sum(grad**2, axis=1)
+    return gain
 
 
 # --- geometry ------------------------------------------------------------------------------------
 
-def plane_normal(alpha_rad, gamma_rad) -> np.ndarray:
+def plane_normal(alpha_rad: float, gamma_rad: float) -> NDArray[np.float64]:
     return np.array([np.sin(alpha_rad) * np.cos(gamma_rad), np.cos(alpha_rad) * np.cos(gamma_rad), -np.sin(gamma_rad)])
 
 
-def fit_plane(points: np.ndarray) -> tuple[float, float, float]:
+def fit_plane(points: NDArray[np.float64]) -> tuple[float, float, float]:
     """α, β, γ (radians, β ≥ 0) of the least-squares plane n·S = sin β through the points (eq. 10).
 
     Minimises Σ (n·S_i - d)² over unit n: the normal is the right singular vector of the
@@ -138,7 +140,8 @@ def flip_sense(alpha: float, beta: float, gamma: float) -> tuple[float, float, f
     return a, -beta, -gamma
 
 
-def rotation_equations(points: np.ndarray, alpha, beta, gamma) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rotation_equations(points: NDArray[np.float64], alpha: float, beta: float, gamma: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
+                                                                                                      NDArray[np.float64]]:
     """sin θ from eq. (7), cos θ from eq. (9), cos θ from eq. (8): each solved for the angle's function."""
     sx, sy, sz = points[:, 0], points[:, 1], points[:, 2]
     cb = np.cos(beta)
@@ -150,13 +153,13 @@ def rotation_equations(points: np.ndarray, alpha, beta, gamma) -> tuple[np.ndarr
     return sin7, cos9, cos8
 
 
-def equation9_region(points, alpha, beta, gamma) -> np.ndarray:
+def equation9_region(points: NDArray[np.float64], alpha: float, beta: float, gamma: float) -> NDArray[np.bool_]:
     """Where the paper takes eq. (9): near ±90°, i.e. where |sin θ| > sin 45° (45° < |θ| < 135°)."""
     sin7, cos9, _ = rotation_equations(points, alpha, beta, gamma)
     return np.abs(np.sin(np.arctan2(sin7, cos9))) > SIN45
 
 
-def theta_switch(points, alpha, beta, gamma, use9: np.ndarray | None = None) -> np.ndarray:
+def theta_switch(points: NDArray[np.float64], alpha: float, beta: float, gamma: float, use9: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:
     """θ (radians, ±π) by seed 002 §2.3: eq. (9) near ±90° with the sign of sin θ from eq. (7),
     eq. (7) elsewhere with the branch (|θ| < 90° or not) from the sign of cos θ in eq. (9)."""
     sin7, cos9, _ = rotation_equations(points, alpha, beta, gamma)
@@ -166,10 +169,11 @@ def theta_switch(points, alpha, beta, gamma, use9: np.ndarray | None = None) -> 
     t7 = np.where(cos9 < 0, np.copysign(np.pi, t7) - t7, t7)
     t9 = np.arccos(np.clip(cos9, -1.0, 1.0))
     t9 = np.where(sin7 < 0, -t9, t9)
-    return np.where(use9, t9, t7)
+    theta: NDArray[np.float64] = np.where(use9, t9, t7)
+    return theta
 
 
-def theta_combined(points, alpha, beta, gamma) -> np.ndarray:
+def theta_combined(points: NDArray[np.float64], alpha: float, beta: float, gamma: float) -> NDArray[np.float64]:
     """θ (radians) minimising |S - S(θ)|²: atan2 of the projections on the circle's two in-plane axes.
 
     e2 = (-cos α, sin α, 0) is eq. (7); e1 = (sin α sin γ, cos α sin γ, cos γ) is eq. (9)·cos γ +
@@ -177,10 +181,11 @@ def theta_combined(points, alpha, beta, gamma) -> np.ndarray:
     """
     e1 = np.array([np.sin(alpha) * np.sin(gamma), np.cos(alpha) * np.sin(gamma), np.cos(gamma)])
     e2 = np.array([-np.cos(alpha), np.sin(alpha), 0.0])
-    return np.arctan2(points @ e2, points @ e1)
+    theta: NDArray[np.float64] = np.arctan2(points @ e2, points @ e1)
+    return theta
 
 
-def wrap_deg(x):
+def wrap_deg(x: ArrayLike) -> NDArray[np.float64]:
     return (np.asarray(x, dtype=float) + 180.0) % 360.0 - 180.0
 
 
@@ -204,13 +209,14 @@ class _RotationMethod:
         self.correct_required = self.fit_required
 
     # points as the method sees them, and which component (if any) it computed from eq. (6)
-    def points(self, data: Columns) -> tuple[np.ndarray, np.ndarray]:
+    def points(self, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
         if self.uses_sz:
             return iodsra_points(data["sx"], data["sy"], data["sz"])
         p = direct_points(data["sx"], data["sy"])
         return p, np.full(p.shape[0], 2)
 
-    def theta(self, points, alpha, beta, gamma, use9=None) -> np.ndarray:
+    def theta(self, points: NDArray[np.float64], alpha: float, beta: float, gamma: float,
+              use9: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:
         if self.estimator == "combined":
             return theta_combined(points, alpha, beta, gamma)
         return theta_switch(points, alpha, beta, gamma, use9)
@@ -286,12 +292,12 @@ class _RotationMethod:
             covariance_names=list(PARAM_NAMES) if cov is not None else [], covariance=cov, residuals=residuals,
             fit=fit, notes=notes, state={"sigma_s": sigma_s})
 
-    def theta_deg(self, model: CalibrationModel, data: Columns) -> np.ndarray:
+    def theta_deg(self, model: CalibrationModel, data: Columns) -> NDArray[np.float64]:
         a, b, g = np.radians(model.values(PARAM_NAMES))
         pts, _ = self.points(data)
         return np.degrees(self.theta(pts, a, b, g))
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         p0 = model.values(PARAM_NAMES)
         a, b, g = np.radians(p0)
         pts, _ = self.points(data)
@@ -302,9 +308,10 @@ class _RotationMethod:
         if model.covariance is not None and sigma is not None:
             inputs = {c: np.asarray(data[c], dtype=float) for c in self.fit_required}
 
-            def f(p, x):
+            def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
                 pp, _ = self.points(x)
-                t = np.degrees(self.theta(pp, *np.radians(p), use9))
+                pa, pb, pg = np.radians(p)
+                t = np.degrees(self.theta(pp, pa, pb, pg, use9))
                 return theta0 + wrap_deg(t - theta0)  # no jump at ±180° inside the differences
 
             dof = float(model.fit.get("dof") or np.inf)  # cov and sigma_s both from the plane residuals

@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from typing import Any, TypedDict
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions, register_pattern
@@ -31,7 +33,7 @@ from service.errors import DegenerateDataError, InputError
 MAX_DEGREE = 6  # beyond this the monomial coefficients of 12-bit readings lose float64 precision
 
 
-def reference_arcsec(data: Columns) -> np.ndarray:
+def reference_arcsec(data: Columns) -> NDArray[np.float64]:
     if "ref_arcsec" in data:
         return np.asarray(data["ref_arcsec"], dtype=float)
     return np.asarray(data["ref_deg"], dtype=float) * 3600.0
@@ -47,7 +49,19 @@ def coefficient_unit(j: int) -> str:
     return {0: "arcsec", 1: "arcsec/count"}.get(j, f"arcsec/count^{j}")
 
 
-def polyfit(x: np.ndarray, y: np.ndarray, degree: int) -> dict:
+class PolyFit(TypedDict):
+    """A polynomial fit: coefficients (ascending), their covariance (None without degrees of freedom),
+    residuals, RSS, dof and s (None without degrees of freedom)."""
+
+    coef: NDArray[np.float64]
+    cov: NDArray[np.float64] | None
+    resid: NDArray[np.float64]
+    rss: float
+    dof: int
+    s: float | None
+
+
+def polyfit(x: NDArray[np.float64], y: NDArray[np.float64], degree: int) -> PolyFit:
     """Least-squares y = Σ c_j x^j, solved in a centred, scaled variable and returned in powers of x.
 
     Returns coefficients (ascending), their covariance (None without degrees of freedom), the
@@ -83,7 +97,7 @@ def polyfit(x: np.ndarray, y: np.ndarray, degree: int) -> dict:
     return {"coef": coef, "cov": cov, "resid": resid, "rss": rss, "dof": dof, "s": s}
 
 
-def f_test(rss_small: float, rss_big: float, dof_big: int) -> dict | None:
+def f_test(rss_small: float, rss_big: float, dof_big: int) -> dict[str, Any] | None:
     """F-test of one added term: F = (RSS_lower - RSS_higher) / (RSS_higher / dof_higher), F(1, dof)."""
     if dof_big <= 0:
         return None
@@ -96,7 +110,7 @@ def f_test(rss_small: float, rss_big: float, dof_big: int) -> dict | None:
     return {"F": F, "dof": [1, dof_big], "p_value": p, "significant_at_5pct": bool(p < 0.05)}
 
 
-def _monotonic(coef: np.ndarray, lo: float, hi: float) -> bool:
+def _monotonic(coef: NDArray[np.float64], lo: float, hi: float) -> bool:
     xs = np.linspace(lo, hi, 2001)
     d = np.polyval(np.polyder(coef[::-1]), xs)
     return bool(np.all(d > 0) or np.all(d < 0))
@@ -136,7 +150,7 @@ class PolyMethod:
         lo, hi = float(reading.min()), float(reading.max())
         slope_mid = float(np.polyval(np.polyder(main["coef"][::-1]), 0.5 * (lo + hi)))
         se = np.sqrt(np.diag(main["cov"])) if main["cov"] is not None else None
-        fit: dict = {
+        fit: dict[str, Any] = {
             "n_points": int(reading.size), "dof": main["dof"], "reference_column": ref_col,
             "direction": "angle on reading (applied as is by correct)",
             "residual_sigma_arcsec": main["s"], "residual_norm_arcsec": math.sqrt(main["rss"]),
@@ -180,11 +194,12 @@ class PolyMethod:
             residuals=residual_summary({"angle_arcsec": main["resid"]}, "arcsec"), fit=fit, notes=notes,
             state={"degree": n, "reading_sigma_counts": reading_sigma, "dof": main["dof"]})
 
-    def angle(self, model: CalibrationModel, reading) -> np.ndarray:
+    def angle(self, model: CalibrationModel, reading: ArrayLike) -> NDArray[np.float64]:
         coef = model.values(coefficient_names(self.degree))
-        return np.polyval(coef[::-1], np.asarray(reading, dtype=float))
+        angle: NDArray[np.float64] = np.polyval(coef[::-1], np.asarray(reading, dtype=float))
+        return angle
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         names = coefficient_names(self.degree)
         missing = [nm for nm in names if nm not in model.parameters]
         if missing:

@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.differences import central_jacobian
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
@@ -34,15 +35,16 @@ READING_COLUMNS = TURNTABLE_READINGS
 MAX_ITERATIONS = 50
 
 
-def half_differences(data: Columns) -> tuple[np.ndarray, np.ndarray]:
+def half_differences(data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     d1 = (np.asarray(data["n1_a"], dtype=float) - np.asarray(data["n1_b"], dtype=float)) / 2.0
     d2 = (np.asarray(data["n2_a"], dtype=float) - np.asarray(data["n2_b"], dtype=float)) / 2.0
     return d1, d2
 
 
-def compensation(p, azimuth_deg, d1, d2, rotation_deg: float) -> tuple[np.ndarray, np.ndarray]:
+def compensation(p: ArrayLike, azimuth_deg: ArrayLike, d1: NDArray[np.float64], d2: NDArray[np.float64],
+                 rotation_deg: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(ξ̂, η̂) in arcsec from the half-differences: the inverse of the 2×2 pair model."""
-    beta, m1, m2, eps = (float(v) for v in p)
+    beta, m1, m2, eps = (float(v) for v in np.asarray(p))
     s = np.sin(np.radians(rotation_deg) / 2.0)
     u = np.radians(np.asarray(azimuth_deg, dtype=float) + beta + rotation_deg / 2.0)
     v = u + np.radians(eps)
@@ -54,13 +56,13 @@ def compensation(p, azimuth_deg, d1, d2, rotation_deg: float) -> tuple[np.ndarra
 
 
 
-def _tilt_in_instrument_frame(az, xi, eta) -> np.ndarray:
+def _tilt_in_instrument_frame(az: NDArray[np.float64], xi: NDArray[np.float64], eta: NDArray[np.float64]) -> NDArray[np.float64]:
     """The reference tilt as the turntable sees it (rotated by -A): what separates β from m."""
     a = np.radians(az)
     return np.column_stack([xi * np.sin(a) - eta * np.cos(a), xi * np.cos(a) + eta * np.sin(a)])
 
 
-def check_design(az, xi, eta) -> None:
+def check_design(az: NDArray[np.float64], xi: NDArray[np.float64], eta: NDArray[np.float64]) -> None:
     """Refuse pairs that cannot separate β, m1, m2, ε, saying what is missing."""
     n = az.size
     if n < 3:
@@ -85,7 +87,8 @@ def check_design(az, xi, eta) -> None:
             "levelling of the instrument with the tilt in another direction")
 
 
-def _initial(az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
+def _initial(az: NDArray[np.float64], d1: NDArray[np.float64], d2: NDArray[np.float64], xi: NDArray[np.float64], eta: NDArray[np.float64],
+             rotation_deg: float) -> NDArray[np.float64]:
     """β, m1, m2, ε solved linearly from the half-differences (start of the Gauss-Newton steps)."""
     g = _tilt_in_instrument_frame(az, xi, eta)  # columns f1, f2
     s = np.sin(np.radians(rotation_deg) / 2.0)
@@ -101,7 +104,8 @@ def _initial(az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
     return np.array([beta, np.hypot(P, Q), np.hypot(R, T), eps])
 
 
-def _residuals(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
+def _residuals(p: NDArray[np.float64], az: NDArray[np.float64], d1: NDArray[np.float64], d2: NDArray[np.float64], xi: NDArray[np.float64],
+               eta: NDArray[np.float64], rotation_deg: float) -> NDArray[np.float64]:
     xh, eh = compensation(p, az, d1, d2, rotation_deg)
     return np.concatenate([xi - xh, eta - eh])  # reference (star solution) minus model
 
@@ -109,11 +113,14 @@ def _residuals(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
 JACOBIAN_TYPICAL = np.array([10.0, 0.0, 0.0, 10.0])  # beta, eps in deg; the gains relative to themselves
 
 
-def _jacobian(p, az, d1, d2, xi, eta, rotation_deg) -> np.ndarray:
+def _jacobian(p: NDArray[np.float64], az: NDArray[np.float64], d1: NDArray[np.float64], d2: NDArray[np.float64], xi: NDArray[np.float64],
+              eta: NDArray[np.float64], rotation_deg: float) -> NDArray[np.float64]:
     return central_jacobian(lambda q: _residuals(q, az, d1, d2, xi, eta, rotation_deg), p, JACOBIAN_TYPICAL)
 
 
-def gauss_newton(p0, az, d1, d2, xi, eta, rotation_deg, max_iterations: int | None = None):
+def gauss_newton(p0: ArrayLike, az: NDArray[np.float64], d1: NDArray[np.float64], d2: NDArray[np.float64], xi: NDArray[np.float64],
+                 eta: NDArray[np.float64], rotation_deg: float,
+                 max_iterations: int | None = None) -> tuple[NDArray[np.float64], int, bool]:
     """Seed 004 eqs. (9)-(11): x ← x + Δx with B Δx = b, until the parameters are stable."""
     max_iterations = MAX_ITERATIONS if max_iterations is None else max_iterations
     p = np.asarray(p0, dtype=float).copy()
@@ -242,7 +249,7 @@ class ReversalMethod:
             fit=fit, notes=notes, options={"rotation_deg": phi},
             state={"reading_sigma": reading_sigma, "reading_sigma_dof": reading_sigma_dof, "dof": dof})
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         p0 = model.values(PARAM_NAMES)
         phi = model.value("rotation_deg") if "rotation_deg" in model.parameters else 180.0
         az = np.asarray(data["azimuth_deg"], dtype=float)
@@ -253,7 +260,7 @@ class ReversalMethod:
         if model.covariance is not None and sigma is not None:
             inputs = {c: np.asarray(data[c], dtype=float) for c in READING_COLUMNS}
 
-            def f(p, x):
+            def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
                 h1, h2 = half_differences(x)
                 return np.column_stack(compensation(p, az, h1, h2, phi))
 

@@ -9,10 +9,12 @@ layout is documented by docs/model.schema.json.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.errors import InputError
 
@@ -42,7 +44,7 @@ class CalibrationModel:
     columns: list[str]
     parameters: dict[str, Parameter]
     covariance_names: list[str] = field(default_factory=list)
-    covariance: np.ndarray | None = None
+    covariance: NDArray[np.float64] | None = None
     # {"unit": ..., "columns": {col: {"rms": .., "max_abs": .., "values": [..]}}}
     residuals: dict[str, Any] = field(default_factory=dict)
     fit: dict[str, Any] = field(default_factory=dict)  # n_points, dof, sigma, converged, ...
@@ -55,10 +57,10 @@ class CalibrationModel:
     def value(self, name: str) -> float:
         return float(self.parameters[name].value)
 
-    def values(self, names) -> np.ndarray:
+    def values(self, names: Sequence[str]) -> NDArray[np.float64]:
         return np.array([self.value(n) for n in names], dtype=float)
 
-    def cov_of(self, names) -> np.ndarray | None:
+    def cov_of(self, names: Sequence[str]) -> NDArray[np.float64] | None:
         """Covariance sub-matrix for `names` (zero rows for fixed / unlisted parameters)."""
         if self.covariance is None:
             return None
@@ -196,7 +198,7 @@ def stored_table_tilt_range(model: CalibrationModel) -> dict[str, list[float]] |
     return out
 
 
-def residual_summary(residuals: dict[str, np.ndarray], unit: str, keep_values: bool = True) -> dict[str, Any]:
+def residual_summary(residuals: dict[str, NDArray[np.float64]], unit: str, keep_values: bool = True) -> dict[str, Any]:
     """RMS, max |r| (and the values) of each residual column: what every model reports."""
     cols = {}
     for name, r in residuals.items():

@@ -10,6 +10,7 @@ which also gives the fit's covariance).
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.errors import DegenerateDataError
 
@@ -22,7 +23,7 @@ REFINE_COST_TOL = 1e-12
 REFINE_MAX_ITERATIONS = 50
 
 
-def _normaliser(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+def _normaliser(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, float, float]:
     """Hartley's normalisation (scale s, centre cx, cy): centroid at 0, mean distance from it √2."""
     n = x.size
     cx, cy = float(x.sum()) / n, float(y.sum()) / n
@@ -31,7 +32,7 @@ def _normaliser(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
     return s, cx, cy
 
 
-def _distinct_and_spread(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _distinct_and_spread(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Per row of x, y (k x n): the number of distinct points (to 1e-9), and whether they are clearly
     spread in two directions (the 2 x 2 scatter's determinant far from zero)."""
     z = np.sort(np.round(x, 9) + 1j * np.round(y, 9), axis=-1)
@@ -42,7 +43,7 @@ def _distinct_and_spread(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.n
     return distinct, a * d - b * b > 1e-6 * (a + d) ** 2
 
 
-def check_general_position(x: np.ndarray, y: np.ndarray, what: str = "points") -> None:
+def check_general_position(x: NDArray[np.float64], y: NDArray[np.float64], what: str = "points") -> None:
     """At least 4 distinct points, not all on one line: otherwise a homography is undetermined."""
     pts = np.unique(np.round(np.column_stack([x, y]), 9), axis=0)
     if len(pts) < 4:
@@ -54,8 +55,8 @@ def check_general_position(x: np.ndarray, y: np.ndarray, what: str = "points") -
                                   "off that line (e.g. both stage axes moved)")
 
 
-def _transfer(h8: np.ndarray, sx: np.ndarray, sy: np.ndarray, dx: np.ndarray,
-              dy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _transfer(h8: NDArray[np.float64], sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.float64],
+              dy: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """(residuals [H·src - dst in x; in y], px, py, 1/w) of H = (h8, 1)."""
     w_inv = 1.0 / (h8[6] * sx + h8[7] * sy + 1.0)
     px = (h8[0] * sx + h8[1] * sy + h8[2]) * w_inv
@@ -63,7 +64,8 @@ def _transfer(h8: np.ndarray, sx: np.ndarray, sy: np.ndarray, dx: np.ndarray,
     return np.concatenate([px - dx, py - dy]), px, py, w_inv
 
 
-def _jacobian(sx: np.ndarray, sy: np.ndarray, px: np.ndarray, py: np.ndarray, w_inv: np.ndarray) -> np.ndarray:
+def _jacobian(sx: NDArray[np.float64], sy: NDArray[np.float64], px: NDArray[np.float64], py: NDArray[np.float64],
+              w_inv: NDArray[np.float64]) -> NDArray[np.float64]:
     n = sx.size
     J = np.zeros((2 * n, 8))
     J[:n, 0] = J[n:, 3] = sx * w_inv
@@ -76,14 +78,15 @@ def _jacobian(sx: np.ndarray, sy: np.ndarray, px: np.ndarray, py: np.ndarray, w_
     return J
 
 
-def transfer_residuals(h8: np.ndarray, sx: np.ndarray, sy: np.ndarray, dx: np.ndarray,
-                       dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def transfer_residuals(h8: NDArray[np.float64], sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.float64],
+                       dy: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Transfer error [H·src - dst in x; in y] (2n) of H = (h8, 1) and, analytically, its Jacobian (2n x 8)."""
     r, px, py, w_inv = _transfer(h8, sx, sy, dx, dy)
     return r, _jacobian(sx, sy, px, py, w_inv)
 
 
-def _refine(h: np.ndarray, sx: np.ndarray, sy: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+def _refine(h: NDArray[np.float64], sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.float64],
+            dy: NDArray[np.float64]) -> NDArray[np.float64]:
     """Least squares of the transfer error from the DLT's start: Levenberg-Marquardt with the analytic
     Jacobian, columns scaled to unit norm (the perspective terms are orders of magnitude smaller)."""
     r, J = transfer_residuals(h, sx, sy, dx, dy)
@@ -100,7 +103,7 @@ def _refine(h: np.ndarray, sx: np.ndarray, sy: np.ndarray, dx: np.ndarray, dy: n
             step = -np.linalg.solve(N, Js.T @ r) / norms
         except np.linalg.LinAlgError:
             step = np.full(8, np.nan)
-        trial = h + step
+        trial: NDArray[np.float64] = h + step
         r_new, px, py, w_inv = _transfer(trial, sx, sy, dx, dy)
         cost_new = float(r_new @ r_new)
         if not cost_new <= cost * (1.0 + REFINE_COST_TOL):  # worse (or not finite): damp harder, same Jacobian
@@ -117,7 +120,8 @@ def _refine(h: np.ndarray, sx: np.ndarray, sy: np.ndarray, dx: np.ndarray, dy: n
     return h
 
 
-def fit_projective(src_x, src_y, dst_x, dst_y, refine: bool = True, what: str = "points") -> np.ndarray:
+def fit_projective(src_x: ArrayLike, src_y: ArrayLike, dst_x: ArrayLike, dst_y: ArrayLike, refine: bool = True,
+                   what: str = "points") -> NDArray[np.float64]:
     """H with dst ~ H · src (homogeneous), h33 = 1."""
     sx, sy, dx, dy = (np.asarray(v, dtype=float) for v in (src_x, src_y, dst_x, dst_y))
     # both point sets at once; only data that are not clearly fine get the full check and its message
@@ -152,7 +156,7 @@ def fit_projective(src_x, src_y, dst_x, dst_y, refine: bool = True, what: str = 
         Hn = vt[-1].reshape(3, 3)
     Ts = np.array([[ss, 0.0, -ss * scx], [0.0, ss, -ss * scy], [0.0, 0.0, 1.0]])
     Td_inv = np.array([[1.0 / ds, 0.0, dcx], [0.0, 1.0 / ds, dcy], [0.0, 0.0, 1.0]])
-    H = Td_inv @ Hn @ Ts
+    H: NDArray[np.float64] = Td_inv @ Hn @ Ts
     if abs(H[2, 2]) < 1e-12:
         raise DegenerateDataError(f"{what}: the fitted homography maps the origin to infinity")
     H = H / H[2, 2]
@@ -161,8 +165,8 @@ def fit_projective(src_x, src_y, dst_x, dst_y, refine: bool = True, what: str = 
     return H
 
 
-def apply_projective(H: np.ndarray, x, y) -> tuple[np.ndarray, np.ndarray]:
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-    return (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
+def apply_projective(H: NDArray[np.float64], x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    xa = np.asarray(x, dtype=float)
+    ya = np.asarray(y, dtype=float)
+    w = H[2, 0] * xa + H[2, 1] * ya + H[2, 2]
+    return (H[0, 0] * xa + H[0, 1] * ya + H[0, 2]) / w, (H[1, 0] * xa + H[1, 1] * ya + H[1, 2]) / w

@@ -8,16 +8,17 @@ arrays keyed by dataset column names.
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.model import CalibrationModel
 from service.errors import InputError
 
-Columns = Mapping[str, np.ndarray]
+Columns = Mapping[str, NDArray[np.float64]]
 
 
 @dataclass
@@ -30,22 +31,32 @@ class FitOptions:
 class Method(Protocol):
     kind: str
     name: str
-    fit_required: tuple  # column names or tuples of alternatives
-    fit_optional: tuple
-    correct_required: tuple
-    correct_optional: tuple
-    outputs: tuple  # columns `correct` adds
+
+    @property
+    def fit_required(self) -> tuple[str | tuple[str, ...], ...]: ...  # column names or tuples of alternatives
+
+    @property
+    def fit_optional(self) -> tuple[str, ...]: ...
+
+    @property
+    def correct_required(self) -> tuple[str | tuple[str, ...], ...]: ...
+
+    @property
+    def correct_optional(self) -> tuple[str, ...]: ...
+
+    @property
+    def outputs(self) -> tuple[str, ...]: ...  # columns `correct` adds
 
     def fit(self, data: Columns, options: FitOptions) -> CalibrationModel: ...
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]: ...
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]: ...
 
 
 @runtime_checkable
 class LevellingMethod(Method, Protocol):
     """A stage method: it also levels (wanted table tilt -> stage commands)."""
 
-    def level(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]: ...
+    def level(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]: ...
 
 
 def levelling_method(kind: str, name: str) -> LevellingMethod:
@@ -57,7 +68,7 @@ def levelling_method(kind: str, name: str) -> LevellingMethod:
 
 
 _METHODS: dict[tuple[str, str], Method] = {}
-_FACTORIES: list[tuple[str, re.Pattern, Any]] = []
+_FACTORIES: list[tuple[str, re.Pattern[str], Callable[[re.Match[str]], Method]]] = []
 
 
 def register(method: Method) -> Method:
@@ -65,7 +76,7 @@ def register(method: Method) -> Method:
     return method
 
 
-def register_pattern(kind: str, pattern: str, factory) -> None:
+def register_pattern(kind: str, pattern: str, factory: Callable[[re.Match[str]], Method]) -> None:
     """Families of methods such as poly1, poly2, ... built on demand."""
     _FACTORIES.append((kind, re.compile(pattern), factory))
 

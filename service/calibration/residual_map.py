@@ -6,11 +6,12 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.model import CalibrationModel
 
 
-def stage_residual_map(method: Any, model: CalibrationModel, cols: dict[str, np.ndarray], n_fit: int) -> dict:
+def stage_residual_map(method: Any, model: CalibrationModel, cols: dict[str, NDArray[np.float64]], n_fit: int) -> dict[str, Any]:
     """Points (`role` fit for the first `n_fit` point indices, else validation) with their residuals in
     degrees, and the RMS of the residual vector lengths before and after correction."""
     out = method.correct(model, cols)
@@ -30,5 +31,5 @@ def stage_residual_map(method: Any, model: CalibrationModel, cols: dict[str, np.
             "rms_after_deg": _rms(np.hypot(after["x"], after["y"])), "points": points}
 
 
-def _rms(lengths: np.ndarray) -> float | None:
+def _rms(lengths: NDArray[np.float64]) -> float | None:
     return float(np.sqrt(np.mean(lengths**2))) if lengths.size else None

@@ -11,12 +11,15 @@ table tilt (X, Y) is the same thing as n = (-sin X, -sin Y, +sqrt(1 - sin²X - s
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service import columns as columns_
 from service.calibration.differences import fd_step
+from service.calibration.model import CalibrationModel
 from service.calibration.uncertainty import Propagated, welch_satterthwaite
 from service.errors import DegenerateDataError, InputError
 from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg, offaxis_reading_deg
@@ -29,12 +32,12 @@ ROBUST_LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")
 
 
 # --- seed 000's printed compensation against the exact inverse of eq. (9) (service.physics.stage) -------------
-def offaxis_paper_forward_deg(x_decoupled_deg, stage_y_deg) -> np.ndarray:
+def offaxis_paper_forward_deg(x_decoupled_deg: ArrayLike, stage_y_deg: ArrayLike) -> NDArray[np.float64]:
     """Seed 000's compensation as printed: add eq. (10)'s error, evaluated at the wanted angle, to x."""
     return np.asarray(x_decoupled_deg, dtype=float) + offaxis_error_deg(x_decoupled_deg, stage_y_deg)
 
 
-def offaxis_forward_vs_exact_deg(grid_deg: np.ndarray = GRID_12_DEG) -> dict[str, float]:
+def offaxis_forward_vs_exact_deg(grid_deg: NDArray[np.float64] = GRID_12_DEG) -> dict[str, float]:
     """How far the paper's forward form lands from the exact inverse over a square grid of (x', y)."""
     X, Y = np.meshgrid(grid_deg, grid_deg)
     d = offaxis_paper_forward_deg(X, Y) - offaxis_inverse_deg(X, Y)
@@ -49,14 +52,15 @@ def offaxis_forward_vs_exact_deg(grid_deg: np.ndarray = GRID_12_DEG) -> dict[str
 
 
 # --- tilt <-> up vector in the truth frame --------------------------------------------------
-def up_from_tilt(tilt_x_deg, tilt_y_deg) -> np.ndarray:
+def up_from_tilt(tilt_x_deg: ArrayLike, tilt_y_deg: ArrayLike) -> NDArray[np.float64]:
     """Up vector (N, 3) in the truth frame for table tilts (X, Y)."""
     sx, sy = np.sin(np.radians(tilt_x_deg)), np.sin(np.radians(tilt_y_deg))
     nz = np.sqrt(np.clip(1.0 - sx**2 - sy**2, 0.0, None))
-    return np.stack([-sx, -sy, nz], axis=-1)
+    up: NDArray[np.float64] = np.stack([-sx, -sy, nz], axis=-1)
+    return up
 
 
-def plane_tilt_matrix(tilt_x_deg: float, tilt_y_deg: float) -> np.ndarray:
+def plane_tilt_matrix(tilt_x_deg: float, tilt_y_deg: float) -> NDArray[np.float64]:
     """Same composition as service.physics.rotations.plane_tilt: Rx(-tilt_y)·Ry(tilt_x)."""
     from service.physics.rotations import plane_tilt
 
@@ -77,17 +81,19 @@ MEAS_PARAMS = (  # (name in MODEL.json, unit, typical magnitude for the solver)
 MEAS_NAMES = tuple(p[0] for p in MEAS_PARAMS)
 
 
-def meas_axes(p: np.ndarray) -> np.ndarray:
+def meas_axes(p: NDArray[np.float64]) -> NDArray[np.float64]:
     """Sensing axes (2, 3) of the measurement sensor in the truth frame: seat tilt · yaw · (x, y at 90° + ν)."""
     yaw, nu = np.radians(p[4]), np.radians(p[5])
     seat = plane_tilt_matrix(p[6], p[7])
     c, s = np.cos(yaw), np.sin(yaw)
     rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     base = np.array([[1.0, 0.0, 0.0], [-np.sin(nu), np.cos(nu), 0.0]])
-    return (seat @ rz @ base.T).T
+    axes: NDArray[np.float64] = (seat @ rz @ base.T).T
+    return axes
 
 
-def meas_forward(p: np.ndarray, sign: np.ndarray, tilt_x_deg, tilt_y_deg) -> tuple[np.ndarray, np.ndarray]:
+def meas_forward(p: NDArray[np.float64], sign: NDArray[np.float64], tilt_x_deg: ArrayLike, tilt_y_deg: ArrayLike) -> tuple[NDArray[np.float64],
+                                                                                                                           NDArray[np.float64]]:
     """Noise-free measurement-sensor readings at table tilts (X, Y) for parameters p (MEAS_PARAMS order)."""
     n = up_from_tilt(tilt_x_deg, tilt_y_deg)
     m = meas_axes(p)
@@ -97,7 +103,8 @@ def meas_forward(p: np.ndarray, sign: np.ndarray, tilt_x_deg, tilt_y_deg) -> tup
     return a, b
 
 
-def meas_inverse(p: np.ndarray, sign: np.ndarray, meas_x_deg, meas_y_deg) -> tuple[np.ndarray, np.ndarray]:
+def meas_inverse(p: NDArray[np.float64], sign: NDArray[np.float64], meas_x_deg: ArrayLike, meas_y_deg: ArrayLike) -> tuple[NDArray[np.float64],
+                                                                                                                           NDArray[np.float64]]:
     """Table tilt from measurement readings, in closed form.
 
     Each axis reading fixes m·n (a plane); two planes and |n| = 1 leave two points, and the one
@@ -122,15 +129,16 @@ def meas_inverse(p: np.ndarray, sign: np.ndarray, meas_x_deg, meas_y_deg) -> tup
     return (np.degrees(np.arcsin(np.clip(-nx, -1.0, 1.0))), np.degrees(np.arcsin(np.clip(-ny, -1.0, 1.0))))
 
 
-def meas_inverse_with_u(p: np.ndarray, cov: np.ndarray | None, sign: np.ndarray, meas_x_deg, meas_y_deg,
-                        sigma_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def meas_inverse_with_u(p: NDArray[np.float64], cov: NDArray[np.float64] | None, sign: NDArray[np.float64], meas_x_deg: ArrayLike,
+                        meas_y_deg: ArrayLike,
+                        sigma_deg: float) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """meas_inverse plus its GUM standard uncertainties (JCGM 100 §5.1.2), vectorised over readings."""
     X, Y, gx, gy = meas_inverse_gum(p, cov, sign, meas_x_deg, meas_y_deg, sigma_deg)
     return X, Y, gx.u, gy.u
 
 
-def meas_inverse_gum(p: np.ndarray, cov: np.ndarray | None, sign: np.ndarray, meas_x_deg, meas_y_deg,
-                     sigma_deg: float, dof: float = np.inf) -> tuple[np.ndarray, np.ndarray, Propagated, Propagated]:
+def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, sign: NDArray[np.float64], meas_x_deg: ArrayLike, meas_y_deg: ArrayLike,
+                     sigma_deg: float, dof: float = np.inf) -> tuple[NDArray[np.float64], NDArray[np.float64], Propagated, Propagated]:
     """meas_inverse with the standard uncertainty and effective degrees of freedom of each output.
 
     Same law as service.calibration.uncertainty.propagate_gum (central differences; each reading
@@ -179,16 +187,17 @@ def meas_inverse_gum(p: np.ndarray, cov: np.ndarray | None, sign: np.ndarray, me
 
 
 # --- mirrored axes ---------------------------------------------------------------------------
-def detect_mirror(sensor_x, sensor_y, ref_x, ref_y, what: str = "measurement sensor") -> np.ndarray:
+def detect_mirror(sensor_x: ArrayLike, sensor_y: ArrayLike, ref_x: ArrayLike, ref_y: ArrayLike,
+                  what: str = "measurement sensor") -> NDArray[np.float64]:
     """Sign of each sensor axis against the matching reference axis: -1 for an axis mounted mirrored.
 
     An upside-down sensor (docs/models.md §2) mirrors one axis; the slope of that axis against the
     reference is then near -1 instead of +1, which no small mounting error can produce.
     """
     out = []
-    for s, r, ax in ((sensor_x, ref_x, "x"), (sensor_y, ref_y, "y")):
-        s = np.asarray(s, dtype=float)
-        r = np.asarray(r, dtype=float)
+    for sensor, ref, ax in ((sensor_x, ref_x, "x"), (sensor_y, ref_y, "y")):
+        s = np.asarray(sensor, dtype=float)
+        r = np.asarray(ref, dtype=float)
         rc = r - r.mean()
         if float(rc @ rc) <= 1e-12:
             raise DegenerateDataError(f"the {what}'s {ax} axis cannot be related to the reference: "
@@ -202,7 +211,8 @@ def detect_mirror(sensor_x, sensor_y, ref_x, ref_y, what: str = "measurement sen
     return np.array(out)
 
 
-def mirror_note(sign) -> str | None:
+def mirror_note(sign: ArrayLike) -> str | None:
+    sign = np.asarray(sign)
     sx, sy = float(sign[0]), float(sign[1])
     if sx > 0 and sy > 0:
         return None
@@ -213,7 +223,7 @@ def mirror_note(sign) -> str | None:
             f"mirrored against the reference; modelled as a sign on that axis")
 
 
-def sign_from_options(options_extra: Mapping, detected: np.ndarray) -> tuple[np.ndarray, str]:
+def sign_from_options(options_extra: Mapping[str, Any], detected: NDArray[np.float64]) -> tuple[NDArray[np.float64], str]:
     """The lab may state the mounting ('none', 'x', 'y': the axis it was turned about); otherwise detect it."""
     flip = options_extra.get("meas_flip", "auto")
     if flip == "auto":
@@ -229,18 +239,19 @@ def sign_from_options(options_extra: Mapping, detected: np.ndarray) -> tuple[np.
 
 
 # --- input checks ----------------------------------------------------------------------------
-def columns(data: Mapping[str, np.ndarray], names) -> list[np.ndarray]:
+def columns(data: Mapping[str, NDArray[np.float64]], names: Iterable[str]) -> list[NDArray[np.float64]]:
+    names = list(names)
     missing = [n for n in names if n not in data]
     if missing:
         raise InputError(f"missing required column {missing[0]!r}")
     return [np.asarray(data[n], dtype=float) for n in names]
 
 
-def has_meas(data: Mapping[str, np.ndarray]) -> bool:
+def has_meas(data: Mapping[str, NDArray[np.float64]]) -> bool:
     return all(c in data for c in MEAS_COLUMNS)
 
 
-def require_spread(stage_x, stage_y, min_points: int, what: str) -> None:
+def require_spread(stage_x: NDArray[np.float64], stage_y: NDArray[np.float64], min_points: int, what: str) -> None:
     """Both stages must move, at enough distinct points, for any stage model to be determined."""
     pts = np.unique(np.round(np.column_stack([stage_x, stage_y]), 6), axis=0)
     if len(pts) < min_points:
@@ -257,16 +268,16 @@ def check_loss(loss: str) -> str:
     return loss
 
 
-def model_needs_meas(model) -> None:
+def model_needs_meas(model: CalibrationModel) -> None:
     if not model.state.get("has_meas", False):
         raise InputError(f"this {model.method} model was calibrated without meas_x_deg/meas_y_deg, so it cannot "
                          "correct measurement readings; recalibrate with the measurement sensor's columns")
 
 
 # --- vectorised 2-D Newton -------------------------------------------------------------------
-def newton_2d(fun: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
-              target_a: np.ndarray, target_b: np.ndarray, u0: np.ndarray, v0: np.ndarray,
-              step_deg: float = 1e-5, tol_deg: float = 1e-10, max_iter: int = 30) -> tuple[np.ndarray, np.ndarray]:
+def newton_2d(fun: Callable[[NDArray[np.float64], NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]],
+              target_a: NDArray[np.float64], target_b: NDArray[np.float64], u0: NDArray[np.float64], v0: NDArray[np.float64],
+              step_deg: float = 1e-5, tol_deg: float = 1e-10, max_iter: int = 30) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Solve fun(u, v) = (a, b) for every point at once (forward-difference Jacobian, 2x2 solves).
 
     All points iterate together: the cost is a handful of vectorised model evaluations, never a

@@ -18,10 +18,11 @@ noise, and their correlation is reported.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
 from service.calibration.benchfit import BenchModel, StagePoints, fit_bench, param_label, robust_scale, typical_scale
@@ -86,7 +87,7 @@ class Selection:
     rel_residual: list[float]
 
 
-def select_identifiable(J: np.ndarray, scales: np.ndarray, rel_tol: float = IDENTIFIABLE_REL) -> Selection:
+def select_identifiable(J: NDArray[np.float64], scales: NDArray[np.float64], rel_tol: float = IDENTIFIABLE_REL) -> Selection:
     """Greedy column selection in candidate order: keep a column if it adds a new direction."""
     Js = J * scales
     kept: list[int] = []
@@ -118,7 +119,8 @@ def select_identifiable(J: np.ndarray, scales: np.ndarray, rel_tol: float = IDEN
     return Selection(kept, fixed, merged, rels)
 
 
-def numeric_jacobian(fun, x0: np.ndarray, scales: np.ndarray) -> np.ndarray:
+def numeric_jacobian(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], x0: NDArray[np.float64],
+                     scales: NDArray[np.float64]) -> NDArray[np.float64]:
     """The chain's Jacobian for identifiability and covariance: the one finite-difference rule, stepping
     a thousandth of each parameter's typical magnitude (the linearisation the selection judges)."""
     return central_jacobian(fun, x0, 1e3 * np.asarray(scales))
@@ -128,19 +130,19 @@ def numeric_jacobian(fun, x0: np.ndarray, scales: np.ndarray) -> np.ndarray:
 @dataclass
 class ChainFit:
     keys: list[ParamKey]  # free, in fit order
-    values: np.ndarray
-    covariance: np.ndarray
+    values: NDArray[np.float64]
+    covariance: NDArray[np.float64]
     fixed: dict[ParamKey, str]  # held at zero -> why
-    residuals: dict[str, np.ndarray]
+    residuals: dict[str, NDArray[np.float64]]
     sigma: float
     dof: int
     converged: bool
     nfev: int
-    singular_values: np.ndarray
+    singular_values: NDArray[np.float64]
     correlations: list[tuple[str, str, float]]
 
 
-def fit_chain(bench: StageBench, pts: StagePoints, ref_x: np.ndarray, ref_y: np.ndarray, loss: str = "linear",
+def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], loss: str = "linear",
               periodic: bool = False, max_nfev: int = 200, effects: Sequence[str] = ()) -> ChainFit:
     """Least-squares fit of the identifiable chain parameters to the reference readings, with the parameters of
     the extra `effects` (EXTRA_EFFECTS) free as well."""
@@ -152,7 +154,7 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: np.ndarray, ref_y: np.
     all_model = BenchModel(bench, {}, candidates)
     scales = np.array([typical_scale(k) for k in candidates])
 
-    def pred(x):
+    def pred(x: NDArray[np.float64]) -> NDArray[np.float64]:
         return all_model.predict(x, pts, REF_OBS).ravel()
 
     J = numeric_jacobian(pred, np.zeros(len(candidates)), scales)
@@ -201,15 +203,16 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: np.ndarray, ref_y: np.
 
 
 # --- the chain run forwards and backwards (unquantised commands) ------------------------------------
-def actual_angles_deg(fx: EffectSet, bench: StageBench, cmd_x, cmd_y, dir_x=0.0, dir_y=0.0):
+def actual_angles_deg(fx: EffectSet, bench: StageBench, cmd_x: ArrayLike, cmd_y: ArrayLike, dir_x: ArrayLike = 0.0,
+                      dir_y: ArrayLike = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Stage angles reached for commands (no pulse rounding, no noise): the model's mean bench."""
     out = []
     for ax, cmd, d, period in (("x", cmd_x, dir_x, bench.worm_period_x_deg), ("y", cmd_y, dir_y, bench.worm_period_y_deg)):
-        cmd = np.asarray(cmd, dtype=float)
-        ang = cmd * (1.0 + fx.get("stage_scale", ax)) - np.asarray(d, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
+        cmd_deg = np.asarray(cmd, dtype=float)
+        ang = cmd_deg * (1.0 + fx.get("stage_scale", ax)) - np.asarray(d, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
         amp = fx.get("periodic_error", f"{ax}_amp_deg")
         if amp:
-            ang = ang + amp * np.sin(2 * np.pi * cmd / period + np.radians(fx.get("periodic_error", f"{ax}_phase_deg")))
+            ang = ang + amp * np.sin(2 * np.pi * cmd_deg / period + np.radians(fx.get("periodic_error", f"{ax}_phase_deg")))
         out.append(ang)
     return out[0], out[1]
 
@@ -231,12 +234,14 @@ class ChainModel:
             eff.setdefault(e, {})[p] = float(v)
         return cls(bench, EffectSet.from_mapping("stage", eff))
 
-    def tilt(self, cmd_x, cmd_y, dir_x=0.0, dir_y=0.0) -> tuple[np.ndarray, np.ndarray]:
+    def tilt(self, cmd_x: ArrayLike, cmd_y: ArrayLike, dir_x: ArrayLike = 0.0, dir_y: ArrayLike = 0.0) -> tuple[NDArray[np.float64],
+                                                                                                                NDArray[np.float64]]:
         ax, ay = actual_angles_deg(self.fx, self.bench, cmd_x, cmd_y, dir_x, dir_y)
         r = self.geometry.readings_deg(np.radians(np.atleast_1d(ax)), np.radians(np.atleast_1d(ay)))
         return r["tilt_x"], r["tilt_y"]
 
-    def level(self, target_x, target_y, dir_x=1.0, dir_y=1.0) -> tuple[np.ndarray, np.ndarray]:
+    def level(self, target_x: ArrayLike, target_y: ArrayLike, dir_x: ArrayLike = 1.0, dir_y: ArrayLike = 1.0) -> tuple[NDArray[np.float64],
+                                                                                                                       NDArray[np.float64]]:
         """Commands that bring the table to the wanted tilt: 2-D Newton from the ideal inverse."""
         tx = np.atleast_1d(np.asarray(target_x, dtype=float))
         ty = np.atleast_1d(np.asarray(target_y, dtype=float))
@@ -249,10 +254,10 @@ class ChainModel:
 @dataclass
 class MeasFit:
     names: list[str]  # free
-    values: np.ndarray  # all MEAS_PARAMS, fixed ones at 0
-    covariance: np.ndarray  # over `names`
+    values: NDArray[np.float64]  # all MEAS_PARAMS, fixed ones at 0
+    covariance: NDArray[np.float64]  # over `names`
     fixed: dict[str, str]
-    residuals: dict[str, np.ndarray]
+    residuals: dict[str, NDArray[np.float64]]
     sigma: float
     dof: int
     converged: bool
@@ -260,7 +265,8 @@ class MeasFit:
     correlations: list[tuple[str, str, float]]
 
 
-def fit_meas(ref_x, ref_y, meas_x, meas_y, sign: np.ndarray, loss: str = "linear", max_nfev: int = 200) -> MeasFit:
+def fit_meas(ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], meas_x: NDArray[np.float64], meas_y: NDArray[np.float64],
+             sign: NDArray[np.float64], loss: str = "linear", max_nfev: int = 200) -> MeasFit:
     """Mounting of the measurement sensor in the reference frame, from its readings against the reference's.
 
     The two sensors ride on one rigid table, so no stage parameter enters: meas = f(ref) exactly
@@ -269,9 +275,9 @@ def fit_meas(ref_x, ref_y, meas_x, meas_y, sign: np.ndarray, loss: str = "linear
     """
     all_names = [p[0] for p in MEAS_PARAMS]
     scales = np.array([p[2] for p in MEAS_PARAMS])
-    obs = np.concatenate([meas_x, meas_y])
+    obs: NDArray[np.float64] = np.concatenate([meas_x, meas_y])
 
-    def pred_all(p):
+    def pred_all(p: NDArray[np.float64]) -> NDArray[np.float64]:
         a, b = meas_forward(p, sign, ref_x, ref_y)
         return np.concatenate([a, b])
 
@@ -287,12 +293,12 @@ def fit_meas(ref_x, ref_y, meas_x, meas_y, sign: np.ndarray, loss: str = "linear
         raise DegenerateDataError(f"{len(meas_x)} points are too few for the {len(kept)} parameters of the "
                                   "measurement sensor's mounting")
 
-    def full(q):
+    def full(q: NDArray[np.float64]) -> NDArray[np.float64]:
         p = np.zeros(len(all_names))
         p[kept] = q
         return p
 
-    def resid(q):
+    def resid(q: NDArray[np.float64]) -> NDArray[np.float64]:
         return pred_all(full(q)) - obs
 
     q0 = np.zeros(len(kept))
@@ -313,7 +319,7 @@ def fit_meas(ref_x, ref_y, meas_x, meas_y, sign: np.ndarray, loss: str = "linear
     sv = np.linalg.svd(Jk * scales[kept], compute_uv=False)
     if sv[-1] <= 1e-8 * sv[0]:
         raise DegenerateDataError("the points do not separate the measurement sensor's mounting parameters")
-    cov = np.linalg.inv(Jk.T @ Jk) * s2
+    cov = np.linalg.inv(Jk.T @ Jk).astype(np.float64, copy=False) * s2
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
     names = [all_names[i] for i in kept]

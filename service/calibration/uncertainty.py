@@ -13,6 +13,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import special
 
 from service.calibration.differences import fd_step
@@ -20,7 +21,7 @@ from service.calibration.differences import fd_step
 COVERAGE = 0.95  # coverage probability of the expanded uncertainties
 
 
-def _step(value, variance):
+def _step(value: ArrayLike, variance: float) -> NDArray[np.float64]:
     """The finite-difference rule (service.calibration.differences) with the quantity's own standard
     uncertainty as its scale: the step is at least a thousandth of it (1e-6 x 1000 u)."""
     return fd_step(value, 1e3 * np.sqrt(max(float(variance), 0.0)))
@@ -30,15 +31,15 @@ def _step(value, variance):
 class Propagated:
     """Combined standard uncertainty u_c of each output and its Welch-Satterthwaite degrees of freedom."""
 
-    u: np.ndarray
-    dof_eff: np.ndarray
+    u: NDArray[np.float64]
+    dof_eff: NDArray[np.float64]
 
-    def expanded(self, coverage: float = COVERAGE) -> np.ndarray:
+    def expanded(self, coverage: float = COVERAGE) -> NDArray[np.float64]:
         """U = k·u_c with k the t quantile for the effective degrees of freedom (JCGM 100 G.4, G.6.4)."""
         return coverage_factor(self.dof_eff, coverage) * self.u
 
 
-def coverage_factor(dof_eff, coverage: float = COVERAGE) -> np.ndarray:
+def coverage_factor(dof_eff: ArrayLike, coverage: float = COVERAGE) -> NDArray[np.float64]:
     """k for a two-sided coverage interval: Student's t at `dof_eff` degrees of freedom (normal at infinity).
 
     A fixed k = 2 covers about 95 % only for many degrees of freedom: at 10 it covers 92.7 %.
@@ -49,7 +50,8 @@ def coverage_factor(dof_eff, coverage: float = COVERAGE) -> np.ndarray:
         # one value per corrected reading: interpolated in 1/ν on a fine table (relative error below 1e-7),
         # since the exact inverse costs microseconds per value and correct handles 10^5-10^6 readings
         grid, k = _coverage_table(q)
-        return np.interp(1.0 / nu, grid, k)
+        k_nu: NDArray[np.float64] = np.interp(1.0 / nu, grid, k)
+        return k_nu
     # scipy.special's inverse t (scipy.stats would add a slow import to every command-line start)
     return np.asarray(special.stdtrit(nu, q))
 
@@ -57,7 +59,7 @@ def coverage_factor(dof_eff, coverage: float = COVERAGE) -> np.ndarray:
 _TABLE_ABOVE = 256
 
 
-def dof_of_coverage_factor(k, coverage: float = COVERAGE) -> np.ndarray:
+def dof_of_coverage_factor(k: ArrayLike, coverage: float = COVERAGE) -> NDArray[np.float64]:
     """The degrees of freedom ν whose Student's t factor is k (coverage_factor's inverse; infinite at the normal's)."""
     kk = np.asarray(k, dtype=float)
     q = 0.5 + coverage / 2.0
@@ -68,7 +70,7 @@ def dof_of_coverage_factor(k, coverage: float = COVERAGE) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=4)
-def _coverage_table(q: float) -> tuple[np.ndarray, np.ndarray]:
+def _coverage_table(q: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Student's t quantile q tabulated on 1/ν in [0, 1] (ν from infinity down to 1)."""
     grid = np.linspace(0.0, 1.0, 4001)
     with np.errstate(divide="ignore"):
@@ -77,7 +79,7 @@ def _coverage_table(q: float) -> tuple[np.ndarray, np.ndarray]:
     return grid, k
 
 
-def welch_satterthwaite(components: Sequence[tuple[np.ndarray, float]]) -> np.ndarray:
+def welch_satterthwaite(components: Sequence[tuple[NDArray[np.float64], float]]) -> NDArray[np.float64]:
     """ν_eff = u_c⁴ / Σ u_i⁴ / ν_i over the variance components (u_i², ν_i) (JCGM 100 eq. G.2b).
 
     Infinite where every component with a finite ν is zero (or u_c is zero).
@@ -96,12 +98,12 @@ def welch_satterthwaite(components: Sequence[tuple[np.ndarray, float]]) -> np.nd
 
 
 def propagate(
-    f: Callable[[np.ndarray, Mapping[str, np.ndarray]], np.ndarray],
-    params: np.ndarray,
-    cov: np.ndarray | None,
-    inputs: Mapping[str, np.ndarray],
+    f: Callable[[NDArray[np.float64], Mapping[str, NDArray[np.float64]]], ArrayLike],
+    params: NDArray[np.float64],
+    cov: NDArray[np.float64] | None,
+    inputs: Mapping[str, NDArray[np.float64]],
     input_sigma: Mapping[str, float] | None = None,
-) -> np.ndarray:
+) -> NDArray[np.float64]:
     """Standard uncertainty of each output of f.
 
     `f(p, inputs)` returns an array (N,) or (N, m). Returns the same shape: combined standard
@@ -112,10 +114,10 @@ def propagate(
 
 
 def propagate_gum(
-    f: Callable[[np.ndarray, Mapping[str, np.ndarray]], np.ndarray],
-    params: np.ndarray,
-    cov: np.ndarray | None,
-    inputs: Mapping[str, np.ndarray],
+    f: Callable[[NDArray[np.float64], Mapping[str, NDArray[np.float64]]], ArrayLike],
+    params: NDArray[np.float64],
+    cov: NDArray[np.float64] | None,
+    inputs: Mapping[str, NDArray[np.float64]],
     input_sigma: Mapping[str, float] | None = None,
     params_dof: float = np.inf,
     inputs_dof: float = np.inf,
@@ -128,7 +130,7 @@ def propagate_gum(
     """
     params = np.asarray(params, dtype=float)
     y0 = np.asarray(f(params, inputs), dtype=float)
-    components: list[tuple[np.ndarray, float]] = []
+    components: list[tuple[NDArray[np.float64], float]] = []
     if cov is not None and params.size:
         jac = []
         for i in range(params.size):

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.physics.effects import EffectSet
 
@@ -28,15 +29,15 @@ class AnalogSensor:
 
     @property
     def counts(self) -> int:
-        return 2**self.adc_bits
+        return int(2**self.adc_bits)
 
     @property
     def counts_per_arcsec(self) -> float:
         return self.counts / self.range_arcsec
 
 
-def simulate_scale(sensor: AnalogSensor, fx: EffectSet, ref_arcsec, start_arcsec: float,
-                   temp_c=None, rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
+def simulate_scale(sensor: AnalogSensor, fx: EffectSet, ref_arcsec: ArrayLike, start_arcsec: float,
+                   temp_c: ArrayLike | None = None, rng: np.random.Generator | None = None) -> dict[str, NDArray[np.float64]]:
     """ADC readings at reference angles (relative, zero at the first point) and the reference's readings.
 
     `start_arcsec` is the sensor's tilt from its own null at the reference's zero.

@@ -8,7 +8,7 @@ workflow all read this table, so a name or a range is written down exactly once.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -62,7 +62,8 @@ def _p(name: str, unit: str, lo: float, hi: float, doc: str = "", default: float
     return Param(name, unit, lo, hi, default, doc)
 
 
-def _per_sensor(fmt: str, unit: str, lo: float, hi: float, doc: str, sensors=("ref", "meas"), axes=("x", "y")):
+def _per_sensor(fmt: str, unit: str, lo: float, hi: float, doc: str, sensors: tuple[str, ...] = ("ref", "meas"),
+                axes: tuple[str, ...] = ("x", "y")) -> tuple[Param, ...]:
     return tuple(_p(fmt.format(s=s, a=a), unit, lo, hi, doc.format(s=s, a=a)) for s in sensors for a in axes)
 
 
@@ -185,7 +186,7 @@ class EffectSet:
     """Effect magnitudes of one bench: every parameter resolved, off effects at their defaults."""
 
     kind: str
-    values: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    values: Mapping[str, Mapping[str, float]] = field(default_factory=dict)  # a bool switch is a number too
     on: frozenset[str] = frozenset()
 
     @classmethod
@@ -195,7 +196,7 @@ class EffectSet:
         unknown = [n for n in effects if n not in table]
         if unknown:
             raise KeyError(f"unknown effect {unknown[0]!r} for kind {kind!r}; known: {', '.join(table)}")
-        values: dict[str, dict[str, Any]] = {}
+        values: dict[str, dict[str, float]] = {}
         on = set()
         for name, eff in table.items():
             given = dict(effects.get(name) or {})
@@ -209,7 +210,7 @@ class EffectSet:
             on -= set(name_off)
         return cls(kind, values, frozenset(on))
 
-    def get(self, effect: str, param: str) -> Any:
+    def get(self, effect: str, param: str) -> float:
         """The parameter's value if its effect is on, else the value meaning 'absent'."""
         eff = EFFECTS_BY_KIND[self.kind][effect]
         if effect not in self.on:
@@ -217,7 +218,7 @@ class EffectSet:
             return p.default if not eff.default_on else (False if p.is_bool else 0.0)
         return self.values[effect][param]
 
-    def with_only(self, names) -> EffectSet:
+    def with_only(self, names: Collection[str]) -> EffectSet:
         """A copy with only the named effects on (others at their 'absent' value)."""
         keep = {n: self.values[n] for n in names if n in self.on}
         table = EFFECTS_BY_KIND[self.kind]

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 
-def axis_reading_deg(axis_world_z: np.ndarray) -> np.ndarray:
+def axis_reading_deg(axis_world_z: NDArray[np.float64]) -> NDArray[np.float64]:
     """reading = asin(-a_z): an axis that dips below the horizon reads positive."""
     return np.degrees(np.arcsin(np.clip(-axis_world_z, -1.0, 1.0)))
 
 
-def sensor_axes(yaw: float, non_orthogonality: float, flip: str = "none") -> np.ndarray:
+def sensor_axes(yaw: float, non_orthogonality: float, flip: str = "none") -> NDArray[np.float64]:
     """Unit x and y sensing axes (rows) in the frame of the sensor's seat.
 
     The y axis is turned by `non_orthogonality` (radians) away from 90 deg to x; `flip`
@@ -32,18 +33,18 @@ def sensor_axes(yaw: float, non_orthogonality: float, flip: str = "none") -> np.
 
 
 def apply_reading_errors(
-    true_deg: np.ndarray,
+    true_deg: NDArray[np.float64],
     *,
     zero_deg: float = 0.0,
     scale: float = 0.0,
     quad_per_deg: float = 0.0,
-    temp_delta_k: np.ndarray | float = 0.0,
+    temp_delta_k: NDArray[np.float64] | float = 0.0,
     zero_per_k: float = 0.0,
     scale_per_k: float = 0.0,
-    drift_deg: np.ndarray | float = 0.0,
-    noise_deg: np.ndarray | float = 0.0,
+    drift_deg: NDArray[np.float64] | float = 0.0,
+    noise_deg: NDArray[np.float64] | float = 0.0,
     resolution_deg: float = 0.0,
-) -> np.ndarray:
+) -> NDArray[np.float64]:
     """The error terms a real sensor adds to the geometric angle (docs/models.md §1, named in §5)."""
     r = (
         true_deg * (1.0 + scale + scale_per_k * temp_delta_k)

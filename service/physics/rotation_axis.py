@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.physics.effects import EffectSet
 
@@ -23,7 +24,8 @@ class RotationBench:
     gamma_deg: float = field(metadata={"ge": -45, "le": 45})
 
 
-def rotation_outputs(alpha_deg, beta_deg, gamma_deg, theta_deg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rotation_outputs(alpha_deg: ArrayLike, beta_deg: ArrayLike, gamma_deg: ArrayLike, theta_deg: ArrayLike
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Ideal (Sx, Sy, Sz) at rotation angle θ."""
     a, b, g, t = (np.radians(np.asarray(v, dtype=float)) for v in (alpha_deg, beta_deg, gamma_deg, theta_deg))
     in_plane = np.cos(g) * np.sin(b) + np.sin(g) * np.cos(b) * np.cos(t)
@@ -34,8 +36,8 @@ def rotation_outputs(alpha_deg, beta_deg, gamma_deg, theta_deg) -> tuple[np.ndar
     return sx, sy, sz
 
 
-def simulate_rotation(bench: RotationBench, fx: EffectSet, theta_deg, rng: np.random.Generator | None = None
-                      ) -> dict[str, np.ndarray]:
+def simulate_rotation(bench: RotationBench, fx: EffectSet, theta_deg: ArrayLike, rng: np.random.Generator | None = None
+                      ) -> dict[str, NDArray[np.float64]]:
     """Sensor outputs at the reference angles, with the sine-domain errors of the effect set.
 
     Returns `sx`, `sy`, `sz`, `theta_ref_deg` (the dividing head's reading, with its own
@@ -44,7 +46,7 @@ def simulate_rotation(bench: RotationBench, fx: EffectSet, theta_deg, rng: np.ra
     theta = np.atleast_1d(np.asarray(theta_deg, dtype=float))
     ideal = dict(zip(("sx", "sy", "sz"), rotation_outputs(bench.alpha_deg, bench.beta_deg, bench.gamma_deg, theta)))
     sigma = fx.get("noise", "sigma_s")
-    out: dict[str, np.ndarray] = {}
+    out: dict[str, NDArray[np.float64]] = {}
     for ax, s in ideal.items():
         r = s * (1.0 + fx.get("scale_factor", ax)) + fx.get("sensor_nonlinearity", ax) * s**2 + fx.get("zero_offset", ax)
         if rng is not None and sigma > 0:

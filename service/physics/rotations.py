@@ -3,24 +3,25 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
-def rx(a: float) -> np.ndarray:
+def rx(a: float) -> NDArray[np.float64]:
     c, s = np.cos(a), np.sin(a)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
-def ry(a: float) -> np.ndarray:
+def ry(a: float) -> NDArray[np.float64]:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def rz(a: float) -> np.ndarray:
+def rz(a: float) -> NDArray[np.float64]:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def plane_tilt(tilt_x: float, tilt_y: float) -> np.ndarray:
+def plane_tilt(tilt_x: float, tilt_y: float) -> NDArray[np.float64]:
     """Orientation of a plane tilted so that it adds about (tilt_x, tilt_y) to (x, y) readings.
 
     Same composition as the stacked stage of docs/models.md §2: R = Rx(-tilt_y) · Ry(tilt_x).
@@ -28,16 +29,18 @@ def plane_tilt(tilt_x: float, tilt_y: float) -> np.ndarray:
     return rx(-tilt_y) @ ry(tilt_x)
 
 
-def rotate_about(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+def rotate_about(v: NDArray[np.float64], axis: ArrayLike, angle: ArrayLike) -> NDArray[np.float64]:
     """Rodrigues' rotation of vectors v (..., 3) about a fixed unit axis by per-point angles (...)."""
-    c = np.cos(angle)[..., None]
-    s = np.sin(angle)[..., None]
-    axis = np.asarray(axis, dtype=float)
-    cross = np.cross(axis, v)
-    dot = (v @ axis)[..., None]
-    return v * c + cross * s + axis * dot * (1.0 - c)
+    c: NDArray[np.float64] = np.cos(angle)[..., None]
+    s: NDArray[np.float64] = np.sin(angle)[..., None]
+    axis_u = np.asarray(axis, dtype=float)
+    cross = np.cross(axis_u, v)
+    dot = (v @ axis_u)[..., None]
+    rotated: NDArray[np.float64] = v * c + cross * s + axis_u * dot * (1.0 - c)
+    return rotated
 
 
-def unit(v) -> np.ndarray:
-    v = np.asarray(v, dtype=float)
-    return v / np.linalg.norm(v)
+def unit(v: ArrayLike) -> NDArray[np.float64]:
+    u = np.asarray(v, dtype=float)
+    out: NDArray[np.float64] = u / np.linalg.norm(u)
+    return out

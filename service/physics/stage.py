@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.physics.effects import EffectSet
 from service.physics.inclinometer import apply_reading_errors, sensor_axes
@@ -62,7 +63,7 @@ class StageBench:
     def worm_period_y_deg(self) -> float:
         return 360.0 / self.lower_gear_ratio
 
-    def quantise(self, cmd_x_deg, cmd_y_deg) -> tuple[np.ndarray, np.ndarray]:
+    def quantise(self, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Commands as the controller executes them: whole pulses."""
         px, py = self.pulse_x_deg, self.pulse_y_deg
         return np.rint(np.asarray(cmd_x_deg) / px) * px, np.rint(np.asarray(cmd_y_deg) / py) * py
@@ -74,13 +75,13 @@ class StageBench:
                 f"steps at {self.microsteps} microsteps (pulses {self.pulse_x_deg:.9g} / {self.pulse_y_deg:.9g} deg), "
                 f"travel ±{self.travel_deg:g} deg{flip}")
 
-    def record(self, source: str) -> dict:
+    def record(self, source: str) -> dict[str, float | str]:
         """The bench as models and reports record it: hardware, derived pulses and worm periods, and its source."""
         return {**asdict(self), "pulse_x_deg": self.pulse_x_deg, "pulse_y_deg": self.pulse_y_deg,
                 "worm_period_x_deg": self.worm_period_x_deg, "worm_period_y_deg": self.worm_period_y_deg,
                 "source": source}
 
-    def pulse_mismatch(self, cmd_x_deg, cmd_y_deg) -> str | None:
+    def pulse_mismatch(self, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike) -> str | None:
         """Why recorded commands are not whole pulses of this bench (None when they are).
 
         A controller executes whole pulses, so commands recorded from a bench of this hardware
@@ -115,7 +116,7 @@ class StageBench:
         return None
 
 
-def _whole(cmd: np.ndarray, pulse: float) -> np.ndarray:
+def _whole(cmd: NDArray[np.float64], pulse: float) -> NDArray[np.bool_]:
     return np.abs(cmd / pulse - np.rint(cmd / pulse)) <= PULSE_TOL
 
 
@@ -123,26 +124,30 @@ def _whole(cmd: np.ndarray, pulse: float) -> np.ndarray:
 class StageGeometry:
     """The constant rotations of the chain, resolved from the effect set once per bench."""
 
-    desk: np.ndarray
-    top: np.ndarray
-    u_lower: np.ndarray
-    u_upper: np.ndarray
-    seat: dict[str, np.ndarray]
-    axes: dict[str, np.ndarray]  # per sensor: (2, 3) x and y sensing axes in the seat frame
-    truth_axes: np.ndarray  # orthogonal reference axes: the definition of table tilt
+    desk: NDArray[np.float64]
+    top: NDArray[np.float64]
+    u_lower: NDArray[np.float64]
+    u_upper: NDArray[np.float64]
+    seat: dict[str, NDArray[np.float64]]
+    axes: dict[str, NDArray[np.float64]]  # per sensor: (2, 3) x and y sensing axes in the seat frame
+    truth_axes: NDArray[np.float64]  # orthogonal reference axes: the definition of table tilt
     coupling: bool
 
     @classmethod
     def from_effects(cls, bench: StageBench, fx: EffectSet) -> StageGeometry:
         r = np.radians
-        g = lambda e, p: float(fx.get(e, p))  # noqa: E731
+
+        def g(e: str, p: str) -> float:
+            return float(fx.get(e, p))
+
         desk = plane_tilt(r(g("mounting_tilt", "desk_x_deg")), r(g("mounting_tilt", "desk_y_deg")))
         top = plane_tilt(r(g("mounting_tilt", "top_x_deg")), r(g("mounting_tilt", "top_y_deg")))
         u_lower = unit(rz(r(g("axis_misalignment", "lower_yaw_deg")))
                        @ ry(r(g("axis_misalignment", "lower_pitch_deg"))) @ np.array([-1.0, 0.0, 0.0]))
         u_upper = unit(rz(r(g("axis_misalignment", "perpendicularity_deg")))
                        @ rx(r(g("axis_misalignment", "upper_pitch_deg"))) @ np.array([0.0, 1.0, 0.0]))
-        seat, axes = {}, {}
+        seat: dict[str, NDArray[np.float64]] = {}
+        axes: dict[str, NDArray[np.float64]] = {}
         for s in SENSORS:
             seat[s] = plane_tilt(r(g("mounting_tilt", f"{s}_x_deg")), r(g("mounting_tilt", f"{s}_y_deg")))
             flip = bench.meas_flip if s == "meas" else "none"
@@ -150,7 +155,7 @@ class StageGeometry:
         truth_axes = sensor_axes(r(g("sensor_yaw", "ref_deg")), 0.0)
         return cls(desk, top, u_lower, u_upper, seat, axes, truth_axes, bool(fx.get("offaxis_coupling", "enabled")))
 
-    def axis_z(self, vectors_table: np.ndarray, theta_x: np.ndarray, theta_y: np.ndarray) -> np.ndarray:
+    def axis_z(self, vectors_table: NDArray[np.float64], theta_x: NDArray[np.float64], theta_y: NDArray[np.float64]) -> NDArray[np.float64]:
         """World z of table-frame vectors (K, 3) at stage angles (N,) [rad] -> (N, K)."""
         d = self.desk[2]
         ul, uu = self.u_lower, self.u_upper
@@ -162,9 +167,10 @@ class StageGeometry:
         b = g @ np.cross(uu, v).T
         p = g @ uu
         cx, sx = np.cos(theta_x), np.sin(theta_x)
-        return cx[:, None] * a + sx[:, None] * b + ((1.0 - cx) * p)[:, None] * (v @ uu)[None, :]
+        z: NDArray[np.float64] = cx[:, None] * a + sx[:, None] * b + ((1.0 - cx) * p)[:, None] * (v @ uu)[None, :]
+        return z
 
-    def readings_deg(self, theta_x: np.ndarray, theta_y: np.ndarray) -> dict[str, np.ndarray]:
+    def readings_deg(self, theta_x: NDArray[np.float64], theta_y: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
         """Geometric (error-free) readings of every sensor axis and the true table tilt."""
         if not self.coupling:
             theta_x = np.radians(offaxis_inverse_deg(np.degrees(theta_x), np.degrees(theta_y), clip=True))
@@ -176,8 +182,9 @@ class StageGeometry:
         return {n: deg[:, i] for i, n in enumerate(names)}
 
 
-def stage_angles_deg(bench: StageBench, fx: EffectSet, cmd_x_deg, cmd_y_deg, dir_x=0, dir_y=0,
-                     rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+def stage_angles_deg(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike,
+                     dir_x: ArrayLike = 0, dir_y: ArrayLike = 0,
+                     rng: np.random.Generator | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Angles the stages really reach for the given commands and approach directions."""
     nom_x, nom_y = bench.quantise(cmd_x_deg, cmd_y_deg)
     out = []
@@ -195,7 +202,7 @@ def stage_angles_deg(bench: StageBench, fx: EffectSet, cmd_x_deg, cmd_y_deg, dir
     return out[0], out[1]
 
 
-def _drift(fx: EffectSet, sensor: str, axis: str, t_s: np.ndarray, rng) -> np.ndarray:
+def _drift(fx: EffectSet, sensor: str, axis: str, t_s: NDArray[np.float64], rng: np.random.Generator | None) -> NDArray[np.float64]:
     drift = fx.get("time_drift", f"{sensor}_{axis}_deg_per_h") * t_s / 3600.0
     rw = fx.get("time_drift", "random_walk_deg_per_sqrt_h")
     if rng is not None and rw > 0 and t_s.size:
@@ -204,9 +211,10 @@ def _drift(fx: EffectSet, sensor: str, axis: str, t_s: np.ndarray, rng) -> np.nd
     return drift
 
 
-def simulate_stage(bench: StageBench, fx: EffectSet, cmd_x_deg, cmd_y_deg, dir_x=0, dir_y=0,
-                   temp_c=None, t_s=None, rng: np.random.Generator | None = None,
-                   geometry: StageGeometry | None = None) -> dict[str, np.ndarray]:
+def simulate_stage(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike,
+                   dir_x: ArrayLike = 0, dir_y: ArrayLike = 0, temp_c: ArrayLike | None = None,
+                   t_s: ArrayLike | None = None, rng: np.random.Generator | None = None,
+                   geometry: StageGeometry | None = None) -> dict[str, NDArray[np.float64]]:
     """Readings of both sensors (and the true table tilt) at each commanded point.
 
     `rng=None` gives the noiseless bench. Returns arrays keyed by dataset column names plus
@@ -243,17 +251,18 @@ def simulate_stage(bench: StageBench, fx: EffectSet, cmd_x_deg, cmd_y_deg, dir_x
 
 
 # --- seed 000 eqs. (9) and (10): the off-axis relation of the stacked stages, the one place it is written ---
-def offaxis_reading_deg(theta_x_deg, theta_y_deg) -> np.ndarray:
+def offaxis_reading_deg(theta_x_deg: ArrayLike, theta_y_deg: ArrayLike) -> NDArray[np.float64]:
     """Eq. (9): the x reading of an ideal stacked bench, asin(sin θx · cos θy).
 
     The lower stage tilts the upper stage's axis with it, so the upper stage's angle reaches the
     table's x tilt only scaled by cos θy; this is also the angle an uncoupled bench would need.
     """
     tx, ty = np.radians(theta_x_deg), np.radians(theta_y_deg)
-    return np.degrees(np.arcsin(np.clip(np.sin(tx) * np.cos(ty), -1.0, 1.0)))
+    reading: NDArray[np.float64] = np.degrees(np.arcsin(np.clip(np.sin(tx) * np.cos(ty), -1.0, 1.0)))
+    return reading
 
 
-def offaxis_error_deg(theta_x_deg, theta_y_deg) -> np.ndarray:
+def offaxis_error_deg(theta_x_deg: ArrayLike, theta_y_deg: ArrayLike) -> NDArray[np.float64]:
     """Eq. (10): θx − asin(sin θx cos θy), the x reading lost to the lower stage's tilt.
 
     Seed 000 prints it as θx − sign(θx)·atan(sqrt(q / (1 − q))) with q = sin²θx cos²θy: the same value.
@@ -261,7 +270,7 @@ def offaxis_error_deg(theta_x_deg, theta_y_deg) -> np.ndarray:
     return np.asarray(theta_x_deg, dtype=float) - offaxis_reading_deg(theta_x_deg, theta_y_deg)
 
 
-def offaxis_inverse_deg(x_reading_deg, theta_y_deg, *, clip: bool = False) -> np.ndarray:
+def offaxis_inverse_deg(x_reading_deg: ArrayLike, theta_y_deg: ArrayLike, *, clip: bool = False) -> NDArray[np.float64]:
     """Eq. (9) inverted exactly: the upper-stage angle giving x reading X at lower angle θy, asin(sin X / cos θy).
 
     NaN where no upper-stage angle gives X (|sin X / cos θy| > 1; the caller names those rows), or
@@ -269,4 +278,5 @@ def offaxis_inverse_deg(x_reading_deg, theta_y_deg, *, clip: bool = False) -> np
     """
     s = np.sin(np.radians(x_reading_deg)) / np.cos(np.radians(theta_y_deg))
     s = np.clip(s, -1.0, 1.0) if clip else np.where(np.abs(s) > 1.0, np.nan, s)
-    return np.degrees(np.arcsin(s))
+    angle: NDArray[np.float64] = np.degrees(np.arcsin(s))
+    return angle

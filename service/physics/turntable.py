@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.physics.effects import EffectSet
 
@@ -23,7 +24,8 @@ class TurntableInclinometer:
     m2: float = field(metadata={"gt": 0, "le": 1000})
 
 
-def turntable_readings(p: TurntableInclinometer, azimuth_deg, north_arcsec, east_arcsec, z1=0.0, z2=0.0):
+def turntable_readings(p: TurntableInclinometer, azimuth_deg: ArrayLike, north_arcsec: ArrayLike, east_arcsec: ArrayLike,
+                       z1: float = 0.0, z2: float = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """n1(A), n2(A) of docs/models.md §4 for axis tilt (ξ north, η east) in arcsec."""
     a = np.radians(np.asarray(azimuth_deg, dtype=float) + p.beta_deg)
     e = np.radians(p.epsilon_deg)
@@ -33,9 +35,10 @@ def turntable_readings(p: TurntableInclinometer, azimuth_deg, north_arcsec, east
     return n1, n2
 
 
-def simulate_turntable(p: TurntableInclinometer, fx: EffectSet, azimuth_deg, north_arcsec, east_arcsec,
+def simulate_turntable(p: TurntableInclinometer, fx: EffectSet, azimuth_deg: ArrayLike, north_arcsec: ArrayLike,
+                       east_arcsec: ArrayLike,
                        rotation_deg: float = 180.0, pair_interval_s: float = 120.0,
-                       rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
+                       rng: np.random.Generator | None = None) -> dict[str, NDArray[np.float64]]:
     """One row per symmetric pair: readings at A and at A + φ (the true φ, which may differ from 180)."""
     az = np.atleast_1d(np.asarray(azimuth_deg, dtype=float))
     xi = np.broadcast_to(np.asarray(north_arcsec, dtype=float), az.shape)
@@ -43,7 +46,7 @@ def simulate_turntable(p: TurntableInclinometer, fx: EffectSet, azimuth_deg, nor
     z1, z2 = fx.get("zero_offset", "z1"), fx.get("zero_offset", "z2")
     drift = fx.get("time_drift", "reading_per_h") * pair_interval_s / 3600.0
     sigma, res = fx.get("noise", "reading_sigma"), fx.get("noise", "resolution")
-    out: dict[str, np.ndarray] = {"azimuth_deg": az}
+    out: dict[str, NDArray[np.float64]] = {"azimuth_deg": az}
     for tag, a, dz in (("a", az, 0.0), ("b", az + rotation_deg, drift)):
         n1, n2 = turntable_readings(p, a, xi, eta, z1 + dz, z2 + dz)
         for name, n in (("n1", n1), ("n2", n2)):

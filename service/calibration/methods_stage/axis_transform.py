@@ -3,9 +3,11 @@ transform and nothing else."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
 from service.calibration.methods_stage.base import (
@@ -36,29 +38,30 @@ from service.calibration.stage_common import (
 from service.errors import DegenerateDataError
 
 
-def _axis_matrix(alpha_deg: float, beta_deg: float) -> np.ndarray:
+def _axis_matrix(alpha_deg: float, beta_deg: float) -> NDArray[np.float64]:
     a, b = np.radians(alpha_deg), np.radians(beta_deg)
     return np.array([[np.cos(a), np.sin(a)], [-np.sin(b), np.cos(b)]])
 
 
-def _axis_forward(p, u_deg, v_deg) -> tuple[np.ndarray, np.ndarray]:
+def _axis_forward(p: NDArray[np.float64], u_deg: ArrayLike, v_deg: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     M = _axis_matrix(p[0], p[1])
     su, sv = np.sin(np.radians(u_deg)), np.sin(np.radians(v_deg))
     return (np.degrees(np.arcsin(np.clip(M[0, 0] * su + M[0, 1] * sv, -1, 1))),
             np.degrees(np.arcsin(np.clip(M[1, 0] * su + M[1, 1] * sv, -1, 1))))
 
 
-def _axis_inverse(p, a_deg, b_deg) -> tuple[np.ndarray, np.ndarray]:
+def _axis_inverse(p: NDArray[np.float64], a_deg: ArrayLike, b_deg: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     Mi = np.linalg.inv(_axis_matrix(p[0], p[1]))
     sa, sb = np.sin(np.radians(a_deg)), np.sin(np.radians(b_deg))
     return (np.degrees(np.arcsin(np.clip(Mi[0, 0] * sa + Mi[0, 1] * sb, -1, 1))),
             np.degrees(np.arcsin(np.clip(Mi[1, 0] * sa + Mi[1, 1] * sb, -1, 1))))
 
 
-def _fit_axis_pair(u, v, a, b, what: str) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], dict[str, Any]]:
-    obs = np.concatenate([a, b])
+def _fit_axis_pair(u: NDArray[np.float64], v: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64],
+                   what: str) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, NDArray[np.float64]], dict[str, Any]]:
+    obs: NDArray[np.float64] = np.concatenate([a, b])
 
-    def resid(p):
+    def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
         fa, fb = _axis_forward(p, u, v)
         return np.concatenate([fa, fb]) - obs
 
@@ -124,18 +127,18 @@ class AxisTransformMethod(StageMethod):
         return stage_model(self.name, used_columns(data), params, notes, covariance_names=cov_names, covariance=cov_all,
                       residuals=residual_summary(res, "deg"), fit=fit_info, state=state)
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[np.ndarray, np.ndarray]:
+    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         tx, ty = targets(data)
         p = model.values(["stage_to_ref.x_axis_angle_deg", "stage_to_ref.y_axis_angle_deg"])
         x, y = _axis_inverse(p, tx, ty)
         return x, y
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         model_needs_meas(model)
         names = ["meas_to_ref.x_axis_angle_deg", "meas_to_ref.y_axis_angle_deg"]
         sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
 
-        def f(p, inp):
+        def f(p: NDArray[np.float64], inp: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
             a, b = _axis_inverse(p, sign[0] * inp["meas_x_deg"], sign[1] * inp["meas_y_deg"])
             return np.column_stack([a, b])
 

@@ -3,11 +3,12 @@ output (refused beyond the bench's travel), the statistics and the GUM correctio
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.differences import central_jacobian
 from service.calibration.model import CalibrationModel, Parameter
@@ -26,7 +27,7 @@ from service.columns import K_OUTPUTS
 from service.errors import DegenerateDataError, InputError
 from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
-Columns = Mapping[str, np.ndarray]
+Columns = Mapping[str, NDArray[np.float64]]
 FIT_REQUIRED = STAGE_COLUMNS + REF_COLUMNS
 FIT_OPTIONAL = MEAS_COLUMNS + ("dir_x", "dir_y", "temp_c", "t_s", "point")
 CROSS_TOL_DEG = 1e-6
@@ -46,33 +47,36 @@ def bench_state(bench: StageBench, source: str) -> dict[str, Any]:
     return {"bench": asdict(bench), "bench_source": source}
 
 
-def meas_sign(data: Columns, options: FitOptions) -> tuple[np.ndarray, str]:
+def meas_sign(data: Columns, options: FitOptions) -> tuple[NDArray[np.float64], str]:
     mx, my, rx, ry = columns(data, MEAS_COLUMNS + REF_COLUMNS)
     return sign_from_options(options.extra, detect_mirror(mx, my, rx, ry))
 
 
-def fit_stats(r: np.ndarray, n_par: int) -> dict[str, Any]:
+def fit_stats(r: NDArray[np.float64], n_par: int) -> dict[str, Any]:
     """Degrees of freedom and residual sigma; no sigma when the points only just determine the parameters."""
     dof = r.size - n_par
     return {"dof": dof, "sigma_deg": float(np.sqrt(r @ r / dof)) if dof > 0 else None}
 
 
-def numeric_cov(fun, p: np.ndarray, scales: np.ndarray, s2: float) -> np.ndarray:
+def numeric_cov(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], p: NDArray[np.float64], scales: NDArray[np.float64],
+                s2: float) -> NDArray[np.float64]:
     """Gauss-Newton covariance s²(JᵀJ)⁻¹ of parameters p of a residual function (scaled for conditioning)."""
     return jacobian_cov(central_jacobian(fun, p, scales), scales, s2)
 
 
-def jacobian_cov(J: np.ndarray, scales: np.ndarray, s2: float) -> np.ndarray:
+def jacobian_cov(J: NDArray[np.float64], scales: NDArray[np.float64], s2: float) -> NDArray[np.float64]:
     """s²(JᵀJ)⁻¹ from the residuals' Jacobian J (unscaled), scaled by `scales` for conditioning."""
     J = J * scales
     sv = np.linalg.svd(J, compute_uv=False)
     if sv[-1] <= 1e-10 * sv[0]:
         raise DegenerateDataError("the points do not determine every parameter of the model (singular fit)")
-    return np.linalg.inv(J.T @ J) * np.outer(scales, scales) * s2
+    cov: NDArray[np.float64] = np.linalg.inv(J.T @ J) * np.outer(scales, scales) * s2
+    return cov
 
 
-def uncertain_correct(f, p: np.ndarray, cov: np.ndarray | None, data: Columns, sigma_deg: float,
-                      dof: float) -> dict[str, np.ndarray]:
+def uncertain_correct(f: Callable[[NDArray[np.float64], Mapping[str, NDArray[np.float64]]], NDArray[np.float64]], p: NDArray[np.float64],
+                      cov: NDArray[np.float64] | None, data: Columns, sigma_deg: float,
+                      dof: float) -> dict[str, NDArray[np.float64]]:
     """tilt = f(p, readings) and its expanded GUM uncertainty from cov and the reading noise.
 
     Covariance and reading noise come from one fit with `dof` degrees of freedom; the coverage
@@ -95,7 +99,7 @@ def meas_dof(model: CalibrationModel) -> float:
     return float(dof) if dof else float("inf")
 
 
-def stage_commands(model: CalibrationModel, x: np.ndarray, y: np.ndarray) -> dict[str, np.ndarray]:
+def stage_commands(model: CalibrationModel, x: NDArray[np.float64], y: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
     """Levelling output of every stage method: refused where the bench cannot go.
 
     The travel is the bench's the model was fitted for (the kinematic model keeps it), else the
@@ -114,11 +118,12 @@ def stage_commands(model: CalibrationModel, x: np.ndarray, y: np.ndarray) -> dic
     return {"stage_x_deg": x, "stage_y_deg": y}
 
 
-def targets(data: Columns) -> tuple[np.ndarray, np.ndarray]:
-    return tuple(columns(data, ("target_x_deg", "target_y_deg")))  # type: ignore[return-value]
+def targets(data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    x, y = columns(data, ("target_x_deg", "target_y_deg"))
+    return x, y
 
 
-def stage_model(method: str, used: list[str], params: dict[str, Parameter], notes: list[str], **kw) -> CalibrationModel:
+def stage_model(method: str, used: list[str], params: dict[str, Parameter], notes: list[str], **kw: Any) -> CalibrationModel:
     return CalibrationModel(kind="stage", method=method, columns=used, parameters=params, notes=notes, **kw)
 
 
@@ -144,13 +149,13 @@ class StageMethod:
     def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
         raise NotImplementedError
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[np.ndarray, np.ndarray]:
+    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Stage angles for the targets in `data`, before levelling's checks."""
         raise NotImplementedError
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         raise NotImplementedError
 
-    def level(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+    def level(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         x, y = self.commands(model, data)
         return stage_commands(model, x, y)

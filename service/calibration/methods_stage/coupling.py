@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.methods_stage.base import (
     FIT_REQUIRED,
@@ -84,14 +85,14 @@ class CouplingMethod(StageMethod):
                       covariance=np.array([[var_k]]), residuals=residual_summary(res, "deg"),
                       fit={"n_points": int(sx.size), **st}, state=state)
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[np.ndarray, np.ndarray]:
+    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         tx, ty = targets(data)
         k = model.value("offaxis_coupling.kappa")
         x0 = offaxis_inverse_deg(tx, ty, clip=True)
         x, y = newton_2d(lambda u, v: (u - k * offaxis_error_deg(u, v), v), tx, ty, x0, ty.copy())
         return x, y
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         model_needs_meas(model)
         sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
         mx, my = columns(data, MEAS_COLUMNS)

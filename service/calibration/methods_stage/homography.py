@@ -3,10 +3,12 @@ compensation of the upper stage."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from functools import lru_cache
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.methods_stage.base import (
     CROSS_TOL_DEG,
@@ -42,12 +44,12 @@ H_KEYS = tuple(H_UNITS)
 H_SCALES = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1e-2, 1e-2])
 
 
-def _h_params(prefix: str, H: np.ndarray, note: str = "") -> dict[str, Parameter]:
+def _h_params(prefix: str, H: NDArray[np.float64], note: str = "") -> dict[str, Parameter]:
     return {f"{prefix}.{k}": Parameter(float(v), H_UNITS[k], note=note if k == "h11" else "")
             for k, v in zip(H_KEYS, H.ravel()[:8])}
 
 
-def _h_of(model: CalibrationModel, prefix: str) -> np.ndarray:
+def _h_of(model: CalibrationModel, prefix: str) -> NDArray[np.float64]:
     return np.append(model.values([f"{prefix}.{k}" for k in H_KEYS]), 1.0).reshape(3, 3)
 
 
@@ -57,7 +59,7 @@ def _forward_vs_exact() -> dict[str, float]:
     return offaxis_forward_vs_exact_deg()
 
 
-def _apply_h(h8: np.ndarray, x, y) -> tuple[np.ndarray, np.ndarray]:
+def _apply_h(h8: NDArray[np.float64], x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return apply_projective(np.append(h8, 1.0).reshape(3, 3), x, y)
 
 
@@ -154,7 +156,7 @@ class HomographyMethod(StageMethod):
                       residuals=residual_summary(residuals, "deg"), fit=fit_info, state=state,
                       options={"points": points, "offaxis": offaxis})
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[np.ndarray, np.ndarray]:
+    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         tx, ty = targets(data)
         xd, y = apply_projective(_h_of(model, "H1"), tx, ty)
         if model.state.get("offaxis", "exact") == "paper":
@@ -163,11 +165,11 @@ class HomographyMethod(StageMethod):
             x = offaxis_inverse_deg(xd, y)
         return x, y
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         model_needs_meas(model)
         names = [f"H2.{k}" for k in H_KEYS]
 
-        def f(p, inp):
+        def f(p: NDArray[np.float64], inp: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
             a, b = _apply_h(p, inp["meas_x_deg"], inp["meas_y_deg"])
             return np.column_stack([a, b])
 

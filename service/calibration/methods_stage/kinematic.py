@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.benchfit import StagePoints, param_label
 from service.calibration.methods_stage.base import (
@@ -143,7 +144,7 @@ class KinematicMethod(StageMethod):
             values[(e, p)] = model.value(name)
         return ChainModel.from_values(bench, values)
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[np.ndarray, np.ndarray]:
+    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         tx, ty = targets(data)
         ap = model.state.get("approach", [1.0, 1.0])
         dx = np.asarray(data.get("dir_x", ap[0]), dtype=float)
@@ -152,7 +153,7 @@ class KinematicMethod(StageMethod):
         x, y = chain.level(tx, ty, dx, dy)
         return x, y
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, np.ndarray]:
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         model_needs_meas(model)
         sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
         mx, my = columns(data, MEAS_COLUMNS)
