@@ -11,6 +11,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
@@ -40,7 +41,7 @@ def effects_to_add(named: Sequence[str], sensor: str) -> list[str]:
     return extra
 
 
-def adopted_model(columns: Mapping[str, np.ndarray], named: Sequence[str], sensor: str,
+def adopted_model(columns: Mapping[str, NDArray[np.float64]], named: Sequence[str], sensor: str,
                   bench: StageBench | Mapping[str, Any], bench_source: str,
                   diagnosis: Mapping[str, Any]) -> CalibrationModel:
     """The kinematic calibration of `columns` with the diagnosis' named effects added; `diagnosis` says where they

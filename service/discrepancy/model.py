@@ -9,8 +9,10 @@ term is separable from what the model already holds on the data at hand.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from service.calibration.differences import central_jacobian
@@ -38,13 +40,13 @@ class Fit:
 
     effects: tuple[str, ...]
     blocks: list[Block]
-    values: np.ndarray
-    covariance: np.ndarray
-    residuals: np.ndarray  # (N, A) in the data's unit
-    predicted: np.ndarray  # (N, A)
+    values: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    residuals: NDArray[np.float64]  # (N, A) in the data's unit
+    predicted: NDArray[np.float64]  # (N, A)
     rss_w: float  # noise-weighted residual sum of squares
     n_obs: int
-    jacobian_w: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
+    jacobian_w: NDArray[np.float64] = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
 
     @property
     def k(self) -> int:
@@ -87,7 +89,7 @@ class Family:
     # per candidate: what would let data like these show it, said when the model barely sees it
     separability_hints: dict[str, str] = {}
 
-    def __init__(self, observed: np.ndarray, weights: np.ndarray):
+    def __init__(self, observed: NDArray[np.float64], weights: NDArray[np.float64]):
         self.observed = np.asarray(observed, dtype=float).reshape(len(observed), -1)
         self.weights = np.asarray(weights, dtype=float)
         # per effect, the parameters the data can separate (all when absent)
@@ -101,11 +103,11 @@ class Family:
         """Every parameter the effects could add, before dropping what the data cannot separate."""
         raise NotImplementedError
 
-    def predict_params(self, effects: tuple[str, ...], params: dict[str, dict[str, float]]) -> np.ndarray:
+    def predict_params(self, effects: tuple[str, ...], params: dict[str, dict[str, float]]) -> NDArray[np.float64]:
         """Noise-free readings (N, A); a parameter missing from `params` means its effect-free value."""
         raise NotImplementedError
 
-    def magnitude(self, fit: Fit, effect: str) -> dict:
+    def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
         """The fitted size of an effect in its own units, with standard uncertainties."""
         raise NotImplementedError
 
@@ -122,7 +124,7 @@ class Family:
         return out
 
     @staticmethod
-    def unpack(blocks: list[Block], theta: np.ndarray) -> dict[str, dict[str, float]]:
+    def unpack(blocks: list[Block], theta: NDArray[np.float64]) -> dict[str, dict[str, float]]:
         params: dict[str, dict[str, float]] = {}
         i = 0
         for b in blocks:
@@ -132,10 +134,10 @@ class Family:
                 i += 1
         return params
 
-    def predict(self, effects: tuple[str, ...], theta: np.ndarray, blocks: list[Block] | None = None) -> np.ndarray:
+    def predict(self, effects: tuple[str, ...], theta: NDArray[np.float64], blocks: list[Block] | None = None) -> NDArray[np.float64]:
         return self.predict_params(effects, self.unpack(blocks or self.blocks(effects), theta))
 
-    def initial(self, effects: tuple[str, ...], blocks: list[Block], start: Fit | None) -> np.ndarray:
+    def initial(self, effects: tuple[str, ...], blocks: list[Block], start: Fit | None) -> NDArray[np.float64]:
         """Start values: the previous fit's values where the parameter is the same, block init elsewhere."""
         x = np.concatenate([np.asarray(b.init, dtype=float) for b in blocks]) if blocks else np.zeros(0)
         if start is None:
@@ -159,11 +161,12 @@ class Family:
     def n_obs(self) -> int:
         return int(self.observed.size)
 
-    def weighted_residual(self, effects: tuple[str, ...], theta: np.ndarray,
-                          blocks: list[Block] | None = None) -> np.ndarray:
-        return ((self.observed - self.predict(effects, theta, blocks)) * self.weights).ravel()
+    def weighted_residual(self, effects: tuple[str, ...], theta: NDArray[np.float64],
+                          blocks: list[Block] | None = None) -> NDArray[np.float64]:
+        r: NDArray[np.float64] = ((self.observed - self.predict(effects, theta, blocks)) * self.weights).ravel()
+        return r
 
-    def fit(self, effects: tuple[str, ...], start: Fit | None = None, x0: np.ndarray | None = None) -> Fit:
+    def fit(self, effects: tuple[str, ...], start: Fit | None = None, x0: NDArray[np.float64] | None = None) -> Fit:
         blocks = self.blocks(effects)
         k = sum(b.size for b in blocks)
         if self.n_obs <= k:
@@ -173,7 +176,7 @@ class Family:
         theta0 = self.initial(effects, blocks, start) if x0 is None else np.asarray(x0, dtype=float)
         scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
 
-        def fun(q):
+        def fun(q: NDArray[np.float64]) -> NDArray[np.float64]:
             return self.weighted_residual(effects, q * scales, blocks)
 
         q0 = theta0 / scales
@@ -197,22 +200,22 @@ class Family:
         cov = _covariance(J) * (max(1.0, s2) if self.noise_known else s2)
         return Fit(tuple(effects), blocks, theta, cov, resid, pred, rss_w, self.n_obs, J)
 
-    def jacobian(self, effects: tuple[str, ...], blocks: list[Block], theta: np.ndarray,
-                 columns: range | None = None) -> np.ndarray:
+    def jacobian(self, effects: tuple[str, ...], blocks: list[Block], theta: NDArray[np.float64],
+                 columns: range | None = None) -> NDArray[np.float64]:
         """Jacobian of the weighted residual, d r / d theta (selected columns), by the shared rule."""
         scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
         cols = np.arange(theta.size) if columns is None else np.asarray(list(columns), dtype=int)
         if cols.size == 0:
             return np.zeros((self.n_obs, 0))
 
-        def fun(sub: np.ndarray) -> np.ndarray:
+        def fun(sub: NDArray[np.float64]) -> NDArray[np.float64]:
             t = theta.copy()
             t[cols] = sub
             return self.weighted_residual(effects, t, blocks)
 
         return central_jacobian(fun, theta[cols], scales[cols])
 
-    def extended(self, current: Fit, effect: str, full: bool = False):
+    def extended(self, current: Fit, effect: str, full: bool = False) -> tuple[tuple[str, ...], list[Block], NDArray[np.float64]]:
         """Effects, blocks and start values of the current model plus `effect` (all its parameters if `full`)."""
         effects = current.effects + (effect,)
         if full:
@@ -283,11 +286,12 @@ class Family:
         return out
 
 
-def _covariance(J: np.ndarray) -> np.ndarray:
+def _covariance(J: NDArray[np.float64]) -> NDArray[np.float64]:
     """(JᵀJ)⁻¹ of the weighted problem; pseudo-inverse where a direction is not determined."""
     if J.size == 0:
         return np.zeros((0, 0))
     JtJ = J.T @ J
     d = np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
     C = np.linalg.pinv(JtJ / np.outer(d, d), rcond=1e-12)
-    return C / np.outer(d, d)
+    cov: NDArray[np.float64] = C / np.outer(d, d)
+    return cov

@@ -5,13 +5,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 MIN_REPEAT_DOF = 5  # fewer repeat degrees of freedom than this do not make a usable noise estimate
 
 
 @dataclass
 class NoiseLevel:
-    sigma: np.ndarray | None  # per axis, in the data's unit; None until the final residual gives it
+    sigma: NDArray[np.float64] | None  # per axis, in the data's unit; None until the final residual gives it
     source: str  # "repeated points", "instrument specification", "final residual"
     df: float  # degrees of freedom of the estimate (inf for a specification)
     detail: str
@@ -21,7 +22,7 @@ class NoiseLevel:
         return self.sigma is not None
 
 
-def from_repeats(observed: np.ndarray, groups: np.ndarray | None) -> NoiseLevel | None:
+def from_repeats(observed: NDArray[np.float64], groups: NDArray[np.float64] | None) -> NoiseLevel | None:
     """Pooled standard deviation of rows that share a group key (grid point and approach direction)."""
     if groups is None:
         return None
@@ -47,13 +48,13 @@ def from_repeats(observed: np.ndarray, groups: np.ndarray | None) -> NoiseLevel 
                       "taken for noise (drift between the repeats is, which makes the level conservative)")
 
 
-def from_specification(sigma) -> NoiseLevel:
+def from_specification(sigma: ArrayLike) -> NoiseLevel:
     s = np.atleast_1d(np.asarray(sigma, dtype=float))
     return NoiseLevel(s, "instrument specification", float("inf"),
                       "1-sigma noise of one reading as given with the data (instrument specification)")
 
 
-def from_residual(resid: np.ndarray, k: int) -> NoiseLevel:
+def from_residual(resid: NDArray[np.float64], k: int) -> NoiseLevel:
     """Per-axis residual standard deviation of the final model, corrected for the fitted parameters."""
     n, a = resid.shape
     dof_total = resid.size - k

@@ -9,15 +9,24 @@ from __future__ import annotations
 
 import html
 import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from service.discrepancy.model import Family, Fit
+from service.discrepancy.scale import ScalePoly
+from service.discrepancy.stage_kinematic import StageKinematic
+from service.discrepancy.stage_linear import StageLinear
 from service.figures import new_figure, png_data_uri
+
+if TYPE_CHECKING:
+    from service.discrepancy.workflow import Result
 
 REPORT_SIGNIFICANT_DIGITS = 8
 
 
-def clean(o):
+def clean(o: Any) -> Any:
     """JSON-safe: numpy scalars to Python, non-finite numbers to null, 8 significant digits."""
     if isinstance(o, dict):
         return {str(k): clean(v) for k, v in o.items()}
@@ -36,12 +45,12 @@ def clean(o):
     return o
 
 
-def _figure(w: float, h: float, rows: int = 1, cols: int = 1, **_margins):
+def _figure(w: float, h: float, rows: int = 1, cols: int = 1, **_margins: float) -> tuple[Any, Any]:
     """A grid of axes from the one figure helper (constrained layout: margins are its business)."""
     return new_figure(rows, cols, (w, h), squeeze=False)
 
 
-def _png(fig) -> str:
+def _png(fig: Any) -> str:
     return png_data_uri(fig)
 
 
@@ -49,11 +58,11 @@ def _img(uri: str, alt: str) -> str:
     return f'<img src="{uri}" alt="{html.escape(alt)}">'
 
 
-def _labels(report: dict) -> list[str]:
+def _labels(report: dict[str, Any]) -> list[str]:
     return [report["baseline"]] + [f"+ {s['effect']}" for s in report["steps"]]
 
 
-def _rms_figure(report: dict) -> str:
+def _rms_figure(report: dict[str, Any]) -> str:
     labels = _labels(report)
     rms = np.array([report["baseline_rms"]] + [s["rms_after"] for s in report["steps"]])
     noise = np.array(report["noise_level"])
@@ -72,7 +81,7 @@ def _rms_figure(report: dict) -> str:
     return _png(fig)
 
 
-def _stage_maps(fam, fits, titles, unit: str) -> str:
+def _stage_maps(fam: StageLinear | StageKinematic, fits: Sequence[Fit], titles: Sequence[str], unit: str) -> str:
     """All residual maps in one figure: a row per stage of the chain, x and y side by side."""
     x, y = fam.data.cmd_x_deg, fam.data.cmd_y_deg
     n = len(fits)
@@ -94,7 +103,7 @@ def _stage_maps(fam, fits, titles, unit: str) -> str:
     return _png(fig)
 
 
-def _scale_plots(fam, fits, titles, unit: str) -> str:
+def _scale_plots(fam: ScalePoly, fits: Sequence[Fit], titles: Sequence[str], unit: str) -> str:
     n = len(fits)
     h = 2.4 * n
     fig, axs = _figure(6.0, h, n, 1, left=0.14, right=0.97, bottom=0.45 / h, top=1 - 0.3 / h, hspace=0.6)
@@ -108,7 +117,7 @@ def _scale_plots(fam, fits, titles, unit: str) -> str:
     return _png(fig)
 
 
-def _histogram(report: dict, fit) -> str:
+def _histogram(report: dict[str, Any], fit: Fit) -> str:
     r = fit.residuals
     noise = np.array(report["noise_level"])
     fig, axs = _figure(3.4 * r.shape[1], 3.0, 1, r.shape[1], left=0.1, right=0.97, bottom=0.18, top=0.85)
@@ -129,14 +138,14 @@ def _table(rows: list[list[str]], head: list[str]) -> str:
     return f"<table><tr>{h}</tr>{b}</table>"
 
 
-def _p(v) -> str:
+def _p(v: float | None) -> str:
     """A p-value; one below the smallest double (computed as 0) is shown as the bound it is."""
     if v is None:
         return "—"
     return "< 1e-300" if float(v) < 1e-300 else f"{float(v):.2g}"
 
 
-def _fmt(v) -> str:
+def _fmt(v: object) -> str:
     if v is None:
         return "—"
     if isinstance(v, float):
@@ -152,7 +161,7 @@ th{background:#eee}img{max-width:100%}.concl{background:#f4f8ff;border-left:4px 
 details{margin:.3em 0}code{background:#f3f3f3}"""
 
 
-def render_html(report: dict, result, fam) -> str:
+def render_html(report: dict[str, Any], result: Result, fam: Family) -> str:
     """The whole page as one string (no external resources)."""
     unit = report["unit"]
     e = html.escape
@@ -196,9 +205,9 @@ def render_html(report: dict, result, fam) -> str:
     parts.append("<h2>Residuals before and after each step</h2>")
     titles = [f"baseline {report['baseline']}"] + [f"after step {i}: + {s['effect']}"
                                                    for i, s in enumerate(report["steps"], 1)]
-    if report["kind"] == "stage":
+    if isinstance(fam, StageLinear | StageKinematic):
         parts.append(_img(_stage_maps(fam, result.fits, titles, unit), "residual maps"))
-    else:
+    elif isinstance(fam, ScalePoly):
         parts.append(_img(_scale_plots(fam, result.fits, titles, unit), "residual plots"))
     parts.append(_img(_histogram(report, result.final), "final residual histogram"))
 

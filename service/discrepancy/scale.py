@@ -11,8 +11,10 @@ varies. Residuals are in arcsec.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.discrepancy import noise as noise_mod
 from service.discrepancy import stats
@@ -37,7 +39,7 @@ class ScalePoly(Family):
     candidates = CANDIDATES
     already_in_model = ALREADY_IN_MODEL
 
-    def __init__(self, reading: np.ndarray, ref_arcsec: np.ndarray, temp_c: np.ndarray | None, weight: float):
+    def __init__(self, reading: NDArray[np.float64], ref_arcsec: NDArray[np.float64], temp_c: NDArray[np.float64] | None, weight: float):
         super().__init__(ref_arcsec.reshape(-1, 1), np.array([weight]))
         self.reading = reading
         self.mid = 0.5 * (float(np.max(reading)) + float(np.min(reading)))
@@ -48,7 +50,7 @@ class ScalePoly(Family):
         self._init = (float(slope[1]), float(slope[0]))
         self._typ = max(float(np.ptp(ref_arcsec)), 1.0)
 
-    def full_blocks(self, effects):
+    def full_blocks(self, effects: tuple[str, ...]) -> list[Block]:
         out = [Block("baseline", ("c0", "c1"), ("arcsec", "arcsec"), (self._typ, self._typ), self._init)]
         deg = 1
         for e in effects:
@@ -61,7 +63,7 @@ class ScalePoly(Family):
                 raise KeyError(f"no scale term for {e!r}")
         return out
 
-    def predict_params(self, effects, p):
+    def predict_params(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> NDArray[np.float64]:
         coeffs: dict[int, float] = {}
         for d in (p.get("baseline", {}), p.get("sensor_nonlinearity", {})):
             for lab, v in d.items():
@@ -73,7 +75,7 @@ class ScalePoly(Family):
             y = y + p["temperature_drift"].get("arcsec_per_k", 0.0) * self.dT
         return y.reshape(-1, 1)
 
-    def magnitude(self, fit: Fit, effect: str) -> dict:
+    def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
         occ = sum(1 for b in fit.blocks if b.effect == effect) - 1
         sl = fit.block_slice(effect, occ)
         blk = fit.block(effect, occ)
@@ -104,7 +106,7 @@ class ScalePoly(Family):
                                                  "(first-order inverse)"}
         return out
 
-    def baseline_line(self, fit: Fit) -> dict:
+    def baseline_line(self, fit: Fit) -> dict[str, Any]:
         c0, c1 = fit.values[fit.block_slice("baseline")]
         u = np.sqrt(np.maximum(np.diag(fit.covariance[:2, :2]), 0.0))
         return {"arcsec_per_count": {"value": float(c1 / self.half), "uncertainty": float(u[1] / self.half),
@@ -112,7 +114,8 @@ class ScalePoly(Family):
                 "arcsec_at_zero_count": {"value": float(c0 - c1 * self.mid / self.half), "unit": "arcsec"}}
 
 
-def scale_structure(reading, resid, temp_c, t_s, alpha=0.01) -> list[stats.StructureTest]:
+def scale_structure(reading: NDArray[np.float64], resid: NDArray[np.float64], temp_c: NDArray[np.float64] | None, t_s: NDArray[np.float64] | None,
+                    alpha: float = 0.01) -> list[stats.StructureTest]:
     r = resid[:, 0]
     tests: list[stats.StructureTest] = []
     z = (reading - reading.mean()) / max(float(np.ptp(reading)), 1e-9)
@@ -131,7 +134,7 @@ def scale_structure(reading, resid, temp_c, t_s, alpha=0.01) -> list[stats.Struc
     return stats.mark_significant(tests, alpha)
 
 
-def analyse_scale(columns: Mapping[str, np.ndarray], noise_sigma=None, alpha: float = DEFAULT_ALPHA
+def analyse_scale(columns: Mapping[str, NDArray[np.float64]], noise_sigma: ArrayLike | None = None, alpha: float = DEFAULT_ALPHA
                   ) -> tuple[Result, ScalePoly]:
     if "ref_arcsec" in columns:
         ref = np.asarray(columns["ref_arcsec"], dtype=float)
@@ -173,8 +176,9 @@ def analyse_scale(columns: Mapping[str, np.ndarray], noise_sigma=None, alpha: fl
     return res, fam
 
 
-def scale_report(columns, noise_sigma=None, alpha=DEFAULT_ALPHA, inputs: dict | None = None
-                 ) -> tuple[dict, Result, ScalePoly]:
+def scale_report(columns: Mapping[str, NDArray[np.float64]], noise_sigma: ArrayLike | None = None, alpha: float = DEFAULT_ALPHA,
+                 inputs: dict[str, Any] | None = None
+                 ) -> tuple[dict[str, Any], Result, ScalePoly]:
     res, fam = analyse_scale(columns, noise_sigma, alpha)
     rep = to_report(res, fam, {"n_rows": int(fam.reading.size), **(inputs or {})})
     return rep, res, fam

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.discrepancy import noise as noise_mod
 from service.discrepancy.model import Family
@@ -14,7 +16,7 @@ from service.errors import InputError
 from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
 
-def stage_noise(data: StageData, spec_sigma=None) -> noise_mod.NoiseLevel | None:
+def stage_noise(data: StageData, spec_sigma: ArrayLike | noise_mod.NoiseLevel | None = None) -> noise_mod.NoiseLevel | None:
     """Repeated points first, then the stated noise level (the instrument specification, or a NoiseLevel the
     caller measured); None means 'from the final residual'."""
     if isinstance(spec_sigma, noise_mod.NoiseLevel):
@@ -40,7 +42,7 @@ def stage_noise(data: StageData, spec_sigma=None) -> noise_mod.NoiseLevel | None
     return None
 
 
-def _explain_drop(data: StageData):
+def _explain_drop(data: StageData) -> Callable[[str, str], str | None]:
     def explain(effect: str, label: str) -> str | None:
         ax = label[:1]
         if effect == "backlash" and ax in "xy":
@@ -55,9 +57,9 @@ def _explain_drop(data: StageData):
     return explain
 
 
-def analyse_stage(columns: Mapping[str, np.ndarray], sensor: str = "ref", baseline: str = "linear",
-                  noise_sigma=None, bench: StageBench | None = None, alpha: float = DEFAULT_ALPHA,
-                  candidates: tuple[str, ...] | None = None, bench_source: str | None = None) -> tuple[Result, Family]:
+def analyse_stage(columns: Mapping[str, NDArray[np.float64]], sensor: str = "ref", baseline: str = "linear",
+                  noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None, bench: StageBench | None = None,
+                  alpha: float = DEFAULT_ALPHA, candidates: tuple[str, ...] | None = None, bench_source: str | None = None) -> tuple[Result, Family]:
     """Run the workflow on stage columns; returns the result and the fitted family (for the report)."""
     data = StageData.from_columns(columns, sensor, bench)
     if bench is None and (mismatch := data.bench.pulse_mismatch(data.cmd_x_deg, data.cmd_y_deg)) is not None:
@@ -92,16 +94,19 @@ def analyse_stage(columns: Mapping[str, np.ndarray], sensor: str = "ref", baseli
     return res, fam
 
 
-def stage_report(columns, sensor="ref", baseline="linear", noise_sigma=None, bench=None, alpha=DEFAULT_ALPHA,
-                 inputs: dict | None = None, bench_source: str | None = None) -> tuple[dict, Result, Family]:
+def stage_report(columns: Mapping[str, NDArray[np.float64]], sensor: str = "ref", baseline: str = "linear",
+                 noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None, bench: StageBench | None = None,
+                 alpha: float = DEFAULT_ALPHA,
+                 inputs: dict[str, Any] | None = None, bench_source: str | None = None) -> tuple[dict[str, Any], Result, Family]:
     res, fam = analyse_stage(columns, sensor, baseline, noise_sigma, bench, alpha, bench_source=bench_source)
     rep = to_report(res, fam, {"sensor": sensor, "n_rows": len(fam.observed), **(inputs or {})})
     return rep, res, fam
 
 
-def stage_diagnosis(columns, sensor: str = "ref", baseline: str = "linear", noise_sigma=None,
-                    bench: StageBench | None = None, inputs: dict | None = None, bench_source: str | None = None,
-                    provenance: dict | None = None) -> tuple[dict, str, Result, Family]:
+def stage_diagnosis(columns: Mapping[str, NDArray[np.float64]], sensor: str = "ref", baseline: str = "linear",
+                    noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None,
+                    bench: StageBench | None = None, inputs: dict[str, Any] | None = None, bench_source: str | None = None,
+                    provenance: dict[str, Any] | None = None) -> tuple[dict[str, Any], str, Result, Family]:
     """The whole workflow on stage columns as `tiltlab discrepancy` and the daemon's diagnosis run it: the JSON-ready
     report (with its provenance) and its HTML page, plus the result and fitted family behind them."""
     from service.discrepancy.report import clean, render_html

@@ -7,6 +7,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.discrepancy import stats
 from service.discrepancy.model import Block
@@ -35,23 +36,23 @@ class StageData:
     """One sensor's readings at the commanded stage points, with the covariates present."""
 
     sensor: str
-    cmd_x_deg: np.ndarray
-    cmd_y_deg: np.ndarray
-    observed: np.ndarray  # (N, 2): sensor x and y readings, deg
-    dir_x: np.ndarray | None
-    dir_y: np.ndarray | None
-    temp_c: np.ndarray | None
-    t_s: np.ndarray | None
-    point: np.ndarray | None
+    cmd_x_deg: NDArray[np.float64]
+    cmd_y_deg: NDArray[np.float64]
+    observed: NDArray[np.float64]  # (N, 2): sensor x and y readings, deg
+    dir_x: NDArray[np.float64] | None
+    dir_y: NDArray[np.float64] | None
+    temp_c: NDArray[np.float64] | None
+    t_s: NDArray[np.float64] | None
+    point: NDArray[np.float64] | None
     bench: StageBench
 
     @classmethod
-    def from_columns(cls, cols: Mapping[str, np.ndarray], sensor: str = "ref",
+    def from_columns(cls, cols: Mapping[str, NDArray[np.float64]], sensor: str = "ref",
                      bench: StageBench | None = None) -> StageData:
-        def g(c: str) -> np.ndarray | None:
+        def g(c: str) -> NDArray[np.float64] | None:
             return None if c not in cols else np.asarray(cols[c], dtype=float)
 
-        def req(c: str) -> np.ndarray:
+        def req(c: str) -> NDArray[np.float64]:
             return np.asarray(cols[c], dtype=float)
 
         obs = np.column_stack([req(f"{sensor}_x_deg"), req(f"{sensor}_y_deg")])
@@ -61,11 +62,11 @@ class StageData:
     def __len__(self) -> int:
         return self.cmd_x_deg.size
 
-    def quantised(self) -> tuple[np.ndarray, np.ndarray]:
+    def quantised(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The stage angles the controller executes: whole pulses (seed 000 §1)."""
         return self.bench.quantise(self.cmd_x_deg, self.cmd_y_deg)
 
-    def dir(self, axis: str) -> np.ndarray | None:
+    def dir(self, axis: str) -> NDArray[np.float64] | None:
         return self.dir_x if axis == "x" else self.dir_y
 
     def both_directions(self, axis: str) -> bool:
@@ -78,7 +79,7 @@ class StageData:
     def time_varies(self) -> bool:
         return self.t_s is not None and float(np.ptp(self.t_s)) >= TIME_MIN_SPAN_S
 
-    def worm_phase(self, axis: str) -> tuple[np.ndarray, float]:
+    def worm_phase(self, axis: str) -> tuple[NDArray[np.float64], float]:
         """Phase of the worm (rad) at each point and the worm period in output degrees."""
         qx, qy = self.quantised()
         period = self.bench.worm_period_x_deg if axis == "x" else self.bench.worm_period_y_deg
@@ -144,7 +145,7 @@ _SHAPE_WORDS = {
 }
 
 
-def stage_structure(data: StageData, resid: np.ndarray, alpha: float = 0.01) -> list[stats.StructureTest]:
+def stage_structure(data: StageData, resid: NDArray[np.float64], alpha: float = 0.01) -> list[stats.StructureTest]:
     """Residual structure tests per axis against every covariate the data carry."""
     x, y = data.cmd_x_deg, data.cmd_y_deg
     s = max(float(np.max(np.abs(np.concatenate([x, y])))), 1e-9)
@@ -183,7 +184,7 @@ def stage_structure(data: StageData, resid: np.ndarray, alpha: float = 0.01) -> 
     return stats.mark_significant(tests, alpha)
 
 
-def largest_residuals(data: StageData, resid: np.ndarray, n: int = 3) -> list[str]:
+def largest_residuals(data: StageData, resid: NDArray[np.float64], n: int = 3) -> list[str]:
     """Where the largest disagreements sit on the grid, per axis (a sentence each)."""
     out = []
     for a, name in enumerate(("x", "y")):

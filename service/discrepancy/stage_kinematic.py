@@ -17,8 +17,10 @@ stage scale to first order (they differ only through the off-axis coupling).
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.benchfit import BenchModel, StagePoints, typical_scale
 from service.discrepancy.model import Block, Family, Fit
@@ -44,14 +46,16 @@ ALREADY_IN_MODEL = {
     "stage_scale": "free parameter of the baseline (both stages)",
 }
 
-GEOMETRY_PARAMS = lambda s: (  # noqa: E731
-    ("zero_offset", f"{s}_x_deg"), ("zero_offset", f"{s}_y_deg"),
-    ("stage_scale", "x"), ("stage_scale", "y"),
-    ("sensor_yaw", f"{s}_deg"), ("non_orthogonality", f"{s}_deg"),
-    ("mounting_tilt", "desk_y_deg"), ("mounting_tilt", f"{s}_x_deg"),
-    ("axis_misalignment", "upper_pitch_deg"), ("axis_misalignment", "perpendicularity_deg"),
-    ("axis_misalignment", "lower_pitch_deg"),
-)
+
+def geometry_params(s: str) -> tuple[tuple[str, str], ...]:
+    return (
+        ("zero_offset", f"{s}_x_deg"), ("zero_offset", f"{s}_y_deg"),
+        ("stage_scale", "x"), ("stage_scale", "y"),
+        ("sensor_yaw", f"{s}_deg"), ("non_orthogonality", f"{s}_deg"),
+        ("mounting_tilt", "desk_y_deg"), ("mounting_tilt", f"{s}_x_deg"),
+        ("axis_misalignment", "upper_pitch_deg"), ("axis_misalignment", "perpendicularity_deg"),
+        ("axis_misalignment", "lower_pitch_deg"),
+    )
 
 _GEOMETRY_EFFECTS = {"mounting_tilt", "axis_misalignment", "sensor_yaw", "non_orthogonality", "offaxis_coupling"}
 
@@ -77,7 +81,7 @@ class StageKinematic(Family):
     already_in_model = ALREADY_IN_MODEL
     separability_hints = STAGE_SEPARABILITY_HINTS
 
-    def __init__(self, data: StageData, weights: np.ndarray):
+    def __init__(self, data: StageData, weights: NDArray[np.float64]):
         super().__init__(data.observed, weights)
         self.data = data
         b = data.bench
@@ -93,13 +97,13 @@ class StageKinematic(Family):
             cols["t_s"] = data.t_s - float(data.t_s[0])
         self.pts = StagePoints.from_columns(cols)
         self.outputs = [f"{data.sensor}_x_deg", f"{data.sensor}_y_deg"]
-        self.geometry_keys = GEOMETRY_PARAMS(data.sensor)
+        self.geometry_keys = geometry_params(data.sensor)
         self.names = sensor_param_names(data.sensor)
-        self._geo_cache: tuple[tuple, StageGeometry] | None = None
+        self._geo_cache: tuple[tuple[object, ...], StageGeometry] | None = None
         self.report_extra = {"kinematic": {"meas_flip": flip, "temp_ref_c": temp_ref,
                                            "free_geometry": [f"{e}.{p}" for e, p in self.geometry_keys]}}
 
-    def full_blocks(self, effects):
+    def full_blocks(self, effects: tuple[str, ...]) -> list[Block]:
         keys = self.geometry_keys
         out = [Block("baseline", tuple(f"{e}.{p}" for e, p in keys),
                      tuple(STAGE_EFFECTS[e].param(p).unit for e, p in keys),
@@ -111,7 +115,7 @@ class StageKinematic(Family):
                 raise KeyError(f"the kinematic baseline has no candidate term for {e!r}")
         return out
 
-    def effects_mapping(self, effects, p) -> dict[str, dict[str, float]]:
+    def effects_mapping(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
         """The registry's effect mapping (what a scenario would say) for these parameter values."""
         eff: dict[str, dict[str, float]] = {}
         for lab, v in p.get("baseline", {}).items():
@@ -130,7 +134,7 @@ class StageKinematic(Family):
                 eff[e] = dict(q)
         return eff
 
-    def predict_params(self, effects, p):
+    def predict_params(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> NDArray[np.float64]:
         eff = self.effects_mapping(effects, p)
         model = BenchModel(self.bench, eff, [])
         fx = model.effect_set(())
@@ -142,5 +146,5 @@ class StageKinematic(Family):
                              pts.t_s, rng=None, geometry=self._geo_cache[1])
         return np.column_stack([sim[o] for o in self.outputs])
 
-    def magnitude(self, fit: Fit, effect: str) -> dict:
+    def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
         return stage_magnitude(self, fit, effect)

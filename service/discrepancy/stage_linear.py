@@ -18,7 +18,10 @@ sensor yaw and non-orthogonality, mounting tilts, stage-axis misalignment, stage
 
 from __future__ import annotations
 
+from typing import Any, Protocol
+
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.projective import fit_projective
 from service.discrepancy.model import Block, Family, Fit
@@ -45,13 +48,19 @@ ALREADY_IN_MODEL = {
 }
 
 
+class OnStageData(Protocol):
+    """A family fitted to stage data: what the magnitudes of its effects are stated against."""
+
+    data: StageData
+
+
 class StageLinear(Family):
     kind = "stage"
     baseline = "linear"
     unit = "deg"
     axes = ("x", "y")
 
-    def __init__(self, data: StageData, weights: np.ndarray):
+    def __init__(self, data: StageData, weights: NDArray[np.float64]):
         super().__init__(data.observed, weights)
         self.data = data
         self.qx, self.qy = data.quantised()
@@ -71,7 +80,7 @@ class StageLinear(Family):
                                "terms and separates it",
     }
 
-    def full_blocks(self, effects):
+    def full_blocks(self, effects: tuple[str, ...]) -> list[Block]:
         out = [Block("baseline", tuple(f"h{i}" for i in ("11", "12", "13", "21", "22", "23", "31", "32")),
                      ("1",) * 8, (1.0, 0.1, 0.1, 0.1, 1.0, 0.1, 0.01, 0.01), (1, 0, 0, 0, 1, 0, 0, 0))]
         for e in effects:
@@ -85,7 +94,7 @@ class StageLinear(Family):
         return out
 
     # -- the model ---------------------------------------------------------------------------------
-    def stage_angles(self, effects, p) -> tuple[np.ndarray, np.ndarray]:
+    def stage_angles(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Angles the stages reach (deg): actuator effects before the geometry and the map."""
         tx, ty = self.qx.copy(), self.qy.copy()
         d = self.data
@@ -101,7 +110,8 @@ class StageLinear(Family):
             ty = ty + q.get("y_sin_deg", 0.0) * np.sin(self.wy) + q.get("y_cos_deg", 0.0) * np.cos(self.wy)
         return tx, ty
 
-    def map_inputs(self, effects, p, tx, ty) -> tuple[np.ndarray, np.ndarray]:
+    def map_inputs(self, effects: tuple[str, ...], p: dict[str, dict[str, float]], tx: NDArray[np.float64],
+                   ty: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Stage angles as the map sees them: through the stacked geometry when coupling is modelled."""
         if "offaxis_coupling" not in effects:
             return tx, ty
@@ -110,7 +120,7 @@ class StageLinear(Family):
         yb = ty + c.get("level_y_deg", 0.0)
         return xa - c.get("kappa", 1.0) * offaxis_error_deg(xa, yb), yb
 
-    def predict_params(self, effects, p):
+    def predict_params(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> NDArray[np.float64]:
         tx, ty = self.stage_angles(effects, p)
         u, v = self.map_inputs(effects, p, tx, ty)
         h = p["baseline"]
@@ -137,7 +147,7 @@ class StageLinear(Family):
             Y += q.get(ry, 0.0) * self.t_h
         return np.column_stack([X, Y])
 
-    def initial(self, effects, blocks, start):
+    def initial(self, effects: tuple[str, ...], blocks: list[Block], start: Fit | None) -> NDArray[np.float64]:
         """Previous values where they carry over; the map re-estimated by DLT when the geometry changed."""
         x = super().initial(effects, blocks, start)
         changed = start is None or ("offaxis_coupling" in effects) != ("offaxis_coupling" in start.effects)
@@ -151,25 +161,25 @@ class StageLinear(Family):
         return x
 
     # -- reporting -----------------------------------------------------------------------------------
-    def magnitude(self, fit: Fit, effect: str) -> dict:
+    def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
         return stage_magnitude(self, fit, effect)
 
 
-def _entry(value, std, unit, doc=None):
+def _entry(value: float, std: float, unit: str, doc: str | None = None) -> dict[str, Any]:
     d = {"value": float(value), "uncertainty": float(std), "unit": unit}
     if doc:
         d["what"] = doc
     return d
 
 
-def stage_magnitude(fam, fit: Fit, effect: str) -> dict:
+def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
     """Fitted parameters of one effect, in the registry's names and units where it has them."""
     sl = fit.block_slice(effect)
     blk = fit.block(effect)
     vals = fit.values[sl]
     cov = fit.covariance[sl, sl]
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    out: dict = {}
+    out: dict[str, Any] = {}
     if effect == "periodic_error":
         for ax in ("x", "y"):
             ls, lc = f"{ax}_sin_deg", f"{ax}_cos_deg"
@@ -180,9 +190,9 @@ def stage_magnitude(fam, fit: Fit, effect: str) -> dict:
             amp = float(np.hypot(a, b))
             g = np.array([a, b]) / amp if amp > 0 else np.array([1.0, 0.0])
             c2 = cov[np.ix_([i, j], [i, j])]
-            u_amp = float(np.sqrt(max(g @ c2 @ g, 0.0)))
+            u_amp = float(np.sqrt(max(float(g @ c2 @ g), 0.0)))
             gp = np.array([-b, a]) / amp**2 if amp > 0 else np.zeros(2)
-            u_ph = float(np.degrees(np.sqrt(max(gp @ c2 @ gp, 0.0)))) if amp > 0 else 180.0
+            u_ph = float(np.degrees(np.sqrt(max(float(gp @ c2 @ gp), 0.0)))) if amp > 0 else 180.0
             period = fam.data.bench.worm_period_x_deg if ax == "x" else fam.data.bench.worm_period_y_deg
             out[f"{ax}_amp_deg"] = _entry(amp, u_amp, "deg", f"amplitude at the worm period {period:g} deg")
             out[f"{ax}_phase_deg"] = _entry(float(np.degrees(np.arctan2(b, a))), u_ph, "deg")

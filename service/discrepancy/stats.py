@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy import special
 
 
@@ -37,7 +39,7 @@ def t_two_sided(t: float, df: float) -> float:
     return float(2.0 * special.stdtr(df, -abs(t)))
 
 
-def welch_t(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+def welch_t(a: NDArray[np.float64], b: NDArray[np.float64]) -> tuple[float, float]:
     """Welch's two-sample t statistic and two-sided p-value."""
     va, vb = a.var(ddof=1) / a.size, b.var(ddof=1) / b.size
     se2 = va + vb
@@ -48,7 +50,7 @@ def welch_t(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return float(t), t_two_sided(t, df)
 
 
-def pearson(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+def pearson(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, float]:
     """Pearson correlation and its two-sided p-value (t with n - 2 degrees of freedom)."""
     n = x.size
     xc, yc = x - x.mean(), y - y.mean()
@@ -84,7 +86,7 @@ class Significance:
     def significant(self) -> bool:
         return bool(self.p_value < self.alpha and self.delta_bic < 0.0)
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {
             "delta_rss_weighted": self.delta_rss,
             "df_added": self.df_added,
@@ -136,7 +138,7 @@ def nested_test(rss0: float, k0: int, rss1: float, k1: int, n_obs: int, alpha: f
                         bic(rss0 / scale, n_obs, k0, known), bic(rss1 / scale, n_obs, k1, known), source)
 
 
-def goodness_of_fit(rss_w: float, dof: int, noise_df: float) -> dict:
+def goodness_of_fit(rss_w: float, dof: int, noise_df: float) -> dict[str, Any]:
     """Is the final residual consistent with the noise level? (chi-square or F of the variance ratio)."""
     if dof <= 0:
         return {"reduced_chi2": None, "dof": dof, "p_value": None}
@@ -156,16 +158,16 @@ class StructureTest:
     statistic: float
     p_value: float
     sentence: str
-    detail: dict = field(default_factory=dict)
+    detail: dict[str, Any] = field(default_factory=dict)
     significant: bool = False
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {"axis": self.axis, "covariate": self.covariate, "test": self.test, "statistic": self.statistic,
                 "p_value": self.p_value, "significant": self.significant, "sentence": self.sentence,
                 **({"detail": self.detail} if self.detail else {})}
 
 
-def _ols_f(r: np.ndarray, base: np.ndarray, extra: np.ndarray) -> tuple[float, float, np.ndarray, int]:
+def _ols_f(r: NDArray[np.float64], base: NDArray[np.float64], extra: NDArray[np.float64]) -> tuple[float, float, NDArray[np.float64], int]:
     """F-test of `extra` regressors on r beyond `base` regressors; returns F, p, coefficients, dof."""
     X0 = base
     X1 = np.column_stack([base, extra])
@@ -181,12 +183,12 @@ def _ols_f(r: np.ndarray, base: np.ndarray, extra: np.ndarray) -> tuple[float, f
     p = rank1 - rank0
     dof = n - rank1
     if p <= 0 or dof <= 0 or rss1 <= 0:
-        return 0.0, 1.0, c1[X0.shape[1]:], dof
+        return 0.0, 1.0, c1[X0.shape[1]:].astype(np.float64, copy=False), dof
     f = ((rss0 - rss1) / p) / (rss1 / dof)
-    return float(f), f_sf(f, p, dof), c1[X0.shape[1]:], dof
+    return float(f), f_sf(f, p, dof), c1[X0.shape[1]:].astype(np.float64, copy=False), int(dof)
 
 
-def shape_test(r: np.ndarray, names: list[str], terms: np.ndarray, axis: str, unit: str,
+def shape_test(r: NDArray[np.float64], names: list[str], terms: NDArray[np.float64], axis: str, unit: str,
                describe: dict[str, str] | None = None) -> StructureTest:
     """Does the residual follow a smooth function of the stage angles (beyond what the model fitted)?"""
     base = np.ones((r.size, 1))
@@ -205,7 +207,7 @@ def shape_test(r: np.ndarray, names: list[str], terms: np.ndarray, axis: str, un
                          {"strongest_term": best, "strongest_term_span": span})
 
 
-def direction_test(r: np.ndarray, d: np.ndarray, axis: str, stage: str, unit: str) -> StructureTest | None:
+def direction_test(r: NDArray[np.float64], d: NDArray[np.float64], axis: str, stage: str, unit: str) -> StructureTest | None:
     """Welch t-test of the residual between the two approach directions of one stage."""
     plus, minus = r[d > 0], r[d < 0]
     if plus.size < 2 or minus.size < 2:
@@ -217,7 +219,7 @@ def direction_test(r: np.ndarray, d: np.ndarray, axis: str, stage: str, unit: st
     return StructureTest(axis, f"dir_{stage}", "Welch t", float(t), float(p), sentence, {"jump": jump})
 
 
-def correlation_test(r: np.ndarray, c: np.ndarray, axis: str, covariate: str, what: str, per: str,
+def correlation_test(r: NDArray[np.float64], c: NDArray[np.float64], axis: str, covariate: str, what: str, per: str,
                      unit: str) -> StructureTest | None:
     """Pearson correlation of the residual with a covariate, with the slope in the lab's units."""
     if c.size < 4 or np.ptp(c) <= 0 or np.ptp(r) <= 0:
@@ -229,7 +231,7 @@ def correlation_test(r: np.ndarray, c: np.ndarray, axis: str, covariate: str, wh
                          {"slope": slope, "slope_unit": f"{unit}/{per}"})
 
 
-def runs_test(r: np.ndarray, order: np.ndarray, axis: str) -> StructureTest | None:
+def runs_test(r: NDArray[np.float64], order: NDArray[np.float64], axis: str) -> StructureTest | None:
     """Wald-Wolfowitz runs test of residual signs in time order: too few runs means slow wander."""
     s = r[np.argsort(order, kind="stable")] - np.median(r)
     s = s[s != 0]
@@ -248,7 +250,7 @@ def runs_test(r: np.ndarray, order: np.ndarray, axis: str) -> StructureTest | No
     return StructureTest(axis, "t_s (order)", "runs (one-sided)", float(z), p, sentence, {"runs": runs, "expected": mu})
 
 
-def periodic_test(r: np.ndarray, phase_rad: np.ndarray, axis: str, stage: str, period_deg: float,
+def periodic_test(r: NDArray[np.float64], phase_rad: NDArray[np.float64], axis: str, stage: str, period_deg: float,
                   unit: str) -> StructureTest | None:
     """Periodogram value of the residual at the worm period of one stage (sine and cosine regression)."""
     if r.size < 6:

@@ -12,10 +12,12 @@ Pure computation: no file I/O here (service.commands.discrepancy does that).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.discrepancy import stats
 from service.discrepancy.model import Family, Fit
@@ -36,7 +38,7 @@ class Step:
     before: Fit
     after: Fit
     significance: stats.Significance
-    scores: list[dict]
+    scores: list[dict[str, Any]]
     structure_before: list[stats.StructureTest]
     structure_after: list[stats.StructureTest]
 
@@ -51,16 +53,16 @@ class Result:
     axes: tuple[str, ...]
     fits: list[Fit]  # baseline, then after each named effect
     steps: list[Step]
-    skipped: list[dict]
-    already_in_model: list[dict]
+    skipped: list[dict[str, Any]]
+    already_in_model: list[dict[str, Any]]
     notes: list[str]
     noise: NoiseLevel
-    stop_scores: list[dict]
+    stop_scores: list[dict[str, Any]]
     stop_reason: str
     structure_final: list[stats.StructureTest]
     where_first: list[str]
     alpha: float
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
 
     @property
     def final(self) -> Fit:
@@ -83,7 +85,7 @@ def _noise_var(noise: NoiseLevel) -> tuple[float | None, float]:
 
 
 def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dict[str, str], noise: NoiseLevel,
-                         structure: Callable[[np.ndarray], list[stats.StructureTest]],
+                         structure: Callable[[NDArray[np.float64]], list[stats.StructureTest]],
                          alpha: float = DEFAULT_ALPHA, repeatable: tuple[str, ...] = (),
                          explain_drop: Callable[[str, str], str | None] | None = None,
                          max_steps: int = 10) -> Result:
@@ -116,7 +118,7 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
     steps: list[Step] = []
     current = base
     struct_now = structure(current.residuals)
-    stop_scores: list[dict] = []
+    stop_scores: list[dict[str, Any]] = []
     stop_reason = ""
     while remaining and len(steps) < max_steps:
         scores = []
@@ -206,14 +208,14 @@ def _separability_note(family: Family, effect: str, label: str, frac: float) -> 
     return f"{text}; {hint}" if hint else text
 
 
-def _safe_magnitude(family: Family, fit: Fit, effect: str) -> dict:
+def _safe_magnitude(family: Family, fit: Fit, effect: str) -> dict[str, Any]:
     try:
         return family.magnitude(fit, effect)
     except (KeyError, ValueError, IndexError, ZeroDivisionError, FloatingPointError):
         return {}
 
 
-def _stop_sentence(tried, alpha: float, m: int) -> str:
+def _stop_sentence(tried: list[tuple[str, Fit | None, stats.Significance]], alpha: float, m: int) -> str:
     if not tried:
         return "no further effect: no candidate could be fitted"
     best = min(tried, key=lambda t: t[2].p_value)
@@ -231,9 +233,9 @@ def _rms(fit: Fit) -> list[float]:
     return [float(v) for v in fit.rms()]
 
 
-def to_report(res: Result, family: Family, inputs: dict | None = None) -> dict:
+def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None) -> dict[str, Any]:
     """The JSON report of docs/datasets.md (`discrepancy`), plus the evidence behind each step."""
-    steps = []
+    steps: list[dict[str, Any]] = []
     for s in res.steps:
         mag = family.magnitude(s.after, s.effect)
         steps.append({
@@ -291,7 +293,7 @@ def to_report(res: Result, family: Family, inputs: dict | None = None) -> dict:
     return report
 
 
-def magnitude_sentence(effect: str, mag: dict) -> str:
+def magnitude_sentence(effect: str, mag: dict[str, Any]) -> str:
     parts = []
     for k, v in mag.items():
         if not isinstance(v, dict) or "value" not in v:
@@ -305,7 +307,7 @@ def _fmt(x: float) -> str:
     return f"{x:.3g}" if x != 0 else "0"
 
 
-def final_sentence(ratio, gof, source) -> str:
+def final_sentence(ratio: Sequence[float | None], gof: dict[str, Any], source: str) -> str:
     rs = ", ".join("n/a" if r is None else f"{r:.2f}" for r in ratio)
     if source == "final residual":
         return (f"final residual is the noise level by construction (noise taken from it); RMS/noise = {rs}")
@@ -315,7 +317,7 @@ def final_sentence(ratio, gof, source) -> str:
     return f"final RMS / noise = {rs} per axis; chi-square p = {p:.3g}: {verdict}"
 
 
-def conclusion(res: Result, steps: list[dict]) -> str:
+def conclusion(res: Result, steps: list[dict[str, Any]]) -> str:
     if steps:
         chain = " → ".join([res.baseline] + [f"+ {s['effect']}" for s in steps])
         first = steps[0]["rms_before"]
