@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 from service.clock import Clock
-from service.instruments.bench import open_bench
 from service.instruments.sim import start_simulated_bench
+from service.instruments.wiring import open_bench
 
 SPEED = 20.0
 

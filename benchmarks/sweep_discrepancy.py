@@ -152,7 +152,7 @@ def ladder(pool, base_task: dict, seeds, variants, singles: dict) -> dict:
 
 def timing_cli() -> dict:
     """Wall time of `tiltlab discrepancy` on an 81-point grid with every candidate testable."""
-    from service.datasets import write_dataset
+    from service.io.datasets import write_dataset
 
     hb = bench_with_hidden(0, {"backlash": 5.0}, "serpentine")
     out = {}

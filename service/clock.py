@@ -1,4 +1,4 @@
-"""The one clock of the daemon, its jobs and the simulated instruments.
+"""The one clock of the daemon, its jobs and the simulated instruments (shared by every layer, hence the root).
 
 Bench time (`monotonic`) is what motion, settling, output intervals and sample times are
 measured in. On real hardware it is the process's monotonic clock; a simulated bench may

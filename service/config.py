@@ -1,5 +1,7 @@
 """Service configuration: environment variables `TILTLAB_*`, an optional TOML file, defaults.
 
+At the package root because the API, storage, the fleet, the commands and migrations/env.py all read it.
+
 Precedence, highest first: explicit keyword arguments, environment variables, the TOML file
 named by `TILTLAB_CONFIG`, the defaults below. The defaults suit a single bench on one PC.
 """

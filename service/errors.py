@@ -1,4 +1,4 @@
-"""Errors that every edge of the product (CLI, API, jobs) maps the same way."""
+"""Errors that every edge of the product (CLI, API, jobs) maps the same way, raised from every layer (hence the root)."""
 
 
 class InputError(ValueError):

@@ -1,4 +1,4 @@
-"""Folders that live at the repository root but ship inside the package.
+"""Folders that live at the repository root but ship inside the package (found for the whole package, hence the root).
 
 `migrations/` and `web/` stay where developers expect them; a wheel installs them as the
 packages `service.migrations` and `service.web` (see setup.py). Either way the program

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from service.datasets import read_dataset
+from service.io.datasets import read_dataset
 
 REQUIRED = {
     "seed000": ("stage", ("stage_x_deg", "stage_y_deg", "ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg",

@@ -7,9 +7,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service import datasets
-from service.datasets import read_dataset, write_dataset
 from service.errors import InputError
+from service.io import datasets
+from service.io.datasets import read_dataset, write_dataset
 
 STAGE_HEADER = "stage_x_deg,stage_y_deg,ref_x_deg,ref_y_deg,dir_x,t_s,note\n"
 

@@ -61,7 +61,7 @@ ADMIN_TOKEN_FILE = "admin.token"
 def _check_benches(s: Settings) -> None:
     """Refuse an unusable scenario or bench configuration before anything is started."""
     if s.bench_config is not None:
-        from service.benchconfig import load_bench_config
+        from service.instruments.bench_config import load_bench_config
 
         load_bench_config(s.bench_config)
         return

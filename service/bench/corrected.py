@@ -12,8 +12,8 @@ import numpy as np
 
 from service.calibration.budget import combine, reading_components
 from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor
-from service.columns import K_OUTPUTS
 from service.instruments.base import Reading
+from service.io.columns import K_OUTPUTS
 
 STALE_INTERVALS = 3  # a reading older than this many output intervals (plus STALE_SLACK_S) is stale
 STALE_SLACK_S = 0.25  # real seconds: a loaded machine's delay in handing a reading on

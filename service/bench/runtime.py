@@ -16,13 +16,13 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import TypeVar
 
-from service.benchconfig import BenchConfig
 from service.clock import Clock
 from service.instruments import controller
 from service.instruments.base import DeviceIdentity, Reading
-from service.instruments.bench import BenchDevices, open_bench
+from service.instruments.bench_config import BenchConfig
 from service.instruments.drivers import IDLE_POLL_MISSES
 from service.instruments.transport import DeviceError, DeviceRefused, DeviceTimeout
+from service.instruments.wiring import BenchDevices, open_bench
 
 log = logging.getLogger("tiltlab.bench")
 T = TypeVar("T")

@@ -15,7 +15,7 @@ from service.errors import InputError
 from service.physics.stage import simulate_stage
 from service.scenarios import load_scenario
 from service.scenarios.model import StageScenario
-from service.scenarios.run import bench_of, effect_set
+from service.scenarios.run import effect_set, hardware_of
 
 
 class SimulatedStageBench:
@@ -24,7 +24,7 @@ class SimulatedStageBench:
         if not isinstance(sc, StageScenario):
             raise InputError(f"scenario {scenario_name!r} is a {sc.kind} scenario; the service bench needs a stage one")
         self.scenario = sc
-        self.bench = bench_of(sc)
+        self.bench = hardware_of(sc)
         self.effects = effect_set(sc)
         self._rng = np.random.default_rng(sc.seed if seed is None else seed)
         self._lock = threading.Lock()

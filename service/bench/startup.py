@@ -6,10 +6,10 @@ from __future__ import annotations
 from typing import Any
 
 from service.bench.runtime import BenchRuntime
-from service.benchconfig import load_bench_config
 from service.clock import Clock
 from service.config import Settings
 from service.errors import InputError
+from service.instruments.bench_config import load_bench_config
 
 
 def plan_benches(settings: Settings) -> list[BenchRuntime]:

@@ -27,8 +27,8 @@ from service.calibration.differences import central_jacobian
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions, register
 from service.calibration.uncertainty import propagate_gum
-from service.columns import TURNTABLE_READINGS
 from service.errors import DegenerateDataError, InputError
+from service.io.columns import TURNTABLE_READINGS
 
 PARAM_NAMES = ("beta_deg", "m1_per_arcsec", "m2_per_arcsec", "epsilon_deg")
 READING_COLUMNS = TURNTABLE_READINGS

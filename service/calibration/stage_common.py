@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service import columns as columns_
 from service.calibration.differences import fd_step
 from service.calibration.model import CalibrationModel
 from service.calibration.uncertainty import Propagated, welch_satterthwaite
 from service.errors import DegenerateDataError, InputError
+from service.io import columns as columns_
 from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg, offaxis_reading_deg
 
 STAGE_COLUMNS, REF_COLUMNS, MEAS_COLUMNS = columns_.STAGE, columns_.REF, columns_.MEAS

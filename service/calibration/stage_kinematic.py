@@ -32,8 +32,8 @@ from service.calibration.stage_common import (
     meas_forward,
     newton_2d,
 )
-from service.columns import REF
 from service.errors import DegenerateDataError, FitError, InputError
+from service.io.columns import REF
 from service.physics.effects import STAGE_EFFECTS, EffectSet
 from service.physics.stage import StageBench, StageGeometry, offaxis_inverse_deg
 

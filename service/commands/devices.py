@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING
 from service.commands._args import add_command
 
 if TYPE_CHECKING:  # the bench and its drivers are imported when the command runs, not by --help
-    from service.benchconfig import PortRole
     from service.clock import Clock
+    from service.instruments.bench_config import PortRole
 
 EXPECTED = {
     "reference_sensor": "a 0x68 binary inclinometer",
@@ -29,7 +29,7 @@ EXPECTED = {
 
 
 def expected(role: str, spec: PortRole) -> str:
-    from service.benchconfig import BinaryInclinometerRole, Rs485InclinometerRole
+    from service.instruments.bench_config import BinaryInclinometerRole, Rs485InclinometerRole
 
     what = EXPECTED[role]
     if isinstance(spec, BinaryInclinometerRole):
@@ -69,7 +69,7 @@ async def _probe(role: str, driver) -> str:
 
 
 def _why(role: str, spec: PortRole, driver) -> str:
-    from service.benchconfig import BinaryInclinometerRole, Rs485InclinometerRole
+    from service.instruments.bench_config import BinaryInclinometerRole, Rs485InclinometerRole
     from service.instruments.drivers import StageController
 
     port = driver.x.port if isinstance(driver, StageController) else driver.port
@@ -92,9 +92,9 @@ async def probe_bench(config, clock: Clock) -> list[tuple[str, str, bool, str]]:
     """(role, port, answered, what answered or why not) for every role."""
     import asyncio
 
-    from service.instruments.bench import make_driver
     from service.instruments.drivers import StageController
     from service.instruments.transport import DeviceError, PortRegistry
+    from service.instruments.wiring import make_driver
 
     registry = PortRegistry()
     results = []
@@ -120,8 +120,8 @@ async def probe_bench(config, clock: Clock) -> list[tuple[str, str, bool, str]]:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from service.benchconfig import load_bench_config
     from service.clock import Clock
+    from service.instruments.bench_config import load_bench_config
 
     benches = load_bench_config(args.config)
     config = benches.bench(args.bench)

@@ -45,8 +45,8 @@ def _constant_column(ds, col: str) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_text_atomic
-    from service.provenance import provenance
+    from service.io.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_text_atomic
+    from service.io.provenance import provenance
 
     kind = args.kind
     baseline = getattr(args, "baseline", None) or "linear"
@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         write_text_atomic(html_path, page)
         if adopt_path is not None and adopted is not None:
-            from service.modelio import write_model
+            from service.io.model_files import write_model
 
             adopted.provenance = prov
             write_model(adopt_path, adopted)

@@ -118,9 +118,9 @@ def _refuse_options_that_do_not_apply(args: argparse.Namespace) -> None:
 def calibrate(args: argparse.Namespace) -> int:
     from service.calibration.model import table_tilt_range
     from service.calibration.registry import FitOptions, get_method
-    from service.datasets import about, check_not_overwriting, check_output_path, read_dataset
-    from service.modelio import write_model
-    from service.provenance import provenance
+    from service.io.datasets import about, check_not_overwriting, check_output_path, read_dataset
+    from service.io.model_files import write_model
+    from service.io.provenance import provenance
 
     check_output_path(args.out)
     check_not_overwriting(args.out, input=args.input)
@@ -160,7 +160,7 @@ def stage_bench_options(kind: str, bench_path: str | None) -> dict:
         return {}
     if kind != "stage":
         raise InputError(f"--bench describes a bench of stacked stages; kind {kind!r} has none")
-    from service.benchconfig import load_stage_bench
+    from service.instruments.bench_config import load_stage_bench
 
     bench, source = load_stage_bench(bench_path)
     return {"bench": bench, "bench_source": source}
@@ -169,8 +169,8 @@ def stage_bench_options(kind: str, bench_path: str | None) -> dict:
 def correct(args: argparse.Namespace) -> int:
     from service.calibration.model import stored_table_tilt_range
     from service.calibration.registry import get_method
-    from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
-    from service.modelio import read_model
+    from service.io.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
+    from service.io.model_files import read_model
 
     check_output_path(args.out)
     check_not_overwriting(args.out, model=args.model, input=args.input)
@@ -200,8 +200,8 @@ def correct(args: argparse.Namespace) -> int:
 
 def level(args: argparse.Namespace) -> int:
     from service.calibration.registry import levelling_method
-    from service.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
-    from service.modelio import read_model
+    from service.io.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_dataset
+    from service.io.model_files import read_model
 
     check_output_path(args.out)
     check_not_overwriting(args.out, model=args.model, targets=args.targets)

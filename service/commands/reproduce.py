@@ -87,7 +87,7 @@ def _inputs() -> dict[str, Path]:
 
 
 def _append_provenance(report: Path, command: str) -> None:
-    from service.provenance import provenance, provenance_lines
+    from service.io.provenance import provenance, provenance_lines
 
     lines = provenance_lines(provenance(command, _inputs()))
     with report.open("a", encoding="utf-8") as fh:

@@ -21,10 +21,10 @@ FAMILY_WORDS = {"binary": "0x68 binary frames", "rs485": "RS-485 ASCII", "adc": 
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.benchconfig import PROTOCOL_OF_ROLE
     from service.clock import Clock
-    from service.datasets import check_output_path, write_text_atomic
+    from service.instruments.bench_config import PROTOCOL_OF_ROLE
     from service.instruments.sim import start_simulated_bench
+    from service.io.datasets import check_output_path, write_text_atomic
 
     if not 0 < args.speed <= 10_000:
         raise InputError(f"--speed {args.speed:g}: give a factor above 0 and at most 10000")

@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     missing = [o for o, v in (("--scenario", args.scenario), ("--out", args.out)) if v is None]
     if missing:
         raise InputError(f"required: {', '.join(missing)} (or --list to see the presets)")
-    from service.datasets import check_not_overwriting, check_output_path, write_dataset
+    from service.io.datasets import check_not_overwriting, check_output_path, write_dataset
     from service.scenarios import load_scenario, run_scenario
 
     check_output_path(args.out)

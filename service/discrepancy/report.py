@@ -18,7 +18,7 @@ from service.discrepancy.model import Family, Fit
 from service.discrepancy.scale import ScalePoly
 from service.discrepancy.stage_kinematic import StageKinematic
 from service.discrepancy.stage_linear import StageLinear
-from service.figures import new_figure, png_data_uri
+from service.io.figures import new_figure, png_data_uri
 
 if TYPE_CHECKING:
     from service.discrepancy.workflow import Result
@@ -238,7 +238,7 @@ def render_html(report: dict[str, Any], result: Result, fam: Family) -> str:
                  "per step, Bonferroni-corrected over the candidates of the step, and a BIC gain. Names of effects "
                  "are those of docs/models.md §5.</p>")
     if (prov := report.get("provenance")):
-        from service.provenance import provenance_lines
+        from service.io.provenance import provenance_lines
 
         parts.append("<h2>Provenance</h2><p style='font-size:80%'>"
                      + "<br>".join(e(line) for line in provenance_lines(prov)) + "</p>")

@@ -11,7 +11,7 @@ import numpy as np
 from service.calibration.budget import model_dof, record_budget
 from service.calibration.model import CalibrationModel
 from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor
-from service.columns import K_OUTPUTS
+from service.io.columns import K_OUTPUTS
 
 ROLE_WORDS = {"measurement_sensor": "measurement sensor", "reference_sensor": "reference sensor"}
 

@@ -64,8 +64,8 @@ def run_workflow(columns: dict[str, np.ndarray], sensor: str, baseline: str, noi
     """In the worker process: the workflow of `tiltlab discrepancy` and the figures the service shows of it."""
     from service.discrepancy import noise as noise_mod
     from service.discrepancy.stage import stage_diagnosis
+    from service.io.provenance import provenance
     from service.physics.stage import StageBench
-    from service.provenance import provenance
 
     noise: Any = None
     if noise_sigma is not None:

@@ -1,10 +1,10 @@
-"""Small helpers the reproduction reports share: Markdown tables; figures come from service.figures."""
+"""Small helpers the reproduction reports share: Markdown tables; figures come from service.io.figures."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-from service.figures import new_figure, save_figure  # noqa: F401 - the reports' figure helpers
+from service.io.figures import new_figure, save_figure  # noqa: F401 - the reports' figure helpers
 
 
 def md_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:

@@ -66,7 +66,7 @@ def conclusions(means: dict, ratios: dict, fwd: dict) -> dict[str, str]:
 
 
 def _figures(out_dir: Path, r0: SeedResult, paper_mask: np.ndarray, means: dict, n_seeds: int) -> list[str]:
-    from service.figures import new_figure, save_figure
+    from service.io.figures import new_figure, save_figure
 
     names = []
     g = np.arange(-12.0, 12.1, 3.0)

@@ -23,7 +23,7 @@ from service.calibration.methods_rotation import (
 )
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.uncertainty import coverage_factor, propagate
-from service.datasets import write_text_atomic
+from service.io.datasets import write_text_atomic
 from service.physics.rotation_axis import rotation_outputs
 from service.reproduce._report_kit import md_table, new_figure, save_figure
 from service.scenarios import load_scenario, run_scenario

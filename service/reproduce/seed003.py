@@ -15,7 +15,7 @@ import numpy as np
 from service.calibration.data import SEED003_TABLE1
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.uncertainty import coverage_factor
-from service.datasets import read_dataset, write_text_atomic
+from service.io.datasets import read_dataset, write_text_atomic
 from service.reproduce._report_kit import md_table, new_figure, save_figure
 from service.scenarios import load_scenario, run_scenario
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.uncertainty import coverage_factor
-from service.datasets import write_text_atomic
+from service.io.datasets import write_text_atomic
 from service.reproduce._report_kit import md_table, new_figure, save_figure
 from service.scenarios import load_scenario, run_scenario
 from service.scenarios.model import parse_scenario

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from service import columns
+from service.io import columns
 from service.physics.analog import AnalogSensor, simulate_scale
 from service.physics.effects import EffectSet
 from service.physics.rotation_axis import RotationBench, simulate_rotation
@@ -34,7 +34,8 @@ class SimulatedRun:
     effects: EffectSet | None = None
 
 
-def bench_of(scenario: Scenario):
+def hardware_of(scenario: Scenario):
+    """The physics model of the scenario's fixed hardware (stacked stages, rotary table, ADC sensor or turntable)."""
     b = scenario.bench
     if isinstance(scenario, StageScenario):
         return StageBench(**b.model_dump())
@@ -94,7 +95,7 @@ def stage_sequence(scenario: StageScenario, rng: np.random.Generator) -> tuple[n
 def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = False) -> SimulatedRun:
     rng = np.random.default_rng(scenario.seed if seed is None else seed)
     fx = effect_set(scenario)
-    bench = bench_of(scenario)
+    bench = hardware_of(scenario)
     noise_rng = None if noiseless else rng
     if isinstance(scenario, StageScenario):
         cx, cy, point = stage_sequence(scenario, rng)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from service.calibration.registry import get_method
-from service.modelio import read_model
+from service.io.model_files import read_model
 from service.scenarios import parse_scenario, run_scenario
 from tests.benches.conftest import GRID, PERIODIC_X, scenario
 

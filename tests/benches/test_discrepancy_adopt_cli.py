@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from service.calibration.stage_kinematic import ChainModel
-from service.modelio import read_model
+from service.io.model_files import read_model
 from service.physics.stage import StageBench
 from service.scenarios import parse_scenario
-from service.scenarios.run import bench_of, effect_set
+from service.scenarios.run import effect_set, hardware_of
 from tests.benches.conftest import GRID, PERIODIC_X, scenario
 from tests.benches.test_cli_benches import tiltlab
 
@@ -39,7 +39,7 @@ def _levelling_error(d, model: str) -> float:
     with open(d / f"{model}.commands.csv") as fh:
         rows = list(csv.DictReader(fh))
     sc = parse_scenario(scenario("180-360", PERIODIC_X, GRID))
-    truth = ChainModel(bench_of(sc), effect_set(sc))
+    truth = ChainModel(hardware_of(sc), effect_set(sc))
     x = np.array([float(r["stage_x_deg"]) for r in rows])
     y = np.array([float(r["stage_y_deg"]) for r in rows])
     tx, ty = truth.tilt(x, y, 1.0, 1.0)

@@ -264,7 +264,7 @@ def _tiltlab(*args, cwd):
 
 
 def test_cli_calibrate_and_correct_round_trip(tmp_path):
-    from service.datasets import write_dataset
+    from service.io.datasets import write_dataset
 
     write_dataset(tmp_path / "run.csv", run_scenario(load_scenario("seed002-b75"), seed=3).columns)
     r = _tiltlab("calibrate", "--kind", "rotation", "--method", "iodsra", "--input", "run.csv", "--out", "m.json",
@@ -275,7 +275,7 @@ def test_cli_calibrate_and_correct_round_trip(tmp_path):
     assert model["covariance"]["names"] == PARAMS
     r = _tiltlab("correct", "--model", "m.json", "--input", "run.csv", "--out", "out.csv", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    from service.datasets import read_dataset
+    from service.io.datasets import read_dataset
 
     out = read_dataset(tmp_path / "out.csv", "rotation", ["theta_ref_deg"], [])
     header = out.header

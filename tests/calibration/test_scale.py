@@ -14,8 +14,8 @@ from service.calibration.data import SEED003_TABLE1
 from service.calibration.methods_scale import PolyMethod, coefficient_names
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
-from service.datasets import read_dataset
 from service.errors import DegenerateDataError, InputError
+from service.io.datasets import read_dataset
 from service.scenarios import load_scenario, run_scenario
 from service.scenarios.model import parse_scenario
 from tests.calibration.gum import Z95, without_dof

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from service.calibration.registry import FitOptions, get_method
-from service.datasets import write_dataset
-from service.modelio import write_model
+from service.io.datasets import write_dataset
+from service.io.model_files import write_model
 from service.scenarios import load_scenario, run_scenario
 
 

@@ -170,7 +170,7 @@ def _tiltlab(*args, cwd):
 
 
 def test_cli_round_trip_with_the_assumed_rotation(tmp_path):
-    from service.datasets import write_dataset
+    from service.io.datasets import write_dataset
 
     write_dataset(tmp_path / "run.csv", run_scenario(load_scenario("seed004")).columns)
     r = _tiltlab("calibrate", "--kind", "turntable", "--method", "reversal", "--input", "run.csv", "--out", "m.json",

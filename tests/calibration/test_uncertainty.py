@@ -78,7 +78,7 @@ def test_seed003_table1_expanded_uncertainty_uses_its_ten_degrees_of_freedom():
     from scipy import stats
 
     from service.calibration.registry import FitOptions, get_method
-    from service.datasets import read_dataset
+    from service.io.datasets import read_dataset
 
     table1 = Path(__file__).resolve().parents[2] / "service" / "calibration" / "data" / "seed003_table1.csv"
     m = get_method("scale", "poly1")

@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from service.cli import main
-from service.datasets import read_dataset, write_dataset
 from service.errors import InputError
+from service.io.datasets import read_dataset, write_dataset
 from service.scenarios import parse_scenario, run_scenario
 
 SCALE = "point,ref_arcsec,reading\n" + "".join(f"{i},{100.0 * i + 0.5 * (i % 2)},{16 + 104 * i}\n" for i in range(8))

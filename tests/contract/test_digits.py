@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from service.cli import main
-from service.datasets import format_value, read_dataset
+from service.io.datasets import format_value, read_dataset
 
 
 @pytest.mark.parametrize("col,value,text", [

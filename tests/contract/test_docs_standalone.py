@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from service import columns
+from service.io import columns
 
 ROOT = Path(__file__).resolve().parents[2]
 FOREIGN = re.compile(r"spec/[a-z]+\.md|spec §|\.\./shared|seeds/")

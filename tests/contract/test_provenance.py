@@ -43,7 +43,7 @@ def test_model_and_discrepancy_report_carry_provenance(tmp_path: Path) -> None:
 
 
 def test_model_provenance_survives_a_round_trip(tmp_path: Path) -> None:
-    from service.modelio import read_model, write_model
+    from service.io.model_files import read_model, write_model
 
     data = tmp_path / "s3.csv"
     assert main(["simulate", "--scenario", "seed003", "--out", str(data)]) == 0

@@ -10,9 +10,9 @@ import time
 import numpy as np
 import pytest
 
-from service.benchconfig import parse_bench_config
 from service.clock import Clock
-from service.instruments.bench import open_bench
+from service.instruments.bench_config import parse_bench_config
+from service.instruments.wiring import open_bench
 from service.physics.stage import StageBench
 from tests.benches.conftest import scenario, stage_bench
 from tests.daemon.conftest import admin_headers, make_client, wait_job

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from benchmarks.hidden_effects import bench_with_hidden
-from service.datasets import write_dataset
+from service.io.datasets import write_dataset
 
 ROOT = Path(__file__).resolve().parents[2]
 TABLE1 = ROOT / "service" / "calibration" / "data" / "seed003_table1.csv"

@@ -9,7 +9,7 @@ import struct
 from pathlib import Path
 
 from service.cli import main
-from service.figures import FIGURE_DPI, new_figure, save_figure
+from service.io.figures import FIGURE_DPI, new_figure, save_figure
 
 
 def _png_size_and_dpi(data: bytes) -> tuple[int, int, float]:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from service.calibration.registry import FitOptions, get_method
-from service.datasets import read_dataset
 from service.discrepancy.scale import scale_report
+from service.io.datasets import read_dataset
 from service.scenarios import load_scenario, parse_scenario, run_scenario
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -7,8 +7,8 @@ import asyncio
 import pytest
 
 from service.clock import Clock
-from service.instruments.bench import open_bench
 from service.instruments.sim import start_simulated_bench
+from service.instruments.wiring import open_bench
 
 SPEED = 20.0  # bench seconds per real second: moves and output intervals are short, the rules the same
 

@@ -7,8 +7,8 @@ import asyncio
 
 import pytest
 
-from service.benchconfig import parse_bench_config
 from service.instruments import rs485
+from service.instruments.bench_config import parse_bench_config
 from tests.instruments.conftest import run_with_devices
 
 
@@ -43,8 +43,8 @@ def _bus_config(sim, addresses):
 
 def test_three_addressed_inclinometers_share_one_bus(rotary_sim):
     """One port, one request in flight: each instrument answers only to its address."""
-    from service.instruments.bench import make_driver
     from service.instruments.transport import PortRegistry
+    from service.instruments.wiring import make_driver
 
     async def main():
         cfg, bus = _bus_config(rotary_sim, (1, 2, 3))

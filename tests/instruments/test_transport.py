@@ -11,14 +11,14 @@ from types import SimpleNamespace
 
 import pytest
 
-from service.benchconfig import parse_bench_config
 from service.clock import Clock
 from service.instruments import controller
-from service.instruments.bench import open_bench
+from service.instruments.bench_config import parse_bench_config
 from service.instruments.drivers import ControllerAxis
 from service.instruments.sim.firmware import ControllerFirmware
 from service.instruments.sim.world import Axis
 from service.instruments.transport import DeviceUnavailable, SerialPort, resolve_usb_serial
+from service.instruments.wiring import open_bench
 from tests.instruments.conftest import eventually
 
 

@@ -16,8 +16,8 @@ from service.calibration.budget import combine, record_budget, standard_componen
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import get_method
 from service.calibration.uncertainty import coverage_factor, dof_of_coverage_factor
-from service.columns import K_OUTPUTS
 from service.instruments.base import Reading
+from service.io.columns import K_OUTPUTS
 from service.jobs.manager import ActiveModel
 from tests.lims.certificates import _stage_fit
 

@@ -19,9 +19,9 @@ from service.api.problems import ProblemError
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import get_method
 from service.calibration.residual_map import stage_residual_map
-from service.columns import ROTATION_DATASET, SCALE_DATASET, STAGE_DATASET, TURNTABLE_DATASET
-from service.datasets import format_value
 from service.errors import InputError
+from service.io.columns import ROTATION_DATASET, SCALE_DATASET, STAGE_DATASET, TURNTABLE_DATASET
+from service.io.datasets import format_value
 from service.jobs.manager import JobManager
 from service.jobs.requests import DB_ID_MAX
 from service.storage.daemon_jobs import DaemonStore

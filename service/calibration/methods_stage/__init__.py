@@ -8,12 +8,12 @@ docs/calibration-stage.md and in each model's notes.
 """
 
 from service.calibration.methods_stage.axis_transform import AXIS_TRANSFORM, AxisTransformMethod
-from service.calibration.methods_stage.base import StageMethod, bench_of, bench_state, stage_commands
+from service.calibration.methods_stage.base import StageMethod, bench_state, stage_commands, stage_hardware
 from service.calibration.methods_stage.coupling import COUPLING, CouplingMethod
 from service.calibration.methods_stage.homography import HOMOGRAPHY, HomographyMethod
 from service.calibration.methods_stage.kinematic import KINEMATIC, KinematicMethod
 from service.calibration.stage_common import LEVEL_OUTPUTS
 
 __all__ = ["AXIS_TRANSFORM", "COUPLING", "HOMOGRAPHY", "KINEMATIC", "LEVEL_OUTPUTS", "AxisTransformMethod",
-           "CouplingMethod", "HomographyMethod", "KinematicMethod", "StageMethod", "bench_of", "bench_state",
+           "CouplingMethod", "HomographyMethod", "KinematicMethod", "StageMethod", "stage_hardware", "bench_state",
            "stage_commands"]

@@ -14,12 +14,12 @@ from service.calibration.methods_stage.base import (
     FIT_REQUIRED,
     Columns,
     StageMethod,
-    bench_of,
     bench_state,
     fit_stats,
     meas_dof,
     meas_sign,
     numeric_cov,
+    stage_hardware,
     stage_model,
     targets,
     uncertain_correct,
@@ -102,7 +102,7 @@ class AxisTransformMethod(StageMethod):
                  "angles are taken as the attitude (no off-axis coupling) and there are no vertical-direction "
                  "errors (no zero offsets or plane tilts)"),
                  "levelling: (sin x, sin y) = M(alpha, beta)^-1 (sin X, sin Y), exact for this model"]
-        state: dict[str, Any] = {"has_meas": has_meas(data), **bench_state(*bench_of(options)[:2])}
+        state: dict[str, Any] = {"has_meas": has_meas(data), **bench_state(*stage_hardware(options)[:2])}
         cov_all = cov
         cov_names = list(names)
         fit_info: dict[str, Any] = {"n_points": int(sx.size), "stage_to_ref": st}

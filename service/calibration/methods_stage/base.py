@@ -23,8 +23,8 @@ from service.calibration.stage_common import (
     sign_from_options,
 )
 from service.calibration.uncertainty import coverage_factor, propagate_gum
-from service.columns import K_OUTPUTS
 from service.errors import DegenerateDataError, InputError
+from service.io.columns import K_OUTPUTS
 from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
 Columns = Mapping[str, NDArray[np.float64]]
@@ -33,7 +33,7 @@ FIT_OPTIONAL = MEAS_COLUMNS + ("dir_x", "dir_y", "temp_c", "t_s", "point")
 CROSS_TOL_DEG = 1e-6
 
 
-def bench_of(options: FitOptions) -> tuple[StageBench, str, bool]:
+def stage_hardware(options: FitOptions) -> tuple[StageBench, str, bool]:
     """The bench the data came from: stated by the caller (options.extra["bench"]) or assumed (seed 000's)."""
     given = options.extra.get("bench")
     if given is None:

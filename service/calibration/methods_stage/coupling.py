@@ -11,11 +11,11 @@ from service.calibration.methods_stage.base import (
     FIT_REQUIRED,
     Columns,
     StageMethod,
-    bench_of,
     bench_state,
     fit_stats,
     meas_dof,
     meas_sign,
+    stage_hardware,
     stage_model,
     targets,
     used_columns,
@@ -32,8 +32,8 @@ from service.calibration.stage_common import (
     require_spread,
 )
 from service.calibration.uncertainty import coverage_factor
-from service.columns import K_OUTPUTS
 from service.errors import DegenerateDataError
+from service.io.columns import K_OUTPUTS
 from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg
 
 
@@ -67,7 +67,7 @@ class CouplingMethod(StageMethod):
                  "those installation errors stay in the levelled and corrected values"),
                  ("levelling: y = Y, and x solves x - kappa * error10(x, y) = X (exact for kappa = 1: "
                  "x = asin(sin X / cos Y))")]
-        state: dict[str, Any] = {"has_meas": has_meas(data), **bench_state(*bench_of(options)[:2])}
+        state: dict[str, Any] = {"has_meas": has_meas(data), **bench_state(*stage_hardware(options)[:2])}
         if has_meas(data):
             sign, how = meas_sign(data, options)
             state["meas_sign"] = sign.tolist()

@@ -15,11 +15,11 @@ from service.calibration.methods_stage.base import (
     FIT_REQUIRED,
     Columns,
     StageMethod,
-    bench_of,
     bench_state,
     fit_stats,
     jacobian_cov,
     meas_dof,
+    stage_hardware,
     stage_model,
     targets,
     uncertain_correct,
@@ -125,7 +125,7 @@ class HomographyMethod(StageMethod):
                                     "offaxis_forward_vs_exact": fwd}
         cov = None
         cov_names: list[str] = []
-        state: dict[str, Any] = {"has_meas": has_meas(data), "offaxis": offaxis, **bench_state(*bench_of(options)[:2])}
+        state: dict[str, Any] = {"has_meas": has_meas(data), "offaxis": offaxis, **bench_state(*stage_hardware(options)[:2])}
         if has_meas(data):
             mx, my = columns(data, MEAS_COLUMNS)
             # Two sensors on one table: no stage coupling between them, so every point serves H2.

@@ -13,10 +13,10 @@ from service.calibration.methods_stage.base import (
     FIT_REQUIRED,
     Columns,
     StageMethod,
-    bench_of,
     bench_state,
     meas_dof,
     meas_sign,
+    stage_hardware,
     stage_model,
     targets,
     used_columns,
@@ -37,8 +37,8 @@ from service.calibration.stage_common import (
 )
 from service.calibration.stage_kinematic import ChainModel, fit_chain, fit_meas, unit_of
 from service.calibration.uncertainty import coverage_factor
-from service.columns import K_OUTPUTS
 from service.errors import InputError
+from service.io.columns import K_OUTPUTS
 from service.physics.stage import StageBench
 
 
@@ -52,7 +52,7 @@ class KinematicMethod(StageMethod):
         sx, sy, rx, ry = columns(data, FIT_REQUIRED)
         loss = check_loss(options.loss)
         require_spread(sx, sy, 5, "the kinematic model")
-        bench, source, stated = bench_of(options)
+        bench, source, stated = stage_hardware(options)
         if not stated and (mismatch := bench.pulse_mismatch(sx, sy)) is not None:
             raise InputError(f"{mismatch}. The kinematic model depends on the bench's hardware and none was stated "
                              f"({bench.describe()} assumed): give the bench the data came from with --bench FILE")

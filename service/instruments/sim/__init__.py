@@ -16,10 +16,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
 
-from service.benchconfig import BenchConfig, parse_bench_config
 from service.clock import Clock
 from service.errors import InputError
 from service.instruments import binary
+from service.instruments.bench_config import BenchConfig, parse_bench_config
 from service.instruments.sim.firmware import AdcFirmware, BinaryFirmware, ControllerFirmware, Rs485BusFirmware
 from service.instruments.sim.pty import Faults, SimPort
 from service.instruments.sim.world import RotaryWorld, StageWorld, rotary_scenarios, stage_scenario

@@ -22,7 +22,7 @@ from service.physics.stage import StageGeometry, simulate_stage
 from service.physics.turntable import TurntableInclinometer, turntable_readings
 from service.scenarios import load_scenario
 from service.scenarios.model import RotationScenario, ScaleScenario, StageScenario, TurntableScenario
-from service.scenarios.run import bench_of, effect_set, temperature
+from service.scenarios.run import effect_set, hardware_of, temperature
 
 NO_LIMIT = 2_147_483_647
 
@@ -144,7 +144,7 @@ class StageWorld:
                  adc_scenario: ScaleScenario | None = None) -> None:
         self.scenario = scenario
         self.clock = clock
-        self.bench = bench_of(scenario)
+        self.bench = hardware_of(scenario)
         self.effects: EffectSet = effect_set(scenario)
         self.geometry = StageGeometry.from_effects(self.bench, self.effects)
         self.rng = np.random.default_rng(scenario.seed)
@@ -161,7 +161,7 @@ class StageWorld:
             self.axes[n].homed = scenario.controller_homed  # false: moves are refused until homed
         self.adc_scenario = adc_scenario
         if adc_scenario is not None:
-            self.analog: AnalogSensor = bench_of(adc_scenario)
+            self.analog: AnalogSensor = hardware_of(adc_scenario)
             self.analog_effects = effect_set(adc_scenario)
 
     def t_s(self) -> float:
@@ -245,10 +245,10 @@ class RotaryWorld:
         self.clock = clock
         self.rotation = rotation
         self.turntable = turntable
-        self.rot_bench = bench_of(rotation)
+        self.rot_bench = hardware_of(rotation)
         self.rot_effects = effect_set(rotation)
         self.tt_effects = effect_set(turntable)
-        base: TurntableInclinometer = bench_of(turntable)
+        base: TurntableInclinometer = hardware_of(turntable)
         # Each instrument on the bus sits at its own azimuth on the table.
         self.tt_sensors = {a: TurntableInclinometer(base.beta_deg + 40.0 * i, base.epsilon_deg, base.m1, base.m2)
                            for i, a in enumerate(bus_addresses)}

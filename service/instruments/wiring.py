@@ -6,7 +6,10 @@ import asyncio
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from service.benchconfig import (
+from service.clock import Clock
+from service.instruments import adc, binary, controller, rs485
+from service.instruments.base import DeviceStatus
+from service.instruments.bench_config import (
     DEFAULT_BAUD,
     PROTOCOL_OF_ROLE,
     AdcRole,
@@ -17,9 +20,6 @@ from service.benchconfig import (
     Rs485InclinometerRole,
     StageControllerRole,
 )
-from service.clock import Clock
-from service.instruments import adc, binary, controller, rs485
-from service.instruments.base import DeviceStatus
 from service.instruments.drivers import (
     AdcSensor,
     BinaryInclinometer,

@@ -6,8 +6,8 @@ import json
 from pathlib import Path
 
 from service.calibration.model import CalibrationModel
-from service.datasets import write_text_atomic
 from service.errors import InputError
+from service.io.datasets import write_text_atomic
 
 
 def read_model(path: str | Path) -> CalibrationModel:

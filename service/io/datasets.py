@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from service.columns import INTEGER_COLUMNS
 from service.errors import InputError
+from service.io.columns import INTEGER_COLUMNS
 
 KINDS = ("stage", "rotation", "scale", "turntable")
 SINE_MARGIN = 1e-3
