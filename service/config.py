@@ -80,6 +80,9 @@ class Settings(BaseSettings):
     sqlite_busy_timeout_ms: int = Field(30_000, ge=0)
     # At start-up an unreachable database is retried with back-off for this long before giving up.
     database_wait_s: float = Field(30.0, ge=0, allow_inf_nan=False)
+    # While the daemon runs, a database that goes away is waited for: a job's writes wait (the job pauses)
+    # and the job fails (database_unreachable) only once the outage has lasted this long.
+    db_outage_s: float = Field(300.0, gt=0, allow_inf_nan=False)
 
     # The laboratory as its certificates name it (a certificate is refused until name, city and country are set).
     lab_name: str = ""

@@ -10,6 +10,7 @@ from contextlib import asynccontextmanager
 from functools import partial
 from pathlib import Path
 
+import sqlalchemy as sa
 from fastapi import FastAPI, Request, Response
 from fastapi_offline import FastAPIOffline
 
@@ -48,9 +49,10 @@ from service.jobs.points import writes_in_flight
 from service.jobs.requests import RequestProblem
 from service.lims.runtime import LimsRuntime
 from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
-from service.storage.engine import normalise_url
+from service.storage.engine import normalise_url, redacted
 from service.storage.errors import ConflictError
 from service.storage.migrate import bootstrap
+from service.storage.outage import DatabaseOutage, DatabaseState, unreachable
 from service.streams.readings import StreamHub
 
 log = logging.getLogger("tiltlab")
@@ -132,7 +134,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.engine = engine = bootstrap(s)  # brings the database to the current schema
         store = app.state.store = DaemonStore(engine)
         app.state.token_cache = TokenCache()
-        app.state.schema_revision = SchemaRevision()  # /health and /ready ask the database at most once a second
+        database = app.state.database = DatabaseState(redacted(engine.url), s.db_outage_s)
+        # /health and /ready ask the database at most once a second (and so notice it going away)
+        app.state.schema_revision = SchemaRevision(database=database)
         left = store.mark_interrupted(actor="daemon")
         if left:
             log.warning("jobs %s were left unfinished by the previous run: marked interrupted (resumable)", left)
@@ -165,7 +169,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise
         app.state.benches = {b.name: b for b in runtimes}
         app.state.bench = runtimes[0]
-        jobs = app.state.jobs = JobManager(store, app.state.benches)
+        jobs = app.state.jobs = JobManager(store, app.state.benches, database)
         for bench in runtimes:
             jobs.load_active(bench)
         # the workflow on stored points, in a worker process: never the bench, never the event loop
@@ -173,7 +177,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         hub = app.state.streams = StreamHub(app.state.benches, jobs, queue_size=s.stream_queue_size,
                                             slow_close_s=s.stream_slow_close_s)
         hub.start()  # one reading producer per bench
-        metrics.sources.update(benches=app.state.benches, streams=hub, writes_in_flight=writes_in_flight)
+        metrics.sources.update(benches=app.state.benches, streams=hub, writes_in_flight=writes_in_flight,
+                               database=database)
         app.state.fleet = fleet = None
         if s.broker_url:  # joins the fleet: claims this node's benches (exit 2 if a live node owns one)
             fleet = Fleet(s, app.state.benches, lambda name: hub.producers[name].latest_message,
@@ -239,6 +244,25 @@ def _install_errors(app: FastAPI) -> None:
 
     for cls, status, title, field in _ERRORS:
         app.add_exception_handler(cls, _answer(status, title, field))
+
+    async def _database(request: Request, exc: Exception) -> Response:
+        """The database away: 503 naming it (the request may be asked again once it answers); any other
+        database error is the server's own (500)."""
+        if not unreachable(exc):
+            raise exc
+        state = getattr(request.app.state, "database", None)
+        where = redacted(request.app.state.engine.url)
+        if isinstance(state, DatabaseState) and not isinstance(exc, DatabaseOutage):
+            state.away(exc)
+        answer = problems.problem(503, "Database unreachable",
+                                  f"the database {where} does not answer, so this request could not be carried out"
+                                  " (if the database went away while it was written, it may have been); ask again"
+                                  " once it answers (GET /health says when)", instance=str(request.url.path))
+        answer.headers["Retry-After"] = "5"
+        return answer
+
+    app.add_exception_handler(sa.exc.DBAPIError, _database)
+    app.add_exception_handler(DatabaseOutage, _database)
 
 
 # Our exceptions as problems: (class, status, title, the field at fault if one is).

@@ -16,6 +16,7 @@ from fastapi import Depends, Request, WebSocket
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.api.problems import ProblemError
+from service.storage.outage import unreachable
 from service.storage.tokens import SCOPES, Principal
 
 EVERYONE = Principal("anonymous (authentication off)", frozenset(SCOPES))
@@ -64,7 +65,9 @@ class TokenCache:
     """Recently seen tokens, so a busy reader costs no database query per request.
 
     An entry lives `ttl_s` seconds; a revocation through this daemon clears the cache at once, one
-    made by `tiltlab token revoke` elsewhere takes effect within `ttl_s`.
+    made by `tiltlab token revoke` elsewhere takes effect within `ttl_s`. While the database is away
+    a token seen before keeps its last answer (asked again every `ttl_s`): the daemon goes on serving
+    its benches to the people it knew, and no revocation can be written meanwhile anyway.
     """
 
     def __init__(self, ttl_s: float = 5.0) -> None:
@@ -76,7 +79,13 @@ class TokenCache:
         hit = self._seen.get(token)
         if hit is not None and now - hit[0] < self.ttl_s:
             return hit[1]
-        principal = authenticate(token)
+        try:
+            principal = authenticate(token)
+        except Exception as exc:
+            if hit is None or not unreachable(exc):
+                raise
+            self._seen[token] = (now, hit[1])
+            return hit[1]
         if len(self._seen) > 10_000:
             self._seen.clear()
         self._seen[token] = (now, principal)

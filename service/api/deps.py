@@ -22,6 +22,8 @@ from service.jobs.manager import JobManager
 from service.jobs.requests import DB_ID_MAX
 from service.lims.webhooks import Dispatcher
 from service.storage.daemon_jobs import DaemonStore
+from service.storage.engine import redacted
+from service.storage.outage import DatabaseState
 from service.streams.readings import StreamHub
 
 
@@ -62,6 +64,14 @@ def get_schema_revision(conn: HTTPConnection) -> SchemaRevision:
     return rev
 
 
+def get_database(conn: HTTPConnection) -> DatabaseState:
+    """Whether the database answers, as the daemon last found it (one per application)."""
+    state = getattr(conn.app.state, "database", None)
+    if not isinstance(state, DatabaseState):
+        state = conn.app.state.database = DatabaseState(redacted(get_engine(conn).url))
+    return state
+
+
 def get_fleet(conn: HTTPConnection) -> Fleet | None:
     """This daemon's membership of the fleet; None when it runs alone."""
     return cast(Fleet | None, getattr(conn.app.state, "fleet", None))
@@ -89,6 +99,7 @@ JobsDep = Annotated[JobManager, Depends(get_jobs)]
 JobsIfAnyDep = Annotated[JobManager | None, Depends(get_jobs_if_any)]
 StreamsDep = Annotated[StreamHub, Depends(get_streams)]
 RevisionDep = Annotated[SchemaRevision, Depends(get_schema_revision)]
+DatabaseDep = Annotated[DatabaseState, Depends(get_database)]
 FleetDep = Annotated[Fleet | None, Depends(get_fleet)]
 TokenCacheDep = Annotated[TokenCache | None, Depends(get_token_cache)]
 DiagnosesDep = Annotated[DiagnosisRunner, Depends(get_diagnoses)]

@@ -40,6 +40,21 @@ class DaemonState(Collector):
                                    "Job database writes (samples and settled points) handed over and not yet stored")
         writes.add_metric([], float(in_flight() if callable(in_flight) else 0))
         yield writes
+        yield from _database_families(src.get("database"))
+
+
+def _database_families(database: Any) -> Iterable[GaugeMetricFamily]:
+    up = GaugeMetricFamily("tiltlab_database_up", "1 while the database answers, 0 while the daemon finds it away")
+    up.add_metric([], 0.0 if database is not None and not database.up else 1.0)
+    yield up
+    waiting = GaugeMetricFamily("tiltlab_database_writes_waiting",
+                                "Job steps waiting for the database to answer again (their jobs paused)")
+    waiting.add_metric([], float(getattr(database, "writes_waiting", 0)))
+    yield waiting
+    samples = GaugeMetricFamily("tiltlab_database_samples_waiting",
+                                "Raw samples held in memory by writes waiting for the database")
+    samples.add_metric([], float(getattr(database, "samples_waiting", 0)))
+    yield samples
 
 
 def _device_families(benches: dict[str, Any]) -> Iterable[CounterMetricFamily | GaugeMetricFamily]:

@@ -9,6 +9,7 @@ import sqlalchemy as sa
 from starlette.concurrency import run_in_threadpool
 
 from service.storage.migrate import current_revision
+from service.storage.outage import DatabaseState, unreachable
 
 REVISION_TTL_S = 1.0  # how old the schema revision /health and /ready report may be
 
@@ -20,11 +21,13 @@ class SchemaRevision:
     is served while one refresh runs in the worker thread pool (a request waiting on it would
     also wait behind every request the event loop has queued meanwhile). Only the first request
     waits for a query. A refresh that fails is not kept: the next request asks the database
-    itself, and the failure reaches its caller.
+    itself, and the failure reaches its caller; but a refresh that finds the database away keeps
+    the revision known before and tells `database` (so /health answers through an outage and says so).
     """
 
-    def __init__(self, ttl_s: float = REVISION_TTL_S) -> None:
+    def __init__(self, ttl_s: float = REVISION_TTL_S, database: DatabaseState | None = None) -> None:
         self.ttl_s = ttl_s
+        self.database = database
         self.queries = 0
         self._value: str | None = None
         self._at: float | None = None
@@ -35,9 +38,16 @@ class SchemaRevision:
         self.queries += 1
         try:
             value = await run_in_threadpool(current_revision, engine)
-        except BaseException:
+        except BaseException as exc:
+            if self.database is not None and unreachable(exc):
+                self.database.away(exc)
+                if self._at is not None:  # the revision known before stands; asked again after ttl_s
+                    self._at = time.monotonic()
+                    return
             self._at = None
             raise
+        if self.database is not None:
+            self.database.back()
         self._value, self._at = value, time.monotonic()
 
     async def get(self, engine: sa.Engine) -> str | None:

@@ -24,7 +24,7 @@ from service.calibration.uncertainty import COVERAGE
 from service.errors import InputError
 from service.instruments.base import Reading
 from service.instruments.transport import DeviceError
-from service.jobs.points import store_point, write_in_thread
+from service.jobs.points import store_point
 from service.jobs.procedure import Columns, JobContext, Plan, PointProcedure, bench_epoch, validation_rng
 from service.jobs.requests import CalibrationRequest, RequestProblem
 from service.storage.models import CalibrationJob, SettledPoint
@@ -150,7 +150,7 @@ async def measure_angle(ctx: JobContext, proc: AngleProcedure, index: int, angle
                         "t_start_s": to_epoch(a.t_start_s), "t_end_s": to_epoch(a.t_end_s),
                         "ch_x_mean": m[0], "ch_y_mean": m[1], "ch_z_mean": m[2],
                         "ch_x_std": sd[0], "ch_y_std": sd[1], "ch_z_std": sd[2], "temp_c_mean": a.temp_c}
-    await write_in_thread(store_point, ctx.store, ctx.job_id, index, rows, settled)
+    await ctx.db(store_point, ctx.store, ctx.job_id, index, rows, settled)
 
 
 def _channels(r: Reading) -> tuple[float, float, float | None]:

@@ -10,8 +10,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import datetime as dt
 import logging
-from typing import Any
+from collections.abc import Callable
+from functools import partial
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -30,7 +33,10 @@ from service.jobs.procedure import JobContext, Outcome, Phase, PointProcedure
 from service.jobs.requests import KIND_OF_PROCEDURE, CalibrationRequest, RequestProblem
 from service.jobs.state import DAEMON, Ending, JobState, Stop
 from service.storage.daemon_jobs import DaemonStore
+from service.storage.engine import redacted
 from service.storage.models import CalibrationJob, CalibrationRecord
+from service.storage.outage import DatabaseOutage, DatabaseState, through_outage, unreachable
+from service.storage.samples import Sample
 from service.storage.tokens import Principal
 
 __all__ = ["ActiveModel", "JobManager", "RequestProblem"]
@@ -38,12 +44,21 @@ __all__ = ["ActiveModel", "JobManager", "RequestProblem"]
 log = logging.getLogger("tiltlab.jobs")
 
 LIVE = (JobState.QUEUED, JobState.RUNNING)
+ENDED = (JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED)
+# What a job waiting for the database shows in place of its phase (its stream and /health say so).
+WAITING_FOR_DATABASE = "waiting for the database"
+T = TypeVar("T")
 
 
 class JobManager:
-    def __init__(self, store: DaemonStore, benches: dict[str, BenchRuntime]) -> None:
+    def __init__(self, store: DaemonStore, benches: dict[str, BenchRuntime],
+                 database: DatabaseState | None = None) -> None:
         self.store = store
         self.benches = benches
+        # whether the database answers; a job's steps wait through an outage up to database.outage_s
+        self.database = database or DatabaseState(redacted(store.engine.url))
+        self.waiting_for_database: dict[int, dt.datetime] = {}  # job -> since when its step waits
+        self._endings: set[asyncio.Task[Any]] = set()  # job endings waiting for the database to come back
         self.admission = Admission(store)
         self.tasks: dict[int, asyncio.Task[None]] = {}
         self.stop_reasons: dict[int, Stop] = {}  # why a job's task was cancelled from outside, and by whom
@@ -174,12 +189,49 @@ class JobManager:
                 await self._finish(job_id, stop)
 
     async def _finish(self, job_id: int, stop: Stop) -> None:
-        await write_in_thread(self._end_job, job_id, stop)
+        """The job's end written; while the database is away it is written when the database answers
+        again (however long that takes), and the caller (a stop, a cancel, the job's task) goes on."""
+        try:
+            await write_in_thread(self._end_job, job_id, stop)
+        except Exception as exc:
+            if not unreachable(exc):
+                raise
+            if not isinstance(exc, DatabaseOutage):
+                self.database.away(exc)
+            log.warning("job %s: its end (%s) is written once the database answers again", job_id, stop.reason)
+            ending = asyncio.get_running_loop().create_task(
+                through_outage(self.database, partial(write_in_thread, self._end_job, job_id, stop), give_up=False))
+            self._endings.add(ending)
+            ending.add_done_callback(partial(self._ended_later, job_id))
+        self.events.changed(job_id)
+
+    def _ended_later(self, job_id: int, task: asyncio.Task[Any]) -> None:
+        self._endings.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("job %s: its end could not be written: %s", job_id, task.exception())
+        self.events.changed(job_id)
+
+    async def _db(self, job_id: int, call: Callable[..., T], /, *args: Any, **kwargs: Any) -> T:
+        """A job's database step in a worker thread, waiting through an outage (the job shows it waits)
+        until the outage outlasts TILTLAB_DB_OUTAGE_S (then DatabaseOutage). `call` must be safe to repeat."""
+        held = sum(len(a) for a in args if isinstance(a, list) and a and isinstance(a[0], Sample))
+        return await through_outage(self.database, partial(write_in_thread, call, *args, **kwargs),
+                                    on_wait=partial(self._waiting, job_id), samples=held)
+
+    def _waiting(self, job_id: int, waits: bool) -> None:
+        if waits:
+            self.waiting_for_database[job_id] = dt.datetime.now(dt.UTC)
+            log.warning("job %s: %s", job_id, WAITING_FOR_DATABASE)
+        else:
+            self.waiting_for_database.pop(job_id, None)
         self.events.changed(job_id)
 
     def _end_job(self, job_id: int, stop: Stop) -> None:
-        """Blocking (database): the job cancelled or failed, audited with whoever ended it."""
+        """Blocking (database): the job cancelled or failed, audited with whoever ended it. Safe to repeat:
+        a job already ended (an earlier try whose answer was lost) is left as it is."""
         job = self.store.get_job(job_id)
+        if job.state in ENDED:
+            return
         if job.state == JobState.QUEUED and stop.ending is not Ending.CANCELLED:
             self.store.start_job(job_id, actor=DAEMON)
         if stop.ending is Ending.CANCELLED:
@@ -195,20 +247,32 @@ class JobManager:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
-        await write_in_thread(self.store.mark_interrupted, actor=DAEMON)
+        for ending in list(self._endings):  # the database is away: the next start marks these jobs interrupted
+            ending.cancel()
+        try:
+            await write_in_thread(self.store.mark_interrupted, actor=DAEMON)
+        except Exception as exc:
+            if not unreachable(exc):
+                raise
+            log.warning("the database is away: jobs left running are marked interrupted at the next start")
 
     # ------------------------------------------------------------ running
 
     async def _report(self, job_id: int, points_done: int, points_total: int, phase: Phase) -> None:
-        await write_in_thread(self.store.set_job_progress, job_id, points_done=points_done,
-                              points_total=points_total, phase=phase)
+        await self._db(job_id, self.store.set_job_progress, job_id, points_done=points_done,
+                       points_total=points_total, phase=phase)
         self.events.changed(job_id)
+
+    def _start_job(self, job_id: int) -> CalibrationJob:
+        """Blocking (database): the job running. Safe to repeat (a job already running is left so)."""
+        job = self.store.get_job(job_id)
+        return self.store.start_job(job_id, actor=DAEMON) if job.state == JobState.QUEUED else job
 
     async def _run(self, job_id: int, bench: BenchRuntime) -> None:
         try:
-            job = await asyncio.to_thread(self.store.get_job, job_id)
+            job = await self._db(job_id, self.store.get_job, job_id)
             if job.state == JobState.QUEUED:
-                await write_in_thread(self.store.start_job, job_id, actor=DAEMON)
+                await self._db(job_id, self._start_job, job_id)
                 self.events.changed(job_id)
             procedure = registry.procedure_of(job.parameters)
             request = CalibrationRequest.model_validate(job.parameters["request"])
@@ -216,10 +280,18 @@ class JobManager:
             async def report(points_done: int, points_total: int, phase: Phase) -> None:
                 await self._report(job_id, points_done, points_total, phase)
 
-            outcome = await procedure.run(JobContext(self.store, job, bench, request, report))
-            await write_in_thread(self._conclude, job, outcome)
+            outcome = await procedure.run(JobContext(self.store, job, bench, request, report,
+                                                     partial(self._db, job_id)))
+            await self._db(job_id, self._conclude, job, outcome)
         except asyncio.CancelledError:
             stop = self.stop_reasons.pop(job_id, Stop(Ending.FAILED, "the job's task was cancelled"))
+            if stop.ending is not Ending.INTERRUPTED:
+                with contextlib.suppress(Exception):
+                    await self._finish(job_id, stop)
+        except DatabaseOutage as exc:  # the outage outlasted TILTLAB_DB_OUTAGE_S: the job fails naming it
+            log.warning("job %s failed: %s", job_id, exc)
+            stopped = self.stop_reasons.pop(job_id, None)
+            stop = stopped if stopped is not None else Stop(Ending.FAILED, str(exc))
             if stop.ending is not Ending.INTERRUPTED:
                 with contextlib.suppress(Exception):
                     await self._finish(job_id, stop)
@@ -238,6 +310,7 @@ class JobManager:
                 await self._finish(job_id, Stop(Ending.FAILED, f"internal error: {type(exc).__name__}: {exc}"))
         finally:
             self.stop_reasons.pop(job_id, None)
+            self.waiting_for_database.pop(job_id, None)
             if bench.holder == BenchHold.job(job_id):
                 bench.holder = None
             self.events.changed(job_id)
@@ -251,7 +324,12 @@ class JobManager:
         return text
 
     def _conclude(self, job: CalibrationJob, outcome: Outcome) -> None:
-        """Blocking (database): the record version, then the job succeeded."""
+        """Blocking (database): the record version, then the job succeeded. Safe to repeat: a job makes
+        one record, so a record already stored for it (an earlier try whose answer was lost) is not made again."""
+        if job.id in self.store.records_of_jobs([job.id]):
+            if self.store.get_job(job.id).state != JobState.SUCCEEDED:
+                self.store.succeed_job(job.id, actor=DAEMON)
+            return
         ids = job.parameters["request"].get("reference_standards") or []
         standards = self.admission.standards(ids)
         method = get_method(outcome.kind, job.method)

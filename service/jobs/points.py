@@ -9,7 +9,8 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 from service.storage.daemon_jobs import DaemonStore
-from service.storage.samples import Sample, write_samples
+from service.storage.engine import write_engine
+from service.storage.samples import Sample, insert_samples_once
 
 log = logging.getLogger("tiltlab.jobs")
 T = TypeVar("T")
@@ -24,8 +25,11 @@ def writes_in_flight() -> int:
 def store_point(store: DaemonStore, job_id: int, index: int, samples: list[Sample],
                 settled_by_device: dict[int, dict[str, Any]]) -> None:
     """Blocking (database): call through `write_in_thread`. A point half stored when the daemon
-    was killed keeps its stored half; only the devices it lacks are added."""
-    write_samples(store.engine, samples)
+    was killed keeps its stored half; only the devices it lacks are added. Safe to repeat after a
+    write whose outcome is unknown (a COMMIT whose answer was lost): the samples, written in one
+    transaction, are not written again if they are stored, nor is a settled point already stored."""
+    with write_engine(store.engine).begin() as conn:
+        insert_samples_once(conn, samples)
     have = {p.device_id for p in store.settled_points(job_id) if p.point == index}
     for device_id, point in settled_by_device.items():
         if device_id not in have:

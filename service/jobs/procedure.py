@@ -78,6 +78,10 @@ class JobContext:
     bench: BenchRuntime
     request: CalibrationRequest
     report: Callable[[int, int, Phase], Awaitable[None]]  # (points done, points total, phase): stored and announced
+    # A blocking database call (write or read) in a worker thread, waiting through a database outage
+    # (the job shows it waits) and raising DatabaseOutage once it outlasts TILTLAB_DB_OUTAGE_S.
+    # Writes given to it must be safe to repeat (service.storage.outage).
+    db: Callable[..., Awaitable[Any]]
 
     @property
     def job_id(self) -> int:
@@ -169,7 +173,7 @@ class PointProcedure(ABC, Generic[P]):
         if started_with and started_with != devices:
             raise InputError(f"the bench's instruments are not those the job started with ({started_with});"
                              " its points cannot be continued with other instruments")
-        stored = await asyncio.to_thread(ctx.store.settled_points, job.id)
+        stored = await ctx.db(ctx.store.settled_points, job.id)
         done = set.intersection(*({p.point for p in stored if p.device_id == d} for d in devices.values()))
         await ctx.report(len(done), total, Phase.MEASURING)
         for i, point in enumerate(fit_pts):
@@ -179,7 +183,7 @@ class PointProcedure(ABC, Generic[P]):
                 await ctx.report(len(done), total, Phase.MEASURING)
         await ctx.report(len(done), total, Phase.FITTING)
         method = get_method(self.kind, job.method)
-        fit_cols = await asyncio.to_thread(self.stored_columns, ctx.store, job, n_fit)
+        fit_cols = await ctx.db(self.stored_columns, ctx.store, job, n_fit)
         model = await asyncio.to_thread(method.fit, fit_cols, self.fit_options(bench))
         self.fitted(model, fit_cols)
         await ctx.report(len(done), total, Phase.VALIDATING)
@@ -188,7 +192,7 @@ class PointProcedure(ABC, Generic[P]):
                 await self.measure(ctx, n_fit + k, point)
                 done.add(n_fit + k)
                 await ctx.report(len(done), total, Phase.VALIDATING)
-        points = await asyncio.to_thread(ctx.store.settled_points, job.id)
+        points = await ctx.db(ctx.store.settled_points, job.id)
         val_cols = self.columns(job, [p for p in points if p.point >= n_fit], for_fit=False)
         validation = await asyncio.to_thread(self.validation, method, model, val_cols)
         conditions = job_conditions(bench, ctx.request, self.temperatures_c(fit_cols, points))

@@ -22,7 +22,7 @@ from service.calibration.registry import FitOptions, Method, get_method
 from service.calibration.uncertainty import COVERAGE
 from service.errors import InputError
 from service.instruments.transport import DeviceError
-from service.jobs.points import store_point, write_in_thread
+from service.jobs.points import store_point
 from service.jobs.procedure import Columns, JobContext, Phase, Plan, PointProcedure, bench_epoch, validation_rng
 from service.jobs.requests import MIN_POINTS, CalibrationRequest, RequestProblem
 from service.storage.models import CalibrationJob, SettledPoint
@@ -46,7 +46,7 @@ def _tilt(value: float | None) -> float:
 async def _home_stage(ctx: JobContext) -> None:
     """The controller refused a move as "not homed" (after power-up): home the stage, then go on."""
     log.info("job %s: the stage of %s is not homed; homing it", ctx.job_id, ctx.bench.name)
-    job = await asyncio.to_thread(ctx.store.get_job, ctx.job_id)
+    job = await ctx.db(ctx.store.get_job, ctx.job_id)
     done, total = job.points_done or 0, job.points_total or 0
     await ctx.report(done, total, Phase.HOMING)
     await ctx.bench.home_stage()
@@ -135,7 +135,7 @@ class StageGrid(PointProcedure[StagePoint]):
                             "t_start_s": to_epoch(a.t_start_s), "t_end_s": to_epoch(a.t_end_s),
                             "ch_x_mean": a.mean[0], "ch_y_mean": a.mean[1], "ch_z_mean": None,
                             "ch_x_std": a.std[0], "ch_y_std": a.std[1], "ch_z_std": None, "temp_c_mean": a.temp_c}
-        await write_in_thread(store_point, ctx.store, ctx.job_id, index, rows, settled)
+        await ctx.db(store_point, ctx.store, ctx.job_id, index, rows, settled)
 
     def fit_options(self, bench: BenchRuntime) -> FitOptions:
         return FitOptions(extra={"bench": bench.config.stage_bench(), "bench_source": f"bench configuration {bench.name}"})

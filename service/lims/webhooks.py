@@ -20,6 +20,7 @@ from standardwebhooks import Webhook
 
 from service.storage.feed import event_json
 from service.storage.lims import DueDelivery
+from service.storage.outage import reason_of, unreachable
 
 log = logging.getLogger("tiltlab.webhooks")
 
@@ -70,15 +71,21 @@ class Dispatcher:
                     sent = await self.send_due(client)
                 except asyncio.CancelledError:
                     raise
-                except Exception:  # noqa: BLE001 - a database hiccup must not end deliveries; retried below
-                    log.exception("webhook dispatcher: a round failed; retrying")
+                except Exception as exc:  # noqa: BLE001 - a database hiccup must not end deliveries; retried below
+                    if unreachable(exc):
+                        log.warning("webhook dispatcher: the database is away (%s); retrying", reason_of(exc))
+                    else:
+                        log.exception("webhook dispatcher: a round failed; retrying")
                     sent = 0
                 if sent:
                     continue
                 await self._sleep_until_due()
 
     async def _sleep_until_due(self) -> None:
-        nxt = await asyncio.to_thread(self.store.next_delivery_due)
+        try:
+            nxt = await asyncio.to_thread(self.store.next_delivery_due)
+        except Exception:  # noqa: BLE001 - the database away: asked again in a second, the dispatcher goes on
+            nxt = None
         wait_s = 1.0
         if nxt is not None:
             wait_s = min(1.0, max(0.0, (nxt - dt.datetime.now(dt.UTC)).total_seconds()))

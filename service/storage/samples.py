@@ -120,6 +120,30 @@ def insert_samples(conn: sa.Connection, rows: Sequence[Sequence[object]]) -> int
     return len(rows)
 
 
+def samples_stored(conn: sa.Connection, rows: Sequence[Sample]) -> bool:
+    """Whether a batch written in one transaction is already in the database: its first and last
+    samples are (a batch commits whole or not at all). What makes a repeated write safe after a
+    COMMIT whose answer was lost; two index probes on (device_id, t_s)."""
+    if not rows:
+        return True
+    for row in (rows[0], rows[-1]):
+        s = Sample._make(row)
+        found = conn.execute(sa.select(_t.c.id).where(
+            _t.c.device_id == s.device_id, _t.c.t_s == s.t_s, _t.c.source == s.source,
+            _t.c.job_id.is_not_distinct_from(s.job_id), _t.c.point.is_not_distinct_from(s.point)).limit(1)).first()
+        if found is None:
+            return False
+    return True
+
+
+def insert_samples_once(conn: sa.Connection, rows: Sequence[Sample]) -> int:
+    """`insert_samples`, unless this very batch is already stored (a repeat after a lost COMMIT answer):
+    the check and the insert in the caller's one transaction. Returns the count inserted."""
+    if samples_stored(conn, rows):
+        return 0
+    return insert_samples(conn, rows)
+
+
 def write_samples(engine: sa.Engine, rows: Iterable[Sample], *, batch_size: int = 5000) -> int:
     """Synchronous convenience: check and insert, one transaction per batch."""
     from service.storage.engine import write_engine

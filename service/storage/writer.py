@@ -12,6 +12,14 @@ at most `capacity + batch_size` handed-over samples are lost, and the committed 
 the oldest handed-over ones (batches commit in order). A power loss may also roll back the last
 commits on SQLite with synchronous=NORMAL (see docs/storage.md). `close()` (also run at interpreter exit)
 and `flush()` lose nothing.
+
+Database outage. While the database is away (see `service.storage.outage`) the writer keeps its
+batches, in order, and tries again with back-off until it answers; nothing handed over is given up,
+however long the outage (only `close()` gives up, once the outage has lasted `outage_s`). Producers
+are not held meanwhile: `put_many` takes what fits in the queue and refuses the newest samples
+beyond it, counting them in `dropped` (it returns how many it took). A batch tried again after a
+failure whose outcome is unknown (its COMMIT sent, the answer lost) is written only if it is not
+already stored, so no sample is stored twice.
 """
 
 from __future__ import annotations
@@ -28,7 +36,8 @@ import sqlalchemy as sa
 
 from service.storage.engine import write_engine
 from service.storage.errors import BackPressureTimeout, SampleWriteError
-from service.storage.samples import Sample, check_samples, insert_samples
+from service.storage.outage import DatabaseState, unreachable
+from service.storage.samples import Sample, check_samples, insert_samples, insert_samples_once
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +64,16 @@ class _SampleQueue(queue.Queue):  # type: ignore[type-arg]
         """Closed and empty: nothing can arrive any more."""
         with self.mutex:
             return self.closed and not self.samples
+
+    def put_what_fits(self, chunk: Sequence[Sample]) -> int:
+        """Without waiting: as many of the chunk's first samples as there is room for (0 if closed)."""
+        with self.not_full:
+            room = 0 if self.closed else max(0, min(len(chunk), self.maxsize - self.samples))
+            if room:
+                self.queue.append(chunk[:room])
+                self.samples += room
+                self.not_empty.notify()
+            return room
 
     def put_chunk(self, chunk: Sequence[Sample], timeout: float) -> bool:
         """Block until the whole chunk fits (len(chunk) <= maxsize), or raise queue.Full; False if closed."""
@@ -103,6 +122,7 @@ class SampleWriter:
         put_timeout_s: float = 5.0,
         validate: bool = True,
         retry_for_s: float = 30.0,
+        database: DatabaseState | None = None,
     ) -> None:
         if batch_size < 1 or capacity < batch_size:
             raise ValueError("need 1 <= batch_size <= capacity")
@@ -112,6 +132,9 @@ class SampleWriter:
         self.validate = validate
         self.retry_for_s = retry_for_s
         self._engine = write_engine(engine)
+        # shared with the daemon's other writers when given: /health and /metrics read it
+        self.database = database or DatabaseState(str(engine.url.render_as_string(hide_password=True)))
+        self.dropped = 0  # samples refused while the database was away and the queue full
         self._queue = _SampleQueue(capacity)
         self._progress = threading.Condition()
         self.handed_over = 0
@@ -123,12 +146,13 @@ class SampleWriter:
         atexit.register(self.close)
 
     @classmethod
-    def from_settings(cls, engine: sa.Engine, settings) -> SampleWriter:  # type: ignore[no-untyped-def]
+    def from_settings(cls, engine: sa.Engine, settings, database: DatabaseState | None = None) -> SampleWriter:  # type: ignore[no-untyped-def]
         return cls(
             engine,
             capacity=settings.sample_queue_capacity,
             batch_size=settings.sample_batch_size,
             put_timeout_s=settings.sample_put_timeout_s,
+            database=database or DatabaseState(engine.url.render_as_string(hide_password=True), settings.db_outage_s),
         )
 
     @property
@@ -136,11 +160,18 @@ class SampleWriter:
         """Most handed-over samples a hard kill can lose."""
         return self.capacity + self.batch_size
 
-    def put(self, sample: Sample) -> None:
-        self.put_many((sample,))
+    def put(self, sample: Sample) -> bool:
+        return self.put_many((sample,)) == 1
 
-    def put_many(self, samples: Iterable[Sample]) -> None:
-        """Hand samples over; blocks while the queue is full, up to put_timeout_s per batch-sized chunk."""
+    @property
+    def queued(self) -> int:
+        """Samples in the queue (not yet taken into a batch)."""
+        return self._queue.qsize()
+
+    def put_many(self, samples: Iterable[Sample]) -> int:
+        """Hand samples over; returns how many were taken. Blocks while the queue is full, up to
+        put_timeout_s per batch-sized chunk; while the database is away it does not wait: the
+        samples beyond the queue's room are refused and counted in `dropped`."""
         if self._queue.closed:
             raise RuntimeError("SampleWriter is closed")
         rows = samples if isinstance(samples, list) else list(samples)
@@ -149,6 +180,19 @@ class SampleWriter:
         accepted = 0
         for i in range(0, len(rows), self.batch_size):
             chunk = rows[i : i + self.batch_size]
+            if not self.database.up:
+                took = self._queue.put_what_fits(chunk)
+                accepted += took
+                with self._progress:
+                    self.handed_over += took
+                    if took < len(chunk):
+                        self.dropped += len(rows) - accepted
+                if took < len(chunk):
+                    if self._queue.closed:
+                        raise RuntimeError("SampleWriter is closed")
+                    log.warning("database away and the sample queue full: %d samples refused", len(rows) - accepted)
+                    return accepted
+                continue
             try:
                 if not self._queue.put_chunk(chunk, self.put_timeout_s):
                     raise RuntimeError(
@@ -162,6 +206,7 @@ class SampleWriter:
             accepted += len(chunk)
             with self._progress:
                 self.handed_over += len(chunk)
+        return accepted
 
     def flush(self, timeout: float | None = None) -> None:
         """Wait until every sample handed over so far is committed (or rejected)."""
@@ -217,16 +262,27 @@ class SampleWriter:
     def _write(self, batch: list[Sample]) -> None:
         deadline = time.monotonic() + self.retry_for_s
         delay = 0.05
+        tried = False  # once a try failed, the batch may be stored already (a COMMIT whose answer was lost)
         while True:
             try:
                 with self._engine.begin() as conn:
-                    insert_samples(conn, batch)
+                    (insert_samples_once if tried else insert_samples)(conn, batch)
+                self.database.back()
                 with self._progress:
                     self.committed += len(batch)
                     self._progress.notify_all()
                 return
             except sa.exc.OperationalError as exc:  # locked or unreachable: worth waiting for
-                if time.monotonic() >= deadline:
+                tried = True
+                if unreachable(exc):
+                    # The database is away: the batch waits for it (in order, the queue behind it),
+                    # given up only when the writer is being closed and the outage outlasts outage_s.
+                    self.database.away(exc)
+                    if not (self._queue.closed and self.database.away_for_s() >= self.database.outage_s):
+                        time.sleep(delay)
+                        delay = min(delay * 2, 2.0)
+                        continue
+                if time.monotonic() >= deadline or unreachable(exc):
                     # Not the rows' fault: trying them one by one would only wait out the same lock or
                     # outage once per row while the queue fills.
                     log.error("sample batch failed after retries: %s", exc)
@@ -237,6 +293,11 @@ class SampleWriter:
                 time.sleep(delay)
                 delay = min(delay * 2, 1.0)
             except Exception as exc:  # noqa: BLE001 - a bad row in the batch: find it, keep the others
+                if tried:  # an earlier try may have stored it: row by row would store those rows twice
+                    with self._progress:
+                        self.rejected.extend((row, _reason(exc)) for row in batch)
+                        self._progress.notify_all()
+                    return
                 log.warning("sample batch refused (%s); writing it row by row", _reason(exc))
                 break
         for row in batch:

@@ -9,14 +9,16 @@ from collections.abc import AsyncGenerator, Callable
 from typing import Any
 
 from service.jobs.events import JobEvents
+from service.jobs.manager import WAITING_FOR_DATABASE
 from service.storage.daemon_jobs import DaemonStore
 from service.storage.models import CalibrationJob
+from service.storage.outage import unreachable
 
 ENDED = frozenset({"succeeded", "failed", "cancelled"})
 SAFETY_REREAD_S = 5.0  # real seconds between re-reads when no event came
 
 
-def job_points(store: DaemonStore, job: CalibrationJob, have: frozenset[int] | set[int] | None = None) -> list[dict]:
+def job_points(store: DaemonStore, job: CalibrationJob, have: frozenset[int] | set[int] | None = None) -> list[dict[str, Any]]:
     """The job's points measured so far (every instrument of the job has its mean), by index, leaving
     out those in `have`: {"index", "x_deg", "y_deg" (commanded stage angles; y null on a one-axis
     procedure), and per role {"x_deg", "y_deg", "z_deg", "x_std_deg", "y_std_deg", "z_std_deg",
@@ -42,7 +44,7 @@ def job_points(store: DaemonStore, job: CalibrationJob, have: frozenset[int] | s
 
 
 async def job_messages(store: DaemonStore, events: JobEvents, job_id: int,
-                       body: Callable[[CalibrationJob], dict]) -> AsyncGenerator[dict, None]:
+                       body: Callable[[CalibrationJob], dict[str, Any]]) -> AsyncGenerator[dict[str, Any], None]:
     """The messages of one job's stream without seq, ending with its `end` (UnknownEntity if no such job)."""
     event = events.subscribe(job_id)
     try:
@@ -58,8 +60,20 @@ async def job_messages(store: DaemonStore, events: JobEvents, job_id: int,
             except TimeoutError:
                 pass
             event.clear()
-            job = await asyncio.to_thread(store.get_job, job_id)
-            for p in await asyncio.to_thread(job_points, store, job, frozenset(have)):
+            try:
+                job = await asyncio.to_thread(store.get_job, job_id)
+                points = await asyncio.to_thread(job_points, store, job, frozenset(have))
+            except Exception as exc:
+                if not unreachable(exc):
+                    raise
+                # The database away: the job's last state, its phase saying what it waits for (its next
+                # step waits too); the stream goes on and reads again on the next change or re-read.
+                waiting = {**last, "progress": {**(last.get("progress") or {}), "phase": WAITING_FOR_DATABASE}}
+                if _changed(last, waiting):
+                    yield {"type": "job", "job": waiting}
+                last = waiting
+                continue
+            for p in points:
                 have.add(p["index"])
                 yield {"type": "point", "point": p}
             now = body(job)
@@ -71,7 +85,7 @@ async def job_messages(store: DaemonStore, events: JobEvents, job_id: int,
         events.unsubscribe(job_id, event)
 
 
-def _changed(a: dict, b: dict) -> bool:
+def _changed(a: dict[str, Any], b: dict[str, Any]) -> bool:
     """State, progress, error, record or validation differ (not only the update time)."""
     keys = ("state", "interrupted", "progress", "error", "record", "validation", "started_utc", "finished_utc")
     return any(a.get(k) != b.get(k) for k in keys)

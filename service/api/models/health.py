@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 from typing import Literal
 
 from pydantic import Field
@@ -9,10 +10,27 @@ from pydantic import Field
 from service.api.models.base import Answer
 
 
+class DatabaseOutageState(Answer):
+    away_since_utc: dt.datetime = Field(description="when the daemon first found the database unreachable")
+    away_s: float = Field(description="seconds the database has been unreachable")
+    error: str | None = Field(description="the database's (or the connection's) last words")
+    outage_limit_s: float = Field(description="TILTLAB_DB_OUTAGE_S: a job waiting longer than this fails"
+                                              " (database_unreachable)")
+    jobs_waiting: list[int] = Field(description="jobs whose next step waits for the database (paused)")
+    writes_waiting: int = Field(description="database writes waiting for the database to answer")
+    samples_waiting: int = Field(description="raw samples held in memory by those writes; stored once it answers")
+
+
 class Health(Answer):
-    status: Literal["ok", "degraded"] = Field(description="degraded when the database schema is not at head")
+    status: Literal["ok", "degraded"] = Field(description="degraded when the database schema is not at head"
+                                                          " or the database is unreachable")
     version: str
     database: str = Field(description="the database URL without its password")
+    database_state: Literal["up", "away"] = Field(
+        description="away while the daemon finds the database unreachable (it goes on serving its benches;"
+                    " writes wait); checked at most once a second")
+    database_outage: DatabaseOutageState | None = Field(description="while the database is away: since when,"
+                                                                     " and what waits for it")
     schema_revision: str | None
     bench: str = Field(description="the bench, or the benches joined by commas")
     benches: list[str]

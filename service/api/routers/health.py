@@ -7,8 +7,8 @@ from functools import cache
 from fastapi import APIRouter, Response
 
 from service import __version__
-from service.api.deps import BenchesDep, EngineDep, RevisionDep
-from service.api.models.health import Health, Readiness
+from service.api.deps import BenchesDep, DatabaseDep, EngineDep, JobsIfAnyDep, RevisionDep
+from service.api.models.health import DatabaseOutageState, Health, Readiness
 from service.api.revision import REVISION_TTL_S, SchemaRevision
 from service.storage.engine import redacted
 from service.storage.migrate import head_revision
@@ -20,22 +20,36 @@ _head = cache(head_revision)  # the migration scripts do not change while the da
 
 
 @router.get("/health", response_model=Health)
-async def health(engine: EngineDep, benches: BenchesDep, revision: RevisionDep) -> Health:
-    """Liveness plus what the service runs on: version, database and schema revision (as read at most
-    one second ago), benches. No token needed."""
+async def health(engine: EngineDep, benches: BenchesDep, revision: RevisionDep, database: DatabaseDep,
+                 jobs: JobsIfAnyDep) -> Health:
+    """Liveness plus what the service runs on: version, database (whether it answers) and schema revision
+    (as read at most one second ago), benches. No token needed."""
+    revision.database = database
     rev = await revision.get(engine)
     names = list(benches)
-    return Health(status="ok" if rev == _head() else "degraded", version=__version__, database=redacted(engine.url),
-                  schema_revision=rev, bench=names[0] if len(names) == 1 else ", ".join(names), benches=names)
+    outage = None
+    if database.away_since_utc is not None:
+        outage = DatabaseOutageState(
+            away_since_utc=database.away_since_utc, away_s=round(database.away_for_s(), 3), error=database.error,
+            outage_limit_s=database.outage_s, jobs_waiting=sorted(jobs.waiting_for_database) if jobs else [],
+            writes_waiting=database.writes_waiting, samples_waiting=database.samples_waiting)
+    return Health(status="ok" if rev == _head() and outage is None else "degraded", version=__version__,
+                  database=redacted(engine.url), database_state="up" if outage is None else "away",
+                  database_outage=outage, schema_revision=rev, bench=names[0] if len(names) == 1 else ", ".join(names),
+                  benches=names)
 
 
 @router.get("/ready", response_model=Readiness,
             responses={503: {"model": Readiness, "description": "Not ready: the reasons, one line each"}})
-async def ready(engine: EngineDep, benches: BenchesDep, revision: RevisionDep, response: Response) -> Readiness:
-    """Ready for work: the schema at head and every instrument of every bench connected (503 with the
-    reasons otherwise). No token needed, like /health."""
+async def ready(engine: EngineDep, benches: BenchesDep, revision: RevisionDep, database: DatabaseDep,
+                response: Response) -> Readiness:
+    """Ready for work: the database answering with the schema at head and every instrument of every bench
+    connected (503 with the reasons otherwise). No token needed, like /health."""
     reasons = []
+    revision.database = database
     rev = await revision.get(engine)
+    if not database.up:
+        reasons.append(f"database {database.where} unreachable for {database.away_for_s():.0f} s: {database.error}")
     if rev != _head():
         reasons.append(f"database schema at {rev}, not {_head()}")
     for bench in benches.values():

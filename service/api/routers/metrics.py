@@ -8,9 +8,10 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Reader
-from service.api.deps import StoreDep
+from service.api.deps import DatabaseDep, StoreDep
 from service.api.metrics import MetricsDep
 from service.api.models.problem import problem_responses
+from service.storage.outage import unreachable
 
 router = APIRouter(tags=["health"])
 
@@ -19,10 +20,17 @@ router = APIRouter(tags=["health"])
             responses={200: {"description": "Prometheus text exposition format 0.0.4",
                              "content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}}},
                        **problem_responses(401, 403)})
-async def metrics(metrics: MetricsDep, store: StoreDep, _: Reader) -> Response:
+async def metrics(metrics: MetricsDep, store: StoreDep, database: DatabaseDep, _: Reader) -> Response:
     """HTTP requests by route and status with latency histograms, serial counters per device, jobs by
-    state, WebSocket clients and dropped messages, and the job writes waiting for the database."""
-    counts = await run_in_threadpool(store.job_counts_by_state)
+    state (left out while the database is away), WebSocket clients and dropped messages, the job writes
+    handed over, and whether the database answers (with the writes and samples waiting for it)."""
+    try:
+        counts = await run_in_threadpool(store.job_counts_by_state)
+    except Exception as exc:  # the database away: everything else is still worth scraping
+        if not unreachable(exc):
+            raise
+        database.away(exc)
+        counts = {}
     metrics.sources["job_counts"] = lambda: counts
     body = await run_in_threadpool(generate_latest, metrics.registry)
     return Response(body, media_type=CONTENT_TYPE_LATEST)
