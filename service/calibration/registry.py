@@ -1,5 +1,8 @@
 """The one registry of calibration methods, used by the CLI, the service and the tests.
 
+The methods themselves are listed in service.calibration.methods; this module says what a method is
+and finds one by kind and name.
+
 A method knows which columns it fits on, how to fit, and how to apply a fitted model
 (`correct`, and `level` for stage methods). Everything here is pure computation on numpy
 arrays keyed by dataset column names.
@@ -10,6 +13,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import cache
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -67,43 +71,36 @@ def levelling_method(kind: str, name: str) -> LevellingMethod:
     return method
 
 
-_METHODS: dict[tuple[str, str], Method] = {}
-_FACTORIES: list[tuple[str, re.Pattern[str], Callable[[re.Match[str]], Method]]] = []
+@dataclass(frozen=True)
+class MethodFamily:
+    """Methods of one kind built on demand from their name, such as poly1, poly2, ... of `scale`."""
+
+    kind: str
+    pattern: re.Pattern[str]
+    build: Callable[[re.Match[str]], Method]
 
 
-def register(method: Method) -> Method:
-    _METHODS[(method.kind, method.name)] = method
-    return method
+@cache
+def _table() -> tuple[dict[tuple[str, str], Method], tuple[MethodFamily, ...]]:
+    # Imported on first use, not with this module: the methods import the types above, and a
+    # command's --help need not load scipy.
+    from service.calibration.methods import FAMILIES, METHODS
 
-
-def register_pattern(kind: str, pattern: str, factory: Callable[[re.Match[str]], Method]) -> None:
-    """Families of methods such as poly1, poly2, ... built on demand."""
-    _FACTORIES.append((kind, re.compile(pattern), factory))
-
-
-def _load_all() -> None:
-    # Importing the method modules registers them; each lives beside this file.
-    import importlib
-    import pkgutil
-
-    import service.calibration as pkg
-
-    for m in pkgutil.iter_modules(pkg.__path__):
-        if m.name.startswith("methods_"):
-            importlib.import_module(f"service.calibration.{m.name}")
+    return {(m.kind, m.name): m for m in METHODS}, FAMILIES
 
 
 def get_method(kind: str, name: str) -> Method:
-    _load_all()
-    if (kind, name) in _METHODS:
-        return _METHODS[(kind, name)]
-    for k, pat, factory in _FACTORIES:
-        if k == kind and (m := pat.fullmatch(name)):
-            return factory(m)
-    known = sorted(n for (k, n) in _METHODS if k == kind) + [p.pattern for k, p, _ in _FACTORIES if k == kind]
+    methods, families = _table()
+    if (kind, name) in methods:
+        return methods[(kind, name)]
+    for family in families:
+        if family.kind == kind and (m := family.pattern.fullmatch(name)):
+            return family.build(m)
+    known = sorted(n for (k, n) in methods if k == kind) + [f.pattern.pattern for f in families if f.kind == kind]
     raise InputError(f"unknown method {name!r} for kind {kind!r}; known: {', '.join(known) or 'none yet'}")
 
 
 def methods_for(kind: str) -> list[str]:
-    _load_all()
-    return sorted(n for (k, n) in _METHODS if k == kind)
+    """The named methods of a kind (families such as poly1, poly2, ... are not listed)."""
+    methods, _ = _table()
+    return sorted(n for (k, n) in methods if k == kind)

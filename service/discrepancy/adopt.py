@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from service.calibration.methods.stage.chain import EXTRA_EFFECTS, IN_CHAIN
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
-from service.calibration.stage_kinematic import EXTRA_EFFECTS, IN_CHAIN
 from service.errors import InputError
 from service.physics.stage import StageBench
 

@@ -1,7 +1,7 @@
 """The `kinematic` baseline of a stage bench: the physical forward model without the candidate effects.
 
-The model is the simulator itself (service.physics.stage, through the bench fitter's
-`BenchModel`), with the mounting and geometry parameters free; a candidate adds its own
+The model is the simulator itself (service.physics.stage, through the stage-effect fitter's
+`StageEffectModel`), with the mounting and geometry parameters free; a candidate adds its own
 effect's parameters, in the registry's names and units, to the free set. So "add the
 effect" means literally switching the simulator's term on and fitting its size.
 
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.calibration.benchfit import BenchModel, StagePoints, typical_scale
+from service.calibration.stage_effect_fit import StageEffectModel, StagePoints, typical_scale
 from service.discrepancy.model import Block, Family, Fit
 from service.discrepancy.stage_common import STAGE_SEPARABILITY_HINTS, StageData, candidate_block, sensor_param_names
 from service.discrepancy.stage_linear import stage_magnitude
@@ -136,7 +136,7 @@ class StageKinematic(Family):
 
     def predict_params(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> NDArray[np.float64]:
         eff = self.effects_mapping(effects, p)
-        model = BenchModel(self.bench, eff, [])
+        model = StageEffectModel(self.bench, eff, [])
         fx = model.effect_set(())
         key = tuple(sorted((e, tuple(sorted(fx.values[e].items()))) for e in _GEOMETRY_EFFECTS if e in fx.on))
         if self._geo_cache is None or self._geo_cache[0] != key:

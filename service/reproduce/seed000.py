@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from service.calibration.stage_common import offaxis_forward_vs_exact_deg, offaxis_paper_forward_deg
+from service.calibration.methods.stage.common import offaxis_forward_vs_exact_deg, offaxis_paper_forward_deg
 from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg
 from service.reproduce.stage_validation import SeedResult, evaluate_seed, offset_grid, oracle_ratios, paper_grid
 from service.scenarios import load_scenario

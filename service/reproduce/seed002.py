@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.calibration.methods_rotation import (
+from service.calibration.methods.rotation import (
     direct_points,
     fit_plane,
     iodsra_points,

@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.calibration.methods.stage.chain import ChainModel
+from service.calibration.methods.stage.common import newton_2d
 from service.calibration.registry import FitOptions, levelling_method
-from service.calibration.stage_common import newton_2d
-from service.calibration.stage_kinematic import ChainModel
 from service.physics.effects import EffectSet
 from service.physics.inclinometer import apply_reading_errors
 from service.physics.stage import StageBench, simulate_stage

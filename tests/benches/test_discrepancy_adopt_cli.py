@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from service.calibration.stage_kinematic import ChainModel
+from service.calibration.methods.stage.chain import ChainModel
 from service.io.model_files import read_model
 from service.physics.stage import StageBench
 from service.scenarios import parse_scenario

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.calibration.methods_rotation import (
+from service.calibration.methods.rotation import (
     SIN45,
     direct_points,
     fit_plane,

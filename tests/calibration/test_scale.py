@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from service.calibration.data import SEED003_TABLE1
-from service.calibration.methods_scale import PolyMethod, coefficient_names
+from service.calibration.methods.scale import PolyMethod, coefficient_names
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
 from service.errors import DegenerateDataError, InputError

@@ -5,13 +5,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.calibration.projective import apply_projective, fit_projective
-from service.calibration.stage_common import (
+from service.calibration.methods.stage.common import (
     meas_forward,
     meas_inverse,
     offaxis_forward_vs_exact_deg,
     offaxis_paper_forward_deg,
 )
+from service.calibration.projective import apply_projective, fit_projective
 from service.errors import DegenerateDataError
 from service.physics import stage as physics_stage
 from service.physics.effects import EffectSet

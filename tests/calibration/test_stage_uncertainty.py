@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from service.calibration.methods.stage.common import MEAS_NAMES, meas_inverse
 from service.calibration.projective import apply_projective
 from service.calibration.registry import FitOptions, get_method
-from service.calibration.stage_common import MEAS_NAMES, meas_inverse
 from service.reproduce.stage_validation import Oracle, execute, paper_grid
 from service.scenarios import load_scenario, run_scenario
 from tests.calibration.gum import Z95, without_dof

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import service.calibration.methods_turntable as mt
+import service.calibration.methods.turntable as mt
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
 from service.errors import DegenerateDataError

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from service.calibration.methods_scale import f_test
+from service.calibration.methods.scale import f_test
 from service.discrepancy import stats
 
 

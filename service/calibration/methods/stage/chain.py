@@ -1,5 +1,5 @@
 """The kinematic chain of docs/models.md §2 as a calibration: which parameters the data can separate,
-the fit itself (service.calibration.benchfit), and the chain run forwards and backwards.
+the fit itself (service.calibration.stage_effect_fit), and the chain run forwards and backwards.
 
 Identifiability. Only the up vector in the reference frame is observable, so the chain
 desk · Rot(lower axis, θy) · Rot(upper axis, θx) · top · ref seat · ref yaw has an exact 3-D
@@ -25,13 +25,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
-from service.calibration.benchfit import BenchModel, StagePoints, fit_bench, param_label, robust_scale, typical_scale
 from service.calibration.differences import central_jacobian
-from service.calibration.stage_common import (
+from service.calibration.methods.stage.common import (
     MEAS_PARAMS,
     meas_forward,
     newton_2d,
 )
+from service.calibration.stage_effect_fit import StageEffectModel, StagePoints, fit_stage_effects, param_label, robust_scale, typical_scale
 from service.errors import DegenerateDataError, FitError, InputError
 from service.io.columns import REF
 from service.physics.effects import STAGE_EFFECTS, EffectSet
@@ -151,7 +151,7 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], r
         raise InputError(f"effects: {', '.join(unknown)} cannot be added to the kinematic chain; it takes "
                          f"{', '.join(EXTRA_EFFECTS)} (and has {', '.join(IN_CHAIN)} already)")
     candidates = list(CHAIN_CANDIDATES)
-    all_model = BenchModel(bench, {}, candidates)
+    all_model = StageEffectModel(bench, {}, candidates)
     scales = np.array([typical_scale(k) for k in candidates])
 
     def pred(x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -180,10 +180,10 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], r
     for e in extra:
         free += [k for k, _ in EXTRA_EFFECTS[e]]
         x0 = np.concatenate([x0, [v for _, v in EXTRA_EFFECTS[e]]])
-    model = BenchModel(bench, {}, free)
+    model = StageEffectModel(bench, {}, free)
     observed = {"ref_x_deg": ref_x, "ref_y_deg": ref_y}
     try:
-        fit = fit_bench(model, pts, observed, x0=x0, loss=loss, max_nfev=max_nfev)  # robust scale: see fit_bench
+        fit = fit_stage_effects(model, pts, observed, x0=x0, loss=loss, max_nfev=max_nfev)  # robust scale: see fit_stage_effects
     except FitError as exc:
         raise DegenerateDataError(f"the kinematic fit failed on these points: {exc}") from None
     if not fit.converged:

@@ -7,12 +7,12 @@ reading -> table tilt). The readings of refs. [9] and [10] are written out in
 docs/calibration-stage.md and in each model's notes.
 """
 
-from service.calibration.methods_stage.axis_transform import AXIS_TRANSFORM, AxisTransformMethod
-from service.calibration.methods_stage.base import StageMethod, bench_state, stage_commands, stage_hardware
-from service.calibration.methods_stage.coupling import COUPLING, CouplingMethod
-from service.calibration.methods_stage.homography import HOMOGRAPHY, HomographyMethod
-from service.calibration.methods_stage.kinematic import KINEMATIC, KinematicMethod
-from service.calibration.stage_common import LEVEL_OUTPUTS
+from service.calibration.methods.stage.axis_transform import AXIS_TRANSFORM, AxisTransformMethod
+from service.calibration.methods.stage.base import StageMethod, bench_state, stage_commands, stage_hardware
+from service.calibration.methods.stage.common import LEVEL_OUTPUTS
+from service.calibration.methods.stage.coupling import COUPLING, CouplingMethod
+from service.calibration.methods.stage.homography import HOMOGRAPHY, HomographyMethod
+from service.calibration.methods.stage.kinematic import KINEMATIC, KinematicMethod
 
 __all__ = ["AXIS_TRANSFORM", "COUPLING", "HOMOGRAPHY", "KINEMATIC", "LEVEL_OUTPUTS", "AxisTransformMethod",
            "CouplingMethod", "HomographyMethod", "KinematicMethod", "StageMethod", "stage_hardware", "bench_state",

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
-from service.calibration.registry import Columns, FitOptions, register_pattern
+from service.calibration.registry import Columns, FitOptions
 from service.calibration.uncertainty import propagate_gum
 from service.errors import DegenerateDataError, InputError
 
@@ -221,6 +221,4 @@ def _dof(model: CalibrationModel) -> float:
     dof = model.state.get("dof", model.fit.get("dof"))
     return float(dof) if dof else float("inf")
 
-
-register_pattern("scale", r"poly(\d+)", lambda m: PolyMethod(int(m.group(1))))
 

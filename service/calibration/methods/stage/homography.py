@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.calibration.methods_stage.base import (
+from service.calibration.methods.stage.base import (
     CROSS_TOL_DEG,
     FIT_REQUIRED,
     Columns,
@@ -25,10 +25,7 @@ from service.calibration.methods_stage.base import (
     uncertain_correct,
     used_columns,
 )
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
-from service.calibration.projective import apply_projective, fit_projective, transfer_residuals
-from service.calibration.registry import FitOptions, register
-from service.calibration.stage_common import (
+from service.calibration.methods.stage.common import (
     MEAS_COLUMNS,
     columns,
     has_meas,
@@ -36,6 +33,9 @@ from service.calibration.stage_common import (
     offaxis_forward_vs_exact_deg,
     offaxis_paper_forward_deg,
 )
+from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.projective import apply_projective, fit_projective, transfer_residuals
+from service.calibration.registry import FitOptions
 from service.errors import DegenerateDataError, InputError
 from service.physics.stage import offaxis_inverse_deg, offaxis_reading_deg
 
@@ -177,4 +177,4 @@ class HomographyMethod(StageMethod):
                                   float(model.state.get("meas_sigma_deg", 0.0)), meas_dof(model))
 
 
-HOMOGRAPHY = register(HomographyMethod())
+HOMOGRAPHY = HomographyMethod()

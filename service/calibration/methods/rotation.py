@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
-from service.calibration.registry import Columns, FitOptions, register
+from service.calibration.registry import Columns, FitOptions
 from service.calibration.uncertainty import propagate_gum
 from service.errors import DegenerateDataError
 
@@ -321,9 +321,9 @@ class _RotationMethod:
         return out
 
 
-DIRECT = register(_RotationMethod("direct", uses_sz=False, estimator="switch",
-                                  doc="seed 002 §2.1: Sz from eq. (6) (Sz >= 0), θ by eqs. (7)/(9)"))
-IODSRA = register(_RotationMethod("iodsra", uses_sz=True, estimator="switch",
-                                  doc="seed 002 §2.2-2.3: measured Sz with the 45° rule, θ by eqs. (7)/(9)"))
-IODSRA_COMBINED = register(_RotationMethod("iodsra-combined", uses_sz=True, estimator="combined",
-                                           doc="IODSRA points, θ = least-squares angle on the circle (eqs. 7-9 together)"))
+DIRECT = _RotationMethod("direct", uses_sz=False, estimator="switch",
+                         doc="seed 002 §2.1: Sz from eq. (6) (Sz >= 0), θ by eqs. (7)/(9)")
+IODSRA = _RotationMethod("iodsra", uses_sz=True, estimator="switch",
+                         doc="seed 002 §2.2-2.3: measured Sz with the 45° rule, θ by eqs. (7)/(9)")
+IODSRA_COMBINED = _RotationMethod("iodsra-combined", uses_sz=True, estimator="combined",
+                                  doc="IODSRA points, θ = least-squares angle on the circle (eqs. 7-9 together)")

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.differences import central_jacobian
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
-from service.calibration.registry import Columns, FitOptions, register
+from service.calibration.registry import Columns, FitOptions
 from service.calibration.uncertainty import propagate_gum
 from service.errors import DegenerateDataError, InputError
 from service.io.columns import TURNTABLE_READINGS
@@ -272,4 +272,4 @@ class ReversalMethod:
         return out
 
 
-REVERSAL = register(ReversalMethod())
+REVERSAL = ReversalMethod()

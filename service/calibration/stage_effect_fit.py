@@ -1,6 +1,6 @@
 """Fit effect parameters of the stacked-stage forward model to recorded points.
 
-The bench model a lab fits is the simulator itself (service.physics.stage) with some effect
+The model a lab fits is the simulator itself (service.physics.stage) with some effect
 parameters free: the kinematic calibration and the discrepancy workflow's kinematic
 baseline are both this fit with different free sets. Readings are predicted noise-free; the
 covariance of the free parameters is the Gauss-Newton one, (JᵀJ)⁻¹ s², with s² the residual
@@ -58,7 +58,7 @@ class StagePoints:
 
 
 @dataclass
-class BenchModel:
+class StageEffectModel:
     """A bench with some effects fixed and others free: predicts sensor readings."""
 
     bench: StageBench
@@ -81,8 +81,8 @@ class BenchModel:
 
 
 @dataclass
-class BenchFit:
-    model: BenchModel
+class StageEffectFit:
+    model: StageEffectModel
     values: NDArray[np.float64]
     covariance: NDArray[np.float64]
     residuals: dict[str, NDArray[np.float64]]
@@ -117,9 +117,9 @@ def robust_scale(residuals: NDArray[np.float64]) -> float:
     return max(3.0 * 1.4826 * mad, 1e-5)
 
 
-def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, NDArray[np.float64]],
+def fit_stage_effects(model: StageEffectModel, pts: StagePoints, observed: Mapping[str, NDArray[np.float64]],
               x0: Sequence[float] | NDArray[np.float64] | None = None, loss: str = "linear", f_scale: float | None = None,
-              max_nfev: int = 2000) -> BenchFit:
+              max_nfev: int = 2000) -> StageEffectFit:
     """Least-squares fit of the free parameters to the observed columns (e.g. ref_x_deg, ref_y_deg)."""
     outputs = list(observed)
     obs = np.column_stack([np.asarray(observed[o], dtype=float) for o in outputs])
@@ -142,7 +142,7 @@ def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, NDArra
         if f_scale is None:
             # Residuals at the starting bench are no guide to the scale of good residuals: fit plainly
             # first, take the scale robustly (MAD) from that fit, and start the robust fit there.
-            pre = fit_bench(model, pts, observed, x0=start, loss="linear", max_nfev=max_nfev)
+            pre = fit_stage_effects(model, pts, observed, x0=start, loss="linear", max_nfev=max_nfev)
             f_scale = robust_scale(np.concatenate(list(pre.residuals.values())))
             start = pre.values
         kw["f_scale"] = f_scale
@@ -166,10 +166,10 @@ def fit_bench(model: BenchModel, pts: StagePoints, observed: Mapping[str, NDArra
                    str(sol.message), sv)
 
 
-def _result(model: BenchModel, x: ArrayLike, cov: NDArray[np.float64], r: ArrayLike, outputs: Sequence[str], shape: tuple[int, ...],
-            s2: float, ok: bool, nfev: int, msg: str, sv: NDArray[np.float64] | None) -> BenchFit:
+def _result(model: StageEffectModel, x: ArrayLike, cov: NDArray[np.float64], r: ArrayLike, outputs: Sequence[str], shape: tuple[int, ...],
+            s2: float, ok: bool, nfev: int, msg: str, sv: NDArray[np.float64] | None) -> StageEffectFit:
     rr = np.asarray(r).reshape(shape)
     res = {o: rr[:, i] for i, o in enumerate(outputs)}
     dof = max(rr.size - len(model.free), 1)
-    return BenchFit(model, np.asarray(x, dtype=float), cov, res, float(np.sqrt(s2)), dof, float(np.sum(rr**2) / 2),
+    return StageEffectFit(model, np.asarray(x, dtype=float), cov, res, float(np.sqrt(s2)), dof, float(np.sum(rr**2) / 2),
                     ok, nfev, msg, np.zeros(0) if sv is None else sv)

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
-from service.calibration.methods_stage.base import (
+from service.calibration.methods.stage.base import (
     FIT_REQUIRED,
     Columns,
     StageMethod,
@@ -25,9 +25,7 @@ from service.calibration.methods_stage.base import (
     uncertain_correct,
     used_columns,
 )
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
-from service.calibration.registry import FitOptions, register
-from service.calibration.stage_common import (
+from service.calibration.methods.stage.common import (
     MEAS_COLUMNS,
     columns,
     has_meas,
@@ -35,6 +33,8 @@ from service.calibration.stage_common import (
     model_needs_meas,
     require_spread,
 )
+from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.registry import FitOptions
 from service.errors import DegenerateDataError
 
 
@@ -146,4 +146,4 @@ class AxisTransformMethod(StageMethod):
                                   float(model.state.get("meas_sigma_deg", 0.0)), meas_dof(model))
 
 
-AXIS_TRANSFORM = register(AxisTransformMethod())
+AXIS_TRANSFORM = AxisTransformMethod()

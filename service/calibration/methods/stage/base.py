@@ -11,9 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.calibration.differences import central_jacobian
-from service.calibration.model import CalibrationModel, Parameter
-from service.calibration.registry import FitOptions
-from service.calibration.stage_common import (
+from service.calibration.methods.stage.common import (
     MEAS_COLUMNS,
     REF_COLUMNS,
     STAGE_COLUMNS,
@@ -22,6 +20,8 @@ from service.calibration.stage_common import (
     detect_mirror,
     sign_from_options,
 )
+from service.calibration.model import CalibrationModel, Parameter
+from service.calibration.registry import FitOptions
 from service.calibration.uncertainty import coverage_factor, propagate_gum
 from service.errors import DegenerateDataError, InputError
 from service.io.columns import K_OUTPUTS

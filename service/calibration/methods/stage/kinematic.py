@@ -8,8 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.calibration.benchfit import StagePoints, param_label
-from service.calibration.methods_stage.base import (
+from service.calibration.methods.stage.base import (
     FIT_REQUIRED,
     Columns,
     StageMethod,
@@ -21,9 +20,8 @@ from service.calibration.methods_stage.base import (
     targets,
     used_columns,
 )
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
-from service.calibration.registry import FitOptions, register
-from service.calibration.stage_common import (
+from service.calibration.methods.stage.chain import ChainModel, fit_chain, fit_meas, unit_of
+from service.calibration.methods.stage.common import (
     MEAS_COLUMNS,
     MEAS_NAMES,
     MEAS_PARAMS,
@@ -35,7 +33,9 @@ from service.calibration.stage_common import (
     model_needs_meas,
     require_spread,
 )
-from service.calibration.stage_kinematic import ChainModel, fit_chain, fit_meas, unit_of
+from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.registry import FitOptions
+from service.calibration.stage_effect_fit import StagePoints, param_label
 from service.calibration.uncertainty import coverage_factor
 from service.errors import InputError
 from service.io.columns import K_OUTPUTS
@@ -164,4 +164,4 @@ class KinematicMethod(StageMethod):
                 K_OUTPUTS[1]: np.broadcast_to(coverage_factor(gy.dof_eff), Y.shape)}
 
 
-KINEMATIC = register(KinematicMethod())
+KINEMATIC = KinematicMethod()

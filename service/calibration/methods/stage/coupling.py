@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.calibration.methods_stage.base import (
+from service.calibration.methods.stage.base import (
     FIT_REQUIRED,
     Columns,
     StageMethod,
@@ -20,9 +20,7 @@ from service.calibration.methods_stage.base import (
     targets,
     used_columns,
 )
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
-from service.calibration.registry import FitOptions, register
-from service.calibration.stage_common import (
+from service.calibration.methods.stage.common import (
     MEAS_COLUMNS,
     columns,
     has_meas,
@@ -31,6 +29,8 @@ from service.calibration.stage_common import (
     newton_2d,
     require_spread,
 )
+from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.registry import FitOptions
 from service.calibration.uncertainty import coverage_factor
 from service.errors import DegenerateDataError
 from service.io.columns import K_OUTPUTS
@@ -103,4 +103,4 @@ class CouplingMethod(StageMethod):
                 K_OUTPUTS[0]: np.full(mx.shape, k), K_OUTPUTS[1]: np.full(my.shape, k)}
 
 
-COUPLING = register(CouplingMethod())
+COUPLING = CouplingMethod()
