@@ -28,6 +28,7 @@ log = logging.getLogger("tiltlab.bench")
 T = TypeVar("T")
 
 STAGE_POLL_S = 0.1  # bench seconds between pose queries
+STAGE_POLL_MIN_S = 0.05  # real seconds: a sped-up bench's pose is not asked more often than this
 TEMPERATURE_POLL_S = 10.0  # bench seconds between temperature queries of sensors whose frames carry none
 SENSOR_ROLES = ("reference_sensor", "measurement_sensor", "triaxial_sensor", "turntable_sensor", "adc_sensor")
 MOTION_ROLES = ("stage", "rotary_table")
@@ -198,7 +199,9 @@ class BenchRuntime:
         while True:
             with contextlib.suppress(DeviceError):
                 await self.refresh_pose()
-            await self.clock.sleep(STAGE_POLL_S)
+            # bench time, but never more than 20 times a real second: moves and jobs ask the pose
+            # themselves, this only keeps /tilt's and /devices' pose of an idle bench current
+            await asyncio.sleep(max(self.clock.real_seconds(STAGE_POLL_S), STAGE_POLL_MIN_S))
 
     async def _poll_temperatures(self) -> None:
         """Binary inclinometers send angles only; their temperature (0x06) is asked now and then, so
@@ -218,7 +221,11 @@ class BenchRuntime:
         if "stage" in self.devices:
             stage = self.devices["stage"]
             x, y = await polled(stage.position_deg)
-            moving = "moving" in (await polled(stage.x.state), await polled(stage.y.state))
+            # a stage that stood at the last poll and has not moved since still stands: its states are
+            # asked only when something moved (a move's end, a jog) or motion was under way
+            moving = False
+            if self.pose.moving or (x, y) != (self.pose.x_deg, self.pose.y_deg):
+                moving = "moving" in (await polled(stage.x.state), await polled(stage.y.state))
             self.pose.x_deg, self.pose.y_deg, self.pose.moving = x, y, moving
             self.pose.time_utc = self.clock.utc()
         if "rotary_table" in self.devices:

@@ -234,6 +234,8 @@ class ReadingProducer:
         self._latest = msg
         self.history.append(row)
         self.messages += 1
+        if not self.clients:
+            return  # kept for snapshots and the fleet; serialised only for someone to read it
         body = json.dumps(msg)[1:]  # serialised once; each client's seq goes in front
         t = row[0]
         loop_now = asyncio.get_running_loop().time()

@@ -133,8 +133,8 @@ def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool, rate):
     ports: dict[str, SimPort] = {}
     roles: dict[str, dict] = {}
     for role, prefix in (("reference_sensor", "ref"), ("measurement_sensor", "meas")):
-        def read_xy(p: str = prefix) -> tuple[float, float]:
-            return world.reading_deg(p)
+        def read_xy(at_s: float | None = None, p: str = prefix) -> tuple[float, float]:
+            return world.reading_deg(p, at_s)
 
         fw = BinaryFirmware(clock, read_xy, world.temp_c, address=0,
                             baud=SIM_BAUD["binary"], output_mode=_mode(rate))
@@ -167,7 +167,7 @@ def _rotary(scenario: str, clock: Clock, folder: Path, rate, bus_addresses):
     roles: dict[str, dict] = {}
     ports["rotary_table"] = SimPort(folder / "rotary_table", ControllerFirmware(world.axes, model="RT-360SIM"))
     roles["rotary_table"] = {"port": ports["rotary_table"].path, "baud": SIM_BAUD["controller"], "axis": 3}
-    tri = BinaryFirmware(clock, lambda: (0.0, 0.0), world.temp_c, address=0, baud=SIM_BAUD["binary"],
+    tri = BinaryFirmware(clock, lambda _at_s: (0.0, 0.0), world.temp_c, address=0, baud=SIM_BAUD["binary"],
                          read_sines=world.sines, output_mode=_mode(rate))
     ports["triaxial_sensor"] = SimPort(folder / "triaxial_sensor", tri)
     roles["triaxial_sensor"] = {"port": ports["triaxial_sensor"].path, "baud": SIM_BAUD["binary"], "address": 0,

@@ -41,7 +41,7 @@ class BinaryFirmware:
 
     family = "binary"
 
-    def __init__(self, clock: Clock, read_xy: Callable[[], tuple[float, float]], temp_c: Callable[[], float],
+    def __init__(self, clock: Clock, read_xy: Callable[[float | None], tuple[float, float]], temp_c: Callable[[], float],
                  address: int = 0, baud: int = 115200, read_sines: Callable[[], tuple[float, float, float]] | None = None,
                  output_mode: int = 0) -> None:
         self.clock = clock
@@ -58,14 +58,15 @@ class BinaryFirmware:
         self._set_mode(output_mode)
 
     # -- what the instrument measures (zero applied) --
-    def _xy(self) -> tuple[float, float]:
-        x, y = self.read_xy()
+    def _xy(self, at_s: float | None = None) -> tuple[float, float]:
+        """The reading now, or (automatic output) at bench time `at_s`, the time its frame was due."""
+        x, y = self.read_xy(at_s)
         return x - self.zero[0], y - self.zero[1]
 
-    def _auto_frame(self) -> bytes:
+    def _auto_frame(self, at_s: float) -> bytes:
         if self.read_sines is not None:
             return binary.encode(binary.BinaryAnswer(self.address, 0x87, sines=self.read_sines()))
-        x, y = self._xy()
+        x, y = self._xy(at_s)
         return binary.encode(binary.BinaryAnswer(self.address, 0x84, x_deg=x, y_deg=y))
 
     def _interval_real(self) -> float | None:
@@ -107,7 +108,7 @@ class BinaryFirmware:
               binary.SET_ADDRESS: True,
               binary.SET_OUTPUT: req.argument in binary.OUTPUT_MODES}[req.command]
         if ok and req.command == binary.SET_ZERO:
-            self.zero = self.read_xy() if req.argument == binary.ZERO_RELATIVE else (0.0, 0.0)
+            self.zero = self.read_xy(None) if req.argument == binary.ZERO_RELATIVE else (0.0, 0.0)
         if ok and req.command == binary.SET_OUTPUT and req.argument is not None:
             self._set_mode(req.argument)
         return binary.BinaryAnswer(a, c, status=binary.STATUS_DONE if ok else binary.STATUS_REFUSED)
@@ -130,8 +131,10 @@ class BinaryFirmware:
             self._next = None
             return []
         frames: list[bytes] = []
+        bench_now = self.clock.monotonic()
         while self._next <= now_real and len(frames) < 64:
-            frames.append(self._auto_frame())
+            # a frame sent late (a burst) still carries the reading of the time it was due
+            frames.append(self._auto_frame(bench_now - self.clock.bench_seconds(now_real - self._next)))
             self._next += interval
         if self._next <= now_real:  # fell behind (a stalled process): the instrument does not burst
             self._next = now_real + interval

@@ -23,6 +23,13 @@ import tty
 from pathlib import Path
 from typing import Protocol
 
+# Automatic output leaves in bursts at most this often (real seconds), as a USB serial adapter's
+# latency timer hands the host what came within it (16 ms by default on the common ones): a sped-up
+# sensor's hundreds of frames a second wake the port's reader tens of times, not hundreds. Answers
+# are not held back.
+OUTPUT_LATENCY_S = 0.01
+IDLE_WAIT_S = 0.05  # the longest a port's thread sleeps with nothing due (to notice a stop or a reopen)
+
 
 class Firmware(Protocol):
     family: str
@@ -205,6 +212,7 @@ class SimPort:
         self.sent_frames += 1
 
     def _run(self) -> None:
+        flushed = 0.0  # real time automatic output last left
         while not self._stop.is_set():
             now = time.monotonic()
             if self._reopen_at is not None:
@@ -216,10 +224,10 @@ class SimPort:
             while self._later and self._later[0][0] <= now:
                 self.write(heapq.heappop(self._later)[2])
                 self.sent_frames += 1
-            waits = [0.05]
+            waits = [IDLE_WAIT_S]
             nd = self.firmware.next_due()
             if nd is not None:
-                waits.append(nd - now)
+                waits.append(max(nd, flushed + OUTPUT_LATENCY_S) - now)
             if self._later:
                 waits.append(self._later[0][0] - now)
             master = self._master
@@ -230,11 +238,15 @@ class SimPort:
                 data = os.read(master, 4096) if ready else b""
             except (OSError, ValueError):  # closed by a disconnect meanwhile
                 continue
+            now = time.monotonic()
+            if data or now - flushed >= OUTPUT_LATENCY_S:
+                # what is due goes out before any answer: frames made before a request never follow its answer
+                flushed = now
+                for frame in self.firmware.due(now):
+                    self._emit(frame, False)
             if data:
                 for answer in self.firmware.handle(data):
                     self._emit(answer, True)
-            for frame in self.firmware.due(time.monotonic()):
-                self._emit(frame, False)
 
     def close(self) -> None:
         self._stop.set()

@@ -152,6 +152,7 @@ class StageWorld:
         self._lock = threading.Lock()
         self._batches: dict[str, _Batch] = {}
         self._last_read: dict[str, tuple[float, tuple[float, float, float, float]]] = {}
+        self._true_tilt: tuple[tuple[float, float, float, float], tuple[float, float]] | None = None
         travel = self.bench.travel_deg
         self.axes: dict[int, Axis] = {}
         for n, pulse in ((1, self.bench.pulse_x_deg), (2, self.bench.pulse_y_deg)):
@@ -184,15 +185,16 @@ class StageWorld:
                                  rng=self.rng if noisy else None, geometry=self.geometry)
         return {k: float(v[0]) for k, v in out.items()}
 
-    def reading_deg(self, prefix: str) -> tuple[float, float]:
-        """One sensor's reading (`ref` or `meas`) now. At rest the sensor's next readings are computed
-        in one batch, at the bench times its output interval will ask for them, and handed out in
+    def reading_deg(self, prefix: str, at_s: float | None = None) -> tuple[float, float]:
+        """One sensor's reading (`ref` or `meas`) now, or at bench time `at_s` (the clock's: a frame
+        sent in a burst is read at the time it was due), at the present pose. At rest the sensor's
+        next readings are computed in one batch, at the bench times its output interval will ask for them, and handed out in
         turn; a move, a read outside the batch's time span or its end starts a new one. So every
         reading belongs to the pose it is read at, and to its time within the batch's span
         (READINGS_PER_BATCH output intervals; what changes with time, temperature, drifts by hours)."""
         x_deg, y_deg = self.pose_deg
         pose = (x_deg, y_deg, self.axes[1].direction, self.axes[2].direction)
-        t = self.t_s()
+        t = self.t_s() if at_s is None else at_s - self.t0
         with self._lock:
             last = self._last_read.get(prefix)
             self._last_read[prefix] = (t, pose)
@@ -222,8 +224,15 @@ class StageWorld:
         return float(b.t_s[1] - b.t_s[0]) if len(b.t_s) > 1 else 0.0
 
     def true_tilt_deg(self) -> tuple[float, float]:
+        """The table's true tilt: geometry alone (no noise, time or temperature), so one per pose."""
+        pose = (*self.pose_deg, self.axes[1].direction, self.axes[2].direction)
+        cached = self._true_tilt
+        if cached is not None and cached[0] == pose:
+            return cached[1]
         s = self.sample(noisy=False)
-        return s["tilt_x_deg"], s["tilt_y_deg"]
+        tilt = s["tilt_x_deg"], s["tilt_y_deg"]
+        self._true_tilt = (pose, tilt)
+        return tilt
 
     def adc_counts(self, conversions: int) -> float:
         """The analog sensor on the table (sensing x) behind the 12-bit ADC: one or a mean of n conversions."""
