@@ -162,19 +162,14 @@ class BenchRuntime:
     # ------------------------------------------------------------ latest values, no I/O
 
     def latest(self, role: str) -> Reading | None:
-        return self.devices[role].latest() if role in self.devices else None
+        return self.devices.sensor(role).latest() if role in self.devices else None
 
     def readings_after(self, role: str, bench_s: float) -> list[Reading]:
         """Every kept reading of the role stamped after `bench_s`, oldest first (the latest only, for a
         device that keeps no history)."""
-        dev = self.devices[role] if role in self.devices else None
-        if dev is None:
+        if role not in self.devices:
             return []
-        after = getattr(dev, "readings_after", None)
-        if after is not None:
-            return after(bench_s)
-        r = dev.latest()
-        return [r] if r is not None and r.bench_s > bench_s else []
+        return self.devices.sensor(role).readings_after(bench_s)
 
     def output_interval_s(self, role: str) -> float:
         """How often the role's readings arrive (bench seconds): what `stale` is judged against."""
@@ -206,11 +201,11 @@ class BenchRuntime:
     async def _poll_temperatures(self) -> None:
         """Binary inclinometers send angles only; their temperature (0x06) is asked now and then, so
         GET /tilt and the streams carry one between jobs too (a job asks at every point)."""
-        roles = [r for r in ("reference_sensor", "measurement_sensor", "triaxial_sensor")
-                 if r in self.devices and hasattr(self.devices[r], "answers_temperature")]
-        while roles:
-            for role in roles:
-                driver = self.devices[role]
+        drivers = [d for d in (self.devices.temperature_on_request(r)
+                               for r in ("reference_sensor", "measurement_sensor", "triaxial_sensor"))
+                   if d is not None]
+        while drivers:
+            for driver in drivers:
                 if driver.status.state == "connected" and driver.answers_temperature:
                     with contextlib.suppress(DeviceError):
                         await driver.read_temperature()
@@ -219,7 +214,7 @@ class BenchRuntime:
 
     async def refresh_pose(self) -> None:
         if "stage" in self.devices:
-            stage = self.devices["stage"]
+            stage = self.devices.stage_axes()
             x, y = await polled(stage.position_deg)
             # a stage that stood at the last poll and has not moved since still stands: its states are
             # asked only when something moved (a move's end, a jog) or motion was under way
@@ -229,7 +224,7 @@ class BenchRuntime:
             self.pose.x_deg, self.pose.y_deg, self.pose.moving = x, y, moving
             self.pose.time_utc = self.clock.utc()
         if "rotary_table" in self.devices:
-            self.rotary_deg = await polled(self.devices["rotary_table"].position_deg)
+            self.rotary_deg = await polled(self.devices.axis("rotary_table").position_deg)
 
     # ------------------------------------------------------------ ownership and motion
 
@@ -249,7 +244,7 @@ class BenchRuntime:
         marks = []
         for role in roles:
             self.require(role)
-            marks.append(await self.devices[role].sync())
+            marks.append(await self.devices.sensor(role).sync())
         return max(marks, default=self.clock.monotonic())
 
     def require(self, role: str) -> None:
@@ -262,7 +257,7 @@ class BenchRuntime:
     async def move_stage(self, x_deg: float, y_deg: float, *, timeout_s: float = 600.0) -> tuple[float, float]:
         """Move both stages and wait until they stand; returns the position reached (degrees)."""
         self.require("stage")
-        stage = self.devices["stage"]
+        stage = self.devices.stage_axes()
         async with self._motion_lock:
             if self.pose.x_deg is not None:
                 if x_deg != self.pose.x_deg:
@@ -283,7 +278,7 @@ class BenchRuntime:
         """Home both stage axes (each finds its reference switch; its position becomes 0) and wait
         until they stand; returns the position reached (degrees)."""
         self.require("stage")
-        stage = self.devices["stage"]
+        stage = self.devices.stage_axes()
         async with self._motion_lock:
             await stage.home()
             self.pose.moving = True
@@ -294,7 +289,7 @@ class BenchRuntime:
 
     async def move_rotary(self, angle_deg: float, *, timeout_s: float = 600.0) -> float:
         self.require("rotary_table")
-        table = self.devices["rotary_table"]
+        table = self.devices.axis("rotary_table")
         async with self._motion_lock:
             await table.move_to_deg(angle_deg)
             await table.wait_until_idle(timeout_s)
@@ -311,4 +306,4 @@ class BenchRuntime:
         self.stop_requested.set()
         for role in MOTION_ROLES:
             if role in self.devices:
-                await self.devices[role].stop()
+                await (self.devices.stage_axes(role) if role == "stage" else self.devices.axis(role)).stop()

@@ -1,7 +1,9 @@
 """What every instrument driver offers the daemon, whatever its byte protocol.
 
 The one reading model (`Reading`), the device's identity and health as `/devices` reports
-them, and the driver protocols per role. Drivers convert units at their edge: angles
+them, and the driver protocols per role: each driver class names the protocol it implements
+as a base class, so mypy holds it to every member, and the bench reaches its drivers through
+these protocols. Drivers convert units at their edge: angles
 leave a driver in degrees, whatever the wire carried (BCD degrees, milliradians, pulses).
 """
 
@@ -9,7 +11,7 @@ from __future__ import annotations
 
 import datetime as dt
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Literal, Protocol, runtime_checkable
 
 DeviceState = Literal["connected", "reconnecting", "failed"]
 AxisState = Literal["ready", "moving", "homing", "hard_limit", "error"]
@@ -73,8 +75,12 @@ class DeviceStatus:
     error: str | None = None  # the last failure, in words
 
 
+@runtime_checkable
 class Driver(Protocol):
+    """What the daemon asks of every role's driver: its health, its life cycle, its identity."""
+
     role: str
+    protocol: str  # the family's byte protocol: binary, rs485, adc, controller
 
     @property
     def status(self) -> DeviceStatus: ...
@@ -86,16 +92,32 @@ class Driver(Protocol):
     async def identify(self) -> DeviceIdentity: ...
 
 
-class TiltSensor(Driver, Protocol):
-    """reference_sensor, measurement_sensor (family A) and turntable_sensor (family B)."""
+@runtime_checkable
+class Sensor(Driver, Protocol):
+    """A role that measures: readings kept from automatic output or polling, and a mark in their stream."""
 
     def latest(self) -> Reading | None:
         """The newest reading from the instrument's automatic output or polling; no I/O."""
         ...
 
+    def readings_after(self, bench_s: float) -> list[Reading]:
+        """The readings kept that are stamped after `bench_s` (bench seconds), oldest first; no I/O."""
+        ...
+
     async def sync(self) -> float:
         """A mark (bench seconds) after which every reading was made after the call."""
         ...
+
+    async def stop_polling(self) -> None:
+        """No more reads of its own: the line is the caller's."""
+        ...
+
+
+@runtime_checkable
+class TiltSensor(Sensor, Protocol):
+    """reference_sensor, measurement_sensor (family A) and turntable_sensor (family B)."""
+
+    resolution_deg: float  # the last digit the protocol carries: an uncertainty budget's resolution
 
     async def read_tilt(self) -> Reading: ...
 
@@ -106,26 +128,32 @@ class TiltSensor(Driver, Protocol):
     async def set_absolute_zero(self) -> None: ...
 
 
-class TriaxialSensor(Driver, Protocol):
+@runtime_checkable
+class TriaxialSensor(Sensor, Protocol):
     """triaxial_sensor: family (A) with command 0x07 (sines of the three axes)."""
-
-    def latest(self) -> Reading | None: ...
-
-    async def sync(self) -> float: ...
 
     async def read_sines(self) -> Reading: ...
 
+    async def read_temperature(self) -> float: ...
 
-class AnalogSensor(Driver, Protocol):
+
+@runtime_checkable
+class TemperatureOnRequest(Sensor, Protocol):
+    """A sensor whose angle frames carry no temperature (family A): it is asked for one (0x06)."""
+
+    answers_temperature: bool  # False once the instrument is found to lack the command
+
+    async def read_temperature(self) -> float: ...
+
+
+@runtime_checkable
+class AnalogSensor(Sensor, Protocol):
     """adc_sensor: family (C)."""
-
-    def latest(self) -> Reading | None: ...
-
-    async def sync(self) -> float: ...
 
     async def read_counts(self, conversions: int = 1) -> Reading: ...
 
 
+@runtime_checkable
 class MotionAxis(Driver, Protocol):
     """One axis of a family (D) controller: a swing stage (1 upper x, 2 lower y) or the rotary table (3)."""
 
@@ -147,6 +175,29 @@ class MotionAxis(Driver, Protocol):
     async def wait_until_idle(self, timeout_s: float) -> None:
         """Return once the axis is ready; raise on a hard limit, an error, or the timeout (bench seconds)."""
         ...
+
+    async def stop(self) -> None: ...
+
+    async def home(self) -> None: ...
+
+
+@runtime_checkable
+class TwoAxisStage(Driver, Protocol):
+    """The `stage` role: the upper (x) and lower (y) swing stages of one controller, moved together."""
+
+    @property
+    def x(self) -> MotionAxis: ...
+
+    @property
+    def y(self) -> MotionAxis: ...
+
+    async def move_to_deg(self, x_deg: float, y_deg: float) -> tuple[int, int]:
+        """Start both axes; returns the pulses commanded."""
+        ...
+
+    async def position_deg(self) -> tuple[float, float]: ...
+
+    async def wait_until_idle(self, timeout_s: float) -> None: ...
 
     async def stop(self) -> None: ...
 

@@ -14,8 +14,11 @@ is dropped, counted, and the search restarts one byte after its start.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypeVar
 
 from service.instruments.framing import Parsed, ParseStats
+
+T = TypeVar("T")
 
 HEADER = 0x68
 
@@ -86,7 +89,7 @@ def decode_bcd(data: bytes, decimals: int) -> float:
     text = data.hex()
     if not text.isdigit() or text[0] not in "01":
         raise BcdError(f"{data.hex(' ')} is not signed packed BCD")
-    value = int(text[1:]) / 10**decimals
+    value: float = int(text[1:]) / 10**decimals
     return -value if text[0] == "1" else value
 
 
@@ -144,7 +147,7 @@ def encode(msg: BinaryMessage) -> bytes:
     return encode_request(msg) if isinstance(msg, BinaryRequest) else encode_answer(msg)
 
 
-def _given(value, command: int):
+def _given(value: T | None, command: int) -> T:
     if value is None:
         raise ValueError(f"answer 0x{command:02X} lacks a value")
     return value

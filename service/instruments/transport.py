@@ -64,20 +64,21 @@ def resolve_usb_serial(usb_serial: str) -> str:
         raise DeviceUnavailable(f"no USB serial adapter with serial number {usb_serial} is plugged in")
     if len(found) > 1:
         raise DeviceUnavailable(f"USB serial number {usb_serial} is reported by {', '.join(found)}")
-    return found[0]
+    path: str = found[0]
+    return path
 
 
 @dataclass
 class _Pending:
     match: Callable[[Any], bool]
-    future: asyncio.Future
+    future: asyncio.Future[Any]
     loop: asyncio.AbstractEventLoop
 
 
 class SerialPort:
     """A port, its decoder and its reader thread. Shared by every driver on the same bus."""
 
-    def __init__(self, where: str, parse: Callable[[bytes], Parsed], *, baud: int, usb_serial: str | None = None,
+    def __init__(self, where: str, parse: Callable[[bytes], Parsed[Any]], *, baud: int, usb_serial: str | None = None,
                  fail_after_s: float = 30.0) -> None:
         self.where = where  # as configured: path, URL, or usb_serial=...
         self.usb_serial = usb_serial
@@ -200,7 +201,7 @@ class SerialPort:
         """A driver on this port answers to `address` (its axis, for a controller)."""
         self.owned.add(address)
 
-    def _deliver(self, messages: list) -> None:
+    def _deliver(self, messages: list[Any]) -> None:
         now = dt.datetime.now(dt.UTC)
         self.last_frame_utc = now
         for msg in messages:
@@ -278,12 +279,12 @@ class SerialPort:
         return self._request_lock
 
 
-def _resolve(fut: asyncio.Future, value: Any) -> None:
+def _resolve(fut: asyncio.Future[Any], value: Any) -> None:
     if not fut.done():
         fut.set_result(value)
 
 
-def _fail(fut: asyncio.Future, exc: Exception) -> None:
+def _fail(fut: asyncio.Future[Any], exc: Exception) -> None:
     if not fut.done():
         fut.set_exception(exc)
 
@@ -294,7 +295,7 @@ class PortRegistry:
     def __init__(self) -> None:
         self._ports: dict[str, tuple[SerialPort, str]] = {}
 
-    def get(self, where: str, parse: Callable[[bytes], Parsed], family: str, **kwargs: Any) -> SerialPort:
+    def get(self, where: str, parse: Callable[[bytes], Parsed[Any]], family: str, **kwargs: Any) -> SerialPort:
         if where in self._ports:
             port, fam = self._ports[where]
             if fam != family or family != "rs485":

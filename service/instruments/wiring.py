@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 from service.clock import Clock
 from service.instruments import adc, binary, controller, rs485
-from service.instruments.base import DeviceStatus
+from service.instruments.base import (
+    DeviceStatus,
+    Driver,
+    MotionAxis,
+    Sensor,
+    TemperatureOnRequest,
+    TiltSensor,
+    TwoAxisStage,
+)
 from service.instruments.bench_config import (
     DEFAULT_BAUD,
     PROTOCOL_OF_ROLE,
@@ -33,19 +41,27 @@ from service.instruments.transport import PortRegistry, SerialPort
 PARSERS: dict[str, Callable[[bytes], Any]] = {"binary": binary.parse_answers, "rs485": rs485.parse_answers, "adc": adc.parse_answers,
            "controller": controller.parse_answers}
 
+# Every family's driver class, as `make_driver` hands them out (TriaxialModule is a BinaryInclinometer).
+RoleDriver = BinaryInclinometer | Rs485Inclinometer | AdcSensor | ControllerAxis | StageController
+
 
 class BenchDevices:
-    """The drivers of one bench by role (`devices.stage`, `devices["reference_sensor"]`)."""
+    """The drivers of one bench by role (`devices.stage`, `devices["reference_sensor"]`), and each
+    role as the protocol it plays (`devices.sensor(role)`, `devices.stage_axes()`, `devices.axis(role)`)."""
 
-    def __init__(self, config: BenchConfig, clock: Clock, drivers: dict) -> None:
+    def __init__(self, config: BenchConfig, clock: Clock, drivers: Mapping[str, Driver]) -> None:
         self.config = config
         self.clock = clock
-        self.drivers = drivers
+        self.drivers: dict[str, Driver] = dict(drivers)
+        # Sorted by protocol once: the bench asks for a role as what it plays, many times a second.
+        self._sensors = {r: d for r, d in self.drivers.items() if isinstance(d, Sensor)}
+        self._axes = {r: d for r, d in self.drivers.items() if isinstance(d, MotionAxis)}
+        self._stages = {r: d for r, d in self.drivers.items() if isinstance(d, TwoAxisStage)}
 
-    def __getitem__(self, role: str):
+    def __getitem__(self, role: str) -> Driver:
         return self.drivers[role]
 
-    def __getattr__(self, role: str):
+    def __getattr__(self, role: str) -> Any:
         drivers = self.__dict__.get("drivers", {})
         if role in drivers:
             return drivers[role]
@@ -56,6 +72,28 @@ class BenchDevices:
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.drivers)
+
+    def sensor(self, role: str) -> Sensor:
+        """The role's driver as a source of readings (KeyError if the bench has none that measures)."""
+        return self._sensors[role]
+
+    def tilt_sensor(self, role: str) -> TiltSensor | None:
+        """The role's driver if it reads tilt and temperature (a biaxial inclinometer), else None."""
+        d = self._sensors.get(role)
+        return d if isinstance(d, TiltSensor) else None
+
+    def temperature_on_request(self, role: str) -> TemperatureOnRequest | None:
+        """The role's driver if its temperature must be asked for (family A), else None."""
+        d = self._sensors.get(role)
+        return d if isinstance(d, TemperatureOnRequest) else None
+
+    def axis(self, role: str) -> MotionAxis:
+        """A role of one controller axis (the rotary table)."""
+        return self._axes[role]
+
+    def stage_axes(self, role: str = "stage") -> TwoAxisStage:
+        """The two swing stages moved together."""
+        return self._stages[role]
 
     async def start(self) -> None:
         await asyncio.gather(*(d.start() for d in self.drivers.values()))
@@ -71,7 +109,7 @@ class BenchDevices:
         await self.start()
         return self
 
-    async def __aexit__(self, *exc) -> None:
+    async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
 
@@ -85,12 +123,15 @@ def _limits(pair: list[float] | None) -> tuple[float, float] | None:
     return (float(pair[0]), float(pair[1])) if pair else None
 
 
-def make_driver(role: str, spec: PortRole, config: BenchConfig, clock: Clock, registry: PortRegistry):
+def make_driver(role: str, spec: PortRole, config: BenchConfig, clock: Clock,
+                registry: PortRegistry) -> RoleDriver:
+    """The driver of one role, as its family's class (a probe reaches its port too)."""
     port = _port(registry, role, spec)
     t = spec.timeout_s
     if isinstance(spec, BinaryInclinometerRole):
-        cls = TriaxialModule if role == "triaxial_sensor" else BinaryInclinometer
-        return cls(role, port, clock, t, spec.address, spec.output_rate_hz)
+        if role == "triaxial_sensor":
+            return TriaxialModule(role, port, clock, t, spec.address, spec.output_rate_hz)
+        return BinaryInclinometer(role, port, clock, t, spec.address, spec.output_rate_hz)
     if isinstance(spec, Rs485InclinometerRole):
         return Rs485Inclinometer(role, port, clock, t, int(spec.address, 16), spec.poll_rate_hz)
     if isinstance(spec, AdcRole):
@@ -109,6 +150,6 @@ def make_driver(role: str, spec: PortRole, config: BenchConfig, clock: Clock, re
 def open_bench(bench_config: BenchConfig, clock: Clock) -> BenchDevices:
     """Drivers for every role of the bench; nothing is opened before `await devices.start()`."""
     registry = PortRegistry()
-    drivers = {role: make_driver(role, spec, bench_config, clock, registry)
+    drivers: dict[str, Driver] = {role: make_driver(role, spec, bench_config, clock, registry)
                for role, spec in bench_config.role_specs.items()}
     return BenchDevices(bench_config, clock, drivers)

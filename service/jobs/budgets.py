@@ -20,7 +20,8 @@ def resolutions_deg(bench: Any) -> dict[str, float | None]:
     """Each sensor's output resolution (degrees) as its driver states it; None where it states none."""
     out: dict[str, float | None] = {}
     for role in bench.devices:
-        r = getattr(bench.devices[role], "resolution_deg", None)
+        sensor = bench.devices.tilt_sensor(role)  # only a tilt sensor's protocol states its resolution
+        r = sensor.resolution_deg if sensor is not None else None
         out[role] = float(r) if isinstance(r, int | float) and r > 0 else None
     return out
 

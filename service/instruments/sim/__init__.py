@@ -14,7 +14,7 @@ import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from service.clock import Clock
 from service.errors import InputError
@@ -23,8 +23,7 @@ from service.instruments.bench_config import BenchConfig, parse_bench_config
 from service.instruments.sim.firmware import AdcFirmware, BinaryFirmware, ControllerFirmware, Rs485BusFirmware
 from service.instruments.sim.pty import Faults, SimPort
 from service.instruments.sim.world import RotaryWorld, StageWorld, rotary_scenarios, stage_scenario
-from service.scenarios import load_scenario
-from service.scenarios.model import ScaleScenario
+from service.scenarios.model import ScaleScenario, load_scenario
 
 SIM_BAUD = {"binary": 115200, "rs485": 115200, "adc": 9600, "controller": 57600}
 
@@ -32,7 +31,7 @@ SIM_BAUD = {"binary": 115200, "rs485": 115200, "adc": 9600, "controller": 57600}
 class SimulatedBench:
     """Running simulated instruments; `.config` points a bench configuration at their ports."""
 
-    def __init__(self, kind: str, world, ports: dict[str, SimPort], directory: Path, clock: Clock,
+    def __init__(self, kind: str, world: StageWorld | RotaryWorld, ports: dict[str, SimPort], directory: Path, clock: Clock,
                  toml_text: str, bench_name: str, own_directory: bool) -> None:
         self.kind = kind
         self.world = world
@@ -61,11 +60,11 @@ class SimulatedBench:
     def __enter__(self) -> SimulatedBench:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
-def _toml_loads(text: str):
+def _toml_loads(text: str) -> dict[str, Any]:
     import tomllib
 
     return tomllib.loads(text)
@@ -89,6 +88,7 @@ def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock
     folder.mkdir(parents=True, exist_ok=True)
     name = bench_name or f"sim-{kind}"
     ports: dict[str, SimPort] = {}
+    world: StageWorld | RotaryWorld
     try:
         if kind == "stage":
             world, ports, roles = _stage(scenario, clock, folder, adc, output_rate_hz)
@@ -117,7 +117,7 @@ def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock
     return SimulatedBench(kind, world, ports, folder, clock, "\n".join(lines), name, own)
 
 
-def _toml_value(v) -> str:
+def _toml_value(v: object) -> str:
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(v, list):
@@ -125,13 +125,17 @@ def _toml_value(v) -> str:
     return repr(v)
 
 
-def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool, rate):
+Roles = dict[str, dict[str, Any]]
+
+
+def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool,
+           rate: int | str) -> tuple[StageWorld, dict[str, SimPort], Roles]:
     sc = stage_scenario(scenario)
     adc_sc = load_scenario("seed003") if with_adc else None
     assert adc_sc is None or isinstance(adc_sc, ScaleScenario)  # the seed003 preset is a scale scenario
     world = StageWorld(sc, clock, adc_scenario=adc_sc)
     ports: dict[str, SimPort] = {}
-    roles: dict[str, dict] = {}
+    roles: Roles = {}
     for role, prefix in (("reference_sensor", "ref"), ("measurement_sensor", "meas")):
         def read_xy(at_s: float | None = None, p: str = prefix) -> tuple[float, float]:
             return world.reading_deg(p, at_s)
@@ -148,7 +152,7 @@ def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool, rate):
     return world, ports, roles
 
 
-def _mode(rate) -> int:
+def _mode(rate: int | str) -> int:
     """The output mode the instrument keeps from its last configuration (as instruments store it)."""
     for code, hz in binary.OUTPUT_MODES.items():
         if hz == rate or (rate == "continuous" and hz is None):
@@ -160,11 +164,12 @@ def _pair(sample: dict[str, float], prefix: str) -> tuple[float, float]:
     return sample[f"{prefix}_x_deg"], sample[f"{prefix}_y_deg"]
 
 
-def _rotary(scenario: str, clock: Clock, folder: Path, rate, bus_addresses):
+def _rotary(scenario: str, clock: Clock, folder: Path, rate: int | str,
+            bus_addresses: tuple[int, ...]) -> tuple[RotaryWorld, dict[str, SimPort], Roles]:
     rot, tt = rotary_scenarios(scenario)
     world = RotaryWorld(rot, tt, clock, bus_addresses=bus_addresses)
     ports: dict[str, SimPort] = {}
-    roles: dict[str, dict] = {}
+    roles: Roles = {}
     ports["rotary_table"] = SimPort(folder / "rotary_table", ControllerFirmware(world.axes, model="RT-360SIM"))
     roles["rotary_table"] = {"port": ports["rotary_table"].path, "baud": SIM_BAUD["controller"], "axis": 3}
     tri = BinaryFirmware(clock, lambda _at_s: (0.0, 0.0), world.temp_c, address=0, baud=SIM_BAUD["binary"],

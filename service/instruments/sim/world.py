@@ -20,8 +20,7 @@ from service.physics.effects import EffectSet
 from service.physics.rotation_axis import simulate_rotation
 from service.physics.stage import StageGeometry, simulate_stage
 from service.physics.turntable import TurntableInclinometer, turntable_readings
-from service.scenarios import load_scenario
-from service.scenarios.model import RotationScenario, ScaleScenario, StageScenario, TurntableScenario
+from service.scenarios.model import RotationScenario, ScaleScenario, StageScenario, TurntableScenario, load_scenario
 from service.scenarios.run import effect_set, hardware_of, temperature
 
 NO_LIMIT = 2_147_483_647

@@ -1,0 +1,134 @@
+"""What every driver shares, whatever its family: the port, the counters, the readings kept, polling.
+
+Units are converted in the drivers and nowhere else: packed BCD degrees, milliradians and pulses
+come in, degrees leave. A driver never knows whether a simulator or an instrument answers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import datetime as dt
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
+
+from service.clock import Clock
+from service.instruments.base import DeviceCounters, DeviceIdentity, DeviceStatus, Reading
+from service.instruments.transport import DeviceError, DeviceTimeout, SerialPort
+
+T = TypeVar("T")
+
+
+def present(value: T | None, what: str) -> T:
+    """A field the answer must carry; an answer without it is the instrument's error, said as one."""
+    if value is None:
+        raise DeviceError(f"{what}: the answer lacks its value")
+    return value
+
+
+RECENT_READINGS = 4096  # per driver: over 8 s of a sped-up bench's continuous output
+
+
+class SerialDriver:
+    """What every driver shares: its port, its counters, its identity and latest reading."""
+
+    protocol = ""
+
+    def __init__(self, role: str, port: SerialPort, clock: Clock, timeout_s: float) -> None:
+        self.role = role
+        self.port = port
+        self.clock = clock
+        self.timeout_s = timeout_s
+        self.identity: DeviceIdentity | None = None
+        self.timeouts = 0
+        # Every reading, not only the latest: waiting for settled readings must not depend on how
+        # often the waiting side looks (a sped-up bench sends hundreds a second).
+        self.recent: collections.deque[Reading] = collections.deque(maxlen=RECENT_READINGS)
+        self._last: Reading | None = None
+        self._poll_task: asyncio.Task[None] | None = None
+        self._poll_read: Callable[[], Awaitable[Reading]] | None = None  # the read a polling driver repeats
+
+    @property
+    def _latest(self) -> Reading | None:
+        return self._last
+
+    @_latest.setter
+    def _latest(self, reading: Reading | None) -> None:
+        self._last = reading
+        if reading is not None:
+            self.recent.append(reading)
+
+    def readings_after(self, bench_s: float) -> list[Reading]:
+        """The readings kept that are stamped after `bench_s` (bench seconds), oldest first."""
+        kept = list(self.recent)  # one C call under the GIL: safe against the reader thread appending
+        return [r for r in kept if r.bench_s > bench_s]
+
+    @property
+    def status(self) -> DeviceStatus:
+        st = self.port.decoder.stats
+        return DeviceStatus(
+            role=self.role, port=self.port.where, protocol=self.protocol, state=self.port.state,
+            last_frame_utc=self.port.last_frame_utc,
+            counters=DeviceCounters(frames=st.frames, bad_checksum=st.bad_checksum, resyncs=st.resyncs,
+                                    timeouts=self.timeouts, reconnects=self.port.reconnects,
+                                    wrong_address=self.port.wrong_address),
+            identity=self.identity, error=self.port.error)
+
+    def latest(self) -> Reading | None:
+        return self._latest
+
+    async def sync(self) -> float:
+        """A mark in the reading stream (bench seconds): every reading stamped after it was produced
+        after this call. Readings are stamped when they are parsed, so a reader that lags (a loaded
+        machine, a sped-up bench) hands out, after a move, readings the instrument made during it;
+        a caller that needs readings of the present pose counts only those after the mark.
+
+        A polling driver reads once more: requests on a port go one at a time, so every reading
+        stamped after this one was asked for after it. A driver that reads only when asked: the
+        present time (nothing older can arrive later).
+        """
+        if self._poll_read is not None and self._poll_task is not None:
+            return float((await self._poll_read()).bench_s)
+        return self.clock.monotonic()
+
+    def _stamp(self, **fields: Any) -> Reading:
+        return Reading(role=self.role, bench_s=self.clock.monotonic(), time_utc=dt.datetime.now(dt.UTC), **fields)
+
+    async def _ask(self, data: bytes, match: Callable[[Any], bool], what: str) -> Any:
+        try:
+            return await self.port.request(data, match, self.timeout_s, f"{self.role}: {what}")
+        except DeviceTimeout:
+            self.timeouts += 1
+            raise
+
+    async def start(self) -> None:
+        """Start the port's reader and give it a moment to open; a port that does not open keeps trying."""
+        self.port.start()
+        await asyncio.to_thread(self.port.wait_connected, self.timeout_s * 4)
+
+    async def stop_polling(self) -> None:
+        """No more reads of its own (a caller that wants the line to itself, as a probe or a test)."""
+        task, self._poll_task = self._poll_task, None
+        if task is None:
+            return
+        while not task.done():
+            task.cancel()
+            await asyncio.wait({task}, timeout=0.1)
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            task.result()
+
+    async def close(self) -> None:
+        await self.stop_polling()
+        self.port.stop()
+
+    def _start_polling(self, rate_hz: float, read: Callable[[], Awaitable[Reading]]) -> None:
+        self._poll_read = read
+
+        async def poll() -> None:
+            while self._poll_task is not None:
+                with contextlib.suppress(DeviceError):
+                    await read()
+                await self.clock.sleep(1.0 / rate_hz)  # bench time: a sped-up bench is polled faster too
+
+        self._poll_task = asyncio.get_running_loop().create_task(poll())
