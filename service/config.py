@@ -49,6 +49,9 @@ class Settings(BaseSettings):
     sim_benches: list[Literal["stage", "rotary"]] = Field(default_factory=lambda: list(_STAGE_ONLY), min_length=1)
     # The scenario of the simulated rotary bench (rotation and turntable physics).
     rotary_scenario: str = "seed002-sim"
+    # How the simulated instruments are reached: "pty" (pseudo-terminals, as USB adapters) or "loopback"
+    # (in-memory lines of this process: the same drivers and codecs without the pty, for in-process tests).
+    sim_transport: Literal["pty", "loopback"] = "pty"
     # The simulated bench runs this many times faster than real time (motion, settling, output intervals).
     sim_speed: float = Field(1.0, gt=0, le=1000)
     # A bench configuration (TOML) naming real ports; empty means the simulated stage bench.

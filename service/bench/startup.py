@@ -26,7 +26,8 @@ def plan_benches(settings: Settings) -> list[BenchRuntime]:
     for kind in settings.sim_benches:
         scenario = settings.bench_scenario if kind == "stage" else settings.rotary_scenario
         try:
-            sim = start_simulated_bench(scenario, kind, clock, adc=(kind == "stage"))
+            sim = start_simulated_bench(scenario, kind, clock, adc=(kind == "stage"),
+                                        transport=settings.sim_transport)
         except InputError as exc:
             var = "TILTLAB_BENCH_SCENARIO" if kind == "stage" else "TILTLAB_ROTARY_SCENARIO"
             for r in runtimes:

@@ -1,4 +1,5 @@
-"""A daemon on a simulated bench over pseudo-terminals with the real drivers, sped up."""
+"""A daemon on a simulated bench with the real drivers, sped up: in process, its instruments on in-memory
+lines speaking the real bytes."""
 
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ from service.config import Settings
 
 
 def make_client(tmp_path, **overrides) -> TestClient:
-    settings = Settings(data_dir=tmp_path, **{"sim_speed": 20.0, **overrides})
+    """An in-process daemon; its simulated instruments on in-memory lines (the pty is under test in
+    tests/instruments and with the daemon in a process of its own, test_faults)."""
+    settings = Settings(data_dir=tmp_path, **{"sim_speed": 20.0, "sim_transport": "loopback", **overrides})
     return TestClient(create_app(settings))
 
 

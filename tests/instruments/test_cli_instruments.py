@@ -11,6 +11,8 @@ import pytest
 
 from service.cli import main
 
+pytestmark = pytest.mark.pty  # the ports are pseudo-terminals: device paths, as the command line and adapters name them
+
 
 def _config(tmp_path, sim, **override) -> str:
     """The simulator's configuration with some roles' tables replaced."""

@@ -21,6 +21,8 @@ from service.instruments.transport import DeviceUnavailable, SerialPort, resolve
 from service.instruments.wiring import open_bench
 from tests.instruments.conftest import eventually
 
+pytestmark = pytest.mark.pty  # the ports are pseudo-terminals (device paths, USB names, servers in front)
+
 
 def test_a_usb_serial_number_names_the_adapter_wherever_it_is_plugged(stage_sim, monkeypatch):
     ports = [SimpleNamespace(device="/dev/ttyS0", serial_number=None),

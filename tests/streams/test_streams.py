@@ -66,7 +66,8 @@ def wait_until(cond, timeout_s: float = 20.0, what: str = "") -> None:  # type: 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory) -> Iterator[Daemon]:
     data = tmp_path_factory.mktemp("streams")
-    settings = Settings(data_dir=data, sim_speed=SPEED, stream_slow_close_s=SLOW_CLOSE_S, stream_queue_size=QUEUE)
+    settings = Settings(data_dir=data, sim_speed=SPEED, stream_slow_close_s=SLOW_CLOSE_S, stream_queue_size=QUEUE,
+                        sim_transport="loopback")  # in process: the instruments on in-memory lines
     app = create_app(settings)
     port = free_port()
     sock = bind_socket("127.0.0.1", port)  # as `tiltlab serve` makes it: every connection's send buffer bounded

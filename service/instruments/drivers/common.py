@@ -48,6 +48,7 @@ class SerialDriver:
         self._last: Reading | None = None
         self._poll_task: asyncio.Task[None] | None = None
         self._poll_read: Callable[[], Awaitable[Reading]] | None = None  # the read a polling driver repeats
+        self._poll_reading = False  # a read of the polling loop is in flight
 
     @property
     def _latest(self) -> Reading | None:
@@ -107,11 +108,16 @@ class SerialDriver:
         self.port.start()
         await asyncio.to_thread(self.port.wait_connected, self.timeout_s * 4)
 
-    async def stop_polling(self) -> None:
-        """No more reads of its own (a caller that wants the line to itself, as a probe or a test)."""
+    async def stop_polling(self, *, finish_read: bool = True) -> None:
+        """No more reads of its own (a caller that wants the line to itself, as a probe or a test).
+
+        A read in flight is let finish (by its answer or its timeout) unless `finish_read` is false:
+        cancelled, its answer would still come and could be taken for the caller's next request."""
         task, self._poll_task = self._poll_task, None
         if task is None:
             return
+        if finish_read and self._poll_reading:
+            await asyncio.wait({task}, timeout=self.timeout_s + 1.0)  # the loop ends after this read
         while not task.done():
             task.cancel()
             await asyncio.wait({task}, timeout=0.1)
@@ -119,7 +125,7 @@ class SerialDriver:
             task.result()
 
     async def close(self) -> None:
-        await self.stop_polling()
+        await self.stop_polling(finish_read=False)
         self.port.stop()
 
     def _start_polling(self, rate_hz: float, read: Callable[[], Awaitable[Reading]]) -> None:
@@ -127,8 +133,14 @@ class SerialDriver:
 
         async def poll() -> None:
             while self._poll_task is not None:
-                with contextlib.suppress(DeviceError):
-                    await read()
+                self._poll_reading = True
+                try:
+                    with contextlib.suppress(DeviceError):
+                        await read()
+                finally:
+                    self._poll_reading = False
+                if self._poll_task is None:
+                    return
                 await self.clock.sleep(1.0 / rate_hz)  # bench time: a sped-up bench is polled faster too
 
         self._poll_task = asyncio.get_running_loop().create_task(poll())

@@ -21,10 +21,13 @@ from service.errors import InputError
 from service.instruments import binary
 from service.instruments.bench_config import BenchConfig, parse_bench_config
 from service.instruments.sim.firmware import AdcFirmware, BinaryFirmware, ControllerFirmware, Rs485BusFirmware
+from service.instruments.sim.loopback import LoopbackSimPort
 from service.instruments.sim.pty import Faults, SimPort
 from service.instruments.sim.world import RotaryWorld, StageWorld, rotary_scenarios, stage_scenario
 from service.scenarios.model import ScaleScenario, load_scenario
 
+SimTransport = Literal["pty", "loopback"]
+PORT_CLASSES: dict[str, type[SimPort]] = {"pty": SimPort, "loopback": LoopbackSimPort}
 SIM_BAUD = {"binary": 115200, "rs485": 115200, "adc": 9600, "controller": 57600}
 
 
@@ -73,8 +76,12 @@ def _toml_loads(text: str) -> dict[str, Any]:
 def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock: Clock, *,
                           directory: str | Path | None = None, adc: bool = False,
                           output_rate_hz: int | str = 25, bus_addresses: tuple[int, ...] = (1, 2, 3),
-                          bench_name: str | None = None) -> SimulatedBench:
+                          bench_name: str | None = None, transport: SimTransport = "pty") -> SimulatedBench:
     """Start every instrument of a simulated bench; ports appear as symlinks in `directory`.
+
+    transport "pty": each instrument behind a pseudo-terminal, as a USB adapter would be;
+    "loopback": behind an in-memory line of this process (`simloop://` names, see `loopback`),
+    the same drivers, transport and codecs without the pty, for callers that do not test the pty.
 
     stage: reference_sensor, measurement_sensor (family A), stage (family D, axes 1 and 2),
     and with `adc` the analog sensor behind the ADC (family C, physics of the seed003 preset).
@@ -91,10 +98,11 @@ def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock
     world: StageWorld | RotaryWorld
     try:
         if kind == "stage":
-            world, ports, roles = _stage(scenario, clock, folder, adc, output_rate_hz)
+            world, ports, roles = _stage(scenario, clock, folder, adc, output_rate_hz, PORT_CLASSES[transport])
             hardware = world.scenario.bench.model_dump()
         else:
-            world, ports, roles = _rotary(scenario, clock, folder, output_rate_hz, bus_addresses)
+            world, ports, roles = _rotary(scenario, clock, folder, output_rate_hz, bus_addresses,
+                                          PORT_CLASSES[transport])
             hardware = None
     except BaseException:
         for p in ports.values():
@@ -128,8 +136,8 @@ def _toml_value(v: object) -> str:
 Roles = dict[str, dict[str, Any]]
 
 
-def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool,
-           rate: int | str) -> tuple[StageWorld, dict[str, SimPort], Roles]:
+def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool, rate: int | str,
+           port_class: type[SimPort]) -> tuple[StageWorld, dict[str, SimPort], Roles]:
     sc = stage_scenario(scenario)
     adc_sc = load_scenario("seed003") if with_adc else None
     assert adc_sc is None or isinstance(adc_sc, ScaleScenario)  # the seed003 preset is a scale scenario
@@ -142,12 +150,12 @@ def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool,
 
         fw = BinaryFirmware(clock, read_xy, world.temp_c, address=0,
                             baud=SIM_BAUD["binary"], output_mode=_mode(rate))
-        ports[role] = SimPort(folder / role, fw)
+        ports[role] = port_class(folder / role, fw)
         roles[role] = {"port": ports[role].path, "baud": SIM_BAUD["binary"], "address": 0, "output_rate_hz": rate}
-    ports["stage"] = SimPort(folder / "stage", ControllerFirmware(world.axes))
+    ports["stage"] = port_class(folder / "stage", ControllerFirmware(world.axes))
     roles["stage"] = {"port": ports["stage"].path, "baud": SIM_BAUD["controller"]}
     if with_adc:
-        ports["adc_sensor"] = SimPort(folder / "adc_sensor", AdcFirmware(world.adc_counts))
+        ports["adc_sensor"] = port_class(folder / "adc_sensor", AdcFirmware(world.adc_counts))
         roles["adc_sensor"] = {"port": ports["adc_sensor"].path, "baud": SIM_BAUD["adc"]}
     return world, ports, roles
 
@@ -164,24 +172,24 @@ def _pair(sample: dict[str, float], prefix: str) -> tuple[float, float]:
     return sample[f"{prefix}_x_deg"], sample[f"{prefix}_y_deg"]
 
 
-def _rotary(scenario: str, clock: Clock, folder: Path, rate: int | str,
-            bus_addresses: tuple[int, ...]) -> tuple[RotaryWorld, dict[str, SimPort], Roles]:
+def _rotary(scenario: str, clock: Clock, folder: Path, rate: int | str, bus_addresses: tuple[int, ...],
+            port_class: type[SimPort]) -> tuple[RotaryWorld, dict[str, SimPort], Roles]:
     rot, tt = rotary_scenarios(scenario)
     world = RotaryWorld(rot, tt, clock, bus_addresses=bus_addresses)
     ports: dict[str, SimPort] = {}
     roles: Roles = {}
-    ports["rotary_table"] = SimPort(folder / "rotary_table", ControllerFirmware(world.axes, model="RT-360SIM"))
+    ports["rotary_table"] = port_class(folder / "rotary_table", ControllerFirmware(world.axes, model="RT-360SIM"))
     roles["rotary_table"] = {"port": ports["rotary_table"].path, "baud": SIM_BAUD["controller"], "axis": 3}
     tri = BinaryFirmware(clock, lambda _at_s: (0.0, 0.0), world.temp_c, address=0, baud=SIM_BAUD["binary"],
                          read_sines=world.sines, output_mode=_mode(rate))
-    ports["triaxial_sensor"] = SimPort(folder / "triaxial_sensor", tri)
+    ports["triaxial_sensor"] = port_class(folder / "triaxial_sensor", tri)
     roles["triaxial_sensor"] = {"port": ports["triaxial_sensor"].path, "baud": SIM_BAUD["binary"], "address": 0,
                                 "output_rate_hz": rate}
     def reader(a: int) -> Callable[[], tuple[float, float]]:
         return lambda: world.turntable_mrad(a)
 
     bus = Rs485BusFirmware({a: reader(a) for a in bus_addresses}, world.temp_c)
-    ports["turntable_sensor"] = SimPort(folder / "rs485_bus", bus)
+    ports["turntable_sensor"] = port_class(folder / "rs485_bus", bus)
     roles["turntable_sensor"] = {"port": ports["turntable_sensor"].path, "baud": SIM_BAUD["rs485"],
                                  "address": f"{bus_addresses[0]:02X}"}
     return world, ports, roles

@@ -173,6 +173,17 @@ class SimPort:
         with self._wlock:
             self._master, self._slave = master, slave
 
+    def _receive(self, timeout_s: float) -> bytes | None:
+        """What the driver wrote, waiting at most timeout_s; None while the line is down."""
+        master = self._master
+        if master is None:
+            return None
+        try:
+            ready, _, _ = select.select([master], [], [], timeout_s)
+            return os.read(master, 4096) if ready else b""
+        except (OSError, ValueError):  # closed by a disconnect meanwhile
+            return None
+
     def _close_pty(self) -> None:
         with self._wlock:
             master, slave, self._master, self._slave = self._master, self._slave, None, None
@@ -230,13 +241,8 @@ class SimPort:
                 waits.append(max(nd, flushed + OUTPUT_LATENCY_S) - now)
             if self._later:
                 waits.append(self._later[0][0] - now)
-            master = self._master
-            if master is None:
-                continue
-            try:
-                ready, _, _ = select.select([master], [], [], max(0.0, min(waits)))
-                data = os.read(master, 4096) if ready else b""
-            except (OSError, ValueError):  # closed by a disconnect meanwhile
+            data = self._receive(max(0.0, min(waits)))
+            if data is None:
                 continue
             now = time.monotonic()
             if data or now - flushed >= OUTPUT_LATENCY_S:
