@@ -304,8 +304,7 @@ def load_stage_bench(path: str | Path) -> tuple[StageBench, str]:
                              f"({names})")
         return benches[0].stage_bench(), f"{p} (bench {benches[0].name!r}, hardware table)"
     if p.suffix.lower() == ".json":
-        from service.scenarios import load_scenario
-        from service.scenarios.model import StageScenario
+        from service.scenarios.model import StageScenario, load_scenario
 
         if not p.is_file():
             raise InputError(f"{p}: no such scenario file")
