@@ -16,8 +16,8 @@ import numpy as np
 
 from service.discrepancy.model import Family, Fit
 from service.discrepancy.scale import ScalePoly
-from service.discrepancy.stage_kinematic import StageKinematic
-from service.discrepancy.stage_linear import StageLinear
+from service.discrepancy.stage_kinematic_baseline import StageKinematic
+from service.discrepancy.stage_linear_baseline import StageLinear
 from service.io.figures import new_figure, png_data_uri
 
 if TYPE_CHECKING:

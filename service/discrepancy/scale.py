@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 from service.discrepancy import noise as noise_mod
 from service.discrepancy import stats
 from service.discrepancy.model import Block, Family, Fit
-from service.discrepancy.stage_common import TEMP_MIN_SPAN_K
+from service.discrepancy.stage_data import TEMP_MIN_SPAN_K
 from service.discrepancy.workflow import DEFAULT_ALPHA, Result, find_missing_effects, to_report
 from service.errors import InputError
 

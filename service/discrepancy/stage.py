@@ -10,7 +10,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.discrepancy import noise as noise_mod
 from service.discrepancy.model import Family
-from service.discrepancy.stage_common import StageData, common_skips, largest_residuals, stage_structure
+from service.discrepancy.stage_data import StageData, common_skips, largest_residuals, stage_structure
 from service.discrepancy.workflow import DEFAULT_ALPHA, Result, find_missing_effects, to_report
 from service.errors import InputError
 from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
@@ -73,11 +73,11 @@ def analyse_stage(columns: Mapping[str, NDArray[np.float64]], sensor: str = "ref
     weights = np.ones(2) if noise is None or noise.sigma is None else 1.0 / noise.sigma
     fam: Family
     if baseline == "linear":
-        from service.discrepancy.stage_linear import StageLinear
+        from service.discrepancy.stage_linear_baseline import StageLinear
 
         fam = StageLinear(data, weights)
     elif baseline == "kinematic":
-        from service.discrepancy.stage_kinematic import StageKinematic
+        from service.discrepancy.stage_kinematic_baseline import StageKinematic
 
         fam = StageKinematic(data, weights)
     else:

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from service.calibration.projective import fit_projective
 from service.discrepancy.model import Block, Family, Fit
-from service.discrepancy.stage_common import (
+from service.discrepancy.stage_data import (
     STAGE_CANDIDATES,
     STAGE_SEPARABILITY_HINTS,
     StageData,

@@ -24,8 +24,8 @@ from numpy.typing import NDArray
 
 from service.calibration.stage_effect_fit import StageEffectModel, StagePoints, typical_scale
 from service.discrepancy.model import Block, Family, Fit
-from service.discrepancy.stage_common import STAGE_SEPARABILITY_HINTS, StageData, candidate_block, sensor_param_names
-from service.discrepancy.stage_linear import stage_magnitude
+from service.discrepancy.stage_data import STAGE_SEPARABILITY_HINTS, StageData, candidate_block, sensor_param_names
+from service.discrepancy.stage_linear_baseline import stage_magnitude
 from service.errors import InputError
 from service.physics.effects import STAGE_EFFECTS
 from service.physics.stage import StageGeometry, simulate_stage
