@@ -18,6 +18,10 @@ from sqlalchemy.engine import make_url
 from service.errors import InputError
 
 _BEGIN_OPTION = "tiltlab_sqlite_begin"
+# libpq: give up connecting after 10 s; probe an idle connection after 10 s, every 5 s, 3 times; drop a
+# connection whose sent data stays unacknowledged for 30 s.
+_PG_CONNECT_TIMEOUTS = {"connect_timeout": 10, "keepalives": 1, "keepalives_idle": 10, "keepalives_interval": 5,
+                        "keepalives_count": 3, "tcp_user_timeout": 30_000}
 
 
 def normalise_url(url: str) -> sa.URL:
@@ -37,7 +41,10 @@ def make_engine(url: str | sa.URL, *, busy_timeout_ms: int = 30_000, **kwargs: A
     if u.get_backend_name() == "sqlite":
         return _sqlite_engine(u, busy_timeout_ms, **kwargs)
     kwargs.setdefault("pool_pre_ping", True)
-    return sa.create_engine(u, **kwargs)
+    # A server that vanishes without a word (a cable pulled, a host frozen) must fail a connection in
+    # seconds, not hang it: the daemon then knows the database is away and waits it out (outage.py).
+    connect_args = {**_PG_CONNECT_TIMEOUTS, **kwargs.pop("connect_args", {})}
+    return sa.create_engine(u, connect_args=connect_args, **kwargs)
 
 
 def _sqlite_engine(u: sa.URL, busy_timeout_ms: int, **kwargs: Any) -> sa.Engine:

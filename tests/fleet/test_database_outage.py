@@ -10,6 +10,9 @@ sample stored once; an outage longer than TILTLAB_DB_OUTAGE_S fails the job nami
 
 from __future__ import annotations
 
+import contextlib
+import json
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,6 +20,7 @@ from pathlib import Path
 import httpx
 import pytest
 import sqlalchemy as sa
+from websockets.sync.client import connect as ws_connect
 
 from service.jobs.points import store_point
 from service.storage.engine import make_engine
@@ -154,12 +158,25 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
         tmp_path: Path, migrated: str, proxy: PgProxy) -> None:
     env = {"TILTLAB_DATABASE_URL": _through(migrated, proxy), "TILTLAB_SIM_SPEED": "20",
            "TILTLAB_DB_OUTAGE_S": str(OUTAGE_LIMIT_S)}
-    with Daemon(tmp_path / "a", env) as daemon:
+    with Daemon(tmp_path / "a", env) as daemon, contextlib.ExitStack() as streams:
         url = daemon.url
         auth = {"Authorization": f"Bearer {(tmp_path / 'a' / 'admin.token').read_text().strip()}"}
 
         # --- a 10-s outage in the middle of a job: the daemon serves, says so, and the job goes on
         job_id = _start_job(url, auth)
+        token = auth["Authorization"].split()[1]
+        phases: list[str | None] = []  # the job's stream, heard through the outage
+        stream = streams.enter_context(ws_connect(f"{url.replace('http', 'ws')}/ws/jobs/{job_id}?token={token}"))
+        assert json.loads(stream.recv(timeout=10))["type"] == "snapshot"
+
+        def listen() -> None:
+            for message in stream:
+                body = json.loads(message)
+                if body["type"] in ("job", "end"):
+                    phases.append(body["job"]["progress"]["phase"])
+
+        listener = threading.Thread(target=listen, daemon=True)
+        listener.start()
         proxy.cut()
         cut_at = time.monotonic()
         away = eventually(lambda: _health(url), lambda h: h["database_state"] == "away"
@@ -179,6 +196,10 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
         job = eventually(lambda: _job(url, auth, job_id), lambda j: j["state"] not in ("queued", "running"),
                          timeout_s=90)
         assert job["state"] == "succeeded", job["error"]
+        listener.join(timeout=20)
+        stream.close()
+        assert "waiting for the database" in phases  # the job's stream said why it paused
+        assert phases[-1] == "done"
         assert eventually(lambda: _health(url), lambda h: h["database_state"] == "up")["status"] == "ok"
         direct = make_engine(migrated)
         with direct.connect() as conn:
