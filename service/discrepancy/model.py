@@ -253,10 +253,6 @@ class Family:
         resid = r1.reshape(self.observed.shape) / self.weights
         return Fit(effects, blocks, theta + delta, cov, resid, self.observed - resid, rss_w, self.n_obs, J)
 
-    def linearised_rss(self, current: Fit, effect: str) -> tuple[float, int]:
-        f = self.linearised_fit(current, effect)
-        return f.rss_w, f.k
-
     def separability(self, current: Fit, effect: str) -> list[float]:
         """For each parameter of `effect`: the fraction of its signature the current model cannot absorb.
 

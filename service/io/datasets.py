@@ -64,9 +64,6 @@ class Dataset:
     def n_rows(self) -> int:
         return len(next(iter(self.text.values()))) if self.text else 0
 
-    def has(self, col: str) -> bool:
-        return col in self.text
-
     def __getitem__(self, col: str) -> np.ndarray:
         return self.numeric[col]
 

@@ -4,7 +4,6 @@ recommends (the expanded uncertainty to two significant digits, the value to the
 from __future__ import annotations
 
 import math
-import re
 
 from service.lims.dcc_schema import InvalidCertificate
 
@@ -109,9 +108,3 @@ def plain(value: float, what: str, significant: int = SIGNIFICANT) -> str:
 def factor(k: float, what: str) -> str:
     """A coverage factor to three significant digits (2.02 for Student's t at 42 degrees of freedom)."""
     return plain(k, what, 3)
-
-
-def significant_digits(text: str) -> int:
-    """How many significant digits a written number carries (for checking what was written)."""
-    mant = re.split(r"[eE]", text.strip().lstrip("+-"))[0].replace(".", "").lstrip("0")
-    return len(mant) if mant else 1

@@ -8,7 +8,7 @@ workflow all read this table, so a name or a range is written down exactly once.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -217,15 +217,6 @@ class EffectSet:
             p = eff.param(param)
             return p.default if not eff.default_on else (False if p.is_bool else 0.0)
         return self.values[effect][param]
-
-    def with_only(self, names: Collection[str]) -> EffectSet:
-        """A copy with only the named effects on (others at their 'absent' value)."""
-        keep = {n: self.values[n] for n in names if n in self.on}
-        table = EFFECTS_BY_KIND[self.kind]
-        for n, e in table.items():
-            if e.default_on and n not in names:
-                keep[n] = {p.name: (False if p.is_bool else 0.0) for p in e.params}
-        return EffectSet.from_mapping(self.kind, keep)
 
 
 def markdown_tables() -> str:

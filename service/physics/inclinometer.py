@@ -6,11 +6,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def axis_reading_deg(axis_world_z: NDArray[np.float64]) -> NDArray[np.float64]:
-    """reading = asin(-a_z): an axis that dips below the horizon reads positive."""
-    return np.degrees(np.arcsin(np.clip(-axis_world_z, -1.0, 1.0)))
-
-
 def sensor_axes(yaw: float, non_orthogonality: float, flip: str = "none") -> NDArray[np.float64]:
     """Unit x and y sensing axes (rows) in the frame of the sensor's seat.
 

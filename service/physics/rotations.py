@@ -29,17 +29,6 @@ def plane_tilt(tilt_x: float, tilt_y: float) -> NDArray[np.float64]:
     return rx(-tilt_y) @ ry(tilt_x)
 
 
-def rotate_about(v: NDArray[np.float64], axis: ArrayLike, angle: ArrayLike) -> NDArray[np.float64]:
-    """Rodrigues' rotation of vectors v (..., 3) about a fixed unit axis by per-point angles (...)."""
-    c: NDArray[np.float64] = np.cos(angle)[..., None]
-    s: NDArray[np.float64] = np.sin(angle)[..., None]
-    axis_u = np.asarray(axis, dtype=float)
-    cross = np.cross(axis_u, v)
-    dot = (v @ axis_u)[..., None]
-    rotated: NDArray[np.float64] = v * c + cross * s + axis_u * dot * (1.0 - c)
-    return rotated
-
-
 def unit(v: ArrayLike) -> NDArray[np.float64]:
     u = np.asarray(v, dtype=float)
     out: NDArray[np.float64] = u / np.linalg.norm(u)

@@ -328,7 +328,3 @@ def fit_meas(ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], meas_x: NDA
     n = len(meas_x)
     return MeasFit(names, full(sol.x), cov, fixed, {"meas_x_deg": r[:n], "meas_y_deg": r[n:]}, float(np.sqrt(s2)),
                    dof, True, int(sol.nfev), pairs)
-
-
-def values_by_key(keys: Sequence[ParamKey], values: Sequence[float]) -> dict[ParamKey, float]:
-    return {k: float(v) for k, v in zip(keys, values)}

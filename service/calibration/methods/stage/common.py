@@ -129,14 +129,6 @@ def meas_inverse(p: NDArray[np.float64], sign: NDArray[np.float64], meas_x_deg: 
     return (np.degrees(np.arcsin(np.clip(-nx, -1.0, 1.0))), np.degrees(np.arcsin(np.clip(-ny, -1.0, 1.0))))
 
 
-def meas_inverse_with_u(p: NDArray[np.float64], cov: NDArray[np.float64] | None, sign: NDArray[np.float64], meas_x_deg: ArrayLike,
-                        meas_y_deg: ArrayLike,
-                        sigma_deg: float) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """meas_inverse plus its GUM standard uncertainties (JCGM 100 §5.1.2), vectorised over readings."""
-    X, Y, gx, gy = meas_inverse_gum(p, cov, sign, meas_x_deg, meas_y_deg, sigma_deg)
-    return X, Y, gx.u, gy.u
-
-
 def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, sign: NDArray[np.float64], meas_x_deg: ArrayLike, meas_y_deg: ArrayLike,
                      sigma_deg: float, dof: float = np.inf) -> tuple[NDArray[np.float64], NDArray[np.float64], Propagated, Propagated]:
     """meas_inverse with the standard uncertainty and effective degrees of freedom of each output.
