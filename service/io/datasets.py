@@ -14,13 +14,14 @@ import math
 import os
 import re
 import tempfile
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.errors import InputError
 from service.io.columns import INTEGER_COLUMNS
@@ -53,7 +54,7 @@ class Dataset:
     kind: str
     header: list[str]
     text: dict[str, list[str]]
-    numeric: dict[str, np.ndarray] = field(default_factory=dict)
+    numeric: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     lines: list[int] = field(default_factory=list)  # line of the file each data row starts on
 
     def where(self, row: int, col: str) -> str:
@@ -64,10 +65,10 @@ class Dataset:
     def n_rows(self) -> int:
         return len(next(iter(self.text.values()))) if self.text else 0
 
-    def __getitem__(self, col: str) -> np.ndarray:
+    def __getitem__(self, col: str) -> NDArray[np.float64]:
         return self.numeric[col]
 
-    def arrays(self) -> dict[str, np.ndarray]:
+    def arrays(self) -> dict[str, NDArray[np.float64]]:
         return dict(self.numeric)
 
     def passthrough(self, exclude: Iterable[str] = ()) -> dict[str, list[str]]:
@@ -165,7 +166,7 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
     return ds
 
 
-def _numeric_column(ds: Dataset, col: str) -> np.ndarray:
+def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
     kind, cells = ds.kind, ds.text[col]
     values = np.empty(len(cells))
     for i, cell in enumerate(cells):
@@ -219,7 +220,7 @@ DECIMALS_BY_COLUMN = {"sx": 10, "sy": 10, "sz": 10}
 SIGNIFICANT_DIGITS = 10  # columns in other units (readings in the instrument's unit, times, temperatures)
 
 
-def format_value(col: str, v, *, exact: bool = False) -> str:
+def format_value(col: str, v: str | float, *, exact: bool = False) -> str:
     """A cell as text, with the digits its unit merits (docs/models.md, "Digits").
 
     `exact`: the shortest text that reads back to the same double, for exports whose purpose is
@@ -244,7 +245,7 @@ def format_value(col: str, v, *, exact: bool = False) -> str:
 
 
 @contextmanager
-def about(path):
+def about(path: object) -> Iterator[None]:
     """Name the file a refusal from the methods is about, where their message does not already."""
     try:
         yield
@@ -297,7 +298,7 @@ def check_not_overwriting(out: str | Path, option: str = "--out", **inputs: str 
                              "write the result to another file so the input is kept")
 
 
-def _atomic_write(path: str | Path, write) -> None:
+def _atomic_write(path: str | Path, write: Callable[[TextIO], object]) -> None:
     """Write through `write(fh)` to a temporary file beside `path`, then rename it into place."""
     path = check_output_path(path)
     folder = path.parent
@@ -323,14 +324,14 @@ class _RowLines:
     with "\r\n" and each row (one write call) has that ending replaced by "\n".
     """
 
-    def __init__(self, fh):
+    def __init__(self, fh: TextIO) -> None:
         self._fh = fh
 
     def write(self, row: str) -> int:
         return self._fh.write(row[:-2] + "\n")
 
 
-def write_dataset(path: str | Path, columns: Mapping[str, Sequence[Any] | np.ndarray]) -> None:
+def write_dataset(path: str | Path, columns: Mapping[str, Sequence[Any] | NDArray[np.float64]]) -> None:
     """Write columns (numeric arrays or text lists) atomically."""
     names = list(columns)
     if not names:
@@ -340,7 +341,7 @@ def write_dataset(path: str | Path, columns: Mapping[str, Sequence[Any] | np.nda
         if len(columns[c]) != n:
             raise ValueError(f"column {c!r} has {len(columns[c])} values, expected {n}")
 
-    def write(fh) -> None:
+    def write(fh: TextIO) -> None:
         w = csv.writer(_RowLines(fh), lineterminator="\r\n")
         w.writerow(names)
         cols = [columns[c] for c in names]

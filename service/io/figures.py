@@ -11,10 +11,13 @@ from __future__ import annotations
 import base64
 import io
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # matplotlib is imported when a figure is drawn, not at start-up
+    from matplotlib.typing import RcKeyType
 
 FIGURE_DPI = 150
-FONT_SIZES: dict[str, Any] = {"font.size": 9, "axes.titlesize": 9, "axes.labelsize": 9, "xtick.labelsize": 8,
+FONT_SIZES: dict[RcKeyType, Any] = {"font.size": 9, "axes.titlesize": 9, "axes.labelsize": 9, "xtick.labelsize": 8,
               "ytick.labelsize": 8, "legend.fontsize": 8}
 
 
@@ -25,7 +28,7 @@ def new_figure(nrows: int = 1, ncols: int = 1, size: tuple[float, float] = (8.0,
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    with matplotlib.rc_context(FONT_SIZES):  # type: ignore[arg-type]
+    with matplotlib.rc_context(FONT_SIZES):
         fig = Figure(figsize=size, layout="constrained")
         FigureCanvasAgg(fig)
         axes = fig.subplots(nrows, ncols, squeeze=False)
@@ -37,7 +40,7 @@ def new_figure(nrows: int = 1, ncols: int = 1, size: tuple[float, float] = (8.0,
 def _save(fig: Any, target: Any, fmt: str) -> None:
     import matplotlib
 
-    with matplotlib.rc_context(FONT_SIZES):  # type: ignore[arg-type]
+    with matplotlib.rc_context(FONT_SIZES):
         fig.savefig(target, format=fmt, dpi=FIGURE_DPI, bbox_inches="tight", pad_inches=0.05,
                     metadata={"Software": None})
 

@@ -3,12 +3,24 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TypeVar
 
-from service.io.figures import new_figure, save_figure  # noqa: F401 - the reports' figure helpers
+from service.io.figures import new_figure, save_figure
+
+__all__ = ["md_table", "new_figure", "of_kind", "save_figure"]  # the reports' figure helpers come from here too
+
+ScenarioT = TypeVar("ScenarioT")
 
 
-def md_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
-    def cell(v) -> str:
+def of_kind(scenario: object, kind: type[ScenarioT]) -> ScenarioT:
+    """The scenario as the kind the report runs on: a preset of another kind is refused, not half-run."""
+    if not isinstance(scenario, kind):
+        raise TypeError(f"this report runs on a {kind.__name__}, not a {type(scenario).__name__}")
+    return scenario
+
+
+def md_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    def cell(v: object) -> str:
         return str(v).replace("|", "\\|")
 
     lines = ["| " + " | ".join(cell(h) for h in header) + " |", "|" + "---|" * len(header)]

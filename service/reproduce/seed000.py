@@ -13,11 +13,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.methods.stage.common import offaxis_forward_vs_exact_deg, offaxis_paper_forward_deg
 from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg
+from service.reproduce._report_kit import of_kind
 from service.reproduce.stage_validation import SeedResult, evaluate_seed, offset_grid, oracle_ratios, paper_grid
 from service.scenarios import load_scenario
+from service.scenarios.model import StageScenario
 
 SEEDS = tuple(range(30))
 PAPER_BEFORE = (0.559, -0.216)  # seed 000 §4.4, max errors before correction (x, y)
@@ -35,7 +38,7 @@ def _fmt(v: float, nd: int = 4) -> str:
     return f"{v:.{nd}f}"
 
 
-def _mean_stats(results: list[SeedResult], method: str, kind: str, mask) -> dict[str, float]:
+def _mean_stats(results: list[SeedResult], method: str, kind: str, mask: NDArray[np.bool_] | None) -> dict[str, float]:
     st = [r.stats(method, kind, mask) for r in results]
     out = {k: float(np.mean([s[k] for s in st])) for k in ("rms_x", "rms_y", "max_x", "max_y")}
     out.update({f"worst_{k}": float(np.max([s[k] for s in st])) for k in ("max_x", "max_y")})
@@ -45,7 +48,7 @@ def _mean_stats(results: list[SeedResult], method: str, kind: str, mask) -> dict
 ORACLE_RATIO_TARGET = 1.2  # the kinematic model's error at most this many times the oracle's
 
 
-def conclusions(means: dict, ratios: dict, fwd: dict) -> dict[str, str]:
+def conclusions(means: dict[str, Any], ratios: dict[str, Any], fwd: dict[str, float]) -> dict[str, str]:
     """The report's verdicts, computed from the numbers it prints (never typed in)."""
     ok_h = all(means[k]["homography"][f"max_{a}"] <= PAPER_AFTER[i] for k in KINDS for i, a in enumerate("xy"))
     worst = max((means[k]["homography"][f"max_{a}"] / PAPER_AFTER[i], k, a)
@@ -65,16 +68,17 @@ def conclusions(means: dict, ratios: dict, fwd: dict) -> dict[str, str]:
     return {"homography": homography, "oracle": oracle, "eq10": eq10}
 
 
-def _figures(out_dir: Path, r0: SeedResult, paper_mask: np.ndarray, means: dict, n_seeds: int) -> list[str]:
+def _figures(out_dir: Path, r0: SeedResult, paper_mask: NDArray[np.bool_], means: dict[str, Any], n_seeds: int) -> list[str]:
     from service.io.figures import new_figure, save_figure
 
     names = []
     g = np.arange(-12.0, 12.1, 3.0)
 
-    def grid_of(v):
-        return np.asarray(v)[paper_mask].reshape(9, 9)  # rows: target y, columns: target x
+    def grid_of(v: ArrayLike) -> NDArray[np.float64]:
+        grid: NDArray[np.float64] = np.asarray(v, dtype=float)[paper_mask].reshape(9, 9)
+        return grid  # rows: target y, columns: target x
 
-    def heat(ax, v, title, unit_scale=1.0, unit="deg"):
+    def heat(ax: Any, v: ArrayLike, title: str, unit_scale: float = 1.0, unit: str = "deg") -> None:
         z = grid_of(v) * unit_scale
         lim = float(np.max(np.abs(z))) or 1.0
         im = ax.imshow(z, origin="lower", extent=(-13.5, 13.5, -13.5, 13.5), cmap="RdBu_r", vmin=-lim, vmax=lim)
@@ -170,7 +174,7 @@ def run(out_dir: Path, seeds: tuple[int, ...] = SEEDS) -> dict[str, Any]:
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    sc = load_scenario("seed000")
+    sc = of_kind(load_scenario("seed000"), StageScenario)
     (px, py), (ox, oy) = paper_grid(), offset_grid()
     targets = (np.concatenate([px, ox]), np.concatenate([py, oy]))
     paper_mask = np.arange(targets[0].size) < px.size

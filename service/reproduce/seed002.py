@@ -8,9 +8,12 @@ and where the combined estimator (eqs. 7-9 together) beats the paper's switch.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.methods.rotation import (
     direct_points,
@@ -21,13 +24,14 @@ from service.calibration.methods.rotation import (
     theta_switch,
     wrap_deg,
 )
+from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.uncertainty import coverage_factor, propagate
 from service.io.datasets import write_text_atomic
 from service.physics.rotation_axis import rotation_outputs
 from service.reproduce._report_kit import md_table, new_figure, save_figure
 from service.scenarios import load_scenario, run_scenario
-from service.scenarios.model import parse_scenario
+from service.scenarios.model import RotationScenario, Scenario, parse_scenario
 
 PAPER_REDUCTION = {"alpha": 84.0, "beta": 83.0, "gamma": 74.0}
 N_SIM = 300  # repeats of the §3 simulation
@@ -35,31 +39,40 @@ N_BENCH = 50  # calibrate/measure repeats on the §4 benches
 DIRECT_CAL_RANGE_DEG = 70.0  # the direct method is calibrated on the arc it can measure (ref. [12]: ±70°)
 
 
-def _variant(base: dict, **changes) -> object:
+def _rotation(sc: Scenario) -> RotationScenario:
+    if not isinstance(sc, RotationScenario):
+        raise TypeError(f"seed 002 runs on rotation scenarios, not {type(sc).__name__}")
+    return sc
+
+
+def _variant(base: dict[str, Any], **changes: Any) -> RotationScenario:
     d = {**base, **changes}
-    return parse_scenario(d)
+    return _rotation(parse_scenario(d))
 
 
-def _fit_params(points) -> np.ndarray:
+def _fit_params(points: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.degrees(fit_plane(points))
 
 
-def _triples(points) -> np.ndarray:
+def _triples(points: NDArray[np.float64]) -> NDArray[np.float64]:
     """The paper's three-point solution (eqs. 11-13) on disjoint triples spread over the arc, averaged."""
     k = points.shape[0] // 3
     sols = [np.degrees(fit_plane(points[[i, i + k, i + 2 * k]])) for i in range(k)]
-    return np.mean(sols, axis=0)
+    mean: NDArray[np.float64] = np.mean(sols, axis=0)
+    return mean
 
 
-def _raw(sx, sy, sz):
+def _raw(sx: ArrayLike, sy: ArrayLike, sz: ArrayLike) -> tuple[NDArray[np.float64], None]:
     """IODSRA's points without the 45° rule (for the variant that shows what the rule is worth)."""
     return np.column_stack([sx, sy, sz]), None
 
 
-def parameter_errors(sc, n: int, solver=_fit_params, iodsra=iodsra_points) -> dict[str, np.ndarray]:
+def parameter_errors(sc: RotationScenario, n: int, solver: Callable[[NDArray[np.float64]], NDArray[np.float64]] = _fit_params,
+                     iodsra: Callable[[ArrayLike, ArrayLike, ArrayLike], tuple[NDArray[np.float64], object]] = iodsra_points) -> dict[str,
+                                                                                                                                      NDArray[np.float64]]:
     """|error| of α, β, γ of both methods over n repeats of a scenario (one row per repeat)."""
     truth = np.array([sc.bench.alpha_deg, sc.bench.beta_deg, sc.bench.gamma_deg])
-    out: dict[str, list] = {"direct": [], "iodsra": []}
+    out: dict[str, list[NDArray[np.float64]]] = {"direct": [], "iodsra": []}
     for seed in range(n):
         c = run_scenario(sc, seed=seed).columns
         for name, pts in (("direct", direct_points(c["sx"], c["sy"])),
@@ -70,21 +83,23 @@ def parameter_errors(sc, n: int, solver=_fit_params, iodsra=iodsra_points) -> di
     return {k: np.array(v) for k, v in out.items()}
 
 
-def _reduction(err) -> np.ndarray:
-    return 100.0 * (1.0 - err["iodsra"].mean(axis=0) / err["direct"].mean(axis=0))
+def _reduction(err: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
+    reduction: NDArray[np.float64] = 100.0 * (1.0 - err["iodsra"].mean(axis=0) / err["direct"].mean(axis=0))
+    return reduction
 
 
-def _reduction_interval(err, rng, n_boot: int = 400) -> np.ndarray:
+def _reduction_interval(err: Mapping[str, NDArray[np.float64]], rng: np.random.Generator, n_boot: int = 400) -> NDArray[np.float64]:
     """95 % bootstrap interval of the reductions over the repeats."""
     n = err["direct"].shape[0]
     reds = []
     for _ in range(n_boot):
         i = rng.integers(0, n, n)
         reds.append(100.0 * (1.0 - err["iodsra"][i].mean(axis=0) / err["direct"][i].mean(axis=0)))
-    return np.percentile(np.array(reds), [2.5, 97.5], axis=0)
+    interval: NDArray[np.float64] = np.percentile(np.array(reds), [2.5, 97.5], axis=0)
+    return interval
 
 
-def _sz_errors(sc, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _sz_errors(sc: RotationScenario, n: int) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """RMS error of Sz per point: from eq. (6) (direct) and as measured (IODSRA)."""
     theta = np.zeros(0)
     d, i = [], []
@@ -98,9 +113,9 @@ def _sz_errors(sc, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return theta, np.sqrt(np.mean(np.square(d), axis=0)), np.sqrt(np.mean(np.square(i), axis=0))
 
 
-def _theta_errors_sim(sc, n: int) -> dict[str, np.ndarray]:
+def _theta_errors_sim(sc: RotationScenario, n: int) -> dict[str, NDArray[np.float64]]:
     """θ error at the simulation's 18 points, each method applying its own fitted parameters (§3, Table 2)."""
-    out: dict[str, list] = {"direct": [], "iodsra": [], "iodsra-combined": []}
+    out: dict[str, list[NDArray[np.float64]]] = {"direct": [], "iodsra": [], "iodsra-combined": []}
     for seed in range(n):
         cal = run_scenario(sc, seed=seed).columns
         meas = run_scenario(sc, seed=100_000 + seed)
@@ -111,12 +126,12 @@ def _theta_errors_sim(sc, n: int) -> dict[str, np.ndarray]:
     return {k: np.array(v) for k, v in out.items()}
 
 
-def bench_errors(preset: str, n: int) -> dict:
+def bench_errors(preset: str, n: int) -> dict[str, Any]:
     """θ errors over ±180° on a §4 bench: calibrate on one run, measure another, n times."""
-    sc = load_scenario(preset)
-    res: dict[str, list] = {"direct": [], "iodsra": [], "iodsra-combined": []}
+    sc = _rotation(load_scenario(preset))
+    res: dict[str, list[NDArray[np.float64]]] = {"direct": [], "iodsra": [], "iodsra-combined": []}
     theta = None
-    example = {}
+    example: dict[str, tuple[CalibrationModel, dict[str, NDArray[np.float64]]]] = {}
     for k in range(n):
         cal = run_scenario(sc, seed=k).columns
         meas = run_scenario(sc, seed=1000 + k)
@@ -136,14 +151,15 @@ def bench_errors(preset: str, n: int) -> dict:
             "scenario": sc}
 
 
-def direct_range(theta, err, limit=0.4) -> float:
+def direct_range(theta: NDArray[np.float64], err: NDArray[np.float64], limit: float = 0.4) -> float:
     """Largest |θ| such that the median |error| over the repeats stays within `limit` at every angle inside it."""
     bad = np.abs(theta)[np.median(np.abs(err), axis=0) > limit]
     inside = np.abs(theta)[np.abs(theta) < (bad.min() if bad.size else np.inf)]
     return float(inside.max()) if inside.size else 0.0
 
 
-def fig4_curves(alpha=30.0, beta=60.0, gamma=10.0, sigma_s=0.0005, sigma_param_deg=0.1):
+def fig4_curves(alpha: float = 30.0, beta: float = 60.0, gamma: float = 10.0, sigma_s: float = 0.0005,
+                sigma_param_deg: float = 0.1) -> tuple[NDArray[np.float64], dict[str, NDArray[np.float64]]]:
     """Composite θ error of eqs. (7), (8), (9) alone and of the combined estimator (seed 002 Fig. 4's inputs),
     by the GUM law of propagation (root-sum-square; the paper's eqs. 16-18 were lost)."""
     theta = np.linspace(-179.5, 179.5, 719)
@@ -153,8 +169,8 @@ def fig4_curves(alpha=30.0, beta=60.0, gamma=10.0, sigma_s=0.0005, sigma_param_d
     cov = np.eye(3) * sigma_param_deg**2
     true = np.radians(theta)
 
-    def single(which):
-        def f(p, x):
+    def single(which: int) -> Callable[[NDArray[np.float64], Mapping[str, NDArray[np.float64]]], NDArray[np.float64]]:
+        def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
             a, b, g = np.radians(p)
             P = np.column_stack([x["sx"], x["sy"], x["sz"]])
             s7, c9, c8 = rotation_equations(P, a, b, g)
@@ -167,9 +183,10 @@ def fig4_curves(alpha=30.0, beta=60.0, gamma=10.0, sigma_s=0.0005, sigma_param_d
             return theta + wrap_deg(np.degrees(t) - theta)
         return f
 
-    def combined(p, x):
+    def combined(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
         P = np.column_stack([x["sx"], x["sy"], x["sz"]])
-        return theta + wrap_deg(np.degrees(theta_combined(P, *np.radians(p))) - theta)
+        a, b, g = np.radians(p)
+        return theta + wrap_deg(np.degrees(theta_combined(P, a, b, g)) - theta)
 
     sig = {c: sigma_s for c in inputs}
     curves = {f"eq. ({w})": propagate(single(w), p0, cov, inputs, sig) for w in (7, 8, 9)}
@@ -177,11 +194,11 @@ def fig4_curves(alpha=30.0, beta=60.0, gamma=10.0, sigma_s=0.0005, sigma_param_d
     return theta, curves
 
 
-def combined_benefit(preset: str, n: int) -> dict:
+def combined_benefit(preset: str, n: int) -> dict[str, Any]:
     """RMS θ error of the paper's switch and of the combined estimator, same fitted parameters, over n repeats."""
-    sc = load_scenario(preset)
-    sw_list: list[np.ndarray] = []
-    co_list: list[np.ndarray] = []
+    sc = _rotation(load_scenario(preset))
+    sw_list: list[NDArray[np.float64]] = []
+    co_list: list[NDArray[np.float64]] = []
     theta = None
     for k in range(n):
         cal = run_scenario(sc, seed=k).columns
@@ -196,11 +213,11 @@ def combined_benefit(preset: str, n: int) -> dict:
             "max_switch": np.max(np.abs(sw)), "max_combined": np.max(np.abs(co))}
 
 
-def run(out_dir: Path) -> dict:
+def run(out_dir: Path) -> dict[str, Any]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(2016)
-    sim = load_scenario("seed002-sim")
+    sim = _rotation(load_scenario("seed002-sim"))
     base = sim.model_dump()
     err = parameter_errors(sim, N_SIM)
     red = _reduction(err)
@@ -301,7 +318,7 @@ def run(out_dir: Path) -> dict:
                            f"±{rng_direct:.0f}°", f"{summary[preset]['direct_max_within_70']:.3f}",
                            f"{np.median(worst['direct']):.0f}"])
 
-    def example_table(preset):
+    def example_table(preset: str) -> str:
         b = benches[preset]
         rows = []
         for j, t in enumerate(b["theta"]):
@@ -310,7 +327,7 @@ def run(out_dir: Path) -> dict:
                         + [f"{b['example']['iodsra'][1]['u_theta_deg'][j]:.3f}"])
         return md_table(["standard θ / deg", "IODSRA (error)", "combined (error)", "direct (error)", "IODSRA U (95 %)"], rows)
 
-    def params_row(preset):
+    def params_row(preset: str) -> list[str]:
         m = benches[preset]["example"]["iodsra"][0]
         sc = benches[preset]["scenario"]
         k = float(coverage_factor(m.fit["dof"]))
@@ -318,7 +335,7 @@ def run(out_dir: Path) -> dict:
                            for n, t in zip(("alpha_deg", "beta_deg", "gamma_deg"),
                                            (sc.bench.alpha_deg, sc.bench.beta_deg, sc.bench.gamma_deg))]
 
-    def ben_rows(preset):
+    def ben_rows(preset: str) -> list[list[str]]:
         bb = benefit[preset]
         rows = []
         for t in (0, 30, 45, 60, 90, 120, 135, 150, 180):

@@ -7,17 +7,20 @@ simulated seed003 bench.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.data import SEED003_TABLE1
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.uncertainty import coverage_factor
 from service.io.datasets import read_dataset, write_text_atomic
-from service.reproduce._report_kit import md_table, new_figure, save_figure
+from service.reproduce._report_kit import md_table, new_figure, of_kind, save_figure
 from service.scenarios import load_scenario, run_scenario
+from service.scenarios.model import ScaleScenario
 
 PAPER = {"a1_linear": 0.8756, "a1_quadratic": 0.884, "a2_quadratic": 1.93e-6, "resid_linear": 67.38,
          "resid_quadratic": 66.99}
@@ -38,7 +41,7 @@ def _dms_arcsec(text: str) -> int:
     return int(deg) * 3600 + int(minutes) * 60 + int(rest.rstrip('"'))
 
 
-def variant_columns(table: dict, ref9: str, counts: str, rows: str) -> dict[str, np.ndarray]:
+def variant_columns(table: dict[str, Any], ref9: str, counts: str, rows: str) -> dict[str, NDArray[np.float64]]:
     """One reading of the disputed cells: row 9 from the angle column or the theodolite; rows 3-4 decimal or hex;
     all 12 rows or rows 1-11 (without the start state)."""
     ref = np.asarray(table["ref_arcsec"], dtype=float).copy()
@@ -52,7 +55,7 @@ def variant_columns(table: dict, ref9: str, counts: str, rows: str) -> dict[str,
     return {"ref_arcsec": ref[sel], "reading": reading[sel]}
 
 
-def fit_both(cols) -> dict:
+def fit_both(cols: Mapping[str, NDArray[np.float64]]) -> dict[str, Any]:
     lin = get_method("scale", "poly1").fit(cols, FitOptions())
     quad = get_method("scale", "poly2").fit(cols, FitOptions())
     return {"lin": lin, "quad": quad,
@@ -67,7 +70,7 @@ def fit_both(cols) -> dict:
             "reading_on_angle_arcsec_per_count": lin.fit["reading_on_angle"]["arcsec_per_count"]}
 
 
-def _figure(table, main, out: Path) -> None:
+def _figure(table: dict[str, Any], main: dict[str, Any], out: Path) -> None:
     x, y = np.asarray(table["reading"], dtype=float), np.asarray(table["ref_arcsec"], dtype=float)
     lin, quad = main["lin"], main["quad"]
     xs = np.linspace(0, 4095, 400)
@@ -93,9 +96,9 @@ def _figure(table, main, out: Path) -> None:
     save_figure(fig, out)
 
 
-def _simulated_check(n_seeds: int = 300) -> dict:
+def _simulated_check(n_seeds: int = 300) -> dict[str, Any]:
     """The seed003 bench: does poly1 recover its scale, and does the F-test keep its 5 % false-alarm rate?"""
-    sc = load_scenario("seed003")
+    sc = of_kind(load_scenario("seed003"), ScaleScenario)
     k = sc.effects.scale_factor.k if sc.effects.scale_factor is not None else 0.0
     truth = DESIGN_ARCSEC_PER_COUNT / (1.0 + k)
     c1_list: list[float] = []
@@ -114,7 +117,7 @@ def _simulated_check(n_seeds: int = 300) -> dict:
             "ref_sigma_arcsec": noise.ref_sigma_arcsec}
 
 
-def run(out_dir: Path) -> dict:
+def run(out_dir: Path) -> dict[str, Any]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     table = load_table1()
@@ -143,7 +146,7 @@ def run(out_dir: Path) -> dict:
         rows_md.append([i, table["t3a_reading"][i], table["adc_hex"][i], int(table["reading"][i]),
                         int(table["ref_arcsec"][i]), "; ".join(flag) or ("start state" if i == 0 else "")])
 
-    def vrow(v):
+    def vrow(v: dict[str, Any]) -> list[object]:
         return [v["rows"], "2871″ (angle column)" if v["ref9"] == "angle" else "2891″ (theodolite)",
                 "decimal" if v["counts"] == "decimal" else "hex (1130, 1523)",
                 f"{v['a1_linear']:.5f}", f"{v['resid_linear']:.2f}", f"{v['a1_quadratic']:.4f}",

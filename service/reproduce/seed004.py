@@ -7,29 +7,33 @@ it means for the corrected axis tilt.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
+from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.uncertainty import coverage_factor
 from service.io.datasets import write_text_atomic
-from service.reproduce._report_kit import md_table, new_figure, save_figure
+from service.reproduce._report_kit import md_table, new_figure, of_kind, save_figure
 from service.scenarios import load_scenario, run_scenario
-from service.scenarios.model import parse_scenario
+from service.scenarios.model import TurntableScenario, parse_scenario
 
 PARAMS = ("beta_deg", "m1_per_arcsec", "m2_per_arcsec", "epsilon_deg")
 PHI_SWEEP = np.arange(175.0, 185.01, 0.5)
 
 
-def _fit(cols, phi):
+def _fit(cols: Mapping[str, NDArray[np.float64]], phi: float) -> CalibrationModel:
     return get_method("turntable", "reversal").fit(cols, FitOptions(rotation_deg=float(phi)))
 
 
-def run(out_dir: Path) -> dict:
+def run(out_dir: Path) -> dict[str, Any]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    sc = load_scenario("seed004")
+    sc = of_kind(load_scenario("seed004"), TurntableScenario)
     b = sc.bench
     truth = {"beta_deg": b.beta_deg, "m1_per_arcsec": b.m1, "m2_per_arcsec": b.m2, "epsilon_deg": b.epsilon_deg}
     run0 = run_scenario(sc)
@@ -88,8 +92,9 @@ def run(out_dir: Path) -> dict:
     res_name = "seed004_residuals.png"
     save_figure(fig, out_dir / res_name)
 
-    def prow(n, fmt):
+    def prow(n: str, fmt: str) -> list[str]:
         v, u = base.value(n), base.std(n)
+        assert u is not None  # the reversal fit has a covariance for every parameter
         return [n, fmt.format(truth[n]), fmt.format(v), fmt.format(k95 * u), f"{(v - truth[n]) / u:+.2f}"]
 
     k95 = float(coverage_factor(base.fit["dof"]))

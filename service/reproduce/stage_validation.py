@@ -17,29 +17,34 @@ order), so the comparison isolates what calibration gets wrong.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.methods.stage.chain import ChainModel
 from service.calibration.methods.stage.common import newton_2d
+from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, levelling_method
 from service.physics.effects import EffectSet
 from service.physics.inclinometer import apply_reading_errors
 from service.physics.stage import StageBench, simulate_stage
 from service.scenarios import run_scenario
+from service.scenarios.model import StageScenario
 
 STAGE_METHODS = ("homography", "coupling", "axis-transform", "kinematic")
 
 
-def paper_grid() -> tuple[np.ndarray, np.ndarray]:
+def paper_grid() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Seed 000 §4.4: 9 x 9 targets at 3 deg over ±12 deg."""
     g = np.arange(-12.0, 12.0 + 1e-9, 3.0)
     X, Y = np.meshgrid(g, g)
     return X.ravel(), Y.ravel()
 
 
-def offset_grid() -> tuple[np.ndarray, np.ndarray]:
+def offset_grid() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """8 x 8 targets at 3 deg over ±10.5 deg: between the calibration points."""
     g = np.arange(-10.5, 10.5 + 1e-9, 3.0)
     X, Y = np.meshgrid(g, g)
@@ -61,10 +66,11 @@ class Oracle:
         self.chain = ChainModel(bench, self.fx)
         self.temp_c = bench.temp_ref_c if temp_c is None else temp_c
 
-    def level(self, tx, ty) -> tuple[np.ndarray, np.ndarray]:
+    def level(self, tx: ArrayLike, ty: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         return self.chain.level(tx, ty, 1.0, 1.0)
 
-    def _meas(self, ax_deg, ay_deg):
+    def _meas(self, ax_deg: NDArray[np.float64], ay_deg: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str,
+                                                                                                                                      NDArray[np.float64]]]:
         fx, dT = self.fx, self.temp_c - self.bench.temp_ref_c
         geo = self.chain.geometry.readings_deg(np.radians(ax_deg), np.radians(ay_deg))
         out = []
@@ -76,7 +82,7 @@ class Oracle:
                 scale_per_k=fx.get("temperature_drift", "meas_scale_per_k")))
         return out[0], out[1], geo
 
-    def correct(self, meas_x, meas_y) -> tuple[np.ndarray, np.ndarray]:
+    def correct(self, meas_x: ArrayLike, meas_y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Stage angles whose noise-free measurement readings match, then the true tilt there."""
         mx, my = np.asarray(meas_x, dtype=float), np.asarray(meas_y, dtype=float)
         sign = (-1.0 if self.bench.meas_flip == "y" else 1.0, -1.0 if self.bench.meas_flip == "x" else 1.0)
@@ -85,14 +91,14 @@ class Oracle:
         return geo["tilt_x"], geo["tilt_y"]
 
 
-def execute(bench: StageBench, fx: EffectSet, cmd_x, cmd_y, seed: int, temp_c: float) -> dict[str, np.ndarray]:
+def execute(bench: StageBench, fx: EffectSet, cmd_x: ArrayLike, cmd_y: ArrayLike, seed: int, temp_c: float) -> dict[str, NDArray[np.float64]]:
     """The true bench runs the commands (approached from below) with this seed's noise draws."""
     n = np.size(cmd_x)
     return simulate_stage(bench, fx, cmd_x, cmd_y, np.ones(n), np.ones(n), np.full(n, temp_c), np.zeros(n),
                           rng=np.random.default_rng(seed))
 
 
-def summary(ex: np.ndarray, ey: np.ndarray) -> dict[str, float]:
+def summary(ex: NDArray[np.float64], ey: NDArray[np.float64]) -> dict[str, float]:
     ix, iy = int(np.argmax(np.abs(ex))), int(np.argmax(np.abs(ey)))
     return {"rms_x": float(np.sqrt(np.mean(ex**2))), "rms_y": float(np.sqrt(np.mean(ey**2))),
             "max_x": float(np.abs(ex).max()), "max_y": float(np.abs(ey).max()),
@@ -102,16 +108,17 @@ def summary(ex: np.ndarray, ey: np.ndarray) -> dict[str, float]:
 @dataclass
 class SeedResult:
     seed: int
-    targets: tuple[np.ndarray, np.ndarray]
-    errors: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)  # method -> kind -> (ex, ey)
-    models: dict = field(default_factory=dict)
+    targets: tuple[NDArray[np.float64], NDArray[np.float64]]
+    errors: dict[str, dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]] = field(default_factory=dict)  # method -> kind -> (ex, ey)
+    models: dict[str, CalibrationModel] = field(default_factory=dict)
 
-    def stats(self, method: str, kind: str, mask: np.ndarray | None = None) -> dict[str, float]:
+    def stats(self, method: str, kind: str, mask: NDArray[np.bool_] | None = None) -> dict[str, float]:
         ex, ey = self.errors[method][kind]
         return summary(ex, ey) if mask is None else summary(ex[mask], ey[mask])
 
 
-def evaluate_seed(scenario, seed: int, methods=STAGE_METHODS, targets=None, fit_options: dict | None = None,
+def evaluate_seed(scenario: StageScenario, seed: int, methods: Sequence[str | tuple[str, str, dict[str, Any]]] = STAGE_METHODS,
+                  targets: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None, fit_options: dict[str, dict[str, Any]] | None = None,
                   keep_models: bool = False) -> SeedResult:
     """Calibrate each method on the scenario's run with `seed`, validate on fresh noise at `targets`.
 
@@ -128,7 +135,7 @@ def evaluate_seed(scenario, seed: int, methods=STAGE_METHODS, targets=None, fit_
     # shared readings for the correction errors: the table at the targets (oracle-levelled)
     ox, oy = oracle.level(tx, ty)
     shared = execute(bench, fx, ox, oy, val_seed + 1, temp)
-    corr: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    corr: dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
     for spec in methods:
         label, name, extra = (spec, spec, {}) if isinstance(spec, str) else spec
         m = levelling_method("stage", name)
@@ -159,9 +166,9 @@ def evaluate_seed(scenario, seed: int, methods=STAGE_METHODS, targets=None, fit_
     return out
 
 
-def oracle_ratios(result: SeedResult, method: str = "kinematic", mask: np.ndarray | None = None) -> dict[str, float]:
+def oracle_ratios(result: SeedResult, method: str = "kinematic", mask: NDArray[np.bool_] | None = None) -> dict[str, float]:
     """RMS and max of `method` over the oracle's, per error kind and axis."""
-    out = {}
+    out: dict[str, float] = {}
     for kind in ("level", "correct"):
         a, o = result.stats(method, kind, mask), result.stats("oracle", kind, mask)
         for stat in ("rms_x", "rms_y", "max_x", "max_y"):

@@ -1,6 +1,6 @@
 """Scenarios: validated descriptions of simulated benches, and the presets that resemble the papers."""
 
-from service.scenarios.model import (  # noqa: F401
+from service.scenarios.model import (
     Scenario,
     effects_dict,
     json_schema,
@@ -8,4 +8,7 @@ from service.scenarios.model import (  # noqa: F401
     parse_scenario,
     preset_names,
 )
-from service.scenarios.run import SimulatedRun, run_scenario  # noqa: F401
+from service.scenarios.run import SimulatedRun, run_scenario
+
+__all__ = ["Scenario", "SimulatedRun", "effects_dict", "json_schema", "load_scenario", "parse_scenario", "preset_names",
+           "run_scenario"]

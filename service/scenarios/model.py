@@ -95,7 +95,7 @@ class AxisRange(_Strict):
     count: Annotated[int, Field(ge=1, le=MAX_AXIS_VALUES)] | None = None
 
     @model_validator(mode="after")
-    def _one_of(self):
+    def _one_of(self) -> AxisRange:
         if (self.step is None) == (self.count is None):
             raise ValueError("give exactly one of step or count")
         if self.step is not None and abs(self.stop - self.start) / self.step + 1 > MAX_AXIS_VALUES:
@@ -122,24 +122,24 @@ class AxisRange(_Strict):
 Axis = Annotated[list[Finite], Field(min_length=1, max_length=MAX_AXIS_VALUES)] | AxisRange
 
 
-def axis_values(a) -> list[float]:
+def axis_values(a: list[float] | AxisRange) -> list[float]:
     return a.values() if isinstance(a, AxisRange) else list(a)
 
 
-def axis_size(a) -> int:
+def axis_size(a: list[float] | AxisRange) -> int:
     return a.size() if isinstance(a, AxisRange) else len(a)
 
 
-def _rows(sc) -> tuple[int, str]:
+def _rows(sc: Scenario) -> tuple[int, str]:
     """Rows the scenario would simulate, and the grid fields that set them."""
-    g = sc.grid
     if isinstance(sc, StageScenario):
+        g = sc.grid
         return axis_size(g.x_deg) * axis_size(g.y_deg) * g.repeats, "grid.x_deg × grid.y_deg × grid.repeats"
     if isinstance(sc, RotationScenario):
-        return axis_size(g.theta_deg) * g.repeats, "grid.theta_deg × grid.repeats"
+        return axis_size(sc.grid.theta_deg) * sc.grid.repeats, "grid.theta_deg × grid.repeats"
     if isinstance(sc, ScaleScenario):
-        return axis_size(g.ref_arcsec) * g.repeats, "grid.ref_arcsec × grid.repeats"
-    return axis_size(g.azimuth_deg) * len(g.cycles), "grid.azimuth_deg × grid.cycles"
+        return axis_size(sc.grid.ref_arcsec) * sc.grid.repeats, "grid.ref_arcsec × grid.repeats"
+    return axis_size(sc.grid.azimuth_deg) * len(sc.grid.cycles), "grid.azimuth_deg × grid.cycles"
 
 
 class Environment(_Strict):
@@ -319,7 +319,7 @@ def preset_names() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.json"))
 
 
-def scenario_data(name_or_path: str | Path) -> tuple[dict, str]:
+def scenario_data(name_or_path: str | Path) -> tuple[dict[str, Any], str]:
     """The raw JSON object of a preset (by name) or a scenario file, and where it came from."""
     p = Path(name_or_path)
     if not p.suffix and (PRESET_DIR / f"{p.name}.json").exists() and not p.exists():
@@ -343,7 +343,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     return parse_scenario(data, source=source)
 
 
-def json_schema() -> dict:
+def json_schema() -> dict[str, Any]:
     schema = ScenarioFile.model_json_schema()
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["$id"] = "https://tiltlab.example/schemas/scenario.schema.json"

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from service.io import columns
 from service.physics.analog import AnalogSensor, simulate_scale
@@ -28,13 +29,25 @@ from service.scenarios.model import (
 @dataclass
 class SimulatedRun:
     kind: str
-    columns: dict[str, np.ndarray]  # what the bench recorded, in dataset order
-    truth: dict[str, np.ndarray] = field(default_factory=dict)  # what it could not record
+    columns: dict[str, NDArray[Any]]  # what the bench recorded, in dataset order (point indices are integers)
+    truth: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # what it could not record
     bench: Any = None
     effects: EffectSet | None = None
 
 
-def hardware_of(scenario: Scenario):
+@overload
+def hardware_of(scenario: StageScenario) -> StageBench: ...
+@overload
+def hardware_of(scenario: RotationScenario) -> RotationBench: ...
+@overload
+def hardware_of(scenario: ScaleScenario) -> AnalogSensor: ...
+@overload
+def hardware_of(scenario: TurntableScenario) -> TurntableInclinometer: ...
+@overload
+def hardware_of(scenario: Scenario) -> StageBench | RotationBench | AnalogSensor | TurntableInclinometer: ...
+
+
+def hardware_of(scenario: Scenario) -> StageBench | RotationBench | AnalogSensor | TurntableInclinometer:
     """The physics model of the scenario's fixed hardware (stacked stages, rotary table, ADC sensor or turntable)."""
     b = scenario.bench
     if isinstance(scenario, StageScenario):
@@ -52,24 +65,25 @@ def effect_set(scenario: Scenario) -> EffectSet:
     return EffectSet.from_mapping(scenario.kind, effects_dict(scenario))
 
 
-def temperature(env: Environment, t_s: np.ndarray) -> np.ndarray:
-    t_h = t_s / 3600.0
-    return env.temp_c + env.temp_rate_c_per_h * t_h + env.temp_amp_c * np.sin(2 * np.pi * t_h / env.temp_period_h)
+def temperature(env: Environment, t_s: ArrayLike) -> NDArray[np.float64]:
+    t_h = np.asarray(t_s, dtype=float) / 3600.0
+    temp: NDArray[np.float64] = env.temp_c + env.temp_rate_c_per_h * t_h + env.temp_amp_c * np.sin(2 * np.pi * t_h / env.temp_period_h)
+    return temp
 
 
-def move_directions(cmd: np.ndarray, start: float) -> np.ndarray:
+def move_directions(cmd: NDArray[np.float64], start: float) -> NDArray[np.float64]:
     """Direction of the last move that reached each command (+1/-1); a point not moved to keeps the last."""
     prev = np.concatenate([[start], cmd[:-1]])
     d = np.sign(cmd - prev)
     last = 1.0
-    out = np.empty_like(d)
+    out: NDArray[np.float64] = np.empty_like(d)
     for i, v in enumerate(d):
         last = v if v != 0 else last
         out[i] = last
     return out
 
 
-def stage_sequence(scenario: StageScenario, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def stage_sequence(scenario: StageScenario, rng: np.random.Generator) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Commanded (x, y) in visiting order and each row's grid-point index."""
     xs = np.array(axis_values(scenario.grid.x_deg))
     ys = np.array(axis_values(scenario.grid.y_deg))
@@ -95,13 +109,14 @@ def stage_sequence(scenario: StageScenario, rng: np.random.Generator) -> tuple[n
 def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = False) -> SimulatedRun:
     rng = np.random.default_rng(scenario.seed if seed is None else seed)
     fx = effect_set(scenario)
-    bench = hardware_of(scenario)
     noise_rng = None if noiseless else rng
+    cols: dict[str, NDArray[Any]]
     if isinstance(scenario, StageScenario):
+        bench = hardware_of(scenario)
         cx, cy, point = stage_sequence(scenario, rng)
         # The dataset records what the controller executes: whole pulses of this bench.
         cx, cy = bench.quantise(cx, cy)
-        t_s = np.arange(len(cx)) * scenario.grid.settle_s
+        t_s = np.arange(len(cx), dtype=float) * scenario.grid.settle_s
         temp = temperature(scenario.environment, t_s)
         dx = move_directions(cx, -bench.travel_deg)
         dy = move_directions(cy, -bench.travel_deg)
@@ -111,27 +126,30 @@ def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = 
         truth = {k: sim[k] for k in ("tilt_x_deg", "tilt_y_deg", "actual_x_deg", "actual_y_deg")}
         return SimulatedRun("stage", cols, truth, bench, fx)
     if isinstance(scenario, RotationScenario):
+        rotation_bench = hardware_of(scenario)
         theta = np.tile(np.array(axis_values(scenario.grid.theta_deg)), scenario.grid.repeats)
-        sim = simulate_rotation(bench, fx, theta, noise_rng)
+        sim = simulate_rotation(rotation_bench, fx, theta, noise_rng)
         cols = {"point": np.arange(len(theta)) % (len(theta) // scenario.grid.repeats),
                 **{k: sim[k] for k in columns.ROTATION_DATASET[1:]}}
-        return SimulatedRun("rotation", cols, {"theta_true_deg": sim["theta_true_deg"]}, bench, fx)
+        return SimulatedRun("rotation", cols, {"theta_true_deg": sim["theta_true_deg"]}, rotation_bench, fx)
     if isinstance(scenario, ScaleScenario):
+        sensor = hardware_of(scenario)
         ref = np.tile(np.array(axis_values(scenario.grid.ref_arcsec)), scenario.grid.repeats)
         temp = np.full(ref.shape, scenario.environment.temp_c)
-        sim = simulate_scale(bench, fx, ref, scenario.bench.start_arcsec, temp, noise_rng)
+        sim = simulate_scale(sensor, fx, ref, scenario.bench.start_arcsec, temp, noise_rng)
         cols = {"point": np.arange(len(ref)) % (len(ref) // scenario.grid.repeats),
                 "ref_arcsec": sim["ref_arcsec"], "reading": sim["reading"]}
-        return SimulatedRun("scale", cols, {"true_ref_arcsec": sim["true_ref_arcsec"]}, bench, fx)
+        return SimulatedRun("scale", cols, {"true_ref_arcsec": sim["true_ref_arcsec"]}, sensor, fx)
     assert isinstance(scenario, TurntableScenario)
+    turntable = hardware_of(scenario)
     az = np.array(axis_values(scenario.grid.azimuth_deg))
     cyc = scenario.grid.cycles
     azimuth = np.tile(az, len(cyc))
     cycle = np.repeat(np.arange(len(cyc)), len(az))
     north = np.repeat([c.north_arcsec for c in cyc], len(az))
     east = np.repeat([c.east_arcsec for c in cyc], len(az))
-    sim = simulate_turntable(bench, fx, azimuth, north, east, scenario.bench.rotation_deg,
+    sim = simulate_turntable(turntable, fx, azimuth, north, east, scenario.bench.rotation_deg,
                              scenario.grid.pair_interval_s, noise_rng)
     cols = {"cycle": cycle, **{k: sim[k] for k in columns.TURNTABLE_DATASET[1:]}}
     truth = {"true_north_arcsec": sim["true_north_arcsec"], "true_east_arcsec": sim["true_east_arcsec"]}
-    return SimulatedRun("turntable", cols, truth, bench, fx)
+    return SimulatedRun("turntable", cols, truth, turntable, fx)
