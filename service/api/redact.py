@@ -46,5 +46,5 @@ def install_log_redaction() -> None:
             record.args = {k: _clean(v) for k, v in record.args.items()}
         return record
 
-    factory.redacts_tokens = True  # type: ignore[attr-defined]
+    factory.redacts_tokens = True  # type: ignore[attr-defined]  # a mark on the function: installed once per process
     logging.setLogRecordFactory(factory)

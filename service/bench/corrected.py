@@ -6,7 +6,7 @@ One place for each, used by both, so they serve the same numbers by the same rul
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -15,11 +15,14 @@ from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor
 from service.instruments.base import Reading
 from service.io.columns import K_OUTPUTS
 
+if TYPE_CHECKING:
+    from service.bench.runtime import BenchRuntime
+
 STALE_INTERVALS = 3  # a reading older than this many output intervals (plus STALE_SLACK_S) is stale
 STALE_SLACK_S = 0.25  # real seconds: a loaded machine's delay in handing a reading on
 
 
-def stale_after_s(bench: Any, role: str) -> float:
+def stale_after_s(bench: BenchRuntime, role: str) -> float:
     """Real seconds after which the role's latest reading is stale (the sensor counts as silent)."""
     return STALE_INTERVALS * bench.clock.real_seconds(bench.output_interval_s(role)) + STALE_SLACK_S
 
@@ -31,7 +34,7 @@ def sensor_temp_c(meas: Reading | None, ref: Reading | None) -> float | None:
     return ref.temp_c if ref is not None else None
 
 
-def corrected_tilt(active: Any, meas: Reading) -> dict:
+def corrected_tilt(active: Any, meas: Reading) -> dict[str, Any]:
     """Table tilt in the reference sensor's frame with its expanded uncertainty (GUM, 95 % coverage) from
     the record's covariance: {"x_deg", "y_deg", "u_x_deg", "u_y_deg", "k", "k_y", "coverage_probability"};
     `k` is the coverage factor of u_x_deg and `k_y` that of u_y_deg, Student's t at the effective
@@ -61,7 +64,7 @@ def corrected_tilt(active: Any, meas: Reading) -> dict:
             "coverage_probability": COVERAGE}
 
 
-def in_calibrated_range(active: Any, table: dict | None) -> bool | None:
+def in_calibrated_range(active: Any, table: dict[str, Any] | None) -> bool | None:
     """Whether a corrected table tilt lies within the table tilts the active record was fitted on (per axis,
     the reference sensor's frame); None when there is no corrected tilt or the record states no range."""
     seen = getattr(active, "table_tilt_range_deg", None) if active is not None else None
@@ -70,14 +73,14 @@ def in_calibrated_range(active: Any, table: dict | None) -> bool | None:
     return bool(seen["x"][0] <= table["x_deg"] <= seen["x"][1] and seen["y"][0] <= table["y_deg"] <= seen["y"][1])
 
 
-def calibrated_range_note(active: Any, table: dict) -> str:
+def calibrated_range_note(active: Any, table: dict[str, Any]) -> str:
     """What `note` says of a corrected tilt outside the calibrated range: served, but extrapolated."""
     seen = active.table_tilt_range_deg
     return (f"outside the calibrated range of record {active.record_id} (x {seen['x'][0]:.4g} to {seen['x'][1]:.4g}°,"
             f" y {seen['y'][0]:.4g} to {seen['y'][1]:.4g}°): the corrected tilt is extrapolated")
 
 
-def calibration_json(active: Any) -> dict | None:
+def calibration_json(active: Any) -> dict[str, Any] | None:
     """The `calibration` object of /tilt and the stream's snapshot: which record corrects, and its status."""
     if active is None:
         return None

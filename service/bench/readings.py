@@ -19,11 +19,15 @@ OUTLIER_RULE = "modified z-score |0.6745 (v - median) / MAD| > 3.5 on any channe
 
 
 def channels(r: Reading) -> tuple[float, ...]:
+    # a reading carries all the channels of its sensor: both axes, all three sines, or the counts
     if r.x_deg is not None:
-        return (r.x_deg, r.y_deg)  # type: ignore[return-value]
+        assert r.y_deg is not None
+        return (r.x_deg, r.y_deg)
     if r.sx is not None:
-        return (r.sx, r.sy, r.sz)  # type: ignore[return-value]
-    return (r.counts,)  # type: ignore[return-value]
+        assert r.sy is not None and r.sz is not None
+        return (r.sx, r.sy, r.sz)
+    assert r.counts is not None
+    return (r.counts,)
 
 
 async def fresh_readings(bench: BenchRuntime, role: str, n: int, *, after_bench_s: float,

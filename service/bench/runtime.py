@@ -14,7 +14,7 @@ import logging
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import TypeVar
+from typing import Protocol, TypeVar
 
 from service.clock import Clock
 from service.instruments import controller
@@ -113,8 +113,18 @@ class StagePose:
     dir_y: float = 1.0
 
 
+class SimulatedBench(Protocol):
+    """The simulated bench behind a bench's ports: closed with it; its world names the scenarios it runs."""
+
+    @property
+    def world(self) -> object: ...
+
+    def close(self) -> None: ...
+
+
 class BenchRuntime:
-    def __init__(self, config: BenchConfig, clock: Clock, devices: BenchDevices | None = None, sim=None) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, config: BenchConfig, clock: Clock, devices: BenchDevices | None = None,
+                 sim: SimulatedBench | None = None) -> None:
         self.config = config
         self.name = config.name
         self.kind = config.kind
@@ -128,8 +138,8 @@ class BenchRuntime:
         self.bench_id: int | None = None
         self.holder: BenchHold | None = None
         self.stop_requested = asyncio.Event()
-        self._stage_task: asyncio.Task | None = None
-        self._temperature_task: asyncio.Task | None = None
+        self._stage_task: asyncio.Task[None] | None = None
+        self._temperature_task: asyncio.Task[None] | None = None
         self._motion_lock = asyncio.Lock()
 
     # ------------------------------------------------------------ life
@@ -272,7 +282,12 @@ class BenchRuntime:
             await stage.wait_until_idle(timeout_s)
             self._check_stopped()
             await self.refresh_pose()
-            return self.pose.x_deg, self.pose.y_deg  # type: ignore[return-value]
+            return self._stage_position()
+
+    def _stage_position(self) -> tuple[float, float]:
+        x, y = self.pose.x_deg, self.pose.y_deg
+        assert x is not None and y is not None  # refresh_pose has just read both axes from the controller
+        return x, y
 
     async def home_stage(self, *, timeout_s: float = 600.0) -> tuple[float, float]:
         """Home both stage axes (each finds its reference switch; its position becomes 0) and wait
@@ -285,7 +300,7 @@ class BenchRuntime:
             await stage.wait_until_idle(timeout_s)
             self._check_stopped()
             await self.refresh_pose()
-            return self.pose.x_deg, self.pose.y_deg  # type: ignore[return-value]
+            return self._stage_position()
 
     async def move_rotary(self, angle_deg: float, *, timeout_s: float = 600.0) -> float:
         self.require("rotary_table")

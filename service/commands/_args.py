@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NoReturn
 
 
@@ -32,7 +32,7 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: %(default)s)"
 
 
-def add_command(sub: argparse._SubParsersAction, name: str, summary: str, *, examples: Sequence[str],
+def add_command(sub: argparse._SubParsersAction[argparse.ArgumentParser], name: str, summary: str, *, examples: Sequence[str],
                 description: str | None = None) -> argparse.ArgumentParser:
     """A sub-command whose help has a description and at least one example."""
     lines = "\n".join(f"  {e}" for e in examples)
@@ -41,7 +41,7 @@ def add_command(sub: argparse._SubParsersAction, name: str, summary: str, *, exa
                           formatter_class=HelpFormatter)
 
 
-def add_subcommands(parser: argparse.ArgumentParser, dest: str) -> argparse._SubParsersAction:
+def add_subcommands(parser: argparse.ArgumentParser, dest: str) -> argparse._SubParsersAction[argparse.ArgumentParser]:
     return parser.add_subparsers(dest=dest, required=True, parser_class=Parser, metavar="COMMAND")
 
 
@@ -57,7 +57,7 @@ def _number(text: str, what: str) -> float:
     return value
 
 
-def finite(what: str):  # type: ignore[no-untyped-def]
+def finite(what: str) -> Callable[[str], float]:
     """A type for options that take any finite number."""
     def parse(text: str) -> float:
         return _number(text, what)

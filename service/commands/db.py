@@ -17,6 +17,7 @@ from service.errors import InputError
 
 if TYPE_CHECKING:  # storage and migrations are imported by the commands that use them, not by --help
     from alembic.script import ScriptDirectory
+    from sqlalchemy.engine import Engine
 
     from service.config import Settings
 
@@ -94,7 +95,7 @@ def _known_revisions() -> str:
     return ", ".join([r.revision for r in _scripts().walk_revisions()] + ["base"])
 
 
-def _downgrade(settings: Settings, engine, target: str, yes: bool) -> int:  # type: ignore[no-untyped-def]
+def _downgrade(settings: Settings, engine: Engine, target: str, yes: bool) -> int:
     from alembic.util.exc import CommandError
 
     from service.storage.backup import backup_sqlite, pg_dump_command, sqlite_path, timestamped_backup_path
@@ -161,7 +162,7 @@ def _backup(settings: Settings, out: str) -> int:
     return 0
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = add_command(sub, "db", "database upkeep: schema upgrade, revision, backup, downgrade, verification",
                     description="Upkeep of the configured database (TILTLAB_DATABASE_URL; default the SQLite "
                                 "file tiltlab.db\nin TILTLAB_DATA_DIR). `tiltlab serve` upgrades the schema by "

@@ -29,15 +29,15 @@ EXPECTED = {
 
 
 def expected(role: str, spec: PortRole) -> str:
-    from service.instruments.bench_config import BinaryInclinometerRole, Rs485InclinometerRole
+    from service.instruments.bench_config import BinaryInclinometerRole, RotaryTableRole, Rs485InclinometerRole
 
     what = EXPECTED[role]
     if isinstance(spec, BinaryInclinometerRole):
         what += f" at address 0x{spec.address:02X}"
     elif isinstance(spec, Rs485InclinometerRole):
         what += f" at address {spec.address.upper()}"
-    elif role == "rotary_table":
-        what = f"a controller answering on axis {spec.axis}"  # type: ignore[attr-defined]
+    elif isinstance(spec, RotaryTableRole):
+        what = f"a controller answering on axis {spec.axis}"
     return what
 
 
@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     return 2 if bad else 0  # a role that does not answer as configured is bad configuration
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = add_command(sub, "devices", "probe every role of a bench configuration and say what answered",
                     examples=["tiltlab devices --config bench.toml"])
     p.add_argument("--config", required=True, metavar="FILE", help="bench configuration file (TOML)")

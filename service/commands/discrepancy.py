@@ -18,14 +18,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING
 
 from service.commands._args import add_command
 from service.errors import InputError
 
+if TYPE_CHECKING:
+    from service.datasets import Dataset
+
 # numpy, the dataset reader and the workflow are imported when the command runs, not by --help.
 
 
-def _constant_column(ds, col: str) -> float | None:
+def _constant_column(ds: Dataset, col: str) -> float | None:
     import numpy as np
 
     if col not in ds.numeric:
@@ -149,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = add_command(sub, "discrepancy", "find, name and add the effects a bench model is missing",
                     description="Fit a baseline model to a recorded run, look for structure left in the "
                                 "residuals, name the\nmissing effects one by one with their significance, and "

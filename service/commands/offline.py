@@ -7,10 +7,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from service.commands._args import add_command, finite
 from service.errors import InputError
+
+if TYPE_CHECKING:  # the methods and the dataset reader are imported when the command runs, not by --help
+    from service.calibration.model import CalibrationModel
+    from service.datasets import Dataset
 
 # The methods, the dataset reader and numpy are imported by the commands that use them, so that
 # `--help` starts at once.
@@ -57,7 +61,7 @@ def _methods_text() -> str:
     return "\n".join(lines)
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = add_command(sub, "calibrate", "fit a calibration model (MODEL.json) to a recorded run",
                     description="Fit a calibration model to a dataset CSV and write it as MODEL.json "
                                 "(docs/models.md).\nThe dataset's columns per kind are in docs/datasets.md.\n\n"
@@ -154,7 +158,7 @@ def assumed_bench_note() -> str:
             "the output records it")
 
 
-def stage_bench_options(kind: str, bench_path: str | None) -> dict:
+def stage_bench_options(kind: str, bench_path: str | None) -> dict[str, Any]:
     """`--bench FILE` as fit options (empty without it: the methods then assume seed 000's and record so)."""
     if bench_path is None:
         return {}
@@ -220,7 +224,7 @@ def level(args: argparse.Namespace) -> int:
     return 0
 
 
-def _warn_outside_calibrated_range(model, ds, targets_path: str) -> None:  # type: ignore[no-untyped-def]
+def _warn_outside_calibrated_range(model: CalibrationModel, ds: Dataset, targets_path: str) -> None:
     """A target beyond the table tilts the model was fitted on is an extrapolation: say which rows."""
     seen = model.fit.get("table_tilt_range_deg")
     if not isinstance(seen, dict):

@@ -25,7 +25,7 @@ ABOUT = {
 }
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     papers = "\n".join(f"  {name}  {text}" for name, text in ABOUT.items())
     p = add_command(sub, "reproduce", "rerun a paper's experiment and write its report (Markdown and figures)",
                     description="Rerun the experiments of the papers tiltlab's methods come from, on simulated "

@@ -13,6 +13,7 @@ import errno
 import logging
 import socket
 import sys
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
@@ -100,7 +101,7 @@ def _guard_lifespan(app: Any, guard: _StartupGuard) -> None:
     inner = app.router.lifespan_context
 
     @asynccontextmanager
-    async def guarded(a: Any):  # type: ignore[no-untyped-def]
+    async def guarded(a: Any) -> AsyncIterator[Any]:
         entered = False
         try:
             async with inner(a) as state:
@@ -202,7 +203,7 @@ def silent_devices(app: Any) -> list[str]:
     return lines
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = add_command(sub, "serve", "run the lab service: HTTP API and dashboard on a simulated or real bench",
                     description="Run the lab service. Settings come from TILTLAB_* environment variables or "
                                 "the TOML file named\nby TILTLAB_CONFIG (docs/storage.md); the options below "

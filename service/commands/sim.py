@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = add_command(sub, "sim", "run simulated instruments on pseudo-terminals and print their bench configuration",
                     description="Start simulated instruments that speak the real instruments' bytes on "
                                 "pseudo-terminals,\nwrite the bench configuration naming their ports, and run "

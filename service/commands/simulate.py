@@ -10,7 +10,7 @@ from service.commands._args import add_command, seed
 from service.errors import InputError
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = add_command(sub, "simulate", "write a simulated bench run (dataset CSV) from a scenario",
                     description="Simulate a calibration run: the scenario (a preset, see --list, or your own "
                                 "JSON file)\nstates the bench, the sensor errors, the point grid, the noise and "

@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
         engine.dispose()
 
 
-def add_parser(sub) -> None:  # type: ignore[no-untyped-def]
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from service.commands._args import add_command, add_subcommands
 
     p = add_command(sub, "token", "API tokens: create (shown once), list, revoke",

@@ -16,7 +16,7 @@ from pathlib import Path
 from service.errors import InputError
 
 
-def add_parser(sub) -> None:  # type: ignore[no-untyped-def]
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from service.commands._args import add_command
 
     p = add_command(sub, "verify-certificate", "check a DCC certificate: schema, signature, stored hash, record and approval",

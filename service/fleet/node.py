@@ -194,6 +194,18 @@ class Fleet:
 
     # ------------------------------------------------------------ leases
 
+    def _client(self) -> NatsClient:
+        """The broker connection, where the caller has seen it connected."""
+        if self._nc is None:
+            raise FleetUnavailable(f"node {self.node}: not connected to the fleet's broker")
+        return self._nc
+
+    def _lease_bucket(self) -> KeyValue:
+        """The leases' bucket, where the caller has seen the node set up."""
+        if self._leases is None:
+            raise FleetUnavailable(f"node {self.node}: the fleet's buckets are not set up")
+        return self._leases
+
     def _lease(self, name: str) -> bytes:
         bench = self.local[name]
         return json.dumps({"node": self.node, "state": bench.state(), "kind": bench.kind, "roles": bench.roles(),
@@ -227,14 +239,14 @@ class Fleet:
             try:
                 if self._nc is None:
                     await self._connect()
-                if not self._nc.is_connected:  # type: ignore[union-attr]
+                if not self._client().is_connected:
                     self._mark_unreachable()
                     continue
                 if not self._ready.is_set():
                     await self._setup()
                     continue
                 for name in self.local:
-                    await self._leases.put(name, self._lease(name))  # type: ignore[union-attr]
+                    await self._lease_bucket().put(name, self._lease(name))
                 await self._refresh_view()
             except FleetConflict as exc:
                 log.error("fleet: %s", exc)
@@ -317,7 +329,7 @@ class Fleet:
                 seq += 1
                 payload = {**msg, "bench": name, "node": self.node, "fleet_seq": seq}
                 try:
-                    await self._nc.publish(readings_subject(name), json.dumps(payload).encode())  # type: ignore[union-attr]
+                    await self._client().publish(readings_subject(name), json.dumps(payload).encode())
                     self.published += 1
                 except Exception:  # noqa: BLE001 - a broker going away while publishing: counted, not fatal
                     self.dropped += 1
@@ -359,8 +371,8 @@ class Fleet:
             raise FleetUnavailable(f"bench {bench_name!r} belongs to node {bench.node!r}, which is offline")
         start = time.monotonic()
         try:
-            reply = await self._nc.request(commands_subject(bench.node), json.dumps(request).encode(),  # type: ignore[union-attr]
-                                           timeout=self.command_timeout_s)
+            reply = await self._client().request(commands_subject(bench.node), json.dumps(request).encode(),
+                                                 timeout=self.command_timeout_s)
         except NoRespondersError:
             bench.online = False
             raise FleetUnavailable(f"bench {bench_name!r} belongs to node {bench.node!r}, which is offline") from None

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.bench.runtime import BenchRuntime
 from service.calibration.model import CalibrationModel, stored_table_tilt_range, table_tilt_range
@@ -35,7 +36,7 @@ class ActiveModel:
 
 
 def load_active(store: DaemonStore, bench: BenchRuntime,
-                fit_columns: Callable[[int, int], dict[str, np.ndarray]]) -> tuple[ActiveModel | None, str | None]:
+                fit_columns: Callable[[int, int], dict[str, NDArray[np.float64]]]) -> tuple[ActiveModel | None, str | None]:
     """Blocking (database): the bench's active stage record, checked before use, and why there is none.
     A record whose stored content no longer matches its hash is refused (the bench stays uncorrected),
     and a rejected one is withdrawn."""
@@ -57,7 +58,7 @@ def load_active(store: DaemonStore, bench: BenchRuntime,
                        table_tilt_range_deg=table_tilt_range_of(rec, fit_columns, model)), None
 
 
-def table_tilt_range_of(rec: CalibrationRecord, fit_columns: Callable[[int, int], dict[str, np.ndarray]],
+def table_tilt_range_of(rec: CalibrationRecord, fit_columns: Callable[[int, int], dict[str, NDArray[np.float64]]],
                         model: CalibrationModel | None = None) -> dict[str, list[float]] | None:
     """The table tilts a stage record was fitted on: from its model, else (records made before models
     kept it) from the settled points its job fitted; None for other kinds or without either."""

@@ -7,6 +7,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.calibration.budget import model_dof, record_budget
 from service.calibration.model import CalibrationModel
@@ -26,7 +27,7 @@ def resolutions_deg(bench: Any) -> dict[str, float | None]:
     return out
 
 
-def budget_of_record(method: Any, model: CalibrationModel, fit_columns: Mapping[str, np.ndarray] | None,
+def budget_of_record(method: Any, model: CalibrationModel, fit_columns: Mapping[str, NDArray[np.float64]] | None,
                      standards: Sequence[Mapping[str, Any]], resolutions: Mapping[str, float | None]) -> dict[str, Any]:
     """The record's budget; the corrected tilt's entries where the method corrects readings (stage records)."""
     model_json = model.to_json_dict()

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.errors import InputError
 from service.storage.models import CalibrationRecord, Diagnosis, DiagnosisResult, utc_now
@@ -41,7 +42,7 @@ class Running:
     task: asyncio.Task[None] | None = field(default=None, repr=False)
 
 
-def point_noise(points: list[Any], n_points: int) -> np.ndarray | None:
+def point_noise(points: list[Any], n_points: int) -> NDArray[np.float64] | None:
     """Per axis, the 1-sigma noise of a settled point (a mean of n readings): the readings' scatter within
     each point, pooled over the points, divided by sqrt(n). None without a scatter (one reading per point)."""
     var = [(p.ch_x_std ** 2 / p.n_samples, p.ch_y_std ** 2 / p.n_samples) for p in points
@@ -52,13 +53,13 @@ def point_noise(points: list[Any], n_points: int) -> np.ndarray | None:
     return sigma if np.all(sigma > 0) else None
 
 
-def gap(residuals: np.ndarray) -> dict[str, float]:
+def gap(residuals: NDArray[np.float64]) -> dict[str, float]:
     """The gap between model and measured points as one angle per point (x and y together): its RMS and maximum."""
     r = np.hypot(residuals[:, 0], residuals[:, 1])
     return {"rms": float(np.sqrt(np.mean(r**2))), "max": float(np.max(r))}
 
 
-def run_workflow(columns: dict[str, np.ndarray], sensor: str, baseline: str, noise_sigma: list[float] | None,
+def run_workflow(columns: dict[str, NDArray[np.float64]], sensor: str, baseline: str, noise_sigma: list[float] | None,
                  noise_dof: float, bench: dict[str, Any] | None, bench_source: str,
                  command: str) -> tuple[dict[str, Any], str]:
     """In the worker process: the workflow of `tiltlab discrepancy` and the figures the service shows of it."""
@@ -98,7 +99,7 @@ def run_workflow(columns: dict[str, np.ndarray], sensor: str, baseline: str, noi
     return summary, page
 
 
-def fit_adopted(columns: dict[str, np.ndarray], named: list[str], sensor: str, bench: dict[str, Any],
+def fit_adopted(columns: dict[str, NDArray[np.float64]], named: list[str], sensor: str, bench: dict[str, Any],
                 bench_source: str, diagnosis: dict[str, Any]) -> dict[str, Any]:
     """In the worker process: the kinematic calibration with the named effects added, as MODEL.json."""
     from service.discrepancy.adopt import adopted_model

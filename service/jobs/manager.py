@@ -17,6 +17,7 @@ from functools import partial
 from typing import Any, TypeVar
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.bench.runtime import BenchBusy, BenchHold, BenchRuntime, DeviceNotAnswering, Hold
 from service.calibration.model import CalibrationModel
@@ -346,7 +347,7 @@ class JobManager:
 
     # ------------------------------------------------------------ a finished job's points
 
-    def fit_columns(self, job_id: int, n_fit: int) -> dict[str, np.ndarray]:
+    def fit_columns(self, job_id: int, n_fit: int) -> dict[str, NDArray[np.float64]]:
         """Blocking (database): the dataset columns of a job's first `n_fit` settled points."""
         job = self.store.get_job(job_id)
         procedure = registry.procedure_of(job.parameters)

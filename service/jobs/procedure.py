@@ -22,6 +22,7 @@ from enum import StrEnum
 from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service import __version__
 from service.bench.readings import OUTLIER_RULE
@@ -35,7 +36,7 @@ from service.storage.daemon_jobs import DaemonStore
 from service.storage.models import CalibrationJob, SettledPoint
 
 P = TypeVar("P")
-Columns = dict[str, np.ndarray]
+Columns = dict[str, NDArray[np.float64]]
 
 
 class Phase(StrEnum):

@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.bench.readings import fresh_readings, robust_mean, settle
 from service.bench.runtime import BenchRuntime, StageNotHomed
@@ -58,7 +59,7 @@ def stage_columns(points_ref: Sequence[SettledPoint], points_meas: Sequence[Sett
     meas = {p.point: p for p in points_meas}
     rows = [(r, meas[r.point]) for r in points_ref if r.point in meas]
 
-    def col(f: Callable[[SettledPoint, SettledPoint], Any]) -> np.ndarray:
+    def col(f: Callable[[SettledPoint, SettledPoint], Any]) -> NDArray[np.float64]:
         return np.array([f(r, m) for r, m in rows], dtype=float)
 
     return {
@@ -166,7 +167,7 @@ class StageGrid(PointProcedure[StagePoint]):
                 "points": [_validation_point(cols, out, i, float(err[i])) for i in range(err.size)]}
 
 
-def _validation_point(cols: Columns, out: dict[str, np.ndarray], i: int, error_deg: float) -> dict[str, Any]:
+def _validation_point(cols: Columns, out: dict[str, NDArray[np.float64]], i: int, error_deg: float) -> dict[str, Any]:
     """One validation point: the reference sensor's reading, the corrected measurement and its expanded
     uncertainty per axis (what a certificate's validation table shows), and the error's magnitude."""
     point: dict[str, Any] = {"point": int(cols["point"][i]), "stage_x_deg": float(cols["stage_x_deg"][i]),

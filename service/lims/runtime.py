@@ -17,7 +17,7 @@ class LimsRuntime:
     def __init__(self, store, settings) -> None:  # type: ignore[no-untyped-def]
         self.store, self.settings = store, settings
         self.dispatcher = Dispatcher(store, settings)
-        self._due_task: asyncio.Task | None = None
+        self._due_task: asyncio.Task[None] | None = None
 
     async def start(self) -> None:
         self.dispatcher.start()

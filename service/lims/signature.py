@@ -16,8 +16,9 @@ from pathlib import Path
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from lxml import etree
-from signxml import XMLSigner, XMLVerifier
 from signxml.exceptions import InvalidInput, InvalidSignature
+from signxml.signer import XMLSigner
+from signxml.verifier import XMLVerifier
 
 from service.lims.dcc import SIGNING_CERT_NAME
 from service.lims.dcc_schema import DCC_NS, DSIG_NS
@@ -55,7 +56,8 @@ def _parser() -> etree.XMLParser:
 
 def written(root: etree._Element) -> bytes:
     """The one byte form a signed certificate is written in: the declaration, the root, a newline."""
-    return DECLARATION + etree.tostring(root, encoding="UTF-8") + b"\n"
+    body: bytes = etree.tostring(root, encoding="UTF-8")
+    return DECLARATION + body + b"\n"
 
 
 def load_signer(key_path: str | Path, cert_path: str | Path) -> Signer:

@@ -42,7 +42,7 @@ def signed_headers(delivery: DueDelivery, body: str, now: dt.datetime) -> dict[s
 
 def retry_delay_s(attempts_done: int, base_s: float, max_s: float) -> float:
     """Exponential back-off: base, 2·base, 4·base, ... capped at max_s."""
-    return min(max_s, base_s * 2 ** max(attempts_done - 1, 0))
+    return min(max_s, base_s * 2.0 ** max(attempts_done - 1, 0))
 
 
 class Dispatcher:
@@ -51,7 +51,7 @@ class Dispatcher:
     def __init__(self, store, settings) -> None:  # type: ignore[no-untyped-def]
         self.store, self.settings = store, settings
         self.wake = asyncio.Event()
-        self._task: asyncio.Task | None = None
+        self._task: asyncio.Task[None] | None = None
 
     def start(self) -> None:
         self._task = asyncio.create_task(self.run(), name="webhook-dispatcher")

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.bench.corrected import calibration_json, corrected_tilt, in_calibrated_range, sensor_temp_c, stale_after_s
 from service.bench.runtime import SENSOR_ROLES, BenchRuntime
@@ -45,7 +46,7 @@ def utc_text(t: dt.datetime) -> str:
     return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
 
 
-def calibration_of(active: Any) -> dict | None:
+def calibration_of(active: Any) -> dict[str, Any] | None:
     """The record a message's corrected tilt comes from, with its status (None: no active record)."""
     return calibration_json(active)
 
@@ -69,7 +70,7 @@ class HistoryRing:
     def __len__(self) -> int:
         return min(self._n, self.capacity)
 
-    def since(self, bench_s: float) -> np.ndarray:
+    def since(self, bench_s: float) -> NDArray[np.float64]:
         """Rows stamped at or after `bench_s`, oldest first."""
         n = len(self)
         if n == 0:
@@ -87,9 +88,9 @@ def due(t: float, next_t: float, period: float, eps: float) -> float | None:
     return next_t + period if next_t + period > t else t + period
 
 
-def history_objects(rows: np.ndarray, rate_hz: float, eps: float) -> list[dict]:
+def history_objects(rows: NDArray[np.float64], rate_hz: float, eps: float) -> list[dict[str, Any]]:
     """Reading-shaped objects (no seq) of history rows, decimated to at most `rate_hz` (bench time)."""
-    out: list[dict] = []
+    out: list[dict[str, Any]] = []
     next_t = -math.inf
     period = 1.0 / rate_hz
     for r in rows:
@@ -101,11 +102,11 @@ def history_objects(rows: np.ndarray, rate_hz: float, eps: float) -> list[dict]:
     return out
 
 
-def _row_object(r: np.ndarray) -> dict:
+def _row_object(r: NDArray[np.float64]) -> dict[str, Any]:
     def c(name: str) -> float | None:
         return _num(r[_C[name]])
 
-    def pair(a: str, b: str) -> dict | None:
+    def pair(a: str, b: str) -> dict[str, Any] | None:
         return None if math.isnan(r[_C[a]]) else {"x_deg": c(a), "y_deg": c(b)}
 
     return {"time_utc": utc_text(dt.datetime.fromtimestamp(r[_C["epoch"]], dt.UTC)), "type": "reading",
@@ -155,8 +156,8 @@ class ReadingProducer:
         self.clients: set[Client] = set()
         self.dropped_total = 0  # messages dropped for slow clients since start (the daemon's metrics)
         self.messages = 0
-        self._latest: dict | None = None  # the last message built (without seq)
-        self._task: asyncio.Task | None = None
+        self._latest: dict[str, Any] | None = None  # the last message built (without seq)
+        self._task: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------ life
 
@@ -173,7 +174,7 @@ class ReadingProducer:
                 await task
 
     @property
-    def latest_message(self) -> dict | None:
+    def latest_message(self) -> dict[str, Any] | None:
         """The newest reading message built (without seq), the one the fleet publishes."""
         return self._latest
 
@@ -197,7 +198,7 @@ class ReadingProducer:
     def disconnect(self, client: Client) -> None:
         self.clients.discard(client)
 
-    def snapshot(self, rate_hz: float, history_s: float) -> dict:
+    def snapshot(self, rate_hz: float, history_s: float) -> dict[str, Any]:
         latest = self._latest or self._build(self.bench.clock.monotonic())[0]
         active = self._active_of()
         rows = self.history.since(self.bench.clock.monotonic() - history_s)
@@ -269,7 +270,7 @@ class ReadingProducer:
             c.kick(CLOSE_SLOW, f"too slow: every message dropped for {self.slow_close_s:g} s")
             self.clients.discard(c)
 
-    def _build(self, now_bench_s: float) -> tuple[dict, list[float]]:
+    def _build(self, now_bench_s: float) -> tuple[dict[str, Any], list[float]]:
         bench = self.bench
         clock = bench.clock
         limit = clock.bench_seconds(stale_after_s(bench, self.role)) if self.role else math.inf  # GET /tilt's rule
@@ -289,14 +290,20 @@ class ReadingProducer:
         temp = sensor_temp_c(meas, ref)
         when = meas.time_utc if meas is not None else clock.utc()
         t_bench = meas.bench_s if meas is not None else now_bench_s
-        pair = lambda r: None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}  # noqa: E731
+
+        def pair(r: Reading | None) -> dict[str, float | None] | None:
+            return None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}
+
         in_range = in_calibrated_range(active, table)
         msg = {"time_utc": utc_text(when), "type": "reading",
                "raw": {"measurement_sensor": pair(meas), "reference_sensor": pair(ref)},
                "table_tilt": table, "in_calibrated_range": in_range, "stage": stage, "temp_c": temp,
                "calibration": calibration_of(active)}  # an activation shows with the next reading
         nan = math.nan
-        f = lambda v: nan if v is None else float(v)  # noqa: E731
+
+        def f(v: float | None) -> float:
+            return nan if v is None else float(v)
+
         row = [t_bench, when.timestamp(),
                f(meas.x_deg if meas else None), f(meas.y_deg if meas else None),
                f(ref.x_deg if ref else None), f(ref.y_deg if ref else None),
