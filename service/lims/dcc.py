@@ -125,11 +125,13 @@ def _identifications(parent: ET.Element, ids: Sequence[Identification], lang: st
         _text(e, "name", i.name, lang)
 
 
-def _check_mu(u: float, k: float | None, p: float | None, what: str) -> None:
+def _check_mu(u: float, k: float | None, p: float | None, what: str) -> tuple[float, float]:
+    """The coverage factor and probability of an expanded uncertainty, checked."""
     if k is None or p is None:
         raise InvalidCertificate(f"{what}: an expanded uncertainty needs its coverage factor and probability")
     if not (u >= 0 and k >= 1 and 0 < p <= 1):
         raise InvalidCertificate(f"{what}: U={u}, k={k}, p={p}: U >= 0, k >= 1 and 0 < p <= 1 are needed")
+    return k, p
 
 
 def _quantity(parent: ET.Element, v: Value, lang: str) -> None:
@@ -143,14 +145,14 @@ def _quantity(parent: ET.Element, v: Value, lang: str) -> None:
         _el(real, "value", plain(v.value, v.label), ns=SI_NS)
         _el(real, "unit", dsi_unit(v.unit), ns=SI_NS)
         return
-    _check_mu(v.expanded_u, v.k, v.probability, v.label)
+    k, p = _check_mu(v.expanded_u, v.k, v.probability, v.label)
     value, u, _ = gum_pair(v.value, v.expanded_u, v.label)
     _el(real, "value", value, ns=SI_NS)
     _el(real, "unit", dsi_unit(v.unit), ns=SI_NS)
     mu = _el(_el(real, "measurementUncertaintyUnivariate", ns=SI_NS), "expandedMU", ns=SI_NS)
     _el(mu, "valueExpandedMU", u, ns=SI_NS)
-    _el(mu, "coverageFactor", factor(v.k, v.label), ns=SI_NS)  # type: ignore[arg-type]
-    _el(mu, "coverageProbability", plain(v.probability, v.label), ns=SI_NS)  # type: ignore[arg-type]
+    _el(mu, "coverageFactor", factor(k, v.label), ns=SI_NS)
+    _el(mu, "coverageProbability", plain(p, v.label), ns=SI_NS)
     if v.distribution:
         _el(mu, "distribution", v.distribution, ns=SI_NS)
 

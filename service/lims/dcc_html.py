@@ -6,6 +6,7 @@ import html
 import math
 import re
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 
 from service.lims.dcc_schema import DCC_NS, SI_NS
 
@@ -140,7 +141,7 @@ def _real_text(real: ET.Element | None) -> str:
     return text
 
 
-def _table(w, title: str, rows: list[tuple[str, str]]) -> None:  # type: ignore[no-untyped-def]
+def _table(w: Callable[[str], None], title: str, rows: list[tuple[str, str]]) -> None:
     rows = [(k, v) for k, v in rows if v and v.strip(" —")]
     if not rows:
         return
@@ -150,7 +151,7 @@ def _table(w, title: str, rows: list[tuple[str, str]]) -> None:  # type: ignore[
     w("</table>")
 
 
-def _render_result(w, r: ET.Element) -> None:  # type: ignore[no-untyped-def]
+def _render_result(w: Callable[[str], None], r: ET.Element) -> None:
     esc = html.escape
     w(f"<h3>{esc(_t(r, 'dcc:name/dcc:content'))}</h3>")
     desc = _t(r, "dcc:description/dcc:content")
@@ -193,7 +194,7 @@ def _render_result(w, r: ET.Element) -> None:  # type: ignore[no-untyped-def]
                 _render_correlations(w, q)
 
 
-def _render_correlations(w, q: ET.Element) -> None:  # type: ignore[no-untyped-def]
+def _render_correlations(w: Callable[[str], None], q: ET.Element) -> None:
     """The parameters' covariance as correlation coefficients (what a reader looks for first)."""
     esc = html.escape
     xl = q.find("si:realListXMLList", _NS)
