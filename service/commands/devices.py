@@ -15,7 +15,8 @@ from service.commands._args import add_command
 
 if TYPE_CHECKING:  # the bench and its drivers are imported when the command runs, not by --help
     from service.clock import Clock
-    from service.instruments.bench_config import PortRole
+    from service.instruments.bench_config import BenchConfig, PortRole
+    from service.instruments.wiring import RoleDriver
 
 EXPECTED = {
     "reference_sensor": "a 0x68 binary inclinometer",
@@ -41,26 +42,31 @@ def expected(role: str, spec: PortRole) -> str:
     return what
 
 
-async def _probe(role: str, driver) -> str:
-    """What answered, in words; raises DeviceError with the reason otherwise."""
-    from service.instruments.drivers import StageController
+async def _probe(role: str, driver: RoleDriver) -> str:
+    """What answered, in words; raises DeviceError with the reason otherwise.
+
+    Each role has its family's driver (service.instruments.wiring.make_driver): the stage its
+    controller, the rotary table one axis, the triaxial module, the binary inclinometers, the
+    RS-485 inclinometer, the ADC.
+    """
+    from service.instruments.drivers import BinaryInclinometer, ControllerAxis, Rs485Inclinometer, StageController, TriaxialModule
 
     if isinstance(driver, StageController):
         ident = await driver.x.identify()
         await driver.y.position_pulses()
         return (f"{ident.model} serial {ident.serial}, axes 1 and 2 at {await driver.x.position_deg():.4f}, "
                 f"{await driver.y.position_deg():.4f} deg")
-    if role == "rotary_table":
+    if isinstance(driver, ControllerAxis):
         ident = await driver.identify()
         return f"{ident.model} serial {ident.serial}, axis {driver.axis} at {await driver.position_deg():.3f} deg"
-    if role == "triaxial_sensor":
+    if isinstance(driver, TriaxialModule):
         r = await driver.read_sines()
         return f"triaxial module at address 0x{driver.address:02X}: sines {r.sx:+.6f} {r.sy:+.6f} {r.sz:+.6f} g"
-    if role in ("reference_sensor", "measurement_sensor"):
+    if isinstance(driver, BinaryInclinometer):
         r = await driver.read_tilt()
         return f"binary inclinometer at address 0x{driver.address:02X}: x {r.x_deg:+.4f} y {r.y_deg:+.4f} deg"
     ident = await driver.identify()
-    if role == "turntable_sensor":
+    if isinstance(driver, Rs485Inclinometer):
         r = await driver.read_tilt()
         return (f"{ident.model} serial {ident.serial} firmware {ident.firmware} at address {driver.address:02X}: "
                 f"x {r.x_deg:+.5f} y {r.y_deg:+.5f} deg")
@@ -68,7 +74,7 @@ async def _probe(role: str, driver) -> str:
     return f"{ident.model} serial {ident.serial}: {r.counts:.0f} counts"
 
 
-def _why(role: str, spec: PortRole, driver) -> str:
+def _why(role: str, spec: PortRole, driver: RoleDriver) -> str:
     from service.instruments.bench_config import BinaryInclinometerRole, Rs485InclinometerRole
     from service.instruments.drivers import StageController
 
@@ -88,7 +94,7 @@ def _why(role: str, spec: PortRole, driver) -> str:
     return f"no answer within {spec.timeout_s:g} s"
 
 
-async def probe_bench(config, clock: Clock) -> list[tuple[str, str, bool, str]]:
+async def probe_bench(config: BenchConfig, clock: Clock) -> list[tuple[str, str, bool, str]]:
     """(role, port, answered, what answered or why not) for every role."""
     import asyncio
 
