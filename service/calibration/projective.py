@@ -32,7 +32,7 @@ def _normaliser(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, 
     return s, cx, cy
 
 
-def _distinct_and_spread(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _distinct_and_spread(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
     """Per row of x, y (k x n): the number of distinct points (to 1e-9), and whether they are clearly
     spread in two directions (the 2 x 2 scatter's determinant far from zero)."""
     z = np.sort(np.round(x, 9) + 1j * np.round(y, 9), axis=-1)

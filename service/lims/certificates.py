@@ -7,7 +7,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from service import __version__
 from service.lims import dcc
@@ -16,6 +16,10 @@ from service.storage.canonical import sha256_hex
 from service.storage.errors import UnknownEntity
 from service.storage.models import CalibrationRecord, Certificate
 from service.storage.store.hashing import record_content
+
+if TYPE_CHECKING:  # the signing libraries are loaded when a certificate is signed
+    from service.config import Settings
+    from service.lims.signature import Signer
 
 
 class NotApproved(Exception):
@@ -30,7 +34,7 @@ class IntegrityFailure(Exception):
     """Stored certificate bytes no longer match their SHA-256 (or the record its hash)."""
 
 
-def laboratory(settings) -> Laboratory:  # type: ignore[no-untyped-def]
+def laboratory(settings: Settings) -> Laboratory:
     missing = [f"TILTLAB_{n.upper()}" for n in ("lab_name", "lab_city", "lab_country_code") if not getattr(settings, n)]
     if missing:
         raise NotConfigured(f"certificates name the laboratory: set {', '.join(missing)} (see docs/lims.md)")
@@ -40,7 +44,7 @@ def laboratory(settings) -> Laboratory:  # type: ignore[no-untyped-def]
                       certificate_prefix=settings.certificate_prefix)  # fmt: skip
 
 
-def signer(settings):  # type: ignore[no-untyped-def]
+def signer(settings: Settings) -> Signer | None:
     """The lab's certificate signer, None when it signs none; NotConfigured when half or wrongly configured."""
     key, cert = settings.certificate_signing_key, settings.certificate_signing_cert
     if not key and not cert:
