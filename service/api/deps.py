@@ -1,7 +1,9 @@
 """What routes are given rather than fetch: settings, the store, benches, the job manager, the streams
 and the webhook dispatcher, each as an `Annotated[..., Depends(...)]` type. The application's lifespan
 puts them on `app.state`; only this module reads it (routes, tests and other apps stay decoupled from
-where they live). The caller (token and scope) comes from service.api.auth: Reader, Operator, Admin."""
+where they live). The caller (token and scope) comes from service.api.auth: Reader, Operator, Admin.
+Each is an `async def`: FastAPI runs a plain `def` dependency in its thread pool, a thread hop per
+dependency per request for what is an attribute read."""
 
 from __future__ import annotations
 
@@ -27,36 +29,36 @@ from service.storage.outage import DatabaseState
 from service.streams.readings import StreamHub
 
 
-def get_settings(conn: HTTPConnection) -> Settings:
+async def get_settings(conn: HTTPConnection) -> Settings:
     return cast(Settings, conn.app.state.settings)
 
 
-def get_engine(conn: HTTPConnection) -> sa.Engine:
+async def get_engine(conn: HTTPConnection) -> sa.Engine:
     return cast(sa.Engine, conn.app.state.engine)
 
 
-def get_store(conn: HTTPConnection) -> DaemonStore:
+async def get_store(conn: HTTPConnection) -> DaemonStore:
     return cast(DaemonStore, conn.app.state.store)
 
 
-def get_benches(conn: HTTPConnection) -> dict[str, BenchRuntime]:
+async def get_benches(conn: HTTPConnection) -> dict[str, BenchRuntime]:
     return cast(dict[str, BenchRuntime], conn.app.state.benches)
 
 
-def get_jobs(conn: HTTPConnection) -> JobManager:
+async def get_jobs(conn: HTTPConnection) -> JobManager:
     return cast(JobManager, conn.app.state.jobs)
 
 
-def get_jobs_if_any(conn: HTTPConnection) -> JobManager | None:
+async def get_jobs_if_any(conn: HTTPConnection) -> JobManager | None:
     """The job manager, None in an application that runs no benches (the LIMS routes alone)."""
     return cast(JobManager | None, getattr(conn.app.state, "jobs", None))
 
 
-def get_streams(conn: HTTPConnection) -> StreamHub:
+async def get_streams(conn: HTTPConnection) -> StreamHub:
     return cast(StreamHub, conn.app.state.streams)
 
 
-def get_schema_revision(conn: HTTPConnection) -> SchemaRevision:
+async def get_schema_revision(conn: HTTPConnection) -> SchemaRevision:
     """The application's one SchemaRevision (made on first use where the lifespan made none)."""
     rev = getattr(conn.app.state, "schema_revision", None)
     if not isinstance(rev, SchemaRevision):
@@ -64,29 +66,29 @@ def get_schema_revision(conn: HTTPConnection) -> SchemaRevision:
     return rev
 
 
-def get_database(conn: HTTPConnection) -> DatabaseState:
+async def get_database(conn: HTTPConnection) -> DatabaseState:
     """Whether the database answers, as the daemon last found it (one per application)."""
     state = getattr(conn.app.state, "database", None)
     if not isinstance(state, DatabaseState):
-        state = conn.app.state.database = DatabaseState(redacted(get_engine(conn).url))
+        state = conn.app.state.database = DatabaseState(redacted(cast(sa.Engine, conn.app.state.engine).url))
     return state
 
 
-def get_fleet(conn: HTTPConnection) -> Fleet | None:
+async def get_fleet(conn: HTTPConnection) -> Fleet | None:
     """This daemon's membership of the fleet; None when it runs alone."""
     return cast(Fleet | None, getattr(conn.app.state, "fleet", None))
 
 
-def get_token_cache(conn: HTTPConnection) -> TokenCache | None:
+async def get_token_cache(conn: HTTPConnection) -> TokenCache | None:
     """The cache of recently seen tokens, cleared when one is revoked."""
     return cast(TokenCache | None, getattr(conn.app.state, "token_cache", None))
 
 
-def get_diagnoses(conn: HTTPConnection) -> DiagnosisRunner:
+async def get_diagnoses(conn: HTTPConnection) -> DiagnosisRunner:
     return cast(DiagnosisRunner, conn.app.state.diagnoses)
 
 
-def get_webhooks(conn: HTTPConnection) -> Dispatcher | None:
+async def get_webhooks(conn: HTTPConnection) -> Dispatcher | None:
     """The webhook dispatcher, None where the application runs none."""
     return cast(Dispatcher | None, getattr(conn.app.state, "webhooks", None))
 
@@ -119,7 +121,7 @@ def find_bench(benches: dict[str, BenchRuntime], name: str | None, field: str = 
     return benches[name]
 
 
-def bench_from_query(benches: BenchesDep,
+async def bench_from_query(benches: BenchesDep,
                      bench: Annotated[str | None, Query(max_length=100, description="bench name; may be left out when"
                                                         " the daemon runs a single bench")] = None) -> BenchRuntime:
     return find_bench(benches, bench)
@@ -135,27 +137,27 @@ def _known_range(value: int, what: str) -> int:
     return value
 
 
-def _job_id(job_id: Annotated[int, Path(description="the job's id")]) -> int:
+async def _job_id(job_id: Annotated[int, Path(description="the job's id")]) -> int:
     return _known_range(job_id, "calibration job")
 
 
-def _record_id(record_id: Annotated[int, Path(description="the record's id")]) -> int:
+async def _record_id(record_id: Annotated[int, Path(description="the record's id")]) -> int:
     return _known_range(record_id, "calibration record")
 
 
-def _standard_id(standard_id: Annotated[int, Path(description="the reference standard's id")]) -> int:
+async def _standard_id(standard_id: Annotated[int, Path(description="the reference standard's id")]) -> int:
     return _known_range(standard_id, "reference standard")
 
 
-def _order_id(order_id: Annotated[int, Path(description="the order's id")]) -> int:
+async def _order_id(order_id: Annotated[int, Path(description="the order's id")]) -> int:
     return _known_range(order_id, "order")
 
 
-def _diagnosis_id(diagnosis_id: Annotated[int, Path(description="the diagnosis's id")]) -> int:
+async def _diagnosis_id(diagnosis_id: Annotated[int, Path(description="the diagnosis's id")]) -> int:
     return _known_range(diagnosis_id, "diagnosis")
 
 
-def _webhook_id(webhook_id: Annotated[int, Path(description="the webhook's id")]) -> int:
+async def _webhook_id(webhook_id: Annotated[int, Path(description="the webhook's id")]) -> int:
     return _known_range(webhook_id, "webhook")
 
 

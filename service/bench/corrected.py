@@ -6,6 +6,7 @@ One place for each, used by both, so they serve the same numbers by the same rul
 
 from __future__ import annotations
 
+import weakref
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -62,6 +63,22 @@ def corrected_tilt(active: Any, meas: Reading) -> dict[str, Any]:
     return {"x_deg": float(out["tilt_x_deg"][0]), "y_deg": float(out["tilt_y_deg"][0]),
             "u_x_deg": expanded["x"], "u_y_deg": expanded["y"], "k": factors["x"], "k_y": factors["y"],
             "coverage_probability": COVERAGE}
+
+
+# Per bench: the last reading corrected, the record it went through and the result.
+_LAST_CORRECTED: weakref.WeakKeyDictionary[BenchRuntime, tuple[Reading, Any, dict[str, Any]]] = weakref.WeakKeyDictionary()
+
+
+def corrected_once(bench: BenchRuntime, active: Any, meas: Reading) -> dict[str, Any]:
+    """`corrected_tilt` of the bench's reading, computed once per new reading (or newly active record):
+    the sensor sends tens of readings a second, `GET /tilt` and the stream may ask thousands of times.
+    The answer is shared between callers; nobody changes it."""
+    last = _LAST_CORRECTED.get(bench)
+    if last is not None and last[0] is meas and last[1] is active:
+        return last[2]
+    table = corrected_tilt(active, meas)
+    _LAST_CORRECTED[bench] = (meas, active, table)
+    return table
 
 
 def in_calibrated_range(active: Any, table: dict[str, Any] | None) -> bool | None:

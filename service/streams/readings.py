@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.bench.corrected import calibration_json, corrected_tilt, in_calibrated_range, sensor_temp_c, stale_after_s
+from service.bench.corrected import calibration_json, corrected_once, in_calibrated_range, sensor_temp_c, stale_after_s
 from service.bench.runtime import SENSOR_ROLES, BenchRuntime
 from service.instruments.base import Reading
 
@@ -283,7 +283,7 @@ class ReadingProducer:
 
         meas, ref = fresh("measurement_sensor"), fresh("reference_sensor")
         active = self._active_of()
-        table = corrected_tilt(active, meas) if meas is not None and active is not None and \
+        table = corrected_once(bench, active, meas) if meas is not None and active is not None and \
             bench.kind == "stage" else None
         pose = bench.pose
         stage = {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None

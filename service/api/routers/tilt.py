@@ -6,6 +6,7 @@ import datetime as dt
 from typing import Any
 
 from fastapi import APIRouter
+from fastapi.responses import Response
 
 from service.api.auth import Reader
 from service.api.deps import BenchQuery, JobsDep
@@ -14,7 +15,7 @@ from service.api.models.tilt import Tilt
 from service.bench.corrected import (
     calibrated_range_note,
     calibration_json,
-    corrected_tilt,
+    corrected_once,
     in_calibrated_range,
     sensor_temp_c,
     stale_after_s,
@@ -28,7 +29,7 @@ def _pair(r: Any) -> dict[str, float] | None:
 
 
 @router.get("/tilt", response_model=Tilt, responses=problem_responses(*READ, 404))
-async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader) -> Tilt:
+async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader) -> Response:
     """Table tilt: the measurement sensor's latest reading through the active record, in the reference
     sensor's frame, with its expanded uncertainty (GUM, 95 %; coverage factors k, k_y from the effective degrees of
     freedom) from the record's covariance; null with
@@ -43,6 +44,7 @@ async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader) -> Tilt:
     age_s = stale = None
     notes: list[str] = []
     table = None
+    in_range = None
     if bench.kind != "stage":
         notes.append(f"{bench.name} is a {bench.kind} bench: table tilt is served for stage benches")
     elif meas is None:
@@ -60,18 +62,21 @@ async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader) -> Tilt:
             notes.append("no active calibration record: raw readings only (POST /records/{id}/activate)"
                          + (f"; {why}" if why else ""))
         elif not stale:
-            table = corrected_tilt(active, meas)
+            table = corrected_once(bench, active, meas)
             notes.append(f"corrected through record {active.record_id} v{active.version} ({active.method_name},"
                          f" {active.status})")
-            if in_calibrated_range(active, table) is False:
+            in_range = in_calibrated_range(active, table)
+            if in_range is False:
                 notes.append(calibrated_range_note(active, table))
     pose = bench.pose
-    return Tilt.model_validate({
+    body = Tilt.model_validate({
         "bench": bench.name, "time_utc": meas.time_utc if meas else now, "age_s": age_s, "stale": stale,
         "table_tilt": table,
         "raw": {"measurement_sensor": _pair(meas), "reference_sensor": _pair(ref)},
         "temp_c": sensor_temp_c(meas, ref),
         "stage": {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None,
         "calibration": calibration_json(active),
-        "in_calibrated_range": in_calibrated_range(active, table),
+        "in_calibrated_range": in_range,
         "note": "; ".join(notes)})
+    # serialised here, once, by the model's own serialiser (the route's response model documents it)
+    return Response(body.model_dump_json().encode(), media_type="application/json")
