@@ -52,7 +52,7 @@ def fresh_db(directory: Path, name: str) -> tuple[Path, sa.Engine]:
     upgrade(engine)
     store = Store(engine)
     for d in range(DEVICES):
-        store.add_device("NS-25/E2", f"BENCH{d}", "dut", actor="bench")
+        store.devices.add_device("NS-25/E2", f"BENCH{d}", "dut", actor="bench")
     return path, engine
 
 
@@ -219,7 +219,7 @@ def bench_postgres(url: str, n: int, batch: int) -> None:
         upgrade(engine)
         store = Store(engine)
         for d in range(DEVICES):
-            store.add_device("NS-25/E2", f"BENCH{d}", "dut", actor="bench")
+            store.devices.add_device("NS-25/E2", f"BENCH{d}", "dut", actor="bench")
         rows = make_samples(n)
         elapsed = storage_bulk(engine, rows, batch)
         with engine.begin() as conn:

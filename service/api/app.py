@@ -48,11 +48,12 @@ from service.jobs.manager import JobManager
 from service.jobs.points import writes_in_flight
 from service.jobs.requests import RequestProblem
 from service.lims.runtime import LimsRuntime
-from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
 from service.storage.engine import normalise_url, redacted
 from service.storage.errors import ConflictError
 from service.storage.migrate import bootstrap
 from service.storage.outage import DatabaseOutage, DatabaseState, unreachable
+from service.storage.store import Store
+from service.storage.store.jobs import IdempotencyMismatch
 from service.streams.readings import StreamHub
 
 log = logging.getLogger("tiltlab")
@@ -101,20 +102,20 @@ def dashboard_url(s: Settings) -> str:
     return f"http://{'127.0.0.1' if host in ('0.0.0.0', '[::]') else host}:{s.port}/"
 
 
-async def _register(store: DaemonStore, bench: BenchRuntime) -> None:
+async def _register(store: Store, bench: BenchRuntime) -> None:
     """Benches and identified instruments get their rows (records and jobs refer to them)."""
-    row = store.ensure_bench(bench.name, actor="daemon")
+    row = store.devices.ensure_bench(bench.name, actor="daemon")
     bench.bench_id = row.id
     for role, ident in bench.identities.items():
         serial = ident.serial
         if serial.startswith("address "):  # no serial of its own: the instrument is known by bench, role, address
             serial = f"{bench.name}.{role} ({serial.split(' on ')[0]})"
-        dev = store.find_device(ident.model, serial)
+        dev = store.devices.find_device(ident.model, serial)
         if dev is None:
-            dev = store.add_device(ident.model, serial, role, actor="daemon", bench_id=row.id,
-                                   port=bench.port_of(role))
+            dev = store.devices.add_device(ident.model, serial, role, actor="daemon", bench_id=row.id,
+                                           port=bench.port_of(role))
         elif dev.bench_id != row.id or dev.port != bench.port_of(role) or dev.role != role:
-            dev = store.update_device(dev.id, actor="daemon", bench_id=row.id, port=bench.port_of(role), role=role)
+            dev = store.devices.update_device(dev.id, actor="daemon", bench_id=row.id, port=bench.port_of(role), role=role)
         bench.device_ids[role] = dev.id
 
 
@@ -132,19 +133,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.settings = s
         app.state.engine = engine = bootstrap(s)  # brings the database to the current schema
-        store = app.state.store = DaemonStore(engine)
+        store = app.state.store = Store(engine)
         app.state.token_cache = TokenCache()
         database = app.state.database = DatabaseState(redacted(engine.url), s.db_outage_s)
         # /health and /ready ask the database at most once a second (and so notice it going away)
         app.state.schema_revision = SchemaRevision(database=database)
-        left = store.mark_interrupted(actor="daemon")
+        left = store.jobs.mark_interrupted(actor="daemon")
         if left:
             log.warning("jobs %s were left unfinished by the previous run: marked interrupted (resumable)", left)
-        lost = store.mark_diagnoses_interrupted(actor="daemon")
+        lost = store.diagnoses.mark_diagnoses_interrupted(actor="daemon")
         if lost:
             log.warning("diagnoses %s were left unfinished by the previous run: marked failed", lost)
-        if s.auth == "token" and not store.has_tokens():
-            _, token = store.create_token("admin", "admin", actor="daemon first start")
+        if s.auth == "token" and not store.tokens.has_tokens():
+            _, token = store.tokens.create_token("admin", "admin", actor="daemon first start")
             path = write_admin_token(s.data_dir, token)
             print(f"tiltlab: first start: admin token written to {path} (mode 0600)\n"
                   f"tiltlab: dashboard: {dashboard_url(s)}#token={token}", file=sys.stderr, flush=True)

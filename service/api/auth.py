@@ -54,7 +54,7 @@ def _principal(app: Any, token: str | None) -> Principal:
     cache = getattr(app.state, "token_cache", None)
     if cache is None:
         cache = app.state.token_cache = TokenCache()
-    principal = cache.lookup(token, app.state.store.authenticate)
+    principal = cache.lookup(token, app.state.store.tokens.authenticate)
     if principal is None:
         raise ProblemError(401, "Unauthorized", "the token is unknown or revoked",
                            headers={"WWW-Authenticate": 'Bearer realm="tiltlab", error="invalid_token"'})

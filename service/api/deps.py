@@ -1,5 +1,5 @@
-"""What routes are given rather than fetch: settings, the store, benches, the job manager, the streams
-and the webhook dispatcher, each as an `Annotated[..., Depends(...)]` type. The application's lifespan
+"""What routes are given rather than fetch: settings, the store's repositories, benches, the job manager,
+the streams and the webhook dispatcher, each as an `Annotated[..., Depends(...)]` type. The application's lifespan
 puts them on `app.state`; only this module reads it (routes, tests and other apps stay decoupled from
 where they live). The caller (token and scope) comes from service.api.auth: Reader, Operator, Admin.
 Each is an `async def`: FastAPI runs a plain `def` dependency in its thread pool, a thread hop per
@@ -23,9 +23,24 @@ from service.jobs.diagnosis import DiagnosisRunner
 from service.jobs.manager import JobManager
 from service.jobs.requests import DB_ID_MAX
 from service.lims.webhooks import Dispatcher
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.engine import redacted
 from service.storage.outage import DatabaseState
+from service.storage.store import (
+    ApprovalsRepo,
+    AuditRepo,
+    CertificatesRepo,
+    DevicesRepo,
+    DiagnosesRepo,
+    FeedRepo,
+    JobsRepo,
+    OrdersRepo,
+    PointsRepo,
+    RecordsRepo,
+    StandardsRepo,
+    Store,
+    TokensRepo,
+    WebhooksRepo,
+)
 from service.streams.readings import StreamHub
 
 
@@ -37,8 +52,8 @@ async def get_engine(conn: HTTPConnection) -> sa.Engine:
     return cast(sa.Engine, conn.app.state.engine)
 
 
-async def get_store(conn: HTTPConnection) -> DaemonStore:
-    return cast(DaemonStore, conn.app.state.store)
+async def get_store(conn: HTTPConnection) -> Store:
+    return cast(Store, conn.app.state.store)
 
 
 async def get_benches(conn: HTTPConnection) -> dict[str, BenchRuntime]:
@@ -95,7 +110,75 @@ async def get_webhooks(conn: HTTPConnection) -> Dispatcher | None:
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 EngineDep = Annotated[sa.Engine, Depends(get_engine)]
-StoreDep = Annotated[DaemonStore, Depends(get_store)]
+StoreDep = Annotated[Store, Depends(get_store)]
+
+
+# One repository per aggregate, for a route that needs that one.
+async def get_devices_repo(store: StoreDep) -> DevicesRepo:
+    return store.devices
+
+
+async def get_jobs_repo(store: StoreDep) -> JobsRepo:
+    return store.jobs
+
+
+async def get_points_repo(store: StoreDep) -> PointsRepo:
+    return store.points
+
+
+async def get_records_repo(store: StoreDep) -> RecordsRepo:
+    return store.records
+
+
+async def get_audit_repo(store: StoreDep) -> AuditRepo:
+    return store.audit
+
+
+async def get_tokens_repo(store: StoreDep) -> TokensRepo:
+    return store.tokens
+
+
+async def get_diagnoses_repo(store: StoreDep) -> DiagnosesRepo:
+    return store.diagnoses
+
+
+async def get_standards_repo(store: StoreDep) -> StandardsRepo:
+    return store.standards
+
+
+async def get_approvals_repo(store: StoreDep) -> ApprovalsRepo:
+    return store.approvals
+
+
+async def get_certificates_repo(store: StoreDep) -> CertificatesRepo:
+    return store.certificates
+
+
+async def get_orders_repo(store: StoreDep) -> OrdersRepo:
+    return store.orders
+
+
+async def get_feed_repo(store: StoreDep) -> FeedRepo:
+    return store.feed
+
+
+async def get_webhooks_repo(store: StoreDep) -> WebhooksRepo:
+    return store.webhooks
+
+
+DevicesRepoDep = Annotated[DevicesRepo, Depends(get_devices_repo)]
+JobsRepoDep = Annotated[JobsRepo, Depends(get_jobs_repo)]
+PointsRepoDep = Annotated[PointsRepo, Depends(get_points_repo)]
+RecordsRepoDep = Annotated[RecordsRepo, Depends(get_records_repo)]
+AuditRepoDep = Annotated[AuditRepo, Depends(get_audit_repo)]
+TokensRepoDep = Annotated[TokensRepo, Depends(get_tokens_repo)]
+DiagnosesRepoDep = Annotated[DiagnosesRepo, Depends(get_diagnoses_repo)]
+StandardsRepoDep = Annotated[StandardsRepo, Depends(get_standards_repo)]
+ApprovalsRepoDep = Annotated[ApprovalsRepo, Depends(get_approvals_repo)]
+CertificatesRepoDep = Annotated[CertificatesRepo, Depends(get_certificates_repo)]
+OrdersRepoDep = Annotated[OrdersRepo, Depends(get_orders_repo)]
+FeedRepoDep = Annotated[FeedRepo, Depends(get_feed_repo)]
+WebhooksRepoDep = Annotated[WebhooksRepo, Depends(get_webhooks_repo)]
 BenchesDep = Annotated[dict[str, BenchRuntime], Depends(get_benches)]
 JobsDep = Annotated[JobManager, Depends(get_jobs)]
 JobsIfAnyDep = Annotated[JobManager | None, Depends(get_jobs_if_any)]

@@ -17,24 +17,24 @@ def operator_name() -> str:
 def run(args: argparse.Namespace) -> int:
     from service.config import get_settings
     from service.storage.migrate import bootstrap
-    from service.storage.tokens import TokenStore
+    from service.storage.store import Database, TokensRepo
 
     engine = bootstrap(get_settings())
-    store = TokenStore(engine)
+    tokens = TokensRepo(Database(engine))
     try:
         if args.token_command == "create":
-            row, token = store.create_token(args.name, args.scopes, actor=operator_name())
+            row, token = tokens.create_token(args.name, args.scopes, actor=operator_name())
             print(token)
             print(f"token {row.name!r} ({', '.join(row.scopes)}) created; it is shown only now", file=sys.stderr)
         elif args.token_command == "list":
-            rows = store.tokens(include_revoked=args.all)
+            rows = tokens.all(include_revoked=args.all)
             for r in rows:
                 state = f"revoked {r.revoked_at:%Y-%m-%dT%H:%M:%SZ}" if r.revoked_at else "active"
                 print(f"{r.name}\t{','.join(r.scopes)}\tcreated {r.created_at:%Y-%m-%dT%H:%M:%SZ} by {r.created_by}\t{state}")
             if not rows:
                 print("no tokens", file=sys.stderr)
         else:
-            store.revoke_token(args.name, actor=operator_name())
+            tokens.revoke_token(args.name, actor=operator_name())
             print(f"token {args.name!r} revoked", file=sys.stderr)
         return 0
     finally:

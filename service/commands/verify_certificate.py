@@ -35,9 +35,9 @@ def run(args: argparse.Namespace) -> int:
     from service.config import get_settings
     from service.lims.certificates import verify_certificate
     from service.storage.backup import database_exists, sqlite_path
-    from service.storage.daemon_jobs import DaemonStore
     from service.storage.engine import make_engine, redacted
     from service.storage.migrate import current_revision
+    from service.storage.store import Store
 
     path = Path(args.file)
     try:
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         if current_revision(engine) is None:
             engine.dispose()
             raise InputError(f"{where}: no schema yet; use --offline to check only the schema")
-        store = DaemonStore(engine)
+        store = Store(engine)
     try:
         report = verify_certificate(xml, store, trusted)
     finally:

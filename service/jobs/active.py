@@ -15,9 +15,9 @@ from service.bench.runtime import BenchRuntime
 from service.calibration.model import CalibrationModel, stored_table_tilt_range, table_tilt_range
 from service.calibration.registry import Method, get_method
 from service.jobs.state import DAEMON
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.errors import ConflictError, UnknownEntity
 from service.storage.models import CalibrationRecord
+from service.storage.store import ApprovalsRepo, RecordsRepo
 
 log = logging.getLogger("tiltlab.jobs")
 
@@ -35,26 +35,26 @@ class ActiveModel:
     table_tilt_range_deg: dict[str, list[float]] | None = None
 
 
-def load_active(store: DaemonStore, bench: BenchRuntime,
+def load_active(records: RecordsRepo, approvals: ApprovalsRepo, bench: BenchRuntime,
                 fit_columns: Callable[[int, int], dict[str, NDArray[np.float64]]]) -> tuple[ActiveModel | None, str | None]:
     """Blocking (database): the bench's active stage record, checked before use, and why there is none.
     A record whose stored content no longer matches its hash is refused (the bench stays uncorrected),
     and a rejected one is withdrawn."""
     dev = bench.device_ids.get("measurement_sensor")
-    rec = store.active_record(dev, "stage") if dev is not None else None
+    rec = records.active_record(dev, "stage") if dev is not None else None
     if rec is None:
-        return None, store.inactive_reason(dev, "stage") if dev is not None else None
-    if (why := store.unusable_reason(rec.id)) is not None:
+        return None, records.inactive_reason(dev, "stage") if dev is not None else None
+    if (why := records.unusable_reason(rec.id)) is not None:
         note = f"the active record is refused: {why}"
         log.warning("bench %s: %s", bench.name, note)
-        if store.record_status(rec.id) == "rejected" and dev is not None:
+        if approvals.record_status(rec.id) == "rejected" and dev is not None:
             with contextlib.suppress(ConflictError):  # a rejected record is never used: withdraw it
-                store.deactivate(dev, "stage", actor=DAEMON, replaces=rec.id,
-                                 reason=f"{why}; a rejected record is never used")
+                records.deactivate(dev, "stage", actor=DAEMON, replaces=rec.id,
+                                   reason=f"{why}; a rejected record is never used")
         return None, note
     model = CalibrationModel.from_json_dict(rec.model, f"record {rec.id}")
     return ActiveModel(rec.id, rec.version, rec.method, model, get_method("stage", rec.method),
-                       (rec.raw_data or {}).get("budget"), status=store.record_status(rec.id),
+                       (rec.raw_data or {}).get("budget"), status=approvals.record_status(rec.id),
                        table_tilt_range_deg=table_tilt_range_of(rec, fit_columns, model)), None
 
 

@@ -8,8 +8,6 @@ from __future__ import annotations
 import datetime as dt
 from typing import Any
 
-import sqlalchemy as sa
-
 from service.bench.readings import OUTLIER_RULE
 from service.bench.runtime import BenchBusy, BenchRuntime
 from service.jobs import registry
@@ -17,17 +15,18 @@ from service.jobs.procedure import Plan
 from service.jobs.requests import CalibrationRequest, RequestProblem
 from service.jobs.stage_grid import APPROACH_DEG
 from service.storage.canonical import sha256_hex
-from service.storage.daemon_jobs import DaemonStore, IdempotencyMismatch
 from service.storage.errors import UnknownEntity
-from service.storage.lims import StandardNotUsable
-from service.storage.models import CalibrationJob, IdempotencyKey
+from service.storage.models import CalibrationJob
+from service.storage.store import JobsRepo, OrdersRepo, StandardsRepo
+from service.storage.store.jobs import IdempotencyMismatch
+from service.storage.store.standards import StandardNotUsable
 
 IDEMPOTENCY_ROUTE = "calibrations"
 
 
 class Admission:
-    def __init__(self, store: DaemonStore) -> None:
-        self.store = store
+    def __init__(self, jobs: JobsRepo, orders: OrdersRepo, standards: StandardsRepo) -> None:
+        self.jobs, self.orders, self.registered_standards = jobs, orders, standards
 
     def plan(self, req: CalibrationRequest, bench: BenchRuntime) -> Plan[Any]:
         """Blocking (database): the points a request will measure; RequestProblem names the field that cannot be used."""
@@ -41,12 +40,12 @@ class Admission:
     def check_traceability(self, req: CalibrationRequest) -> None:
         """Every reference standard the job names is registered and not past its due date; the order exists."""
         try:
-            self.store.usable_standards(req.reference_standards, on=dt.datetime.now(dt.UTC).date())
+            self.registered_standards.usable_standards(req.reference_standards, on=dt.datetime.now(dt.UTC).date())
         except StandardNotUsable as exc:
             raise RequestProblem(exc.field, exc.reason) from None
         if req.order_id is not None:
             try:
-                self.store.order(req.order_id)
+                self.orders.get(req.order_id)
             except UnknownEntity:
                 raise RequestProblem("order_id", f"there is no order {req.order_id} (POST /orders)") from None
 
@@ -56,7 +55,7 @@ class Admission:
         return [{"id": st.id, "name": st.name, "serial": st.serial, "certificate_id": st.certificate_number,
                  "certificate_sha256": st.certificate_sha256, "expanded_uncertainty_deg": st.expanded_uncertainty_deg,
                  "coverage_factor": st.coverage_factor}
-                for st in map(self.store.standard, ids)]
+                for st in map(self.registered_standards.get, ids)]
 
     @staticmethod
     def parameters(body: dict[str, Any], bench: BenchRuntime, plan: Plan[Any]) -> dict[str, Any]:
@@ -68,9 +67,7 @@ class Admission:
     def replay(self, bench: BenchRuntime, key: str, body: dict[str, Any]) -> CalibrationJob:
         """Blocking (database): the job an earlier request with this Idempotency-Key made. A busy bench
         still answers a repeated request with its job; a key the database does not know is 409."""
-        with self.store.session() as s:
-            seen = s.scalar(sa.select(IdempotencyKey).where(IdempotencyKey.route == IDEMPOTENCY_ROUTE,
-                                                             IdempotencyKey.key == key))
+        seen = self.jobs.idempotency_key(key, route=IDEMPOTENCY_ROUTE)
         if seen is None:
             raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
         if seen.request_sha256 != sha256_hex(body):
@@ -78,4 +75,4 @@ class Admission:
                                       " use a new key for a new request")
         if seen.job_id is None:
             raise IdempotencyMismatch(f"Idempotency-Key {key!r} belongs to a request that made no job")
-        return self.store.get_job(seen.job_id)
+        return self.jobs.get_job(seen.job_id)

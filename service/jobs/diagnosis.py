@@ -141,7 +141,7 @@ class DiagnosisRunner:
 
     async def submit(self, record: CalibrationRecord, sensor: str, baseline: str, actor: str) -> Diagnosis:
         self.check(record, sensor, baseline)
-        d: Diagnosis = await asyncio.to_thread(self.store.create_diagnosis, record.id, sensor=sensor, baseline=baseline,
+        d: Diagnosis = await asyncio.to_thread(self.store.diagnoses.create_diagnosis, record.id, sensor=sensor, baseline=baseline,
                                     actor=actor)
         run = self.running[d.id] = Running()
         run.task = asyncio.create_task(self._run(d, record), name=f"diagnosis {d.id}")
@@ -156,7 +156,7 @@ class DiagnosisRunner:
             loop = asyncio.get_running_loop()
             summary, page = await loop.run_in_executor(self._executor(), run_workflow, *args)
             run.phase = "storing"
-            await asyncio.to_thread(self.store.finish_diagnosis, d.id, state="succeeded", started_at=run.started_at,
+            await asyncio.to_thread(self.store.diagnoses.finish_diagnosis, d.id, state="succeeded", started_at=run.started_at,
                                     summary=summary, report_html=page, error=None, actor="daemon")
         except asyncio.CancelledError:
             raise
@@ -165,7 +165,7 @@ class DiagnosisRunner:
             if not isinstance(exc, InputError):
                 log.exception("diagnosis %s failed", d.id)
             try:
-                await asyncio.to_thread(self.store.finish_diagnosis, d.id, state="failed", started_at=run.started_at,
+                await asyncio.to_thread(self.store.diagnoses.finish_diagnosis, d.id, state="failed", started_at=run.started_at,
                                         summary={}, report_html=None, error=reason, actor="daemon")
             except Exception:
                 log.exception("diagnosis %s: the failure could not be stored", d.id)
@@ -177,8 +177,8 @@ class DiagnosisRunner:
         assert record.job_id is not None
         n_fit = int((record.raw_data or {}).get("fit_points", 10**9))
         cols = self._columns_of(record.job_id, n_fit)
-        job = self.store.get_job(record.job_id)
-        pts = self.store.settled_points(record.job_id)
+        job = self.store.jobs.get_job(record.job_id)
+        pts = self.store.points.settled_points(record.job_id)
         mine = [p for p in pts if (p.device_id == job.device_id) == (d.sensor == "meas")]
         sigma = point_noise(mine, n_fit)
         dof = float(sum(p.n_samples - 1 for p in mine if p.point < n_fit))
@@ -214,7 +214,7 @@ class DiagnosisRunner:
         from service.discrepancy.adopt import effects_to_add
         from service.storage.errors import ConflictError
 
-        d, result = await asyncio.to_thread(self.store.get_diagnosis, diagnosis_id)
+        d, result = await asyncio.to_thread(self.store.diagnoses.get_diagnosis, diagnosis_id)
         if result is None or result.state != "succeeded":
             state = "running" if result is None else f"failed ({result.error})"
             raise ConflictError(f"diagnosis {diagnosis_id} is {state}: only a finished diagnosis can be adopted")
@@ -223,7 +223,7 @@ class DiagnosisRunner:
             effects_to_add(named, d.sensor)
         except InputError as exc:
             raise ConflictError(str(exc)) from None
-        record = await asyncio.to_thread(self.store.get_record, d.record_id)
+        record = await asyncio.to_thread(self.store.records.get_record, d.record_id)
         assert record.job_id is not None  # a diagnosed record has stored points
         raw = dict(record.raw_data or {})
         n_fit = int(raw.get("fit_points", 10**9))
@@ -244,7 +244,7 @@ class DiagnosisRunner:
         raw.update({"diagnosis_id": d.id, "added_effects": model.state.get("added_effects", []),
                     "adopted_from_record_id": record.id})
         return await asyncio.to_thread(
-            self.store.add_record, record.device_id, "stage", "kinematic", model_doc, operator=actor,
+            self.store.records.add_record, record.device_id, "stage", "kinematic", model_doc, operator=actor,
             validation=validation, temp_c=record.temp_c, job_id=record.job_id,
             reference_standards=record.reference_standards, raw_data=raw)
 

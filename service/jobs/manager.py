@@ -33,11 +33,11 @@ from service.jobs.points import write_in_thread
 from service.jobs.procedure import JobContext, Outcome, Phase, PointProcedure
 from service.jobs.requests import KIND_OF_PROCEDURE, CalibrationRequest, RequestProblem
 from service.jobs.state import DAEMON, Ending, JobState, Stop
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.engine import redacted
 from service.storage.models import CalibrationJob, CalibrationRecord
 from service.storage.outage import DatabaseOutage, DatabaseState, through_outage, unreachable
 from service.storage.samples import Sample
+from service.storage.store import Store
 from service.storage.tokens import Principal
 
 __all__ = ["ActiveModel", "JobManager", "RequestProblem"]
@@ -52,7 +52,7 @@ T = TypeVar("T")
 
 
 class JobManager:
-    def __init__(self, store: DaemonStore, benches: dict[str, BenchRuntime],
+    def __init__(self, store: Store, benches: dict[str, BenchRuntime],
                  database: DatabaseState | None = None) -> None:
         self.store = store
         self.benches = benches
@@ -60,7 +60,7 @@ class JobManager:
         self.database = database or DatabaseState(redacted(store.engine.url))
         self.waiting_for_database: dict[int, dt.datetime] = {}  # job -> since when its step waits
         self._endings: set[asyncio.Task[Any]] = set()  # job endings waiting for the database to come back
-        self.admission = Admission(store)
+        self.admission = Admission(store.jobs, store.orders, store.standards)
         self.tasks: dict[int, asyncio.Task[None]] = {}
         self.stop_reasons: dict[int, Stop] = {}  # why a job's task was cancelled from outside, and by whom
         self.active: dict[str, ActiveModel | None] = {}
@@ -74,7 +74,7 @@ class JobManager:
     def load_active(self, bench: BenchRuntime) -> ActiveModel | None:
         """Blocking (database): the bench's active stage record, checked before use (`inactive_notes` says
         why a bench has none). Called at start-up and whenever a record is activated, approved or rejected."""
-        loaded, note = load_active(self.store, bench, self.fit_columns)
+        loaded, note = load_active(self.store.records, self.store.approvals, bench, self.fit_columns)
         self.active[bench.name], self.inactive_notes[bench.name] = loaded, note
         return loaded
 
@@ -114,7 +114,7 @@ class JobManager:
             self._creating[idempotency_key] = written
         try:
             job, created = await asyncio.to_thread(
-                self.store.create_calibration_job, bench_id=bench.bench_id, device_id=device_id,
+                self.store.jobs.create_calibration_job, bench_id=bench.bench_id, device_id=device_id,
                 kind=KIND_OF_PROCEDURE[req.procedure], method=req.method, parameters=parameters, actor=principal.name,
                 points_total=len(plan.fit_points) + len(plan.validation_points), order_id=req.order_id,
                 idempotency_key=idempotency_key, request=body if idempotency_key is not None else None)
@@ -137,7 +137,7 @@ class JobManager:
         self.tasks[job_id] = asyncio.get_running_loop().create_task(self._run(job_id, bench))
 
     async def resume(self, job_id: int, principal: Principal) -> CalibrationJob:
-        job = await asyncio.to_thread(self.store.get_job, job_id)
+        job = await asyncio.to_thread(self.store.jobs.get_job, job_id)
         bench = next((b for b in self.benches.values() if b.bench_id == job.bench_id), None)
         if bench is None:
             raise RequestProblem("id", f"job {job_id} ran on a bench this daemon does not run", status=409)
@@ -145,7 +145,7 @@ class JobManager:
             raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
         bench.holder = BenchHold(Hold.JOB_RESUMING, job_id)
         try:
-            job = await asyncio.to_thread(self.store.resume_job, job_id, actor=principal.name)
+            job = await asyncio.to_thread(self.store.jobs.resume_job, job_id, actor=principal.name)
         except BaseException:
             bench.holder = None
             raise
@@ -155,12 +155,12 @@ class JobManager:
     # ------------------------------------------------------------ ending from outside
 
     async def cancel(self, job_id: int, principal: Principal) -> CalibrationJob:
-        job = await asyncio.to_thread(self.store.get_job, job_id)
+        job = await asyncio.to_thread(self.store.jobs.get_job, job_id)
         if job.state not in LIVE:
             raise RequestProblem("id", f"job {job_id} is {job.state}; only a queued or running job can be cancelled",
                                  status=409)
         await self._end_task(job_id, Stop(Ending.CANCELLED, f"cancelled by {principal.name}", actor=principal.name))
-        return await asyncio.to_thread(self.store.get_job, job_id)
+        return await asyncio.to_thread(self.store.jobs.get_job, job_id)
 
     async def stop_bench(self, bench: BenchRuntime, principal: Principal) -> int | None:
         """Stop motion now; a running job fails with the reason. Returns the failed job's id."""
@@ -185,7 +185,7 @@ class JobManager:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
         else:
-            job = await asyncio.to_thread(self.store.get_job, job_id)
+            job = await asyncio.to_thread(self.store.jobs.get_job, job_id)
             if job.state in LIVE:
                 await self._finish(job_id, stop)
 
@@ -230,15 +230,15 @@ class JobManager:
     def _end_job(self, job_id: int, stop: Stop) -> None:
         """Blocking (database): the job cancelled or failed, audited with whoever ended it. Safe to repeat:
         a job already ended (an earlier try whose answer was lost) is left as it is."""
-        job = self.store.get_job(job_id)
+        job = self.store.jobs.get_job(job_id)
         if job.state in ENDED:
             return
         if job.state == JobState.QUEUED and stop.ending is not Ending.CANCELLED:
-            self.store.start_job(job_id, actor=DAEMON)
+            self.store.jobs.start_job(job_id, actor=DAEMON)
         if stop.ending is Ending.CANCELLED:
-            self.store.cancel_job(job_id, actor=stop.actor, reason=stop.reason)
+            self.store.jobs.cancel_job(job_id, actor=stop.actor, reason=stop.reason)
         else:
-            self.store.fail_job(job_id, stop.reason, actor=stop.actor)
+            self.store.jobs.fail_job(job_id, stop.reason, actor=stop.actor)
 
     async def shutdown(self) -> None:
         """Daemon stopping: running jobs are left as interrupted (resumable), not failed for good."""
@@ -251,7 +251,7 @@ class JobManager:
         for ending in list(self._endings):  # the database is away: the next start marks these jobs interrupted
             ending.cancel()
         try:
-            await write_in_thread(self.store.mark_interrupted, actor=DAEMON)
+            await write_in_thread(self.store.jobs.mark_interrupted, actor=DAEMON)
         except Exception as exc:
             if not unreachable(exc):
                 raise
@@ -260,18 +260,18 @@ class JobManager:
     # ------------------------------------------------------------ running
 
     async def _report(self, job_id: int, points_done: int, points_total: int, phase: Phase) -> None:
-        await self._db(job_id, self.store.set_job_progress, job_id, points_done=points_done,
+        await self._db(job_id, self.store.jobs.set_job_progress, job_id, points_done=points_done,
                        points_total=points_total, phase=phase)
         self.events.changed(job_id)
 
     def _start_job(self, job_id: int) -> CalibrationJob:
         """Blocking (database): the job running. Safe to repeat (a job already running is left so)."""
-        job = self.store.get_job(job_id)
-        return self.store.start_job(job_id, actor=DAEMON) if job.state == JobState.QUEUED else job
+        job = self.store.jobs.get_job(job_id)
+        return self.store.jobs.start_job(job_id, actor=DAEMON) if job.state == JobState.QUEUED else job
 
     async def _run(self, job_id: int, bench: BenchRuntime) -> None:
         try:
-            job = await self._db(job_id, self.store.get_job, job_id)
+            job = await self._db(job_id, self.store.jobs.get_job, job_id)
             if job.state == JobState.QUEUED:
                 await self._db(job_id, self._start_job, job_id)
                 self.events.changed(job_id)
@@ -327,39 +327,39 @@ class JobManager:
     def _conclude(self, job: CalibrationJob, outcome: Outcome) -> None:
         """Blocking (database): the record version, then the job succeeded. Safe to repeat: a job makes
         one record, so a record already stored for it (an earlier try whose answer was lost) is not made again."""
-        if job.id in self.store.records_of_jobs([job.id]):
-            if self.store.get_job(job.id).state != JobState.SUCCEEDED:
-                self.store.succeed_job(job.id, actor=DAEMON)
+        if job.id in self.store.records.records_of_jobs([job.id]):
+            if self.store.jobs.get_job(job.id).state != JobState.SUCCEEDED:
+                self.store.jobs.succeed_job(job.id, actor=DAEMON)
             return
         ids = job.parameters["request"].get("reference_standards") or []
         standards = self.admission.standards(ids)
         method = get_method(outcome.kind, job.method)
         procedure = registry.procedure_of(job.parameters)
-        fit_cols = (procedure.stored_columns(self.store, job, outcome.n_fit)
+        fit_cols = (procedure.stored_columns(self.store.points, job, outcome.n_fit)
                     if outcome.kind == "stage" and isinstance(procedure, PointProcedure) else None)
         budget = budget_of_record(method, outcome.model, fit_cols, standards,
                                   outcome.conditions.get("resolution_deg") or {})
-        self.store.add_record(outcome.device_id, outcome.kind, job.method, outcome.model.to_json_dict(),
-                              operator=job.created_by, validation=outcome.validation,
-                              temp_c=outcome.conditions["temp_c_mean"], job_id=job.id, reference_standards=standards,
-                              raw_data={"conditions": outcome.conditions, "fit_points": outcome.n_fit, "budget": budget})
-        self.store.succeed_job(job.id, actor=DAEMON)
+        self.store.records.add_record(outcome.device_id, outcome.kind, job.method, outcome.model.to_json_dict(),
+                                      operator=job.created_by, validation=outcome.validation,
+                                      temp_c=outcome.conditions["temp_c_mean"], job_id=job.id, reference_standards=standards,
+                                      raw_data={"conditions": outcome.conditions, "fit_points": outcome.n_fit, "budget": budget})
+        self.store.jobs.succeed_job(job.id, actor=DAEMON)
 
     # ------------------------------------------------------------ a finished job's points
 
     def fit_columns(self, job_id: int, n_fit: int) -> dict[str, NDArray[np.float64]]:
         """Blocking (database): the dataset columns of a job's first `n_fit` settled points."""
-        job = self.store.get_job(job_id)
+        job = self.store.jobs.get_job(job_id)
         procedure = registry.procedure_of(job.parameters)
         if not isinstance(procedure, PointProcedure):
             raise InputError(f"job {job_id} ({procedure.name}) measured no points")
-        return procedure.stored_columns(self.store, job, n_fit)
+        return procedure.stored_columns(self.store.points, job, n_fit)
 
     def validate(self, job_id: int, n_fit: int, method: Method, model: CalibrationModel) -> dict[str, Any]:
         """Blocking (database): a model against the job's points from `n_fit` on (its validation points)."""
-        job = self.store.get_job(job_id)
+        job = self.store.jobs.get_job(job_id)
         procedure = registry.procedure_of(job.parameters)
         if not isinstance(procedure, PointProcedure):
             raise InputError(f"job {job_id} ({procedure.name}) measured no points")
-        points = [p for p in self.store.settled_points(job_id) if p.point >= n_fit]
+        points = [p for p in self.store.points.settled_points(job_id) if p.point >= n_fit]
         return procedure.validation(method, model, procedure.columns(job, points, for_fit=False))

@@ -8,9 +8,9 @@ import logging
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.engine import write_engine
 from service.storage.samples import Sample, insert_samples_once
+from service.storage.store import Store
 
 log = logging.getLogger("tiltlab.jobs")
 T = TypeVar("T")
@@ -22,7 +22,7 @@ def writes_in_flight() -> int:
     return _writes_in_flight
 
 
-def store_point(store: DaemonStore, job_id: int, index: int, samples: list[Sample],
+def store_point(store: Store, job_id: int, index: int, samples: list[Sample],
                 settled_by_device: dict[int, dict[str, Any]]) -> None:
     """Blocking (database): call through `write_in_thread`. A point half stored when the daemon
     was killed keeps its stored half; only the devices it lacks are added. Safe to repeat after a
@@ -30,10 +30,10 @@ def store_point(store: DaemonStore, job_id: int, index: int, samples: list[Sampl
     transaction, are not written again if they are stored, nor is a settled point already stored."""
     with write_engine(store.engine).begin() as conn:
         insert_samples_once(conn, samples)
-    have = {p.device_id for p in store.settled_points(job_id) if p.point == index}
+    have = {p.device_id for p in store.points.settled_points(job_id) if p.point == index}
     for device_id, point in settled_by_device.items():
         if device_id not in have:
-            store.add_settled_points(job_id, device_id, [point], actor="daemon")
+            store.points.add_settled_points(job_id, device_id, [point], actor="daemon")
 
 
 async def write_in_thread(write: Callable[..., T], /, *args: Any, **kwargs: Any) -> T:

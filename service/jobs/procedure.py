@@ -32,8 +32,8 @@ from service.calibration.registry import FitOptions, Method, get_method
 from service.errors import InputError
 from service.jobs.budgets import resolutions_deg
 from service.jobs.requests import CalibrationRequest
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.models import CalibrationJob, SettledPoint
+from service.storage.store import PointsRepo, Store
 
 P = TypeVar("P")
 Columns = dict[str, NDArray[np.float64]]
@@ -74,7 +74,7 @@ class Outcome:
 class JobContext:
     """A running job as a procedure sees it."""
 
-    store: DaemonStore
+    store: Store
     job: CalibrationJob
     bench: BenchRuntime
     request: CalibrationRequest
@@ -174,7 +174,7 @@ class PointProcedure(ABC, Generic[P]):
         if started_with and started_with != devices:
             raise InputError(f"the bench's instruments are not those the job started with ({started_with});"
                              " its points cannot be continued with other instruments")
-        stored = await ctx.db(ctx.store.settled_points, job.id)
+        stored = await ctx.db(ctx.store.points.settled_points, job.id)
         done = set.intersection(*({p.point for p in stored if p.device_id == d} for d in devices.values()))
         await ctx.report(len(done), total, Phase.MEASURING)
         for i, point in enumerate(fit_pts):
@@ -184,7 +184,7 @@ class PointProcedure(ABC, Generic[P]):
                 await ctx.report(len(done), total, Phase.MEASURING)
         await ctx.report(len(done), total, Phase.FITTING)
         method = get_method(self.kind, job.method)
-        fit_cols = await ctx.db(self.stored_columns, ctx.store, job, n_fit)
+        fit_cols = await ctx.db(self.stored_columns, ctx.store.points, job, n_fit)
         model = await asyncio.to_thread(method.fit, fit_cols, self.fit_options(bench))
         self.fitted(model, fit_cols)
         await ctx.report(len(done), total, Phase.VALIDATING)
@@ -193,12 +193,12 @@ class PointProcedure(ABC, Generic[P]):
                 await self.measure(ctx, n_fit + k, point)
                 done.add(n_fit + k)
                 await ctx.report(len(done), total, Phase.VALIDATING)
-        points = await ctx.db(ctx.store.settled_points, job.id)
+        points = await ctx.db(ctx.store.points.settled_points, job.id)
         val_cols = self.columns(job, [p for p in points if p.point >= n_fit], for_fit=False)
         validation = await asyncio.to_thread(self.validation, method, model, val_cols)
         conditions = job_conditions(bench, ctx.request, self.temperatures_c(fit_cols, points))
         return Outcome(job.device_id, self.kind, model, validation, conditions, n_fit)
 
-    def stored_columns(self, store: DaemonStore, job: CalibrationJob, n_fit: int) -> Columns:
+    def stored_columns(self, points: PointsRepo, job: CalibrationJob, n_fit: int) -> Columns:
         """Blocking (database): the fit columns of the job's first `n_fit` stored points."""
-        return self.columns(job, [p for p in store.settled_points(job.id) if p.point < n_fit], for_fit=True)
+        return self.columns(job, [p for p in points.settled_points(job.id) if p.point < n_fit], for_fit=True)

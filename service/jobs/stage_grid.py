@@ -47,7 +47,7 @@ def _tilt(value: float | None) -> float:
 async def _home_stage(ctx: JobContext) -> None:
     """The controller refused a move as "not homed" (after power-up): home the stage, then go on."""
     log.info("job %s: the stage of %s is not homed; homing it", ctx.job_id, ctx.bench.name)
-    job = await ctx.db(ctx.store.get_job, ctx.job_id)
+    job = await ctx.db(ctx.store.jobs.get_job, ctx.job_id)
     done, total = job.points_done or 0, job.points_total or 0
     await ctx.report(done, total, Phase.HOMING)
     await ctx.bench.home_stage()

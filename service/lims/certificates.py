@@ -72,7 +72,7 @@ def _calibration_points(store, r: CalibrationRecord) -> list[dict[str, float]]: 
     if r.job_id is None:
         return []
     n_fit = int((r.raw_data or {}).get("fit_points", 10**9))
-    points = [p for p in store.settled_points(r.job_id) if p.point < n_fit]
+    points = [p for p in store.points.settled_points(r.job_id) if p.point < n_fit]
     item = {p.point: p for p in points if p.device_id == r.device_id}
     if r.kind != "stage":
         return [{"commanded_angle_deg": float(p.cmd_x_deg)} for _, p in sorted(item.items()) if p.cmd_x_deg is not None]
@@ -86,7 +86,7 @@ def _calibration_points(store, r: CalibrationRecord) -> list[dict[str, float]]: 
 
 
 def _device_json(store, r: CalibrationRecord) -> dict[str, Any]:  # type: ignore[no-untyped-def]
-    device = store.get_device(r.device_id)
+    device = store.devices.get_device(r.device_id)
     conditions = (r.raw_data or {}).get("conditions") or {}
     firmware = conditions.get("firmware")
     if isinstance(firmware, dict):  # per role, as the daemon keeps it
@@ -97,7 +97,7 @@ def _device_json(store, r: CalibrationRecord) -> dict[str, Any]:  # type: ignore
 
 def _standards_of(store, r: CalibrationRecord, job) -> list[Any]:  # type: ignore[no-untyped-def]
     """The registered standards the job named (by id), else those the record lists (by certificate number)."""
-    registered = {s.id: s for s in store.standards()}
+    registered = {s.id: s for s in store.standards.all()}
     ids: list[Any] = []
     if job is not None:
         request = (job.parameters or {}).get("request") or {}
@@ -115,23 +115,23 @@ def issue_certificate(store, record_id: int, settings, *, actor: str,  # type: i
                       today: dt.date | None = None) -> Certificate:
     """The record's certificate: the stored one if it was issued before (after checking its hash), else a new
     one, validated against the DCC schema before it is stored. Raises NotApproved for a draft or rejected record."""
-    existing = store.certificate_of(record_id)
+    existing = store.certificates.certificate_of(record_id)
     if existing is not None:
         check_stored(existing)
         return existing
-    record = store.get_record(record_id)
+    record = store.records.get_record(record_id)
     if sha256_hex(record_content(record)) != record.content_sha256:
         raise IntegrityFailure(f"record {record_id} does not match its hash (tampered); no certificate is issued")
-    approvals = store.approvals(record_id)
-    status = store.status_of(approvals)
+    approvals = store.approvals.of_record(record_id)
+    status = store.approvals.status_of(approvals)
     if status != "approved":
         raise NotApproved(f"record {record_id} is {status}; a certificate is issued only for an approved record"
                           " (POST /records/{id}/approve by a second person)")
     approval = [a for a in approvals if a.decision == "approve" and a.meaning == "approval"][-1]
     lab = laboratory(settings)
-    job = store.get_job(record.job_id) if record.job_id is not None else None
-    order = store.order(job.order_id) if job is not None and job.order_id is not None else None
-    replaced = store.replaced_certificate(record_id)
+    job = store.jobs.get_job(record.job_id) if record.job_id is not None else None
+    order = store.orders.get(job.order_id) if job is not None and job.order_id is not None else None
+    replaced = store.certificates.replaced_certificate(record_id)
     today = today or dt.datetime.now(dt.UTC).date()
     begin = (job.started_at or job.created_at) if job is not None else record.created_at
     content = build_certificate(
@@ -147,8 +147,8 @@ def issue_certificate(store, record_id: int, settings, *, actor: str,  # type: i
         replaces=replaced.number if replaced is not None else None,
     )  # fmt: skip
     xml = dcc.issue(content, signer(settings))  # refuses an invalid document: nothing is stored then
-    row, _ = store.store_certificate(record_id, number=content.number, xml=xml, approval_id=approval.id,
-                                     replaces_id=replaced.id if replaced is not None else None, actor=actor)
+    row, _ = store.certificates.store_certificate(record_id, number=content.number, xml=xml, approval_id=approval.id,
+                                                  replaces_id=replaced.id if replaced is not None else None, actor=actor)
     check_stored(row)
     return row
 
@@ -194,7 +194,7 @@ def verify_certificate(xml: bytes, store=None, trusted_cert_pem: bytes | None = 
         v.facts.append("not signed: only the laboratory's database can tell whether it was altered")
     if store is None:
         return v
-    stored = store.certificate_by_number(v.number)
+    stored = store.certificates.certificate_by_number(v.number)
     if stored is None:
         v.problems.append(f"certificate {v.number} was not issued by this laboratory's database")
         return v
@@ -206,18 +206,18 @@ def verify_certificate(xml: bytes, store=None, trusted_cert_pem: bytes | None = 
     else:
         v.facts.append(f"SHA-256 {v.sha256} equals the one stored when it was issued")
     try:
-        record = store.get_record(stored.record_id)
+        record = store.records.get_record(stored.record_id)
     except UnknownEntity:
         v.problems.append(f"record {stored.record_id} of {v.number} is missing")
         return v
     if sha256_hex(record_content(record)) != record.content_sha256:
         v.problems.append(f"record {record.id} no longer matches its hash (tampered)")
-    approvals = {a.id: a for a in store.approvals(record.id)}
+    approvals = {a.id: a for a in store.approvals.of_record(record.id)}
     approval = approvals.get(stored.approval_id)
     if approval is None or approval.record_sha256 != record.content_sha256:
         v.problems.append(f"the approval of record {record.id} is missing or bound to another hash")
     else:
         v.facts.append(f"record {record.id} v{record.version} (SHA-256 {record.content_sha256}) approved by "
                        f"{approval.actor} at {approval.at:%Y-%m-%d %H:%M:%S} UTC ({approval.meaning})")
-    v.problems += store.verify_approvals()
+    v.problems += store.approvals.verify_approvals()
     return v

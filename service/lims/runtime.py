@@ -16,7 +16,7 @@ DUE_CHECK_INTERVAL_S = 3600.0
 class LimsRuntime:
     def __init__(self, store, settings) -> None:  # type: ignore[no-untyped-def]
         self.store, self.settings = store, settings
-        self.dispatcher = Dispatcher(store, settings)
+        self.dispatcher = Dispatcher(store.webhooks, settings)
         self._due_task: asyncio.Task[None] | None = None
 
     async def start(self) -> None:
@@ -35,7 +35,7 @@ class LimsRuntime:
     async def _check_due(self) -> None:
         while True:
             try:
-                sent = await asyncio.to_thread(self.store.notify_standards_due, today=dt.datetime.now(dt.UTC).date(),
+                sent = await asyncio.to_thread(self.store.standards.notify_standards_due, today=dt.datetime.now(dt.UTC).date(),
                                                within_days=self.settings.standards_due_soon_days)
                 if sent:
                     self.dispatcher.wake.set()

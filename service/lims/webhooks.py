@@ -19,8 +19,8 @@ import httpx
 from standardwebhooks import Webhook
 
 from service.storage.feed import event_json
-from service.storage.lims import DueDelivery
 from service.storage.outage import reason_of, unreachable
+from service.storage.store.webhooks import DueDelivery, WebhooksRepo
 
 log = logging.getLogger("tiltlab.webhooks")
 
@@ -48,8 +48,8 @@ def retry_delay_s(attempts_done: int, base_s: float, max_s: float) -> float:
 class Dispatcher:
     """Runs in the daemon: sends due deliveries, sleeps until the next one is due (or it is woken)."""
 
-    def __init__(self, store, settings) -> None:  # type: ignore[no-untyped-def]
-        self.store, self.settings = store, settings
+    def __init__(self, webhooks: WebhooksRepo, settings) -> None:  # type: ignore[no-untyped-def]
+        self.webhooks, self.settings = webhooks, settings
         self.wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
 
@@ -83,7 +83,7 @@ class Dispatcher:
 
     async def _sleep_until_due(self) -> None:
         try:
-            nxt = await asyncio.to_thread(self.store.next_delivery_due)
+            nxt = await asyncio.to_thread(self.webhooks.next_delivery_due)
         except Exception:  # noqa: BLE001 - the database away: asked again in a second, the dispatcher goes on
             nxt = None
         wait_s = 1.0
@@ -96,7 +96,7 @@ class Dispatcher:
             pass
 
     async def send_due(self, client: httpx.AsyncClient) -> int:
-        due = await asyncio.to_thread(self.store.due_deliveries, now=dt.datetime.now(dt.UTC))
+        due = await asyncio.to_thread(self.webhooks.due_deliveries, now=dt.datetime.now(dt.UTC))
         for d in due:
             await self.deliver(client, d)
         return len(due)
@@ -120,7 +120,7 @@ class Dispatcher:
         if not ok and d.attempts + 1 < self.settings.webhook_max_attempts:
             delay = retry_delay_s(d.attempts + 1, self.settings.webhook_retry_base_s, self.settings.webhook_retry_max_s)
             retry_at = dt.datetime.now(dt.UTC) + dt.timedelta(seconds=delay)
-        await asyncio.to_thread(self.store.record_attempt, d.delivery_id, ok=ok, status_code=status, error=error,
+        await asyncio.to_thread(self.webhooks.record_attempt, d.delivery_id, ok=ok, status_code=status, error=error,
                                 duration_s=duration, retry_at=retry_at)
         if not ok:
             log.info("webhook %s to %s: %s (attempt %d)", d.event.id, d.url, error, d.attempts + 1)

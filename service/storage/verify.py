@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from service.storage.canonical import sha256_hex
 from service.storage.models import GENESIS_SHA256, AuditEvent, CalibrationRecord, SettledPoint
-from service.storage.store import audit_content, points_sha256, record_content
+from service.storage.store.hashing import audit_content, points_sha256, record_content
 
 
 @dataclass(frozen=True)
@@ -166,8 +166,8 @@ def _verify_approvals_and_certificates(s: Session, report: VerifyReport, decided
     import hashlib
 
     from service.storage.canonical import normalise
-    from service.storage.lims import approval_content
     from service.storage.models import Certificate, RecordApproval
+    from service.storage.store.approvals import approval_content
 
     prev = GENESIS_SHA256
     for a in s.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):

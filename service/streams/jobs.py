@@ -10,15 +10,16 @@ from typing import Any
 
 from service.jobs.events import JobEvents
 from service.jobs.manager import WAITING_FOR_DATABASE
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.models import CalibrationJob
 from service.storage.outage import unreachable
+from service.storage.store import JobsRepo, PointsRepo
 
 ENDED = frozenset({"succeeded", "failed", "cancelled"})
 SAFETY_REREAD_S = 5.0  # real seconds between re-reads when no event came
 
 
-def job_points(store: DaemonStore, job: CalibrationJob, have: frozenset[int] | set[int] | None = None) -> list[dict[str, Any]]:
+def job_points(points: PointsRepo, job: CalibrationJob,
+               have: frozenset[int] | set[int] | None = None) -> list[dict[str, Any]]:
     """The job's points measured so far (every instrument of the job has its mean), by index, leaving
     out those in `have`: {"index", "x_deg", "y_deg" (commanded stage angles; y null on a one-axis
     procedure), and per role {"x_deg", "y_deg", "z_deg", "x_std_deg", "y_std_deg", "z_std_deg",
@@ -30,7 +31,7 @@ def job_points(store: DaemonStore, job: CalibrationJob, have: frozenset[int] | s
     # Points are measured in index order: only those from the first one not yet had are read, so a
     # follower's reads stay small however long the job (not all its points on every change).
     first_missing = 0 if have is None else next(i for i in range(len(have) + 1) if i not in have)
-    for p in store.settled_points(job.id, from_point=first_missing):
+    for p in points.settled_points(job.id, from_point=first_missing):
         if have is not None and p.point in have:
             continue
         role = roles.get(p.device_id)
@@ -43,14 +44,14 @@ def job_points(store: DaemonStore, job: CalibrationJob, have: frozenset[int] | s
     return [pt for i, pt in sorted(by_point.items()) if all(r in pt for r in roles.values())]
 
 
-async def job_messages(store: DaemonStore, events: JobEvents, job_id: int,
+async def job_messages(stored_jobs: JobsRepo, points_repo: PointsRepo, events: JobEvents, job_id: int,
                        body: Callable[[CalibrationJob], dict[str, Any]]) -> AsyncGenerator[dict[str, Any], None]:
     """The messages of one job's stream without seq, ending with its `end` (UnknownEntity if no such job)."""
     event = events.subscribe(job_id)
     try:
-        job = await asyncio.to_thread(store.get_job, job_id)  # database reads off the event loop
+        job = await asyncio.to_thread(stored_jobs.get_job, job_id)  # database reads off the event loop
         last = body(job)
-        points = await asyncio.to_thread(job_points, store, job)
+        points = await asyncio.to_thread(job_points, points_repo, job)
         have = {p["index"] for p in points}
         yield {"type": "snapshot", "job": last, "points": points}
         while job.state not in ENDED:
@@ -61,8 +62,8 @@ async def job_messages(store: DaemonStore, events: JobEvents, job_id: int,
                 pass
             event.clear()
             try:
-                job = await asyncio.to_thread(store.get_job, job_id)
-                points = await asyncio.to_thread(job_points, store, job, frozenset(have))
+                job = await asyncio.to_thread(stored_jobs.get_job, job_id)
+                points = await asyncio.to_thread(job_points, points_repo, job, frozenset(have))
             except Exception as exc:
                 if not unreachable(exc):
                     raise

@@ -43,7 +43,7 @@ def test_bad_calibration_requests_change_nothing(daemon):
 def test_scopes_busy_bench_and_idempotency(daemon):
     client, h = daemon
     store = client.app.state.store
-    _, reader = store.create_token("viewer", "read", actor="test")
+    _, reader = store.tokens.create_token("viewer", "read", actor="test")
     rh = {"Authorization": f"Bearer {reader}"}
     assert client.get("/tilt", headers=rh).status_code == 200
     before = _counts(client)

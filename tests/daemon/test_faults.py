@@ -125,14 +125,14 @@ def test_stop_answers_after_the_job_s_end_is_written(daemon, monkeypatch):
     client, h = daemon
     bench = client.app.state.bench
     store = client.app.state.jobs.store
-    fail_job, writing = store.fail_job, threading.Event()
+    fail_job, writing = store.jobs.fail_job, threading.Event()
 
     def slow_fail_job(*args, **kwargs):  # type: ignore[no-untyped-def]
         writing.set()
         time.sleep(0.5)
         return fail_job(*args, **kwargs)
 
-    monkeypatch.setattr(store, "fail_job", slow_fail_job)
+    monkeypatch.setattr(store.jobs, "fail_job", slow_fail_job)
     stop = bench.stop
 
     async def stop_then_wait_for_the_job_to_write_its_end():

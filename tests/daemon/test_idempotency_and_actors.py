@@ -22,7 +22,7 @@ def _count(client, table: str) -> int:
 def test_concurrent_repeats_of_one_idempotency_key_answer_the_first_job(daemon, monkeypatch):
     client, h = daemon
     jobs = client.app.state.jobs
-    plan, create = jobs.admission.plan, jobs.store.create_calibration_job
+    plan, create = jobs.admission.plan, jobs.store.jobs.create_calibration_job
     planned = threading.Semaphore(0)
 
     def counted_plan(*args, **kwargs):  # type: ignore[no-untyped-def]
@@ -38,7 +38,7 @@ def test_concurrent_repeats_of_one_idempotency_key_answer_the_first_job(daemon, 
         return create(*args, **kwargs)
 
     monkeypatch.setattr(jobs.admission, "plan", counted_plan)
-    monkeypatch.setattr(jobs.store, "create_calibration_job", create_once_both_are_admitted)
+    monkeypatch.setattr(jobs.store.jobs, "create_calibration_job", create_once_both_are_admitted)
     jobs_before, keys_before = _count(client, "calibration_jobs"), _count(client, "idempotency_keys")
     headers = {**h, "Idempotency-Key": "same-moment"}
     with ThreadPoolExecutor(2) as pool:
@@ -51,12 +51,12 @@ def test_concurrent_repeats_of_one_idempotency_key_answer_the_first_job(daemon, 
 
 
 def _operator(client, name: str) -> dict[str, str]:
-    _, token = client.app.state.store.create_token(name, "operate", actor="test")
+    _, token = client.app.state.store.tokens.create_token(name, "operate", actor="test")
     return {"Authorization": f"Bearer {token}"}
 
 
 def _audited(client, job_id: int, action: str):  # type: ignore[no-untyped-def]
-    events = client.app.state.store.audit_events(entity="job", entity_id=job_id)
+    events = client.app.state.store.audit.events(entity="job", entity_id=job_id)
     return [e for e in events if e.action == action]
 
 

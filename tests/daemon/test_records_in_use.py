@@ -45,7 +45,7 @@ def test_calibrated_range_draft_status_and_rejection_of_the_active_record(tmp_pa
         store = client.app.state.store
         h = {"admin": admin_headers(tmp_path)}
         for name in ("alice", "bob"):
-            h[name] = {"Authorization": f"Bearer {store.create_token(name, 'admin', actor='admin')[1]}"}
+            h[name] = {"Authorization": f"Bearer {store.tokens.create_token(name, 'admin', actor='admin')[1]}"}
         token = h["alice"]["Authorization"].split()[1]
         r = client.post("/calibrations", headers=h["alice"], json={
             "procedure": "stage-grid", "method": "kinematic", "grid": GRID, "samples_per_point": 8,
@@ -129,8 +129,8 @@ def test_an_altered_active_record_is_refused_at_start_up_and_on_activation(tmp_p
         h = admin_headers(tmp_path)
         store = client.app.state.store
         meas = client.app.state.bench.device_ids["measurement_sensor"]
-        good = store.add_record(meas, "stage", "kinematic", model, operator="alice")
-        other = store.add_record(meas, "stage", "kinematic", model, operator="alice")
+        good = store.records.add_record(meas, "stage", "kinematic", model, operator="alice")
+        other = store.records.add_record(meas, "stage", "kinematic", model, operator="alice")
         assert client.post(f"/records/{good.id}/activate", headers=h).status_code == 200
         assert fresh_tilt(client, h)["calibration"]["record_id"] == good.id
         # approved by someone other than its operator: /tilt's calibration says so from then on

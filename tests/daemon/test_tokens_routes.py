@@ -39,7 +39,7 @@ def test_admin_makes_lists_and_revokes_a_read_only_token(daemon) -> None:
                for t in client.get("/tokens?include_revoked=true", headers=admin).json()["tokens"])
     assert client.delete("/tokens/lims-reader", headers=admin).status_code == 404
     # audited, by the admin token's name
-    with client.app.state.store.session() as s:
+    with client.app.state.store.db.session() as s:
         actions = [(e.action, e.entity_id) for e in s.scalars(sa.select(AuditEvent).order_by(AuditEvent.id))]
     assert ("token.create", "lims-reader") in actions and ("token.revoke", "lims-reader") in actions
 

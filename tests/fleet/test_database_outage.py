@@ -72,7 +72,7 @@ def _samples(device_id: int, n: int, t0: float) -> list[Sample]:
 
 def test_sample_writer_keeps_what_it_took_through_an_outage(migrated: str, proxy: PgProxy) -> None:
     direct = make_engine(migrated)
-    device = Store(direct).add_device("NS-25/E2", "SN-OUT-1", "dut", actor="test")
+    device = Store(direct).devices.add_device("NS-25/E2", "SN-OUT-1", "dut", actor="test")
     engine = make_engine(_through(migrated, proxy), connect_args={"connect_timeout": 2})
     writer = SampleWriter(engine, capacity=500, batch_size=100, put_timeout_s=2.0)
     try:
@@ -106,7 +106,7 @@ def test_sample_writer_keeps_what_it_took_through_an_outage(migrated: str, proxy
 def test_a_commit_whose_answer_was_lost_is_not_written_twice(migrated: str, proxy: PgProxy) -> None:
     direct = make_engine(migrated)
     store = Store(direct)
-    device = store.add_device("NS-25/E2", "SN-OUT-2", "dut", actor="test")
+    device = store.devices.add_device("NS-25/E2", "SN-OUT-2", "dut", actor="test")
     engine = make_engine(_through(migrated, proxy), connect_args={"connect_timeout": 2})
     writer = SampleWriter(engine, capacity=500, batch_size=200)
     try:
@@ -121,8 +121,8 @@ def test_a_commit_whose_answer_was_lost_is_not_written_twice(migrated: str, prox
         engine.dispose()
 
     # a job's point (samples and settled means) written again after such a loss is stored once
-    job = store.create_job(device.id, "stage", "kinematic", actor="test")
-    store.start_job(job.id, actor="test")
+    job = store.jobs.create_job(device.id, "stage", "kinematic", actor="test")
+    store.jobs.start_job(job.id, actor="test")
     rows = [s._replace(job_id=job.id, point=0, source="calibration") for s in _samples(device.id, 10, 4_000.0)]
     settled = {device.id: {"point": 0, "cmd_x_deg": 0.0, "cmd_y_deg": 0.0, "n_samples": 10, "t_start_s": 4_000.0,
                            "t_end_s": 4_000.09, "ch_x_mean": 0.0045, "ch_y_mean": -0.0045, "ch_z_mean": None,
@@ -131,7 +131,7 @@ def test_a_commit_whose_answer_was_lost_is_not_written_twice(migrated: str, prox
     store_point(store, job.id, 0, rows, settled)  # type: ignore[arg-type]
     with direct.connect() as conn:
         assert count_samples(conn, job_id=job.id) == 10
-    assert len(store.settled_points(job.id)) == 1
+    assert len(store.points.settled_points(job.id)) == 1
     direct.dispose()
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from service.storage.daemon_jobs import DaemonStore
+from service.storage.store import Store
 from tests.storage.conftest import (  # noqa: F401 - fixtures
     backend,
     db_url,
@@ -16,9 +16,9 @@ from tests.storage.conftest import (  # noqa: F401 - fixtures
 
 
 @pytest.fixture
-def lims(engine) -> DaemonStore:  # noqa: F811 - the engine fixture  # type: ignore[no-untyped-def]
+def lims(engine) -> Store:  # noqa: F811 - the engine fixture  # type: ignore[no-untyped-def]
     """The store the daemon uses: the lab's records, jobs, tokens and the LIMS tables."""
-    return DaemonStore(engine)
+    return Store(engine)
 
 
 @pytest.fixture(scope="session")

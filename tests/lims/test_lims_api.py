@@ -22,7 +22,7 @@ from service.config import Settings
 from service.lims import dcc
 from service.lims.certificates import verify_certificate
 from service.lims.runtime import LimsRuntime
-from service.storage.daemon_jobs import DaemonStore
+from service.storage.store import Store
 from tests.lims.certificates import stage_record
 from tests.storage.storage_helpers import count
 
@@ -33,7 +33,7 @@ ORDER = {"lims_order_id": "LIMS-118", "item_serial": "CUST-55", "procedure": "st
          "due_on": "2026-12-01", "customer": {"name": "Survey Ltd", "city": "Berlin", "country_code": "DE"}}  # fmt: skip
 
 
-def make_app(store: DaemonStore, tmp_path) -> FastAPI:  # type: ignore[no-untyped-def]
+def make_app(store: Store, tmp_path) -> FastAPI:  # type: ignore[no-untyped-def]
     settings = Settings(data_dir=tmp_path, lab_name="Inclination Lab GmbH", lab_city="Braunschweig",
                         lab_country_code="DE", webhook_retry_base_s=0.05, webhook_retry_max_s=0.2,
                         webhook_max_attempts=1000)  # fmt: skip
@@ -57,25 +57,25 @@ def make_app(store: DaemonStore, tmp_path) -> FastAPI:  # type: ignore[no-untype
 
 @pytest.fixture
 def lab(engine, tmp_path):  # type: ignore[no-untyped-def]
-    store = DaemonStore(engine)
-    tokens = {name: store.create_token(name, scopes, actor="setup")[1]
+    store = Store(engine)
+    tokens = {name: store.tokens.create_token(name, scopes, actor="setup")[1]
               for name, scopes in (("alice", "admin"), ("bob", "admin"), ("olga", "operate"), ("rita", "read"))}
     with TestClient(make_app(store, tmp_path)) as client:
         yield store, client, {k: {"Authorization": f"Bearer {v}"} for k, v in tokens.items()}
 
 
-def measured_record(store: DaemonStore, *, started_by: str, order_id: int | None = None, version_of=None):  # type: ignore[no-untyped-def]
+def measured_record(store: Store, *, started_by: str, order_id: int | None = None, version_of=None):  # type: ignore[no-untyped-def]
     """A record as a job leaves it: real fitted model and validation table, job started by `started_by`."""
-    device = store.find_device("SCA126T", "SN-4711") or store.add_device("SCA126T", "SN-4711", "measurement_sensor",
+    device = store.devices.find_device("SCA126T", "SN-4711") or store.devices.add_device("SCA126T", "SN-4711", "measurement_sensor",
                                                                          actor="daemon")
-    job = store.create_job(device.id, "stage", "homography", actor=started_by, order_id=order_id,
-                           parameters={"request": {"reference_standards": [1]}})
-    store.start_job(job.id, actor="daemon")
+    job = store.jobs.create_job(device.id, "stage", "homography", actor=started_by, order_id=order_id,
+                                parameters={"request": {"reference_standards": [1]}})
+    store.jobs.start_job(job.id, actor="daemon")
     r = stage_record("homography")
-    record = store.add_record(device.id, "stage", "homography", r["model"], operator=started_by, job_id=job.id,
-                              validation=r["validation"], temp_c=20.4,
-                              raw_data={"conditions": {"firmware": {"measurement_sensor": "2.3.1"}}})
-    store.succeed_job(job.id, actor="daemon")
+    record = store.records.add_record(device.id, "stage", "homography", r["model"], operator=started_by, job_id=job.id,
+                                      validation=r["validation"], temp_c=20.4,
+                                      raw_data={"conditions": {"firmware": {"measurement_sensor": "2.3.1"}}})
+    store.jobs.succeed_job(job.id, actor="daemon")
     return record
 
 

@@ -23,7 +23,7 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
             store = client.app.state.store
             h = {"admin": admin_headers(tmp_path)}
             for name, scopes in (("alice", "admin"), ("bob", "admin"), ("lims", "operate")):
-                h[name] = {"Authorization": f"Bearer {store.create_token(name, scopes, actor='admin')[1]}"}
+                h[name] = {"Authorization": f"Bearer {store.tokens.create_token(name, scopes, actor='admin')[1]}"}
             hook = client.post("/webhooks", json={"url": rx.url, "events": ["*"]}, headers=h["admin"]).json()
             rx.secret = hook["secret"]
             rx.down = True  # the first deliveries are refused and retried
@@ -43,7 +43,7 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
                             headers=h["alice"])
             assert r.status_code == 422 and "OLD-2020" in r.json()["detail"], r.text
             assert r.json()["field"] == "reference_standards[1]"
-            with store.session() as s:
+            with store.db.session() as s:
                 assert s.scalar(sa.text("SELECT count(*) FROM calibration_jobs")) == 0
             r = client.post("/calibrations", json={**body, "order_id": 999}, headers=h["alice"])
             assert r.status_code == 422 and r.json()["field"] == "order_id"
@@ -65,7 +65,7 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
             xml = client.get(f"/records/{rid}/certificate", headers=h["lims"]).content
             assert dcc.certificate_errors(xml) == []
             doc = dcc.dcc_schema().to_dict(xml.decode())
-            device = store.get_device(record["device_id"])
+            device = store.devices.get_device(record["device_id"])
             item = doc["dcc:administrativeData"]["dcc:items"]["dcc:item"][0]
             # the item as the order names it: never the bench's port or role, nor the protocol's name as a model
             assert item["dcc:model"] == "NS-25" and item["dcc:manufacturer"]["dcc:name"]["dcc:content"][0]["$"] == \
@@ -130,7 +130,7 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
 def test_certificates_of_scale_and_rotation_records(tmp_path, procedure, method, grid, benches, quantity, unit) -> None:  # type: ignore[no-untyped-def]
     with make_client(tmp_path, sim_benches=benches, **LAB) as client:
         store = client.app.state.store
-        h = {name: {"Authorization": f"Bearer {store.create_token(name, 'admin', actor='setup')[1]}"}
+        h = {name: {"Authorization": f"Bearer {store.tokens.create_token(name, 'admin', actor='setup')[1]}"}
              for name in ("alice", "bob")}
         std = client.post("/standards", json=STANDARD, headers=h["alice"]).json()
         r = client.post("/calibrations", headers=h["alice"], json={

@@ -16,8 +16,8 @@ import httpx
 import pytest
 
 from service.lims import dcc
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.engine import make_engine
+from service.storage.store import Store
 from tests.api.running_service import running_service
 from tests.lims.test_lims_api import ORDER, STANDARD, measured_record, wait_for
 
@@ -103,8 +103,8 @@ def test_the_documented_client_pulls_and_receives(tmp_path, monkeypatch) -> None
     data = tmp_path / "data"
     try:
         with running_service(data, **LAB_ENV) as base:
-            store = DaemonStore(make_engine(f"sqlite:///{data / 'tiltlab.db'}"))
-            tokens = {name: store.create_token(name, scopes, actor="setup")[1]
+            store = Store(make_engine(f"sqlite:///{data / 'tiltlab.db'}"))
+            tokens = {name: store.tokens.create_token(name, scopes, actor="setup")[1]
                       for name, scopes in (("alice", "admin"), ("bob", "admin"), ("lims", "operate"))}
             auth = {k: {"Authorization": f"Bearer {v}"} for k, v in tokens.items()}
             (tmp_path / "lims.token").write_text(tokens["lims"] + "\n")

@@ -11,8 +11,8 @@ import httpx
 
 from service.config import Settings
 from service.lims import dcc
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.migrate import bootstrap
+from service.storage.store import Store
 from tests.api.running_service import running_service
 from tests.lims.test_lims_api import ORDER, STANDARD, Receiver, measured_record, wait_for
 
@@ -51,8 +51,8 @@ class FeedClient:
 def test_feed_and_webhooks_across_a_restart(tmp_path) -> None:  # type: ignore[no-untyped-def]
     data = tmp_path / "data"
     engine = bootstrap(Settings(data_dir=data))
-    store = DaemonStore(engine)
-    tokens = {n: store.create_token(n, s, actor="setup")[1] for n, s in
+    store = Store(engine)
+    tokens = {n: store.tokens.create_token(n, s, actor="setup")[1] for n, s in
               (("alice", "admin"), ("bob", "admin"), ("olga", "operate"), ("lims", "read"))}  # fmt: skip
     h = {n: {"Authorization": f"Bearer {t}"} for n, t in tokens.items()}
     rx = Receiver()

@@ -29,40 +29,40 @@ def _points(n: int, offset: float) -> list[dict]:
 
 def stage_record(lims):  # type: ignore[no-untyped-def]
     """A stage record fitted on a job's points of the measurement sensor and of the reference sensor."""
-    meas = lims.add_device("NS-25", "SN-4711", "dut", actor="alice")
-    ref = lims.add_device("REF-1", "R-1", "reference", actor="alice")
-    job = lims.create_job(meas.id, "stage", "kinematic", actor="alice")
-    lims.start_job(job.id, actor="alice")
-    lims.add_settled_points(job.id, ref.id, _points(5, 0.0), actor="alice")
-    lims.add_settled_points(job.id, meas.id, _points(5, 0.3), actor="alice")
-    record = lims.add_record(meas.id, "stage", "kinematic", {"parameters": {}}, operator="alice", job_id=job.id)
-    lims.succeed_job(job.id, actor="alice")
+    meas = lims.devices.add_device("NS-25", "SN-4711", "dut", actor="alice")
+    ref = lims.devices.add_device("REF-1", "R-1", "reference", actor="alice")
+    job = lims.jobs.create_job(meas.id, "stage", "kinematic", actor="alice")
+    lims.jobs.start_job(job.id, actor="alice")
+    lims.points.add_settled_points(job.id, ref.id, _points(5, 0.0), actor="alice")
+    lims.points.add_settled_points(job.id, meas.id, _points(5, 0.3), actor="alice")
+    record = lims.records.add_record(meas.id, "stage", "kinematic", {"parameters": {}}, operator="alice", job_id=job.id)
+    lims.jobs.succeed_job(job.id, actor="alice")
     return record, meas, ref
 
 
 def test_rejecting_the_active_record_withdraws_it_and_it_cannot_be_activated_again(lims) -> None:  # type: ignore[no-untyped-def]
     record, meas, _ = stage_record(lims)
-    lims.activate(record.id, actor="alice", reason="first use", replaces=None)  # a draft may be used
-    assert lims.unusable_reason(record.id) is None
-    lims.decide(record.id, decision="reject", meaning="rejection", note="reference sensor out of date", actor="bob")
-    assert lims.active_record(meas.id, "stage") is None
-    why = lims.inactive_reason(meas.id, "stage")
+    lims.records.activate(record.id, actor="alice", reason="first use", replaces=None)  # a draft may be used
+    assert lims.records.unusable_reason(record.id) is None
+    lims.approvals.decide(record.id, decision="reject", meaning="rejection", note="reference sensor out of date", actor="bob")
+    assert lims.records.active_record(meas.id, "stage") is None
+    why = lims.records.inactive_reason(meas.id, "stage")
     assert why is not None and f"record {record.id}" in why and "rejected" in why and "out of date" in why
-    (last, *_) = lims.audit_events(entity="active_calibration")
+    (last, *_) = lims.audit.events(entity="active_calibration")
     assert last.action == "pointer.clear" and last.details["previous_record_id"] == record.id
-    assert "rejected by bob" in (lims.unusable_reason(record.id) or "")
+    assert "rejected by bob" in (lims.records.unusable_reason(record.id) or "")
     with pytest.raises(RecordNotUsable, match="rejected"):
-        lims.activate(record.id, actor="alice", reason="again", replaces=None)
-    assert lims.active_record(meas.id, "stage") is None
+        lims.records.activate(record.id, actor="alice", reason="again", replaces=None)
+    assert lims.records.active_record(meas.id, "stage") is None
     assert verify(lims.engine).ok
 
 
 def test_rejecting_a_record_that_is_not_active_leaves_the_active_one(lims) -> None:  # type: ignore[no-untyped-def]
     first, meas, _ = stage_record(lims)
-    lims.activate(first.id, actor="alice", reason="first use", replaces=None)
-    second = lims.add_record(meas.id, "stage", "kinematic", {"parameters": {}}, operator="alice")
-    lims.decide(second.id, decision="reject", meaning="rejection", note="bad fit", actor="bob")
-    active = lims.active_record(meas.id, "stage")
+    lims.records.activate(first.id, actor="alice", reason="first use", replaces=None)
+    second = lims.records.add_record(meas.id, "stage", "kinematic", {"parameters": {}}, operator="alice")
+    lims.approvals.decide(second.id, decision="reject", meaning="rejection", note="bad fit", actor="bob")
+    active = lims.records.active_record(meas.id, "stage")
     assert active is not None and active.id == first.id
 
 
@@ -72,10 +72,10 @@ def test_an_altered_record_cannot_be_activated(lims) -> None:  # type: ignore[no
     with lims.engine.begin() as conn:
         conn.execute(sa.text("UPDATE calibration_records SET model = :m WHERE id = :i"),
                      {"m": '{"parameters":{"offset":1.0}}', "i": record.id})
-    assert "does not match its SHA-256" in (lims.unusable_reason(record.id) or "")
+    assert "does not match its SHA-256" in (lims.records.unusable_reason(record.id) or "")
     with pytest.raises(RecordNotUsable, match="SHA-256"):
-        lims.activate(record.id, actor="alice", reason="use it", replaces=None)
-    assert lims.active_record(meas.id, "stage") is None
+        lims.records.activate(record.id, actor="alice", reason="use it", replaces=None)
+    assert lims.records.active_record(meas.id, "stage") is None
 
 
 @pytest.mark.parametrize("role", ["reference", "measurement"])
@@ -94,15 +94,15 @@ def test_db_verify_sees_an_edit_of_any_sensors_settled_point(lims, role) -> None
 
 def test_db_verify_sees_the_deletion_of_the_newest_decision(lims) -> None:  # type: ignore[no-untyped-def]
     record, _, _ = stage_record(lims)
-    lims.decide(record.id, decision="approve", meaning="review", note="looked at", actor="carol")
-    rejection = lims.decide(record.id, decision="reject", meaning="rejection", note="drifting", actor="bob")
-    assert lims.record_status(record.id) == "rejected"
+    lims.approvals.decide(record.id, decision="approve", meaning="review", note="looked at", actor="carol")
+    rejection = lims.approvals.decide(record.id, decision="reject", meaning="rejection", note="drifting", actor="bob")
+    assert lims.approvals.record_status(record.id) == "rejected"
     report = verify(lims.engine)
     assert report.ok and report.approvals_checked == 2
     _drop_guards(lims.engine, "record_approvals")
     with lims.engine.begin() as conn:
         conn.execute(sa.text("DELETE FROM record_approvals WHERE id = :i"), {"i": rejection.id})
-    assert lims.record_status(record.id) == "draft"  # what the deletion would make of it
+    assert lims.approvals.record_status(record.id) == "draft"  # what the deletion would make of it
     problems = verify(lims.engine).problems
     assert [(p.table, p.row_id, p.kind) for p in problems] == [("record_approvals", rejection.id, "missing")]
     assert "record.reject" in problems[0].detail

@@ -9,9 +9,9 @@ import pytest
 import sqlalchemy as sa
 
 from service.errors import InputError
-from service.storage.lims import StandardNotUsable
 from service.storage.migrate import downgrade, upgrade
 from service.storage.stated_uncertainty import parse_stated_uncertainty
+from service.storage.store.standards import StandardNotUsable
 
 BASE = {"name": "reference inclinometer", "serial": "REF-77", "certificate_number": "C-1",
         "certificate_sha256": "ab" * 32, "calibrated_on": "2026-01-10", "due_on": "2027-01-10"}  # fmt: skip
@@ -36,26 +36,26 @@ def test_wording_that_is_no_angle_with_its_k_reads_as_nothing(text: str) -> None
 
 
 def test_numbers_given_are_kept_and_k_defaults_to_two(lims) -> None:  # type: ignore[no-untyped-def]
-    s = lims.add_standard({**BASE, "expanded_uncertainty_deg": 0.02}, actor="admin")
+    s = lims.standards.add_standard({**BASE, "expanded_uncertainty_deg": 0.02}, actor="admin")
     assert (s.expanded_uncertainty_deg, s.coverage_factor, s.uncertainty) == (0.02, 2.0, "")
-    t = lims.add_standard({**BASE, "certificate_number": "C-2", "uncertainty": "1 arcsec (k = 2)",
-                           "expanded_uncertainty_deg": 0.0005, "coverage_factor": 2.1}, actor="admin")
+    t = lims.standards.add_standard({**BASE, "certificate_number": "C-2", "uncertainty": "1 arcsec (k = 2)",
+                                     "expanded_uncertainty_deg": 0.0005, "coverage_factor": 2.1}, actor="admin")
     assert (t.expanded_uncertainty_deg, t.coverage_factor) == (0.0005, 2.1)  # the numbers, not the remark
     for bad in ({"expanded_uncertainty_deg": 0}, {"expanded_uncertainty_deg": -1.0},
                 {"expanded_uncertainty_deg": True}, {"expanded_uncertainty_deg": 0.1, "coverage_factor": 0.5},
                 {"coverage_factor": 2.0}):
         with pytest.raises(InputError, match="expanded_uncertainty_deg|coverage_factor"):
-            lims.add_standard({**BASE, "certificate_number": "C-3", **bad}, actor="admin")
+            lims.standards.add_standard({**BASE, "certificate_number": "C-3", **bad}, actor="admin")
 
 
 def test_a_standard_without_a_numeric_uncertainty_is_refused_at_use_by_name(lims) -> None:  # type: ignore[no-untyped-def]
-    good = lims.add_standard({**BASE, "uncertainty": "0.001 deg (k = 2)"}, actor="admin")
-    vague = lims.add_standard({**BASE, "certificate_number": "C-9", "name": "autocollimator",
-                               "uncertainty": "as stated in the certificate"}, actor="admin")
+    good = lims.standards.add_standard({**BASE, "uncertainty": "0.001 deg (k = 2)"}, actor="admin")
+    vague = lims.standards.add_standard({**BASE, "certificate_number": "C-9", "name": "autocollimator",
+                                         "uncertainty": "as stated in the certificate"}, actor="admin")
     assert good.expanded_uncertainty_deg == 0.001 and vague.expanded_uncertainty_deg is None
-    assert [s.id for s in lims.usable_standards([good.id], on=ON)] == [good.id]
+    assert [s.id for s in lims.standards.usable_standards([good.id], on=ON)] == [good.id]
     with pytest.raises(StandardNotUsable, match=r"reference_standards\[1\].*autocollimator.*C-9.*no numeric uncertainty"):
-        lims.usable_standards([good.id, vague.id], on=ON)
+        lims.standards.usable_standards([good.id, vague.id], on=ON)
 
 
 def test_the_migration_fills_the_numbers_where_the_text_reads(empty_engine: sa.Engine) -> None:

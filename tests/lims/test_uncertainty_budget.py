@@ -103,7 +103,7 @@ def test_a_standard_of_U_0_02_deg_reaches_tilt_and_the_record_through_the_daemon
 
     with make_client(tmp_path, **LAB) as client:
         store = client.app.state.store
-        h = {n: {"Authorization": f"Bearer {store.create_token(n, 'admin', actor='setup')[1]}"} for n in ("alice", "bob")}
+        h = {n: {"Authorization": f"Bearer {store.tokens.create_token(n, 'admin', actor='setup')[1]}"} for n in ("alice", "bob")}
         std = client.post("/standards", headers=h["alice"], json={
             "name": "autocollimator", "serial": "AC-7", "certificate_number": "DAkkS-2026-7", "certificate_sha256": "ab" * 32,
             "calibrated_on": "2026-01-10", "due_on": "2099-01-10", "expanded_uncertainty_deg": 0.02, "coverage_factor": 2})

@@ -8,8 +8,8 @@ import sqlalchemy as sa
 from service import cli
 from service.config import get_settings
 from service.lims.certificates import issue_certificate
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.migrate import bootstrap
+from service.storage.store import Store
 from tests.lims.test_lims_api import measured_record
 
 
@@ -20,9 +20,9 @@ def issued(tmp_path, monkeypatch):  # type: ignore[no-untyped-def]
         monkeypatch.setenv(f"TILTLAB_{k}", v)
     get_settings.cache_clear()
     engine = bootstrap(get_settings())
-    store = DaemonStore(engine)
+    store = Store(engine)
     record = measured_record(store, started_by="alice")
-    store.decide(record.id, decision="approve", meaning="approval", note="", actor="bob")
+    store.approvals.decide(record.id, decision="approve", meaning="approval", note="", actor="bob")
     cert = issue_certificate(store, record.id, get_settings(), actor="bob")
     path = tmp_path / f"{cert.number}.xml"
     path.write_bytes(cert.xml)

@@ -125,5 +125,5 @@ def store(engine: sa.Engine) -> Store:
 
 @pytest.fixture
 def device(store: Store):  # type: ignore[no-untyped-def]
-    return store.add_device("NS-25/E2", "SN1001", "dut", actor="alice", port="/dev/ttyUSB0",
-                            port_settings={"baud": 115200, "parity": "N"})  # fmt: skip
+    return store.devices.add_device("NS-25/E2", "SN1001", "dut", actor="alice", port="/dev/ttyUSB0",
+                                    port_settings={"baud": 115200, "parity": "N"})  # fmt: skip

@@ -15,8 +15,8 @@ import sys
 import time
 
 from service.storage import make_engine
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.errors import ConflictError
+from service.storage.store import Store
 
 MODEL = {"kind": "scale", "method": "linear", "parameters": {"gain_x": 1.0012, "gain_y": 0.9987},
          "covariance": [[1e-8, 0.0], [0.0, 1.1e-8]], "residuals": {"rms_deg": 0.0021}}  # fmt: skip
@@ -25,23 +25,23 @@ MODEL = {"kind": "scale", "method": "linear", "parameters": {"gain_x": 1.0012, "
 def main() -> None:
     url, name, shared_device, seconds = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
     engine = make_engine(url)
-    store = DaemonStore(engine)
-    own = store.add_device("fleet-writer", f"{name}-own", "measurement_sensor", actor=name)
+    store = Store(engine)
+    own = store.devices.add_device("fleet-writer", f"{name}-own", "measurement_sensor", actor=name)
     counts = {"records": 0, "approvals": 0, "benches": 0, "conflicts": 0}
     deadline = time.monotonic() + seconds
     turn = 0
     while time.monotonic() < deadline:
         turn += 1
-        shared = store.add_record(shared_device, "scale", "linear", MODEL, operator=name)
-        store.add_record(own.id, "scale", "linear", MODEL, operator=name)
+        shared = store.records.add_record(shared_device, "scale", "linear", MODEL, operator=name)
+        store.records.add_record(own.id, "scale", "linear", MODEL, operator=name)
         counts["records"] += 2
         try:  # another writer may decide the same draft first: a decision is final, the loser is refused
-            store.decide(shared.id - 1 if shared.id > 1 else shared.id, decision="approve", meaning="approval",
-                         note="", actor=f"{name}-reviewer")
+            store.approvals.decide(shared.id - 1 if shared.id > 1 else shared.id, decision="approve", meaning="approval",
+                                   note="", actor=f"{name}-reviewer")
             counts["approvals"] += 1
         except ConflictError:
             counts["conflicts"] += 1
-        store.ensure_bench(f"{name}-bench-{turn}", actor=name)
+        store.devices.ensure_bench(f"{name}-bench-{turn}", actor=name)
         counts["benches"] += 1
     engine.dispose()
     print(json.dumps(counts), flush=True)

@@ -14,13 +14,13 @@ REFUSED = (sa.exc.IntegrityError, sa.exc.OperationalError, sa.exc.InternalError)
 
 @pytest.fixture
 def populated(store: Store, device):  # type: ignore[no-untyped-def]
-    job = store.create_job(device.id, "scale", "linear", actor="alice")
-    store.start_job(job.id, actor="alice")
-    store.add_settled_points(job.id, device.id, [
+    job = store.jobs.create_job(device.id, "scale", "linear", actor="alice")
+    store.jobs.start_job(job.id, actor="alice")
+    store.points.add_settled_points(job.id, device.id, [
         {"point": 0, "n_samples": 10, "t_start_s": 1.0, "t_end_s": 2.0, "ch_x_mean": 0.1, "ch_y_mean": 0.2}
     ], actor="alice")  # fmt: skip
-    rec = store.add_record(device.id, "scale", "linear", MODEL, operator="alice", reference_standards=STANDARDS,
-                           job_id=job.id, activate=True)  # fmt: skip
+    rec = store.records.add_record(device.id, "scale", "linear", MODEL, operator="alice", reference_standards=STANDARDS,
+                                   job_id=job.id, activate=True)  # fmt: skip
     write_samples(store.engine, [
         Sample(device.id, 100.0, 0.1, 0.2, job_id=job.id, point=0, source="calibration"),
         Sample(device.id, 101.0, 0.1, 0.2),
@@ -55,21 +55,21 @@ def test_raw_samples_are_never_updated_and_calibration_samples_never_deleted(sto
 def test_orm_update_of_a_record_is_refused_with_a_clear_error(store: Store, populated) -> None:  # type: ignore[no-untyped-def]
     from service.storage.models import CalibrationRecord
 
-    with store.session() as s:
+    with store.db.session() as s:
         rec = s.get(CalibrationRecord, populated.id)
         rec.model = {**rec.model, "parameters": {"gain_x": 2.0}}
         with pytest.raises(AppendOnlyViolation, match="append-only.*cannot update"):
             s.commit()
-    with store.session() as s:
+    with store.db.session() as s:
         s.delete(s.get(CalibrationRecord, populated.id))
         with pytest.raises(AppendOnlyViolation, match="cannot delete"):
             s.commit()
-    assert store.get_record(populated.id).model == MODEL
+    assert store.records.get_record(populated.id).model == MODEL
 
 
 def test_database_refusal_is_translated(store: Store, populated) -> None:  # type: ignore[no-untyped-def]
     """An update that reaches the database through the store's transaction surfaces as AppendOnlyViolation."""
     with pytest.raises(AppendOnlyViolation, match="append-only"):
-        with store._tx() as s:
+        with store.db.transaction() as s:
             s.execute(sa.text("UPDATE calibration_records SET operator = 'mallory'"))
-    assert store.get_record(populated.id).operator == "alice"
+    assert store.records.get_record(populated.id).operator == "alice"

@@ -29,7 +29,7 @@ def configured(db_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):  #
 def _upgraded_with_a_device(url: str) -> None:
     assert cli.main(["db", "upgrade"]) == 0
     engine = make_engine(url)
-    Store(engine).add_device("NS-25/E2", "SN1001", "dut", actor="alice")
+    Store(engine).devices.add_device("NS-25/E2", "SN1001", "dut", actor="alice")
     engine.dispose()
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import sqlalchemy as sa
 
-from service.storage.daemon_jobs import DaemonStore
+from service.storage.store import Store
 from service.storage.verify import verify
 from tests.storage.storage_helpers import count
 
@@ -32,8 +32,8 @@ def _seconds(backend: str) -> float:
 
 def test_four_processes_appending_at_once_keep_every_chain_and_lose_nothing(engine: sa.Engine, db_url: str,
                                                                             backend: str) -> None:
-    store = DaemonStore(engine)
-    shared = store.add_device("fleet-writer", "shared", "measurement_sensor", actor="test")
+    store = Store(engine)
+    shared = store.devices.add_device("fleet-writer", "shared", "measurement_sensor", actor="test")
     records0, approvals0, audit0 = (count(engine, t) for t in ("calibration_records", "record_approvals", "audit_events"))
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     seconds = _seconds(backend)
@@ -53,7 +53,7 @@ def test_four_processes_appending_at_once_keep_every_chain_and_lose_nothing(engi
     # each writer's own device, each record version, each approval and each bench left one audit event
     assert count(engine, "audit_events") - audit0 == WRITERS + made["records"] + made["approvals"] + made["benches"]
 
-    versions = sorted(r.version for r in store.records(shared.id))
+    versions = sorted(r.version for r in store.records.of_device(shared.id))
     assert versions == list(range(1, len(versions) + 1))  # the contended chain: no gap, no fork
     assert len(versions) == made["records"] // 2
 

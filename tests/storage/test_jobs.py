@@ -10,24 +10,24 @@ from tests.storage.storage_helpers import count
 
 
 def test_happy_path_with_progress(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    job = store.create_job(device.id, "stage", "kinematic", actor="alice", parameters={"grid": "5x5", "dwell_s": 2})
+    job = store.jobs.create_job(device.id, "stage", "kinematic", actor="alice", parameters={"grid": "5x5", "dwell_s": 2})
     assert (job.state, job.progress, job.parameters["grid"]) == ("queued", 0.0, "5x5")
-    store.start_job(job.id, actor="alice")
-    store.set_progress(job.id, 0.5)
-    assert store.get_job(job.id).progress == 0.5
-    done = store.succeed_job(job.id, actor="alice")
+    store.jobs.start_job(job.id, actor="alice")
+    store.jobs.set_progress(job.id, 0.5)
+    assert store.jobs.get_job(job.id).progress == 0.5
+    done = store.jobs.succeed_job(job.id, actor="alice")
     assert (done.state, done.progress) == ("succeeded", 1.0)
     assert done.started_at <= done.finished_at
-    actions = [e.action for e in reversed(store.audit_events(entity="job", entity_id=job.id))]
+    actions = [e.action for e in reversed(store.audit.events(entity="job", entity_id=job.id))]
     assert actions == ["job.create", "job.running", "job.succeeded"]
 
 
 def test_failure_keeps_its_reason(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    job = store.create_job(device.id, "stage", "kinematic", actor="alice")
-    store.start_job(job.id, actor="alice")
+    job = store.jobs.create_job(device.id, "stage", "kinematic", actor="alice")
+    store.jobs.start_job(job.id, actor="alice")
     with pytest.raises(InputError, match="failure_reason"):
-        store.transition_job(job.id, "failed", actor="alice")
-    failed = store.fail_job(job.id, "stage axis B stalled at +4.0 deg", actor="system")
+        store.jobs.transition_job(job.id, "failed", actor="alice")
+    failed = store.jobs.fail_job(job.id, "stage axis B stalled at +4.0 deg", actor="system")
     assert failed.state == "failed" and failed.failure_reason == "stage axis B stalled at +4.0 deg"
 
 
@@ -43,32 +43,32 @@ def test_failure_keeps_its_reason(store: Store, device) -> None:  # type: ignore
     ],
 )
 def test_illegal_transitions_are_refused(store: Store, device, path: list[str], illegal: str) -> None:  # type: ignore[no-untyped-def]
-    job = store.create_job(device.id, "stage", "kinematic", actor="alice")
+    job = store.jobs.create_job(device.id, "stage", "kinematic", actor="alice")
     for state in path:
-        store.transition_job(job.id, state, actor="alice", failure_reason="x" if state == "failed" else None)
+        store.jobs.transition_job(job.id, state, actor="alice", failure_reason="x" if state == "failed" else None)
     events = count(store.engine, "audit_events")
     with pytest.raises(IllegalTransition, match=f"-> {illegal} is not allowed"):
-        store.transition_job(job.id, illegal, actor="alice", failure_reason="x" if illegal == "failed" else None)
-    assert store.get_job(job.id).state == (path[-1] if path else "queued")
+        store.jobs.transition_job(job.id, illegal, actor="alice", failure_reason="x" if illegal == "failed" else None)
+    assert store.jobs.get_job(job.id).state == (path[-1] if path else "queued")
     assert count(store.engine, "audit_events") == events
 
 
 def test_progress_only_while_running(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    job = store.create_job(device.id, "stage", "kinematic", actor="alice")
+    job = store.jobs.create_job(device.id, "stage", "kinematic", actor="alice")
     with pytest.raises(IllegalTransition, match="queued"):
-        store.set_progress(job.id, 0.1)
-    store.start_job(job.id, actor="alice")
+        store.jobs.set_progress(job.id, 0.1)
+    store.jobs.start_job(job.id, actor="alice")
     with pytest.raises(InputError, match="outside"):
-        store.set_progress(job.id, 1.5)
-    store.cancel_job(job.id, actor="alice", reason="operator abort")
-    assert store.get_job(job.id).state == "cancelled"
+        store.jobs.set_progress(job.id, 1.5)
+    store.jobs.cancel_job(job.id, actor="alice", reason="operator abort")
+    assert store.jobs.get_job(job.id).state == "cancelled"
 
 
 def test_unknown_job_and_state(store: Store, device) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(UnknownEntity, match="job 42"):
-        store.start_job(42, actor="alice")
-    job = store.create_job(device.id, "stage", "kinematic", actor="alice")
+        store.jobs.start_job(42, actor="alice")
+    job = store.jobs.create_job(device.id, "stage", "kinematic", actor="alice")
     with pytest.raises(InputError, match="not one of"):
-        store.transition_job(job.id, "paused", actor="alice")
+        store.jobs.transition_job(job.id, "paused", actor="alice")
     with pytest.raises(UnknownEntity, match="device 7"):
-        store.create_job(7, "stage", "kinematic", actor="alice")
+        store.jobs.create_job(7, "stage", "kinematic", actor="alice")

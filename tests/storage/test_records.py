@@ -24,7 +24,7 @@ def _counts(store: Store) -> dict[str, int]:
 def _record(store: Store, device_id: int, **kw):  # type: ignore[no-untyped-def]
     kw.setdefault("operator", "alice")
     kw.setdefault("reference_standards", STANDARDS)
-    return store.add_record(device_id, "scale", "linear", MODEL, temp_c=21.4, **kw)
+    return store.records.add_record(device_id, "scale", "linear", MODEL, temp_c=21.4, **kw)
 
 
 def _drop_guards(engine: sa.Engine) -> None:
@@ -46,7 +46,7 @@ def test_versions_form_a_hash_chain(store: Store, device) -> None:  # type: igno
     assert r1.prev_sha256 == GENESIS_SHA256
     assert r2.prev_sha256 == r1.content_sha256 and r3.prev_sha256 == r2.content_sha256
     assert r2.supersedes_id == r1.id and r3.supersedes_id == r1.id  # the active one, until switched
-    stored = store.get_record(r2.id)
+    stored = store.records.get_record(r2.id)
     assert stored.model == MODEL and stored.reference_standards == STANDARDS and stored.temp_c == 21.4
     assert stored.content_sha256 == sha256_hex(record_content(stored))
     assert stored.created_at.tzinfo is not None
@@ -58,16 +58,16 @@ def test_versions_form_a_hash_chain(store: Store, device) -> None:  # type: igno
 def test_active_pointer_switch_is_deliberate_and_audited(store: Store, device) -> None:  # type: ignore[no-untyped-def]
     r1 = _record(store, device.id)
     r2 = _record(store, device.id)
-    assert store.active_record(device.id, "scale") is None
-    store.activate(r1.id, actor="bob", reason="validated against AC-77")
-    assert store.active_record(device.id, "scale").id == r1.id
-    store.activate(r2.id, actor="bob", reason="recalibrated", replaces=r1.id)
-    assert store.active_record(device.id, "scale").id == r2.id
-    history = store.pointer_history(device.id, "scale")
+    assert store.records.active_record(device.id, "scale") is None
+    store.records.activate(r1.id, actor="bob", reason="validated against AC-77")
+    assert store.records.active_record(device.id, "scale").id == r1.id
+    store.records.activate(r2.id, actor="bob", reason="recalibrated", replaces=r1.id)
+    assert store.records.active_record(device.id, "scale").id == r2.id
+    history = store.records.pointer_history(device.id, "scale")
     assert [(h.previous_record_id, h.record_id) for h in history] == [(None, r1.id), (r1.id, r2.id)]
-    store.deactivate(device.id, "scale", actor="bob", reason="drop test failed", replaces=r2.id)
-    assert store.active_record(device.id, "scale") is None
-    actions = [e.action for e in store.audit_events(entity="active_calibration")]
+    store.records.deactivate(device.id, "scale", actor="bob", reason="drop test failed", replaces=r2.id)
+    assert store.records.active_record(device.id, "scale") is None
+    actions = [e.action for e in store.audit.events(entity="active_calibration")]
     assert actions == ["pointer.clear", "pointer.set", "pointer.set"]
     assert verify(store.engine).ok
 
@@ -77,11 +77,11 @@ def test_second_active_pointer_is_refused(store: Store, device) -> None:  # type
     r2 = _record(store, device.id)
     before = _counts(store)
     with pytest.raises(ConflictError, match="second active pointer is refused.*replaces="):
-        store.activate(r2.id, actor="bob", reason="oops")
+        store.records.activate(r2.id, actor="bob", reason="oops")
     with pytest.raises(ConflictError):
-        store.activate(r2.id, actor="bob", reason="stale view", replaces=r2.id)
+        store.records.activate(r2.id, actor="bob", reason="stale view", replaces=r2.id)
     assert _counts(store) == before
-    assert store.active_record(device.id, "scale").id == r1.id
+    assert store.records.active_record(device.id, "scale").id == r1.id
     # The database refuses it too, whoever writes: (device, kind) is the pointer's primary key.
     with pytest.raises(sa.exc.IntegrityError):
         with store.engine.begin() as conn:
@@ -92,7 +92,7 @@ def test_second_active_pointer_is_refused(store: Store, device) -> None:  # type
 
 
 def test_pointer_cannot_name_a_record_of_another_device(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    other = store.add_device("NS-25/E2", "SN1002", "dut", actor="alice")
+    other = store.devices.add_device("NS-25/E2", "SN1002", "dut", actor="alice")
     rec = _record(store, other.id)
     with pytest.raises(sa.exc.IntegrityError):
         with store.engine.begin() as conn:
@@ -132,13 +132,13 @@ def test_invalid_records_are_refused_whole(store: Store, device, change, error, 
     kw = {"operator": "alice", "reference_standards": STANDARDS, "activate": True} | change
     model = kw.pop("model", MODEL)
     with pytest.raises(error, match=match):
-        store.add_record(device.id, "scale", "linear", model, **kw)
+        store.records.add_record(device.id, "scale", "linear", model, **kw)
     assert _counts(store) == before
 
 
 def test_record_from_a_job_of_another_device_or_an_unfinished_job(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    other = store.add_device("NS-25/E2", "SN1002", "dut", actor="alice")
-    job = store.create_job(other.id, "scale", "linear", actor="alice")
+    other = store.devices.add_device("NS-25/E2", "SN1002", "dut", actor="alice")
+    job = store.jobs.create_job(other.id, "scale", "linear", actor="alice")
     with pytest.raises(InputError, match="calibrates device"):
         _record(store, device.id, job_id=job.id)
     with pytest.raises(IllegalTransition, match="queued"):
@@ -156,9 +156,9 @@ def test_tampered_record_is_reported(store: Store, device, db_url, monkeypatch, 
     assert not report.ok
     assert [(p.row_id, p.kind) for p in report.problems] == [(r1.id, "tampered")]
     # the tampered version cannot be re-activated either
-    store.deactivate(device.id, "scale", actor="bob", reason="hash mismatch", replaces=r1.id)
+    store.records.deactivate(device.id, "scale", actor="bob", reason="hash mismatch", replaces=r1.id)
     with pytest.raises(RefusedWrite, match="tampered"):
-        store.activate(r1.id, actor="bob", reason="x")
+        store.records.activate(r1.id, actor="bob", reason="x")
     # and `tiltlab db verify` says so and exits 1
     monkeypatch.delenv("TILTLAB_CONFIG", raising=False)
     monkeypatch.setenv("TILTLAB_DATABASE_URL", db_url)
@@ -176,7 +176,7 @@ def test_rehashed_edit_breaks_the_chain(store: Store, device) -> None:  # type: 
     r1 = _record(store, device.id)
     r2 = _record(store, device.id)
     _drop_guards(store.engine)
-    forged = store.get_record(r1.id)
+    forged = store.records.get_record(r1.id)
     forged.temp_c = 25.0
     with store.engine.begin() as conn:
         conn.execute(sa.text("UPDATE calibration_records SET temp_c = 25.0, content_sha256 = :h WHERE id = :i"),
@@ -209,8 +209,8 @@ def test_version_gap_is_a_broken_chain(store: Store, device) -> None:  # type: i
 
 def test_audit_log_tamper_and_removal_are_detected(store: Store, device) -> None:  # type: ignore[no-untyped-def]
     _record(store, device.id)
-    store.add_device("X", "Y", "reference", actor="alice")
-    events = sorted(store.audit_events(), key=lambda e: e.id)
+    store.devices.add_device("X", "Y", "reference", actor="alice")
+    events = sorted(store.audit.events(), key=lambda e: e.id)
     assert len(events) >= 3 and verify(store.engine).ok
     _drop_guards(store.engine)
     with store.engine.begin() as conn:
@@ -222,10 +222,10 @@ def test_audit_log_tamper_and_removal_are_detected(store: Store, device) -> None
 
 
 def test_every_action_is_audited_with_who_what_when(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    bench = store.add_bench("bench-1", actor="carol", stage_model="PI H-811", port="/dev/ttyS0")
-    store.update_device(device.id, actor="carol", bench_id=bench.id, port="/dev/ttyUSB1")
+    bench = store.devices.add_bench("bench-1", actor="carol", stage_model="PI H-811", port="/dev/ttyS0")
+    store.devices.update_device(device.id, actor="carol", bench_id=bench.id, port="/dev/ttyUSB1")
     _record(store, device.id, activate=True)
-    events = sorted(store.audit_events(), key=lambda e: e.id)
+    events = sorted(store.audit.events(), key=lambda e: e.id)
     assert [e.action for e in events] == [
         "device.create", "bench.create", "device.update", "record.create", "pointer.set"
     ]
@@ -237,11 +237,11 @@ def test_every_action_is_audited_with_who_what_when(store: Store, device) -> Non
 
 def test_duplicate_device_and_unknown_bench_are_refused(store: Store, device) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(ConflictError, match="already exists"):
-        store.add_device("NS-25/E2", "SN1001", "dut", actor="alice")
+        store.devices.add_device("NS-25/E2", "SN1001", "dut", actor="alice")
     with pytest.raises(UnknownEntity, match="bench 77"):
-        store.add_device("NS-25/E2", "SN1009", "dut", actor="alice", bench_id=77)
+        store.devices.add_device("NS-25/E2", "SN1009", "dut", actor="alice", bench_id=77)
     with pytest.raises(InputError, match="cannot change"):
-        store.update_device(device.id, actor="alice", serial="SN9")
+        store.devices.update_device(device.id, actor="alice", serial="SN9")
     assert count(store.engine, "devices") == 1
 
 
@@ -250,15 +250,15 @@ def test_optional_text_fields_are_checked_the_same_on_every_backend(store: Store
     tables = ("benches", "devices", "audit_events")
     before = [count(store.engine, t) for t in tables]
     with pytest.raises(InputError, match="port is longer than 200"):
-        store.add_bench("bench-1", actor="carol", port="p" * 201)
+        store.devices.add_bench("bench-1", actor="carol", port="p" * 201)
     with pytest.raises(InputError, match="stage_model is longer than 100"):
-        store.add_bench("bench-1", actor="carol", stage_model="m" * 101)
+        store.devices.add_bench("bench-1", actor="carol", stage_model="m" * 101)
     with pytest.raises(InputError, match="stage_serial must be"):
-        store.add_bench("bench-1", actor="carol", stage_serial=5)
+        store.devices.add_bench("bench-1", actor="carol", stage_serial=5)
     with pytest.raises(InputError, match="port is longer than 200"):
-        store.add_device("NS-25/E2", "SN1009", "dut", actor="carol", port="q" * 201)
+        store.devices.add_device("NS-25/E2", "SN1009", "dut", actor="carol", port="q" * 201)
     with pytest.raises(InputError, match="port must be"):
-        store.update_device(device.id, actor="carol", port=7)
+        store.devices.update_device(device.id, actor="carol", port=7)
     assert [count(store.engine, t) for t in tables] == before
-    store.update_device(device.id, actor="carol", port=None)  # None still clears it
-    assert store.get_device(device.id).port is None
+    store.devices.update_device(device.id, actor="carol", port=None)  # None still clears it
+    assert store.devices.get_device(device.id).port is None

@@ -30,7 +30,7 @@ DAY_S = 86400.0
 
 
 def test_latest_samples_newest_first(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    other = store.add_device("NS-25/E2", "SN2", "dut", actor="a")
+    other = store.devices.add_device("NS-25/E2", "SN2", "dut", actor="a")
     rows = [Sample(device.id, 1000.0 + i, i * 1e-3, -i * 1e-3, None, 21.0) for i in range(2500)]
     rows += [Sample(other.id, 5000.0 + i, 0.0, 0.0) for i in range(10)]
     assert write_samples(store.engine, rows, batch_size=1000) == 2510
@@ -117,34 +117,34 @@ def test_bad_samples_are_refused_at_the_producer(store: Store, device) -> None: 
 
 
 def test_settled_points_and_record_provenance(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    job = store.create_job(device.id, "scale", "linear", actor="alice")
-    store.start_job(job.id, actor="alice")
+    job = store.jobs.create_job(device.id, "scale", "linear", actor="alice")
+    store.jobs.start_job(job.id, actor="alice")
     raw = [Sample(device.id, 100.0 * p + i, 0.1 * p + 1e-4 * (i % 3), -0.1 * p, None, 20.0 + 0.01 * i, job.id, p,
                   "calibration") for p in range(4) for i in range(20)]  # fmt: skip
     write_samples(store.engine, raw)
-    points = store.settle_from_samples(job.id, device.id, actor="alice", skip_s=5.0,
-                                       commands={p: (p * 1.0, 0.0) for p in range(4)})  # fmt: skip
+    points = store.points.settle_from_samples(job.id, device.id, actor="alice", skip_s=5.0,
+                                              commands={p: (p * 1.0, 0.0) for p in range(4)})  # fmt: skip
     assert [p.n_samples for p in points] == [15] * 4
     assert points[2].cmd_x_deg == 2.0 and abs(points[2].ch_y_mean + 0.2) < 1e-12
     with store.engine.connect() as conn:
         assert len(job_samples(conn, job.id, point=1)) == 20
-    rec = store.add_record(device.id, "scale", "linear", MODEL, operator="alice", reference_standards=STANDARDS,
-                           job_id=job.id, activate=True)  # fmt: skip
-    store.succeed_job(job.id, actor="alice")
+    rec = store.records.add_record(device.id, "scale", "linear", MODEL, operator="alice", reference_standards=STANDARDS,
+                                   job_id=job.id, activate=True)  # fmt: skip
+    store.jobs.succeed_job(job.id, actor="alice")
     assert rec.raw_data["points"] == 4 and rec.raw_data["samples"] == 80 and rec.raw_data["job_id"] == job.id
     assert verify(store.engine).ok
     with pytest.raises(IllegalTransition, match="succeeded"):
-        store.add_settled_points(job.id, device.id, [], actor="alice")  # the job no longer runs
+        store.points.add_settled_points(job.id, device.id, [], actor="alice")  # the job no longer runs
 
 
 def test_changed_settled_points_are_reported(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    job = store.create_job(device.id, "scale", "linear", actor="alice")
-    store.start_job(job.id, actor="alice")
-    store.add_settled_points(job.id, device.id, [
+    job = store.jobs.create_job(device.id, "scale", "linear", actor="alice")
+    store.jobs.start_job(job.id, actor="alice")
+    store.points.add_settled_points(job.id, device.id, [
         {"point": p, "n_samples": 10, "t_start_s": p, "t_end_s": p + 1.0, "ch_x_mean": p * 0.1, "ch_y_mean": 0.0}
         for p in range(3)
     ], actor="alice")  # fmt: skip
-    rec = store.add_record(device.id, "scale", "linear", MODEL, operator="alice", job_id=job.id)
+    rec = store.records.add_record(device.id, "scale", "linear", MODEL, operator="alice", job_id=job.id)
     with store.engine.begin() as conn:
         if store.engine.dialect.name == "sqlite":
             conn.exec_driver_sql("DROP TRIGGER trg_settled_points_no_update")
@@ -159,28 +159,28 @@ def _t(days_ago: float) -> float:
 
 
 def test_retention_drops_only_old_monitoring_samples(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    job = store.create_job(device.id, "scale", "linear", actor="alice")
+    job = store.jobs.create_job(device.id, "scale", "linear", actor="alice")
     old_cal = [Sample(device.id, _t(400) + i, 0.0, 0.0, None, None, job.id, 0, "calibration") for i in range(50)]
     old_mon = [Sample(device.id, _t(40) + i, 0.0, 0.0) for i in range(300)]
     new_mon = [Sample(device.id, _t(1) + i, 0.0, 0.0) for i in range(70)]
     write_samples(store.engine, old_cal + old_mon + new_mon)
-    result = store.apply_retention(actor="retention", older_than=dt.timedelta(days=30), policy="drop", now=NOW)
+    result = store.retention.apply(actor="retention", older_than=dt.timedelta(days=30), policy="drop", now=NOW)
     assert result.deleted == 300
     with store.engine.connect() as conn:
         assert count_samples(conn, source="calibration") == 50
         assert count_samples(conn, source="monitoring") == 70
-    assert store.audit_events(entity="samples")[0].details["deleted"] == 300
+    assert store.audit.events(entity="samples")[0].details["deleted"] == 300
 
 
 def test_retention_thins_old_monitoring_samples(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    other = store.add_device("NS-25/E2", "SN2", "dut", actor="a")
-    job = store.create_job(device.id, "scale", "linear", actor="alice")
+    other = store.devices.add_device("NS-25/E2", "SN2", "dut", actor="a")
+    job = store.jobs.create_job(device.id, "scale", "linear", actor="alice")
     start = (int(_t(40)) // 60) * 60.0  # minute-aligned, so the buckets are exact
     old = [Sample(d, start + i * 0.5, 0.0, 0.0) for d in (device.id, other.id) for i in range(600)]  # 5 min each
     cal = [Sample(device.id, start + i * 0.5, 0.0, 0.0, None, None, job.id, 1, "calibration") for i in range(600)]
     new = [Sample(device.id, _t(0.5) + i, 0.0, 0.0) for i in range(100)]
     write_samples(store.engine, old + cal + new)
-    result = store.apply_retention(actor="retention", older_than=dt.timedelta(days=30), policy="thin",
+    result = store.retention.apply(actor="retention", older_than=dt.timedelta(days=30), policy="thin",
                                    thin_interval_s=60.0, now=NOW)  # fmt: skip
     assert result.kept_thinned == 10 and result.deleted == 1190
     with store.engine.connect() as conn:
@@ -193,9 +193,9 @@ def test_retention_thins_old_monitoring_samples(store: Store, device) -> None:  
 
 def test_retention_refuses_nonsense(store: Store) -> None:
     with pytest.raises(InputError):
-        store.apply_retention(actor="r", older_than=dt.timedelta(days=-1))
+        store.retention.apply(actor="r", older_than=dt.timedelta(days=-1))
     with pytest.raises(InputError):
-        store.apply_retention(actor="r", older_than=dt.timedelta(days=1), policy="shred")
+        store.retention.apply(actor="r", older_than=dt.timedelta(days=1), policy="shred")
 
 
 def test_put_racing_close_is_refused_not_lost(store: Store, device) -> None:  # type: ignore[no-untyped-def]
@@ -278,20 +278,20 @@ def test_latest_samples_refuses_a_negative_count(store: Store, device) -> None: 
 
 @pytest.mark.parametrize("skip_s", [float("nan"), -1.0, "5"])
 def test_settling_time_must_be_a_non_negative_number(store: Store, device, skip_s) -> None:  # type: ignore[no-untyped-def]
-    job = store.create_job(device.id, "scale", "linear", actor="alice")
-    store.start_job(job.id, actor="alice")
+    job = store.jobs.create_job(device.id, "scale", "linear", actor="alice")
+    store.jobs.start_job(job.id, actor="alice")
     write_samples(store.engine, [Sample(device.id, float(i), 0.0, 0.0, None, None, job.id, 0, "calibration")
                                  for i in range(10)])  # fmt: skip
     with pytest.raises(InputError, match="skip_s"):
-        store.settle_from_samples(job.id, device.id, actor="alice", skip_s=skip_s)
-    assert store.settled_points(job.id) == []
+        store.points.settle_from_samples(job.id, device.id, actor="alice", skip_s=skip_s)
+    assert store.points.settled_points(job.id) == []
 
 
 def test_retention_refuses_a_naive_now_and_an_age_that_is_not_a_timedelta(store: Store, device) -> None:  # type: ignore[no-untyped-def]
     write_samples(store.engine, [Sample(device.id, _t(40), 0.0, 0.0)])
     with pytest.raises(InputError, match="timezone"):  # a naive time would be read as local time
-        store.apply_retention(actor="r", older_than=dt.timedelta(days=30), now=NOW.replace(tzinfo=None))
+        store.retention.apply(actor="r", older_than=dt.timedelta(days=30), now=NOW.replace(tzinfo=None))
     with pytest.raises(InputError, match="timedelta"):
-        store.apply_retention(actor="r", older_than=30)  # type: ignore[arg-type]
+        store.retention.apply(actor="r", older_than=30)  # type: ignore[arg-type]
     with store.engine.connect() as conn:
         assert count_samples(conn) == 1

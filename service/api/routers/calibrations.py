@@ -6,17 +6,25 @@ import datetime as dt
 from collections.abc import Mapping, Sequence
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Query, Response
+from fastapi import APIRouter, Depends, Header, Query, Response
 from fastapi.concurrency import run_in_threadpool
 
 from service.api.auth import Operator, Reader
-from service.api.deps import BenchesDep, JobId, JobsDep, SettingsDep, StoreDep, find_bench
+from service.api.deps import (
+    BenchesDep,
+    DevicesRepoDep,
+    JobId,
+    JobsDep,
+    JobsRepoDep,
+    RecordsRepoDep,
+    SettingsDep,
+    find_bench,
+)
 from service.api.models.calibrations import Job, JobList, JobState
 from service.api.models.problem import READ, WRITE, problem_responses
 from service.api.problems import ProblemError
 from service.bench.runtime import BenchRuntime
 from service.jobs.requests import DB_ID_MAX, CalibrationRequest
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.models import CalibrationJob, CalibrationRecord
 
 router = APIRouter(prefix="/calibrations", tags=["calibrations"])
@@ -40,15 +48,23 @@ def job_body(job: CalibrationJob, record: CalibrationRecord | None, benches: Map
         "request": req})
 
 
-def job_bodies(store: DaemonStore, jobs: Sequence[CalibrationJob], benches: Mapping[str, BenchRuntime]) -> list[Job]:
-    """Several jobs with their records read in one query (blocking: from async code in a thread)."""
-    records = store.records_of_jobs([j.id for j in jobs])
-    return [job_body(j, records.get(j.id), benches) for j in jobs]
+class JobBodies:
+    """Jobs as the routes show them, with the records they made (blocking: from async code in a thread)."""
+
+    def __init__(self, stored_jobs: JobsRepoDep, records: RecordsRepoDep, benches: BenchesDep) -> None:
+        self.stored_jobs, self.records, self.benches = stored_jobs, records, benches
+
+    def __call__(self, jobs: Sequence[CalibrationJob]) -> list[Job]:
+        """Several jobs with their records read in one query."""
+        records = self.records.records_of_jobs([j.id for j in jobs])
+        return [job_body(j, records.get(j.id), self.benches) for j in jobs]
+
+    def read(self, job_id: int) -> Job:
+        """The job as stored now."""
+        return self([self.stored_jobs.get_job(job_id)])[0]
 
 
-def read_job(store: DaemonStore, job_id: int, benches: Mapping[str, BenchRuntime]) -> Job:
-    """The job as stored now (blocking: from async code in a thread)."""
-    return job_bodies(store, [store.get_job(job_id)], benches)[0]
+JobBodiesDep = Annotated[JobBodies, Depends()]
 
 
 def _grid_size(body: CalibrationRequest, max_points: int) -> None:
@@ -60,7 +76,7 @@ def _grid_size(body: CalibrationRequest, max_points: int) -> None:
 @router.post("", status_code=202, response_model=Job, responses={
     200: {"model": Job, "description": "A repeat of an earlier request's Idempotency-Key: that request's job"},
     **problem_responses(*WRITE, 404, 409, 503)})
-async def start(body: CalibrationRequest, response: Response, benches: BenchesDep, jobs: JobsDep, store: StoreDep,
+async def start(body: CalibrationRequest, response: Response, benches: BenchesDep, jobs: JobsDep, bodies: JobBodiesDep,
                 settings: SettingsDep, who: Operator,
                 idempotency_key: Annotated[str | None, Header(max_length=200)] = None) -> Job:
     """Start a calibration job: 202 with the job and its Location. A repeated Idempotency-Key returns that
@@ -71,11 +87,11 @@ async def start(body: CalibrationRequest, response: Response, benches: BenchesDe
     response.headers["Location"] = f"/calibrations/{job.id}"
     if not created:
         response.status_code = 200
-    return await run_in_threadpool(read_job, store, job.id, benches)
+    return await run_in_threadpool(bodies.read, job.id)
 
 
 @router.get("", response_model=JobList, responses=problem_responses(*READ, 404))
-def list_jobs(benches: BenchesDep, store: StoreDep, _: Reader,
+def list_jobs(benches: BenchesDep, devices: DevicesRepoDep, stored_jobs: JobsRepoDep, bodies: JobBodiesDep, _: Reader,
               state: JobState | None = None,
               bench: Annotated[str | None, Query(max_length=100)] = None, updated_since: dt.datetime | None = None,
               cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description="next_cursor of the previous page")] = None,
@@ -83,32 +99,32 @@ def list_jobs(benches: BenchesDep, store: StoreDep, _: Reader,
     """Jobs newest first, filtered by state, bench and last change; `next_cursor` pages on."""
     bench_id = None
     if bench is not None:  # a bench of this daemon, or of another daemon of the lab (the database knows it)
-        bench_id = benches[bench].bench_id if bench in benches else store.bench_id_of(bench)
+        bench_id = benches[bench].bench_id if bench in benches else devices.bench_id_of(bench)
         if bench_id is None:
             find_bench(benches, bench)  # the 404 naming the benches there are
     if updated_since is not None and updated_since.tzinfo is None:
         raise ProblemError(422, "Invalid request", "updated_since: give a time zone (e.g. Z)", field="updated_since")
-    found = store.list_jobs(state=state, bench_id=bench_id, updated_since=updated_since, before_id=cursor, limit=limit)
-    return JobList(jobs=job_bodies(store, found, benches), next_cursor=found[-1].id if len(found) == limit else None)
+    found = stored_jobs.list_jobs(state=state, bench_id=bench_id, updated_since=updated_since, before_id=cursor, limit=limit)
+    return JobList(jobs=bodies(found), next_cursor=found[-1].id if len(found) == limit else None)
 
 
 @router.get("/{job_id}", response_model=Job, responses=problem_responses(*READ, 404))
-def read(job_id: JobId, benches: BenchesDep, store: StoreDep, _: Reader) -> Job:
-    return read_job(store, job_id, benches)
+def read(job_id: JobId, bodies: JobBodiesDep, _: Reader) -> Job:
+    return bodies.read(job_id)
 
 
 @router.post("/{job_id}/cancel", response_model=Job, responses=problem_responses(401, 403, 404, 409, 422))
-async def cancel(job_id: JobId, benches: BenchesDep, jobs: JobsDep, store: StoreDep, who: Operator) -> Job:
+async def cancel(job_id: JobId, jobs: JobsDep, bodies: JobBodiesDep, who: Operator) -> Job:
     """Stop a queued or running job; what it measured is kept."""
     job = await jobs.cancel(job_id, who)
-    return (await run_in_threadpool(job_bodies, store, [job], benches))[0]
+    return (await run_in_threadpool(bodies, [job]))[0]
 
 
 @router.post("/{job_id}/resume", status_code=202, response_model=Job,
              responses=problem_responses(401, 403, 404, 409, 422, 503))
-async def resume(job_id: JobId, response: Response, benches: BenchesDep, jobs: JobsDep, store: StoreDep,
+async def resume(job_id: JobId, response: Response, jobs: JobsDep, bodies: JobBodiesDep,
                  who: Operator) -> Job:
     """Continue a job a restart interrupted, from its stored points."""
     job = await jobs.resume(job_id, who)
     response.headers["Location"] = f"/calibrations/{job.id}"
-    return await run_in_threadpool(read_job, store, job_id, benches)
+    return await run_in_threadpool(bodies.read, job_id)

@@ -9,7 +9,22 @@ from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import HTMLResponse
 
 from service.api.auth import Admin, Operator, Reader
-from service.api.deps import JobsIfAnyDep, OrderId, RecordId, SettingsDep, StandardId, StoreDep, WebhookId, WebhooksDep
+from service.api.deps import (
+    ApprovalsRepoDep,
+    FeedRepoDep,
+    JobsIfAnyDep,
+    OrderId,
+    OrdersRepoDep,
+    RecordId,
+    RecordsRepoDep,
+    SettingsDep,
+    StandardId,
+    StandardsRepoDep,
+    StoreDep,
+    WebhookId,
+    WebhooksDep,
+    WebhooksRepoDep,
+)
 from service.api.models.lims import (
     Approvals,
     ApproveIn,
@@ -34,12 +49,12 @@ from service.errors import InputError
 from service.jobs.manager import JobManager
 from service.lims import dcc
 from service.lims.certificates import IntegrityFailure, NotApproved, NotConfigured, issue_certificate
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.errors import ConflictError
 from service.storage.feed import decode_cursor, encode_cursor, event_json
-from service.storage.lims import SelfApproval
 from service.storage.models import Certificate, RecordApproval, ReferenceStandard
 from service.storage.models import Order as OrderRow
+from service.storage.store import ApprovalsRepo, OrdersRepo, RecordsRepo, Store
+from service.storage.store.approvals import SelfApproval
 
 router = APIRouter(tags=["lims"])
 
@@ -69,13 +84,13 @@ def _today() -> dt.date:
 
 
 @router.post("/standards", status_code=201, response_model=Standard, responses=problem_responses(*WRITE, 409))
-def add_standard(body: StandardIn, response: Response, store: StoreDep, settings: SettingsDep, who: Admin) -> Standard:
+def add_standard(body: StandardIn, response: Response, standards: StandardsRepoDep, settings: SettingsDep, who: Admin) -> Standard:
     """Register one certificate of a reference standard (scope admin). A recalibration is a new entry."""
     try:
         fields = body.model_dump()
         if "coverage_factor" not in body.model_fields_set:
             fields["coverage_factor"] = None if body.expanded_uncertainty_deg is None else 2.0
-        row = store.add_standard(fields, actor=who.name)
+        row = standards.add_standard(fields, actor=who.name)
     except ConflictError as exc:
         raise ProblemError(409, "Standard already registered", str(exc)) from None
     response.headers["Location"] = f"/standards/{row.id}"
@@ -83,14 +98,14 @@ def add_standard(body: StandardIn, response: Response, store: StoreDep, settings
 
 
 @router.get("/standards", response_model=Standards, responses=problem_responses(401, 403))
-def list_standards(store: StoreDep, settings: SettingsDep, _: Reader) -> Standards:
+def list_standards(standards: StandardsRepoDep, settings: SettingsDep, _: Reader) -> Standards:
     today, days = _today(), settings.standards_due_soon_days
-    return Standards(standards=[standard_body(s, today, days) for s in store.standards()])
+    return Standards(standards=[standard_body(s, today, days) for s in standards.all()])
 
 
 @router.get("/standards/{standard_id}", response_model=Standard, responses=problem_responses(*READ, 404))
-def read_standard(standard_id: StandardId, store: StoreDep, settings: SettingsDep, _: Reader) -> Standard:
-    return standard_body(store.standard(standard_id), _today(), settings.standards_due_soon_days)
+def read_standard(standard_id: StandardId, standards: StandardsRepoDep, settings: SettingsDep, _: Reader) -> Standard:
+    return standard_body(standards.get(standard_id), _today(), settings.standards_due_soon_days)
 
 
 # ---------------------------------------------------------------- approvals
@@ -102,45 +117,48 @@ def approval_body(a: RecordApproval) -> dict[str, Any]:
             "sha256": a.sha256}  # fmt: skip
 
 
-def _decide(store: DaemonStore, jobs: JobManager | None, record_id: int, actor: str, **kw: Any) -> Decision:
+def _decide(approvals: ApprovalsRepo, records: RecordsRepo, jobs: JobManager | None, record_id: int, actor: str,
+            **kw: Any) -> Decision:
     try:
-        row = store.decide(record_id, actor=actor, **kw)
+        row = approvals.decide(record_id, actor=actor, **kw)
     except SelfApproval as exc:
         raise ProblemError(403, "Segregation of duties", str(exc)) from None
     except ConflictError as exc:
         raise ProblemError(409, "Decision already made", str(exc)) from None
     # the bench's record in use follows the decision: its status, or (rejected) withdrawn
-    if jobs is not None and (bench := jobs.bench_of_device(store.get_record(record_id).device_id)) is not None:
+    if jobs is not None and (bench := jobs.bench_of_device(records.get_record(record_id).device_id)) is not None:
         jobs.load_active(bench)
     return Decision.model_validate({"approval": approval_body(row),
-                                    "record": {"id": record_id, "status": store.record_status(record_id)}})
+                                    "record": {"id": record_id, "status": approvals.record_status(record_id)}})
 
 
 @router.post("/records/{record_id}/approve", response_model=Decision, responses=problem_responses(*WRITE, 404, 409))
-def approve(record_id: RecordId, body: ApproveIn, store: StoreDep, jobs: JobsIfAnyDep, who: Admin) -> Decision:
+def approve(record_id: RecordId, body: ApproveIn, approvals: ApprovalsRepoDep, records: RecordsRepoDep,
+            jobs: JobsIfAnyDep, who: Admin) -> Decision:
     """Sign a draft record (scope admin): meaning `approval` makes it approved, `review` records a review.
     Refused (403) to the token that started the record's job or ran it."""
-    return _decide(store, jobs, record_id, who.name, decision="approve", meaning=body.meaning, note=body.note)
+    return _decide(approvals, records, jobs, record_id, who.name, decision="approve", meaning=body.meaning, note=body.note)
 
 
 @router.post("/records/{record_id}/reject", response_model=Decision, responses=problem_responses(*WRITE, 404, 409))
-def reject(record_id: RecordId, body: RejectIn, store: StoreDep, jobs: JobsIfAnyDep, who: Admin) -> Decision:
+def reject(record_id: RecordId, body: RejectIn, approvals: ApprovalsRepoDep, records: RecordsRepoDep,
+           jobs: JobsIfAnyDep, who: Admin) -> Decision:
     """Reject a draft record with a reason (scope admin; not by the token that started its job: 403)."""
-    return _decide(store, jobs, record_id, who.name, decision="reject", meaning="rejection", note=body.reason)
+    return _decide(approvals, records, jobs, record_id, who.name, decision="reject", meaning="rejection", note=body.reason)
 
 
 @router.get("/records/{record_id}/approvals", response_model=Approvals, responses=problem_responses(*READ, 404))
-def approvals(record_id: RecordId, store: StoreDep, _: Reader) -> Approvals:
-    store.get_record(record_id)
-    rows = store.approvals(record_id)
-    return Approvals.model_validate({"record_id": record_id, "status": store.status_of(rows),
+def approvals(record_id: RecordId, approvals: ApprovalsRepoDep, records: RecordsRepoDep, _: Reader) -> Approvals:
+    records.get_record(record_id)
+    rows = approvals.of_record(record_id)
+    return Approvals.model_validate({"record_id": record_id, "status": approvals.status_of(rows),
                                      "approvals": [approval_body(a) for a in rows]})
 
 
 # ---------------------------------------------------------------- certificates
 
 
-def _certificate(store: DaemonStore, record_id: int, settings: Settings, actor: str) -> Certificate:
+def _certificate(store: Store, record_id: int, settings: Settings, actor: str) -> Certificate:
     try:
         return issue_certificate(store, record_id, settings, actor=actor)
     except NotApproved as exc:
@@ -181,44 +199,44 @@ def certificate_html(record_id: RecordId, store: StoreDep, settings: SettingsDep
 # ---------------------------------------------------------------- orders
 
 
-def order_body(store: DaemonStore, o: OrderRow) -> Order:
+def order_body(orders: OrdersRepo, o: OrderRow) -> Order:
     return Order.model_validate({
         "id": o.id, "lims_order_id": o.lims_order_id, "item_serial": o.item_serial,
         "item_manufacturer": o.item_manufacturer, "item_model": o.item_model, "customer": o.customer,
         "procedure": o.procedure, "method": o.method, "due_on": o.due_on, "created_utc": o.created_at,
-        "created_by": o.created_by, **store.order_links(o.id)})
+        "created_by": o.created_by, **orders.order_links(o.id)})
 
 
 @router.post("/orders", status_code=201, response_model=Order, responses={
     200: {"model": Order, "description": "A repeat of an earlier request's Idempotency-Key: that request's order"},
     **problem_responses(*WRITE, 409)})
-def create_order(body: OrderIn, response: Response, store: StoreDep, who: Operator,
+def create_order(body: OrderIn, response: Response, orders: OrdersRepoDep, who: Operator,
                  idempotency_key: Annotated[str | None, Header(max_length=200)] = None) -> Order:
     """Create an order (scope operate). With an `Idempotency-Key`, a repeat returns the first order (200);
     the same key with another body is 422."""
     try:
-        row, created = store.create_order(body.model_dump(mode="json", exclude_none=True), actor=who.name,
-                                          idempotency_key=idempotency_key)
+        row, created = orders.create_order(body.model_dump(mode="json", exclude_none=True), actor=who.name,
+                                           idempotency_key=idempotency_key)
     except ConflictError as exc:
         raise ProblemError(409, "Order exists", str(exc), field="lims_order_id") from None
     response.headers["Location"] = f"/orders/{row.id}"
     if not created:
         response.status_code = 200
-    return order_body(store, row)
+    return order_body(orders, row)
 
 
 @router.get("/orders/{order_id}", response_model=Order, responses=problem_responses(*READ, 404))
-def read_order(order_id: OrderId, store: StoreDep, _: Reader) -> Order:
+def read_order(order_id: OrderId, orders: OrdersRepoDep, _: Reader) -> Order:
     """The order, its jobs, records (with status) and certificates, and its state: open, in_progress,
     measured, approved, rejected, certified or failed."""
-    return order_body(store, store.order(order_id))
+    return order_body(orders, orders.get(order_id))
 
 
 # ---------------------------------------------------------------- the feed
 
 
 @router.get("/feed", response_model=Feed, responses=problem_responses(*READ))
-def feed(store: StoreDep, _: Reader, cursor: Annotated[str | None, Query(max_length=100)] = None,
+def feed(feed_events: FeedRepoDep, _: Reader, cursor: Annotated[str | None, Query(max_length=100)] = None,
          limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> Feed:
     """Events oldest first from after `cursor` (none: from the start). Hand `next_cursor` back on the next
     poll: a client that does never misses or repeats an event, even while events are being written."""
@@ -229,7 +247,7 @@ def feed(store: StoreDep, _: Reader, cursor: Annotated[str | None, Query(max_len
     if after > FEED_ID_MAX:
         raise ProblemError(422, "Invalid request", "cursor: not a cursor this feed gave out; start without one",
                            field="cursor")
-    events = store.feed(after_id=after, limit=limit)
+    events = feed_events.events(after_id=after, limit=limit)
     return Feed.model_validate({"events": [event_json(e) for e in events],
                                 "next_cursor": encode_cursor(events[-1].id if events else after)})
 
@@ -238,9 +256,10 @@ def feed(store: StoreDep, _: Reader, cursor: Annotated[str | None, Query(max_len
 
 
 @router.post("/webhooks", status_code=201, response_model=NewWebhook, responses=problem_responses(*WRITE))
-def add_webhook(body: WebhookIn, response: Response, store: StoreDep, dispatcher: WebhooksDep, who: Admin) -> NewWebhook:
+def add_webhook(body: WebhookIn, response: Response, webhooks: WebhooksRepoDep, dispatcher: WebhooksDep,
+                who: Admin) -> NewWebhook:
     """Register an endpoint (scope admin). The answer carries its signing `secret`, shown this once."""
-    row, secret = store.add_webhook(body.url, body.events, actor=who.name)
+    row, secret = webhooks.add_webhook(body.url, body.events, actor=who.name)
     if dispatcher is not None:
         dispatcher.wake.set()
     response.headers["Location"] = f"/webhooks/{row.id}"
@@ -248,20 +267,20 @@ def add_webhook(body: WebhookIn, response: Response, store: StoreDep, dispatcher
 
 
 @router.get("/webhooks", response_model=Webhooks, responses=problem_responses(401, 403))
-def list_webhooks(store: StoreDep, _: Admin) -> Webhooks:
+def list_webhooks(webhooks: WebhooksRepoDep, _: Admin) -> Webhooks:
     return Webhooks(webhooks=[Webhook(id=w.id, url=w.url, events=w.events, created_utc=w.created_at,
-                                      created_by=w.created_by) for w in store.webhooks()])
+                                      created_by=w.created_by) for w in webhooks.all()])
 
 
 @router.get("/webhooks/{webhook_id}/deliveries", response_model=Deliveries, responses=problem_responses(*READ, 404))
-def deliveries(webhook_id: WebhookId, store: StoreDep, _: Admin,
+def deliveries(webhook_id: WebhookId, webhooks: WebhooksRepoDep, _: Admin,
                limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> Deliveries:
     """The delivery log, newest first: each event's state (pending, delivered, failed) and every attempt."""
-    store.webhook(webhook_id)
+    webhooks.get(webhook_id)
     return Deliveries.model_validate({"webhook_id": webhook_id, "deliveries": [
         {"id": d.id, "event_id": event_json(e)["id"], "event_type": e.type, "state": d.state, "attempts": d.attempts,
          "next_attempt_utc": d.next_attempt_at, "delivered_utc": d.delivered_at, "last_status_code": d.last_status_code,
          "last_error": d.last_error,
          "log": [{"time_utc": a.at, "status_code": a.status_code, "error": a.error, "duration_s": a.duration_s}
                  for a in attempts]}
-        for d, e, attempts in store.deliveries(webhook_id, limit=limit)]})  # fmt: skip
+        for d, e, attempts in webhooks.deliveries(webhook_id, limit=limit)]})  # fmt: skip

@@ -8,7 +8,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Reader
-from service.api.deps import DatabaseDep, StoreDep
+from service.api.deps import DatabaseDep, JobsRepoDep
 from service.api.metrics import MetricsDep
 from service.api.models.problem import problem_responses
 from service.storage.outage import unreachable
@@ -20,12 +20,12 @@ router = APIRouter(tags=["health"])
             responses={200: {"description": "Prometheus text exposition format 0.0.4",
                              "content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}}},
                        **problem_responses(401, 403)})
-async def metrics(metrics: MetricsDep, store: StoreDep, database: DatabaseDep, _: Reader) -> Response:
+async def metrics(metrics: MetricsDep, stored_jobs: JobsRepoDep, database: DatabaseDep, _: Reader) -> Response:
     """HTTP requests by route and status with latency histograms, serial counters per device, jobs by
     state (left out while the database is away), WebSocket clients and dropped messages, the job writes
     handed over, and whether the database answers (with the writes and samples waiting for it)."""
     try:
-        counts = await run_in_threadpool(store.job_counts_by_state)
+        counts = await run_in_threadpool(stored_jobs.job_counts_by_state)
     except Exception as exc:  # the database away: everything else is still worth scraping
         if not unreachable(exc):
             raise

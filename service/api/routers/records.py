@@ -7,12 +7,19 @@ from collections.abc import Sequence
 from typing import Annotated, Any
 
 import numpy as np
-import sqlalchemy as sa
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Depends, Query
 from fastapi.responses import Response
 
 from service.api.auth import Operator, Reader
-from service.api.deps import BenchesDep, JobsDep, RecordId, StoreDep, find_bench
+from service.api.deps import (
+    ApprovalsRepoDep,
+    BenchesDep,
+    DevicesRepoDep,
+    JobsDep,
+    RecordId,
+    RecordsRepoDep,
+    find_bench,
+)
 from service.api.models.problem import READ, problem_responses
 from service.api.models.records import ModelFile, Record, RecordList, Residuals
 from service.api.problems import ProblemError
@@ -24,8 +31,8 @@ from service.io.columns import ROTATION_DATASET, SCALE_DATASET, STAGE_DATASET, T
 from service.io.datasets import format_value
 from service.jobs.manager import JobManager
 from service.jobs.requests import DB_ID_MAX
-from service.storage.daemon_jobs import DaemonStore
 from service.storage.models import CalibrationRecord
+from service.storage.store import ApprovalsRepo, DevicesRepo, RecordsRepo
 
 router = APIRouter(prefix="/records", tags=["records"])
 
@@ -34,12 +41,28 @@ class CsvResponse(Response):
     media_type = "text/csv"
 
 
-def record_bodies(store: DaemonStore, jobs: JobManager, rows: Sequence[CalibrationRecord]) -> list[Record]:
-    """Records with their bench, whether active and their approval status, read in two queries."""
-    active = store.active_record_ids()
-    status = store.record_statuses([r.id for r in rows])
+class RecordBodies:
+    """Records as the routes show them: with their bench, whether active and their approval status."""
+
+    def __init__(self, records: RecordsRepoDep, approvals: ApprovalsRepoDep, devices: DevicesRepoDep,
+                 jobs: JobsDep) -> None:
+        self.records, self.approvals, self.devices, self.jobs = records, approvals, devices, jobs
+
+    def __call__(self, rows: Sequence[CalibrationRecord]) -> list[Record]:
+        """The bodies of these records, read in three queries however many they are."""
+        return record_bodies(self.records, self.approvals, self.devices, self.jobs, rows)
+
+
+RecordBodiesDep = Annotated[RecordBodies, Depends()]
+
+
+def record_bodies(records: RecordsRepo, approvals: ApprovalsRepo, devices: DevicesRepo, jobs: JobManager,
+                  rows: Sequence[CalibrationRecord]) -> list[Record]:
+    """Records with their bench, whether active and their approval status, read in three queries."""
+    active = records.active_record_ids()
+    status = approvals.record_statuses([r.id for r in rows])
     # in a fleet a record's device may hang off another daemon's bench: the database knows its name
-    elsewhere = store.bench_names_of_devices({r.device_id for r in rows if jobs.bench_of_device(r.device_id) is None})
+    elsewhere = devices.bench_names_of_devices({r.device_id for r in rows if jobs.bench_of_device(r.device_id) is None})
     out = []
     for r in rows:
         bench = jobs.bench_of_device(r.device_id)
@@ -69,44 +92,41 @@ def calibrated_range(jobs: JobManager, r: CalibrationRecord) -> dict[str, Any] |
 
 
 @router.get("", response_model=RecordList, responses=problem_responses(*READ, 404))
-def list_records(benches: BenchesDep, jobs: JobsDep, store: StoreDep, _: Reader,
+def list_records(benches: BenchesDep, records: RecordsRepoDep, devices: DevicesRepoDep, bodies: RecordBodiesDep,
+                 _: Reader,
                  device: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description="a device's id")] = None,
                  bench: Annotated[str | None, Query(max_length=100)] = None) -> RecordList:
     """Records newest first, of one device or of the devices of one bench."""
-    stmt = sa.select(CalibrationRecord).order_by(CalibrationRecord.id.desc())
-    if device is not None:
-        stmt = stmt.where(CalibrationRecord.device_id == device)
+    of_bench: list[int] | None = None
     if bench is not None:
         device_ids = (list(benches[bench].device_ids.values()) if bench in benches
-                      else store.device_ids_of_bench(bench))  # another daemon's bench of the lab
+                      else devices.device_ids_of_bench(bench))  # another daemon's bench of the lab
         if device_ids is None:
             find_bench(benches, bench)  # the 404 naming the benches there are
-        stmt = stmt.where(CalibrationRecord.device_id.in_(device_ids or []))
-    with store.session() as s:
-        rows = list(s.scalars(stmt))
-    return RecordList(records=record_bodies(store, jobs, rows))
+        of_bench = device_ids or []
+    return RecordList(records=bodies(records.newest_first(device_id=device, device_ids=of_bench)))
 
 
 @router.get("/{record_id}", response_model=Record, responses=problem_responses(*READ, 404))
-def read(record_id: RecordId, jobs: JobsDep, store: StoreDep, _: Reader) -> Record:
-    return record_bodies(store, jobs, [store.get_record(record_id)])[0]
+def read(record_id: RecordId, records: RecordsRepoDep, bodies: RecordBodiesDep, _: Reader) -> Record:
+    return bodies([records.get_record(record_id)])[0]
 
 
 @router.get("/{record_id}/model", response_model=ModelFile, response_model_exclude_unset=True,
             responses=problem_responses(*READ, 404))
-def model(record_id: RecordId, store: StoreDep, _: Reader) -> ModelFile:
+def model(record_id: RecordId, records: RecordsRepoDep, _: Reader) -> ModelFile:
     """The record's MODEL.json, as `tiltlab correct --model` and `tiltlab level --model` take it."""
-    return ModelFile.model_validate(store.get_record(record_id).model)
+    return ModelFile.model_validate(records.get_record(record_id).model)
 
 
 @router.get("/{record_id}/points", response_class=CsvResponse, responses={
     200: {"content": {"text/csv": {"schema": {"type": "string"}}},
           "description": "the record's fit points as a dataset CSV of its kind"},
     **problem_responses(*READ, 404, 409)})
-def points(record_id: RecordId, jobs: JobsDep, store: StoreDep, _: Reader) -> Response:
+def points(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Reader) -> Response:
     """The settled points the record was fitted on as a dataset CSV of its kind: `tiltlab calibrate` on it gives the
     record's parameters exactly (stored values are written in their shortest exact decimal form)."""
-    r = store.get_record(record_id)
+    r = records.get_record(record_id)
     if r.job_id is None:
         raise ProblemError(409, "No points", f"record {record_id} was not measured by a job of this daemon")
     cols = jobs.fit_columns(r.job_id, int((r.raw_data or {}).get("fit_points", 10**9)))
@@ -122,11 +142,11 @@ def points(record_id: RecordId, jobs: JobsDep, store: StoreDep, _: Reader) -> Re
 
 
 @router.get("/{record_id}/residuals", response_model=Residuals, responses=problem_responses(*READ, 404, 409))
-def residuals(record_id: RecordId, jobs: JobsDep, store: StoreDep, _: Reader) -> Residuals:
+def residuals(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Reader) -> Residuals:
     """Per measured point of a stage record, the residual against the reference sensor before correction
     (measurement sensor raw) and after it (through the record's model, the computation of `tiltlab correct`);
     `role` says whether the point was fitted or kept for validation."""
-    r = store.get_record(record_id)
+    r = records.get_record(record_id)
     if r.kind != "stage":
         raise ProblemError(409, "No residual map", f"record {record_id} is a {r.kind} record: residuals over a grid"
                            " are served for stage records")
@@ -140,17 +160,18 @@ def residuals(record_id: RecordId, jobs: JobsDep, store: StoreDep, _: Reader) ->
 
 
 @router.post("/{record_id}/activate", response_model=Record, responses=problem_responses(401, 403, 404, 409, 422))
-def activate(record_id: RecordId, jobs: JobsDep, store: StoreDep, who: Operator) -> Record:
+def activate(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, bodies: RecordBodiesDep,
+             who: Operator) -> Record:
     """Make the record the active version of its device: /tilt and levelling use it from now on. A rejected
     record, or one whose stored content no longer matches its hash, is refused (409)."""
-    r = store.get_record(record_id)
-    why = store.unusable_reason(r.id)
+    r = records.get_record(record_id)
+    why = records.unusable_reason(r.id)
     if why is not None:
         raise ProblemError(409, "Record not usable", f"{why}; it cannot be activated")
-    current = store.active_record(r.device_id, r.kind)
+    current = records.active_record(r.device_id, r.kind)
     if current is None or current.id != r.id:
-        store.activate(r.id, actor=who.name, reason="activated over HTTP", replaces=current.id if current else None)
+        records.activate(r.id, actor=who.name, reason="activated over HTTP", replaces=current.id if current else None)
     bench = jobs.bench_of_device(r.device_id)
     if bench is not None:
         jobs.load_active(bench)
-    return record_bodies(store, jobs, [store.get_record(r.id)])[0]
+    return bodies([records.get_record(r.id)])[0]

@@ -8,23 +8,23 @@ from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Operator
-from service.api.deps import BenchesDep, JobsDep, StoreDep, find_bench
+from service.api.deps import AuditRepoDep, BenchesDep, JobsDep, find_bench
 from service.api.models.problem import WRITE, problem_responses
 from service.api.models.stage import Level, Levelled, Move, Moved, Stop, Stopped
 from service.api.problems import ProblemError
 from service.bench.runtime import BenchHold, BenchRuntime, Hold
 from service.errors import InputError
 from service.jobs import level as levelling
-from service.storage.daemon_jobs import DaemonStore
+from service.storage.store import AuditRepo
 
 router = APIRouter(prefix="/stage", tags=["stage"])
 
 
-async def _audit(store: DaemonStore, actor: str, action: str, bench: str, details: dict[str, Any]) -> None:
+async def _audit(audit: AuditRepo, actor: str, action: str, bench: str, details: dict[str, Any]) -> None:
     """The audit event of a stage action, written in the worker thread pool: a write waiting for the
     database's write lock (a job storing its points) must not hold up the event loop, which serves
     /tilt and keeps the instruments' streams read."""
-    await run_in_threadpool(store.audit_action, actor, action, "bench", bench, details)
+    await run_in_threadpool(audit.action, actor, action, "bench", bench, details)
 
 
 def _stage_bench(benches: dict[str, BenchRuntime], name: str | None) -> BenchRuntime:
@@ -35,7 +35,7 @@ def _stage_bench(benches: dict[str, BenchRuntime], name: str | None) -> BenchRun
 
 
 @router.post("/move", response_model=Moved, responses=problem_responses(*WRITE, 404, 409, 503))
-async def move(body: Move, benches: BenchesDep, store: StoreDep, who: Operator) -> Moved:
+async def move(body: Move, benches: BenchesDep, audit: AuditRepoDep, who: Operator) -> Moved:
     """Move both stages to raw stage angles and answer once they stand (409 while a job holds the bench)."""
     bench = _stage_bench(benches, body.bench)
     travel = bench.config.stage_bench().travel_deg
@@ -45,12 +45,12 @@ async def move(body: Move, benches: BenchesDep, store: StoreDep, who: Operator) 
                                f" of ±{travel:g} deg", field=f)
     async with bench.hold(BenchHold(Hold.STAGE_MOVE)):
         x, y = await bench.move_stage(body.x_deg, body.y_deg)
-    await _audit(store, who.name, "stage.move", bench.name, body.model_dump())
+    await _audit(audit, who.name, "stage.move", bench.name, body.model_dump())
     return Moved.model_validate({"stage": {"x_deg": x, "y_deg": y, "moving": False}})
 
 
 @router.post("/level", response_model=Levelled, responses=problem_responses(*WRITE, 404, 409, 503))
-async def level(body: Level, benches: BenchesDep, jobs: JobsDep, store: StoreDep, who: Operator) -> Levelled:
+async def level(body: Level, benches: BenchesDep, jobs: JobsDep, audit: AuditRepoDep, who: Operator) -> Levelled:
     """Level the table to a wanted tilt in closed loop (422 out of reach, 409 while a job holds the bench)."""
     bench = _stage_bench(benches, body.bench)
     active = jobs.active.get(bench.name)
@@ -66,15 +66,15 @@ async def level(body: Level, benches: BenchesDep, jobs: JobsDep, store: StoreDep
     bench.require("reference_sensor")
     async with bench.hold(BenchHold(Hold.LEVELLING)):
         out = await levelling.level(bench, active, body.x_deg, body.y_deg, body.tolerance_deg, body.max_iterations)
-    await _audit(store, who.name, "stage.level", bench.name,
+    await _audit(audit, who.name, "stage.level", bench.name,
                  {**body.model_dump(), "within_tolerance": out["within_tolerance"]})
     return Levelled.model_validate(out)
 
 
 @router.post("/stop", response_model=Stopped, responses=problem_responses(*WRITE, 404))
-async def stop(benches: BenchesDep, jobs: JobsDep, store: StoreDep, who: Operator, body: Stop | None = None) -> Stopped:
+async def stop(benches: BenchesDep, jobs: JobsDep, audit: AuditRepoDep, who: Operator, body: Stop | None = None) -> Stopped:
     """Stop all motion at once, whatever holds the bench; a running job fails with the reason."""
     bench = find_bench(benches, body.bench if body else None)
     failed = await jobs.stop_bench(bench, who)
-    await _audit(store, who.name, "stage.stop", bench.name, {"failed_job": failed})
+    await _audit(audit, who.name, "stage.stop", bench.name, {"failed_job": failed})
     return Stopped(stopped=True, failed_job=failed)

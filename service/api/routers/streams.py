@@ -27,7 +27,7 @@ from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from service.api.auth import websocket_principal, websocket_subprotocol
-from service.api.deps import BenchesDep, JobsDep, SettingsDep, StoreDep, StreamsDep
+from service.api.deps import BenchesDep, JobsDep, JobsRepoDep, PointsRepoDep, RecordsRepoDep, SettingsDep, StreamsDep
 from service.api.routers.calibrations import job_body
 from service.jobs.requests import DB_ID_MAX
 from service.storage.errors import UnknownEntity
@@ -182,7 +182,8 @@ async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client
 
 
 @router.websocket("/ws/jobs/{job_id}")
-async def job_stream(ws: WebSocket, job_id: str, store: StoreDep, jobs: JobsDep, benches: BenchesDep,
+async def job_stream(ws: WebSocket, job_id: str, stored_jobs: JobsRepoDep, records: RecordsRepoDep,
+                     points: PointsRepoDep, jobs: JobsDep, benches: BenchesDep,
                      settings: SettingsDep) -> None:
     """Snapshot (job and points so far), then `job` and `point` messages, then `end` and close 1000."""
     if not await _authorised(ws):
@@ -191,17 +192,17 @@ async def job_stream(ws: WebSocket, job_id: str, store: StoreDep, jobs: JobsDep,
         return await _refuse(ws, f"id: {ascii(job_id[:20])} is not a job id")
 
     def body(job: CalibrationJob) -> dict[str, Any]:
-        record = store.records_of_jobs([job.id]).get(job.id)
+        record = records.records_of_jobs([job.id]).get(job.id)
         return job_body(job, record, benches).model_dump(mode="json")  # as the HTTP route serialises it
 
     try:
-        await asyncio.to_thread(store.get_job, int(job_id))
+        await asyncio.to_thread(stored_jobs.get_job, int(job_id))
     except UnknownEntity:
         return await _refuse(ws, f"id: no calibration job {job_id}")
     await _accept(ws)
     waiter = asyncio.create_task(_until_disconnect(ws))
     revoked = asyncio.create_task(_until_token_invalid(ws))
-    stream = job_messages(store, jobs.events, int(job_id), body)
+    stream = job_messages(stored_jobs, points, jobs.events, int(job_id), body)
     slow_close_s = settings.stream_slow_close_s
     seq = 0
     try:

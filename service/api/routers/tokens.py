@@ -10,7 +10,7 @@ from fastapi import APIRouter, Path, Query, Response
 from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Admin
-from service.api.deps import StoreDep, TokenCacheDep
+from service.api.deps import TokenCacheDep, TokensRepoDep
 from service.api.models.problem import READ, WRITE, problem_responses
 from service.api.models.tokens import CreatedToken, NewToken, Token, Tokens
 from service.api.problems import ProblemError
@@ -27,10 +27,10 @@ def token_body(row: ApiToken) -> Token:
 
 
 @router.post("", status_code=201, response_model=CreatedToken, responses=problem_responses(*WRITE, 409))
-async def create(body: NewToken, response: Response, store: StoreDep, who: Admin) -> CreatedToken:
+async def create(body: NewToken, response: Response, tokens: TokensRepoDep, who: Admin) -> CreatedToken:
     """A new token; its text is in this answer only (store it now: it cannot be shown again)."""
     try:
-        row, token = await run_in_threadpool(store.create_token, body.name, body.scopes, actor=who.name)
+        row, token = await run_in_threadpool(tokens.create_token, body.name, body.scopes, actor=who.name)
     except ConflictError as exc:
         raise ProblemError(409, "Token name taken", f"name: {exc}", field="name") from None
     except InputError as exc:
@@ -42,17 +42,17 @@ async def create(body: NewToken, response: Response, store: StoreDep, who: Admin
 
 
 @router.get("", response_model=Tokens, responses=problem_responses(*READ))
-async def list_tokens(store: StoreDep, _: Admin,
+async def list_tokens(tokens: TokensRepoDep, _: Admin,
                       include_revoked: Annotated[bool, Query(description="list revoked tokens too")] = False) -> Tokens:
     """Every token's name, scopes, creation and revocation; never a token's text."""
-    rows = await run_in_threadpool(store.tokens, include_revoked=include_revoked)
+    rows = await run_in_threadpool(tokens.all, include_revoked=include_revoked)
     return Tokens(tokens=[token_body(r) for r in rows])
 
 
 @router.delete("/{name}", response_model=Token, responses=problem_responses(*READ, 404))
-async def revoke(name: Annotated[str, Path(max_length=100)], store: StoreDep, cache: TokenCacheDep, who: Admin) -> Token:
+async def revoke(name: Annotated[str, Path(max_length=100)], tokens: TokensRepoDep, cache: TokenCacheDep, who: Admin) -> Token:
     """Revoke a token: requests with it are refused (401) from this answer on."""
-    row = await run_in_threadpool(store.revoke_token, name, actor=who.name)
+    row = await run_in_threadpool(tokens.revoke_token, name, actor=who.name)
     if cache is not None:
         cache.clear()  # the revoked token stops working now, not when its cache entry runs out
     return token_body(row)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -13,7 +14,7 @@ from service.storage.canonical import normalise
 from service.storage.errors import AppendOnlyViolation, ConflictError, RefusedWrite, UnknownEntity
 
 
-def _text(name: str, value: object, max_len: int = 100) -> str:
+def require_text(name: str, value: object, max_len: int = 100) -> str:
     if not isinstance(value, str) or not value.strip():
         raise InputError(f"{name} must be a non-empty string")
     if len(value) > max_len:
@@ -21,11 +22,11 @@ def _text(name: str, value: object, max_len: int = 100) -> str:
     return value
 
 
-def _optional_text(name: str, value: object, max_len: int) -> str | None:
-    return None if value is None else _text(name, value, max_len)
+def optional_text(name: str, value: object, max_len: int) -> str | None:
+    return None if value is None else require_text(name, value, max_len)
 
 
-def _finite(name: str, value: object, *, optional: bool = True) -> float | None:
+def require_finite(name: str, value: object, *, optional: bool = True) -> float | None:
     if value is None and optional:
         return None
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
@@ -33,16 +34,37 @@ def _finite(name: str, value: object, *, optional: bool = True) -> float | None:
     return float(value)
 
 
-def _doc(name: str, value: object) -> dict[str, Any]:
+def require_number(name: str, value: object) -> float:
+    """A finite number that must be given."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise InputError(f"{name}={value!r} is not a finite number")
+    return float(value)
+
+
+def require_date(name: str, value: object) -> dt.date:
+    if isinstance(value, dt.datetime):
+        raise InputError(f"{name}: a date (YYYY-MM-DD) is needed, not a time")
+    if isinstance(value, dt.date):
+        return value
+    if isinstance(value, str):
+        try:
+            return dt.date.fromisoformat(value)
+        except ValueError:
+            pass
+    raise InputError(f"{name}: {value!r} is not a date (YYYY-MM-DD)")
+
+
+def require_doc(name: str, value: object) -> dict[str, Any]:
     if not isinstance(value, Mapping):
         raise InputError(f"{name} must be a JSON object (dict)")
-    return normalise(dict(value))
+    doc: dict[str, Any] = normalise(dict(value))
+    return doc
 
 
-def _standards(value: object) -> list[dict[str, Any]]:
+def require_standards(value: object) -> list[dict[str, Any]]:
     if not isinstance(value, list | tuple):
         raise InputError("reference_standards must be a list of {name, serial, certificate_id}")
-    out = []
+    out: list[dict[str, Any]] = []
     for i, item in enumerate(value):
         if not isinstance(item, Mapping):
             raise InputError(f"reference_standards[{i}] must be an object")
@@ -52,10 +74,11 @@ def _standards(value: object) -> list[dict[str, Any]]:
         if not (item.get("name") or item.get("serial")):
             raise InputError(f"reference_standards[{i}] needs a name or a serial")
         out.append(dict(item))
-    return normalise(out)
+    checked: list[dict[str, Any]] = normalise(out)
+    return checked
 
 
-def _translate(exc: sa.exc.DBAPIError) -> RefusedWrite:
+def translate_refusal(exc: sa.exc.DBAPIError) -> RefusedWrite:
     orig = exc.orig
     message = str(orig).strip().splitlines()[0] if orig is not None else str(exc)
     code = getattr(orig, "sqlstate", None)

@@ -10,11 +10,15 @@ import sqlalchemy as sa
 from service.errors import InputError
 from service.storage.errors import ConflictError, UnknownEntity
 from service.storage.models import Bench, Device
-from service.storage.store.base import StoreBase
-from service.storage.store.checks import _doc, _optional_text, _text
+from service.storage.store.checks import optional_text, require_doc, require_text
+from service.storage.store.database import Database
+from service.storage.store.lookups import device_in
 
 
-class DevicesStore(StoreBase):
+class DevicesRepo:
+    def __init__(self, db: Database) -> None:
+        self._db = db
+
     def add_bench(
         self,
         name: str,
@@ -23,23 +27,23 @@ class DevicesStore(StoreBase):
         stage_model: str | None = None,
         stage_serial: str | None = None,
         port: str | None = None,
-        port_settings: Mapping | None = None,
+        port_settings: Mapping[str, Any] | None = None,
     ) -> Bench:
-        with self._tx() as s:
-            name = _text("bench name", name)
+        with self._db.transaction() as s:
+            name = require_text("bench name", name)
             if s.scalar(sa.select(Bench.id).where(Bench.name == name)) is not None:
                 raise ConflictError(f"a bench named {name!r} already exists")
-            port = _optional_text("port", port, 200)
+            port = optional_text("port", port, 200)
             bench = Bench(
                 name=name,
-                stage_model=_optional_text("stage_model", stage_model, 100),
-                stage_serial=_optional_text("stage_serial", stage_serial, 100),
+                stage_model=optional_text("stage_model", stage_model, 100),
+                stage_serial=optional_text("stage_serial", stage_serial, 100),
                 port=port,
-                port_settings=_doc("port_settings", port_settings or {}),
+                port_settings=require_doc("port_settings", port_settings or {}),
             )
             s.add(bench)
             s.flush()
-            self._audit(s, actor, "bench.create", "bench", bench.id, {"name": name, "port": port})
+            self._db.audit(s, actor, "bench.create", "bench", bench.id, {"name": name, "port": port})
             return bench
 
     def add_device(
@@ -51,11 +55,11 @@ class DevicesStore(StoreBase):
         actor: str,
         bench_id: int | None = None,
         port: str | None = None,
-        port_settings: Mapping | None = None,
+        port_settings: Mapping[str, Any] | None = None,
     ) -> Device:
-        with self._tx() as s:
-            model, serial, role = _text("model", model), _text("serial", serial), _text("role", role, 40)
-            port = _optional_text("port", port, 200)
+        with self._db.transaction() as s:
+            model, serial, role = require_text("model", model), require_text("serial", serial), require_text("role", role, 40)
+            port = optional_text("port", port, 200)
             if bench_id is not None and s.get(Bench, bench_id) is None:
                 raise UnknownEntity(f"bench {bench_id} does not exist")
             existing = s.scalar(sa.select(Device.id).where(Device.model == model, Device.serial == serial))
@@ -67,11 +71,11 @@ class DevicesStore(StoreBase):
                 role=role,
                 bench_id=bench_id,
                 port=port,
-                port_settings=_doc("port_settings", port_settings or {}),
+                port_settings=require_doc("port_settings", port_settings or {}),
             )
             s.add(device)
             s.flush()
-            self._audit(
+            self._db.audit(
                 s, actor, "device.create", "device", device.id,
                 {"model": model, "serial": serial, "role": role, "bench_id": bench_id, "port": port},
             )  # fmt: skip
@@ -82,57 +86,63 @@ class DevicesStore(StoreBase):
         unknown = set(changes) - allowed
         if unknown:
             raise InputError(f"cannot change {sorted(unknown)} of a device; changeable: {sorted(allowed)}")
-        with self._tx() as s:
-            device = self._device(s, device_id)
+        with self._db.transaction() as s:
+            device = device_in(s, device_id)
             if changes.get("bench_id") is not None and s.get(Bench, changes["bench_id"]) is None:
                 raise UnknownEntity(f"bench {changes['bench_id']} does not exist")
             if "role" in changes:
-                changes["role"] = _text("role", changes["role"], 40)
+                changes["role"] = require_text("role", changes["role"], 40)
             if "port" in changes:
-                changes["port"] = _optional_text("port", changes["port"], 200)
+                changes["port"] = optional_text("port", changes["port"], 200)
             if "port_settings" in changes:
-                changes["port_settings"] = _doc("port_settings", changes["port_settings"] or {})
+                changes["port_settings"] = require_doc("port_settings", changes["port_settings"] or {})
             before = {k: getattr(device, k) for k in changes}
             for key, value in changes.items():
                 setattr(device, key, value)
-            self._audit(s, actor, "device.update", "device", device.id, {"before": before, "after": changes})
+            self._db.audit(s, actor, "device.update", "device", device.id, {"before": before, "after": changes})
             return device
 
+    def ensure_bench(self, name: str, *, actor: str, port: str | None = None) -> Bench:
+        """The bench of that name, registered now if this database does not know it yet."""
+        with self._db.session() as s:
+            bench = s.scalar(sa.select(Bench).where(Bench.name == name))
+        return bench or self.add_bench(name, actor=actor, port=port)
+
     def get_device(self, device_id: int) -> Device:
-        with self._read() as s:
-            return self._device(s, device_id)
+        with self._db.session() as s:
+            return device_in(s, device_id)
 
     def find_device(self, model: str, serial: str) -> Device | None:
-        with self._read() as s:
+        with self._db.session() as s:
             return s.scalar(sa.select(Device).where(Device.model == model, Device.serial == serial))
 
-    def devices(self) -> list[Device]:
-        with self._read() as s:
+    def all(self) -> list[Device]:
+        with self._db.session() as s:
             return list(s.scalars(sa.select(Device).order_by(Device.id)))
 
     def bench_names_of_devices(self, device_ids: Collection[int]) -> dict[int, str]:
         """device id -> the name of the bench it was last registered on, for devices of any daemon of the lab."""
         if not device_ids:
             return {}
-        with self._read() as s:
+        with self._db.session() as s:
             rows = s.execute(sa.select(Device.id, Bench.name).join(Bench, Device.bench_id == Bench.id)
                              .where(Device.id.in_(list(device_ids))))
             return {int(device_id): str(name) for device_id, name in rows}
 
     def bench_id_of(self, name: str) -> int | None:
         """The id of the bench of that name, whichever daemon of the lab runs it."""
-        with self._read() as s:
+        with self._db.session() as s:
             bench_id: int | None = s.scalar(sa.select(Bench.id).where(Bench.name == name))
             return bench_id
 
     def device_ids_of_bench(self, name: str) -> list[int] | None:
         """The devices registered on the bench of that name (whichever daemon runs it); None if no bench has it."""
-        with self._read() as s:
+        with self._db.session() as s:
             bench_id = s.scalar(sa.select(Bench.id).where(Bench.name == name))
             if bench_id is None:
                 return None
             return list(s.scalars(sa.select(Device.id).where(Device.bench_id == bench_id)))
 
     def benches(self) -> list[Bench]:
-        with self._read() as s:
+        with self._db.session() as s:
             return list(s.scalars(sa.select(Bench).order_by(Bench.id)))

@@ -8,11 +8,11 @@ from typing import Any
 from service.storage.canonical import sha256_hex, utc_iso
 from service.storage.models import AuditEvent, CalibrationRecord, SettledPoint
 
-_POINT_FIELDS = (
+POINT_FIELDS = (
     "point", "cmd_x_deg", "cmd_y_deg", "n_samples", "t_start_s", "t_end_s", "ch_x_mean", "ch_y_mean",
     "ch_z_mean", "ch_x_std", "ch_y_std", "ch_z_std", "temp_c_mean",
 )  # fmt: skip
-_POINT_REQUIRED = ("point", "n_samples", "t_start_s", "t_end_s", "ch_x_mean", "ch_y_mean")
+POINT_REQUIRED = ("point", "n_samples", "t_start_s", "t_end_s", "ch_x_mean", "ch_y_mean")
 
 
 def record_content(r: CalibrationRecord) -> dict[str, Any]:
@@ -49,7 +49,7 @@ def audit_content(e: AuditEvent) -> dict[str, Any]:
 
 
 def point_content(p: SettledPoint) -> dict[str, Any]:
-    return {name: getattr(p, name) for name in _POINT_FIELDS}
+    return {name: getattr(p, name) for name in POINT_FIELDS}
 
 
 def points_sha256(points: Sequence[SettledPoint]) -> str:

@@ -13,38 +13,42 @@ from service.storage.canonical import sha256_hex
 from service.storage.errors import IllegalTransition
 from service.storage.models import Sample as SampleRow
 from service.storage.models import SettledPoint
-from service.storage.store.base import StoreBase
-from service.storage.store.checks import _finite
-from service.storage.store.hashing import _POINT_FIELDS, _POINT_REQUIRED, point_content
+from service.storage.store.checks import require_finite, require_number
+from service.storage.store.database import Database
+from service.storage.store.hashing import POINT_FIELDS, POINT_REQUIRED, point_content
+from service.storage.store.lookups import device_in, job_in
 
 
-class PointsStore(StoreBase):
+class PointsRepo:
+    def __init__(self, db: Database) -> None:
+        self._db = db
+
     def add_settled_points(
         self, job_id: int, device_id: int, points: Sequence[Mapping[str, Any]], *, actor: str
     ) -> list[SettledPoint]:
-        with self._tx() as s:
-            job = self._job(s, job_id)
-            self._device(s, device_id)
+        with self._db.transaction() as s:
+            job = job_in(s, job_id)
+            device_in(s, device_id)
             if job.state != "running":
                 raise IllegalTransition(f"job {job_id} is {job.state}; settled points are added while it runs")
-            rows = []
+            rows: list[SettledPoint] = []
             for i, p in enumerate(points):
-                unknown = set(p) - set(_POINT_FIELDS)
-                missing = [k for k in _POINT_REQUIRED if p.get(k) is None]
+                unknown = set(p) - set(POINT_FIELDS)
+                missing = [k for k in POINT_REQUIRED if p.get(k) is None]
                 if unknown or missing:
                     raise InputError(f"settled point [{i}]: unknown fields {sorted(unknown)}, missing {missing}")
                 values: dict[str, Any] = {}
-                for k in _POINT_FIELDS:
+                for k in POINT_FIELDS:
                     if k in ("point", "n_samples"):
                         if not isinstance(p[k], int) or p[k] < 0:
                             raise InputError(f"settled point [{i}]: {k} must be a non-negative integer")
                         values[k] = p[k]
                     else:
-                        values[k] = _finite(f"settled point [{i}] {k}", p.get(k))
+                        values[k] = require_finite(f"settled point [{i}] {k}", p.get(k))
                 rows.append(SettledPoint(job_id=job_id, device_id=device_id, **values))
             s.add_all(rows)
             s.flush()
-            self._audit(
+            self._db.audit(
                 s, actor, "points.add", "job", job_id,
                 {"device_id": device_id, "count": len(rows), "points": [r.point for r in rows],
                  "points_sha256": sha256_hex([point_content(r) for r in sorted(rows, key=lambda r: r.point)])},
@@ -56,10 +60,10 @@ class PointsStore(StoreBase):
         commands: Mapping[int, tuple[float, float]] | None = None,
     ) -> list[SettledPoint]:  # fmt: skip
         """Average each grid point's raw samples after discarding the first skip_s seconds (settling)."""
-        skip_s = _finite("skip_s", skip_s, optional=False)  # type: ignore[assignment]
+        skip_s = require_number("skip_s", skip_s)
         if skip_s < 0:
             raise InputError(f"skip_s={skip_s} is negative; it is the settling time discarded at each point")
-        with self._read() as s:
+        with self._db.session() as s:
             t = SampleRow.__table__
             rows = s.execute(
                 sa.select(t.c.point, t.c.t_s, t.c.ch_x, t.c.ch_y, t.c.ch_z, t.c.temp_c)
@@ -69,7 +73,7 @@ class PointsStore(StoreBase):
         by_point: dict[int, list[Any]] = {}
         for r in rows:
             by_point.setdefault(r.point, []).append(r)
-        points = []
+        points: list[dict[str, Any]] = []
         for point, rs in sorted(by_point.items()):
             t0 = rs[0].t_s + skip_s
             rs = [r for r in rs if r.t_s >= t0]
@@ -79,10 +83,10 @@ class PointsStore(StoreBase):
             points.append({
                 "point": point, "cmd_x_deg": cmd[0], "cmd_y_deg": cmd[1], "n_samples": len(rs),
                 "t_start_s": rs[0].t_s, "t_end_s": rs[-1].t_s,
-                "ch_x_mean": _mean([r.ch_x for r in rs]), "ch_y_mean": _mean([r.ch_y for r in rs]),
-                "ch_z_mean": _mean([r.ch_z for r in rs]), "ch_x_std": _std([r.ch_x for r in rs]),
-                "ch_y_std": _std([r.ch_y for r in rs]), "ch_z_std": _std([r.ch_z for r in rs]),
-                "temp_c_mean": _mean([r.temp_c for r in rs]),
+                "ch_x_mean": mean_or_none([r.ch_x for r in rs]), "ch_y_mean": mean_or_none([r.ch_y for r in rs]),
+                "ch_z_mean": mean_or_none([r.ch_z for r in rs]), "ch_x_std": std_or_none([r.ch_x for r in rs]),
+                "ch_y_std": std_or_none([r.ch_y for r in rs]), "ch_z_std": std_or_none([r.ch_z for r in rs]),
+                "temp_c_mean": mean_or_none([r.temp_c for r in rs]),
             })  # fmt: skip
         if not points:
             raise InputError(f"job {job_id} has no raw samples of device {device_id} with a grid point")
@@ -91,7 +95,7 @@ class PointsStore(StoreBase):
     def settled_points(self, job_id: int, device_id: int | None = None,
                        from_point: int | None = None) -> list[SettledPoint]:
         """A job's settled points (of one device; from a point index on: what a follower has not seen)."""
-        with self._read() as s:
+        with self._db.session() as s:
             stmt = sa.select(SettledPoint).where(SettledPoint.job_id == job_id)
             if device_id is not None:
                 stmt = stmt.where(SettledPoint.device_id == device_id)
@@ -100,15 +104,18 @@ class PointsStore(StoreBase):
             return list(s.scalars(stmt.order_by(SettledPoint.device_id, SettledPoint.point)))
 
 
-def _mean(values: Sequence[float | None]) -> float | None:
-    if any(v is None for v in values) or not values:
+def mean_or_none(values: Sequence[float | None]) -> float | None:
+    """The mean, or None when a value is missing (or there are none)."""
+    known = [v for v in values if v is not None]
+    if len(known) != len(values) or not known:
         return None
-    return math.fsum(values) / len(values)  # type: ignore[arg-type]
+    return math.fsum(known) / len(known)
 
 
-def _std(values: Sequence[float | None]) -> float | None:
+def std_or_none(values: Sequence[float | None]) -> float | None:
     """Sample standard deviation (n - 1), two-pass for precision."""
-    if len(values) < 2 or any(v is None for v in values):
+    known = [v for v in values if v is not None]
+    if len(known) < 2 or len(known) != len(values):
         return None
-    m = math.fsum(values) / len(values)  # type: ignore[arg-type]
-    return math.sqrt(math.fsum((v - m) ** 2 for v in values) / (len(values) - 1))  # type: ignore[operator]
+    m = math.fsum(known) / len(known)
+    return math.sqrt(math.fsum((v - m) ** 2 for v in known) / (len(known) - 1))

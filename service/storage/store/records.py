@@ -20,14 +20,21 @@ from service.storage.models import (
     utc_now,
 )
 from service.storage.models import Sample as SampleRow
-from service.storage.store.activation import ActivationStore
-from service.storage.store.checks import _doc, _finite, _standards, _text
+from service.storage.store.checks import require_doc, require_finite, require_standards, require_text
+from service.storage.store.database import Database
 from service.storage.store.hashing import points_sha256, record_content
+from service.storage.store.lookups import device_in, job_in
+from service.storage.store.pointer import activate_in, deactivate_in, unusable_in
 
-_UNSET: Any = object()
+SUPERSEDES_ACTIVE: Any = object()  # a new version supersedes whichever version is active
 
 
-class RecordsStore(ActivationStore):
+class RecordsRepo:
+    """Calibration records and the active pointer of each (device, kind)."""
+
+    def __init__(self, db: Database) -> None:
+        self._db = db
+
     def add_record(
         self,
         device_id: int,
@@ -41,7 +48,7 @@ class RecordsStore(ActivationStore):
         temp_c: float | None = None,
         job_id: int | None = None,
         raw_data: Mapping[str, Any] | None = None,
-        supersedes_id: int | None = _UNSET,
+        supersedes_id: int | None = SUPERSEDES_ACTIVE,
         activate: bool = False,
         reason: str | None = None,
     ) -> CalibrationRecord:
@@ -49,17 +56,17 @@ class RecordsStore(ActivationStore):
 
         With activate=True the new version also becomes the active one in the same transaction.
         """
-        with self._tx() as s:
-            self._device(s, device_id)
-            kind, method = _text("kind", kind, 40), _text("method", method, 80)
-            operator = _text("operator", operator)
-            model_doc = _doc("model", model)
+        with self._db.transaction() as s:
+            device_in(s, device_id)
+            kind, method = require_text("kind", kind, 40), require_text("method", method, 80)
+            operator = require_text("operator", operator)
+            model_doc = require_doc("model", model)
             for key, expected in (("kind", kind), ("method", method)):
                 if key in model_doc and model_doc[key] != expected:
                     raise InputError(f"model document says {key}={model_doc[key]!r} but the record is {expected!r}")
-            raw = _doc("raw_data", raw_data or {})
+            raw = require_doc("raw_data", raw_data or {})
             if job_id is not None:
-                job = self._job(s, job_id)
+                job = job_in(s, job_id)
                 if job.device_id != device_id:
                     raise InputError(f"job {job_id} calibrates device {job.device_id}, not device {device_id}")
                 if job.state not in ("running", "succeeded"):
@@ -73,7 +80,7 @@ class RecordsStore(ActivationStore):
                 raw.update({"job_id": job_id, "points": len(pts), "points_sha256": points_sha256(pts), "samples": n_samples,
                             "settled_points_sha256": _points_by_device_sha256(s, job_id)})
             active = s.get(ActiveCalibration, (device_id, kind))
-            if supersedes_id is _UNSET:
+            if supersedes_id is SUPERSEDES_ACTIVE:
                 supersedes_id = active.record_id if active else None
             elif supersedes_id is not None:
                 old = s.get(CalibrationRecord, supersedes_id)
@@ -91,9 +98,9 @@ class RecordsStore(ActivationStore):
                 content_format=1,
                 method=method,
                 model=model_doc,
-                validation=_doc("validation", validation or {}),
-                temp_c=_finite("temp_c", temp_c),
-                reference_standards=_standards(list(reference_standards)),
+                validation=require_doc("validation", validation or {}),
+                temp_c=require_finite("temp_c", temp_c),
+                reference_standards=require_standards(list(reference_standards)),
                 operator=operator,
                 created_at=utc_now(),
                 job_id=job_id,
@@ -104,18 +111,18 @@ class RecordsStore(ActivationStore):
             record.content_sha256 = sha256_hex(record_content(record))
             s.add(record)
             s.flush()
-            self._audit(
+            self._db.audit(
                 s, operator, "record.create", "calibration_record", record.id,
                 {"device_id": device_id, "kind": kind, "version": record.version,
                  "content_sha256": record.content_sha256, "supersedes_id": supersedes_id},
             )  # fmt: skip
             if activate:
-                self._activate(s, record, actor=operator, reason=reason or f"new version {record.version}",
+                activate_in(self._db, s, record, actor=operator, reason=reason or f"new version {record.version}",
                                replaces=active.record_id if active else None)  # fmt: skip
             return record
 
     def get_record(self, record_id: int) -> CalibrationRecord:
-        with self._read() as s:
+        with self._db.session() as s:
             record = s.get(CalibrationRecord, record_id)
             if record is None:
                 raise UnknownEntity(f"calibration record {record_id} does not exist")
@@ -127,7 +134,7 @@ class RecordsStore(ActivationStore):
         if not job_ids:
             return {}
         out: dict[int, CalibrationRecord] = {}
-        with self._read() as s:
+        with self._db.session() as s:
             for r in s.scalars(sa.select(CalibrationRecord).where(CalibrationRecord.job_id.in_(list(job_ids)))
                                .order_by(CalibrationRecord.id)):
                 if r.job_id is not None:
@@ -136,18 +143,29 @@ class RecordsStore(ActivationStore):
 
     def active_record_ids(self) -> set[int]:
         """The ids of every record in use (one per device and kind)."""
-        with self._read() as s:
+        with self._db.session() as s:
             return set(s.scalars(sa.select(ActiveCalibration.record_id)))
 
-    def records(self, device_id: int, kind: str | None = None) -> list[CalibrationRecord]:
-        with self._read() as s:
+    def of_device(self, device_id: int, kind: str | None = None) -> list[CalibrationRecord]:
+        with self._db.session() as s:
             stmt = sa.select(CalibrationRecord).where(CalibrationRecord.device_id == device_id)
             if kind is not None:
                 stmt = stmt.where(CalibrationRecord.kind == kind)
             return list(s.scalars(stmt.order_by(CalibrationRecord.kind, CalibrationRecord.version)))
 
+    def newest_first(self, *, device_id: int | None = None,
+                     device_ids: Sequence[int] | None = None) -> list[CalibrationRecord]:
+        """Records newest first, of one device, of some devices (None: of every device), or both filters."""
+        stmt = sa.select(CalibrationRecord).order_by(CalibrationRecord.id.desc())
+        if device_id is not None:
+            stmt = stmt.where(CalibrationRecord.device_id == device_id)
+        if device_ids is not None:
+            stmt = stmt.where(CalibrationRecord.device_id.in_(list(device_ids)))
+        with self._db.session() as s:
+            return list(s.scalars(stmt))
+
     def active_record(self, device_id: int, kind: str) -> CalibrationRecord | None:
-        with self._read() as s:
+        with self._db.session() as s:
             return s.scalar(
                 sa.select(CalibrationRecord).join(
                     ActiveCalibration, ActiveCalibration.record_id == CalibrationRecord.id
@@ -155,12 +173,48 @@ class RecordsStore(ActivationStore):
             )  # fmt: skip
 
     def pointer_history(self, device_id: int, kind: str) -> list[ActiveCalibrationHistory]:
-        with self._read() as s:
+        with self._db.session() as s:
             return list(s.scalars(
                 sa.select(ActiveCalibrationHistory)
                 .where(ActiveCalibrationHistory.device_id == device_id, ActiveCalibrationHistory.kind == kind)
                 .order_by(ActiveCalibrationHistory.id)
             ))  # fmt: skip
+
+    def activate(self, record_id: int, *, actor: str, reason: str, replaces: int | None = None) -> ActiveCalibration:
+        """Make a record the active version of its (device, kind).
+
+        `replaces` names the record the caller believes is active now (None: none is). If another
+        one is active the change is refused: there is never a second active pointer, and a switch
+        is always a deliberate, audited act.
+        """
+        with self._db.transaction() as s:
+            record = s.get(CalibrationRecord, record_id) if isinstance(record_id, int) else None
+            if record is None:
+                raise UnknownEntity(f"calibration record {record_id!r} does not exist")
+            return activate_in(self._db, s, record, actor=actor, reason=reason, replaces=replaces)
+
+    def unusable_reason(self, record_id: int) -> str | None:
+        """Why the record must not correct anything (rejected, or not matching its hash), or None if it may."""
+        with self._db.session() as s:
+            record = s.get(CalibrationRecord, record_id)
+            if record is None:
+                raise UnknownEntity(f"calibration record {record_id!r} does not exist")
+            return unusable_in(s, record)
+
+    def inactive_reason(self, device_id: int, kind: str) -> str | None:
+        """Why (device, kind) has no active record, when its pointer was withdrawn: the reason of that change."""
+        with self._db.session() as s:
+            last = s.scalar(sa.select(ActiveCalibrationHistory)
+                            .where(ActiveCalibrationHistory.device_id == device_id, ActiveCalibrationHistory.kind == kind)
+                            .order_by(ActiveCalibrationHistory.id.desc()).limit(1))  # fmt: skip
+        if last is None or last.record_id is not None:
+            return None
+        return f"record {last.previous_record_id} was deactivated by {last.changed_by}: {last.reason}"
+
+    def deactivate(self, device_id: int, kind: str, *, actor: str, reason: str, replaces: int) -> None:
+        """Withdraw the active version (e.g. the device failed validation); audited like a switch."""
+        with self._db.transaction() as s:
+            deactivate_in(self._db, s, device_id, kind, actor=actor, reason=reason, replaces=replaces)
 
 
 def _points_by_device_sha256(s: Session, job_id: int) -> dict[str, str]:

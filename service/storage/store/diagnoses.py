@@ -14,22 +14,25 @@ import sqlalchemy as sa
 
 from service.storage.errors import ConflictError, UnknownEntity
 from service.storage.models import CalibrationRecord, Diagnosis, DiagnosisResult, utc_now
-from service.storage.store.base import StoreBase
-from service.storage.store.checks import _doc, _text
+from service.storage.store.checks import require_doc, require_text
+from service.storage.store.database import Database
 
 INTERRUPTED_DIAGNOSIS = "interrupted: the daemon stopped while the diagnosis ran; start it again"
 
 
-class DiagnosisStore(StoreBase):
+class DiagnosesRepo:
+    def __init__(self, db: Database) -> None:
+        self._db = db
+
     def create_diagnosis(self, record_id: int, *, sensor: str, baseline: str, actor: str) -> Diagnosis:
-        with self._tx() as s:
+        with self._db.transaction() as s:
             if s.get(CalibrationRecord, record_id) is None:
                 raise UnknownEntity(f"record {record_id!r} does not exist")
-            d = Diagnosis(record_id=record_id, sensor=_text("sensor", sensor, 8), baseline=_text("baseline", baseline, 20),
-                          created_by=_text("actor", actor), created_at=utc_now())
+            d = Diagnosis(record_id=record_id, sensor=require_text("sensor", sensor, 8), baseline=require_text("baseline", baseline, 20),
+                          created_by=require_text("actor", actor), created_at=utc_now())
             s.add(d)
             s.flush()
-            self._audit(s, actor, "diagnosis.create", "diagnosis", d.id,
+            self._db.audit(s, actor, "diagnosis.create", "diagnosis", d.id,
                         {"record_id": record_id, "sensor": sensor, "baseline": baseline})
             return d
 
@@ -37,23 +40,23 @@ class DiagnosisStore(StoreBase):
                          summary: Mapping[str, Any], report_html: str | None, error: str | None,
                          actor: str) -> DiagnosisResult:
         """The one result of a diagnosis; its event `diagnosis.finished` goes to the feed and webhooks."""
-        with self._tx() as s:
+        with self._db.transaction() as s:
             d = s.get(Diagnosis, diagnosis_id)
             if d is None:
                 raise UnknownEntity(f"diagnosis {diagnosis_id!r} does not exist")
             if s.scalar(sa.select(DiagnosisResult.id).where(DiagnosisResult.diagnosis_id == diagnosis_id)) is not None:
                 raise ConflictError(f"diagnosis {diagnosis_id} has already ended")
             r = DiagnosisResult(diagnosis_id=diagnosis_id, state=state, started_at=started_at, finished_at=utc_now(),
-                                summary=_doc("summary", summary), report_html=report_html, error=error)
+                                summary=require_doc("summary", summary), report_html=report_html, error=error)
             s.add(r)
             s.flush()
-            self._audit(s, actor, "diagnosis.finish", "diagnosis", diagnosis_id,
+            self._db.audit(s, actor, "diagnosis.finish", "diagnosis", diagnosis_id,
                         {"diagnosis_id": diagnosis_id, "record_id": d.record_id, "state": state,
                          "named_effects": list(summary.get("named_effects", [])), "error": error})
             return r
 
     def get_diagnosis(self, diagnosis_id: int) -> tuple[Diagnosis, DiagnosisResult | None]:
-        with self._read() as s:
+        with self._db.session() as s:
             d = s.get(Diagnosis, diagnosis_id) if isinstance(diagnosis_id, int) else None
             if d is None:
                 raise UnknownEntity(f"diagnosis {diagnosis_id!r} does not exist")
@@ -63,7 +66,7 @@ class DiagnosisStore(StoreBase):
     def list_diagnoses(self, record_id: int | None = None,
                        limit: int = 100) -> list[tuple[Diagnosis, DiagnosisResult | None]]:
         """Newest first, of one record or of all."""
-        with self._read() as s:
+        with self._db.session() as s:
             stmt = (sa.select(Diagnosis, DiagnosisResult)
                     .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
                     .order_by(Diagnosis.id.desc()).limit(limit))
@@ -72,7 +75,7 @@ class DiagnosisStore(StoreBase):
             return [(d, r) for d, r in s.execute(stmt).all()]
 
     def unfinished_diagnoses(self) -> list[int]:
-        with self._read() as s:
+        with self._db.session() as s:
             stmt = (sa.select(Diagnosis.id)
                     .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
                     .where(DiagnosisResult.id.is_(None)))

@@ -1,0 +1,128 @@
+"""Approvals of records: review, approval or rejection, never by who started or ran the job; the
+approvals form their own hash chain, and a rejection withdraws its record from use at once."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import sqlalchemy as sa
+
+from service.errors import InputError
+from service.storage.canonical import normalise, sha256_hex, utc_iso
+from service.storage.errors import ConflictError, RefusedWrite, UnknownEntity
+from service.storage.models import (
+    GENESIS_SHA256,
+    ActiveCalibration,
+    CalibrationJob,
+    CalibrationRecord,
+    RecordApproval,
+    utc_now,
+)
+from service.storage.store.checks import require_text
+from service.storage.store.database import Database
+from service.storage.store.hashing import record_content
+from service.storage.store.pointer import deactivate_in
+
+APPROVE_MEANINGS = ("review", "approval")
+
+
+class SelfApproval(RefusedWrite):
+    """Segregation of duties: the one who started the job (or ran it) may not approve or reject its record."""
+
+
+def approval_content(a: RecordApproval) -> dict[str, Any]:
+    """What an approval asserts; its SHA-256 is `sha256` (canonical rule of canonical.py)."""
+    return {"record_id": a.record_id, "decision": a.decision, "meaning": a.meaning, "note": a.note,
+            "actor": a.actor, "at": utc_iso(a.at), "record_sha256": a.record_sha256, "prev_sha256": a.prev_sha256}
+
+
+def approval_status(approvals: Sequence[RecordApproval]) -> str:
+    """draft, approved (an approval meaning approval) or rejected (any rejection)."""
+    if any(a.decision == "reject" for a in approvals):
+        return "rejected"
+    if any(a.decision == "approve" and a.meaning == "approval" for a in approvals):
+        return "approved"
+    return "draft"
+
+
+class ApprovalsRepo:
+    def __init__(self, db: Database) -> None:
+        self._db = db
+
+    def of_record(self, record_id: int) -> list[RecordApproval]:
+        with self._db.session() as s:
+            return list(s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id == record_id)
+                                  .order_by(RecordApproval.id)))
+
+    @staticmethod
+    def status_of(approvals: Sequence[RecordApproval]) -> str:
+        return approval_status(approvals)
+
+    def record_status(self, record_id: int) -> str:
+        return approval_status(self.of_record(record_id))
+
+    def record_statuses(self, record_ids: Sequence[int]) -> dict[int, str]:
+        """The status of each of these records, in one query."""
+        if not record_ids:
+            return {}
+        with self._db.session() as s:
+            rows = list(s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id.in_(list(record_ids)))))
+        return {rid: approval_status([a for a in rows if a.record_id == rid]) for rid in record_ids}
+
+    def decide(self, record_id: int, *, decision: str, meaning: str, note: str, actor: str) -> RecordApproval:
+        """Approve (meaning review or approval) or reject a draft record; never by who started or ran its job."""
+        if decision not in ("approve", "reject"):
+            raise InputError(f"decision {decision!r} is not approve or reject")
+        if decision == "approve" and meaning not in APPROVE_MEANINGS:
+            raise InputError(f"meaning {meaning!r}: an approval means one of {', '.join(APPROVE_MEANINGS)}")
+        if decision == "reject":
+            meaning = "rejection"
+            require_text("reason", note, 10_000)
+        if not isinstance(note, str) or len(note) > 10_000:
+            raise InputError("note must be text of at most 10,000 characters")
+        actor = require_text("actor", actor)
+        with self._db.transaction() as s:
+            record = s.get(CalibrationRecord, record_id) if isinstance(record_id, int) else None
+            if record is None:
+                raise UnknownEntity(f"calibration record {record_id!r} does not exist")
+            if sha256_hex(record_content(record)) != record.content_sha256:
+                raise RefusedWrite(f"record {record_id} does not match its hash (tampered); it cannot be signed")
+            job = s.get(CalibrationJob, record.job_id) if record.job_id is not None else None
+            if actor == record.operator or (job is not None and actor == job.created_by):
+                who = "started its job" if job is not None and actor == job.created_by else "ran it"
+                raise SelfApproval(f"{actor!r} {who}; record {record_id} must be {decision}d by another person"
+                                   " (segregation of duties)")
+            past = list(s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id == record_id)))
+            status = approval_status(past)
+            if status != "draft":
+                raise ConflictError(f"record {record_id} is already {status}; a decision is final")
+            prev = s.execute(sa.select(RecordApproval.sha256).order_by(RecordApproval.id.desc()).limit(1)).scalar()
+            row = RecordApproval(record_id=record_id, decision=decision, meaning=meaning, note=note, actor=actor,
+                                 at=utc_now(), record_sha256=record.content_sha256, prev_sha256=prev or GENESIS_SHA256)
+            row.sha256 = sha256_hex(normalise(approval_content(row)))
+            s.add(row)
+            s.flush()
+            action = "record.reject" if decision == "reject" else ("record.approve" if meaning == "approval" else "record.review")
+            self._db.audit(s, actor, action, "calibration_record", record_id,
+                        {"approval_id": row.id, "actor": actor, "meaning": meaning, "note": note,
+                         "record_sha256": record.content_sha256, "approval_sha256": row.sha256})  # fmt: skip
+            active = s.get(ActiveCalibration, (record.device_id, record.kind))
+            if decision == "reject" and active is not None and active.record_id == record_id:
+                # a rejected record is never used: withdrawn in the same transaction as the rejection
+                deactivate_in(self._db, s, record.device_id, record.kind, actor=actor, replaces=record_id,
+                                 reason=f"record {record_id} v{record.version} was rejected: {note}")
+            return row
+
+    def verify_approvals(self) -> list[str]:
+        """Problems of the approval chain: a row whose content or predecessor does not match (empty when sound)."""
+        problems: list[str] = []
+        prev = GENESIS_SHA256
+        with self._db.session() as s:
+            for a in s.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):
+                if sha256_hex(normalise(approval_content(a))) != a.sha256:
+                    problems.append(f"approval {a.id}: content does not match its SHA-256")
+                if a.prev_sha256 != prev:
+                    problems.append(f"approval {a.id}: predecessor hash does not match approval before it")
+                prev = a.sha256
+        return problems

@@ -1,0 +1,54 @@
+"""Issued certificates: the bytes as issued with their SHA-256, one per record, naming the one they replace."""
+
+from __future__ import annotations
+
+import hashlib
+
+import sqlalchemy as sa
+
+from service.storage.models import CalibrationRecord, Certificate, utc_now
+from service.storage.store.checks import require_text
+from service.storage.store.database import Database
+
+
+class CertificatesRepo:
+    def __init__(self, db: Database) -> None:
+        self._db = db
+
+    def certificate_of(self, record_id: int) -> Certificate | None:
+        with self._db.session() as s:
+            return s.scalar(sa.select(Certificate).where(Certificate.record_id == record_id))
+
+    def certificate_by_number(self, number: str) -> Certificate | None:
+        with self._db.session() as s:
+            return s.scalar(sa.select(Certificate).where(Certificate.number == number))
+
+    def replaced_certificate(self, record_id: int) -> Certificate | None:
+        """The newest certificate of an earlier version of the same device and kind (the one a new one replaces)."""
+        with self._db.session() as s:
+            r = s.get(CalibrationRecord, record_id)
+            if r is None:
+                return None
+            return s.scalar(
+                sa.select(Certificate).join(CalibrationRecord, CalibrationRecord.id == Certificate.record_id)
+                .where(CalibrationRecord.device_id == r.device_id, CalibrationRecord.kind == r.kind,
+                       CalibrationRecord.version < r.version)
+                .order_by(CalibrationRecord.version.desc()).limit(1))  # fmt: skip
+
+    def store_certificate(self, record_id: int, *, number: str, xml: bytes, approval_id: int,
+                          replaces_id: int | None, actor: str) -> tuple[Certificate, bool]:
+        """Keep issued bytes with their SHA-256; if the record already has a certificate, that one is returned."""
+        with self._db.transaction() as s:
+            existing = s.scalar(sa.select(Certificate).where(Certificate.record_id == record_id))
+            if existing is not None:
+                return existing, False
+            row = Certificate(record_id=record_id, number=require_text("number", number), xml=bytes(xml),
+                              sha256=hashlib.sha256(xml).hexdigest(), approval_id=approval_id, replaces_id=replaces_id,
+                              issued_at=utc_now(), issued_by=require_text("actor", actor))  # fmt: skip
+            s.add(row)
+            s.flush()
+            replaced = s.get(Certificate, replaces_id) if replaces_id is not None else None
+            self._db.audit(s, actor, "certificate.issue", "certificate", row.id,
+                        {"certificate_id": row.id, "number": row.number, "record_id": record_id, "sha256": row.sha256,
+                         "replaces": replaced.number if replaced else None})  # fmt: skip
+            return row, True

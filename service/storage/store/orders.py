@@ -1,0 +1,109 @@
+"""Orders from the LIMS: created once per Idempotency-Key, linked to their jobs, records and certificates."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from typing import Any
+
+import sqlalchemy as sa
+
+from service.errors import InputError
+from service.storage.canonical import normalise, sha256_hex
+from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.models import CalibrationJob, CalibrationRecord, Certificate, Order, RecordApproval, utc_now
+from service.storage.store.approvals import approval_status
+from service.storage.store.checks import require_date, require_text
+from service.storage.store.database import Database
+
+
+class IdempotencyKeyReused(InputError):
+    """The same Idempotency-Key came with another body."""
+
+
+class OrdersRepo:
+    def __init__(self, db: Database) -> None:
+        self._db = db
+
+    def create_order(self, fields: Mapping[str, Any], *, actor: str,
+                     idempotency_key: str | None = None) -> tuple[Order, bool]:
+        """A new order, or (False) the one an earlier request with the same Idempotency-Key created."""
+        body = normalise(dict(fields))
+        request_sha = sha256_hex(body)
+        customer = body.get("customer")
+        if not isinstance(customer, Mapping):
+            raise InputError("customer must be an object {name, city, country_code[, street, post_code, email]}")
+        for key in ("name", "city"):
+            require_text(f"customer.{key}", customer.get(key), 200)
+        if not isinstance(customer.get("country_code"), str) or not re.fullmatch(r"[A-Z]{2}", customer["country_code"]):
+            raise InputError("customer.country_code must be two upper-case letters (ISO 3166-1)")
+        due = body.get("due_on")
+        with self._db.transaction() as s:
+            if idempotency_key is not None:
+                key = require_text("Idempotency-Key", idempotency_key, 200)
+                seen = s.scalar(sa.select(Order).where(Order.idempotency_key == key))
+                if seen is not None:
+                    if seen.request_sha256 != request_sha:
+                        raise IdempotencyKeyReused(f"Idempotency-Key {key!r} was used for another request body "
+                                                   f"(order {seen.id}); use a new key for a new order")
+                    return seen, False
+            lims_id = require_text("lims_order_id", body.get("lims_order_id"))
+            clash = s.scalar(sa.select(Order.id).where(Order.lims_order_id == lims_id))
+            if clash is not None:
+                raise ConflictError(f"lims_order_id {lims_id!r} is already order {clash}")
+            maker, model = body.get("item_manufacturer"), body.get("item_model")
+            row = Order(lims_order_id=lims_id, item_serial=require_text("item_serial", body.get("item_serial")),
+                        item_manufacturer=require_text("item_manufacturer", maker) if maker is not None else None,
+                        item_model=require_text("item_model", model) if model is not None else None,
+                        customer=dict(customer), procedure=require_text("procedure", body.get("procedure"), 40),
+                        method=require_text("method", body.get("method"), 80),
+                        due_on=require_date("due_on", due) if due is not None else None, created_at=utc_now(),
+                        created_by=require_text("actor", actor), idempotency_key=idempotency_key, request_sha256=request_sha)
+            s.add(row)
+            s.flush()
+            self._db.audit(s, actor, "order.create", "order", row.id,
+                        {"order_id": row.id, "lims_order_id": lims_id, "item_serial": row.item_serial})
+            return row, True
+
+    def get(self, order_id: int) -> Order:
+        with self._db.session() as s:
+            row = s.get(Order, order_id)
+            if row is None:
+                raise UnknownEntity(f"order {order_id} does not exist")
+            return row
+
+    def order_links(self, order_id: int) -> dict[str, Any]:
+        """The order's jobs, records (with status) and certificates, and the state they put it in."""
+        with self._db.session() as s:
+            jobs = list(s.scalars(sa.select(CalibrationJob).where(CalibrationJob.order_id == order_id)
+                                  .order_by(CalibrationJob.id)))
+            job_ids = [j.id for j in jobs]
+            records = list(s.scalars(sa.select(CalibrationRecord).where(CalibrationRecord.job_id.in_(job_ids))
+                                     .order_by(CalibrationRecord.id))) if job_ids else []
+            rec_ids = [r.id for r in records]
+            approvals = list(s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id.in_(rec_ids)))) if rec_ids else []
+            certs = list(s.scalars(sa.select(Certificate).where(Certificate.record_id.in_(rec_ids))
+                                   .order_by(Certificate.id))) if rec_ids else []
+        status = {r.id: approval_status([a for a in approvals if a.record_id == r.id]) for r in records}
+        return {
+            "jobs": [{"id": j.id, "state": j.state} for j in jobs],
+            "records": [{"id": r.id, "version": r.version, "status": status[r.id]} for r in records],
+            "certificates": [{"id": c.id, "number": c.number, "record_id": c.record_id, "sha256": c.sha256} for c in certs],
+            "state": order_state(jobs, records, status, certs),
+        }
+
+def order_state(jobs: list[CalibrationJob], records: list[CalibrationRecord], status: dict[int, str],
+                 certs: list[Certificate]) -> str:
+    """open -> in_progress -> measured -> approved -> certified; or failed / rejected for the latest attempt."""
+    if not jobs:
+        return "open"
+    latest = records[-1] if records else None
+    if latest is not None and any(c.record_id == latest.id for c in certs):
+        return "certified"
+    if latest is not None and status[latest.id] in ("approved", "rejected"):
+        return status[latest.id]
+    if any(j.state in ("queued", "running") for j in jobs):
+        return "in_progress"
+    if latest is not None:
+        return "measured"
+    return "failed" if jobs[-1].state in ("failed", "cancelled") else "in_progress"
