@@ -17,6 +17,8 @@ from tests.daemon.conftest import admin_headers, make_client, wait_job
 GRID = {"x_deg": [-7.2, 7.2], "y_deg": [-7.2, 7.2], "n_x": 7, "n_y": 7}
 BODY = {"procedure": "stage-grid", "method": "kinematic", "grid": GRID, "samples_per_point": 8,
         "validation": {"n_points": 4}, "settle": {"tolerance_deg": 0.005, "window_s": 0.5, "timeout_s": 60}}
+# A record to refer to, quickly made: 3 x 3 points
+SMALL_BODY = {**BODY, "grid": {"x_deg": [-2, 2], "y_deg": [-2, 2], "n_x": 3, "n_y": 3}}
 PERIODIC_X = {"periodic_error": {"x_amp_deg": 0.010, "x_phase_deg": 40.0}}
 # Targets between the grid points (none of them is a grid point)
 TARGETS = [(1.3, -2.1), (-4.7, 3.3), (5.9, 0.7), (-2.6, -5.4), (3.5, 4.9), (-6.1, -0.9)]
@@ -39,8 +41,8 @@ def start_daemon(tmp_path, effects: dict | None):
     return make_client(tmp_path, bench_scenario=str(path), sim_speed=5.0)
 
 
-def calibrate(client, h) -> dict:
-    r = client.post("/calibrations", headers=h, json=BODY)
+def calibrate(client, h, body: dict = BODY) -> dict:
+    r = client.post("/calibrations", headers=h, json=body)
     assert r.status_code == 202, r.text
     job = wait_job(client, r.json()["id"], h)
     assert job["state"] == "succeeded", job
@@ -152,7 +154,7 @@ def test_bad_requests_name_the_field(tmp_path):
         h = admin_headers(tmp_path)
         assert client.post("/records/999/diagnose", headers=h, json={}).status_code == 404
         assert client.get("/diagnoses/999", headers=h).status_code == 404
-        rec = calibrate(client, h)
+        rec = calibrate(client, h, SMALL_BODY)  # any record: the requests are refused before it is read
         r = client.post(f"/records/{rec['id']}/diagnose", headers=h, json={"sensor": "both"})
         assert r.status_code == 422 and "sensor" in r.text
         r = client.post(f"/records/{rec['id']}/diagnose", headers=h, json={"baseline": "cubic"})
