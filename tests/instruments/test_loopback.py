@@ -31,6 +31,19 @@ def test_bytes_pass_both_ways_in_order_and_a_read_returns_what_came_within_its_t
         line.close()
 
 
+def test_opening_drops_what_came_before_as_pyserial_does_on_a_device():
+    line = MemoryLine("test")
+    try:
+        line.write_instrument(b"stale")
+        host = _open(line.url)
+        assert host.read(5) == b""
+        line.write_instrument(b"fresh")
+        assert host.read(5) == b"fresh"
+        host.close()
+    finally:
+        line.close()
+
+
 def test_one_owner_at_a_time():
     line = MemoryLine("test")
     try:

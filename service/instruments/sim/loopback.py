@@ -69,6 +69,17 @@ class MemoryLine:
         if generation != self._generation or self._closed:
             raise LineGone(f"device reports readiness to read but returned no data ({self.url} was unplugged)")
 
+    def discard_for_host(self, generation: int) -> None:
+        """Drop what waits for the driver (pyserial flushes a port's input when it opens it)."""
+        with self._cond:
+            self._check(generation)
+            self._to_host.clear()
+
+    def pending_for_host(self) -> int:
+        """Bytes on their way to the driver that it has not read yet."""
+        with self._cond:
+            return len(self._to_host)
+
     def waiting(self, generation: int) -> int:
         with self._cond:
             self._check(generation)

@@ -27,6 +27,7 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
         self._generation = line.open_host()
         self._line = line
         self.is_open = True
+        self.reset_input_buffer()  # as pyserial's port on a device does when it opens
 
     def close(self) -> None:
         line, self._line = self._line, None
@@ -55,7 +56,7 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
         return len(payload)
 
     def reset_input_buffer(self) -> None:
-        """Nothing is dropped: a pty keeps what came before a reader as well."""
+        self._open_line().discard_for_host(self._generation)
 
     def reset_output_buffer(self) -> None:
         """Writes leave at once."""
