@@ -96,9 +96,10 @@ class SerialDriver:
     def _stamp(self, **fields: Any) -> Reading:
         return Reading(role=self.role, bench_s=self.clock.monotonic(), time_utc=dt.datetime.now(dt.UTC), **fields)
 
-    async def _ask(self, data: bytes, match: Callable[[Any], bool], what: str) -> Any:
+    async def _ask(self, data: bytes, match: Callable[[Any], bool], what: str, *,
+                   timeout_s: float | None = None) -> Any:
         try:
-            return await self.port.request(data, match, self.timeout_s, f"{self.role}: {what}")
+            return await self.port.request(data, match, timeout_s or self.timeout_s, f"{self.role}: {what}")
         except DeviceTimeout:
             self.timeouts += 1
             raise

@@ -14,6 +14,7 @@ from service.instruments.drivers.common import SerialDriver, present
 from service.instruments.transport import DeviceError, DeviceRefused, DeviceTimeout, SerialPort
 
 IDLE_POLL_MISSES = 3  # unanswered state queries in a row before waiting for a move gives up
+ERROR_QUERY_PATIENCE = 3  # the error code's answer is waited for this many port timeouts
 
 
 class ControllerAxis(SerialDriver, MotionAxis):
@@ -50,10 +51,13 @@ class ControllerAxis(SerialDriver, MotionAxis):
         await self.port.send(controller.encode_command(controller.ControllerCommand(self.axis, command, value)))
 
     async def _query(self, command: str) -> controller.ControllerAnswer:
+        """Ask a value. The error code is waited for longer than other answers: asking it clears it,
+        so it cannot be asked again when a loaded host holds its answer past one timeout."""
         req = controller.encode_command(controller.ControllerCommand(self.axis, command, query=True))
+        patience = ERROR_QUERY_PATIENCE if command == "TE" else 1
         answer: controller.ControllerAnswer = await self._ask(
             req, lambda m: isinstance(m, controller.ControllerAnswer) and m.axis == self.axis and m.command == command,
-            f"axis {self.axis} {command}?")
+            f"axis {self.axis} {command}?", timeout_s=self.timeout_s * patience)
         return answer
 
     async def _checked(self, command: str, value: int | None, what: str) -> None:
