@@ -16,14 +16,18 @@ import datetime as dt
 import logging
 import multiprocessing
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from service.calibration.model import CalibrationModel
+from service.calibration.registry import Method
 from service.errors import InputError
 from service.storage.models import CalibrationRecord, Diagnosis, DiagnosisResult, utc_now
+from service.storage.store import Store
 
 log = logging.getLogger("tiltlab.diagnosis")
 
@@ -116,7 +120,8 @@ def _lower_priority() -> None:
 class DiagnosisRunner:
     """Starts diagnoses and follows them until their result is stored. One worker process serves them in turn."""
 
-    def __init__(self, store, columns_of, validate) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, store: Store, columns_of: Callable[[int, int], dict[str, NDArray[np.float64]]],
+                 validate: Callable[[int, int, Method, CalibrationModel], dict[str, Any]]) -> None:
         self.store = store
         self._columns_of = columns_of  # (job_id, n_fit) -> the record's dataset columns
         self._validate = validate  # (job_id, n_fit, method, model) -> the validation figures of a stage record

@@ -14,7 +14,8 @@ from service.lims import dcc
 from service.lims.content import Approval, Laboratory, build_certificate
 from service.storage.canonical import sha256_hex
 from service.storage.errors import UnknownEntity
-from service.storage.models import CalibrationRecord, Certificate
+from service.storage.models import CalibrationJob, CalibrationRecord, Certificate
+from service.storage.store import Store
 from service.storage.store.hashing import record_content
 
 if TYPE_CHECKING:  # the signing libraries are loaded when a certificate is signed
@@ -67,7 +68,7 @@ def _record_json(r: CalibrationRecord) -> dict[str, Any]:
             "calibrated_range": (r.raw_data or {}).get("calibrated_range")}  # fmt: skip
 
 
-def _calibration_points(store, r: CalibrationRecord) -> list[dict[str, float]]:  # type: ignore[no-untyped-def]
+def _calibration_points(store: Store, r: CalibrationRecord) -> list[dict[str, float]]:
     """The points the record's model was fitted on: the reference's value and the item's indication at each."""
     if r.job_id is None:
         return []
@@ -85,7 +86,7 @@ def _calibration_points(store, r: CalibrationRecord) -> list[dict[str, float]]: 
     return out
 
 
-def _device_json(store, r: CalibrationRecord) -> dict[str, Any]:  # type: ignore[no-untyped-def]
+def _device_json(store: Store, r: CalibrationRecord) -> dict[str, Any]:
     device = store.devices.get_device(r.device_id)
     conditions = (r.raw_data or {}).get("conditions") or {}
     firmware = conditions.get("firmware")
@@ -95,7 +96,7 @@ def _device_json(store, r: CalibrationRecord) -> dict[str, Any]:  # type: ignore
             "firmware": firmware if isinstance(firmware, str) else None}
 
 
-def _standards_of(store, r: CalibrationRecord, job) -> list[Any]:  # type: ignore[no-untyped-def]
+def _standards_of(store: Store, r: CalibrationRecord, job: CalibrationJob | None) -> list[Any]:
     """The registered standards the job named (by id), else those the record lists (by certificate number)."""
     registered = {s.id: s for s in store.standards.all()}
     ids: list[Any] = []
@@ -111,7 +112,7 @@ def _standards_of(store, r: CalibrationRecord, job) -> list[Any]:  # type: ignor
              "uncertainty": s.uncertainty} for s in out]  # fmt: skip
 
 
-def issue_certificate(store, record_id: int, settings, *, actor: str,  # type: ignore[no-untyped-def]
+def issue_certificate(store: Store, record_id: int, settings: Settings, *, actor: str,
                       today: dt.date | None = None) -> Certificate:
     """The record's certificate: the stored one if it was issued before (after checking its hash), else a new
     one, validated against the DCC schema before it is stored. Raises NotApproved for a draft or rejected record."""
@@ -171,7 +172,7 @@ class Verification:
         return not self.problems
 
 
-def verify_certificate(xml: bytes, store=None, trusted_cert_pem: bytes | None = None) -> Verification:  # type: ignore[no-untyped-def]
+def verify_certificate(xml: bytes, store: Store | None = None, trusted_cert_pem: bytes | None = None) -> Verification:
     """Schema validity and the enveloped signature (offline; with `trusted_cert_pem` the signer must be that
     certificate, and an unsigned file fails), and with a store: the stored hash, the record's hash and the
     approval it rests on."""

@@ -7,14 +7,16 @@ import asyncio
 import datetime as dt
 import logging
 
+from service.config import Settings
 from service.lims.webhooks import Dispatcher
+from service.storage.store import Store
 
 log = logging.getLogger("tiltlab.lims")
 DUE_CHECK_INTERVAL_S = 3600.0
 
 
 class LimsRuntime:
-    def __init__(self, store, settings) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, store: Store, settings: Settings) -> None:
         self.store, self.settings = store, settings
         self.dispatcher = Dispatcher(store.webhooks, settings)
         self._due_task: asyncio.Task[None] | None = None

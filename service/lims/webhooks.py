@@ -18,6 +18,7 @@ import time
 import httpx
 from standardwebhooks import Webhook
 
+from service.config import Settings
 from service.storage.feed import event_json
 from service.storage.outage import reason_of, unreachable
 from service.storage.store.webhooks import DueDelivery, WebhooksRepo
@@ -48,7 +49,7 @@ def retry_delay_s(attempts_done: int, base_s: float, max_s: float) -> float:
 class Dispatcher:
     """Runs in the daemon: sends due deliveries, sleeps until the next one is due (or it is woken)."""
 
-    def __init__(self, webhooks: WebhooksRepo, settings) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, webhooks: WebhooksRepo, settings: Settings) -> None:
         self.webhooks, self.settings = webhooks, settings
         self.wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
