@@ -7,7 +7,11 @@ receipt, same machine clock), and the daemon's CPU time from /proc/<pid>/stat.
 
     .venv/bin/python benchmarks/bench_ws.py                 # 100 clients, 60 s
     .venv/bin/python benchmarks/bench_ws.py --seconds 10
-    .venv/bin/python benchmarks/bench_ws.py --ramp          # add clients until one first loses a message
+    .venv/bin/python benchmarks/bench_ws.py --ramp          # add clients until they first wait or lose
+    .venv/bin/python benchmarks/bench_ws.py --ramp --event-loop asyncio   # the daemon on asyncio, not uvloop
+
+The ramp's saturation point is the message rate where the reading clients first wait: the step at
+which they receive less than 95 % of what they asked for (clients x rate_hz), or lose a message.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import asyncio
 import base64
 import datetime as dt
 import json
+import multiprocessing
 import os
 import socket
 import subprocess
@@ -72,6 +77,91 @@ async def reader(i: int, url: str, stats: Stats, stop: asyncio.Event) -> None:
                 stats.latency.append(now - dt.datetime.fromisoformat(m["time_utc"]).timestamp())
 
 
+class RawReader(asyncio.Protocol):
+    """A reading client at the cost of a few bytes operations per message (the `websockets` client
+    costs more CPU per message than the daemon itself: one process of them could not show where the
+    daemon saturates). It reads every frame, checks seq from the message's first bytes
+    (`{"seq":N,...`), and parses one message in 10 for its time."""
+
+    def __init__(self, i: int, path: str, stats: Stats) -> None:
+        self.i, self.path, self.stats = i, path, stats
+        self.buf = bytearray()
+        self.upgraded = False
+        self.last = -1
+        self.closed = asyncio.get_running_loop().create_future()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport
+        key = base64.b64encode(os.urandom(16)).decode()
+        transport.write(f"GET {self.path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.closed.done():
+            self.closed.set_result(None)
+
+    def data_received(self, data: bytes) -> None:
+        buf = self.buf
+        buf += data
+        if not self.upgraded:
+            end = buf.find(b"\r\n\r\n")
+            if end < 0:
+                return
+            assert buf.startswith(b"HTTP/1.1 101"), bytes(buf[:80])
+            del buf[:end + 4]
+            self.upgraded = True
+        pos = 0
+        while len(buf) - pos >= 2:
+            n, head = buf[pos + 1] & 0x7F, 2
+            if n == 126:
+                if len(buf) - pos < 4:
+                    break
+                n, head = int.from_bytes(buf[pos + 2:pos + 4], "big"), 4
+            elif n == 127:
+                if len(buf) - pos < 10:
+                    break
+                n, head = int.from_bytes(buf[pos + 2:pos + 10], "big"), 10
+            if len(buf) - pos < head + n:
+                break
+            opcode = buf[pos] & 0x0F
+            payload = bytes(buf[pos + head:pos + head + n])
+            pos += head + n
+            if opcode == 1:
+                self.message(payload)
+            elif opcode == 9:  # ping: a pong, masked with a zero key
+                self.transport.write(bytes([0x8A, 0x80 | len(payload)]) + b"\0\0\0\0" + payload)
+            elif opcode == 8:
+                self.transport.close()
+        del buf[:pos]
+
+    def message(self, payload: bytes) -> None:
+        if self.last < 0:  # the snapshot
+            self.last = 0
+            return
+        stats = self.stats
+        seq = int(payload[7:payload.index(b",", 7)])
+        head = payload[:80]
+        dropped = b'"dropped"' in head
+        if seq != self.last + 1 or dropped:
+            stats.lost += json.loads(payload)["count"] if dropped else seq - self.last - 1
+            stats.clients_losing.add(self.i)
+        self.last = seq
+        if b'"reading"' in head:
+            stats.received += 1
+            if seq % 10 == 0:
+                m = json.loads(payload)
+                stats.latency.append(time.time() - dt.datetime.fromisoformat(m["time_utc"]).timestamp())
+
+
+async def raw_reader(i: int, port: int, path: str, stats: Stats, stop: asyncio.Event) -> None:
+    loop = asyncio.get_running_loop()
+    transport, proto = await loop.create_connection(lambda: RawReader(i, path, stats), "127.0.0.1", port)
+    try:
+        await asyncio.wait([asyncio.ensure_future(stop.wait()), proto.closed], return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        transport.close()
+
+
 def stuck_client(port: int, path: str) -> socket.socket:
     """A client that completes the handshake and then never reads."""
     sock = socket.create_connection(("127.0.0.1", port))
@@ -82,10 +172,11 @@ def stuck_client(port: int, path: str) -> socket.socket:
     return sock
 
 
-async def run_clients(url: str, n: int, seconds: float, pid: int, stats: Stats, tasks: list, stop: asyncio.Event,
-                      first: int = 0) -> None:
+async def run_clients(args: argparse.Namespace, url: str, port: int, path: str, n: int, stats: Stats, tasks: list,
+                      stop: asyncio.Event, first: int = 0) -> None:
     for i in range(first, first + n):
-        tasks.append(asyncio.create_task(reader(i, url, stats, stop)))
+        tasks.append(asyncio.create_task(reader(i, url, stats, stop) if args.client == "websockets" else
+                                         raw_reader(i, port, path, stats, stop)))
         if i % 20 == 19:
             await asyncio.sleep(0.05)
 
@@ -99,6 +190,12 @@ def main() -> int:
     ap.add_argument("--step", type=int, default=50)
     ap.add_argument("--step-seconds", type=float, default=10.0)
     ap.add_argument("--max-clients", type=int, default=1000)
+    ap.add_argument("--client", choices=("raw", "websockets"), default="raw",
+                    help="the reading clients: raw frames read by a few bytes operations, or the websockets library")
+    ap.add_argument("--event-loop", choices=("asyncio", "uvloop"),
+                    help="the daemon's event loop (default: what `tiltlab serve` picks, uvloop when installed)")
+    ap.add_argument("--ws", choices=("websockets", "websockets-sansio", "wsproto"),
+                    help="the daemon's WebSocket implementation (default: what `tiltlab serve` picks)")
     args = ap.parse_args()
 
     work = Path(tempfile.mkdtemp(prefix="bench-ws-"))
@@ -107,7 +204,13 @@ def main() -> int:
     write_text_atomic(cfg, bench.toml)
     port = free_port()
     env = {**os.environ, "TILTLAB_DATA_DIR": str(work / "data")}
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port), "--bench-config", str(cfg)],
+    # the daemon as `tiltlab serve` runs it, but for the event loop or WebSocket implementation asked
+    # for here (a comparison): uvicorn's Config is given them in the daemon's process before the command runs
+    given = {k: v for k, v in (("loop", args.event_loop), ("ws", args.ws)) if v is not None}
+    launch = ("import sys, uvicorn; init = uvicorn.Config.__init__; "
+              f"uvicorn.Config.__init__ = lambda self, *a, **k: init(self, *a, **{{**k, **{given!r}}}); "
+              "from service.cli import main; sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.Popen([sys.executable, "-c", launch, "serve", "--port", str(port), "--bench-config", str(cfg)],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 60
@@ -123,7 +226,12 @@ def main() -> int:
         token = (work / "data" / "admin.token").read_text().strip()
         path = f"/ws/readings?token={token}&rate_hz={args.rate:g}&history_s=1"
         url = f"ws://127.0.0.1:{port}{path}"
-        return asyncio.run(bench_run(args, url, port, path, proc.pid))
+        # the clients in a process of their own: the simulated sensors keep their 50 Hz whatever the clients cost
+        clients = multiprocessing.get_context("fork").Process(
+            target=lambda: sys.exit(asyncio.run(bench_run(args, url, port, path, proc.pid))))
+        clients.start()
+        clients.join()
+        return clients.exitcode or 0
     finally:
         proc.terminate()
         proc.wait(20)
@@ -137,7 +245,7 @@ async def bench_run(args: argparse.Namespace, url: str, port: int, path: str, pi
     stuck = stuck_client(port, path)
     try:
         if not args.ramp:
-            await run_clients(url, args.clients, args.seconds, pid, stats, tasks, stop)
+            await run_clients(args, url, port, path, args.clients, stats, tasks, stop)
             await asyncio.sleep(2.0)  # connected and past their snapshots
             stats.latency.clear()
             received0, lost0 = stats.received, stats.lost
@@ -150,7 +258,7 @@ async def bench_run(args: argparse.Namespace, url: str, port: int, path: str, pi
             n = 0
             best = 0
             while n < args.max_clients:
-                await run_clients(url, args.step, args.step_seconds, pid, stats, tasks, stop, first=n)
+                await run_clients(args, url, port, path, args.step, stats, tasks, stop, first=n)
                 n += args.step
                 await asyncio.sleep(2.0)
                 stats.latency.clear()
@@ -159,13 +267,16 @@ async def bench_run(args: argparse.Namespace, url: str, port: int, path: str, pi
                 await asyncio.sleep(args.step_seconds)
                 cpu, wall = cpu_s(pid) - cpu0, time.monotonic() - t0
                 lost = stats.lost - lost0
+                rate = (stats.received - received0) / wall
                 report(f"ramp: {n} clients", stats, stats.received - received0, lost, cpu, wall)
-                if lost or stats.clients_losing:
-                    print(f"ramp: first loss with {n} reading clients; {best} kept up", flush=True)
+                if lost or stats.clients_losing or rate < 0.95 * n * args.rate:
+                    why = "lost messages" if lost or stats.clients_losing else "waited"
+                    print(f"ramp: the reading clients first {why} with {n} clients ({rate:.0f} messages/s); "
+                          f"{best} clients kept up ({best * args.rate:.0f} messages/s)", flush=True)
                     break
                 best = n
             else:
-                print(f"ramp: no loss up to {n} clients", flush=True)
+                print(f"ramp: kept up to {n} clients", flush=True)
     finally:
         stop.set()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -176,9 +287,10 @@ async def bench_run(args: argparse.Namespace, url: str, port: int, path: str, pi
 def report(what: str, stats: Stats, received: int, lost: int, cpu: float, wall: float) -> None:
     lat = np.array(stats.latency) * 1000.0
     p50, p99 = (np.percentile(lat, 50), np.percentile(lat, 99)) if lat.size else (float("nan"),) * 2
+    per_msg = 1e6 * cpu / received if received else float("nan")
     print(f"{what}: received {received} ({received / wall:.0f}/s), lost {lost}, latency p50 {p50:.1f} ms "
-          f"p99 {p99:.1f} ms, daemon CPU {cpu:.1f} s in {wall:.0f} s ({100 * cpu / wall:.0f} % of a core)",
-          flush=True)
+          f"p99 {p99:.1f} ms, daemon CPU {cpu:.1f} s in {wall:.0f} s ({100 * cpu / wall:.0f} % of a core, "
+          f"{per_msg:.0f} us a message)", flush=True)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,10 @@ from service.api.problems import PROBLEM
 # own write buffer holds at most 64 kB more before a send waits.
 SEND_BUFFER_BYTES = 32_768
 SERVER_WRITE_BUFFER_BYTES = 65_536  # the ASGI server's WebSocket write buffer (its high-water mark)
+# uvicorn's WebSocket implementation: websockets' sans-I/O protocol writes each message straight to the
+# connection and waits only while the connection's write buffer is above its high-water mark (64 kB);
+# about a quarter less CPU per stream message than the older asyncio protocol.
+WEBSOCKET_IMPLEMENTATION = "websockets-sansio"
 # The most the daemon holds for one stream client that has stopped reading before its sends wait.
 STREAM_HELD_BYTES = 2 * SEND_BUFFER_BYTES + SERVER_WRITE_BUFFER_BYTES
 

@@ -119,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.api.app import create_app
+    from service.api.limits import WEBSOCKET_IMPLEMENTATION
     from service.config import ensure_data_dir, get_settings
 
     settings = get_settings()
@@ -170,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
                     _say(line)
                 announced.append(True)
 
-        server = _Server(uvicorn.Config(app, log_level="info", lifespan="on",
+        server = _Server(uvicorn.Config(app, log_level="info", lifespan="on", ws=WEBSOCKET_IMPLEMENTATION,
                                         **{k: v for k, v in tls.items() if v}))
         try:
             server.run(sockets=[sock])

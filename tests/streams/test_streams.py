@@ -26,7 +26,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from service.api.app import create_app
-from service.api.limits import STREAM_HELD_BYTES
+from service.api.limits import STREAM_HELD_BYTES, WEBSOCKET_IMPLEMENTATION
 from service.commands.serve import bind_socket
 from service.config import Settings
 from tests.api.running_service import free_port
@@ -71,7 +71,7 @@ def daemon(tmp_path_factory) -> Iterator[Daemon]:
     app = create_app(settings)
     port = free_port()
     sock = bind_socket("127.0.0.1", port)  # as `tiltlab serve` makes it: every connection's send buffer bounded
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", ws=WEBSOCKET_IMPLEMENTATION))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     wait_until(lambda: server.started, 60, "server started")

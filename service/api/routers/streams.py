@@ -147,16 +147,30 @@ async def readings(ws: WebSocket, hub: StreamsDep) -> None:
 
 async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client) -> None:
     slow_close_s = producer.slow_close_s
+    loop = asyncio.get_running_loop()
+    sending_since: list[float | None] = [None]  # real time the send under way began (None: none under way)
+    queue = client.queue
+    send_text = ws.send_text
 
     async def send() -> None:
+        # Everything queued is sent in one wake; no timer per message (the watch below times the sends).
         while True:
-            text = await client.queue.get()
-            try:  # a send that cannot be handed over: the client stopped reading and its buffers are full
-                # (asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation that
-                # meets a finished send, leaving this task waiting on a queue nobody fills)
-                async with asyncio.timeout(slow_close_s):
-                    await ws.send_text(text)
-            except TimeoutError:
+            text = await queue.get()
+            while True:
+                sending_since[0] = loop.time()
+                await send_text(text)
+                if queue.empty():
+                    break
+                text = queue.get_nowait()
+            sending_since[0] = None
+
+    async def watch() -> None:
+        # A send that cannot be handed over: the client stopped reading and its buffers are full.
+        step = min(0.5, slow_close_s / 10)
+        while True:
+            await asyncio.sleep(step)
+            since = sending_since[0]
+            if since is not None and loop.time() - since >= slow_close_s:
                 client.kick(CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s")
                 return
 
@@ -165,7 +179,7 @@ async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client
         client.kick(CLOSE_POLICY, REVOKED)
 
     tasks = [asyncio.create_task(send()), asyncio.create_task(_until_disconnect(ws)),
-             asyncio.create_task(client.kicked.wait()), asyncio.create_task(token())]
+             asyncio.create_task(client.kicked.wait()), asyncio.create_task(token()), asyncio.create_task(watch())]
     try:
         await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
     finally:
