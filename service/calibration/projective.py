@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import lapack
 
 from service.errors import DegenerateDataError
 
@@ -21,26 +22,7 @@ from service.errors import DegenerateDataError
 REFINE_STEP_TOL = 1e-7
 REFINE_COST_TOL = 1e-12
 REFINE_MAX_ITERATIONS = 50
-
-
-def _normaliser(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, float, float]:
-    """Hartley's normalisation (scale s, centre cx, cy): centroid at 0, mean distance from it √2."""
-    n = x.size
-    cx, cy = float(x.sum()) / n, float(y.sum()) / n
-    d = float(np.sqrt((x - cx) ** 2 + (y - cy) ** 2).sum()) / n
-    s = float(np.sqrt(2.0)) / d if d > 0 else 1.0
-    return s, cx, cy
-
-
-def _distinct_and_spread(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
-    """Per row of x, y (k x n): the number of distinct points (to 1e-9), and whether they are clearly
-    spread in two directions (the 2 x 2 scatter's determinant far from zero)."""
-    z = np.sort(np.round(x, 9) + 1j * np.round(y, 9), axis=-1)
-    distinct = np.count_nonzero(z[:, 1:] != z[:, :-1], axis=-1) + 1
-    cx = x - x.sum(axis=-1, keepdims=True) / x.shape[-1]
-    cy = y - y.sum(axis=-1, keepdims=True) / y.shape[-1]
-    a, b, d = (cx * cx).sum(axis=-1), (cx * cy).sum(axis=-1), (cy * cy).sum(axis=-1)
-    return distinct, a * d - b * b > 1e-6 * (a + d) ** 2
+SQRT2 = float(np.sqrt(2.0))
 
 
 def check_general_position(x: NDArray[np.float64], y: NDArray[np.float64], what: str = "points") -> None:
@@ -55,67 +37,116 @@ def check_general_position(x: NDArray[np.float64], y: NDArray[np.float64], what:
                                   "off that line (e.g. both stage axes moved)")
 
 
-def _transfer(h8: NDArray[np.float64], sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.float64],
-              dy: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """(residuals [H·src - dst in x; in y], px, py, 1/w) of H = (h8, 1)."""
-    w_inv = 1.0 / (h8[6] * sx + h8[7] * sy + 1.0)
-    px = (h8[0] * sx + h8[1] * sy + h8[2]) * w_inv
-    py = (h8[3] * sx + h8[4] * sy + h8[5]) * w_inv
-    return np.concatenate([px - dx, py - dy]), px, py, w_inv
+def _clearly_general(X: NDArray[np.float64], M: list[list[float]]) -> bool:
+    """Whether both point sets (rows 0, 1 and 3, 4 of X; M their scatter matrix) clearly pass
+    `check_general_position`: 4 sorted values of x or of y, evenly picked, clearly apart (so at least
+    4 distinct points), and a 2 x 2 scatter whose determinant is far from zero. Data that are not
+    clearly fine get the full check and its message."""
+    n = X.shape[1]
+    if n < 4:
+        return False
+    k = (n - 1) // 3
+    picks = np.sort(X, axis=1)[:, :3 * k + 1:k].tolist()
+    gap = 1e-6 * (1.0 + max(max(row[3], -row[0]) for row in picks))  # far above the check's 1e-9
+    for i, j in ((0, 1), (3, 4)):
+        u, v = picks[i], picks[j]
+        if not (min(u[1] - u[0], u[2] - u[1], u[3] - u[2]) > gap or min(v[1] - v[0], v[2] - v[1], v[3] - v[2]) > gap):
+            return False
+        a, b, d = M[i][i], M[i][j], M[j][j]
+        if not a * d - b * b > 1e-6 * (a + d) ** 2:
+            return False
+    return True
 
 
-def _jacobian(sx: NDArray[np.float64], sy: NDArray[np.float64], px: NDArray[np.float64], py: NDArray[np.float64],
-              w_inv: NDArray[np.float64]) -> NDArray[np.float64]:
-    n = sx.size
-    J = np.zeros((2 * n, 8))
-    J[:n, 0] = J[n:, 3] = sx * w_inv
-    J[:n, 1] = J[n:, 4] = sy * w_inv
-    J[:n, 2] = J[n:, 5] = w_inv
-    J[:n, 6] = -px * J[:n, 0]
-    J[:n, 7] = -px * J[:n, 1]
-    J[n:, 6] = -py * J[:n, 0]
-    J[n:, 7] = -py * J[:n, 1]
-    return J
+def _points(sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.float64],
+            dy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rows src x, src y, 1, dst x, dst y: the layout the transfer error and its Jacobian read."""
+    X = np.empty((5, sx.size))
+    X[0], X[1], X[2], X[3], X[4] = sx, sy, 1.0, dx, dy
+    return X
+
+
+class _Transfer:
+    """The transfer error of H = (h8, 1) on fixed points, and its Jacobian, in buffers allocated once
+    (the refinement evaluates both a few times on the same points). Both come with the opposite sign,
+    dst - H·src and -J, which saves a negation in each and leaves JᵀJ and Jᵀr as they are."""
+
+    def __init__(self, X: NDArray[np.float64]) -> None:
+        self.S = X[0:3]  # src x, y, 1
+        self.D = X[3:5]  # dst x, y
+        self.H = np.empty((3, 3))
+        self.H[2, 2] = 1.0
+        self.h = self.H.reshape(9)
+        # -Jᵀ: parameter x (x residuals, y residuals) x point; the zero blocks stay zero
+        self.Kt = np.zeros((8, 2, X.shape[1]))
+
+    def negative_residuals(self, h8: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """(dst - H·src, 2 x n with rows x and y; -(H·src), 2 x n; -1/w per point)."""
+        self.h[:8] = h8
+        num = self.H @ self.S
+        neg_w_inv: NDArray[np.float64] = np.divide(-1.0, num[2])
+        neg_p: NDArray[np.float64] = num[:2] * neg_w_inv
+        return neg_p + self.D, neg_p, neg_w_inv
+
+    def negative_jacobian_t(self, neg_p: NDArray[np.float64], neg_w_inv: NDArray[np.float64]) -> NDArray[np.float64]:
+        """-Jᵀ (8 x 2n; columns the x residuals, then the y residuals) from what `negative_residuals` gave."""
+        Kt = self.Kt
+        np.multiply(self.S, neg_w_inv, out=Kt[0:3, 0])  # ∂/∂(h11 h12 h13) of the x residual: (sx, sy, 1)/w
+        Kt[3:6, 1] = Kt[0:3, 0]  # the y residual's likewise
+        np.multiply(Kt[0:2, 0, None], neg_p, out=Kt[6:8])  # ∂/∂(h31, h32): -(mapped point) · (sx, sy)/w
+        return Kt.reshape(8, -1)
 
 
 def transfer_residuals(h8: NDArray[np.float64], sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.float64],
                        dy: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Transfer error [H·src - dst in x; in y] (2n) of H = (h8, 1) and, analytically, its Jacobian (2n x 8)."""
-    r, px, py, w_inv = _transfer(h8, sx, sy, dx, dy)
-    return r, _jacobian(sx, sy, px, py, w_inv)
+    t = _Transfer(_points(*(np.asarray(v, dtype=float) for v in (sx, sy, dx, dy))))
+    neg_r, neg_p, neg_w_inv = t.negative_residuals(np.asarray(h8, dtype=float))
+    return -neg_r.ravel(), -t.negative_jacobian_t(neg_p, neg_w_inv).T
 
 
-def _refine(h: NDArray[np.float64], sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.float64],
-            dy: NDArray[np.float64]) -> NDArray[np.float64]:
+def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float64]:
     """Least squares of the transfer error from the DLT's start: Levenberg-Marquardt with the analytic
-    Jacobian, columns scaled to unit norm (the perspective terms are orders of magnitude smaller)."""
-    r, J = transfer_residuals(h, sx, sy, dx, dy)
-    cost = float(r @ r)
-    damping = 0.0
-    norms = np.sqrt(np.einsum("ij,ij->j", J, J))  # the columns' scales hardly move: taken once
+    Jacobian, columns scaled to unit norm (the perspective terms are orders of magnitude smaller).
+    The normal equations come straight from the (scaled) Jᵀ, 8 x 2n: JᵀJ and Jᵀr are two products."""
+    t = _Transfer(X)
+    neg_R, neg_p, neg_w_inv = t.negative_residuals(h)
+    r = neg_R.ravel()  # the residuals' sign does not matter below: only with the Jacobian's
+    cost = float(np.vdot(r, r))
+    Kt = t.negative_jacobian_t(neg_p, neg_w_inv)
+    N = Kt @ Kt.T
+    norms = np.sqrt(N.diagonal())  # the columns' scales hardly move: taken once
     norms[norms == 0] = 1.0
+    inv_norms = 1.0 / norms
+    N *= np.multiply.outer(inv_norms, inv_norms)
+    g = (Kt @ r) * inv_norms
+    neg_inv_norms = -inv_norms
+    damping = 0.0
     for _ in range(REFINE_MAX_ITERATIONS):
-        Js = J / norms
-        N = Js.T @ Js
         if damping:
-            N = N + damping * np.diag(np.diag(N))
-        try:
-            step = -np.linalg.solve(N, Js.T @ r) / norms
-        except np.linalg.LinAlgError:
-            step = np.full(8, np.nan)
+            Nd = N.copy()
+            Nd.flat[::9] *= 1.0 + damping
+        else:
+            Nd = N
+        step = lapack.dgesv(Nd, g)[2]  # LU with pivoting, as np.linalg.solve; singular: not finite
+        step *= neg_inv_norms
         trial: NDArray[np.float64] = h + step
-        r_new, px, py, w_inv = _transfer(trial, sx, sy, dx, dy)
-        cost_new = float(r_new @ r_new)
+        neg_R, neg_p, neg_w_inv = t.negative_residuals(trial)
+        r_new = neg_R.ravel()
+        cost_new = float(np.vdot(r_new, r_new))
         if not cost_new <= cost * (1.0 + REFINE_COST_TOL):  # worse (or not finite): damp harder, same Jacobian
             damping = max(10.0 * damping, 1e-6)
             if damping > 1e12:
                 break
             continue
         if (cost - cost_new <= REFINE_COST_TOL * cost
-                or np.all(np.abs(step) <= REFINE_STEP_TOL * (np.abs(h) + REFINE_STEP_TOL))):
+                or all(abs(s) <= REFINE_STEP_TOL * (abs(v) + REFINE_STEP_TOL) for s, v in zip(step.tolist(), h.tolist()))):
             return trial
         h, r, cost = trial, r_new, cost_new
-        J = _jacobian(sx, sy, px, py, w_inv)
+        Kt = t.negative_jacobian_t(neg_p, neg_w_inv)
+        Kt *= inv_norms[:, None]
+        N = Kt @ Kt.T
+        g = Kt @ r
         damping *= 0.1
     return h
 
@@ -124,45 +155,50 @@ def fit_projective(src_x: ArrayLike, src_y: ArrayLike, dst_x: ArrayLike, dst_y: 
                    what: str = "points") -> NDArray[np.float64]:
     """H with dst ~ H · src (homogeneous), h33 = 1."""
     sx, sy, dx, dy = (np.asarray(v, dtype=float) for v in (src_x, src_y, dst_x, dst_y))
+    n = sx.size
+    X = _points(sx, sy, dx, dy)
+    centre = X.sum(axis=1) / n
+    C = X - centre[:, None]  # the row of ones becomes zeros
     # both point sets at once; only data that are not clearly fine get the full check and its message
-    distinct, spread = _distinct_and_spread(np.stack([sx, dx]), np.stack([sy, dy]))
-    if not (distinct.min() >= 4 and spread.all()):
+    if not _clearly_general(X, (C @ C.T).tolist()):
         check_general_position(sx, sy, what)
         check_general_position(dx, dy, what)
-    (ss, scx, scy), (ds, dcx, dcy) = _normaliser(sx, sy), _normaliser(dx, dy)
-    n = sx.size
-    P = np.empty((n, 3))
-    P[:, 0] = ss * (sx - scx)
-    P[:, 1] = ss * (sy - scy)
-    P[:, 2] = 1.0
-    u = ds * (dx - dcx)
-    v = ds * (dy - dcy)
-    A = np.zeros((2 * n, 9))
-    A[0::2, 0:3] = P
-    A[0::2, 6:9] = -u[:, None] * P
-    A[1::2, 3:6] = P
-    A[1::2, 6:9] = -v[:, None] * P
+    # Hartley's normalisation of each set: centroid at 0, mean distance from it √2
+    ss, ds = (SQRT2 * n / d if d > 0 else 1.0 for d in np.hypot(C[0::3], C[1::3]).sum(axis=1).tolist())
+    scx, scy, _, dcx, dcy = centre.tolist()
+    # Aᵀ of the DLT system A h = 0: per point an x row (P, 0, -u P) and a y row (0, P, -v P), with P and
+    # (u, v) the normalised source and target points
+    At = np.zeros((9, 2, n))
+    np.multiply(C[0:2], ss, out=At[0:2, 0])
+    At[2, 0] = 1.0
+    At[3:6, 1] = At[0:3, 0]
+    np.multiply(At[0:3, 0, None], C[3:5] * -ds, out=At[6:9])
+    At2 = At.reshape(9, 2 * n)
     # The null vector of A from the 9 x 9 AᵀA (eigenvalues = squared singular values) when the 8th is
     # clearly above rounding; otherwise from the SVD of A itself, which also tells a rank-deficient system.
-    lam, vec = np.linalg.eigh(A.T @ A)
-    if lam[1] > 1e-8 * lam[-1]:
-        Hn = vec[:, 0].reshape(3, 3)
+    lam, vec, info = lapack.dsyevd(At2 @ At2.T, lower=1)  # as np.linalg.eigh
+    if info == 0 and lam[1] > 1e-8 * lam[-1]:
+        hn = vec[:, 0].tolist()
     else:
         # U is not needed (2n x 2n: O(n²) memory); all 9 rows of V are, also with only 4 points
-        _, s, vt = np.linalg.svd(A, full_matrices=A.shape[0] < A.shape[1])
+        _, s, vt = np.linalg.svd(At2.T, full_matrices=2 * n < 9)
         # the 8 free entries of H need rank 8 (s[7] is the 8th singular value, with 4 points the last)
         if s[7] <= 1e-12 * s[0]:
             raise DegenerateDataError(f"{what}: the points do not determine a homography (rank-deficient system)")
-        Hn = vt[-1].reshape(3, 3)
-    Ts = np.array([[ss, 0.0, -ss * scx], [0.0, ss, -ss * scy], [0.0, 0.0, 1.0]])
-    Td_inv = np.array([[1.0 / ds, 0.0, dcx], [0.0, 1.0 / ds, dcy], [0.0, 0.0, 1.0]])
-    H: NDArray[np.float64] = Td_inv @ Hn @ Ts
-    if abs(H[2, 2]) < 1e-12:
+        hn = vt[-1].tolist()
+    # H = Td⁻¹ Hn Ts, with Ts = [[s, 0, -s cx], [0, s, -s cy], [0, 0, 1]] (Td likewise), entry by entry
+    rows = [hn[0:3], hn[3:6], hn[6:9]]
+    rows = [[ss * a, ss * b, c - ss * (scx * a + scy * b)] for a, b, c in rows]
+    last = rows[2]
+    if abs(last[2]) < 1e-12:
         raise DegenerateDataError(f"{what}: the fitted homography maps the origin to infinity")
-    H = H / H[2, 2]
+    k = 1.0 / last[2]
+    h8 = [(a / ds + cx * z) * k for row, cx in ((rows[0], dcx), (rows[1], dcy)) for a, z in zip(row, last)] + \
+        [last[0] * k, last[1] * k]
+    h = np.array(h8)
     if refine and n > 4:
-        H = np.append(_refine(H.ravel()[:8], sx, sy, dx, dy), 1.0).reshape(3, 3)
-    return H
+        h = _refine(h, X)
+    return np.append(h, 1.0).reshape(3, 3)
 
 
 def apply_projective(H: NDArray[np.float64], x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
