@@ -128,7 +128,9 @@ def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float6
             Nd.flat[::9] *= 1.0 + damping
         else:
             Nd = N
-        step = lapack.dgesv(Nd, g)[2]  # LU with pivoting, as np.linalg.solve; singular: not finite
+        _, _, step, info = lapack.dgesv(Nd, g)  # LU with pivoting, as np.linalg.solve
+        if info:  # singular: no step (damp harder)
+            step = np.full(8, np.nan)
         step *= neg_inv_norms
         trial: NDArray[np.float64] = h + step
         neg_R, neg_p, neg_w_inv = t.negative_residuals(trial)
