@@ -20,6 +20,7 @@ from service.api.auth import TokenCache, is_loopback
 from service.api.fleet_routing import FleetRouting, run_forwarded
 from service.api.limits import BodySizeLimit
 from service.api.metrics import Metrics, MetricsMiddleware
+from service.api.prepared_tilt import PreparedTilt
 from service.api.redact import install_log_redaction
 from service.api.revision import SchemaRevision
 from service.api.routers import (
@@ -226,6 +227,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     problems.install(app)  # with the one mapping of an unknown entity to 404
     openapi.install(app)
     http_details.install(app)
+    app.add_middleware(PreparedTilt, state_of=app)  # outermost of ours: the polled route's plain case
     redoc.install(app, "/docs-assets")
     _install_errors(app)
     for r in (health, metrics_router, benches, tilt, stage, stage_home, calibrations, records, diagnoses, lims,

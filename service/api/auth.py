@@ -91,6 +91,13 @@ class TokenCache:
         self._seen[token] = (now, principal)
         return principal
 
+    def known(self, token: str) -> Principal | None:
+        """The principal of a token seen within `ttl_s` and then valid; None where only the database can say."""
+        hit = self._seen.get(token)
+        if hit is None or time.monotonic() - hit[0] >= self.ttl_s:
+            return None
+        return hit[1]
+
     def clear(self) -> None:
         self._seen.clear()
 

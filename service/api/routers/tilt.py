@@ -20,6 +20,8 @@ from service.bench.corrected import (
     sensor_temp_c,
     stale_after_s,
 )
+from service.bench.runtime import BenchRuntime
+from service.jobs.manager import JobManager
 
 router = APIRouter(tags=["tilt"])
 
@@ -37,6 +39,11 @@ async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader) -> Response:
     is not answering. `in_calibrated_range` says whether the corrected tilt lies within the table tilts the
     record was fitted on; outside them it is still served, and `note` says so. `stale` is true
     when the latest reading is older than three output intervals plus 0.25 s."""
+    return Response(tilt_answer(bench, jobs), media_type="application/json")
+
+
+def tilt_answer(bench: BenchRuntime, jobs: JobManager) -> bytes:
+    """The body of `GET /tilt` for one bench, as JSON (the route's and the prepared path's one source)."""
     now = dt.datetime.now(dt.UTC)
     meas = bench.latest("measurement_sensor")
     ref = bench.latest("reference_sensor")
@@ -79,4 +86,4 @@ async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader) -> Response:
         "in_calibrated_range": in_range,
         "note": "; ".join(notes)})
     # serialised here, once, by the model's own serialiser (the route's response model documents it)
-    return Response(body.model_dump_json().encode(), media_type="application/json")
+    return body.model_dump_json().encode()
