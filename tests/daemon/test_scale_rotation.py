@@ -70,7 +70,9 @@ def test_rotation_job_on_the_rotary_bench(tmp_path):
 
 
 def test_turntable_job_at_symmetric_azimuths(tmp_path):
-    with make_client(tmp_path, sim_benches=["rotary"]) as client:
+    # 40 times real time: the job is mostly half-turns of the table; answers are awaited in real seconds and
+    # readings are stamped on arrival, so a loaded machine only delays a settling window
+    with make_client(tmp_path, sim_benches=["rotary"], sim_speed=40.0) as client:
         h = admin_headers(tmp_path)
         world = client.app.state.bench.sim.world
         north, east = world.axis_tilt_arcsec
