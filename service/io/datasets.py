@@ -82,6 +82,9 @@ def _where(source: str, row: int, col: str, line: int | None = None) -> str:
 
 # A number as the contract writes it: ASCII digits, '.' as the decimal mark, optional exponent.
 # (float() alone would also take '1_000', non-ASCII digits and 'nan'/'inf'.)
+# Only spaces and tabs around a cell are padding; any other character (a control code, a
+# Unicode space) is part of the cell and makes it not a number, rather than being dropped.
+_BLANK = " \t"
 _NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 _DECIMAL_COMMA = re.compile(r"[+-]?[0-9]*,[0-9]+")
 _NON_FINITE = {"nan", "inf", "infinity"}
@@ -127,7 +130,7 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
     try:
         start = 1
         for r in reader:
-            if any(c.strip() for c in r):
+            if any(c.strip(_BLANK) for c in r):
                 rows.append(r)
                 lines.append(start)
             start = reader.line_num + 1
@@ -137,7 +140,7 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
         raise InputError(f"{source}: empty file (a header row is required)")
     if len(rows[0]) == 1 and (err := _separator_error(source, rows[0][0])):
         raise err
-    header = [c.strip() for c in rows[0]]
+    header = [c.strip(_BLANK) for c in rows[0]]
     if any(not c for c in header):
         raise InputError(f"{source}: header has an empty column name at position {header.index('') + 1}")
     dup = sorted({c for c in header if header.count(c) > 1})
@@ -149,7 +152,7 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
     for i, r in enumerate(body, start=1):
         if len(r) != len(header):
             raise InputError(f"{source}, row {i} (line {lines[i - 1]}): {len(r)} cells where the header has {len(header)}")
-    text = {c: [r[j].strip() for r in body] for j, c in enumerate(header)}
+    text = {c: [r[j].strip(_BLANK) for r in body] for j, c in enumerate(header)}
     ds = Dataset(source, kind, header, text, lines=lines)
 
     use: list[str] = []

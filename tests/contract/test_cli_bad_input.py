@@ -129,6 +129,8 @@ def test_what_spreadsheets_add_is_accepted_and_reads_the_same(tmp_path, dialect)
     ("1_0", "is not a number"),          # float() would read 10
     ("\u0661\u0662", "is not a number"),  # Arabic-Indic digits: float() would read 12
     ("0x10", "is not a number"),
+    ("0\x1f", "is not a number"),  # a control code is not padding, though str.strip() drops it
+    ("1\u2003", "is not a number"),  # nor is a Unicode space
     ("NaN", "not a finite number"),
     ("-inf", "not a finite number"),
     ("Infinity", "not a finite number"),
@@ -160,7 +162,7 @@ def test_a_cell_reads_as_its_plain_decimal_value_or_is_refused_by_row_and_column
     except InputError as exc:
         assert f"{p}, row 1 (line 2), column 'ref_arcsec'" in str(exc), str(exc)
         return
-    assert re.fullmatch(_PLAIN, cell.strip())
+    assert re.fullmatch(_PLAIN, cell.strip(" \t"))
     assert ds["ref_arcsec"][0] == float(cell) and np.isfinite(ds["ref_arcsec"][0])
 
 
