@@ -132,7 +132,7 @@ def test_written_file_has_the_umask_mode_not_a_private_one(tmp_path):
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(notes=st.lists(st.text(st.characters(blacklist_categories=("Cs",)), min_size=1, max_size=10), min_size=1, max_size=4))
 def test_pass_through_text_survives_a_write_and_a_read(tmp_path, notes):
-    """Commas, quotes and line breaks (bare carriage returns too) come back; only the blanks around a cell go."""
+    """Commas, quotes and line breaks (bare carriage returns too) come back; only the spaces and tabs around a cell go."""
     p = tmp_path / "t.csv"
     write_dataset(p, {"stage_x_deg": np.arange(float(len(notes))), "note": notes})
-    assert read_dataset(p, "stage", ("stage_x_deg",)).text["note"] == [n.strip() for n in notes]
+    assert read_dataset(p, "stage", ("stage_x_deg",)).text["note"] == [n.strip(" \t") for n in notes]
