@@ -12,6 +12,13 @@ receipt, same machine clock), and the daemon's CPU time from /proc/<pid>/stat.
 
 The ramp's saturation point is the message rate where the reading clients first wait: the step at
 which they receive less than 95 % of what they asked for (clients x rate_hz), or lose a message.
+
+    .venv/bin/python benchmarks/bench_ws.py --ramp --client sweep   # the cheapest clients: see `sweep_run`
+
+Reading clients cost CPU too, and on a small machine they share it with the daemon: the saturation
+point found is the lower of the daemon's and the clients'. `--client sweep` is the cheapest way of
+reading every message that was found (it prints its own share of a core), so the point it
+finds is the daemon's.
 """
 
 from __future__ import annotations
@@ -190,8 +197,9 @@ def main() -> int:
     ap.add_argument("--step", type=int, default=50)
     ap.add_argument("--step-seconds", type=float, default=10.0)
     ap.add_argument("--max-clients", type=int, default=1000)
-    ap.add_argument("--client", choices=("raw", "websockets"), default="raw",
-                    help="the reading clients: raw frames read by a few bytes operations, or the websockets library")
+    ap.add_argument("--client", choices=("raw", "sweep", "websockets"), default="raw",
+                    help="the reading clients: raw frames read by a few bytes operations, plain sockets swept "
+                         "every 10 ms and counted in bulk, or the websockets library")
     ap.add_argument("--event-loop", choices=("asyncio", "uvloop"),
                     help="the daemon's event loop (default: what `tiltlab serve` picks, uvloop when installed)")
     ap.add_argument("--ws", choices=("websockets", "websockets-sansio", "wsproto"),
@@ -206,7 +214,9 @@ def main() -> int:
     env = {**os.environ, "TILTLAB_DATA_DIR": str(work / "data")}
     # the daemon as `tiltlab serve` runs it, but for the event loop or WebSocket implementation asked
     # for here (a comparison): uvicorn's Config is given them in the daemon's process before the command runs
-    given = {k: v for k, v in (("loop", args.event_loop), ("ws", args.ws)) if v is not None}
+    given: dict[str, object] = {k: v for k, v in (("loop", args.event_loop), ("ws", args.ws)) if v is not None}
+    if args.client == "sweep":
+        given["ws_ping_interval"] = None  # the swept clients count messages, they do not answer pings
     launch = ("import sys, uvicorn; init = uvicorn.Config.__init__; "
               f"uvicorn.Config.__init__ = lambda self, *a, **k: init(self, *a, **{{**k, **{given!r}}}); "
               "from service.cli import main; sys.exit(main(sys.argv[1:]))")
@@ -227,8 +237,9 @@ def main() -> int:
         path = f"/ws/readings?token={token}&rate_hz={args.rate:g}&history_s=1"
         url = f"ws://127.0.0.1:{port}{path}"
         # the clients in a process of their own: the simulated sensors keep their 50 Hz whatever the clients cost
-        clients = multiprocessing.get_context("fork").Process(
-            target=lambda: sys.exit(asyncio.run(bench_run(args, url, port, path, proc.pid))))
+        run = ((lambda: sys.exit(sweep_run(args, port, path, proc.pid))) if args.client == "sweep" else
+               (lambda: sys.exit(asyncio.run(bench_run(args, url, port, path, proc.pid)))))
+        clients = multiprocessing.get_context("fork").Process(target=run)
         clients.start()
         clients.join()
         return clients.exitcode or 0
@@ -280,6 +291,138 @@ async def bench_run(args: argparse.Namespace, url: str, port: int, path: str, pi
     finally:
         stop.set()
         await asyncio.gather(*tasks, return_exceptions=True)
+        stuck.close()
+    return 0
+
+
+class Swept:
+    """One reading client as a plain non-blocking socket, read whole buffers at a time.
+
+    Reading messages are `{"seq":N,...` (each client's seq in front of the shared body), so the
+    client counts that marker in what arrived (bytes.count, in C) and reads the seq of the last one:
+    with no loss, the seqs run on by exactly the number of messages. A `"dropped"` message (the
+    daemon's notice that it dropped some for this client) or a gap counts as loss. One message in
+    each sweep is parsed for its time (latency)."""
+
+    MARK = b'{"seq":'
+    CARRY = 15  # a marker split over two reads is counted once: the tail is kept and counted again, minus its own
+
+    def __init__(self, port: int, path: str) -> None:
+        sock = socket.create_connection(("127.0.0.1", port))
+        key = base64.b64encode(os.urandom(16)).decode()
+        sock.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                     f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+        head = b""
+        while b"\r\n\r\n" not in head:
+            got = sock.recv(4096)
+            if not got:
+                raise SystemExit("the daemon closed a stream during its handshake")
+            head += got
+        assert head.startswith(b"HTTP/1.1 101"), head[:80]
+        sock.setblocking(False)
+        self.sock = sock
+        self.tail = b""
+        self.first_seq: int | None = None
+        self.last_seq = 0
+        self.readings = 0
+        self.dropped = 0
+        self.closed = False
+        self.take(head[head.index(b"\r\n\r\n") + 4:])
+
+    def sweep(self, latency: list[float]) -> None:
+        while not self.closed:
+            try:
+                got = self.sock.recv(1 << 18)
+            except BlockingIOError:
+                return
+            if not got:
+                self.closed = True
+                return
+            self.take(got, latency)
+
+    def take(self, got: bytes, latency: list[float] | None = None) -> None:
+        data = self.tail + got
+        tail = self.tail
+        self.readings += data.count(self.MARK) - tail.count(self.MARK)
+        self.dropped += data.count(b'"dropped"') - tail.count(b'"dropped"')
+        self.tail = data[-self.CARRY:]
+        at = data.rfind(self.MARK)
+        while at >= 0 and data.find(b",", at + 7) < 0:  # the last marker whose seq arrived whole
+            at = data.rfind(self.MARK, 0, at)
+        if at < 0:
+            return
+        end = data.find(b",", at + 7)
+        if self.first_seq is None:
+            first = data.find(self.MARK)
+            self.first_seq = int(data[first + 7:data.find(b",", first + 7)])
+        self.last_seq = max(self.last_seq, int(data[at + 7:end]))
+        if latency is not None:
+            t = data.find(b'"time_utc": "', end)
+            close = data.find(b'"', t + 13) if t > 0 else -1
+            if close > 0:
+                latency.append(time.time() - dt.datetime.fromisoformat(data[t + 13:close].decode()).timestamp())
+
+    def lost(self) -> int:
+        if self.first_seq is None:
+            return 0
+        return max(0, self.last_seq - self.first_seq + 1 - self.readings) + self.dropped
+
+
+def sweep_run(args: argparse.Namespace, port: int, path: str, pid: int) -> int:
+    """The ramp (or one run) with `Swept` clients, every socket read every 10 ms from one thread."""
+    stats = Stats()
+    clients: list[Swept] = []
+    stuck = stuck_client(port, path)
+
+    def sweep_for(seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while (now := time.monotonic()) < end:
+            for c in clients:
+                c.sweep(stats.latency)
+            time.sleep(max(0.0, 0.010 - (time.monotonic() - now)))
+
+    def measure(what: str, seconds: float) -> tuple[int, float]:
+        sweep_for(2.0)  # connected and past their snapshots
+        stats.latency.clear()
+        received0 = sum(c.readings for c in clients)
+        lost0 = sum(c.lost() for c in clients)
+        cpu0, own0, t0 = cpu_s(pid), time.process_time(), time.monotonic()
+        sweep_for(seconds)
+        cpu, own, wall = cpu_s(pid) - cpu0, time.process_time() - own0, time.monotonic() - t0
+        received = sum(c.readings for c in clients) - received0
+        lost = sum(c.lost() for c in clients) - lost0 + sum(c.closed for c in clients)
+        report(what, stats, received, lost, cpu, wall)
+        print(f"  the swept clients: {100 * own / wall:.0f} % of a core", flush=True)
+        return lost, received / wall
+
+    def connect(n: int) -> None:
+        for i in range(n):
+            clients.append(Swept(port, path))
+            if i % 20 == 19:
+                sweep_for(0.05)
+
+    try:
+        if not args.ramp:
+            connect(args.clients)
+            measure(f"{args.clients} swept clients at {args.rate:g} Hz + 1 never reading, {args.seconds:.0f} s",
+                    args.seconds)
+            return 0
+        best = 0
+        while len(clients) < args.max_clients:
+            connect(args.step)
+            n = len(clients)
+            lost, rate = measure(f"ramp: {n} clients", args.step_seconds)
+            if lost or rate < 0.95 * n * args.rate:
+                why = "lost messages" if lost else "waited"
+                print(f"ramp: the reading clients first {why} with {n} clients ({rate:.0f} messages/s); "
+                      f"{best} clients kept up ({best * args.rate:.0f} messages/s)", flush=True)
+                break
+            best = n
+        else:
+            print(f"ramp: kept up to {len(clients)} clients", flush=True)
+    finally:
+        for c in clients:
+            c.sock.close()
         stuck.close()
     return 0
 
