@@ -1,9 +1,9 @@
 """The live reading stream of a bench: one producer builds each message once and fans it out.
 
-The producer polls the bench's latest readings (memory, no I/O) on the bench clock, and whenever
-the measurement sensor has a new reading it builds one message (raw readings, the corrected table
-tilt through the active record, stage pose, temperature), serialises it once, keeps it in a ring
-buffer (history for snapshots) and offers it to every client whose rate makes it due. Each client
+The producer wakes on the bench clock, takes the measurement sensor's readings that arrived since
+it last looked (memory, no I/O), and for each new reading builds one message (raw readings, the
+corrected table tilt through the active record, stage pose, temperature), serialises it once, keeps
+it in a ring buffer (history for snapshots) and offers it to every client whose rate makes it due. Each client
 has a bounded queue: a full queue drops the message (counted; a `dropped` message follows when
 room returns), so a slow client never slows the producer, the bench or the other clients. A
 client whose queue stays full for `slow_close_s` real seconds is told to go (close 1013).
@@ -213,25 +213,44 @@ class ReadingProducer:
 
     async def _run(self) -> None:
         bench = self.bench
-        last_seen: float | None = None
+        last_seen: float | None = None  # bench time of the newest reading looked at
+        last_emitted = -math.inf  # bench time of the newest reading a message was built from
         last_emit = bench.clock.monotonic()
         wake = max(bench.clock.real_seconds(self.interval_s / 2), MIN_WAKE_S)
+        # Every reading that arrived since the last wake gets its message (a wake that comes late, on a
+        # busy event loop, loses none), but no two messages closer than MIN_WAKE_S of real time: a
+        # sped-up bench's readings are thinned to what a real one would send.
+        min_gap = bench.clock.bench_seconds(MIN_WAKE_S) * 0.999
         while True:
             await asyncio.sleep(wake)
             try:
                 now = bench.clock.monotonic()
-                r = bench.latest(self.role) if self.role else None
-                if r is not None and r.bench_s != last_seen:
-                    last_seen = r.bench_s
-                elif now - last_emit < self.interval_s:
-                    continue  # nothing new yet; a silent sensor still gets one message per interval
-                last_emit = now
-                self._emit(now)
+                new = self._new_readings(last_seen)
+                if new:
+                    last_seen = new[-1].bench_s
+                    for r in new:
+                        if r.bench_s - last_emitted >= min_gap:
+                            last_emitted, last_emit = r.bench_s, now
+                            self._emit(now, r)
+                elif now - last_emit >= self.interval_s:  # a silent sensor still gets one message per interval
+                    last_emit = now
+                    self._emit(now, None)
             except Exception:  # noqa: BLE001 - one bad message must not end the stream
                 log.exception("reading stream of %s: a message could not be built", bench.name)
 
-    def _emit(self, now_bench_s: float) -> None:
-        msg, row = self._build(now_bench_s)
+    def _new_readings(self, last_seen: float | None) -> list[Reading]:
+        """The stream's role's readings since `last_seen`, at most one second of them (what a stalled
+        loop catches up on); the latest alone at the start."""
+        if self.role is None:
+            return []
+        if last_seen is None:
+            r = self.bench.latest(self.role)
+            return [] if r is None else [r]
+        new = self.bench.readings_after(self.role, last_seen)
+        return new[-max(1, int(self.sensor_rate_hz)):]
+
+    def _emit(self, now_bench_s: float, reading: Reading | None) -> None:
+        msg, row = self._build(now_bench_s, reading)
         self._latest = msg
         self.history.append(row)
         self.messages += 1
@@ -270,13 +289,14 @@ class ReadingProducer:
             c.kick(CLOSE_SLOW, f"too slow: every message dropped for {self.slow_close_s:g} s")
             self.clients.discard(c)
 
-    def _build(self, now_bench_s: float) -> tuple[dict[str, Any], list[float]]:
+    def _build(self, now_bench_s: float, reading: Reading | None = None) -> tuple[dict[str, Any], list[float]]:
+        """The message of `reading` (the stream role's; None: its latest) with the bench's other values now."""
         bench = self.bench
         clock = bench.clock
         limit = clock.bench_seconds(stale_after_s(bench, self.role)) if self.role else math.inf  # GET /tilt's rule
 
         def fresh(role: str) -> Reading | None:
-            r = bench.latest(role)
+            r = reading if reading is not None and role == self.role else bench.latest(role)
             if r is None or r.x_deg is None or r.y_deg is None or now_bench_s - r.bench_s > limit:
                 return None
             return r

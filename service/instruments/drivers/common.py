@@ -7,6 +7,7 @@ come in, degrees leave. A driver never knows whether a simulator or an instrumen
 from __future__ import annotations
 
 import asyncio
+import bisect
 import collections
 import contextlib
 import datetime as dt
@@ -25,6 +26,10 @@ def present(value: T | None, what: str) -> T:
     if value is None:
         raise DeviceError(f"{what}: the answer lacks its value")
     return value
+
+
+def _bench_s(reading: Reading) -> float:
+    return reading.bench_s
 
 
 RECENT_READINGS = 4096  # per driver: over 8 s of a sped-up bench's continuous output
@@ -63,7 +68,8 @@ class SerialDriver:
     def readings_after(self, bench_s: float) -> list[Reading]:
         """The readings kept that are stamped after `bench_s` (bench seconds), oldest first."""
         kept = list(self.recent)  # one C call under the GIL: safe against the reader thread appending
-        return [r for r in kept if r.bench_s > bench_s]
+        # stamped in arrival order, so sorted: the stream asks every few milliseconds for the newest few
+        return kept[bisect.bisect_right(kept, bench_s, key=_bench_s):]
 
     @property
     def status(self) -> DeviceStatus:
