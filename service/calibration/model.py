@@ -65,12 +65,11 @@ class CalibrationModel:
         if self.covariance is None:
             return None
         idx = {n: i for i, n in enumerate(self.covariance_names)}
-        k = len(names)
-        out = np.zeros((k, k))
-        for a, na in enumerate(names):
-            for b, nb in enumerate(names):
-                if na in idx and nb in idx:
-                    out[a, b] = self.covariance[idx[na], idx[nb]]
+        out = np.zeros((len(names), len(names)))
+        listed = [(a, idx[n]) for a, n in enumerate(names) if n in idx]
+        if listed:
+            at, src = np.array(listed).T
+            out[at[:, None], at] = np.asarray(self.covariance)[src[:, None], src]
         return out
 
     def std(self, name: str) -> float | None:

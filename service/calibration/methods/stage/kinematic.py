@@ -159,9 +159,9 @@ class KinematicMethod(StageMethod):
         mx, my = columns(data, MEAS_COLUMNS)
         X, Y, gx, gy = meas_inverse_gum(model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)), sign, mx, my,
                                         float(model.state.get("meas_sigma_deg", 0.0)), meas_dof(model))
-        return {"tilt_x_deg": X, "tilt_y_deg": Y, "u_tilt_x_deg": gx.expanded(), "u_tilt_y_deg": gy.expanded(),
-                K_OUTPUTS[0]: np.broadcast_to(coverage_factor(gx.dof_eff), X.shape),
-                K_OUTPUTS[1]: np.broadcast_to(coverage_factor(gy.dof_eff), Y.shape)}
+        kx, ky = coverage_factor(gx.dof_eff), coverage_factor(gy.dof_eff)  # U = k·u_c, as Propagated.expanded
+        return {"tilt_x_deg": X, "tilt_y_deg": Y, "u_tilt_x_deg": kx * gx.u, "u_tilt_y_deg": ky * gy.u,
+                K_OUTPUTS[0]: np.broadcast_to(kx, X.shape), K_OUTPUTS[1]: np.broadcast_to(ky, Y.shape)}
 
 
 KINEMATIC = KinematicMethod()
