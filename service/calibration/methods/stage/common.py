@@ -133,8 +133,7 @@ def meas_axes_batch(P: ArrayLike) -> NDArray[np.float64]:
     return axes
 
 
-def _solve_batch(P: NDArray[np.float64], sign: NDArray[np.float64], R: NDArray[np.float64],
-                 out: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+def _solve_batch(P: NDArray[np.float64], sign: NDArray[np.float64], R: NDArray[np.float64]) -> NDArray[np.float64]:
     """Table tilt (2, K, N) in degrees from readings R (2, K, N) (x then y), row k read through P[k] (K, 8).
 
     Each axis reading fixes m·n (a plane); two planes and |n| = 1 leave two points, and the one
@@ -159,7 +158,7 @@ def _solve_batch(P: NDArray[np.float64], sign: NDArray[np.float64], R: NDArray[n
     np.negative(n, out=n)  # the reading is asin(-a·n); in place, so many readings need no further arrays
     np.maximum(n, -1.0, out=n)
     np.minimum(n, 1.0, out=n)
-    tilt: NDArray[np.float64] = np.degrees(np.arcsin(n, out=n), out=n if out is None else out)
+    tilt: NDArray[np.float64] = np.degrees(np.arcsin(n, out=n), out=n)
     return tilt
 
 
@@ -174,7 +173,7 @@ def meas_inverse_batch(P: ArrayLike, sign: NDArray[np.float64], meas_x_deg: Arra
 
 def meas_inverse(p: NDArray[np.float64], sign: NDArray[np.float64], meas_x_deg: ArrayLike, meas_y_deg: ArrayLike) -> tuple[NDArray[np.float64],
                                                                                                                            NDArray[np.float64]]:
-    """Table tilt from measurement readings, in closed form (exact, vectorised, no iteration)."""
+    """Table tilt from measurement readings, in closed form (exact, vectorised, no iteration; see _solve_batch)."""
     a, b = np.broadcast_arrays(np.asarray(meas_x_deg, dtype=float), np.asarray(meas_y_deg, dtype=float))
     Z = _solve_batch(np.asarray(p, dtype=float)[None], sign, np.stack([a, b]).reshape(2, 1, -1)).reshape((2,) + a.shape)
     return Z[0], Z[1]
@@ -196,7 +195,7 @@ def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, si
     correct above 10^5 readings per second. The cases (central value, each reading stepped up and
     down, each parameter with a nonzero covariance row stepped) are one batched evaluation for a
     few readings, where call overhead rather than arithmetic is the cost (one reading is the
-    daemon's case), and one case at a time for many, which keeps the working arrays input-sized.
+    daemon's case), and two cases at a time for many, which keeps the working arrays near the input's size.
     """
     p = np.asarray(p, dtype=float)
     a = np.asarray(meas_x_deg, dtype=float)
@@ -220,25 +219,33 @@ def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, si
     if n_cases * n <= _STACKED_READINGS:
         R = ab[:, None] + _READING_STEPS[:, :n_cases, None] * hab[:, None]  # a ± ha in cases 1, 2, b ± hb in 3, 4
         Z = _solve_batch(P, sign, R)  # (X, Y) x case x reading
-    else:
-        Z = np.empty((2, n_cases, n))
-        for c in range(n_cases):
+        Z0 = Z[:, 0]
+        D = (Z[:, 1:5:2] - Z[:, 2:5:2]) / (2 * hab)  # (X, Y) x (d/da, d/db) x reading
+        Dp = (Z[:, 5::2] - Z[:, 6::2]) / (2 * hp)[:, None]  # (X, Y) x d/d(stepped parameter) x reading
+    else:  # the same differences, holding two cases at a time
+
+        def case(c: int) -> NDArray[np.float64]:
             R = ab[:, None]
             if c in (1, 2, 3, 4):  # a + ha, a - ha, b + hb, b - hb
                 axis, R = (c - 1) // 2, R.copy()
                 R[axis, 0] = ab[axis] + hab[axis] if c % 2 else ab[axis] - hab[axis]
-            _solve_batch(P[c:c + 1], sign, R, out=Z[:, c:c + 1])
-    D = (Z[:, 1:5:2] - Z[:, 2:5:2]) / (2 * hab)  # (X, Y) x (d/da, d/db) x reading
+            return _solve_batch(P[c:c + 1], sign, R)[:, 0]
+
+        Z0, D, Dp = case(0), np.empty((2, 2, n)), np.empty((2, m, n))
+        for j in range(2):
+            D[:, j] = (case(1 + 2 * j) - case(2 + 2 * j)) / (2 * hab[j])
+        for j in range(m):
+            Dp[:, j] = (case(5 + 2 * j) - case(6 + 2 * j)) / (2 * hp[j])
     v = (sigma_deg * D) ** 2
     parts = [(v[:, 0], dof), (v[:, 1], dof)]
     if cov is not None and has_cov:
         k = -(ab - p[0:2, None]) / (1.0 + p[2:4, None])  # d/dscale = d/da·k, d/dzero = -d/da
         used = np.concatenate([np.arange(4), stepped])  # parameters with a zero covariance row add nothing
-        J = np.concatenate([-D, D * k, (Z[:, 5::2] - Z[:, 6::2]) / (2 * hp)[:, None]], axis=1)
+        J = np.concatenate([-D, D * k, Dp], axis=1)
         parts.append((np.einsum("kin,ij,kjn->kn", J, cov[used[:, None], used], J), dof))  # no BLAS: steady under load
     u = np.sqrt(sum(var for var, _ in parts)).reshape((2,) + shape)
     nu = welch_satterthwaite(parts).reshape((2,) + shape)
-    Z0 = Z[:, 0].reshape((2,) + shape)
+    Z0 = Z0.reshape((2,) + shape)
     return Z0[0], Z0[1], Propagated(u[0], nu[0]), Propagated(u[1], nu[1])
 
 
