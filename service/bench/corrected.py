@@ -21,6 +21,9 @@ if TYPE_CHECKING:
 
 STALE_INTERVALS = 3  # a reading older than this many output intervals (plus STALE_SLACK_S) is stale
 STALE_SLACK_S = 0.25  # real seconds: a loaded machine's delay in handing a reading on
+# Real seconds: a bench sped up past one reading per this interval has at most one reading corrected per
+# interval for `GET /tilt` and the stream (the stream's producer thins its messages the same way).
+MIN_CORRECTION_GAP_S = 0.004
 
 
 def stale_after_s(bench: BenchRuntime, role: str) -> float:
@@ -79,6 +82,20 @@ def corrected_once(bench: BenchRuntime, active: Any, meas: Reading) -> dict[str,
     table = corrected_tilt(active, meas)
     _LAST_CORRECTED[bench] = (meas, active, table)
     return table
+
+
+def corrected_reading(bench: BenchRuntime, active: Any, meas: Reading) -> tuple[Reading, dict[str, Any]]:
+    """The reading `GET /tilt` serves and its corrected tilt: `meas`, the bench's latest, through
+    `corrected_once`; on a bench sped up past one reading per MIN_CORRECTION_GAP_S of real time, the
+    last reading corrected while `meas` came less than that after it (a simulation at 20 times real
+    time sends a reading a millisecond, and each would cost a correction). A bench at its own pace
+    always gets its latest reading corrected."""
+    last = _LAST_CORRECTED.get(bench)
+    if (last is not None and last[1] is active and last[0].role == meas.role
+            and bench.clock.real_seconds(bench.output_interval_s(meas.role)) < MIN_CORRECTION_GAP_S
+            and 0.0 <= bench.clock.real_seconds(meas.bench_s - last[0].bench_s) < MIN_CORRECTION_GAP_S * 0.999):
+        return last[0], last[2]
+    return meas, corrected_once(bench, active, meas)
 
 
 def in_calibrated_range(active: Any, table: dict[str, Any] | None) -> bool | None:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.bench.corrected import calibration_json, corrected_once, in_calibrated_range, sensor_temp_c, stale_after_s
+from service.bench.corrected import MIN_CORRECTION_GAP_S, calibration_json, corrected_once, in_calibrated_range, sensor_temp_c, stale_after_s
 from service.bench.runtime import SENSOR_ROLES, BenchRuntime
 from service.instruments.base import Reading
 
@@ -218,11 +218,11 @@ class ReadingProducer:
         last_emit = bench.clock.monotonic()
         wake = max(bench.clock.real_seconds(self.interval_s / 2), MIN_WAKE_S)
         # Every reading that arrived since the last wake gets its message (a wake that comes late, on a
-        # busy event loop, loses none). A bench sped up past one reading per MIN_WAKE_S of real time has
-        # its readings thinned to one per MIN_WAKE_S; a bench at its own pace keeps them all, even the
-        # ones a busy reader thread stamped close together.
-        paced = bench.clock.real_seconds(self.interval_s) >= MIN_WAKE_S
-        min_gap = 0.0 if paced else bench.clock.bench_seconds(MIN_WAKE_S) * 0.999
+        # busy event loop, loses none). A bench sped up past one reading per MIN_CORRECTION_GAP_S of real
+        # time has its readings thinned to one per that gap, as `GET /tilt` corrects them; a bench at its
+        # own pace keeps them all, even the ones a busy reader thread stamped close together.
+        paced = bench.clock.real_seconds(self.interval_s) >= MIN_CORRECTION_GAP_S
+        min_gap = 0.0 if paced else bench.clock.bench_seconds(MIN_CORRECTION_GAP_S) * 0.999
         while True:
             await asyncio.sleep(wake)
             try:

@@ -15,7 +15,7 @@ from service.api.models.tilt import Tilt
 from service.bench.corrected import (
     calibrated_range_note,
     calibration_json,
-    corrected_once,
+    corrected_reading,
     in_calibrated_range,
     sensor_temp_c,
     stale_after_s,
@@ -50,7 +50,7 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager) -> bytes:
     active = jobs.active.get(bench.name)
     age_s = stale = None
     notes: list[str] = []
-    table = None
+    table: dict[str, Any] | None = None
     in_range = None
     if bench.kind != "stage":
         notes.append(f"{bench.name} is a {bench.kind} bench: table tilt is served for stage benches")
@@ -58,6 +58,8 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager) -> bytes:
         st = bench.devices["measurement_sensor"].status
         notes.append(f"no reading from measurement_sensor on {st.port} ({st.state})")
     else:
+        if active is not None:
+            meas, table = corrected_reading(bench, active, meas)  # computed before the age: it may pick the one before
         age_s = max(0.0, (now - meas.time_utc).total_seconds())
         limit = stale_after_s(bench, "measurement_sensor")
         stale = age_s > limit
@@ -68,12 +70,13 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager) -> bytes:
             why = jobs.inactive_notes.get(bench.name)
             notes.append("no active calibration record: raw readings only (POST /records/{id}/activate)"
                          + (f"; {why}" if why else ""))
-        elif not stale:
-            table = corrected_once(bench, active, meas)
+        elif stale:
+            table = None
+        else:
             notes.append(f"corrected through record {active.record_id} v{active.version} ({active.method_name},"
                          f" {active.status})")
             in_range = in_calibrated_range(active, table)
-            if in_range is False:
+            if in_range is False and table is not None:
                 notes.append(calibrated_range_note(active, table))
     pose = bench.pose
     body = Tilt.model_validate({
