@@ -280,10 +280,7 @@ async def bench_run(args: argparse.Namespace, url: str, port: int, path: str, pi
                 lost = stats.lost - lost0
                 rate = (stats.received - received0) / wall
                 report(f"ramp: {n} clients", stats, stats.received - received0, lost, cpu, wall)
-                if lost or stats.clients_losing or rate < 0.95 * n * args.rate:
-                    why = "lost messages" if lost or stats.clients_losing else "waited"
-                    print(f"ramp: the reading clients first {why} with {n} clients ({rate:.0f} messages/s); "
-                          f"{best} clients kept up ({best * args.rate:.0f} messages/s)", flush=True)
+                if saturated(args, n, best, rate, lost or len(stats.clients_losing)):
                     break
                 best = n
             else:
@@ -412,10 +409,7 @@ def sweep_run(args: argparse.Namespace, port: int, path: str, pid: int) -> int:
             connect(args.step)
             n = len(clients)
             lost, rate = measure(f"ramp: {n} clients", args.step_seconds)
-            if lost or rate < 0.95 * n * args.rate:
-                why = "lost messages" if lost else "waited"
-                print(f"ramp: the reading clients first {why} with {n} clients ({rate:.0f} messages/s); "
-                      f"{best} clients kept up ({best * args.rate:.0f} messages/s)", flush=True)
+            if saturated(args, n, best, rate, lost):
                 break
             best = n
         else:
@@ -425,6 +419,16 @@ def sweep_run(args: argparse.Namespace, port: int, path: str, pid: int) -> int:
             c.sock.close()
         stuck.close()
     return 0
+
+
+def saturated(args: argparse.Namespace, n: int, best: int, rate: float, lost: int) -> bool:
+    """The ramp's stopping rule: a reading client lost a message, or they got under 95 % of what they asked."""
+    if not lost and rate >= 0.95 * n * args.rate:
+        return False
+    why = "lost messages" if lost else "waited"
+    print(f"ramp: the reading clients first {why} with {n} clients ({rate:.0f} messages/s); "
+          f"{best} clients kept up ({best * args.rate:.0f} messages/s)", flush=True)
+    return True
 
 
 def report(what: str, stats: Stats, received: int, lost: int, cpu: float, wall: float) -> None:
