@@ -79,9 +79,15 @@ def test_stop_during_a_move_acts_at_once_and_fails_the_job(daemon):
     job = client.get(f"/calibrations/{job_id}", headers=h).json()
     assert job["state"] == "failed" and "stopped by POST /stage/stop" in job["error"], job
     world = bench.sim.world
+    # ST is not answered (no set command of the controller is): the answer says it was sent to every
+    # axis, and the controller stops when it reads it, on a loaded machine a moment after the answer
+    deadline = time.monotonic() + 10
+    while not all(a.state == controller.STATE_READY for a in world.axes.values()):
+        assert time.monotonic() < deadline, "the axes still move 10 s after POST /stage/stop"
+        time.sleep(0.01)
     pose = world.pose_deg
     _wait_bench_seconds(bench, 6.0)
-    assert world.pose_deg == pose  # standing
+    assert world.pose_deg == pose  # standing: nothing the job had sent moves it again
     assert all(a.state == controller.STATE_READY for a in world.axes.values())
     # the bench is free again
     assert client.get("/benches", headers=h).json()["benches"][0]["held_by"] is None
