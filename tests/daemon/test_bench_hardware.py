@@ -45,7 +45,15 @@ def test_stage_moves_where_asked_and_sensors_read_the_table_there(bench_180_360)
     assert (hw.upper_gear_ratio, hw.lower_gear_ratio) == (180, 360)
     r = client.post("/stage/move", headers=h, json={"x_deg": 2, "y_deg": 1})
     assert r.status_code == 200, r.text
-    t = _wait_stage(client, h, (2.0, 1.0))
+    _wait_stage(client, h, (2.0, 1.0))
+    # the stage stands; a reference reading made before it arrived may still be the latest: wait for
+    # one stamped a few output intervals after the arrival was seen
+    mark = bench.clock.monotonic() + 3 * bench.output_interval_s("reference_sensor")
+    deadline = time.monotonic() + 30
+    while not bench.readings_after("reference_sensor", mark):
+        assert time.monotonic() < deadline, "no reference reading after the stage arrived"
+        time.sleep(0.01)
+    t = client.get("/tilt", headers=h).json()
     world = bench.sim.world
     pose = world.pose_deg
     assert pose[0] == pytest.approx(2.0, abs=hw.pulse_x_deg) and pose[1] == pytest.approx(1.0, abs=hw.pulse_y_deg)
