@@ -10,7 +10,7 @@ import sqlalchemy as sa
 
 from service.errors import InputError
 from service.storage.canonical import normalise, sha256_hex, utc_iso
-from service.storage.errors import ConflictError, RefusedWrite, UnknownEntity
+from service.storage.errors import ConflictError, RefusedWrite
 from service.storage.models import (
     GENESIS_SHA256,
     ActiveCalibration,
@@ -22,6 +22,7 @@ from service.storage.models import (
 from service.storage.store.checks import require_text
 from service.storage.store.database import Database
 from service.storage.store.hashing import record_content
+from service.storage.store.lookups import row_in
 from service.storage.store.pointer import deactivate_in
 
 APPROVE_MEANINGS = ("review", "approval")
@@ -83,9 +84,7 @@ class ApprovalsRepo:
             raise InputError("note must be text of at most 10,000 characters")
         actor = require_text("actor", actor)
         with self._db.transaction() as s:
-            record = s.get(CalibrationRecord, record_id) if isinstance(record_id, int) else None
-            if record is None:
-                raise UnknownEntity(f"calibration record {record_id!r} does not exist")
+            record = row_in(s, CalibrationRecord, record_id, "calibration record")
             if sha256_hex(record_content(record)) != record.content_sha256:
                 raise RefusedWrite(f"record {record_id} does not match its hash (tampered); it cannot be signed")
             job = s.get(CalibrationJob, record.job_id) if record.job_id is not None else None

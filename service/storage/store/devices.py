@@ -8,11 +8,11 @@ from typing import Any
 import sqlalchemy as sa
 
 from service.errors import InputError
-from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.errors import ConflictError
 from service.storage.models import Bench, Device
 from service.storage.store.checks import optional_text, require_doc, require_text
 from service.storage.store.database import Database
-from service.storage.store.lookups import device_in
+from service.storage.store.lookups import device_in, row_in
 
 
 class DevicesRepo:
@@ -60,8 +60,8 @@ class DevicesRepo:
         with self._db.transaction() as s:
             model, serial, role = require_text("model", model), require_text("serial", serial), require_text("role", role, 40)
             port = optional_text("port", port, 200)
-            if bench_id is not None and s.get(Bench, bench_id) is None:
-                raise UnknownEntity(f"bench {bench_id} does not exist")
+            if bench_id is not None:
+                row_in(s, Bench, bench_id, "bench")
             existing = s.scalar(sa.select(Device.id).where(Device.model == model, Device.serial == serial))
             if existing is not None:
                 raise ConflictError(f"device {model} s/n {serial} already exists (id {existing})")
@@ -88,8 +88,8 @@ class DevicesRepo:
             raise InputError(f"cannot change {sorted(unknown)} of a device; changeable: {sorted(allowed)}")
         with self._db.transaction() as s:
             device = device_in(s, device_id)
-            if changes.get("bench_id") is not None and s.get(Bench, changes["bench_id"]) is None:
-                raise UnknownEntity(f"bench {changes['bench_id']} does not exist")
+            if changes.get("bench_id") is not None:
+                row_in(s, Bench, changes["bench_id"], "bench")
             if "role" in changes:
                 changes["role"] = require_text("role", changes["role"], 40)
             if "port" in changes:

@@ -12,10 +12,11 @@ from typing import Any
 
 import sqlalchemy as sa
 
-from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.errors import ConflictError
 from service.storage.models import CalibrationRecord, Diagnosis, DiagnosisResult, utc_now
 from service.storage.store.checks import require_doc, require_text
 from service.storage.store.database import Database
+from service.storage.store.lookups import row_in
 
 INTERRUPTED_DIAGNOSIS = "interrupted: the daemon stopped while the diagnosis ran; start it again"
 
@@ -26,8 +27,7 @@ class DiagnosesRepo:
 
     def create_diagnosis(self, record_id: int, *, sensor: str, baseline: str, actor: str) -> Diagnosis:
         with self._db.transaction() as s:
-            if s.get(CalibrationRecord, record_id) is None:
-                raise UnknownEntity(f"record {record_id!r} does not exist")
+            row_in(s, CalibrationRecord, record_id, "record")
             d = Diagnosis(record_id=record_id, sensor=require_text("sensor", sensor, 8), baseline=require_text("baseline", baseline, 20),
                           created_by=require_text("actor", actor), created_at=utc_now())
             s.add(d)
@@ -41,9 +41,7 @@ class DiagnosesRepo:
                          actor: str) -> DiagnosisResult:
         """The one result of a diagnosis; its event `diagnosis.finished` goes to the feed and webhooks."""
         with self._db.transaction() as s:
-            d = s.get(Diagnosis, diagnosis_id)
-            if d is None:
-                raise UnknownEntity(f"diagnosis {diagnosis_id!r} does not exist")
+            d = row_in(s, Diagnosis, diagnosis_id, "diagnosis")
             if s.scalar(sa.select(DiagnosisResult.id).where(DiagnosisResult.diagnosis_id == diagnosis_id)) is not None:
                 raise ConflictError(f"diagnosis {diagnosis_id} has already ended")
             r = DiagnosisResult(diagnosis_id=diagnosis_id, state=state, started_at=started_at, finished_at=utc_now(),
@@ -57,9 +55,7 @@ class DiagnosesRepo:
 
     def get_diagnosis(self, diagnosis_id: int) -> tuple[Diagnosis, DiagnosisResult | None]:
         with self._db.session() as s:
-            d = s.get(Diagnosis, diagnosis_id) if isinstance(diagnosis_id, int) else None
-            if d is None:
-                raise UnknownEntity(f"diagnosis {diagnosis_id!r} does not exist")
+            d = row_in(s, Diagnosis, diagnosis_id, "diagnosis")
             r = s.scalar(sa.select(DiagnosisResult).where(DiagnosisResult.diagnosis_id == diagnosis_id))
             return d, r
 

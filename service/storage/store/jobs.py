@@ -16,7 +16,7 @@ from service.storage.errors import ConflictError, IllegalTransition, UnknownEnti
 from service.storage.models import Bench, CalibrationJob, IdempotencyKey, Order, utc_now
 from service.storage.store.checks import require_doc, require_number, require_text
 from service.storage.store.database import Database
-from service.storage.store.lookups import device_in, job_in
+from service.storage.store.lookups import device_in, job_in, row_in
 
 # queued -> running -> succeeded | failed | cancelled; a queued job may also be cancelled or fail to start.
 TRANSITIONS: dict[str, frozenset[str]] = {
@@ -52,10 +52,10 @@ class JobsRepo:
     ) -> CalibrationJob:
         with self._db.transaction() as s:
             device_in(s, device_id)
-            if bench_id is not None and s.get(Bench, bench_id) is None:
-                raise UnknownEntity(f"bench {bench_id} does not exist")
-            if order_id is not None and s.get(Order, order_id) is None:
-                raise UnknownEntity(f"order {order_id} does not exist")
+            if bench_id is not None:
+                row_in(s, Bench, bench_id, "bench")
+            if order_id is not None:
+                row_in(s, Order, order_id, "order")
             job = CalibrationJob(
                 device_id=device_id,
                 bench_id=bench_id,

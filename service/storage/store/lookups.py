@@ -1,22 +1,29 @@
-"""Lookups inside a transaction, shared by the repositories that check another aggregate's row."""
+"""Lookups inside a transaction: a row by its id, or the error that names what does not exist."""
 
 from __future__ import annotations
+
+from typing import TypeVar
 
 from sqlalchemy.orm import Session
 
 from service.storage.errors import UnknownEntity
 from service.storage.models import CalibrationJob, Device
 
+T = TypeVar("T")
+
+
+def row_in(s: Session, model: type[T], key: object, what: str) -> T:
+    """The row of `model` whose id is `key`; UnknownEntity naming it as `what` when there is none
+    (or the id is not an integer, which no row has)."""
+    row = s.get(model, key) if isinstance(key, int) else None
+    if row is None:
+        raise UnknownEntity(f"{what} {key!r} does not exist")
+    return row
+
 
 def device_in(s: Session, device_id: int) -> Device:
-    device = s.get(Device, device_id) if isinstance(device_id, int) else None
-    if device is None:
-        raise UnknownEntity(f"device {device_id!r} does not exist")
-    return device
+    return row_in(s, Device, device_id, "device")
 
 
 def job_in(s: Session, job_id: int) -> CalibrationJob:
-    job = s.get(CalibrationJob, job_id) if isinstance(job_id, int) else None
-    if job is None:
-        raise UnknownEntity(f"job {job_id!r} does not exist")
-    return job
+    return row_in(s, CalibrationJob, job_id, "job")

@@ -10,11 +10,12 @@ import sqlalchemy as sa
 
 from service.errors import InputError
 from service.storage.canonical import normalise, sha256_hex
-from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.errors import ConflictError
 from service.storage.models import CalibrationJob, CalibrationRecord, Certificate, Order, RecordApproval, utc_now
 from service.storage.store.approvals import approval_status
 from service.storage.store.checks import require_date, require_text
 from service.storage.store.database import Database
+from service.storage.store.lookups import row_in
 
 
 class IdempotencyKeyReused(InputError):
@@ -67,10 +68,7 @@ class OrdersRepo:
 
     def get(self, order_id: int) -> Order:
         with self._db.session() as s:
-            row = s.get(Order, order_id)
-            if row is None:
-                raise UnknownEntity(f"order {order_id} does not exist")
-            return row
+            return row_in(s, Order, order_id, "order")
 
     def order_links(self, order_id: int) -> dict[str, Any]:
         """The order's jobs, records (with status) and certificates, and the state they put it in."""

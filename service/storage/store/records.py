@@ -23,7 +23,7 @@ from service.storage.models import Sample as SampleRow
 from service.storage.store.checks import require_doc, require_finite, require_standards, require_text
 from service.storage.store.database import Database
 from service.storage.store.hashing import points_sha256, record_content
-from service.storage.store.lookups import device_in, job_in
+from service.storage.store.lookups import device_in, job_in, row_in
 from service.storage.store.pointer import activate_in, deactivate_in, unusable_in
 
 SUPERSEDES_ACTIVE: Any = object()  # a new version supersedes whichever version is active
@@ -123,10 +123,7 @@ class RecordsRepo:
 
     def get_record(self, record_id: int) -> CalibrationRecord:
         with self._db.session() as s:
-            record = s.get(CalibrationRecord, record_id)
-            if record is None:
-                raise UnknownEntity(f"calibration record {record_id} does not exist")
-            return record
+            return row_in(s, CalibrationRecord, record_id, "calibration record")
 
     def records_of_jobs(self, job_ids: Sequence[int]) -> dict[int, CalibrationRecord]:
         """The record each of these jobs made, the first made from its points (an adopted diagnosis adds later
@@ -188,18 +185,13 @@ class RecordsRepo:
         is always a deliberate, audited act.
         """
         with self._db.transaction() as s:
-            record = s.get(CalibrationRecord, record_id) if isinstance(record_id, int) else None
-            if record is None:
-                raise UnknownEntity(f"calibration record {record_id!r} does not exist")
+            record = row_in(s, CalibrationRecord, record_id, "calibration record")
             return activate_in(self._db, s, record, actor=actor, reason=reason, replaces=replaces)
 
     def unusable_reason(self, record_id: int) -> str | None:
         """Why the record must not correct anything (rejected, or not matching its hash), or None if it may."""
         with self._db.session() as s:
-            record = s.get(CalibrationRecord, record_id)
-            if record is None:
-                raise UnknownEntity(f"calibration record {record_id!r} does not exist")
-            return unusable_in(s, record)
+            return unusable_in(s, row_in(s, CalibrationRecord, record_id, "calibration record"))
 
     def inactive_reason(self, device_id: int, kind: str) -> str | None:
         """Why (device, kind) has no active record, when its pointer was withdrawn: the reason of that change."""

@@ -12,11 +12,12 @@ from typing import Any
 import sqlalchemy as sa
 
 from service.errors import InputError
-from service.storage.errors import ConflictError, UnknownEntity
+from service.storage.errors import ConflictError
 from service.storage.models import ReferenceStandard, utc_now
 from service.storage.stated_uncertainty import parse_stated_uncertainty
 from service.storage.store.checks import require_date, require_text
 from service.storage.store.database import Database
+from service.storage.store.lookups import row_in
 
 CERTIFICATE_SHA256 = re.compile(r"[0-9a-f]{64}")
 
@@ -92,10 +93,7 @@ class StandardsRepo:
 
     def get(self, standard_id: int) -> ReferenceStandard:
         with self._db.session() as s:
-            row = s.get(ReferenceStandard, standard_id)
-            if row is None:
-                raise UnknownEntity(f"reference standard {standard_id} does not exist")
-            return row
+            return row_in(s, ReferenceStandard, standard_id, "reference standard")
 
     def usable_standards(self, ids: Sequence[object], *, on: dt.date) -> list[ReferenceStandard]:
         """The standards a job names, refused if one is unknown or past its due date on `on`."""

@@ -17,6 +17,7 @@ from service.storage.feed import EVENT_TYPES
 from service.storage.models import FeedEvent, WebhookAttempt, WebhookDelivery, WebhookEndpoint, utc_now
 from service.storage.store.checks import require_text
 from service.storage.store.database import Database
+from service.storage.store.lookups import row_in
 
 
 def webhook_url(url: object) -> str:
@@ -77,10 +78,7 @@ class WebhooksRepo:
 
     def get(self, endpoint_id: int) -> WebhookEndpoint:
         with self._db.session() as s:
-            row = s.get(WebhookEndpoint, endpoint_id)
-            if row is None:
-                raise UnknownEntity(f"webhook {endpoint_id} does not exist")
-            return row
+            return row_in(s, WebhookEndpoint, endpoint_id, "webhook")
 
     def deliveries(self, endpoint_id: int, *, limit: int = 200) -> list[tuple[WebhookDelivery, FeedEvent, list[WebhookAttempt]]]:
         with self._db.session() as s:
