@@ -32,6 +32,11 @@ VARIANTS: dict[str, tuple[str, str]] = {
     "time_drift": ("time_drift", "{s}_x_deg_per_h"),
 }
 
+# Designs as the daemon's jobs record them (a point is a mean of readings): "grid10" today's 9 x 9 job, 10 readings
+# a point; "adaptive" the adaptive job at that job's U: its 4 x 4 spread of the +-12 deg lattice and, the total
+# readings being about the same, 81 x 10 / 16 ~ 50 readings a point.
+ADAPTIVE_SPREAD_DEG = (-12.0, -3.0, 3.0, 12.0)
+ADAPTIVE_READINGS = 50
 _MOUNTING = ("mounting_tilt", "sensor_yaw", "non_orthogonality", "axis_misalignment", "stage_scale", "zero_offset")
 ENVIRONMENT = {"temp_c": 21.0, "temp_rate_c_per_h": 1.0, "temp_amp_c": 1.5, "temp_period_h": 0.5}
 
@@ -70,12 +75,21 @@ def bench_with_hidden(seed: int, hidden: dict[str, float] | None = None, design:
     sc = base_scenario()
     sc["environment"] = dict(ENVIRONMENT)
     sc["grid"]["order"] = "random" if design == "random" else "serpentine"
+    if design == "adaptive":  # an adaptive record at the fixed 9 x 9 job's U: its 4 x 4 spread, each point a mean
+        sc["grid"]["x_deg"] = sc["grid"]["y_deg"] = list(ADAPTIVE_SPREAD_DEG)  # of ADAPTIVE_READINGS readings
     rng = np.random.default_rng(10_000 + seed)
     if randomise_mounting:
         for e in _MOUNTING:
             for k, v in list(sc["effects"].get(e, {}).items()):
                 sc["effects"][e][k] = float(v * rng.uniform(0.5, 1.5) * rng.choice([-1.0, 1.0]))
-    sigma = noise_sigma_deg(sc, sensor)
+    sigma = noise_sigma_deg(sc, sensor)  # sizes: multiples of one reading's noise, whatever the design
+    point_sigma = sigma
+    readings = {"adaptive": ADAPTIVE_READINGS, "grid10": 10}.get(design)
+    if readings:  # the sensor's noise averages over a point's readings, the stage's repeatability does not
+        n = sc["effects"]["noise"]
+        for s_ in ("ref", "meas"):
+            n[f"{s_}_sigma_deg"] = n[f"{s_}_sigma_deg"] / np.sqrt(readings)
+        point_sigma = noise_sigma_deg(sc, sensor)
     params: dict[str, dict[str, float]] = {}
     clean = copy.deepcopy(sc)
     clean["effects"].pop("noise", None)
@@ -99,4 +113,4 @@ def bench_with_hidden(seed: int, hidden: dict[str, float] | None = None, design:
     for effect, ps in params.items():
         sc["effects"].setdefault(effect, {}).update(ps)
     run = run_scenario(parse_scenario(sc), seed=seed)
-    return HiddenBench(run.columns, hidden, params, sigma, sc)
+    return HiddenBench(run.columns, hidden, params, point_sigma, sc)

@@ -1,7 +1,9 @@
 """Many-seed sweep of the discrepancy workflow on simulated benches with hidden effects.
 
 For each baseline (linear, kinematic) and grid design (serpentine: seed 000's single
-serpentine pass; random: the same 81 points in random order):
+serpentine pass; random: the same 81 points in random order; grid10: the serpentine 9 x 9 with each
+point a mean of 10 readings, as today's job records it; adaptive: the adaptive job's 4 x 4 spread,
+each point a mean of 50 readings; benchmarks/hidden_effects.py):
 
 * no hidden effect (coupling and mounting effects only): how often an effect that is not in
   the data is named (target: at most 2 % of runs, all candidates together);

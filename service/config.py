@@ -58,6 +58,10 @@ class Settings(BaseSettings):
     bench_config: Path | None = None
     # "token": bearer tokens with scopes; "none": no authentication, refused unless bound to loopback.
     auth: Literal["token", "none"] = "token"
+    # Where the first start writes the lab's first admin token (mode 0600); empty means admin.token in
+    # data_dir. Daemons of a fleet that share a folder name the same file, so whichever of them starts
+    # first on a new database, the token is found in the one place.
+    admin_token_file: Path | None = None
     # Live streams (WebSocket): messages waiting per client; a client whose queue has stayed full (every
     # message dropped) for stream_slow_close_s real seconds is closed (1013).
     stream_queue_size: int = Field(100, ge=2, le=100_000)
@@ -67,6 +71,32 @@ class Settings(BaseSettings):
     # The most points a calibration job's grid may have (more is refused with 422): a huge grid would
     # take days and make rows the job list must read.
     max_grid_points: int = Field(10_000, ge=1, le=1_000_000)
+    # A request's head (request line and headers) larger than this, or with more header lines than
+    # max_headers, is refused (431) before it is parsed; one not complete within header_timeout_s of its
+    # first byte (or of the connection, for a client that sends nothing) is answered 408 and closed.
+    max_header_bytes: int = Field(32_768, ge=4096, le=1_048_576)
+    max_headers: int = Field(100, ge=10, le=10_000)
+    header_timeout_s: float = Field(10.0, gt=0, le=600, allow_inf_nan=False)
+    # Open connections (HTTP and WebSocket) one client address may hold; one more is answered 429 and closed.
+    max_connections_per_client: int = Field(64, ge=1, le=100_000)
+    # A request's database work (the token check included) that has not finished after this long is
+    # answered 503 naming the database; it runs in a pool of db_request_threads threads of its own, and
+    # when every one of them is waiting on the database a request is answered 503 at once.
+    db_request_timeout_s: float = Field(10.0, gt=0, le=600, allow_inf_nan=False)
+    db_request_threads: int = Field(8, ge=1, le=256)
+    # Unknown tokens from one client address: failed_tokens_burst may fail in a row, then one more every
+    # failed_tokens_every_s seconds; beyond that 429 with Retry-After (a token the daemon knows always passes).
+    failed_tokens_burst: int = Field(20, ge=1, le=100_000)
+    failed_tokens_every_s: float = Field(2.0, gt=0, le=3600, allow_inf_nan=False)
+    # Reading-stream snapshots with history are built at most max_snapshots at a time, with at most
+    # snapshot_queue waiting; a connection beyond that is closed 1013 (try again later).
+    max_snapshots: int = Field(2, ge=1, le=64)
+    snapshot_queue: int = Field(8, ge=0, le=1000)
+    # Diagnoses queued or running at once; one more is answered 503 with Retry-After.
+    max_diagnoses: int = Field(4, ge=1, le=1000)
+    # The free space the data directory must keep: below it /ready is 503, a job does not start (507)
+    # and a running job stops (resumable) before the disk fills.
+    min_free_mb: float = Field(100.0, ge=0, allow_inf_nan=False)
 
     # Free-running monitoring samples older than this are thinned or dropped; calibration data never are.
     monitoring_retention_days: float = Field(30.0, gt=0)
@@ -123,6 +153,11 @@ class Settings(BaseSettings):
     fleet_command_timeout_s: float = Field(120.0, gt=0, allow_inf_nan=False)
     # The simulated stage bench's name (bench names are unique in a fleet); empty keeps the scenario's.
     sim_bench_name: str = Field("", max_length=64, pattern=r"^([A-Za-z0-9][A-Za-z0-9_-]*)?$")
+    # Simulated benches get an ambient sensor (a thermo-hygrometer reading the laboratory's air).
+    sim_ambient_sensor: bool = False
+    # A calibration job must state the laboratory's ambient temperature: from the bench's ambient sensor, or
+    # entered with the request (`conditions.ambient_temperature_c`); a job without it is refused (422).
+    require_conditions: bool = False
 
     def __init__(self, **values: Any) -> None:
         """As BaseSettings, but an unusable value or file is an InputError of one line naming it."""
@@ -136,11 +171,18 @@ class Settings(BaseSettings):
     @model_validator(mode="after")
     def _fill_database_url(self) -> Settings:
         self.data_dir = Path(self.data_dir).expanduser()
+        if self.admin_token_file is not None:
+            self.admin_token_file = Path(self.admin_token_file).expanduser() if str(self.admin_token_file) not in ("", ".") else None
         if not self.database_url:
             self.database_url = f"sqlite:///{(self.data_dir / 'tiltlab.db').as_posix()}"
         if self.sample_batch_size > self.sample_queue_capacity:
             raise ValueError("sample_batch_size must not exceed sample_queue_capacity")
         return self
+
+    @property
+    def admin_token_path(self) -> Path:
+        """The file of the lab's first admin token: TILTLAB_ADMIN_TOKEN_FILE, else admin.token in the data directory."""
+        return self.admin_token_file or self.data_dir / "admin.token"
 
     @classmethod
     def settings_customise_sources(

@@ -103,3 +103,52 @@ def test_physics_doc_lists_the_registry_as_it_is():
     from service.physics.effects import markdown_tables
 
     assert markdown_tables() in (ROOT / "docs" / "physics.md").read_text()
+
+
+def _stage_variant(**grid):
+    data = load_scenario("seed000").model_dump(mode="json", exclude_defaults=True)
+    data["grid"].update(grid)
+    return parse_scenario(data)
+
+
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_one_positioning_draw_per_move_shared_by_both_sensors_and_by_the_readings_at_a_stand(seed):
+    """Each row is a move (its own draw of the stage's positioning error); with readings_per_stand the rows read at
+    one stand share the draw. Both sensors see the same table, so their within-stand scatter is their reading
+    noise alone, and the true tilt is constant at a stand."""
+    sc = _stage_variant(readings_per_stand=4, x_deg={"start": -12, "stop": 12, "step": 2},
+                        y_deg={"start": -12, "stop": 12, "step": 2})
+    run = run_scenario(sc, seed=seed)
+    c, t = run.columns, run.truth
+    per = 4
+    n = c["point"].size
+    assert n == 13 * 13 * per
+    stand = np.arange(n) // per
+    assert np.all(c["point"].reshape(-1, per) == c["point"][::per, None])  # one stand: one grid point
+    for k in ("tilt_x_deg", "tilt_y_deg", "actual_x_deg", "actual_y_deg"):
+        assert np.ptp(t[k].reshape(-1, per), axis=1).max() == 0.0  # the table stands still while it is read
+    assert np.all(np.diff(c["t_s"]) > 0)
+    fx = run.effects
+    sig_ref, sig_meas = fx.get("noise", "ref_sigma_deg"), fx.get("noise", "meas_sigma_deg")
+    for a in ("x", "y"):
+        # the reference reads the table plus its own noise: its within-stand sd is that noise, not more
+        dr = (c[f"ref_{a}_deg"] - t[f"tilt_{a}_deg"]).reshape(-1, per)
+        s_ref = np.sqrt(np.sum((dr - dr.mean(axis=1, keepdims=True)) ** 2) / (dr.size - dr.shape[0]))
+        assert 0.9 * sig_ref < s_ref < 1.1 * sig_ref  # 507 dof: sd of s/σ is 3 %
+        # the difference of the two sensors at a stand: their two noises combined, no stage term
+        d = (c[f"meas_{a}_deg"] - c[f"ref_{a}_deg"]).reshape(-1, per)
+        s_d = np.sqrt(np.sum((d - d.mean(axis=1, keepdims=True)) ** 2) / (d.size - d.shape[0]))
+        assert 0.9 < s_d / np.hypot(sig_ref, sig_meas) < 1.1
+    # between moves the table does move: the positioning error (stage_sigma_deg) is drawn once per stand
+    sigma_stage = fx.get("noise", "stage_sigma_deg")
+    noiseless = run_scenario(sc, seed=seed, noiseless=True).truth
+    dev = (t["actual_x_deg"] - noiseless["actual_x_deg"])[::per]
+    assert 0.85 < np.std(dev) / sigma_stage < 1.15
+    assert stand.size == n
+
+
+def test_one_reading_per_stand_keeps_the_rows_as_they_were():
+    """readings_per_stand = 1 (the default) is a row per move, the same draws as before it existed."""
+    a = run_scenario(load_scenario("seed000"), seed=4).columns
+    b = run_scenario(_stage_variant(readings_per_stand=1), seed=4).columns
+    assert all(np.array_equal(a[k], b[k]) for k in a)

@@ -16,10 +16,12 @@ from fastapi_offline import FastAPIOffline
 
 from service import __version__
 from service.api import http_details, openapi, problems, redoc
-from service.api.auth import TokenCache, is_loopback
+from service.api.auth import Authentication, FailedTokens, TokenChecks, is_loopback
+from service.api.csp import ContentSecurity
 from service.api.fleet_routing import FleetRouting, run_forwarded
 from service.api.limits import BodySizeLimit
 from service.api.metrics import Metrics, MetricsMiddleware
+from service.api.offloop import DatabaseCalls
 from service.api.prepared_tilt import PreparedTilt
 from service.api.redact import install_log_redaction
 from service.api.revision import SchemaRevision
@@ -38,28 +40,29 @@ from service.api.routers import (
     tokens,
 )
 from service.api.routers import metrics as metrics_router
-from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering, StageNotHomed
-from service.bench.startup import plan_benches
+from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering, MotionStopped, StageNotHomed
+from service.bench.startup import check_sim_speed, plan_benches
 from service.config import Settings, get_settings
 from service.errors import InputError
 from service.fleet import Fleet
 from service.instruments.transport import DeviceError
-from service.jobs.diagnosis import DiagnosisRunner
+from service.jobs.diagnosis import DiagnosesBusy, DiagnosisRunner
 from service.jobs.manager import JobManager
 from service.jobs.points import writes_in_flight
 from service.jobs.requests import RequestProblem
 from service.lims.runtime import LimsRuntime
+from service.storage.disk import DiskFull, DiskWatch, disk_full, folders_of
 from service.storage.engine import normalise_url, redacted
 from service.storage.errors import ConflictError
 from service.storage.migrate import bootstrap
 from service.storage.outage import DatabaseOutage, DatabaseState, unreachable
 from service.storage.store import Store
 from service.storage.store.jobs import IdempotencyMismatch
-from service.streams.readings import StreamHub
+from service.streams.readings import SnapshotGate, StreamHub
 
 log = logging.getLogger("tiltlab")
 
-ADMIN_TOKEN_FILE = "admin.token"
+DIAGNOSES_RETRY_AFTER_S = 30  # a diagnosis takes tens of seconds: when to ask again once they are all taken
 
 
 def _check_benches(s: Settings) -> None:
@@ -70,6 +73,8 @@ def _check_benches(s: Settings) -> None:
         load_bench_config(s.bench_config)
         return
     from service.instruments.sim.world import rotary_scenarios, stage_scenario
+
+    check_sim_speed(s)
 
     try:
         if "stage" in s.sim_benches:
@@ -83,19 +88,51 @@ def _check_benches(s: Settings) -> None:
         raise InputError(f"TILTLAB_ROTARY_SCENARIO: {exc}") from exc
 
 
-def write_admin_token(data_dir: Path, token: str) -> Path:
+def write_admin_token(path: Path, token: str) -> Path:
     """The first admin token, readable by the daemon's user only (0600), written whole or not at all."""
-    path = Path(data_dir) / ADMIN_TOKEN_FILE
-    tmp = path.with_suffix(".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     try:
-        os.write(fd, (token + "\n").encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.chmod(tmp, 0o600)
-    os.replace(tmp, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(fd, (token + "\n").encode())
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.chmod(tmp, 0o600)
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise InputError(f"TILTLAB_ADMIN_TOKEN_FILE: the first admin token cannot be written to {path} ({exc.strerror});"
+                         " name a file in a folder this user can write (default: admin.token in TILTLAB_DATA_DIR)") from None
     return path
+
+
+def announce_dashboard(store: Store, s: Settings, *, terminal: bool) -> None:
+    """Make the lab's first admin token if the database has none, and say where the dashboard and its token are.
+
+    The token's text goes only to an interactive terminal (`terminal`); a log, a journal or a container's
+    output gets the dashboard's address and the token file. Of daemons starting together on a new
+    database one makes the token; the others name the file it went to and the node that wrote it."""
+    url = dashboard_url(s)
+    if s.auth != "token":
+        print(f"tiltlab: dashboard: {url} (authentication off)", file=sys.stderr, flush=True)
+        return
+    path = s.admin_token_path
+    token = store.tokens.create_first_admin_token(node=s.node, file=str(path), write=partial(write_admin_token, path))
+    if token is not None:
+        shown = f"{url}#token={token}" if terminal else f"{url} (token: the admin token in {path})"
+        print(f"tiltlab: first start: admin token written to {path} (mode 0600)\n"
+              f"tiltlab: dashboard: {shown}", file=sys.stderr, flush=True)
+        return
+    first = store.tokens.first_admin_token()
+    if path.exists():
+        where = f"token: the admin token in {path}"
+    elif first is not None:
+        where = (f"token: the lab's first admin token, which node {first.node} wrote to {first.file} at its first start,"
+                 " or one of `tiltlab token create`")
+    else:
+        where = "token: one of `tiltlab token create`"
+    print(f"tiltlab: dashboard: {url} ({where})", file=sys.stderr, flush=True)
 
 
 def dashboard_url(s: Settings) -> str:
@@ -104,19 +141,14 @@ def dashboard_url(s: Settings) -> str:
 
 
 async def _register(store: Store, bench: BenchRuntime) -> None:
-    """Benches and identified instruments get their rows (records and jobs refer to them)."""
+    """Benches and identified instruments get their rows (records and jobs refer to them); daemons starting
+    together register each bench and instrument once."""
     row = store.devices.ensure_bench(bench.name, actor="daemon")
     bench.bench_id = row.id
     for role, ident in bench.identities.items():
-        serial = ident.serial
-        if serial.startswith("address "):  # no serial of its own: the instrument is known by bench, role, address
-            serial = f"{bench.name}.{role} ({serial.split(' on ')[0]})"
-        dev = store.devices.find_device(ident.model, serial)
-        if dev is None:
-            dev = store.devices.add_device(ident.model, serial, role, actor="daemon", bench_id=row.id,
-                                           port=bench.port_of(role))
-        elif dev.bench_id != row.id or dev.port != bench.port_of(role) or dev.role != role:
-            dev = store.devices.update_device(dev.id, actor="daemon", bench_id=row.id, port=bench.port_of(role), role=role)
+        serial = ident.register_key(bench.name, role)  # no serial of its own: known by bench, role, address
+        dev = store.devices.ensure_device(ident.model, serial, role, actor="daemon", bench_id=row.id,
+                                          port=bench.port_of(role))
         bench.device_ids[role] = dev.id
 
 
@@ -135,28 +167,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.settings = s
         app.state.engine = engine = bootstrap(s)  # brings the database to the current schema
         store = app.state.store = Store(engine)
-        app.state.token_cache = TokenCache()
         database = app.state.database = DatabaseState(redacted(engine.url), s.db_outage_s)
+        # a request's database work: in threads of its own, each call with a deadline (never the event loop)
+        calls = app.state.db_calls = DatabaseCalls(redacted(engine.url), s.db_request_timeout_s, s.db_request_threads,
+                                                   on_timeout=database.away)
+        app.state.token_checks = TokenChecks(store.tokens.authenticate, calls, database,
+                                             throttle=FailedTokens(s.failed_tokens_burst, s.failed_tokens_every_s))
         # /health and /ready ask the database at most once a second (and so notice it going away)
         app.state.schema_revision = SchemaRevision(database=database)
-        left = store.jobs.mark_interrupted(actor="daemon")
-        if left:
-            log.warning("jobs %s were left unfinished by the previous run: marked interrupted (resumable)", left)
         lost = store.diagnoses.mark_diagnoses_interrupted(actor="daemon")
         if lost:
             log.warning("diagnoses %s were left unfinished by the previous run: marked failed", lost)
-        if s.auth == "token" and not store.tokens.has_tokens():
-            _, token = store.tokens.create_token("admin", "admin", actor="daemon first start")
-            path = write_admin_token(s.data_dir, token)
-            print(f"tiltlab: first start: admin token written to {path} (mode 0600)\n"
-                  f"tiltlab: dashboard: {dashboard_url(s)}#token={token}", file=sys.stderr, flush=True)
-        elif s.auth == "token":  # later starts: where the dashboard is and where a token comes from
-            path = Path(s.data_dir) / ADMIN_TOKEN_FILE
-            where = (f"token: the admin token in {path}" if path.exists()
-                     else "token: one of `tiltlab token create`")
-            print(f"tiltlab: dashboard: {dashboard_url(s)} ({where})", file=sys.stderr, flush=True)
-        else:
-            print(f"tiltlab: dashboard: {dashboard_url(s)} (authentication off)", file=sys.stderr, flush=True)
+        announce_dashboard(store, s, terminal=sys.stderr.isatty())
         runtimes = plan_benches(s)
         started: list[BenchRuntime] = []
         try:
@@ -167,17 +189,27 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         except BaseException:
             for bench in runtimes:
                 await bench.close()
+            calls.shutdown()
             engine.dispose()
             raise
+        # Alone, the daemon's previous run left every unfinished job; a node of a fleet, only its own benches'
+        # (other nodes may be running theirs while this one starts).
+        own = [b.bench_id for b in runtimes if b.bench_id is not None] if s.broker_url else None
+        left = store.jobs.mark_interrupted(actor="daemon", bench_ids=own)
+        if left:
+            log.warning("jobs %s were left unfinished by the previous run: marked interrupted (resumable)", left)
         app.state.benches = {b.name: b for b in runtimes}
         app.state.bench = runtimes[0]
-        jobs = app.state.jobs = JobManager(store, app.state.benches, database)
+        disk = app.state.disk = DiskWatch(folders_of(s.data_dir, s.database_url), s.min_free_mb)
+        jobs = app.state.jobs = JobManager(store, app.state.benches, database, disk,
+                                           require_conditions=s.require_conditions)
         for bench in runtimes:
             jobs.load_active(bench)
         # the workflow on stored points, in a worker process: never the bench, never the event loop
-        app.state.diagnoses = DiagnosisRunner(store, jobs.fit_columns, jobs.validate)
+        app.state.diagnoses = DiagnosisRunner(store, jobs, max_diagnoses=s.max_diagnoses)
         hub = app.state.streams = StreamHub(app.state.benches, jobs, queue_size=s.stream_queue_size,
-                                            slow_close_s=s.stream_slow_close_s)
+                                            slow_close_s=s.stream_slow_close_s,
+                                            snapshots=SnapshotGate(s.max_snapshots, s.snapshot_queue))
         hub.start()  # one reading producer per bench
         metrics.sources.update(benches=app.state.benches, streams=hub, writes_in_flight=writes_in_flight,
                                database=database)
@@ -192,6 +224,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 await jobs.shutdown()
                 for bench in runtimes:
                     await bench.close()
+                await app.state.diagnoses.shutdown()
+                calls.shutdown()
                 engine.dispose()
                 raise
             app.state.fleet = hub.remote = fleet
@@ -210,23 +244,27 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await app.state.diagnoses.shutdown()
             for bench in runtimes:
                 await bench.close()
+            calls.shutdown()
             engine.dispose()
 
     # /docs and /redoc with their scripts and styles served from the installed package, not a CDN:
     # lab networks are often air-gapped.
     app = FastAPIOffline(title="tiltlab", version=__version__, lifespan=lifespan, static_url="/docs-assets",
                          description="Calibration, measurement and control of tilt with biaxial inclinometers. "
-                                     "Every route but /health and the dashboard needs `Authorization: Bearer <token>`"
-                                     " (scopes read, operate, admin). Errors are RFC 9457 problem+json (the `Problem`"
+                                     "Every route but /health, /ready and the dashboard needs `Authorization: Bearer"
+                                     " <token>` (scopes read, operate, admin). Errors are RFC 9457 problem+json (the `Problem`"
                                      " schema).")
     app.state.metrics = metrics = Metrics()
     app.add_middleware(FleetRouting)
-    # outside the fleet's forwarding (which reads bodies) and every route: a large body is refused unread
+    # the token before anything else looks at a request (the fleet's forwarding, the routing table)
+    app.add_middleware(Authentication, state_of=app)
+    # outside the token check and every route: a large body is refused unread, with or without a token
     app.add_middleware(BodySizeLimit, max_bytes=s.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     problems.install(app)  # with the one mapping of an unknown entity to 404
     openapi.install(app)
     http_details.install(app)
+    app.add_middleware(ContentSecurity)  # every HTML page with its Content-Security-Policy
     app.add_middleware(PreparedTilt, state_of=app)  # outermost of ours: the polled route's plain case
     redoc.install(app, "/docs-assets")
     _install_errors(app)
@@ -248,9 +286,33 @@ def _install_errors(app: FastAPI) -> None:
     for cls, status, title, field in _ERRORS:
         app.add_exception_handler(cls, _answer(status, title, field))
 
+    @app.exception_handler(DiagnosesBusy)
+    async def _diagnoses_busy(request: Request, exc: DiagnosesBusy) -> Response:
+        answer = P(503, "Diagnoses busy", str(exc), instance=str(request.url.path))
+        answer.headers["Retry-After"] = str(DIAGNOSES_RETRY_AFTER_S)
+        return answer
+
+    async def _disk(request: Request, exc: Exception) -> Response:
+        """A full disk: 507 naming it; nothing was stored (the request may be made again once there is room)."""
+        disk = getattr(request.app.state, "disk", None)
+        said = disk.described(exc) if isinstance(disk, DiskWatch) else f"disk full: {exc}"
+        return P(507, "Insufficient Storage", f"{said}; nothing was stored: free space and ask again",
+                 instance=str(request.url.path))
+
+    app.add_exception_handler(DiskFull, _disk)
+
+    @app.exception_handler(OSError)
+    async def _os_error(request: Request, exc: OSError) -> Response:
+        if disk_full(exc):
+            return await _disk(request, exc)
+        return P(500, "Internal Server Error", f"the service failed on this request ({type(exc).__name__});"
+                 " the service log has the details", instance=str(request.url.path))
+
     async def _database(request: Request, exc: Exception) -> Response:
-        """The database away: 503 naming it (the request may be asked again once it answers); any other
-        database error is the server's own (500)."""
+        """The database away: 503 naming it (the request may be asked again once it answers); a full disk
+        (the daemon's, or the database server's): 507; any other database error is the server's own (500)."""
+        if disk_full(exc):
+            return await _disk(request, exc)
         if not unreachable(exc):
             raise exc
         state = getattr(request.app.state, "database", None)
@@ -275,6 +337,7 @@ _ERRORS = (
     (ConflictError, 409, "Conflict", None),
     (DeviceNotAnswering, 503, "Device not answering", None),
     (StageNotHomed, 409, "Stage not homed", None),
+    (MotionStopped, 409, "Motion stopped", None),
     (DeviceError, 503, "Device error", None),
     (TimeoutError, 503, "Device did not settle", None),
 )

@@ -13,7 +13,7 @@ import sqlalchemy as sa
 from fastapi import Depends, Path, Query
 from starlette.requests import HTTPConnection
 
-from service.api.auth import TokenCache
+from service.api.auth import TokenCache, TokenChecks
 from service.api.problems import ProblemError
 from service.api.revision import SchemaRevision
 from service.bench.runtime import BenchRuntime
@@ -23,6 +23,7 @@ from service.jobs.diagnosis import DiagnosisRunner
 from service.jobs.manager import JobManager
 from service.jobs.requests import DB_ID_MAX
 from service.lims.webhooks import Dispatcher
+from service.storage.disk import DiskWatch
 from service.storage.engine import redacted
 from service.storage.outage import DatabaseState
 from service.storage.store import (
@@ -96,7 +97,13 @@ async def get_fleet(conn: HTTPConnection) -> Fleet | None:
 
 async def get_token_cache(conn: HTTPConnection) -> TokenCache | None:
     """The cache of recently seen tokens, cleared when one is revoked."""
-    return cast(TokenCache | None, getattr(conn.app.state, "token_cache", None))
+    checks = getattr(conn.app.state, "token_checks", None)
+    return checks.cache if isinstance(checks, TokenChecks) else None
+
+
+async def get_disk(conn: HTTPConnection) -> DiskWatch | None:
+    """The free space of the folders the daemon writes, against the least it keeps; None without a lifespan."""
+    return cast(DiskWatch | None, getattr(conn.app.state, "disk", None))
 
 
 async def get_diagnoses(conn: HTTPConnection) -> DiagnosisRunner:
@@ -188,6 +195,7 @@ DatabaseDep = Annotated[DatabaseState, Depends(get_database)]
 FleetDep = Annotated[Fleet | None, Depends(get_fleet)]
 TokenCacheDep = Annotated[TokenCache | None, Depends(get_token_cache)]
 DiagnosesDep = Annotated[DiagnosisRunner, Depends(get_diagnoses)]
+DiskDep = Annotated[DiskWatch | None, Depends(get_disk)]
 WebhooksDep = Annotated[Dispatcher | None, Depends(get_webhooks)]
 
 

@@ -2,9 +2,11 @@
 the send buffer of every connection (an option of the listening socket).
 
 A body over the limit is refused (413, problem+json) from its declared `Content-Length` before a
-byte of it is read, and a body sent without a length (chunked) is counted while it arrives and
-refused as soon as it passes the limit. Both happen before a route, its dependencies or the token
-check run, so a stranger without a token cannot make the daemon hold a large body in memory.
+byte of it is read. A body sent without a length (chunked) is read here, up to the limit, before the
+request goes on, and refused as soon as it passes the limit: on every route, whether or not the route
+takes a body (the server would otherwise read and drop the rest of it after the route's answer, a
+gigabyte as readily as a byte). Both happen before a route, its dependencies or the token check run,
+so a stranger without a token cannot make the daemon hold more than the limit in memory.
 """
 
 from __future__ import annotations
@@ -65,6 +67,13 @@ class BodySizeLimit:
             for message in _too_large(scope.get("path", ""), self.max_bytes):
                 await send(message)
             return
+        if _chunked(scope):
+            body = await _read_up_to(receive, self.max_bytes)
+            if body is None:
+                for message in _too_large(scope.get("path", ""), self.max_bytes):
+                    await send(message)
+                return
+            receive = _replay(body, receive)
         received = 0
         answered = False  # the 413 went out: the application's own answer is not sent
         response_started = False
@@ -97,6 +106,44 @@ class BodySizeLimit:
         except Exception:
             if not answered:
                 raise  # a failure of the route itself; once refused, what the route made of it is moot
+
+
+def _chunked(scope: Scope) -> bool:
+    """A body sent without a declared length (Transfer-Encoding: chunked)."""
+    headers: Any = scope.get("headers") or ()
+    return any(name == b"transfer-encoding" and b"chunked" in value.lower() for name, value in headers)
+
+
+async def _read_up_to(receive: Receive, max_bytes: int) -> bytes | None:
+    """The whole body if it is at most `max_bytes`, else None as soon as it passes them (the rest unread)."""
+    chunks: list[bytes] = []
+    size = 0
+    while True:
+        message = await receive()
+        if message["type"] != "http.request":
+            break
+        chunk = message.get("body", b"")
+        size += len(chunk)
+        if size > max_bytes:
+            return None
+        chunks.append(chunk)
+        if not message.get("more_body", False):
+            break
+    return b"".join(chunks)
+
+
+def _replay(body: bytes, receive: Receive) -> Receive:
+    """The body read here, handed on as if it came now; then the client's own messages (a disconnect)."""
+    sent = False
+
+    async def again() -> Message:
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+
+    return again
 
 
 def _content_length(scope: Scope) -> int | None:

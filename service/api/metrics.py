@@ -16,6 +16,7 @@ from fastapi import Depends, Request
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
+from starlette.routing import Mount
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 # Latency buckets for a local service: /tilt answers in milliseconds, a job start in tens of them.
@@ -58,7 +59,10 @@ def _database_families(database: Any) -> Iterable[GaugeMetricFamily]:
 
 
 def _device_families(benches: dict[str, Any]) -> Iterable[CounterMetricFamily | GaugeMetricFamily]:
-    labels = ["bench", "role", "port"]
+    """Per instrument by bench and role, labels that stay the same when the daemon or a simulator restarts
+    (a port can be a new pseudo-terminal each time); where it is connected and what it said it is are
+    the labels of `tiltlab_device_info`, the usual Prometheus info metric (value 1), joined on bench and role."""
+    labels = ["bench", "role"]
     families = {name: CounterMetricFamily(f"tiltlab_serial_{name}", help_text, labels=labels)
                 for name, help_text in (("frames", "Frames received from the instrument"),
                                         ("bad_checksums", "Frames refused for a bad checksum"),
@@ -66,16 +70,22 @@ def _device_families(benches: dict[str, Any]) -> Iterable[CounterMetricFamily | 
                                         ("timeouts", "Requests the instrument did not answer in time"),
                                         ("reconnects", "Times the port was reopened"))}
     connected = GaugeMetricFamily("tiltlab_device_connected", "1 while the instrument answers, else 0", labels=labels)
+    info = GaugeMetricFamily("tiltlab_device_info", "Where each instrument is connected and what it reported itself"
+                             " to be (always 1)", labels=[*labels, "port", "protocol", "model", "serial", "firmware"])
     for bench_name, bench in benches.items():
         for st in bench.devices.status():
-            key = [bench_name, st.role, str(st.port)]
+            key = [bench_name, st.role]
             c = st.counters
             for name, value in (("frames", c.frames), ("bad_checksums", c.bad_checksum), ("resyncs", c.resyncs),
                                 ("timeouts", c.timeouts), ("reconnects", c.reconnects)):
                 families[name].add_metric(key, float(value))
             connected.add_metric(key, 1.0 if st.state == "connected" else 0.0)
+            ident = st.identity
+            info.add_metric([*key, str(st.port), str(st.protocol), ident.model if ident else "",
+                             (ident.serial or "") if ident else "", (ident.firmware or "") if ident else ""], 1.0)
     yield from families.values()
     yield connected
+    yield info
 
 
 def _job_families(job_counts: Callable[[], dict[str, int]] | None) -> Iterable[GaugeMetricFamily]:
@@ -137,9 +147,19 @@ class MetricsMiddleware:
         try:
             await self.app(scope, receive, send_status)
         finally:
-            route = scope.get("route")
-            template = getattr(route, "path", None) or "(unmatched)"
-            self.metrics.observe(template, scope["method"], status, time.perf_counter() - start)
+            self.metrics.observe(route_template(scope), scope["method"], status, time.perf_counter() - start)
+
+
+def route_template(scope: Scope) -> str:
+    """The route's template (an id makes no new series); a mounted folder's files as one template, `/web/{path}`."""
+    route = scope.get("route")
+    template = getattr(route, "path", None)
+    if template:
+        return str(template)
+    for candidate in getattr(scope.get("app"), "routes", ()):
+        if isinstance(candidate, Mount) and scope["path"].startswith(candidate.path + "/"):
+            return f"{candidate.path}/{{path}}"
+    return "(unmatched)"
 
 
 def get_metrics(request: Request) -> Metrics:

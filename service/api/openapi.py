@@ -1,8 +1,11 @@
 """The OpenAPI document as clients generate code from it: every error a problem (application/problem+json,
-one `Problem` schema, FastAPI's own validation-error schema replaced since the body never has that shape)."""
+one `Problem` schema, FastAPI's own validation-error schema replaced since the body never has that shape),
+the `Location` header of every 201 and 202 declared, and a request field with a default optional in
+the code generated from it."""
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 from fastapi import FastAPI
@@ -11,6 +14,9 @@ from fastapi.openapi.utils import get_openapi
 from service.api.models.problem import PROBLEM_MEDIA_TYPE, PROBLEM_SCHEMA_REF, Problem, problem_responses
 
 _FASTAPI_VALIDATION = ("HTTPValidationError", "ValidationError")
+# Every 201 and 202 of the API says where what it made (or started) is read.
+LOCATION_HEADER = {"Location": {"description": "the address of what was made or started, e.g. /calibrations/7",
+                                "schema": {"type": "string"}}}
 
 
 def document(app: FastAPI) -> dict[str, Any]:
@@ -31,10 +37,69 @@ def document(app: FastAPI) -> dict[str, Any]:
             for status, answer in responses.items():
                 if status[0] in "45" and PROBLEM_MEDIA_TYPE not in answer.get("content", {}) and status != "503":
                     answer["content"] = {PROBLEM_MEDIA_TYPE: {"schema": PROBLEM_SCHEMA_REF}}
+    for path in doc.get("paths", {}).values():
+        for operation in path.values():
+            for status in ("201", "202"):
+                if status in operation.get("responses", {}):
+                    operation["responses"][status].setdefault("headers", {}).update(LOCATION_HEADER)
+    _defaults_in_words(schemas, _request_only_schemas(doc))
     if not any(name in str(doc["paths"]) for name in _FASTAPI_VALIDATION):
         for name in _FASTAPI_VALIDATION:
             schemas.pop(name, None)
+    _state_travel(app, schemas)
+    _state_procedures(app, schemas)
+    _json_schema_bounds(doc)
     return doc
+
+
+def _state_procedures(app: FastAPI, schemas: dict[str, Any]) -> None:
+    """`POST /calibrations` procedures: those a bench of this daemon runs (its kind and instruments)."""
+    from service.jobs.registry import PROCEDURES
+
+    benches = list((getattr(app.state, "benches", None) or {}).values())
+    request = schemas.get("CalibrationRequest")
+    if not benches or request is None:
+        return
+    runnable = [name for name, procedure in PROCEDURES.items()
+                if any(b.kind == getattr(procedure, "bench_kind", "stage")
+                       and all(role in b.devices for role in getattr(procedure, "read_roles", ())) for b in benches)]
+    prop = request.get("properties", {}).get("procedure", {})
+    if "enum" in prop:
+        prop["enum"] = [p for p in prop["enum"] if p in runnable]
+        prop["description"] = "a procedure a bench of this daemon runs (its kind and instruments): " + ", ".join(runnable)
+    if "allOf" in request:
+        request["allOf"] = [c for c in request["allOf"] if c["if"]["properties"]["procedure"]["const"] in runnable]
+
+
+_BOUNDS = {"ge": "minimum", "le": "maximum", "gt": "exclusiveMinimum", "lt": "exclusiveMaximum"}
+
+
+def _json_schema_bounds(node: Any) -> None:
+    """Bounds of the counts (whole numbers that may be written 18.0) as JSON Schema words: pydantic leaves a
+    bound it cannot place inside a validator under its own name (`ge`, `le`), which no client reads."""
+    if isinstance(node, dict):
+        if node.get("type") in ("integer", "number"):
+            for ours, theirs in _BOUNDS.items():
+                if ours in node:
+                    node.setdefault(theirs, node.pop(ours))
+        for value in node.values():
+            _json_schema_bounds(value)
+    elif isinstance(node, list):
+        for value in node:
+            _json_schema_bounds(value)
+
+
+def _state_travel(app: FastAPI, schemas: dict[str, Any]) -> None:
+    """`POST /stage/move` angles within the stage travel of the daemon's stage benches (the widest, where they
+    differ: the route checks each bench's own)."""
+    benches = getattr(app.state, "benches", None) or {}
+    travels = [b.config.stage_bench().travel_deg for b in benches.values() if getattr(b, "kind", None) == "stage"]
+    move = schemas.get("Move", {}).get("properties", {})
+    if travels:
+        for axis in ("x_deg", "y_deg"):
+            if axis in move:
+                move[axis].update(minimum=-max(travels), maximum=max(travels),
+                                  description=f"raw stage angle, within the stage's travel (±{max(travels):g} deg)")
 
 
 def install(app: FastAPI) -> None:
@@ -44,3 +109,52 @@ def install(app: FastAPI) -> None:
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to supply the schema
+
+
+def _refs(node: Any) -> set[str]:
+    """The component schemas a part of the document names."""
+    if isinstance(node, dict):
+        found = {str(node["$ref"]).rsplit("/", 1)[1]} if "$ref" in node else set()
+        return found.union(*(_refs(v) for k, v in node.items() if k != "$ref"))
+    if isinstance(node, list):
+        return set().union(*(_refs(v) for v in node))
+    return set()
+
+
+def _closure(names: set[str], schemas: dict[str, Any]) -> set[str]:
+    seen: set[str] = set()
+    todo = list(names)
+    while todo:
+        name = todo.pop()
+        if name in seen or name not in schemas:
+            continue
+        seen.add(name)
+        todo += _refs(schemas[name])
+    return seen
+
+
+def _request_only_schemas(doc: dict[str, Any]) -> set[str]:
+    """Component schemas only request bodies use (what a client sends, never what it reads back)."""
+    schemas = doc["components"]["schemas"]
+    sent: set[str] = set()
+    read: set[str] = set()
+    for path in doc.get("paths", {}).values():
+        for operation in path.values():
+            sent |= _refs(operation.get("requestBody", {}))
+            read |= _refs(operation.get("responses", {}))
+    return _closure(sent, schemas) - _closure(read, schemas)
+
+
+def _defaults_in_words(schemas: dict[str, Any], names: set[str]) -> None:
+    """A request field with a default may be left out: it is not `required`, and its default is said in
+    its description rather than as the `default` keyword, which common TypeScript generators
+    (openapi-typescript's default settings) turn into a field the client must send."""
+    for name in names:
+        for prop in schemas[name].get("properties", {}).values():
+            if "default" not in prop:
+                continue
+            default = prop.pop("default")
+            if default is None:
+                continue  # null is what leaving it out means
+            said = f"default {json.dumps(default)} when left out"
+            prop["description"] = f"{prop['description']}; {said}" if prop.get("description") else said

@@ -5,11 +5,10 @@ daemon holds in memory (the bench, the job manager's active record, the caller's
 cache), yet the full path through the routers resolves the same dependencies, matches the path
 against every route and passes four middlewares for each request. This layer answers the plain case
 directly, with the route's own body (`tilt_answer`) and the same headers and metrics: a GET without
-a body, no query or only `bench=<a bench of this node>`, a token the cache knows and that may read,
+a body, no query or only `bench=<a bench of this node>`, a token the daemon knows and that may read,
 a daemon running alone (not in a fleet). Anything else (no token, an unknown or revoked one, a
-token not seen for a few seconds, a HEAD, another node's bench, an error while answering) goes on
-to the full application, which answers exactly as it always did. A revocation clears the token
-cache, so it takes effect here at once.
+HEAD, another node's bench, an error while answering) goes on to the full application, which
+answers exactly as it always did. A revocation clears the token cache, so it takes effect here at once.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ from urllib.parse import parse_qsl
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from service.api.auth import TokenCache
+from service.api.auth import TokenChecks
 from service.api.routers.tilt import tilt_answer
 
 PATH = "/tilt"
@@ -66,7 +65,7 @@ class PreparedTilt:
                 authorization = value if authorization is None else authorization  # the first, as the route reads
             elif name in _BODY_HEADERS:
                 return None
-        if settings.auth != "none" and not _may_read(getattr(state, "token_cache", None), authorization or b""):
+        if settings.auth != "none" and not _may_read(getattr(state, "token_checks", None), authorization or b""):
             return None
         query = scope.get("query_string", b"")
         if query:
@@ -84,10 +83,10 @@ class PreparedTilt:
             return None  # the full application answers it, with its own error handling
 
 
-def _may_read(cache: TokenCache | None, authorization: bytes) -> bool:
+def _may_read(checks: TokenChecks | None, authorization: bytes) -> bool:
     scheme, _, value = authorization.decode("latin-1").partition(" ")
     token = value.strip()
-    if cache is None or scheme.lower() != "bearer" or not token:
+    if checks is None or scheme.lower() != "bearer" or not token:
         return False
-    principal = cache.known(token)
+    principal = checks.known(token)  # re-checked in the background when its answer is old
     return principal is not None and principal.may("read")

@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from service.calibration.budget import combine, reading_components
-from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor
+from service.calibration.methods.stage.reference import extrapolation_note, needs_note, true_reading
+from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor, mean_type_a
 from service.instruments.base import Reading
 from service.io.columns import K_OUTPUTS
 
@@ -39,33 +40,101 @@ def sensor_temp_c(meas: Reading | None, ref: Reading | None) -> float | None:
 
 
 def corrected_tilt(active: Any, meas: Reading) -> dict[str, Any]:
-    """Table tilt in the reference sensor's frame with its expanded uncertainty (GUM, 95 % coverage) from
-    the record's covariance: {"x_deg", "y_deg", "u_x_deg", "u_y_deg", "k", "k_y", "coverage_probability"};
-    `k` is the coverage factor of u_x_deg and `k_y` that of u_y_deg, Student's t at the effective
-    degrees of freedom (Welch-Satterthwaite), near 2 for a well-determined record; an uncertainty the
-    method cannot give is None, and so is its factor. `active` is the job manager's ActiveModel of the bench.
+    """Table tilt in the reference sensor's frame with its uncertainties (GUM, 95 % coverage), per axis: the
+    standard uncertainty u, the expanded U = k·u, the coverage factor k (Student's t at the Welch-Satterthwaite
+    effective degrees of freedom) and those degrees of freedom (None: infinite); `u_x_deg`, `u_y_deg`, `k`, `k_y`
+    repeat the expanded uncertainties and their factors under their former names. An uncertainty the method
+    cannot give is None, and so are its factor and degrees of freedom. `active` is the job manager's
+    ActiveModel of the bench.
 
-    The fit's part (covariance and reading noise, from the method) combines with the rest of the record's
-    uncertainty budget: the reference standards' u = U/k, the sensors' resolution, the temperature's influence."""
-    out = active.method.correct(active.model, {"meas_x_deg": np.array([meas.x_deg], dtype=float),
-                                               "meas_y_deg": np.array([meas.y_deg], dtype=float)})
+    The fit's part is the record's parameter covariance with the noise of ONE reading of the measurement sensor
+    (`ActiveModel.live_model`: pooled from the readings the record's job stored at its points); the reference
+    sensor's noise is already in the parameters. It combines with the rest of the record's uncertainty budget:
+    the reference standards' u = U/k, the sensors' resolution, the temperature's influence."""
+    model = getattr(active, "live_model", active.model)
+    out = active.method.correct(model, {"meas_x_deg": np.array([meas.x_deg], dtype=float),
+                                        "meas_y_deg": np.array([meas.y_deg], dtype=float)})
+    table: dict[str, Any] = {"x_deg": float(out["tilt_x_deg"][0]), "y_deg": float(out["tilt_y_deg"][0])}
+    parts = {axis: _fit_part(out, axis, key) for axis, key in (("x", K_OUTPUTS[0]), ("y", K_OUTPUTS[1]))}
+    return with_uncertainties(table, parts, reading_components(getattr(active, "budget", None)))
 
-    def u(k: str) -> float | None:
-        return None if k not in out or not np.isfinite(out[k][0]) else float(out[k][0])
 
+def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> dict[str, Any]:
+    """The mean of `readings` (the measurement sensor's, at one stand of the stage) corrected through the active
+    record, with the uncertainty of that mean: per axis, the Type A uncertainty of the mean of the corrected
+    readings (`mean_type_a`: their own scatter, their correlation allowed for) combined with the parameters'
+    part at the mean (which does not average down) and the rest of the record's budget (the standards,
+    resolutions, temperature: none of them averages down either). Adds `n_readings` and `window_s`."""
+    mx = np.array([r.x_deg for r in readings], dtype=float)
+    my = np.array([r.y_deg for r in readings], dtype=float)
+    each = active.method.correct(getattr(active, "live_model", active.model), {"meas_x_deg": mx, "meas_y_deg": my})
+    at_mean = active.method.correct(getattr(active, "parameter_model", active.model),
+                                    {"meas_x_deg": np.array([mx.mean()]), "meas_y_deg": np.array([my.mean()])})
+    table: dict[str, Any] = {}
+    parts: dict[str, tuple[float, float] | None] = {}
     others = reading_components(getattr(active, "budget", None))
-    expanded: dict[str, float | None] = {}
-    factors: dict[str, float | None] = {}
-    for axis, key in (("x", K_OUTPUTS[0]), ("y", K_OUTPUTS[1])):
-        U_fit, k_fit = u(f"u_tilt_{axis}_deg"), u(key)
-        if U_fit is None or k_fit is None:
-            expanded[axis], factors[axis] = U_fit, None if U_fit is None else k_fit
+    for axis, k_key in (("x", K_OUTPUTS[0]), ("y", K_OUTPUTS[1])):
+        mean = mean_type_a(each[f"tilt_{axis}_deg"])
+        table[f"{axis}_deg"] = mean.mean
+        fit = _fit_part(at_mean, axis, k_key)
+        if fit is None:
+            parts[axis] = None
             continue
-        c = combine(np.array([U_fit / k_fit]), dof_of_coverage_factor(np.array([k_fit]), COVERAGE), others, COVERAGE)
-        expanded[axis], factors[axis] = float(c.U[0]), float(c.k[0])
-    return {"x_deg": float(out["tilt_x_deg"][0]), "y_deg": float(out["tilt_y_deg"][0]),
-            "u_x_deg": expanded["x"], "u_y_deg": expanded["y"], "k": factors["x"], "k_y": factors["y"],
-            "coverage_probability": COVERAGE}
+        # the parameters' part and the mean's Type A, each with its own degrees of freedom (Welch-Satterthwaite)
+        u = float(np.hypot(fit[0], mean.u))
+        denom = (fit[0] ** 4 / fit[1] if np.isfinite(fit[1]) else 0.0) + mean.u**4 / mean.dof
+        parts[axis] = (u, u**4 / denom if denom > 0 else float("inf"))
+    out = with_uncertainties(table, parts, others)
+    out.update({"n_readings": len(readings), "window_s": window_s})
+    return out
+
+
+def _fit_part(out: dict[str, Any], axis: str, k_key: str) -> tuple[float, float] | None:
+    """(u, degrees of freedom) of the method's part of one axis, from its expanded uncertainty and factor."""
+    def value(key: str) -> float | None:
+        return None if key not in out or not np.isfinite(out[key][0]) else float(out[key][0])
+
+    expanded, factor = value(f"u_tilt_{axis}_deg"), value(k_key)
+    if expanded is None or factor is None:
+        return None
+    return _standard_and_dof(expanded, factor)
+
+
+def _standard_and_dof(expanded: float, factor: float) -> tuple[float, float]:
+    """(u = U/k, the degrees of freedom the 95 % coverage factor k is Student's t at)."""
+    return expanded / factor, float(dof_of_coverage_factor(np.array([factor]), COVERAGE)[0])
+
+
+def with_uncertainties(table: dict[str, Any], parts: dict[str, tuple[float, float] | None],
+                       others: list[Any]) -> dict[str, Any]:
+    """`table` with each axis's standard and expanded uncertainty, coverage factor and degrees of freedom: the
+    fit's part (u, ν) combined with the budget's other components (GUM, Welch-Satterthwaite)."""
+    for axis, part in parts.items():
+        u = U = k = dof = None
+        if part is not None:
+            c = combine(np.array([part[0]]), part[1], others, COVERAGE)
+            u, U, k = float(c.u[0]), float(c.U[0]), float(c.k[0])
+            dof = float(c.dof_eff[0]) if np.isfinite(c.dof_eff[0]) else None
+        table.update({f"standard_uncertainty_{axis}_deg": u, f"expanded_uncertainty_{axis}_deg": U,
+                      f"coverage_factor_{axis}": k, f"degrees_of_freedom_{axis}": dof})
+    table["coverage_probability"] = COVERAGE
+    # the former names, kept for one release: the expanded uncertainties and their coverage factors
+    table.update({"u_x_deg": table.get("expanded_uncertainty_x_deg"), "u_y_deg": table.get("expanded_uncertainty_y_deg"),
+                  "k": table.get("coverage_factor_x"), "k_y": table.get("coverage_factor_y")})
+    return table
+
+
+def from_expanded(table: dict[str, Any], expanded: dict[str, float | None], factors: dict[str, float | None],
+                  coverage: float | None) -> dict[str, Any]:
+    """`table` with the uncertainties of every name, from the expanded uncertainties and coverage factors alone
+    (what the stream's history keeps): u = U/k, and the degrees of freedom k is Student's t at."""
+    parts: dict[str, tuple[float, float] | None] = {}
+    for axis in ("x", "y"):
+        U, k = expanded[axis], factors[axis]
+        parts[axis] = None if U is None or k is None or k <= 0 else _standard_and_dof(U, k)
+    out = with_uncertainties(table, parts, [])
+    out["coverage_probability"] = coverage
+    return out
 
 
 # Per bench: the last reading corrected, the record it went through and the result.
@@ -98,6 +167,26 @@ def corrected_reading(bench: BenchRuntime, active: Any, meas: Reading) -> tuple[
     return meas, corrected_once(bench, active, meas)
 
 
+def reference_tilt(active: Any, ref: Reading | None, temp_c: float | None) -> dict[str, Any] | None:
+    """The reference sensor's reading through the active record's model of its own errors (a non-linearity, a
+    temperature effect, a drift): the table tilt it stands for, {"x_deg", "y_deg", "record_id"}; None when there
+    is no reading or the record models none of them (its readings are then the table tilt). Without the
+    temperature or time the model needs, the angles are None and `note` says why."""
+    errors = getattr(active, "reference", None) if active is not None else None
+    if errors is None or ref is None or ref.x_deg is None or ref.y_deg is None:
+        return None
+    temp = ref.temp_c if ref.temp_c is not None else temp_c
+    why = needs_note(errors, temp is not None, True)
+    if why is not None:
+        return {"x_deg": None, "y_deg": None, "record_id": active.record_id, "note": why}
+    t_s = ref.time_utc.timestamp()
+    x, y = true_reading(errors, ref.x_deg, ref.y_deg, temp, t_s)
+    out = {"x_deg": float(x), "y_deg": float(y), "record_id": active.record_id}
+    if (far := extrapolation_note(errors, t_s)) is not None:
+        out["note"] = far
+    return out
+
+
 def in_calibrated_range(active: Any, table: dict[str, Any] | None) -> bool | None:
     """Whether a corrected table tilt lies within the table tilts the active record was fitted on (per axis,
     the reference sensor's frame); None when there is no corrected tilt or the record states no range."""
@@ -119,4 +208,4 @@ def calibration_json(active: Any) -> dict[str, Any] | None:
     if active is None:
         return None
     return {"record_id": active.record_id, "version": active.version, "method": active.method_name,
-            "status": active.status}
+            "status": active.status, "reading_noise": getattr(active, "reading_noise_source", None)}

@@ -116,3 +116,36 @@ async def settle(bench: BenchRuntime, roles: tuple[str, ...], *, tolerance_deg: 
             raise TimeoutError(f"readings of {', '.join(moving)} did not settle within {tolerance_deg:g} deg"
                                f" between windows of {window_s:g} s in {timeout_s:g} s")
         await bench.clock.sleep(min(bench.output_interval_s(r) for r in roles) / 2)
+
+
+async def settle_statistical(bench: BenchRuntime, roles: tuple[str, ...], noise_deg: dict[str, float], *,
+                             timeout_s: float) -> float:
+    """Wait until every role's readings since the call pass the statistical settling test
+    (service.bench.settled) against its reading noise `noise_deg[role]`; returns the bench time of the reading
+    at which the last of them passed. `timeout_s` is bench time (a transient is bench physics); past it,
+    TimeoutError names the roles still moving. DeviceNotAnswering as soon as one is not connected."""
+    from service.bench.settled import SettleTest
+
+    start = await bench.sync(roles)
+    history: dict[str, list[Reading]] = {r: [] for r in roles}
+    passed: dict[str, float] = {}
+    checked = dict.fromkeys(roles, 0)
+    waited_from = time.monotonic()
+    while True:
+        for role in roles:
+            bench.require(role)
+            h = history[role]
+            h += bench.readings_after(role, h[-1].bench_s if h else start)
+            if role not in passed and h:
+                n = SettleTest(noise_deg[role]).settled_after([channels(x) for x in h], checked[role])
+                checked[role] = len(h)
+                if n is not None:
+                    passed[role] = h[n - 1].bench_s
+        if len(passed) == len(roles):
+            return max(passed.values())
+        last = max((h[-1].bench_s for h in history.values() if h), default=start)
+        if last - start > timeout_s or time.monotonic() - waited_from > max(bench.clock.real_seconds(timeout_s) * 3, 10.0):
+            moving = [r for r in roles if r not in passed]
+            raise TimeoutError(f"readings of {', '.join(moving)} did not settle within the reading noise "
+                               f"({', '.join(f'{noise_deg[r]:.2g} deg' for r in moving)}) in {timeout_s:g} s")
+        await bench.clock.sleep(min(bench.output_interval_s(r) for r in roles) / 2)

@@ -46,6 +46,11 @@ class StageNotHomed(DeviceError):
     """The stage controller has not found its reference switches since power-up and refuses moves."""
 
 
+class MotionStopped(DeviceError):
+    """A move or homing ended by `POST /stage/stop` (or a job's stop) before it reached its end: a conflict
+    with another request, not a device fault."""
+
+
 NOT_HOMED = controller.ERROR_NAMES[controller.ERR_NOT_HOMED]  # the controller's refusal, as the driver names it
 
 
@@ -108,6 +113,9 @@ class StagePose:
     y_deg: float | None = None
     moving: bool = False
     time_utc: dt.datetime | None = None
+    # Bench seconds (the bench clock's) since which the stage has stood where it stands: the earliest reading an
+    # averaged tilt may take (None while it moves, or before its pose was first asked)
+    still_since_bench_s: float | None = None
     # Sign of the last move of each axis (the side backlash is taken up on).
     dir_x: float = 1.0
     dir_y: float = 1.0
@@ -229,8 +237,13 @@ class BenchRuntime:
             # a stage that stood at the last poll and has not moved since still stands: its states are
             # asked only when something moved (a move's end, a jog) or motion was under way
             moving = False
-            if self.pose.moving or (x, y) != (self.pose.x_deg, self.pose.y_deg):
+            changed = self.pose.moving or (x, y) != (self.pose.x_deg, self.pose.y_deg)
+            if changed:
                 moving = "moving" in (await polled(stage.x.state), await polled(stage.y.state))
+            if moving:
+                self.pose.still_since_bench_s = None
+            elif changed or self.pose.still_since_bench_s is None:
+                self.pose.still_since_bench_s = self.clock.monotonic()  # it stands: since now, as far as is known
             self.pose.x_deg, self.pose.y_deg, self.pose.moving = x, y, moving
             self.pose.time_utc = self.clock.utc()
         if "rotary_table" in self.devices:
@@ -278,11 +291,31 @@ class BenchRuntime:
                 await stage.move_to_deg(x_deg, y_deg)
             except DeviceRefused as exc:
                 raise _not_homed(self.name, exc) from exc
-            self.pose.moving = True
-            await stage.wait_until_idle(timeout_s)
-            self._check_stopped()
+            self.pose.moving, self.pose.still_since_bench_s = True, None
+            await self._until_idle(stage.wait_until_idle, timeout_s)
             await self.refresh_pose()
+            self.pose.still_since_bench_s = await self._stood_mark()
             return self._stage_position()
+
+    async def _stood_mark(self) -> float:
+        """Bench seconds after which every reading of the tilt sensors was made with the stage standing: a sync
+        mark, since a lagging reader may still hand out readings made during the move (the present time where no
+        sensor answers)."""
+        roles = tuple(r for r in ("measurement_sensor", "reference_sensor")
+                      if r in self.devices and self.devices[r].status.state == "connected")
+        with contextlib.suppress(DeviceError):
+            return await self.sync(roles) if roles else self.clock.monotonic()
+        return self.clock.monotonic()
+
+    async def _until_idle(self, wait: Callable[[float], Awaitable[None]], timeout_s: float) -> None:
+        """Wait for motion to end; a stop requested meanwhile is MotionStopped, whatever state the stop left the
+        axes in (a homing stopped half way ends in the controller's error state)."""
+        try:
+            await wait(timeout_s)
+        except DeviceError:
+            self._check_stopped()
+            raise
+        self._check_stopped()
 
     def _stage_position(self) -> tuple[float, float]:
         x, y = self.pose.x_deg, self.pose.y_deg
@@ -296,10 +329,10 @@ class BenchRuntime:
         stage = self.devices.stage_axes()
         async with self._motion_lock:
             await stage.home()
-            self.pose.moving = True
-            await stage.wait_until_idle(timeout_s)
-            self._check_stopped()
+            self.pose.moving, self.pose.still_since_bench_s = True, None
+            await self._until_idle(stage.wait_until_idle, timeout_s)
             await self.refresh_pose()
+            self.pose.still_since_bench_s = await self._stood_mark()
             return self._stage_position()
 
     async def move_rotary(self, angle_deg: float, *, timeout_s: float = 600.0) -> float:
@@ -307,14 +340,14 @@ class BenchRuntime:
         table = self.devices.axis("rotary_table")
         async with self._motion_lock:
             await table.move_to_deg(angle_deg)
-            await table.wait_until_idle(timeout_s)
-            self._check_stopped()
+            await self._until_idle(table.wait_until_idle, timeout_s)
             self.rotary_deg = await table.position_deg()
             return self.rotary_deg
 
     def _check_stopped(self) -> None:
         if self.stop_requested.is_set():
-            raise DeviceError(f"bench {self.name!r}: motion stopped by request")
+            raise MotionStopped(f"bench {self.name!r}: motion stopped by request (POST /stage/stop) before it"
+                                " reached its end")
 
     async def stop(self) -> None:
         """Stop every axis now, whatever holds the bench (the motion lock is not waited for)."""

@@ -169,11 +169,31 @@ def result_entry(quantity: str, name: str, unit: str, u_fit_deg: float, dof_fit:
     """One result's budget: its contributions (in the result's unit) and their combination."""
     scale = ANGLE_UNITS.get(unit, 1.0)
     c = combine(np.array([u_fit_deg]), np.array([dof_fit]), others, coverage)
-    rows = [{"source": "fit", "u": u_fit_deg * scale, "dof": _finite(dof_fit)}]
-    rows += [{"source": o.source, "name": o.name, "u": o.u_deg * scale, "dof": _finite(o.dof)} for o in others]
+    rows = [{"source": "fit", "standard_uncertainty": u_fit_deg * scale, "dof": _finite(dof_fit)}]
+    rows += [{"source": o.source, "name": o.name, "standard_uncertainty": o.u_deg * scale, "dof": _finite(o.dof)}
+             for o in others]
     return {"quantity": quantity, "name": name, "unit": unit, "contributions": rows,
-            "u": float(c.u[0]) * scale, "dof_eff": _finite(float(c.dof_eff[0])), "k": float(c.k[0]),
-            "U": float(c.U[0]) * scale, "coverage_probability": coverage}
+            "standard_uncertainty": float(c.u[0]) * scale, "dof_eff": _finite(float(c.dof_eff[0])),
+            "coverage_factor": float(c.k[0]), "expanded_uncertainty": float(c.U[0]) * scale,
+            "coverage_probability": coverage}
+
+
+# A result's keys in budgets stored before they were named in words (u, U and k: two differ only by case, which
+# some JSON mappers cannot tell apart). Stored records keep their bytes (they are hashed); readers get the names.
+_FORMER_RESULT_KEYS = {"u": "standard_uncertainty", "U": "expanded_uncertainty", "k": "coverage_factor"}
+
+
+def current_names(budget: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """A stored budget with its results' uncertainties under their present names, whenever it was stored."""
+    if budget is None:
+        return None
+    results = []
+    for r in budget.get("results") or []:
+        entry = {_FORMER_RESULT_KEYS.get(key, key): v for key, v in r.items()}
+        entry["contributions"] = [{("standard_uncertainty" if key == "u" else key): v for key, v in c.items()}
+                                  for c in r.get("contributions") or []]
+        results.append(entry)
+    return {**budget, "results": results}
 
 
 def carries_reference_scale(name: str, unit: str) -> bool:

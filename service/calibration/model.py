@@ -185,7 +185,11 @@ def table_tilt_range(columns: dict[str, Any]) -> dict[str, list[float]] | None:
 
 def stored_table_tilt_range(model: CalibrationModel) -> dict[str, list[float]] | None:
     """MODEL.json `fit.table_tilt_range_deg` when it is there and well formed (older models do not have it)."""
-    seen = model.fit.get("table_tilt_range_deg")
+    return stored_range(model.fit.get("table_tilt_range_deg"))
+
+
+def stored_range(seen: Any) -> dict[str, list[float]] | None:
+    """A stated `table_tilt_range_deg` ({"x": [min, max], "y": [min, max]}) when well formed, else None."""
     if not isinstance(seen, dict):
         return None
     out = {}

@@ -78,6 +78,7 @@ class MethodFamily:
     kind: str
     pattern: re.Pattern[str]
     build: Callable[[re.Match[str]], Method]
+    members: tuple[str, ...] = ()  # the names the family takes (what a request may name)
 
 
 @cache
@@ -98,6 +99,12 @@ def get_method(kind: str, name: str) -> Method:
             return family.build(m)
     known = sorted(n for (k, n) in methods if k == kind) + [f.pattern.pattern for f in families if f.kind == kind]
     raise InputError(f"unknown method {name!r} for kind {kind!r}; known: {', '.join(known) or 'none yet'}")
+
+
+def known_methods(kind: str) -> list[str]:
+    """Every method name of a kind a request may give: the named methods and each family's members."""
+    methods, families = _table()
+    return sorted(n for (k, n) in methods if k == kind) + [n for f in families if f.kind == kind for n in f.members]
 
 
 def methods_for(kind: str) -> list[str]:

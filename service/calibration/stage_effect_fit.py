@@ -22,15 +22,46 @@ from service.physics.stage import StageBench, StageGeometry, simulate_stage
 
 ParamKey = tuple[str, str]  # (effect, parameter)
 
+# Parameters a fit uses in place of the registry's where the registry's are not linear: a worm's periodic error
+# a·sin(φ) + b·cos(φ) of the worm phase φ per stage, the same term as the registry's amp·sin(φ + phase) with
+# a = amp·cos(phase), b = amp·sin(phase). Amplitude and phase are singular at zero amplitude, where a fit starts
+# (the phase then moves nothing); the pair is linear and determined wherever the points sample several phases.
+FIT_PARAMS: dict[ParamKey, str] = {
+    ("periodic_error", "x_sin_deg"): "deg", ("periodic_error", "x_cos_deg"): "deg",
+    ("periodic_error", "y_sin_deg"): "deg", ("periodic_error", "y_cos_deg"): "deg",
+}
+
 
 def param_label(key: ParamKey) -> str:
     return f"{key[0]}.{key[1]}"
 
 
+def param_unit(key: ParamKey) -> str:
+    """The unit of a fitted parameter: the registry's, or that of the fit's own parametrisation."""
+    return FIT_PARAMS[key] if key in FIT_PARAMS else STAGE_EFFECTS[key[0]].param(key[1]).unit
+
+
 def typical_scale(key: ParamKey) -> float:
     """Magnitude used to scale a parameter in the solver (and its finite-difference step)."""
-    unit = STAGE_EFFECTS[key[0]].param(key[1]).unit
+    if key in FIT_PARAMS:
+        return 0.01  # a worm's periodic error: hundredths of a degree
+    unit = param_unit(key)
     return {"deg": 0.1, "1": 1e-3, "1/deg": 1e-4, "deg/K": 1e-3, "1/K": 1e-4, "deg/h": 1e-2}.get(unit, 1e-2)
+
+
+def registry_effects(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, float]]:
+    """Effect values in the registry's parameters (what the simulator takes): a periodic error's sine/cosine
+    pair becomes its amplitude and phase."""
+    out = {e: dict(v) for e, v in effects.items()}
+    pe = out.get("periodic_error")
+    if pe is not None:
+        for ax in ("x", "y"):
+            a, b = pe.pop(f"{ax}_sin_deg", None), pe.pop(f"{ax}_cos_deg", None)
+            if a is not None or b is not None:
+                a, b = a or 0.0, b or 0.0
+                pe[f"{ax}_amp_deg"] = float(np.hypot(a, b))
+                pe[f"{ax}_phase_deg"] = float(np.degrees(np.arctan2(b, a)))
+    return out
 
 
 @dataclass
@@ -70,7 +101,7 @@ class StageEffectModel:
         for (e, p), v in zip(self.free, values):
             eff.setdefault(e, {})[p] = float(v)
         eff.pop("noise", None)
-        return EffectSet.from_mapping("stage", eff)
+        return EffectSet.from_mapping("stage", registry_effects(eff))
 
     def predict(self, values: Iterable[float], pts: StagePoints, outputs: Sequence[str]) -> NDArray[np.float64]:
         """Noise-free predictions (N, len(outputs)); outputs are column names such as ref_x_deg or tilt_x_deg."""
@@ -119,8 +150,15 @@ def robust_scale(residuals: NDArray[np.float64]) -> float:
 
 def fit_stage_effects(model: StageEffectModel, pts: StagePoints, observed: Mapping[str, NDArray[np.float64]],
               x0: Sequence[float] | NDArray[np.float64] | None = None, loss: str = "linear", f_scale: float | None = None,
-              max_nfev: int = 2000) -> StageEffectFit:
-    """Least-squares fit of the free parameters to the observed columns (e.g. ref_x_deg, ref_y_deg)."""
+              max_nfev: int = 2000, prior_sd: Sequence[float | None] | None = None,
+              prior_sigma: float | None = None) -> StageEffectFit:
+    """Least-squares fit of the free parameters to the observed columns (e.g. ref_x_deg, ref_y_deg).
+
+    `prior_sd` (per free parameter, None for none) adds a prior N(0, sd²) to a parameter: one more
+    residual x / sd weighed by `prior_sigma` (the readings' noise, from a fit without priors), so the
+    covariance is the posterior's, s² (JᵀJ + s²/sd²)⁻¹, and the residuals and degrees of freedom
+    stay the data's.
+    """
     outputs = list(observed)
     obs = np.column_stack([np.asarray(observed[o], dtype=float) for o in outputs])
     n_obs, n_par = obs.size, len(model.free)
@@ -130,9 +168,18 @@ def fit_stage_effects(model: StageEffectModel, pts: StagePoints, observed: Mappi
     start = np.zeros(n_par) if x0 is None else np.asarray(x0, dtype=float)
     scales = np.array([typical_scale(k) for k in model.free])
 
-    def resid(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    with_prior = [i for i, sd in enumerate(prior_sd or []) if sd]
+    prior_w = (np.array([float(prior_sigma or 0.0) / float((prior_sd or [])[i] or 1.0) for i in with_prior])
+               if with_prior else np.zeros(0))
+
+    def data_resid(x: NDArray[np.float64]) -> NDArray[np.float64]:
         r: NDArray[np.float64] = (model.predict(x, pts, outputs) - obs).ravel()
         return r
+
+    def resid(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        if not with_prior:
+            return data_resid(x)
+        return np.concatenate([data_resid(x), prior_w * x[with_prior]])
 
     if n_par == 0:
         r = resid(start)
@@ -155,13 +202,17 @@ def fit_stage_effects(model: StageEffectModel, pts: StagePoints, observed: Mappi
         raise FitError("bench fit diverged (non-finite parameters)")
     J = sol.jac
     r = sol.fun if loss == "linear" else resid(sol.x)
+    r = r[:n_obs]  # the data's residuals (the prior rows are not readings)
     dof = max(n_obs - n_par, 1)
     s2 = float(r @ r) / dof
     sv = np.linalg.svd(J * scales, compute_uv=False)
     if sv[-1] <= 1e-8 * sv[0]:
         raise DegenerateDataError("the data do not separate the free bench parameters "
                                   f"({', '.join(param_label(k) for k in model.free)}): the fit is singular")
-    cov = np.linalg.pinv(J.T @ J) * s2
+    JtJ = J[:n_obs].T @ J[:n_obs]
+    if with_prior:
+        JtJ[with_prior, with_prior] += s2 / np.array([float((prior_sd or [])[i] or 1.0) for i in with_prior]) ** 2
+    cov = np.linalg.pinv(JtJ) * s2
     return _result(model, sol.x, cov, r, outputs, obs.shape, s2, bool(sol.status > 0), int(sol.nfev),
                    str(sol.message), sv)
 

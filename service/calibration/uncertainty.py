@@ -82,18 +82,21 @@ def _coverage_table(q: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]
 def welch_satterthwaite(components: Sequence[tuple[NDArray[np.float64], float]]) -> NDArray[np.float64]:
     """ν_eff = u_c⁴ / Σ u_i⁴ / ν_i over the variance components (u_i², ν_i) (JCGM 100 eq. G.2b).
 
-    Infinite where every component with a finite ν is zero (or u_c is zero).
+    Components given the same finite ν rest on one estimated standard deviation (one fit's σ̂, as the
+    parameters' covariance and the reading noise of a corrected value do): they are one estimate
+    with that ν, not independent ones, so their variances are summed before the formula (which would
+    otherwise give more degrees of freedom than the fit has). Infinite where every component with a
+    finite ν is zero (or u_c is zero).
     """
-    dofs = {nu for _, nu in components}
-    if len(dofs) == 1 and np.isfinite(nu0 := next(iter(dofs))):  # one fit behind every component: the fast form
-        total = sum(np.asarray(v, dtype=float) for v, _ in components)
-        squares = sum(np.asarray(v, dtype=float) ** 2 for v, _ in components)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.asarray(np.where(squares > 0, nu0 * total**2 / np.where(squares > 0, squares, 1.0), np.inf))
+    groups: dict[float, NDArray[np.float64]] = {}
+    for v, nu in components:
+        if np.isfinite(nu):
+            groups[nu] = groups.get(nu, 0.0) + np.asarray(v, dtype=float)
     total = sum(np.asarray(v, dtype=float) for v, _ in components)
-    denom = sum(np.asarray(v, dtype=float) ** 2 / nu for v, nu in components if np.isfinite(nu))
+    denom = sum(v**2 / nu for nu, v in groups.items())
     with np.errstate(divide="ignore", invalid="ignore"):
-        nu_eff = np.where(np.asarray(denom) > 0, np.asarray(total) ** 2 / np.where(denom > 0, denom, 1.0), np.inf)
+        nu_eff = np.where(np.asarray(denom) > 0, np.asarray(total) ** 2 / np.where(np.asarray(denom) > 0, denom, 1.0),
+                          np.inf)
     return np.asarray(nu_eff, dtype=float)
 
 
@@ -154,3 +157,36 @@ def propagate_gum(
         components.append(((d * sigma) ** 2, inputs_dof))
     var = sum((c for c, _ in components), np.zeros_like(y0))
     return Propagated(np.sqrt(var), welch_satterthwaite(components) if components else np.full(y0.shape, np.inf))
+
+
+@dataclass(frozen=True)
+class MeanTypeA:
+    """The mean of n readings and its Type A standard uncertainty (JCGM 100 4.2), allowing for their correlation."""
+
+    mean: float
+    u: float  # s / √n_eff
+    dof: float  # n_eff − 1, at least 1
+    n: int
+    n_eff: float  # the number of independent readings they are worth
+    lag1: float  # the readings' lag-1 autocorrelation, as estimated (≥ 0 used)
+
+
+def mean_type_a(values: ArrayLike) -> MeanTypeA:
+    """Mean of a series of readings with the standard uncertainty of that mean.
+
+    Readings of a sensor close in time are not always independent (filtering, a slow wander): s/√n would then
+    understate the mean's uncertainty. With the lag-1 autocorrelation ρ of an AR(1) series the mean is worth
+    n_eff = n (1 − ρ)/(1 + ρ) independent readings (never more than n: a negative ρ is taken as 0), and
+    u = s/√n_eff with n_eff − 1 degrees of freedom. Needs two readings or more."""
+    v = np.asarray(values, dtype=float)
+    n = int(v.size)
+    if n < 2:
+        raise ValueError(f"a mean's Type A uncertainty needs two readings or more, got {n}")
+    mean = float(v.mean())
+    d = v - mean
+    var = float(d @ d)
+    rho = float(d[1:] @ d[:-1] / var) if var > 0 and n > 2 else 0.0
+    rho = min(max(rho, 0.0), 0.99)
+    n_eff = max(1.0, min(float(n), n * (1.0 - rho) / (1.0 + rho)))
+    s = float(np.std(v, ddof=1))
+    return MeanTypeA(mean, s / float(np.sqrt(n_eff)), max(n_eff - 1.0, 1.0), n, n_eff, rho)

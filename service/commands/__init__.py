@@ -14,12 +14,27 @@ import os
 import shlex
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from service.commands._args import HelpFormatter, Parser, add_subcommands
 from service.errors import InputError
 
+if TYPE_CHECKING:  # loaded by name below, when the parser is built; named here so the layer gate sees them
+    from service.commands import (  # noqa: F401
+        db,
+        devices,
+        discrepancy,
+        offline,
+        reproduce,
+        serve,
+        sim,
+        simulate,
+        token,
+        verify_certificate,
+    )
+
 # The order of `tiltlab --help`: working on recorded runs first, then the service and its upkeep.
-COMMANDS = ("simulate", "calibrate:offline", "discrepancy", "reproduce", "serve", "sim", "devices", "db", "token",
+COMMANDS = ("simulate", "calibrate:offline", "plan", "discrepancy", "reproduce", "serve", "sim", "devices", "db", "token",
             "verify_certificate")
 
 OVERVIEW = """\

@@ -75,6 +75,16 @@ def seed(text: str) -> int:
     return value
 
 
+def row_count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: give a number of rows >= 1")
+    return value
+
+
 def port(text: str) -> int:
     try:
         value = int(text)

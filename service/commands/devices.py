@@ -26,16 +26,22 @@ EXPECTED = {
     "adc_sensor": "an ADC answering ID?",
     "stage": "a stage controller answering on axes 1 and 2",
     "rotary_table": "a controller answering on the rotary axis",
+    "ambient_sensor": "an RS-485 thermo-hygrometer (command TH)",
 }
 
 
 def expected(role: str, spec: PortRole) -> str:
-    from service.instruments.bench_config import BinaryInclinometerRole, RotaryTableRole, Rs485InclinometerRole
+    from service.instruments.bench_config import (
+        AmbientSensorRole,
+        BinaryInclinometerRole,
+        RotaryTableRole,
+        Rs485InclinometerRole,
+    )
 
     what = EXPECTED[role]
     if isinstance(spec, BinaryInclinometerRole):
         what += f" at address 0x{spec.address:02X}"
-    elif isinstance(spec, Rs485InclinometerRole):
+    elif isinstance(spec, Rs485InclinometerRole | AmbientSensorRole):
         what += f" at address {spec.address.upper()}"
     elif isinstance(spec, RotaryTableRole):
         what = f"a controller answering on axis {spec.axis}"
@@ -49,7 +55,14 @@ async def _probe(role: str, driver: RoleDriver) -> str:
     controller, the rotary table one axis, the triaxial module, the binary inclinometers, the
     RS-485 inclinometer, the ADC.
     """
-    from service.instruments.drivers import BinaryInclinometer, ControllerAxis, Rs485Inclinometer, StageController, TriaxialModule
+    from service.instruments.drivers import (
+        BinaryInclinometer,
+        ControllerAxis,
+        Rs485Inclinometer,
+        Rs485Thermohygrometer,
+        StageController,
+        TriaxialModule,
+    )
 
     if isinstance(driver, StageController):
         ident = await driver.x.identify()
@@ -70,19 +83,23 @@ async def _probe(role: str, driver: RoleDriver) -> str:
         r = await driver.read_tilt()
         return (f"{ident.model} serial {ident.serial} firmware {ident.firmware} at address {driver.address:02X}: "
                 f"x {r.x_deg:+.5f} y {r.y_deg:+.5f} deg")
+    if isinstance(driver, Rs485Thermohygrometer):
+        r = await driver.read_ambient()
+        return (f"{ident.model} serial {ident.serial} at address {driver.address:02X}: air {r.temp_c:+.2f} °C, "
+                f"relative humidity {r.humidity_pct:.1f} %")
     r = await driver.read_counts(1)
     return f"{ident.model} serial {ident.serial}: {r.counts:.0f} counts"
 
 
 def _why(role: str, spec: PortRole, driver: RoleDriver) -> str:
-    from service.instruments.bench_config import BinaryInclinometerRole, Rs485InclinometerRole
+    from service.instruments.bench_config import AmbientSensorRole, BinaryInclinometerRole, Rs485InclinometerRole
     from service.instruments.drivers import StageController
 
     port = driver.x.port if isinstance(driver, StageController) else driver.port
     if port.state != "connected":
         return f"cannot be opened ({port.error or 'not found'})"
     addresses = sorted(port.foreign_senders)
-    if addresses and isinstance(spec, BinaryInclinometerRole | Rs485InclinometerRole):
+    if addresses and isinstance(spec, BinaryInclinometerRole | Rs485InclinometerRole | AmbientSensorRole):
         return "answered from address " + ", ".join(f"0x{a:02X}" if isinstance(spec, BinaryInclinometerRole)
                                                     else f"{a:02X}" for a in addresses)
     axes = sorted(port.foreign_senders)

@@ -91,18 +91,20 @@ def run(args: argparse.Namespace) -> int:
 
         stated = stage_bench_options("stage", getattr(args, "bench", None))
         with about(args.input):
-            report, page, _, _ = stage_diagnosis(ds.arrays(), sensor, baseline, noise, bench=stated.get("bench"),
-                                                 inputs=inputs, bench_source=stated.get("bench_source"),
-                                                 provenance=prov)
+            report, page, result, _ = stage_diagnosis(ds.arrays(), sensor, baseline, noise, bench=stated.get("bench"),
+                                                      inputs=inputs, bench_source=stated.get("bench_source"),
+                                                      provenance=prov)
             if adopt_path is not None:  # the last step: the calibration with the named effects added
-                from service.discrepancy.adopt import adopted_model
+                from service.discrepancy.adopt import adopted_model, seen_labels_of
                 from service.physics.stage import StageBench
 
+                worm = sorted({lab[:1] for lab in seen_labels_of(result.steps).get("periodic_error", [])}) or ["x", "y"]
                 adopted = adopted_model(ds.arrays(), report["named_effects"], sensor,
                                         stated.get("bench") or StageBench(),
                                         str(stated.get("bench_source") or report["bench"]["source"]),
                                         {"what": f"the discrepancy report {out}", "report": str(out),
-                                         "input": str(args.input), "sensor": sensor, "baseline": baseline})
+                                         "input": str(args.input), "sensor": sensor, "baseline": baseline},
+                                        worm_axes=worm)
     elif kind == "scale":
         from service.discrepancy.scale import scale_report
 

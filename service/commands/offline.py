@@ -9,7 +9,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING, Any
 
-from service.commands._args import add_command, finite
+from service.commands._args import add_command, finite, row_count
 from service.errors import InputError
 
 if TYPE_CHECKING:  # the methods and the dataset reader are imported when the command runs, not by --help
@@ -20,6 +20,9 @@ if TYPE_CHECKING:  # the methods and the dataset reader are imported when the co
 # `--help` starts at once.
 
 KINDS = ("stage", "rotation", "scale", "turntable")
+# The most data rows `calibrate` fits by default: a calibration run has a row per settled point (a grid of
+# 10,000 is the daemon's own limit); what it costs per row is in docs/datasets.md ("Size").
+MAX_FIT_ROWS = 100_000
 
 # What each method is, in a line, for `tiltlab calibrate --help` (docs/calibration-*.md say more).
 METHOD_HELP = {
@@ -47,7 +50,7 @@ METHOD_HELP = {
                     "iterated against a reference tilt",
     },
 }
-LOSSES = ("linear", "soft_l1", "huber", "cauchy")
+LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")  # the robust losses of the kinematic fit
 
 
 def _methods_text() -> str:
@@ -76,12 +79,19 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--rotation-deg", type=finite("an angle in degrees"), default=None, metavar="DEG",
                    help="turntable only: the rotation between the two positions of a pair (default: 180)")
     p.add_argument("--loss", choices=LOSSES, default=None,
-                   help="kinematic only: robust loss; soft_l1, huber or cauchy weigh outlying points down "
+                   help="kinematic only: robust loss; soft_l1, huber, cauchy or arctan weigh outlying points down "
                         "(default: linear, plain least squares)")
+    p.add_argument("--ref-noise-deg", type=finite("a standard deviation in degrees"), default=None, metavar="DEG",
+                   help="stage only: the reference sensor's noise, 1 sigma of one reading (e.g. from its "
+                        "certificate), so the uncertainty of a corrected tilt holds the measurement sensor's noise "
+                        "only; repeated readings at the points (same `point`) give it from the data instead")
     p.add_argument("--bench", default=None, metavar="FILE",
                    help="stage only: the bench the data came from: a bench configuration (.toml, its hardware "
                         "table) or a scenario file (.json, its bench section) (default: the seed 000 bench, "
                         "said on stderr and recorded in the model)")
+    p.add_argument("--max-rows", type=row_count, default=MAX_FIT_ROWS, metavar="N",
+                   help="refuse a dataset of more data rows than this, before reading it (a run has one row per "
+                        f"settled point; default: {MAX_FIT_ROWS:,})")
     p.set_defaults(handler=calibrate)
 
     p = add_command(sub, "correct", "apply a model to readings: corrected tilt with its uncertainty",
@@ -92,6 +102,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--model", required=True, metavar="FILE", help="MODEL.json from `tiltlab calibrate`")
     p.add_argument("--input", required=True, metavar="FILE", help="the readings CSV")
     p.add_argument("--out", required=True, metavar="FILE", help="the CSV to write")
+    p.add_argument("--deprecated-u-columns", action="store_true",
+                   help="also write the columns of earlier releases, u_<quantity> (e.g. u_tilt_x_deg): the EXPANDED "
+                        "uncertainty, the same as expanded_uncertainty_<quantity>; for software not yet reading the "
+                        "new names (deprecated: to be removed in a later release)")
     p.add_argument("--calibrated-range-column", action="store_true",
                    help="stage models only: also write `in_calibrated_range` (true or false): whether the "
                         "corrected tilt lies within the table tilts the model was fitted on "
@@ -115,6 +129,10 @@ def _refuse_options_that_do_not_apply(args: argparse.Namespace) -> None:
     if args.loss is not None and not (args.kind == "stage" and args.method == "kinematic"):
         raise InputError(f"--loss applies to the stage method kinematic only, not {args.kind}/{args.method}; "
                          "leave it out")
+    if getattr(args, "ref_noise_deg", None) is not None and args.kind != "stage":
+        raise InputError(f"--ref-noise-deg is the reference sensor's noise of a stage bench; kind {args.kind!r} has none")
+    if getattr(args, "ref_noise_deg", None) is not None and args.ref_noise_deg < 0:
+        raise InputError(f"--ref-noise-deg {args.ref_noise_deg:g}: a standard deviation is not negative")
     if args.bench is not None and args.kind != "stage":
         raise InputError(f"--bench describes a bench of stacked stages; kind {args.kind!r} has none")
 
@@ -130,10 +148,17 @@ def calibrate(args: argparse.Namespace) -> int:
     check_not_overwriting(args.out, input=args.input)
     method = get_method(args.kind, args.method)
     _refuse_options_that_do_not_apply(args)
-    ds = read_dataset(args.input, args.kind, method.fit_required, method.fit_optional)
+    ds = read_dataset(args.input, args.kind, method.fit_required, method.fit_optional, max_rows=args.max_rows)
     options = FitOptions(rotation_deg=180.0 if args.rotation_deg is None else args.rotation_deg,
                          loss=args.loss or "linear",
-                         extra=stage_bench_options(args.kind, getattr(args, "bench", None)))
+                         extra={**stage_bench_options(args.kind, getattr(args, "bench", None)),
+                                **({"ref_noise_deg": args.ref_noise_deg}
+                                   if getattr(args, "ref_noise_deg", None) is not None else {})})
+    if args.kind == "stage":  # readings in radians or arc seconds are named here, not by a failed fit
+        from service.io.datasets import check_stage_units
+        from service.physics.stage import StageBench
+
+        check_stage_units(ds, options.extra.get("bench", StageBench()).travel_deg)
     with about(args.input):
         model = method.fit(ds.arrays(), options)
     if args.kind == "stage":  # the table tilts the model has seen: `level` warns beyond them
@@ -191,12 +216,20 @@ def correct(args: argparse.Namespace) -> int:
                              "(fit.table_tilt_range_deg; models made before it was kept): fit it again with "
                              "`tiltlab calibrate`")
     ds = read_dataset(args.input, model.kind, method.correct_required, method.correct_optional)
-    out: dict[str, Any] = {c: v for c, v in method.correct(model, ds.arrays()).items() if c in method.outputs}
+    from service.calibration.uncertainty import COVERAGE
+    from service.io.columns import uncertainty_columns
+
+    result = method.correct(model, ds.arrays())
+    quantities = tuple(c for c in method.outputs if not c.startswith("u_"))
+    out: dict[str, Any] = uncertainty_columns(result, quantities, COVERAGE,
+                                              deprecated=getattr(args, "deprecated_u_columns", False))
     if seen is not None:
         inside = ((seen["x"][0] <= out["tilt_x_deg"]) & (out["tilt_x_deg"] <= seen["x"][1])
                   & (seen["y"][0] <= out["tilt_y_deg"]) & (out["tilt_y_deg"] <= seen["y"][1]))
         out["in_calibrated_range"] = ["true" if v else "false" for v in inside]
-    cols: dict[str, Any] = {**ds.passthrough(exclude=out), **out}
+    # an input that is itself an earlier output: its uncertainty columns are replaced, not kept beside the new ones
+    stale = set(out) | {f"u_{q}" for q in quantities}
+    cols: dict[str, Any] = {**ds.passthrough(exclude=stale), **out}
     write_dataset(args.out, cols)
     print(f"{model.kind}/{model.method}: corrected {ds.n_rows} rows; wrote {args.out}", file=sys.stderr)
     return 0

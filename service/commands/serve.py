@@ -21,6 +21,8 @@ from typing import Any
 from service.commands._args import add_command, port, seconds, speed
 from service.errors import InputError
 
+SWITCH_INTERVAL_S = 0.001
+
 
 class StartupFailure(RuntimeError):
     """The service cannot start for a reason outside its settings (exit 1)."""
@@ -119,13 +121,16 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.api.app import create_app
-    from service.api.limits import WEBSOCKET_IMPLEMENTATION
+    from service.api.server import protocols
     from service.config import ensure_data_dir, get_settings
 
+    # The event loop (every request, the streams) gets the interpreter back within 1 ms of asking, not 5 ms
+    # (Python's default), while request threads decode a page of records or build a snapshot.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     settings = get_settings()
     # command-line options override the environment; validated like it (one line naming the setting)
     overrides = {name: getattr(args, name, None)
-                 for name in ("host", "port", "database_wait_s", "sim_speed", "bench_config")}
+                 for name in ("host", "port", "database_wait_s", "sim_speed", "bench_config", "bench_scenario")}
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if overrides:
         settings = type(settings)(**overrides)
@@ -171,8 +176,12 @@ def run(args: argparse.Namespace) -> int:
                     _say(line)
                 announced.append(True)
 
-        server = _Server(uvicorn.Config(app, log_level="info", lifespan="on", ws=WEBSOCKET_IMPLEMENTATION,
-                                        **{k: v for k, v in tls.items() if v}))
+        # uvicorn's own HTTP and WebSocket protocols with the limits a request meets before it is parsed
+        http_protocol, ws_protocol = protocols(settings)
+        # no per-message compression of WebSocket messages: it runs on the event loop (a snapshot's megabytes of
+        # history would hold every other request for tens of ms), and the readings' small messages gain little
+        server = _Server(uvicorn.Config(app, log_level="info", lifespan="on", http=http_protocol, ws=ws_protocol,
+                                        ws_per_message_deflate=False, **{k: v for k, v in tls.items() if v}))
         try:
             server.run(sockets=[sock])
         except KeyboardInterrupt:  # Ctrl-C after a clean shutdown
@@ -211,6 +220,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                                 "override them. Start-up failures\nare one line: exit 2 for a setting that "
                                 "cannot work, 1 when the surroundings are at fault.",
                     examples=["tiltlab serve", "tiltlab serve --host 0.0.0.0 --port 8080",
+                              "tiltlab serve --sim-speed 20 --scenario seed000-worm",
                               "tiltlab serve --bench-config bench.toml"])
     p.add_argument("--host", default=None,
                    help="address to listen on (default: TILTLAB_HOST, else 127.0.0.1: this computer only)")
@@ -220,6 +230,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                         "(default: TILTLAB_DATABASE_WAIT_S, else 30)")
     p.add_argument("--sim-speed", type=speed, default=None, metavar="N",
                    help="run the simulated bench N times faster than real time (default: TILTLAB_SIM_SPEED, else 1)")
+    p.add_argument("--scenario", dest="bench_scenario", default=None, metavar="NAME_OR_FILE",
+                   help="the simulated stage bench: a preset (tiltlab simulate --list) or a scenario file "
+                        "(default: TILTLAB_BENCH_SCENARIO, else seed000)")
     p.add_argument("--bench-config", default=None, metavar="FILE",
                    help="bench configuration (TOML) naming the instruments' ports "
                         "(default: TILTLAB_BENCH_CONFIG, else the simulated stage bench)")

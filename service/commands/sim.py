@@ -23,11 +23,15 @@ FAMILY_WORDS = {"binary": "0x68 binary frames", "rs485": "RS-485 ASCII", "adc": 
 def run(args: argparse.Namespace) -> int:
     from service.clock import Clock
     from service.instruments.bench_config import PROTOCOL_OF_ROLE
-    from service.instruments.sim import start_simulated_bench
+    from service.instruments.sim import fastest_speed, start_simulated_bench
     from service.io.datasets import check_output_path, write_text_atomic
 
     if not 0 < args.speed <= 10_000:
         raise InputError(f"--speed {args.speed:g}: give a factor above 0 and at most 10000")
+    limit, why = fastest_speed(args.bench)
+    if args.speed > limit:
+        raise InputError(f"--speed {args.speed:g} is more than the simulated {args.bench} bench can run: {why}, so at"
+                         f" most {limit:g} times real time")
     if args.out is not None:
         check_output_path(args.out)
     if args.duration is not None and args.duration <= 0:

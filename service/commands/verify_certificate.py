@@ -1,7 +1,9 @@
 """`tiltlab verify-certificate FILE`: is this a certificate we issued, unchanged, resting on an approved record?
 
 Checks offline: validity against the DCC 3.3.0 schema and the enveloped XML signature (over the
-whole file: a change of any byte fails; with --signer-cert, made by the lab's own certificate).
+whole file: a change of any byte fails; with --signer-cert, made by the lab's own certificate). A
+file without a signature fails (a stripped signature must not read as unaltered) unless
+--allow-unsigned, or the laboratory's database holds it byte for byte.
 With the lab's database (TILTLAB_DATABASE_URL or the data directory's): that the file's SHA-256 equals the one stored at issue, that the stored
 copy still matches it, that the record still matches its hash and that the approval is bound to it.
 Exit 0 when every check passes, 1 when one fails, 2 for an unreadable file or configuration.
@@ -21,13 +23,17 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 
     p = add_command(sub, "verify-certificate", "check a DCC certificate: schema, signature, stored hash, record and approval",
                     examples=["tiltlab verify-certificate certificate.xml",
-                              "tiltlab verify-certificate --offline certificate.xml"])
+                              "tiltlab verify-certificate --offline certificate.xml",
+                              "tiltlab verify-certificate --offline --allow-unsigned certificate.xml"])
     p.add_argument("file", metavar="FILE", help="the certificate XML file")
     p.add_argument("--offline", action="store_true",
                    help="check only the file: schema and signature (no database: for a customer who has just the file)")
     p.add_argument("--signer-cert", metavar="PEM",
                    help="the laboratory's signing certificate: the signature must be made with it (an unsigned file "
                         "then fails); without it, the certificate the signature carries is used")
+    p.add_argument("--allow-unsigned", action="store_true",
+                   help="accept a file without a signature (from a laboratory that does not sign); without it an "
+                        "unsigned file fails unless the laboratory's database holds it unchanged")
     p.set_defaults(handler=run)
 
 
@@ -65,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"{where}: no schema yet; use --offline to check only the schema")
         store = Store(engine)
     try:
-        report = verify_certificate(xml, store, trusted)
+        report = verify_certificate(xml, store, trusted, allow_unsigned=args.allow_unsigned)
     finally:
         if engine is not None:
             engine.dispose()

@@ -183,8 +183,8 @@ def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
     if effect == "periodic_error":
         for ax in ("x", "y"):
             ls, lc = f"{ax}_sin_deg", f"{ax}_cos_deg"
-            if ls not in blk.labels:
-                continue
+            if ls not in blk.labels or lc not in blk.labels:
+                continue  # one of the pair held (the points sample too few phases of the worm): no amplitude
             i, j = blk.labels.index(ls), blk.labels.index(lc)
             a, b = vals[i], vals[j]
             amp = float(np.hypot(a, b))

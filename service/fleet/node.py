@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import nats
+import numpy as np
 from nats.aio.client import Client as NatsClient
 from nats.aio.msg import Msg
 from nats.errors import NoRespondersError
@@ -39,7 +40,7 @@ from service.bench.runtime import BenchRuntime
 from service.config import Settings
 from service.errors import InputError
 from service.storage.engine import redacted
-from service.streams.readings import Client, ReadingProducer, due
+from service.streams.readings import Client, ReadingProducer, SnapshotBuild, due
 
 log = logging.getLogger("tiltlab.fleet")
 
@@ -401,8 +402,8 @@ class RemoteProducer(ReadingProducer):
         self._latest = None
         self._task = None
 
-    def connect(self, rate_hz: float, history_s: float) -> Client:
-        client = super().connect(rate_hz, history_s)
+    def connect(self, rate_hz: float, history_s: float, *, deferred: bool = False) -> Client:
+        client = super().connect(rate_hz, history_s, deferred=deferred)
         self.remote.listeners.add(self._on_reading)
         return client
 
@@ -411,13 +412,14 @@ class RemoteProducer(ReadingProducer):
         if not self.clients:
             self.remote.listeners.discard(self._on_reading)
 
-    def snapshot(self, rate_hz: float, history_s: float) -> dict[str, Any]:
+    def snapshot_later(self, rate_hz: float, history_s: float) -> SnapshotBuild:
         """The newest reading the owner published; no history (the owner's dashboard has it)."""
         latest = self.remote.latest or {}
-        return {"type": "snapshot", "seq": 0, "time_utc": latest.get("time_utc"), "bench": self.remote.name,
+        head = {"type": "snapshot", "seq": 0, "time_utc": latest.get("time_utc"), "bench": self.remote.name,
                 "node": self.remote.node, "rate_hz": rate_hz, "raw": latest.get("raw"),
                 "table_tilt": latest.get("table_tilt"), "stage": latest.get("stage"), "temp_c": latest.get("temp_c"),
-                "calibration": latest.get("calibration"), "history": []}
+                "calibration": latest.get("calibration")}
+        return SnapshotBuild(head, np.empty((0, 0)), rate_hz, 0.0)
 
     def _on_reading(self, payload: dict[str, Any]) -> None:
         msg = {k: v for k, v in payload.items() if k not in ("bench", "node", "fleet_seq")}

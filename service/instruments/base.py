@@ -39,15 +39,34 @@ class Reading:
     temp_c: float | None = None
     # Family (B) status: 0 valid, 1 out of range, 2 not settled.
     status: int | None = None
+    # An ambient sensor's relative humidity of the air (its temp_c is the air's temperature).
+    humidity_pct: float | None = None
 
 
 @dataclass(frozen=True)
 class DeviceIdentity:
-    """What the instrument says it is; recorded on the device record and in certificates."""
+    """What the instrument says it is; recorded on the device record and in certificates.
+
+    Where it is connected is not part of it (a port can change between starts). An instrument that
+    reports no serial number (family A answers at its bus address only) has `serial` None and its
+    `address`; the lab's database then knows it by bench, role and address (`register_key`).
+    """
 
     model: str
-    serial: str
+    serial: str | None
     firmware: str | None = None
+    address: str | None = None  # the bus address it answered at, e.g. "0x00", when it reports no serial
+
+    def register_key(self, bench: str, role: str) -> str:
+        """The serial the lab's device records know this instrument by."""
+        if self.serial is not None:
+            return self.serial
+        return f"{bench}.{role} (address {self.address})"
+
+    def in_words(self) -> str:
+        """As a person reads it: model, serial number (or that it has none), firmware."""
+        serial = f"s/n {self.serial}" if self.serial is not None else f"no serial number (bus address {self.address})"
+        return f"{self.model}, {serial}" + (f", firmware {self.firmware}" if self.firmware else "")
 
 
 @dataclass
@@ -144,6 +163,16 @@ class TemperatureOnRequest(Sensor, Protocol):
     answers_temperature: bool  # False once the instrument is found to lack the command
 
     async def read_temperature(self) -> float: ...
+
+
+@runtime_checkable
+class AmbientSensor(Sensor, Protocol):
+    """A thermo-hygrometer reading the laboratory's air; its standard uncertainties as the lab states them."""
+
+    standard_uncertainty_c: float
+    standard_uncertainty_pct: float
+
+    async def read_ambient(self) -> Reading: ...
 
 
 @runtime_checkable

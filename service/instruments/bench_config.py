@@ -26,6 +26,12 @@ the fixed hardware of its stages, and one table per role:
     [benches.stage-1.roles.stage]
     port = "/dev/ttyUSB2"
 
+    [benches.stage-1.roles.ambient_sensor]   # optional: the laboratory's air temperature and humidity
+    port = "/dev/ttyUSB3"
+    address = "01"
+    standard_uncertainty_c = 0.1             # as the thermo-hygrometer's calibration certificate states them
+    standard_uncertainty_pct = 2.0
+
 The hardware table is the same model as a scenario file's `bench` section, so the
 kinematic model, the simulator and the daemon read one definition. Every problem is an
 InputError of one line naming the file and the field.
@@ -44,7 +50,7 @@ from service.physics.stage import StageBench
 from service.scenarios.model import StageBenchSpec
 
 ROLES = ("reference_sensor", "measurement_sensor", "stage", "adc_sensor", "rotary_table", "triaxial_sensor",
-         "turntable_sensor")
+         "turntable_sensor", "ambient_sensor")
 # The byte protocol of each role's instrument family (A binary frames, B RS-485 ASCII, C ADC, D controller).
 PROTOCOL_OF_ROLE = {
     "reference_sensor": "binary",
@@ -52,6 +58,7 @@ PROTOCOL_OF_ROLE = {
     "triaxial_sensor": "binary",
     "turntable_sensor": "rs485",
     "adc_sensor": "adc",
+    "ambient_sensor": "rs485",
     "stage": "controller",
     "rotary_table": "controller",
 }
@@ -61,7 +68,8 @@ BAUD_RATES = (2400, 4800, 9600, 19200, 38400, 57600, 115200)
 OUTPUT_RATES_HZ = (0, 5, 15, 25, 35, 50, 100)
 
 REQUIRED_ROLES = {"stage": ("reference_sensor", "measurement_sensor", "stage"), "rotary": ("rotary_table",)}
-OPTIONAL_ROLES = {"stage": ("adc_sensor",), "rotary": ("triaxial_sensor", "turntable_sensor")}
+OPTIONAL_ROLES = {"stage": ("adc_sensor", "ambient_sensor"), "rotary": ("triaxial_sensor", "turntable_sensor",
+                                                                        "ambient_sensor")}
 
 
 class _Strict(BaseModel):
@@ -112,6 +120,16 @@ class Rs485InclinometerRole(PortRole):
     poll_rate_hz: Annotated[float, Field(gt=0, le=200)] = 10.0
 
 
+class AmbientSensorRole(PortRole):
+    """Family (B) thermo-hygrometer reading the laboratory's air (command TH); the standard uncertainties of its
+    temperature and humidity as its calibration certificate states them enter the conditions a job records."""
+
+    address: Annotated[str, Field(pattern=r"^[0-9A-Fa-f]{2}$")] = "01"
+    poll_rate_hz: Annotated[float, Field(gt=0, le=10)] = 1.0
+    standard_uncertainty_c: Annotated[float, Field(gt=0, le=10)] = 0.1
+    standard_uncertainty_pct: Annotated[float, Field(gt=0, le=50)] = 2.0
+
+
 class AdcRole(PortRole):
     """Family (C): analog tilt sensor behind a 12-bit ADC (0-5 V in 4096 counts)."""
 
@@ -146,6 +164,7 @@ ROLE_MODELS: dict[str, type[PortRole]] = {
     "triaxial_sensor": BinaryInclinometerRole,
     "turntable_sensor": Rs485InclinometerRole,
     "adc_sensor": AdcRole,
+    "ambient_sensor": AmbientSensorRole,
     "stage": StageControllerRole,
     "rotary_table": RotaryTableRole,
 }
@@ -233,9 +252,9 @@ class BenchesFile(_Strict):
             if len(on_port) < 2:
                 continue
             names = ", ".join(f"{b}.{r}" for b, r, _ in on_port)
-            if any(not isinstance(s, Rs485InclinometerRole) for _, _, s in on_port):
-                raise ValueError(f"port {where} is given to {names}; only RS-485 inclinometers may share a port")
-            addresses = [s.address.upper() for _, _, s in on_port if isinstance(s, Rs485InclinometerRole)]
+            if any(not isinstance(s, Rs485InclinometerRole | AmbientSensorRole) for _, _, s in on_port):
+                raise ValueError(f"port {where} is given to {names}; only RS-485 instruments may share a port")
+            addresses = [s.address.upper() for _, _, s in on_port if isinstance(s, Rs485InclinometerRole | AmbientSensorRole)]
             if len(set(addresses)) != len(addresses):
                 raise ValueError(f"port {where}: {names} share an address; each instrument on a bus needs its own")
             if len({s.baud for _, _, s in on_port}) > 1:

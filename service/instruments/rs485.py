@@ -7,6 +7,14 @@
 X and Y are milliradians with three decimals, T °C with two, ST 0 valid / 1 out of range /
 2 not settled. CS is two upper-case hex digits, the XOR of every character between `#` and
 ` *`. Lines are read from their last `#`, so noise before a frame costs nothing but itself.
+
+A thermo-hygrometer of the same family (a bench's ambient sensor, on its own port or the bus)
+answers `#aaTH` with the air's temperature and relative humidity, and `#aaID` as above:
+
+    request  #aaTH<CR>
+    answer   #aaTH T=+20.31 RH=45.2 ST=0 *CS<CR><LF>
+
+T in °C with two decimals, RH in percent with one, ST 0 valid / 1 out of range.
 """
 
 from __future__ import annotations
@@ -18,13 +26,13 @@ from functools import reduce
 
 from service.instruments.framing import MAX_PENDING_BYTES, Parsed, ParseStats
 
-COMMANDS = ("RD", "ID", "ZR", "ZA")
+COMMANDS = ("RD", "ID", "ZR", "ZA", "TH")
 
 
 @dataclass(frozen=True)
 class Rs485Request:
     address: int
-    command: str  # RD, ID, ZR, ZA
+    command: str  # RD, ID, ZR, ZA; TH (thermo-hygrometer)
 
 
 @dataclass(frozen=True)
@@ -50,7 +58,17 @@ class Rs485ZeroDone:
     relative: bool
 
 
-Rs485Answer = Rs485Reading | Rs485Identity | Rs485ZeroDone
+@dataclass(frozen=True)
+class Rs485Ambient:
+    """A thermo-hygrometer's answer: the air's temperature (°C) and relative humidity (%)."""
+
+    address: int
+    temp_c: float
+    humidity_pct: float
+    status: int
+
+
+Rs485Answer = Rs485Reading | Rs485Identity | Rs485ZeroDone | Rs485Ambient
 Rs485Message = Rs485Request | Rs485Answer
 
 _NUM3 = r"[+-]\d{1,6}\.\d{3}"
@@ -58,7 +76,8 @@ _RD = re.compile(rf"RD X=({_NUM3}) Y=({_NUM3}) T=([+-]\d{{1,3}}\.\d{{2}}) ST=([0
 _WORD = r"[!$-)+-~]+"  # printable, no space, '#' or '*'
 _ID = re.compile(rf"ID ({_WORD}) SN=({_WORD}) FW=({_WORD})")
 _ZERO = re.compile(r"(ZR|ZA) OK")
-_REQUEST = re.compile(rb"#([0-9A-Fa-f]{2})(RD|ID|ZR|ZA)")
+_TH = re.compile(r"TH T=([+-]\d{1,3}\.\d{2}) RH=(\d{1,3}\.\d) ST=([01])")
+_REQUEST = re.compile(rb"#([0-9A-Fa-f]{2})(RD|ID|ZR|ZA|TH)")
 _HEX = frozenset(b"0123456789ABCDEF")
 
 
@@ -93,6 +112,12 @@ def encode_answer(msg: Rs485Answer) -> bytes:
         for v, lim in ((msg.x_mrad, 1e6), (msg.y_mrad, 1e6), (msg.temp_c, 1e3)):
             if not abs(round(v, 3)) < lim:
                 raise ValueError(f"{v!r} is out of the range the answer carries")
+    elif isinstance(msg, Rs485Ambient):
+        if msg.status not in (0, 1):
+            raise ValueError(f"status {msg.status} is not 0 or 1")
+        if not (abs(round(msg.temp_c, 2)) < 1e3 and 0.0 <= round(msg.humidity_pct, 1) < 1e3):
+            raise ValueError(f"T={msg.temp_c!r}, RH={msg.humidity_pct!r} are out of the range the answer carries")
+        payload = f"{a}TH T={msg.temp_c:+.2f} RH={msg.humidity_pct:.1f} ST={msg.status}"
     elif isinstance(msg, Rs485Identity):
         payload = (f"{a}ID {_word(msg.model, 'model')} SN={_word(msg.serial, 'serial')} "
                    f"FW={_word(msg.firmware, 'firmware')}")
@@ -125,6 +150,8 @@ def _parse_answer_line(line: bytes) -> Rs485Answer | str:
         return Rs485Identity(address, m[1], m[2], m[3])
     if m := _ZERO.fullmatch(body):
         return Rs485ZeroDone(address, m[1] == "ZR")
+    if m := _TH.fullmatch(body):
+        return Rs485Ambient(address, float(m[1]), float(m[2]), int(m[3]))
     return "malformed"
 
 

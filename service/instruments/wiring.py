@@ -9,6 +9,7 @@ from typing import Any
 from service.clock import Clock
 from service.instruments import adc, binary, controller, rs485
 from service.instruments.base import (
+    AmbientSensor,
     DeviceStatus,
     Driver,
     MotionAxis,
@@ -21,6 +22,7 @@ from service.instruments.bench_config import (
     DEFAULT_BAUD,
     PROTOCOL_OF_ROLE,
     AdcRole,
+    AmbientSensorRole,
     BenchConfig,
     BinaryInclinometerRole,
     PortRole,
@@ -33,6 +35,7 @@ from service.instruments.drivers import (
     BinaryInclinometer,
     ControllerAxis,
     Rs485Inclinometer,
+    Rs485Thermohygrometer,
     StageController,
     TriaxialModule,
 )
@@ -42,7 +45,7 @@ PARSERS: dict[str, Callable[[bytes], Any]] = {"binary": binary.parse_answers, "r
            "controller": controller.parse_answers}
 
 # Every family's driver class, as `make_driver` hands them out (TriaxialModule is a BinaryInclinometer).
-RoleDriver = BinaryInclinometer | Rs485Inclinometer | AdcSensor | ControllerAxis | StageController
+RoleDriver = BinaryInclinometer | Rs485Inclinometer | Rs485Thermohygrometer | AdcSensor | ControllerAxis | StageController
 
 
 class BenchDevices:
@@ -86,6 +89,11 @@ class BenchDevices:
         """The role's driver if its temperature must be asked for (family A), else None."""
         d = self._sensors.get(role)
         return d if isinstance(d, TemperatureOnRequest) else None
+
+    def ambient_sensor(self) -> AmbientSensor | None:
+        """The bench's thermo-hygrometer (role ambient_sensor), None where it has none."""
+        d = self._sensors.get("ambient_sensor")
+        return d if isinstance(d, AmbientSensor) else None
 
     def axis(self, role: str) -> MotionAxis:
         """A role of one controller axis (the rotary table)."""
@@ -134,6 +142,9 @@ def make_driver(role: str, spec: PortRole, config: BenchConfig, clock: Clock,
         return BinaryInclinometer(role, port, clock, t, spec.address, spec.output_rate_hz)
     if isinstance(spec, Rs485InclinometerRole):
         return Rs485Inclinometer(role, port, clock, t, int(spec.address, 16), spec.poll_rate_hz)
+    if isinstance(spec, AmbientSensorRole):
+        return Rs485Thermohygrometer(role, port, clock, t, int(spec.address, 16), spec.poll_rate_hz,
+                                     spec.standard_uncertainty_c, spec.standard_uncertainty_pct)
     if isinstance(spec, AdcRole):
         return AdcSensor(role, port, clock, t, spec.conversions_per_reading, spec.poll_rate_hz)
     if isinstance(spec, StageControllerRole):

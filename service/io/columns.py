@@ -6,6 +6,9 @@ order, the methods read them, and `read_dataset` checks their values.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 # stage: two stacked swing stages, a reference and a measurement sensor on the table
 POINT = "point"
 STAGE = ("stage_x_deg", "stage_y_deg")  # commanded angles, as the controller executes them (whole pulses)
@@ -31,5 +34,50 @@ SCALE_DATASET = (POINT, "ref_arcsec", "reading")
 # turntable: an inclinometer read at two positions half a turn apart, against a star reference
 TURNTABLE_READINGS = ("n1_a", "n2_a", "n1_b", "n2_b")
 TURNTABLE_DATASET = ("cycle", "azimuth_deg", *TURNTABLE_READINGS, "ref_north_arcsec", "ref_east_arcsec")
+
+# Uncertainty columns of `correct` (docs/datasets.md). A method returns, per corrected quantity q (e.g. tilt_x_deg),
+# its expanded uncertainty as `u_<q>` and the coverage factor as `k_<q without its unit>`; the files name them so
+# that nobody can read one for the other (GUM: u is a standard uncertainty, U = k·u the expanded one).
+COVERAGE_PROBABILITY = "coverage_probability"
+DEPRECATED_UNCERTAINTY_PREFIX = "u_"  # files before this release: `u_<q>` held the expanded uncertainty
+
+
+def _bare(q: str) -> str:
+    for unit in ("_deg", "_arcsec"):
+        if q.endswith(unit):
+            return q[: -len(unit)]
+    return q
+
+
+def uncertainty_names(q: str) -> dict[str, str]:
+    """The columns `correct` writes for quantity q: expanded and standard uncertainty, coverage factor."""
+    return {"expanded": f"expanded_uncertainty_{q}", "standard": f"standard_uncertainty_{q}",
+            "coverage_factor": f"coverage_factor_{_bare(q)}"}
+
+
+def uncertainty_columns(result: Mapping[str, Any], quantities: tuple[str, ...], coverage: float,
+                        deprecated: bool = False) -> dict[str, Any]:
+    """A method's corrected values as `correct` writes them: each value, then its uncertainty columns, named."""
+    import numpy as np
+
+    out: dict[str, Any] = {}
+    any_u = False
+    for q in quantities:
+        out[q] = result[q]
+        U = result.get(f"u_{q}")
+        if U is None:
+            continue
+        any_u = True
+        k = np.asarray(result[f"k_{_bare(q)}"], dtype=float)
+        names = uncertainty_names(q)
+        out[names["expanded"]] = U
+        out[names["standard"]] = np.asarray(U, dtype=float) / k
+        out[names["coverage_factor"]] = np.broadcast_to(k, np.shape(U))
+        if deprecated:
+            out[f"u_{q}"] = U
+    if any_u:
+        out[COVERAGE_PROBABILITY] = np.full(np.shape(result[quantities[0]]), coverage)
+    return out
+
 
 INTEGER_COLUMNS = frozenset({POINT, "cycle", *DIRECTION, "reading"})  # written without a decimal point

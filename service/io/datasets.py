@@ -111,13 +111,18 @@ def _separator_error(source: str, header_cell: str) -> InputError | None:
 
 
 def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str, ...]] = (),
-                 optional: Sequence[str] = ()) -> Dataset:
+                 optional: Sequence[str] = (), *, max_rows: int | None = None) -> Dataset:
     """Read and validate a dataset.
 
     `required` items are column names or tuples of alternatives (the first present is used,
-    e.g. ("ref_arcsec", "ref_deg")). `optional` columns are validated when present.
+    e.g. ("ref_arcsec", "ref_deg")). `optional` columns are validated when present; the two axes of
+    a sensor (`*_x_*` and `*_y_*`) go together: one without the other is refused, naming the missing
+    one. With `max_rows`, a file of more data rows is refused before it is read (counted line by line,
+    in constant memory).
     """
     source = str(path)
+    if max_rows is not None:
+        _refuse_more_rows_than(source, Path(path), max_rows)
     try:
         data = Path(path).read_bytes()
     except FileNotFoundError:
@@ -163,10 +168,43 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
             names = " or ".join(repr(a) for a in alts)
             raise InputError(f"{source}: missing required column {names} for kind {kind!r}")
         use.append(found)
+    for col in optional:  # a sensor's two axes go together: one alone is a column lost, not an option left out
+        partner = _partner(col)
+        if col in text and partner is not None and partner in optional and partner not in text:
+            raise InputError(f"{source}: has column {col!r} but not {partner!r}: the two axes of a sensor go together;"
+                             f" add {partner!r}, or leave out both")
     use += [c for c in optional if c in text and c not in use]
     for col in use:
         ds.numeric[col] = _numeric_column(ds, col)
     return ds
+
+
+def _partner(col: str) -> str | None:
+    """The other axis's column of a per-axis column (`meas_x_deg` <-> `meas_y_deg`), or None."""
+    for a, b in (("_x_", "_y_"), ("_y_", "_x_")):
+        if a in col:
+            return col.replace(a, b, 1)
+    return None
+
+
+def _refuse_more_rows_than(source: str, path: Path, max_rows: int) -> None:
+    """InputError when the file has more than `max_rows` data rows (non-blank lines under the header)."""
+    try:
+        with path.open("rb") as f:
+            rows = -1  # the header
+            for line in f:
+                if line.strip():
+                    rows += 1
+                    if rows > max_rows:
+                        break
+    except FileNotFoundError:
+        raise InputError(f"{source}: no such file") from None
+    except OSError as exc:
+        raise InputError(f"{source}: cannot read: {exc.strerror or exc}") from None
+    if rows > max_rows:
+        raise InputError(f"{source}: more than {max_rows:,} data rows; calibrate fits at most {max_rows:,} (--max-rows)."
+                         " A calibration run has one row per settled point: average the raw readings of each point"
+                         " first, or raise --max-rows (docs/datasets.md says what a fit of many rows costs)")
 
 
 def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
@@ -192,7 +230,8 @@ def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
         bad = np.flatnonzero((values < lo) | (values > hi))
         if bad.size:
             i = int(bad[0])
-            raise InputError(f"{ds.where(i + 1, col)}: {cells[i]} is outside [{lo:g}, {hi:g}]")
+            unit = " (no tilt in degrees is beyond ±90: is the column in another unit?)" if col.endswith("_deg") and hi == 90.0 else ""
+            raise InputError(f"{ds.where(i + 1, col)}: {cells[i]} is outside [{lo:g}, {hi:g}]{unit}")
     if col.startswith("dir_"):
         bad = np.flatnonzero(~np.isin(values, (-1.0, 0.0, 1.0)))
         if bad.size:
@@ -356,3 +395,69 @@ def write_dataset(path: str | Path, columns: Mapping[str, Sequence[Any] | NDArra
 
 def write_text_atomic(path: str | Path, text: str) -> None:
     _atomic_write(path, lambda fh: fh.write(text))
+
+
+# Units a tilt column is mistaken for, as (name, how many of them make a degree, how to convert).
+_MISTAKEN_UNITS = (("radians", math.pi / 180.0, "degrees = radians × 57.2958"),
+                   ("milliradians", 1000.0 * math.pi / 180.0, "degrees = milliradians × 0.0572958"),
+                   ("arc minutes", 60.0, "degrees = arc minutes / 60"),
+                   ("arc seconds", 3600.0, "degrees = arc seconds / 3600"),
+                   ("millidegrees", 1000.0, "degrees = millidegrees / 1000"))
+STAGE_SPAN_TO_JUDGE_DEG = 0.5  # below this the stage moved too little to compare the sensors' spans with
+TILT_MARGIN_DEG = 5.0  # a sensor on the table reads the stage's tilt give or take its mounting, never more
+
+
+def check_stage_units(ds: Dataset, travel_deg: float) -> None:
+    """Plausibility of the units of a stage run: every `_deg` column must be in degrees.
+
+    The stage angles stay within the bench's travel, the sensors on the table read about what the
+    stage tilts (their mounting adds a degree or two), and a sensor column whose readings span a
+    fixed multiple of the stage's span (1/57.3: radians, 3600: arc seconds ...) is in another unit.
+    A fit on such data fails far from the cause; this names the column.
+    """
+    cols = ds.numeric
+    for col in ("stage_x_deg", "stage_y_deg"):
+        if col in cols and (beyond := np.flatnonzero(np.abs(cols[col]) > travel_deg + 1e-9)).size:
+            i = int(beyond[0])
+            raise InputError(f"{ds.where(i + 1, col)}: {ds.text[col][i]} is beyond the stage's travel of ±{travel_deg:g}"
+                             " deg; the column must hold the stage angle in degrees")
+    stage = [cols[c] for c in ("stage_x_deg", "stage_y_deg") if c in cols]
+    if not stage:
+        return
+    stage_span = max(float(np.ptp(v)) for v in stage)
+    limit = travel_deg + TILT_MARGIN_DEG
+    for col in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg"):
+        if col in cols and (beyond := np.flatnonzero(np.abs(cols[col]) > limit)).size:
+            i = int(beyond[0])
+            raise InputError(f"{ds.where(i + 1, col)}: {ds.text[col][i]} is more tilt than the table can show (the"
+                             f" stage travels ±{travel_deg:g} deg): the column must hold the sensor's reading in degrees"
+                             + _unit_hint(float(np.ptp(cols[col])), stage_span))
+    # A sensor's two axes together span about what the stages do (a run may move one stage only, and a
+    # sensor may sit turned on the table, so an axis is not compared with one stage alone).
+    for sensor in ("ref", "meas"):
+        pair = [c for c in (f"{sensor}_x_deg", f"{sensor}_y_deg") if c in cols]
+        if not pair:
+            continue
+        col = max(pair, key=lambda c: float(np.ptp(cols[c])))
+        span = float(np.ptp(cols[col]))
+        if max(span, stage_span) < STAGE_SPAN_TO_JUDGE_DEG or 0.5 <= span / max(stage_span, 1e-12) <= 2.0:
+            continue
+        if span < stage_span:  # the sensor reads far less than the stage tilts: it is not in degrees
+            raise InputError(f"{ds.source}: column {col}: its readings span {span:.4g} while the stage spans"
+                             f" {stage_span:.4g} deg (a sensor on the table reads about what the stage tilts): the"
+                             " column must hold degrees" + _unit_hint(span, stage_span))
+        stage_col = max((c for c in ("stage_x_deg", "stage_y_deg") if c in cols), key=lambda c: float(np.ptp(cols[c])))
+        raise InputError(f"{ds.source}: column {stage_col}: the stage spans {stage_span:.4g} while {col} reads a tilt"
+                         f" spanning {span:.4g} deg (a sensor on the table reads about what the stage tilts): the"
+                         " stage angles must be in degrees" + _unit_hint(stage_span, span))
+
+
+def _unit_hint(span: float, stage_span_deg: float) -> str:
+    """`; it looks like radians (degrees = ...)` when the spans' ratio is that of a known unit."""
+    if stage_span_deg < STAGE_SPAN_TO_JUDGE_DEG or span <= 0:
+        return ""
+    ratio = span / stage_span_deg
+    for name, per_degree, convert in _MISTAKEN_UNITS:
+        if abs(ratio / per_degree - 1.0) < 0.2:
+            return f"; it looks like {name} ({convert})"
+    return ""

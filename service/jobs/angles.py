@@ -73,10 +73,12 @@ class AngleProcedure(PointProcedure[float]):
         if self.name == "scale" and req.method.startswith("poly") and req.method[4:].isdigit():
             need = int(req.method[4:]) + 2
         turntable = self.name == "turntable"
-        distinct = len({a % 180.0 for a in pts}) if turntable else len(set(pts))
+        # a turntable job reads each azimuth and its half-turn; a rotation is the same orientation every full turn
+        period = {"turntable": 180.0, "rotation": 360.0}.get(self.name)
+        distinct = len({round(a % period, 6) % period for a in pts}) if period else len(set(pts))
         if distinct < need:
-            raise RequestProblem("grid", f"{distinct} distinct angles{' (modulo 180 deg)' if turntable else ''};"
-                                 f" {req.method} needs at least {need}")
+            modulo = f" (modulo {period:g} deg)" if period else ""
+            raise RequestProblem("grid", f"{distinct} distinct angles{modulo}; {req.method} needs at least {need}")
         rng = validation_rng(len(pts), req.validation.n_points)
         val = [float(round(a, 4)) for a in rng.uniform(min(pts), max(pts), req.validation.n_points)]
         if turntable:
@@ -111,6 +113,7 @@ TURNTABLE = AngleProcedure("turntable", "turntable", "rotary", "turntable_sensor
 
 async def measure_angle(ctx: JobContext, proc: AngleProcedure, index: int, angle: float) -> None:
     bench, st = ctx.bench, ctx.request.settle
+    began = bench.clock.monotonic()
     if proc.bench_kind == "stage":
         lo, _ = proc.travel(bench)
         await bench.move_stage(max(angle - APPROACH_SCALE_DEG, lo), 0.0)
@@ -124,11 +127,14 @@ async def measure_angle(ctx: JobContext, proc: AngleProcedure, index: int, angle
         tol = st.tolerance_deg
         if proc is ROTATION:
             tol = math.radians(tol)  # sines: a small angle in radians
+    stood = bench.clock.monotonic()
     t0 = await settle(bench, settle_roles, tolerance_deg=tol, window_s=st.window_s, timeout_s=st.timeout_s)
     n = ctx.request.samples_per_point
     timeout = max(5.0, 20 * n * max(bench.output_interval_s(r) for r in proc.read_roles))
     got = await asyncio.gather(*(fresh_readings(bench, r, n, after_bench_s=t0, timeout_s=timeout)
                                  for r in proc.read_roles))
+    ctx.bench_time.add(moving=stood - began, settling=t0 - stood,
+                       reading=max(r.bench_s for readings in got for r in readings) - t0)
     for role, readings in zip(proc.read_roles, got):
         if role == "adc_sensor" and any(r.counts is not None and not 0 < r.counts < ADC_FULL_COUNTS for r in readings):
             raise InputError(f"adc_sensor on {bench.port_of(role)} is at the end of its range (0 or {ADC_FULL_COUNTS}"

@@ -9,12 +9,27 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.calibration.budget import model_dof, record_budget
+from service.calibration.budget import current_names, model_dof, record_budget
 from service.calibration.model import CalibrationModel
 from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor
 from service.io.columns import K_OUTPUTS
 
 ROLE_WORDS = {"measurement_sensor": "measurement sensor", "reference_sensor": "reference sensor"}
+NOT_TRACEABLE = "no reference standard: not traceable"
+
+
+def with_traceability(budget: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """The budget saying whether a reference standard's uncertainty is in it: one without a standard says
+    "no reference standard: not traceable" (such a record gets no certificate)."""
+    budget = current_names(budget)
+    if budget is None:
+        return None
+    traceable = any(c.get("source") == "reference_standard" for c in budget.get("components") or [])
+    out = {k: v for k, v in budget.items() if k not in ("traceable", "warning")}
+    out["traceable"] = traceable
+    if not traceable:
+        out["warning"] = NOT_TRACEABLE
+    return out
 
 
 def resolutions_deg(bench: Any) -> dict[str, float | None]:
@@ -50,6 +65,7 @@ def budget_of_record(method: Any, model: CalibrationModel, fit_columns: Mapping[
                                       out["tilt_y_deg"] - fit_columns["ref_y_deg"]])
     words = {ROLE_WORDS.get(role, role.replace("_", " ")): r for role, r in resolutions.items()
              if role in ROLE_WORDS or role.endswith("_sensor")}
-    return record_budget(parameters=model_json.get("parameters") or {}, parameter_u=parameter_u, dof_fit=dof,
-                         standards=standards, resolutions_deg=words, tilt_u_fit_deg=tilt_u, tilt_dof_fit=tilt_dof,
-                         temps_c=temps, errors_deg=errors)
+    budget = record_budget(parameters=model_json.get("parameters") or {}, parameter_u=parameter_u, dof_fit=dof,
+                           standards=standards, resolutions_deg=words, tilt_u_fit_deg=tilt_u, tilt_dof_fit=tilt_dof,
+                           temps_c=temps, errors_deg=errors)
+    return with_traceability(budget) or budget

@@ -10,6 +10,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from service.jobs.angles import ROTATION, SCALE, TURNTABLE
+from service.jobs.diagnosis_measurement import DIAGNOSIS_MEASUREMENT
 from service.jobs.procedure import Procedure
 from service.jobs.stage_grid import STAGE_GRID
 
@@ -23,6 +24,9 @@ def register(procedure: Procedure) -> Procedure:
 
 for _procedure in (STAGE_GRID, SCALE, ROTATION, TURNTABLE):
     register(_procedure)
+# Started by a diagnosis (POST /records/{id}/diagnose with measure: true), never by a request of its own: not
+# among the procedures POST /calibrations names.
+INTERNAL: dict[str, Procedure] = {DIAGNOSIS_MEASUREMENT.name: DIAGNOSIS_MEASUREMENT}
 
 
 def procedure_named(name: str) -> Procedure | None:
@@ -30,9 +34,10 @@ def procedure_named(name: str) -> Procedure | None:
 
 
 def procedure_of(parameters: Mapping[str, Any] | None) -> Procedure:
-    """The procedure a stored job ran (jobs stored before procedures had names were stage grids)."""
-    name = (parameters or {}).get("request", {}).get("procedure") or STAGE_GRID.name
-    procedure = PROCEDURES.get(name)
+    """The procedure a stored job ran (jobs stored before procedures had names were stage grids); a job a
+    diagnosis started names its procedure beside its request."""
+    name = (parameters or {}).get("procedure") or (parameters or {}).get("request", {}).get("procedure") or STAGE_GRID.name
+    procedure = PROCEDURES.get(name) or INTERNAL.get(name)
     if procedure is None:
         raise KeyError(f"no procedure {name!r} in this daemon version")
     return procedure

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import re
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, model_validator
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, GetJsonSchemaHandler, Strict, model_validator
+from pydantic.json_schema import JsonSchemaValue
 
 from service.errors import InputError
 
@@ -26,24 +27,49 @@ class RequestProblem(InputError):
 
 # Ids are INTEGER columns: 32-bit on PostgreSQL, the narrower of the two databases.
 DB_ID_MAX = 2**31 - 1
-_CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f]")
+# Control characters (tabs and line breaks aside) and the Unicode bidirectional embeddings, overrides and
+# isolates, which make text display in another order than it was typed ("Trojan Source"): a certificate or a
+# record must read as it was written.
+CONTROL_CHARACTERS = r"\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069"  # as regex escapes
+_CONTROL = re.compile(f"[{CONTROL_CHARACTERS}]")
+TEXT_PATTERN = f"^[^{CONTROL_CHARACTERS}]*$"  # the rule as the OpenAPI document states it
+_BIDI = re.compile(r"[\u202a-\u202e\u2066-\u2069]")
 
 
 def _printable(text: str) -> str:
     """Text as a lab person typed it: tabs and line breaks, but no NUL or other control character
-    (PostgreSQL refuses NUL, and a certificate cannot carry one)."""
+    (PostgreSQL refuses NUL, and a certificate cannot carry one), and no bidirectional override."""
     found = _CONTROL.search(text)
     if found:
-        raise ValueError(f"control character U+{ord(found.group()):04X} at position {found.start()}; text must be printable")
+        what = ("bidirectional control character" if _BIDI.match(found.group()) else "control character")
+        raise ValueError(f"{what} U+{ord(found.group()):04X} at position {found.start()}; text must be printable"
+                         " and read in the order it was typed")
     return text
 
 
 # Request field types: a number is a finite JSON number (not a boolean, NaN or an infinity), a count an
 # integer (not a boolean), an id one the database can hold, text free of control characters.
+def _whole(value: object) -> object:
+    """A count as JSON may write it: 18 or 18.0 (JSON Schema's integers are the numbers without a fraction);
+    never true/false, never 18.5."""
+    if isinstance(value, float) and value.is_integer() and abs(value) < 2**53:
+        return int(value)
+    return value
+
+
 Finite = Annotated[float, Strict(), Field(allow_inf_nan=False)]
-Count = Annotated[int, Strict()]
-DbId = Annotated[int, Strict(), Field(ge=1, le=DB_ID_MAX)]
-Text = Annotated[str, AfterValidator(_printable)]
+Count = Annotated[int, BeforeValidator(_whole), Strict()]
+DbId = Annotated[int, BeforeValidator(_whole), Strict(), Field(ge=1, le=DB_ID_MAX)]
+class _StatedPattern:
+    """States the text rule in the JSON Schema as a pattern (checked by `_printable`, whose message says where)."""
+
+    def __get_pydantic_json_schema__(self, core_schema: Any, handler: GetJsonSchemaHandler) -> JsonSchemaValue:
+        schema = handler(core_schema)
+        schema["pattern"] = TEXT_PATTERN
+        return schema
+
+
+Text = Annotated[str, AfterValidator(_printable), _StatedPattern()]
 
 
 class RequestBody(BaseModel):
@@ -126,7 +152,34 @@ class AxisReference(RequestBody):
     east_arcsec: Finite
 
 
+class AmbientTemperature(RequestBody):
+    value: Annotated[Finite, Field(ge=-50, le=100, description="the laboratory's air temperature, °C")]
+    standard_uncertainty: Annotated[Finite, Field(gt=0, le=10, description="its standard uncertainty u, °C")]
+
+
+class RelativeHumidity(RequestBody):
+    value: Annotated[Finite, Field(ge=0, le=100, description="the air's relative humidity, %")]
+    standard_uncertainty: Annotated[Finite, Field(gt=0, le=50, description="its standard uncertainty u, %")]
+
+
+class Conditions(RequestBody):
+    """The laboratory's ambient conditions during the job, as read on a calibrated thermo-hygrometer."""
+
+    ambient_temperature_c: AmbientTemperature | None = None
+    relative_humidity_pct: RelativeHumidity | None = None
+def method_per_procedure(schema: dict[str, Any]) -> None:
+    """States in the JSON Schema which methods each procedure takes (the request's rule `method` is checked by)."""
+    from service.calibration.registry import known_methods
+
+    # conditions (JSON Schema's if/then), not alternatives: the body stays one object type for client generators
+    schema["allOf"] = [{"if": {"properties": {"procedure": {"const": procedure}}, "required": ["procedure"]},
+                        "then": {"properties": {"method": {"enum": known_methods(KIND_OF_PROCEDURE[procedure])}}}}
+                       for procedure in PROCEDURES]
+
+
 class CalibrationRequest(RequestBody):
+    model_config = ConfigDict(json_schema_extra=method_per_procedure)
+
     bench: Annotated[Text, Field(max_length=100)] | None = None
     procedure: Literal["stage-grid", "scale", "rotation", "turntable"]
     method: Annotated[Text, Field(max_length=80)]
@@ -139,4 +192,29 @@ class CalibrationRequest(RequestBody):
         " date refuses the job")
     order_id: DbId | None = Field(None, description="the LIMS order (POST /orders) this job works on")
     reference: AxisReference | None = None
+    conditions: Conditions | None = Field(
+        None, description="the laboratory's ambient temperature and relative humidity, each with its standard "
+        "uncertainty; a bench with an ambient sensor records them itself (its readings are stated then). Required "
+        "(the temperature) when the laboratory's settings require conditions (TILTLAB_REQUIRE_CONDITIONS)")
     note: Annotated[Text, Field(max_length=10_000)] | None = None
+    design: Literal["grid", "adaptive"] = Field(
+        "grid", description="grid: every point of `grid`, `samples_per_point` readings each, settled by `settle`; "
+        "adaptive (stage-grid): points of the grid's lattice chosen, settled statistically and read until the "
+        "expanded uncertainty of the correction over the grid's range is at most target_expanded_uncertainty_deg")
+    target_expanded_uncertainty_deg: Annotated[Finite, Field(gt=0, le=1.0)] | None = Field(
+        None, description="adaptive design: the expanded uncertainty (k = 2) of the correction over the range the "
+        "job must reach (the record's part of a corrected tilt's uncertainty: parameters, standard, resolution)")
+
+    @model_validator(mode="after")
+    def _design(self) -> CalibrationRequest:
+        if self.design == "adaptive":
+            if self.procedure != "stage-grid":
+                raise ValueError("design adaptive is for stage-grid jobs")
+            if self.target_expanded_uncertainty_deg is None:
+                raise ValueError("design adaptive needs target_expanded_uncertainty_deg")
+            if self.grid is not None and (self.grid.x_deg is None or self.grid.n_x is None):
+                raise ValueError("design adaptive needs a rectangle grid (x_deg, y_deg, n_x, n_y): its range and the "
+                                 "lattice of candidate points")
+        elif self.target_expanded_uncertainty_deg is not None:
+            raise ValueError("target_expanded_uncertainty_deg is for design adaptive")
+        return self

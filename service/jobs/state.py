@@ -26,6 +26,8 @@ class Stop:
     ending: Ending
     reason: str
     actor: str = DAEMON
+    # a failure the job may be resumed from (a full disk: its stored points are intact)
+    resumable: bool = False
 
     @property
     def state(self) -> JobState:

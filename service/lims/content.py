@@ -8,23 +8,34 @@ gather those facts; nothing here reads them.
 from __future__ import annotations
 
 import datetime as dt
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from service.calibration.budget import model_dof
+from service.calibration.budget import Component, current_names, model_dof, standard_component
 from service.calibration.uncertainty import COVERAGE, coverage_factor
 from service.lims import dcc
+from service.lims.as_found import AXES, AxisAsFound, MeasuredPoint, as_found, single_reading_noise
+from service.lims.conformity import ILAC_G8, IN_WORDS, ConformityReport, Decision, ParameterFigure, assess
 from service.lims.content_results import (
+    NOT_TRACEABLE,
     CertificateRefused,
+    ambient_conditions,
     budget_result,
     calibration_points_result,
+    indication_error_result,
     parameter_result,
+    stage_points_result,
     temperature_condition,
     validation_result,
 )
+from service.lims.dcc_numbers import gum_pair
+from service.storage.specification import DecisionRule, Specification
+from service.storage.tokens import Person
 
-__all__ = ["Approval", "CertificateRefused", "Laboratory", "build_certificate", "model_dof", "standards_of"]
+__all__ = ["Approval", "CertificateRefused", "Laboratory", "MeasuredPoint", "build_certificate", "model_dof",
+           "standards_of"]
 
 # The papers each kind of calibration follows, and the procedure name the daemon runs it under.
 PAPERS: dict[str, tuple[str, str]] = {
@@ -81,6 +92,7 @@ class Approval:
     record_sha256: str
     event_sha256: str
     note: str = ""
+    signer: Person | None = None  # the person behind the actor's token when they signed
 
 
 def _date(value: Any) -> dt.date:
@@ -109,15 +121,118 @@ def item_of(device: Mapping[str, Any], order: Mapping[str, Any] | None) -> dcc.I
                     model=model, manufacturer=maker, firmware=device.get("firmware") or None)
 
 
-def standards_of(rows: Iterable[Mapping[str, Any]]) -> tuple[dcc.ReferenceStandard, ...]:
-    return tuple(
-        dcc.ReferenceStandard(
+def standards_of(rows: Iterable[Mapping[str, Any]], performed_on: dt.date | None = None) -> tuple[dcc.ReferenceStandard, ...]:
+    """The reference standards as the certificate names them; `performed_on`: the day the calibration began."""
+    out = []
+    for s in rows:
+        lab = s.get("calibrated_by") or None
+        calibrated_on, due_on = _date(s["calibrated_on"]), _date(s["due_on"])
+        U, k = s.get("expanded_uncertainty_deg"), s.get("coverage_factor")
+        out.append(dcc.ReferenceStandard(
             name=str(s["name"]), serial=str(s["serial"]), certificate_number=str(s["certificate_number"]),
-            certificate_sha256=str(s["certificate_sha256"]), calibrated_on=_date(s["calibrated_on"]),
-            due_on=_date(s["due_on"]), uncertainty=str(s["uncertainty"]), model=s.get("model") or None,
-        )
-        for s in rows
-    )  # fmt: skip
+            certificate_sha256=str(s["certificate_sha256"]), calibrated_on=calibrated_on, due_on=due_on,
+            uncertainty=str(s.get("uncertainty") or ""), model=s.get("model") or None,
+            calibrated_by=dcc.CalibratingLaboratory(str(lab["name"]), str(lab["country_code"]), lab.get("accreditation"),
+                                                    lab.get("city")) if lab else None,
+            expanded_uncertainty=float(U) if isinstance(U, int | float) else None,
+            coverage_factor=float(k) if isinstance(k, int | float) else None,
+            valid_on_performance_date=performed_on is None or calibrated_on <= performed_on <= due_on,
+        ))  # fmt: skip
+    return tuple(out)
+
+
+def check_traceability(standards: Sequence[dcc.ReferenceStandard], performed_on: dt.date) -> None:
+    """A certificate states a traceable result only: at least one registered standard with a numeric uncertainty,
+    every standard valid on the day of the calibration and naming the laboratory that calibrated it."""
+    if not standards:
+        raise CertificateRefused(f"{NOT_TRACEABLE}: the record was calibrated without a registered reference standard; "
+                                 "no certificate is issued (calibrate again naming a standard in reference_standards)")
+    for s in standards:
+        where = f"reference standard {s.name} (serial {s.serial}, certificate {s.certificate_number})"
+        if not s.valid_on_performance_date:
+            raise CertificateRefused(f"{where} was not valid on {performed_on} (calibrated on {s.calibrated_on}, due on "
+                                     f"{s.due_on}); no certificate is issued")
+        if s.calibrated_by is None:
+            raise CertificateRefused(f"{where} does not name the laboratory that calibrated it, so the result's "
+                                     "traceability cannot be stated; register its certificate again with calibrated_by")
+    if not any(s.expanded_uncertainty is not None and s.coverage_factor is not None for s in standards):
+        raise CertificateRefused(f"{NOT_TRACEABLE}: no reference standard of the record states its uncertainty as a "
+                                 "number; no certificate is issued")
+
+
+def persons_of(approval: Approval, operator: str, operator_person: Person | None, job_id: int | None) -> tuple[dcc.Person, ...]:
+    """The operator who ran the job and the approver as main signer, by person with their functions."""
+    signer = approval.signer
+    if signer is None or not signer.name:
+        raise CertificateRefused(f"the record was approved with the token {approval.actor!r}, which names no person; a "
+                                 "certificate names the person who authorised it: the record must be approved with a "
+                                 "token that names its person (name and function)")
+    if not signer.function:
+        raise CertificateRefused(f"the record was approved by {signer.name} (token {approval.actor!r}), whose function "
+                                 "was not recorded; a certificate names the authorising person's function")
+    when = approval.at.astimezone(dt.UTC)
+    approver = dcc.Person(signer.name, signer.function, main_signer=True, statement=(
+        f"{approval.meaning} of the calibration record on {when:%Y-%m-%dT%H:%M:%SZ} with the token {approval.actor!r}"
+        + (f": {approval.note}" if approval.note else "")))
+    job = f"job {job_id}" if job_id is not None else "the calibration"
+    if operator_person is not None:
+        ran = dcc.Person(operator_person.name, operator_person.function or "operator",
+                         statement=f"operator: ran {job} (started with the token {operator!r})")
+    else:
+        ran = dcc.Person(operator, "operator", statement=f"operator: ran {job}; {operator!r} is the name of the token "
+                                                         "that started it, which named no person")
+    return ran, approver
+
+
+def conformity_statements(report: ConformityReport) -> list[dcc.Statement]:
+    """One statement of conformity per quantity the specification names (17025 7.8.6, ILAC-G8)."""
+    out = []
+    spec = report.specification
+    for q in report.quantities:
+        d = q.decision
+        name = f"statement of conformity: {q.name}"
+        if d is None:
+            out.append(dcc.Statement(f"No statement of conformity for {q.name}: {q.reason}.", name=name,
+                                     ref_type="tiltlab_conformityStatement"))
+            continue
+        unit = q.unit or "1"
+        shown = "°" if unit == "deg" else f" {unit}"
+        limit = spec.max_permissible_error_deg if q.quantity in AXES else d.max_permissible_error
+        value, U, _ = gum_pair(d.worst_error, d.worst_expanded_u, q.quantity)
+        words = (f"{q.name[:1].upper()}{q.name[1:]}: {IN_WORDS[d.conformity]}. Specification: |error| <= {limit:g}{shown} "
+                 f"(largest permissible error, MPE). Decision rule: {d.rule_text()}; U is the expanded uncertainty "
+                 f"(95 %) of the error at each point. The statement is that of the worst of the {d.n_points} "
+                 f"point(s): error {'+' if d.worst_error > 0 else ''}{value}{shown} with U = {U}{shown}.")
+        if d.largest_false_acceptance is not None:
+            pfa = d.largest_false_acceptance
+            words += (" The largest probability of false acceptance over the points that pass is "
+                      + ("below 0.01 %." if pfa < 1e-4 else f"{pfa:.2%}."))
+        k = d.worst_expanded_u / _u_of(d) if _u_of(d) > 0 else None
+        values = [dcc.Value("max_permissible_error", "largest permissible error (MPE)", limit, unit,
+                            ref_type="tiltlab_conformityStatement"),
+                  dcc.Value("worst_error", "error at the worst point, with its expanded uncertainty", d.worst_error, unit,
+                            d.worst_expanded_u if k else None, k, COVERAGE if k else None,
+                            distribution="student-t" if k and math.isfinite(d.worst_dof) else "normal",
+                            ref_type="tiltlab_conformityStatement")]
+        if d.rule is DecisionRule.GUARDED_ACCEPTANCE:
+            values.append(dcc.Value("guard_band_fraction", "guard band w as a fraction of U", d.guard_band_fraction,
+                                    "1", ref_type="tiltlab_conformityStatement"))
+        if d.largest_false_acceptance is not None:
+            values.append(dcc.Value("largest_probability_of_false_acceptance", "largest probability of false "
+                                    "acceptance", float(f"{d.largest_false_acceptance:.2g}"), "1",
+                                    ref_type="tiltlab_conformityStatement"))
+        out.append(dcc.Statement(words, name=name, conformity=d.conformity.value, norm=ILAC_G8, values=tuple(values),
+                                 ref_type="tiltlab_conformityStatement"))
+    return out
+
+
+def _u_of(d: Decision) -> float:
+    return d.worst_expanded_u / d.worst_k if d.worst_k > 0 else 0.0
+
+
+def parameter_figures(params: dcc.Result) -> dict[str, ParameterFigure]:
+    """The parameters as the certificate states them (value, U, k), for statements about named parameters."""
+    return {v.label: ParameterFigure(v.value, v.expanded_u, v.k, v.unit) for v in params.values}
 
 
 def build_certificate(
@@ -135,27 +250,48 @@ def build_certificate(
     order: Mapping[str, Any] | None = None,
     replaces: str | None = None,
     calibration_points: Sequence[Mapping[str, Any]] = (),
+    measured_points: Sequence[MeasuredPoint] = (),
+    operator_person: Person | None = None,
+    job_id: int | None = None,
+    specification: Specification | None = None,
 ) -> dcc.Certificate:
     """The certificate of an approved record. `record` holds id, version, kind, method, model, validation,
-    temp_c, content_sha256, created_at and optionally budget and calibrated_range; `device` id, model, serial,
-    firmware (the instrument's identity: model and serial count as its own only where it reports firmware,
-    i.e. answers an identification), manufacturer; `order` lims_order_id, item_serial, item_manufacturer,
-    item_model, customer; `calibration_points` the fit points (`reference_x_deg`, `indication_x_deg`, ...)."""
+    temp_c, content_sha256, created_at and optionally budget, calibrated_range and conditions; `device` id,
+    model, serial, firmware (the instrument's identity: model and serial count as its own only where it reports
+    firmware, i.e. answers an identification), manufacturer; `order` lims_order_id, item_serial,
+    item_manufacturer, item_model, customer; `measured_points` a stage job's settled points (both sensors),
+    `calibration_points` another kind's fit points (`commanded_angle_deg`); `specification` the order's, which
+    asks for statements of conformity. CertificateRefused says why a record cannot be certified."""
     kind, method = str(record["kind"]), str(record["method"])
     model = record["model"]
-    budget = record.get("budget") or None
+    budget = current_names(record.get("budget") or None)
+    conditions = record.get("conditions") or {}
+    named_standards = standards_of(standards, begin_on)
+    check_traceability(named_standards, begin_on)
+    persons = persons_of(approval, operator, operator_person, job_id)
     paper, procedure = PAPERS.get(kind, ("", kind))
-    results = [parameter_result(model, budget)]
+    params = parameter_result(model, budget)
+    results = [params]
     validation = validation_result(record.get("validation") or {}, k_bound=float(coverage_factor(model_dof(model))),
                                    budget=budget)
     if validation is not None:
         results.append(validation)
-    points = calibration_points_result(calibration_points, record.get("calibrated_range"))
+    found = None
+    if measured_points:
+        found = found_as(measured_points, named_standards, conditions)
+        points = stage_points_result(measured_points, found, record.get("calibrated_range"))
+    else:
+        points = calibration_points_result(calibration_points, record.get("calibrated_range"))
     if points is not None:
         results.append(points)
-    if (b := budget_result(budget)) is not None:
+    if found is not None and measured_points and (e := indication_error_result(measured_points, found)) is not None:
+        results.append(e)
+    fitted = [p for p in measured_points if p.fitted]
+    per_point = conditions.get("samples_per_point")
+    if (b := budget_result(budget, int(per_point) if isinstance(per_point, int) else None,
+                           single_reading_noise(fitted) if fitted else None)) is not None:
         results.append(b)
-    conditions = [c for c in (temperature_condition(record, budget),) if c is not None]
+    influence = ambient_conditions(conditions) + [c for c in (temperature_condition(record, budget),) if c is not None]
     if order is not None:
         c = order["customer"]
         customer = dcc.Contact(str(c["name"]), dcc.Address(str(c["city"]), str(c["country_code"]),
@@ -171,23 +307,27 @@ def build_certificate(
     ]  # fmt: skip
     if order is not None:
         ids.insert(0, dcc.Identification("customer", str(order["lims_order_id"]), "order"))
-    statements = [
+    signer = approval.signer
+    assert signer is not None  # persons_of refused an approval without one
+    statements: list[str | dcc.Statement] = [
         (f"Expanded uncertainties U = k·u are stated for a coverage probability of {COVERAGE:.0%}; k is Student's t "
          "at the degrees of freedom of each uncertainty (the fit's, or the Welch-Satterthwaite effective degrees of "
-         "freedom of a combination), which each quantity's description states. Uncertainties are rounded to two "
-         "significant digits and values to the same decimal place (GUM 7.2.6)."),
-        (f"The results relate only to the item calibrated. This certificate was approved by {approval.actor} on "
-        f"{approval.at.astimezone(dt.UTC):%Y-%m-%d %H:%M} UTC ({approval.meaning}), bound to the record hash "
-        f"{approval.record_sha256}."),
+         "freedom of a combination), which each quantity's description states. Standard uncertainties u are stated "
+         "as such. Uncertainties are rounded to two significant digits and values to the same decimal place "
+         "(GUM 7.2.6)."),
+        (f"The results relate only to the item calibrated. This certificate was authorised by {signer.described()}, "
+         f"who approved the calibration record on {approval.at.astimezone(dt.UTC):%Y-%m-%d %H:%M} UTC "
+         f"({approval.meaning}), bound to the record hash {approval.record_sha256}."),
+        ("The results are traceable to the SI through the reference standards listed under measuring equipment, "
+         "each calibrated by the laboratory named there and valid on the day of the calibration."),
     ]  # fmt: skip
     if order is None:
         statements.append("In-house calibration: no customer order names this record.")
-    persons = (
-        dcc.Person(operator, "operator", statement="ran the calibration"),
-        dcc.Person(approval.actor, "approver", main_signer=True,
-                   statement=f"{approval.meaning} on {approval.at.astimezone(dt.UTC):%Y-%m-%dT%H:%M:%SZ}"
-                             + (f": {approval.note}" if approval.note else "")),
-    )  # fmt: skip
+    if specification is not None:
+        if found is None:
+            raise CertificateRefused("the order asks for statements of conformity, but the record has no measured "
+                                     "points to state them on")
+        statements += conformity_statements(assess(specification, found, parameter_figures(params)))
     return dcc.Certificate(
         number=number,
         software_name="tiltlab",
@@ -206,11 +346,27 @@ def build_certificate(
             references=(paper,) if paper else (),
             procedure=f"tiltlab procedure {procedure}",
         ),),  # fmt: skip
-        standards=standards_of(standards),
-        conditions=tuple(conditions),
+        standards=named_standards,
+        conditions=tuple(influence),
         results=(dcc.MeasurementResult(f"Calibration of the {kind} inclinometer", tuple(results)),),
         country_code=laboratory.country_code,
         identifications=tuple(ids),
         replaces=replaces,
         statements=tuple(statements),
     )
+
+
+def found_as(points: Sequence[MeasuredPoint], standards: Sequence[dcc.ReferenceStandard],
+             conditions: Mapping[str, Any]) -> dict[str, AxisAsFound]:
+    """The indication errors as found at a stage job's points, with the standards' u = U/k in the reference
+    values and the sensors' resolutions the record's conditions state."""
+    components: list[Component] = [
+        standard_component(f"{s.name} (serial {s.serial}, certificate {s.certificate_number})", s.expanded_uncertainty,
+                           s.coverage_factor)
+        for s in standards if s.expanded_uncertainty is not None and s.coverage_factor is not None and s.unit == "deg"]
+
+    def resolution(role: str) -> float | None:
+        r = (conditions.get("resolution_deg") or {}).get(role)
+        return float(r) if isinstance(r, int | float) and r > 0 else None
+
+    return as_found(points, components, resolution("reference_sensor"), resolution("measurement_sensor"))

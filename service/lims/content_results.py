@@ -9,6 +9,7 @@ freedom it has (the fit's, or the Welch-Satterthwaite effective ones of a budget
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping, Sequence
 from typing import Any, cast
 
@@ -18,6 +19,7 @@ from scipy import special
 from service.calibration.budget import combine, model_dof, reading_components
 from service.calibration.uncertainty import COVERAGE, coverage_factor, dof_of_coverage_factor
 from service.lims import dcc
+from service.lims.as_found import AXES, AxisAsFound, MeasuredPoint, Uncertain
 
 
 class CertificateRefused(ValueError):
@@ -57,6 +59,7 @@ def parameter_result(model: Mapping[str, Any], budget: Mapping[str, Any] | None,
     cov = model.get("covariance") or None
     names: list[str] = list(cov["names"]) if cov else []
     matrix = np.asarray(cov["matrix"], dtype=float) if cov else np.zeros((0, 0))
+    matrix = (matrix + matrix.T) / 2.0  # a covariance is symmetric; a fit's rounding leaves ~1e-16 between halves
     nu = model_dof(model)
     k_fit = float(coverage_factor(nu, probability))
     from_budget = {r["quantity"]: r for r in (budget or {}).get("results") or []}
@@ -73,7 +76,7 @@ def parameter_result(model: Mapping[str, Any], budget: Mapping[str, Any] | None,
             b = from_budget[name]
             why = (f"U = k·u with u from the fit's covariance and the reference standard (u = U/k of its certificate); "
                    f"k from Student's t at {_dof_text(b['dof_eff'])} (Welch-Satterthwaite)")
-            values.append(dcc.Value(name, name, float(p["value"]), unit, float(b["U"]), float(b["k"]), probability,
+            values.append(dcc.Value(name, name, float(p["value"]), unit, float(b["expanded_uncertainty"]), float(b["coverage_factor"]), probability,
                                     "; ".join(filter(None, [why, note])), distribution(b["dof_eff"] or math.inf)))
             fitted.append(name)
         elif name in names:
@@ -94,8 +97,8 @@ def parameter_result(model: Mapping[str, Any], budget: Mapping[str, Any] | None,
         for i, n in enumerate(fitted):
             if n in from_budget:
                 b = from_budget[n]
-                sub[i, i] = (float(b["u"])) ** 2  # the standard's variance added on the diagonal (independent)
-                ks.append(float(b["k"]))
+                sub[i, i] = (float(b["standard_uncertainty"])) ** 2  # the standard's variance added on the diagonal (independent)
+                ks.append(float(b["coverage_factor"]))
             else:
                 ks.append(k_fit)
         covariance = dcc.Covariance(
@@ -230,32 +233,162 @@ def calibration_points_result(points: Sequence[Mapping[str, Any]],
     )
 
 
+def _ranges(stated_range: Mapping[str, Any] | None) -> dict[str, tuple[float, float]]:
+    ranges: dict[str, tuple[float, float]] = {}
+    for key, span in (stated_range or {}).items():
+        if isinstance(span, list | tuple) and len(span) == 2 and "_" in key:
+            ranges[f"reference_{key}"] = (float(span[0]), float(span[1]))
+    return ranges
+
+
+def _range_values(ranges: Mapping[str, tuple[float, float]]) -> list[dcc.Value]:
+    values = []
+    for label, (lo, hi) in ranges.items():
+        q, _, unit = label.rpartition("_")
+        name = q.replace("_", " ")
+        values += [dcc.Value(f"{label}_min", f"lowest {name}", lo, unit, ref_type="tiltlab_calibratedRange"),
+                   dcc.Value(f"{label}_max", f"highest {name}", hi, unit, ref_type="tiltlab_calibratedRange")]
+    return values
+
+
+def _uncertain_column(label: str, name: str, q: Uncertain, ref_type: str, probability: float = COVERAGE) -> dcc.Column:
+    return dcc.Column(label, name, tuple(float(v) for v in q.value), "deg", tuple(float(x) for x in q.expanded_u),
+                      tuple(float(k) for k in q.k), probability, ref_type=ref_type,
+                      distribution="student-t" if bool(np.all(np.isfinite(q.dof))) else "normal")
+
+
+def stage_points_result(points: Sequence[MeasuredPoint], found: Mapping[str, AxisAsFound],
+                        stated_range: Mapping[str, Any] | None = None) -> dcc.Result | None:
+    """The calibrated range and the calibration points of a stage record: at each point the model was fitted on,
+    the reference's value and the item's indication, each with its expanded uncertainty."""
+    fitted = [i for i, p in enumerate(points) if p.fitted]
+    if not fitted:
+        return None
+    cols = []
+    for axis in AXES:
+        f = found[axis]
+        ref = Uncertain(f.reference.value[fitted], f.reference.u[fitted], f.reference.dof[fitted], f.reference.k[fitted])
+        cols += [_uncertain_column(f"reference_{axis}_deg", f"reference {axis}", ref, "tiltlab_calibrationPoint"),
+                 dcc.Column(f"indication_{axis}_deg", f"indication {axis}",
+                            tuple(float(v) for v in f.indication.value[fitted]), "deg",
+                            ref_type="tiltlab_calibrationPoint")]
+    ranges = _ranges(stated_range) or {c.label: (min(c.values), max(c.values)) for c in cols
+                                      if c.label.startswith("reference_")}
+    return dcc.Result(
+        "Calibrated range and calibration points",
+        f"The {len(fitted)} points the model was fitted on: the reference's value, with its expanded uncertainty, and "
+        "the item's indication at each, each the mean of the readings taken after the table settled (the indication "
+        "is written to the decimal place of the reference's U). The reference value's expanded uncertainty combines "
+        "the reference standards' (u = U/k of their certificates), the reference sensor's resolution and the noise of "
+        "its mean; the indication's own (the item's resolution and the noise of its mean) is part of the indication "
+        "error's, stated with the indication errors. The results hold within the range of the reference values.",
+        values=tuple(_range_values(ranges)), columns=tuple(cols), table_ref_type="tiltlab_calibrationPoint",
+    )
+
+
+def indication_error_result(points: Sequence[MeasuredPoint], found: Mapping[str, AxisAsFound]) -> dcc.Result | None:
+    """The item's indication error as found (before any correction) at every calibration and validation point."""
+    if not points:
+        return None
+    cols: list[dcc.Column] = []
+    for axis in AXES:
+        f = found[axis]
+        cols.append(_uncertain_column(f"indication_error_{axis}_deg", f"indication error {axis} (indication − "
+                                      "reference)", f.error, "tiltlab_indicationError"))
+    for axis in AXES:
+        cols += [dcc.Column(f"reference_{axis}_deg", f"reference {axis}", tuple(float(v) for v in found[axis].reference.value),
+                            "deg", ref_type="tiltlab_indicationError"),
+                 dcc.Column(f"indication_{axis}_deg", f"indication {axis}",
+                            tuple(float(v) for v in found[axis].indication.value), "deg", ref_type="tiltlab_indicationError")]
+    n_fit = sum(p.fitted for p in points)
+    largest = {a: float(np.max(np.abs(found[a].error.value))) for a in AXES}
+    values = tuple(dcc.Value(f"largest_indication_error_{a}_deg", f"largest |indication error| {a}", largest[a], "deg",
+                             ref_type="tiltlab_summary") for a in AXES)
+    return dcc.Result(
+        "Indication error as found",
+        f"The item's reading minus the reference's at each of the {len(points)} measured points, before any "
+        f"correction: rows 1 to {n_fit} are the calibration points, the rest the validation points, in the order "
+        "they were measured. The error's expanded uncertainty combines the reference value's (reference standards, "
+        "the reference sensor's resolution and the noise of its mean) with the indication's (the item's resolution "
+        "and the noise of its mean); k is Student's t at each point's Welch-Satterthwaite degrees of freedom. "
+        "Statements of conformity rest on these errors.",
+        values=values, columns=tuple(cols), table_ref_type="tiltlab_indicationError",
+    )
+
+
 def _two_digits(u: float) -> float:
     return float(f"{u:.2g}")
 
 
-def budget_result(budget: Mapping[str, Any] | None) -> dcc.Result | None:
-    """The uncertainty budget (GUM): for each result, each contribution's standard uncertainty and the combination."""
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_")
+
+
+NOT_TRACEABLE = "no reference standard: not traceable"
+
+
+def budget_result(budget: Mapping[str, Any] | None, readings_per_point: int | None = None,
+                  single_reading: Mapping[str, tuple[float, float]] | None = None) -> dcc.Result | None:
+    """The uncertainty budget (GUM): for each result, each component's standard uncertainty and the combination.
+
+    `readings_per_point`: how many readings each calibration point's mean took; the corrected tilt's U holds
+    for such a mean. `single_reading`: the item's noise of one reading per axis (s, degrees of freedom), which
+    gives the U of a single corrected reading beside it.
+    """
     entries = (budget or {}).get("results") or []
     if not entries:
         return None
     values: list[dcc.Value] = []
+    traceable = any(c.get("source") == "reference_standard" for r in entries for c in r["contributions"])
     for r in entries:
         unit, q = str(r["unit"]), str(r["quantity"])
+        sources = [c["source"] for c in r["contributions"]]
         for c in r["contributions"]:
             what = "the fit (parameters' covariance and reading noise)" if c["source"] == "fit" else str(c["name"])
-            values.append(dcc.Value(f"u_{q}_{c['source']}", f"{r['name']}: u from {what}", _two_digits(c["u"]), unit,
-                                    note=_dof_text(c.get("dof")), ref_type="tiltlab_summary"))
-        values.append(dcc.Value(f"U_{q}", f"{r['name']}: combined, expanded", float(r["U"]), unit,
-                                float(r["U"]), float(r["k"]), float(r["coverage_probability"]),
-                                f"u_c = {_two_digits(r['u']):g} {unit}, {_dof_text(r.get('dof_eff'))}",
-                                distribution(r.get("dof_eff") or math.inf), ref_type="tiltlab_summary"))
+            label = f"standard_uncertainty_{q}_{c['source']}"
+            if sources.count(c["source"]) > 1:
+                label += "_" + _slug(str(c.get("name") or ""))
+            values.append(dcc.Value(label, f"{r['name']}: standard uncertainty from {what}", _two_digits(c["standard_uncertainty"]), unit,
+                                    note=_dof_text(c.get("dof")), ref_type="tiltlab_uncertaintyComponent"))
+        combination = "tiltlab_uncertaintyCombination"
+        dof = r.get("dof_eff")
+        values += [
+            dcc.Value(f"combined_standard_uncertainty_{q}", f"{r['name']}: combined standard uncertainty u_c",
+                      _two_digits(r["standard_uncertainty"]), unit, note=f"root sum of squares of the components; {_dof_text(dof)}"
+                      + (" (Welch-Satterthwaite)" if dof is not None else ""), ref_type=combination),
+            dcc.Value(f"coverage_factor_{q}", f"{r['name']}: coverage factor k", float(r["coverage_factor"]), "1",
+                      note=f"Student's t at {_dof_text(dof)} for {float(r['coverage_probability']):.0%}",
+                      ref_type=combination),
+            dcc.Value(f"expanded_uncertainty_{q}", f"{r['name']}: expanded uncertainty U = k·u_c", _two_digits(r["expanded_uncertainty"]),
+                      unit, note=f"coverage probability {float(r['coverage_probability']):g}", ref_type=combination),
+        ]
+        axis = q.removeprefix("tilt_").removesuffix("_deg")
+        if q.startswith("tilt_") and readings_per_point and single_reading and axis in single_reading:
+            s_one, nu_one = single_reading[axis]
+            extra = s_one**2 * (1.0 - 1.0 / readings_per_point)  # one reading's noise beyond that of the mean
+            u_single = math.sqrt(float(r["standard_uncertainty"]) ** 2 + extra)
+            denom = (float(r["standard_uncertainty"]) ** 4 / dof if dof else 0.0) + extra**2 / nu_one
+            nu_single = u_single**4 / denom if denom > 0 else math.inf
+            k_single = float(coverage_factor(nu_single, float(r["coverage_probability"])))
+            values.append(dcc.Value(
+                f"expanded_uncertainty_{q}_single_reading", f"{r['name']}: expanded uncertainty U of a single "
+                "corrected reading", _two_digits(k_single * u_single), unit,
+                note=(f"u_c combined with one reading's noise beyond that of a mean of {readings_per_point} "
+                      f"(s = {_two_digits(s_one):g} {unit} pooled over the points, {nu_one:.0f} degrees of freedom): "
+                      f"k = {k_single:.3g} at {_dof_text(nu_single)}"), ref_type=combination))
+    held = (f"The expanded uncertainty of the corrected table tilt holds for a corrected value that is the mean of "
+            f"{readings_per_point} readings taken after the table settled, as at each calibration point; a single "
+            "reading has more noise, and its expanded uncertainty is stated beside it where the points give the "
+            "readings' spread. " if readings_per_point else "")
     return dcc.Result(
         "Uncertainty budget",
-        "Each result's standard uncertainty components (GUM): the fit, each reference standard (u = U/k of its "
+        held + "Each result's standard uncertainty components (GUM): the fit, each reference standard (u = U/k of its "
         "certificate; the result is on the reference's angle scale), the sensors' resolution (r/√12) and, where the "
-        "temperature varied, its influence; combined by root sum of squares, k from Student's t at the "
-        "Welch-Satterthwaite effective degrees of freedom.",
+        "temperature varied, its influence; combined by root sum of squares into the combined standard uncertainty "
+        "u_c; the expanded uncertainty U = k·u_c, with k from Student's t at the Welch-Satterthwaite effective "
+        "degrees of freedom (components that rest on one fit's estimated standard deviation count as one, with "
+        "that fit's degrees of freedom)."
+        + ("" if traceable else f" Warning: {NOT_TRACEABLE}: no reference standard's uncertainty is in this budget."),
         values=tuple(values),
     )
 
@@ -280,3 +413,34 @@ def temperature_condition(record: Mapping[str, Any], budget: Mapping[str, Any] |
         "The instrument's own internal temperature as it reported it at the calibration points, not a calibrated "
         "thermometer's reading of the ambient air; its own error is not known and not included.",
     )
+
+
+AMBIENT = (("ambient_temperature_c", "temperature", "degC", "ambient air temperature of the laboratory"),
+           ("relative_humidity_pct", "humidity", "%", "relative humidity of the laboratory's air"))
+AMBIENT_SOURCE = {"ambient_sensor": "read by the bench's ambient sensor at every point; the standard uncertainty "
+                                    "combines the sensor's stated one with the range the readings lay in",
+                  "request": "as entered with the calibration request, with the standard uncertainty given there"}
+
+
+def ambient_conditions(conditions: Mapping[str, Any] | None) -> list[dcc.Condition]:
+    """The laboratory's ambient temperature and relative humidity during the calibration, each with its standard
+    uncertainty, where the record states them (from the bench's ambient sensor or the job request)."""
+    out = []
+    for key, label, unit, name in AMBIENT:
+        c = (conditions or {}).get(key)
+        if not isinstance(c, Mapping) or not isinstance(c.get("value"), int | float):
+            continue
+        u = c.get("standard_uncertainty")
+        source = str(c.get("source") or "request")
+        values = [dcc.Value(f"{key.rsplit('_', 1)[0]}_mean", "mean" if source == "ambient_sensor" else "value",
+                            float(c["value"]), unit, note=AMBIENT_SOURCE.get(source, source), distribution="normal",
+                            ref_type="tiltlab_ambientCondition",
+                            standard_u=float(u) if isinstance(u, int | float) else None)]
+        for end in ("min", "max"):
+            if isinstance(c.get(end), int | float):
+                values.append(dcc.Value(f"{key.rsplit('_', 1)[0]}_{end}", "lowest" if end == "min" else "highest",
+                                        float(c[end]), unit, ref_type="tiltlab_ambientCondition"))
+        out.append(dcc.Condition(label, name, tuple(values),
+                                 f"The {name} during the calibration, {AMBIENT_SOURCE.get(source, source)}.",
+                                 ref_type=f"basic_{label} tiltlab_ambientCondition"))
+    return out

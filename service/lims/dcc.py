@@ -21,6 +21,7 @@ from service.lims.dcc_model import (
     REFTYPE_NAMESPACE,
     REFTYPES,
     Address,
+    CalibratingLaboratory,
     Certificate,
     Column,
     Condition,
@@ -33,6 +34,7 @@ from service.lims.dcc_model import (
     Person,
     ReferenceStandard,
     Result,
+    Statement,
     Value,
 )
 from service.lims.dcc_numbers import (
@@ -57,7 +59,7 @@ from service.lims.dcc_schema import (
 )
 
 __all__ = [
-    "Address", "Certificate", "Column", "Condition", "Contact", "Covariance", "Identification", "Item",
+    "Address", "CalibratingLaboratory", "Certificate", "Statement", "Column", "Condition", "Contact", "Covariance", "Identification", "Item",
     "MeasurementResult", "Method", "Person", "REFTYPES", "REFTYPE_LINK", "REFTYPE_NAMESPACE",
     "ReferenceStandard", "Result", "Value", "DCC_NS", "DCC_VERSION", "DSIG_NS", "SCHEMA_DIR", "SI_NS",
     "InvalidCertificate", "certificate_errors", "dcc_schema", "dsi_unit", "issue", "render_html",
@@ -65,6 +67,7 @@ __all__ = [
 ]
 
 SIGNING_CERT_NAME = "SHA-256 of the certificate that signs this file"
+CONFORMITY = ("pass", "fail", "conditionalPass", "conditionalFail")  # the DCC's statements of conformity we make
 
 ET.register_namespace("dcc", DCC_NS)
 ET.register_namespace("si", SI_NS)
@@ -141,6 +144,17 @@ def _quantity(parent: ET.Element, v: Value, lang: str) -> None:
         _text(q, "description", v.note, lang)
     real = _el(q, "real", ns=SI_NS)
     _el(real, "label", v.label, ns=SI_NS)
+    if v.expanded_u is None and v.standard_u is not None:
+        if not v.standard_u >= 0:
+            raise InvalidCertificate(f"{v.label}: standard uncertainty {v.standard_u} is not >= 0")
+        value, u, _ = gum_pair(v.value, v.standard_u, v.label)
+        _el(real, "value", value, ns=SI_NS)
+        _el(real, "unit", dsi_unit(v.unit), ns=SI_NS)
+        mu = _el(_el(real, "measurementUncertaintyUnivariate", ns=SI_NS), "standardMU", ns=SI_NS)
+        _el(mu, "valueStandardMU", u, ns=SI_NS)
+        if v.distribution:
+            _el(mu, "distribution", v.distribution, ns=SI_NS)
+        return
     if v.expanded_u is None:
         _el(real, "value", plain(v.value, v.label), ns=SI_NS)
         _el(real, "unit", dsi_unit(v.unit), ns=SI_NS)
@@ -229,12 +243,22 @@ def _row_decimals(columns: Sequence[Column]) -> list[int] | None:
     return None
 
 
+def _unique_labels(r: Result) -> None:
+    """Software reads a quantity by its label: two quantities of one list never share one."""
+    for what, labels in (("values", [v.label for v in r.values]), ("table", [c.label for c in r.columns])):
+        seen = {x for x in labels if labels.count(x) > 1}
+        if seen:
+            raise InvalidCertificate(f"result {r.name!r}: the label(s) {', '.join(sorted(seen))} appear more than once "
+                                     f"in its {what}")
+
+
 def _result(parent: ET.Element, r: Result, lang: str) -> None:
     if not r.values and not r.columns and r.covariance is None:
         raise InvalidCertificate(f"result {r.name!r} has no values")
     e = _el(parent, "result")
     _text(e, "name", r.name, lang)
     _rich(e, "description", r.description, lang)
+    _unique_labels(r)
     data = _el(e, "data")
     if r.values:
         lst = _el(data, "list", refType="tiltlab_values")
@@ -253,20 +277,54 @@ def _result(parent: ET.Element, r: Result, lang: str) -> None:
 
 
 def _standard(parent: ET.Element, s: ReferenceStandard, lang: str) -> None:
+    """A reference standard: its certificate (number, SHA-256, who issued it), its identity, and the uncertainty
+    its certificate states as numbers (`measuringEquipmentQuantities`)."""
     e = _el(parent, "measuringEquipment", refType="basic_referenceStandard")
     _text(e, "name", s.name, lang)
-    _text(e, "description", f"stated uncertainty: {s.uncertainty}; calibrated on {s.calibrated_on.isoformat()},"
-                            f" due on {s.due_on.isoformat()}", lang)
+    lab = s.calibrated_by
+    description = (f"Calibrated on {s.calibrated_on.isoformat()}, due for recalibration on {s.due_on.isoformat()}"
+                   + (f", by {lab.described()}" if lab else "") + "."
+                   + (f" Its certificate states the uncertainty as: {s.uncertainty}." if s.uncertainty else ""))
+    _text(e, "description", description, lang)
     cert = _el(e, "certificate")
-    _text(cert, "referral", f"calibration certificate of {s.name}", lang)
+    _text(cert, "referral", f"calibration certificate {s.certificate_number} of {s.name}"
+                            + (f", issued by {lab.described()}" if lab else ""), lang)
     _el(cert, "referralID", s.certificate_number)
     _el(cert, "procedure", "SHA-256")
     _el(cert, "value", s.certificate_sha256)
-    _el(cert, "inValidityRange", "true")
-    _el(cert, "traceable", "true")
+    _text(cert, "description", "the SHA-256 of the standard's calibration certificate file as the laboratory "
+                               "registered it", lang)
+    _el(cert, "inValidityRange", "true" if s.valid_on_performance_date else "false")
+    _el(cert, "traceable", "true" if lab is not None else "false")
     if s.model:
         _el(e, "model", s.model)
-    _identifications(e, [Identification("manufacturer", s.serial, "serial number")], lang)
+    ids = [Identification("manufacturer", s.serial, "serial number")]
+    if lab is not None:
+        ids.append(Identification("calibrationLaboratory", s.certificate_number,
+                                  f"calibration certificate number, issued by {lab.name}"))
+        if lab.accreditation:
+            ids.append(Identification("calibrationLaboratory", lab.accreditation,
+                                      f"accreditation of {lab.name}, which calibrated the standard"))
+    _identifications(e, ids, lang)
+    if s.expanded_uncertainty is not None and s.coverage_factor is not None:
+        qs = _el(e, "measuringEquipmentQuantities")
+        kind = "tiltlab_standardUncertaintyStatement"
+        for v in (
+            Value("expanded_uncertainty_of_the_standard", "expanded uncertainty U of the standard's angle, as its "
+                  "certificate states it", s.expanded_uncertainty, s.unit, ref_type=kind),
+            Value("coverage_factor_of_the_standard", "coverage factor k of that expanded uncertainty",
+                  s.coverage_factor, "1", ref_type=kind),
+            Value("coverage_probability_of_the_standard", "coverage probability p of that expanded uncertainty",
+                  s.coverage_probability, "1", ref_type=kind),
+            Value("standard_uncertainty_of_the_standard", "standard uncertainty u = U/k that enters the results",
+                  s.expanded_uncertainty / s.coverage_factor, s.unit, ref_type=kind),
+        ):
+            q = _el(qs, "measuringEquipmentQuantity", refType=v.ref_type)
+            _text(q, "name", v.name, lang)
+            real = _el(q, "real", ns=SI_NS)
+            _el(real, "label", v.label, ns=SI_NS)
+            _el(real, "value", plain(v.value, v.label), ns=SI_NS)
+            _el(real, "unit", dsi_unit(v.unit), ns=SI_NS)
 
 
 def _software(parent: ET.Element, name: str, release: str, kind: str, lang: str) -> None:
@@ -325,9 +383,28 @@ def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
     _contact(adm, "customer", c.customer, lang)
     if c.statements:
         stmts = _el(adm, "statements")
-        for text in c.statements:
-            _text(_el(stmts, "statement"), "declaration", text, lang)
+        for st in c.statements:
+            _statement(stmts, st if isinstance(st, Statement) else Statement(st), lang)
     return adm
+
+
+def _statement(parent: ET.Element, st: Statement, lang: str) -> None:
+    """A statement; one of conformity carries its outcome and the figures it rests on (dcc:data)."""
+    e = _el(parent, "statement", **({"refType": st.ref_type} if st.ref_type else {}))
+    if st.name:
+        _text(e, "name", st.name, lang)
+    if st.norm:
+        _el(e, "norm", st.norm)
+    _text(e, "declaration", st.declaration, lang)
+    if st.conformity is not None:
+        if st.conformity not in CONFORMITY:
+            raise InvalidCertificate(f"statement {st.name!r}: conformity {st.conformity!r} is not one of {CONFORMITY}")
+        _el(e, "conformity", st.conformity)
+    if st.values:
+        _unique_labels(Result(st.name or "statement", values=st.values))
+        data = _el(e, "data")
+        for v in st.values:
+            _quantity(data, v, lang)
 
 
 def _define_reftypes(root: ET.Element, lang: str) -> None:
@@ -379,7 +456,8 @@ def build_xml(c: Certificate) -> bytes:
     if c.conditions:
         conds = _el(results, "influenceConditions")
         for cond in c.conditions:
-            ic = _el(conds, "influenceCondition", refType="basic_" + re.sub(r"[^A-Za-z0-9_]", "_", cond.label))
+            ic = _el(conds, "influenceCondition",
+                     refType=cond.ref_type or "basic_" + re.sub(r"[^A-Za-z0-9_]", "_", cond.label))
             _text(ic, "name", cond.name, lang)
             _rich(ic, "description", cond.description, lang)
             data = _el(ic, "data")

@@ -60,10 +60,24 @@ def render_html(xml: bytes) -> str:
         ("Accreditation", _t(lab, "dcc:calibrationLaboratoryCode")),
         ("Customer", _contact_text(cust)),
     ])
+    stmts = adm.findall("dcc:statements/dcc:statement", _NS) if adm is not None else []
+    conformity = [st for st in stmts if st.get("refType") == "tiltlab_conformityStatement"]
+    if conformity:
+        w("<h2>Statements of conformity</h2><table class='verdicts'><tr><th>Quantity</th><th>Statement</th><th>Decision</th>"
+          "<th>Figures</th></tr>")
+        for st in conformity:
+            verdict = _t(st, "dcc:conformity")
+            figures = "; ".join(f"{_t(q, 'dcc:name/dcc:content')} {_real_text(q.find('si:real', _NS))}"
+                                for q in st.findall("dcc:data/dcc:quantity", _NS))
+            w(f"<tr><td>{esc(_t(st, 'dcc:name/dcc:content').removeprefix('statement of conformity: '))}</td>"
+              f"<td class='verdict {esc(verdict)}'>{esc(CONFORMITY_WORDS.get(verdict, 'no statement'))}</td>"
+              f"<td>{esc(_t(st, 'dcc:declaration/dcc:content'))} {esc(_t(st, 'dcc:norm'))}</td>"
+              f"<td>{esc(figures)}</td></tr>")
+        w("</table>")
     rows = []
     for p in adm.findall("dcc:respPersons/dcc:respPerson", _NS) if adm is not None else []:
-        main = " (main signer)" if _t(p, "dcc:mainSigner") == "true" else ""
-        rows.append((_t(p, "dcc:role") + main, _t(p, "dcc:person/dcc:name/dcc:content") + " — "
+        main = "Authorised by (main signer)" if _t(p, "dcc:mainSigner") == "true" else "Performed by"
+        rows.append((main, f"{_t(p, 'dcc:person/dcc:name/dcc:content')}, {_t(p, 'dcc:role')} — "
                      + _t(p, "dcc:description/dcc:content")))
     _table(w, "Responsible persons", rows)
     results = root.find("dcc:measurementResults", _NS)
@@ -73,15 +87,12 @@ def render_html(xml: bytes) -> str:
             "; ".join((r.text or "") for r in m.findall("dcc:reference", _NS))])))
             for m in results.findall("dcc:usedMethods/dcc:usedMethod", _NS)]  # fmt: skip
         _table(w, "Method", rows)
+        _render_standards(w, results.findall("dcc:measuringEquipments/dcc:measuringEquipment", _NS))
         rows = []
-        for eq in results.findall("dcc:measuringEquipments/dcc:measuringEquipment", _NS):
-            rows.append((_t(eq, "dcc:name/dcc:content"),
-                         (f"serial {_t(eq, 'dcc:identifications/dcc:identification/dcc:value')}; certificate "
-                         f"{_t(eq, 'dcc:certificate/dcc:referralID')} (SHA-256 {_t(eq, 'dcc:certificate/dcc:value')}); "
-                         f"{_t(eq, 'dcc:description/dcc:content')}")))
-        _table(w, "Reference standards", rows)
-        rows = [(_t(c, "dcc:name/dcc:content"), _real_text(c.find("dcc:data/dcc:quantity/si:real", _NS)))
-                for c in results.findall("dcc:influenceConditions/dcc:influenceCondition", _NS)]
+        for c in results.findall("dcc:influenceConditions/dcc:influenceCondition", _NS):
+            reals = "; ".join(f"{_t(q, 'dcc:name/dcc:content')} {_real_text(q.find('si:real', _NS))}"
+                              for q in c.findall("dcc:data/dcc:quantity", _NS))
+            rows.append((_t(c, "dcc:name/dcc:content"), f"{reals}. {_t(c, 'dcc:description/dcc:content')}"))
         _table(w, "Conditions", rows)
         for mr in results.findall("dcc:measurementResult", _NS):
             w(f"<h2>{esc(_t(mr, 'dcc:name/dcc:content'))}</h2>")
@@ -90,10 +101,9 @@ def render_html(xml: bytes) -> str:
                 w(f"<p>{esc(desc)}</p>")
             for r in mr.findall("dcc:results/dcc:result", _NS):
                 _render_result(w, r)
-    stmts = [(_t(s, "dcc:declaration/dcc:content")) for s in adm.findall("dcc:statements/dcc:statement", _NS)] \
-        if adm is not None else []  # fmt: skip
-    if stmts:
-        w("<h2>Statements</h2>" + "".join(f"<p>{esc(s)}</p>" for s in stmts))
+    others = [_t(st, "dcc:declaration/dcc:content") for st in stmts if st not in conformity]
+    if others:
+        w("<h2>Statements</h2>" + "".join(f"<p>{esc(s)}</p>" for s in others))
     sw = adm.find("dcc:dccSoftware/dcc:software", _NS) if adm is not None else None
     w(f"<p class='foot'>Issued by {esc(_t(sw, 'dcc:name/dcc:content'))} {esc(_t(sw, 'dcc:release'))} as a "
       f"DCC {esc(root.get('schemaVersion', ''))} document; the XML certificate is the authoritative version.</p>")
@@ -101,17 +111,28 @@ def render_html(xml: bytes) -> str:
     return "".join(out)
 
 
+CONFORMITY_WORDS = {"pass": "PASS: conforms", "fail": "FAIL: does not conform",
+                    "conditionalPass": "CONDITIONAL PASS: conforms, the uncertainty reaching beyond the limit",
+                    "conditionalFail": "CONDITIONAL FAIL: does not conform, the limit within the uncertainty"}
+
 _CSS = (
     "body{font:11pt/1.4 system-ui,sans-serif;margin:2em auto;max-width:60em;color:#111}"
     "h1{margin:0}.number{font-size:1.3em;margin-top:.2em}h2{margin-top:1.4em;border-bottom:1px solid #888}"
     "table{border-collapse:collapse;width:100%;margin:.4em 0}th,td{border:1px solid #bbb;padding:.2em .5em;"
-    "text-align:left;vertical-align:top;overflow-wrap:anywhere}td.n{text-align:right;font-variant-numeric:tabular-nums}"
-    "th{background:#eee}.notice{border:2px solid #a00;padding:.4em}.foot{margin-top:2em;font-size:.9em;color:#444}"
+    "text-align:left;vertical-align:top;overflow-wrap:anywhere}"
+    "td.n{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap;overflow-wrap:normal}"
+    "table.points{font-size:9pt}table.points th{overflow-wrap:normal}"
+    "table.verdicts td:nth-child(1){width:9em}table.verdicts td:nth-child(2){width:9em}"
+    "table.standards td:nth-child(1){width:13em}table.standards td:nth-child(2){overflow-wrap:anywhere}"
+    "table.standards td:nth-child(3){width:16em}table.standards td:nth-child(4){width:9em}"
+    "td,th{overflow-wrap:break-word}"
+    "th{background:#eee}.notice{border:2px solid #a00;padding:.4em}.verdict{font-weight:bold}"
+    ".fail,.conditionalFail{color:#a00}.pass,.conditionalPass{color:#060}.foot{margin-top:2em;font-size:.9em;color:#444}"
     "@media print{body{margin:0;max-width:none}h2{break-after:avoid}tr{break-inside:avoid}}"
 )
 
 _UNIT_TEXT = {r"\degree": "°", r"\arcsecond": "″", r"\arcminute": "′", r"\one": "", r"\degreecelsius": "°C",
-              r"\radian": "rad"}  # fmt: skip
+              r"\radian": "rad", r"\percent": "%"}  # fmt: skip
 
 
 def _unit_text(unit: str) -> str:
@@ -136,8 +157,11 @@ def _real_text(real: ET.Element | None) -> str:
     text = f"{_t(real, 'si:value')} {unit}".strip()
     mu = real.find("si:measurementUncertaintyUnivariate/si:expandedMU", _NS)
     if mu is not None:
-        text += (f" ± {_t(mu, 'si:valueExpandedMU')} {unit} (k = {_t(mu, 'si:coverageFactor')},"
+        text += (f", expanded uncertainty U = {_t(mu, 'si:valueExpandedMU')} {unit} (k = {_t(mu, 'si:coverageFactor')},"
                  f" p = {_t(mu, 'si:coverageProbability')})")
+    su = real.find("si:measurementUncertaintyUnivariate/si:standardMU", _NS)
+    if su is not None:
+        text += f", standard uncertainty u = {_t(su, 'si:valueStandardMU')} {unit}"
     return text
 
 
@@ -151,7 +175,32 @@ def _table(w: Callable[[str], None], title: str, rows: list[tuple[str, str]]) ->
     w("</table>")
 
 
+def _render_standards(w: Callable[[str], None], standards: list[ET.Element]) -> None:
+    """The reference standards: identity, their certificate and who issued it, validity and stated uncertainty."""
+    if not standards:
+        return
+    esc = html.escape
+    w("<h2>Reference standards</h2><table class='standards'><tr><th>Standard</th><th>Its calibration certificate</th>"
+      "<th>Uncertainty its certificate states</th><th>Status</th></tr>")
+    for eq in standards:
+        cert = eq.find("dcc:certificate", _NS)
+        quantities = "; ".join(
+            f"{_t(q, 'dcc:name/dcc:content')}: {_real_text(q.find('si:real', _NS))}"
+            for q in eq.findall("dcc:measuringEquipmentQuantities/dcc:measuringEquipmentQuantity", _NS))
+        status = ["traceable" if _t(cert, "dcc:traceable") == "true" else "NOT TRACEABLE: who calibrated it is not named",
+                  "valid on the day of the calibration" if _t(cert, "dcc:inValidityRange") == "true"
+                  else "NOT VALID on the day of the calibration"]
+        ids = "; ".join(f"{_t(i, 'dcc:name/dcc:content')}: {_t(i, 'dcc:value')}"
+                        for i in eq.findall("dcc:identifications/dcc:identification", _NS))
+        w(f"<tr><td>{esc(_t(eq, 'dcc:name/dcc:content'))}<br>{esc(ids)}</td>"
+          f"<td>{esc(_t(cert, 'dcc:referral/dcc:content'))}; SHA-256 {esc(_t(cert, 'dcc:value'))}. "
+          f"{esc(_t(eq, 'dcc:description/dcc:content'))}</td><td>{esc(quantities or 'not stated as a number')}</td>"
+          f"<td>{esc('; '.join(status))}</td></tr>")
+    w("</table>")
+
+
 def _render_result(w: Callable[[str], None], r: ET.Element) -> None:
+    """A result: its single values as a table, then every table of points (calibration, validation, errors)."""
     esc = html.escape
     w(f"<h3>{esc(_t(r, 'dcc:name/dcc:content'))}</h3>")
     desc = _t(r, "dcc:description/dcc:content")
@@ -159,39 +208,60 @@ def _render_result(w: Callable[[str], None], r: ET.Element) -> None:
         w(f"<p>{esc(desc)}</p>")
     for lst in r.findall("dcc:data/dcc:list", _NS):
         quantities = lst.findall("dcc:quantity", _NS)
-        if lst.get("refType") == "tiltlab_table":
-            cols = []
-            for q in quantities:
-                xl = q.find("si:realListXMLList", _NS)
-                unit = _unit_text(_t(xl, "si:unitXMLList"))
-                values = _t(xl, "si:valueXMLList").split()
-                us = _t(xl, "si:measurementUncertaintyUnivariateXMLList/si:expandedMUXMLList/si:valueExpandedMUXMLList").split()
-                ks = _t(xl, "si:measurementUncertaintyUnivariateXMLList/si:expandedMUXMLList/si:coverageFactorXMLList").split()
-                head = _t(q, "dcc:name/dcc:content") + (f" / {unit}" if unit else "")
-                cols.append((head, values))
-                if us:
-                    cols.append((f"U / {unit}" if unit else "U", us))
-                    cols.append(("k", ks))
-            w("<table><tr>" + "".join(f"<th>{esc(h)}</th>" for h, _ in cols) + "</tr>")
-            for i in range(max((len(v) for _, v in cols), default=0)):
-                w("<tr>" + "".join(f"<td class='n'>{esc(v[i] if i < len(v) else '')}</td>" for _, v in cols) + "</tr>")
-            w("</table>")
+        if lst.get("refType") != "tiltlab_values":
+            _render_table(w, quantities)
         elif any(q.find("si:real", _NS) is not None for q in quantities):
-            w("<table><tr><th>Quantity</th><th>Value</th><th>U</th><th>k</th><th>Unit</th><th>Note</th></tr>")
-            for q in quantities:
-                real = q.find("si:real", _NS)
-                if real is None:
-                    continue
-                mu = "si:measurementUncertaintyUnivariate/si:expandedMU/"
-                w(f"<tr><td>{esc(_t(q, 'dcc:name/dcc:content'))}</td><td class='n'>{esc(_t(real, 'si:value'))}</td>"
-                  f"<td class='n'>{esc(_t(real, mu + 'si:valueExpandedMU'))}</td>"
-                  f"<td class='n'>{esc(_t(real, mu + 'si:coverageFactor'))}</td>"
-                  f"<td>{esc(_unit_text(_t(real, 'si:unit')))}</td>"
-                  f"<td>{esc(_t(q, 'dcc:description/dcc:content'))}</td></tr>")
-            w("</table>")
+            _render_values(w, quantities)
         for q in quantities:
             if q.get("refType") == "tiltlab_parameterVector":
                 _render_correlations(w, q)
+
+
+def _render_values(w: Callable[[str], None], quantities: list[ET.Element]) -> None:
+    """Single quantities as rows: value, expanded uncertainty and k, standard uncertainty, unit, note (columns that
+    no row fills are left out)."""
+    esc = html.escape
+    mu, su = "si:measurementUncertaintyUnivariate/si:expandedMU/", "si:measurementUncertaintyUnivariate/si:standardMU/"
+    columns: list[tuple[str, Callable[[ET.Element, ET.Element], str], bool]] = [
+        ("Quantity", lambda q, r: _t(q, "dcc:name/dcc:content"), False),
+        ("Value", lambda q, r: _t(r, "si:value"), True),
+        ("Expanded uncertainty U", lambda q, r: _t(r, mu + "si:valueExpandedMU"), True),
+        ("k", lambda q, r: _t(r, mu + "si:coverageFactor"), True),
+        ("Standard uncertainty u", lambda q, r: _t(r, su + "si:valueStandardMU"), True),
+        ("Unit", lambda q, r: _unit_text(_t(r, "si:unit")), False),
+        ("Note", lambda q, r: _t(q, "dcc:description/dcc:content"), False),
+    ]
+    rows = [(q, r) for q in quantities if (r := q.find("si:real", _NS)) is not None]
+    used = [c for c in columns if any(c[1](q, r) for q, r in rows)]
+    w("<table><tr>" + "".join(f"<th>{esc(h)}</th>" for h, _, _ in used) + "</tr>")
+    for q, r in rows:
+        w("<tr>" + "".join(("<td class='n'>" if n else "<td>") + esc(get(q, r)) + "</td>" for _, get, n in used)
+          + "</tr>")
+    w("</table>")
+
+
+def _render_table(w: Callable[[str], None], quantities: list[ET.Element]) -> None:
+    """Columns of equal length as one table: each quantity's values, then its expanded uncertainty and k."""
+    esc = html.escape
+    cols = []
+    for q in quantities:
+        xl = q.find("si:realListXMLList", _NS)
+        if xl is None:
+            continue
+        unit = _unit_text(_t(xl, "si:unitXMLList"))
+        mu = "si:measurementUncertaintyUnivariateXMLList/si:expandedMUXMLList/"
+        us, ks = _t(xl, mu + "si:valueExpandedMUXMLList").split(), _t(xl, mu + "si:coverageFactorXMLList").split()
+        cols.append((_t(q, "dcc:name/dcc:content") + (f" / {unit}" if unit else ""), _t(xl, "si:valueXMLList").split()))
+        if us:
+            cols.append((f"expanded uncertainty U / {unit}" if unit else "expanded uncertainty U", us))
+            cols.append(("k", ks))
+    if not cols:
+        return
+    w("<table class='points'><tr><th>#</th>" + "".join(f"<th>{esc(h)}</th>" for h, _ in cols) + "</tr>")
+    for i in range(max(len(v) for _, v in cols)):
+        w(f"<tr><td class='n'>{i + 1}</td>"
+          + "".join(f"<td class='n'>{esc(v[i] if i < len(v) else '')}</td>" for _, v in cols) + "</tr>")
+    w("</table>")
 
 
 def _render_correlations(w: Callable[[str], None], q: ET.Element) -> None:

@@ -23,6 +23,22 @@ REFTYPES = {
     "tiltlab_internalTemperature": "The temperature the instrument's own internal sensor reported during the "
                                    "measurement (not a calibrated thermometer's reading of the ambient air).",
     "tiltlab_summary": "A summary figure of a result (RMS or largest error, number of points).",
+    "tiltlab_uncertaintyComponent": "One component of an uncertainty budget: a standard uncertainty (GUM), already "
+                                    "multiplied by its sensitivity, in the unit of the result.",
+    "tiltlab_uncertaintyCombination": "The combination of an uncertainty budget's components: the combined standard "
+                                      "uncertainty, its effective degrees of freedom, the coverage factor and the "
+                                      "expanded uncertainty.",
+    "tiltlab_standardUncertaintyStatement": "The uncertainty of a reference standard as its own calibration "
+                                            "certificate states it: the expanded uncertainty U, its coverage factor k and "
+                                            "coverage probability p, and the standard uncertainty u = U/k that enters "
+                                            "the results.",
+    "tiltlab_indicationError": "A column of the item's indication errors as found: the item's reading minus the "
+                               "reference's, at every calibration and validation point, before any correction.",
+    "tiltlab_ambientCondition": "An ambient condition of the laboratory during the calibration (air temperature, "
+                                "relative humidity), with its standard uncertainty.",
+    "tiltlab_conformityStatement": "A statement of conformity (ISO/IEC 17025 7.8.6, ILAC-G8) of one quantity with "
+                                   "the specification of the order: the decision rule, the limit and the figures "
+                                   "the decision rests on.",
 }  # fmt: skip
 
 
@@ -44,7 +60,7 @@ class Contact:
 @dataclass(frozen=True)
 class Person:
     name: str
-    role: str
+    role: str  # the person's function in the laboratory (e.g. "Head of Laboratory")
     main_signer: bool = False
     statement: str = ""  # e.g. what the person approved, when, and its meaning
 
@@ -74,6 +90,20 @@ class Method:
 
 
 @dataclass(frozen=True)
+class CalibratingLaboratory:
+    """The laboratory that calibrated a reference standard (named on the standard's own certificate)."""
+
+    name: str
+    country_code: str
+    accreditation: str | None = None
+    city: str | None = None
+
+    def described(self) -> str:
+        where = ", ".join(p for p in (self.city, self.country_code) if p)
+        return f"{self.name} ({where})" + (f", accreditation {self.accreditation}" if self.accreditation else "")
+
+
+@dataclass(frozen=True)
 class ReferenceStandard:
     name: str
     serial: str
@@ -81,7 +111,13 @@ class ReferenceStandard:
     certificate_sha256: str
     calibrated_on: dt.date
     due_on: dt.date
-    uncertainty: str
+    uncertainty: str  # the certificate's wording, a remark
+    calibrated_by: CalibratingLaboratory | None = None
+    expanded_uncertainty: float | None = None  # U of the standard's angle, in `unit`
+    coverage_factor: float | None = None
+    coverage_probability: float = 0.95
+    unit: str = "deg"
+    valid_on_performance_date: bool = True  # calibrated_on <= the calibration's date <= due_on
     model: str | None = None
 
 
@@ -99,6 +135,7 @@ class Value:
     note: str = ""
     distribution: str | None = None  # "normal", "student-t", "rectangular"
     ref_type: str = "tiltlab_modelParameter"
+    standard_u: float | None = None  # a standard uncertainty (GUM u) where no expanded one is stated
 
 
 @dataclass(frozen=True)
@@ -156,6 +193,20 @@ class Condition:
     name: str
     values: tuple[Value, ...]
     description: str = ""
+    ref_type: str | None = None  # default basic_<label>
+
+
+@dataclass(frozen=True)
+class Statement:
+    """A statement of the certificate: a declaration, and for a statement of conformity its outcome (the DCC's
+    pass, fail, conditionalPass or conditionalFail) with the figures it rests on."""
+
+    declaration: str
+    name: str = ""
+    conformity: str | None = None
+    norm: str | None = None
+    values: tuple[Value, ...] = ()
+    ref_type: str | None = None
 
 
 @dataclass(frozen=True)
@@ -180,7 +231,7 @@ class Certificate:
     laboratory_code: str | None = None
     identifications: tuple[Identification, ...] = ()
     replaces: str | None = None  # unique identifier of the certificate this one substitutes
-    statements: tuple[str, ...] = field(default_factory=tuple)
+    statements: tuple[str | Statement, ...] = field(default_factory=tuple)
     comment: str = ""
     signing_cert_sha256: str | None = None  # SHA-256 of the certificate that signs the file (inside what it signs)
 

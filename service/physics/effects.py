@@ -27,6 +27,7 @@ EFFECT_NAMES = (
     "temperature_drift",
     "time_drift",
     "noise",
+    "settling",
 )
 
 
@@ -119,6 +120,15 @@ STAGE_EFFECTS: dict[str, Effect] = {
                (_p("ref_sigma_deg", "deg", 0.0, 0.2), _p("meas_sigma_deg", "deg", 0.0, 0.2),
                 _p("stage_sigma_deg", "deg", 0.0, 0.1),
                 _p("ref_resolution_deg", "deg", 0.0, 0.01), _p("meas_resolution_deg", "deg", 0.0, 0.01))),
+        Effect("settling",
+               "what a reading shows in the seconds after a move: the table rings (amplitude per degree moved, "
+               "frequency, 1/e decay time) and each sensor follows the table with a first-order time constant "
+               "(service.physics.settling); a reading taken long after a move does not see it",
+               (_p("sensor_time_constant_s", "s", 0.0, 60.0, "first-order time constant of each sensor's output"),
+                _p("ringing_amplitude_deg_per_deg", "deg/deg", 0.0, 0.1,
+                   "the table's ringing amplitude when a move ends, per degree moved"),
+                _p("ringing_frequency_hz", "Hz", 0.0, 200.0, "frequency of the table's ringing"),
+                _p("ringing_decay_s", "s", 0.0, 60.0, "1/e decay time of the table's ringing"))),
     )
 }
 

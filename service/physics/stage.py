@@ -184,8 +184,17 @@ class StageGeometry:
 
 def stage_angles_deg(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike,
                      dir_x: ArrayLike = 0, dir_y: ArrayLike = 0,
-                     rng: np.random.Generator | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Angles the stages really reach for the given commands and approach directions."""
+                     rng: np.random.Generator | None = None,
+                     stand: ArrayLike | None = None,
+                     positioning_error_deg: tuple[float, float] | None = None,
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Angles the stages really reach for the given commands and approach directions.
+
+    The positioning error (`stage_sigma_deg`, a repeatability) is drawn once per move: per row, or
+    with `stand` (the move each row was read at) once per stand, shared by the rows read there. A
+    caller that keeps the stand itself (the simulated bench, whose stage stands between moves) gives
+    the error of the present stand as `positioning_error_deg` (x, y), and nothing is drawn.
+    """
     nom_x, nom_y = bench.quantise(cmd_x_deg, cmd_y_deg)
     out = []
     for ax, nom, d, period in (("x", nom_x, dir_x, bench.worm_period_x_deg),
@@ -196,8 +205,14 @@ def stage_angles_deg(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd
         if amp:
             ang = ang + amp * np.sin(2 * np.pi * nom / period + np.radians(fx.get("periodic_error", f"{ax}_phase_deg")))
         sigma = fx.get("noise", "stage_sigma_deg")
-        if rng is not None and sigma > 0:
-            ang = ang + rng.normal(0.0, sigma, np.shape(ang))
+        if positioning_error_deg is not None:
+            ang = ang + positioning_error_deg[0 if ax == "x" else 1]
+        elif rng is not None and sigma > 0:
+            if stand is None:
+                ang = ang + rng.normal(0.0, sigma, np.shape(ang))
+            else:
+                moves, which = np.unique(np.asarray(stand), return_inverse=True)
+                ang = ang + rng.normal(0.0, sigma, moves.size)[which.reshape(np.shape(stand))]
         out.append(np.asarray(ang, dtype=float))
     return out[0], out[1]
 
@@ -214,10 +229,12 @@ def _drift(fx: EffectSet, sensor: str, axis: str, t_s: NDArray[np.float64], rng:
 def simulate_stage(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike,
                    dir_x: ArrayLike = 0, dir_y: ArrayLike = 0, temp_c: ArrayLike | None = None,
                    t_s: ArrayLike | None = None, rng: np.random.Generator | None = None,
-                   geometry: StageGeometry | None = None) -> dict[str, NDArray[np.float64]]:
+                   geometry: StageGeometry | None = None, stand: ArrayLike | None = None,
+                   positioning_error_deg: tuple[float, float] | None = None) -> dict[str, NDArray[np.float64]]:
     """Readings of both sensors (and the true table tilt) at each commanded point.
 
-    `rng=None` gives the noiseless bench. Returns arrays keyed by dataset column names plus
+    `rng=None` gives the noiseless bench. Both sensors ride on one table: they see the same
+    positioning error, drawn once per row (each row a move) or, with `stand`, once per stand. Returns arrays keyed by dataset column names plus
     `tilt_x_deg`, `tilt_y_deg` (truth) and `actual_x_deg`, `actual_y_deg` (stage angles).
     """
     cmd_x = np.atleast_1d(np.asarray(cmd_x_deg, dtype=float))
@@ -226,7 +243,9 @@ def simulate_stage(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd_y
     temp = np.broadcast_to(np.asarray(bench.temp_ref_c if temp_c is None else temp_c, dtype=float), n)
     t = np.broadcast_to(np.asarray(0.0 if t_s is None else t_s, dtype=float), n)
     geometry = geometry or StageGeometry.from_effects(bench, fx)
-    act_x, act_y = stage_angles_deg(bench, fx, cmd_x, cmd_y, dir_x, dir_y, rng)
+    act_x, act_y = stage_angles_deg(bench, fx, cmd_x, cmd_y, dir_x, dir_y, rng,
+                                    None if stand is None else np.broadcast_to(np.asarray(stand), n),
+                                    positioning_error_deg)
     geo = geometry.readings_deg(np.radians(np.broadcast_to(act_x, n)), np.radians(np.broadcast_to(act_y, n)))
     dT = temp - bench.temp_ref_c
     out = {"tilt_x_deg": geo["tilt_x"], "tilt_y_deg": geo["tilt_y"],

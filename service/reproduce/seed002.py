@@ -438,8 +438,9 @@ def run(out_dir: Path) -> dict[str, Any]:
         "",
         ("The U of the parameters comes from the fit's scatter only. The benches' constant zero and scale errors of "
         "the outputs (about 1e-4 and 2e-4) bias α, β, γ by about 0.01°, more than that U and invisible in the "
-        "scatter; the θ errors above include that bias, and the u_theta_deg the method reports covers noise and "
-        "fit only, not uncorrected output errors."),
+        "scatter; the θ errors above include that bias. The U of θ the method reports includes it: the fit's θ "
+        "residuals against theta_ref_deg show it per angle (docs/calibration-rotation-scale-turntable.md, "
+        "Limits), so no angle of the sweep is covered less than 0.92 of the time (docs/uncertainty.md)."),
         "",
         f"![theta error]({f6})",
         "",

@@ -134,7 +134,8 @@ def _rows(sc: Scenario) -> tuple[int, str]:
     """Rows the scenario would simulate, and the grid fields that set them."""
     if isinstance(sc, StageScenario):
         g = sc.grid
-        return axis_size(g.x_deg) * axis_size(g.y_deg) * g.repeats, "grid.x_deg × grid.y_deg × grid.repeats"
+        return (axis_size(g.x_deg) * axis_size(g.y_deg) * g.repeats * g.readings_per_stand,
+                "grid.x_deg × grid.y_deg × grid.repeats × grid.readings_per_stand")
     if isinstance(sc, RotationScenario):
         return axis_size(sc.grid.theta_deg) * sc.grid.repeats, "grid.theta_deg × grid.repeats"
     if isinstance(sc, ScaleScenario):
@@ -156,13 +157,22 @@ if not TYPE_CHECKING:
 
 
 class StageGrid(_Strict):
-    """Commanded stage points; every (x, y) combination, visited in the given order."""
+    """Commanded stage points; every (x, y) combination, visited in the given order.
+
+    Each visit is one move (one draw of the stage's positioning error); `readings_per_stand`
+    rows are read while the stage stands there, sharing that draw, each with its own sensor noise.
+    """
 
     x_deg: Axis
     y_deg: Axis
     repeats: Annotated[int, Field(ge=1, le=1000)] = 1
     order: Literal["serpentine", "raster", "random"] = "serpentine"
     settle_s: Annotated[float, Field(ge=0, le=3600)] = 10.0
+    readings_per_stand: Annotated[int, Field(
+        ge=1, le=1000, description="rows read at each stand of the stage (one move): they share the stage's "
+                                   "positioning error, each has its own reading noise")] = 1
+    reading_interval_s: Annotated[float, Field(
+        gt=0, le=3600, description="time between the readings at one stand (seconds)")] = 1.0
 
 
 class _ScenarioBase(_Strict):

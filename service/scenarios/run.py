@@ -12,6 +12,7 @@ from service.io import columns
 from service.physics.analog import AnalogSensor, simulate_scale
 from service.physics.effects import EffectSet
 from service.physics.rotation_axis import RotationBench, simulate_rotation
+from service.physics.settling import SIM_STAGE_VELOCITY_PPS, moves_along, settling_of, transient_along_deg
 from service.physics.stage import StageBench, simulate_stage
 from service.physics.turntable import TurntableInclinometer, simulate_turntable
 from service.scenarios.model import (
@@ -106,6 +107,22 @@ def stage_sequence(scenario: StageScenario, rng: np.random.Generator) -> tuple[N
     return gx[order], gy[order], gi[order]
 
 
+def settling_transient_deg(scenario: StageScenario, bench: StageBench, fx: EffectSet, cx: NDArray[np.float64],
+                           cy: NDArray[np.float64], t_s: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Each stage's settling transient at the rows' times: the stage leaves for each point `settle_s` before its
+    row is read (as the previous row is read), moving at the simulated controller's velocity as the daemon's
+    simulated bench does, so a reading at the same time after the same moves is the same offline and on the bench."""
+    st = settling_of(fx)
+    if st.is_instant:
+        return np.zeros_like(cx), np.zeros_like(cy)
+    depart = t_s - scenario.grid.settle_s
+    out = []
+    for cmd, pulse in ((cx, bench.pulse_x_deg), (cy, bench.pulse_y_deg)):
+        moves = moves_along(cmd.tolist(), -bench.travel_deg, depart.tolist(), SIM_STAGE_VELOCITY_PPS * pulse)
+        out.append(transient_along_deg(st, moves, t_s))
+    return out[0], out[1]
+
+
 def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = False) -> SimulatedRun:
     rng = np.random.default_rng(scenario.seed if seed is None else seed)
     fx = effect_set(scenario)
@@ -116,11 +133,20 @@ def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = 
         cx, cy, point = stage_sequence(scenario, rng)
         # The dataset records what the controller executes: whole pulses of this bench.
         cx, cy = bench.quantise(cx, cy)
-        t_s = np.arange(len(cx), dtype=float) * scenario.grid.settle_s
-        temp = temperature(scenario.environment, t_s)
         dx = move_directions(cx, -bench.travel_deg)
         dy = move_directions(cy, -bench.travel_deg)
-        sim = simulate_stage(bench, fx, cx, cy, dx, dy, temp, t_s, noise_rng)
+        t_s = np.arange(len(cx), dtype=float) * scenario.grid.settle_s
+        stand = None
+        if (per := scenario.grid.readings_per_stand) > 1:
+            # each stand read `per` times while the stage stands: one move, one positioning draw, `per` rows
+            k = np.tile(np.arange(per), len(cx))
+            t_s = (np.arange(len(cx), dtype=float) * (scenario.grid.settle_s + (per - 1) * scenario.grid.reading_interval_s)
+                   ).repeat(per) + k * scenario.grid.reading_interval_s
+            cx, cy, point, dx, dy = (np.repeat(v, per) for v in (cx, cy, point, dx, dy))
+            stand = np.arange(len(cx)) // per
+        temp = temperature(scenario.environment, t_s)
+        sx, sy = settling_transient_deg(scenario, bench, fx, cx, cy, t_s)
+        sim = simulate_stage(bench, fx, cx + sx, cy + sy, dx, dy, temp, t_s, noise_rng, stand=stand)
         cols = {"point": point, "stage_x_deg": cx, "stage_y_deg": cy, "dir_x": dx, "dir_y": dy,
                 **{k: sim[k] for k in columns.REF + columns.MEAS}, "temp_c": temp, "t_s": t_s}
         truth = {k: sim[k] for k in ("tilt_x_deg", "tilt_y_deg", "actual_x_deg", "actual_y_deg")}

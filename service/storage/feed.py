@@ -25,6 +25,7 @@ EVENT_TYPES = (
     "certificate.issued", "standard.due_soon", "order.created", "diagnosis.finished",
 )  # fmt: skip
 _JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+ROW_ANCHORS = "rows_sha256"  # an audit event's hashes of the rows it changed (service/storage/rowhash.py)
 
 
 def _job_event(s: Session, e: AuditEvent, state: str) -> dict[str, Any]:
@@ -61,12 +62,13 @@ def event_for(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
     if action in ("record.review", "record.approve", "record.reject"):
         kind = {"record.review": "record.reviewed", "record.approve": "record.approved",
                 "record.reject": "record.rejected"}[action]  # fmt: skip
-        return kind, _record_event(s, int(e.entity_id), {k: d.get(k) for k in ("approval_id", "actor", "meaning", "note", "record_sha256")})
+        return kind, _record_event(s, int(e.entity_id), {k: d.get(k) for k in ("approval_id", "actor", "signer", "meaning", "note", "record_sha256")})
+    data = {k: v for k, v in d.items() if k != ROW_ANCHORS}  # the rows' hashes are the audit chain's, not news
     if action == "diagnosis.finish":
-        return "diagnosis.finished", dict(d)
+        return "diagnosis.finished", data
     if action in ("certificate.issue", "standard.due_soon", "order.create"):
         return {"certificate.issue": "certificate.issued", "standard.due_soon": "standard.due_soon",
-                "order.create": "order.created"}[action], dict(d)  # fmt: skip
+                "order.create": "order.created"}[action], data  # fmt: skip
     return None
 
 

@@ -134,6 +134,8 @@ class CalibrationJob(Base):
     updated_at: Mapped[dt.datetime | None] = mapped_column(index=True, default=utc_now, onupdate=utc_now)
     # The LIMS order the job works on, if any.
     order_id: Mapped[int | None] = mapped_column(sa.ForeignKey("orders.id"), index=True)
+    # Bench time spent so far, by activity ({"total", "moving", "settling", "reading"}, bench seconds).
+    bench_seconds: Mapped[dict[str, Any] | None]
 
 
 class CalibrationRecord(Base):
@@ -272,6 +274,9 @@ class SettledPoint(Base):
     ch_z_std: Mapped[float | None] = mapped_column(sa.Double())
     temp_c_mean: Mapped[float | None] = mapped_column(sa.Double())
     created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
+    # SHA-256 of the raw samples the point was averaged from (this job, device and point), part of the
+    # point's hashed content and so of the record's: an edit of a raw sample breaks the chain
+    samples_sha256: Mapped[str | None] = mapped_column(Sha256)
 
 
 class ApiToken(Base):
@@ -286,6 +291,11 @@ class ApiToken(Base):
     created_at: Mapped[dt.datetime]
     created_by: Mapped[str] = mapped_column(sa.String(100))
     revoked_at: Mapped[dt.datetime | None]
+    # The person behind the token: who signs what it approves (a certificate names them, with their function).
+    person_name: Mapped[str | None] = mapped_column(sa.String(200))
+    person_function: Mapped[str | None] = mapped_column(sa.String(200))
+    # SHA-256 of every other column, anchored in the audit chain at each change (service/storage/rowhash.py)
+    row_sha256: Mapped[str | None] = mapped_column(Sha256)
 
 
 class IdempotencyKey(Base):
@@ -328,6 +338,10 @@ class ReferenceStandard(Base):
     created_by: Mapped[str] = mapped_column(sa.String(100))
     # The due date a standard.due_soon event was last sent for (once per due date).
     due_soon_notified_on: Mapped[dt.date | None] = mapped_column(sa.Date())
+    # Who calibrated the standard: {"name", "country_code"[, "accreditation", "city"]}; certificates name it.
+    calibrated_by: Mapped[dict[str, Any] | None] = mapped_column(sa.JSON())
+    # SHA-256 of every other column, anchored in the audit chain at each change (service/storage/rowhash.py)
+    row_sha256: Mapped[str | None] = mapped_column(Sha256)
 
 
 class Order(Base):
@@ -349,6 +363,9 @@ class Order(Base):
     created_by: Mapped[str] = mapped_column(sa.String(100))
     idempotency_key: Mapped[str | None] = mapped_column(sa.String(200), unique=True)
     request_sha256: Mapped[str] = mapped_column(Sha256)
+    # What the item must meet: {"max_permissible_error_deg", "decision_rule"[, "guard_band_fraction", "parameters"]};
+    # its certificate then states conformity.
+    specification: Mapped[dict[str, Any] | None] = mapped_column(sa.JSON())
 
 
 class RecordApproval(Base):
@@ -368,6 +385,9 @@ class RecordApproval(Base):
     record_sha256: Mapped[str] = mapped_column(Sha256)
     prev_sha256: Mapped[str] = mapped_column(Sha256, unique=True)
     sha256: Mapped[str] = mapped_column(Sha256, unique=True)
+    # The person who signed (the token's person at the time): part of what the approval's hash covers.
+    signer_name: Mapped[str | None] = mapped_column(sa.String(200))
+    signer_function: Mapped[str | None] = mapped_column(sa.String(200))
 
 
 class Certificate(Base):
@@ -410,6 +430,8 @@ class WebhookEndpoint(Base):
     created_at: Mapped[dt.datetime]
     created_by: Mapped[str] = mapped_column(sa.String(100))
     disabled_at: Mapped[dt.datetime | None]
+    # SHA-256 of every other column, anchored in the audit chain at each change (service/storage/rowhash.py)
+    row_sha256: Mapped[str | None] = mapped_column(Sha256)
 
 
 class WebhookDelivery(Base):

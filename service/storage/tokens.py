@@ -39,11 +39,48 @@ def granted(scopes: Iterable[str]) -> set[str]:
 
 
 @dataclass(frozen=True)
+class Person:
+    """The person behind a token: the name and function a certificate states for who approved or ran it."""
+
+    name: str
+    function: str | None = None
+
+    def described(self) -> str:
+        return f"{self.name}, {self.function}" if self.function else self.name
+
+
+PERSON_TEXT_MAX = 200
+
+
+def person_of(fields: object, what: str = "person") -> Person:
+    """A person from {"name", "function"}: a name of 1-200 printable characters, optionally a function as long."""
+    if not isinstance(fields, dict):
+        raise InputError(f'{what}: an object {{"name": ..., "function": ...}} is needed')
+    unknown = sorted(set(fields) - {"name", "function"})
+    if unknown:
+        raise InputError(f"{what}.{unknown[0]}: unknown; a person has a name and a function")
+    name, function = fields.get("name"), fields.get("function")
+    for key, value, needed in (("name", name, True), ("function", function, False)):
+        if value is None and not needed:
+            continue
+        if not isinstance(value, str) or not value.strip():
+            need = "the person's full name" if key == "name" else "their function in the laboratory, as text"
+            raise InputError(f"{what}.{key}: give {need}")
+        if len(value) > PERSON_TEXT_MAX:
+            raise InputError(f"{what}.{key}: longer than {PERSON_TEXT_MAX} characters")
+        if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in value):
+            raise InputError(f"{what}.{key}: control characters are not allowed")
+    assert isinstance(name, str)
+    return Person(name.strip(), function.strip() if isinstance(function, str) else None)
+
+
+@dataclass(frozen=True)
 class Principal:
-    """Who a request is: the token's name and what it may do."""
+    """Who a request is: the token's name, what it may do, and the person behind it (if the token names one)."""
 
     name: str
     scopes: frozenset[str]
+    person: Person | None = None
 
     def may(self, scope: str) -> bool:
         return scope in self.scopes

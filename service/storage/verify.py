@@ -6,8 +6,11 @@ missing) is a *broken chain*. Record creations are also cross-checked with their
 which catches the removal of the newest version of a chain; so are approvals and rejections, which
 catches the removal of the newest decision (the approvals' own chain cannot see its end). A
 record made by a job is checked against the settled points of every device of that job (the
-reference sensor's included: the fit used them). The newest audit event can only be
-vouched for against a copy of its hash kept elsewhere: the report prints it for that purpose.
+reference sensor's included: the fit used them), and each settled point against the raw samples it
+was averaged from (their hash is part of the point's content, and so of the record's). Tokens,
+reference standards and webhook endpoints are checked against their row hash and against the newest
+hash the audit chain recorded for them (service/storage/rowhash.py). The newest audit event can only
+be vouched for against a copy of its hash kept elsewhere: the report prints it for that purpose.
 """
 
 from __future__ import annotations
@@ -19,7 +22,9 @@ from sqlalchemy.orm import Session
 
 from service.storage.canonical import sha256_hex
 from service.storage.models import GENESIS_SHA256, AuditEvent, CalibrationRecord, SettledPoint
-from service.storage.store.hashing import audit_content, points_sha256, record_content
+from service.storage.models import Sample as SampleRow
+from service.storage.rowhash import ANCHORS, HASH_COLUMN, HASHED_CLASSES, anchor_key, row_sha256
+from service.storage.store.hashing import SAMPLE_FIELDS, audit_content, points_sha256, record_content, samples_sha256
 
 
 @dataclass(frozen=True)
@@ -39,6 +44,8 @@ class VerifyReport:
     records_checked: int = 0
     audit_events_checked: int = 0
     approvals_checked: int = 0
+    rows_checked: int = 0
+    sample_points_checked: int = 0
     audit_head_sha256: str = GENESIS_SHA256
     problems: list[Problem] = field(default_factory=list)
 
@@ -59,6 +66,8 @@ class VerifyReport:
             f"calibration records checked: {self.records_checked}",
             f"audit events checked: {self.audit_events_checked}",
             f"approvals and rejections checked: {self.approvals_checked}",
+            f"tokens, reference standards and webhook endpoints checked: {self.rows_checked}",
+            f"settled points checked against their raw samples: {self.sample_points_checked}",
             f"audit head sha256: {self.audit_head_sha256}",
         ]
         out += [str(p) for p in self.problems]
@@ -70,9 +79,11 @@ def verify(engine: sa.Engine) -> VerifyReport:
     report = VerifyReport()
     with Session(engine) as s:
         _verify_records(s, report)
-        created, decided = _verify_audit(s, report)
+        _verify_samples(s, report)
+        created, decided, anchors = _verify_audit(s, report)
         _cross_check(s, report, created)
         _verify_approvals_and_certificates(s, report, decided)
+        _verify_rows(s, report, anchors)
     return report
 
 
@@ -118,16 +129,32 @@ def _verify_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> No
         for device in sorted(set(stored) - set(by_device)):
             report.problems.append(Problem("calibration_records", r.id, "raw_data_changed",
                 f"job {r.job_id} has settled points of device {device} that v{r.version} did not record"))  # fmt: skip
+    # a version adopted from a diagnosis that measured more points was fitted on those jobs' points too
+    measured = r.raw_data.get("measurement_points_sha256")
+    for job_id, hashes in (measured.items() if isinstance(measured, dict) else ()):
+        held: dict[str, list[SettledPoint]] = {}
+        for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == int(job_id))):
+            held.setdefault(str(p.device_id), []).append(p)
+        for device in sorted(set(hashes) | set(held)):
+            if device not in hashes or points_sha256(held.get(device, [])) != hashes[device]:
+                report.problems.append(Problem("calibration_records", r.id, "raw_data_changed",
+                    f"the settled points of device {device} in measurement job {job_id} no longer hash to what "
+                    f"v{r.version} was fitted on"))  # fmt: skip
 
 
 _DECISIONS = ("record.approve", "record.review", "record.reject")
 
 
-def _verify_audit(s: Session, report: VerifyReport) -> tuple[dict[int, str], dict[int, tuple[int, str]]]:
-    """Walks the chain in id order; returns record id -> content hash from record.create events, and
-    approval id -> (audit event id, approval hash) from the decisions' events."""
+Anchors = dict[str, tuple[int, str]]  # "table:id" -> (the audit event that recorded it last, the row's hash)
+
+
+def _verify_audit(s: Session, report: VerifyReport) -> tuple[dict[int, str], dict[int, tuple[int, str]], Anchors]:
+    """Walks the chain in id order; returns record id -> content hash from record.create events,
+    approval id -> (audit event id, approval hash) from the decisions' events, and the newest hash each
+    hashed row (token, standard, webhook endpoint) was given by the events that changed it."""
     created: dict[int, str] = {}
     decided: dict[int, tuple[int, str]] = {}
+    anchors: Anchors = {}
     prev_sha = GENESIS_SHA256
     for e in s.scalars(sa.select(AuditEvent).order_by(AuditEvent.id)).yield_per(1000):
         report.audit_events_checked += 1
@@ -141,9 +168,12 @@ def _verify_audit(s: Session, report: VerifyReport) -> tuple[dict[int, str], dic
             created[int(e.entity_id)] = str(e.details.get("content_sha256"))
         elif e.action in _DECISIONS and isinstance(e.details.get("approval_id"), int):
             decided[e.details["approval_id"]] = (e.id, str(e.details.get("approval_sha256")))
+        rows = e.details.get(ANCHORS) if isinstance(e.details, dict) else None
+        if isinstance(rows, dict):
+            anchors.update({str(key): (e.id, str(sha)) for key, sha in rows.items()})
         prev_sha = e.sha256
     report.audit_head_sha256 = prev_sha
-    return created, decided
+    return created, decided, anchors
 
 
 def _cross_check(s: Session, report: VerifyReport, created: dict[int, str]) -> None:
@@ -196,3 +226,53 @@ def _verify_approvals_and_certificates(s: Session, report: VerifyReport, decided
         if hashlib.sha256(c.xml).hexdigest() != c.sha256:
             report.problems.append(Problem("certificates", c.id, "tampered",
                 f"certificate {c.number}: stored bytes do not match the SHA-256 recorded at issue"))  # fmt: skip
+
+
+def _what(row: object) -> str:
+    """A hashed row in words: which token, standard or endpoint it is."""
+    table = row.__tablename__  # type: ignore[attr-defined]
+    if table == "api_tokens":
+        return f"token {row.name!r}"  # type: ignore[attr-defined]
+    if table == "reference_standards":
+        return f"standard {row.name!r} serial {row.serial} certificate {row.certificate_number}"  # type: ignore[attr-defined]
+    return f"webhook endpoint {row.id}"  # type: ignore[attr-defined]
+
+
+def _verify_rows(s: Session, report: VerifyReport, anchors: Anchors) -> None:
+    """Tokens (scopes, person, revocation ...), reference standards (every field) and webhook endpoints:
+    each row against its own hash, and that hash against the newest one the audit chain recorded for it."""
+    left = dict(anchors)
+    for cls in HASHED_CLASSES:
+        table = cls.__tablename__
+        for row in s.scalars(sa.select(cls).order_by(cls.id)):  # type: ignore[attr-defined]
+            report.rows_checked += 1
+            stored = getattr(row, HASH_COLUMN)
+            audited = left.pop(anchor_key(row), None)
+            if stored is None or row_sha256(row) != stored:
+                report.problems.append(Problem(table, row.id, "tampered",  # type: ignore[attr-defined]
+                    f"{_what(row)}: its columns do not match its SHA-256 (changed outside the daemon)"))  # fmt: skip
+            elif audited is None:
+                report.problems.append(Problem(table, row.id, "missing",  # type: ignore[attr-defined]
+                    f"{_what(row)}: no audit event records it (added outside the daemon)"))  # fmt: skip
+            elif audited[1] != stored:
+                report.problems.append(Problem(table, row.id, "tampered",  # type: ignore[attr-defined]
+                    f"{_what(row)}: its hash differs from the one audit event {audited[0]} recorded at its last"
+                    " change (changed outside the daemon and hashed again)"))  # fmt: skip
+    for key, (event_id, _sha) in sorted(left.items()):
+        table, _, row_id = key.partition(":")
+        report.problems.append(Problem(table, int(row_id) if row_id.isdigit() else None, "missing",
+            f"audit event {event_id} records this row, but it is gone"))  # fmt: skip
+
+
+def _verify_samples(s: Session, report: VerifyReport) -> None:
+    """Each settled point that holds the hash of its raw samples against the samples stored now."""
+    t = SampleRow.__table__
+    for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.samples_sha256.is_not(None)).order_by(SettledPoint.id)):
+        report.sample_points_checked += 1
+        rows = s.execute(sa.select(*(t.c[name] for name in SAMPLE_FIELDS))
+                         .where(t.c.job_id == p.job_id, t.c.device_id == p.device_id, t.c.point == p.point)
+                         .order_by(t.c.t_s, t.c.id)).all()
+        if not rows or samples_sha256(rows) != p.samples_sha256:
+            report.problems.append(Problem("samples", None, "raw_data_changed",
+                f"the raw samples of device {p.device_id} at point {p.point} of job {p.job_id} ({len(rows)} stored now)"
+                f" no longer hash to what settled point id={p.id} recorded: a sample was changed, added or removed"))  # fmt: skip

@@ -50,7 +50,7 @@ async def job_messages(stored_jobs: JobsRepo, points_repo: PointsRepo, events: J
     event = events.subscribe(job_id)
     try:
         job = await asyncio.to_thread(stored_jobs.get_job, job_id)  # database reads off the event loop
-        last = body(job)
+        last = await asyncio.to_thread(body, job)  # the job's body reads its record: off the event loop too
         points = await asyncio.to_thread(job_points, points_repo, job)
         have = {p["index"] for p in points}
         yield {"type": "snapshot", "job": last, "points": points}
@@ -64,6 +64,7 @@ async def job_messages(stored_jobs: JobsRepo, points_repo: PointsRepo, events: J
             try:
                 job = await asyncio.to_thread(stored_jobs.get_job, job_id)
                 points = await asyncio.to_thread(job_points, points_repo, job, frozenset(have))
+                now = await asyncio.to_thread(body, job)
             except Exception as exc:
                 if not unreachable(exc):
                     raise
@@ -77,7 +78,6 @@ async def job_messages(stored_jobs: JobsRepo, points_repo: PointsRepo, events: J
             for p in points:
                 have.add(p["index"])
                 yield {"type": "point", "point": p}
-            now = body(job)
             if _changed(last, now):
                 yield {"type": "job", "job": now}
             last = now

@@ -23,7 +23,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.bench.corrected import MIN_CORRECTION_GAP_S, calibration_json, corrected_once, in_calibrated_range, sensor_temp_c, stale_after_s
+from service.bench.corrected import (
+    MIN_CORRECTION_GAP_S,
+    calibration_json,
+    corrected_once,
+    from_expanded,
+    in_calibrated_range,
+    reference_tilt,
+    sensor_temp_c,
+    stale_after_s,
+)
 from service.bench.runtime import SENSOR_ROLES, BenchRuntime
 from service.instruments.base import Reading
 
@@ -37,7 +46,7 @@ CLOSE_GOING_AWAY = 1001
 
 # History ring columns (NaN for "none").
 _COLS = ("bench_s", "epoch", "mx", "my", "rx", "ry", "tx", "ty", "ux", "uy", "table", "sx", "sy", "moving", "stage",
-         "temp", "kx", "ky", "coverage", "in_range")
+         "temp", "kx", "ky", "coverage", "in_range", "rtx", "rty")
 _C = {name: i for i, name in enumerate(_COLS)}
 
 
@@ -112,12 +121,63 @@ def _row_object(r: NDArray[np.float64]) -> dict[str, Any]:
     return {"time_utc": utc_text(dt.datetime.fromtimestamp(r[_C["epoch"]], dt.UTC)), "type": "reading",
             "raw": {"measurement_sensor": pair("mx", "my"), "reference_sensor": pair("rx", "ry")},
             "table_tilt": None if math.isnan(r[_C["table"]]) else
-            {"x_deg": c("tx"), "y_deg": c("ty"), "u_x_deg": c("ux"), "u_y_deg": c("uy"), "k": c("kx"), "k_y": c("ky"),
-             "coverage_probability": c("coverage")},
+            from_expanded({"x_deg": c("tx"), "y_deg": c("ty")}, {"x": c("ux"), "y": c("uy")}, {"x": c("kx"), "y": c("ky")},
+                          c("coverage")),
+            "reference_tilt": None if math.isnan(r[_C["rtx"]]) else {"x_deg": c("rtx"), "y_deg": c("rty")},
             "in_calibrated_range": None if math.isnan(r[_C["in_range"]]) else bool(r[_C["in_range"]]),
             "stage": None if math.isnan(r[_C["stage"]]) else
             {"x_deg": c("sx"), "y_deg": c("sy"), "moving": bool(r[_C["moving"]])},
             "temp_c": c("temp")}
+
+
+@dataclass(frozen=True, eq=False)
+class SnapshotBuild:
+    """A snapshot's parts copied at connection time: its head (the newest reading, the calibration) and its
+    history rows. Building the message from them is pure work on copies: a thread may do it."""
+
+    head: dict[str, Any]
+    rows: NDArray[np.float64]
+    rate_hz: float
+    eps: float
+
+    @property
+    def size(self) -> int:
+        return len(self.rows)
+
+    def document(self) -> dict[str, Any]:
+        return {**self.head, "history": history_objects(self.rows, self.rate_hz, self.eps)}
+
+    def __call__(self) -> str:
+        return json.dumps(self.document())
+
+
+class SnapshotsBusy(RuntimeError):
+    """As many snapshots as the daemon builds at once are being built, and as many wait as may."""
+
+
+class SnapshotGate:
+    """Snapshots with a long history are built `builds` at a time (in threads), `waiting` more may wait for
+    their turn; one more is refused (SnapshotsBusy). Short ones (`small_rows` rows or fewer) pass at once."""
+
+    def __init__(self, builds: int = 2, waiting: int = 8, small_rows: int = 1000) -> None:
+        self.builds, self.waiting_max, self.small_rows = builds, waiting, small_rows
+        self._slots = asyncio.Semaphore(builds)
+        self.waiting = 0
+        self.refused = 0
+
+    async def build(self, snapshot: SnapshotBuild) -> str:
+        if snapshot.size <= self.small_rows:
+            return await asyncio.to_thread(snapshot)
+        if self.waiting >= self.waiting_max + self.builds:
+            self.refused += 1
+            raise SnapshotsBusy(f"{self.builds} snapshots with long histories are being built and {self.waiting_max}"
+                                " wait (TILTLAB_MAX_SNAPSHOTS, TILTLAB_SNAPSHOT_QUEUE); try again in a few seconds")
+        self.waiting += 1
+        try:
+            async with self._slots:
+                return await asyncio.to_thread(snapshot)
+        finally:
+            self.waiting -= 1
 
 
 @dataclass(eq=False)
@@ -134,6 +194,7 @@ class Client:
     close_code: int | None = None
     close_reason: str = ""
     kicked: asyncio.Event = field(default_factory=asyncio.Event)
+    snapshot: SnapshotBuild | None = None  # a snapshot still to build (deferred), sent before the queue
 
     def kick(self, code: int, reason: str) -> None:
         if self.close_code is None:
@@ -188,10 +249,15 @@ class ReadingProducer:
         """A client's rate: at most the sensors' output rate (higher asks are clamped to it)."""
         return self.sensor_rate_hz if rate_hz is None else min(rate_hz, self.sensor_rate_hz)
 
-    def connect(self, rate_hz: float, history_s: float) -> Client:
-        """Register a client; its queue holds the snapshot (seq 0) already."""
+    def connect(self, rate_hz: float, history_s: float, *, deferred: bool = False) -> Client:
+        """Register a client; its queue holds the snapshot (seq 0) already. `deferred`: the snapshot is not built
+        here (on the event loop) but by `client.snapshot()`, in a thread, from what was copied now (the history
+        up to this moment, which the stream then continues without a gap)."""
         client = Client(rate_hz, asyncio.Queue(self.queue_size))
-        client.queue.put_nowait(json.dumps(self.snapshot(rate_hz, history_s)))
+        if deferred:
+            client.snapshot = self.snapshot_later(rate_hz, history_s)
+        else:
+            client.queue.put_nowait(json.dumps(self.snapshot(rate_hz, history_s)))
         self.clients.add(client)
         return client
 
@@ -199,15 +265,19 @@ class ReadingProducer:
         self.clients.discard(client)
 
     def snapshot(self, rate_hz: float, history_s: float) -> dict[str, Any]:
+        return self.snapshot_later(rate_hz, history_s).document()
+
+    def snapshot_later(self, rate_hz: float, history_s: float) -> SnapshotBuild:
+        """What a snapshot is made of, copied now (cheap); the message is built from it later, anywhere."""
         latest = self._latest or self._build(self.bench.clock.monotonic())[0]
-        active = self._active_of()
         rows = self.history.since(self.bench.clock.monotonic() - history_s)
-        return {"type": "snapshot", "seq": 0, "time_utc": latest["time_utc"], "bench": self.bench.name,
+        head = {"type": "snapshot", "seq": 0, "time_utc": latest["time_utc"], "bench": self.bench.name,
                 "rate_hz": rate_hz, "raw": latest["raw"], "table_tilt": latest["table_tilt"],
+                "reference_tilt": latest.get("reference_tilt"),
                 "stage": latest["stage"], "temp_c": latest["temp_c"],
-                "calibration": calibration_of(active),
-                "in_calibrated_range": latest.get("in_calibrated_range"),
-                "history": history_objects(rows, rate_hz, 0.25 * self.interval_s)}
+                "calibration": calibration_of(self._active_of()),
+                "in_calibrated_range": latest.get("in_calibrated_range")}
+        return SnapshotBuild(head, rows, rate_hz, 0.25 * self.interval_s)
 
     # ------------------------------------------------------------ producing
 
@@ -317,8 +387,10 @@ class ReadingProducer:
             return None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}
 
         in_range = in_calibrated_range(active, table)
+        through = reference_tilt(active, ref, temp) if bench.kind == "stage" else None
         msg = {"time_utc": utc_text(when), "type": "reading",
                "raw": {"measurement_sensor": pair(meas), "reference_sensor": pair(ref)},
+               "reference_tilt": through,
                "table_tilt": table, "in_calibrated_range": in_range, "stage": stage, "temp_c": temp,
                "calibration": calibration_of(active)}  # an activation shows with the next reading
         nan = math.nan
@@ -335,14 +407,17 @@ class ReadingProducer:
                f(stage["x_deg"] if stage else None), f(stage["y_deg"] if stage else None),
                1.0 if stage and stage["moving"] else 0.0, 1.0 if stage else nan, f(temp),
                f(table["k"] if table else None), f(table["k_y"] if table else None),
-               f(table["coverage_probability"] if table else None), nan if in_range is None else float(in_range)]
+               f(table["coverage_probability"] if table else None), nan if in_range is None else float(in_range),
+               f(through["x_deg"] if through else None), f(through["y_deg"] if through else None)]
         return msg, row
 
 
 class StreamHub:
     """The producers of every bench, started and stopped with the daemon."""
 
-    def __init__(self, benches: dict[str, BenchRuntime], jobs: Any, *, queue_size: int, slow_close_s: float) -> None:
+    def __init__(self, benches: dict[str, BenchRuntime], jobs: Any, *, queue_size: int, slow_close_s: float,
+                 snapshots: SnapshotGate | None = None) -> None:
+        self.snapshots = snapshots or SnapshotGate()
         self.producers = {name: ReadingProducer(b, (lambda n=name: jobs.active.get(n)), queue_size=queue_size,
                                                 slow_close_s=slow_close_s)
                           for name, b in benches.items()}

@@ -8,7 +8,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import httpx
@@ -21,12 +21,17 @@ def free_port() -> int:
 
 
 @contextlib.contextmanager
-def running_service(data_dir: Path, **env: str) -> Iterator[str]:
-    """Start the service on an empty data directory; yields its base URL once /health answers."""
+def running_service(data_dir: Path, args: Sequence[str] = (), **env: str) -> Iterator[str]:
+    """Start the service on an empty data directory (with `tiltlab serve` options `args`); yields its base URL
+    once /health answers."""
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port)],
-                            env={**os.environ, "TILTLAB_DATA_DIR": str(data_dir), **env},
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # the daemon's output goes to a file beside the data directory: a pipe nobody reads fills after 64 kB of
+    # access log and then holds the daemon's event loop on its next log line
+    log = Path(data_dir).parent / f"{Path(data_dir).name}.serve.log"
+    with log.open("wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port), *args],
+                                env={**os.environ, "TILTLAB_DATA_DIR": str(data_dir), **env},
+                                stdout=out, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 60
@@ -36,8 +41,7 @@ def running_service(data_dir: Path, **env: str) -> Iterator[str]:
                 break
             except httpx.TransportError as exc:
                 if proc.poll() is not None or time.monotonic() > deadline:
-                    out = proc.stdout.read() if proc.poll() is not None else ""
-                    raise AssertionError(f"service did not start: {out}") from exc
+                    raise AssertionError(f"service did not start: {log.read_text(errors='replace')}") from exc
                 time.sleep(0.2)
         yield base
     finally:

@@ -5,8 +5,10 @@ effect and the gap figures, and "Adopt as new version" makes the next version, l
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import httpx
 import pytest
@@ -43,7 +45,7 @@ def test_diagnose_from_the_dashboard_and_adopt(daemon):
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"])
         try:
-            page = browser.new_page(viewport={"width": 1280, "height": 900})
+            page = browser.new_page(bypass_csp=True, viewport={"width": 1280, "height": 900})
             page.goto(f"{base}/#token={h['Authorization'].split()[1]}")
             page.get_by_role("tab", name="Records").click()
             page.locator(f"#records tr[data-id='{rec_id}']").click()
@@ -54,6 +56,20 @@ def test_diagnose_from_the_dashboard_and_adopt(daemon):
             expect(page.locator("#diag-result")).to_contain_text("periodic_error")
             expect(page.locator("#diag-result")).to_contain_text("gap after")
             expect(page.locator("#diag-adopt")).to_be_visible()
+            # the gap shrink drawn where people look: the diagnosis's residual maps side by side, on one scale
+            diag_id = int(page.locator("#diag-state").get_attribute("data-diagnosis") or 0)
+            diagnosis = httpx.get(f"{base}/diagnoses/{diag_id}", headers=h, timeout=30).json()
+            n = len(diagnosis["residual_maps"]["stage_deg"])
+            for which in ("before", "after"):
+                expect(page.locator(f"#diag-{which} g.res")).to_have_count(n, timeout=T)
+            lengths = page.evaluate("""() => ['before', 'after'].map((w) => Math.max(...[...document.querySelectorAll(
+                `#diag-${w} g.res line`)].map((l) => Math.hypot(l.x2.baseVal.value - l.x1.baseVal.value,
+                                                              l.y2.baseVal.value - l.y1.baseVal.value))))""")
+            assert lengths[1] < lengths[0], lengths  # the named effect shortens the arrows
+            if os.environ.get("TILTLAB_SCREENSHOT_DIR"):
+                page.evaluate("window.scrollTo(0, 0)")
+                page.screenshot(path=str(Path(os.environ["TILTLAB_SCREENSHOT_DIR"]) / "diagnosis.png"), full_page=True)
+            expect(page.locator("#diag-adoption li[data-effect=periodic_error]")).to_have_attribute("data-adoptable", "true")
             page.click("#diag-adopt")
             expect(page.locator("#rec-msg")).to_contain_text("made from diagnosis", timeout=5 * T)
             records = httpx.get(f"{base}/records", headers=h, timeout=30).json()["records"]
@@ -61,5 +77,19 @@ def test_diagnose_from_the_dashboard_and_adopt(daemon):
             assert "periodic_error" in adopted["raw_data"]["added_effects"]
             expect(page.locator("#record-detail")).to_have_attribute("data-id", str(adopted["id"]), timeout=T)
             expect(page.locator(f"#records tr[data-id='{adopted['id']}']")).to_contain_text("periodic_error")
+            # the new version is compared with the one it came from, over the grid both were measured on
+            grid = BODY["grid"]
+            same = page.locator("#rec-compare [data-grids]")
+            expect(same).to_have_attribute("data-grids", "same", timeout=T)
+            expect(same).to_contain_text(f"{grid['n_x']} × {grid['n_y']} grid")
+            # the new version links the diagnosis that made it; the diagnosis, shown on its record, links the new one
+            expect(page.locator("#rec-origin")).to_contain_text(f"made from diagnosis {diag_id} of record {rec_id}: periodic_error added")
+            page.click("#rec-origin-link")
+            expect(page.locator("#record-detail")).to_have_attribute("data-id", str(rec_id), timeout=T)
+            expect(page.locator("#diag-state")).to_have_attribute("data-diagnosis", str(diag_id), timeout=T)
+            made = page.locator(f"#diag-made button[data-record='{adopted['id']}']")
+            expect(made).to_be_visible(timeout=T)
+            made.click()
+            expect(page.locator("#record-detail")).to_have_attribute("data-id", str(adopted["id"]), timeout=T)
         finally:
             browser.close()

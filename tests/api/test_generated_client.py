@@ -67,13 +67,16 @@ def _lims_flow(pkg: ModuleType, base: str, admin_token: str) -> None:
     admin = pkg.AuthenticatedClient(base_url=base, token=admin_token, timeout=httpx.Timeout(60.0))
     people = {}
     for name in ("alice", "bob"):
-        made = tokens.sync(client=admin, body=m.NewToken(name=name, scopes=["admin"]))
+        made = tokens.sync(client=admin, body=m.NewToken(name=name, scopes=[m.NewTokenScopesItem("admin")],
+                                                         person=m.PersonIn(name=f"{name.title()} Example",
+                                                                           function="Calibration Engineer")))
         assert isinstance(made, m.CreatedToken), made
         people[name] = pkg.AuthenticatedClient(base_url=base, token=made.token, timeout=httpx.Timeout(60.0))
 
     standard = lims["add_standard_standards_post"].sync(client=admin, body=m.StandardIn(
         name="reference inclinometer", serial="REF-77", certificate_number="DAkkS-2026-0412", certificate_sha256="ab" * 32,
-        calibrated_on=dt.date(2026, 1, 10), due_on=dt.date(2099, 1, 10), expanded_uncertainty_deg=0.002))
+        calibrated_on=dt.date(2026, 1, 10), due_on=dt.date(2099, 1, 10), expanded_uncertainty_deg=0.002,
+        calibrated_by=m.CalibratedByIn(name="Angle Calibration Laboratory AG", country_code="DE")))
     assert isinstance(standard, m.Standard), standard
     order = lims["create_order_orders_post"].sync(client=admin, idempotency_key="lims-118", body=m.OrderIn(
         lims_order_id="LIMS-118", item_serial="CUST-55", procedure=m.OrderInProcedure("stage-grid"),

@@ -51,11 +51,13 @@ def test_head_answers_every_get_route(client: TestClient) -> None:
             assert int(head.headers["content-length"]) > 0, path
 
 
-def test_405_carries_allow_with_every_method_of_the_path(client: TestClient) -> None:
+def test_405_carries_allow_with_every_method_of_the_path(client: TestClient, tmp_path) -> None:  # type: ignore[no-untyped-def]
     paths = {**_schema_paths(client), "/docs": {"GET"}, "/": {"GET"}}
+    # with a token: without one, a protected path answers 401 whatever the method (the token comes first)
+    admin = {"Authorization": "Bearer " + (tmp_path / "admin.token").read_text().strip()}
     for path, served in paths.items():
         refused = next(m for m in ("DELETE", "PATCH", "PUT", "POST") if m not in served)
-        r = client.request(refused, path)
+        r = client.request(refused, path, headers=admin)
         assert r.status_code == 405, (refused, path)
         assert r.headers["content-type"].startswith("application/problem+json")
         allow = {m.strip() for m in r.headers["allow"].split(",")}
@@ -75,7 +77,8 @@ def test_allow_lists_methods_of_separate_routes_on_one_path(tmp_path) -> None:  
         return {}
 
     with TestClient(app) as c:
-        r = c.delete("/lab-notes")
+        admin = {"Authorization": "Bearer " + (tmp_path / "admin.token").read_text().strip()}
+        r = c.delete("/lab-notes", headers=admin)
         assert r.status_code == 405
         assert r.headers["allow"] == "GET, HEAD, POST"
-        assert c.head("/lab-notes").status_code == 200
+        assert c.head("/lab-notes", headers=admin).status_code == 200

@@ -38,10 +38,13 @@ def test_tilt_serves_readings_and_says_when_uncorrected(client, tmp_path):
     assert body["table_tilt"] is None and "no active calibration" in body["note"]
 
 
-def test_unknown_route_is_problem_json(client):
-    r = client.get("/nope")
+def test_unknown_route_is_problem_json(client, tmp_path):
+    token = (tmp_path / "admin.token").read_text().strip()
+    r = client.get("/nope", headers={"Authorization": f"Bearer {token}"})
     assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
     assert r.json()["status"] == 404
+    r = client.get("/nope")  # a stranger learns no more than that a token is needed
+    assert r.status_code == 401 and r.headers["content-type"].startswith("application/problem+json")
 
 
 def test_bench_scenario_setting_chooses_the_simulated_bench(tmp_path):
@@ -70,8 +73,10 @@ def test_tiltlab_serve_starts_on_a_fresh_data_dir(tmp_path):
 def test_dashboard_page_and_assets_are_served(client):
     page = client.get("/")
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
-    assert '<script src="/web/dashboard.js">' in page.text
-    for asset, kind in (("/web/dashboard.js", "javascript"), ("/web/dashboard.css", "text/css")):
+    assert '<script type="module" src="/web/js/main.js">' in page.text
+    for asset, kind in (("/web/js/main.js", "javascript"), ("/web/js/views/live.js", "javascript"),
+                        ("/web/vendor/uplot/uPlot.esm.js", "javascript"), ("/web/dashboard.css", "text/css"),
+                        ("/favicon.ico", "image/svg+xml")):
         r = client.get(asset)
         assert r.status_code == 200 and kind in r.headers["content-type"]
     missing = client.get("/web/nope.js")
@@ -84,6 +89,7 @@ def test_dashboard_page_and_assets_are_served(client):
         ({"TILTLAB_BENCH_SCENARIO": "nope"}, "TILTLAB_BENCH_SCENARIO.*no such preset"),
         ({"TILTLAB_BENCH_SCENARIO": "seed002-b55"}, "TILTLAB_BENCH_SCENARIO.*needs a stage"),
         ({"TILTLAB_DATABASE_URL": "mysql://u@h/db"}, "only sqlite and postgresql"),
+        ({"TILTLAB_SIM_SPEED": "50"}, "TILTLAB_SIM_SPEED.*50 is more than the simulated stage bench can run.*at most 28"),
     ],
 )
 def test_tiltlab_serve_refuses_unusable_settings_with_one_line(tmp_path, env, match):

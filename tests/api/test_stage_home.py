@@ -88,3 +88,35 @@ def test_a_job_homes_the_stage_before_its_first_point(daemon: Daemon) -> None:
     assert job["state"] == "succeeded", job
     assert job["progress"]["phase"] == "done", job
     assert daemon.post("/stage/move", {"x_deg": 0.2, "y_deg": 0.2}).status_code == 200  # homed for good
+
+
+def test_a_stop_during_homing_is_a_conflict_not_a_device_fault(tmp_path) -> None:
+    """`POST /stage/stop` while `POST /stage/home` runs: the homing answers 409 saying it was stopped (the
+    instruments answer; nothing is wrong with them), and the stage can be homed afterwards."""
+    import threading
+
+    data = tmp_path / "data"
+    data.mkdir()
+    with running_service(data, TILTLAB_SIM_SPEED="1", TILTLAB_BENCH_SCENARIO=str(unhomed_scenario(tmp_path))) as base:
+        d = Daemon(base, (data / "admin.token").read_text().strip())
+        deadline = time.monotonic() + 60
+        while d.get("/benches").json()["benches"][0]["state"] != "ready":
+            assert time.monotonic() < deadline, "the bench did not come up"
+            time.sleep(0.2)
+        assert d.post("/stage/home", {}).status_code == 200
+        assert d.post("/stage/move", {"x_deg": 8.0, "y_deg": -8.0}).status_code == 200  # far from the switches
+        answers: list[httpx.Response] = []
+        homing = threading.Thread(target=lambda: answers.append(d.post("/stage/home", {})))
+        homing.start()
+        deadline = time.monotonic() + 60
+        while d.get("/benches").json()["benches"][0].get("held_by") is None:
+            assert time.monotonic() < deadline and homing.is_alive(), "homing never held the bench"
+            time.sleep(0.02)
+        stopped = d.post("/stage/stop", {})
+        homing.join(timeout=120)
+        assert stopped.status_code == 200, stopped.text
+        assert answers and answers[0].status_code == 409, answers[0].text if answers else "no answer"
+        problem = answers[0].json()
+        assert problem["title"] == "Motion stopped" and "POST /stage/stop" in problem["detail"], problem
+        homed = d.post("/stage/home", {})
+        assert homed.status_code == 200, homed.text

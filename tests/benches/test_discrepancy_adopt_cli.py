@@ -56,7 +56,12 @@ def test_adopt_writes_the_model_with_the_named_effect_and_levels_closer(runs):
     model = read_model(runs / "adopted.json")
     assert model.method == "kinematic" and model.state["added_effects"] == ["periodic_error"]
     assert model.state["diagnosis"]["report"] == "rep.json" and model.provenance["command"]
-    assert model.value("periodic_error.x_amp_deg") == pytest.approx(0.010, abs=0.002)
+    # fitted as a sine/cosine pair (linear, determined from a start at zero); amplitude and phase derived from it
+    assert np.hypot(model.value("periodic_error.x_sin_deg"), model.value("periodic_error.x_cos_deg")) == pytest.approx(
+        0.010, abs=0.002)
+    worm = model.fit["periodic_error"]["x"]
+    assert worm["amplitude_deg"] == pytest.approx(0.010, abs=0.002) and worm["u_amplitude_deg"] > 0
+    assert worm["phase_deg"] == pytest.approx(40.0, abs=3 * worm["u_phase_deg"] + 2.0)
     assert StageBench(**model.state["bench"]).upper_gear_ratio == 180
     p = tiltlab("calibrate", "--kind", "stage", "--method", "kinematic", "--input", "periodic.csv", "--bench",
                 "periodic.json", "--out", "plain.json", cwd=runs)

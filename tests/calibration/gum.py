@@ -12,7 +12,7 @@ import numpy as np
 from service.calibration.uncertainty import coverage_factor
 
 Z95 = float(coverage_factor(np.inf))
-DOF_KEYS = ("dof", "meas_dof", "reading_sigma_dof")
+DOF_KEYS = ("dof", "meas_dof", "reading_sigma_dof", "meas_reading_dof")
 
 
 def without_dof(model):

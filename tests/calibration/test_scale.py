@@ -169,7 +169,7 @@ def test_model_round_trips_through_json(deg):
     back = CalibrationModel.from_json_dict(json.loads(json.dumps(model.to_json_dict(), allow_nan=False)))
     x = {"reading": np.linspace(0, 4095, 17)}
     a, b = m.correct(model, x), m.correct(back, x)
-    assert set(a) == {"angle_arcsec", "u_angle_arcsec"}
+    assert set(a) == {"angle_arcsec", "u_angle_arcsec", "k_angle"}
     for k in a:
         assert np.array_equal(a[k], b[k])
 
@@ -189,12 +189,15 @@ def test_cli_round_trip_on_table1(tmp_path):
     r = _tiltlab("correct", "--model", "m.json", "--input", "readings.csv", "--out", "out.csv", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     out = read_dataset(tmp_path / "out.csv", "scale", ["reading"], [])
-    assert out.header == ["reading", "label", "angle_arcsec", "u_angle_arcsec"]
+    assert out.header == ["reading", "label", "angle_arcsec", "expanded_uncertainty_angle_arcsec",
+                          "standard_uncertainty_angle_arcsec", "coverage_factor_angle", "coverage_probability"]
     ang = np.array(out.text["angle_arcsec"], dtype=float)
     c0, c1 = model["parameters"]["c0_arcsec"]["value"], model["parameters"]["c1_arcsec_per_count"]["value"]
     assert np.allclose(ang, c0 + c1 * np.array([16, 2000, 3924.0]))
-    u = np.array(out.text["u_angle_arcsec"], dtype=float)
+    u = np.array(out.text["expanded_uncertainty_angle_arcsec"], dtype=float)
     assert np.all((u > 30) & (u < 60))  # 2 × (20″ reading scatter ⊕ line uncertainty)
+    k = np.array(out.text["coverage_factor_angle"], dtype=float)
+    assert np.allclose(np.array(out.text["standard_uncertainty_angle_arcsec"], dtype=float) * k, u, rtol=1e-3)
 
 
 def test_cli_refuses_too_high_a_degree_with_exit_2(tmp_path):

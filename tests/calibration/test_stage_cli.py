@@ -1,6 +1,7 @@
 """The offline contract for stage methods through the real console script (docs/datasets.md)."""
 
 import csv
+import json
 import subprocess
 import sys
 
@@ -67,7 +68,8 @@ def test_calibrate_correct_level_round(data_dir):
     assert _tiltlab("correct", "--model", "k.json", "--input", "grid.csv", "--out", "c.csv", cwd=data_dir).returncode == 0
     with open(data_dir / "c.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert len(rows) == 81 and {"point", "ref_x_deg", "tilt_x_deg", "u_tilt_y_deg"} <= set(rows[0])
+    assert len(rows) == 81 and {"point", "ref_x_deg", "tilt_x_deg", "expanded_uncertainty_tilt_y_deg",
+                                  "standard_uncertainty_tilt_y_deg", "coverage_factor_tilt_y"} <= set(rows[0])
     err = [abs(float(r["tilt_x_deg"]) - float(r["ref_x_deg"])) for r in rows]
     assert max(err) < 0.01  # the reference is the table tilt up to its noise
     assert _tiltlab("level", "--model", "k.json", "--targets", "targets.csv", "--out", "l.csv", cwd=data_dir).returncode == 0
@@ -75,3 +77,46 @@ def test_calibrate_correct_level_round(data_dir):
         rows = list(csv.DictReader(fh))
     assert [set(r) for r in rows] == [{"target_x_deg", "target_y_deg", "stage_x_deg", "stage_y_deg"}] * 2
     assert abs(float(rows[1]["stage_y_deg"]) + 9.0) < 0.3
+
+
+def test_correct_names_its_uncertainties_standard_and_expanded(data_dir):
+    """GUM: u is a standard uncertainty, U = k·u the expanded one; the columns say which is which, and the old
+    u_* names (they held U) come only on request, equal to the expanded one."""
+    assert _tiltlab("calibrate", "--kind", "stage", "--method", "homography", "--input", "grid.csv", "--out", "h.json",
+                    cwd=data_dir).returncode == 0
+    assert _tiltlab("correct", "--model", "h.json", "--input", "grid.csv", "--out", "new.csv", cwd=data_dir).returncode == 0
+    p = _tiltlab("correct", "--model", "h.json", "--input", "grid.csv", "--out", "old.csv", "--deprecated-u-columns",
+                 cwd=data_dir)
+    assert p.returncode == 0, p.stderr
+    with open(data_dir / "new.csv", newline="") as fh:
+        new = list(csv.DictReader(fh))
+    with open(data_dir / "old.csv", newline="") as fh:
+        old = list(csv.DictReader(fh))
+    names = list(new[0])
+    assert not any(n.startswith("u_") for n in names)
+    assert len({n.lower() for n in names}) == len(names)  # no two names differ only by case
+    for r, o in zip(new, old):
+        for a in "xy":
+            U, u = (float(r[f"expanded_uncertainty_tilt_{a}_deg"]), float(r[f"standard_uncertainty_tilt_{a}_deg"]))
+            k = float(r[f"coverage_factor_tilt_{a}"])
+            assert 1.95 < k < 2.1 and u * k == pytest.approx(U, rel=1e-4)
+            assert o[f"u_tilt_{a}_deg"] == r[f"expanded_uncertainty_tilt_{a}_deg"]
+        assert r["coverage_probability"] == "0.95"
+    # an earlier output corrected again: its uncertainty columns are replaced, not carried beside the new ones
+    assert _tiltlab("correct", "--model", "h.json", "--input", "old.csv", "--out", "again.csv",
+                    cwd=data_dir).returncode == 0
+    with open(data_dir / "again.csv", newline="") as fh:
+        again = list(csv.DictReader(fh))
+    assert list(again[0]) == names
+
+
+def test_the_references_stated_noise_separates_the_two_sensors(data_dir):
+    p = _tiltlab("calibrate", "--kind", "stage", "--method", "kinematic", "--input", "grid.csv", "--out", "n.json",
+                 "--ref-noise-deg", "0.001", cwd=data_dir)
+    assert p.returncode == 0, p.stderr
+    state = json.loads((data_dir / "n.json").read_text())["state"]
+    assert "stated noise 0.001 deg" in state["meas_reading_noise_source"]
+    assert state["meas_reading_standard_uncertainty_deg"] < state["meas_sigma_deg"]
+    p = _tiltlab("calibrate", "--kind", "scale", "--method", "poly1", "--input", "grid.csv", "--out", "x.json",
+                 "--ref-noise-deg", "0.001", cwd=data_dir)
+    assert p.returncode == 2 and "--ref-noise-deg" in p.stderr

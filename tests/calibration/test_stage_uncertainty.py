@@ -99,3 +99,40 @@ def test_kinematic_fast_gum_equals_the_generic_propagation():
     assert np.allclose(out["u_tilt_x_deg"], U[:, 0], rtol=1e-6, atol=0)
     assert np.allclose(out["u_tilt_y_deg"], U[:, 1], rtol=1e-6, atol=0)
     assert np.all(g.dof_eff >= dof) and np.all(U < 2.0 * g.u)  # 160 degrees of freedom: k just under 2
+
+
+def _seed000(**grid):
+    from service.scenarios import parse_scenario
+
+    data = load_scenario("seed000").model_dump(mode="json", exclude_defaults=True)
+    data["grid"].update(grid)
+    return parse_scenario(data)
+
+
+@pytest.mark.parametrize("method", ["homography", "axis-transform", "kinematic"])
+def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_references(method):
+    """The meas-vs-ref residual holds both sensors' noise; with readings repeated at each stand (or the reference's
+    noise stated) the reading term of a corrected tilt is the measurement sensor's, not the residual."""
+    m = get_method("stage", method)
+    sigmas = []
+    for seed in (301, 302, 303):
+        run = run_scenario(_seed000(readings_per_stand=3), seed=seed)
+        model = m.fit(run.columns, FitOptions())
+        st = model.state
+        assert "repeated readings" in st["meas_reading_noise_source"]
+        sigmas.append((st["meas_reading_standard_uncertainty_deg"], st["ref_reading_standard_uncertainty_deg"],
+                       st["meas_sigma_deg"]))
+        # the same data with the reference's noise stated instead of repeated
+        single = {k: v[::3] for k, v in run.columns.items() if k != "point"}
+        stated = m.fit(single, FitOptions(extra={"ref_noise_deg": 0.001})).state
+        assert "stated noise" in stated["meas_reading_noise_source"]
+        plain = m.fit(single, FitOptions()).state
+        assert plain["meas_reading_standard_uncertainty_deg"] == plain["meas_sigma_deg"]  # nothing to separate with
+        assert "conservative" in plain["meas_reading_noise_source"]
+    s = np.array(sigmas)
+    if method == "kinematic":  # the model describes the bench: what is left is the measurement sensor's noise
+        assert np.all(np.abs(s[:, 0] / 0.001 - 1) < 0.15), s  # the measurement sensor's sigma 0.001 deg
+        assert np.all(s[:, 2] > 1.3 * s[:, 0])  # the residual holds both (√2 for two equal sensors)
+    else:  # a misfit of the model (H2's projective map; the axis transform has no zero offsets) stays in the reading term
+        assert np.all((s[:, 0] > 0.00085) & (s[:, 0] < s[:, 2])), s
+    assert np.all(np.abs(s[:, 1] / 0.001 - 1) < 0.15), s  # the reference's, from the repeats

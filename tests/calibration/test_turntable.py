@@ -160,7 +160,7 @@ def test_model_round_trips_through_json():
     back = CalibrationModel.from_json_dict(json.loads(json.dumps(model.to_json_dict(), allow_nan=False)))
     assert back.value("rotation_deg") == 181.5
     a, b = REVERSAL.correct(model, run.columns), REVERSAL.correct(back, run.columns)
-    assert set(a) == {"north_arcsec", "east_arcsec", "u_north_arcsec", "u_east_arcsec"}
+    assert set(a) == {"north_arcsec", "east_arcsec", "u_north_arcsec", "u_east_arcsec", "k_north", "k_east"}
     for k in a:
         assert np.array_equal(a[k], b[k])
 
@@ -184,8 +184,13 @@ def test_cli_round_trip_with_the_assumed_rotation(tmp_path):
     r = _tiltlab("correct", "--model", "m.json", "--input", "pairs.csv", "--out", "out.csv", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     header, row = (tmp_path / "out.csv").read_text().strip().splitlines()
-    assert header.split(",")[-4:] == ["north_arcsec", "east_arcsec", "u_north_arcsec", "u_east_arcsec"]
-    north, east, un, ue = (float(v) for v in row.split(",")[-4:])
+    cells = dict(zip(header.split(","), row.split(",")))
+    assert header.split(",")[5:] == ["north_arcsec", "expanded_uncertainty_north_arcsec",
+                                     "standard_uncertainty_north_arcsec", "coverage_factor_north", "east_arcsec",
+                                     "expanded_uncertainty_east_arcsec", "standard_uncertainty_east_arcsec",
+                                     "coverage_factor_east", "coverage_probability"]
+    north, east, un, ue = (float(cells[c]) for c in ("north_arcsec", "east_arcsec", "expanded_uncertainty_north_arcsec",
+                                                      "expanded_uncertainty_east_arcsec"))
     assert 35 < north < 45 and 5 < east < 15 and 0 < un < 2 and 0 < ue < 2
 
 

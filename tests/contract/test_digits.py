@@ -16,7 +16,7 @@ from service.io.datasets import format_value, read_dataset
 @pytest.mark.parametrize("col,value,text", [
     ("stage_x_deg", 0.1 + 0.2, "0.3"),
     ("tilt_x_deg", -1.23456789123, "-1.2345679"),
-    ("u_tilt_x_deg", 2.5e-09, "0.0"),
+    ("expanded_uncertainty_tilt_x_deg", 2.5e-09, "0.0"),
     ("ref_north_arcsec", 1 / 3, "0.3333"),
     ("sx", 0.123456789012345, "0.123456789"),
     ("t_s", 1 / 3, "0.3333333333"),
@@ -39,7 +39,8 @@ def test_simulated_and_corrected_files_carry_the_stated_digits(tmp_path: Path) -
     assert main(["correct", "--model", str(model), "--input", str(data), "--out", str(out)]) == 0
     with out.open() as fh:
         rows = list(csv.DictReader(fh))
-    for col in ("stage_x_deg", "ref_x_deg", "tilt_x_deg", "u_tilt_x_deg"):
+    for col in ("stage_x_deg", "ref_x_deg", "tilt_x_deg", "expanded_uncertainty_tilt_x_deg",
+                "standard_uncertainty_tilt_x_deg"):
         assert max(_decimals(r[col]) for r in rows) <= 7, col
     assert max(len(r["tilt_x_deg"]) for r in rows) < 14
     # and the file still reads back as whole pulses of the bench (the kinematic method accepts it)

@@ -1,7 +1,7 @@
 """A regular (non-editable) install carries every file the program reads at run time.
 
 Checked twice: a wheel built from the repository, and one built from only what
-docker/Dockerfile copies into the image (so the image cannot silently lose its migrations).
+docker/Dockerfile copies into its wheel stage (so the image cannot silently lose its migrations).
 """
 
 import shlex
@@ -17,14 +17,19 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def docker_build_context(dest: Path) -> Path:
-    """The files the Dockerfile's COPY lines put in its WORKDIR, laid out as the image has them."""
+    """The files the Dockerfile's wheel stage (its first) copies into its WORKDIR, laid out as it has them."""
+    stages = 0
     for line in (ROOT / "docker" / "Dockerfile").read_text().splitlines():
+        stages += line.startswith("FROM ")
+        if stages > 1:  # the final stage installs the wheel the first one built
+            break
         if not line.startswith("COPY "):  # other instructions may span lines or quote shell text
             continue
         words = shlex.split(line)
         if not words or words[0] != "COPY":
             continue
         *sources, target = [w for w in words[1:] if not w.startswith("--")]
+        assert not target.startswith("/"), f"the wheel stage copies into its WORKDIR: {line}"
         for src in sources:
             origin = ROOT / src
             into = dest / target / origin.name if target.endswith("/") or len(sources) > 1 else dest / target

@@ -37,3 +37,13 @@ def wait_job(client, job_id, headers, states=("succeeded", "failed", "cancelled"
 def daemon(tmp_path):
     with make_client(tmp_path) as client:
         yield client, admin_headers(tmp_path)
+
+
+def calibrate_and_activate(client, headers, request: dict) -> dict:
+    """Run a calibration job to success and make its record the active one; the job as it ended."""
+    r = client.post("/calibrations", headers=headers, json=request)
+    assert r.status_code == 202, r.text
+    job = wait_job(client, r.json()["id"], headers)
+    assert job["state"] == "succeeded", job
+    assert client.post(f"/records/{job['record']['id']}/activate", headers=headers).status_code == 200
+    return job

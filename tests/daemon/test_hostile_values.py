@@ -84,8 +84,15 @@ def _refused(r: Any, status: int, field: str | None = None) -> None:
     ("/calibrations", json.dumps({**JOB, "note": "a\u0000b"}), "note"),
     ("/records/1/reject", json.dumps({"reason": "\u0007"}), "reason"),
     ("/webhooks", json.dumps({"url": "http://127.0.0.1:9/\u0000", "events": ["*"]}), "url"),
+    # bidirectional overrides and isolates: text that shows in another order than it was typed
+    ("/orders", json.dumps({**ORDER, "customer": {**ORDER["customer"], "name": "Survey \u202eLtd"}}), "customer.name"),
+    ("/standards", json.dumps({**STANDARD, "serial": "AC-\u2067 77"}), "serial"),
+    ("/calibrations", json.dumps({**JOB, "note": "passed \u202d(failed)\u202c"}), "note"),
+    ("/records/1/approve", json.dumps({"note": "ok\u2066"}), "note"),
+    # a webhook URL with credentials would be stored and shown to every admin
+    ("/webhooks", json.dumps({"url": "https://lims:secret@lims.example.org/hook", "events": ["*"]}), "url"),
     ("/webhooks", json.dumps({"url": "gopher://127.0.0.1:9/", "events": ["*"]}), "url"),
-    ("/webhooks", json.dumps({"url": "http://127.0.0.1:9/", "events": ["record.exploded"]}), "events"),
+    ("/webhooks", json.dumps({"url": "http://127.0.0.1:9/", "events": ["record.exploded"]}), "events[0]"),
 ], ids=lambda c: c[2] if isinstance(c, tuple) else str(c))
 def test_hostile_bodies_are_422_naming_the_field_and_change_nothing(daemon: Any, case: tuple[str, str, str]) -> None:
     client, h = daemon

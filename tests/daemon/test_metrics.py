@@ -72,3 +72,40 @@ def test_the_contracts_families_are_there_and_move_with_the_bench(daemon) -> Non
                          method="GET", status="200")
     assert scrapes >= 1
     assert value(later, "tiltlab_jobs", "tiltlab_jobs", state="succeeded") == 0
+
+
+def test_device_series_keep_their_labels_across_restarts_and_the_port_is_an_info(tmp_path) -> None:
+    """Counters by bench and role only: a simulator's new pseudo-terminal at the next start makes no new series.
+    Where the instrument is connected and what it said it is are the labels of tiltlab_device_info."""
+    from tests.daemon.conftest import admin_headers, make_client
+
+    keys = []
+    for _ in range(2):  # the same data directory, started twice: each start opens new pseudo-terminals
+        with make_client(tmp_path, sim_transport="pty") as client:
+            families = scrape(client, admin_headers(tmp_path))
+            keys.append(sorted(tuple(sorted(s.labels.items())) for s in families["tiltlab_serial_frames"].samples
+                               if s.name == "tiltlab_serial_frames_total"))
+            info = {s.labels["role"]: s.labels for s in families["tiltlab_device_info"].samples}
+            ports = {d["role"]: d["port"] for d in client.get("/devices", headers=admin_headers(tmp_path)).json()["devices"]}
+            for role, port in ports.items():
+                assert info[role]["port"] == port and info[role]["bench"] == "sim-stage"
+            assert info["measurement_sensor"]["model"] == "0x68 binary inclinometer"
+    assert keys[0] == keys[1] and all(set(dict(k)) == {"bench", "role"} for k in keys[0]), keys
+
+
+def test_static_files_are_counted_by_their_folder(daemon) -> None:
+    client, headers = daemon
+    assert client.get("/web/dashboard.css").status_code == 200
+    families = scrape(client, headers)
+    assert value(families, "tiltlab_http_requests", "tiltlab_http_requests_total", route="/web/{path}",
+                 method="GET", status="200") >= 1
+
+
+def test_an_instrument_without_a_serial_number_is_shown_as_it_reported_itself(daemon) -> None:
+    """Family A answers at its bus address and reports no serial: /devices says so, and says the port apart."""
+    client, headers = daemon
+    devices = {d["role"]: d for d in client.get("/devices", headers=headers).json()["devices"]}
+    ident = devices["measurement_sensor"]["identity"]
+    assert ident["serial"] is None and ident["address"] == "0x00", ident
+    assert devices["measurement_sensor"]["port"] and devices["measurement_sensor"]["port"] not in str(ident)
+    assert devices["stage"]["identity"]["serial"], devices["stage"]

@@ -10,6 +10,7 @@ import time
 import sqlalchemy as sa
 
 from service import cli
+from service.storage.tokens import Person
 from tests.daemon.conftest import admin_headers, make_client, wait_job
 from tests.daemon.test_e2e_stage import fresh_tilt
 
@@ -45,7 +46,8 @@ def test_calibrated_range_draft_status_and_rejection_of_the_active_record(tmp_pa
         store = client.app.state.store
         h = {"admin": admin_headers(tmp_path)}
         for name in ("alice", "bob"):
-            h[name] = {"Authorization": f"Bearer {store.tokens.create_token(name, 'admin', actor='admin')[1]}"}
+            person = Person(f"{name.title()} Example", "Calibration Engineer")
+            h[name] = {"Authorization": f"Bearer {store.tokens.create_token(name, 'admin', actor='admin', person=person)[1]}"}
         token = h["alice"]["Authorization"].split()[1]
         r = client.post("/calibrations", headers=h["alice"], json={
             "procedure": "stage-grid", "method": "kinematic", "grid": GRID, "samples_per_point": 8,
@@ -69,8 +71,11 @@ def test_calibrated_range_draft_status_and_rejection_of_the_active_record(tmp_pa
         assert client.post(f"/records/{rid}/activate", headers=h["alice"]).status_code == 200
         assert client.post("/stage/move", headers=h["alice"], json={"x_deg": 0.0, "y_deg": 0.0}).status_code == 200
         t = _tilt_when(client, h["alice"], lambda t: t["table_tilt"] is not None and t["in_calibrated_range"] is True)
-        assert t["calibration"] == {"record_id": rid, "version": record["version"], "method": "kinematic",
-                                    "status": "draft"}
+        calibration = dict(t["calibration"])
+        # one reading's noise: estimated from the readings the record's job stored at its points
+        assert calibration.pop("reading_noise").startswith("pooled within-point standard deviation")
+        assert calibration == {"record_id": rid, "version": record["version"], "method": "kinematic",
+                               "status": "draft"}
         assert "outside the calibrated range" not in t["note"]
 
         # outside the range: still served, flagged, and the note says so
@@ -128,6 +133,7 @@ def test_an_altered_active_record_is_refused_at_start_up_and_on_activation(tmp_p
     with make_client(tmp_path) as client:
         h = admin_headers(tmp_path)
         store = client.app.state.store
+        store.tokens.set_person("admin", Person("Dr. Alice Example", "Head of Laboratory"), actor="setup")
         meas = client.app.state.bench.device_ids["measurement_sensor"]
         good = store.records.add_record(meas, "stage", "kinematic", model, operator="alice")
         other = store.records.add_record(meas, "stage", "kinematic", model, operator="alice")

@@ -52,6 +52,12 @@ def test_rotation_job_on_the_rotary_bench(tmp_path):
         bad = client.post("/calibrations", headers=h, json={"procedure": "stage-grid", "method": "kinematic",
                                                             "grid": {"x_deg": [-1, 1], "y_deg": [-1, 1], "n_x": 3, "n_y": 3}})
         assert bad.status_code == 422 and bad.json()["field"] == "bench"
+        # angles a full turn apart are one orientation of the module: five of them are one point, refused unmeasured
+        turns = client.post("/calibrations", headers=h, json={
+            "procedure": "rotation", "method": "iodsra", "grid": {"angles_deg": [0, 360, 720, -360, 90]}})
+        assert turns.status_code == 422 and turns.json()["field"] == "grid", turns.text
+        assert "2 distinct angles (modulo 360 deg)" in turns.json()["detail"], turns.text
+        assert client.get("/calibrations", headers=h).json()["jobs"] == []
         r = client.post("/calibrations", headers=h, json={
             "procedure": "rotation", "method": "iodsra", "grid": {"range_deg": [0, 330], "n": 12},
             "samples_per_point": 6, "validation": {"n_points": 3}})
@@ -70,9 +76,10 @@ def test_rotation_job_on_the_rotary_bench(tmp_path):
 
 
 def test_turntable_job_at_symmetric_azimuths(tmp_path):
-    # 40 times real time: the job is mostly half-turns of the table; answers are awaited in real seconds and
-    # readings are stamped on arrival, so a loaded machine only delays a settling window
-    with make_client(tmp_path, sim_benches=["rotary"], sim_speed=40.0) as client:
+    # 20 times real time (the most the simulated triaxial line carries is 21): the job is mostly half-turns of
+    # the table; answers are awaited in real seconds and readings are stamped on arrival, so a loaded machine
+    # only delays a settling window
+    with make_client(tmp_path, sim_benches=["rotary"], sim_speed=20.0) as client:
         h = admin_headers(tmp_path)
         world = client.app.state.bench.sim.world
         north, east = world.axis_tilt_arcsec

@@ -77,6 +77,31 @@ def test_token_commands(tmp_path, monkeypatch, capsys):
         get_settings.cache_clear()
 
 
+def test_token_commands_name_the_person(tmp_path, monkeypatch, capsys):
+    """`tiltlab token create --person-name --person-function`, `token set-person`; `token list` shows the person."""
+    monkeypatch.setenv("TILTLAB_DATA_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    try:
+        assert cli.main(["token", "create", "--name", "alice", "--scopes", "admin", "--person-name", "Dr. Alice Example",
+                         "--person-function", "Head of Laboratory"]) == 0
+        assert "belonging to Dr. Alice Example, Head of Laboratory" in capsys.readouterr().err
+        assert cli.main(["token", "create", "--name", "bench-pc", "--scopes", "operate"]) == 0
+        capsys.readouterr()
+        assert cli.main(["token", "set-person", "bench-pc", "--person-name", "Max Muster", "--person-function",
+                         "Calibration Technician"]) == 0
+        capsys.readouterr()
+        assert cli.main(["token", "list"]) == 0
+        lines = {line.split("\t")[0]: line for line in capsys.readouterr().out.splitlines()}
+        assert lines["alice"].endswith("\tDr. Alice Example, Head of Laboratory")
+        assert lines["bench-pc"].endswith("\tMax Muster, Calibration Technician")
+        assert cli.main(["token", "create", "--name", "x", "--scopes", "read", "--person-function", "Head"]) == 2
+        assert "--person-function: give --person-name with it" in capsys.readouterr().err
+        assert cli.main(["token", "set-person", "nobody", "--person-name", "N. N."]) == 2
+        assert "no active token named 'nobody'" in capsys.readouterr().err
+    finally:
+        get_settings.cache_clear()
+
+
 def test_job_idempotency_interruption_and_resume(dstore):
     bench = dstore.devices.ensure_bench("b1", actor="t")
     dev = dstore.devices.add_device("M", "1", "measurement_sensor", actor="t", bench_id=bench.id)

@@ -110,12 +110,21 @@ class Daemon:
         self.log = data_dir.with_suffix(".log")
 
     def __enter__(self) -> Daemon:
+        return self.launch().wait_serving()
+
+    def launch(self) -> Daemon:
+        """Start the process and return at once (daemons launched one after another start together)."""
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self._log = self.log.open("w")
         self.proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(self.port)],
                                      env={**os.environ, "TILTLAB_DATA_DIR": str(self.data_dir), **self.env},
                                      stdout=self._log, stderr=subprocess.STDOUT, text=True)
-        deadline = time.monotonic() + 90
+        return self
+
+    def wait_serving(self, timeout_s: float = 90.0) -> Daemon:
+        """Once /health answers; its log in the assertion if the process ended or never answered."""
+        assert self.proc is not None
+        deadline = time.monotonic() + timeout_s
         while True:
             try:
                 if httpx.get(f"{self.url}/health", timeout=2).status_code == 200:

@@ -1,7 +1,9 @@
 """A TCP proxy between a daemon and PostgreSQL that a test cuts and restores, as a network or a
 server restart would: cut, every connection is reset and new ones are refused; restored, it
 forwards again on the same port. It can also lose the answer to one COMMIT (the server commits,
-the client never hears it), the case that makes a repeated write dangerous."""
+the client never hears it), the case that makes a repeated write dangerous. And it can hang: every
+connection, open or new, is accepted and read but never answered (a server frozen, a firewall that
+drops replies), which no TCP timeout of the client notices: the kernel acknowledges everything."""
 
 from __future__ import annotations
 
@@ -10,6 +12,8 @@ import socket
 import struct
 import threading
 import time
+
+import sqlalchemy as sa
 
 
 class PgProxy:
@@ -21,6 +25,11 @@ class PgProxy:
         self._pairs: list[tuple[socket.socket, socket.socket]] = []
         self.lose_next_commit_answer = False
         self.commit_answers_lost = 0
+        self.hung = threading.Event()  # set: nothing is passed on either way, new connections are only read
+
+    def url_of(self, database_url: str) -> str:
+        """`database_url` reached through this proxy."""
+        return sa.make_url(database_url).set(host="127.0.0.1", port=self.port).render_as_string(hide_password=False)
 
     def start(self) -> None:
         listener = socket.socket()
@@ -46,6 +55,10 @@ class PgProxy:
     def restore(self) -> None:
         self.start()
 
+    def hang(self) -> None:
+        """From now on nothing is passed on: the client's bytes are read and dropped, no answer comes."""
+        self.hung.set()
+
     def stop(self) -> None:
         self.cut()
 
@@ -55,6 +68,9 @@ class PgProxy:
                 client, _ = listener.accept()
             except OSError:
                 return  # cut
+            if self.hung.is_set():
+                threading.Thread(target=self._swallow, args=(client,), daemon=True).start()
+                continue
             try:
                 server = socket.create_connection(self.target, timeout=5)
             except OSError:
@@ -82,7 +98,7 @@ class PgProxy:
                     time.sleep(0.3)
                     self.commit_answers_lost += 1
                     break  # ... and the client's connection is reset before it hears so
-                if not from_client and muted.is_set():
+                if (not from_client and muted.is_set()) or self.hung.is_set():
                     continue
                 dst.sendall(data)
         except OSError:
@@ -91,6 +107,17 @@ class PgProxy:
             if pair in self._pairs:
                 self._pairs.remove(pair)
         _reset(*pair)
+
+
+    def _swallow(self, client: socket.socket) -> None:
+        """A connection made while hung: read and dropped until the client gives up."""
+        with self._lock:
+            self._pairs.append((client, client))
+        try:
+            while client.recv(65536):
+                pass
+        except OSError:
+            pass
 
 
 def _reset(*socks: socket.socket) -> None:

@@ -14,7 +14,6 @@ import contextlib
 import json
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -28,7 +27,7 @@ from service.storage.migrate import upgrade
 from service.storage.samples import Sample, count_samples
 from service.storage.store import Store
 from service.storage.writer import SampleWriter
-from tests.fleet.fleet_helpers import Daemon, eventually, postgres_schema_url
+from tests.fleet.fleet_helpers import Daemon, eventually
 from tests.fleet.pg_proxy import PgProxy
 
 pytestmark = [pytest.mark.postgres]
@@ -37,25 +36,6 @@ GRID = {"x_deg": [-1.0, 1.0], "y_deg": [-1.0, 1.0], "n_x": 3, "n_y": 3}
 SETTLE = {"tolerance_deg": 0.002, "window_s": 1.0, "timeout_s": 600.0}
 SAMPLES_PER_POINT = 6
 OUTAGE_LIMIT_S = 12  # TILTLAB_DB_OUTAGE_S of the daemon under test
-
-
-@pytest.fixture
-def database_url() -> Iterator[str]:
-    with postgres_schema_url() as url:
-        yield url
-
-
-@pytest.fixture
-def proxy(database_url: str) -> Iterator[PgProxy]:
-    u = sa.make_url(database_url)
-    p = PgProxy(u.host or "127.0.0.1", u.port or 5432)
-    p.start()
-    yield p
-    p.stop()
-
-
-def _through(database_url: str, proxy: PgProxy) -> str:
-    return sa.make_url(database_url).set(host="127.0.0.1", port=proxy.port).render_as_string(hide_password=False)
 
 
 @pytest.fixture
@@ -73,7 +53,7 @@ def _samples(device_id: int, n: int, t0: float) -> list[Sample]:
 def test_sample_writer_keeps_what_it_took_through_an_outage(migrated: str, proxy: PgProxy) -> None:
     direct = make_engine(migrated)
     device = Store(direct).devices.add_device("NS-25/E2", "SN-OUT-1", "dut", actor="test")
-    engine = make_engine(_through(migrated, proxy), connect_args={"connect_timeout": 2})
+    engine = make_engine(proxy.url_of(migrated), connect_args={"connect_timeout": 2})
     writer = SampleWriter(engine, capacity=500, batch_size=100, put_timeout_s=2.0)
     try:
         before = _samples(device.id, 300, 1_000.0)
@@ -107,7 +87,7 @@ def test_a_commit_whose_answer_was_lost_is_not_written_twice(migrated: str, prox
     direct = make_engine(migrated)
     store = Store(direct)
     device = store.devices.add_device("NS-25/E2", "SN-OUT-2", "dut", actor="test")
-    engine = make_engine(_through(migrated, proxy), connect_args={"connect_timeout": 2})
+    engine = make_engine(proxy.url_of(migrated), connect_args={"connect_timeout": 2})
     writer = SampleWriter(engine, capacity=500, batch_size=200)
     try:
         proxy.lose_next_commit_answer = True
@@ -156,11 +136,14 @@ def _health(url: str) -> dict:
 
 def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
         tmp_path: Path, migrated: str, proxy: PgProxy) -> None:
-    env = {"TILTLAB_DATABASE_URL": _through(migrated, proxy), "TILTLAB_SIM_SPEED": "20",
+    env = {"TILTLAB_DATABASE_URL": proxy.url_of(migrated), "TILTLAB_SIM_SPEED": "20",
            "TILTLAB_DB_OUTAGE_S": str(OUTAGE_LIMIT_S)}
     with Daemon(tmp_path / "a", env) as daemon, contextlib.ExitStack() as streams:
         url = daemon.url
         auth = {"Authorization": f"Bearer {(tmp_path / 'a' / 'admin.token').read_text().strip()}"}
+        # the admin token signs approvals below: it names its person (a token without one is refused with 403)
+        assert httpx.patch(f"{url}/tokens/admin", headers=auth, timeout=10, json={
+            "person": {"name": "Dr. Alice Example", "function": "Head of Laboratory"}}).status_code == 200
 
         # --- a 10-s outage in the middle of a job: the daemon serves, says so, and the job goes on
         job_id = _start_job(url, auth)

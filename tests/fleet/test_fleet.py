@@ -20,7 +20,7 @@ import pytest
 from websockets.sync.client import connect as ws_connect
 
 from tests.api.running_service import free_port
-from tests.fleet.fleet_helpers import Daemon, NatsServer, eventually, postgres_schema_url
+from tests.fleet.fleet_helpers import Daemon, NatsServer, eventually
 
 pytestmark = [pytest.mark.postgres, pytest.mark.slow]
 
@@ -35,12 +35,6 @@ def nats_server(tmp_path: Path):
     server.start()
     yield server
     server.stop()
-
-
-@pytest.fixture
-def database_url():
-    with postgres_schema_url() as url:
-        yield url
 
 
 def test_two_daemons_serve_one_fleet(tmp_path: Path, nats_server: NatsServer, database_url: str) -> None:

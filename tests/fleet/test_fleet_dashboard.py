@@ -37,7 +37,7 @@ def test_the_bench_selector_lists_the_fleet_and_streams_the_other_nodes_bench(tm
                 b = Daemon(tmp_path / "b", {**common, "TILTLAB_NODE": "node-b", "TILTLAB_SIM_BENCH_NAME": "bench-b"})
                 with b, sync_playwright() as p:
                     browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"])
-                    page = browser.new_page(viewport={"width": 1280, "height": 900})
+                    page = browser.new_page(bypass_csp=True, viewport={"width": 1280, "height": 900})
                     page.goto(f"{a.url}/#token={token}")
                     select = page.locator("#bench-select")
                     expect(select.locator("option[value=bench-a]")).to_have_text("bench-a · node-a", timeout=T)

@@ -52,6 +52,13 @@ def run_with_devices(sim, body, config=None):
     return asyncio.run(main())
 
 
+async def at_rest(sim) -> None:
+    """Wait, on the bench clock, until the last move's settling transient has died out: the table rings
+    and each sensor lags it after every move (the preset's settling), and a reading made at rest is
+    what these tests compare with the world's truth."""
+    await sim.clock.sleep(sim.world.settling.lasts_s())
+
+
 async def eventually(check, what: str, attempts: int = 200, pause_s: float = 0.02):
     """Poll an async or plain condition until it holds (no wall-clock assertion: a bounded number of tries)."""
     for _ in range(attempts):

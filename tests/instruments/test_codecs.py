@@ -56,6 +56,17 @@ def test_rs485_example_checksum_is_the_xor_between_hash_and_star():
     assert rs485.encode(rs485.Rs485Request(0x1A, "RD")) == b"#1ARD\r"
 
 
+def test_the_thermo_hygrometer_answers_in_the_family_s_framing():
+    payload = "01TH T=+20.31 RH=45.2 ST=0"
+    wire = f"#{payload} *{rs485.checksum(payload)}\r\n".encode()
+    assert rs485.encode(rs485.Rs485Ambient(1, 20.31, 45.2, 0)) == wire
+    assert rs485.parse_answers(wire).messages == [rs485.Rs485Ambient(1, 20.31, 45.2, 0)]
+    assert rs485.encode(rs485.Rs485Request(1, "TH")) == b"#01TH\r"
+    assert rs485.parse_requests(b"#01TH\r").messages == [rs485.Rs485Request(1, "TH")]
+    bad = payload.replace("RH=45.2", "RH=45.21")  # humidity carries one decimal
+    assert rs485.parse_answers(f"#{bad} *{rs485.checksum(bad)}\r\n".encode()).messages == []
+
+
 def test_rs485_wrong_checksum_is_counted_not_returned():
     wire = bytearray(rs485.encode(rs485.Rs485Reading(1, 1.234, -0.567, 21.4, 0)))
     wire[8] ^= 0x01  # one bit of X
@@ -124,6 +135,7 @@ rs485_answers = st.one_of(
     st.builds(rs485.Rs485Reading, byte, _fixed(6, 3), _fixed(6, 3), _fixed(3, 2), st.integers(0, 2)),
     st.builds(rs485.Rs485Identity, byte, word, word, word),
     st.builds(rs485.Rs485ZeroDone, byte, st.booleans()),
+    st.builds(rs485.Rs485Ambient, byte, _fixed(3, 2), st.integers(0, 1000).map(lambda v: v / 10), st.integers(0, 1)),
 )
 adc_requests = st.one_of(st.builds(adc.AdcRequest, st.none() | st.integers(1, 1000)),
                          st.just(adc.AdcRequest(identify=True)))

@@ -14,6 +14,7 @@ from service.instruments.drivers import (
     BinaryInclinometer,
     ControllerAxis,
     Rs485Inclinometer,
+    Rs485Thermohygrometer,
     StageController,
     TriaxialModule,
 )
@@ -38,6 +39,7 @@ def _drivers() -> list[tuple[object, type]]:
         (TriaxialModule("triaxial_sensor", port, c, 0.5, 0), base.TemperatureOnRequest),
         (Rs485Inclinometer("turntable_sensor", port, c, 0.5, 1), base.TiltSensor),
         (AdcSensor("adc_sensor", port, c, 0.5), base.AnalogSensor),
+        (Rs485Thermohygrometer("ambient_sensor", port, c, 0.5, 2, 1.0, 0.1, 2.0), base.AmbientSensor),
         (_axis(), base.MotionAxis),
         (StageController("stage", _axis(1), _axis(2)), base.TwoAxisStage),
     ]

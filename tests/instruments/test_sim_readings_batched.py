@@ -44,6 +44,7 @@ def test_a_move_is_seen_by_the_very_next_reading() -> None:
     before = [world.reading_deg("ref") for _ in range(READINGS_PER_BATCH // 2)]  # a batch is under way
     pulses = round(2.0 / world.bench.pulse_x_deg)
     _move(world, 1, pulses)
+    world.clock.sleep_blocking(world.settling.lasts_s())  # the sensor has followed the table (its time constant)
     x_after, _ = world.reading_deg("ref")
     expected = world.sample(noisy=False)["ref_x_deg"]
     assert abs(x_after - expected) < 0.01

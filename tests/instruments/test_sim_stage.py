@@ -8,7 +8,7 @@ import pytest
 
 from service.instruments import controller
 from service.instruments.transport import DeviceError, DeviceRefused
-from tests.instruments.conftest import eventually, run_with_devices
+from tests.instruments.conftest import at_rest, eventually, run_with_devices
 
 NOISE_TOL_DEG = 0.02  # several sigma of the seed000 sensor and stage noise
 
@@ -20,6 +20,7 @@ def test_readings_follow_the_stage_and_the_physics(stage_sim):
         pulses = await dev.stage.move_to_deg(3.0, -2.0)
         assert pulses == (round(3.0 / stage_sim.config.stage_bench().pulse_x_deg), -4000)
         await dev.stage.wait_until_idle(60)
+        await at_rest(stage_sim)
         x_deg, y_deg = await dev.stage.position_deg()
         assert (x_deg, y_deg) == pytest.approx(stage_sim.world.pose_deg)
         assert x_deg == pytest.approx(3.0, abs=0.001) and y_deg == pytest.approx(-2.0, abs=0.001)
@@ -51,6 +52,7 @@ def test_relative_zero_makes_the_present_angle_zero(stage_sim):
     async def body(dev):
         await dev.stage.move_to_deg(2.0, 1.0)
         await dev.stage.wait_until_idle(60)
+        await at_rest(stage_sim)
         await dev.reference_sensor.set_relative_zero()
         r = await dev.reference_sensor.read_tilt()
         assert abs(r.x_deg) < NOISE_TOL_DEG and abs(r.y_deg) < NOISE_TOL_DEG

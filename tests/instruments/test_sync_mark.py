@@ -16,7 +16,7 @@ import pytest
 
 from service.instruments.drivers import SYNC_ASKS
 from service.instruments.transport import DeviceTimeout
-from tests.instruments.conftest import eventually, run_with_devices
+from tests.instruments.conftest import at_rest, eventually, run_with_devices
 
 NOISE_TOL_DEG = 0.02
 
@@ -43,6 +43,7 @@ def test_readings_after_the_mark_are_of_the_new_pose(stage_sim, target):
         release = _hold_reader(sensor.port)
         await dev.stage.move_to_deg(*target)  # the controller has its own port: its reader runs
         await dev.stage.wait_until_idle(60)
+        await at_rest(stage_sim)
         truth = stage_sim.world.sample(noisy=False)
         called_s = sensor.clock.monotonic()
         # the request goes out with the reader still held; it is released once it is written
@@ -75,6 +76,7 @@ def test_an_answer_owed_from_before_the_call_does_not_mark_the_stream(stage_sim)
             await sensor.read_temperature()  # answered on the line, but the held reader does not see it
         await dev.stage.move_to_deg(4.0, -3.0)  # frames of the motion queue up behind that answer
         await dev.stage.wait_until_idle(60)
+        await at_rest(stage_sim)
         truth = stage_sim.world.sample(noisy=False)
         # the answer to the mark's own request leaves late, after the reader is let go: the old
         # answer is then the only one the reader has parsed when the request is resolved

@@ -14,15 +14,27 @@ import pytest
 
 from service.lims import dcc
 from service.lims.content import build_certificate, model_dof
-from tests.lims.certificates import APPROVAL, CUSTOMER, DEVICE, LAB, STANDARDS, scale_record, stage_record
+from tests.lims.certificates import (
+    APPROVAL,
+    CUSTOMER,
+    DEVICE,
+    LAB,
+    OPERATOR,
+    STANDARDS,
+    scale_record,
+    stage_points,
+    stage_record,
+)
 
 ORDER = {"lims_order_id": "LIMS-2026-118", "item_serial": "CUST-ITEM-55", "customer": CUSTOMER}
 
 
 def certificate(record=None, **kw) -> dcc.Certificate:
-    args = dict(number="TL-2026-000007", record=record or stage_record(), device=DEVICE, approval=APPROVAL,
-                operator="operator Max", laboratory=LAB, software_version="0.1.0", issued_on=dt.date(2026, 11, 22),
-                begin_on=dt.date(2026, 11, 20), standards=STANDARDS, order=ORDER)  # fmt: skip
+    record = record or stage_record()
+    args = dict(number="TL-2026-000007", record=record, device=DEVICE, approval=APPROVAL,
+                operator="max", operator_person=OPERATOR, laboratory=LAB, software_version="0.1.0",
+                issued_on=dt.date(2026, 11, 22), begin_on=dt.date(2026, 11, 20), standards=STANDARDS, order=ORDER,
+                measured_points=stage_points() if record["kind"] == "stage" else (), job_id=12)  # fmt: skip
     args.update(kw)
     return build_certificate(**args)
 
@@ -79,7 +91,7 @@ def test_stage_certificate_is_valid_and_reads_back_equal_to_the_record():
     assert item["dcc:installedSoftwares"]["dcc:software"][0]["dcc:release"] == "2.3.1"
     signers = adm["dcc:respPersons"]["dcc:respPerson"]
     main = [p for p in signers if p.get("dcc:mainSigner")]
-    assert len(main) == 1 and _content(main[0]["dcc:person"]["dcc:name"]) == APPROVAL.actor
+    assert len(main) == 1 and _content(main[0]["dcc:person"]["dcc:name"]) == APPROVAL.signer.name
     assert _content(adm["dcc:customer"]["dcc:name"]) == CUSTOMER["name"]
 
     # every parameter of the item with its value and expanded uncertainty, equal to the record's (GUM-rounded);
@@ -127,7 +139,8 @@ def test_stage_certificate_is_valid_and_reads_back_equal_to_the_record():
     eq = results["dcc:measuringEquipments"]["dcc:measuringEquipment"]
     assert [(e["dcc:certificate"]["dcc:referralID"], e["dcc:certificate"]["dcc:value"]) for e in eq] == [
         (s["certificate_number"], s["certificate_sha256"]) for s in STANDARDS]
-    cond = results["dcc:influenceConditions"]["dcc:influenceCondition"][0]["dcc:data"]["dcc:quantity"][0]["si:real"]
+    conditions = {" ".join(c["@refType"]): c for c in results["dcc:influenceConditions"]["dcc:influenceCondition"]}
+    cond = conditions["basic_temperature"]["dcc:data"]["dcc:quantity"][0]["si:real"]  # the sensor's own
     assert (cond["si:value"], cond["si:unit"]) == (20.4, r"\degreecelsius")
     method = results["dcc:usedMethods"]["dcc:usedMethod"][0]
     assert "10.13382/j.jemi.B2407429" in method["dcc:reference"][0]
@@ -203,7 +216,7 @@ def test_html_rendering_shows_what_the_xml_says():
     page = dcc.render_html(xml)
     assert "TL-2026-000007" in page and "SN-4711" in page and "SCA126T" in page and "2.3.1" in page
     assert "substitutes certificate TL-2026-000001" in page
-    assert APPROVAL.actor in page and "DAkkS-2026-0412" in page and "@media print" in page
+    assert APPROVAL.signer.name in page and "DAkkS-2026-0412" in page and "@media print" in page
     # a parameter as people read it: U to two significant digits, the value to the same place
     name = record["model"]["covariance"]["names"][0]
     assert re.search(rf"<td>{re.escape(name)}</td><td class='n'>-?\d+\.\d+</td><td class='n'>0\.0*[1-9]\d</td>", page)
@@ -224,7 +237,8 @@ def test_a_reviewer_finds_what_an_unreviewed_certificate_had():
     for bad, finding in (
         (text.replace("\\degreecelsius", "\\degreeCelsius"), "not valid D-SI"),
         (text.replace(f"<si:valueExpandedMU>{u}<", f"<si:valueExpandedMU>{u}7<", 1), "not GUM-rounded"),
-        (re.sub(r"<si:value>([^<]+)</si:value>", r"<si:value>0.6126699999999999</si:value>", text, count=1),
+        (text[:(at := text.index('<dcc:quantity refType="tiltlab_modelParameter"'))] + re.sub(  # a parameter's value, beside its U
+            r"<si:value>([^<]+)</si:value>", r"<si:value>0.6126699999999999</si:value>", text[at:], count=1),
          "GUM-rounded"),
         (re.sub(r"<si:measurementUncertaintyMultivariateXMLList>.*?</si:measurementUncertaintyMultivariateXMLList>",
                 "", text, flags=re.S), "no covariance"),

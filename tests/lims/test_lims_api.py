@@ -23,12 +23,18 @@ from service.lims import dcc
 from service.lims.certificates import verify_certificate
 from service.lims.runtime import LimsRuntime
 from service.storage.store import Store
+from service.storage.tokens import Person
 from tests.lims.certificates import stage_record
 from tests.storage.storage_helpers import count
 
 STANDARD = {"name": "reference inclinometer", "serial": "REF-77", "certificate_number": "DAkkS-2026-0412",
             "certificate_sha256": "ab" * 32, "calibrated_on": "2026-01-10", "due_on": "2099-01-10",
-            "uncertainty": "0.001 deg (k = 2)"}  # fmt: skip
+            "uncertainty": "0.001 deg (k = 2)",
+            "calibrated_by": {"name": "Angle Calibration Laboratory AG", "accreditation": "D-K-12345-01-00",
+                              "city": "Hamburg", "country_code": "DE"}}  # fmt: skip
+# The people behind the tokens the tests sign with: a record is approved by a person with a function.
+PEOPLE = {"alice": Person("Dr. Alice Example", "Head of Laboratory"),
+          "bob": Person("Bob Example", "Deputy Head of Laboratory")}
 ORDER = {"lims_order_id": "LIMS-118", "item_serial": "CUST-55", "procedure": "stage-grid", "method": "homography",
          "due_on": "2026-12-01", "customer": {"name": "Survey Ltd", "city": "Berlin", "country_code": "DE"}}  # fmt: skip
 
@@ -58,7 +64,7 @@ def make_app(store: Store, tmp_path) -> FastAPI:  # type: ignore[no-untyped-def]
 @pytest.fixture
 def lab(engine, tmp_path):  # type: ignore[no-untyped-def]
     store = Store(engine)
-    tokens = {name: store.tokens.create_token(name, scopes, actor="setup")[1]
+    tokens = {name: store.tokens.create_token(name, scopes, actor="setup", person=PEOPLE.get(name))[1]
               for name, scopes in (("alice", "admin"), ("bob", "admin"), ("olga", "operate"), ("rita", "read"))}
     with TestClient(make_app(store, tmp_path)) as client:
         yield store, client, {k: {"Authorization": f"Bearer {v}"} for k, v in tokens.items()}
@@ -122,7 +128,8 @@ def test_approval_segregation_and_certificate(lab, tmp_path) -> None:  # type: i
     # the item by the order's serial, then the instrument's own (it reported firmware: it identifies itself)
     assert [i["dcc:value"] for i in item["dcc:identifications"]["dcc:identification"]] == [ORDER["item_serial"], "SN-4711"]
     signer = [p for p in doc["dcc:administrativeData"]["dcc:respPersons"]["dcc:respPerson"] if p["dcc:mainSigner"]]
-    assert signer[0]["dcc:person"]["dcc:name"]["dcc:content"][0]["$"] == "bob"
+    assert signer[0]["dcc:person"]["dcc:name"]["dcc:content"][0]["$"] == "Bob Example"  # a person, not a token
+    assert signer[0]["dcc:role"] == "Deputy Head of Laboratory"
     again = client.get(f"/records/{record.id}/certificate", headers=h["alice"])
     assert again.content == xml and count(store.engine, "certificates") == 1  # never regenerated
     page = client.get(f"/records/{record.id}/certificate.html", headers=h["rita"])
@@ -203,6 +210,7 @@ class Receiver:
         self.secret: str | None = None
         self.down = False
         self.ids: list[str] = []
+        self.bodies: list[dict] = []  # the events as delivered
         self.bad: list[str] = []
         self.refused = 0
         receiver = self
@@ -219,6 +227,7 @@ class Receiver:
                     event = Webhook(receiver.secret).verify(body, dict(self.headers))
                     assert event["id"] == self.headers["webhook-id"]
                     receiver.ids.append(event["id"])
+                    receiver.bodies.append(event)
                 except Exception as exc:  # noqa: BLE001 - recorded for the test to fail on
                     receiver.bad.append(repr(exc))
                 self.send_response(204)

@@ -9,7 +9,7 @@ import sqlalchemy as sa
 
 from service.lims import dcc
 from tests.daemon.conftest import admin_headers, make_client, wait_job
-from tests.lims.test_lims_api import ORDER, STANDARD, Receiver, wait_for
+from tests.lims.test_lims_api import ORDER, PEOPLE, STANDARD, Receiver, wait_for
 
 LAB = {"lab_name": "Inclination Lab GmbH", "lab_city": "Braunschweig", "lab_country_code": "DE",
        "webhook_retry_base_s": 0.1, "webhook_retry_max_s": 0.3, "webhook_max_attempts": 1000}  # fmt: skip
@@ -23,7 +23,7 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
             store = client.app.state.store
             h = {"admin": admin_headers(tmp_path)}
             for name, scopes in (("alice", "admin"), ("bob", "admin"), ("lims", "operate")):
-                h[name] = {"Authorization": f"Bearer {store.tokens.create_token(name, scopes, actor='admin')[1]}"}
+                h[name] = {"Authorization": f"Bearer {store.tokens.create_token(name, scopes, actor='admin', person=PEOPLE.get(name))[1]}"}
             hook = client.post("/webhooks", json={"url": rx.url, "events": ["*"]}, headers=h["admin"]).json()
             rx.secret = hook["secret"]
             rx.down = True  # the first deliveries are refused and retried
@@ -130,7 +130,7 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
 def test_certificates_of_scale_and_rotation_records(tmp_path, procedure, method, grid, benches, quantity, unit) -> None:  # type: ignore[no-untyped-def]
     with make_client(tmp_path, sim_benches=benches, **LAB) as client:
         store = client.app.state.store
-        h = {name: {"Authorization": f"Bearer {store.tokens.create_token(name, 'admin', actor='setup')[1]}"}
+        h = {name: {"Authorization": f"Bearer {store.tokens.create_token(name, 'admin', actor='setup', person=PEOPLE[name])[1]}"}
              for name in ("alice", "bob")}
         std = client.post("/standards", json=STANDARD, headers=h["alice"]).json()
         r = client.post("/calibrations", headers=h["alice"], json={

@@ -19,7 +19,7 @@ from service.lims import dcc
 from service.storage.engine import make_engine
 from service.storage.store import Store
 from tests.api.running_service import running_service
-from tests.lims.test_lims_api import ORDER, STANDARD, measured_record, wait_for
+from tests.lims.test_lims_api import ORDER, PEOPLE, STANDARD, measured_record, wait_for
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "lims.md"
 LAB_ENV = {"TILTLAB_LAB_NAME": "Inclination Lab GmbH", "TILTLAB_LAB_CITY": "Braunschweig",
@@ -104,7 +104,7 @@ def test_the_documented_client_pulls_and_receives(tmp_path, monkeypatch) -> None
     try:
         with running_service(data, **LAB_ENV) as base:
             store = Store(make_engine(f"sqlite:///{data / 'tiltlab.db'}"))
-            tokens = {name: store.tokens.create_token(name, scopes, actor="setup")[1]
+            tokens = {name: store.tokens.create_token(name, scopes, actor="setup", person=PEOPLE.get(name))[1]
                       for name, scopes in (("alice", "admin"), ("bob", "admin"), ("lims", "operate"))}
             auth = {k: {"Authorization": f"Bearer {v}"} for k, v in tokens.items()}
             (tmp_path / "lims.token").write_text(tokens["lims"] + "\n")

@@ -14,7 +14,7 @@ from service.lims import dcc
 from service.storage.migrate import bootstrap
 from service.storage.store import Store
 from tests.api.running_service import running_service
-from tests.lims.test_lims_api import ORDER, STANDARD, Receiver, measured_record, wait_for
+from tests.lims.test_lims_api import ORDER, PEOPLE, STANDARD, Receiver, measured_record, wait_for
 
 ENV = {"TILTLAB_LAB_NAME": "Inclination Lab GmbH", "TILTLAB_LAB_CITY": "Braunschweig",
        "TILTLAB_LAB_COUNTRY_CODE": "DE", "TILTLAB_WEBHOOK_RETRY_BASE_S": "0.2", "TILTLAB_WEBHOOK_RETRY_MAX_S": "0.5",
@@ -52,7 +52,7 @@ def test_feed_and_webhooks_across_a_restart(tmp_path) -> None:  # type: ignore[n
     data = tmp_path / "data"
     engine = bootstrap(Settings(data_dir=data))
     store = Store(engine)
-    tokens = {n: store.tokens.create_token(n, s, actor="setup")[1] for n, s in
+    tokens = {n: store.tokens.create_token(n, s, actor="setup", person=PEOPLE.get(n))[1] for n, s in
               (("alice", "admin"), ("bob", "admin"), ("olga", "operate"), ("lims", "read"))}  # fmt: skip
     h = {n: {"Authorization": f"Bearer {t}"} for n, t in tokens.items()}
     rx = Receiver()

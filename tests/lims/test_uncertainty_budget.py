@@ -20,6 +20,7 @@ from service.instruments.base import Reading
 from service.io.columns import K_OUTPUTS
 from service.jobs.manager import ActiveModel
 from tests.lims.certificates import _stage_fit
+from tests.lims.test_lims_api import PEOPLE
 
 STANDARD = {"name": "reference inclinometer", "serial": "REF-77", "certificate_id": "DAkkS-2026-0412",
             "expanded_uncertainty_deg": 0.02, "coverage_factor": 2.0}  # fmt: skip
@@ -90,10 +91,15 @@ def test_the_budget_names_each_result_and_the_zero_offsets_carry_the_standard() 
     assert "scale_factor.meas_x" not in results  # a scale carries no angle offset of the standard
     zero = results["zero_offset.meas_x_deg"]
     assert [c["source"] for c in zero["contributions"]] == ["fit", "reference_standard"]
-    assert zero["u"] == pytest.approx(math.hypot(model.std("zero_offset.meas_x_deg"), 0.01), rel=1e-12)
+    assert zero["standard_uncertainty"] == pytest.approx(math.hypot(model.std("zero_offset.meas_x_deg"), 0.01), rel=1e-12)
     tilt = results["tilt_x_deg"]
-    assert tilt["u"] == pytest.approx(math.sqrt(sum(c["u"] ** 2 for c in tilt["contributions"])), rel=1e-12)
-    assert tilt["U"] == pytest.approx(tilt["k"] * tilt["u"], rel=1e-12) and tilt["U"] >= 0.02
+    assert tilt["standard_uncertainty"] == pytest.approx(
+        math.sqrt(sum(c["standard_uncertainty"] ** 2 for c in tilt["contributions"])), rel=1e-12)
+    assert tilt["expanded_uncertainty"] == pytest.approx(tilt["coverage_factor"] * tilt["standard_uncertainty"], rel=1e-12)
+    assert tilt["expanded_uncertainty"] >= 0.02
+    # no two keys differ only by case (some JSON mappers ignore case)
+    for entry in (tilt, *tilt["contributions"]):
+        assert len({k.lower() for k in entry}) == len(entry), entry
 
 
 def test_a_standard_of_U_0_02_deg_reaches_tilt_and_the_record_through_the_daemon(tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -103,10 +109,12 @@ def test_a_standard_of_U_0_02_deg_reaches_tilt_and_the_record_through_the_daemon
 
     with make_client(tmp_path, **LAB) as client:
         store = client.app.state.store
-        h = {n: {"Authorization": f"Bearer {store.tokens.create_token(n, 'admin', actor='setup')[1]}"} for n in ("alice", "bob")}
+        h = {n: {"Authorization": f"Bearer {store.tokens.create_token(n, 'admin', actor='setup', person=PEOPLE[n])[1]}"}
+             for n in ("alice", "bob")}
         std = client.post("/standards", headers=h["alice"], json={
             "name": "autocollimator", "serial": "AC-7", "certificate_number": "DAkkS-2026-7", "certificate_sha256": "ab" * 32,
-            "calibrated_on": "2026-01-10", "due_on": "2099-01-10", "expanded_uncertainty_deg": 0.02, "coverage_factor": 2})
+            "calibrated_on": "2026-01-10", "due_on": "2099-01-10", "expanded_uncertainty_deg": 0.02, "coverage_factor": 2,
+            "calibrated_by": {"name": "Angle Calibration Laboratory AG", "country_code": "DE"}})
         assert std.status_code == 201 and std.json()["expanded_uncertainty_deg"] == 0.02, std.text
         vague = client.post("/standards", headers=h["alice"], json={
             "name": "old level", "serial": "L-1", "certificate_number": "C-1", "certificate_sha256": "cd" * 32,
@@ -129,7 +137,7 @@ def test_a_standard_of_U_0_02_deg_reaches_tilt_and_the_record_through_the_daemon
         assert {c["name"] for c in budget["components"] if c["source"] == "resolution"} == {
             "measurement sensor resolution", "reference sensor resolution"}
         tilt_x = next(r for r in budget["results"] if r["quantity"] == "tilt_x_deg")
-        assert tilt_x["U"] >= 0.02
+        assert tilt_x["expanded_uncertainty"] >= 0.02
         assert client.post(f"/records/{rid}/activate", headers=h["alice"]).status_code == 200
         t = fresh_tilt(client, h["alice"])["table_tilt"]
         assert t["u_x_deg"] >= 0.02 and t["u_y_deg"] >= 0.02, t
@@ -139,3 +147,14 @@ def test_a_standard_of_U_0_02_deg_reaches_tilt_and_the_record_through_the_daemon
         budget_part = xml[xml.index("Uncertainty budget"):]
         assert "autocollimator (serial AC-7, certificate DAkkS-2026-7)" in budget_part
         assert "measurement sensor resolution" in budget_part
+
+
+def test_a_budget_stored_under_the_former_names_is_read_under_the_present_ones() -> None:
+    from service.calibration.budget import current_names
+
+    stored = {"components": [], "results": [{"quantity": "tilt_x_deg", "u": 0.001, "U": 0.002, "k": 2.0,
+                                             "dof_eff": None, "contributions": [{"source": "fit", "u": 0.001}]}]}
+    (r,) = current_names(stored)["results"]
+    assert (r["standard_uncertainty"], r["expanded_uncertainty"], r["coverage_factor"]) == (0.001, 0.002, 2.0)
+    assert "u" not in r and "U" not in r and r["contributions"] == [{"source": "fit", "standard_uncertainty": 0.001}]
+    assert stored["results"][0]["U"] == 0.002  # the stored budget itself is left as it was

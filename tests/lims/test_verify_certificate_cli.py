@@ -10,7 +10,7 @@ from service.config import get_settings
 from service.lims.certificates import issue_certificate
 from service.storage.migrate import bootstrap
 from service.storage.store import Store
-from tests.lims.test_lims_api import measured_record
+from tests.lims.test_lims_api import PEOPLE, STANDARD, measured_record
 
 
 @pytest.fixture
@@ -21,8 +21,10 @@ def issued(tmp_path, monkeypatch):  # type: ignore[no-untyped-def]
     get_settings.cache_clear()
     engine = bootstrap(get_settings())
     store = Store(engine)
+    store.standards.add_standard(STANDARD, actor="alice")
     record = measured_record(store, started_by="alice")
-    store.approvals.decide(record.id, decision="approve", meaning="approval", note="", actor="bob")
+    store.approvals.decide(record.id, decision="approve", meaning="approval", note="", actor="bob",
+                           signer=PEOPLE["bob"])
     cert = issue_certificate(store, record.id, get_settings(), actor="bob")
     path = tmp_path / f"{cert.number}.xml"
     path.write_bytes(cert.xml)
@@ -35,7 +37,8 @@ def test_an_issued_certificate_verifies(issued, capsys) -> None:  # type: ignore
     _, path = issued
     assert cli.main(["verify-certificate", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "equals the one stored" in out and "approved by bob" in out and out.rstrip().endswith("OK")
+    assert "equals the one stored" in out and "approved by Bob Example, Deputy Head of Laboratory (token bob)" in out
+    assert out.rstrip().endswith("OK")
 
 
 def test_an_altered_file_fails(issued, capsys) -> None:  # type: ignore[no-untyped-def]
@@ -140,3 +143,62 @@ def test_half_configured_signing_is_refused_naming_the_setting(issued, monkeypat
     get_settings.cache_clear()
     with pytest.raises(NotConfigured, match="/nonexistent/cert.pem"):
         signer(get_settings())
+
+
+def test_a_stripped_signature_does_not_read_as_ok(issued, tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A file whose signature was stripped is still a valid DCC document; offline it fails (nothing shows it is
+    unaltered) unless --allow-unsigned, and against the database it is not the file that was issued."""
+    from lxml import etree
+
+    from service.lims.signature import DSIG_NS, written
+
+    _, path = issued
+    root = etree.fromstring(path.read_bytes())
+    root.remove(root.find(f"{{{DSIG_NS}}}Signature"))
+    stripped = tmp_path / "stripped.xml"
+    stripped.write_bytes(written(root))
+    assert cli.main(["verify-certificate", "--offline", str(stripped)]) == 1
+    out = capsys.readouterr().out
+    assert "FAILED: not signed" in out and "stripped" in out and "--allow-unsigned" in out
+    assert cli.main(["verify-certificate", "--offline", "--allow-unsigned", str(stripped)]) == 0
+    assert "not signed, accepted as asked (--allow-unsigned)" in capsys.readouterr().out
+    assert cli.main(["verify-certificate", str(stripped)]) == 1
+    assert "its signature may have been stripped" in capsys.readouterr().out
+    assert cli.main(["verify-certificate", "--offline", str(path)]) == 0  # the issued, signed file itself
+    capsys.readouterr()
+
+
+def test_a_laboratory_that_does_not_sign_has_its_files_vouched_for_by_its_database(tmp_path, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    monkeypatch.setenv("TILTLAB_DATA_DIR", str(tmp_path / "data"))
+    for k, v in (("LAB_NAME", "Inclination Lab GmbH"), ("LAB_CITY", "Braunschweig"), ("LAB_COUNTRY_CODE", "DE")):
+        monkeypatch.setenv(f"TILTLAB_{k}", v)
+    monkeypatch.delenv("TILTLAB_CERTIFICATE_SIGNING_KEY")
+    monkeypatch.delenv("TILTLAB_CERTIFICATE_SIGNING_CERT")
+    from service.lims import dcc
+
+    def unsigned_issue(content, signer=None):  # type: ignore[no-untyped-def]
+        assert signer is None  # the laboratory configured no signing key
+        xml = dcc.build_xml(content)
+        dcc.validate(xml)
+        return xml
+
+    monkeypatch.setattr(dcc, "issue", unsigned_issue)  # the suite's reviewer signs every other certificate
+    get_settings.cache_clear()
+    engine = bootstrap(get_settings())
+    try:
+        store = Store(engine)
+        store.standards.add_standard(STANDARD, actor="alice")
+        record = measured_record(store, started_by="alice")
+        store.approvals.decide(record.id, decision="approve", meaning="approval", note="", actor="bob",
+                               signer=PEOPLE["bob"])
+        cert = issue_certificate(store, record.id, get_settings(), actor="bob")
+        path = tmp_path / "unsigned.xml"
+        path.write_bytes(cert.xml)
+        assert b"<ds:Signature" not in cert.xml
+        assert cli.main(["verify-certificate", str(path)]) == 0
+        assert "(the laboratory issued it unsigned)" in capsys.readouterr().out
+        assert cli.main(["verify-certificate", "--offline", str(path)]) == 1
+        capsys.readouterr()
+    finally:
+        engine.dispose()
+        get_settings.cache_clear()

@@ -154,6 +154,34 @@ def test_changed_settled_points_are_reported(store: Store, device) -> None:  # t
     assert [(p.row_id, p.kind) for p in verify(store.engine).problems] == [(rec.id, "raw_data_changed")]
 
 
+def test_changed_points_of_a_measurement_an_adopted_version_used_are_reported(store: Store, device) -> None:  # type: ignore[no-untyped-def]
+    """A version adopted from a diagnosis that measured more points was fitted on that job's points too."""
+    jobs = []
+    for _ in range(2):
+        job = store.jobs.create_job(device.id, "scale", "linear", actor="alice")
+        store.jobs.start_job(job.id, actor="alice")
+        store.points.add_settled_points(job.id, device.id, [
+            {"point": p, "n_samples": 10, "t_start_s": p, "t_end_s": p + 1.0, "ch_x_mean": p * 0.1, "ch_y_mean": 0.0}
+            for p in range(3)
+        ], actor="alice")  # fmt: skip
+        jobs.append(job)
+    first, measured = jobs
+    rec = store.records.add_record(device.id, "scale", "linear", MODEL, operator="alice", job_id=first.id,
+                                   raw_data={"measurement_job_ids": [measured.id],
+                                             "measurement_points_sha256": store.points.points_sha256_by_job(
+                                                 [measured.id])})  # fmt: skip
+    assert verify(store.engine).ok
+    with store.engine.begin() as conn:
+        if store.engine.dialect.name == "sqlite":
+            conn.exec_driver_sql("DROP TRIGGER trg_settled_points_no_update")
+        else:
+            conn.exec_driver_sql("ALTER TABLE settled_points DISABLE TRIGGER USER")
+        conn.exec_driver_sql(f"UPDATE settled_points SET ch_x_mean = 0.5 WHERE point = 1 AND job_id = {measured.id}")
+    problems = verify(store.engine).problems
+    assert [(p.row_id, p.kind) for p in problems] == [(rec.id, "raw_data_changed")]
+    assert f"measurement job {measured.id}" in problems[0].detail
+
+
 def _t(days_ago: float) -> float:
     return NOW.timestamp() - days_ago * DAY_S
 

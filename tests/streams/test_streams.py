@@ -34,10 +34,10 @@ from tests.api.running_service import free_port
 SPEED = 10.0
 SLOW_CLOSE_S = 2.0
 QUEUE = 40
-READING_KEYS = {"seq", "time_utc", "type", "raw", "table_tilt", "in_calibrated_range", "stage", "temp_c",
-                "calibration"}
-SNAPSHOT_KEYS = {"type", "seq", "time_utc", "bench", "rate_hz", "raw", "table_tilt", "in_calibrated_range", "stage",
-                 "temp_c", "calibration", "history"}
+READING_KEYS = {"seq", "time_utc", "type", "raw", "table_tilt", "reference_tilt", "in_calibrated_range", "stage",
+                "temp_c", "calibration"}
+SNAPSHOT_KEYS = {"type", "seq", "time_utc", "bench", "rate_hz", "raw", "table_tilt", "reference_tilt",
+                 "in_calibrated_range", "stage", "temp_c", "calibration", "history"}
 
 
 @dataclass

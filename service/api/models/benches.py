@@ -40,9 +40,13 @@ class Counters(Answer):
 
 
 class Identity(Answer):
+    """What the instrument reported itself to be; where it is connected is the device's `port`."""
+
     model: str | None
-    serial: str | None
+    serial: str | None = Field(description="the serial number the instrument reported; null when it reports none")
     firmware: str | None
+    address: str | None = Field(None, description="the bus address it answered at, for an instrument without a"
+                                " serial number (e.g. 0x00)")
 
 
 class DeviceStatus(Answer):

@@ -27,6 +27,19 @@ class ValidationSummary(Answer):
     rms_deg: float | None
     max_deg: float | None
     n_points: int | None
+    predicted_expanded_uncertainty_deg: float | None = Field(
+        None, description="adaptive design: the expanded uncertainty of the correction over the range the job "
+        "predicted before validating (its target met when this is at most the target)")
+    target_expanded_uncertainty_deg: float | None = Field(None, description="adaptive design: the target asked for")
+
+
+class BenchSeconds(Answer):
+    """Bench time a job spent, in bench seconds (a simulated bench's speed-up does not change it)."""
+
+    total: float = Field(description="moving + settling + reading")
+    moving: float = Field(description="stage moves (approach and final) of every point")
+    settling: float = Field(description="from the stage standing to the readings settled")
+    reading: float = Field(description="from settled to a point's last reading")
 
 
 class Job(Answer):
@@ -45,6 +58,8 @@ class Job(Answer):
     error: str | None
     record: RecordRef | None = Field(description="the record the job made, once it has")
     validation: ValidationSummary | None
+    bench_seconds: BenchSeconds | None = Field(None, description="bench time spent so far (null for jobs run before "
+                                                                 "it was counted)")
     request: dict[str, Any] = Field(description="the request the job was started with")
 
 

@@ -21,9 +21,16 @@ class DatabaseOutageState(Answer):
     samples_waiting: int = Field(description="raw samples held in memory by those writes; stored once it answers")
 
 
+class DiskState(Answer):
+    folder: str = Field(description="a folder the daemon writes (the data directory, an SQLite database's folder)")
+    free_mb: float = Field(description="free space on its disk, MB (10^6 bytes)")
+    min_free_mb: float = Field(description="TILTLAB_MIN_FREE_MB: below it jobs do not start and running ones stop")
+    full: bool = Field(description="less free than min_free_mb")
+
+
 class Health(Answer):
-    status: Literal["ok", "degraded"] = Field(description="degraded when the database schema is not at head"
-                                                          " or the database is unreachable")
+    status: Literal["ok", "degraded"] = Field(description="degraded when the database schema is not at head,"
+                                                          " the database is unreachable or a disk is full")
     version: str
     database: str = Field(description="the database URL without its password")
     database_state: Literal["up", "away"] = Field(
@@ -34,6 +41,10 @@ class Health(Answer):
     schema_revision: str | None
     bench: str = Field(description="the bench, or the benches joined by commas")
     benches: list[str]
+    disk: list[DiskState] = Field(default_factory=list, description="free space of the folders the daemon writes")
+    jobs_not_stored: list[int] = Field(default_factory=list,
+                                       description="jobs whose end could not be stored (a full disk): written once"
+                                                   " there is room")
 
 
 class Readiness(Answer):

@@ -34,7 +34,10 @@ _WHEN = {
     409: "Conflicts with the current state (a bench held by a job, a decision already made, ...)",
     413: "The request body is larger than the daemon accepts",
     422: "A body or parameter that cannot be used; `field` names it",
-    503: "A device the request needs is not answering, or the laboratory is not configured",
+    429: "Too many requests of a kind from this client (unknown tokens); `Retry-After` says when to try again",
+    503: "The database did not answer in time, a device the request needs is not answering, or the laboratory is"
+         " not configured; `Retry-After` says when to try again where waiting mends it",
+    507: "The data directory's disk (or the database server's) is full: nothing was stored",
 }
 PROBLEM_SCHEMA_REF = {"$ref": "#/components/schemas/Problem"}
 
@@ -45,6 +48,7 @@ def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
             for status in statuses}
 
 
-# What routes commonly give: a token check, and on routes with a body the size limit and validation.
-READ = (401, 403, 422)
-WRITE = (401, 403, 413, 422)
+# What routes commonly give: a token check (unknown tokens slowed down, the database asked with a deadline),
+# and on routes with a body the size limit and validation; a write may find the disk full.
+READ = (401, 403, 422, 429, 503)
+WRITE = (401, 403, 413, 422, 429, 503, 507)

@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import Field
 
 from service.api.models.base import Answer
+from service.api.models.calibrations import BenchSeconds
 
 RecordStatus = Literal["draft", "approved", "rejected"]
 
@@ -16,6 +17,20 @@ class CalibratedRange(Answer):
     frame: str = Field(description="the frame of the tilts: reference_sensor")
     x_deg: list[float] = Field(description="[min, max]")
     y_deg: list[float] = Field(description="[min, max]")
+
+
+class Conformity(Answer):
+    """The statements of conformity the specification asks for (the certificate states the same)."""
+
+    x: str | None = Field(description="pass, conditionalPass, conditionalFail or fail")
+    y: str | None = Field(description="pass, conditionalPass, conditionalFail or fail")
+    decision_rule: str
+    max_permissible_error_deg: float
+    guard_band_fraction: float | None = None
+    parameters: dict[str, str | None] | None = None
+    largest_probability_of_false_acceptance: dict[str, float | None] = Field(
+        description="per quantity, over its points that pass (null when none passes)")
+    worst_point: dict[str, dict[str, Any]] = Field(description="per quantity, the error and U the statement rests on")
 
 
 class Record(Answer):
@@ -37,12 +52,18 @@ class Record(Answer):
     content_sha256: str
     reference_standards: list[Any] | None
     status: RecordStatus
-    budget: Any = Field(None, description="the uncertainty budget of the record's results")
+    budget: Any = Field(None, description="the uncertainty budget of the record's results; `traceable` says whether a "
+                                          "reference standard's uncertainty is in it (else `warning`: \"no reference "
+                                          "standard: not traceable\", and the record gets no certificate)")
+    conformity: Conformity | None = Field(None, description="where the record's order has a specification: the "
+                                                            "statements of conformity (as on the certificate)")
     calibrated_range: CalibratedRange | None = Field(None, description="the table tilts a stage record was fitted on")
+    bench_seconds: BenchSeconds | None = Field(None, description="the bench time its job spent measuring it")
 
 
 class RecordList(Answer):
     records: list[Record]
+    next_cursor: int | None = Field(None, description="the `cursor` of the next page; null on the last page")
 
 
 class Covariance(Answer):

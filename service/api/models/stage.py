@@ -40,7 +40,9 @@ class Moved(Answer):
 
 
 class Levelled(Answer):
-    achieved: AxisPair = Field(description="the table tilt read back")
+    achieved: AxisPair = Field(description="the table tilt read back: the reference sensor's settled mean, through the "
+                               "active record's model of the reference's own errors when it has one")
+    reference_raw: AxisPair | None = Field(None, description="the reference sensor's settled mean as it came")
     iterations: int
     stage: AxisPair
     within_tolerance: bool

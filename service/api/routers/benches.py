@@ -13,7 +13,7 @@ from service.bench.runtime import BenchRuntime
 router = APIRouter(tags=["benches"])
 
 
-@router.get("/benches", response_model=Benches, responses=problem_responses(401, 403))
+@router.get("/benches", response_model=Benches, responses=problem_responses(*READ))
 def benches(all_benches: BenchesDep, settings: SettingsDep, fleet: FleetDep, _: Reader) -> Benches:
     """Every bench with its kind, roles and state (ready, busy, connecting, degraded) and who holds it."""
     local = [BenchInfo(name=b.name, kind=b.kind, roles=b.roles(), state=b.state(),
@@ -35,7 +35,8 @@ def devices(bench: BenchQuery, _: Reader) -> Devices:
             role=st.role, port=st.port, protocol=st.protocol, state=st.state, last_frame_utc=st.last_frame_utc,
             counters=Counters(frames=c.frames, bad_checksum=c.bad_checksum, resyncs=c.resyncs, timeouts=c.timeouts,
                               reconnects=c.reconnects),
-            identity=None if ident is None else Identity(model=ident.model, serial=ident.serial, firmware=ident.firmware),
+            identity=None if ident is None else Identity(model=ident.model, serial=ident.serial, firmware=ident.firmware,
+                                                              address=ident.address),
             error=st.error))
     return Devices(bench=bench.name, devices=out)
 

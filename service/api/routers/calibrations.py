@@ -7,7 +7,7 @@ from collections.abc import Mapping, Sequence
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query, Response
-from fastapi.concurrency import run_in_threadpool
+from pydantic import BeforeValidator
 
 from service.api.auth import Operator, Reader
 from service.api.deps import (
@@ -15,13 +15,16 @@ from service.api.deps import (
     DevicesRepoDep,
     JobId,
     JobsDep,
+    JobsIfAnyDep,
     JobsRepoDep,
     RecordsRepoDep,
     SettingsDep,
     find_bench,
 )
 from service.api.models.calibrations import Job, JobList, JobState
+from service.api.models.paging import CURSOR, DEFAULT_PAGE, LIMIT, MAX_PAGE, json_answer, rfc3339
 from service.api.models.problem import READ, WRITE, problem_responses
+from service.api.offloop import in_thread, off_loop
 from service.api.problems import ProblemError
 from service.bench.runtime import BenchRuntime
 from service.jobs.requests import DB_ID_MAX, CalibrationRequest
@@ -37,27 +40,33 @@ def job_body(job: CalibrationJob, record: CalibrationRecord | None, benches: Map
     bench = next((b.name for b in benches.values() if b.bench_id == job.bench_id), None)
     v = record.validation if record else None
     return Job.model_validate({
-        "id": job.id, "bench": bench or req.get("bench"), "procedure": req.get("procedure"), "method": job.method,
+        "id": job.id, "bench": bench or req.get("bench"), "procedure": params.get("procedure") or req.get("procedure"), "method": job.method,
         "state": job.state, "interrupted": job.interrupted,
         "progress": {"points_done": job.points_done, "points_total": job.points_total, "phase": job.phase},
         "created_utc": job.created_at, "started_utc": job.started_at, "finished_utc": job.finished_at,
         "updated_utc": job.updated_at, "created_by": job.created_by, "error": job.failure_reason,
         "record": {"id": record.id, "version": record.version} if record else None,
         "validation": None if not v else {"rms_deg": v.get("rms_deg"), "max_deg": v.get("max_deg"),
-                                          "n_points": v.get("n_points")},
+                                          "n_points": v.get("n_points"),
+                                          "predicted_expanded_uncertainty_deg": v.get("predicted_expanded_uncertainty_deg"),
+                                          "target_expanded_uncertainty_deg": v.get("target_expanded_uncertainty_deg")},
+        "bench_seconds": job.bench_seconds,
         "request": req})
 
 
 class JobBodies:
     """Jobs as the routes show them, with the records they made (blocking: from async code in a thread)."""
 
-    def __init__(self, stored_jobs: JobsRepoDep, records: RecordsRepoDep, benches: BenchesDep) -> None:
-        self.stored_jobs, self.records, self.benches = stored_jobs, records, benches
+    def __init__(self, stored_jobs: JobsRepoDep, records: RecordsRepoDep, benches: BenchesDep,
+                 manager: JobsIfAnyDep) -> None:
+        self.stored_jobs, self.records, self.benches, self.manager = stored_jobs, records, benches, manager
 
     def __call__(self, jobs: Sequence[CalibrationJob]) -> list[Job]:
-        """Several jobs with their records read in one query."""
+        """Several jobs with their records read in one query (each as the daemon knows it: an end it could not
+        store yet, the disk being full, is shown)."""
         records = self.records.records_of_jobs([j.id for j in jobs])
-        return [job_body(j, records.get(j.id), self.benches) for j in jobs]
+        known = [self.manager.as_known(j) for j in jobs] if self.manager is not None else list(jobs)
+        return [job_body(j, records.get(j.id), self.benches) for j in known]
 
     def read(self, job_id: int) -> Job:
         """The job as stored now."""
@@ -87,15 +96,19 @@ async def start(body: CalibrationRequest, response: Response, benches: BenchesDe
     response.headers["Location"] = f"/calibrations/{job.id}"
     if not created:
         response.status_code = 200
-    return await run_in_threadpool(bodies.read, job.id)
+    return await in_thread(bodies.read, job.id)
 
 
 @router.get("", response_model=JobList, responses=problem_responses(*READ, 404))
+@off_loop
 def list_jobs(benches: BenchesDep, devices: DevicesRepoDep, stored_jobs: JobsRepoDep, bodies: JobBodiesDep, _: Reader,
               state: JobState | None = None,
-              bench: Annotated[str | None, Query(max_length=100)] = None, updated_since: dt.datetime | None = None,
-              cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description="next_cursor of the previous page")] = None,
-              limit: Annotated[int, Query(ge=1, le=500)] = 50) -> JobList:
+              bench: Annotated[str | None, Query(max_length=100)] = None,
+              updated_since: Annotated[dt.datetime | None, BeforeValidator(rfc3339),
+                                       Query(description="jobs changed at or after this time (RFC 3339, with a zone:"
+                                                         " 2026-03-01T12:00:00Z)")] = None,
+              cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
+              limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE) -> Response:
     """Jobs newest first, filtered by state, bench and last change; `next_cursor` pages on."""
     bench_id = None
     if bench is not None:  # a bench of this daemon, or of another daemon of the lab (the database knows it)
@@ -105,26 +118,27 @@ def list_jobs(benches: BenchesDep, devices: DevicesRepoDep, stored_jobs: JobsRep
     if updated_since is not None and updated_since.tzinfo is None:
         raise ProblemError(422, "Invalid request", "updated_since: give a time zone (e.g. Z)", field="updated_since")
     found = stored_jobs.list_jobs(state=state, bench_id=bench_id, updated_since=updated_since, before_id=cursor, limit=limit)
-    return JobList(jobs=bodies(found), next_cursor=found[-1].id if len(found) == limit else None)
+    return json_answer(JobList(jobs=bodies(found), next_cursor=found[-1].id if len(found) == limit else None))
 
 
 @router.get("/{job_id}", response_model=Job, responses=problem_responses(*READ, 404))
+@off_loop
 def read(job_id: JobId, bodies: JobBodiesDep, _: Reader) -> Job:
     return bodies.read(job_id)
 
 
-@router.post("/{job_id}/cancel", response_model=Job, responses=problem_responses(401, 403, 404, 409, 422))
+@router.post("/{job_id}/cancel", response_model=Job, responses=problem_responses(*WRITE, 404, 409))
 async def cancel(job_id: JobId, jobs: JobsDep, bodies: JobBodiesDep, who: Operator) -> Job:
     """Stop a queued or running job; what it measured is kept."""
     job = await jobs.cancel(job_id, who)
-    return (await run_in_threadpool(bodies, [job]))[0]
+    return (await in_thread(bodies, [job]))[0]
 
 
 @router.post("/{job_id}/resume", status_code=202, response_model=Job,
-             responses=problem_responses(401, 403, 404, 409, 422, 503))
+             responses=problem_responses(*WRITE, 404, 409))
 async def resume(job_id: JobId, response: Response, jobs: JobsDep, bodies: JobBodiesDep,
                  who: Operator) -> Job:
     """Continue a job a restart interrupted, from its stored points."""
     job = await jobs.resume(job_id, who)
     response.headers["Location"] = f"/calibrations/{job.id}"
-    return await run_in_threadpool(bodies.read, job_id)
+    return await in_thread(bodies.read, job_id)

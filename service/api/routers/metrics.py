@@ -10,7 +10,8 @@ from starlette.concurrency import run_in_threadpool
 from service.api.auth import Reader
 from service.api.deps import DatabaseDep, JobsRepoDep
 from service.api.metrics import MetricsDep
-from service.api.models.problem import problem_responses
+from service.api.models.problem import READ, problem_responses
+from service.api.offloop import DatabaseSlow, in_thread
 from service.storage.outage import unreachable
 
 router = APIRouter(tags=["health"])
@@ -19,13 +20,15 @@ router = APIRouter(tags=["health"])
 @router.get("/metrics", response_class=Response,
             responses={200: {"description": "Prometheus text exposition format 0.0.4",
                              "content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}}},
-                       **problem_responses(401, 403)})
+                       **problem_responses(*READ)})
 async def metrics(metrics: MetricsDep, stored_jobs: JobsRepoDep, database: DatabaseDep, _: Reader) -> Response:
     """HTTP requests by route and status with latency histograms, serial counters per device, jobs by
     state (left out while the database is away), WebSocket clients and dropped messages, the job writes
     handed over, and whether the database answers (with the writes and samples waiting for it)."""
     try:
-        counts = await run_in_threadpool(stored_jobs.job_counts_by_state)
+        counts = await in_thread(stored_jobs.job_counts_by_state)
+    except DatabaseSlow:  # the database does not answer in time: everything else is still worth scraping
+        counts = {}
     except Exception as exc:  # the database away: everything else is still worth scraping
         if not unreachable(exc):
             raise

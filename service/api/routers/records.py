@@ -18,21 +18,26 @@ from service.api.deps import (
     JobsDep,
     RecordId,
     RecordsRepoDep,
+    StoreDep,
     find_bench,
 )
-from service.api.models.problem import READ, problem_responses
+from service.api.models.paging import CURSOR, DEFAULT_PAGE, LIMIT, MAX_PAGE, json_answer
+from service.api.models.problem import READ, WRITE, problem_responses
 from service.api.models.records import ModelFile, Record, RecordList, Residuals
+from service.api.offloop import off_loop
 from service.api.problems import ProblemError
-from service.calibration.model import CalibrationModel
+from service.calibration.model import CalibrationModel, stored_range
 from service.calibration.registry import get_method
 from service.calibration.residual_map import stage_residual_map
 from service.errors import InputError
 from service.io.columns import ROTATION_DATASET, SCALE_DATASET, STAGE_DATASET, TURNTABLE_DATASET
 from service.io.datasets import format_value
+from service.jobs.budgets import with_traceability
 from service.jobs.manager import JobManager
 from service.jobs.requests import DB_ID_MAX
+from service.lims.certificates import record_conformity
 from service.storage.models import CalibrationRecord
-from service.storage.store import ApprovalsRepo, DevicesRepo, RecordsRepo
+from service.storage.store import ApprovalsRepo, DevicesRepo, RecordsRepo, Store
 
 router = APIRouter(prefix="/records", tags=["records"])
 
@@ -45,21 +50,30 @@ class RecordBodies:
     """Records as the routes show them: with their bench, whether active and their approval status."""
 
     def __init__(self, records: RecordsRepoDep, approvals: ApprovalsRepoDep, devices: DevicesRepoDep,
-                 jobs: JobsDep) -> None:
-        self.records, self.approvals, self.devices, self.jobs = records, approvals, devices, jobs
+                 jobs: JobsDep, store: StoreDep) -> None:
+        self.records, self.approvals, self.devices, self.jobs, self.store = records, approvals, devices, jobs, store
 
     def __call__(self, rows: Sequence[CalibrationRecord]) -> list[Record]:
-        """The bodies of these records, read in three queries however many they are."""
-        return record_bodies(self.records, self.approvals, self.devices, self.jobs, rows)
+        """The bodies of these records, read in four queries however many they are (and, for the records of an
+        order with a specification, those their statements of conformity need)."""
+        return record_bodies(self.records, self.approvals, self.devices, self.jobs, rows, self.store)
+
+    def page(self, rows: Sequence[CalibrationRecord]) -> list[Record]:
+        """The bodies of a page of records read without their models (see `page_ranges`)."""
+        return record_bodies(self.records, self.approvals, self.devices, self.jobs, rows, self.store,
+                             page_ranges(self.records, self.jobs, rows))
 
 
 RecordBodiesDep = Annotated[RecordBodies, Depends()]
 
 
 def record_bodies(records: RecordsRepo, approvals: ApprovalsRepo, devices: DevicesRepo, jobs: JobManager,
-                  rows: Sequence[CalibrationRecord]) -> list[Record]:
-    """Records with their bench, whether active and their approval status, read in three queries."""
+                  rows: Sequence[CalibrationRecord], store: Store, ranges: dict[int, Any] | None = None) -> list[Record]:
+    """Records with their bench, whether active, their approval status, their budget saying whether it is traceable
+    and, where their order has a specification, their statements of conformity (and their calibrated ranges, from
+    `ranges` where given)."""
     active = records.active_record_ids()
+    specified = store.orders.specified_jobs([r.job_id for r in rows if r.job_id is not None])
     status = approvals.record_statuses([r.id for r in rows])
     # in a fleet a record's device may hang off another daemon's bench: the database knows its name
     elsewhere = devices.bench_names_of_devices({r.device_id for r in rows if jobs.bench_of_device(r.device_id) is None})
@@ -71,12 +85,15 @@ def record_bodies(records: RecordsRepo, approvals: ApprovalsRepo, devices: Devic
             "kind": r.kind,
             "version": r.version, "method": r.method, "created_utc": r.created_at, "operator": r.operator,
             "job_id": r.job_id, "active": r.id in active, "validation": r.validation, "temp_c": r.temp_c,
-            "conditions": (r.raw_data or {}).get("conditions"), "budget": (r.raw_data or {}).get("budget"),
+            "conditions": (r.raw_data or {}).get("conditions"),
+            "budget": with_traceability((r.raw_data or {}).get("budget")),
+            "conformity": record_conformity(store, r) if r.job_id in specified else None,
             "raw_data": r.raw_data,
             "supersedes_id": r.supersedes_id, "content_sha256": r.content_sha256,
             "reference_standards": r.reference_standards,
             "status": status[r.id],  # draft | approved | rejected (LIMS approvals)
-            "calibrated_range": calibrated_range(jobs, r)}))
+            "calibrated_range": ranges[r.id] if ranges is not None else calibrated_range(jobs, r),
+            "bench_seconds": (r.raw_data or {}).get("bench_seconds")}))
     return out
 
 
@@ -86,17 +103,48 @@ def calibrated_range(jobs: JobManager, r: CalibrationRecord) -> dict[str, Any] |
         seen = jobs.table_tilt_range_of(r)
     except InputError:  # a model this version cannot read states no range it can show
         return None
-    if seen is None:
-        return None
-    return {"frame": "reference_sensor", "x_deg": seen["x"], "y_deg": seen["y"]}
+    return _range_body(seen)
+
+
+def _range_body(seen: dict[str, list[float]] | None) -> dict[str, Any] | None:
+    return None if seen is None else {"frame": "reference_sensor", "x_deg": seen["x"], "y_deg": seen["y"]}
+
+
+def page_ranges(records: RecordsRepo, jobs: JobManager, rows: Sequence[CalibrationRecord]) -> dict[int, Any]:
+    """The calibrated ranges of a page of records read without their models: known ones from memory, the rest
+    from what each model states (extracted by the database), and a record whose model states none (made before
+    models kept it) read whole, once."""
+    out: dict[int, Any] = {}
+    missing = []
+    for r in rows:
+        known, seen = jobs.known_range(r.id)
+        if known:
+            out[r.id] = _range_body(seen)
+        elif r.kind != "stage":
+            jobs.remember_range(r.id, None)
+            out[r.id] = None
+        else:
+            missing.append(r.id)
+    for record_id, stated in records.fitted_ranges(missing).items():
+        seen = stored_range(stated)
+        if seen is None:  # an older model: worked out from the record's own points, once
+            out[record_id] = calibrated_range(jobs, records.get_record(record_id))
+            continue
+        jobs.remember_range(record_id, seen)
+        out[record_id] = _range_body(seen)
+    return out
 
 
 @router.get("", response_model=RecordList, responses=problem_responses(*READ, 404))
+@off_loop
 def list_records(benches: BenchesDep, records: RecordsRepoDep, devices: DevicesRepoDep, bodies: RecordBodiesDep,
                  _: Reader,
                  device: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description="a device's id")] = None,
-                 bench: Annotated[str | None, Query(max_length=100)] = None) -> RecordList:
-    """Records newest first, of one device or of the devices of one bench."""
+                 bench: Annotated[str | None, Query(max_length=100)] = None,
+                 cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
+                 limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE) -> Response:
+    """Records newest first, of one device or of the devices of one bench, a page at a time: `next_cursor`
+    (null on the last page) pages on."""
     of_bench: list[int] | None = None
     if bench is not None:
         device_ids = (list(benches[bench].device_ids.values()) if bench in benches
@@ -104,16 +152,19 @@ def list_records(benches: BenchesDep, records: RecordsRepoDep, devices: DevicesR
         if device_ids is None:
             find_bench(benches, bench)  # the 404 naming the benches there are
         of_bench = device_ids or []
-    return RecordList(records=bodies(records.newest_first(device_id=device, device_ids=of_bench)))
+    found = records.newest_first(device_id=device, device_ids=of_bench, before_id=cursor, limit=limit, with_model=False)
+    return json_answer(RecordList(records=bodies.page(found), next_cursor=found[-1].id if len(found) == limit else None))
 
 
 @router.get("/{record_id}", response_model=Record, responses=problem_responses(*READ, 404))
+@off_loop
 def read(record_id: RecordId, records: RecordsRepoDep, bodies: RecordBodiesDep, _: Reader) -> Record:
     return bodies([records.get_record(record_id)])[0]
 
 
 @router.get("/{record_id}/model", response_model=ModelFile, response_model_exclude_unset=True,
             responses=problem_responses(*READ, 404))
+@off_loop
 def model(record_id: RecordId, records: RecordsRepoDep, _: Reader) -> ModelFile:
     """The record's MODEL.json, as `tiltlab correct --model` and `tiltlab level --model` take it."""
     return ModelFile.model_validate(records.get_record(record_id).model)
@@ -123,6 +174,7 @@ def model(record_id: RecordId, records: RecordsRepoDep, _: Reader) -> ModelFile:
     200: {"content": {"text/csv": {"schema": {"type": "string"}}},
           "description": "the record's fit points as a dataset CSV of its kind"},
     **problem_responses(*READ, 404, 409)})
+@off_loop
 def points(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Reader) -> Response:
     """The settled points the record was fitted on as a dataset CSV of its kind: `tiltlab calibrate` on it gives the
     record's parameters exactly (stored values are written in their shortest exact decimal form)."""
@@ -142,6 +194,7 @@ def points(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Reade
 
 
 @router.get("/{record_id}/residuals", response_model=Residuals, responses=problem_responses(*READ, 404, 409))
+@off_loop
 def residuals(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Reader) -> Residuals:
     """Per measured point of a stage record, the residual against the reference sensor before correction
     (measurement sensor raw) and after it (through the record's model, the computation of `tiltlab correct`);
@@ -159,7 +212,8 @@ def residuals(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Re
                                      **stage_residual_map(get_method("stage", r.method), fitted, cols, n_fit)})
 
 
-@router.post("/{record_id}/activate", response_model=Record, responses=problem_responses(401, 403, 404, 409, 422))
+@router.post("/{record_id}/activate", response_model=Record, responses=problem_responses(*WRITE, 404, 409))
+@off_loop
 def activate(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, bodies: RecordBodiesDep,
              who: Operator) -> Record:
     """Make the record the active version of its device: /tilt and levelling use it from now on. A rejected

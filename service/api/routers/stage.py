@@ -5,12 +5,12 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter
-from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Operator
 from service.api.deps import AuditRepoDep, BenchesDep, JobsDep, find_bench
 from service.api.models.problem import WRITE, problem_responses
 from service.api.models.stage import Level, Levelled, Move, Moved, Stop, Stopped
+from service.api.offloop import in_thread
 from service.api.problems import ProblemError
 from service.bench.runtime import BenchHold, BenchRuntime, Hold
 from service.errors import InputError
@@ -24,7 +24,7 @@ async def _audit(audit: AuditRepo, actor: str, action: str, bench: str, details:
     """The audit event of a stage action, written in the worker thread pool: a write waiting for the
     database's write lock (a job storing its points) must not hold up the event loop, which serves
     /tilt and keeps the instruments' streams read."""
-    await run_in_threadpool(audit.action, actor, action, "bench", bench, details)
+    await in_thread(audit.action, actor, action, "bench", bench, details)
 
 
 def _stage_bench(benches: dict[str, BenchRuntime], name: str | None) -> BenchRuntime:

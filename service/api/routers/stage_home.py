@@ -4,12 +4,12 @@ found its reference switch; `POST /stage/home` does that and answers once both a
 from __future__ import annotations
 
 from fastapi import APIRouter
-from starlette.concurrency import run_in_threadpool
 
 from service.api.auth import Operator
 from service.api.deps import AuditRepoDep, BenchesDep, find_bench
 from service.api.models.problem import WRITE, problem_responses
 from service.api.models.stage import Home, Homed
+from service.api.offloop import in_thread
 from service.api.problems import ProblemError
 from service.bench.runtime import BenchHold, Hold
 
@@ -24,5 +24,5 @@ async def home(benches: BenchesDep, audit: AuditRepoDep, who: Operator, body: Ho
         raise ProblemError(422, "Not a stage bench", f"bench: {bench.name!r} is a {bench.kind} bench", field="bench")
     async with bench.hold(BenchHold(Hold.HOMING)):
         x, y = await bench.home_stage()
-    await run_in_threadpool(audit.action, who.name, "stage.home", "bench", bench.name, {"bench": bench.name})
+    await in_thread(audit.action, who.name, "stage.home", "bench", bench.name, {"bench": bench.name})
     return Homed.model_validate({"homed": True, "stage": {"x_deg": x, "y_deg": y, "moving": False}})

@@ -28,12 +28,21 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from service.api.auth import websocket_principal, websocket_subprotocol
 from service.api.deps import BenchesDep, JobsDep, JobsRepoDep, PointsRepoDep, RecordsRepoDep, SettingsDep, StreamsDep
+from service.api.offloop import in_thread
+from service.api.problems import ProblemError
 from service.api.routers.calibrations import job_body
 from service.jobs.requests import DB_ID_MAX
 from service.storage.errors import UnknownEntity
 from service.storage.models import CalibrationJob
 from service.streams.jobs import job_messages
-from service.streams.readings import CLOSE_SLOW, HISTORY_DEFAULT_S, HISTORY_MAX_S, Client, ReadingProducer
+from service.streams.readings import (
+    CLOSE_SLOW,
+    HISTORY_DEFAULT_S,
+    HISTORY_MAX_S,
+    Client,
+    ReadingProducer,
+    SnapshotsBusy,
+)
 
 router = APIRouter(tags=["streams"])
 log = logging.getLogger("tiltlab.streams")
@@ -62,26 +71,33 @@ async def _refuse(ws: WebSocket, reason: str) -> None:
 
 
 async def _authorised(ws: WebSocket) -> bool:
-    if websocket_principal(ws, "read") is not None:
+    """The token checked before anything else (off the event loop when the database must be asked)."""
+    try:
+        await websocket_principal(ws, "read")
         return True
-    given = websocket_subprotocol(ws) is not None or ws.query_params.get("token")
-    await _refuse(ws, "token: unknown, revoked, or without the read scope" if given else
-                  "token: missing (give the subprotocol bearer.<token>, or ?token=...)")
-    return False
+    except ProblemError as exc:
+        given = websocket_subprotocol(ws) is not None or ws.query_params.get("token")
+        if exc.status in (429, 503):  # try again later: the daemon could not check it now
+            await _accept(ws)
+            await ws.close(CLOSE_SLOW, _reason(f"token: {exc.detail}"))
+        else:
+            await _refuse(ws, "token: unknown, revoked, or without the read scope" if given else
+                          "token: missing (give the subprotocol bearer.<token>, or ?token=...)")
+        return False
 
 
 async def _until_token_invalid(ws: WebSocket) -> None:
-    """Return once the stream's token no longer lets it read (revoked here or by `tiltlab token revoke`)."""
+    """Return once the stream's token no longer lets it read (revoked here or by `tiltlab token revoke`).
+
+    From the token cache: a known token is answered from memory and re-checked in the background."""
     while True:
         await asyncio.sleep(TOKEN_RECHECK_S)
         try:
-            principal = await asyncio.to_thread(websocket_principal, ws, "read")
-        except Exception:  # noqa: BLE001 - a database that did not answer this once: ask again next time
-            log.warning("a stream's token could not be checked; asking again in %g s", TOKEN_RECHECK_S,
-                        exc_info=True)
-            continue
-        if principal is None:
-            return
+            await websocket_principal(ws, "read")
+        except ProblemError as exc:
+            if exc.status in (401, 403):
+                return
+            log.warning("a stream's token could not be checked (%s); asking again in %g s", exc.detail, TOKEN_RECHECK_S)
 
 
 def _number(ws: WebSocket, name: str, default: float | None) -> float | None:
@@ -138,8 +154,16 @@ async def readings(ws: WebSocket, hub: StreamsDep) -> None:
     except ValueError as exc:
         return await _refuse(ws, str(exc))
     await _accept(ws)
-    client = producer.connect(rate, history_s)
+    client = producer.connect(rate, history_s, deferred=True)  # the history copied now, the stream continues it
     try:
+        if client.snapshot is not None:  # built off the event loop, long histories a few at a time
+            try:
+                text = await hub.snapshots.build(client.snapshot)
+            except SnapshotsBusy as exc:
+                client.kick(CLOSE_SLOW, f"busy: {exc}")
+                return await _close(ws, CLOSE_SLOW, client.close_reason)
+            client.snapshot = None
+            await ws.send_text(text)
         await _serve_client(ws, producer, client)
     finally:
         producer.disconnect(client)
@@ -207,12 +231,16 @@ async def job_stream(ws: WebSocket, job_id: str, stored_jobs: JobsRepoDep, recor
 
     def body(job: CalibrationJob) -> dict[str, Any]:
         record = records.records_of_jobs([job.id]).get(job.id)
-        return job_body(job, record, benches).model_dump(mode="json")  # as the HTTP route serialises it
+        # as the HTTP route serialises it, and as the daemon knows it (an end not stored yet included)
+        return job_body(jobs.as_known(job), record, benches).model_dump(mode="json")
 
     try:
-        await asyncio.to_thread(stored_jobs.get_job, int(job_id))
+        await in_thread(stored_jobs.get_job, int(job_id))
     except UnknownEntity:
         return await _refuse(ws, f"id: no calibration job {job_id}")
+    except ProblemError as exc:  # the database did not answer in time: try again later
+        await _accept(ws)
+        return await ws.close(CLOSE_SLOW, _reason(exc.detail))
     await _accept(ws)
     waiter = asyncio.create_task(_until_disconnect(ws))
     revoked = asyncio.create_task(_until_token_invalid(ws))

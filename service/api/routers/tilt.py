@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
 from service.api.auth import Reader
@@ -13,36 +13,76 @@ from service.api.deps import BenchQuery, JobsDep
 from service.api.models.problem import READ, problem_responses
 from service.api.models.tilt import Tilt
 from service.bench.corrected import (
+    averaged_tilt,
     calibrated_range_note,
     calibration_json,
     corrected_reading,
     in_calibrated_range,
+    reference_tilt,
     sensor_temp_c,
     stale_after_s,
 )
 from service.bench.runtime import BenchRuntime
+from service.instruments.base import Reading
 from service.jobs.manager import JobManager
 
 router = APIRouter(tags=["tilt"])
+MAX_AVERAGE_S = 600.0  # the longest averaging window asked for (bench seconds)
 
 
 def _pair(r: Any) -> dict[str, float] | None:
     return None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}
 
 
+AverageQuery = Annotated[float | None, Query(
+    gt=0, le=MAX_AVERAGE_S,
+    description="serve the mean of the corrected readings of the last average_s seconds (bench seconds: the "
+                "simulated clock's on a simulated bench) during which the stage stood still, with the uncertainty "
+                "of that mean; table_tilt then carries n_readings and window_s")]
+
+
 @router.get("/tilt", response_model=Tilt, responses=problem_responses(*READ, 404))
-async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader) -> Response:
+async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader, average_s: AverageQuery = None) -> Response:
     """Table tilt: the measurement sensor's latest reading through the active record, in the reference
     sensor's frame, with its expanded uncertainty (GUM, 95 %; coverage factors k, k_y from the effective degrees of
     freedom) from the record's covariance; null with
     the reason in `note` when no record is active (or the active one was withdrawn or refused) or the sensor
     is not answering. `in_calibrated_range` says whether the corrected tilt lies within the table tilts the
-    record was fitted on; outside them it is still served, and `note` says so. `stale` is true
-    when the latest reading is older than three output intervals plus 0.25 s."""
-    return Response(tilt_answer(bench, jobs), media_type="application/json")
+    record was fitted on; outside them it is still served, and `note` says so. When the active record models the
+    reference sensor's own errors, `reference_tilt` is its latest reading through that model (`raw` keeps the
+    reading as it came). `stale` is true
+    when the latest reading is older than three output intervals plus 0.25 s.
+
+    With `average_s`, `table_tilt` is the mean of the readings since the later of (the latest reading's time −
+    average_s) and the end of the stage's last move, `window_s` says how long that is and `n_readings` how many;
+    its uncertainty is that of the mean (the readings' Type A, their correlation allowed for, combined with the
+    parts that do not average down). With fewer than two readings, or while the stage moves, it is null and `note`
+    says why."""
+    return Response(tilt_answer(bench, jobs, average_s), media_type="application/json")
 
 
-def tilt_answer(bench: BenchRuntime, jobs: JobManager) -> bytes:
+def _averaged(bench: BenchRuntime, active: Any, meas: Reading, average_s: float) -> tuple[dict[str, Any] | None, str]:
+    """The averaged table tilt over the readings up to `meas` (the latest) since the stage last stood still, and
+    what `note` says of its window."""
+    still = bench.pose.still_since_bench_s
+    if bench.pose.moving or still is None:
+        return None, "the stage is moving: no average (average_s takes readings while the stage stands)"
+    start = max(meas.bench_s - average_s, still)
+    kept = bench.readings_after("measurement_sensor", float("-inf"))  # the driver keeps the latest few thousand
+    readings = [r for r in kept if start < r.bench_s <= meas.bench_s and r.x_deg is not None and r.y_deg is not None]
+    window_s = meas.bench_s - start
+    if len(readings) < 2:
+        return None, (f"{len(readings)} reading(s) since the stage last stood still ({window_s:.3g} s ago):"
+                      " an average needs two or more")
+    reach = ("" if start > still or window_s >= average_s
+             else f"; the window starts at the end of the stage's last move, {window_s:.3g} s before the latest reading")
+    if kept[0].bench_s > start:  # the oldest reading kept is younger than the window
+        window_s = meas.bench_s - kept[0].bench_s
+        reach += f"; only the last {window_s:.3g} s of readings are kept"
+    return averaged_tilt(active, readings, window_s), f"mean of {len(readings)} readings over {window_s:.3g} s{reach}"
+
+
+def tilt_answer(bench: BenchRuntime, jobs: JobManager, average_s: float | None = None) -> bytes:
     """The body of `GET /tilt` for one bench, as JSON (the route's and the prepared path's one source)."""
     now = dt.datetime.now(dt.UTC)
     meas = bench.latest("measurement_sensor")
@@ -58,7 +98,7 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager) -> bytes:
         st = bench.devices["measurement_sensor"].status
         notes.append(f"no reading from measurement_sensor on {st.port} ({st.state})")
     else:
-        if active is not None:
+        if active is not None and average_s is None:
             meas, table = corrected_reading(bench, active, meas)  # computed before the age: it may pick the one before
         age_s = max(0.0, (now - meas.time_utc).total_seconds())
         limit = stale_after_s(bench, "measurement_sensor")
@@ -73,9 +113,12 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager) -> bytes:
         elif stale:
             table = None
         else:
+            if average_s is not None:
+                table, said = _averaged(bench, active, meas, average_s)
+                notes.append(said)
             notes.append(f"corrected through record {active.record_id} v{active.version} ({active.method_name},"
                          f" {active.status})")
-            in_range = in_calibrated_range(active, table)
+            in_range = in_calibrated_range(active, table) if table is not None else None
             if in_range is False and table is not None:
                 notes.append(calibrated_range_note(active, table))
     pose = bench.pose
@@ -83,6 +126,7 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager) -> bytes:
         "bench": bench.name, "time_utc": meas.time_utc if meas else now, "age_s": age_s, "stale": stale,
         "table_tilt": table,
         "raw": {"measurement_sensor": _pair(meas), "reference_sensor": _pair(ref)},
+        "reference_tilt": reference_tilt(active, ref, sensor_temp_c(meas, ref)) if bench.kind == "stage" else None,
         "temp_c": sensor_temp_c(meas, ref),
         "stage": {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None,
         "calibration": calibration_json(active),

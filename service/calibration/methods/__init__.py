@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 
 from service.calibration.methods.rotation import DIRECT, IODSRA, IODSRA_COMBINED
-from service.calibration.methods.scale import PolyMethod
+from service.calibration.methods.scale import MAX_DEGREE, PolyMethod
 from service.calibration.methods.stage import AXIS_TRANSFORM, COUPLING, HOMOGRAPHY, KINEMATIC
 from service.calibration.methods.turntable import REVERSAL
 from service.calibration.registry import Method, MethodFamily
@@ -22,5 +22,5 @@ METHODS: tuple[Method, ...] = (
     REVERSAL,  # turntable
 )
 FAMILIES: tuple[MethodFamily, ...] = (
-    MethodFamily("scale", re.compile(r"poly(\d+)"), _poly),  # poly1 ... poly6
+    MethodFamily("scale", re.compile(r"poly(\d+)"), _poly, tuple(f"poly{n}" for n in range(1, MAX_DEGREE + 1))),
 )

@@ -24,17 +24,25 @@ The sense of the axis (L or -L) is a convention the points alone cannot fix: β 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions
-from service.calibration.uncertainty import propagate_gum
+from service.calibration.uncertainty import Propagated, coverage_factor, propagate_gum, welch_satterthwaite
 from service.errors import DegenerateDataError
 
 SIN45 = float(np.sin(np.radians(45.0)))
 PARAM_NAMES = ("alpha_deg", "beta_deg", "gamma_deg")
+CONSTANT_ERRORS_KEY = "theta_constant_output_errors"  # MODEL.json state: per branch, the line fit of their θ bias
+
+
+def _local(theta_deg: ArrayLike, centre_deg: float, linear: bool) -> NDArray[np.float64]:
+    """Design of a straight line in θ about a branch's centre (radians, wrapped), or of its mean alone."""
+    d = np.radians(wrap_deg(np.asarray(theta_deg, dtype=float) - centre_deg))
+    return np.column_stack([np.ones_like(d), d]) if linear else np.ones((d.size, 1))
 
 
 # --- points -------------------------------------------------------------------------------------
@@ -287,39 +295,136 @@ class _RotationMethod:
         if sigma_s is not None:
             notes.append(f"output noise sigma_s = {sigma_s:.3g} (sine units) from the plane residuals, used for "
                          "u_theta_deg")
-        return CalibrationModel(kind=self.kind, method=self.name, columns=list(self.fit_required) + (
+        model = CalibrationModel(kind=self.kind, method=self.name, columns=list(self.fit_required) + (
             ["theta_ref_deg"] if theta_ref is not None else []), parameters=params,
             covariance_names=list(PARAM_NAMES) if cov is not None else [], covariance=cov, residuals=residuals,
             fit=fit, notes=notes, state={"sigma_s": sigma_s})
+        if theta_ref is not None and cov is not None:
+            ref = np.asarray(theta_ref, dtype=float)
+            const = self.constant_errors(model, data, ref, wrap_deg(ref - theta))
+            if const is not None:
+                model.state[CONSTANT_ERRORS_KEY] = const
+                notes.append("constant output errors (zero offsets, scale errors of sx, sy, sz) bias theta by an amount "
+                             "that depends on the angle, jumps where the method changes branch and does not show in the "
+                             "output scatter: per branch, a straight line through the theta residuals against "
+                             "theta_ref_deg gives it per angle; its square (the bias's square and its estimation variance) adds to "
+                             f"u_theta_deg (largest residual {float(np.max(np.abs(wrap_deg(ref - theta)))):.3g} deg)")
+        return model
 
     def theta_deg(self, model: CalibrationModel, data: Columns) -> NDArray[np.float64]:
         a, b, g = np.radians(model.values(PARAM_NAMES))
         pts, _ = self.points(data)
         return np.degrees(self.theta(pts, a, b, g))
 
-    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
+    def _fit_uncertainty(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], Propagated | None]:
+        """θ and its propagated standard uncertainty from the plane fit and the output noise (None without a covariance)."""
         p0 = model.values(PARAM_NAMES)
         a, b, g = np.radians(p0)
         pts, _ = self.points(data)
         use9 = equation9_region(pts, a, b, g)
         theta0 = np.degrees(self.theta(pts, a, b, g, use9))
-        out = {"theta_deg": theta0}
         sigma = model.state.get("sigma_s") if isinstance(model.state, Mapping) else None
-        if model.covariance is not None and sigma is not None:
-            inputs = {c: np.asarray(data[c], dtype=float) for c in self.fit_required}
+        if model.covariance is None or sigma is None:
+            return theta0, None
+        inputs = {c: np.asarray(data[c], dtype=float) for c in self.fit_required}
 
-            def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
-                pp, _ = self.points(x)
-                pa, pb, pg = np.radians(p)
-                t = np.degrees(self.theta(pp, pa, pb, pg, use9))
-                return theta0 + wrap_deg(t - theta0)  # no jump at ±180° inside the differences
+        def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
+            pp, _ = self.points(x)
+            pa, pb, pg = np.radians(p)
+            t = np.degrees(self.theta(pp, pa, pb, pg, use9))
+            return theta0 + wrap_deg(t - theta0)  # no jump at ±180° inside the differences
 
-            dof = float(model.fit.get("dof") or np.inf)  # cov and sigma_s both from the plane residuals
-            g = propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs,
-                              {c: float(sigma) for c in self.fit_required}, dof, dof)
+        dof = float(model.fit.get("dof") or np.inf)  # cov and sigma_s both from the plane residuals
+        return theta0, propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs,
+                                     {c: float(sigma) for c in self.fit_required}, dof, dof)
+
+    def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
+        theta0, g = self._fit_uncertainty(model, data)
+        out = {"theta_deg": theta0}
+        if g is not None:
+            const = model.state.get(CONSTANT_ERRORS_KEY)
+            if const:  # the outputs' constant errors, seen in the fit's θ residuals against the dividing head
+                u2 = self.constant_errors_u2(model, data, theta0)
+                dof = float(model.fit.get("dof") or np.inf)
+                nu = welch_satterthwaite([(g.u**2, dof), (u2, dof)])
+                g = Propagated(np.sqrt(g.u**2 + u2), nu)
             out["u_theta_deg"] = g.expanded()
+            out["k_theta"] = coverage_factor(g.dof_eff)
         return out
 
+    def regimes(self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]) -> list[str]:
+        """Which branch of the method serves each point: the component the 45° rule replaced and, for the switch,
+        the equation taken. The bias from constant output errors jumps where the branch changes."""
+        a, b, g = np.radians(model.values(PARAM_NAMES))
+        pts, replaced = self.points(data)
+        use9 = equation9_region(pts, a, b, g) if self.estimator == "switch" else np.zeros(pts.shape[0], dtype=bool)
+        return [f"{int(r)}{'9' if u else '7'}" for r, u in zip(replaced, use9)]
+
+    def constant_errors(self, model: CalibrationModel, data: Columns, theta_ref_deg: NDArray[np.float64],
+                        res_theta_deg: NDArray[np.float64]) -> list[dict[str, Any]] | None:
+        """How the outputs' constant errors (zero offsets, scale errors) bias θ, seen against the dividing head.
+
+        They bend the points off the circle in a way the fitted plane absorbs only in part, so θ is
+        biased by an amount that depends on the angle, jumps where the method changes branch (the 45°
+        rule, the switch between equations) and does not show in the output scatter. The fit's θ
+        residuals against theta_ref_deg hold it: per arc of one branch, a straight line in θ through
+        that arc's residuals (their mean where it has two points or fewer) gives each angle's bias.
+        None where the points are too few to tell (fewer than 8).
+        """
+        if res_theta_deg.size < 8:
+            return None
+        _, g = self._fit_uncertainty(model, data)
+        noise2 = np.zeros(res_theta_deg.size) if g is None else g.u**2  # the residuals' scatter as the fit propagates it
+        order = np.argsort(wrap_deg(theta_ref_deg))
+        regime = np.array(self.regimes(model, data, theta_ref_deg))[order]
+        t_all, r_all, n_all = wrap_deg(theta_ref_deg)[order], res_theta_deg[order], noise2[order]
+        starts = [0] + [i for i in range(1, regime.size) if regime[i] != regime[i - 1]]
+        arcs = [list(range(a, b)) for a, b in zip(starts, starts[1:] + [regime.size])]
+        if len(arcs) > 1 and regime[0] == regime[-1] and np.ptp(t_all) > 300:  # the circle closes: one arc across ±180°
+            arcs[0] = arcs.pop() + arcs[0]
+        out = []
+        for idx in arcs:
+            t, r = t_all[idx], r_all[idx]
+            centre = float(np.degrees(np.arctan2(np.mean(np.sin(np.radians(t))), np.mean(np.cos(np.radians(t))))))
+            X = _local(t, centre, linear=t.size >= 3)
+            coef, *_ = np.linalg.lstsq(X, r, rcond=None)
+            dof = t.size - X.shape[1]
+            # the scatter about the line: the propagated noise, or the residuals' own where they have enough
+            # degrees of freedom and say more (the dividing head's noise, which the fit does not know)
+            s2 = float(np.mean(n_all[idx]))
+            if dof >= 3:
+                s2 = max(s2, float(np.sum((r - X @ coef) ** 2) / dof))
+            half = float(np.max(np.abs(wrap_deg(t - centre))))
+            out.append({"branch": str(regime[idx[0]]), "centre_deg": centre, "half_width_deg": half,
+                        "coefficients_deg": coef.tolist(),
+                        "coefficient_covariance_deg2": (s2 * np.linalg.pinv(X.T @ X)).tolist()})
+        return out
+
+    def constant_errors_u2(self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Per corrected angle, the variance its bias from the outputs' constant errors adds (0 where not seen)."""
+        arcs = model.state.get(CONSTANT_ERRORS_KEY) or []
+        u2 = np.full(theta_deg.shape, np.nan)
+        regime = np.array(self.regimes(model, data, theta_deg))
+        best = np.full(theta_deg.shape, np.inf)
+        worst = 0.0
+        for arc in arcs:
+            c = np.asarray(arc["coefficients_deg"], dtype=float)
+            X = _local(theta_deg, float(arc["centre_deg"]), linear=c.size == 2)
+            b = X @ c
+            # b² estimates the bias's square plus its estimation variance: both belong to the angle's uncertainty
+            v = b**2
+            # the arc of the point's branch that holds it (or is nearest), extrapolated no further than its half-width
+            dist = np.abs(wrap_deg(theta_deg - float(arc["centre_deg"])))
+            X_edge = _local(np.clip(wrap_deg(theta_deg - float(arc["centre_deg"])), -arc["half_width_deg"],
+                                    arc["half_width_deg"]) + float(arc["centre_deg"]), float(arc["centre_deg"]),
+                            linear=c.size == 2)
+            b_edge = X_edge @ c
+            v = np.where(dist > arc["half_width_deg"], b_edge**2, v)
+            take = (regime == arc["branch"]) & (dist < best)
+            u2[take], best[take] = v[take], dist[take]
+            worst = max(worst, float(np.max(v, initial=0.0)))
+        u2[np.isnan(u2)] = worst  # a branch the calibration never used: the largest any arc showed
+        return u2
 
 DIRECT = _RotationMethod("direct", uses_sz=False, estimator="switch",
                          doc="seed 002 §2.1: Sz from eq. (6) (Sz >= 0), θ by eqs. (7)/(9)")

@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions
-from service.calibration.uncertainty import propagate_gum
+from service.calibration.uncertainty import coverage_factor, propagate_gum
 from service.errors import DegenerateDataError, InputError
 
 MAX_DEGREE = 6  # beyond this the monomial coefficients of 12-bit readings lose float64 precision
@@ -213,6 +213,7 @@ class PolyMethod:
             g = propagate_gum(lambda p, x: np.polyval(np.asarray(p)[::-1], x["reading"]), p0, model.cov_of(names),
                               {"reading": reading}, {"reading": float(sigma)}, dof, dof)
             out["u_angle_arcsec"] = g.expanded()
+            out["k_angle"] = coverage_factor(g.dof_eff)
         return out
 
 

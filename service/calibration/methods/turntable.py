@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from service.calibration.differences import central_jacobian
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions
-from service.calibration.uncertainty import propagate_gum
+from service.calibration.uncertainty import coverage_factor, propagate_gum
 from service.errors import DegenerateDataError, InputError
 from service.io.columns import TURNTABLE_READINGS
 
@@ -266,9 +266,11 @@ class ReversalMethod:
 
             dof = float(model.state.get("dof") or model.fit.get("dof") or np.inf)
             sigma_dof = float(model.state.get("reading_sigma_dof") or np.inf)
-            U = propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs, {c: float(sigma) for c in READING_COLUMNS},
-                              dof, sigma_dof).expanded()
+            g = propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs, {c: float(sigma) for c in READING_COLUMNS},
+                              dof, sigma_dof)
+            U, k = g.expanded(), np.broadcast_to(coverage_factor(g.dof_eff), g.u.shape)
             out["u_north_arcsec"], out["u_east_arcsec"] = U[:, 0], U[:, 1]
+            out["k_north"], out["k_east"] = k[:, 0], k[:, 1]
         return out
 
 

@@ -32,7 +32,7 @@ def _bench_s(reading: Reading) -> float:
     return reading.bench_s
 
 
-RECENT_READINGS = 4096  # per driver: over 8 s of a sped-up bench's continuous output
+RECENT_READINGS = 16384  # per driver: 10 min at 25 Hz (the longest averaged tilt), over 30 s of a sped-up continuous output
 
 
 class SerialDriver:

@@ -81,8 +81,8 @@ class BinaryInclinometer(SerialDriver, TiltSensor, TemperatureOnRequest):
     async def identify(self) -> DeviceIdentity:
         """Family (A) has no identification command: a read at the address proves the instrument is there."""
         await self.read_tilt()
-        self.identity = DeviceIdentity(model="0x68 binary inclinometer", serial=self.port.usb_serial or
-                                       f"address 0x{self.address:02X} on {self.port.where}")
+        self.identity = DeviceIdentity(model="0x68 binary inclinometer", serial=self.port.usb_serial,
+                                       address=f"0x{self.address:02X}")
         return self.identity
 
     async def read_tilt(self) -> Reading:
@@ -145,8 +145,8 @@ class TriaxialModule(BinaryInclinometer, TriaxialSensor):
 
     async def identify(self) -> DeviceIdentity:
         await self.read_sines()
-        self.identity = DeviceIdentity(model="0x68 triaxial module", serial=self.port.usb_serial or
-                                       f"address 0x{self.address:02X} on {self.port.where}")
+        self.identity = DeviceIdentity(model="0x68 triaxial module", serial=self.port.usb_serial,
+                                       address=f"0x{self.address:02X}")
         return self.identity
 
     async def read_sines(self) -> Reading:

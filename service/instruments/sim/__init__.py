@@ -10,6 +10,7 @@ driven by the scenario's physics, behind stable paths a bench configuration can 
 
 from __future__ import annotations
 
+import math
 import shutil
 import tempfile
 from collections.abc import Callable
@@ -29,6 +30,29 @@ from service.scenarios.model import ScaleScenario, load_scenario
 SimTransport = Literal["pty", "loopback"]
 PORT_CLASSES: dict[str, type[SimPort]] = {"pty": SimPort, "loopback": LoopbackSimPort}
 SIM_BAUD = {"binary": 115200, "rs485": 115200, "adc": 9600, "controller": 57600}
+DEFAULT_OUTPUT_RATE_HZ = 25  # the simulated sensors' automatic output, as their stored configuration says
+# At most this share of a simulated line is automatic output: the rest is left for the answers to
+# requests (temperatures, zeroing), as a lab would leave a real line headroom.
+LINE_SHARE = 0.8
+# The lines that carry automatic output on each kind of simulated bench: (role, frame bytes).
+AUTO_OUTPUT_LINES = {"stage": (("measurement_sensor", 13), ("reference_sensor", 13)), "rotary": (("triaxial_sensor", 17),)}
+
+
+def fastest_speed(kind: str, output_rate_hz: float = DEFAULT_OUTPUT_RATE_HZ) -> tuple[float, str]:
+    """The highest speed-up whose automatic output the simulated lines still carry, and why.
+
+    A sensor sending `output_rate_hz` frames per bench second sends speed times as many per real
+    second; its line at SIM_BAUD carries only so many (8N1, ten bits a byte). Beyond that the frames
+    would queue without end and the readings arrive ever later.
+    """
+    limits = []
+    for role, frame_bytes in AUTO_OUTPUT_LINES[kind]:
+        per_s = 1.0 / binary.frame_time_s(frame_bytes, SIM_BAUD["binary"])
+        speed = math.floor(LINE_SHARE * per_s / output_rate_hz)
+        limits.append((speed, (f"the simulated {role} line at {SIM_BAUD['binary']} baud carries {per_s:.0f} frames a"
+                              f" second ({LINE_SHARE:.0%} of it, {LINE_SHARE * per_s:.0f}, kept for automatic output),"
+                              f" and the sensor sends {output_rate_hz:g} a bench second")))
+    return min(limits)
 
 
 class SimulatedBench:
@@ -75,8 +99,9 @@ def _toml_loads(text: str) -> dict[str, Any]:
 
 def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock: Clock, *,
                           directory: str | Path | None = None, adc: bool = False,
-                          output_rate_hz: int | str = 25, bus_addresses: tuple[int, ...] = (1, 2, 3),
-                          bench_name: str | None = None, transport: SimTransport = "pty") -> SimulatedBench:
+                          output_rate_hz: int | str = DEFAULT_OUTPUT_RATE_HZ, bus_addresses: tuple[int, ...] = (1, 2, 3),
+                          bench_name: str | None = None, transport: SimTransport = "pty",
+                          ambient: bool = False) -> SimulatedBench:
     """Start every instrument of a simulated bench; ports appear as symlinks in `directory`.
 
     transport "pty": each instrument behind a pseudo-terminal, as a USB adapter would be;
@@ -87,6 +112,8 @@ def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock
     and with `adc` the analog sensor behind the ADC (family C, physics of the seed003 preset).
     rotary: rotary_table (family D axis 3), triaxial_sensor (family A, 0x07) and an RS-485 bus
     with inclinometers at `bus_addresses`; the configuration names the first as turntable_sensor.
+    With `ambient`, either kind also has an ambient_sensor: a thermo-hygrometer (family B, TH) on a port
+    of its own (`ambient` firmware, the air's truth).
     """
     if kind not in ("stage", "rotary"):
         raise InputError(f"bench kind {kind!r} is not stage or rotary")
@@ -104,6 +131,11 @@ def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock
             world, ports, roles = _rotary(scenario, clock, folder, output_rate_hz, bus_addresses,
                                           PORT_CLASSES[transport])
             hardware = None
+        if ambient:
+            from service.instruments.sim.ambient import AmbientFirmware
+
+            ports["ambient_sensor"] = PORT_CLASSES[transport](folder / "ambient_sensor", AmbientFirmware(clock))
+            roles["ambient_sensor"] = {"port": ports["ambient_sensor"].path, "baud": SIM_BAUD["rs485"], "address": "01"}
     except BaseException:
         for p in ports.values():
             p.close()

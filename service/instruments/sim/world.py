@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import OrderedDict
 
 import numpy as np
 
@@ -18,6 +19,7 @@ from service.instruments import controller as ctl
 from service.physics.analog import ARCSEC_PER_RAD, AnalogSensor, simulate_scale
 from service.physics.effects import EffectSet
 from service.physics.rotation_axis import simulate_rotation
+from service.physics.settling import Move, recent, settling_of, transient_deg
 from service.physics.stage import StageGeometry, simulate_stage
 from service.physics.turntable import TurntableInclinometer, turntable_readings
 from service.scenarios.model import RotationScenario, ScaleScenario, StageScenario, TurntableScenario, load_scenario
@@ -28,12 +30,13 @@ NO_LIMIT = 2_147_483_647
 # A sensor at rest outputs a batch of readings computed at once (vectorised over the samples
 # of its coming output intervals): the physics costs about the same for 1 point as for 32.
 READINGS_PER_BATCH = 32
+STANDS_KEPT = 64  # positioning errors remembered (a move's intermediate poses each count as a stand)
 
 
 class _Batch:
     """One sensor's coming readings at one pose: bench times and (x, y) per sample."""
 
-    def __init__(self, pose: tuple[float, float, float, float], t_s: np.ndarray, x: np.ndarray, y: np.ndarray):
+    def __init__(self, pose: tuple[object, ...], t_s: np.ndarray, x: np.ndarray, y: np.ndarray):
         self.pose = pose
         self.t_s = t_s
         self.xy = list(zip(x.tolist(), y.tolist()))
@@ -53,12 +56,14 @@ class Axis:
         self.homed = True
         self.error = ctl.ERR_NONE
         self.direction = 1.0  # sign of the last move: the side backlash is taken up on
+        self.moves = 0  # moves started: a stand of the stage is a pose between two of them
         self._pos = 0.0
         self._target = 0.0
         self._t0 = 0.0
         self._start = 0.0
         self._mode = ctl.STATE_READY
         self._lock = threading.RLock()
+        self.recent_moves: list[Move] = []  # recent moves (bench clock times): the settling transient follows them
 
     def _update(self) -> None:
         if self._mode not in (ctl.STATE_MOVING, ctl.STATE_HOMING):
@@ -95,6 +100,9 @@ class Axis:
 
     def _go(self, target: float, mode: int) -> None:
         self._start, self._target, self._t0, self._mode = self._pos, float(target), self.clock.monotonic(), mode
+        self.moves += 1
+        span = self._target - self._start
+        self.recent_moves = [*self.recent_moves[-7:], Move(self._t0, span * self.pulse_deg, abs(span) / self.velocity_pps)]
         if target != self._pos:
             self.direction = 1.0 if target > self._pos else -1.0
 
@@ -146,12 +154,18 @@ class StageWorld:
         self.bench = hardware_of(scenario)
         self.effects: EffectSet = effect_set(scenario)
         self.geometry = StageGeometry.from_effects(self.bench, self.effects)
+        self.settling = settling_of(self.effects)
         self.rng = np.random.default_rng(scenario.seed)
         self.t0 = clock.monotonic()
         self._lock = threading.Lock()
         self._batches: dict[str, _Batch] = {}
-        self._last_read: dict[str, tuple[float, tuple[float, float, float, float]]] = {}
-        self._true_tilt: tuple[tuple[float, float, float, float], tuple[float, float]] | None = None
+        self._last_read: dict[str, tuple[float, tuple[object, ...]]] = {}
+        self._true_tilt: tuple[tuple[object, ...], tuple[float, float]] | None = None
+        # the stage's positioning error of the present stand: drawn once when a stand begins, shared by everything
+        # on the table and constant until the next move (a repeatability, not a jitter)
+        # (by stand, the last few: a reader that took its stand's key just before a move ended must not make the
+        # present stand draw again)
+        self._stands: OrderedDict[tuple[object, ...], tuple[float, float]] = OrderedDict()
         travel = self.bench.travel_deg
         self.axes: dict[int, Axis] = {}
         for n, pulse in ((1, self.bench.pulse_x_deg), (2, self.bench.pulse_y_deg)):
@@ -175,13 +189,31 @@ class StageWorld:
         """Where the stages are (x upper, y lower), in degrees."""
         return self.axes[1].deg, self.axes[2].deg
 
+    def _stand_key(self) -> tuple[object, ...]:
+        return (*self.pose_deg, self.axes[1].direction, self.axes[2].direction, self.axes[1].moves, self.axes[2].moves)
+
+    def positioning_error_deg(self) -> tuple[float, float]:
+        """The stage's positioning error (x, y) while it stands where it stands: one draw per stand."""
+        key = self._stand_key()
+        with self._lock:
+            if key not in self._stands:
+                sigma = self.effects.get("noise", "stage_sigma_deg")
+                drawn = self.rng.normal(0.0, sigma, 2) if sigma > 0 else np.zeros(2)
+                self._stands[key] = (float(drawn[0]), float(drawn[1]))
+                while len(self._stands) > STANDS_KEPT:
+                    self._stands.popitem(last=False)
+            return self._stands[key]
+
     def sample(self, noisy: bool = True) -> dict[str, float]:
-        """Both sensors' readings and the true table tilt at the present pose."""
+        """Both sensors' readings and the true table tilt at the present pose (the stand's positioning error in
+        both; `noisy=False` leaves out the sensors' own noise)."""
         x_deg, y_deg = self.pose_deg
+        error = self.positioning_error_deg()
         with self._lock:
             out = simulate_stage(self.bench, self.effects, [x_deg], [y_deg], [self.axes[1].direction],
                                  [self.axes[2].direction], [self.temp_c()], [self.t_s()],
-                                 rng=self.rng if noisy else None, geometry=self.geometry)
+                                 rng=self.rng if noisy else None, geometry=self.geometry,
+                                 positioning_error_deg=error)
         return {k: float(v[0]) for k, v in out.items()}
 
     def reading_deg(self, prefix: str, at_s: float | None = None) -> tuple[float, float]:
@@ -194,28 +226,42 @@ class StageWorld:
         x_deg, y_deg = self.pose_deg
         pose = (x_deg, y_deg, self.axes[1].direction, self.axes[2].direction)
         t = self.t_s() if at_s is None else at_s - self.t0
+        error = self.positioning_error_deg()
+        stand = self._stand_key()  # a batch belongs to one stand: a move away and back is another
         with self._lock:
             last = self._last_read.get(prefix)
-            self._last_read[prefix] = (t, pose)
+            self._last_read[prefix] = (t, stand)
             b = self._batches.get(prefix)
-            if (b is not None and b.pose == pose and b.next < len(b.xy)
+            if (b is not None and b.pose == stand and b.next < len(b.xy)
                     and b.t_s[0] - self._dt_s(b) <= t <= b.t_s[-1] + self._dt_s(b)):
                 b.next += 1
                 return b.xy[b.next - 1]
             # the interval the sensor asks at, from its last two reads at rest; one point while moving
-            at_rest = last is not None and last[1] == pose and 0.0 < t - last[0] < 1.0
+            at_rest = last is not None and last[1] == stand and 0.0 < t - last[0] < 1.0
             n = READINGS_PER_BATCH if at_rest else 1
             assert last is not None or n == 1
             dt = (t - last[0]) if at_rest and last is not None else 0.0
             times = t + dt * np.arange(n)
-            out = simulate_stage(self.bench, self.effects, np.full(n, x_deg), np.full(n, y_deg),
+            sx, sy = self._settling_deg(times)
+            out = simulate_stage(self.bench, self.effects, np.full(n, x_deg) + sx, np.full(n, y_deg) + sy,
                                  np.full(n, pose[2]), np.full(n, pose[3]),
                                  temperature(self.scenario.environment, times), times,
-                                 rng=self.rng, geometry=self.geometry)
-            b = _Batch(pose, times, out[f"{prefix}_x_deg"], out[f"{prefix}_y_deg"])
+                                 rng=self.rng, geometry=self.geometry, positioning_error_deg=error)
+            b = _Batch(stand, times, out[f"{prefix}_x_deg"], out[f"{prefix}_y_deg"])
             b.next = 1
             self._batches[prefix] = b
             return b.xy[0]
+
+    def _settling_deg(self, times: np.ndarray) -> tuple[np.ndarray | float, np.ndarray | float]:
+        """Each stage's settling transient at bench times `times` (world seconds), as an angle of that stage."""
+        if self.settling.is_instant:
+            return 0.0, 0.0
+        at = times + self.t0
+        out = []
+        for n in (1, 2):
+            moves = recent(self.settling, self.axes[n].recent_moves, float(at[0]))
+            out.append(transient_deg(self.settling, moves, at) if moves else 0.0)
+        return out[0], out[1]
 
     @staticmethod
     def _dt_s(b: _Batch) -> float:
@@ -223,15 +269,26 @@ class StageWorld:
         return float(b.t_s[1] - b.t_s[0]) if len(b.t_s) > 1 else 0.0
 
     def true_tilt_deg(self) -> tuple[float, float]:
-        """The table's true tilt: geometry alone (no noise, time or temperature), so one per pose."""
-        pose = (*self.pose_deg, self.axes[1].direction, self.axes[2].direction)
+        """The table's true tilt as it stands: the geometry at the angles the stages really reached, the stand's
+        positioning error included (no sensor noise, time or temperature), so one per stand."""
+        key = self._stand_key()
         cached = self._true_tilt
-        if cached is not None and cached[0] == pose:
+        if cached is not None and cached[0] == key:
             return cached[1]
         s = self.sample(noisy=False)
         tilt = s["tilt_x_deg"], s["tilt_y_deg"]
-        self._true_tilt = (pose, tilt)
+        self._true_tilt = (key, tilt)
         return tilt
+
+    def aimed_tilt_deg(self) -> tuple[float, float]:
+        """The table tilt the stage's present angles make without this stand's positioning error: where a levelling
+        model's commands put the table, its stage's repeatability left out (what judges the model, not the stage)."""
+        x_deg, y_deg = self.pose_deg
+        with self._lock:
+            out = simulate_stage(self.bench, self.effects, [x_deg], [y_deg], [self.axes[1].direction],
+                                 [self.axes[2].direction], [self.temp_c()], [self.t_s()], rng=None,
+                                 geometry=self.geometry, positioning_error_deg=(0.0, 0.0))
+        return float(out["tilt_x_deg"][0]), float(out["tilt_y_deg"][0])
 
     def adc_counts(self, conversions: int) -> float:
         """The analog sensor on the table (sensing x) behind the 12-bit ADC: one or a mean of n conversions."""

@@ -24,6 +24,7 @@ from service.storage.store.database import Database
 from service.storage.store.hashing import record_content
 from service.storage.store.lookups import row_in
 from service.storage.store.pointer import deactivate_in
+from service.storage.tokens import Person
 
 APPROVE_MEANINGS = ("review", "approval")
 
@@ -33,9 +34,18 @@ class SelfApproval(RefusedWrite):
 
 
 def approval_content(a: RecordApproval) -> dict[str, Any]:
-    """What an approval asserts; its SHA-256 is `sha256` (canonical rule of canonical.py)."""
-    return {"record_id": a.record_id, "decision": a.decision, "meaning": a.meaning, "note": a.note,
-            "actor": a.actor, "at": utc_iso(a.at), "record_sha256": a.record_sha256, "prev_sha256": a.prev_sha256}
+    """What an approval asserts; its SHA-256 is `sha256` (canonical rule of canonical.py). The signer's name and
+    function are part of it where the approval names them (approvals from before persons were kept do not)."""
+    content = {"record_id": a.record_id, "decision": a.decision, "meaning": a.meaning, "note": a.note,
+               "actor": a.actor, "at": utc_iso(a.at), "record_sha256": a.record_sha256, "prev_sha256": a.prev_sha256}
+    if a.signer_name is not None:
+        content["signer"] = {"name": a.signer_name, "function": a.signer_function}
+    return content
+
+
+def signer_of(a: RecordApproval) -> Person | None:
+    """The person who signed an approval, as they were named when they signed."""
+    return Person(a.signer_name, a.signer_function) if a.signer_name else None
 
 
 def approval_status(approvals: Sequence[RecordApproval]) -> str:
@@ -71,8 +81,10 @@ class ApprovalsRepo:
             rows = list(s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id.in_(list(record_ids)))))
         return {rid: approval_status([a for a in rows if a.record_id == rid]) for rid in record_ids}
 
-    def decide(self, record_id: int, *, decision: str, meaning: str, note: str, actor: str) -> RecordApproval:
-        """Approve (meaning review or approval) or reject a draft record; never by who started or ran its job."""
+    def decide(self, record_id: int, *, decision: str, meaning: str, note: str, actor: str,
+               signer: Person | None = None) -> RecordApproval:
+        """Approve (meaning review or approval) or reject a draft record; never by who started or ran its job.
+        `signer` is the person behind the actor's token, kept with the decision (a certificate names them)."""
         if decision not in ("approve", "reject"):
             raise InputError(f"decision {decision!r} is not approve or reject")
         if decision == "approve" and meaning not in APPROVE_MEANINGS:
@@ -98,14 +110,17 @@ class ApprovalsRepo:
                 raise ConflictError(f"record {record_id} is already {status}; a decision is final")
             prev = s.execute(sa.select(RecordApproval.sha256).order_by(RecordApproval.id.desc()).limit(1)).scalar()
             row = RecordApproval(record_id=record_id, decision=decision, meaning=meaning, note=note, actor=actor,
-                                 at=utc_now(), record_sha256=record.content_sha256, prev_sha256=prev or GENESIS_SHA256)
+                                 at=utc_now(), record_sha256=record.content_sha256, prev_sha256=prev or GENESIS_SHA256,
+                                 signer_name=signer.name if signer else None,
+                                 signer_function=signer.function if signer else None)
             row.sha256 = sha256_hex(normalise(approval_content(row)))
             s.add(row)
             s.flush()
             action = "record.reject" if decision == "reject" else ("record.approve" if meaning == "approval" else "record.review")
             self._db.audit(s, actor, action, "calibration_record", record_id,
                         {"approval_id": row.id, "actor": actor, "meaning": meaning, "note": note,
-                         "record_sha256": record.content_sha256, "approval_sha256": row.sha256})  # fmt: skip
+                         "record_sha256": record.content_sha256, "approval_sha256": row.sha256,
+                         "signer": {"name": signer.name, "function": signer.function} if signer else None})  # fmt: skip
             active = s.get(ActiveCalibration, (record.device_id, record.kind))
             if decision == "reject" and active is not None and active.record_id == record_id:
                 # a rejected record is never used: withdrawn in the same transaction as the rejection

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
+from typing import Any
 
 import sqlalchemy as sa
 
@@ -36,8 +38,10 @@ class CertificatesRepo:
                 .order_by(CalibrationRecord.version.desc()).limit(1))  # fmt: skip
 
     def store_certificate(self, record_id: int, *, number: str, xml: bytes, approval_id: int,
-                          replaces_id: int | None, actor: str) -> tuple[Certificate, bool]:
-        """Keep issued bytes with their SHA-256; if the record already has a certificate, that one is returned."""
+                          replaces_id: int | None, actor: str,
+                          conformity: Mapping[str, Any] | None = None) -> tuple[Certificate, bool]:
+        """Keep issued bytes with their SHA-256; if the record already has a certificate, that one is returned.
+        `conformity`: the statements of conformity it makes, which its `certificate.issued` event carries."""
         with self._db.transaction() as s:
             existing = s.scalar(sa.select(Certificate).where(Certificate.record_id == record_id))
             if existing is not None:
@@ -50,5 +54,6 @@ class CertificatesRepo:
             replaced = s.get(Certificate, replaces_id) if replaces_id is not None else None
             self._db.audit(s, actor, "certificate.issue", "certificate", row.id,
                         {"certificate_id": row.id, "number": row.number, "record_id": record_id, "sha256": row.sha256,
-                         "replaces": replaced.number if replaced else None})  # fmt: skip
+                         "replaces": replaced.number if replaced else None,
+                         "conformity": dict(conformity) if conformity is not None else None})  # fmt: skip
             return row, True

@@ -19,6 +19,7 @@ from service.storage.canonical import normalise, sha256_hex
 from service.storage.engine import write_engine
 from service.storage.feed import append_for_audit
 from service.storage.models import GENESIS_SHA256, AuditEvent, utc_now
+from service.storage.rowhash import ANCHORS, hash_pending
 from service.storage.store.checks import require_text, translate_refusal
 from service.storage.store.hashing import audit_content
 
@@ -53,8 +54,12 @@ class Database:
 
     def audit(self, s: Session, actor: str, action: str, entity: str, entity_id: object,
               details: Mapping[str, Any]) -> AuditEvent:
-        """Append an audit event to the chain inside the action's own transaction (and so its feed event)."""
+        """Append an audit event to the chain inside the action's own transaction (and so its feed event). The
+        rows of the hashed tables the action added or changed get their new hash, which the event records."""
         s.flush()  # the action's rows first, so their ids are known and constraints have run
+        anchors = hash_pending(s)  # the new hashes of tokens, standards, webhooks this action changed
+        if anchors:
+            details = {**details, ANCHORS: anchors}
         prev = s.execute(sa.select(AuditEvent.sha256).order_by(AuditEvent.id.desc()).limit(1)).scalar()
         event = AuditEvent(
             at=utc_now(),

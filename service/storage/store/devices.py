@@ -6,6 +6,7 @@ from collections.abc import Collection, Mapping
 from typing import Any
 
 import sqlalchemy as sa
+from sqlalchemy.orm import Session
 
 from service.errors import InputError
 from service.storage.errors import ConflictError
@@ -33,18 +34,24 @@ class DevicesRepo:
             name = require_text("bench name", name)
             if s.scalar(sa.select(Bench.id).where(Bench.name == name)) is not None:
                 raise ConflictError(f"a bench named {name!r} already exists")
-            port = optional_text("port", port, 200)
-            bench = Bench(
-                name=name,
-                stage_model=optional_text("stage_model", stage_model, 100),
-                stage_serial=optional_text("stage_serial", stage_serial, 100),
-                port=port,
-                port_settings=require_doc("port_settings", port_settings or {}),
-            )
-            s.add(bench)
-            s.flush()
-            self._db.audit(s, actor, "bench.create", "bench", bench.id, {"name": name, "port": port})
-            return bench
+            return self._insert_bench(s, name, actor=actor, stage_model=stage_model, stage_serial=stage_serial,
+                                      port=port, port_settings=port_settings)
+
+    def _insert_bench(self, s: Session, name: str, *, actor: str, stage_model: str | None = None,
+                      stage_serial: str | None = None, port: str | None = None,
+                      port_settings: Mapping[str, Any] | None = None) -> Bench:
+        port = optional_text("port", port, 200)
+        bench = Bench(
+            name=name,
+            stage_model=optional_text("stage_model", stage_model, 100),
+            stage_serial=optional_text("stage_serial", stage_serial, 100),
+            port=port,
+            port_settings=require_doc("port_settings", port_settings or {}),
+        )
+        s.add(bench)
+        s.flush()
+        self._db.audit(s, actor, "bench.create", "bench", bench.id, {"name": name, "port": port})
+        return bench
 
     def add_device(
         self,
@@ -65,21 +72,30 @@ class DevicesRepo:
             existing = s.scalar(sa.select(Device.id).where(Device.model == model, Device.serial == serial))
             if existing is not None:
                 raise ConflictError(f"device {model} s/n {serial} already exists (id {existing})")
-            device = Device(
-                model=model,
-                serial=serial,
-                role=role,
-                bench_id=bench_id,
-                port=port,
-                port_settings=require_doc("port_settings", port_settings or {}),
-            )
-            s.add(device)
-            s.flush()
-            self._db.audit(
-                s, actor, "device.create", "device", device.id,
-                {"model": model, "serial": serial, "role": role, "bench_id": bench_id, "port": port},
-            )  # fmt: skip
-            return device
+            return self._insert_device(s, model, serial, role, actor=actor, bench_id=bench_id, port=port,
+                                       port_settings=port_settings)
+
+    def _insert_device(self, s: Session, model: str, serial: str, role: str, *, actor: str, bench_id: int | None,
+                       port: str | None, port_settings: Mapping[str, Any] | None) -> Device:
+        role = require_text("role", role, 40)
+        port = optional_text("port", port, 200)
+        if bench_id is not None:
+            row_in(s, Bench, bench_id, "bench")
+        device = Device(
+            model=model,
+            serial=serial,
+            role=role,
+            bench_id=bench_id,
+            port=port,
+            port_settings=require_doc("port_settings", port_settings or {}),
+        )
+        s.add(device)
+        s.flush()
+        self._db.audit(
+            s, actor, "device.create", "device", device.id,
+            {"model": model, "serial": serial, "role": role, "bench_id": bench_id, "port": port},
+        )  # fmt: skip
+        return device
 
     def update_device(self, device_id: int, *, actor: str, **changes: Any) -> Device:
         allowed = {"role", "bench_id", "port", "port_settings"}
@@ -87,26 +103,55 @@ class DevicesRepo:
         if unknown:
             raise InputError(f"cannot change {sorted(unknown)} of a device; changeable: {sorted(allowed)}")
         with self._db.transaction() as s:
-            device = device_in(s, device_id)
-            if changes.get("bench_id") is not None:
-                row_in(s, Bench, changes["bench_id"], "bench")
-            if "role" in changes:
-                changes["role"] = require_text("role", changes["role"], 40)
-            if "port" in changes:
-                changes["port"] = optional_text("port", changes["port"], 200)
-            if "port_settings" in changes:
-                changes["port_settings"] = require_doc("port_settings", changes["port_settings"] or {})
-            before = {k: getattr(device, k) for k in changes}
-            for key, value in changes.items():
-                setattr(device, key, value)
-            self._db.audit(s, actor, "device.update", "device", device.id, {"before": before, "after": changes})
-            return device
+            return self._change_device(s, device_in(s, device_id), actor=actor, changes=changes)
+
+    def _change_device(self, s: Session, device: Device, *, actor: str, changes: dict[str, Any]) -> Device:
+        if changes.get("bench_id") is not None:
+            row_in(s, Bench, changes["bench_id"], "bench")
+        if "role" in changes:
+            changes["role"] = require_text("role", changes["role"], 40)
+        if "port" in changes:
+            changes["port"] = optional_text("port", changes["port"], 200)
+        if "port_settings" in changes:
+            changes["port_settings"] = require_doc("port_settings", changes["port_settings"] or {})
+        before = {k: getattr(device, k) for k in changes}
+        for key, value in changes.items():
+            setattr(device, key, value)
+        self._db.audit(s, actor, "device.update", "device", device.id, {"before": before, "after": changes})
+        return device
 
     def ensure_bench(self, name: str, *, actor: str, port: str | None = None) -> Bench:
-        """The bench of that name, registered now if this database does not know it yet."""
-        with self._db.session() as s:
+        """The bench of that name, registered now if this database does not know it yet.
+
+        One serialised transaction looks and registers: daemons starting together with the same bench
+        name make one bench, and every one of them gets it."""
+        name = require_text("bench name", name)
+        with self._db.session() as s:  # the usual case, a bench registered before, needs no write
             bench = s.scalar(sa.select(Bench).where(Bench.name == name))
-        return bench or self.add_bench(name, actor=actor, port=port)
+        if bench is not None:
+            return bench
+        with self._db.transaction() as s:
+            bench = s.scalar(sa.select(Bench).where(Bench.name == name))
+            return bench if bench is not None else self._insert_bench(s, name, actor=actor, port=port)
+
+    def ensure_device(self, model: str, serial: str, role: str, *, actor: str, bench_id: int, port: str | None) -> Device:
+        """The device of that model and serial number, registered now or moved to this bench, role and port.
+
+        One serialised transaction looks, registers or changes it: daemons that find the same instrument
+        while starting together make one device (an instrument is where it was seen last)."""
+        model, serial = require_text("model", model), require_text("serial", serial)
+        wanted = {"bench_id": bench_id, "port": port, "role": role}
+        with self._db.session() as s:
+            device = s.scalar(sa.select(Device).where(Device.model == model, Device.serial == serial))
+        if device is not None and all(getattr(device, k) == v for k, v in wanted.items()):
+            return device
+        with self._db.transaction() as s:
+            device = s.scalar(sa.select(Device).where(Device.model == model, Device.serial == serial))
+            if device is None:
+                return self._insert_device(s, model, serial, role, actor=actor, bench_id=bench_id, port=port,
+                                           port_settings=None)
+            changes = {k: v for k, v in wanted.items() if getattr(device, k) != v}
+            return self._change_device(s, device, actor=actor, changes=changes) if changes else device
 
     def get_device(self, device_id: int) -> Device:
         with self._db.session() as s:

@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import sqlalchemy as sa
+from sqlalchemy.orm import defer
 
 from service.storage.errors import ConflictError
 from service.storage.models import CalibrationRecord, Diagnosis, DiagnosisResult, utc_now
@@ -59,15 +60,19 @@ class DiagnosesRepo:
             r = s.scalar(sa.select(DiagnosisResult).where(DiagnosisResult.diagnosis_id == diagnosis_id))
             return d, r
 
-    def list_diagnoses(self, record_id: int | None = None,
+    def list_diagnoses(self, record_id: int | None = None, *, before_id: int | None = None,
                        limit: int = 100) -> list[tuple[Diagnosis, DiagnosisResult | None]]:
-        """Newest first, of one record or of all."""
+        """Newest first, of one record or of all, from before `before_id` (the cursor); without the report
+        pages (the largest part of a result, which a list does not show)."""
         with self._db.session() as s:
             stmt = (sa.select(Diagnosis, DiagnosisResult)
                     .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
+                    .options(defer(DiagnosisResult.report_html, raiseload=True))
                     .order_by(Diagnosis.id.desc()).limit(limit))
             if record_id is not None:
                 stmt = stmt.where(Diagnosis.record_id == record_id)
+            if before_id is not None:
+                stmt = stmt.where(Diagnosis.id < before_id)
             return [(d, r) for d, r in s.execute(stmt).all()]
 
     def unfinished_diagnoses(self) -> list[int]:

@@ -49,7 +49,21 @@ def audit_content(e: AuditEvent) -> dict[str, Any]:
 
 
 def point_content(p: SettledPoint) -> dict[str, Any]:
-    return {name: getattr(p, name) for name in POINT_FIELDS}
+    """What a settled point asserts: its fields, and the hash of the raw samples it was averaged from (points
+    stored before those hashes were kept have none, and hash as they did)."""
+    content = {name: getattr(p, name) for name in POINT_FIELDS}
+    if p.samples_sha256 is not None:
+        content["samples_sha256"] = p.samples_sha256
+    return content
+
+
+SAMPLE_FIELDS = ("t_s", "ch_x", "ch_y", "ch_z", "temp_c", "source")
+
+
+def samples_sha256(rows: Sequence[Sequence[Any]]) -> str:
+    """The SHA-256 of one point's raw samples of one device: rows of SAMPLE_FIELDS in (t_s, id) order, numbers
+    as floats (as the database gives them back)."""
+    return sha256_hex([[None if v is None else (v if isinstance(v, str) else float(v)) for v in row] for row in rows])
 
 
 def points_sha256(points: Sequence[SettledPoint]) -> str:

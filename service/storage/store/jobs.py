@@ -5,7 +5,7 @@ by a restart and resumption."""
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from typing import Any
 
 import sqlalchemy as sa
@@ -181,7 +181,8 @@ class JobsRepo:
         with self._db.session() as s:
             return s.scalar(sa.select(IdempotencyKey).where(IdempotencyKey.route == route, IdempotencyKey.key == key))
 
-    def set_job_progress(self, job_id: int, *, points_done: int, points_total: int, phase: str) -> None:
+    def set_job_progress(self, job_id: int, *, points_done: int, points_total: int, phase: str,
+                         bench_seconds: dict[str, float] | None = None) -> None:
         if phase not in PHASES:
             raise InputError(f"phase {phase!r} is not one of {', '.join(PHASES)}")
         with self._db.transaction() as s:
@@ -189,12 +190,23 @@ class JobsRepo:
             if job.state != "running":
                 raise IllegalTransition(f"job {job_id} is {job.state}; progress is only kept for running jobs")
             job.points_done, job.points_total, job.phase = points_done, points_total, phase
+            if bench_seconds is not None:
+                job.bench_seconds = dict(bench_seconds)
             job.progress = min(1.0, points_done / points_total) if points_total else 0.0
 
-    def mark_interrupted(self, *, actor: str) -> list[int]:
-        """At start-up: every job a previous run left queued or running is failed as interrupted."""
+    def set_bench_seconds(self, job_id: int, bench_seconds: dict[str, float]) -> None:
+        """The bench time a job spent in all, kept with the job as it ends (its last points after the last progress)."""
         with self._db.transaction() as s:
-            jobs = list(s.scalars(sa.select(CalibrationJob).where(CalibrationJob.state.in_(("queued", "running")))))
+            job_in(s, job_id).bench_seconds = dict(bench_seconds)
+
+    def mark_interrupted(self, *, actor: str, bench_ids: Collection[int] | None = None) -> list[int]:
+        """At start-up and shutdown: every job a run left queued or running is failed as interrupted; only
+        those of `bench_ids` when given (a node of a fleet: the other nodes' jobs are theirs, and may be running)."""
+        with self._db.transaction() as s:
+            stmt = sa.select(CalibrationJob).where(CalibrationJob.state.in_(("queued", "running")))
+            if bench_ids is not None:
+                stmt = stmt.where(CalibrationJob.bench_id.in_(list(bench_ids)))
+            jobs = list(s.scalars(stmt.order_by(CalibrationJob.id)))
             for job in jobs:
                 previous = job.state
                 job.state, job.interrupted, job.finished_at = "failed", True, utc_now()
@@ -202,6 +214,20 @@ class JobsRepo:
                 self._db.audit(s, actor, "job.failed", "job", job.id,
                             {"from": previous, "to": "failed", "failure_reason": job.failure_reason})
             return [j.id for j in jobs]
+
+    def interrupt_job(self, job_id: int, reason: str, *, actor: str) -> CalibrationJob:
+        """A queued or running job failed for a cause that leaves its stored points intact (a full disk): it may
+        be resumed (POST /calibrations/{id}/resume) once the cause is gone."""
+        reason = require_text("failure_reason", reason, 10_000)
+        with self._db.transaction() as s:
+            job = job_in(s, job_id)
+            if job.state not in ("queued", "running"):
+                raise IllegalTransition(f"job {job_id}: {job.state} -> failed is not allowed")
+            previous = job.state
+            job.state, job.interrupted, job.finished_at, job.failure_reason = "failed", True, utc_now(), reason
+            self._db.audit(s, actor, "job.failed", "job", job.id,
+                           {"from": previous, "to": "failed", "failure_reason": reason, "resumable": True})
+            return job
 
     def resume_job(self, job_id: int, *, actor: str) -> CalibrationJob:
         """An interrupted job runs again from its stored points."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import sqlalchemy as sa
@@ -12,6 +12,7 @@ from service.errors import InputError
 from service.storage.canonical import normalise, sha256_hex
 from service.storage.errors import ConflictError
 from service.storage.models import CalibrationJob, CalibrationRecord, Certificate, Order, RecordApproval, utc_now
+from service.storage.specification import SpecificationProblem, specification_of
 from service.storage.store.approvals import approval_status
 from service.storage.store.checks import require_date, require_text
 from service.storage.store.database import Database
@@ -39,6 +40,10 @@ class OrdersRepo:
         if not isinstance(customer.get("country_code"), str) or not re.fullmatch(r"[A-Z]{2}", customer["country_code"]):
             raise InputError("customer.country_code must be two upper-case letters (ISO 3166-1)")
         due = body.get("due_on")
+        spec = specification_of(body.get("specification"))
+        if spec is not None and body.get("procedure") != "stage-grid":
+            raise SpecificationProblem("specification", "statements of conformity are made on the indication error of a "
+                                       f"biaxial inclinometer: a stage-grid order, not {body.get('procedure')!r}")
         with self._db.transaction() as s:
             if idempotency_key is not None:
                 key = require_text("Idempotency-Key", idempotency_key, 200)
@@ -59,16 +64,28 @@ class OrdersRepo:
                         customer=dict(customer), procedure=require_text("procedure", body.get("procedure"), 40),
                         method=require_text("method", body.get("method"), 80),
                         due_on=require_date("due_on", due) if due is not None else None, created_at=utc_now(),
-                        created_by=require_text("actor", actor), idempotency_key=idempotency_key, request_sha256=request_sha)
+                        created_by=require_text("actor", actor), idempotency_key=idempotency_key, request_sha256=request_sha,
+                        specification=spec.as_json() if spec is not None else None)
             s.add(row)
             s.flush()
             self._db.audit(s, actor, "order.create", "order", row.id,
-                        {"order_id": row.id, "lims_order_id": lims_id, "item_serial": row.item_serial})
+                        {"order_id": row.id, "lims_order_id": lims_id, "item_serial": row.item_serial,
+                         "specification": row.specification})
             return row, True
 
     def get(self, order_id: int) -> Order:
         with self._db.session() as s:
             return row_in(s, Order, order_id, "order")
+
+    def specified_jobs(self, job_ids: Sequence[int]) -> set[int]:
+        """Which of these jobs work on an order with a specification (their records state conformity), in one query."""
+        if not job_ids:
+            return set()
+        with self._db.session() as s:
+            rows = s.execute(sa.select(CalibrationJob.id, Order.specification)
+                             .join(Order, Order.id == CalibrationJob.order_id)
+                             .where(CalibrationJob.id.in_(list(job_ids))))
+            return {int(job_id) for job_id, spec in rows if spec}  # a JSON column keeps "no specification" as null
 
     def order_links(self, order_id: int) -> dict[str, Any]:
         """The order's jobs, records (with status) and certificates, and the state they put it in."""

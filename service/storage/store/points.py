@@ -7,6 +7,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import sqlalchemy as sa
+from sqlalchemy.orm import Session
 
 from service.errors import InputError
 from service.storage.canonical import sha256_hex
@@ -15,7 +16,14 @@ from service.storage.models import Sample as SampleRow
 from service.storage.models import SettledPoint
 from service.storage.store.checks import require_finite, require_number
 from service.storage.store.database import Database
-from service.storage.store.hashing import POINT_FIELDS, POINT_REQUIRED, point_content
+from service.storage.store.hashing import (
+    POINT_FIELDS,
+    POINT_REQUIRED,
+    SAMPLE_FIELDS,
+    point_content,
+    points_sha256,
+    samples_sha256,
+)
 from service.storage.store.lookups import device_in, job_in
 
 
@@ -45,6 +53,7 @@ class PointsRepo:
                         values[k] = p[k]
                     else:
                         values[k] = require_finite(f"settled point [{i}] {k}", p.get(k))
+                values["samples_sha256"] = point_samples_sha256(s, job_id, device_id, values["point"])
                 rows.append(SettledPoint(job_id=job_id, device_id=device_id, **values))
             s.add_all(rows)
             s.flush()
@@ -102,6 +111,26 @@ class PointsRepo:
             if from_point is not None:
                 stmt = stmt.where(SettledPoint.point >= from_point)
             return list(s.scalars(stmt.order_by(SettledPoint.device_id, SettledPoint.point)))
+
+    def points_sha256_by_job(self, job_ids: Sequence[int]) -> dict[str, dict[str, str]]:
+        """Per job, the SHA-256 of every device's settled points (keyed by job id, then device id, as text): what a
+        record fitted on those jobs' points commits to, and `db verify` checks."""
+        out: dict[str, dict[str, str]] = {}
+        for job_id in job_ids:
+            by_device: dict[int, list[SettledPoint]] = {}
+            for p in self.settled_points(job_id):
+                by_device.setdefault(p.device_id, []).append(p)
+            out[str(job_id)] = {str(d): points_sha256(pts) for d, pts in sorted(by_device.items())}
+        return out
+
+
+def point_samples_sha256(s: Session, job_id: int, device_id: int, point: int) -> str | None:
+    """The SHA-256 of the raw samples stored for one point of one device of a job (None when it has none)."""
+    t = SampleRow.__table__
+    rows = s.execute(sa.select(*(t.c[name] for name in SAMPLE_FIELDS))
+                     .where(t.c.job_id == job_id, t.c.device_id == device_id, t.c.point == point)
+                     .order_by(t.c.t_s, t.c.id)).all()
+    return samples_sha256(rows) if rows else None
 
 
 def mean_or_none(values: Sequence[float | None]) -> float | None:

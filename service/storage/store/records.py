@@ -6,7 +6,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import sqlalchemy as sa
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, defer
 
 from service.errors import InputError
 from service.storage.canonical import sha256_hex
@@ -138,6 +138,16 @@ class RecordsRepo:
                     out.setdefault(r.job_id, r)
         return out
 
+    def fitted_ranges(self, record_ids: Sequence[int]) -> dict[int, Any]:
+        """The table tilts each record's model says it was fitted on (MODEL.json `fit.table_tilt_range_deg`, as
+        stored; None where the model has none), read out of the models by the database, not decoded here."""
+        if not record_ids:
+            return {}
+        fitted = CalibrationRecord.model["fit"]["table_tilt_range_deg"]
+        with self._db.session() as s:
+            rows = s.execute(sa.select(CalibrationRecord.id, fitted).where(CalibrationRecord.id.in_(list(record_ids))))
+            return {int(i): value for i, value in rows}
+
     def active_record_ids(self) -> set[int]:
         """The ids of every record in use (one per device and kind)."""
         with self._db.session() as s:
@@ -150,10 +160,19 @@ class RecordsRepo:
                 stmt = stmt.where(CalibrationRecord.kind == kind)
             return list(s.scalars(stmt.order_by(CalibrationRecord.kind, CalibrationRecord.version)))
 
-    def newest_first(self, *, device_id: int | None = None,
-                     device_ids: Sequence[int] | None = None) -> list[CalibrationRecord]:
-        """Records newest first, of one device, of some devices (None: of every device), or both filters."""
+    def newest_first(self, *, device_id: int | None = None, device_ids: Sequence[int] | None = None,
+                     before_id: int | None = None, limit: int | None = None,
+                     with_model: bool = True) -> list[CalibrationRecord]:
+        """Records newest first, of one device, of some devices (None: of every device), or both filters;
+        `before_id` is the cursor (the last id of the previous page), `limit` the page size. Without the model
+        (`with_model=False`) a page costs a fraction of the decoding: the model is most of a record."""
         stmt = sa.select(CalibrationRecord).order_by(CalibrationRecord.id.desc())
+        if not with_model:
+            stmt = stmt.options(defer(CalibrationRecord.model, raiseload=True))
+        if before_id is not None:
+            stmt = stmt.where(CalibrationRecord.id < before_id)
+        if limit is not None:
+            stmt = stmt.limit(limit)
         if device_id is not None:
             stmt = stmt.where(CalibrationRecord.device_id == device_id)
         if device_ids is not None:

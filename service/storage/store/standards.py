@@ -51,6 +51,29 @@ def stated_uncertainty(fields: Mapping[str, Any], remark: str) -> tuple[float | 
 
 
 
+CALIBRATED_BY_FIELDS = {"name": 200, "accreditation": 100, "city": 200, "country_code": 2}
+
+
+def calibrated_by_of(value: object) -> dict[str, str] | None:
+    """Who calibrated a standard: {"name", "country_code"[, "accreditation", "city"]}, checked; None when not given."""
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        raise InputError('calibrated_by: an object {"name", "accreditation", "city", "country_code"} is needed')
+    unknown = sorted(set(value) - set(CALIBRATED_BY_FIELDS))
+    if unknown:
+        raise InputError(f"calibrated_by.{unknown[0]}: unknown; give {', '.join(CALIBRATED_BY_FIELDS)}")
+    out: dict[str, str] = {}
+    for key, longest in CALIBRATED_BY_FIELDS.items():
+        text = value.get(key)
+        if text is None and key in ("accreditation", "city"):
+            continue
+        out[key] = require_text(f"calibrated_by.{key}", text, longest).strip()
+    if not re.fullmatch(r"[A-Z]{2}", out["country_code"]):
+        raise InputError("calibrated_by.country_code must be two upper-case letters (ISO 3166-1)")
+    return out
+
+
 class StandardsRepo:
     def __init__(self, db: Database) -> None:
         self._db = db
@@ -72,7 +95,7 @@ class StandardsRepo:
             certificate_number=require_text("certificate_number", fields.get("certificate_number")),
             certificate_sha256=sha, calibrated_on=calibrated, due_on=due,
             uncertainty=remark, expanded_uncertainty_deg=U, coverage_factor=k, created_at=utc_now(),
-            created_by=require_text("actor", actor),
+            created_by=require_text("actor", actor), calibrated_by=calibrated_by_of(fields.get("calibrated_by")),
         )  # fmt: skip
         with self._db.transaction() as s:
             clash = s.scalar(sa.select(ReferenceStandard.id).where(
@@ -84,12 +107,21 @@ class StandardsRepo:
             self._db.audit(s, actor, "standard.create", "reference_standard", row.id,
                         {"name": row.name, "serial": row.serial, "certificate_number": row.certificate_number,
                          "certificate_sha256": sha, "due_on": due.isoformat(),
-                         "expanded_uncertainty_deg": U, "coverage_factor": k})  # fmt: skip
+                         "expanded_uncertainty_deg": U, "coverage_factor": k,
+                         "calibrated_by": row.calibrated_by})  # fmt: skip
             return row
 
     def all(self) -> list[ReferenceStandard]:
         with self._db.session() as s:
             return list(s.scalars(sa.select(ReferenceStandard).order_by(ReferenceStandard.id)))
+
+    def page(self, *, after_id: int | None = None, limit: int = 50) -> list[ReferenceStandard]:
+        """Standards in id order from after `after_id` (the cursor), at most `limit`."""
+        with self._db.session() as s:
+            stmt = sa.select(ReferenceStandard).order_by(ReferenceStandard.id).limit(limit)
+            if after_id is not None:
+                stmt = stmt.where(ReferenceStandard.id > after_id)
+            return list(s.scalars(stmt))
 
     def get(self, standard_id: int) -> ReferenceStandard:
         with self._db.session() as s:

@@ -19,14 +19,36 @@ from service.storage.store.checks import require_text
 from service.storage.store.database import Database
 from service.storage.store.lookups import row_in
 
+CREDENTIALS_REFUSED = ("credentials (user:password@) in a webhook URL would be stored and shown to every admin;"
+                       " give the URL without them (deliveries are signed with the endpoint's secret, which the"
+                       " receiver checks)")
+
 
 def webhook_url(url: object) -> str:
-    """An http(s) URL with a host; anything else is refused before it is stored."""
+    """An http(s) URL with a host and no credentials; anything else is refused before it is stored."""
     text = require_text("url", url, 2000)
-    parts = urlsplit(text)
-    if parts.scheme not in ("http", "https") or not parts.hostname:
-        raise InputError(f"url {text[:100]!r}: a webhook URL must be http:// or https:// with a host")
+    try:
+        parts = urlsplit(text)
+        host = parts.hostname
+    except ValueError as exc:
+        raise InputError(f"url: not a URL ({exc})") from None
+    if parts.scheme not in ("http", "https") or not host:
+        raise InputError(f"url {shown_url(text)[:100]!r}: a webhook URL must be http:// or https:// with a host")
+    if parts.username is not None or parts.password is not None:
+        raise InputError(f"url: {CREDENTIALS_REFUSED}")
     return text
+
+
+def shown_url(url: str) -> str:
+    """A stored URL as it may be shown: credentials stored before they were refused are left out."""
+    try:
+        parts = urlsplit(url)
+        if parts.username is None and parts.password is None:
+            return url
+        netloc = parts.netloc.rsplit("@", 1)[-1]
+        return parts._replace(netloc=netloc).geturl()
+    except ValueError:
+        return url
 
 
 @dataclass(frozen=True)
@@ -76,15 +98,28 @@ class WebhooksRepo:
         with self._db.session() as s:
             return list(s.scalars(sa.select(WebhookEndpoint).order_by(WebhookEndpoint.id)))
 
+    def page(self, *, after_id: int | None = None, limit: int = 50) -> list[WebhookEndpoint]:
+        """Endpoints in id order from after `after_id` (the cursor), at most `limit`."""
+        with self._db.session() as s:
+            stmt = sa.select(WebhookEndpoint).order_by(WebhookEndpoint.id).limit(limit)
+            if after_id is not None:
+                stmt = stmt.where(WebhookEndpoint.id > after_id)
+            return list(s.scalars(stmt))
+
     def get(self, endpoint_id: int) -> WebhookEndpoint:
         with self._db.session() as s:
             return row_in(s, WebhookEndpoint, endpoint_id, "webhook")
 
-    def deliveries(self, endpoint_id: int, *, limit: int = 200) -> list[tuple[WebhookDelivery, FeedEvent, list[WebhookAttempt]]]:
+    def deliveries(self, endpoint_id: int, *, before_id: int | None = None,
+                   limit: int = 200) -> list[tuple[WebhookDelivery, FeedEvent, list[WebhookAttempt]]]:
+        """An endpoint's deliveries newest first, from before `before_id` (the cursor), with their attempts."""
         with self._db.session() as s:
-            rows = s.execute(sa.select(WebhookDelivery, FeedEvent).join(FeedEvent, FeedEvent.id == WebhookDelivery.event_id)
-                             .where(WebhookDelivery.endpoint_id == endpoint_id)
-                             .order_by(WebhookDelivery.id.desc()).limit(limit)).all()  # fmt: skip
+            stmt = (sa.select(WebhookDelivery, FeedEvent).join(FeedEvent, FeedEvent.id == WebhookDelivery.event_id)
+                    .where(WebhookDelivery.endpoint_id == endpoint_id)
+                    .order_by(WebhookDelivery.id.desc()).limit(limit))  # fmt: skip
+            if before_id is not None:
+                stmt = stmt.where(WebhookDelivery.id < before_id)
+            rows = s.execute(stmt).all()
             ids = [d.id for d, _ in rows]
             attempts = list(s.scalars(sa.select(WebhookAttempt).where(WebhookAttempt.delivery_id.in_(ids))
                                       .order_by(WebhookAttempt.id))) if ids else []

@@ -17,8 +17,11 @@ from service.calibration.methods.stage.base import (
     bench_state,
     fit_stats,
     meas_dof,
+    meas_reading_noise,
     meas_sign,
+    noise_state,
     numeric_cov,
+    reading_noise_of,
     stage_hardware,
     stage_model,
     targets,
@@ -119,6 +122,9 @@ class AxisTransformMethod(StageMethod):
             state["meas_sign"] = sign.tolist()
             state["meas_sigma_deg"] = sq["sigma_deg"]
             state["meas_dof"] = sq["dof"]
+            noise = meas_reading_noise(data, options, sq["sigma_deg"], sq["dof"], sign)
+            state.update(noise_state(noise))
+            notes.append(f"reading noise of one measurement reading {noise.sigma_deg:.3g} deg: {noise.source}")
             fit_info["meas_to_ref"] = sq
             notes.append("the measurement sensor is mapped through the same transform against the reference "
                          "(its H2-like step: axis angles only, no zero offsets)")
@@ -142,8 +148,8 @@ class AxisTransformMethod(StageMethod):
             a, b = _axis_inverse(p, sign[0] * inp["meas_x_deg"], sign[1] * inp["meas_y_deg"])
             return np.column_stack([a, b])
 
-        return uncertain_correct(f, model.values(names), model.cov_of(names), data,
-                                  float(model.state.get("meas_sigma_deg", 0.0)), meas_dof(model))
+        sigma, noise_dof = reading_noise_of(model)
+        return uncertain_correct(f, model.values(names), model.cov_of(names), data, sigma, meas_dof(model), noise_dof)
 
 
 AXIS_TRANSFORM = AxisTransformMethod()

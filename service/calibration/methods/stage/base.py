@@ -21,6 +21,7 @@ from service.calibration.methods.stage.common import (
     sign_from_options,
 )
 from service.calibration.model import CalibrationModel, Parameter
+from service.calibration.reading_noise import ReadingNoise
 from service.calibration.registry import FitOptions
 from service.calibration.uncertainty import coverage_factor, propagate_gum
 from service.errors import DegenerateDataError, InputError
@@ -29,7 +30,7 @@ from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
 Columns = Mapping[str, NDArray[np.float64]]
 FIT_REQUIRED = STAGE_COLUMNS + REF_COLUMNS
-FIT_OPTIONAL = MEAS_COLUMNS + ("dir_x", "dir_y", "temp_c", "t_s", "point")
+FIT_OPTIONAL = MEAS_COLUMNS + ("dir_x", "dir_y", "temp_c", "t_s", "point", "noise_ref_x_deg", "noise_ref_y_deg")
 CROSS_TOL_DEG = 1e-6
 
 
@@ -58,6 +59,107 @@ def fit_stats(r: NDArray[np.float64], n_par: int) -> dict[str, Any]:
     return {"dof": dof, "sigma_deg": float(np.sqrt(r @ r / dof)) if dof > 0 else None}
 
 
+def _pooled_ref_variance(data: Columns, sign: NDArray[np.float64]) -> tuple[float, float] | None:
+    """The reference's own reading variance from repeated rows at one point, and its degrees of freedom.
+
+    Within a point, the reference varies by its noise and by the stage's positioning error (from one
+    move to the next); the measurement sensor sees the same table, so the positioning error is their
+    within-point covariance: var(ref) - cov(ref, meas) leaves the reference's own noise. Pooled over
+    the points and both axes, with Σ(n_i - 1) degrees of freedom per axis.
+    """
+    if "point" not in data:
+        return None
+    point = np.asarray(data["point"])
+    _, which, counts = np.unique(point, return_inverse=True, return_counts=True)
+    dof = int(np.sum(counts - 1))
+    if dof < 2:
+        return None
+    var = cov = 0.0
+    for r, m, sg in ((data["ref_x_deg"], data["meas_x_deg"], sign[0]), (data["ref_y_deg"], data["meas_y_deg"], sign[1])):
+        r = np.asarray(r, dtype=float)
+        m = sg * np.asarray(m, dtype=float)
+        dr = r - (np.bincount(which, r) / counts)[which]
+        dm = m - (np.bincount(which, m) / counts)[which]
+        var += float(dr @ dr)
+        cov += float(dr @ dm)
+    return (var - cov) / (2 * dof), float(2 * dof)
+
+
+def _stated_ref_sigma(data: Columns, options: FitOptions) -> float | None:
+    """The reference's noise (1 σ of one reading) as the data's `noise_ref_*` columns or the option ref_noise_deg state it."""
+    cols = [c for c in ("noise_ref_x_deg", "noise_ref_y_deg") if c in data]
+    if cols:
+        return float(np.sqrt(np.mean([np.mean(np.asarray(data[c], dtype=float) ** 2) for c in cols])))
+    stated = options.extra.get("ref_noise_deg")
+    if stated is None:
+        return None
+    value = float(stated)
+    if not (np.isfinite(value) and value >= 0):
+        raise InputError(f"option ref_noise_deg: {stated!r} is not a standard deviation in degrees (a number >= 0)")
+    return value
+
+
+RESIDUAL_FLOOR = 0.1  # the reading term is never taken below this fraction of the residual's variance
+
+
+def meas_reading_noise(data: Columns, options: FitOptions, residual_sigma_deg: float, residual_dof: float,
+                       sign: NDArray[np.float64] | None = None) -> ReadingNoise:
+    """u of one measurement reading = √(s_residual² − σ_ref²), with σ_ref from repeats or as stated.
+
+    What the model does not describe stays in it (it is in the residual, not in σ_ref); where
+    nothing says what the reference's noise is, the whole residual is taken (conservative: about √2
+    too large for two equal sensors) and the source says so. Degrees of freedom by Welch-Satterthwaite.
+    """
+    sign = np.ones(2) if sign is None else np.asarray(sign, dtype=float)
+    s2 = residual_sigma_deg ** 2
+    pooled = _pooled_ref_variance(data, sign) if has_meas_columns(data) else None
+    if pooled is not None:
+        ref_var, ref_dof = max(pooled[0], 0.0), pooled[1]
+        how = (f"the reference's noise from the repeated readings at each point (var(ref) - cov(ref, meas) "
+               f"within points, {ref_dof:.0f} degrees of freedom)")
+    elif (stated := _stated_ref_sigma(data, options)) is not None:
+        ref_var, ref_dof = stated ** 2, np.inf
+        how = f"the reference's stated noise {stated:.3g} deg"
+    else:
+        return ReadingNoise(residual_sigma_deg, residual_dof,
+                            "the whole meas-vs-ref residual (it also holds the reference's noise: conservative; "
+                            "repeated readings at the points or the reference's stated noise (noise_ref_* columns, "
+                            "option ref_noise_deg) separate the two)")
+    var = s2 - ref_var
+    floor = RESIDUAL_FLOOR * s2
+    note = ""
+    if var < floor:
+        var, note = floor, f" (floored at {RESIDUAL_FLOOR:g} of the residual's variance: the estimate left less)"
+    with np.errstate(divide="ignore"):
+        denom = s2 ** 2 / residual_dof + (ref_var ** 2 / ref_dof if np.isfinite(ref_dof) else 0.0)
+    dof = float(var ** 2 / denom) if denom > 0 else float("inf")
+    dof = min(dof, float(residual_dof))
+    return ReadingNoise(float(np.sqrt(var)), dof,
+                        f"the meas-vs-ref residual ({residual_sigma_deg:.3g} deg) less {how}{note}",
+                        float(np.sqrt(ref_var)))
+
+
+def has_meas_columns(data: Columns) -> bool:
+    return all(c in data for c in MEAS_COLUMNS)
+
+
+def noise_state(noise: ReadingNoise) -> dict[str, Any]:
+    """What a model keeps of the reading noise (MODEL.json state): standard uncertainties, named as such."""
+    return {"meas_reading_standard_uncertainty_deg": noise.sigma_deg, "meas_reading_dof": noise.dof,
+            "meas_reading_noise_source": noise.source,
+            **({"ref_reading_standard_uncertainty_deg": noise.ref_sigma_deg} if noise.ref_sigma_deg is not None else {})}
+
+
+def reading_noise_of(model: CalibrationModel) -> tuple[float, float]:
+    """(u of one measurement reading, its degrees of freedom) of a model; models made before the two sensors'
+    noise was separated state only the residual (`meas_sigma_deg`, `meas_dof`), read as before."""
+    st = model.state
+    if "meas_reading_standard_uncertainty_deg" in st:
+        dof = st.get("meas_reading_dof")
+        return float(st["meas_reading_standard_uncertainty_deg"]), float(dof) if dof else float("inf")
+    return float(st.get("meas_sigma_deg", 0.0)), meas_dof(model)
+
+
 def numeric_cov(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], p: NDArray[np.float64], scales: NDArray[np.float64],
                 s2: float) -> NDArray[np.float64]:
     """Gauss-Newton covariance s²(JᵀJ)⁻¹ of parameters p of a residual function (scaled for conditioning)."""
@@ -76,17 +178,19 @@ def jacobian_cov(J: NDArray[np.float64], scales: NDArray[np.float64], s2: float)
 
 def uncertain_correct(f: Callable[[NDArray[np.float64], Mapping[str, NDArray[np.float64]]], NDArray[np.float64]], p: NDArray[np.float64],
                       cov: NDArray[np.float64] | None, data: Columns, sigma_deg: float,
-                      dof: float) -> dict[str, NDArray[np.float64]]:
+                      dof: float, noise_dof: float | None = None) -> dict[str, NDArray[np.float64]]:
     """tilt = f(p, readings) and its expanded GUM uncertainty from cov and the reading noise.
 
-    Covariance and reading noise come from one fit with `dof` degrees of freedom; the coverage
-    factor follows from the Welch-Satterthwaite effective degrees of freedom (95 %).
+    The covariance comes from a fit with `dof` degrees of freedom, the reading noise from an
+    estimate with `noise_dof` (the same fit's when not given); the coverage factor follows from
+    the Welch-Satterthwaite effective degrees of freedom (95 %).
     """
     inputs = {c: np.asarray(data[c], dtype=float) for c in MEAS_COLUMNS}
     y = f(p, inputs)
     out = {"tilt_x_deg": y[:, 0], "tilt_y_deg": y[:, 1]}
     if cov is not None:
-        gum = propagate_gum(f, p, cov, inputs, {c: sigma_deg for c in MEAS_COLUMNS}, dof, dof)
+        gum = propagate_gum(f, p, cov, inputs, {c: sigma_deg for c in MEAS_COLUMNS}, dof,
+                            dof if noise_dof is None else noise_dof)
         U, k = gum.expanded(), np.broadcast_to(coverage_factor(gum.dof_eff), gum.u.shape)
         out["u_tilt_x_deg"], out["u_tilt_y_deg"] = U[:, 0], U[:, 1]
         out[K_OUTPUTS[0]], out[K_OUTPUTS[1]] = k[:, 0], k[:, 1]

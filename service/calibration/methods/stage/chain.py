@@ -19,7 +19,7 @@ noise, and their correlation is reported.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -31,14 +31,24 @@ from service.calibration.methods.stage.common import (
     meas_forward,
     newton_2d,
 )
-from service.calibration.stage_effect_fit import StageEffectModel, StagePoints, fit_stage_effects, param_label, robust_scale, typical_scale
+from service.calibration.stage_effect_fit import (
+    StageEffectModel,
+    StagePoints,
+    fit_stage_effects,
+    param_label,
+    param_unit,
+    registry_effects,
+    robust_scale,
+    typical_scale,
+)
 from service.errors import DegenerateDataError, FitError, InputError
 from service.io.columns import REF
-from service.physics.effects import STAGE_EFFECTS, EffectSet
+from service.physics.effects import EffectSet
 from service.physics.stage import StageBench, StageGeometry, offaxis_inverse_deg
 
 ParamKey = tuple[str, str]
 IDENTIFIABLE_REL = 1e-3  # a column closer than this (relative) to the span of the kept ones is not separable
+UNEXERCISED_REL = 1e-9  # a column smaller than this (relative to the largest) is not exercised by the points
 
 # Order of physical preference: the first of a degenerate group is kept.
 CHAIN_CANDIDATES: tuple[ParamKey, ...] = (
@@ -58,24 +68,42 @@ CHAIN_CANDIDATES: tuple[ParamKey, ...] = (
     ("mounting_tilt", "ref_x_deg"),
     ("mounting_tilt", "ref_y_deg"),
 )
-PERIODIC: tuple[ParamKey, ...] = (("periodic_error", "x_amp_deg"), ("periodic_error", "x_phase_deg"),
-                                  ("periodic_error", "y_amp_deg"), ("periodic_error", "y_phase_deg"))
-# Effects a record may add to the chain (a diagnosis names them): their registry parameters become free, with
-# the start values the fit needs (a periodic error's phase is undefined at zero amplitude). The reference sensor's
-# own terms, because the chain is fitted to its readings; backlash and the coupling are in the chain already.
-EXTRA_EFFECTS: dict[str, tuple[tuple[ParamKey, float], ...]] = {
-    "periodic_error": tuple(zip(PERIODIC, (0.002, 0.0, 0.002, 0.0))),
-    "sensor_nonlinearity": ((("sensor_nonlinearity", "ref_x_per_deg"), 0.0),
-                            (("sensor_nonlinearity", "ref_y_per_deg"), 0.0)),
+# Effects a record may add to the chain (a diagnosis names them), by the parameters each adds, parametrised so the
+# fit is linear in them from its start at zero: a worm's periodic error as a sine/cosine pair per stage (amplitude and
+# phase are singular at zero amplitude), the reference sensor's own terms because the chain is fitted to its
+# readings. Backlash is a chain candidate already; naming it only asks that the record models it.
+EFFECT_PARAMS: dict[str, tuple[ParamKey, ...]] = {
+    "periodic_error": (("periodic_error", "x_sin_deg"), ("periodic_error", "x_cos_deg"),
+                       ("periodic_error", "y_sin_deg"), ("periodic_error", "y_cos_deg")),
+    "backlash": (("backlash", "x_deg"), ("backlash", "y_deg")),
+    "sensor_nonlinearity": (("sensor_nonlinearity", "ref_x_per_deg"), ("sensor_nonlinearity", "ref_y_per_deg")),
+    "temperature_drift": (("temperature_drift", "ref_x_deg_per_k"), ("temperature_drift", "ref_y_deg_per_k"),
+                          ("temperature_drift", "ref_scale_per_k")),
+    "time_drift": (("time_drift", "ref_x_deg_per_h"), ("time_drift", "ref_y_deg_per_h")),
 }
-IN_CHAIN = ("backlash", "offaxis_coupling")
+EXTRA_EFFECTS = tuple(EFFECT_PARAMS)
+# The reference sensor's own reading errors among them: what the record then knows of its reference.
+REFERENCE_EFFECTS = ("sensor_nonlinearity", "temperature_drift", "time_drift")
+# Pairs that are one physical quantity (a worm's amplitude and phase): both are determined, or neither is fitted.
+PAIRED: dict[ParamKey, ParamKey] = {
+    ("periodic_error", "x_sin_deg"): ("periodic_error", "x_cos_deg"),
+    ("periodic_error", "x_cos_deg"): ("periodic_error", "x_sin_deg"),
+    ("periodic_error", "y_sin_deg"): ("periodic_error", "y_cos_deg"),
+    ("periodic_error", "y_cos_deg"): ("periodic_error", "y_sin_deg"),
+}
+IN_CHAIN = ("offaxis_coupling",)
+# The bench's drawings: standard uncertainties of the geometric parameters a stage bench is built to (a tilt or an
+# axis seated on machined faces and locating pins is square to about half a degree). A parameter the points
+# determine worse than PRIOR_WHEN times this is fitted with it as a prior (fit_chain).
+PRIOR_SD: dict[str, float] = {"axis_misalignment": 0.5, "mounting_tilt": 0.5, "sensor_yaw": 0.5}
+PRIOR_WHEN = 0.5
 ESSENTIAL = (("stage_scale", "x"), ("stage_scale", "y"), ("mounting_tilt", "desk_x_deg"),
              ("mounting_tilt", "desk_y_deg"))
 REF_OBS = REF
 
 
 def unit_of(key: ParamKey) -> str:
-    return STAGE_EFFECTS[key[0]].param(key[1]).unit
+    return param_unit(key)
 
 
 # --- identifiability -------------------------------------------------------------------------
@@ -94,10 +122,12 @@ def select_identifiable(J: NDArray[np.float64], scales: NDArray[np.float64], rel
     fixed: list[int] = []
     merged: dict[int, list[tuple[int, float]]] = {}
     rels = []
+    # a column this much smaller than the largest is rounding, not signal (sin(π·k) of a worm sampled at two phases)
+    floor = UNEXERCISED_REL * float(np.max(np.linalg.norm(Js, axis=0), initial=0.0))
     for i in range(Js.shape[1]):
         col = Js[:, i]
         norm = float(np.linalg.norm(col))
-        if norm == 0.0:
+        if norm <= floor:
             rels.append(0.0)
             fixed.append(i)
             merged[i] = []
@@ -140,17 +170,59 @@ class ChainFit:
     nfev: int
     singular_values: NDArray[np.float64]
     correlations: list[tuple[str, str, float]]
+    # effects asked for whose parameters these points determine none of -> why (every parameter held at zero)
+    undetermined: dict[str, str] = field(default_factory=dict)
+    # parameters fitted with a prior from the bench's drawings (the points alone determine them worse) -> why
+    priors: dict[ParamKey, str] = field(default_factory=dict)
+
+
+def worm_phases(bench: StageBench, cmd_deg: NDArray[np.float64], axis: str) -> int:
+    """How many distinct phases of the stage's worm the commands sample (to a hundredth of a turn)."""
+    qx, qy = bench.quantise(cmd_deg, cmd_deg)
+    period = bench.worm_period_x_deg if axis == "x" else bench.worm_period_y_deg
+    turns = (qx if axis == "x" else qy) / period
+    return int(np.unique(np.round((turns % 1.0) * 100) % 100).size)
+
+
+def _held_reason(key: ParamKey, bench: StageBench, pts: StagePoints) -> str | None:
+    """Why an effect parameter the points cannot determine is held, in the lab's words (None: the generic one)."""
+    effect, name = key
+    ax = name[:1]
+    if effect == "periodic_error":
+        cmd = pts.stage_x_deg if ax == "x" else pts.stage_y_deg
+        period = bench.worm_period_x_deg if ax == "x" else bench.worm_period_y_deg
+        n = worm_phases(bench, cmd, ax)
+        return (f"the points sample the {ax} stage's worm (period {period:.6g} deg) at {n} phase{'s' * (n != 1)}: too "
+                "few to tell its periodic error's amplitude and phase from the stage's scale and zero; held at 0 "
+                f"(a scan of the {ax} stage in steps of an eighth of the period determines it)")
+    if effect == "backlash":
+        d = pts.dir_x if ax == "x" else pts.dir_y
+        if not (np.any(d > 0) and np.any(d < 0)):
+            return (f"every point was approached moving the {ax} stage the same way, so its lost motion is a constant "
+                    "the zero already holds; held at 0 (points approached from both sides determine it)")
+    if effect == "temperature_drift" and (pts.temp_c is None or float(np.ptp(pts.temp_c)) < 0.05):
+        return "the temperature hardly changed over the points; held at 0"
+    if effect == "time_drift" and pts.t_s is None:
+        return "the points carry no time; held at 0"
+    return None
 
 
 def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], loss: str = "linear",
-              periodic: bool = False, max_nfev: int = 200, effects: Sequence[str] = ()) -> ChainFit:
+              periodic: bool = False, max_nfev: int = 200, effects: Sequence[str] = (),
+              worm_axes: Sequence[str] = ("x", "y")) -> ChainFit:
     """Least-squares fit of the identifiable chain parameters to the reference readings, with the parameters of
-    the extra `effects` (EXTRA_EFFECTS) free as well."""
+    the extra `effects` (EFFECT_PARAMS) free as well, as far as the points determine them: the others are held at
+    zero with the reason (a worm's sine/cosine pair is fitted together or not at all). A periodic error is fitted
+    on the stages of `worm_axes` only (those a diagnosis saw it on)."""
     unknown = [e for e in effects if e not in EXTRA_EFFECTS and e not in IN_CHAIN]
     if unknown:
         raise InputError(f"effects: {', '.join(unknown)} cannot be added to the kinematic chain; it takes "
                          f"{', '.join(EXTRA_EFFECTS)} (and has {', '.join(IN_CHAIN)} already)")
-    candidates = list(CHAIN_CANDIDATES)
+    wanted = (["periodic_error"] if periodic else []) + [e for e in effects if e in EXTRA_EFFECTS]
+    wanted = list(dict.fromkeys(wanted))
+    not_seen = [k for k in EFFECT_PARAMS["periodic_error"] if "periodic_error" in wanted and k[1][:1] not in worm_axes]
+    candidates = list(CHAIN_CANDIDATES) + [k for e in wanted for k in EFFECT_PARAMS[e]
+                                           if k not in CHAIN_CANDIDATES and k not in not_seen]
     all_model = StageEffectModel(bench, {}, candidates)
     scales = np.array([typical_scale(k) for k in candidates])
 
@@ -164,22 +236,34 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], r
         what = ", ".join(param_label(k) for k in missing)
         raise DegenerateDataError(f"the stage points do not determine {what}: the data need both stages moved to "
                                   "several angles each, with points off both axes (e.g. a 3 x 3 grid or larger)")
-    free = [candidates[i] for i in sel.kept]
+    kept = list(sel.kept)
+    alone = [i for i in kept if candidates[i] in PAIRED and candidates.index(PAIRED[candidates[i]]) not in kept]
+    kept = [i for i in kept if i not in alone]
+    free = [candidates[i] for i in kept]
     fixed: dict[ParamKey, str] = {}
-    for i in sel.fixed:
-        into = sel.merged_into[i]
-        if into:
+    for i in sorted(set(range(len(candidates))) - set(kept)):
+        key = candidates[i]
+        into = sel.merged_into.get(i, [])
+        if key[0] in wanted and (why := _held_reason(key, bench, pts)) is not None:
+            pass
+        elif i in alone:
+            why = (f"its partner {param_label(PAIRED[key])} is not determined by these points, so the worm's "
+                   "amplitude and phase are not either; held at 0")
+        elif into:
             parts = ", ".join(f"{param_label(candidates[j])} ({c:+.2g} per unit)" for j, c in into)
             why = f"not separable on these points from {parts} (relative residual {sel.rel_residual[i]:.1e}); held at 0"
         else:
             why = "these points do not exercise it; held at 0"
-        fixed[candidates[i]] = why
+        fixed[key] = why
+    for key in not_seen:
+        fixed[key] = (f"the diagnosis saw no worm error on the {key[1][:1]} stage (its terms within three standard "
+                      "uncertainties of zero); held at 0")
+    undetermined = {}
+    for e in wanted:
+        held = [k for k in EFFECT_PARAMS[e] if k in fixed]
+        if len(held) == len(EFFECT_PARAMS[e]):
+            undetermined[e] = "; ".join(dict.fromkeys(f"{param_label(k)}: {fixed[k]}" for k in held))
     x0 = np.zeros(len(free))
-    extra = ["periodic_error"] if periodic else []
-    extra += [e for e in effects if e in EXTRA_EFFECTS and e not in extra]
-    for e in extra:
-        free += [k for k, _ in EXTRA_EFFECTS[e]]
-        x0 = np.concatenate([x0, [v for _, v in EXTRA_EFFECTS[e]]])
     model = StageEffectModel(bench, {}, free)
     observed = {"ref_x_deg": ref_x, "ref_y_deg": ref_y}
     try:
@@ -198,8 +282,32 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], r
         for j in range(i + 1, len(free)):
             if abs(corr[i, j]) > 0.95:
                 pairs.append((param_label(free[i]), param_label(free[j]), float(corr[i, j])))
+    # What the points determine worse than the bench's drawings do is not stated as if they did: such a parameter
+    # (a near-degenerate partner whose data-only u exceeds half the drawings' tolerance) is fitted again with that
+    # tolerance as a prior, so its value and u are the drawings' updated by the points (the well-determined
+    # combination is still the points'); repeated fits of one bench then agree within what they state.
+    priors: dict[ParamKey, str] = {}
+    prior_sd: list[float | None] = []
+    for i, key in enumerate(free):
+        tol = PRIOR_SD.get(key[0])
+        if tol is not None and sd[i] > PRIOR_WHEN * tol:
+            partners = [param_label(free[j]) for j in range(len(free)) if j != i and abs(corr[i, j]) > 0.9]
+            priors[key] = (f"the points determine it only to ±{sd[i]:.2g} {unit_of(key)} (standard uncertainty"
+                           + (f"; near-degenerate with {', '.join(partners)}" if partners else "")
+                           + f"), worse than the bench's drawings: fitted with the prior 0 ± {tol:g} {unit_of(key)} "
+                           "(standard uncertainty; a stage or sensor seated on machined faces and locating pins)")
+            prior_sd.append(tol)
+        else:
+            prior_sd.append(None)
+    if priors:
+        start = np.where([p is None for p in prior_sd], fit.values, 0.0)
+        try:
+            fit = fit_stage_effects(model, pts, observed, x0=start, loss=loss, max_nfev=max_nfev, prior_sd=prior_sd,
+                                    prior_sigma=fit.sigma)
+        except FitError as exc:
+            raise DegenerateDataError(f"the kinematic fit failed on these points: {exc}") from None
     return ChainFit(free, fit.values, fit.covariance, fixed, fit.residuals, fit.sigma, fit.dof, fit.converged,
-                    fit.nfev, fit.jac_singular_values, pairs)
+                    fit.nfev, fit.jac_singular_values, pairs, undetermined, priors)
 
 
 # --- the chain run forwards and backwards (unquantised commands) ------------------------------------
@@ -232,7 +340,7 @@ class ChainModel:
             if e == "noise":
                 continue
             eff.setdefault(e, {})[p] = float(v)
-        return cls(bench, EffectSet.from_mapping("stage", eff))
+        return cls(bench, EffectSet.from_mapping("stage", registry_effects(eff)))
 
     def tilt(self, cmd_x: ArrayLike, cmd_y: ArrayLike, dir_x: ArrayLike = 0.0, dir_y: ArrayLike = 0.0) -> tuple[NDArray[np.float64],
                                                                                                                 NDArray[np.float64]]:

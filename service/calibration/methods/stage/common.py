@@ -185,7 +185,8 @@ _READING_STEPS[0, 1:3] = _READING_STEPS[1, 3:5] = (1.0, -1.0)
 
 
 def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, sign: NDArray[np.float64], meas_x_deg: ArrayLike, meas_y_deg: ArrayLike,
-                     sigma_deg: float, dof: float = np.inf) -> tuple[NDArray[np.float64], NDArray[np.float64], Propagated, Propagated]:
+                     sigma_deg: float, dof: float = np.inf,
+                     noise_dof: float | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64], Propagated, Propagated]:
     """meas_inverse with the standard uncertainty and effective degrees of freedom of each output.
 
     Same law as service.calibration.uncertainty.propagate_gum (central differences; each reading
@@ -237,7 +238,8 @@ def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, si
         for j in range(m):
             Dp[:, j] = (case(5 + 2 * j) - case(6 + 2 * j)) / (2 * hp[j])
     v = (sigma_deg * D) ** 2
-    parts = [(v[:, 0], dof), (v[:, 1], dof)]
+    nd = dof if noise_dof is None else noise_dof  # the reading noise may rest on its own estimate
+    parts = [(v[:, 0], nd), (v[:, 1], nd)]
     if cov is not None and has_cov:
         k = -(ab - p[0:2, None]) / (1.0 + p[2:4, None])  # d/dscale = d/da·k, d/dzero = -d/da
         used = np.concatenate([np.arange(4), stepped])  # parameters with a zero covariance row add nothing

@@ -19,6 +19,9 @@ from service.calibration.methods.stage.base import (
     fit_stats,
     jacobian_cov,
     meas_dof,
+    meas_reading_noise,
+    noise_state,
+    reading_noise_of,
     stage_hardware,
     stage_model,
     targets,
@@ -28,6 +31,7 @@ from service.calibration.methods.stage.base import (
 from service.calibration.methods.stage.common import (
     MEAS_COLUMNS,
     columns,
+    detect_mirror,
     has_meas,
     model_needs_meas,
     offaxis_forward_vs_exact_deg,
@@ -143,10 +147,12 @@ class HomographyMethod(StageMethod):
             if st["sigma_deg"] is not None:
                 cov = jacobian_cov(J2, H_SCALES, st["sigma_deg"] ** 2)
                 cov_names = [f"H2.{k}" for k in H_KEYS]
+                noise = meas_reading_noise(data, options, st["sigma_deg"], st["dof"], detect_mirror(mx, my, rx, ry))
                 state["meas_sigma_deg"] = st["sigma_deg"]
                 state["meas_dof"] = st["dof"]
-                notes.append(h2_note + "u_tilt from H2's covariance and the H2 residual as reading noise (which also "
-                             "holds the reference's noise: conservative)")
+                state.update(noise_state(noise))
+                notes.append(h2_note + "the uncertainty of a corrected tilt from H2's covariance and the reading noise "
+                             f"of one measurement reading, {noise.sigma_deg:.3g} deg: {noise.source}")
             else:
                 notes.append(h2_note + f"the {n} points determine its 8 parameters exactly and leave no residual to "
                              "estimate the noise: no covariance and no u_tilt")
@@ -173,8 +179,8 @@ class HomographyMethod(StageMethod):
             a, b = _apply_h(p, inp["meas_x_deg"], inp["meas_y_deg"])
             return np.column_stack([a, b])
 
-        return uncertain_correct(f, model.values(names), model.cov_of(names), data,
-                                  float(model.state.get("meas_sigma_deg", 0.0)), meas_dof(model))
+        sigma, noise_dof = reading_noise_of(model)
+        return uncertain_correct(f, model.values(names), model.cov_of(names), data, sigma, meas_dof(model), noise_dof)
 
 
 HOMOGRAPHY = HomographyMethod()

@@ -1,0 +1,70 @@
+"""Coverage of the offline methods' expanded uncertainties against the simulated truth.
+
+    python benchmarks/coverage.py                 # 200 noise realisations per case (minutes)
+    python benchmarks/coverage.py --quick         # 20 per case: a smoke run, wide intervals
+    python benchmarks/coverage.py --only rotation --realisations 400
+
+Prints one row per method x scenario x axis (rotation: per angle of its sweep): the fraction of
+validation points whose true value lies within the stated U (95 %), its Wilson 95 % interval,
+the number of points and rms(error / U) (about 0.51 for an honest U at k ≈ 1.96). Definitions
+in service/reproduce/coverage.py. The daemon path (GET /tilt, one reading and `average_s`) with
+`--daemon N`: N calibrations per bench, each on a fresh in-process daemon, 60 stands each (about a
+minute per calibration); `--daemon N --only daemon` runs only those rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from service.reproduce.coverage import Row, daemon_rows, offline_cases  # noqa: E402
+
+
+def line(r: Row) -> str:
+    lo, hi = r.interval
+    return (f"| {r.kind} | {r.method} | {r.scenario} | {r.axis} | {r.coverage:.3f} | {lo:.3f}-{hi:.3f} | {r.n} "
+            f"| {r.rms_error_over_u:.2f} |")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--realisations", type=int, default=200, help="noise realisations per case (default 200)")
+    ap.add_argument("--quick", action="store_true", help="20 realisations per case")
+    ap.add_argument("--only", default="", help="run only the cases whose name contains this (e.g. rotation, kinematic)")
+    ap.add_argument("--daemon", type=int, default=0, metavar="N", help="also the daemon path: N calibrations per bench")
+    ap.add_argument("--summary", action="store_true", help="rotation: one row per case (worst angle named) instead of "
+                                                           "one per angle")
+    args = ap.parse_args()
+    n = 20 if args.quick else args.realisations
+    print(f"coverage of U (95 %) over {n} noise realisations per case; Wilson 95 % intervals")
+    print("| kind | method | scenario | axis | coverage | interval | points | rms(e/U) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for name, case in offline_cases(n):
+        if args.only and args.only not in name:
+            continue
+        t0 = time.perf_counter()
+        rows = case()
+        if args.summary and rows and rows[0].kind == "rotation":
+            hits, total = sum(r.hits for r in rows), sum(r.n for r in rows)
+            worst = min(rows, key=lambda r: r.coverage)
+            rms = (sum(r.rms_error_over_u**2 * r.n for r in rows) / total) ** 0.5
+            print(line(Row(worst.kind, worst.method, worst.scenario, "all angles", hits, total, rms)))
+            print(line(worst).replace(f"| {worst.axis} |", f"| worst: {worst.axis} |"))
+        else:
+            for r in rows:
+                print(line(r))
+        print(f"  ({name}: {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    if args.daemon:
+        t0 = time.perf_counter()
+        for r in daemon_rows(args.daemon):
+            print(line(r))
+        print(f"  (daemon: {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

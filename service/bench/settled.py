@@ -1,0 +1,47 @@
+"""When readings after a move have settled, by a statistical test rather than a fixed window.
+
+After n readings since the move, the last 3k of them (k = max(`block`, n // 12): blocks grow with the time
+waited, so a slow sensor's drift is seen over a span comparable to its time constant) are cut into three
+blocks of k. The sensor has settled when the mean of the newest block differs from the means of each of the two
+before it by less than `z` standard errors of a block mean, σ/√k, on every channel, σ being the reading noise
+(known from an earlier point at rest). While a transient decays, the block means walk away from each other and
+the test fails; once what is left of it is within the noise, it passes. On a bench without settling it passes
+after three blocks of `block`. The rule is pure (arrays in, a count out) so it is tested on recorded steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+BLOCK = 4  # readings per block
+Z = 2.0  # block means closer than Z standard errors of a block mean are the same
+SETTLING_RULE = (f"statistical: after n readings, the mean of the newest k = max({BLOCK}, n/12) readings within {Z:g}"
+                 " standard errors (reading noise / sqrt(k)) of each of the two blocks of k before it, on every channel")
+
+
+@dataclass(frozen=True)
+class SettleTest:
+    noise_deg: float  # σ of one reading (per channel), from the bench at rest
+    block: int = BLOCK
+    z: float = Z
+
+    def threshold(self, k: int) -> float:
+        return self.z * self.noise_deg / float(np.sqrt(k))
+
+    def settled_after(self, values: ArrayLike, checked: int = 0) -> int | None:
+        """The number of readings (from the first after the move) after which the test first passes, or None.
+        `values` is (n,) or (n, channels); counts up to `checked` are known not to pass (an earlier call)."""
+        v = np.asarray(values, dtype=float)
+        if v.ndim == 1:
+            v = v[:, None]
+        for end in range(max(3 * self.block, checked + 1), v.shape[0] + 1):
+            b = max(self.block, end // 12)
+            m3 = v[end - b:end].mean(axis=0)
+            m2 = v[end - 2 * b:end - b].mean(axis=0)
+            m1 = v[end - 3 * b:end - 2 * b].mean(axis=0)
+            if np.abs(m3 - m2).max() < self.threshold(b) and np.abs(m3 - m1).max() < self.threshold(b):
+                return end
+        return None

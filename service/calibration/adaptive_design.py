@@ -1,0 +1,255 @@
+"""An adaptive stage calibration's plan: which points, how many readings at each, in what order, to reach a
+target expanded uncertainty of the correction in the least bench time. Pure: numbers in, a plan out.
+
+What a stage record corrects with is the measurement sensor's model against the reference (zero offsets,
+scales, yaw, non-orthogonality, seat tilt: MEAS_PARAMS), fitted to the point means. Linearised about a
+nominal mounting, a point at table tilt (X, Y) read n times contributes J(X, Y)ᵀJ(X, Y)·n/σ² to the
+information matrix (σ² = σ_meas² + σ_ref², one reading of each), and the corrected tilt's variance at
+(X, Y) from the parameters is g C gᵀ, C the inverse information and g the same Jacobian (the correction is
+the model inverted, whose sensitivity to a parameter is minus the forward one). The criterion is the mean of
+that variance over the requested range (I-optimality); the figure checked against the target is the
+expanded uncertainty of the correction over the range, k·√(max over the range of the variance + the
+components every corrected tilt carries: standards, resolutions), which is the record's part of a corrected
+tilt's uncertainty (a live reading's own noise adds to it when the record is used).
+
+The plan starts from a spread grid (min_grid × min_grid of the candidate lattice, so the diagnosis has points
+over the whole range to test its candidate effects on), adds candidate points by the criterion while they save
+bench time, and reads every point the number of times that brings the predicted U to the target (the fit
+weighs point means alike, so equal readings are what its covariance will show). Points are visited in
+serpentine order (rows of y, x alternating).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.calibration.methods.stage.common import MEAS_PARAMS, meas_forward
+
+K_EXPANDED = 2.0  # coverage factor of the expanded uncertainty (95 %, many degrees of freedom)
+MIN_READINGS = 5
+CAP_READINGS = 200  # at most this many readings at one point
+MIN_GRID = 4  # the spread grid: min_grid x min_grid points over the range
+PLAN_MARGIN = 0.85  # the plan aims at this share of the target (the fit's estimate of the noise scatters about 15 %)
+EVAL_GRID = 13  # the range is evaluated on this lattice per axis
+
+
+class TargetUnreachable(ValueError):
+    """The target is below what this bench can reach over the range: `floor_deg` is the best it can."""
+
+    def __init__(self, target_deg: float, floor_deg: float, why: str) -> None:
+        super().__init__(f"target_expanded_uncertainty_deg {target_deg:g} deg cannot be reached: {why}; the best this "
+                         f"bench can reach over the range is {floor_deg:.4g} deg")
+        self.target_deg, self.floor_deg = target_deg, floor_deg
+
+
+@dataclass(frozen=True)
+class BenchTimes:
+    """What a point costs in bench time: moving at the stage's rate, settling, reading at the output rate."""
+
+    stage_rate_deg_per_s: float = 2.8
+    settle_s: float = 1.5
+    output_rate_hz: float = 25.0
+    approach_deg: float = 0.1
+
+    def move_s(self, a: tuple[float, float], b: tuple[float, float]) -> float:
+        d = max(abs(b[0] - a[0]), abs(b[1] - a[1]))  # the two stages move at once
+        return (d + 2 * self.approach_deg) / self.stage_rate_deg_per_s
+
+    def point_s(self, n: int) -> float:
+        return self.settle_s + n / self.output_rate_hz
+
+
+@dataclass(frozen=True)
+class BenchNoise:
+    """One reading's noise of each sensor (σ, deg), and the components every corrected tilt carries (u, deg)."""
+
+    meas_sigma_deg: float
+    ref_sigma_deg: float
+    fixed_u_deg: float = 0.0  # standards and resolutions, combined
+
+    @property
+    def sigma2(self) -> float:
+        return self.meas_sigma_deg**2 + self.ref_sigma_deg**2
+
+
+@dataclass
+class AdaptivePlan:
+    points: list[tuple[float, float]]
+    readings: list[int]
+    predicted_u_deg: float  # expanded, over the range
+    mean_variance_deg2: float  # the criterion
+    bench_seconds: float  # expected, fit points only
+    target_deg: float
+    floor_deg: float  # every candidate at the cap
+    notes: list[str] = field(default_factory=list)
+
+    def as_json(self) -> dict[str, object]:
+        return {"points": [list(p) for p in self.points], "readings": self.readings,
+                "predicted_expanded_uncertainty_deg": self.predicted_u_deg,
+                "target_expanded_uncertainty_deg": self.target_deg, "floor_expanded_uncertainty_deg": self.floor_deg,
+                "expected_bench_seconds": self.bench_seconds, "criterion_mean_variance_deg2": self.mean_variance_deg2}
+
+
+def jacobian(points: NDArray[np.float64], p0: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """(N, 2, P): d(meas x, meas y)/d(MEAS_PARAMS) at table tilts `points` (N, 2), by central differences."""
+    p0 = np.zeros(len(MEAS_PARAMS)) if p0 is None else p0
+    sign = np.ones(2)
+    out = np.empty((points.shape[0], 2, p0.size))
+    for j, (_, _, scale) in enumerate(MEAS_PARAMS):
+        h = 1e-3 * scale
+        up, dn = p0.copy(), p0.copy()
+        up[j] += h
+        dn[j] -= h
+        a1, b1 = meas_forward(up, sign, points[:, 0], points[:, 1])
+        a0, b0 = meas_forward(dn, sign, points[:, 0], points[:, 1])
+        out[:, 0, j] = (a1 - a0) / (2 * h)
+        out[:, 1, j] = (b1 - b0) / (2 * h)
+    return out
+
+
+def lattice(x_deg: tuple[float, float], y_deg: tuple[float, float], n_x: int, n_y: int) -> NDArray[np.float64]:
+    xs, ys = np.linspace(x_deg[0], x_deg[1], n_x), np.linspace(y_deg[0], y_deg[1], n_y)
+    return np.array([(x, y) for y in ys for x in xs], dtype=float)
+
+
+class Design:
+    """The information of chosen points and the correction's predicted variance over the range."""
+
+    def __init__(self, candidates: NDArray[np.float64], evaluation: NDArray[np.float64], noise: BenchNoise) -> None:
+        self.candidates = candidates
+        self.jc = jacobian(candidates)  # (C, 2, P)
+        self.info_c = np.einsum("cap,caq->cpq", self.jc, self.jc) / noise.sigma2  # per reading
+        self.je = jacobian(evaluation)  # (E, 2, P)
+        self.noise = noise
+
+    def variances(self, counts: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """(E, 2) predicted variance of the corrected tilt at the evaluation points; None when singular."""
+        info = np.einsum("c,cpq->pq", counts, self.info_c)
+        try:
+            cov = np.linalg.inv(info)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(cov)) or np.linalg.cond(info) > 1e14:
+            return None
+        v: NDArray[np.float64] = np.einsum("eap,pq,eaq->ea", self.je, cov, self.je)
+        return v
+
+    def criterion(self, counts: NDArray[np.float64]) -> float:
+        v = self.variances(counts)
+        return math.inf if v is None else float(v.mean())
+
+    def expanded_u(self, counts: NDArray[np.float64]) -> float:
+        v = self.variances(counts)
+        if v is None:
+            return math.inf
+        return K_EXPANDED * math.sqrt(float(v.max()) + self.noise.fixed_u_deg**2)
+
+
+def serpentine(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Rows of equal y in increasing y, x alternating direction: short travel, every point from below."""
+    rows: dict[float, list[tuple[float, float]]] = {}
+    for p in points:
+        rows.setdefault(round(p[1], 9), []).append(p)
+    out: list[tuple[float, float]] = []
+    for i, y in enumerate(sorted(rows)):
+        out += sorted(rows[y], reverse=bool(i % 2))
+    return out
+
+
+def spread_indices(n_x: int, n_y: int, min_grid: int) -> list[int]:
+    """The candidate lattice's points nearest a min_grid x min_grid grid over the whole range."""
+    ix = sorted({int(round(v)) for v in np.linspace(0, n_x - 1, min(min_grid, n_x))})
+    iy = sorted({int(round(v)) for v in np.linspace(0, n_y - 1, min(min_grid, n_y))})
+    return [j * n_x + i for j in iy for i in ix]
+
+
+def floor_u(design: Design) -> float:
+    """The best expanded U over the range: every candidate read the cap number of times."""
+    return design.expanded_u(np.full(design.candidates.shape[0], float(CAP_READINGS)))
+
+
+def readings_needed(v_max_one: float, target_deg: float, fixed_u_deg: float) -> float:
+    """Readings per point for the parameter part to fit in the target: k²(v/n + u_fixed²) ≤ T²."""
+    room = (target_deg / K_EXPANDED) ** 2 - fixed_u_deg**2
+    return math.inf if room <= 0 else v_max_one / room
+
+
+def plan_adaptive(x_deg: tuple[float, float], y_deg: tuple[float, float], n_x: int, n_y: int, target_deg: float,
+                  noise: BenchNoise, times: BenchTimes = BenchTimes(), min_grid: int = MIN_GRID) -> AdaptivePlan:
+    """The adaptive plan over the candidate lattice n_x x n_y of the range; TargetUnreachable when even the
+    floor (every candidate at the cap) is above the target, or the fixed components alone are.
+
+    The fit weighs every point alike (its point means are fitted unweighted), so every chosen point is read the
+    same number of times n: the n at which the point's share of the variance brings the predicted U to
+    PLAN_MARGIN x the target. Points are added greedily, each time the candidate that most lowers the mean predicted variance over
+    the range (the criterion), as long as the n it saves at every point is worth more bench time than the point
+    costs (a move, settling, its readings); and while n would exceed the cap.
+    """
+    fixed_floor = K_EXPANDED * noise.fixed_u_deg
+    if target_deg <= fixed_floor:
+        raise TargetUnreachable(target_deg, fixed_floor, "the standards' and resolutions' part of every corrected tilt "
+                                                         f"is already {fixed_floor:.4g} deg (expanded)")
+    cand = lattice(x_deg, y_deg, n_x, n_y)
+    evaluation = lattice(x_deg, y_deg, EVAL_GRID, EVAL_GRID)
+    design = Design(cand, evaluation, noise)
+    best = floor_u(design)
+    if best > target_deg:
+        raise TargetUnreachable(target_deg, best, f"with the bench's reading noise (meas {noise.meas_sigma_deg:.2g}, ref "
+                                                  f"{noise.ref_sigma_deg:.2g} deg a reading), every one of the "
+                                                  f"{cand.shape[0]} candidate points read {CAP_READINGS} times")
+    chosen = np.zeros(cand.shape[0], dtype=bool)
+    chosen[spread_indices(n_x, n_y, min_grid)] = True
+    aim = PLAN_MARGIN * target_deg  # the fit's own estimate of the noise scatters: aim a little below
+
+    def n_for(mask: NDArray[np.bool_]) -> float:
+        v = design.variances(mask.astype(float))
+        return math.inf if v is None else max(readings_needed(float(v.max()), aim, noise.fixed_u_deg),
+                                              float(MIN_READINGS))
+
+    def cost(mask: NDArray[np.bool_], n: float) -> float:
+        tour = serpentine([(float(cand[i, 0]), float(cand[i, 1])) for i in np.nonzero(mask)[0]])
+        travel = sum(times.move_s(a, b) for a, b in zip(tour, tour[1:]))
+        return travel + float(mask.sum()) * times.point_s(int(math.ceil(n)))
+
+    n = n_for(chosen)
+    while True:
+        here = design.criterion(chosen.astype(float))
+        options = []
+        for c in np.nonzero(~chosen)[0]:
+            trial = chosen.copy()
+            trial[c] = True
+            options.append((design.criterion(trial.astype(float)), int(c)))
+        if not options:
+            break
+        crit, pick = min(options)
+        trial = chosen.copy()
+        trial[pick] = True
+        n_trial = n_for(trial)
+        if crit < here and (n > CAP_READINGS or cost(trial, n_trial) < cost(chosen, n)):
+            chosen, n = trial, n_trial
+        else:
+            break
+    n_int = int(min(math.ceil(n), CAP_READINGS))
+    idx = np.nonzero(chosen)[0]
+    order = serpentine([(float(cand[i, 0]), float(cand[i, 1])) for i in idx])
+    readings = [n_int] * len(order)
+    counts = chosen.astype(float) * n_int
+    seconds, here_pt = 0.0, (x_deg[0], y_deg[0])
+    for p in order:
+        seconds += times.move_s(here_pt, p) + times.point_s(n_int)
+        here_pt = p
+    return AdaptivePlan(order, readings, design.expanded_u(counts), design.criterion(counts), seconds, target_deg, best,
+                        [(f"{len(order)} points ({min_grid} x {min_grid} spread for the diagnosis, the rest chosen for"
+                          f" the mean predicted variance of the corrected tilt over the range), {n_int} readings each")])
+
+
+def predicted_u_of_covariance(cov: NDArray[np.float64], x_deg: tuple[float, float], y_deg: tuple[float, float],
+                              fixed_u_deg: float, p0: NDArray[np.float64] | None = None) -> float:
+    """The expanded U of the correction over the range from a fitted model's covariance of MEAS_PARAMS."""
+    je = jacobian(lattice(x_deg, y_deg, EVAL_GRID, EVAL_GRID), p0)
+    v = np.einsum("eap,pq,eaq->ea", je, cov, je)
+    return K_EXPANDED * math.sqrt(float(v.max()) + fixed_u_deg**2)

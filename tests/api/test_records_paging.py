@@ -1,0 +1,110 @@
+"""`GET /records` pages, and reading every page in a loop does not hold `/tilt` hostage: with 2,000 records
+(each with its model, as a job stores it), `/tilt`'s p99 while a client reads page after page stays within 3x
+of the same run's idle p99. The pages are made and serialised in a request thread, never on the event loop.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from service.config import Settings
+from service.storage.engine import make_engine
+from service.storage.store import Store
+from tests.api.test_request_bounds import daemon
+from tests.daemon.conftest import admin_headers, make_client, wait_job
+from tests.daemon.test_diagnosis import SMALL_BODY
+
+READER = """
+import pathlib, sys, httpx
+base, token, stop = sys.argv[1], sys.argv[2], pathlib.Path(sys.argv[3])
+read = 0
+with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=120) as c:
+    while not stop.exists():
+        cursor = None
+        while not stop.exists():
+            body = c.get("/records", params={"limit": 50, **({"cursor": cursor} if cursor else {})}).json()
+            read += len(body["records"])
+            if (cursor := body["next_cursor"]) is None:
+                break
+print(read)
+"""
+RECORDS = 2000
+SAMPLES = 400
+P99_RATIO = 3.0
+
+
+@pytest.fixture(scope="module")
+def many_records(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A data directory with 2,000 stage records: one from a job, the rest versions of it."""
+    data = tmp_path_factory.mktemp("records")
+    with make_client(data) as client:
+        h = admin_headers(data)
+        r = client.post("/calibrations", headers=h, json=SMALL_BODY)
+        assert r.status_code == 202, r.text
+        job = wait_job(client, r.json()["id"], h)
+        assert job["state"] == "succeeded", job
+    engine = make_engine(Settings(data_dir=data).database_url)
+    store = Store(engine)
+    first = store.records.get_record(job["record"]["id"])
+    for _ in range(RECORDS - 1):
+        store.records.add_record(first.device_id, first.kind, first.method, first.model, operator=first.operator,
+                                 validation=first.validation, temp_c=first.temp_c, job_id=first.job_id,
+                                 raw_data={"fit_points": first.raw_data["fit_points"]})
+    engine.dispose()
+    return data
+
+
+def _tilt_latencies(base: str, token: str) -> list[float]:
+    out = []
+    with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
+        for _ in range(SAMPLES):
+            t0 = time.perf_counter()
+            assert c.get("/tilt").status_code == 200
+            out.append(time.perf_counter() - t0)
+            time.sleep(0.005)
+    return out
+
+
+def test_records_page_and_reading_them_all_leaves_tilt_alone(many_records: Path, tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    shutil.copytree(many_records, data)
+    with daemon(tmp_path, TILTLAB_DATA_DIR=str(data), TILTLAB_SIM_TRANSPORT="loopback") as d:
+        auth = {"Authorization": f"Bearer {d.token}"}
+        with httpx.Client(base_url=d.base, headers=auth, timeout=120) as c:
+            ids, cursor, pages = [], None, 0
+            while True:
+                page = c.get("/records", params={"limit": 50, **({"cursor": cursor} if cursor else {})})
+                assert page.status_code == 200, page.text
+                body = page.json()
+                ids += [r["id"] for r in body["records"]]
+                pages += 1
+                cursor = body["next_cursor"]
+                if cursor is None:
+                    break
+        assert len(ids) == len(set(ids)) == RECORDS and ids == sorted(ids, reverse=True) and pages == RECORDS // 50 + 1
+        _tilt_latencies(d.base, d.token)  # warm: the token known, the route's path taken once
+        idle = _tilt_latencies(d.base, d.token)
+        # the reader in a process of its own: decoding its pages must not hold the measuring client's interpreter
+        stop = tmp_path / "stop"
+        reader = subprocess.Popen([sys.executable, "-c", READER, d.base, d.token, str(stop)], stdout=subprocess.PIPE,
+                                  text=True)
+        try:
+            time.sleep(2.0)
+            busy = _tilt_latencies(d.base, d.token)
+        finally:
+            stop.touch()
+            out, _ = reader.communicate(timeout=120)
+        read = [int(out.split()[-1])]
+    assert read[0] >= RECORDS, f"the reader got through {read[0]} records"
+    base99, busy99 = np.percentile(idle, 99), np.percentile(busy, 99)
+    figures = f"/tilt idle p99 {base99 * 1e3:.2f} ms; while reading every page p99 {busy99 * 1e3:.2f} ms ({read[0]} records read)"
+    print(figures)
+    assert busy99 <= P99_RATIO * base99, figures

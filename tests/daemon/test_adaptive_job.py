@@ -1,0 +1,62 @@
+"""An adaptive stage-grid job reaches its target expanded uncertainty: the plan's predicted U of the correction
+is at most the target, the validation points (read independently) bear it out, and the bench time it reports
+adds up; a target below what the bench can reach is refused, naming the floor."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.daemon.conftest import admin_headers, make_client, wait_job
+
+TARGET_DEG = 0.0012
+BODY = {"procedure": "stage-grid", "method": "kinematic", "design": "adaptive",
+        "target_expanded_uncertainty_deg": TARGET_DEG,
+        "grid": {"x_deg": [-4.0, 4.0], "y_deg": [-4.0, 4.0], "n_x": 3, "n_y": 3},
+        "samples_per_point": 30, "validation": {"n_points": 6}}
+
+
+@pytest.fixture(scope="module")
+def adaptive(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("adaptive")
+    with make_client(tmp, sim_speed=20.0) as client:
+        h = admin_headers(tmp)
+        r = client.post("/calibrations", headers=h, json=BODY)
+        assert r.status_code == 202, r.text
+        job = wait_job(client, r.json()["id"], h)
+        record = client.get(f"/records/{job['record']['id']}", headers=h).json() if job["record"] else None
+        refused = client.post("/calibrations", headers=h, json={**BODY, "target_expanded_uncertainty_deg": 0.00005})
+        yield job, record, refused
+
+
+def test_adaptive_job_meets_its_target_and_validation_bears_it_out(adaptive):
+    job, record, _ = adaptive
+    assert job["state"] == "succeeded", job["error"]
+    v = record["validation"]
+    assert v["design"] == "adaptive" and v["target_expanded_uncertainty_deg"] == TARGET_DEG
+    assert v["predicted_expanded_uncertainty_deg"] <= TARGET_DEG
+    assert job["validation"]["predicted_expanded_uncertainty_deg"] == v["predicted_expanded_uncertainty_deg"]
+    # 6 validation points, 2 axes: each error within the predicted U of the correction combined with the
+    # point's own reading noise (95 % each; at most 2 of 12 outside, a margin for a small sample)
+    assert v["validated_components"] == 12
+    assert v["validated_coverage"] >= 10 / 12
+    # the validation's own estimate of the correction's expanded U (reading noise taken out) is of the target's
+    # size: within 2x (12 components estimate a variance to about +-40 %)
+    # (null where the errors lie within the validation readings' own noise: unresolved, not zero)
+    assert v["validated_expanded_uncertainty_deg"] is None or v["validated_expanded_uncertainty_deg"] <= 2 * TARGET_DEG
+
+
+def test_adaptive_job_reports_bench_seconds_that_add_up(adaptive):
+    job, record, _ = adaptive
+    b = job["bench_seconds"]
+    assert b["total"] == pytest.approx(b["moving"] + b["settling"] + b["reading"], abs=0.01)
+    assert record["bench_seconds"] == b
+    plan = record["validation"]["plan"][0]
+    assert len(plan["points"]) >= 9 and all(n == plan["readings"][0] for n in plan["readings"])
+
+
+def test_unreachable_target_is_refused_naming_the_floor(adaptive):
+    _, _, refused = adaptive
+    assert refused.status_code == 422
+    body = refused.json()
+    assert body["field"] == "target_expanded_uncertainty_deg"
+    assert "cannot be reached" in body["detail"] and "8.16e-05 deg" in body["detail"]

@@ -1,0 +1,52 @@
+"""`tiltlab plan` as a lab engineer runs it: the adaptive plan for a bench description and a target, without a
+bench; a target the bench cannot reach exits 2 naming the floor."""
+
+import json
+import subprocess
+import sys
+
+from service.calibration.adaptive_design import BenchNoise, Design, lattice
+from service.scenarios.model import load_scenario
+from service.scenarios.plan import scenario_noise
+
+
+def tiltlab(*args):
+    return subprocess.run([sys.executable, "-m", "service", *args], capture_output=True, text=True)
+
+
+def test_plan_prints_points_readings_bench_time_and_predicted_u():
+    r = tiltlab("plan", "--scenario", "seed000", "--target", "0.0006", "--json")
+    assert r.returncode == 0, r.stderr
+    plan = json.loads(r.stdout)
+    assert plan["predicted_expanded_uncertainty_deg"] <= 0.0006 < 1.2 * plan["predicted_expanded_uncertainty_deg"]
+    assert len(plan["points"]) >= 16 and len(plan["readings"]) == len(plan["points"])
+    assert plan["expected_bench_seconds"] > 0
+    # the prediction is the planner's formula on the scenario's noise: recomputed here from the chosen points
+    sc = load_scenario("seed000")
+    noise = scenario_noise(sc)
+    cand = lattice((-12, 12), (-12, 12), 9, 9)
+    design = Design(cand, lattice((-12, 12), (-12, 12), 13, 13), noise)
+    counts = [0.0] * 81
+    for (x, y), n in zip(plan["points"], plan["readings"]):
+        counts[int(round((y + 12) / 3)) * 9 + int(round((x + 12) / 3))] = n
+    import numpy as np
+
+    assert design.expanded_u(np.array(counts)) == plan["predicted_expanded_uncertainty_deg"]
+    # a tighter target asks for more readings or more points
+    tight = json.loads(tiltlab("plan", "--scenario", "seed000", "--target", "0.0003", "--json").stdout)
+    assert sum(tight["readings"]) > sum(plan["readings"])
+    text = tiltlab("plan", "--scenario", "seed000", "--target", "0.0006")
+    assert text.returncode == 0 and "expected bench time" in text.stdout and "readings" in text.stdout
+
+
+def test_unreachable_target_exits_2_naming_the_floor():
+    r = tiltlab("plan", "--scenario", "seed000", "--target", "0.00001")
+    assert r.returncode == 2
+    assert "cannot be reached" in r.stderr and "8.165e-05 deg" in r.stderr
+    r = tiltlab("plan", "--scenario", "seed003", "--target", "0.001")
+    assert r.returncode == 2 and "stage" in r.stderr
+
+
+def test_bench_noise_of_the_scenario():
+    n = scenario_noise(load_scenario("seed000"))
+    assert isinstance(n, BenchNoise) and 0.001 < n.meas_sigma_deg < 0.00101
