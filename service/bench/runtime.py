@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Protocol, TypeVar
 
+from service.bench.settled import StandSettling
 from service.clock import Clock
 from service.instruments import controller
 from service.instruments.base import DeviceIdentity, Reading
@@ -141,6 +142,10 @@ class BenchRuntime:
         self.sim = sim  # the simulated bench behind the ports, if any (its truth is for tests)
         self.pose = StagePose()
         self.rotary_deg: float | None = None
+        # Bench seconds at which the last motion (a move, homing, a turn) was found at its end by the controller:
+        # when it stopped, however late the daemon read the answer (the boundary of a job's moving and settling)
+        self.stopped_bench_s: float = clock.monotonic()
+        self.stand_settling = StandSettling()  # when the readings at the present stand settled (averaged tilt)
         self.identities: dict[str, DeviceIdentity] = {}
         self.device_ids: dict[str, int] = {}
         self.bench_id: int | None = None
@@ -292,7 +297,7 @@ class BenchRuntime:
             except DeviceRefused as exc:
                 raise _not_homed(self.name, exc) from exc
             self.pose.moving, self.pose.still_since_bench_s = True, None
-            await self._until_idle(stage.wait_until_idle, timeout_s)
+            self.stopped_bench_s = await self._until_idle(stage.wait_until_idle, timeout_s)
             await self.refresh_pose()
             self.pose.still_since_bench_s = await self._stood_mark()
             return self._stage_position()
@@ -307,15 +312,17 @@ class BenchRuntime:
             return await self.sync(roles) if roles else self.clock.monotonic()
         return self.clock.monotonic()
 
-    async def _until_idle(self, wait: Callable[[float], Awaitable[None]], timeout_s: float) -> None:
+    async def _until_idle(self, wait: Callable[[float], Awaitable[float]], timeout_s: float) -> float:
         """Wait for motion to end; a stop requested meanwhile is MotionStopped, whatever state the stop left the
-        axes in (a homing stopped half way ends in the controller's error state)."""
+        axes in (a homing stopped half way ends in the controller's error state). Returns the bench time the
+        controller was found standing."""
         try:
-            await wait(timeout_s)
+            stopped = await wait(timeout_s)
         except DeviceError:
             self._check_stopped()
             raise
         self._check_stopped()
+        return stopped
 
     def _stage_position(self) -> tuple[float, float]:
         x, y = self.pose.x_deg, self.pose.y_deg
@@ -330,7 +337,7 @@ class BenchRuntime:
         async with self._motion_lock:
             await stage.home()
             self.pose.moving, self.pose.still_since_bench_s = True, None
-            await self._until_idle(stage.wait_until_idle, timeout_s)
+            self.stopped_bench_s = await self._until_idle(stage.wait_until_idle, timeout_s)
             await self.refresh_pose()
             self.pose.still_since_bench_s = await self._stood_mark()
             return self._stage_position()
@@ -340,7 +347,7 @@ class BenchRuntime:
         table = self.devices.axis("rotary_table")
         async with self._motion_lock:
             await table.move_to_deg(angle_deg)
-            await self._until_idle(table.wait_until_idle, timeout_s)
+            self.stopped_bench_s = await self._until_idle(table.wait_until_idle, timeout_s)
             self.rotary_deg = await table.position_deg()
             return self.rotary_deg
 

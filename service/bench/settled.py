@@ -45,3 +45,29 @@ class SettleTest:
             if np.abs(m3 - m2).max() < self.threshold(b) and np.abs(m3 - m1).max() < self.threshold(b):
                 return end
         return None
+
+
+@dataclass
+class StandSettling:
+    """When the readings at the stage's present stand passed the settling test: the start of what an averaged
+    tilt may take (a window reaching back to the move's end would hold the table's transient, and the U of its
+    mean would be that of the transient). Kept per stand and advanced as readings arrive, so each request tests
+    only the readings it has not seen."""
+
+    stand_bench_s: float | None = None  # the stand's mark (the stage stood still from then)
+    checked: int = 0  # readings since the mark known not to pass
+    settled_bench_s: float | None = None
+
+    def settled_since(self, stand_bench_s: float, values: ArrayLike, stamps: ArrayLike,
+                      noise_deg: float) -> float | None:
+        """The bench time of the reading at which the readings since `stand_bench_s` (`values`, (n, channels),
+        stamped `stamps`, oldest first) first passed the test against `noise_deg`; None while they have not."""
+        if stand_bench_s != self.stand_bench_s:
+            self.stand_bench_s, self.checked, self.settled_bench_s = stand_bench_s, 0, None
+        if self.settled_bench_s is None:
+            v = np.asarray(values, dtype=float)
+            n = SettleTest(noise_deg).settled_after(v, self.checked)
+            self.checked = int(v.shape[0])
+            if n is not None:
+                self.settled_bench_s = float(np.asarray(stamps, dtype=float)[n - 1])
+        return self.settled_bench_s

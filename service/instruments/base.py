@@ -201,8 +201,10 @@ class MotionAxis(Driver, Protocol):
 
     async def state(self) -> AxisState: ...
 
-    async def wait_until_idle(self, timeout_s: float) -> None:
-        """Return once the axis is ready; raise on a hard limit, an error, or the timeout (bench seconds)."""
+    async def wait_until_idle(self, timeout_s: float) -> float:
+        """Return once the axis is ready; raise on a hard limit, an error, or the timeout (bench seconds).
+        Returns the bench time of the query that found it ready: it stood by then, give or take the line's
+        transit, however late the answer was read."""
         ...
 
     async def stop(self) -> None: ...
@@ -226,7 +228,9 @@ class TwoAxisStage(Driver, Protocol):
 
     async def position_deg(self) -> tuple[float, float]: ...
 
-    async def wait_until_idle(self, timeout_s: float) -> None: ...
+    async def wait_until_idle(self, timeout_s: float) -> float:
+        """Both axes ready; the later of their ready queries' bench times."""
+        ...
 
     async def stop(self) -> None: ...
 

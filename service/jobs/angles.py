@@ -127,7 +127,7 @@ async def measure_angle(ctx: JobContext, proc: AngleProcedure, index: int, angle
         tol = st.tolerance_deg
         if proc is ROTATION:
             tol = math.radians(tol)  # sines: a small angle in radians
-    stood = bench.clock.monotonic()
+    stood = bench.stopped_bench_s  # when the controller was found standing (see measure_stage_point)
     t0 = await settle(bench, settle_roles, tolerance_deg=tol, window_s=st.window_s, timeout_s=st.timeout_s)
     n = ctx.request.samples_per_point
     timeout = max(5.0, 20 * n * max(bench.output_interval_s(r) for r in proc.read_roles))

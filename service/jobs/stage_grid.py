@@ -173,7 +173,9 @@ async def measure_stage_point(ctx: JobContext, index: int, x: float, y: float, d
         await _home_stage(ctx)
         await bench.move_stage(*approach)
     cx, cy = await bench.move_stage(x, y)
-    stood = clock.monotonic()
+    # moving ends when the controller was found standing, not when the daemon got round to reading that (on a
+    # loaded machine running a sped-up bench, that latency would count as bench seconds of moving)
+    stood = bench.stopped_bench_s
     if noise_deg is not None:
         t0 = await settle_statistical(bench, SENSORS, noise_deg, timeout_s=req.settle.timeout_s)
     else:

@@ -41,8 +41,9 @@ def test_bench_seconds_add_up_and_the_record_keeps_them(runs):
 
 def test_bench_seconds_do_not_change_with_the_simulation_speed(runs):
     """The same job at 4x and 12x: the total within 10 %, each part within 20 %. The bench clock measures them
-    as a real bench's would; what a sped-up simulation adds is the real-time latency of each controller poll
-    (a few ms), which becomes speed x more bench seconds, mostly in `moving` (about 20 polls a move)."""
+    as a real bench's would. A move ends when the controller's state query found the axes standing (the time
+    the query was asked), so the real-time latency of reading its answer, which a sped-up simulation turns into
+    speed x more bench seconds (and more on a loaded machine), is not counted as moving."""
     slow, fast = runs[4.0][0]["bench_seconds"], runs[12.0][0]["bench_seconds"]
     assert fast["total"] == pytest.approx(slow["total"], rel=0.10), (slow, fast)
     for p in PARTS:

@@ -34,13 +34,15 @@ def test_the_average_takes_the_readings_since_the_stage_stood_and_states_the_unc
         single = client.get("/tilt", headers=h).json()["table_tilt"]
         assert single["n_readings"] is None and single["window_s"] is None  # one reading: no window
 
-        # a window reaching back past the move holds only the readings since it, and says so
+        # a window reaching back past the move holds only the readings since they settled after it, and says so
+        # (the table's transient is not averaged)
         long = client.get("/tilt", headers=h, params={"average_s": 600}).json()
         table = long["table_tilt"]
         assert table is not None, long["note"]
-        assert 5.0 < table["window_s"] < 600 and "end of the stage's last move" in long["note"], long
-        # every reading since the move: at 25 readings a second, well over a hundred
-        assert table["n_readings"] > 100, table
+        assert 2.0 < table["window_s"] < 600 and "settled after the stage's last move" in long["note"], long
+        assert table["window_s"] < bench.clock.monotonic() - stood, table
+        # every reading since they settled: about 25 readings a second of the window (the sensor's output rate)
+        assert 20 * table["window_s"] <= table["n_readings"] <= 30 * table["window_s"], table
 
         short = client.get("/tilt", headers=h, params={"average_s": 2}).json()["table_tilt"]
         assert 1.5 <= short["window_s"] <= 2.0 and 20 <= short["n_readings"] <= 80, short
@@ -50,17 +52,20 @@ def test_the_average_takes_the_readings_since_the_stage_stood_and_states_the_unc
             assert short[f"u_{axis}_deg"] == U  # the deprecated alias is the expanded uncertainty here too
             # the mean of many readings at rest is known better than one reading
             assert U < single[f"expanded_uncertainty_{axis}_deg"], (short, single)
-            # the window back to the move holds the table's settling (a slow, correlated wander): its readings are
-            # worth fewer independent ones, and its U says so rather than shrinking with their number
-            assert table[f"expanded_uncertainty_{axis}_deg"] > U, (table, short)
-            # the mean agrees with one reading within their uncertainties combined
-            assert abs(short[f"{axis}_deg"] - single[f"{axis}_deg"]) <= np.hypot(U, single[f"expanded_uncertainty_{axis}_deg"])
+            # (that correlated readings, such as a settling table's, are worth fewer independent ones and the U of
+            # their mean says so is tested on known series in tests/calibration/test_mean_type_a.py: here, on a bench
+            # sped up 20 times, how much of the transient a window holds depends on how late the request comes)
+            assert table[f"expanded_uncertainty_{axis}_deg"] < single[f"expanded_uncertainty_{axis}_deg"], (table, single)
+            # the mean agrees with one reading within three of their standard uncertainties combined (a 95 % bound
+            # would fail one run in twenty on two axes)
+            both = np.hypot(u, single[f"standard_uncertainty_{axis}_deg"])
+            assert abs(short[f"{axis}_deg"] - single[f"{axis}_deg"]) <= 3 * both, (short, single)
         assert short["coverage_probability"] == 0.95
 
-        # right after a move there is nothing to average yet, or very little
+        # right after a move there is nothing to average yet (the readings have not settled), or very little
         assert client.post("/stage/move", headers=h, json={"x_deg": -1.0, "y_deg": 0.5}).status_code == 200
         fresh = client.get("/tilt", headers=h, params={"average_s": 30}).json()
         if fresh["table_tilt"] is None:
-            assert "an average needs two or more" in fresh["note"], fresh
+            assert "not yet settled" in fresh["note"] or "an average needs two or more" in fresh["note"], fresh
         else:
-            assert fresh["table_tilt"]["window_s"] < 30 and "end of the stage's last move" in fresh["note"], fresh
+            assert fresh["table_tilt"]["window_s"] < 30 and "settled after the stage's last move" in fresh["note"], fresh

@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any
 
+import numpy as np
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
@@ -23,6 +24,7 @@ from service.bench.corrected import (
     stale_after_s,
 )
 from service.bench.runtime import BenchRuntime
+from service.bench.settled import SETTLING_RULE
 from service.instruments.base import Reading
 from service.jobs.manager import JobManager
 
@@ -54,10 +56,11 @@ async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader, average_s: AverageQu
     when the latest reading is older than three output intervals plus 0.25 s.
 
     With `average_s`, `table_tilt` is the mean of the readings since the later of (the latest reading's time −
-    average_s) and the end of the stage's last move, `window_s` says how long that is and `n_readings` how many;
-    its uncertainty is that of the mean (the readings' Type A, their correlation allowed for, combined with the
-    parts that do not average down). With fewer than two readings, or while the stage moves, it is null and `note`
-    says why."""
+    average_s) and the moment the readings settled after the stage's last move (the statistical settling test
+    against one reading's noise, as a job settles its points), `window_s` says how long that is and `n_readings`
+    how many; its uncertainty is that of the mean (the readings' Type A, their correlation allowed for, combined
+    with the parts that do not average down). While the stage moves or the readings have not settled, or with
+    fewer than two readings, it is null and `note` says why."""
     return Response(tilt_answer(bench, jobs, average_s), media_type="application/json")
 
 
@@ -67,15 +70,26 @@ def _averaged(bench: BenchRuntime, active: Any, meas: Reading, average_s: float)
     still = bench.pose.still_since_bench_s
     if bench.pose.moving or still is None:
         return None, "the stage is moving: no average (average_s takes readings while the stage stands)"
-    start = max(meas.bench_s - average_s, still)
     kept = bench.readings_after("measurement_sensor", float("-inf"))  # the driver keeps the latest few thousand
-    readings = [r for r in kept if start < r.bench_s <= meas.bench_s and r.x_deg is not None and r.y_deg is not None]
+    stand = [r for r in kept if still < r.bench_s <= meas.bench_s and r.x_deg is not None and r.y_deg is not None]
+    began, since = still, "the end of the stage's last move"
+    noise = getattr(active, "reading_noise", None)
+    if noise is not None and noise.sigma_deg > 0:
+        # the table rings and the sensor lags after a move: the window starts once the readings have settled
+        settled = bench.stand_settling.settled_since(still, np.array([[r.x_deg, r.y_deg] for r in stand], dtype=float),
+                                                     [r.bench_s for r in stand], noise.sigma_deg)
+        if settled is None:
+            return None, (f"the readings since the end of the stage's last move ({meas.bench_s - still:.3g} s ago) have"
+                          f" not yet settled within one reading's noise ({noise.sigma_deg:.2g} deg, {SETTLING_RULE}):"
+                          " no average of a transient")
+        began, since = settled, "when the readings settled after the stage's last move"
+    start = max(meas.bench_s - average_s, began)
+    readings = [r for r in stand if r.bench_s > start]
     window_s = meas.bench_s - start
     if len(readings) < 2:
-        return None, (f"{len(readings)} reading(s) since the stage last stood still ({window_s:.3g} s ago):"
-                      " an average needs two or more")
-    reach = ("" if start > still or window_s >= average_s
-             else f"; the window starts at the end of the stage's last move, {window_s:.3g} s before the latest reading")
+        return None, (f"{len(readings)} reading(s) since {since} ({window_s:.3g} s ago): an average needs two or more")
+    reach = ("" if start > began or window_s >= average_s
+             else f"; the window starts {since}, {window_s:.3g} s before the latest reading")
     if kept[0].bench_s > start:  # the oldest reading kept is younger than the window
         window_s = meas.bench_s - kept[0].bench_s
         reach += f"; only the last {window_s:.3g} s of readings are kept"

@@ -105,12 +105,13 @@ class ControllerAxis(SerialDriver, MotionAxis):
         code = int(present((await self._query("TS")).value, "query TS"))
         return controller.STATE_NAMES.get(code, "error")  # type: ignore[return-value]
 
-    async def wait_until_idle(self, timeout_s: float, poll_s: float = 0.05) -> None:
+    async def wait_until_idle(self, timeout_s: float, poll_s: float = 0.05) -> float:
         """Poll the state until ready. A state query left unanswered (an answer lost on the line) is
         polled again; IDLE_POLL_MISSES of them in a row raise."""
         deadline = self.clock.monotonic() + timeout_s
         misses = 0
         while True:
+            asked = self.clock.monotonic()
             try:
                 s = await self.state()
             except DeviceTimeout:
@@ -120,7 +121,7 @@ class ControllerAxis(SerialDriver, MotionAxis):
                 continue
             misses = 0
             if s == "ready":
-                return
+                return asked
             if s in ("hard_limit", "error"):
                 code = await self.last_error()
                 raise DeviceError(f"{self.role}: axis {self.axis} stopped in state {s}"
@@ -183,8 +184,8 @@ class StageController(TwoAxisStage):
     async def position_deg(self) -> tuple[float, float]:
         return await self.x.position_deg(), await self.y.position_deg()
 
-    async def wait_until_idle(self, timeout_s: float) -> None:
-        await asyncio.gather(self.x.wait_until_idle(timeout_s), self.y.wait_until_idle(timeout_s))
+    async def wait_until_idle(self, timeout_s: float) -> float:
+        return max(await asyncio.gather(self.x.wait_until_idle(timeout_s), self.y.wait_until_idle(timeout_s)))
 
     async def stop(self) -> None:
         await self.x.stop()

@@ -312,8 +312,9 @@ function drawBudget(budget) {
  * reading's U beside it, both are said; otherwise the single reading's U is the one /tilt serves (shown now when
  * this record is the bench's active one).
  * @param {CalibrationRecord} record
+ * @param {number} opened the openRecord call this draws for (a later one supersedes it)
  */
-async function drawBudgetHolds(record) {
+async function drawBudgetHolds(record, opened) {
   const out = byId("budget-holds");
   const tilts = (record.budget?.results || []).filter((r) => (r.quantity || "").startsWith("tilt_") || r.name.startsWith("corrected table tilt"));
   out.textContent = "";
@@ -341,7 +342,7 @@ async function drawBudgetHolds(record) {
       }
     } catch (_) { /* the figure is a help, not the statement */ }
   }
-  if (selected !== record.id) return;
+  if (opened !== openings) return;
   out.textContent = `The budget's U of the corrected tilt (${tilts.map((r) => `${axisOf(r)} ${g(r.expanded_uncertainty)}`).join(", ")}) holds for ${meanOf}, `
     + `not for a single reading, which carries one reading's noise besides. A single corrected reading's U is the one `
     + `GET /tilt and the Live view give with each reading${now}.`;
@@ -366,19 +367,25 @@ async function download(path, name) {
   }
 }
 
+/** How many times a record has been opened: an answer that arrives after a later open is not drawn. */
+let openings = 0;
+
 /**
  * @param {number} id
  * @param {string} [message] what was just done to this record, said after the redraw
  * @param {number | null} [diagnosisId] a diagnosis of this record to show (else its latest)
  */
 export async function openRecord(id, message = "", diagnosisId = null) {
+  const opened = ++openings;
   selected = id;
+  delete byId("record-detail").dataset.id; // set again once this record is drawn: until then the detail is not its
   drawRecords();
   const decided = byId("decide-msg");
   decided.textContent = "";
   delete decided.dataset.status;
   /** @type {CalibrationRecord} */
   const record = await api("GET", `/records/${id}`);
+  if (opened !== openings) return; // a later open (or a reopen of this record) draws instead
   byId("record-detail").hidden = false;
   setText("rec-title", `${record.id}: ${instrumentOf(record)}, ${record.kind} v${record.version} (${record.method})${record.active ? ", active" : ""}, ${record.status}`);
   const v = record.validation || {};
@@ -389,7 +396,7 @@ export async function openRecord(id, message = "", diagnosisId = null) {
   byIdAs("rec-validation", HTMLTableElement).tBodies[0].replaceChildren(...rows.map(([k, x]) => el("tr", {}, el("th", {}, String(k)), el("td", {}, String(x)))));
   void drawJobFigures(record);
   drawBudget(record.budget);
-  void drawBudgetHolds(record);
+  void drawBudgetHolds(record, opened);
   drawConditions(record);
   drawConformity(record);
   void drawStandards(record);
