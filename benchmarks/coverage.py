@@ -30,6 +30,16 @@ def line(r: Row) -> str:
             f"| {r.rms_error_over_u:.2f} |")
 
 
+def one_calibration(scenario: str, k: int, got) -> None:  # type: ignore[no-untyped-def]
+    """One calibration's figures on stderr: its stands share its parameter error, so they scatter from one
+    calibration to the next more than a binomial interval of the readings would say."""
+    single = (abs(got.errors) <= got.expanded).mean(axis=0)
+    averaged = (abs(got.mean_errors) <= got.mean_expanded).mean(axis=0)
+    print(f"  {scenario} calibration {k}: one reading x {single[0]:.3f} y {single[1]:.3f}; averaged x {averaged[0]:.3f}"
+          f" y {averaged[1]:.3f} ({len(got.mean_errors)} stands, {got.mean_readings.mean():.0f} readings each)",
+          file=sys.stderr)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--realisations", type=int, default=200, help="noise realisations per case (default 200)")
@@ -60,7 +70,7 @@ def main() -> int:
         print(f"  ({name}: {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
     if args.daemon:
         t0 = time.perf_counter()
-        for r in daemon_rows(args.daemon):
+        for r in daemon_rows(args.daemon, each=one_calibration):
             print(line(r))
         print(f"  (daemon: {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
     return 0

@@ -166,16 +166,20 @@ def offline_cases(realisations: int) -> Iterator[tuple[str, Callable[[], list[Ro
     yield "turntable reversal seed004", lambda: turntable_coverage(realisations)
 
 
-def daemon_rows(calibrations: int, scenarios: tuple[str, ...] = ("seed000", "rough")) -> list[Row]:
+def daemon_rows(calibrations: int, scenarios: tuple[str, ...] = ("seed000", "rough"),
+                each: Callable[[str, int, Any], None] | None = None) -> list[Row]:
     """The daemon path (GET /tilt against the simulated world's true tilt, service/reproduce/daemon_coverage.py):
     per scenario and axis, one reading's U over every distinct reading and the averaged tilt's U over every stand,
-    pooled over `calibrations` calibrations (each a fresh daemon: minutes each)."""
+    pooled over `calibrations` calibrations (each a fresh daemon: minutes each). `each(scenario, k, readings)` is
+    told every calibration's StandReadings as they come (a benchmark prints each one's figures)."""
     from service.reproduce.daemon_coverage import measure  # an in-process daemon: imported only when asked for
 
     rows = []
     for scenario in scenarios:
         single, averaged = _Tally(), _Tally()
-        for got in measure(scenario, calibrations):
+        for k, got in enumerate(measure(scenario, calibrations)):
+            if each is not None:
+                each(scenario, k, got)
             for i, axis in enumerate("xy"):
                 single.add(axis, got.errors[:, i], got.expanded[:, i])
                 averaged.add(axis, got.mean_errors[:, i], got.mean_expanded[:, i])

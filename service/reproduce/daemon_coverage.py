@@ -116,10 +116,9 @@ def readings_at_stands(client: TestClient, h: dict[str, str], stands: int, readi
                          np.asarray(counts, dtype=float))
 
 
-def measure(scenario: str, calibrations: int, stands: int = 60, readings_per_stand: int = 20) -> list[StandReadings]:
-    """`readings_at_stands` after each of `calibrations` calibrations, each daemon in a fresh data directory."""
-    out = []
+def measure(scenario: str, calibrations: int, stands: int = 60, readings_per_stand: int = 20) -> Iterator[StandReadings]:
+    """`readings_at_stands` after each of `calibrations` calibrations, each daemon in a fresh data directory,
+    yielded as each is done."""
     for k in range(calibrations):
         with tempfile.TemporaryDirectory(prefix="tiltlab-coverage-") as tmp, calibrated_daemon(Path(tmp), scenario) as (client, h):
-            out.append(readings_at_stands(client, h, stands, readings_per_stand, seed=1000 * k + len(scenario)))
-    return out
+            yield readings_at_stands(client, h, stands, readings_per_stand, seed=1000 * k + len(scenario))

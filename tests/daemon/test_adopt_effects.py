@@ -27,6 +27,11 @@ TARGETS = [(1.3, -2.1), (-4.7, 3.3), (5.9, 0.7), (-2.6, -5.4), (3.5, 4.9), (-6.1
 TILT_READINGS = 10  # distinct /tilt readings averaged at each target
 
 
+# The upper stage's worm error in the 180:1 tests: large enough to stand out of the stage's repeatability
+# (2.5 mdeg per axis, drawn once per move), so that adopting it at least halves the gap.
+WORM_AMP_DEG = 0.015
+
+
 def body(x_deg: list[float], y_deg: list[float], n_x: int, n_y: int, samples: int = 8) -> dict:
     return {"procedure": "stage-grid", "method": "kinematic", "samples_per_point": samples,
             "grid": {"x_deg": x_deg, "y_deg": y_deg, "n_x": n_x, "n_y": n_y},
@@ -152,8 +157,8 @@ def closer(before: dict[str, np.ndarray], after: dict[str, np.ndarray], client) 
 def test_worm_error_on_a_dense_x_scan_at_180_360_is_adopted(tmp_path):
     # the bench: 31 x positions 0.6 deg apart at 4 y positions (each a whole number of the 360:1 worm's
     # 1-deg period apart: the y worm cannot be told there, and is held at zero with the reason)
-    # (an amplitude that stands out of the stage's repeatability, as the backlash above)
-    with start(tmp_path, "180-360", {"periodic_error": {"x_amp_deg": 0.015, "x_phase_deg": 40.0}}) as client:
+    # (an amplitude that stands out of the stage's repeatability, 2.5 mdeg per move)
+    with start(tmp_path, "180-360", {"periodic_error": {"x_amp_deg": WORM_AMP_DEG, "x_phase_deg": 40.0}}) as client:
         h = admin_headers(tmp_path)
         rec = calibrate(client, h, body([-9, 9], [-6, 6], 31, 4, samples=4))
         before = level_and_read(client, h, rec["id"])
@@ -164,7 +169,7 @@ def test_worm_error_on_a_dense_x_scan_at_180_360_is_adopted(tmp_path):
         assert model["parameters"]["periodic_error.y_sin_deg"]["fixed"], model["parameters"]
         assert "worm" in model["parameters"]["periodic_error.y_sin_deg"]["note"]
         worm = model["fit"]["periodic_error"]["x"]
-        assert abs(worm["amplitude_deg"] - 0.010) <= 3 * worm["u_amplitude_deg"] + 0.0005, worm
+        assert abs(worm["amplitude_deg"] - WORM_AMP_DEG) <= 3 * worm["u_amplitude_deg"] + 0.0005, worm
         after = level_and_read(client, h, new["id"])
         closer(before, after, client)
 
@@ -275,8 +280,7 @@ def test_backlash_is_measured_from_both_sides_then_adopted(tmp_path):
 def test_worm_error_the_points_cannot_separate_is_measured_then_adopted(tmp_path):
     # x steps of 1 deg are half the 180:1 worm's 2-deg period: the points see the worm at two phases, so its
     # error shows (and is named) but its amplitude and phase cannot be told apart
-    # (an amplitude that stands out of the stage's repeatability, as the backlash above)
-    with start(tmp_path, "180-360", {"periodic_error": {"x_amp_deg": 0.015, "x_phase_deg": 40.0}}) as client:
+    with start(tmp_path, "180-360", {"periodic_error": {"x_amp_deg": WORM_AMP_DEG, "x_phase_deg": 40.0}}) as client:
         h = admin_headers(tmp_path)
         rec = calibrate(client, h, body([-6, 6], [-6, 6], 13, 5, samples=4))
         before = level_and_read(client, h, rec["id"])
