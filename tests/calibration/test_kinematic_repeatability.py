@@ -44,7 +44,7 @@ def test_every_parameter_lies_within_three_of_its_stated_uncertainties_of_the_fi
     assert all([n for n in m.covariance_names if not m.parameters[n].fixed] == names for m in models)
     values = np.array([[m.value(n) for n in names] for m in models])
     u = np.array([np.sqrt(np.diag(m.cov_of(names))) for m in models])
-    dof = np.array([[min(m.fit["chain"]["dof"], m.fit.get("meas", {}).get("dof") or np.inf)] * len(names)
+    dof = np.array([[min(m.fit["chain"]["dof"], m.fit.get("meas", {}).get("covariance_dof") or np.inf)] * len(names)
                     for m in models])
     widen = stats.t.ppf(stats.norm.cdf(3.0), dof) / 3.0
     z = np.abs(values - values.mean(axis=0)) / (u * widen)

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from service.calibration.methods.stage.base import reading_noise_of
 from service.calibration.methods.stage.common import MEAS_NAMES, meas_inverse
 from service.calibration.projective import apply_projective
 from service.calibration.registry import FitOptions, get_method
@@ -17,7 +18,7 @@ def _mc_std(model, names, tilt_of, meas_x, meas_y, rng):
     """Standard deviation of the corrected tilt when parameters and readings are drawn from their distributions."""
     p = model.values(names)
     cov = model.cov_of(names)
-    sigma = model.state["meas_sigma_deg"]
+    sigma, noise_dof = reading_noise_of(model)  # one reading's noise and its degrees of freedom
     draws = rng.multivariate_normal(p, cov, size=N_MC, method="eigh")
     out = np.empty((N_MC, 2, meas_x.size))
     for i, q in enumerate(draws):
@@ -86,15 +87,15 @@ def test_kinematic_fast_gum_equals_the_generic_propagation():
     model = m.fit(cols, FitOptions())
     out = m.correct(model, cols)
     sign = np.asarray(model.state["meas_sign"])
-    sigma = model.state["meas_sigma_deg"]
+    sigma, noise_dof = reading_noise_of(model)  # one reading's noise and its degrees of freedom
 
     def f(p, inp):
         return np.column_stack(meas_inverse(p, sign, inp["meas_x_deg"], inp["meas_y_deg"]))
 
-    dof = model.state["meas_dof"]
+    dof = model.state["meas_dof"]  # the parameters' covariance's
     g = propagate_gum(f, model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)),
                       {k: cols[k] for k in ("meas_x_deg", "meas_y_deg")}, {"meas_x_deg": sigma, "meas_y_deg": sigma},
-                      dof, dof)
+                      dof, noise_dof)
     U = g.expanded()
     assert np.allclose(out["u_tilt_x_deg"], U[:, 0], rtol=1e-6, atol=0)
     assert np.allclose(out["u_tilt_y_deg"], U[:, 1], rtol=1e-6, atol=0)

@@ -366,11 +366,25 @@ class MeasFit:
     covariance: NDArray[np.float64]  # over `names`
     fixed: dict[str, str]
     residuals: dict[str, NDArray[np.float64]]
-    sigma: float
-    dof: int
+    sigma: float  # the residuals' rms over both axes (the reading-noise fallback)
+    dof: int  # its degrees of freedom
     converged: bool
     nfev: int
     correlations: list[tuple[str, str, float]]
+    covariance_dof: float = float("inf")  # of the covariance: each axis's variance over n − p/2
+
+
+def _per_axis_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n: int, p: int) -> NDArray[np.float64]:
+    """The parameters' covariance of a least-squares fit whose first n residuals are the x axis's and the next n
+    the y axis's, each axis with its own residual variance (the sandwich (JᵀJ)⁻¹ Jᵀ Σ J (JᵀJ)⁻¹, Σ diagonal with
+    s_x² on the x rows and s_y² on the y rows, each from its axis's residuals over n − p/2 degrees of freedom).
+    One variance pooled over both axes understates the parameters that the noisier axis determines (and
+    overstates the others) whenever the two axes' point means scatter differently, as they do where one stage
+    makes the longer moves between points."""
+    dof_axis = max(n - p / 2.0, 1.0)
+    var = np.concatenate([np.full(n, float(r[:n] @ r[:n]) / dof_axis), np.full(n, float(r[n:] @ r[n:]) / dof_axis)])
+    bread = np.linalg.inv(J.T @ J)
+    return np.asarray(bread @ (J.T * var) @ J @ bread, dtype=np.float64)
 
 
 def fit_meas(ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], meas_x: NDArray[np.float64], meas_y: NDArray[np.float64],
@@ -427,12 +441,12 @@ def fit_meas(ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], meas_x: NDA
     sv = np.linalg.svd(Jk * scales[kept], compute_uv=False)
     if sv[-1] <= 1e-8 * sv[0]:
         raise DegenerateDataError("the points do not separate the measurement sensor's mounting parameters")
-    cov = np.linalg.inv(Jk.T @ Jk).astype(np.float64, copy=False) * s2
+    n = len(meas_x)
+    cov = _per_axis_covariance(Jk, r, n, len(kept))
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
     names = [all_names[i] for i in kept]
     pairs = [(names[i], names[j], float(corr[i, j])) for i in range(len(kept)) for j in range(i + 1, len(kept))
              if abs(corr[i, j]) > 0.95]
-    n = len(meas_x)
     return MeasFit(names, full(sol.x), cov, fixed, {"meas_x_deg": r[:n], "meas_y_deg": r[n:]}, float(np.sqrt(s2)),
-                   dof, True, int(sol.nfev), pairs)
+                   dof, True, int(sol.nfev), pairs, max(n - len(kept) / 2.0, 1.0))

@@ -156,10 +156,12 @@ class KinematicMethod(StageMethod):
             cov_names += meas.names
             blocks.append(meas.covariance)
             residuals.update(meas.residuals)
-            state.update({"meas_sign": sign.tolist(), "meas_sigma_deg": meas.sigma, "meas_dof": meas.dof})
+            # the parameters' part of a corrected tilt carries the covariance's degrees of freedom (per axis)
+            state.update({"meas_sign": sign.tolist(), "meas_sigma_deg": meas.sigma, "meas_dof": meas.covariance_dof})
             noise = meas_reading_noise(data, options, meas.sigma, meas.dof, sign)
             state.update(noise_state(noise))
-            fit_info["meas"] = {"dof": meas.dof, "sigma_deg": meas.sigma, "nfev": meas.nfev}
+            fit_info["meas"] = {"dof": meas.dof, "covariance_dof": meas.covariance_dof, "sigma_deg": meas.sigma,
+                                "nfev": meas.nfev}
             notes.append("measurement sensor: zero offsets, scales, yaw, non-orthogonality and seat tilt, all relative "
                          "to the reference sensor's frame (the table-tilt frame), fitted to meas_* against ref_* "
                          "(no stage parameter enters, stage repeatability stays out); correct inverts it in "
