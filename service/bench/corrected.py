@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from service.bench.settled import SETTLING_RULE
 from service.calibration.budget import combine, reading_components
 from service.calibration.methods.stage.reference import extrapolation_note, needs_note, true_reading
 from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor, mean_type_a
@@ -209,3 +210,35 @@ def calibration_json(active: Any) -> dict[str, Any] | None:
         return None
     return {"record_id": active.record_id, "version": active.version, "method": active.method_name,
             "status": active.status, "reading_noise": getattr(active, "reading_noise_source", None)}
+
+
+def averaged_at_stand(bench: BenchRuntime, active: Any, meas: Reading, average_s: float) -> tuple[dict[str, Any] | None, str]:
+    """`GET /tilt?average_s`: the averaged table tilt over the readings up to `meas` (the latest) since the
+    readings settled at the stage's present stand, and what `note` says of its window."""
+    still = bench.pose.still_since_bench_s
+    if bench.pose.moving or still is None:
+        return None, "the stage is moving: no average (average_s takes readings while the stage stands)"
+    kept = bench.readings_after("measurement_sensor", float("-inf"))  # the driver keeps the latest few thousand
+    stand = [r for r in kept if still < r.bench_s <= meas.bench_s and r.x_deg is not None and r.y_deg is not None]
+    began, since = still, "the end of the stage's last move"
+    noise = getattr(active, "reading_noise", None)
+    if noise is not None and noise.sigma_deg > 0:
+        # the table rings and the sensor lags after a move: the window starts once the readings have settled
+        settled = bench.stand_settling.settled_since(still, np.array([[r.x_deg, r.y_deg] for r in stand], dtype=float),
+                                                     [r.bench_s for r in stand], noise.sigma_deg)
+        if settled is None:
+            return None, (f"the readings since the end of the stage's last move ({meas.bench_s - still:.3g} s ago) have"
+                          f" not yet settled within one reading's noise ({noise.sigma_deg:.2g} deg, {SETTLING_RULE}):"
+                          " no average of a transient")
+        began, since = settled, "when the readings settled after the stage's last move"
+    start = max(meas.bench_s - average_s, began)
+    readings = [r for r in stand if r.bench_s > start]
+    window_s = meas.bench_s - start
+    if len(readings) < 2:
+        return None, (f"{len(readings)} reading(s) since {since} ({window_s:.3g} s ago): an average needs two or more")
+    reach = ("" if start > began or window_s >= average_s
+             else f"; the window starts {since}, {window_s:.3g} s before the latest reading")
+    if kept[0].bench_s > start:  # the oldest reading kept is younger than the window
+        window_s = meas.bench_s - kept[0].bench_s
+        reach += f"; only the last {window_s:.3g} s of readings are kept"
+    return averaged_tilt(active, readings, window_s), f"mean of {len(readings)} readings over {window_s:.3g} s{reach}"

@@ -5,7 +5,6 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any
 
-import numpy as np
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
@@ -14,7 +13,7 @@ from service.api.deps import BenchQuery, JobsDep
 from service.api.models.problem import READ, problem_responses
 from service.api.models.tilt import Tilt
 from service.bench.corrected import (
-    averaged_tilt,
+    averaged_at_stand,
     calibrated_range_note,
     calibration_json,
     corrected_reading,
@@ -24,8 +23,6 @@ from service.bench.corrected import (
     stale_after_s,
 )
 from service.bench.runtime import BenchRuntime
-from service.bench.settled import SETTLING_RULE
-from service.instruments.base import Reading
 from service.jobs.manager import JobManager
 
 router = APIRouter(tags=["tilt"])
@@ -64,38 +61,6 @@ async def tilt(bench: BenchQuery, jobs: JobsDep, _: Reader, average_s: AverageQu
     return Response(tilt_answer(bench, jobs, average_s), media_type="application/json")
 
 
-def _averaged(bench: BenchRuntime, active: Any, meas: Reading, average_s: float) -> tuple[dict[str, Any] | None, str]:
-    """The averaged table tilt over the readings up to `meas` (the latest) since the stage last stood still, and
-    what `note` says of its window."""
-    still = bench.pose.still_since_bench_s
-    if bench.pose.moving or still is None:
-        return None, "the stage is moving: no average (average_s takes readings while the stage stands)"
-    kept = bench.readings_after("measurement_sensor", float("-inf"))  # the driver keeps the latest few thousand
-    stand = [r for r in kept if still < r.bench_s <= meas.bench_s and r.x_deg is not None and r.y_deg is not None]
-    began, since = still, "the end of the stage's last move"
-    noise = getattr(active, "reading_noise", None)
-    if noise is not None and noise.sigma_deg > 0:
-        # the table rings and the sensor lags after a move: the window starts once the readings have settled
-        settled = bench.stand_settling.settled_since(still, np.array([[r.x_deg, r.y_deg] for r in stand], dtype=float),
-                                                     [r.bench_s for r in stand], noise.sigma_deg)
-        if settled is None:
-            return None, (f"the readings since the end of the stage's last move ({meas.bench_s - still:.3g} s ago) have"
-                          f" not yet settled within one reading's noise ({noise.sigma_deg:.2g} deg, {SETTLING_RULE}):"
-                          " no average of a transient")
-        began, since = settled, "when the readings settled after the stage's last move"
-    start = max(meas.bench_s - average_s, began)
-    readings = [r for r in stand if r.bench_s > start]
-    window_s = meas.bench_s - start
-    if len(readings) < 2:
-        return None, (f"{len(readings)} reading(s) since {since} ({window_s:.3g} s ago): an average needs two or more")
-    reach = ("" if start > began or window_s >= average_s
-             else f"; the window starts {since}, {window_s:.3g} s before the latest reading")
-    if kept[0].bench_s > start:  # the oldest reading kept is younger than the window
-        window_s = meas.bench_s - kept[0].bench_s
-        reach += f"; only the last {window_s:.3g} s of readings are kept"
-    return averaged_tilt(active, readings, window_s), f"mean of {len(readings)} readings over {window_s:.3g} s{reach}"
-
-
 def tilt_answer(bench: BenchRuntime, jobs: JobManager, average_s: float | None = None) -> bytes:
     """The body of `GET /tilt` for one bench, as JSON (the route's and the prepared path's one source)."""
     now = dt.datetime.now(dt.UTC)
@@ -128,7 +93,7 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager, average_s: float | None =
             table = None
         else:
             if average_s is not None:
-                table, said = _averaged(bench, active, meas, average_s)
+                table, said = averaged_at_stand(bench, active, meas, average_s)
                 notes.append(said)
             notes.append(f"corrected through record {active.record_id} v{active.version} ({active.method_name},"
                          f" {active.status})")

@@ -374,8 +374,9 @@ class MeasFit:
     covariance_dof: float = float("inf")  # of the covariance: each axis's variance over n − p/2
 
 
-def _per_axis_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n: int, p: int) -> NDArray[np.float64]:
-    """The parameters' covariance of a least-squares fit whose first n residuals are the x axis's and the next n
+def _per_axis_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n: int,
+                         p: int) -> tuple[NDArray[np.float64], float]:
+    """The parameters' covariance, and its degrees of freedom, of a least-squares fit whose first n residuals are the x axis's and the next n
     the y axis's, each axis with its own residual variance (the sandwich (JᵀJ)⁻¹ Jᵀ Σ J (JᵀJ)⁻¹, Σ diagonal with
     s_x² on the x rows and s_y² on the y rows, each from its axis's residuals over n − p/2 degrees of freedom).
     One variance pooled over both axes understates the parameters that the noisier axis determines (and
@@ -384,7 +385,7 @@ def _per_axis_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n: int,
     dof_axis = max(n - p / 2.0, 1.0)
     var = np.concatenate([np.full(n, float(r[:n] @ r[:n]) / dof_axis), np.full(n, float(r[n:] @ r[n:]) / dof_axis)])
     bread = np.linalg.inv(J.T @ J)
-    return np.asarray(bread @ (J.T * var) @ J @ bread, dtype=np.float64)
+    return np.asarray(bread @ (J.T * var) @ J @ bread, dtype=np.float64), dof_axis
 
 
 def fit_meas(ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], meas_x: NDArray[np.float64], meas_y: NDArray[np.float64],
@@ -442,11 +443,11 @@ def fit_meas(ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], meas_x: NDA
     if sv[-1] <= 1e-8 * sv[0]:
         raise DegenerateDataError("the points do not separate the measurement sensor's mounting parameters")
     n = len(meas_x)
-    cov = _per_axis_covariance(Jk, r, n, len(kept))
+    cov, cov_dof = _per_axis_covariance(Jk, r, n, len(kept))
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
     names = [all_names[i] for i in kept]
     pairs = [(names[i], names[j], float(corr[i, j])) for i in range(len(kept)) for j in range(i + 1, len(kept))
              if abs(corr[i, j]) > 0.95]
     return MeasFit(names, full(sol.x), cov, fixed, {"meas_x_deg": r[:n], "meas_y_deg": r[n:]}, float(np.sqrt(s2)),
-                   dof, True, int(sol.nfev), pairs, max(n - len(kept) / 2.0, 1.0))
+                   dof, True, int(sol.nfev), pairs, cov_dof)
