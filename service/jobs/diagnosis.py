@@ -418,10 +418,11 @@ class DiagnosisRunner:
                 "conclusion": summary.get("conclusion"),
                 "error": result.error if result is not None else None}
 
-    async def adopt(self, diagnosis_id: int, actor: str) -> CalibrationRecord:
-        """A new record version of the diagnosed record's device whose model has the adoptable named effects,
-        fitted on the points the diagnosis used through the calibration code, with its validation figures (a
-        draft like any new record). 409 when the diagnosis named nothing the record can adopt, with the reason."""
+    async def adopt(self, diagnosis_id: int, actor: str, chosen: list[str] | None = None) -> CalibrationRecord:
+        """A new record version of the diagnosed record's device whose model has the adoptable named effects (of
+        them, those `chosen`), fitted on the points the diagnosis used through the calibration code, with its
+        validation figures (a draft like any new record). 409 when the diagnosis named nothing the record can
+        adopt, or a chosen effect it did not find adoptable, with the reason."""
         d, result = await asyncio.to_thread(self.store.diagnoses.get_diagnosis, diagnosis_id)
         if result is None or result.state != "succeeded":
             state = "running" if result is None else f"failed ({result.error})"
@@ -433,6 +434,8 @@ class DiagnosisRunner:
         have = frozenset(record_effects(model_doc_before))
         named = list(result.summary.get("named_effects", []))
         effects = self._adoptable(diagnosis_id, result.summary, named, d.sensor, have)
+        if chosen is not None:
+            effects = self._chosen(diagnosis_id, result.summary, named, effects, chosen)
         raw = dict(record.raw_data or {})
         n_fit = int(raw.get("fit_points", 10**9))
         extra_jobs = [int(j) for j in (result.summary.get("data") or {}).get("measurement_job_ids", [])]
@@ -494,6 +497,22 @@ class DiagnosisRunner:
                                                           else "") for a in blocked)
         raise ConflictError(f"diagnosis {diagnosis_id} named {', '.join(a['effect'] for a in blocked)}, which the record "
                             f"cannot adopt from these points: {why}")
+
+    @staticmethod
+    def _chosen(diagnosis_id: int, summary: dict[str, Any], named: list[str], adoptable: list[str],
+                chosen: list[str]) -> list[str]:
+        """The chosen effects, each one the diagnosis named and found adoptable; ConflictError (409) naming the
+        first that is not, and why."""
+        for effect in chosen:
+            if effect not in named:
+                raise ConflictError(f"diagnosis {diagnosis_id} did not name {effect} (it named "
+                                    f"{', '.join(named) or 'nothing'}): only a named effect can be adopted")
+            if effect not in adoptable:
+                verdict = next((a for a in summary.get("adoption") or [] if a.get("effect") == effect), None)
+                why = f": {verdict['reason']}" if verdict is not None and verdict.get("reason") else ""
+                raise ConflictError(f"diagnosis {diagnosis_id} named {effect} but did not find it adoptable from "
+                                    f"these points{why}")
+        return [e for e in adoptable if e in chosen]
 
     async def wait(self, diagnosis_id: int) -> None:
         run = self.running.get(diagnosis_id)

@@ -100,6 +100,14 @@ def named_adopted_and_levelled(tmp_path, effects: dict, effect: str) -> None:
         assert finished[-1]["data"]["named_effects"] == d["named_effects"]
 
         before = level_errors(client, h, rec["id"])
+        # a chosen effect must be one the diagnosis named (409 saying what it named), and an effect at all (422)
+        other = next(e for e in ("backlash", "time_drift") if e not in d["named_effects"])
+        r = client.post(f"/diagnoses/{d['id']}/adopt", headers=h, json={"effects": [other]})
+        assert r.status_code == 409 and f"did not name {other}" in r.json()["detail"], r.text
+        assert effect in r.json()["detail"], r.text
+        r = client.post(f"/diagnoses/{d['id']}/adopt", headers=h, json={"effects": ["gremlins"]})
+        assert r.status_code == 422 and "effects" in r.text, r.text
+        assert max(r["id"] for r in client.get("/records", headers=h).json()["records"]) == rec["id"]  # none stored
         r = client.post(f"/diagnoses/{d['id']}/adopt", headers=h)
         assert r.status_code == 201, r.text
         new = r.json()

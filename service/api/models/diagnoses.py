@@ -32,6 +32,15 @@ class DiagnoseRequest(RequestBody):
         return self
 
 
+class AdoptRequest(RequestBody):
+    """Which of the adoptable named effects to add; all of them when the body or `effects` is left out."""
+
+    effects: list[Literal["backlash", "periodic_error", "sensor_nonlinearity", "temperature_drift", "time_drift"]] | None = (
+        Field(None, min_length=1, description="the named effects to add, each one the diagnosis named and found "
+                                              "adoptable (409 otherwise); a second effect of weaker evidence can be "
+                                              "left out so that it does not take part of the calibration's geometry"))
+
+
 class Gap(Answer):
     rms: float | None = None
     max: float | None = None

@@ -9,7 +9,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, Response
 
 from service.api.auth import Operator, Reader
 from service.api.deps import DiagnosesDep, DiagnosesRepoDep, DiagnosisId, RecordId, RecordsRepoDep
-from service.api.models.diagnoses import DiagnoseRequest, Diagnoses, DiagnosisBody, DiagnosisPlan
+from service.api.models.diagnoses import AdoptRequest, DiagnoseRequest, Diagnoses, DiagnosisBody, DiagnosisPlan
 from service.api.models.paging import CURSOR, DEFAULT_PAGE, LIMIT, MAX_PAGE, json_answer
 from service.api.models.problem import READ, WRITE, problem_responses
 from service.api.models.records import Record
@@ -83,12 +83,14 @@ def report(diagnosis_id: DiagnosisId, diagnoses: DiagnosesRepoDep, _: Reader) ->
 @router.post("/diagnoses/{diagnosis_id}/adopt", status_code=201, response_model=Record,
              responses=problem_responses(*WRITE, 404, 409))
 async def adopt(diagnosis_id: DiagnosisId, response: Response, diagnoses: DiagnosesRepoDep, runner: DiagnosesDep,
-                bodies: RecordBodiesDep, who: Operator) -> Record:
+                bodies: RecordBodiesDep, who: Operator, body: AdoptRequest | None = None) -> Record:
     """A new record version of the same device whose model includes the named effects the diagnosis found
-    adoptable, fitted on the points it diagnosed (with validation figures); a draft like any new record. 409 when
-    it named nothing to add, or only effects these points cannot determine (the reason and the measurement that
-    would, as the diagnosis said)."""
+    adoptable (those of `effects` only, when given), fitted on the points it diagnosed (with validation figures); a
+    draft like any new record. 409 when it named nothing to add, or only effects these points cannot determine (the
+    reason and the measurement that would, as the diagnosis said), or `effects` names one it did not find
+    adoptable."""
     await in_thread(diagnoses.get_diagnosis, diagnosis_id)
-    record = await runner.adopt(diagnosis_id, who.name)
+    chosen = None if body is None or body.effects is None else [str(e) for e in dict.fromkeys(body.effects)]
+    record = await runner.adopt(diagnosis_id, who.name, chosen)
     response.headers["Location"] = f"/records/{record.id}"
     return (await in_thread(bodies, [record]))[0]
