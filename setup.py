@@ -9,7 +9,11 @@ installed as `service.web` the same way (service/resources.py finds both).
 from setuptools import find_packages, setup
 
 setup(
-    packages=[*find_packages(include=["service", "service.*"]), "service.migrations", "service.migrations.versions",
-              "service.web"],
+    packages=[
+        *find_packages(include=["service", "service.*"]),
+        "service.migrations",
+        "service.migrations.versions",
+        "service.web",
+    ],
     package_dir={"service.migrations": "migrations", "service.web": "web"},
 )

@@ -44,11 +44,17 @@ def main() -> None:
             times[name].append(once(argv))
     load_after = os.getloadavg()
     yardstick = statistics.median(times["python -c 'import numpy'"])
-    print(f"load average (1, 5, 15 min): before {load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f}, "
-          f"after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f}; {os.cpu_count()} cores")
+    print(
+        f"load average (1, 5, 15 min): before {load_before[0]:.2f} {load_before[1]:.2f} "
+        f"{load_before[2]:.2f}, "
+        f"after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f}; {os.cpu_count()} cores"
+    )
     for name, t in times.items():
-        print(f"{name:26s} median {statistics.median(t):.3f} s of {args.repeats} (min {min(t):.3f}, max {max(t):.3f})"
-              f"  {statistics.median(t) / yardstick:5.1f} x import numpy")
+        print(
+            f"{name:26s} median {statistics.median(t):.3f} s of {args.repeats} (min {min(t):.3f}, "
+            f"max {max(t):.3f})"
+            f"  {statistics.median(t) / yardstick:5.1f} x import numpy"
+        )
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""Throughput of the stacked-stage forward model (docs/models.md §2 with every effect of the seed000 preset on).
+"""Throughput of the stacked-stage forward model (docs/models.md §2 with every effect of the seed000
+preset on).
 
     python benchmarks/bench_forward.py [--points 1000000] [--repeats 5]
 
@@ -23,7 +24,12 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--points", type=int, default=1_000_000)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--chunk", type=int, default=0, help="simulate in chunks of this many points (0: all at once)")
+    ap.add_argument(
+        "--chunk",
+        type=int,
+        default=0,
+        help="simulate in chunks of this many points (0: all at once)",
+    )
     args = ap.parse_args()
     base = run_scenario(load_scenario("seed000"))
     bench, fx = base.bench, base.effects
@@ -44,8 +50,11 @@ def main() -> None:
             s = slice(i, i + step)
             simulate_stage(bench, fx, cx[s], cy[s], dx[s], dy[s], temp[s], t[s], rng, geometry=geo)
         rates.append(n / (time.perf_counter() - t0))
-    print(f"forward model, seed000 effects, {n} points x {args.repeats} repeats "
-          f"(chunk {args.chunk or n}): best {max(rates):,.0f} points/s, median {statistics.median(rates):,.0f} points/s")
+    print(
+        f"forward model, seed000 effects, {n} points x {args.repeats} repeats "
+        f"(chunk {args.chunk or n}): best {max(rates):,.0f} points/s, median "
+        f"{statistics.median(rates):,.0f} points/s"
+    )
 
 
 if __name__ == "__main__":

@@ -31,7 +31,10 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=200)
     args = ap.parse_args()
     cols = run_scenario(load_scenario("seed000"), seed=0).columns
-    mx, my, rx, ry = (np.asarray(cols[c], dtype=float) for c in ("meas_x_deg", "meas_y_deg", "ref_x_deg", "ref_y_deg"))
+    mx, my, rx, ry = (
+        np.asarray(cols[c], dtype=float)
+        for c in ("meas_x_deg", "meas_y_deg", "ref_x_deg", "ref_y_deg")
+    )
     src = np.column_stack([mx, my]).astype(np.float64)
     dst = np.column_stack([rx, ry]).astype(np.float64)
     method = get_method("stage", "homography")
@@ -55,12 +58,17 @@ def main() -> None:
     ours, theirs = apply_projective(H, mx, my), apply_projective(H_cv, mx, my)
     diff = max(float(np.abs(ours[0] - theirs[0]).max()), float(np.abs(ours[1] - theirs[1]).max()))
     yardstick = statistics.median(times["cv2.findHomography, 81 points"])
-    print(f"load average (1, 5, 15 min): before {load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f}, "
-          f"after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f}; {os.cpu_count()} cores; "
-          f"numpy {np.__version__}, OpenCV {cv2.__version__}")
+    print(
+        f"load average (1, 5, 15 min): before {load_before[0]:.2f} {load_before[1]:.2f} "
+        f"{load_before[2]:.2f}, after {load_after[0]:.2f} {load_after[1]:.2f} "
+        f"{load_after[2]:.2f}; {os.cpu_count()} cores; numpy {np.__version__}, OpenCV "
+        f"{cv2.__version__}"
+    )
     for name, t in times.items():
-        print(f"{name:50s} median {statistics.median(t) * 1e3:7.3f} ms of {args.repeats} "
-              f"(min {min(t) * 1e3:.3f})  {statistics.median(t) / yardstick:6.2f} x OpenCV")
+        print(
+            f"{name:50s} median {statistics.median(t) * 1e3:7.3f} ms of {args.repeats} "
+            f"(min {min(t) * 1e3:.3f})  {statistics.median(t) / yardstick:6.2f} x OpenCV"
+        )
     print(f"largest difference of the mapped grid, tiltlab vs OpenCV: {diff:.2e} deg")
 
 

@@ -37,11 +37,13 @@ def _count_xy(counter: list[int]):
         k = counter[0] % MODULO
         counter[0] += 1
         return k / 10_000, -k / 10_000
+
     return read
 
 
 def simulator(link: str, conn) -> None:
-    """Child process: one inclinometer on a pty at `link`, until told to stop; reports what it sent."""
+    """Child process: one inclinometer on a pty at `link`, until told to stop; reports what it
+    sent."""
     from service.instruments.sim.firmware import BinaryFirmware
     from service.instruments.sim.pty import SimPort
 
@@ -51,11 +53,18 @@ def simulator(link: str, conn) -> None:
     conn.send("ready")
     conn.recv()
     port.close()
-    conn.send({"auto_frames": fw.auto_frames, "sent_frames": port.sent_frames, "overflow_bytes": port.overflow_bytes})
+    conn.send(
+        {
+            "auto_frames": fw.auto_frames,
+            "sent_frames": port.sent_frames,
+            "overflow_bytes": port.overflow_bytes,
+        }
+    )
 
 
 class Checker:
-    """Counts frames and checks each carries the running count (gaps are losses, breaks corruption)."""
+    """Counts frames and checks each carries the running count (gaps are losses, breaks
+    corruption)."""
 
     def __init__(self) -> None:
         self.frames = 0
@@ -93,19 +102,28 @@ async def measure(link: str, seconds: float) -> dict:
     await asyncio.sleep(0.5)  # the last frames drain
     port.stop()
     st = port.decoder.stats
-    return {"received": check.frames, "corrupted": check.corrupted, "gaps": check.gaps,
-            "bad_checksum": st.bad_checksum, "resyncs": st.resyncs, "window_frames": f1 - f0,
-            "window_s": t1 - t0, "cpu_s": cpu1 - cpu0}
+    return {
+        "received": check.frames,
+        "corrupted": check.corrupted,
+        "gaps": check.gaps,
+        "bad_checksum": st.bad_checksum,
+        "resyncs": st.resyncs,
+        "window_frames": f1 - f0,
+        "window_s": t1 - t0,
+        "cpu_s": cpu1 - cpu0,
+    }
 
 
 def parser_throughput(n: int = 200_000) -> float:
-    frames = b"".join(binary.encode(binary.BinaryAnswer(0, 0x84, x_deg=(k % 9999) / 10_000, y_deg=-0.5))
-                      for k in range(n))
+    frames = b"".join(
+        binary.encode(binary.BinaryAnswer(0, 0x84, x_deg=(k % 9999) / 10_000, y_deg=-0.5))
+        for k in range(n)
+    )
     dec = Decoder(binary.parse_answers)
     t0 = time.perf_counter()
     got = 0
     for i in range(0, len(frames), 4096):
-        got += len(dec.feed(frames[i:i + 4096]))
+        got += len(dec.feed(frames[i : i + 4096]))
     dt = time.perf_counter() - t0
     assert got == n
     return n / dt
@@ -128,14 +146,24 @@ def main() -> None:
     line_rate = BAUD / 10 / 13
     delivered = result["received"] / sent["auto_frames"]
     print(f"python {platform.python_version()} on {platform.machine()}, {mp.cpu_count()} cpus")
-    print(f"continuous output for {result['window_s']:.1f} s at {BAUD} baud (line rate {line_rate:.0f} frames/s)")
-    print(f"  frames sent {sent['auto_frames']}, delivered {result['received']} ({100 * delivered:.2f} %), "
-          f"{result['window_frames'] / result['window_s']:.0f} frames/s in the window")
-    print(f"  corrupted {result['corrupted']}, gaps in the count {result['gaps']}, "
-          f"checksum failures {result['bad_checksum']}, resyncs {result['resyncs']}, "
-          f"bytes the pty could not take {sent['overflow_bytes']}")
-    print(f"  reader thread CPU {1e6 * result['cpu_s'] / max(result['window_frames'], 1):.1f} ms per 1,000 frames "
-          f"({100 * result['cpu_s'] / result['window_s']:.1f} % of one core)")
+    print(
+        f"continuous output for {result['window_s']:.1f} s at {BAUD} baud (line rate "
+        f"{line_rate:.0f} frames/s)"
+    )
+    print(
+        f"  frames sent {sent['auto_frames']}, delivered {result['received']} "
+        f"({100 * delivered:.2f} %), "
+        f"{result['window_frames'] / result['window_s']:.0f} frames/s in the window"
+    )
+    print(
+        f"  corrupted {result['corrupted']}, gaps in the count {result['gaps']}, "
+        f"checksum failures {result['bad_checksum']}, resyncs {result['resyncs']}, "
+        f"bytes the pty could not take {sent['overflow_bytes']}"
+    )
+    print(
+        f"  reader thread CPU {1e6 * result['cpu_s'] / max(result['window_frames'], 1):.1f} ms "
+        f"per 1,000 frames ({100 * result['cpu_s'] / result['window_s']:.1f} % of one core)"
+    )
     print(f"codec raw throughput: {parser_throughput():,.0f} frames/s (in-process, 4 KiB chunks)")
 
 

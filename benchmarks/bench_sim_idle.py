@@ -42,8 +42,21 @@ def main() -> None:
         env = {**os.environ, "TILTLAB_DATA_DIR": data}
         log = Path(data) / "serve.log"
         with log.open("w") as out:
-            proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(free_port()),
-                                     "--sim-speed", f"{args.speed:g}"], env=env, stdout=out, stderr=subprocess.STDOUT)
+            proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "service.cli",
+                    "serve",
+                    "--port",
+                    str(free_port()),
+                    "--sim-speed",
+                    f"{args.speed:g}",
+                ],
+                env=env,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
         try:
             deadline = time.monotonic() + 120
             while "serving on" not in log.read_text():
@@ -59,9 +72,14 @@ def main() -> None:
         finally:
             proc.terminate()
             proc.wait(30)
-    print(f"load average (1 min): before {load_before[0]:.2f}, after {load_after[0]:.2f}; {os.cpu_count()} cores")
-    print(f"daemon idle at --sim-speed {args.speed:g}: {100 * (c1 - c0) / (t1 - t0):.1f} % of a core "
-          f"over {t1 - t0:.1f} s")
+    print(
+        f"load average (1 min): before {load_before[0]:.2f}, after {load_after[0]:.2f}; "
+        f"{os.cpu_count()} cores"
+    )
+    print(
+        f"daemon idle at --sim-speed {args.speed:g}: {100 * (c1 - c0) / (t1 - t0):.1f} % of a core "
+        f"over {t1 - t0:.1f} s"
+    )
 
 
 if __name__ == "__main__":

@@ -29,7 +29,15 @@ import sqlalchemy as sa
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from service.storage import Sample, SampleWriter, Store, insert_samples, latest_samples, make_engine, upgrade  # noqa: E402
+from service.storage import (
+    Sample,
+    SampleWriter,
+    Store,
+    insert_samples,
+    latest_samples,
+    make_engine,
+    upgrade,
+)  # noqa: E402
 from service.storage.engine import write_engine  # noqa: E402
 from service.storage.samples import COLUMNS  # noqa: E402
 
@@ -39,7 +47,14 @@ T0 = 1.77e9
 
 def make_samples(n: int) -> list[Sample]:
     return [
-        Sample(1 + i % DEVICES, T0 + i * 1e-3, 1e-4 * (i % 997), -1e-4 * (i % 991), None, 21.0 + 1e-5 * (i % 101))
+        Sample(
+            1 + i % DEVICES,
+            T0 + i * 1e-3,
+            1e-4 * (i % 997),
+            -1e-4 * (i % 991),
+            None,
+            21.0 + 1e-5 * (i % 101),
+        )
         for i in range(n)
     ]
 
@@ -58,7 +73,12 @@ def fresh_db(directory: Path, name: str) -> tuple[Path, sa.Engine]:
 
 def plain_sqlite3(path: Path, rows: list[Sample], batch: int) -> float:
     conn = sqlite3.connect(path, isolation_level=None)
-    for pragma in ("journal_mode=WAL", "foreign_keys=ON", "synchronous=NORMAL", "busy_timeout=5000"):
+    for pragma in (
+        "journal_mode=WAL",
+        "foreign_keys=ON",
+        "synchronous=NORMAL",
+        "busy_timeout=5000",
+    ):
         conn.execute(f"PRAGMA {pragma}")
     sql = f"INSERT INTO samples ({', '.join(COLUMNS)}) VALUES ({', '.join('?' * len(COLUMNS))})"
     t = time.perf_counter()
@@ -104,7 +124,11 @@ def count_rows(engine: sa.Engine) -> int:
 
 def bench_ingest(directory: Path, n: int, batch: int, repeats: int) -> None:
     rows = make_samples(n)
-    results: dict[str, list[float]] = {"plain sqlite3 executemany": [], "storage insert_samples": [], "SampleWriter": []}
+    results: dict[str, list[float]] = {
+        "plain sqlite3 executemany": [],
+        "storage insert_samples": [],
+        "SampleWriter": [],
+    }
     for r in range(repeats):
         for name in results:
             path, engine = fresh_db(directory, f"ingest-{r}")
@@ -117,7 +141,10 @@ def bench_ingest(directory: Path, n: int, batch: int, repeats: int) -> None:
             assert count_rows(engine) == n
             engine.dispose()
             results[name].append(n / elapsed)
-            print(f"  run {r + 1}: {name:28s} {n / elapsed:>10,.0f} samples/s ({elapsed:.2f} s)", flush=True)
+            print(
+                f"  run {r + 1}: {name:28s} {n / elapsed:>10,.0f} samples/s ({elapsed:.2f} s)",
+                flush=True,
+            )
     ref = statistics.median(results["plain sqlite3 executemany"])
     print(f"\nIngest into SQLite, {n:,} samples, batches of {batch:,}, median of {repeats} runs:")
     for name, rates in results.items():
@@ -142,16 +169,26 @@ def build_big(directory: Path, rows: int) -> Path:
     conn.execute("PRAGMA synchronous=OFF")
     conn.execute("PRAGMA cache_size=-1000000")
     # Bulk load without the secondary indexes, then build them with the migration's definitions.
-    index_sql = [s for (s,) in conn.execute("SELECT sql FROM sqlite_master WHERE type='index' AND tbl_name='samples' AND sql IS NOT NULL")]
-    for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type='index' AND tbl_name='samples' AND sql IS NOT NULL").fetchall():
+    index_sql = [
+        s
+        for (s,) in conn.execute(
+            "SELECT sql FROM sqlite_master WHERE type='index' AND tbl_name='samples' AND sql IS "
+            "NOT NULL"
+        )
+    ]
+    for (name,) in conn.execute(
+        "SELECT name FROM sqlite_master WHERE type='index' AND tbl_name='samples' AND sql IS NOT "
+        "NULL"
+    ).fetchall():
         conn.execute(f"DROP INDEX {name}")
     step = 2_000_000
     for start in range(0, rows, step):
         stop = min(rows, start + step)
         conn.execute("BEGIN")
         conn.execute(
-            f"""INSERT INTO samples ({', '.join(COLUMNS)})
-            WITH RECURSIVE c(i) AS (SELECT {start} UNION ALL SELECT i + 1 FROM c WHERE i < {stop - 1})
+            f"""INSERT INTO samples ({", ".join(COLUMNS)})
+            WITH RECURSIVE c(i) AS
+                (SELECT {start} UNION ALL SELECT i + 1 FROM c WHERE i < {stop - 1})
             SELECT 1 + i % {DEVICES}, {T0} + i * 0.001, (i % 997) * 1e-4, -(i % 991) * 1e-4, NULL,
                    21.0 + (i % 101) * 1e-5, NULL, NULL, 'monitoring' FROM c"""
         )
@@ -160,7 +197,8 @@ def build_big(directory: Path, rows: int) -> Path:
     for sql in index_sql:
         conn.execute(sql)
     conn.execute("ANALYZE")
-    conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")  # as the service's auto-checkpoint would, eventually
+    # as the service's auto-checkpoint would, eventually
+    conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
     conn.close()
     print(f"  built {path} with {rows:,} rows in {time.perf_counter() - t:.0f} s")
     return path
@@ -170,7 +208,9 @@ def bench_latest(directory: Path, rows: int, queries: int) -> None:
     path = build_big(directory, rows)
     raw = sqlite3.connect(path)
     raw.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-    sql = f"SELECT {', '.join(COLUMNS)} FROM samples WHERE device_id = ? ORDER BY t_s DESC LIMIT 1000"
+    sql = (
+        f"SELECT {', '.join(COLUMNS)} FROM samples WHERE device_id = ? ORDER BY t_s DESC LIMIT 1000"
+    )
     raw_times = []
     for i in range(queries):
         t = time.perf_counter()
@@ -196,17 +236,25 @@ def bench_latest(directory: Path, rows: int, queries: int) -> None:
             cpu.append((time.process_time() - c) * 1e3)
             assert len(got) == 1000
         plan = conn.exec_driver_sql(
-            "EXPLAIN QUERY PLAN SELECT * FROM samples WHERE device_id = 1 ORDER BY t_s DESC LIMIT 1000"
+            "EXPLAIN QUERY PLAN SELECT * FROM samples WHERE device_id = 1 ORDER BY t_s DESC LIMIT "
+            "1000"
         ).all()
     engine.dispose()
     times.sort()
-    print(f"\nLatest 1,000 samples of a device, table of {rows:,} rows ({DEVICES} devices), {queries} queries:")
-    print(f"  first query {first_ms:.2f} ms; median {statistics.median(times):.2f} ms, "
-          f"p95 {times[int(0.95 * len(times))]:.2f} ms, max {times[-1]:.2f} ms; "
-          f"CPU time per query: median {statistics.median(cpu):.2f} ms")  # fmt: skip
+    print(
+        f"\nLatest 1,000 samples of a device, table of {rows:,} rows ({DEVICES} devices), "
+        f"{queries} queries:"
+    )
+    print(
+        f"  first query {first_ms:.2f} ms; median {statistics.median(times):.2f} ms, "
+        f"p95 {times[int(0.95 * len(times))]:.2f} ms, max {times[-1]:.2f} ms; "
+        f"CPU time per query: median {statistics.median(cpu):.2f} ms"
+    )
     print(f"  plan: {' | '.join(str(p[-1]) for p in plan)}")
-    print(f"  (same query in plain sqlite3: median {statistics.median(raw_times):.2f} ms, "
-          f"p95 {raw_times[int(0.95 * len(raw_times))]:.2f} ms)")  # fmt: skip
+    print(
+        f"  (same query in plain sqlite3: median {statistics.median(raw_times):.2f} ms, "
+        f"p95 {raw_times[int(0.95 * len(raw_times))]:.2f} ms)"
+    )
 
 
 def bench_postgres(url: str, n: int, batch: int) -> None:
@@ -215,7 +263,9 @@ def bench_postgres(url: str, n: int, batch: int) -> None:
     with admin.begin() as conn:
         conn.execute(sa.text(f"CREATE SCHEMA {schema}"))
     try:
-        engine = make_engine(sa.make_url(url).update_query_dict({"options": f"-csearch_path={schema}"}))
+        engine = make_engine(
+            sa.make_url(url).update_query_dict({"options": f"-csearch_path={schema}"})
+        )
         upgrade(engine)
         store = Store(engine)
         for d in range(DEVICES):
@@ -243,14 +293,20 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--rows", type=int, default=10_000_000)
     p.add_argument("--queries", type=int, default=500)
-    p.add_argument("--postgres", default=None, help="also measure ingest into PostgreSQL at this URL")
+    p.add_argument(
+        "--postgres", default=None, help="also measure ingest into PostgreSQL at this URL"
+    )
     p.add_argument("--skip-ingest", action="store_true")
     p.add_argument("--skip-latest", action="store_true")
     args = p.parse_args()
     directory = Path(args.dir)
     directory.mkdir(parents=True, exist_ok=True)
-    print(f"python {sys.version.split()[0]}, sqlite {sqlite3.sqlite_version}, sqlalchemy {sa.__version__}, "
-          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, files in {directory}", flush=True)  # fmt: skip
+    print(
+        f"python {sys.version.split()[0]}, sqlite {sqlite3.sqlite_version}, sqlalchemy "
+        f"{sa.__version__}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, files "
+        f"in {directory}",
+        flush=True,
+    )
     if not args.skip_ingest:
         bench_ingest(directory, args.samples, args.batch, args.repeats)
     if args.postgres:

@@ -25,7 +25,9 @@ SPEED = 20.0
 async def measure(ask_every_s: float | None, seconds: float) -> str:
     clock = Clock(SPEED)
     with tempfile.TemporaryDirectory() as d:
-        sim = start_simulated_bench("seed000", "stage", clock, directory=Path(d) / "ports", output_rate_hz=25)
+        sim = start_simulated_bench(
+            "seed000", "stage", clock, directory=Path(d) / "ports", output_rate_hz=25
+        )
         devices = open_bench(sim.config, clock)
         await devices.start()
         try:
@@ -43,8 +45,10 @@ async def measure(ask_every_s: float | None, seconds: float) -> str:
             sim.close()
     gaps = [clock.real_seconds(b.bench_s - a.bench_s) for a, b in zip(got, got[1:])]
     what = "never asked" if ask_every_s is None else f"asked every {ask_every_s:g} s"
-    return (f"{what:>20}: {asks:4d} asks, {len(got) / seconds:5.0f} readings/s, "
-            f"largest gap {max(gaps) * 1e3:5.1f} ms, mean gap {sum(gaps) / len(gaps) * 1e3:.2f} ms")
+    return (
+        f"{what:>20}: {asks:4d} asks, {len(got) / seconds:5.0f} readings/s, "
+        f"largest gap {max(gaps) * 1e3:5.1f} ms, mean gap {sum(gaps) / len(gaps) * 1e3:.2f} ms"
+    )
 
 
 def main() -> None:

@@ -1,10 +1,11 @@
-"""Bench time of a stage calibration: seed 000's procedure, today's fixed 9 x 9 job and the adaptive job.
+"""Bench time of a stage calibration: seed 000's procedure, today's fixed 9 x 9 job and the adaptive
+job.
 
     python benchmarks/bench_time.py
     python benchmarks/bench_time.py --speed 20 --scenarios seed000
 
-On each scenario (seed000 and seed000-worm, whose presets state settling, and a slow-sensor variant of
-seed000 with a 1.5 s time constant, as high-resolution addressable sensors have), a daemon on the
+On each scenario (seed000 and seed000-worm, whose presets state settling, and a slow-sensor variant
+of seed000 with a 1.5 s time constant, as high-resolution addressable sensors have), a daemon on the
 simulated bench runs three stage-grid jobs over +-12 deg (kinematic, 8 validation points each):
 
 * seed 000's procedure: the 9 x 9 grid at 3 deg, 20 s of settling per point (the settle rule with
@@ -34,16 +35,24 @@ from service.config import Settings
 from service.scenarios.model import scenario_data
 
 GRID = {"x_deg": [-12.0, 12.0], "y_deg": [-12.0, 12.0], "n_x": 9, "n_y": 9}
-SLOW = {"sensor_time_constant_s": 1.5, "ringing_amplitude_deg_per_deg": 0.002, "ringing_frequency_hz": 2.5,
-        "ringing_decay_s": 1.0}
+SLOW = {
+    "sensor_time_constant_s": 1.5,
+    "ringing_amplitude_deg_per_deg": 0.002,
+    "ringing_frequency_hz": 2.5,
+    "ringing_decay_s": 1.0,
+}
 
 
 def scenario_file(name: str, folder: Path) -> str:
     if name != "seed000-slow":
         return name
     data, _ = scenario_data("seed000")
-    data = {**data, "name": "seed000-slow", "description": "seed000 with a 1.5 s sensor time constant",
-            "effects": {**data["effects"], "settling": SLOW}}
+    data = {
+        **data,
+        "name": "seed000-slow",
+        "description": "seed000 with a 1.5 s sensor time constant",
+        "effects": {**data["effects"], "settling": SLOW},
+    }
     path = folder / "seed000-slow.json"
     path.write_text(json.dumps(data))
     return str(path)
@@ -60,7 +69,9 @@ def run_job(client: TestClient, h: dict[str, str], body: dict[str, Any]) -> dict
         time.sleep(0.5)
     out = {"state": job["state"], "error": job["error"], "bench_seconds": job["bench_seconds"]}
     if job["record"]:
-        out["validation"] = client.get(f"/records/{job['record']['id']}", headers=h).json()["validation"]
+        out["validation"] = client.get(f"/records/{job['record']['id']}", headers=h).json()[
+            "validation"
+        ]
     return out
 
 
@@ -72,51 +83,100 @@ def row(label: str, res: dict[str, Any]) -> str:
         val = v.get(key)
         return fmt.format(val * scale) if isinstance(val, int | float) else "-"
 
-    return (f"| {label} | {res['state']} | {b.get('total', 0):.0f} | {b.get('moving', 0):.0f} | {b.get('settling', 0):.0f} | "
-            f"{b.get('reading', 0):.0f} | {f('predicted_expanded_uncertainty_deg')} | {f('rms_deg')} | "
-            f"{f('validated_expanded_uncertainty_deg')} | {f('validated_coverage', 100, '{:.0f} %')} |")
+    return (
+        f"| {label} | {res['state']} | {b.get('total', 0):.0f} | {b.get('moving', 0):.0f} | "
+        f"{b.get('settling', 0):.0f} | "
+        f"{b.get('reading', 0):.0f} | {f('predicted_expanded_uncertainty_deg')} | {f('rms_deg')} | "
+        f"{f('validated_expanded_uncertainty_deg')} | {f('validated_coverage', 100, '{:.0f} %')} |"
+    )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--speed", type=float, default=20.0, help="simulation speed (bench time is the same at any)")
+    ap.add_argument(
+        "--speed", type=float, default=20.0, help="simulation speed (bench time is the same at any)"
+    )
     ap.add_argument("--scenarios", nargs="+", default=["seed000", "seed000-worm", "seed000-slow"])
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = ap.parse_args()
     results: dict[str, Any] = {}
-    print("| scenario / job | state | bench s | moving | settling | reading | predicted U deg | validation RMS deg | "
-          "validated U deg | validated coverage |")
+    print(
+        "| scenario / job | state | bench s | moving | settling | reading | predicted U deg | "
+        "validation RMS deg | validated U deg | validated coverage |"
+    )
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for name in args.scenarios:
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(tmp)
-            settings = Settings(data_dir=folder, sim_speed=args.speed, sim_transport="loopback",
-                                bench_scenario=scenario_file(name, folder))
+            settings = Settings(
+                data_dir=folder,
+                sim_speed=args.speed,
+                sim_transport="loopback",
+                bench_scenario=scenario_file(name, folder),
+            )
             with TestClient(create_app(settings)) as client:
                 h = {"Authorization": "Bearer " + (folder / "admin.token").read_text().strip()}
-                base = {"procedure": "stage-grid", "method": "kinematic", "grid": GRID, "samples_per_point": 10,
-                        "validation": {"n_points": 8}}
-                seed000 = run_job(client, h, {**base, "settle": {"tolerance_deg": 0.002, "window_s": 10.0,
-                                                                 "timeout_s": 600.0}})
+                base = {
+                    "procedure": "stage-grid",
+                    "method": "kinematic",
+                    "grid": GRID,
+                    "samples_per_point": 10,
+                    "validation": {"n_points": 8},
+                }
+                seed000 = run_job(
+                    client,
+                    h,
+                    {
+                        **base,
+                        "settle": {"tolerance_deg": 0.002, "window_s": 10.0, "timeout_s": 600.0},
+                    },
+                )
                 print(row(f"{name}: seed 000 procedure (20 s settling)", seed000), flush=True)
                 fixed = run_job(client, h, base)
                 print(row(f"{name}: fixed 9 x 9 job", fixed), flush=True)
                 target = (fixed.get("validation") or {}).get("predicted_expanded_uncertainty_deg")
-                adaptive = run_job(client, h, {**base, "design": "adaptive", "target_expanded_uncertainty_deg":
-                                               round(float(target), 6)}) if target else {"state": "not run",
-                                                                                          "bench_seconds": None}
-                print(row(f"{name}: adaptive, target {target:.5f}" if target else f"{name}: adaptive", adaptive),
-                      flush=True)
-                for label, res in (("seed 000 procedure", seed000), ("fixed", fixed), ("adaptive", adaptive)):
+                adaptive = (
+                    run_job(
+                        client,
+                        h,
+                        {
+                            **base,
+                            "design": "adaptive",
+                            "target_expanded_uncertainty_deg": round(float(target), 6),
+                        },
+                    )
+                    if target
+                    else {"state": "not run", "bench_seconds": None}
+                )
+                print(
+                    row(
+                        f"{name}: adaptive, target {target:.5f}" if target else f"{name}: adaptive",
+                        adaptive,
+                    ),
+                    flush=True,
+                )
+                for label, res in (
+                    ("seed 000 procedure", seed000),
+                    ("fixed", fixed),
+                    ("adaptive", adaptive),
+                ):
                     if res.get("error"):
                         print(f"  {name} {label} error: {res['error']}", flush=True)
-                results[name] = {"seed000_procedure": seed000, "fixed": fixed, "adaptive": adaptive, "target": target}
+                results[name] = {
+                    "seed000_procedure": seed000,
+                    "fixed": fixed,
+                    "adaptive": adaptive,
+                    "target": target,
+                }
     print()
     for name, r in results.items():
         a, f = r["adaptive"]["bench_seconds"], r["fixed"]["bench_seconds"]
         if a and f:
-            print(f"{name}: adaptive / fixed 9 x 9 bench time = {a['total'] / f['total']:.2f}; "
-                  f"seed 000 procedure / fixed = {r['seed000_procedure']['bench_seconds']['total'] / f['total']:.2f}")
+            print(
+                f"{name}: adaptive / fixed 9 x 9 bench time = {a['total'] / f['total']:.2f}; "
+                "seed 000 procedure / fixed = "
+                f"{r['seed000_procedure']['bench_seconds']['total'] / f['total']:.2f}"
+            )
     if args.json:
         for r in results.values():
             for key in ("seed000_procedure", "fixed", "adaptive"):

@@ -1,4 +1,5 @@
-"""Reading stream under load: N WebSocket clients at 50 Hz on one bench, plus one client that never reads.
+"""Reading stream under load: N WebSocket clients at 50 Hz on one bench, plus one client that never
+reads.
 
 Starts a simulated stage bench whose sensors output 50 Hz (pseudo-terminals, in this process) and
 `tiltlab serve --bench-config` on it in a subprocess, then connects the clients and reports messages
@@ -7,13 +8,16 @@ receipt, same machine clock), and the daemon's CPU time from /proc/<pid>/stat.
 
     .venv/bin/python benchmarks/bench_ws.py                 # 100 clients, 60 s
     .venv/bin/python benchmarks/bench_ws.py --seconds 10
-    .venv/bin/python benchmarks/bench_ws.py --ramp          # add clients until they first wait or lose
-    .venv/bin/python benchmarks/bench_ws.py --ramp --event-loop asyncio   # the daemon on asyncio, not uvloop
+    .venv/bin/python benchmarks/bench_ws.py --ramp          # add clients until they first wait or
+lose
+    .venv/bin/python benchmarks/bench_ws.py --ramp --event-loop asyncio   # the daemon on asyncio,
+not uvloop
 
 The ramp's saturation point is the message rate where the reading clients first wait: the step at
 which they receive less than 95 % of what they asked for (clients x rate_hz), or lose a message.
 
-    .venv/bin/python benchmarks/bench_ws.py --ramp --client sweep   # the cheapest clients: see `sweep_run`
+    .venv/bin/python benchmarks/bench_ws.py --ramp --client sweep   # the cheapest clients: see
+`sweep_run`
 
 Reading clients cost CPU too, and on a small machine they share it with the daemon: the saturation
 point found is the lower of the daemon's and the clients'. `--client sweep` is the cheapest way of
@@ -100,8 +104,10 @@ class RawReader(asyncio.Protocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport
         key = base64.b64encode(os.urandom(16)).decode()
-        transport.write(f"GET {self.path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+        transport.write(
+            f"GET {self.path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: "
+            f"Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode()
+        )
 
     def connection_lost(self, exc: Exception | None) -> None:
         if not self.closed.done():
@@ -115,7 +121,7 @@ class RawReader(asyncio.Protocol):
             if end < 0:
                 return
             assert buf.startswith(b"HTTP/1.1 101"), bytes(buf[:80])
-            del buf[:end + 4]
+            del buf[: end + 4]
             self.upgraded = True
         pos = 0
         while len(buf) - pos >= 2:
@@ -123,15 +129,15 @@ class RawReader(asyncio.Protocol):
             if n == 126:
                 if len(buf) - pos < 4:
                     break
-                n, head = int.from_bytes(buf[pos + 2:pos + 4], "big"), 4
+                n, head = int.from_bytes(buf[pos + 2 : pos + 4], "big"), 4
             elif n == 127:
                 if len(buf) - pos < 10:
                     break
-                n, head = int.from_bytes(buf[pos + 2:pos + 10], "big"), 10
+                n, head = int.from_bytes(buf[pos + 2 : pos + 10], "big"), 10
             if len(buf) - pos < head + n:
                 break
             opcode = buf[pos] & 0x0F
-            payload = bytes(buf[pos + head:pos + head + n])
+            payload = bytes(buf[pos + head : pos + head + n])
             pos += head + n
             if opcode == 1:
                 self.message(payload)
@@ -146,7 +152,7 @@ class RawReader(asyncio.Protocol):
             self.last = 0
             return
         stats = self.stats
-        seq = int(payload[7:payload.index(b",", 7)])
+        seq = int(payload[7 : payload.index(b",", 7)])
         head = payload[:80]
         dropped = b'"dropped"' in head
         if seq != self.last + 1 or dropped:
@@ -157,14 +163,20 @@ class RawReader(asyncio.Protocol):
             stats.received += 1
             if seq % 10 == 0:
                 m = json.loads(payload)
-                stats.latency.append(time.time() - dt.datetime.fromisoformat(m["time_utc"]).timestamp())
+                stats.latency.append(
+                    time.time() - dt.datetime.fromisoformat(m["time_utc"]).timestamp()
+                )
 
 
 async def raw_reader(i: int, port: int, path: str, stats: Stats, stop: asyncio.Event) -> None:
     loop = asyncio.get_running_loop()
-    transport, proto = await loop.create_connection(lambda: RawReader(i, path, stats), "127.0.0.1", port)
+    transport, proto = await loop.create_connection(
+        lambda: RawReader(i, path, stats), "127.0.0.1", port
+    )
     try:
-        await asyncio.wait([asyncio.ensure_future(stop.wait()), proto.closed], return_when=asyncio.FIRST_COMPLETED)
+        await asyncio.wait(
+            [asyncio.ensure_future(stop.wait()), proto.closed], return_when=asyncio.FIRST_COMPLETED
+        )
     finally:
         transport.close()
 
@@ -173,17 +185,33 @@ def stuck_client(port: int, path: str) -> socket.socket:
     """A client that completes the handshake and then never reads."""
     sock = socket.create_connection(("127.0.0.1", port))
     key = base64.b64encode(os.urandom(16)).decode()
-    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                 f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+    sock.sendall(
+        f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode()
+    )
     assert sock.recv(12) == b"HTTP/1.1 101"
     return sock
 
 
-async def run_clients(args: argparse.Namespace, url: str, port: int, path: str, n: int, stats: Stats, tasks: list,
-                      stop: asyncio.Event, first: int = 0) -> None:
+async def run_clients(
+    args: argparse.Namespace,
+    url: str,
+    port: int,
+    path: str,
+    n: int,
+    stats: Stats,
+    tasks: list,
+    stop: asyncio.Event,
+    first: int = 0,
+) -> None:
     for i in range(first, first + n):
-        tasks.append(asyncio.create_task(reader(i, url, stats, stop) if args.client == "websockets" else
-                                         raw_reader(i, port, path, stats, stop)))
+        tasks.append(
+            asyncio.create_task(
+                reader(i, url, stats, stop)
+                if args.client == "websockets"
+                else raw_reader(i, port, path, stats, stop)
+            )
+        )
         if i % 20 == 19:
             await asyncio.sleep(0.05)
 
@@ -193,35 +221,61 @@ def main() -> int:
     ap.add_argument("--clients", type=int, default=100)
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--rate", type=float, default=50.0, help="rate_hz each client asks for")
-    ap.add_argument("--ramp", action="store_true", help="add --step clients every --step-seconds until one loses")
+    ap.add_argument(
+        "--ramp",
+        action="store_true",
+        help="add --step clients every --step-seconds until one loses",
+    )
     ap.add_argument("--step", type=int, default=50)
     ap.add_argument("--step-seconds", type=float, default=10.0)
     ap.add_argument("--max-clients", type=int, default=1000)
-    ap.add_argument("--client", choices=("raw", "sweep", "websockets"), default="raw",
-                    help="the reading clients: raw frames read by a few bytes operations, plain sockets swept "
-                         "every 10 ms and counted in bulk, or the websockets library")
-    ap.add_argument("--event-loop", choices=("asyncio", "uvloop"),
-                    help="the daemon's event loop (default: what `tiltlab serve` picks, uvloop when installed)")
-    ap.add_argument("--ws", choices=("websockets", "websockets-sansio", "wsproto"),
-                    help="the daemon's WebSocket implementation (default: what `tiltlab serve` picks)")
+    ap.add_argument(
+        "--client",
+        choices=("raw", "sweep", "websockets"),
+        default="raw",
+        help="the reading clients: raw frames read by a few bytes operations, plain sockets swept "
+        "every 10 ms and counted in bulk, or the websockets library",
+    )
+    ap.add_argument(
+        "--event-loop",
+        choices=("asyncio", "uvloop"),
+        help="the daemon's event loop (default: what `tiltlab serve` picks, uvloop when installed)",
+    )
+    ap.add_argument(
+        "--ws",
+        choices=("websockets", "websockets-sansio", "wsproto"),
+        help="the daemon's WebSocket implementation (default: what `tiltlab serve` picks)",
+    )
     args = ap.parse_args()
 
     work = Path(tempfile.mkdtemp(prefix="bench-ws-"))
-    bench = start_simulated_bench("seed000", "stage", Clock(1.0), directory=work / "ports", output_rate_hz=50)
+    bench = start_simulated_bench(
+        "seed000", "stage", Clock(1.0), directory=work / "ports", output_rate_hz=50
+    )
     cfg = work / "bench.toml"
     write_text_atomic(cfg, bench.toml)
     port = free_port()
     env = {**os.environ, "TILTLAB_DATA_DIR": str(work / "data")}
-    # the daemon as `tiltlab serve` runs it, but for the event loop or WebSocket implementation asked
-    # for here (a comparison): uvicorn's Config is given them in the daemon's process before the command runs
-    given: dict[str, object] = {k: v for k, v in (("loop", args.event_loop), ("ws", args.ws)) if v is not None}
+    # the daemon as `tiltlab serve` runs it, but for the event loop or WebSocket implementation
+    # asked for here (a comparison): uvicorn's Config is given them in the daemon's process before
+    # the command runs
+    given: dict[str, object] = {
+        k: v for k, v in (("loop", args.event_loop), ("ws", args.ws)) if v is not None
+    }
     if args.client == "sweep":
-        given["ws_ping_interval"] = None  # the swept clients count messages, they do not answer pings
-    launch = ("import sys, uvicorn; init = uvicorn.Config.__init__; "
-              f"uvicorn.Config.__init__ = lambda self, *a, **k: init(self, *a, **{{**k, **{given!r}}}); "
-              "from service.cli import main; sys.exit(main(sys.argv[1:]))")
-    proc = subprocess.Popen([sys.executable, "-c", launch, "serve", "--port", str(port), "--bench-config", str(cfg)],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # the swept clients count messages, they do not answer pings
+        given["ws_ping_interval"] = None
+    launch = (
+        "import sys, uvicorn; init = uvicorn.Config.__init__; "
+        f"uvicorn.Config.__init__ = lambda self, *a, **k: init(self, *a, **{{**k, **{given!r}}}); "
+        "from service.cli import main; sys.exit(main(sys.argv[1:]))"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", launch, "serve", "--port", str(port), "--bench-config", str(cfg)],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.monotonic() + 60
         while True:
@@ -236,9 +290,13 @@ def main() -> int:
         token = (work / "data" / "admin.token").read_text().strip()
         path = f"/ws/readings?token={token}&rate_hz={args.rate:g}&history_s=1"
         url = f"ws://127.0.0.1:{port}{path}"
-        # the clients in a process of their own: the simulated sensors keep their 50 Hz whatever the clients cost
-        run = ((lambda: sys.exit(sweep_run(args, port, path, proc.pid))) if args.client == "sweep" else
-               (lambda: sys.exit(asyncio.run(bench_run(args, url, port, path, proc.pid)))))
+        # the clients in a process of their own: the simulated sensors keep their 50 Hz whatever the
+        # clients cost
+        run = (
+            (lambda: sys.exit(sweep_run(args, port, path, proc.pid)))
+            if args.client == "sweep"
+            else (lambda: sys.exit(asyncio.run(bench_run(args, url, port, path, proc.pid))))
+        )
         clients = multiprocessing.get_context("fork").Process(target=run)
         clients.start()
         clients.join()
@@ -263,8 +321,14 @@ async def bench_run(args: argparse.Namespace, url: str, port: int, path: str, pi
             cpu0, t0 = cpu_s(pid), time.monotonic()
             await asyncio.sleep(args.seconds)
             cpu, wall = cpu_s(pid) - cpu0, time.monotonic() - t0
-            report(f"{args.clients} clients at {args.rate:g} Hz + 1 never reading, {wall:.0f} s", stats,
-                   stats.received - received0, stats.lost - lost0, cpu, wall)
+            report(
+                f"{args.clients} clients at {args.rate:g} Hz + 1 never reading, {wall:.0f} s",
+                stats,
+                stats.received - received0,
+                stats.lost - lost0,
+                cpu,
+                wall,
+            )
         else:
             n = 0
             best = 0
@@ -302,13 +366,17 @@ class Swept:
     each sweep is parsed for its time (latency)."""
 
     MARK = b'{"seq":'
-    CARRY = 15  # a marker split over two reads is counted once: the tail is kept and counted again, minus its own
+    # a marker split over two reads is counted once: the tail is kept and counted again, minus its
+    # own
+    CARRY = 15
 
     def __init__(self, port: int, path: str) -> None:
         sock = socket.create_connection(("127.0.0.1", port))
         key = base64.b64encode(os.urandom(16)).decode()
-        sock.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                     f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+        sock.sendall(
+            f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: "
+            f"Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode()
+        )
         head = b""
         while b"\r\n\r\n" not in head:
             got = sock.recv(4096)
@@ -324,7 +392,7 @@ class Swept:
         self.readings = 0
         self.dropped = 0
         self.closed = False
-        self.take(head[head.index(b"\r\n\r\n") + 4:])
+        self.take(head[head.index(b"\r\n\r\n") + 4 :])
 
     def sweep(self, latency: list[float]) -> None:
         while not self.closed:
@@ -342,7 +410,7 @@ class Swept:
         tail = self.tail
         self.readings += data.count(self.MARK) - tail.count(self.MARK)
         self.dropped += data.count(b'"dropped"') - tail.count(b'"dropped"')
-        self.tail = data[-self.CARRY:]
+        self.tail = data[-self.CARRY :]
         at = data.rfind(self.MARK)
         while at >= 0 and data.find(b",", at + 7) < 0:  # the last marker whose seq arrived whole
             at = data.rfind(self.MARK, 0, at)
@@ -351,13 +419,16 @@ class Swept:
         end = data.find(b",", at + 7)
         if self.first_seq is None:
             first = data.find(self.MARK)
-            self.first_seq = int(data[first + 7:data.find(b",", first + 7)])
-        self.last_seq = max(self.last_seq, int(data[at + 7:end]))
+            self.first_seq = int(data[first + 7 : data.find(b",", first + 7)])
+        self.last_seq = max(self.last_seq, int(data[at + 7 : end]))
         if latency is not None:
             t = data.find(b'"time_utc": "', end)
             close = data.find(b'"', t + 13) if t > 0 else -1
             if close > 0:
-                latency.append(time.time() - dt.datetime.fromisoformat(data[t + 13:close].decode()).timestamp())
+                latency.append(
+                    time.time()
+                    - dt.datetime.fromisoformat(data[t + 13 : close].decode()).timestamp()
+                )
 
     def lost(self) -> int:
         if self.first_seq is None:
@@ -401,8 +472,11 @@ def sweep_run(args: argparse.Namespace, port: int, path: str, pid: int) -> int:
     try:
         if not args.ramp:
             connect(args.clients)
-            measure(f"{args.clients} swept clients at {args.rate:g} Hz + 1 never reading, {args.seconds:.0f} s",
-                    args.seconds)
+            measure(
+                f"{args.clients} swept clients at {args.rate:g} Hz + 1 never reading, "
+                f"{args.seconds:.0f} s",
+                args.seconds,
+            )
             return 0
         best = 0
         while len(clients) < args.max_clients:
@@ -422,12 +496,16 @@ def sweep_run(args: argparse.Namespace, port: int, path: str, pid: int) -> int:
 
 
 def saturated(args: argparse.Namespace, n: int, best: int, rate: float, lost: int) -> bool:
-    """The ramp's stopping rule: a reading client lost a message, or they got under 95 % of what they asked."""
+    """The ramp's stopping rule: a reading client lost a message, or they got under 95 % of what
+    they asked."""
     if not lost and rate >= 0.95 * n * args.rate:
         return False
     why = "lost messages" if lost else "waited"
-    print(f"ramp: the reading clients first {why} with {n} clients ({rate:.0f} messages/s); "
-          f"{best} clients kept up ({best * args.rate:.0f} messages/s)", flush=True)
+    print(
+        f"ramp: the reading clients first {why} with {n} clients ({rate:.0f} messages/s); "
+        f"{best} clients kept up ({best * args.rate:.0f} messages/s)",
+        flush=True,
+    )
     return True
 
 
@@ -435,9 +513,12 @@ def report(what: str, stats: Stats, received: int, lost: int, cpu: float, wall: 
     lat = np.array(stats.latency) * 1000.0
     p50, p99 = (np.percentile(lat, 50), np.percentile(lat, 99)) if lat.size else (float("nan"),) * 2
     per_msg = 1e6 * cpu / received if received else float("nan")
-    print(f"{what}: received {received} ({received / wall:.0f}/s), lost {lost}, latency p50 {p50:.1f} ms "
-          f"p99 {p99:.1f} ms, daemon CPU {cpu:.1f} s in {wall:.0f} s ({100 * cpu / wall:.0f} % of a core, "
-          f"{per_msg:.0f} us a message)", flush=True)
+    print(
+        f"{what}: received {received} ({received / wall:.0f}/s), lost {lost}, latency p50 "
+        f"{p50:.1f} ms p99 {p99:.1f} ms, daemon CPU {cpu:.1f} s in {wall:.0f} s "
+        f"({100 * cpu / wall:.0f} % of a core, {per_msg:.0f} us a message)",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":

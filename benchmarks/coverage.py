@@ -26,28 +26,50 @@ from service.reproduce.coverage import Row, daemon_rows, offline_cases  # noqa: 
 
 def line(r: Row) -> str:
     lo, hi = r.interval
-    return (f"| {r.kind} | {r.method} | {r.scenario} | {r.axis} | {r.coverage:.3f} | {lo:.3f}-{hi:.3f} | {r.n} "
-            f"| {r.rms_error_over_u:.2f} |")
+    return (
+        f"| {r.kind} | {r.method} | {r.scenario} | {r.axis} | {r.coverage:.3f} | "
+        f"{lo:.3f}-{hi:.3f} | {r.n} | {r.rms_error_over_u:.2f} |"
+    )
 
 
 def one_calibration(scenario: str, k: int, got) -> None:  # type: ignore[no-untyped-def]
-    """One calibration's figures on stderr: its stands share its parameter error, so they scatter from one
-    calibration to the next more than a binomial interval of the readings would say."""
+    """One calibration's figures on stderr: its stands share its parameter error, so they scatter
+    from one calibration to the next more than a binomial interval of the readings would say."""
     single = (abs(got.errors) <= got.expanded).mean(axis=0)
     averaged = (abs(got.mean_errors) <= got.mean_expanded).mean(axis=0)
-    print(f"  {scenario} calibration {k}: one reading x {single[0]:.3f} y {single[1]:.3f}; averaged x {averaged[0]:.3f}"
-          f" y {averaged[1]:.3f} ({len(got.mean_errors)} stands, {got.mean_readings.mean():.0f} readings each)",
-          file=sys.stderr)
+    print(
+        f"  {scenario} calibration {k}: one reading x {single[0]:.3f} y {single[1]:.3f}; "
+        f"averaged x {averaged[0]:.3f} y {averaged[1]:.3f} ({len(got.mean_errors)} stands, "
+        f"{got.mean_readings.mean():.0f} readings each)",
+        file=sys.stderr,
+    )
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--realisations", type=int, default=200, help="noise realisations per case (default 200)")
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--realisations", type=int, default=200, help="noise realisations per case (default 200)"
+    )
     ap.add_argument("--quick", action="store_true", help="20 realisations per case")
-    ap.add_argument("--only", default="", help="run only the cases whose name contains this (e.g. rotation, kinematic)")
-    ap.add_argument("--daemon", type=int, default=0, metavar="N", help="also the daemon path: N calibrations per bench")
-    ap.add_argument("--summary", action="store_true", help="rotation: one row per case (worst angle named) instead of "
-                                                           "one per angle")
+    ap.add_argument(
+        "--only",
+        default="",
+        help="run only the cases whose name contains this (e.g. rotation, kinematic)",
+    )
+    ap.add_argument(
+        "--daemon",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also the daemon path: N calibrations per bench",
+    )
+    ap.add_argument(
+        "--summary",
+        action="store_true",
+        help="rotation: one row per case (worst angle named) instead of one per angle",
+    )
     args = ap.parse_args()
     n = 20 if args.quick else args.realisations
     print(f"coverage of U (95 %) over {n} noise realisations per case; Wilson 95 % intervals")
@@ -62,7 +84,9 @@ def main() -> int:
             hits, total = sum(r.hits for r in rows), sum(r.n for r in rows)
             worst = min(rows, key=lambda r: r.coverage)
             rms = (sum(r.rms_error_over_u**2 * r.n for r in rows) / total) ** 0.5
-            print(line(Row(worst.kind, worst.method, worst.scenario, "all angles", hits, total, rms)))
+            print(
+                line(Row(worst.kind, worst.method, worst.scenario, "all angles", hits, total, rms))
+            )
             print(line(worst).replace(f"| {worst.axis} |", f"| worst: {worst.axis} |"))
         else:
             for r in rows:

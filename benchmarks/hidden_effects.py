@@ -21,7 +21,8 @@ import numpy as np
 from service.scenarios import parse_scenario, run_scenario
 from service.scenarios.model import scenario_data
 
-# hidden-effect variants: name -> (effect, parameter that carries it); "_y" variants act on the y axis
+# hidden-effect variants: name -> (effect, parameter that carries it); "_y" variants act on the y
+# axis
 VARIANTS: dict[str, tuple[str, str]] = {
     "backlash": ("backlash", "x_deg"),
     "periodic_error": ("periodic_error", "x_amp_deg"),
@@ -32,12 +33,19 @@ VARIANTS: dict[str, tuple[str, str]] = {
     "time_drift": ("time_drift", "{s}_x_deg_per_h"),
 }
 
-# Designs as the daemon's jobs record them (a point is a mean of readings): "grid10" today's 9 x 9 job, 10 readings
-# a point; "adaptive" the adaptive job at that job's U: its 4 x 4 spread of the +-12 deg lattice and, the total
-# readings being about the same, 81 x 10 / 16 ~ 50 readings a point.
+# Designs as the daemon's jobs record them (a point is a mean of readings): "grid10" today's 9 x 9
+# job, 10 readings a point; "adaptive" the adaptive job at that job's U: its 4 x 4 spread of the
+# +-12 deg lattice and, the total readings being about the same, 81 x 10 / 16 ~ 50 readings a point.
 ADAPTIVE_SPREAD_DEG = (-12.0, -3.0, 3.0, 12.0)
 ADAPTIVE_READINGS = 50
-_MOUNTING = ("mounting_tilt", "sensor_yaw", "non_orthogonality", "axis_misalignment", "stage_scale", "zero_offset")
+_MOUNTING = (
+    "mounting_tilt",
+    "sensor_yaw",
+    "non_orthogonality",
+    "axis_misalignment",
+    "stage_scale",
+    "zero_offset",
+)
 ENVIRONMENT = {"temp_c": 21.0, "temp_rate_c_per_h": 1.0, "temp_amp_c": 1.5, "temp_period_h": 0.5}
 
 
@@ -49,7 +57,8 @@ def base_scenario() -> dict:
 
 
 def noise_sigma_deg(sc: dict | None = None, sensor: str = "ref") -> float:
-    """1-sigma noise of one reading: the sensor's white noise and the stage's repeatability together."""
+    """1-sigma noise of one reading: the sensor's white noise and the stage's repeatability
+    together."""
     n = (sc or base_scenario())["effects"]["noise"]
     return float(np.hypot(n[f"{sensor}_sigma_deg"], n["stage_sigma_deg"]))
 
@@ -68,24 +77,33 @@ def _effect_size(sc: dict, seed: int, sensor: str) -> np.ndarray:
     return np.column_stack([run.columns[f"{sensor}_x_deg"], run.columns[f"{sensor}_y_deg"]])
 
 
-def bench_with_hidden(seed: int, hidden: dict[str, float] | None = None, design: str = "serpentine",
-                      sensor: str = "ref", randomise_mounting: bool = True) -> HiddenBench:
+def bench_with_hidden(
+    seed: int,
+    hidden: dict[str, float] | None = None,
+    design: str = "serpentine",
+    sensor: str = "ref",
+    randomise_mounting: bool = True,
+) -> HiddenBench:
     """Bench data with the given hidden variants, each at its multiple of the noise level."""
     hidden = dict(hidden or {})
     sc = base_scenario()
     sc["environment"] = dict(ENVIRONMENT)
     sc["grid"]["order"] = "random" if design == "random" else "serpentine"
-    if design == "adaptive":  # an adaptive record at the fixed 9 x 9 job's U: its 4 x 4 spread, each point a mean
-        sc["grid"]["x_deg"] = sc["grid"]["y_deg"] = list(ADAPTIVE_SPREAD_DEG)  # of ADAPTIVE_READINGS readings
+    # an adaptive record at the fixed 9 x 9 job's U: its 4 x 4 spread, each point a mean
+    if design == "adaptive":
+        # of ADAPTIVE_READINGS readings
+        sc["grid"]["x_deg"] = sc["grid"]["y_deg"] = list(ADAPTIVE_SPREAD_DEG)
     rng = np.random.default_rng(10_000 + seed)
     if randomise_mounting:
         for e in _MOUNTING:
             for k, v in list(sc["effects"].get(e, {}).items()):
                 sc["effects"][e][k] = float(v * rng.uniform(0.5, 1.5) * rng.choice([-1.0, 1.0]))
-    sigma = noise_sigma_deg(sc, sensor)  # sizes: multiples of one reading's noise, whatever the design
+    # sizes: multiples of one reading's noise, whatever the design
+    sigma = noise_sigma_deg(sc, sensor)
     point_sigma = sigma
     readings = {"adaptive": ADAPTIVE_READINGS, "grid10": 10}.get(design)
-    if readings:  # the sensor's noise averages over a point's readings, the stage's repeatability does not
+    # the sensor's noise averages over a point's readings, the stage's repeatability does not
+    if readings:
         n = sc["effects"]["noise"]
         for s_ in ("ref", "meas"):
             n[f"{s_}_sigma_deg"] = n[f"{s_}_sigma_deg"] / np.sqrt(readings)

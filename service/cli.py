@@ -1,4 +1,5 @@
-"""The `tiltlab` console script's entry point (pyproject names `service.cli:main`); the command line itself is service.commands."""
+"""The `tiltlab` console script's entry point (pyproject names `service.cli:main`); the command line
+itself is service.commands."""
 
 from service.commands import build_parser, main
 

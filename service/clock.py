@@ -1,4 +1,5 @@
-"""The one clock of the daemon, its jobs and the simulated instruments (shared by every layer, hence the root).
+"""The one clock of the daemon, its jobs and the simulated instruments (shared by every layer, hence
+the root).
 
 Bench time (`monotonic`) is what motion, settling, output intervals and sample times are
 measured in. On real hardware it is the process's monotonic clock; a simulated bench may
@@ -20,7 +21,12 @@ class Clock:
     """Bench time that runs `speed` times faster than real time (1.0 on hardware)."""
 
     def __init__(self, speed: float = 1.0) -> None:
-        if isinstance(speed, bool) or not isinstance(speed, int | float) or not math.isfinite(speed) or speed <= 0:
+        if (
+            isinstance(speed, bool)
+            or not isinstance(speed, int | float)
+            or not math.isfinite(speed)
+            or speed <= 0
+        ):
             raise ValueError(f"clock speed {speed!r} must be a finite number > 0")
         self.speed = float(speed)
         self._real0 = time.monotonic()

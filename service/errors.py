@@ -1,4 +1,5 @@
-"""Errors that every edge of the product (CLI, API, jobs) maps the same way, raised from every layer (hence the root)."""
+"""Errors that every edge of the product (CLI, API, jobs) maps the same way, raised from every layer
+(hence the root)."""
 
 
 class InputError(ValueError):

@@ -1,4 +1,5 @@
-"""Folders that live at the repository root but ship inside the package (found for the whole package, hence the root).
+"""Folders that live at the repository root but ship inside the package (found for the whole
+package, hence the root).
 
 `migrations/` and `web/` stay where developers expect them; a wheel installs them as the
 packages `service.migrations` and `service.web` (see setup.py). Either way the program
@@ -15,7 +16,8 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def shipped_dir(package: str, repo_folder: str, is_ours: Callable[[Path], bool]) -> Path:
-    """The installed package's folder, else the source tree's; `is_ours` rejects a stranger of the same name."""
+    """The installed package's folder, else the source tree's; `is_ours` rejects a stranger of the
+    same name."""
     spec = importlib.util.find_spec(package)
     for location in (spec.submodule_search_locations or []) if spec else []:
         if is_ours(Path(location)):

@@ -1,5 +1,5 @@
-"""`tiltlab plan` as a lab engineer runs it: the adaptive plan for a bench description and a target, without a
-bench; a target the bench cannot reach exits 2 naming the floor."""
+"""`tiltlab plan` as a lab engineer runs it: the adaptive plan for a bench description and a target,
+without a bench; a target the bench cannot reach exits 2 naming the floor."""
 
 import json
 import subprocess
@@ -18,10 +18,15 @@ def test_plan_prints_points_readings_bench_time_and_predicted_u():
     r = tiltlab("plan", "--scenario", "seed000", "--target", "0.0006", "--json")
     assert r.returncode == 0, r.stderr
     plan = json.loads(r.stdout)
-    assert plan["predicted_expanded_uncertainty_deg"] <= 0.0006 < 1.2 * plan["predicted_expanded_uncertainty_deg"]
+    assert (
+        plan["predicted_expanded_uncertainty_deg"]
+        <= 0.0006
+        < 1.2 * plan["predicted_expanded_uncertainty_deg"]
+    )
     assert len(plan["points"]) >= 16 and len(plan["readings"]) == len(plan["points"])
     assert plan["expected_bench_seconds"] > 0
-    # the prediction is the planner's formula on the scenario's noise: recomputed here from the chosen points
+    # the prediction is the planner's formula on the scenario's noise: recomputed here from the
+    # chosen points
     sc = load_scenario("seed000")
     noise = scenario_noise(sc)
     cand = lattice((-12, 12), (-12, 12), 9, 9)
@@ -33,10 +38,14 @@ def test_plan_prints_points_readings_bench_time_and_predicted_u():
 
     assert design.expanded_u(np.array(counts)) == plan["predicted_expanded_uncertainty_deg"]
     # a tighter target asks for more readings or more points
-    tight = json.loads(tiltlab("plan", "--scenario", "seed000", "--target", "0.0003", "--json").stdout)
+    tight = json.loads(
+        tiltlab("plan", "--scenario", "seed000", "--target", "0.0003", "--json").stdout
+    )
     assert sum(tight["readings"]) > sum(plan["readings"])
     text = tiltlab("plan", "--scenario", "seed000", "--target", "0.0006")
-    assert text.returncode == 0 and "expected bench time" in text.stdout and "readings" in text.stdout
+    assert (
+        text.returncode == 0 and "expected bench time" in text.stdout and "readings" in text.stdout
+    )
 
 
 def test_unreachable_target_exits_2_naming_the_floor():

@@ -21,7 +21,13 @@ def _write(tmp_path, text, name="d.csv"):
 
 
 def _read(p, **kw):
-    return read_dataset(p, "stage", ("stage_x_deg", "stage_y_deg", "ref_x_deg", "ref_y_deg"), ("dir_x", "t_s", "temp_c"), **kw)
+    return read_dataset(
+        p,
+        "stage",
+        ("stage_x_deg", "stage_y_deg", "ref_x_deg", "ref_y_deg"),
+        ("dir_x", "t_s", "temp_c"),
+        **kw,
+    )
 
 
 def test_reads_numbers_and_keeps_unknown_columns_as_text(tmp_path):
@@ -31,15 +37,18 @@ def test_reads_numbers_and_keeps_unknown_columns_as_text(tmp_path):
     assert "note" in ds.passthrough()
 
 
-@pytest.mark.parametrize("row,col,cell,words", [
-    (2, "ref_x_deg", "abc", "is not a number"),
-    (1, "ref_y_deg", "", "empty cell"),
-    (2, "stage_x_deg", "nan", "not a finite number"),
-    (2, "stage_y_deg", "inf", "not a finite number"),
-    (1, "stage_x_deg", "95", "outside [-90, 90]"),
-    (2, "dir_x", "2", "not one of -1, 0, 1"),
-    (2, "t_s", "-5", "earlier than the row before"),
-])
+@pytest.mark.parametrize(
+    "row,col,cell,words",
+    [
+        (2, "ref_x_deg", "abc", "is not a number"),
+        (1, "ref_y_deg", "", "empty cell"),
+        (2, "stage_x_deg", "nan", "not a finite number"),
+        (2, "stage_y_deg", "inf", "not a finite number"),
+        (1, "stage_x_deg", "95", "outside [-90, 90]"),
+        (2, "dir_x", "2", "not one of -1, 0, 1"),
+        (2, "t_s", "-5", "earlier than the row before"),
+    ],
+)
 def test_bad_cells_are_named_by_file_row_and_column(tmp_path, row, col, cell, words):
     rows = [["1", "2", "1", "2", "1", "0", "a"], ["3", "4", "3", "4", "-1", "10", "b"]]
     cols = STAGE_HEADER.strip().split(",")
@@ -62,7 +71,11 @@ def test_alternative_columns(tmp_path):
     ds = read_dataset(p, "scale", (("ref_arcsec", "ref_deg"), "reading"))
     assert "ref_deg" in ds.numeric
     with pytest.raises(InputError, match="'ref_arcsec' or 'ref_deg'"):
-        read_dataset(_write(tmp_path, "reading\n1\n", "e.csv"), "scale", (("ref_arcsec", "ref_deg"), "reading"))
+        read_dataset(
+            _write(tmp_path, "reading\n1\n", "e.csv"),
+            "scale",
+            (("ref_arcsec", "ref_deg"), "reading"),
+        )
 
 
 def test_sines_have_a_small_margin_for_noise(tmp_path):
@@ -73,12 +86,15 @@ def test_sines_have_a_small_margin_for_noise(tmp_path):
         read_dataset(bad, "rotation", ("sx", "sy"))
 
 
-@pytest.mark.parametrize("text,words", [
-    ("", "empty file"),
-    ("a,b\n", "no data rows"),
-    ("a,a\n1,2\n", "appears more than once"),
-    ("a,b\n1,2,3\n", "3 cells where the header has 2"),
-])
+@pytest.mark.parametrize(
+    "text,words",
+    [
+        ("", "empty file"),
+        ("a,b\n", "no data rows"),
+        ("a,a\n1,2\n", "appears more than once"),
+        ("a,b\n1,2,3\n", "3 cells where the header has 2"),
+    ],
+)
 def test_malformed_files(tmp_path, text, words):
     with pytest.raises(InputError, match=words):
         read_dataset(_write(tmp_path, text), "stage", ())
@@ -111,7 +127,14 @@ def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
 
 def test_round_trip(tmp_path):
     p = tmp_path / "rt.csv"
-    write_dataset(p, {"point": np.array([0, 1]), "stage_x_deg": np.array([0.1, -12.1234568]), "note": ["a", "b"]})
+    write_dataset(
+        p,
+        {
+            "point": np.array([0, 1]),
+            "stage_x_deg": np.array([0.1, -12.1234568]),
+            "note": ["a", "b"],
+        },
+    )
     ds = read_dataset(p, "stage", ("stage_x_deg",))
     assert ds["stage_x_deg"][1] == -12.1234568 and ds.text["point"] == ["0", "1"]
     # degrees are written to 7 decimals (docs/models.md, "Digits"): more digits are not kept
@@ -129,10 +152,21 @@ def test_written_file_has_the_umask_mode_not_a_private_one(tmp_path):
     assert (p.stat().st_mode & 0o777) == 0o644
 
 
-@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(notes=st.lists(st.text(st.characters(blacklist_categories=("Cs",)), min_size=1, max_size=10), min_size=1, max_size=4))
+@settings(
+    max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    notes=st.lists(
+        st.text(st.characters(blacklist_categories=("Cs",)), min_size=1, max_size=10),
+        min_size=1,
+        max_size=4,
+    )
+)
 def test_pass_through_text_survives_a_write_and_a_read(tmp_path, notes):
-    """Commas, quotes and line breaks (bare carriage returns too) come back; only the spaces and tabs around a cell go."""
+    """Commas, quotes and line breaks (bare carriage returns too) come back; only the spaces and
+    tabs around a cell go."""
     p = tmp_path / "t.csv"
     write_dataset(p, {"stage_x_deg": np.arange(float(len(notes))), "note": notes})
-    assert read_dataset(p, "stage", ("stage_x_deg",)).text["note"] == [n.strip(" \t") for n in notes]
+    assert read_dataset(p, "stage", ("stage_x_deg",)).text["note"] == [
+        n.strip(" \t") for n in notes
+    ]

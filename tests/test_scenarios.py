@@ -21,7 +21,9 @@ def test_every_preset_the_issue_names_is_shipped():
 
 def test_schema_in_docs_is_current():
     on_disk = json.loads((ROOT / "docs" / "scenario.schema.json").read_text())
-    assert on_disk == json_schema(), "regenerate: python -m service.scenarios schema > docs/scenario.schema.json"
+    assert on_disk == json_schema(), (
+        "regenerate: python -m service.scenarios schema > docs/scenario.schema.json"
+    )
 
 
 @pytest.mark.parametrize("name", PRESETS)
@@ -43,23 +45,46 @@ def _stage(**over):
     return d
 
 
-@pytest.mark.parametrize("data,field,words", [
-    (_stage(effects={"gremlins": {}}), "effects.gremlins", "unknown effect"),
-    (_stage(effects={"backlash": {"x_deg": 5}}), "effects.backlash.x_deg", "less than or equal to 0.5"),
-    (_stage(effects={"backlash": {"z_deg": 0.1}}), "effects.backlash.z_deg", "unknown field"),
-    ({"kind": "stage"}, "grid", "missing"),
-    (_stage(grid={"x_deg": [0, 20], "y_deg": [0]}), "grid.x_deg", "beyond the stage travel"),
-    (_stage(grid={"x_deg": {"start": 0, "stop": 3}, "y_deg": [0]}), "grid.x_deg", "exactly one of step or count"),
-    (_stage(seed=-1), "seed", "greater than or equal to 0"),
-    ({"kind": "rotation", "grid": {"theta_deg": [0]}}, "bench", "missing"),
-    ({"kind": "warp"}, "kind", "not one of"),
-    (_stage(effects={"noise": {"ref_sigma_deg": "lots"}}), "effects.noise.ref_sigma_deg", "valid number"),
-    # JSON types are kept: a quoted number or a true is not an integer, "no" is not a boolean
-    (_stage(seed="5"), "seed", "valid integer"),
-    (_stage(seed=True), "seed", "valid integer"),
-    (_stage(grid={"x_deg": [0], "y_deg": [0], "repeats": "2"}), "grid.repeats", "valid integer"),
-    (_stage(effects={"noise": {"ref_sigma_deg": "0.001"}}), "effects.noise.ref_sigma_deg", "valid number"),
-])
+@pytest.mark.parametrize(
+    "data,field,words",
+    [
+        (_stage(effects={"gremlins": {}}), "effects.gremlins", "unknown effect"),
+        (
+            _stage(effects={"backlash": {"x_deg": 5}}),
+            "effects.backlash.x_deg",
+            "less than or equal to 0.5",
+        ),
+        (_stage(effects={"backlash": {"z_deg": 0.1}}), "effects.backlash.z_deg", "unknown field"),
+        ({"kind": "stage"}, "grid", "missing"),
+        (_stage(grid={"x_deg": [0, 20], "y_deg": [0]}), "grid.x_deg", "beyond the stage travel"),
+        (
+            _stage(grid={"x_deg": {"start": 0, "stop": 3}, "y_deg": [0]}),
+            "grid.x_deg",
+            "exactly one of step or count",
+        ),
+        (_stage(seed=-1), "seed", "greater than or equal to 0"),
+        ({"kind": "rotation", "grid": {"theta_deg": [0]}}, "bench", "missing"),
+        ({"kind": "warp"}, "kind", "not one of"),
+        (
+            _stage(effects={"noise": {"ref_sigma_deg": "lots"}}),
+            "effects.noise.ref_sigma_deg",
+            "valid number",
+        ),
+        # JSON types are kept: a quoted number or a true is not an integer, "no" is not a boolean
+        (_stage(seed="5"), "seed", "valid integer"),
+        (_stage(seed=True), "seed", "valid integer"),
+        (
+            _stage(grid={"x_deg": [0], "y_deg": [0], "repeats": "2"}),
+            "grid.repeats",
+            "valid integer",
+        ),
+        (
+            _stage(effects={"noise": {"ref_sigma_deg": "0.001"}}),
+            "effects.noise.ref_sigma_deg",
+            "valid number",
+        ),
+    ],
+)
 def test_bad_scenarios_get_one_line_naming_the_field(data, field, words):
     with pytest.raises(InputError) as exc:
         parse_scenario(data, source="s.json")
@@ -69,7 +94,9 @@ def test_bad_scenarios_get_one_line_naming_the_field(data, field, words):
 
 
 def test_an_integer_is_a_valid_number_of_degrees():
-    sc = parse_scenario(_stage(effects={"backlash": {"x_deg": 0}}, grid={"x_deg": [-3, 0, 3], "y_deg": [0]}))
+    sc = parse_scenario(
+        _stage(effects={"backlash": {"x_deg": 0}}, grid={"x_deg": [-3, 0, 3], "y_deg": [0]})
+    )
     assert sc.grid.x_deg == [-3.0, 0.0, 3.0]
 
 
@@ -113,33 +140,42 @@ def _stage_variant(**grid):
 
 @pytest.mark.parametrize("seed", [11, 12, 13])
 def test_one_positioning_draw_per_move_shared_by_both_sensors_and_by_the_readings_at_a_stand(seed):
-    """Each row is a move (its own draw of the stage's positioning error); with readings_per_stand the rows read at
-    one stand share the draw. Both sensors see the same table, so their within-stand scatter is their reading
-    noise alone, and the true tilt is constant at a stand."""
-    sc = _stage_variant(readings_per_stand=4, x_deg={"start": -12, "stop": 12, "step": 2},
-                        y_deg={"start": -12, "stop": 12, "step": 2})
+    """Each row is a move (its own draw of the stage's positioning error); with readings_per_stand
+    the rows read at one stand share the draw. Both sensors see the same table, so their
+    within-stand scatter is their reading noise alone, and the true tilt is constant at a stand."""
+    sc = _stage_variant(
+        readings_per_stand=4,
+        x_deg={"start": -12, "stop": 12, "step": 2},
+        y_deg={"start": -12, "stop": 12, "step": 2},
+    )
     run = run_scenario(sc, seed=seed)
     c, t = run.columns, run.truth
     per = 4
     n = c["point"].size
     assert n == 13 * 13 * per
     stand = np.arange(n) // per
-    assert np.all(c["point"].reshape(-1, per) == c["point"][::per, None])  # one stand: one grid point
+    # one stand: one grid point
+    assert np.all(c["point"].reshape(-1, per) == c["point"][::per, None])
     for k in ("tilt_x_deg", "tilt_y_deg", "actual_x_deg", "actual_y_deg"):
-        assert np.ptp(t[k].reshape(-1, per), axis=1).max() == 0.0  # the table stands still while it is read
+        # the table stands still while it is read
+        assert np.ptp(t[k].reshape(-1, per), axis=1).max() == 0.0
     assert np.all(np.diff(c["t_s"]) > 0)
     fx = run.effects
     sig_ref, sig_meas = fx.get("noise", "ref_sigma_deg"), fx.get("noise", "meas_sigma_deg")
     for a in ("x", "y"):
-        # the reference reads the table plus its own noise: its within-stand sd is that noise, not more
+        # the reference reads the table plus its own noise: its within-stand sd is that noise, not
+        # more
         dr = (c[f"ref_{a}_deg"] - t[f"tilt_{a}_deg"]).reshape(-1, per)
-        s_ref = np.sqrt(np.sum((dr - dr.mean(axis=1, keepdims=True)) ** 2) / (dr.size - dr.shape[0]))
+        s_ref = np.sqrt(
+            np.sum((dr - dr.mean(axis=1, keepdims=True)) ** 2) / (dr.size - dr.shape[0])
+        )
         assert 0.9 * sig_ref < s_ref < 1.1 * sig_ref  # 507 dof: sd of s/σ is 3 %
         # the difference of the two sensors at a stand: their two noises combined, no stage term
         d = (c[f"meas_{a}_deg"] - c[f"ref_{a}_deg"]).reshape(-1, per)
         s_d = np.sqrt(np.sum((d - d.mean(axis=1, keepdims=True)) ** 2) / (d.size - d.shape[0]))
         assert 0.9 < s_d / np.hypot(sig_ref, sig_meas) < 1.1
-    # between moves the table does move: the positioning error (stage_sigma_deg) is drawn once per stand
+    # between moves the table does move: the positioning error (stage_sigma_deg) is drawn once per
+    # stand
     sigma_stage = fx.get("noise", "stage_sigma_deg")
     noiseless = run_scenario(sc, seed=seed, noiseless=True).truth
     dev = (t["actual_x_deg"] - noiseless["actual_x_deg"])[::per]
@@ -148,7 +184,8 @@ def test_one_positioning_draw_per_move_shared_by_both_sensors_and_by_the_reading
 
 
 def test_one_reading_per_stand_keeps_the_rows_as_they_were():
-    """readings_per_stand = 1 (the default) is a row per move, the same draws as before it existed."""
+    """readings_per_stand = 1 (the default) is a row per move, the same draws as before it
+    existed."""
     a = run_scenario(load_scenario("seed000"), seed=4).columns
     b = run_scenario(_stage_variant(readings_per_stand=1), seed=4).columns
     assert all(np.array_equal(a[k], b[k]) for k in a)

@@ -21,7 +21,12 @@ down_revision: str | Sequence[str] | None = None
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
-APPEND_ONLY = ("calibration_records", "audit_events", "active_calibration_history", "settled_points")
+APPEND_ONLY = (
+    "calibration_records",
+    "audit_events",
+    "active_calibration_history",
+    "settled_points",
+)
 
 BigId = sa.BigInteger().with_variant(sa.Integer(), "sqlite")
 Utc = sa.DateTime(timezone=True)
@@ -90,11 +95,14 @@ def upgrade() -> None:
         sa.Column("started_at", Utc, nullable=True),
         sa.Column("finished_at", Utc, nullable=True),
         sa.CheckConstraint(
-            "state IN ('queued', 'running', 'succeeded', 'failed', 'cancelled')", name="ck_calibration_jobs_state"
+            "state IN ('queued', 'running', 'succeeded', 'failed', 'cancelled')",
+            name="ck_calibration_jobs_state",
         ),
         sa.CheckConstraint("progress >= 0 AND progress <= 1", name="ck_calibration_jobs_progress"),
         sa.ForeignKeyConstraint(["bench_id"], ["benches.id"], name="fk_calibration_jobs_bench_id"),
-        sa.ForeignKeyConstraint(["device_id"], ["devices.id"], name="fk_calibration_jobs_device_id"),
+        sa.ForeignKeyConstraint(
+            ["device_id"], ["devices.id"], name="fk_calibration_jobs_device_id"
+        ),
         sa.PrimaryKeyConstraint("id", name="pk_calibration_jobs"),
     )
     op.create_index("ix_calibration_jobs_device_id", "calibration_jobs", ["device_id"])
@@ -119,7 +127,9 @@ def upgrade() -> None:
         sa.Column("prev_sha256", Sha, nullable=False),
         sa.Column("content_sha256", Sha, nullable=False),
         sa.CheckConstraint("version >= 1", name="ck_calibration_records_version"),
-        sa.ForeignKeyConstraint(["device_id"], ["devices.id"], name="fk_calibration_records_device_id"),
+        sa.ForeignKeyConstraint(
+            ["device_id"], ["devices.id"], name="fk_calibration_records_device_id"
+        ),
         sa.ForeignKeyConstraint(
             ["job_id"], ["calibration_jobs.id"], name="fk_calibration_records_job_id"
         ),
@@ -130,8 +140,12 @@ def upgrade() -> None:
         ),
         sa.PrimaryKeyConstraint("id", name="pk_calibration_records"),
         sa.UniqueConstraint("content_sha256", name="uq_calibration_records_content_sha256"),
-        sa.UniqueConstraint("device_id", "kind", "version", name="uq_calibration_records_device_id_kind_version"),
-        sa.UniqueConstraint("id", "device_id", "kind", name="uq_calibration_records_id_device_id_kind"),
+        sa.UniqueConstraint(
+            "device_id", "kind", "version", name="uq_calibration_records_device_id_kind_version"
+        ),
+        sa.UniqueConstraint(
+            "id", "device_id", "kind", name="uq_calibration_records_id_device_id_kind"
+        ),
     )
     op.create_index("ix_calibration_records_created_at", "calibration_records", ["created_at"])
     op.create_index("ix_calibration_records_job_id", "calibration_records", ["job_id"])
@@ -148,7 +162,9 @@ def upgrade() -> None:
         sa.Column("job_id", sa.Integer(), nullable=True),
         sa.Column("point", sa.Integer(), nullable=True),
         sa.Column("source", sa.String(length=12), nullable=False),
-        sa.CheckConstraint("source = 'monitoring' OR job_id IS NOT NULL", name="ck_samples_calibration_job"),
+        sa.CheckConstraint(
+            "source = 'monitoring' OR job_id IS NOT NULL", name="ck_samples_calibration_job"
+        ),
         sa.CheckConstraint("source IN ('calibration', 'monitoring')", name="ck_samples_source"),
         sa.ForeignKeyConstraint(["device_id"], ["devices.id"], name="fk_samples_device_id"),
         sa.ForeignKeyConstraint(["job_id"], ["calibration_jobs.id"], name="fk_samples_job_id"),
@@ -183,9 +199,13 @@ def upgrade() -> None:
         sa.Column("temp_c_mean", sa.Double(), nullable=True),
         sa.Column("created_at", Utc, nullable=False),
         sa.ForeignKeyConstraint(["device_id"], ["devices.id"], name="fk_settled_points_device_id"),
-        sa.ForeignKeyConstraint(["job_id"], ["calibration_jobs.id"], name="fk_settled_points_job_id"),
+        sa.ForeignKeyConstraint(
+            ["job_id"], ["calibration_jobs.id"], name="fk_settled_points_job_id"
+        ),
         sa.PrimaryKeyConstraint("id", name="pk_settled_points"),
-        sa.UniqueConstraint("job_id", "device_id", "point", name="uq_settled_points_job_id_device_id_point"),
+        sa.UniqueConstraint(
+            "job_id", "device_id", "point", name="uq_settled_points_job_id_device_id_point"
+        ),
     )
 
     op.create_table(
@@ -214,7 +234,9 @@ def upgrade() -> None:
         sa.PrimaryKeyConstraint("id", name="pk_active_calibration_history"),
     )
     op.create_index(
-        "ix_active_calibration_history_device_id_kind_id", "active_calibration_history", ["device_id", "kind", "id"]
+        "ix_active_calibration_history_device_id_kind_id",
+        "active_calibration_history",
+        ["device_id", "kind", "id"],
     )
 
     op.create_table(
@@ -225,7 +247,9 @@ def upgrade() -> None:
         sa.Column("set_at", Utc, nullable=False),
         sa.Column("set_by", sa.String(length=100), nullable=False),
         sa.Column("reason", sa.Text(), nullable=False),
-        sa.ForeignKeyConstraint(["device_id"], ["devices.id"], name="fk_active_calibrations_device_id"),
+        sa.ForeignKeyConstraint(
+            ["device_id"], ["devices.id"], name="fk_active_calibrations_device_id"
+        ),
         sa.ForeignKeyConstraint(
             ["record_id", "device_id", "kind"],
             ["calibration_records.id", "calibration_records.device_id", "calibration_records.kind"],
@@ -240,7 +264,9 @@ def upgrade() -> None:
 def downgrade() -> None:
     _drop_guards()
     op.drop_table("active_calibrations")
-    op.drop_index("ix_active_calibration_history_device_id_kind_id", table_name="active_calibration_history")
+    op.drop_index(
+        "ix_active_calibration_history_device_id_kind_id", table_name="active_calibration_history"
+    )
     op.drop_table("active_calibration_history")
     op.drop_table("settled_points")
     op.drop_index("ix_samples_job_id_point", table_name="samples")
@@ -259,10 +285,15 @@ def downgrade() -> None:
 
 # Raw samples: never updated; only free-running monitoring samples may be deleted (retention).
 _SQLITE_SAMPLES = (
-    ("CREATE TRIGGER trg_samples_no_update BEFORE UPDATE ON samples "
-    "BEGIN SELECT RAISE(ABORT, 'samples are raw data: UPDATE refused'); END"),
-    ("CREATE TRIGGER trg_samples_keep_calibration BEFORE DELETE ON samples WHEN OLD.source <> 'monitoring' "
-    "BEGIN SELECT RAISE(ABORT, 'samples of calibration jobs are kept: DELETE refused'); END"),
+    (
+        "CREATE TRIGGER trg_samples_no_update BEFORE UPDATE ON samples "
+        "BEGIN SELECT RAISE(ABORT, 'samples are raw data: UPDATE refused'); END"
+    ),
+    (
+        "CREATE TRIGGER trg_samples_keep_calibration BEFORE DELETE ON samples WHEN OLD.source <> "
+        "'monitoring' "
+        "BEGIN SELECT RAISE(ABORT, 'samples of calibration jobs are kept: DELETE refused'); END"
+    ),
 )
 
 _PG_FUNCTIONS = (
@@ -341,4 +372,3 @@ def _drop_guards() -> None:
         op.execute("DROP TRIGGER IF EXISTS trg_samples_keep_calibration ON samples")
         op.execute("DROP FUNCTION IF EXISTS tiltlab_keep_calibration_samples()")
         op.execute("DROP FUNCTION IF EXISTS tiltlab_refuse_change()")
-

@@ -29,9 +29,13 @@ Sha = sa.String(length=64)
 def upgrade() -> None:
     with op.batch_alter_table("calibration_jobs") as batch:
         batch.add_column(sa.Column("points_done", sa.Integer(), nullable=False, server_default="0"))
-        batch.add_column(sa.Column("points_total", sa.Integer(), nullable=False, server_default="0"))
+        batch.add_column(
+            sa.Column("points_total", sa.Integer(), nullable=False, server_default="0")
+        )
         batch.add_column(sa.Column("phase", sa.String(length=16), nullable=True))
-        batch.add_column(sa.Column("interrupted", sa.Boolean(), nullable=False, server_default=sa.false()))
+        batch.add_column(
+            sa.Column("interrupted", sa.Boolean(), nullable=False, server_default=sa.false())
+        )
         batch.add_column(sa.Column("updated_at", Utc, nullable=True))
     op.create_index("ix_calibration_jobs_updated_at", "calibration_jobs", ["updated_at"])
 
@@ -57,7 +61,9 @@ def upgrade() -> None:
         sa.Column("request_sha256", Sha, nullable=False),
         sa.Column("job_id", sa.Integer(), nullable=True),
         sa.Column("created_at", Utc, nullable=False),
-        sa.ForeignKeyConstraint(["job_id"], ["calibration_jobs.id"], name="fk_idempotency_keys_job_id"),
+        sa.ForeignKeyConstraint(
+            ["job_id"], ["calibration_jobs.id"], name="fk_idempotency_keys_job_id"
+        ),
         sa.PrimaryKeyConstraint("id", name="pk_idempotency_keys"),
         sa.UniqueConstraint("route", "key", name="uq_idempotency_keys_route_key"),
     )

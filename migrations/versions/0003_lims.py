@@ -61,7 +61,9 @@ def upgrade() -> None:
         sa.Column("created_by", sa.String(length=100), nullable=False),
         sa.Column("due_soon_notified_on", sa.Date(), nullable=True),
         sa.PrimaryKeyConstraint("id", name="pk_reference_standards"),
-        sa.UniqueConstraint("serial", "certificate_number", name="uq_reference_standards_serial_certificate_number"),
+        sa.UniqueConstraint(
+            "serial", "certificate_number", name="uq_reference_standards_serial_certificate_number"
+        ),
     )
     op.create_table(
         "webhook_endpoints",
@@ -96,13 +98,25 @@ def upgrade() -> None:
         sa.Column("last_error", sa.Text(), nullable=True),
         sa.Column("delivered_at", Utc, nullable=True),
         sa.Column("created_at", Utc, nullable=False),
-        sa.CheckConstraint("state IN ('pending', 'delivered', 'failed')", name="ck_webhook_deliveries_state"),
-        sa.ForeignKeyConstraint(["endpoint_id"], ["webhook_endpoints.id"], name="fk_webhook_deliveries_endpoint_id"),
-        sa.ForeignKeyConstraint(["event_id"], ["feed_events.id"], name="fk_webhook_deliveries_event_id"),
+        sa.CheckConstraint(
+            "state IN ('pending', 'delivered', 'failed')", name="ck_webhook_deliveries_state"
+        ),
+        sa.ForeignKeyConstraint(
+            ["endpoint_id"], ["webhook_endpoints.id"], name="fk_webhook_deliveries_endpoint_id"
+        ),
+        sa.ForeignKeyConstraint(
+            ["event_id"], ["feed_events.id"], name="fk_webhook_deliveries_event_id"
+        ),
         sa.PrimaryKeyConstraint("id", name="pk_webhook_deliveries"),
-        sa.UniqueConstraint("endpoint_id", "event_id", name="uq_webhook_deliveries_endpoint_id_event_id"),
+        sa.UniqueConstraint(
+            "endpoint_id", "event_id", name="uq_webhook_deliveries_endpoint_id_event_id"
+        ),
     )
-    op.create_index("ix_webhook_deliveries_state_next_attempt_at", "webhook_deliveries", ["state", "next_attempt_at"])
+    op.create_index(
+        "ix_webhook_deliveries_state_next_attempt_at",
+        "webhook_deliveries",
+        ["state", "next_attempt_at"],
+    )
     op.create_table(
         "webhook_attempts",
         sa.Column("id", BigId, nullable=False),
@@ -111,7 +125,9 @@ def upgrade() -> None:
         sa.Column("status_code", sa.Integer(), nullable=True),
         sa.Column("error", sa.Text(), nullable=True),
         sa.Column("duration_s", sa.Double(), nullable=False),
-        sa.ForeignKeyConstraint(["delivery_id"], ["webhook_deliveries.id"], name="fk_webhook_attempts_delivery_id"),
+        sa.ForeignKeyConstraint(
+            ["delivery_id"], ["webhook_deliveries.id"], name="fk_webhook_attempts_delivery_id"
+        ),
         sa.PrimaryKeyConstraint("id", name="pk_webhook_attempts"),
     )
     op.create_index("ix_webhook_attempts_delivery_id", "webhook_attempts", ["delivery_id"])
@@ -127,8 +143,12 @@ def upgrade() -> None:
         sa.Column("record_sha256", Sha, nullable=False),
         sa.Column("prev_sha256", Sha, nullable=False),
         sa.Column("sha256", Sha, nullable=False),
-        sa.CheckConstraint("decision IN ('approve', 'reject')", name="ck_record_approvals_decision"),
-        sa.ForeignKeyConstraint(["record_id"], ["calibration_records.id"], name="fk_record_approvals_record_id"),
+        sa.CheckConstraint(
+            "decision IN ('approve', 'reject')", name="ck_record_approvals_decision"
+        ),
+        sa.ForeignKeyConstraint(
+            ["record_id"], ["calibration_records.id"], name="fk_record_approvals_record_id"
+        ),
         sa.PrimaryKeyConstraint("id", name="pk_record_approvals"),
         sa.UniqueConstraint("prev_sha256", name="uq_record_approvals_prev_sha256"),
         sa.UniqueConstraint("sha256", name="uq_record_approvals_sha256"),
@@ -145,9 +165,15 @@ def upgrade() -> None:
         sa.Column("replaces_id", sa.Integer(), nullable=True),
         sa.Column("issued_at", Utc, nullable=False),
         sa.Column("issued_by", sa.String(length=100), nullable=False),
-        sa.ForeignKeyConstraint(["approval_id"], ["record_approvals.id"], name="fk_certificates_approval_id"),
-        sa.ForeignKeyConstraint(["record_id"], ["calibration_records.id"], name="fk_certificates_record_id"),
-        sa.ForeignKeyConstraint(["replaces_id"], ["certificates.id"], name="fk_certificates_replaces_id"),
+        sa.ForeignKeyConstraint(
+            ["approval_id"], ["record_approvals.id"], name="fk_certificates_approval_id"
+        ),
+        sa.ForeignKeyConstraint(
+            ["record_id"], ["calibration_records.id"], name="fk_certificates_record_id"
+        ),
+        sa.ForeignKeyConstraint(
+            ["replaces_id"], ["certificates.id"], name="fk_certificates_replaces_id"
+        ),
         sa.PrimaryKeyConstraint("id", name="pk_certificates"),
         sa.UniqueConstraint("number", name="uq_certificates_number"),
         sa.UniqueConstraint("record_id", name="uq_certificates_record_id"),

@@ -1,4 +1,5 @@
-"""Reference standards state their uncertainty as numbers: expanded uncertainty (degrees) and coverage factor.
+"""Reference standards state their uncertainty as numbers: expanded uncertainty (degrees) and
+coverage factor.
 
 Revision ID: 0004_certs
 Revises: 0003
@@ -52,16 +53,26 @@ def upgrade() -> None:
     with op.batch_alter_table("reference_standards") as batch:
         batch.add_column(sa.Column("expanded_uncertainty_deg", sa.Double(), nullable=True))
         batch.add_column(sa.Column("coverage_factor", sa.Double(), nullable=True))
-    table = sa.table("reference_standards", sa.column("id", sa.Integer()), sa.column("uncertainty", sa.Text()),
-                     sa.column("expanded_uncertainty_deg", sa.Double()), sa.column("coverage_factor", sa.Double()))
-    if op.get_context().as_sql:  # an offline SQL script is for a new database: no standards to read yet
+    table = sa.table(
+        "reference_standards",
+        sa.column("id", sa.Integer()),
+        sa.column("uncertainty", sa.Text()),
+        sa.column("expanded_uncertainty_deg", sa.Double()),
+        sa.column("coverage_factor", sa.Double()),
+    )
+    if (
+        op.get_context().as_sql
+    ):  # an offline SQL script is for a new database: no standards to read yet
         return
     bind = op.get_bind()
     for sid, text in bind.execute(sa.select(table.c.id, table.c.uncertainty)).all():
         parsed = _parse(text)
         if parsed is not None:
-            bind.execute(table.update().where(table.c.id == sid)
-                         .values(expanded_uncertainty_deg=parsed[0], coverage_factor=parsed[1]))
+            bind.execute(
+                table.update()
+                .where(table.c.id == sid)
+                .values(expanded_uncertainty_deg=parsed[0], coverage_factor=parsed[1])
+            )
 
 
 def downgrade() -> None:

@@ -33,7 +33,9 @@ def upgrade() -> None:
         sa.Column("baseline", sa.String(length=20), nullable=False),
         sa.Column("created_by", sa.String(length=100), nullable=False),
         sa.Column("created_at", Utc, nullable=False),
-        sa.ForeignKeyConstraint(["record_id"], ["calibration_records.id"], name="fk_diagnoses_record_id"),
+        sa.ForeignKeyConstraint(
+            ["record_id"], ["calibration_records.id"], name="fk_diagnoses_record_id"
+        ),
         sa.PrimaryKeyConstraint("id", name="pk_diagnoses"),
     )
     op.create_index("ix_diagnoses_record_id", "diagnoses", ["record_id"])
@@ -47,8 +49,12 @@ def upgrade() -> None:
         sa.Column("summary", sa.JSON(), nullable=False),
         sa.Column("report_html", sa.Text(), nullable=True),
         sa.Column("error", sa.Text(), nullable=True),
-        sa.CheckConstraint(sa.text("state IN ('succeeded', 'failed')"), name="ck_diagnosis_results_state"),
-        sa.ForeignKeyConstraint(["diagnosis_id"], ["diagnoses.id"], name="fk_diagnosis_results_diagnosis_id"),
+        sa.CheckConstraint(
+            sa.text("state IN ('succeeded', 'failed')"), name="ck_diagnosis_results_state"
+        ),
+        sa.ForeignKeyConstraint(
+            ["diagnosis_id"], ["diagnoses.id"], name="fk_diagnosis_results_diagnosis_id"
+        ),
         sa.PrimaryKeyConstraint("id", name="pk_diagnosis_results"),
         sa.UniqueConstraint("diagnosis_id", name="uq_diagnosis_results_diagnosis_id"),
     )

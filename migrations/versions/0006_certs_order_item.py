@@ -1,4 +1,5 @@
-"""Orders name the item's manufacturer and model, which certificates state (the instrument may not report them).
+"""Orders name the item's manufacturer and model, which certificates state (the instrument may not
+report them).
 
 Revision ID: 0006_certs
 Revises: 0005_diagnosis

@@ -25,11 +25,16 @@ depends_on: str | Sequence[str] | None = None
 
 
 def upgrade() -> None:
-    # plain ADD COLUMN (no table copy): the append-only guard triggers of record_approvals stay in place
+    # plain ADD COLUMN (no table copy): the append-only guard triggers of record_approvals stay in
+    # place
     op.add_column("api_tokens", sa.Column("person_name", sa.String(length=200), nullable=True))
     op.add_column("api_tokens", sa.Column("person_function", sa.String(length=200), nullable=True))
-    op.add_column("record_approvals", sa.Column("signer_name", sa.String(length=200), nullable=True))
-    op.add_column("record_approvals", sa.Column("signer_function", sa.String(length=200), nullable=True))
+    op.add_column(
+        "record_approvals", sa.Column("signer_name", sa.String(length=200), nullable=True)
+    )
+    op.add_column(
+        "record_approvals", sa.Column("signer_function", sa.String(length=200), nullable=True)
+    )
     op.add_column("reference_standards", sa.Column("calibrated_by", sa.JSON(), nullable=True))
     op.add_column("orders", sa.Column("specification", sa.JSON(), nullable=True))
 

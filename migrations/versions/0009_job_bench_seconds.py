@@ -4,8 +4,9 @@ Revision ID: 0009_bench_seconds
 Revises: 0008_tamper_evident
 Create Date: 2026-12-02
 
-`calibration_jobs.bench_seconds` is a JSON object {"total", "moving", "settling", "reading"} in bench seconds,
-written with the job's progress; NULL for jobs run before this revision (their bench time was not counted).
+`calibration_jobs.bench_seconds` is a JSON object {"total", "moving", "settling", "reading"} in
+bench seconds, written with the job's progress; NULL for jobs run before this revision (their bench
+time was not counted).
 """
 
 from __future__ import annotations

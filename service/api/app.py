@@ -1,4 +1,5 @@
-"""The tiltlab daemon: FastAPI application factory and its lifespan (database, tokens, benches, jobs)."""
+"""The tiltlab daemon: FastAPI application factory and its lifespan (database, tokens, benches,
+jobs)."""
 
 from __future__ import annotations
 
@@ -40,7 +41,13 @@ from service.api.routers import (
     tokens,
 )
 from service.api.routers import metrics as metrics_router
-from service.bench.runtime import BenchBusy, BenchRuntime, DeviceNotAnswering, MotionStopped, StageNotHomed
+from service.bench.runtime import (
+    BenchBusy,
+    BenchRuntime,
+    DeviceNotAnswering,
+    MotionStopped,
+    StageNotHomed,
+)
 from service.bench.startup import check_sim_speed, plan_benches
 from service.config import Settings, get_settings
 from service.errors import InputError
@@ -62,7 +69,8 @@ from service.streams.readings import SnapshotGate, StreamHub
 
 log = logging.getLogger("tiltlab")
 
-DIAGNOSES_RETRY_AFTER_S = 30  # a diagnosis takes tens of seconds: when to ask again once they are all taken
+# a diagnosis takes tens of seconds: when to ask again once they are all taken
+DIAGNOSES_RETRY_AFTER_S = 30
 
 
 def _check_benches(s: Settings) -> None:
@@ -89,7 +97,8 @@ def _check_benches(s: Settings) -> None:
 
 
 def write_admin_token(path: Path, token: str) -> Path:
-    """The first admin token, readable by the daemon's user only (0600), written whole or not at all."""
+    """The first admin token, readable by the daemon's user only (0600), written whole or not at
+    all."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
@@ -102,34 +111,47 @@ def write_admin_token(path: Path, token: str) -> Path:
         os.chmod(tmp, 0o600)
         os.replace(tmp, path)
     except OSError as exc:
-        raise InputError(f"TILTLAB_ADMIN_TOKEN_FILE: the first admin token cannot be written to {path} ({exc.strerror});"
-                         " name a file in a folder this user can write (default: admin.token in TILTLAB_DATA_DIR)") from None
+        raise InputError(
+            f"TILTLAB_ADMIN_TOKEN_FILE: the first admin token cannot be written to {path} "
+            f"({exc.strerror}); name a file in a folder this user can write (default: "
+            "admin.token in TILTLAB_DATA_DIR)"
+        ) from None
     return path
 
 
 def announce_dashboard(store: Store, s: Settings, *, terminal: bool) -> None:
-    """Make the lab's first admin token if the database has none, and say where the dashboard and its token are.
+    """Make the lab's first admin token if the database has none, and say where the dashboard and
+    its token are.
 
-    The token's text goes only to an interactive terminal (`terminal`); a log, a journal or a container's
-    output gets the dashboard's address and the token file. Of daemons starting together on a new
-    database one makes the token; the others name the file it went to and the node that wrote it."""
+    The token's text goes only to an interactive terminal (`terminal`); a log, a journal or a
+    container's output gets the dashboard's address and the token file. Of daemons starting together
+    on a new database one makes the token; the others name the file it went to and the node that
+    wrote it."""
     url = dashboard_url(s)
     if s.auth != "token":
         print(f"tiltlab: dashboard: {url} (authentication off)", file=sys.stderr, flush=True)
         return
     path = s.admin_token_path
-    token = store.tokens.create_first_admin_token(node=s.node, file=str(path), write=partial(write_admin_token, path))
+    token = store.tokens.create_first_admin_token(
+        node=s.node, file=str(path), write=partial(write_admin_token, path)
+    )
     if token is not None:
         shown = f"{url}#token={token}" if terminal else f"{url} (token: the admin token in {path})"
-        print(f"tiltlab: first start: admin token written to {path} (mode 0600)\n"
-              f"tiltlab: dashboard: {shown}", file=sys.stderr, flush=True)
+        print(
+            f"tiltlab: first start: admin token written to {path} (mode 0600)\n"
+            f"tiltlab: dashboard: {shown}",
+            file=sys.stderr,
+            flush=True,
+        )
         return
     first = store.tokens.first_admin_token()
     if path.exists():
         where = f"token: the admin token in {path}"
     elif first is not None:
-        where = (f"token: the lab's first admin token, which node {first.node} wrote to {first.file} at its first start,"
-                 " or one of `tiltlab token create`")
+        where = (
+            f"token: the lab's first admin token, which node {first.node} wrote to {first.file} "
+            "at its first start, or one of `tiltlab token create`"
+        )
     else:
         where = "token: one of `tiltlab token create`"
     print(f"tiltlab: dashboard: {url} ({where})", file=sys.stderr, flush=True)
@@ -141,26 +163,32 @@ def dashboard_url(s: Settings) -> str:
 
 
 async def _register(store: Store, bench: BenchRuntime) -> None:
-    """Benches and identified instruments get their rows (records and jobs refer to them); daemons starting
-    together register each bench and instrument once."""
+    """Benches and identified instruments get their rows (records and jobs refer to them); daemons
+    starting together register each bench and instrument once."""
     row = store.devices.ensure_bench(bench.name, actor="daemon")
     bench.bench_id = row.id
     for role, ident in bench.identities.items():
-        serial = ident.register_key(bench.name, role)  # no serial of its own: known by bench, role, address
-        dev = store.devices.ensure_device(ident.model, serial, role, actor="daemon", bench_id=row.id,
-                                          port=bench.port_of(role))
+        # no serial of its own: known by bench, role, address
+        serial = ident.register_key(bench.name, role)
+        dev = store.devices.ensure_device(
+            ident.model, serial, role, actor="daemon", bench_id=row.id, port=bench.port_of(role)
+        )
         bench.device_ids[role] = dev.id
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """The application; unusable settings are refused here (InputError, one line), before serving."""
+    """The application; unusable settings are refused here (InputError, one line), before
+    serving."""
     s = settings or get_settings()
     normalise_url(s.database_url)
     if s.auth == "none" and not is_loopback(s.host):
-        raise InputError(f"TILTLAB_AUTH=none is refused on {s.host}: without authentication the daemon"
-                         " binds only a loopback address (127.0.0.1, ::1)")
+        raise InputError(
+            f"TILTLAB_AUTH=none is refused on {s.host}: without authentication the daemon"
+            " binds only a loopback address (127.0.0.1, ::1)"
+        )
     _check_benches(s)
-    install_log_redaction()  # the access log prints query strings; a WebSocket's may carry its token
+    # the access log prints query strings; a WebSocket's may carry its token
+    install_log_redaction()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -168,16 +196,27 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.engine = engine = bootstrap(s)  # brings the database to the current schema
         store = app.state.store = Store(engine)
         database = app.state.database = DatabaseState(redacted(engine.url), s.db_outage_s)
-        # a request's database work: in threads of its own, each call with a deadline (never the event loop)
-        calls = app.state.db_calls = DatabaseCalls(redacted(engine.url), s.db_request_timeout_s, s.db_request_threads,
-                                                   on_timeout=database.away)
-        app.state.token_checks = TokenChecks(store.tokens.authenticate, calls, database,
-                                             throttle=FailedTokens(s.failed_tokens_burst, s.failed_tokens_every_s))
+        # a request's database work: in threads of its own, each call with a deadline (never the
+        # event loop)
+        calls = app.state.db_calls = DatabaseCalls(
+            redacted(engine.url),
+            s.db_request_timeout_s,
+            s.db_request_threads,
+            on_timeout=database.away,
+        )
+        app.state.token_checks = TokenChecks(
+            store.tokens.authenticate,
+            calls,
+            database,
+            throttle=FailedTokens(s.failed_tokens_burst, s.failed_tokens_every_s),
+        )
         # /health and /ready ask the database at most once a second (and so notice it going away)
         app.state.schema_revision = SchemaRevision(database=database)
         lost = store.diagnoses.mark_diagnoses_interrupted(actor="daemon")
         if lost:
-            log.warning("diagnoses %s were left unfinished by the previous run: marked failed", lost)
+            log.warning(
+                "diagnoses %s were left unfinished by the previous run: marked failed", lost
+            )
         announce_dashboard(store, s, terminal=sys.stderr.isatty())
         runtimes = plan_benches(s)
         started: list[BenchRuntime] = []
@@ -192,31 +231,48 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             calls.shutdown()
             engine.dispose()
             raise
-        # Alone, the daemon's previous run left every unfinished job; a node of a fleet, only its own benches'
-        # (other nodes may be running theirs while this one starts).
+        # Alone, the daemon's previous run left every unfinished job; a node of a fleet, only its
+        # own benches' (other nodes may be running theirs while this one starts).
         own = [b.bench_id for b in runtimes if b.bench_id is not None] if s.broker_url else None
         left = store.jobs.mark_interrupted(actor="daemon", bench_ids=own)
         if left:
-            log.warning("jobs %s were left unfinished by the previous run: marked interrupted (resumable)", left)
+            log.warning(
+                "jobs %s were left unfinished by the previous run: marked interrupted (resumable)",
+                left,
+            )
         app.state.benches = {b.name: b for b in runtimes}
         app.state.bench = runtimes[0]
         disk = app.state.disk = DiskWatch(folders_of(s.data_dir, s.database_url), s.min_free_mb)
-        jobs = app.state.jobs = JobManager(store, app.state.benches, database, disk,
-                                           require_conditions=s.require_conditions)
+        jobs = app.state.jobs = JobManager(
+            store, app.state.benches, database, disk, require_conditions=s.require_conditions
+        )
         for bench in runtimes:
             jobs.load_active(bench)
         # the workflow on stored points, in a worker process: never the bench, never the event loop
         app.state.diagnoses = DiagnosisRunner(store, jobs, max_diagnoses=s.max_diagnoses)
-        hub = app.state.streams = StreamHub(app.state.benches, jobs, queue_size=s.stream_queue_size,
-                                            slow_close_s=s.stream_slow_close_s,
-                                            snapshots=SnapshotGate(s.max_snapshots, s.snapshot_queue))
+        hub = app.state.streams = StreamHub(
+            app.state.benches,
+            jobs,
+            queue_size=s.stream_queue_size,
+            slow_close_s=s.stream_slow_close_s,
+            snapshots=SnapshotGate(s.max_snapshots, s.snapshot_queue),
+        )
         hub.start()  # one reading producer per bench
-        metrics.sources.update(benches=app.state.benches, streams=hub, writes_in_flight=writes_in_flight,
-                               database=database)
+        metrics.sources.update(
+            benches=app.state.benches,
+            streams=hub,
+            writes_in_flight=writes_in_flight,
+            database=database,
+        )
         app.state.fleet = fleet = None
-        if s.broker_url:  # joins the fleet: claims this node's benches (exit 2 if a live node owns one)
-            fleet = Fleet(s, app.state.benches, lambda name: hub.producers[name].latest_message,
-                          partial(run_forwarded, app))
+        # joins the fleet: claims this node's benches (exit 2 if a live node owns one)
+        if s.broker_url:
+            fleet = Fleet(
+                s,
+                app.state.benches,
+                lambda name: hub.producers[name].latest_message,
+                partial(run_forwarded, app),
+            )
             try:
                 await fleet.start()
             except BaseException:
@@ -229,10 +285,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 engine.dispose()
                 raise
             app.state.fleet = hub.remote = fleet
-        lims = LimsRuntime(store, s)  # webhook deliveries from the outbox, reference standards coming due
+        # webhook deliveries from the outbox, reference standards coming due
+        lims = LimsRuntime(store, s)
         app.state.webhooks = lims.dispatcher
         await lims.start()
-        log.info("tiltlab %s: database %s, benches %s", __version__, engine.url, ", ".join(app.state.benches))
+        log.info(
+            "tiltlab %s: database %s, benches %s",
+            __version__,
+            engine.url,
+            ", ".join(app.state.benches),
+        )
         try:
             yield
         finally:
@@ -249,27 +311,46 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     # /docs and /redoc with their scripts and styles served from the installed package, not a CDN:
     # lab networks are often air-gapped.
-    app = FastAPIOffline(title="tiltlab", version=__version__, lifespan=lifespan, static_url="/docs-assets",
-                         description="Calibration, measurement and control of tilt with biaxial inclinometers. "
-                                     "Every route but /health, /ready and the dashboard needs `Authorization: Bearer"
-                                     " <token>` (scopes read, operate, admin). Errors are RFC 9457 problem+json (the `Problem`"
-                                     " schema).")
+    app = FastAPIOffline(
+        title="tiltlab",
+        version=__version__,
+        lifespan=lifespan,
+        static_url="/docs-assets",
+        description="Calibration, measurement and control of tilt with biaxial inclinometers. "
+        "Every route but /health, /ready and the dashboard needs `Authorization: Bearer"
+        " <token>` (scopes read, operate, admin). Errors are RFC 9457 problem+json (the `Problem`"
+        " schema).",
+    )
     app.state.metrics = metrics = Metrics()
     app.add_middleware(FleetRouting)
     # the token before anything else looks at a request (the fleet's forwarding, the routing table)
     app.add_middleware(Authentication, state_of=app)
-    # outside the token check and every route: a large body is refused unread, with or without a token
+    # outside the token check and every route: a large body is refused unread, with or without a
+    # token
     app.add_middleware(BodySizeLimit, max_bytes=s.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     problems.install(app)  # with the one mapping of an unknown entity to 404
     openapi.install(app)
     http_details.install(app)
     app.add_middleware(ContentSecurity)  # every HTML page with its Content-Security-Policy
-    app.add_middleware(PreparedTilt, state_of=app)  # outermost of ours: the polled route's plain case
+    # outermost of ours: the polled route's plain case
+    app.add_middleware(PreparedTilt, state_of=app)
     redoc.install(app, "/docs-assets")
     _install_errors(app)
-    for r in (health, metrics_router, benches, tilt, stage, stage_home, calibrations, records, diagnoses, lims,
-              streams, tokens):
+    for r in (
+        health,
+        metrics_router,
+        benches,
+        tilt,
+        stage,
+        stage_home,
+        calibrations,
+        records,
+        diagnoses,
+        lims,
+        streams,
+        tokens,
+    ):
         app.include_router(r.router)
     dashboard.install(app)
     return app
@@ -280,8 +361,13 @@ def _install_errors(app: FastAPI) -> None:
 
     @app.exception_handler(RequestProblem)
     async def _request(request: Request, exc: RequestProblem) -> Response:
-        return P(exc.status, "Unusable request" if exc.status == 422 else "Conflict", str(exc),
-                 instance=str(request.url.path), field=exc.field)
+        return P(
+            exc.status,
+            "Unusable request" if exc.status == 422 else "Conflict",
+            str(exc),
+            instance=str(request.url.path),
+            field=exc.field,
+        )
 
     for cls, status, title, field in _ERRORS:
         app.add_exception_handler(cls, _answer(status, title, field))
@@ -293,11 +379,16 @@ def _install_errors(app: FastAPI) -> None:
         return answer
 
     async def _disk(request: Request, exc: Exception) -> Response:
-        """A full disk: 507 naming it; nothing was stored (the request may be made again once there is room)."""
+        """A full disk: 507 naming it; nothing was stored (the request may be made again once there
+        is room)."""
         disk = getattr(request.app.state, "disk", None)
         said = disk.described(exc) if isinstance(disk, DiskWatch) else f"disk full: {exc}"
-        return P(507, "Insufficient Storage", f"{said}; nothing was stored: free space and ask again",
-                 instance=str(request.url.path))
+        return P(
+            507,
+            "Insufficient Storage",
+            f"{said}; nothing was stored: free space and ask again",
+            instance=str(request.url.path),
+        )
 
     app.add_exception_handler(DiskFull, _disk)
 
@@ -305,12 +396,18 @@ def _install_errors(app: FastAPI) -> None:
     async def _os_error(request: Request, exc: OSError) -> Response:
         if disk_full(exc):
             return await _disk(request, exc)
-        return P(500, "Internal Server Error", f"the service failed on this request ({type(exc).__name__});"
-                 " the service log has the details", instance=str(request.url.path))
+        return P(
+            500,
+            "Internal Server Error",
+            f"the service failed on this request ({type(exc).__name__});"
+            " the service log has the details",
+            instance=str(request.url.path),
+        )
 
     async def _database(request: Request, exc: Exception) -> Response:
-        """The database away: 503 naming it (the request may be asked again once it answers); a full disk
-        (the daemon's, or the database server's): 507; any other database error is the server's own (500)."""
+        """The database away: 503 naming it (the request may be asked again once it answers); a full
+        disk (the daemon's, or the database server's): 507; any other database error is the server's
+        own (500)."""
         if disk_full(exc):
             return await _disk(request, exc)
         if not unreachable(exc):
@@ -319,10 +416,14 @@ def _install_errors(app: FastAPI) -> None:
         where = redacted(request.app.state.engine.url)
         if isinstance(state, DatabaseState) and not isinstance(exc, DatabaseOutage):
             state.away(exc)
-        answer = problems.problem(503, "Database unreachable",
-                                  f"the database {where} does not answer, so this request could not be carried out"
-                                  " (if the database went away while it was written, it may have been); ask again"
-                                  " once it answers (GET /health says when)", instance=str(request.url.path))
+        answer = problems.problem(
+            503,
+            "Database unreachable",
+            f"the database {where} does not answer, so this request could not be carried out"
+            " (if the database went away while it was written, it may have been); ask again"
+            " once it answers (GET /health says when)",
+            instance=str(request.url.path),
+        )
         answer.headers["Retry-After"] = "5"
         return answer
 
@@ -343,7 +444,9 @@ _ERRORS = (
 )
 
 
-def _answer(status: int, title: str, field: str | None) -> Callable[[Request, Exception], Awaitable[Response]]:
+def _answer(
+    status: int, title: str, field: str | None
+) -> Callable[[Request, Exception], Awaitable[Response]]:
     async def handler(request: Request, exc: Exception) -> Response:
         extra = {"field": field} if field else {}
         return problems.problem(status, title, str(exc), instance=str(request.url.path), **extra)

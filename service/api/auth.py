@@ -1,4 +1,5 @@
-"""Bearer tokens and scopes on every route but /health, /ready, the dashboard and the API's own pages.
+"""Bearer tokens and scopes on every route but /health, /ready, the dashboard and the API's own
+pages.
 
 `Authorization: Bearer <token>` on HTTP. On WebSockets (browsers cannot set headers there) the
 subprotocol `bearer.<token>` (`Sec-WebSocket-Protocol`, kept out of URLs and so out of logs) or the
@@ -34,16 +35,31 @@ from service.storage.tokens import SCOPES, Principal
 log = logging.getLogger("tiltlab.auth")
 
 EVERYONE = Principal("anonymous (authentication off)", frozenset(SCOPES))
-PRINCIPAL = "tiltlab.principal"  # where the middleware leaves the request's principal in its ASGI scope
+# where the middleware leaves the request's principal in its ASGI scope
+PRINCIPAL = "tiltlab.principal"
 
-# The OpenAPI document's security scheme (`bearerAuth`); the header itself is read by the middleware so that
-# a missing or malformed one is a 401 problem, not FastAPI's own answer.
-BEARER = HTTPBearer(scheme_name="bearerAuth", auto_error=False,
-                    description="a token of `tiltlab token create` (or the admin token file); scopes read, operate, admin")
+# The OpenAPI document's security scheme (`bearerAuth`); the header itself is read by the middleware
+# so that a missing or malformed one is a 401 problem, not FastAPI's own answer.
+BEARER = HTTPBearer(
+    scheme_name="bearerAuth",
+    auto_error=False,
+    description="a token of `tiltlab token create` (or the admin token file); scopes read, "
+    "operate, admin",
+)
 
 # What needs no token: liveness and readiness, the dashboard's page and files, the API's own pages.
-PUBLIC_PATHS = frozenset({"/health", "/ready", "/", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json",
-                          "/favicon.ico"})
+PUBLIC_PATHS = frozenset(
+    {
+        "/health",
+        "/ready",
+        "/",
+        "/docs",
+        "/docs/oauth2-redirect",
+        "/redoc",
+        "/openapi.json",
+        "/favicon.ico",
+    }
+)
 PUBLIC_PREFIXES = ("/web/", "/docs-assets/", "/redoc-assets/")
 UNAUTHORIZED = {"WWW-Authenticate": 'Bearer realm="tiltlab"'}
 INVALID = {"WWW-Authenticate": 'Bearer realm="tiltlab", error="invalid_token"'}
@@ -78,7 +94,8 @@ def client_address(scope: Scope) -> str:
 
 
 class TokenCache:
-    """What the database last said of each token presented, so a busy reader costs no query per request.
+    """What the database last said of each token presented, so a busy reader costs no query per
+    request.
 
     The rules: an answer is fresh for `ttl_s` seconds and used as it is. A valid token whose answer
     is older is still answered from memory while one re-check runs in the background (its next
@@ -98,7 +115,8 @@ class TokenCache:
         self._invalid: dict[str, float] = {}
 
     def answer(self, token: str) -> tuple[Principal | None, bool] | None:
-        """(principal or None for invalid, whether fresh) of a token seen before; None if never seen."""
+        """(principal or None for invalid, whether fresh) of a token seen before; None if never
+        seen."""
         now = time.monotonic()
         hit = self._valid.get(token)
         if hit is not None:
@@ -120,13 +138,15 @@ class TokenCache:
             self._valid[token] = (now, principal)
 
     def checked(self, token: str) -> None:
-        """A re-check that could not reach the database: keep the answer, ask again after `ttl_s`."""
+        """A re-check that could not reach the database: keep the answer, ask again after
+        `ttl_s`."""
         hit = self._valid.get(token)
         if hit is not None:
             self._valid[token] = (time.monotonic(), hit[1])
 
     def known(self, token: str) -> Principal | None:
-        """The principal of a token the daemon knows to be valid (freshly or not); None otherwise."""
+        """The principal of a token the daemon knows to be valid (freshly or not); None
+        otherwise."""
         hit = self._valid.get(token)
         return None if hit is None else hit[1]
 
@@ -136,16 +156,19 @@ class TokenCache:
 
 
 class FailedTokens:
-    """Unknown tokens per client address: `burst` may fail in a row, then one more every `every_s` seconds.
+    """Unknown tokens per client address: `burst` may fail in a row, then one more every `every_s`
+    seconds.
 
-    A token bucket per address; only a failure takes from it, so a lab whose LIMS retries now and then
-    is slowed at worst, and a token the daemon knows passes whatever its address's bucket holds."""
+    A token bucket per address; only a failure takes from it, so a lab whose LIMS retries now and
+    then is slowed at worst, and a token the daemon knows passes whatever its address's bucket
+    holds."""
 
     def __init__(self, burst: int = 20, every_s: float = 2.0, max_addresses: int = 10_000) -> None:
         self.burst = burst
         self.every_s = every_s
         self.max_addresses = max_addresses
-        self._buckets: dict[str, tuple[float, float]] = {}  # address -> (failures it may still make, when)
+        # address -> (failures it may still make, when)
+        self._buckets: dict[str, tuple[float, float]] = {}
         self.refused = 0
 
     def _level(self, address: str, now: float) -> float:
@@ -163,7 +186,9 @@ class FailedTokens:
     def failed(self, address: str) -> None:
         now = time.monotonic()
         if len(self._buckets) >= self.max_addresses:  # forget the addresses that are full again
-            self._buckets = {a: b for a, b in self._buckets.items() if self._level(a, now) < self.burst}
+            self._buckets = {
+                a: b for a, b in self._buckets.items() if self._level(a, now) < self.burst
+            }
             if len(self._buckets) >= self.max_addresses:
                 self._buckets.clear()
         self._buckets[address] = (max(0.0, self._level(address, now) - 1.0), now)
@@ -172,24 +197,34 @@ class FailedTokens:
 class TokenChecks:
     """The principal of a presented token: from the cache, else from the database off the loop."""
 
-    def __init__(self, authenticate: Callable[[str], Principal | None], calls: DatabaseCalls,
-                 database: DatabaseState | None = None, cache: TokenCache | None = None,
-                 throttle: FailedTokens | None = None) -> None:
+    def __init__(
+        self,
+        authenticate: Callable[[str], Principal | None],
+        calls: DatabaseCalls,
+        database: DatabaseState | None = None,
+        cache: TokenCache | None = None,
+        throttle: FailedTokens | None = None,
+    ) -> None:
         self._authenticate = authenticate  # blocking: the token's row in the database
         self.calls = calls
         self.database = database
         self.cache = cache or TokenCache()
         self.throttle = throttle or FailedTokens()
-        self._asking: dict[str, asyncio.Future[Principal | None]] = {}  # one database question per token at a time
+        # one database question per token at a time
+        self._asking: dict[str, asyncio.Future[Principal | None]] = {}
         self._rechecks: set[asyncio.Task[None]] = set()
 
     async def principal(self, token: str | None, address: str) -> Principal:
-        """The token's principal, or ProblemError: 401 (missing, unknown, revoked), 429 (this address
-        failed too often), 503 (the database did not answer in time)."""
+        """The token's principal, or ProblemError: 401 (missing, unknown, revoked), 429 (this
+        address failed too often), 503 (the database did not answer in time)."""
         if not token:
-            raise ProblemError(401, "Unauthorized", "this route needs a token: send 'Authorization: Bearer <token>'"
-                               " (tiltlab token create, or the admin token file in the data directory)",
-                               headers=UNAUTHORIZED)
+            raise ProblemError(
+                401,
+                "Unauthorized",
+                "this route needs a token: send 'Authorization: Bearer <token>'"
+                " (tiltlab token create, or the admin token file in the data directory)",
+                headers=UNAUTHORIZED,
+            )
         seen = self.cache.answer(token)
         if seen is not None and seen[0] is not None:
             if not seen[1]:
@@ -197,14 +232,20 @@ class TokenChecks:
             return seen[0]
         wait_s = self.throttle.retry_after_s(address)
         if wait_s is not None:
-            raise ProblemError(429, "Too many unknown tokens",
-                               f"too many requests from {address} came with an unknown or revoked token; try again in"
-                               f" {wait_s} s (TILTLAB_FAILED_TOKENS_BURST, TILTLAB_FAILED_TOKENS_EVERY_S)",
-                               headers={"Retry-After": str(wait_s)})
+            raise ProblemError(
+                429,
+                "Too many unknown tokens",
+                f"too many requests from {address} came with an unknown or revoked token; try "
+                "again in"
+                f" {wait_s} s (TILTLAB_FAILED_TOKENS_BURST, TILTLAB_FAILED_TOKENS_EVERY_S)",
+                headers={"Retry-After": str(wait_s)},
+            )
         principal = None if seen is not None else await self._ask(token)
         if principal is None:
             self.throttle.failed(address)
-            raise ProblemError(401, "Unauthorized", "the token is unknown or revoked", headers=INVALID)
+            raise ProblemError(
+                401, "Unauthorized", "the token is unknown or revoked", headers=INVALID
+            )
         return principal
 
     def known(self, token: str) -> Principal | None:
@@ -234,8 +275,10 @@ class TokenChecks:
                 raise
             if self.database is not None:
                 self.database.away(exc)
-            raise DatabaseSlow(f"the database {self.calls.where} does not answer ({type(exc).__name__}), so the"
-                               " token could not be checked; ask again once it answers (GET /health says when)") from None
+            raise DatabaseSlow(
+                f"the database {self.calls.where} does not answer ({type(exc).__name__}), so the"
+                " token could not be checked; ask again once it answers (GET /health says when)"
+            ) from None
         if self.database is not None:
             self.database.back()
         self.cache.put(token, principal)
@@ -250,7 +293,10 @@ class TokenChecks:
             try:
                 await self._ask(token)
             except Exception as exc:  # noqa: BLE001 - the last answer stands until the database answers
-                log.info("a known token could not be re-checked (%s); its last answer stands", type(exc).__name__)
+                log.info(
+                    "a known token could not be re-checked (%s); its last answer stands",
+                    type(exc).__name__,
+                )
 
         task = asyncio.get_running_loop().create_task(recheck())
         self._rechecks.add(task)
@@ -262,8 +308,9 @@ def token_checks(app: Any) -> TokenChecks:
     checks = getattr(app.state, "token_checks", None)
     if not isinstance(checks, TokenChecks):
         calls = getattr(app.state, "db_calls", None) or DatabaseCalls("the database")
-        checks = app.state.token_checks = TokenChecks(app.state.store.tokens.authenticate, calls,
-                                                      getattr(app.state, "database", None))
+        checks = app.state.token_checks = TokenChecks(
+            app.state.store.tokens.authenticate, calls, getattr(app.state, "database", None)
+        )
     return checks
 
 
@@ -288,10 +335,13 @@ class Authentication:
             principal = EVERYONE
         else:
             try:
-                principal = await token_checks(self._state_of).principal(bearer_of(scope["headers"]),
-                                                                         client_address(scope))
+                principal = await token_checks(self._state_of).principal(
+                    bearer_of(scope["headers"]), client_address(scope)
+                )
             except ProblemError as exc:
-                response = problem(exc.status, exc.title, exc.detail, instance=scope["path"], **exc.extra)
+                response = problem(
+                    exc.status, exc.title, exc.detail, instance=scope["path"], **exc.extra
+                )
                 response.headers.update(exc.headers or {})
                 await response(scope, receive, send)
                 return
@@ -303,16 +353,26 @@ def requires(scope: str) -> Callable[..., Awaitable[Principal]]:
     """A dependency giving the request's principal, refusing it without `scope`."""
     assert scope in SCOPES
 
-    async def dependency(request: Request,
-                         _: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)]) -> Principal:
+    async def dependency(
+        request: Request, _: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)]
+    ) -> Principal:
         principal = request.scope.get(PRINCIPAL)
         if not isinstance(principal, Principal):  # an application without the middleware in front
             settings = request.app.state.settings
-            principal = EVERYONE if settings.auth == "none" else await token_checks(request.app).principal(
-                bearer_of(request.scope["headers"]), client_address(request.scope))
+            principal = (
+                EVERYONE
+                if settings.auth == "none"
+                else await token_checks(request.app).principal(
+                    bearer_of(request.scope["headers"]), client_address(request.scope)
+                )
+            )
         if not principal.may(scope):
-            raise ProblemError(403, "Forbidden", f"the token {principal.name!r} lacks the scope {scope!r}"
-                               f" (it has {', '.join(sorted(principal.scopes))})")
+            raise ProblemError(
+                403,
+                "Forbidden",
+                f"the token {principal.name!r} lacks the scope {scope!r}"
+                f" (it has {', '.join(sorted(principal.scopes))})",
+            )
         return principal
 
     return dependency
@@ -322,7 +382,8 @@ SUBPROTOCOL_PREFIX = "bearer."
 
 
 def websocket_subprotocol(websocket: WebSocket) -> str | None:
-    """The `bearer.<token>` subprotocol the client offered, if any (the accept must name it back)."""
+    """The `bearer.<token>` subprotocol the client offered, if any (the accept must name it
+    back)."""
     for offered in websocket.scope.get("subprotocols") or ():
         if offered.startswith(SUBPROTOCOL_PREFIX):
             return str(offered)
@@ -330,7 +391,8 @@ def websocket_subprotocol(websocket: WebSocket) -> str | None:
 
 
 def websocket_token(websocket: WebSocket) -> str | None:
-    """A WebSocket's token: from its `bearer.<token>` subprotocol, else its `token` query parameter."""
+    """A WebSocket's token: from its `bearer.<token>` subprotocol, else its `token` query
+    parameter."""
     offered = websocket_subprotocol(websocket)
     if offered is not None:
         return offered.removeprefix(SUBPROTOCOL_PREFIX)
@@ -338,16 +400,21 @@ def websocket_token(websocket: WebSocket) -> str | None:
 
 
 async def websocket_principal(websocket: WebSocket, scope: str = "read") -> Principal:
-    """The principal of a WebSocket from its token (subprotocol or query), or ProblemError saying why it may
-    not connect (401, 403, 429, 503: the stream closes with a reason).
+    """The principal of a WebSocket from its token (subprotocol or query), or ProblemError saying
+    why it may not connect (401, 403, 429, 503: the stream closes with a reason).
 
     Asked again while a stream is open, so a revoked token's streams end (from the token cache:
-    no database query on the event loop, at most one in the background per token every few seconds)."""
+    no database query on the event loop, at most one in the background per token every few
+    seconds)."""
     if websocket.app.state.settings.auth == "none":
         return EVERYONE
-    principal = await token_checks(websocket.app).principal(websocket_token(websocket), client_address(websocket.scope))
+    principal = await token_checks(websocket.app).principal(
+        websocket_token(websocket), client_address(websocket.scope)
+    )
     if not principal.may(scope):
-        raise ProblemError(403, "Forbidden", f"the token {principal.name!r} lacks the scope {scope!r}")
+        raise ProblemError(
+            403, "Forbidden", f"the token {principal.name!r} lacks the scope {scope!r}"
+        )
     return principal
 
 

@@ -1,15 +1,20 @@
-"""Content-Security-Policy on every HTML page the daemon serves, so that text someone stored (a customer's name
-in a certificate, a note in a diagnosis report) can never run as script in a colleague's browser.
+"""Content-Security-Policy on every HTML page the daemon serves, so that text someone stored (a
+customer's name in a certificate, a note in a diagnosis report) can never run as script in a
+colleague's browser.
 
 * The dashboard (`/`): scripts, styles, images and connections from the daemon itself only: its own
-  script files (no inline script), `fetch` and the WebSocket streams to the same host; style attributes
+  script files (no inline script), `fetch` and the WebSocket streams to the same host; style
+attributes
   allowed (layout only).
 * The API's own pages (`/docs`, `/redoc`): the same, plus the one inline script each page starts its
-  viewer with, allowed by its SHA-256 (worked out from the page as served), and the web worker ReDoc makes.
-* Every other page (a certificate's printable page, a diagnosis report): a document, nothing runs at all;
+  viewer with, allowed by its SHA-256 (worked out from the page as served), and the web worker ReDoc
+makes.
+* Every other page (a certificate's printable page, a diagnosis report): a document, nothing runs at
+all;
   its own inline styles and the figures inlined as `data:` images.
 
-Every answer also carries `X-Content-Type-Options: nosniff` (a download is never run as what it is not).
+Every answer also carries `X-Content-Type-Options: nosniff` (a download is never run as what it is
+not).
 """
 
 from __future__ import annotations
@@ -21,11 +26,18 @@ import re
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 _COMMON = "object-src 'none'; base-uri 'none'; frame-ancestors 'none'"
-DASHBOARD = ("default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:;"
-             f" connect-src 'self'; font-src 'self'; form-action 'self'; {_COMMON}")
-API_PAGES = ("default-src 'self'; script-src 'self' {hashes}; style-src 'self' 'unsafe-inline'; img-src 'self' data:;"
-             f" connect-src 'self'; font-src 'self'; worker-src 'self' blob:; form-action 'self'; {_COMMON}")
-DOCUMENT = f"default-src 'none'; style-src 'unsafe-inline'; img-src data:; form-action 'none'; {_COMMON}"
+DASHBOARD = (
+    "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' "
+    f"data: blob:; connect-src 'self'; font-src 'self'; form-action 'self'; {_COMMON}"
+)
+API_PAGES = (
+    "default-src 'self'; script-src 'self' {hashes}; style-src 'self' 'unsafe-inline'; img-src "
+    "'self' data:;"
+    f" connect-src 'self'; font-src 'self'; worker-src 'self' blob:; form-action 'self'; {_COMMON}"
+)
+DOCUMENT = (
+    f"default-src 'none'; style-src 'unsafe-inline'; img-src data:; form-action 'none'; {_COMMON}"
+)
 _INLINE_SCRIPT = re.compile(rb"<script>(.*?)</script>", re.S)
 _API_PAGES = frozenset({"/docs", "/redoc", "/docs/oauth2-redirect"})
 
@@ -34,14 +46,17 @@ def policy_of(path: str, body: bytes = b"") -> str:
     if path == "/":
         return DASHBOARD
     if path in _API_PAGES:
-        hashes = " ".join(f"'sha256-{base64.b64encode(hashlib.sha256(s).digest()).decode()}'"
-                          for s in _INLINE_SCRIPT.findall(body))
+        hashes = " ".join(
+            f"'sha256-{base64.b64encode(hashlib.sha256(s).digest()).decode()}'"
+            for s in _INLINE_SCRIPT.findall(body)
+        )
         return API_PAGES.format(hashes=hashes).replace("  ", " ")
     return DOCUMENT
 
 
 class ContentSecurity:
-    """Adds the page's Content-Security-Policy to every text/html answer, and nosniff to every answer."""
+    """Adds the page's Content-Security-Policy to every text/html answer, and nosniff to every
+    answer."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
@@ -55,15 +70,25 @@ class ContentSecurity:
 
         async def secured(message: Message) -> None:
             if message["type"] == "http.response.start":
-                headers = [(k, v) for k, v in message.get("headers", []) if k.lower() != b"x-content-type-options"]
+                headers = [
+                    (k, v)
+                    for k, v in message.get("headers", [])
+                    if k.lower() != b"x-content-type-options"
+                ]
                 headers.append((b"x-content-type-options", b"nosniff"))
                 message = {**message, "headers": headers}
-                html = any(k.lower() == b"content-type" and v.lower().startswith(b"text/html") for k, v in headers)
+                html = any(
+                    k.lower() == b"content-type" and v.lower().startswith(b"text/html")
+                    for k, v in headers
+                )
                 if html and path in _API_PAGES:
                     held.append(message)
                     return
                 if html:
-                    message["headers"] = [*headers, (b"content-security-policy", policy_of(path).encode())]
+                    message["headers"] = [
+                        *headers,
+                        (b"content-security-policy", policy_of(path).encode()),
+                    ]
             elif held:
                 held.append(message)
                 if message.get("more_body", False):
@@ -71,7 +96,10 @@ class ContentSecurity:
                 start, *bodies = held
                 held.clear()
                 body = b"".join(m.get("body", b"") for m in bodies)
-                start["headers"] = [*start["headers"], (b"content-security-policy", policy_of(path, body).encode())]
+                start["headers"] = [
+                    *start["headers"],
+                    (b"content-security-policy", policy_of(path, body).encode()),
+                ]
                 await send(start)
                 message = {"type": "http.response.body", "body": body}
             await send(message)

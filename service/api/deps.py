@@ -1,9 +1,9 @@
-"""What routes are given rather than fetch: settings, the store's repositories, benches, the job manager,
-the streams and the webhook dispatcher, each as an `Annotated[..., Depends(...)]` type. The application's lifespan
-puts them on `app.state`; only this module reads it (routes, tests and other apps stay decoupled from
-where they live). The caller (token and scope) comes from service.api.auth: Reader, Operator, Admin.
-Each is an `async def`: FastAPI runs a plain `def` dependency in its thread pool, a thread hop per
-dependency per request for what is an attribute read."""
+"""What routes are given rather than fetch: settings, the store's repositories, benches, the job
+manager, the streams and the webhook dispatcher, each as an `Annotated[..., Depends(...)]` type. The
+application's lifespan puts them on `app.state`; only this module reads it (routes, tests and other
+apps stay decoupled from where they live). The caller (token and scope) comes from service.api.auth:
+Reader, Operator, Admin. Each is an `async def`: FastAPI runs a plain `def` dependency in its thread
+pool, a thread hop per dependency per request for what is an attribute read."""
 
 from __future__ import annotations
 
@@ -86,7 +86,9 @@ async def get_database(conn: HTTPConnection) -> DatabaseState:
     """Whether the database answers, as the daemon last found it (one per application)."""
     state = getattr(conn.app.state, "database", None)
     if not isinstance(state, DatabaseState):
-        state = conn.app.state.database = DatabaseState(redacted(cast(sa.Engine, conn.app.state.engine).url))
+        state = conn.app.state.database = DatabaseState(
+            redacted(cast(sa.Engine, conn.app.state.engine).url)
+        )
     return state
 
 
@@ -102,7 +104,8 @@ async def get_token_cache(conn: HTTPConnection) -> TokenCache | None:
 
 
 async def get_disk(conn: HTTPConnection) -> DiskWatch | None:
-    """The free space of the folders the daemon writes, against the least it keeps; None without a lifespan."""
+    """The free space of the folders the daemon writes, against the least it keeps; None without a
+    lifespan."""
     return cast(DiskWatch | None, getattr(conn.app.state, "disk", None))
 
 
@@ -199,22 +202,39 @@ DiskDep = Annotated[DiskWatch | None, Depends(get_disk)]
 WebhooksDep = Annotated[Dispatcher | None, Depends(get_webhooks)]
 
 
-def find_bench(benches: dict[str, BenchRuntime], name: str | None, field: str = "bench") -> BenchRuntime:
+def find_bench(
+    benches: dict[str, BenchRuntime], name: str | None, field: str = "bench"
+) -> BenchRuntime:
     """The named bench, or the only one when the daemon runs one and no name is given."""
     if name is None:
         if len(benches) == 1:
             return next(iter(benches.values()))
-        raise ProblemError(422, "Bench not named", f"{field}: the daemon runs {len(benches)} benches"
-                           f" ({', '.join(benches)}); name one", field=field)
+        raise ProblemError(
+            422,
+            "Bench not named",
+            f"{field}: the daemon runs {len(benches)} benches ({', '.join(benches)}); name one",
+            field=field,
+        )
     if name not in benches:
-        raise ProblemError(404, "Unknown bench", f"{field}: no bench named {name[:100]!r}; benches: {', '.join(benches)}",
-                           field=field)
+        raise ProblemError(
+            404,
+            "Unknown bench",
+            f"{field}: no bench named {name[:100]!r}; benches: {', '.join(benches)}",
+            field=field,
+        )
     return benches[name]
 
 
-async def bench_from_query(benches: BenchesDep,
-                     bench: Annotated[str | None, Query(max_length=100, description="bench name; may be left out when"
-                                                        " the daemon runs a single bench")] = None) -> BenchRuntime:
+async def bench_from_query(
+    benches: BenchesDep,
+    bench: Annotated[
+        str | None,
+        Query(
+            max_length=100,
+            description="bench name; may be left out when the daemon runs a single bench",
+        ),
+    ] = None,
+) -> BenchRuntime:
     return find_bench(benches, bench)
 
 
@@ -236,7 +256,9 @@ async def _record_id(record_id: Annotated[int, Path(description="the record's id
     return _known_range(record_id, "calibration record")
 
 
-async def _standard_id(standard_id: Annotated[int, Path(description="the reference standard's id")]) -> int:
+async def _standard_id(
+    standard_id: Annotated[int, Path(description="the reference standard's id")],
+) -> int:
     return _known_range(standard_id, "reference standard")
 
 
@@ -244,7 +266,9 @@ async def _order_id(order_id: Annotated[int, Path(description="the order's id")]
     return _known_range(order_id, "order")
 
 
-async def _diagnosis_id(diagnosis_id: Annotated[int, Path(description="the diagnosis's id")]) -> int:
+async def _diagnosis_id(
+    diagnosis_id: Annotated[int, Path(description="the diagnosis's id")],
+) -> int:
     return _known_range(diagnosis_id, "diagnosis")
 
 

@@ -21,7 +21,9 @@ from service.api import problems
 from service.fleet.node import Fleet, FleetUnavailable
 
 BENCH_READS = frozenset({"/tilt", "/devices"})
-BENCH_COMMANDS = frozenset({"/calibrations", "/stage/move", "/stage/level", "/stage/stop", "/stage/home"})
+BENCH_COMMANDS = frozenset(
+    {"/calibrations", "/stage/move", "/stage/level", "/stage/stop", "/stage/home"}
+)
 FORWARDED_HEADERS = ("authorization", "content-type", "idempotency-key", "accept")
 ANSWER_HEADERS = ("content-type", "location")
 MAX_FORWARDED_BODY = 1 << 20
@@ -34,8 +36,14 @@ class FleetRouting:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         fleet: Fleet | None = getattr(scope["app"].state, "fleet", None) if "app" in scope else None
         path, method = scope.get("path", ""), scope.get("method", "")
-        if (scope["type"] != "http" or fleet is None
-                or not ((method == "GET" and path in BENCH_READS) or (method == "POST" and path in BENCH_COMMANDS))):
+        if (
+            scope["type"] != "http"
+            or fleet is None
+            or not (
+                (method == "GET" and path in BENCH_READS)
+                or (method == "POST" and path in BENCH_COMMANDS)
+            )
+        ):
             await self.app(scope, receive, send)
             return
         query = scope.get("query_string", b"").decode("latin-1")
@@ -50,26 +58,43 @@ class FleetRouting:
             return
         assert bench is not None
         headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"]}
-        request = {"method": method, "path": path, "query": query, "body": body.decode("utf-8", "replace"),
-                   "headers": {k: headers[k] for k in FORWARDED_HEADERS if k in headers}}
+        request = {
+            "method": method,
+            "path": path,
+            "query": query,
+            "body": body.decode("utf-8", "replace"),
+            "headers": {k: headers[k] for k in FORWARDED_HEADERS if k in headers},
+        }
         try:
             answer, round_trip_s = await fleet.forward(bench, request)
         except FleetUnavailable as exc:
-            response = problems.problem(503, "Bench's node not reachable", str(exc), instance=path, field="bench")
+            response = problems.problem(
+                503, "Bench's node not reachable", str(exc), instance=path, field="bench"
+            )
             await response(scope, receive, send)
             return
         content = answer.get("body", "").encode()
         if path == "/tilt" and answer.get("status") == 200:
             content = _tilt_via(content, fleet.remote[bench].node, round_trip_s)
-        out_headers = [(k.encode(), str(v).encode()) for k, v in answer.get("headers", {}).items()
-                       if k in ANSWER_HEADERS]
+        out_headers = [
+            (k.encode(), str(v).encode())
+            for k, v in answer.get("headers", {}).items()
+            if k in ANSWER_HEADERS
+        ]
         out_headers.append((b"content-length", str(len(content)).encode()))
-        await send({"type": "http.response.start", "status": int(answer.get("status", 502)), "headers": out_headers})
+        await send(
+            {
+                "type": "http.response.start",
+                "status": int(answer.get("status", 502)),
+                "headers": out_headers,
+            }
+        )
         await send({"type": "http.response.body", "body": content})
 
 
 def _tilt_via(content: bytes, node: str, round_trip_s: float) -> bytes:
-    """The owner's /tilt answer, honest about the path: from which node, and older by the round trip."""
+    """The owner's /tilt answer, honest about the path: from which node, and older by the round
+    trip."""
     tilt = json.loads(content)
     tilt["node"] = node
     if isinstance(tilt.get("age_s"), int | float):
@@ -86,7 +111,8 @@ async def _read_body(receive: Receive) -> bytes:
             break
         chunk = message.get("body", b"")
         size += len(chunk)
-        if size > MAX_FORWARDED_BODY:  # far beyond any bench command; the routers refuse it with their own rules
+        # far beyond any bench command; the routers refuse it with their own rules
+        if size > MAX_FORWARDED_BODY:
             chunks.append(chunk)
             break
         chunks.append(chunk)
@@ -105,7 +131,8 @@ def _bench_of(body: bytes) -> str | None:
 
 
 def _replay(body: bytes, receive: Receive) -> Receive:
-    """The body already read, handed to the application as if it came now; then the client's own messages."""
+    """The body already read, handed to the application as if it came now; then the client's own
+    messages."""
     sent = False
 
     async def again() -> Message:
@@ -119,11 +146,19 @@ def _replay(body: bytes, receive: Receive) -> Receive:
 
 
 async def run_forwarded(app: ASGIApp, request: dict[str, Any]) -> dict[str, Any]:
-    """On the bench's owner: a request another node carried here, run through this daemon's own application."""
+    """On the bench's owner: a request another node carried here, run through this daemon's own
+    application."""
     transport = httpx.ASGITransport(app=app)
     async with httpx.AsyncClient(transport=transport, base_url="http://fleet.invalid") as client:
         url = request["path"] + (f"?{request['query']}" if request.get("query") else "")
-        answer = await client.request(request["method"], url, headers=request.get("headers", {}),
-                                      content=request.get("body", "").encode())
-    return {"status": answer.status_code, "body": answer.text,
-            "headers": {k: answer.headers[k] for k in ANSWER_HEADERS if k in answer.headers}}
+        answer = await client.request(
+            request["method"],
+            url,
+            headers=request.get("headers", {}),
+            content=request.get("body", "").encode(),
+        )
+    return {
+        "status": answer.status_code,
+        "body": answer.text,
+        "headers": {k: answer.headers[k] for k in ANSWER_HEADERS if k in answer.headers},
+    }

@@ -15,7 +15,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 
 def allowed_methods(routes: Iterable[Any], scope: Scope) -> list[str]:
-    """Every method some route serves at this path; HEAD wherever GET is, OPTIONS never (no CORS here)."""
+    """Every method some route serves at this path; HEAD wherever GET is, OPTIONS never (no CORS
+    here)."""
     methods: set[str] = set()
     _collect(routes, {**scope, "method": "GET"}, methods)
     if "GET" in methods:
@@ -46,7 +47,8 @@ class HttpDetails:
 
     def __init__(self, app: ASGIApp, routes_of: Any) -> None:
         self.app = app
-        self._routes_of = routes_of  # the FastAPI application, whose routes are read at request time
+        # the FastAPI application, whose routes are read at request time
+        self._routes_of = routes_of
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

@@ -3,10 +3,10 @@ the send buffer of every connection (an option of the listening socket).
 
 A body over the limit is refused (413, problem+json) from its declared `Content-Length` before a
 byte of it is read. A body sent without a length (chunked) is read here, up to the limit, before the
-request goes on, and refused as soon as it passes the limit: on every route, whether or not the route
-takes a body (the server would otherwise read and drop the rest of it after the route's answer, a
-gigabyte as readily as a byte). Both happen before a route, its dependencies or the token check run,
-so a stranger without a token cannot make the daemon hold more than the limit in memory.
+request goes on, and refused as soon as it passes the limit: on every route, whether or not the
+route takes a body (the server would otherwise read and drop the rest of it after the route's
+answer, a gigabyte as readily as a byte). Both happen before a route, its dependencies or the token
+check run, so a stranger without a token cannot make the daemon hold more than the limit in memory.
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from service.api.problems import PROBLEM
 # own write buffer holds at most 64 kB more before a send waits.
 SEND_BUFFER_BYTES = 32_768
 SERVER_WRITE_BUFFER_BYTES = 65_536  # the ASGI server's WebSocket write buffer (its high-water mark)
-# uvicorn's WebSocket implementation: websockets' sans-I/O protocol writes each message straight to the
-# connection and waits only while the connection's write buffer is above its high-water mark (64 kB);
-# about a quarter less CPU per stream message than the older asyncio protocol.
+# uvicorn's WebSocket implementation: websockets' sans-I/O protocol writes each message straight to
+# the connection and waits only while the connection's write buffer is above its high-water mark (64
+# kB); about a quarter less CPU per stream message than the older asyncio protocol.
 WEBSOCKET_IMPLEMENTATION = "websockets-sansio"
 # The most the daemon holds for one stream client that has stopped reading before its sends wait.
 STREAM_HELD_BYTES = 2 * SEND_BUFFER_BYTES + SERVER_WRITE_BUFFER_BYTES
@@ -42,12 +42,24 @@ def bound_send_buffer(sock: socket.socket) -> None:
 
 
 def _too_large(path: str, max_bytes: int) -> tuple[Message, Message]:
-    body = json.dumps({"type": "about:blank", "title": "Content Too Large", "status": 413,
-                       "detail": f"the request body is larger than {max_bytes} bytes (TILTLAB_MAX_BODY_BYTES)",
-                       "instance": path}).encode()
-    start: Message = {"type": "http.response.start", "status": 413,
-                      "headers": [(b"content-type", PROBLEM.encode()), (b"content-length", str(len(body)).encode()),
-                                  (b"connection", b"close")]}
+    body = json.dumps(
+        {
+            "type": "about:blank",
+            "title": "Content Too Large",
+            "status": 413,
+            "detail": f"the request body is larger than {max_bytes} bytes (TILTLAB_MAX_BODY_BYTES)",
+            "instance": path,
+        }
+    ).encode()
+    start: Message = {
+        "type": "http.response.start",
+        "status": 413,
+        "headers": [
+            (b"content-type", PROBLEM.encode()),
+            (b"content-length", str(len(body)).encode()),
+            (b"connection", b"close"),
+        ],
+    }
     return start, {"type": "http.response.body", "body": body}
 
 
@@ -90,7 +102,8 @@ class BodySizeLimit:
                         for m in _too_large(scope.get("path", ""), self.max_bytes):
                             await send(m)
                     answered = True
-                    return {"type": "http.disconnect"}  # the route stops reading as if the client had gone
+                    # the route stops reading as if the client had gone
+                    return {"type": "http.disconnect"}
             return message
 
         async def guarded_send(message: Message) -> None:
@@ -105,17 +118,21 @@ class BodySizeLimit:
             await self.app(scope, counting_receive, guarded_send)
         except Exception:
             if not answered:
-                raise  # a failure of the route itself; once refused, what the route made of it is moot
+                # a failure of the route itself; once refused, what the route made of it is moot
+                raise
 
 
 def _chunked(scope: Scope) -> bool:
     """A body sent without a declared length (Transfer-Encoding: chunked)."""
     headers: Any = scope.get("headers") or ()
-    return any(name == b"transfer-encoding" and b"chunked" in value.lower() for name, value in headers)
+    return any(
+        name == b"transfer-encoding" and b"chunked" in value.lower() for name, value in headers
+    )
 
 
 async def _read_up_to(receive: Receive, max_bytes: int) -> bytes | None:
-    """The whole body if it is at most `max_bytes`, else None as soon as it passes them (the rest unread)."""
+    """The whole body if it is at most `max_bytes`, else None as soon as it passes them (the rest
+    unread)."""
     chunks: list[bytes] = []
     size = 0
     while True:
@@ -133,7 +150,8 @@ async def _read_up_to(receive: Receive, max_bytes: int) -> bytes | None:
 
 
 def _replay(body: bytes, receive: Receive) -> Receive:
-    """The body read here, handed on as if it came now; then the client's own messages (a disconnect)."""
+    """The body read here, handed on as if it came now; then the client's own messages (a
+    disconnect)."""
     sent = False
 
     async def again() -> Message:

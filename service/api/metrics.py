@@ -26,7 +26,8 @@ JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrup
 
 
 class DaemonState(Collector):
-    """Scrape-time readings of the daemon's own state; `sources` gives the live objects (or None before start-up)."""
+    """Scrape-time readings of the daemon's own state; `sources` gives the live objects (or None
+    before start-up)."""
 
     def __init__(self, sources: Callable[[], dict[str, Any]]) -> None:
         self._sources = sources
@@ -37,59 +38,93 @@ class DaemonState(Collector):
         yield from _job_families(src.get("job_counts"))
         yield from _stream_families(src.get("streams"))
         in_flight = src.get("writes_in_flight")
-        writes = GaugeMetricFamily("tiltlab_sample_writer_queue_depth",
-                                   "Job database writes (samples and settled points) handed over and not yet stored")
+        writes = GaugeMetricFamily(
+            "tiltlab_sample_writer_queue_depth",
+            "Job database writes (samples and settled points) handed over and not yet stored",
+        )
         writes.add_metric([], float(in_flight() if callable(in_flight) else 0))
         yield writes
         yield from _database_families(src.get("database"))
 
 
 def _database_families(database: Any) -> Iterable[GaugeMetricFamily]:
-    up = GaugeMetricFamily("tiltlab_database_up", "1 while the database answers, 0 while the daemon finds it away")
+    up = GaugeMetricFamily(
+        "tiltlab_database_up", "1 while the database answers, 0 while the daemon finds it away"
+    )
     up.add_metric([], 0.0 if database is not None and not database.up else 1.0)
     yield up
-    waiting = GaugeMetricFamily("tiltlab_database_writes_waiting",
-                                "Job steps waiting for the database to answer again (their jobs paused)")
+    waiting = GaugeMetricFamily(
+        "tiltlab_database_writes_waiting",
+        "Job steps waiting for the database to answer again (their jobs paused)",
+    )
     waiting.add_metric([], float(getattr(database, "writes_waiting", 0)))
     yield waiting
-    samples = GaugeMetricFamily("tiltlab_database_samples_waiting",
-                                "Raw samples held in memory by writes waiting for the database")
+    samples = GaugeMetricFamily(
+        "tiltlab_database_samples_waiting",
+        "Raw samples held in memory by writes waiting for the database",
+    )
     samples.add_metric([], float(getattr(database, "samples_waiting", 0)))
     yield samples
 
 
 def _device_families(benches: dict[str, Any]) -> Iterable[CounterMetricFamily | GaugeMetricFamily]:
-    """Per instrument by bench and role, labels that stay the same when the daemon or a simulator restarts
-    (a port can be a new pseudo-terminal each time); where it is connected and what it said it is are
-    the labels of `tiltlab_device_info`, the usual Prometheus info metric (value 1), joined on bench and role."""
+    """Per instrument by bench and role, labels that stay the same when the daemon or a simulator
+    restarts (a port can be a new pseudo-terminal each time); where it is connected and what it said
+    it is are the labels of `tiltlab_device_info`, the usual Prometheus info metric (value 1),
+    joined on bench and role."""
     labels = ["bench", "role"]
-    families = {name: CounterMetricFamily(f"tiltlab_serial_{name}", help_text, labels=labels)
-                for name, help_text in (("frames", "Frames received from the instrument"),
-                                        ("bad_checksums", "Frames refused for a bad checksum"),
-                                        ("resyncs", "Times the framing lost and regained the frame boundary"),
-                                        ("timeouts", "Requests the instrument did not answer in time"),
-                                        ("reconnects", "Times the port was reopened"))}
-    connected = GaugeMetricFamily("tiltlab_device_connected", "1 while the instrument answers, else 0", labels=labels)
-    info = GaugeMetricFamily("tiltlab_device_info", "Where each instrument is connected and what it reported itself"
-                             " to be (always 1)", labels=[*labels, "port", "protocol", "model", "serial", "firmware"])
+    families = {
+        name: CounterMetricFamily(f"tiltlab_serial_{name}", help_text, labels=labels)
+        for name, help_text in (
+            ("frames", "Frames received from the instrument"),
+            ("bad_checksums", "Frames refused for a bad checksum"),
+            ("resyncs", "Times the framing lost and regained the frame boundary"),
+            ("timeouts", "Requests the instrument did not answer in time"),
+            ("reconnects", "Times the port was reopened"),
+        )
+    }
+    connected = GaugeMetricFamily(
+        "tiltlab_device_connected", "1 while the instrument answers, else 0", labels=labels
+    )
+    info = GaugeMetricFamily(
+        "tiltlab_device_info",
+        "Where each instrument is connected and what it reported itself to be (always 1)",
+        labels=[*labels, "port", "protocol", "model", "serial", "firmware"],
+    )
     for bench_name, bench in benches.items():
         for st in bench.devices.status():
             key = [bench_name, st.role]
             c = st.counters
-            for name, value in (("frames", c.frames), ("bad_checksums", c.bad_checksum), ("resyncs", c.resyncs),
-                                ("timeouts", c.timeouts), ("reconnects", c.reconnects)):
+            for name, value in (
+                ("frames", c.frames),
+                ("bad_checksums", c.bad_checksum),
+                ("resyncs", c.resyncs),
+                ("timeouts", c.timeouts),
+                ("reconnects", c.reconnects),
+            ):
                 families[name].add_metric(key, float(value))
             connected.add_metric(key, 1.0 if st.state == "connected" else 0.0)
             ident = st.identity
-            info.add_metric([*key, str(st.port), str(st.protocol), ident.model if ident else "",
-                             (ident.serial or "") if ident else "", (ident.firmware or "") if ident else ""], 1.0)
+            info.add_metric(
+                [
+                    *key,
+                    str(st.port),
+                    str(st.protocol),
+                    ident.model if ident else "",
+                    (ident.serial or "") if ident else "",
+                    (ident.firmware or "") if ident else "",
+                ],
+                1.0,
+            )
     yield from families.values()
     yield connected
     yield info
 
 
 def _job_families(job_counts: Callable[[], dict[str, int]] | None) -> Iterable[GaugeMetricFamily]:
-    jobs = GaugeMetricFamily("tiltlab_jobs", "Calibration jobs in the database by state", labels=["state"])
+    jobs = GaugeMetricFamily(
+        "tiltlab_jobs", "Calibration jobs in the database by state", labels=["state"]
+    )
     counts = job_counts() if job_counts is not None else {}
     for state in sorted(set(JOB_STATES) | set(counts)):
         jobs.add_metric([state], float(counts.get(state, 0)))
@@ -97,9 +132,14 @@ def _job_families(job_counts: Callable[[], dict[str, int]] | None) -> Iterable[G
 
 
 def _stream_families(hub: Any) -> Iterable[GaugeMetricFamily | CounterMetricFamily]:
-    clients = GaugeMetricFamily("tiltlab_websocket_clients", "Open reading streams", labels=["bench"])
-    dropped = CounterMetricFamily("tiltlab_websocket_dropped_messages",
-                                  "Reading messages dropped for clients that read too slowly", labels=["bench"])
+    clients = GaugeMetricFamily(
+        "tiltlab_websocket_clients", "Open reading streams", labels=["bench"]
+    )
+    dropped = CounterMetricFamily(
+        "tiltlab_websocket_dropped_messages",
+        "Reading messages dropped for clients that read too slowly",
+        labels=["bench"],
+    )
     for bench_name, producer in (getattr(hub, "producers", None) or {}).items():
         clients.add_metric([bench_name], float(len(producer.clients)))
         dropped.add_metric([bench_name], float(getattr(producer, "dropped_total", 0)))
@@ -112,10 +152,19 @@ class Metrics:
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
-        self.requests = Counter("tiltlab_http_requests", "HTTP requests answered", ["route", "method", "status"],
-                                registry=self.registry)
-        self.latency = Histogram("tiltlab_http_request_duration_seconds", "Time from request to the answer's start",
-                                 ["route", "method"], buckets=LATENCY_BUCKETS_S, registry=self.registry)
+        self.requests = Counter(
+            "tiltlab_http_requests",
+            "HTTP requests answered",
+            ["route", "method", "status"],
+            registry=self.registry,
+        )
+        self.latency = Histogram(
+            "tiltlab_http_request_duration_seconds",
+            "Time from request to the answer's start",
+            ["route", "method"],
+            buckets=LATENCY_BUCKETS_S,
+            registry=self.registry,
+        )
         self.sources: dict[str, Any] = {}
         self.registry.register(DaemonState(lambda: self.sources))
 
@@ -125,7 +174,8 @@ class Metrics:
 
 
 class MetricsMiddleware:
-    """Counts every HTTP request by route template and status; WebSocket and lifespan pass through."""
+    """Counts every HTTP request by route template and status; WebSocket and lifespan pass
+    through."""
 
     def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
         self.app = app
@@ -147,11 +197,14 @@ class MetricsMiddleware:
         try:
             await self.app(scope, receive, send_status)
         finally:
-            self.metrics.observe(route_template(scope), scope["method"], status, time.perf_counter() - start)
+            self.metrics.observe(
+                route_template(scope), scope["method"], status, time.perf_counter() - start
+            )
 
 
 def route_template(scope: Scope) -> str:
-    """The route's template (an id makes no new series); a mounted folder's files as one template, `/web/{path}`."""
+    """The route's template (an id makes no new series); a mounted folder's files as one template,
+    `/web/{path}`."""
     route = scope.get("route")
     template = getattr(route, "path", None)
     if template:

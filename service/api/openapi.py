@@ -1,7 +1,7 @@
-"""The OpenAPI document as clients generate code from it: every error a problem (application/problem+json,
-one `Problem` schema, FastAPI's own validation-error schema replaced since the body never has that shape),
-the `Location` header of every 201 and 202 declared, and a request field with a default optional in
-the code generated from it."""
+"""The OpenAPI document as clients generate code from it: every error a problem
+(application/problem+json, one `Problem` schema, FastAPI's own validation-error schema replaced
+since the body never has that shape), the `Location` header of every 201 and 202 declared, and a
+request field with a default optional in the code generated from it."""
 
 from __future__ import annotations
 
@@ -11,18 +11,34 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from service.api.models.problem import PROBLEM_MEDIA_TYPE, PROBLEM_SCHEMA_REF, Problem, problem_responses
+from service.api.models.problem import (
+    PROBLEM_MEDIA_TYPE,
+    PROBLEM_SCHEMA_REF,
+    Problem,
+    problem_responses,
+)
 
 _FASTAPI_VALIDATION = ("HTTPValidationError", "ValidationError")
 # Every 201 and 202 of the API says where what it made (or started) is read.
-LOCATION_HEADER = {"Location": {"description": "the address of what was made or started, e.g. /calibrations/7",
-                                "schema": {"type": "string"}}}
+LOCATION_HEADER = {
+    "Location": {
+        "description": "the address of what was made or started, e.g. /calibrations/7",
+        "schema": {"type": "string"},
+    }
+}
 
 
 def document(app: FastAPI) -> dict[str, Any]:
-    """The document of the application's routes, with the problem model in place of FastAPI's 422 body."""
-    doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes,
-                      tags=app.openapi_tags, servers=app.servers)
+    """The document of the application's routes, with the problem model in place of FastAPI's 422
+    body."""
+    doc = get_openapi(
+        title=app.title,
+        version=app.version,
+        description=app.description,
+        routes=app.routes,
+        tags=app.openapi_tags,
+        servers=app.servers,
+    )
     schemas = doc.setdefault("components", {}).setdefault("schemas", {})
     problem = Problem.model_json_schema(ref_template="#/components/schemas/{model}")
     schemas.update(problem.pop("$defs", {}))
@@ -32,10 +48,16 @@ def document(app: FastAPI) -> dict[str, Any]:
         for operation in path.values():
             responses = operation.get("responses", {})
             content = responses.get("422", {}).get("content", {})
-            if "application/json" in content and "HTTPValidationError" in str(content["application/json"]):
+            if "application/json" in content and "HTTPValidationError" in str(
+                content["application/json"]
+            ):
                 responses["422"] = dict(validation)
             for status, answer in responses.items():
-                if status[0] in "45" and PROBLEM_MEDIA_TYPE not in answer.get("content", {}) and status != "503":
+                if (
+                    status[0] in "45"
+                    and PROBLEM_MEDIA_TYPE not in answer.get("content", {})
+                    and status != "503"
+                ):
                     answer["content"] = {PROBLEM_MEDIA_TYPE: {"schema": PROBLEM_SCHEMA_REF}}
     for path in doc.get("paths", {}).values():
         for operation in path.values():
@@ -53,30 +75,43 @@ def document(app: FastAPI) -> dict[str, Any]:
 
 
 def _state_procedures(app: FastAPI, schemas: dict[str, Any]) -> None:
-    """`POST /calibrations` procedures: those a bench of this daemon runs (its kind and instruments)."""
+    """`POST /calibrations` procedures: those a bench of this daemon runs (its kind and
+    instruments)."""
     from service.jobs.registry import PROCEDURES
 
     benches = list((getattr(app.state, "benches", None) or {}).values())
     request = schemas.get("CalibrationRequest")
     if not benches or request is None:
         return
-    runnable = [name for name, procedure in PROCEDURES.items()
-                if any(b.kind == getattr(procedure, "bench_kind", "stage")
-                       and all(role in b.devices for role in getattr(procedure, "read_roles", ())) for b in benches)]
+    runnable = [
+        name
+        for name, procedure in PROCEDURES.items()
+        if any(
+            b.kind == getattr(procedure, "bench_kind", "stage")
+            and all(role in b.devices for role in getattr(procedure, "read_roles", ()))
+            for b in benches
+        )
+    ]
     prop = request.get("properties", {}).get("procedure", {})
     if "enum" in prop:
         prop["enum"] = [p for p in prop["enum"] if p in runnable]
-        prop["description"] = "a procedure a bench of this daemon runs (its kind and instruments): " + ", ".join(runnable)
+        prop["description"] = (
+            "a procedure a bench of this daemon runs (its kind and instruments): "
+            + ", ".join(runnable)
+        )
     if "allOf" in request:
-        request["allOf"] = [c for c in request["allOf"] if c["if"]["properties"]["procedure"]["const"] in runnable]
+        request["allOf"] = [
+            c for c in request["allOf"] if c["if"]["properties"]["procedure"]["const"] in runnable
+        ]
 
 
 _BOUNDS = {"ge": "minimum", "le": "maximum", "gt": "exclusiveMinimum", "lt": "exclusiveMaximum"}
 
 
 def _json_schema_bounds(node: Any) -> None:
-    """Bounds of the counts (whole numbers that may be written 18.0) as JSON Schema words: pydantic leaves a
-    bound it cannot place inside a validator under its own name (`ge`, `le`), which no client reads."""
+    """Bounds of the counts (whole numbers that may be written 18.0) as JSON Schema words: pydantic
+    leaves a bound it cannot place inside a validator under its own name (`ge`, `le`), which no
+    client reads."""
     if isinstance(node, dict):
         if node.get("type") in ("integer", "number"):
             for ours, theirs in _BOUNDS.items():
@@ -90,16 +125,24 @@ def _json_schema_bounds(node: Any) -> None:
 
 
 def _state_travel(app: FastAPI, schemas: dict[str, Any]) -> None:
-    """`POST /stage/move` angles within the stage travel of the daemon's stage benches (the widest, where they
-    differ: the route checks each bench's own)."""
+    """`POST /stage/move` angles within the stage travel of the daemon's stage benches (the widest,
+    where they differ: the route checks each bench's own)."""
     benches = getattr(app.state, "benches", None) or {}
-    travels = [b.config.stage_bench().travel_deg for b in benches.values() if getattr(b, "kind", None) == "stage"]
+    travels = [
+        b.config.stage_bench().travel_deg
+        for b in benches.values()
+        if getattr(b, "kind", None) == "stage"
+    ]
     move = schemas.get("Move", {}).get("properties", {})
     if travels:
         for axis in ("x_deg", "y_deg"):
             if axis in move:
-                move[axis].update(minimum=-max(travels), maximum=max(travels),
-                                  description=f"raw stage angle, within the stage's travel (±{max(travels):g} deg)")
+                move[axis].update(
+                    minimum=-max(travels),
+                    maximum=max(travels),
+                    description=f"raw stage angle, within the stage's travel (±{max(travels):g} "
+                    "deg)",
+                )
 
 
 def install(app: FastAPI) -> None:
@@ -146,8 +189,8 @@ def _request_only_schemas(doc: dict[str, Any]) -> set[str]:
 
 
 def _defaults_in_words(schemas: dict[str, Any], names: set[str]) -> None:
-    """A request field with a default may be left out: it is not `required`, and its default is said in
-    its description rather than as the `default` keyword, which common TypeScript generators
+    """A request field with a default may be left out: it is not `required`, and its default is said
+    in its description rather than as the `default` keyword, which common TypeScript generators
     (openapi-typescript's default settings) turn into a field the client must send."""
     for name in names:
         for prop in schemas[name].get("properties", {}).values():
@@ -157,4 +200,6 @@ def _defaults_in_words(schemas: dict[str, Any], names: set[str]) -> None:
             if default is None:
                 continue  # null is what leaving it out means
             said = f"default {json.dumps(default)} when left out"
-            prop["description"] = f"{prop['description']}; {said}" if prop.get("description") else said
+            prop["description"] = (
+                f"{prop['description']}; {said}" if prop.get("description") else said
+            )

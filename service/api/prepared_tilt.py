@@ -8,7 +8,8 @@ directly, with the route's own body (`tilt_answer`) and the same headers and met
 a body, no query or only `bench=<a bench of this node>`, a token the daemon knows and that may read,
 a daemon running alone (not in a fleet). Anything else (no token, an unknown or revoked one, a
 HEAD, another node's bench, an error while answering) goes on to the full application, which
-answers exactly as it always did. A revocation clears the token cache, so it takes effect here at once.
+answers exactly as it always did. A revocation clears the token cache, so it takes effect here at
+once.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ _BODY_HEADERS = (b"content-length", b"transfer-encoding")
 
 
 class PreparedTilt:
-    """Answers `GET /tilt` for a known reader without the routing table; passes everything else on."""
+    """Answers `GET /tilt` for a known reader without the routing table; passes everything else
+    on."""
 
     def __init__(self, app: ASGIApp, state_of: Any) -> None:
         self.app = app
@@ -43,29 +45,45 @@ class PreparedTilt:
         if body is None:
             await self.app(scope, receive, send)
             return
-        await send({"type": "http.response.start", "status": 200,
-                    "headers": [(b"content-length", str(len(body)).encode()),
-                                (b"content-type", b"application/json")]})
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 200,
+                "headers": [
+                    (b"content-length", str(len(body)).encode()),
+                    (b"content-type", b"application/json"),
+                ],
+            }
+        )
         await send({"type": "http.response.body", "body": body})
         metrics = getattr(self._state_of.state, "metrics", None)
         if metrics is not None:
             metrics.observe(PATH, "GET", 200, time.perf_counter() - start)
 
     def _answer(self, scope: Scope) -> bytes | None:
-        """The answer's body when this is the plain case, else None (the full application answers)."""
+        """The answer's body when this is the plain case, else None (the full application
+        answers)."""
         state = self._state_of.state
         benches = getattr(state, "benches", None)
         jobs = getattr(state, "jobs", None)
         settings = getattr(state, "settings", None)
-        if benches is None or jobs is None or settings is None or getattr(state, "fleet", None) is not None:
+        if (
+            benches is None
+            or jobs is None
+            or settings is None
+            or getattr(state, "fleet", None) is not None
+        ):
             return None
         authorization = None
         for name, value in scope["headers"]:
             if name == b"authorization":
-                authorization = value if authorization is None else authorization  # the first, as the route reads
+                # the first, as the route reads
+                authorization = value if authorization is None else authorization
             elif name in _BODY_HEADERS:
                 return None
-        if settings.auth != "none" and not _may_read(getattr(state, "token_checks", None), authorization or b""):
+        if settings.auth != "none" and not _may_read(
+            getattr(state, "token_checks", None), authorization or b""
+        ):
             return None
         query = scope.get("query_string", b"")
         if query:

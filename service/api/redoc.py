@@ -18,7 +18,9 @@ JS_URL = "/redoc-assets/redoc.standalone.js"
 
 @functools.cache
 def redoc_bundle(static_url: str) -> bytes:
-    js = (Path(fastapi_offline.__file__).parent / "static" / "redoc.standalone.js").read_text(encoding="utf-8")
+    js = (Path(fastapi_offline.__file__).parent / "static" / "redoc.standalone.js").read_text(
+        encoding="utf-8"
+    )
     return js.replace(REMOTE_LOGO, f"{static_url}/favicon.png").encode("utf-8")
 
 
@@ -28,11 +30,18 @@ def install(app: FastAPI, static_url: str) -> None:
 
     @app.get("/redoc", include_in_schema=False)
     async def redoc_html() -> HTMLResponse:
-        return get_redoc_html(openapi_url=app.openapi_url or "/openapi.json", title=f"{app.title} - ReDoc",
-                              redoc_js_url=JS_URL, redoc_favicon_url=f"{static_url}/favicon.png",
-                              with_google_fonts=False)
+        return get_redoc_html(
+            openapi_url=app.openapi_url or "/openapi.json",
+            title=f"{app.title} - ReDoc",
+            redoc_js_url=JS_URL,
+            redoc_favicon_url=f"{static_url}/favicon.png",
+            with_google_fonts=False,
+        )
 
     @app.get(JS_URL, include_in_schema=False)
     async def redoc_js() -> Response:
-        return Response(redoc_bundle(static_url), media_type="text/javascript",
-                        headers={"Cache-Control": "public, max-age=86400"})
+        return Response(
+            redoc_bundle(static_url),
+            media_type="text/javascript",
+            headers={"Cache-Control": "public, max-age=86400"},
+        )

@@ -22,10 +22,13 @@ class SchemaRevision:
     also wait behind every request the event loop has queued meanwhile). Only the first request
     waits for a query. A refresh that fails is not kept: the next request asks the database
     itself, and the failure reaches its caller; but a refresh that finds the database away keeps
-    the revision known before and tells `database` (so /health answers through an outage and says so).
+    the revision known before and tells `database` (so /health answers through an outage and says
+    so).
     """
 
-    def __init__(self, ttl_s: float = REVISION_TTL_S, database: DatabaseState | None = None) -> None:
+    def __init__(
+        self, ttl_s: float = REVISION_TTL_S, database: DatabaseState | None = None
+    ) -> None:
         self.ttl_s = ttl_s
         self.database = database
         self.queries = 0
@@ -41,7 +44,8 @@ class SchemaRevision:
         except BaseException as exc:
             if self.database is not None and unreachable(exc):
                 self.database.away(exc)
-                if self._at is not None:  # the revision known before stands; asked again after ttl_s
+                # the revision known before stands; asked again after ttl_s
+                if self._at is not None:
                     self._at = time.monotonic()
                     return
             self._at = None
@@ -56,9 +60,12 @@ class SchemaRevision:
                 if self._at is None:
                     await self._query(engine)
             return self._value
-        if time.monotonic() - self._at >= self.ttl_s and (self._refresh is None or self._refresh.done()):
+        if time.monotonic() - self._at >= self.ttl_s and (
+            self._refresh is None or self._refresh.done()
+        ):
             self._refresh = asyncio.create_task(self._query(engine))
-            self._refresh.add_done_callback(lambda t: t.cancelled() or t.exception())  # failure: see _query
+            # failure: see _query
+            self._refresh.add_done_callback(lambda t: t.cancelled() or t.exception())
         return self._value
 
     async def refreshed(self) -> None:

@@ -32,25 +32,38 @@ from uvicorn.server import ServerState
 
 from service.api.problems import PROBLEM
 
-CLOSE_GRACE_S = 5.0  # after the daemon closes a connection: how long its buffered bytes may take to leave
+# after the daemon closes a connection: how long its buffered bytes may take to leave
+CLOSE_GRACE_S = 5.0
 RETRY_AFTER_S = 5
 HEAD_END = b"\r\n\r\n"
 
 
-def _answer(status: int, reason: str, title: str, detail: str, headers: dict[str, str] | None = None) -> bytes:
-    """A complete HTTP/1.1 problem answer that closes the connection (written before or instead of a request)."""
-    body = json.dumps({"type": "about:blank", "title": title, "status": status, "detail": detail}).encode()
-    lines = [f"HTTP/1.1 {status} {reason}", f"content-type: {PROBLEM}", f"content-length: {len(body)}",
-             "connection: close", *(f"{k}: {v}" for k, v in (headers or {}).items())]
+def _answer(
+    status: int, reason: str, title: str, detail: str, headers: dict[str, str] | None = None
+) -> bytes:
+    """A complete HTTP/1.1 problem answer that closes the connection (written before or instead of a
+    request)."""
+    body = json.dumps(
+        {"type": "about:blank", "title": title, "status": status, "detail": detail}
+    ).encode()
+    lines = [
+        f"HTTP/1.1 {status} {reason}",
+        f"content-type: {PROBLEM}",
+        f"content-length: {len(body)}",
+        "connection: close",
+        *(f"{k}: {v}" for k, v in (headers or {}).items()),
+    ]
     return ("\r\n".join(lines) + "\r\n\r\n").encode("latin-1") + body
 
 
 class ClosingTransport:
-    """A connection's transport whose `close()` becomes an abort once `grace_s` has passed without the
-    peer taking what is still buffered (asyncio's close waits for the buffer to drain, for ever if the
-    peer never reads). Everything else is the transport's own."""
+    """A connection's transport whose `close()` becomes an abort once `grace_s` has passed without
+    the peer taking what is still buffered (asyncio's close waits for the buffer to drain, for ever
+    if the peer never reads). Everything else is the transport's own."""
 
-    def __init__(self, transport: asyncio.Transport, loop: asyncio.AbstractEventLoop, grace_s: float) -> None:
+    def __init__(
+        self, transport: asyncio.Transport, loop: asyncio.AbstractEventLoop, grace_s: float
+    ) -> None:
         self._transport = transport
         self._loop = loop
         self._grace_s = grace_s
@@ -75,8 +88,8 @@ class ClosingTransport:
 
 
 class ClientConnections:
-    """The open connections of each client address (HTTP and WebSocket alike; a connection counts until it
-    is closing)."""
+    """The open connections of each client address (HTTP and WebSocket alike; a connection counts
+    until it is closing)."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
@@ -105,16 +118,22 @@ class ClientConnections:
 
 
 class BoundedHttpProtocol(HttpToolsProtocol):
-    """uvicorn's httptools protocol with the head bounded in size, line count and time, and connections
-    counted per client address (the limits are set on the subclass `protocols()` makes)."""
+    """uvicorn's httptools protocol with the head bounded in size, line count and time, and
+    connections counted per client address (the limits are set on the subclass `protocols()`
+    makes)."""
 
     max_head_bytes = 32_768
     max_head_lines = 101  # the request line and 100 headers
     head_timeout_s = 10.0
     connections_per_client: ClientConnections = ClientConnections(64)
 
-    def __init__(self, config: Config, server_state: ServerState, app_state: dict[str, Any],
-                 _loop: asyncio.AbstractEventLoop | None = None) -> None:
+    def __init__(
+        self,
+        config: Config,
+        server_state: ServerState,
+        app_state: dict[str, Any],
+        _loop: asyncio.AbstractEventLoop | None = None,
+    ) -> None:
         super().__init__(config, server_state, app_state, _loop)
         self._in_head = True
         self._head_bytes = 0
@@ -130,17 +149,23 @@ class BoundedHttpProtocol(HttpToolsProtocol):
         super().connection_made(closing)  # type: ignore[arg-type]
         self._address = self.client[0] if self.client else "unknown"
         if not self.connections_per_client.admit(self._address, transport):
-            self._refuse(429, "Too Many Requests", "Too many connections",
-                         f"{self._address} has {self.connections_per_client.limit} connections open to the daemon"
-                         " already (TILTLAB_MAX_CONNECTIONS_PER_CLIENT); close some, or try again later",
-                         {"Retry-After": str(RETRY_AFTER_S)})
+            self._refuse(
+                429,
+                "Too Many Requests",
+                "Too many connections",
+                f"{self._address} has {self.connections_per_client.limit} connections open to the "
+                "daemon"
+                " already (TILTLAB_MAX_CONNECTIONS_PER_CLIENT); close some, or try again later",
+                {"Retry-After": str(RETRY_AFTER_S)},
+            )
             return
         self._counted = transport
         self._arm_head_timer()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm_head_timer()
-        if self._counted is not None:  # (an upgraded connection is the WebSocket protocol's to release)
+        # (an upgraded connection is the WebSocket protocol's to release)
+        if self._counted is not None:
             self.connections_per_client.release(self._address, self._counted)
         if isinstance(self.transport, ClosingTransport):
             self.transport.lost()
@@ -157,20 +182,28 @@ class BoundedHttpProtocol(HttpToolsProtocol):
         super().data_received(data)
 
     def _count_head(self, data: bytes) -> bool:
-        """Count the head's bytes and lines in this read; False (and the connection refused) past a limit."""
+        """Count the head's bytes and lines in this read; False (and the connection refused) past a
+        limit."""
         seen = self._tail + data
         end = seen.find(HEAD_END)
         part = data if end < 0 else data[: max(0, end + len(HEAD_END) - len(self._tail))]
         self._head_bytes += len(part)
         self._head_lines += part.count(b"\n")
-        self._tail = seen[-(len(HEAD_END) - 1):]
+        self._tail = seen[-(len(HEAD_END) - 1) :]
         if self._head_bytes > self.max_head_bytes or self._head_lines > self.max_head_lines + 1:
-            what = (f"{self._head_lines - 2:,} header lines or more, more than the {self.max_head_lines - 1:,}"
-                    " taken (TILTLAB_MAX_HEADERS)" if self._head_lines > self.max_head_lines + 1 else
-                    f"{self._head_bytes:,} bytes or more, more than the {self.max_head_bytes:,} taken"
-                    " (TILTLAB_MAX_HEADER_BYTES)")
-            self._refuse(431, "Request Header Fields Too Large", "Request head too large",
-                         f"the request line and headers are {what}; nothing of it was read further")
+            what = (
+                f"{self._head_lines - 2:,} header lines or more, more than the "
+                f"{self.max_head_lines - 1:,} taken (TILTLAB_MAX_HEADERS)"
+                if self._head_lines > self.max_head_lines + 1
+                else f"{self._head_bytes:,} bytes or more, more than the {self.max_head_bytes:,} "
+                "taken (TILTLAB_MAX_HEADER_BYTES)"
+            )
+            self._refuse(
+                431,
+                "Request Header Fields Too Large",
+                "Request head too large",
+                f"the request line and headers are {what}; nothing of it was read further",
+            )
             return False
         if end >= 0:
             self._end_head()
@@ -184,7 +217,8 @@ class BoundedHttpProtocol(HttpToolsProtocol):
 
     def on_message_complete(self) -> None:
         super().on_message_complete()
-        self._in_head = True  # what comes next is the next request's head (its timer starts with its first byte)
+        # what comes next is the next request's head (its timer starts with its first byte)
+        self._in_head = True
 
     def _arm_head_timer(self) -> None:
         self._disarm_head_timer()
@@ -199,32 +233,46 @@ class BoundedHttpProtocol(HttpToolsProtocol):
         self._head_timer = None
         if not self._in_head or self._refused or self.transport.is_closing():
             return
-        if self.cycle is not None and not self.cycle.response_complete:  # an answer is still being written
+        # an answer is still being written
+        if self.cycle is not None and not self.cycle.response_complete:
             self._arm_head_timer()
             return
-        self._refuse(408, "Request Timeout", "Request head too slow",
-                     f"the request line and headers did not arrive within {self.head_timeout_s:g} s"
-                     " (TILTLAB_HEADER_TIMEOUT_S)")
+        self._refuse(
+            408,
+            "Request Timeout",
+            "Request head too slow",
+            f"the request line and headers did not arrive within {self.head_timeout_s:g} s"
+            " (TILTLAB_HEADER_TIMEOUT_S)",
+        )
 
-    def _refuse(self, status: int, reason: str, title: str, detail: str, headers: dict[str, str] | None = None) -> None:
+    def _refuse(
+        self,
+        status: int,
+        reason: str,
+        title: str,
+        detail: str,
+        headers: dict[str, str] | None = None,
+    ) -> None:
         self._refused = True
         self._disarm_head_timer()
         if self.cycle is not None and not self.cycle.response_complete:
-            self.transport.abort()  # an answer is being written: the connection cannot carry another
+            # an answer is being written: the connection cannot carry another
+            self.transport.abort()
             return
         self.transport.write(_answer(status, reason, title, detail, headers))
         self.transport.close()
 
     def handle_websocket_upgrade(self) -> None:
-        # the WebSocket protocol gets the connection's own transport (it wraps it again for its closes)
+        # the WebSocket protocol gets the connection's own transport (it wraps it again for its
+        # closes)
         if isinstance(self.transport, ClosingTransport):
             self.transport = self.transport.real
         super().handle_websocket_upgrade()
 
 
 class BoundedWebSocketProtocol(WebSocketsSansIOProtocol):
-    """uvicorn's sans-I/O WebSocket protocol whose closes end the TCP connection within `CLOSE_GRACE_S`,
-    counted with the HTTP connections of its client address."""
+    """uvicorn's sans-I/O WebSocket protocol whose closes end the TCP connection within
+    `CLOSE_GRACE_S`, counted with the HTTP connections of its client address."""
 
     connections_per_client: ClientConnections = ClientConnections(64)
 
@@ -241,12 +289,20 @@ class BoundedWebSocketProtocol(WebSocketsSansIOProtocol):
 
 
 def protocols(settings: Any) -> tuple[type[BoundedHttpProtocol], type[BoundedWebSocketProtocol]]:
-    """The HTTP and WebSocket protocol classes for uvicorn's `http=` and `ws=`, with the settings' limits."""
+    """The HTTP and WebSocket protocol classes for uvicorn's `http=` and `ws=`, with the settings'
+    limits."""
     counted = ClientConnections(settings.max_connections_per_client)
-    http = type("TiltlabHttpProtocol", (BoundedHttpProtocol,), {
-        "max_head_bytes": settings.max_header_bytes, "max_head_lines": settings.max_headers + 1,
-        "head_timeout_s": settings.header_timeout_s, "connections_per_client": counted})
-    ws = type("TiltlabWebSocketProtocol", (BoundedWebSocketProtocol,), {"connections_per_client": counted})
+    http = type(
+        "TiltlabHttpProtocol",
+        (BoundedHttpProtocol,),
+        {
+            "max_head_bytes": settings.max_header_bytes,
+            "max_head_lines": settings.max_headers + 1,
+            "head_timeout_s": settings.header_timeout_s,
+            "connections_per_client": counted,
+        },
+    )
+    ws = type(
+        "TiltlabWebSocketProtocol", (BoundedWebSocketProtocol,), {"connections_per_client": counted}
+    )
     return http, ws
-
-

@@ -23,8 +23,9 @@ if TYPE_CHECKING:
 
 STALE_INTERVALS = 3  # a reading older than this many output intervals (plus STALE_SLACK_S) is stale
 STALE_SLACK_S = 0.25  # real seconds: a loaded machine's delay in handing a reading on
-# Real seconds: a bench sped up past one reading per this interval has at most one reading corrected per
-# interval for `GET /tilt` and the stream (the stream's producer thins its messages the same way).
+# Real seconds: a bench sped up past one reading per this interval has at most one reading corrected
+# per interval for `GET /tilt` and the stream (the stream's producer thins its messages the same
+# way).
 MIN_CORRECTION_GAP_S = 0.004
 
 
@@ -41,36 +42,52 @@ def sensor_temp_c(meas: Reading | None, ref: Reading | None) -> float | None:
 
 
 def corrected_tilt(active: Any, meas: Reading) -> dict[str, Any]:
-    """Table tilt in the reference sensor's frame with its uncertainties (GUM, 95 % coverage), per axis: the
-    standard uncertainty u, the expanded U = k·u, the coverage factor k (Student's t at the Welch-Satterthwaite
-    effective degrees of freedom) and those degrees of freedom (None: infinite); `u_x_deg`, `u_y_deg`, `k`, `k_y`
-    repeat the expanded uncertainties and their factors under their former names. An uncertainty the method
-    cannot give is None, and so are its factor and degrees of freedom. `active` is the job manager's
-    ActiveModel of the bench.
+    """Table tilt in the reference sensor's frame with its uncertainties (GUM, 95 % coverage), per
+    axis: the standard uncertainty u, the expanded U = k·u, the coverage factor k (Student's t at
+    the Welch-Satterthwaite effective degrees of freedom) and those degrees of freedom (None:
+    infinite); `u_x_deg`, `u_y_deg`, `k`, `k_y` repeat the expanded uncertainties and their factors
+    under their former names. An uncertainty the method cannot give is None, and so are its factor
+    and degrees of freedom. `active` is the job manager's ActiveModel of the bench.
 
-    The fit's part is the record's parameter covariance with the noise of ONE reading of the measurement sensor
-    (`ActiveModel.live_model`: pooled from the readings the record's job stored at its points); the reference
-    sensor's noise is already in the parameters. It combines with the rest of the record's uncertainty budget:
-    the reference standards' u = U/k, the sensors' resolution, the temperature's influence."""
+    The fit's part is the record's parameter covariance with the noise of ONE reading of the
+    measurement sensor (`ActiveModel.live_model`: pooled from the readings the record's job stored
+    at its points); the reference sensor's noise is already in the parameters. It combines with the
+    rest of the record's uncertainty budget: the reference standards' u = U/k, the sensors'
+    resolution, the temperature's influence."""
     model = getattr(active, "live_model", active.model)
-    out = active.method.correct(model, {"meas_x_deg": np.array([meas.x_deg], dtype=float),
-                                        "meas_y_deg": np.array([meas.y_deg], dtype=float)})
-    table: dict[str, Any] = {"x_deg": float(out["tilt_x_deg"][0]), "y_deg": float(out["tilt_y_deg"][0])}
-    parts = {axis: _fit_part(out, axis, key) for axis, key in (("x", K_OUTPUTS[0]), ("y", K_OUTPUTS[1]))}
+    out = active.method.correct(
+        model,
+        {
+            "meas_x_deg": np.array([meas.x_deg], dtype=float),
+            "meas_y_deg": np.array([meas.y_deg], dtype=float),
+        },
+    )
+    table: dict[str, Any] = {
+        "x_deg": float(out["tilt_x_deg"][0]),
+        "y_deg": float(out["tilt_y_deg"][0]),
+    }
+    parts = {
+        axis: _fit_part(out, axis, key) for axis, key in (("x", K_OUTPUTS[0]), ("y", K_OUTPUTS[1]))
+    }
     return with_uncertainties(table, parts, reading_components(getattr(active, "budget", None)))
 
 
 def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> dict[str, Any]:
-    """The mean of `readings` (the measurement sensor's, at one stand of the stage) corrected through the active
-    record, with the uncertainty of that mean: per axis, the Type A uncertainty of the mean of the corrected
-    readings (`mean_type_a`: their own scatter, their correlation allowed for) combined with the parameters'
-    part at the mean (which does not average down) and the rest of the record's budget (the standards,
-    resolutions, temperature: none of them averages down either). Adds `n_readings` and `window_s`."""
+    """The mean of `readings` (the measurement sensor's, at one stand of the stage) corrected
+    through the active record, with the uncertainty of that mean: per axis, the Type A uncertainty
+    of the mean of the corrected readings (`mean_type_a`: their own scatter, their correlation
+    allowed for) combined with the parameters' part at the mean (which does not average down) and
+    the rest of the record's budget (the standards, resolutions, temperature: none of them averages
+    down either). Adds `n_readings` and `window_s`."""
     mx = np.array([r.x_deg for r in readings], dtype=float)
     my = np.array([r.y_deg for r in readings], dtype=float)
-    each = active.method.correct(getattr(active, "live_model", active.model), {"meas_x_deg": mx, "meas_y_deg": my})
-    at_mean = active.method.correct(getattr(active, "parameter_model", active.model),
-                                    {"meas_x_deg": np.array([mx.mean()]), "meas_y_deg": np.array([my.mean()])})
+    each = active.method.correct(
+        getattr(active, "live_model", active.model), {"meas_x_deg": mx, "meas_y_deg": my}
+    )
+    at_mean = active.method.correct(
+        getattr(active, "parameter_model", active.model),
+        {"meas_x_deg": np.array([mx.mean()]), "meas_y_deg": np.array([my.mean()])},
+    )
     table: dict[str, Any] = {}
     parts: dict[str, tuple[float, float] | None] = {}
     others = reading_components(getattr(active, "budget", None))
@@ -81,7 +98,8 @@ def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> dict
         if fit is None:
             parts[axis] = None
             continue
-        # the parameters' part and the mean's Type A, each with its own degrees of freedom (Welch-Satterthwaite)
+        # the parameters' part and the mean's Type A, each with its own degrees of freedom
+        # (Welch-Satterthwaite)
         u = float(np.hypot(fit[0], mean.u))
         denom = (fit[0] ** 4 / fit[1] if np.isfinite(fit[1]) else 0.0) + mean.u**4 / mean.dof
         parts[axis] = (u, u**4 / denom if denom > 0 else float("inf"))
@@ -91,7 +109,9 @@ def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> dict
 
 
 def _fit_part(out: dict[str, Any], axis: str, k_key: str) -> tuple[float, float] | None:
-    """(u, degrees of freedom) of the method's part of one axis, from its expanded uncertainty and factor."""
+    """(u, degrees of freedom) of the method's part of one axis, from its expanded uncertainty and
+    factor."""
+
     def value(key: str) -> float | None:
         return None if key not in out or not np.isfinite(out[key][0]) else float(out[key][0])
 
@@ -106,29 +126,48 @@ def _standard_and_dof(expanded: float, factor: float) -> tuple[float, float]:
     return expanded / factor, float(dof_of_coverage_factor(np.array([factor]), COVERAGE)[0])
 
 
-def with_uncertainties(table: dict[str, Any], parts: dict[str, tuple[float, float] | None],
-                       others: list[Any]) -> dict[str, Any]:
-    """`table` with each axis's standard and expanded uncertainty, coverage factor and degrees of freedom: the
-    fit's part (u, ν) combined with the budget's other components (GUM, Welch-Satterthwaite)."""
+def with_uncertainties(
+    table: dict[str, Any], parts: dict[str, tuple[float, float] | None], others: list[Any]
+) -> dict[str, Any]:
+    """`table` with each axis's standard and expanded uncertainty, coverage factor and degrees of
+    freedom: the fit's part (u, ν) combined with the budget's other components (GUM,
+    Welch-Satterthwaite)."""
     for axis, part in parts.items():
         u = U = k = dof = None
         if part is not None:
             c = combine(np.array([part[0]]), part[1], others, COVERAGE)
             u, U, k = float(c.u[0]), float(c.U[0]), float(c.k[0])
             dof = float(c.dof_eff[0]) if np.isfinite(c.dof_eff[0]) else None
-        table.update({f"standard_uncertainty_{axis}_deg": u, f"expanded_uncertainty_{axis}_deg": U,
-                      f"coverage_factor_{axis}": k, f"degrees_of_freedom_{axis}": dof})
+        table.update(
+            {
+                f"standard_uncertainty_{axis}_deg": u,
+                f"expanded_uncertainty_{axis}_deg": U,
+                f"coverage_factor_{axis}": k,
+                f"degrees_of_freedom_{axis}": dof,
+            }
+        )
     table["coverage_probability"] = COVERAGE
     # the former names, kept for one release: the expanded uncertainties and their coverage factors
-    table.update({"u_x_deg": table.get("expanded_uncertainty_x_deg"), "u_y_deg": table.get("expanded_uncertainty_y_deg"),
-                  "k": table.get("coverage_factor_x"), "k_y": table.get("coverage_factor_y")})
+    table.update(
+        {
+            "u_x_deg": table.get("expanded_uncertainty_x_deg"),
+            "u_y_deg": table.get("expanded_uncertainty_y_deg"),
+            "k": table.get("coverage_factor_x"),
+            "k_y": table.get("coverage_factor_y"),
+        }
+    )
     return table
 
 
-def from_expanded(table: dict[str, Any], expanded: dict[str, float | None], factors: dict[str, float | None],
-                  coverage: float | None) -> dict[str, Any]:
-    """`table` with the uncertainties of every name, from the expanded uncertainties and coverage factors alone
-    (what the stream's history keeps): u = U/k, and the degrees of freedom k is Student's t at."""
+def from_expanded(
+    table: dict[str, Any],
+    expanded: dict[str, float | None],
+    factors: dict[str, float | None],
+    coverage: float | None,
+) -> dict[str, Any]:
+    """`table` with the uncertainties of every name, from the expanded uncertainties and coverage
+    factors alone (what the stream's history keeps): u = U/k, and the degrees of freedom k is
+    Student's t at."""
     parts: dict[str, tuple[float, float] | None] = {}
     for axis in ("x", "y"):
         U, k = expanded[axis], factors[axis]
@@ -139,13 +178,15 @@ def from_expanded(table: dict[str, Any], expanded: dict[str, float | None], fact
 
 
 # Per bench: the last reading corrected, the record it went through and the result.
-_LAST_CORRECTED: weakref.WeakKeyDictionary[BenchRuntime, tuple[Reading, Any, dict[str, Any]]] = weakref.WeakKeyDictionary()
+_LAST_CORRECTED: weakref.WeakKeyDictionary[BenchRuntime, tuple[Reading, Any, dict[str, Any]]] = (
+    weakref.WeakKeyDictionary()
+)
 
 
 def corrected_once(bench: BenchRuntime, active: Any, meas: Reading) -> dict[str, Any]:
-    """`corrected_tilt` of the bench's reading, computed once per new reading (or newly active record):
-    the sensor sends tens of readings a second, `GET /tilt` and the stream may ask thousands of times.
-    The answer is shared between callers; nobody changes it."""
+    """`corrected_tilt` of the bench's reading, computed once per new reading (or newly active
+    record): the sensor sends tens of readings a second, `GET /tilt` and the stream may ask
+    thousands of times. The answer is shared between callers; nobody changes it."""
     last = _LAST_CORRECTED.get(bench)
     if last is not None and last[0] is meas and last[1] is active:
         return last[2]
@@ -154,25 +195,34 @@ def corrected_once(bench: BenchRuntime, active: Any, meas: Reading) -> dict[str,
     return table
 
 
-def corrected_reading(bench: BenchRuntime, active: Any, meas: Reading) -> tuple[Reading, dict[str, Any]]:
+def corrected_reading(
+    bench: BenchRuntime, active: Any, meas: Reading
+) -> tuple[Reading, dict[str, Any]]:
     """The reading `GET /tilt` serves and its corrected tilt: `meas`, the bench's latest, through
     `corrected_once`; on a bench sped up past one reading per MIN_CORRECTION_GAP_S of real time, the
     last reading corrected while `meas` came less than that after it (a simulation at 20 times real
     time sends a reading a millisecond, and each would cost a correction). A bench at its own pace
     always gets its latest reading corrected."""
     last = _LAST_CORRECTED.get(bench)
-    if (last is not None and last[1] is active and last[0].role == meas.role
-            and bench.clock.real_seconds(bench.output_interval_s(meas.role)) < MIN_CORRECTION_GAP_S
-            and 0.0 <= bench.clock.real_seconds(meas.bench_s - last[0].bench_s) < MIN_CORRECTION_GAP_S * 0.999):
+    if (
+        last is not None
+        and last[1] is active
+        and last[0].role == meas.role
+        and bench.clock.real_seconds(bench.output_interval_s(meas.role)) < MIN_CORRECTION_GAP_S
+        and 0.0
+        <= bench.clock.real_seconds(meas.bench_s - last[0].bench_s)
+        < MIN_CORRECTION_GAP_S * 0.999
+    ):
         return last[0], last[2]
     return meas, corrected_once(bench, active, meas)
 
 
 def reference_tilt(active: Any, ref: Reading | None, temp_c: float | None) -> dict[str, Any] | None:
-    """The reference sensor's reading through the active record's model of its own errors (a non-linearity, a
-    temperature effect, a drift): the table tilt it stands for, {"x_deg", "y_deg", "record_id"}; None when there
-    is no reading or the record models none of them (its readings are then the table tilt). Without the
-    temperature or time the model needs, the angles are None and `note` says why."""
+    """The reference sensor's reading through the active record's model of its own errors (a
+    non-linearity, a temperature effect, a drift): the table tilt it stands for, {"x_deg", "y_deg",
+    "record_id"}; None when there is no reading or the record models none of them (its readings are
+    then the table tilt). Without the temperature or time the model needs, the angles are None and
+    `note` says why."""
     errors = getattr(active, "reference", None) if active is not None else None
     if errors is None or ref is None or ref.x_deg is None or ref.y_deg is None:
         return None
@@ -189,56 +239,95 @@ def reference_tilt(active: Any, ref: Reading | None, temp_c: float | None) -> di
 
 
 def in_calibrated_range(active: Any, table: dict[str, Any] | None) -> bool | None:
-    """Whether a corrected table tilt lies within the table tilts the active record was fitted on (per axis,
-    the reference sensor's frame); None when there is no corrected tilt or the record states no range."""
+    """Whether a corrected table tilt lies within the table tilts the active record was fitted on
+    (per axis, the reference sensor's frame); None when there is no corrected tilt or the record
+    states no range."""
     seen = getattr(active, "table_tilt_range_deg", None) if active is not None else None
     if table is None or seen is None:
         return None
-    return bool(seen["x"][0] <= table["x_deg"] <= seen["x"][1] and seen["y"][0] <= table["y_deg"] <= seen["y"][1])
+    return bool(
+        seen["x"][0] <= table["x_deg"] <= seen["x"][1]
+        and seen["y"][0] <= table["y_deg"] <= seen["y"][1]
+    )
 
 
 def calibrated_range_note(active: Any, table: dict[str, Any]) -> str:
-    """What `note` says of a corrected tilt outside the calibrated range: served, but extrapolated."""
+    """What `note` says of a corrected tilt outside the calibrated range: served, but
+    extrapolated."""
     seen = active.table_tilt_range_deg
-    return (f"outside the calibrated range of record {active.record_id} (x {seen['x'][0]:.4g} to {seen['x'][1]:.4g}°,"
-            f" y {seen['y'][0]:.4g} to {seen['y'][1]:.4g}°): the corrected tilt is extrapolated")
+    return (
+        f"outside the calibrated range of record {active.record_id} (x {seen['x'][0]:.4g} to "
+        f"{seen['x'][1]:.4g}°,"
+        f" y {seen['y'][0]:.4g} to {seen['y'][1]:.4g}°): the corrected tilt is extrapolated"
+    )
 
 
 def calibration_json(active: Any) -> dict[str, Any] | None:
-    """The `calibration` object of /tilt and the stream's snapshot: which record corrects, and its status."""
+    """The `calibration` object of /tilt and the stream's snapshot: which record corrects, and its
+    status."""
     if active is None:
         return None
-    return {"record_id": active.record_id, "version": active.version, "method": active.method_name,
-            "status": active.status, "reading_noise": getattr(active, "reading_noise_source", None)}
+    return {
+        "record_id": active.record_id,
+        "version": active.version,
+        "method": active.method_name,
+        "status": active.status,
+        "reading_noise": getattr(active, "reading_noise_source", None),
+    }
 
 
-def averaged_at_stand(bench: BenchRuntime, active: Any, meas: Reading, average_s: float) -> tuple[dict[str, Any] | None, str]:
-    """`GET /tilt?average_s`: the averaged table tilt over the readings up to `meas` (the latest) since the
-    readings settled at the stage's present stand, and what `note` says of its window."""
+def averaged_at_stand(
+    bench: BenchRuntime, active: Any, meas: Reading, average_s: float
+) -> tuple[dict[str, Any] | None, str]:
+    """`GET /tilt?average_s`: the averaged table tilt over the readings up to `meas` (the latest)
+    since the readings settled at the stage's present stand, and what `note` says of its window."""
     still = bench.pose.still_since_bench_s
     if bench.pose.moving or still is None:
-        return None, "the stage is moving: no average (average_s takes readings while the stage stands)"
-    kept = bench.readings_after("measurement_sensor", float("-inf"))  # the driver keeps the latest few thousand
-    stand = [r for r in kept if still < r.bench_s <= meas.bench_s and r.x_deg is not None and r.y_deg is not None]
+        return (
+            None,
+            "the stage is moving: no average (average_s takes readings while the stage stands)",
+        )
+    # the driver keeps the latest few thousand
+    kept = bench.readings_after("measurement_sensor", float("-inf"))
+    stand = [
+        r
+        for r in kept
+        if still < r.bench_s <= meas.bench_s and r.x_deg is not None and r.y_deg is not None
+    ]
     began, since = still, "the end of the stage's last move"
     noise = getattr(active, "reading_noise", None)
     if noise is not None and noise.sigma_deg > 0:
-        # the table rings and the sensor lags after a move: the window starts once the readings have settled
-        settled = bench.stand_settling.settled_since(still, np.array([[r.x_deg, r.y_deg] for r in stand], dtype=float),
-                                                     [r.bench_s for r in stand], noise.sigma_deg)
+        # the table rings and the sensor lags after a move: the window starts once the readings have
+        # settled
+        settled = bench.stand_settling.settled_since(
+            still,
+            np.array([[r.x_deg, r.y_deg] for r in stand], dtype=float),
+            [r.bench_s for r in stand],
+            noise.sigma_deg,
+        )
         if settled is None:
-            return None, (f"the readings since the end of the stage's last move ({meas.bench_s - still:.3g} s ago) have"
-                          f" not yet settled within one reading's noise ({noise.sigma_deg:.2g} deg, {SETTLING_RULE}):"
-                          " no average of a transient")
+            return None, (
+                "the readings since the end of the stage's last move "
+                f"({meas.bench_s - still:.3g} s ago) have not yet settled within one reading's "
+                f"noise ({noise.sigma_deg:.2g} deg, {SETTLING_RULE}): no average of a transient"
+            )
         began, since = settled, "when the readings settled after the stage's last move"
     start = max(meas.bench_s - average_s, began)
     readings = [r for r in stand if r.bench_s > start]
     window_s = meas.bench_s - start
     if len(readings) < 2:
-        return None, (f"{len(readings)} reading(s) since {since} ({window_s:.3g} s ago): an average needs two or more")
-    reach = ("" if start > began or window_s >= average_s
-             else f"; the window starts {since}, {window_s:.3g} s before the latest reading")
+        return None, (
+            f"{len(readings)} reading(s) since {since} ({window_s:.3g} s ago): an average needs "
+            "two or more"
+        )
+    reach = (
+        ""
+        if start > began or window_s >= average_s
+        else f"; the window starts {since}, {window_s:.3g} s before the latest reading"
+    )
     if kept[0].bench_s > start:  # the oldest reading kept is younger than the window
         window_s = meas.bench_s - kept[0].bench_s
         reach += f"; only the last {window_s:.3g} s of readings are kept"
-    return averaged_tilt(active, readings, window_s), f"mean of {len(readings)} readings over {window_s:.3g} s{reach}"
+    return averaged_tilt(
+        active, readings, window_s
+    ), f"mean of {len(readings)} readings over {window_s:.3g} s{reach}"

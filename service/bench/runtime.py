@@ -30,8 +30,15 @@ T = TypeVar("T")
 
 STAGE_POLL_S = 0.1  # bench seconds between pose queries
 STAGE_POLL_MIN_S = 0.05  # real seconds: a sped-up bench's pose is not asked more often than this
-TEMPERATURE_POLL_S = 10.0  # bench seconds between temperature queries of sensors whose frames carry none
-SENSOR_ROLES = ("reference_sensor", "measurement_sensor", "triaxial_sensor", "turntable_sensor", "adc_sensor")
+# bench seconds between temperature queries of sensors whose frames carry none
+TEMPERATURE_POLL_S = 10.0
+SENSOR_ROLES = (
+    "reference_sensor",
+    "measurement_sensor",
+    "triaxial_sensor",
+    "turntable_sensor",
+    "adc_sensor",
+)
 MOTION_ROLES = ("stage", "rotary_table")
 
 
@@ -44,21 +51,25 @@ class DeviceNotAnswering(Exception):
 
 
 class StageNotHomed(DeviceError):
-    """The stage controller has not found its reference switches since power-up and refuses moves."""
+    """The stage controller has not found its reference switches since power-up and refuses
+    moves."""
 
 
 class MotionStopped(DeviceError):
-    """A move or homing ended by `POST /stage/stop` (or a job's stop) before it reached its end: a conflict
-    with another request, not a device fault."""
+    """A move or homing ended by `POST /stage/stop` (or a job's stop) before it reached its end: a
+    conflict with another request, not a device fault."""
 
 
-NOT_HOMED = controller.ERROR_NAMES[controller.ERR_NOT_HOMED]  # the controller's refusal, as the driver names it
+# the controller's refusal, as the driver names it
+NOT_HOMED = controller.ERROR_NAMES[controller.ERR_NOT_HOMED]
 
 
 def _not_homed(bench: str, exc: DeviceRefused) -> Exception:
     if NOT_HOMED in str(exc):
-        return StageNotHomed(f"bench {bench!r}: the stage is not homed (its controller refuses moves until it has"
-                             f" found its reference switches); home it first (POST /stage/home): {exc}")
+        return StageNotHomed(
+            f"bench {bench!r}: the stage is not homed (its controller refuses moves until it has"
+            f" found its reference switches); home it first (POST /stage/home): {exc}"
+        )
     return exc
 
 
@@ -73,8 +84,12 @@ class Hold(StrEnum):
     HOMING = "homing"
 
 
-_HOLD_TEXT = {Hold.JOB_BEING_CREATED: "a job being created", Hold.STAGE_MOVE: "a stage move",
-              Hold.LEVELLING: "levelling", Hold.HOMING: "homing"}
+_HOLD_TEXT = {
+    Hold.JOB_BEING_CREATED: "a job being created",
+    Hold.STAGE_MOVE: "a stage move",
+    Hold.LEVELLING: "levelling",
+    Hold.HOMING: "homing",
+}
 
 
 @dataclass(frozen=True)
@@ -98,7 +113,8 @@ class BenchHold:
 
 async def polled(query: Callable[[], Awaitable[T]], misses: int = IDLE_POLL_MISSES) -> T:
     """A poll of a device's state or position, asked again when its answer is lost on the line:
-    only `misses` unanswered in a row raise (a single lost answer under load is not a lost device)."""
+    only `misses` unanswered in a row raise (a single lost answer under load is not a lost
+    device)."""
     for attempt in range(1, misses + 1):
         try:
             return await query()
@@ -114,8 +130,9 @@ class StagePose:
     y_deg: float | None = None
     moving: bool = False
     time_utc: dt.datetime | None = None
-    # Bench seconds (the bench clock's) since which the stage has stood where it stands: the earliest reading an
-    # averaged tilt may take (None while it moves, or before its pose was first asked)
+    # Bench seconds (the bench clock's) since which the stage has stood where it stands: the
+    # earliest reading an averaged tilt may take (None while it moves, or before its pose was first
+    # asked)
     still_since_bench_s: float | None = None
     # Sign of the last move of each axis (the side backlash is taken up on).
     dir_x: float = 1.0
@@ -123,7 +140,8 @@ class StagePose:
 
 
 class SimulatedBench(Protocol):
-    """The simulated bench behind a bench's ports: closed with it; its world names the scenarios it runs."""
+    """The simulated bench behind a bench's ports: closed with it; its world names the scenarios it
+    runs."""
 
     @property
     def world(self) -> object: ...
@@ -132,8 +150,13 @@ class SimulatedBench(Protocol):
 
 
 class BenchRuntime:
-    def __init__(self, config: BenchConfig, clock: Clock, devices: BenchDevices | None = None,
-                 sim: SimulatedBench | None = None) -> None:
+    def __init__(
+        self,
+        config: BenchConfig,
+        clock: Clock,
+        devices: BenchDevices | None = None,
+        sim: SimulatedBench | None = None,
+    ) -> None:
         self.config = config
         self.name = config.name
         self.kind = config.kind
@@ -142,10 +165,12 @@ class BenchRuntime:
         self.sim = sim  # the simulated bench behind the ports, if any (its truth is for tests)
         self.pose = StagePose()
         self.rotary_deg: float | None = None
-        # Bench seconds at which the last motion (a move, homing, a turn) was found at its end by the controller:
-        # when it stopped, however late the daemon read the answer (the boundary of a job's moving and settling)
+        # Bench seconds at which the last motion (a move, homing, a turn) was found at its end by
+        # the controller: when it stopped, however late the daemon read the answer (the boundary of
+        # a job's moving and settling)
         self.stopped_bench_s: float = clock.monotonic()
-        self.stand_settling = StandSettling()  # when the readings at the present stand settled (averaged tilt)
+        # when the readings at the present stand settled (averaged tilt)
+        self.stand_settling = StandSettling()
         self.identities: dict[str, DeviceIdentity] = {}
         self.device_ids: dict[str, int] = {}
         self.bench_id: int | None = None
@@ -188,8 +213,8 @@ class BenchRuntime:
         return self.devices.sensor(role).latest() if role in self.devices else None
 
     def readings_after(self, role: str, bench_s: float) -> list[Reading]:
-        """Every kept reading of the role stamped after `bench_s`, oldest first (the latest only, for a
-        device that keeps no history)."""
+        """Every kept reading of the role stamped after `bench_s`, oldest first (the latest only,
+        for a device that keeps no history)."""
         if role not in self.devices:
             return []
         return self.devices.sensor(role).readings_after(bench_s)
@@ -224,23 +249,29 @@ class BenchRuntime:
     async def _poll_temperatures(self) -> None:
         """Binary inclinometers send angles only; their temperature (0x06) is asked now and then, so
         GET /tilt and the streams carry one between jobs too (a job asks at every point)."""
-        drivers = [d for d in (self.devices.temperature_on_request(r)
-                               for r in ("reference_sensor", "measurement_sensor", "triaxial_sensor"))
-                   if d is not None]
+        drivers = [
+            d
+            for d in (
+                self.devices.temperature_on_request(r)
+                for r in ("reference_sensor", "measurement_sensor", "triaxial_sensor")
+            )
+            if d is not None
+        ]
         while drivers:
             for driver in drivers:
                 if driver.status.state == "connected" and driver.answers_temperature:
                     with contextlib.suppress(DeviceError):
                         await driver.read_temperature()
-            # bench time (a sped-up bench is asked more often), but never more than once a real second
+            # bench time (a sped-up bench is asked more often), but never more than once a real
+            # second
             await asyncio.sleep(max(self.clock.real_seconds(TEMPERATURE_POLL_S), 1.0))
 
     async def refresh_pose(self) -> None:
         if "stage" in self.devices:
             stage = self.devices.stage_axes()
             x, y = await polled(stage.position_deg)
-            # a stage that stood at the last poll and has not moved since still stands: its states are
-            # asked only when something moved (a move's end, a jog) or motion was under way
+            # a stage that stood at the last poll and has not moved since still stands: its states
+            # are asked only when something moved (a move's end, a jog) or motion was under way
             moving = False
             changed = self.pose.moving or (x, y) != (self.pose.x_deg, self.pose.y_deg)
             if changed:
@@ -248,7 +279,8 @@ class BenchRuntime:
             if moving:
                 self.pose.still_since_bench_s = None
             elif changed or self.pose.still_since_bench_s is None:
-                self.pose.still_since_bench_s = self.clock.monotonic()  # it stands: since now, as far as is known
+                # it stands: since now, as far as is known
+                self.pose.still_since_bench_s = self.clock.monotonic()
             self.pose.x_deg, self.pose.y_deg, self.pose.moving = x, y, moving
             self.pose.time_utc = self.clock.utc()
         if "rotary_table" in self.devices:
@@ -280,9 +312,13 @@ class BenchRuntime:
             raise DeviceNotAnswering(f"bench {self.name!r} has no {role}")
         st = self.devices[role].status
         if st.state != "connected":
-            raise DeviceNotAnswering(f"{role} on {st.port} is {st.state}" + (f": {st.error}" if st.error else ""))
+            raise DeviceNotAnswering(
+                f"{role} on {st.port} is {st.state}" + (f": {st.error}" if st.error else "")
+            )
 
-    async def move_stage(self, x_deg: float, y_deg: float, *, timeout_s: float = 600.0) -> tuple[float, float]:
+    async def move_stage(
+        self, x_deg: float, y_deg: float, *, timeout_s: float = 600.0
+    ) -> tuple[float, float]:
         """Move both stages and wait until they stand; returns the position reached (degrees)."""
         self.require("stage")
         stage = self.devices.stage_axes()
@@ -303,19 +339,24 @@ class BenchRuntime:
             return self._stage_position()
 
     async def _stood_mark(self) -> float:
-        """Bench seconds after which every reading of the tilt sensors was made with the stage standing: a sync
-        mark, since a lagging reader may still hand out readings made during the move (the present time where no
-        sensor answers)."""
-        roles = tuple(r for r in ("measurement_sensor", "reference_sensor")
-                      if r in self.devices and self.devices[r].status.state == "connected")
+        """Bench seconds after which every reading of the tilt sensors was made with the stage
+        standing: a sync mark, since a lagging reader may still hand out readings made during the
+        move (the present time where no sensor answers)."""
+        roles = tuple(
+            r
+            for r in ("measurement_sensor", "reference_sensor")
+            if r in self.devices and self.devices[r].status.state == "connected"
+        )
         with contextlib.suppress(DeviceError):
             return await self.sync(roles) if roles else self.clock.monotonic()
         return self.clock.monotonic()
 
-    async def _until_idle(self, wait: Callable[[float], Awaitable[float]], timeout_s: float) -> float:
-        """Wait for motion to end; a stop requested meanwhile is MotionStopped, whatever state the stop left the
-        axes in (a homing stopped half way ends in the controller's error state). Returns the bench time the
-        controller was found standing."""
+    async def _until_idle(
+        self, wait: Callable[[float], Awaitable[float]], timeout_s: float
+    ) -> float:
+        """Wait for motion to end; a stop requested meanwhile is MotionStopped, whatever state the
+        stop left the axes in (a homing stopped half way ends in the controller's error state).
+        Returns the bench time the controller was found standing."""
         try:
             stopped = await wait(timeout_s)
         except DeviceError:
@@ -326,7 +367,8 @@ class BenchRuntime:
 
     def _stage_position(self) -> tuple[float, float]:
         x, y = self.pose.x_deg, self.pose.y_deg
-        assert x is not None and y is not None  # refresh_pose has just read both axes from the controller
+        # refresh_pose has just read both axes from the controller
+        assert x is not None and y is not None
         return x, y
 
     async def home_stage(self, *, timeout_s: float = 600.0) -> tuple[float, float]:
@@ -353,12 +395,16 @@ class BenchRuntime:
 
     def _check_stopped(self) -> None:
         if self.stop_requested.is_set():
-            raise MotionStopped(f"bench {self.name!r}: motion stopped by request (POST /stage/stop) before it"
-                                " reached its end")
+            raise MotionStopped(
+                f"bench {self.name!r}: motion stopped by request (POST /stage/stop) before it"
+                " reached its end"
+            )
 
     async def stop(self) -> None:
         """Stop every axis now, whatever holds the bench (the motion lock is not waited for)."""
         self.stop_requested.set()
         for role in MOTION_ROLES:
             if role in self.devices:
-                await (self.devices.stage_axes(role) if role == "stage" else self.devices.axis(role)).stop()
+                await (
+                    self.devices.stage_axes(role) if role == "stage" else self.devices.axis(role)
+                ).stop()

@@ -13,8 +13,8 @@ from service.instruments.bench_config import load_bench_config
 
 
 def check_sim_speed(settings: Settings) -> None:
-    """A speed-up the simulated lines cannot carry is refused before anything starts (the frames would
-    queue without end, the readings arrive ever later and requests time out)."""
+    """A speed-up the simulated lines cannot carry is refused before anything starts (the frames
+    would queue without end, the readings arrive ever later and requests time out)."""
     if settings.bench_config is not None:
         return
     from service.instruments.sim import fastest_speed
@@ -22,8 +22,10 @@ def check_sim_speed(settings: Settings) -> None:
     for kind in settings.sim_benches:
         limit, why = fastest_speed(kind)
         if settings.sim_speed > limit:
-            raise InputError(f"TILTLAB_SIM_SPEED (--sim-speed) {settings.sim_speed:g} is more than the simulated {kind}"
-                             f" bench can run: {why}, so at most {limit:g} times real time")
+            raise InputError(
+                f"TILTLAB_SIM_SPEED (--sim-speed) {settings.sim_speed:g} is more than the "
+                f"simulated {kind} bench can run: {why}, so at most {limit:g} times real time"
+            )
 
 
 def plan_benches(settings: Settings) -> list[BenchRuntime]:
@@ -40,8 +42,14 @@ def plan_benches(settings: Settings) -> list[BenchRuntime]:
     for kind in settings.sim_benches:
         scenario = settings.bench_scenario if kind == "stage" else settings.rotary_scenario
         try:
-            sim = start_simulated_bench(scenario, kind, clock, adc=(kind == "stage"),
-                                        transport=settings.sim_transport, ambient=settings.sim_ambient_sensor)
+            sim = start_simulated_bench(
+                scenario,
+                kind,
+                clock,
+                adc=(kind == "stage"),
+                transport=settings.sim_transport,
+                ambient=settings.sim_ambient_sensor,
+            )
         except InputError as exc:
             var = "TILTLAB_BENCH_SCENARIO" if kind == "stage" else "TILTLAB_ROTARY_SCENARIO"
             for r in runtimes:

@@ -1,22 +1,24 @@
-"""An adaptive stage calibration's plan: which points, how many readings at each, in what order, to reach a
-target expanded uncertainty of the correction in the least bench time. Pure: numbers in, a plan out.
+"""An adaptive stage calibration's plan: which points, how many readings at each, in what order, to
+reach a target expanded uncertainty of the correction in the least bench time. Pure: numbers in, a
+plan out.
 
-What a stage record corrects with is the measurement sensor's model against the reference (zero offsets,
-scales, yaw, non-orthogonality, seat tilt: MEAS_PARAMS), fitted to the point means. Linearised about a
-nominal mounting, a point at table tilt (X, Y) read n times contributes J(X, Y)ᵀJ(X, Y)·n/σ² to the
-information matrix (σ² = σ_meas² + σ_ref², one reading of each), and the corrected tilt's variance at
-(X, Y) from the parameters is g C gᵀ, C the inverse information and g the same Jacobian (the correction is
-the model inverted, whose sensitivity to a parameter is minus the forward one). The criterion is the mean of
-that variance over the requested range (I-optimality); the figure checked against the target is the
-expanded uncertainty of the correction over the range, k·√(max over the range of the variance + the
-components every corrected tilt carries: standards, resolutions), which is the record's part of a corrected
-tilt's uncertainty (a live reading's own noise adds to it when the record is used).
+What a stage record corrects with is the measurement sensor's model against the reference (zero
+offsets, scales, yaw, non-orthogonality, seat tilt: MEAS_PARAMS), fitted to the point means.
+Linearised about a nominal mounting, a point at table tilt (X, Y) read n times contributes J(X,
+Y)ᵀJ(X, Y)·n/σ² to the information matrix (σ² = σ_meas² + σ_ref², one reading of each), and the
+corrected tilt's variance at (X, Y) from the parameters is g C gᵀ, C the inverse information and g
+the same Jacobian (the correction is the model inverted, whose sensitivity to a parameter is minus
+the forward one). The criterion is the mean of that variance over the requested range
+(I-optimality); the figure checked against the target is the expanded uncertainty of the correction
+over the range, k·√(max over the range of the variance + the components every corrected tilt
+carries: standards, resolutions), which is the record's part of a corrected tilt's uncertainty (a
+live reading's own noise adds to it when the record is used).
 
-The plan starts from a spread grid (min_grid × min_grid of the candidate lattice, so the diagnosis has points
-over the whole range to test its candidate effects on), adds candidate points by the criterion while they save
-bench time, and reads every point the number of times that brings the predicted U to the target (the fit
-weighs point means alike, so equal readings are what its covariance will show). Points are visited in
-serpentine order (rows of y, x alternating).
+The plan starts from a spread grid (min_grid × min_grid of the candidate lattice, so the diagnosis
+has points over the whole range to test its candidate effects on), adds candidate points by the
+criterion while they save bench time, and reads every point the number of times that brings the
+predicted U to the target (the fit weighs point means alike, so equal readings are what its
+covariance will show). Points are visited in serpentine order (rows of y, x alternating).
 """
 
 from __future__ import annotations
@@ -33,22 +35,27 @@ K_EXPANDED = 2.0  # coverage factor of the expanded uncertainty (95 %, many degr
 MIN_READINGS = 5
 CAP_READINGS = 200  # at most this many readings at one point
 MIN_GRID = 4  # the spread grid: min_grid x min_grid points over the range
-PLAN_MARGIN = 0.85  # the plan aims at this share of the target (the fit's estimate of the noise scatters about 15 %)
+# the plan aims at this share of the target (the fit's estimate of the noise scatters about 15 %)
+PLAN_MARGIN = 0.85
 EVAL_GRID = 13  # the range is evaluated on this lattice per axis
 
 
 class TargetUnreachable(ValueError):
-    """The target is below what this bench can reach over the range: `floor_deg` is the best it can."""
+    """The target is below what this bench can reach over the range: `floor_deg` is the best it
+    can."""
 
     def __init__(self, target_deg: float, floor_deg: float, why: str) -> None:
-        super().__init__(f"target_expanded_uncertainty_deg {target_deg:g} deg cannot be reached: {why}; the best this "
-                         f"bench can reach over the range is {floor_deg:.4g} deg")
+        super().__init__(
+            f"target_expanded_uncertainty_deg {target_deg:g} deg cannot be reached: {why}; the "
+            f"best this bench can reach over the range is {floor_deg:.4g} deg"
+        )
         self.target_deg, self.floor_deg = target_deg, floor_deg
 
 
 @dataclass(frozen=True)
 class BenchTimes:
-    """What a point costs in bench time: moving at the stage's rate, settling, reading at the output rate."""
+    """What a point costs in bench time: moving at the stage's rate, settling, reading at the output
+    rate."""
 
     stage_rate_deg_per_s: float = 2.8
     settle_s: float = 1.5
@@ -65,7 +72,8 @@ class BenchTimes:
 
 @dataclass(frozen=True)
 class BenchNoise:
-    """One reading's noise of each sensor (σ, deg), and the components every corrected tilt carries (u, deg)."""
+    """One reading's noise of each sensor (σ, deg), and the components every corrected tilt carries
+    (u, deg)."""
 
     meas_sigma_deg: float
     ref_sigma_deg: float
@@ -88,14 +96,22 @@ class AdaptivePlan:
     notes: list[str] = field(default_factory=list)
 
     def as_json(self) -> dict[str, object]:
-        return {"points": [list(p) for p in self.points], "readings": self.readings,
-                "predicted_expanded_uncertainty_deg": self.predicted_u_deg,
-                "target_expanded_uncertainty_deg": self.target_deg, "floor_expanded_uncertainty_deg": self.floor_deg,
-                "expected_bench_seconds": self.bench_seconds, "criterion_mean_variance_deg2": self.mean_variance_deg2}
+        return {
+            "points": [list(p) for p in self.points],
+            "readings": self.readings,
+            "predicted_expanded_uncertainty_deg": self.predicted_u_deg,
+            "target_expanded_uncertainty_deg": self.target_deg,
+            "floor_expanded_uncertainty_deg": self.floor_deg,
+            "expected_bench_seconds": self.bench_seconds,
+            "criterion_mean_variance_deg2": self.mean_variance_deg2,
+        }
 
 
-def jacobian(points: NDArray[np.float64], p0: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
-    """(N, 2, P): d(meas x, meas y)/d(MEAS_PARAMS) at table tilts `points` (N, 2), by central differences."""
+def jacobian(
+    points: NDArray[np.float64], p0: NDArray[np.float64] | None = None
+) -> NDArray[np.float64]:
+    """(N, 2, P): d(meas x, meas y)/d(MEAS_PARAMS) at table tilts `points` (N, 2), by central
+    differences."""
     p0 = np.zeros(len(MEAS_PARAMS)) if p0 is None else p0
     sign = np.ones(2)
     out = np.empty((points.shape[0], 2, p0.size))
@@ -111,7 +127,9 @@ def jacobian(points: NDArray[np.float64], p0: NDArray[np.float64] | None = None)
     return out
 
 
-def lattice(x_deg: tuple[float, float], y_deg: tuple[float, float], n_x: int, n_y: int) -> NDArray[np.float64]:
+def lattice(
+    x_deg: tuple[float, float], y_deg: tuple[float, float], n_x: int, n_y: int
+) -> NDArray[np.float64]:
     xs, ys = np.linspace(x_deg[0], x_deg[1], n_x), np.linspace(y_deg[0], y_deg[1], n_y)
     return np.array([(x, y) for y in ys for x in xs], dtype=float)
 
@@ -119,7 +137,9 @@ def lattice(x_deg: tuple[float, float], y_deg: tuple[float, float], n_x: int, n_
 class Design:
     """The information of chosen points and the correction's predicted variance over the range."""
 
-    def __init__(self, candidates: NDArray[np.float64], evaluation: NDArray[np.float64], noise: BenchNoise) -> None:
+    def __init__(
+        self, candidates: NDArray[np.float64], evaluation: NDArray[np.float64], noise: BenchNoise
+    ) -> None:
         self.candidates = candidates
         self.jc = jacobian(candidates)  # (C, 2, P)
         self.info_c = np.einsum("cap,caq->cpq", self.jc, self.jc) / noise.sigma2  # per reading
@@ -127,7 +147,8 @@ class Design:
         self.noise = noise
 
     def variances(self, counts: NDArray[np.float64]) -> NDArray[np.float64] | None:
-        """(E, 2) predicted variance of the corrected tilt at the evaluation points; None when singular."""
+        """(E, 2) predicted variance of the corrected tilt at the evaluation points; None when
+        singular."""
         info = np.einsum("c,cpq->pq", counts, self.info_c)
         try:
             cov = np.linalg.inv(info)
@@ -150,7 +171,8 @@ class Design:
 
 
 def serpentine(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    """Rows of equal y in increasing y, x alternating direction: short travel, every point from below."""
+    """Rows of equal y in increasing y, x alternating direction: short travel, every point from
+    below."""
     rows: dict[float, list[tuple[float, float]]] = {}
     for p in points:
         rows.setdefault(round(p[1], 9), []).append(p)
@@ -178,37 +200,59 @@ def readings_needed(v_max_one: float, target_deg: float, fixed_u_deg: float) -> 
     return math.inf if room <= 0 else v_max_one / room
 
 
-def plan_adaptive(x_deg: tuple[float, float], y_deg: tuple[float, float], n_x: int, n_y: int, target_deg: float,
-                  noise: BenchNoise, times: BenchTimes = BenchTimes(), min_grid: int = MIN_GRID) -> AdaptivePlan:
-    """The adaptive plan over the candidate lattice n_x x n_y of the range; TargetUnreachable when even the
-    floor (every candidate at the cap) is above the target, or the fixed components alone are.
+def plan_adaptive(
+    x_deg: tuple[float, float],
+    y_deg: tuple[float, float],
+    n_x: int,
+    n_y: int,
+    target_deg: float,
+    noise: BenchNoise,
+    times: BenchTimes = BenchTimes(),
+    min_grid: int = MIN_GRID,
+) -> AdaptivePlan:
+    """The adaptive plan over the candidate lattice n_x x n_y of the range; TargetUnreachable when
+    even the floor (every candidate at the cap) is above the target, or the fixed components alone
+    are.
 
-    The fit weighs every point alike (its point means are fitted unweighted), so every chosen point is read the
-    same number of times n: the n at which the point's share of the variance brings the predicted U to
-    PLAN_MARGIN x the target. Points are added greedily, each time the candidate that most lowers the mean predicted variance over
-    the range (the criterion), as long as the n it saves at every point is worth more bench time than the point
-    costs (a move, settling, its readings); and while n would exceed the cap.
+    The fit weighs every point alike (its point means are fitted unweighted), so every chosen point
+    is read the same number of times n: the n at which the point's share of the variance brings the
+    predicted U to PLAN_MARGIN x the target. Points are added greedily, each time the candidate that
+    most lowers the mean predicted variance over the range (the criterion), as long as the n it
+    saves at every point is worth more bench time than the point costs (a move, settling, its
+    readings); and while n would exceed the cap.
     """
     fixed_floor = K_EXPANDED * noise.fixed_u_deg
     if target_deg <= fixed_floor:
-        raise TargetUnreachable(target_deg, fixed_floor, "the standards' and resolutions' part of every corrected tilt "
-                                                         f"is already {fixed_floor:.4g} deg (expanded)")
+        raise TargetUnreachable(
+            target_deg,
+            fixed_floor,
+            "the standards' and resolutions' part of every corrected tilt "
+            f"is already {fixed_floor:.4g} deg (expanded)",
+        )
     cand = lattice(x_deg, y_deg, n_x, n_y)
     evaluation = lattice(x_deg, y_deg, EVAL_GRID, EVAL_GRID)
     design = Design(cand, evaluation, noise)
     best = floor_u(design)
     if best > target_deg:
-        raise TargetUnreachable(target_deg, best, f"with the bench's reading noise (meas {noise.meas_sigma_deg:.2g}, ref "
-                                                  f"{noise.ref_sigma_deg:.2g} deg a reading), every one of the "
-                                                  f"{cand.shape[0]} candidate points read {CAP_READINGS} times")
+        raise TargetUnreachable(
+            target_deg,
+            best,
+            f"with the bench's reading noise (meas {noise.meas_sigma_deg:.2g}, ref "
+            f"{noise.ref_sigma_deg:.2g} deg a reading), every one of the "
+            f"{cand.shape[0]} candidate points read {CAP_READINGS} times",
+        )
     chosen = np.zeros(cand.shape[0], dtype=bool)
     chosen[spread_indices(n_x, n_y, min_grid)] = True
-    aim = PLAN_MARGIN * target_deg  # the fit's own estimate of the noise scatters: aim a little below
+    # the fit's own estimate of the noise scatters: aim a little below
+    aim = PLAN_MARGIN * target_deg
 
     def n_for(mask: NDArray[np.bool_]) -> float:
         v = design.variances(mask.astype(float))
-        return math.inf if v is None else max(readings_needed(float(v.max()), aim, noise.fixed_u_deg),
-                                              float(MIN_READINGS))
+        return (
+            math.inf
+            if v is None
+            else max(readings_needed(float(v.max()), aim, noise.fixed_u_deg), float(MIN_READINGS))
+        )
 
     def cost(mask: NDArray[np.bool_], n: float) -> float:
         tour = serpentine([(float(cand[i, 0]), float(cand[i, 1])) for i in np.nonzero(mask)[0]])
@@ -242,14 +286,33 @@ def plan_adaptive(x_deg: tuple[float, float], y_deg: tuple[float, float], n_x: i
     for p in order:
         seconds += times.move_s(here_pt, p) + times.point_s(n_int)
         here_pt = p
-    return AdaptivePlan(order, readings, design.expanded_u(counts), design.criterion(counts), seconds, target_deg, best,
-                        [(f"{len(order)} points ({min_grid} x {min_grid} spread for the diagnosis, the rest chosen for"
-                          f" the mean predicted variance of the corrected tilt over the range), {n_int} readings each")])
+    return AdaptivePlan(
+        order,
+        readings,
+        design.expanded_u(counts),
+        design.criterion(counts),
+        seconds,
+        target_deg,
+        best,
+        [
+            (
+                f"{len(order)} points ({min_grid} x {min_grid} spread for the diagnosis, the "
+                "rest chosen for the mean predicted variance of the corrected tilt over the "
+                f"range), {n_int} readings each"
+            )
+        ],
+    )
 
 
-def predicted_u_of_covariance(cov: NDArray[np.float64], x_deg: tuple[float, float], y_deg: tuple[float, float],
-                              fixed_u_deg: float, p0: NDArray[np.float64] | None = None) -> float:
-    """The expanded U of the correction over the range from a fitted model's covariance of MEAS_PARAMS."""
+def predicted_u_of_covariance(
+    cov: NDArray[np.float64],
+    x_deg: tuple[float, float],
+    y_deg: tuple[float, float],
+    fixed_u_deg: float,
+    p0: NDArray[np.float64] | None = None,
+) -> float:
+    """The expanded U of the correction over the range from a fitted model's covariance of
+    MEAS_PARAMS."""
     je = jacobian(lattice(x_deg, y_deg, EVAL_GRID, EVAL_GRID), p0)
     v = np.einsum("eap,pq,eaq->ea", je, cov, je)
     return K_EXPANDED * math.sqrt(float(v.max()) + fixed_u_deg**2)

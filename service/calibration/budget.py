@@ -31,13 +31,15 @@ from numpy.typing import NDArray
 from service.calibration.uncertainty import COVERAGE, coverage_factor, dof_of_coverage_factor
 
 SQRT12 = math.sqrt(12.0)
-TEMPERATURE_VARIED_C = 0.05  # a span below this is a constant temperature (the sensors' 0.01 °C digits, noise)
+# a span below this is a constant temperature (the sensors' 0.01 °C digits, noise)
+TEMPERATURE_VARIED_C = 0.05
 ANGLE_UNITS = {"deg": 1.0, "arcsec": 3600.0, "arcmin": 60.0}  # unit per degree
 
 
 @dataclass(frozen=True)
 class Component:
-    """One independent contribution, already multiplied by its sensitivity: a standard uncertainty in degrees."""
+    """One independent contribution, already multiplied by its sensitivity: a standard uncertainty
+    in degrees."""
 
     source: str  # fit | reference_standard | resolution | temperature
     name: str
@@ -55,35 +57,57 @@ class Component:
 
 def component_of_json(d: Mapping[str, Any]) -> Component:
     dof = d.get("dof")
-    return Component(str(d["source"]), str(d["name"]), float(d["u_deg"]), math.inf if dof is None else float(dof),
-                     str(d.get("distribution", "normal")), str(d.get("evaluation", "B")), str(d.get("note", "")))
+    return Component(
+        str(d["source"]),
+        str(d["name"]),
+        float(d["u_deg"]),
+        math.inf if dof is None else float(dof),
+        str(d.get("distribution", "normal")),
+        str(d.get("evaluation", "B")),
+        str(d.get("note", "")),
+    )
 
 
-def standard_component(name: str, expanded_deg: float, k: float, coverage: float = COVERAGE) -> Component:
+def standard_component(
+    name: str, expanded_deg: float, k: float, coverage: float = COVERAGE
+) -> Component:
     """A reference standard's certificate: u = U / k.
 
-    Its degrees of freedom are those for which Student's t gives the stated k at the coverage probability
-    (k = 2 at 95 %: about 60; infinite for k at or below the normal's 1.96), so that where the standard
-    dominates, the result's U is the standard's own U, not shrunk to 1.96·u.
+    Its degrees of freedom are those for which Student's t gives the stated k at the coverage
+    probability (k = 2 at 95 %: about 60; infinite for k at or below the normal's 1.96), so that
+    where the standard dominates, the result's U is the standard's own U, not shrunk to 1.96·u.
     """
     nu = float(dof_of_coverage_factor(k, coverage))
-    return Component("reference_standard", name, expanded_deg / k, nu,
-                     "student-t" if math.isfinite(nu) else "normal",
-                     note=f"U = {expanded_deg:.3g} deg, k = {k:g}: u = U/k"
-                          + (f", {nu:.0f} degrees of freedom from k at {coverage:.0%}" if math.isfinite(nu) else ""))
+    return Component(
+        "reference_standard",
+        name,
+        expanded_deg / k,
+        nu,
+        "student-t" if math.isfinite(nu) else "normal",
+        note=f"U = {expanded_deg:.3g} deg, k = {k:g}: u = U/k"
+        + (f", {nu:.0f} degrees of freedom from k at {coverage:.0%}" if math.isfinite(nu) else ""),
+    )
 
 
 def resolution_component(name: str, resolution_deg: float) -> Component:
     """A digital output's last digit: rectangular over ±r/2, u = r/√12."""
-    return Component("resolution", name, resolution_deg / SQRT12, distribution="rectangular",
-                     note=f"resolution {resolution_deg:.3g} deg: u = r/√12")
+    return Component(
+        "resolution",
+        name,
+        resolution_deg / SQRT12,
+        distribution="rectangular",
+        note=f"resolution {resolution_deg:.3g} deg: u = r/√12",
+    )
 
 
-def temperature_component(temps_c: NDArray[np.float64], errors_deg: NDArray[np.float64]) -> tuple[Component | None, dict[str, Any]]:
+def temperature_component(
+    temps_c: NDArray[np.float64], errors_deg: NDArray[np.float64]
+) -> tuple[Component | None, dict[str, Any]]:
     """The temperature's influence left in the fit's residuals, and the temperature's statistics.
 
     Returns (None, stats) where the temperature did not vary (span below TEMPERATURE_VARIED_C) or
-    too few points carry one. `errors_deg` is (n,) or (n, axes): the larger axis's coefficient counts.
+    too few points carry one. `errors_deg` is (n,) or (n, axes): the larger axis's coefficient
+    counts.
     """
     t = np.asarray(temps_c, dtype=float)
     e = np.asarray(errors_deg, dtype=float).reshape(t.size, -1)
@@ -92,17 +116,26 @@ def temperature_component(temps_c: NDArray[np.float64], errors_deg: NDArray[np.f
     if t.size < 3:
         return None, {"n_points": int(t.size)}
     span = float(t.max() - t.min())
-    stats: dict[str, Any] = {"min_c": float(t.min()), "max_c": float(t.max()), "mean_c": float(t.mean()),
-                             "span_c": span, "n_points": int(t.size)}
+    stats: dict[str, Any] = {
+        "min_c": float(t.min()),
+        "max_c": float(t.max()),
+        "mean_c": float(t.mean()),
+        "span_c": span,
+        "n_points": int(t.size),
+    }
     if span < TEMPERATURE_VARIED_C:
         return None, stats
     A = np.column_stack([np.ones_like(t), t - t.mean()])
     slopes = np.linalg.lstsq(A, e, rcond=None)[0][1]
     c = float(np.max(np.abs(slopes)))
     stats["coefficient_deg_per_c"] = c
-    return Component("temperature", f"temperature influence over {span:.2f} °C (not corrected by the model)",
-                     c * span / SQRT12, distribution="rectangular",
-                     note=f"|c| = {c:.3g} deg/°C from the fit's residuals against temperature: u = |c|·ΔT/√12"), stats
+    return Component(
+        "temperature",
+        f"temperature influence over {span:.2f} °C (not corrected by the model)",
+        c * span / SQRT12,
+        distribution="rectangular",
+        note=f"|c| = {c:.3g} deg/°C from the fit's residuals against temperature: u = |c|·ΔT/√12",
+    ), stats
 
 
 @dataclass(frozen=True)
@@ -113,9 +146,14 @@ class Combined:
     U: NDArray[np.float64]
 
 
-def combine(u_fit: NDArray[np.float64] | float, dof_fit: NDArray[np.float64] | float, others: Sequence[Component],
-            coverage: float = COVERAGE) -> Combined:
-    """u_c = √(u_fit² + Σ u_i²) with Welch-Satterthwaite degrees of freedom and U = k·u_c (vectorised over u_fit)."""
+def combine(
+    u_fit: NDArray[np.float64] | float,
+    dof_fit: NDArray[np.float64] | float,
+    others: Sequence[Component],
+    coverage: float = COVERAGE,
+) -> Combined:
+    """u_c = √(u_fit² + Σ u_i²) with Welch-Satterthwaite degrees of freedom and U = k·u_c
+    (vectorised over u_fit)."""
     uf = np.asarray(u_fit, dtype=float)
     nu = np.broadcast_to(np.asarray(dof_fit, dtype=float), uf.shape)
     parts: list[tuple[NDArray[np.float64], float]] = []
@@ -139,7 +177,8 @@ def combine(u_fit: NDArray[np.float64] | float, dof_fit: NDArray[np.float64] | f
 
 
 def model_dof(model: Mapping[str, Any]) -> float:
-    """Degrees of freedom of the fit behind the parameters' covariance: the smallest any part states.
+    """Degrees of freedom of the fit behind the parameters' covariance: the smallest any part
+    states.
 
     A model may state several (a kinematic chain and the measurement sensor fit separately); the
     smallest gives the largest coverage factor, so the interval is never too narrow. Infinite when
@@ -150,7 +189,12 @@ def model_dof(model: Mapping[str, Any]) -> float:
     def walk(node: Any) -> None:
         if isinstance(node, Mapping):
             for k, v in node.items():
-                if k in ("dof", "meas_dof") and isinstance(v, int | float) and not isinstance(v, bool) and v > 0:
+                if (
+                    k in ("dof", "meas_dof")
+                    and isinstance(v, int | float)
+                    and not isinstance(v, bool)
+                    and v > 0
+                ):
                     found.append(float(v))
                 else:
                     walk(v)
@@ -164,40 +208,70 @@ def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def result_entry(quantity: str, name: str, unit: str, u_fit_deg: float, dof_fit: float,
-                 others: Sequence[Component], coverage: float = COVERAGE) -> dict[str, Any]:
+def result_entry(
+    quantity: str,
+    name: str,
+    unit: str,
+    u_fit_deg: float,
+    dof_fit: float,
+    others: Sequence[Component],
+    coverage: float = COVERAGE,
+) -> dict[str, Any]:
     """One result's budget: its contributions (in the result's unit) and their combination."""
     scale = ANGLE_UNITS.get(unit, 1.0)
     c = combine(np.array([u_fit_deg]), np.array([dof_fit]), others, coverage)
     rows = [{"source": "fit", "standard_uncertainty": u_fit_deg * scale, "dof": _finite(dof_fit)}]
-    rows += [{"source": o.source, "name": o.name, "standard_uncertainty": o.u_deg * scale, "dof": _finite(o.dof)}
-             for o in others]
-    return {"quantity": quantity, "name": name, "unit": unit, "contributions": rows,
-            "standard_uncertainty": float(c.u[0]) * scale, "dof_eff": _finite(float(c.dof_eff[0])),
-            "coverage_factor": float(c.k[0]), "expanded_uncertainty": float(c.U[0]) * scale,
-            "coverage_probability": coverage}
+    rows += [
+        {
+            "source": o.source,
+            "name": o.name,
+            "standard_uncertainty": o.u_deg * scale,
+            "dof": _finite(o.dof),
+        }
+        for o in others
+    ]
+    return {
+        "quantity": quantity,
+        "name": name,
+        "unit": unit,
+        "contributions": rows,
+        "standard_uncertainty": float(c.u[0]) * scale,
+        "dof_eff": _finite(float(c.dof_eff[0])),
+        "coverage_factor": float(c.k[0]),
+        "expanded_uncertainty": float(c.U[0]) * scale,
+        "coverage_probability": coverage,
+    }
 
 
-# A result's keys in budgets stored before they were named in words (u, U and k: two differ only by case, which
-# some JSON mappers cannot tell apart). Stored records keep their bytes (they are hashed); readers get the names.
-_FORMER_RESULT_KEYS = {"u": "standard_uncertainty", "U": "expanded_uncertainty", "k": "coverage_factor"}
+# A result's keys in budgets stored before they were named in words (u, U and k: two differ only by
+# case, which some JSON mappers cannot tell apart). Stored records keep their bytes (they are
+# hashed); readers get the names.
+_FORMER_RESULT_KEYS = {
+    "u": "standard_uncertainty",
+    "U": "expanded_uncertainty",
+    "k": "coverage_factor",
+}
 
 
 def current_names(budget: Mapping[str, Any] | None) -> dict[str, Any] | None:
-    """A stored budget with its results' uncertainties under their present names, whenever it was stored."""
+    """A stored budget with its results' uncertainties under their present names, whenever it was
+    stored."""
     if budget is None:
         return None
     results = []
     for r in budget.get("results") or []:
         entry = {_FORMER_RESULT_KEYS.get(key, key): v for key, v in r.items()}
-        entry["contributions"] = [{("standard_uncertainty" if key == "u" else key): v for key, v in c.items()}
-                                  for c in r.get("contributions") or []]
+        entry["contributions"] = [
+            {("standard_uncertainty" if key == "u" else key): v for key, v in c.items()}
+            for c in r.get("contributions") or []
+        ]
         results.append(entry)
     return {**budget, "results": results}
 
 
 def carries_reference_scale(name: str, unit: str) -> bool:
-    """A parameter whose value is an angle read on the reference's scale: a zero offset (not a scale, a yaw)."""
+    """A parameter whose value is an angle read on the reference's scale: a zero offset (not a
+    scale, a yaw)."""
     return unit in ANGLE_UNITS and ("zero" in name or "offset" in name)
 
 
@@ -216,20 +290,26 @@ def record_budget(
 ) -> dict[str, Any]:
     """The budget a record keeps: the shared components and one entry per result.
 
-    `standards`: {"name", "serial", "certificate_id", "expanded_uncertainty_deg", "coverage_factor"} each;
-    `parameter_u`: each fitted parameter's standard uncertainty from the covariance (its own unit);
-    `resolutions_deg`: each sensor's resolution by what it is ("measurement sensor", "reference sensor");
-    `tilt_u_fit_deg`: the fit's standard uncertainty of a corrected tilt per axis (RMS over the
-    calibration points), with its degrees of freedom; `temps_c`/`errors_deg`: the calibration points'
-    temperatures and residuals (corrected minus reference) for the temperature's influence.
+    `standards`: {"name", "serial", "certificate_id", "expanded_uncertainty_deg", "coverage_factor"}
+    each; `parameter_u`: each fitted parameter's standard uncertainty from the covariance (its own
+    unit); `resolutions_deg`: each sensor's resolution by what it is ("measurement sensor",
+    "reference sensor"); `tilt_u_fit_deg`: the fit's standard uncertainty of a corrected tilt per
+    axis (RMS over the calibration points), with its degrees of freedom; `temps_c`/`errors_deg`: the
+    calibration points' temperatures and residuals (corrected minus reference) for the temperature's
+    influence.
     """
     comps: list[Component] = []
     for s in standards:
         U, k = s.get("expanded_uncertainty_deg"), s.get("coverage_factor")
         if U is None or k is None:
             raise ValueError(f"reference standard {s.get('name')!r} states no numeric uncertainty")
-        comps.append(standard_component(f"{s['name']} (serial {s['serial']}, certificate {s.get('certificate_id')})",
-                                        float(U), float(k)))
+        comps.append(
+            standard_component(
+                f"{s['name']} (serial {s['serial']}, certificate {s.get('certificate_id')})",
+                float(U),
+                float(k),
+            )
+        )
     for what, r in resolutions_deg.items():
         if r:
             comps.append(resolution_component(f"{what} resolution", float(r)))
@@ -242,21 +322,44 @@ def record_budget(
     if tilt_u_fit_deg is not None:
         dofs = tilt_dof_fit or (dof_fit, dof_fit)
         for axis, u_fit, nu in zip("xy", tilt_u_fit_deg, dofs, strict=True):
-            results.append(result_entry(f"tilt_{axis}_deg", f"corrected table tilt, {axis} (at the calibration points)",
-                                        "deg", u_fit, nu, comps, coverage))
+            results.append(
+                result_entry(
+                    f"tilt_{axis}_deg",
+                    f"corrected table tilt, {axis} (at the calibration points)",
+                    "deg",
+                    u_fit,
+                    nu,
+                    comps,
+                    coverage,
+                )
+            )
     angle_scale = [c for c in comps if c.source == "reference_standard"]
     for name, p in parameters.items():
         unit = str(p.get("unit", ""))
         if name not in parameter_u or not carries_reference_scale(name, unit):
             continue
-        results.append(result_entry(name, name, unit, parameter_u[name] / ANGLE_UNITS[unit], dof_fit, angle_scale,
-                                    coverage))
-    return {"coverage_probability": coverage, "components": [c.as_json() for c in comps],
-            "temperature": temperature, "results": results}
+        results.append(
+            result_entry(
+                name,
+                name,
+                unit,
+                parameter_u[name] / ANGLE_UNITS[unit],
+                dof_fit,
+                angle_scale,
+                coverage,
+            )
+        )
+    return {
+        "coverage_probability": coverage,
+        "components": [c.as_json() for c in comps],
+        "temperature": temperature,
+        "results": results,
+    }
 
 
 def reading_components(budget: Mapping[str, Any] | None) -> list[Component]:
-    """What adds to the fit's uncertainty of every corrected reading (the standards, resolutions, temperature)."""
+    """What adds to the fit's uncertainty of every corrected reading (the standards, resolutions,
+    temperature)."""
     if not budget:
         return []
     return [component_of_json(c) for c in budget.get("components") or []]

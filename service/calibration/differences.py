@@ -1,4 +1,5 @@
-"""The one rule for finite-difference derivatives of the calibration code (Jacobians, sensitivities).
+"""The one rule for finite-difference derivatives of the calibration code (Jacobians,
+sensitivities).
 
 step h = REL_STEP · max(|value|, typical): relative to the value, so parameters in any unit
 (counts per arcsec, rad, deg) are stepped alike, and never below REL_STEP times the magnitude
@@ -18,12 +19,19 @@ REL_STEP = 1e-6
 
 def fd_step(value: ArrayLike, typical: ArrayLike = 0.0) -> NDArray[np.float64]:
     """Finite-difference step for `value` (array or scalar) whose typical magnitude is `typical`."""
-    h = REL_STEP * np.maximum(np.abs(np.asarray(value, dtype=float)), np.asarray(typical, dtype=float))
+    h = REL_STEP * np.maximum(
+        np.abs(np.asarray(value, dtype=float)), np.asarray(typical, dtype=float)
+    )
     return np.where(h > 0, h, REL_STEP)
 
 
-def central_jacobian(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], x: NDArray[np.float64], typical: ArrayLike) -> NDArray[np.float64]:
-    """d fun / d x by central differences, the parameter axis last: (..., n) for fun(x) of shape (...)."""
+def central_jacobian(
+    fun: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    x: NDArray[np.float64],
+    typical: ArrayLike,
+) -> NDArray[np.float64]:
+    """d fun / d x by central differences, the parameter axis last: (..., n) for fun(x) of shape
+    (...)."""
     x = np.asarray(x, dtype=float)
     steps = np.broadcast_to(fd_step(x, typical), x.shape)
     cols = []

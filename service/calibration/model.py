@@ -51,7 +51,8 @@ class CalibrationModel:
     notes: list[str] = field(default_factory=list)
     state: dict[str, Any] = field(default_factory=dict)  # method-specific, JSON-serialisable
     options: dict[str, Any] = field(default_factory=dict)
-    provenance: dict[str, Any] = field(default_factory=dict)  # version, UTC time, command, inputs' SHA-256
+    # version, UTC time, command, inputs' SHA-256
+    provenance: dict[str, Any] = field(default_factory=dict)
 
     # --- parameter access -------------------------------------------------------------
     def value(self, name: str) -> float:
@@ -94,8 +95,10 @@ class CalibrationModel:
             "state": _jsonable(self.state),
         }
         if self.covariance is not None:
-            d["covariance"] = {"names": list(self.covariance_names),
-                               "matrix": [[_num(v) for v in row] for row in np.asarray(self.covariance)]}
+            d["covariance"] = {
+                "names": list(self.covariance_names),
+                "matrix": [[_num(v) for v in row] for row in np.asarray(self.covariance)],
+            }
         if self.provenance:
             d["provenance"] = _jsonable(self.provenance)
         return d
@@ -106,7 +109,10 @@ class CalibrationModel:
             raise InputError(f"{source}: a model is a JSON object")
         fv = d.get("format_version")
         if fv != FORMAT_VERSION:
-            raise InputError(f"{source}: field format_version: {fv!r} is not supported (expected {FORMAT_VERSION})")
+            raise InputError(
+                f"{source}: field format_version: {fv!r} is not supported (expected "
+                f"{FORMAT_VERSION})"
+            )
         for key in ("kind", "method", "columns", "parameters"):
             if key not in d:
                 raise InputError(f"{source}: field {key}: missing required field")
@@ -115,10 +121,18 @@ class CalibrationModel:
                 raise InputError(f"{source}: field {key}: must be a string")
         if not isinstance(d["columns"], list) or not all(isinstance(c, str) for c in d["columns"]):
             raise InputError(f"{source}: field columns: must be a list of column names")
-        for key, kind in (("residuals", dict), ("fit", dict), ("state", dict), ("options", dict), ("notes", list),
-                          ("provenance", dict)):
+        for key, kind in (
+            ("residuals", dict),
+            ("fit", dict),
+            ("state", dict),
+            ("options", dict),
+            ("notes", list),
+            ("provenance", dict),
+        ):
             if d.get(key) is not None and not isinstance(d[key], kind):
-                raise InputError(f"{source}: field {key}: must be {'an object' if kind is dict else 'a list'}")
+                raise InputError(
+                    f"{source}: field {key}: must be {'an object' if kind is dict else 'a list'}"
+                )
         params = {}
         if not isinstance(d["parameters"], dict):
             raise InputError(f"{source}: field parameters: must be an object")
@@ -126,9 +140,17 @@ class CalibrationModel:
             if not isinstance(p, dict) or "value" not in p or "unit" not in p:
                 raise InputError(f"{source}: field parameters.{name}: needs value and unit")
             v = p["value"]
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(float(v)):
-                raise InputError(f"{source}: field parameters.{name}.value: {v!r} is not a finite number")
-            params[name] = Parameter(float(v), str(p["unit"]), bool(p.get("fixed", False)), str(p.get("note", "")))
+            if (
+                not isinstance(v, (int, float))
+                or isinstance(v, bool)
+                or not math.isfinite(float(v))
+            ):
+                raise InputError(
+                    f"{source}: field parameters.{name}.value: {v!r} is not a finite number"
+                )
+            params[name] = Parameter(
+                float(v), str(p["unit"]), bool(p.get("fixed", False)), str(p.get("note", ""))
+            )
         cov = d.get("covariance")
         names: list[str] = []
         matrix = None
@@ -137,16 +159,33 @@ class CalibrationModel:
                 names = [str(n) for n in cov["names"]]
                 matrix = np.array(cov["matrix"], dtype=float)
             except (KeyError, TypeError, ValueError):
-                raise InputError(f"{source}: field covariance: needs names and a numeric matrix") from None
+                raise InputError(
+                    f"{source}: field covariance: needs names and a numeric matrix"
+                ) from None
             if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
-                raise InputError(f"{source}: field covariance.matrix: must be a finite {len(names)}x{len(names)} matrix")
+                raise InputError(
+                    f"{source}: field covariance.matrix: must be a finite "
+                    f"{len(names)}x{len(names)} matrix"
+                )
             unknown = [n for n in names if n not in params]
             if unknown:
-                raise InputError(f"{source}: field covariance.names: {unknown[0]!r} is not a parameter")
-        return cls(kind=str(d["kind"]), method=str(d["method"]), columns=list(d["columns"]), parameters=params,
-                   covariance_names=names, covariance=matrix, residuals=d.get("residuals") or {},
-                   fit=d.get("fit") or {}, notes=list(d.get("notes") or []), state=d.get("state") or {},
-                   options=d.get("options") or {}, provenance=d.get("provenance") or {})
+                raise InputError(
+                    f"{source}: field covariance.names: {unknown[0]!r} is not a parameter"
+                )
+        return cls(
+            kind=str(d["kind"]),
+            method=str(d["method"]),
+            columns=list(d["columns"]),
+            parameters=params,
+            covariance_names=names,
+            covariance=matrix,
+            residuals=d.get("residuals") or {},
+            fit=d.get("fit") or {},
+            notes=list(d.get("notes") or []),
+            state=d.get("state") or {},
+            options=d.get("options") or {},
+            provenance=d.get("provenance") or {},
+        )
 
 
 def _num(v: float | np.floating) -> float | None:
@@ -171,8 +210,9 @@ def _jsonable(obj: Any) -> Any:
 
 
 def table_tilt_range(columns: dict[str, Any]) -> dict[str, list[float]] | None:
-    """The table tilts a stage model was fitted on: per axis [min, max] of the reference sensor's readings
-    (the frame the model corrects to), as MODEL.json `fit.table_tilt_range_deg` keeps them; None without them."""
+    """The table tilts a stage model was fitted on: per axis [min, max] of the reference sensor's
+    readings (the frame the model corrects to), as MODEL.json `fit.table_tilt_range_deg` keeps them;
+    None without them."""
     out: dict[str, list[float]] = {}
     for axis in "xy":
         values = np.asarray(columns.get(f"ref_{axis}_deg", []), dtype=float)
@@ -184,30 +224,40 @@ def table_tilt_range(columns: dict[str, Any]) -> dict[str, list[float]] | None:
 
 
 def stored_table_tilt_range(model: CalibrationModel) -> dict[str, list[float]] | None:
-    """MODEL.json `fit.table_tilt_range_deg` when it is there and well formed (older models do not have it)."""
+    """MODEL.json `fit.table_tilt_range_deg` when it is there and well formed (older models do not
+    have it)."""
     return stored_range(model.fit.get("table_tilt_range_deg"))
 
 
 def stored_range(seen: Any) -> dict[str, list[float]] | None:
-    """A stated `table_tilt_range_deg` ({"x": [min, max], "y": [min, max]}) when well formed, else None."""
+    """A stated `table_tilt_range_deg` ({"x": [min, max], "y": [min, max]}) when well formed, else
+    None."""
     if not isinstance(seen, dict):
         return None
     out = {}
     for axis in "xy":
         pair = seen.get(axis)
-        if not (isinstance(pair, list) and len(pair) == 2 and all(isinstance(v, int | float) for v in pair)):
+        if not (
+            isinstance(pair, list)
+            and len(pair) == 2
+            and all(isinstance(v, int | float) for v in pair)
+        ):
             return None
         out[axis] = [float(pair[0]), float(pair[1])]
     return out
 
 
-def residual_summary(residuals: dict[str, NDArray[np.float64]], unit: str, keep_values: bool = True) -> dict[str, Any]:
+def residual_summary(
+    residuals: dict[str, NDArray[np.float64]], unit: str, keep_values: bool = True
+) -> dict[str, Any]:
     """RMS, max |r| (and the values) of each residual column: what every model reports."""
     cols = {}
     for name, r in residuals.items():
         r = np.asarray(r, dtype=float)
-        entry: dict[str, Any] = {"rms": float(np.sqrt(np.mean(r**2))) if r.size else 0.0,
-                                 "max_abs": float(np.max(np.abs(r))) if r.size else 0.0}
+        entry: dict[str, Any] = {
+            "rms": float(np.sqrt(np.mean(r**2))) if r.size else 0.0,
+            "max_abs": float(np.max(np.abs(r))) if r.size else 0.0,
+        }
         if keep_values:
             entry["values"] = r.tolist()
         cols[name] = entry

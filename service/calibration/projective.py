@@ -25,32 +25,41 @@ REFINE_MAX_ITERATIONS = 50
 SQRT2 = float(np.sqrt(2.0))
 
 
-def check_general_position(x: NDArray[np.float64], y: NDArray[np.float64], what: str = "points") -> None:
+def check_general_position(
+    x: NDArray[np.float64], y: NDArray[np.float64], what: str = "points"
+) -> None:
     """At least 4 distinct points, not all on one line: otherwise a homography is undetermined."""
     pts = np.unique(np.round(np.column_stack([x, y]), 9), axis=0)
     if len(pts) < 4:
-        raise DegenerateDataError(f"{what}: a homography needs at least 4 distinct points, got {len(pts)}")
+        raise DegenerateDataError(
+            f"{what}: a homography needs at least 4 distinct points, got {len(pts)}"
+        )
     c = pts - pts.mean(axis=0)
     sv = np.linalg.svd(c, compute_uv=False)
     if sv[1] <= 1e-9 * max(sv[0], 1e-12):
-        raise DegenerateDataError(f"{what}: all {len(pts)} points lie on one line; a homography needs points "
-                                  "off that line (e.g. both stage axes moved)")
+        raise DegenerateDataError(
+            f"{what}: all {len(pts)} points lie on one line; a homography needs points "
+            "off that line (e.g. both stage axes moved)"
+        )
 
 
 def _clearly_general(X: NDArray[np.float64], M: list[list[float]]) -> bool:
     """Whether both point sets (rows 0, 1 and 3, 4 of X; M their scatter matrix) clearly pass
-    `check_general_position`: 4 sorted values of x or of y, evenly picked, clearly apart (so at least
-    4 distinct points), and a 2 x 2 scatter whose determinant is far from zero. Data that are not
-    clearly fine get the full check and its message."""
+    `check_general_position`: 4 sorted values of x or of y, evenly picked, clearly apart (so at
+    least 4 distinct points), and a 2 x 2 scatter whose determinant is far from zero. Data that are
+    not clearly fine get the full check and its message."""
     n = X.shape[1]
     if n < 4:
         return False
     k = (n - 1) // 3
-    picks = np.sort(X, axis=1)[:, :3 * k + 1:k].tolist()
+    picks = np.sort(X, axis=1)[:, : 3 * k + 1 : k].tolist()
     gap = 1e-6 * (1.0 + max(max(row[3], -row[0]) for row in picks))  # far above the check's 1e-9
     for i, j in ((0, 1), (3, 4)):
         u, v = picks[i], picks[j]
-        if not (min(u[1] - u[0], u[2] - u[1], u[3] - u[2]) > gap or min(v[1] - v[0], v[2] - v[1], v[3] - v[2]) > gap):
+        if not (
+            min(u[1] - u[0], u[2] - u[1], u[3] - u[2]) > gap
+            or min(v[1] - v[0], v[2] - v[1], v[3] - v[2]) > gap
+        ):
             return False
         a, b, d = M[i][i], M[i][j], M[j][j]
         if not a * d - b * b > 1e-6 * (a + d) ** 2:
@@ -58,8 +67,12 @@ def _clearly_general(X: NDArray[np.float64], M: list[list[float]]) -> bool:
     return True
 
 
-def _points(sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.float64],
-            dy: NDArray[np.float64]) -> NDArray[np.float64]:
+def _points(
+    sx: NDArray[np.float64],
+    sy: NDArray[np.float64],
+    dx: NDArray[np.float64],
+    dy: NDArray[np.float64],
+) -> NDArray[np.float64]:
     """Rows src x, src y, 1, dst x, dst y: the layout the transfer error and its Jacobian read."""
     X = np.empty((5, sx.size))
     X[0], X[1], X[2], X[3], X[4] = sx, sy, 1.0, dx, dy
@@ -67,9 +80,9 @@ def _points(sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.flo
 
 
 class _Transfer:
-    """The transfer error of H = (h8, 1) on fixed points, and its Jacobian, in buffers allocated once
-    (the refinement evaluates both a few times on the same points). Both come with the opposite sign,
-    dst - H·src and -J, which saves a negation in each and leaves JᵀJ and Jᵀr as they are."""
+    """The transfer error of H = (h8, 1) on fixed points, and its Jacobian, in buffers allocated
+    once (the refinement evaluates both a few times on the same points). Both come with the opposite
+    sign, dst - H·src and -J, which saves a negation in each and leaves JᵀJ and Jᵀr as they are."""
 
     def __init__(self, X: NDArray[np.float64]) -> None:
         self.S = X[0:3]  # src x, y, 1
@@ -80,7 +93,9 @@ class _Transfer:
         # -Jᵀ: parameter x (x residuals, y residuals) x point; the zero blocks stay zero
         self.Kt = np.zeros((8, 2, X.shape[1]))
 
-    def negative_residuals(self, h8: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    def negative_residuals(
+        self, h8: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """(dst - H·src, 2 x n with rows x and y; -(H·src), 2 x n; -1/w per point)."""
         self.h[:8] = h8
         num = self.H @ self.S
@@ -88,27 +103,39 @@ class _Transfer:
         neg_p: NDArray[np.float64] = num[:2] * neg_w_inv
         return neg_p + self.D, neg_p, neg_w_inv
 
-    def negative_jacobian_t(self, neg_p: NDArray[np.float64], neg_w_inv: NDArray[np.float64]) -> NDArray[np.float64]:
-        """-Jᵀ (8 x 2n; columns the x residuals, then the y residuals) from what `negative_residuals` gave."""
+    def negative_jacobian_t(
+        self, neg_p: NDArray[np.float64], neg_w_inv: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """-Jᵀ (8 x 2n; columns the x residuals, then the y residuals) from what
+        `negative_residuals` gave."""
         Kt = self.Kt
-        np.multiply(self.S, neg_w_inv, out=Kt[0:3, 0])  # ∂/∂(h11 h12 h13) of the x residual: (sx, sy, 1)/w
+        # ∂/∂(h11 h12 h13) of the x residual: (sx, sy, 1)/w
+        np.multiply(self.S, neg_w_inv, out=Kt[0:3, 0])
         Kt[3:6, 1] = Kt[0:3, 0]  # the y residual's likewise
-        np.multiply(Kt[0:2, 0, None], neg_p, out=Kt[6:8])  # ∂/∂(h31, h32): -(mapped point) · (sx, sy)/w
+        # ∂/∂(h31, h32): -(mapped point) · (sx, sy)/w
+        np.multiply(Kt[0:2, 0, None], neg_p, out=Kt[6:8])
         return Kt.reshape(8, -1)
 
 
-def transfer_residuals(h8: NDArray[np.float64], sx: NDArray[np.float64], sy: NDArray[np.float64], dx: NDArray[np.float64],
-                       dy: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Transfer error [H·src - dst in x; in y] (2n) of H = (h8, 1) and, analytically, its Jacobian (2n x 8)."""
+def transfer_residuals(
+    h8: NDArray[np.float64],
+    sx: NDArray[np.float64],
+    sy: NDArray[np.float64],
+    dx: NDArray[np.float64],
+    dy: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Transfer error [H·src - dst in x; in y] (2n) of H = (h8, 1) and, analytically, its Jacobian
+    (2n x 8)."""
     t = _Transfer(_points(*(np.asarray(v, dtype=float) for v in (sx, sy, dx, dy))))
     neg_r, neg_p, neg_w_inv = t.negative_residuals(np.asarray(h8, dtype=float))
     return -neg_r.ravel(), -t.negative_jacobian_t(neg_p, neg_w_inv).T
 
 
 def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Least squares of the transfer error from the DLT's start: Levenberg-Marquardt with the analytic
-    Jacobian, columns scaled to unit norm (the perspective terms are orders of magnitude smaller).
-    The normal equations come straight from the (scaled) Jᵀ, 8 x 2n: JᵀJ and Jᵀr are two products."""
+    """Least squares of the transfer error from the DLT's start: Levenberg-Marquardt with the
+    analytic Jacobian, columns scaled to unit norm (the perspective terms are orders of magnitude
+    smaller). The normal equations come straight from the (scaled) Jᵀ, 8 x 2n: JᵀJ and Jᵀr are two
+    products."""
     t = _Transfer(X)
     neg_R, neg_p, neg_w_inv = t.negative_residuals(h)
     r = neg_R.ravel()  # the residuals' sign does not matter below: only with the Jacobian's
@@ -136,13 +163,16 @@ def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float6
         neg_R, neg_p, neg_w_inv = t.negative_residuals(trial)
         r_new = neg_R.ravel()
         cost_new = float(np.vdot(r_new, r_new))
-        if not cost_new <= cost * (1.0 + REFINE_COST_TOL):  # worse (or not finite): damp harder, same Jacobian
+        # worse (or not finite): damp harder, same Jacobian
+        if not cost_new <= cost * (1.0 + REFINE_COST_TOL):
             damping = max(10.0 * damping, 1e-6)
             if damping > 1e12:
                 break
             continue
-        if (cost - cost_new <= REFINE_COST_TOL * cost
-                or all(abs(s) <= REFINE_STEP_TOL * (abs(v) + REFINE_STEP_TOL) for s, v in zip(step.tolist(), h.tolist()))):
+        if cost - cost_new <= REFINE_COST_TOL * cost or all(
+            abs(s) <= REFINE_STEP_TOL * (abs(v) + REFINE_STEP_TOL)
+            for s, v in zip(step.tolist(), h.tolist())
+        ):
             return trial
         h, r, cost = trial, r_new, cost_new
         Kt = t.negative_jacobian_t(neg_p, neg_w_inv)
@@ -153,57 +183,76 @@ def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float6
     return h
 
 
-def fit_projective(src_x: ArrayLike, src_y: ArrayLike, dst_x: ArrayLike, dst_y: ArrayLike, refine: bool = True,
-                   what: str = "points") -> NDArray[np.float64]:
+def fit_projective(
+    src_x: ArrayLike,
+    src_y: ArrayLike,
+    dst_x: ArrayLike,
+    dst_y: ArrayLike,
+    refine: bool = True,
+    what: str = "points",
+) -> NDArray[np.float64]:
     """H with dst ~ H · src (homogeneous), h33 = 1."""
     sx, sy, dx, dy = (np.asarray(v, dtype=float) for v in (src_x, src_y, dst_x, dst_y))
     n = sx.size
     X = _points(sx, sy, dx, dy)
     centre = X.sum(axis=1) / n
     C = X - centre[:, None]  # the row of ones becomes zeros
-    # both point sets at once; only data that are not clearly fine get the full check and its message
+    # both point sets at once; only data that are not clearly fine get the full check and its
+    # message
     if not _clearly_general(X, (C @ C.T).tolist()):
         check_general_position(sx, sy, what)
         check_general_position(dx, dy, what)
     # Hartley's normalisation of each set: centroid at 0, mean distance from it √2
-    ss, ds = (SQRT2 * n / d if d > 0 else 1.0 for d in np.hypot(C[0::3], C[1::3]).sum(axis=1).tolist())
+    ss, ds = (
+        SQRT2 * n / d if d > 0 else 1.0 for d in np.hypot(C[0::3], C[1::3]).sum(axis=1).tolist()
+    )
     scx, scy, _, dcx, dcy = centre.tolist()
-    # Aᵀ of the DLT system A h = 0: per point an x row (P, 0, -u P) and a y row (0, P, -v P), with P and
-    # (u, v) the normalised source and target points
+    # Aᵀ of the DLT system A h = 0: per point an x row (P, 0, -u P) and a y row (0, P, -v P), with P
+    # and (u, v) the normalised source and target points
     At = np.zeros((9, 2, n))
     np.multiply(C[0:2], ss, out=At[0:2, 0])
     At[2, 0] = 1.0
     At[3:6, 1] = At[0:3, 0]
     np.multiply(At[0:3, 0, None], C[3:5] * -ds, out=At[6:9])
     At2 = At.reshape(9, 2 * n)
-    # The null vector of A from the 9 x 9 AᵀA (eigenvalues = squared singular values) when the 8th is
-    # clearly above rounding; otherwise from the SVD of A itself, which also tells a rank-deficient system.
+    # The null vector of A from the 9 x 9 AᵀA (eigenvalues = squared singular values) when the 8th
+    # is clearly above rounding; otherwise from the SVD of A itself, which also tells a
+    # rank-deficient system.
     lam, vec, info = lapack.dsyevd(At2 @ At2.T, lower=1)  # as np.linalg.eigh
     if info == 0 and lam[1] > 1e-8 * lam[-1]:
         hn = vec[:, 0].tolist()
     else:
         # U is not needed (2n x 2n: O(n²) memory); all 9 rows of V are, also with only 4 points
         _, s, vt = np.linalg.svd(At2.T, full_matrices=2 * n < 9)
-        # the 8 free entries of H need rank 8 (s[7] is the 8th singular value, with 4 points the last)
+        # the 8 free entries of H need rank 8 (s[7] is the 8th singular value, with 4 points the
+        # last)
         if s[7] <= 1e-12 * s[0]:
-            raise DegenerateDataError(f"{what}: the points do not determine a homography (rank-deficient system)")
+            raise DegenerateDataError(
+                f"{what}: the points do not determine a homography (rank-deficient system)"
+            )
         hn = vt[-1].tolist()
-    # H = Td⁻¹ Hn Ts, with Ts = [[s, 0, -s cx], [0, s, -s cy], [0, 0, 1]] (Td likewise), entry by entry
+    # H = Td⁻¹ Hn Ts, with Ts = [[s, 0, -s cx], [0, s, -s cy], [0, 0, 1]] (Td likewise), entry by
+    # entry
     rows = [hn[0:3], hn[3:6], hn[6:9]]
     rows = [[ss * a, ss * b, c - ss * (scx * a + scy * b)] for a, b, c in rows]
     last = rows[2]
     if abs(last[2]) < 1e-12:
         raise DegenerateDataError(f"{what}: the fitted homography maps the origin to infinity")
     k = 1.0 / last[2]
-    h8 = [(a / ds + cx * z) * k for row, cx in ((rows[0], dcx), (rows[1], dcy)) for a, z in zip(row, last)] + \
-        [last[0] * k, last[1] * k]
+    h8 = [
+        (a / ds + cx * z) * k
+        for row, cx in ((rows[0], dcx), (rows[1], dcy))
+        for a, z in zip(row, last)
+    ] + [last[0] * k, last[1] * k]
     h = np.array(h8)
     if refine and n > 4:
         h = _refine(h, X)
     return np.append(h, 1.0).reshape(3, 3)
 
 
-def apply_projective(H: NDArray[np.float64], x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def apply_projective(
+    H: NDArray[np.float64], x: ArrayLike, y: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     xa = np.asarray(x, dtype=float)
     ya = np.asarray(y, dtype=float)
     w = H[2, 0] * xa + H[2, 1] * ya + H[2, 2]

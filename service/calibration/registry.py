@@ -37,7 +37,8 @@ class Method(Protocol):
     name: str
 
     @property
-    def fit_required(self) -> tuple[str | tuple[str, ...], ...]: ...  # column names or tuples of alternatives
+    # column names or tuples of alternatives
+    def fit_required(self) -> tuple[str | tuple[str, ...], ...]: ...
 
     @property
     def fit_optional(self) -> tuple[str, ...]: ...
@@ -97,14 +98,21 @@ def get_method(kind: str, name: str) -> Method:
     for family in families:
         if family.kind == kind and (m := family.pattern.fullmatch(name)):
             return family.build(m)
-    known = sorted(n for (k, n) in methods if k == kind) + [f.pattern.pattern for f in families if f.kind == kind]
-    raise InputError(f"unknown method {name!r} for kind {kind!r}; known: {', '.join(known) or 'none yet'}")
+    known = sorted(n for (k, n) in methods if k == kind) + [
+        f.pattern.pattern for f in families if f.kind == kind
+    ]
+    raise InputError(
+        f"unknown method {name!r} for kind {kind!r}; known: {', '.join(known) or 'none yet'}"
+    )
 
 
 def known_methods(kind: str) -> list[str]:
-    """Every method name of a kind a request may give: the named methods and each family's members."""
+    """Every method name of a kind a request may give: the named methods and each family's
+    members."""
     methods, families = _table()
-    return sorted(n for (k, n) in methods if k == kind) + [n for f in families if f.kind == kind for n in f.members]
+    return sorted(n for (k, n) in methods if k == kind) + [
+        n for f in families if f.kind == kind for n in f.members
+    ]
 
 
 def methods_for(kind: str) -> list[str]:

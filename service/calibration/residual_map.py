@@ -11,24 +11,35 @@ from numpy.typing import NDArray
 from service.calibration.model import CalibrationModel
 
 
-def stage_residual_map(method: Any, model: CalibrationModel, cols: dict[str, NDArray[np.float64]], n_fit: int) -> dict[str, Any]:
-    """Points (`role` fit for the first `n_fit` point indices, else validation) with their residuals in
-    degrees, and the RMS of the residual vector lengths before and after correction."""
+def stage_residual_map(
+    method: Any, model: CalibrationModel, cols: dict[str, NDArray[np.float64]], n_fit: int
+) -> dict[str, Any]:
+    """Points (`role` fit for the first `n_fit` point indices, else validation) with their residuals
+    in degrees, and the RMS of the residual vector lengths before and after correction."""
     out = method.correct(model, cols)
     ref = {a: cols[f"ref_{a}_deg"] for a in ("x", "y")}
     before = {a: cols[f"meas_{a}_deg"] - ref[a] for a in ("x", "y")}
     after = {a: out[f"tilt_{a}_deg"] - ref[a] for a in ("x", "y")}
     points = []
     for i in range(cols["point"].size):
-        p = {"point": int(cols["point"][i]), "role": "fit" if cols["point"][i] < n_fit else "validation",
-             "stage_x_deg": float(cols["stage_x_deg"][i]), "stage_y_deg": float(cols["stage_y_deg"][i]),
-             "ref_x_deg": float(ref["x"][i]), "ref_y_deg": float(ref["y"][i])}
+        p = {
+            "point": int(cols["point"][i]),
+            "role": "fit" if cols["point"][i] < n_fit else "validation",
+            "stage_x_deg": float(cols["stage_x_deg"][i]),
+            "stage_y_deg": float(cols["stage_y_deg"][i]),
+            "ref_x_deg": float(ref["x"][i]),
+            "ref_y_deg": float(ref["y"][i]),
+        }
         for a in ("x", "y"):
             p[f"before_{a}_deg"] = float(before[a][i])
             p[f"after_{a}_deg"] = float(after[a][i])
         points.append(p)
-    return {"n_fit": min(n_fit, len(points)), "rms_before_deg": _rms(np.hypot(before["x"], before["y"])),
-            "rms_after_deg": _rms(np.hypot(after["x"], after["y"])), "points": points}
+    return {
+        "n_fit": min(n_fit, len(points)),
+        "rms_before_deg": _rms(np.hypot(before["x"], before["y"])),
+        "rms_after_deg": _rms(np.hypot(after["x"], after["y"])),
+        "points": points,
+    }
 
 
 def _rms(lengths: NDArray[np.float64]) -> float | None:

@@ -22,13 +22,16 @@ from service.physics.stage import StageBench, StageGeometry, simulate_stage
 
 ParamKey = tuple[str, str]  # (effect, parameter)
 
-# Parameters a fit uses in place of the registry's where the registry's are not linear: a worm's periodic error
-# a·sin(φ) + b·cos(φ) of the worm phase φ per stage, the same term as the registry's amp·sin(φ + phase) with
-# a = amp·cos(phase), b = amp·sin(phase). Amplitude and phase are singular at zero amplitude, where a fit starts
-# (the phase then moves nothing); the pair is linear and determined wherever the points sample several phases.
+# Parameters a fit uses in place of the registry's where the registry's are not linear: a worm's
+# periodic error a·sin(φ) + b·cos(φ) of the worm phase φ per stage, the same term as the registry's
+# amp·sin(φ + phase) with a = amp·cos(phase), b = amp·sin(phase). Amplitude and phase are singular
+# at zero amplitude, where a fit starts (the phase then moves nothing); the pair is linear and
+# determined wherever the points sample several phases.
 FIT_PARAMS: dict[ParamKey, str] = {
-    ("periodic_error", "x_sin_deg"): "deg", ("periodic_error", "x_cos_deg"): "deg",
-    ("periodic_error", "y_sin_deg"): "deg", ("periodic_error", "y_cos_deg"): "deg",
+    ("periodic_error", "x_sin_deg"): "deg",
+    ("periodic_error", "x_cos_deg"): "deg",
+    ("periodic_error", "y_sin_deg"): "deg",
+    ("periodic_error", "y_cos_deg"): "deg",
 }
 
 
@@ -46,12 +49,14 @@ def typical_scale(key: ParamKey) -> float:
     if key in FIT_PARAMS:
         return 0.01  # a worm's periodic error: hundredths of a degree
     unit = param_unit(key)
-    return {"deg": 0.1, "1": 1e-3, "1/deg": 1e-4, "deg/K": 1e-3, "1/K": 1e-4, "deg/h": 1e-2}.get(unit, 1e-2)
+    return {"deg": 0.1, "1": 1e-3, "1/deg": 1e-4, "deg/K": 1e-3, "1/K": 1e-4, "deg/h": 1e-2}.get(
+        unit, 1e-2
+    )
 
 
 def registry_effects(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, float]]:
-    """Effect values in the registry's parameters (what the simulator takes): a periodic error's sine/cosine
-    pair becomes its amplitude and phase."""
+    """Effect values in the registry's parameters (what the simulator takes): a periodic error's
+    sine/cosine pair becomes its amplitude and phase."""
     out = {e: dict(v) for e, v in effects.items()}
     pe = out.get("periodic_error")
     if pe is not None:
@@ -80,9 +85,14 @@ class StagePoints:
         x = np.asarray(data["stage_x_deg"], dtype=float)
         y = np.asarray(data["stage_y_deg"], dtype=float)
         z = np.zeros_like(x)
-        return cls(x, y, np.asarray(data.get("dir_x", z), dtype=float), np.asarray(data.get("dir_y", z), dtype=float),
-                   None if "temp_c" not in data else np.asarray(data["temp_c"], dtype=float),
-                   None if "t_s" not in data else np.asarray(data["t_s"], dtype=float))
+        return cls(
+            x,
+            y,
+            np.asarray(data.get("dir_x", z), dtype=float),
+            np.asarray(data.get("dir_y", z), dtype=float),
+            None if "temp_c" not in data else np.asarray(data["temp_c"], dtype=float),
+            None if "t_s" not in data else np.asarray(data["t_s"], dtype=float),
+        )
 
     def __len__(self) -> int:
         return self.stage_x_deg.size
@@ -103,11 +113,24 @@ class StageEffectModel:
         eff.pop("noise", None)
         return EffectSet.from_mapping("stage", registry_effects(eff))
 
-    def predict(self, values: Iterable[float], pts: StagePoints, outputs: Sequence[str]) -> NDArray[np.float64]:
-        """Noise-free predictions (N, len(outputs)); outputs are column names such as ref_x_deg or tilt_x_deg."""
+    def predict(
+        self, values: Iterable[float], pts: StagePoints, outputs: Sequence[str]
+    ) -> NDArray[np.float64]:
+        """Noise-free predictions (N, len(outputs)); outputs are column names such as ref_x_deg or
+        tilt_x_deg."""
         fx = self.effect_set(values)
-        sim = simulate_stage(self.bench, fx, pts.stage_x_deg, pts.stage_y_deg, pts.dir_x, pts.dir_y,
-                             pts.temp_c, pts.t_s, rng=None, geometry=StageGeometry.from_effects(self.bench, fx))
+        sim = simulate_stage(
+            self.bench,
+            fx,
+            pts.stage_x_deg,
+            pts.stage_y_deg,
+            pts.dir_x,
+            pts.dir_y,
+            pts.temp_c,
+            pts.t_s,
+            rng=None,
+            geometry=StageGeometry.from_effects(self.bench, fx),
+        )
         return np.column_stack([sim[o] for o in outputs])
 
 
@@ -148,29 +171,43 @@ def robust_scale(residuals: NDArray[np.float64]) -> float:
     return max(3.0 * 1.4826 * mad, 1e-5)
 
 
-def fit_stage_effects(model: StageEffectModel, pts: StagePoints, observed: Mapping[str, NDArray[np.float64]],
-              x0: Sequence[float] | NDArray[np.float64] | None = None, loss: str = "linear", f_scale: float | None = None,
-              max_nfev: int = 2000, prior_sd: Sequence[float | None] | None = None,
-              prior_sigma: float | None = None) -> StageEffectFit:
+def fit_stage_effects(
+    model: StageEffectModel,
+    pts: StagePoints,
+    observed: Mapping[str, NDArray[np.float64]],
+    x0: Sequence[float] | NDArray[np.float64] | None = None,
+    loss: str = "linear",
+    f_scale: float | None = None,
+    max_nfev: int = 2000,
+    prior_sd: Sequence[float | None] | None = None,
+    prior_sigma: float | None = None,
+) -> StageEffectFit:
     """Least-squares fit of the free parameters to the observed columns (e.g. ref_x_deg, ref_y_deg).
 
     `prior_sd` (per free parameter, None for none) adds a prior N(0, sd²) to a parameter: one more
-    residual x / sd weighed by `prior_sigma` (the readings' noise, from a fit without priors), so the
-    covariance is the posterior's, s² (JᵀJ + s²/sd²)⁻¹, and the residuals and degrees of freedom
+    residual x / sd weighed by `prior_sigma` (the readings' noise, from a fit without priors), so
+    the covariance is the posterior's, s² (JᵀJ + s²/sd²)⁻¹, and the residuals and degrees of freedom
     stay the data's.
     """
     outputs = list(observed)
     obs = np.column_stack([np.asarray(observed[o], dtype=float) for o in outputs])
     n_obs, n_par = obs.size, len(model.free)
     if n_obs <= n_par:
-        raise DegenerateDataError(f"{len(pts)} points give {n_obs} readings, fewer than the {n_par} free parameters "
-                                  f"of the bench model ({', '.join(param_label(k) for k in model.free)})")
+        raise DegenerateDataError(
+            f"{len(pts)} points give {n_obs} readings, fewer than the {n_par} free parameters "
+            f"of the bench model ({', '.join(param_label(k) for k in model.free)})"
+        )
     start = np.zeros(n_par) if x0 is None else np.asarray(x0, dtype=float)
     scales = np.array([typical_scale(k) for k in model.free])
 
     with_prior = [i for i, sd in enumerate(prior_sd or []) if sd]
-    prior_w = (np.array([float(prior_sigma or 0.0) / float((prior_sd or [])[i] or 1.0) for i in with_prior])
-               if with_prior else np.zeros(0))
+    prior_w = (
+        np.array(
+            [float(prior_sigma or 0.0) / float((prior_sd or [])[i] or 1.0) for i in with_prior]
+        )
+        if with_prior
+        else np.zeros(0)
+    )
 
     def data_resid(x: NDArray[np.float64]) -> NDArray[np.float64]:
         r: NDArray[np.float64] = (model.predict(x, pts, outputs) - obs).ravel()
@@ -183,19 +220,45 @@ def fit_stage_effects(model: StageEffectModel, pts: StagePoints, observed: Mappi
 
     if n_par == 0:
         r = resid(start)
-        return _result(model, start, np.zeros((0, 0)), r, outputs, obs.shape, 0.0, True, 1, "no free parameters", None)
+        return _result(
+            model,
+            start,
+            np.zeros((0, 0)),
+            r,
+            outputs,
+            obs.shape,
+            0.0,
+            True,
+            1,
+            "no free parameters",
+            None,
+        )
     kw = {}
     if loss != "linear":
         if f_scale is None:
-            # Residuals at the starting bench are no guide to the scale of good residuals: fit plainly
-            # first, take the scale robustly (MAD) from that fit, and start the robust fit there.
-            pre = fit_stage_effects(model, pts, observed, x0=start, loss="linear", max_nfev=max_nfev)
+            # Residuals at the starting bench are no guide to the scale of good residuals: fit
+            # plainly first, take the scale robustly (MAD) from that fit, and start the robust fit
+            # there.
+            pre = fit_stage_effects(
+                model, pts, observed, x0=start, loss="linear", max_nfev=max_nfev
+            )
             f_scale = robust_scale(np.concatenate(list(pre.residuals.values())))
             start = pre.values
         kw["f_scale"] = f_scale
     try:
-        sol = least_squares(resid, start, x_scale=scales, diff_step=1e-4 * scales / np.maximum(np.abs(start), scales),
-                            loss=loss, method="trf", max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12, **kw)
+        sol = least_squares(
+            resid,
+            start,
+            x_scale=scales,
+            diff_step=1e-4 * scales / np.maximum(np.abs(start), scales),
+            loss=loss,
+            method="trf",
+            max_nfev=max_nfev,
+            xtol=1e-12,
+            ftol=1e-12,
+            gtol=1e-12,
+            **kw,
+        )
     except ValueError as exc:
         raise FitError(f"bench fit failed: {exc}") from exc
     if not np.all(np.isfinite(sol.x)):
@@ -207,20 +270,57 @@ def fit_stage_effects(model: StageEffectModel, pts: StagePoints, observed: Mappi
     s2 = float(r @ r) / dof
     sv = np.linalg.svd(J * scales, compute_uv=False)
     if sv[-1] <= 1e-8 * sv[0]:
-        raise DegenerateDataError("the data do not separate the free bench parameters "
-                                  f"({', '.join(param_label(k) for k in model.free)}): the fit is singular")
+        raise DegenerateDataError(
+            "the data do not separate the free bench parameters "
+            f"({', '.join(param_label(k) for k in model.free)}): the fit is singular"
+        )
     JtJ = J[:n_obs].T @ J[:n_obs]
     if with_prior:
-        JtJ[with_prior, with_prior] += s2 / np.array([float((prior_sd or [])[i] or 1.0) for i in with_prior]) ** 2
+        JtJ[with_prior, with_prior] += (
+            s2 / np.array([float((prior_sd or [])[i] or 1.0) for i in with_prior]) ** 2
+        )
     cov = np.linalg.pinv(JtJ) * s2
-    return _result(model, sol.x, cov, r, outputs, obs.shape, s2, bool(sol.status > 0), int(sol.nfev),
-                   str(sol.message), sv)
+    return _result(
+        model,
+        sol.x,
+        cov,
+        r,
+        outputs,
+        obs.shape,
+        s2,
+        bool(sol.status > 0),
+        int(sol.nfev),
+        str(sol.message),
+        sv,
+    )
 
 
-def _result(model: StageEffectModel, x: ArrayLike, cov: NDArray[np.float64], r: ArrayLike, outputs: Sequence[str], shape: tuple[int, ...],
-            s2: float, ok: bool, nfev: int, msg: str, sv: NDArray[np.float64] | None) -> StageEffectFit:
+def _result(
+    model: StageEffectModel,
+    x: ArrayLike,
+    cov: NDArray[np.float64],
+    r: ArrayLike,
+    outputs: Sequence[str],
+    shape: tuple[int, ...],
+    s2: float,
+    ok: bool,
+    nfev: int,
+    msg: str,
+    sv: NDArray[np.float64] | None,
+) -> StageEffectFit:
     rr = np.asarray(r).reshape(shape)
     res = {o: rr[:, i] for i, o in enumerate(outputs)}
     dof = max(rr.size - len(model.free), 1)
-    return StageEffectFit(model, np.asarray(x, dtype=float), cov, res, float(np.sqrt(s2)), dof, float(np.sum(rr**2) / 2),
-                    ok, nfev, msg, np.zeros(0) if sv is None else sv)
+    return StageEffectFit(
+        model,
+        np.asarray(x, dtype=float),
+        cov,
+        res,
+        float(np.sqrt(s2)),
+        dof,
+        float(np.sum(rr**2) / 2),
+        ok,
+        nfev,
+        msg,
+        np.zeros(0) if sv is None else sv,
+    )

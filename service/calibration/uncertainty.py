@@ -29,26 +29,30 @@ def _step(value: ArrayLike, variance: float) -> NDArray[np.float64]:
 
 @dataclass
 class Propagated:
-    """Combined standard uncertainty u_c of each output and its Welch-Satterthwaite degrees of freedom."""
+    """Combined standard uncertainty u_c of each output and its Welch-Satterthwaite degrees of
+    freedom."""
 
     u: NDArray[np.float64]
     dof_eff: NDArray[np.float64]
 
     def expanded(self, coverage: float = COVERAGE) -> NDArray[np.float64]:
-        """U = k·u_c with k the t quantile for the effective degrees of freedom (JCGM 100 G.4, G.6.4)."""
+        """U = k·u_c with k the t quantile for the effective degrees of freedom (JCGM 100 G.4,
+        G.6.4)."""
         return coverage_factor(self.dof_eff, coverage) * self.u
 
 
 def coverage_factor(dof_eff: ArrayLike, coverage: float = COVERAGE) -> NDArray[np.float64]:
-    """k for a two-sided coverage interval: Student's t at `dof_eff` degrees of freedom (normal at infinity).
+    """k for a two-sided coverage interval: Student's t at `dof_eff` degrees of freedom (normal at
+    infinity).
 
     A fixed k = 2 covers about 95 % only for many degrees of freedom: at 10 it covers 92.7 %.
     """
     nu = np.asarray(dof_eff, dtype=float)
     q = 0.5 + coverage / 2.0
     if nu.size > _TABLE_ABOVE and np.all(nu >= 1.0):
-        # one value per corrected reading: interpolated in 1/ν on a fine table (relative error below 1e-7),
-        # since the exact inverse costs microseconds per value and correct handles 10^5-10^6 readings
+        # one value per corrected reading: interpolated in 1/ν on a fine table (relative error below
+        # 1e-7), since the exact inverse costs microseconds per value and correct handles 10^5-10^6
+        # readings
         grid, k = _coverage_table(q)
         k_nu: NDArray[np.float64] = np.interp(1.0 / nu, grid, k)
         return k_nu
@@ -60,7 +64,8 @@ _TABLE_ABOVE = 256
 
 
 def dof_of_coverage_factor(k: ArrayLike, coverage: float = COVERAGE) -> NDArray[np.float64]:
-    """The degrees of freedom ν whose Student's t factor is k (coverage_factor's inverse; infinite at the normal's)."""
+    """The degrees of freedom ν whose Student's t factor is k (coverage_factor's inverse; infinite
+    at the normal's)."""
     kk = np.asarray(k, dtype=float)
     q = 0.5 + coverage / 2.0
     normal = float(special.ndtri(q))
@@ -79,11 +84,13 @@ def _coverage_table(q: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]
     return grid, k
 
 
-def welch_satterthwaite(components: Sequence[tuple[NDArray[np.float64], float]]) -> NDArray[np.float64]:
+def welch_satterthwaite(
+    components: Sequence[tuple[NDArray[np.float64], float]],
+) -> NDArray[np.float64]:
     """ν_eff = u_c⁴ / Σ u_i⁴ / ν_i over the variance components (u_i², ν_i) (JCGM 100 eq. G.2b).
 
-    Components given the same finite ν rest on one estimated standard deviation (one fit's σ̂, as the
-    parameters' covariance and the reading noise of a corrected value do): they are one estimate
+    Components given the same finite ν rest on one estimated standard deviation (one fit's σ̂, as
+    the parameters' covariance and the reading noise of a corrected value do): they are one estimate
     with that ν, not independent ones, so their variances are summed before the formula (which would
     otherwise give more degrees of freedom than the fit has). Infinite where every component with a
     finite ν is zero (or u_c is zero).
@@ -95,8 +102,11 @@ def welch_satterthwaite(components: Sequence[tuple[NDArray[np.float64], float]])
     total = sum(np.asarray(v, dtype=float) for v, _ in components)
     denom = sum(v**2 / nu for nu, v in groups.items())
     with np.errstate(divide="ignore", invalid="ignore"):
-        nu_eff = np.where(np.asarray(denom) > 0, np.asarray(total) ** 2 / np.where(np.asarray(denom) > 0, denom, 1.0),
-                          np.inf)
+        nu_eff = np.where(
+            np.asarray(denom) > 0,
+            np.asarray(total) ** 2 / np.where(np.asarray(denom) > 0, denom, 1.0),
+            np.inf,
+        )
     return np.asarray(nu_eff, dtype=float)
 
 
@@ -148,20 +158,25 @@ def propagate_gum(
         if not sigma:
             continue
         x = np.asarray(inputs[name], dtype=float)
-        h = _step(x, sigma ** 2)
+        h = _step(x, sigma**2)
         up = dict(inputs)
         dn = dict(inputs)
         up[name] = x + h
         dn[name] = x - h
-        d = (np.asarray(f(params, up)) - np.asarray(f(params, dn))) / (2 * h if y0.ndim == 1 else (2 * h)[:, None])
+        d = (np.asarray(f(params, up)) - np.asarray(f(params, dn))) / (
+            2 * h if y0.ndim == 1 else (2 * h)[:, None]
+        )
         components.append(((d * sigma) ** 2, inputs_dof))
     var = sum((c for c, _ in components), np.zeros_like(y0))
-    return Propagated(np.sqrt(var), welch_satterthwaite(components) if components else np.full(y0.shape, np.inf))
+    return Propagated(
+        np.sqrt(var), welch_satterthwaite(components) if components else np.full(y0.shape, np.inf)
+    )
 
 
 @dataclass(frozen=True)
 class MeanTypeA:
-    """The mean of n readings and its Type A standard uncertainty (JCGM 100 4.2), allowing for their correlation."""
+    """The mean of n readings and its Type A standard uncertainty (JCGM 100 4.2), allowing for their
+    correlation."""
 
     mean: float
     u: float  # s / √n_eff
@@ -174,10 +189,11 @@ class MeanTypeA:
 def mean_type_a(values: ArrayLike) -> MeanTypeA:
     """Mean of a series of readings with the standard uncertainty of that mean.
 
-    Readings of a sensor close in time are not always independent (filtering, a slow wander): s/√n would then
-    understate the mean's uncertainty. With the lag-1 autocorrelation ρ of an AR(1) series the mean is worth
-    n_eff = n (1 − ρ)/(1 + ρ) independent readings (never more than n: a negative ρ is taken as 0), and
-    u = s/√n_eff with n_eff − 1 degrees of freedom. Needs two readings or more."""
+    Readings of a sensor close in time are not always independent (filtering, a slow wander): s/√n
+    would then understate the mean's uncertainty. With the lag-1 autocorrelation ρ of an AR(1)
+    series the mean is worth n_eff = n (1 − ρ)/(1 + ρ) independent readings (never more than n: a
+    negative ρ is taken as 0), and u = s/√n_eff with n_eff − 1 degrees of freedom. Needs two
+    readings or more."""
     v = np.asarray(values, dtype=float)
     n = int(v.size)
     if n < 2:

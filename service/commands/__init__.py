@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING
 from service.commands._args import HelpFormatter, Parser, add_subcommands
 from service.errors import InputError
 
-if TYPE_CHECKING:  # loaded by name below, when the parser is built; named here so the layer gate sees them
+# loaded by name below, when the parser is built; named here so the layer gate sees them
+if TYPE_CHECKING:
     from service.commands import (  # noqa: F401
         db,
         devices,
@@ -34,8 +35,19 @@ if TYPE_CHECKING:  # loaded by name below, when the parser is built; named here 
     )
 
 # The order of `tiltlab --help`: working on recorded runs first, then the service and its upkeep.
-COMMANDS = ("simulate", "calibrate:offline", "plan", "discrepancy", "reproduce", "serve", "sim", "devices", "db", "token",
-            "verify_certificate")
+COMMANDS = (
+    "simulate",
+    "calibrate:offline",
+    "plan",
+    "discrepancy",
+    "reproduce",
+    "serve",
+    "sim",
+    "devices",
+    "db",
+    "token",
+    "verify_certificate",
+)
 
 OVERVIEW = """\
 tiltlab calibrates biaxial inclinometers (tilt sensors) on motorised tilt stages and uses
@@ -56,7 +68,9 @@ Run the lab service (HTTP API, dashboard at http://127.0.0.1:8000/):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="tiltlab", description=OVERVIEW, formatter_class=HelpFormatter)
-    parser.add_argument("--version", action="version", version=_version(), help="print the version and stop")
+    parser.add_argument(
+        "--version", action="version", version=_version(), help="print the version and stop"
+    )
     sub = add_subcommands(parser, "command")
     for entry in COMMANDS:
         module = entry.split(":")[-1]
@@ -77,7 +91,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 0
     args = parser.parse_args(argv)
-    args.command_line = shlex.join(["tiltlab", *argv])  # for the provenance of what the command writes
+    # for the provenance of what the command writes
+    args.command_line = shlex.join(["tiltlab", *argv])
     try:
         return int(args.handler(args) or 0)
     except InputError as exc:

@@ -15,13 +15,16 @@ class Parser(argparse.ArgumentParser):
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
-    """Descriptions and examples as written; every option says its default, or that it is required."""
+    """Descriptions and examples as written; every option says its default, or that it is
+    required."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
         if action.default is argparse.SUPPRESS or "default:" in text or "%(default)" in text:
             return text
-        if action.option_strings == [] or isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
+        if action.option_strings == [] or isinstance(
+            action, (argparse._HelpAction, argparse._VersionAction)
+        ):
             return text
         if action.required:
             return f"{text} (required)"
@@ -32,16 +35,28 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: %(default)s)"
 
 
-def add_command(sub: argparse._SubParsersAction[argparse.ArgumentParser], name: str, summary: str, *, examples: Sequence[str],
-                description: str | None = None) -> argparse.ArgumentParser:
+def add_command(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser],
+    name: str,
+    summary: str,
+    *,
+    examples: Sequence[str],
+    description: str | None = None,
+) -> argparse.ArgumentParser:
     """A sub-command whose help has a description and at least one example."""
     lines = "\n".join(f"  {e}" for e in examples)
-    return sub.add_parser(name, help=summary, description=description or summary[:1].upper() + summary[1:] + ".",
-                          epilog=f"example{'s' if len(examples) > 1 else ''}:\n{lines}",
-                          formatter_class=HelpFormatter)
+    return sub.add_parser(
+        name,
+        help=summary,
+        description=description or summary[:1].upper() + summary[1:] + ".",
+        epilog=f"example{'s' if len(examples) > 1 else ''}:\n{lines}",
+        formatter_class=HelpFormatter,
+    )
 
 
-def add_subcommands(parser: argparse.ArgumentParser, dest: str) -> argparse._SubParsersAction[argparse.ArgumentParser]:
+def add_subcommands(
+    parser: argparse.ArgumentParser, dest: str
+) -> argparse._SubParsersAction[argparse.ArgumentParser]:
     return parser.add_subparsers(dest=dest, required=True, parser_class=Parser, metavar="COMMAND")
 
 
@@ -59,8 +74,10 @@ def _number(text: str, what: str) -> float:
 
 def finite(what: str) -> Callable[[str], float]:
     """A type for options that take any finite number."""
+
     def parse(text: str) -> float:
         return _number(text, what)
+
     parse.__name__ = what
     return parse
 

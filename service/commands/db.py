@@ -15,7 +15,8 @@ from typing import TYPE_CHECKING
 from service.commands._args import add_command, add_subcommands
 from service.errors import InputError
 
-if TYPE_CHECKING:  # storage and migrations are imported by the commands that use them, not by --help
+# storage and migrations are imported by the commands that use them, not by --help
+if TYPE_CHECKING:
     from alembic.script import ScriptDirectory
     from sqlalchemy.engine import Engine
 
@@ -45,10 +46,15 @@ def run(args: argparse.Namespace) -> int:
     if not database_exists(settings.database_url):
         path = sqlite_path(settings.database_url)
         if command == "current":
-            print(f"{where}: revision none (no database file at {path} yet; `tiltlab db upgrade` creates it)")
+            print(
+                f"{where}: revision none (no database file at {path} yet; `tiltlab db upgrade` "
+                "creates it)"
+            )
             return 0
         if command == "verify":
-            print(f"{where}: no database file at {path} (run `tiltlab db upgrade`)", file=sys.stderr)
+            print(
+                f"{where}: no database file at {path} (run `tiltlab db upgrade`)", file=sys.stderr
+            )
             return 1
         raise InputError(f"{where}: no database file at {path}; nothing to downgrade")
     engine = make_engine(settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms)
@@ -56,7 +62,11 @@ def run(args: argparse.Namespace) -> int:
         if command == "current":
             rev = current_revision(engine)
             head = head_revision()
-            state = "empty, run `tiltlab db upgrade`" if rev is None else ("head" if rev == head else f"head is {head}")
+            state = (
+                "empty, run `tiltlab db upgrade`"
+                if rev is None
+                else ("head" if rev == head else f"head is {head}")
+            )
             print(f"{where}: revision {rev or 'none'} ({state})")
             return 0
         if command == "downgrade":
@@ -98,7 +108,12 @@ def _known_revisions() -> str:
 def _downgrade(settings: Settings, engine: Engine, target: str, yes: bool) -> int:
     from alembic.util.exc import CommandError
 
-    from service.storage.backup import backup_sqlite, pg_dump_command, sqlite_path, timestamped_backup_path
+    from service.storage.backup import (
+        backup_sqlite,
+        pg_dump_command,
+        sqlite_path,
+        timestamped_backup_path,
+    )
     from service.storage.engine import redacted
     from service.storage.migrate import current_revision, downgrade
 
@@ -110,8 +125,10 @@ def _downgrade(settings: Settings, engine: Engine, target: str, yes: bool) -> in
         except CommandError:
             found = None
         if found is None:
-            raise InputError(f"downgrade: no revision {target!r}; name one of {_known_revisions()} "
-                             "(`tiltlab db history` lists them)")
+            raise InputError(
+                f"downgrade: no revision {target!r}; name one of {_known_revisions()} "
+                "(`tiltlab db history` lists them)"
+            )
         target = found.revision
     current = current_revision(engine)
     if current is None:
@@ -124,17 +141,24 @@ def _downgrade(settings: Settings, engine: Engine, target: str, yes: bool) -> in
     if target != "base":
         below = {r.revision for r in scripts.iterate_revisions(current, "base")}
         if target not in below:
-            raise InputError(f"downgrade: revision {target} is not below the current revision {current} "
-                             "(`tiltlab db upgrade` moves up)")
+            raise InputError(
+                f"downgrade: revision {target} is not below the current revision {current} "
+                "(`tiltlab db upgrade` moves up)"
+            )
         undone = [r for r in undone if r != target]
     what = "every table" if target == "base" else "the tables of migration(s) " + ", ".join(undone)
     path = sqlite_path(settings.database_url)
     if not yes:
-        backup_note = ("the SQLite file is backed up first" if path is not None else
-                       "PostgreSQL is not backed up by tiltlab: dump it first with "
-                       + pg_dump_command(settings.database_url, f"tiltlab-before-downgrade-{current}.dump"))
-        raise InputError(f"downgrade from {current} to {target} drops {what} and the data in them, calibration "
-                         f"records included; run again with --yes to go ahead ({backup_note})")
+        backup_note = (
+            "the SQLite file is backed up first"
+            if path is not None
+            else "PostgreSQL is not backed up by tiltlab: dump it first with "
+            + pg_dump_command(settings.database_url, f"tiltlab-before-downgrade-{current}.dump")
+        )
+        raise InputError(
+            f"downgrade from {current} to {target} drops {what} and the data in them, calibration "
+            f"records included; run again with --yes to go ahead ({backup_note})"
+        )
     if path is not None:
         backup = backup_sqlite(path, timestamped_backup_path(path, f"before-downgrade-{current}"))
         print(f"backed up {path} to {backup}")
@@ -151,43 +175,85 @@ def _backup(settings: Settings, out: str) -> int:
 
     path = sqlite_path(settings.database_url)
     if path is None:
-        print("tiltlab does not dump PostgreSQL itself (use the server's own pg_dump, which matches its "
-              "version; the password comes from its prompt, PGPASSWORD or ~/.pgpass):", file=sys.stderr)
+        print(
+            "tiltlab does not dump PostgreSQL itself (use the server's own pg_dump, which "
+            "matches its version; the password comes from its prompt, PGPASSWORD or ~/.pgpass):",
+            file=sys.stderr,
+        )
         print(pg_dump_command(settings.database_url, out))
         return 0
     if not path.is_file():
-        raise InputError(f"{redacted(settings.database_url)}: no database file at {path} to back up")
+        raise InputError(
+            f"{redacted(settings.database_url)}: no database file at {path} to back up"
+        )
     written = backup_sqlite(path, Path(out))
     print(f"backed up {path} to {written}")
     return 0
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(sub, "db", "database upkeep: schema upgrade, revision, backup, downgrade, verification",
-                    description="Upkeep of the configured database (TILTLAB_DATABASE_URL; default the SQLite "
-                                "file tiltlab.db\nin TILTLAB_DATA_DIR). `tiltlab serve` upgrades the schema by "
-                                "itself at start-up.",
-                    examples=["tiltlab db current", "tiltlab db backup --out tiltlab-2026-11-23.db",
-                              "tiltlab db downgrade base --yes"])
+    p = add_command(
+        sub,
+        "db",
+        "database upkeep: schema upgrade, revision, backup, downgrade, verification",
+        description="Upkeep of the configured database (TILTLAB_DATABASE_URL; default the SQLite "
+        "file tiltlab.db\nin TILTLAB_DATA_DIR). `tiltlab serve` upgrades the schema by "
+        "itself at start-up.",
+        examples=[
+            "tiltlab db current",
+            "tiltlab db backup --out tiltlab-2026-11-23.db",
+            "tiltlab db downgrade base --yes",
+        ],
+    )
     dbsub = add_subcommands(p, "db_command")
-    add_command(dbsub, "upgrade", "bring the database to the current schema (creates it if needed)",
-                examples=["tiltlab db upgrade"])
-    add_command(dbsub, "current", "print the schema revision of the database (never creates one)",
-                examples=["tiltlab db current"])
-    add_command(dbsub, "history", "list the schema revisions, newest first", examples=["tiltlab db history"])
-    q = add_command(dbsub, "downgrade", "step the schema back to a named revision, dropping newer tables",
-                    description="Step the schema back to REVISION. The tables of the migrations undone are "
-                                "dropped with their\ndata, calibration records included: a SQLite database is "
-                                "first copied (online backup)\nbeside itself and the copy's path printed; for "
-                                "PostgreSQL the pg_dump command to run first\nis printed.",
-                    examples=["tiltlab db downgrade base --yes"])
-    q.add_argument("revision", help="the revision to go back to (see `tiltlab db history`), or base for no schema")
-    q.add_argument("--yes", action="store_true",
-                   help="go ahead: the data in the dropped tables are lost (SQLite is backed up first)")
-    q = add_command(dbsub, "backup", "copy the SQLite database to a new file, also while the service runs; "
-                                     "for PostgreSQL print the pg_dump command",
-                    examples=["tiltlab db backup --out /backups/tiltlab-2026-11-23.db"])
-    q.add_argument("--out", required=True, metavar="FILE", help="the backup file to write (must not exist)")
-    add_command(dbsub, "verify", "check the hashes and chains of calibration records and audit events",
-                examples=["tiltlab db verify"])
+    add_command(
+        dbsub,
+        "upgrade",
+        "bring the database to the current schema (creates it if needed)",
+        examples=["tiltlab db upgrade"],
+    )
+    add_command(
+        dbsub,
+        "current",
+        "print the schema revision of the database (never creates one)",
+        examples=["tiltlab db current"],
+    )
+    add_command(
+        dbsub, "history", "list the schema revisions, newest first", examples=["tiltlab db history"]
+    )
+    q = add_command(
+        dbsub,
+        "downgrade",
+        "step the schema back to a named revision, dropping newer tables",
+        description="Step the schema back to REVISION. The tables of the migrations undone are "
+        "dropped with their\ndata, calibration records included: a SQLite database is "
+        "first copied (online backup)\nbeside itself and the copy's path printed; for "
+        "PostgreSQL the pg_dump command to run first\nis printed.",
+        examples=["tiltlab db downgrade base --yes"],
+    )
+    q.add_argument(
+        "revision",
+        help="the revision to go back to (see `tiltlab db history`), or base for no schema",
+    )
+    q.add_argument(
+        "--yes",
+        action="store_true",
+        help="go ahead: the data in the dropped tables are lost (SQLite is backed up first)",
+    )
+    q = add_command(
+        dbsub,
+        "backup",
+        "copy the SQLite database to a new file, also while the service runs; "
+        "for PostgreSQL print the pg_dump command",
+        examples=["tiltlab db backup --out /backups/tiltlab-2026-11-23.db"],
+    )
+    q.add_argument(
+        "--out", required=True, metavar="FILE", help="the backup file to write (must not exist)"
+    )
+    add_command(
+        dbsub,
+        "verify",
+        "check the hashes and chains of calibration records and audit events",
+        examples=["tiltlab db verify"],
+    )
     p.set_defaults(handler=run)

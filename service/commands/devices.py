@@ -67,41 +67,64 @@ async def _probe(role: str, driver: RoleDriver) -> str:
     if isinstance(driver, StageController):
         ident = await driver.x.identify()
         await driver.y.position_pulses()
-        return (f"{ident.model} serial {ident.serial}, axes 1 and 2 at {await driver.x.position_deg():.4f}, "
-                f"{await driver.y.position_deg():.4f} deg")
+        return (
+            f"{ident.model} serial {ident.serial}, axes 1 and 2 at "
+            f"{await driver.x.position_deg():.4f}, {await driver.y.position_deg():.4f} deg"
+        )
     if isinstance(driver, ControllerAxis):
         ident = await driver.identify()
-        return f"{ident.model} serial {ident.serial}, axis {driver.axis} at {await driver.position_deg():.3f} deg"
+        return (
+            f"{ident.model} serial {ident.serial}, axis {driver.axis} at "
+            f"{await driver.position_deg():.3f} deg"
+        )
     if isinstance(driver, TriaxialModule):
         r = await driver.read_sines()
-        return f"triaxial module at address 0x{driver.address:02X}: sines {r.sx:+.6f} {r.sy:+.6f} {r.sz:+.6f} g"
+        return (
+            f"triaxial module at address 0x{driver.address:02X}: sines {r.sx:+.6f} {r.sy:+.6f} "
+            f"{r.sz:+.6f} g"
+        )
     if isinstance(driver, BinaryInclinometer):
         r = await driver.read_tilt()
-        return f"binary inclinometer at address 0x{driver.address:02X}: x {r.x_deg:+.4f} y {r.y_deg:+.4f} deg"
+        return (
+            f"binary inclinometer at address 0x{driver.address:02X}: x {r.x_deg:+.4f} y "
+            f"{r.y_deg:+.4f} deg"
+        )
     ident = await driver.identify()
     if isinstance(driver, Rs485Inclinometer):
         r = await driver.read_tilt()
-        return (f"{ident.model} serial {ident.serial} firmware {ident.firmware} at address {driver.address:02X}: "
-                f"x {r.x_deg:+.5f} y {r.y_deg:+.5f} deg")
+        return (
+            f"{ident.model} serial {ident.serial} firmware {ident.firmware} at address "
+            f"{driver.address:02X}: x {r.x_deg:+.5f} y {r.y_deg:+.5f} deg"
+        )
     if isinstance(driver, Rs485Thermohygrometer):
         r = await driver.read_ambient()
-        return (f"{ident.model} serial {ident.serial} at address {driver.address:02X}: air {r.temp_c:+.2f} °C, "
-                f"relative humidity {r.humidity_pct:.1f} %")
+        return (
+            f"{ident.model} serial {ident.serial} at address {driver.address:02X}: air "
+            f"{r.temp_c:+.2f} °C, relative humidity {r.humidity_pct:.1f} %"
+        )
     r = await driver.read_counts(1)
     return f"{ident.model} serial {ident.serial}: {r.counts:.0f} counts"
 
 
 def _why(role: str, spec: PortRole, driver: RoleDriver) -> str:
-    from service.instruments.bench_config import AmbientSensorRole, BinaryInclinometerRole, Rs485InclinometerRole
+    from service.instruments.bench_config import (
+        AmbientSensorRole,
+        BinaryInclinometerRole,
+        Rs485InclinometerRole,
+    )
     from service.instruments.drivers import StageController
 
     port = driver.x.port if isinstance(driver, StageController) else driver.port
     if port.state != "connected":
         return f"cannot be opened ({port.error or 'not found'})"
     addresses = sorted(port.foreign_senders)
-    if addresses and isinstance(spec, BinaryInclinometerRole | Rs485InclinometerRole | AmbientSensorRole):
-        return "answered from address " + ", ".join(f"0x{a:02X}" if isinstance(spec, BinaryInclinometerRole)
-                                                    else f"{a:02X}" for a in addresses)
+    if addresses and isinstance(
+        spec, BinaryInclinometerRole | Rs485InclinometerRole | AmbientSensorRole
+    ):
+        return "answered from address " + ", ".join(
+            f"0x{a:02X}" if isinstance(spec, BinaryInclinometerRole) else f"{a:02X}"
+            for a in addresses
+        )
     axes = sorted(port.foreign_senders)
     if axes and role in ("stage", "rotary_table"):
         return "answered on axis " + ", ".join(map(str, axes))
@@ -121,8 +144,15 @@ async def probe_bench(config: BenchConfig, clock: Clock) -> list[tuple[str, str,
 
     registry = PortRegistry()
     results = []
-    drivers = {role: make_driver(role, spec, config, clock, registry) for role, spec in config.role_specs.items()}
-    ports = {id(p): p for d in drivers.values() for p in ([d.x.port] if isinstance(d, StageController) else [d.port])}
+    drivers = {
+        role: make_driver(role, spec, config, clock, registry)
+        for role, spec in config.role_specs.items()
+    }
+    ports = {
+        id(p): p
+        for d in drivers.values()
+        for p in ([d.x.port] if isinstance(d, StageController) else [d.port])
+    }
     for p in ports.values():
         p.start()
     try:
@@ -132,8 +162,14 @@ async def probe_bench(config: BenchConfig, clock: Clock) -> list[tuple[str, str,
             try:
                 results.append((role, spec.where, True, await _probe(role, d)))
             except DeviceError:
-                results.append((role, spec.where, False, (f"{_why(role, spec, d)}; "
-                                f"expected {expected(role, spec)}")))
+                results.append(
+                    (
+                        role,
+                        spec.where,
+                        False,
+                        (f"{_why(role, spec, d)}; expected {expected(role, spec)}"),
+                    )
+                )
     finally:
         for p in ports.values():
             p.stop()
@@ -161,9 +197,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(sub, "devices", "probe every role of a bench configuration and say what answered",
-                    examples=["tiltlab devices --config bench.toml"])
-    p.add_argument("--config", required=True, metavar="FILE", help="bench configuration file (TOML)")
-    p.add_argument("--bench", default=None, metavar="NAME",
-                   help="bench name, when the file describes several (default: the only one)")
+    p = add_command(
+        sub,
+        "devices",
+        "probe every role of a bench configuration and say what answered",
+        examples=["tiltlab devices --config bench.toml"],
+    )
+    p.add_argument(
+        "--config", required=True, metavar="FILE", help="bench configuration file (TOML)"
+    )
+    p.add_argument(
+        "--bench",
+        default=None,
+        metavar="NAME",
+        help="bench name, when the file describes several (default: the only one)",
+    )
     p.set_defaults(handler=run)

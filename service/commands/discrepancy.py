@@ -1,4 +1,5 @@
-"""`tiltlab discrepancy`: read the dataset, run the workflow, write the JSON report and the report page.
+"""`tiltlab discrepancy`: read the dataset, run the workflow, write the JSON report and the report
+page.
 
 Options (docs/datasets.md): --kind stage|scale, --input, --out REPORT.json, --sensor ref|meas,
 --baseline linear|kinematic, --html (default: REPORT.html next to --out). Both files are
@@ -38,18 +39,27 @@ def _constant_column(ds: Dataset, col: str) -> float | None:
     bad = np.flatnonzero(v <= 0)
     if bad.size:
         i = int(bad[0])
-        raise InputError(f"{ds.where(i + 1, col)}: a noise level must be positive, "
-                         f"got {ds.text[col][i]}")
+        raise InputError(
+            f"{ds.where(i + 1, col)}: a noise level must be positive, got {ds.text[col][i]}"
+        )
     diff = np.flatnonzero(v != v[0])
     if diff.size:
         i = int(diff[0])
-        raise InputError(f"{ds.where(i + 1, col)}: {ds.text[col][i]} differs from "
-                         f"the first row's {ds.text[col][0]}; the instrument's noise level is one value per axis")
+        raise InputError(
+            f"{ds.where(i + 1, col)}: {ds.text[col][i]} differs from "
+            f"the first row's {ds.text[col][0]}; the instrument's noise level is one value per axis"
+        )
     return float(v[0])
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.io.datasets import about, check_not_overwriting, check_output_path, read_dataset, write_text_atomic
+    from service.io.datasets import (
+        about,
+        check_not_overwriting,
+        check_output_path,
+        read_dataset,
+        write_text_atomic,
+    )
     from service.io.provenance import provenance
 
     kind = args.kind
@@ -57,7 +67,9 @@ def run(args: argparse.Namespace) -> int:
     inputs = {"input": str(args.input)}
     # Both output paths are checked before the work, so a bad one leaves neither file behind.
     out = check_output_path(args.out)
-    html_path = check_output_path(args.html if getattr(args, "html", None) else out.with_suffix(".html"))
+    html_path = check_output_path(
+        args.html if getattr(args, "html", None) else out.with_suffix(".html")
+    )
     if html_path.resolve() == out.resolve():
         raise InputError(f"--html {html_path} would overwrite the JSON report --out {out}")
     check_not_overwriting(out, input=args.input)
@@ -71,54 +83,89 @@ def run(args: argparse.Namespace) -> int:
         if adopt_path.resolve() in (out.resolve(), html_path.resolve()):
             raise InputError(f"--adopt {adopt_path} would overwrite the report")
         check_not_overwriting(adopt_path, "--adopt", input=args.input)
-    prov = provenance(getattr(args, "command_line", "tiltlab discrepancy"),
-                      {"input": args.input, "bench": getattr(args, "bench", None)})
+    prov = provenance(
+        getattr(args, "command_line", "tiltlab discrepancy"),
+        {"input": args.input, "bench": getattr(args, "bench", None)},
+    )
     if kind == "stage":
         from service.discrepancy.stage import stage_diagnosis
 
         sensor = getattr(args, "sensor", None) or "ref"
         nx, ny = f"noise_{sensor}_x_deg", f"noise_{sensor}_y_deg"
-        ds = read_dataset(args.input, "stage",
-                          ("stage_x_deg", "stage_y_deg", f"{sensor}_x_deg", f"{sensor}_y_deg"),
-                          ("dir_x", "dir_y", "temp_c", "t_s", "point", nx, ny))
+        ds = read_dataset(
+            args.input,
+            "stage",
+            ("stage_x_deg", "stage_y_deg", f"{sensor}_x_deg", f"{sensor}_y_deg"),
+            ("dir_x", "dir_y", "temp_c", "t_s", "point", nx, ny),
+        )
         noise = None
         cx, cy = _constant_column(ds, nx), _constant_column(ds, ny)
         if cx is not None or cy is not None:
             if cx is None or cy is None:
-                raise InputError(f"{ds.source}: give both {nx!r} and {ny!r} (one noise level per axis), or neither")
+                raise InputError(
+                    f"{ds.source}: give both {nx!r} and {ny!r} (one noise level per axis), or "
+                    "neither"
+                )
             noise = [cx, cy]
         from service.commands.offline import stage_bench_options
 
         stated = stage_bench_options("stage", getattr(args, "bench", None))
         with about(args.input):
-            report, page, result, _ = stage_diagnosis(ds.arrays(), sensor, baseline, noise, bench=stated.get("bench"),
-                                                      inputs=inputs, bench_source=stated.get("bench_source"),
-                                                      provenance=prov)
-            if adopt_path is not None:  # the last step: the calibration with the named effects added
+            report, page, result, _ = stage_diagnosis(
+                ds.arrays(),
+                sensor,
+                baseline,
+                noise,
+                bench=stated.get("bench"),
+                inputs=inputs,
+                bench_source=stated.get("bench_source"),
+                provenance=prov,
+            )
+            # the last step: the calibration with the named effects added
+            if adopt_path is not None:
                 from service.discrepancy.adopt import adopted_model, seen_labels_of
                 from service.physics.stage import StageBench
 
-                worm = sorted({lab[:1] for lab in seen_labels_of(result.steps).get("periodic_error", [])}) or ["x", "y"]
-                adopted = adopted_model(ds.arrays(), report["named_effects"], sensor,
-                                        stated.get("bench") or StageBench(),
-                                        str(stated.get("bench_source") or report["bench"]["source"]),
-                                        {"what": f"the discrepancy report {out}", "report": str(out),
-                                         "input": str(args.input), "sensor": sensor, "baseline": baseline},
-                                        worm_axes=worm)
+                worm = sorted(
+                    {lab[:1] for lab in seen_labels_of(result.steps).get("periodic_error", [])}
+                ) or ["x", "y"]
+                adopted = adopted_model(
+                    ds.arrays(),
+                    report["named_effects"],
+                    sensor,
+                    stated.get("bench") or StageBench(),
+                    str(stated.get("bench_source") or report["bench"]["source"]),
+                    {
+                        "what": f"the discrepancy report {out}",
+                        "report": str(out),
+                        "input": str(args.input),
+                        "sensor": sensor,
+                        "baseline": baseline,
+                    },
+                    worm_axes=worm,
+                )
     elif kind == "scale":
         from service.discrepancy.scale import scale_report
 
         if getattr(args, "bench", None) is not None:
             raise InputError("--bench describes a bench of stacked stages; kind 'scale' has none")
         if getattr(args, "sensor", None) is not None:
-            raise InputError("--sensor chooses between the two sensors of stage data; kind 'scale' has one "
-                             "sensor, leave it out")
+            raise InputError(
+                "--sensor chooses between the two sensors of stage data; kind 'scale' has one "
+                "sensor, leave it out"
+            )
 
         if baseline not in ("linear", "poly1"):
-            raise InputError(f"kind 'scale' has one baseline, poly1 (a straight line); --baseline {baseline} "
-                             "applies to stage data")
-        ds = read_dataset(args.input, "scale", (("ref_arcsec", "ref_deg"), "reading"),
-                          ("point", "temp_c", "t_s", "noise_arcsec"))
+            raise InputError(
+                f"kind 'scale' has one baseline, poly1 (a straight line); --baseline {baseline} "
+                "applies to stage data"
+            )
+        ds = read_dataset(
+            args.input,
+            "scale",
+            (("ref_arcsec", "ref_deg"), "reading"),
+            ("point", "temp_c", "t_s", "noise_arcsec"),
+        )
         noise_arcsec = _constant_column(ds, "noise_arcsec")
         from service.discrepancy.report import clean, render_html
 
@@ -139,13 +186,18 @@ def run(args: argparse.Namespace) -> int:
             adopted.provenance = prov
             write_model(adopt_path, adopted)
     except BaseException:
-        out.unlink(missing_ok=True)  # a report without its page (or the model asked for) is half the result
+        # a report without its page (or the model asked for) is half the result
+        out.unlink(missing_ok=True)
         html_path.unlink(missing_ok=True)
         raise
     chain = " → ".join(report["chain"])
-    print(f"{kind}/{report['baseline']}: {chain}; final RMS {', '.join(f'{v:.3g}' for v in report['final_rms'])} "
-          f"{report['unit']} (noise {', '.join(f'{v:.3g}' for v in report['noise_level'])}, "
-          f"{report['noise_source']}); wrote {out} and {html_path}", file=sys.stderr)
+    print(
+        f"{kind}/{report['baseline']}: {chain}; final RMS "
+        f"{', '.join(f'{v:.3g}' for v in report['final_rms'])} "
+        f"{report['unit']} (noise {', '.join(f'{v:.3g}' for v in report['noise_level'])}, "
+        f"{report['noise_source']}); wrote {out} and {html_path}",
+        file=sys.stderr,
+    )
     for s in report["skipped"]:
         print(f"  skipped {s['effect']}: {s['reason']}", file=sys.stderr)
     if kind == "stage" and getattr(args, "bench", None) is None:
@@ -156,28 +208,56 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(sub, "discrepancy", "find, name and add the effects a bench model is missing",
-                    description="Fit a baseline model to a recorded run, look for structure left in the "
-                                "residuals, name the\nmissing effects one by one with their significance, and "
-                                "write a JSON report and its\nHTML page (docs/discrepancy.md; dataset columns "
-                                "in docs/datasets.md).",
-                    examples=[("tiltlab discrepancy --kind stage --input seed000.csv --out report.json "
-                              "--bench bench.toml"),
-                              "tiltlab discrepancy --kind scale --input adc.csv --out scale-report.json"])
+    p = add_command(
+        sub,
+        "discrepancy",
+        "find, name and add the effects a bench model is missing",
+        description="Fit a baseline model to a recorded run, look for structure left in the "
+        "residuals, name the\nmissing effects one by one with their significance, and "
+        "write a JSON report and its\nHTML page (docs/discrepancy.md; dataset columns "
+        "in docs/datasets.md).",
+        examples=[
+            (
+                "tiltlab discrepancy --kind stage --input seed000.csv --out report.json "
+                "--bench bench.toml"
+            ),
+            "tiltlab discrepancy --kind scale --input adc.csv --out scale-report.json",
+        ],
+    )
     p.add_argument("--kind", required=True, choices=["stage", "scale"], help="what was calibrated")
     p.add_argument("--input", required=True, metavar="FILE", help="the dataset CSV")
     p.add_argument("--out", required=True, metavar="FILE", help="the JSON report to write")
-    p.add_argument("--sensor", choices=["ref", "meas"], default=None,
-                   help="stage only: which sensor's readings to explain (default: ref)")
-    p.add_argument("--baseline", choices=["linear", "kinematic"], default=None,
-                   help="stage only: the model the search starts from (default: linear; scale data always "
-                        "start from a straight line)")
-    p.add_argument("--bench", default=None, metavar="FILE",
-                   help="stage only: the bench the data came from (.toml bench configuration or .json "
-                        "scenario) (default: the seed 000 bench, said on stderr and in the report)")
-    p.add_argument("--html", default=None, metavar="FILE",
-                   help="the report page to write (default: the --out name with .html)")
-    p.add_argument("--adopt", default=None, metavar="MODEL.json",
-                   help="stage only: also write the kinematic calibration of the data with the named effects "
-                        "added (its state says which and from which report); refused when nothing was named")
+    p.add_argument(
+        "--sensor",
+        choices=["ref", "meas"],
+        default=None,
+        help="stage only: which sensor's readings to explain (default: ref)",
+    )
+    p.add_argument(
+        "--baseline",
+        choices=["linear", "kinematic"],
+        default=None,
+        help="stage only: the model the search starts from (default: linear; scale data always "
+        "start from a straight line)",
+    )
+    p.add_argument(
+        "--bench",
+        default=None,
+        metavar="FILE",
+        help="stage only: the bench the data came from (.toml bench configuration or .json "
+        "scenario) (default: the seed 000 bench, said on stderr and in the report)",
+    )
+    p.add_argument(
+        "--html",
+        default=None,
+        metavar="FILE",
+        help="the report page to write (default: the --out name with .html)",
+    )
+    p.add_argument(
+        "--adopt",
+        default=None,
+        metavar="MODEL.json",
+        help="stage only: also write the kinematic calibration of the data with the named effects "
+        "added (its state says which and from which report); refused when nothing was named",
+    )
     p.set_defaults(handler=run)

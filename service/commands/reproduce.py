@@ -1,4 +1,5 @@
-"""`tiltlab reproduce seed000|seed002|seed003|seed004|all`: rerun a paper's experiment, write its report.
+"""`tiltlab reproduce seed000|seed002|seed003|seed004|all`: rerun a paper's experiment, write its
+report.
 
 By default the reports go to a new folder named after the UTC time, so a run never rewrites
 reports kept elsewhere (the repository's docs/reproduce is refreshed only when asked by name).
@@ -31,15 +32,22 @@ ABOUT = {
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     papers = "\n".join(f"  {name}  {text}" for name, text in ABOUT.items())
-    p = add_command(sub, "reproduce", "rerun a paper's experiment and write its report (Markdown and figures)",
-                    description="Rerun the experiments of the papers tiltlab's methods come from, on simulated "
-                                f"benches,\nand write one Markdown report per paper with its figures:\n{papers}",
-                    examples=["tiltlab reproduce seed003",
-                              "tiltlab reproduce all --out-dir reports/reproduce"])
+    p = add_command(
+        sub,
+        "reproduce",
+        "rerun a paper's experiment and write its report (Markdown and figures)",
+        description="Rerun the experiments of the papers tiltlab's methods come from, on simulated "
+        f"benches,\nand write one Markdown report per paper with its figures:\n{papers}",
+        examples=["tiltlab reproduce seed003", "tiltlab reproduce all --out-dir reports/reproduce"],
+    )
     p.add_argument("paper", choices=[*PAPERS, "all"], help="which paper, or all")
-    p.add_argument("--out-dir", default=None, metavar="FOLDER",
-                   help="folder for the reports, created if missing (default: a new folder "
-                        "tiltlab-reproduce-UTCSTAMP here)")
+    p.add_argument(
+        "--out-dir",
+        default=None,
+        metavar="FOLDER",
+        help="folder for the reports, created if missing (default: a new folder "
+        "tiltlab-reproduce-UTCSTAMP here)",
+    )
     p.set_defaults(handler=run)
 
 
@@ -64,7 +72,9 @@ def output_folder(out_dir: str | None) -> Path:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as exc:
-        raise InputError(f"--out-dir {out}: cannot create or write this folder ({exc.strerror})") from None
+        raise InputError(
+            f"--out-dir {out}: cannot create or write this folder ({exc.strerror})"
+        ) from None
     return out
 
 
@@ -75,8 +85,13 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         module = importlib.import_module(f"service.reproduce.{paper}")
         module.run(out)
-        _append_provenance(out / f"{paper}.md", getattr(args, "command_line", f"tiltlab reproduce {args.paper}"))
-        print(f"{paper}: wrote {out / (paper + '.md')} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        _append_provenance(
+            out / f"{paper}.md", getattr(args, "command_line", f"tiltlab reproduce {args.paper}")
+        )
+        print(
+            f"{paper}: wrote {out / (paper + '.md')} in {time.perf_counter() - t0:.1f} s",
+            file=sys.stderr,
+        )
     return 0
 
 

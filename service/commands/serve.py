@@ -39,26 +39,37 @@ def bind_socket(host: str, port: int) -> socket.socket:
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except socket.gaierror as exc:
-        raise InputError(f"--host {host} (TILTLAB_HOST): not an address of this machine ({exc.strerror}); "
-                         "give 127.0.0.1 for this computer only, or 0.0.0.0 for every network") from None
+        raise InputError(
+            f"--host {host} (TILTLAB_HOST): not an address of this machine ({exc.strerror}); "
+            "give 127.0.0.1 for this computer only, or 0.0.0.0 for every network"
+        ) from None
     family, kind, proto, _, address = infos[0]
     sock = socket.socket(family, kind, proto)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        bound_send_buffer(sock)  # every connection's send buffer: how much a stalled stream client can hold
+        # every connection's send buffer: how much a stalled stream client can hold
+        bound_send_buffer(sock)
         sock.bind(address)
     except OSError as exc:
         sock.close()
         if exc.errno == errno.EADDRINUSE:
-            raise StartupFailure(f"--port {port} (TILTLAB_PORT): {host}:{port} is already in use by another "
-                                 "program; stop it, or choose another port with --port") from None
+            raise StartupFailure(
+                f"--port {port} (TILTLAB_PORT): {host}:{port} is already in use by another "
+                "program; stop it, or choose another port with --port"
+            ) from None
         if exc.errno == errno.EACCES:
-            raise InputError(f"--port {port} (TILTLAB_PORT): this user may not listen on {host}:{port} "
-                             "(ports below 1024 need privileges); choose a port of 1024 or above") from None
+            raise InputError(
+                f"--port {port} (TILTLAB_PORT): this user may not listen on {host}:{port} "
+                "(ports below 1024 need privileges); choose a port of 1024 or above"
+            ) from None
         if exc.errno == errno.EADDRNOTAVAIL:
-            raise InputError(f"--host {host} (TILTLAB_HOST): not an address of this machine; "
-                             "give 127.0.0.1, 0.0.0.0 or one of this machine's addresses") from None
-        raise StartupFailure(f"--host {host} --port {port}: cannot listen ({exc.strerror})") from None
+            raise InputError(
+                f"--host {host} (TILTLAB_HOST): not an address of this machine; "
+                "give 127.0.0.1, 0.0.0.0 or one of this machine's addresses"
+            ) from None
+        raise StartupFailure(
+            f"--host {host} --port {port}: cannot listen ({exc.strerror})"
+        ) from None
     sock.set_inheritable(True)
     return sock
 
@@ -77,8 +88,11 @@ def _prepare_database(settings: Any) -> None:
         try:
             upgrade(engine)
         except CommandError as exc:
-            raise InputError(f"TILTLAB_DATABASE_URL: the database's schema is not one this tiltlab knows ({exc}); "
-                             "it was written by a newer tiltlab: run that version, or restore a backup") from None
+            raise InputError(
+                "TILTLAB_DATABASE_URL: the database's schema is not one this tiltlab knows "
+                f"({exc}); "
+                "it was written by a newer tiltlab: run that version, or restore a backup"
+            ) from None
     except DatabaseUnreachable as exc:
         raise StartupFailure(str(exc)) from None
     finally:
@@ -86,7 +100,8 @@ def _prepare_database(settings: Any) -> None:
 
 
 class _StartupGuard(logging.Filter):
-    """Until start-up succeeds, the application's start-up traceback is ours to report in one line."""
+    """Until start-up succeeds, the application's start-up traceback is ours to report in one
+    line."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -124,18 +139,31 @@ def run(args: argparse.Namespace) -> int:
     from service.api.server import protocols
     from service.config import ensure_data_dir, get_settings
 
-    # The event loop (every request, the streams) gets the interpreter back within 1 ms of asking, not 5 ms
-    # (Python's default), while request threads decode a page of records or build a snapshot.
+    # The event loop (every request, the streams) gets the interpreter back within 1 ms of asking,
+    # not 5 ms (Python's default), while request threads decode a page of records or build a
+    # snapshot.
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     settings = get_settings()
     # command-line options override the environment; validated like it (one line naming the setting)
-    overrides = {name: getattr(args, name, None)
-                 for name in ("host", "port", "database_wait_s", "sim_speed", "bench_config", "bench_scenario")}
+    overrides = {
+        name: getattr(args, name, None)
+        for name in (
+            "host",
+            "port",
+            "database_wait_s",
+            "sim_speed",
+            "bench_config",
+            "bench_scenario",
+        )
+    }
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if overrides:
         settings = type(settings)(**overrides)
     host, port = settings.host, settings.port
-    tls = {"ssl_certfile": getattr(args, "ssl_certfile", None), "ssl_keyfile": getattr(args, "ssl_keyfile", None)}
+    tls = {
+        "ssl_certfile": getattr(args, "ssl_certfile", None),
+        "ssl_keyfile": getattr(args, "ssl_keyfile", None),
+    }
     if bool(tls["ssl_certfile"]) != bool(tls["ssl_keyfile"]):
         _say("--ssl-certfile and --ssl-keyfile go together: give both, or neither for plain HTTP")
         return 2
@@ -176,12 +204,23 @@ def run(args: argparse.Namespace) -> int:
                     _say(line)
                 announced.append(True)
 
-        # uvicorn's own HTTP and WebSocket protocols with the limits a request meets before it is parsed
+        # uvicorn's own HTTP and WebSocket protocols with the limits a request meets before it is
+        # parsed
         http_protocol, ws_protocol = protocols(settings)
-        # no per-message compression of WebSocket messages: it runs on the event loop (a snapshot's megabytes of
-        # history would hold every other request for tens of ms), and the readings' small messages gain little
-        server = _Server(uvicorn.Config(app, log_level="info", lifespan="on", http=http_protocol, ws=ws_protocol,
-                                        ws_per_message_deflate=False, **{k: v for k, v in tls.items() if v}))
+        # no per-message compression of WebSocket messages: it runs on the event loop (a snapshot's
+        # megabytes of history would hold every other request for tens of ms), and the readings'
+        # small messages gain little
+        server = _Server(
+            uvicorn.Config(
+                app,
+                log_level="info",
+                lifespan="on",
+                http=http_protocol,
+                ws=ws_protocol,
+                ws_per_message_deflate=False,
+                **{k: v for k, v in tls.items() if v},
+            )
+        )
         try:
             server.run(sockets=[sock])
         except KeyboardInterrupt:  # Ctrl-C after a clean shutdown
@@ -191,7 +230,11 @@ def run(args: argparse.Namespace) -> int:
             raise
         if not announced:
             failure = guard.failure
-            reason = f"{type(failure).__name__}: {failure}" if failure is not None else "the application did not start"
+            reason = (
+                f"{type(failure).__name__}: {failure}"
+                if failure is not None
+                else "the application did not start"
+            )
             _say(f"start-up failed: {' '.join(reason.split())}")
             return 2 if isinstance(failure, InputError) else 1
         return 0
@@ -200,44 +243,86 @@ def run(args: argparse.Namespace) -> int:
 
 
 def silent_devices(app: Any) -> list[str]:
-    """One line per instrument that did not answer at start-up (not connected, or it never identified
-    itself), naming bench, role and port: a bench of dead ports must not start in silence."""
+    """One line per instrument that did not answer at start-up (not connected, or it never
+    identified itself), naming bench, role and port: a bench of dead ports must not start in
+    silence."""
     lines = []
     for bench in app.state.benches.values():
         for st in bench.devices.status():
             if st.state == "connected" and st.role in bench.identities:
                 continue
             why = st.state if st.state != "connected" else "connected but did not identify itself"
-            lines.append(f"bench {bench.name}: {st.role} on {st.port} does not answer ({why}"
-                         + (f": {st.error}" if st.error else "") + "); GET /ready lists what is not ready")
+            lines.append(
+                f"bench {bench.name}: {st.role} on {st.port} does not answer ({why}"
+                + (f": {st.error}" if st.error else "")
+                + "); GET /ready lists what is not ready"
+            )
     return lines
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(sub, "serve", "run the lab service: HTTP API and dashboard on a simulated or real bench",
-                    description="Run the lab service. Settings come from TILTLAB_* environment variables or "
-                                "the TOML file named\nby TILTLAB_CONFIG (docs/storage.md); the options below "
-                                "override them. Start-up failures\nare one line: exit 2 for a setting that "
-                                "cannot work, 1 when the surroundings are at fault.",
-                    examples=["tiltlab serve", "tiltlab serve --host 0.0.0.0 --port 8080",
-                              "tiltlab serve --sim-speed 20 --scenario seed000-worm",
-                              "tiltlab serve --bench-config bench.toml"])
-    p.add_argument("--host", default=None,
-                   help="address to listen on (default: TILTLAB_HOST, else 127.0.0.1: this computer only)")
-    p.add_argument("--port", type=port, default=None, help="TCP port (default: TILTLAB_PORT, else 8000)")
-    p.add_argument("--database-wait-s", type=seconds, default=None, metavar="SECONDS",
-                   help="how long to retry an unreachable database at start-up "
-                        "(default: TILTLAB_DATABASE_WAIT_S, else 30)")
-    p.add_argument("--sim-speed", type=speed, default=None, metavar="N",
-                   help="run the simulated bench N times faster than real time (default: TILTLAB_SIM_SPEED, else 1)")
-    p.add_argument("--scenario", dest="bench_scenario", default=None, metavar="NAME_OR_FILE",
-                   help="the simulated stage bench: a preset (tiltlab simulate --list) or a scenario file "
-                        "(default: TILTLAB_BENCH_SCENARIO, else seed000)")
-    p.add_argument("--bench-config", default=None, metavar="FILE",
-                   help="bench configuration (TOML) naming the instruments' ports "
-                        "(default: TILTLAB_BENCH_CONFIG, else the simulated stage bench)")
-    p.add_argument("--ssl-certfile", default=None, metavar="FILE",
-                   help="serve HTTPS with this certificate (PEM; with --ssl-keyfile): tokens then never cross the"
-                        " network in clear")
-    p.add_argument("--ssl-keyfile", default=None, metavar="FILE", help="the certificate's private key (PEM)")
+    p = add_command(
+        sub,
+        "serve",
+        "run the lab service: HTTP API and dashboard on a simulated or real bench",
+        description="Run the lab service. Settings come from TILTLAB_* environment variables or "
+        "the TOML file named\nby TILTLAB_CONFIG (docs/storage.md); the options below "
+        "override them. Start-up failures\nare one line: exit 2 for a setting that "
+        "cannot work, 1 when the surroundings are at fault.",
+        examples=[
+            "tiltlab serve",
+            "tiltlab serve --host 0.0.0.0 --port 8080",
+            "tiltlab serve --sim-speed 20 --scenario seed000-worm",
+            "tiltlab serve --bench-config bench.toml",
+        ],
+    )
+    p.add_argument(
+        "--host",
+        default=None,
+        help="address to listen on (default: TILTLAB_HOST, else 127.0.0.1: this computer only)",
+    )
+    p.add_argument(
+        "--port", type=port, default=None, help="TCP port (default: TILTLAB_PORT, else 8000)"
+    )
+    p.add_argument(
+        "--database-wait-s",
+        type=seconds,
+        default=None,
+        metavar="SECONDS",
+        help="how long to retry an unreachable database at start-up "
+        "(default: TILTLAB_DATABASE_WAIT_S, else 30)",
+    )
+    p.add_argument(
+        "--sim-speed",
+        type=speed,
+        default=None,
+        metavar="N",
+        help="run the simulated bench N times faster than real time (default: TILTLAB_SIM_SPEED, "
+        "else 1)",
+    )
+    p.add_argument(
+        "--scenario",
+        dest="bench_scenario",
+        default=None,
+        metavar="NAME_OR_FILE",
+        help="the simulated stage bench: a preset (tiltlab simulate --list) or a scenario file "
+        "(default: TILTLAB_BENCH_SCENARIO, else seed000)",
+    )
+    p.add_argument(
+        "--bench-config",
+        default=None,
+        metavar="FILE",
+        help="bench configuration (TOML) naming the instruments' ports "
+        "(default: TILTLAB_BENCH_CONFIG, else the simulated stage bench)",
+    )
+    p.add_argument(
+        "--ssl-certfile",
+        default=None,
+        metavar="FILE",
+        help="serve HTTPS with this certificate (PEM; with --ssl-keyfile): tokens then never "
+        "cross the network in clear",
+    )
+    p.add_argument(
+        "--ssl-keyfile", default=None, metavar="FILE", help="the certificate's private key (PEM)"
+    )
     p.set_defaults(handler=run)

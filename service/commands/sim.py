@@ -16,8 +16,12 @@ from pathlib import Path
 from service.commands._args import add_command, seconds, speed
 from service.errors import InputError
 
-FAMILY_WORDS = {"binary": "0x68 binary frames", "rs485": "RS-485 ASCII", "adc": "ADC ASCII",
-                "controller": "controller ASCII"}
+FAMILY_WORDS = {
+    "binary": "0x68 binary frames",
+    "rs485": "RS-485 ASCII",
+    "adc": "ADC ASCII",
+    "controller": "controller ASCII",
+}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -30,13 +34,17 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--speed {args.speed:g}: give a factor above 0 and at most 10000")
     limit, why = fastest_speed(args.bench)
     if args.speed > limit:
-        raise InputError(f"--speed {args.speed:g} is more than the simulated {args.bench} bench can run: {why}, so at"
-                         f" most {limit:g} times real time")
+        raise InputError(
+            f"--speed {args.speed:g} is more than the simulated {args.bench} bench can run: "
+            f"{why}, so at most {limit:g} times real time"
+        )
     if args.out is not None:
         check_output_path(args.out)
     if args.duration is not None and args.duration <= 0:
         raise InputError(f"--duration {args.duration:g}: give seconds above 0")
-    bench = start_simulated_bench(args.scenario, args.bench, Clock(args.speed), directory=args.dir, adc=args.adc)
+    bench = start_simulated_bench(
+        args.scenario, args.bench, Clock(args.speed), directory=args.dir, adc=args.adc
+    )
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
@@ -44,11 +52,18 @@ def run(args: argparse.Namespace) -> int:
         write_text_atomic(out, bench.toml)
         for role, port in bench.ports.items():
             spec = bench.config.role(role)
-            print(f"{role:<20} {port.path}  ({FAMILY_WORDS[PROTOCOL_OF_ROLE[role]]}, {spec.baud} baud)")
+            print(
+                f"{role:<20} {port.path}  ({FAMILY_WORDS[PROTOCOL_OF_ROLE[role]]}, {spec.baud} "
+                "baud)"
+            )
         print(f"bench configuration: {out}")
         print(bench.toml, flush=True)
-        print(f"tiltlab sim: {args.bench} bench of scenario {args.scenario} running at {args.speed:g} x real time; "
-              "Ctrl-C stops it", file=sys.stderr, flush=True)
+        print(
+            f"tiltlab sim: {args.bench} bench of scenario {args.scenario} running at "
+            f"{args.speed:g} x real time; Ctrl-C stops it",
+            file=sys.stderr,
+            flush=True,
+        )
         try:
             stop.wait(args.duration)
         except KeyboardInterrupt:
@@ -60,20 +75,51 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(sub, "sim", "run simulated instruments on pseudo-terminals and print their bench configuration",
-                    description="Start simulated instruments that speak the real instruments' bytes on "
-                                "pseudo-terminals,\nwrite the bench configuration naming their ports, and run "
-                                "until Ctrl-C (or --duration).",
-                    examples=["tiltlab sim --dir /tmp/bench", "tiltlab serve --bench-config /tmp/bench/bench.toml"])
-    p.add_argument("--scenario", default="seed000", metavar="NAME_OR_FILE",
-                   help="scenario preset or file that drives the physics")
+    p = add_command(
+        sub,
+        "sim",
+        "run simulated instruments on pseudo-terminals and print their bench configuration",
+        description="Start simulated instruments that speak the real instruments' bytes on "
+        "pseudo-terminals,\nwrite the bench configuration naming their ports, and run "
+        "until Ctrl-C (or --duration).",
+        examples=[
+            "tiltlab sim --dir /tmp/bench",
+            "tiltlab serve --bench-config /tmp/bench/bench.toml",
+        ],
+    )
+    p.add_argument(
+        "--scenario",
+        default="seed000",
+        metavar="NAME_OR_FILE",
+        help="scenario preset or file that drives the physics",
+    )
     p.add_argument("--bench", choices=["stage", "rotary"], default="stage", help="which bench")
-    p.add_argument("--speed", type=speed, default=1.0, help="bench seconds per real second (moves, output rates)")
-    p.add_argument("--adc", action="store_true", help="stage bench: add the analog sensor behind the ADC")
-    p.add_argument("--dir", default=None, metavar="FOLDER",
-                   help="folder for the port links (default: a new temporary folder)")
-    p.add_argument("--out", default=None, metavar="FILE",
-                   help="bench configuration file to write (default: bench.toml in --dir)")
-    p.add_argument("--duration", type=seconds, default=None, metavar="SECONDS",
-                   help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument(
+        "--speed",
+        type=speed,
+        default=1.0,
+        help="bench seconds per real second (moves, output rates)",
+    )
+    p.add_argument(
+        "--adc", action="store_true", help="stage bench: add the analog sensor behind the ADC"
+    )
+    p.add_argument(
+        "--dir",
+        default=None,
+        metavar="FOLDER",
+        help="folder for the port links (default: a new temporary folder)",
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        metavar="FILE",
+        help="bench configuration file to write (default: bench.toml in --dir)",
+    )
+    p.add_argument(
+        "--duration",
+        type=seconds,
+        default=None,
+        metavar="SECONDS",
+        help="stop after this many seconds (default: until Ctrl-C)",
+    )
     p.set_defaults(handler=run)

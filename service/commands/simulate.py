@@ -11,19 +11,34 @@ from service.errors import InputError
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(sub, "simulate", "write a simulated bench run (dataset CSV) from a scenario",
-                    description="Simulate a calibration run: the scenario (a preset, see --list, or your own "
-                                "JSON file)\nstates the bench, the sensor errors, the point grid, the noise and "
-                                "the random seed; the\ndataset has the columns `calibrate` and `discrepancy` "
-                                "read (docs/datasets.md).",
-                    examples=["tiltlab simulate --list",
-                              "tiltlab simulate --scenario seed000 --out seed000.csv",
-                              "tiltlab simulate --scenario my-bench.json --out run2.csv --seed 2"])
-    p.add_argument("--scenario", metavar="NAME_OR_FILE",
-                   help="a preset name (see --list) or a scenario JSON file (docs/scenario.schema.json)")
-    p.add_argument("--out", metavar="FILE", help="the dataset CSV to write (required unless --list)")
-    p.add_argument("--seed", type=seed, default=None, help="random seed instead of the scenario's own")
-    p.add_argument("--list", action="store_true", help="print the presets, their kind and what they resemble")
+    p = add_command(
+        sub,
+        "simulate",
+        "write a simulated bench run (dataset CSV) from a scenario",
+        description="Simulate a calibration run: the scenario (a preset, see --list, or your own "
+        "JSON file)\nstates the bench, the sensor errors, the point grid, the noise and "
+        "the random seed; the\ndataset has the columns `calibrate` and `discrepancy` "
+        "read (docs/datasets.md).",
+        examples=[
+            "tiltlab simulate --list",
+            "tiltlab simulate --scenario seed000 --out seed000.csv",
+            "tiltlab simulate --scenario my-bench.json --out run2.csv --seed 2",
+        ],
+    )
+    p.add_argument(
+        "--scenario",
+        metavar="NAME_OR_FILE",
+        help="a preset name (see --list) or a scenario JSON file (docs/scenario.schema.json)",
+    )
+    p.add_argument(
+        "--out", metavar="FILE", help="the dataset CSV to write (required unless --list)"
+    )
+    p.add_argument(
+        "--seed", type=seed, default=None, help="random seed instead of the scenario's own"
+    )
+    p.add_argument(
+        "--list", action="store_true", help="print the presets, their kind and what they resemble"
+    )
     p.set_defaults(handler=run)
 
 
@@ -39,8 +54,15 @@ def list_presets() -> int:
     for name in preset_names():
         s = load_scenario(name)
         about = " ".join((s.description or "").split())
-        print(textwrap.fill(about, width=width, initial_indent=f"{name:12s} {s.kind:10s} ", subsequent_indent=indent,
-                            break_on_hyphens=False))
+        print(
+            textwrap.fill(
+                about,
+                width=width,
+                initial_indent=f"{name:12s} {s.kind:10s} ",
+                subsequent_indent=indent,
+                break_on_hyphens=False,
+            )
+        )
     return 0
 
 
@@ -62,5 +84,7 @@ def run(args: argparse.Namespace) -> int:
     result = run_scenario(scenario, seed=args.seed)
     write_dataset(args.out, result.columns)
     n = len(next(iter(result.columns.values())))
-    print(f"wrote {n} {result.kind} rows of scenario {scenario.name!r} to {args.out}", file=sys.stderr)
+    print(
+        f"wrote {n} {result.kind} rows of scenario {scenario.name!r} to {args.out}", file=sys.stderr
+    )
     return 0

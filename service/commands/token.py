@@ -1,5 +1,6 @@
-"""`tiltlab token create|list|set-person|revoke`: API tokens in the configured database (shown once, kept as
-hashes), each optionally naming the person it belongs to (who approves or runs calibrations with it)."""
+"""`tiltlab token create|list|set-person|revoke`: API tokens in the configured database (shown once,
+kept as hashes), each optionally naming the person it belongs to (who approves or runs calibrations
+with it)."""
 
 from __future__ import annotations
 
@@ -30,17 +31,25 @@ def run(args: argparse.Namespace) -> int:
     tokens = TokensRepo(Database(engine))
     try:
         if args.token_command == "create":
-            row, token = tokens.create_token(args.name, args.scopes, actor=operator_name(), person=person)
+            row, token = tokens.create_token(
+                args.name, args.scopes, actor=operator_name(), person=person
+            )
             print(token)
             whose = f", belonging to {person.described()}" if person is not None else ""
-            print(f"token {row.name!r} ({', '.join(row.scopes)}){whose} created; it is shown only now", file=sys.stderr)
+            print(
+                f"token {row.name!r} ({', '.join(row.scopes)}){whose} created; it is shown only "
+                "now",
+                file=sys.stderr,
+            )
         elif args.token_command == "list":
             rows = tokens.all(include_revoked=args.all)
             for r in rows:
                 state = f"revoked {r.revoked_at:%Y-%m-%dT%H:%M:%SZ}" if r.revoked_at else "active"
                 p = person_of_row(r)
-                print(f"{r.name}\t{','.join(r.scopes)}\tcreated {r.created_at:%Y-%m-%dT%H:%M:%SZ} by {r.created_by}\t{state}"
-                      f"\t{p.described() if p else 'no person'}")
+                print(
+                    f"{r.name}\t{','.join(r.scopes)}\tcreated {r.created_at:%Y-%m-%dT%H:%M:%SZ} "
+                    f"by {r.created_by}\t{state}\t{p.described() if p else 'no person'}"
+                )
             if not rows:
                 print("no tokens", file=sys.stderr)
         elif args.token_command == "set-person":
@@ -56,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _person(args: argparse.Namespace) -> Person | None:
-    """The person the options name (--person-name, --person-function), checked; None when not given."""
+    """The person the options name (--person-name, --person-function), checked; None when not
+    given."""
     from service.errors import InputError
     from service.storage.tokens import person_of
 
@@ -73,36 +83,75 @@ def _person(args: argparse.Namespace) -> Person | None:
 
 
 def _person_options(q: argparse.ArgumentParser, *, required: bool) -> None:
-    q.add_argument("--person-name", required=required, metavar="NAME",
-                   help="full name of the person the token belongs to (certificates name who approved and who ran "
-                        "a calibration)")
-    q.add_argument("--person-function", metavar="FUNCTION",
-                   help='their function in the laboratory, e.g. "Head of Laboratory" (approving records needs it)')
+    q.add_argument(
+        "--person-name",
+        required=required,
+        metavar="NAME",
+        help="full name of the person the token belongs to (certificates name who approved and "
+        "who ran a calibration)",
+    )
+    q.add_argument(
+        "--person-function",
+        metavar="FUNCTION",
+        help='their function in the laboratory, e.g. "Head of Laboratory" (approving records needs '
+        "it)",
+    )
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from service.commands._args import add_command, add_subcommands
 
-    p = add_command(sub, "token", "API tokens: create (shown once), list, set-person, revoke",
-                    description="API tokens for clients of the service, kept in its database as hashes.",
-                    examples=["tiltlab token create --name bench-pc --scopes read,operate",
-                              ('tiltlab token create --name alice --scopes admin --person-name "Dr. Alice Example" '
-                              '--person-function "Head of Laboratory"'),
-                              "tiltlab token list --all", "tiltlab token revoke bench-pc"])
+    p = add_command(
+        sub,
+        "token",
+        "API tokens: create (shown once), list, set-person, revoke",
+        description="API tokens for clients of the service, kept in its database as hashes.",
+        examples=[
+            "tiltlab token create --name bench-pc --scopes read,operate",
+            (
+                'tiltlab token create --name alice --scopes admin --person-name "Dr. Alice '
+                'Example" --person-function "Head of Laboratory"'
+            ),
+            "tiltlab token list --all",
+            "tiltlab token revoke bench-pc",
+        ],
+    )
     tsub = add_subcommands(p, "token_command")
-    q = add_command(tsub, "create", "make a token and print it (only now)",
-                    examples=["tiltlab token create --name bench-pc --scopes read,operate"])
+    q = add_command(
+        tsub,
+        "create",
+        "make a token and print it (only now)",
+        examples=["tiltlab token create --name bench-pc --scopes read,operate"],
+    )
     q.add_argument("--name", required=True, help="a name to know the token by")
-    q.add_argument("--scopes", required=True, help="comma-separated: read, operate, admin (admin implies the others)")
+    q.add_argument(
+        "--scopes",
+        required=True,
+        help="comma-separated: read, operate, admin (admin implies the others)",
+    )
     _person_options(q, required=False)
-    q = add_command(tsub, "list", "tokens by name and scopes (never the tokens themselves)",
-                    examples=["tiltlab token list"])
+    q = add_command(
+        tsub,
+        "list",
+        "tokens by name and scopes (never the tokens themselves)",
+        examples=["tiltlab token list"],
+    )
     q.add_argument("--all", action="store_true", help="also revoked tokens")
-    q = add_command(tsub, "set-person", "name the person a token belongs to",
-                    examples=[('tiltlab token set-person admin --person-name "Dr. Alice Example" '
-                              '--person-function "Head of Laboratory"')])
+    q = add_command(
+        tsub,
+        "set-person",
+        "name the person a token belongs to",
+        examples=[
+            (
+                'tiltlab token set-person admin --person-name "Dr. Alice Example" '
+                '--person-function "Head of Laboratory"'
+            )
+        ],
+    )
     q.add_argument("name", help="the token's name")
     _person_options(q, required=True)
-    q = add_command(tsub, "revoke", "revoke a token by name", examples=["tiltlab token revoke bench-pc"])
+    q = add_command(
+        tsub, "revoke", "revoke a token by name", examples=["tiltlab token revoke bench-pc"]
+    )
     q.add_argument("name", help="the token's name")
     p.set_defaults(handler=lambda a: run(a))

@@ -1,12 +1,14 @@
-"""`tiltlab verify-certificate FILE`: is this a certificate we issued, unchanged, resting on an approved record?
+"""`tiltlab verify-certificate FILE`: is this a certificate we issued, unchanged, resting on an
+approved record?
 
 Checks offline: validity against the DCC 3.3.0 schema and the enveloped XML signature (over the
 whole file: a change of any byte fails; with --signer-cert, made by the lab's own certificate). A
 file without a signature fails (a stripped signature must not read as unaltered) unless
 --allow-unsigned, or the laboratory's database holds it byte for byte.
-With the lab's database (TILTLAB_DATABASE_URL or the data directory's): that the file's SHA-256 equals the one stored at issue, that the stored
-copy still matches it, that the record still matches its hash and that the approval is bound to it.
-Exit 0 when every check passes, 1 when one fails, 2 for an unreadable file or configuration.
+With the lab's database (TILTLAB_DATABASE_URL or the data directory's): that the file's SHA-256
+equals the one stored at issue, that the stored copy still matches it, that the record still matches
+its hash and that the approval is bound to it. Exit 0 when every check passes, 1 when one fails, 2
+for an unreadable file or configuration.
 """
 
 from __future__ import annotations
@@ -21,19 +23,35 @@ from service.errors import InputError
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from service.commands._args import add_command
 
-    p = add_command(sub, "verify-certificate", "check a DCC certificate: schema, signature, stored hash, record and approval",
-                    examples=["tiltlab verify-certificate certificate.xml",
-                              "tiltlab verify-certificate --offline certificate.xml",
-                              "tiltlab verify-certificate --offline --allow-unsigned certificate.xml"])
+    p = add_command(
+        sub,
+        "verify-certificate",
+        "check a DCC certificate: schema, signature, stored hash, record and approval",
+        examples=[
+            "tiltlab verify-certificate certificate.xml",
+            "tiltlab verify-certificate --offline certificate.xml",
+            "tiltlab verify-certificate --offline --allow-unsigned certificate.xml",
+        ],
+    )
     p.add_argument("file", metavar="FILE", help="the certificate XML file")
-    p.add_argument("--offline", action="store_true",
-                   help="check only the file: schema and signature (no database: for a customer who has just the file)")
-    p.add_argument("--signer-cert", metavar="PEM",
-                   help="the laboratory's signing certificate: the signature must be made with it (an unsigned file "
-                        "then fails); without it, the certificate the signature carries is used")
-    p.add_argument("--allow-unsigned", action="store_true",
-                   help="accept a file without a signature (from a laboratory that does not sign); without it an "
-                        "unsigned file fails unless the laboratory's database holds it unchanged")
+    p.add_argument(
+        "--offline",
+        action="store_true",
+        help="check only the file: schema and signature (no database: for a customer who has just "
+        "the file)",
+    )
+    p.add_argument(
+        "--signer-cert",
+        metavar="PEM",
+        help="the laboratory's signing certificate: the signature must be made with it (an "
+        "unsigned file then fails); without it, the certificate the signature carries is used",
+    )
+    p.add_argument(
+        "--allow-unsigned",
+        action="store_true",
+        help="accept a file without a signature (from a laboratory that does not sign); without "
+        "it an unsigned file fails unless the laboratory's database holds it unchanged",
+    )
     p.set_defaults(handler=run)
 
 
@@ -63,8 +81,10 @@ def run(args: argparse.Namespace) -> int:
         settings = get_settings()
         where = redacted(settings.database_url)
         if not database_exists(settings.database_url):
-            raise InputError(f"{where}: no database file at {sqlite_path(settings.database_url)};"
-                             " use --offline to check only the schema")
+            raise InputError(
+                f"{where}: no database file at {sqlite_path(settings.database_url)};"
+                " use --offline to check only the schema"
+            )
         engine = make_engine(settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms)
         if current_revision(engine) is None:
             engine.dispose()
@@ -80,5 +100,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  ok: {fact}")
     for problem in report.problems:
         print(f"  FAILED: {problem}")
-    print("OK" if report.ok else f"FAILED: {len(report.problems)} problem(s)", file=sys.stdout if report.ok else sys.stderr)
+    print(
+        "OK" if report.ok else f"FAILED: {len(report.problems)} problem(s)",
+        file=sys.stdout if report.ok else sys.stderr,
+    )
     return 0 if report.ok else 1

@@ -1,12 +1,14 @@
-"""Adopting a diagnosis: the kinematic calibration refitted on the same points with the named effects switched on.
+"""Adopting a diagnosis: the kinematic calibration refitted on the same points with the named
+effects switched on.
 
-The last step of the workflow, shared by the daemon (`POST /diagnoses/{id}/adopt`) and the command line
-(`tiltlab discrepancy --adopt MODEL.json`): the model it writes states which effects were added and from which
-diagnosis, and `tiltlab correct`, `tiltlab level` and the daemon's levelling use them like any other parameter.
+The last step of the workflow, shared by the daemon (`POST /diagnoses/{id}/adopt`) and the command
+line (`tiltlab discrepancy --adopt MODEL.json`): the model it writes states which effects were added
+and from which diagnosis, and `tiltlab correct`, `tiltlab level` and the daemon's levelling use them
+like any other parameter.
 
-Whether a named effect can be adopted is decided when it is named (`adoption`), by the very fit adopting it
-makes: a diagnosis never offers an effect the refit then cannot separate. An effect the points cannot
-determine is said so, with the reason and the measurement that would determine it.
+Whether a named effect can be adopted is decided when it is named (`adoption`), by the very fit
+adopting it makes: a diagnosis never offers an effect the refit then cannot separate. An effect the
+points cannot determine is said so, with the reason and the measurement that would determine it.
 """
 
 from __future__ import annotations
@@ -18,7 +20,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.calibration.methods.stage.chain import EFFECT_PARAMS, EXTRA_EFFECTS, IN_CHAIN, REFERENCE_EFFECTS
+from service.calibration.methods.stage.chain import (
+    EFFECT_PARAMS,
+    EXTRA_EFFECTS,
+    IN_CHAIN,
+    REFERENCE_EFFECTS,
+)
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.stage_effect_fit import param_label
@@ -31,108 +38,154 @@ class NothingToAdopt(InputError):
 
 
 class NotAdoptable(InputError):
-    """Every effect the diagnosis named beyond the calibration's own is one these points cannot determine."""
+    """Every effect the diagnosis named beyond the calibration's own is one these points cannot
+    determine."""
 
 
 # What would determine an effect the stored points cannot: the measurement, in the lab's words.
 MEASUREMENTS = {
-    "backlash": "the same points approached from above as well as from below (POST /records/{id}/diagnose with "
-                "measure: true plans and runs it)",
-    "periodic_error": "a scan of the stage in steps of an eighth of its worm's period over one period (measure: "
-                      "true plans and runs it)",
-    "time_drift": "some of the points measured again later, in another order (measure: true plans and runs it)",
-    "temperature_drift": "the points measured again at a temperature a few kelvin away; this bench cannot set its "
-                         "temperature: repeat the calibration when the room's temperature differs",
-    "sensor_nonlinearity": "points over a wider range of tilts, towards the stages' travel (measure: true plans and "
-                           "runs it)",
+    "backlash": "the same points approached from above as well as from below (POST "
+    "/records/{id}/diagnose with measure: true plans and runs it)",
+    "periodic_error": "a scan of the stage in steps of an eighth of its worm's period over one "
+    "period (measure: true plans and runs it)",
+    "time_drift": "some of the points measured again later, in another order (measure: true plans "
+    "and runs it)",
+    "temperature_drift": "the points measured again at a temperature a few kelvin away; this bench "
+    "cannot set its "
+    "temperature: repeat the calibration when the room's temperature differs",
+    "sensor_nonlinearity": "points over a wider range of tilts, towards the stages' travel "
+    "(measure: true plans and runs it)",
 }
 
 
 @dataclass
 class Adoption:
-    """Whether one named effect can be added to the record, and if not why and what would make it so."""
+    """Whether one named effect can be added to the record, and if not why and what would make it
+    so."""
 
     effect: str
     adoptable: bool
     reason: str
     measurement: str | None = None
-    axes: list[str] | None = None  # a worm's periodic error: the stages it is fitted on (those it was seen on)
+    # a worm's periodic error: the stages it is fitted on (those it was seen on)
+    axes: list[str] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
 def record_effects(model: CalibrationModel | Mapping[str, Any] | None) -> set[str]:
-    """The effects a record's model fits already: those with a free parameter in its chain (adding them again
-    would change nothing)."""
+    """The effects a record's model fits already: those with a free parameter in its chain (adding
+    them again would change nothing)."""
     if model is None:
         return set()
     doc = model.to_json_dict() if isinstance(model, CalibrationModel) else model
     params = doc.get("parameters", {})
     have = set()
     for effect, keys in EFFECT_PARAMS.items():
-        if any(param_label(k) in params and not params[param_label(k)].get("fixed", False) for k in keys):
+        if any(
+            param_label(k) in params and not params[param_label(k)].get("fixed", False)
+            for k in keys
+        ):
             have.add(effect)
     # a model fitted with amplitude and phase (before the sine/cosine pair) has its worm free too
-    if any(n.startswith("periodic_error.") and not p.get("fixed", False) for n, p in params.items()):
+    if any(
+        n.startswith("periodic_error.") and not p.get("fixed", False) for n, p in params.items()
+    ):
         have.add("periodic_error")
     return have
 
 
-def effects_to_add(named: Sequence[str], sensor: str, have: set[str] | frozenset[str] = frozenset()) -> list[str]:
-    """The named effects the calibration adds; NothingToAdopt when none is left, InputError for one it cannot add."""
+def effects_to_add(
+    named: Sequence[str], sensor: str, have: set[str] | frozenset[str] = frozenset()
+) -> list[str]:
+    """The named effects the calibration adds; NothingToAdopt when none is left, InputError for one
+    it cannot add."""
     extra = [e for e in named if e not in IN_CHAIN and e not in have]
     if not extra:
         already = [e for e in named if e in have]
-        raise NothingToAdopt("the diagnosis named no effect beyond what the kinematic calibration already has"
-                             + (f" ({', '.join(named)})" if named else "")
-                             + (f"; the record fits {', '.join(already)} already" if already else "")
-                             + ": there is nothing to adopt")
+        raise NothingToAdopt(
+            "the diagnosis named no effect beyond what the kinematic calibration already has"
+            + (f" ({', '.join(named)})" if named else "")
+            + (f"; the record fits {', '.join(already)} already" if already else "")
+            + ": there is nothing to adopt"
+        )
     cannot = [e for e in extra if e not in EXTRA_EFFECTS]
     if cannot:
-        raise InputError(f"{', '.join(cannot)} cannot be added to the kinematic calibration (it takes "
-                         f"{', '.join(EXTRA_EFFECTS)})")
+        raise InputError(
+            f"{', '.join(cannot)} cannot be added to the kinematic calibration (it takes "
+            f"{', '.join(EXTRA_EFFECTS)})"
+        )
     if sensor != "ref" and any(e in REFERENCE_EFFECTS for e in extra):
         own = [e for e in extra if e in REFERENCE_EFFECTS]
-        raise InputError(f"the diagnosis explained the measurement sensor's readings; {', '.join(own)} of that "
-                         "sensor is not a term of the kinematic record, whose correction of the measurement sensor "
-                         "is its mounting (zeros, scales, yaw, non-orthogonality, seat tilt): diagnose with sensor "
-                         "'ref' for the bench's and the reference's effects")
+        raise InputError(
+            f"the diagnosis explained the measurement sensor's readings; {', '.join(own)} of "
+            "that sensor is not a term of the kinematic record, whose correction of the "
+            "measurement sensor is its mounting (zeros, scales, yaw, non-orthogonality, seat "
+            "tilt): diagnose with sensor 'ref' for the bench's and the reference's effects"
+        )
     return extra
 
 
-def adopted_model(columns: Mapping[str, NDArray[np.float64]], named: Sequence[str], sensor: str,
-                  bench: StageBench | Mapping[str, Any], bench_source: str,
-                  diagnosis: Mapping[str, Any], have: set[str] | frozenset[str] = frozenset(),
-                  keep: Sequence[str] = (), worm_axes: Sequence[str] = ("x", "y")) -> CalibrationModel:
-    """The kinematic calibration of `columns` with the diagnosis' named effects added (and `keep`, the effects the
-    diagnosed record was adopted with; a worm's error on the stages of `worm_axes`); `diagnosis` says where they
-    came from (kept in the model's state with the effects). NotAdoptable when the points determine none of an
-    added effect's parameters."""
+def adopted_model(
+    columns: Mapping[str, NDArray[np.float64]],
+    named: Sequence[str],
+    sensor: str,
+    bench: StageBench | Mapping[str, Any],
+    bench_source: str,
+    diagnosis: Mapping[str, Any],
+    have: set[str] | frozenset[str] = frozenset(),
+    keep: Sequence[str] = (),
+    worm_axes: Sequence[str] = ("x", "y"),
+) -> CalibrationModel:
+    """The kinematic calibration of `columns` with the diagnosis' named effects added (and `keep`,
+    the effects the diagnosed record was adopted with; a worm's error on the stages of `worm_axes`);
+    `diagnosis` says where they came from (kept in the model's state with the effects). NotAdoptable
+    when the points determine none of an added effect's parameters."""
     effects = effects_to_add(named, sensor, have)
     kept = [e for e in keep if e not in effects]
     model = _fit(columns, kept + effects, bench, bench_source, worm_axes)
     undetermined = model.fit.get("undetermined_effects") or {}
     if undetermined:
-        raise NotAdoptable("; ".join(f"{e}: these points determine none of its parameters ({why})"
-                                     for e, why in undetermined.items()))
+        raise NotAdoptable(
+            "; ".join(
+                f"{e}: these points determine none of its parameters ({why})"
+                for e, why in undetermined.items()
+            )
+        )
     model.state["added_effects"] = kept + effects
     model.state["diagnosis"] = dict(diagnosis)
-    model.notes.append(f"adopted from {diagnosis.get('what', 'a diagnosis')}: added {', '.join(effects)}"
-                       + (f" (and kept {', '.join(kept)}, which the diagnosed record had)" if kept else ""))
+    model.notes.append(
+        f"adopted from {diagnosis.get('what', 'a diagnosis')}: added {', '.join(effects)}"
+        + (f" (and kept {', '.join(kept)}, which the diagnosed record had)" if kept else "")
+    )
     return model
 
 
-def _fit(columns: Mapping[str, NDArray[np.float64]], effects: Sequence[str], bench: StageBench | Mapping[str, Any],
-         bench_source: str, worm_axes: Sequence[str] = ("x", "y")) -> CalibrationModel:
+def _fit(
+    columns: Mapping[str, NDArray[np.float64]],
+    effects: Sequence[str],
+    bench: StageBench | Mapping[str, Any],
+    bench_source: str,
+    worm_axes: Sequence[str] = ("x", "y"),
+) -> CalibrationModel:
     hw = bench if isinstance(bench, StageBench) else StageBench(**bench)
     return get_method("stage", "kinematic").fit(
-        columns, FitOptions(extra={"bench": hw, "bench_source": bench_source, "effects": list(effects),
-                                   "worm_axes": list(worm_axes)}))
+        columns,
+        FitOptions(
+            extra={
+                "bench": hw,
+                "bench_source": bench_source,
+                "effects": list(effects),
+                "worm_axes": list(worm_axes),
+            }
+        ),
+    )
 
 
 def _axes_short(model: CalibrationModel, effect: str, axes_named: Sequence[str]) -> list[str]:
-    """The stages whose worm the diagnosis saw but the refit cannot determine (one of its pair held)."""
+    """The stages whose worm the diagnosis saw but the refit cannot determine (one of its pair
+    held)."""
     if effect != "periodic_error":
         return []
     short = []
@@ -145,12 +198,16 @@ def _axes_short(model: CalibrationModel, effect: str, axes_named: Sequence[str])
     return short
 
 
-def worm_axes_seen(labels: Sequence[str], values: NDArray[np.float64], covariance: NDArray[np.float64],
-                   z: float = 3.0) -> list[str]:
-    """The stages whose worm error a diagnosis's fit shows: a fitted sine or cosine term more than `z` standard
-    uncertainties from zero (else the stage with the clearest term). A stage the points sample at two phases may
-    keep one term that shows nothing: the error is not there, and the refit holding that stage's pair at zero
-    loses nothing."""
+def worm_axes_seen(
+    labels: Sequence[str],
+    values: NDArray[np.float64],
+    covariance: NDArray[np.float64],
+    z: float = 3.0,
+) -> list[str]:
+    """The stages whose worm error a diagnosis's fit shows: a fitted sine or cosine term more than
+    `z` standard uncertainties from zero (else the stage with the clearest term). A stage the points
+    sample at two phases may keep one term that shows nothing: the error is not there, and the refit
+    holding that stage's pair at zero loses nothing."""
     u = np.sqrt(np.clip(np.diag(covariance), 1e-300, None))
     score: dict[str, float] = {}
     for lab, v, s in zip(labels, values, u):
@@ -162,8 +219,8 @@ def worm_axes_seen(labels: Sequence[str], values: NDArray[np.float64], covarianc
 
 
 def seen_labels_of(steps: Sequence[Any]) -> dict[str, list[str]]:
-    """Per effect a diagnosis named (its workflow's steps), the parameters that carry it: a worm's periodic error
-    only on the stages its fit shows it on."""
+    """Per effect a diagnosis named (its workflow's steps), the parameters that carry it: a worm's
+    periodic error only on the stages its fit shows it on."""
     seen: dict[str, list[str]] = {}
     for step in steps:
         labels = list(step.after.block(step.effect).labels)
@@ -176,49 +233,83 @@ def seen_labels_of(steps: Sequence[Any]) -> dict[str, list[str]]:
 
 
 def worm_axes_of(verdicts: Sequence[Mapping[str, Any]]) -> list[str]:
-    """The stages a stored adoption verdict fits a worm's error on (both for a verdict that does not say)."""
+    """The stages a stored adoption verdict fits a worm's error on (both for a verdict that does not
+    say)."""
     for v in verdicts:
         if v.get("effect") == "periodic_error" and v.get("axes"):
             return [str(a) for a in v["axes"]]
     return ["x", "y"]
 
 
-def adoption(columns: Mapping[str, NDArray[np.float64]], named: Sequence[str], sensor: str,
-             bench: StageBench | Mapping[str, Any] | None, bench_source: str,
-             have: set[str] | frozenset[str] = frozenset(),
-             seen_labels: Mapping[str, Sequence[str]] | None = None, keep: Sequence[str] = (),
-             worm_axes: Sequence[str] = ()) -> list[Adoption]:
-    """Per named effect: can the record adopt it from these points? Decided by the refit that adopting makes
-    (alone, then together with the others that pass), so adopting never fails after the diagnosis said yes.
+def adoption(
+    columns: Mapping[str, NDArray[np.float64]],
+    named: Sequence[str],
+    sensor: str,
+    bench: StageBench | Mapping[str, Any] | None,
+    bench_source: str,
+    have: set[str] | frozenset[str] = frozenset(),
+    seen_labels: Mapping[str, Sequence[str]] | None = None,
+    keep: Sequence[str] = (),
+    worm_axes: Sequence[str] = (),
+) -> list[Adoption]:
+    """Per named effect: can the record adopt it from these points? Decided by the refit that
+    adopting makes (alone, then together with the others that pass), so adopting never fails after
+    the diagnosis said yes.
 
-    `seen_labels` are the parameters the diagnosis fitted per effect: a worm's periodic error seen on a stage
-    needs both its sine and its cosine determined there (its amplitude and phase), not one of them; it is fitted
-    on those stages (and on `worm_axes`, those the record fits already), the others held at zero."""
+    `seen_labels` are the parameters the diagnosis fitted per effect: a worm's periodic error seen
+    on a stage needs both its sine and its cosine determined there (its amplitude and phase), not
+    one of them; it is fitted on those stages (and on `worm_axes`, those the record fits already),
+    the others held at zero."""
     out: list[Adoption] = []
     candidates: list[str] = []
     for e in dict.fromkeys(named):
         if e in IN_CHAIN:
-            out.append(Adoption(e, False, "the kinematic calibration models it already (the stacked-stage geometry)"))
+            out.append(
+                Adoption(
+                    e,
+                    False,
+                    "the kinematic calibration models it already (the stacked-stage geometry)",
+                )
+            )
         elif e in have:
             out.append(Adoption(e, False, "the record fits it already"))
         elif e not in EXTRA_EFFECTS:
-            out.append(Adoption(e, False, f"not a term the kinematic calibration can take ({', '.join(EXTRA_EFFECTS)})"))
+            out.append(
+                Adoption(
+                    e,
+                    False,
+                    f"not a term the kinematic calibration can take ({', '.join(EXTRA_EFFECTS)})",
+                )
+            )
         elif sensor != "ref" and e in REFERENCE_EFFECTS:
-            out.append(Adoption(e, False, "the measurement sensor's own term: the kinematic record corrects that "
-                                "sensor by its mounting (zeros, scales, yaw, non-orthogonality, seat tilt), of which "
-                                "this is none; diagnose with sensor 'ref' for the reference's and the bench's effects"))
+            out.append(
+                Adoption(
+                    e,
+                    False,
+                    "the measurement sensor's own term: the kinematic record corrects that "
+                    "sensor by its mounting (zeros, scales, yaw, non-orthogonality, seat tilt), "
+                    "of which this is none; diagnose with sensor 'ref' for the reference's and "
+                    "the bench's effects",
+                )
+            )
         elif bench is None:
-            out.append(Adoption(e, False, "the record does not state the bench it was calibrated on"))
+            out.append(
+                Adoption(e, False, "the record does not state the bench it was calibrated on")
+            )
         else:
             candidates.append(e)
     if not candidates:
         return out
     assert bench is not None
-    seen_worm = sorted({lab[:1] for lab in (seen_labels or {}).get("periodic_error", ()) if lab[:1] in "xy"})
+    seen_worm = sorted(
+        {lab[:1] for lab in (seen_labels or {}).get("periodic_error", ()) if lab[:1] in "xy"}
+    )
     axes = sorted(set(seen_worm) | set(worm_axes)) or ["x", "y"]
     verdicts: dict[str, Adoption] = {}
     for e in candidates:
-        verdicts[e] = _one(columns, e, bench, bench_source, seen_worm if e == "periodic_error" else (), keep, axes)
+        verdicts[e] = _one(
+            columns, e, bench, bench_source, seen_worm if e == "periodic_error" else (), keep, axes
+        )
     ok = [e for e in candidates if verdicts[e].adoptable]
     if len(ok) > 1:
         try:
@@ -229,32 +320,74 @@ def adoption(columns: Mapping[str, NDArray[np.float64]], named: Sequence[str], s
         for e, why in left.items():
             if e not in ok:
                 continue
-            verdicts[e] = Adoption(e, False, f"not separable from the other named effects on these points ({why})",
-                                   MEASUREMENTS.get(e), verdicts[e].axes)
+            verdicts[e] = Adoption(
+                e,
+                False,
+                f"not separable from the other named effects on these points ({why})",
+                MEASUREMENTS.get(e),
+                verdicts[e].axes,
+            )
     out += [verdicts[e] for e in candidates]
     return out
 
 
-def _one(columns: Mapping[str, NDArray[np.float64]], effect: str, bench: StageBench | Mapping[str, Any],
-         bench_source: str, seen_axes: Sequence[str], keep: Sequence[str], axes: Sequence[str]) -> Adoption:
+def _one(
+    columns: Mapping[str, NDArray[np.float64]],
+    effect: str,
+    bench: StageBench | Mapping[str, Any],
+    bench_source: str,
+    seen_axes: Sequence[str],
+    keep: Sequence[str],
+    axes: Sequence[str],
+) -> Adoption:
     worm = list(axes) if effect == "periodic_error" else None
     try:
-        model = _fit(columns, [k for k in keep if k != effect] + [effect], bench, bench_source, axes)
+        model = _fit(
+            columns, [k for k in keep if k != effect] + [effect], bench, bench_source, axes
+        )
     except (DegenerateDataError, FitError, InputError, np.linalg.LinAlgError) as exc:
-        return Adoption(effect, False, f"the refit with it fails on these points: {exc}", MEASUREMENTS.get(effect), worm)
+        return Adoption(
+            effect,
+            False,
+            f"the refit with it fails on these points: {exc}",
+            MEASUREMENTS.get(effect),
+            worm,
+        )
     undetermined = (model.fit.get("undetermined_effects") or {}).get(effect)
     if undetermined:
-        return Adoption(effect, False, f"these points determine none of its parameters ({undetermined})",
-                        MEASUREMENTS.get(effect), worm)
+        return Adoption(
+            effect,
+            False,
+            f"these points determine none of its parameters ({undetermined})",
+            MEASUREMENTS.get(effect),
+            worm,
+        )
     short = _axes_short(model, effect, seen_axes)
     if short:
-        notes = [model.parameters[f"periodic_error.{ax}_sin_deg"].note or model.parameters[f"periodic_error.{ax}_cos_deg"].note
-                 for ax in short]
-        return Adoption(effect, False, f"seen on the {' and '.join(short)} stage, whose worm error's amplitude and "
-                        f"phase these points do not determine ({'; '.join(n for n in notes if n)})",
-                        MEASUREMENTS.get(effect), worm)
+        notes = [
+            model.parameters[f"periodic_error.{ax}_sin_deg"].note
+            or model.parameters[f"periodic_error.{ax}_cos_deg"].note
+            for ax in short
+        ]
+        return Adoption(
+            effect,
+            False,
+            f"seen on the {' and '.join(short)} stage, whose worm error's amplitude and "
+            f"phase these points do not determine ({'; '.join(n for n in notes if n)})",
+            MEASUREMENTS.get(effect),
+            worm,
+        )
     free = [n for n, p in model.parameters.items() if n.startswith(f"{effect}.") and not p.fixed]
     held = [n for n, p in model.parameters.items() if n.startswith(f"{effect}.") and p.fixed]
-    return Adoption(effect, True, f"the refit determines {', '.join(free)}"
-                    + (f" (and holds {', '.join(held)} at zero, with the reason in the model's notes)" if held else ""),
-                    None, worm)
+    return Adoption(
+        effect,
+        True,
+        f"the refit determines {', '.join(free)}"
+        + (
+            f" (and holds {', '.join(held)} at zero, with the reason in the model's notes)"
+            if held
+            else ""
+        ),
+        None,
+        worm,
+    )

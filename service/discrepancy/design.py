@@ -1,13 +1,13 @@
 """The designed measurement: the shortest one that tests what a record's stored points cannot.
 
-A diagnosis of stored points can only test what the points exercise. Hysteresis (backlash) needs points
-approached from both sides, and a stage-grid job approaches every point from below; a worm's periodic error
-needs the stage moved in steps finer than the worm's period, and a grid whose step is a whole or half number
-of periods samples it at one or two phases; a drift in time is told from the bench's geometry only by poses
-measured again later; a temperature effect needs a temperature span, which a bench without a climate
-cannot set. For each candidate the points cannot test (or test too weakly, or whose named effect the record
-could not adopt) this plans the few points that would, in the lab's words, with their approach directions
-and the bench time they take.
+A diagnosis of stored points can only test what the points exercise. Hysteresis (backlash) needs
+points approached from both sides, and a stage-grid job approaches every point from below; a worm's
+periodic error needs the stage moved in steps finer than the worm's period, and a grid whose step is
+a whole or half number of periods samples it at one or two phases; a drift in time is told from the
+bench's geometry only by poses measured again later; a temperature effect needs a temperature span,
+which a bench without a climate cannot set. For each candidate the points cannot test (or test too
+weakly, or whose named effect the record could not adopt) this plans the few points that would, in
+the lab's words, with their approach directions and the bench time they take.
 
 Pure computation: the daemon runs the plan as a job (service.jobs.diagnosis_measurement).
 """
@@ -23,8 +23,10 @@ import numpy as np
 from service.discrepancy.stage_data import StageData
 from service.physics.stage import StageBench
 
-EIGHTHS = 9  # a worm scan: one period in steps of an eighth (nine points, the last a turn after the first)
-APPROACH_MARGIN_DEG = 0.1  # a planned point leaves room to be approached from either side (the job's approach)
+# a worm scan: one period in steps of an eighth (nine points, the last a turn after the first)
+EIGHTHS = 9
+# a planned point leaves room to be approached from either side (the job's approach)
+APPROACH_MARGIN_DEG = 0.1
 WIDE_FRACTION = 0.8  # a wider range of tilts for a non-linearity: this much of the stages' travel
 
 
@@ -44,7 +46,8 @@ class PlannedPoint:
 
 @dataclass
 class PlanPart:
-    """What one candidate needs: why the stored points cannot test it, the measurement, its points."""
+    """What one candidate needs: why the stored points cannot test it, the measurement, its
+    points."""
 
     effect: str
     why: str
@@ -54,7 +57,8 @@ class PlanPart:
 
 @dataclass
 class Need:
-    """A candidate the stored points cannot test (or test too weakly): the reason, and for a worm the stages."""
+    """A candidate the stored points cannot test (or test too weakly): the reason, and for a worm
+    the stages."""
 
     effect: str
     why: str
@@ -79,24 +83,45 @@ class MeasurementPlan:
     def as_dict(self) -> dict[str, Any]:
         pts = self.points
         if pts:
-            summary = (f"{len(pts)} points, about {self.estimated_bench_s / 60:.1f} min of bench time: "
-                       + "; ".join(f"{p.effect}: {p.measurement} ({len(p.points)} points)" for p in self.parts if p.points))
+            summary = (
+                f"{len(pts)} points, about {self.estimated_bench_s / 60:.1f} min of bench time: "
+                + "; ".join(
+                    f"{p.effect}: {p.measurement} ({len(p.points)} points)"
+                    for p in self.parts
+                    if p.points
+                )
+            )
         else:
             summary = "nothing to measure: the stored points test every candidate the bench can"
         if self.cannot:
             summary += "; cannot be measured here: " + ", ".join(c["effect"] for c in self.cannot)
         return {
             "n_points": len(pts),
-            "points": [{"stage_x_deg": p.stage_x_deg, "stage_y_deg": p.stage_y_deg, "dir_x": p.dir_x, "dir_y": p.dir_y}
-                       for p in pts],
-            "parts": [{"effect": p.effect, "why": p.why, "measurement": p.measurement, "n_points": len(p.points),
-                       "points": [q.as_list() for q in p.points]} for p in self.parts],
+            "points": [
+                {
+                    "stage_x_deg": p.stage_x_deg,
+                    "stage_y_deg": p.stage_y_deg,
+                    "dir_x": p.dir_x,
+                    "dir_y": p.dir_y,
+                }
+                for p in pts
+            ],
+            "parts": [
+                {
+                    "effect": p.effect,
+                    "why": p.why,
+                    "measurement": p.measurement,
+                    "n_points": len(p.points),
+                    "points": [q.as_list() for q in p.points],
+                }
+                for p in self.parts
+            ],
             "cannot": list(self.cannot),
             "estimated_bench_s": self.estimated_bench_s,
             "seconds_per_point": self.seconds_per_point,
             "estimate_source": self.estimate_source,
             "approach": "+1: the stage arrives from below (moving up), -1: from above, by "
-                        f"{APPROACH_MARGIN_DEG:g} deg",
+            f"{APPROACH_MARGIN_DEG:g} deg",
             "summary": summary,
         }
 
@@ -113,12 +138,18 @@ def _inside(v: float, travel: float) -> float:
 
 
 def _poses(data: StageData, n: int = 5) -> list[tuple[float, float]]:
-    """A few of the record's own poses spread over its range: the one nearest the centre and those nearest
-    the middles of the four quadrants."""
+    """A few of the record's own poses spread over its range: the one nearest the centre and those
+    nearest the middles of the four quadrants."""
     x, y = data.cmd_x_deg, data.cmd_y_deg
     cx, cy = float(np.median(x)), float(np.median(y))
     hx, hy = float(np.ptp(x)) / 4, float(np.ptp(y)) / 4
-    aims = [(cx, cy), (cx - hx, cy - hy), (cx + hx, cy + hy), (cx - hx, cy + hy), (cx + hx, cy - hy)][:n]
+    aims = [
+        (cx, cy),
+        (cx - hx, cy - hy),
+        (cx + hx, cy + hy),
+        (cx - hx, cy + hy),
+        (cx + hx, cy - hy),
+    ][:n]
     out: list[tuple[float, float]] = []
     for ax, ay in aims:
         d = np.hypot(x - ax, y - ay)
@@ -139,8 +170,9 @@ def _backlash(data: StageData, bench: StageBench, travel: float) -> list[Planned
 
 
 def _worm_scan(data: StageData, bench: StageBench, axis: str, travel: float) -> list[PlannedPoint]:
-    """One worm period of `axis` in eighths, at the record's middle position of the other stage (the worm's error
-    is the same wherever the other stage stands; the record's own points give the stage's scale)."""
+    """One worm period of `axis` in eighths, at the record's middle position of the other stage (the
+    worm's error is the same wherever the other stage stands; the record's own points give the
+    stage's scale)."""
     period = bench.worm_period_x_deg if axis == "x" else bench.worm_period_y_deg
     along = data.cmd_x_deg if axis == "x" else data.cmd_y_deg
     across = data.cmd_y_deg if axis == "x" else data.cmd_x_deg
@@ -161,99 +193,213 @@ def _worm_scan(data: StageData, bench: StageBench, axis: str, travel: float) -> 
 def _wide(data: StageData, bench: StageBench, travel: float) -> list[PlannedPoint]:
     lim = _inside(WIDE_FRACTION * travel, travel)
     pts = []
-    for x, y in ((-lim, -lim), (lim, -lim), (lim, lim), (-lim, lim), (0.0, -lim), (lim, 0.0), (0.0, lim), (-lim, 0.0)):
+    for x, y in (
+        (-lim, -lim),
+        (lim, -lim),
+        (lim, lim),
+        (-lim, lim),
+        (0.0, -lim),
+        (lim, 0.0),
+        (0.0, lim),
+        (-lim, 0.0),
+    ):
         x, y = _q(bench, x, y)
         pts.append(PlannedPoint(x, y, 1.0, 1.0))
     return pts
 
 
-def plan_measurement(data: StageData, bench: StageBench, travel_deg: float, needs: Sequence[Need],
-                     seconds_per_point: float, estimate_source: str) -> MeasurementPlan:
-    """The shortest measurement that tests every need: one part per candidate (a part another part's points
-    already serve adds none)."""
+def plan_measurement(
+    data: StageData,
+    bench: StageBench,
+    travel_deg: float,
+    needs: Sequence[Need],
+    seconds_per_point: float,
+    estimate_source: str,
+) -> MeasurementPlan:
+    """The shortest measurement that tests every need: one part per candidate (a part another part's
+    points already serve adds none)."""
     parts: list[PlanPart] = []
     cannot: list[dict[str, str]] = []
     by_effect: dict[str, Need] = {}
     for need in needs:
         if need.effect in by_effect:
             was = by_effect[need.effect]
-            by_effect[need.effect] = Need(need.effect, was.why, tuple(sorted(set(was.axes) | set(need.axes))))
+            by_effect[need.effect] = Need(
+                need.effect, was.why, tuple(sorted(set(was.axes) | set(need.axes)))
+            )
         else:
             by_effect[need.effect] = need
     if (n := by_effect.get("backlash")) is not None:
-        parts.append(PlanPart("backlash", n.why, "five of the record's poses, each approached from above and again "
-                              "from below: lost motion is the difference", _backlash(data, bench, travel_deg)))
+        parts.append(
+            PlanPart(
+                "backlash",
+                n.why,
+                "five of the record's poses, each approached from above and again "
+                "from below: lost motion is the difference",
+                _backlash(data, bench, travel_deg),
+            )
+        )
     if (n := by_effect.get("periodic_error")) is not None:
         for ax in n.axes or ("x", "y"):
             period = bench.worm_period_x_deg if ax == "x" else bench.worm_period_y_deg
-            parts.append(PlanPart("periodic_error", n.why,
-                                  f"a scan of the {ax} stage over one worm period ({period:.6g} deg) in eighths, at the "
-                                  "middle of the other stage's range",
-                                  _worm_scan(data, bench, ax, travel_deg)))
+            parts.append(
+                PlanPart(
+                    "periodic_error",
+                    n.why,
+                    f"a scan of the {ax} stage over one worm period ({period:.6g} deg) in "
+                    "eighths, at the middle of the other stage's range",
+                    _worm_scan(data, bench, ax, travel_deg),
+                )
+            )
     if (n := by_effect.get("time_drift")) is not None:
         if any(p.effect == "backlash" for p in parts):
-            parts.append(PlanPart("time_drift", n.why, "the backlash part's points approached from below are record "
-                                  "poses measured again later: they test it too (no further points)"))
+            parts.append(
+                PlanPart(
+                    "time_drift",
+                    n.why,
+                    "the backlash part's points approached from below are record "
+                    "poses measured again later: they test it too (no further points)",
+                )
+            )
         else:
-            pts = [PlannedPoint(*_q(bench, _inside(x, travel_deg), _inside(y, travel_deg)), 1.0, 1.0)
-                   for x, y in reversed(_poses(data))]
-            parts.append(PlanPart("time_drift", n.why, "five of the record's poses measured again now, in another "
-                                  "order: a drift moves them, the geometry does not", pts))
+            pts = [
+                PlannedPoint(*_q(bench, _inside(x, travel_deg), _inside(y, travel_deg)), 1.0, 1.0)
+                for x, y in reversed(_poses(data))
+            ]
+            parts.append(
+                PlanPart(
+                    "time_drift",
+                    n.why,
+                    "five of the record's poses measured again now, in another "
+                    "order: a drift moves them, the geometry does not",
+                    pts,
+                )
+            )
     if (n := by_effect.get("sensor_nonlinearity")) is not None:
         span = float(max(np.max(np.abs(data.cmd_x_deg)), np.max(np.abs(data.cmd_y_deg))))
         if span < WIDE_FRACTION * travel_deg - 0.5:
-            parts.append(PlanPart("sensor_nonlinearity", n.why, f"eight points at ±{WIDE_FRACTION * travel_deg:.3g} deg "
-                                  f"(the record spans ±{span:.3g} deg of the ±{travel_deg:g} deg travel)",
-                                  _wide(data, bench, travel_deg)))
+            parts.append(
+                PlanPart(
+                    "sensor_nonlinearity",
+                    n.why,
+                    f"eight points at ±{WIDE_FRACTION * travel_deg:.3g} deg "
+                    f"(the record spans ±{span:.3g} deg of the ±{travel_deg:g} deg travel)",
+                    _wide(data, bench, travel_deg),
+                )
+            )
         else:
-            cannot.append({"effect": "sensor_nonlinearity", "reason": f"{n.why}; the record's points already span the "
-                           "stages' travel: no wider range can be measured on this bench"})
+            cannot.append(
+                {
+                    "effect": "sensor_nonlinearity",
+                    "reason": f"{n.why}; the record's points already span the "
+                    "stages' travel: no wider range can be measured on this bench",
+                }
+            )
     if (n := by_effect.get("temperature_drift")) is not None:
         span = 0.0 if data.temp_c is None else float(np.ptp(data.temp_c))
         at = "" if data.temp_c is None else f" at {float(np.mean(data.temp_c)):.1f} °C"
-        cannot.append({"effect": "temperature_drift",
-                       "reason": f"{n.why}; the points span {span:.2g} K{at} and this bench cannot set its "
-                                 "temperature: repeat the calibration when the room's temperature differs by a few "
-                                 "kelvin, or on a bench in a climate chamber"})
+        cannot.append(
+            {
+                "effect": "temperature_drift",
+                "reason": f"{n.why}; the points span {span:.2g} K{at} and this bench cannot set "
+                "its temperature: repeat the calibration when the room's temperature differs by "
+                "a few kelvin, or on a bench in a climate chamber",
+            }
+        )
     for effect, n in by_effect.items():
-        if effect not in ("backlash", "periodic_error", "time_drift", "sensor_nonlinearity", "temperature_drift"):
-            cannot.append({"effect": effect, "reason": f"{n.why}; no measurement on this bench is planned for it"})
+        if effect not in (
+            "backlash",
+            "periodic_error",
+            "time_drift",
+            "sensor_nonlinearity",
+            "temperature_drift",
+        ):
+            cannot.append(
+                {
+                    "effect": effect,
+                    "reason": f"{n.why}; no measurement on this bench is planned for it",
+                }
+            )
     return MeasurementPlan(parts, cannot, seconds_per_point, estimate_source)
 
 
-def needs_of(report: Mapping[str, Any], active: Mapping[str, Sequence[str]],
-             adoption: Sequence[Mapping[str, Any]], weak: float, data: StageData | None = None) -> list[Need]:
-    """What the stored points cannot test, from a diagnosis of them: candidates skipped (with the reason), a worm
-    whose sine or cosine the points do not separate on a stage, candidates only weakly visible (separability
-    below `weak`), a drift in time when no pose was measured twice, and named effects the record cannot adopt
-    from these points."""
+def needs_of(
+    report: Mapping[str, Any],
+    active: Mapping[str, Sequence[str]],
+    adoption: Sequence[Mapping[str, Any]],
+    weak: float,
+    data: StageData | None = None,
+) -> list[Need]:
+    """What the stored points cannot test, from a diagnosis of them: candidates skipped (with the
+    reason), a worm whose sine or cosine the points do not separate on a stage, candidates only
+    weakly visible (separability below `weak`), a drift in time when no pose was measured twice, and
+    named effects the record cannot adopt from these points."""
     needs: list[Need] = []
-    if data is not None and data.t_s is not None and "time_drift" not in report.get("named_effects", []):
+    if (
+        data is not None
+        and data.t_s is not None
+        and "time_drift" not in report.get("named_effects", [])
+    ):
         poses = np.round(np.column_stack([data.cmd_x_deg, data.cmd_y_deg]), 6)
         if np.unique(poses, axis=0).shape[0] == len(poses):
-            needs.append(Need("time_drift", "every pose was measured once, in one pass: a drift in time is told "
-                              "from the bench's geometry only as far as the order of the points differs from their "
-                              "place on the grid"))
+            needs.append(
+                Need(
+                    "time_drift",
+                    "every pose was measured once, in one pass: a drift in time is told from "
+                    "the bench's geometry only as far as the order of the points differs from "
+                    "their place on the grid",
+                )
+            )
     for s in report.get("skipped", []):
         e = str(s["effect"])
-        needs.append(Need(e, f"untestable on the stored points: {s['reason']}", ("x", "y") if e == "periodic_error" else ()))
+        needs.append(
+            Need(
+                e,
+                f"untestable on the stored points: {s['reason']}",
+                ("x", "y") if e == "periodic_error" else (),
+            )
+        )
     worm = active.get("periodic_error")
     if worm is not None and not any(n.effect == "periodic_error" for n in needs):
-        short = tuple(ax for ax in ("x", "y") if not {f"{ax}_sin_deg", f"{ax}_cos_deg"} <= set(worm))
+        short = tuple(
+            ax for ax in ("x", "y") if not {f"{ax}_sin_deg", f"{ax}_cos_deg"} <= set(worm)
+        )
         if short:
-            needs.append(Need("periodic_error", "the stored points sample the worm of the "
-                              f"{' and '.join(short)} stage at too few phases to tell its periodic error", short))
+            needs.append(
+                Need(
+                    "periodic_error",
+                    "the stored points sample the worm of the "
+                    f"{' and '.join(short)} stage at too few phases to tell its periodic error",
+                    short,
+                )
+            )
     for e, fracs in (report.get("separability") or {}).items():
         low = {lab: f for lab, f in fracs.items() if f < weak}
         if not low:
             continue
         axes = tuple(sorted({lab[:1] for lab in low})) if e == "periodic_error" else ()
         worst = min(low.values())
-        needs.append(Need(e, f"only {100 * worst:.0f} % visible on the stored points (the rest of its signature is a "
-                          "change of what the model already fits)", axes))
+        needs.append(
+            Need(
+                e,
+                f"only {100 * worst:.0f} % visible on the stored points (the rest of its "
+                "signature is a change of what the model already fits)",
+                axes,
+            )
+        )
     for a in adoption:
         if not a.get("adoptable") and a.get("measurement"):
             e = str(a["effect"])
-            axes = tuple(ax for ax in ("x", "y") if f"the {ax} stage" in str(a.get("reason", ""))) if e == "periodic_error" else ()
-            needs.append(Need(e, f"named, but the record cannot adopt it from the stored points: {a['reason']}", axes))
+            axes = (
+                tuple(ax for ax in ("x", "y") if f"the {ax} stage" in str(a.get("reason", "")))
+                if e == "periodic_error"
+                else ()
+            )
+            needs.append(
+                Need(
+                    e,
+                    f"named, but the record cannot adopt it from the stored points: {a['reason']}",
+                    axes,
+                )
+            )
     return needs

@@ -76,7 +76,10 @@ class Fit:
         raise KeyError(effect)
 
     def rms(self) -> list[float]:
-        return [float(np.sqrt(np.mean(self.residuals[:, a] ** 2))) for a in range(self.residuals.shape[1])]
+        return [
+            float(np.sqrt(np.mean(self.residuals[:, a] ** 2)))
+            for a in range(self.residuals.shape[1])
+        ]
 
 
 class Family:
@@ -103,8 +106,11 @@ class Family:
         """Every parameter the effects could add, before dropping what the data cannot separate."""
         raise NotImplementedError
 
-    def predict_params(self, effects: tuple[str, ...], params: dict[str, dict[str, float]]) -> NDArray[np.float64]:
-        """Noise-free readings (N, A); a parameter missing from `params` means its effect-free value."""
+    def predict_params(
+        self, effects: tuple[str, ...], params: dict[str, dict[str, float]]
+    ) -> NDArray[np.float64]:
+        """Noise-free readings (N, A); a parameter missing from `params` means its effect-free
+        value."""
         raise NotImplementedError
 
     def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
@@ -118,8 +124,13 @@ class Family:
             keep = self.active.get(b.effect)
             if keep is not None:
                 idx = [i for i, lab in enumerate(b.labels) if lab in keep]
-                b = Block(b.effect, tuple(b.labels[i] for i in idx), tuple(b.units[i] for i in idx),
-                          tuple(b.scales[i] for i in idx), tuple(b.init[i] for i in idx))
+                b = Block(
+                    b.effect,
+                    tuple(b.labels[i] for i in idx),
+                    tuple(b.units[i] for i in idx),
+                    tuple(b.scales[i] for i in idx),
+                    tuple(b.init[i] for i in idx),
+                )
             out.append(b)
         return out
 
@@ -134,12 +145,24 @@ class Family:
                 i += 1
         return params
 
-    def predict(self, effects: tuple[str, ...], theta: NDArray[np.float64], blocks: list[Block] | None = None) -> NDArray[np.float64]:
+    def predict(
+        self,
+        effects: tuple[str, ...],
+        theta: NDArray[np.float64],
+        blocks: list[Block] | None = None,
+    ) -> NDArray[np.float64]:
         return self.predict_params(effects, self.unpack(blocks or self.blocks(effects), theta))
 
-    def initial(self, effects: tuple[str, ...], blocks: list[Block], start: Fit | None) -> NDArray[np.float64]:
-        """Start values: the previous fit's values where the parameter is the same, block init elsewhere."""
-        x = np.concatenate([np.asarray(b.init, dtype=float) for b in blocks]) if blocks else np.zeros(0)
+    def initial(
+        self, effects: tuple[str, ...], blocks: list[Block], start: Fit | None
+    ) -> NDArray[np.float64]:
+        """Start values: the previous fit's values where the parameter is the same, block init
+        elsewhere."""
+        x = (
+            np.concatenate([np.asarray(b.init, dtype=float) for b in blocks])
+            if blocks
+            else np.zeros(0)
+        )
         if start is None:
             return x
         i = 0
@@ -161,18 +184,31 @@ class Family:
     def n_obs(self) -> int:
         return int(self.observed.size)
 
-    def weighted_residual(self, effects: tuple[str, ...], theta: NDArray[np.float64],
-                          blocks: list[Block] | None = None) -> NDArray[np.float64]:
-        r: NDArray[np.float64] = ((self.observed - self.predict(effects, theta, blocks)) * self.weights).ravel()
+    def weighted_residual(
+        self,
+        effects: tuple[str, ...],
+        theta: NDArray[np.float64],
+        blocks: list[Block] | None = None,
+    ) -> NDArray[np.float64]:
+        r: NDArray[np.float64] = (
+            (self.observed - self.predict(effects, theta, blocks)) * self.weights
+        ).ravel()
         return r
 
-    def fit(self, effects: tuple[str, ...], start: Fit | None = None, x0: NDArray[np.float64] | None = None) -> Fit:
+    def fit(
+        self,
+        effects: tuple[str, ...],
+        start: Fit | None = None,
+        x0: NDArray[np.float64] | None = None,
+    ) -> Fit:
         blocks = self.blocks(effects)
         k = sum(b.size for b in blocks)
         if self.n_obs <= k:
-            raise DegenerateDataError(f"{self.n_obs // max(self.observed.shape[1], 1)} points give {self.n_obs} "
-                                      f"readings, not more than the {k} parameters of the model "
-                                      f"({self.baseline} + {', '.join(effects) or 'nothing'})")
+            raise DegenerateDataError(
+                f"{self.n_obs // max(self.observed.shape[1], 1)} points give {self.n_obs} "
+                f"readings, not more than the {k} parameters of the model "
+                f"({self.baseline} + {', '.join(effects) or 'nothing'})"
+            )
         theta0 = self.initial(effects, blocks, start) if x0 is None else np.asarray(x0, dtype=float)
         scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
 
@@ -183,15 +219,21 @@ class Family:
         with np.errstate(all="ignore"):
             r0 = fun(q0)
         if not np.all(np.isfinite(r0)):
-            raise FitError(f"model {self.baseline} + {', '.join(effects)} cannot be evaluated at its start values")
+            raise FitError(
+                f"model {self.baseline} + {', '.join(effects)} cannot be evaluated at its start "
+                "values"
+            )
         try:
-            sol = least_squares(fun, q0, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200 * (k + 1))
+            sol = least_squares(
+                fun, q0, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200 * (k + 1)
+            )
         except ValueError as exc:  # pragma: no cover - scipy refuses e.g. non-finite residuals
             raise FitError(f"fit of {self.baseline} + {', '.join(effects)} failed: {exc}") from exc
         if not np.all(np.isfinite(sol.x)):
             raise FitError(f"fit of {self.baseline} + {', '.join(effects)} diverged")
         theta = sol.x * scales
-        J = self.jacobian(effects, blocks, theta)  # d(weighted residual)/d(theta), by the shared rule
+        # d(weighted residual)/d(theta), by the shared rule
+        J = self.jacobian(effects, blocks, theta)
         pred = self.predict(effects, theta, blocks)
         resid = self.observed - pred
         rss_w = float(np.sum((resid * self.weights) ** 2))
@@ -200,9 +242,15 @@ class Family:
         cov = _covariance(J) * (max(1.0, s2) if self.noise_known else s2)
         return Fit(tuple(effects), blocks, theta, cov, resid, pred, rss_w, self.n_obs, J)
 
-    def jacobian(self, effects: tuple[str, ...], blocks: list[Block], theta: NDArray[np.float64],
-                 columns: range | None = None) -> NDArray[np.float64]:
-        """Jacobian of the weighted residual, d r / d theta (selected columns), by the shared rule."""
+    def jacobian(
+        self,
+        effects: tuple[str, ...],
+        blocks: list[Block],
+        theta: NDArray[np.float64],
+        columns: range | None = None,
+    ) -> NDArray[np.float64]:
+        """Jacobian of the weighted residual, d r / d theta (selected columns), by the shared
+        rule."""
         scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
         cols = np.arange(theta.size) if columns is None else np.asarray(list(columns), dtype=int)
         if cols.size == 0:
@@ -215,8 +263,11 @@ class Family:
 
         return central_jacobian(fun, theta[cols], scales[cols])
 
-    def extended(self, current: Fit, effect: str, full: bool = False) -> tuple[tuple[str, ...], list[Block], NDArray[np.float64]]:
-        """Effects, blocks and start values of the current model plus `effect` (all its parameters if `full`)."""
+    def extended(
+        self, current: Fit, effect: str, full: bool = False
+    ) -> tuple[tuple[str, ...], list[Block], NDArray[np.float64]]:
+        """Effects, blocks and start values of the current model plus `effect` (all its parameters
+        if `full`)."""
         effects = current.effects + (effect,)
         if full:
             new = [b for b in self.full_blocks(effects) if b.effect == effect][-1:]
@@ -226,7 +277,8 @@ class Family:
         return effects, blocks, self.initial(effects, blocks, current)
 
     def linearised_fit(self, current: Fit, effect: str) -> Fit:
-        """The extended model after one Gauss-Newton step from its start values (an approximate fit).
+        """The extended model after one Gauss-Newton step from its start values (an approximate
+        fit).
 
         A cheap and, near the current optimum, accurate preview of the full refit: used to
         screen candidates so that only promising ones pay for a nonlinear fit, and to state
@@ -235,8 +287,11 @@ class Family:
         effects, blocks, theta = self.extended(current, effect)
         r0 = self.weighted_residual(effects, theta, blocks)
         k0 = current.k
-        same_start = (theta.size > k0 and np.array_equal(theta[:k0], current.values)
-                      and current.jacobian_w.shape == (r0.size, k0))
+        same_start = (
+            theta.size > k0
+            and np.array_equal(theta[:k0], current.values)
+            and current.jacobian_w.shape == (r0.size, k0)
+        )
         if same_start:
             # the current model's columns are unchanged: reuse them
             J_new = self.jacobian(effects, blocks, theta, range(k0, theta.size))
@@ -251,10 +306,13 @@ class Family:
         s2 = rss_w / max(self.n_obs - theta.size, 1)
         cov = _covariance(J) * (max(1.0, s2) if self.noise_known else s2)
         resid = r1.reshape(self.observed.shape) / self.weights
-        return Fit(effects, blocks, theta + delta, cov, resid, self.observed - resid, rss_w, self.n_obs, J)
+        return Fit(
+            effects, blocks, theta + delta, cov, resid, self.observed - resid, rss_w, self.n_obs, J
+        )
 
     def separability(self, current: Fit, effect: str) -> list[float]:
-        """For each parameter of `effect`: the fraction of its signature the current model cannot absorb.
+        """For each parameter of `effect`: the fraction of its signature the current model cannot
+        absorb.
 
         The signature is the column of the (weighted) Jacobian at the current fit; the
         fraction is the norm of its component orthogonal to the current model's columns over

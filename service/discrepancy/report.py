@@ -1,4 +1,5 @@
-"""The report page: one self-contained HTML file (figures inline as PNG data URIs) showing the gap shrink.
+"""The report page: one self-contained HTML file (figures inline as PNG data URIs) showing the gap
+shrink.
 
 For people, next to the JSON for machines: the chain of named effects, the residual maps
 before and after each step, the RMS of every stage of the chain against the noise level,
@@ -34,7 +35,8 @@ def clean(o: Any) -> Any:
         return [clean(v) for v in o]
     if isinstance(o, (np.floating, float)):
         f = float(o)
-        # 8 significant digits: more than any statistic or magnitude here is known to (docs/models.md, "Digits")
+        # 8 significant digits: more than any statistic or magnitude here is known to
+        # (docs/models.md, "Digits")
         return float(f"{f:.{REPORT_SIGNIFICANT_DIGITS}g}") if math.isfinite(f) else None
     if isinstance(o, (np.integer,)):
         return int(o)
@@ -72,7 +74,9 @@ def _rms_figure(report: dict[str, Any]) -> str:
     x = np.arange(len(labels))
     for a, name in enumerate(report["axes"]):
         ax.bar(x + (a - (rms.shape[1] - 1) / 2) * width, rms[:, a], width, label=f"RMS {name}")
-        ax.axhline(noise[a], ls="--", lw=1, color=f"C{a}", label=f"noise {name} ({report['noise_source']})")
+        ax.axhline(
+            noise[a], ls="--", lw=1, color=f"C{a}", label=f"noise {name} ({report['noise_source']})"
+        )
     ax.set_xticks(x, labels, rotation=15)
     ax.set_yscale("log")
     ax.set_ylabel(f"residual RMS [{report['unit']}]")
@@ -81,23 +85,47 @@ def _rms_figure(report: dict[str, Any]) -> str:
     return _png(fig)
 
 
-def _stage_maps(fam: StageLinear | StageKinematic, fits: Sequence[Fit], titles: Sequence[str], unit: str) -> str:
+def _stage_maps(
+    fam: StageLinear | StageKinematic, fits: Sequence[Fit], titles: Sequence[str], unit: str
+) -> str:
     """All residual maps in one figure: a row per stage of the chain, x and y side by side."""
     x, y = fam.data.cmd_x_deg, fam.data.cmd_y_deg
     n = len(fits)
     h = 3.1 * n
-    fig, axs = _figure(8.0, h, n, 2, left=0.08, right=0.97, bottom=0.5 / h, top=1 - 0.35 / h, hspace=0.45,
-                       wspace=0.5)
+    fig, axs = _figure(
+        8.0,
+        h,
+        n,
+        2,
+        left=0.08,
+        right=0.97,
+        bottom=0.5 / h,
+        top=1 - 0.35 / h,
+        hspace=0.45,
+        wspace=0.5,
+    )
     for i, (fit, title) in enumerate(zip(fits, titles)):
         r = fit.residuals
         for a, name in enumerate(("x", "y")):
             ax = axs[i, a]
             lim = float(np.max(np.abs(r[:, a]))) or 1.0
-            sc = ax.scatter(x, y, c=r[:, a], cmap="RdBu_r", vmin=-lim, vmax=lim, s=50, edgecolors="k",
-                            linewidths=0.3)
+            sc = ax.scatter(
+                x,
+                y,
+                c=r[:, a],
+                cmap="RdBu_r",
+                vmin=-lim,
+                vmax=lim,
+                s=50,
+                edgecolors="k",
+                linewidths=0.3,
+            )
             ax.set_xlabel("stage x [deg]", fontsize=8)
             ax.set_ylabel("stage y [deg]", fontsize=8)
-            ax.set_title(f"{title}: {name} residual, RMS {np.sqrt(np.mean(r[:, a] ** 2)):.3g} {unit}", fontsize=8)
+            ax.set_title(
+                f"{title}: {name} residual, RMS {np.sqrt(np.mean(r[:, a] ** 2)):.3g} {unit}",
+                fontsize=8,
+            )
             ax.set_aspect("equal", adjustable="datalim")
             fig.colorbar(sc, ax=ax, label=unit, shrink=0.85)
     return _png(fig)
@@ -106,27 +134,33 @@ def _stage_maps(fam: StageLinear | StageKinematic, fits: Sequence[Fit], titles: 
 def _scale_plots(fam: ScalePoly, fits: Sequence[Fit], titles: Sequence[str], unit: str) -> str:
     n = len(fits)
     h = 2.4 * n
-    fig, axs = _figure(6.0, h, n, 1, left=0.14, right=0.97, bottom=0.45 / h, top=1 - 0.3 / h, hspace=0.6)
+    fig, axs = _figure(
+        6.0, h, n, 1, left=0.14, right=0.97, bottom=0.45 / h, top=1 - 0.3 / h, hspace=0.6
+    )
     for i, (fit, title) in enumerate(zip(fits, titles)):
         ax = axs[i, 0]
         ax.axhline(0, color="k", lw=0.5)
         ax.plot(fam.reading, fit.residuals[:, 0], "o")
         ax.set_xlabel("sensor output [count]", fontsize=8)
         ax.set_ylabel(f"residual [{unit}]", fontsize=8)
-        ax.set_title(f"{title}: RMS {np.sqrt(np.mean(fit.residuals[:, 0] ** 2)):.3g} {unit}", fontsize=9)
+        ax.set_title(
+            f"{title}: RMS {np.sqrt(np.mean(fit.residuals[:, 0] ** 2)):.3g} {unit}", fontsize=9
+        )
     return _png(fig)
 
 
 def _histogram(report: dict[str, Any], fit: Fit) -> str:
     r = fit.residuals
     noise = np.array(report["noise_level"])
-    fig, axs = _figure(3.4 * r.shape[1], 3.0, 1, r.shape[1], left=0.1, right=0.97, bottom=0.18, top=0.85)
+    fig, axs = _figure(
+        3.4 * r.shape[1], 3.0, 1, r.shape[1], left=0.1, right=0.97, bottom=0.18, top=0.85
+    )
     for a, name in enumerate(report["axes"]):
         ax = axs[0, a]
         z = r[:, a] / noise[a]
         ax.hist(z, bins=max(8, int(np.sqrt(z.size))), density=True, alpha=0.7)
         g = np.linspace(-4, 4, 200)
-        ax.plot(g, np.exp(-g**2 / 2) / np.sqrt(2 * np.pi), "k-", lw=1)
+        ax.plot(g, np.exp(-(g**2) / 2) / np.sqrt(2 * np.pi), "k-", lw=1)
         ax.set_xlabel(f"final {name} residual / noise level")
     fig.suptitle("final residual against the noise level (curve: the noise alone)", fontsize=9)
     return _png(fig)
@@ -134,7 +168,9 @@ def _histogram(report: dict[str, Any], fit: Fit) -> str:
 
 def _table(rows: list[list[str]], head: list[str]) -> str:
     h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
-    b = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    b = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows
+    )
     return f"<table><tr>{h}</tr>{b}</table>"
 
 
@@ -156,8 +192,10 @@ def _fmt(v: object) -> str:
 
 
 CSS = """body{font-family:sans-serif;max-width:1000px;margin:1em auto;color:#222}
-table{border-collapse:collapse;margin:.5em 0;font-size:90%}td,th{border:1px solid #bbb;padding:3px 6px;text-align:left}
-th{background:#eee}img{max-width:100%}.concl{background:#f4f8ff;border-left:4px solid #36c;padding:.5em 1em}
+table{border-collapse:collapse;margin:.5em 0;font-size:90%}
+td,th{border:1px solid #bbb;padding:3px 6px;text-align:left}
+th{background:#eee}img{max-width:100%}
+.concl{background:#f4f8ff;border-left:4px solid #36c;padding:.5em 1em}
 details{margin:.3em 0}code{background:#f3f3f3}"""
 
 
@@ -165,35 +203,72 @@ def render_html(report: dict[str, Any], result: Result, fam: Family) -> str:
     """The whole page as one string (no external resources)."""
     unit = report["unit"]
     e = html.escape
-    parts = [(f"<!doctype html><html><head><meta charset='utf-8'><title>tiltlab discrepancy: {e(report['kind'])}"
-             f"</title><style>{CSS}</style></head><body>")]
+    parts = [
+        (
+            "<!doctype html><html><head><meta charset='utf-8'><title>tiltlab discrepancy: "
+            f"{e(report['kind'])}</title><style>{CSS}</style></head><body>"
+        )
+    ]
     parts.append(f"<h1>Where the {e(report['baseline'])} model and the measurement disagree</h1>")
     src = report.get("input", "")
-    parts.append(f"<p>Data: <code>{e(str(src))}</code>, kind <b>{e(report['kind'])}</b>"
-                 + (f", sensor <b>{e(report['sensor'])}</b>" if "sensor" in report else "")
-                 + f", {report.get('n_rows', '')} rows. Residual = measured − model, in {e(unit)}.</p>")
+    parts.append(
+        f"<p>Data: <code>{e(str(src))}</code>, kind <b>{e(report['kind'])}</b>"
+        + (f", sensor <b>{e(report['sensor'])}</b>" if "sensor" in report else "")
+        + f", {report.get('n_rows', '')} rows. Residual = measured − model, in {e(unit)}.</p>"
+    )
     parts.append(f"<p class='concl'>{e(report['conclusion'])}</p>")
     parts.append("<h2>Chain of named effects</h2>")
     rows = []
     for i, s in enumerate(report["steps"], 1):
         ev = s["evidence"]
-        rows.append([str(i), s["effect"], s["summary"].split(": ", 1)[-1], _fmt(s["rms_before"]),
-                     _fmt(s["rms_after"]), f"{ev['test']} {ev['f_stat']:.3g}", _p(ev['p_value']),
-                     f"{ev['alpha']:.2g}", f"{ev['delta_bic']:+.1f}"])
+        rows.append(
+            [
+                str(i),
+                s["effect"],
+                s["summary"].split(": ", 1)[-1],
+                _fmt(s["rms_before"]),
+                _fmt(s["rms_after"]),
+                f"{ev['test']} {ev['f_stat']:.3g}",
+                _p(ev["p_value"]),
+                f"{ev['alpha']:.2g}",
+                f"{ev['delta_bic']:+.1f}",
+            ]
+        )
     if rows:
-        parts.append(_table(rows, ["step", "effect", "fitted magnitude (± standard uncertainty)",
-                                   f"RMS before [{unit}]", f"RMS after [{unit}]", "statistic", "p", "level", "ΔBIC"]))
+        parts.append(
+            _table(
+                rows,
+                [
+                    "step",
+                    "effect",
+                    "fitted magnitude (± standard uncertainty)",
+                    f"RMS before [{unit}]",
+                    f"RMS after [{unit}]",
+                    "statistic",
+                    "p",
+                    "level",
+                    "ΔBIC",
+                ],
+            )
+        )
     else:
         parts.append("<p>No effect named: the baseline already describes the data.</p>")
     parts.append(f"<p><b>Stop:</b> {e(report['stop']['reason'])}</p>")
     parts.append(_img(_rms_figure(report), "RMS per step against the noise level"))
-    parts.append(f"<p><b>Noise level</b> {e(_fmt(report['noise_level']))} {e(unit)} from the "
-                 f"<b>{e(report['noise_source'])}</b>: {e(report['noise_detail'])}</p>")
-    parts.append(f"<p><b>Final residual against the noise:</b> {e(report['final_vs_noise']['sentence'])}</p>")
+    parts.append(
+        f"<p><b>Noise level</b> {e(_fmt(report['noise_level']))} {e(unit)} from the "
+        f"<b>{e(report['noise_source'])}</b>: {e(report['noise_detail'])}</p>"
+    )
+    parts.append(
+        f"<p><b>Final residual against the noise:</b> {e(report['final_vs_noise']['sentence'])}</p>"
+    )
     if (bench := report.get("bench")) is not None:
-        parts.append(f"<p><b>Bench</b> ({e(bench['source'])}): upper {bench['upper_gear_ratio']:g}:1, lower "
-                     f"{bench['lower_gear_ratio']:g}:1, {bench['microsteps']} microsteps of {bench['step_angle_deg']:g}°; "
-                     f"worm periods {bench['worm_period_x_deg']:.6g}° / {bench['worm_period_y_deg']:.6g}°</p>")
+        parts.append(
+            f"<p><b>Bench</b> ({e(bench['source'])}): upper {bench['upper_gear_ratio']:g}:1, "
+            f"lower {bench['lower_gear_ratio']:g}:1, {bench['microsteps']} microsteps of "
+            f"{bench['step_angle_deg']:g}°; worm periods {bench['worm_period_x_deg']:.6g}° / "
+            f"{bench['worm_period_y_deg']:.6g}°</p>"
+        )
 
     parts.append("<h2>Where they disagree</h2><p>Before the first step (strongest first):</p><ul>")
     parts += [f"<li>{e(w)}</li>" for w in report["where"]]
@@ -203,8 +278,9 @@ def render_html(report: dict[str, Any], result: Result, fam: Family) -> str:
     parts.append("</ul>")
 
     parts.append("<h2>Residuals before and after each step</h2>")
-    titles = [f"baseline {report['baseline']}"] + [f"after step {i}: + {s['effect']}"
-                                                   for i, s in enumerate(report["steps"], 1)]
+    titles = [f"baseline {report['baseline']}"] + [
+        f"after step {i}: + {s['effect']}" for i, s in enumerate(report["steps"], 1)
+    ]
     if isinstance(fam, StageLinear | StageKinematic):
         parts.append(_img(_stage_maps(fam, result.fits, titles, unit), "residual maps"))
     elif isinstance(fam, ScalePoly):
@@ -213,34 +289,69 @@ def render_html(report: dict[str, Any], result: Result, fam: Family) -> str:
 
     parts.append("<h2>Candidates at each step</h2>")
     for i, s in enumerate(report["steps"], 1):
-        rows = [[c["effect"], _fmt(c.get("rms_after")), _fmt(c.get("f_stat")), _p(c.get("p_value")),
-                 _fmt(c.get("delta_bic")), "yes" if c.get("significant") else c.get("error", "no")]
-                for c in s["evidence"]["candidates"]]
-        parts.append(f"<details><summary>step {i}: {e(s['effect'])} chosen</summary>"
-                     + _table(rows, ["candidate", f"RMS after [{unit}]", "statistic", "p", "ΔBIC", "significant"])
-                     + "</details>")
-    rows = [[c["effect"], _fmt(c.get("rms_after")), _fmt(c.get("f_stat")), _p(c.get("p_value")),
-             _fmt(c.get("delta_bic")), "yes" if c.get("significant") else c.get("error", "no")]
-            for c in report["stop"]["candidates"]]
+        rows = [
+            [
+                c["effect"],
+                _fmt(c.get("rms_after")),
+                _fmt(c.get("f_stat")),
+                _p(c.get("p_value")),
+                _fmt(c.get("delta_bic")),
+                "yes" if c.get("significant") else c.get("error", "no"),
+            ]
+            for c in s["evidence"]["candidates"]
+        ]
+        parts.append(
+            f"<details><summary>step {i}: {e(s['effect'])} chosen</summary>"
+            + _table(
+                rows, ["candidate", f"RMS after [{unit}]", "statistic", "p", "ΔBIC", "significant"]
+            )
+            + "</details>"
+        )
+    rows = [
+        [
+            c["effect"],
+            _fmt(c.get("rms_after")),
+            _fmt(c.get("f_stat")),
+            _p(c.get("p_value")),
+            _fmt(c.get("delta_bic")),
+            "yes" if c.get("significant") else c.get("error", "no"),
+        ]
+        for c in report["stop"]["candidates"]
+    ]
     if rows:
-        parts.append("<details open><summary>last step: nothing significant</summary>"
-                     + _table(rows, ["candidate", f"RMS after [{unit}]", "statistic", "p", "ΔBIC", "significant"])
-                     + "</details>")
+        parts.append(
+            "<details open><summary>last step: nothing significant</summary>"
+            + _table(
+                rows, ["candidate", f"RMS after [{unit}]", "statistic", "p", "ΔBIC", "significant"]
+            )
+            + "</details>"
+        )
     parts.append("<h2>Not tested</h2>")
     if report["skipped"]:
-        parts.append("<p>Candidates the data cannot support:</p>"
-                     + _table([[s["effect"], s["reason"]] for s in report["skipped"]], ["effect", "reason"]))
-    parts.append("<p>Effects the baseline already represents:</p>"
-                 + _table([[s["effect"], s["reason"]] for s in report["already_in_model"]], ["effect", "why"]))
+        parts.append(
+            "<p>Candidates the data cannot support:</p>"
+            + _table([[s["effect"], s["reason"]] for s in report["skipped"]], ["effect", "reason"])
+        )
+    parts.append(
+        "<p>Effects the baseline already represents:</p>"
+        + _table(
+            [[s["effect"], s["reason"]] for s in report["already_in_model"]], ["effect", "why"]
+        )
+    )
     if report["notes"]:
         parts.append("<ul>" + "".join(f"<li>{e(n)}</li>" for n in report["notes"]) + "</ul>")
-    parts.append(f"<p style='font-size:80%'>Significance: extra-sum-of-squares test at level {report['alpha']:g} "
-                 "per step, Bonferroni-corrected over the candidates of the step, and a BIC gain. Names of effects "
-                 "are those of docs/models.md §5.</p>")
-    if (prov := report.get("provenance")):
+    parts.append(
+        "<p style='font-size:80%'>Significance: extra-sum-of-squares test at level "
+        f"{report['alpha']:g} per step, Bonferroni-corrected over the candidates of the step, "
+        "and a BIC gain. Names of effects are those of docs/models.md §5.</p>"
+    )
+    if prov := report.get("provenance"):
         from service.io.provenance import provenance_lines
 
-        parts.append("<h2>Provenance</h2><p style='font-size:80%'>"
-                     + "<br>".join(e(line) for line in provenance_lines(prov)) + "</p>")
+        parts.append(
+            "<h2>Provenance</h2><p style='font-size:80%'>"
+            + "<br>".join(e(line) for line in provenance_lines(prov))
+            + "</p>"
+        )
     parts.append("</body></html>")
     return "\n".join(parts)

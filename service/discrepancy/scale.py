@@ -39,19 +39,33 @@ class ScalePoly(Family):
     candidates = CANDIDATES
     already_in_model = ALREADY_IN_MODEL
 
-    def __init__(self, reading: NDArray[np.float64], ref_arcsec: NDArray[np.float64], temp_c: NDArray[np.float64] | None, weight: float):
+    def __init__(
+        self,
+        reading: NDArray[np.float64],
+        ref_arcsec: NDArray[np.float64],
+        temp_c: NDArray[np.float64] | None,
+        weight: float,
+    ):
         super().__init__(ref_arcsec.reshape(-1, 1), np.array([weight]))
         self.reading = reading
         self.mid = 0.5 * (float(np.max(reading)) + float(np.min(reading)))
         self.half = max(0.5 * float(np.ptp(reading)), 1e-9)
         self.z = (reading - self.mid) / self.half
         self.dT = None if temp_c is None else temp_c - float(np.mean(temp_c))
-        slope = np.polyfit(self.z, ref_arcsec, 1) if np.ptp(reading) > 0 else np.array([0.0, np.mean(ref_arcsec)])
+        slope = (
+            np.polyfit(self.z, ref_arcsec, 1)
+            if np.ptp(reading) > 0
+            else np.array([0.0, np.mean(ref_arcsec)])
+        )
         self._init = (float(slope[1]), float(slope[0]))
         self._typ = max(float(np.ptp(ref_arcsec)), 1.0)
 
     def full_blocks(self, effects: tuple[str, ...]) -> list[Block]:
-        out = [Block("baseline", ("c0", "c1"), ("arcsec", "arcsec"), (self._typ, self._typ), self._init)]
+        out = [
+            Block(
+                "baseline", ("c0", "c1"), ("arcsec", "arcsec"), (self._typ, self._typ), self._init
+            )
+        ]
         deg = 1
         for e in effects:
             if e == "sensor_nonlinearity":
@@ -63,7 +77,9 @@ class ScalePoly(Family):
                 raise KeyError(f"no scale term for {e!r}")
         return out
 
-    def predict_params(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> NDArray[np.float64]:
+    def predict_params(
+        self, effects: tuple[str, ...], p: dict[str, dict[str, float]]
+    ) -> NDArray[np.float64]:
         coeffs: dict[int, float] = {}
         for d in (p.get("baseline", {}), p.get("sensor_nonlinearity", {})):
             for lab, v in d.items():
@@ -82,47 +98,85 @@ class ScalePoly(Family):
         v = float(fit.values[sl][0])
         u = float(np.sqrt(max(fit.covariance[sl, sl][0, 0], 0.0)))
         if effect == "temperature_drift":
-            return {"arcsec_per_k": {"value": v, "uncertainty": u, "unit": "arcsec/K",
-                                     "what": "zero coefficient of the angle read from the output"}}
+            return {
+                "arcsec_per_k": {
+                    "value": v,
+                    "uncertainty": u,
+                    "unit": "arcsec/K",
+                    "what": "zero coefficient of the angle read from the output",
+                }
+            }
         j = int(blk.labels[0][1:])
         zj = self.z**j
         line = np.polyval(np.polyfit(self.z, zj, 1), self.z)
         dep = np.abs(zj - line)
         peak = float(np.max(dep))
         out = {
-            f"c{j}_arcsec_per_count{j}": {"value": v / self.half**j, "uncertainty": u / self.half**j,
-                                          "unit": f"arcsec/count^{j}",
-                                          "what": f"coefficient of (output - {self.mid:g})^{j} in the angle"},
-            "peak_departure_arcsec": {"value": abs(v) * peak, "uncertainty": u * peak, "unit": "arcsec",
-                                      "what": "largest departure of this term from a straight line over the data"},
+            f"c{j}_arcsec_per_count{j}": {
+                "value": v / self.half**j,
+                "uncertainty": u / self.half**j,
+                "unit": f"arcsec/count^{j}",
+                "what": f"coefficient of (output - {self.mid:g})^{j} in the angle",
+            },
+            "peak_departure_arcsec": {
+                "value": abs(v) * peak,
+                "uncertainty": u * peak,
+                "unit": "arcsec",
+                "what": "largest departure of this term from a straight line over the data",
+            },
             "degree": j,
         }
         if j == 2:
             c1 = fit.values[fit.block_slice("baseline")][1] / self.half
             k = -v / self.half**2 / c1**3 if c1 else 0.0
-            out["counts_per_arcsec2"] = {"value": float(k), "uncertainty": float(abs(k) * u / abs(v)) if v else 0.0,
-                                         "unit": "count/arcsec^2",
-                                         "what": "the same term in the registry's form, output += k·angle² "
-                                                 "(first-order inverse)"}
+            out["counts_per_arcsec2"] = {
+                "value": float(k),
+                "uncertainty": float(abs(k) * u / abs(v)) if v else 0.0,
+                "unit": "count/arcsec^2",
+                "what": "the same term in the registry's form, output += k·angle² "
+                "(first-order inverse)",
+            }
         return out
 
     def baseline_line(self, fit: Fit) -> dict[str, Any]:
         c0, c1 = fit.values[fit.block_slice("baseline")]
         u = np.sqrt(np.maximum(np.diag(fit.covariance[:2, :2]), 0.0))
-        return {"arcsec_per_count": {"value": float(c1 / self.half), "uncertainty": float(u[1] / self.half),
-                                     "unit": "arcsec/count", "what": "measurement equivalent (slope)"},
-                "arcsec_at_zero_count": {"value": float(c0 - c1 * self.mid / self.half), "unit": "arcsec"}}
+        return {
+            "arcsec_per_count": {
+                "value": float(c1 / self.half),
+                "uncertainty": float(u[1] / self.half),
+                "unit": "arcsec/count",
+                "what": "measurement equivalent (slope)",
+            },
+            "arcsec_at_zero_count": {
+                "value": float(c0 - c1 * self.mid / self.half),
+                "unit": "arcsec",
+            },
+        }
 
 
-def scale_structure(reading: NDArray[np.float64], resid: NDArray[np.float64], temp_c: NDArray[np.float64] | None, t_s: NDArray[np.float64] | None,
-                    alpha: float = 0.01) -> list[stats.StructureTest]:
+def scale_structure(
+    reading: NDArray[np.float64],
+    resid: NDArray[np.float64],
+    temp_c: NDArray[np.float64] | None,
+    t_s: NDArray[np.float64] | None,
+    alpha: float = 0.01,
+) -> list[stats.StructureTest]:
     r = resid[:, 0]
     tests: list[stats.StructureTest] = []
     z = (reading - reading.mean()) / max(float(np.ptp(reading)), 1e-9)
     if r.size >= 6:
         base = r - np.polyval(np.polyfit(z, r, 1), z)
-        tests.append(stats.shape_test(base, ["output²", "output³"], np.column_stack([z**2, z**3]), "angle", "arcsec",
-                                      {"output²": "bends one way over the range", "output³": "S-shaped"}))
+        tests.append(
+            stats.shape_test(
+                base,
+                ["output²", "output³"],
+                np.column_stack([z**2, z**3]),
+                "angle",
+                "arcsec",
+                {"output²": "bends one way over the range", "output³": "S-shaped"},
+            )
+        )
     if temp_c is not None and np.ptp(temp_c) >= TEMP_MIN_SPAN_K:
         t = stats.correlation_test(r, temp_c, "angle", "temp_c", "temperature", "K", "arcsec")
         if t:
@@ -134,8 +188,11 @@ def scale_structure(reading: NDArray[np.float64], resid: NDArray[np.float64], te
     return stats.mark_significant(tests, alpha)
 
 
-def analyse_scale(columns: Mapping[str, NDArray[np.float64]], noise_sigma: ArrayLike | None = None, alpha: float = DEFAULT_ALPHA
-                  ) -> tuple[Result, ScalePoly]:
+def analyse_scale(
+    columns: Mapping[str, NDArray[np.float64]],
+    noise_sigma: ArrayLike | None = None,
+    alpha: float = DEFAULT_ALPHA,
+) -> tuple[Result, ScalePoly]:
     if "ref_arcsec" in columns:
         ref = np.asarray(columns["ref_arcsec"], dtype=float)
     elif "ref_deg" in columns:
@@ -144,31 +201,50 @@ def analyse_scale(columns: Mapping[str, NDArray[np.float64]], noise_sigma: Array
         raise InputError("missing required column 'ref_arcsec' or 'ref_deg' for kind 'scale'")
     reading = np.asarray(columns["reading"], dtype=float)
     if np.unique(reading).size < 3:
-        raise InputError(f"{np.unique(reading).size} distinct output values: a line and a test need at least 3")
+        raise InputError(
+            f"{np.unique(reading).size} distinct output values: a line and a test need at least 3"
+        )
     temp = None if "temp_c" not in columns else np.asarray(columns["temp_c"], dtype=float)
     t_s = None if "t_s" not in columns else np.asarray(columns["t_s"], dtype=float)
     noise = None
     if "point" in columns:
-        # the scatter of repeated points, in the residual's terms: reference minus the line through the outputs
+        # the scatter of repeated points, in the residual's terms: reference minus the line through
+        # the outputs
         slope, icpt = np.polyfit(reading, ref, 1)
         q = ref - (slope * reading + icpt)
-        noise = noise_mod.from_repeats(q.reshape(-1, 1), np.asarray(columns["point"]).reshape(-1, 1))
+        noise = noise_mod.from_repeats(
+            q.reshape(-1, 1), np.asarray(columns["point"]).reshape(-1, 1)
+        )
     if noise is None and noise_sigma is not None:
         s = float(np.atleast_1d(noise_sigma)[0])
         if not s > 0:
             raise InputError(f"noise level must be positive, got {s}")
         noise = noise_mod.from_specification([s])
-    fam = ScalePoly(reading, ref, temp, 1.0 if noise is None or noise.sigma is None else 1.0 / float(noise.sigma[0]))
+    fam = ScalePoly(
+        reading,
+        ref,
+        temp,
+        1.0 if noise is None or noise.sigma is None else 1.0 / float(noise.sigma[0]),
+    )
     fam.noise_known = noise is not None
     skips = {}
     if temp is None:
         skips["temperature_drift"] = "no temp_c column"
     elif np.ptp(temp) < TEMP_MIN_SPAN_K:
-        skips["temperature_drift"] = (f"temperature constant within {np.ptp(temp):.3g} K: a temperature coefficient "
-                                      "cannot be told from the zero")
-    res = find_missing_effects(fam, CANDIDATES, skips, noise or noise_mod.NoiseLevel(None, "final residual", np.inf, ""),
-                               lambda r: scale_structure(reading, r, temp, t_s), alpha=alpha,
-                               repeatable=("sensor_nonlinearity",), max_steps=MAX_DEGREE)
+        skips["temperature_drift"] = (
+            f"temperature constant within {np.ptp(temp):.3g} K: a temperature coefficient "
+            "cannot be told from the zero"
+        )
+    res = find_missing_effects(
+        fam,
+        CANDIDATES,
+        skips,
+        noise or noise_mod.NoiseLevel(None, "final residual", np.inf, ""),
+        lambda r: scale_structure(reading, r, temp, t_s),
+        alpha=alpha,
+        repeatable=("sensor_nonlinearity",),
+        max_steps=MAX_DEGREE,
+    )
     res.extra["baseline_fit"] = fam.baseline_line(res.fits[0])
     deg = 1 + sum(1 for s in res.steps if s.effect == "sensor_nonlinearity")
     res.extra["supported_degree"] = deg
@@ -176,9 +252,12 @@ def analyse_scale(columns: Mapping[str, NDArray[np.float64]], noise_sigma: Array
     return res, fam
 
 
-def scale_report(columns: Mapping[str, NDArray[np.float64]], noise_sigma: ArrayLike | None = None, alpha: float = DEFAULT_ALPHA,
-                 inputs: dict[str, Any] | None = None
-                 ) -> tuple[dict[str, Any], Result, ScalePoly]:
+def scale_report(
+    columns: Mapping[str, NDArray[np.float64]],
+    noise_sigma: ArrayLike | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    inputs: dict[str, Any] | None = None,
+) -> tuple[dict[str, Any], Result, ScalePoly]:
     res, fam = analyse_scale(columns, noise_sigma, alpha)
     rep = to_report(res, fam, {"n_rows": int(fam.reading.size), **(inputs or {})})
     return rep, res, fam

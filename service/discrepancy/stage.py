@@ -10,15 +10,22 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.discrepancy import noise as noise_mod
 from service.discrepancy.model import Family
-from service.discrepancy.stage_data import StageData, common_skips, largest_residuals, stage_structure
+from service.discrepancy.stage_data import (
+    StageData,
+    common_skips,
+    largest_residuals,
+    stage_structure,
+)
 from service.discrepancy.workflow import DEFAULT_ALPHA, Result, find_missing_effects, to_report
 from service.errors import InputError
 from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
 
-def stage_noise(data: StageData, spec_sigma: ArrayLike | noise_mod.NoiseLevel | None = None) -> noise_mod.NoiseLevel | None:
-    """Repeated points first, then the stated noise level (the instrument specification, or a NoiseLevel the
-    caller measured); None means 'from the final residual'."""
+def stage_noise(
+    data: StageData, spec_sigma: ArrayLike | noise_mod.NoiseLevel | None = None
+) -> noise_mod.NoiseLevel | None:
+    """Repeated points first, then the stated noise level (the instrument specification, or a
+    NoiseLevel the caller measured); None means 'from the final residual'."""
     if isinstance(spec_sigma, noise_mod.NoiseLevel):
         stated: noise_mod.NoiseLevel | None = spec_sigma
         spec_sigma = spec_sigma.sigma
@@ -49,26 +56,48 @@ def _explain_drop(data: StageData) -> Callable[[str, str], str | None]:
             if data.dir(ax) is None:
                 return f"no dir_{ax} column"
             if not data.both_directions(ax):
-                return f"every point was reached moving the {ax} stage the same way (dir_{ax} has one sign)"
+                return (
+                    f"every point was reached moving the {ax} stage the same way (dir_{ax} has "
+                    "one sign)"
+                )
         if effect == "periodic_error" and ax in "xy":
-            return (f"the grid samples the {ax} stage's worm at too few phases to tell its periodic error from a "
-                    "constant or a scale (grid step a whole or half number of worm turns)")
+            return (
+                f"the grid samples the {ax} stage's worm at too few phases to tell its periodic "
+                "error from a "
+                "constant or a scale (grid step a whole or half number of worm turns)"
+            )
         return None
+
     return explain
 
 
-def analyse_stage(columns: Mapping[str, NDArray[np.float64]], sensor: str = "ref", baseline: str = "linear",
-                  noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None, bench: StageBench | None = None,
-                  alpha: float = DEFAULT_ALPHA, candidates: tuple[str, ...] | None = None, bench_source: str | None = None) -> tuple[Result, Family]:
-    """Run the workflow on stage columns; returns the result and the fitted family (for the report)."""
+def analyse_stage(
+    columns: Mapping[str, NDArray[np.float64]],
+    sensor: str = "ref",
+    baseline: str = "linear",
+    noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None,
+    bench: StageBench | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    candidates: tuple[str, ...] | None = None,
+    bench_source: str | None = None,
+) -> tuple[Result, Family]:
+    """Run the workflow on stage columns; returns the result and the fitted family (for the
+    report)."""
     data = StageData.from_columns(columns, sensor, bench)
-    if bench is None and (mismatch := data.bench.pulse_mismatch(data.cmd_x_deg, data.cmd_y_deg)) is not None:
-        raise InputError(f"{mismatch}. The worm period and the pulse quantisation of the stage model depend on the "
-                         f"bench's hardware and none was stated ({data.bench.describe()} assumed): give the bench "
-                         "the data came from with --bench FILE")
+    if (
+        bench is None
+        and (mismatch := data.bench.pulse_mismatch(data.cmd_x_deg, data.cmd_y_deg)) is not None
+    ):
+        raise InputError(
+            f"{mismatch}. The worm period and the pulse quantisation of the stage model depend "
+            f"on the bench's hardware and none was stated ({data.bench.describe()} assumed): "
+            "give the bench the data came from with --bench FILE"
+        )
     if len(data) < 6:
-        raise InputError(f"{len(data)} rows: the discrepancy workflow needs at least 6 points for a baseline "
-                         "and a test")
+        raise InputError(
+            f"{len(data)} rows: the discrepancy workflow needs at least 6 points for a baseline "
+            "and a test"
+        )
     noise = stage_noise(data, noise_sigma)
     weights = np.ones(2) if noise is None or noise.sigma is None else 1.0 / noise.sigma
     fam: Family
@@ -85,34 +114,58 @@ def analyse_stage(columns: Mapping[str, NDArray[np.float64]], sensor: str = "ref
     fam.noise_known = noise is not None
     cands = tuple(c for c in (candidates or fam.candidates) if c in fam.candidates)
     skips = common_skips(data)
-    res = find_missing_effects(fam, cands, skips, noise or noise_mod.NoiseLevel(None, "final residual", np.inf, ""),
-                               lambda r: stage_structure(data, r), alpha=alpha, explain_drop=_explain_drop(data))
+    res = find_missing_effects(
+        fam,
+        cands,
+        skips,
+        noise or noise_mod.NoiseLevel(None, "final residual", np.inf, ""),
+        lambda r: stage_structure(data, r),
+        alpha=alpha,
+        explain_drop=_explain_drop(data),
+    )
     res.extra["where_largest"] = largest_residuals(data, res.fits[0].residuals)
-    res.extra["bench"] = data.bench.record(bench_source or (ASSUMED_BENCH_SOURCE if bench is None
-                                                            else "stated by the caller"))
+    res.extra["bench"] = data.bench.record(
+        bench_source or (ASSUMED_BENCH_SOURCE if bench is None else "stated by the caller")
+    )
     res.extra.update(getattr(fam, "report_extra", {}))
     return res, fam
 
 
-def stage_report(columns: Mapping[str, NDArray[np.float64]], sensor: str = "ref", baseline: str = "linear",
-                 noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None, bench: StageBench | None = None,
-                 alpha: float = DEFAULT_ALPHA,
-                 inputs: dict[str, Any] | None = None, bench_source: str | None = None) -> tuple[dict[str, Any], Result, Family]:
-    res, fam = analyse_stage(columns, sensor, baseline, noise_sigma, bench, alpha, bench_source=bench_source)
+def stage_report(
+    columns: Mapping[str, NDArray[np.float64]],
+    sensor: str = "ref",
+    baseline: str = "linear",
+    noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None,
+    bench: StageBench | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    inputs: dict[str, Any] | None = None,
+    bench_source: str | None = None,
+) -> tuple[dict[str, Any], Result, Family]:
+    res, fam = analyse_stage(
+        columns, sensor, baseline, noise_sigma, bench, alpha, bench_source=bench_source
+    )
     rep = to_report(res, fam, {"sensor": sensor, "n_rows": len(fam.observed), **(inputs or {})})
     return rep, res, fam
 
 
-def stage_diagnosis(columns: Mapping[str, NDArray[np.float64]], sensor: str = "ref", baseline: str = "linear",
-                    noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None,
-                    bench: StageBench | None = None, inputs: dict[str, Any] | None = None, bench_source: str | None = None,
-                    provenance: dict[str, Any] | None = None) -> tuple[dict[str, Any], str, Result, Family]:
-    """The whole workflow on stage columns as `tiltlab discrepancy` and the daemon's diagnosis run it: the JSON-ready
-    report (with its provenance) and its HTML page, plus the result and fitted family behind them."""
+def stage_diagnosis(
+    columns: Mapping[str, NDArray[np.float64]],
+    sensor: str = "ref",
+    baseline: str = "linear",
+    noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None,
+    bench: StageBench | None = None,
+    inputs: dict[str, Any] | None = None,
+    bench_source: str | None = None,
+    provenance: dict[str, Any] | None = None,
+) -> tuple[dict[str, Any], str, Result, Family]:
+    """The whole workflow on stage columns as `tiltlab discrepancy` and the daemon's diagnosis run
+    it: the JSON-ready report (with its provenance) and its HTML page, plus the result and fitted
+    family behind them."""
     from service.discrepancy.report import clean, render_html
 
-    report, result, fam = stage_report(columns, sensor, baseline, noise_sigma, bench, inputs=inputs,
-                                       bench_source=bench_source)
+    report, result, fam = stage_report(
+        columns, sensor, baseline, noise_sigma, bench, inputs=inputs, bench_source=bench_source
+    )
     if provenance is not None:
         report["provenance"] = provenance
     report = clean(report)

@@ -14,17 +14,23 @@ from service.discrepancy.model import Block
 from service.physics.stage import StageBench
 
 # Candidate effects of docs/models.md §5 a stage bench model can lack, in a fixed order.
-STAGE_CANDIDATES = ("offaxis_coupling", "backlash", "periodic_error", "sensor_nonlinearity",
-                    "temperature_drift", "time_drift")
+STAGE_CANDIDATES = (
+    "offaxis_coupling",
+    "backlash",
+    "periodic_error",
+    "sensor_nonlinearity",
+    "temperature_drift",
+    "time_drift",
+)
 
 # Said beside a candidate the final model barely sees (see workflow.WEAK_SEPARABILITY).
 STAGE_SEPARABILITY_HINTS = {
-    "time_drift": "a linear drift is told from the bench's geometry (and from a temperature ramp) only by time "
-                  "that does not follow the stage angles: on one serpentine pass it mostly does; visiting the "
-                  "points in random order, or repeating the grid, separates them",
-    "temperature_drift": "temperature drift is told from geometry and time drift only by temperature changes "
-                         "that follow neither the stage angles nor the time; the grid repeated in random order, "
-                         "over a larger temperature swing, separates it",
+    "time_drift": "a linear drift is told from the bench's geometry (and from a temperature "
+    "ramp) only by time that does not follow the stage angles: on one serpentine pass it mostly "
+    "does; visiting the points in random order, or repeating the grid, separates them",
+    "temperature_drift": "temperature drift is told from geometry and time drift only by "
+    "temperature changes that follow neither the stage angles nor the time; the grid repeated "
+    "in random order, over a larger temperature swing, separates it",
 }
 
 TEMP_MIN_SPAN_K = 0.05  # below this the temperature is treated as constant
@@ -47,8 +53,12 @@ class StageData:
     bench: StageBench
 
     @classmethod
-    def from_columns(cls, cols: Mapping[str, NDArray[np.float64]], sensor: str = "ref",
-                     bench: StageBench | None = None) -> StageData:
+    def from_columns(
+        cls,
+        cols: Mapping[str, NDArray[np.float64]],
+        sensor: str = "ref",
+        bench: StageBench | None = None,
+    ) -> StageData:
         def g(c: str) -> NDArray[np.float64] | None:
             return None if c not in cols else np.asarray(cols[c], dtype=float)
 
@@ -56,8 +66,18 @@ class StageData:
             return np.asarray(cols[c], dtype=float)
 
         obs = np.column_stack([req(f"{sensor}_x_deg"), req(f"{sensor}_y_deg")])
-        return cls(sensor, req("stage_x_deg"), req("stage_y_deg"), obs, g("dir_x"), g("dir_y"), g("temp_c"),
-                   g("t_s"), g("point"), bench or StageBench())
+        return cls(
+            sensor,
+            req("stage_x_deg"),
+            req("stage_y_deg"),
+            obs,
+            g("dir_x"),
+            g("dir_y"),
+            g("temp_c"),
+            g("t_s"),
+            g("point"),
+            bench or StageBench(),
+        )
 
     def __len__(self) -> int:
         return self.cmd_x_deg.size
@@ -87,7 +107,6 @@ class StageData:
         return 2.0 * np.pi * c / period, period
 
 
-
 def sensor_param_names(sensor: str) -> dict[str, tuple[str, ...]]:
     """Registry parameter names of the sensor-side candidates, for the sensor being modelled."""
     s = sensor
@@ -99,18 +118,28 @@ def sensor_param_names(sensor: str) -> dict[str, tuple[str, ...]]:
 
 
 def candidate_block(effect: str, names: Mapping[str, tuple[str, ...]]) -> Block | None:
-    """The parameters a candidate adds, the same on every stage baseline; None for one it does not know."""
+    """The parameters a candidate adds, the same on every stage baseline; None for one it does not
+    know."""
     if effect == "backlash":
         return Block(effect, ("x_deg", "y_deg"), ("deg", "deg"), (0.01, 0.01), (0.0, 0.0))
     if effect == "periodic_error":
-        return Block(effect, ("x_sin_deg", "x_cos_deg", "y_sin_deg", "y_cos_deg"), ("deg",) * 4, (0.01,) * 4, (0.0,) * 4)
+        return Block(
+            effect,
+            ("x_sin_deg", "x_cos_deg", "y_sin_deg", "y_cos_deg"),
+            ("deg",) * 4,
+            (0.01,) * 4,
+            (0.0,) * 4,
+        )
     if effect == "sensor_nonlinearity":
         return Block(effect, names[effect], ("1/deg", "1/deg"), (1e-4, 1e-4), (0.0, 0.0))
     if effect == "temperature_drift":
-        return Block(effect, names[effect], ("deg/K", "deg/K", "1/K"), (1e-3, 1e-3, 1e-4), (0.0,) * 3)
+        return Block(
+            effect, names[effect], ("deg/K", "deg/K", "1/K"), (1e-3, 1e-3, 1e-4), (0.0,) * 3
+        )
     if effect == "time_drift":
         return Block(effect, names[effect], ("deg/h", "deg/h"), (1e-2, 1e-2), (0.0, 0.0))
     return None
+
 
 def common_skips(data: StageData) -> dict[str, str]:
     """Candidates the data cannot support at all, with the reason in the lab's words."""
@@ -118,14 +147,18 @@ def common_skips(data: StageData) -> dict[str, str]:
     if data.dir_x is None and data.dir_y is None:
         skip["backlash"] = "no dir_x/dir_y columns: the direction of the last move is not recorded"
     elif not (data.both_directions("x") or data.both_directions("y")):
-        skip["backlash"] = ("a single approach direction per stage: every point was reached moving the same "
-                            "way, so lost motion is a constant offset the model already has")
+        skip["backlash"] = (
+            "a single approach direction per stage: every point was reached moving the same "
+            "way, so lost motion is a constant offset the model already has"
+        )
     if data.temp_c is None:
         skip["temperature_drift"] = "no temp_c column"
     elif not data.temp_varies():
-        skip["temperature_drift"] = (f"temperature constant within {np.ptp(data.temp_c):.3g} K "
-                                     f"(at {np.mean(data.temp_c):.2f} °C): a temperature coefficient cannot be "
-                                     "told from a zero offset")
+        skip["temperature_drift"] = (
+            f"temperature constant within {np.ptp(data.temp_c):.3g} K "
+            f"(at {np.mean(data.temp_c):.2f} °C): a temperature coefficient cannot be "
+            "told from a zero offset"
+        )
     if data.t_s is None:
         skip["time_drift"] = "no t_s column: the time of each point is not recorded"
     elif not data.time_varies():
@@ -145,7 +178,9 @@ _SHAPE_WORDS = {
 }
 
 
-def stage_structure(data: StageData, resid: NDArray[np.float64], alpha: float = 0.01) -> list[stats.StructureTest]:
+def stage_structure(
+    data: StageData, resid: NDArray[np.float64], alpha: float = 0.01
+) -> list[stats.StructureTest]:
     """Residual structure tests per axis against every covariate the data carry."""
     x, y = data.cmd_x_deg, data.cmd_y_deg
     s = max(float(np.max(np.abs(np.concatenate([x, y])))), 1e-9)
@@ -154,11 +189,19 @@ def stage_structure(data: StageData, resid: NDArray[np.float64], alpha: float = 
     tests: list[stats.StructureTest] = []
     for a, name in enumerate(("x", "y")):
         r = resid[:, a]
-        if len(data) >= 12 and np.unique(np.round(np.column_stack([x, y]), 6), axis=0).shape[0] >= 10:
+        if (
+            len(data) >= 12
+            and np.unique(np.round(np.column_stack([x, y]), 6), axis=0).shape[0] >= 10
+        ):
             # the linear part is what any baseline fits; test the shape beyond it
-            base_r = r - np.column_stack([np.ones_like(u), u, v]) @ np.linalg.lstsq(
-                np.column_stack([np.ones_like(u), u, v]), r, rcond=None)[0]
-            tests.append(stats.shape_test(base_r, list(_SHAPE_TERMS), terms, name, "deg", _SHAPE_WORDS))
+            base_r = (
+                r
+                - np.column_stack([np.ones_like(u), u, v])
+                @ np.linalg.lstsq(np.column_stack([np.ones_like(u), u, v]), r, rcond=None)[0]
+            )
+            tests.append(
+                stats.shape_test(base_r, list(_SHAPE_TERMS), terms, name, "deg", _SHAPE_WORDS)
+            )
         for st in ("x", "y"):
             d = data.dir(st)
             if d is not None and data.both_directions(st):
@@ -190,6 +233,8 @@ def largest_residuals(data: StageData, resid: NDArray[np.float64], n: int = 3) -
     for a, name in enumerate(("x", "y")):
         idx = np.argsort(-np.abs(resid[:, a]))[:n]
         where = ", ".join(f"({data.cmd_x_deg[i]:g}, {data.cmd_y_deg[i]:g})" for i in idx)
-        out.append(f"largest {name} residuals ({', '.join(f'{resid[i, a]:+.3g}' for i in idx)} deg) at stage "
-                   f"(θx, θy) = {where} deg")
+        out.append(
+            f"largest {name} residuals ({', '.join(f'{resid[i, a]:+.3g}' for i in idx)} deg) at "
+            f"stage (θx, θy) = {where} deg"
+        )
     return out

@@ -1,4 +1,5 @@
-"""The `kinematic` baseline of a stage bench: the physical forward model without the candidate effects.
+"""The `kinematic` baseline of a stage bench: the physical forward model without the candidate
+effects.
 
 The model is the simulator itself (service.physics.stage, through the stage-effect fitter's
 `StageEffectModel`), with the mounting and geometry parameters free; a candidate adds its own
@@ -24,51 +25,83 @@ from numpy.typing import NDArray
 
 from service.calibration.stage_effect_fit import StageEffectModel, StagePoints, typical_scale
 from service.discrepancy.model import Block, Family, Fit
-from service.discrepancy.stage_data import STAGE_SEPARABILITY_HINTS, StageData, candidate_block, sensor_param_names
+from service.discrepancy.stage_data import (
+    STAGE_SEPARABILITY_HINTS,
+    StageData,
+    candidate_block,
+    sensor_param_names,
+)
 from service.discrepancy.stage_linear_baseline import stage_magnitude
 from service.errors import InputError
 from service.physics.effects import STAGE_EFFECTS
 from service.physics.stage import StageGeometry, simulate_stage
 
-CANDIDATES = ("backlash", "periodic_error", "sensor_nonlinearity", "temperature_drift", "time_drift")
+CANDIDATES = (
+    "backlash",
+    "periodic_error",
+    "sensor_nonlinearity",
+    "temperature_drift",
+    "time_drift",
+)
 
 ALREADY_IN_MODEL = {
-    "offaxis_coupling": "the kinematic model is the stacked-stage geometry itself: the coupling is built in",
+    "offaxis_coupling": "the kinematic model is the stacked-stage geometry itself: the coupling is "
+    "built in",
     "zero_offset": "the sensor's zero offsets are free parameters of the baseline",
-    "scale_factor": "the stage scales are free; a sensor gain differs from them only through the coupling "
-                    "(second order), so it is represented to first order",
+    "scale_factor": "the stage scales are free; a sensor gain differs from them only through "
+    "the coupling (second order), so it is represented to first order",
     "sensor_yaw": "free parameter of the baseline",
     "non_orthogonality": "free parameter of the baseline",
-    "mounting_tilt": "desk tilt (y) and sensor-seat tilt (x) are free; the other plane tilts are exact "
-                     "symmetries of these on one sensor's readings",
-    "axis_misalignment": "lower-axis pitch, upper-axis pitch and perpendicularity are free; the lower axis' "
-                         "yaw is an exact symmetry of the sensor yaw on these readings",
+    "mounting_tilt": "desk tilt (y) and sensor-seat tilt (x) are free; the other plane tilts "
+    "are exact symmetries of these on one sensor's readings",
+    "axis_misalignment": "lower-axis pitch, upper-axis pitch and perpendicularity are free; the "
+    "lower axis' yaw is an exact symmetry of the sensor yaw on these readings",
     "stage_scale": "free parameter of the baseline (both stages)",
 }
 
 
 def geometry_params(s: str) -> tuple[tuple[str, str], ...]:
     return (
-        ("zero_offset", f"{s}_x_deg"), ("zero_offset", f"{s}_y_deg"),
-        ("stage_scale", "x"), ("stage_scale", "y"),
-        ("sensor_yaw", f"{s}_deg"), ("non_orthogonality", f"{s}_deg"),
-        ("mounting_tilt", "desk_y_deg"), ("mounting_tilt", f"{s}_x_deg"),
-        ("axis_misalignment", "upper_pitch_deg"), ("axis_misalignment", "perpendicularity_deg"),
+        ("zero_offset", f"{s}_x_deg"),
+        ("zero_offset", f"{s}_y_deg"),
+        ("stage_scale", "x"),
+        ("stage_scale", "y"),
+        ("sensor_yaw", f"{s}_deg"),
+        ("non_orthogonality", f"{s}_deg"),
+        ("mounting_tilt", "desk_y_deg"),
+        ("mounting_tilt", f"{s}_x_deg"),
+        ("axis_misalignment", "upper_pitch_deg"),
+        ("axis_misalignment", "perpendicularity_deg"),
         ("axis_misalignment", "lower_pitch_deg"),
     )
 
-_GEOMETRY_EFFECTS = {"mounting_tilt", "axis_misalignment", "sensor_yaw", "non_orthogonality", "offaxis_coupling"}
+
+_GEOMETRY_EFFECTS = {
+    "mounting_tilt",
+    "axis_misalignment",
+    "sensor_yaw",
+    "non_orthogonality",
+    "offaxis_coupling",
+}
 
 
 def detect_flip(data: StageData) -> str:
-    """How the sensor is mounted (docs/models.md §2: the measurement sensor may be upside down), from the slopes."""
+    """How the sensor is mounted (docs/models.md §2: the measurement sensor may be upside down),
+    from the slopes."""
     if data.sensor != "meas":
         return "none"
-    sx = np.polyfit(data.cmd_x_deg, data.observed[:, 0], 1)[0] if np.ptp(data.cmd_x_deg) > 0 else 1.0
-    sy = np.polyfit(data.cmd_y_deg, data.observed[:, 1], 1)[0] if np.ptp(data.cmd_y_deg) > 0 else 1.0
+    sx = (
+        np.polyfit(data.cmd_x_deg, data.observed[:, 0], 1)[0] if np.ptp(data.cmd_x_deg) > 0 else 1.0
+    )
+    sy = (
+        np.polyfit(data.cmd_y_deg, data.observed[:, 1], 1)[0] if np.ptp(data.cmd_y_deg) > 0 else 1.0
+    )
     if sx < 0 and sy < 0:
-        raise InputError("both measurement-sensor axes read against their stages: the kinematic model supports a "
-                         "sensor turned over about one of its axes, not one turned half round (use --baseline linear)")
+        raise InputError(
+            "both measurement-sensor axes read against their stages: the kinematic model "
+            "supports a sensor turned over about one of its axes, not one turned half round "
+            "(use --baseline linear)"
+        )
     return "y" if sx < 0 else ("x" if sy < 0 else "none")
 
 
@@ -87,7 +120,9 @@ class StageKinematic(Family):
         b = data.bench
         flip = detect_flip(data)
         temp_ref = float(np.mean(data.temp_c)) if data.temp_c is not None else b.temp_ref_c
-        self.bench = dataclasses.replace(b, travel_deg=max(b.travel_deg, 90.0), meas_flip=flip, temp_ref_c=temp_ref)
+        self.bench = dataclasses.replace(
+            b, travel_deg=max(b.travel_deg, 90.0), meas_flip=flip, temp_ref_c=temp_ref
+        )
         cols = {"stage_x_deg": data.cmd_x_deg, "stage_y_deg": data.cmd_y_deg}
         for c in ("dir_x", "dir_y", "temp_c"):
             v = getattr(data, c)
@@ -100,14 +135,25 @@ class StageKinematic(Family):
         self.geometry_keys = geometry_params(data.sensor)
         self.names = sensor_param_names(data.sensor)
         self._geo_cache: tuple[tuple[object, ...], StageGeometry] | None = None
-        self.report_extra = {"kinematic": {"meas_flip": flip, "temp_ref_c": temp_ref,
-                                           "free_geometry": [f"{e}.{p}" for e, p in self.geometry_keys]}}
+        self.report_extra = {
+            "kinematic": {
+                "meas_flip": flip,
+                "temp_ref_c": temp_ref,
+                "free_geometry": [f"{e}.{p}" for e, p in self.geometry_keys],
+            }
+        }
 
     def full_blocks(self, effects: tuple[str, ...]) -> list[Block]:
         keys = self.geometry_keys
-        out = [Block("baseline", tuple(f"{e}.{p}" for e, p in keys),
-                     tuple(STAGE_EFFECTS[e].param(p).unit for e, p in keys),
-                     tuple(typical_scale(k) for k in keys), (0.0,) * len(keys))]
+        out = [
+            Block(
+                "baseline",
+                tuple(f"{e}.{p}" for e, p in keys),
+                tuple(STAGE_EFFECTS[e].param(p).unit for e, p in keys),
+                tuple(typical_scale(k) for k in keys),
+                (0.0,) * len(keys),
+            )
+        ]
         for e in effects:
             if (block := candidate_block(e, self.names)) is not None:
                 out.append(block)
@@ -115,7 +161,9 @@ class StageKinematic(Family):
                 raise KeyError(f"the kinematic baseline has no candidate term for {e!r}")
         return out
 
-    def effects_mapping(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
+    def effects_mapping(
+        self, effects: tuple[str, ...], p: dict[str, dict[str, float]]
+    ) -> dict[str, dict[str, float]]:
         """The registry's effect mapping (what a scenario would say) for these parameter values."""
         eff: dict[str, dict[str, float]] = {}
         for lab, v in p.get("baseline", {}).items():
@@ -134,16 +182,32 @@ class StageKinematic(Family):
                 eff[e] = dict(q)
         return eff
 
-    def predict_params(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> NDArray[np.float64]:
+    def predict_params(
+        self, effects: tuple[str, ...], p: dict[str, dict[str, float]]
+    ) -> NDArray[np.float64]:
         eff = self.effects_mapping(effects, p)
         model = StageEffectModel(self.bench, eff, [])
         fx = model.effect_set(())
-        key = tuple(sorted((e, tuple(sorted(fx.values[e].items()))) for e in _GEOMETRY_EFFECTS if e in fx.on))
+        key = tuple(
+            sorted(
+                (e, tuple(sorted(fx.values[e].items()))) for e in _GEOMETRY_EFFECTS if e in fx.on
+            )
+        )
         if self._geo_cache is None or self._geo_cache[0] != key:
             self._geo_cache = (key, StageGeometry.from_effects(self.bench, fx))
         pts = self.pts
-        sim = simulate_stage(self.bench, fx, pts.stage_x_deg, pts.stage_y_deg, pts.dir_x, pts.dir_y, pts.temp_c,
-                             pts.t_s, rng=None, geometry=self._geo_cache[1])
+        sim = simulate_stage(
+            self.bench,
+            fx,
+            pts.stage_x_deg,
+            pts.stage_y_deg,
+            pts.dir_x,
+            pts.dir_y,
+            pts.temp_c,
+            pts.t_s,
+            rng=None,
+            geometry=self._geo_cache[1],
+        )
         return np.column_stack([sim[o] for o in self.outputs])
 
     def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:

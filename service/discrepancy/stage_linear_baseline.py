@@ -38,13 +38,14 @@ ALREADY_IN_MODEL = {
     "zero_offset": "the map's translation terms (h13, h23) are the sensor's zero offsets",
     "scale_factor": "the map's diagonal terms are the sensor's gains",
     "sensor_yaw": "a yawed sensor mixes the two table tilts linearly: the map's off-diagonal terms",
-    "non_orthogonality": "an axis turned from 90° mixes the tilts linearly: an off-diagonal term of the map",
-    "mounting_tilt": "tilted mounting planes shift the readings (translation terms) and, to first order, "
-                     "mix them linearly; the off-axis candidate's level point carries the rest",
-    "axis_misalignment": "misaligned stage axes mix and shear the stage angles: linear to first order, "
-                         "the projective terms carry the leading perspective part",
-    "stage_scale": "a gear-ratio error scales a stage angle: the map's diagonal terms (to first order; "
-                   "it acts before the off-axis coupling, a second-order difference)",
+    "non_orthogonality": "an axis turned from 90° mixes the tilts linearly: an off-diagonal term "
+    "of the map",
+    "mounting_tilt": "tilted mounting planes shift the readings (translation terms) and, to "
+    "first order, mix them linearly; the off-axis candidate's level point carries the rest",
+    "axis_misalignment": "misaligned stage axes mix and shear the stage angles: linear to first "
+    "order, the projective terms carry the leading perspective part",
+    "stage_scale": "a gear-ratio error scales a stage angle: the map's diagonal terms (to first "
+    "order; it acts before the off-axis coupling, a second-order difference)",
 }
 
 
@@ -75,18 +76,32 @@ class StageLinear(Family):
     already_in_model = ALREADY_IN_MODEL
     separability_hints = {
         **STAGE_SEPARABILITY_HINTS,
-        "sensor_nonlinearity": "the map's perspective terms and the coupling's level point take most of a "
-                               "quadratic up; the kinematic baseline (--baseline kinematic) has no perspective "
-                               "terms and separates it",
+        "sensor_nonlinearity": "the map's perspective terms and the coupling's level point take "
+        "most of a quadratic up; the kinematic baseline (--baseline kinematic) has no "
+        "perspective terms and separates it",
     }
 
     def full_blocks(self, effects: tuple[str, ...]) -> list[Block]:
-        out = [Block("baseline", tuple(f"h{i}" for i in ("11", "12", "13", "21", "22", "23", "31", "32")),
-                     ("1",) * 8, (1.0, 0.1, 0.1, 0.1, 1.0, 0.1, 0.01, 0.01), (1, 0, 0, 0, 1, 0, 0, 0))]
+        out = [
+            Block(
+                "baseline",
+                tuple(f"h{i}" for i in ("11", "12", "13", "21", "22", "23", "31", "32")),
+                ("1",) * 8,
+                (1.0, 0.1, 0.1, 0.1, 1.0, 0.1, 0.01, 0.01),
+                (1, 0, 0, 0, 1, 0, 0, 0),
+            )
+        ]
         for e in effects:
             if e == "offaxis_coupling":
-                out.append(Block(e, ("kappa", "level_x_deg", "level_y_deg"), ("1", "deg", "deg"),
-                                 (1.0, 0.1, 0.1), (1.0, 0.0, 0.0)))
+                out.append(
+                    Block(
+                        e,
+                        ("kappa", "level_x_deg", "level_y_deg"),
+                        ("1", "deg", "deg"),
+                        (1.0, 0.1, 0.1),
+                        (1.0, 0.0, 0.0),
+                    )
+                )
             elif (block := candidate_block(e, self.names)) is not None:
                 out.append(block)
             else:
@@ -94,7 +109,9 @@ class StageLinear(Family):
         return out
 
     # -- the model ---------------------------------------------------------------------------------
-    def stage_angles(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def stage_angles(
+        self, effects: tuple[str, ...], p: dict[str, dict[str, float]]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Angles the stages reach (deg): actuator effects before the geometry and the map."""
         tx, ty = self.qx.copy(), self.qy.copy()
         d = self.data
@@ -106,13 +123,27 @@ class StageLinear(Family):
                 ty = ty - d.dir_y * b.get("y_deg", 0.0) / 2.0
         if "periodic_error" in effects:
             q = p["periodic_error"]
-            tx = tx + q.get("x_sin_deg", 0.0) * np.sin(self.wx) + q.get("x_cos_deg", 0.0) * np.cos(self.wx)
-            ty = ty + q.get("y_sin_deg", 0.0) * np.sin(self.wy) + q.get("y_cos_deg", 0.0) * np.cos(self.wy)
+            tx = (
+                tx
+                + q.get("x_sin_deg", 0.0) * np.sin(self.wx)
+                + q.get("x_cos_deg", 0.0) * np.cos(self.wx)
+            )
+            ty = (
+                ty
+                + q.get("y_sin_deg", 0.0) * np.sin(self.wy)
+                + q.get("y_cos_deg", 0.0) * np.cos(self.wy)
+            )
         return tx, ty
 
-    def map_inputs(self, effects: tuple[str, ...], p: dict[str, dict[str, float]], tx: NDArray[np.float64],
-                   ty: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Stage angles as the map sees them: through the stacked geometry when coupling is modelled."""
+    def map_inputs(
+        self,
+        effects: tuple[str, ...],
+        p: dict[str, dict[str, float]],
+        tx: NDArray[np.float64],
+        ty: NDArray[np.float64],
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Stage angles as the map sees them: through the stacked geometry when coupling is
+        modelled."""
         if "offaxis_coupling" not in effects:
             return tx, ty
         c = p["offaxis_coupling"]
@@ -120,7 +151,9 @@ class StageLinear(Family):
         yb = ty + c.get("level_y_deg", 0.0)
         return xa - c.get("kappa", 1.0) * offaxis_error_deg(xa, yb), yb
 
-    def predict_params(self, effects: tuple[str, ...], p: dict[str, dict[str, float]]) -> NDArray[np.float64]:
+    def predict_params(
+        self, effects: tuple[str, ...], p: dict[str, dict[str, float]]
+    ) -> NDArray[np.float64]:
         tx, ty = self.stage_angles(effects, p)
         u, v = self.map_inputs(effects, p, tx, ty)
         h = p["baseline"]
@@ -147,20 +180,32 @@ class StageLinear(Family):
             Y += q.get(ry, 0.0) * self.t_h
         return np.column_stack([X, Y])
 
-    def initial(self, effects: tuple[str, ...], blocks: list[Block], start: Fit | None) -> NDArray[np.float64]:
-        """Previous values where they carry over; the map re-estimated by DLT when the geometry changed."""
+    def initial(
+        self, effects: tuple[str, ...], blocks: list[Block], start: Fit | None
+    ) -> NDArray[np.float64]:
+        """Previous values where they carry over; the map re-estimated by DLT when the geometry
+        changed."""
         x = super().initial(effects, blocks, start)
-        changed = start is None or ("offaxis_coupling" in effects) != ("offaxis_coupling" in start.effects)
+        changed = start is None or ("offaxis_coupling" in effects) != (
+            "offaxis_coupling" in start.effects
+        )
         if changed:
             p = self.unpack(blocks, x)
             tx, ty = self.stage_angles(effects, p)
             u, v = self.map_inputs(effects, p, tx, ty)
-            H = fit_projective(u / self.s, v / self.s, self.observed[:, 0] / self.s, self.observed[:, 1] / self.s,
-                               refine=False, what=f"{self.data.sensor} readings against stage angles")
+            H = fit_projective(
+                u / self.s,
+                v / self.s,
+                self.observed[:, 0] / self.s,
+                self.observed[:, 1] / self.s,
+                refine=False,
+                what=f"{self.data.sensor} readings against stage angles",
+            )
             x[:8] = H.ravel()[:8]
         return x
 
-    # -- reporting -----------------------------------------------------------------------------------
+    # -- reporting
+    # -----------------------------------------------------------------------------------
     def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
         return stage_magnitude(self, fit, effect)
 
@@ -184,7 +229,8 @@ def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
         for ax in ("x", "y"):
             ls, lc = f"{ax}_sin_deg", f"{ax}_cos_deg"
             if ls not in blk.labels or lc not in blk.labels:
-                continue  # one of the pair held (the points sample too few phases of the worm): no amplitude
+                # one of the pair held (the points sample too few phases of the worm): no amplitude
+                continue
             i, j = blk.labels.index(ls), blk.labels.index(lc)
             a, b = vals[i], vals[j]
             amp = float(np.hypot(a, b))
@@ -193,8 +239,12 @@ def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
             u_amp = float(np.sqrt(max(float(g @ c2 @ g), 0.0)))
             gp = np.array([-b, a]) / amp**2 if amp > 0 else np.zeros(2)
             u_ph = float(np.degrees(np.sqrt(max(float(gp @ c2 @ gp), 0.0)))) if amp > 0 else 180.0
-            period = fam.data.bench.worm_period_x_deg if ax == "x" else fam.data.bench.worm_period_y_deg
-            out[f"{ax}_amp_deg"] = _entry(amp, u_amp, "deg", f"amplitude at the worm period {period:g} deg")
+            period = (
+                fam.data.bench.worm_period_x_deg if ax == "x" else fam.data.bench.worm_period_y_deg
+            )
+            out[f"{ax}_amp_deg"] = _entry(
+                amp, u_amp, "deg", f"amplitude at the worm period {period:g} deg"
+            )
             out[f"{ax}_phase_deg"] = _entry(float(np.degrees(np.arctan2(b, a))), u_ph, "deg")
         return out
     for lab, unit, v, s in zip(blk.labels, blk.units, vals, std):
@@ -203,7 +253,14 @@ def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
         out["kappa"]["what"] = "1 = the stacked-stage geometry of seed 000 eq. (9)"
         x, y = fam.data.cmd_x_deg, fam.data.cmd_y_deg
         err = -offaxis_error_deg(x, y) * out["kappa"]["value"]
-        out["peak_offaxis_error_deg"] = _entry(float(np.max(np.abs(err))), float(
-            np.max(np.abs(err)) * out["kappa"]["uncertainty"] / max(abs(out["kappa"]["value"]), 1e-12)), "deg",
-            "largest off-axis error of the x reading over the grid (seed 000 eq. 10)")
+        out["peak_offaxis_error_deg"] = _entry(
+            float(np.max(np.abs(err))),
+            float(
+                np.max(np.abs(err))
+                * out["kappa"]["uncertainty"]
+                / max(abs(out["kappa"]["value"]), 1e-12)
+            ),
+            "deg",
+            "largest off-axis error of the x reading over the grid (seed 000 eq. 10)",
+        )
     return out

@@ -104,14 +104,23 @@ class Significance:
 
 
 def bic(rss_w: float, n_obs: int, k: int, noise_known: bool) -> float:
-    """BIC of a least-squares fit: chi-square form when the noise is known, Gaussian likelihood otherwise."""
+    """BIC of a least-squares fit: chi-square form when the noise is known, Gaussian likelihood
+    otherwise."""
     if noise_known:
         return float(rss_w + k * math.log(n_obs))
     return float(n_obs * math.log(max(rss_w, 1e-300) / n_obs) + k * math.log(n_obs))
 
 
-def nested_test(rss0: float, k0: int, rss1: float, k1: int, n_obs: int, alpha: float,
-                noise_var: float | None, noise_df: float) -> Significance:
+def nested_test(
+    rss0: float,
+    k0: int,
+    rss1: float,
+    k1: int,
+    n_obs: int,
+    alpha: float,
+    noise_var: float | None,
+    noise_df: float,
+) -> Significance:
     """Extra-sum-of-squares test of model 1 (k1 parameters) against nested model 0 (k0 < k1).
 
     Residual sums of squares are noise-weighted when `noise_var` is given (then noise_var is
@@ -134,12 +143,22 @@ def nested_test(rss0: float, k0: int, rss1: float, k1: int, n_obs: int, alpha: f
     f = (drop / p) / denom if denom > 0 else math.inf
     pv = chi2_sf(f * p, p) if math.isinf(df2) else f_sf(f, p, df2)
     scale = noise_var if noise_var is not None else 1.0
-    return Significance(drop, p, float(f), float(df2), pv, alpha,
-                        bic(rss0 / scale, n_obs, k0, known), bic(rss1 / scale, n_obs, k1, known), source)
+    return Significance(
+        drop,
+        p,
+        float(f),
+        float(df2),
+        pv,
+        alpha,
+        bic(rss0 / scale, n_obs, k0, known),
+        bic(rss1 / scale, n_obs, k1, known),
+        source,
+    )
 
 
 def goodness_of_fit(rss_w: float, dof: int, noise_df: float) -> dict[str, Any]:
-    """Is the final residual consistent with the noise level? (chi-square or F of the variance ratio)."""
+    """Is the final residual consistent with the noise level? (chi-square or F of the variance
+    ratio)."""
     if dof <= 0:
         return {"reduced_chi2": None, "dof": dof, "p_value": None}
     ratio = rss_w / dof
@@ -162,13 +181,23 @@ class StructureTest:
     significant: bool = False
 
     def as_dict(self) -> dict[str, Any]:
-        return {"axis": self.axis, "covariate": self.covariate, "test": self.test, "statistic": self.statistic,
-                "p_value": self.p_value, "significant": self.significant, "sentence": self.sentence,
-                **({"detail": self.detail} if self.detail else {})}
+        return {
+            "axis": self.axis,
+            "covariate": self.covariate,
+            "test": self.test,
+            "statistic": self.statistic,
+            "p_value": self.p_value,
+            "significant": self.significant,
+            "sentence": self.sentence,
+            **({"detail": self.detail} if self.detail else {}),
+        }
 
 
-def _ols_f(r: NDArray[np.float64], base: NDArray[np.float64], extra: NDArray[np.float64]) -> tuple[float, float, NDArray[np.float64], int]:
-    """F-test of `extra` regressors on r beyond `base` regressors; returns F, p, coefficients, dof."""
+def _ols_f(
+    r: NDArray[np.float64], base: NDArray[np.float64], extra: NDArray[np.float64]
+) -> tuple[float, float, NDArray[np.float64], int]:
+    """F-test of `extra` regressors on r beyond `base` regressors; returns F, p, coefficients,
+    dof."""
     X0 = base
     X1 = np.column_stack([base, extra])
     n = r.size
@@ -183,55 +212,95 @@ def _ols_f(r: NDArray[np.float64], base: NDArray[np.float64], extra: NDArray[np.
     p = rank1 - rank0
     dof = n - rank1
     if p <= 0 or dof <= 0 or rss1 <= 0:
-        return 0.0, 1.0, c1[X0.shape[1]:].astype(np.float64, copy=False), dof
+        return 0.0, 1.0, c1[X0.shape[1] :].astype(np.float64, copy=False), dof
     f = ((rss0 - rss1) / p) / (rss1 / dof)
-    return float(f), f_sf(f, p, dof), c1[X0.shape[1]:].astype(np.float64, copy=False), int(dof)
+    return float(f), f_sf(f, p, dof), c1[X0.shape[1] :].astype(np.float64, copy=False), int(dof)
 
 
-def shape_test(r: NDArray[np.float64], names: list[str], terms: NDArray[np.float64], axis: str, unit: str,
-               describe: dict[str, str] | None = None) -> StructureTest:
-    """Does the residual follow a smooth function of the stage angles (beyond what the model fitted)?"""
+def shape_test(
+    r: NDArray[np.float64],
+    names: list[str],
+    terms: NDArray[np.float64],
+    axis: str,
+    unit: str,
+    describe: dict[str, str] | None = None,
+) -> StructureTest:
+    """Does the residual follow a smooth function of the stage angles (beyond what the model
+    fitted)?"""
     base = np.ones((r.size, 1))
     f, p, coef, _ = _ols_f(r, base, terms)
     # the single term that explains most on its own
     best, best_f = None, -1.0
     for j, nm in enumerate(names):
-        fj, _, cj, _ = _ols_f(r, base, terms[:, j:j + 1])
+        fj, _, cj, _ = _ols_f(r, base, terms[:, j : j + 1])
         if fj > best_f:
             best, best_f, best_c, best_col = nm, fj, float(cj[0]), terms[:, j]
     desc = (describe or {}).get(best, best) if best is not None else ""
     span = float(np.ptp(best_c * best_col)) if best is not None else 0.0
-    sentence = (f"{axis} residual follows {best} ({desc}): about {span:.3g} {unit} peak to peak over the grid"
-                if best is not None else f"{axis} residual: no smooth shape")
-    return StructureTest(axis, "stage angles", "F (cubic polynomial in the stage angles)", f, p, sentence,
-                         {"strongest_term": best, "strongest_term_span": span})
+    sentence = (
+        f"{axis} residual follows {best} ({desc}): about {span:.3g} {unit} peak to peak over the "
+        "grid"
+        if best is not None
+        else f"{axis} residual: no smooth shape"
+    )
+    return StructureTest(
+        axis,
+        "stage angles",
+        "F (cubic polynomial in the stage angles)",
+        f,
+        p,
+        sentence,
+        {"strongest_term": best, "strongest_term_span": span},
+    )
 
 
-def direction_test(r: NDArray[np.float64], d: NDArray[np.float64], axis: str, stage: str, unit: str) -> StructureTest | None:
+def direction_test(
+    r: NDArray[np.float64], d: NDArray[np.float64], axis: str, stage: str, unit: str
+) -> StructureTest | None:
     """Welch t-test of the residual between the two approach directions of one stage."""
     plus, minus = r[d > 0], r[d < 0]
     if plus.size < 2 or minus.size < 2:
         return None
     t, p = welch_t(plus, minus)
     jump = float(plus.mean() - minus.mean())
-    sentence = (f"{axis} residual jumps by {jump:.3g} {unit} with the approach direction of the {stage} stage "
-                f"(mean after a + move minus mean after a - move)")
-    return StructureTest(axis, f"dir_{stage}", "Welch t", float(t), float(p), sentence, {"jump": jump})
+    sentence = (
+        f"{axis} residual jumps by {jump:.3g} {unit} with the approach direction of the {stage} "
+        "stage (mean after a + move minus mean after a - move)"
+    )
+    return StructureTest(
+        axis, f"dir_{stage}", "Welch t", float(t), float(p), sentence, {"jump": jump}
+    )
 
 
-def correlation_test(r: NDArray[np.float64], c: NDArray[np.float64], axis: str, covariate: str, what: str, per: str,
-                     unit: str) -> StructureTest | None:
+def correlation_test(
+    r: NDArray[np.float64],
+    c: NDArray[np.float64],
+    axis: str,
+    covariate: str,
+    what: str,
+    per: str,
+    unit: str,
+) -> StructureTest | None:
     """Pearson correlation of the residual with a covariate, with the slope in the lab's units."""
     if c.size < 4 or np.ptp(c) <= 0 or np.ptp(r) <= 0:
         return None
     rho, pv = pearson(c, r)
     slope = float(np.polyfit(c, r, 1)[0])
     sentence = f"{axis} residual follows {what} (r = {rho:.2f}, slope {slope:.3g} {unit}/{per})"
-    return StructureTest(axis, covariate, "Pearson r", rho, pv, sentence,
-                         {"slope": slope, "slope_unit": f"{unit}/{per}"})
+    return StructureTest(
+        axis,
+        covariate,
+        "Pearson r",
+        rho,
+        pv,
+        sentence,
+        {"slope": slope, "slope_unit": f"{unit}/{per}"},
+    )
 
 
-def runs_test(r: NDArray[np.float64], order: NDArray[np.float64], axis: str) -> StructureTest | None:
+def runs_test(
+    r: NDArray[np.float64], order: NDArray[np.float64], axis: str
+) -> StructureTest | None:
     """Wald-Wolfowitz runs test of residual signs in time order: too few runs means slow wander."""
     s = r[np.argsort(order, kind="stable")] - np.median(r)
     s = s[s != 0]
@@ -246,13 +315,31 @@ def runs_test(r: NDArray[np.float64], order: NDArray[np.float64], axis: str) -> 
         return None
     z = (runs - mu) / math.sqrt(var)
     p = float(special.ndtr(z))  # one-sided: wander gives too few runs
-    sentence = f"{axis} residual wanders slowly in time ({runs} runs of one sign where {mu:.0f} are expected)"
-    return StructureTest(axis, "t_s (order)", "runs (one-sided)", float(z), p, sentence, {"runs": runs, "expected": mu})
+    sentence = (
+        f"{axis} residual wanders slowly in time ({runs} runs of one sign where {mu:.0f} "
+        "are expected)"
+    )
+    return StructureTest(
+        axis,
+        "t_s (order)",
+        "runs (one-sided)",
+        float(z),
+        p,
+        sentence,
+        {"runs": runs, "expected": mu},
+    )
 
 
-def periodic_test(r: NDArray[np.float64], phase_rad: NDArray[np.float64], axis: str, stage: str, period_deg: float,
-                  unit: str) -> StructureTest | None:
-    """Periodogram value of the residual at the worm period of one stage (sine and cosine regression)."""
+def periodic_test(
+    r: NDArray[np.float64],
+    phase_rad: NDArray[np.float64],
+    axis: str,
+    stage: str,
+    period_deg: float,
+    unit: str,
+) -> StructureTest | None:
+    """Periodogram value of the residual at the worm period of one stage (sine and cosine
+    regression)."""
     if r.size < 6:
         return None
     base = np.ones((r.size, 1))
@@ -261,10 +348,19 @@ def periodic_test(r: NDArray[np.float64], phase_rad: NDArray[np.float64], axis: 
         return None
     f, p, c, _ = _ols_f(r, base, extra)
     amp = float(np.hypot(*c))
-    sentence = (f"{axis} residual oscillates with the {stage} stage's worm period ({period_deg:g} deg of stage "
-                f"angle), amplitude {amp:.3g} {unit}")
-    return StructureTest(axis, f"worm phase {stage}", "F (periodogram at the worm period)", f, p, sentence,
-                         {"amplitude": amp, "period_deg": period_deg})
+    sentence = (
+        f"{axis} residual oscillates with the {stage} stage's worm period ({period_deg:g} deg of "
+        f"stage angle), amplitude {amp:.3g} {unit}"
+    )
+    return StructureTest(
+        axis,
+        f"worm phase {stage}",
+        "F (periodogram at the worm period)",
+        f,
+        p,
+        sentence,
+        {"amplitude": amp, "period_deg": period_deg},
+    )
 
 
 def mark_significant(tests: list[StructureTest], alpha: float) -> list[StructureTest]:

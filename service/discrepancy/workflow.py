@@ -25,10 +25,12 @@ from service.discrepancy.noise import NoiseLevel, from_residual
 from service.errors import DegenerateDataError, FitError
 
 DEFAULT_ALPHA = 0.01  # family-wise level of one selection step
-SEPARABLE_MIN = 1e-3  # a parameter whose signature the model absorbs to within this fraction is dropped
+# a parameter whose signature the model absorbs to within this fraction is dropped
+SEPARABLE_MIN = 1e-3
 MIN_DOF_LEFT = 3  # a candidate must leave at least this many residual degrees of freedom
 POOR_SEPARABILITY = 0.05  # below this fraction a remaining candidate is flagged as hard to see
-WEAK_SEPARABILITY = 0.25  # below this, the note says how much larger it must be to show, and what would help
+# below this, the note says how much larger it must be to show, and what would help
+WEAK_SEPARABILITY = 0.25
 PRESCREEN_P = 0.05  # candidates whose one-step preview is above this p-value are not refitted
 
 
@@ -84,11 +86,17 @@ def _noise_var(noise: NoiseLevel) -> tuple[float | None, float]:
     return None, float("inf")
 
 
-def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dict[str, str], noise: NoiseLevel,
-                         structure: Callable[[NDArray[np.float64]], list[stats.StructureTest]],
-                         alpha: float = DEFAULT_ALPHA, repeatable: tuple[str, ...] = (),
-                         explain_drop: Callable[[str, str], str | None] | None = None,
-                         max_steps: int = 10) -> Result:
+def find_missing_effects(
+    family: Family,
+    candidates: tuple[str, ...],
+    skips: dict[str, str],
+    noise: NoiseLevel,
+    structure: Callable[[NDArray[np.float64]], list[stats.StructureTest]],
+    alpha: float = DEFAULT_ALPHA,
+    repeatable: tuple[str, ...] = (),
+    explain_drop: Callable[[str, str], str | None] | None = None,
+    max_steps: int = 10,
+) -> Result:
     """Run the workflow on one family; `structure(resid)` gives the residual structure tests."""
     base = family.fit(())
     skipped = [{"effect": e, "reason": r} for e, r in skips.items() if e in candidates]
@@ -101,17 +109,24 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
         labels = [b for b in family.full_blocks(base.effects + (e,)) if b.effect == e][-1].labels
         keep = tuple(lab for lab, f in zip(labels, frac) if f >= SEPARABLE_MIN)
         if not keep:
-            skipped.append({"effect": e, "reason": "not separable from the baseline on these data: "
-                            f"{100 * (1 - max(frac, default=0)):.2f} % or more of its signature is a change of "
-                            "the baseline's own parameters (the grid does not sample it)"})
+            skipped.append(
+                {
+                    "effect": e,
+                    "reason": "not separable from the baseline on these data: "
+                    f"{100 * (1 - max(frac, default=0)):.2f} % or more of its signature is a "
+                    "change of the baseline's own parameters (the grid does not sample it)",
+                }
+            )
             continue
         dropped = [lab for lab in labels if lab not in keep]
         if dropped:
             family.active[e] = keep
             for lab in dropped:
                 why = explain_drop(e, lab) if explain_drop else None
-                notes.append(f"{e}: parameter {lab} left out: " + (why or "not separable from the baseline on "
-                                                                    "these data"))
+                notes.append(
+                    f"{e}: parameter {lab} left out: "
+                    + (why or "not separable from the baseline on these data")
+                )
         remaining.append(e)
     noise_var, noise_df = _noise_var(noise)
     fits = [base]
@@ -125,13 +140,21 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
         tried: list[tuple[str, Fit | None, stats.Significance]] = []
         testable = []
         for e in remaining:
-            k_new = current.k + sum(b.size for b in family.blocks(current.effects + (e,))) - sum(
-                b.size for b in family.blocks(current.effects))
+            k_new = (
+                current.k
+                + sum(b.size for b in family.blocks(current.effects + (e,)))
+                - sum(b.size for b in family.blocks(current.effects))
+            )
             if family.n_obs - k_new < MIN_DOF_LEFT:
                 left = family.n_obs - k_new
-                skipped.append({"effect": e, "reason": f"too few points: {family.n_obs} readings leave {left} "
-                                f"degree{'s' * (left != 1)} of freedom for a model with {k_new} parameters "
-                                f"(at least {MIN_DOF_LEFT} needed)"})
+                skipped.append(
+                    {
+                        "effect": e,
+                        "reason": f"too few points: {family.n_obs} readings leave {left} "
+                        f"degree{'s' * (left != 1)} of freedom for a model with {k_new} parameters "
+                        f"(at least {MIN_DOF_LEFT} needed)",
+                    }
+                )
                 continue
             testable.append(e)
         remaining = [e for e in remaining if e in testable]
@@ -139,26 +162,55 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
         for e in testable:
             try:
                 lin = family.linearised_fit(current, e)
-                pre = stats.nested_test(current.rss_w, current.k, lin.rss_w, lin.k, family.n_obs, alpha / m,
-                                        noise_var, noise_df)
+                pre = stats.nested_test(
+                    current.rss_w,
+                    current.k,
+                    lin.rss_w,
+                    lin.k,
+                    family.n_obs,
+                    alpha / m,
+                    noise_var,
+                    noise_df,
+                )
             except (DegenerateDataError, FitError, np.linalg.LinAlgError, ValueError):
                 pre = None
             if pre is not None and pre.p_value >= PRESCREEN_P:
                 # far from significant even by the one-step preview: not worth a nonlinear fit
                 tried.append((e, None, pre))
-                scores.append({"effect": e, "approximate": True, "rms_after": lin.rms(),
-                               "magnitude": _safe_magnitude(family, lin, e), **pre.as_dict()})
+                scores.append(
+                    {
+                        "effect": e,
+                        "approximate": True,
+                        "rms_after": lin.rms(),
+                        "magnitude": _safe_magnitude(family, lin, e),
+                        **pre.as_dict(),
+                    }
+                )
                 continue
             try:
                 f1 = family.fit(current.effects + (e,), start=current)
             except (DegenerateDataError, FitError) as exc:
                 scores.append({"effect": e, "error": str(exc)})
                 continue
-            sig = stats.nested_test(current.rss_w, current.k, f1.rss_w, f1.k, family.n_obs, alpha / m,
-                                    noise_var, noise_df)
+            sig = stats.nested_test(
+                current.rss_w,
+                current.k,
+                f1.rss_w,
+                f1.k,
+                family.n_obs,
+                alpha / m,
+                noise_var,
+                noise_df,
+            )
             tried.append((e, f1, sig))
-            scores.append({"effect": e, "rms_after": f1.rms(), "magnitude": _safe_magnitude(family, f1, e),
-                           **sig.as_dict()})
+            scores.append(
+                {
+                    "effect": e,
+                    "rms_after": f1.rms(),
+                    "magnitude": _safe_magnitude(family, f1, e),
+                    **sig.as_dict(),
+                }
+            )
         winners = [(e, f, s) for e, f, s in tried if f is not None and s.significant]
         if not winners:
             stop_scores = scores
@@ -172,8 +224,11 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
         if e not in repeatable:
             remaining.remove(e)
     if not stop_reason:
-        stop_reason = ("no further effect: every candidate the data can support is in the model" if not remaining
-                       else f"stopped after {max_steps} steps")
+        stop_reason = (
+            "no further effect: every candidate the data can support is in the model"
+            if not remaining
+            else f"stopped after {max_steps} steps"
+        )
     separability: dict[str, dict[str, float]] = {}
     for e in remaining:
         try:
@@ -188,22 +243,41 @@ def find_missing_effects(family: Family, candidates: tuple[str, ...], skips: dic
     if not noise.known:
         noise = from_residual(current.residuals, current.k)
     where_first = stats.where_summary(steps[0].structure_before if steps else struct_now)
-    return Result(family.kind, family.baseline, family.unit, family.axes, fits, steps, skipped,
-                  [{"effect": e, "reason": r} for e, r in getattr(family, "already_in_model", {}).items()],
-                  notes, noise, stop_scores, stop_reason, struct_now, where_first, alpha,
-                  {"separability": separability})
+    return Result(
+        family.kind,
+        family.baseline,
+        family.unit,
+        family.axes,
+        fits,
+        steps,
+        skipped,
+        [{"effect": e, "reason": r} for e, r in getattr(family, "already_in_model", {}).items()],
+        notes,
+        noise,
+        stop_scores,
+        stop_reason,
+        struct_now,
+        where_first,
+        alpha,
+        {"separability": separability},
+    )
 
 
 def _separability_note(family: Family, effect: str, label: str, frac: float) -> str:
-    """Why a remaining candidate may be in the data unseen: a term only `frac` visible must be ~1/frac larger."""
+    """Why a remaining candidate may be in the data unseen: a term only `frac` visible must be
+    ~1/frac larger."""
     if frac < POOR_SEPARABILITY:
-        text = (f"{effect}: parameter {label} is poorly separable from the final model: {100 * (1 - frac):.1f} % "
-                f"of its signature (in norm) is a change of parameters already fitted; only the remaining "
-                f"{100 * frac:.1f} % is visible to the test")
+        text = (
+            f"{effect}: parameter {label} is poorly separable from the final model: "
+            f"{100 * (1 - frac):.1f} % of its signature (in norm) is a change of parameters "
+            f"already fitted; only the remaining {100 * frac:.1f} % is visible to the test"
+        )
     else:
-        text = (f"{effect}: parameter {label} is only {100 * frac:.1f} % visible on these data (the rest of its "
-                f"signature is a change of parameters already fitted), so it shows only when about "
-                f"{1 / frac:.0f} times larger than a term the data separate fully")
+        text = (
+            f"{effect}: parameter {label} is only {100 * frac:.1f} % visible on these data (the "
+            "rest of its signature is a change of parameters already fitted), so it shows only "
+            f"when about {1 / frac:.0f} times larger than a term the data separate fully"
+        )
     hint = family.separability_hints.get(effect)
     return f"{text}; {hint}" if hint else text
 
@@ -215,7 +289,9 @@ def _safe_magnitude(family: Family, fit: Fit, effect: str) -> dict[str, Any]:
         return {}
 
 
-def _stop_sentence(tried: list[tuple[str, Fit | None, stats.Significance]], alpha: float, m: int) -> str:
+def _stop_sentence(
+    tried: list[tuple[str, Fit | None, stats.Significance]], alpha: float, m: int
+) -> str:
     if not tried:
         return "no further effect: no candidate could be fitted"
     best = min(tried, key=lambda t: t[2].p_value)
@@ -225,8 +301,10 @@ def _stop_sentence(tried: list[tuple[str, Fit | None, stats.Significance]], alph
         why.append(f"p = {sig.p_value:.3g} is above the corrected level {alpha / m:.3g}")
     if sig.delta_bic >= 0:
         why.append(f"it does not lower the BIC (ΔBIC = {sig.delta_bic:+.1f})")
-    return (f"no further effect: the most likely candidate, {e}, is not significant ({'; '.join(why)}); "
-            "the data hold nothing more these candidates can explain")
+    return (
+        f"no further effect: the most likely candidate, {e}, is not significant "
+        f"({'; '.join(why)}); the data hold nothing more these candidates can explain"
+    )
 
 
 def _rms(fit: Fit) -> list[float]:
@@ -238,28 +316,38 @@ def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None)
     steps: list[dict[str, Any]] = []
     for s in res.steps:
         mag = family.magnitude(s.after, s.effect)
-        steps.append({
-            "effect": s.effect,
-            "rms_before": _rms(s.before),
-            "rms_after": _rms(s.after),
-            "magnitude": mag,
-            "summary": magnitude_sentence(s.effect, mag),
-            "evidence": {
-                **s.significance.as_dict(),
-                "rss_reduction_pct": 100.0 * s.significance.delta_rss / max(s.before.rss_w, 1e-300),
-                "candidates": s.scores,
-                "where_before": stats.where_summary(s.structure_before),
-                "structure_before": [t.as_dict() for t in s.structure_before],
-                "structure_after": [t.as_dict() for t in s.structure_after],
-            },
-        })
+        steps.append(
+            {
+                "effect": s.effect,
+                "rms_before": _rms(s.before),
+                "rms_after": _rms(s.after),
+                "magnitude": mag,
+                "summary": magnitude_sentence(s.effect, mag),
+                "evidence": {
+                    **s.significance.as_dict(),
+                    "rss_reduction_pct": 100.0
+                    * s.significance.delta_rss
+                    / max(s.before.rss_w, 1e-300),
+                    "candidates": s.scores,
+                    "where_before": stats.where_summary(s.structure_before),
+                    "structure_before": [t.as_dict() for t in s.structure_before],
+                    "structure_after": [t.as_dict() for t in s.structure_after],
+                },
+            }
+        )
     final = res.final
-    assert res.noise.sigma is not None  # the workflow sets it from the final residual when nothing else did
+    # the workflow sets it from the final residual when nothing else did
+    assert res.noise.sigma is not None
     sigma = [float(v) for v in np.atleast_1d(res.noise.sigma)]
-    noise_var, noise_df = _noise_var(res.noise) if res.noise.source != "final residual" else (None, res.noise.df)
+    noise_var, noise_df = (
+        _noise_var(res.noise) if res.noise.source != "final residual" else (None, res.noise.df)
+    )
     rss_w_final = float(np.sum((final.residuals / np.asarray(sigma)) ** 2))
-    gof = stats.goodness_of_fit(rss_w_final, final.dof, res.noise.df if res.noise.source != "final residual"
-                                else float("inf"))
+    gof = stats.goodness_of_fit(
+        rss_w_final,
+        final.dof,
+        res.noise.df if res.noise.source != "final residual" else float("inf"),
+    )
     ratio = [float(r / s) if s > 0 else None for r, s in zip(_rms(final), sigma)]
     report = {
         "format_version": 1,
@@ -280,8 +368,11 @@ def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None)
         "noise_dof": None if np.isinf(res.noise.df) else res.noise.df,
         "baseline_rms": _rms(res.fits[0]),
         "final_rms": _rms(final),
-        "final_vs_noise": {"rms_over_noise": ratio, **gof,
-                           "sentence": final_sentence(ratio, gof, res.noise.source)},
+        "final_vs_noise": {
+            "rms_over_noise": ratio,
+            **gof,
+            "sentence": final_sentence(ratio, gof, res.noise.source),
+        },
         "where": res.where_first,
         "where_final": stats.where_summary(res.structure_final),
         "structure_final": [t.as_dict() for t in res.structure_final],
@@ -310,10 +401,16 @@ def _fmt(x: float) -> str:
 def final_sentence(ratio: Sequence[float | None], gof: dict[str, Any], source: str) -> str:
     rs = ", ".join("n/a" if r is None else f"{r:.2f}" for r in ratio)
     if source == "final residual":
-        return (f"final residual is the noise level by construction (noise taken from it); RMS/noise = {rs}")
+        return (
+            "final residual is the noise level by construction (noise taken from it); "
+            f"RMS/noise = {rs}"
+        )
     p = gof.get("p_value")
-    verdict = ("consistent with the noise level" if p is not None and p >= 0.01
-               else "above the noise level: something no candidate describes is left")
+    verdict = (
+        "consistent with the noise level"
+        if p is not None and p >= 0.01
+        else "above the noise level: something no candidate describes is left"
+    )
     return f"final RMS / noise = {rs} per axis; chi-square p = {p:.3g}: {verdict}"
 
 
@@ -324,6 +421,9 @@ def conclusion(res: Result, steps: list[dict[str, Any]]) -> str:
         last = steps[-1]["rms_after"]
         gap = ", ".join(f"{a:.3g} → {b:.3g}" for a, b in zip(first, last))
         assert res.noise.sigma is not None
-        return (f"{chain}: RMS {gap} {res.unit} per axis (noise {', '.join(f'{s:.3g}' for s in np.atleast_1d(res.noise.sigma))} "
-                f"{res.unit}, from the {res.noise.source}); {res.stop_reason}")
+        return (
+            f"{chain}: RMS {gap} {res.unit} per axis (noise "
+            f"{', '.join(f'{s:.3g}' for s in np.atleast_1d(res.noise.sigma))} "
+            f"{res.unit}, from the {res.noise.source}); {res.stop_reason}"
+        )
     return f"the {res.baseline} baseline already describes the data: {res.stop_reason}"

@@ -4,7 +4,8 @@ Names on the broker:
 * key-value bucket `tiltlab_bench_leases` (entries expire after `fleet_lease_s`): bench -> its owner
   node and state, renewed every third of the lease while the node lives. A bench without an entry
   belongs to no live node.
-* key-value bucket `tiltlab_benches` (kept): bench -> the node that last owned it, its kind and roles,
+* key-value bucket `tiltlab_benches` (kept): bench -> the node that last owned it, its kind and
+roles,
   so the fleet view still lists a bench whose node died (as offline).
 * stream `TILTLAB_READINGS`, subjects `tiltlab.readings.<bench>`: each node's readings, decimated to
   `fleet_rate_hz`, kept for a minute, each with the node's `fleet_seq`.
@@ -32,7 +33,13 @@ from nats.aio.msg import Msg
 from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeout
 from nats.js.api import DiscardPolicy, KeyValueConfig, StorageType
-from nats.js.errors import BadRequestError, BucketNotFoundError, KeyNotFoundError, KeyWrongLastSequenceError, NoKeysError
+from nats.js.errors import (
+    BadRequestError,
+    BucketNotFoundError,
+    KeyNotFoundError,
+    KeyWrongLastSequenceError,
+    NoKeysError,
+)
 from nats.js.errors import Error as JetStreamError
 from nats.js.kv import KeyValue
 
@@ -64,12 +71,14 @@ class FleetConflict(InputError):
 
 
 class FleetUnavailable(Exception):
-    """A command for another node's bench cannot be carried: its node is offline or the broker away (503)."""
+    """A command for another node's bench cannot be carried: its node is offline or the broker away
+    (503)."""
 
 
 @dataclass
 class RemoteBench:
-    """Another node's bench as this node knows it: who owns it, whether that node lives, its last reading."""
+    """Another node's bench as this node knows it: who owns it, whether that node lives, its last
+    reading."""
 
     name: str
     node: str
@@ -83,9 +92,17 @@ class RemoteBench:
     listeners: set[Callable[[dict[str, Any]], None]] = field(default_factory=set)
 
     def listing(self) -> dict[str, Any]:
-        return {"name": self.name, "kind": self.kind, "roles": self.roles, "description": self.description,
-                "state": self.state if self.online else "offline", "held_by": None, "simulated": None,
-                "node": self.node, "online": self.online}
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "roles": self.roles,
+            "description": self.description,
+            "state": self.state if self.online else "offline",
+            "held_by": None,
+            "simulated": None,
+            "node": self.node,
+            "online": self.online,
+        }
 
 
 Handler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
@@ -94,8 +111,13 @@ Handler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
 class Fleet:
     """This daemon's membership of the fleet (only made when `broker_url` is set)."""
 
-    def __init__(self, settings: Settings, benches: dict[str, BenchRuntime],
-                 latest_message: Callable[[str], dict[str, Any] | None], handler: Handler) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        benches: dict[str, BenchRuntime],
+        latest_message: Callable[[str], dict[str, Any] | None],
+        handler: Handler,
+    ) -> None:
         assert settings.broker_url
         self.node = settings.node
         self.url = settings.broker_url
@@ -120,8 +142,8 @@ class Fleet:
     async def start(self) -> None:
         """Join: claim this node's benches (FleetConflict if a live node owns one), then serve.
 
-        A broker that does not answer at start-up does not stop the daemon: its own benches are served
-        and the node joins when the broker comes (claiming its benches then)."""
+        A broker that does not answer at start-up does not stop the daemon: its own benches are
+        served and the node joins when the broker comes (claiming its benches then)."""
         try:
             await self._connect()
             await self._setup()
@@ -129,8 +151,12 @@ class Fleet:
             await self.stop()
             raise
         except (TimeoutError, OSError, nats.errors.Error) as exc:
-            log.warning("fleet: the broker at %s does not answer (%s); serving this node's benches alone"
-                        " until it does", redacted(self.url), exc)
+            log.warning(
+                "fleet: the broker at %s does not answer (%s); serving this node's benches alone"
+                " until it does",
+                redacted(self.url),
+                exc,
+            )
         self._tasks.append(asyncio.create_task(self._keep(), name="fleet leases and view"))
         self._tasks.append(asyncio.create_task(self._publish(), name="fleet readings"))
 
@@ -157,26 +183,45 @@ class Fleet:
 
     async def _connect(self) -> None:
         async def disconnected() -> None:
-            log.warning("fleet: lost the broker at %s; serving this node's benches alone", redacted(self.url))
+            log.warning(
+                "fleet: lost the broker at %s; serving this node's benches alone",
+                redacted(self.url),
+            )
 
         async def reconnected() -> None:
             log.warning("fleet: the broker at %s is back", redacted(self.url))
 
-        self._nc = await nats.connect(self.url, name=f"tiltlab {self.node}", connect_timeout=CONNECT_TIMEOUT_S,
-                                      allow_reconnect=True, max_reconnect_attempts=-1, reconnect_time_wait=1,
-                                      disconnected_cb=disconnected, reconnected_cb=reconnected)
+        self._nc = await nats.connect(
+            self.url,
+            name=f"tiltlab {self.node}",
+            connect_timeout=CONNECT_TIMEOUT_S,
+            allow_reconnect=True,
+            max_reconnect_attempts=-1,
+            reconnect_time_wait=1,
+            disconnected_cb=disconnected,
+            reconnected_cb=reconnected,
+        )
 
     async def _setup(self) -> None:
-        """Buckets, stream, claims and subscriptions; again after a broker that lost its storage came back."""
+        """Buckets, stream, claims and subscriptions; again after a broker that lost its storage
+        came back."""
         nc = self._nc
         assert nc is not None
         js = nc.jetstream()
-        self._leases = await self._bucket(js, KeyValueConfig(bucket=LEASES, ttl=self.lease_s, history=1))
+        self._leases = await self._bucket(
+            js, KeyValueConfig(bucket=LEASES, ttl=self.lease_s, history=1)
+        )
         self._benches = await self._bucket(js, KeyValueConfig(bucket=BENCHES, history=1))
-        with contextlib.suppress(BadRequestError):  # already there (perhaps made by another version): keep it
-            await js.add_stream(name=READINGS_STREAM, subjects=[readings_subject("*")], max_age=READINGS_KEEP_S,
-                                max_msgs_per_subject=int(READINGS_KEEP_S * 100), storage=StorageType.MEMORY,
-                                discard=DiscardPolicy.OLD)
+        # already there (perhaps made by another version): keep it
+        with contextlib.suppress(BadRequestError):
+            await js.add_stream(
+                name=READINGS_STREAM,
+                subjects=[readings_subject("*")],
+                max_age=READINGS_KEEP_S,
+                max_msgs_per_subject=int(READINGS_KEEP_S * 100),
+                storage=StorageType.MEMORY,
+                discard=DiscardPolicy.OLD,
+            )
         for name in self.local:
             await self._claim(name)
         if not self._ready.is_set():
@@ -209,8 +254,15 @@ class Fleet:
 
     def _lease(self, name: str) -> bytes:
         bench = self.local[name]
-        return json.dumps({"node": self.node, "state": bench.state(), "kind": bench.kind, "roles": bench.roles(),
-                           "description": bench.config.description}).encode()
+        return json.dumps(
+            {
+                "node": self.node,
+                "state": bench.state(),
+                "kind": bench.kind,
+                "roles": bench.roles(),
+                "description": bench.config.description,
+            }
+        ).encode()
 
     async def _claim(self, name: str) -> None:
         assert self._leases is not None and self._benches is not None
@@ -220,12 +272,15 @@ class Fleet:
             entry = None
         owner = json.loads(entry.value)["node"] if entry is not None and entry.value else None
         if owner is not None and owner != self.node:
-            raise FleetConflict(f"bench {name!r} is owned by node {owner!r}, which is online; bench names are unique"
-                                f" in a fleet: rename this node's bench or stop node {owner!r} first")
+            raise FleetConflict(
+                f"bench {name!r} is owned by node {owner!r}, which is online; bench names are "
+                f"unique in a fleet: rename this node's bench or stop node {owner!r} first"
+            )
         if entry is None:
             try:
                 await self._leases.create(name, self._lease(name))
-            except KeyWrongLastSequenceError:  # another node claimed it between our read and our write
+            # another node claimed it between our read and our write
+            except KeyWrongLastSequenceError:
                 return await self._claim(name)
         else:
             await self._leases.put(name, self._lease(name))
@@ -234,7 +289,8 @@ class Fleet:
         await self._benches.put(name, json.dumps(static).encode())
 
     async def _keep(self) -> None:
-        """Renew the leases and refresh the fleet view every third of a lease, whatever the broker does."""
+        """Renew the leases and refresh the fleet view every third of a lease, whatever the broker
+        does."""
         while True:
             await asyncio.sleep(self.lease_s / 3)
             try:
@@ -251,7 +307,8 @@ class Fleet:
                 await self._refresh_view()
             except FleetConflict as exc:
                 log.error("fleet: %s", exc)
-            except JetStreamError as exc:  # e.g. a broker that came back without its storage: set it up again
+            # e.g. a broker that came back without its storage: set it up again
+            except JetStreamError as exc:
                 log.info("fleet: %s; setting up the buckets and the stream again", exc)
                 try:
                     await self._setup()
@@ -302,19 +359,25 @@ class Fleet:
         return name is not None and name not in self.local and name in self.remote
 
     def producer(self, name: str, *, queue_size: int, slow_close_s: float) -> RemoteProducer | None:
-        """The reading stream of another node's bench (one per bench, made on first use); None if unknown."""
+        """The reading stream of another node's bench (one per bench, made on first use); None if
+        unknown."""
         if not self.is_remote(name):
             return None
         producer = self._producers.get(name)
         if producer is None:
-            producer = self._producers[name] = RemoteProducer(self.remote[name], rate_hz=1.0 / self.period_s,
-                                                              queue_size=queue_size, slow_close_s=slow_close_s)
+            producer = self._producers[name] = RemoteProducer(
+                self.remote[name],
+                rate_hz=1.0 / self.period_s,
+                queue_size=queue_size,
+                slow_close_s=slow_close_s,
+            )
         return producer
 
     # ------------------------------------------------------------ readings
 
     async def _publish(self) -> None:
-        """Each local bench's newest reading message, at most `fleet_rate_hz` a second, with a fleet sequence number."""
+        """Each local bench's newest reading message, at most `fleet_rate_hz` a second, with a fleet
+        sequence number."""
         last: dict[str, int] = {}
         seq = 0
         while True:
@@ -330,7 +393,9 @@ class Fleet:
                 seq += 1
                 payload = {**msg, "bench": name, "node": self.node, "fleet_seq": seq}
                 try:
-                    await self._client().publish(readings_subject(name), json.dumps(payload).encode())
+                    await self._client().publish(
+                        readings_subject(name), json.dumps(payload).encode()
+                    )
                     self.published += 1
                 except Exception:  # noqa: BLE001 - a broker going away while publishing: counted, not fatal
                     self.dropped += 1
@@ -345,7 +410,9 @@ class Fleet:
             return
         bench = self.remote.get(name)
         if bench is None:
-            bench = self.remote[name] = RemoteBench(name, payload.get("node", "?"), online=True, state="ready")
+            bench = self.remote[name] = RemoteBench(
+                name, payload.get("node", "?"), online=True, state="ready"
+            )
         bench.latest, bench.received_at = payload, time.monotonic()
         for listener in list(bench.listeners):
             listener(payload)
@@ -357,39 +424,63 @@ class Fleet:
             answer = await self._handler(json.loads(msg.data))
         except Exception as exc:  # noqa: BLE001 - the caller gets a problem, never silence
             log.exception("fleet: a command from another node failed")
-            answer = {"status": 500, "headers": {"content-type": "application/problem+json"},
-                      "body": json.dumps({"title": "Command failed on the bench's node", "status": 500,
-                                          "detail": f"node {self.node}: {type(exc).__name__}: {exc}"})}
+            answer = {
+                "status": 500,
+                "headers": {"content-type": "application/problem+json"},
+                "body": json.dumps(
+                    {
+                        "title": "Command failed on the bench's node",
+                        "status": 500,
+                        "detail": f"node {self.node}: {type(exc).__name__}: {exc}",
+                    }
+                ),
+            }
         await msg.respond(json.dumps(answer).encode())
 
-    async def forward(self, bench_name: str, request: dict[str, Any]) -> tuple[dict[str, Any], float]:
-        """Carry a request for another node's bench to its owner; its answer and the round trip in seconds."""
+    async def forward(
+        self, bench_name: str, request: dict[str, Any]
+    ) -> tuple[dict[str, Any], float]:
+        """Carry a request for another node's bench to its owner; its answer and the round trip in
+        seconds."""
         bench = self.remote[bench_name]
         if not self.connected:
-            raise FleetUnavailable(f"bench {bench_name!r} belongs to node {bench.node!r}, and the fleet's broker is"
-                                   " not reachable from this node")
+            raise FleetUnavailable(
+                f"bench {bench_name!r} belongs to node {bench.node!r}, and the fleet's broker is"
+                " not reachable from this node"
+            )
         if not bench.online:
-            raise FleetUnavailable(f"bench {bench_name!r} belongs to node {bench.node!r}, which is offline")
+            raise FleetUnavailable(
+                f"bench {bench_name!r} belongs to node {bench.node!r}, which is offline"
+            )
         start = time.monotonic()
         try:
-            reply = await self._client().request(commands_subject(bench.node), json.dumps(request).encode(),
-                                                 timeout=self.command_timeout_s)
+            reply = await self._client().request(
+                commands_subject(bench.node),
+                json.dumps(request).encode(),
+                timeout=self.command_timeout_s,
+            )
         except NoRespondersError:
             bench.online = False
-            raise FleetUnavailable(f"bench {bench_name!r} belongs to node {bench.node!r}, which is offline") from None
+            raise FleetUnavailable(
+                f"bench {bench_name!r} belongs to node {bench.node!r}, which is offline"
+            ) from None
         except NatsTimeout:
-            raise FleetUnavailable(f"node {bench.node!r} did not answer for bench {bench_name!r} within"
-                                   f" {self.command_timeout_s:g} s") from None
+            raise FleetUnavailable(
+                f"node {bench.node!r} did not answer for bench {bench_name!r} within"
+                f" {self.command_timeout_s:g} s"
+            ) from None
         answer: dict[str, Any] = json.loads(reply.data)
         return answer, time.monotonic() - start
 
 
 class RemoteProducer(ReadingProducer):
-    """Another node's bench as a reading stream of this node: the owner's published readings, fanned out
-    to this node's clients with their own `seq` and the same queue, drop and close rules as a local
-    bench's stream. Its rate is the fleet's publication rate."""
+    """Another node's bench as a reading stream of this node: the owner's published readings, fanned
+    out to this node's clients with their own `seq` and the same queue, drop and close rules as a
+    local bench's stream. Its rate is the fleet's publication rate."""
 
-    def __init__(self, bench: RemoteBench, *, rate_hz: float, queue_size: int, slow_close_s: float) -> None:
+    def __init__(
+        self, bench: RemoteBench, *, rate_hz: float, queue_size: int, slow_close_s: float
+    ) -> None:
         # no BenchRuntime here: the readings come from the broker, not from instruments
         self.remote = bench
         self.queue_size = queue_size
@@ -415,10 +506,19 @@ class RemoteProducer(ReadingProducer):
     def snapshot_later(self, rate_hz: float, history_s: float) -> SnapshotBuild:
         """The newest reading the owner published; no history (the owner's dashboard has it)."""
         latest = self.remote.latest or {}
-        head = {"type": "snapshot", "seq": 0, "time_utc": latest.get("time_utc"), "bench": self.remote.name,
-                "node": self.remote.node, "rate_hz": rate_hz, "raw": latest.get("raw"),
-                "table_tilt": latest.get("table_tilt"), "stage": latest.get("stage"), "temp_c": latest.get("temp_c"),
-                "calibration": latest.get("calibration")}
+        head = {
+            "type": "snapshot",
+            "seq": 0,
+            "time_utc": latest.get("time_utc"),
+            "bench": self.remote.name,
+            "node": self.remote.node,
+            "rate_hz": rate_hz,
+            "raw": latest.get("raw"),
+            "table_tilt": latest.get("table_tilt"),
+            "stage": latest.get("stage"),
+            "temp_c": latest.get("temp_c"),
+            "calibration": latest.get("calibration"),
+        }
         return SnapshotBuild(head, np.empty((0, 0)), rate_hz, 0.0)
 
     def _on_reading(self, payload: dict[str, Any]) -> None:

@@ -1,1 +1,2 @@
-"""Serial instruments of the bench: byte codecs, port transport, drivers per role, simulated firmware."""
+"""Serial instruments of the bench: byte codecs, port transport, drivers per role, simulated
+firmware."""

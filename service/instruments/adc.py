@@ -1,4 +1,5 @@
-"""Family (C): an analog tilt sensor behind a 12-bit ADC (0-5 V in 4096 counts), ASCII lines ending CR LF.
+"""Family (C): an analog tilt sensor behind a 12-bit ADC (0-5 V in 4096 counts), ASCII lines ending
+CR LF.
 
     ADC?       -> ADC,<counts>                 one conversion, 0-4095
     ADC? <n>   -> ADC,<mean, one decimal>,<n>  mean of n conversions, 1 <= n <= 1000
@@ -109,7 +110,9 @@ def parse_answers(buf: bytes) -> Parsed[AdcAnswer]:
             msg = AdcCounts(float(m[1]), int(m[2]))
         elif m := _ID.fullmatch(line):
             msg = AdcIdentity(m[1], m[2])
-        if isinstance(msg, AdcCounts) and (msg.counts > COUNTS - 1 or (msg.conversions or 1) > MAX_CONVERSIONS):
+        if isinstance(msg, AdcCounts) and (
+            msg.counts > COUNTS - 1 or (msg.conversions or 1) > MAX_CONVERSIONS
+        ):
             msg = None
         if msg is None:
             reject_line(st, line)

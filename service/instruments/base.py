@@ -55,7 +55,8 @@ class DeviceIdentity:
     model: str
     serial: str | None
     firmware: str | None = None
-    address: str | None = None  # the bus address it answered at, e.g. "0x00", when it reports no serial
+    # the bus address it answered at, e.g. "0x00", when it reports no serial
+    address: str | None = None
 
     def register_key(self, bench: str, role: str) -> str:
         """The serial the lab's device records know this instrument by."""
@@ -65,7 +66,11 @@ class DeviceIdentity:
 
     def in_words(self) -> str:
         """As a person reads it: model, serial number (or that it has none), firmware."""
-        serial = f"s/n {self.serial}" if self.serial is not None else f"no serial number (bus address {self.address})"
+        serial = (
+            f"s/n {self.serial}"
+            if self.serial is not None
+            else f"no serial number (bus address {self.address})"
+        )
         return f"{self.model}, {serial}" + (f", firmware {self.firmware}" if self.firmware else "")
 
 
@@ -113,14 +118,16 @@ class Driver(Protocol):
 
 @runtime_checkable
 class Sensor(Driver, Protocol):
-    """A role that measures: readings kept from automatic output or polling, and a mark in their stream."""
+    """A role that measures: readings kept from automatic output or polling, and a mark in their
+    stream."""
 
     def latest(self) -> Reading | None:
         """The newest reading from the instrument's automatic output or polling; no I/O."""
         ...
 
     def readings_after(self, bench_s: float) -> list[Reading]:
-        """The readings kept that are stamped after `bench_s` (bench seconds), oldest first; no I/O."""
+        """The readings kept that are stamped after `bench_s` (bench seconds), oldest first; no
+        I/O."""
         ...
 
     async def sync(self) -> float:
@@ -167,7 +174,8 @@ class TemperatureOnRequest(Sensor, Protocol):
 
 @runtime_checkable
 class AmbientSensor(Sensor, Protocol):
-    """A thermo-hygrometer reading the laboratory's air; its standard uncertainties as the lab states them."""
+    """A thermo-hygrometer reading the laboratory's air; its standard uncertainties as the lab
+    states them."""
 
     standard_uncertainty_c: float
     standard_uncertainty_pct: float
@@ -184,7 +192,8 @@ class AnalogSensor(Sensor, Protocol):
 
 @runtime_checkable
 class MotionAxis(Driver, Protocol):
-    """One axis of a family (D) controller: a swing stage (1 upper x, 2 lower y) or the rotary table (3)."""
+    """One axis of a family (D) controller: a swing stage (1 upper x, 2 lower y) or the rotary table
+    (3)."""
 
     axis: int
     pulse_deg: float
@@ -202,9 +211,9 @@ class MotionAxis(Driver, Protocol):
     async def state(self) -> AxisState: ...
 
     async def wait_until_idle(self, timeout_s: float) -> float:
-        """Return once the axis is ready; raise on a hard limit, an error, or the timeout (bench seconds).
-        Returns the bench time of the query that found it ready: it stood by then, give or take the line's
-        transit, however late the answer was read."""
+        """Return once the axis is ready; raise on a hard limit, an error, or the timeout (bench
+        seconds). Returns the bench time of the query that found it ready: it stood by then, give or
+        take the line's transit, however late the answer was read."""
         ...
 
     async def stop(self) -> None: ...
@@ -214,7 +223,8 @@ class MotionAxis(Driver, Protocol):
 
 @runtime_checkable
 class TwoAxisStage(Driver, Protocol):
-    """The `stage` role: the upper (x) and lower (y) swing stages of one controller, moved together."""
+    """The `stage` role: the upper (x) and lower (y) swing stages of one controller, moved
+    together."""
 
     @property
     def x(self) -> MotionAxis: ...

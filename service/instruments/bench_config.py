@@ -26,10 +26,12 @@ the fixed hardware of its stages, and one table per role:
     [benches.stage-1.roles.stage]
     port = "/dev/ttyUSB2"
 
-    [benches.stage-1.roles.ambient_sensor]   # optional: the laboratory's air temperature and humidity
+    [benches.stage-1.roles.ambient_sensor]   # optional: the laboratory's air temperature and
+humidity
     port = "/dev/ttyUSB3"
     address = "01"
-    standard_uncertainty_c = 0.1             # as the thermo-hygrometer's calibration certificate states them
+    standard_uncertainty_c = 0.1             # as the thermo-hygrometer's calibration certificate
+states them
     standard_uncertainty_pct = 2.0
 
 The hardware table is the same model as a scenario file's `bench` section, so the
@@ -49,9 +51,18 @@ from service.errors import InputError
 from service.physics.stage import StageBench
 from service.scenarios.model import StageBenchSpec
 
-ROLES = ("reference_sensor", "measurement_sensor", "stage", "adc_sensor", "rotary_table", "triaxial_sensor",
-         "turntable_sensor", "ambient_sensor")
-# The byte protocol of each role's instrument family (A binary frames, B RS-485 ASCII, C ADC, D controller).
+ROLES = (
+    "reference_sensor",
+    "measurement_sensor",
+    "stage",
+    "adc_sensor",
+    "rotary_table",
+    "triaxial_sensor",
+    "turntable_sensor",
+    "ambient_sensor",
+)
+# The byte protocol of each role's instrument family (A binary frames, B RS-485 ASCII, C ADC, D
+# controller).
 PROTOCOL_OF_ROLE = {
     "reference_sensor": "binary",
     "measurement_sensor": "binary",
@@ -67,9 +78,14 @@ BAUD_RATES = (2400, 4800, 9600, 19200, 38400, 57600, 115200)
 # Family (A) automatic output: 0 answers requests only; "continuous" sends frames back to back.
 OUTPUT_RATES_HZ = (0, 5, 15, 25, 35, 50, 100)
 
-REQUIRED_ROLES = {"stage": ("reference_sensor", "measurement_sensor", "stage"), "rotary": ("rotary_table",)}
-OPTIONAL_ROLES = {"stage": ("adc_sensor", "ambient_sensor"), "rotary": ("triaxial_sensor", "turntable_sensor",
-                                                                        "ambient_sensor")}
+REQUIRED_ROLES = {
+    "stage": ("reference_sensor", "measurement_sensor", "stage"),
+    "rotary": ("rotary_table",),
+}
+OPTIONAL_ROLES = {
+    "stage": ("adc_sensor", "ambient_sensor"),
+    "rotary": ("triaxial_sensor", "turntable_sensor", "ambient_sensor"),
+}
 
 
 class _Strict(BaseModel):
@@ -87,7 +103,9 @@ class PortRole(_Strict):
     @model_validator(mode="after")
     def _one_place(self) -> PortRole:
         if (self.port is None) == (self.usb_serial is None):
-            raise ValueError("give exactly one of port (a path, socket:// or rfc2217:// URL) or usb_serial")
+            raise ValueError(
+                "give exactly one of port (a path, socket:// or rfc2217:// URL) or usb_serial"
+            )
         if self.baud is not None and self.baud not in BAUD_RATES:
             raise ValueError(f"baud {self.baud} is not one of {', '.join(map(str, BAUD_RATES))}")
         return self
@@ -108,8 +126,10 @@ class BinaryInclinometerRole(PortRole):
     @model_validator(mode="after")
     def _rate(self) -> BinaryInclinometerRole:
         if self.output_rate_hz != "continuous" and self.output_rate_hz not in OUTPUT_RATES_HZ:
-            raise ValueError(f"output_rate_hz {self.output_rate_hz!r} is not one of "
-                             f"{', '.join(map(str, OUTPUT_RATES_HZ))} or \"continuous\"")
+            raise ValueError(
+                f"output_rate_hz {self.output_rate_hz!r} is not one of "
+                f'{", ".join(map(str, OUTPUT_RATES_HZ))} or "continuous"'
+            )
         return self
 
 
@@ -121,8 +141,9 @@ class Rs485InclinometerRole(PortRole):
 
 
 class AmbientSensorRole(PortRole):
-    """Family (B) thermo-hygrometer reading the laboratory's air (command TH); the standard uncertainties of its
-    temperature and humidity as its calibration certificate states them enter the conditions a job records."""
+    """Family (B) thermo-hygrometer reading the laboratory's air (command TH); the standard
+    uncertainties of its temperature and humidity as its calibration certificate states them enter
+    the conditions a job records."""
 
     address: Annotated[str, Field(pattern=r"^[0-9A-Fa-f]{2}$")] = "01"
     poll_rate_hz: Annotated[float, Field(gt=0, le=10)] = 1.0
@@ -186,10 +207,15 @@ class BenchConfig(_Strict):
             if role not in ROLES:
                 raise ValueError(f"roles.{role}: unknown role; roles are {', '.join(ROLES)}")
             if role not in allowed:
-                raise ValueError(f"roles.{role}: a {self.kind} bench has the roles {', '.join(allowed)}")
+                raise ValueError(
+                    f"roles.{role}: a {self.kind} bench has the roles {', '.join(allowed)}"
+                )
         for role in REQUIRED_ROLES[self.kind]:
             if role not in self.roles:
-                raise ValueError(f"roles.{role}: missing; a {self.kind} bench needs {', '.join(REQUIRED_ROLES[self.kind])}")
+                raise ValueError(
+                    f"roles.{role}: missing; a {self.kind} bench needs "
+                    f"{', '.join(REQUIRED_ROLES[self.kind])}"
+                )
         if self.kind == "rotary" and not any(r in self.roles for r in OPTIONAL_ROLES["rotary"]):
             raise ValueError("roles: a rotary bench needs a triaxial_sensor or a turntable_sensor")
         if self.kind == "rotary" and self.hardware is not None:
@@ -202,7 +228,9 @@ class BenchConfig(_Strict):
                 specs[role] = ROLE_MODELS[role].model_validate(table)
             except ValidationError as exc:
                 problem = _first(exc)
-                raise ValueError(f"roles.{role}{'.' if ': ' in problem else ': '}{problem}") from None
+                raise ValueError(
+                    f"roles.{role}{'.' if ': ' in problem else ': '}{problem}"
+                ) from None
         self.role_specs = specs
         if self.kind == "stage":
             self._check_soft_limits()
@@ -215,8 +243,10 @@ class BenchConfig(_Strict):
         for axis in ("x", "y"):
             limits = getattr(stage, f"soft_limits_{axis}_deg")
             if limits is not None and not (-travel <= limits[0] < limits[1] <= travel):
-                raise ValueError(f"roles.stage.soft_limits_{axis}_deg: {list(limits)} must be [low, high] "
-                                 f"with low < high within the travel of ±{travel:g} deg")
+                raise ValueError(
+                    f"roles.stage.soft_limits_{axis}_deg: {list(limits)} must be [low, high] "
+                    f"with low < high within the travel of ±{travel:g} deg"
+                )
 
     def role(self, role: str) -> PortRole:
         return self.role_specs[role]
@@ -224,7 +254,9 @@ class BenchConfig(_Strict):
     def stage_bench(self) -> StageBench:
         """The stacked stages' hardware as the physics and calibration code take it."""
         if self.hardware is None:
-            raise InputError(f"bench {self.name!r} is a {self.kind} bench: it has no stacked stages")
+            raise InputError(
+                f"bench {self.name!r} is a {self.kind} bench: it has no stacked stages"
+            )
         return StageBench(**self.hardware.model_dump())
 
 
@@ -252,11 +284,22 @@ class BenchesFile(_Strict):
             if len(on_port) < 2:
                 continue
             names = ", ".join(f"{b}.{r}" for b, r, _ in on_port)
-            if any(not isinstance(s, Rs485InclinometerRole | AmbientSensorRole) for _, _, s in on_port):
-                raise ValueError(f"port {where} is given to {names}; only RS-485 instruments may share a port")
-            addresses = [s.address.upper() for _, _, s in on_port if isinstance(s, Rs485InclinometerRole | AmbientSensorRole)]
+            if any(
+                not isinstance(s, Rs485InclinometerRole | AmbientSensorRole) for _, _, s in on_port
+            ):
+                raise ValueError(
+                    f"port {where} is given to {names}; only RS-485 instruments may share a port"
+                )
+            addresses = [
+                s.address.upper()
+                for _, _, s in on_port
+                if isinstance(s, Rs485InclinometerRole | AmbientSensorRole)
+            ]
             if len(set(addresses)) != len(addresses):
-                raise ValueError(f"port {where}: {names} share an address; each instrument on a bus needs its own")
+                raise ValueError(
+                    f"port {where}: {names} share an address; each instrument on a bus needs its "
+                    "own"
+                )
             if len({s.baud for _, _, s in on_port}) > 1:
                 raise ValueError(f"port {where}: {names} give different baud rates for one bus")
 
@@ -264,16 +307,21 @@ class BenchesFile(_Strict):
         """A bench by name; without a name, the file's only bench."""
         if name is None:
             if len(self.benches) != 1:
-                raise InputError(f"the configuration describes {len(self.benches)} benches "
-                                 f"({', '.join(self.benches)}); name one")
+                raise InputError(
+                    f"the configuration describes {len(self.benches)} benches "
+                    f"({', '.join(self.benches)}); name one"
+                )
             return next(iter(self.benches.values()))
         if name not in self.benches:
-            raise InputError(f"no bench named {name!r}; the configuration has {', '.join(self.benches)}")
+            raise InputError(
+                f"no bench named {name!r}; the configuration has {', '.join(self.benches)}"
+            )
         return self.benches[name]
 
 
 def _first(exc: ValidationError) -> str:
-    """The first problem as `field.path: message` (or the message alone when it is about the whole table)."""
+    """The first problem as `field.path: message` (or the message alone when it is about the whole
+    table)."""
     e = exc.errors()[0]
     loc = ".".join(str(x) for x in e["loc"] if not str(x).startswith("function-"))
     msg = e["msg"].removeprefix("Value error, ")
@@ -309,18 +357,22 @@ def load_bench_config(path: str | Path) -> BenchesFile:
 
 
 def load_stage_bench(path: str | Path) -> tuple[StageBench, str]:
-    """The stacked stages' hardware from a bench configuration (TOML) or a scenario file's `bench` section (JSON).
+    """The stacked stages' hardware from a bench configuration (TOML) or a scenario file's `bench`
+    section (JSON).
 
     Returns the bench and where it came from, as MODEL.json and the reports record it. A
-    configuration with several stage benches is refused: name the file of the one the data came from.
+    configuration with several stage benches is refused: name the file of the one the data came
+    from.
     """
     p = Path(path).expanduser()
     if p.suffix.lower() == ".toml":
         benches = [b for b in load_bench_config(p).benches.values() if b.kind == "stage"]
         if len(benches) != 1:
             names = ", ".join(b.name for b in benches) or "none"
-            raise InputError(f"{p}: --bench needs a configuration with one stage bench, this one has {len(benches)} "
-                             f"({names})")
+            raise InputError(
+                f"{p}: --bench needs a configuration with one stage bench, this one has "
+                f"{len(benches)} ({names})"
+            )
         return benches[0].stage_bench(), f"{p} (bench {benches[0].name!r}, hardware table)"
     if p.suffix.lower() == ".json":
         from service.scenarios.model import StageScenario, load_scenario
@@ -329,7 +381,9 @@ def load_stage_bench(path: str | Path) -> tuple[StageBench, str]:
             raise InputError(f"{p}: no such scenario file")
         scenario = load_scenario(p)
         if not isinstance(scenario, StageScenario):
-            raise InputError(f"{p}: a {scenario.kind} scenario has no stacked stages; --bench needs a stage bench")
+            raise InputError(
+                f"{p}: a {scenario.kind} scenario has no stacked stages; --bench needs a stage "
+                "bench"
+            )
         return StageBench(**scenario.bench.model_dump()), f"{p} (scenario's bench section)"
     raise InputError(f"{p}: --bench takes a bench configuration (.toml) or a scenario file (.json)")
-

@@ -1,6 +1,7 @@
 """Family (A): biaxial inclinometers (and the triaxial module) speaking 0x68 binary frames.
 
-    0x68 | LEN | ADDR | CMD | DATA ... | CS      LEN counts LEN..CS, CS = (LEN+ADDR+CMD+ΣDATA) & 0xFF
+    0x68 | LEN | ADDR | CMD | DATA ... | CS      LEN counts LEN..CS, CS = (LEN+ADDR+CMD+ΣDATA) &
+0xFF
 
 Angles travel as 4 bytes of packed BCD (sign nibble, 3 integer digits, 4 decimals, degrees),
 temperatures as 3 (sign, 3 integer, 2 decimals, °C), the triaxial module's sines as 4 (sign,
@@ -30,17 +31,43 @@ ZERO_ABSOLUTE, ZERO_RELATIVE = 0x00, 0x01
 STATUS_DONE, STATUS_REFUSED = 0x00, 0xFF
 BAUD_CODES = {0x00: 2400, 0x01: 4800, 0x02: 9600, 0x03: 19200, 0x04: 38400, 0x05: 115200}
 CODE_OF_BAUD = {v: k for k, v in BAUD_CODES.items()}
-# Output mode code -> frames per second (0: answers only; None: continuous, back to back at the line rate).
-OUTPUT_MODES: dict[int, float | None] = {0x00: 0.0, 0x01: 5.0, 0x02: 15.0, 0x03: 25.0, 0x04: 35.0, 0x05: 50.0,
-                                         0x06: 100.0, 0x07: None}
+# Output mode code -> frames per second (0: answers only; None: continuous, back to back at the line
+# rate).
+OUTPUT_MODES: dict[int, float | None] = {
+    0x00: 0.0,
+    0x01: 5.0,
+    0x02: 15.0,
+    0x03: 25.0,
+    0x04: 35.0,
+    0x05: 50.0,
+    0x06: 100.0,
+    0x07: None,
+}
 
 # Request commands and whether they carry one argument byte.
-REQUEST_ARG = {READ_X: False, READ_Y: False, READ_XY: False, READ_TEMP: False, READ_SINES: False,
-               SET_ZERO: True, SET_BAUD: True, SET_ADDRESS: True, SET_OUTPUT: True}
+REQUEST_ARG = {
+    READ_X: False,
+    READ_Y: False,
+    READ_XY: False,
+    READ_TEMP: False,
+    READ_SINES: False,
+    SET_ZERO: True,
+    SET_BAUD: True,
+    SET_ADDRESS: True,
+    SET_OUTPUT: True,
+}
 # Answer commands and their DATA length.
-ANSWER_DATA_LEN = {READ_X | ANSWER: 4, READ_Y | ANSWER: 4, READ_XY | ANSWER: 8, READ_TEMP | ANSWER: 3,
-                   READ_SINES | ANSWER: 12, SET_ZERO | ANSWER: 1, SET_BAUD | ANSWER: 1, SET_ADDRESS | ANSWER: 1,
-                   SET_OUTPUT | ANSWER: 1}
+ANSWER_DATA_LEN = {
+    READ_X | ANSWER: 4,
+    READ_Y | ANSWER: 4,
+    READ_XY | ANSWER: 8,
+    READ_TEMP | ANSWER: 3,
+    READ_SINES | ANSWER: 12,
+    SET_ZERO | ANSWER: 1,
+    SET_BAUD | ANSWER: 1,
+    SET_ADDRESS | ANSWER: 1,
+    SET_OUTPUT | ANSWER: 1,
+}
 STATUS_ANSWERS = {SET_ZERO | ANSWER, SET_BAUD | ANSWER, SET_ADDRESS | ANSWER, SET_OUTPUT | ANSWER}
 _LEN_OK = {"request": {4, 5}, "answer": {4 + n for n in ANSWER_DATA_LEN.values()}}
 
@@ -73,6 +100,7 @@ BinaryMessage = BinaryRequest | BinaryAnswer
 
 
 # --- packed BCD -------------------------------------------------------------------------------
+
 
 def encode_bcd(value: float, int_digits: int, decimals: int) -> bytes:
     """Sign nibble then int_digits + decimals digits, rounded to the last decimal."""
@@ -107,6 +135,7 @@ def encode_sine(s: float) -> bytes:
 
 # --- frames -----------------------------------------------------------------------------------
 
+
 def frame(address: int, command: int, data: bytes = b"") -> bytes:
     if not (0 <= address <= 0xFF and 0 <= command <= 0xFF):
         raise ValueError("address and command are single bytes")
@@ -119,7 +148,10 @@ def encode_request(msg: BinaryRequest) -> bytes:
     if msg.command not in REQUEST_ARG:
         raise ValueError(f"0x{msg.command:02X} is not a request of the binary protocol")
     if REQUEST_ARG[msg.command] != (msg.argument is not None):
-        raise ValueError(f"request 0x{msg.command:02X} {'needs' if REQUEST_ARG[msg.command] else 'takes no'} argument")
+        raise ValueError(
+            f"request 0x{msg.command:02X} {'needs' if REQUEST_ARG[msg.command] else 'takes no'} "
+            "argument"
+        )
     return frame(msg.address, msg.command, b"" if msg.argument is None else bytes([msg.argument]))
 
 
@@ -156,15 +188,23 @@ def _given(value: T | None, command: int) -> T:
 def _decode_answer(address: int, command: int, data: bytes) -> BinaryAnswer:
     if command in (READ_X | ANSWER, READ_Y | ANSWER):
         v = decode_bcd(data, 4)
-        return BinaryAnswer(address, command, x_deg=v) if command == READ_X | ANSWER else \
-            BinaryAnswer(address, command, y_deg=v)
+        return (
+            BinaryAnswer(address, command, x_deg=v)
+            if command == READ_X | ANSWER
+            else BinaryAnswer(address, command, y_deg=v)
+        )
     if command == READ_XY | ANSWER:
-        return BinaryAnswer(address, command, x_deg=decode_bcd(data[:4], 4), y_deg=decode_bcd(data[4:], 4))
+        return BinaryAnswer(
+            address, command, x_deg=decode_bcd(data[:4], 4), y_deg=decode_bcd(data[4:], 4)
+        )
     if command == READ_TEMP | ANSWER:
         return BinaryAnswer(address, command, temp_c=decode_bcd(data, 2))
     if command == READ_SINES | ANSWER:
-        return BinaryAnswer(address, command,
-                            sines=(decode_bcd(data[0:4], 6), decode_bcd(data[4:8], 6), decode_bcd(data[8:12], 6)))
+        return BinaryAnswer(
+            address,
+            command,
+            sines=(decode_bcd(data[0:4], 6), decode_bcd(data[4:8], 6), decode_bcd(data[8:12], 6)),
+        )
     status = data[0]
     if status not in (STATUS_DONE, STATUS_REFUSED):
         raise BcdError(f"status byte 0x{status:02X}")
@@ -197,7 +237,7 @@ def _parse(buf: bytes, direction: str) -> Parsed[BinaryMessage]:
         end = j + 1 + length
         if end > n:
             return Parsed(out, buf[j:], st)
-        body = buf[j + 1:end - 1]
+        body = buf[j + 1 : end - 1]
         if sum(body) & 0xFF != buf[end - 1]:
             st.bad_checksum += 1
             st.skipped_bytes += 1

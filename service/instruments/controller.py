@@ -5,7 +5,8 @@ Queries end in `?` and are answered with the same axis and command and the value
 
     nPA<p> nPR<p>    move to / by p          nTP?  position          nTS?  state (0..4)
     nST              stop                    nOR   home              nVA<v> / nVA?  velocity
-    nSL<p> nSR<p>    soft limits (+ ? form)  nTE?  last error, then cleared     nID?  model and serial
+    nSL<p> nSR<p>    soft limits (+ ? form)  nTE?  last error, then cleared     nID?  model and
+serial
 
 Like family (C), no checksum: a line is taken only if all of it has the grammar.
 """
@@ -18,7 +19,8 @@ from dataclasses import dataclass
 from service.instruments.framing import Parsed, ParseStats, ascii_lines, reject_line
 
 EOL = b"\r\n"
-# Commands with an integer argument, queries (answered with an integer, or ID with text), bare actions.
+# Commands with an integer argument, queries (answered with an integer, or ID with text), bare
+# actions.
 SET_COMMANDS = ("PA", "PR", "VA", "SL", "SR")
 QUERIES = ("TP", "TS", "VA", "SL", "SR", "TE", "ID")
 ACTIONS = ("ST", "OR")
@@ -26,13 +28,20 @@ ACTIONS = ("ST", "OR")
 STATE_READY, STATE_MOVING, STATE_HOMING, STATE_HARD_LIMIT, STATE_ERROR = 0, 1, 2, 3, 4
 STATE_NAMES = {0: "ready", 1: "moving", 2: "homing", 3: "hard_limit", 4: "error"}
 ERR_NONE, ERR_UNKNOWN, ERR_SOFT_LIMIT, ERR_NOT_HOMED, ERR_HARD_LIMIT, ERR_BUSY = 0, 1, 2, 3, 4, 5
-ERROR_NAMES = {0: "none", 1: "unknown command", 2: "beyond a soft limit", 3: "not homed", 4: "hard limit",
-               5: "busy"}
+ERROR_NAMES = {
+    0: "none",
+    1: "unknown command",
+    2: "beyond a soft limit",
+    3: "not homed",
+    4: "hard limit",
+    5: "busy",
+}
 
 
 @dataclass(frozen=True)
 class ControllerCommand:
-    """A line to the controller: `value` is the argument of a set command; `query` marks `?` forms."""
+    """A line to the controller: `value` is the argument of a set command; `query` marks `?`
+    forms."""
 
     axis: int
     command: str
@@ -52,7 +61,8 @@ class ControllerAnswer:
 
 @dataclass(frozen=True)
 class UnknownCommand:
-    """A whole printable line addressed to an axis that is no command: the controller sets error 1."""
+    """A whole printable line addressed to an axis that is no command: the controller sets error
+    1."""
 
     axis: int
     text: str
@@ -144,4 +154,3 @@ def parse_answers(buf: bytes) -> Parsed[ControllerAnswer]:
             out.append(ControllerAnswer(int(m[1]), "ID", text=m[4]))
         st.frames += 1
     return Parsed(out, rest, st)
-

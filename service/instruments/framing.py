@@ -16,7 +16,8 @@ from typing import Generic, TypeVar
 
 M = TypeVar("M")
 
-# A line or frame that grows past this without an end is noise; it is dropped and the search restarts.
+# A line or frame that grows past this without an end is noise; it is dropped and the search
+# restarts.
 MAX_PENDING_BYTES = 512
 
 
@@ -26,7 +27,8 @@ class ParseStats:
 
     frames: int = 0  # messages returned
     bad_checksum: int = 0  # complete frames whose checksum did not match
-    resyncs: int = 0  # times bytes were skipped to find the next frame start (garbage, malformed frames)
+    # times bytes were skipped to find the next frame start (garbage, malformed frames)
+    resyncs: int = 0
     skipped_bytes: int = 0
 
     def add(self, other: ParseStats) -> None:
@@ -66,8 +68,9 @@ class Decoder(Generic[M]):
         return self._pending
 
 
-def ascii_lines(buf: bytes, st: ParseStats, second_head: re.Pattern[bytes],
-                terminator: bytes = b"\r\n") -> tuple[list[str], bytes]:
+def ascii_lines(
+    buf: bytes, st: ParseStats, second_head: re.Pattern[bytes], terminator: bytes = b"\r\n"
+) -> tuple[list[str], bytes]:
     """Complete lines of an ASCII family without checksum, and the unterminated rest.
 
     Noise before a line is cut at its last non-printable byte; a line that holds a second
@@ -94,8 +97,11 @@ def reject_line(st: ParseStats, line: bytes | str) -> None:
     st.skipped_bytes += len(line) + 2
 
 
-def split_lines(buf: bytes, terminator: bytes, max_line: int = MAX_PENDING_BYTES) -> tuple[list[bytes], bytes, int]:
-    """Complete lines (without terminator), the unterminated rest, and how many over-long pieces were dropped."""
+def split_lines(
+    buf: bytes, terminator: bytes, max_line: int = MAX_PENDING_BYTES
+) -> tuple[list[bytes], bytes, int]:
+    """Complete lines (without terminator), the unterminated rest, and how many over-long pieces
+    were dropped."""
     parts = buf.split(terminator)
     rest = parts.pop()
     dropped = 0
@@ -106,12 +112,13 @@ def split_lines(buf: bytes, terminator: bytes, max_line: int = MAX_PENDING_BYTES
 
 
 def printable_tail(line: bytes) -> tuple[bytes, bool]:
-    """The part of a line after its last byte that is not printable ASCII; True if something was cut.
+    """The part of a line after its last byte that is not printable ASCII; True if something was
+    cut.
 
     Line noise on an ASCII port is mostly bytes outside the printable range; cutting at
     the last one lets the line that follows the noise be read.
     """
     for i in range(len(line) - 1, -1, -1):
         if not 0x20 <= line[i] < 0x7F:
-            return line[i + 1:], True
+            return line[i + 1 :], True
     return line, False

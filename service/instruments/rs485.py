@@ -1,4 +1,5 @@
-"""Family (B): high-resolution addressable inclinometers on an RS-485 bus, ASCII with an XOR checksum.
+"""Family (B): high-resolution addressable inclinometers on an RS-485 bus, ASCII with an XOR
+checksum.
 
     request  #aaRD<CR>                                    (also ID, ZR, ZA)
     answer   #aaRD X=+1.234 Y=-0.567 T=+21.40 ST=0 *CS<CR><LF>
@@ -108,7 +109,9 @@ def encode_answer(msg: Rs485Answer) -> bytes:
     if isinstance(msg, Rs485Reading):
         if msg.status not in (0, 1, 2):
             raise ValueError(f"status {msg.status} is not 0, 1 or 2")
-        payload = f"{a}RD X={msg.x_mrad:+.3f} Y={msg.y_mrad:+.3f} T={msg.temp_c:+.2f} ST={msg.status}"
+        payload = (
+            f"{a}RD X={msg.x_mrad:+.3f} Y={msg.y_mrad:+.3f} T={msg.temp_c:+.2f} ST={msg.status}"
+        )
         for v, lim in ((msg.x_mrad, 1e6), (msg.y_mrad, 1e6), (msg.temp_c, 1e3)):
             if not abs(round(v, 3)) < lim:
                 raise ValueError(f"{v!r} is out of the range the answer carries")
@@ -116,11 +119,15 @@ def encode_answer(msg: Rs485Answer) -> bytes:
         if msg.status not in (0, 1):
             raise ValueError(f"status {msg.status} is not 0 or 1")
         if not (abs(round(msg.temp_c, 2)) < 1e3 and 0.0 <= round(msg.humidity_pct, 1) < 1e3):
-            raise ValueError(f"T={msg.temp_c!r}, RH={msg.humidity_pct!r} are out of the range the answer carries")
+            raise ValueError(
+                f"T={msg.temp_c!r}, RH={msg.humidity_pct!r} are out of the range the answer carries"
+            )
         payload = f"{a}TH T={msg.temp_c:+.2f} RH={msg.humidity_pct:.1f} ST={msg.status}"
     elif isinstance(msg, Rs485Identity):
-        payload = (f"{a}ID {_word(msg.model, 'model')} SN={_word(msg.serial, 'serial')} "
-                   f"FW={_word(msg.firmware, 'firmware')}")
+        payload = (
+            f"{a}ID {_word(msg.model, 'model')} SN={_word(msg.serial, 'serial')} "
+            f"FW={_word(msg.firmware, 'firmware')}"
+        )
     else:
         payload = f"{a}{'ZR' if msg.relative else 'ZA'} OK"
     return f"#{payload} *{checksum(payload)}\r\n".encode("ascii")

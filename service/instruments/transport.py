@@ -61,7 +61,9 @@ def resolve_usb_serial(usb_serial: str) -> str:
     """The device path of the USB serial adapter with this serial number."""
     found = [p.device for p in serial.tools.list_ports.comports() if p.serial_number == usb_serial]
     if not found:
-        raise DeviceUnavailable(f"no USB serial adapter with serial number {usb_serial} is plugged in")
+        raise DeviceUnavailable(
+            f"no USB serial adapter with serial number {usb_serial} is plugged in"
+        )
     if len(found) > 1:
         raise DeviceUnavailable(f"USB serial number {usb_serial} is reported by {', '.join(found)}")
     path: str = found[0]
@@ -78,8 +80,15 @@ class _Pending:
 class SerialPort:
     """A port, its decoder and its reader thread. Shared by every driver on the same bus."""
 
-    def __init__(self, where: str, parse: Callable[[bytes], Parsed[Any]], *, baud: int, usb_serial: str | None = None,
-                 fail_after_s: float = 30.0) -> None:
+    def __init__(
+        self,
+        where: str,
+        parse: Callable[[bytes], Parsed[Any]],
+        *,
+        baud: int,
+        usb_serial: str | None = None,
+        fail_after_s: float = 30.0,
+    ) -> None:
         self.where = where  # as configured: path, URL, or usb_serial=...
         self.usb_serial = usb_serial
         self.baud = baud
@@ -100,7 +109,8 @@ class SerialPort:
         self._request_lock: asyncio.Lock | None = None
         self._users = 0
         self.bytes_read = 0
-        # Addresses (family A, B) or axes (family D) of the instruments the drivers on this port own.
+        # Addresses (family A, B) or axes (family D) of the instruments the drivers on this port
+        # own.
         self.owned: set[int] = set()
         self.wrong_address = 0
         self.foreign_senders: set[int] = set()
@@ -114,7 +124,9 @@ class SerialPort:
     def start(self) -> None:
         self._users += 1
         if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name=f"port {self.where}", daemon=True)
+            self._thread = threading.Thread(
+                target=self._run, name=f"port {self.where}", daemon=True
+            )
             self._thread.start()
 
     def stop(self) -> None:
@@ -231,7 +243,10 @@ class SerialPort:
         with self._lock:
             ser = self._serial
         if ser is None:
-            raise DeviceUnavailable(f"port {self.where} is not open ({self.state}{': ' + self.error if self.error else ''})")
+            raise DeviceUnavailable(
+                f"port {self.where} is not open "
+                f"({self.state}{': ' + self.error if self.error else ''})"
+            )
         try:
             ser.write(data)
         except Exception as exc:  # noqa: BLE001
@@ -241,7 +256,9 @@ class SerialPort:
         """A write in the port's own thread: a stuck adapter blocks it, not the loop, and a write
         never waits for a worker of the shared pool (busy with database work under load)."""
         if self._writer is None:
-            self._writer = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"write {self.where}")
+            self._writer = concurrent.futures.ThreadPoolExecutor(
+                1, thread_name_prefix=f"write {self.where}"
+            )
         await asyncio.get_running_loop().run_in_executor(self._writer, self._write, data)
 
     async def send(self, data: bytes) -> None:
@@ -249,15 +266,19 @@ class SerialPort:
         async with self._lock_for_requests():
             await self._write_off_loop(data)
 
-    async def request(self, data: bytes, match: Callable[[Any], bool], timeout_s: float, what: str) -> Any:
-        """Write a request and wait for the first message `match` accepts; one request in flight per port."""
+    async def request(
+        self, data: bytes, match: Callable[[Any], bool], timeout_s: float, what: str
+    ) -> Any:
+        """Write a request and wait for the first message `match` accepts; one request in flight per
+        port."""
         async with self._lock_for_requests():
             loop = asyncio.get_running_loop()
             pending = _Pending(match, loop.create_future(), loop)
             with self._lock:
                 self._pending.append(pending)
             try:
-                async with asyncio.timeout(timeout_s):  # (wait_for may swallow a cancellation before 3.12)
+                # (wait_for may swallow a cancellation before 3.12)
+                async with asyncio.timeout(timeout_s):
                     await self._write_off_loop(data)
                     return await pending.future
             except TimeoutError:
@@ -265,7 +286,9 @@ class SerialPort:
                     # the answer came in time, but the loop ran the timer before this task saw it
                     # (a loop held up past the deadline runs both in one pass)
                     return pending.future.result()
-                raise DeviceTimeout(f"{what}: no answer on {self.where} within {timeout_s:g} s") from None
+                raise DeviceTimeout(
+                    f"{what}: no answer on {self.where} within {timeout_s:g} s"
+                ) from None
             finally:
                 with self._lock:
                     if pending in self._pending:
@@ -295,7 +318,9 @@ class PortRegistry:
     def __init__(self) -> None:
         self._ports: dict[str, tuple[SerialPort, str]] = {}
 
-    def get(self, where: str, parse: Callable[[bytes], Parsed[Any]], family: str, **kwargs: Any) -> SerialPort:
+    def get(
+        self, where: str, parse: Callable[[bytes], Parsed[Any]], family: str, **kwargs: Any
+    ) -> SerialPort:
         if where in self._ports:
             port, fam = self._ports[where]
             if fam != family or family != "rs485":

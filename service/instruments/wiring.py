@@ -1,4 +1,5 @@
-"""A bench's instruments, opened from its configuration: one driver per role, ports shared only on a bus."""
+"""A bench's instruments, opened from its configuration: one driver per role, ports shared only on a
+bus."""
 
 from __future__ import annotations
 
@@ -41,16 +42,29 @@ from service.instruments.drivers import (
 )
 from service.instruments.transport import PortRegistry, SerialPort
 
-PARSERS: dict[str, Callable[[bytes], Any]] = {"binary": binary.parse_answers, "rs485": rs485.parse_answers, "adc": adc.parse_answers,
-           "controller": controller.parse_answers}
+PARSERS: dict[str, Callable[[bytes], Any]] = {
+    "binary": binary.parse_answers,
+    "rs485": rs485.parse_answers,
+    "adc": adc.parse_answers,
+    "controller": controller.parse_answers,
+}
 
-# Every family's driver class, as `make_driver` hands them out (TriaxialModule is a BinaryInclinometer).
-RoleDriver = BinaryInclinometer | Rs485Inclinometer | Rs485Thermohygrometer | AdcSensor | ControllerAxis | StageController
+# Every family's driver class, as `make_driver` hands them out (TriaxialModule is a
+# BinaryInclinometer).
+RoleDriver = (
+    BinaryInclinometer
+    | Rs485Inclinometer
+    | Rs485Thermohygrometer
+    | AdcSensor
+    | ControllerAxis
+    | StageController
+)
 
 
 class BenchDevices:
     """The drivers of one bench by role (`devices.stage`, `devices["reference_sensor"]`), and each
-    role as the protocol it plays (`devices.sensor(role)`, `devices.stage_axes()`, `devices.axis(role)`)."""
+    role as the protocol it plays (`devices.sensor(role)`, `devices.stage_axes()`,
+    `devices.axis(role)`)."""
 
     def __init__(self, config: BenchConfig, clock: Clock, drivers: Mapping[str, Driver]) -> None:
         self.config = config
@@ -77,11 +91,13 @@ class BenchDevices:
         return iter(self.drivers)
 
     def sensor(self, role: str) -> Sensor:
-        """The role's driver as a source of readings (KeyError if the bench has none that measures)."""
+        """The role's driver as a source of readings (KeyError if the bench has none that
+        measures)."""
         return self._sensors[role]
 
     def tilt_sensor(self, role: str) -> TiltSensor | None:
-        """The role's driver if it reads tilt and temperature (a biaxial inclinometer), else None."""
+        """The role's driver if it reads tilt and temperature (a biaxial inclinometer), else
+        None."""
         d = self._sensors.get(role)
         return d if isinstance(d, TiltSensor) else None
 
@@ -123,16 +139,22 @@ class BenchDevices:
 
 def _port(registry: PortRegistry, role: str, spec: PortRole) -> SerialPort:
     family = PROTOCOL_OF_ROLE[role]
-    return registry.get(spec.where, PARSERS[family], family=family, baud=spec.baud or DEFAULT_BAUD[family],
-                        usb_serial=spec.usb_serial)
+    return registry.get(
+        spec.where,
+        PARSERS[family],
+        family=family,
+        baud=spec.baud or DEFAULT_BAUD[family],
+        usb_serial=spec.usb_serial,
+    )
 
 
 def _limits(pair: list[float] | None) -> tuple[float, float] | None:
     return (float(pair[0]), float(pair[1])) if pair else None
 
 
-def make_driver(role: str, spec: PortRole, config: BenchConfig, clock: Clock,
-                registry: PortRegistry) -> RoleDriver:
+def make_driver(
+    role: str, spec: PortRole, config: BenchConfig, clock: Clock, registry: PortRegistry
+) -> RoleDriver:
     """The driver of one role, as its family's class (a probe reaches its port too)."""
     port = _port(registry, role, spec)
     t = spec.timeout_s
@@ -143,24 +165,52 @@ def make_driver(role: str, spec: PortRole, config: BenchConfig, clock: Clock,
     if isinstance(spec, Rs485InclinometerRole):
         return Rs485Inclinometer(role, port, clock, t, int(spec.address, 16), spec.poll_rate_hz)
     if isinstance(spec, AmbientSensorRole):
-        return Rs485Thermohygrometer(role, port, clock, t, int(spec.address, 16), spec.poll_rate_hz,
-                                     spec.standard_uncertainty_c, spec.standard_uncertainty_pct)
+        return Rs485Thermohygrometer(
+            role,
+            port,
+            clock,
+            t,
+            int(spec.address, 16),
+            spec.poll_rate_hz,
+            spec.standard_uncertainty_c,
+            spec.standard_uncertainty_pct,
+        )
     if isinstance(spec, AdcRole):
         return AdcSensor(role, port, clock, t, spec.conversions_per_reading, spec.poll_rate_hz)
     if isinstance(spec, StageControllerRole):
         hw = config.stage_bench()
-        x = ControllerAxis(role, port, clock, t, 1, hw.pulse_x_deg, spec.velocity_pulses_per_s,
-                           _limits(spec.soft_limits_x_deg))
-        y = ControllerAxis(role, port, clock, t, 2, hw.pulse_y_deg, spec.velocity_pulses_per_s,
-                           _limits(spec.soft_limits_y_deg))
+        x = ControllerAxis(
+            role,
+            port,
+            clock,
+            t,
+            1,
+            hw.pulse_x_deg,
+            spec.velocity_pulses_per_s,
+            _limits(spec.soft_limits_x_deg),
+        )
+        y = ControllerAxis(
+            role,
+            port,
+            clock,
+            t,
+            2,
+            hw.pulse_y_deg,
+            spec.velocity_pulses_per_s,
+            _limits(spec.soft_limits_y_deg),
+        )
         return StageController(role, x, y)
     assert isinstance(spec, RotaryTableRole)
-    return ControllerAxis(role, port, clock, t, spec.axis, spec.pulse_deg, spec.velocity_pulses_per_s)
+    return ControllerAxis(
+        role, port, clock, t, spec.axis, spec.pulse_deg, spec.velocity_pulses_per_s
+    )
 
 
 def open_bench(bench_config: BenchConfig, clock: Clock) -> BenchDevices:
     """Drivers for every role of the bench; nothing is opened before `await devices.start()`."""
     registry = PortRegistry()
-    drivers: dict[str, Driver] = {role: make_driver(role, spec, bench_config, clock, registry)
-               for role, spec in bench_config.role_specs.items()}
+    drivers: dict[str, Driver] = {
+        role: make_driver(role, spec, bench_config, clock, registry)
+        for role, spec in bench_config.role_specs.items()
+    }
     return BenchDevices(bench_config, clock, drivers)

@@ -1,4 +1,5 @@
-"""Dataset column names, the one place they are written (the offline contract, docs/ and the README).
+"""Dataset column names, the one place they are written (the offline contract, docs/ and the
+README).
 
 Physics returns readings keyed by these names, the simulator writes them in the `*_DATASET`
 order, the methods read them, and `read_dataset` checks their values.
@@ -11,7 +12,8 @@ from typing import Any
 
 # stage: two stacked swing stages, a reference and a measurement sensor on the table
 POINT = "point"
-STAGE = ("stage_x_deg", "stage_y_deg")  # commanded angles, as the controller executes them (whole pulses)
+# commanded angles, as the controller executes them (whole pulses)
+STAGE = ("stage_x_deg", "stage_y_deg")
 TARGET = ("target_x_deg", "target_y_deg")  # wanted table tilt (levelling input)
 DIRECTION = ("dir_x", "dir_y")  # sign of the last move of each stage (backlash)
 REF = ("ref_x_deg", "ref_y_deg")
@@ -19,8 +21,8 @@ MEAS = ("meas_x_deg", "meas_y_deg")
 TEMP = "temp_c"
 TIME = "t_s"
 TILT_OUTPUTS = ("tilt_x_deg", "tilt_y_deg", "u_tilt_x_deg", "u_tilt_y_deg")  # what `correct` adds
-# Coverage factors of u_tilt_x_deg / u_tilt_y_deg (95 %, effective degrees of freedom): returned by a
-# stage method's `correct` beside TILT_OUTPUTS for the daemon, not written to dataset files.
+# Coverage factors of u_tilt_x_deg / u_tilt_y_deg (95 %, effective degrees of freedom): returned by
+# a stage method's `correct` beside TILT_OUTPUTS for the daemon, not written to dataset files.
 K_OUTPUTS = ("k_tilt_x", "k_tilt_y")
 STAGE_DATASET = (POINT, *STAGE, *DIRECTION, *REF, *MEAS, TEMP, TIME)
 
@@ -33,13 +35,21 @@ SCALE_DATASET = (POINT, "ref_arcsec", "reading")
 
 # turntable: an inclinometer read at two positions half a turn apart, against a star reference
 TURNTABLE_READINGS = ("n1_a", "n2_a", "n1_b", "n2_b")
-TURNTABLE_DATASET = ("cycle", "azimuth_deg", *TURNTABLE_READINGS, "ref_north_arcsec", "ref_east_arcsec")
+TURNTABLE_DATASET = (
+    "cycle",
+    "azimuth_deg",
+    *TURNTABLE_READINGS,
+    "ref_north_arcsec",
+    "ref_east_arcsec",
+)
 
-# Uncertainty columns of `correct` (docs/datasets.md). A method returns, per corrected quantity q (e.g. tilt_x_deg),
-# its expanded uncertainty as `u_<q>` and the coverage factor as `k_<q without its unit>`; the files name them so
-# that nobody can read one for the other (GUM: u is a standard uncertainty, U = k·u the expanded one).
+# Uncertainty columns of `correct` (docs/datasets.md). A method returns, per corrected quantity q
+# (e.g. tilt_x_deg), its expanded uncertainty as `u_<q>` and the coverage factor as `k_<q without
+# its unit>`; the files name them so that nobody can read one for the other (GUM: u is a standard
+# uncertainty, U = k·u the expanded one).
 COVERAGE_PROBABILITY = "coverage_probability"
-DEPRECATED_UNCERTAINTY_PREFIX = "u_"  # files before this release: `u_<q>` held the expanded uncertainty
+# files before this release: `u_<q>` held the expanded uncertainty
+DEPRECATED_UNCERTAINTY_PREFIX = "u_"
 
 
 def _bare(q: str) -> str:
@@ -50,14 +60,23 @@ def _bare(q: str) -> str:
 
 
 def uncertainty_names(q: str) -> dict[str, str]:
-    """The columns `correct` writes for quantity q: expanded and standard uncertainty, coverage factor."""
-    return {"expanded": f"expanded_uncertainty_{q}", "standard": f"standard_uncertainty_{q}",
-            "coverage_factor": f"coverage_factor_{_bare(q)}"}
+    """The columns `correct` writes for quantity q: expanded and standard uncertainty, coverage
+    factor."""
+    return {
+        "expanded": f"expanded_uncertainty_{q}",
+        "standard": f"standard_uncertainty_{q}",
+        "coverage_factor": f"coverage_factor_{_bare(q)}",
+    }
 
 
-def uncertainty_columns(result: Mapping[str, Any], quantities: tuple[str, ...], coverage: float,
-                        deprecated: bool = False) -> dict[str, Any]:
-    """A method's corrected values as `correct` writes them: each value, then its uncertainty columns, named."""
+def uncertainty_columns(
+    result: Mapping[str, Any],
+    quantities: tuple[str, ...],
+    coverage: float,
+    deprecated: bool = False,
+) -> dict[str, Any]:
+    """A method's corrected values as `correct` writes them: each value, then its uncertainty
+    columns, named."""
     import numpy as np
 
     out: dict[str, Any] = {}
@@ -80,4 +99,5 @@ def uncertainty_columns(result: Mapping[str, Any], quantities: tuple[str, ...], 
     return out
 
 
-INTEGER_COLUMNS = frozenset({POINT, "cycle", *DIRECTION, "reading"})  # written without a decimal point
+# written without a decimal point
+INTEGER_COLUMNS = frozenset({POINT, "cycle", *DIRECTION, "reading"})

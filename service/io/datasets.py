@@ -92,33 +92,45 @@ _NON_FINITE = {"nan", "inf", "infinity"}
 
 def _decode(source: str, data: bytes) -> str:
     if data.startswith((b"\xff\xfe", b"\xfe\xff")):
-        raise InputError(f"{source}: the file is UTF-16 text; save it as CSV in UTF-8 (comma-separated)")
+        raise InputError(
+            f"{source}: the file is UTF-16 text; save it as CSV in UTF-8 (comma-separated)"
+        )
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         start = exc.start + (3 if data.startswith(b"\xef\xbb\xbf") else 0)
         line = data[:start].count(b"\n") + 1
-        raise InputError(f"{source}, line {line}: byte 0x{data[start]:02x} is not UTF-8 text; "
-                         "save the file as CSV in UTF-8") from None
+        raise InputError(
+            f"{source}, line {line}: byte 0x{data[start]:02x} is not UTF-8 text; "
+            "save the file as CSV in UTF-8"
+        ) from None
 
 
 def _separator_error(source: str, header_cell: str) -> InputError | None:
     for sep, name in ((";", "semicolon"), ("\t", "tab")):
         if sep in header_cell:
-            return InputError(f"{source}, line 1: the header is separated by {name}s ({header_cell[:40]!r}...); "
-                              "the separator must be a comma (',') and the decimal mark a point ('.')")
+            return InputError(
+                f"{source}, line 1: the header is separated by {name}s ({header_cell[:40]!r}...); "
+                "the separator must be a comma (',') and the decimal mark a point ('.')"
+            )
     return None
 
 
-def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str, ...]] = (),
-                 optional: Sequence[str] = (), *, max_rows: int | None = None) -> Dataset:
+def read_dataset(
+    path: str | Path,
+    kind: str,
+    required: Sequence[str | tuple[str, ...]] = (),
+    optional: Sequence[str] = (),
+    *,
+    max_rows: int | None = None,
+) -> Dataset:
     """Read and validate a dataset.
 
     `required` items are column names or tuples of alternatives (the first present is used,
     e.g. ("ref_arcsec", "ref_deg")). `optional` columns are validated when present; the two axes of
     a sensor (`*_x_*` and `*_y_*`) go together: one without the other is refused, naming the missing
-    one. With `max_rows`, a file of more data rows is refused before it is read (counted line by line,
-    in constant memory).
+    one. With `max_rows`, a file of more data rows is refused before it is read (counted line by
+    line, in constant memory).
     """
     source = str(path)
     if max_rows is not None:
@@ -147,7 +159,9 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
         raise err
     header = [c.strip(_BLANK) for c in rows[0]]
     if any(not c for c in header):
-        raise InputError(f"{source}: header has an empty column name at position {header.index('') + 1}")
+        raise InputError(
+            f"{source}: header has an empty column name at position {header.index('') + 1}"
+        )
     dup = sorted({c for c in header if header.count(c) > 1})
     if dup:
         raise InputError(f"{source}: column {dup[0]!r} appears more than once in the header")
@@ -156,7 +170,10 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
         raise InputError(f"{source}: no data rows under the header")
     for i, r in enumerate(body, start=1):
         if len(r) != len(header):
-            raise InputError(f"{source}, row {i} (line {lines[i - 1]}): {len(r)} cells where the header has {len(header)}")
+            raise InputError(
+                f"{source}, row {i} (line {lines[i - 1]}): {len(r)} cells where the header has "
+                f"{len(header)}"
+            )
     text = {c: [r[j].strip(_BLANK) for r in body] for j, c in enumerate(header)}
     ds = Dataset(source, kind, header, text, lines=lines)
 
@@ -168,11 +185,14 @@ def read_dataset(path: str | Path, kind: str, required: Sequence[str | tuple[str
             names = " or ".join(repr(a) for a in alts)
             raise InputError(f"{source}: missing required column {names} for kind {kind!r}")
         use.append(found)
-    for col in optional:  # a sensor's two axes go together: one alone is a column lost, not an option left out
+    # a sensor's two axes go together: one alone is a column lost, not an option left out
+    for col in optional:
         partner = _partner(col)
         if col in text and partner is not None and partner in optional and partner not in text:
-            raise InputError(f"{source}: has column {col!r} but not {partner!r}: the two axes of a sensor go together;"
-                             f" add {partner!r}, or leave out both")
+            raise InputError(
+                f"{source}: has column {col!r} but not {partner!r}: the two axes of a sensor go "
+                f"together; add {partner!r}, or leave out both"
+            )
     use += [c for c in optional if c in text and c not in use]
     for col in use:
         ds.numeric[col] = _numeric_column(ds, col)
@@ -188,7 +208,8 @@ def _partner(col: str) -> str | None:
 
 
 def _refuse_more_rows_than(source: str, path: Path, max_rows: int) -> None:
-    """InputError when the file has more than `max_rows` data rows (non-blank lines under the header)."""
+    """InputError when the file has more than `max_rows` data rows (non-blank lines under the
+    header)."""
     try:
         with path.open("rb") as f:
             rows = -1  # the header
@@ -202,9 +223,12 @@ def _refuse_more_rows_than(source: str, path: Path, max_rows: int) -> None:
     except OSError as exc:
         raise InputError(f"{source}: cannot read: {exc.strerror or exc}") from None
     if rows > max_rows:
-        raise InputError(f"{source}: more than {max_rows:,} data rows; calibrate fits at most {max_rows:,} (--max-rows)."
-                         " A calibration run has one row per settled point: average the raw readings of each point"
-                         " first, or raise --max-rows (docs/datasets.md says what a fit of many rows costs)")
+        raise InputError(
+            f"{source}: more than {max_rows:,} data rows; calibrate fits at most {max_rows:,} "
+            "(--max-rows). A calibration run has one row per settled point: average the raw "
+            "readings of each point first, or raise --max-rows (docs/datasets.md says what a "
+            "fit of many rows costs)"
+        )
 
 
 def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
@@ -213,7 +237,9 @@ def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
     for i, cell in enumerate(cells):
         if cell == "":
             if not any(cells):
-                raise InputError(f"{ds.where(i + 1, col)}: empty cell (the column is empty in every row)")
+                raise InputError(
+                    f"{ds.where(i + 1, col)}: empty cell (the column is empty in every row)"
+                )
             raise InputError(f"{ds.where(i + 1, col)}: empty cell")
         if not _NUMBER.fullmatch(cell):
             if cell.lower().lstrip("+-") in _NON_FINITE:
@@ -230,8 +256,14 @@ def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
         bad = np.flatnonzero((values < lo) | (values > hi))
         if bad.size:
             i = int(bad[0])
-            unit = " (no tilt in degrees is beyond ±90: is the column in another unit?)" if col.endswith("_deg") and hi == 90.0 else ""
-            raise InputError(f"{ds.where(i + 1, col)}: {cells[i]} is outside [{lo:g}, {hi:g}]{unit}")
+            unit = (
+                " (no tilt in degrees is beyond ±90: is the column in another unit?)"
+                if col.endswith("_deg") and hi == 90.0
+                else ""
+            )
+            raise InputError(
+                f"{ds.where(i + 1, col)}: {cells[i]} is outside [{lo:g}, {hi:g}]{unit}"
+            )
     if col.startswith("dir_"):
         bad = np.flatnonzero(~np.isin(values, (-1.0, 0.0, 1.0)))
         if bad.size:
@@ -241,13 +273,17 @@ def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
         dec = np.flatnonzero(np.diff(values) < 0)
         if dec.size:
             i = int(dec[0]) + 1
-            raise InputError(f"{ds.where(i + 1, col)}: {cells[i]} is earlier than the row before "
-                             f"({cells[i - 1]}); t_s must not decrease")
+            raise InputError(
+                f"{ds.where(i + 1, col)}: {cells[i]} is earlier than the row before "
+                f"({cells[i - 1]}); t_s must not decrease"
+            )
     if col in ("point", "cycle"):
         bad = np.flatnonzero((values != np.round(values)) | (values < 0))
         if bad.size:
             i = int(bad[0])
-            raise InputError(f"{ds.where(i + 1, col)}: {cells[i]} is not a non-negative whole number")
+            raise InputError(
+                f"{ds.where(i + 1, col)}: {cells[i]} is not a non-negative whole number"
+            )
     return values
 
 
@@ -259,7 +295,8 @@ _INTEGER_COLUMNS = INTEGER_COLUMNS
 # so rounding never shows in a result and no digit beyond the instruments' is invented.
 DECIMALS_BY_SUFFIX = (("_deg", 7), ("_arcsec", 4), ("_rad", 9))
 DECIMALS_BY_COLUMN = {"sx": 10, "sy": 10, "sz": 10}
-SIGNIFICANT_DIGITS = 10  # columns in other units (readings in the instrument's unit, times, temperatures)
+# columns in other units (readings in the instrument's unit, times, temperatures)
+SIGNIFICANT_DIGITS = 10
 
 
 def format_value(col: str, v: str | float, *, exact: bool = False) -> str:
@@ -298,8 +335,9 @@ def about(path: object) -> Iterator[None]:
 
 
 def _umask() -> int:
-    """The process umask, read without changing it where the system allows (Linux: /proc/self/status);
-    elsewhere by setting and restoring it, which a thread creating a file at that moment could see."""
+    """The process umask, read without changing it where the system allows (Linux:
+    /proc/self/status); elsewhere by setting and restoring it, which a thread creating a file at
+    that moment could see."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
             if line.startswith("Umask:"):
@@ -326,7 +364,9 @@ def check_output_path(path: str | Path) -> Path:
     return path
 
 
-def check_not_overwriting(out: str | Path, option: str = "--out", **inputs: str | Path | None) -> None:
+def check_not_overwriting(
+    out: str | Path, option: str = "--out", **inputs: str | Path | None
+) -> None:
     """Refuse an output path that is one of the command's input files (which it would replace)."""
     for name, inp in inputs.items():
         if inp is None:
@@ -336,8 +376,10 @@ def check_not_overwriting(out: str | Path, option: str = "--out", **inputs: str 
         except OSError:  # one of them does not exist (yet)
             same = False
         if same:
-            raise InputError(f"{option} {out} is the input file --{name.replace('_', '-')} {inp}; "
-                             "write the result to another file so the input is kept")
+            raise InputError(
+                f"{option} {out} is the input file --{name.replace('_', '-')} {inp}; "
+                "write the result to another file so the input is kept"
+            )
 
 
 def _atomic_write(path: str | Path, write: Callable[[TextIO], object]) -> None:
@@ -373,7 +415,9 @@ class _RowLines:
         return self._fh.write(row[:-2] + "\n")
 
 
-def write_dataset(path: str | Path, columns: Mapping[str, Sequence[Any] | NDArray[np.float64]]) -> None:
+def write_dataset(
+    path: str | Path, columns: Mapping[str, Sequence[Any] | NDArray[np.float64]]
+) -> None:
     """Write columns (numeric arrays or text lists) atomically."""
     names = list(columns)
     if not names:
@@ -398,13 +442,17 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 
 
 # Units a tilt column is mistaken for, as (name, how many of them make a degree, how to convert).
-_MISTAKEN_UNITS = (("radians", math.pi / 180.0, "degrees = radians × 57.2958"),
-                   ("milliradians", 1000.0 * math.pi / 180.0, "degrees = milliradians × 0.0572958"),
-                   ("arc minutes", 60.0, "degrees = arc minutes / 60"),
-                   ("arc seconds", 3600.0, "degrees = arc seconds / 3600"),
-                   ("millidegrees", 1000.0, "degrees = millidegrees / 1000"))
-STAGE_SPAN_TO_JUDGE_DEG = 0.5  # below this the stage moved too little to compare the sensors' spans with
-TILT_MARGIN_DEG = 5.0  # a sensor on the table reads the stage's tilt give or take its mounting, never more
+_MISTAKEN_UNITS = (
+    ("radians", math.pi / 180.0, "degrees = radians × 57.2958"),
+    ("milliradians", 1000.0 * math.pi / 180.0, "degrees = milliradians × 0.0572958"),
+    ("arc minutes", 60.0, "degrees = arc minutes / 60"),
+    ("arc seconds", 3600.0, "degrees = arc seconds / 3600"),
+    ("millidegrees", 1000.0, "degrees = millidegrees / 1000"),
+)
+# below this the stage moved too little to compare the sensors' spans with
+STAGE_SPAN_TO_JUDGE_DEG = 0.5
+# a sensor on the table reads the stage's tilt give or take its mounting, never more
+TILT_MARGIN_DEG = 5.0
 
 
 def check_stage_units(ds: Dataset, travel_deg: float) -> None:
@@ -419,8 +467,10 @@ def check_stage_units(ds: Dataset, travel_deg: float) -> None:
     for col in ("stage_x_deg", "stage_y_deg"):
         if col in cols and (beyond := np.flatnonzero(np.abs(cols[col]) > travel_deg + 1e-9)).size:
             i = int(beyond[0])
-            raise InputError(f"{ds.where(i + 1, col)}: {ds.text[col][i]} is beyond the stage's travel of ±{travel_deg:g}"
-                             " deg; the column must hold the stage angle in degrees")
+            raise InputError(
+                f"{ds.where(i + 1, col)}: {ds.text[col][i]} is beyond the stage's travel of "
+                f"±{travel_deg:g} deg; the column must hold the stage angle in degrees"
+            )
     stage = [cols[c] for c in ("stage_x_deg", "stage_y_deg") if c in cols]
     if not stage:
         return
@@ -429,27 +479,40 @@ def check_stage_units(ds: Dataset, travel_deg: float) -> None:
     for col in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg"):
         if col in cols and (beyond := np.flatnonzero(np.abs(cols[col]) > limit)).size:
             i = int(beyond[0])
-            raise InputError(f"{ds.where(i + 1, col)}: {ds.text[col][i]} is more tilt than the table can show (the"
-                             f" stage travels ±{travel_deg:g} deg): the column must hold the sensor's reading in degrees"
-                             + _unit_hint(float(np.ptp(cols[col])), stage_span))
-    # A sensor's two axes together span about what the stages do (a run may move one stage only, and a
-    # sensor may sit turned on the table, so an axis is not compared with one stage alone).
+            raise InputError(
+                f"{ds.where(i + 1, col)}: {ds.text[col][i]} is more tilt than the table can show "
+                f"(the stage travels ±{travel_deg:g} deg): the column must hold the sensor's "
+                "reading in degrees" + _unit_hint(float(np.ptp(cols[col])), stage_span)
+            )
+    # A sensor's two axes together span about what the stages do (a run may move one stage only, and
+    # a sensor may sit turned on the table, so an axis is not compared with one stage alone).
     for sensor in ("ref", "meas"):
         pair = [c for c in (f"{sensor}_x_deg", f"{sensor}_y_deg") if c in cols]
         if not pair:
             continue
         col = max(pair, key=lambda c: float(np.ptp(cols[c])))
         span = float(np.ptp(cols[col]))
-        if max(span, stage_span) < STAGE_SPAN_TO_JUDGE_DEG or 0.5 <= span / max(stage_span, 1e-12) <= 2.0:
+        if (
+            max(span, stage_span) < STAGE_SPAN_TO_JUDGE_DEG
+            or 0.5 <= span / max(stage_span, 1e-12) <= 2.0
+        ):
             continue
-        if span < stage_span:  # the sensor reads far less than the stage tilts: it is not in degrees
-            raise InputError(f"{ds.source}: column {col}: its readings span {span:.4g} while the stage spans"
-                             f" {stage_span:.4g} deg (a sensor on the table reads about what the stage tilts): the"
-                             " column must hold degrees" + _unit_hint(span, stage_span))
-        stage_col = max((c for c in ("stage_x_deg", "stage_y_deg") if c in cols), key=lambda c: float(np.ptp(cols[c])))
-        raise InputError(f"{ds.source}: column {stage_col}: the stage spans {stage_span:.4g} while {col} reads a tilt"
-                         f" spanning {span:.4g} deg (a sensor on the table reads about what the stage tilts): the"
-                         " stage angles must be in degrees" + _unit_hint(stage_span, span))
+        # the sensor reads far less than the stage tilts: it is not in degrees
+        if span < stage_span:
+            raise InputError(
+                f"{ds.source}: column {col}: its readings span {span:.4g} while the stage spans "
+                f"{stage_span:.4g} deg (a sensor on the table reads about what the stage tilts): "
+                "the column must hold degrees" + _unit_hint(span, stage_span)
+            )
+        stage_col = max(
+            (c for c in ("stage_x_deg", "stage_y_deg") if c in cols),
+            key=lambda c: float(np.ptp(cols[c])),
+        )
+        raise InputError(
+            f"{ds.source}: column {stage_col}: the stage spans {stage_span:.4g} while {col} "
+            f"reads a tilt spanning {span:.4g} deg (a sensor on the table reads about what the "
+            "stage tilts): the stage angles must be in degrees" + _unit_hint(stage_span, span)
+        )
 
 
 def _unit_hint(span: float, stage_span_deg: float) -> str:

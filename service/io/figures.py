@@ -17,12 +17,19 @@ if TYPE_CHECKING:  # matplotlib is imported when a figure is drawn, not at start
     from matplotlib.typing import RcKeyType
 
 FIGURE_DPI = 150
-FONT_SIZES: dict[RcKeyType, Any] = {"font.size": 9, "axes.titlesize": 9, "axes.labelsize": 9, "xtick.labelsize": 8,
-              "ytick.labelsize": 8, "legend.fontsize": 8}
+FONT_SIZES: dict[RcKeyType, Any] = {
+    "font.size": 9,
+    "axes.titlesize": 9,
+    "axes.labelsize": 9,
+    "xtick.labelsize": 8,
+    "ytick.labelsize": 8,
+    "legend.fontsize": 8,
+}
 
 
-def new_figure(nrows: int = 1, ncols: int = 1, size: tuple[float, float] = (8.0, 5.0), *,
-               squeeze: bool = True) -> tuple[Any, Any]:
+def new_figure(
+    nrows: int = 1, ncols: int = 1, size: tuple[float, float] = (8.0, 5.0), *, squeeze: bool = True
+) -> tuple[Any, Any]:
     """A figure and its axes: one Axes when squeeze and 1 x 1, else a 2-D array of them."""
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -41,8 +48,14 @@ def _save(fig: Any, target: Any, fmt: str) -> None:
     import matplotlib
 
     with matplotlib.rc_context(FONT_SIZES):
-        fig.savefig(target, format=fmt, dpi=FIGURE_DPI, bbox_inches="tight", pad_inches=0.05,
-                    metadata={"Software": None})
+        fig.savefig(
+            target,
+            format=fmt,
+            dpi=FIGURE_DPI,
+            bbox_inches="tight",
+            pad_inches=0.05,
+            metadata={"Software": None},
+        )
 
 
 def save_figure(fig: Any, path: str | Path) -> None:

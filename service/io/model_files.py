@@ -12,11 +12,14 @@ from service.io.datasets import write_text_atomic
 
 def read_model(path: str | Path) -> CalibrationModel:
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8-sig"))  # a BOM from a Windows editor is harmless
+        # a BOM from a Windows editor is harmless
+        data = json.loads(Path(path).read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise InputError(f"{path}: no such model file") from None
     except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+        raise InputError(
+            f"{path}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}"
+        ) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read: {exc}") from None
     except RecursionError:

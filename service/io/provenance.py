@@ -1,5 +1,6 @@
-"""Where an artefact came from: tiltlab version, UTC time, the command, and the SHA-256 of each input
-file, so a model or report found on a share years later can be traced to the data it was made from."""
+"""Where an artefact came from: tiltlab version, UTC time, the command, and the SHA-256 of each
+input file, so a model or report found on a share years later can be traced to the data it was made
+from."""
 
 from __future__ import annotations
 
@@ -22,17 +23,25 @@ def provenance(command: str, inputs: Mapping[str, str | Path | None]) -> dict[st
     """The provenance record; `inputs` maps each input's role (option name) to its file."""
     from service import __version__
 
-    files = {role: {"path": str(path), "sha256": sha256_of(path)}
-             for role, path in inputs.items() if path is not None and Path(path).is_file()}
-    return {"tiltlab_version": __version__,
-            "utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
-            "command": command, "inputs": files}
+    files = {
+        role: {"path": str(path), "sha256": sha256_of(path)}
+        for role, path in inputs.items()
+        if path is not None and Path(path).is_file()
+    }
+    return {
+        "tiltlab_version": __version__,
+        "utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
+        "command": command,
+        "inputs": files,
+    }
 
 
 def provenance_lines(record: Mapping[str, Any]) -> list[str]:
     """The record as short lines for a page or a report."""
-    lines = [f"tiltlab {record.get('tiltlab_version', '?')}, {record.get('utc', '?')}",
-             f"command: {record.get('command', '?')}"]
+    lines = [
+        f"tiltlab {record.get('tiltlab_version', '?')}, {record.get('utc', '?')}",
+        f"command: {record.get('command', '?')}",
+    ]
     for role, f in (record.get("inputs") or {}).items():
         lines.append(f"{role}: {f['path']} (SHA-256 {f['sha256']})")
     return lines

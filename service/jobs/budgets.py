@@ -1,5 +1,5 @@
-"""The uncertainty budget a new record keeps (service.calibration.budget): gathered from the fit, the
-calibration points, the reference standards the job named and the sensors' resolution."""
+"""The uncertainty budget a new record keeps (service.calibration.budget): gathered from the fit,
+the calibration points, the reference standards the job named and the sensors' resolution."""
 
 from __future__ import annotations
 
@@ -19,8 +19,8 @@ NOT_TRACEABLE = "no reference standard: not traceable"
 
 
 def with_traceability(budget: Mapping[str, Any] | None) -> dict[str, Any] | None:
-    """The budget saying whether a reference standard's uncertainty is in it: one without a standard says
-    "no reference standard: not traceable" (such a record gets no certificate)."""
+    """The budget saying whether a reference standard's uncertainty is in it: one without a standard
+    says "no reference standard: not traceable" (such a record gets no certificate)."""
     budget = current_names(budget)
     if budget is None:
         return None
@@ -33,18 +33,26 @@ def with_traceability(budget: Mapping[str, Any] | None) -> dict[str, Any] | None
 
 
 def resolutions_deg(bench: Any) -> dict[str, float | None]:
-    """Each sensor's output resolution (degrees) as its driver states it; None where it states none."""
+    """Each sensor's output resolution (degrees) as its driver states it; None where it states
+    none."""
     out: dict[str, float | None] = {}
     for role in bench.devices:
-        sensor = bench.devices.tilt_sensor(role)  # only a tilt sensor's protocol states its resolution
+        # only a tilt sensor's protocol states its resolution
+        sensor = bench.devices.tilt_sensor(role)
         r = sensor.resolution_deg if sensor is not None else None
         out[role] = float(r) if isinstance(r, int | float) and r > 0 else None
     return out
 
 
-def budget_of_record(method: Any, model: CalibrationModel, fit_columns: Mapping[str, NDArray[np.float64]] | None,
-                     standards: Sequence[Mapping[str, Any]], resolutions: Mapping[str, float | None]) -> dict[str, Any]:
-    """The record's budget; the corrected tilt's entries where the method corrects readings (stage records)."""
+def budget_of_record(
+    method: Any,
+    model: CalibrationModel,
+    fit_columns: Mapping[str, NDArray[np.float64]] | None,
+    standards: Sequence[Mapping[str, Any]],
+    resolutions: Mapping[str, float | None],
+) -> dict[str, Any]:
+    """The record's budget; the corrected tilt's entries where the method corrects readings (stage
+    records)."""
     model_json = model.to_json_dict()
     dof = model_dof(model_json)
     parameter_u = {n: s for n in model.parameters if (s := model.std(n)) is not None}
@@ -61,11 +69,26 @@ def budget_of_record(method: Any, model: CalibrationModel, fit_columns: Mapping[
             tilt_u, tilt_dof = (u_fit[0], u_fit[1]), (nus[0], nus[1])
         if "temp_c" in fit_columns:
             temps = np.asarray(fit_columns["temp_c"], dtype=float)
-            errors = np.column_stack([out["tilt_x_deg"] - fit_columns["ref_x_deg"],
-                                      out["tilt_y_deg"] - fit_columns["ref_y_deg"]])
-    words = {ROLE_WORDS.get(role, role.replace("_", " ")): r for role, r in resolutions.items()
-             if role in ROLE_WORDS or role.endswith("_sensor")}
-    budget = record_budget(parameters=model_json.get("parameters") or {}, parameter_u=parameter_u, dof_fit=dof,
-                           standards=standards, resolutions_deg=words, tilt_u_fit_deg=tilt_u, tilt_dof_fit=tilt_dof,
-                           temps_c=temps, errors_deg=errors)
+            errors = np.column_stack(
+                [
+                    out["tilt_x_deg"] - fit_columns["ref_x_deg"],
+                    out["tilt_y_deg"] - fit_columns["ref_y_deg"],
+                ]
+            )
+    words = {
+        ROLE_WORDS.get(role, role.replace("_", " ")): r
+        for role, r in resolutions.items()
+        if role in ROLE_WORDS or role.endswith("_sensor")
+    }
+    budget = record_budget(
+        parameters=model_json.get("parameters") or {},
+        parameter_u=parameter_u,
+        dof_fit=dof,
+        standards=standards,
+        resolutions_deg=words,
+        tilt_u_fit_deg=tilt_u,
+        tilt_dof_fit=tilt_dof,
+        temps_c=temps,
+        errors_deg=errors,
+    )
     return with_traceability(budget) or budget

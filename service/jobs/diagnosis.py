@@ -1,4 +1,5 @@
-"""Diagnosis: the model-discrepancy workflow of `tiltlab discrepancy` run on a stored record's points.
+"""Diagnosis: the model-discrepancy workflow of `tiltlab discrepancy` run on a stored record's
+points.
 
 It needs no instrument: it reads the settled points the record was fitted on, so it never holds
 the bench. The workflow takes seconds of CPU (refits of the physical model), so it runs in a worker
@@ -34,7 +35,13 @@ from service.errors import InputError
 from service.jobs.manager import JobManager
 from service.jobs.requests import CalibrationRequest
 from service.storage.errors import ConflictError
-from service.storage.models import CalibrationJob, CalibrationRecord, Diagnosis, DiagnosisResult, utc_now
+from service.storage.models import (
+    CalibrationJob,
+    CalibrationRecord,
+    Diagnosis,
+    DiagnosisResult,
+    utc_now,
+)
 from service.storage.store import Store
 
 log = logging.getLogger("tiltlab.diagnosis")
@@ -43,7 +50,8 @@ SENSORS = ("ref", "meas")
 BASELINES = ("kinematic", "linear")
 PHASES = ("loading", "planning", "measuring", "analysing", "storing")
 WORKER_END_S = 5.0  # a worker asked to end (SIGTERM) is killed after this long
-DEFAULT_SECONDS_PER_POINT = 30.0  # bench seconds a point takes when the record's job gives no timing
+# bench seconds a point takes when the record's job gives no timing
+DEFAULT_SECONDS_PER_POINT = 30.0
 
 
 @dataclass
@@ -60,7 +68,8 @@ class Running:
 
 
 def gap(residuals: NDArray[np.float64]) -> dict[str, float]:
-    """The gap between model and measured points as one angle per point (x and y together): its RMS and maximum."""
+    """The gap between model and measured points as one angle per point (x and y together): its RMS
+    and maximum."""
     r = np.hypot(residuals[:, 0], residuals[:, 1])
     return {"rms": float(np.sqrt(np.mean(r**2))), "max": float(np.max(r))}
 
@@ -76,16 +85,17 @@ class WorkflowInputs:
     bench_source: str
     command: str
     have: frozenset[str] = frozenset()  # effects the record fits already
-    keep: tuple[str, ...] = ()  # effects the record was adopted with (an adopted version keeps them)
+    # effects the record was adopted with (an adopted version keeps them)
+    keep: tuple[str, ...] = ()
     worm_axes: tuple[str, ...] = ()  # stages whose worm error the record fits already
     seconds_per_point: float = 0.0
     estimate_source: str = ""
 
 
 def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
-    """In the worker process: the workflow of `tiltlab discrepancy`, the figures the service shows of it, whether
-    each named effect can be adopted from these points (by the refit adopting makes), and the measurement that
-    would test what the points cannot."""
+    """In the worker process: the workflow of `tiltlab discrepancy`, the figures the service shows
+    of it, whether each named effect can be adopted from these points (by the refit adopting makes),
+    and the measurement that would test what the points cannot."""
     from service.discrepancy.adopt import adoption, seen_labels_of
     from service.discrepancy.design import needs_of, plan_measurement
     from service.discrepancy.stage import stage_diagnosis
@@ -94,19 +104,31 @@ def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
     from service.io.provenance import provenance
     from service.physics.stage import StageBench
 
-    # The readings' scatter within a settled point is the sensors' noise alone: a point's mean also carries the
-    # stage's positioning error of its stand (a repeatability the scatter at one stand cannot show), so it is
-    # only a lower bound of a point's noise. The diagnosis estimates the noise of a point from the points.
+    # The readings' scatter within a settled point is the sensors' noise alone: a point's mean also
+    # carries the stage's positioning error of its stand (a repeatability the scatter at one stand
+    # cannot show), so it is only a lower bound of a point's noise. The diagnosis estimates the
+    # noise of a point from the points.
     noise: Any = None
     bench = StageBench(**w.bench) if w.bench is not None else None
     report, page, result, fam = stage_diagnosis(
-        w.columns, w.sensor, w.baseline, noise, bench=bench, inputs={"input": w.command}, bench_source=w.bench_source,
-        provenance=provenance(w.command, {}))
+        w.columns,
+        w.sensor,
+        w.baseline,
+        noise,
+        bench=bench,
+        inputs={"input": w.command},
+        bench_source=w.bench_source,
+        provenance=provenance(w.command, {}),
+    )
     sigma = np.asarray(report["noise_level"], dtype=float)
     named = list(report["named_effects"])
     seen = seen_labels_of(result.steps)
-    verdicts = [a.as_dict() for a in adoption(w.columns, named, w.sensor, bench, w.bench_source, w.have, seen, w.keep,
-                                              w.worm_axes)]
+    verdicts = [
+        a.as_dict()
+        for a in adoption(
+            w.columns, named, w.sensor, bench, w.bench_source, w.have, seen, w.keep, w.worm_axes
+        )
+    ]
     by_effect = {a["effect"]: a for a in verdicts}
     hw = bench or StageBench()
     data = StageData.from_columns(w.columns, w.sensor, hw)
@@ -118,16 +140,40 @@ def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
         "gap_after_deg": gap(result.final.residuals),
         "noise_deg": float(np.sqrt(np.sum(sigma**2))),
         "noise_source": report["noise_source"],
-        "effects": [{"effect": s["effect"], "summary": s["summary"], "magnitude": s["magnitude"],
-                     "evidence": {k: s["evidence"].get(k) for k in ("test", "f_stat", "p_value", "alpha", "delta_bic",
-                                                                   "rss_reduction_pct", "where_before")},
-                     "rms_before_deg": s["rms_before"], "rms_after_deg": s["rms_after"],
-                     "adoptable": by_effect.get(s["effect"], {}).get("adoptable", False),
-                     "adoption": by_effect.get(s["effect"], {}).get("reason"),
-                     "measurement": by_effect.get(s["effect"], {}).get("measurement")}
-                    for s in report["steps"]],
-        "steps": [{"effect": s["effect"], "summary": s["summary"], "rms_before_deg": s["rms_before"],
-                   "rms_after_deg": s["rms_after"]} for s in report["steps"]],
+        "effects": [
+            {
+                "effect": s["effect"],
+                "summary": s["summary"],
+                "magnitude": s["magnitude"],
+                "evidence": {
+                    k: s["evidence"].get(k)
+                    for k in (
+                        "test",
+                        "f_stat",
+                        "p_value",
+                        "alpha",
+                        "delta_bic",
+                        "rss_reduction_pct",
+                        "where_before",
+                    )
+                },
+                "rms_before_deg": s["rms_before"],
+                "rms_after_deg": s["rms_after"],
+                "adoptable": by_effect.get(s["effect"], {}).get("adoptable", False),
+                "adoption": by_effect.get(s["effect"], {}).get("reason"),
+                "measurement": by_effect.get(s["effect"], {}).get("measurement"),
+            }
+            for s in report["steps"]
+        ],
+        "steps": [
+            {
+                "effect": s["effect"],
+                "summary": s["summary"],
+                "rms_before_deg": s["rms_before"],
+                "rms_after_deg": s["rms_after"],
+            }
+            for s in report["steps"]
+        ],
         "untestable": report["skipped"],
         "adoptable": any(a["adoptable"] for a in verdicts),
         "adoption": verdicts,
@@ -140,33 +186,53 @@ def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
     return summary, page
 
 
-def residual_maps(columns: dict[str, NDArray[np.float64]], before: NDArray[np.float64],
-                  after: NDArray[np.float64]) -> dict[str, Any]:
-    """The residual (measured - model) at every point diagnosed, with the baseline alone and with the named effects:
-    the two maps a page draws side by side to show the gap shrink."""
+def residual_maps(
+    columns: dict[str, NDArray[np.float64]], before: NDArray[np.float64], after: NDArray[np.float64]
+) -> dict[str, Any]:
+    """The residual (measured - model) at every point diagnosed, with the baseline alone and with
+    the named effects: the two maps a page draws side by side to show the gap shrink."""
+
     def rows(a: NDArray[np.float64]) -> list[list[float]]:
         return [[round(float(u), 9), round(float(v), 9)] for u, v in np.asarray(a, dtype=float)]
 
     pts = np.column_stack([columns["stage_x_deg"], columns["stage_y_deg"]])
-    dirs = np.column_stack([columns.get("dir_x", np.ones(len(pts))), columns.get("dir_y", np.ones(len(pts)))])
-    return {"stage_deg": rows(pts), "approach": rows(dirs), "before_deg": rows(before), "after_deg": rows(after),
-            "unit": "deg", "what": "residual x, y (measured - model) per point: the baseline alone (before) and with "
-                                   "the named effects (after)"}
+    dirs = np.column_stack(
+        [columns.get("dir_x", np.ones(len(pts))), columns.get("dir_y", np.ones(len(pts)))]
+    )
+    return {
+        "stage_deg": rows(pts),
+        "approach": rows(dirs),
+        "before_deg": rows(before),
+        "after_deg": rows(after),
+        "unit": "deg",
+        "what": "residual x, y (measured - model) per point: the baseline alone (before) and with "
+        "the named effects (after)",
+    }
 
 
-def fit_adopted(columns: dict[str, NDArray[np.float64]], effects: list[str], sensor: str, bench: dict[str, Any],
-                bench_source: str, diagnosis: dict[str, Any], have: frozenset[str],
-                keep: tuple[str, ...], worm_axes: list[str]) -> dict[str, Any]:
-    """In the worker process: the kinematic calibration with the adoptable named effects added, as MODEL.json."""
+def fit_adopted(
+    columns: dict[str, NDArray[np.float64]],
+    effects: list[str],
+    sensor: str,
+    bench: dict[str, Any],
+    bench_source: str,
+    diagnosis: dict[str, Any],
+    have: frozenset[str],
+    keep: tuple[str, ...],
+    worm_axes: list[str],
+) -> dict[str, Any]:
+    """In the worker process: the kinematic calibration with the adoptable named effects added, as
+    MODEL.json."""
     from service.discrepancy.adopt import adopted_model
 
-    return adopted_model(columns, effects, sensor, bench, bench_source, diagnosis, have, keep,
-                         worm_axes).to_json_dict()
+    return adopted_model(
+        columns, effects, sensor, bench, bench_source, diagnosis, have, keep, worm_axes
+    ).to_json_dict()
 
 
 def seconds_per_point(points: list[Any], clock_speed: float) -> tuple[float, str]:
-    """Bench seconds a point took in a job (the median time between consecutive points' last readings), and
-    where that figure comes from."""
+    """Bench seconds a point took in a job (the median time between consecutive points' last
+    readings), and where that figure comes from."""
     ends = sorted(float(p.t_end_s) for p in points)
     steps = np.diff(ends)
     steps = steps[steps > 0]
@@ -177,8 +243,8 @@ def seconds_per_point(points: list[Any], clock_speed: float) -> tuple[float, str
 
 
 def merged_columns(parts: list[dict[str, NDArray[np.float64]]]) -> dict[str, NDArray[np.float64]]:
-    """Several jobs' points as one set of dataset columns: the columns all of them carry, point numbers made
-    unique (a job's point 3 is not another job's point 3)."""
+    """Several jobs' points as one set of dataset columns: the columns all of them carry, point
+    numbers made unique (a job's point 3 is not another job's point 3)."""
     if len(parts) == 1:
         return parts[0]
     keys = [k for k in parts[0] if all(k in p for p in parts[1:])]
@@ -197,9 +263,10 @@ PARENT_CHECK_S = 0.5  # how often a worker looks whether the daemon that started
 
 
 def _worker_start(parent_pid: int) -> None:
-    """In each worker process: yield the CPU to the daemon (the bench's serial exchanges and jobs come first),
-    leave Ctrl-C to the daemon (which ends its workers itself), and end as soon as the daemon is gone,
-    however it went (a SIGKILL leaves no chance to end the workers): a watch on the parent process."""
+    """In each worker process: yield the CPU to the daemon (the bench's serial exchanges and jobs
+    come first), leave Ctrl-C to the daemon (which ends its workers itself), and end as soon as the
+    daemon is gone, however it went (a SIGKILL leaves no chance to end the workers): a watch on the
+    parent process."""
     with contextlib.suppress(OSError, AttributeError):
         os.nice(10)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -218,24 +285,31 @@ class DiagnosesBusy(RuntimeError):
 
 
 class DiagnosisRunner:
-    """Starts diagnoses and follows them until their result is stored. One worker process serves them in turn.
+    """Starts diagnoses and follows them until their result is stored. One worker process serves
+    them in turn.
 
-    A diagnosis with `measure` first looks at the record's points, then (when they cannot test a candidate) runs
-    the planned measurement as a job on the record's bench through the job manager, and diagnoses all the points."""
+    A diagnosis with `measure` first looks at the record's points, then (when they cannot test a
+    candidate) runs the planned measurement as a job on the record's bench through the job manager,
+    and diagnoses all the points."""
 
     def __init__(self, store: Store, jobs: JobManager, *, max_diagnoses: int = 4) -> None:
         self.store = store
         self.jobs = jobs
-        self.max_diagnoses = max_diagnoses  # queued and running at once; one more is refused (DiagnosesBusy)
-        self.planning = 0  # plans (`plan_only`) waiting for or in the worker: they count against the bound too
+        # queued and running at once; one more is refused (DiagnosesBusy)
+        self.max_diagnoses = max_diagnoses
+        # plans (`plan_only`) waiting for or in the worker: they count against the bound too
+        self.planning = 0
         self.running: dict[int, Running] = {}
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
-            self._pool = concurrent.futures.ProcessPoolExecutor(max_workers=1, initializer=_worker_start,
-                                                                initargs=(os.getpid(),),
-                                                                mp_context=multiprocessing.get_context("spawn"))
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                max_workers=1,
+                initializer=_worker_start,
+                initargs=(os.getpid(),),
+                mp_context=multiprocessing.get_context("spawn"),
+            )
         return self._pool
 
     def check(self, record: CalibrationRecord, sensor: str, baseline: str) -> None:
@@ -244,44 +318,75 @@ class DiagnosisRunner:
         if baseline not in BASELINES:
             raise InputError(f"baseline: {baseline!r} is not one of {', '.join(BASELINES)}")
         if record.kind != "stage":
-            raise InputError(f"record {record.id} is a {record.kind} record: the diagnosis explains stage records")
+            raise InputError(
+                f"record {record.id} is a {record.kind} record: the diagnosis explains stage "
+                "records"
+            )
         if record.job_id is None:
-            raise InputError(f"record {record.id} was not measured by a job of this daemon: it has no stored points")
+            raise InputError(
+                f"record {record.id} was not measured by a job of this daemon: it has no stored "
+                "points"
+            )
 
     def bench_for(self, record: CalibrationRecord) -> BenchRuntime:
-        """The bench a measurement for the record runs on: the one carrying its device, free now (else 409)."""
+        """The bench a measurement for the record runs on: the one carrying its device, free now
+        (else 409)."""
         bench = self.jobs.bench_of_device(record.device_id)
         if bench is None:
-            raise ConflictError(f"measure: record {record.id}'s instrument is on no bench this daemon runs, so it "
-                                "cannot measure for it")
+            raise ConflictError(
+                f"measure: record {record.id}'s instrument is on no bench this daemon runs, so it "
+                "cannot measure for it"
+            )
         if bench.holder is not None:
-            raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}: a measurement needs it free")
+            raise BenchBusy(
+                f"bench {bench.name!r} is held by {bench.holder}: a measurement needs it free"
+            )
         return bench
 
-    async def submit(self, record: CalibrationRecord, sensor: str, baseline: str, actor: str,
-                     measure: bool = False) -> Diagnosis:
+    async def submit(
+        self,
+        record: CalibrationRecord,
+        sensor: str,
+        baseline: str,
+        actor: str,
+        measure: bool = False,
+    ) -> Diagnosis:
         self.check(record, sensor, baseline)
         self._refuse_when_busy()
         if measure:
             self.bench_for(record)
-        d: Diagnosis = await asyncio.to_thread(self.store.diagnoses.create_diagnosis, record.id, sensor=sensor,
-                                               baseline=baseline, actor=actor)
+        d: Diagnosis = await asyncio.to_thread(
+            self.store.diagnoses.create_diagnosis,
+            record.id,
+            sensor=sensor,
+            baseline=baseline,
+            actor=actor,
+        )
         run = self.running[d.id] = Running(measure=measure)
         run.task = asyncio.create_task(self._run(d, record, actor), name=f"diagnosis {d.id}")
         return d
 
     def _refuse_when_busy(self) -> None:
         if len(self.running) + self.planning >= self.max_diagnoses:
-            raise DiagnosesBusy(f"{len(self.running) + self.planning} diagnoses and plans are queued or running, as"
-                                " many as the daemon takes"
-                                " (TILTLAB_MAX_DIAGNOSES); ask again once one has finished")
+            raise DiagnosesBusy(
+                f"{len(self.running) + self.planning} diagnoses and plans are queued or running, as"
+                " many as the daemon takes"
+                " (TILTLAB_MAX_DIAGNOSES); ask again once one has finished"
+            )
 
     async def plan(self, record: CalibrationRecord, sensor: str, baseline: str) -> dict[str, Any]:
-        """What the record's points cannot test and the measurement that would, without moving anything (or
-        storing a diagnosis): the look `measure` takes first."""
+        """What the record's points cannot test and the measurement that would, without moving
+        anything (or storing a diagnosis): the look `measure` takes first."""
         self.check(record, sensor, baseline)
         self._refuse_when_busy()
-        probe = Diagnosis(id=0, record_id=record.id, sensor=sensor, baseline=baseline, created_by="", created_at=utc_now())
+        probe = Diagnosis(
+            id=0,
+            record_id=record.id,
+            sensor=sensor,
+            baseline=baseline,
+            created_by="",
+            created_at=utc_now(),
+        )
         self.planning += 1
         try:
             inputs = await asyncio.to_thread(self._inputs, probe, record, [])
@@ -289,10 +394,25 @@ class DiagnosisRunner:
             summary, _ = await loop.run_in_executor(self._executor(), run_workflow, inputs)
         finally:
             self.planning -= 1
-        return {"record_id": record.id, "sensor": sensor, "baseline": baseline,
-                **{k: summary[k] for k in ("named_effects", "gap_before_deg", "gap_after_deg", "noise_deg",
-                                           "untestable", "adoptable", "adoption", "n_points")},
-                "plan": summary["measurement_plan"]}
+        return {
+            "record_id": record.id,
+            "sensor": sensor,
+            "baseline": baseline,
+            **{
+                k: summary[k]
+                for k in (
+                    "named_effects",
+                    "gap_before_deg",
+                    "gap_after_deg",
+                    "noise_deg",
+                    "untestable",
+                    "adoptable",
+                    "adoption",
+                    "n_points",
+                )
+            },
+            "plan": summary["measurement_plan"],
+        }
 
     async def _run(self, d: Diagnosis, record: CalibrationRecord, actor: str) -> None:
         run = self.running[d.id]
@@ -313,85 +433,179 @@ class DiagnosisRunner:
                     run.job_id = job.id
                     ended = await self.jobs.wait_for(job.id)
                     if ended.state != "succeeded":
-                        raise InputError(f"the planned measurement (job {job.id}) {ended.state}"
-                                         + (f": {ended.failure_reason}" if ended.failure_reason else "")
-                                         + "; its points are kept, the diagnosis is not made")
+                        raise InputError(
+                            f"the planned measurement (job {job.id}) {ended.state}"
+                            + (f": {ended.failure_reason}" if ended.failure_reason else "")
+                            + "; its points are kept, the diagnosis is not made"
+                        )
                     extra_jobs.append(job.id)
             run.phase = "loading"
             inputs = await asyncio.to_thread(self._inputs, d, record, extra_jobs)
             run.phase = "analysing"
             summary, page = await loop.run_in_executor(self._executor(), run_workflow, inputs)
-            summary["data"] = {"record_id": record.id, "record_job_id": record.job_id,
-                               "measurement_job_ids": extra_jobs, "n_points": summary.get("n_points")}
+            summary["data"] = {
+                "record_id": record.id,
+                "record_job_id": record.job_id,
+                "measurement_job_ids": extra_jobs,
+                "n_points": summary.get("n_points"),
+            }
             if first is not None:
                 summary["measurement"] = {
-                    "plan": first["measurement_plan"], "job_id": extra_jobs[0] if extra_jobs else None,
-                    "before": {k: first.get(k) for k in ("named_effects", "gap_before_deg", "gap_after_deg",
-                                                         "untestable", "adoptable", "adoption", "n_points")}}
+                    "plan": first["measurement_plan"],
+                    "job_id": extra_jobs[0] if extra_jobs else None,
+                    "before": {
+                        k: first.get(k)
+                        for k in (
+                            "named_effects",
+                            "gap_before_deg",
+                            "gap_after_deg",
+                            "untestable",
+                            "adoptable",
+                            "adoption",
+                            "n_points",
+                        )
+                    },
+                }
             run.phase = "storing"
-            await asyncio.to_thread(self.store.diagnoses.finish_diagnosis, d.id, state="succeeded", started_at=run.started_at,
-                                    summary=summary, report_html=page, error=None, actor="daemon")
+            await asyncio.to_thread(
+                self.store.diagnoses.finish_diagnosis,
+                d.id,
+                state="succeeded",
+                started_at=run.started_at,
+                summary=summary,
+                report_html=page,
+                error=None,
+                actor="daemon",
+            )
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # the diagnosis fails with the reason; the daemon goes on
-            reason = str(exc) if isinstance(exc, InputError | BenchBusy) else f"{type(exc).__name__}: {exc}"
+            reason = (
+                str(exc)
+                if isinstance(exc, InputError | BenchBusy)
+                else f"{type(exc).__name__}: {exc}"
+            )
             if not isinstance(exc, InputError | BenchBusy):
                 log.exception("diagnosis %s failed", d.id)
             try:
-                await asyncio.to_thread(self.store.diagnoses.finish_diagnosis, d.id, state="failed", started_at=run.started_at,
-                                        summary={"measurement": {"plan": run.plan, "job_id": run.job_id}} if run.plan else {},
-                                        report_html=None, error=reason, actor="daemon")
+                await asyncio.to_thread(
+                    self.store.diagnoses.finish_diagnosis,
+                    d.id,
+                    state="failed",
+                    started_at=run.started_at,
+                    summary={"measurement": {"plan": run.plan, "job_id": run.job_id}}
+                    if run.plan
+                    else {},
+                    report_html=None,
+                    error=reason,
+                    actor="daemon",
+                )
             except Exception:
                 log.exception("diagnosis %s: the failure could not be stored", d.id)
         finally:
             self.running.pop(d.id, None)
 
-    async def _measure(self, d: Diagnosis, record: CalibrationRecord, plan: dict[str, Any], actor: str) -> CalibrationJob:
-        """The planned points as a job on the record's bench, settled and read as the record's own job read its."""
+    async def _measure(
+        self, d: Diagnosis, record: CalibrationRecord, plan: dict[str, Any], actor: str
+    ) -> CalibrationJob:
+        """The planned points as a job on the record's bench, settled and read as the record's own
+        job read its."""
         assert record.job_id is not None
         bench = self.bench_for(record)
-        own = (await asyncio.to_thread(self.store.jobs.get_job, record.job_id)).parameters.get("request", {})
-        request = {"bench": bench.name, "procedure": "stage-grid", "method": record.method,
-                   "grid": {"points": [[p["stage_x_deg"], p["stage_y_deg"]] for p in plan["points"]]},
-                   "samples_per_point": own.get("samples_per_point", 10), "validation": {"n_points": 0},
-                   "note": f"the measurement diagnosis {d.id} of record {record.id} planned"}
+        own = (await asyncio.to_thread(self.store.jobs.get_job, record.job_id)).parameters.get(
+            "request", {}
+        )
+        request = {
+            "bench": bench.name,
+            "procedure": "stage-grid",
+            "method": record.method,
+            "grid": {"points": [[p["stage_x_deg"], p["stage_y_deg"]] for p in plan["points"]]},
+            "samples_per_point": own.get("samples_per_point", 10),
+            "validation": {"n_points": 0},
+            "note": f"the measurement diagnosis {d.id} of record {record.id} planned",
+        }
         if own.get("settle"):
             request["settle"] = own["settle"]
-        CalibrationRequest.model_validate(request)  # how each point is settled and read: a stage grid's rules
-        points = [[p["stage_x_deg"], p["stage_y_deg"], p["dir_x"], p["dir_y"]] for p in plan["points"]]
-        return await self.jobs.submit_measurement(bench, record.device_id, request, points,
-                                                  {"diagnosis_id": d.id, "record_id": record.id,
-                                                   "plan": {k: plan[k] for k in ("parts", "cannot",
-                                                                                  "estimated_bench_s")}}, actor)
+        # how each point is settled and read: a stage grid's rules
+        CalibrationRequest.model_validate(request)
+        points = [
+            [p["stage_x_deg"], p["stage_y_deg"], p["dir_x"], p["dir_y"]] for p in plan["points"]
+        ]
+        return await self.jobs.submit_measurement(
+            bench,
+            record.device_id,
+            request,
+            points,
+            {
+                "diagnosis_id": d.id,
+                "record_id": record.id,
+                "plan": {k: plan[k] for k in ("parts", "cannot", "estimated_bench_s")},
+            },
+            actor,
+        )
 
-    def _inputs(self, d: Diagnosis, record: CalibrationRecord, extra_jobs: list[int]) -> WorkflowInputs:
-        """Blocking (database): the record's points (with those of measurements made for it), the noise of a
-        point, the bench the points came from and what the record fits already."""
+    def _inputs(
+        self, d: Diagnosis, record: CalibrationRecord, extra_jobs: list[int]
+    ) -> WorkflowInputs:
+        """Blocking (database): the record's points (with those of measurements made for it), the
+        noise of a point, the bench the points came from and what the record fits already."""
         assert record.job_id is not None
         n_fit = int((record.raw_data or {}).get("fit_points", 10**9))
-        cols = merged_columns([self.jobs.fit_columns(record.job_id, n_fit)]
-                              + [self.jobs.fit_columns(j, 10**9) for j in extra_jobs])
+        cols = merged_columns(
+            [self.jobs.fit_columns(record.job_id, n_fit)]
+            + [self.jobs.fit_columns(j, 10**9) for j in extra_jobs]
+        )
         job = self.store.jobs.get_job(record.job_id)
 
-        def sensor_points(job_id: int) -> list[Any]:  # the diagnosed sensor's settled points of a job
-            return [p for p in self.store.points.settled_points(job_id)
-                    if (p.device_id == job.device_id) == (d.sensor == "meas")]
+        # the diagnosed sensor's settled points of a job
+        def sensor_points(job_id: int) -> list[Any]:
+            return [
+                p
+                for p in self.store.points.settled_points(job_id)
+                if (p.device_id == job.device_id) == (d.sensor == "meas")
+            ]
 
         own_points = [p for p in sensor_points(record.job_id) if p.point < n_fit]
         model = record.model or {}
         state = model.get("state", {})
         bench = state.get("bench")
         source = f"record {record.id}'s bench ({state.get('bench_source', 'as calibrated')})"
-        extra = f", with the points of measurement job{'s' * (len(extra_jobs) > 1)} {', '.join(map(str, extra_jobs))}" if extra_jobs else ""
-        command = f"diagnosis {d.id} of record {record.id}{extra} (sensor {d.sensor}, baseline {d.baseline})"
+        extra = (
+            f", with the points of measurement job{'s' * (len(extra_jobs) > 1)} "
+            f"{', '.join(map(str, extra_jobs))}"
+            if extra_jobs
+            else ""
+        )
+        command = (
+            f"diagnosis {d.id} of record {record.id}{extra} (sensor {d.sensor}, baseline "
+            f"{d.baseline})"
+        )
         speed = float(((record.raw_data or {}).get("conditions") or {}).get("clock_speed") or 1.0)
         per, source_text = seconds_per_point(own_points, speed)
-        worm = tuple(ax for ax in ("x", "y") if any(
-            not (model.get("parameters", {}).get(f"periodic_error.{ax}_{t}_deg") or {"fixed": True}).get("fixed", False)
-            for t in ("sin", "cos", "amp")))
-        return WorkflowInputs(cols, d.sensor, d.baseline, bench, source,
-                              command, frozenset(record_effects(model)), tuple(state.get("added_effects", [])), worm,
-                              per, source_text)
+        worm = tuple(
+            ax
+            for ax in ("x", "y")
+            if any(
+                not (
+                    model.get("parameters", {}).get(f"periodic_error.{ax}_{t}_deg")
+                    or {"fixed": True}
+                ).get("fixed", False)
+                for t in ("sin", "cos", "amp")
+            )
+        )
+        return WorkflowInputs(
+            cols,
+            d.sensor,
+            d.baseline,
+            bench,
+            source,
+            command,
+            frozenset(record_effects(model)),
+            tuple(state.get("added_effects", [])),
+            worm,
+            per,
+            source_text,
+        )
 
     def state_of(self, d: Diagnosis, result: DiagnosisResult | None) -> dict[str, Any]:
         """The diagnosis as GET /diagnoses/{id} shows it."""
@@ -401,32 +615,51 @@ class DiagnosisRunner:
         measurement = summary.get("measurement")
         if measurement is None and run is not None and run.measure:
             measurement = {"plan": run.plan, "job_id": run.job_id}
-        return {"id": d.id, "record_id": d.record_id, "sensor": d.sensor, "baseline": d.baseline, "state": state,
-                "phase": None if result is not None or run is None else run.phase,
-                "created_utc": d.created_at, "created_by": d.created_by,
-                "started_utc": result.started_at if result is not None else (run.started_at if run else None),
-                "finished_utc": result.finished_at if result is not None else None,
-                "named_effects": summary.get("named_effects", []),
-                "effects": summary.get("effects", []),
-                "gap_before_deg": summary.get("gap_before_deg"), "gap_after_deg": summary.get("gap_after_deg"),
-                "noise_deg": summary.get("noise_deg"), "noise_source": summary.get("noise_source"),
-                "steps": summary.get("steps", []), "untestable": summary.get("untestable", []),
-                "adoptable": summary.get("adoptable"), "adoption": summary.get("adoption", []),
-                "measurement_plan": summary.get("measurement_plan"), "measurement": measurement,
-                "residual_maps": summary.get("residual_maps"),
-                "data": summary.get("data"),
-                "conclusion": summary.get("conclusion"),
-                "error": result.error if result is not None else None}
+        return {
+            "id": d.id,
+            "record_id": d.record_id,
+            "sensor": d.sensor,
+            "baseline": d.baseline,
+            "state": state,
+            "phase": None if result is not None or run is None else run.phase,
+            "created_utc": d.created_at,
+            "created_by": d.created_by,
+            "started_utc": result.started_at
+            if result is not None
+            else (run.started_at if run else None),
+            "finished_utc": result.finished_at if result is not None else None,
+            "named_effects": summary.get("named_effects", []),
+            "effects": summary.get("effects", []),
+            "gap_before_deg": summary.get("gap_before_deg"),
+            "gap_after_deg": summary.get("gap_after_deg"),
+            "noise_deg": summary.get("noise_deg"),
+            "noise_source": summary.get("noise_source"),
+            "steps": summary.get("steps", []),
+            "untestable": summary.get("untestable", []),
+            "adoptable": summary.get("adoptable"),
+            "adoption": summary.get("adoption", []),
+            "measurement_plan": summary.get("measurement_plan"),
+            "measurement": measurement,
+            "residual_maps": summary.get("residual_maps"),
+            "data": summary.get("data"),
+            "conclusion": summary.get("conclusion"),
+            "error": result.error if result is not None else None,
+        }
 
-    async def adopt(self, diagnosis_id: int, actor: str, chosen: list[str] | None = None) -> CalibrationRecord:
-        """A new record version of the diagnosed record's device whose model has the adoptable named effects (of
-        them, those `chosen`), fitted on the points the diagnosis used through the calibration code, with its
-        validation figures (a draft like any new record). 409 when the diagnosis named nothing the record can
-        adopt, or a chosen effect it did not find adoptable, with the reason."""
+    async def adopt(
+        self, diagnosis_id: int, actor: str, chosen: list[str] | None = None
+    ) -> CalibrationRecord:
+        """A new record version of the diagnosed record's device whose model has the adoptable named
+        effects (of them, those `chosen`), fitted on the points the diagnosis used through the
+        calibration code, with its validation figures (a draft like any new record). 409 when the
+        diagnosis named nothing the record can adopt, or a chosen effect it did not find adoptable,
+        with the reason."""
         d, result = await asyncio.to_thread(self.store.diagnoses.get_diagnosis, diagnosis_id)
         if result is None or result.state != "succeeded":
             state = "running" if result is None else f"failed ({result.error})"
-            raise ConflictError(f"diagnosis {diagnosis_id} is {state}: only a finished diagnosis can be adopted")
+            raise ConflictError(
+                f"diagnosis {diagnosis_id} is {state}: only a finished diagnosis can be adopted"
+            )
         record = await asyncio.to_thread(self.store.records.get_record, d.record_id)
         assert record.job_id is not None  # a diagnosed record has stored points
         model_doc_before = record.model or {}
@@ -438,47 +671,90 @@ class DiagnosisRunner:
             effects = self._chosen(diagnosis_id, result.summary, named, effects, chosen)
         raw = dict(record.raw_data or {})
         n_fit = int(raw.get("fit_points", 10**9))
-        extra_jobs = [int(j) for j in (result.summary.get("data") or {}).get("measurement_job_ids", [])]
-        cols = await asyncio.to_thread(lambda: merged_columns([self.jobs.fit_columns(record.job_id or 0, n_fit)]
-                                                              + [self.jobs.fit_columns(j, 10**9) for j in extra_jobs]))
+        extra_jobs = [
+            int(j) for j in (result.summary.get("data") or {}).get("measurement_job_ids", [])
+        ]
+        cols = await asyncio.to_thread(
+            lambda: merged_columns(
+                [self.jobs.fit_columns(record.job_id or 0, n_fit)]
+                + [self.jobs.fit_columns(j, 10**9) for j in extra_jobs]
+            )
+        )
         if "bench" not in state:
             raise ConflictError(f"record {record.id} does not state the bench it was calibrated on")
         source = f"record {record.id}'s bench ({state.get('bench_source', 'as calibrated')})"
-        origin = {"id": d.id, "record_id": record.id, "sensor": d.sensor, "baseline": d.baseline,
-                  "measurement_job_ids": extra_jobs,
-                  "what": f"diagnosis {d.id} of record {record.id} (v{record.version})"}
+        origin = {
+            "id": d.id,
+            "record_id": record.id,
+            "sensor": d.sensor,
+            "baseline": d.baseline,
+            "measurement_job_ids": extra_jobs,
+            "what": f"diagnosis {d.id} of record {record.id} (v{record.version})",
+        }
         loop = asyncio.get_running_loop()
         try:
-            model_doc = await loop.run_in_executor(self._executor(), fit_adopted, cols, effects, d.sensor,
-                                                   state["bench"], source, origin, have,
-                                                   tuple(state.get("added_effects", [])),
-                                                   worm_axes_of(result.summary.get("adoption") or []))
+            model_doc = await loop.run_in_executor(
+                self._executor(),
+                fit_adopted,
+                cols,
+                effects,
+                d.sensor,
+                state["bench"],
+                source,
+                origin,
+                have,
+                tuple(state.get("added_effects", [])),
+                worm_axes_of(result.summary.get("adoption") or []),
+            )
         except NothingToAdopt as exc:
             raise ConflictError(str(exc)) from None
         except InputError as exc:  # a diagnosis stored before adoption was decided with it
             raise ConflictError(f"diagnosis {diagnosis_id}: {exc}") from None
         method = get_method("stage", "kinematic")
         model = CalibrationModel.from_json_dict(model_doc, f"diagnosis {d.id}")
-        validation = await asyncio.to_thread(self.jobs.validate, record.job_id, n_fit, method, model)
+        validation = await asyncio.to_thread(
+            self.jobs.validate, record.job_id, n_fit, method, model
+        )
         raw.pop("job_id", None)
-        raw.update({"diagnosis_id": d.id, "added_effects": model.state.get("added_effects", []),
-                    "adopted_from_record_id": record.id})
+        raw.update(
+            {
+                "diagnosis_id": d.id,
+                "added_effects": model.state.get("added_effects", []),
+                "adopted_from_record_id": record.id,
+            }
+        )
         if extra_jobs:
             raw["measurement_job_ids"] = extra_jobs
-            raw["measurement_points_sha256"] = await asyncio.to_thread(self.store.points.points_sha256_by_job,
-                                                                       extra_jobs)
+            raw["measurement_points_sha256"] = await asyncio.to_thread(
+                self.store.points.points_sha256_by_job, extra_jobs
+            )
         return await asyncio.to_thread(
-            self.store.records.add_record, record.device_id, "stage", "kinematic", model_doc, operator=actor,
-            validation=validation, temp_c=record.temp_c, job_id=record.job_id,
-            reference_standards=record.reference_standards, raw_data=raw)
+            self.store.records.add_record,
+            record.device_id,
+            "stage",
+            "kinematic",
+            model_doc,
+            operator=actor,
+            validation=validation,
+            temp_c=record.temp_c,
+            job_id=record.job_id,
+            reference_standards=record.reference_standards,
+            raw_data=raw,
+        )
 
     @staticmethod
-    def _adoptable(diagnosis_id: int, summary: dict[str, Any], named: list[str], sensor: str,
-                   have: frozenset[str]) -> list[str]:
-        """The named effects the record can adopt, as the diagnosis decided; ConflictError (409) with the reason
-        when there is none."""
+    def _adoptable(
+        diagnosis_id: int,
+        summary: dict[str, Any],
+        named: list[str],
+        sensor: str,
+        have: frozenset[str],
+    ) -> list[str]:
+        """The named effects the record can adopt, as the diagnosis decided; ConflictError (409)
+        with the reason when there is none."""
         verdicts = summary.get("adoption")
-        if verdicts is None:  # a diagnosis stored before adoption was decided with it: the named effects as they are
+        # a diagnosis stored before adoption was decided with it: the named effects as they are
+        if verdicts is None:
             try:
                 return effects_to_add(named, sensor, have)
             except InputError as exc:
@@ -486,32 +762,59 @@ class DiagnosisRunner:
         ok = [str(a["effect"]) for a in verdicts if a.get("adoptable")]
         if ok:
             return ok
-        blocked = [a for a in verdicts if not a.get("adoptable") and a["effect"] not in IN_CHAIN and a["effect"] not in have]
+        blocked = [
+            a
+            for a in verdicts
+            if not a.get("adoptable") and a["effect"] not in IN_CHAIN and a["effect"] not in have
+        ]
         if not blocked:
             try:
                 effects_to_add(named, sensor, have)
             except InputError as exc:
                 raise ConflictError(str(exc)) from None
-            raise ConflictError(f"diagnosis {diagnosis_id} named nothing the record can adopt: there is nothing to adopt")
-        why = "; ".join(f"{a['effect']}: {a['reason']}" + (f" (what would: {a['measurement']})" if a.get("measurement")
-                                                          else "") for a in blocked)
-        raise ConflictError(f"diagnosis {diagnosis_id} named {', '.join(a['effect'] for a in blocked)}, which the record "
-                            f"cannot adopt from these points: {why}")
+            raise ConflictError(
+                f"diagnosis {diagnosis_id} named nothing the record can adopt: there is nothing to "
+                "adopt"
+            )
+        why = "; ".join(
+            f"{a['effect']}: {a['reason']}"
+            + (f" (what would: {a['measurement']})" if a.get("measurement") else "")
+            for a in blocked
+        )
+        raise ConflictError(
+            f"diagnosis {diagnosis_id} named {', '.join(a['effect'] for a in blocked)}, which "
+            f"the record cannot adopt from these points: {why}"
+        )
 
     @staticmethod
-    def _chosen(diagnosis_id: int, summary: dict[str, Any], named: list[str], adoptable: list[str],
-                chosen: list[str]) -> list[str]:
-        """The chosen effects, each one the diagnosis named and found adoptable; ConflictError (409) naming the
-        first that is not, and why."""
+    def _chosen(
+        diagnosis_id: int,
+        summary: dict[str, Any],
+        named: list[str],
+        adoptable: list[str],
+        chosen: list[str],
+    ) -> list[str]:
+        """The chosen effects, each one the diagnosis named and found adoptable; ConflictError (409)
+        naming the first that is not, and why."""
         for effect in chosen:
             if effect not in named:
-                raise ConflictError(f"diagnosis {diagnosis_id} did not name {effect} (it named "
-                                    f"{', '.join(named) or 'nothing'}): only a named effect can be adopted")
+                raise ConflictError(
+                    f"diagnosis {diagnosis_id} did not name {effect} (it named "
+                    f"{', '.join(named) or 'nothing'}): only a named effect can be adopted"
+                )
             if effect not in adoptable:
-                verdict = next((a for a in summary.get("adoption") or [] if a.get("effect") == effect), None)
-                why = f": {verdict['reason']}" if verdict is not None and verdict.get("reason") else ""
-                raise ConflictError(f"diagnosis {diagnosis_id} named {effect} but did not find it adoptable from "
-                                    f"these points{why}")
+                verdict = next(
+                    (a for a in summary.get("adoption") or [] if a.get("effect") == effect), None
+                )
+                why = (
+                    f": {verdict['reason']}"
+                    if verdict is not None and verdict.get("reason")
+                    else ""
+                )
+                raise ConflictError(
+                    f"diagnosis {diagnosis_id} named {effect} but did not find it adoptable from "
+                    f"these points{why}"
+                )
         return [e for e in adoptable if e in chosen]
 
     async def wait(self, diagnosis_id: int) -> None:
@@ -520,15 +823,16 @@ class DiagnosisRunner:
             await asyncio.shield(run.task)
 
     async def shutdown(self) -> None:
-        """Cancel what runs and end the worker processes (a worker busy with a diagnosis would otherwise go on,
-        and then wait for ever to hand its result to a daemon that is gone)."""
+        """Cancel what runs and end the worker processes (a worker busy with a diagnosis would
+        otherwise go on, and then wait for ever to hand its result to a daemon that is gone)."""
         for run in list(self.running.values()):
             if run.task is not None:
                 run.task.cancel()
         pool, self._pool = self._pool, None
         if pool is None:
             return
-        workers = list(getattr(pool, "_processes", {}).values())  # the executor offers no other way to reach them
+        # the executor offers no other way to reach them
+        workers = list(getattr(pool, "_processes", {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
         for worker in workers:
             with contextlib.suppress(Exception):

@@ -1,10 +1,12 @@
-"""The measurement a diagnosis plans: points the record's stored ones lack, measured as a job on the bench.
+"""The measurement a diagnosis plans: points the record's stored ones lack, measured as a job on the
+bench.
 
-A diagnosis with `measure: true` plans the shortest measurement that tests what the record's points cannot
-(service.discrepancy.design) and runs it through the job manager like any job (it holds the bench, shows its
-progress, can be cancelled or stopped, resumes after a restart). Each point is approached from the side the
-plan says (from below or from above, per stage), settled and read as a stage-grid point; nothing is fitted and
-no record is made: the diagnosis reads the points with the record's.
+A diagnosis with `measure: true` plans the shortest measurement that tests what the record's points
+cannot (service.discrepancy.design) and runs it through the job manager like any job (it holds the
+bench, shows its progress, can be cancelled or stopped, resumes after a restart). Each point is
+approached from the side the plan says (from below or from above, per stage), settled and read as a
+stage-grid point; nothing is fitted and no record is made: the diagnosis reads the points with the
+record's.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ from service.storage.models import CalibrationJob, SettledPoint
 
 NAME = "diagnosis-measurement"
 
-PlannedStagePoint = tuple[float, float, float, float]  # stage x, stage y, approach x, approach y (+1 below, -1 above)
+# stage x, stage y, approach x, approach y (+1 below, -1 above)
+PlannedStagePoint = tuple[float, float, float, float]
 
 
 class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
@@ -34,8 +37,11 @@ class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
     read_roles = SENSORS
 
     def plan(self, req: CalibrationRequest, bench: BenchRuntime) -> Plan[PlannedStagePoint]:
-        raise RequestProblem("procedure", "a diagnosis's measurement is planned and started by "
-                             "POST /records/{id}/diagnose with measure: true, not by POST /calibrations")
+        raise RequestProblem(
+            "procedure",
+            "a diagnosis's measurement is planned and started by "
+            "POST /records/{id}/diagnose with measure: true, not by POST /calibrations",
+        )
 
     def stored_point(self, value: Any) -> PlannedStagePoint:
         x, y, dx, dy = value
@@ -45,7 +51,9 @@ class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
         x, y, dx, dy = point
         await measure_stage_point(ctx, index, x, y, dx, dy)
 
-    def columns(self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool) -> Columns:
+    def columns(
+        self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool
+    ) -> Columns:
         meas = [p for p in points if p.device_id == job.device_id]
         ref = [p for p in points if p.device_id != job.device_id]
         cols = stage_columns(ref, meas)
@@ -58,17 +66,25 @@ class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
         return cols
 
     def validation(self, method: Method, model: CalibrationModel, cols: Columns) -> dict[str, Any]:
-        raise InputError("a diagnosis's measurement validates nothing: it adds points to a record's")
+        raise InputError(
+            "a diagnosis's measurement validates nothing: it adds points to a record's"
+        )
 
     async def run(self, ctx: JobContext) -> Outcome:
         job, bench = ctx.job, ctx.bench
         points = [self.stored_point(p) for p in job.parameters["fit_points"]]
         devices = {r: bench.device_ids.get(r) for r in self.read_roles}
-        if any(d is None for d in devices.values()) or devices != job.parameters.get("device_ids", devices):
-            raise InputError(f"the bench's instruments are not those the measurement was planned with "
-                             f"({job.parameters.get('device_ids')}); its points cannot be measured with others")
+        if any(d is None for d in devices.values()) or devices != job.parameters.get(
+            "device_ids", devices
+        ):
+            raise InputError(
+                f"the bench's instruments are not those the measurement was planned with "
+                f"({job.parameters.get('device_ids')}); its points cannot be measured with others"
+            )
         stored = await ctx.db(ctx.store.points.settled_points, job.id)
-        done = set.intersection(*({p.point for p in stored if p.device_id == d} for d in devices.values()))
+        done = set.intersection(
+            *({p.point for p in stored if p.device_id == d} for d in devices.values())
+        )
         await ctx.report(len(done), len(points), Phase.MEASURING)
         for i, point in enumerate(points):
             if i not in done:

@@ -1,7 +1,8 @@
 """Who wants to hear that a job changed: a subscriber list of asyncio events per job.
 
 The job manager calls `changed(job_id)` after every state, progress or point it stores; a watcher
-(the job stream) waits on its event and reads the job once per wake-up instead of polling the database.
+(the job stream) waits on its event and reads the job once per wake-up instead of polling the
+database.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""What a stage grid must offer its fit, checked when the request comes (422), never after the bench moved.
+"""What a stage grid must offer its fit, checked when the request comes (422), never after the bench
+moved.
 
 A fit refuses points that do not determine its model: every stage must stand at two or more
 angles, the method needs enough distinct points, and some models need points off the axes or a
@@ -36,15 +37,24 @@ def check_axis_positions(grid: Grid, points: list[StagePoint]) -> None:
             continue
         at = f"{next(iter(angles)):g} deg" if angles else "no angle"
         if grid.points is not None:
-            raise RequestProblem("grid.points", f"every point has the {stage} stage ({axis}) at {at}; the fit needs "
-                                 f"points with the {stage} stage at two or more angles")
+            raise RequestProblem(
+                "grid.points",
+                f"every point has the {stage} stage ({axis}) at {at}; the fit needs "
+                f"points with the {stage} stage at two or more angles",
+            )
         span = grid.x_deg if axis == "x" else grid.y_deg
         count = grid.n_x if axis == "x" else grid.n_y
         if count is not None and count < 2:
-            raise RequestProblem(f"grid.{count_name}", f"{count} {axis} position: the fit needs the {stage} stage at two"
-                                 f" or more angles (give {count_name} of 2 or more)")
-        raise RequestProblem(f"grid.{axis}_deg", f"{span} is an empty range: its {count} points all stand at {at}; give"
-                             f" two different ends so that the {stage} stage moves")
+            raise RequestProblem(
+                f"grid.{count_name}",
+                f"{count} {axis} position: the fit needs the {stage} stage at two"
+                f" or more angles (give {count_name} of 2 or more)",
+            )
+        raise RequestProblem(
+            f"grid.{axis}_deg",
+            f"{span} is an empty range: its {count} points all stand at {at}; give"
+            f" two different ends so that the {stage} stage moves",
+        )
 
 
 def check_enough_points(method: str, points: list[StagePoint]) -> None:
@@ -52,22 +62,31 @@ def check_enough_points(method: str, points: list[StagePoint]) -> None:
     have = distinct_points(points)
     if have < need:
         repeated = f" ({len(points) - have} repeated)" if have < len(points) else ""
-        raise RequestProblem("grid", f"{have} distinct points{repeated}; the {method} fit needs at least {need}")
+        raise RequestProblem(
+            "grid", f"{have} distinct points{repeated}; the {method} fit needs at least {need}"
+        )
 
 
 def check_off_axis(method: str, points: list[StagePoint]) -> None:
-    """The coupling model is seen only where both stages are tilted (its error is zero on the axes)."""
+    """The coupling model is seen only where both stages are tilted (its error is zero on the
+    axes)."""
     if method != "coupling":
         return
     xs, ys = np.array(points, dtype=float).T
     error = offaxis_error_deg(xs, ys)
     if float(error @ error) < 1e-12:
-        raise RequestProblem("grid", "every point lies on the x = 0 or y = 0 line (or too close to it); the coupling"
-                             " fit needs points with both stages tilted, where the off-axis coupling shows")
+        raise RequestProblem(
+            "grid",
+            "every point lies on the x = 0 or y = 0 line (or too close to it); the coupling"
+            " fit needs points with both stages tilted, where the off-axis coupling shows",
+        )
 
 
-def rehearse_fit(method: str, points: list[StagePoint], hardware: StageBench, options: FitOptions) -> None:
-    """The method's fit on the readings a perfect bench of this hardware gives at the planned points.
+def rehearse_fit(
+    method: str, points: list[StagePoint], hardware: StageBench, options: FitOptions
+) -> None:
+    """The method's fit on the readings a perfect bench of this hardware gives at the planned
+    points.
 
     A grid whose geometry the fit cannot use fails here as it would after the measurement; the
     message is the fit's own. Real readings differ from these by the instruments' errors and
@@ -75,18 +94,28 @@ def rehearse_fit(method: str, points: list[StagePoint], hardware: StageBench, op
     """
     xs, ys = np.array(points, dtype=float).T
     ideal = simulate_stage(hardware, EffectSet.from_mapping("stage", {}), xs, ys)
-    columns = {"stage_x_deg": xs, "stage_y_deg": ys, "dir_x": np.ones_like(xs), "dir_y": np.ones_like(xs),
-               **{name: ideal[name] for name in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg")}}
+    columns = {
+        "stage_x_deg": xs,
+        "stage_y_deg": ys,
+        "dir_x": np.ones_like(xs),
+        "dir_y": np.ones_like(xs),
+        **{name: ideal[name] for name in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg")},
+    }
     try:
-        with np.errstate(divide="ignore", invalid="ignore"):  # noiseless readings: zero residuals divide
+        # noiseless readings: zero residuals divide
+        with np.errstate(divide="ignore", invalid="ignore"):
             get_method("stage", method).fit(columns, options)
     except (DegenerateDataError, FitError) as exc:
-        raise RequestProblem("grid", f"the {method} fit cannot use these points (tried on the readings of a perfect"
-                             f" bench before measuring): {exc}") from None
+        raise RequestProblem(
+            "grid",
+            f"the {method} fit cannot use these points (tried on the readings of a perfect"
+            f" bench before measuring): {exc}",
+        ) from None
 
 
-def check_stage_grid(method: str, grid: Grid, points: list[StagePoint], hardware: StageBench,
-                     options: FitOptions) -> None:
+def check_stage_grid(
+    method: str, grid: Grid, points: list[StagePoint], hardware: StageBench, options: FitOptions
+) -> None:
     """Every precondition of the stage fit, the cheap ones first; RequestProblem names the field."""
     check_axis_positions(grid, points)
     check_enough_points(method, points)

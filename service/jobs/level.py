@@ -2,9 +2,9 @@
 back, and aim again by the remaining error until within tolerance.
 
 A record that models the stage's backlash aims for the side the stage will arrive from (each move's
-direction from where the stage stands); a record that models the reference sensor's own errors reads the
-read-back through them, so `achieved` is the table tilt the record says the reference saw (the raw mean is
-kept beside it as `reference_raw`)."""
+direction from where the stage stands); a record that models the reference sensor's own errors reads
+the read-back through them, so `achieved` is the table tilt the record says the reference saw (the
+raw mean is kept beside it as `reference_raw`)."""
 
 from __future__ import annotations
 
@@ -25,30 +25,48 @@ READBACK_SAMPLES = 10
 
 
 def models_backlash(model: CalibrationModel) -> bool:
-    """Whether the record fits the stages' lost motion (so where a move ends depends on its direction)."""
-    return any(name in model.parameters and not model.parameters[name].fixed and model.value(name) != 0.0
-               for name in ("backlash.x_deg", "backlash.y_deg"))
+    """Whether the record fits the stages' lost motion (so where a move ends depends on its
+    direction)."""
+    return any(
+        name in model.parameters and not model.parameters[name].fixed and model.value(name) != 0.0
+        for name in ("backlash.x_deg", "backlash.y_deg")
+    )
 
 
-def _aim(active: ActiveModel, x_deg: float, y_deg: float, dir_x: float | None, dir_y: float | None) -> tuple[float, float]:
+def _aim(
+    active: ActiveModel, x_deg: float, y_deg: float, dir_x: float | None, dir_y: float | None
+) -> tuple[float, float]:
     if not isinstance(active.method, LevellingMethod):
-        raise InputError(f"method {active.method_name} does not level; levelling needs a stage model")
+        raise InputError(
+            f"method {active.method_name} does not level; levelling needs a stage model"
+        )
     data = {"target_x_deg": np.array([x_deg]), "target_y_deg": np.array([y_deg])}
     if dir_x is not None and dir_y is not None:
         data |= {"dir_x": np.array([dir_x]), "dir_y": np.array([dir_y])}
     try:
         out = active.method.level(active.model, data)
-    except InputError as exc:  # the method speaks of rows of a targets file; here there is one target
+    # the method speaks of rows of a targets file; here there is one target
+    except InputError as exc:
         text = str(exc).replace("target row(s) 1 need ", "target row(s) 1 needs ")
-        raise InputError(text.replace("target row(s) 1", f"the target x_deg {x_deg:g}, y_deg {y_deg:g}")) from None
+        raise InputError(
+            text.replace("target row(s) 1", f"the target x_deg {x_deg:g}, y_deg {y_deg:g}")
+        ) from None
     return float(out["stage_x_deg"][0]), float(out["stage_y_deg"][0])
 
 
-def commands(active: ActiveModel, x_deg: float, y_deg: float, pose: StagePose | None = None) -> tuple[float, float]:
-    """Stage angles for a wanted table tilt (InputError beyond the travel or out of reach). With the stage's pose
-    and a record that models backlash, the angles for the side each stage will arrive from."""
+def commands(
+    active: ActiveModel, x_deg: float, y_deg: float, pose: StagePose | None = None
+) -> tuple[float, float]:
+    """Stage angles for a wanted table tilt (InputError beyond the travel or out of reach). With the
+    stage's pose and a record that models backlash, the angles for the side each stage will arrive
+    from."""
     sx, sy = _aim(active, x_deg, y_deg, None, None)
-    if pose is None or pose.x_deg is None or pose.y_deg is None or not models_backlash(active.model):
+    if (
+        pose is None
+        or pose.x_deg is None
+        or pose.y_deg is None
+        or not models_backlash(active.model)
+    ):
         return sx, sy
     for _ in range(3):  # the lag shifts the command, which may turn the direction: settle on one
         dx = 1.0 if sx > pose.x_deg else -1.0 if sx < pose.x_deg else pose.dir_x
@@ -60,10 +78,12 @@ def commands(active: ActiveModel, x_deg: float, y_deg: float, pose: StagePose | 
     return sx, sy
 
 
-def read_back(active: ActiveModel, raw: tuple[float, float], temp_c: float | None,
-              t_s: float) -> tuple[tuple[float, float], str]:
-    """The table tilt a read-back of the reference stands for, and how it was read: through the record's model of
-    the reference's own errors when it has one (raw otherwise, or when the model needs what the read-back lacks)."""
+def read_back(
+    active: ActiveModel, raw: tuple[float, float], temp_c: float | None, t_s: float
+) -> tuple[tuple[float, float], str]:
+    """The table tilt a read-back of the reference stands for, and how it was read: through the
+    record's model of the reference's own errors when it has one (raw otherwise, or when the model
+    needs what the read-back lacks)."""
     errors = active.reference
     if errors is None:
         return raw, "reference sensor, mean of the settled read-back"
@@ -72,13 +92,20 @@ def read_back(active: ActiveModel, raw: tuple[float, float], temp_c: float | Non
         return raw, f"reference sensor, mean of the settled read-back, raw: {why}"
     x, y = true_reading(errors, raw[0], raw[1], temp_c, t_s)
     far = extrapolation_note(errors, t_s)
-    return (float(x), float(y)), (f"reference sensor, mean of the settled read-back, through record {active.record_id}'s "
-                                  f"model of the reference's own errors ({errors.describe()})"
-                                  + (f"; {far}" if far else ""))
+    return (float(x), float(y)), (
+        f"reference sensor, mean of the settled read-back, through record {active.record_id}'s "
+        f"model of the reference's own errors ({errors.describe()})" + (f"; {far}" if far else "")
+    )
 
 
-async def level(bench: BenchRuntime, active: ActiveModel, x_deg: float, y_deg: float, tolerance_deg: float,
-                max_iterations: int) -> dict[str, Any]:
+async def level(
+    bench: BenchRuntime,
+    active: ActiveModel,
+    x_deg: float,
+    y_deg: float,
+    tolerance_deg: float,
+    max_iterations: int,
+) -> dict[str, Any]:
     aim_x, aim_y = x_deg, y_deg
     sx, sy = commands(active, aim_x, aim_y, bench.pose)  # refused before anything moves
     achieved = raw = (float("nan"), float("nan"))
@@ -86,12 +113,22 @@ async def level(bench: BenchRuntime, active: ActiveModel, x_deg: float, y_deg: f
     to_epoch = bench_epoch(bench)
     for it in range(1, max_iterations + 1):
         sx, sy = await bench.move_stage(sx, sy)
-        t0 = await settle(bench, ("reference_sensor",), tolerance_deg=max(tolerance_deg / 2, 1e-4), window_s=0.3,
-                          timeout_s=30.0)
-        a = robust_mean(await fresh_readings(bench, "reference_sensor", READBACK_SAMPLES, after_bench_s=t0,
-                                             timeout_s=10.0))
+        t0 = await settle(
+            bench,
+            ("reference_sensor",),
+            tolerance_deg=max(tolerance_deg / 2, 1e-4),
+            window_s=0.3,
+            timeout_s=30.0,
+        )
+        a = robust_mean(
+            await fresh_readings(
+                bench, "reference_sensor", READBACK_SAMPLES, after_bench_s=t0, timeout_s=10.0
+            )
+        )
         raw = a.mean[0], a.mean[1]
-        achieved, how = read_back(active, raw, a.temp_c if a.temp_c is not None else _temp(bench), to_epoch(a.t_end_s))
+        achieved, how = read_back(
+            active, raw, a.temp_c if a.temp_c is not None else _temp(bench), to_epoch(a.t_end_s)
+        )
         ex, ey = x_deg - achieved[0], y_deg - achieved[1]
         if max(abs(ex), abs(ey)) <= tolerance_deg:
             return _answer(achieved, raw, how, it, (sx, sy), True)
@@ -103,7 +140,8 @@ async def level(bench: BenchRuntime, active: ActiveModel, x_deg: float, y_deg: f
 
 
 def _temp(bench: BenchRuntime) -> float | None:
-    """The latest temperature a sensor of the bench gave (the read-back's own readings may carry none)."""
+    """The latest temperature a sensor of the bench gave (the read-back's own readings may carry
+    none)."""
     for role in ("reference_sensor", "measurement_sensor"):
         r = bench.latest(role)
         if r is not None and r.temp_c is not None:
@@ -111,8 +149,19 @@ def _temp(bench: BenchRuntime) -> float | None:
     return None
 
 
-def _answer(achieved: tuple[float, float], raw: tuple[float, float], how: str, iterations: int,
-            stage: tuple[float, float], ok: bool) -> dict[str, Any]:
-    return {"achieved": {"x_deg": achieved[0], "y_deg": achieved[1]},
-            "reference_raw": {"x_deg": raw[0], "y_deg": raw[1]}, "iterations": iterations,
-            "stage": {"x_deg": stage[0], "y_deg": stage[1]}, "within_tolerance": ok, "measured_by": how}
+def _answer(
+    achieved: tuple[float, float],
+    raw: tuple[float, float],
+    how: str,
+    iterations: int,
+    stage: tuple[float, float],
+    ok: bool,
+) -> dict[str, Any]:
+    return {
+        "achieved": {"x_deg": achieved[0], "y_deg": achieved[1]},
+        "reference_raw": {"x_deg": raw[0], "y_deg": raw[1]},
+        "iterations": iterations,
+        "stage": {"x_deg": stage[0], "y_deg": stage[1]},
+        "within_tolerance": ok,
+        "measured_by": how,
+    }

@@ -57,42 +57,59 @@ T = TypeVar("T")
 
 
 class JobManager:
-    def __init__(self, store: Store, benches: dict[str, BenchRuntime],
-                 database: DatabaseState | None = None, disk: DiskWatch | None = None, *,
-                 require_conditions: bool = False) -> None:
+    def __init__(
+        self,
+        store: Store,
+        benches: dict[str, BenchRuntime],
+        database: DatabaseState | None = None,
+        disk: DiskWatch | None = None,
+        *,
+        require_conditions: bool = False,
+    ) -> None:
         self.store = store
         self.benches = benches
-        # the free space the daemon keeps: a job does not start, and a running one stops (resumable), below it
+        # the free space the daemon keeps: a job does not start, and a running one stops
+        # (resumable), below it
         self.disk = disk
-        # job -> its end and when, not stored yet because the disk was full (written once there is room)
+        # job -> its end and when, not stored yet because the disk was full (written once there is
+        # room)
         self.unwritten: dict[int, tuple[Stop, dt.datetime]] = {}
         # whether the database answers; a job's steps wait through an outage up to database.outage_s
         self.database = database or DatabaseState(redacted(store.engine.url))
         self.waiting_for_database: dict[int, dt.datetime] = {}  # job -> since when its step waits
-        self._endings: set[asyncio.Task[Any]] = set()  # job endings waiting for the database to come back
-        self.admission = Admission(store.jobs, store.orders, store.standards, require_conditions=require_conditions)
+        # job endings waiting for the database to come back
+        self._endings: set[asyncio.Task[Any]] = set()
+        self.admission = Admission(
+            store.jobs, store.orders, store.standards, require_conditions=require_conditions
+        )
         self.require_conditions = require_conditions
         self.tasks: dict[int, asyncio.Task[None]] = {}
-        self.stop_reasons: dict[int, Stop] = {}  # why a job's task was cancelled from outside, and by whom
+        # why a job's task was cancelled from outside, and by whom
+        self.stop_reasons: dict[int, Stop] = {}
         self.active: dict[str, ActiveModel | None] = {}
-        self.inactive_notes: dict[str, str | None] = {}  # why a bench corrects nothing, when a record was withdrawn
+        # why a bench corrects nothing, when a record was withdrawn
+        self.inactive_notes: dict[str, str | None] = {}
         self.events = JobEvents()  # watchers hear of every stored state, progress and point
         # Idempotency-Keys whose job is being written: a repeat waits for it, then answers that job.
         self._creating: dict[str, asyncio.Future[None]] = {}
-        self._ranges: dict[int, dict[str, list[float]] | None] = {}  # record id -> its calibrated range
+        # record id -> its calibrated range
+        self._ranges: dict[int, dict[str, list[float]] | None] = {}
 
     # ------------------------------------------------------------ active record per bench
 
     def load_active(self, bench: BenchRuntime) -> ActiveModel | None:
-        """Blocking (database): the bench's active stage record, checked before use (`inactive_notes` says
-        why a bench has none). Called at start-up and whenever a record is activated, approved or rejected."""
-        loaded, note = load_active(self.store.records, self.store.approvals, bench, self.fit_columns, self.point_spreads)
+        """Blocking (database): the bench's active stage record, checked before use
+        (`inactive_notes` says why a bench has none). Called at start-up and whenever a record is
+        activated, approved or rejected."""
+        loaded, note = load_active(
+            self.store.records, self.store.approvals, bench, self.fit_columns, self.point_spreads
+        )
         self.active[bench.name], self.inactive_notes[bench.name] = loaded, note
         return loaded
 
     def table_tilt_range_of(self, rec: CalibrationRecord) -> dict[str, list[float]] | None:
-        """The table tilts a record was fitted on, worked out once per record (records never change): a page
-        of records is read without reading each one's model and points again."""
+        """The table tilts a record was fitted on, worked out once per record (records never
+        change): a page of records is read without reading each one's model and points again."""
         if rec.id in self._ranges:
             return self._ranges[rec.id]
         seen = table_tilt_range_of(rec, self.fit_columns)
@@ -113,20 +130,32 @@ class JobManager:
 
     # ------------------------------------------------------------ submitting
 
-    async def submit(self, req: CalibrationRequest, bench: BenchRuntime, principal: Principal,
-                     idempotency_key: str | None) -> tuple[CalibrationJob, bool]:
-        """A new queued job and True, or the job an earlier request with the same Idempotency-Key made and False."""
+    async def submit(
+        self,
+        req: CalibrationRequest,
+        bench: BenchRuntime,
+        principal: Principal,
+        idempotency_key: str | None,
+    ) -> tuple[CalibrationJob, bool]:
+        """A new queued job and True, or the job an earlier request with the same Idempotency-Key
+        made and False."""
         self.check_disk()
         plan = await asyncio.to_thread(self.admission.plan, req, bench)
         body = req.model_dump(mode="json")
         body["bench"] = bench.name
         for r in plan.read_roles:
             if bench.device_ids.get(r) is None:
-                raise DeviceNotAnswering(f"{r} on {bench.port_of(r)} did not identify itself at start-up")
+                raise DeviceNotAnswering(
+                    f"{r} on {bench.port_of(r)} did not identify itself at start-up"
+                )
         device_id = bench.device_ids[plan.device_role]
         parameters = self.admission.parameters(body, bench, plan)
-        if principal.person is not None:  # who runs the job, as the token names them now (certificates state it)
-            parameters["operator_person"] = {"name": principal.person.name, "function": principal.person.function}
+        # who runs the job, as the token names them now (certificates state it)
+        if principal.person is not None:
+            parameters["operator_person"] = {
+                "name": principal.person.name,
+                "function": principal.person.function,
+            }
         if bench.bench_id is None:
             raise BenchBusy(f"bench {bench.name!r} is not registered in the database yet")
         while idempotency_key is not None and idempotency_key in self._creating:
@@ -135,19 +164,30 @@ class JobManager:
         if bench.holder is not None:
             if idempotency_key is None:
                 raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
-            return await asyncio.to_thread(self.admission.replay, bench, idempotency_key, body), False
+            return await asyncio.to_thread(
+                self.admission.replay, bench, idempotency_key, body
+            ), False
         # The bench is taken before the database is: a second request while the job is being
-        # written finds it busy (or, with the same key, waits for it) rather than making a second job.
+        # written finds it busy (or, with the same key, waits for it) rather than making a second
+        # job.
         bench.holder = BenchHold(Hold.JOB_BEING_CREATED)
         written: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         if idempotency_key is not None:
             self._creating[idempotency_key] = written
         try:
             job, created = await asyncio.to_thread(
-                self.store.jobs.create_calibration_job, bench_id=bench.bench_id, device_id=device_id,
-                kind=KIND_OF_PROCEDURE[req.procedure], method=req.method, parameters=parameters, actor=principal.name,
-                points_total=len(plan.fit_points) + len(plan.validation_points), order_id=req.order_id,
-                idempotency_key=idempotency_key, request=body if idempotency_key is not None else None)
+                self.store.jobs.create_calibration_job,
+                bench_id=bench.bench_id,
+                device_id=device_id,
+                kind=KIND_OF_PROCEDURE[req.procedure],
+                method=req.method,
+                parameters=parameters,
+                actor=principal.name,
+                points_total=len(plan.fit_points) + len(plan.validation_points),
+                order_id=req.order_id,
+                idempotency_key=idempotency_key,
+                request=body if idempotency_key is not None else None,
+            )
         except BaseException:
             bench.holder = None
             raise
@@ -161,30 +201,57 @@ class JobManager:
             bench.holder = None  # the key's earlier job, already run or running elsewhere
         return job, created
 
-    async def submit_measurement(self, bench: BenchRuntime, device_id: int, request: dict[str, Any],
-                                 points: list[list[float]], extra: dict[str, Any], actor: str) -> CalibrationJob:
-        """A job measuring planned points (service.jobs.diagnosis_measurement) for a diagnosis: it holds the bench
-        like any job (BenchBusy when another holds it) and makes no record. `request` says how each point is
-        settled and read, `extra` what the job keeps of why it was made."""
+    async def submit_measurement(
+        self,
+        bench: BenchRuntime,
+        device_id: int,
+        request: dict[str, Any],
+        points: list[list[float]],
+        extra: dict[str, Any],
+        actor: str,
+    ) -> CalibrationJob:
+        """A job measuring planned points (service.jobs.diagnosis_measurement) for a diagnosis: it
+        holds the bench like any job (BenchBusy when another holds it) and makes no record.
+        `request` says how each point is settled and read, `extra` what the job keeps of why it was
+        made."""
         from service.jobs.diagnosis_measurement import NAME
 
         for role in ("reference_sensor", "measurement_sensor"):
             if bench.device_ids.get(role) is None:
-                raise DeviceNotAnswering(f"{role} on {bench.port_of(role)} did not identify itself at start-up")
+                raise DeviceNotAnswering(
+                    f"{role} on {bench.port_of(role)} did not identify itself at start-up"
+                )
         if bench.bench_id is None:
             raise BenchBusy(f"bench {bench.name!r} is not registered in the database yet")
         if bench.holder is not None:
             raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
-        parameters = {**extra, "procedure": NAME, "request": request, "fit_points": points, "validation_points": [],
-                      "approach": "per point from the side the plan says (dir +1 from below, -1 from above) by "
-                                  "0.1 deg",
-                      "device_ids": {r: bench.device_ids.get(r) for r in ("reference_sensor", "measurement_sensor")}}
+        parameters = {
+            **extra,
+            "procedure": NAME,
+            "request": request,
+            "fit_points": points,
+            "validation_points": [],
+            "approach": "per point from the side the plan says (dir +1 from below, -1 from "
+            "above) by 0.1 deg",
+            "device_ids": {
+                r: bench.device_ids.get(r) for r in ("reference_sensor", "measurement_sensor")
+            },
+        }
         bench.holder = BenchHold(Hold.JOB_BEING_CREATED)
         try:
             job, _ = await asyncio.to_thread(
-                self.store.jobs.create_calibration_job, bench_id=bench.bench_id, device_id=device_id, kind="stage",
-                method=str(request.get("method", "kinematic")), parameters=parameters, actor=actor,
-                points_total=len(points), order_id=None, idempotency_key=None, request=None)
+                self.store.jobs.create_calibration_job,
+                bench_id=bench.bench_id,
+                device_id=device_id,
+                kind="stage",
+                method=str(request.get("method", "kinematic")),
+                parameters=parameters,
+                actor=actor,
+                points_total=len(points),
+                order_id=None,
+                idempotency_key=None,
+                request=None,
+            )
         except BaseException:
             bench.holder = None
             raise
@@ -205,13 +272,14 @@ class JobManager:
         self.tasks[job_id] = asyncio.get_running_loop().create_task(self._run(job_id, bench))
 
     def check_disk(self) -> None:
-        """DiskFull (507) naming the folder when the data directory has less free space than the daemon keeps."""
+        """DiskFull (507) naming the folder when the data directory has less free space than the
+        daemon keeps."""
         if self.disk is not None:
             self.disk.check()
 
     def as_known(self, job: CalibrationJob) -> CalibrationJob:
-        """The job as the daemon knows it: an end it could not store yet (a full disk) shown as it will be
-        stored. The row is a detached copy; nothing is written."""
+        """The job as the daemon knows it: an end it could not store yet (a full disk) shown as it
+        will be stored. The row is a detached copy; nothing is written."""
         held = self.unwritten.get(job.id)
         if held is None or job.state not in LIVE:
             return job
@@ -223,7 +291,8 @@ class JobManager:
 
     async def resume(self, job_id: int, principal: Principal) -> CalibrationJob:
         self.check_disk()
-        if job_id in self.unwritten:  # its end first: a job is resumed from what the database says of it
+        # its end first: a job is resumed from what the database says of it
+        if job_id in self.unwritten:
             stop, _ = self.unwritten[job_id]
             try:
                 await write_in_thread(self._end_job, job_id, stop)
@@ -235,7 +304,9 @@ class JobManager:
         job = await asyncio.to_thread(self.store.jobs.get_job, job_id)
         bench = next((b for b in self.benches.values() if b.bench_id == job.bench_id), None)
         if bench is None:
-            raise RequestProblem("id", f"job {job_id} ran on a bench this daemon does not run", status=409)
+            raise RequestProblem(
+                "id", f"job {job_id} ran on a bench this daemon does not run", status=409
+            )
         if bench.holder is not None:
             raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
         bench.holder = BenchHold(Hold.JOB_RESUMING, job_id)
@@ -252,24 +323,36 @@ class JobManager:
     async def cancel(self, job_id: int, principal: Principal) -> CalibrationJob:
         job = await asyncio.to_thread(self.store.jobs.get_job, job_id)
         if job.state not in LIVE:
-            raise RequestProblem("id", f"job {job_id} is {job.state}; only a queued or running job can be cancelled",
-                                 status=409)
-        await self._end_task(job_id, Stop(Ending.CANCELLED, f"cancelled by {principal.name}", actor=principal.name))
+            raise RequestProblem(
+                "id",
+                f"job {job_id} is {job.state}; only a queued or running job can be cancelled",
+                status=409,
+            )
+        await self._end_task(
+            job_id, Stop(Ending.CANCELLED, f"cancelled by {principal.name}", actor=principal.name)
+        )
         return await asyncio.to_thread(self.store.jobs.get_job, job_id)
 
     async def stop_bench(self, bench: BenchRuntime, principal: Principal) -> int | None:
         """Stop motion now; a running job fails with the reason. Returns the failed job's id."""
         # The job is named before the stop: once the axes stand, the job may end by itself (its move
         # fails) and let go of the bench before this coroutine runs again.
-        job_id = next((j for j, t in self.tasks.items() if bench.holder == BenchHold.job(j) and not t.done()), None)
-        stop = Stop(Ending.FAILED, f"stopped by POST /stage/stop ({principal.name}) while the job ran",
-                    actor=principal.name)
+        job_id = next(
+            (j for j, t in self.tasks.items() if bench.holder == BenchHold.job(j) and not t.done()),
+            None,
+        )
+        stop = Stop(
+            Ending.FAILED,
+            f"stopped by POST /stage/stop ({principal.name}) while the job ran",
+            actor=principal.name,
+        )
         if job_id is not None:
             self.stop_reasons[job_id] = stop  # the job's own failure, if first, says why
         await bench.stop()
         if job_id is not None:
             await self._end_task(job_id, stop)
-            await bench.stop()  # again: a move the job had half sent (one axis) before it ended is stopped too
+            # again: a move the job had half sent (one axis) before it ended is stopped too
+            await bench.stop()
         return job_id
 
     async def _end_task(self, job_id: int, stop: Stop) -> None:
@@ -286,13 +369,18 @@ class JobManager:
 
     async def _finish(self, job_id: int, stop: Stop) -> None:
         """The job's end written; while the database is away it is written when the database answers
-        again (however long that takes), and the caller (a stop, a cancel, the job's task) goes on."""
+        again (however long that takes), and the caller (a stop, a cancel, the job's task) goes
+        on."""
         try:
             await write_in_thread(self._end_job, job_id, stop)
         except Exception as exc:
             if disk_full(exc):  # known here, shown as ended, stored once the disk has room
-                log.warning("job %s: its end (%s) cannot be stored, the disk is full; it is written once there is"
-                            " room", job_id, stop.reason)
+                log.warning(
+                    "job %s: its end (%s) cannot be stored, the disk is full; it is written "
+                    "once there is room",
+                    job_id,
+                    stop.reason,
+                )
                 self.unwritten[job_id] = (stop, dt.datetime.now(dt.UTC))
                 ending = asyncio.get_running_loop().create_task(self._store_when_room(job_id, stop))
                 self._endings.add(ending)
@@ -303,15 +391,25 @@ class JobManager:
                 raise
             if not isinstance(exc, DatabaseOutage):
                 self.database.away(exc)
-            log.warning("job %s: its end (%s) is written once the database answers again", job_id, stop.reason)
+            log.warning(
+                "job %s: its end (%s) is written once the database answers again",
+                job_id,
+                stop.reason,
+            )
             ending = asyncio.get_running_loop().create_task(
-                through_outage(self.database, partial(write_in_thread, self._end_job, job_id, stop), give_up=False))
+                through_outage(
+                    self.database,
+                    partial(write_in_thread, self._end_job, job_id, stop),
+                    give_up=False,
+                )
+            )
             self._endings.add(ending)
             ending.add_done_callback(partial(self._ended_later, job_id))
         self.events.changed(job_id)
 
     async def _store_when_room(self, job_id: int, stop: Stop) -> None:
-        """Try to store a job's end again every DISK_RETRY_S until the disk has room (or a resume stored it)."""
+        """Try to store a job's end again every DISK_RETRY_S until the disk has room (or a resume
+        stored it)."""
         while job_id in self.unwritten:
             await asyncio.sleep(DISK_RETRY_S)
             if job_id not in self.unwritten:
@@ -335,12 +433,18 @@ class JobManager:
         self.events.changed(job_id)
 
     async def _db(self, job_id: int, call: Callable[..., T], /, *args: Any, **kwargs: Any) -> T:
-        """A job's database step in a worker thread, waiting through an outage (the job shows it waits)
-        until the outage outlasts TILTLAB_DB_OUTAGE_S (then DatabaseOutage). `call` must be safe to repeat."""
-        self.check_disk()  # before every step: a job stops with room left to store why, not on a full disk
+        """A job's database step in a worker thread, waiting through an outage (the job shows it
+        waits) until the outage outlasts TILTLAB_DB_OUTAGE_S (then DatabaseOutage). `call` must be
+        safe to repeat."""
+        # before every step: a job stops with room left to store why, not on a full disk
+        self.check_disk()
         held = sum(len(a) for a in args if isinstance(a, list) and a and isinstance(a[0], Sample))
-        return await through_outage(self.database, partial(write_in_thread, call, *args, **kwargs),
-                                    on_wait=partial(self._waiting, job_id), samples=held)
+        return await through_outage(
+            self.database,
+            partial(write_in_thread, call, *args, **kwargs),
+            on_wait=partial(self._waiting, job_id),
+            samples=held,
+        )
 
     def _waiting(self, job_id: int, waits: bool) -> None:
         if waits:
@@ -351,8 +455,8 @@ class JobManager:
         self.events.changed(job_id)
 
     def _end_job(self, job_id: int, stop: Stop) -> None:
-        """Blocking (database): the job cancelled or failed, audited with whoever ended it. Safe to repeat:
-        a job already ended (an earlier try whose answer was lost) is left as it is."""
+        """Blocking (database): the job cancelled or failed, audited with whoever ended it. Safe to
+        repeat: a job already ended (an earlier try whose answer was lost) is left as it is."""
         job = self.store.jobs.get_job(job_id)
         if job.state in ENDED:
             return
@@ -366,36 +470,59 @@ class JobManager:
             self.store.jobs.fail_job(job_id, stop.reason, actor=stop.actor)
 
     async def shutdown(self) -> None:
-        """Daemon stopping: running jobs are left as interrupted (resumable), not failed for good."""
+        """Daemon stopping: running jobs are left as interrupted (resumable), not failed for
+        good."""
         for job_id, task in list(self.tasks.items()):
             if not task.done():
                 self.stop_reasons[job_id] = Stop(Ending.INTERRUPTED, "the daemon stopped")
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
-        for ending in list(self._endings):  # the database is away: the next start marks these jobs interrupted
+        # the database is away: the next start marks these jobs interrupted
+        for ending in list(self._endings):
             ending.cancel()
         try:
-            await write_in_thread(self.store.jobs.mark_interrupted, actor=DAEMON,  # this daemon's benches only
-                                  bench_ids=[b.bench_id for b in self.benches.values() if b.bench_id is not None])
+            # this daemon's benches only
+            await write_in_thread(
+                self.store.jobs.mark_interrupted,
+                actor=DAEMON,
+                bench_ids=[b.bench_id for b in self.benches.values() if b.bench_id is not None],
+            )
         except Exception as exc:
             if not unreachable(exc):
                 raise
-            log.warning("the database is away: jobs left running are marked interrupted at the next start")
+            log.warning(
+                "the database is away: jobs left running are marked interrupted at the next start"
+            )
 
     # ------------------------------------------------------------ running
 
-    async def _report(self, job_id: int, points_done: int, points_total: int, phase: Phase,
-                      bench_time: BenchTime | None = None) -> None:
-        await self._db(job_id, self.store.jobs.set_job_progress, job_id, points_done=points_done,
-                       points_total=points_total, phase=phase,
-                       bench_seconds=bench_time.as_json() if bench_time is not None else None)
+    async def _report(
+        self,
+        job_id: int,
+        points_done: int,
+        points_total: int,
+        phase: Phase,
+        bench_time: BenchTime | None = None,
+    ) -> None:
+        await self._db(
+            job_id,
+            self.store.jobs.set_job_progress,
+            job_id,
+            points_done=points_done,
+            points_total=points_total,
+            phase=phase,
+            bench_seconds=bench_time.as_json() if bench_time is not None else None,
+        )
         self.events.changed(job_id)
 
     def _start_job(self, job_id: int) -> CalibrationJob:
-        """Blocking (database): the job running. Safe to repeat (a job already running is left so)."""
+        """Blocking (database): the job running. Safe to repeat (a job already running is left
+        so)."""
         job = self.store.jobs.get_job(job_id)
-        return self.store.jobs.start_job(job_id, actor=DAEMON) if job.state == JobState.QUEUED else job
+        return (
+            self.store.jobs.start_job(job_id, actor=DAEMON) if job.state == JobState.QUEUED else job
+        )
 
     async def _run(self, job_id: int, bench: BenchRuntime) -> None:
         try:
@@ -411,11 +538,16 @@ class JobManager:
             async def report(points_done: int, points_total: int, phase: Phase) -> None:
                 await self._report(job_id, points_done, points_total, phase, bench_time)
 
-            outcome = await procedure.run(JobContext(self.store, job, bench, request, report,
-                                                     partial(self._db, job_id), bench_time))
+            outcome = await procedure.run(
+                JobContext(
+                    self.store, job, bench, request, report, partial(self._db, job_id), bench_time
+                )
+            )
             await self._db(job_id, self._conclude, job, outcome)
         except asyncio.CancelledError:
-            stop = self.stop_reasons.pop(job_id, Stop(Ending.FAILED, "the job's task was cancelled"))
+            stop = self.stop_reasons.pop(
+                job_id, Stop(Ending.FAILED, "the job's task was cancelled")
+            )
             if stop.ending is not Ending.INTERRUPTED:
                 with contextlib.suppress(Exception):
                     await self._finish(job_id, stop)
@@ -432,14 +564,16 @@ class JobManager:
             self.events.changed(job_id)
 
     def _ending_of(self, job_id: int, bench: BenchRuntime, exc: Exception) -> Stop:
-        """How a job whose task failed ends. A stop by request that the job saw first says why (a daemon
-        stopping leaves the job interrupted, to be resumed); a full disk stops it resumable; a database outage
-        that outlasted TILTLAB_DB_OUTAGE_S, an instrument or a bad input fail it naming them; anything else is
-        an internal error."""
+        """How a job whose task failed ends. A stop by request that the job saw first says why (a
+        daemon stopping leaves the job interrupted, to be resumed); a full disk stops it resumable;
+        a database outage that outlasted TILTLAB_DB_OUTAGE_S, an instrument or a bad input fail it
+        naming them; anything else is an internal error."""
         stopped = self.stop_reasons.pop(job_id, None)
         if disk_full(exc):  # (or below the room the daemon keeps)
-            reason = (f"{self._disk_reason(exc)}; nothing more was measured. Free space, then"
-                      f" POST /calibrations/{job_id}/resume continues the job from its stored points")
+            reason = (
+                f"{self._disk_reason(exc)}; nothing more was measured. Free space, then"
+                f" POST /calibrations/{job_id}/resume continues the job from its stored points"
+            )
             log.warning("job %s stopped: %s", job_id, reason)
             return stopped if stopped is not None else Stop(Ending.FAILED, reason, resumable=True)
         if isinstance(exc, DatabaseOutage):
@@ -456,12 +590,15 @@ class JobManager:
         text = str(exc)
         down = [s for s in bench.devices.status() if s.state != "connected"]
         if down:
-            text += "; not answering: " + ", ".join(f"{s.role} on {s.port} ({s.state})" for s in down)
+            text += "; not answering: " + ", ".join(
+                f"{s.role} on {s.port} ({s.state})" for s in down
+            )
         return text
 
     def _conclude(self, job: CalibrationJob, outcome: Outcome) -> None:
-        """Blocking (database): the record version, then the job succeeded. Safe to repeat: a job makes
-        one record, so a record already stored for it (an earlier try whose answer was lost) is not made again."""
+        """Blocking (database): the record version, then the job succeeded. Safe to repeat: a job
+        makes one record, so a record already stored for it (an earlier try whose answer was lost)
+        is not made again."""
         if outcome.model is None or job.id in self.store.records.records_of_jobs([job.id]):
             # a measurement that makes no record, or a record already stored for the job
             if self.store.jobs.get_job(job.id).state != JobState.SUCCEEDED:
@@ -471,31 +608,58 @@ class JobManager:
         standards = self.admission.standards(ids)
         method = get_method(outcome.kind, job.method)
         procedure = registry.procedure_of(job.parameters)
-        fit_cols = (procedure.stored_columns(self.store.points, job, outcome.n_fit)
-                    if outcome.kind == "stage" and isinstance(procedure, PointProcedure) else None)
+        fit_cols = (
+            procedure.stored_columns(self.store.points, job, outcome.n_fit)
+            if outcome.kind == "stage" and isinstance(procedure, PointProcedure)
+            else None
+        )
         if self.require_conditions and not outcome.conditions.get("ambient_temperature_c"):
-            raise InputError("the laboratory requires the ambient conditions of every calibration, and none was "
-                             "recorded: the bench's ambient sensor gave no reading during the job and the request "
-                             "gave no conditions.ambient_temperature_c")
-        budget = budget_of_record(method, outcome.model, fit_cols, standards,
-                                  outcome.conditions.get("resolution_deg") or {})
-        raw: dict[str, Any] = {"conditions": outcome.conditions, "fit_points": outcome.n_fit, "budget": budget}
+            raise InputError(
+                "the laboratory requires the ambient conditions of every calibration, and none "
+                "was recorded: the bench's ambient sensor gave no reading during the job and "
+                "the request gave no conditions.ambient_temperature_c"
+            )
+        budget = budget_of_record(
+            method,
+            outcome.model,
+            fit_cols,
+            standards,
+            outcome.conditions.get("resolution_deg") or {},
+        )
+        raw: dict[str, Any] = {
+            "conditions": outcome.conditions,
+            "fit_points": outcome.n_fit,
+            "budget": budget,
+        }
         if outcome.bench_seconds is not None:
             raw["bench_seconds"] = outcome.bench_seconds
             self.store.jobs.set_bench_seconds(job.id, outcome.bench_seconds)
         if job.parameters.get("operator_person"):
             raw["operator_person"] = job.parameters["operator_person"]
-        self.store.records.add_record(outcome.device_id, outcome.kind, job.method, outcome.model.to_json_dict(),
-                                      operator=job.created_by, validation=outcome.validation,
-                                      temp_c=outcome.conditions["temp_c_mean"], job_id=job.id, reference_standards=standards,
-                                      raw_data=raw)
+        self.store.records.add_record(
+            outcome.device_id,
+            outcome.kind,
+            job.method,
+            outcome.model.to_json_dict(),
+            operator=job.created_by,
+            validation=outcome.validation,
+            temp_c=outcome.conditions["temp_c_mean"],
+            job_id=job.id,
+            reference_standards=standards,
+            raw_data=raw,
+        )
         self.store.jobs.succeed_job(job.id, actor=DAEMON)
 
     # ------------------------------------------------------------ a finished job's points
 
-    def point_spreads(self, job_id: int, device_id: int) -> list[tuple[int, float | None, float | None]]:
+    def point_spreads(
+        self, job_id: int, device_id: int
+    ) -> list[tuple[int, float | None, float | None]]:
         """Blocking (database): (readings, sd x, sd y) of each point a device settled in a job."""
-        return [(p.n_samples, p.ch_x_std, p.ch_y_std) for p in self.store.points.settled_points(job_id, device_id)]
+        return [
+            (p.n_samples, p.ch_x_std, p.ch_y_std)
+            for p in self.store.points.settled_points(job_id, device_id)
+        ]
 
     def fit_columns(self, job_id: int, n_fit: int) -> dict[str, NDArray[np.float64]]:
         """Blocking (database): the dataset columns of a job's first `n_fit` settled points."""
@@ -505,8 +669,11 @@ class JobManager:
             raise InputError(f"job {job_id} ({procedure.name}) measured no points")
         return procedure.stored_columns(self.store.points, job, n_fit)
 
-    def validate(self, job_id: int, n_fit: int, method: Method, model: CalibrationModel) -> dict[str, Any]:
-        """Blocking (database): a model against the job's points from `n_fit` on (its validation points)."""
+    def validate(
+        self, job_id: int, n_fit: int, method: Method, model: CalibrationModel
+    ) -> dict[str, Any]:
+        """Blocking (database): a model against the job's points from `n_fit` on (its validation
+        points)."""
         job = self.store.jobs.get_job(job_id)
         procedure = registry.procedure_of(job.parameters)
         if not isinstance(procedure, PointProcedure):

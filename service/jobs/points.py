@@ -22,8 +22,13 @@ def writes_in_flight() -> int:
     return _writes_in_flight
 
 
-def store_point(store: Store, job_id: int, index: int, samples: list[Sample],
-                settled_by_device: dict[int, dict[str, Any]]) -> None:
+def store_point(
+    store: Store,
+    job_id: int,
+    index: int,
+    samples: list[Sample],
+    settled_by_device: dict[int, dict[str, Any]],
+) -> None:
     """Blocking (database): call through `write_in_thread`. A point half stored when the daemon
     was killed keeps its stored half; only the devices it lacks are added. Safe to repeat after a
     write whose outcome is unknown (a COMMIT whose answer was lost): the samples, written in one
@@ -50,7 +55,10 @@ async def write_in_thread(write: Callable[..., T], /, *args: Any, **kwargs: Any)
     except asyncio.CancelledError:
         await asyncio.wait({work})
         if not work.cancelled() and work.exception() is not None:
-            log.warning("a job's database write failed while the job was being cancelled: %s", work.exception())
+            log.warning(
+                "a job's database write failed while the job was being cancelled: %s",
+                work.exception(),
+            )
         raise
 
 

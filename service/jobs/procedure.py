@@ -58,7 +58,8 @@ class Plan(Generic[P]):
     validation_points: list[P]
     device_role: str  # the instrument calibrated: the job's and the record's device
     read_roles: tuple[str, ...]  # every instrument read at each point (all must have identified)
-    extra: dict[str, Any] = dataclasses.field(default_factory=dict)  # what else the job keeps in its parameters
+    # what else the job keeps in its parameters
+    extra: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -67,11 +68,13 @@ class Outcome:
 
     device_id: int
     kind: str
-    model: CalibrationModel | None  # None: a measurement that makes no record (a diagnosis reads its points)
+    # None: a measurement that makes no record (a diagnosis reads its points)
+    model: CalibrationModel | None
     validation: dict[str, Any]
     conditions: dict[str, Any]
     n_fit: int  # the first n_fit points were fitted, the rest validated
-    bench_seconds: dict[str, float] | None = None  # the bench time the job spent (BenchTime.as_json)
+    # the bench time the job spent (BenchTime.as_json)
+    bench_seconds: dict[str, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -82,12 +85,14 @@ class JobContext:
     job: CalibrationJob
     bench: BenchRuntime
     request: CalibrationRequest
-    report: Callable[[int, int, Phase], Awaitable[None]]  # (points done, points total, phase): stored and announced
+    # (points done, points total, phase): stored and announced
+    report: Callable[[int, int, Phase], Awaitable[None]]
     # A blocking database call (write or read) in a worker thread, waiting through a database outage
     # (the job shows it waits) and raising DatabaseOutage once it outlasts TILTLAB_DB_OUTAGE_S.
     # Writes given to it must be safe to repeat (service.storage.outage).
     db: Callable[..., Awaitable[Any]]
-    bench_time: BenchTime = dataclasses.field(default_factory=BenchTime)  # counted by the procedure as it moves, settles, reads
+    # counted by the procedure as it moves, settles, reads
+    bench_time: BenchTime = dataclasses.field(default_factory=BenchTime)
 
     @property
     def job_id(self) -> int:
@@ -109,42 +114,75 @@ class Procedure(Protocol):
 
 
 def validation_rng(n_points: int, n_validation: int) -> np.random.Generator:
-    """Validation points are drawn reproducibly from the request's size (a repeated request measures the same)."""
+    """Validation points are drawn reproducibly from the request's size (a repeated request measures
+    the same)."""
     return np.random.default_rng(n_points * 7919 + n_validation)
 
 
-def ambient_conditions(bench: BenchRuntime, req: CalibrationRequest, since_bench_s: float) -> dict[str, Any]:
-    """The laboratory's air during the job: read by the bench's ambient sensor since `since_bench_s` (its mean,
-    range and count; u combines the sensor's stated u with the range, as a rectangular half-width), else as
-    entered with the request (its value and u)."""
+def ambient_conditions(
+    bench: BenchRuntime, req: CalibrationRequest, since_bench_s: float
+) -> dict[str, Any]:
+    """The laboratory's air during the job: read by the bench's ambient sensor since `since_bench_s`
+    (its mean, range and count; u combines the sensor's stated u with the range, as a rectangular
+    half-width), else as entered with the request (its value and u)."""
     out: dict[str, Any] = {}
     sensor = bench.devices.ambient_sensor()
-    readings = [r for r in sensor.readings_after(since_bench_s) if r.status in (None, 0)] if sensor is not None else []
-    for key, field, u_sensor in (("ambient_temperature_c", "temp_c", "standard_uncertainty_c"),
-                                 ("relative_humidity_pct", "humidity_pct", "standard_uncertainty_pct")):
+    readings = (
+        [r for r in sensor.readings_after(since_bench_s) if r.status in (None, 0)]
+        if sensor is not None
+        else []
+    )
+    for key, field, u_sensor in (
+        ("ambient_temperature_c", "temp_c", "standard_uncertainty_c"),
+        ("relative_humidity_pct", "humidity_pct", "standard_uncertainty_pct"),
+    ):
         values = [v for r in readings if isinstance(v := getattr(r, field), int | float)]
         if sensor is not None and values:
             lo, hi = min(values), max(values)
             u = float(np.hypot(getattr(sensor, u_sensor), (hi - lo) / 2.0 / np.sqrt(3.0)))
-            out[key] = {"value": float(np.mean(values)), "standard_uncertainty": u, "min": lo, "max": hi,
-                        "n_readings": len(values), "source": "ambient_sensor"}
+            out[key] = {
+                "value": float(np.mean(values)),
+                "standard_uncertainty": u,
+                "min": lo,
+                "max": hi,
+                "n_readings": len(values),
+                "source": "ambient_sensor",
+            }
             continue
         entered = getattr(req.conditions, key, None) if req.conditions is not None else None
         if entered is not None:
-            out[key] = {"value": entered.value, "standard_uncertainty": entered.standard_uncertainty, "source": "request"}
+            out[key] = {
+                "value": entered.value,
+                "standard_uncertainty": entered.standard_uncertainty,
+                "source": "request",
+            }
     return out
 
 
-def job_conditions(bench: BenchRuntime, req: CalibrationRequest, temps_c: Sequence[float],
-                   since_bench_s: float | None = None) -> dict[str, Any]:
-    """What a record keeps of the conditions it was measured under (the ambient ones since `since_bench_s`)."""
-    ambient = ambient_conditions(bench, req, bench.clock.monotonic() if since_bench_s is None else since_bench_s)
-    return {**ambient, "temp_c_mean": float(np.mean(temps_c)) if len(temps_c) else None, "software_version": __version__,
-            "firmware": {r: (i.firmware if i else None) for r, i in bench.identities.items()},
-            "instruments": {r: (i.in_words() if i else None) for r, i in bench.identities.items()},
-            "resolution_deg": resolutions_deg(bench),
-            "bench": bench.name, "clock_speed": bench.clock.speed, "outlier_rule": OUTLIER_RULE,
-            "samples_per_point": req.samples_per_point, "settle": req.settle.model_dump()}
+def job_conditions(
+    bench: BenchRuntime,
+    req: CalibrationRequest,
+    temps_c: Sequence[float],
+    since_bench_s: float | None = None,
+) -> dict[str, Any]:
+    """What a record keeps of the conditions it was measured under (the ambient ones since
+    `since_bench_s`)."""
+    ambient = ambient_conditions(
+        bench, req, bench.clock.monotonic() if since_bench_s is None else since_bench_s
+    )
+    return {
+        **ambient,
+        "temp_c_mean": float(np.mean(temps_c)) if len(temps_c) else None,
+        "software_version": __version__,
+        "firmware": {r: (i.firmware if i else None) for r, i in bench.identities.items()},
+        "instruments": {r: (i.in_words() if i else None) for r, i in bench.identities.items()},
+        "resolution_deg": resolutions_deg(bench),
+        "bench": bench.name,
+        "clock_speed": bench.clock.speed,
+        "outlier_rule": OUTLIER_RULE,
+        "samples_per_point": req.samples_per_point,
+        "settle": req.settle.model_dump(),
+    }
 
 
 def bench_epoch(bench: BenchRuntime) -> Callable[[float], float]:
@@ -173,7 +211,9 @@ class PointProcedure(ABC, Generic[P]):
         """Approach, settle, read and store point `index` (its samples and settled means)."""
 
     @abstractmethod
-    def columns(self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool) -> Columns:
+    def columns(
+        self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool
+    ) -> Columns:
         """The dataset columns of settled points, as `tiltlab calibrate` reads them."""
 
     @abstractmethod
@@ -192,7 +232,8 @@ class PointProcedure(ABC, Generic[P]):
 
     async def run(self, ctx: JobContext) -> Outcome:
         job, bench = ctx.job, ctx.bench
-        began = bench.clock.monotonic()  # the ambient sensor's readings count from here (this run of the job)
+        # the ambient sensor's readings count from here (this run of the job)
+        began = bench.clock.monotonic()
         fit_pts = [self.stored_point(p) for p in job.parameters["fit_points"]]
         val_pts = [self.stored_point(p) for p in job.parameters["validation_points"]]
         n_fit, total = len(fit_pts), len(fit_pts) + len(val_pts)
@@ -202,10 +243,14 @@ class PointProcedure(ABC, Generic[P]):
             raise InputError(f"bench {bench.name!r} has no registered {', '.join(missing)}")
         started_with = job.parameters.get("device_ids", {})
         if started_with and started_with != devices:
-            raise InputError(f"the bench's instruments are not those the job started with ({started_with});"
-                             " its points cannot be continued with other instruments")
+            raise InputError(
+                f"the bench's instruments are not those the job started with ({started_with});"
+                " its points cannot be continued with other instruments"
+            )
         stored = await ctx.db(ctx.store.points.settled_points, job.id)
-        done = set.intersection(*({p.point for p in stored if p.device_id == d} for d in devices.values()))
+        done = set.intersection(
+            *({p.point for p in stored if p.device_id == d} for d in devices.values())
+        )
         await ctx.report(len(done), total, Phase.MEASURING)
         for i, point in enumerate(fit_pts):
             if i not in done:
@@ -226,9 +271,15 @@ class PointProcedure(ABC, Generic[P]):
         points = await ctx.db(ctx.store.points.settled_points, job.id)
         val_cols = self.columns(job, [p for p in points if p.point >= n_fit], for_fit=False)
         validation = await asyncio.to_thread(self.validation, method, model, val_cols)
-        conditions = job_conditions(bench, ctx.request, self.temperatures_c(fit_cols, points), began)
-        return Outcome(job.device_id, self.kind, model, validation, conditions, n_fit, ctx.bench_time.as_json())
+        conditions = job_conditions(
+            bench, ctx.request, self.temperatures_c(fit_cols, points), began
+        )
+        return Outcome(
+            job.device_id, self.kind, model, validation, conditions, n_fit, ctx.bench_time.as_json()
+        )
 
     def stored_columns(self, points: PointsRepo, job: CalibrationJob, n_fit: int) -> Columns:
         """Blocking (database): the fit columns of the job's first `n_fit` stored points."""
-        return self.columns(job, [p for p in points.settled_points(job.id) if p.point < n_fit], for_fit=True)
+        return self.columns(
+            job, [p for p in points.settled_points(job.id) if p.point < n_fit], for_fit=True
+        )

@@ -24,8 +24,8 @@ def register(procedure: Procedure) -> Procedure:
 
 for _procedure in (STAGE_GRID, SCALE, ROTATION, TURNTABLE):
     register(_procedure)
-# Started by a diagnosis (POST /records/{id}/diagnose with measure: true), never by a request of its own: not
-# among the procedures POST /calibrations names.
+# Started by a diagnosis (POST /records/{id}/diagnose with measure: true), never by a request of its
+# own: not among the procedures POST /calibrations names.
 INTERNAL: dict[str, Procedure] = {DIAGNOSIS_MEASUREMENT.name: DIAGNOSIS_MEASUREMENT}
 
 
@@ -34,9 +34,13 @@ def procedure_named(name: str) -> Procedure | None:
 
 
 def procedure_of(parameters: Mapping[str, Any] | None) -> Procedure:
-    """The procedure a stored job ran (jobs stored before procedures had names were stage grids); a job a
-    diagnosis started names its procedure beside its request."""
-    name = (parameters or {}).get("procedure") or (parameters or {}).get("request", {}).get("procedure") or STAGE_GRID.name
+    """The procedure a stored job ran (jobs stored before procedures had names were stage grids); a
+    job a diagnosis started names its procedure beside its request."""
+    name = (
+        (parameters or {}).get("procedure")
+        or (parameters or {}).get("request", {}).get("procedure")
+        or STAGE_GRID.name
+    )
     procedure = PROCEDURES.get(name) or INTERNAL.get(name)
     if procedure is None:
         raise KeyError(f"no procedure {name!r} in this daemon version")
@@ -44,6 +48,7 @@ def procedure_of(parameters: Mapping[str, Any] | None) -> Procedure:
 
 
 def names() -> str:
-    """The procedures' names as a sentence lists them: "stage-grid, scale, rotation and turntable"."""
+    """The procedures' names as a sentence lists them: "stage-grid, scale, rotation and
+    turntable"."""
     *first, last = PROCEDURES
     return f"{', '.join(first)} and {last}" if first else last

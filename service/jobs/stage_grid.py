@@ -1,4 +1,5 @@
-"""The stage-grid procedure: the measurement sensor against the reference sensor over a grid of stage tilts.
+"""The stage-grid procedure: the measurement sensor against the reference sensor over a grid of
+stage tilts.
 
 Every point is approached from below on both axes (backlash taken up on one side), both sensors
 settle, `samples_per_point` readings of each are averaged after the stated outlier rule, and the
@@ -26,14 +27,24 @@ from service.errors import InputError
 from service.instruments.transport import DeviceError
 from service.jobs.grid_checks import check_stage_grid
 from service.jobs.points import store_point
-from service.jobs.procedure import Columns, JobContext, Outcome, Phase, Plan, PointProcedure, bench_epoch, validation_rng
+from service.jobs.procedure import (
+    Columns,
+    JobContext,
+    Outcome,
+    Phase,
+    Plan,
+    PointProcedure,
+    bench_epoch,
+    validation_rng,
+)
 from service.jobs.requests import CalibrationRequest, RequestProblem
 from service.storage.models import CalibrationJob, SettledPoint
 from service.storage.samples import Sample
 
 log = logging.getLogger("tiltlab.jobs")
 
-MAX_CANDIDATES = 41 * 41  # candidate points an adaptive plan chooses among (the planner holds a Jacobian of each)
+# candidate points an adaptive plan chooses among (the planner holds a Jacobian of each)
+MAX_CANDIDATES = 41 * 41
 APPROACH_DEG = 0.1  # every point is approached from this far below on both axes
 SENSORS = ("reference_sensor", "measurement_sensor")
 
@@ -54,10 +65,14 @@ async def _home_stage(ctx: JobContext) -> None:
     done, total = job.points_done or 0, job.points_total or 0
     await ctx.report(done, total, Phase.HOMING)
     await ctx.bench.home_stage()
-    await ctx.report(done, total, Phase(job.phase) if job.phase in tuple(Phase) else Phase.MEASURING)
+    await ctx.report(
+        done, total, Phase(job.phase) if job.phase in tuple(Phase) else Phase.MEASURING
+    )
 
 
-def stage_columns(points_ref: Sequence[SettledPoint], points_meas: Sequence[SettledPoint]) -> Columns:
+def stage_columns(
+    points_ref: Sequence[SettledPoint], points_meas: Sequence[SettledPoint]
+) -> Columns:
     """The dataset columns of a job's settled points (reference and measurement rows by point)."""
     meas = {p.point: p for p in points_meas}
     rows = [(r, meas[r.point]) for r in points_ref if r.point in meas]
@@ -67,10 +82,14 @@ def stage_columns(points_ref: Sequence[SettledPoint], points_meas: Sequence[Sett
 
     return {
         "point": col(lambda r, m: r.point),
-        "stage_x_deg": col(lambda r, m: r.cmd_x_deg), "stage_y_deg": col(lambda r, m: r.cmd_y_deg),
-        "dir_x": col(lambda r, m: 1.0), "dir_y": col(lambda r, m: 1.0),
-        "ref_x_deg": col(lambda r, m: r.ch_x_mean), "ref_y_deg": col(lambda r, m: r.ch_y_mean),
-        "meas_x_deg": col(lambda r, m: m.ch_x_mean), "meas_y_deg": col(lambda r, m: m.ch_y_mean),
+        "stage_x_deg": col(lambda r, m: r.cmd_x_deg),
+        "stage_y_deg": col(lambda r, m: r.cmd_y_deg),
+        "dir_x": col(lambda r, m: 1.0),
+        "dir_y": col(lambda r, m: 1.0),
+        "ref_x_deg": col(lambda r, m: r.ch_x_mean),
+        "ref_y_deg": col(lambda r, m: r.ch_y_mean),
+        "meas_x_deg": col(lambda r, m: m.ch_x_mean),
+        "meas_y_deg": col(lambda r, m: m.ch_y_mean),
         "temp_c": col(lambda r, m: m.temp_c_mean if m.temp_c_mean is not None else np.nan),
         "t_s": col(lambda r, m: r.t_end_s),
     }
@@ -83,7 +102,9 @@ class StageGrid(PointProcedure[StagePoint]):
 
     def plan(self, req: CalibrationRequest, bench: BenchRuntime) -> Plan[StagePoint]:
         if bench.kind != "stage":
-            raise RequestProblem("bench", f"{bench.name!r} is a {bench.kind} bench; stage-grid needs a stage bench")
+            raise RequestProblem(
+                "bench", f"{bench.name!r} is a {bench.kind} bench; stage-grid needs a stage bench"
+            )
         try:
             get_method("stage", req.method)
         except InputError as exc:
@@ -92,29 +113,55 @@ class StageGrid(PointProcedure[StagePoint]):
             raise RequestProblem("grid", "a stage-grid job needs a grid")
         points = req.grid.stage_points()
         if req.design == "adaptive" and req.method != "kinematic":
-            raise RequestProblem("method", "design adaptive plans for the kinematic method's measurement-sensor model "
-                                 "(its covariance predicts the correction's uncertainty); use method kinematic")
-        if req.design == "adaptive":  # the lattice gives the range and the candidates; the spread grid starts it
+            raise RequestProblem(
+                "method",
+                "design adaptive plans for the kinematic method's measurement-sensor model "
+                "(its covariance predicts the correction's uncertainty); use method kinematic",
+            )
+        # the lattice gives the range and the candidates; the spread grid starts it
+        if req.design == "adaptive":
             from service.calibration.adaptive_design import MIN_GRID, lattice, spread_indices
 
             g = req.grid
-            assert g.x_deg is not None and g.y_deg is not None and g.n_x and g.n_y  # the request's validator requires them
+            # the request's validator requires them
+            assert g.x_deg is not None and g.y_deg is not None and g.n_x and g.n_y
             if g.n_x * g.n_y > MAX_CANDIDATES:
-                raise RequestProblem("grid", f"design adaptive chooses among at most {MAX_CANDIDATES} candidate points; "
-                                     f"n_x x n_y is {g.n_x * g.n_y}")
+                raise RequestProblem(
+                    "grid",
+                    f"design adaptive chooses among at most {MAX_CANDIDATES} candidate points; "
+                    f"n_x x n_y is {g.n_x * g.n_y}",
+                )
             cand = lattice((g.x_deg[0], g.x_deg[1]), (g.y_deg[0], g.y_deg[1]), g.n_x, g.n_y)
-            points = [(float(cand[i, 0]), float(cand[i, 1])) for i in spread_indices(g.n_x, g.n_y, MIN_GRID)]
+            points = [
+                (float(cand[i, 0]), float(cand[i, 1]))
+                for i in spread_indices(g.n_x, g.n_y, MIN_GRID)
+            ]
         travel = bench.config.stage_bench().travel_deg
         for i, (x, y) in enumerate(points):
             if abs(x) > travel or abs(y) > travel:
-                field = "grid.points" if req.grid.points is not None else "grid.x_deg" if abs(x) > travel else "grid.y_deg"
-                raise RequestProblem(field, f"point {i} ({x:g}, {y:g}) deg is outside the stage travel of ±{travel:g} deg")
-        check_stage_grid(req.method, req.grid, points, bench.config.stage_bench(), self.fit_options(bench))
+                field = (
+                    "grid.points"
+                    if req.grid.points is not None
+                    else "grid.x_deg"
+                    if abs(x) > travel
+                    else "grid.y_deg"
+                )
+                raise RequestProblem(
+                    field,
+                    f"point {i} ({x:g}, {y:g}) deg is outside the stage travel of ±{travel:g} deg",
+                )
+        check_stage_grid(
+            req.method, req.grid, points, bench.config.stage_bench(), self.fit_options(bench)
+        )
         xs, ys = np.array(points).T
         rng = validation_rng(len(points), req.validation.n_points)
-        val = [(float(round(x, 4)), float(round(y, 4))) for x, y in zip(
-            rng.uniform(xs.min(), xs.max(), req.validation.n_points),
-            rng.uniform(ys.min(), ys.max(), req.validation.n_points))]
+        val = [
+            (float(round(x, 4)), float(round(y, 4)))
+            for x, y in zip(
+                rng.uniform(xs.min(), xs.max(), req.validation.n_points),
+                rng.uniform(ys.min(), ys.max(), req.validation.n_points),
+            )
+        ]
         return Plan(points, val, "measurement_sensor", SENSORS)
 
     def stored_point(self, value: Any) -> StagePoint:
@@ -135,15 +182,23 @@ class StageGrid(PointProcedure[StagePoint]):
         return await add_correction_figures(ctx, await super().run(ctx))
 
     def fit_options(self, bench: BenchRuntime) -> FitOptions:
-        return FitOptions(extra={"bench": bench.config.stage_bench(), "bench_source": f"bench configuration {bench.name}"})
+        return FitOptions(
+            extra={
+                "bench": bench.config.stage_bench(),
+                "bench_source": f"bench configuration {bench.name}",
+            }
+        )
 
     def fitted(self, model: CalibrationModel, fit_cols: Columns) -> None:
-        model.fit["table_tilt_range_deg"] = table_tilt_range(fit_cols)  # the calibrated range, kept with the record
+        # the calibrated range, kept with the record
+        model.fit["table_tilt_range_deg"] = table_tilt_range(fit_cols)
 
     def temperatures_c(self, fit_cols: Columns, points: Sequence[SettledPoint]) -> list[float]:
         return [float(t) for t in fit_cols.get("temp_c", [])]
 
-    def columns(self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool) -> Columns:
+    def columns(
+        self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool
+    ) -> Columns:
         meas = [p for p in points if p.device_id == job.device_id]
         ref = [p for p in points if p.device_id != job.device_id]
         cols = stage_columns(ref, meas)
@@ -155,16 +210,27 @@ class StageGrid(PointProcedure[StagePoint]):
         return stage_validation(method, model, cols)
 
 
-async def measure_stage_point(ctx: JobContext, index: int, x: float, y: float, dir_x: float = 1.0,
-                              dir_y: float = 1.0, *, n: int | None = None,
-                              noise_deg: dict[str, float] | None = None) -> dict[int, dict[str, Any]]:
-    """Approach a stage point from the given side of each stage (+1 from below, -1 from above), settle both
-    sensors, read, and store the point's samples and settled means (returned by device id). `n` readings
-    (the request's samples_per_point by default); with `noise_deg` (each role's reading noise) settling ends by
-    the statistical test, else by the request's settle rule."""
+async def measure_stage_point(
+    ctx: JobContext,
+    index: int,
+    x: float,
+    y: float,
+    dir_x: float = 1.0,
+    dir_y: float = 1.0,
+    *,
+    n: int | None = None,
+    noise_deg: dict[str, float] | None = None,
+) -> dict[int, dict[str, Any]]:
+    """Approach a stage point from the given side of each stage (+1 from below, -1 from above),
+    settle both sensors, read, and store the point's samples and settled means (returned by device
+    id). `n` readings (the request's samples_per_point by default); with `noise_deg` (each role's
+    reading noise) settling ends by the statistical test, else by the request's settle rule."""
     bench, req = ctx.bench, ctx.request
     travel = bench.config.stage_bench().travel_deg
-    approach = (min(max(x - dir_x * APPROACH_DEG, -travel), travel), min(max(y - dir_y * APPROACH_DEG, -travel), travel))
+    approach = (
+        min(max(x - dir_x * APPROACH_DEG, -travel), travel),
+        min(max(y - dir_y * APPROACH_DEG, -travel), travel),
+    )
     clock = bench.clock
     began = clock.monotonic()
     try:
@@ -173,60 +239,110 @@ async def measure_stage_point(ctx: JobContext, index: int, x: float, y: float, d
         await _home_stage(ctx)
         await bench.move_stage(*approach)
     cx, cy = await bench.move_stage(x, y)
-    # moving ends when the controller was found standing, not when the daemon got round to reading that (on a
-    # loaded machine running a sped-up bench, that latency would count as bench seconds of moving)
+    # moving ends when the controller was found standing, not when the daemon got round to reading
+    # that (on a loaded machine running a sped-up bench, that latency would count as bench seconds
+    # of moving)
     stood = bench.stopped_bench_s
     if noise_deg is not None:
         t0 = await settle_statistical(bench, SENSORS, noise_deg, timeout_s=req.settle.timeout_s)
     else:
-        t0 = await settle(bench, SENSORS, tolerance_deg=req.settle.tolerance_deg, window_s=req.settle.window_s,
-                          timeout_s=req.settle.timeout_s)
+        t0 = await settle(
+            bench,
+            SENSORS,
+            tolerance_deg=req.settle.tolerance_deg,
+            window_s=req.settle.window_s,
+            timeout_s=req.settle.timeout_s,
+        )
     n = req.samples_per_point if n is None else n
     timeout = max(5.0, 20 * n * max(bench.output_interval_s(r) for r in SENSORS))
-    got = await asyncio.gather(*(fresh_readings(bench, r, n, after_bench_s=t0, timeout_s=timeout)
-                                 for r in SENSORS))
-    ctx.bench_time.add(moving=stood - began, settling=t0 - stood,
-                       reading=max(r.bench_s for readings in got for r in readings) - t0)
+    got = await asyncio.gather(
+        *(fresh_readings(bench, r, n, after_bench_s=t0, timeout_s=timeout) for r in SENSORS)
+    )
+    ctx.bench_time.add(
+        moving=stood - began,
+        settling=t0 - stood,
+        reading=max(r.bench_s for readings in got for r in readings) - t0,
+    )
     to_epoch = bench_epoch(bench)
     rows: list[Sample] = []
     settled: dict[int, dict[str, Any]] = {}
     for role, readings in zip(SENSORS, got):
         dev = bench.device_ids[role]
-        rows += [Sample(dev, to_epoch(r.bench_s), _tilt(r.x_deg), _tilt(r.y_deg), None, r.temp_c, ctx.job_id, index,
-                        "calibration") for r in readings]
+        rows += [
+            Sample(
+                dev,
+                to_epoch(r.bench_s),
+                _tilt(r.x_deg),
+                _tilt(r.y_deg),
+                None,
+                r.temp_c,
+                ctx.job_id,
+                index,
+                "calibration",
+            )
+            for r in readings
+        ]
         a = robust_mean(readings)
-        settled[dev] = {"point": index, "cmd_x_deg": cx, "cmd_y_deg": cy, "n_samples": a.n_used,
-                        "t_start_s": to_epoch(a.t_start_s), "t_end_s": to_epoch(a.t_end_s),
-                        "ch_x_mean": a.mean[0], "ch_y_mean": a.mean[1], "ch_z_mean": None,
-                        "ch_x_std": a.std[0], "ch_y_std": a.std[1], "ch_z_std": None, "temp_c_mean": a.temp_c}
+        settled[dev] = {
+            "point": index,
+            "cmd_x_deg": cx,
+            "cmd_y_deg": cy,
+            "n_samples": a.n_used,
+            "t_start_s": to_epoch(a.t_start_s),
+            "t_end_s": to_epoch(a.t_end_s),
+            "ch_x_mean": a.mean[0],
+            "ch_y_mean": a.mean[1],
+            "ch_z_mean": None,
+            "ch_x_std": a.std[0],
+            "ch_y_std": a.std[1],
+            "ch_z_std": None,
+            "temp_c_mean": a.temp_c,
+        }
     await ctx.db(store_point, ctx.store, ctx.job_id, index, rows, settled)
     return settled
 
 
 def stage_validation(method: Method, model: CalibrationModel, cols: Columns) -> dict[str, Any]:
-    """A stage model against validation points: the corrected measurement sensor against the reference, read
-    through what the record knows of the reference's own errors (the raw reference kept beside)."""
+    """A stage model against validation points: the corrected measurement sensor against the
+    reference, read through what the record knows of the reference's own errors (the raw reference
+    kept beside)."""
     if cols["point"].size == 0:
         return {"n_points": 0, "rms_deg": None, "max_deg": None}
     out = method.correct(model, cols)
     ref_x, ref_y, how = reference_at_points(model, cols)
     err = np.hypot(out["tilt_x_deg"] - ref_x, out["tilt_y_deg"] - ref_y)
-    return {"n_points": int(err.size), "rms_deg": float(np.sqrt(np.mean(err**2))), "max_deg": float(err.max()),
-            "compared_with": how,
-            # the coverage probability of the points' expanded uncertainties u_x_deg/u_y_deg
-            "coverage_probability": COVERAGE,
-            "points": [_validation_point(cols, out, (ref_x, ref_y), i, float(err[i])) for i in range(err.size)]}
+    return {
+        "n_points": int(err.size),
+        "rms_deg": float(np.sqrt(np.mean(err**2))),
+        "max_deg": float(err.max()),
+        "compared_with": how,
+        # the coverage probability of the points' expanded uncertainties u_x_deg/u_y_deg
+        "coverage_probability": COVERAGE,
+        "points": [
+            _validation_point(cols, out, (ref_x, ref_y), i, float(err[i])) for i in range(err.size)
+        ],
+    }
 
 
-def reference_at_points(model: CalibrationModel, cols: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64], str]:
-    """The table tilt the reference reads at stored points: its readings, through the record's model of its own
-    errors when it has one; and how, in words."""
+def reference_at_points(
+    model: CalibrationModel, cols: Columns
+) -> tuple[NDArray[np.float64], NDArray[np.float64], str]:
+    """The table tilt the reference reads at stored points: its readings, through the record's model
+    of its own errors when it has one; and how, in words."""
     errors = reference.reference_errors(model)
     if errors is None:
-        return cols["ref_x_deg"], cols["ref_y_deg"], "reference sensor reading at each validation point"
-    x, y = reference.true_reading(errors, cols["ref_x_deg"], cols["ref_y_deg"], cols.get("temp_c"), cols.get("t_s"))
-    how = ("reference sensor reading at each validation point, through the record's model of the reference's own "
-           f"errors ({errors.describe()})")
+        return (
+            cols["ref_x_deg"],
+            cols["ref_y_deg"],
+            "reference sensor reading at each validation point",
+        )
+    x, y = reference.true_reading(
+        errors, cols["ref_x_deg"], cols["ref_y_deg"], cols.get("temp_c"), cols.get("t_s")
+    )
+    how = (
+        "reference sensor reading at each validation point, through the record's model of the "
+        f"reference's own errors ({errors.describe()})"
+    )
     lacking = ~(np.isfinite(x) & np.isfinite(y))
     if lacking.any():  # a point without the temperature the model needs: its raw reading, said so
         x, y = np.where(lacking, cols["ref_x_deg"], x), np.where(lacking, cols["ref_y_deg"], y)
@@ -234,14 +350,23 @@ def reference_at_points(model: CalibrationModel, cols: Columns) -> tuple[NDArray
     return x, y, how
 
 
-def _validation_point(cols: Columns, out: dict[str, NDArray[np.float64]],
-                      reference_deg: tuple[NDArray[np.float64], NDArray[np.float64]], i: int,
-                      error_deg: float) -> dict[str, Any]:
-    """One validation point: the reference sensor's reading (through the record's model of its own errors, the
-    raw reading beside when that differs), the corrected measurement and its expanded uncertainty per axis (what a
-    certificate's validation table shows), and the error's magnitude."""
-    point: dict[str, Any] = {"point": int(cols["point"][i]), "stage_x_deg": float(cols["stage_x_deg"][i]),
-                             "stage_y_deg": float(cols["stage_y_deg"][i]), "error_deg": error_deg}
+def _validation_point(
+    cols: Columns,
+    out: dict[str, NDArray[np.float64]],
+    reference_deg: tuple[NDArray[np.float64], NDArray[np.float64]],
+    i: int,
+    error_deg: float,
+) -> dict[str, Any]:
+    """One validation point: the reference sensor's reading (through the record's model of its own
+    errors, the raw reading beside when that differs), the corrected measurement and its expanded
+    uncertainty per axis (what a certificate's validation table shows), and the error's
+    magnitude."""
+    point: dict[str, Any] = {
+        "point": int(cols["point"][i]),
+        "stage_x_deg": float(cols["stage_x_deg"][i]),
+        "stage_y_deg": float(cols["stage_y_deg"][i]),
+        "error_deg": error_deg,
+    }
     for n, axis in enumerate(("x", "y")):
         point[f"reference_{axis}_deg"] = float(reference_deg[n][i])
         if reference_deg[n] is not cols[f"ref_{axis}_deg"]:

@@ -1,4 +1,5 @@
-"""How a job ends when something other than its own work ends it: a cancel, a stop, the daemon stopping."""
+"""How a job ends when something other than its own work ends it: a cancel, a stop, the daemon
+stopping."""
 
 from __future__ import annotations
 

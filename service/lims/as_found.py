@@ -26,7 +26,8 @@ AXES = ("x", "y")
 
 @dataclass(frozen=True)
 class MeasuredPoint:
-    """One settled point of a stage job: both sensors' means, their standard deviations and counts."""
+    """One settled point of a stage job: both sensors' means, their standard deviations and
+    counts."""
 
     point: int
     fitted: bool  # used by the fit (a calibration point), else a validation point
@@ -40,7 +41,8 @@ class MeasuredPoint:
 
 @dataclass(frozen=True)
 class Uncertain:
-    """Values with their standard uncertainties, effective degrees of freedom, coverage factors and U (per point)."""
+    """Values with their standard uncertainties, effective degrees of freedom, coverage factors and
+    U (per point)."""
 
     value: NDArray[np.float64]
     u: NDArray[np.float64]
@@ -59,27 +61,51 @@ class AxisAsFound:
     error: Uncertain
 
 
-def _noise(std: Sequence[float | None], n: Sequence[int]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The standard uncertainty of each point's mean (s/√n) and its degrees of freedom (n − 1); zero where unknown."""
-    u = np.array([s / math.sqrt(k) if s is not None and k > 1 else 0.0 for s, k in zip(std, n, strict=True)])
-    dof = np.array([float(k - 1) if s is not None and k > 1 else math.inf for s, k in zip(std, n, strict=True)])
+def _noise(
+    std: Sequence[float | None], n: Sequence[int]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The standard uncertainty of each point's mean (s/√n) and its degrees of freedom (n − 1); zero
+    where unknown."""
+    u = np.array(
+        [s / math.sqrt(k) if s is not None and k > 1 else 0.0 for s, k in zip(std, n, strict=True)]
+    )
+    dof = np.array(
+        [float(k - 1) if s is not None and k > 1 else math.inf for s, k in zip(std, n, strict=True)]
+    )
     return u, dof
 
 
-def _combined(value: NDArray[np.float64], parts: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]],
-              coverage: float) -> Uncertain:
-    """Root sum of squares of independent parts (u_i, ν_i) per point, Welch-Satterthwaite, k from Student's t."""
+def _combined(
+    value: NDArray[np.float64],
+    parts: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    coverage: float,
+) -> Uncertain:
+    """Root sum of squares of independent parts (u_i, ν_i) per point, Welch-Satterthwaite, k from
+    Student's t."""
     var = sum((u**2 for u, _ in parts), np.zeros_like(value))
-    denom = sum((np.where(np.isfinite(nu), u**4 / np.where(np.isfinite(nu), nu, 1.0), 0.0) for u, nu in parts),
-                np.zeros_like(value))
+    denom = sum(
+        (
+            np.where(np.isfinite(nu), u**4 / np.where(np.isfinite(nu), nu, 1.0), 0.0)
+            for u, nu in parts
+        ),
+        np.zeros_like(value),
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
         dof = np.where(denom > 0, var**2 / np.where(denom > 0, denom, 1.0), np.inf)
-    return Uncertain(value, np.sqrt(var), dof, np.asarray(coverage_factor(dof, coverage), dtype=float))
+    return Uncertain(
+        value, np.sqrt(var), dof, np.asarray(coverage_factor(dof, coverage), dtype=float)
+    )
 
 
-def as_found(points: Sequence[MeasuredPoint], standards: Sequence[Component], reference_resolution_deg: float | None,
-             indication_resolution_deg: float | None, coverage: float = COVERAGE) -> dict[str, AxisAsFound]:
-    """Per axis: the reference values, the item's indications and the indication errors, each with its uncertainty."""
+def as_found(
+    points: Sequence[MeasuredPoint],
+    standards: Sequence[Component],
+    reference_resolution_deg: float | None,
+    indication_resolution_deg: float | None,
+    coverage: float = COVERAGE,
+) -> dict[str, AxisAsFound]:
+    """Per axis: the reference values, the item's indications and the indication errors, each with
+    its uncertainty."""
     n = len(points)
     out: dict[str, AxisAsFound] = {}
     for i, axis in enumerate(AXES):
@@ -88,23 +114,33 @@ def as_found(points: Sequence[MeasuredPoint], standards: Sequence[Component], re
         ref_parts = [(np.full(n, s.u_deg), np.full(n, s.dof)) for s in standards]
         if reference_resolution_deg:
             ref_parts.append((np.full(n, reference_resolution_deg / SQRT12), np.full(n, math.inf)))
-        ref_parts.append(_noise([p.reference_std_deg[i] for p in points], [p.reference_n for p in points]))
+        ref_parts.append(
+            _noise([p.reference_std_deg[i] for p in points], [p.reference_n for p in points])
+        )
         ind_parts = []
         if indication_resolution_deg:
             ind_parts.append((np.full(n, indication_resolution_deg / SQRT12), np.full(n, math.inf)))
-        ind_parts.append(_noise([p.indication_std_deg[i] for p in points], [p.indication_n for p in points]))
-        out[axis] = AxisAsFound(_combined(ref, ref_parts, coverage), _combined(ind, ind_parts, coverage),
-                                _combined(ind - ref, ref_parts + ind_parts, coverage))
+        ind_parts.append(
+            _noise([p.indication_std_deg[i] for p in points], [p.indication_n for p in points])
+        )
+        out[axis] = AxisAsFound(
+            _combined(ref, ref_parts, coverage),
+            _combined(ind, ind_parts, coverage),
+            _combined(ind - ref, ref_parts + ind_parts, coverage),
+        )
     return out
 
 
 def single_reading_noise(points: Sequence[MeasuredPoint]) -> dict[str, tuple[float, float]] | None:
-    """The item's noise of one reading per axis, pooled over the points (s, degrees of freedom); None when the
-    points do not state their spread."""
+    """The item's noise of one reading per axis, pooled over the points (s, degrees of freedom);
+    None when the points do not state their spread."""
     out: dict[str, tuple[float, float]] = {}
     for i, axis in enumerate(AXES):
-        pairs = [(p.indication_std_deg[i], p.indication_n) for p in points
-                 if p.indication_std_deg[i] is not None and p.indication_n > 1]
+        pairs = [
+            (p.indication_std_deg[i], p.indication_n)
+            for p in points
+            if p.indication_std_deg[i] is not None and p.indication_n > 1
+        ]
         if not pairs:
             return None
         dof = sum(n - 1 for _, n in pairs)

@@ -7,7 +7,8 @@ error (MPE) and a decision rule give one statement for the quantity:
 | --- | --- | --- | --- | --- |
 | simple acceptance | |e| <= MPE at every point | - | - | otherwise |
 | guarded acceptance (w = r·U) | |e| <= MPE - w at every point | - | - | otherwise |
-| non-binary | |e| + U <= MPE at every point | worst: |e| <= MPE < |e| + U | worst: |e| - U <= MPE < |e| | some |e| - U > MPE |
+| non-binary | |e| + U <= MPE at every point | worst: |e| <= MPE < |e| + U | worst: |e| - U <= MPE <
+|e| | some |e| - U > MPE |
 
 The quantity's statement is that of its worst point. Beside it goes the largest probability of
 false acceptance over the points (the probability that the true error lies beyond the MPE while
@@ -43,19 +44,20 @@ class Conformity(StrEnum):
 _SEVERITY = {c: i for i, c in enumerate(Conformity)}
 IN_WORDS = {
     Conformity.PASS: "conforms (pass)",
-    Conformity.CONDITIONAL_PASS: "conforms, but the expanded uncertainty reaches beyond the limit (conditional pass)",
-    Conformity.CONDITIONAL_FAIL: "does not conform, but the limit lies within the expanded uncertainty "
-                                 "(conditional fail)",
+    Conformity.CONDITIONAL_PASS: "conforms, but the expanded uncertainty reaches beyond the limit "
+    "(conditional pass)",
+    Conformity.CONDITIONAL_FAIL: "does not conform, but the limit lies within the expanded "
+    "uncertainty (conditional fail)",
     Conformity.FAIL: "does not conform (fail)",
 }
 RULE_IN_WORDS = {
-    DecisionRule.SIMPLE_ACCEPTANCE: "simple acceptance (ILAC-G8 4.2.1, shared risk, no guard band): a point "
-                                    "passes when |e| <= MPE",
-    DecisionRule.GUARDED_ACCEPTANCE: "guarded acceptance (ILAC-G8 4.2.2): a point passes when |e| <= MPE - w, "
-                                     "with the guard band w = {fraction:g}·U",
-    DecisionRule.NON_BINARY: "non-binary statement (ILAC-G8 4.2.3): pass when |e| + U <= MPE, conditional pass "
-                             "when |e| <= MPE < |e| + U, conditional fail when |e| - U <= MPE < |e|, fail when "
-                             "|e| - U > MPE",
+    DecisionRule.SIMPLE_ACCEPTANCE: "simple acceptance (ILAC-G8 4.2.1, shared risk, no guard "
+    "band): a point passes when |e| <= MPE",
+    DecisionRule.GUARDED_ACCEPTANCE: "guarded acceptance (ILAC-G8 4.2.2): a point passes when "
+    "|e| <= MPE - w, with the guard band w = {fraction:g}·U",
+    DecisionRule.NON_BINARY: "non-binary statement (ILAC-G8 4.2.3): pass when |e| + U <= MPE, "
+    "conditional pass when |e| <= MPE < |e| + U, conditional fail when |e| - U <= MPE < |e|, "
+    "fail when |e| - U > MPE",
 }
 
 
@@ -77,7 +79,8 @@ class Decision:
     rule: DecisionRule
     max_permissible_error: float
     guard_band_fraction: float
-    worst_index: int  # the point whose statement is the quantity's (the largest |e| + U among equals)
+    # the point whose statement is the quantity's (the largest |e| + U among equals)
+    worst_index: int
     worst_error: float
     worst_expanded_u: float
     worst_k: float
@@ -89,7 +92,9 @@ class Decision:
         return RULE_IN_WORDS[self.rule].format(fraction=self.guard_band_fraction)
 
 
-def point_conformity(p: PointError, mpe: float, rule: DecisionRule, guard_band_fraction: float = 1.0) -> Conformity:
+def point_conformity(
+    p: PointError, mpe: float, rule: DecisionRule, guard_band_fraction: float = 1.0
+) -> Conformity:
     """One point's statement by the rule (the table in this module's docstring)."""
     e, U = abs(p.error), p.expanded_u
     if rule is DecisionRule.SIMPLE_ACCEPTANCE:
@@ -106,8 +111,9 @@ def point_conformity(p: PointError, mpe: float, rule: DecisionRule, guard_band_f
 
 
 def false_acceptance_probability(p: PointError, mpe: float) -> float:
-    """The probability that the true error lies outside ±MPE, given the measured e and u = U/k with Student's t
-    at the error's degrees of freedom (normal when infinite): what accepting this point risks."""
+    """The probability that the true error lies outside ±MPE, given the measured e and u = U/k with
+    Student's t at the error's degrees of freedom (normal when infinite): what accepting this point
+    risks."""
     u = p.expanded_u / p.k if p.k > 0 else 0.0
     if u <= 0:
         return 0.0 if abs(p.error) <= mpe else 1.0
@@ -119,24 +125,45 @@ def false_acceptance_probability(p: PointError, mpe: float) -> float:
     return cdf((-mpe - p.error) / u) + 1.0 - cdf((mpe - p.error) / u)
 
 
-def decide(points: Sequence[PointError], mpe: float, rule: DecisionRule, guard_band_fraction: float = 1.0) -> Decision:
-    """The quantity's statement: that of its worst point; with the largest probability of false acceptance."""
+def decide(
+    points: Sequence[PointError], mpe: float, rule: DecisionRule, guard_band_fraction: float = 1.0
+) -> Decision:
+    """The quantity's statement: that of its worst point; with the largest probability of false
+    acceptance."""
     if not points:
         raise ValueError("a statement of conformity needs at least one measured point")
     if not (mpe > 0 and math.isfinite(mpe)):
         raise ValueError(f"the largest permissible error {mpe!r} is not a number > 0")
     verdicts = [point_conformity(p, mpe, rule, guard_band_fraction) for p in points]
-    worst = max(range(len(points)), key=lambda i: (_SEVERITY[verdicts[i]], abs(points[i].error) + points[i].expanded_u))
-    passed = [false_acceptance_probability(p, mpe) for p, v in zip(points, verdicts, strict=True)
-              if v in (Conformity.PASS, Conformity.CONDITIONAL_PASS)]
+    worst = max(
+        range(len(points)),
+        key=lambda i: (_SEVERITY[verdicts[i]], abs(points[i].error) + points[i].expanded_u),
+    )
+    passed = [
+        false_acceptance_probability(p, mpe)
+        for p, v in zip(points, verdicts, strict=True)
+        if v in (Conformity.PASS, Conformity.CONDITIONAL_PASS)
+    ]
     w = points[worst]
-    return Decision(verdicts[worst], rule, mpe, guard_band_fraction, worst, w.error, w.expanded_u, w.k, w.dof,
-                    max(passed) if passed else None, len(points))
+    return Decision(
+        verdicts[worst],
+        rule,
+        mpe,
+        guard_band_fraction,
+        worst,
+        w.error,
+        w.expanded_u,
+        w.k,
+        w.dof,
+        max(passed) if passed else None,
+        len(points),
+    )
 
 
 @dataclass(frozen=True)
 class QuantityDecision:
-    """The statement about one quantity: an axis's indication error, or a named parameter (None: not assessable)."""
+    """The statement about one quantity: an axis's indication error, or a named parameter (None: not
+    assessable)."""
 
     quantity: str  # "x", "y" or a parameter's name
     name: str  # in words
@@ -163,48 +190,115 @@ class ConformityReport:
     def as_json(self) -> dict[str, Any]:
         """As records, orders, the feed and webhooks show it."""
         spec = self.specification
-        out: dict[str, Any] = {q.quantity: q.decision.conformity.value if q.decision else None
-                               for q in self.quantities if q.quantity in AXES}
-        out.update({"decision_rule": spec.decision_rule.value, "max_permissible_error_deg": spec.max_permissible_error_deg,
-                    "guard_band_fraction": spec.guard_band_fraction
-                    if spec.decision_rule is DecisionRule.GUARDED_ACCEPTANCE else None,
-                    "parameters": {q.quantity: q.decision.conformity.value if q.decision else None
-                                   for q in self.quantities if q.quantity not in AXES} if spec.parameters else None})
+        out: dict[str, Any] = {
+            q.quantity: q.decision.conformity.value if q.decision else None
+            for q in self.quantities
+            if q.quantity in AXES
+        }
+        out.update(
+            {
+                "decision_rule": spec.decision_rule.value,
+                "max_permissible_error_deg": spec.max_permissible_error_deg,
+                "guard_band_fraction": spec.guard_band_fraction
+                if spec.decision_rule is DecisionRule.GUARDED_ACCEPTANCE
+                else None,
+                "parameters": {
+                    q.quantity: q.decision.conformity.value if q.decision else None
+                    for q in self.quantities
+                    if q.quantity not in AXES
+                }
+                if spec.parameters
+                else None,
+            }
+        )
         out["largest_probability_of_false_acceptance"] = {
-            q.quantity: q.decision.largest_false_acceptance for q in self.quantities if q.decision}
-        out["worst_point"] = {q.quantity: {"error": q.decision.worst_error, "expanded_uncertainty": q.decision.worst_expanded_u,
-                                           "unit": q.unit} for q in self.quantities if q.decision}
+            q.quantity: q.decision.largest_false_acceptance for q in self.quantities if q.decision
+        }
+        out["worst_point"] = {
+            q.quantity: {
+                "error": q.decision.worst_error,
+                "expanded_uncertainty": q.decision.worst_expanded_u,
+                "unit": q.unit,
+            }
+            for q in self.quantities
+            if q.decision
+        }
         return out
 
 
 def axis_errors(found: Mapping[str, AxisAsFound]) -> dict[str, list[PointError]]:
     """Each axis's indication errors as points to decide on."""
-    return {axis: [PointError(float(e), float(U), float(k), float(nu)) for e, U, k, nu in
-                   zip(f.error.value, f.error.expanded_u, f.error.k, f.error.dof, strict=True)]
-            for axis, f in found.items()}
+    return {
+        axis: [
+            PointError(float(e), float(U), float(k), float(nu))
+            for e, U, k, nu in zip(
+                f.error.value, f.error.expanded_u, f.error.k, f.error.dof, strict=True
+            )
+        ]
+        for axis, f in found.items()
+    }
 
 
-def assess(spec: Specification, found: Mapping[str, AxisAsFound],
-           parameters: Mapping[str, ParameterFigure]) -> ConformityReport:
-    """The statements a specification asks for: each axis's indication error as found, then each named parameter."""
+def assess(
+    spec: Specification, found: Mapping[str, AxisAsFound], parameters: Mapping[str, ParameterFigure]
+) -> ConformityReport:
+    """The statements a specification asks for: each axis's indication error as found, then each
+    named parameter."""
     out = []
     for axis, points in axis_errors(found).items():
-        d = decide(points, spec.max_permissible_error_deg, spec.decision_rule, spec.guard_band_fraction) if points else None
-        out.append(QuantityDecision(axis, f"indication error, {axis} axis", "deg", d,
-                                    "" if points else "no measured points"))
+        d = (
+            decide(
+                points, spec.max_permissible_error_deg, spec.decision_rule, spec.guard_band_fraction
+            )
+            if points
+            else None
+        )
+        out.append(
+            QuantityDecision(
+                axis,
+                f"indication error, {axis} axis",
+                "deg",
+                d,
+                "" if points else "no measured points",
+            )
+        )
     for limit in spec.parameters:
         p = parameters.get(limit.name)
         if p is None:
-            out.append(QuantityDecision(limit.name, f"parameter {limit.name}", "", None,
-                                        "not a parameter of the record's model"))
+            out.append(
+                QuantityDecision(
+                    limit.name,
+                    f"parameter {limit.name}",
+                    "",
+                    None,
+                    "not a parameter of the record's model",
+                )
+            )
             continue
         if p.expanded_u is None or p.k is None:
-            out.append(QuantityDecision(limit.name, f"parameter {limit.name}", p.unit, None,
-                                        "the parameter was held fixed, not measured"))
+            out.append(
+                QuantityDecision(
+                    limit.name,
+                    f"parameter {limit.name}",
+                    p.unit,
+                    None,
+                    "the parameter was held fixed, not measured",
+                )
+            )
             continue
         nu = float(dof_of_coverage_factor(p.k))
         point = PointError(p.value - limit.nominal, p.expanded_u, p.k, nu)
-        out.append(QuantityDecision(limit.name, f"parameter {limit.name} (deviation from {limit.nominal:g} {p.unit})",
-                                    p.unit, decide([point], limit.max_permissible_error, spec.decision_rule,
-                                                   spec.guard_band_fraction)))
+        out.append(
+            QuantityDecision(
+                limit.name,
+                f"parameter {limit.name} (deviation from {limit.nominal:g} {p.unit})",
+                p.unit,
+                decide(
+                    [point],
+                    limit.max_permissible_error,
+                    spec.decision_rule,
+                    spec.guard_band_fraction,
+                ),
+            )
+        )
     return ConformityReport(spec, tuple(out))

@@ -17,7 +17,14 @@ from service.calibration.budget import Component, current_names, model_dof, stan
 from service.calibration.uncertainty import COVERAGE, coverage_factor
 from service.lims import dcc
 from service.lims.as_found import AXES, AxisAsFound, MeasuredPoint, as_found, single_reading_noise
-from service.lims.conformity import ILAC_G8, IN_WORDS, ConformityReport, Decision, ParameterFigure, assess
+from service.lims.conformity import (
+    ILAC_G8,
+    IN_WORDS,
+    ConformityReport,
+    Decision,
+    ParameterFigure,
+    assess,
+)
 from service.lims.content_results import (
     NOT_TRACEABLE,
     CertificateRefused,
@@ -34,36 +41,56 @@ from service.lims.dcc_numbers import gum_pair
 from service.storage.specification import DecisionRule, Specification
 from service.storage.tokens import Person
 
-__all__ = ["Approval", "CertificateRefused", "Laboratory", "MeasuredPoint", "build_certificate", "model_dof",
-           "standards_of"]
+__all__ = [
+    "Approval",
+    "CertificateRefused",
+    "Laboratory",
+    "MeasuredPoint",
+    "build_certificate",
+    "model_dof",
+    "standards_of",
+]
 
 # The papers each kind of calibration follows, and the procedure name the daemon runs it under.
 PAPERS: dict[str, tuple[str, str]] = {
     "stage": (
-        ("Wang S., Chang Y., Cui Y., Liu B.: Error correction for off-axis tilt measurement using biaxial tilt "
-        "sensor. Journal of Electronic Measurement and Instrumentation, doi:10.13382/j.jemi.B2407429"),
+        (
+            "Wang S., Chang Y., Cui Y., Liu B.: Error correction for off-axis tilt measurement "
+            "using biaxial tilt sensor. Journal of Electronic Measurement and Instrumentation, "
+            "doi:10.13382/j.jemi.B2407429"
+        ),
         "stage-grid",
     ),
     "rotation": (
-        ("Cao J., Zhu X., Wu H., Zhang L.: An improved method for measurement of omni-directional spatial "
-        "rotation angles (IODSRA), 2016"),
+        (
+            "Cao J., Zhu X., Wu H., Zhang L.: An improved method for measurement of "
+            "omni-directional spatial rotation angles (IODSRA), 2016"
+        ),
         "rotation",
     ),
     "scale": (
-        ("Zhong Q., Tan L., Huang X., Wang L., Wang J.: Demarcating measuring unit of pedestal obliquity "
-        "measuring system of gyroscope based on least squares method, doi:10.3969/j.issn.1006-1576.2012.12.019"),
+        (
+            "Zhong Q., Tan L., Huang X., Wang L., Wang J.: Demarcating measuring unit of "
+            "pedestal obliquity measuring system of gyroscope based on least squares method, "
+            "doi:10.3969/j.issn.1006-1576.2012.12.019"
+        ),
         "scale",
     ),
     "turntable": (
-        "Liu X., Zhou Z., Zhang Z., Liu D., Zhu W.: Calibration of inclinometer parameters in digital zenith camera",
+        (
+            "Liu X., Zhou Z., Zhang Z., Liu D., Zhu W.: Calibration of inclinometer parameters in "
+            "digital zenith camera"
+        ),
         "turntable",
     ),
 }
 KIND_TEXT = {
     "stage": "biaxial inclinometer on a two-axis tilt stage, against a reference inclinometer",
     "rotation": "triaxial inclinometer module on a rotary bench (spatial rotation angles)",
-    "scale": "ADC inclinometer channel against the stage and the reference inclinometer (measuring unit)",
-    "turntable": "RS-485 inclinometer on a turntable at symmetric azimuths (scale factors and axis angle)",
+    "scale": "ADC inclinometer channel against the stage and the reference inclinometer (measuring "
+    "unit)",
+    "turntable": "RS-485 inclinometer on a turntable at symmetric azimuths (scale factors and axis "
+    "angle)",
 }
 
 
@@ -79,12 +106,17 @@ class Laboratory:
     certificate_prefix: str = "TL"
 
     def contact(self) -> dcc.Contact:
-        return dcc.Contact(self.name, dcc.Address(self.city, self.country_code, self.street, self.post_code), self.email)
+        return dcc.Contact(
+            self.name,
+            dcc.Address(self.city, self.country_code, self.street, self.post_code),
+            self.email,
+        )
 
 
 @dataclass(frozen=True)
 class Approval:
-    """The approval event a certificate rests on (who, when, what it means, and the hash it was bound to)."""
+    """The approval event a certificate rests on (who, when, what it means, and the hash it was
+    bound to)."""
 
     actor: str
     at: dt.datetime
@@ -104,83 +136,151 @@ def _date(value: Any) -> dt.date:
 
 
 def item_of(device: Mapping[str, Any], order: Mapping[str, Any] | None) -> dcc.Item:
-    """What identifies the item: the order's item serial, and the instrument's own serial where it reports one;
-    manufacturer and model from the order, else from the instrument's identification. Never a port or role."""
-    reported = bool(device.get("firmware"))  # only an instrument that answers an identification states these
+    """What identifies the item: the order's item serial, and the instrument's own serial where it
+    reports one; manufacturer and model from the order, else from the instrument's identification.
+    Never a port or role."""
+    # only an instrument that answers an identification states these
+    reported = bool(device.get("firmware"))
     ids: list[dcc.Identification] = []
     if order is not None and order.get("item_serial"):
         ids.append(dcc.Identification("manufacturer", str(order["item_serial"]), "serial number"))
     if reported and device.get("serial") and (not ids or ids[0].value != str(device["serial"])):
-        ids.append(dcc.Identification("manufacturer", str(device["serial"]), "serial number reported by the instrument"))
+        ids.append(
+            dcc.Identification(
+                "manufacturer", str(device["serial"]), "serial number reported by the instrument"
+            )
+        )
     if not ids:
-        ids.append(dcc.Identification("calibrationLaboratory", f"device {device.get('id')}",
-                                      "the laboratory's device record (the instrument reports no serial number)"))
-    model = (order or {}).get("item_model") or (str(device["model"]) if reported and device.get("model") else None)
+        ids.append(
+            dcc.Identification(
+                "calibrationLaboratory",
+                f"device {device.get('id')}",
+                "the laboratory's device record (the instrument reports no serial number)",
+            )
+        )
+    model = (order or {}).get("item_model") or (
+        str(device["model"]) if reported and device.get("model") else None
+    )
     maker = (order or {}).get("item_manufacturer") or device.get("manufacturer") or None
-    return dcc.Item(name=f"inclinometer {model}" if model else "inclinometer", identifications=tuple(ids),
-                    model=model, manufacturer=maker, firmware=device.get("firmware") or None)
+    return dcc.Item(
+        name=f"inclinometer {model}" if model else "inclinometer",
+        identifications=tuple(ids),
+        model=model,
+        manufacturer=maker,
+        firmware=device.get("firmware") or None,
+    )
 
 
-def standards_of(rows: Iterable[Mapping[str, Any]], performed_on: dt.date | None = None) -> tuple[dcc.ReferenceStandard, ...]:
-    """The reference standards as the certificate names them; `performed_on`: the day the calibration began."""
+def standards_of(
+    rows: Iterable[Mapping[str, Any]], performed_on: dt.date | None = None
+) -> tuple[dcc.ReferenceStandard, ...]:
+    """The reference standards as the certificate names them; `performed_on`: the day the
+    calibration began."""
     out = []
     for s in rows:
         lab = s.get("calibrated_by") or None
         calibrated_on, due_on = _date(s["calibrated_on"]), _date(s["due_on"])
         U, k = s.get("expanded_uncertainty_deg"), s.get("coverage_factor")
-        out.append(dcc.ReferenceStandard(
-            name=str(s["name"]), serial=str(s["serial"]), certificate_number=str(s["certificate_number"]),
-            certificate_sha256=str(s["certificate_sha256"]), calibrated_on=calibrated_on, due_on=due_on,
-            uncertainty=str(s.get("uncertainty") or ""), model=s.get("model") or None,
-            calibrated_by=dcc.CalibratingLaboratory(str(lab["name"]), str(lab["country_code"]), lab.get("accreditation"),
-                                                    lab.get("city")) if lab else None,
-            expanded_uncertainty=float(U) if isinstance(U, int | float) else None,
-            coverage_factor=float(k) if isinstance(k, int | float) else None,
-            valid_on_performance_date=performed_on is None or calibrated_on <= performed_on <= due_on,
-        ))  # fmt: skip
+        out.append(
+            dcc.ReferenceStandard(
+                name=str(s["name"]),
+                serial=str(s["serial"]),
+                certificate_number=str(s["certificate_number"]),
+                certificate_sha256=str(s["certificate_sha256"]),
+                calibrated_on=calibrated_on,
+                due_on=due_on,
+                uncertainty=str(s.get("uncertainty") or ""),
+                model=s.get("model") or None,
+                calibrated_by=dcc.CalibratingLaboratory(
+                    str(lab["name"]),
+                    str(lab["country_code"]),
+                    lab.get("accreditation"),
+                    lab.get("city"),
+                )
+                if lab
+                else None,
+                expanded_uncertainty=float(U) if isinstance(U, int | float) else None,
+                coverage_factor=float(k) if isinstance(k, int | float) else None,
+                valid_on_performance_date=performed_on is None
+                or calibrated_on <= performed_on <= due_on,
+            )
+        )
     return tuple(out)
 
 
 def check_traceability(standards: Sequence[dcc.ReferenceStandard], performed_on: dt.date) -> None:
-    """A certificate states a traceable result only: at least one registered standard with a numeric uncertainty,
-    every standard valid on the day of the calibration and naming the laboratory that calibrated it."""
+    """A certificate states a traceable result only: at least one registered standard with a numeric
+    uncertainty, every standard valid on the day of the calibration and naming the laboratory that
+    calibrated it."""
     if not standards:
-        raise CertificateRefused(f"{NOT_TRACEABLE}: the record was calibrated without a registered reference standard; "
-                                 "no certificate is issued (calibrate again naming a standard in reference_standards)")
+        raise CertificateRefused(
+            f"{NOT_TRACEABLE}: the record was calibrated without a registered reference standard; "
+            "no certificate is issued (calibrate again naming a standard in reference_standards)"
+        )
     for s in standards:
-        where = f"reference standard {s.name} (serial {s.serial}, certificate {s.certificate_number})"
+        where = (
+            f"reference standard {s.name} (serial {s.serial}, certificate {s.certificate_number})"
+        )
         if not s.valid_on_performance_date:
-            raise CertificateRefused(f"{where} was not valid on {performed_on} (calibrated on {s.calibrated_on}, due on "
-                                     f"{s.due_on}); no certificate is issued")
+            raise CertificateRefused(
+                f"{where} was not valid on {performed_on} (calibrated on {s.calibrated_on}, due on "
+                f"{s.due_on}); no certificate is issued"
+            )
         if s.calibrated_by is None:
-            raise CertificateRefused(f"{where} does not name the laboratory that calibrated it, so the result's "
-                                     "traceability cannot be stated; register its certificate again with calibrated_by")
-    if not any(s.expanded_uncertainty is not None and s.coverage_factor is not None for s in standards):
-        raise CertificateRefused(f"{NOT_TRACEABLE}: no reference standard of the record states its uncertainty as a "
-                                 "number; no certificate is issued")
+            raise CertificateRefused(
+                f"{where} does not name the laboratory that calibrated it, so the result's "
+                "traceability cannot be stated; register its certificate again with calibrated_by"
+            )
+    if not any(
+        s.expanded_uncertainty is not None and s.coverage_factor is not None for s in standards
+    ):
+        raise CertificateRefused(
+            f"{NOT_TRACEABLE}: no reference standard of the record states its uncertainty as a "
+            "number; no certificate is issued"
+        )
 
 
-def persons_of(approval: Approval, operator: str, operator_person: Person | None, job_id: int | None) -> tuple[dcc.Person, ...]:
-    """The operator who ran the job and the approver as main signer, by person with their functions."""
+def persons_of(
+    approval: Approval, operator: str, operator_person: Person | None, job_id: int | None
+) -> tuple[dcc.Person, ...]:
+    """The operator who ran the job and the approver as main signer, by person with their
+    functions."""
     signer = approval.signer
     if signer is None or not signer.name:
-        raise CertificateRefused(f"the record was approved with the token {approval.actor!r}, which names no person; a "
-                                 "certificate names the person who authorised it: the record must be approved with a "
-                                 "token that names its person (name and function)")
+        raise CertificateRefused(
+            f"the record was approved with the token {approval.actor!r}, which names no person; a "
+            "certificate names the person who authorised it: the record must be approved with a "
+            "token that names its person (name and function)"
+        )
     if not signer.function:
-        raise CertificateRefused(f"the record was approved by {signer.name} (token {approval.actor!r}), whose function "
-                                 "was not recorded; a certificate names the authorising person's function")
+        raise CertificateRefused(
+            f"the record was approved by {signer.name} (token {approval.actor!r}), whose function "
+            "was not recorded; a certificate names the authorising person's function"
+        )
     when = approval.at.astimezone(dt.UTC)
-    approver = dcc.Person(signer.name, signer.function, main_signer=True, statement=(
-        f"{approval.meaning} of the calibration record on {when:%Y-%m-%dT%H:%M:%SZ} with the token {approval.actor!r}"
-        + (f": {approval.note}" if approval.note else "")))
+    approver = dcc.Person(
+        signer.name,
+        signer.function,
+        main_signer=True,
+        statement=(
+            f"{approval.meaning} of the calibration record on {when:%Y-%m-%dT%H:%M:%SZ} with the "
+            f"token {approval.actor!r}" + (f": {approval.note}" if approval.note else "")
+        ),
+    )
     job = f"job {job_id}" if job_id is not None else "the calibration"
     if operator_person is not None:
-        ran = dcc.Person(operator_person.name, operator_person.function or "operator",
-                         statement=f"operator: ran {job} (started with the token {operator!r})")
+        ran = dcc.Person(
+            operator_person.name,
+            operator_person.function or "operator",
+            statement=f"operator: ran {job} (started with the token {operator!r})",
+        )
     else:
-        ran = dcc.Person(operator, "operator", statement=f"operator: ran {job}; {operator!r} is the name of the token "
-                                                         "that started it, which named no person")
+        ran = dcc.Person(
+            operator,
+            "operator",
+            statement=f"operator: ran {job}; {operator!r} is the name of the token "
+            "that started it, which named no person",
+        )
     return ran, approver
 
 
@@ -192,37 +292,82 @@ def conformity_statements(report: ConformityReport) -> list[dcc.Statement]:
         d = q.decision
         name = f"statement of conformity: {q.name}"
         if d is None:
-            out.append(dcc.Statement(f"No statement of conformity for {q.name}: {q.reason}.", name=name,
-                                     ref_type="tiltlab_conformityStatement"))
+            out.append(
+                dcc.Statement(
+                    f"No statement of conformity for {q.name}: {q.reason}.",
+                    name=name,
+                    ref_type="tiltlab_conformityStatement",
+                )
+            )
             continue
         unit = q.unit or "1"
         shown = "°" if unit == "deg" else f" {unit}"
         limit = spec.max_permissible_error_deg if q.quantity in AXES else d.max_permissible_error
         value, U, _ = gum_pair(d.worst_error, d.worst_expanded_u, q.quantity)
-        words = (f"{q.name[:1].upper()}{q.name[1:]}: {IN_WORDS[d.conformity]}. Specification: |error| <= {limit:g}{shown} "
-                 f"(largest permissible error, MPE). Decision rule: {d.rule_text()}; U is the expanded uncertainty "
-                 f"(95 %) of the error at each point. The statement is that of the worst of the {d.n_points} "
-                 f"point(s): error {'+' if d.worst_error > 0 else ''}{value}{shown} with U = {U}{shown}.")
+        words = (
+            f"{q.name[:1].upper()}{q.name[1:]}: {IN_WORDS[d.conformity]}. Specification: |error| "
+            f"<= {limit:g}{shown} (largest permissible error, MPE). Decision rule: "
+            f"{d.rule_text()}; U is the expanded uncertainty (95 %) of the error at each point. "
+            f"The statement is that of the worst of the {d.n_points} point(s): error "
+            f"{'+' if d.worst_error > 0 else ''}{value}{shown} with U = {U}{shown}."
+        )
         if d.largest_false_acceptance is not None:
             pfa = d.largest_false_acceptance
-            words += (" The largest probability of false acceptance over the points that pass is "
-                      + ("below 0.01 %." if pfa < 1e-4 else f"{pfa:.2%}."))
+            words += (
+                " The largest probability of false acceptance over the points that pass is "
+                + ("below 0.01 %." if pfa < 1e-4 else f"{pfa:.2%}.")
+            )
         k = d.worst_expanded_u / _u_of(d) if _u_of(d) > 0 else None
-        values = [dcc.Value("max_permissible_error", "largest permissible error (MPE)", limit, unit,
-                            ref_type="tiltlab_conformityStatement"),
-                  dcc.Value("worst_error", "error at the worst point, with its expanded uncertainty", d.worst_error, unit,
-                            d.worst_expanded_u if k else None, k, COVERAGE if k else None,
-                            distribution="student-t" if k and math.isfinite(d.worst_dof) else "normal",
-                            ref_type="tiltlab_conformityStatement")]
+        values = [
+            dcc.Value(
+                "max_permissible_error",
+                "largest permissible error (MPE)",
+                limit,
+                unit,
+                ref_type="tiltlab_conformityStatement",
+            ),
+            dcc.Value(
+                "worst_error",
+                "error at the worst point, with its expanded uncertainty",
+                d.worst_error,
+                unit,
+                d.worst_expanded_u if k else None,
+                k,
+                COVERAGE if k else None,
+                distribution="student-t" if k and math.isfinite(d.worst_dof) else "normal",
+                ref_type="tiltlab_conformityStatement",
+            ),
+        ]
         if d.rule is DecisionRule.GUARDED_ACCEPTANCE:
-            values.append(dcc.Value("guard_band_fraction", "guard band w as a fraction of U", d.guard_band_fraction,
-                                    "1", ref_type="tiltlab_conformityStatement"))
+            values.append(
+                dcc.Value(
+                    "guard_band_fraction",
+                    "guard band w as a fraction of U",
+                    d.guard_band_fraction,
+                    "1",
+                    ref_type="tiltlab_conformityStatement",
+                )
+            )
         if d.largest_false_acceptance is not None:
-            values.append(dcc.Value("largest_probability_of_false_acceptance", "largest probability of false "
-                                    "acceptance", float(f"{d.largest_false_acceptance:.2g}"), "1",
-                                    ref_type="tiltlab_conformityStatement"))
-        out.append(dcc.Statement(words, name=name, conformity=d.conformity.value, norm=ILAC_G8, values=tuple(values),
-                                 ref_type="tiltlab_conformityStatement"))
+            values.append(
+                dcc.Value(
+                    "largest_probability_of_false_acceptance",
+                    "largest probability of false acceptance",
+                    float(f"{d.largest_false_acceptance:.2g}"),
+                    "1",
+                    ref_type="tiltlab_conformityStatement",
+                )
+            )
+        out.append(
+            dcc.Statement(
+                words,
+                name=name,
+                conformity=d.conformity.value,
+                norm=ILAC_G8,
+                values=tuple(values),
+                ref_type="tiltlab_conformityStatement",
+            )
+        )
     return out
 
 
@@ -231,7 +376,8 @@ def _u_of(d: Decision) -> float:
 
 
 def parameter_figures(params: dcc.Result) -> dict[str, ParameterFigure]:
-    """The parameters as the certificate states them (value, U, k), for statements about named parameters."""
+    """The parameters as the certificate states them (value, U, k), for statements about named
+    parameters."""
     return {v.label: ParameterFigure(v.value, v.expanded_u, v.k, v.unit) for v in params.values}
 
 
@@ -255,13 +401,14 @@ def build_certificate(
     job_id: int | None = None,
     specification: Specification | None = None,
 ) -> dcc.Certificate:
-    """The certificate of an approved record. `record` holds id, version, kind, method, model, validation,
-    temp_c, content_sha256, created_at and optionally budget, calibrated_range and conditions; `device` id,
-    model, serial, firmware (the instrument's identity: model and serial count as its own only where it reports
-    firmware, i.e. answers an identification), manufacturer; `order` lims_order_id, item_serial,
-    item_manufacturer, item_model, customer; `measured_points` a stage job's settled points (both sensors),
-    `calibration_points` another kind's fit points (`commanded_angle_deg`); `specification` the order's, which
-    asks for statements of conformity. CertificateRefused says why a record cannot be certified."""
+    """The certificate of an approved record. `record` holds id, version, kind, method, model,
+    validation, temp_c, content_sha256, created_at and optionally budget, calibrated_range and
+    conditions; `device` id, model, serial, firmware (the instrument's identity: model and serial
+    count as its own only where it reports firmware, i.e. answers an identification), manufacturer;
+    `order` lims_order_id, item_serial, item_manufacturer, item_model, customer; `measured_points` a
+    stage job's settled points (both sensors), `calibration_points` another kind's fit points
+    (`commanded_angle_deg`); `specification` the order's, which asks for statements of conformity.
+    CertificateRefused says why a record cannot be certified."""
     kind, method = str(record["kind"]), str(record["method"])
     model = record["model"]
     budget = current_names(record.get("budget") or None)
@@ -272,8 +419,11 @@ def build_certificate(
     paper, procedure = PAPERS.get(kind, ("", kind))
     params = parameter_result(model, budget)
     results = [params]
-    validation = validation_result(record.get("validation") or {}, k_bound=float(coverage_factor(model_dof(model))),
-                                   budget=budget)
+    validation = validation_result(
+        record.get("validation") or {},
+        k_bound=float(coverage_factor(model_dof(model))),
+        budget=budget,
+    )
     if validation is not None:
         results.append(validation)
     found = None
@@ -284,49 +434,85 @@ def build_certificate(
         points = calibration_points_result(calibration_points, record.get("calibrated_range"))
     if points is not None:
         results.append(points)
-    if found is not None and measured_points and (e := indication_error_result(measured_points, found)) is not None:
+    if (
+        found is not None
+        and measured_points
+        and (e := indication_error_result(measured_points, found)) is not None
+    ):
         results.append(e)
     fitted = [p for p in measured_points if p.fitted]
     per_point = conditions.get("samples_per_point")
-    if (b := budget_result(budget, int(per_point) if isinstance(per_point, int) else None,
-                           single_reading_noise(fitted) if fitted else None)) is not None:
+    if (
+        b := budget_result(
+            budget,
+            int(per_point) if isinstance(per_point, int) else None,
+            single_reading_noise(fitted) if fitted else None,
+        )
+    ) is not None:
         results.append(b)
-    influence = ambient_conditions(conditions) + [c for c in (temperature_condition(record, budget),) if c is not None]
+    influence = ambient_conditions(conditions) + [
+        c for c in (temperature_condition(record, budget),) if c is not None
+    ]
     if order is not None:
         c = order["customer"]
-        customer = dcc.Contact(str(c["name"]), dcc.Address(str(c["city"]), str(c["country_code"]),
-                                                           c.get("street") or None, c.get("post_code") or None),
-                               c.get("email") or None)  # fmt: skip
+        customer = dcc.Contact(
+            str(c["name"]),
+            dcc.Address(
+                str(c["city"]),
+                str(c["country_code"]),
+                c.get("street") or None,
+                c.get("post_code") or None,
+            ),
+            c.get("email") or None,
+        )
     else:
         customer = laboratory.contact()
     ids = [
-        dcc.Identification("calibrationLaboratory", f"record {record['id']} version {record['version']}",
-                           "calibration record"),
-        dcc.Identification("calibrationLaboratory", str(record["content_sha256"]), "record SHA-256"),
-        dcc.Identification("calibrationLaboratory", approval.event_sha256, "approval event SHA-256"),
-    ]  # fmt: skip
+        dcc.Identification(
+            "calibrationLaboratory",
+            f"record {record['id']} version {record['version']}",
+            "calibration record",
+        ),
+        dcc.Identification(
+            "calibrationLaboratory", str(record["content_sha256"]), "record SHA-256"
+        ),
+        dcc.Identification(
+            "calibrationLaboratory", approval.event_sha256, "approval event SHA-256"
+        ),
+    ]
     if order is not None:
         ids.insert(0, dcc.Identification("customer", str(order["lims_order_id"]), "order"))
     signer = approval.signer
     assert signer is not None  # persons_of refused an approval without one
     statements: list[str | dcc.Statement] = [
-        (f"Expanded uncertainties U = k·u are stated for a coverage probability of {COVERAGE:.0%}; k is Student's t "
-         "at the degrees of freedom of each uncertainty (the fit's, or the Welch-Satterthwaite effective degrees of "
-         "freedom of a combination), which each quantity's description states. Standard uncertainties u are stated "
-         "as such. Uncertainties are rounded to two significant digits and values to the same decimal place "
-         "(GUM 7.2.6)."),
-        (f"The results relate only to the item calibrated. This certificate was authorised by {signer.described()}, "
-         f"who approved the calibration record on {approval.at.astimezone(dt.UTC):%Y-%m-%d %H:%M} UTC "
-         f"({approval.meaning}), bound to the record hash {approval.record_sha256}."),
-        ("The results are traceable to the SI through the reference standards listed under measuring equipment, "
-         "each calibrated by the laboratory named there and valid on the day of the calibration."),
-    ]  # fmt: skip
+        (
+            "Expanded uncertainties U = k·u are stated for a coverage probability of "
+            f"{COVERAGE:.0%}; k is Student's t at the degrees of freedom of each uncertainty "
+            "(the fit's, or the Welch-Satterthwaite effective degrees of freedom of a "
+            "combination), which each quantity's description states. Standard uncertainties u "
+            "are stated as such. Uncertainties are rounded to two significant digits and values "
+            "to the same decimal place (GUM 7.2.6)."
+        ),
+        (
+            "The results relate only to the item calibrated. This certificate was authorised by "
+            f"{signer.described()}, who approved the calibration record on "
+            f"{approval.at.astimezone(dt.UTC):%Y-%m-%d %H:%M} UTC ({approval.meaning}), bound to "
+            f"the record hash {approval.record_sha256}."
+        ),
+        (
+            "The results are traceable to the SI through the reference standards listed under "
+            "measuring equipment, "
+            "each calibrated by the laboratory named there and valid on the day of the calibration."
+        ),
+    ]
     if order is None:
         statements.append("In-house calibration: no customer order names this record.")
     if specification is not None:
         if found is None:
-            raise CertificateRefused("the order asks for statements of conformity, but the record has no measured "
-                                     "points to state them on")
+            raise CertificateRefused(
+                "the order asks for statements of conformity, but the record has no measured "
+                "points to state them on"
+            )
         statements += conformity_statements(assess(specification, found, parameter_figures(params)))
     return dcc.Certificate(
         number=number,
@@ -340,12 +526,15 @@ def build_certificate(
         customer=customer,
         item=item_of(device, order),
         persons=persons,
-        methods=(dcc.Method(
-            name=f"{kind} calibration, method {method}",
-            description=f"{KIND_TEXT.get(kind, kind)}; the {method} model of the tiltlab calibration code.",
-            references=(paper,) if paper else (),
-            procedure=f"tiltlab procedure {procedure}",
-        ),),  # fmt: skip
+        methods=(
+            dcc.Method(
+                name=f"{kind} calibration, method {method}",
+                description=f"{KIND_TEXT.get(kind, kind)}; the {method} model of the tiltlab "
+                "calibration code.",
+                references=(paper,) if paper else (),
+                procedure=f"tiltlab procedure {procedure}",
+            ),
+        ),
         standards=named_standards,
         conditions=tuple(influence),
         results=(dcc.MeasurementResult(f"Calibration of the {kind} inclinometer", tuple(results)),),
@@ -356,17 +545,27 @@ def build_certificate(
     )
 
 
-def found_as(points: Sequence[MeasuredPoint], standards: Sequence[dcc.ReferenceStandard],
-             conditions: Mapping[str, Any]) -> dict[str, AxisAsFound]:
-    """The indication errors as found at a stage job's points, with the standards' u = U/k in the reference
-    values and the sensors' resolutions the record's conditions state."""
+def found_as(
+    points: Sequence[MeasuredPoint],
+    standards: Sequence[dcc.ReferenceStandard],
+    conditions: Mapping[str, Any],
+) -> dict[str, AxisAsFound]:
+    """The indication errors as found at a stage job's points, with the standards' u = U/k in the
+    reference values and the sensors' resolutions the record's conditions state."""
     components: list[Component] = [
-        standard_component(f"{s.name} (serial {s.serial}, certificate {s.certificate_number})", s.expanded_uncertainty,
-                           s.coverage_factor)
-        for s in standards if s.expanded_uncertainty is not None and s.coverage_factor is not None and s.unit == "deg"]
+        standard_component(
+            f"{s.name} (serial {s.serial}, certificate {s.certificate_number})",
+            s.expanded_uncertainty,
+            s.coverage_factor,
+        )
+        for s in standards
+        if s.expanded_uncertainty is not None and s.coverage_factor is not None and s.unit == "deg"
+    ]
 
     def resolution(role: str) -> float | None:
         r = (conditions.get("resolution_deg") or {}).get(role)
         return float(r) if isinstance(r, int | float) and r > 0 else None
 
-    return as_found(points, components, resolution("reference_sensor"), resolution("measurement_sensor"))
+    return as_found(
+        points, components, resolution("reference_sensor"), resolution("measurement_sensor")
+    )

@@ -31,24 +31,30 @@ def distribution(dof: float) -> str:
 
 
 def _dof_text(dof: float | None) -> str:
-    return "infinite degrees of freedom (normal)" if dof is None or not math.isfinite(dof) \
+    return (
+        "infinite degrees of freedom (normal)"
+        if dof is None or not math.isfinite(dof)
         else f"{dof:.0f} degrees of freedom"
+    )
 
 
 def bench_parameters(model: Mapping[str, Any]) -> set[str]:
-    """The parameters that describe the bench (stage scales, desk tilt, the reference's mounting), not the item."""
+    """The parameters that describe the bench (stage scales, desk tilt, the reference's mounting),
+    not the item."""
     return set((model.get("state") or {}).get("chain_parameters") or [])
 
 
 def region_factor(n: int, dof: float, probability: float = COVERAGE) -> float:
-    """k of the joint n-dimensional coverage ellipsoid: √(n·F(n, ν; p)), √χ²(n; p) for infinite ν."""
+    """k of the joint n-dimensional coverage ellipsoid: √(n·F(n, ν; p)), √χ²(n; p) for infinite
+    ν."""
     if math.isfinite(dof) and dof > 0:
         return float(math.sqrt(n * special.fdtri(n, dof, probability)))
     return float(math.sqrt(special.chdtri(n, 1.0 - probability)))
 
 
-def parameter_result(model: Mapping[str, Any], budget: Mapping[str, Any] | None,
-                     probability: float = COVERAGE) -> dcc.Result:
+def parameter_result(
+    model: Mapping[str, Any], budget: Mapping[str, Any] | None, probability: float = COVERAGE
+) -> dcc.Result:
     """The item's parameters with expanded uncertainties, and as one vector with their covariance.
 
     A parameter the budget lists (a zero offset, which carries the reference's angle scale) takes
@@ -59,7 +65,8 @@ def parameter_result(model: Mapping[str, Any], budget: Mapping[str, Any] | None,
     cov = model.get("covariance") or None
     names: list[str] = list(cov["names"]) if cov else []
     matrix = np.asarray(cov["matrix"], dtype=float) if cov else np.zeros((0, 0))
-    matrix = (matrix + matrix.T) / 2.0  # a covariance is symmetric; a fit's rounding leaves ~1e-16 between halves
+    # a covariance is symmetric; a fit's rounding leaves ~1e-16 between halves
+    matrix = (matrix + matrix.T) / 2.0
     nu = model_dof(model)
     k_fit = float(coverage_factor(nu, probability))
     from_budget = {r["quantity"]: r for r in (budget or {}).get("results") or []}
@@ -71,19 +78,51 @@ def parameter_result(model: Mapping[str, Any], budget: Mapping[str, Any] | None,
         note = str(p.get("note") or "")
         unit = str(p["unit"])
         if p.get("fixed"):
-            values.append(dcc.Value(name, f"{name} (held fixed, not fitted)", float(p["value"]), unit, note=note))
+            values.append(
+                dcc.Value(
+                    name, f"{name} (held fixed, not fitted)", float(p["value"]), unit, note=note
+                )
+            )
         elif name in from_budget:
             b = from_budget[name]
-            why = (f"U = k·u with u from the fit's covariance and the reference standard (u = U/k of its certificate); "
-                   f"k from Student's t at {_dof_text(b['dof_eff'])} (Welch-Satterthwaite)")
-            values.append(dcc.Value(name, name, float(p["value"]), unit, float(b["expanded_uncertainty"]), float(b["coverage_factor"]), probability,
-                                    "; ".join(filter(None, [why, note])), distribution(b["dof_eff"] or math.inf)))
+            why = (
+                "U = k·u with u from the fit's covariance and the reference standard (u = U/k of "
+                "its certificate); "
+                f"k from Student's t at {_dof_text(b['dof_eff'])} (Welch-Satterthwaite)"
+            )
+            values.append(
+                dcc.Value(
+                    name,
+                    name,
+                    float(p["value"]),
+                    unit,
+                    float(b["expanded_uncertainty"]),
+                    float(b["coverage_factor"]),
+                    probability,
+                    "; ".join(filter(None, [why, note])),
+                    distribution(b["dof_eff"] or math.inf),
+                )
+            )
             fitted.append(name)
         elif name in names:
             u = math.sqrt(max(float(matrix[names.index(name), names.index(name)]), 0.0))
-            why = f"U = k·u with u from the fit's covariance; k from Student's t at {_dof_text(nu)} (the fit's)"
-            values.append(dcc.Value(name, name, float(p["value"]), unit, u * k_fit, k_fit, probability,
-                                    "; ".join(filter(None, [why, note])), distribution(nu)))
+            why = (
+                "U = k·u with u from the fit's covariance; k from Student's t at "
+                f"{_dof_text(nu)} (the fit's)"
+            )
+            values.append(
+                dcc.Value(
+                    name,
+                    name,
+                    float(p["value"]),
+                    unit,
+                    u * k_fit,
+                    k_fit,
+                    probability,
+                    "; ".join(filter(None, [why, note])),
+                    distribution(nu),
+                )
+            )
             fitted.append(name)
         else:
             values.append(dcc.Value(name, name, float(p["value"]), unit, note=note))
@@ -97,31 +136,45 @@ def parameter_result(model: Mapping[str, Any], budget: Mapping[str, Any] | None,
         for i, n in enumerate(fitted):
             if n in from_budget:
                 b = from_budget[n]
-                sub[i, i] = (float(b["standard_uncertainty"])) ** 2  # the standard's variance added on the diagonal (independent)
+                # the standard's variance added on the diagonal (independent)
+                sub[i, i] = (float(b["standard_uncertainty"])) ** 2
                 ks.append(float(b["coverage_factor"]))
             else:
                 ks.append(k_fit)
         covariance = dcc.Covariance(
-            labels=tuple(fitted), values=tuple(float(params[n]["value"]) for n in fitted),
-            units=tuple(str(params[n]["unit"]) for n in fitted), matrix=tuple(tuple(float(x) for x in r) for r in sub),
-            k=tuple(ks), probability=probability, region_k=region_factor(len(fitted), nu, probability),
+            labels=tuple(fitted),
+            values=tuple(float(params[n]["value"]) for n in fitted),
+            units=tuple(str(params[n]["unit"]) for n in fitted),
+            matrix=tuple(tuple(float(x) for x in r) for r in sub),
+            k=tuple(ks),
+            probability=probability,
+            region_k=region_factor(len(fitted), nu, probability),
             distribution=distribution(nu),
-            note=f"Covariance of the fitted parameters (the fit's, {_dof_text(nu)}), in the products of their units, "
-                 "columns in the order of the labels; a zero offset's variance includes the reference standard's. "
-                 "The joint coverage factor is that of the hyper-ellipsoid for the stated probability.",
-        )  # fmt: skip
+            note=f"Covariance of the fitted parameters (the fit's, {_dof_text(nu)}), in the "
+            "products of their units, columns in the order of the labels; a zero offset's "
+            "variance includes the reference standard's. The joint coverage factor is that of "
+            "the hyper-ellipsoid for the stated probability.",
+        )
     left_out = sorted(bench & set(params))
-    description = ("Parameters of the item's model fitted by least squares, with their expanded uncertainties and "
-                   "their covariance matrix.")
+    description = (
+        "Parameters of the item's model fitted by least squares, with their expanded "
+        "uncertainties and their covariance matrix."
+    )
     if left_out:
-        description += (f" The bench's own {len(left_out)} parameters ({', '.join(left_out[:4])}"
-                        f"{', ...' if len(left_out) > 4 else ''}) were fitted with them; they describe the measuring "
-                        "set-up, not the item, and are kept in the calibration record, not stated here.")
-    return dcc.Result("Calibration parameters", description, values=tuple(values), covariance=covariance)
+        description += (
+            f" The bench's own {len(left_out)} parameters ({', '.join(left_out[:4])}"
+            f"{', ...' if len(left_out) > 4 else ''}) were fitted with them; they describe the "
+            "measuring "
+            "set-up, not the item, and are kept in the calibration record, not stated here."
+        )
+    return dcc.Result(
+        "Calibration parameters", description, values=tuple(values), covariance=covariance
+    )
 
 
 def _quantities(points: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
-    """(quantity, unit) pairs that every validation point gives as reference_<q>_<unit> and measured_<q>_<unit>."""
+    """(quantity, unit) pairs that every validation point gives as reference_<q>_<unit> and
+    measured_<q>_<unit>."""
     first = points[0]
     out = []
     for key in first:
@@ -133,31 +186,48 @@ def _quantities(points: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
     return out
 
 
-def validation_result(validation: Mapping[str, Any], probability: float = COVERAGE, k_bound: float | None = None,
-                      budget: Mapping[str, Any] | None = None) -> dcc.Result | None:
-    """The validation table (reference, measured, error, each with its expanded uncertainty) and its summary.
+def validation_result(
+    validation: Mapping[str, Any],
+    probability: float = COVERAGE,
+    k_bound: float | None = None,
+    budget: Mapping[str, Any] | None = None,
+) -> dcc.Result | None:
+    """The validation table (reference, measured, error, each with its expanded uncertainty) and its
+    summary.
 
     Reads `validation["points"]`: one row per validation point with `reference_<q>_<unit>`,
-    `measured_<q>_<unit>`, optionally `u_<q>_<unit>` (expanded uncertainty of the measured value from
-    the fit) and `k_<q>` or `k` (its coverage factor). The error is measured − reference. With a
-    budget, each point's U combines the fit's part with the budget's (standards, resolution, temperature).
+    `measured_<q>_<unit>`, optionally `u_<q>_<unit>` (expanded uncertainty of the measured value
+    from the fit) and `k_<q>` or `k` (its coverage factor). The error is measured − reference. With
+    a budget, each point's U combines the fit's part with the budget's (standards, resolution,
+    temperature).
     """
     summary = []
     for key, name in (("rms_deg", "RMS of the errors"), ("max_deg", "largest |error|")):
         if isinstance(validation.get(key), int | float):
-            summary.append(dcc.Value(key, name, float(validation[key]), "deg", ref_type="tiltlab_summary"))
+            summary.append(
+                dcc.Value(key, name, float(validation[key]), "deg", ref_type="tiltlab_summary")
+            )
     points = validation.get("points") or []
     if isinstance(validation.get("coverage_probability"), int | float):
         probability = float(validation["coverage_probability"])
     if isinstance(validation.get("n_points"), int):
-        summary.append(dcc.Value("n_points", "validation points", float(validation["n_points"]), "1",
-                                 ref_type="tiltlab_summary"))
+        summary.append(
+            dcc.Value(
+                "n_points",
+                "validation points",
+                float(validation["n_points"]),
+                "1",
+                ref_type="tiltlab_summary",
+            )
+        )
     others = reading_components(budget)
     columns: list[dcc.Column] = []
     if points:
         quantities = _quantities(points)
         if not quantities:
-            raise CertificateRefused("validation points name no reference_<quantity>_<unit>/measured_... pair")
+            raise CertificateRefused(
+                "validation points name no reference_<quantity>_<unit>/measured_... pair"
+            )
         for q, unit in quantities:
             ref = tuple(float(p[f"reference_{q}_{unit}"]) for p in points)
             meas = tuple(float(p[f"measured_{q}_{unit}"]) for p in points)
@@ -167,49 +237,107 @@ def validation_result(validation: Mapping[str, Any], probability: float = COVERA
             U: tuple[float, ...] | None = tuple(float(p[ukey]) for p in points) if has_u else None
             stated = [p.get(f"k_{q}", p.get("k", validation.get("k"))) for p in points]
             if has_u and any(k is None for k in stated) and k_bound is None:
-                raise CertificateRefused(f"validation points give {ukey} without its coverage factor")
+                raise CertificateRefused(
+                    f"validation points give {ukey} without its coverage factor"
+                )
             # a missing k falls back to the bound, which the refusal above guarantees is there
-            ks = tuple(float(k) if k is not None else float(cast(float, k_bound)) for k in stated) if has_u else None
+            ks = (
+                tuple(float(k) if k is not None else float(cast(float, k_bound)) for k in stated)
+                if has_u
+                else None
+            )
             if U is not None and ks is not None and others and unit == "deg":
                 k_arr = np.asarray(ks)
-                c = combine(np.asarray(U) / k_arr, dof_of_coverage_factor(k_arr, probability), others, probability)
+                c = combine(
+                    np.asarray(U) / k_arr,
+                    dof_of_coverage_factor(k_arr, probability),
+                    others,
+                    probability,
+                )
                 U, ks = tuple(float(x) for x in c.U), tuple(float(x) for x in c.k)
             dist = "student-t" if has_u else None
             columns += [
-                dcc.Column(f"reference_{q}_{unit}", f"reference {q}", ref, unit, ref_type="basic_referenceValue"),
-                dcc.Column(f"measured_{q}_{unit}", f"measured {q} (corrected)", meas, unit, U, ks,
-                           probability if has_u else None, ref_type="basic_measuredValue", distribution=dist),
-                dcc.Column(f"error_{q}_{unit}", f"error {q} (measured − reference)", err, unit, U, ks,
-                           probability if has_u else None, ref_type="basic_measurementError", distribution=dist),
-            ]  # fmt: skip
+                dcc.Column(
+                    f"reference_{q}_{unit}",
+                    f"reference {q}",
+                    ref,
+                    unit,
+                    ref_type="basic_referenceValue",
+                ),
+                dcc.Column(
+                    f"measured_{q}_{unit}",
+                    f"measured {q} (corrected)",
+                    meas,
+                    unit,
+                    U,
+                    ks,
+                    probability if has_u else None,
+                    ref_type="basic_measuredValue",
+                    distribution=dist,
+                ),
+                dcc.Column(
+                    f"error_{q}_{unit}",
+                    f"error {q} (measured − reference)",
+                    err,
+                    unit,
+                    U,
+                    ks,
+                    probability if has_u else None,
+                    ref_type="basic_measurementError",
+                    distribution=dist,
+                ),
+            ]
     if not summary and not columns:
         return None
     return dcc.Result(
         "Validation on points not used in the fit",
-        "Each validation point was measured after the fit and corrected with the fitted parameters; the error "
-        "is the corrected reading minus the reference. The uncertainty of the error is that of the corrected "
-        "reading: GUM propagation of the parameters' covariance and the reading noise"
-        + (", combined with the uncertainty budget's other components (reference standards, resolution, "
-           "temperature)" if others else "")
+        "Each validation point was measured after the fit and corrected with the fitted "
+        "parameters; the error is the corrected reading minus the reference. The uncertainty of "
+        "the error is that of the corrected reading: GUM propagation of the parameters' "
+        "covariance and the reading noise"
+        + (
+            ", combined with the uncertainty budget's other components (reference standards, "
+            "resolution, temperature)"
+            if others
+            else ""
+        )
         + "; k is Student's t at each point's effective degrees of freedom (Welch-Satterthwaite)"
-        + ("; where a point does not state its own coverage factor, the one shown is Student's t at the fit's "
-           "degrees of freedom, an upper bound of it, and U covers the stated probability." if k_bound else "."),
-        values=tuple(summary), columns=tuple(columns), table_ref_type="tiltlab_validationPoint",
+        + (
+            "; where a point does not state its own coverage factor, the one shown is Student's t "
+            "at the fit's "
+            "degrees of freedom, an upper bound of it, and U covers the stated probability."
+            if k_bound
+            else "."
+        ),
+        values=tuple(summary),
+        columns=tuple(columns),
+        table_ref_type="tiltlab_validationPoint",
     )
 
 
-def calibration_points_result(points: Sequence[Mapping[str, Any]],
-                              stated_range: Mapping[str, Any] | None = None) -> dcc.Result | None:
-    """The calibrated range (stated by the record, else the points' extremes of each reference quantity) and the
-    calibration points themselves: one column per `<quantity>_<unit>` key of the points."""
+def calibration_points_result(
+    points: Sequence[Mapping[str, Any]], stated_range: Mapping[str, Any] | None = None
+) -> dcc.Result | None:
+    """The calibrated range (stated by the record, else the points' extremes of each reference
+    quantity) and the calibration points themselves: one column per `<quantity>_<unit>` key of the
+    points."""
     if not points:
         return None
-    keys = [k for k in points[0] if "_" in k and all(isinstance(p.get(k), int | float) for p in points)]
+    keys = [
+        k for k in points[0] if "_" in k and all(isinstance(p.get(k), int | float) for p in points)
+    ]
     columns = []
     for key in keys:
         q, _, unit = key.rpartition("_")
-        columns.append(dcc.Column(key, q.replace("_", " "), tuple(float(p[key]) for p in points), unit,
-                                  ref_type="tiltlab_calibrationPoint"))
+        columns.append(
+            dcc.Column(
+                key,
+                q.replace("_", " "),
+                tuple(float(p[key]) for p in points),
+                unit,
+                ref_type="tiltlab_calibrationPoint",
+            )
+        )
     ranges: dict[str, tuple[float, float]] = {}
     if stated_range:
         for key, span in stated_range.items():
@@ -223,13 +351,21 @@ def calibration_points_result(points: Sequence[Mapping[str, Any]],
     for label, (lo, hi) in ranges.items():
         q, _, unit = label.rpartition("_")
         name = q.replace("_", " ")
-        values += [dcc.Value(f"{label}_min", f"lowest {name}", lo, unit, ref_type="tiltlab_calibratedRange"),
-                   dcc.Value(f"{label}_max", f"highest {name}", hi, unit, ref_type="tiltlab_calibratedRange")]
+        values += [
+            dcc.Value(
+                f"{label}_min", f"lowest {name}", lo, unit, ref_type="tiltlab_calibratedRange"
+            ),
+            dcc.Value(
+                f"{label}_max", f"highest {name}", hi, unit, ref_type="tiltlab_calibratedRange"
+            ),
+        ]
     return dcc.Result(
         "Calibrated range and calibration points",
-        f"The {len(points)} points the model was fitted on: the reference's value and the item's indication at "
-        "each. The results hold within the range of the reference values.",
-        values=tuple(values), columns=tuple(columns), table_ref_type="tiltlab_calibrationPoint",
+        f"The {len(points)} points the model was fitted on: the reference's value and the item's "
+        "indication at each. The results hold within the range of the reference values.",
+        values=tuple(values),
+        columns=tuple(columns),
+        table_ref_type="tiltlab_calibrationPoint",
     )
 
 
@@ -246,73 +382,143 @@ def _range_values(ranges: Mapping[str, tuple[float, float]]) -> list[dcc.Value]:
     for label, (lo, hi) in ranges.items():
         q, _, unit = label.rpartition("_")
         name = q.replace("_", " ")
-        values += [dcc.Value(f"{label}_min", f"lowest {name}", lo, unit, ref_type="tiltlab_calibratedRange"),
-                   dcc.Value(f"{label}_max", f"highest {name}", hi, unit, ref_type="tiltlab_calibratedRange")]
+        values += [
+            dcc.Value(
+                f"{label}_min", f"lowest {name}", lo, unit, ref_type="tiltlab_calibratedRange"
+            ),
+            dcc.Value(
+                f"{label}_max", f"highest {name}", hi, unit, ref_type="tiltlab_calibratedRange"
+            ),
+        ]
     return values
 
 
-def _uncertain_column(label: str, name: str, q: Uncertain, ref_type: str, probability: float = COVERAGE) -> dcc.Column:
-    return dcc.Column(label, name, tuple(float(v) for v in q.value), "deg", tuple(float(x) for x in q.expanded_u),
-                      tuple(float(k) for k in q.k), probability, ref_type=ref_type,
-                      distribution="student-t" if bool(np.all(np.isfinite(q.dof))) else "normal")
+def _uncertain_column(
+    label: str, name: str, q: Uncertain, ref_type: str, probability: float = COVERAGE
+) -> dcc.Column:
+    return dcc.Column(
+        label,
+        name,
+        tuple(float(v) for v in q.value),
+        "deg",
+        tuple(float(x) for x in q.expanded_u),
+        tuple(float(k) for k in q.k),
+        probability,
+        ref_type=ref_type,
+        distribution="student-t" if bool(np.all(np.isfinite(q.dof))) else "normal",
+    )
 
 
-def stage_points_result(points: Sequence[MeasuredPoint], found: Mapping[str, AxisAsFound],
-                        stated_range: Mapping[str, Any] | None = None) -> dcc.Result | None:
-    """The calibrated range and the calibration points of a stage record: at each point the model was fitted on,
-    the reference's value and the item's indication, each with its expanded uncertainty."""
+def stage_points_result(
+    points: Sequence[MeasuredPoint],
+    found: Mapping[str, AxisAsFound],
+    stated_range: Mapping[str, Any] | None = None,
+) -> dcc.Result | None:
+    """The calibrated range and the calibration points of a stage record: at each point the model
+    was fitted on, the reference's value and the item's indication, each with its expanded
+    uncertainty."""
     fitted = [i for i, p in enumerate(points) if p.fitted]
     if not fitted:
         return None
     cols = []
     for axis in AXES:
         f = found[axis]
-        ref = Uncertain(f.reference.value[fitted], f.reference.u[fitted], f.reference.dof[fitted], f.reference.k[fitted])
-        cols += [_uncertain_column(f"reference_{axis}_deg", f"reference {axis}", ref, "tiltlab_calibrationPoint"),
-                 dcc.Column(f"indication_{axis}_deg", f"indication {axis}",
-                            tuple(float(v) for v in f.indication.value[fitted]), "deg",
-                            ref_type="tiltlab_calibrationPoint")]
-    ranges = _ranges(stated_range) or {c.label: (min(c.values), max(c.values)) for c in cols
-                                      if c.label.startswith("reference_")}
+        ref = Uncertain(
+            f.reference.value[fitted],
+            f.reference.u[fitted],
+            f.reference.dof[fitted],
+            f.reference.k[fitted],
+        )
+        cols += [
+            _uncertain_column(
+                f"reference_{axis}_deg", f"reference {axis}", ref, "tiltlab_calibrationPoint"
+            ),
+            dcc.Column(
+                f"indication_{axis}_deg",
+                f"indication {axis}",
+                tuple(float(v) for v in f.indication.value[fitted]),
+                "deg",
+                ref_type="tiltlab_calibrationPoint",
+            ),
+        ]
+    ranges = _ranges(stated_range) or {
+        c.label: (min(c.values), max(c.values)) for c in cols if c.label.startswith("reference_")
+    }
     return dcc.Result(
         "Calibrated range and calibration points",
-        f"The {len(fitted)} points the model was fitted on: the reference's value, with its expanded uncertainty, and "
-        "the item's indication at each, each the mean of the readings taken after the table settled (the indication "
-        "is written to the decimal place of the reference's U). The reference value's expanded uncertainty combines "
-        "the reference standards' (u = U/k of their certificates), the reference sensor's resolution and the noise of "
-        "its mean; the indication's own (the item's resolution and the noise of its mean) is part of the indication "
-        "error's, stated with the indication errors. The results hold within the range of the reference values.",
-        values=tuple(_range_values(ranges)), columns=tuple(cols), table_ref_type="tiltlab_calibrationPoint",
+        f"The {len(fitted)} points the model was fitted on: the reference's value, with its "
+        "expanded uncertainty, and the item's indication at each, each the mean of the readings "
+        "taken after the table settled (the indication is written to the decimal place of the "
+        "reference's U). The reference value's expanded uncertainty combines the reference "
+        "standards' (u = U/k of their certificates), the reference sensor's resolution and the "
+        "noise of its mean; the indication's own (the item's resolution and the noise of its "
+        "mean) is part of the indication error's, stated with the indication errors. The "
+        "results hold within the range of the reference values.",
+        values=tuple(_range_values(ranges)),
+        columns=tuple(cols),
+        table_ref_type="tiltlab_calibrationPoint",
     )
 
 
-def indication_error_result(points: Sequence[MeasuredPoint], found: Mapping[str, AxisAsFound]) -> dcc.Result | None:
-    """The item's indication error as found (before any correction) at every calibration and validation point."""
+def indication_error_result(
+    points: Sequence[MeasuredPoint], found: Mapping[str, AxisAsFound]
+) -> dcc.Result | None:
+    """The item's indication error as found (before any correction) at every calibration and
+    validation point."""
     if not points:
         return None
     cols: list[dcc.Column] = []
     for axis in AXES:
         f = found[axis]
-        cols.append(_uncertain_column(f"indication_error_{axis}_deg", f"indication error {axis} (indication − "
-                                      "reference)", f.error, "tiltlab_indicationError"))
+        cols.append(
+            _uncertain_column(
+                f"indication_error_{axis}_deg",
+                f"indication error {axis} (indication − reference)",
+                f.error,
+                "tiltlab_indicationError",
+            )
+        )
     for axis in AXES:
-        cols += [dcc.Column(f"reference_{axis}_deg", f"reference {axis}", tuple(float(v) for v in found[axis].reference.value),
-                            "deg", ref_type="tiltlab_indicationError"),
-                 dcc.Column(f"indication_{axis}_deg", f"indication {axis}",
-                            tuple(float(v) for v in found[axis].indication.value), "deg", ref_type="tiltlab_indicationError")]
+        cols += [
+            dcc.Column(
+                f"reference_{axis}_deg",
+                f"reference {axis}",
+                tuple(float(v) for v in found[axis].reference.value),
+                "deg",
+                ref_type="tiltlab_indicationError",
+            ),
+            dcc.Column(
+                f"indication_{axis}_deg",
+                f"indication {axis}",
+                tuple(float(v) for v in found[axis].indication.value),
+                "deg",
+                ref_type="tiltlab_indicationError",
+            ),
+        ]
     n_fit = sum(p.fitted for p in points)
     largest = {a: float(np.max(np.abs(found[a].error.value))) for a in AXES}
-    values = tuple(dcc.Value(f"largest_indication_error_{a}_deg", f"largest |indication error| {a}", largest[a], "deg",
-                             ref_type="tiltlab_summary") for a in AXES)
+    values = tuple(
+        dcc.Value(
+            f"largest_indication_error_{a}_deg",
+            f"largest |indication error| {a}",
+            largest[a],
+            "deg",
+            ref_type="tiltlab_summary",
+        )
+        for a in AXES
+    )
     return dcc.Result(
         "Indication error as found",
-        f"The item's reading minus the reference's at each of the {len(points)} measured points, before any "
-        f"correction: rows 1 to {n_fit} are the calibration points, the rest the validation points, in the order "
-        "they were measured. The error's expanded uncertainty combines the reference value's (reference standards, "
-        "the reference sensor's resolution and the noise of its mean) with the indication's (the item's resolution "
-        "and the noise of its mean); k is Student's t at each point's Welch-Satterthwaite degrees of freedom. "
+        f"The item's reading minus the reference's at each of the {len(points)} measured points, "
+        f"before any correction: rows 1 to {n_fit} are the calibration points, the rest the "
+        "validation points, in the order they were measured. The error's expanded uncertainty "
+        "combines the reference value's (reference standards, the reference sensor's resolution "
+        "and the noise of its mean) with the indication's (the item's resolution and the noise "
+        "of its mean); k is Student's t at each point's Welch-Satterthwaite degrees of freedom. "
         "Statements of conformity rest on these errors.",
-        values=values, columns=tuple(cols), table_ref_type="tiltlab_indicationError",
+        values=values,
+        columns=tuple(cols),
+        table_ref_type="tiltlab_indicationError",
     )
 
 
@@ -327,104 +533,204 @@ def _slug(text: str) -> str:
 NOT_TRACEABLE = "no reference standard: not traceable"
 
 
-def budget_result(budget: Mapping[str, Any] | None, readings_per_point: int | None = None,
-                  single_reading: Mapping[str, tuple[float, float]] | None = None) -> dcc.Result | None:
-    """The uncertainty budget (GUM): for each result, each component's standard uncertainty and the combination.
+def budget_result(
+    budget: Mapping[str, Any] | None,
+    readings_per_point: int | None = None,
+    single_reading: Mapping[str, tuple[float, float]] | None = None,
+) -> dcc.Result | None:
+    """The uncertainty budget (GUM): for each result, each component's standard uncertainty and the
+    combination.
 
-    `readings_per_point`: how many readings each calibration point's mean took; the corrected tilt's U holds
-    for such a mean. `single_reading`: the item's noise of one reading per axis (s, degrees of freedom), which
-    gives the U of a single corrected reading beside it.
+    `readings_per_point`: how many readings each calibration point's mean took; the corrected tilt's
+    U holds for such a mean. `single_reading`: the item's noise of one reading per axis (s, degrees
+    of freedom), which gives the U of a single corrected reading beside it.
     """
     entries = (budget or {}).get("results") or []
     if not entries:
         return None
     values: list[dcc.Value] = []
-    traceable = any(c.get("source") == "reference_standard" for r in entries for c in r["contributions"])
+    traceable = any(
+        c.get("source") == "reference_standard" for r in entries for c in r["contributions"]
+    )
     for r in entries:
         unit, q = str(r["unit"]), str(r["quantity"])
         sources = [c["source"] for c in r["contributions"]]
         for c in r["contributions"]:
-            what = "the fit (parameters' covariance and reading noise)" if c["source"] == "fit" else str(c["name"])
+            what = (
+                "the fit (parameters' covariance and reading noise)"
+                if c["source"] == "fit"
+                else str(c["name"])
+            )
             label = f"standard_uncertainty_{q}_{c['source']}"
             if sources.count(c["source"]) > 1:
                 label += "_" + _slug(str(c.get("name") or ""))
-            values.append(dcc.Value(label, f"{r['name']}: standard uncertainty from {what}", _two_digits(c["standard_uncertainty"]), unit,
-                                    note=_dof_text(c.get("dof")), ref_type="tiltlab_uncertaintyComponent"))
+            values.append(
+                dcc.Value(
+                    label,
+                    f"{r['name']}: standard uncertainty from {what}",
+                    _two_digits(c["standard_uncertainty"]),
+                    unit,
+                    note=_dof_text(c.get("dof")),
+                    ref_type="tiltlab_uncertaintyComponent",
+                )
+            )
         combination = "tiltlab_uncertaintyCombination"
         dof = r.get("dof_eff")
         values += [
-            dcc.Value(f"combined_standard_uncertainty_{q}", f"{r['name']}: combined standard uncertainty u_c",
-                      _two_digits(r["standard_uncertainty"]), unit, note=f"root sum of squares of the components; {_dof_text(dof)}"
-                      + (" (Welch-Satterthwaite)" if dof is not None else ""), ref_type=combination),
-            dcc.Value(f"coverage_factor_{q}", f"{r['name']}: coverage factor k", float(r["coverage_factor"]), "1",
-                      note=f"Student's t at {_dof_text(dof)} for {float(r['coverage_probability']):.0%}",
-                      ref_type=combination),
-            dcc.Value(f"expanded_uncertainty_{q}", f"{r['name']}: expanded uncertainty U = k·u_c", _two_digits(r["expanded_uncertainty"]),
-                      unit, note=f"coverage probability {float(r['coverage_probability']):g}", ref_type=combination),
+            dcc.Value(
+                f"combined_standard_uncertainty_{q}",
+                f"{r['name']}: combined standard uncertainty u_c",
+                _two_digits(r["standard_uncertainty"]),
+                unit,
+                note=f"root sum of squares of the components; {_dof_text(dof)}"
+                + (" (Welch-Satterthwaite)" if dof is not None else ""),
+                ref_type=combination,
+            ),
+            dcc.Value(
+                f"coverage_factor_{q}",
+                f"{r['name']}: coverage factor k",
+                float(r["coverage_factor"]),
+                "1",
+                note=f"Student's t at {_dof_text(dof)} for {float(r['coverage_probability']):.0%}",
+                ref_type=combination,
+            ),
+            dcc.Value(
+                f"expanded_uncertainty_{q}",
+                f"{r['name']}: expanded uncertainty U = k·u_c",
+                _two_digits(r["expanded_uncertainty"]),
+                unit,
+                note=f"coverage probability {float(r['coverage_probability']):g}",
+                ref_type=combination,
+            ),
         ]
         axis = q.removeprefix("tilt_").removesuffix("_deg")
-        if q.startswith("tilt_") and readings_per_point and single_reading and axis in single_reading:
+        if (
+            q.startswith("tilt_")
+            and readings_per_point
+            and single_reading
+            and axis in single_reading
+        ):
             s_one, nu_one = single_reading[axis]
-            extra = s_one**2 * (1.0 - 1.0 / readings_per_point)  # one reading's noise beyond that of the mean
+            # one reading's noise beyond that of the mean
+            extra = s_one**2 * (1.0 - 1.0 / readings_per_point)
             u_single = math.sqrt(float(r["standard_uncertainty"]) ** 2 + extra)
-            denom = (float(r["standard_uncertainty"]) ** 4 / dof if dof else 0.0) + extra**2 / nu_one
+            denom = (
+                float(r["standard_uncertainty"]) ** 4 / dof if dof else 0.0
+            ) + extra**2 / nu_one
             nu_single = u_single**4 / denom if denom > 0 else math.inf
             k_single = float(coverage_factor(nu_single, float(r["coverage_probability"])))
-            values.append(dcc.Value(
-                f"expanded_uncertainty_{q}_single_reading", f"{r['name']}: expanded uncertainty U of a single "
-                "corrected reading", _two_digits(k_single * u_single), unit,
-                note=(f"u_c combined with one reading's noise beyond that of a mean of {readings_per_point} "
-                      f"(s = {_two_digits(s_one):g} {unit} pooled over the points, {nu_one:.0f} degrees of freedom): "
-                      f"k = {k_single:.3g} at {_dof_text(nu_single)}"), ref_type=combination))
-    held = (f"The expanded uncertainty of the corrected table tilt holds for a corrected value that is the mean of "
-            f"{readings_per_point} readings taken after the table settled, as at each calibration point; a single "
-            "reading has more noise, and its expanded uncertainty is stated beside it where the points give the "
-            "readings' spread. " if readings_per_point else "")
+            values.append(
+                dcc.Value(
+                    f"expanded_uncertainty_{q}_single_reading",
+                    f"{r['name']}: expanded uncertainty U of a single corrected reading",
+                    _two_digits(k_single * u_single),
+                    unit,
+                    note=(
+                        "u_c combined with one reading's noise beyond that of a mean of "
+                        f"{readings_per_point} (s = {_two_digits(s_one):g} {unit} pooled over "
+                        f"the points, {nu_one:.0f} degrees of freedom): k = {k_single:.3g} at "
+                        f"{_dof_text(nu_single)}"
+                    ),
+                    ref_type=combination,
+                )
+            )
+    held = (
+        "The expanded uncertainty of the corrected table tilt holds for a corrected value that "
+        f"is the mean of {readings_per_point} readings taken after the table settled, as at each "
+        "calibration point; a single reading has more noise, and its expanded uncertainty is "
+        "stated beside it where the points give the readings' spread. "
+        if readings_per_point
+        else ""
+    )
     return dcc.Result(
         "Uncertainty budget",
-        held + "Each result's standard uncertainty components (GUM): the fit, each reference standard (u = U/k of its "
-        "certificate; the result is on the reference's angle scale), the sensors' resolution (r/√12) and, where the "
-        "temperature varied, its influence; combined by root sum of squares into the combined standard uncertainty "
-        "u_c; the expanded uncertainty U = k·u_c, with k from Student's t at the Welch-Satterthwaite effective "
-        "degrees of freedom (components that rest on one fit's estimated standard deviation count as one, with "
-        "that fit's degrees of freedom)."
-        + ("" if traceable else f" Warning: {NOT_TRACEABLE}: no reference standard's uncertainty is in this budget."),
+        held + "Each result's standard uncertainty components (GUM): the fit, each reference "
+        "standard (u = U/k of its certificate; the result is on the reference's angle scale), "
+        "the sensors' resolution (r/√12) and, where the temperature varied, its influence; "
+        "combined by root sum of squares into the combined standard uncertainty u_c; the "
+        "expanded uncertainty U = k·u_c, with k from Student's t at the Welch-Satterthwaite "
+        "effective degrees of freedom (components that rest on one fit's estimated standard "
+        "deviation count as one, with that fit's degrees of freedom)."
+        + (
+            ""
+            if traceable
+            else f" Warning: {NOT_TRACEABLE}: no reference standard's uncertainty is in this "
+            "budget."
+        ),
         values=tuple(values),
     )
 
 
-def temperature_condition(record: Mapping[str, Any], budget: Mapping[str, Any] | None) -> dcc.Condition | None:
-    """The measurement sensor's internal temperature: its mean, with the range it lay in as a rectangular U."""
+def temperature_condition(
+    record: Mapping[str, Any], budget: Mapping[str, Any] | None
+) -> dcc.Condition | None:
+    """The measurement sensor's internal temperature: its mean, with the range it lay in as a
+    rectangular U."""
     t = (budget or {}).get("temperature") or {}
-    mean = record.get("temp_c") if isinstance(record.get("temp_c"), int | float) else t.get("mean_c")
+    mean = (
+        record.get("temp_c") if isinstance(record.get("temp_c"), int | float) else t.get("mean_c")
+    )
     if not isinstance(mean, int | float):
         return None
     lo, hi = t.get("min_c", mean), t.get("max_c", mean)
-    half = max(float(hi) - mean, mean - float(lo), 0.005)  # at least half the reported 0.01 °C digit
-    values = [dcc.Value("temperature_mean", "mean", float(mean), "degC", half, math.sqrt(3.0), 1.0,
-                        "the range the readings lay in (rectangular, its half-width as U)", "rectangular",
-                        ref_type="tiltlab_internalTemperature")]
+    # at least half the reported 0.01 °C digit
+    half = max(float(hi) - mean, mean - float(lo), 0.005)
+    values = [
+        dcc.Value(
+            "temperature_mean",
+            "mean",
+            float(mean),
+            "degC",
+            half,
+            math.sqrt(3.0),
+            1.0,
+            "the range the readings lay in (rectangular, its half-width as U)",
+            "rectangular",
+            ref_type="tiltlab_internalTemperature",
+        )
+    ]
     if "min_c" in t:
-        values += [dcc.Value("temperature_min", "lowest", float(lo), "degC", ref_type="tiltlab_internalTemperature"),
-                   dcc.Value("temperature_max", "highest", float(hi), "degC", ref_type="tiltlab_internalTemperature")]
+        values += [
+            dcc.Value(
+                "temperature_min",
+                "lowest",
+                float(lo),
+                "degC",
+                ref_type="tiltlab_internalTemperature",
+            ),
+            dcc.Value(
+                "temperature_max",
+                "highest",
+                float(hi),
+                "degC",
+                ref_type="tiltlab_internalTemperature",
+            ),
+        ]
     return dcc.Condition(
-        "temperature", "internal temperature of the measurement sensor",
+        "temperature",
+        "internal temperature of the measurement sensor",
         tuple(values),
-        "The instrument's own internal temperature as it reported it at the calibration points, not a calibrated "
+        "The instrument's own internal temperature as it reported it at the calibration points, "
+        "not a calibrated "
         "thermometer's reading of the ambient air; its own error is not known and not included.",
     )
 
 
-AMBIENT = (("ambient_temperature_c", "temperature", "degC", "ambient air temperature of the laboratory"),
-           ("relative_humidity_pct", "humidity", "%", "relative humidity of the laboratory's air"))
-AMBIENT_SOURCE = {"ambient_sensor": "read by the bench's ambient sensor at every point; the standard uncertainty "
-                                    "combines the sensor's stated one with the range the readings lay in",
-                  "request": "as entered with the calibration request, with the standard uncertainty given there"}
+AMBIENT = (
+    ("ambient_temperature_c", "temperature", "degC", "ambient air temperature of the laboratory"),
+    ("relative_humidity_pct", "humidity", "%", "relative humidity of the laboratory's air"),
+)
+AMBIENT_SOURCE = {
+    "ambient_sensor": "read by the bench's ambient sensor at every point; the standard uncertainty "
+    "combines the sensor's stated one with the range the readings lay in",
+    "request": "as entered with the calibration request, with the standard uncertainty given there",
+}
 
 
 def ambient_conditions(conditions: Mapping[str, Any] | None) -> list[dcc.Condition]:
-    """The laboratory's ambient temperature and relative humidity during the calibration, each with its standard
-    uncertainty, where the record states them (from the bench's ambient sensor or the job request)."""
+    """The laboratory's ambient temperature and relative humidity during the calibration, each with
+    its standard uncertainty, where the record states them (from the bench's ambient sensor or the
+    job request)."""
     out = []
     for key, label, unit, name in AMBIENT:
         c = (conditions or {}).get(key)
@@ -432,15 +738,36 @@ def ambient_conditions(conditions: Mapping[str, Any] | None) -> list[dcc.Conditi
             continue
         u = c.get("standard_uncertainty")
         source = str(c.get("source") or "request")
-        values = [dcc.Value(f"{key.rsplit('_', 1)[0]}_mean", "mean" if source == "ambient_sensor" else "value",
-                            float(c["value"]), unit, note=AMBIENT_SOURCE.get(source, source), distribution="normal",
-                            ref_type="tiltlab_ambientCondition",
-                            standard_u=float(u) if isinstance(u, int | float) else None)]
+        values = [
+            dcc.Value(
+                f"{key.rsplit('_', 1)[0]}_mean",
+                "mean" if source == "ambient_sensor" else "value",
+                float(c["value"]),
+                unit,
+                note=AMBIENT_SOURCE.get(source, source),
+                distribution="normal",
+                ref_type="tiltlab_ambientCondition",
+                standard_u=float(u) if isinstance(u, int | float) else None,
+            )
+        ]
         for end in ("min", "max"):
             if isinstance(c.get(end), int | float):
-                values.append(dcc.Value(f"{key.rsplit('_', 1)[0]}_{end}", "lowest" if end == "min" else "highest",
-                                        float(c[end]), unit, ref_type="tiltlab_ambientCondition"))
-        out.append(dcc.Condition(label, name, tuple(values),
-                                 f"The {name} during the calibration, {AMBIENT_SOURCE.get(source, source)}.",
-                                 ref_type=f"basic_{label} tiltlab_ambientCondition"))
+                values.append(
+                    dcc.Value(
+                        f"{key.rsplit('_', 1)[0]}_{end}",
+                        "lowest" if end == "min" else "highest",
+                        float(c[end]),
+                        unit,
+                        ref_type="tiltlab_ambientCondition",
+                    )
+                )
+        out.append(
+            dcc.Condition(
+                label,
+                name,
+                tuple(values),
+                f"The {name} during the calibration, {AMBIENT_SOURCE.get(source, source)}.",
+                ref_type=f"basic_{label} tiltlab_ambientCondition",
+            )
+        )
     return out

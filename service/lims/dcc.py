@@ -59,15 +59,43 @@ from service.lims.dcc_schema import (
 )
 
 __all__ = [
-    "Address", "CalibratingLaboratory", "Certificate", "Statement", "Column", "Condition", "Contact", "Covariance", "Identification", "Item",
-    "MeasurementResult", "Method", "Person", "REFTYPES", "REFTYPE_LINK", "REFTYPE_NAMESPACE",
-    "ReferenceStandard", "Result", "Value", "DCC_NS", "DCC_VERSION", "DSIG_NS", "SCHEMA_DIR", "SI_NS",
-    "InvalidCertificate", "certificate_errors", "dcc_schema", "dsi_unit", "issue", "render_html",
-    "unique_identifier", "validate",
+    "Address",
+    "CalibratingLaboratory",
+    "Certificate",
+    "Statement",
+    "Column",
+    "Condition",
+    "Contact",
+    "Covariance",
+    "Identification",
+    "Item",
+    "MeasurementResult",
+    "Method",
+    "Person",
+    "REFTYPES",
+    "REFTYPE_LINK",
+    "REFTYPE_NAMESPACE",
+    "ReferenceStandard",
+    "Result",
+    "Value",
+    "DCC_NS",
+    "DCC_VERSION",
+    "DSIG_NS",
+    "SCHEMA_DIR",
+    "SI_NS",
+    "InvalidCertificate",
+    "certificate_errors",
+    "dcc_schema",
+    "dsi_unit",
+    "issue",
+    "render_html",
+    "unique_identifier",
+    "validate",
 ]
 
 SIGNING_CERT_NAME = "SHA-256 of the certificate that signs this file"
-CONFORMITY = ("pass", "fail", "conditionalPass", "conditionalFail")  # the DCC's statements of conformity we make
+# the DCC's statements of conformity we make
+CONFORMITY = ("pass", "fail", "conditionalPass", "conditionalFail")
 
 ET.register_namespace("dcc", DCC_NS)
 ET.register_namespace("si", SI_NS)
@@ -80,7 +108,9 @@ def _q(ns: str, tag: str) -> str:
     return f"{{{ns}}}{tag}"
 
 
-def _el(parent: ET.Element, tag: str, text: str | None = None, ns: str = DCC_NS, **attrs: str) -> ET.Element:
+def _el(
+    parent: ET.Element, tag: str, text: str | None = None, ns: str = DCC_NS, **attrs: str
+) -> ET.Element:
     e = ET.SubElement(parent, _q(ns, tag), {k.replace("_", ""): v for k, v in attrs.items()})
     if text is not None:
         e.text = text
@@ -131,9 +161,13 @@ def _identifications(parent: ET.Element, ids: Sequence[Identification], lang: st
 def _check_mu(u: float, k: float | None, p: float | None, what: str) -> tuple[float, float]:
     """The coverage factor and probability of an expanded uncertainty, checked."""
     if k is None or p is None:
-        raise InvalidCertificate(f"{what}: an expanded uncertainty needs its coverage factor and probability")
+        raise InvalidCertificate(
+            f"{what}: an expanded uncertainty needs its coverage factor and probability"
+        )
     if not (u >= 0 and k >= 1 and 0 < p <= 1):
-        raise InvalidCertificate(f"{what}: U={u}, k={k}, p={p}: U >= 0, k >= 1 and 0 < p <= 1 are needed")
+        raise InvalidCertificate(
+            f"{what}: U={u}, k={k}, p={p}: U >= 0, k >= 1 and 0 < p <= 1 are needed"
+        )
     return k, p
 
 
@@ -172,7 +206,8 @@ def _quantity(parent: ET.Element, v: Value, lang: str) -> None:
 
 
 def _column(parent: ET.Element, c: Column, decimals: Sequence[int] | None, lang: str) -> None:
-    """One column; without uncertainties of its own, its values take the row's decimals (those of the row's U)."""
+    """One column; without uncertainties of its own, its values take the row's decimals (those of
+    the row's U)."""
     n = len(c.values)
     if n == 0:
         raise InvalidCertificate(f"column {c.label}: no values")
@@ -181,19 +216,27 @@ def _column(parent: ET.Element, c: Column, decimals: Sequence[int] | None, lang:
     lst = _el(q, "realListXMLList", ns=SI_NS)
     _el(lst, "labelXMLList", c.label, ns=SI_NS)
     if c.expanded_u is None:
-        text = [at_decimals(v, decimals[i], c.label) if decimals else plain(v, c.label) for i, v in enumerate(c.values)]
+        text = [
+            at_decimals(v, decimals[i], c.label) if decimals else plain(v, c.label)
+            for i, v in enumerate(c.values)
+        ]
         _el(lst, "valueXMLList", " ".join(text), ns=SI_NS)
         _el(lst, "unitXMLList", dsi_unit(c.unit), ns=SI_NS)
         return
     if len(c.expanded_u) != n or c.k is None or len(c.k) != n or c.probability is None:
-        raise InvalidCertificate(f"column {c.label}: {n} values need {n} uncertainties, coverage factors and a probability")
+        raise InvalidCertificate(
+            f"column {c.label}: {n} values need {n} uncertainties, coverage factors and a "
+            "probability"
+        )
     pairs = []
     for i, (v, u, k) in enumerate(zip(c.values, c.expanded_u, c.k, strict=True)):
         _check_mu(u, k, c.probability, f"column {c.label}[{i}]")
         pairs.append(gum_pair(v, u, c.label))
     _el(lst, "valueXMLList", " ".join(p[0] for p in pairs), ns=SI_NS)
     _el(lst, "unitXMLList", dsi_unit(c.unit), ns=SI_NS)
-    mu = _el(_el(lst, "measurementUncertaintyUnivariateXMLList", ns=SI_NS), "expandedMUXMLList", ns=SI_NS)
+    mu = _el(
+        _el(lst, "measurementUncertaintyUnivariateXMLList", ns=SI_NS), "expandedMUXMLList", ns=SI_NS
+    )
     _el(mu, "valueExpandedMUXMLList", " ".join(p[1] for p in pairs), ns=SI_NS)
     _el(mu, "coverageFactorXMLList", " ".join(factor(k, c.label) for k in c.k), ns=SI_NS)
     _el(mu, "coverageProbabilityXMLList", plain(c.probability, c.label), ns=SI_NS)
@@ -203,8 +246,15 @@ def _column(parent: ET.Element, c: Column, decimals: Sequence[int] | None, lang:
 
 def _covariance(parent: ET.Element, c: Covariance, lang: str) -> None:
     n = len(c.labels)
-    if not n or any(len(x) != n for x in (c.values, c.units, c.k, c.matrix)) or any(len(r) != n for r in c.matrix):
-        raise InvalidCertificate(f"parameter covariance: {n} labels need {n} values, units, factors and an {n}x{n} matrix")
+    if (
+        not n
+        or any(len(x) != n for x in (c.values, c.units, c.k, c.matrix))
+        or any(len(r) != n for r in c.matrix)
+    ):
+        raise InvalidCertificate(
+            f"parameter covariance: {n} labels need {n} values, units, factors and an {n}x{n} "
+            "matrix"
+        )
     q = _el(parent, "quantity", refType="tiltlab_parameterVector")
     _text(q, "name", "fitted parameters with their covariance", lang)
     if c.note:
@@ -219,24 +269,41 @@ def _covariance(parent: ET.Element, c: Covariance, lang: str) -> None:
         pairs.append(gum_pair(c.values[i], c.k[i] * var**0.5, label))
     _el(lst, "valueXMLList", " ".join(p[0] for p in pairs), ns=SI_NS)
     _el(lst, "unitXMLList", " ".join(dsi_unit(u) for u in c.units), ns=SI_NS)
-    mu = _el(_el(lst, "measurementUncertaintyUnivariateXMLList", ns=SI_NS), "expandedMUXMLList", ns=SI_NS)
+    mu = _el(
+        _el(lst, "measurementUncertaintyUnivariateXMLList", ns=SI_NS), "expandedMUXMLList", ns=SI_NS
+    )
     _el(mu, "valueExpandedMUXMLList", " ".join(p[1] for p in pairs), ns=SI_NS)
     _el(mu, "coverageFactorXMLList", " ".join(factor(k, "k") for k in c.k), ns=SI_NS)
     _el(mu, "coverageProbabilityXMLList", plain(c.probability, "p"), ns=SI_NS)
     _el(mu, "distributionXMLList", c.distribution, ns=SI_NS)
-    region = _el(_el(lst, "measurementUncertaintyMultivariateXMLList", ns=SI_NS), "ellipsoidalRegionMUXMLList", ns=SI_NS)
+    region = _el(
+        _el(lst, "measurementUncertaintyMultivariateXMLList", ns=SI_NS),
+        "ellipsoidalRegionMUXMLList",
+        ns=SI_NS,
+    )
     matrix = _el(region, "covarianceMatrixXMLList", ns=SI_NS)
     for j in range(n):
         cov = _el(_el(matrix, "columnXMLList", ns=SI_NS), "covarianceXMLList", ns=SI_NS)
-        _el(cov, "valueXMLList", " ".join(plain(c.matrix[i][j], "covariance") for i in range(n)), ns=SI_NS)
-        _el(cov, "unitXMLList", " ".join(dsi_product(c.units[i], c.units[j]) for i in range(n)), ns=SI_NS)
+        _el(
+            cov,
+            "valueXMLList",
+            " ".join(plain(c.matrix[i][j], "covariance") for i in range(n)),
+            ns=SI_NS,
+        )
+        _el(
+            cov,
+            "unitXMLList",
+            " ".join(dsi_product(c.units[i], c.units[j]) for i in range(n)),
+            ns=SI_NS,
+        )
     _el(region, "coverageFactorXMLList", factor(c.region_k, "region k"), ns=SI_NS)
     _el(region, "coverageProbabilityXMLList", plain(c.probability, "p"), ns=SI_NS)
     _el(region, "distributionXMLList", c.distribution, ns=SI_NS)
 
 
 def _row_decimals(columns: Sequence[Column]) -> list[int] | None:
-    """Per row, the decimals of the first column's U in it: the other columns of the row are written to them."""
+    """Per row, the decimals of the first column's U in it: the other columns of the row are written
+    to them."""
     for c in columns:
         if c.expanded_u:
             return [gum_decimals(u) if u > 0 else 6 for u in c.expanded_u]
@@ -245,11 +312,16 @@ def _row_decimals(columns: Sequence[Column]) -> list[int] | None:
 
 def _unique_labels(r: Result) -> None:
     """Software reads a quantity by its label: two quantities of one list never share one."""
-    for what, labels in (("values", [v.label for v in r.values]), ("table", [c.label for c in r.columns])):
+    for what, labels in (
+        ("values", [v.label for v in r.values]),
+        ("table", [c.label for c in r.columns]),
+    ):
         seen = {x for x in labels if labels.count(x) > 1}
         if seen:
-            raise InvalidCertificate(f"result {r.name!r}: the label(s) {', '.join(sorted(seen))} appear more than once "
-                                     f"in its {what}")
+            raise InvalidCertificate(
+                f"result {r.name!r}: the label(s) {', '.join(sorted(seen))} appear more than once "
+                f"in its {what}"
+            )
 
 
 def _result(parent: ET.Element, r: Result, lang: str) -> None:
@@ -267,7 +339,9 @@ def _result(parent: ET.Element, r: Result, lang: str) -> None:
     if r.columns:
         lengths = {len(c.values) for c in r.columns}
         if len(lengths) != 1:
-            raise InvalidCertificate(f"result {r.name!r}: its columns differ in length {sorted(lengths)}")
+            raise InvalidCertificate(
+                f"result {r.name!r}: its columns differ in length {sorted(lengths)}"
+            )
         table = _el(data, "list", refType=r.table_ref_type)
         decimals = _row_decimals(r.columns)
         for c in r.columns:
@@ -277,47 +351,91 @@ def _result(parent: ET.Element, r: Result, lang: str) -> None:
 
 
 def _standard(parent: ET.Element, s: ReferenceStandard, lang: str) -> None:
-    """A reference standard: its certificate (number, SHA-256, who issued it), its identity, and the uncertainty
-    its certificate states as numbers (`measuringEquipmentQuantities`)."""
+    """A reference standard: its certificate (number, SHA-256, who issued it), its identity, and the
+    uncertainty its certificate states as numbers (`measuringEquipmentQuantities`)."""
     e = _el(parent, "measuringEquipment", refType="basic_referenceStandard")
     _text(e, "name", s.name, lang)
     lab = s.calibrated_by
-    description = (f"Calibrated on {s.calibrated_on.isoformat()}, due for recalibration on {s.due_on.isoformat()}"
-                   + (f", by {lab.described()}" if lab else "") + "."
-                   + (f" Its certificate states the uncertainty as: {s.uncertainty}." if s.uncertainty else ""))
+    description = (
+        f"Calibrated on {s.calibrated_on.isoformat()}, due for recalibration on "
+        f"{s.due_on.isoformat()}"
+        + (f", by {lab.described()}" if lab else "")
+        + "."
+        + (f" Its certificate states the uncertainty as: {s.uncertainty}." if s.uncertainty else "")
+    )
     _text(e, "description", description, lang)
     cert = _el(e, "certificate")
-    _text(cert, "referral", f"calibration certificate {s.certificate_number} of {s.name}"
-                            + (f", issued by {lab.described()}" if lab else ""), lang)
+    _text(
+        cert,
+        "referral",
+        f"calibration certificate {s.certificate_number} of {s.name}"
+        + (f", issued by {lab.described()}" if lab else ""),
+        lang,
+    )
     _el(cert, "referralID", s.certificate_number)
     _el(cert, "procedure", "SHA-256")
     _el(cert, "value", s.certificate_sha256)
-    _text(cert, "description", "the SHA-256 of the standard's calibration certificate file as the laboratory "
-                               "registered it", lang)
+    _text(
+        cert,
+        "description",
+        "the SHA-256 of the standard's calibration certificate file as the laboratory "
+        "registered it",
+        lang,
+    )
     _el(cert, "inValidityRange", "true" if s.valid_on_performance_date else "false")
     _el(cert, "traceable", "true" if lab is not None else "false")
     if s.model:
         _el(e, "model", s.model)
     ids = [Identification("manufacturer", s.serial, "serial number")]
     if lab is not None:
-        ids.append(Identification("calibrationLaboratory", s.certificate_number,
-                                  f"calibration certificate number, issued by {lab.name}"))
+        ids.append(
+            Identification(
+                "calibrationLaboratory",
+                s.certificate_number,
+                f"calibration certificate number, issued by {lab.name}",
+            )
+        )
         if lab.accreditation:
-            ids.append(Identification("calibrationLaboratory", lab.accreditation,
-                                      f"accreditation of {lab.name}, which calibrated the standard"))
+            ids.append(
+                Identification(
+                    "calibrationLaboratory",
+                    lab.accreditation,
+                    f"accreditation of {lab.name}, which calibrated the standard",
+                )
+            )
     _identifications(e, ids, lang)
     if s.expanded_uncertainty is not None and s.coverage_factor is not None:
         qs = _el(e, "measuringEquipmentQuantities")
         kind = "tiltlab_standardUncertaintyStatement"
         for v in (
-            Value("expanded_uncertainty_of_the_standard", "expanded uncertainty U of the standard's angle, as its "
-                  "certificate states it", s.expanded_uncertainty, s.unit, ref_type=kind),
-            Value("coverage_factor_of_the_standard", "coverage factor k of that expanded uncertainty",
-                  s.coverage_factor, "1", ref_type=kind),
-            Value("coverage_probability_of_the_standard", "coverage probability p of that expanded uncertainty",
-                  s.coverage_probability, "1", ref_type=kind),
-            Value("standard_uncertainty_of_the_standard", "standard uncertainty u = U/k that enters the results",
-                  s.expanded_uncertainty / s.coverage_factor, s.unit, ref_type=kind),
+            Value(
+                "expanded_uncertainty_of_the_standard",
+                "expanded uncertainty U of the standard's angle, as its certificate states it",
+                s.expanded_uncertainty,
+                s.unit,
+                ref_type=kind,
+            ),
+            Value(
+                "coverage_factor_of_the_standard",
+                "coverage factor k of that expanded uncertainty",
+                s.coverage_factor,
+                "1",
+                ref_type=kind,
+            ),
+            Value(
+                "coverage_probability_of_the_standard",
+                "coverage probability p of that expanded uncertainty",
+                s.coverage_probability,
+                "1",
+                ref_type=kind,
+            ),
+            Value(
+                "standard_uncertainty_of_the_standard",
+                "standard uncertainty u = U/k that enters the results",
+                s.expanded_uncertainty / s.coverage_factor,
+                s.unit,
+                ref_type=kind,
+            ),
         ):
             q = _el(qs, "measuringEquipmentQuantity", refType=v.ref_type)
             _text(q, "name", v.name, lang)
@@ -345,7 +463,9 @@ def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
     _el(core, "uniqueIdentifier", c.number)
     ids = list(c.identifications)
     if c.signing_cert_sha256:
-        ids.append(Identification("calibrationLaboratory", c.signing_cert_sha256, SIGNING_CERT_NAME))
+        ids.append(
+            Identification("calibrationLaboratory", c.signing_cert_sha256, SIGNING_CERT_NAME)
+        )
     _identifications(core, ids, lang)
     _el(core, "beginPerformanceDate", c.begin_on.isoformat())
     _el(core, "endPerformanceDate", c.end_on.isoformat())
@@ -398,7 +518,9 @@ def _statement(parent: ET.Element, st: Statement, lang: str) -> None:
     _text(e, "declaration", st.declaration, lang)
     if st.conformity is not None:
         if st.conformity not in CONFORMITY:
-            raise InvalidCertificate(f"statement {st.name!r}: conformity {st.conformity!r} is not one of {CONFORMITY}")
+            raise InvalidCertificate(
+                f"statement {st.name!r}: conformity {st.conformity!r} is not one of {CONFORMITY}"
+            )
         _el(e, "conformity", st.conformity)
     if st.values:
         _unique_labels(Result(st.name or "statement", values=st.values))
@@ -408,10 +530,18 @@ def _statement(parent: ET.Element, st: Statement, lang: str) -> None:
 
 
 def _define_reftypes(root: ET.Element, lang: str) -> None:
-    """A refTypeDefinition for every tiltlab_* refType the document uses; an undefined one is refused."""
+    """A refTypeDefinition for every tiltlab_* refType the document uses; an undefined one is
+    refused."""
     holder = root.find(f"{_q(DCC_NS, 'administrativeData')}/{_q(DCC_NS, 'refTypeDefinitions')}")
     assert holder is not None
-    used = sorted({t for e in root.iter() for t in (e.get("refType") or "").split() if t.startswith("tiltlab_")})
+    used = sorted(
+        {
+            t
+            for e in root.iter()
+            for t in (e.get("refType") or "").split()
+            if t.startswith("tiltlab_")
+        }
+    )
     unknown = [t for t in used if t not in REFTYPES]
     if unknown:
         raise InvalidCertificate(f"refType(s) {', '.join(unknown)} have no definition")
@@ -433,7 +563,9 @@ def build_xml(c: Certificate) -> bytes:
     """The certificate as DCC 3.3.0 XML (UTF-8). Not yet validated: `issue` does that."""
     lang = c.language
     if not c.persons or sum(p.main_signer for p in c.persons) != 1:
-        raise InvalidCertificate("a certificate needs exactly one main signer among its responsible persons")
+        raise InvalidCertificate(
+            "a certificate needs exactly one main signer among its responsible persons"
+        )
     root = ET.Element(_q(DCC_NS, "digitalCalibrationCertificate"), {"schemaVersion": DCC_VERSION})
     _administrative(root, c, lang)
 
@@ -448,7 +580,9 @@ def build_xml(c: Certificate) -> bytes:
                 _el(um, "norm", m.procedure)
             for ref in m.references:
                 _el(um, "reference", ref)
-    _software(_el(results, "usedSoftware"), c.software_name, c.software_version, "application", lang)
+    _software(
+        _el(results, "usedSoftware"), c.software_name, c.software_version, "application", lang
+    )
     if c.standards:
         eq = _el(results, "measuringEquipments")
         for s in c.standards:
@@ -456,8 +590,11 @@ def build_xml(c: Certificate) -> bytes:
     if c.conditions:
         conds = _el(results, "influenceConditions")
         for cond in c.conditions:
-            ic = _el(conds, "influenceCondition",
-                     refType=cond.ref_type or "basic_" + re.sub(r"[^A-Za-z0-9_]", "_", cond.label))
+            ic = _el(
+                conds,
+                "influenceCondition",
+                refType=cond.ref_type or "basic_" + re.sub(r"[^A-Za-z0-9_]", "_", cond.label),
+            )
             _text(ic, "name", cond.name, lang)
             _rich(ic, "description", cond.description, lang)
             data = _el(ic, "data")
@@ -476,13 +613,16 @@ def build_xml(c: Certificate) -> bytes:
         _el(root, "comment").text = c.comment
     _define_reftypes(root, lang)
     ET.indent(root, space="  ")
-    return ('<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n").encode("utf-8")
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+    ).encode("utf-8")
 
 
 def issue(c: Certificate, signer: Any = None) -> bytes:
-    """Build, sign (when the lab signs its certificates: a service.lims.signature.Signer) and validate: the only
-    way certificate bytes leave this module. The signed content names the signing certificate's SHA-256, so
-    the certificate the signature carries cannot be exchanged unnoticed."""
+    """Build, sign (when the lab signs its certificates: a service.lims.signature.Signer) and
+    validate: the only way certificate bytes leave this module. The signed content names the signing
+    certificate's SHA-256, so the certificate the signature carries cannot be exchanged
+    unnoticed."""
     if signer is not None:
         c = replace(c, signing_cert_sha256=signer.cert_sha256)
     xml = build_xml(c)
@@ -494,7 +634,10 @@ def issue(c: Certificate, signer: Any = None) -> bytes:
 
 def unique_identifier(xml: bytes) -> str:
     root = ET.fromstring(xml)
-    found = root.find(f"{_q(DCC_NS, 'administrativeData')}/{_q(DCC_NS, 'coreData')}/{_q(DCC_NS, 'uniqueIdentifier')}")
+    found = root.find(
+        f"{_q(DCC_NS, 'administrativeData')}/{_q(DCC_NS, 'coreData')}/"
+        f"{_q(DCC_NS, 'uniqueIdentifier')}"
+    )
     return (found.text or "").strip() if found is not None else ""
 
 

@@ -1,4 +1,5 @@
-"""A printable page of an issued DCC certificate, made from its XML (so both always say the same)."""
+"""A printable page of an issued DCC certificate, made from its XML (so both always say the
+same)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ def _t(e: ET.Element | None, path: str) -> str:
 
 
 def render_html(xml: bytes) -> str:
-    """A printable page of an issued certificate, made from its XML (so both always say the same)."""
+    """A printable page of an issued certificate, made from its XML (so both always say the
+    same)."""
     root = ET.fromstring(xml)
     adm = root.find("dcc:administrativeData", _NS)
     core = adm.find("dcc:coreData", _NS) if adm is not None else None
@@ -34,20 +36,32 @@ def render_html(xml: bytes) -> str:
     w(f"<h1>Calibration certificate</h1><p class='number'>{esc(number)}</p>")
     ras = core.find("dcc:reportAmendedSubstituted", _NS) if core is not None else None
     if ras is not None:
-        w(f"<p class='notice'>This certificate substitutes certificate "
-          f"{esc(_t(ras, 'dcc:replacedUniqueIdentifier'))}, which is withdrawn.</p>")
+        w(
+            f"<p class='notice'>This certificate substitutes certificate "
+            f"{esc(_t(ras, 'dcc:replacedUniqueIdentifier'))}, which is withdrawn.</p>"
+        )
     rows = [
         ("Issued", _t(core, "dcc:issueDate")),
-        ("Calibration performed", f"{_t(core, 'dcc:beginPerformanceDate')} to {_t(core, 'dcc:endPerformanceDate')}"),
+        (
+            "Calibration performed",
+            f"{_t(core, 'dcc:beginPerformanceDate')} to {_t(core, 'dcc:endPerformanceDate')}",
+        ),
         ("Location", _t(core, "dcc:performanceLocation")),
     ]
-    for ident in core.findall("dcc:identifications/dcc:identification", _NS) if core is not None else []:
+    for ident in (
+        core.findall("dcc:identifications/dcc:identification", _NS) if core is not None else []
+    ):
         rows.append((_t(ident, "dcc:name/dcc:content"), _t(ident, "dcc:value")))
     _table(w, "Certificate", rows)
     item = adm.find("dcc:items/dcc:item", _NS) if adm is not None else None
-    rows = [("Item", _t(item, "dcc:name/dcc:content")), ("Model", _t(item, "dcc:model")),
-            ("Manufacturer", _t(item, "dcc:manufacturer/dcc:name/dcc:content"))]
-    for ident in item.findall("dcc:identifications/dcc:identification", _NS) if item is not None else []:
+    rows = [
+        ("Item", _t(item, "dcc:name/dcc:content")),
+        ("Model", _t(item, "dcc:model")),
+        ("Manufacturer", _t(item, "dcc:manufacturer/dcc:name/dcc:content")),
+    ]
+    for ident in (
+        item.findall("dcc:identifications/dcc:identification", _NS) if item is not None else []
+    ):
         rows.append((_t(ident, "dcc:name/dcc:content").capitalize(), _t(ident, "dcc:value")))
     fw = _t(item, "dcc:installedSoftwares/dcc:software/dcc:release")
     if fw:
@@ -55,44 +69,84 @@ def render_html(xml: bytes) -> str:
     _table(w, "Calibration item", rows)
     lab = adm.find("dcc:calibrationLaboratory", _NS) if adm is not None else None
     cust = adm.find("dcc:customer", _NS) if adm is not None else None
-    _table(w, "Laboratory and customer", [
-        ("Laboratory", _contact_text(lab.find("dcc:contact", _NS) if lab is not None else None)),
-        ("Accreditation", _t(lab, "dcc:calibrationLaboratoryCode")),
-        ("Customer", _contact_text(cust)),
-    ])
+    _table(
+        w,
+        "Laboratory and customer",
+        [
+            (
+                "Laboratory",
+                _contact_text(lab.find("dcc:contact", _NS) if lab is not None else None),
+            ),
+            ("Accreditation", _t(lab, "dcc:calibrationLaboratoryCode")),
+            ("Customer", _contact_text(cust)),
+        ],
+    )
     stmts = adm.findall("dcc:statements/dcc:statement", _NS) if adm is not None else []
     conformity = [st for st in stmts if st.get("refType") == "tiltlab_conformityStatement"]
     if conformity:
-        w("<h2>Statements of conformity</h2><table class='verdicts'><tr><th>Quantity</th><th>Statement</th><th>Decision</th>"
-          "<th>Figures</th></tr>")
+        w(
+            "<h2>Statements of conformity</h2><table "
+            "class='verdicts'><tr><th>Quantity</th><th>Statement</th><th>Decision</th>"
+            "<th>Figures</th></tr>"
+        )
         for st in conformity:
             verdict = _t(st, "dcc:conformity")
-            figures = "; ".join(f"{_t(q, 'dcc:name/dcc:content')} {_real_text(q.find('si:real', _NS))}"
-                                for q in st.findall("dcc:data/dcc:quantity", _NS))
-            w(f"<tr><td>{esc(_t(st, 'dcc:name/dcc:content').removeprefix('statement of conformity: '))}</td>"
-              f"<td class='verdict {esc(verdict)}'>{esc(CONFORMITY_WORDS.get(verdict, 'no statement'))}</td>"
-              f"<td>{esc(_t(st, 'dcc:declaration/dcc:content'))} {esc(_t(st, 'dcc:norm'))}</td>"
-              f"<td>{esc(figures)}</td></tr>")
+            figures = "; ".join(
+                f"{_t(q, 'dcc:name/dcc:content')} {_real_text(q.find('si:real', _NS))}"
+                for q in st.findall("dcc:data/dcc:quantity", _NS)
+            )
+            w(
+                "<tr><td>"
+                f"{esc(_t(st, 'dcc:name/dcc:content').removeprefix('statement of conformity: '))}"
+                "</td>"
+                "<td class='verdict "
+                f"{esc(verdict)}'>{esc(CONFORMITY_WORDS.get(verdict, 'no statement'))}</td>"
+                f"<td>{esc(_t(st, 'dcc:declaration/dcc:content'))} {esc(_t(st, 'dcc:norm'))}</td>"
+                f"<td>{esc(figures)}</td></tr>"
+            )
         w("</table>")
     rows = []
     for p in adm.findall("dcc:respPersons/dcc:respPerson", _NS) if adm is not None else []:
-        main = "Authorised by (main signer)" if _t(p, "dcc:mainSigner") == "true" else "Performed by"
-        rows.append((main, f"{_t(p, 'dcc:person/dcc:name/dcc:content')}, {_t(p, 'dcc:role')} — "
-                     + _t(p, "dcc:description/dcc:content")))
+        main = (
+            "Authorised by (main signer)" if _t(p, "dcc:mainSigner") == "true" else "Performed by"
+        )
+        rows.append(
+            (
+                main,
+                f"{_t(p, 'dcc:person/dcc:name/dcc:content')}, {_t(p, 'dcc:role')} — "
+                + _t(p, "dcc:description/dcc:content"),
+            )
+        )
     _table(w, "Responsible persons", rows)
     results = root.find("dcc:measurementResults", _NS)
     if results is not None:
-        rows = [(_t(m, "dcc:name/dcc:content"), " ".join(filter(None, [
-            _t(m, "dcc:description/dcc:content"), _t(m, "dcc:norm"),
-            "; ".join((r.text or "") for r in m.findall("dcc:reference", _NS))])))
-            for m in results.findall("dcc:usedMethods/dcc:usedMethod", _NS)]  # fmt: skip
+        rows = [
+            (
+                _t(m, "dcc:name/dcc:content"),
+                " ".join(
+                    filter(
+                        None,
+                        [
+                            _t(m, "dcc:description/dcc:content"),
+                            _t(m, "dcc:norm"),
+                            "; ".join((r.text or "") for r in m.findall("dcc:reference", _NS)),
+                        ],
+                    )
+                ),
+            )
+            for m in results.findall("dcc:usedMethods/dcc:usedMethod", _NS)
+        ]
         _table(w, "Method", rows)
         _render_standards(w, results.findall("dcc:measuringEquipments/dcc:measuringEquipment", _NS))
         rows = []
         for c in results.findall("dcc:influenceConditions/dcc:influenceCondition", _NS):
-            reals = "; ".join(f"{_t(q, 'dcc:name/dcc:content')} {_real_text(q.find('si:real', _NS))}"
-                              for q in c.findall("dcc:data/dcc:quantity", _NS))
-            rows.append((_t(c, "dcc:name/dcc:content"), f"{reals}. {_t(c, 'dcc:description/dcc:content')}"))
+            reals = "; ".join(
+                f"{_t(q, 'dcc:name/dcc:content')} {_real_text(q.find('si:real', _NS))}"
+                for q in c.findall("dcc:data/dcc:quantity", _NS)
+            )
+            rows.append(
+                (_t(c, "dcc:name/dcc:content"), f"{reals}. {_t(c, 'dcc:description/dcc:content')}")
+            )
         _table(w, "Conditions", rows)
         for mr in results.findall("dcc:measurementResult", _NS):
             w(f"<h2>{esc(_t(mr, 'dcc:name/dcc:content'))}</h2>")
@@ -105,25 +159,34 @@ def render_html(xml: bytes) -> str:
     if others:
         w("<h2>Statements</h2>" + "".join(f"<p>{esc(s)}</p>" for s in others))
     sw = adm.find("dcc:dccSoftware/dcc:software", _NS) if adm is not None else None
-    w(f"<p class='foot'>Issued by {esc(_t(sw, 'dcc:name/dcc:content'))} {esc(_t(sw, 'dcc:release'))} as a "
-      f"DCC {esc(root.get('schemaVersion', ''))} document; the XML certificate is the authoritative version.</p>")
+    w(
+        f"<p class='foot'>Issued by {esc(_t(sw, 'dcc:name/dcc:content'))} "
+        f"{esc(_t(sw, 'dcc:release'))} as a DCC {esc(root.get('schemaVersion', ''))} document; "
+        "the XML certificate is the authoritative version.</p>"
+    )
     w("</body></html>\n")
     return "".join(out)
 
 
-CONFORMITY_WORDS = {"pass": "PASS: conforms", "fail": "FAIL: does not conform",
-                    "conditionalPass": "CONDITIONAL PASS: conforms, the uncertainty reaching beyond the limit",
-                    "conditionalFail": "CONDITIONAL FAIL: does not conform, the limit within the uncertainty"}
+CONFORMITY_WORDS = {
+    "pass": "PASS: conforms",
+    "fail": "FAIL: does not conform",
+    "conditionalPass": "CONDITIONAL PASS: conforms, the uncertainty reaching beyond the limit",
+    "conditionalFail": "CONDITIONAL FAIL: does not conform, the limit within the uncertainty",
+}
 
 _CSS = (
     "body{font:11pt/1.4 system-ui,sans-serif;margin:2em auto;max-width:60em;color:#111}"
-    "h1{margin:0}.number{font-size:1.3em;margin-top:.2em}h2{margin-top:1.4em;border-bottom:1px solid #888}"
-    "table{border-collapse:collapse;width:100%;margin:.4em 0}th,td{border:1px solid #bbb;padding:.2em .5em;"
+    "h1{margin:0}.number{font-size:1.3em;margin-top:.2em}h2{margin-top:1.4em;border-bottom:1px "
+    "solid #888}"
+    "table{border-collapse:collapse;width:100%;margin:.4em 0}th,td{border:1px solid "
+    "#bbb;padding:.2em .5em;"
     "text-align:left;vertical-align:top;overflow-wrap:anywhere}"
     "td.n{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap;overflow-wrap:normal}"
     "table.points{font-size:9pt}table.points th{overflow-wrap:normal}"
     "table.verdicts td:nth-child(1){width:9em}table.verdicts td:nth-child(2){width:9em}"
-    "table.standards td:nth-child(1){width:13em}table.standards td:nth-child(2){overflow-wrap:anywhere}"
+    "table.standards td:nth-child(1){width:13em}table.standards "
+    "td:nth-child(2){overflow-wrap:anywhere}"
     "table.standards td:nth-child(3){width:16em}table.standards td:nth-child(4){width:9em}"
     "td,th{overflow-wrap:break-word}"
     "th{background:#eee}.notice{border:2px solid #a00;padding:.4em}.verdict{font-weight:bold}"
@@ -131,8 +194,15 @@ _CSS = (
     "@media print{body{margin:0;max-width:none}h2{break-after:avoid}tr{break-inside:avoid}}"
 )
 
-_UNIT_TEXT = {r"\degree": "°", r"\arcsecond": "″", r"\arcminute": "′", r"\one": "", r"\degreecelsius": "°C",
-              r"\radian": "rad", r"\percent": "%"}  # fmt: skip
+_UNIT_TEXT = {
+    r"\degree": "°",
+    r"\arcsecond": "″",
+    r"\arcminute": "′",
+    r"\one": "",
+    r"\degreecelsius": "°C",
+    r"\radian": "rad",
+    r"\percent": "%",
+}
 
 
 def _unit_text(unit: str) -> str:
@@ -145,8 +215,12 @@ def _contact_text(c: ET.Element | None) -> str:
     if c is None:
         return ""
     loc = c.find("dcc:location", _NS)
-    parts = [_t(c, "dcc:name/dcc:content"), _t(loc, "dcc:street"),
-             f"{_t(loc, 'dcc:postCode')} {_t(loc, 'dcc:city')}".strip(), _t(loc, "dcc:countryCode")]
+    parts = [
+        _t(c, "dcc:name/dcc:content"),
+        _t(loc, "dcc:street"),
+        f"{_t(loc, 'dcc:postCode')} {_t(loc, 'dcc:city')}".strip(),
+        _t(loc, "dcc:countryCode"),
+    ]
     return ", ".join(p for p in parts if p)
 
 
@@ -157,8 +231,10 @@ def _real_text(real: ET.Element | None) -> str:
     text = f"{_t(real, 'si:value')} {unit}".strip()
     mu = real.find("si:measurementUncertaintyUnivariate/si:expandedMU", _NS)
     if mu is not None:
-        text += (f", expanded uncertainty U = {_t(mu, 'si:valueExpandedMU')} {unit} (k = {_t(mu, 'si:coverageFactor')},"
-                 f" p = {_t(mu, 'si:coverageProbability')})")
+        text += (
+            f", expanded uncertainty U = {_t(mu, 'si:valueExpandedMU')} {unit} (k = "
+            f"{_t(mu, 'si:coverageFactor')}, p = {_t(mu, 'si:coverageProbability')})"
+        )
     su = real.find("si:measurementUncertaintyUnivariate/si:standardMU", _NS)
     if su is not None:
         text += f", standard uncertainty u = {_t(su, 'si:valueStandardMU')} {unit}"
@@ -176,31 +252,50 @@ def _table(w: Callable[[str], None], title: str, rows: list[tuple[str, str]]) ->
 
 
 def _render_standards(w: Callable[[str], None], standards: list[ET.Element]) -> None:
-    """The reference standards: identity, their certificate and who issued it, validity and stated uncertainty."""
+    """The reference standards: identity, their certificate and who issued it, validity and stated
+    uncertainty."""
     if not standards:
         return
     esc = html.escape
-    w("<h2>Reference standards</h2><table class='standards'><tr><th>Standard</th><th>Its calibration certificate</th>"
-      "<th>Uncertainty its certificate states</th><th>Status</th></tr>")
+    w(
+        "<h2>Reference standards</h2><table class='standards'><tr><th>Standard</th><th>Its "
+        "calibration certificate</th>"
+        "<th>Uncertainty its certificate states</th><th>Status</th></tr>"
+    )
     for eq in standards:
         cert = eq.find("dcc:certificate", _NS)
         quantities = "; ".join(
             f"{_t(q, 'dcc:name/dcc:content')}: {_real_text(q.find('si:real', _NS))}"
-            for q in eq.findall("dcc:measuringEquipmentQuantities/dcc:measuringEquipmentQuantity", _NS))
-        status = ["traceable" if _t(cert, "dcc:traceable") == "true" else "NOT TRACEABLE: who calibrated it is not named",
-                  "valid on the day of the calibration" if _t(cert, "dcc:inValidityRange") == "true"
-                  else "NOT VALID on the day of the calibration"]
-        ids = "; ".join(f"{_t(i, 'dcc:name/dcc:content')}: {_t(i, 'dcc:value')}"
-                        for i in eq.findall("dcc:identifications/dcc:identification", _NS))
-        w(f"<tr><td>{esc(_t(eq, 'dcc:name/dcc:content'))}<br>{esc(ids)}</td>"
-          f"<td>{esc(_t(cert, 'dcc:referral/dcc:content'))}; SHA-256 {esc(_t(cert, 'dcc:value'))}. "
-          f"{esc(_t(eq, 'dcc:description/dcc:content'))}</td><td>{esc(quantities or 'not stated as a number')}</td>"
-          f"<td>{esc('; '.join(status))}</td></tr>")
+            for q in eq.findall(
+                "dcc:measuringEquipmentQuantities/dcc:measuringEquipmentQuantity", _NS
+            )
+        )
+        status = [
+            "traceable"
+            if _t(cert, "dcc:traceable") == "true"
+            else "NOT TRACEABLE: who calibrated it is not named",
+            "valid on the day of the calibration"
+            if _t(cert, "dcc:inValidityRange") == "true"
+            else "NOT VALID on the day of the calibration",
+        ]
+        ids = "; ".join(
+            f"{_t(i, 'dcc:name/dcc:content')}: {_t(i, 'dcc:value')}"
+            for i in eq.findall("dcc:identifications/dcc:identification", _NS)
+        )
+        w(
+            f"<tr><td>{esc(_t(eq, 'dcc:name/dcc:content'))}<br>{esc(ids)}</td>"
+            f"<td>{esc(_t(cert, 'dcc:referral/dcc:content'))}; SHA-256 "
+            f"{esc(_t(cert, 'dcc:value'))}. "
+            f"{esc(_t(eq, 'dcc:description/dcc:content'))}</td>"
+            f"<td>{esc(quantities or 'not stated as a number')}</td>"
+            f"<td>{esc('; '.join(status))}</td></tr>"
+        )
     w("</table>")
 
 
 def _render_result(w: Callable[[str], None], r: ET.Element) -> None:
-    """A result: its single values as a table, then every table of points (calibration, validation, errors)."""
+    """A result: its single values as a table, then every table of points (calibration, validation,
+    errors)."""
     esc = html.escape
     w(f"<h3>{esc(_t(r, 'dcc:name/dcc:content'))}</h3>")
     desc = _t(r, "dcc:description/dcc:content")
@@ -218,10 +313,13 @@ def _render_result(w: Callable[[str], None], r: ET.Element) -> None:
 
 
 def _render_values(w: Callable[[str], None], quantities: list[ET.Element]) -> None:
-    """Single quantities as rows: value, expanded uncertainty and k, standard uncertainty, unit, note (columns that
-    no row fills are left out)."""
+    """Single quantities as rows: value, expanded uncertainty and k, standard uncertainty, unit,
+    note (columns that no row fills are left out)."""
     esc = html.escape
-    mu, su = "si:measurementUncertaintyUnivariate/si:expandedMU/", "si:measurementUncertaintyUnivariate/si:standardMU/"
+    mu, su = (
+        "si:measurementUncertaintyUnivariate/si:expandedMU/",
+        "si:measurementUncertaintyUnivariate/si:standardMU/",
+    )
     columns: list[tuple[str, Callable[[ET.Element, ET.Element], str], bool]] = [
         ("Quantity", lambda q, r: _t(q, "dcc:name/dcc:content"), False),
         ("Value", lambda q, r: _t(r, "si:value"), True),
@@ -235,13 +333,19 @@ def _render_values(w: Callable[[str], None], quantities: list[ET.Element]) -> No
     used = [c for c in columns if any(c[1](q, r) for q, r in rows)]
     w("<table><tr>" + "".join(f"<th>{esc(h)}</th>" for h, _, _ in used) + "</tr>")
     for q, r in rows:
-        w("<tr>" + "".join(("<td class='n'>" if n else "<td>") + esc(get(q, r)) + "</td>" for _, get, n in used)
-          + "</tr>")
+        w(
+            "<tr>"
+            + "".join(
+                ("<td class='n'>" if n else "<td>") + esc(get(q, r)) + "</td>" for _, get, n in used
+            )
+            + "</tr>"
+        )
     w("</table>")
 
 
 def _render_table(w: Callable[[str], None], quantities: list[ET.Element]) -> None:
-    """Columns of equal length as one table: each quantity's values, then its expanded uncertainty and k."""
+    """Columns of equal length as one table: each quantity's values, then its expanded uncertainty
+    and k."""
     esc = html.escape
     cols = []
     for q in quantities:
@@ -250,17 +354,34 @@ def _render_table(w: Callable[[str], None], quantities: list[ET.Element]) -> Non
             continue
         unit = _unit_text(_t(xl, "si:unitXMLList"))
         mu = "si:measurementUncertaintyUnivariateXMLList/si:expandedMUXMLList/"
-        us, ks = _t(xl, mu + "si:valueExpandedMUXMLList").split(), _t(xl, mu + "si:coverageFactorXMLList").split()
-        cols.append((_t(q, "dcc:name/dcc:content") + (f" / {unit}" if unit else ""), _t(xl, "si:valueXMLList").split()))
+        us, ks = (
+            _t(xl, mu + "si:valueExpandedMUXMLList").split(),
+            _t(xl, mu + "si:coverageFactorXMLList").split(),
+        )
+        cols.append(
+            (
+                _t(q, "dcc:name/dcc:content") + (f" / {unit}" if unit else ""),
+                _t(xl, "si:valueXMLList").split(),
+            )
+        )
         if us:
-            cols.append((f"expanded uncertainty U / {unit}" if unit else "expanded uncertainty U", us))
+            cols.append(
+                (f"expanded uncertainty U / {unit}" if unit else "expanded uncertainty U", us)
+            )
             cols.append(("k", ks))
     if not cols:
         return
-    w("<table class='points'><tr><th>#</th>" + "".join(f"<th>{esc(h)}</th>" for h, _ in cols) + "</tr>")
+    w(
+        "<table class='points'><tr><th>#</th>"
+        + "".join(f"<th>{esc(h)}</th>" for h, _ in cols)
+        + "</tr>"
+    )
     for i in range(max(len(v) for _, v in cols)):
-        w(f"<tr><td class='n'>{i + 1}</td>"
-          + "".join(f"<td class='n'>{esc(v[i] if i < len(v) else '')}</td>" for _, v in cols) + "</tr>")
+        w(
+            f"<tr><td class='n'>{i + 1}</td>"
+            + "".join(f"<td class='n'>{esc(v[i] if i < len(v) else '')}</td>" for _, v in cols)
+            + "</tr>"
+        )
     w("</table>")
 
 
@@ -269,16 +390,32 @@ def _render_correlations(w: Callable[[str], None], q: ET.Element) -> None:
     esc = html.escape
     xl = q.find("si:realListXMLList", _NS)
     labels = _t(xl, "si:labelXMLList").split()
-    cols = [[float(v) for v in _t(c, "si:covarianceXMLList/si:valueXMLList").split()]
-            for c in (xl.findall("si:measurementUncertaintyMultivariateXMLList/si:ellipsoidalRegionMUXMLList/"
-                                 "si:covarianceMatrixXMLList/si:columnXMLList", _NS) if xl is not None else [])]
+    cols = [
+        [float(v) for v in _t(c, "si:covarianceXMLList/si:valueXMLList").split()]
+        for c in (
+            xl.findall(
+                "si:measurementUncertaintyMultivariateXMLList/si:ellipsoidalRegionMUXMLList/"
+                "si:covarianceMatrixXMLList/si:columnXMLList",
+                _NS,
+            )
+            if xl is not None
+            else []
+        )
+    ]
     if not labels or len(cols) != len(labels):
         return
     sd = [math.sqrt(cols[i][i]) if cols[i][i] > 0 else 0.0 for i in range(len(labels))]
-    w("<p>Correlation coefficients of the parameters (the certificate's XML carries their full covariance matrix):</p>")
+    w(
+        "<p>Correlation coefficients of the parameters (the certificate's XML carries their full "
+        "covariance matrix):</p>"
+    )
     w("<table><tr><th></th>" + "".join(f"<th>{esc(n)}</th>" for n in labels) + "</tr>")
     for i, n in enumerate(labels):
-        cells = "".join(f"<td class='n'>{cols[j][i] / (sd[i] * sd[j]):+.4f}</td>" if sd[i] and sd[j] else "<td></td>"
-                        for j in range(len(labels)))
+        cells = "".join(
+            f"<td class='n'>{cols[j][i] / (sd[i] * sd[j]):+.4f}</td>"
+            if sd[i] and sd[j]
+            else "<td></td>"
+            for j in range(len(labels))
+        )
         w(f"<tr><th>{esc(n)}</th>{cells}</tr>")
     w("</table>")

@@ -1,4 +1,5 @@
-"""What a Digital Calibration Certificate says, in the lab's terms (written as XML by service.lims.dcc)."""
+"""What a Digital Calibration Certificate says, in the lab's terms (written as XML by
+service.lims.dcc)."""
 
 from __future__ import annotations
 
@@ -10,36 +11,40 @@ REFTYPE_LINK = "urn:tiltlab:reftypes"
 # Every refType of our own a certificate may use, with what it means (written into the certificate).
 REFTYPES = {
     "tiltlab_values": "A list of single quantities of one result (each with its own label).",
-    "tiltlab_table": "A table: quantities of equal length, row i of every column belongs to one point.",
-    "tiltlab_modelParameter": "A fitted parameter of the calibration model; its si:label is the parameter's name in "
-                              "the model file (MODEL.json) of the calibration record.",
-    "tiltlab_parameterVector": "The fitted parameters as one vector: values, expanded uncertainties and their "
-                               "covariance matrix (ordered as the labels), from which any function of the "
-                               "parameters can be propagated.",
-    "tiltlab_calibratedRange": "The lowest and highest value of a quantity at the calibration points: the range "
-                               "the results hold for.",
-    "tiltlab_calibrationPoint": "A column of the calibration points: the points the model was fitted on.",
-    "tiltlab_validationPoint": "A column of the validation points: points measured after the fit, not used by it.",
-    "tiltlab_internalTemperature": "The temperature the instrument's own internal sensor reported during the "
-                                   "measurement (not a calibrated thermometer's reading of the ambient air).",
+    "tiltlab_table": "A table: quantities of equal length, row i of every column belongs to one "
+    "point.",
+    "tiltlab_modelParameter": "A fitted parameter of the calibration model; its si:label is the "
+    "parameter's name in the model file (MODEL.json) of the calibration record.",
+    "tiltlab_parameterVector": "The fitted parameters as one vector: values, expanded "
+    "uncertainties and their covariance matrix (ordered as the labels), from which any function "
+    "of the parameters can be propagated.",
+    "tiltlab_calibratedRange": "The lowest and highest value of a quantity at the calibration "
+    "points: the range the results hold for.",
+    "tiltlab_calibrationPoint": "A column of the calibration points: the points the model was "
+    "fitted on.",
+    "tiltlab_validationPoint": "A column of the validation points: points measured after the fit, "
+    "not used by it.",
+    "tiltlab_internalTemperature": "The temperature the instrument's own internal sensor "
+    "reported during the measurement (not a calibrated thermometer's reading of the ambient "
+    "air).",
     "tiltlab_summary": "A summary figure of a result (RMS or largest error, number of points).",
-    "tiltlab_uncertaintyComponent": "One component of an uncertainty budget: a standard uncertainty (GUM), already "
-                                    "multiplied by its sensitivity, in the unit of the result.",
-    "tiltlab_uncertaintyCombination": "The combination of an uncertainty budget's components: the combined standard "
-                                      "uncertainty, its effective degrees of freedom, the coverage factor and the "
-                                      "expanded uncertainty.",
-    "tiltlab_standardUncertaintyStatement": "The uncertainty of a reference standard as its own calibration "
-                                            "certificate states it: the expanded uncertainty U, its coverage factor k and "
-                                            "coverage probability p, and the standard uncertainty u = U/k that enters "
-                                            "the results.",
-    "tiltlab_indicationError": "A column of the item's indication errors as found: the item's reading minus the "
-                               "reference's, at every calibration and validation point, before any correction.",
-    "tiltlab_ambientCondition": "An ambient condition of the laboratory during the calibration (air temperature, "
-                                "relative humidity), with its standard uncertainty.",
-    "tiltlab_conformityStatement": "A statement of conformity (ISO/IEC 17025 7.8.6, ILAC-G8) of one quantity with "
-                                   "the specification of the order: the decision rule, the limit and the figures "
-                                   "the decision rests on.",
-}  # fmt: skip
+    "tiltlab_uncertaintyComponent": "One component of an uncertainty budget: a standard "
+    "uncertainty (GUM), already multiplied by its sensitivity, in the unit of the result.",
+    "tiltlab_uncertaintyCombination": "The combination of an uncertainty budget's components: "
+    "the combined standard uncertainty, its effective degrees of freedom, the coverage factor "
+    "and the expanded uncertainty.",
+    "tiltlab_standardUncertaintyStatement": "The uncertainty of a reference standard as its own "
+    "calibration certificate states it: the expanded uncertainty U, its coverage factor k and "
+    "coverage probability p, and the standard uncertainty u = U/k that enters the results.",
+    "tiltlab_indicationError": "A column of the item's indication errors as found: the item's "
+    "reading minus the reference's, at every calibration and validation point, before any "
+    "correction.",
+    "tiltlab_ambientCondition": "An ambient condition of the laboratory during the calibration "
+    "(air temperature, relative humidity), with its standard uncertainty.",
+    "tiltlab_conformityStatement": "A statement of conformity (ISO/IEC 17025 7.8.6, ILAC-G8) of "
+    "one quantity with the specification of the order: the decision rule, the limit and the "
+    "figures the decision rests on.",
+}
 
 
 @dataclass(frozen=True)
@@ -75,7 +80,8 @@ class Identification:
 @dataclass(frozen=True)
 class Item:
     name: str
-    identifications: tuple[Identification, ...]  # what identifies the item: its serial, never a port or role
+    # what identifies the item: its serial, never a port or role
+    identifications: tuple[Identification, ...]
     model: str | None = None
     manufacturer: str | None = None
     firmware: str | None = None
@@ -91,7 +97,8 @@ class Method:
 
 @dataclass(frozen=True)
 class CalibratingLaboratory:
-    """The laboratory that calibrated a reference standard (named on the standard's own certificate)."""
+    """The laboratory that calibrated a reference standard (named on the standard's own
+    certificate)."""
 
     name: str
     country_code: str
@@ -100,7 +107,9 @@ class CalibratingLaboratory:
 
     def described(self) -> str:
         where = ", ".join(p for p in (self.city, self.country_code) if p)
-        return f"{self.name} ({where})" + (f", accreditation {self.accreditation}" if self.accreditation else "")
+        return f"{self.name} ({where})" + (
+            f", accreditation {self.accreditation}" if self.accreditation else ""
+        )
 
 
 @dataclass(frozen=True)
@@ -123,7 +132,8 @@ class ReferenceStandard:
 
 @dataclass(frozen=True)
 class Value:
-    """One quantity; an uncertainty, when given, is expanded with its coverage factor, probability and distribution."""
+    """One quantity; an uncertainty, when given, is expanded with its coverage factor, probability
+    and distribution."""
 
     label: str
     name: str
@@ -135,12 +145,14 @@ class Value:
     note: str = ""
     distribution: str | None = None  # "normal", "student-t", "rectangular"
     ref_type: str = "tiltlab_modelParameter"
-    standard_u: float | None = None  # a standard uncertainty (GUM u) where no expanded one is stated
+    # a standard uncertainty (GUM u) where no expanded one is stated
+    standard_u: float | None = None
 
 
 @dataclass(frozen=True)
 class Column:
-    """One column of a table (a list of values of one quantity), optionally with expanded uncertainties."""
+    """One column of a table (a list of values of one quantity), optionally with expanded
+    uncertainties."""
 
     label: str
     name: str
@@ -155,7 +167,8 @@ class Column:
 
 @dataclass(frozen=True)
 class Covariance:
-    """Parameters as one vector with their covariance: expanded uncertainties beside the full matrix."""
+    """Parameters as one vector with their covariance: expanded uncertainties beside the full
+    matrix."""
 
     labels: tuple[str, ...]
     values: tuple[float, ...]
@@ -198,8 +211,8 @@ class Condition:
 
 @dataclass(frozen=True)
 class Statement:
-    """A statement of the certificate: a declaration, and for a statement of conformity its outcome (the DCC's
-    pass, fail, conditionalPass or conditionalFail) with the figures it rests on."""
+    """A statement of the certificate: a declaration, and for a statement of conformity its outcome
+    (the DCC's pass, fail, conditionalPass or conditionalFail) with the figures it rests on."""
 
     declaration: str
     name: str = ""
@@ -233,6 +246,5 @@ class Certificate:
     replaces: str | None = None  # unique identifier of the certificate this one substitutes
     statements: tuple[str | Statement, ...] = field(default_factory=tuple)
     comment: str = ""
-    signing_cert_sha256: str | None = None  # SHA-256 of the certificate that signs the file (inside what it signs)
-
-
+    # SHA-256 of the certificate that signs the file (inside what it signs)
+    signing_cert_sha256: str | None = None

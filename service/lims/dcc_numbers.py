@@ -1,5 +1,6 @@
 """How a certificate writes units and numbers: D-SI unit strings, and values rounded as GUM 7.2.6
-recommends (the expanded uncertainty to two significant digits, the value to the same decimal place)."""
+recommends (the expanded uncertainty to two significant digits, the value to the same decimal
+place)."""
 
 from __future__ import annotations
 
@@ -9,16 +10,32 @@ from service.lims.dcc_schema import InvalidCertificate
 
 # The lab's unit words (MODEL.json, field-name suffixes) to D-SI unit strings.
 _DSI_UNIT = {
-    "deg": r"\degree", "degree": r"\degree", "arcsec": r"\arcsecond", "arcmin": r"\arcminute",
-    "rad": r"\radian", "1": r"\one", "count": r"\one", "counts": r"\one", "reading": r"\one",
-    "degC": r"\degreecelsius", "C": r"\degreecelsius", "K": r"\kelvin", "s": r"\second",
-    "m": r"\metre", "mm": r"\milli\metre", "hPa": r"\hecto\pascal", "Pa": r"\pascal", "%": r"\percent",
-}  # fmt: skip
-SIGNIFICANT = 6  # digits of a number that has no uncertainty of its own (a reference reading, a covariance)
+    "deg": r"\degree",
+    "degree": r"\degree",
+    "arcsec": r"\arcsecond",
+    "arcmin": r"\arcminute",
+    "rad": r"\radian",
+    "1": r"\one",
+    "count": r"\one",
+    "counts": r"\one",
+    "reading": r"\one",
+    "degC": r"\degreecelsius",
+    "C": r"\degreecelsius",
+    "K": r"\kelvin",
+    "s": r"\second",
+    "m": r"\metre",
+    "mm": r"\milli\metre",
+    "hPa": r"\hecto\pascal",
+    "Pa": r"\pascal",
+    "%": r"\percent",
+}
+# digits of a number that has no uncertainty of its own (a reference reading, a covariance)
+SIGNIFICANT = 6
 
 
 def unit_powers(unit: str) -> dict[str, int]:
-    """{D-SI unit: exponent} of 'deg', 'arcsec/count^2', '1/deg' and the like (pure numbers dropped)."""
+    """{D-SI unit: exponent} of 'deg', 'arcsec/count^2', '1/deg' and the like (pure numbers
+    dropped)."""
     text = unit.strip()
     if not text:
         raise InvalidCertificate("a quantity has an empty unit")
@@ -34,7 +51,9 @@ def unit_powers(unit: str) -> dict[str, int]:
             try:
                 exponent = sign * (int(power) if power else 1)
             except ValueError:
-                raise InvalidCertificate(f"unit {unit!r}: exponent {power!r} is not an integer") from None
+                raise InvalidCertificate(
+                    f"unit {unit!r}: exponent {power!r} is not an integer"
+                ) from None
             if _DSI_UNIT[word] != r"\one":
                 out[_DSI_UNIT[word]] = out.get(_DSI_UNIT[word], 0) + exponent
     return {u: e for u, e in out.items() if e}
@@ -47,8 +66,8 @@ def render_powers(powers: dict[str, int]) -> str:
 
 
 def dsi_unit(unit: str) -> str:
-    """D-SI unit string of a lab unit word; a count or a raw reading is a pure number (\\one); an unknown word
-    is refused so that no certificate carries a unit nobody can read."""
+    """D-SI unit string of a lab unit word; a count or a raw reading is a pure number (\\one); an
+    unknown word is refused so that no certificate carries a unit nobody can read."""
     return render_powers(unit_powers(unit))
 
 
@@ -81,7 +100,8 @@ def gum_decimals(u: float) -> int:
 
 
 def gum_pair(value: float, u: float, what: str) -> tuple[str, str, int]:
-    """(value, U, decimals) as GUM 7.2.6 gives them: U to two significant digits, the value to the same place."""
+    """(value, U, decimals) as GUM 7.2.6 gives them: U to two significant digits, the value to the
+    same place."""
     v, uu = _finite(value, what), _finite(u, what)
     if uu <= 0:
         return plain(v, what), "0", 0
@@ -106,5 +126,6 @@ def plain(value: float, what: str, significant: int = SIGNIFICANT) -> str:
 
 
 def factor(k: float, what: str) -> str:
-    """A coverage factor to three significant digits (2.02 for Student's t at 42 degrees of freedom)."""
+    """A coverage factor to three significant digits (2.02 for Student's t at 42 degrees of
+    freedom)."""
     return plain(k, what, 3)

@@ -23,7 +23,9 @@ class InvalidCertificate(ValueError):
 @lru_cache(maxsize=1)
 def dcc_schema() -> xmlschema.XMLSchema:
     """DCC 3.3.0 with every import mapped to a local file: validation never goes to the network."""
-    dsig = Path(xmlschema.__file__).resolve().parent / "schemas" / "DSIG" / "xmldsig-core-schema.xsd"
+    dsig = (
+        Path(xmlschema.__file__).resolve().parent / "schemas" / "DSIG" / "xmldsig-core-schema.xsd"
+    )
     return xmlschema.XMLSchema(
         str(SCHEMA_DIR / "dcc.xsd"),
         locations={
@@ -40,7 +42,9 @@ def certificate_errors(xml: bytes) -> list[str]:
     try:
         text = xml.decode("utf-8") if isinstance(xml, bytes) else xml
         # defuse: a document handed in for checking may carry entity tricks; none is ever resolved
-        errors = list(dcc_schema().iter_errors(xmlschema.XMLResource(text, defuse="always", allow="none")))
+        errors = list(
+            dcc_schema().iter_errors(xmlschema.XMLResource(text, defuse="always", allow="none"))
+        )
     except (ET.ParseError, xmlschema.XMLSchemaException, UnicodeDecodeError) as exc:
         return [f"not well-formed XML: {exc}"]
     return [f"{e.path or '/'}: {e.reason or e.message}" for e in errors]
@@ -49,5 +53,7 @@ def certificate_errors(xml: bytes) -> list[str]:
 def validate(xml: bytes) -> None:
     errors = certificate_errors(xml)
     if errors:
-        raise InvalidCertificate(f"not a valid DCC {DCC_VERSION} document: {errors[0]}"
-                                 + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""))
+        raise InvalidCertificate(
+            f"not a valid DCC {DCC_VERSION} document: {errors[0]}"
+            + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else "")
+        )

@@ -37,8 +37,11 @@ class LimsRuntime:
     async def _check_due(self) -> None:
         while True:
             try:
-                sent = await asyncio.to_thread(self.store.standards.notify_standards_due, today=dt.datetime.now(dt.UTC).date(),
-                                               within_days=self.settings.standards_due_soon_days)
+                sent = await asyncio.to_thread(
+                    self.store.standards.notify_standards_due,
+                    today=dt.datetime.now(dt.UTC).date(),
+                    within_days=self.settings.standards_due_soon_days,
+                )
                 if sent:
                     self.dispatcher.wake.set()
             except asyncio.CancelledError:

@@ -47,7 +47,8 @@ def retry_delay_s(attempts_done: int, base_s: float, max_s: float) -> float:
 
 
 class Dispatcher:
-    """Runs in the daemon: sends due deliveries, sleeps until the next one is due (or it is woken)."""
+    """Runs in the daemon: sends due deliveries, sleeps until the next one is due (or it is
+    woken)."""
 
     def __init__(self, webhooks: WebhooksRepo, settings: Settings) -> None:
         self.webhooks, self.settings = webhooks, settings
@@ -66,7 +67,9 @@ class Dispatcher:
                 pass
 
     async def run(self) -> None:
-        async with httpx.AsyncClient(timeout=self.settings.webhook_timeout_s, follow_redirects=False) as client:
+        async with httpx.AsyncClient(
+            timeout=self.settings.webhook_timeout_s, follow_redirects=False
+        ) as client:
             while True:
                 try:
                     sent = await self.send_due(client)
@@ -74,7 +77,10 @@ class Dispatcher:
                     raise
                 except Exception as exc:  # noqa: BLE001 - a database hiccup must not end deliveries; retried below
                     if unreachable(exc):
-                        log.warning("webhook dispatcher: the database is away (%s); retrying", reason_of(exc))
+                        log.warning(
+                            "webhook dispatcher: the database is away (%s); retrying",
+                            reason_of(exc),
+                        )
                     else:
                         log.exception("webhook dispatcher: a round failed; retrying")
                     sent = 0
@@ -109,7 +115,9 @@ class Dispatcher:
         status: int | None = None
         error: str | None = None
         try:
-            response = await client.post(d.url, content=body.encode("utf-8"), headers=signed_headers(d, body, now))
+            response = await client.post(
+                d.url, content=body.encode("utf-8"), headers=signed_headers(d, body, now)
+            )
             status = response.status_code
             if not 200 <= status < 300:
                 error = f"HTTP {status}: {response.text[:200]}"
@@ -119,9 +127,20 @@ class Dispatcher:
         ok = error is None
         retry_at = None
         if not ok and d.attempts + 1 < self.settings.webhook_max_attempts:
-            delay = retry_delay_s(d.attempts + 1, self.settings.webhook_retry_base_s, self.settings.webhook_retry_max_s)
+            delay = retry_delay_s(
+                d.attempts + 1,
+                self.settings.webhook_retry_base_s,
+                self.settings.webhook_retry_max_s,
+            )
             retry_at = dt.datetime.now(dt.UTC) + dt.timedelta(seconds=delay)
-        await asyncio.to_thread(self.webhooks.record_attempt, d.delivery_id, ok=ok, status_code=status, error=error,
-                                duration_s=duration, retry_at=retry_at)
+        await asyncio.to_thread(
+            self.webhooks.record_attempt,
+            d.delivery_id,
+            ok=ok,
+            status_code=status,
+            error=error,
+            duration_s=duration,
+            retry_at=retry_at,
+        )
         if not ok:
             log.info("webhook %s to %s: %s (attempt %d)", d.event.id, d.url, error, d.attempts + 1)

@@ -59,94 +59,206 @@ class Effect:
         raise KeyError(name)
 
 
-def _p(name: str, unit: str, lo: float, hi: float, doc: str = "", default: float | bool = 0.0) -> Param:
+def _p(
+    name: str, unit: str, lo: float, hi: float, doc: str = "", default: float | bool = 0.0
+) -> Param:
     return Param(name, unit, lo, hi, default, doc)
 
 
-def _per_sensor(fmt: str, unit: str, lo: float, hi: float, doc: str, sensors: tuple[str, ...] = ("ref", "meas"),
-                axes: tuple[str, ...] = ("x", "y")) -> tuple[Param, ...]:
-    return tuple(_p(fmt.format(s=s, a=a), unit, lo, hi, doc.format(s=s, a=a)) for s in sensors for a in axes)
+def _per_sensor(
+    fmt: str,
+    unit: str,
+    lo: float,
+    hi: float,
+    doc: str,
+    sensors: tuple[str, ...] = ("ref", "meas"),
+    axes: tuple[str, ...] = ("x", "y"),
+) -> tuple[Param, ...]:
+    return tuple(
+        _p(fmt.format(s=s, a=a), unit, lo, hi, doc.format(s=s, a=a)) for s in sensors for a in axes
+    )
 
 
-# --- stacked swing stages (seed 000, docs/models.md §2) ---------------------------------------------
+# --- stacked swing stages (seed 000, docs/models.md §2)
+# ---------------------------------------------
 STAGE_EFFECTS: dict[str, Effect] = {
     e.name: e
     for e in (
-        Effect("zero_offset", "constant added to a sensor axis reading",
-               _per_sensor("{s}_{a}_deg", "deg", -2.0, 2.0, "zero offset of the {s} sensor's {a} axis")),
-        Effect("scale_factor", "sensor axis gain error: reading = (1 + k) * angle",
-               _per_sensor("{s}_{a}", "1", -0.05, 0.05, "relative gain error of the {s} sensor's {a} axis")),
-        Effect("non_orthogonality", "the sensor's y axis is turned by this angle from 90 deg to its x axis",
-               (_p("ref_deg", "deg", -3.0, 3.0), _p("meas_deg", "deg", -3.0, 3.0))),
-        Effect("sensor_yaw", "sensor frame rotated about the table normal",
-               (_p("ref_deg", "deg", -10.0, 10.0), _p("meas_deg", "deg", -10.0, 10.0))),
-        Effect("mounting_tilt",
-               "a mounting plane not parallel to its neighbour; (x, y) is the tilt it adds to an x / y reading: "
-               "desk under the bench, table top on the upper stage, seat of each sensor",
-               tuple(_p(f"{plane}_{a}_deg", "deg", -3.0, 3.0, f"tilt of the {plane} plane seen by {a} readings")
-                     for plane in ("desk", "top", "ref", "meas") for a in ("x", "y"))),
-        Effect("axis_misalignment",
-               "stage axes off their nominal directions: lower (y) axis yaw about the vertical and pitch out of "
-               "the horizontal; upper (x) axis deviation from perpendicular to the lower axis and pitch out of "
-               "the lower stage's plane",
-               (_p("lower_yaw_deg", "deg", -3.0, 3.0), _p("lower_pitch_deg", "deg", -3.0, 3.0),
-                _p("perpendicularity_deg", "deg", -3.0, 3.0), _p("upper_pitch_deg", "deg", -3.0, 3.0))),
-        Effect("stage_scale", "stage angle per command differs from nominal: angle = (1 + k) * command",
-               (_p("x", "1", -0.05, 0.05, "upper stage"), _p("y", "1", -0.05, 0.05, "lower stage"))),
-        Effect("offaxis_coupling",
-               "the stacked-stage geometry of docs/models.md §2 (x = asin(sin θx cos θy)); geometry, so on by default; "
-               "off only builds an idealised bench whose upper stage is decoupled",
-               (_p("enabled", "bool", 0, 1, "", default=True),), default_on=True),
-        Effect("backlash",
-               "worm-gear lost motion: the stage lags the command by half the width, against the last move",
-               (_p("x_deg", "deg", 0.0, 0.5, "full width, upper stage"),
-                _p("y_deg", "deg", 0.0, 0.5, "full width, lower stage"))),
-        Effect("periodic_error",
-               "stage angle error periodic in the worm's turn (period 360 deg / gear ratio of output angle)",
-               (_p("x_amp_deg", "deg", 0.0, 0.2), _p("y_amp_deg", "deg", 0.0, 0.2),
-                _p("x_phase_deg", "deg", -180.0, 180.0), _p("y_phase_deg", "deg", -180.0, 180.0))),
-        Effect("sensor_nonlinearity", "quadratic term of a sensor axis: reading += k * angle^2",
-               _per_sensor("{s}_{a}_per_deg", "1/deg", -0.01, 0.01, "quadratic coefficient, {s} {a}")),
-        Effect("temperature_drift",
-               "zero (deg/K) and scale (1/K) of a sensor change with temperature away from the bench's temp_ref_c",
-               _per_sensor("{s}_{a}_deg_per_k", "deg/K", -0.05, 0.05, "zero coefficient, {s} {a}")
-               + (_p("ref_scale_per_k", "1/K", -0.005, 0.005), _p("meas_scale_per_k", "1/K", -0.005, 0.005))),
-        Effect("time_drift", "zero of a sensor wanders slowly with time: a linear rate plus a random walk",
-               _per_sensor("{s}_{a}_deg_per_h", "deg/h", -0.5, 0.5, "zero drift rate, {s} {a}")
-               + (_p("random_walk_deg_per_sqrt_h", "deg/sqrt(h)", 0.0, 0.1),)),
-        Effect("noise",
-               "white noise of each sensor reading (1 sigma), stage positioning repeatability (1 sigma) and "
-               "sensor output resolution (quantisation step)",
-               (_p("ref_sigma_deg", "deg", 0.0, 0.2), _p("meas_sigma_deg", "deg", 0.0, 0.2),
+        Effect(
+            "zero_offset",
+            "constant added to a sensor axis reading",
+            _per_sensor(
+                "{s}_{a}_deg", "deg", -2.0, 2.0, "zero offset of the {s} sensor's {a} axis"
+            ),
+        ),
+        Effect(
+            "scale_factor",
+            "sensor axis gain error: reading = (1 + k) * angle",
+            _per_sensor(
+                "{s}_{a}", "1", -0.05, 0.05, "relative gain error of the {s} sensor's {a} axis"
+            ),
+        ),
+        Effect(
+            "non_orthogonality",
+            "the sensor's y axis is turned by this angle from 90 deg to its x axis",
+            (_p("ref_deg", "deg", -3.0, 3.0), _p("meas_deg", "deg", -3.0, 3.0)),
+        ),
+        Effect(
+            "sensor_yaw",
+            "sensor frame rotated about the table normal",
+            (_p("ref_deg", "deg", -10.0, 10.0), _p("meas_deg", "deg", -10.0, 10.0)),
+        ),
+        Effect(
+            "mounting_tilt",
+            "a mounting plane not parallel to its neighbour; (x, y) is the tilt it adds to an x / "
+            "y reading: "
+            "desk under the bench, table top on the upper stage, seat of each sensor",
+            tuple(
+                _p(
+                    f"{plane}_{a}_deg",
+                    "deg",
+                    -3.0,
+                    3.0,
+                    f"tilt of the {plane} plane seen by {a} readings",
+                )
+                for plane in ("desk", "top", "ref", "meas")
+                for a in ("x", "y")
+            ),
+        ),
+        Effect(
+            "axis_misalignment",
+            "stage axes off their nominal directions: lower (y) axis yaw about the vertical and "
+            "pitch out of the horizontal; upper (x) axis deviation from perpendicular to the "
+            "lower axis and pitch out of the lower stage's plane",
+            (
+                _p("lower_yaw_deg", "deg", -3.0, 3.0),
+                _p("lower_pitch_deg", "deg", -3.0, 3.0),
+                _p("perpendicularity_deg", "deg", -3.0, 3.0),
+                _p("upper_pitch_deg", "deg", -3.0, 3.0),
+            ),
+        ),
+        Effect(
+            "stage_scale",
+            "stage angle per command differs from nominal: angle = (1 + k) * command",
+            (_p("x", "1", -0.05, 0.05, "upper stage"), _p("y", "1", -0.05, 0.05, "lower stage")),
+        ),
+        Effect(
+            "offaxis_coupling",
+            "the stacked-stage geometry of docs/models.md §2 (x = asin(sin θx cos θy)); geometry, "
+            "so on by default; "
+            "off only builds an idealised bench whose upper stage is decoupled",
+            (_p("enabled", "bool", 0, 1, "", default=True),),
+            default_on=True,
+        ),
+        Effect(
+            "backlash",
+            "worm-gear lost motion: the stage lags the command by half the width, against the last "
+            "move",
+            (
+                _p("x_deg", "deg", 0.0, 0.5, "full width, upper stage"),
+                _p("y_deg", "deg", 0.0, 0.5, "full width, lower stage"),
+            ),
+        ),
+        Effect(
+            "periodic_error",
+            "stage angle error periodic in the worm's turn (period 360 deg / gear ratio of output "
+            "angle)",
+            (
+                _p("x_amp_deg", "deg", 0.0, 0.2),
+                _p("y_amp_deg", "deg", 0.0, 0.2),
+                _p("x_phase_deg", "deg", -180.0, 180.0),
+                _p("y_phase_deg", "deg", -180.0, 180.0),
+            ),
+        ),
+        Effect(
+            "sensor_nonlinearity",
+            "quadratic term of a sensor axis: reading += k * angle^2",
+            _per_sensor("{s}_{a}_per_deg", "1/deg", -0.01, 0.01, "quadratic coefficient, {s} {a}"),
+        ),
+        Effect(
+            "temperature_drift",
+            "zero (deg/K) and scale (1/K) of a sensor change with temperature away from the "
+            "bench's temp_ref_c",
+            _per_sensor("{s}_{a}_deg_per_k", "deg/K", -0.05, 0.05, "zero coefficient, {s} {a}")
+            + (
+                _p("ref_scale_per_k", "1/K", -0.005, 0.005),
+                _p("meas_scale_per_k", "1/K", -0.005, 0.005),
+            ),
+        ),
+        Effect(
+            "time_drift",
+            "zero of a sensor wanders slowly with time: a linear rate plus a random walk",
+            _per_sensor("{s}_{a}_deg_per_h", "deg/h", -0.5, 0.5, "zero drift rate, {s} {a}")
+            + (_p("random_walk_deg_per_sqrt_h", "deg/sqrt(h)", 0.0, 0.1),),
+        ),
+        Effect(
+            "noise",
+            "white noise of each sensor reading (1 sigma), stage positioning repeatability (1 "
+            "sigma) and sensor output resolution (quantisation step)",
+            (
+                _p("ref_sigma_deg", "deg", 0.0, 0.2),
+                _p("meas_sigma_deg", "deg", 0.0, 0.2),
                 _p("stage_sigma_deg", "deg", 0.0, 0.1),
-                _p("ref_resolution_deg", "deg", 0.0, 0.01), _p("meas_resolution_deg", "deg", 0.0, 0.01))),
-        Effect("settling",
-               "what a reading shows in the seconds after a move: the table rings (amplitude per degree moved, "
-               "frequency, 1/e decay time) and each sensor follows the table with a first-order time constant "
-               "(service.physics.settling); a reading taken long after a move does not see it",
-               (_p("sensor_time_constant_s", "s", 0.0, 60.0, "first-order time constant of each sensor's output"),
-                _p("ringing_amplitude_deg_per_deg", "deg/deg", 0.0, 0.1,
-                   "the table's ringing amplitude when a move ends, per degree moved"),
+                _p("ref_resolution_deg", "deg", 0.0, 0.01),
+                _p("meas_resolution_deg", "deg", 0.0, 0.01),
+            ),
+        ),
+        Effect(
+            "settling",
+            "what a reading shows in the seconds after a move: the table rings (amplitude per "
+            "degree moved, frequency, 1/e decay time) and each sensor follows the table with a "
+            "first-order time constant (service.physics.settling); a reading taken long after a "
+            "move does not see it",
+            (
+                _p(
+                    "sensor_time_constant_s",
+                    "s",
+                    0.0,
+                    60.0,
+                    "first-order time constant of each sensor's output",
+                ),
+                _p(
+                    "ringing_amplitude_deg_per_deg",
+                    "deg/deg",
+                    0.0,
+                    0.1,
+                    "the table's ringing amplitude when a move ends, per degree moved",
+                ),
                 _p("ringing_frequency_hz", "Hz", 0.0, 200.0, "frequency of the table's ringing"),
-                _p("ringing_decay_s", "s", 0.0, 60.0, "1/e decay time of the table's ringing"))),
+                _p("ringing_decay_s", "s", 0.0, 60.0, "1/e decay time of the table's ringing"),
+            ),
+        ),
     )
 }
 
 _S_AXES = ("sx", "sy", "sz")
 
-# --- rotation about an inclined axis (seed 002, docs/models.md §3); sensor errors in the sine domain ---
+# --- rotation about an inclined axis (seed 002, docs/models.md §3); sensor errors in the sine
+# domain ---
 ROTATION_EFFECTS: dict[str, Effect] = {
     e.name: e
     for e in (
-        Effect("zero_offset", "offset of a sensor output (sine units)",
-               tuple(_p(a, "1", -0.05, 0.05) for a in _S_AXES)),
-        Effect("scale_factor", "relative gain error of a sensor output",
-               tuple(_p(a, "1", -0.05, 0.05) for a in _S_AXES)),
-        Effect("sensor_nonlinearity", "quadratic term in the output: S += k * S^2",
-               tuple(_p(a, "1", -0.05, 0.05) for a in _S_AXES)),
-        Effect("noise", "white noise of each output, 1 sigma, in sine units (constant in S: an angle error "
-                        "that grows as 1/cos of the axis angle)",
-               (_p("sigma_s", "1", 0.0, 0.01), _p("theta_ref_sigma_deg", "deg", 0.0, 1.0))),
+        Effect(
+            "zero_offset",
+            "offset of a sensor output (sine units)",
+            tuple(_p(a, "1", -0.05, 0.05) for a in _S_AXES),
+        ),
+        Effect(
+            "scale_factor",
+            "relative gain error of a sensor output",
+            tuple(_p(a, "1", -0.05, 0.05) for a in _S_AXES),
+        ),
+        Effect(
+            "sensor_nonlinearity",
+            "quadratic term in the output: S += k * S^2",
+            tuple(_p(a, "1", -0.05, 0.05) for a in _S_AXES),
+        ),
+        Effect(
+            "noise",
+            "white noise of each output, 1 sigma, in sine units (constant in S: an angle error "
+            "that grows as 1/cos of the axis angle)",
+            (_p("sigma_s", "1", 0.0, 0.01), _p("theta_ref_sigma_deg", "deg", 0.0, 1.0)),
+        ),
     )
 }
 
@@ -154,30 +266,59 @@ ROTATION_EFFECTS: dict[str, Effect] = {
 SCALE_EFFECTS: dict[str, Effect] = {
     e.name: e
     for e in (
-        Effect("zero_offset", "offset of the output, in ADC counts", (_p("counts", "count", -500.0, 500.0),)),
+        Effect(
+            "zero_offset",
+            "offset of the output, in ADC counts",
+            (_p("counts", "count", -500.0, 500.0),),
+        ),
         Effect("scale_factor", "relative gain error of the output", (_p("k", "1", -0.2, 0.2),)),
-        Effect("sensor_nonlinearity",
-               "quadratic term of the output in the angle from the sensor's null: counts += k * angle^2",
-               (_p("counts_per_arcsec2", "count/arcsec^2", -1e-3, 1e-3),)),
-        Effect("temperature_drift", "zero of the output changes with temperature",
-               (_p("counts_per_k", "count/K", -50.0, 50.0),)),
-        Effect("noise", "white noise of the output (1 sigma, counts) and of the reference reading (arcsec)",
-               (_p("reading_sigma_counts", "count", 0.0, 50.0), _p("ref_sigma_arcsec", "arcsec", 0.0, 30.0))),
+        Effect(
+            "sensor_nonlinearity",
+            "quadratic term of the output in the angle from the sensor's null: counts += k * "
+            "angle^2",
+            (_p("counts_per_arcsec2", "count/arcsec^2", -1e-3, 1e-3),),
+        ),
+        Effect(
+            "temperature_drift",
+            "zero of the output changes with temperature",
+            (_p("counts_per_k", "count/K", -50.0, 50.0),),
+        ),
+        Effect(
+            "noise",
+            "white noise of the output (1 sigma, counts) and of the reference reading (arcsec)",
+            (
+                _p("reading_sigma_counts", "count", 0.0, 50.0),
+                _p("ref_sigma_arcsec", "arcsec", 0.0, 30.0),
+            ),
+        ),
     )
 }
 
-# --- inclinometer on a turntable (seed 004, docs/models.md §4) ------------------------------------------
+# --- inclinometer on a turntable (seed 004, docs/models.md §4)
+# ------------------------------------------
 TURNTABLE_EFFECTS: dict[str, Effect] = {
     e.name: e
     for e in (
-        Effect("zero_offset", "zero offsets z1, z2 (reading units)",
-               (_p("z1", "reading", -10.0, 10.0), _p("z2", "reading", -10.0, 10.0))),
-        Effect("noise", "white noise of each reading (reading units, 1 sigma), of the star-derived reference "
-                        "(arcsec, 1 sigma), and reading resolution",
-               (_p("reading_sigma", "reading", 0.0, 0.1), _p("ref_sigma_arcsec", "arcsec", 0.0, 5.0),
-                _p("resolution", "reading", 0.0, 0.01))),
-        Effect("time_drift", "zero drift of both readings between the two positions of a pair",
-               (_p("reading_per_h", "reading/h", -1.0, 1.0),)),
+        Effect(
+            "zero_offset",
+            "zero offsets z1, z2 (reading units)",
+            (_p("z1", "reading", -10.0, 10.0), _p("z2", "reading", -10.0, 10.0)),
+        ),
+        Effect(
+            "noise",
+            "white noise of each reading (reading units, 1 sigma), of the star-derived reference "
+            "(arcsec, 1 sigma), and reading resolution",
+            (
+                _p("reading_sigma", "reading", 0.0, 0.1),
+                _p("ref_sigma_arcsec", "arcsec", 0.0, 5.0),
+                _p("resolution", "reading", 0.0, 0.01),
+            ),
+        ),
+        Effect(
+            "time_drift",
+            "zero drift of both readings between the two positions of a pair",
+            (_p("reading_per_h", "reading/h", -1.0, 1.0),),
+        ),
     )
 }
 
@@ -196,16 +337,21 @@ class EffectSet:
     """Effect magnitudes of one bench: every parameter resolved, off effects at their defaults."""
 
     kind: str
-    values: Mapping[str, Mapping[str, float]] = field(default_factory=dict)  # a bool switch is a number too
+    # a bool switch is a number too
+    values: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     on: frozenset[str] = frozenset()
 
     @classmethod
-    def from_mapping(cls, kind: str, effects: Mapping[str, Mapping[str, Any]] | None = None) -> EffectSet:
+    def from_mapping(
+        cls, kind: str, effects: Mapping[str, Mapping[str, Any]] | None = None
+    ) -> EffectSet:
         table = EFFECTS_BY_KIND[kind]
         effects = dict(effects or {})
         unknown = [n for n in effects if n not in table]
         if unknown:
-            raise KeyError(f"unknown effect {unknown[0]!r} for kind {kind!r}; known: {', '.join(table)}")
+            raise KeyError(
+                f"unknown effect {unknown[0]!r} for kind {kind!r}; known: {', '.join(table)}"
+            )
         values: dict[str, dict[str, float]] = {}
         on = set()
         for name, eff in table.items():
@@ -230,10 +376,14 @@ class EffectSet:
 
 
 def markdown_tables() -> str:
-    """The registry as Markdown tables (docs/physics.md embeds this text; a test keeps it current)."""
+    """The registry as Markdown tables (docs/physics.md embeds this text; a test keeps it
+    current)."""
     out = []
     for kind, table in EFFECTS_BY_KIND.items():
-        out.append(f"#### kind `{kind}`\n\n| effect | parameter | unit | range | default |\n| --- | --- | --- | --- | --- |")
+        out.append(
+            f"#### kind `{kind}`\n\n| effect | parameter | unit | range | default |\n| --- | --- | "
+            "--- | --- | --- |"
+        )
         for eff in table.values():
             for p in eff.params:
                 rng = "true/false" if p.is_bool else f"{p.lo:g} .. {p.hi:g}"

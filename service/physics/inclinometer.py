@@ -1,4 +1,5 @@
-"""What an inclinometer axis reads (docs/models.md §1): the angle between the axis and the horizontal."""
+"""What an inclinometer axis reads (docs/models.md §1): the angle between the axis and the
+horizontal."""
 
 from __future__ import annotations
 
@@ -40,7 +41,8 @@ def apply_reading_errors(
     noise_deg: NDArray[np.float64] | float = 0.0,
     resolution_deg: float = 0.0,
 ) -> NDArray[np.float64]:
-    """The error terms a real sensor adds to the geometric angle (docs/models.md §1, named in §5)."""
+    """The error terms a real sensor adds to the geometric angle (docs/models.md §1, named in
+    §5)."""
     r = (
         true_deg * (1.0 + scale + scale_per_k * temp_delta_k)
         + quad_per_deg * true_deg**2

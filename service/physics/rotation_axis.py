@@ -1,4 +1,5 @@
-"""Triaxial inclinometer rotating about an axis inclined β to the horizontal (seed 002, docs/models.md §3).
+"""Triaxial inclinometer rotating about an axis inclined β to the horizontal (seed 002,
+docs/models.md §3).
 
 The outputs are the sines S of the axes' angles to the horizontal with seed 002's signs;
 docs/models.md §3's three output equations are the contract and are written here as they stand.
@@ -16,18 +17,21 @@ from service.physics.effects import EffectSet
 
 @dataclass(frozen=True)
 class RotationBench:
-    """Orientation of the triaxial module on the inclined rotation axis; the one definition a rotation
-    scenario's `bench` is validated against."""
+    """Orientation of the triaxial module on the inclined rotation axis; the one definition a
+    rotation scenario's `bench` is validated against."""
 
     alpha_deg: float = field(metadata={"ge": -180, "le": 180})
     beta_deg: float = field(metadata={"ge": -89, "le": 89})
     gamma_deg: float = field(metadata={"ge": -45, "le": 45})
 
 
-def rotation_outputs(alpha_deg: ArrayLike, beta_deg: ArrayLike, gamma_deg: ArrayLike, theta_deg: ArrayLike
-                     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+def rotation_outputs(
+    alpha_deg: ArrayLike, beta_deg: ArrayLike, gamma_deg: ArrayLike, theta_deg: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Ideal (Sx, Sy, Sz) at rotation angle θ."""
-    a, b, g, t = (np.radians(np.asarray(v, dtype=float)) for v in (alpha_deg, beta_deg, gamma_deg, theta_deg))
+    a, b, g, t = (
+        np.radians(np.asarray(v, dtype=float)) for v in (alpha_deg, beta_deg, gamma_deg, theta_deg)
+    )
     in_plane = np.cos(g) * np.sin(b) + np.sin(g) * np.cos(b) * np.cos(t)
     across = np.cos(b) * np.sin(t)
     sx = -across * np.cos(a) + in_plane * np.sin(a)
@@ -36,23 +40,38 @@ def rotation_outputs(alpha_deg: ArrayLike, beta_deg: ArrayLike, gamma_deg: Array
     return sx, sy, sz
 
 
-def simulate_rotation(bench: RotationBench, fx: EffectSet, theta_deg: ArrayLike, rng: np.random.Generator | None = None
-                      ) -> dict[str, NDArray[np.float64]]:
+def simulate_rotation(
+    bench: RotationBench,
+    fx: EffectSet,
+    theta_deg: ArrayLike,
+    rng: np.random.Generator | None = None,
+) -> dict[str, NDArray[np.float64]]:
     """Sensor outputs at the reference angles, with the sine-domain errors of the effect set.
 
     Returns `sx`, `sy`, `sz`, `theta_ref_deg` (the dividing head's reading, with its own
     noise) and `theta_true_deg`.
     """
     theta = np.atleast_1d(np.asarray(theta_deg, dtype=float))
-    ideal = dict(zip(("sx", "sy", "sz"), rotation_outputs(bench.alpha_deg, bench.beta_deg, bench.gamma_deg, theta)))
+    ideal = dict(
+        zip(
+            ("sx", "sy", "sz"),
+            rotation_outputs(bench.alpha_deg, bench.beta_deg, bench.gamma_deg, theta),
+        )
+    )
     sigma = fx.get("noise", "sigma_s")
     out: dict[str, NDArray[np.float64]] = {}
     for ax, s in ideal.items():
-        r = s * (1.0 + fx.get("scale_factor", ax)) + fx.get("sensor_nonlinearity", ax) * s**2 + fx.get("zero_offset", ax)
+        r = (
+            s * (1.0 + fx.get("scale_factor", ax))
+            + fx.get("sensor_nonlinearity", ax) * s**2
+            + fx.get("zero_offset", ax)
+        )
         if rng is not None and sigma > 0:
             r = r + rng.normal(0.0, sigma, r.shape)
         out[ax] = r
     ref_sigma = fx.get("noise", "theta_ref_sigma_deg")
-    out["theta_ref_deg"] = theta + (rng.normal(0.0, ref_sigma, theta.shape) if rng is not None and ref_sigma > 0 else 0.0)
+    out["theta_ref_deg"] = theta + (
+        rng.normal(0.0, ref_sigma, theta.shape) if rng is not None and ref_sigma > 0 else 0.0
+    )
     out["theta_true_deg"] = theta
     return out

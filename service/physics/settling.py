@@ -1,14 +1,15 @@
-"""What a sensor reads in the seconds after a stage move: the table's damped ringing, seen through the
-sensor's own first-order response.
+"""What a sensor reads in the seconds after a stage move: the table's damped ringing, seen through
+the sensor's own first-order response.
 
 A move of Δ degrees at constant rate over T seconds leaves the table ringing about its new angle,
 A·Δ·e^(−t/τ_d)·cos(2π f t) after the move ends (A: `ringing_amplitude_deg_per_deg`), and a sensor of
 time constant τ that followed the ramp lags it by Δ·(τ/T)(1 − e^(−T/τ)) when the move ends (a step,
 Δ, when T = 0). The sensor's output is the exact first-order response to that input:
     y(t) = Re[a·H·e^(st)] + (y0 − Re[a·H])·e^(−t/τ),  s = −1/τ_d + 2πf·i,  H = 1 / (1 + sτ),
-the deviation from the settled reading. Moves superpose (the system is linear), so a reading at time t
-carries the sum over the moves before it. Pure functions of the moves and the time: the daemon's
-simulated instruments and `tiltlab simulate` call the same ones, so equal bench times give equal readings.
+the deviation from the settled reading. Moves superpose (the system is linear), so a reading at time
+t carries the sum over the moves before it. Pure functions of the moves and the time: the daemon's
+simulated instruments and `tiltlab simulate` call the same ones, so equal bench times give equal
+readings.
 """
 
 from __future__ import annotations
@@ -21,13 +22,15 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.physics.effects import EffectSet
 
-SIM_STAGE_VELOCITY_PPS = 4000  # the simulated controller's default velocity: offline runs replay moves at it
+# the simulated controller's default velocity: offline runs replay moves at it
+SIM_STAGE_VELOCITY_PPS = 4000
 NEGLIGIBLE = 1e-9  # of a move's size: a move whose transient has decayed below this is forgotten
 
 
 @dataclass(frozen=True)
 class Settling:
-    """The settling of a stage bench (scenario `effects.settling`); all zero: readings settle at once."""
+    """The settling of a stage bench (scenario `effects.settling`); all zero: readings settle at
+    once."""
 
     sensor_time_constant_s: float = 0.0
     ringing_amplitude_deg_per_deg: float = 0.0
@@ -36,7 +39,9 @@ class Settling:
 
     @property
     def is_instant(self) -> bool:
-        return self.sensor_time_constant_s <= 0 and (self.ringing_amplitude_deg_per_deg <= 0 or self.ringing_decay_s <= 0)
+        return self.sensor_time_constant_s <= 0 and (
+            self.ringing_amplitude_deg_per_deg <= 0 or self.ringing_decay_s <= 0
+        )
 
     def lasts_s(self) -> float:
         """How long after a move its transient is still above NEGLIGIBLE of the move."""
@@ -46,13 +51,23 @@ class Settling:
 
 def settling_of(fx: EffectSet) -> Settling:
     """A stage bench's settling from its effects (all zero when `settling` is not named)."""
-    return Settling(*(fx.get("settling", p) for p in ("sensor_time_constant_s", "ringing_amplitude_deg_per_deg",
-                                                      "ringing_frequency_hz", "ringing_decay_s")))
+    return Settling(
+        *(
+            fx.get("settling", p)
+            for p in (
+                "sensor_time_constant_s",
+                "ringing_amplitude_deg_per_deg",
+                "ringing_frequency_hz",
+                "ringing_decay_s",
+            )
+        )
+    )
 
 
 @dataclass(frozen=True)
 class Move:
-    """One stage axis's move: it began at `t0_s` (bench seconds) and moved `delta_deg` in `duration_s`."""
+    """One stage axis's move: it began at `t0_s` (bench seconds) and moved `delta_deg` in
+    `duration_s`."""
 
     t0_s: float
     delta_deg: float
@@ -64,10 +79,11 @@ class Move:
 
 
 def move_transient_deg(st: Settling, move: Move, t_s: ArrayLike) -> NDArray[np.float64]:
-    """A sensor's reading minus its settled value at bench times `t_s`, from one move (zero before it began).
+    """A sensor's reading minus its settled value at bench times `t_s`, from one move (zero before
+    it began).
 
-    While the move runs the sensor lags the ramp (its first-order response to it); after it ends the lag
-    decays and the table's ringing, filtered by the sensor, adds to it.
+    While the move runs the sensor lags the ramp (its first-order response to it); after it ends the
+    lag decays and the table's ringing, filtered by the sensor, adds to it.
     """
     t = np.atleast_1d(np.asarray(t_s, dtype=float))
     out = np.zeros_like(t)
@@ -111,8 +127,8 @@ def transient_deg(st: Settling, moves: Iterable[Move], t_s: ArrayLike) -> NDArra
 
 
 def transient_along_deg(st: Settling, moves: Sequence[Move], t_s: ArrayLike) -> NDArray[np.float64]:
-    """`transient_deg` at sorted times `t_s`, each move evaluated only while its transient lasts (a long
-    offline run costs what its moves cost, not moves x rows)."""
+    """`transient_deg` at sorted times `t_s`, each move evaluated only while its transient lasts (a
+    long offline run costs what its moves cost, not moves x rows)."""
     t = np.atleast_1d(np.asarray(t_s, dtype=float))
     total = np.zeros_like(t)
     if st.is_instant:
@@ -125,10 +141,14 @@ def transient_along_deg(st: Settling, moves: Sequence[Move], t_s: ArrayLike) -> 
     return total
 
 
-def moves_along(positions_deg: Sequence[float], start_deg: float, t_depart_s: Sequence[float],
-                rate_deg_per_s: float) -> list[Move]:
-    """The moves of a stage axis that visits `positions_deg` in turn from `start_deg`, leaving for each at
-    `t_depart_s` and running at `rate_deg_per_s`: how an offline run is replayed."""
+def moves_along(
+    positions_deg: Sequence[float],
+    start_deg: float,
+    t_depart_s: Sequence[float],
+    rate_deg_per_s: float,
+) -> list[Move]:
+    """The moves of a stage axis that visits `positions_deg` in turn from `start_deg`, leaving for
+    each at `t_depart_s` and running at `rate_deg_per_s`: how an offline run is replayed."""
     moves, prev = [], start_deg
     for p, t in zip(positions_deg, t_depart_s):
         d = float(p) - prev
@@ -144,10 +164,13 @@ def recent(st: Settling, moves: list[Move], now_s: float) -> list[Move]:
     return [m for m in moves if now_s - m.end_s < horizon]
 
 
-def step_response_fit(t_s: ArrayLike, reading_deg: ArrayLike, delta_deg: float, duration_s: float = 0.0) -> Settling:
-    """The settling a recorded step shows (readings after a move of `delta_deg` lasting `duration_s`, times
-    from its end): time constant, ringing amplitude per degree, frequency and decay fitted by least squares
-    to the model above. Used to check the simulator against the scenario."""
+def step_response_fit(
+    t_s: ArrayLike, reading_deg: ArrayLike, delta_deg: float, duration_s: float = 0.0
+) -> Settling:
+    """The settling a recorded step shows (readings after a move of `delta_deg` lasting
+    `duration_s`, times from its end): time constant, ringing amplitude per degree, frequency and
+    decay fitted by least squares to the model above. Used to check the simulator against the
+    scenario."""
     from scipy.optimize import least_squares
 
     t = np.asarray(t_s, dtype=float)
@@ -159,9 +182,15 @@ def step_response_fit(t_s: ArrayLike, reading_deg: ArrayLike, delta_deg: float, 
         st = Settling(abs(p[0]), p[1], abs(p[2]), abs(p[3]))
         return move_transient_deg(st, Move(-duration_s, delta_deg, duration_s), t)
 
-    # the lag alone first, then the ringing's frequency from the spectrum of what the lag leaves, then all four
-    lag = min((least_squares(lambda p: model(np.array([p[0], 0.0, 1.0, 1.0])) - dev, [tau0]) for tau0 in (0.05, 0.5, 3.0)),
-              key=lambda r: r.cost)
+    # the lag alone first, then the ringing's frequency from the spectrum of what the lag leaves,
+    # then all four
+    lag = min(
+        (
+            least_squares(lambda p: model(np.array([p[0], 0.0, 1.0, 1.0])) - dev, [tau0])
+            for tau0 in (0.05, 0.5, 3.0)
+        ),
+        key=lambda r: r.cost,
+    )
     rest = dev - model(np.array([lag.x[0], 0.0, 1.0, 1.0]))
     spectrum = np.abs(np.fft.rfft(rest - rest.mean()))
     freqs = np.fft.rfftfreq(t.size, float(np.median(np.diff(t))))

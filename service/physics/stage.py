@@ -24,8 +24,31 @@ from service.physics.rotations import plane_tilt, rx, ry, rz, unit
 SENSORS = ("ref", "meas")
 ASSUMED_BENCH_SOURCE = "assumed (none stated): the seed 000 bench"
 PULSE_TOL = 0.01  # of a pulse: commands written with 6 decimals still read back as whole pulses
-COMMON_GEAR_RATIOS = (30, 45, 50, 60, 90, 100, 120, 144, 180, 200, 240, 250, 288, 300, 320, 360, 400, 450, 500, 540,
-                      600, 720, 900)
+COMMON_GEAR_RATIOS = (
+    30,
+    45,
+    50,
+    60,
+    90,
+    100,
+    120,
+    144,
+    180,
+    200,
+    240,
+    250,
+    288,
+    300,
+    320,
+    360,
+    400,
+    450,
+    500,
+    540,
+    600,
+    720,
+    900,
+)
 
 
 @dataclass(frozen=True)
@@ -63,23 +86,38 @@ class StageBench:
     def worm_period_y_deg(self) -> float:
         return 360.0 / self.lower_gear_ratio
 
-    def quantise(self, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def quantise(
+        self, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Commands as the controller executes them: whole pulses."""
         px, py = self.pulse_x_deg, self.pulse_y_deg
         return np.rint(np.asarray(cmd_x_deg) / px) * px, np.rint(np.asarray(cmd_y_deg) / py) * py
 
     def describe(self) -> str:
         """The hardware in the lab's words, for messages and reports."""
-        flip = "" if self.meas_flip == "none" else f", measurement sensor turned about {self.meas_flip}"
-        return (f"upper {self.upper_gear_ratio:g}:1, lower {self.lower_gear_ratio:g}:1, {self.step_angle_deg:g} deg "
-                f"steps at {self.microsteps} microsteps (pulses {self.pulse_x_deg:.9g} / {self.pulse_y_deg:.9g} deg), "
-                f"travel ±{self.travel_deg:g} deg{flip}")
+        flip = (
+            ""
+            if self.meas_flip == "none"
+            else f", measurement sensor turned about {self.meas_flip}"
+        )
+        return (
+            f"upper {self.upper_gear_ratio:g}:1, lower {self.lower_gear_ratio:g}:1, "
+            f"{self.step_angle_deg:g} deg steps at {self.microsteps} microsteps (pulses "
+            f"{self.pulse_x_deg:.9g} / {self.pulse_y_deg:.9g} deg), travel ±{self.travel_deg:g} "
+            f"deg{flip}"
+        )
 
     def record(self, source: str) -> dict[str, float | str]:
-        """The bench as models and reports record it: hardware, derived pulses and worm periods, and its source."""
-        return {**asdict(self), "pulse_x_deg": self.pulse_x_deg, "pulse_y_deg": self.pulse_y_deg,
-                "worm_period_x_deg": self.worm_period_x_deg, "worm_period_y_deg": self.worm_period_y_deg,
-                "source": source}
+        """The bench as models and reports record it: hardware, derived pulses and worm periods, and
+        its source."""
+        return {
+            **asdict(self),
+            "pulse_x_deg": self.pulse_x_deg,
+            "pulse_y_deg": self.pulse_y_deg,
+            "worm_period_x_deg": self.worm_period_x_deg,
+            "worm_period_y_deg": self.worm_period_y_deg,
+            "source": source,
+        }
 
     def pulse_mismatch(self, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike) -> str | None:
         """Why recorded commands are not whole pulses of this bench (None when they are).
@@ -89,30 +127,52 @@ class StageBench:
         gear ratio or microsteps) or were recorded as requested rather than executed.
         """
         for axis, name, cmd, pulse, ratio in (
-                ("x", "stage_x_deg", cmd_x_deg, self.pulse_x_deg, self.upper_gear_ratio),
-                ("y", "stage_y_deg", cmd_y_deg, self.pulse_y_deg, self.lower_gear_ratio)):
+            ("x", "stage_x_deg", cmd_x_deg, self.pulse_x_deg, self.upper_gear_ratio),
+            ("y", "stage_y_deg", cmd_y_deg, self.pulse_y_deg, self.lower_gear_ratio),
+        ):
             c = np.asarray(cmd, dtype=float)
             frac = np.abs(c / pulse - np.rint(c / pulse))
             off = np.flatnonzero(frac > PULSE_TOL)
             if off.size == 0:
                 continue
             i = int(off[0])
-            fits = sorted((g for g in COMMON_GEAR_RATIOS
-                           if np.all(_whole(c, self.step_angle_deg / (self.microsteps * g)))),
-                          key=lambda g: abs(np.log(g / ratio)))  # nearest to the assumed ratio first
-            fits_micro = [m for m in (1, 2, 4, 8, 16, 32, 64, 128, 256)
-                          if np.all(_whole(c, self.step_angle_deg / (m * ratio)))]
+            fits = sorted(
+                (
+                    g
+                    for g in COMMON_GEAR_RATIOS
+                    if np.all(_whole(c, self.step_angle_deg / (self.microsteps * g)))
+                ),
+                # nearest to the assumed ratio first
+                key=lambda g: abs(np.log(g / ratio)),
+            )
+            fits_micro = [
+                m
+                for m in (1, 2, 4, 8, 16, 32, 64, 128, 256)
+                if np.all(_whole(c, self.step_angle_deg / (m * ratio)))
+            ]
             if fits:
-                hint = (f"they are whole pulses at gear ratio {', '.join(f'{g:g}:1' for g in fits[:4])} "
-                        f"({self.microsteps} microsteps of {self.step_angle_deg:g} deg)")
+                hint = (
+                    "they are whole pulses at gear ratio "
+                    f"{', '.join(f'{g:g}:1' for g in fits[:4])} "
+                    f"({self.microsteps} microsteps of {self.step_angle_deg:g} deg)"
+                )
             elif fits_micro:
-                hint = f"they are whole pulses at {', '.join(map(str, fits_micro[:3]))} microsteps ({ratio:g}:1)"
+                hint = (
+                    f"they are whole pulses at {', '.join(map(str, fits_micro[:3]))} "
+                    f"microsteps ({ratio:g}:1)"
+                )
             else:
-                hint = "they are whole pulses of no common gear ratio: they may be requested rather than executed angles"
-            return (f"{name} {c[i]:.9g} at row {i + 1} is {c[i] / pulse:.3f} pulses of the {axis} stage "
-                    f"({pulse:.9g} deg = {self.step_angle_deg:g} deg / ({self.microsteps} microsteps x {ratio:g}:1)), "
-                    f"not a whole number ({off.size} of {c.size} rows): the data likely come from a bench with "
-                    f"another gear ratio or microstepping; {hint}")
+                hint = (
+                    "they are whole pulses of no common gear ratio: they may be requested "
+                    "rather than executed angles"
+                )
+            return (
+                f"{name} {c[i]:.9g} at row {i + 1} is {c[i] / pulse:.3f} pulses of the {axis} "
+                f"stage ({pulse:.9g} deg = {self.step_angle_deg:g} deg / ({self.microsteps} "
+                f"microsteps x {ratio:g}:1)), not a whole number ({off.size} of {c.size} rows): "
+                "the data likely come from a bench with another gear ratio or microstepping; "
+                f"{hint}"
+            )
         return None
 
 
@@ -129,7 +189,8 @@ class StageGeometry:
     u_lower: NDArray[np.float64]
     u_upper: NDArray[np.float64]
     seat: dict[str, NDArray[np.float64]]
-    axes: dict[str, NDArray[np.float64]]  # per sensor: (2, 3) x and y sensing axes in the seat frame
+    # per sensor: (2, 3) x and y sensing axes in the seat frame
+    axes: dict[str, NDArray[np.float64]]
     truth_axes: NDArray[np.float64]  # orthogonal reference axes: the definition of table tilt
     coupling: bool
 
@@ -142,20 +203,44 @@ class StageGeometry:
 
         desk = plane_tilt(r(g("mounting_tilt", "desk_x_deg")), r(g("mounting_tilt", "desk_y_deg")))
         top = plane_tilt(r(g("mounting_tilt", "top_x_deg")), r(g("mounting_tilt", "top_y_deg")))
-        u_lower = unit(rz(r(g("axis_misalignment", "lower_yaw_deg")))
-                       @ ry(r(g("axis_misalignment", "lower_pitch_deg"))) @ np.array([-1.0, 0.0, 0.0]))
-        u_upper = unit(rz(r(g("axis_misalignment", "perpendicularity_deg")))
-                       @ rx(r(g("axis_misalignment", "upper_pitch_deg"))) @ np.array([0.0, 1.0, 0.0]))
+        u_lower = unit(
+            rz(r(g("axis_misalignment", "lower_yaw_deg")))
+            @ ry(r(g("axis_misalignment", "lower_pitch_deg")))
+            @ np.array([-1.0, 0.0, 0.0])
+        )
+        u_upper = unit(
+            rz(r(g("axis_misalignment", "perpendicularity_deg")))
+            @ rx(r(g("axis_misalignment", "upper_pitch_deg")))
+            @ np.array([0.0, 1.0, 0.0])
+        )
         seat: dict[str, NDArray[np.float64]] = {}
         axes: dict[str, NDArray[np.float64]] = {}
         for s in SENSORS:
-            seat[s] = plane_tilt(r(g("mounting_tilt", f"{s}_x_deg")), r(g("mounting_tilt", f"{s}_y_deg")))
+            seat[s] = plane_tilt(
+                r(g("mounting_tilt", f"{s}_x_deg")), r(g("mounting_tilt", f"{s}_y_deg"))
+            )
             flip = bench.meas_flip if s == "meas" else "none"
-            axes[s] = sensor_axes(r(g("sensor_yaw", f"{s}_deg")), r(g("non_orthogonality", f"{s}_deg")), flip)
+            axes[s] = sensor_axes(
+                r(g("sensor_yaw", f"{s}_deg")), r(g("non_orthogonality", f"{s}_deg")), flip
+            )
         truth_axes = sensor_axes(r(g("sensor_yaw", "ref_deg")), 0.0)
-        return cls(desk, top, u_lower, u_upper, seat, axes, truth_axes, bool(fx.get("offaxis_coupling", "enabled")))
+        return cls(
+            desk,
+            top,
+            u_lower,
+            u_upper,
+            seat,
+            axes,
+            truth_axes,
+            bool(fx.get("offaxis_coupling", "enabled")),
+        )
 
-    def axis_z(self, vectors_table: NDArray[np.float64], theta_x: NDArray[np.float64], theta_y: NDArray[np.float64]) -> NDArray[np.float64]:
+    def axis_z(
+        self,
+        vectors_table: NDArray[np.float64],
+        theta_x: NDArray[np.float64],
+        theta_y: NDArray[np.float64],
+    ) -> NDArray[np.float64]:
         """World z of table-frame vectors (K, 3) at stage angles (N,) [rad] -> (N, K)."""
         d = self.desk[2]
         ul, uu = self.u_lower, self.u_upper
@@ -167,13 +252,19 @@ class StageGeometry:
         b = g @ np.cross(uu, v).T
         p = g @ uu
         cx, sx = np.cos(theta_x), np.sin(theta_x)
-        z: NDArray[np.float64] = cx[:, None] * a + sx[:, None] * b + ((1.0 - cx) * p)[:, None] * (v @ uu)[None, :]
+        z: NDArray[np.float64] = (
+            cx[:, None] * a + sx[:, None] * b + ((1.0 - cx) * p)[:, None] * (v @ uu)[None, :]
+        )
         return z
 
-    def readings_deg(self, theta_x: NDArray[np.float64], theta_y: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+    def readings_deg(
+        self, theta_x: NDArray[np.float64], theta_y: NDArray[np.float64]
+    ) -> dict[str, NDArray[np.float64]]:
         """Geometric (error-free) readings of every sensor axis and the true table tilt."""
         if not self.coupling:
-            theta_x = np.radians(offaxis_inverse_deg(np.degrees(theta_x), np.degrees(theta_y), clip=True))
+            theta_x = np.radians(
+                offaxis_inverse_deg(np.degrees(theta_x), np.degrees(theta_y), clip=True)
+            )
         vecs = [self.top @ self.seat[s] @ self.axes[s].T for s in SENSORS]
         vecs.append(self.top @ self.seat["ref"] @ self.truth_axes.T)
         v = np.concatenate(vecs, axis=1).T  # (6, 3)
@@ -182,12 +273,17 @@ class StageGeometry:
         return {n: deg[:, i] for i, n in enumerate(names)}
 
 
-def stage_angles_deg(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike,
-                     dir_x: ArrayLike = 0, dir_y: ArrayLike = 0,
-                     rng: np.random.Generator | None = None,
-                     stand: ArrayLike | None = None,
-                     positioning_error_deg: tuple[float, float] | None = None,
-                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def stage_angles_deg(
+    bench: StageBench,
+    fx: EffectSet,
+    cmd_x_deg: ArrayLike,
+    cmd_y_deg: ArrayLike,
+    dir_x: ArrayLike = 0,
+    dir_y: ArrayLike = 0,
+    rng: np.random.Generator | None = None,
+    stand: ArrayLike | None = None,
+    positioning_error_deg: tuple[float, float] | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Angles the stages really reach for the given commands and approach directions.
 
     The positioning error (`stage_sigma_deg`, a repeatability) is drawn once per move: per row, or
@@ -197,13 +293,17 @@ def stage_angles_deg(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd
     """
     nom_x, nom_y = bench.quantise(cmd_x_deg, cmd_y_deg)
     out = []
-    for ax, nom, d, period in (("x", nom_x, dir_x, bench.worm_period_x_deg),
-                               ("y", nom_y, dir_y, bench.worm_period_y_deg)):
+    for ax, nom, d, period in (
+        ("x", nom_x, dir_x, bench.worm_period_x_deg),
+        ("y", nom_y, dir_y, bench.worm_period_y_deg),
+    ):
         ang = nom * (1.0 + fx.get("stage_scale", ax))
         ang = ang - np.asarray(d, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
         amp = fx.get("periodic_error", f"{ax}_amp_deg")
         if amp:
-            ang = ang + amp * np.sin(2 * np.pi * nom / period + np.radians(fx.get("periodic_error", f"{ax}_phase_deg")))
+            ang = ang + amp * np.sin(
+                2 * np.pi * nom / period + np.radians(fx.get("periodic_error", f"{ax}_phase_deg"))
+            )
         sigma = fx.get("noise", "stage_sigma_deg")
         if positioning_error_deg is not None:
             ang = ang + positioning_error_deg[0 if ax == "x" else 1]
@@ -217,7 +317,9 @@ def stage_angles_deg(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd
     return out[0], out[1]
 
 
-def _drift(fx: EffectSet, sensor: str, axis: str, t_s: NDArray[np.float64], rng: np.random.Generator | None) -> NDArray[np.float64]:
+def _drift(
+    fx: EffectSet, sensor: str, axis: str, t_s: NDArray[np.float64], rng: np.random.Generator | None
+) -> NDArray[np.float64]:
     drift = fx.get("time_drift", f"{sensor}_{axis}_deg_per_h") * t_s / 3600.0
     rw = fx.get("time_drift", "random_walk_deg_per_sqrt_h")
     if rng is not None and rw > 0 and t_s.size:
@@ -226,30 +328,56 @@ def _drift(fx: EffectSet, sensor: str, axis: str, t_s: NDArray[np.float64], rng:
     return drift
 
 
-def simulate_stage(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd_y_deg: ArrayLike,
-                   dir_x: ArrayLike = 0, dir_y: ArrayLike = 0, temp_c: ArrayLike | None = None,
-                   t_s: ArrayLike | None = None, rng: np.random.Generator | None = None,
-                   geometry: StageGeometry | None = None, stand: ArrayLike | None = None,
-                   positioning_error_deg: tuple[float, float] | None = None) -> dict[str, NDArray[np.float64]]:
+def simulate_stage(
+    bench: StageBench,
+    fx: EffectSet,
+    cmd_x_deg: ArrayLike,
+    cmd_y_deg: ArrayLike,
+    dir_x: ArrayLike = 0,
+    dir_y: ArrayLike = 0,
+    temp_c: ArrayLike | None = None,
+    t_s: ArrayLike | None = None,
+    rng: np.random.Generator | None = None,
+    geometry: StageGeometry | None = None,
+    stand: ArrayLike | None = None,
+    positioning_error_deg: tuple[float, float] | None = None,
+) -> dict[str, NDArray[np.float64]]:
     """Readings of both sensors (and the true table tilt) at each commanded point.
 
     `rng=None` gives the noiseless bench. Both sensors ride on one table: they see the same
-    positioning error, drawn once per row (each row a move) or, with `stand`, once per stand. Returns arrays keyed by dataset column names plus
-    `tilt_x_deg`, `tilt_y_deg` (truth) and `actual_x_deg`, `actual_y_deg` (stage angles).
+    positioning error, drawn once per row (each row a move) or, with `stand`, once per stand.
+    Returns arrays keyed by dataset column names plus `tilt_x_deg`, `tilt_y_deg` (truth) and
+    `actual_x_deg`, `actual_y_deg` (stage angles).
     """
     cmd_x = np.atleast_1d(np.asarray(cmd_x_deg, dtype=float))
     cmd_y = np.atleast_1d(np.asarray(cmd_y_deg, dtype=float))
     n = np.broadcast_shapes(cmd_x.shape, cmd_y.shape)
-    temp = np.broadcast_to(np.asarray(bench.temp_ref_c if temp_c is None else temp_c, dtype=float), n)
+    temp = np.broadcast_to(
+        np.asarray(bench.temp_ref_c if temp_c is None else temp_c, dtype=float), n
+    )
     t = np.broadcast_to(np.asarray(0.0 if t_s is None else t_s, dtype=float), n)
     geometry = geometry or StageGeometry.from_effects(bench, fx)
-    act_x, act_y = stage_angles_deg(bench, fx, cmd_x, cmd_y, dir_x, dir_y, rng,
-                                    None if stand is None else np.broadcast_to(np.asarray(stand), n),
-                                    positioning_error_deg)
-    geo = geometry.readings_deg(np.radians(np.broadcast_to(act_x, n)), np.radians(np.broadcast_to(act_y, n)))
+    act_x, act_y = stage_angles_deg(
+        bench,
+        fx,
+        cmd_x,
+        cmd_y,
+        dir_x,
+        dir_y,
+        rng,
+        None if stand is None else np.broadcast_to(np.asarray(stand), n),
+        positioning_error_deg,
+    )
+    geo = geometry.readings_deg(
+        np.radians(np.broadcast_to(act_x, n)), np.radians(np.broadcast_to(act_y, n))
+    )
     dT = temp - bench.temp_ref_c
-    out = {"tilt_x_deg": geo["tilt_x"], "tilt_y_deg": geo["tilt_y"],
-           "actual_x_deg": np.broadcast_to(act_x, n).copy(), "actual_y_deg": np.broadcast_to(act_y, n).copy()}
+    out = {
+        "tilt_x_deg": geo["tilt_x"],
+        "tilt_y_deg": geo["tilt_y"],
+        "actual_x_deg": np.broadcast_to(act_x, n).copy(),
+        "actual_y_deg": np.broadcast_to(act_y, n).copy(),
+    }
     for s in SENSORS:
         sigma = fx.get("noise", f"{s}_sigma_deg")
         for a in ("x", "y"):
@@ -269,7 +397,8 @@ def simulate_stage(bench: StageBench, fx: EffectSet, cmd_x_deg: ArrayLike, cmd_y
     return out
 
 
-# --- seed 000 eqs. (9) and (10): the off-axis relation of the stacked stages, the one place it is written ---
+# --- seed 000 eqs. (9) and (10): the off-axis relation of the stacked stages, the one place it is
+# written ---
 def offaxis_reading_deg(theta_x_deg: ArrayLike, theta_y_deg: ArrayLike) -> NDArray[np.float64]:
     """Eq. (9): the x reading of an ideal stacked bench, asin(sin θx · cos θy).
 
@@ -277,20 +406,26 @@ def offaxis_reading_deg(theta_x_deg: ArrayLike, theta_y_deg: ArrayLike) -> NDArr
     table's x tilt only scaled by cos θy; this is also the angle an uncoupled bench would need.
     """
     tx, ty = np.radians(theta_x_deg), np.radians(theta_y_deg)
-    reading: NDArray[np.float64] = np.degrees(np.arcsin(np.clip(np.sin(tx) * np.cos(ty), -1.0, 1.0)))
+    reading: NDArray[np.float64] = np.degrees(
+        np.arcsin(np.clip(np.sin(tx) * np.cos(ty), -1.0, 1.0))
+    )
     return reading
 
 
 def offaxis_error_deg(theta_x_deg: ArrayLike, theta_y_deg: ArrayLike) -> NDArray[np.float64]:
     """Eq. (10): θx − asin(sin θx cos θy), the x reading lost to the lower stage's tilt.
 
-    Seed 000 prints it as θx − sign(θx)·atan(sqrt(q / (1 − q))) with q = sin²θx cos²θy: the same value.
+    Seed 000 prints it as θx − sign(θx)·atan(sqrt(q / (1 − q))) with q = sin²θx cos²θy: the same
+    value.
     """
     return np.asarray(theta_x_deg, dtype=float) - offaxis_reading_deg(theta_x_deg, theta_y_deg)
 
 
-def offaxis_inverse_deg(x_reading_deg: ArrayLike, theta_y_deg: ArrayLike, *, clip: bool = False) -> NDArray[np.float64]:
-    """Eq. (9) inverted exactly: the upper-stage angle giving x reading X at lower angle θy, asin(sin X / cos θy).
+def offaxis_inverse_deg(
+    x_reading_deg: ArrayLike, theta_y_deg: ArrayLike, *, clip: bool = False
+) -> NDArray[np.float64]:
+    """Eq. (9) inverted exactly: the upper-stage angle giving x reading X at lower angle θy,
+    asin(sin X / cos θy).
 
     NaN where no upper-stage angle gives X (|sin X / cos θy| > 1; the caller names those rows), or
     with clip=True the nearest reachable angle (a starting point for a solver).

@@ -24,8 +24,14 @@ class TurntableInclinometer:
     m2: float = field(metadata={"gt": 0, "le": 1000})
 
 
-def turntable_readings(p: TurntableInclinometer, azimuth_deg: ArrayLike, north_arcsec: ArrayLike, east_arcsec: ArrayLike,
-                       z1: float = 0.0, z2: float = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def turntable_readings(
+    p: TurntableInclinometer,
+    azimuth_deg: ArrayLike,
+    north_arcsec: ArrayLike,
+    east_arcsec: ArrayLike,
+    z1: float = 0.0,
+    z2: float = 0.0,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """n1(A), n2(A) of docs/models.md §4 for axis tilt (ξ north, η east) in arcsec."""
     a = np.radians(np.asarray(azimuth_deg, dtype=float) + p.beta_deg)
     e = np.radians(p.epsilon_deg)
@@ -35,11 +41,18 @@ def turntable_readings(p: TurntableInclinometer, azimuth_deg: ArrayLike, north_a
     return n1, n2
 
 
-def simulate_turntable(p: TurntableInclinometer, fx: EffectSet, azimuth_deg: ArrayLike, north_arcsec: ArrayLike,
-                       east_arcsec: ArrayLike,
-                       rotation_deg: float = 180.0, pair_interval_s: float = 120.0,
-                       rng: np.random.Generator | None = None) -> dict[str, NDArray[np.float64]]:
-    """One row per symmetric pair: readings at A and at A + φ (the true φ, which may differ from 180)."""
+def simulate_turntable(
+    p: TurntableInclinometer,
+    fx: EffectSet,
+    azimuth_deg: ArrayLike,
+    north_arcsec: ArrayLike,
+    east_arcsec: ArrayLike,
+    rotation_deg: float = 180.0,
+    pair_interval_s: float = 120.0,
+    rng: np.random.Generator | None = None,
+) -> dict[str, NDArray[np.float64]]:
+    """One row per symmetric pair: readings at A and at A + φ (the true φ, which may differ from
+    180)."""
     az = np.atleast_1d(np.asarray(azimuth_deg, dtype=float))
     xi = np.broadcast_to(np.asarray(north_arcsec, dtype=float), az.shape)
     eta = np.broadcast_to(np.asarray(east_arcsec, dtype=float), az.shape)
@@ -57,6 +70,8 @@ def simulate_turntable(p: TurntableInclinometer, fx: EffectSet, azimuth_deg: Arr
             out[f"{name}_{tag}"] = n
     ref_sigma = fx.get("noise", "ref_sigma_arcsec")
     for col, v in (("ref_north_arcsec", xi), ("ref_east_arcsec", eta)):
-        out[col] = v + (rng.normal(0.0, ref_sigma, v.shape) if rng is not None and ref_sigma > 0 else 0.0)
+        out[col] = v + (
+            rng.normal(0.0, ref_sigma, v.shape) if rng is not None and ref_sigma > 0 else 0.0
+        )
     out["true_north_arcsec"], out["true_east_arcsec"] = xi.copy(), eta.copy()
     return out

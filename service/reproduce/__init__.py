@@ -1,1 +1,2 @@
-"""Reruns of the four papers' experiments on simulated benches (seed 003 on its real data), as reports."""
+"""Reruns of the four papers' experiments on simulated benches (seed 003 on its real data), as
+reports."""

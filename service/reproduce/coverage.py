@@ -72,8 +72,18 @@ class _Tally:
         self.z2[axis] = self.z2.get(axis, 0.0) + float(np.sum((e / u) ** 2))
 
     def rows(self, kind: str, method: str, scenario: str) -> list[Row]:
-        return [Row(kind, method, scenario, a, self.hits[a], self.n[a], float(np.sqrt(self.z2[a] / self.n[a])))
-                for a in self.n]
+        return [
+            Row(
+                kind,
+                method,
+                scenario,
+                a,
+                self.hits[a],
+                self.n[a],
+                float(np.sqrt(self.z2[a] / self.n[a])),
+            )
+            for a in self.n
+        ]
 
 
 def _stage_scenario(readings_per_stand: int) -> Any:
@@ -82,13 +92,17 @@ def _stage_scenario(readings_per_stand: int) -> Any:
     return parse_scenario(data)
 
 
-# How the reference's noise is known to a stage fit: stated (the lab's certificate: the scenario's ref_sigma_deg, as
-# `calibrate --ref-noise-deg` gives it), from 3 readings at each stand, or not at all (the conservative fallback).
+# How the reference's noise is known to a stage fit: stated (the lab's certificate: the scenario's
+# ref_sigma_deg, as `calibrate --ref-noise-deg` gives it), from 3 readings at each stand, or not at
+# all (the conservative fallback).
 STAGE_VARIANTS = ("ref noise stated", "3 readings per stand", "ref noise unknown")
 
 
-def stage_coverage(method: str, variant: str, realisations: int, points: int = 81, seed0: int = 0) -> list[Row]:
-    """Stage method on the seed 000 bench: corrected measurement readings at `points` levelled targets vs the table tilt."""
+def stage_coverage(
+    method: str, variant: str, realisations: int, points: int = 81, seed0: int = 0
+) -> list[Row]:
+    """Stage method on the seed 000 bench: corrected measurement readings at `points` levelled
+    targets vs the table tilt."""
     sc = _stage_scenario(3 if variant == "3 readings per stand" else 1)
     m = get_method("stage", method)
     tx, ty = paper_grid()
@@ -98,7 +112,11 @@ def stage_coverage(method: str, variant: str, realisations: int, points: int = 8
         seed = seed0 + k
         run = run_scenario(sc, seed=seed)
         assert run.effects is not None
-        extra = {"ref_noise_deg": run.effects.get("noise", "ref_sigma_deg")} if variant == "ref noise stated" else {}
+        extra = (
+            {"ref_noise_deg": run.effects.get("noise", "ref_sigma_deg")}
+            if variant == "ref noise stated"
+            else {}
+        )
         model = m.fit(run.columns, FitOptions(extra=extra))
         oracle = Oracle(run.bench, run.effects, sc.environment.temp_c)
         cx, cy = oracle.level(tx[pick], ty[pick])
@@ -110,7 +128,8 @@ def stage_coverage(method: str, variant: str, realisations: int, points: int = 8
 
 
 def rotation_coverage(method: str, preset: str, realisations: int, seed0: int = 0) -> list[Row]:
-    """Rotation method: calibrate on one run of the sweep, correct another; one row per angle of the sweep."""
+    """Rotation method: calibrate on one run of the sweep, correct another; one row per angle of the
+    sweep."""
     sc = load_scenario(preset)
     m = get_method("rotation", method)
     tally = _Tally()
@@ -122,12 +141,13 @@ def rotation_coverage(method: str, preset: str, realisations: int, seed0: int = 
         truth = val.truth["theta_true_deg"]
         err = (out["theta_deg"] - truth + 180.0) % 360.0 - 180.0
         for i, t in enumerate(truth):
-            tally.add(f"theta {t:+.0f}", err[i:i + 1], out["u_theta_deg"][i:i + 1])
+            tally.add(f"theta {t:+.0f}", err[i : i + 1], out["u_theta_deg"][i : i + 1])
     return tally.rows("rotation", method, preset)
 
 
 def scale_coverage(method: str, realisations: int, seed0: int = 0) -> list[Row]:
-    """Scale method on the seed 003 bench: corrected readings of a fresh run vs the true reference angle."""
+    """Scale method on the seed 003 bench: corrected readings of a fresh run vs the true reference
+    angle."""
     sc = load_scenario("seed003")
     m = get_method("scale", method)
     tally = _Tally()
@@ -135,12 +155,15 @@ def scale_coverage(method: str, realisations: int, seed0: int = 0) -> list[Row]:
         model = m.fit(run_scenario(sc, seed=seed0 + 2 * k).columns, FitOptions())
         val = run_scenario(sc, seed=seed0 + 2 * k + 1)
         out = m.correct(model, val.columns)
-        tally.add("angle", out["angle_arcsec"] - val.truth["true_ref_arcsec"], out["u_angle_arcsec"])
+        tally.add(
+            "angle", out["angle_arcsec"] - val.truth["true_ref_arcsec"], out["u_angle_arcsec"]
+        )
     return tally.rows("scale", method, "seed003")
 
 
 def turntable_coverage(realisations: int, seed0: int = 0) -> list[Row]:
-    """Reversal method on the seed 004 turntable: corrected pairs of a fresh run vs the true axis tilt."""
+    """Reversal method on the seed 004 turntable: corrected pairs of a fresh run vs the true axis
+    tilt."""
     sc = load_scenario("seed004")
     m = get_method("turntable", "reversal")
     tally = _Tally()
@@ -148,31 +171,48 @@ def turntable_coverage(realisations: int, seed0: int = 0) -> list[Row]:
         model = m.fit(run_scenario(sc, seed=seed0 + 2 * k).columns, FitOptions())
         val = run_scenario(sc, seed=seed0 + 2 * k + 1)
         out = m.correct(model, val.columns)
-        tally.add("north", out["north_arcsec"] - val.truth["true_north_arcsec"], out["u_north_arcsec"])
+        tally.add(
+            "north", out["north_arcsec"] - val.truth["true_north_arcsec"], out["u_north_arcsec"]
+        )
         tally.add("east", out["east_arcsec"] - val.truth["true_east_arcsec"], out["u_east_arcsec"])
     return tally.rows("turntable", "reversal", "seed004")
 
 
 def offline_cases(realisations: int) -> Iterator[tuple[str, Callable[[], list[Row]]]]:
-    """Every offline (method, scenario) case of the table, lazily (each takes seconds to minutes)."""
+    """Every offline (method, scenario) case of the table, lazily (each takes seconds to
+    minutes)."""
     for method in ("homography", "axis-transform", "kinematic"):
         for variant in STAGE_VARIANTS:
-            yield f"stage {method} ({variant})", partial(stage_coverage, method, variant, realisations)
+            yield (
+                f"stage {method} ({variant})",
+                partial(stage_coverage, method, variant, realisations),
+            )
     for preset in ("seed002-b55", "seed002-b75", "seed002-sim"):
         for method in ("iodsra", "iodsra-combined"):
-            yield f"rotation {method} {preset}", partial(rotation_coverage, method, preset, realisations)
-    yield "rotation direct seed002-sim", lambda: rotation_coverage("direct", "seed002-sim", realisations)
+            yield (
+                f"rotation {method} {preset}",
+                partial(rotation_coverage, method, preset, realisations),
+            )
+    yield (
+        "rotation direct seed002-sim",
+        lambda: rotation_coverage("direct", "seed002-sim", realisations),
+    )
     yield "scale poly1 seed003", lambda: scale_coverage("poly1", realisations)
     yield "turntable reversal seed004", lambda: turntable_coverage(realisations)
 
 
-def daemon_rows(calibrations: int, scenarios: tuple[str, ...] = ("seed000", "rough"),
-                each: Callable[[str, int, Any], None] | None = None) -> list[Row]:
-    """The daemon path (GET /tilt against the simulated world's true tilt, service/reproduce/daemon_coverage.py):
-    per scenario and axis, one reading's U over every distinct reading and the averaged tilt's U over every stand,
-    pooled over `calibrations` calibrations (each a fresh daemon: minutes each). `each(scenario, k, readings)` is
-    told every calibration's StandReadings as they come (a benchmark prints each one's figures)."""
-    from service.reproduce.daemon_coverage import measure  # an in-process daemon: imported only when asked for
+def daemon_rows(
+    calibrations: int,
+    scenarios: tuple[str, ...] = ("seed000", "rough"),
+    each: Callable[[str, int, Any], None] | None = None,
+) -> list[Row]:
+    """The daemon path (GET /tilt against the simulated world's true tilt,
+    service/reproduce/daemon_coverage.py): per scenario and axis, one reading's U over every
+    distinct reading and the averaged tilt's U over every stand, pooled over `calibrations`
+    calibrations (each a fresh daemon: minutes each). `each(scenario, k, readings)` is told every
+    calibration's StandReadings as they come (a benchmark prints each one's figures)."""
+    # an in-process daemon: imported only when asked for
+    from service.reproduce.daemon_coverage import measure
 
     rows = []
     for scenario in scenarios:
@@ -183,6 +223,12 @@ def daemon_rows(calibrations: int, scenarios: tuple[str, ...] = ("seed000", "rou
             for i, axis in enumerate("xy"):
                 single.add(axis, got.errors[:, i], got.expanded[:, i])
                 averaged.add(axis, got.mean_errors[:, i], got.mean_expanded[:, i])
-        rows += single.rows("daemon", "GET /tilt (one reading)", f"{scenario}, {calibrations} calibrations")
-        rows += averaged.rows("daemon", "GET /tilt?average_s (mean at rest)", f"{scenario}, {calibrations} calibrations")
+        rows += single.rows(
+            "daemon", "GET /tilt (one reading)", f"{scenario}, {calibrations} calibrations"
+        )
+        rows += averaged.rows(
+            "daemon",
+            "GET /tilt?average_s (mean at rest)",
+            f"{scenario}, {calibrations} calibrations",
+        )
     return rows

@@ -22,8 +22,13 @@ from service.reproduce._report_kit import md_table, new_figure, of_kind, save_fi
 from service.scenarios import load_scenario, run_scenario
 from service.scenarios.model import ScaleScenario
 
-PAPER = {"a1_linear": 0.8756, "a1_quadratic": 0.884, "a2_quadratic": 1.93e-6, "resid_linear": 67.38,
-         "resid_quadratic": 66.99}
+PAPER = {
+    "a1_linear": 0.8756,
+    "a1_quadratic": 0.884,
+    "a2_quadratic": 1.93e-6,
+    "resid_linear": 67.38,
+    "resid_quadratic": 66.99,
+}
 DESIGN_ARCSEC_PER_COUNT = 3600.0 / 4096.0  # ±0.5° over 0-5 V into 12 bits (seed 003 §2)
 
 
@@ -41,9 +46,11 @@ def _dms_arcsec(text: str) -> int:
     return int(deg) * 3600 + int(minutes) * 60 + int(rest.rstrip('"'))
 
 
-def variant_columns(table: dict[str, Any], ref9: str, counts: str, rows: str) -> dict[str, NDArray[np.float64]]:
-    """One reading of the disputed cells: row 9 from the angle column or the theodolite; rows 3-4 decimal or hex;
-    all 12 rows or rows 1-11 (without the start state)."""
+def variant_columns(
+    table: dict[str, Any], ref9: str, counts: str, rows: str
+) -> dict[str, NDArray[np.float64]]:
+    """One reading of the disputed cells: row 9 from the angle column or the theodolite; rows 3-4
+    decimal or hex; all 12 rows or rows 1-11 (without the start state)."""
     ref = np.asarray(table["ref_arcsec"], dtype=float).copy()
     reading = np.asarray(table["reading"], dtype=float).copy()
     if ref9 == "theodolite":
@@ -58,16 +65,19 @@ def variant_columns(table: dict[str, Any], ref9: str, counts: str, rows: str) ->
 def fit_both(cols: Mapping[str, NDArray[np.float64]]) -> dict[str, Any]:
     lin = get_method("scale", "poly1").fit(cols, FitOptions())
     quad = get_method("scale", "poly2").fit(cols, FitOptions())
-    return {"lin": lin, "quad": quad,
-            "a1_linear": lin.value("c1_arcsec_per_count"),
-            "se_a1_linear": lin.fit["standard_errors"]["c1_arcsec_per_count"],
-            "resid_linear": lin.fit["residual_norm_arcsec"],
-            "a1_quadratic": quad.value("c1_arcsec_per_count"),
-            "a2_quadratic": quad.value("c2_arcsec_per_count2"),
-            "resid_quadratic": quad.fit["residual_norm_arcsec"],
-            "f_p": quad.fit["f_test_highest_term"]["p_value"],
-            "f": quad.fit["f_test_highest_term"]["F"],
-            "reading_on_angle_arcsec_per_count": lin.fit["reading_on_angle"]["arcsec_per_count"]}
+    return {
+        "lin": lin,
+        "quad": quad,
+        "a1_linear": lin.value("c1_arcsec_per_count"),
+        "se_a1_linear": lin.fit["standard_errors"]["c1_arcsec_per_count"],
+        "resid_linear": lin.fit["residual_norm_arcsec"],
+        "a1_quadratic": quad.value("c1_arcsec_per_count"),
+        "a2_quadratic": quad.value("c2_arcsec_per_count2"),
+        "resid_quadratic": quad.fit["residual_norm_arcsec"],
+        "f_p": quad.fit["f_test_highest_term"]["p_value"],
+        "f": quad.fit["f_test_highest_term"]["F"],
+        "reading_on_angle_arcsec_per_count": lin.fit["reading_on_angle"]["arcsec_per_count"],
+    }
 
 
 def _figure(table: dict[str, Any], main: dict[str, Any], out: Path) -> None:
@@ -77,10 +87,20 @@ def _figure(table: dict[str, Any], main: dict[str, Any], out: Path) -> None:
     fig, axes = new_figure(2, 2, (10, 7.5))
     a, b, c, d = axes.ravel()
     a.plot(x, y, "o", color="k")
-    a.set(title="(a) Table 1: angle against ADC reading", xlabel="ADC reading / count", ylabel="angle change / arcsec")
-    for ax, model, label, coef in ((b, lin, "(b) linear fit (poly1)", ["c0_arcsec", "c1_arcsec_per_count"]),
-                                   (c, quad, "(c) quadratic fit (poly2)",
-                                    ["c0_arcsec", "c1_arcsec_per_count", "c2_arcsec_per_count2"])):
+    a.set(
+        title="(a) Table 1: angle against ADC reading",
+        xlabel="ADC reading / count",
+        ylabel="angle change / arcsec",
+    )
+    for ax, model, label, coef in (
+        (b, lin, "(b) linear fit (poly1)", ["c0_arcsec", "c1_arcsec_per_count"]),
+        (
+            c,
+            quad,
+            "(c) quadratic fit (poly2)",
+            ["c0_arcsec", "c1_arcsec_per_count", "c2_arcsec_per_count2"],
+        ),
+    ):
         p = model.values(coef)
         ax.plot(x, y, "o", color="k", label="Table 1")
         ax.plot(xs, np.polyval(p[::-1], xs), "-", color="tab:blue", label="fit")
@@ -91,13 +111,16 @@ def _figure(table: dict[str, Any], main: dict[str, Any], out: Path) -> None:
     d.axhline(0, color="0.6", lw=0.8)
     d.plot(x, rl, "o-", label=f"linear, ‖r‖ = {main['resid_linear']:.2f}″")
     d.plot(x, rq, "s--", label=f"quadratic, ‖r‖ = {main['resid_quadratic']:.2f}″")
-    d.set(title="(d) residuals (reference minus fit)", xlabel="ADC reading / count", ylabel="arcsec")
+    d.set(
+        title="(d) residuals (reference minus fit)", xlabel="ADC reading / count", ylabel="arcsec"
+    )
     d.legend()
     save_figure(fig, out)
 
 
 def _simulated_check(n_seeds: int = 300) -> dict[str, Any]:
-    """The seed003 bench: does poly1 recover its scale, and does the F-test keep its 5 % false-alarm rate?"""
+    """The seed003 bench: does poly1 recover its scale, and does the F-test keep its 5 % false-alarm
+    rate?"""
     sc = of_kind(load_scenario("seed003"), ScaleScenario)
     k = sc.effects.scale_factor.k if sc.effects.scale_factor is not None else 0.0
     truth = DESIGN_ARCSEC_PER_COUNT / (1.0 + k)
@@ -112,9 +135,16 @@ def _simulated_check(n_seeds: int = 300) -> dict[str, Any]:
         alarms += bool(lin.fit["f_test_next_degree"]["significant_at_5pct"])
     c1 = np.array(c1_list)
     noise = sc.effects.noise
-    return {"truth": truth, "mean": float(c1.mean()), "sd": float(c1.std(ddof=1)), "mean_se": float(np.mean(se)),
-            "false_alarm": alarms / n_seeds, "n": n_seeds, "reading_sigma_counts": noise.reading_sigma_counts,
-            "ref_sigma_arcsec": noise.ref_sigma_arcsec}
+    return {
+        "truth": truth,
+        "mean": float(c1.mean()),
+        "sd": float(c1.std(ddof=1)),
+        "mean_se": float(np.mean(se)),
+        "false_alarm": alarms / n_seeds,
+        "n": n_seeds,
+        "reading_sigma_counts": noise.reading_sigma_counts,
+        "ref_sigma_arcsec": noise.ref_sigma_arcsec,
+    }
 
 
 def run(out_dir: Path) -> dict[str, Any]:
@@ -127,8 +157,19 @@ def run(out_dir: Path) -> dict[str, Any]:
         for ref9 in ("angle", "theodolite"):
             for counts in ("decimal", "hex"):
                 v = fit_both(variant_columns(table, ref9, counts, rows))
-                variants.append({"rows": rows, "ref9": ref9, "counts": counts, **{k: v[k] for k in v if k not in ("lin", "quad")}})
-    paper_reading = next(v for v in variants if v["rows"] == "1-11" and v["ref9"] == "angle" and v["counts"] == "decimal")
+                variants.append(
+                    {
+                        "rows": rows,
+                        "ref9": ref9,
+                        "counts": counts,
+                        **{k: v[k] for k in v if k not in ("lin", "quad")},
+                    }
+                )
+    paper_reading = next(
+        v
+        for v in variants
+        if v["rows"] == "1-11" and v["ref9"] == "angle" and v["counts"] == "decimal"
+    )
     fig_name = "seed003_fig6_table1_fits.png"
     _figure(table, main, out_dir / fig_name)
     sim = _simulated_check()
@@ -140,105 +181,217 @@ def run(out_dir: Path) -> dict[str, Any]:
         theo = t3a[i] - t3a[0]
         flag = []
         if hexv != table["reading"][i]:
-            flag.append(f"hex {table['adc_hex'][i]} = {hexv}, decimal column {int(table['reading'][i])}")
+            flag.append(
+                f"hex {table['adc_hex'][i]} = {hexv}, decimal column {int(table['reading'][i])}"
+            )
         if theo != table["ref_arcsec"][i]:
             flag.append(f"theodolite gives {theo}″, angle column {int(table['ref_arcsec'][i])}″")
-        rows_md.append([i, table["t3a_reading"][i], table["adc_hex"][i], int(table["reading"][i]),
-                        int(table["ref_arcsec"][i]), "; ".join(flag) or ("start state" if i == 0 else "")])
+        rows_md.append(
+            [
+                i,
+                table["t3a_reading"][i],
+                table["adc_hex"][i],
+                int(table["reading"][i]),
+                int(table["ref_arcsec"][i]),
+                "; ".join(flag) or ("start state" if i == 0 else ""),
+            ]
+        )
 
     def vrow(v: dict[str, Any]) -> list[object]:
-        return [v["rows"], "2871″ (angle column)" if v["ref9"] == "angle" else "2891″ (theodolite)",
-                "decimal" if v["counts"] == "decimal" else "hex (1130, 1523)",
-                f"{v['a1_linear']:.5f}", f"{v['resid_linear']:.2f}", f"{v['a1_quadratic']:.4f}",
-                f"{v['a2_quadratic']:.3e}", f"{v['resid_quadratic']:.2f}", f"{v['f_p']:.2f}"]
+        return [
+            v["rows"],
+            "2871″ (angle column)" if v["ref9"] == "angle" else "2891″ (theodolite)",
+            "decimal" if v["counts"] == "decimal" else "hex (1130, 1523)",
+            f"{v['a1_linear']:.5f}",
+            f"{v['resid_linear']:.2f}",
+            f"{v['a1_quadratic']:.4f}",
+            f"{v['a2_quadratic']:.3e}",
+            f"{v['resid_quadratic']:.2f}",
+            f"{v['f_p']:.2f}",
+        ]
 
     lin = main["lin"]
     c0 = lin.value("c0_arcsec")
     se = lin.fit["standard_errors"]
-    k95 = float(coverage_factor(lin.fit['dof']))
+    k95 = float(coverage_factor(lin.fit["dof"]))
     md = [
         "# Seed 003: measuring unit of the electrolytic tilt sensor by least squares",
         "",
-        ("Rerun of seed 003 §2.2 on its own Table 1 (shipped as `service/calibration/data/seed003_table1.csv`), with "
-        "`tiltlab calibrate --kind scale --method poly1|poly2`. The model is angle on reading (the direction the "
-        "paper's measuring unit 0.8756 ″/count has and the direction `correct` uses); the paper's written direction, "
-        "reading on angle, is reported beside it."),
+        (
+            "Rerun of seed 003 §2.2 on its own Table 1 (shipped as "
+            "`service/calibration/data/seed003_table1.csv`), with `tiltlab calibrate --kind "
+            "scale --method poly1|poly2`. The model is angle on reading (the direction the "
+            "paper's measuring unit 0.8756 ″/count has and the direction `correct` uses); the "
+            "paper's written direction, reading on angle, is reported beside it."
+        ),
         "",
         "## Table 1 as shipped",
         "",
-        md_table(["row", "T3A reading", "ADC hex", "ADC decimal (reading)", "angle change / ″ (ref_arcsec)",
-                  "disagreement inside the table"], rows_md),
+        md_table(
+            [
+                "row",
+                "T3A reading",
+                "ADC hex",
+                "ADC decimal (reading)",
+                "angle change / ″ (ref_arcsec)",
+                "disagreement inside the table",
+            ],
+            rows_md,
+        ),
         "",
-        "The values used are the angle column (2871″ in row 9) and the decimal ADC column (1131, 1518 in rows 3 and 4).",
+        (
+            "The values used are the angle column (2871″ in row 9) and the decimal ADC column "
+            "(1131, 1518 in rows 3 and 4)."
+        ),
         "",
         "## The measuring unit from the data (all 12 rows)",
         "",
-        md_table(["quantity", "value"], [
-            ["poly1: angle = c0 + c1 · reading, c1 (measuring unit)", f"{main['a1_linear']:.5f} ± {se['c1_arcsec_per_count']:.5f} ″/count (1σ)"],
-            ["poly1: c0", f"{c0:.2f} ± {se['c0_arcsec']:.2f} ″"],
-            ["poly1: residual σ, residual norm ‖r‖", f"{lin.fit['residual_sigma_arcsec']:.2f} ″, {main['resid_linear']:.2f} ″"],
-            ["reading on angle (paper's eq. 5 direction): 1 / a", f"{main['reading_on_angle_arcsec_per_count']:.5f} ″/count"],
-            ["poly2: c1, c2", f"{main['a1_quadratic']:.4f} ″/count, {main['a2_quadratic']:.3e} ″/count²"],
-            ["poly2: residual norm ‖r‖", f"{main['resid_quadratic']:.2f} ″"],
-            ["F-test, quadratic term (1, 9 dof)", f"F = {main['f']:.2f}, p = {main['f_p']:.2f}: not significant"],
-            ["design value (3600″ / 4096 counts)", f"{DESIGN_ARCSEC_PER_COUNT:.5f} ″/count"],
-        ]),
+        md_table(
+            ["quantity", "value"],
+            [
+                [
+                    "poly1: angle = c0 + c1 · reading, c1 (measuring unit)",
+                    f"{main['a1_linear']:.5f} ± {se['c1_arcsec_per_count']:.5f} ″/count (1σ)",
+                ],
+                ["poly1: c0", f"{c0:.2f} ± {se['c0_arcsec']:.2f} ″"],
+                [
+                    "poly1: residual σ, residual norm ‖r‖",
+                    f"{lin.fit['residual_sigma_arcsec']:.2f} ″, {main['resid_linear']:.2f} ″",
+                ],
+                [
+                    "reading on angle (paper's eq. 5 direction): 1 / a",
+                    f"{main['reading_on_angle_arcsec_per_count']:.5f} ″/count",
+                ],
+                [
+                    "poly2: c1, c2",
+                    f"{main['a1_quadratic']:.4f} ″/count, {main['a2_quadratic']:.3e} ″/count²",
+                ],
+                ["poly2: residual norm ‖r‖", f"{main['resid_quadratic']:.2f} ″"],
+                [
+                    "F-test, quadratic term (1, 9 dof)",
+                    f"F = {main['f']:.2f}, p = {main['f_p']:.2f}: not significant",
+                ],
+                ["design value (3600″ / 4096 counts)", f"{DESIGN_ARCSEC_PER_COUNT:.5f} ″/count"],
+            ],
+        ),
         "",
-        (f"The data support the measuring unit to about three decimals: {main['a1_linear']:.3f} ± "
-        f"{k95 * se['c1_arcsec_per_count']:.3f} ″/count (95 %, k = {k95:.2f} from Student's t at "
-        f"{lin.fit['dof']} degrees of freedom); the fifth decimal of 0.87787 is arithmetic, not "
-        "metrology. It agrees with the design value 0.8789 ″/count. The quadratic term is not needed "
-        f"(p = {main['f_p']:.2f}), which is the paper's conclusion too (\"倾角与所测量电压呈线性关系\")."),
+        (
+            "The data support the measuring unit to about three decimals: "
+            f"{main['a1_linear']:.3f} ± {k95 * se['c1_arcsec_per_count']:.3f} ″/count "
+            f"(95 %, k = {k95:.2f} from Student's t at {lin.fit['dof']} degrees of freedom); "
+            "the fifth decimal of 0.87787 is arithmetic, not metrology. It agrees with the design "
+            "value 0.8789 ″/count. The quadratic term is not needed "
+            f"(p = {main['f_p']:.2f}), which is the paper's conclusion too "
+            '("倾角与所测量电压呈线性关系").'
+        ),
         "",
         f"![Table 1 fits]({fig_name})",
         "",
         "## The variants of the disputed cells, and the paper's figures",
         "",
-        ("Each variant below is fitted with the same methods (angle on reading). ‖r‖ is the residual norm "
-        "sqrt(Σ r²) in arcsec, the quantity the paper's \"残余误差水平\" turns out to be."),
+        (
+            "Each variant below is fitted with the same methods (angle on reading). ‖r‖ is the "
+            "residual norm "
+            'sqrt(Σ r²) in arcsec, the quantity the paper\'s "残余误差水平" turns out to be.'
+        ),
         "",
-        md_table(["rows", "row 9 reference", "rows 3-4 counts", "poly1 c1 ″/count", "poly1 ‖r‖ ″", "poly2 c1",
-                  "poly2 c2", "poly2 ‖r‖ ″", "F-test p"], [vrow(v) for v in variants]
-                 + [["paper", "", "", f"{PAPER['a1_linear']}", f"{PAPER['resid_linear']}", f"{PAPER['a1_quadratic']}",
-                     f"{PAPER['a2_quadratic']:.2e}", f"{PAPER['resid_quadratic']}", ""]]),
+        md_table(
+            [
+                "rows",
+                "row 9 reference",
+                "rows 3-4 counts",
+                "poly1 c1 ″/count",
+                "poly1 ‖r‖ ″",
+                "poly2 c1",
+                "poly2 c2",
+                "poly2 ‖r‖ ″",
+                "F-test p",
+            ],
+            [vrow(v) for v in variants]
+            + [
+                [
+                    "paper",
+                    "",
+                    "",
+                    f"{PAPER['a1_linear']}",
+                    f"{PAPER['resid_linear']}",
+                    f"{PAPER['a1_quadratic']}",
+                    f"{PAPER['a2_quadratic']:.2e}",
+                    f"{PAPER['resid_quadratic']}",
+                    "",
+                ]
+            ],
+        ),
         "",
-        ("With all 12 rows no reading of the disputed cells gives the paper's numbers: the slope stays at "
-        f"{min(v['a1_linear'] for v in variants if v['rows'] == 'all'):.4f}-"
-        f"{max(v['a1_linear'] for v in variants if v['rows'] == 'all'):.4f} ″/count against the printed 0.8756, and "
-        "the quadratic c2 comes out negative. Leaving out row 0, the \"start state\" (开始状态), with the angle column "
-        "and the decimal readings, reproduces every printed figure to the digits printed: "
-        f"c1 = {paper_reading['a1_linear']:.4f} (0.8756), ‖r‖ = {paper_reading['resid_linear']:.2f} (67.38), "
-        f"quadratic c1 = {paper_reading['a1_quadratic']:.3f} (0.884), c2 = {paper_reading['a2_quadratic']:.3e} "
-        f"(printed 1.93 × 10⁻⁶: the magnitude matches; the sign is negative in the data, so the minus sign was "
-        f"lost), ‖r‖ = {paper_reading['resid_quadratic']:.2f} (66.99). So the paper fitted angle on reading over "
-        "rows 1-11, and its residual level is the residual norm (what MATLAB's polyfit reports as normr)."),
+        (
+            "With all 12 rows no reading of the disputed cells gives the paper's numbers: the "
+            "slope stays at "
+            f"{min(v['a1_linear'] for v in variants if v['rows'] == 'all'):.4f}-"
+            f"{max(v['a1_linear'] for v in variants if v['rows'] == 'all'):.4f} ″/count against "
+            "the printed 0.8756, and "
+            'the quadratic c2 comes out negative. Leaving out row 0, the "start state" (开始状态), '
+            "with the angle column "
+            "and the decimal readings, reproduces every printed figure to the digits printed: "
+            f"c1 = {paper_reading['a1_linear']:.4f} (0.8756), ‖r‖ = "
+            f"{paper_reading['resid_linear']:.2f} (67.38), "
+            f"quadratic c1 = {paper_reading['a1_quadratic']:.3f} (0.884), c2 = "
+            f"{paper_reading['a2_quadratic']:.3e} "
+            "(printed 1.93 × 10⁻⁶: the magnitude matches; the sign is negative in the data, so "
+            "the minus sign was "
+            f"lost), ‖r‖ = {paper_reading['resid_quadratic']:.2f} (66.99). So the paper fitted "
+            "angle on reading over "
+            "rows 1-11, and its residual level is the residual norm (what MATLAB's polyfit reports "
+            "as normr)."
+        ),
         "",
-        ("We use all 12 rows (row 0 is a measurement like the others; its residual, "
-        f"{lin.residuals['columns']['angle_arcsec']['values'][0]:.1f}″, is ordinary), the 2871″ angle column and "
-        "the decimal readings: 0.87787 ″/count. The paper's 0.8756 differs from it by "
-        f"{(main['a1_linear'] - PAPER['a1_linear']) / se['c1_arcsec_per_count']:.1f} standard errors, so the two "
-        "agree within the data's uncertainty; the choice of rows matters less than the scatter of the readings."),
+        (
+            "We use all 12 rows (row 0 is a measurement like the others; its residual, "
+            f"{lin.residuals['columns']['angle_arcsec']['values'][0]:.1f}″, is ordinary), the "
+            "2871″ angle column and the decimal readings: 0.87787 ″/count. The paper's 0.8756 "
+            "differs from it by "
+            f"{(main['a1_linear'] - PAPER['a1_linear']) / se['c1_arcsec_per_count']:.1f} "
+            "standard errors, so the two agree within the data's uncertainty; the choice of "
+            "rows matters less than the scatter of the readings."
+        ),
         "",
         "## Check of the method on the simulated seed003 bench",
         "",
-        (f"{sim['n']} simulated calibrations of the `seed003` preset (12 points over 0-3461″, reading noise "
-        f"{sim['reading_sigma_counts']:g} counts as in Table 1's residuals, reference {sim['ref_sigma_arcsec']:g}″):"),
+        (
+            f"{sim['n']} simulated calibrations of the `seed003` preset (12 points over 0-3461″, "
+            f"reading noise {sim['reading_sigma_counts']:g} counts as in Table 1's residuals, "
+            f"reference {sim['ref_sigma_arcsec']:g}″):"
+        ),
         "",
-        md_table(["quantity", "value"], [
-            ["true scale of the bench", f"{sim['truth']:.5f} ″/count"],
-            ["mean of the poly1 c1", f"{sim['mean']:.5f} ″/count"],
-            ["spread of c1 over runs (1σ)", f"{sim['sd']:.5f} ″/count"],
-            ["mean reported standard error", f"{sim['mean_se']:.5f} ″/count"],
-            ["F-test for a quadratic term significant at 5 % (no nonlinearity on the bench)",
-             f"{100 * sim['false_alarm']:.1f} % of runs"],
-        ]),
+        md_table(
+            ["quantity", "value"],
+            [
+                ["true scale of the bench", f"{sim['truth']:.5f} ″/count"],
+                ["mean of the poly1 c1", f"{sim['mean']:.5f} ″/count"],
+                ["spread of c1 over runs (1σ)", f"{sim['sd']:.5f} ″/count"],
+                ["mean reported standard error", f"{sim['mean_se']:.5f} ″/count"],
+                [
+                    "F-test for a quadratic term significant at 5 % (no nonlinearity on the bench)",
+                    f"{100 * sim['false_alarm']:.1f} % of runs",
+                ],
+            ],
+        ),
         "",
-        ("The estimator is unbiased to well within its standard error, the reported standard error matches the "
-        "actual spread, and the F-test raises the alarm at about its nominal rate."),
+        (
+            "The estimator is unbiased to well within its standard error, the reported standard "
+            "error matches the "
+            "actual spread, and the F-test raises the alarm at about its nominal rate."
+        ),
         "",
     ]
     write_text_atomic(out_dir / "seed003.md", "\n".join(md))
-    return {"a1_arcsec_per_count": main["a1_linear"], "se_a1": se["c1_arcsec_per_count"],
-            "resid_norm_linear": main["resid_linear"], "resid_norm_quadratic": main["resid_quadratic"],
-            "quadratic_p_value": main["f_p"], "paper_reading": {k: paper_reading[k] for k in PAPER},
-            "variants": variants, "simulated": sim, "figures": [fig_name]}
+    return {
+        "a1_arcsec_per_count": main["a1_linear"],
+        "se_a1": se["c1_arcsec_per_count"],
+        "resid_norm_linear": main["resid_linear"],
+        "resid_norm_quadratic": main["resid_quadratic"],
+        "quadratic_p_value": main["f_p"],
+        "paper_reading": {k: paper_reading[k] for k in PAPER},
+        "variants": variants,
+        "simulated": sim,
+        "figures": [fig_name],
+    }

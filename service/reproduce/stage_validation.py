@@ -66,61 +66,102 @@ class Oracle:
         self.chain = ChainModel(bench, self.fx)
         self.temp_c = bench.temp_ref_c if temp_c is None else temp_c
 
-    def level(self, tx: ArrayLike, ty: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def level(
+        self, tx: ArrayLike, ty: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         return self.chain.level(tx, ty, 1.0, 1.0)
 
-    def _meas(self, ax_deg: NDArray[np.float64], ay_deg: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str,
-                                                                                                                                      NDArray[np.float64]]]:
+    def _meas(
+        self, ax_deg: NDArray[np.float64], ay_deg: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, NDArray[np.float64]]]:
         fx, dT = self.fx, self.temp_c - self.bench.temp_ref_c
         geo = self.chain.geometry.readings_deg(np.radians(ax_deg), np.radians(ay_deg))
         out = []
         for a in ("x", "y"):
-            out.append(apply_reading_errors(
-                geo[f"meas_{a}"], zero_deg=fx.get("zero_offset", f"meas_{a}_deg"), scale=fx.get("scale_factor", f"meas_{a}"),
-                quad_per_deg=fx.get("sensor_nonlinearity", f"meas_{a}_per_deg"), temp_delta_k=dT,
-                zero_per_k=fx.get("temperature_drift", f"meas_{a}_deg_per_k"),
-                scale_per_k=fx.get("temperature_drift", "meas_scale_per_k")))
+            out.append(
+                apply_reading_errors(
+                    geo[f"meas_{a}"],
+                    zero_deg=fx.get("zero_offset", f"meas_{a}_deg"),
+                    scale=fx.get("scale_factor", f"meas_{a}"),
+                    quad_per_deg=fx.get("sensor_nonlinearity", f"meas_{a}_per_deg"),
+                    temp_delta_k=dT,
+                    zero_per_k=fx.get("temperature_drift", f"meas_{a}_deg_per_k"),
+                    scale_per_k=fx.get("temperature_drift", "meas_scale_per_k"),
+                )
+            )
         return out[0], out[1], geo
 
-    def correct(self, meas_x: ArrayLike, meas_y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def correct(
+        self, meas_x: ArrayLike, meas_y: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Stage angles whose noise-free measurement readings match, then the true tilt there."""
         mx, my = np.asarray(meas_x, dtype=float), np.asarray(meas_y, dtype=float)
-        sign = (-1.0 if self.bench.meas_flip == "y" else 1.0, -1.0 if self.bench.meas_flip == "x" else 1.0)
+        sign = (
+            -1.0 if self.bench.meas_flip == "y" else 1.0,
+            -1.0 if self.bench.meas_flip == "x" else 1.0,
+        )
         u, v = newton_2d(lambda u, v: self._meas(u, v)[:2], mx, my, sign[0] * mx, sign[1] * my)
         geo = self._meas(u, v)[2]
         return geo["tilt_x"], geo["tilt_y"]
 
 
-def execute(bench: StageBench, fx: EffectSet, cmd_x: ArrayLike, cmd_y: ArrayLike, seed: int, temp_c: float) -> dict[str, NDArray[np.float64]]:
+def execute(
+    bench: StageBench, fx: EffectSet, cmd_x: ArrayLike, cmd_y: ArrayLike, seed: int, temp_c: float
+) -> dict[str, NDArray[np.float64]]:
     """The true bench runs the commands (approached from below) with this seed's noise draws."""
     n = np.size(cmd_x)
-    return simulate_stage(bench, fx, cmd_x, cmd_y, np.ones(n), np.ones(n), np.full(n, temp_c), np.zeros(n),
-                          rng=np.random.default_rng(seed))
+    return simulate_stage(
+        bench,
+        fx,
+        cmd_x,
+        cmd_y,
+        np.ones(n),
+        np.ones(n),
+        np.full(n, temp_c),
+        np.zeros(n),
+        rng=np.random.default_rng(seed),
+    )
 
 
 def summary(ex: NDArray[np.float64], ey: NDArray[np.float64]) -> dict[str, float]:
     ix, iy = int(np.argmax(np.abs(ex))), int(np.argmax(np.abs(ey)))
-    return {"rms_x": float(np.sqrt(np.mean(ex**2))), "rms_y": float(np.sqrt(np.mean(ey**2))),
-            "max_x": float(np.abs(ex).max()), "max_y": float(np.abs(ey).max()),
-            "signed_max_x": float(ex[ix]), "signed_max_y": float(ey[iy])}
+    return {
+        "rms_x": float(np.sqrt(np.mean(ex**2))),
+        "rms_y": float(np.sqrt(np.mean(ey**2))),
+        "max_x": float(np.abs(ex).max()),
+        "max_y": float(np.abs(ey).max()),
+        "signed_max_x": float(ex[ix]),
+        "signed_max_y": float(ey[iy]),
+    }
 
 
 @dataclass
 class SeedResult:
     seed: int
     targets: tuple[NDArray[np.float64], NDArray[np.float64]]
-    errors: dict[str, dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]] = field(default_factory=dict)  # method -> kind -> (ex, ey)
+    # method -> kind -> (ex, ey)
+    errors: dict[str, dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]] = field(
+        default_factory=dict
+    )
     models: dict[str, CalibrationModel] = field(default_factory=dict)
 
-    def stats(self, method: str, kind: str, mask: NDArray[np.bool_] | None = None) -> dict[str, float]:
+    def stats(
+        self, method: str, kind: str, mask: NDArray[np.bool_] | None = None
+    ) -> dict[str, float]:
         ex, ey = self.errors[method][kind]
         return summary(ex, ey) if mask is None else summary(ex[mask], ey[mask])
 
 
-def evaluate_seed(scenario: StageScenario, seed: int, methods: Sequence[str | tuple[str, str, dict[str, Any]]] = STAGE_METHODS,
-                  targets: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None, fit_options: dict[str, dict[str, Any]] | None = None,
-                  keep_models: bool = False) -> SeedResult:
-    """Calibrate each method on the scenario's run with `seed`, validate on fresh noise at `targets`.
+def evaluate_seed(
+    scenario: StageScenario,
+    seed: int,
+    methods: Sequence[str | tuple[str, str, dict[str, Any]]] = STAGE_METHODS,
+    targets: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    fit_options: dict[str, dict[str, Any]] | None = None,
+    keep_models: bool = False,
+) -> SeedResult:
+    """Calibrate each method on the scenario's run with `seed`, validate on fresh noise at
+    `targets`.
 
     `methods` holds method names, or (label, method name, extra fit options) for variants.
     """
@@ -147,26 +188,41 @@ def evaluate_seed(scenario: StageScenario, seed: int, methods: Sequence[str | tu
         cmd = m.level(model, {"target_x_deg": tx, "target_y_deg": ty})
         run = execute(bench, fx, cmd["stage_x_deg"], cmd["stage_y_deg"], val_seed, temp)
         own = m.correct(model, {"meas_x_deg": run["meas_x_deg"], "meas_y_deg": run["meas_y_deg"]})
-        c = m.correct(model, {"meas_x_deg": shared["meas_x_deg"], "meas_y_deg": shared["meas_y_deg"]})
-        corr[label] = (c["tilt_x_deg"] - shared["tilt_x_deg"], c["tilt_y_deg"] - shared["tilt_y_deg"])
-        out.errors[label] = {"level": (run["tilt_x_deg"] - tx, run["tilt_y_deg"] - ty),
-                            "correct": corr[label],
-                            "flow": (tx - own["tilt_x_deg"], ty - own["tilt_y_deg"])}
+        c = m.correct(
+            model, {"meas_x_deg": shared["meas_x_deg"], "meas_y_deg": shared["meas_y_deg"]}
+        )
+        corr[label] = (
+            c["tilt_x_deg"] - shared["tilt_x_deg"],
+            c["tilt_y_deg"] - shared["tilt_y_deg"],
+        )
+        out.errors[label] = {
+            "level": (run["tilt_x_deg"] - tx, run["tilt_y_deg"] - ty),
+            "correct": corr[label],
+            "flow": (tx - own["tilt_x_deg"], ty - own["tilt_y_deg"]),
+        }
     run = execute(bench, fx, ox, oy, val_seed, temp)
     cx, cy = oracle.correct(run["meas_x_deg"], run["meas_y_deg"])
     sx, sy = oracle.correct(shared["meas_x_deg"], shared["meas_y_deg"])
-    out.errors["oracle"] = {"level": (run["tilt_x_deg"] - tx, run["tilt_y_deg"] - ty),
-                            "correct": (sx - shared["tilt_x_deg"], sy - shared["tilt_y_deg"]),
-                            "flow": (tx - cx, ty - cy)}
+    out.errors["oracle"] = {
+        "level": (run["tilt_x_deg"] - tx, run["tilt_y_deg"] - ty),
+        "correct": (sx - shared["tilt_x_deg"], sy - shared["tilt_y_deg"]),
+        "flow": (tx - cx, ty - cy),
+    }
     raw = execute(bench, fx, tx, ty, val_seed, temp)
-    out.errors["uncorrected"] = {"level": (raw["tilt_x_deg"] - tx, raw["tilt_y_deg"] - ty),
-                                 "correct": (shared["meas_x_deg"] - shared["tilt_x_deg"],
-                                             shared["meas_y_deg"] - shared["tilt_y_deg"]),
-                                 "flow": (tx - raw["meas_x_deg"], ty - raw["meas_y_deg"])}
+    out.errors["uncorrected"] = {
+        "level": (raw["tilt_x_deg"] - tx, raw["tilt_y_deg"] - ty),
+        "correct": (
+            shared["meas_x_deg"] - shared["tilt_x_deg"],
+            shared["meas_y_deg"] - shared["tilt_y_deg"],
+        ),
+        "flow": (tx - raw["meas_x_deg"], ty - raw["meas_y_deg"]),
+    }
     return out
 
 
-def oracle_ratios(result: SeedResult, method: str = "kinematic", mask: NDArray[np.bool_] | None = None) -> dict[str, float]:
+def oracle_ratios(
+    result: SeedResult, method: str = "kinematic", mask: NDArray[np.bool_] | None = None
+) -> dict[str, float]:
     """RMS and max of `method` over the oracle's, per error kind and axis."""
     out: dict[str, float] = {}
     for kind in ("level", "correct"):

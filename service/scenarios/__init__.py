@@ -1,4 +1,5 @@
-"""Scenarios: validated descriptions of simulated benches, and the presets that resemble the papers."""
+"""Scenarios: validated descriptions of simulated benches, and the presets that resemble the
+papers."""
 
 from service.scenarios.model import (
     Scenario,
@@ -10,5 +11,13 @@ from service.scenarios.model import (
 )
 from service.scenarios.run import SimulatedRun, run_scenario
 
-__all__ = ["Scenario", "SimulatedRun", "effects_dict", "json_schema", "load_scenario", "parse_scenario", "preset_names",
-           "run_scenario"]
+__all__ = [
+    "Scenario",
+    "SimulatedRun",
+    "effects_dict",
+    "json_schema",
+    "load_scenario",
+    "parse_scenario",
+    "preset_names",
+    "run_scenario",
+]

@@ -37,12 +37,22 @@ def _effects_model(kind: str) -> type[BaseModel]:
                 pf[p.name] = (bool, Field(p.default, description=p.doc or p.unit))
             else:
                 desc = f"[{p.unit}] {p.doc}".strip()
-                pf[p.name] = (float, Field(p.default, ge=p.lo, le=p.hi, description=desc, allow_inf_nan=False))
-        m = create_model(f"{kind.title()}_{eff.name}", __config__=ConfigDict(extra="forbid", strict=True), **pf)
+                pf[p.name] = (
+                    float,
+                    Field(p.default, ge=p.lo, le=p.hi, description=desc, allow_inf_nan=False),
+                )
+        m = create_model(
+            f"{kind.title()}_{eff.name}", __config__=ConfigDict(extra="forbid", strict=True), **pf
+        )
         m.__doc__ = eff.doc
         fields[eff.name] = (m | None, Field(None, description=eff.doc))
-    model = create_model(f"{kind.title()}Effects", __config__=ConfigDict(extra="forbid", strict=True), **fields)
-    model.__doc__ = f"Effects of a {kind} bench; an effect is on when it is named (offaxis_coupling is on unless disabled)."
+    model = create_model(
+        f"{kind.title()}Effects", __config__=ConfigDict(extra="forbid", strict=True), **fields
+    )
+    model.__doc__ = (
+        f"Effects of a {kind} bench; an effect is on when it is named "
+        "(offaxis_coupling is on unless disabled)."
+    )
     return model
 
 
@@ -83,7 +93,8 @@ else:
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 MAX_AXIS_VALUES = 100_000  # values of one grid axis
-MAX_ROWS = 1_000_000  # rows of a simulated dataset: far beyond any bench run, and still a file of tens of MB
+# rows of a simulated dataset: far beyond any bench run, and still a file of tens of MB
+MAX_ROWS = 1_000_000
 
 
 class AxisRange(_Strict):
@@ -99,8 +110,10 @@ class AxisRange(_Strict):
         if (self.step is None) == (self.count is None):
             raise ValueError("give exactly one of step or count")
         if self.step is not None and abs(self.stop - self.start) / self.step + 1 > MAX_AXIS_VALUES:
-            raise ValueError(f"step {self.step:g} from {self.start:g} to {self.stop:g} gives more than "
-                             f"{MAX_AXIS_VALUES:,} values")
+            raise ValueError(
+                f"step {self.step:g} from {self.start:g} to {self.stop:g} gives more than "
+                f"{MAX_AXIS_VALUES:,} values"
+            )
         return self
 
     def size(self) -> int:
@@ -134,8 +147,10 @@ def _rows(sc: Scenario) -> tuple[int, str]:
     """Rows the scenario would simulate, and the grid fields that set them."""
     if isinstance(sc, StageScenario):
         g = sc.grid
-        return (axis_size(g.x_deg) * axis_size(g.y_deg) * g.repeats * g.readings_per_stand,
-                "grid.x_deg × grid.y_deg × grid.repeats × grid.readings_per_stand")
+        return (
+            axis_size(g.x_deg) * axis_size(g.y_deg) * g.repeats * g.readings_per_stand,
+            "grid.x_deg × grid.y_deg × grid.repeats × grid.readings_per_stand",
+        )
     if isinstance(sc, RotationScenario):
         return axis_size(sc.grid.theta_deg) * sc.grid.repeats, "grid.theta_deg × grid.repeats"
     if isinstance(sc, ScaleScenario):
@@ -168,11 +183,18 @@ class StageGrid(_Strict):
     repeats: Annotated[int, Field(ge=1, le=1000)] = 1
     order: Literal["serpentine", "raster", "random"] = "serpentine"
     settle_s: Annotated[float, Field(ge=0, le=3600)] = 10.0
-    readings_per_stand: Annotated[int, Field(
-        ge=1, le=1000, description="rows read at each stand of the stage (one move): they share the stage's "
-                                   "positioning error, each has its own reading noise")] = 1
-    reading_interval_s: Annotated[float, Field(
-        gt=0, le=3600, description="time between the readings at one stand (seconds)")] = 1.0
+    readings_per_stand: Annotated[
+        int,
+        Field(
+            ge=1,
+            le=1000,
+            description="rows read at each stand of the stage (one move): they share the stage's "
+            "positioning error, each has its own reading noise",
+        ),
+    ] = 1
+    reading_interval_s: Annotated[
+        float, Field(gt=0, le=3600, description="time between the readings at one stand (seconds)")
+    ] = 1.0
 
 
 class _ScenarioBase(_Strict):
@@ -188,8 +210,11 @@ class StageScenario(_ScenarioBase):
     grid: StageGrid
     environment: Environment = Environment()
     controller_homed: bool = Field(
-        True, description="whether the stage controller has found its reference switches when the simulated bench "
-                          "starts; false: as after power-up, it refuses moves ('not homed') until it is homed")
+        True,
+        description="whether the stage controller has found its reference switches when the "
+        "simulated bench "
+        "starts; false: as after power-up, it refuses moves ('not homed') until it is homed",
+    )
 
 
 if not TYPE_CHECKING:
@@ -210,8 +235,11 @@ class RotationScenario(_ScenarioBase):
 
 if not TYPE_CHECKING:
     ScaleBenchSpec = hardware_model(
-        "ScaleBenchSpec", AnalogSensor,
-        start_arcsec=(Annotated[float, Field(ge=-18_000, le=18_000)], -1780.0))  # where the run starts, not hardware
+        "ScaleBenchSpec",
+        AnalogSensor,
+        # where the run starts, not hardware
+        start_arcsec=(Annotated[float, Field(ge=-18_000, le=18_000)], -1780.0),
+    )
 
 
 class ScaleGrid(_Strict):
@@ -229,9 +257,12 @@ class ScaleScenario(_ScenarioBase):
 
 if not TYPE_CHECKING:
     TurntableBenchSpec = hardware_model(
-        "TurntableBenchSpec", TurntableInclinometer,
-        rotation_deg=(Annotated[float, Field(ge=90, le=270)], 180.0),  # the run's pair geometry, not the sensor
-        reading_unit=(str, "mrad"))
+        "TurntableBenchSpec",
+        TurntableInclinometer,
+        # the run's pair geometry, not the sensor
+        rotation_deg=(Annotated[float, Field(ge=90, le=270)], 180.0),
+        reading_unit=(str, "mrad"),
+    )
 
 
 class AxisTilt(_Strict):
@@ -258,8 +289,10 @@ class ScenarioFile(BaseModel):
     """A tiltlab scenario (one of four kinds, told apart by `kind`)."""
 
     model_config = ConfigDict(title="tiltlab scenario")
-    root: Annotated[StageScenario | RotationScenario | ScaleScenario | TurntableScenario,
-                    Field(discriminator="kind")]
+    root: Annotated[
+        StageScenario | RotationScenario | ScaleScenario | TurntableScenario,
+        Field(discriminator="kind"),
+    ]
 
 
 Scenario = StageScenario | RotationScenario | ScaleScenario | TurntableScenario
@@ -277,13 +310,17 @@ def _union_tag(x: str) -> bool:
 def _format_error(source: str, err: ValidationError) -> str:
     errors = err.errors()
     # For a union (a list or a range), the branch whose shape matched says the useful thing.
-    errors.sort(key=lambda e: e["type"].endswith("_type") and any(_union_tag(str(x)) for x in e["loc"]))
+    errors.sort(
+        key=lambda e: e["type"].endswith("_type") and any(_union_tag(str(x)) for x in e["loc"])
+    )
     e = errors[0]
     loc = [str(x) for x in e["loc"]]
     if loc and loc[0] == "root":
         loc = loc[1:]
     # drop pydantic's union-branch tags ("stage", "AxisRange", "list[...]") from the path
-    loc = [x for x in loc if x not in ("stage", "rotation", "scale", "turntable") and not _union_tag(x)]
+    loc = [
+        x for x in loc if x not in ("stage", "rotation", "scale", "turntable") and not _union_tag(x)
+    ]
     field = ".".join(loc) or "(top level)"
     msg = e["msg"].removeprefix("Value error, ")
     if e["type"] == "extra_forbidden":
@@ -297,31 +334,44 @@ def _format_error(source: str, err: ValidationError) -> str:
     elif "input" in e and not isinstance(e["input"], (dict, list)):
         msg = f"{msg} (got {e['input']!r})"
     more = len(err.errors()) - 1
-    return f"{source}: field {field}: {msg}" + (f" (and {more} more problem{'s' * (more > 1)})" if more else "")
+    return f"{source}: field {field}: {msg}" + (
+        f" (and {more} more problem{'s' * (more > 1)})" if more else ""
+    )
 
 
 def parse_scenario(data: Any, source: str = "scenario") -> Scenario:
     if not isinstance(data, dict):
         raise InputError(f"{source}: a scenario is a JSON object, not {type(data).__name__}")
     if "kind" not in data:
-        raise InputError(f"{source}: field kind: missing required field (one of stage, rotation, scale, turntable)")
+        raise InputError(
+            f"{source}: field kind: missing required field (one of stage, rotation, scale, "
+            "turntable)"
+        )
     if data.get("kind") not in ("stage", "rotation", "scale", "turntable"):
-        raise InputError(f"{source}: field kind: {data.get('kind')!r} is not one of stage, rotation, scale, turntable")
+        raise InputError(
+            f"{source}: field kind: {data.get('kind')!r} is not one of stage, rotation, scale, "
+            "turntable"
+        )
     try:
         sc = ScenarioFile.model_validate({"root": data}).root
     except ValidationError as err:
         raise InputError(_format_error(source, err)) from None
     n, fields = _rows(sc)
     if n > MAX_ROWS:
-        raise InputError(f"{source}: field grid: {fields} gives {n:,} rows, more than the {MAX_ROWS:,} "
-                         "a scenario may simulate")
+        raise InputError(
+            f"{source}: field grid: {fields} gives {n:,} rows, more than the {MAX_ROWS:,} "
+            "a scenario may simulate"
+        )
     if isinstance(sc, StageScenario):
         travel = sc.bench.travel_deg
         for ax in ("x_deg", "y_deg"):
             vals = axis_values(getattr(sc.grid, ax))
             worst = max(abs(v) for v in vals)
             if worst > travel + 1e-9:
-                raise InputError(f"{source}: field grid.{ax}: {worst:g} deg is beyond the stage travel of ±{travel:g} deg")
+                raise InputError(
+                    f"{source}: field grid.{ax}: {worst:g} deg is beyond the stage travel of "
+                    f"±{travel:g} deg"
+                )
     return sc
 
 
@@ -335,11 +385,17 @@ def scenario_data(name_or_path: str | Path) -> tuple[dict[str, Any], str]:
     if not p.suffix and (PRESET_DIR / f"{p.name}.json").exists() and not p.exists():
         p = PRESET_DIR / f"{p.name}.json"
     elif not p.exists():
-        raise InputError(f"scenario {str(name_or_path)!r}: no such preset or file (presets: {', '.join(preset_names())})")
+        raise InputError(
+            f"scenario {str(name_or_path)!r}: no such preset or file (presets: "
+            f"{', '.join(preset_names())})"
+        )
     try:
-        data = json.loads(p.read_text(encoding="utf-8-sig"))  # a byte-order mark from an editor is harmless
+        # a byte-order mark from an editor is harmless
+        data = json.loads(p.read_text(encoding="utf-8-sig"))
     except json.JSONDecodeError as exc:
-        raise InputError(f"{p}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+        raise InputError(
+            f"{p}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}"
+        ) from None
     except RecursionError:
         raise InputError(f"{p}: not a scenario: JSON nested too deeply") from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -363,6 +419,8 @@ def json_schema() -> dict[str, Any]:
     schema.pop("required", None)
     schema.update({k: v for k, v in root.items() if k != "title"})
     schema["description"] = (
-        "A tiltlab scenario: bench parameters, per-effect magnitudes (names of docs/models.md §5 with "
-        "units in the parameter names or descriptions), the point grid, environment and random seed.")
+        "A tiltlab scenario: bench parameters, per-effect magnitudes (names of docs/models.md "
+        "§5 with units in the parameter names or descriptions), the point grid, environment and "
+        "random seed."
+    )
     return schema

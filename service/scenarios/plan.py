@@ -1,5 +1,6 @@
-"""The adaptive plan for a simulated bench described by a scenario: its reading noise, resolutions, stage
-speed and settling give the planner (service.calibration.adaptive_design) what a bench would measure."""
+"""The adaptive plan for a simulated bench described by a scenario: its reading noise, resolutions,
+stage speed and settling give the planner (service.calibration.adaptive_design) what a bench would
+measure."""
 
 from __future__ import annotations
 
@@ -16,16 +17,23 @@ OUTPUT_RATE_HZ = 25.0  # the simulated sensors' default output rate
 
 
 def scenario_noise(sc: StageScenario) -> BenchNoise:
-    """Each sensor's reading noise (σ, with its resolution's r/√12) and the resolutions' part of a corrected tilt."""
+    """Each sensor's reading noise (σ, with its resolution's r/√12) and the resolutions' part of a
+    corrected tilt."""
     fx = effect_set(sc)
     res = {s: fx.get("noise", f"{s}_resolution_deg") for s in ("meas", "ref")}
-    sig = {s: math.hypot(fx.get("noise", f"{s}_sigma_deg"), res[s] / math.sqrt(12.0)) for s in ("meas", "ref")}
-    return BenchNoise(sig["meas"], sig["ref"], math.sqrt(sum((r / math.sqrt(12.0)) ** 2 for r in res.values())))
+    sig = {
+        s: math.hypot(fx.get("noise", f"{s}_sigma_deg"), res[s] / math.sqrt(12.0))
+        for s in ("meas", "ref")
+    }
+    return BenchNoise(
+        sig["meas"], sig["ref"], math.sqrt(sum((r / math.sqrt(12.0)) ** 2 for r in res.values()))
+    )
 
 
 def scenario_times(sc: StageScenario, step_deg: float, noise_deg: float) -> BenchTimes:
-    """Bench time of a point: the stage's rate, and the time a move of `step_deg` takes to settle within the noise
-    (from the scenario's settling, with the statistical test's 1.4 x and three blocks of margin)."""
+    """Bench time of a point: the stage's rate, and the time a move of `step_deg` takes to settle
+    within the noise (from the scenario's settling, with the statistical test's 1.4 x and three
+    blocks of margin)."""
     bench = hardware_of(sc)
     rate = SIM_STAGE_VELOCITY_PPS * min(bench.pulse_x_deg, bench.pulse_y_deg)
     st = settling_of(effect_set(sc))
@@ -33,7 +41,11 @@ def scenario_times(sc: StageScenario, step_deg: float, noise_deg: float) -> Benc
     tr = move_transient_deg(st, Move(-step_deg / rate, step_deg, step_deg / rate), t)
     above = np.nonzero(np.abs(tr) >= noise_deg)[0]
     below_s = float(t[above[-1] + 1]) if above.size and above[-1] + 1 < t.size else 0.0
-    return BenchTimes(stage_rate_deg_per_s=rate, settle_s=1.4 * below_s + 12 / OUTPUT_RATE_HZ, output_rate_hz=OUTPUT_RATE_HZ)
+    return BenchTimes(
+        stage_rate_deg_per_s=rate,
+        settle_s=1.4 * below_s + 12 / OUTPUT_RATE_HZ,
+        output_rate_hz=OUTPUT_RATE_HZ,
+    )
 
 
 def plan_for_scenario(sc: StageScenario, target_deg: float) -> AdaptivePlan:
@@ -42,4 +54,6 @@ def plan_for_scenario(sc: StageScenario, target_deg: float) -> AdaptivePlan:
     noise = scenario_noise(sc)
     step = max((max(xs) - min(xs)) / max(len(xs) - 1, 1), (max(ys) - min(ys)) / max(len(ys) - 1, 1))
     times = scenario_times(sc, step, min(noise.meas_sigma_deg, noise.ref_sigma_deg))
-    return plan_adaptive((min(xs), max(xs)), (min(ys), max(ys)), len(xs), len(ys), target_deg, noise, times)
+    return plan_adaptive(
+        (min(xs), max(xs)), (min(ys), max(ys)), len(xs), len(ys), target_deg, noise, times
+    )

@@ -12,7 +12,12 @@ from service.io import columns
 from service.physics.analog import AnalogSensor, simulate_scale
 from service.physics.effects import EffectSet
 from service.physics.rotation_axis import RotationBench, simulate_rotation
-from service.physics.settling import SIM_STAGE_VELOCITY_PPS, moves_along, settling_of, transient_along_deg
+from service.physics.settling import (
+    SIM_STAGE_VELOCITY_PPS,
+    moves_along,
+    settling_of,
+    transient_along_deg,
+)
 from service.physics.stage import StageBench, simulate_stage
 from service.physics.turntable import TurntableInclinometer, simulate_turntable
 from service.scenarios.model import (
@@ -30,7 +35,8 @@ from service.scenarios.model import (
 @dataclass
 class SimulatedRun:
     kind: str
-    columns: dict[str, NDArray[Any]]  # what the bench recorded, in dataset order (point indices are integers)
+    # what the bench recorded, in dataset order (point indices are integers)
+    columns: dict[str, NDArray[Any]]
     truth: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # what it could not record
     bench: Any = None
     effects: EffectSet | None = None
@@ -45,11 +51,16 @@ def hardware_of(scenario: ScaleScenario) -> AnalogSensor: ...
 @overload
 def hardware_of(scenario: TurntableScenario) -> TurntableInclinometer: ...
 @overload
-def hardware_of(scenario: Scenario) -> StageBench | RotationBench | AnalogSensor | TurntableInclinometer: ...
+def hardware_of(
+    scenario: Scenario,
+) -> StageBench | RotationBench | AnalogSensor | TurntableInclinometer: ...
 
 
-def hardware_of(scenario: Scenario) -> StageBench | RotationBench | AnalogSensor | TurntableInclinometer:
-    """The physics model of the scenario's fixed hardware (stacked stages, rotary table, ADC sensor or turntable)."""
+def hardware_of(
+    scenario: Scenario,
+) -> StageBench | RotationBench | AnalogSensor | TurntableInclinometer:
+    """The physics model of the scenario's fixed hardware (stacked stages, rotary table, ADC sensor
+    or turntable)."""
     b = scenario.bench
     if isinstance(scenario, StageScenario):
         return StageBench(**b.model_dump())
@@ -68,12 +79,17 @@ def effect_set(scenario: Scenario) -> EffectSet:
 
 def temperature(env: Environment, t_s: ArrayLike) -> NDArray[np.float64]:
     t_h = np.asarray(t_s, dtype=float) / 3600.0
-    temp: NDArray[np.float64] = env.temp_c + env.temp_rate_c_per_h * t_h + env.temp_amp_c * np.sin(2 * np.pi * t_h / env.temp_period_h)
+    temp: NDArray[np.float64] = (
+        env.temp_c
+        + env.temp_rate_c_per_h * t_h
+        + env.temp_amp_c * np.sin(2 * np.pi * t_h / env.temp_period_h)
+    )
     return temp
 
 
 def move_directions(cmd: NDArray[np.float64], start: float) -> NDArray[np.float64]:
-    """Direction of the last move that reached each command (+1/-1); a point not moved to keeps the last."""
+    """Direction of the last move that reached each command (+1/-1); a point not moved to keeps the
+    last."""
     prev = np.concatenate([[start], cmd[:-1]])
     d = np.sign(cmd - prev)
     last = 1.0
@@ -84,7 +100,9 @@ def move_directions(cmd: NDArray[np.float64], start: float) -> NDArray[np.float6
     return out
 
 
-def stage_sequence(scenario: StageScenario, rng: np.random.Generator) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+def stage_sequence(
+    scenario: StageScenario, rng: np.random.Generator
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Commanded (x, y) in visiting order and each row's grid-point index."""
     xs = np.array(axis_values(scenario.grid.x_deg))
     ys = np.array(axis_values(scenario.grid.y_deg))
@@ -102,28 +120,41 @@ def stage_sequence(scenario: StageScenario, rng: np.random.Generator) -> tuple[N
     gx, gy, gi = np.array(px), np.array(py), np.array(pi)
     parts = []
     for _ in range(scenario.grid.repeats):
-        parts.append(rng.permutation(len(gx)) if scenario.grid.order == "random" else np.arange(len(gx)))
+        parts.append(
+            rng.permutation(len(gx)) if scenario.grid.order == "random" else np.arange(len(gx))
+        )
     order = np.concatenate(parts)
     return gx[order], gy[order], gi[order]
 
 
-def settling_transient_deg(scenario: StageScenario, bench: StageBench, fx: EffectSet, cx: NDArray[np.float64],
-                           cy: NDArray[np.float64], t_s: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Each stage's settling transient at the rows' times: the stage leaves for each point `settle_s` before its
-    row is read (as the previous row is read), moving at the simulated controller's velocity as the daemon's
-    simulated bench does, so a reading at the same time after the same moves is the same offline and on the bench."""
+def settling_transient_deg(
+    scenario: StageScenario,
+    bench: StageBench,
+    fx: EffectSet,
+    cx: NDArray[np.float64],
+    cy: NDArray[np.float64],
+    t_s: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Each stage's settling transient at the rows' times: the stage leaves for each point
+    `settle_s` before its row is read (as the previous row is read), moving at the simulated
+    controller's velocity as the daemon's simulated bench does, so a reading at the same time after
+    the same moves is the same offline and on the bench."""
     st = settling_of(fx)
     if st.is_instant:
         return np.zeros_like(cx), np.zeros_like(cy)
     depart = t_s - scenario.grid.settle_s
     out = []
     for cmd, pulse in ((cx, bench.pulse_x_deg), (cy, bench.pulse_y_deg)):
-        moves = moves_along(cmd.tolist(), -bench.travel_deg, depart.tolist(), SIM_STAGE_VELOCITY_PPS * pulse)
+        moves = moves_along(
+            cmd.tolist(), -bench.travel_deg, depart.tolist(), SIM_STAGE_VELOCITY_PPS * pulse
+        )
         out.append(transient_along_deg(st, moves, t_s))
     return out[0], out[1]
 
 
-def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = False) -> SimulatedRun:
+def run_scenario(
+    scenario: Scenario, seed: int | None = None, noiseless: bool = False
+) -> SimulatedRun:
     rng = np.random.default_rng(scenario.seed if seed is None else seed)
     fx = effect_set(scenario)
     noise_rng = None if noiseless else rng
@@ -138,33 +169,51 @@ def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = 
         t_s = np.arange(len(cx), dtype=float) * scenario.grid.settle_s
         stand = None
         if (per := scenario.grid.readings_per_stand) > 1:
-            # each stand read `per` times while the stage stands: one move, one positioning draw, `per` rows
+            # each stand read `per` times while the stage stands: one move, one positioning draw,
+            # `per` rows
             k = np.tile(np.arange(per), len(cx))
-            t_s = (np.arange(len(cx), dtype=float) * (scenario.grid.settle_s + (per - 1) * scenario.grid.reading_interval_s)
-                   ).repeat(per) + k * scenario.grid.reading_interval_s
+            t_s = (
+                np.arange(len(cx), dtype=float)
+                * (scenario.grid.settle_s + (per - 1) * scenario.grid.reading_interval_s)
+            ).repeat(per) + k * scenario.grid.reading_interval_s
             cx, cy, point, dx, dy = (np.repeat(v, per) for v in (cx, cy, point, dx, dy))
             stand = np.arange(len(cx)) // per
         temp = temperature(scenario.environment, t_s)
         sx, sy = settling_transient_deg(scenario, bench, fx, cx, cy, t_s)
         sim = simulate_stage(bench, fx, cx + sx, cy + sy, dx, dy, temp, t_s, noise_rng, stand=stand)
-        cols = {"point": point, "stage_x_deg": cx, "stage_y_deg": cy, "dir_x": dx, "dir_y": dy,
-                **{k: sim[k] for k in columns.REF + columns.MEAS}, "temp_c": temp, "t_s": t_s}
+        cols = {
+            "point": point,
+            "stage_x_deg": cx,
+            "stage_y_deg": cy,
+            "dir_x": dx,
+            "dir_y": dy,
+            **{k: sim[k] for k in columns.REF + columns.MEAS},
+            "temp_c": temp,
+            "t_s": t_s,
+        }
         truth = {k: sim[k] for k in ("tilt_x_deg", "tilt_y_deg", "actual_x_deg", "actual_y_deg")}
         return SimulatedRun("stage", cols, truth, bench, fx)
     if isinstance(scenario, RotationScenario):
         rotation_bench = hardware_of(scenario)
         theta = np.tile(np.array(axis_values(scenario.grid.theta_deg)), scenario.grid.repeats)
         sim = simulate_rotation(rotation_bench, fx, theta, noise_rng)
-        cols = {"point": np.arange(len(theta)) % (len(theta) // scenario.grid.repeats),
-                **{k: sim[k] for k in columns.ROTATION_DATASET[1:]}}
-        return SimulatedRun("rotation", cols, {"theta_true_deg": sim["theta_true_deg"]}, rotation_bench, fx)
+        cols = {
+            "point": np.arange(len(theta)) % (len(theta) // scenario.grid.repeats),
+            **{k: sim[k] for k in columns.ROTATION_DATASET[1:]},
+        }
+        return SimulatedRun(
+            "rotation", cols, {"theta_true_deg": sim["theta_true_deg"]}, rotation_bench, fx
+        )
     if isinstance(scenario, ScaleScenario):
         sensor = hardware_of(scenario)
         ref = np.tile(np.array(axis_values(scenario.grid.ref_arcsec)), scenario.grid.repeats)
         temp = np.full(ref.shape, scenario.environment.temp_c)
         sim = simulate_scale(sensor, fx, ref, scenario.bench.start_arcsec, temp, noise_rng)
-        cols = {"point": np.arange(len(ref)) % (len(ref) // scenario.grid.repeats),
-                "ref_arcsec": sim["ref_arcsec"], "reading": sim["reading"]}
+        cols = {
+            "point": np.arange(len(ref)) % (len(ref) // scenario.grid.repeats),
+            "ref_arcsec": sim["ref_arcsec"],
+            "reading": sim["reading"],
+        }
         return SimulatedRun("scale", cols, {"true_ref_arcsec": sim["true_ref_arcsec"]}, sensor, fx)
     assert isinstance(scenario, TurntableScenario)
     turntable = hardware_of(scenario)
@@ -174,8 +223,19 @@ def run_scenario(scenario: Scenario, seed: int | None = None, noiseless: bool = 
     cycle = np.repeat(np.arange(len(cyc)), len(az))
     north = np.repeat([c.north_arcsec for c in cyc], len(az))
     east = np.repeat([c.east_arcsec for c in cyc], len(az))
-    sim = simulate_turntable(turntable, fx, azimuth, north, east, scenario.bench.rotation_deg,
-                             scenario.grid.pair_interval_s, noise_rng)
+    sim = simulate_turntable(
+        turntable,
+        fx,
+        azimuth,
+        north,
+        east,
+        scenario.bench.rotation_deg,
+        scenario.grid.pair_interval_s,
+        noise_rng,
+    )
     cols = {"cycle": cycle, **{k: sim[k] for k in columns.TURNTABLE_DATASET[1:]}}
-    truth = {"true_north_arcsec": sim["true_north_arcsec"], "true_east_arcsec": sim["true_east_arcsec"]}
+    truth = {
+        "true_north_arcsec": sim["true_north_arcsec"],
+        "true_east_arcsec": sim["true_east_arcsec"],
+    }
     return SimulatedRun("turntable", cols, truth, turntable, fx)

@@ -1,8 +1,8 @@
 """Persistence: calibration records, jobs, raw samples and the audit log (SQLite or PostgreSQL).
 
-Start-up: `engine = bootstrap(settings)`; then `Store(engine)` for records and actions (one repository
-per aggregate: `store.records`, `store.jobs`, ...) and `SampleWriter(engine)` for the sample stream.
-Does not import the physics or calibration code.
+Start-up: `engine = bootstrap(settings)`; then `Store(engine)` for records and actions (one
+repository per aggregate: `store.records`, `store.jobs`, ...) and `SampleWriter(engine)` for the
+sample stream. Does not import the physics or calibration code.
 """
 
 from service.storage.engine import make_engine, write_engine

@@ -28,12 +28,15 @@ def sqlite_path(url: str | sa.URL) -> Path | None:
         return None
     database = u.database or ""
     if database in ("", ":memory:") or database.startswith("file::memory:"):
-        raise InputError("the database is an in-memory SQLite database; there is no file to back up")
+        raise InputError(
+            "the database is an in-memory SQLite database; there is no file to back up"
+        )
     return Path(database).expanduser()
 
 
 def database_exists(url: str | sa.URL) -> bool:
-    """Whether a SQLite file is there (PostgreSQL: assumed, the server says otherwise on connect)."""
+    """Whether a SQLite file is there (PostgreSQL: assumed, the server says otherwise on
+    connect)."""
     try:
         path = sqlite_path(url)
     except InputError:
@@ -58,7 +61,8 @@ def backup_sqlite(source: Path, out: Path) -> Path:
             dst = sqlite3.connect(tmp)
             try:
                 src.backup(dst)
-                dst.execute("PRAGMA journal_mode=DELETE")  # one self-contained file, no -wal beside it
+                # one self-contained file, no -wal beside it
+                dst.execute("PRAGMA journal_mode=DELETE")
             finally:
                 dst.close()
         finally:

@@ -47,7 +47,14 @@ def _check_finite(value: Any, path: str) -> None:
 
 def canonical_json(value: Any) -> str:
     try:
-        text = json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_default)
+        text = json.dumps(
+            value,
+            sort_keys=True,
+            separators=(",", ":"),
+            ensure_ascii=False,
+            allow_nan=False,
+            default=_default,
+        )
     except ValueError:
         _check_finite(json.loads(json.dumps(value, default=_default)), "content")
         raise

@@ -36,17 +36,26 @@ def disk_full(exc: BaseException) -> bool:
     orig = getattr(exc, "orig", None) if isinstance(exc, sa.exc.DBAPIError) else None
     if orig is None:
         return False
-    if getattr(orig, "sqlite_errorcode", None) == _SQLITE_FULL or "database or disk is full" in str(orig):
+    if getattr(orig, "sqlite_errorcode", None) == _SQLITE_FULL or "database or disk is full" in str(
+        orig
+    ):
         return True
-    return getattr(orig, "sqlstate", None) == _PG_DISK_FULL or "No space left on device" in str(orig)
+    return getattr(orig, "sqlstate", None) == _PG_DISK_FULL or "No space left on device" in str(
+        orig
+    )
 
 
 def folders_of(data_dir: Path, database_url: str) -> list[Path]:
-    """The folders whose disk the daemon writes: its data directory, and an SQLite database's folder."""
+    """The folders whose disk the daemon writes: its data directory, and an SQLite database's
+    folder."""
     folders = [Path(data_dir)]
     u = make_url(database_url)
-    if u.get_backend_name() == "sqlite" and u.database and not u.database.startswith(":memory:") \
-            and not u.database.startswith("file::memory:"):
+    if (
+        u.get_backend_name() == "sqlite"
+        and u.database
+        and not u.database.startswith(":memory:")
+        and not u.database.startswith("file::memory:")
+    ):
         folder = Path(u.database).expanduser().parent
         if folder.resolve() != Path(data_dir).resolve():
             folders.append(folder)
@@ -64,7 +73,8 @@ class Space:
 
 
 class DiskWatch:
-    """The free space of the folders the daemon writes, against the least it keeps (`min_free_mb`)."""
+    """The free space of the folders the daemon writes, against the least it keeps
+    (`min_free_mb`)."""
 
     def __init__(self, folders: list[Path], min_free_mb: float) -> None:
         self.folders = folders
@@ -85,8 +95,10 @@ class DiskWatch:
         return min(low, key=lambda s: s.free_bytes) if low else None
 
     def reason(self, space: Space) -> str:
-        return (f"disk full: {space.free_mb:.1f} MB free on {space.folder} (the daemon keeps at least"
-                f" {self.min_free_mb:g} MB free: TILTLAB_MIN_FREE_MB)")
+        return (
+            f"disk full: {space.free_mb:.1f} MB free on {space.folder} (the daemon keeps at least"
+            f" {self.min_free_mb:g} MB free: TILTLAB_MIN_FREE_MB)"
+        )
 
     def check(self) -> None:
         """DiskFull naming the folder when one has less free space than the daemon keeps."""
@@ -95,12 +107,17 @@ class DiskWatch:
             raise DiskFull(errno.ENOSPC, self.reason(space))
 
     def described(self, exc: BaseException) -> str:
-        """A full-disk failure in words naming the disk: the emptiest folder's free space, or the database's."""
+        """A full-disk failure in words naming the disk: the emptiest folder's free space, or the
+        database's."""
         if isinstance(exc, DiskFull) and exc.strerror:
             return exc.strerror
         spaces = self.spaces()
         emptiest = min(spaces, key=lambda s: s.free_bytes) if spaces else None
-        where = (f"{emptiest.free_mb:.1f} MB free on {emptiest.folder}" if emptiest is not None else "the data directory")
+        where = (
+            f"{emptiest.free_mb:.1f} MB free on {emptiest.folder}"
+            if emptiest is not None
+            else "the data directory"
+        )
         orig = getattr(exc, "orig", None) or exc
         said = " ".join(str(orig).split())[:200]
         return f"disk full: {where} ({said})"

@@ -18,10 +18,16 @@ from sqlalchemy.engine import make_url
 from service.errors import InputError
 
 _BEGIN_OPTION = "tiltlab_sqlite_begin"
-# libpq: give up connecting after 10 s; probe an idle connection after 10 s, every 5 s, 3 times; drop a
-# connection whose sent data stays unacknowledged for 30 s.
-_PG_CONNECT_TIMEOUTS = {"connect_timeout": 10, "keepalives": 1, "keepalives_idle": 10, "keepalives_interval": 5,
-                        "keepalives_count": 3, "tcp_user_timeout": 30_000}
+# libpq: give up connecting after 10 s; probe an idle connection after 10 s, every 5 s, 3 times;
+# drop a connection whose sent data stays unacknowledged for 30 s.
+_PG_CONNECT_TIMEOUTS = {
+    "connect_timeout": 10,
+    "keepalives": 1,
+    "keepalives_idle": 10,
+    "keepalives_interval": 5,
+    "keepalives_count": 3,
+    "tcp_user_timeout": 30_000,
+}
 
 
 def normalise_url(url: str) -> sa.URL:
@@ -32,7 +38,9 @@ def normalise_url(url: str) -> sa.URL:
     if u.drivername in ("postgresql", "postgres"):
         u = u.set(drivername="postgresql+psycopg")
     if u.get_backend_name() not in ("sqlite", "postgresql"):
-        raise InputError(f"database URL {u.render_as_string()!r}: only sqlite and postgresql are supported")
+        raise InputError(
+            f"database URL {u.render_as_string()!r}: only sqlite and postgresql are supported"
+        )
     return u
 
 
@@ -41,8 +49,9 @@ def make_engine(url: str | sa.URL, *, busy_timeout_ms: int = 30_000, **kwargs: A
     if u.get_backend_name() == "sqlite":
         return _sqlite_engine(u, busy_timeout_ms, **kwargs)
     kwargs.setdefault("pool_pre_ping", True)
-    # A server that vanishes without a word (a cable pulled, a host frozen) must fail a connection in
-    # seconds, not hang it: the daemon then knows the database is away and waits it out (outage.py).
+    # A server that vanishes without a word (a cable pulled, a host frozen) must fail a connection
+    # in seconds, not hang it: the daemon then knows the database is away and waits it out
+    # (outage.py).
     connect_args = {**_PG_CONNECT_TIMEOUTS, **kwargs.pop("connect_args", {})}
     return sa.create_engine(u, connect_args=connect_args, **kwargs)
 
@@ -55,9 +64,11 @@ def _sqlite_engine(u: sa.URL, busy_timeout_ms: int, **kwargs: Any) -> sa.Engine:
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:  # a setting that cannot work: one line naming it, not a traceback
-            raise InputError(f"TILTLAB_DATABASE_URL: the SQLite file {database} cannot be made, its folder {folder} "
-                             f"cannot be created ({exc.strerror}); set TILTLAB_DATABASE_URL (or TILTLAB_DATA_DIR) "
-                             "to a file in a folder this user can write") from None
+            raise InputError(
+                f"TILTLAB_DATABASE_URL: the SQLite file {database} cannot be made, its folder "
+                f"{folder} cannot be created ({exc.strerror}); set TILTLAB_DATABASE_URL (or "
+                "TILTLAB_DATA_DIR) to a file in a folder this user can write"
+            ) from None
     connect_args = kwargs.pop("connect_args", {})
     connect_args.setdefault("timeout", busy_timeout_ms / 1000)
     connect_args.setdefault("check_same_thread", False)

@@ -18,11 +18,13 @@ class IllegalTransition(RefusedWrite):
 
 
 class ConflictError(RefusedWrite):
-    """The write conflicts with the current state (e.g. a second active pointer); re-read and retry."""
+    """The write conflicts with the current state (e.g. a second active pointer); re-read and
+    retry."""
 
 
 class RecordNotUsable(ConflictError):
-    """A record that must never correct a reading: rejected, or its stored content no longer matches its hash."""
+    """A record that must never correct a reading: rejected, or its stored content no longer matches
+    its hash."""
 
 
 class AppendOnlyViolation(RefusedWrite):

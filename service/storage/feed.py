@@ -18,21 +18,42 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from service.errors import InputError
-from service.storage.models import AuditEvent, CalibrationJob, CalibrationRecord, FeedEvent, WebhookDelivery, WebhookEndpoint
+from service.storage.models import (
+    AuditEvent,
+    CalibrationJob,
+    CalibrationRecord,
+    FeedEvent,
+    WebhookDelivery,
+    WebhookEndpoint,
+)
 
 EVENT_TYPES = (
-    "job.state", "record.created", "record.reviewed", "record.approved", "record.rejected", "record.activated",
-    "certificate.issued", "standard.due_soon", "order.created", "diagnosis.finished",
-)  # fmt: skip
+    "job.state",
+    "record.created",
+    "record.reviewed",
+    "record.approved",
+    "record.rejected",
+    "record.activated",
+    "certificate.issued",
+    "standard.due_soon",
+    "order.created",
+    "diagnosis.finished",
+)
 _JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
-ROW_ANCHORS = "rows_sha256"  # an audit event's hashes of the rows it changed (service/storage/rowhash.py)
+# an audit event's hashes of the rows it changed (service/storage/rowhash.py)
+ROW_ANCHORS = "rows_sha256"
 
 
 def _job_event(s: Session, e: AuditEvent, state: str) -> dict[str, Any]:
     job = s.get(CalibrationJob, int(e.entity_id))
-    return {"job_id": int(e.entity_id), "state": state, "previous_state": e.details.get("from"),
-            "failure_reason": e.details.get("failure_reason"), "order_id": job.order_id if job else None,
-            "bench_id": job.bench_id if job else None}  # fmt: skip
+    return {
+        "job_id": int(e.entity_id),
+        "state": state,
+        "previous_state": e.details.get("from"),
+        "failure_reason": e.details.get("failure_reason"),
+        "order_id": job.order_id if job else None,
+        "bench_id": job.bench_id if job else None,
+    }
 
 
 def _record_event(s: Session, record_id: int, extra: Mapping[str, Any]) -> dict[str, Any]:
@@ -40,14 +61,23 @@ def _record_event(s: Session, record_id: int, extra: Mapping[str, Any]) -> dict[
     job = s.get(CalibrationJob, r.job_id) if r is not None and r.job_id is not None else None
     base: dict[str, Any] = {"record_id": record_id}
     if r is not None:
-        base.update({"device_id": r.device_id, "kind": r.kind, "version": r.version, "method": r.method,
-                     "content_sha256": r.content_sha256, "job_id": r.job_id,
-                     "order_id": job.order_id if job else None})  # fmt: skip
+        base.update(
+            {
+                "device_id": r.device_id,
+                "kind": r.kind,
+                "version": r.version,
+                "method": r.method,
+                "content_sha256": r.content_sha256,
+                "job_id": r.job_id,
+                "order_id": job.order_id if job else None,
+            }
+        )
     return {**base, **extra}
 
 
 def event_for(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
-    """The feed event (type, data) an audit event stands for, or None if a LIMS need not hear of it."""
+    """The feed event (type, data) an audit event stands for, or None if a LIMS need not hear of
+    it."""
     action, d = e.action, e.details
     if action == "job.create":
         return "job.state", _job_event(s, e, "queued")
@@ -58,17 +88,33 @@ def event_for(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
     if action == "record.create":
         return "record.created", _record_event(s, int(e.entity_id), {})
     if action == "pointer.set":
-        return "record.activated", _record_event(s, int(d["record_id"]), {"previous_record_id": d.get("previous_record_id")})
+        return "record.activated", _record_event(
+            s, int(d["record_id"]), {"previous_record_id": d.get("previous_record_id")}
+        )
     if action in ("record.review", "record.approve", "record.reject"):
-        kind = {"record.review": "record.reviewed", "record.approve": "record.approved",
-                "record.reject": "record.rejected"}[action]  # fmt: skip
-        return kind, _record_event(s, int(e.entity_id), {k: d.get(k) for k in ("approval_id", "actor", "signer", "meaning", "note", "record_sha256")})
-    data = {k: v for k, v in d.items() if k != ROW_ANCHORS}  # the rows' hashes are the audit chain's, not news
+        kind = {
+            "record.review": "record.reviewed",
+            "record.approve": "record.approved",
+            "record.reject": "record.rejected",
+        }[action]
+        return kind, _record_event(
+            s,
+            int(e.entity_id),
+            {
+                k: d.get(k)
+                for k in ("approval_id", "actor", "signer", "meaning", "note", "record_sha256")
+            },
+        )
+    # the rows' hashes are the audit chain's, not news
+    data = {k: v for k, v in d.items() if k != ROW_ANCHORS}
     if action == "diagnosis.finish":
         return "diagnosis.finished", data
     if action in ("certificate.issue", "standard.due_soon", "order.create"):
-        return {"certificate.issue": "certificate.issued", "standard.due_soon": "standard.due_soon",
-                "order.create": "order.created"}[action], data  # fmt: skip
+        return {
+            "certificate.issue": "certificate.issued",
+            "standard.due_soon": "standard.due_soon",
+            "order.create": "order.created",
+        }[action], data
     return None
 
 
@@ -81,17 +127,34 @@ def append_for_audit(s: Session, e: AuditEvent) -> FeedEvent | None:
     event = FeedEvent(type=kind, at=e.at, data=data, audit_event_id=e.id)
     s.add(event)
     s.flush()
-    endpoints = s.execute(sa.select(WebhookEndpoint.id, WebhookEndpoint.events).where(WebhookEndpoint.disabled_at.is_(None)))
+    endpoints = s.execute(
+        sa.select(WebhookEndpoint.id, WebhookEndpoint.events).where(
+            WebhookEndpoint.disabled_at.is_(None)
+        )
+    )
     for endpoint_id, events in endpoints:
         if "*" in events or kind in events:
-            s.add(WebhookDelivery(endpoint_id=endpoint_id, event_id=event.id, state="pending", attempts=0,
-                                  next_attempt_at=e.at, created_at=e.at))  # fmt: skip
+            s.add(
+                WebhookDelivery(
+                    endpoint_id=endpoint_id,
+                    event_id=event.id,
+                    state="pending",
+                    attempts=0,
+                    next_attempt_at=e.at,
+                    created_at=e.at,
+                )
+            )
     return event
 
 
 def event_json(e: FeedEvent) -> dict[str, Any]:
     """An event as the feed and the webhooks show it."""
-    return {"id": event_id(e.id), "type": e.type, "time_utc": e.at.strftime("%Y-%m-%dT%H:%M:%S.%fZ"), "data": e.data}
+    return {
+        "id": event_id(e.id),
+        "type": e.type,
+        "time_utc": e.at.strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
+        "data": e.data,
+    }
 
 
 def event_id(n: int) -> str:
@@ -120,4 +183,6 @@ def decode_cursor(cursor: str | None) -> int:
             raise ValueError
         return value
     except (ValueError, binascii.Error, UnicodeDecodeError):
-        raise InputError(f"cursor {cursor[:40]!r} is not a cursor this feed gave out; start without one") from None
+        raise InputError(
+            f"cursor {cursor[:40]!r} is not a cursor this feed gave out; start without one"
+        ) from None

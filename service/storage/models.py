@@ -17,8 +17,17 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 
 from service.storage.errors import AppendOnlyViolation
 
-APPEND_ONLY_TABLES = ("calibration_records", "audit_events", "active_calibration_history", "settled_points",
-                      "record_approvals", "certificates", "feed_events", "diagnoses", "diagnosis_results")
+APPEND_ONLY_TABLES = (
+    "calibration_records",
+    "audit_events",
+    "active_calibration_history",
+    "settled_points",
+    "record_approvals",
+    "certificates",
+    "feed_events",
+    "diagnoses",
+    "diagnosis_results",
+)
 
 
 class JobState(StrEnum):
@@ -50,7 +59,9 @@ class UTCDateTime(sa.TypeDecorator[dt.datetime]):
     impl = sa.DateTime(timezone=True)
     cache_ok = True
 
-    def process_bind_param(self, value: dt.datetime | None, dialect: sa.Dialect) -> dt.datetime | None:
+    def process_bind_param(
+        self, value: dt.datetime | None, dialect: sa.Dialect
+    ) -> dt.datetime | None:
         if value is None:
             return None
         if value.tzinfo is None:
@@ -58,7 +69,9 @@ class UTCDateTime(sa.TypeDecorator[dt.datetime]):
         value = value.astimezone(dt.UTC)
         return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
 
-    def process_result_value(self, value: dt.datetime | None, dialect: sa.Dialect) -> dt.datetime | None:
+    def process_result_value(
+        self, value: dt.datetime | None, dialect: sa.Dialect
+    ) -> dt.datetime | None:
         if value is None:
             return None
         return value.replace(tzinfo=dt.UTC) if value.tzinfo is None else value.astimezone(dt.UTC)
@@ -75,7 +88,12 @@ def utc_now() -> dt.datetime:
 
 class Base(DeclarativeBase):
     metadata = sa.MetaData(naming_convention=NAMING)
-    type_annotation_map = {dt.datetime: UTCDateTime(), float: sa.Double(), dict[str, Any]: sa.JSON(), list[Any]: sa.JSON()}
+    type_annotation_map = {
+        dt.datetime: UTCDateTime(),
+        float: sa.Double(),
+        dict[str, Any]: sa.JSON(),
+        list[Any]: sa.JSON(),
+    }
 
 
 class Bench(Base):
@@ -108,7 +126,10 @@ class Device(Base):
 class CalibrationJob(Base):
     __tablename__ = "calibration_jobs"
     __table_args__ = (
-        sa.CheckConstraint(sa.text("state IN ('queued', 'running', 'succeeded', 'failed', 'cancelled')"), name="state"),
+        sa.CheckConstraint(
+            sa.text("state IN ('queued', 'running', 'succeeded', 'failed', 'cancelled')"),
+            name="state",
+        ),
         sa.CheckConstraint(sa.text("progress >= 0 AND progress <= 1"), name="progress"),
     )
 
@@ -131,20 +152,25 @@ class CalibrationJob(Base):
     phase: Mapped[str | None] = mapped_column(sa.String(16))
     # Set when a daemon restart found the job running: it is then failed and may be resumed.
     interrupted: Mapped[bool] = mapped_column(default=False, server_default=sa.false())
-    updated_at: Mapped[dt.datetime | None] = mapped_column(index=True, default=utc_now, onupdate=utc_now)
+    updated_at: Mapped[dt.datetime | None] = mapped_column(
+        index=True, default=utc_now, onupdate=utc_now
+    )
     # The LIMS order the job works on, if any.
     order_id: Mapped[int | None] = mapped_column(sa.ForeignKey("orders.id"), index=True)
-    # Bench time spent so far, by activity ({"total", "moving", "settling", "reading"}, bench seconds).
+    # Bench time spent so far, by activity ({"total", "moving", "settling", "reading"}, bench
+    # seconds).
     bench_seconds: Mapped[dict[str, Any] | None]
 
 
 class CalibrationRecord(Base):
-    """One immutable calibration version of (device, kind); hashed and chained to its predecessor."""
+    """One immutable calibration version of (device, kind); hashed and chained to its
+    predecessor."""
 
     __tablename__ = "calibration_records"
     __table_args__ = (
         sa.UniqueConstraint("device_id", "kind", "version"),
-        # Target of the active pointer's composite key: a pointer can only name a record of its own device+kind.
+        # Target of the active pointer's composite key: a pointer can only name a record of its own
+        # device+kind.
         sa.UniqueConstraint("id", "device_id", "kind"),
         sa.CheckConstraint(sa.text("version >= 1"), name="version"),
     )
@@ -172,7 +198,8 @@ class CalibrationRecord(Base):
 
 
 class ActiveCalibration(Base):
-    """The one active version per (device, kind): the primary key makes a second pointer impossible."""
+    """The one active version per (device, kind): the primary key makes a second pointer
+    impossible."""
 
     __tablename__ = "active_calibrations"
     __table_args__ = (
@@ -226,7 +253,9 @@ class Sample(Base):
     __tablename__ = "samples"
     __table_args__ = (
         sa.CheckConstraint(sa.text("source IN ('calibration', 'monitoring')"), name="source"),
-        sa.CheckConstraint(sa.text("source = 'monitoring' OR job_id IS NOT NULL"), name="calibration_job"),
+        sa.CheckConstraint(
+            sa.text("source = 'monitoring' OR job_id IS NOT NULL"), name="calibration_job"
+        ),
         sa.Index(None, "device_id", "t_s"),
         sa.Index(
             None,
@@ -274,8 +303,8 @@ class SettledPoint(Base):
     ch_z_std: Mapped[float | None] = mapped_column(sa.Double())
     temp_c_mean: Mapped[float | None] = mapped_column(sa.Double())
     created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
-    # SHA-256 of the raw samples the point was averaged from (this job, device and point), part of the
-    # point's hashed content and so of the record's: an edit of a raw sample breaks the chain
+    # SHA-256 of the raw samples the point was averaged from (this job, device and point), part of
+    # the point's hashed content and so of the record's: an edit of a raw sample breaks the chain
     samples_sha256: Mapped[str | None] = mapped_column(Sha256)
 
 
@@ -291,10 +320,12 @@ class ApiToken(Base):
     created_at: Mapped[dt.datetime]
     created_by: Mapped[str] = mapped_column(sa.String(100))
     revoked_at: Mapped[dt.datetime | None]
-    # The person behind the token: who signs what it approves (a certificate names them, with their function).
+    # The person behind the token: who signs what it approves (a certificate names them, with their
+    # function).
     person_name: Mapped[str | None] = mapped_column(sa.String(200))
     person_function: Mapped[str | None] = mapped_column(sa.String(200))
-    # SHA-256 of every other column, anchored in the audit chain at each change (service/storage/rowhash.py)
+    # SHA-256 of every other column, anchored in the audit chain at each change
+    # (service/storage/rowhash.py)
     row_sha256: Mapped[str | None] = mapped_column(Sha256)
 
 
@@ -330,29 +361,34 @@ class ReferenceStandard(Base):
     calibrated_on: Mapped[dt.date] = mapped_column(sa.Date())
     due_on: Mapped[dt.date] = mapped_column(sa.Date())
     uncertainty: Mapped[str] = mapped_column(sa.Text)  # the certificate's wording, a remark
-    # U (degrees) and its coverage factor k: u = U / k enters every result calibrated against the standard;
-    # empty for a standard whose stated uncertainty could not be read as an angle (refused where used)
+    # U (degrees) and its coverage factor k: u = U / k enters every result calibrated against the
+    # standard; empty for a standard whose stated uncertainty could not be read as an angle (refused
+    # where used)
     expanded_uncertainty_deg: Mapped[float | None] = mapped_column(sa.Double())
     coverage_factor: Mapped[float | None] = mapped_column(sa.Double())
     created_at: Mapped[dt.datetime]
     created_by: Mapped[str] = mapped_column(sa.String(100))
     # The due date a standard.due_soon event was last sent for (once per due date).
     due_soon_notified_on: Mapped[dt.date | None] = mapped_column(sa.Date())
-    # Who calibrated the standard: {"name", "country_code"[, "accreditation", "city"]}; certificates name it.
+    # Who calibrated the standard: {"name", "country_code"[, "accreditation", "city"]}; certificates
+    # name it.
     calibrated_by: Mapped[dict[str, Any] | None] = mapped_column(sa.JSON())
-    # SHA-256 of every other column, anchored in the audit chain at each change (service/storage/rowhash.py)
+    # SHA-256 of every other column, anchored in the audit chain at each change
+    # (service/storage/rowhash.py)
     row_sha256: Mapped[str | None] = mapped_column(Sha256)
 
 
 class Order(Base):
-    """A LIMS order: what the customer wants calibrated; its state follows its jobs, records and certificates."""
+    """A LIMS order: what the customer wants calibrated; its state follows its jobs, records and
+    certificates."""
 
     __tablename__ = "orders"
 
     id: Mapped[int] = mapped_column(primary_key=True)
     lims_order_id: Mapped[str] = mapped_column(sa.String(100), unique=True)
     item_serial: Mapped[str] = mapped_column(sa.String(100))
-    # what the item is, as the customer states it: certificates name it (many instruments do not report it)
+    # what the item is, as the customer states it: certificates name it (many instruments do not
+    # report it)
     item_manufacturer: Mapped[str | None] = mapped_column(sa.String(100))
     item_model: Mapped[str | None] = mapped_column(sa.String(100))
     customer: Mapped[dict[str, Any]]
@@ -363,21 +399,25 @@ class Order(Base):
     created_by: Mapped[str] = mapped_column(sa.String(100))
     idempotency_key: Mapped[str | None] = mapped_column(sa.String(200), unique=True)
     request_sha256: Mapped[str] = mapped_column(Sha256)
-    # What the item must meet: {"max_permissible_error_deg", "decision_rule"[, "guard_band_fraction", "parameters"]};
-    # its certificate then states conformity.
+    # What the item must meet: {"max_permissible_error_deg", "decision_rule"[,
+    # "guard_band_fraction", "parameters"]}; its certificate then states conformity.
     specification: Mapped[dict[str, Any] | None] = mapped_column(sa.JSON())
 
 
 class RecordApproval(Base):
-    """A review, approval or rejection of a record: who, when, meaning, bound to the record's hash; chained."""
+    """A review, approval or rejection of a record: who, when, meaning, bound to the record's hash;
+    chained."""
 
     __tablename__ = "record_approvals"
-    __table_args__ = (sa.CheckConstraint(sa.text("decision IN ('approve', 'reject')"), name="decision"),)
+    __table_args__ = (
+        sa.CheckConstraint(sa.text("decision IN ('approve', 'reject')"), name="decision"),
+    )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     record_id: Mapped[int] = mapped_column(sa.ForeignKey("calibration_records.id"), index=True)
     decision: Mapped[str] = mapped_column(sa.String(16))
-    # The meaning of the signature (21 CFR 11.50): "review" or "approval" for approve, "rejection" for reject.
+    # The meaning of the signature (21 CFR 11.50): "review" or "approval" for approve, "rejection"
+    # for reject.
     meaning: Mapped[str] = mapped_column(sa.String(40))
     note: Mapped[str] = mapped_column(sa.Text)
     actor: Mapped[str] = mapped_column(sa.String(100))
@@ -385,7 +425,8 @@ class RecordApproval(Base):
     record_sha256: Mapped[str] = mapped_column(Sha256)
     prev_sha256: Mapped[str] = mapped_column(Sha256, unique=True)
     sha256: Mapped[str] = mapped_column(Sha256, unique=True)
-    # The person who signed (the token's person at the time): part of what the approval's hash covers.
+    # The person who signed (the token's person at the time): part of what the approval's hash
+    # covers.
     signer_name: Mapped[str | None] = mapped_column(sa.String(200))
     signer_function: Mapped[str | None] = mapped_column(sa.String(200))
 
@@ -407,7 +448,8 @@ class Certificate(Base):
 
 
 class FeedEvent(Base):
-    """One event of the LIMS feed, written in the transaction of the change it reports (id order = commit order)."""
+    """One event of the LIMS feed, written in the transaction of the change it reports (id order =
+    commit order)."""
 
     __tablename__ = "feed_events"
 
@@ -430,12 +472,14 @@ class WebhookEndpoint(Base):
     created_at: Mapped[dt.datetime]
     created_by: Mapped[str] = mapped_column(sa.String(100))
     disabled_at: Mapped[dt.datetime | None]
-    # SHA-256 of every other column, anchored in the audit chain at each change (service/storage/rowhash.py)
+    # SHA-256 of every other column, anchored in the audit chain at each change
+    # (service/storage/rowhash.py)
     row_sha256: Mapped[str | None] = mapped_column(Sha256)
 
 
 class WebhookDelivery(Base):
-    """The durable outbox: one row per (endpoint, event), written with the event; retried until delivered."""
+    """The durable outbox: one row per (endpoint, event), written with the event; retried until
+    delivered."""
 
     __tablename__ = "webhook_deliveries"
     __table_args__ = (
@@ -462,7 +506,9 @@ class WebhookAttempt(Base):
     __tablename__ = "webhook_attempts"
 
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
-    delivery_id: Mapped[int] = mapped_column(BigId, sa.ForeignKey("webhook_deliveries.id"), index=True)
+    delivery_id: Mapped[int] = mapped_column(
+        BigId, sa.ForeignKey("webhook_deliveries.id"), index=True
+    )
     at: Mapped[dt.datetime]
     status_code: Mapped[int | None]
     error: Mapped[str | None] = mapped_column(sa.Text)
@@ -470,7 +516,8 @@ class WebhookAttempt(Base):
 
 
 class Diagnosis(Base):
-    """A request to run the model-discrepancy workflow on a stored record's points (never changed)."""
+    """A request to run the model-discrepancy workflow on a stored record's points (never
+    changed)."""
 
     __tablename__ = "diagnoses"
 
@@ -483,10 +530,13 @@ class Diagnosis(Base):
 
 
 class DiagnosisResult(Base):
-    """How a diagnosis ended, written once: the workflow's report (JSON and its HTML page) or why it failed."""
+    """How a diagnosis ended, written once: the workflow's report (JSON and its HTML page) or why it
+    failed."""
 
     __tablename__ = "diagnosis_results"
-    __table_args__ = (sa.CheckConstraint(sa.text("state IN ('succeeded', 'failed')"), name="state"),)
+    __table_args__ = (
+        sa.CheckConstraint(sa.text("state IN ('succeeded', 'failed')"), name="state"),
+    )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     diagnosis_id: Mapped[int] = mapped_column(sa.ForeignKey("diagnoses.id"), unique=True)
@@ -499,15 +549,26 @@ class DiagnosisResult(Base):
     error: Mapped[str | None] = mapped_column(sa.Text)
 
 
-_APPEND_ONLY_CLASSES = (CalibrationRecord, AuditEvent, ActiveCalibrationHistory, SettledPoint, RecordApproval,
-                        Certificate, FeedEvent, Diagnosis, DiagnosisResult)
+_APPEND_ONLY_CLASSES = (
+    CalibrationRecord,
+    AuditEvent,
+    ActiveCalibrationHistory,
+    SettledPoint,
+    RecordApproval,
+    Certificate,
+    FeedEvent,
+    Diagnosis,
+    DiagnosisResult,
+)
 
 
 @event.listens_for(Session, "before_flush")
 def _refuse_append_only_changes(session: Session, flush_context: Any, instances: Any) -> None:
     """Refuse in the code what the triggers refuse in the database, with a clearer message."""
     for obj in list(session.dirty) + list(session.deleted):
-        if isinstance(obj, _APPEND_ONLY_CLASSES) and (obj in session.deleted or session.is_modified(obj)):
+        if isinstance(obj, _APPEND_ONLY_CLASSES) and (
+            obj in session.deleted or session.is_modified(obj)
+        ):
             verb = "delete" if obj in session.deleted else "update"
             raise AppendOnlyViolation(
                 f"refused: {obj.__tablename__} is append-only; cannot {verb} row id={obj.id}"

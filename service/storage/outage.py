@@ -1,4 +1,5 @@
-"""The database going away while the daemon runs: telling an outage from a refusal, and waiting it out.
+"""The database going away while the daemon runs: telling an outage from a refusal, and waiting it
+out.
 
 An outage is a database that does not answer (connection refused or reset, the server shutting
 down, a connection invalidated mid-transaction); it mends by waiting. Everything else a database
@@ -29,8 +30,15 @@ T = TypeVar("T")
 # SQLSTATEs that mean "the server is going or gone", not "the server refused this": connection
 # exceptions (class 08), administrator/crash shutdown and "cannot connect now" (57P01-57P03).
 _AWAY_SQLSTATES = ("08", "57P01", "57P02", "57P03")
-# A server that answers FATAL at connection time refuses for good (password, database name) unless it says these.
-_TRANSIENT_FATAL = ("starting up", "shutting down", "in recovery", "too many", "remaining connection slots")
+# A server that answers FATAL at connection time refuses for good (password, database name) unless
+# it says these.
+_TRANSIENT_FATAL = (
+    "starting up",
+    "shutting down",
+    "in recovery",
+    "too many",
+    "remaining connection slots",
+)
 BACKOFF_FIRST_S = 0.25
 BACKOFF_MAX_S = 2.0
 
@@ -40,7 +48,8 @@ class DatabaseOutage(RuntimeError):
 
 
 def unreachable(exc: BaseException) -> bool:
-    """Whether an exception means the database is away (waiting mends it), not that it refused something."""
+    """Whether an exception means the database is away (waiting mends it), not that it refused
+    something."""
     if isinstance(exc, DatabaseOutage):
         return True
     if not isinstance(exc, sa.exc.DBAPIError):
@@ -68,7 +77,8 @@ def reason_of(exc: BaseException) -> str:
 
 
 class DatabaseState:
-    """Whether the database answers, as the daemon last found it; shared by its writers and /health."""
+    """Whether the database answers, as the daemon last found it; shared by its writers and
+    /health."""
 
     def __init__(self, where: str, outage_s: float = 300.0) -> None:
         self.where = where  # the database URL without its password
@@ -96,8 +106,12 @@ class DatabaseState:
                 self._away_since = time.monotonic()
                 self.away_since_utc = dt.datetime.now(dt.UTC)
                 self.outages += 1
-                log.warning("database %s unreachable (%s): writes wait for it for up to %g s",
-                            self.where, self.error, self.outage_s)
+                log.warning(
+                    "database %s unreachable (%s): writes wait for it for up to %g s",
+                    self.where,
+                    self.error,
+                    self.outage_s,
+                )
 
     def back(self) -> None:
         if self._away_since is None:
@@ -113,13 +127,20 @@ class DatabaseState:
             self.samples_waiting += delta * samples
 
     def outage_error(self) -> DatabaseOutage:
-        return DatabaseOutage(f"database_unreachable: the database {self.where} did not answer for more than"
-                              f" {self.outage_s:g} s (TILTLAB_DB_OUTAGE_S): {self.error}")
+        return DatabaseOutage(
+            f"database_unreachable: the database {self.where} did not answer for more than"
+            f" {self.outage_s:g} s (TILTLAB_DB_OUTAGE_S): {self.error}"
+        )
 
 
-async def through_outage(state: DatabaseState, attempt: Callable[[], Awaitable[T]], *,
-                         on_wait: Callable[[bool], None] | None = None, give_up: bool = True,
-                         samples: int = 0) -> T:
+async def through_outage(
+    state: DatabaseState,
+    attempt: Callable[[], Awaitable[T]],
+    *,
+    on_wait: Callable[[bool], None] | None = None,
+    give_up: bool = True,
+    samples: int = 0,
+) -> T:
     """`attempt()`, run again with back-off while the database is away.
 
     `on_wait(True)` once when the write starts waiting, `on_wait(False)` when it stops (written,

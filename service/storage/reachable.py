@@ -14,8 +14,15 @@ from service.storage.engine import redacted
 
 # SQLSTATE classes that no amount of waiting mends: authorisation (28xxx), unknown database (3D000).
 _CONFIGURATION_SQLSTATES = ("28", "3D")
-# At connection time libpq often gives no SQLSTATE, only the server's FATAL text; these mend by waiting.
-_TRANSIENT_FATAL = ("starting up", "shutting down", "in recovery", "too many", "remaining connection slots")
+# At connection time libpq often gives no SQLSTATE, only the server's FATAL text; these mend by
+# waiting.
+_TRANSIENT_FATAL = (
+    "starting up",
+    "shutting down",
+    "in recovery",
+    "too many",
+    "remaining connection slots",
+)
 
 
 class DatabaseUnreachable(RuntimeError):
@@ -38,9 +45,16 @@ def _reason(exc: BaseException) -> str:
     return text[:300] or type(orig).__name__
 
 
-def wait_for_database(engine: sa.Engine, wait_s: float, say: Callable[[str], None], *,
-                      clock: Clock = REAL_TIME, setting: str = "TILTLAB_DATABASE_URL") -> None:
-    """Return once `SELECT 1` succeeds; retry connection failures with back-off for `wait_s` seconds.
+def wait_for_database(
+    engine: sa.Engine,
+    wait_s: float,
+    say: Callable[[str], None],
+    *,
+    clock: Clock = REAL_TIME,
+    setting: str = "TILTLAB_DATABASE_URL",
+) -> None:
+    """Return once `SELECT 1` succeeds; retry connection failures with back-off for `wait_s`
+    seconds.
 
     Raises InputError when the server refuses the credentials or the database name (configuration),
     DatabaseUnreachable when it has not answered after `wait_s`.
@@ -58,15 +72,22 @@ def wait_for_database(engine: sa.Engine, wait_s: float, say: Callable[[str], Non
             return
         except sa.exc.OperationalError as exc:
             if _refused_by_server(exc):
-                raise InputError(f"{setting} ({where}): the server refused: {_reason(exc)}; "
-                                 "correct the user, password or database name") from None
+                raise InputError(
+                    f"{setting} ({where}): the server refused: {_reason(exc)}; "
+                    "correct the user, password or database name"
+                ) from None
             left_s = wait_s - (clock.monotonic() - start)
             if left_s <= 0:
                 raise DatabaseUnreachable(
-                    f"{setting} ({where}): no answer after {wait_s:g} s ({_reason(exc)}); start the database "
-                    "server or correct the URL (TILTLAB_DATABASE_WAIT_S sets how long to wait)") from None
+                    f"{setting} ({where}): no answer after {wait_s:g} s ({_reason(exc)}); start "
+                    "the database "
+                    "server or correct the URL (TILTLAB_DATABASE_WAIT_S sets how long to wait)"
+                ) from None
             if not said:
-                say(f"database {where} not reachable ({_reason(exc)}); retrying for up to {wait_s:g} s")
+                say(
+                    f"database {where} not reachable ({_reason(exc)}); retrying for up to "
+                    f"{wait_s:g} s"
+                )
                 said = True
             clock.sleep_blocking(min(delay_s, left_s))
             delay_s = min(delay_s * 2, 5.0)

@@ -1,12 +1,13 @@
-"""Rows a result depends on that may change over their life (tokens, reference standards, webhook endpoints):
-each carries the SHA-256 of all its columns, and every change to it is anchored in the audit chain.
+"""Rows a result depends on that may change over their life (tokens, reference standards, webhook
+endpoints): each carries the SHA-256 of all its columns, and every change to it is anchored in the
+audit chain.
 
-The rule (content format 1, canonical JSON as in canonical.py): `row_sha256 = SHA-256(canonical JSON of
-{column: value})` over **every column of the table but `row_sha256` itself**, a column whose value is
-NULL left out; times as ISO 8601 UTC with microseconds and `Z`, dates as `YYYY-MM-DD`. A column added
-to one of these tables later joins the hash by itself; NULL in the rows that existed before, it leaves
-their hashes as they were (a migration that fills old rows with a value must set their `row_sha256`
-again, and anchor it, as 0008 does for the rows it found).
+The rule (content format 1, canonical JSON as in canonical.py): `row_sha256 = SHA-256(canonical JSON
+of {column: value})` over **every column of the table but `row_sha256` itself**, a column whose
+value is NULL left out; times as ISO 8601 UTC with microseconds and `Z`, dates as `YYYY-MM-DD`. A
+column added to one of these tables later joins the hash by itself; NULL in the rows that existed
+before, it leaves their hashes as they were (a migration that fills old rows with a value must set
+their `row_sha256` again, and anchor it, as 0008 does for the rows it found).
 
 The anchor: the write that creates or changes such a row audits it in the same transaction, and the
 audit event's details carry the row's new hash (`rows_sha256`: {"table:id": sha256}). `db verify`
@@ -42,7 +43,8 @@ def _value(value: Any) -> Any:
 
 
 def row_content(table: sa.Table, values: Any) -> dict[str, Any]:
-    """What a row's hash covers, from anything with the columns as attributes (an ORM row, a Row)."""
+    """What a row's hash covers, from anything with the columns as attributes (an ORM row, a
+    Row)."""
     out: dict[str, Any] = {}
     for column in table.columns:
         if column.name == HASH_COLUMN:
@@ -65,26 +67,34 @@ def _changed_rows(session: Session) -> set[Base]:
     """Rows of the hashed tables added, or changed since they were hashed, in this session."""
     changed: set[Base] = {obj for obj in session.new if isinstance(obj, HASHED_CLASSES)}
     for obj in session.dirty:
-        if isinstance(obj, HASHED_CLASSES) and session.is_modified(obj) and getattr(obj, HASH_COLUMN) != row_sha256(obj):
+        if (
+            isinstance(obj, HASHED_CLASSES)
+            and session.is_modified(obj)
+            and getattr(obj, HASH_COLUMN) != row_sha256(obj)
+        ):
             changed.add(obj)
     return changed
 
 
 @event.listens_for(Session, "before_flush")
 def _note_changed_rows(session: Session, flush_context: Any, instances: Any) -> None:
-    """Rows of the hashed tables added or changed in this transaction, for the audit writer to hash."""
+    """Rows of the hashed tables added or changed in this transaction, for the audit writer to
+    hash."""
     session.info.setdefault(_PENDING, set()).update(_changed_rows(session))
 
 
 @event.listens_for(Session, "before_commit")
 def _refuse_unanchored_changes(session: Session) -> None:
-    """A change to a hashed row that no audit event anchors would read as tampering: refused in the code."""
+    """A change to a hashed row that no audit event anchors would read as tampering: refused in the
+    code."""
     pending = session.info.get(_PENDING, set()) | _changed_rows(session)
     if pending:
         names = ", ".join(sorted(f"{o.__tablename__} id={getattr(o, 'id', None)}" for o in pending))
         session.info.pop(_PENDING, None)
-        raise RuntimeError(f"{names} changed without an audit event in the same transaction: every change of these"
-                           " rows is audited, with its hash (service/storage/rowhash.py)")
+        raise RuntimeError(
+            f"{names} changed without an audit event in the same transaction: every change of these"
+            " rows is audited, with its hash (service/storage/rowhash.py)"
+        )
 
 
 @event.listens_for(Session, "after_rollback")
@@ -93,8 +103,8 @@ def _forget(session: Session) -> None:
 
 
 def hash_pending(session: Session) -> dict[str, str]:
-    """Hash the rows changed since the last audit event of this transaction (their ids are known: the caller
-    flushed); returns {"table:id": sha256} for the audit event to carry."""
+    """Hash the rows changed since the last audit event of this transaction (their ids are known:
+    the caller flushed); returns {"table:id": sha256} for the audit event to carry."""
     pending: set[Base] = session.info.pop(_PENDING, set())
     anchors: dict[str, str] = {}
     for obj in pending:

@@ -41,14 +41,16 @@ def _finite_number(value: object) -> bool:
 
 
 def check_sample(s: Sample) -> None:
-    """Cheap checks at the producer, so a bad reading is refused where it is made, not in a batch later.
+    """Cheap checks at the producer, so a bad reading is refused where it is made, not in a batch
+    later.
 
     Every number must be a finite int or float: SQLite would keep text in a REAL column, turn NaN
     into NULL and refuse it in a required column, where PostgreSQL stores NaN.
     """
     if len(s) != len(COLUMNS):
         raise InputError(f"sample has {len(s)} fields, expected {len(COLUMNS)}: {COLUMNS}")
-    device_id, t_s, ch_x, ch_y, ch_z, temp_c, job_id, _, source = s  # plain tuples in COLUMNS order are fine too
+    # plain tuples in COLUMNS order are fine too
+    device_id, t_s, ch_x, ch_y, ch_z, temp_c, job_id, _, source = s
     if source not in SAMPLE_SOURCES:
         raise InputError(f"sample source {source!r} is not one of {SAMPLE_SOURCES}")
     if source == "calibration" and job_id is None:
@@ -57,7 +59,12 @@ def check_sample(s: Sample) -> None:
         raise InputError(f"sample t_s={t_s!r} is not a finite time in seconds")
     if isinstance(device_id, bool) or not isinstance(device_id, int):
         raise InputError(f"sample device_id={device_id!r} is not an integer id")
-    for name, value, optional in (("ch_x", ch_x, False), ("ch_y", ch_y, False), ("ch_z", ch_z, True), ("temp_c", temp_c, True)):
+    for name, value, optional in (
+        ("ch_x", ch_x, False),
+        ("ch_y", ch_y, False),
+        ("ch_z", ch_z, True),
+        ("temp_c", temp_c, True),
+    ):
         if not (optional and value is None) and not _finite_number(value):
             raise InputError(f"sample {name}={value!r} at t_s={t_s!r} is not a finite number")
 
@@ -67,10 +74,25 @@ def check_samples(rows: Sequence[Sample]) -> None:
     try:
         ok = (
             set(map(len, rows)) <= {len(COLUMNS)}
-            and type(sum(map(itemgetter(0), rows))) is int  # a str or None raises, a float spoils the type
-            # A NaN or inf anywhere spoils the sum, text raises; the optional columns drop None (and zeros).
-            and math.isfinite(sum(chain(map(itemgetter(1), rows), map(itemgetter(2), rows), map(itemgetter(3), rows))))
-            and math.isfinite(sum(chain(filter(None, map(itemgetter(4), rows)), filter(None, map(itemgetter(5), rows)))))
+            # a str or None raises, a float spoils the type
+            and type(sum(map(itemgetter(0), rows))) is int
+            # A NaN or inf anywhere spoils the sum, text raises; the optional columns drop None (and
+            # zeros).
+            and math.isfinite(
+                sum(
+                    chain(
+                        map(itemgetter(1), rows), map(itemgetter(2), rows), map(itemgetter(3), rows)
+                    )
+                )
+            )
+            and math.isfinite(
+                sum(
+                    chain(
+                        filter(None, map(itemgetter(4), rows)),
+                        filter(None, map(itemgetter(5), rows)),
+                    )
+                )
+            )
             and set(map(type, map(itemgetter(1), rows))) <= {float, int}  # not bool
             and set(map(itemgetter(8), rows)) <= set(SAMPLE_SOURCES)
             and not any(s[6] is None for s in rows if s[8] == "calibration")
@@ -85,8 +107,12 @@ def check_samples(rows: Sequence[Sample]) -> None:
 _ROWS_PER_STATEMENT = 100  # 900 parameters: below SQLite's limit even in old builds (999)
 _VALUES = "(" + ", ".join("?" * len(COLUMNS)) + ")"
 _INSERT_ONE = f"INSERT INTO samples ({', '.join(COLUMNS)}) VALUES {_VALUES}"
-_INSERT_MANY = f"INSERT INTO samples ({', '.join(COLUMNS)}) VALUES " + ", ".join([_VALUES] * _ROWS_PER_STATEMENT)
-_INSERT_FORMAT = f"INSERT INTO samples ({', '.join(COLUMNS)}) VALUES ({', '.join(['%s'] * len(COLUMNS))})"
+_INSERT_MANY = f"INSERT INTO samples ({', '.join(COLUMNS)}) VALUES " + ", ".join(
+    [_VALUES] * _ROWS_PER_STATEMENT
+)
+_INSERT_FORMAT = (
+    f"INSERT INTO samples ({', '.join(COLUMNS)}) VALUES ({', '.join(['%s'] * len(COLUMNS))})"
+)
 _COPY_SQL = f"COPY samples ({', '.join(COLUMNS)}) FROM STDIN"
 
 
@@ -114,7 +140,9 @@ def insert_samples(conn: sa.Connection, rows: Sequence[Sequence[object]]) -> int
     if full:
         flat = list(chain.from_iterable(rows[:full]))
         step = _ROWS_PER_STATEMENT * len(COLUMNS)
-        conn.exec_driver_sql(_INSERT_MANY, [tuple(flat[i : i + step]) for i in range(0, len(flat), step)])
+        conn.exec_driver_sql(
+            _INSERT_MANY, [tuple(flat[i : i + step]) for i in range(0, len(flat), step)]
+        )
     if full < len(rows):
         conn.exec_driver_sql(_INSERT_ONE, list(rows[full:]))
     return len(rows)
@@ -128,17 +156,26 @@ def samples_stored(conn: sa.Connection, rows: Sequence[Sample]) -> bool:
         return True
     for row in (rows[0], rows[-1]):
         s = Sample._make(row)
-        found = conn.execute(sa.select(_t.c.id).where(
-            _t.c.device_id == s.device_id, _t.c.t_s == s.t_s, _t.c.source == s.source,
-            _t.c.job_id.is_not_distinct_from(s.job_id), _t.c.point.is_not_distinct_from(s.point)).limit(1)).first()
+        found = conn.execute(
+            sa.select(_t.c.id)
+            .where(
+                _t.c.device_id == s.device_id,
+                _t.c.t_s == s.t_s,
+                _t.c.source == s.source,
+                _t.c.job_id.is_not_distinct_from(s.job_id),
+                _t.c.point.is_not_distinct_from(s.point),
+            )
+            .limit(1)
+        ).first()
         if found is None:
             return False
     return True
 
 
 def insert_samples_once(conn: sa.Connection, rows: Sequence[Sample]) -> int:
-    """`insert_samples`, unless this very batch is already stored (a repeat after a lost COMMIT answer):
-    the check and the insert in the caller's one transaction. Returns the count inserted."""
+    """`insert_samples`, unless this very batch is already stored (a repeat after a lost COMMIT
+    answer): the check and the insert in the caller's one transaction. Returns the count
+    inserted."""
     if samples_stored(conn, rows):
         return 0
     return insert_samples(conn, rows)
@@ -168,7 +205,10 @@ _t = cast(sa.Table, SampleRow.__table__)
 _SELECT_COLS = [_t.c[name] for name in COLUMNS]
 
 
-_LATEST_SQL = f"SELECT {', '.join(COLUMNS)} FROM samples WHERE device_id = {{p}} ORDER BY t_s DESC LIMIT {{p}}"
+_LATEST_SQL = (
+    f"SELECT {', '.join(COLUMNS)} FROM samples WHERE device_id = {{p}} ORDER BY t_s "
+    "DESC LIMIT {p}"
+)
 _LATEST = {"qmark": _LATEST_SQL.format(p="?"), "format": _LATEST_SQL.format(p="%s")}
 
 
@@ -231,7 +271,8 @@ def apply_retention(
     thin_interval_s: float = 60.0,
     now: dt.datetime | None = None,
 ) -> RetentionResult:
-    """Drop, or thin to one sample per device per interval, the monitoring samples older than the age.
+    """Drop, or thin to one sample per device per interval, the monitoring samples older than the
+    age.
 
     Only rows with source='monitoring' are touched; the database triggers refuse the deletion of
     any other sample, so a mistake here cannot reach calibration data.
@@ -264,5 +305,7 @@ def apply_retention(
             bucket = sa.cast(_t.c.t_s / thin_interval_s, sa.Integer)  # t_s > 0: truncation is floor
         keep = sa.select(sa.func.min(_t.c.id)).where(scope).group_by(bucket)
         deleted += conn.execute(sa.delete(_t).where(scope, _t.c.id.not_in(keep))).rowcount
-        kept += int(conn.execute(sa.select(sa.func.count()).select_from(_t).where(scope)).scalar_one())
+        kept += int(
+            conn.execute(sa.select(sa.func.count()).select_from(_t).where(scope)).scalar_one()
+        )
     return RetentionResult(cutoff_s=cutoff_s, policy=policy, deleted=deleted, kept_thinned=kept)

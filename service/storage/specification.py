@@ -1,5 +1,6 @@
-"""What an order's item must meet: the largest permissible error of its indication (and of named parameters)
-and the decision rule a statement of conformity follows (ILAC-G8). Checked here, kept with the order."""
+"""What an order's item must meet: the largest permissible error of its indication (and of named
+parameters) and the decision rule a statement of conformity follows (ILAC-G8). Checked here, kept
+with the order."""
 
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ class SpecificationProblem(InputError):
 
 @dataclass(frozen=True)
 class ParameterLimit:
-    """A named parameter of the model must lie within nominal ± max_permissible_error (in the parameter's unit)."""
+    """A named parameter of the model must lie within nominal ± max_permissible_error (in the
+    parameter's unit)."""
 
     name: str
     nominal: float
@@ -51,13 +53,17 @@ class Specification:
     parameters: tuple[ParameterLimit, ...] = ()
 
     def as_json(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"max_permissible_error_deg": self.max_permissible_error_deg,
-                               "decision_rule": self.decision_rule.value}
+        out: dict[str, Any] = {
+            "max_permissible_error_deg": self.max_permissible_error_deg,
+            "decision_rule": self.decision_rule.value,
+        }
         if self.decision_rule is DecisionRule.GUARDED_ACCEPTANCE:
             out["guard_band_fraction"] = self.guard_band_fraction
         if self.parameters:
-            out["parameters"] = {p.name: {"nominal": p.nominal, "max_permissible_error": p.max_permissible_error}
-                                 for p in self.parameters}
+            out["parameters"] = {
+                p.name: {"nominal": p.nominal, "max_permissible_error": p.max_permissible_error}
+                for p in self.parameters
+            }
         return out
 
 
@@ -65,48 +71,84 @@ def _number(field: str, value: object, *, above: float, most: float) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise SpecificationProblem(field, f"{value!r} is not a number")
     if not above < value <= most:
-        raise SpecificationProblem(field, f"{value!r} must be greater than {above:g} and at most {most:g}")
+        raise SpecificationProblem(
+            field, f"{value!r} must be greater than {above:g} and at most {most:g}"
+        )
     return float(value)
 
 
 def specification_of(value: object) -> Specification | None:
-    """A specification from its JSON form (None when not given); SpecificationProblem names the field."""
+    """A specification from its JSON form (None when not given); SpecificationProblem names the
+    field."""
     if value is None:
         return None
     if not isinstance(value, Mapping):
-        raise SpecificationProblem("specification", "an object {max_permissible_error_deg, decision_rule} is needed")
+        raise SpecificationProblem(
+            "specification", "an object {max_permissible_error_deg, decision_rule} is needed"
+        )
     known = {"max_permissible_error_deg", "decision_rule", "guard_band_fraction", "parameters"}
     unknown = sorted(set(value) - known)
     if unknown:
-        raise SpecificationProblem(f"specification.{unknown[0]}", f"unknown; a specification has {', '.join(sorted(known))}")
-    mpe = _number("specification.max_permissible_error_deg", value.get("max_permissible_error_deg"), above=0.0,
-                  most=MAX_ERROR_DEG)
+        raise SpecificationProblem(
+            f"specification.{unknown[0]}",
+            f"unknown; a specification has {', '.join(sorted(known))}",
+        )
+    mpe = _number(
+        "specification.max_permissible_error_deg",
+        value.get("max_permissible_error_deg"),
+        above=0.0,
+        most=MAX_ERROR_DEG,
+    )
     rule_text = value.get("decision_rule")
     try:
         rule = DecisionRule(str(rule_text))
     except ValueError:
-        raise SpecificationProblem("specification.decision_rule", f"{rule_text!r} is not one of "
-                                   f"{', '.join(r.value for r in DecisionRule)}") from None
+        raise SpecificationProblem(
+            "specification.decision_rule",
+            f"{rule_text!r} is not one of {', '.join(r.value for r in DecisionRule)}",
+        ) from None
     guard = 1.0
     if value.get("guard_band_fraction") is not None:
         if rule is not DecisionRule.GUARDED_ACCEPTANCE:
-            raise SpecificationProblem("specification.guard_band_fraction",
-                                       f"a guard band belongs to guarded_acceptance, not {rule.value}")
-        guard = _number("specification.guard_band_fraction", value["guard_band_fraction"], above=0.0, most=GUARD_BAND_MAX)
+            raise SpecificationProblem(
+                "specification.guard_band_fraction",
+                f"a guard band belongs to guarded_acceptance, not {rule.value}",
+            )
+        guard = _number(
+            "specification.guard_band_fraction",
+            value["guard_band_fraction"],
+            above=0.0,
+            most=GUARD_BAND_MAX,
+        )
     params: list[ParameterLimit] = []
     given = value.get("parameters") or {}
     if not isinstance(given, Mapping):
-        raise SpecificationProblem("specification.parameters",
-                                   'an object {"<parameter>": {"nominal": ..., "max_permissible_error": ...}} is needed')
+        raise SpecificationProblem(
+            "specification.parameters",
+            'an object {"<parameter>": {"nominal": ..., "max_permissible_error": ...}} is needed',
+        )
     for name, limit in given.items():
         field = f"specification.parameters.{name}"
         if not isinstance(name, str) or not _PARAMETER_NAME.fullmatch(name):
-            raise SpecificationProblem(field, "not a parameter name of a model (letters, digits, '_' and '.')")
+            raise SpecificationProblem(
+                field, "not a parameter name of a model (letters, digits, '_' and '.')"
+            )
         if not isinstance(limit, Mapping) or set(limit) - {"nominal", "max_permissible_error"}:
-            raise SpecificationProblem(field, 'an object {"nominal": ..., "max_permissible_error": ...} is needed')
+            raise SpecificationProblem(
+                field, 'an object {"nominal": ..., "max_permissible_error": ...} is needed'
+            )
         nominal = limit.get("nominal", 0.0)
-        if isinstance(nominal, bool) or not isinstance(nominal, int | float) or not math.isfinite(nominal):
+        if (
+            isinstance(nominal, bool)
+            or not isinstance(nominal, int | float)
+            or not math.isfinite(nominal)
+        ):
             raise SpecificationProblem(f"{field}.nominal", f"{nominal!r} is not a number")
-        mpe_p = _number(f"{field}.max_permissible_error", limit.get("max_permissible_error"), above=0.0, most=1e9)
+        mpe_p = _number(
+            f"{field}.max_permissible_error",
+            limit.get("max_permissible_error"),
+            above=0.0,
+            most=1e9,
+        )
         params.append(ParameterLimit(name, float(nominal), mpe_p))
     return Specification(mpe, rule, guard, tuple(params))

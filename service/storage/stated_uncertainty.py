@@ -13,12 +13,23 @@ import re
 
 # degrees per unit of the units a certificate states an angle's uncertainty in
 ANGLE_UNITS_DEG = {
-    "deg": 1.0, "degree": 1.0, "degrees": 1.0, "°": 1.0,
-    "arcmin": 1.0 / 60.0, "′": 1.0 / 60.0, "'": 1.0 / 60.0,
-    "arcsec": 1.0 / 3600.0, "″": 1.0 / 3600.0, '"': 1.0 / 3600.0, "arc sec": 1.0 / 3600.0, "as": 1.0 / 3600.0,
-    "mrad": 180.0 / math.pi / 1e3, "µrad": 180.0 / math.pi / 1e6, "urad": 180.0 / math.pi / 1e6,
+    "deg": 1.0,
+    "degree": 1.0,
+    "degrees": 1.0,
+    "°": 1.0,
+    "arcmin": 1.0 / 60.0,
+    "′": 1.0 / 60.0,
+    "'": 1.0 / 60.0,
+    "arcsec": 1.0 / 3600.0,
+    "″": 1.0 / 3600.0,
+    '"': 1.0 / 3600.0,
+    "arc sec": 1.0 / 3600.0,
+    "as": 1.0 / 3600.0,
+    "mrad": 180.0 / math.pi / 1e3,
+    "µrad": 180.0 / math.pi / 1e6,
+    "urad": 180.0 / math.pi / 1e6,
     "rad": 180.0 / math.pi,
-}  # fmt: skip
+}
 
 _UNIT = "|".join(sorted((re.escape(u) for u in ANGLE_UNITS_DEG), key=len, reverse=True))
 _TEXT = re.compile(

@@ -11,7 +11,11 @@ from service.errors import InputError
 
 SCOPES = ("read", "operate", "admin")
 # What each scope grants: admin implies operate and read, operate implies read.
-IMPLIED: dict[str, set[str]] = {"read": {"read"}, "operate": {"read", "operate"}, "admin": {"read", "operate", "admin"}}
+IMPLIED: dict[str, set[str]] = {
+    "read": {"read"},
+    "operate": {"read", "operate"},
+    "admin": {"read", "operate", "admin"},
+}
 TOKEN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._@-]{0,99}")
 TOKEN_PREFIX = "tl_"
 
@@ -40,7 +44,8 @@ def granted(scopes: Iterable[str]) -> set[str]:
 
 @dataclass(frozen=True)
 class Person:
-    """The person behind a token: the name and function a certificate states for who approved or ran it."""
+    """The person behind a token: the name and function a certificate states for who approved or ran
+    it."""
 
     name: str
     function: str | None = None
@@ -53,7 +58,8 @@ PERSON_TEXT_MAX = 200
 
 
 def person_of(fields: object, what: str = "person") -> Person:
-    """A person from {"name", "function"}: a name of 1-200 printable characters, optionally a function as long."""
+    """A person from {"name", "function"}: a name of 1-200 printable characters, optionally a
+    function as long."""
     if not isinstance(fields, dict):
         raise InputError(f'{what}: an object {{"name": ..., "function": ...}} is needed')
     unknown = sorted(set(fields) - {"name", "function"})
@@ -64,7 +70,11 @@ def person_of(fields: object, what: str = "person") -> Person:
         if value is None and not needed:
             continue
         if not isinstance(value, str) or not value.strip():
-            need = "the person's full name" if key == "name" else "their function in the laboratory, as text"
+            need = (
+                "the person's full name"
+                if key == "name"
+                else "their function in the laboratory, as text"
+            )
             raise InputError(f"{what}.{key}: give {need}")
         if len(value) > PERSON_TEXT_MAX:
             raise InputError(f"{what}.{key}: longer than {PERSON_TEXT_MAX} characters")
@@ -76,7 +86,8 @@ def person_of(fields: object, what: str = "person") -> Person:
 
 @dataclass(frozen=True)
 class Principal:
-    """Who a request is: the token's name, what it may do, and the person behind it (if the token names one)."""
+    """Who a request is: the token's name, what it may do, and the person behind it (if the token
+    names one)."""
 
     name: str
     scopes: frozenset[str]

@@ -24,7 +24,13 @@ from service.storage.canonical import sha256_hex
 from service.storage.models import GENESIS_SHA256, AuditEvent, CalibrationRecord, SettledPoint
 from service.storage.models import Sample as SampleRow
 from service.storage.rowhash import ANCHORS, HASH_COLUMN, HASHED_CLASSES, anchor_key, row_sha256
-from service.storage.store.hashing import SAMPLE_FIELDS, audit_content, points_sha256, record_content, samples_sha256
+from service.storage.store.hashing import (
+    SAMPLE_FIELDS,
+    audit_content,
+    points_sha256,
+    record_content,
+    samples_sha256,
+)
 
 
 @dataclass(frozen=True)
@@ -71,7 +77,11 @@ class VerifyReport:
             f"audit head sha256: {self.audit_head_sha256}",
         ]
         out += [str(p) for p in self.problems]
-        out.append("OK: every hash and chain link verifies" if self.ok else f"FAILED: {len(self.problems)} problem(s)")
+        out.append(
+            "OK: every hash and chain link verifies"
+            if self.ok
+            else f"FAILED: {len(self.problems)} problem(s)"
+        )
         return out
 
 
@@ -89,69 +99,118 @@ def verify(engine: sa.Engine) -> VerifyReport:
 
 def _verify_records(s: Session, report: VerifyReport) -> None:
     records = s.scalars(
-        sa.select(CalibrationRecord).order_by(CalibrationRecord.device_id, CalibrationRecord.kind, CalibrationRecord.version)
+        sa.select(CalibrationRecord).order_by(
+            CalibrationRecord.device_id, CalibrationRecord.kind, CalibrationRecord.version
+        )
     )
     prev: CalibrationRecord | None = None
     for r in records:
         report.records_checked += 1
         if sha256_hex(record_content(r)) != r.content_sha256:
-            report.problems.append(Problem("calibration_records", r.id, "tampered",
-                f"device {r.device_id} {r.kind} v{r.version}: content does not match its SHA-256"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "calibration_records",
+                    r.id,
+                    "tampered",
+                    f"device {r.device_id} {r.kind} v{r.version}: content does not match its "
+                    "SHA-256",
+                )
+            )
         same_chain = prev is not None and (prev.device_id, prev.kind) == (r.device_id, r.kind)
         expected_version = prev.version + 1 if same_chain else 1  # type: ignore[union-attr]
         expected_prev = prev.content_sha256 if same_chain else GENESIS_SHA256  # type: ignore[union-attr]
         if r.version != expected_version:
-            report.problems.append(Problem("calibration_records", r.id, "broken_chain",
-                f"device {r.device_id} {r.kind}: v{r.version} follows v{expected_version - 1}; a version is missing"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "calibration_records",
+                    r.id,
+                    "broken_chain",
+                    f"device {r.device_id} {r.kind}: v{r.version} follows "
+                    f"v{expected_version - 1}; a version is missing",
+                )
+            )
         elif r.prev_sha256 != expected_prev:
-            report.problems.append(Problem("calibration_records", r.id, "broken_chain",
-                f"device {r.device_id} {r.kind} v{r.version}: predecessor hash does not match v{r.version - 1}"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "calibration_records",
+                    r.id,
+                    "broken_chain",
+                    f"device {r.device_id} {r.kind} v{r.version}: predecessor hash does not match "
+                    f"v{r.version - 1}",
+                )
+            )
         if r.job_id is not None:
             _verify_points(s, report, r)
         prev = r
 
 
 def _verify_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> None:
-    """The job's settled points against the hashes the record holds: every device's (records made since the
-    per-device hashes exist), else the record's own device's (older records: all they committed to)."""
+    """The job's settled points against the hashes the record holds: every device's (records made
+    since the per-device hashes exist), else the record's own device's (older records: all they
+    committed to)."""
     by_device = r.raw_data.get("settled_points_sha256")
     if not isinstance(by_device, dict):
-        by_device = {str(r.device_id): r.raw_data["points_sha256"]} if "points_sha256" in r.raw_data else {}
+        by_device = (
+            {str(r.device_id): r.raw_data["points_sha256"]} if "points_sha256" in r.raw_data else {}
+        )
     stored: dict[str, list[SettledPoint]] = {}
     for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == r.job_id)):
         stored.setdefault(str(p.device_id), []).append(p)
     for device, sha in sorted(by_device.items()):
         if points_sha256(stored.get(device, [])) != sha:
-            report.problems.append(Problem("calibration_records", r.id, "raw_data_changed",
-                f"the settled points of device {device} in job {r.job_id} no longer hash to what v{r.version}"
-                " was fitted on"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "calibration_records",
+                    r.id,
+                    "raw_data_changed",
+                    f"the settled points of device {device} in job {r.job_id} no longer hash to "
+                    f"what v{r.version} was fitted on",
+                )
+            )
     if "settled_points_sha256" in r.raw_data:
         for device in sorted(set(stored) - set(by_device)):
-            report.problems.append(Problem("calibration_records", r.id, "raw_data_changed",
-                f"job {r.job_id} has settled points of device {device} that v{r.version} did not record"))  # fmt: skip
-    # a version adopted from a diagnosis that measured more points was fitted on those jobs' points too
+            report.problems.append(
+                Problem(
+                    "calibration_records",
+                    r.id,
+                    "raw_data_changed",
+                    f"job {r.job_id} has settled points of device {device} that v{r.version} did "
+                    "not record",
+                )
+            )
+    # a version adopted from a diagnosis that measured more points was fitted on those jobs' points
+    # too
     measured = r.raw_data.get("measurement_points_sha256")
-    for job_id, hashes in (measured.items() if isinstance(measured, dict) else ()):
+    for job_id, hashes in measured.items() if isinstance(measured, dict) else ():
         held: dict[str, list[SettledPoint]] = {}
         for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == int(job_id))):
             held.setdefault(str(p.device_id), []).append(p)
         for device in sorted(set(hashes) | set(held)):
             if device not in hashes or points_sha256(held.get(device, [])) != hashes[device]:
-                report.problems.append(Problem("calibration_records", r.id, "raw_data_changed",
-                    f"the settled points of device {device} in measurement job {job_id} no longer hash to what "
-                    f"v{r.version} was fitted on"))  # fmt: skip
+                report.problems.append(
+                    Problem(
+                        "calibration_records",
+                        r.id,
+                        "raw_data_changed",
+                        f"the settled points of device {device} in measurement job {job_id} no "
+                        f"longer hash to what v{r.version} was fitted on",
+                    )
+                )
 
 
 _DECISIONS = ("record.approve", "record.review", "record.reject")
 
 
-Anchors = dict[str, tuple[int, str]]  # "table:id" -> (the audit event that recorded it last, the row's hash)
+# "table:id" -> (the audit event that recorded it last, the row's hash)
+Anchors = dict[str, tuple[int, str]]
 
 
-def _verify_audit(s: Session, report: VerifyReport) -> tuple[dict[int, str], dict[int, tuple[int, str]], Anchors]:
+def _verify_audit(
+    s: Session, report: VerifyReport
+) -> tuple[dict[int, str], dict[int, tuple[int, str]], Anchors]:
     """Walks the chain in id order; returns record id -> content hash from record.create events,
-    approval id -> (audit event id, approval hash) from the decisions' events, and the newest hash each
-    hashed row (token, standard, webhook endpoint) was given by the events that changed it."""
+    approval id -> (audit event id, approval hash) from the decisions' events, and the newest hash
+    each hashed row (token, standard, webhook endpoint) was given by the events that changed it."""
     created: dict[int, str] = {}
     decided: dict[int, tuple[int, str]] = {}
     anchors: Anchors = {}
@@ -159,11 +218,25 @@ def _verify_audit(s: Session, report: VerifyReport) -> tuple[dict[int, str], dic
     for e in s.scalars(sa.select(AuditEvent).order_by(AuditEvent.id)).yield_per(1000):
         report.audit_events_checked += 1
         if sha256_hex(audit_content(e)) != e.sha256:
-            report.problems.append(Problem("audit_events", e.id, "tampered",
-                f"{e.action} by {e.actor} at {e.at:%Y-%m-%d %H:%M:%S}: content does not match its SHA-256"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "audit_events",
+                    e.id,
+                    "tampered",
+                    f"{e.action} by {e.actor} at {e.at:%Y-%m-%d %H:%M:%S}: content does not "
+                    "match its SHA-256",
+                )
+            )
         if e.prev_sha256 != prev_sha:
-            report.problems.append(Problem("audit_events", e.id, "broken_chain",
-                "predecessor hash does not match the previous event; an event was removed or altered"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "audit_events",
+                    e.id,
+                    "broken_chain",
+                    "predecessor hash does not match the previous event; an event was removed or "
+                    "altered",
+                )
+            )
         if e.action == "record.create":
             created[int(e.entity_id)] = str(e.details.get("content_sha256"))
         elif e.action in _DECISIONS and isinstance(e.details.get("approval_id"), int):
@@ -177,22 +250,43 @@ def _verify_audit(s: Session, report: VerifyReport) -> tuple[dict[int, str], dic
 
 
 def _cross_check(s: Session, report: VerifyReport, created: dict[int, str]) -> None:
-    stored = {rid: sha for rid, sha in s.execute(sa.select(CalibrationRecord.id, CalibrationRecord.content_sha256))}
+    stored = {
+        rid: sha
+        for rid, sha in s.execute(sa.select(CalibrationRecord.id, CalibrationRecord.content_sha256))
+    }
     for record_id, sha in sorted(created.items()):
         if record_id not in stored:
-            report.problems.append(Problem("calibration_records", record_id, "missing",
-                "the audit log records its creation but the record is gone"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "calibration_records",
+                    record_id,
+                    "missing",
+                    "the audit log records its creation but the record is gone",
+                )
+            )
         elif stored[record_id] != sha:
-            report.problems.append(Problem("calibration_records", record_id, "tampered",
-                "its hash differs from the one recorded in the audit log at creation"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "calibration_records",
+                    record_id,
+                    "tampered",
+                    "its hash differs from the one recorded in the audit log at creation",
+                )
+            )
     for record_id in sorted(set(stored) - set(created)):
-        report.problems.append(Problem("calibration_records", record_id, "missing",
-            "no audit event records its creation"))  # fmt: skip
+        report.problems.append(
+            Problem(
+                "calibration_records", record_id, "missing", "no audit event records its creation"
+            )
+        )
 
 
-def _verify_approvals_and_certificates(s: Session, report: VerifyReport, decided: dict[int, tuple[int, str]]) -> None:
-    """Approvals: content against hash, the chain, and each against the audit event of its decision (the
-    audit chain anchors the approvals' newest end); issued certificates: stored bytes against their SHA-256."""
+def _verify_approvals_and_certificates(
+    s: Session, report: VerifyReport, decided: dict[int, tuple[int, str]]
+) -> None:
+    """Approvals: content against hash, the chain, and each against the audit event of its decision
+    (the audit chain anchors the approvals' newest end); issued certificates: stored bytes against
+    their SHA-256."""
     import hashlib
 
     from service.storage.canonical import normalise
@@ -202,30 +296,74 @@ def _verify_approvals_and_certificates(s: Session, report: VerifyReport, decided
     prev = GENESIS_SHA256
     for a in s.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):
         if sha256_hex(normalise(approval_content(a))) != a.sha256:
-            report.problems.append(Problem("record_approvals", a.id, "tampered",
-                f"{a.decision} of record {a.record_id} by {a.actor}: content does not match its SHA-256"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "record_approvals",
+                    a.id,
+                    "tampered",
+                    f"{a.decision} of record {a.record_id} by {a.actor}: content does not match "
+                    "its SHA-256",
+                )
+            )
         if a.prev_sha256 != prev:
-            report.problems.append(Problem("record_approvals", a.id, "broken_chain",
-                "predecessor hash does not match the previous approval; one was removed or altered"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "record_approvals",
+                    a.id,
+                    "broken_chain",
+                    "predecessor hash does not match the previous approval; one was removed or "
+                    "altered",
+                )
+            )
         audited = decided.pop(a.id, None)
         if audited is None:
-            report.problems.append(Problem("record_approvals", a.id, "missing",
-                f"no audit event records the {a.decision} of record {a.record_id} by {a.actor}"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "record_approvals",
+                    a.id,
+                    "missing",
+                    f"no audit event records the {a.decision} of record {a.record_id} by {a.actor}",
+                )
+            )
         elif audited[1] != a.sha256:
-            report.problems.append(Problem("record_approvals", a.id, "tampered",
-                f"its hash differs from the one audit event {audited[0]} recorded at the decision"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "record_approvals",
+                    a.id,
+                    "tampered",
+                    f"its hash differs from the one audit event {audited[0]} recorded at the "
+                    "decision",
+                )
+            )
         report.approvals_checked += 1
         prev = a.sha256
     for approval_id, (event_id, _sha) in sorted(decided.items()):
         event = s.get(AuditEvent, event_id)
-        what = f"{event.action} of record {event.entity_id} by {event.actor}" if event is not None else "a decision"
-        report.problems.append(Problem("record_approvals", approval_id, "missing",
-            f"audit event {event_id} records {what} but the approval is gone (a record's status would read"
-            " as if that decision was never made)"))  # fmt: skip
+        what = (
+            f"{event.action} of record {event.entity_id} by {event.actor}"
+            if event is not None
+            else "a decision"
+        )
+        report.problems.append(
+            Problem(
+                "record_approvals",
+                approval_id,
+                "missing",
+                f"audit event {event_id} records {what} but the approval is gone (a record's "
+                "status would read as if that decision was never made)",
+            )
+        )
     for c in s.scalars(sa.select(Certificate).order_by(Certificate.id)):
         if hashlib.sha256(c.xml).hexdigest() != c.sha256:
-            report.problems.append(Problem("certificates", c.id, "tampered",
-                f"certificate {c.number}: stored bytes do not match the SHA-256 recorded at issue"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "certificates",
+                    c.id,
+                    "tampered",
+                    f"certificate {c.number}: stored bytes do not match the SHA-256 recorded at "
+                    "issue",
+                )
+            )
 
 
 def _what(row: object) -> str:
@@ -239,8 +377,9 @@ def _what(row: object) -> str:
 
 
 def _verify_rows(s: Session, report: VerifyReport, anchors: Anchors) -> None:
-    """Tokens (scopes, person, revocation ...), reference standards (every field) and webhook endpoints:
-    each row against its own hash, and that hash against the newest one the audit chain recorded for it."""
+    """Tokens (scopes, person, revocation ...), reference standards (every field) and webhook
+    endpoints: each row against its own hash, and that hash against the newest one the audit chain
+    recorded for it."""
     left = dict(anchors)
     for cls in HASHED_CLASSES:
         table = cls.__tablename__
@@ -249,30 +388,69 @@ def _verify_rows(s: Session, report: VerifyReport, anchors: Anchors) -> None:
             stored = getattr(row, HASH_COLUMN)
             audited = left.pop(anchor_key(row), None)
             if stored is None or row_sha256(row) != stored:
-                report.problems.append(Problem(table, row.id, "tampered",  # type: ignore[attr-defined]
-                    f"{_what(row)}: its columns do not match its SHA-256 (changed outside the daemon)"))  # fmt: skip
+                report.problems.append(
+                    Problem(
+                        table,
+                        row.id,  # type: ignore[attr-defined]
+                        "tampered",
+                        f"{_what(row)}: its columns do not match its SHA-256 (changed outside the "
+                        "daemon)",
+                    )
+                )
             elif audited is None:
-                report.problems.append(Problem(table, row.id, "missing",  # type: ignore[attr-defined]
-                    f"{_what(row)}: no audit event records it (added outside the daemon)"))  # fmt: skip
+                report.problems.append(
+                    Problem(
+                        table,
+                        row.id,  # type: ignore[attr-defined]
+                        "missing",
+                        f"{_what(row)}: no audit event records it (added outside the daemon)",
+                    )
+                )
             elif audited[1] != stored:
-                report.problems.append(Problem(table, row.id, "tampered",  # type: ignore[attr-defined]
-                    f"{_what(row)}: its hash differs from the one audit event {audited[0]} recorded at its last"
-                    " change (changed outside the daemon and hashed again)"))  # fmt: skip
+                report.problems.append(
+                    Problem(
+                        table,
+                        row.id,  # type: ignore[attr-defined]
+                        "tampered",
+                        f"{_what(row)}: its hash differs from the one audit event {audited[0]} "
+                        "recorded at its last"
+                        " change (changed outside the daemon and hashed again)",
+                    )
+                )
     for key, (event_id, _sha) in sorted(left.items()):
         table, _, row_id = key.partition(":")
-        report.problems.append(Problem(table, int(row_id) if row_id.isdigit() else None, "missing",
-            f"audit event {event_id} records this row, but it is gone"))  # fmt: skip
+        report.problems.append(
+            Problem(
+                table,
+                int(row_id) if row_id.isdigit() else None,
+                "missing",
+                f"audit event {event_id} records this row, but it is gone",
+            )
+        )
 
 
 def _verify_samples(s: Session, report: VerifyReport) -> None:
     """Each settled point that holds the hash of its raw samples against the samples stored now."""
     t = SampleRow.__table__
-    for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.samples_sha256.is_not(None)).order_by(SettledPoint.id)):
+    for p in s.scalars(
+        sa.select(SettledPoint)
+        .where(SettledPoint.samples_sha256.is_not(None))
+        .order_by(SettledPoint.id)
+    ):
         report.sample_points_checked += 1
-        rows = s.execute(sa.select(*(t.c[name] for name in SAMPLE_FIELDS))
-                         .where(t.c.job_id == p.job_id, t.c.device_id == p.device_id, t.c.point == p.point)
-                         .order_by(t.c.t_s, t.c.id)).all()
+        rows = s.execute(
+            sa.select(*(t.c[name] for name in SAMPLE_FIELDS))
+            .where(t.c.job_id == p.job_id, t.c.device_id == p.device_id, t.c.point == p.point)
+            .order_by(t.c.t_s, t.c.id)
+        ).all()
         if not rows or samples_sha256(rows) != p.samples_sha256:
-            report.problems.append(Problem("samples", None, "raw_data_changed",
-                f"the raw samples of device {p.device_id} at point {p.point} of job {p.job_id} ({len(rows)} stored now)"
-                f" no longer hash to what settled point id={p.id} recorded: a sample was changed, added or removed"))  # fmt: skip
+            report.problems.append(
+                Problem(
+                    "samples",
+                    None,
+                    "raw_data_changed",
+                    f"the raw samples of device {p.device_id} at point {p.point} of job "
+                    f"{p.job_id} ({len(rows)} stored now) no longer hash to what settled point "
+                    f"id={p.id} recorded: a sample was changed, added or removed",
+                )
+            )

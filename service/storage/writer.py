@@ -10,8 +10,8 @@ the handed-over samples not yet committed are those in the queue (at most `capac
 batch being written (at most `batch_size`). So if the process is killed (SIGKILL, a crash)
 at most `capacity + batch_size` handed-over samples are lost, and the committed ones are exactly
 the oldest handed-over ones (batches commit in order). A power loss may also roll back the last
-commits on SQLite with synchronous=NORMAL (see docs/storage.md). `close()` (also run at interpreter exit)
-and `flush()` lose nothing.
+commits on SQLite with synchronous=NORMAL (see docs/storage.md). `close()` (also run at interpreter
+exit) and `flush()` lose nothing.
 
 Database outage. While the database is away (see `service.storage.outage`) the writer keeps its
 batches, in order, and tries again with back-off until it answers; nothing handed over is given up,
@@ -66,7 +66,8 @@ class _SampleQueue(queue.Queue):  # type: ignore[type-arg]
             return self.closed and not self.samples
 
     def put_what_fits(self, chunk: Sequence[Sample]) -> int:
-        """Without waiting: as many of the chunk's first samples as there is room for (0 if closed)."""
+        """Without waiting: as many of the chunk's first samples as there is room for (0 if
+        closed)."""
         with self.not_full:
             room = 0 if self.closed else max(0, min(len(chunk), self.maxsize - self.samples))
             if room:
@@ -76,7 +77,8 @@ class _SampleQueue(queue.Queue):  # type: ignore[type-arg]
             return room
 
     def put_chunk(self, chunk: Sequence[Sample], timeout: float) -> bool:
-        """Block until the whole chunk fits (len(chunk) <= maxsize), or raise queue.Full; False if closed."""
+        """Block until the whole chunk fits (len(chunk) <= maxsize), or raise queue.Full; False if
+        closed."""
         deadline = time.monotonic() + timeout
         with self.not_full:
             while not self.closed and self.samples + len(chunk) > self.maxsize:
@@ -133,7 +135,9 @@ class SampleWriter:
         self.retry_for_s = retry_for_s
         self._engine = write_engine(engine)
         # shared with the daemon's other writers when given: /health and /metrics read it
-        self.database = database or DatabaseState(str(engine.url.render_as_string(hide_password=True)))
+        self.database = database or DatabaseState(
+            str(engine.url.render_as_string(hide_password=True))
+        )
         self.dropped = 0  # samples refused while the database was away and the queue full
         self._queue = _SampleQueue(capacity)
         self._progress = threading.Condition()
@@ -146,13 +150,16 @@ class SampleWriter:
         atexit.register(self.close)
 
     @classmethod
-    def from_settings(cls, engine: sa.Engine, settings, database: DatabaseState | None = None) -> SampleWriter:  # type: ignore[no-untyped-def]
+    def from_settings(  # type: ignore[no-untyped-def]
+        cls, engine: sa.Engine, settings, database: DatabaseState | None = None
+    ) -> SampleWriter:
         return cls(
             engine,
             capacity=settings.sample_queue_capacity,
             batch_size=settings.sample_batch_size,
             put_timeout_s=settings.sample_put_timeout_s,
-            database=database or DatabaseState(engine.url.render_as_string(hide_password=True), settings.db_outage_s),
+            database=database
+            or DatabaseState(engine.url.render_as_string(hide_password=True), settings.db_outage_s),
         )
 
     @property
@@ -190,13 +197,17 @@ class SampleWriter:
                 if took < len(chunk):
                     if self._queue.closed:
                         raise RuntimeError("SampleWriter is closed")
-                    log.warning("database away and the sample queue full: %d samples refused", len(rows) - accepted)
+                    log.warning(
+                        "database away and the sample queue full: %d samples refused",
+                        len(rows) - accepted,
+                    )
                     return accepted
                 continue
             try:
                 if not self._queue.put_chunk(chunk, self.put_timeout_s):
                     raise RuntimeError(
-                        f"SampleWriter is closed; {accepted} of these {len(rows)} samples were accepted, the rest were not"
+                        f"SampleWriter is closed; {accepted} of these {len(rows)} samples were "
+                        "accepted, the rest were not"
                     )
             except queue.Full:
                 raise BackPressureTimeout(
@@ -213,10 +224,15 @@ class SampleWriter:
         with self._progress:
             target = self.handed_over
             done = self._progress.wait_for(
-                lambda: self.committed + len(self.rejected) >= target or not self._thread.is_alive(), timeout
+                lambda: (
+                    self.committed + len(self.rejected) >= target or not self._thread.is_alive()
+                ),
+                timeout,
             )
         if not done:
-            raise TimeoutError(f"flush: {target - self.committed} samples still uncommitted after {timeout} s")
+            raise TimeoutError(
+                f"flush: {target - self.committed} samples still uncommitted after {timeout} s"
+            )
         self._raise_rejected()
 
     def close(self, timeout: float | None = None) -> None:
@@ -226,7 +242,9 @@ class SampleWriter:
         self._queue.close()
         self._thread.join(timeout)
         if self._thread.is_alive():
-            raise TimeoutError(f"close: writer still busy after {timeout} s; {self.pending} samples pending")
+            raise TimeoutError(
+                f"close: writer still busy after {timeout} s; {self.pending} samples pending"
+            )
         self._closed = True
         atexit.unregister(self.close)
         self._raise_rejected()
@@ -248,7 +266,8 @@ class SampleWriter:
         if self.rejected:
             sample, reason = self.rejected[0]
             raise SampleWriteError(
-                f"{len(self.rejected)} samples were refused by the database; first: {sample} ({reason})"
+                f"{len(self.rejected)} samples were refused by the database; first: {sample} "
+                f"({reason})"
             )
 
     def _run(self) -> None:
@@ -262,7 +281,8 @@ class SampleWriter:
     def _write(self, batch: list[Sample]) -> None:
         deadline = time.monotonic() + self.retry_for_s
         delay = 0.05
-        tried = False  # once a try failed, the batch may be stored already (a COMMIT whose answer was lost)
+        # once a try failed, the batch may be stored already (a COMMIT whose answer was lost)
+        tried = False
         while True:
             try:
                 with self._engine.begin() as conn:
@@ -276,15 +296,18 @@ class SampleWriter:
                 tried = True
                 if unreachable(exc):
                     # The database is away: the batch waits for it (in order, the queue behind it),
-                    # given up only when the writer is being closed and the outage outlasts outage_s.
+                    # given up only when the writer is being closed and the outage outlasts
+                    # outage_s.
                     self.database.away(exc)
-                    if not (self._queue.closed and self.database.away_for_s() >= self.database.outage_s):
+                    if not (
+                        self._queue.closed and self.database.away_for_s() >= self.database.outage_s
+                    ):
                         time.sleep(delay)
                         delay = min(delay * 2, 2.0)
                         continue
                 if time.monotonic() >= deadline or unreachable(exc):
-                    # Not the rows' fault: trying them one by one would only wait out the same lock or
-                    # outage once per row while the queue fills.
+                    # Not the rows' fault: trying them one by one would only wait out the same lock
+                    # or outage once per row while the queue fills.
                     log.error("sample batch failed after retries: %s", exc)
                     with self._progress:
                         self.rejected.extend((row, _reason(exc)) for row in batch)
@@ -293,7 +316,8 @@ class SampleWriter:
                 time.sleep(delay)
                 delay = min(delay * 2, 1.0)
             except Exception as exc:  # noqa: BLE001 - a bad row in the batch: find it, keep the others
-                if tried:  # an earlier try may have stored it: row by row would store those rows twice
+                # an earlier try may have stored it: row by row would store those rows twice
+                if tried:
                     with self._progress:
                         self.rejected.extend((row, _reason(exc)) for row in batch)
                         self._progress.notify_all()

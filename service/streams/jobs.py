@@ -18,13 +18,18 @@ ENDED = frozenset({"succeeded", "failed", "cancelled"})
 SAFETY_REREAD_S = 5.0  # real seconds between re-reads when no event came
 
 
-def job_points(points: PointsRepo, job: CalibrationJob,
-               have: frozenset[int] | set[int] | None = None) -> list[dict[str, Any]]:
-    """The job's points measured so far (every instrument of the job has its mean), by index, leaving
-    out those in `have`: {"index", "x_deg", "y_deg" (commanded stage angles; y null on a one-axis
-    procedure), and per role {"x_deg", "y_deg", "z_deg", "x_std_deg", "y_std_deg", "z_std_deg",
-    "n_samples", "temp_c"} of the robust means}."""
-    roles = {dev: role for role, dev in (job.parameters or {}).get("device_ids", {}).items() if dev is not None}
+def job_points(
+    points: PointsRepo, job: CalibrationJob, have: frozenset[int] | set[int] | None = None
+) -> list[dict[str, Any]]:
+    """The job's points measured so far (every instrument of the job has its mean), by index,
+    leaving out those in `have`: {"index", "x_deg", "y_deg" (commanded stage angles; y null on a
+    one-axis procedure), and per role {"x_deg", "y_deg", "z_deg", "x_std_deg", "y_std_deg",
+    "z_std_deg", "n_samples", "temp_c"} of the robust means}."""
+    roles = {
+        dev: role
+        for role, dev in (job.parameters or {}).get("device_ids", {}).items()
+        if dev is not None
+    }
     if not roles:
         roles = {job.device_id: "measurement_sensor"}
     by_point: dict[int, dict[str, Any]] = {}
@@ -37,20 +42,37 @@ def job_points(points: PointsRepo, job: CalibrationJob,
         role = roles.get(p.device_id)
         if role is None:
             continue
-        pt = by_point.setdefault(p.point, {"index": p.point, "x_deg": p.cmd_x_deg, "y_deg": p.cmd_y_deg})
-        pt[role] = {"x_deg": p.ch_x_mean, "y_deg": p.ch_y_mean, "z_deg": p.ch_z_mean, "x_std_deg": p.ch_x_std,
-                    "y_std_deg": p.ch_y_std, "z_std_deg": p.ch_z_std, "n_samples": p.n_samples,
-                    "temp_c": p.temp_c_mean}
+        pt = by_point.setdefault(
+            p.point, {"index": p.point, "x_deg": p.cmd_x_deg, "y_deg": p.cmd_y_deg}
+        )
+        pt[role] = {
+            "x_deg": p.ch_x_mean,
+            "y_deg": p.ch_y_mean,
+            "z_deg": p.ch_z_mean,
+            "x_std_deg": p.ch_x_std,
+            "y_std_deg": p.ch_y_std,
+            "z_std_deg": p.ch_z_std,
+            "n_samples": p.n_samples,
+            "temp_c": p.temp_c_mean,
+        }
     return [pt for i, pt in sorted(by_point.items()) if all(r in pt for r in roles.values())]
 
 
-async def job_messages(stored_jobs: JobsRepo, points_repo: PointsRepo, events: JobEvents, job_id: int,
-                       body: Callable[[CalibrationJob], dict[str, Any]]) -> AsyncGenerator[dict[str, Any], None]:
-    """The messages of one job's stream without seq, ending with its `end` (UnknownEntity if no such job)."""
+async def job_messages(
+    stored_jobs: JobsRepo,
+    points_repo: PointsRepo,
+    events: JobEvents,
+    job_id: int,
+    body: Callable[[CalibrationJob], dict[str, Any]],
+) -> AsyncGenerator[dict[str, Any], None]:
+    """The messages of one job's stream without seq, ending with its `end` (UnknownEntity if no such
+    job)."""
     event = events.subscribe(job_id)
     try:
-        job = await asyncio.to_thread(stored_jobs.get_job, job_id)  # database reads off the event loop
-        last = await asyncio.to_thread(body, job)  # the job's body reads its record: off the event loop too
+        # database reads off the event loop
+        job = await asyncio.to_thread(stored_jobs.get_job, job_id)
+        # the job's body reads its record: off the event loop too
+        last = await asyncio.to_thread(body, job)
         points = await asyncio.to_thread(job_points, points_repo, job)
         have = {p["index"] for p in points}
         yield {"type": "snapshot", "job": last, "points": points}
@@ -68,9 +90,13 @@ async def job_messages(stored_jobs: JobsRepo, points_repo: PointsRepo, events: J
             except Exception as exc:
                 if not unreachable(exc):
                     raise
-                # The database away: the job's last state, its phase saying what it waits for (its next
-                # step waits too); the stream goes on and reads again on the next change or re-read.
-                waiting = {**last, "progress": {**(last.get("progress") or {}), "phase": WAITING_FOR_DATABASE}}
+                # The database away: the job's last state, its phase saying what it waits for (its
+                # next step waits too); the stream goes on and reads again on the next change or
+                # re-read.
+                waiting = {
+                    **last,
+                    "progress": {**(last.get("progress") or {}), "phase": WAITING_FOR_DATABASE},
+                }
                 if _changed(last, waiting):
                     yield {"type": "job", "job": waiting}
                 last = waiting
@@ -88,5 +114,14 @@ async def job_messages(stored_jobs: JobsRepo, points_repo: PointsRepo, events: J
 
 def _changed(a: dict[str, Any], b: dict[str, Any]) -> bool:
     """State, progress, error, record or validation differ (not only the update time)."""
-    keys = ("state", "interrupted", "progress", "error", "record", "validation", "started_utc", "finished_utc")
+    keys = (
+        "state",
+        "interrupted",
+        "progress",
+        "error",
+        "record",
+        "validation",
+        "started_utc",
+        "finished_utc",
+    )
     return any(a.get(k) != b.get(k) for k in keys)

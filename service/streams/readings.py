@@ -3,10 +3,10 @@
 The producer wakes on the bench clock, takes the measurement sensor's readings that arrived since
 it last looked (memory, no I/O), and for each new reading builds one message (raw readings, the
 corrected table tilt through the active record, stage pose, temperature), serialises it once, keeps
-it in a ring buffer (history for snapshots) and offers it to every client whose rate makes it due. Each client
-has a bounded queue: a full queue drops the message (counted; a `dropped` message follows when
-room returns), so a slow client never slows the producer, the bench or the other clients. A
-client whose queue stays full for `slow_close_s` real seconds is told to go (close 1013).
+it in a ring buffer (history for snapshots) and offers it to every client whose rate makes it due.
+Each client has a bounded queue: a full queue drops the message (counted; a `dropped` message
+follows when room returns), so a slow client never slows the producer, the bench or the other
+clients. A client whose queue stays full for `slow_close_s` real seconds is told to go (close 1013).
 """
 
 from __future__ import annotations
@@ -45,8 +45,30 @@ CLOSE_SLOW = 1013  # try again later: the client could not take the messages
 CLOSE_GOING_AWAY = 1001
 
 # History ring columns (NaN for "none").
-_COLS = ("bench_s", "epoch", "mx", "my", "rx", "ry", "tx", "ty", "ux", "uy", "table", "sx", "sy", "moving", "stage",
-         "temp", "kx", "ky", "coverage", "in_range", "rtx", "rty")
+_COLS = (
+    "bench_s",
+    "epoch",
+    "mx",
+    "my",
+    "rx",
+    "ry",
+    "tx",
+    "ty",
+    "ux",
+    "uy",
+    "table",
+    "sx",
+    "sy",
+    "moving",
+    "stage",
+    "temp",
+    "kx",
+    "ky",
+    "coverage",
+    "in_range",
+    "rtx",
+    "rty",
+)
 _C = {name: i for i, name in enumerate(_COLS)}
 
 
@@ -56,7 +78,8 @@ def utc_text(t: dt.datetime) -> str:
 
 
 def calibration_of(active: Any) -> dict[str, Any] | None:
-    """The record a message's corrected tilt comes from, with its status (None: no active record)."""
+    """The record a message's corrected tilt comes from, with its status (None: no active
+    record)."""
     return calibration_json(active)
 
 
@@ -65,7 +88,8 @@ def _num(v: float) -> float | None:
 
 
 class HistoryRing:
-    """The last `capacity` readings as rows of floats (about 130 bytes each), oldest overwritten first."""
+    """The last `capacity` readings as rows of floats (about 130 bytes each), oldest overwritten
+    first."""
 
     def __init__(self, capacity: int) -> None:
         self.capacity = max(16, capacity)
@@ -98,7 +122,8 @@ def due(t: float, next_t: float, period: float, eps: float) -> float | None:
 
 
 def history_objects(rows: NDArray[np.float64], rate_hz: float, eps: float) -> list[dict[str, Any]]:
-    """Reading-shaped objects (no seq) of history rows, decimated to at most `rate_hz` (bench time)."""
+    """Reading-shaped objects (no seq) of history rows, decimated to at most `rate_hz` (bench
+    time)."""
     out: list[dict[str, Any]] = []
     next_t = -math.inf
     period = 1.0 / rate_hz
@@ -118,22 +143,34 @@ def _row_object(r: NDArray[np.float64]) -> dict[str, Any]:
     def pair(a: str, b: str) -> dict[str, Any] | None:
         return None if math.isnan(r[_C[a]]) else {"x_deg": c(a), "y_deg": c(b)}
 
-    return {"time_utc": utc_text(dt.datetime.fromtimestamp(r[_C["epoch"]], dt.UTC)), "type": "reading",
-            "raw": {"measurement_sensor": pair("mx", "my"), "reference_sensor": pair("rx", "ry")},
-            "table_tilt": None if math.isnan(r[_C["table"]]) else
-            from_expanded({"x_deg": c("tx"), "y_deg": c("ty")}, {"x": c("ux"), "y": c("uy")}, {"x": c("kx"), "y": c("ky")},
-                          c("coverage")),
-            "reference_tilt": None if math.isnan(r[_C["rtx"]]) else {"x_deg": c("rtx"), "y_deg": c("rty")},
-            "in_calibrated_range": None if math.isnan(r[_C["in_range"]]) else bool(r[_C["in_range"]]),
-            "stage": None if math.isnan(r[_C["stage"]]) else
-            {"x_deg": c("sx"), "y_deg": c("sy"), "moving": bool(r[_C["moving"]])},
-            "temp_c": c("temp")}
+    return {
+        "time_utc": utc_text(dt.datetime.fromtimestamp(r[_C["epoch"]], dt.UTC)),
+        "type": "reading",
+        "raw": {"measurement_sensor": pair("mx", "my"), "reference_sensor": pair("rx", "ry")},
+        "table_tilt": None
+        if math.isnan(r[_C["table"]])
+        else from_expanded(
+            {"x_deg": c("tx"), "y_deg": c("ty")},
+            {"x": c("ux"), "y": c("uy")},
+            {"x": c("kx"), "y": c("ky")},
+            c("coverage"),
+        ),
+        "reference_tilt": None
+        if math.isnan(r[_C["rtx"]])
+        else {"x_deg": c("rtx"), "y_deg": c("rty")},
+        "in_calibrated_range": None if math.isnan(r[_C["in_range"]]) else bool(r[_C["in_range"]]),
+        "stage": None
+        if math.isnan(r[_C["stage"]])
+        else {"x_deg": c("sx"), "y_deg": c("sy"), "moving": bool(r[_C["moving"]])},
+        "temp_c": c("temp"),
+    }
 
 
 @dataclass(frozen=True, eq=False)
 class SnapshotBuild:
-    """A snapshot's parts copied at connection time: its head (the newest reading, the calibration) and its
-    history rows. Building the message from them is pure work on copies: a thread may do it."""
+    """A snapshot's parts copied at connection time: its head (the newest reading, the calibration)
+    and its history rows. Building the message from them is pure work on copies: a thread may do
+    it."""
 
     head: dict[str, Any]
     rows: NDArray[np.float64]
@@ -156,8 +193,9 @@ class SnapshotsBusy(RuntimeError):
 
 
 class SnapshotGate:
-    """Snapshots with a long history are built `builds` at a time (in threads), `waiting` more may wait for
-    their turn; one more is refused (SnapshotsBusy). Short ones (`small_rows` rows or fewer) pass at once."""
+    """Snapshots with a long history are built `builds` at a time (in threads), `waiting` more may
+    wait for their turn; one more is refused (SnapshotsBusy). Short ones (`small_rows` rows or
+    fewer) pass at once."""
 
     def __init__(self, builds: int = 2, waiting: int = 8, small_rows: int = 1000) -> None:
         self.builds, self.waiting_max, self.small_rows = builds, waiting, small_rows
@@ -170,8 +208,11 @@ class SnapshotGate:
             return await asyncio.to_thread(snapshot)
         if self.waiting >= self.waiting_max + self.builds:
             self.refused += 1
-            raise SnapshotsBusy(f"{self.builds} snapshots with long histories are being built and {self.waiting_max}"
-                                " wait (TILTLAB_MAX_SNAPSHOTS, TILTLAB_SNAPSHOT_QUEUE); try again in a few seconds")
+            raise SnapshotsBusy(
+                f"{self.builds} snapshots with long histories are being built and "
+                f"{self.waiting_max}"
+                " wait (TILTLAB_MAX_SNAPSHOTS, TILTLAB_SNAPSHOT_QUEUE); try again in a few seconds"
+            )
         self.waiting += 1
         try:
             async with self._slots:
@@ -194,7 +235,8 @@ class Client:
     close_code: int | None = None
     close_reason: str = ""
     kicked: asyncio.Event = field(default_factory=asyncio.Event)
-    snapshot: SnapshotBuild | None = None  # a snapshot still to build (deferred), sent before the queue
+    # a snapshot still to build (deferred), sent before the queue
+    snapshot: SnapshotBuild | None = None
 
     def kick(self, code: int, reason: str) -> None:
         if self.close_code is None:
@@ -205,17 +247,22 @@ class Client:
 class ReadingProducer:
     """The one producer of a bench's reading stream."""
 
-    def __init__(self, bench: BenchRuntime, active_of: Any, *, queue_size: int, slow_close_s: float) -> None:
+    def __init__(
+        self, bench: BenchRuntime, active_of: Any, *, queue_size: int, slow_close_s: float
+    ) -> None:
         self.bench = bench
         self._active_of = active_of  # () -> the bench's ActiveModel or None
         self.queue_size = queue_size
         self.slow_close_s = slow_close_s
-        self.role = next((r for r in ("measurement_sensor", *SENSOR_ROLES) if r in bench.devices), None)
+        self.role = next(
+            (r for r in ("measurement_sensor", *SENSOR_ROLES) if r in bench.devices), None
+        )
         self.interval_s = bench.output_interval_s(self.role) if self.role else 1.0
         self.sensor_rate_hz = 1.0 / self.interval_s
         self.history = HistoryRing(int(HISTORY_MAX_S * self.sensor_rate_hz * 1.05) + 16)
         self.clients: set[Client] = set()
-        self.dropped_total = 0  # messages dropped for slow clients since start (the daemon's metrics)
+        # messages dropped for slow clients since start (the daemon's metrics)
+        self.dropped_total = 0
         self.messages = 0
         self._latest: dict[str, Any] | None = None  # the last message built (without seq)
         self._task: asyncio.Task[None] | None = None
@@ -223,7 +270,9 @@ class ReadingProducer:
     # ------------------------------------------------------------ life
 
     def start(self) -> None:
-        self._task = asyncio.get_running_loop().create_task(self._run(), name=f"readings {self.bench.name}")
+        self._task = asyncio.get_running_loop().create_task(
+            self._run(), name=f"readings {self.bench.name}"
+        )
 
     async def stop(self) -> None:
         for c in list(self.clients):
@@ -250,9 +299,10 @@ class ReadingProducer:
         return self.sensor_rate_hz if rate_hz is None else min(rate_hz, self.sensor_rate_hz)
 
     def connect(self, rate_hz: float, history_s: float, *, deferred: bool = False) -> Client:
-        """Register a client; its queue holds the snapshot (seq 0) already. `deferred`: the snapshot is not built
-        here (on the event loop) but by `client.snapshot()`, in a thread, from what was copied now (the history
-        up to this moment, which the stream then continues without a gap)."""
+        """Register a client; its queue holds the snapshot (seq 0) already. `deferred`: the snapshot
+        is not built here (on the event loop) but by `client.snapshot()`, in a thread, from what was
+        copied now (the history up to this moment, which the stream then continues without a
+        gap)."""
         client = Client(rate_hz, asyncio.Queue(self.queue_size))
         if deferred:
             client.snapshot = self.snapshot_later(rate_hz, history_s)
@@ -268,15 +318,24 @@ class ReadingProducer:
         return self.snapshot_later(rate_hz, history_s).document()
 
     def snapshot_later(self, rate_hz: float, history_s: float) -> SnapshotBuild:
-        """What a snapshot is made of, copied now (cheap); the message is built from it later, anywhere."""
+        """What a snapshot is made of, copied now (cheap); the message is built from it later,
+        anywhere."""
         latest = self._latest or self._build(self.bench.clock.monotonic())[0]
         rows = self.history.since(self.bench.clock.monotonic() - history_s)
-        head = {"type": "snapshot", "seq": 0, "time_utc": latest["time_utc"], "bench": self.bench.name,
-                "rate_hz": rate_hz, "raw": latest["raw"], "table_tilt": latest["table_tilt"],
-                "reference_tilt": latest.get("reference_tilt"),
-                "stage": latest["stage"], "temp_c": latest["temp_c"],
-                "calibration": calibration_of(self._active_of()),
-                "in_calibrated_range": latest.get("in_calibrated_range")}
+        head = {
+            "type": "snapshot",
+            "seq": 0,
+            "time_utc": latest["time_utc"],
+            "bench": self.bench.name,
+            "rate_hz": rate_hz,
+            "raw": latest["raw"],
+            "table_tilt": latest["table_tilt"],
+            "reference_tilt": latest.get("reference_tilt"),
+            "stage": latest["stage"],
+            "temp_c": latest["temp_c"],
+            "calibration": calibration_of(self._active_of()),
+            "in_calibrated_range": latest.get("in_calibrated_range"),
+        }
         return SnapshotBuild(head, rows, rate_hz, 0.25 * self.interval_s)
 
     # ------------------------------------------------------------ producing
@@ -287,10 +346,11 @@ class ReadingProducer:
         last_emitted = -math.inf  # bench time of the newest reading a message was built from
         last_emit = bench.clock.monotonic()
         wake = max(bench.clock.real_seconds(self.interval_s / 2), MIN_WAKE_S)
-        # Every reading that arrived since the last wake gets its message (a wake that comes late, on a
-        # busy event loop, loses none). A bench sped up past one reading per MIN_CORRECTION_GAP_S of real
-        # time has its readings thinned to one per that gap, as `GET /tilt` corrects them; a bench at its
-        # own pace keeps them all, even the ones a busy reader thread stamped close together.
+        # Every reading that arrived since the last wake gets its message (a wake that comes late,
+        # on a busy event loop, loses none). A bench sped up past one reading per
+        # MIN_CORRECTION_GAP_S of real time has its readings thinned to one per that gap, as `GET
+        # /tilt` corrects them; a bench at its own pace keeps them all, even the ones a busy reader
+        # thread stamped close together.
         paced = bench.clock.real_seconds(self.interval_s) >= MIN_CORRECTION_GAP_S
         min_gap = 0.0 if paced else bench.clock.bench_seconds(MIN_CORRECTION_GAP_S) * 0.999
         while True:
@@ -304,22 +364,23 @@ class ReadingProducer:
                         if r.bench_s - last_emitted >= min_gap:
                             last_emitted, last_emit = r.bench_s, now
                             self._emit(now, r)
-                elif now - last_emit >= self.interval_s:  # a silent sensor still gets one message per interval
+                # a silent sensor still gets one message per interval
+                elif now - last_emit >= self.interval_s:
                     last_emit = now
                     self._emit(now, None)
             except Exception:  # noqa: BLE001 - one bad message must not end the stream
                 log.exception("reading stream of %s: a message could not be built", bench.name)
 
     def _new_readings(self, last_seen: float | None) -> list[Reading]:
-        """The stream's role's readings since `last_seen`, at most one second of them (what a stalled
-        loop catches up on); the latest alone at the start."""
+        """The stream's role's readings since `last_seen`, at most one second of them (what a
+        stalled loop catches up on); the latest alone at the start."""
         if self.role is None:
             return []
         if last_seen is None:
             r = self.bench.latest(self.role)
             return [] if r is None else [r]
         new = self.bench.readings_after(self.role, last_seen)
-        return new[-max(1, int(self.sensor_rate_hz)):]
+        return new[-max(1, int(self.sensor_rate_hz)) :]
 
     def _emit(self, now_bench_s: float, reading: Reading | None) -> None:
         msg, row = self._build(now_bench_s, reading)
@@ -361,11 +422,15 @@ class ReadingProducer:
             c.kick(CLOSE_SLOW, f"too slow: every message dropped for {self.slow_close_s:g} s")
             self.clients.discard(c)
 
-    def _build(self, now_bench_s: float, reading: Reading | None = None) -> tuple[dict[str, Any], list[float]]:
-        """The message of `reading` (the stream role's; None: its latest) with the bench's other values now."""
+    def _build(
+        self, now_bench_s: float, reading: Reading | None = None
+    ) -> tuple[dict[str, Any], list[float]]:
+        """The message of `reading` (the stream role's; None: its latest) with the bench's other
+        values now."""
         bench = self.bench
         clock = bench.clock
-        limit = clock.bench_seconds(stale_after_s(bench, self.role)) if self.role else math.inf  # GET /tilt's rule
+        # GET /tilt's rule
+        limit = clock.bench_seconds(stale_after_s(bench, self.role)) if self.role else math.inf
 
         def fresh(role: str) -> Reading | None:
             r = reading if reading is not None and role == self.role else bench.latest(role)
@@ -375,10 +440,17 @@ class ReadingProducer:
 
         meas, ref = fresh("measurement_sensor"), fresh("reference_sensor")
         active = self._active_of()
-        table = corrected_once(bench, active, meas) if meas is not None and active is not None and \
-            bench.kind == "stage" else None
+        table = (
+            corrected_once(bench, active, meas)
+            if meas is not None and active is not None and bench.kind == "stage"
+            else None
+        )
         pose = bench.pose
-        stage = {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving} if bench.kind == "stage" else None
+        stage = (
+            {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving}
+            if bench.kind == "stage"
+            else None
+        )
         temp = sensor_temp_c(meas, ref)
         when = meas.time_utc if meas is not None else clock.utc()
         t_bench = meas.bench_s if meas is not None else now_bench_s
@@ -388,39 +460,71 @@ class ReadingProducer:
 
         in_range = in_calibrated_range(active, table)
         through = reference_tilt(active, ref, temp) if bench.kind == "stage" else None
-        msg = {"time_utc": utc_text(when), "type": "reading",
-               "raw": {"measurement_sensor": pair(meas), "reference_sensor": pair(ref)},
-               "reference_tilt": through,
-               "table_tilt": table, "in_calibrated_range": in_range, "stage": stage, "temp_c": temp,
-               "calibration": calibration_of(active)}  # an activation shows with the next reading
+        msg = {
+            "time_utc": utc_text(when),
+            "type": "reading",
+            "raw": {"measurement_sensor": pair(meas), "reference_sensor": pair(ref)},
+            "reference_tilt": through,
+            "table_tilt": table,
+            "in_calibrated_range": in_range,
+            "stage": stage,
+            "temp_c": temp,
+            "calibration": calibration_of(active),
+        }  # an activation shows with the next reading
         nan = math.nan
 
         def f(v: float | None) -> float:
             return nan if v is None else float(v)
 
-        row = [t_bench, when.timestamp(),
-               f(meas.x_deg if meas else None), f(meas.y_deg if meas else None),
-               f(ref.x_deg if ref else None), f(ref.y_deg if ref else None),
-               f(table["x_deg"] if table else None), f(table["y_deg"] if table else None),
-               f(table["u_x_deg"] if table else None), f(table["u_y_deg"] if table else None),
-               1.0 if table else nan,
-               f(stage["x_deg"] if stage else None), f(stage["y_deg"] if stage else None),
-               1.0 if stage and stage["moving"] else 0.0, 1.0 if stage else nan, f(temp),
-               f(table["k"] if table else None), f(table["k_y"] if table else None),
-               f(table["coverage_probability"] if table else None), nan if in_range is None else float(in_range),
-               f(through["x_deg"] if through else None), f(through["y_deg"] if through else None)]
+        row = [
+            t_bench,
+            when.timestamp(),
+            f(meas.x_deg if meas else None),
+            f(meas.y_deg if meas else None),
+            f(ref.x_deg if ref else None),
+            f(ref.y_deg if ref else None),
+            f(table["x_deg"] if table else None),
+            f(table["y_deg"] if table else None),
+            f(table["u_x_deg"] if table else None),
+            f(table["u_y_deg"] if table else None),
+            1.0 if table else nan,
+            f(stage["x_deg"] if stage else None),
+            f(stage["y_deg"] if stage else None),
+            1.0 if stage and stage["moving"] else 0.0,
+            1.0 if stage else nan,
+            f(temp),
+            f(table["k"] if table else None),
+            f(table["k_y"] if table else None),
+            f(table["coverage_probability"] if table else None),
+            nan if in_range is None else float(in_range),
+            f(through["x_deg"] if through else None),
+            f(through["y_deg"] if through else None),
+        ]
         return msg, row
 
 
 class StreamHub:
     """The producers of every bench, started and stopped with the daemon."""
 
-    def __init__(self, benches: dict[str, BenchRuntime], jobs: Any, *, queue_size: int, slow_close_s: float,
-                 snapshots: SnapshotGate | None = None) -> None:
+    def __init__(
+        self,
+        benches: dict[str, BenchRuntime],
+        jobs: Any,
+        *,
+        queue_size: int,
+        slow_close_s: float,
+        snapshots: SnapshotGate | None = None,
+    ) -> None:
         self.snapshots = snapshots or SnapshotGate()
-        self.producers = {name: ReadingProducer(b, (lambda n=name: jobs.active.get(n)), queue_size=queue_size,
-                                                slow_close_s=slow_close_s)
-                          for name, b in benches.items()}
+        self.producers = {
+            name: ReadingProducer(
+                b,
+                (lambda n=name: jobs.active.get(n)),
+                queue_size=queue_size,
+                slow_close_s=slow_close_s,
+            )
+            for name, b in benches.items()
+        }
         self.queue_size, self.slow_close_s = queue_size, slow_close_s
         self.remote: Any = None  # the fleet, when the daemon is part of one: other nodes' benches
 
@@ -437,8 +541,9 @@ class StreamHub:
         if name in self.producers:
             return self.producers[name]
         if self.remote is not None:
-            producer: ReadingProducer | None = self.remote.producer(name, queue_size=self.queue_size,
-                                                                   slow_close_s=self.slow_close_s)
+            producer: ReadingProducer | None = self.remote.producer(
+                name, queue_size=self.queue_size, slow_close_s=self.slow_close_s
+            )
             return producer
         return None
 

@@ -13,16 +13,33 @@ from tests.api.running_service import running_service
 from tests.api.test_dashboard_browser import CHROMIUM
 
 pytestmark = pytest.mark.skipif(
-    CHROMIUM is None, reason="needs Debian's chromium for browser tests (apt-get install chromium; .ci/run installs it)")
+    CHROMIUM is None,
+    reason="needs Debian's chromium for browser tests (apt-get install chromium; .ci/run installs "
+    "it)",
+)
 
 # Every host name fails to resolve except the service's own address: an air-gapped lab network.
 OFFLINE = "--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1"
 
 
 def offline_dom(url: str, profile: Path) -> str:
-    args = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync", OFFLINE,
-            f"--user-data-dir={profile}", "--window-size=1200,800", "--virtual-time-budget=10000", "--dump-dom", url]
+    args = [
+        CHROMIUM,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        OFFLINE,
+        f"--user-data-dir={profile}",
+        "--window-size=1200,800",
+        "--virtual-time-budget=10000",
+        "--dump-dom",
+        url,
+    ]
     r = subprocess.run(args, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     return r.stdout

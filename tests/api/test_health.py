@@ -54,7 +54,8 @@ def test_a_changed_revision_is_seen_once_the_interval_is_over(tmp_path):
         first = (await kept.get(engine), await fresh.get(engine))
         with engine.begin() as c:
             c.execute(sa.text("UPDATE alembic_version SET version_num = '0002'"))
-        # the stale answer is served at once while one refresh runs; the next request sees the new one
+        # the stale answer is served at once while one refresh runs; the next request sees the new
+        # one
         served = await asyncio.gather(*(fresh.get(engine) for _ in range(20)))
         await fresh.refreshed()
         return first, served, (await kept.get(engine), await fresh.get(engine)), kept.queries, fresh
@@ -91,6 +92,11 @@ def test_health_says_degraded_when_the_schema_is_not_at_head(tmp_path):
         body = client.get("/health").json()
         assert body["status"] == "degraded" and body["schema_revision"] == "older"
         r = client.get("/ready")
-        assert r.status_code == 503 and f"database schema at older, not {head_revision()}" in r.json()["reasons"]
+        assert (
+            r.status_code == 503
+            and f"database schema at older, not {head_revision()}" in r.json()["reasons"]
+        )
         with client.app.state.engine.begin() as c:
-            c.execute(sa.text("UPDATE alembic_version SET version_num = :v"), {"v": head_revision()})
+            c.execute(
+                sa.text("UPDATE alembic_version SET version_num = :v"), {"v": head_revision()}
+            )

@@ -23,8 +23,10 @@ def client(tmp_path):  # type: ignore[no-untyped-def]
 
 def _schema_paths(client: TestClient) -> dict[str, set[str]]:
     paths = client.get("/openapi.json").json()["paths"]
-    return {re.sub(r"\{[^}]+\}", "1", p): {m.upper() for m in ops if m.upper() in METHODS}
-            for p, ops in paths.items()}
+    return {
+        re.sub(r"\{[^}]+\}", "1", p): {m.upper() for m in ops if m.upper() in METHODS}
+        for p, ops in paths.items()
+    }
 
 
 def _streams(client: TestClient, path: str) -> bool:
@@ -47,13 +49,15 @@ def test_head_answers_every_get_route(client: TestClient) -> None:
         get = client.get(path)
         assert head.status_code == get.status_code, path
         assert head.headers.get("content-type") == get.headers.get("content-type"), path
-        if "content-length" in get.headers:  # the length a GET would have had (readings vary in length)
+        # the length a GET would have had (readings vary in length)
+        if "content-length" in get.headers:
             assert int(head.headers["content-length"]) > 0, path
 
 
 def test_405_carries_allow_with_every_method_of_the_path(client: TestClient, tmp_path) -> None:  # type: ignore[no-untyped-def]
     paths = {**_schema_paths(client), "/docs": {"GET"}, "/": {"GET"}}
-    # with a token: without one, a protected path answers 401 whatever the method (the token comes first)
+    # with a token: without one, a protected path answers 401 whatever the method (the token comes
+    # first)
     admin = {"Authorization": "Bearer " + (tmp_path / "admin.token").read_text().strip()}
     for path, served in paths.items():
         refused = next(m for m in ("DELETE", "PATCH", "PUT", "POST") if m not in served)

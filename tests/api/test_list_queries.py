@@ -1,5 +1,6 @@
-"""Routes that list things read them in a few batched queries, however many rows a page holds: a page of
-many jobs or records costs the same number of statements as a page of a few (no query per row)."""
+"""Routes that list things read them in a few batched queries, however many rows a page holds: a
+page of many jobs or records costs the same number of statements as a page of a few (no query per
+row)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ from tests.storage.conftest import (  # noqa: F401 - fixtures
     sqlite_template,
 )
 
-MAX_STATEMENTS = 10  # per listing request, whatever the page size (a session's own statements included)
+# per listing request, whatever the page size (a session's own statements included)
+MAX_STATEMENTS = 10
 
 
 @contextmanager
@@ -48,20 +50,30 @@ def add_measured_jobs(store: Store, device_id: int, n: int, order_id: int) -> No
     for _ in range(n):
         job = store.jobs.create_job(device_id, "scale", "linear", actor="olga", order_id=order_id)
         store.jobs.start_job(job.id, actor="olga")
-        record = store.records.add_record(device_id, "scale", "linear", {"parameters": {}}, operator="olga",
-                                          job_id=job.id)
+        record = store.records.add_record(
+            device_id, "scale", "linear", {"parameters": {}}, operator="olga", job_id=job.id
+        )
         store.jobs.succeed_job(job.id, actor="olga")
         if record.version % 2:
-            store.approvals.decide(record.id, decision="approve", meaning="approval", note="", actor="rita")
+            store.approvals.decide(
+                record.id, decision="approve", meaning="approval", note="", actor="rita"
+            )
 
 
 @pytest.fixture
 def listed(engine: sa.Engine, tmp_path) -> Iterator[tuple[Store, TestClient, int, int]]:  # noqa: F811  # type: ignore[no-untyped-def]
     store = Store(engine)
     device = store.devices.add_device("SCA126T", "SN-1", "measurement_sensor", actor="setup")
-    order, _ = store.orders.create_order({
-        "lims_order_id": "LIMS-1", "item_serial": "SN-1", "procedure": "scale", "method": "linear",
-        "customer": {"name": "Survey Ltd", "city": "Berlin", "country_code": "DE"}}, actor="setup")  # fmt: skip
+    order, _ = store.orders.create_order(
+        {
+            "lims_order_id": "LIMS-1",
+            "item_serial": "SN-1",
+            "procedure": "scale",
+            "method": "linear",
+            "customer": {"name": "Survey Ltd", "city": "Berlin", "country_code": "DE"},
+        },
+        actor="setup",
+    )
     app = FastAPI()
     problems.install(app)
     for module in (calibrations, records, lims):
@@ -75,7 +87,12 @@ def listed(engine: sa.Engine, tmp_path) -> Iterator[tuple[Store, TestClient, int
 
 def test_a_page_of_many_jobs_records_or_order_links_costs_the_statements_of_a_few(listed) -> None:  # type: ignore[no-untyped-def]
     store, client, device_id, order_id = listed
-    routes = ("/calibrations?limit=500", "/records", f"/records?device={device_id}", f"/orders/{order_id}")
+    routes = (
+        "/calibrations?limit=500",
+        "/records",
+        f"/records?device={device_id}",
+        f"/orders/{order_id}",
+    )
     statements: dict[int, dict[str, int]] = {}
     made = 0
     for total in (3, 40):

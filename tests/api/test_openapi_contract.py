@@ -1,6 +1,6 @@
-"""The OpenAPI document describes the service that answers: every 2xx body typed, every error a problem
-(one schema, application/problem+json), a bearer security scheme on the routes that need a token, and
-the routers take what they need as declared dependencies."""
+"""The OpenAPI document describes the service that answers: every 2xx body typed, every error a
+problem (one schema, application/problem+json), a bearer security scheme on the routes that need a
+token, and the routers take what they need as declared dependencies."""
 
 from __future__ import annotations
 
@@ -43,16 +43,24 @@ def test_every_2xx_response_is_typed(document: dict[str, Any]) -> None:
             if not status.startswith("2"):
                 continue
             content = answer.get("content", {})
-            if not content or not all(_typed(c.get("schema", {}), document) for c in content.values()):
+            if not content or not all(
+                _typed(c.get("schema", {}), document) for c in content.values()
+            ):
                 untyped.append(f"{method.upper()} {path} {status}")
     assert untyped == []
 
 
 def test_non_json_bodies_have_their_media_types(document: dict[str, Any]) -> None:
     paths = document["paths"]
-    assert list(paths["/records/{record_id}/certificate"]["get"]["responses"]["200"]["content"]) == ["application/xml"]
-    assert list(paths["/records/{record_id}/certificate.html"]["get"]["responses"]["200"]["content"]) == ["text/html"]
-    assert list(paths["/records/{record_id}/points"]["get"]["responses"]["200"]["content"]) == ["text/csv"]
+    assert list(
+        paths["/records/{record_id}/certificate"]["get"]["responses"]["200"]["content"]
+    ) == ["application/xml"]
+    assert list(
+        paths["/records/{record_id}/certificate.html"]["get"]["responses"]["200"]["content"]
+    ) == ["text/html"]
+    assert list(paths["/records/{record_id}/points"]["get"]["responses"]["200"]["content"]) == [
+        "text/csv"
+    ]
 
 
 def test_idempotent_repeats_are_declared(document: dict[str, Any]) -> None:
@@ -63,7 +71,9 @@ def test_idempotent_repeats_are_declared(document: dict[str, Any]) -> None:
 def test_every_error_is_the_one_problem_model(document: dict[str, Any]) -> None:
     schemas = document["components"]["schemas"]
     assert "HTTPValidationError" not in schemas and "ValidationError" not in schemas
-    assert {"type", "title", "status", "detail", "instance"} <= set(schemas["Problem"]["properties"])
+    assert {"type", "title", "status", "detail", "instance"} <= set(
+        schemas["Problem"]["properties"]
+    )
     for method, path, op in _operations(document):
         errors = {s: a for s, a in op["responses"].items() if s[0] in "45"}
         if (method, path) not in OPEN:
@@ -75,8 +85,9 @@ def test_every_error_is_the_one_problem_model(document: dict[str, Any]) -> None:
         for status, answer in errors.items():
             if (method, path) == ("get", "/ready"):
                 continue  # 503 there is the readiness body, with its reasons
-            assert answer["content"] == {"application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}}, \
-                f"{method} {path} {status}"
+            assert answer["content"] == {
+                "application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}
+            }, f"{method} {path} {status}"
 
 
 def test_bearer_security_scheme_on_every_route_but_health(document: dict[str, Any]) -> None:
@@ -93,4 +104,6 @@ def test_routers_take_their_dependencies_declared() -> None:
     for path in ROUTERS.glob("*.py"):
         text = path.read_text()
         assert "app.state" not in text, path.name
-        assert not re.search(r"except UnknownEntity\b[^\n]*:\s*\n\s*raise ProblemError\(404", text), path.name
+        assert not re.search(
+            r"except UnknownEntity\b[^\n]*:\s*\n\s*raise ProblemError\(404", text
+        ), path.name

@@ -1,7 +1,8 @@
-"""What an integrator generates from /openapi.json compiles what the README sends: TypeScript types made by
-openapi-typescript (default settings) type-check every request body of the README's curl session under
-`tsc --strict`. And the document's details a generator reads: a request field with a default is optional,
-every 201 and 202 declares its Location header, the description names the routes open without a token.
+"""What an integrator generates from /openapi.json compiles what the README sends: TypeScript types
+made by openapi-typescript (default settings) type-check every request body of the README's curl
+session under `tsc --strict`. And the document's details a generator reads: a request field with a
+default is optional, every 201 and 202 declares its Location header, the description names the
+routes open without a token.
 
 The tools are the pinned npm packages of package.json (`npm ci`, run by .ci/run); without them the
 compile test is skipped, saying so, and the document checks still run."""
@@ -21,8 +22,10 @@ from service.config import Settings
 
 ROOT = Path(__file__).resolve().parents[2]
 BIN = ROOT / "node_modules" / ".bin"
-needs_tools = pytest.mark.skipif(not (BIN / "tsc").exists() or not (BIN / "openapi-typescript").exists(),
-                                 reason="needs the npm tools of package.json (npm ci; .ci/run installs them)")
+needs_tools = pytest.mark.skipif(
+    not (BIN / "tsc").exists() or not (BIN / "openapi-typescript").exists(),
+    reason="needs the npm tools of package.json (npm ci; .ci/run installs them)",
+)
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +45,8 @@ def readme_bodies() -> list[tuple[str, str, dict[str, Any]]]:
 
 
 def schema_path(document: dict[str, Any], route: str) -> str:
-    """The document's path template that matches a concrete route (/records/1/diagnose -> /records/{record_id}/diagnose)."""
+    """The document's path template that matches a concrete route (/records/1/diagnose ->
+    /records/{record_id}/diagnose)."""
     for template in document["paths"]:
         if re.fullmatch(re.sub(r"\{[^}]+\}", "[^/]+", template), route):
             return template
@@ -61,7 +65,10 @@ def test_a_request_field_with_a_default_is_optional(document):
     assert "default 10" in request["properties"]["samples_per_point"]["description"]
     for name in ("CalibrationRequest", "Grid", "Settle", "Validation", "Level", "DiagnoseRequest"):
         for field, prop in schemas[name].get("properties", {}).items():
-            assert "default" not in prop or field in schemas[name].get("required", []), (name, field)
+            assert "default" not in prop or field in schemas[name].get("required", []), (
+                name,
+                field,
+            )
 
 
 def test_every_201_and_202_declares_its_location(document):
@@ -70,9 +77,18 @@ def test_every_201_and_202_declares_its_location(document):
         for method, operation in operations.items():
             for status in ("201", "202"):
                 if status in operation["responses"]:
-                    assert "Location" in operation["responses"][status].get("headers", {}), (method, path, status)
+                    assert "Location" in operation["responses"][status].get("headers", {}), (
+                        method,
+                        path,
+                        status,
+                    )
                     declared.append((method, path))
-    for wanted in ("/calibrations", "/records/{record_id}/diagnose", "/diagnoses/{diagnosis_id}/adopt", "/orders"):
+    for wanted in (
+        "/calibrations",
+        "/records/{record_id}/diagnose",
+        "/diagnoses/{diagnosis_id}/adopt",
+        "/orders",
+    ):
         assert ("post", wanted) in declared, wanted
 
 
@@ -85,17 +101,40 @@ def test_the_description_names_every_open_route(document):
 def test_generated_typescript_types_compile_the_readme_bodies(document, tmp_path):
     spec = tmp_path / "openapi.json"
     spec.write_text(json.dumps(document))
-    made = subprocess.run([str(BIN / "openapi-typescript"), str(spec), "-o", str(tmp_path / "api.ts")],
-                          capture_output=True, text=True, timeout=300)
+    made = subprocess.run(
+        [str(BIN / "openapi-typescript"), str(spec), "-o", str(tmp_path / "api.ts")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert made.returncode == 0, made.stdout + made.stderr
     lines = ['import type { paths } from "./api";']
     for i, (method, route, body) in enumerate(readme_bodies()):
         template = schema_path(document, route)
-        lines.append(f'const body{i}: paths["{template}"]["{method}"]["requestBody"] = '
-                     f'{{ content: {{ "application/json": {json.dumps(body)} }} }};')
+        lines.append(
+            f'const body{i}: paths["{template}"]["{method}"]["requestBody"] = '
+            f'{{ content: {{ "application/json": {json.dumps(body)} }} }};'
+        )
         lines.append(f"void body{i};")
     (tmp_path / "readme.ts").write_text("\n".join(lines) + "\n")
-    checked = subprocess.run([str(BIN / "tsc"), "--noEmit", "--strict", "--target", "es2022", "--module", "es2022",
-                              "--moduleResolution", "bundler", str(tmp_path / "readme.ts")],
-                             capture_output=True, text=True, timeout=300, cwd=tmp_path)
-    assert checked.returncode == 0, checked.stdout + checked.stderr + (tmp_path / "readme.ts").read_text()
+    checked = subprocess.run(
+        [
+            str(BIN / "tsc"),
+            "--noEmit",
+            "--strict",
+            "--target",
+            "es2022",
+            "--module",
+            "es2022",
+            "--moduleResolution",
+            "bundler",
+            str(tmp_path / "readme.ts"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
+    assert checked.returncode == 0, (
+        checked.stdout + checked.stderr + (tmp_path / "readme.ts").read_text()
+    )

@@ -1,6 +1,7 @@
-"""`GET /records` pages, and reading every page in a loop does not hold `/tilt` hostage: with 2,000 records
-(each with its model, as a job stores it), `/tilt`'s p99 while a client reads page after page stays within 3x
-of the same run's idle p99. The pages are made and serialised in a request thread, never on the event loop.
+"""`GET /records` pages, and reading every page in a loop does not hold `/tilt` hostage: with 2,000
+records (each with its model, as a job stores it), `/tilt`'s p99 while a client reads page after
+page stays within 3x of the same run's idle p99. The pages are made and serialised in a request
+thread, never on the event loop.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, t
     while not stop.exists():
         cursor = None
         while not stop.exists():
-            body = c.get("/records", params={"limit": 50, **({"cursor": cursor} if cursor else {})}).json()
+            page = {"limit": 50, **({"cursor": cursor} if cursor else {})}
+            body = c.get("/records", params=page).json()
             read += len(body["records"])
             if (cursor := body["next_cursor"]) is None:
                 break
@@ -55,9 +57,17 @@ def many_records(tmp_path_factory: pytest.TempPathFactory) -> Path:
     store = Store(engine)
     first = store.records.get_record(job["record"]["id"])
     for _ in range(RECORDS - 1):
-        store.records.add_record(first.device_id, first.kind, first.method, first.model, operator=first.operator,
-                                 validation=first.validation, temp_c=first.temp_c, job_id=first.job_id,
-                                 raw_data={"fit_points": first.raw_data["fit_points"]})
+        store.records.add_record(
+            first.device_id,
+            first.kind,
+            first.method,
+            first.model,
+            operator=first.operator,
+            validation=first.validation,
+            temp_c=first.temp_c,
+            job_id=first.job_id,
+            raw_data={"fit_points": first.raw_data["fit_points"]},
+        )
     engine.dispose()
     return data
 
@@ -73,7 +83,9 @@ def _tilt_latencies(base: str, token: str) -> list[float]:
     return out
 
 
-def test_records_page_and_reading_them_all_leaves_tilt_alone(many_records: Path, tmp_path: Path) -> None:
+def test_records_page_and_reading_them_all_leaves_tilt_alone(
+    many_records: Path, tmp_path: Path
+) -> None:
     data = tmp_path / "data"
     shutil.copytree(many_records, data)
     with daemon(tmp_path, TILTLAB_DATA_DIR=str(data), TILTLAB_SIM_TRANSPORT="loopback") as d:
@@ -81,7 +93,9 @@ def test_records_page_and_reading_them_all_leaves_tilt_alone(many_records: Path,
         with httpx.Client(base_url=d.base, headers=auth, timeout=120) as c:
             ids, cursor, pages = [], None, 0
             while True:
-                page = c.get("/records", params={"limit": 50, **({"cursor": cursor} if cursor else {})})
+                page = c.get(
+                    "/records", params={"limit": 50, **({"cursor": cursor} if cursor else {})}
+                )
                 assert page.status_code == 200, page.text
                 body = page.json()
                 ids += [r["id"] for r in body["records"]]
@@ -89,13 +103,21 @@ def test_records_page_and_reading_them_all_leaves_tilt_alone(many_records: Path,
                 cursor = body["next_cursor"]
                 if cursor is None:
                     break
-        assert len(ids) == len(set(ids)) == RECORDS and ids == sorted(ids, reverse=True) and pages == RECORDS // 50 + 1
+        assert (
+            len(ids) == len(set(ids)) == RECORDS
+            and ids == sorted(ids, reverse=True)
+            and pages == RECORDS // 50 + 1
+        )
         _tilt_latencies(d.base, d.token)  # warm: the token known, the route's path taken once
         idle = _tilt_latencies(d.base, d.token)
-        # the reader in a process of its own: decoding its pages must not hold the measuring client's interpreter
+        # the reader in a process of its own: decoding its pages must not hold the measuring
+        # client's interpreter
         stop = tmp_path / "stop"
-        reader = subprocess.Popen([sys.executable, "-c", READER, d.base, d.token, str(stop)], stdout=subprocess.PIPE,
-                                  text=True)
+        reader = subprocess.Popen(
+            [sys.executable, "-c", READER, d.base, d.token, str(stop)],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         try:
             time.sleep(2.0)
             busy = _tilt_latencies(d.base, d.token)
@@ -105,6 +127,9 @@ def test_records_page_and_reading_them_all_leaves_tilt_alone(many_records: Path,
         read = [int(out.split()[-1])]
     assert read[0] >= RECORDS, f"the reader got through {read[0]} records"
     base99, busy99 = np.percentile(idle, 99), np.percentile(busy, 99)
-    figures = f"/tilt idle p99 {base99 * 1e3:.2f} ms; while reading every page p99 {busy99 * 1e3:.2f} ms ({read[0]} records read)"
+    figures = (
+        f"/tilt idle p99 {base99 * 1e3:.2f} ms; while reading every page p99 "
+        f"{busy99 * 1e3:.2f} ms ({read[0]} records read)"
+    )
     print(figures)
     assert busy99 <= P99_RATIO * base99, figures

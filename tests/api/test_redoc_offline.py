@@ -1,4 +1,5 @@
-"""/redoc refers to nothing outside the daemon: neither its page nor the script it loads names a CDN."""
+"""/redoc refers to nothing outside the daemon: neither its page nor the script it loads names a
+CDN."""
 
 from __future__ import annotations
 
@@ -21,5 +22,7 @@ def test_redoc_page_and_its_scripts_fetch_nothing_remote(tmp_path) -> None:
             assert r.status_code == 200, url
             if url.endswith(".js"):
                 # images and scripts a bundle would load (src:"https://…"): none remote
-                assert not re.search(r'src:"https?://', r.text), re.search(r'.{80}src:"https?://.{60}', r.text)
+                assert not re.search(r'src:"https?://', r.text), re.search(
+                    r'.{80}src:"https?://.{60}', r.text
+                )
                 assert "cdn.redoc.ly" not in r.text

@@ -1,6 +1,7 @@
-"""Requests are bounded before they are read, on `tiltlab serve` as people start it: the request head in size,
-in header lines and in time, the connections of one client address, a chunked body on every route, and
-strangers' unknown tokens; a stranger gets 401 before any 404 or 422 could tell it something.
+"""Requests are bounded before they are read, on `tiltlab serve` as people start it: the request
+head in size, in header lines and in time, the connections of one client address, a chunked body on
+every route, and strangers' unknown tokens; a stranger gets 401 before any 404 or 422 could tell it
+something.
 """
 
 from __future__ import annotations
@@ -29,16 +30,30 @@ SLOW_CLOSE_S = 2
 
 @contextlib.contextmanager
 def daemon(tmp: Path, **settings: str) -> Iterator[Daemon]:
-    env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp / "data"), "TILTLAB_SIM_SPEED": "10", **settings}
+    env = {
+        **os.environ,
+        "TILTLAB_DATA_DIR": str(tmp / "data"),
+        "TILTLAB_SIM_SPEED": "10",
+        **settings,
+    }
     env.pop("TILTLAB_CONFIG", None)
-    made = subprocess.run([sys.executable, "-m", "service", "token", "create", "--name", "lims", "--scopes", "admin"],
-                          env=env, capture_output=True, text=True, timeout=120)
+    made = subprocess.run(
+        [sys.executable, "-m", "service", "token", "create", "--name", "lims", "--scopes", "admin"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert made.returncode == 0, made.stderr
     port = free_port()
     log = tmp / "daemon.log"
     with log.open("wb") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port)], env=env,
-                                stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "service", "serve", "--port", str(port)],
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 90
@@ -56,8 +71,12 @@ def daemon(tmp: Path, **settings: str) -> Iterator[Daemon]:
 
 @pytest.fixture(scope="module")
 def bounded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with daemon(tmp_path_factory.mktemp("bounds"), TILTLAB_HEADER_TIMEOUT_S=str(HEADER_TIMEOUT_S),
-                TILTLAB_FAILED_TOKENS_BURST="20", TILTLAB_FAILED_TOKENS_EVERY_S="1") as d:
+    with daemon(
+        tmp_path_factory.mktemp("bounds"),
+        TILTLAB_HEADER_TIMEOUT_S=str(HEADER_TIMEOUT_S),
+        TILTLAB_FAILED_TOKENS_BURST="20",
+        TILTLAB_FAILED_TOKENS_EVERY_S="1",
+    ) as d:
         yield d
 
 
@@ -88,12 +107,13 @@ def test_a_16_mib_header_is_refused_with_431_before_it_is_parsed(bounded: Daemon
     assert status == 431 and "TILTLAB_MAX_HEADERS" in problem["detail"], problem
     growth_kb = bounded.rss_kb("VmHWM") - peak_before
     assert growth_kb < 20 * 1024, f"peak memory grew by {growth_kb} kB"
-    assert httpx.get(f"{bounded.base}/health", timeout=30).status_code == 200  # and it goes on serving
+    # and it goes on serving
+    assert httpx.get(f"{bounded.base}/health", timeout=30).status_code == 200
 
 
 def test_slow_heads_are_closed_after_the_header_timeout(bounded: Daemon) -> None:
-    """Slowloris: partial requests that trickle in, and connections that say nothing, are answered 408 and
-    closed once TILTLAB_HEADER_TIMEOUT_S has passed; everyone else is served meanwhile."""
+    """Slowloris: partial requests that trickle in, and connections that say nothing, are answered
+    408 and closed once TILTLAB_HEADER_TIMEOUT_S has passed; everyone else is served meanwhile."""
     trickling = []
     for _ in range(8):
         s = socket.create_connection(("127.0.0.1", bounded.port))
@@ -114,7 +134,8 @@ def test_slow_heads_are_closed_after_the_header_timeout(bounded: Daemon) -> None
         time.sleep(0.5)
     assert len(closed) == len(trickling), f"{len(trickling) - len(closed)} slow heads still open"
     for answer in list(closed.values()) + [_answer_of(s) for s in silent]:
-        if answer:  # a reset may come before the answer could be read; an answer, when read, is a 408
+        # a reset may come before the answer could be read; an answer, when read, is a 408
+        if answer:
             status, _, problem = _problem(answer)
             assert status == 408 and "TILTLAB_HEADER_TIMEOUT_S" in problem["detail"], problem
     for s in trickling + silent:
@@ -126,18 +147,29 @@ def test_chunked_bodies_over_the_limit_are_413_on_every_route(bounded: Daemon) -
     routes = [("GET", "/health"), ("GET", "/")]
     for path, ops in spec["paths"].items():
         concrete = "/".join("1" if part.startswith("{") else part for part in path.split("/"))
-        routes += [(method.upper(), concrete) for method in ops if method in ("get", "post", "delete", "patch")]
+        routes += [
+            (method.upper(), concrete)
+            for method in ops
+            if method in ("get", "post", "delete", "patch")
+        ]
     chunk = b"10000\r\n" + b"0" * 65536 + b"\r\n"
     for method, path in routes:
-        head = (f"{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {bounded.token}\r\n"
-                "Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n").encode()
+        head = (
+            f"{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer "
+            f"{bounded.token}\r\n"
+            "Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n"
+        ).encode()
         answer, sent = _response_while_sending(bounded.port, head, chunk, 3 * MIB)
         status, _, problem = _problem(answer)
-        # the body never ends (no last chunk): a 413 at all is an answer given on the count, mid-body. How much
-        # the client got to send before it came is the limit plus what the kernels buffered unread, which on a
-        # loaded machine is another megabyte or more; the daemon's memory not taking it is checked in
-        # tests/api/test_edge_limits.py
-        assert status == 413 and "TILTLAB_MAX_BODY_BYTES" in problem["detail"], (method, path, answer[:200])
+        # the body never ends (no last chunk): a 413 at all is an answer given on the count,
+        # mid-body. How much the client got to send before it came is the limit plus what the
+        # kernels buffered unread, which on a loaded machine is another megabyte or more; the
+        # daemon's memory not taking it is checked in tests/api/test_edge_limits.py
+        assert status == 413 and "TILTLAB_MAX_BODY_BYTES" in problem["detail"], (
+            method,
+            path,
+            answer[:200],
+        )
         assert MIB < sent, (method, path, sent)
 
 
@@ -145,31 +177,55 @@ def test_unknown_tokens_are_slowed_down_without_locking_out_a_known_one(bounded:
     known = {"Authorization": f"Bearer {bounded.token}"}
     with httpx.Client(base_url=bounded.base, timeout=30) as c:
         assert c.get("/benches", headers=known).status_code == 200
-        statuses = [c.get("/benches", headers={"Authorization": f"Bearer tl_wrong{i:05d}"}).status_code
-                    for i in range(60)]
+        statuses = [
+            c.get("/benches", headers={"Authorization": f"Bearer tl_wrong{i:05d}"}).status_code
+            for i in range(60)
+        ]
         assert statuses[:20] == [401] * 20 and statuses.count(429) >= 35, statuses
         refused = c.get("/benches", headers={"Authorization": "Bearer tl_wrong_again"})
-        assert refused.status_code == 429 and int(refused.headers["retry-after"]) >= 1, refused.headers
+        assert refused.status_code == 429 and int(refused.headers["retry-after"]) >= 1, (
+            refused.headers
+        )
         assert "TILTLAB_FAILED_TOKENS_BURST" in refused.json()["detail"]
         assert c.get("/benches", headers=known).status_code == 200  # a known token passes all along
         time.sleep(int(refused.headers["retry-after"]) + 0.5)
-        assert c.get("/benches", headers={"Authorization": "Bearer tl_wrong_later"}).status_code == 401  # slowed, not locked
+        # slowed, not locked
+        assert (
+            c.get("/benches", headers={"Authorization": "Bearer tl_wrong_later"}).status_code == 401
+        )
 
 
 def test_a_stranger_gets_401_before_any_404_or_422(bounded: Daemon) -> None:
-    """Malformed requests without a valid token: none says which benches, records or fields there are."""
-    bench = httpx.get(f"{bounded.base}/benches", headers={"Authorization": f"Bearer {bounded.token}"},
-                      timeout=30).json()["benches"][0]["name"]
-    probes = [("GET", "/tilt?bench=zzz", None), ("GET", "/records/999999", None), ("GET", "/records/abc", None),
-              ("GET", "/calibrations?limit=abc", None), ("GET", "/calibrations?updated_since=0.5", None),
-              ("POST", "/calibrations", b"{not json"), ("POST", "/calibrations", b'{"procedure": 1}'),
-              ("POST", "/stage/move", b'{"x_deg": "a lot"}'), ("GET", "/devices?bench=nowhere", None),
-              ("GET", "/diagnoses/0", None), ("DELETE", "/tokens/nobody", None), ("GET", "/nowhere", None),
-              ("PUT", "/tilt", None), ("GET", "/feed?cursor=%00", None)]
+    """Malformed requests without a valid token: none says which benches, records or fields there
+    are."""
+    bench = httpx.get(
+        f"{bounded.base}/benches", headers={"Authorization": f"Bearer {bounded.token}"}, timeout=30
+    ).json()["benches"][0]["name"]
+    probes = [
+        ("GET", "/tilt?bench=zzz", None),
+        ("GET", "/records/999999", None),
+        ("GET", "/records/abc", None),
+        ("GET", "/calibrations?limit=abc", None),
+        ("GET", "/calibrations?updated_since=0.5", None),
+        ("POST", "/calibrations", b"{not json"),
+        ("POST", "/calibrations", b'{"procedure": 1}'),
+        ("POST", "/stage/move", b'{"x_deg": "a lot"}'),
+        ("GET", "/devices?bench=nowhere", None),
+        ("GET", "/diagnoses/0", None),
+        ("DELETE", "/tokens/nobody", None),
+        ("GET", "/nowhere", None),
+        ("PUT", "/tilt", None),
+        ("GET", "/feed?cursor=%00", None),
+    ]
     with httpx.Client(base_url=bounded.base, timeout=30) as c:
         for i, (method, path, body) in enumerate(probes):
             for auth in (None, {"Authorization": f"Bearer tl_stranger{i:04d}"}):
-                r = c.request(method, path, content=body, headers={"Content-Type": "application/json", **(auth or {})})
+                r = c.request(
+                    method,
+                    path,
+                    content=body,
+                    headers={"Content-Type": "application/json", **(auth or {})},
+                )
                 assert r.status_code in (401, 429), (method, path, r.status_code, r.text)
                 assert bench not in r.text and "errors" not in r.json(), (method, path, r.text)
         # with the token, the same requests are answered for what they are
@@ -183,15 +239,17 @@ def test_connections_of_one_address_are_bounded(tmp_path: Path) -> None:
         ws = d.base.replace("http", "ws", 1)
 
         async def hold() -> tuple[int, str, int]:
-            streams = [await connect(f"{ws}/ws/readings?history_s=1", subprotocols=[f"bearer.{d.token}"])  # type: ignore[list-item]
-                       for _ in range(MAX_CONNECTIONS)]
+            streams = [
+                await connect(f"{ws}/ws/readings?history_s=1", subprotocols=[f"bearer.{d.token}"])  # type: ignore[list-item]
+                for _ in range(MAX_CONNECTIONS)
+            ]
             try:
                 refused = await asyncio.to_thread(httpx.get, f"{d.base}/health", timeout=30)
             finally:
                 for s in streams[: MAX_CONNECTIONS // 2]:
                     await s.close()
             again = await asyncio.to_thread(httpx.get, f"{d.base}/health", timeout=30)
-            for s in streams[MAX_CONNECTIONS // 2:]:
+            for s in streams[MAX_CONNECTIONS // 2 :]:
                 await s.close()
             return refused.status_code, refused.headers.get("retry-after", ""), again.status_code
 
@@ -201,32 +259,45 @@ def test_connections_of_one_address_are_bounded(tmp_path: Path) -> None:
 
 
 def _established(local_port: int, remote_port: int) -> bool:
-    """Whether the daemon's side of a loopback connection is still ESTABLISHED (from /proc/net/tcp)."""
+    """Whether the daemon's side of a loopback connection is still ESTABLISHED (from
+    /proc/net/tcp)."""
     for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
         fields = line.split()
         local, remote, state = fields[1], fields[2], fields[3]
-        if int(local.split(":")[1], 16) == local_port and int(remote.split(":")[1], 16) == remote_port:
+        if (
+            int(local.split(":")[1], 16) == local_port
+            and int(remote.split(":")[1], 16) == remote_port
+        ):
             return state == "01"
     return False
 
 
 def test_a_stream_client_that_never_reads_is_dropped_at_the_tcp_level(tmp_path: Path) -> None:
-    """Dropped from the stream for not reading, its connection is then closed (reset) by the daemon, not left
-    ESTABLISHED for as long as the client keeps its window shut."""
+    """Dropped from the stream for not reading, its connection is then closed (reset) by the daemon,
+    not left ESTABLISHED for as long as the client keeps its window shut."""
     if not Path("/proc/net/tcp").exists():
         pytest.skip("reads the connection's state from /proc/net/tcp (Linux)")
-    with daemon(tmp_path, TILTLAB_STREAM_SLOW_CLOSE_S=str(SLOW_CLOSE_S), TILTLAB_SIM_SPEED="20") as d:
+    with daemon(
+        tmp_path, TILTLAB_STREAM_SLOW_CLOSE_S=str(SLOW_CLOSE_S), TILTLAB_SIM_SPEED="20"
+    ) as d:
         sock = socket.socket()
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         sock.connect(("127.0.0.1", d.port))
-        sock.sendall((f"GET /ws/readings?history_s=600 HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
-                      "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
-                      f"Sec-WebSocket-Protocol: bearer.{d.token}\r\n\r\n").encode())
+        sock.sendall(
+            (
+                "GET /ws/readings?history_s=600 HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: "
+                "websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: "
+                "dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: "
+                f"13\r\nSec-WebSocket-Protocol: bearer.{d.token}\r\n\r\n"
+            ).encode()
+        )
         assert b"101" in sock.recv(12)  # upgraded; from now on nothing is read
         port = sock.getsockname()[1]
         assert _established(d.port, port)
         deadline = time.monotonic() + 120
         while _established(d.port, port) and time.monotonic() < deadline:
             time.sleep(0.5)
-        assert not _established(d.port, port), "the daemon still holds the connection of the dropped client"
+        assert not _established(d.port, port), (
+            "the daemon still holds the connection of the dropped client"
+        )
         sock.close()

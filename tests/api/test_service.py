@@ -34,7 +34,10 @@ def test_tilt_serves_readings_and_says_when_uncorrected(client, tmp_path):
     body = client.get("/tilt", headers={"Authorization": f"Bearer {token}"}).json()
     raw = body["raw"]
     # stage at zero, mounting errors < 1 deg
-    assert abs(raw["measurement_sensor"]["x_deg"]) < 1.0 and abs(raw["reference_sensor"]["y_deg"]) < 1.0
+    assert (
+        abs(raw["measurement_sensor"]["x_deg"]) < 1.0
+        and abs(raw["reference_sensor"]["y_deg"]) < 1.0
+    )
     assert body["table_tilt"] is None and "no active calibration" in body["note"]
 
 
@@ -74,13 +77,19 @@ def test_dashboard_page_and_assets_are_served(client):
     page = client.get("/")
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
     assert '<script type="module" src="/web/js/main.js">' in page.text
-    for asset, kind in (("/web/js/main.js", "javascript"), ("/web/js/views/live.js", "javascript"),
-                        ("/web/vendor/uplot/uPlot.esm.js", "javascript"), ("/web/dashboard.css", "text/css"),
-                        ("/favicon.ico", "image/svg+xml")):
+    for asset, kind in (
+        ("/web/js/main.js", "javascript"),
+        ("/web/js/views/live.js", "javascript"),
+        ("/web/vendor/uplot/uPlot.esm.js", "javascript"),
+        ("/web/dashboard.css", "text/css"),
+        ("/favicon.ico", "image/svg+xml"),
+    ):
         r = client.get(asset)
         assert r.status_code == 200 and kind in r.headers["content-type"]
     missing = client.get("/web/nope.js")
-    assert missing.status_code == 404 and missing.headers["content-type"].startswith("application/problem+json")
+    assert missing.status_code == 404 and missing.headers["content-type"].startswith(
+        "application/problem+json"
+    )
 
 
 @pytest.mark.parametrize(
@@ -89,7 +98,10 @@ def test_dashboard_page_and_assets_are_served(client):
         ({"TILTLAB_BENCH_SCENARIO": "nope"}, "TILTLAB_BENCH_SCENARIO.*no such preset"),
         ({"TILTLAB_BENCH_SCENARIO": "seed002-b55"}, "TILTLAB_BENCH_SCENARIO.*needs a stage"),
         ({"TILTLAB_DATABASE_URL": "mysql://u@h/db"}, "only sqlite and postgresql"),
-        ({"TILTLAB_SIM_SPEED": "50"}, "TILTLAB_SIM_SPEED.*50 is more than the simulated stage bench can run.*at most 28"),
+        (
+            {"TILTLAB_SIM_SPEED": "50"},
+            "TILTLAB_SIM_SPEED.*50 is more than the simulated stage bench can run.*at most 28",
+        ),
     ],
 )
 def test_tiltlab_serve_refuses_unusable_settings_with_one_line(tmp_path, env, match):
@@ -97,8 +109,13 @@ def test_tiltlab_serve_refuses_unusable_settings_with_one_line(tmp_path, env, ma
     import re
 
     env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data"), **env}
-    proc = subprocess.run([sys.executable, "-m", "service", "serve", "--port", str(free_port())], env=env,
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-m", "service", "serve", "--port", str(free_port())],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr and re.search(match, proc.stderr), proc.stderr
 
@@ -108,8 +125,13 @@ def test_unexpected_failure_is_problem_json_without_internals(tmp_path):
 
     app = create_app(Settings(data_dir=tmp_path))
     with TestClient(app, raise_server_exceptions=False) as c:
-        app.state.engine = make_engine(f"sqlite:///{tmp_path}")  # a directory: the database cannot be opened
+        # a directory: the database cannot be opened
+        app.state.engine = make_engine(f"sqlite:///{tmp_path}")
         r = c.get("/health")
     assert r.status_code == 500 and r.headers["content-type"].startswith("application/problem+json")
     body = r.json()
-    assert body["status"] == 500 and body["instance"] == "/health" and "Traceback" not in body["detail"]
+    assert (
+        body["status"] == 500
+        and body["instance"] == "/health"
+        and "Traceback" not in body["detail"]
+    )

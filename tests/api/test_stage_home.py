@@ -43,7 +43,9 @@ class Daemon:
 def daemon(tmp_path) -> Iterator[Daemon]:
     data = tmp_path / "data"
     data.mkdir()
-    with running_service(data, TILTLAB_SIM_SPEED="20", TILTLAB_BENCH_SCENARIO=str(unhomed_scenario(tmp_path))) as base:
+    with running_service(
+        data, TILTLAB_SIM_SPEED="20", TILTLAB_BENCH_SCENARIO=str(unhomed_scenario(tmp_path))
+    ) as base:
         d = Daemon(base, (data / "admin.token").read_text().strip())
         deadline = time.monotonic() + 60
         while d.get("/benches").json()["benches"][0]["state"] != "ready":
@@ -56,7 +58,9 @@ def test_a_stage_that_is_not_homed_is_homed_by_the_route(daemon: Daemon) -> None
     refused = daemon.post("/stage/move", {"x_deg": 1.0, "y_deg": 0.5})
     assert refused.status_code == 409, refused.text
     problem = refused.json()
-    assert problem["title"] == "Stage not homed" and "POST /stage/home" in problem["detail"], problem
+    assert problem["title"] == "Stage not homed" and "POST /stage/home" in problem["detail"], (
+        problem
+    )
 
     homed = daemon.post("/stage/home", {})
     assert homed.status_code == 200, homed.text
@@ -66,13 +70,21 @@ def test_a_stage_that_is_not_homed_is_homed_by_the_route(daemon: Daemon) -> None
     moved = daemon.post("/stage/move", {"x_deg": 1.0, "y_deg": 0.5})
     assert moved.status_code == 200, moved.text
     stage = moved.json()["stage"]
-    assert stage["x_deg"] == pytest.approx(1.0, abs=1e-3) and stage["y_deg"] == pytest.approx(0.5, abs=1e-3)
+    assert stage["x_deg"] == pytest.approx(1.0, abs=1e-3) and stage["y_deg"] == pytest.approx(
+        0.5, abs=1e-3
+    )
     assert daemon.post("/stage/home", {"bench": "no-such-bench"}).status_code == 404
 
 
 def test_a_job_homes_the_stage_before_its_first_point(daemon: Daemon) -> None:
-    body = {"procedure": "stage-grid", "method": "coupling", "samples_per_point": 3, "validation": {"n_points": 1},
-            "grid": {"x_deg": [-1, 1], "y_deg": [-1, 1], "n_x": 2, "n_y": 2}, "settle": {"tolerance_deg": 0.005}}
+    body = {
+        "procedure": "stage-grid",
+        "method": "coupling",
+        "samples_per_point": 3,
+        "validation": {"n_points": 1},
+        "grid": {"x_deg": [-1, 1], "y_deg": [-1, 1], "n_x": 2, "n_y": 2},
+        "settle": {"tolerance_deg": 0.005},
+    }
     r = daemon.post("/calibrations", body)
     assert r.status_code == 202, r.text
     job_id = r.json()["id"]
@@ -87,24 +99,29 @@ def test_a_job_homes_the_stage_before_its_first_point(daemon: Daemon) -> None:
         time.sleep(0.1)
     assert job["state"] == "succeeded", job
     assert job["progress"]["phase"] == "done", job
-    assert daemon.post("/stage/move", {"x_deg": 0.2, "y_deg": 0.2}).status_code == 200  # homed for good
+    # homed for good
+    assert daemon.post("/stage/move", {"x_deg": 0.2, "y_deg": 0.2}).status_code == 200
 
 
 def test_a_stop_during_homing_is_a_conflict_not_a_device_fault(tmp_path) -> None:
-    """`POST /stage/stop` while `POST /stage/home` runs: the homing answers 409 saying it was stopped (the
-    instruments answer; nothing is wrong with them), and the stage can be homed afterwards."""
+    """`POST /stage/stop` while `POST /stage/home` runs: the homing answers 409 saying it was
+    stopped (the instruments answer; nothing is wrong with them), and the stage can be homed
+    afterwards."""
     import threading
 
     data = tmp_path / "data"
     data.mkdir()
-    with running_service(data, TILTLAB_SIM_SPEED="1", TILTLAB_BENCH_SCENARIO=str(unhomed_scenario(tmp_path))) as base:
+    with running_service(
+        data, TILTLAB_SIM_SPEED="1", TILTLAB_BENCH_SCENARIO=str(unhomed_scenario(tmp_path))
+    ) as base:
         d = Daemon(base, (data / "admin.token").read_text().strip())
         deadline = time.monotonic() + 60
         while d.get("/benches").json()["benches"][0]["state"] != "ready":
             assert time.monotonic() < deadline, "the bench did not come up"
             time.sleep(0.2)
         assert d.post("/stage/home", {}).status_code == 200
-        assert d.post("/stage/move", {"x_deg": 8.0, "y_deg": -8.0}).status_code == 200  # far from the switches
+        # far from the switches
+        assert d.post("/stage/move", {"x_deg": 8.0, "y_deg": -8.0}).status_code == 200
         answers: list[httpx.Response] = []
         homing = threading.Thread(target=lambda: answers.append(d.post("/stage/home", {})))
         homing.start()
@@ -115,8 +132,12 @@ def test_a_stop_during_homing_is_a_conflict_not_a_device_fault(tmp_path) -> None
         stopped = d.post("/stage/stop", {})
         homing.join(timeout=120)
         assert stopped.status_code == 200, stopped.text
-        assert answers and answers[0].status_code == 409, answers[0].text if answers else "no answer"
+        assert answers and answers[0].status_code == 409, (
+            answers[0].text if answers else "no answer"
+        )
         problem = answers[0].json()
-        assert problem["title"] == "Motion stopped" and "POST /stage/stop" in problem["detail"], problem
+        assert problem["title"] == "Motion stopped" and "POST /stage/stop" in problem["detail"], (
+            problem
+        )
         homed = d.post("/stage/home", {})
         assert homed.status_code == 200, homed.text

@@ -15,8 +15,8 @@ BENCHES = {
     "16-microsteps": {"microsteps": 16},
     "mirrored-y": {"meas_flip": "y"},
 }
-# 11 points over ±12 deg (2.4-deg steps): the worm phase is sampled at five phases on every bench above
-# (a 3-deg grid samples a 180:1 worm at two phases only and a 360:1 worm at one)
+# 11 points over ±12 deg (2.4-deg steps): the worm phase is sampled at five phases on every bench
+# above (a 3-deg grid samples a 180:1 worm at two phases only and a 360:1 worm at one)
 GRID = {"start": -12, "stop": 12, "count": 11}
 PERIODIC_X = {"periodic_error": {"x_amp_deg": 0.010, "x_phase_deg": 40.0}}
 

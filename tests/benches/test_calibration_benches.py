@@ -1,5 +1,6 @@
-"""Kinematic calibration on benches other than seed 000's reaches the accuracy it reaches on seed 000
-(against the oracle that knows the true bench), given the bench; without it the data are refused."""
+"""Kinematic calibration on benches other than seed 000's reaches the accuracy it reaches on seed
+000 (against the oracle that knows the true bench), given the bench; without it the data are
+refused."""
 
 import numpy as np
 import pytest
@@ -15,8 +16,16 @@ SEEDS = (101, 102, 103)
 
 def _ratios(bench: str) -> dict[str, float]:
     sc = parse_scenario(scenario(bench))
-    runs = [evaluate_seed(sc, s, methods=("kinematic",), targets=offset_grid(),
-                          fit_options={"kinematic": {"extra": {"bench": stage_bench(bench)}}}) for s in SEEDS]
+    runs = [
+        evaluate_seed(
+            sc,
+            s,
+            methods=("kinematic",),
+            targets=offset_grid(),
+            fit_options={"kinematic": {"extra": {"bench": stage_bench(bench)}}},
+        )
+        for s in SEEDS
+    ]
     ratios = [oracle_ratios(r) for r in runs]
     return {k: float(np.mean([x[k] for x in ratios])) for k in ratios[0]}
 
@@ -30,7 +39,8 @@ def seed000_ratios():
 def test_kinematic_on_another_bench_is_as_close_to_the_oracle_as_on_seed000(bench, seed000_ratios):
     ratios = _ratios(bench)
     for key, value in ratios.items():
-        assert value <= 1.2, (key, value)  # the bound seed 000 meets (tests/calibration/test_stage_accuracy.py)
+        # the bound seed 000 meets (tests/calibration/test_stage_accuracy.py)
+        assert value <= 1.2, (key, value)
         assert value <= seed000_ratios[key] * 1.1 + 0.02, (key, value, seed000_ratios[key])
 
 
@@ -41,7 +51,9 @@ def test_data_of_another_gearing_are_refused_without_the_bench(bench):
     with pytest.raises(InputError, match=r"not a whole number.*--bench") as exc:
         method.fit(cols, FitOptions())
     assert "pulses" in str(exc.value) and "320:1" in str(exc.value)
-    model = method.fit(cols, FitOptions(extra={"bench": stage_bench(bench), "bench_source": "test bench"}))
+    model = method.fit(
+        cols, FitOptions(extra={"bench": stage_bench(bench), "bench_source": "test bench"})
+    )
     assert model.state["bench"]["upper_gear_ratio"] == stage_bench(bench).upper_gear_ratio
     assert model.state["bench_source"] == "test bench"
 

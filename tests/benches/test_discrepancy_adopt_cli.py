@@ -1,5 +1,6 @@
-"""`tiltlab discrepancy --adopt MODEL.json`: the offline last step. The model it writes is the kinematic
-calibration with the named effects added; `tiltlab level` with it aims closer to the truth than without."""
+"""`tiltlab discrepancy --adopt MODEL.json`: the offline last step. The model it writes is the
+kinematic calibration with the named effects added; `tiltlab level` with it aims closer to the truth
+than without."""
 
 import csv
 import json
@@ -33,8 +34,18 @@ def runs(tmp_path_factory):
 
 
 def _levelling_error(d, model: str) -> float:
-    """Mean distance of the true table tilt, at the commands `tiltlab level` gives, from the targets."""
-    p = tiltlab("level", "--model", model, "--targets", "targets.csv", "--out", f"{model}.commands.csv", cwd=d)
+    """Mean distance of the true table tilt, at the commands `tiltlab level` gives, from the
+    targets."""
+    p = tiltlab(
+        "level",
+        "--model",
+        model,
+        "--targets",
+        "targets.csv",
+        "--out",
+        f"{model}.commands.csv",
+        cwd=d,
+    )
     assert p.returncode == 0, p.stderr
     with open(d / f"{model}.commands.csv") as fh:
         rows = list(csv.DictReader(fh))
@@ -48,29 +59,73 @@ def _levelling_error(d, model: str) -> float:
 
 
 def test_adopt_writes_the_model_with_the_named_effect_and_levels_closer(runs):
-    p = tiltlab("discrepancy", "--kind", "stage", "--input", "periodic.csv", "--bench", "periodic.json",
-                "--baseline", "kinematic", "--out", "rep.json", "--adopt", "adopted.json", cwd=runs)
+    p = tiltlab(
+        "discrepancy",
+        "--kind",
+        "stage",
+        "--input",
+        "periodic.csv",
+        "--bench",
+        "periodic.json",
+        "--baseline",
+        "kinematic",
+        "--out",
+        "rep.json",
+        "--adopt",
+        "adopted.json",
+        cwd=runs,
+    )
     assert p.returncode == 0, p.stderr
     rep = json.loads((runs / "rep.json").read_text())
     assert "periodic_error" in rep["named_effects"]
     model = read_model(runs / "adopted.json")
     assert model.method == "kinematic" and model.state["added_effects"] == ["periodic_error"]
     assert model.state["diagnosis"]["report"] == "rep.json" and model.provenance["command"]
-    # fitted as a sine/cosine pair (linear, determined from a start at zero); amplitude and phase derived from it
-    assert np.hypot(model.value("periodic_error.x_sin_deg"), model.value("periodic_error.x_cos_deg")) == pytest.approx(
-        0.010, abs=0.002)
+    # fitted as a sine/cosine pair (linear, determined from a start at zero); amplitude and phase
+    # derived from it
+    assert np.hypot(
+        model.value("periodic_error.x_sin_deg"), model.value("periodic_error.x_cos_deg")
+    ) == pytest.approx(0.010, abs=0.002)
     worm = model.fit["periodic_error"]["x"]
     assert worm["amplitude_deg"] == pytest.approx(0.010, abs=0.002) and worm["u_amplitude_deg"] > 0
     assert worm["phase_deg"] == pytest.approx(40.0, abs=3 * worm["u_phase_deg"] + 2.0)
     assert StageBench(**model.state["bench"]).upper_gear_ratio == 180
-    p = tiltlab("calibrate", "--kind", "stage", "--method", "kinematic", "--input", "periodic.csv", "--bench",
-                "periodic.json", "--out", "plain.json", cwd=runs)
+    p = tiltlab(
+        "calibrate",
+        "--kind",
+        "stage",
+        "--method",
+        "kinematic",
+        "--input",
+        "periodic.csv",
+        "--bench",
+        "periodic.json",
+        "--out",
+        "plain.json",
+        cwd=runs,
+    )
     assert p.returncode == 0, p.stderr
     assert _levelling_error(runs, "adopted.json") <= 0.6 * _levelling_error(runs, "plain.json")
 
 
 def test_nothing_named_writes_nothing(runs):
-    p = tiltlab("discrepancy", "--kind", "stage", "--input", "clean.csv", "--bench", "clean.json",
-                "--baseline", "kinematic", "--out", "clean-rep.json", "--adopt", "clean-model.json", cwd=runs)
+    p = tiltlab(
+        "discrepancy",
+        "--kind",
+        "stage",
+        "--input",
+        "clean.csv",
+        "--bench",
+        "clean.json",
+        "--baseline",
+        "kinematic",
+        "--out",
+        "clean-rep.json",
+        "--adopt",
+        "clean-model.json",
+        cwd=runs,
+    )
     assert p.returncode == 2 and "nothing to adopt" in p.stderr, p.stderr
-    assert not any((runs / f).exists() for f in ("clean-rep.json", "clean-rep.html", "clean-model.json"))
+    assert not any(
+        (runs / f).exists() for f in ("clean-rep.json", "clean-rep.html", "clean-model.json")
+    )

@@ -1,5 +1,6 @@
-"""The discrepancy workflow on benches other than seed 000's: a 0.010-deg periodic error of the upper
-worm is named with its size and phase as on seed 000, given the bench; without it the data are refused."""
+"""The discrepancy workflow on benches other than seed 000's: a 0.010-deg periodic error of the
+upper worm is named with its size and phase as on seed 000, given the bench; without it the data are
+refused."""
 
 import numpy as np
 import pytest
@@ -16,8 +17,13 @@ def _report(bench: str, baseline: str, seed: int, stated: bool = True):
     data = scenario(bench, PERIODIC_X, GRID)
     sensor = "meas" if bench == "mirrored-y" else "ref"
     cols = run_scenario(parse_scenario(data), seed=seed).columns
-    rep, _, _ = stage_report(cols, sensor, baseline, noise_sigma_deg(data, sensor),
-                             bench=stage_bench(bench) if stated else None)
+    rep, _, _ = stage_report(
+        cols,
+        sensor,
+        baseline,
+        noise_sigma_deg(data, sensor),
+        bench=stage_bench(bench) if stated else None,
+    )
     return rep
 
 

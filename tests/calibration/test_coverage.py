@@ -1,22 +1,32 @@
-"""The expanded uncertainty each offline method states covers the simulated truth about 95 % of the time: not 0.99
-(a U too wide, e.g. the reference's noise counted in a corrected reading) and not 0.85 (one that leaves errors out).
+"""The expanded uncertainty each offline method states covers the simulated truth about 95 % of the
+time: not 0.99 (a U too wide, e.g. the reference's noise counted in a corrected reading) and not
+0.85 (one that leaves errors out).
 
-Pooled over enough validation points (1,300-2,000 per case) that a true 0.95 lies more than five binomial standard
-deviations inside [0.92, 0.98] and a true 0.99 falls outside it. benchmarks/coverage.py gives the full table
-(200 realisations per case, per axis and per angle); docs/uncertainty.md has its figures.
+Pooled over enough validation points (1,300-2,000 per case) that a true 0.95 lies more than five
+binomial standard deviations inside [0.92, 0.98] and a true 0.99 falls outside it.
+benchmarks/coverage.py gives the full table (200 realisations per case, per axis and per angle);
+docs/uncertainty.md has its figures.
 """
 
 import pytest
 
-from service.reproduce.coverage import rotation_coverage, scale_coverage, stage_coverage, turntable_coverage
+from service.reproduce.coverage import (
+    rotation_coverage,
+    scale_coverage,
+    stage_coverage,
+    turntable_coverage,
+)
 
 CASES = {
     "stage homography": lambda: stage_coverage("homography", "ref noise stated", 10, seed0=1000),
     "stage kinematic": lambda: stage_coverage("kinematic", "ref noise stated", 10, seed0=1000),
-    "stage kinematic, 3 readings per stand": lambda: stage_coverage("kinematic", "3 readings per stand", 8,
-                                                                    seed0=1000),
+    "stage kinematic, 3 readings per stand": lambda: stage_coverage(
+        "kinematic", "3 readings per stand", 8, seed0=1000
+    ),
     "rotation iodsra": lambda: rotation_coverage("iodsra", "seed002-b55", 64, seed0=1000),
-    "rotation iodsra-combined": lambda: rotation_coverage("iodsra-combined", "seed002-b55", 64, seed0=1000),
+    "rotation iodsra-combined": lambda: rotation_coverage(
+        "iodsra-combined", "seed002-b55", 64, seed0=1000
+    ),
     "scale poly1": lambda: scale_coverage("poly1", 130, seed0=1000),
     "turntable reversal": lambda: turntable_coverage(100, seed0=1000),
 }

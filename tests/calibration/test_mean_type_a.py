@@ -1,7 +1,8 @@
-"""The Type A uncertainty of a mean of readings (`mean_type_a`), checked against simulated truth: white noise and
-an AR(1) series (readings correlated as a filtered or slowly wandering sensor's are), each over many series
-of several lengths. The stated 95 % interval must cover the true mean about 95 % of the time; for correlated
-readings s/√n alone would cover far less, which the same series show."""
+"""The Type A uncertainty of a mean of readings (`mean_type_a`), checked against simulated truth:
+white noise and an AR(1) series (readings correlated as a filtered or slowly wandering sensor's
+are), each over many series of several lengths. The stated 95 % interval must cover the true mean
+about 95 % of the time; for correlated readings s/√n alone would cover far less, which the same
+series show."""
 
 from __future__ import annotations
 
@@ -31,7 +32,9 @@ def test_the_mean_s_interval_covers_the_true_mean(rho, n):
         m = mean_type_a(x)
         U = float(coverage_factor(m.dof)) * m.u
         hits += abs(m.mean - 5.0) <= U
-        naive_hits += abs(m.mean - 5.0) <= float(coverage_factor(n - 1)) * np.std(x, ddof=1) / np.sqrt(n)
+        naive_hits += abs(m.mean - 5.0) <= float(coverage_factor(n - 1)) * np.std(
+            x, ddof=1
+        ) / np.sqrt(n)
     coverage, naive = hits / SERIES, naive_hits / SERIES
     assert 0.92 <= coverage <= 0.98, (rho, n, coverage)
     if rho >= 0.5:

@@ -1,8 +1,9 @@
-"""The measurement sensor's batched frame and inverse against the plain matrix forms they replace in the hot path.
+"""The measurement sensor's batched frame and inverse against the plain matrix forms they replace in
+the hot path.
 
-meas_inverse_gum evaluates every perturbed case of its uncertainty in one batched call; these tests hold it
-to a straightforward evaluation through meas_inverse, one perturbation at a time, and hold the written-out
-frame and inverse to the 3x3 matrices of service.physics.rotations.
+meas_inverse_gum evaluates every perturbed case of its uncertainty in one batched call; these tests
+hold it to a straightforward evaluation through meas_inverse, one perturbation at a time, and hold
+the written-out frame and inverse to the 3x3 matrices of service.physics.rotations.
 """
 
 import numpy as np
@@ -22,7 +23,8 @@ from service.calibration.methods.stage.common import (
 from service.calibration.uncertainty import welch_satterthwaite
 from service.physics.rotations import plane_tilt, rz
 
-SPREAD = np.array([0.5, 0.5, 0.01, 0.01, 3.0, 3.0, 3.0, 3.0])  # zero, zero, scale, scale, yaw, ν, seat x, seat y
+# zero, zero, scale, scale, yaw, ν, seat x, seat y
+SPREAD = np.array([0.5, 0.5, 0.01, 0.01, 3.0, 3.0, 3.0, 3.0])
 SIGNS = [np.array(s) for s in ((1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0))]
 seeds = st.integers(min_value=0, max_value=2**32 - 1)
 
@@ -32,7 +34,8 @@ def _params(rng, spread=SPREAD):
 
 
 def _covariance(rng, zero_rows=()):
-    """A random positive-definite covariance, strongly correlated like a real fit's, with some rows zero (held parameters)."""
+    """A random positive-definite covariance, strongly correlated like a real fit's, with some rows
+    zero (held parameters)."""
     a = rng.normal(size=(8, 8)) * (0.1 * SPREAD)[:, None]
     cov = a @ a.T + np.diag((0.01 * SPREAD) ** 2)
     for i in zero_rows:
@@ -47,7 +50,8 @@ def _readings(rng, p, sign, n):
 
 
 def _matrix_inverse(p, sign, a, b):
-    """The closed-form inverse in its 3x3 matrix form: Gram matrix inverted by LAPACK, numpy's cross product."""
+    """The closed-form inverse in its 3x3 matrix form: Gram matrix inverted by LAPACK, numpy's cross
+    product."""
     k = np.pi / 180.0
     ra = -np.sin((sign[0] * k / (1.0 + p[2])) * (np.asarray(a) - p[0]))
     rb = -np.sin((sign[1] * k / (1.0 + p[3])) * (np.asarray(b) - p[1]))
@@ -62,11 +66,14 @@ def _matrix_inverse(p, sign, a, b):
     t = np.sqrt(np.clip(1.0 - (c1 * ra + c2 * rb), 0.0, None))
     nx = c1 * m[0, 0] + c2 * m[1, 0] + t * w[0]
     ny = c1 * m[0, 1] + c2 * m[1, 1] + t * w[1]
-    return np.degrees(np.arcsin(np.clip(-nx, -1.0, 1.0))), np.degrees(np.arcsin(np.clip(-ny, -1.0, 1.0)))
+    return np.degrees(np.arcsin(np.clip(-nx, -1.0, 1.0))), np.degrees(
+        np.arcsin(np.clip(-ny, -1.0, 1.0))
+    )
 
 
 def _gum_per_perturbation(p, cov, sign, a, b, sigma_deg, dof):
-    """meas_inverse_gum's law evaluated plainly: meas_inverse once per perturbation, einsum for J·cov·Jᵀ."""
+    """meas_inverse_gum's law evaluated plainly: meas_inverse once per perturbation, einsum for
+    J·cov·Jᵀ."""
     X, Y = meas_inverse(p, sign, a, b)
     ha, hb = fd_step(a, 1.0), fd_step(b, 1.0)
     xp, yp = meas_inverse(p, sign, a + ha, b)
@@ -115,8 +122,12 @@ def test_batched_axes_are_meas_axes_and_the_rotation_chain(seed, scale):
         chain = (plane_tilt(tx, ty) @ rz(yaw) @ base.T).T  # seat tilt · yaw · base
         np.testing.assert_allclose(m, chain, rtol=0, atol=1e-15)
         # what the solve takes in closed form: the Gram matrix and the axes' cross product
-        np.testing.assert_allclose(m @ m.T, [[1.0, -np.sin(nu)], [-np.sin(nu), 1.0]], rtol=0, atol=1e-15)
-        np.testing.assert_allclose(np.cross(m[0], m[1]), np.cos(nu) * plane_tilt(tx, ty)[:, 2], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(
+            m @ m.T, [[1.0, -np.sin(nu)], [-np.sin(nu), 1.0]], rtol=0, atol=1e-15
+        )
+        np.testing.assert_allclose(
+            np.cross(m[0], m[1]), np.cos(nu) * plane_tilt(tx, ty)[:, 2], rtol=0, atol=1e-15
+        )
 
 
 @settings(max_examples=200, deadline=None)
@@ -140,7 +151,10 @@ def test_meas_inverse_batch_reads_row_k_through_parameter_set_k(seed, s):
     rng = np.random.default_rng(seed)
     sign = SIGNS[s]
     P = np.stack([_params(rng) for _ in range(4)])
-    A, B = np.stack([_readings(rng, p, sign, 7)[0] for p in P]), np.stack([_readings(rng, p, sign, 7)[1] for p in P])
+    A, B = (
+        np.stack([_readings(rng, p, sign, 7)[0] for p in P]),
+        np.stack([_readings(rng, p, sign, 7)[1] for p in P]),
+    )
     X, Y = meas_inverse_batch(P, sign, A, B)
     assert X.shape == Y.shape == (4, 7)
     for k in range(4):
@@ -153,13 +167,24 @@ COVARIANCES = ["full", "held yaw and seat y", "held scales", "all stepped held",
 
 
 @settings(max_examples=150, deadline=None)
-@given(seeds, st.sampled_from(range(4)), st.sampled_from(COVARIANCES), st.sampled_from([1, 3, 400]),
-       st.sampled_from([np.inf, 12.0]))
+@given(
+    seeds,
+    st.sampled_from(range(4)),
+    st.sampled_from(COVARIANCES),
+    st.sampled_from([1, 3, 400]),
+    st.sampled_from([np.inf, 12.0]),
+)
 def test_gum_in_one_batch_equals_one_meas_inverse_per_perturbation(seed, s, which, n, dof):
-    """400 readings take the one-case-at-a-time path (13 cases x 400 above the batched size), 1 and 3 the batched one."""
+    """400 readings take the one-case-at-a-time path (13 cases x 400 above the batched size), 1 and
+    3 the batched one."""
     rng = np.random.default_rng(seed)
     p, sign = _params(rng), SIGNS[s]
-    zero_rows = {"full": (), "held yaw and seat y": (4, 7), "held scales": (2, 3), "all stepped held": (4, 5, 6, 7)}
+    zero_rows = {
+        "full": (),
+        "held yaw and seat y": (4, 7),
+        "held scales": (2, 3),
+        "all stepped held": (4, 5, 6, 7),
+    }
     cov = {"none": None, "zero": np.zeros((8, 8))}.get(which)
     if which in zero_rows:
         cov = _covariance(rng, zero_rows[which])
@@ -167,7 +192,14 @@ def test_gum_in_one_batch_equals_one_meas_inverse_per_perturbation(seed, s, whic
     sigma = float(rng.uniform(1e-4, 1e-2))
     X, Y, gx, gy = meas_inverse_gum(p, cov, sign, a, b, sigma, dof)
     Xr, Yr, uxr, uyr, nuxr, nuyr = _gum_per_perturbation(p, cov, sign, a, b, sigma, dof)
-    for got, want in ((X, Xr), (Y, Yr), (gx.u, uxr), (gy.u, uyr), (gx.dof_eff, nuxr), (gy.dof_eff, nuyr)):
+    for got, want in (
+        (X, Xr),
+        (Y, Yr),
+        (gx.u, uxr),
+        (gy.u, uyr),
+        (gx.dof_eff, nuxr),
+        (gy.dof_eff, nuyr),
+    ):
         assert got.shape == (n,)
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
 
@@ -190,14 +222,15 @@ def test_gum_keeps_the_readings_shape_and_broadcasts_a_constant_axis():
 
 @pytest.mark.parametrize("s", range(4))
 def test_one_reading_equals_the_same_reading_among_many(s):
-    """The daemon corrects one reading at a time: the batched single-reading path gives what a bulk call gives it."""
+    """The daemon corrects one reading at a time: the batched single-reading path gives what a bulk
+    call gives it."""
     rng = np.random.default_rng(11 + s)
     p, sign = _params(rng), SIGNS[s]
     cov = _covariance(rng, (6,))
     a, b = _readings(rng, p, sign, 500)
     bulk = meas_inverse_gum(p, cov, sign, a, b, 2e-3, 40.0)
     for i in (0, 123, 499):
-        one = meas_inverse_gum(p, cov, sign, a[i:i + 1], b[i:i + 1], 2e-3, 40.0)
+        one = meas_inverse_gum(p, cov, sign, a[i : i + 1], b[i : i + 1], 2e-3, 40.0)
         np.testing.assert_allclose(one[0], bulk[0][i], rtol=1e-15, atol=0)
         np.testing.assert_allclose(one[2].u, bulk[2].u[i], rtol=1e-12, atol=0)
         np.testing.assert_allclose(one[3].dof_eff, bulk[3].dof_eff[i], rtol=1e-12, atol=0)

@@ -21,7 +21,9 @@ from service.calibration.projective import (
 Array = NDArray[np.float64]
 
 
-def _reference_transfer(h8: Array, sx: Array, sy: Array, dx: Array, dy: Array) -> tuple[Array, Array]:
+def _reference_transfer(
+    h8: Array, sx: Array, sy: Array, dx: Array, dy: Array
+) -> tuple[Array, Array]:
     """Residuals [H·src - dst in x; in y] and the Jacobian (2n x 8), column by column."""
     w_inv = 1.0 / (h8[6] * sx + h8[7] * sy + 1.0)
     px = (h8[0] * sx + h8[1] * sy + h8[2]) * w_inv
@@ -58,8 +60,9 @@ def _reference_refine(h: Array, sx: Array, sy: Array, dx: Array, dy: Array) -> A
             if damping > 1e12:
                 break
             continue
-        if (cost - cost_new <= REFINE_COST_TOL * cost
-                or np.all(np.abs(step) <= REFINE_STEP_TOL * (np.abs(h) + REFINE_STEP_TOL))):
+        if cost - cost_new <= REFINE_COST_TOL * cost or np.all(
+            np.abs(step) <= REFINE_STEP_TOL * (np.abs(h) + REFINE_STEP_TOL)
+        ):
             return trial
         h, r, cost, J = trial, r_new, cost_new, J_new
         damping *= 0.1
@@ -68,6 +71,7 @@ def _reference_refine(h: Array, sx: Array, sy: Array, dx: Array, dy: Array) -> A
 
 def _reference_fit(sx: Array, sy: Array, dx: Array, dy: Array, refine: bool = True) -> Array:
     """Hartley-normalised DLT (null vector of A by SVD, A built row by row) and the refinement."""
+
     def normaliser(x: Array, y: Array) -> Array:
         cx, cy = x.mean(), y.mean()
         s = np.sqrt(2.0) / np.mean(np.sqrt((x - cx) ** 2 + (y - cy) ** 2))
@@ -91,9 +95,13 @@ def _reference_fit(sx: Array, sy: Array, dx: Array, dy: Array, refine: bool = Tr
 def _noisy_grid(seed: int) -> tuple[Array, Array, Array, Array]:
     """81 points of a 9 x 9 grid of ±12°, a sensor-like homography, noise on both sides."""
     rng = np.random.default_rng(seed)
-    H = np.array([[1 + rng.normal(0, 0.01), rng.normal(0, 0.01), rng.normal(0, 0.1)],
-                  [rng.normal(0, 0.01), 1 + rng.normal(0, 0.01), rng.normal(0, 0.1)],
-                  [rng.normal(0, 1e-4), rng.normal(0, 1e-4), 1.0]])
+    H = np.array(
+        [
+            [1 + rng.normal(0, 0.01), rng.normal(0, 0.01), rng.normal(0, 0.1)],
+            [rng.normal(0, 0.01), 1 + rng.normal(0, 0.01), rng.normal(0, 0.1)],
+            [rng.normal(0, 1e-4), rng.normal(0, 1e-4), 1.0],
+        ]
+    )
     g = np.linspace(-12.0, 12.0, 9)
     x, y = (a.ravel() + rng.normal(0, 0.01, 81) for a in np.meshgrid(g, g))
     u, v = apply_projective(H, x, y)
@@ -104,7 +112,12 @@ def _noisy_grid(seed: int) -> tuple[Array, Array, Array, Array]:
 @pytest.mark.parametrize("refine", [True, False])
 def test_fit_equals_the_reference_implementation(seed: int, refine: bool) -> None:
     x, y, u, v = _noisy_grid(1000 + seed)
-    assert np.allclose(fit_projective(x, y, u, v, refine=refine), _reference_fit(x, y, u, v, refine), rtol=1e-10, atol=0)
+    assert np.allclose(
+        fit_projective(x, y, u, v, refine=refine),
+        _reference_fit(x, y, u, v, refine),
+        rtol=1e-10,
+        atol=0,
+    )
 
 
 def test_transfer_residuals_equal_the_reference() -> None:

@@ -1,4 +1,5 @@
-"""Seed 002 rotation methods: geometry, the paper's rules, the combined estimator, uncertainty, CLI."""
+"""Seed 002 rotation methods: geometry, the paper's rules, the combined estimator, uncertainty,
+CLI."""
 
 from __future__ import annotations
 
@@ -45,6 +46,7 @@ def _columns(alpha, beta, gamma, theta, sigma=0.0, rng=None, with_ref=True):
 
 # --- the paper's identities, from its words -----------------------------------------------------
 
+
 def _rodrigues(v, axis, t):
     return v * np.cos(t) + np.cross(axis, v) * np.sin(t) + axis * (axis @ v) * (1 - np.cos(t))
 
@@ -52,14 +54,16 @@ def _rodrigues(v, axis, t):
 @settings(max_examples=150, deadline=None)
 @given(st.floats(-180, 180), st.floats(-85, 85), st.floats(-40, 40), st.floats(-180, 180))
 def test_identities_6_and_10_and_the_plane_normal_is_the_axis_in_the_sensor_frame(a, b, g, t):
-    """Eq. (6): S is a unit vector (the vertical in the sensor frame). Eq. (10): n·S = sin β, and n is
-    L seen from the sensor, built here from seed 002 §1.1's words, not from the output equations."""
+    """Eq. (6): S is a unit vector (the vertical in the sensor frame). Eq. (10): n·S = sin β, and n
+    is L seen from the sensor, built here from seed 002 §1.1's words, not from the output
+    equations."""
     sx, sy, sz = (float(v) for v in rotation_outputs(a, b, g, t))
     assert abs(sx**2 + sy**2 + sz**2 - 1.0) < 1e-12
     ar, br, gr, tr = np.radians([a, b, g, t])
     n = plane_normal(ar, gr)
     assert abs(n @ [sx, sy, sz] - np.sin(br)) < 1e-12
-    # independent construction: L in YOZ at β; n0 in YOZ making γ with L; y axis at α from L's projection
+    # independent construction: L in YOZ at β; n0 in YOZ making γ with L; y axis at α from L's
+    # projection
     L = np.array([0.0, np.cos(br), np.sin(br)])
     n0 = np.array([0.0, -np.sin(br + gr), np.cos(br + gr)])
     u = (L - (L @ n0) * n0) / np.cos(gr)
@@ -72,6 +76,7 @@ def test_identities_6_and_10_and_the_plane_normal_is_the_axis_in_the_sensor_fram
 
 
 # --- the fit -----------------------------------------------------------------------------------
+
 
 @settings(max_examples=60, deadline=None)
 @given(st.floats(-179, 179), st.floats(5, 85), st.floats(-30, 30), st.integers(3, 40))
@@ -86,7 +91,8 @@ def test_iodsra_recovers_any_geometry_from_noiseless_points(a, b, g, n):
 @settings(max_examples=60, deadline=None)
 @given(st.floats(-179, 179), st.floats(-85, 85), st.floats(-30, 30))
 def test_direct_recovers_geometry_where_sz_is_positive_and_theta_ref_fixes_the_axis_sense(a, b, g):
-    """The direct method is exact while the true Sz ≥ 0; with theta_ref the sign of β is recovered too."""
+    """The direct method is exact while the true Sz ≥ 0; with theta_ref the sign of β is recovered
+    too."""
     theta = np.linspace(-179, 179, 200)
     sz = rotation_outputs(a, b, g, theta)[2]
     keep = theta[sz > 1e-3]
@@ -103,12 +109,14 @@ def test_without_theta_ref_the_axis_points_up():
     model = get_method("rotation", "iodsra").fit(cols, FitOptions())
     a, b, g = model.values(PARAMS)
     assert b == pytest.approx(30.0, abs=1e-8) and g == pytest.approx(-5.0, abs=1e-8)
-    assert wrap_deg(a - 220.0) == pytest.approx(0.0, abs=1e-8)  # same plane, reversed axis: θ runs the other way
+    # same plane, reversed axis: θ runs the other way
+    assert wrap_deg(a - 220.0) == pytest.approx(0.0, abs=1e-8)
     th = get_method("rotation", "iodsra").correct(model, cols)["theta_deg"]
     assert np.allclose(wrap_deg(th + np.linspace(-150, 150, 9)), 0.0, atol=1e-7)
 
 
 # --- the paper's rules -------------------------------------------------------------------------
+
 
 def test_45_degree_rule_replaces_the_one_large_component_keeping_its_sign():
     s = np.array([0.1, -0.8, 0.3])
@@ -131,17 +139,21 @@ def test_direct_sz_is_eq6_with_the_nonnegative_rule():
 
 @pytest.mark.parametrize("theta", [0.0, 20.0, 160.0, -170.0])
 def test_switch_takes_eq7_away_from_90_deg(theta):
-    """Away from ±90° only eq. (7) sets θ; Sz (eq. 9) only picks the branch, so a small Sz error does nothing."""
+    """Away from ±90° only eq. (7) sets θ; Sz (eq. 9) only picks the branch, so a small Sz error
+    does nothing."""
     a, b, g = np.radians([-23.0, 75.0, 3.2])
     p = np.column_stack(rotation_outputs(-23.0, 75.0, 3.2, [theta]))
     q = p.copy()
     q[0, 2] += 1e-3
-    assert np.degrees(theta_switch(q, a, b, g))[0] == pytest.approx(np.degrees(theta_switch(p, a, b, g))[0], abs=1e-9)
+    assert np.degrees(theta_switch(q, a, b, g))[0] == pytest.approx(
+        np.degrees(theta_switch(p, a, b, g))[0], abs=1e-9
+    )
 
 
 @pytest.mark.parametrize("theta", [90.0, -60.0, 120.0])
 def test_switch_takes_eq9_near_90_deg(theta):
-    """Near ±90° eq. (9) sets θ: dθ = -dSz / (cos γ cos β sin θ); eq. (7) (Sx, Sy) only gives the sign."""
+    """Near ±90° eq. (9) sets θ: dθ = -dSz / (cos γ cos β sin θ); eq. (7) (Sx, Sy) only gives the
+    sign."""
     a, b, g = np.radians([-23.0, 75.0, 3.2])
     p = np.column_stack(rotation_outputs(-23.0, 75.0, 3.2, [theta]))
     q = p.copy()
@@ -155,7 +167,8 @@ def test_switch_takes_eq9_near_90_deg(theta):
 
 
 def test_theta_over_the_full_circle_noiseless():
-    """IODSRA and the combined estimator measure ±180°; the direct method fails once the true Sz < 0."""
+    """IODSRA and the combined estimator measure ±180°; the direct method fails once the true Sz <
+    0."""
     theta = np.arange(-180.0, 180.0, 5.0)
     cols = _columns(17.0, 75.0, 4.0, theta)
     for name in ("iodsra", "iodsra-combined"):
@@ -173,9 +186,11 @@ def test_theta_over_the_full_circle_noiseless():
 
 # --- the combined estimator -------------------------------------------------------------------
 
+
 def test_combined_estimator_is_never_worse_and_better_near_45_and_135_deg():
     """With exact α, β, γ and output noise σ, eq. (7) alone errs by σ/(cos β |cos θ|) and eq. (9) by
-    σ/(cos γ cos β |sin θ|); the least-squares angle by σ/cos β: √2 better at 45° and 135°, equal at 0° and 90°."""
+    σ/(cos γ cos β |sin θ|); the least-squares angle by σ/cos β: √2 better at 45° and 135°, equal at
+    0° and 90°."""
     rng = np.random.default_rng(20240601)
     a, b, g = -23.0, 75.0, 3.2
     ar, br, gr = np.radians([a, b, g])
@@ -195,6 +210,7 @@ def test_combined_estimator_is_never_worse_and_better_near_45_and_135_deg():
 
 # --- the paper's experiments -------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("preset", ["seed002-b55", "seed002-b75"])
 def test_iodsra_stays_within_0p2_deg_over_the_full_circle(preset):
     sc = load_scenario(preset)
@@ -203,7 +219,9 @@ def test_iodsra_stays_within_0p2_deg_over_the_full_circle(preset):
         cal = run_scenario(sc, seed=k).columns
         meas = run_scenario(sc, seed=500 + k)
         truth = meas.truth["theta_true_deg"]
-        err = wrap_deg(iodsra.correct(iodsra.fit(cal, FitOptions()), meas.columns)["theta_deg"] - truth)
+        err = wrap_deg(
+            iodsra.correct(iodsra.fit(cal, FitOptions()), meas.columns)["theta_deg"] - truth
+        )
         assert np.max(np.abs(err)) <= 0.2
         inside = np.abs(cal["theta_ref_deg"]) <= 70
         dm = direct.fit({c: v[inside] for c, v in cal.items()}, FitOptions())
@@ -218,13 +236,16 @@ def test_iodsra_reduces_the_parameter_errors_of_the_direct_method_on_seed002_sim
     for k in range(80):
         cols = run_scenario(sc, seed=k).columns
         for name in err:
-            err[name].append(get_method("rotation", name).fit(cols, FitOptions()).values(PARAMS) - truth)
+            err[name].append(
+                get_method("rotation", name).fit(cols, FitOptions()).values(PARAMS) - truth
+            )
     mae = {k: np.mean(np.abs(v), axis=0) for k, v in err.items()}
     reduction = 1 - mae["iodsra"] / mae["direct"]
     assert np.all(reduction > 0.6), reduction
 
 
 # --- refusals ----------------------------------------------------------------------------------
+
 
 def test_degenerate_inputs_are_refused_with_what_is_missing():
     m = get_method("rotation", "iodsra")
@@ -248,12 +269,15 @@ def test_degenerate_inputs_are_refused_with_what_is_missing():
 
 # --- MODEL.json and the command line -------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", ["direct", "iodsra", "iodsra-combined"])
 def test_model_round_trips_through_json(name):
     run = run_scenario(load_scenario("seed002-sim"), seed=4)
     m = get_method("rotation", name)
     model = m.fit(run.columns, FitOptions())
-    back = CalibrationModel.from_json_dict(json.loads(json.dumps(model.to_json_dict(), allow_nan=False)))
+    back = CalibrationModel.from_json_dict(
+        json.loads(json.dumps(model.to_json_dict(), allow_nan=False))
+    )
     a, b = m.correct(model, run.columns), m.correct(back, run.columns)
     assert set(a) == set(b) == {"theta_deg", "u_theta_deg", "k_theta"}
     for k in a:
@@ -261,27 +285,50 @@ def test_model_round_trips_through_json(name):
 
 
 def _tiltlab(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "service", *args], cwd=cwd, capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "service", *args], cwd=cwd, capture_output=True, text=True
+    )
 
 
 def test_cli_calibrate_and_correct_round_trip(tmp_path):
     from service.io.datasets import write_dataset
 
     write_dataset(tmp_path / "run.csv", run_scenario(load_scenario("seed002-b75"), seed=3).columns)
-    r = _tiltlab("calibrate", "--kind", "rotation", "--method", "iodsra", "--input", "run.csv", "--out", "m.json",
-                 cwd=tmp_path)
+    r = _tiltlab(
+        "calibrate",
+        "--kind",
+        "rotation",
+        "--method",
+        "iodsra",
+        "--input",
+        "run.csv",
+        "--out",
+        "m.json",
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     model = json.loads((tmp_path / "m.json").read_text())
     assert model["kind"] == "rotation" and model["method"] == "iodsra"
     assert model["covariance"]["names"] == PARAMS
-    r = _tiltlab("correct", "--model", "m.json", "--input", "run.csv", "--out", "out.csv", cwd=tmp_path)
+    r = _tiltlab(
+        "correct", "--model", "m.json", "--input", "run.csv", "--out", "out.csv", cwd=tmp_path
+    )
     assert r.returncode == 0, r.stderr
     from service.io.datasets import read_dataset
 
     out = read_dataset(tmp_path / "out.csv", "rotation", ["theta_ref_deg"], [])
     header = out.header
-    assert header[-5:] == ["theta_deg", "expanded_uncertainty_theta_deg", "standard_uncertainty_theta_deg",
-                           "coverage_factor_theta", "coverage_probability"] and "point" in header
+    assert (
+        header[-5:]
+        == [
+            "theta_deg",
+            "expanded_uncertainty_theta_deg",
+            "standard_uncertainty_theta_deg",
+            "coverage_factor_theta",
+            "coverage_probability",
+        ]
+        and "point" in header
+    )
     th = np.array(out.text["theta_deg"], dtype=float)
     u = np.array(out.text["expanded_uncertainty_theta_deg"], dtype=float)
     assert np.max(np.abs(wrap_deg(th - out["theta_ref_deg"]))) < 0.2
@@ -290,22 +337,45 @@ def test_cli_calibrate_and_correct_round_trip(tmp_path):
 
 def test_cli_refuses_degenerate_data_with_exit_2_and_one_line(tmp_path):
     (tmp_path / "two.csv").write_text("sx,sy,sz\n0.1,0.7,0.7\n0.2,0.69,0.69\n")
-    r = _tiltlab("calibrate", "--kind", "rotation", "--method", "iodsra", "--input", "two.csv", "--out", "m.json",
-                 cwd=tmp_path)
+    r = _tiltlab(
+        "calibrate",
+        "--kind",
+        "rotation",
+        "--method",
+        "iodsra",
+        "--input",
+        "two.csv",
+        "--out",
+        "m.json",
+        cwd=tmp_path,
+    )
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "at least 3 points" in lines[0] and "Traceback" not in r.stderr
     assert not (tmp_path / "m.json").exists()
     (tmp_path / "nosz.csv").write_text("sx,sy\n0.1,0.7\n0.2,0.69\n0.3,0.6\n")
-    r = _tiltlab("calibrate", "--kind", "rotation", "--method", "iodsra", "--input", "nosz.csv", "--out", "m.json",
-                 cwd=tmp_path)
+    r = _tiltlab(
+        "calibrate",
+        "--kind",
+        "rotation",
+        "--method",
+        "iodsra",
+        "--input",
+        "nosz.csv",
+        "--out",
+        "m.json",
+        cwd=tmp_path,
+    )
     assert r.returncode == 2 and "'sz'" in r.stderr
 
 
-# --- uncertainty: GUM against Monte Carlo ------------------------------------------------------------
+# --- uncertainty: GUM against Monte Carlo
+# ------------------------------------------------------------
+
 
 def _mc_std(f, p0, cov, inputs, sigma, draws, rng):
-    """JCGM 101: draw the parameters from N(p̂, Σ) and the readings from N(x, σ²), push through f."""
+    """JCGM 101: draw the parameters from N(p̂, Σ) and the readings from N(x, σ²), push through
+    f."""
     ps = rng.multivariate_normal(p0, cov, size=draws)
     out = []
     for p in ps:
@@ -325,8 +395,9 @@ def test_gum_uncertainty_of_theta_matches_monte_carlo(name):
         meas = run_scenario(sc, seed=seed + 100).columns
         x = {c: meas[c] for c in ("sx", "sy", "sz")}
         noise_only = without_dof(model)
-        # Monte Carlo here draws the noise and the plane's parameters; the outputs' constant errors, which the
-        # method adds from the θ residuals against the dividing head, are checked by coverage (benchmarks/coverage.py)
+        # Monte Carlo here draws the noise and the plane's parameters; the outputs' constant errors,
+        # which the method adds from the θ residuals against the dividing head, are checked by
+        # coverage (benchmarks/coverage.py)
         noise_only.state.pop(CONSTANT_ERRORS_KEY)
         u_gum = m.correct(noise_only, x)["u_theta_deg"] / Z95
         p0 = model.values(PARAMS)
@@ -336,10 +407,19 @@ def test_gum_uncertainty_of_theta_matches_monte_carlo(name):
             pts, _ = m.points(xx)
             return wrap_deg(np.degrees(m.theta(pts, *np.radians(p))) - theta0)
 
-        u_mc = _mc_std(f, p0, model.cov_of(PARAMS), x, model.state["sigma_s"], 3000, np.random.default_rng(seed))
+        u_mc = _mc_std(
+            f,
+            p0,
+            model.cov_of(PARAMS),
+            x,
+            model.state["sigma_s"],
+            3000,
+            np.random.default_rng(seed),
+        )
         if name == "iodsra":
-            # the paper's switch between eqs. (7) and (9) is a jump in the estimator at |θ| = 45°, 135°: there the
-            # linearisation does not hold (Monte Carlo sees both equations); elsewhere it must
+            # the paper's switch between eqs. (7) and (9) is a jump in the estimator at |θ| = 45°,
+            # 135°: there the linearisation does not hold (Monte Carlo sees both equations);
+            # elsewhere it must
             away = np.abs(np.abs(wrap_deg(theta0)) - 90.0) - 45.0
             keep = np.abs(away) > 5.0
             u_gum, u_mc = u_gum[keep], u_mc[keep]
@@ -349,8 +429,8 @@ def test_gum_uncertainty_of_theta_matches_monte_carlo(name):
 
 
 def test_theta_uncertainty_covers_the_error_of_repeated_calibrations():
-    """End to end: over repeated calibrations and measurements (noise only) the spread of the θ error is
-    what the GUM uncertainty says."""
+    """End to end: over repeated calibrations and measurements (noise only) the spread of the θ
+    error is what the GUM uncertainty says."""
     data = load_scenario("seed002-b55").model_dump()
     data["effects"] = {"noise": {"sigma_s": 2e-4}}
     sc = parse_scenario(data)

@@ -46,12 +46,15 @@ def test_homography_at_or_below_the_papers_figures(paper_runs):
 
 
 def test_comparison_methods_fall_behind_as_seed000_section_4_5_says(paper_runs):
-    """[9] leaves the linear installation errors, [10] leaves the x coupling (Fig. 14a) and the zero offsets."""
+    """[9] leaves the linear installation errors, [10] leaves the x coupling (Fig. 14a) and the zero
+    offsets."""
     for method in ("coupling", "axis-transform"):
         for axis in ("x", "y"):
-            assert _mean(paper_runs, method, "flow", f"rms_{axis}") > 5 * _mean(paper_runs, "homography", "flow", f"rms_{axis}")
-    # [10]'s x levelling error keeps eq. (10)'s shape (Fig. 14a): what is left after removing an affine
-    # trend (its missing zero offsets and yaws) is minus eq. (10)'s error at the targets
+            assert _mean(paper_runs, method, "flow", f"rms_{axis}") > 5 * _mean(
+                paper_runs, "homography", "flow", f"rms_{axis}"
+            )
+    # [10]'s x levelling error keeps eq. (10)'s shape (Fig. 14a): what is left after removing an
+    # affine trend (its missing zero offsets and yaws) is minus eq. (10)'s error at the targets
     r = paper_runs[0]
     ex, _ = r.errors["axis-transform"]["level"]
     tx, ty = r.targets

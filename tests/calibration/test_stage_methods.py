@@ -1,4 +1,5 @@
-"""Stage methods: exact round trips on benches each can represent, recovery, robustness, MODEL.json."""
+"""Stage methods: exact round trips on benches each can represent, recovery, robustness,
+MODEL.json."""
 
 import json
 
@@ -13,8 +14,11 @@ from service.physics.stage import StageBench, StageGeometry, simulate_stage
 from service.scenarios import load_scenario
 
 STAGE_METHODS = ("homography", "coupling", "axis-transform", "kinematic")
-PRESET_EFFECTS = {k: v for k, v in load_scenario("seed000").model_dump()["effects"].items()
-                  if v is not None and k != "noise"}
+PRESET_EFFECTS = {
+    k: v
+    for k, v in load_scenario("seed000").model_dump()["effects"].items()
+    if v is not None and k != "noise"
+}
 
 
 def _grid(step=3.0, lim=12.0):
@@ -24,16 +28,23 @@ def _grid(step=3.0, lim=12.0):
 
 
 def _dataset(bench, fx, step=3.0, lim=12.0):
-    """Noise-free bench data; commands already whole pulses, so the simulator's rounding is a no-op."""
+    """Noise-free bench data; commands already whole pulses, so the simulator's rounding is a
+    no-op."""
     cx, cy = bench.quantise(*_grid(step, lim))
     sim = simulate_stage(bench, fx, cx, cy, np.ones_like(cx), np.ones_like(cy))
-    cols = {"stage_x_deg": cx, "stage_y_deg": cy, "dir_x": np.ones_like(cx), "dir_y": np.ones_like(cy)}
+    cols = {
+        "stage_x_deg": cx,
+        "stage_y_deg": cy,
+        "dir_x": np.ones_like(cx),
+        "dir_y": np.ones_like(cy),
+    }
     cols.update({k: sim[k] for k in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg")})
     return cols, sim
 
 
 def _true_tilt(bench, fx, cmd_x, cmd_y):
-    """Table tilt for unrounded commands, from the simulator's geometry; stage scale applied by hand."""
+    """Table tilt for unrounded commands, from the simulator's geometry; stage scale applied by
+    hand."""
     geo = StageGeometry.from_effects(bench, fx)
     ax = np.asarray(cmd_x) * (1 + fx.get("stage_scale", "x"))
     ay = np.asarray(cmd_y) * (1 + fx.get("stage_scale", "y"))
@@ -42,15 +53,20 @@ def _true_tilt(bench, fx, cmd_x, cmd_y):
 
 
 REPRESENTABLE = {
-    # H1 on the cross + eq. (10) is exact for a bench whose only errors leave the stage-to-reference map
-    # projective once decoupled; H2 is exact for an affine measurement sensor.
-    "homography": {"zero_offset": {"meas_x_deg": 0.03, "meas_y_deg": -0.02},
-                   "scale_factor": {"meas_x": 0.004, "meas_y": -0.003}},
+    # H1 on the cross + eq. (10) is exact for a bench whose only errors leave the stage-to-reference
+    # map projective once decoupled; H2 is exact for an affine measurement sensor.
+    "homography": {
+        "zero_offset": {"meas_x_deg": 0.03, "meas_y_deg": -0.02},
+        "scale_factor": {"meas_x": 0.004, "meas_y": -0.003},
+    },
     # the bare stacked geometry, nothing else
     "coupling": {},
     # no coupling (idealised bench), sensing axes turned in the table plane only
-    "axis-transform": {"offaxis_coupling": {"enabled": False}, "sensor_yaw": {"ref_deg": 0.4, "meas_deg": -0.6},
-                       "non_orthogonality": {"meas_deg": 0.3}},
+    "axis-transform": {
+        "offaxis_coupling": {"enabled": False},
+        "sensor_yaw": {"ref_deg": 0.4, "meas_deg": -0.6},
+        "non_orthogonality": {"meas_deg": 0.3},
+    },
     # the full seed 000 bench, every effect of the preset except its noise
     "kinematic": PRESET_EFFECTS,
 }
@@ -82,10 +98,11 @@ def test_stage_methods_are_registered():
 def test_kinematic_recovers_the_identifiable_parameters():
     """Noise-free seed 000 bench: the fit lands on the gauge-reduced truth.
 
-    Held by the gauge: lower yaw (0.2) goes into perpendicularity (0.3 - 0.2) and ref yaw (0.3 - 0.2);
-    the reference seat (0.03, -0.02) goes into the top (0.05 + 0.03, 0.04 - 0.02). The measurement
-    sensor is described relative to the reference: yaw -0.45 - 0.3, seat (0.06 - 0.03, -0.05 + 0.02).
-    Tolerances are the second-order terms of composing small rotations (a few 1e-4 deg).
+    Held by the gauge: lower yaw (0.2) goes into perpendicularity (0.3 - 0.2) and ref yaw (0.3 -
+    0.2); the reference seat (0.03, -0.02) goes into the top (0.05 + 0.03, 0.04 - 0.02). The
+    measurement sensor is described relative to the reference: yaw -0.45 - 0.3, seat (0.06 - 0.03,
+    -0.05 + 0.02). Tolerances are the second-order terms of composing small rotations (a few 1e-4
+    deg).
     """
     bench = StageBench()
     fx = EffectSet.from_mapping("stage", PRESET_EFFECTS)
@@ -95,27 +112,54 @@ def test_kinematic_recovers_the_identifiable_parameters():
     assert abs(v["stage_scale.x"] - 0.003) < 1e-7 and abs(v["stage_scale.y"] + 0.002) < 1e-7
     assert abs(v["axis_misalignment.perpendicularity_deg"] - 0.1) < 2e-4
     assert abs(v["sensor_yaw.ref_deg"] - 0.1) < 2e-4
-    assert abs(v["mounting_tilt.desk_x_deg"] - 0.12) < 1e-3 and abs(v["mounting_tilt.desk_y_deg"] + 0.08) < 1e-3
-    assert abs(v["mounting_tilt.top_x_deg"] - 0.08) < 1e-3 and abs(v["mounting_tilt.top_y_deg"] - 0.02) < 1e-3
+    assert (
+        abs(v["mounting_tilt.desk_x_deg"] - 0.12) < 1e-3
+        and abs(v["mounting_tilt.desk_y_deg"] + 0.08) < 1e-3
+    )
+    assert (
+        abs(v["mounting_tilt.top_x_deg"] - 0.08) < 1e-3
+        and abs(v["mounting_tilt.top_y_deg"] - 0.02) < 1e-3
+    )
     assert abs(v["backlash.x_deg"]) < 1e-6
-    assert abs(v["sensor_yaw.meas_deg"] + 0.75) < 2e-4 and abs(v["non_orthogonality.meas_deg"] - 0.25) < 2e-4
-    assert abs(v["zero_offset.meas_x_deg"] - 0.02) < 1e-3 and abs(v["zero_offset.meas_y_deg"] + 0.015) < 1e-3
-    assert abs(v["mounting_tilt.meas_x_deg"] - 0.03) < 1e-3 and abs(v["mounting_tilt.meas_y_deg"] + 0.03) < 1e-3
+    assert (
+        abs(v["sensor_yaw.meas_deg"] + 0.75) < 2e-4
+        and abs(v["non_orthogonality.meas_deg"] - 0.25) < 2e-4
+    )
+    assert (
+        abs(v["zero_offset.meas_x_deg"] - 0.02) < 1e-3
+        and abs(v["zero_offset.meas_y_deg"] + 0.015) < 1e-3
+    )
+    assert (
+        abs(v["mounting_tilt.meas_x_deg"] - 0.03) < 1e-3
+        and abs(v["mounting_tilt.meas_y_deg"] + 0.03) < 1e-3
+    )
     assert abs(v["scale_factor.meas_x"]) < 1e-6 and abs(v["scale_factor.meas_y"]) < 1e-6
     held = {k for k, p in model.parameters.items() if p.fixed}
-    assert held == {"axis_misalignment.lower_yaw_deg", "axis_misalignment.lower_pitch_deg",
-                    "axis_misalignment.upper_pitch_deg", "mounting_tilt.ref_x_deg", "mounting_tilt.ref_y_deg",
-                    "backlash.x_deg", "backlash.y_deg"}  # every point approached from below: backlash = desk tilt
+    assert held == {
+        "axis_misalignment.lower_yaw_deg",
+        "axis_misalignment.lower_pitch_deg",
+        "axis_misalignment.upper_pitch_deg",
+        "mounting_tilt.ref_x_deg",
+        "mounting_tilt.ref_y_deg",
+        # every point approached from below: backlash = desk tilt
+        "backlash.x_deg",
+        "backlash.y_deg",
+    }
     for k in held:
         assert "held at 0" in model.parameters[k].note and any(k in n for n in model.notes)
     assert model.covariance is not None and len(model.covariance_names) == model.covariance.shape[0]
 
 
 def test_kinematic_held_parameters_lose_nothing_on_a_bench_that_has_them():
-    """Lower/upper pitch and lower yaw are gauge: a bench with them is reproduced exactly without them."""
+    """Lower/upper pitch and lower yaw are gauge: a bench with them is reproduced exactly without
+    them."""
     eff = dict(PRESET_EFFECTS)
-    eff["axis_misalignment"] = {"lower_yaw_deg": 0.5, "lower_pitch_deg": 0.3, "perpendicularity_deg": -0.2,
-                                "upper_pitch_deg": -0.4}
+    eff["axis_misalignment"] = {
+        "lower_yaw_deg": 0.5,
+        "lower_pitch_deg": 0.3,
+        "perpendicularity_deg": -0.2,
+        "upper_pitch_deg": -0.4,
+    }
     bench = StageBench()
     fx = EffectSet.from_mapping("stage", eff)
     cols, _ = _dataset(bench, fx)
@@ -139,8 +183,11 @@ def test_upside_down_measurement_sensor(flip):
         model = m.fit(cols, FitOptions())
         out = m.correct(model, {"meas_x_deg": sim["meas_x_deg"], "meas_y_deg": sim["meas_y_deg"]})
         err = np.hypot(out["tilt_x_deg"] - sim["tilt_x_deg"], out["tilt_y_deg"] - sim["tilt_y_deg"])
-        bound = {"kinematic": 1e-8, "homography": 0.01, "axis-transform": 0.1, "coupling": 0.5}[method]
-        assert err.max() < bound, method  # mirrored: an unflipped model would be off by twice the angle
+        bound = {"kinematic": 1e-8, "homography": 0.01, "axis-transform": 0.1, "coupling": 0.5}[
+            method
+        ]
+        # mirrored: an unflipped model would be off by twice the angle
+        assert err.max() < bound, method
         if method != "homography":  # H2 simply carries the sign
             assert any("upside down" in n for n in model.notes)
     # stated by the lab: accepted when it agrees with the data, refused when it does not
@@ -150,21 +197,33 @@ def test_upside_down_measurement_sensor(flip):
         km.fit(cols, FitOptions(extra={"meas_flip": "none"}))
 
 
-VARIANTS = [(m, {}) for m in STAGE_METHODS] + [("homography", {"points": "all"}), ("homography", {"offaxis": "paper"})]
+VARIANTS = [(m, {}) for m in STAGE_METHODS] + [
+    ("homography", {"points": "all"}),
+    ("homography", {"offaxis": "paper"}),
+]
 
 
-@pytest.mark.parametrize("method,extra", VARIANTS, ids=[f"{m}-{'-'.join(e.values()) or 'default'}" for m, e in VARIANTS])
+@pytest.mark.parametrize(
+    "method,extra", VARIANTS, ids=[f"{m}-{'-'.join(e.values()) or 'default'}" for m, e in VARIANTS]
+)
 def test_model_json_round_trip_gives_identical_predictions(method, extra):
     from service.scenarios import run_scenario
 
     cols = run_scenario(load_scenario("seed000"), seed=5).columns
     m = get_method("stage", method)
     model = m.fit(cols, FitOptions(extra=extra))
-    back = CalibrationModel.from_json_dict(json.loads(json.dumps(model.to_json_dict(), allow_nan=False)))
+    back = CalibrationModel.from_json_dict(
+        json.loads(json.dumps(model.to_json_dict(), allow_nan=False))
+    )
     meas = {"meas_x_deg": cols["meas_x_deg"], "meas_y_deg": cols["meas_y_deg"]}
     a, b = m.correct(model, meas), m.correct(back, meas)
-    # the tilt, its expanded uncertainties and their coverage factors (95 %: Student's t, at least the normal 1.96)
-    assert set(a) == set(b) == {"tilt_x_deg", "tilt_y_deg", "u_tilt_x_deg", "u_tilt_y_deg", "k_tilt_x", "k_tilt_y"}
+    # the tilt, its expanded uncertainties and their coverage factors (95 %: Student's t, at least
+    # the normal 1.96)
+    assert (
+        set(a)
+        == set(b)
+        == {"tilt_x_deg", "tilt_y_deg", "u_tilt_x_deg", "u_tilt_y_deg", "k_tilt_x", "k_tilt_y"}
+    )
     assert np.all(a["k_tilt_x"] >= 1.959) and np.all(a["k_tilt_y"] >= 1.959)
     for k in a:
         assert np.array_equal(a[k], b[k]), k
@@ -181,7 +240,9 @@ def test_homography_uses_the_cross_and_says_so():
     m = get_method("stage", "homography")
     model = m.fit(cols, FitOptions())
     assert model.fit["n_points_h1"] == 17 and any("the cross" in n for n in model.notes)
-    assert any("exact inverse" in n for n in model.notes) and any("0.0062" in n for n in model.notes)
+    assert any("exact inverse" in n for n in model.notes) and any(
+        "0.0062" in n for n in model.notes
+    )
     off_cross = (cols["stage_x_deg"] != 0) & (cols["stage_y_deg"] != 0)
     no_cross = {k: v[off_cross] for k, v in cols.items()}
     model2 = m.fit(no_cross, FitOptions())
@@ -191,7 +252,10 @@ def test_homography_uses_the_cross_and_says_so():
 def test_robust_loss_resists_outliers():
     from service.scenarios import run_scenario
 
-    cols = {k: np.array(v, dtype=float) for k, v in run_scenario(load_scenario("seed000"), seed=8).columns.items()}
+    cols = {
+        k: np.array(v, dtype=float)
+        for k, v in run_scenario(load_scenario("seed000"), seed=8).columns.items()
+    }
     m = get_method("stage", "kinematic")
     clean = m.fit(cols, FitOptions())
     bad = {k: v.copy() for k, v in cols.items()}
@@ -203,10 +267,15 @@ def test_robust_loss_resists_outliers():
     dev = {}
     for loss in ("linear", "soft_l1", "huber", "cauchy"):
         model = m.fit(bad, FitOptions(loss=loss))
-        dev[loss] = (np.max(np.abs(m.level(model, t)["stage_x_deg"] - ref_level)),
-                     np.max(np.abs(m.correct(model, cols)["tilt_y_deg"] - ref_tilt)))
+        dev[loss] = (
+            np.max(np.abs(m.level(model, t)["stage_x_deg"] - ref_level)),
+            np.max(np.abs(m.correct(model, cols)["tilt_y_deg"] - ref_tilt)),
+        )
     for loss in ("soft_l1", "huber", "cauchy"):
-        assert dev[loss][0] < dev["linear"][0] / 3 and dev[loss][1] < dev["linear"][1] / 3, (loss, dev)
+        assert dev[loss][0] < dev["linear"][0] / 3 and dev[loss][1] < dev["linear"][1] / 3, (
+            loss,
+            dev,
+        )
     with pytest.raises(InputError, match="loss"):
         m.fit(cols, FitOptions(loss="tukey"))
 
@@ -219,7 +288,11 @@ def test_degenerate_inputs_are_refused_with_what_is_missing():
     for method in STAGE_METHODS:
         with pytest.raises(DegenerateDataError) as exc:
             get_method("stage", method).fit(on_x_line, FitOptions())
-        assert "line" in str(exc.value) or "stage_y_deg" in str(exc.value) or "lower stage" in str(exc.value)
+        assert (
+            "line" in str(exc.value)
+            or "stage_y_deg" in str(exc.value)
+            or "lower stage" in str(exc.value)
+        )
     few = {k: v[:4] for k, v in cols.items()}
     with pytest.raises(DegenerateDataError):
         get_method("stage", "kinematic").fit(few, FitOptions())
@@ -227,7 +300,10 @@ def test_degenerate_inputs_are_refused_with_what_is_missing():
         get_method("stage", "kinematic").fit(cols, FitOptions(extra={"max_nfev": 1}))
     km = get_method("stage", "kinematic")
     with pytest.raises(InputError, match="travel"):
-        km.level(km.fit(cols, FitOptions()), {"target_x_deg": np.array([0.0, 14.9]), "target_y_deg": np.array([0.0, 14.0])})
+        km.level(
+            km.fit(cols, FitOptions()),
+            {"target_x_deg": np.array([0.0, 14.9]), "target_y_deg": np.array([0.0, 14.0])},
+        )
     no_meas = {k: v for k, v in cols.items() if not k.startswith("meas_")}
     for method in STAGE_METHODS:
         m = get_method("stage", method)
@@ -238,17 +314,30 @@ def test_degenerate_inputs_are_refused_with_what_is_missing():
 
 
 def test_homography_on_four_points_has_no_covariance_rather_than_a_zero_one():
-    """Four points solve H2 exactly: no residual is left to estimate the noise, so no u_tilt is claimed."""
+    """Four points solve H2 exactly: no residual is left to estimate the noise, so no u_tilt is
+    claimed."""
     sx, sy = np.array([-3.0, 3.0, -3.0, 3.0]), np.array([-3.0, -3.0, 3.0, 3.0])
-    cols = {"stage_x_deg": sx, "stage_y_deg": sy, "ref_x_deg": sx + 0.01 * sy, "ref_y_deg": sy,
-            "meas_x_deg": sx + 0.003 * sy + 0.1, "meas_y_deg": sy - 0.002 * sx}
+    cols = {
+        "stage_x_deg": sx,
+        "stage_y_deg": sy,
+        "ref_x_deg": sx + 0.01 * sy,
+        "ref_y_deg": sy,
+        "meas_x_deg": sx + 0.003 * sy + 0.1,
+        "meas_y_deg": sy - 0.002 * sx,
+    }
     m = get_method("stage", "homography")
     model = m.fit(cols, FitOptions(extra={"points": "all"}))
-    assert model.covariance is None and model.fit["h2"]["dof"] == 0 and model.fit["h2"]["sigma_deg"] is None
+    assert (
+        model.covariance is None
+        and model.fit["h2"]["dof"] == 0
+        and model.fit["h2"]["sigma_deg"] is None
+    )
     out = m.correct(model, {"meas_x_deg": np.array([1.0]), "meas_y_deg": np.array([2.0])})
     assert set(out) == {"tilt_x_deg", "tilt_y_deg"}
     back = CalibrationModel.from_json_dict(json.loads(json.dumps(model.to_json_dict())))
-    assert set(m.correct(back, {"meas_x_deg": np.array([1.0]), "meas_y_deg": np.array([2.0])})) == set(out)
+    assert set(
+        m.correct(back, {"meas_x_deg": np.array([1.0]), "meas_y_deg": np.array([2.0])})
+    ) == set(out)
 
 
 @pytest.mark.parametrize("method", STAGE_METHODS)
@@ -258,8 +347,12 @@ def test_every_stage_method_refuses_targets_the_bench_cannot_reach(method):
     cols = run_scenario(load_scenario("seed000"), seed=2).columns
     m = get_method("stage", method)
     model = m.fit(cols, FitOptions())
-    out = m.level(model, {"target_x_deg": np.array([-12.0, 12.0]), "target_y_deg": np.array([12.0, -12.0])})
+    out = m.level(
+        model, {"target_x_deg": np.array([-12.0, 12.0]), "target_y_deg": np.array([12.0, -12.0])}
+    )
     assert np.all(np.abs(out["stage_x_deg"]) <= 15.0) and np.all(np.abs(out["stage_y_deg"]) <= 15.0)
     for tx, ty in ((20.0, 0.0), (0.0, -16.0), (89.0, 89.0)):
         with pytest.raises(InputError, match="row"):
-            m.level(model, {"target_x_deg": np.array([0.0, tx]), "target_y_deg": np.array([0.0, ty])})
+            m.level(
+                model, {"target_x_deg": np.array([0.0, tx]), "target_y_deg": np.array([0.0, ty])}
+            )

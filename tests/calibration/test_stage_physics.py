@@ -57,7 +57,8 @@ def test_exact_inverse_inverts_the_forward_model(x_wanted, y):
 
 
 def test_paper_forward_form_vs_exact_inverse_on_the_12_deg_grid():
-    """x' + error(x', y) agrees with the exact inverse to second order in the angles; the rest is 0.0062 deg at the corners."""
+    """x' + error(x', y) agrees with the exact inverse to second order in the angles; the rest is
+    0.0062 deg at the corners."""
     d = offaxis_forward_vs_exact_deg()
     # independent arithmetic at the corner (12, 12)
     s12, c12 = np.sin(np.radians(12.0)), np.cos(np.radians(12.0))
@@ -84,17 +85,34 @@ def test_dlt_recovers_a_known_homography_exactly():
 
 
 def _meas_only_bench(flip, yaw, nonorth, seat_x, seat_y, zx, zy, kx, ky):
-    fx = EffectSet.from_mapping("stage", {
-        "sensor_yaw": {"meas_deg": yaw}, "non_orthogonality": {"meas_deg": nonorth},
-        "mounting_tilt": {"meas_x_deg": seat_x, "meas_y_deg": seat_y},
-        "zero_offset": {"meas_x_deg": zx, "meas_y_deg": zy}, "scale_factor": {"meas_x": kx, "meas_y": ky}})
+    fx = EffectSet.from_mapping(
+        "stage",
+        {
+            "sensor_yaw": {"meas_deg": yaw},
+            "non_orthogonality": {"meas_deg": nonorth},
+            "mounting_tilt": {"meas_x_deg": seat_x, "meas_y_deg": seat_y},
+            "zero_offset": {"meas_x_deg": zx, "meas_y_deg": zy},
+            "scale_factor": {"meas_x": kx, "meas_y": ky},
+        },
+    )
     return StageBench(meas_flip=flip), fx
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.sampled_from(["none", "x", "y"]), st.floats(-2, 2), st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1),
-       st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), st.floats(-0.01, 0.01), st.floats(-0.01, 0.01))
-def test_measurement_model_matches_the_simulator_and_inverts(flip, yaw, nonorth, sx, sy, zx, zy, kx, ky):
+@given(
+    st.sampled_from(["none", "x", "y"]),
+    st.floats(-2, 2),
+    st.floats(-1, 1),
+    st.floats(-1, 1),
+    st.floats(-1, 1),
+    st.floats(-0.5, 0.5),
+    st.floats(-0.5, 0.5),
+    st.floats(-0.01, 0.01),
+    st.floats(-0.01, 0.01),
+)
+def test_measurement_model_matches_the_simulator_and_inverts(
+    flip, yaw, nonorth, sx, sy, zx, zy, kx, ky
+):
     """The kinematic measurement model (reference frame) against the simulator's chain, with the
     upside-down mountings: turned about x mirrors y (and the sense of ν), about y mirrors x."""
     bench, fx = _meas_only_bench(flip, yaw, nonorth, sx, sy, zx, zy, kx, ky)
@@ -105,13 +123,18 @@ def test_measurement_model_matches_the_simulator_and_inverts(flip, yaw, nonorth,
     nu = nonorth if flip == "none" else -nonorth
     p = np.array([zx, zy, kx, ky, yaw, nu, sx, sy])
     a, b = meas_forward(p, sign, sim["tilt_x_deg"], sim["tilt_y_deg"])
-    assert np.allclose(a, sim["meas_x_deg"], atol=1e-9) and np.allclose(b, sim["meas_y_deg"], atol=1e-9)
+    assert np.allclose(a, sim["meas_x_deg"], atol=1e-9) and np.allclose(
+        b, sim["meas_y_deg"], atol=1e-9
+    )
     X, Y = meas_inverse(p, sign, sim["meas_x_deg"], sim["meas_y_deg"])
-    assert np.allclose(X, sim["tilt_x_deg"], atol=1e-9) and np.allclose(Y, sim["tilt_y_deg"], atol=1e-9)
+    assert np.allclose(X, sim["tilt_x_deg"], atol=1e-9) and np.allclose(
+        Y, sim["tilt_y_deg"], atol=1e-9
+    )
 
 
 def test_four_points_with_three_on_one_line_do_not_determine_a_homography():
-    """Three collinear points of four leave a one-parameter family of homographies: refused, not guessed."""
+    """Three collinear points of four leave a one-parameter family of homographies: refused, not
+    guessed."""
     x, y = np.array([0.0, 1.0, 2.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0])
     with pytest.raises(DegenerateDataError, match="do not determine a homography"):
         fit_projective(x + 0.02 * x * y, y + 0.003 * x, x, y)

@@ -15,7 +15,8 @@ N_MC = 4000
 
 
 def _mc_std(model, names, tilt_of, meas_x, meas_y, rng):
-    """Standard deviation of the corrected tilt when parameters and readings are drawn from their distributions."""
+    """Standard deviation of the corrected tilt when parameters and readings are drawn from their
+    distributions."""
     p = model.values(names)
     cov = model.cov_of(names)
     sigma, noise_dof = reading_noise_of(model)  # one reading's noise and its degrees of freedom
@@ -47,17 +48,25 @@ def test_kinematic_gum_matches_monte_carlo(seed):
     readings = {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]}
     out = m.correct(model, readings)
     std = m.correct(without_dof(model), readings)
-    u_gum = np.stack([std["u_tilt_x_deg"], std["u_tilt_y_deg"]]) / Z95  # back to standard uncertainty
+    # back to standard uncertainty
+    u_gum = np.stack([std["u_tilt_x_deg"], std["u_tilt_y_deg"]]) / Z95
     sign = np.asarray(model.state["meas_sign"])
 
     def tilt_of(q, a, b):
         return np.stack(meas_inverse(q, sign, a, b))
 
-    u_mc = _mc_std(model, list(MEAS_NAMES), tilt_of, val["meas_x_deg"], val["meas_y_deg"], np.random.default_rng(seed))
+    u_mc = _mc_std(
+        model,
+        list(MEAS_NAMES),
+        tilt_of,
+        val["meas_x_deg"],
+        val["meas_y_deg"],
+        np.random.default_rng(seed),
+    )
     # MC standard deviation from 4000 draws is good to ~1.1 % (1 sigma)
     assert np.max(np.abs(u_mc / u_gum - 1.0)) < 0.06
-    # the expanded uncertainty covers the true error (conservative: the reading noise taken from the fit
-    # residual also holds the reference's own noise)
+    # the expanded uncertainty covers the true error (conservative: the reading noise taken from the
+    # fit residual also holds the reference's own noise)
     err = np.stack([out["tilt_x_deg"] - val["tilt_x_deg"], out["tilt_y_deg"] - val["tilt_y_deg"]])
     assert np.mean(np.abs(err) <= np.stack([out["u_tilt_x_deg"], out["u_tilt_y_deg"]])) >= 0.9
 
@@ -66,20 +75,24 @@ def test_homography_gum_matches_monte_carlo():
     run, val = _readings(203)
     m = get_method("stage", "homography")
     model = m.fit(run.columns, FitOptions())
-    out = m.correct(without_dof(model), {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]})
+    out = m.correct(
+        without_dof(model), {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]}
+    )
     u_gum = np.stack([out["u_tilt_x_deg"], out["u_tilt_y_deg"]]) / Z95
     names = [f"H2.{k}" for k in ("h11", "h12", "h13", "h21", "h22", "h23", "h31", "h32")]
 
     def tilt_of(q, a, b):
         return np.stack(apply_projective(np.append(q, 1.0).reshape(3, 3), a, b))
 
-    u_mc = _mc_std(model, names, tilt_of, val["meas_x_deg"], val["meas_y_deg"], np.random.default_rng(7))
+    u_mc = _mc_std(
+        model, names, tilt_of, val["meas_x_deg"], val["meas_y_deg"], np.random.default_rng(7)
+    )
     assert np.max(np.abs(u_mc / u_gum - 1.0)) < 0.06
 
 
 def test_kinematic_fast_gum_equals_the_generic_propagation():
-    """correct's specialised propagation (zero/scale sensitivities from the reading's) = uncertainty.propagate_gum,
-    degrees of freedom and coverage factors included."""
+    """correct's specialised propagation (zero/scale sensitivities from the reading's) =
+    uncertainty.propagate_gum, degrees of freedom and coverage factors included."""
     from service.calibration.uncertainty import propagate_gum
 
     cols = run_scenario(load_scenario("seed000"), seed=204).columns
@@ -93,13 +106,20 @@ def test_kinematic_fast_gum_equals_the_generic_propagation():
         return np.column_stack(meas_inverse(p, sign, inp["meas_x_deg"], inp["meas_y_deg"]))
 
     dof = model.state["meas_dof"]  # the parameters' covariance's
-    g = propagate_gum(f, model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)),
-                      {k: cols[k] for k in ("meas_x_deg", "meas_y_deg")}, {"meas_x_deg": sigma, "meas_y_deg": sigma},
-                      dof, noise_dof)
+    g = propagate_gum(
+        f,
+        model.values(MEAS_NAMES),
+        model.cov_of(list(MEAS_NAMES)),
+        {k: cols[k] for k in ("meas_x_deg", "meas_y_deg")},
+        {"meas_x_deg": sigma, "meas_y_deg": sigma},
+        dof,
+        noise_dof,
+    )
     U = g.expanded()
     assert np.allclose(out["u_tilt_x_deg"], U[:, 0], rtol=1e-6, atol=0)
     assert np.allclose(out["u_tilt_y_deg"], U[:, 1], rtol=1e-6, atol=0)
-    assert np.all(g.dof_eff >= dof) and np.all(U < 2.0 * g.u)  # 160 degrees of freedom: k just under 2
+    # 160 degrees of freedom: k just under 2
+    assert np.all(g.dof_eff >= dof) and np.all(U < 2.0 * g.u)
 
 
 def _seed000(**grid):
@@ -112,8 +132,9 @@ def _seed000(**grid):
 
 @pytest.mark.parametrize("method", ["homography", "axis-transform", "kinematic"])
 def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_references(method):
-    """The meas-vs-ref residual holds both sensors' noise; with readings repeated at each stand (or the reference's
-    noise stated) the reading term of a corrected tilt is the measurement sensor's, not the residual."""
+    """The meas-vs-ref residual holds both sensors' noise; with readings repeated at each stand (or
+    the reference's noise stated) the reading term of a corrected tilt is the measurement sensor's,
+    not the residual."""
     m = get_method("stage", method)
     sigmas = []
     for seed in (301, 302, 303):
@@ -121,19 +142,29 @@ def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_re
         model = m.fit(run.columns, FitOptions())
         st = model.state
         assert "repeated readings" in st["meas_reading_noise_source"]
-        sigmas.append((st["meas_reading_standard_uncertainty_deg"], st["ref_reading_standard_uncertainty_deg"],
-                       st["meas_sigma_deg"]))
+        sigmas.append(
+            (
+                st["meas_reading_standard_uncertainty_deg"],
+                st["ref_reading_standard_uncertainty_deg"],
+                st["meas_sigma_deg"],
+            )
+        )
         # the same data with the reference's noise stated instead of repeated
         single = {k: v[::3] for k, v in run.columns.items() if k != "point"}
         stated = m.fit(single, FitOptions(extra={"ref_noise_deg": 0.001})).state
         assert "stated noise" in stated["meas_reading_noise_source"]
         plain = m.fit(single, FitOptions()).state
-        assert plain["meas_reading_standard_uncertainty_deg"] == plain["meas_sigma_deg"]  # nothing to separate with
+        # nothing to separate with
+        assert plain["meas_reading_standard_uncertainty_deg"] == plain["meas_sigma_deg"]
         assert "conservative" in plain["meas_reading_noise_source"]
     s = np.array(sigmas)
-    if method == "kinematic":  # the model describes the bench: what is left is the measurement sensor's noise
-        assert np.all(np.abs(s[:, 0] / 0.001 - 1) < 0.15), s  # the measurement sensor's sigma 0.001 deg
+    # the model describes the bench: what is left is the measurement sensor's noise
+    if method == "kinematic":
+        # the measurement sensor's sigma 0.001 deg
+        assert np.all(np.abs(s[:, 0] / 0.001 - 1) < 0.15), s
         assert np.all(s[:, 2] > 1.3 * s[:, 0])  # the residual holds both (√2 for two equal sensors)
-    else:  # a misfit of the model (H2's projective map; the axis transform has no zero offsets) stays in the reading term
+    # a misfit of the model (H2's projective map; the axis transform has no zero offsets) stays in
+    # the reading term
+    else:
         assert np.all((s[:, 0] > 0.00085) & (s[:, 0] < s[:, 2])), s
     assert np.all(np.abs(s[:, 1] / 0.001 - 1) < 0.15), s  # the reference's, from the repeats

@@ -44,8 +44,15 @@ def _seed004_columns(seed=0, **bench):
 
 # --- recovery ------------------------------------------------------------------------------------
 
+
 @settings(max_examples=40, deadline=None)
-@given(st.floats(-179, 179), st.floats(-2, 2), st.floats(0.001, 0.01), st.floats(0.001, 0.01), st.floats(170, 190))
+@given(
+    st.floats(-179, 179),
+    st.floats(-2, 2),
+    st.floats(0.001, 0.01),
+    st.floats(0.001, 0.01),
+    st.floats(170, 190),
+)
 def test_noiseless_pairs_give_back_beta_m1_m2_epsilon(beta, eps, m1, m2, phi):
     """With the assumed φ equal to the true one the iterated least squares lands on the truth."""
     tilts = [(40.0, 10.0), (-25.0, 35.0), (5.0, -45.0)]
@@ -65,7 +72,9 @@ def test_the_papers_iteration_from_rough_initial_values_reaches_the_same_answer(
     rough = {"beta_deg": 0.0, "m1_per_arcsec": 0.005, "m2_per_arcsec": 0.005, "epsilon_deg": 0.0}
     paper_start = REVERSAL.fit(run.columns, FitOptions(extra={"initial": rough}))
     assert paper_start.fit["iterations"] > linear_start.fit["iterations"]
-    assert np.allclose(paper_start.values(PARAMS), linear_start.values(PARAMS), rtol=1e-8, atol=1e-8)
+    assert np.allclose(
+        paper_start.values(PARAMS), linear_start.values(PARAMS), rtol=1e-8, atol=1e-8
+    )
 
 
 def test_seed004_bench_is_recovered_within_its_uncertainty():
@@ -73,13 +82,18 @@ def test_seed004_bench_is_recovered_within_its_uncertainty():
     truth = np.array([32.5, 0.004858, 0.004838, 0.15])
     z = []
     for seed in range(40):
-        model = REVERSAL.fit(run_scenario(load_scenario("seed004"), seed=seed).columns, FitOptions())
+        model = REVERSAL.fit(
+            run_scenario(load_scenario("seed004"), seed=seed).columns, FitOptions()
+        )
         z.append((model.values(PARAMS) - truth) / np.sqrt(np.diag(model.covariance)))
     z = np.array(z)
-    assert np.all(np.abs(z.mean(axis=0)) < 0.5) and np.all((z.std(axis=0) > 0.7) & (z.std(axis=0) < 1.3)), z.std(axis=0)
+    assert np.all(np.abs(z.mean(axis=0)) < 0.5) and np.all(
+        (z.std(axis=0) > 0.7) & (z.std(axis=0) < 1.3)
+    ), z.std(axis=0)
 
 
 # --- seed 004 §3.2: β and φ ----------------------------------------------------------------------
+
 
 def test_a_rotation_error_of_one_degree_moves_beta_by_half_a_degree():
     run = _seed004_columns(seed=3, rotation_deg=181.0)  # the turntable really turns 181°
@@ -99,15 +113,19 @@ def test_beta_follows_the_assumed_rotation_at_minus_half_and_the_residuals_canno
     rms = np.array([f.residuals["columns"]["north_arcsec"]["rms"] for f in fits])
     assert np.ptp(rms) < 1e-9 * rms.mean()  # identical fits: φ is not identifiable
     m1 = np.array([f.value("m1_per_arcsec") for f in fits])
-    assert np.allclose(m1, m1[len(phis) // 2] / np.cos(np.radians(phis - 180.0) / 2), rtol=1e-9)  # symmetric about 180°
+    # symmetric about 180°
+    assert np.allclose(m1, m1[len(phis) // 2] / np.cos(np.radians(phis - 180.0) / 2), rtol=1e-9)
     eps = np.array([f.value("epsilon_deg") for f in fits])
     assert np.ptp(eps) < 1e-9
     assert any("cannot be told apart" in n for n in fits[0].notes)
-    assert fits[0].parameters["rotation_deg"].fixed and "rotation_deg" not in fits[0].covariance_names
+    assert (
+        fits[0].parameters["rotation_deg"].fixed and "rotation_deg" not in fits[0].covariance_names
+    )
 
 
 def test_pairs_turned_the_other_way_give_the_same_instrument():
-    """φ = -180° (the turntable turned back) is the same pair geometry as +180°: same β, m1, m2, ε."""
+    """φ = -180° (the turntable turned back) is the same pair geometry as +180°: same β, m1, m2,
+    ε."""
     tilts = [(40.0, 10.0), (-25.0, 35.0), (5.0, -45.0)]
     cols = _pairs(12.0, 0.3, 0.005, 0.0052, [0, 45, 90, 135], tilts, rotation_deg=-180.0)
     model = REVERSAL.fit(cols, FitOptions(rotation_deg=-180.0))
@@ -118,12 +136,17 @@ def test_pairs_turned_the_other_way_give_the_same_instrument():
 
 # --- refusals -----------------------------------------------------------------------------------
 
+
 def test_pairs_that_cannot_separate_the_parameters_are_refused():
     kw = dict(beta=30.0, eps=0.1, m1=0.005, m2=0.005)
     one_az_one_tilt = _pairs(azimuths=[45.0] * 6, tilts=[(30.0, 10.0)], **kw)
-    with pytest.raises(DegenerateDataError, match=r"single direction.*1 distinct azimuth.*1 distinct reference tilt"):
+    with pytest.raises(
+        DegenerateDataError,
+        match=r"single direction.*1 distinct azimuth.*1 distinct reference tilt",
+    ):
         REVERSAL.fit(one_az_one_tilt, FitOptions())
-    opposite = _pairs(azimuths=[20.0, 200.0, 20.0], tilts=[(30.0, 10.0)], **kw)  # 180° apart: the same direction
+    # 180° apart: the same direction
+    opposite = _pairs(azimuths=[20.0, 200.0, 20.0], tilts=[(30.0, 10.0)], **kw)
     with pytest.raises(DegenerateDataError, match="another azimuth"):
         REVERSAL.fit(opposite, FitOptions())
     plumb = _pairs(azimuths=[0, 45, 90, 135], tilts=[(0.0, 0.0)], **kw)
@@ -135,11 +158,14 @@ def test_pairs_that_cannot_separate_the_parameters_are_refused():
 
 
 def test_one_azimuth_with_tilts_in_several_directions_is_enough():
-    """What separates β from m is the tilt direction seen by the instrument, so several levellings read at a single
-    azimuth determine the parameters as well as several azimuths at one levelling do."""
+    """What separates β from m is the tilt direction seen by the instrument, so several levellings
+    read at a single azimuth determine the parameters as well as several azimuths at one levelling
+    do."""
     kw = dict(beta=30.0, eps=0.1, m1=0.005, m2=0.004)
-    for cols in (_pairs(azimuths=[45.0] * 2, tilts=[(30.0, 10.0), (-5.0, 40.0)], **kw),
-                 _pairs(azimuths=[0.0, 60.0, 100.0], tilts=[(30.0, 10.0)], **kw)):
+    for cols in (
+        _pairs(azimuths=[45.0] * 2, tilts=[(30.0, 10.0), (-5.0, 40.0)], **kw),
+        _pairs(azimuths=[0.0, 60.0, 100.0], tilts=[(30.0, 10.0)], **kw),
+    ):
         model = REVERSAL.fit(cols, FitOptions())
         assert np.allclose(model.values(PARAMS), [30.0, 0.005, 0.004, 0.1], rtol=1e-8, atol=1e-8)
 
@@ -154,43 +180,89 @@ def test_a_fit_that_does_not_converge_is_refused(monkeypatch):
 
 # --- MODEL.json, CLI ------------------------------------------------------------------------------
 
+
 def test_model_round_trips_through_json():
     run = _seed004_columns(seed=5)
     model = REVERSAL.fit(run.columns, FitOptions(rotation_deg=181.5))
-    back = CalibrationModel.from_json_dict(json.loads(json.dumps(model.to_json_dict(), allow_nan=False)))
+    back = CalibrationModel.from_json_dict(
+        json.loads(json.dumps(model.to_json_dict(), allow_nan=False))
+    )
     assert back.value("rotation_deg") == 181.5
     a, b = REVERSAL.correct(model, run.columns), REVERSAL.correct(back, run.columns)
-    assert set(a) == {"north_arcsec", "east_arcsec", "u_north_arcsec", "u_east_arcsec", "k_north", "k_east"}
+    assert set(a) == {
+        "north_arcsec",
+        "east_arcsec",
+        "u_north_arcsec",
+        "u_east_arcsec",
+        "k_north",
+        "k_east",
+    }
     for k in a:
         assert np.array_equal(a[k], b[k])
 
 
 def _tiltlab(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "service", *args], cwd=cwd, capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "service", *args], cwd=cwd, capture_output=True, text=True
+    )
 
 
 def test_cli_round_trip_with_the_assumed_rotation(tmp_path):
     from service.io.datasets import write_dataset
 
     write_dataset(tmp_path / "run.csv", run_scenario(load_scenario("seed004")).columns)
-    r = _tiltlab("calibrate", "--kind", "turntable", "--method", "reversal", "--input", "run.csv", "--out", "m.json",
-                 "--rotation-deg", "179", cwd=tmp_path)
+    r = _tiltlab(
+        "calibrate",
+        "--kind",
+        "turntable",
+        "--method",
+        "reversal",
+        "--input",
+        "run.csv",
+        "--out",
+        "m.json",
+        "--rotation-deg",
+        "179",
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     doc = json.loads((tmp_path / "m.json").read_text())
-    assert doc["parameters"]["rotation_deg"] == {"value": 179.0, "unit": "deg", "fixed": True,
-                                                  "note": doc["parameters"]["rotation_deg"]["note"]}
+    assert doc["parameters"]["rotation_deg"] == {
+        "value": 179.0,
+        "unit": "deg",
+        "fixed": True,
+        "note": doc["parameters"]["rotation_deg"]["note"],
+    }
     assert doc["parameters"]["beta_deg"]["value"] == pytest.approx(33.0, abs=0.4)
-    (tmp_path / "pairs.csv").write_text("azimuth_deg,n1_a,n2_a,n1_b,n2_b\n0,0.24,-0.093,-0.14,0.034\n")
-    r = _tiltlab("correct", "--model", "m.json", "--input", "pairs.csv", "--out", "out.csv", cwd=tmp_path)
+    (tmp_path / "pairs.csv").write_text(
+        "azimuth_deg,n1_a,n2_a,n1_b,n2_b\n0,0.24,-0.093,-0.14,0.034\n"
+    )
+    r = _tiltlab(
+        "correct", "--model", "m.json", "--input", "pairs.csv", "--out", "out.csv", cwd=tmp_path
+    )
     assert r.returncode == 0, r.stderr
     header, row = (tmp_path / "out.csv").read_text().strip().splitlines()
     cells = dict(zip(header.split(","), row.split(",")))
-    assert header.split(",")[5:] == ["north_arcsec", "expanded_uncertainty_north_arcsec",
-                                     "standard_uncertainty_north_arcsec", "coverage_factor_north", "east_arcsec",
-                                     "expanded_uncertainty_east_arcsec", "standard_uncertainty_east_arcsec",
-                                     "coverage_factor_east", "coverage_probability"]
-    north, east, un, ue = (float(cells[c]) for c in ("north_arcsec", "east_arcsec", "expanded_uncertainty_north_arcsec",
-                                                      "expanded_uncertainty_east_arcsec"))
+    assert header.split(",")[5:] == [
+        "north_arcsec",
+        "expanded_uncertainty_north_arcsec",
+        "standard_uncertainty_north_arcsec",
+        "coverage_factor_north",
+        "east_arcsec",
+        "expanded_uncertainty_east_arcsec",
+        "standard_uncertainty_east_arcsec",
+        "coverage_factor_east",
+        "coverage_probability",
+    ]
+    north, east, un, ue = (
+        float(cells[c])
+        for c in (
+            "north_arcsec",
+            "east_arcsec",
+            "expanded_uncertainty_north_arcsec",
+            "expanded_uncertainty_east_arcsec",
+        )
+    )
     assert 35 < north < 45 and 5 < east < 15 and 0 < un < 2 and 0 < ue < 2
 
 
@@ -198,13 +270,24 @@ def test_cli_refuses_a_single_direction_with_exit_2(tmp_path):
     rows = ["azimuth_deg,n1_a,n2_a,n1_b,n2_b,ref_north_arcsec,ref_east_arcsec"]
     rows += ["30,0.2,0.1,-0.1,-0.05,40,10"] * 5
     (tmp_path / "one.csv").write_text("\n".join(rows) + "\n")
-    r = _tiltlab("calibrate", "--kind", "turntable", "--method", "reversal", "--input", "one.csv", "--out", "m.json",
-                 cwd=tmp_path)
+    r = _tiltlab(
+        "calibrate",
+        "--kind",
+        "turntable",
+        "--method",
+        "reversal",
+        "--input",
+        "one.csv",
+        "--out",
+        "m.json",
+        cwd=tmp_path,
+    )
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "azimuth" in r.stderr
 
 
 # --- uncertainty ---------------------------------------------------------------------------------
+
 
 def test_gum_uncertainty_of_the_compensation_matches_monte_carlo():
     for seed in (1, 2, 3):
@@ -225,11 +308,15 @@ def test_gum_uncertainty_of_the_compensation_matches_monte_carlo():
 
 
 def test_compensation_uncertainty_covers_the_error_of_repeated_calibrations():
-    """End to end: new readings corrected with models from repeated calibrations scatter about the true axis tilt as
-    the GUM uncertainty says (the reference's own noise is not part of a corrected value)."""
+    """End to end: new readings corrected with models from repeated calibrations scatter about the
+    true axis tilt as the GUM uncertainty says (the reference's own noise is not part of a corrected
+    value)."""
     data = load_scenario("seed004").model_dump()
     sc = parse_scenario(data)
-    meas_data = {**data, "grid": {**data["grid"], "cycles": [{"north_arcsec": 20.0, "east_arcsec": -15.0}]}}
+    meas_data = {
+        **data,
+        "grid": {**data["grid"], "cycles": [{"north_arcsec": 20.0, "east_arcsec": -15.0}]},
+    }
     meas_sc = parse_scenario(meas_data)
     errs, us = [], []
     for k in range(150):

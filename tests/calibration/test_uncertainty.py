@@ -13,7 +13,9 @@ from service.calibration.uncertainty import propagate
 def test_a_quotient_gets_its_analytic_uncertainty_in_any_unit(scale, rel_u, d):
     # angle = half-difference / scale factor, as the turntable's compensation: u = d/m^2 * u_m
     m, u_m = scale, rel_u * scale
-    u = propagate(lambda p, x: x["d"] / p[0], np.array([m]), np.array([[u_m**2]]), {"d": np.array([d])})
+    u = propagate(
+        lambda p, x: x["d"] / p[0], np.array([m]), np.array([[u_m**2]]), {"d": np.array([d])}
+    )
     assert u[0] == pytest.approx(d / m**2 * u_m, rel=1e-6)
 
 
@@ -22,17 +24,29 @@ def test_a_quotient_gets_its_analytic_uncertainty_in_any_unit(scale, rel_u, d):
 def test_a_reading_noise_gets_the_analytic_sensitivity_in_any_unit(reading, sigma_rel, gain):
     # a square law in the reading: d(out)/d(reading) = 2 gain reading
     sigma = sigma_rel * reading
-    u = propagate(lambda p, x: p[0] * x["r"] ** 2, np.array([gain]), None, {"r": np.array([reading])},
-                  input_sigma={"r": sigma})
+    u = propagate(
+        lambda p, x: p[0] * x["r"] ** 2,
+        np.array([gain]),
+        None,
+        {"r": np.array([reading])},
+        input_sigma={"r": sigma},
+    )
     assert u[0] == pytest.approx(2 * gain * reading * sigma, rel=1e-5)
 
 
 def test_a_parameter_at_zero_is_stepped_by_a_fraction_of_its_uncertainty():
-    u = propagate(lambda p, x: np.sin(p[0]) * x["k"], np.array([0.0]), np.array([[1e-6]]), {"k": np.array([3.0])})
+    u = propagate(
+        lambda p, x: np.sin(p[0]) * x["k"],
+        np.array([0.0]),
+        np.array([[1e-6]]),
+        {"k": np.array([3.0])},
+    )
     assert u[0] == pytest.approx(3.0 * 1e-3, rel=1e-9)
 
 
-# --- coverage factor from the effective degrees of freedom (JCGM 100 G.4) ----------------------------
+# --- coverage factor from the effective degrees of freedom (JCGM 100 G.4)
+# ----------------------------
+
 
 def test_coverage_factor_is_students_t_at_the_degrees_of_freedom():
     from scipy import stats
@@ -52,9 +66,13 @@ def test_welch_satterthwaite_by_hand():
     from service.calibration.uncertainty import welch_satterthwaite
 
     # two equal components with 5 and 10 degrees of freedom: 4 / (1/5 + 1/10)
-    assert float(welch_satterthwaite([(np.array(1.0), 5), (np.array(1.0), 10)])) == pytest.approx(40 / 3)
+    assert float(welch_satterthwaite([(np.array(1.0), 5), (np.array(1.0), 10)])) == pytest.approx(
+        40 / 3
+    )
     # a component known exactly (infinite dof) adds to u_c but not to the denominator
-    assert float(welch_satterthwaite([(np.array(1.0), 4), (np.array(3.0), np.inf)])) == pytest.approx(4 * 16)
+    assert float(
+        welch_satterthwaite([(np.array(1.0), 4), (np.array(3.0), np.inf)])
+    ) == pytest.approx(4 * 16)
     assert np.isinf(welch_satterthwaite([(np.array(2.0), np.inf)]))
 
 
@@ -62,8 +80,15 @@ def test_propagation_reports_the_effective_dof_of_its_components():
     from service.calibration.uncertainty import coverage_factor, propagate_gum
 
     # y = p + 2 x: parameter variance 0.09 (from a fit with 4 dof), reading sigma 0.2 (9 dof)
-    g = propagate_gum(lambda p, x: p[0] + 2.0 * x["x"], np.array([1.0]), np.array([[0.09]]),
-                      {"x": np.array([0.5, 3.0])}, {"x": 0.2}, params_dof=4, inputs_dof=9)
+    g = propagate_gum(
+        lambda p, x: p[0] + 2.0 * x["x"],
+        np.array([1.0]),
+        np.array([[0.09]]),
+        {"x": np.array([0.5, 3.0])},
+        {"x": 0.2},
+        params_dof=4,
+        inputs_dof=9,
+    )
     var_p, var_x = 0.09, (2.0 * 0.2) ** 2
     nu = (var_p + var_x) ** 2 / (var_p**2 / 4 + var_x**2 / 9)
     assert np.allclose(g.u, np.sqrt(var_p + var_x))
@@ -72,7 +97,8 @@ def test_propagation_reports_the_effective_dof_of_its_components():
 
 
 def test_seed003_table1_expanded_uncertainty_uses_its_ten_degrees_of_freedom():
-    """A straight line through Table 1's 12 points: 10 degrees of freedom, k between t(10) and the normal 1.96."""
+    """A straight line through Table 1's 12 points: 10 degrees of freedom, k between t(10) and the
+    normal 1.96."""
     from pathlib import Path
 
     from scipy import stats
@@ -80,7 +106,13 @@ def test_seed003_table1_expanded_uncertainty_uses_its_ten_degrees_of_freedom():
     from service.calibration.registry import FitOptions, get_method
     from service.io.datasets import read_dataset
 
-    table1 = Path(__file__).resolve().parents[2] / "service" / "calibration" / "data" / "seed003_table1.csv"
+    table1 = (
+        Path(__file__).resolve().parents[2]
+        / "service"
+        / "calibration"
+        / "data"
+        / "seed003_table1.csv"
+    )
     m = get_method("scale", "poly1")
     ds = read_dataset(table1, "scale", m.fit_required, m.fit_optional)
     model = m.fit(ds.arrays(), FitOptions())
@@ -95,7 +127,8 @@ def test_seed003_table1_expanded_uncertainty_uses_its_ten_degrees_of_freedom():
 
 
 def test_coverage_factor_of_many_values_matches_students_t():
-    """For thousands of readings at once k comes from a table in 1/ν: within 1e-7 of Student's t everywhere."""
+    """For thousands of readings at once k comes from a table in 1/ν: within 1e-7 of Student's t
+    everywhere."""
     from scipy import stats
 
     from service.calibration.uncertainty import coverage_factor

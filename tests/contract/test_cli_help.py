@@ -28,8 +28,18 @@ ALL = list(_parsers(build_parser()))
 
 def test_every_command_is_reached() -> None:
     names = {" ".join(p) for p, _ in ALL}
-    for command in ("simulate", "calibrate", "correct", "level", "discrepancy", "reproduce", "serve", "db",
-                    "db downgrade", "db backup"):
+    for command in (
+        "simulate",
+        "calibrate",
+        "correct",
+        "level",
+        "discrepancy",
+        "reproduce",
+        "serve",
+        "db",
+        "db downgrade",
+        "db backup",
+    ):
         assert command in names
 
 
@@ -37,7 +47,9 @@ def test_every_command_is_reached() -> None:
 def test_every_option_has_help_and_its_default(path, parser) -> None:  # type: ignore[no-untyped-def]
     formatter = HelpFormatter(prog="tiltlab")
     for action in parser._actions:
-        if isinstance(action, (argparse._HelpAction, argparse._VersionAction, argparse._SubParsersAction)):
+        if isinstance(
+            action, (argparse._HelpAction, argparse._VersionAction, argparse._SubParsersAction)
+        ):
             continue
         assert action.help, (path, action.dest)
         if action.option_strings:
@@ -60,7 +72,9 @@ def test_calibrate_lists_every_method_per_kind() -> None:
 
 
 def test_tiltlab_alone_prints_the_overview() -> None:
-    r = subprocess.run([sys.executable, "-m", "service"], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "service"], capture_output=True, text=True, timeout=60
+    )
     assert r.returncode == 0, r.stderr
     assert "tiltlab calibrate" in r.stdout and "tiltlab serve" in r.stdout and "--help" in r.stdout
 
@@ -74,14 +88,30 @@ def test_simulate_list_names_the_presets(capsys) -> None:  # type: ignore[no-unt
         assert name in out
 
 
-@pytest.mark.parametrize("argv,words", [
-    (["calibrate", "--kind", "turntable", "--method", "reversal", "--rotation-deg", "nan"], ["NaN"]),
-    (["calibrate", "--kind", "turntable", "--method", "reversal", "--rotation-deg", "inf"], ["infinite"]),
-    (["serve", "--database-wait-s", "nan"], ["NaN"]),
-    (["sim", "--speed", "inf"], ["infinite"]),
-])
+@pytest.mark.parametrize(
+    "argv,words",
+    [
+        (
+            ["calibrate", "--kind", "turntable", "--method", "reversal", "--rotation-deg", "nan"],
+            ["NaN"],
+        ),
+        (
+            ["calibrate", "--kind", "turntable", "--method", "reversal", "--rotation-deg", "inf"],
+            ["infinite"],
+        ),
+        (["serve", "--database-wait-s", "nan"], ["NaN"]),
+        (["sim", "--speed", "inf"], ["infinite"]),
+    ],
+)
 def test_non_finite_numbers_are_named(argv, words, tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
-    argv = [*argv, *(["--input", "x.csv", "--out", str(tmp_path / "m.json")] if argv[0] == "calibrate" else [])]
+    argv = [
+        *argv,
+        *(
+            ["--input", "x.csv", "--out", str(tmp_path / "m.json")]
+            if argv[0] == "calibrate"
+            else []
+        ),
+    ]
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2
@@ -89,15 +119,21 @@ def test_non_finite_numbers_are_named(argv, words, tmp_path, capsys) -> None:  #
     assert all(w in err for w in words) and len(err.strip().splitlines()) == 1, err
 
 
-@pytest.mark.parametrize("command", ["simulate", "calibrate", "correct", "level", "discrepancy", "reproduce"])
+@pytest.mark.parametrize(
+    "command", ["simulate", "calibrate", "correct", "level", "discrepancy", "reproduce"]
+)
 def test_the_readme_summary_names_every_option(command) -> None:  # type: ignore[no-untyped-def]
     """The README's summary of the offline command line shows each command with all its options."""
     from pathlib import Path
 
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
     section = readme.split("## The offline command line", 1)[1].split("\n## ", 1)[0]
-    line = next(ln for ln in section.splitlines() if ln.strip().startswith(f"tiltlab {command} "))  # the summary
+    # the summary
+    line = next(ln for ln in section.splitlines() if ln.strip().startswith(f"tiltlab {command} "))
     parser = dict((" ".join(p), q) for p, q in ALL)[command]
-    options = [a.option_strings[-1] for a in parser._actions
-               if a.option_strings and not isinstance(a, argparse._HelpAction)]
+    options = [
+        a.option_strings[-1]
+        for a in parser._actions
+        if a.option_strings and not isinstance(a, argparse._HelpAction)
+    ]
     assert options and [o for o in options if o not in line] == [], line

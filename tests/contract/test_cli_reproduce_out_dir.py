@@ -11,8 +11,14 @@ from pathlib import Path
 
 def _reproduce(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "MPLBACKEND": "Agg"}
-    return subprocess.run([sys.executable, "-m", "service", "reproduce", "seed003", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "service", "reproduce", "seed003", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def test_default_is_a_new_folder(tmp_path: Path) -> None:
@@ -33,5 +39,8 @@ def test_unusable_out_dir_is_one_line_exit_2(tmp_path: Path) -> None:
         r = _reproduce(tmp_path, "--out-dir", bad)
         assert r.returncode == 2, (bad, r.stderr)
         lines = r.stderr.strip().splitlines()
-        assert len(lines) == 1 and "--out-dir" in lines[0] and "Traceback" not in r.stderr, (bad, r.stderr)
+        assert len(lines) == 1 and "--out-dir" in lines[0] and "Traceback" not in r.stderr, (
+            bad,
+            r.stderr,
+        )
     assert (tmp_path / "afile").read_text() == "x"

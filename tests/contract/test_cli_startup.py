@@ -34,24 +34,36 @@ PROBE = textwrap.dedent("""
             except SystemExit:
                 pass
         loaded = sorted(m for m in sys.modules if m.split(".")[0] in heavy)
-        report.append({"command": " ".join(["tiltlab", *path, "--help"]), "printed": len(out.getvalue()),
-                       "loaded": loaded})
+        command = " ".join(["tiltlab", *path, "--help"])
+        report.append({"command": command, "printed": len(out.getvalue()), "loaded": loaded})
     print(json.dumps(report))
 """)
 
 
 def _help_of_every_command() -> list[dict]:
-    done = subprocess.run([sys.executable, "-c", PROBE, ",".join(HEAVY)], capture_output=True, text=True,
-                          timeout=120, check=True)
+    done = subprocess.run(
+        [sys.executable, "-c", PROBE, ",".join(HEAVY)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
     return json.loads(done.stdout)
 
 
 def test_help_of_every_command_loads_no_storage_web_app_or_heavy_numerics() -> None:
     report = _help_of_every_command()
     names = {r["command"] for r in report}
-    for command in ("tiltlab --help", "tiltlab calibrate --help", "tiltlab serve --help", "tiltlab db --help",
-                    "tiltlab db upgrade --help", "tiltlab token create --help", "tiltlab discrepancy --help",
-                    "tiltlab verify-certificate --help"):
+    for command in (
+        "tiltlab --help",
+        "tiltlab calibrate --help",
+        "tiltlab serve --help",
+        "tiltlab db --help",
+        "tiltlab db upgrade --help",
+        "tiltlab token create --help",
+        "tiltlab discrepancy --help",
+        "tiltlab verify-certificate --help",
+    ):
         assert command in names
     for r in report:
         assert r["printed"] > 0, f"{r['command']} printed nothing"
@@ -60,6 +72,9 @@ def test_help_of_every_command_loads_no_storage_web_app_or_heavy_numerics() -> N
 
 def test_the_probe_sees_a_heavy_import() -> None:
     """The check above would notice: a command that does its work does load what it needs."""
-    code = "import sys; from service.cli import main; main(['db', 'history']); print('alembic' in sys.modules)"
+    code = (
+        "import sys; from service.cli import main; main(['db', 'history']); print('alembic' in "
+        "sys.modules)"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.stdout.strip().endswith("True"), done.stderr

@@ -33,7 +33,14 @@ def test_the_contract_documents_exist_and_are_cited() -> None:
 
 def test_datasets_page_names_every_column() -> None:
     page = (ROOT / "docs" / "datasets.md").read_text(encoding="utf-8")
-    known = {*columns.STAGE_DATASET, *columns.TARGET, *columns.TILT_OUTPUTS, *columns.ROTATION_DATASET,
-             *columns.SCALE_REFERENCE, *columns.SCALE_DATASET, *columns.TURNTABLE_DATASET}
+    known = {
+        *columns.STAGE_DATASET,
+        *columns.TARGET,
+        *columns.TILT_OUTPUTS,
+        *columns.ROTATION_DATASET,
+        *columns.SCALE_REFERENCE,
+        *columns.SCALE_DATASET,
+        *columns.TURNTABLE_DATASET,
+    }
     for name in sorted(known):
         assert f"`{name}`" in page or name in page, name

@@ -17,7 +17,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def docker_build_context(dest: Path) -> Path:
-    """The files the Dockerfile's wheel stage (its first) copies into its WORKDIR, laid out as it has them."""
+    """The files the Dockerfile's wheel stage (its first) copies into its WORKDIR, laid out as it
+    has them."""
     stages = 0
     for line in (ROOT / "docker" / "Dockerfile").read_text().splitlines():
         stages += line.startswith("FROM ")
@@ -32,7 +33,11 @@ def docker_build_context(dest: Path) -> Path:
         assert not target.startswith("/"), f"the wheel stage copies into its WORKDIR: {line}"
         for src in sources:
             origin = ROOT / src
-            into = dest / target / origin.name if target.endswith("/") or len(sources) > 1 else dest / target
+            into = (
+                dest / target / origin.name
+                if target.endswith("/") or len(sources) > 1
+                else dest / target
+            )
             into.parent.mkdir(parents=True, exist_ok=True)
             if origin.is_dir():
                 shutil.copytree(origin, into, ignore=shutil.ignore_patterns("__pycache__"))
@@ -44,9 +49,16 @@ def docker_build_context(dest: Path) -> Path:
 @pytest.fixture(scope="module", params=["repository", "docker image"])
 def wheel_names(request, tmp_path_factory):
     out = tmp_path_factory.mktemp("wheel")
-    source = ROOT if request.param == "repository" else docker_build_context(tmp_path_factory.mktemp("image"))
-    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w",
-                        str(out), str(source)], capture_output=True, text=True)
+    source = (
+        ROOT
+        if request.param == "repository"
+        else docker_build_context(tmp_path_factory.mktemp("image"))
+    )
+    r = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(out), str(source)],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     (whl,) = out.glob("tiltlab-*.whl")
     return set(zipfile.ZipFile(whl).namelist())
@@ -59,13 +71,20 @@ def test_wheel_has_every_preset(wheel_names):
 
 def test_wheel_has_data_and_migrations(wheel_names):
     assert "service/calibration/data/seed003_table1.csv" in wheel_names
-    assert "service/migrations/env.py" in wheel_names and "service/migrations/script.py.mako" in wheel_names
+    assert (
+        "service/migrations/env.py" in wheel_names
+        and "service/migrations/script.py.mako" in wheel_names
+    )
     versions = sorted(p.name for p in (ROOT / "migrations" / "versions").glob("*.py"))
     assert all(f"service/migrations/versions/{v}" in wheel_names for v in versions)
 
 
 def test_wheel_has_every_python_module(wheel_names):
-    src = {p.relative_to(ROOT).as_posix() for p in (ROOT / "service").rglob("*.py") if "__pycache__" not in p.parts}
+    src = {
+        p.relative_to(ROOT).as_posix()
+        for p in (ROOT / "service").rglob("*.py")
+        if "__pycache__" not in p.parts
+    }
     assert src <= wheel_names
 
 

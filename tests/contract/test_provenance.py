@@ -32,7 +32,22 @@ def test_model_and_discrepancy_report_carry_provenance(tmp_path: Path) -> None:
     data = tmp_path / "s3.csv"
     assert main(["simulate", "--scenario", "seed003", "--out", str(data)]) == 0
     model = tmp_path / "m.json"
-    assert main(["calibrate", "--kind", "scale", "--method", "poly1", "--input", str(data), "--out", str(model)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--kind",
+                "scale",
+                "--method",
+                "poly1",
+                "--input",
+                str(data),
+                "--out",
+                str(model),
+            ]
+        )
+        == 0
+    )
     _check(json.loads(model.read_text())["provenance"], "calibrate", {"input": data})
     report = tmp_path / "r.json"
     assert main(["discrepancy", "--kind", "scale", "--input", str(data), "--out", str(report)]) == 0
@@ -48,15 +63,37 @@ def test_model_provenance_survives_a_round_trip(tmp_path: Path) -> None:
     data = tmp_path / "s3.csv"
     assert main(["simulate", "--scenario", "seed003", "--out", str(data)]) == 0
     model = tmp_path / "m.json"
-    assert main(["calibrate", "--kind", "scale", "--method", "poly1", "--input", str(data), "--out", str(model)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--kind",
+                "scale",
+                "--method",
+                "poly1",
+                "--input",
+                str(data),
+                "--out",
+                str(model),
+            ]
+        )
+        == 0
+    )
     again = tmp_path / "again.json"
     write_model(again, read_model(model))
-    assert json.loads(again.read_text())["provenance"] == json.loads(model.read_text())["provenance"]
+    assert (
+        json.loads(again.read_text())["provenance"] == json.loads(model.read_text())["provenance"]
+    )
 
 
 def test_reproduce_report_carries_provenance(tmp_path: Path) -> None:
-    r = subprocess.run([sys.executable, "-m", "service", "reproduce", "seed003", "--out-dir", str(tmp_path)],
-                       capture_output=True, text=True, timeout=300, env={**os.environ, "MPLBACKEND": "Agg"})
+    r = subprocess.run(
+        [sys.executable, "-m", "service", "reproduce", "seed003", "--out-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "MPLBACKEND": "Agg"},
+    )
     assert r.returncode == 0, r.stderr
     text = (tmp_path / "seed003.md").read_text()
     section = text.split("## Provenance", 1)[1]

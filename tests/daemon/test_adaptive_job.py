@@ -1,6 +1,7 @@
-"""An adaptive stage-grid job reaches its target expanded uncertainty: the plan's predicted U of the correction
-is at most the target, the validation points (read independently) bear it out, and the bench time it reports
-adds up; a target below what the bench can reach is refused, naming the floor."""
+"""An adaptive stage-grid job reaches its target expanded uncertainty: the plan's predicted U of the
+correction is at most the target, the validation points (read independently) bear it out, and the
+bench time it reports adds up; a target below what the bench can reach is refused, naming the
+floor."""
 
 from __future__ import annotations
 
@@ -9,10 +10,15 @@ import pytest
 from tests.daemon.conftest import admin_headers, make_client, wait_job
 
 TARGET_DEG = 0.0012
-BODY = {"procedure": "stage-grid", "method": "kinematic", "design": "adaptive",
-        "target_expanded_uncertainty_deg": TARGET_DEG,
-        "grid": {"x_deg": [-4.0, 4.0], "y_deg": [-4.0, 4.0], "n_x": 3, "n_y": 3},
-        "samples_per_point": 30, "validation": {"n_points": 6}}
+BODY = {
+    "procedure": "stage-grid",
+    "method": "kinematic",
+    "design": "adaptive",
+    "target_expanded_uncertainty_deg": TARGET_DEG,
+    "grid": {"x_deg": [-4.0, 4.0], "y_deg": [-4.0, 4.0], "n_x": 3, "n_y": 3},
+    "samples_per_point": 30,
+    "validation": {"n_points": 6},
+}
 
 
 @pytest.fixture(scope="module")
@@ -23,8 +29,14 @@ def adaptive(tmp_path_factory):
         r = client.post("/calibrations", headers=h, json=BODY)
         assert r.status_code == 202, r.text
         job = wait_job(client, r.json()["id"], h)
-        record = client.get(f"/records/{job['record']['id']}", headers=h).json() if job["record"] else None
-        refused = client.post("/calibrations", headers=h, json={**BODY, "target_expanded_uncertainty_deg": 0.00005})
+        record = (
+            client.get(f"/records/{job['record']['id']}", headers=h).json()
+            if job["record"]
+            else None
+        )
+        refused = client.post(
+            "/calibrations", headers=h, json={**BODY, "target_expanded_uncertainty_deg": 0.00005}
+        )
         yield job, record, refused
 
 
@@ -34,15 +46,22 @@ def test_adaptive_job_meets_its_target_and_validation_bears_it_out(adaptive):
     v = record["validation"]
     assert v["design"] == "adaptive" and v["target_expanded_uncertainty_deg"] == TARGET_DEG
     assert v["predicted_expanded_uncertainty_deg"] <= TARGET_DEG
-    assert job["validation"]["predicted_expanded_uncertainty_deg"] == v["predicted_expanded_uncertainty_deg"]
-    # 6 validation points, 2 axes: each error within the predicted U of the correction combined with the
-    # point's own reading noise (95 % each; at most 2 of 12 outside, a margin for a small sample)
+    assert (
+        job["validation"]["predicted_expanded_uncertainty_deg"]
+        == v["predicted_expanded_uncertainty_deg"]
+    )
+    # 6 validation points, 2 axes: each error within the predicted U of the correction combined with
+    # the point's own reading noise (95 % each; at most 2 of 12 outside, a margin for a small
+    # sample)
     assert v["validated_components"] == 12
     assert v["validated_coverage"] >= 10 / 12
-    # the validation's own estimate of the correction's expanded U (reading noise taken out) is of the target's
-    # size: within 2x (12 components estimate a variance to about +-40 %)
+    # the validation's own estimate of the correction's expanded U (reading noise taken out) is of
+    # the target's size: within 2x (12 components estimate a variance to about +-40 %)
     # (null where the errors lie within the validation readings' own noise: unresolved, not zero)
-    assert v["validated_expanded_uncertainty_deg"] is None or v["validated_expanded_uncertainty_deg"] <= 2 * TARGET_DEG
+    assert (
+        v["validated_expanded_uncertainty_deg"] is None
+        or v["validated_expanded_uncertainty_deg"] <= 2 * TARGET_DEG
+    )
 
 
 def test_adaptive_job_reports_bench_seconds_that_add_up(adaptive):

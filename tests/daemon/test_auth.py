@@ -20,12 +20,15 @@ def test_first_start_writes_the_admin_token_once_with_mode_0600(tmp_path, capsys
         err = capsys.readouterr().err  # not a terminal: the file is named, the token is not shown
         assert token not in err and f"admin token written to {path} (mode 0600)" in err
         assert f"dashboard: http://127.0.0.1:8000/ (token: the admin token in {path})" in err
-        assert client.get("/benches", headers={"Authorization": f"Bearer {token}"}).status_code == 200
+        assert (
+            client.get("/benches", headers={"Authorization": f"Bearer {token}"}).status_code == 200
+        )
         r = client.get("/benches")
         assert r.status_code == 401 and r.headers["www-authenticate"].startswith("Bearer")
         assert client.get("/health").status_code == 200  # no token needed
     with make_client(tmp_path):
-        assert (tmp_path / "admin.token").read_text().strip() == token  # not replaced: the database has tokens
+        # not replaced: the database has tokens
+        assert (tmp_path / "admin.token").read_text().strip() == token
         assert "#token=" not in capsys.readouterr().err
 
 
@@ -48,5 +51,7 @@ def test_ready_needs_no_token_and_names_a_lost_instrument(tmp_path):
         while (r := client.get("/ready")).status_code == 200:
             assert time.monotonic() < deadline
             time.sleep(0.05)
-        assert r.status_code == 503 and any("reference_sensor on " + bench.port_of("reference_sensor") in x
-                                            for x in r.json()["reasons"])
+        assert r.status_code == 503 and any(
+            "reference_sensor on " + bench.port_of("reference_sensor") in x
+            for x in r.json()["reasons"]
+        )

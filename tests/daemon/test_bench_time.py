@@ -1,5 +1,6 @@
-"""Every job reports the bench time it spent, by activity, in bench seconds: the parts add up to the total, the
-job and its record state the same figures, and a faster simulation does not change them."""
+"""Every job reports the bench time it spent, by activity, in bench seconds: the parts add up to the
+total, the job and its record state the same figures, and a faster simulation does not change
+them."""
 
 from __future__ import annotations
 
@@ -14,9 +15,17 @@ PARTS = ("moving", "settling", "reading")
 def _run(tmp_path, speed: float) -> tuple[dict, dict]:
     with make_client(tmp_path, sim_speed=speed) as client:
         h = admin_headers(tmp_path)
-        r = client.post("/calibrations", headers=h, json={"procedure": "stage-grid", "method": "kinematic",
-                                                          "grid": GRID, "samples_per_point": 5,
-                                                          "validation": {"n_points": 2}})
+        r = client.post(
+            "/calibrations",
+            headers=h,
+            json={
+                "procedure": "stage-grid",
+                "method": "kinematic",
+                "grid": GRID,
+                "samples_per_point": 5,
+                "validation": {"n_points": 2},
+            },
+        )
         assert r.status_code == 202, r.text
         job = wait_job(client, r.json()["id"], h)
         assert job["state"] == "succeeded", job
@@ -35,18 +44,20 @@ def test_bench_seconds_add_up_and_the_record_keeps_them(runs):
         assert b["total"] == pytest.approx(sum(b[p] for p in PARTS), abs=0.01)
         assert all(b[p] > 0 for p in PARTS)
         assert record["bench_seconds"] == b
-        # 11 points, each read 5 times at the sensors' output interval: at least 4 intervals of reading each
+        # 11 points, each read 5 times at the sensors' output interval: at least 4 intervals of
+        # reading each
         assert b["reading"] >= 11 * 4 * 0.04 * 0.9
 
 
 def test_bench_seconds_do_not_change_with_the_simulation_speed(runs):
-    """The same job at 4x and 12x: the total within 10 %, each part within 20 %. The bench clock measures them
-    as a real bench's would. A move ends when the controller's state query found the axes standing (the time
-    the query was asked), so the real-time latency of reading its answer, which a sped-up simulation turns into
-    speed x more bench seconds (and more on a loaded machine), is not counted as moving."""
+    """The same job at 4x and 12x: the total within 10 %, each part within 20 %. The bench clock
+    measures them as a real bench's would. A move ends when the controller's state query found the
+    axes standing (the time the query was asked), so the real-time latency of reading its answer,
+    which a sped-up simulation turns into speed x more bench seconds (and more on a loaded machine),
+    is not counted as moving."""
     slow, fast = runs[4.0][0]["bench_seconds"], runs[12.0][0]["bench_seconds"]
     assert fast["total"] == pytest.approx(slow["total"], rel=0.10), (slow, fast)
     for p in PARTS:
-        # a part of a few seconds (reading) also moves by the sensors' 10 ms bursts, which are 0.12 bench s at 12x
-        # for each point's last reading: one bench second over the job's nine points
+        # a part of a few seconds (reading) also moves by the sensors' 10 ms bursts, which are 0.12
+        # bench s at 12x for each point's last reading: one bench second over the job's nine points
         assert fast[p] == pytest.approx(slow[p], rel=0.20, abs=1.0), (p, slow, fast)

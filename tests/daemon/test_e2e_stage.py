@@ -1,4 +1,5 @@
-"""End to end on the simulated stage bench: calibrate, activate, corrected tilt against the truth, level."""
+"""End to end on the simulated stage bench: calibrate, activate, corrected tilt against the truth,
+level."""
 
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ def _wait_bench_seconds(bench, seconds: float, timeout_s: float = 30.0) -> None:
 
 def fresh_tilt(client, h, attempts: int = 40) -> dict:
     """GET /tilt until it is not stale: a test client sharing its process with a sped-up bench may
-    see the reader a few tenths of a second behind on a loaded machine, and /tilt rightly says so."""
+    see the reader a few tenths of a second behind on a loaded machine, and /tilt rightly says
+    so."""
     for _ in range(attempts):
         t = client.get("/tilt", headers=h).json()
         if not t["stale"]:
@@ -40,8 +42,17 @@ def fresh_tilt(client, h, attempts: int = 40) -> dict:
 @pytest.mark.parametrize("method", ["kinematic", "homography"])
 def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
     client, h = daemon
-    r = client.post("/calibrations", headers=h, json={"procedure": "stage-grid", "method": method, "grid": GRID,
-                                                      "samples_per_point": 8, "validation": {"n_points": 3}})
+    r = client.post(
+        "/calibrations",
+        headers=h,
+        json={
+            "procedure": "stage-grid",
+            "method": method,
+            "grid": GRID,
+            "samples_per_point": 8,
+            "validation": {"n_points": 3},
+        },
+    )
     assert r.status_code == 202, r.text
     assert r.headers["location"] == f"/calibrations/{r.json()['id']}"
     job = wait_job(client, r.json()["id"], h)
@@ -54,22 +65,42 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
     assert client.post(f"/records/{rec['id']}/activate", headers=h).status_code == 200
     sim = client.app.state.bench.sim
     for pose in [(0.0, 0.0), (1.5, -1.0), (-1.2, 1.7)]:
-        assert client.post("/stage/move", headers=h, json={"x_deg": pose[0], "y_deg": pose[1]}).status_code == 200
+        assert (
+            client.post(
+                "/stage/move", headers=h, json={"x_deg": pose[0], "y_deg": pose[1]}
+            ).status_code
+            == 200
+        )
         _wait_bench_seconds(client.app.state.bench, 6.0)  # the sensors' readings after the move
         t = fresh_tilt(client, h)
         truth = sim.world.true_tilt_deg()
         assert t["table_tilt"] is not None, t
-        assert abs(t["table_tilt"]["x_deg"] - truth[0]) < 0.01 and abs(t["table_tilt"]["y_deg"] - truth[1]) < 0.01, (t, truth)
-        # coverage factors from the effective degrees of freedom: Student's t for 95 %, above the normal 1.96
+        assert (
+            abs(t["table_tilt"]["x_deg"] - truth[0]) < 0.01
+            and abs(t["table_tilt"]["y_deg"] - truth[1]) < 0.01
+        ), (t, truth)
+        # coverage factors from the effective degrees of freedom: Student's t for 95 %, above the
+        # normal 1.96
         tt = t["table_tilt"]
-        assert tt["coverage_probability"] == 0.95 and 1.96 <= tt["k"] < 2.6 and 1.96 <= tt["k_y"] < 2.6, tt
+        assert (
+            tt["coverage_probability"] == 0.95 and 1.96 <= tt["k"] < 2.6 and 1.96 <= tt["k_y"] < 2.6
+        ), tt
         assert tt["u_x_deg"] > 0 and tt["u_y_deg"] > 0
-        # the sensors' temperature (asked for by 0x06 at every point and now and then) comes with the tilt
+        # the sensors' temperature (asked for by 0x06 at every point and now and then) comes with
+        # the tilt
         assert t["temp_c"] == pytest.approx(sim.world.temp_c(), abs=0.5), t
         assert t["calibration"]["record_id"] == rec["id"]
     for target in [(0.0, 0.0), (1.0, 0.5), (-0.8, -1.2)]:
-        r = client.post("/stage/level", headers=h, json={"x_deg": target[0], "y_deg": target[1],
-                                                         "tolerance_deg": 0.005, "max_iterations": 5})
+        r = client.post(
+            "/stage/level",
+            headers=h,
+            json={
+                "x_deg": target[0],
+                "y_deg": target[1],
+                "tolerance_deg": 0.005,
+                "max_iterations": 5,
+            },
+        )
         assert r.status_code == 200, r.text
         out = r.json()
         assert out["within_tolerance"], out
@@ -82,10 +113,39 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
     assert model["method"] == method
     data, out = tmp_path / "points.csv", tmp_path / "refit.json"
     data.write_bytes(csv.content)
-    assert cli.main(["calibrate", "--kind", "stage", "--method", method, "--input", str(data), "--out", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "calibrate",
+                "--kind",
+                "stage",
+                "--method",
+                method,
+                "--input",
+                str(data),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     refit = json.loads(out.read_text())
-    assert {k: p["value"] for k, p in refit["parameters"].items()} == {k: p["value"] for k, p in model["parameters"].items()}
+    assert {k: p["value"] for k, p in refit["parameters"].items()} == {
+        k: p["value"] for k, p in model["parameters"].items()
+    }
     # the MODEL.json works with `tiltlab correct`
     (tmp_path / "model.json").write_text(json.dumps(model))
-    assert cli.main(["correct", "--model", str(tmp_path / "model.json"), "--input", str(data),
-                     "--out", str(tmp_path / "corrected.csv")]) == 0
+    assert (
+        cli.main(
+            [
+                "correct",
+                "--model",
+                str(tmp_path / "model.json"),
+                "--input",
+                str(data),
+                "--out",
+                str(tmp_path / "corrected.csv"),
+            ]
+        )
+        == 0
+    )

@@ -17,8 +17,13 @@ from tests.api.running_service import free_port
 from tests.daemon.conftest import wait_job
 
 GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
-BODY = {"procedure": "stage-grid", "method": "kinematic", "grid": GRID, "samples_per_point": 6,
-        "validation": {"n_points": 2}}
+BODY = {
+    "procedure": "stage-grid",
+    "method": "kinematic",
+    "grid": GRID,
+    "samples_per_point": 6,
+    "validation": {"n_points": 2},
+}
 
 
 def _wait_points(get, n, timeout_s=120.0) -> dict:
@@ -41,7 +46,9 @@ def _wait_bench_seconds(bench, seconds: float, timeout_s: float = 30.0) -> None:
 
 def _settled(engine, job_id) -> int:
     with engine.connect() as c:
-        return c.execute(sa.text("SELECT count(*) FROM settled_points WHERE job_id = :j"), {"j": job_id}).scalar()
+        return c.execute(
+            sa.text("SELECT count(*) FROM settled_points WHERE job_id = :j"), {"j": job_id}
+        ).scalar()
 
 
 def test_sensor_lost_mid_job_fails_it_naming_role_and_port_and_keeps_points(daemon):
@@ -52,12 +59,17 @@ def test_sensor_lost_mid_job_fails_it_naming_role_and_port_and_keeps_points(daem
     bench.sim.faults("measurement_sensor").disconnect(4.0)
     job = wait_job(client, job_id, h)
     port = bench.port_of("measurement_sensor")
-    assert job["state"] == "failed" and "measurement_sensor" in job["error"] and port in job["error"], job
+    assert (
+        job["state"] == "failed" and "measurement_sensor" in job["error"] and port in job["error"]
+    ), job
     assert _settled(client.app.state.engine, job_id) >= 4  # two sensors per measured point, kept
     deadline = time.monotonic() + 60
     while True:
         devs = {d["role"]: d for d in client.get("/devices", headers=h).json()["devices"]}
-        if devs["measurement_sensor"]["state"] == "connected" and devs["measurement_sensor"]["counters"]["reconnects"] >= 1:
+        if (
+            devs["measurement_sensor"]["state"] == "connected"
+            and devs["measurement_sensor"]["counters"]["reconnects"] >= 1
+        ):
             break
         assert time.monotonic() < deadline, devs
         time.sleep(0.2)
@@ -122,8 +134,8 @@ def test_stop_names_the_job_even_when_the_job_ends_before_the_stop_returns(daemo
 
 
 def test_stop_answers_after_the_job_s_end_is_written(daemon, monkeypatch):
-    """The job sees its move stopped and is writing its end, in a worker thread a slow disk holds up,
-    when the stop cancels it: the stop answers only once that write has landed, so the job read
+    """The job sees its move stopped and is writing its end, in a worker thread a slow disk holds
+    up, when the stop cancels it: the stop answers only once that write has landed, so the job read
     right after is failed, with the reason."""
     import asyncio
     import threading
@@ -161,17 +173,30 @@ class _Daemon:
     def __init__(self, data_dir) -> None:
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
-        self.proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(self.port),
-                                      "--sim-speed", "20"],
-                                     env={**os.environ, "TILTLAB_DATA_DIR": str(data_dir)},
-                                     stdout=subprocess.DEVNULL, stderr=open(data_dir / f"daemon-{self.port}.log", "w"))
+        self.proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "service",
+                "serve",
+                "--port",
+                str(self.port),
+                "--sim-speed",
+                "20",
+            ],
+            env={**os.environ, "TILTLAB_DATA_DIR": str(data_dir)},
+            stdout=subprocess.DEVNULL,
+            stderr=open(data_dir / f"daemon-{self.port}.log", "w"),
+        )
         deadline = time.monotonic() + 60
         while True:
             try:
                 httpx.get(f"{self.base}/health", timeout=2)
                 break
             except httpx.TransportError:
-                assert self.proc.poll() is None and time.monotonic() < deadline, "daemon did not start"
+                assert self.proc.poll() is None and time.monotonic() < deadline, (
+                    "daemon did not start"
+                )
                 time.sleep(0.2)
         self.h = {"Authorization": "Bearer " + (data_dir / "admin.token").read_text().strip()}
 
@@ -208,7 +233,9 @@ def test_sigkill_mid_job_restart_and_resume_matches_an_uninterrupted_run(tmp_pat
     d = _Daemon(tmp_path)
     try:
         job = d.get(f"/calibrations/{job_id}").json()
-        assert job["state"] == "failed" and job["interrupted"] and "interrupted" in job["error"], job
+        assert job["state"] == "failed" and job["interrupted"] and "interrupted" in job["error"], (
+            job
+        )
         assert not d.get("/calibrations?state=running").json()["jobs"]
         done_before = job["progress"]["points_done"]
         assert done_before >= 4
@@ -229,8 +256,14 @@ def test_sigkill_mid_job_restart_and_resume_matches_an_uninterrupted_run(tmp_pat
             if a[k].get("fixed"):
                 assert a[k]["value"] == b[k]["value"]
                 continue
-            # two runs of the same grid differ by the reading noise only: within 5 standard uncertainties
-            assert abs(a[k]["value"] - b[k]["value"]) <= 5 * np.sqrt(2) * std[k], (k, a[k], b[k], std[k])
+            # two runs of the same grid differ by the reading noise only: within 5 standard
+            # uncertainties
+            assert abs(a[k]["value"] - b[k]["value"]) <= 5 * np.sqrt(2) * std[k], (
+                k,
+                a[k],
+                b[k],
+                std[k],
+            )
         assert d.post(f"/calibrations/{full_id}/resume").status_code == 409
     finally:
         d.stop()

@@ -10,8 +10,13 @@ from concurrent.futures import ThreadPoolExecutor
 import sqlalchemy as sa
 
 GRID = {"x_deg": [-1.0, 1.0], "y_deg": [-1.0, 1.0], "n_x": 3, "n_y": 3}
-BODY = {"procedure": "stage-grid", "method": "kinematic", "grid": GRID, "samples_per_point": 4,
-        "validation": {"n_points": 1}}
+BODY = {
+    "procedure": "stage-grid",
+    "method": "kinematic",
+    "grid": GRID,
+    "samples_per_point": 4,
+    "validation": {"n_points": 1},
+}
 
 
 def _count(client, table: str) -> int:
@@ -39,10 +44,15 @@ def test_concurrent_repeats_of_one_idempotency_key_answer_the_first_job(daemon, 
 
     monkeypatch.setattr(jobs.admission, "plan", counted_plan)
     monkeypatch.setattr(jobs.store.jobs, "create_calibration_job", create_once_both_are_admitted)
-    jobs_before, keys_before = _count(client, "calibration_jobs"), _count(client, "idempotency_keys")
+    jobs_before, keys_before = (
+        _count(client, "calibration_jobs"),
+        _count(client, "idempotency_keys"),
+    )
     headers = {**h, "Idempotency-Key": "same-moment"}
     with ThreadPoolExecutor(2) as pool:
-        answers = list(pool.map(lambda _: client.post("/calibrations", headers=headers, json=BODY), range(2)))
+        answers = list(
+            pool.map(lambda _: client.post("/calibrations", headers=headers, json=BODY), range(2))
+        )
     assert sorted(r.status_code for r in answers) == [200, 202], [r.text for r in answers]
     assert answers[0].json()["id"] == answers[1].json()["id"]
     assert all(r.headers["Location"] == f"/calibrations/{answers[0].json()['id']}" for r in answers)

@@ -12,7 +12,8 @@ def _keys(body: dict) -> set[str]:
 
 def test_the_prepared_answer_is_the_routes(daemon, monkeypatch) -> None:
     client, admin = daemon
-    routed = client.get("/tilt", headers=admin)  # the first asks the database for the token: the full path
+    # the first asks the database for the token: the full path
+    routed = client.get("/tilt", headers=admin)
     answered: list[bool] = []  # per call: did the prepared path answer (True) or pass it on (False)
     answer = PreparedTilt._answer
 
@@ -30,15 +31,19 @@ def test_the_prepared_answer_is_the_routes(daemon, monkeypatch) -> None:
     assert int(prepared.headers["content-length"]) == len(prepared.content)
     bench = prepared.json()["bench"]
     assert client.get(f"/tilt?bench={bench}", headers=admin).json()["bench"] == bench
-    assert client.get("/tilt?bench=nowhere", headers=admin).status_code == 404  # the route's own answer
+    # the route's own answer
+    assert client.get("/tilt?bench=nowhere", headers=admin).status_code == 404
     assert client.head("/tilt", headers=admin).status_code == 200
-    metrics = client.get("/metrics", headers=admin).text  # HEAD is counted as the GET it is answered as
+    # HEAD is counted as the GET it is answered as
+    metrics = client.get("/metrics", headers=admin).text
     assert 'tiltlab_http_requests_total{method="GET",route="/tilt",status="200"} 4.0' in metrics
 
 
 def test_a_revoked_token_is_refused_at_once(daemon) -> None:
     client, admin = daemon
-    token = client.post("/tokens", headers=admin, json={"name": "poller", "scopes": ["read"]}).json()["token"]
+    token = client.post(
+        "/tokens", headers=admin, json={"name": "poller", "scopes": ["read"]}
+    ).json()["token"]
     reader = {"Authorization": f"Bearer {token}"}
     assert client.get("/tilt", headers=reader).status_code == 200
     assert client.get("/tilt", headers=reader).status_code == 200  # known now: the prepared path

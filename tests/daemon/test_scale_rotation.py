@@ -16,29 +16,63 @@ def _reproduces(client, h, rec_id, kind, method, tmp_path):
     assert csv.status_code == 200, csv.text
     data, out = tmp_path / f"{kind}.csv", tmp_path / f"{kind}.json"
     data.write_bytes(csv.content)
-    assert cli.main(["calibrate", "--kind", kind, "--method", method, "--input", str(data), "--out", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "calibrate",
+                "--kind",
+                kind,
+                "--method",
+                method,
+                "--input",
+                str(data),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     model = client.get(f"/records/{rec_id}/model", headers=h).json()
     refit = json.loads(out.read_text())
-    assert {k: p["value"] for k, p in refit["parameters"].items()} == {k: p["value"] for k, p in model["parameters"].items()}
+    assert {k: p["value"] for k, p in refit["parameters"].items()} == {
+        k: p["value"] for k, p in model["parameters"].items()
+    }
     return model
 
 
 def test_scale_job_against_the_reference_sensor(daemon, tmp_path):
     client, h = daemon
-    r = client.post("/calibrations", headers=h, json={
-        "procedure": "scale", "method": "poly3", "grid": {"range_deg": [-0.2, 0.7], "n": 9},
-        "samples_per_point": 6, "validation": {"n_points": 3}})
+    r = client.post(
+        "/calibrations",
+        headers=h,
+        json={
+            "procedure": "scale",
+            "method": "poly3",
+            "grid": {"range_deg": [-0.2, 0.7], "n": 9},
+            "samples_per_point": 6,
+            "validation": {"n_points": 3},
+        },
+    )
     assert r.status_code == 202, r.text
     job = wait_job(client, r.json()["id"], h)
     assert job["state"] == "succeeded", job["error"]
     assert job["validation"]["n_points"] == 3
-    # the ADC sensor read through its record agrees with the reference within the sensor's noise of one
-    # conversion (25 counts, 22 arcsec in the seed003 scenario); each point averages 6 x 10 conversions
+    # the ADC sensor read through its record agrees with the reference within the sensor's noise of
+    # one conversion (25 counts, 22 arcsec in the seed003 scenario); each point averages 6 x 10
+    # conversions
     assert job["validation"]["rms_deg"] * 3600 < 22, job["validation"]
     _reproduces(client, h, job["record"]["id"], "scale", "poly3", tmp_path)
     # a grid reaching beyond the sensor's range fails, saying so
-    r = client.post("/calibrations", headers=h, json={
-        "procedure": "scale", "method": "poly1", "grid": {"range_deg": [-0.6, 0.6], "n": 5}, "samples_per_point": 3})
+    r = client.post(
+        "/calibrations",
+        headers=h,
+        json={
+            "procedure": "scale",
+            "method": "poly1",
+            "grid": {"range_deg": [-0.6, 0.6], "n": 5},
+            "samples_per_point": 3,
+        },
+    )
     job = wait_job(client, r.json()["id"], h)
     assert job["state"] == "failed" and "end of its range" in job["error"], job
 
@@ -49,18 +83,41 @@ def test_rotation_job_on_the_rotary_bench(tmp_path):
         bench = client.get("/benches", headers=h).json()["benches"][0]
         assert bench["kind"] == "rotary"
         # a stage grid is refused on a rotary bench, naming the field; nothing is stored
-        bad = client.post("/calibrations", headers=h, json={"procedure": "stage-grid", "method": "kinematic",
-                                                            "grid": {"x_deg": [-1, 1], "y_deg": [-1, 1], "n_x": 3, "n_y": 3}})
+        bad = client.post(
+            "/calibrations",
+            headers=h,
+            json={
+                "procedure": "stage-grid",
+                "method": "kinematic",
+                "grid": {"x_deg": [-1, 1], "y_deg": [-1, 1], "n_x": 3, "n_y": 3},
+            },
+        )
         assert bad.status_code == 422 and bad.json()["field"] == "bench"
-        # angles a full turn apart are one orientation of the module: five of them are one point, refused unmeasured
-        turns = client.post("/calibrations", headers=h, json={
-            "procedure": "rotation", "method": "iodsra", "grid": {"angles_deg": [0, 360, 720, -360, 90]}})
+        # angles a full turn apart are one orientation of the module: five of them are one point,
+        # refused unmeasured
+        turns = client.post(
+            "/calibrations",
+            headers=h,
+            json={
+                "procedure": "rotation",
+                "method": "iodsra",
+                "grid": {"angles_deg": [0, 360, 720, -360, 90]},
+            },
+        )
         assert turns.status_code == 422 and turns.json()["field"] == "grid", turns.text
         assert "2 distinct angles (modulo 360 deg)" in turns.json()["detail"], turns.text
         assert client.get("/calibrations", headers=h).json()["jobs"] == []
-        r = client.post("/calibrations", headers=h, json={
-            "procedure": "rotation", "method": "iodsra", "grid": {"range_deg": [0, 330], "n": 12},
-            "samples_per_point": 6, "validation": {"n_points": 3}})
+        r = client.post(
+            "/calibrations",
+            headers=h,
+            json={
+                "procedure": "rotation",
+                "method": "iodsra",
+                "grid": {"range_deg": [0, 330], "n": 12},
+                "samples_per_point": 6,
+                "validation": {"n_points": 3},
+            },
+        )
         assert r.status_code == 202, r.text
         job = wait_job(client, r.json()["id"], h)
         assert job["state"] == "succeeded", job["error"]
@@ -71,25 +128,37 @@ def test_rotation_job_on_the_rotary_bench(tmp_path):
         truth = world.rot_bench
         fitted = {k: p["value"] for k, p in model["parameters"].items()}
         for name in ("alpha_deg", "beta_deg", "gamma_deg"):
-            assert abs(fitted[name] - getattr(truth, name)) < 0.05, (name, fitted[name], getattr(truth, name))
+            assert abs(fitted[name] - getattr(truth, name)) < 0.05, (
+                name,
+                fitted[name],
+                getattr(truth, name),
+            )
         assert np.isfinite(list(fitted.values())).all()
 
 
 def test_turntable_job_at_symmetric_azimuths(tmp_path):
-    # 20 times real time (the most the simulated triaxial line carries is 21): the job is mostly half-turns of
-    # the table; answers are awaited in real seconds and readings are stamped on arrival, so a loaded machine
-    # only delays a settling window
+    # 20 times real time (the most the simulated triaxial line carries is 21): the job is mostly
+    # half-turns of the table; answers are awaited in real seconds and readings are stamped on
+    # arrival, so a loaded machine only delays a settling window
     with make_client(tmp_path, sim_benches=["rotary"], sim_speed=20.0) as client:
         h = admin_headers(tmp_path)
         world = client.app.state.bench.sim.world
         north, east = world.axis_tilt_arcsec
-        body = {"procedure": "turntable", "method": "reversal", "grid": {"angles_deg": [0, 45, 90, 135, 20, 110]},
-                "samples_per_point": 6, "validation": {"n_points": 2},
-                "settle": {"tolerance_deg": 0.02, "window_s": 1.0, "timeout_s": 60}}
+        body = {
+            "procedure": "turntable",
+            "method": "reversal",
+            "grid": {"angles_deg": [0, 45, 90, 135, 20, 110]},
+            "samples_per_point": 6,
+            "validation": {"n_points": 2},
+            "settle": {"tolerance_deg": 0.02, "window_s": 1.0, "timeout_s": 60},
+        }
         bad = client.post("/calibrations", headers=h, json=body)  # no axis reference
         assert bad.status_code == 422 and bad.json()["field"] == "reference"
-        r = client.post("/calibrations", headers=h, json={**body, "reference": {"north_arcsec": north,
-                                                                                "east_arcsec": east}})
+        r = client.post(
+            "/calibrations",
+            headers=h,
+            json={**body, "reference": {"north_arcsec": north, "east_arcsec": east}},
+        )
         assert r.status_code == 202, r.text
         job = wait_job(client, r.json()["id"], h)
         assert job["state"] == "succeeded", job["error"]
@@ -98,4 +167,7 @@ def test_turntable_job_at_symmetric_azimuths(tmp_path):
         truth = world.tt_sensors[min(world.tt_sensors)]
         fitted = {k: p["value"] for k, p in model["parameters"].items()}
         assert abs((fitted["beta_deg"] - truth.beta_deg + 180) % 360 - 180) < 1.0, (fitted, truth)
-        assert abs(fitted["m1_per_arcsec"] / truth.m1 - 1) < 0.05 and abs(fitted["m2_per_arcsec"] / truth.m2 - 1) < 0.05
+        assert (
+            abs(fitted["m1_per_arcsec"] / truth.m1 - 1) < 0.05
+            and abs(fitted["m2_per_arcsec"] / truth.m2 - 1) < 0.05
+        )

@@ -1,4 +1,5 @@
-"""Every start says where the dashboard is and where its token comes from, never printing the token again."""
+"""Every start says where the dashboard is and where its token comes from, never printing the token
+again."""
 
 from __future__ import annotations
 
@@ -27,7 +28,9 @@ def test_later_starts_name_the_dashboard_and_the_token_file(tmp_path, capsys):
     capsys.readouterr()
     with make_client(tmp_path):
         err = capsys.readouterr().err
-    assert "tiltlab: dashboard: http://127.0.0.1:8000/" in err and str(tmp_path / "admin.token") in err
+    assert (
+        "tiltlab: dashboard: http://127.0.0.1:8000/" in err and str(tmp_path / "admin.token") in err
+    )
     assert token not in err
     (tmp_path / "admin.token").unlink()
     with make_client(tmp_path):
@@ -42,21 +45,26 @@ def test_without_authentication_the_dashboard_is_named(tmp_path, capsys):
 
 
 def _first_start(tmp_path: Path, *, terminal: bool) -> str:
-    """`tiltlab serve` started on a new data directory, its standard error a pseudo-terminal (as in a shell)
-    or a file (as under a service manager or in a container): what it says up to its dashboard line."""
+    """`tiltlab serve` started on a new data directory, its standard error a pseudo-terminal (as in
+    a shell) or a file (as under a service manager or in a container): what it says up to its
+    dashboard line."""
     data = tmp_path / "data"
     env = {**os.environ, "TILTLAB_DATA_DIR": str(data), "TILTLAB_SIM_SPEED": "20"}
     env.pop("TILTLAB_CONFIG", None)
     command = [sys.executable, "-m", "service", "serve", "--port", str(free_port())]
     if terminal:
         parent, child = pty.openpty()
-        proc = subprocess.Popen(command, env=env, stdin=subprocess.DEVNULL, stdout=child, stderr=child)
+        proc = subprocess.Popen(
+            command, env=env, stdin=subprocess.DEVNULL, stdout=child, stderr=child
+        )
         os.close(child)
         out = b""
         try:
             deadline = time.monotonic() + 90
             while b"tiltlab: dashboard:" not in out or not out.rstrip(b" ").endswith(b"\n"):
-                assert time.monotonic() < deadline and proc.poll() is None, out.decode(errors="replace")
+                assert time.monotonic() < deadline and proc.poll() is None, out.decode(
+                    errors="replace"
+                )
                 if select.select([parent], [], [], 0.5)[0]:
                     out += os.read(parent, 4096)
         finally:
@@ -67,7 +75,9 @@ def _first_start(tmp_path: Path, *, terminal: bool) -> str:
     tmp_path.mkdir(parents=True, exist_ok=True)
     log = tmp_path / "serve.log"
     with log.open("wb") as sink:
-        proc = subprocess.Popen(command, env=env, stdin=subprocess.DEVNULL, stdout=sink, stderr=sink)
+        proc = subprocess.Popen(
+            command, env=env, stdin=subprocess.DEVNULL, stdout=sink, stderr=sink
+        )
         try:
             deadline = time.monotonic() + 90
             while "tiltlab: dashboard:" not in log.read_text():
@@ -90,7 +100,10 @@ def test_the_first_admin_token_is_shown_only_on_an_interactive_terminal(tmp_path
     token = path.read_text().strip()
     assert token not in logged and "#token=" not in logged
     assert f"tiltlab: first start: admin token written to {path} (mode 0600)" in logged
-    assert f"tiltlab: dashboard: http://127.0.0.1:{_port(logged)}/ (token: the admin token in {path})" in logged
+    assert (
+        f"tiltlab: dashboard: http://127.0.0.1:{_port(logged)}/ (token: the admin token in {path})"
+        in logged
+    )
 
 
 def _port(text: str) -> str:
@@ -103,21 +116,35 @@ def test_the_admin_token_file_can_be_named(tmp_path, capsys):
     shared = tmp_path / "shared" / "lab-admin.token"
     with make_client(tmp_path / "a", admin_token_file=shared):
         err = capsys.readouterr().err
-    assert stat.S_IMODE(shared.stat().st_mode) == 0o600 and not (tmp_path / "a" / "admin.token").exists()
+    assert (
+        stat.S_IMODE(shared.stat().st_mode) == 0o600
+        and not (tmp_path / "a" / "admin.token").exists()
+    )
     assert f"admin token written to {shared} (mode 0600)" in err
     with make_client(tmp_path / "a", admin_token_file=shared):
         assert f"(token: the admin token in {shared})" in capsys.readouterr().err
-    with make_client(tmp_path / "a"):  # the file named no longer: where the first start wrote it is recorded
+    # the file named no longer: where the first start wrote it is recorded
+    with make_client(tmp_path / "a"):
         err = capsys.readouterr().err
-    assert f"the lab's first admin token, which node {socket.gethostname()} wrote to {shared} at its first start" in err
+    assert (
+        f"the lab's first admin token, which node {socket.gethostname()} wrote to {shared} at its "
+        "first start" in err
+    )
 
 
 def test_an_admin_token_file_that_cannot_be_written_stops_the_first_start(tmp_path):
     blocker = tmp_path / "a-file"
     blocker.write_text("")
-    with pytest.raises(InputError, match=f"TILTLAB_ADMIN_TOKEN_FILE: the first admin token cannot be written to {blocker}/admin.token"):
+    with pytest.raises(
+        InputError,
+        match="TILTLAB_ADMIN_TOKEN_FILE: the first admin token cannot be written to "
+        f"{blocker}/admin.token",
+    ):
         with make_client(tmp_path / "data", admin_token_file=blocker / "admin.token"):
             pass
-    with make_client(tmp_path / "data") as client:  # nothing was kept: the next start makes the token
+    # nothing was kept: the next start makes the token
+    with make_client(tmp_path / "data") as client:
         token = (tmp_path / "data" / "admin.token").read_text().strip()
-        assert client.get("/benches", headers={"Authorization": f"Bearer {token}"}).status_code == 200
+        assert (
+            client.get("/benches", headers={"Authorization": f"Bearer {token}"}).status_code == 200
+        )

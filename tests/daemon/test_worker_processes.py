@@ -1,8 +1,9 @@
-"""The diagnosis worker processes end with the daemon, however it ends (SIGTERM, Ctrl-C, SIGKILL, a failure at
-start-up), and the diagnoses queued or running at once are bounded (503 with Retry-After beyond).
+"""The diagnosis worker processes end with the daemon, however it ends (SIGTERM, Ctrl-C, SIGKILL, a
+failure at start-up), and the diagnoses queued or running at once are bounded (503 with Retry-After
+beyond).
 
-The test process makes itself the "subreaper" of what it starts (Linux): a process the daemon leaves behind
-is then handed to the test, not to init, and is seen.
+The test process makes itself the "subreaper" of what it starts (Linux): a process the daemon leaves
+behind is then handed to the test, not to init, and is seen.
 """
 
 from __future__ import annotations
@@ -25,14 +26,17 @@ from tests.api.running_service import free_port
 from tests.daemon.conftest import admin_headers, make_client, wait_job
 from tests.daemon.test_diagnosis import SMALL_BODY
 
-pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="follows processes through /proc (Linux)")
+pytestmark = pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="follows processes through /proc (Linux)"
+)
 PR_SET_CHILD_SUBREAPER = 36
 
 
 @contextlib.contextmanager
 def subreaper() -> Iterator[set[int]]:
-    """This test process adopts whatever its daemon leaves behind; yields the children it had already (the
-    suite's own, such as a multiprocessing resource tracker of an earlier test), which are not the daemon's."""
+    """This test process adopts whatever its daemon leaves behind; yields the children it had
+    already (the suite's own, such as a multiprocessing resource tracker of an earlier test), which
+    are not the daemon's."""
     libc = ctypes.CDLL(None, use_errno=True)
     before = set(_children())
     assert libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) == 0
@@ -53,7 +57,7 @@ def _children() -> list[int]:
     for stat in Path("/proc").glob("[0-9]*/stat"):
         with contextlib.suppress(OSError):
             text = stat.read_text()
-            fields = text[text.rindex(")") + 2:].split()
+            fields = text[text.rindex(")") + 2 :].split()
             if int(fields[1]) == me and fields[0] != "Z":
                 out.append(int(stat.parent.name))
     return out
@@ -70,7 +74,7 @@ def _descendants(pid: int) -> list[int]:
     for stat in Path("/proc").glob("[0-9]*/stat"):
         with contextlib.suppress(OSError):
             text = stat.read_text()
-            if int(text[text.rindex(")") + 2:].split()[1]) == pid:
+            if int(text[text.rindex(")") + 2 :].split()[1]) == pid:
                 kids.append(int(stat.parent.name))
     return kids + [d for k in kids for d in _descendants(k)]
 
@@ -90,10 +94,18 @@ def with_a_record(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
 
 def _serve(data: Path, **env: str) -> tuple[subprocess.Popen[bytes], str, dict[str, str]]:
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port)],
-                            env={**os.environ, "TILTLAB_DATA_DIR": str(data), "TILTLAB_SIM_SPEED": "20",
-                                 "TILTLAB_SIM_TRANSPORT": "loopback", **env},
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service", "serve", "--port", str(port)],
+        env={
+            **os.environ,
+            "TILTLAB_DATA_DIR": str(data),
+            "TILTLAB_SIM_SPEED": "20",
+            "TILTLAB_SIM_TRANSPORT": "loopback",
+            **env,
+        },
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     base = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 90
     while True:
@@ -105,9 +117,12 @@ def _serve(data: Path, **env: str) -> tuple[subprocess.Popen[bytes], str, dict[s
     return proc, base, admin_headers(data)
 
 
-@pytest.mark.parametrize("how", [signal.SIGTERM, signal.SIGINT, signal.SIGKILL], ids=["SIGTERM", "SIGINT", "SIGKILL"])
-def test_no_worker_process_is_left_after_the_daemon_exits(with_a_record: tuple[Path, int], tmp_path: Path,
-                                                          how: signal.Signals) -> None:
+@pytest.mark.parametrize(
+    "how", [signal.SIGTERM, signal.SIGINT, signal.SIGKILL], ids=["SIGTERM", "SIGINT", "SIGKILL"]
+)
+def test_no_worker_process_is_left_after_the_daemon_exits(
+    with_a_record: tuple[Path, int], tmp_path: Path, how: signal.Signals
+) -> None:
     source, record_id = with_a_record
     data = tmp_path / "data"
     shutil.copytree(source, data)
@@ -115,11 +130,17 @@ def test_no_worker_process_is_left_after_the_daemon_exits(with_a_record: tuple[P
         proc, base, h = _serve(data)
         try:
             for _ in range(2):  # one running in the worker, one waiting for it
-                r = httpx.post(f"{base}/records/{record_id}/diagnose", headers=h, json={}, timeout=60)
+                r = httpx.post(
+                    f"{base}/records/{record_id}/diagnose", headers=h, json={}, timeout=60
+                )
                 assert r.status_code == 202, r.text
             deadline = time.monotonic() + 60
-            while not any("multiprocessing" in Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")
-                          for p in _descendants(proc.pid) if Path(f"/proc/{p}/cmdline").exists()):
+            while not any(
+                "multiprocessing"
+                in Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")
+                for p in _descendants(proc.pid)
+                if Path(f"/proc/{p}/cmdline").exists()
+            ):
                 assert time.monotonic() < deadline, "no worker process was started"
                 time.sleep(0.1)
             started = _descendants(proc.pid)
@@ -132,14 +153,18 @@ def test_no_worker_process_is_left_after_the_daemon_exits(with_a_record: tuple[P
         deadline = time.monotonic() + 30
         while (left := set(_children()) - before) and time.monotonic() < deadline:
             time.sleep(0.2)
-        assert not left, (f"{len(left)} of the daemon's {len(started)} processes outlived it after {how.name}: "
-                          + ", ".join(Path(f"/proc/{p}/cmdline").read_bytes().decode(errors='replace')[:120] for p in left))
+        assert not left, (
+            f"{len(left)} of the daemon's {len(started)} processes outlived it after {how.name}: "
+            + ", ".join(
+                Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")[:120] for p in left
+            )
+        )
 
 
 @pytest.mark.postgres
 def test_no_process_is_left_after_a_failure_at_start_up(tmp_path: Path) -> None:
-    """A daemon whose start fails once its bench runs (the bench's name is owned by another live node of the
-    fleet: exit 2) leaves nothing running."""
+    """A daemon whose start fails once its bench runs (the bench's name is owned by another live
+    node of the fleet: exit 2) leaves nothing running."""
     from tests.fleet.fleet_helpers import Daemon as FleetDaemon
     from tests.fleet.fleet_helpers import NatsServer, postgres_schema_url
 
@@ -147,13 +172,26 @@ def test_no_process_is_left_after_a_failure_at_start_up(tmp_path: Path) -> None:
     server.start()
     try:
         with postgres_schema_url() as url:
-            common = {"TILTLAB_DATABASE_URL": url, "TILTLAB_BROKER_URL": server.url, "TILTLAB_SIM_BENCH_NAME": "bench-a",
-                      "TILTLAB_SIM_TRANSPORT": "loopback"}
+            common = {
+                "TILTLAB_DATABASE_URL": url,
+                "TILTLAB_BROKER_URL": server.url,
+                "TILTLAB_SIM_BENCH_NAME": "bench-a",
+                "TILTLAB_SIM_TRANSPORT": "loopback",
+            }
             with FleetDaemon(tmp_path / "a", {**common, "TILTLAB_NODE": "node-a"}), subreaper():
                 ours = set(_children())  # the broker and the first node: the test's own
-                r = subprocess.run([sys.executable, "-m", "service", "serve", "--port", str(free_port())],
-                                   env={**os.environ, **common, "TILTLAB_DATA_DIR": str(tmp_path / "b"),
-                                        "TILTLAB_NODE": "node-b"}, capture_output=True, text=True, timeout=180)
+                r = subprocess.run(
+                    [sys.executable, "-m", "service", "serve", "--port", str(free_port())],
+                    env={
+                        **os.environ,
+                        **common,
+                        "TILTLAB_DATA_DIR": str(tmp_path / "b"),
+                        "TILTLAB_NODE": "node-b",
+                    },
+                    capture_output=True,
+                    text=True,
+                    timeout=180,
+                )
                 assert r.returncode == 2 and "bench-a" in r.stderr, r.stderr[-2000:]
                 deadline = time.monotonic() + 30
                 while (left := set(_children()) - ours) and time.monotonic() < deadline:
@@ -163,19 +201,26 @@ def test_no_process_is_left_after_a_failure_at_start_up(tmp_path: Path) -> None:
         server.stop()
 
 
-def test_diagnoses_beyond_the_bound_are_503_with_retry_after(with_a_record: tuple[Path, int], tmp_path: Path) -> None:
+def test_diagnoses_beyond_the_bound_are_503_with_retry_after(
+    with_a_record: tuple[Path, int], tmp_path: Path
+) -> None:
     source, record_id = with_a_record
     data = tmp_path / "data"
     shutil.copytree(source, data)
     with subreaper():
         proc, base, h = _serve(data, TILTLAB_MAX_DIAGNOSES="2")
         try:
-            answers = [httpx.post(f"{base}/records/{record_id}/diagnose", headers=h, json={}, timeout=60)
-                       for _ in range(5)]
+            answers = [
+                httpx.post(f"{base}/records/{record_id}/diagnose", headers=h, json={}, timeout=60)
+                for _ in range(5)
+            ]
             assert [a.status_code for a in answers[:2]] == [202, 202], [a.text for a in answers]
             refused = [a for a in answers[2:] if a.status_code != 202]
             assert refused and all(a.status_code == 503 for a in refused), [a.text for a in answers]
-            assert int(refused[0].headers["retry-after"]) > 0 and "TILTLAB_MAX_DIAGNOSES" in refused[0].json()["detail"]
+            assert (
+                int(refused[0].headers["retry-after"]) > 0
+                and "TILTLAB_MAX_DIAGNOSES" in refused[0].json()["detail"]
+            )
             listed = httpx.get(f"{base}/diagnoses", headers=h, timeout=60).json()["diagnoses"]
             assert len(listed) == 5 - len(refused)  # a refused diagnosis leaves nothing behind
         finally:

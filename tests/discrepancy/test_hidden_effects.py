@@ -38,7 +38,8 @@ def test_no_hidden_effect_names_nothing_but_the_geometry(baseline, seed):
         assert step["rms_after"][0] < step["rms_before"][0] / 10
 
 
-# a y-axis quadratic is the linear baseline's blind spot (perspective term + level tilt): checked separately
+# a y-axis quadratic is the linear baseline's blind spot (perspective term + level tilt): checked
+# separately
 LINEAR_VISIBLE = [v for v in VARIANTS if v not in ("sensor_nonlinearity_y", "time_drift")]
 
 
@@ -56,7 +57,8 @@ def test_linear_baseline_names_each_hidden_effect_at_5_noise(variant, seed):
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_kinematic_baseline_names_each_hidden_effect(variant, seed):
-    # time drift on one serpentine pass is mostly a change of the bench's own parameters: random order shows it
+    # time drift on one serpentine pass is mostly a change of the bench's own parameters: random
+    # order shows it
     design = "random" if variant == "time_drift" else "serpentine"
     rep, _ = run({variant: 5.0}, seed, "kinematic", design)
     assert VARIANTS[variant][0] in rep["named_effects"]
@@ -78,12 +80,15 @@ def test_linear_baseline_flags_the_y_quadratic_as_poorly_separable_instead_of_gu
     assert any("ref_y_per_deg is poorly separable" in n for n in rep["notes"])
 
 
-@pytest.mark.parametrize("pair,baseline", [
-    (("backlash", "periodic_error"), "linear"),
-    (("sensor_nonlinearity", "temperature_drift"), "linear"),
-    (("backlash", "temperature_drift"), "kinematic"),
-    (("periodic_error", "sensor_nonlinearity"), "kinematic"),
-])
+@pytest.mark.parametrize(
+    "pair,baseline",
+    [
+        (("backlash", "periodic_error"), "linear"),
+        (("sensor_nonlinearity", "temperature_drift"), "linear"),
+        (("backlash", "temperature_drift"), "kinematic"),
+        (("periodic_error", "sensor_nonlinearity"), "kinematic"),
+    ],
+)
 def test_pairs_are_both_named(pair, baseline):
     for seed in SEEDS:
         hidden = {v: 5.0 for v in pair}

@@ -16,7 +16,7 @@ def _png_size_and_dpi(data: bytes) -> tuple[int, int, float]:
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
     width, height = struct.unpack(">II", data[16:24])
     i = data.find(b"pHYs")
-    ppm_x = struct.unpack(">I", data[i + 4:i + 8])[0]
+    ppm_x = struct.unpack(">I", data[i + 4 : i + 8])[0]
     return width, height, ppm_x * 0.0254
 
 

@@ -1,4 +1,5 @@
-"""Scale kind: seed 003's Table 1 (baseline poly1, candidate a higher degree) and simulated outputs."""
+"""Scale kind: seed 003's Table 1 (baseline poly1, candidate a higher degree) and simulated
+outputs."""
 
 from pathlib import Path
 
@@ -19,7 +20,9 @@ READING = np.array([16, 378, 739, 1131, 1518, 1961, 2244, 2604, 3004, 3277, 3680
 
 def table1_columns():
     if TABLE1.exists():
-        return read_dataset(TABLE1, "scale", (("ref_arcsec", "ref_deg"), "reading"), ("point",)).arrays()
+        return read_dataset(
+            TABLE1, "scale", (("ref_arcsec", "ref_deg"), "reading"), ("point",)
+        ).arrays()
     return {"ref_arcsec": REF, "reading": READING}
 
 
@@ -30,7 +33,8 @@ def test_table1_supports_a_straight_line_only():
     assert rep["baseline"] == "poly1" and rep["unit"] == "arcsec"
     assert rep["named_effects"] == []
     assert rep["supported_model"] == "poly1"
-    assert rep["noise_source"] == "final residual"  # no repeats, no specification: 12 points, one pass
+    # no repeats, no specification: 12 points, one pass
+    assert rep["noise_source"] == "final residual"
     quad = next(c for c in rep["stop"]["candidates"] if c["effect"] == "sensor_nonlinearity")
     assert quad["p_value"] > 0.1 and quad["delta_bic"] > 0
     assert {s["effect"] for s in rep["skipped"]} == {"temperature_drift"}
@@ -38,7 +42,9 @@ def test_table1_supports_a_straight_line_only():
     model = get_method("scale", "poly1").fit(cols, FitOptions())
     slope = rep["baseline_fit"]["arcsec_per_count"]["value"]
     assert slope == pytest.approx(model.parameters["c1_arcsec_per_count"].value, rel=1e-9)
-    assert rep["final_rms"][0] == pytest.approx(model.residuals["columns"]["angle_arcsec"]["rms"], rel=1e-9)
+    assert rep["final_rms"][0] == pytest.approx(
+        model.residuals["columns"]["angle_arcsec"]["rms"], rel=1e-9
+    )
 
 
 def _scale_run(effects, seed=0, repeats=1, temp_amp=0.0):

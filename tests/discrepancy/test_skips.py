@@ -1,4 +1,5 @@
-"""Data that cannot support a candidate skip it with a reason; data too thin for a baseline are refused."""
+"""Data that cannot support a candidate skip it with a reason; data too thin for a baseline are
+refused."""
 
 import numpy as np
 import pytest
@@ -56,14 +57,17 @@ def test_only_separable_parameters_are_fitted(bench):
 
 
 def test_grid_on_whole_worm_turns_cannot_show_periodic_error():
-    # 1.125 deg steps are whole turns of the upper worm and 1.6 deg steps two turns of the lower one:
-    # every point samples the same worm phase
+    # 1.125 deg steps are whole turns of the upper worm and 1.6 deg steps two turns of the lower
+    # one: every point samples the same worm phase
     x = np.arange(-4, 5) * 1.125
     y = np.arange(-4, 5) * 1.6
     X, Y = (a.ravel() for a in np.meshgrid(x, y))
-    cols = {"stage_x_deg": X, "stage_y_deg": Y,
-            "ref_x_deg": np.degrees(np.arcsin(np.sin(np.radians(X)) * np.cos(np.radians(Y)))) + 0.01,
-            "ref_y_deg": Y - 0.02}
+    cols = {
+        "stage_x_deg": X,
+        "stage_y_deg": Y,
+        "ref_x_deg": np.degrees(np.arcsin(np.sin(np.radians(X)) * np.cos(np.radians(Y)))) + 0.01,
+        "ref_y_deg": Y - 0.02,
+    }
     rng = np.random.default_rng(0)
     cols["ref_x_deg"] = cols["ref_x_deg"] + rng.normal(0, 0.002, X.size)
     cols["ref_y_deg"] = cols["ref_y_deg"] + rng.normal(0, 0.002, X.size)
@@ -74,7 +78,8 @@ def test_grid_on_whole_worm_turns_cannot_show_periodic_error():
 
 
 def test_too_few_points_skip_candidates_with_the_count(bench):
-    keep = [0, 13, 26, 40, 53, 66, 80]  # seven points spread over the grid: room for the coupling only
+    # seven points spread over the grid: room for the coupling only
+    keep = [0, 13, 26, 40, 53, 66, 80]
     cols = {k: v[keep] for k, v in _cols(bench).items()}
     rep, _, _ = stage_report(cols, noise_sigma=bench.sigma_deg)
     reasons = skipped(rep)
@@ -110,8 +115,9 @@ def test_without_repeats_or_specification_the_noise_is_the_final_residual(bench)
 
 @pytest.mark.parametrize("baseline", ["linear", "kinematic"])
 def test_a_candidate_the_design_hides_is_said_with_what_would_show_it(bench, baseline):
-    """On one serpentine pass time runs with the rows: a drift is mostly the bench's geometry, and the report
-    says how much of it the test can see and which design would separate it; in random order it is not flagged."""
+    """On one serpentine pass time runs with the rows: a drift is mostly the bench's geometry, and
+    the report says how much of it the test can see and which design would separate it; in random
+    order it is not flagged."""
     rep, _, _ = stage_report(_cols(bench), noise_sigma=bench.sigma_deg, baseline=baseline)
     frac = rep["separability"]["time_drift"]["ref_x_deg_per_h"]
     assert 0.02 < frac < 0.25

@@ -1,4 +1,5 @@
-"""The discrepancy workflow's hand-written statistics against scipy.stats (which it does not import, for speed)."""
+"""The discrepancy workflow's hand-written statistics against scipy.stats (which it does not import,
+for speed)."""
 
 import numpy as np
 import pytest
@@ -39,7 +40,9 @@ def test_welch_t_and_pearson():
 def test_scale_f_test_of_an_added_term():
     out = f_test(rss_small=150.0, rss_big=100.0, dof_big=9)
     F = (150.0 - 100.0) / (100.0 / 9)
-    assert out["F"] == pytest.approx(F) and out["p_value"] == pytest.approx(sps.f.sf(F, 1, 9), rel=1e-10)
+    assert out["F"] == pytest.approx(F) and out["p_value"] == pytest.approx(
+        sps.f.sf(F, 1, 9), rel=1e-10
+    )
 
 
 def test_runs_test_z_against_its_normal_approximation():

@@ -1,4 +1,5 @@
-"""Fixtures of the fleet tests: a fresh PostgreSQL schema, and a proxy in front of the server a test can cut."""
+"""Fixtures of the fleet tests: a fresh PostgreSQL schema, and a proxy in front of the server a test
+can cut."""
 
 from __future__ import annotations
 

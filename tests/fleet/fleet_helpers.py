@@ -1,4 +1,5 @@
-"""A NATS server of the test's own, a PostgreSQL schema of its own, and daemons started as people start them."""
+"""A NATS server of the test's own, a PostgreSQL schema of its own, and daemons started as people
+start them."""
 
 from __future__ import annotations
 
@@ -20,11 +21,15 @@ import sqlalchemy as sa
 
 from tests.api.running_service import free_port
 
-PG_URL = os.environ.get("TILTLAB_TEST_POSTGRES_URL", "postgresql+psycopg://root@127.0.0.1:5432/test")
+PG_URL = os.environ.get(
+    "TILTLAB_TEST_POSTGRES_URL", "postgresql+psycopg://root@127.0.0.1:5432/test"
+)
 T = TypeVar("T")
 
 
-def eventually(probe: Callable[[], T], ok: Callable[[T], Any], timeout_s: float = 30.0, every_s: float = 0.2) -> T:
+def eventually(
+    probe: Callable[[], T], ok: Callable[[T], Any], timeout_s: float = 30.0, every_s: float = 0.2
+) -> T:
     """Probe until `ok` holds; the last value otherwise, in the assertion."""
     deadline = time.monotonic() + timeout_s
     while True:
@@ -40,12 +45,15 @@ def eventually(probe: Callable[[], T], ok: Callable[[T], Any], timeout_s: float 
 
 
 class NatsServer:
-    """`nats-server -js` on a port of its own with its storage in a directory of the test's; restartable."""
+    """`nats-server -js` on a port of its own with its storage in a directory of the test's;
+    restartable."""
 
     def __init__(self, store: Path, port: int) -> None:
         self.store, self.port = store, port
         self.proc: subprocess.Popen[bytes] | None = None
-        binary = shutil.which("nats-server") or ("/usr/sbin/nats-server" if Path("/usr/sbin/nats-server").exists() else None)
+        binary = shutil.which("nats-server") or (
+            "/usr/sbin/nats-server" if Path("/usr/sbin/nats-server").exists() else None
+        )
         if binary is None:
             pytest.skip("nats-server is not installed")
         self.binary = binary
@@ -56,11 +64,17 @@ class NatsServer:
 
     def start(self) -> None:
         self.store.mkdir(parents=True, exist_ok=True)
-        self.proc = subprocess.Popen([self.binary, "-a", "127.0.0.1", "-p", str(self.port), "-js", "-sd", str(self.store)],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.proc = subprocess.Popen(
+            [self.binary, "-a", "127.0.0.1", "-p", str(self.port), "-js", "-sd", str(self.store)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         deadline = time.monotonic() + 20
         while True:
-            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", self.port), timeout=1):
+            with (
+                contextlib.suppress(OSError),
+                socket.create_connection(("127.0.0.1", self.port), timeout=1),
+            ):
                 return
             assert self.proc.poll() is None, "nats-server exited"
             assert time.monotonic() < deadline, "nats-server did not listen within 20 s"
@@ -87,13 +101,20 @@ def postgres_schema_url() -> Iterator[str]:
     schema = f"tiltlab_fleet_{uuid.uuid4().hex[:12]}"
     with admin.begin() as conn:
         conn.execute(sa.text(f'CREATE SCHEMA "{schema}"'))
-    url = sa.make_url(PG_URL).update_query_dict({"options": f"-csearch_path={schema}", "application_name": schema})
+    url = sa.make_url(PG_URL).update_query_dict(
+        {"options": f"-csearch_path={schema}", "application_name": schema}
+    )
     try:
         yield url.render_as_string(hide_password=False)
     finally:
         with admin.begin() as conn:
-            conn.execute(sa.text("SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
-                                 " WHERE application_name = :schema"), {"schema": schema})
+            conn.execute(
+                sa.text(
+                    "SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
+                    " WHERE application_name = :schema"
+                ),
+                {"schema": schema},
+            )
             conn.execute(sa.text("SET lock_timeout = '20s'"))
             conn.execute(sa.text(f'DROP SCHEMA "{schema}" CASCADE'))
         admin.dispose()
@@ -113,12 +134,17 @@ class Daemon:
         return self.launch().wait_serving()
 
     def launch(self) -> Daemon:
-        """Start the process and return at once (daemons launched one after another start together)."""
+        """Start the process and return at once (daemons launched one after another start
+        together)."""
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self._log = self.log.open("w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(self.port)],
-                                     env={**os.environ, "TILTLAB_DATA_DIR": str(self.data_dir), **self.env},
-                                     stdout=self._log, stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "service", "serve", "--port", str(self.port)],
+            env={**os.environ, "TILTLAB_DATA_DIR": str(self.data_dir), **self.env},
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         return self
 
     def wait_serving(self, timeout_s: float = 90.0) -> Daemon:
@@ -137,8 +163,12 @@ class Daemon:
             time.sleep(0.2)
 
     def __exit__(self, *exc: object) -> None:
-        if exc and exc[0] is not None:  # the test failed inside: its daemons' last words go into the report
-            print(f"--- {self.log.name} ---\n" + "\n".join(self.log.read_text().splitlines()[-40:]), file=sys.stderr)
+        # the test failed inside: its daemons' last words go into the report
+        if exc and exc[0] is not None:
+            print(
+                f"--- {self.log.name} ---\n" + "\n".join(self.log.read_text().splitlines()[-40:]),
+                file=sys.stderr,
+            )
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             try:

@@ -25,11 +25,16 @@ class PgProxy:
         self._pairs: list[tuple[socket.socket, socket.socket]] = []
         self.lose_next_commit_answer = False
         self.commit_answers_lost = 0
-        self.hung = threading.Event()  # set: nothing is passed on either way, new connections are only read
+        # set: nothing is passed on either way, new connections are only read
+        self.hung = threading.Event()
 
     def url_of(self, database_url: str) -> str:
         """`database_url` reached through this proxy."""
-        return sa.make_url(database_url).set(host="127.0.0.1", port=self.port).render_as_string(hide_password=False)
+        return (
+            sa.make_url(database_url)
+            .set(host="127.0.0.1", port=self.port)
+            .render_as_string(hide_password=False)
+        )
 
     def start(self) -> None:
         listener = socket.socket()
@@ -45,7 +50,8 @@ class PgProxy:
         listener, self._listener = self._listener, None
         if listener is not None:
             with contextlib.suppress(OSError):
-                listener.shutdown(socket.SHUT_RDWR)  # wakes the accepting thread (a close alone would not)
+                # wakes the accepting thread (a close alone would not)
+                listener.shutdown(socket.SHUT_RDWR)
             listener.close()
         with self._lock:
             pairs, self._pairs = self._pairs, []
@@ -56,7 +62,8 @@ class PgProxy:
         self.start()
 
     def hang(self) -> None:
-        """From now on nothing is passed on: the client's bytes are read and dropped, no answer comes."""
+        """From now on nothing is passed on: the client's bytes are read and dropped, no answer
+        comes."""
         self.hung.set()
 
     def stop(self) -> None:
@@ -81,11 +88,21 @@ class PgProxy:
             with self._lock:
                 self._pairs.append(pair)
             muted = threading.Event()  # the server's answers are no longer passed on
-            threading.Thread(target=self._pump, args=(client, server, pair, muted, True), daemon=True).start()
-            threading.Thread(target=self._pump, args=(server, client, pair, muted, False), daemon=True).start()
+            threading.Thread(
+                target=self._pump, args=(client, server, pair, muted, True), daemon=True
+            ).start()
+            threading.Thread(
+                target=self._pump, args=(server, client, pair, muted, False), daemon=True
+            ).start()
 
-    def _pump(self, src: socket.socket, dst: socket.socket, pair: tuple[socket.socket, socket.socket],
-              muted: threading.Event, from_client: bool) -> None:
+    def _pump(
+        self,
+        src: socket.socket,
+        dst: socket.socket,
+        pair: tuple[socket.socket, socket.socket],
+        muted: threading.Event,
+        from_client: bool,
+    ) -> None:
         try:
             while True:
                 data = src.recv(65536)
@@ -107,7 +124,6 @@ class PgProxy:
             if pair in self._pairs:
                 self._pairs.remove(pair)
         _reset(*pair)
-
 
     def _swallow(self, client: socket.socket) -> None:
         """A connection made while hung: read and dropped until the client gives up."""

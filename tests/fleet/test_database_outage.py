@@ -61,11 +61,13 @@ def test_sample_writer_keeps_what_it_took_through_an_outage(migrated: str, proxy
         writer.flush(timeout=30)
 
         proxy.cut()
-        during = _samples(device.id, 800, 2_000.0)  # more than the queue holds while the database is away
+        # more than the queue holds while the database is away
+        during = _samples(device.id, 800, 2_000.0)
         taken = writer.put_many(during[:100])  # the writer finds the database away with these
         eventually(lambda: writer.database.up, lambda up: not up, timeout_s=20, every_s=0.05)
         taken += writer.put_many(during[100:])
-        assert writer.dropped == len(during) - taken > 0  # the newest refused, counted, never waited for
+        # the newest refused, counted, never waited for
+        assert writer.dropped == len(during) - taken > 0
         assert writer.pending == taken  # everything taken waits, nothing given up
         time.sleep(1.0)
         proxy.restore()
@@ -73,10 +75,19 @@ def test_sample_writer_keeps_what_it_took_through_an_outage(migrated: str, proxy
         assert writer.database.up
 
         with direct.connect() as conn:
-            stored = [tuple(r) for r in conn.execute(sa.text(
-                "SELECT t_s, count(*) FROM samples WHERE device_id = :d GROUP BY t_s ORDER BY t_s"), {"d": device.id})]
+            stored = [
+                tuple(r)
+                for r in conn.execute(
+                    sa.text(
+                        "SELECT t_s, count(*) FROM samples WHERE device_id = :d GROUP BY t_s ORDER "
+                        "BY t_s"
+                    ),
+                    {"d": device.id},
+                )
+            ]
         assert all(n == 1 for _, n in stored), "a sample stored twice"
-        assert [t for t, _ in stored] == [s.t_s for s in before + during[:taken]]  # in order, the oldest kept
+        # in order, the oldest kept
+        assert [t for t, _ in stored] == [s.t_s for s in before + during[:taken]]
     finally:
         writer.close(timeout=30)
         engine.dispose()
@@ -93,7 +104,8 @@ def test_a_commit_whose_answer_was_lost_is_not_written_twice(migrated: str, prox
         proxy.lose_next_commit_answer = True
         writer.put_many(_samples(device.id, 200, 3_000.0))
         writer.flush(timeout=30)
-        assert proxy.commit_answers_lost == 1  # the server committed, the writer heard nothing and tried again
+        # the server committed, the writer heard nothing and tried again
+        assert proxy.commit_answers_lost == 1
         with direct.connect() as conn:
             assert count_samples(conn, device_id=device.id) == 200
     finally:
@@ -103,10 +115,27 @@ def test_a_commit_whose_answer_was_lost_is_not_written_twice(migrated: str, prox
     # a job's point (samples and settled means) written again after such a loss is stored once
     job = store.jobs.create_job(device.id, "stage", "kinematic", actor="test")
     store.jobs.start_job(job.id, actor="test")
-    rows = [s._replace(job_id=job.id, point=0, source="calibration") for s in _samples(device.id, 10, 4_000.0)]
-    settled = {device.id: {"point": 0, "cmd_x_deg": 0.0, "cmd_y_deg": 0.0, "n_samples": 10, "t_start_s": 4_000.0,
-                           "t_end_s": 4_000.09, "ch_x_mean": 0.0045, "ch_y_mean": -0.0045, "ch_z_mean": None,
-                           "ch_x_std": 0.003, "ch_y_std": 0.003, "ch_z_std": None, "temp_c_mean": 21.5}}
+    rows = [
+        s._replace(job_id=job.id, point=0, source="calibration")
+        for s in _samples(device.id, 10, 4_000.0)
+    ]
+    settled = {
+        device.id: {
+            "point": 0,
+            "cmd_x_deg": 0.0,
+            "cmd_y_deg": 0.0,
+            "n_samples": 10,
+            "t_start_s": 4_000.0,
+            "t_end_s": 4_000.09,
+            "ch_x_mean": 0.0045,
+            "ch_y_mean": -0.0045,
+            "ch_z_mean": None,
+            "ch_x_std": 0.003,
+            "ch_y_std": 0.003,
+            "ch_z_std": None,
+            "temp_c_mean": 21.5,
+        }
+    }
     store_point(store, job.id, 0, rows, settled)  # type: ignore[arg-type]
     store_point(store, job.id, 0, rows, settled)  # type: ignore[arg-type]
     with direct.connect() as conn:
@@ -120,13 +149,27 @@ def _job(url: str, auth: dict[str, str], job_id: int) -> dict:
 
 
 def _start_job(url: str, auth: dict[str, str]) -> int:
-    answer = httpx.post(f"{url}/calibrations", headers=auth, timeout=30,
-                        json={"procedure": "stage-grid", "method": "kinematic", "grid": GRID,
-                              "samples_per_point": SAMPLES_PER_POINT, "validation": {"n_points": 1}, "settle": SETTLE})
+    answer = httpx.post(
+        f"{url}/calibrations",
+        headers=auth,
+        timeout=30,
+        json={
+            "procedure": "stage-grid",
+            "method": "kinematic",
+            "grid": GRID,
+            "samples_per_point": SAMPLES_PER_POINT,
+            "validation": {"n_points": 1},
+            "settle": SETTLE,
+        },
+    )
     assert answer.status_code == 202, answer.text
     job_id = int(answer.json()["id"])
-    eventually(lambda: _job(url, auth, job_id), lambda j: j["state"] == "running" and j["progress"]["points_done"] >= 1,
-               timeout_s=60, every_s=0.1)
+    eventually(
+        lambda: _job(url, auth, job_id),
+        lambda j: j["state"] == "running" and j["progress"]["points_done"] >= 1,
+        timeout_s=60,
+        every_s=0.1,
+    )
     return job_id
 
 
@@ -135,21 +178,35 @@ def _health(url: str) -> dict:
 
 
 def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
-        tmp_path: Path, migrated: str, proxy: PgProxy) -> None:
-    env = {"TILTLAB_DATABASE_URL": proxy.url_of(migrated), "TILTLAB_SIM_SPEED": "20",
-           "TILTLAB_DB_OUTAGE_S": str(OUTAGE_LIMIT_S)}
+    tmp_path: Path, migrated: str, proxy: PgProxy
+) -> None:
+    env = {
+        "TILTLAB_DATABASE_URL": proxy.url_of(migrated),
+        "TILTLAB_SIM_SPEED": "20",
+        "TILTLAB_DB_OUTAGE_S": str(OUTAGE_LIMIT_S),
+    }
     with Daemon(tmp_path / "a", env) as daemon, contextlib.ExitStack() as streams:
         url = daemon.url
         auth = {"Authorization": f"Bearer {(tmp_path / 'a' / 'admin.token').read_text().strip()}"}
-        # the admin token signs approvals below: it names its person (a token without one is refused with 403)
-        assert httpx.patch(f"{url}/tokens/admin", headers=auth, timeout=10, json={
-            "person": {"name": "Dr. Alice Example", "function": "Head of Laboratory"}}).status_code == 200
+        # the admin token signs approvals below: it names its person (a token without one is refused
+        # with 403)
+        assert (
+            httpx.patch(
+                f"{url}/tokens/admin",
+                headers=auth,
+                timeout=10,
+                json={"person": {"name": "Dr. Alice Example", "function": "Head of Laboratory"}},
+            ).status_code
+            == 200
+        )
 
         # --- a 10-s outage in the middle of a job: the daemon serves, says so, and the job goes on
         job_id = _start_job(url, auth)
         token = auth["Authorization"].split()[1]
         phases: list[str | None] = []  # the job's stream, heard through the outage
-        stream = streams.enter_context(ws_connect(f"{url.replace('http', 'ws')}/ws/jobs/{job_id}?token={token}"))
+        stream = streams.enter_context(
+            ws_connect(f"{url.replace('http', 'ws')}/ws/jobs/{job_id}?token={token}")
+        )
         assert json.loads(stream.recv(timeout=10))["type"] == "snapshot"
 
         def listen() -> None:
@@ -162,9 +219,18 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
         listener.start()
         proxy.cut()
         cut_at = time.monotonic()
-        away = eventually(lambda: _health(url), lambda h: h["database_state"] == "away"
-                          and job_id in h["database_outage"]["jobs_waiting"], timeout_s=8, every_s=0.1)
-        assert away["status"] == "degraded" and away["database_outage"]["outage_limit_s"] == OUTAGE_LIMIT_S
+        away = eventually(
+            lambda: _health(url),
+            lambda h: (
+                h["database_state"] == "away" and job_id in h["database_outage"]["jobs_waiting"]
+            ),
+            timeout_s=8,
+            every_s=0.1,
+        )
+        assert (
+            away["status"] == "degraded"
+            and away["database_outage"]["outage_limit_s"] == OUTAGE_LIMIT_S
+        )
         assert away["database_outage"]["writes_waiting"] >= 1
         while time.monotonic() - cut_at < 10:
             tilt = httpx.get(f"{url}/tilt", headers=auth, timeout=5)
@@ -173,45 +239,81 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
         metrics = httpx.get(f"{url}/metrics", headers=auth, timeout=10)
         assert metrics.status_code == 200 and "tiltlab_database_up 0.0" in metrics.text
         unreadable = httpx.get(f"{url}/calibrations/{job_id}", headers=auth, timeout=10)
-        assert unreadable.status_code == 503 and unreadable.json()["title"] == "Database unreachable"
+        assert (
+            unreadable.status_code == 503 and unreadable.json()["title"] == "Database unreachable"
+        )
         proxy.restore()
 
-        job = eventually(lambda: _job(url, auth, job_id), lambda j: j["state"] not in ("queued", "running"),
-                         timeout_s=90)
+        job = eventually(
+            lambda: _job(url, auth, job_id),
+            lambda j: j["state"] not in ("queued", "running"),
+            timeout_s=90,
+        )
         assert job["state"] == "succeeded", job["error"]
         listener.join(timeout=20)
         stream.close()
         assert "waiting for the database" in phases  # the job's stream said why it paused
         assert phases[-1] == "done"
-        assert eventually(lambda: _health(url), lambda h: h["database_state"] == "up")["status"] == "ok"
+        assert (
+            eventually(lambda: _health(url), lambda h: h["database_state"] == "up")["status"]
+            == "ok"
+        )
         direct = make_engine(migrated)
         with direct.connect() as conn:
-            total, distinct = conn.execute(sa.text(
-                "SELECT count(*), count(DISTINCT (device_id, t_s)) FROM samples WHERE job_id = :j"), {"j": job_id}).one()
+            total, distinct = conn.execute(
+                sa.text(
+                    "SELECT count(*), count(DISTINCT (device_id, t_s)) FROM samples WHERE "
+                    "job_id = :j"
+                ),
+                {"j": job_id},
+            ).one()
         points = 3 * 3 + 1
-        assert total == distinct == points * 2 * SAMPLES_PER_POINT  # every sample of every point, each once
+        # every sample of every point, each once
+        assert total == distinct == points * 2 * SAMPLES_PER_POINT
         record_id = job["record"]["id"]
 
-        # --- an outage longer than TILTLAB_DB_OUTAGE_S: the job fails naming it, what it stored is kept
+        # --- an outage longer than TILTLAB_DB_OUTAGE_S: the job fails naming it, what it stored is
+        # kept
         job_id = _start_job(url, auth)
         proxy.cut()
-        eventually(lambda: _health(url), lambda h: job_id in (h["database_outage"] or {}).get("jobs_waiting", []),
-                   timeout_s=8, every_s=0.1)
-        refused = httpx.post(f"{url}/records/{record_id}/approve", headers=auth, json={"meaning": "approval"},
-                             timeout=10)
+        eventually(
+            lambda: _health(url),
+            lambda h: job_id in (h["database_outage"] or {}).get("jobs_waiting", []),
+            timeout_s=8,
+            every_s=0.1,
+        )
+        refused = httpx.post(
+            f"{url}/records/{record_id}/approve",
+            headers=auth,
+            json={"meaning": "approval"},
+            timeout=10,
+        )
         assert refused.status_code == 503, refused.text
         assert refused.headers["content-type"].startswith("application/problem+json")
-        assert "database" in refused.json()["detail"] and refused.json()["title"] == "Database unreachable"
-        eventually(lambda: _health(url), lambda h: h["database_state"] == "away"
-                   and job_id not in h["database_outage"]["jobs_waiting"], timeout_s=OUTAGE_LIMIT_S + 10)
+        assert (
+            "database" in refused.json()["detail"]
+            and refused.json()["title"] == "Database unreachable"
+        )
+        eventually(
+            lambda: _health(url),
+            lambda h: (
+                h["database_state"] == "away" and job_id not in h["database_outage"]["jobs_waiting"]
+            ),
+            timeout_s=OUTAGE_LIMIT_S + 10,
+        )
         assert httpx.get(f"{url}/tilt", headers=auth, timeout=5).status_code == 200
         proxy.restore()
-        job = eventually(lambda: _job(url, auth, job_id), lambda j: j["state"] not in ("queued", "running"),
-                         timeout_s=30)
+        job = eventually(
+            lambda: _job(url, auth, job_id),
+            lambda j: j["state"] not in ("queued", "running"),
+            timeout_s=30,
+        )
         assert job["state"] == "failed" and job["error"].startswith("database_unreachable:"), job
         assert job["progress"]["points_done"] >= 1
         with direct.connect() as conn:
-            kept = conn.execute(sa.text("SELECT count(DISTINCT point) FROM settled_points WHERE job_id = :j"),
-                                {"j": job_id}).scalar_one()
+            kept = conn.execute(
+                sa.text("SELECT count(DISTINCT point) FROM settled_points WHERE job_id = :j"),
+                {"j": job_id},
+            ).scalar_one()
         assert kept >= 1
         direct.dispose()

@@ -1,7 +1,8 @@
-"""A sick database never stops the daemon: `/health` and `/tilt` keep their latency while PostgreSQL hangs
-(a proxy in front of it that accepts and never answers) and while another client holds `api_tokens` locked,
-even as strangers send tokens the daemon has never seen. Those are answered 503 naming the database once
-the request deadline passes (TILTLAB_DB_REQUEST_TIMEOUT_S), never by freezing everything else.
+"""A sick database never stops the daemon: `/health` and `/tilt` keep their latency while PostgreSQL
+hangs (a proxy in front of it that accepts and never answers) and while another client holds
+`api_tokens` locked, even as strangers send tokens the daemon has never seen. Those are answered 503
+naming the database once the request deadline passes (TILTLAB_DB_REQUEST_TIMEOUT_S), never by
+freezing everything else.
 
 Latencies are compared with the same run's idle baseline (percentile over percentile), never with an
 absolute time: the machine is shared.
@@ -33,7 +34,8 @@ P99_RATIO = 5.0
 
 
 def _latencies(client: httpx.Client, token: str) -> dict[str, list[float]]:
-    """SAMPLES requests to each of /health and /tilt (a token the daemon knows), alternated; seconds each."""
+    """SAMPLES requests to each of /health and /tilt (a token the daemon knows), alternated; seconds
+    each."""
     out: dict[str, list[float]] = {"/health": [], "/tilt": []}
     auth = {"Authorization": f"Bearer {token}"}
     for _ in range(SAMPLES):
@@ -48,15 +50,20 @@ def _latencies(client: httpx.Client, token: str) -> dict[str, list[float]]:
 
 @contextlib.contextmanager
 def strangers(url: str, threads: int = 4) -> Iterator[list[httpx.Response]]:
-    """Clients sending tokens nobody has seen (each needs the database), a few a second each, as a LIMS with a
-    wrong token or a scanner would; their answers are collected."""
+    """Clients sending tokens nobody has seen (each needs the database), a few a second each, as a
+    LIMS with a wrong token or a scanner would; their answers are collected."""
     answers: list[httpx.Response] = []
     stop = threading.Event()
 
     def send() -> None:
         with httpx.Client(base_url=url, timeout=120) as c:
             while not stop.is_set():
-                answers.append(c.get("/records", headers={"Authorization": f"Bearer tl_{secrets.token_urlsafe(32)}"}))
+                answers.append(
+                    c.get(
+                        "/records",
+                        headers={"Authorization": f"Bearer tl_{secrets.token_urlsafe(32)}"},
+                    )
+                )
                 stop.wait(0.2)
 
     workers = [threading.Thread(target=send, daemon=True) for _ in range(threads)]
@@ -74,8 +81,10 @@ def _compare(idle: dict[str, list[float]], sick: dict[str, list[float]], what: s
     for path in idle:
         base50, base99 = np.percentile(idle[path], [50, 99])
         sick50, sick99 = np.percentile(sick[path], [50, 99])
-        figures = (f"{what}, {path}: idle p50 {base50 * 1e3:.2f} ms p99 {base99 * 1e3:.2f} ms;"
-                   f" {what} p50 {sick50 * 1e3:.2f} ms p99 {sick99 * 1e3:.2f} ms")
+        figures = (
+            f"{what}, {path}: idle p50 {base50 * 1e3:.2f} ms p99 {base99 * 1e3:.2f} ms;"
+            f" {what} p50 {sick50 * 1e3:.2f} ms p99 {sick99 * 1e3:.2f} ms"
+        )
         print(figures)
         assert sick50 <= P50_RATIO * base50, figures
         assert sick99 <= P99_RATIO * base99, figures
@@ -83,16 +92,29 @@ def _compare(idle: dict[str, list[float]], sick: dict[str, list[float]], what: s
 
 def _known_token(daemon: Daemon) -> str:
     admin = {"Authorization": "Bearer " + (daemon.data_dir / "admin.token").read_text().strip()}
-    made = httpx.post(f"{daemon.url}/tokens", json={"name": "poller", "scopes": ["read"]}, headers=admin, timeout=30)
+    made = httpx.post(
+        f"{daemon.url}/tokens",
+        json={"name": "poller", "scopes": ["read"]},
+        headers=admin,
+        timeout=30,
+    )
     assert made.status_code == 201, made.text
     token = made.json()["token"]
-    assert httpx.get(f"{daemon.url}/tilt", headers={"Authorization": f"Bearer {token}"}, timeout=30).status_code == 200
+    assert (
+        httpx.get(
+            f"{daemon.url}/tilt", headers={"Authorization": f"Bearer {token}"}, timeout=30
+        ).status_code
+        == 200
+    )
     return token
 
 
 def _daemon_env(url: str) -> dict[str, str]:
-    return {"TILTLAB_DATABASE_URL": url, "TILTLAB_DB_REQUEST_TIMEOUT_S": str(REQUEST_TIMEOUT_S),
-            "TILTLAB_SIM_TRANSPORT": "loopback"}
+    return {
+        "TILTLAB_DATABASE_URL": url,
+        "TILTLAB_DB_REQUEST_TIMEOUT_S": str(REQUEST_TIMEOUT_S),
+        "TILTLAB_SIM_TRANSPORT": "loopback",
+    }
 
 
 def _named_the_database(answers: list[httpx.Response]) -> None:
@@ -100,19 +122,25 @@ def _named_the_database(answers: list[httpx.Response]) -> None:
     assert {r.status_code for r in answers} == {503}, {r.status_code for r in answers}
     for r in answers:
         body = r.json()
-        assert r.headers["content-type"].startswith("application/problem+json") and "database" in body["detail"]
+        assert (
+            r.headers["content-type"].startswith("application/problem+json")
+            and "database" in body["detail"]
+        )
         assert r.headers.get("retry-after"), r.headers
 
 
-def test_health_and_tilt_keep_their_latency_while_the_database_hangs(tmp_path: Path, database_url: str,
-                                                                     proxy: PgProxy) -> None:
+def test_health_and_tilt_keep_their_latency_while_the_database_hangs(
+    tmp_path: Path, database_url: str, proxy: PgProxy
+) -> None:
     with Daemon(tmp_path / "node", _daemon_env(proxy.url_of(database_url))) as daemon:
         token = _known_token(daemon)
         with httpx.Client(base_url=daemon.url, timeout=120) as client:
             idle = _latencies(client, token)
-            proxy.hang()  # PostgreSQL accepts nothing more and answers nothing: no TCP timeout notices
+            # PostgreSQL accepts nothing more and answers nothing: no TCP timeout notices
+            proxy.hang()
             with strangers(daemon.url) as answers:
-                time.sleep(REQUEST_TIMEOUT_S + 1)  # the first strangers' checks have met their deadline
+                # the first strangers' checks have met their deadline
+                time.sleep(REQUEST_TIMEOUT_S + 1)
                 sick = _latencies(client, token)
             health = client.get("/health").json()
             ready = client.get("/ready")
@@ -123,7 +151,9 @@ def test_health_and_tilt_keep_their_latency_while_the_database_hangs(tmp_path: P
         assert any("database" in reason for reason in ready.json()["reasons"]), ready.text
 
 
-def test_health_and_tilt_keep_their_latency_while_api_tokens_is_locked(tmp_path: Path, database_url: str) -> None:
+def test_health_and_tilt_keep_their_latency_while_api_tokens_is_locked(
+    tmp_path: Path, database_url: str
+) -> None:
     with Daemon(tmp_path / "node", _daemon_env(database_url)) as daemon:
         token = _known_token(daemon)
         locker = sa.create_engine(database_url)
@@ -138,7 +168,10 @@ def test_health_and_tilt_keep_their_latency_while_api_tokens_is_locked(tmp_path:
                         sick = _latencies(client, token)
                     trans.rollback()
                 # the lock gone, an unseen valid token is checked again as before
-                admin = {"Authorization": "Bearer " + (daemon.data_dir / "admin.token").read_text().strip()}
+                admin = {
+                    "Authorization": "Bearer "
+                    + (daemon.data_dir / "admin.token").read_text().strip()
+                }
                 assert client.get("/records", headers=admin).status_code == 200
         finally:
             locker.dispose()

@@ -1,5 +1,5 @@
-"""Simulated benches shared by the instrument tests: on an in-memory line, or on real pseudo-terminals
-for the tests marked `pty`."""
+"""Simulated benches shared by the instrument tests: on an in-memory line, or on real
+pseudo-terminals for the tests marked `pty`."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ from service.clock import Clock
 from service.instruments.sim import start_simulated_bench
 from service.instruments.wiring import open_bench
 
-SPEED = 20.0  # bench seconds per real second: moves and output intervals are short, the rules the same
+# bench seconds per real second: moves and output intervals are short, the rules the same
+SPEED = 20.0
 
 
 def _transport(request) -> str:
@@ -23,8 +24,15 @@ def _transport(request) -> str:
 @pytest.fixture
 def stage_sim(tmp_path, request):
     clock = Clock(SPEED)
-    bench = start_simulated_bench("seed000", "stage", clock, directory=tmp_path / "ports", adc=True,
-                                  output_rate_hz=5, transport=_transport(request))
+    bench = start_simulated_bench(
+        "seed000",
+        "stage",
+        clock,
+        directory=tmp_path / "ports",
+        adc=True,
+        output_rate_hz=5,
+        transport=_transport(request),
+    )
     yield bench
     bench.close()
 
@@ -32,8 +40,14 @@ def stage_sim(tmp_path, request):
 @pytest.fixture
 def rotary_sim(tmp_path, request):
     clock = Clock(SPEED)
-    bench = start_simulated_bench("seed002-sim", "rotary", clock, directory=tmp_path / "ports", output_rate_hz=5,
-                                  transport=_transport(request))
+    bench = start_simulated_bench(
+        "seed002-sim",
+        "rotary",
+        clock,
+        directory=tmp_path / "ports",
+        output_rate_hz=5,
+        transport=_transport(request),
+    )
     yield bench
     bench.close()
 
@@ -53,14 +67,15 @@ def run_with_devices(sim, body, config=None):
 
 
 async def at_rest(sim) -> None:
-    """Wait, on the bench clock, until the last move's settling transient has died out: the table rings
-    and each sensor lags it after every move (the preset's settling), and a reading made at rest is
-    what these tests compare with the world's truth."""
+    """Wait, on the bench clock, until the last move's settling transient has died out: the table
+    rings and each sensor lags it after every move (the preset's settling), and a reading made at
+    rest is what these tests compare with the world's truth."""
     await sim.clock.sleep(sim.world.settling.lasts_s())
 
 
 async def eventually(check, what: str, attempts: int = 200, pause_s: float = 0.02):
-    """Poll an async or plain condition until it holds (no wall-clock assertion: a bounded number of tries)."""
+    """Poll an async or plain condition until it holds (no wall-clock assertion: a bounded number of
+    tries)."""
     for _ in range(attempts):
         got = check()
         if asyncio.iscoroutine(got):

@@ -17,6 +17,7 @@ FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCh
 
 # --- worked examples of the protocol ---------------------------------------------------------
 
+
 def test_binary_read_xy_request_is_the_documented_bytes():
     assert binary.encode(binary.BinaryRequest(0, binary.READ_XY)) == bytes.fromhex("68 04 00 04 08")
 
@@ -29,10 +30,15 @@ def test_binary_xy_answer_is_the_documented_bytes():
     assert binary.parse_answers(wire).messages == [msg]
 
 
-@pytest.mark.parametrize("value, width, decimals, hexbytes", [
-    (12.3456, 3, 4, "00 12 34 56"), (-5.0021, 3, 4, "10 05 00 21"),
-    (21.37, 3, 2, "00 21 37"), (0.707107, 1, 6, "00 70 71 07"),
-])
+@pytest.mark.parametrize(
+    "value, width, decimals, hexbytes",
+    [
+        (12.3456, 3, 4, "00 12 34 56"),
+        (-5.0021, 3, 4, "10 05 00 21"),
+        (21.37, 3, 2, "00 21 37"),
+        (0.707107, 1, 6, "00 70 71 07"),
+    ],
+)
 def test_bcd_examples(value, width, decimals, hexbytes):
     assert binary.encode_bcd(value, width, decimals) == bytes.fromhex(hexbytes)
     assert binary.decode_bcd(bytes.fromhex(hexbytes), decimals) == value
@@ -74,40 +80,59 @@ def test_rs485_wrong_checksum_is_counted_not_returned():
     assert out.messages == [] and out.stats.bad_checksum == 1
 
 
-@pytest.mark.parametrize("msg, wire", [
-    (adc.AdcRequest(), b"ADC?\r\n"), (adc.AdcRequest(10), b"ADC? 10\r\n"), (adc.AdcRequest(identify=True), b"ID?\r\n"),
-    (adc.AdcCounts(2048.0), b"ADC,2048\r\n"), (adc.AdcCounts(2047.5, 10), b"ADC,2047.5,10\r\n"),
-    (adc.AdcIdentity("TA-12", "S0042"), b"ID,TA-12,S0042\r\n"),
-])
+@pytest.mark.parametrize(
+    "msg, wire",
+    [
+        (adc.AdcRequest(), b"ADC?\r\n"),
+        (adc.AdcRequest(10), b"ADC? 10\r\n"),
+        (adc.AdcRequest(identify=True), b"ID?\r\n"),
+        (adc.AdcCounts(2048.0), b"ADC,2048\r\n"),
+        (adc.AdcCounts(2047.5, 10), b"ADC,2047.5,10\r\n"),
+        (adc.AdcIdentity("TA-12", "S0042"), b"ID,TA-12,S0042\r\n"),
+    ],
+)
 def test_adc_messages_are_the_documented_lines(msg, wire):
     assert adc.encode(msg) == wire
     parse = adc.parse_requests if isinstance(msg, adc.AdcRequest) else adc.parse_answers
     assert parse(wire).messages == [msg]
 
 
-@pytest.mark.parametrize("msg, wire", [
-    (controller.ControllerCommand(1, "PA", 1200), b"1PA1200\r\n"),
-    (controller.ControllerCommand(2, "PR", -35), b"2PR-35\r\n"),
-    (controller.ControllerCommand(1, "TP", query=True), b"1TP?\r\n"),
-    (controller.ControllerCommand(3, "ST"), b"3ST\r\n"), (controller.ControllerCommand(3, "OR"), b"3OR\r\n"),
-    (controller.ControllerCommand(1, "VA", 4000), b"1VA4000\r\n"),
-    (controller.ControllerCommand(1, "SL", -21333), b"1SL-21333\r\n"),
-    (controller.ControllerAnswer(1, "TP", -1200), b"1TP-1200\r\n"),
-    (controller.ControllerAnswer(2, "TS", 1), b"2TS1\r\n"), (controller.ControllerAnswer(1, "TE", 5), b"1TE5\r\n"),
-    (controller.ControllerAnswer(3, "ID", text="RT-300 C1234"), b"3IDRT-300 C1234\r\n"),
-])
+@pytest.mark.parametrize(
+    "msg, wire",
+    [
+        (controller.ControllerCommand(1, "PA", 1200), b"1PA1200\r\n"),
+        (controller.ControllerCommand(2, "PR", -35), b"2PR-35\r\n"),
+        (controller.ControllerCommand(1, "TP", query=True), b"1TP?\r\n"),
+        (controller.ControllerCommand(3, "ST"), b"3ST\r\n"),
+        (controller.ControllerCommand(3, "OR"), b"3OR\r\n"),
+        (controller.ControllerCommand(1, "VA", 4000), b"1VA4000\r\n"),
+        (controller.ControllerCommand(1, "SL", -21333), b"1SL-21333\r\n"),
+        (controller.ControllerAnswer(1, "TP", -1200), b"1TP-1200\r\n"),
+        (controller.ControllerAnswer(2, "TS", 1), b"2TS1\r\n"),
+        (controller.ControllerAnswer(1, "TE", 5), b"1TE5\r\n"),
+        (controller.ControllerAnswer(3, "ID", text="RT-300 C1234"), b"3IDRT-300 C1234\r\n"),
+    ],
+)
 def test_controller_messages_are_the_documented_lines(msg, wire):
     assert controller.encode(msg) == wire
-    parse = controller.parse_commands if isinstance(msg, controller.ControllerCommand) else controller.parse_answers
+    parse = (
+        controller.parse_commands
+        if isinstance(msg, controller.ControllerCommand)
+        else controller.parse_answers
+    )
     assert parse(wire).messages == [msg]
 
 
 def test_controller_unknown_command_is_seen_by_the_axis():
     out = controller.parse_commands(b"1XY7\r\n1TP?\r\n")
-    assert out.messages == [controller.UnknownCommand(1, "1XY7"), controller.ControllerCommand(1, "TP", query=True)]
+    assert out.messages == [
+        controller.UnknownCommand(1, "1XY7"),
+        controller.ControllerCommand(1, "TP", query=True),
+    ]
 
 
 # --- strategies: every message of every family -------------------------------------------------
+
 
 def _fixed(digits_int: int, decimals: int):
     lim = 10 ** (digits_int + decimals) - 1
@@ -125,20 +150,36 @@ binary_answers = st.one_of(
     st.builds(lambda a, y: binary.BinaryAnswer(a, 0x82, y_deg=y), byte, angle),
     st.builds(lambda a, x, y: binary.BinaryAnswer(a, 0x84, x_deg=x, y_deg=y), byte, angle, angle),
     st.builds(lambda a, t: binary.BinaryAnswer(a, 0x86, temp_c=t), byte, temp2),
-    st.builds(lambda a, s: binary.BinaryAnswer(a, 0x87, sines=s), byte, st.tuples(sine, sine, sine)),
-    st.builds(lambda a, c, s: binary.BinaryAnswer(a, c, status=s), byte, st.sampled_from([0x85, 0x8B, 0x8C, 0x8F]),
-              st.sampled_from([0x00, 0xFF])),
+    st.builds(
+        lambda a, s: binary.BinaryAnswer(a, 0x87, sines=s), byte, st.tuples(sine, sine, sine)
+    ),
+    st.builds(
+        lambda a, c, s: binary.BinaryAnswer(a, c, status=s),
+        byte,
+        st.sampled_from([0x85, 0x8B, 0x8C, 0x8F]),
+        st.sampled_from([0x00, 0xFF]),
+    ),
 )
 word = st.text(st.sampled_from("ABCXYZ0123456789-_./+"), min_size=1, max_size=12)
 rs485_requests = st.builds(rs485.Rs485Request, byte, st.sampled_from(rs485.COMMANDS))
 rs485_answers = st.one_of(
-    st.builds(rs485.Rs485Reading, byte, _fixed(6, 3), _fixed(6, 3), _fixed(3, 2), st.integers(0, 2)),
+    st.builds(
+        rs485.Rs485Reading, byte, _fixed(6, 3), _fixed(6, 3), _fixed(3, 2), st.integers(0, 2)
+    ),
     st.builds(rs485.Rs485Identity, byte, word, word, word),
     st.builds(rs485.Rs485ZeroDone, byte, st.booleans()),
-    st.builds(rs485.Rs485Ambient, byte, _fixed(3, 2), st.integers(0, 1000).map(lambda v: v / 10), st.integers(0, 1)),
+    st.builds(
+        rs485.Rs485Ambient,
+        byte,
+        _fixed(3, 2),
+        st.integers(0, 1000).map(lambda v: v / 10),
+        st.integers(0, 1),
+    ),
 )
-adc_requests = st.one_of(st.builds(adc.AdcRequest, st.none() | st.integers(1, 1000)),
-                         st.just(adc.AdcRequest(identify=True)))
+adc_requests = st.one_of(
+    st.builds(adc.AdcRequest, st.none() | st.integers(1, 1000)),
+    st.just(adc.AdcRequest(identify=True)),
+)
 adc_answers = st.one_of(
     st.builds(adc.AdcCounts, st.integers(0, 4095).map(float)),
     st.builds(adc.AdcCounts, st.integers(0, 40950).map(lambda v: v / 10), st.integers(1, 1000)),
@@ -148,26 +189,73 @@ pulses = st.integers(-(10**9), 10**9)
 axis = st.integers(1, 9)
 controller_commands = st.one_of(
     st.builds(controller.ControllerCommand, axis, st.sampled_from(controller.SET_COMMANDS), pulses),
-    st.builds(lambda a, c: controller.ControllerCommand(a, c, query=True), axis, st.sampled_from(controller.QUERIES)),
+    st.builds(
+        lambda a, c: controller.ControllerCommand(a, c, query=True),
+        axis,
+        st.sampled_from(controller.QUERIES),
+    ),
     st.builds(controller.ControllerCommand, axis, st.sampled_from(controller.ACTIONS)),
 )
 controller_answers = st.one_of(
-    st.builds(controller.ControllerAnswer, axis, st.sampled_from(["TP", "TS", "VA", "SL", "SR", "TE"]), pulses),
-    st.builds(lambda a, m, s: controller.ControllerAnswer(a, "ID", text=f"{m} {s}"), axis, word, word),
+    st.builds(
+        controller.ControllerAnswer,
+        axis,
+        st.sampled_from(["TP", "TS", "VA", "SL", "SR", "TE"]),
+        pulses,
+    ),
+    st.builds(
+        lambda a, m, s: controller.ControllerAnswer(a, "ID", text=f"{m} {s}"), axis, word, word
+    ),
 )
 
 # family -> (messages, encoder, parser, garbage that cannot start or complete a frame,
 #            first byte a single flip is always detected from (None: the family has no checksum))
 NOT_PRINTABLE = [b for b in range(256) if not 0x20 <= b < 0x7F and b not in (0x0D, 0x0A)]
 FAMILIES = {
-    "binary requests": (binary_requests, binary.encode, binary.parse_requests, [b for b in range(256) if b != 0x68], 2),
-    "binary answers": (binary_answers, binary.encode, binary.parse_answers, [b for b in range(256) if b != 0x68], 2),
-    "rs485 requests": (rs485_requests, rs485.encode, rs485.parse_requests, [b for b in range(256) if b != ord("#")], None),
-    "rs485 answers": (rs485_answers, rs485.encode, rs485.parse_answers, [b for b in range(256) if b != ord("#")], 0),
+    "binary requests": (
+        binary_requests,
+        binary.encode,
+        binary.parse_requests,
+        [b for b in range(256) if b != 0x68],
+        2,
+    ),
+    "binary answers": (
+        binary_answers,
+        binary.encode,
+        binary.parse_answers,
+        [b for b in range(256) if b != 0x68],
+        2,
+    ),
+    "rs485 requests": (
+        rs485_requests,
+        rs485.encode,
+        rs485.parse_requests,
+        [b for b in range(256) if b != ord("#")],
+        None,
+    ),
+    "rs485 answers": (
+        rs485_answers,
+        rs485.encode,
+        rs485.parse_answers,
+        [b for b in range(256) if b != ord("#")],
+        0,
+    ),
     "adc requests": (adc_requests, adc.encode, adc.parse_requests, NOT_PRINTABLE, None),
     "adc answers": (adc_answers, adc.encode, adc.parse_answers, NOT_PRINTABLE, None),
-    "controller commands": (controller_commands, controller.encode, controller.parse_commands, NOT_PRINTABLE, None),
-    "controller answers": (controller_answers, controller.encode, controller.parse_answers, NOT_PRINTABLE, None),
+    "controller commands": (
+        controller_commands,
+        controller.encode,
+        controller.parse_commands,
+        NOT_PRINTABLE,
+        None,
+    ),
+    "controller answers": (
+        controller_answers,
+        controller.encode,
+        controller.parse_answers,
+        NOT_PRINTABLE,
+        None,
+    ),
 }
 
 
@@ -218,12 +306,14 @@ def _damage(data, msgs, encode, garbage_bytes, flip_from, kinds):
         f = encode(m)
         kind = data.draw(st.sampled_from(kinds))
         if kind == "garbage":
-            wire += bytes(data.draw(st.lists(st.sampled_from(garbage_bytes), min_size=1, max_size=20)))
+            wire += bytes(
+                data.draw(st.lists(st.sampled_from(garbage_bytes), min_size=1, max_size=20))
+            )
         elif kind == "truncate":
-            f = f[:data.draw(st.integers(0, len(f) - 1))]
+            f = f[: data.draw(st.integers(0, len(f) - 1))]
         elif kind == "flip":
             i = data.draw(st.integers(flip_from, len(f) - 1))
-            f = f[:i] + bytes([f[i] ^ data.draw(st.integers(1, 255))]) + f[i + 1:]
+            f = f[:i] + bytes([f[i] ^ data.draw(st.integers(1, 255))]) + f[i + 1 :]
         damaged.append(kind in ("truncate", "flip"))
         wire += f
     return wire, damaged
@@ -239,8 +329,11 @@ def test_damaged_streams_yield_only_what_was_sent_and_resynchronise(family, data
     messages, encode, parse, garbage_bytes, flip_from = FAMILIES[family]
     msgs = data.draw(st.lists(messages, min_size=1, max_size=10))
     ascii_family = not family.startswith("binary")
-    kinds = ["none", "garbage"] + (["flip"] if flip_from is not None and ascii_family else []) + \
-        (["truncate"] if ascii_family else [])
+    kinds = (
+        ["none", "garbage"]
+        + (["flip"] if flip_from is not None and ascii_family else [])
+        + (["truncate"] if ascii_family else [])
+    )
     wire, damaged = _damage(data, msgs, encode, garbage_bytes, flip_from, kinds)
     cuts = data.draw(st.lists(st.integers(0, len(wire)), max_size=6))
     got, dec = _feed_in_chunks(parse, wire, cuts)
@@ -259,12 +352,14 @@ def test_binary_frames_with_lost_bytes_cost_at_most_one_false_frame_each(family,
     most one frame that was not sent per damaged frame, and none without damage."""
     messages, encode, parse, garbage_bytes, flip_from = FAMILIES[family]
     msgs = data.draw(st.lists(messages, min_size=1, max_size=10))
-    wire, damaged = _damage(data, msgs, encode, garbage_bytes, flip_from, ["none", "garbage", "truncate", "flip"])
-    got, _ = _feed_in_chunks(parse, wire, data.draw(st.lists(st.integers(0, len(wire)), max_size=6)))
+    wire, damaged = _damage(
+        data, msgs, encode, garbage_bytes, flip_from, ["none", "garbage", "truncate", "flip"]
+    )
+    got, _ = _feed_in_chunks(
+        parse, wire, data.draw(st.lists(st.integers(0, len(wire)), max_size=6))
+    )
     unsent = list(got)
     for m in msgs:
         if m in unsent:
             unsent.remove(m)
     assert len(unsent) <= sum(damaged)
-
-

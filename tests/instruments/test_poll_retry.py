@@ -1,5 +1,5 @@
-"""A state or position poll whose answer is lost on the line is asked again: one lost answer is not a
-lost device, three unanswered in a row are (as the instruments documentation says)."""
+"""A state or position poll whose answer is lost on the line is asked again: one lost answer is not
+a lost device, three unanswered in a row are (as the instruments documentation says)."""
 
 from __future__ import annotations
 

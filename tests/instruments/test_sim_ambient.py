@@ -1,5 +1,6 @@
-"""A bench's ambient sensor: a thermo-hygrometer of family (B) on a pseudo-terminal, read through its driver as on
-hardware; its readings follow the simulated air within the instrument's noise and digits."""
+"""A bench's ambient sensor: a thermo-hygrometer of family (B) on a pseudo-terminal, read through
+its driver as on hardware; its readings follow the simulated air within the instrument's noise and
+digits."""
 
 from __future__ import annotations
 
@@ -15,7 +16,9 @@ from tests.instruments.conftest import SPEED, run_with_devices
 
 @pytest.mark.pty
 def test_the_ambient_sensor_reads_the_air_it_is_in(tmp_path):
-    sim = start_simulated_bench("seed000", "stage", Clock(SPEED), directory=tmp_path / "ports", ambient=True)
+    sim = start_simulated_bench(
+        "seed000", "stage", Clock(SPEED), directory=tmp_path / "ports", ambient=True
+    )
     try:
         assert sim.config.role("ambient_sensor").standard_uncertainty_c == 0.1  # the role's default
         air = sim.ports["ambient_sensor"].firmware
@@ -43,14 +46,23 @@ def test_the_ambient_sensor_reads_the_air_it_is_in(tmp_path):
 def test_an_out_of_range_reading_is_refused_not_kept(tmp_path):
     from service.instruments import rs485
 
-    sim = start_simulated_bench("seed000", "stage", Clock(SPEED), directory=tmp_path / "ports", ambient=True,
-                                transport="loopback")
+    sim = start_simulated_bench(
+        "seed000",
+        "stage",
+        Clock(SPEED),
+        directory=tmp_path / "ports",
+        ambient=True,
+        transport="loopback",
+    )
     try:
         air = sim.ports["ambient_sensor"].firmware
         plain = air.handle
 
         def out_of_range(data: bytes) -> list[bytes]:
-            return [rs485.encode(rs485.Rs485Ambient(1, 99.0, 0.0, 1)) if b"TH" in f else f for f in plain(data)]
+            return [
+                rs485.encode(rs485.Rs485Ambient(1, 99.0, 0.0, 1)) if b"TH" in f else f
+                for f in plain(data)
+            ]
 
         air.handle = out_of_range
 

@@ -1,5 +1,5 @@
-"""Every injected fault, on every family, through real pseudo-terminals: survived, counted, reported,
-and never a value from a damaged frame."""
+"""Every injected fault, on every family, through real pseudo-terminals: survived, counted,
+reported, and never a value from a damaged frame."""
 
 from __future__ import annotations
 
@@ -33,7 +33,8 @@ def _driver(dev, role):
 
 
 async def _line_to_ourselves(dev, role):
-    """No automatic output and no polling: the next frame on the line is the answer to our request."""
+    """No automatic output and no polling: the next frame on the line is the answer to our
+    request."""
     d = _driver(dev, role)
     await d.stop_polling()
     if hasattr(d, "output_rate_hz"):
@@ -55,7 +56,10 @@ def _valid(role, value, sim) -> bool:
     if role == "turntable_sensor":
         return value.status == 0 and abs(value.x_deg) < 0.1 and abs(value.y_deg) < 0.1
     truth = sim.world.sample(noisy=False)
-    return abs(value.x_deg - truth["ref_x_deg"]) < 0.02 and abs(value.y_deg - truth["ref_y_deg"]) < 0.02
+    return (
+        abs(value.x_deg - truth["ref_x_deg"]) < 0.02
+        and abs(value.y_deg - truth["ref_y_deg"]) < 0.02
+    )
 
 
 async def _read_through(dev, role, sim, tries: int = 6):
@@ -86,8 +90,8 @@ def test_garbage_on_the_line_is_skipped_and_counted(request, role):
         c = _driver(dev, role).status.counters
         before = c.resyncs + c.bad_checksum
         sim.faults(role).garbage(64, seed=7)
-        # a streaming sensor's read may answer with a frame that came before the garbage: read on until the
-        # driver has met it (it is on the line, so it comes), every answer meanwhile valid
+        # a streaming sensor's read may answer with a frame that came before the garbage: read on
+        # until the driver has met it (it is on the line, so it comes), every answer meanwhile valid
         for _ in range(20):
             await _read_through(dev, role, sim)
             c = _driver(dev, role).status.counters
@@ -136,7 +140,9 @@ def test_families_without_checksum_refuse_the_checksum_fault(request, role):
         _bench(request, role).faults(role).corrupt_checksum()
 
 
-@pytest.mark.parametrize("role", ["reference_sensor", "stage", "adc_sensor", "turntable_sensor", "rotary_table"])
+@pytest.mark.parametrize(
+    "role", ["reference_sensor", "stage", "adc_sensor", "turntable_sensor", "rotary_table"]
+)
 def test_slow_answers_within_and_beyond_the_timeout(request, role):
     sim = _bench(request, role)
 
@@ -153,7 +159,9 @@ def test_slow_answers_within_and_beyond_the_timeout(request, role):
     run_with_devices(sim, body)
 
 
-@pytest.mark.parametrize("role", ["reference_sensor", "stage", "turntable_sensor", "triaxial_sensor"])
+@pytest.mark.parametrize(
+    "role", ["reference_sensor", "stage", "turntable_sensor", "triaxial_sensor"]
+)
 def test_an_answer_from_the_wrong_address_is_not_taken(request, role):
     sim = _bench(request, role)
 
@@ -173,7 +181,8 @@ def test_the_adc_has_no_address_to_fake(stage_sim):
         stage_sim.faults("adc_sensor").wrong_address()
 
 
-@pytest.mark.pty  # a pulled USB adapter: the pty goes away under the open port (every device on a pty)
+# a pulled USB adapter: the pty goes away under the open port (every device on a pty)
+@pytest.mark.pty
 @pytest.mark.parametrize("role", STAGE_ROLES + ROTARY_ROLES)
 def test_a_pulled_cable_is_reported_and_the_port_reopened(request, role):
     sim = _bench(request, role)
@@ -192,7 +201,8 @@ def test_a_pulled_cable_is_reported_and_the_port_reopened(request, role):
     run_with_devices(sim, body)
 
 
-@pytest.mark.pty  # a pulled USB adapter: the pty goes away under the open port (every device on a pty)
+# a pulled USB adapter: the pty goes away under the open port (every device on a pty)
+@pytest.mark.pty
 @pytest.mark.parametrize("role", ["reference_sensor", "stage", "turntable_sensor"])
 def test_a_cable_pulled_in_the_middle_of_a_read_fails_that_read_not_by_timeout(request, role):
     sim = _bench(request, role)
@@ -202,7 +212,9 @@ def test_a_cable_pulled_in_the_middle_of_a_read_fails_that_read_not_by_timeout(r
         d.timeout_s = 30.0  # the read would wait this long if the outage were not noticed
         sim.faults(role).slow(20.0)  # the answer is on its way when the cable goes
         read = asyncio.ensure_future(_reader(dev, role)())
-        await eventually(lambda: not sim.faults(role).slow_next, "the request reached the instrument")
+        await eventually(
+            lambda: not sim.faults(role).slow_next, "the request reached the instrument"
+        )
         sim.faults(role).disconnect(0.3)
         with pytest.raises(DeviceUnavailable, match="went away"):
             await read
@@ -217,7 +229,9 @@ def test_a_silent_instrument_times_out_and_says_where(stage_sim):
     async def body(dev):
         await _line_to_ourselves(dev, "reference_sensor")
         stage_sim.faults("reference_sensor").silence()
-        with pytest.raises(DeviceTimeout, match=r"reference_sensor: read tilt: no answer on .*reference_sensor"):
+        with pytest.raises(
+            DeviceTimeout, match=r"reference_sensor: read tilt: no answer on .*reference_sensor"
+        ):
             await dev.reference_sensor.read_tilt()
         stage_sim.faults("reference_sensor").silence(False)
         await _read_through(dev, "reference_sensor", stage_sim)

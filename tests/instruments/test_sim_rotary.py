@@ -17,7 +17,7 @@ def test_rotary_table_turns_without_limit_and_the_sines_follow(rotary_sim):
         table = dev.rotary_table
         assert (await table.identify()).model == "RT-360SIM"
         lo, hi = await table.soft_limits_pulses()
-        assert lo < -10**9 and hi > 10**9
+        assert lo < -(10**9) and hi > 10**9
         before = await dev.triaxial_sensor.read_sines()
         await table.move_to_deg(400.0)  # past a full turn
         await table.wait_until_idle(120)
@@ -34,9 +34,12 @@ def test_rotary_table_turns_without_limit_and_the_sines_follow(rotary_sim):
 
 def _bus_config(sim, addresses):
     bus = sim.port_path("turntable_sensor")
-    lines = ["[benches.bus]", 'kind = "rotary"',
-             f'[benches.bus.roles.rotary_table]\nport = "{sim.port_path("rotary_table")}"\naxis = 3',
-             f'[benches.bus.roles.turntable_sensor]\nport = "{bus}"\naddress = "{addresses[0]:02X}"']
+    lines = [
+        "[benches.bus]",
+        'kind = "rotary"',
+        f'[benches.bus.roles.rotary_table]\nport = "{sim.port_path("rotary_table")}"\naxis = 3',
+        f'[benches.bus.roles.turntable_sensor]\nport = "{bus}"\naddress = "{addresses[0]:02X}"',
+    ]
     cfg = parse_bench_config(__import__("tomllib").loads("\n".join(lines))).bench("bus")
     return cfg, bus
 
@@ -50,8 +53,16 @@ def test_three_addressed_inclinometers_share_one_bus(rotary_sim):
         cfg, bus = _bus_config(rotary_sim, (1, 2, 3))
         registry = PortRegistry()
         spec = cfg.role("turntable_sensor")
-        sensors = [make_driver("turntable_sensor", spec.model_copy(update={"address": f"{a:02X}", "poll_rate_hz": 50.0}),
-                               cfg, rotary_sim.clock, registry) for a in (1, 2, 3)]
+        sensors = [
+            make_driver(
+                "turntable_sensor",
+                spec.model_copy(update={"address": f"{a:02X}", "poll_rate_hz": 50.0}),
+                cfg,
+                rotary_sim.clock,
+                registry,
+            )
+            for a in (1, 2, 3)
+        ]
         assert len({id(s.port) for s in sensors}) == 1  # one owner of the bus
         for s in sensors:
             await s.start()
@@ -60,19 +71,26 @@ def test_three_addressed_inclinometers_share_one_bus(rotary_sim):
             assert [i.serial for i in idents] == ["SIM-B01", "SIM-B02", "SIM-B03"]
             readings = await asyncio.gather(*(s.read_tilt() for s in sensors for _ in range(5)))
             for k in range(len(sensors)):
-                mine = readings[5 * k:5 * k + 5]
+                mine = readings[5 * k : 5 * k + 5]
                 x_mrad, y_mrad = rotary_sim.world.turntable_mrad(k + 1, noisy=False)
                 for r in mine:
                     assert rs485.deg_to_mrad(r.x_deg) == pytest.approx(x_mrad, abs=0.005)
                     assert rs485.deg_to_mrad(r.y_deg) == pytest.approx(y_mrad, abs=0.005)
-            # The three sit at different azimuths, so they read differently: no answer went to the wrong one.
+            # The three sit at different azimuths, so they read differently: no answer went to the
+            # wrong one.
             firsts = [round(rs485.deg_to_mrad(readings[5 * k].x_deg), 2) for k in range(3)]
             assert len(set(firsts)) == 3
             await sensors[1].set_relative_zero()
             z = await sensors[1].read_tilt()
             assert abs(rs485.deg_to_mrad(z.x_deg)) < 0.005
             other = await sensors[0].read_tilt()
-            assert abs(rs485.deg_to_mrad(other.x_deg) - rotary_sim.world.turntable_mrad(1, noisy=False)[0]) < 0.005
+            assert (
+                abs(
+                    rs485.deg_to_mrad(other.x_deg)
+                    - rotary_sim.world.turntable_mrad(1, noisy=False)[0]
+                )
+                < 0.005
+            )
             assert sensors[0].status.counters.timeouts == 0
         finally:
             for s in sensors:
@@ -82,7 +100,11 @@ def test_three_addressed_inclinometers_share_one_bus(rotary_sim):
 
 
 def test_a_bench_with_both_rotary_sensors_opens_from_the_printed_configuration(rotary_sim):
-    assert set(rotary_sim.config.role_specs) == {"rotary_table", "triaxial_sensor", "turntable_sensor"}
+    assert set(rotary_sim.config.role_specs) == {
+        "rotary_table",
+        "triaxial_sensor",
+        "turntable_sensor",
+    }
 
     async def body(dev):
         assert set(dev) == {"rotary_table", "triaxial_sensor", "turntable_sensor"}

@@ -58,7 +58,9 @@ def test_relative_zero_makes_the_present_angle_zero(stage_sim):
         assert abs(r.x_deg) < NOISE_TOL_DEG and abs(r.y_deg) < NOISE_TOL_DEG
         await dev.reference_sensor.set_absolute_zero()
         r = await dev.reference_sensor.read_tilt()
-        assert r.x_deg == pytest.approx(stage_sim.world.sample(noisy=False)["ref_x_deg"], abs=NOISE_TOL_DEG)
+        assert r.x_deg == pytest.approx(
+            stage_sim.world.sample(noisy=False)["ref_x_deg"], abs=NOISE_TOL_DEG
+        )
 
     run_with_devices(stage_sim, body)
 
@@ -130,7 +132,8 @@ def test_adc_counts_follow_the_table_tilt(stage_sim):
         assert one.counts == int(one.counts) and 0 <= one.counts <= 4095
         mean = await a.read_counts(50)
         expected = stage_sim.world.adc_counts(2000)
-        assert mean.counts == pytest.approx(expected, abs=20)  # 5 sigma of a mean of 50 at 25 counts
+        # 5 sigma of a mean of 50 at 25 counts
+        assert mean.counts == pytest.approx(expected, abs=20)
         await dev.stage.move_to_deg(0.05, 0.0)
         await dev.stage.wait_until_idle(60)
         moved = await a.read_counts(50)
@@ -152,7 +155,8 @@ def test_status_reports_every_role(stage_sim):
 
 
 def test_binary_settings_commands_as_the_protocol_says(stage_sim):
-    """Address change answered from the old address, a baud code out of the table refused, 0x07 unanswered."""
+    """Address change answered from the old address, a baud code out of the table refused, 0x07
+    unanswered."""
     from service.instruments import binary
     from service.instruments.transport import DeviceTimeout
 
@@ -169,7 +173,9 @@ def test_binary_settings_commands_as_the_protocol_says(stage_sim):
         refused = await port.request(req(0, binary.SET_BAUD, 0x09), answer(0, 0x8B), 1.0, "baud")
         assert refused.status == binary.STATUS_REFUSED
         with pytest.raises(DeviceTimeout):
-            await port.request(req(0, binary.READ_SINES), answer(0, 0x87), 0.3, "sines of a biaxial sensor")
+            await port.request(
+                req(0, binary.READ_SINES), answer(0, 0x87), 0.3, "sines of a biaxial sensor"
+            )
         port.own(5)
         moved = await port.request(req(0, binary.SET_ADDRESS, 5), answer(0, 0x8F), 1.0, "address")
         assert moved.status == binary.STATUS_DONE
@@ -200,6 +206,7 @@ def test_an_axis_that_is_not_homed_refuses_moves_until_homed(stage_sim):
 def test_a_lost_state_answer_during_a_move_is_polled_again(stage_sim):
     """One state answer lost on the line (sent from a wrong axis, so the driver may not take it)
     costs one more poll, not the move; the loss is counted."""
+
     async def body(dev):
         axis = dev.stage.x
         await axis.move_to_deg(2.0)

@@ -30,11 +30,14 @@ def _move(world: StageWorld, x_pulses: int, y_pulses: int) -> None:
         deadline = time.monotonic() + 30
         while world.axes[axis].state != ctl.STATE_READY:
             assert time.monotonic() < deadline, "the simulated move did not end"
-    world.clock.sleep_blocking(world.settling.lasts_s())  # at rest: the preset's settling transient has died out
+    # at rest: the preset's settling transient has died out
+    world.clock.sleep_blocking(world.settling.lasts_s())
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_at_rest_the_sensors_differ_by_their_own_noise_and_the_table_does_not_jitter(seed: int) -> None:
+def test_at_rest_the_sensors_differ_by_their_own_noise_and_the_table_does_not_jitter(
+    seed: int,
+) -> None:
     world = _world(seed)
     _move(world, round(3.0 / world.bench.pulse_x_deg), round(-2.0 / world.bench.pulse_y_deg))
     truth = world.true_tilt_deg()
@@ -47,8 +50,8 @@ def test_at_rest_the_sensors_differ_by_their_own_noise_and_the_table_does_not_ji
     # the measurement sensor in the table frame: its readings less their mean offset at this stand
     diff = (meas - meas.mean(axis=0)) - (ref - ref.mean(axis=0))
     sd = diff.std(axis=0, ddof=1)
-    # the sample sd of 400 normal values lies within ±15 % of sigma far beyond 5 sigma of its own spread;
-    # the old simulator (a positioning draw per reading and sensor) gave 1.4x more
+    # the sample sd of 400 normal values lies within ±15 % of sigma far beyond 5 sigma of its own
+    # spread; the old simulator (a positioning draw per reading and sensor) gave 1.4x more
     assert np.all(sd > 0.85 * combined) and np.all(sd < 1.15 * combined), (sd, combined)
     # the reference sensor scatters about the table as it stands by its own noise alone
     ref_sd = ref.std(axis=0, ddof=1)

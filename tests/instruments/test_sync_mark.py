@@ -51,12 +51,19 @@ def test_readings_after_the_mark_are_of_the_new_pose(stage_sim, target):
         mark = await sensor.sync()
         assert mark > called_s
         late = [r for r in sensor.readings_after(called_s) if r.bench_s <= mark]
-        assert late and any(abs(r.x_deg - truth["ref_x_deg"]) > 0.5 for r in late), \
-            "the held reader delivered no reading of the old pose after the call: nothing was tested"
-        await eventually(lambda: len(sensor.readings_after(mark)) >= 5, "five readings after the mark")
+        assert late and any(abs(r.x_deg - truth["ref_x_deg"]) > 0.5 for r in late), (
+            "the held reader delivered no reading of the old pose after the call: nothing was "
+            "tested"
+        )
+        await eventually(
+            lambda: len(sensor.readings_after(mark)) >= 5, "five readings after the mark"
+        )
         fresh = sensor.readings_after(mark)
-        assert all(abs(r.x_deg - truth["ref_x_deg"]) < NOISE_TOL_DEG and
-                   abs(r.y_deg - truth["ref_y_deg"]) < NOISE_TOL_DEG for r in fresh), (fresh, truth)
+        assert all(
+            abs(r.x_deg - truth["ref_x_deg"]) < NOISE_TOL_DEG
+            and abs(r.y_deg - truth["ref_y_deg"]) < NOISE_TOL_DEG
+            for r in fresh
+        ), (fresh, truth)
         # the answer is a temperature, carried by the readings from then on
         assert fresh[0].temp_c == pytest.approx(stage_sim.world.temp_c(), abs=0.05)
         assert before.bench_s < called_s
@@ -68,12 +75,14 @@ def test_an_answer_owed_from_before_the_call_does_not_mark_the_stream(stage_sim)
     """A temperature request timed out before the call (the reader held up), and its answer waits in
     the line behind it with frames made during a move. The first answer the mark's request gets is
     that old one; readings counted after the mark are still of the new pose only."""
+
     async def body(dev):
         sensor = dev.reference_sensor
         await eventually(sensor.latest, "a first automatic-output frame")
         release = _hold_reader(sensor.port)
         with pytest.raises(DeviceTimeout):
-            await sensor.read_temperature()  # answered on the line, but the held reader does not see it
+            # answered on the line, but the held reader does not see it
+            await sensor.read_temperature()
         await dev.stage.move_to_deg(4.0, -3.0)  # frames of the motion queue up behind that answer
         await dev.stage.wait_until_idle(60)
         await at_rest(stage_sim)
@@ -84,13 +93,24 @@ def test_an_answer_owed_from_before_the_call_does_not_mark_the_stream(stage_sim)
         called_s = sensor.clock.monotonic()
         threading.Timer(0.2, release.set).start()
         mark = await sensor.sync()
-        await eventually(lambda: len(sensor.readings_after(mark)) >= 5, "five readings after the mark")
-        assert any(abs(r.x_deg - truth["ref_x_deg"]) > 0.5 for r in sensor.readings_after(called_s)), \
-            "the held reader delivered no reading of the motion after the call: nothing was tested"
+        await eventually(
+            lambda: len(sensor.readings_after(mark)) >= 5, "five readings after the mark"
+        )
+        assert any(
+            abs(r.x_deg - truth["ref_x_deg"]) > 0.5 for r in sensor.readings_after(called_s)
+        ), "the held reader delivered no reading of the motion after the call: nothing was tested"
         fresh = sensor.readings_after(mark)
-        off = [r for r in fresh if abs(r.x_deg - truth["ref_x_deg"]) > NOISE_TOL_DEG or
-               abs(r.y_deg - truth["ref_y_deg"]) > NOISE_TOL_DEG]
-        assert not off, (f"{len(off)} of {len(fresh)} readings after the mark are not of the new pose", off[:3], truth)
+        off = [
+            r
+            for r in fresh
+            if abs(r.x_deg - truth["ref_x_deg"]) > NOISE_TOL_DEG
+            or abs(r.y_deg - truth["ref_y_deg"]) > NOISE_TOL_DEG
+        ]
+        assert not off, (
+            f"{len(off)} of {len(fresh)} readings after the mark are not of the new pose",
+            off[:3],
+            truth,
+        )
         assert not sensor.temp_answer_owed
 
     run_with_devices(stage_sim, body)
@@ -99,6 +119,7 @@ def test_an_answer_owed_from_before_the_call_does_not_mark_the_stream(stage_sim)
 def test_an_instrument_without_a_temperature_answer_still_gives_a_mark(stage_sim, monkeypatch):
     """A family (A) firmware that ignores 0x06: after SYNC_ASKS requests the mark falls back to the
     present time, and the firmware is not asked again."""
+
     async def body(dev):
         sensor = dev.reference_sensor
         await eventually(sensor.latest, "a first automatic-output frame")
@@ -124,6 +145,7 @@ def test_an_instrument_without_a_temperature_answer_still_gives_a_mark(stage_sim
 def test_a_lost_temperature_answer_is_asked_again(stage_sim):
     """One answer lost on the line (here: sent from a wrong address, so the driver may not take it)
     costs a second request, not the temperature and not the mark."""
+
     async def body(dev):
         sensor = dev.reference_sensor
         await eventually(sensor.latest, "a first automatic-output frame")
@@ -140,6 +162,7 @@ def test_a_lost_temperature_answer_is_asked_again(stage_sim):
 def test_a_reader_held_past_one_timeout_still_gives_a_mark(stage_sim):
     """The reader held up for longer than one request's timeout (a loaded machine): nothing at all
     arrives during the first request, which is not taken for a silent instrument."""
+
     async def body(dev):
         sensor = dev.reference_sensor
         await eventually(sensor.latest, "a first automatic-output frame")
@@ -159,9 +182,14 @@ def test_a_silent_instrument_fails_the_mark_naming_role_and_port(stage_sim):
         sensor = dev.reference_sensor
         await eventually(sensor.latest, "a first automatic-output frame")
         stage_sim.faults("reference_sensor").silence(True)
-        line = stage_sim.ports["reference_sensor"].line  # the in-memory line says what is still on its way
-        await eventually(lambda: line.pending_for_host() == 0, "the frames sent before the silence arrived")
-        with pytest.raises(DeviceTimeout, match="reference_sensor.*" + re.escape(sensor.port.where)):
+        # the in-memory line says what is still on its way
+        line = stage_sim.ports["reference_sensor"].line
+        await eventually(
+            lambda: line.pending_for_host() == 0, "the frames sent before the silence arrived"
+        )
+        with pytest.raises(
+            DeviceTimeout, match="reference_sensor.*" + re.escape(sensor.port.where)
+        ):
             await sensor.sync()
         assert sensor.answers_temperature  # silence is not taken for a firmware without 0x06
 

@@ -21,17 +21,22 @@ from service.instruments.transport import DeviceUnavailable, SerialPort, resolve
 from service.instruments.wiring import open_bench
 from tests.instruments.conftest import eventually
 
-pytestmark = pytest.mark.pty  # the ports are pseudo-terminals (device paths, USB names, servers in front)
+# the ports are pseudo-terminals (device paths, USB names, servers in front)
+pytestmark = pytest.mark.pty
 
 
 def test_a_usb_serial_number_names_the_adapter_wherever_it_is_plugged(stage_sim, monkeypatch):
-    ports = [SimpleNamespace(device="/dev/ttyS0", serial_number=None),
-             SimpleNamespace(device=stage_sim.port_path("stage"), serial_number="FT5XYZ12")]
+    ports = [
+        SimpleNamespace(device="/dev/ttyS0", serial_number=None),
+        SimpleNamespace(device=stage_sim.port_path("stage"), serial_number="FT5XYZ12"),
+    ]
     monkeypatch.setattr("serial.tools.list_ports.comports", lambda: ports)
     assert resolve_usb_serial("FT5XYZ12") == stage_sim.port_path("stage")
     with pytest.raises(DeviceUnavailable, match="no USB serial adapter with serial number NOPE"):
         resolve_usb_serial("NOPE")
-    text = stage_sim.toml.replace(f'port = "{stage_sim.port_path("stage")}"', 'usb_serial = "FT5XYZ12"')
+    text = stage_sim.toml.replace(
+        f'port = "{stage_sim.port_path("stage")}"', 'usb_serial = "FT5XYZ12"'
+    )
     config = parse_bench_config(__import__("tomllib").loads(text)).bench()
 
     async def main():
@@ -107,7 +112,9 @@ def test_an_instrument_behind_a_tcp_serial_server():
 
 def test_a_port_that_never_opens_is_failed_and_says_why(tmp_path):
     async def main():
-        port = SerialPort(str(tmp_path / "ttyUSB9"), controller.parse_answers, baud=57600, fail_after_s=0.2)
+        port = SerialPort(
+            str(tmp_path / "ttyUSB9"), controller.parse_answers, baud=57600, fail_after_s=0.2
+        )
         axis = ControllerAxis("stage", port, Clock(1.0), 0.2, axis=1, pulse_deg=0.0005)
         await axis.start()
         try:
@@ -139,7 +146,8 @@ class _NoModemLines:
 
 
 class _Rfc2217Server(threading.Thread):
-    """An RFC 2217 serial server in front of a simulated instrument's port (pyserial's PortManager)."""
+    """An RFC 2217 serial server in front of a simulated instrument's port (pyserial's
+    PortManager)."""
 
     def __init__(self, device: str) -> None:
         super().__init__(daemon=True)
@@ -155,7 +163,9 @@ class _Rfc2217Server(threading.Thread):
 
         conn, _ = self.server.accept()
         conn.settimeout(0.05)
-        manager = serial.rfc2217.PortManager(_NoModemLines(self.serial), SimpleNamespace(write=conn.sendall))
+        manager = serial.rfc2217.PortManager(
+            _NoModemLines(self.serial), SimpleNamespace(write=conn.sendall)
+        )
         with conn:
             while not self.stop.is_set():
                 data = self.serial.read(self.serial.in_waiting or 1)
@@ -176,7 +186,9 @@ def test_an_instrument_behind_an_rfc2217_server(stage_sim):
     server.start()
 
     async def main():
-        port = SerialPort(f"rfc2217://127.0.0.1:{server.port}", controller.parse_answers, baud=57600)
+        port = SerialPort(
+            f"rfc2217://127.0.0.1:{server.port}", controller.parse_answers, baud=57600
+        )
         axis = ControllerAxis("stage", port, stage_sim.clock, 2.0, axis=2, pulse_deg=0.0005)
         await axis.start()
         try:
@@ -199,7 +211,9 @@ def test_an_instrument_behind_an_rfc2217_server(stage_sim):
 
 def test_requests_do_not_wait_for_the_shared_worker_pool():
     """Every worker of the loop's default pool held (as database writes waiting for a lock would
-    hold them): a request still goes out and is answered, because writes use the port's own thread."""
+    hold them): a request still goes out and is answered, because writes use the port's own
+    thread."""
+
     async def body(table, _server):
         loop = asyncio.get_running_loop()
         release = threading.Event()
@@ -216,6 +230,7 @@ def test_requests_do_not_wait_for_the_shared_worker_pool():
 def test_an_answer_in_time_is_kept_when_the_event_loop_runs_late():
     """The loop held up past a request's deadline (a blocking call elsewhere): the answer that came
     meanwhile is returned, not a timeout."""
+
     async def body(table, _server):
         frames = table.port.decoder.stats.frames
         asked = asyncio.get_running_loop().create_task(table.identify())

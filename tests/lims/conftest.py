@@ -35,8 +35,8 @@ def lab_signing_files(tmp_path_factory):  # type: ignore[no-untyped-def]
 
 @pytest.fixture(autouse=True)
 def reviewed_certificates(monkeypatch, lab_signing_files):  # type: ignore[no-untyped-def]
-    """Every certificate a LIMS test issues is signed with the lab's key (configured as a lab would) and checked
-    as a reviewer would (tests/lims/reviewer.py), its signature included."""
+    """Every certificate a LIMS test issues is signed with the lab's key (configured as a lab would)
+    and checked as a reviewer would (tests/lims/reviewer.py), its signature included."""
     from service.lims import dcc
     from service.lims.signature import load_signer
     from tests.lims.reviewer import problems

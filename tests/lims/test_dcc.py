@@ -1,4 +1,5 @@
-"""Digital Calibration Certificates: valid DCC 3.3.0 offline, content equal to the record, invalid ones refused."""
+"""Digital Calibration Certificates: valid DCC 3.3.0 offline, content equal to the record, invalid
+ones refused."""
 
 from __future__ import annotations
 
@@ -31,16 +32,29 @@ ORDER = {"lims_order_id": "LIMS-2026-118", "item_serial": "CUST-ITEM-55", "custo
 
 def certificate(record=None, **kw) -> dcc.Certificate:
     record = record or stage_record()
-    args = dict(number="TL-2026-000007", record=record, device=DEVICE, approval=APPROVAL,
-                operator="max", operator_person=OPERATOR, laboratory=LAB, software_version="0.1.0",
-                issued_on=dt.date(2026, 11, 22), begin_on=dt.date(2026, 11, 20), standards=STANDARDS, order=ORDER,
-                measured_points=stage_points() if record["kind"] == "stage" else (), job_id=12)  # fmt: skip
+    args = dict(
+        number="TL-2026-000007",
+        record=record,
+        device=DEVICE,
+        approval=APPROVAL,
+        operator="max",
+        operator_person=OPERATOR,
+        laboratory=LAB,
+        software_version="0.1.0",
+        issued_on=dt.date(2026, 11, 22),
+        begin_on=dt.date(2026, 11, 20),
+        standards=STANDARDS,
+        order=ORDER,
+        measured_points=stage_points() if record["kind"] == "stage" else (),
+        job_id=12,
+    )
     args.update(kw)
     return build_certificate(**args)
 
 
 def decoded(xml: bytes) -> dict:
-    """An independent reader: xmlschema's decoder, driven by the schema alone (not by our writer)."""
+    """An independent reader: xmlschema's decoder, driven by the schema alone (not by our
+    writer)."""
     return dcc.dcc_schema().to_dict(xml.decode())
 
 
@@ -54,7 +68,9 @@ def test_shipped_schemas_are_the_published_files():
     """The README's table of hashes is the contract: an edited schema is noticed."""
     readme = (dcc.SCHEMA_DIR / "README.md").read_text()
     for name in ("dcc.xsd", "SI_Format.xsd", "qudt-quantitykind-shim.xsd"):
-        stated = re.search(rf"^\| `{re.escape(name)}` .*\| ([0-9a-f]{{64}}) \|$", readme, re.M).group(1)
+        stated = re.search(
+            rf"^\| `{re.escape(name)}` .*\| ([0-9a-f]{{64}}) \|$", readme, re.M
+        ).group(1)
         assert hashlib.sha256((dcc.SCHEMA_DIR / name).read_bytes()).hexdigest() == stated, name
     assert "GNU LESSER GENERAL PUBLIC LICENSE" in (dcc.SCHEMA_DIR / "COPYING.LESSER").read_text()
     assert "GNU Lesser General Public License" in (dcc.SCHEMA_DIR / "dcc.xsd").read_text()
@@ -84,7 +100,10 @@ def test_stage_certificate_is_valid_and_reads_back_equal_to_the_record():
     assert adm["dcc:coreData"]["dcc:uniqueIdentifier"] == "TL-2026-000007"
     item = adm["dcc:items"]["dcc:item"][0]
     assert item["dcc:model"] == "SCA126T"
-    serials = {_content(i["dcc:name"]): i["dcc:value"] for i in item["dcc:identifications"]["dcc:identification"]}
+    serials = {
+        _content(i["dcc:name"]): i["dcc:value"]
+        for i in item["dcc:identifications"]["dcc:identification"]
+    }
     # the item by the order's serial and the instrument's own; never a port or role
     assert serials["serial number"] == "CUST-ITEM-55"
     assert serials["serial number reported by the instrument"] == "SN-4711"
@@ -94,10 +113,13 @@ def test_stage_certificate_is_valid_and_reads_back_equal_to_the_record():
     assert len(main) == 1 and _content(main[0]["dcc:person"]["dcc:name"]) == APPROVAL.signer.name
     assert _content(adm["dcc:customer"]["dcc:name"]) == CUSTOMER["name"]
 
-    # every parameter of the item with its value and expanded uncertainty, equal to the record's (GUM-rounded);
-    # the bench's own parameters (stage scales, desk tilt) are not results of the item
+    # every parameter of the item with its value and expanded uncertainty, equal to the record's
+    # (GUM-rounded); the bench's own parameters (stage scales, desk tilt) are not results of the
+    # item
     model = record["model"]
-    item_params = {n: p for n, p in model["parameters"].items() if n not in model["state"]["chain_parameters"]}
+    item_params = {
+        n: p for n, p in model["parameters"].items() if n not in model["state"]["chain_parameters"]
+    }
     names = model["covariance"]["names"]
     cov = np.asarray(model["covariance"]["matrix"])
     results = doc["dcc:measurementResults"]
@@ -114,8 +136,12 @@ def test_stage_certificate_is_valid_and_reads_back_equal_to_the_record():
         mu = real["si:measurementUncertaintyUnivariate"]["si:expandedMU"]
         u = math.sqrt(cov[names.index(name), names.index(name)])
         half_digit = 0.5 * 10 ** (math.floor(math.log10(mu["si:valueExpandedMU"])) - 1) * (1 + 1e-9)
-        assert abs(real["si:value"] - p["value"]) <= half_digit  # the value to U's last decimal place
-        assert abs(mu["si:valueExpandedMU"] - mu["si:coverageFactor"] * u) <= half_digit + 0.005 * u * 3
+        # the value to U's last decimal place
+        assert abs(real["si:value"] - p["value"]) <= half_digit
+        assert (
+            abs(mu["si:valueExpandedMU"] - mu["si:coverageFactor"] * u)
+            <= half_digit + 0.005 * u * 3
+        )
         assert mu["si:coverageProbability"] == 0.95
         assert 1.96 <= mu["si:coverageFactor"] < 2.1  # Student's t at the fit's degrees of freedom
         unit = real["si:unit"]
@@ -127,20 +153,35 @@ def test_stage_certificate_is_valid_and_reads_back_equal_to_the_record():
     points = record["validation"]["points"]
     err = cols["error_x_deg"]
     mu = err["si:measurementUncertaintyUnivariateXMLList"]["si:expandedMUXMLList"]
-    halves = [0.5 * 10 ** (math.floor(math.log10(U)) - 1) * (1 + 1e-9) for U in mu["si:valueExpandedMUXMLList"]]
+    halves = [
+        0.5 * 10 ** (math.floor(math.log10(U)) - 1) * (1 + 1e-9)
+        for U in mu["si:valueExpandedMUXMLList"]
+    ]
     for i, p in enumerate(points):
-        assert abs(cols["reference_x_deg"]["si:valueXMLList"][i] - p["reference_x_deg"]) <= halves[i]
-        assert abs(cols["measured_y_deg"]["si:valueXMLList"][i] - p["measured_y_deg"]) <= 2 * halves[i]
-        assert abs(err["si:valueXMLList"][i] - (p["measured_x_deg"] - p["reference_x_deg"])) <= halves[i]
+        assert (
+            abs(cols["reference_x_deg"]["si:valueXMLList"][i] - p["reference_x_deg"]) <= halves[i]
+        )
+        assert (
+            abs(cols["measured_y_deg"]["si:valueXMLList"][i] - p["measured_y_deg"]) <= 2 * halves[i]
+        )
+        assert (
+            abs(err["si:valueXMLList"][i] - (p["measured_x_deg"] - p["reference_x_deg"]))
+            <= halves[i]
+        )
         assert abs(mu["si:valueExpandedMUXMLList"][i] - p["u_x_deg"]) <= halves[i]
     assert len(mu["si:coverageFactorXMLList"]) == len(points)
 
     # reference standards with their certificate numbers and hashes; temperature in D-SI
     eq = results["dcc:measuringEquipments"]["dcc:measuringEquipment"]
-    assert [(e["dcc:certificate"]["dcc:referralID"], e["dcc:certificate"]["dcc:value"]) for e in eq] == [
-        (s["certificate_number"], s["certificate_sha256"]) for s in STANDARDS]
-    conditions = {" ".join(c["@refType"]): c for c in results["dcc:influenceConditions"]["dcc:influenceCondition"]}
-    cond = conditions["basic_temperature"]["dcc:data"]["dcc:quantity"][0]["si:real"]  # the sensor's own
+    assert [
+        (e["dcc:certificate"]["dcc:referralID"], e["dcc:certificate"]["dcc:value"]) for e in eq
+    ] == [(s["certificate_number"], s["certificate_sha256"]) for s in STANDARDS]
+    conditions = {
+        " ".join(c["@refType"]): c
+        for c in results["dcc:influenceConditions"]["dcc:influenceCondition"]
+    }
+    # the sensor's own
+    cond = conditions["basic_temperature"]["dcc:data"]["dcc:quantity"][0]["si:real"]
     assert (cond["si:value"], cond["si:unit"]) == (20.4, r"\degreecelsius")
     method = results["dcc:usedMethods"]["dcc:usedMethod"][0]
     assert "10.13382/j.jemi.B2407429" in method["dcc:reference"][0]
@@ -150,16 +191,24 @@ def test_several_results_and_kinds_are_valid():
     for record in (stage_record("homography"), scale_record()):
         xml = dcc.issue(certificate(record))
         assert dcc.certificate_errors(xml) == []
-    two = dataclasses.replace(certificate(), results=certificate().results + certificate(scale_record()).results)
+    two = dataclasses.replace(
+        certificate(), results=certificate().results + certificate(scale_record()).results
+    )
     xml = dcc.issue(two)
     assert len(decoded(xml)["dcc:measurementResults"]["dcc:measurementResult"]) == 2
 
 
 def test_substituting_certificate_names_the_one_it_replaces():
-    xml = dcc.issue(certificate(stage_record(version=2, record_id=8), number="TL-2026-000008",
-                                replaces="TL-2026-000007"))
+    xml = dcc.issue(
+        certificate(
+            stage_record(version=2, record_id=8), number="TL-2026-000008", replaces="TL-2026-000007"
+        )
+    )
     ras = decoded(xml)["dcc:administrativeData"]["dcc:coreData"]["dcc:reportAmendedSubstituted"]
-    assert ras == {"dcc:typeOfChange": "substituted", "dcc:replacedUniqueIdentifier": "TL-2026-000007"}
+    assert ras == {
+        "dcc:typeOfChange": "substituted",
+        "dcc:replacedUniqueIdentifier": "TL-2026-000007",
+    }
 
 
 def test_in_house_calibration_names_the_lab_as_customer():
@@ -219,32 +268,72 @@ def test_html_rendering_shows_what_the_xml_says():
     assert APPROVAL.signer.name in page and "DAkkS-2026-0412" in page and "@media print" in page
     # a parameter as people read it: U to two significant digits, the value to the same place
     name = record["model"]["covariance"]["names"][0]
-    assert re.search(rf"<td>{re.escape(name)}</td><td class='n'>-?\d+\.\d+</td><td class='n'>0\.0*[1-9]\d</td>", page)
-    assert page.count("<tr>") > len(record["model"]["parameters"]) + len(record["validation"]["points"])
-
+    assert re.search(
+        rf"<td>{re.escape(name)}</td><td class='n'>-?\d+\.\d+</td><td class='n'>0\.0*[1-9]\d</td>",
+        page,
+    )
+    assert page.count("<tr>") > len(record["model"]["parameters"]) + len(
+        record["validation"]["points"]
+    )
 
 
 def test_a_reviewer_finds_what_an_unreviewed_certificate_had():
-    """The checks every issued certificate passes (tests/lims/reviewer.py) catch each finding of a review."""
+    """The checks every issued certificate passes (tests/lims/reviewer.py) catch each finding of a
+    review."""
     from tests.lims.reviewer import problems
 
     good = dcc.issue(certificate(stage_record("kinematic")))
     assert problems(good) == []
     text = good.decode()
-    assert "\\degreecelsius" in text and "student-t" in text and "<si:covarianceMatrixXMLList>" in text
-    assert "CUST-ITEM-55" in text and 'refType="tiltlab_modelParameter"' in text and "<dcc:refTypeDefinition " in text
+    assert (
+        "\\degreecelsius" in text and "student-t" in text and "<si:covarianceMatrixXMLList>" in text
+    )
+    assert (
+        "CUST-ITEM-55" in text
+        and 'refType="tiltlab_modelParameter"' in text
+        and "<dcc:refTypeDefinition " in text
+    )
     u = re.search(r"<si:valueExpandedMU>([^<]+)<", text).group(1)
     for bad, finding in (
         (text.replace("\\degreecelsius", "\\degreeCelsius"), "not valid D-SI"),
-        (text.replace(f"<si:valueExpandedMU>{u}<", f"<si:valueExpandedMU>{u}7<", 1), "not GUM-rounded"),
-        (text[:(at := text.index('<dcc:quantity refType="tiltlab_modelParameter"'))] + re.sub(  # a parameter's value, beside its U
-            r"<si:value>([^<]+)</si:value>", r"<si:value>0.6126699999999999</si:value>", text[at:], count=1),
-         "GUM-rounded"),
-        (re.sub(r"<si:measurementUncertaintyMultivariateXMLList>.*?</si:measurementUncertaintyMultivariateXMLList>",
-                "", text, flags=re.S), "no covariance"),
-        (text.replace("<dcc:value>CUST-ITEM-55<", "<dcc:value>address 0x00 on /dev/pts/3<"), "a port or role"),
-        (re.sub(r'<dcc:refTypeDefinition refType="tiltlab_modelParameter">.*?</dcc:refTypeDefinition>', "", text,
-                flags=re.S), "without a definition"),
+        (
+            text.replace(f"<si:valueExpandedMU>{u}<", f"<si:valueExpandedMU>{u}7<", 1),
+            "not GUM-rounded",
+        ),
+        # a parameter's value, beside its U
+        (
+            text[: (at := text.index('<dcc:quantity refType="tiltlab_modelParameter"'))]
+            + re.sub(
+                r"<si:value>([^<]+)</si:value>",
+                r"<si:value>0.6126699999999999</si:value>",
+                text[at:],
+                count=1,
+            ),
+            "GUM-rounded",
+        ),
+        (
+            re.sub(
+                r"<si:measurementUncertaintyMultivariateXMLList>.*?</si:measurementUncertaintyMultivariateXMLList>",
+                "",
+                text,
+                flags=re.S,
+            ),
+            "no covariance",
+        ),
+        (
+            text.replace("<dcc:value>CUST-ITEM-55<", "<dcc:value>address 0x00 on /dev/pts/3<"),
+            "a port or role",
+        ),
+        (
+            re.sub(
+                r"<dcc:refTypeDefinition "
+                r'refType="tiltlab_modelParameter">.*?</dcc:refTypeDefinition>',
+                "",
+                text,
+                flags=re.S,
+            ),
+            "without a definition",
+        ),
     ):
         found = problems(bad.encode())
         assert any(finding in f for f in found), (finding, found)

@@ -1,6 +1,7 @@
-"""The LIMS routes over HTTP on a real database (SQLite and PostgreSQL): scopes, segregation of duties,
-certificates issued once and checked, idempotent orders, the feed, and signed webhook deliveries
-to a receiver on 127.0.0.1 that verifies every signature with the standardwebhooks library."""
+"""The LIMS routes over HTTP on a real database (SQLite and PostgreSQL): scopes, segregation of
+duties, certificates issued once and checked, idempotent orders, the feed, and signed webhook
+deliveries to a receiver on 127.0.0.1 that verifies every signature with the standardwebhooks
+library."""
 
 from __future__ import annotations
 
@@ -27,22 +28,47 @@ from service.storage.tokens import Person
 from tests.lims.certificates import stage_record
 from tests.storage.storage_helpers import count
 
-STANDARD = {"name": "reference inclinometer", "serial": "REF-77", "certificate_number": "DAkkS-2026-0412",
-            "certificate_sha256": "ab" * 32, "calibrated_on": "2026-01-10", "due_on": "2099-01-10",
-            "uncertainty": "0.001 deg (k = 2)",
-            "calibrated_by": {"name": "Angle Calibration Laboratory AG", "accreditation": "D-K-12345-01-00",
-                              "city": "Hamburg", "country_code": "DE"}}  # fmt: skip
-# The people behind the tokens the tests sign with: a record is approved by a person with a function.
-PEOPLE = {"alice": Person("Dr. Alice Example", "Head of Laboratory"),
-          "bob": Person("Bob Example", "Deputy Head of Laboratory")}
-ORDER = {"lims_order_id": "LIMS-118", "item_serial": "CUST-55", "procedure": "stage-grid", "method": "homography",
-         "due_on": "2026-12-01", "customer": {"name": "Survey Ltd", "city": "Berlin", "country_code": "DE"}}  # fmt: skip
+STANDARD = {
+    "name": "reference inclinometer",
+    "serial": "REF-77",
+    "certificate_number": "DAkkS-2026-0412",
+    "certificate_sha256": "ab" * 32,
+    "calibrated_on": "2026-01-10",
+    "due_on": "2099-01-10",
+    "uncertainty": "0.001 deg (k = 2)",
+    "calibrated_by": {
+        "name": "Angle Calibration Laboratory AG",
+        "accreditation": "D-K-12345-01-00",
+        "city": "Hamburg",
+        "country_code": "DE",
+    },
+}
+# The people behind the tokens the tests sign with: a record is approved by a person with a
+# function.
+PEOPLE = {
+    "alice": Person("Dr. Alice Example", "Head of Laboratory"),
+    "bob": Person("Bob Example", "Deputy Head of Laboratory"),
+}
+ORDER = {
+    "lims_order_id": "LIMS-118",
+    "item_serial": "CUST-55",
+    "procedure": "stage-grid",
+    "method": "homography",
+    "due_on": "2026-12-01",
+    "customer": {"name": "Survey Ltd", "city": "Berlin", "country_code": "DE"},
+}
 
 
 def make_app(store: Store, tmp_path) -> FastAPI:  # type: ignore[no-untyped-def]
-    settings = Settings(data_dir=tmp_path, lab_name="Inclination Lab GmbH", lab_city="Braunschweig",
-                        lab_country_code="DE", webhook_retry_base_s=0.05, webhook_retry_max_s=0.2,
-                        webhook_max_attempts=1000)  # fmt: skip
+    settings = Settings(
+        data_dir=tmp_path,
+        lab_name="Inclination Lab GmbH",
+        lab_city="Braunschweig",
+        lab_country_code="DE",
+        webhook_retry_base_s=0.05,
+        webhook_retry_max_s=0.2,
+        webhook_max_attempts=1000,
+    )
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -64,23 +90,46 @@ def make_app(store: Store, tmp_path) -> FastAPI:  # type: ignore[no-untyped-def]
 @pytest.fixture
 def lab(engine, tmp_path):  # type: ignore[no-untyped-def]
     store = Store(engine)
-    tokens = {name: store.tokens.create_token(name, scopes, actor="setup", person=PEOPLE.get(name))[1]
-              for name, scopes in (("alice", "admin"), ("bob", "admin"), ("olga", "operate"), ("rita", "read"))}
+    tokens = {
+        name: store.tokens.create_token(name, scopes, actor="setup", person=PEOPLE.get(name))[1]
+        for name, scopes in (
+            ("alice", "admin"),
+            ("bob", "admin"),
+            ("olga", "operate"),
+            ("rita", "read"),
+        )
+    }
     with TestClient(make_app(store, tmp_path)) as client:
         yield store, client, {k: {"Authorization": f"Bearer {v}"} for k, v in tokens.items()}
 
 
 def measured_record(store: Store, *, started_by: str, order_id: int | None = None, version_of=None):  # type: ignore[no-untyped-def]
-    """A record as a job leaves it: real fitted model and validation table, job started by `started_by`."""
-    device = store.devices.find_device("SCA126T", "SN-4711") or store.devices.add_device("SCA126T", "SN-4711", "measurement_sensor",
-                                                                         actor="daemon")
-    job = store.jobs.create_job(device.id, "stage", "homography", actor=started_by, order_id=order_id,
-                                parameters={"request": {"reference_standards": [1]}})
+    """A record as a job leaves it: real fitted model and validation table, job started by
+    `started_by`."""
+    device = store.devices.find_device("SCA126T", "SN-4711") or store.devices.add_device(
+        "SCA126T", "SN-4711", "measurement_sensor", actor="daemon"
+    )
+    job = store.jobs.create_job(
+        device.id,
+        "stage",
+        "homography",
+        actor=started_by,
+        order_id=order_id,
+        parameters={"request": {"reference_standards": [1]}},
+    )
     store.jobs.start_job(job.id, actor="daemon")
     r = stage_record("homography")
-    record = store.records.add_record(device.id, "stage", "homography", r["model"], operator=started_by, job_id=job.id,
-                                      validation=r["validation"], temp_c=20.4,
-                                      raw_data={"conditions": {"firmware": {"measurement_sensor": "2.3.1"}}})
+    record = store.records.add_record(
+        device.id,
+        "stage",
+        "homography",
+        r["model"],
+        operator=started_by,
+        job_id=job.id,
+        validation=r["validation"],
+        temp_c=20.4,
+        raw_data={"conditions": {"firmware": {"measurement_sensor": "2.3.1"}}},
+    )
     store.jobs.succeed_job(job.id, actor="daemon")
     return record
 
@@ -92,10 +141,20 @@ def test_standards_need_admin_and_show_their_status(lab) -> None:  # type: ignor
     assert client.post("/standards", json=STANDARD).status_code == 401
     r = client.post("/standards", json=STANDARD, headers=h["alice"])
     assert r.status_code == 201 and r.headers["location"] == f"/standards/{r.json()['id']}"
-    old = client.post("/standards", json={**STANDARD, "certificate_number": "OLD-1", "calibrated_on": "2020-01-01",
-                                          "due_on": "2021-01-01"}, headers=h["alice"]).json()  # fmt: skip
+    old = client.post(
+        "/standards",
+        json={
+            **STANDARD,
+            "certificate_number": "OLD-1",
+            "calibrated_on": "2020-01-01",
+            "due_on": "2021-01-01",
+        },
+        headers=h["alice"],
+    ).json()
     assert old["status"] == "past_due"
-    r = client.post("/standards", json={**STANDARD, "certificate_sha256": "nothex"}, headers=h["alice"])
+    r = client.post(
+        "/standards", json={**STANDARD, "certificate_sha256": "nothex"}, headers=h["alice"]
+    )
     assert r.status_code == 422 and "certificate_sha256" in r.json()["detail"]
     listed = client.get("/standards", headers=h["rita"]).json()["standards"]
     assert [s["status"] for s in listed] == ["valid", "past_due"]
@@ -105,17 +164,27 @@ def test_standards_need_admin_and_show_their_status(lab) -> None:  # type: ignor
 def test_approval_segregation_and_certificate(lab, tmp_path) -> None:  # type: ignore[no-untyped-def]
     store, client, h = lab
     client.post("/standards", json=STANDARD, headers=h["alice"])
-    order = client.post("/orders", json=ORDER, headers={**h["olga"], "Idempotency-Key": "o-1"}).json()
+    order = client.post(
+        "/orders", json=ORDER, headers={**h["olga"], "Idempotency-Key": "o-1"}
+    ).json()
     record = measured_record(store, started_by="alice", order_id=order["id"])
 
     r = client.get(f"/records/{record.id}/certificate", headers=h["rita"])
     assert r.status_code == 409 and "draft" in r.json()["detail"]
-    r = client.post(f"/records/{record.id}/approve", json={"meaning": "approval"}, headers=h["alice"])
+    r = client.post(
+        f"/records/{record.id}/approve", json={"meaning": "approval"}, headers=h["alice"]
+    )
     assert r.status_code == 403 and "segregation of duties" in r.json()["detail"]
     assert count(store.engine, "record_approvals") == 0 and count(store.engine, "certificates") == 0
-    assert client.post(f"/records/{record.id}/approve", json={}, headers=h["olga"]).status_code == 403  # no admin
-    r = client.post(f"/records/{record.id}/approve", json={"meaning": "approval", "note": "residuals fine"},
-                    headers=h["bob"])
+    # no admin
+    assert (
+        client.post(f"/records/{record.id}/approve", json={}, headers=h["olga"]).status_code == 403
+    )
+    r = client.post(
+        f"/records/{record.id}/approve",
+        json={"meaning": "approval", "note": "residuals fine"},
+        headers=h["bob"],
+    )
     assert r.status_code == 200 and r.json()["record"]["status"] == "approved"
     assert r.json()["approval"]["record_sha256"] == record.content_sha256
 
@@ -125,10 +194,19 @@ def test_approval_segregation_and_certificate(lab, tmp_path) -> None:  # type: i
     assert dcc.certificate_errors(xml) == []
     doc = dcc.dcc_schema().to_dict(xml.decode())
     item = doc["dcc:administrativeData"]["dcc:items"]["dcc:item"][0]
-    # the item by the order's serial, then the instrument's own (it reported firmware: it identifies itself)
-    assert [i["dcc:value"] for i in item["dcc:identifications"]["dcc:identification"]] == [ORDER["item_serial"], "SN-4711"]
-    signer = [p for p in doc["dcc:administrativeData"]["dcc:respPersons"]["dcc:respPerson"] if p["dcc:mainSigner"]]
-    assert signer[0]["dcc:person"]["dcc:name"]["dcc:content"][0]["$"] == "Bob Example"  # a person, not a token
+    # the item by the order's serial, then the instrument's own (it reported firmware: it identifies
+    # itself)
+    assert [i["dcc:value"] for i in item["dcc:identifications"]["dcc:identification"]] == [
+        ORDER["item_serial"],
+        "SN-4711",
+    ]
+    signer = [
+        p
+        for p in doc["dcc:administrativeData"]["dcc:respPersons"]["dcc:respPerson"]
+        if p["dcc:mainSigner"]
+    ]
+    # a person, not a token
+    assert signer[0]["dcc:person"]["dcc:name"]["dcc:content"][0]["$"] == "Bob Example"
     assert signer[0]["dcc:role"] == "Deputy Head of Laboratory"
     again = client.get(f"/records/{record.id}/certificate", headers=h["alice"])
     assert again.content == xml and count(store.engine, "certificates") == 1  # never regenerated
@@ -142,7 +220,9 @@ def test_approval_segregation_and_certificate(lab, tmp_path) -> None:  # type: i
     client.post(f"/records/{second.id}/approve", json={"meaning": "approval"}, headers=h["bob"])
     xml2 = client.get(f"/records/{second.id}/certificate", headers=h["rita"]).content
     number1 = dcc.unique_identifier(xml)
-    assert f"<dcc:replacedUniqueIdentifier>{number1}</dcc:replacedUniqueIdentifier>".encode() in xml2
+    assert (
+        f"<dcc:replacedUniqueIdentifier>{number1}</dcc:replacedUniqueIdentifier>".encode() in xml2
+    )
 
     # a tampered stored certificate is detected and not served
     with store.engine.begin() as conn:
@@ -150,8 +230,10 @@ def test_approval_segregation_and_certificate(lab, tmp_path) -> None:  # type: i
             conn.exec_driver_sql("DROP TRIGGER trg_certificates_no_update")
         else:
             conn.exec_driver_sql("ALTER TABLE certificates DISABLE TRIGGER USER")
-        conn.execute(sa.text("UPDATE certificates SET xml = :x WHERE record_id = :r"),
-                     {"x": xml.replace(b"SN-4711", b"SN-9999"), "r": record.id})
+        conn.execute(
+            sa.text("UPDATE certificates SET xml = :x WHERE record_id = :r"),
+            {"x": xml.replace(b"SN-4711", b"SN-9999"), "r": record.id},
+        )
     r = client.get(f"/records/{record.id}/certificate", headers=h["rita"])
     assert r.status_code == 500 and "no longer matches its SHA-256" in r.json()["detail"]
     v = verify_certificate(xml.replace(b"SN-4711", b"SN-9999"), store)
@@ -162,9 +244,15 @@ def test_reject_needs_a_reason_and_is_final(lab) -> None:  # type: ignore[no-unt
     store, client, h = lab
     record = measured_record(store, started_by="alice")
     assert client.post(f"/records/{record.id}/reject", json={}, headers=h["bob"]).status_code == 422
-    r = client.post(f"/records/{record.id}/reject", json={"reason": "validation above the limit"}, headers=h["bob"])
+    r = client.post(
+        f"/records/{record.id}/reject",
+        json={"reason": "validation above the limit"},
+        headers=h["bob"],
+    )
     assert r.status_code == 200 and r.json()["record"]["status"] == "rejected"
-    assert client.post(f"/records/{record.id}/approve", json={}, headers=h["bob"]).status_code == 409
+    assert (
+        client.post(f"/records/{record.id}/approve", json={}, headers=h["bob"]).status_code == 409
+    )
     assert client.get(f"/records/{record.id}/certificate", headers=h["bob"]).status_code == 409
     assert client.post("/records/999/approve", json={}, headers=h["bob"]).status_code == 404
 
@@ -173,16 +261,26 @@ def test_orders_idempotency_and_webhook_urls(lab) -> None:  # type: ignore[no-un
     store, client, h = lab
     first = client.post("/orders", json=ORDER, headers={**h["olga"], "Idempotency-Key": "k1"})
     repeat = client.post("/orders", json=ORDER, headers={**h["olga"], "Idempotency-Key": "k1"})
-    assert (first.status_code, repeat.status_code) == (201, 200) and first.json()["id"] == repeat.json()["id"]
-    other = client.post("/orders", json={**ORDER, "item_serial": "X"}, headers={**h["olga"], "Idempotency-Key": "k1"})
+    assert (first.status_code, repeat.status_code) == (201, 200) and first.json()[
+        "id"
+    ] == repeat.json()["id"]
+    other = client.post(
+        "/orders",
+        json={**ORDER, "item_serial": "X"},
+        headers={**h["olga"], "Idempotency-Key": "k1"},
+    )
     assert other.status_code == 422 and "k1" in other.json()["detail"]
     assert client.post("/orders", json=ORDER, headers=h["rita"]).status_code == 403
     assert count(store.engine, "orders") == 1
     for url in ("ftp://x.example/hook", "file:///etc/passwd", "not a url"):
         r = client.post("/webhooks", json={"url": url, "events": ["*"]}, headers=h["alice"])
         assert r.status_code == 422 and "http" in r.json()["detail"]
-    assert client.post("/webhooks", json={"url": "http://127.0.0.1:1/", "events": ["*"]},
-                       headers=h["olga"]).status_code == 403
+    assert (
+        client.post(
+            "/webhooks", json={"url": "http://127.0.0.1:1/", "events": ["*"]}, headers=h["olga"]
+        ).status_code
+        == 403
+    )
     assert count(store.engine, "webhook_endpoints") == 0
 
 
@@ -192,7 +290,11 @@ def test_feed_pages_with_an_opaque_cursor(lab) -> None:  # type: ignore[no-untyp
         client.post("/orders", json={**ORDER, "lims_order_id": f"L{i}"}, headers=h["olga"])
     seen, cursor = [], None
     while True:
-        page = client.get("/feed", params={"limit": 2, **({"cursor": cursor} if cursor else {})}, headers=h["rita"]).json()
+        page = client.get(
+            "/feed",
+            params={"limit": 2, **({"cursor": cursor} if cursor else {})},
+            headers=h["rita"],
+        ).json()
         seen += page["events"]
         if not page["events"]:
             break
@@ -267,14 +369,21 @@ def test_webhooks_are_signed_retried_and_seen_once_each(lab) -> None:  # type: i
         rx.down = False
         record = measured_record(store, started_by="alice")
         client.post(f"/records/{record.id}/approve", json={"meaning": "approval"}, headers=h["bob"])
-        feed_ids = [e["id"] for e in client.get("/feed", params={"limit": 1000}, headers=h["rita"]).json()["events"]]
+        feed_ids = [
+            e["id"]
+            for e in client.get("/feed", params={"limit": 1000}, headers=h["rita"]).json()["events"]
+        ]
         wait_for(lambda: set(rx.ids) >= set(feed_ids))
         assert rx.bad == []
         assert sorted(rx.ids) == sorted(feed_ids) and len(rx.ids) == len(set(rx.ids))  # each once
-        def log_of() -> list[dict]:
-            return client.get(f"/webhooks/{hook_id}/deliveries", headers=h["alice"]).json()["deliveries"]
 
-        # the receiver answers before the daemon writes the attempt down: wait for the log to catch up
+        def log_of() -> list[dict]:
+            return client.get(f"/webhooks/{hook_id}/deliveries", headers=h["alice"]).json()[
+                "deliveries"
+            ]
+
+        # the receiver answers before the daemon writes the attempt down: wait for the log to catch
+        # up
         wait_for(lambda: {d["state"] for d in log_of()} == {"delivered"})
         log = log_of()
         retried = [d for d in log if d["attempts"] > 1]

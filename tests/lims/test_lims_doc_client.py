@@ -1,6 +1,7 @@
-"""The client of docs/lims.md ("A working client") run as written against `tiltlab serve`: the puller
-reads the feed with a stored cursor, fetches each issued certificate and resumes where it stopped;
-the webhook receiver's `handle` verifies the daemon's signed deliveries and sees each event once."""
+"""The client of docs/lims.md ("A working client") run as written against `tiltlab serve`: the
+puller reads the feed with a stored cursor, fetches each issued certificate and resumes where it
+stopped; the webhook receiver's `handle` verifies the daemon's signed deliveries and sees each event
+once."""
 
 from __future__ import annotations
 
@@ -22,9 +23,13 @@ from tests.api.running_service import running_service
 from tests.lims.test_lims_api import ORDER, PEOPLE, STANDARD, measured_record, wait_for
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "lims.md"
-LAB_ENV = {"TILTLAB_LAB_NAME": "Inclination Lab GmbH", "TILTLAB_LAB_CITY": "Braunschweig",
-           "TILTLAB_LAB_COUNTRY_CODE": "DE", "TILTLAB_WEBHOOK_RETRY_BASE_S": "0.1",
-           "TILTLAB_WEBHOOK_RETRY_MAX_S": "0.3"}  # fmt: skip
+LAB_ENV = {
+    "TILTLAB_LAB_NAME": "Inclination Lab GmbH",
+    "TILTLAB_LAB_CITY": "Braunschweig",
+    "TILTLAB_LAB_COUNTRY_CODE": "DE",
+    "TILTLAB_WEBHOOK_RETRY_BASE_S": "0.1",
+    "TILTLAB_WEBHOOK_RETRY_MAX_S": "0.3",
+}
 
 
 class _Stop(Exception):
@@ -94,7 +99,9 @@ class DocReceiver:
 
 def received(rx: DocReceiver) -> list[str]:
     """The events the documented receiver printed (each once, after verifying the signature)."""
-    return [line for line in rx.printed.getvalue().splitlines() if line.startswith("tiltlab event ")]
+    return [
+        line for line in rx.printed.getvalue().splitlines() if line.startswith("tiltlab event ")
+    ]
 
 
 def test_the_documented_client_pulls_and_receives(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
@@ -104,35 +111,57 @@ def test_the_documented_client_pulls_and_receives(tmp_path, monkeypatch) -> None
     try:
         with running_service(data, **LAB_ENV) as base:
             store = Store(make_engine(f"sqlite:///{data / 'tiltlab.db'}"))
-            tokens = {name: store.tokens.create_token(name, scopes, actor="setup", person=PEOPLE.get(name))[1]
-                      for name, scopes in (("alice", "admin"), ("bob", "admin"), ("lims", "operate"))}
+            tokens = {
+                name: store.tokens.create_token(
+                    name, scopes, actor="setup", person=PEOPLE.get(name)
+                )[1]
+                for name, scopes in (("alice", "admin"), ("bob", "admin"), ("lims", "operate"))
+            }
             auth = {k: {"Authorization": f"Bearer {v}"} for k, v in tokens.items()}
             (tmp_path / "lims.token").write_text(tokens["lims"] + "\n")
             with httpx.Client(base_url=base, timeout=10) as api:
-                hook = api.post("/webhooks", json={"url": rx.url, "events": ["*"]}, headers=auth["alice"])
+                hook = api.post(
+                    "/webhooks", json={"url": rx.url, "events": ["*"]}, headers=auth["alice"]
+                )
                 assert hook.status_code == 201, hook.text
                 rx.secret = hook.json()["secret"]
-                assert api.post("/standards", json=STANDARD, headers=auth["alice"]).status_code == 201
-                r = api.post("/orders", json=ORDER, headers={**auth["lims"], "Idempotency-Key": "doc-1"})
+                assert (
+                    api.post("/standards", json=STANDARD, headers=auth["alice"]).status_code == 201
+                )
+                r = api.post(
+                    "/orders", json=ORDER, headers={**auth["lims"], "Idempotency-Key": "doc-1"}
+                )
                 assert r.status_code == 201, r.text
 
                 first = pull(puller, base, tmp_path, monkeypatch)
                 assert any(" order.created " in line for line in first), first
 
                 record = measured_record(store, started_by="alice")
-                assert api.post(f"/records/{record.id}/approve", json={"meaning": "approval"},
-                                headers=auth["bob"]).status_code == 200
+                assert (
+                    api.post(
+                        f"/records/{record.id}/approve",
+                        json={"meaning": "approval"},
+                        headers=auth["bob"],
+                    ).status_code
+                    == 200
+                )
                 issued = api.get(f"/records/{record.id}/certificate", headers=auth["bob"])
                 assert issued.status_code == 200, issued.text
 
                 second = pull(puller, base, tmp_path, monkeypatch)
-                feed = api.get("/feed", params={"limit": 1000}, headers=auth["lims"]).json()["events"]
+                feed = api.get("/feed", params={"limit": 1000}, headers=auth["lims"]).json()[
+                    "events"
+                ]
                 wait_for(lambda: len(received(rx)) >= len(feed), timeout_s=30)
     finally:
         rx.close()
     # the puller saw every event once, in the feed's order, resuming from its stored cursor
     assert [line.split()[0] for line in first + second] == [e["id"] for e in feed]
-    assert {line.split()[1] for line in second} >= {"record.created", "record.approved", "certificate.issued"}
+    assert {line.split()[1] for line in second} >= {
+        "record.created",
+        "record.approved",
+        "certificate.issued",
+    }
     number = next(e["data"]["number"] for e in feed if e["type"] == "certificate.issued")
     xml = (tmp_path / f"{number}.xml").read_bytes()
     assert xml == issued.content and dcc.certificate_errors(xml) == []

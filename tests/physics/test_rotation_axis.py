@@ -1,4 +1,5 @@
-"""Seed 002's rotation model: docs/models.md §3 outputs against an independent construction and eqs. (6)-(10)."""
+"""Seed 002's rotation model: docs/models.md §3 outputs against an independent construction and eqs.
+(6)-(10)."""
 
 import numpy as np
 from hypothesis import given, settings
@@ -18,9 +19,10 @@ def _rodrigues(v, axis, t):
 
 
 def _constructed(a_deg, b_deg, g_deg, t_deg):
-    """Seed 002 §1.1 built from its words: L in the YOZ plane at β to the horizontal; at θ = 0 the sensor
-    normal n0 lies in YOZ and the sensor plane makes γ with L; x makes α with X; the axes turn by θ about L.
-    The outputs are the z components of the turned x, y axes and normal (sines of their angles to the horizontal)."""
+    """Seed 002 §1.1 built from its words: L in the YOZ plane at β to the horizontal; at θ = 0 the
+    sensor normal n0 lies in YOZ and the sensor plane makes γ with L; x makes α with X; the axes
+    turn by θ about L. The outputs are the z components of the turned x, y axes and normal (sines of
+    their angles to the horizontal)."""
     a, b, g, t = np.radians([a_deg, b_deg, g_deg, t_deg])
     L = np.array([0.0, np.cos(b), np.sin(b)])
     n0 = np.array([0.0, -np.sin(b + g), np.cos(b + g)])
@@ -48,14 +50,26 @@ def test_identities_6_to_10_hold_for_any_geometry(a, b, g, t):
     ar, br, gr, tr = np.radians([a, b, g, t])
     assert abs(sx**2 + sy**2 + sz**2 - 1.0) < 1e-12  # (6)
     assert abs(sx * np.cos(ar) - sy * np.sin(ar) + np.cos(br) * np.sin(tr)) < 1e-12  # (7)
-    assert abs(sx * np.sin(ar) + sy * np.cos(ar) - (np.cos(gr) * np.sin(br) + np.sin(gr) * np.cos(br) * np.cos(tr))) < 1e-12  # (8)
-    assert abs((sx * np.sin(ar) + sy * np.cos(ar)) * np.cos(gr) - sz * np.sin(gr) - np.sin(br)) < 1e-12  # (10)
+    # (8)
+    assert (
+        abs(
+            sx * np.sin(ar)
+            + sy * np.cos(ar)
+            - (np.cos(gr) * np.sin(br) + np.sin(gr) * np.cos(br) * np.cos(tr))
+        )
+        < 1e-12
+    )
+    # (10)
+    assert (
+        abs((sx * np.sin(ar) + sy * np.cos(ar)) * np.cos(gr) - sz * np.sin(gr) - np.sin(br)) < 1e-12
+    )
 
 
 @settings(max_examples=100, deadline=None)
 @given(alpha, st.floats(-80, 80), st.floats(-30, 30))
 def test_sensor_track_is_seed002s_ellipse(a, b, g):
-    """§1.2: (Sx, Sy) runs on an ellipse centred at (sin α cos γ sin β, cos α cos γ sin β), semi-axes |cos β| and |cos β sin γ|."""
+    """§1.2: (Sx, Sy) runs on an ellipse centred at (sin α cos γ sin β, cos α cos γ sin β),
+    semi-axes |cos β| and |cos β sin γ|."""
     t = np.linspace(-180, 180, 721)
     sx, sy, _ = rotation_outputs(a, b, g, t)
     ar, br, gr = np.radians([a, b, g])
@@ -68,7 +82,8 @@ def test_sensor_track_is_seed002s_ellipse(a, b, g):
 
 
 def test_sine_domain_errors_grow_as_one_over_cos_in_angle():
-    """Constant output noise means angle errors that grow with the axis tilt (seed 002 §2.1 (3), §4)."""
+    """Constant output noise means angle errors that grow with the axis tilt (seed 002 §2.1 (3),
+    §4)."""
     fx = EffectSet.from_mapping("rotation", {"noise": {"sigma_s": 1e-4}})
     bench = RotationBench(0.0, 0.0, 0.0)  # y axis along L, horizontal: x axis tilts by θ
     rng = np.random.default_rng(7)

@@ -1,5 +1,6 @@
-"""The simulated settling after a move is what the scenario says: a step recorded from the simulated bench
-gives back the scenario's time constant and ringing, and an offline run sees the same transient."""
+"""The simulated settling after a move is what the scenario says: a step recorded from the simulated
+bench gives back the scenario's time constant and ringing, and an offline run sees the same
+transient."""
 
 from __future__ import annotations
 
@@ -42,7 +43,8 @@ def _scenario(settling: dict[str, float], seed: int) -> StageScenario:
 
 
 def _record_step(sc: StageScenario, delta_deg: float, rate_hz: float = 100.0, span_s: float = 6.0):
-    """Move the upper stage by `delta_deg` and record the measurement sensor's x reading after the move ends."""
+    """Move the upper stage by `delta_deg` and record the measurement sensor's x reading after the
+    move ends."""
     clock = HandClock()
     world = StageWorld(sc, clock)
     axis = world.axes[1]
@@ -58,38 +60,52 @@ def _record_step(sc: StageScenario, delta_deg: float, rate_hz: float = 100.0, sp
     return times - t_end, np.array(xs), target * axis.pulse_deg, duration
 
 
-SEED000 = {"sensor_time_constant_s": 0.3, "ringing_amplitude_deg_per_deg": 0.002, "ringing_frequency_hz": 4.0,
-           "ringing_decay_s": 0.5}
-FAST_SENSOR = {"sensor_time_constant_s": 0.1, "ringing_amplitude_deg_per_deg": 0.004, "ringing_frequency_hz": 3.0,
-               "ringing_decay_s": 0.8}
+SEED000 = {
+    "sensor_time_constant_s": 0.3,
+    "ringing_amplitude_deg_per_deg": 0.002,
+    "ringing_frequency_hz": 4.0,
+    "ringing_decay_s": 0.5,
+}
+FAST_SENSOR = {
+    "sensor_time_constant_s": 0.1,
+    "ringing_amplitude_deg_per_deg": 0.004,
+    "ringing_frequency_hz": 3.0,
+    "ringing_decay_s": 0.8,
+}
 CASES = [SEED000, FAST_SENSOR]
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_time_constant_and_ringing_recovered_from_a_recorded_step(seed):
-    """A 3 deg step read at 100 Hz for 6 s through reading noise of 0.001 deg; with a fast sensor (0.1 s) the
-    table's ringing reaches the reading (about 0.004 deg) and all four parameters come back."""
+    """A 3 deg step read at 100 Hz for 6 s through reading noise of 0.001 deg; with a fast sensor
+    (0.1 s) the table's ringing reaches the reading (about 0.004 deg) and all four parameters come
+    back."""
     sc = _scenario(FAST_SENSOR, seed)
     t, x, delta, duration = _record_step(sc, 3.0)
     fit = step_response_fit(t, x, delta, duration)
-    assert fit.sensor_time_constant_s == pytest.approx(FAST_SENSOR["sensor_time_constant_s"], rel=0.05)
+    assert fit.sensor_time_constant_s == pytest.approx(
+        FAST_SENSOR["sensor_time_constant_s"], rel=0.05
+    )
     assert fit.ringing_frequency_hz == pytest.approx(FAST_SENSOR["ringing_frequency_hz"], rel=0.05)
     assert fit.ringing_decay_s == pytest.approx(FAST_SENSOR["ringing_decay_s"], rel=0.3)
-    assert fit.ringing_amplitude_deg_per_deg == pytest.approx(FAST_SENSOR["ringing_amplitude_deg_per_deg"], rel=0.3)
+    assert fit.ringing_amplitude_deg_per_deg == pytest.approx(
+        FAST_SENSOR["ringing_amplitude_deg_per_deg"], rel=0.3
+    )
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_seed000_settling_recovered_time_constant_and_ringing_hidden_below_noise(seed):
-    """The seed 000 defaults: the 0.3 s sensor filters the table's 4 Hz ringing to under 0.0007 deg, below the
-    reading noise, so a recorded step shows the time constant; the fitted model still matches the truth's
-    transient within three times the noise."""
+    """The seed 000 defaults: the 0.3 s sensor filters the table's 4 Hz ringing to under 0.0007 deg,
+    below the reading noise, so a recorded step shows the time constant; the fitted model still
+    matches the truth's transient within three times the noise."""
     sc = _scenario(SEED000, seed)
     t, x, delta, duration = _record_step(sc, 3.0)
     fit = step_response_fit(t, x, delta, duration)
     assert fit.sensor_time_constant_s == pytest.approx(SEED000["sensor_time_constant_s"], rel=0.05)
     move = Move(-duration, delta, duration)
     gap = move_transient_deg(fit, move, t) - move_transient_deg(Settling(**SEED000), move, t)
-    assert np.max(np.abs(gap)) < 0.003  # three times the reading noise, over a transient starting at 0.8 deg
+    # three times the reading noise, over a transient starting at 0.8 deg
+    assert np.max(np.abs(gap)) < 0.003
 
 
 def test_the_seed000_preset_states_its_settling():
@@ -116,7 +132,8 @@ def test_first_order_lag_and_step_limits():
     st = Settling(ringing_amplitude_deg_per_deg=0.01, ringing_frequency_hz=2.0, ringing_decay_s=0.5)
     t = np.linspace(0, 2, 9)
     assert move_transient_deg(st, Move(0.0, 3.0, 0.0), t) == pytest.approx(
-        0.03 * np.exp(-t / 0.5) * np.cos(2 * np.pi * 2.0 * t))
+        0.03 * np.exp(-t / 0.5) * np.cos(2 * np.pi * 2.0 * t)
+    )
 
 
 def test_offline_run_sees_the_transient_the_simulated_bench_shows():

@@ -1,5 +1,6 @@
-"""The statistical settling test ends as soon as what is left of the transient is within the reading noise:
-within a stated number of time constants on a bench with settling, after three blocks without."""
+"""The statistical settling test ends as soon as what is left of the transient is within the reading
+noise: within a stated number of time constants on a bench with settling, after three blocks
+without."""
 
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ RATE_HZ = 25.0  # the simulated sensors' default output rate
 SIGMA = 0.001  # reading noise of the seed 000 sensors, deg
 
 
-def _step(st: Settling, seed: int, delta: float = 3.0, duration: float = 1.07, span_s: float = 20.0):
+def _step(
+    st: Settling, seed: int, delta: float = 3.0, duration: float = 1.07, span_s: float = 20.0
+):
     t = np.arange(0.0, span_s, 1.0 / RATE_HZ)
     move = Move(-duration, delta, duration)
     rng = np.random.default_rng(seed)
@@ -24,7 +27,8 @@ def _step(st: Settling, seed: int, delta: float = 3.0, duration: float = 1.07, s
 @pytest.mark.parametrize("tau", [0.1, 0.3, 1.0, 3.0])
 @pytest.mark.parametrize("seed", range(4))
 def test_ends_within_the_stated_time_constants_and_leaves_less_than_the_noise(tau, seed):
-    """Stated bound: it ends within 1.4 x the time the transient takes to stay below the reading noise, plus
+    """Stated bound: it ends within 1.4 x the time the transient takes to stay below the reading
+    noise, plus
     0.5 s (three blocks, and blocks that grow with the wait). For a lag-dominated step that time is
     tau ln(lag / sigma): about 7 time constants for a 3 deg move read with 0.001 deg of noise."""
     st = Settling(tau, 0.002, 4.0, 0.5)
@@ -37,12 +41,14 @@ def test_ends_within_the_stated_time_constants_and_leaves_less_than_the_noise(ta
     assert t_end <= 1.4 * t_below + 0.5, (t_end, t_below)
     if tau >= 0.3:  # the lag dominates: the bound in time constants
         assert t_end <= 1.4 * tau * np.log(abs(truth[0]) / SIGMA) + 0.5
-    # it does not end early: what is left of the transient when it ends, and after, is within the noise
-    assert np.all(np.abs(truth[n - 1:]) < SIGMA)
+    # it does not end early: what is left of the transient when it ends, and after, is within the
+    # noise
+    assert np.all(np.abs(truth[n - 1 :]) < SIGMA)
 
 
 @pytest.mark.parametrize("seed", range(10))
 def test_a_bench_without_settling_ends_at_once(seed):
     t, truth, read = _step(Settling(), seed)
     n = SettleTest(SIGMA).settled_after(read)
-    assert n is not None and n <= 3 * BLOCK + 8  # three blocks, a few more readings when the noise says so
+    # three blocks, a few more readings when the noise says so
+    assert n is not None and n <= 3 * BLOCK + 8

@@ -1,4 +1,5 @@
-"""Storage fixtures: every test that takes `db_url`, `engine` or `store` runs on SQLite and on PostgreSQL.
+"""Storage fixtures: every test that takes `db_url`, `engine` or `store` runs on SQLite and on
+PostgreSQL.
 
 SQLite: a fresh file per test in tmp_path. PostgreSQL: a fresh schema per test in the database
 at TILTLAB_TEST_POSTGRES_URL (default postgresql+psycopg://root@127.0.0.1:5432/test), selected
@@ -22,19 +23,25 @@ from service.storage.engine import make_engine, redacted
 from service.storage.migrate import alembic_config, upgrade
 from service.storage.store import Store
 
-PG_URL = os.environ.get("TILTLAB_TEST_POSTGRES_URL", "postgresql+psycopg://root@127.0.0.1:5432/test")
+PG_URL = os.environ.get(
+    "TILTLAB_TEST_POSTGRES_URL", "postgresql+psycopg://root@127.0.0.1:5432/test"
+)
 
 _pg_state: dict[str, object] = {}
 
 
 def _pg_admin() -> sa.Engine:
     if "engine" not in _pg_state:
-        engine = make_engine(PG_URL, connect_args={"connect_timeout": 3, "options": "-csynchronous_commit=off"})
+        engine = make_engine(
+            PG_URL, connect_args={"connect_timeout": 3, "options": "-csynchronous_commit=off"}
+        )
         try:
             with engine.connect() as conn:
                 conn.execute(sa.text("SELECT 1"))
         except Exception as exc:  # noqa: BLE001 - any failure to connect means "no server here"
-            _pg_state["error"] = f"PostgreSQL does not answer at {redacted(PG_URL)}: {type(exc).__name__}: {exc}"
+            _pg_state["error"] = (
+                f"PostgreSQL does not answer at {redacted(PG_URL)}: {type(exc).__name__}: {exc}"
+            )
         _pg_state["engine"] = engine
     if "error" in _pg_state:
         pytest.skip(str(_pg_state["error"]))
@@ -65,8 +72,13 @@ def db_url(backend: str, tmp_path) -> Iterator[str]:  # type: ignore[no-untyped-
         yield url.render_as_string(hide_password=False)
     finally:
         with admin.begin() as conn:
-            conn.execute(sa.text("SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
-                                 " WHERE application_name = :schema"), {"schema": schema})
+            conn.execute(
+                sa.text(
+                    "SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
+                    " WHERE application_name = :schema"
+                ),
+                {"schema": schema},
+            )
             conn.execute(sa.text("SET lock_timeout = '20s'"))
             conn.execute(sa.text(f'DROP SCHEMA "{schema}" CASCADE'))
 
@@ -92,7 +104,8 @@ def sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def postgres_schema_sql() -> str:
-    """The migrations to head rendered as one SQL script (Alembic offline mode), run per test schema."""
+    """The migrations to head rendered as one SQL script (Alembic offline mode), run per test
+    schema."""
     buffer = io.StringIO()
     cfg = alembic_config()
     cfg.output_buffer = buffer
@@ -112,7 +125,8 @@ def engine(db_url: str, backend: str, request: pytest.FixtureRequest) -> Iterato
         script = request.getfixturevalue("postgres_schema_sql")
         engine = make_engine(db_url)
         with engine.connect() as conn:
-            conn.connection.driver_connection.execute(script)  # several statements: simple query protocol
+            # several statements: simple query protocol
+            conn.connection.driver_connection.execute(script)
             conn.commit()
     yield engine
     engine.dispose()
@@ -125,5 +139,11 @@ def store(engine: sa.Engine) -> Store:
 
 @pytest.fixture
 def device(store: Store):  # type: ignore[no-untyped-def]
-    return store.devices.add_device("NS-25/E2", "SN1001", "dut", actor="alice", port="/dev/ttyUSB0",
-                                    port_settings={"baud": 115200, "parity": "N"})  # fmt: skip
+    return store.devices.add_device(
+        "NS-25/E2",
+        "SN1001",
+        "dut",
+        actor="alice",
+        port="/dev/ttyUSB0",
+        port_settings={"baud": 115200, "parity": "N"},
+    )

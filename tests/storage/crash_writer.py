@@ -18,13 +18,22 @@ CHUNK = 500
 
 
 def main() -> None:
-    url, device_id, capacity, batch_size = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+    url, device_id, capacity, batch_size = (
+        sys.argv[1],
+        int(sys.argv[2]),
+        int(sys.argv[3]),
+        int(sys.argv[4]),
+    )
     stop_after = int(sys.argv[5])
-    writer = SampleWriter(make_engine(url), capacity=capacity, batch_size=batch_size, put_timeout_s=600)
+    writer = SampleWriter(
+        make_engine(url), capacity=capacity, batch_size=batch_size, put_timeout_s=600
+    )
     print(f"bound {writer.loss_bound}", flush=True)
     k = 0
     while k < stop_after:
-        writer.put_many([Sample(device_id, float(i), float(i), 0.0, None, 21.0) for i in range(k, k + CHUNK)])
+        writer.put_many(
+            [Sample(device_id, float(i), float(i), 0.0, None, 21.0) for i in range(k, k + CHUNK)]
+        )
         k += CHUNK
     print(f"handed {writer.handed_over}", flush=True)
     time.sleep(600)

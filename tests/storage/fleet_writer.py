@@ -18,12 +18,22 @@ from service.storage import make_engine
 from service.storage.errors import ConflictError
 from service.storage.store import Store
 
-MODEL = {"kind": "scale", "method": "linear", "parameters": {"gain_x": 1.0012, "gain_y": 0.9987},
-         "covariance": [[1e-8, 0.0], [0.0, 1.1e-8]], "residuals": {"rms_deg": 0.0021}}  # fmt: skip
+MODEL = {
+    "kind": "scale",
+    "method": "linear",
+    "parameters": {"gain_x": 1.0012, "gain_y": 0.9987},
+    "covariance": [[1e-8, 0.0], [0.0, 1.1e-8]],
+    "residuals": {"rms_deg": 0.0021},
+}
 
 
 def main() -> None:
-    url, name, shared_device, seconds = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+    url, name, shared_device, seconds = (
+        sys.argv[1],
+        sys.argv[2],
+        int(sys.argv[3]),
+        float(sys.argv[4]),
+    )
     engine = make_engine(url)
     store = Store(engine)
     own = store.devices.add_device("fleet-writer", f"{name}-own", "measurement_sensor", actor=name)
@@ -35,9 +45,15 @@ def main() -> None:
         shared = store.records.add_record(shared_device, "scale", "linear", MODEL, operator=name)
         store.records.add_record(own.id, "scale", "linear", MODEL, operator=name)
         counts["records"] += 2
-        try:  # another writer may decide the same draft first: a decision is final, the loser is refused
-            store.approvals.decide(shared.id - 1 if shared.id > 1 else shared.id, decision="approve", meaning="approval",
-                                   note="", actor=f"{name}-reviewer")
+        # another writer may decide the same draft first: a decision is final, the loser is refused
+        try:
+            store.approvals.decide(
+                shared.id - 1 if shared.id > 1 else shared.id,
+                decision="approve",
+                meaning="approval",
+                note="",
+                actor=f"{name}-reviewer",
+            )
             counts["approvals"] += 1
         except ConflictError:
             counts["conflicts"] += 1

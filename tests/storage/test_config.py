@@ -8,7 +8,9 @@ from service.config import Settings
 from service.errors import InputError
 
 
-def test_defaults_put_sqlite_file_in_data_dir(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+def test_defaults_put_sqlite_file_in_data_dir(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
     monkeypatch.delenv("TILTLAB_DATABASE_URL", raising=False)
     monkeypatch.delenv("TILTLAB_CONFIG", raising=False)
     monkeypatch.setenv("TILTLAB_DATA_DIR", str(tmp_path / "d"))
@@ -20,7 +22,9 @@ def test_defaults_put_sqlite_file_in_data_dir(monkeypatch: pytest.MonkeyPatch, t
 
 def test_environment_overrides_config_file(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     cfg = tmp_path / "tiltlab.toml"
-    cfg.write_text('port = 9001\nmonitoring_retention_days = 7\ndatabase_url = "sqlite:////tmp/x.db"\n')
+    cfg.write_text(
+        'port = 9001\nmonitoring_retention_days = 7\ndatabase_url = "sqlite:////tmp/x.db"\n'
+    )
     monkeypatch.setenv("TILTLAB_CONFIG", str(cfg))
     monkeypatch.setenv("TILTLAB_PORT", "9002")
     monkeypatch.delenv("TILTLAB_DATABASE_URL", raising=False)
@@ -30,7 +34,9 @@ def test_environment_overrides_config_file(monkeypatch: pytest.MonkeyPatch, tmp_
     assert s.database_url == "sqlite:////tmp/x.db"
 
 
-def test_missing_config_file_is_an_input_error(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+def test_missing_config_file_is_an_input_error(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
     monkeypatch.setenv("TILTLAB_CONFIG", str(tmp_path / "nope.toml"))
     with pytest.raises(InputError, match="nope.toml"):
         Settings()
@@ -58,7 +64,9 @@ def test_unparsable_config_file_is_named(monkeypatch: pytest.MonkeyPatch, tmp_pa
         Settings()
 
 
-def test_known_keys_of_the_settings_file_are_taken(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+def test_known_keys_of_the_settings_file_are_taken(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
     cfg = tmp_path / "tiltlab.toml"
     cfg.write_text("max_body_bytes = 65536\nsim_speed = 4.0\n")
     monkeypatch.setenv("TILTLAB_CONFIG", str(cfg))
@@ -67,5 +75,7 @@ def test_known_keys_of_the_settings_file_are_taken(monkeypatch: pytest.MonkeyPat
     s = Settings()
     assert (s.max_body_bytes, s.sim_speed) == (65536, 4.0)
     cfg.write_text("max_body_bytes = 65536\nmax_body_byte = 1\n")
-    with pytest.raises(InputError, match=r"max_body_byte: no such setting \(did you mean max_body_bytes\?\)"):
+    with pytest.raises(
+        InputError, match=r"max_body_byte: no such setting \(did you mean max_body_bytes\?\)"
+    ):
         Settings()

@@ -75,7 +75,8 @@ def test_downgrade_to_an_unknown_revision_is_refused(configured: str, capsys) ->
 
 
 def test_downgrade_backs_sqlite_up_first_and_is_clean_at_base(  # type: ignore[no-untyped-def]
-        configured: str, backend: str, capsys) -> None:
+    configured: str, backend: str, capsys
+) -> None:
     _upgraded_with_a_device(configured)
     capsys.readouterr()
     assert cli.main(["db", "downgrade", "base", "--yes"]) == 0
@@ -86,7 +87,10 @@ def test_downgrade_backs_sqlite_up_first_and_is_clean_at_base(  # type: ignore[n
         backup = Path(line.rsplit(" to ", 1)[1])
         assert backup.is_file()
         with sqlite3.connect(backup) as conn:
-            assert conn.execute("SELECT version_num FROM alembic_version").fetchone()[0] == head_revision()
+            assert (
+                conn.execute("SELECT version_num FROM alembic_version").fetchone()[0]
+                == head_revision()
+            )
             assert conn.execute("SELECT serial FROM devices").fetchall() == [("SN1001",)]
     # at base already: a message, not a traceback
     assert cli.main(["db", "downgrade", "base", "--yes"]) == 0
@@ -95,8 +99,12 @@ def test_downgrade_backs_sqlite_up_first_and_is_clean_at_base(  # type: ignore[n
     assert "already at base" in capsys.readouterr().err
 
 
-def test_backup_of_sqlite_is_a_consistent_copy(configured: str, backend: str, tmp_path: Path,  # type: ignore[no-untyped-def]
-                                               capsys) -> None:
+def test_backup_of_sqlite_is_a_consistent_copy(
+    configured: str,
+    backend: str,
+    tmp_path: Path,  # type: ignore[no-untyped-def]
+    capsys,
+) -> None:
     if backend != "sqlite":
         pytest.skip("SQLite only")
     _upgraded_with_a_device(configured)
@@ -126,8 +134,11 @@ def test_backup_of_postgresql_prints_pg_dump(configured: str, backend: str, caps
     assert "pg_dump" in capsys.readouterr().err
 
 
-def test_read_only_commands_create_no_database(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,  # type: ignore[no-untyped-def]
-                                               capsys) -> None:
+def test_read_only_commands_create_no_database(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,  # type: ignore[no-untyped-def]
+    capsys,
+) -> None:
     data = tmp_path / "data"
     monkeypatch.delenv("TILTLAB_CONFIG", raising=False)
     monkeypatch.delenv("TILTLAB_DATABASE_URL", raising=False)

@@ -10,7 +10,9 @@ from tests.storage.storage_helpers import count
 
 
 def test_happy_path_with_progress(store: Store, device) -> None:  # type: ignore[no-untyped-def]
-    job = store.jobs.create_job(device.id, "stage", "kinematic", actor="alice", parameters={"grid": "5x5", "dwell_s": 2})
+    job = store.jobs.create_job(
+        device.id, "stage", "kinematic", actor="alice", parameters={"grid": "5x5", "dwell_s": 2}
+    )
     assert (job.state, job.progress, job.parameters["grid"]) == ("queued", 0.0, "5x5")
     store.jobs.start_job(job.id, actor="alice")
     store.jobs.set_progress(job.id, 0.5)
@@ -42,13 +44,19 @@ def test_failure_keeps_its_reason(store: Store, device) -> None:  # type: ignore
         (["running", "failed"], "succeeded"),
     ],
 )
-def test_illegal_transitions_are_refused(store: Store, device, path: list[str], illegal: str) -> None:  # type: ignore[no-untyped-def]
+def test_illegal_transitions_are_refused(
+    store: Store, device, path: list[str], illegal: str
+) -> None:  # type: ignore[no-untyped-def]
     job = store.jobs.create_job(device.id, "stage", "kinematic", actor="alice")
     for state in path:
-        store.jobs.transition_job(job.id, state, actor="alice", failure_reason="x" if state == "failed" else None)
+        store.jobs.transition_job(
+            job.id, state, actor="alice", failure_reason="x" if state == "failed" else None
+        )
     events = count(store.engine, "audit_events")
     with pytest.raises(IllegalTransition, match=f"-> {illegal} is not allowed"):
-        store.jobs.transition_job(job.id, illegal, actor="alice", failure_reason="x" if illegal == "failed" else None)
+        store.jobs.transition_job(
+            job.id, illegal, actor="alice", failure_reason="x" if illegal == "failed" else None
+        )
     assert store.jobs.get_job(job.id).state == (path[-1] if path else "queued")
     assert count(store.engine, "audit_events") == events
 

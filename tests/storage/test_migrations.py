@@ -1,4 +1,5 @@
-"""Upgrade from empty, downgrade and upgrade again, models == migrations, the `tiltlab db` commands."""
+"""Upgrade from empty, downgrade and upgrade again, models == migrations, the `tiltlab db`
+commands."""
 
 from __future__ import annotations
 
@@ -25,8 +26,10 @@ def _triggers(engine: sa.Engine) -> set[str]:
         if engine.dialect.name == "sqlite":
             sql = "SELECT name FROM sqlite_master WHERE type = 'trigger'"
         else:
-            sql = ("SELECT tgname FROM pg_trigger t JOIN pg_class c ON c.oid = t.tgrelid "
-                   "WHERE NOT tgisinternal AND c.relnamespace = current_schema()::regnamespace")  # fmt: skip
+            sql = (
+                "SELECT tgname FROM pg_trigger t JOIN pg_class c ON c.oid = t.tgrelid WHERE NOT "
+                "tgisinternal AND c.relnamespace = current_schema()::regnamespace"
+            )
         return {name for (name,) in conn.exec_driver_sql(sql)}
 
 
@@ -58,7 +61,9 @@ def test_downgrade_to_base_and_upgrade_again(empty_engine: sa.Engine) -> None:
 def test_models_and_migrations_describe_the_same_schema(empty_engine: sa.Engine) -> None:
     upgrade(empty_engine)
     with empty_engine.connect() as conn:
-        ctx = MigrationContext.configure(conn, opts={"compare_type": True, "compare_server_default": True})
+        ctx = MigrationContext.configure(
+            conn, opts={"compare_type": True, "compare_server_default": True}
+        )
         diff = compare_metadata(ctx, Base.metadata)
     assert diff == []
 

@@ -41,8 +41,15 @@ class MemoryBench:
     def add(self, x_deg: float) -> None:
         now = self.clock.monotonic()
         for role in self.kept:
-            self.kept[role].append(Reading(role=role, bench_s=now, time_utc=dt.datetime.now(dt.UTC),
-                                           x_deg=x_deg, y_deg=-x_deg))
+            self.kept[role].append(
+                Reading(
+                    role=role,
+                    bench_s=now,
+                    time_utc=dt.datetime.now(dt.UTC),
+                    x_deg=x_deg,
+                    y_deg=-x_deg,
+                )
+            )
 
     def latest(self, role: str) -> Reading | None:
         return self.kept[role][-1] if self.kept.get(role) else None
@@ -65,7 +72,8 @@ async def _run_stalled_producer() -> list[dict[str, Any]]:
     for i in range(1, 4):  # readings the producer wakes for
         bench.add(float(i))
         await asyncio.sleep(INTERVAL_S)
-    for i in range(4, 12):  # the event loop is held: eight readings arrive (a burst) before the next wake
+    # the event loop is held: eight readings arrive (a burst) before the next wake
+    for i in range(4, 12):
         bench.add(float(i))
         time.sleep(0.005)
     for i in range(12, 15):
@@ -82,9 +90,14 @@ async def _run_stalled_producer() -> list[dict[str, Any]]:
 def test_readings_that_arrive_while_the_loop_is_held_each_get_their_message() -> None:
     got = asyncio.run(_run_stalled_producer())
     readings = [m for m in got if m.get("type") == "reading"]
-    assert [m["seq"] for m in readings] == list(range(1, len(readings) + 1))  # no gap, no dropped notice
-    # (a message of a sensor silent past the stale limit carries no reading: a very late wake on a loaded machine)
-    values = [m["raw"]["measurement_sensor"]["x_deg"] for m in readings if m["raw"]["measurement_sensor"]]
-    # every reading after connecting, in order (a sensor silent for an interval has its latest sent again)
+    # no gap, no dropped notice
+    assert [m["seq"] for m in readings] == list(range(1, len(readings) + 1))
+    # (a message of a sensor silent past the stale limit carries no reading: a very late wake on a
+    # loaded machine)
+    values = [
+        m["raw"]["measurement_sensor"]["x_deg"] for m in readings if m["raw"]["measurement_sensor"]
+    ]
+    # every reading after connecting, in order (a sensor silent for an interval has its latest sent
+    # again)
     new = [v for i, v in enumerate(values) if i == 0 or v != values[i - 1]]
     assert new[-14:] == [float(i) for i in range(1, 15)], values

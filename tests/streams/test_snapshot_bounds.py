@@ -1,6 +1,7 @@
-"""Snapshots with an hour of history are built off the event loop, a few at a time: twenty readers asking for
-`history_s=3600` at once leave `/health` with its latency (percentile over the same run's idle percentile),
-and those beyond the bound are closed 1013 (try again later) naming the settings, not queued without end."""
+"""Snapshots with an hour of history are built off the event loop, a few at a time: twenty readers
+asking for `history_s=3600` at once leave `/health` with its latency (percentile over the same run's
+idle percentile), and those beyond the bound are closed 1013 (try again later) naming the settings,
+not queued without end."""
 
 from __future__ import annotations
 
@@ -19,9 +20,9 @@ from tests.api.test_request_bounds import daemon
 READERS = 20
 BUILDS, WAITING = 2, 4
 P50_RATIO, P99_RATIO = 3.0, 5.0
-# A snapshot built on the event loop stalls /health for the whole build (seconds for twenty hour-long
-# histories); a shared machine's scheduler alone can add tens of milliseconds to a tail, so the tail is held
-# to its ratio or to a quarter of a second, whichever is larger.
+# A snapshot built on the event loop stalls /health for the whole build (seconds for twenty
+# hour-long histories); a shared machine's scheduler alone can add tens of milliseconds to a tail,
+# so the tail is held to its ratio or to a quarter of a second, whichever is larger.
 P99_FLOOR_S = 0.25
 
 
@@ -47,9 +48,15 @@ async def _snapshot(url: str, token: str) -> tuple[str, int]:
 
 
 def test_twenty_hour_long_snapshots_leave_health_alone(tmp_path: Path) -> None:
-    with daemon(tmp_path, TILTLAB_SIM_SPEED="20", TILTLAB_SIM_TRANSPORT="loopback",
-                TILTLAB_MAX_SNAPSHOTS=str(BUILDS), TILTLAB_SNAPSHOT_QUEUE=str(WAITING)) as d:
-        time.sleep(20)  # several minutes of bench time (thousands of readings) in the history ring at 20x
+    with daemon(
+        tmp_path,
+        TILTLAB_SIM_SPEED="20",
+        TILTLAB_SIM_TRANSPORT="loopback",
+        TILTLAB_MAX_SNAPSHOTS=str(BUILDS),
+        TILTLAB_SNAPSHOT_QUEUE=str(WAITING),
+    ) as d:
+        # several minutes of bench time (thousands of readings) in the history ring at 20x
+        time.sleep(20)
         url = f"{d.base.replace('http', 'ws', 1)}/ws/readings?history_s=3600"
         assert asyncio.run(_snapshot(url, d.token))[1] > 1000  # a long history: the gated kind
         idle = _health_latencies(d.base)
@@ -67,6 +74,9 @@ def test_twenty_hour_long_snapshots_leave_health_alone(tmp_path: Path) -> None:
     assert len(served) + len(refused) == READERS
     base50, base99 = np.percentile(idle, [50, 99])
     busy50, busy99 = np.percentile(busy, [50, 99])
-    figures = f"/health idle p50 {base50 * 1e3:.2f} p99 {base99 * 1e3:.2f} ms; flooded p50 {busy50 * 1e3:.2f} p99 {busy99 * 1e3:.2f} ms"
+    figures = (
+        f"/health idle p50 {base50 * 1e3:.2f} p99 {base99 * 1e3:.2f} ms; flooded p50 "
+        f"{busy50 * 1e3:.2f} p99 {busy99 * 1e3:.2f} ms"
+    )
     print(figures)
     assert busy50 <= P50_RATIO * base50 and busy99 <= max(P99_RATIO * base99, P99_FLOOR_S), figures

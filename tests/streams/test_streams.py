@@ -34,10 +34,33 @@ from tests.api.running_service import free_port
 SPEED = 10.0
 SLOW_CLOSE_S = 2.0
 QUEUE = 40
-READING_KEYS = {"seq", "time_utc", "type", "raw", "table_tilt", "reference_tilt", "in_calibrated_range", "stage",
-                "temp_c", "calibration"}
-SNAPSHOT_KEYS = {"type", "seq", "time_utc", "bench", "rate_hz", "raw", "table_tilt", "reference_tilt",
-                 "in_calibrated_range", "stage", "temp_c", "calibration", "history"}
+READING_KEYS = {
+    "seq",
+    "time_utc",
+    "type",
+    "raw",
+    "table_tilt",
+    "reference_tilt",
+    "in_calibrated_range",
+    "stage",
+    "temp_c",
+    "calibration",
+}
+SNAPSHOT_KEYS = {
+    "type",
+    "seq",
+    "time_utc",
+    "bench",
+    "rate_hz",
+    "raw",
+    "table_tilt",
+    "reference_tilt",
+    "in_calibrated_range",
+    "stage",
+    "temp_c",
+    "calibration",
+    "history",
+}
 
 
 @dataclass
@@ -66,11 +89,17 @@ def wait_until(cond, timeout_s: float = 20.0, what: str = "") -> None:  # type: 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory) -> Iterator[Daemon]:
     data = tmp_path_factory.mktemp("streams")
-    settings = Settings(data_dir=data, sim_speed=SPEED, stream_slow_close_s=SLOW_CLOSE_S, stream_queue_size=QUEUE,
-                        sim_transport="loopback")  # in process: the instruments on in-memory lines
+    settings = Settings(
+        data_dir=data,
+        sim_speed=SPEED,
+        stream_slow_close_s=SLOW_CLOSE_S,
+        stream_queue_size=QUEUE,
+        sim_transport="loopback",
+    )  # in process: the instruments on in-memory lines
     app = create_app(settings)
     port = free_port()
-    sock = bind_socket("127.0.0.1", port)  # as `tiltlab serve` makes it: every connection's send buffer bounded
+    # as `tiltlab serve` makes it: every connection's send buffer bounded
+    sock = bind_socket("127.0.0.1", port)
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning", ws=WEBSOCKET_IMPLEMENTATION))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
@@ -96,8 +125,10 @@ class RawClient:
         self.sock.settimeout(20)
         self.sock.connect(("127.0.0.1", int(daemon.base.rsplit(":", 1)[1])))
         key = base64.b64encode(os.urandom(16)).decode()
-        self.sock.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade"
-                          f"\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+        self.sock.sendall(
+            f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade"
+            f"\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode()
+        )
         self.buf = b""
         self.received = 0
         while b"\r\n\r\n" not in self.buf:
@@ -128,7 +159,11 @@ class RawClient:
             n = struct.unpack("!Q", self._take(8))[0]
         payload = self._take(n)
         if b0 & 0x0F == 0x8:
-            return {"type": "close", "code": struct.unpack("!H", payload[:2])[0], "reason": payload[2:].decode()}
+            return {
+                "type": "close",
+                "code": struct.unpack("!H", payload[:2])[0],
+                "reason": payload[2:].decode(),
+            }
         assert b0 & 0x0F == 0x1, b0
         return json.loads(payload)
 
@@ -172,13 +207,15 @@ def test_sequence_has_no_gaps_and_rate_is_clamped(daemon: Daemon) -> None:
         async with connect(daemon.url("/ws/readings", rate_hz=10_000, history_s=1)) as ws:
             snap = json.loads(await asyncio.wait_for(ws.recv(), 10))
             assert set(snap) == SNAPSHOT_KEYS and snap["type"] == "snapshot" and snap["seq"] == 0
-            assert snap["bench"] == "sim-stage" and snap["rate_hz"] == sensor_hz  # clamped to the sensors' rate
+            # clamped to the sensors' rate
+            assert snap["bench"] == "sim-stage" and snap["rate_hz"] == sensor_hz
             for expected in range(1, 201):
                 m = json.loads(await asyncio.wait_for(ws.recv(), 10))
                 assert m["seq"] == expected and m["type"] == "reading", m
                 assert set(m) == READING_KEYS
                 assert set(m["raw"]) == {"measurement_sensor", "reference_sensor"}
-                for pair in m["raw"].values():  # null while a sensor is silent (a loaded machine lags the simulation)
+                # null while a sensor is silent (a loaded machine lags the simulation)
+                for pair in m["raw"].values():
                     assert pair is None or set(pair) == {"x_deg", "y_deg"}
                 assert set(m["stage"]) == {"x_deg", "y_deg", "moving"}
             assert daemon.hub.client_count() == 1
@@ -200,7 +237,8 @@ def test_slow_client_gets_drops_then_closed_others_see_no_gap(daemon: Daemon) ->
                 fast_seqs[i].append(m["seq"])
 
     async def slow() -> tuple[list[dict], int, str]:
-        # A raw socket: a client library keeps reading into its own buffers; this one reads only when told.
+        # A raw socket: a client library keeps reading into its own buffers; this one reads only
+        # when told.
         raw = RawClient(daemon, "/ws/readings?history_s=1&token=" + daemon.token)
         try:
             got = [raw.message()]
@@ -254,7 +292,10 @@ def test_slow_client_gets_drops_then_closed_others_see_no_gap(daemon: Daemon) ->
     assert fast_types <= {"snapshot", "reading"}
     for seqs in fast_seqs:
         assert len(seqs) > 50 and seqs == list(range(len(seqs))), "a fast client saw a gap"
-    wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty after the slow client was closed")
+    wait_until(
+        lambda: daemon.hub.client_count() == 0,
+        what="registry empty after the slow client was closed",
+    )
 
 
 def test_reconnect_gets_a_snapshot_with_history(daemon: Daemon) -> None:
@@ -271,24 +312,37 @@ def test_reconnect_gets_a_snapshot_with_history(daemon: Daemon) -> None:
     assert snap["type"] == "snapshot" and snap["seq"] == 0 and snap["rate_hz"] == 5
     hist = snap["history"]
     assert len(hist) >= 2
-    assert all("seq" not in h and set(h) == READING_KEYS - {"seq", "calibration"} and h["type"] == "reading" for h in hist)
+    assert all(
+        "seq" not in h
+        and set(h) == READING_KEYS - {"seq", "calibration"}
+        and h["type"] == "reading"
+        for h in hist
+    )
     times = [h["time_utc"] for h in hist]
     assert times == sorted(times) and times[-1] <= snap["time_utc"]
-    # what the first connection saw is history now: the history spans its time, and, being decimated to
-    # 5 Hz of bench time, its newest entry is at most one period (real time: 0.2 s / SPEED) before it
+    # what the first connection saw is history now: the history spans its time, and, being decimated
+    # to 5 Hz of bench time, its newest entry is at most one period (real time: 0.2 s / SPEED)
+    # before it
     at = lambda t: dt.datetime.fromisoformat(t.replace("Z", "+00:00"))  # noqa: E731
     assert at(times[0]) <= at(last["time_utc"])
-    assert at(times[-1]) >= at(last["time_utc"]) - dt.timedelta(seconds=0.2 / SPEED + 0.005), (times[-1], last)
+    assert at(times[-1]) >= at(last["time_utc"]) - dt.timedelta(seconds=0.2 / SPEED + 0.005), (
+        times[-1],
+        last,
+    )
     wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty after reconnects")
 
 
 def test_job_stream_follows_a_calibration_to_its_end(daemon: Daemon) -> None:
     h = {"Authorization": f"Bearer {daemon.token}"}
-    body = {"procedure": "stage-grid", "method": "kinematic",
-            "grid": {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3},
-            "samples_per_point": 4, "validation": {"n_points": 1},
-            # a generous settling time: a loaded machine lags the sped-up simulation (bench seconds)
-            "settle": {"tolerance_deg": 0.005, "window_s": 0.5, "timeout_s": 600}}
+    body = {
+        "procedure": "stage-grid",
+        "method": "kinematic",
+        "grid": {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3},
+        "samples_per_point": 4,
+        "validation": {"n_points": 1},
+        # a generous settling time: a loaded machine lags the sped-up simulation (bench seconds)
+        "settle": {"tolerance_deg": 0.005, "window_s": 0.5, "timeout_s": 600},
+    }
     r = httpx.post(f"{daemon.base}/calibrations", headers=h, json=body, timeout=30)
     assert r.status_code == 202, r.text
     job_id = r.json()["id"]
@@ -309,7 +363,8 @@ def test_job_stream_follows_a_calibration_to_its_end(daemon: Daemon) -> None:
     final = httpx.get(f"{daemon.base}/calibrations/{job_id}", headers=h, timeout=30).json()
     assert msgs[-1]["job"] == final and final["state"] == "succeeded", final
     points = msgs[0]["points"] + [m["point"] for m in msgs if m["type"] == "point"]
-    assert sorted(p["index"] for p in points) == list(range(10))  # 9 grid points and 1 validation point
+    # 9 grid points and 1 validation point
+    assert sorted(p["index"] for p in points) == list(range(10))
     for p in points:
         assert {"index", "x_deg", "y_deg", "reference_sensor", "measurement_sensor"} <= set(p)
         assert p["measurement_sensor"]["n_samples"] >= 1
@@ -327,8 +382,10 @@ def test_job_stream_follows_a_calibration_to_its_end(daemon: Daemon) -> None:
     got, code = asyncio.run(after_end())
     assert [m["type"] for m in got] == ["snapshot", "end"] and code == 1000
     assert len(got[0]["points"]) == 10
-    wait_until(lambda: daemon.app.state.jobs.events.watcher_count() == 0,  # type: ignore[attr-defined]
-               what="no job watchers left")
+    wait_until(
+        lambda: daemon.app.state.jobs.events.watcher_count() == 0,  # type: ignore[attr-defined]
+        what="no job watchers left",
+    )
 
 
 def test_dropped_connections_leave_nothing_behind(daemon: Daemon) -> None:
@@ -343,11 +400,15 @@ def test_dropped_connections_leave_nothing_behind(daemon: Daemon) -> None:
             ws.transport.abort()
 
     asyncio.run(run())
-    wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty after aborted connections")
+    wait_until(
+        lambda: daemon.hub.client_count() == 0, what="registry empty after aborted connections"
+    )
     assert websockets.__version__  # the client library the tests speak through
 
 
-def test_a_client_that_never_reads_is_closed_in_time_while_a_reader_sees_no_gap(daemon: Daemon) -> None:
+def test_a_client_that_never_reads_is_closed_in_time_while_a_reader_sees_no_gap(
+    daemon: Daemon,
+) -> None:
     """The bound of docs/api.md: the daemon holds at most STREAM_HELD_BYTES for a client that reads
     nothing, and once its send has waited TILTLAB_STREAM_SLOW_CLOSE_S it is closed (1013)."""
     seqs: list[int] = []
@@ -355,15 +416,18 @@ def test_a_client_that_never_reads_is_closed_in_time_while_a_reader_sees_no_gap(
     stop = asyncio.Event()
 
     async def reader() -> None:
-        async with connect(daemon.url("/ws/readings", token=None, history_s=1),
-                           subprotocols=[f"bearer.{daemon.token}"]) as ws:  # type: ignore[list-item]
+        async with connect(
+            daemon.url("/ws/readings", token=None, history_s=1),
+            subprotocols=[f"bearer.{daemon.token}"],
+        ) as ws:  # type: ignore[list-item]
             while not stop.is_set():
                 text = await asyncio.wait_for(ws.recv(), 10)
                 received[0] += len(text)
                 seqs.append(json.loads(text)["seq"])
 
     async def stalled() -> tuple[float, float, RawClient]:
-        raw = RawClient(daemon, "/ws/readings?history_s=1&token=" + daemon.token)  # never reads a message
+        # never reads a message
+        raw = RawClient(daemon, "/ws/readings?history_s=1&token=" + daemon.token)
         while daemon.hub.client_count() < 2:  # registered just after the handshake
             await asyncio.sleep(0.01)
         t0 = time.monotonic()
@@ -375,7 +439,9 @@ def test_a_client_that_never_reads_is_closed_in_time_while_a_reader_sees_no_gap(
             # documented: closed SLOW_CLOSE_S after the daemon's buffers and the client's are full;
             # a grace for a loaded machine, far below what unbounded (megabyte) buffers would take
             allowed = 1.5 * (SLOW_CLOSE_S + (STREAM_HELD_BYTES + rcvbuf) / max(rate, 1.0)) + 3.0
-            assert elapsed < allowed or rate == 0, f"not closed after {elapsed:.1f} s ({rate:.0f} B/s)"
+            assert elapsed < allowed or rate == 0, (
+                f"not closed after {elapsed:.1f} s ({rate:.0f} B/s)"
+            )
             await asyncio.sleep(0.05)
         return time.monotonic() - t0, (received[0] - bytes0) / (time.monotonic() - t0), raw
 
@@ -391,7 +457,8 @@ def test_a_client_that_never_reads_is_closed_in_time_while_a_reader_sees_no_gap(
 
     closed_after_s, rate, raw = asyncio.run(run())
     assert closed_after_s > SLOW_CLOSE_S  # its send waited the whole slow-close time first
-    try:  # what the daemon had handed over before giving up: at most its buffers' worth, then the close
+    # what the daemon had handed over before giving up: at most its buffers' worth, then the close
+    try:
         got: list[dict] = []
         raw.sock.settimeout(10)
         while True:
@@ -404,6 +471,8 @@ def test_a_client_that_never_reads_is_closed_in_time_while_a_reader_sees_no_gap(
     assert m["code"] == 1013 and m["reason"].startswith("too slow"), m
     held = raw.received
     assert got and got[0]["type"] == "snapshot" and [x["seq"] for x in got] == list(range(len(got)))
-    assert held <= STREAM_HELD_BYTES + 4 * 4096 + 2048, f"{held} bytes were held for a client reading nothing"
+    assert held <= STREAM_HELD_BYTES + 4 * 4096 + 2048, (
+        f"{held} bytes were held for a client reading nothing"
+    )
     assert seqs == list(range(len(seqs))) and len(seqs) > 20, "the reading client saw a gap"
     wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty")

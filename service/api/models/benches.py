@@ -22,9 +22,13 @@ class BenchInfo(Answer):
     state: str = Field(description="ready, busy, connecting or degraded")
     held_by: str | None = Field(description="the job or action holding the bench")
     description: str | None = None
-    simulated: Simulated | None = Field(None, description="for a simulated bench: its scenario and speed")
+    simulated: Simulated | None = Field(
+        None, description="for a simulated bench: its scenario and speed"
+    )
     node: str | None = Field(None, description="the daemon (TILTLAB_NODE) that runs the bench")
-    online: bool = Field(True, description="whether that daemon is heard from (always true for its own benches)")
+    online: bool = Field(
+        True, description="whether that daemon is heard from (always true for its own benches)"
+    )
 
 
 class Benches(Answer):
@@ -43,10 +47,15 @@ class Identity(Answer):
     """What the instrument reported itself to be; where it is connected is the device's `port`."""
 
     model: str | None
-    serial: str | None = Field(description="the serial number the instrument reported; null when it reports none")
+    serial: str | None = Field(
+        description="the serial number the instrument reported; null when it reports none"
+    )
     firmware: str | None
-    address: str | None = Field(None, description="the bus address it answered at, for an instrument without a"
-                                " serial number (e.g. 0x00)")
+    address: str | None = Field(
+        None,
+        description="the bus address it answered at, for an instrument without a"
+        " serial number (e.g. 0x00)",
+    )
 
 
 class DeviceStatus(Answer):

@@ -1,4 +1,5 @@
-"""Bodies of the calibration job routes (the request is service.jobs.requests.CalibrationRequest)."""
+"""Bodies of the calibration job routes (the request is
+service.jobs.requests.CalibrationRequest)."""
 
 from __future__ import annotations
 
@@ -28,13 +29,18 @@ class ValidationSummary(Answer):
     max_deg: float | None
     n_points: int | None
     predicted_expanded_uncertainty_deg: float | None = Field(
-        None, description="adaptive design: the expanded uncertainty of the correction over the range the job "
-        "predicted before validating (its target met when this is at most the target)")
-    target_expanded_uncertainty_deg: float | None = Field(None, description="adaptive design: the target asked for")
+        None,
+        description="adaptive design: the expanded uncertainty of the correction over the range "
+        "the job predicted before validating (its target met when this is at most the target)",
+    )
+    target_expanded_uncertainty_deg: float | None = Field(
+        None, description="adaptive design: the target asked for"
+    )
 
 
 class BenchSeconds(Answer):
-    """Bench time a job spent, in bench seconds (a simulated bench's speed-up does not change it)."""
+    """Bench time a job spent, in bench seconds (a simulated bench's speed-up does not change
+    it)."""
 
     total: float = Field(description="moving + settling + reading")
     moving: float = Field(description="stage moves (approach and final) of every point")
@@ -48,7 +54,9 @@ class Job(Answer):
     procedure: str | None
     method: str
     state: JobState
-    interrupted: bool = Field(description="left unfinished by a previous run of the daemon (resumable)")
+    interrupted: bool = Field(
+        description="left unfinished by a previous run of the daemon (resumable)"
+    )
     progress: Progress
     created_utc: dt.datetime
     started_utc: dt.datetime | None
@@ -58,11 +66,14 @@ class Job(Answer):
     error: str | None
     record: RecordRef | None = Field(description="the record the job made, once it has")
     validation: ValidationSummary | None
-    bench_seconds: BenchSeconds | None = Field(None, description="bench time spent so far (null for jobs run before "
-                                                                 "it was counted)")
+    bench_seconds: BenchSeconds | None = Field(
+        None, description="bench time spent so far (null for jobs run before it was counted)"
+    )
     request: dict[str, Any] = Field(description="the request the job was started with")
 
 
 class JobList(Answer):
     jobs: list[Job]
-    next_cursor: int | None = Field(description="give as `cursor` for the next page; null on the last")
+    next_cursor: int | None = Field(
+        description="give as `cursor` for the next page; null on the last"
+    )

@@ -19,19 +19,40 @@ from service.storage.store.webhooks import CREDENTIALS_REFUSED
 
 NEXT_CURSOR = "the `cursor` of the next page; null on the last page"
 # http(s), a host, no user:password@ before it, no whitespace or control character anywhere
-WEBHOOK_URL_PATTERN = (r"^https?://[^/?#@\[\]\s\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]+"
-                       r"(?:[/?#][^\s\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]*)?$")
+WEBHOOK_URL_PATTERN = (
+    r"^https?://[^/?#@\[\]\s\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]+"
+    r"(?:[/?#][^\s\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]*)?$"
+)
 
 # ---------------------------------------------------------------- reference standards
 
 
 class CalibratedByIn(RequestBody):
-    name: Annotated[Text, Field(min_length=1, max_length=200, examples=["Angle Calibration Laboratory AG"],
-                                description="the laboratory that calibrated the standard (its certificate's issuer)")]
-    accreditation: Annotated[Text, Field(min_length=1, max_length=100, examples=["D-K-12345-01-00"],
-                                         description="its accreditation number, where it has one")] | None = None
+    name: Annotated[
+        Text,
+        Field(
+            min_length=1,
+            max_length=200,
+            examples=["Angle Calibration Laboratory AG"],
+            description="the laboratory that calibrated the standard (its certificate's issuer)",
+        ),
+    ]
+    accreditation: (
+        Annotated[
+            Text,
+            Field(
+                min_length=1,
+                max_length=100,
+                examples=["D-K-12345-01-00"],
+                description="its accreditation number, where it has one",
+            ),
+        ]
+        | None
+    ) = None
     city: Annotated[Text, Field(min_length=1, max_length=200)] | None = None
-    country_code: str = Field(pattern=r"^[A-Z]{2}$", description="ISO 3166-1 alpha-2", examples=["DE"])
+    country_code: str = Field(
+        pattern=r"^[A-Z]{2}$", description="ISO 3166-1 alpha-2", examples=["DE"]
+    )
 
 
 class CalibratedBy(Answer):
@@ -43,27 +64,50 @@ class CalibratedBy(Answer):
 
 class StandardIn(RequestBody):
     # a coverage factor belongs to an expanded uncertainty: given alone it is refused
-    model_config = ConfigDict(json_schema_extra={"dependentRequired": {"coverage_factor": ["expanded_uncertainty_deg"]}})
+    model_config = ConfigDict(
+        json_schema_extra={"dependentRequired": {"coverage_factor": ["expanded_uncertainty_deg"]}}
+    )
 
     name: Annotated[Text, Field(min_length=1, max_length=100, examples=["reference inclinometer"])]
     serial: Annotated[Text, Field(min_length=1, max_length=100)]
     model: Annotated[Text, Field(max_length=100)] | None = None
     certificate_number: Annotated[Text, Field(min_length=1, max_length=100)]
-    certificate_sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="SHA-256 of the standard's calibration"
-                                    " certificate file (64 lower-case hex digits)")
+    certificate_sha256: str = Field(
+        pattern=r"^[0-9a-f]{64}$",
+        description="SHA-256 of the standard's calibration"
+        " certificate file (64 lower-case hex digits)",
+    )
     calibrated_on: dt.date
     due_on: dt.date = Field(description="after calibrated_on")
-    expanded_uncertainty_deg: Annotated[Finite, Field(
-        gt=0, examples=[0.001],
-        description="expanded uncertainty U of the standard's angle, in degrees, as its certificate states it; "
-                    "u = U / coverage_factor enters every result calibrated against it. Read from `uncertainty` "
-                    "when not given; a standard with neither cannot be named by a job (422)")] | None = None
+    expanded_uncertainty_deg: (
+        Annotated[
+            Finite,
+            Field(
+                gt=0,
+                examples=[0.001],
+                description="expanded uncertainty U of the standard's angle, in degrees, as its "
+                "certificate states it; u = U / coverage_factor enters every result calibrated "
+                "against it. Read from `uncertainty` when not given; a standard with neither "
+                "cannot be named by a job (422)",
+            ),
+        ]
+        | None
+    ) = None
     coverage_factor: Annotated[Finite, Field(ge=1, description="the coverage factor k of U")] = 2.0
-    uncertainty: Annotated[Text, Field(max_length=500, examples=["0.001 deg (k = 2)"],
-                                       description="the certificate's wording of the uncertainty (a remark)")] = ""
+    uncertainty: Annotated[
+        Text,
+        Field(
+            max_length=500,
+            examples=["0.001 deg (k = 2)"],
+            description="the certificate's wording of the uncertainty (a remark)",
+        ),
+    ] = ""
     calibrated_by: CalibratedByIn | None = Field(
-        None, description="who calibrated the standard (its certificate's issuer). A certificate is issued only for a "
-                          "record whose standards name it: without it, the result's traceability cannot be stated")
+        None,
+        description="who calibrated the standard (its certificate's issuer). A certificate is "
+        "issued only for a "
+        "record whose standards name it: without it, the result's traceability cannot be stated",
+    )
 
     @field_validator("due_on")
     @classmethod
@@ -101,7 +145,9 @@ class Standards(Answer):
 
 
 class ApproveIn(RequestBody):
-    meaning: Literal["approval", "review"] = Field("approval", description="what the signature means")
+    meaning: Literal["approval", "review"] = Field(
+        "approval", description="what the signature means"
+    )
     note: Annotated[Text, Field(max_length=10_000)] = ""
 
 
@@ -158,24 +204,57 @@ class CustomerIn(RequestBody):
 
 
 class ParameterLimitIn(RequestBody):
-    nominal: Finite = Field(0.0, description="the parameter's nominal value, in its unit (MODEL.json)")
-    max_permissible_error: Annotated[Finite, Field(gt=0, description="largest permissible deviation from nominal, "
-                                                                     "in the parameter's unit")]
+    nominal: Finite = Field(
+        0.0, description="the parameter's nominal value, in its unit (MODEL.json)"
+    )
+    max_permissible_error: Annotated[
+        Finite,
+        Field(
+            gt=0, description="largest permissible deviation from nominal, in the parameter's unit"
+        ),
+    ]
 
 
 class SpecificationIn(RequestBody):
-    max_permissible_error_deg: Annotated[Finite, Field(
-        gt=0, le=90, examples=[0.05],
-        description="the largest permissible error of the item's indication (its reading minus the reference, as "
-                    "found, at every calibration and validation point, per axis), in degrees")]
+    max_permissible_error_deg: Annotated[
+        Finite,
+        Field(
+            gt=0,
+            le=90,
+            examples=[0.05],
+            description="the largest permissible error of the item's indication (its reading minus "
+            "the reference, as "
+            "found, at every calibration and validation point, per axis), in degrees",
+        ),
+    ]
     decision_rule: Literal["simple_acceptance", "guarded_acceptance", "non_binary"] = Field(
-        description="ILAC-G8: simple_acceptance passes |e| <= MPE; guarded_acceptance passes |e| <= MPE - w with w = "
-                    "guard_band_fraction·U; non_binary states pass, conditionalPass, conditionalFail or fail")
-    guard_band_fraction: Annotated[Finite, Field(gt=0, le=3, description="guarded_acceptance only: w as a fraction of "
-                                                                         "U (default 1: w = U)")] | None = None
-    parameters: Annotated[dict[str, ParameterLimitIn], Field(
-        max_length=50, description="named parameters of the model with their nominal value and largest permissible "
-                                   "deviation (statements about them use their U as the certificate states it)")] | None = None
+        description="ILAC-G8: simple_acceptance passes |e| <= MPE; guarded_acceptance passes |e| "
+        "<= MPE - w with w = "
+        "guard_band_fraction·U; non_binary states pass, conditionalPass, conditionalFail or fail"
+    )
+    guard_band_fraction: (
+        Annotated[
+            Finite,
+            Field(
+                gt=0,
+                le=3,
+                description="guarded_acceptance only: w as a fraction of U (default 1: w = U)",
+            ),
+        ]
+        | None
+    ) = None
+    parameters: (
+        Annotated[
+            dict[str, ParameterLimitIn],
+            Field(
+                max_length=50,
+                description="named parameters of the model with their nominal value and largest "
+                "permissible "
+                "deviation (statements about them use their U as the certificate states it)",
+            ),
+        ]
+        | None
+    ) = None
 
 
 class Specification(Answer):
@@ -190,15 +269,34 @@ class OrderIn(RequestBody):
 
     lims_order_id: Annotated[Text, Field(min_length=1, max_length=100)]
     item_serial: Annotated[Text, Field(min_length=1, max_length=100)]
-    item_manufacturer: Annotated[Text, Field(max_length=100, description="the item's manufacturer (its certificate"
-                                                                          " names it)")] | None = None
-    item_model: Annotated[Text, Field(max_length=100, description="the item's model (its certificate names it)")] | None = None
+    item_manufacturer: (
+        Annotated[
+            Text,
+            Field(max_length=100, description="the item's manufacturer (its certificate names it)"),
+        ]
+        | None
+    ) = None
+    item_model: (
+        Annotated[
+            Text, Field(max_length=100, description="the item's model (its certificate names it)")
+        ]
+        | None
+    ) = None
     customer: CustomerIn
     procedure: Literal["stage-grid", "scale", "rotation", "turntable"]
-    method: Annotated[Text, Field(max_length=80, description="a method of the procedure's kind (as for POST /calibrations)")]
+    method: Annotated[
+        Text,
+        Field(
+            max_length=80,
+            description="a method of the procedure's kind (as for POST /calibrations)",
+        ),
+    ]
     due_on: dt.date | None = None
     specification: SpecificationIn | None = Field(
-        None, description="what the item must meet: its certificate then states conformity (stage-grid orders)")
+        None,
+        description="what the item must meet: its certificate then states conformity (stage-grid "
+        "orders)",
+    )
 
     @field_validator("method")
     @classmethod
@@ -245,10 +343,15 @@ class Order(Answer):
     jobs: list[JobLink]
     records: list[RecordLink]
     certificates: list[CertificateLink]
-    state: str = Field(description="open, in_progress, measured, approved, rejected, certified or failed")
+    state: str = Field(
+        description="open, in_progress, measured, approved, rejected, certified or failed"
+    )
     specification: Specification | None = None
-    conformity: Conformity | None = Field(None, description="the newest record's statements of conformity, once it "
-                                                            "is measured (with a specification)")
+    conformity: Conformity | None = Field(
+        None,
+        description="the newest record's statements of conformity, once it "
+        "is measured (with a specification)",
+    )
 
 
 # ---------------------------------------------------------------- the feed
@@ -273,11 +376,23 @@ EventType = Literal[*EVENT_TYPES, "*"]  # type: ignore[valid-type]
 
 
 class WebhookIn(RequestBody):
-    url: Annotated[Text, Field(max_length=2000, examples=["https://lims.example.org/tiltlab-hook"],
-                               json_schema_extra={"pattern": WEBHOOK_URL_PATTERN},
-                               description="an http:// or https:// URL with a host and without credentials")]
-    events: Annotated[list[EventType], Field(min_length=1, max_length=50,
-                                             description=f"event types ({', '.join(EVENT_TYPES)}), or ['*'] for all")]
+    url: Annotated[
+        Text,
+        Field(
+            max_length=2000,
+            examples=["https://lims.example.org/tiltlab-hook"],
+            json_schema_extra={"pattern": WEBHOOK_URL_PATTERN},
+            description="an http:// or https:// URL with a host and without credentials",
+        ),
+    ]
+    events: Annotated[
+        list[EventType],
+        Field(
+            min_length=1,
+            max_length=50,
+            description=f"event types ({', '.join(EVENT_TYPES)}), or ['*'] for all",
+        ),
+    ]
 
     @field_validator("url")
     @classmethod
@@ -298,7 +413,10 @@ class WebhookIn(RequestBody):
     def _known_events(cls, events: list[str]) -> list[str]:
         unknown = [e for e in events if e != "*" and e not in EVENT_TYPES]
         if unknown:
-            raise ValueError(f"{', '.join(unknown)[:200]} unknown; event types are {', '.join(EVENT_TYPES)} (or '*')")
+            raise ValueError(
+                f"{', '.join(unknown)[:200]} unknown; event types are {', '.join(EVENT_TYPES)} (or "
+                "'*')"
+            )
         return events
 
 

@@ -29,8 +29,11 @@ class Conformity(Answer):
     guard_band_fraction: float | None = None
     parameters: dict[str, str | None] | None = None
     largest_probability_of_false_acceptance: dict[str, float | None] = Field(
-        description="per quantity, over its points that pass (null when none passes)")
-    worst_point: dict[str, dict[str, Any]] = Field(description="per quantity, the error and U the statement rests on")
+        description="per quantity, over its points that pass (null when none passes)"
+    )
+    worst_point: dict[str, dict[str, Any]] = Field(
+        description="per quantity, the error and U the statement rests on"
+    )
 
 
 class Record(Answer):
@@ -52,18 +55,30 @@ class Record(Answer):
     content_sha256: str
     reference_standards: list[Any] | None
     status: RecordStatus
-    budget: Any = Field(None, description="the uncertainty budget of the record's results; `traceable` says whether a "
-                                          "reference standard's uncertainty is in it (else `warning`: \"no reference "
-                                          "standard: not traceable\", and the record gets no certificate)")
-    conformity: Conformity | None = Field(None, description="where the record's order has a specification: the "
-                                                            "statements of conformity (as on the certificate)")
-    calibrated_range: CalibratedRange | None = Field(None, description="the table tilts a stage record was fitted on")
-    bench_seconds: BenchSeconds | None = Field(None, description="the bench time its job spent measuring it")
+    budget: Any = Field(
+        None,
+        description="the uncertainty budget of the record's results; `traceable` says whether a "
+        "reference standard's uncertainty is in it (else `warning`: \"no reference "
+        'standard: not traceable", and the record gets no certificate)',
+    )
+    conformity: Conformity | None = Field(
+        None,
+        description="where the record's order has a specification: the "
+        "statements of conformity (as on the certificate)",
+    )
+    calibrated_range: CalibratedRange | None = Field(
+        None, description="the table tilts a stage record was fitted on"
+    )
+    bench_seconds: BenchSeconds | None = Field(
+        None, description="the bench time its job spent measuring it"
+    )
 
 
 class RecordList(Answer):
     records: list[Record]
-    next_cursor: int | None = Field(None, description="the `cursor` of the next page; null on the last page")
+    next_cursor: int | None = Field(
+        None, description="the `cursor` of the next page; null on the last page"
+    )
 
 
 class Covariance(Answer):

@@ -10,7 +10,9 @@ from service.api.models.base import Answer
 from service.api.models.tilt import AxisPair, StagePose
 from service.jobs.requests import Count, Finite, RequestBody, Text
 
-BenchName = Annotated[Text, Field(max_length=100, description="the bench; may be left out when the daemon runs one")]
+BenchName = Annotated[
+    Text, Field(max_length=100, description="the bench; may be left out when the daemon runs one")
+]
 
 
 class Move(RequestBody):
@@ -40,9 +42,13 @@ class Moved(Answer):
 
 
 class Levelled(Answer):
-    achieved: AxisPair = Field(description="the table tilt read back: the reference sensor's settled mean, through the "
-                               "active record's model of the reference's own errors when it has one")
-    reference_raw: AxisPair | None = Field(None, description="the reference sensor's settled mean as it came")
+    achieved: AxisPair = Field(
+        description="the table tilt read back: the reference sensor's settled mean, through the "
+        "active record's model of the reference's own errors when it has one"
+    )
+    reference_raw: AxisPair | None = Field(
+        None, description="the reference sensor's settled mean as it came"
+    )
     iterations: int
     stage: AxisPair
     within_tolerance: bool

@@ -1,4 +1,5 @@
-"""GET /benches and GET /devices: what the daemon runs and how each instrument is doing (from memory)."""
+"""GET /benches and GET /devices: what the daemon runs and how each instrument is doing (from
+memory)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,15 @@ from fastapi import APIRouter
 
 from service.api.auth import Reader
 from service.api.deps import BenchesDep, BenchQuery, FleetDep, SettingsDep
-from service.api.models.benches import Benches, BenchInfo, Counters, Devices, DeviceStatus, Identity, Simulated
+from service.api.models.benches import (
+    Benches,
+    BenchInfo,
+    Counters,
+    Devices,
+    DeviceStatus,
+    Identity,
+    Simulated,
+)
 from service.api.models.problem import READ, problem_responses
 from service.bench.runtime import BenchRuntime
 
@@ -15,11 +24,22 @@ router = APIRouter(tags=["benches"])
 
 @router.get("/benches", response_model=Benches, responses=problem_responses(*READ))
 def benches(all_benches: BenchesDep, settings: SettingsDep, fleet: FleetDep, _: Reader) -> Benches:
-    """Every bench with its kind, roles and state (ready, busy, connecting, degraded) and who holds it."""
-    local = [BenchInfo(name=b.name, kind=b.kind, roles=b.roles(), state=b.state(),
-                       held_by=None if b.holder is None else str(b.holder), description=b.config.description,
-                       simulated=_simulated(b), node=settings.node, online=True)
-             for b in all_benches.values()]
+    """Every bench with its kind, roles and state (ready, busy, connecting, degraded) and who holds
+    it."""
+    local = [
+        BenchInfo(
+            name=b.name,
+            kind=b.kind,
+            roles=b.roles(),
+            state=b.state(),
+            held_by=None if b.holder is None else str(b.holder),
+            description=b.config.description,
+            simulated=_simulated(b),
+            node=settings.node,
+            online=True,
+        )
+        for b in all_benches.values()
+    ]
     remote = [BenchInfo.model_validate(b) for b in fleet.benches()] if fleet is not None else []
     return Benches(benches=local + remote)
 
@@ -31,13 +51,31 @@ def devices(bench: BenchQuery, _: Reader) -> Devices:
     for st in bench.devices.status():
         c = st.counters
         ident = bench.identities.get(st.role) or st.identity
-        out.append(DeviceStatus(
-            role=st.role, port=st.port, protocol=st.protocol, state=st.state, last_frame_utc=st.last_frame_utc,
-            counters=Counters(frames=c.frames, bad_checksum=c.bad_checksum, resyncs=c.resyncs, timeouts=c.timeouts,
-                              reconnects=c.reconnects),
-            identity=None if ident is None else Identity(model=ident.model, serial=ident.serial, firmware=ident.firmware,
-                                                              address=ident.address),
-            error=st.error))
+        out.append(
+            DeviceStatus(
+                role=st.role,
+                port=st.port,
+                protocol=st.protocol,
+                state=st.state,
+                last_frame_utc=st.last_frame_utc,
+                counters=Counters(
+                    frames=c.frames,
+                    bad_checksum=c.bad_checksum,
+                    resyncs=c.resyncs,
+                    timeouts=c.timeouts,
+                    reconnects=c.reconnects,
+                ),
+                identity=None
+                if ident is None
+                else Identity(
+                    model=ident.model,
+                    serial=ident.serial,
+                    firmware=ident.firmware,
+                    address=ident.address,
+                ),
+                error=st.error,
+            )
+        )
     return Devices(bench=bench.name, devices=out)
 
 
@@ -46,6 +84,13 @@ def _simulated(bench: BenchRuntime) -> Simulated | None:
     if bench.sim is None:
         return None
     w = bench.sim.world
-    names = [sc.name for sc in (getattr(w, "scenario", None), getattr(w, "rotation", None),
-                                getattr(w, "turntable", None)) if sc is not None and hasattr(sc, "name")]
+    names = [
+        sc.name
+        for sc in (
+            getattr(w, "scenario", None),
+            getattr(w, "rotation", None),
+            getattr(w, "turntable", None),
+        )
+        if sc is not None and hasattr(sc, "name")
+    ]
     return Simulated(scenario=names[0] if names else None, scenarios=names, speed=bench.clock.speed)

@@ -1,5 +1,5 @@
-"""The dashboard: the static page in web/, served at / with its ES modules and assets under /web, and its
-icon at /favicon.ico (where browsers look for it)."""
+"""The dashboard: the static page in web/, served at / with its ES modules and assets under /web,
+and its icon at /favicon.ico (where browsers look for it)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,11 @@ router = APIRouter(tags=["dashboard"])
 
 @cache
 def web_dir() -> Path:
-    return shipped_dir("service.web", "web", lambda p: (p / "index.html").is_file() and (p / "js" / "main.js").is_file())
+    return shipped_dir(
+        "service.web",
+        "web",
+        lambda p: (p / "index.html").is_file() and (p / "js" / "main.js").is_file(),
+    )
 
 
 @router.get("/", include_in_schema=False)

@@ -20,39 +20,82 @@ _head = cache(head_revision)  # the migration scripts do not change while the da
 
 
 @router.get("/health", response_model=Health)
-async def health(engine: EngineDep, benches: BenchesDep, revision: RevisionDep, database: DatabaseDep,
-                 jobs: JobsIfAnyDep, watch: DiskDep) -> Health:
-    """Liveness plus what the service runs on: version, database (whether it answers) and schema revision
-    (as read at most one second ago), benches. No token needed."""
+async def health(
+    engine: EngineDep,
+    benches: BenchesDep,
+    revision: RevisionDep,
+    database: DatabaseDep,
+    jobs: JobsIfAnyDep,
+    watch: DiskDep,
+) -> Health:
+    """Liveness plus what the service runs on: version, database (whether it answers) and schema
+    revision (as read at most one second ago), benches. No token needed."""
     revision.database = database
     rev = await revision.get(engine)
     names = list(benches)
     outage = None
     if database.away_since_utc is not None:
         outage = DatabaseOutageState(
-            away_since_utc=database.away_since_utc, away_s=round(database.away_for_s(), 3), error=database.error,
-            outage_limit_s=database.outage_s, jobs_waiting=sorted(jobs.waiting_for_database) if jobs else [],
-            writes_waiting=database.writes_waiting, samples_waiting=database.samples_waiting)
-    disks = [DiskState(folder=str(d.folder), free_mb=round(d.free_mb, 3), min_free_mb=watch.min_free_mb,
-                       full=d.free_mb < watch.min_free_mb) for d in watch.spaces()] if watch is not None else []
+            away_since_utc=database.away_since_utc,
+            away_s=round(database.away_for_s(), 3),
+            error=database.error,
+            outage_limit_s=database.outage_s,
+            jobs_waiting=sorted(jobs.waiting_for_database) if jobs else [],
+            writes_waiting=database.writes_waiting,
+            samples_waiting=database.samples_waiting,
+        )
+    disks = (
+        [
+            DiskState(
+                folder=str(d.folder),
+                free_mb=round(d.free_mb, 3),
+                min_free_mb=watch.min_free_mb,
+                full=d.free_mb < watch.min_free_mb,
+            )
+            for d in watch.spaces()
+        ]
+        if watch is not None
+        else []
+    )
     degraded = rev != _head() or outage is not None or any(d.full for d in disks)
-    return Health(status="degraded" if degraded else "ok", version=__version__,
-                  database=redacted(engine.url), database_state="up" if outage is None else "away",
-                  database_outage=outage, schema_revision=rev, bench=names[0] if len(names) == 1 else ", ".join(names),
-                  benches=names, disk=disks, jobs_not_stored=sorted(jobs.unwritten) if jobs else [])
+    return Health(
+        status="degraded" if degraded else "ok",
+        version=__version__,
+        database=redacted(engine.url),
+        database_state="up" if outage is None else "away",
+        database_outage=outage,
+        schema_revision=rev,
+        bench=names[0] if len(names) == 1 else ", ".join(names),
+        benches=names,
+        disk=disks,
+        jobs_not_stored=sorted(jobs.unwritten) if jobs else [],
+    )
 
 
-@router.get("/ready", response_model=Readiness,
-            responses={503: {"model": Readiness, "description": "Not ready: the reasons, one line each"}})
-async def ready(engine: EngineDep, benches: BenchesDep, revision: RevisionDep, database: DatabaseDep,
-                watch: DiskDep, response: Response) -> Readiness:
-    """Ready for work: the database answering with the schema at head, room on the disk and every instrument
-    of every bench connected (503 with the reasons otherwise). No token needed, like /health."""
+@router.get(
+    "/ready",
+    response_model=Readiness,
+    responses={503: {"model": Readiness, "description": "Not ready: the reasons, one line each"}},
+)
+async def ready(
+    engine: EngineDep,
+    benches: BenchesDep,
+    revision: RevisionDep,
+    database: DatabaseDep,
+    watch: DiskDep,
+    response: Response,
+) -> Readiness:
+    """Ready for work: the database answering with the schema at head, room on the disk and every
+    instrument of every bench connected (503 with the reasons otherwise). No token needed, like
+    /health."""
     reasons = []
     revision.database = database
     rev = await revision.get(engine)
     if not database.up:
-        reasons.append(f"database {database.where} unreachable for {database.away_for_s():.0f} s: {database.error}")
+        reasons.append(
+            f"database {database.where} unreachable for {database.away_for_s():.0f} s: "
+            f"{database.error}"
+        )
     if rev != _head():
         reasons.append(f"database schema at {rev}, not {_head()}")
     short = watch.short() if watch is not None else None

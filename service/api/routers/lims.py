@@ -1,4 +1,5 @@
-"""LIMS integration over HTTP: reference standards, approvals, certificates, orders, the event feed, webhooks."""
+"""LIMS integration over HTTP: reference standards, approvals, certificates, orders, the event feed,
+webhooks."""
 
 from __future__ import annotations
 
@@ -83,23 +84,46 @@ class XMLResponse(Response):
 
 def standard_body(s: ReferenceStandard, today: dt.date, due_soon_days: int) -> Standard:
     days = (s.due_on - today).days
-    return Standard.model_validate({
-        "id": s.id, "name": s.name, "serial": s.serial, "model": s.model, "certificate_number": s.certificate_number,
-        "certificate_sha256": s.certificate_sha256, "calibrated_on": s.calibrated_on, "due_on": s.due_on,
-        "uncertainty": s.uncertainty, "expanded_uncertainty_deg": s.expanded_uncertainty_deg,
-        "coverage_factor": s.coverage_factor, "created_utc": s.created_at, "created_by": s.created_by,
-        "status": "past_due" if days < 0 else ("due_soon" if days <= due_soon_days else "valid"),
-        "calibrated_by": s.calibrated_by})
+    return Standard.model_validate(
+        {
+            "id": s.id,
+            "name": s.name,
+            "serial": s.serial,
+            "model": s.model,
+            "certificate_number": s.certificate_number,
+            "certificate_sha256": s.certificate_sha256,
+            "calibrated_on": s.calibrated_on,
+            "due_on": s.due_on,
+            "uncertainty": s.uncertainty,
+            "expanded_uncertainty_deg": s.expanded_uncertainty_deg,
+            "coverage_factor": s.coverage_factor,
+            "created_utc": s.created_at,
+            "created_by": s.created_by,
+            "status": "past_due"
+            if days < 0
+            else ("due_soon" if days <= due_soon_days else "valid"),
+            "calibrated_by": s.calibrated_by,
+        }
+    )
 
 
 def _today() -> dt.date:
     return dt.datetime.now(dt.UTC).date()
 
 
-@router.post("/standards", status_code=201, response_model=Standard, responses=problem_responses(*WRITE, 409))
+@router.post(
+    "/standards", status_code=201, response_model=Standard, responses=problem_responses(*WRITE, 409)
+)
 @off_loop
-def add_standard(body: StandardIn, response: Response, standards: StandardsRepoDep, settings: SettingsDep, who: Admin) -> Standard:
-    """Register one certificate of a reference standard (scope admin). A recalibration is a new entry."""
+def add_standard(
+    body: StandardIn,
+    response: Response,
+    standards: StandardsRepoDep,
+    settings: SettingsDep,
+    who: Admin,
+) -> Standard:
+    """Register one certificate of a reference standard (scope admin). A recalibration is a new
+    entry."""
     try:
         fields = body.model_dump(exclude={"calibrated_by"})
         if body.calibrated_by is not None:
@@ -115,19 +139,32 @@ def add_standard(body: StandardIn, response: Response, standards: StandardsRepoD
 
 @router.get("/standards", response_model=Standards, responses=problem_responses(*READ))
 @off_loop
-def list_standards(standards: StandardsRepoDep, settings: SettingsDep, _: Reader,
-                   cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
-                   limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE) -> Response:
-    """Reference standards in the order they were registered, a page at a time (`next_cursor` pages on)."""
+def list_standards(
+    standards: StandardsRepoDep,
+    settings: SettingsDep,
+    _: Reader,
+    cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE,
+) -> Response:
+    """Reference standards in the order they were registered, a page at a time (`next_cursor` pages
+    on)."""
     today, days = _today(), settings.standards_due_soon_days
     rows = standards.page(after_id=cursor, limit=limit)
-    return json_answer(Standards(standards=[standard_body(s, today, days) for s in rows],
-                                 next_cursor=rows[-1].id if len(rows) == limit else None))
+    return json_answer(
+        Standards(
+            standards=[standard_body(s, today, days) for s in rows],
+            next_cursor=rows[-1].id if len(rows) == limit else None,
+        )
+    )
 
 
-@router.get("/standards/{standard_id}", response_model=Standard, responses=problem_responses(*READ, 404))
+@router.get(
+    "/standards/{standard_id}", response_model=Standard, responses=problem_responses(*READ, 404)
+)
 @off_loop
-def read_standard(standard_id: StandardId, standards: StandardsRepoDep, settings: SettingsDep, _: Reader) -> Standard:
+def read_standard(
+    standard_id: StandardId, standards: StandardsRepoDep, settings: SettingsDep, _: Reader
+) -> Standard:
     return standard_body(standards.get(standard_id), _today(), settings.standards_due_soon_days)
 
 
@@ -136,29 +173,54 @@ def read_standard(standard_id: StandardId, standards: StandardsRepoDep, settings
 
 def approval_body(a: RecordApproval) -> dict[str, Any]:
     person = signer_of(a)
-    return {"id": a.id, "record_id": a.record_id, "decision": a.decision, "meaning": a.meaning, "note": a.note,
-            "actor": a.actor, "signer": {"name": person.name, "function": person.function} if person else None,
-            "time_utc": a.at, "record_sha256": a.record_sha256, "prev_sha256": a.prev_sha256,
-            "sha256": a.sha256}  # fmt: skip
+    return {
+        "id": a.id,
+        "record_id": a.record_id,
+        "decision": a.decision,
+        "meaning": a.meaning,
+        "note": a.note,
+        "actor": a.actor,
+        "signer": {"name": person.name, "function": person.function} if person else None,
+        "time_utc": a.at,
+        "record_sha256": a.record_sha256,
+        "prev_sha256": a.prev_sha256,
+        "sha256": a.sha256,
+    }
 
 
 def signer(who: Principal) -> Person:
-    """The person who signs with this token: a name and a function (17025 7.8.2.1 o); 403 naming what is missing."""
-    fix = (f"PATCH /tokens/{who.name} {{\"person\": {{\"name\": ..., \"function\": ...}}}} (or tiltlab token "
-           f"set-person {who.name} --person-name ... --person-function ...)")
+    """The person who signs with this token: a name and a function (17025 7.8.2.1 o); 403 naming
+    what is missing."""
+    fix = (
+        f'PATCH /tokens/{who.name} {{"person": {{"name": ..., "function": ...}}}} (or tiltlab '
+        "token "
+        f"set-person {who.name} --person-name ... --person-function ...)"
+    )
     if who.person is None:
-        raise ProblemError(403, "No person behind the token",
-                           f"the token {who.name!r} names no person; a record is approved or rejected by a person, "
-                           f"with a name and a function, whom its certificate names: {fix}")
+        raise ProblemError(
+            403,
+            "No person behind the token",
+            f"the token {who.name!r} names no person; a record is approved or rejected by a "
+            f"person, with a name and a function, whom its certificate names: {fix}",
+        )
     if not who.person.function:
-        raise ProblemError(403, "No function of the person",
-                           f"the token {who.name!r} names {who.person.name} but not their function, which a "
-                           f"certificate states for who authorised it: {fix}")
+        raise ProblemError(
+            403,
+            "No function of the person",
+            f"the token {who.name!r} names {who.person.name} but not their function, which a "
+            f"certificate states for who authorised it: {fix}",
+        )
     return who.person
 
 
-def _decide(approvals: ApprovalsRepo, records: RecordsRepo, jobs: JobManager | None, record_id: int, who: Principal,
-            **kw: Any) -> Decision:
+def _decide(
+    approvals: ApprovalsRepo,
+    records: RecordsRepo,
+    jobs: JobManager | None,
+    record_id: int,
+    who: Principal,
+    **kw: Any,
+) -> Decision:
     person = signer(who)
     try:
         row = approvals.decide(record_id, actor=who.name, signer=person, **kw)
@@ -167,44 +229,104 @@ def _decide(approvals: ApprovalsRepo, records: RecordsRepo, jobs: JobManager | N
     except ConflictError as exc:
         raise ProblemError(409, "Decision already made", str(exc)) from None
     # the bench's record in use follows the decision: its status, or (rejected) withdrawn
-    if jobs is not None and (bench := jobs.bench_of_device(records.get_record(record_id).device_id)) is not None:
+    if (
+        jobs is not None
+        and (bench := jobs.bench_of_device(records.get_record(record_id).device_id)) is not None
+    ):
         jobs.load_active(bench)
-    return Decision.model_validate({"approval": approval_body(row),
-                                    "record": {"id": record_id, "status": approvals.record_status(record_id)}})
+    return Decision.model_validate(
+        {
+            "approval": approval_body(row),
+            "record": {"id": record_id, "status": approvals.record_status(record_id)},
+        }
+    )
 
 
-@router.post("/records/{record_id}/approve", response_model=Decision, responses=problem_responses(*WRITE, 404, 409))
+@router.post(
+    "/records/{record_id}/approve",
+    response_model=Decision,
+    responses=problem_responses(*WRITE, 404, 409),
+)
 @off_loop
-def approve(record_id: RecordId, body: ApproveIn, approvals: ApprovalsRepoDep, records: RecordsRepoDep,
-            jobs: JobsIfAnyDep, who: Admin) -> Decision:
-    """Sign a draft record (scope admin): meaning `approval` makes it approved, `review` records a review.
-    The token must name its person, with a function (403 otherwise): the approval keeps who signed, and the
-    certificate names them as its main signer. Refused (403) to the token that started the record's job or ran it."""
-    return _decide(approvals, records, jobs, record_id, who, decision="approve", meaning=body.meaning, note=body.note)
+def approve(
+    record_id: RecordId,
+    body: ApproveIn,
+    approvals: ApprovalsRepoDep,
+    records: RecordsRepoDep,
+    jobs: JobsIfAnyDep,
+    who: Admin,
+) -> Decision:
+    """Sign a draft record (scope admin): meaning `approval` makes it approved, `review` records a
+    review. The token must name its person, with a function (403 otherwise): the approval keeps who
+    signed, and the certificate names them as its main signer. Refused (403) to the token that
+    started the record's job or ran it."""
+    return _decide(
+        approvals,
+        records,
+        jobs,
+        record_id,
+        who,
+        decision="approve",
+        meaning=body.meaning,
+        note=body.note,
+    )
 
 
-@router.post("/records/{record_id}/reject", response_model=Decision, responses=problem_responses(*WRITE, 404, 409))
+@router.post(
+    "/records/{record_id}/reject",
+    response_model=Decision,
+    responses=problem_responses(*WRITE, 404, 409),
+)
 @off_loop
-def reject(record_id: RecordId, body: RejectIn, approvals: ApprovalsRepoDep, records: RecordsRepoDep,
-           jobs: JobsIfAnyDep, who: Admin) -> Decision:
-    """Reject a draft record with a reason (scope admin, by a token that names its person; not by the token that
-    started its job: 403)."""
-    return _decide(approvals, records, jobs, record_id, who, decision="reject", meaning="rejection", note=body.reason)
+def reject(
+    record_id: RecordId,
+    body: RejectIn,
+    approvals: ApprovalsRepoDep,
+    records: RecordsRepoDep,
+    jobs: JobsIfAnyDep,
+    who: Admin,
+) -> Decision:
+    """Reject a draft record with a reason (scope admin, by a token that names its person; not by
+    the token that started its job: 403)."""
+    return _decide(
+        approvals,
+        records,
+        jobs,
+        record_id,
+        who,
+        decision="reject",
+        meaning="rejection",
+        note=body.reason,
+    )
 
 
-@router.get("/records/{record_id}/approvals", response_model=Approvals, responses=problem_responses(*READ, 404))
+@router.get(
+    "/records/{record_id}/approvals",
+    response_model=Approvals,
+    responses=problem_responses(*READ, 404),
+)
 @off_loop
-def approvals(record_id: RecordId, approvals: ApprovalsRepoDep, records: RecordsRepoDep, _: Reader,
-              cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
-              limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE) -> Approvals:
-    """The record's reviews, approvals and rejections, oldest first, a page at a time (`next_cursor` pages on);
-    `status` is the record's, from all of them."""
+def approvals(
+    record_id: RecordId,
+    approvals: ApprovalsRepoDep,
+    records: RecordsRepoDep,
+    _: Reader,
+    cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE,
+) -> Approvals:
+    """The record's reviews, approvals and rejections, oldest first, a page at a time (`next_cursor`
+    pages on); `status` is the record's, from all of them."""
     records.get_record(record_id)
     rows = approvals.of_record(record_id)
     page = [a for a in rows if cursor is None or a.id > cursor][:limit]
-    return Approvals.model_validate({"record_id": record_id, "status": approvals.status_of(rows),
-                                     "approvals": [approval_body(a) for a in page],
-                                     "next_cursor": page[-1].id if len(page) == limit else None})
+    return Approvals.model_validate(
+        {
+            "record_id": record_id,
+            "status": approvals.status_of(rows),
+            "approvals": [approval_body(a) for a in page],
+            "next_cursor": page[-1].id if len(page) == limit else None,
+        }
+    )
 
 
 # ---------------------------------------------------------------- certificates
@@ -222,33 +344,66 @@ def _certificate(store: Store, record_id: int, settings: Settings, actor: str) -
     except IntegrityFailure as exc:
         raise ProblemError(500, "Integrity failure", str(exc)) from None
     except dcc.InvalidCertificate as exc:
-        raise ProblemError(500, "Certificate not issued", f"the certificate would not be valid, so none was issued: {exc}") from None
+        raise ProblemError(
+            500,
+            "Certificate not issued",
+            f"the certificate would not be valid, so none was issued: {exc}",
+        ) from None
 
 
 _CERTIFICATE_ERRORS = problem_responses(*READ, 404, 409, 503)
 
 
-@router.get("/records/{record_id}/certificate", response_class=XMLResponse, responses={
-    200: {"description": "the DCC 3.3.0 certificate (Digital Calibration Certificate, PTB's XML schema dcc.xsd 3.3.0)",
-          "content": {"application/xml": {"schema": {"type": "string", "contentMediaType": "application/xml"}}}},
-    **_CERTIFICATE_ERRORS})
+@router.get(
+    "/records/{record_id}/certificate",
+    response_class=XMLResponse,
+    responses={
+        200: {
+            "description": "the DCC 3.3.0 certificate (Digital Calibration Certificate, PTB's XML "
+            "schema dcc.xsd 3.3.0)",
+            "content": {
+                "application/xml": {
+                    "schema": {"type": "string", "contentMediaType": "application/xml"}
+                }
+            },
+        },
+        **_CERTIFICATE_ERRORS,
+    },
+)
 @off_loop
-def certificate(record_id: RecordId, store: StoreDep, settings: SettingsDep, who: Reader) -> XMLResponse:
-    """The DCC 3.3.0 certificate of an approved record (409 for a draft or rejected one, and for a record that
-    cannot be certified: calibrated without a registered reference standard valid on the day, or a standard that
-    does not name who calibrated it; approved by a token without a person). Issued on first request, validated
-    against the schema first, then stored with its SHA-256 and always served as stored."""
+def certificate(
+    record_id: RecordId, store: StoreDep, settings: SettingsDep, who: Reader
+) -> XMLResponse:
+    """The DCC 3.3.0 certificate of an approved record (409 for a draft or rejected one, and for a
+    record that cannot be certified: calibrated without a registered reference standard valid on the
+    day, or a standard that does not name who calibrated it; approved by a token without a person).
+    Issued on first request, validated against the schema first, then stored with its SHA-256 and
+    always served as stored."""
     cert = _certificate(store, record_id, settings, who.name)
-    return XMLResponse(cert.xml, headers={"Content-Disposition": f'attachment; filename="{cert.number}.xml"',
-                                          "X-Certificate-SHA256": cert.sha256})
+    return XMLResponse(
+        cert.xml,
+        headers={
+            "Content-Disposition": f'attachment; filename="{cert.number}.xml"',
+            "X-Certificate-SHA256": cert.sha256,
+        },
+    )
 
 
-@router.get("/records/{record_id}/certificate.html", response_class=HTMLResponse, responses={
-    200: {"description": "the certificate as a printable page",
-          "content": {"text/html": {"schema": {"type": "string"}}}},
-    **_CERTIFICATE_ERRORS})
+@router.get(
+    "/records/{record_id}/certificate.html",
+    response_class=HTMLResponse,
+    responses={
+        200: {
+            "description": "the certificate as a printable page",
+            "content": {"text/html": {"schema": {"type": "string"}}},
+        },
+        **_CERTIFICATE_ERRORS,
+    },
+)
 @off_loop
-def certificate_html(record_id: RecordId, store: StoreDep, settings: SettingsDep, who: Reader) -> HTMLResponse:
+def certificate_html(
+    record_id: RecordId, store: StoreDep, settings: SettingsDep, who: Reader
+) -> HTMLResponse:
     """The same certificate as a printable page for people."""
     cert = _certificate(store, record_id, settings, who.name)
     return HTMLResponse(dcc.render_html(cert.xml))
@@ -262,25 +417,55 @@ def order_body(store: Store, o: OrderRow) -> Order:
     conformity = None
     if o.specification and links["records"]:
         conformity = record_conformity(store, store.records.get_record(links["records"][-1]["id"]))
-    return Order.model_validate({
-        "id": o.id, "lims_order_id": o.lims_order_id, "item_serial": o.item_serial,
-        "item_manufacturer": o.item_manufacturer, "item_model": o.item_model, "customer": o.customer,
-        "procedure": o.procedure, "method": o.method, "due_on": o.due_on, "created_utc": o.created_at,
-        "created_by": o.created_by, "specification": o.specification, "conformity": conformity, **links})
+    return Order.model_validate(
+        {
+            "id": o.id,
+            "lims_order_id": o.lims_order_id,
+            "item_serial": o.item_serial,
+            "item_manufacturer": o.item_manufacturer,
+            "item_model": o.item_model,
+            "customer": o.customer,
+            "procedure": o.procedure,
+            "method": o.method,
+            "due_on": o.due_on,
+            "created_utc": o.created_at,
+            "created_by": o.created_by,
+            "specification": o.specification,
+            "conformity": conformity,
+            **links,
+        }
+    )
 
 
-@router.post("/orders", status_code=201, response_model=Order, responses={
-    200: {"model": Order, "description": "A repeat of an earlier request's Idempotency-Key: that request's order"},
-    **problem_responses(*WRITE, 409)})
+@router.post(
+    "/orders",
+    status_code=201,
+    response_model=Order,
+    responses={
+        200: {
+            "model": Order,
+            "description": "A repeat of an earlier request's Idempotency-Key: that request's order",
+        },
+        **problem_responses(*WRITE, 409),
+    },
+)
 @off_loop
-def create_order(body: OrderIn, response: Response, store: StoreDep, who: Operator,
-                 idempotency_key: Annotated[str | None, Header(max_length=200)] = None) -> Order:
-    """Create an order (scope operate). With an `Idempotency-Key`, a repeat returns the first order (200);
-    the same key with another body is 422. A `specification` (stage-grid orders) makes the certificate state
-    conformity with it."""
+def create_order(
+    body: OrderIn,
+    response: Response,
+    store: StoreDep,
+    who: Operator,
+    idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
+) -> Order:
+    """Create an order (scope operate). With an `Idempotency-Key`, a repeat returns the first order
+    (200); the same key with another body is 422. A `specification` (stage-grid orders) makes the
+    certificate state conformity with it."""
     try:
-        row, created = store.orders.create_order(body.model_dump(mode="json", exclude_none=True), actor=who.name,
-                                                 idempotency_key=idempotency_key)
+        row, created = store.orders.create_order(
+            body.model_dump(mode="json", exclude_none=True),
+            actor=who.name,
+            idempotency_key=idempotency_key,
+        )
     except ConflictError as exc:
         raise ProblemError(409, "Order exists", str(exc), field="lims_order_id") from None
     except SpecificationProblem as exc:
@@ -294,9 +479,9 @@ def create_order(body: OrderIn, response: Response, store: StoreDep, who: Operat
 @router.get("/orders/{order_id}", response_model=Order, responses=problem_responses(*READ, 404))
 @off_loop
 def read_order(order_id: OrderId, store: StoreDep, _: Reader) -> Order:
-    """The order, its jobs, records (with status) and certificates, and its state: open, in_progress,
-    measured, approved, rejected, certified or failed; with a specification, the newest record's statements
-    of conformity."""
+    """The order, its jobs, records (with status) and certificates, and its state: open,
+    in_progress, measured, approved, rejected, certified or failed; with a specification, the newest
+    record's statements of conformity."""
     return order_body(store, store.orders.get(order_id))
 
 
@@ -305,67 +490,142 @@ def read_order(order_id: OrderId, store: StoreDep, _: Reader) -> Order:
 
 @router.get("/feed", response_model=Feed, responses=problem_responses(*READ))
 @off_loop
-def feed(feed_events: FeedRepoDep, _: Reader,
-         cursor: Annotated[str | None, Query(max_length=100, pattern=r"^(f1\.[A-Za-z0-9_-]*)?$",
-                                             description="`next_cursor` of the previous poll (opaque)")] = None,
-         limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> Response:
-    """Events oldest first from after `cursor` (none: from the start). Hand `next_cursor` back on the next
-    poll: a client that does never misses or repeats an event, even while events are being written."""
+def feed(
+    feed_events: FeedRepoDep,
+    _: Reader,
+    cursor: Annotated[
+        str | None,
+        Query(
+            max_length=100,
+            pattern=r"^(f1\.[A-Za-z0-9_-]*)?$",
+            description="`next_cursor` of the previous poll (opaque)",
+        ),
+    ] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+) -> Response:
+    """Events oldest first from after `cursor` (none: from the start). Hand `next_cursor` back on
+    the next poll: a client that does never misses or repeats an event, even while events are being
+    written."""
     try:
         after = decode_cursor(cursor)
     except InputError as exc:
         raise ProblemError(422, "Invalid request", f"cursor: {exc}", field="cursor") from None
     if after > FEED_ID_MAX:
-        raise ProblemError(422, "Invalid request", "cursor: not a cursor this feed gave out; start without one",
-                           field="cursor")
+        raise ProblemError(
+            422,
+            "Invalid request",
+            "cursor: not a cursor this feed gave out; start without one",
+            field="cursor",
+        )
     events = feed_events.events(after_id=after, limit=limit)
-    return json_answer(Feed.model_validate({"events": [event_json(e) for e in events],
-                                            "next_cursor": encode_cursor(events[-1].id if events else after)}))
+    return json_answer(
+        Feed.model_validate(
+            {
+                "events": [event_json(e) for e in events],
+                "next_cursor": encode_cursor(events[-1].id if events else after),
+            }
+        )
+    )
 
 
 # ---------------------------------------------------------------- webhooks
 
 
-@router.post("/webhooks", status_code=201, response_model=NewWebhook, responses=problem_responses(*WRITE))
+@router.post(
+    "/webhooks", status_code=201, response_model=NewWebhook, responses=problem_responses(*WRITE)
+)
 @off_loop
-def add_webhook(body: WebhookIn, response: Response, webhooks: WebhooksRepoDep, dispatcher: WebhooksDep,
-                who: Admin) -> NewWebhook:
-    """Register an endpoint (scope admin). The answer carries its signing `secret`, shown this once."""
+def add_webhook(
+    body: WebhookIn,
+    response: Response,
+    webhooks: WebhooksRepoDep,
+    dispatcher: WebhooksDep,
+    who: Admin,
+) -> NewWebhook:
+    """Register an endpoint (scope admin). The answer carries its signing `secret`, shown this
+    once."""
     row, secret = webhooks.add_webhook(body.url, body.events, actor=who.name)
     if dispatcher is not None:
         dispatcher.wake.set()
     response.headers["Location"] = f"/webhooks/{row.id}"
-    return NewWebhook(id=row.id, url=row.url, events=row.events, secret=secret, created_utc=row.created_at)
+    return NewWebhook(
+        id=row.id, url=row.url, events=row.events, secret=secret, created_utc=row.created_at
+    )
 
 
 @router.get("/webhooks", response_model=Webhooks, responses=problem_responses(*READ))
 @off_loop
-def list_webhooks(webhooks: WebhooksRepoDep, _: Admin,
-                  cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
-                  limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE) -> Response:
-    """Webhook endpoints in the order they were registered, a page at a time (`next_cursor` pages on). A URL
-    stored with credentials in it (before they were refused) is shown without them."""
+def list_webhooks(
+    webhooks: WebhooksRepoDep,
+    _: Admin,
+    cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE,
+) -> Response:
+    """Webhook endpoints in the order they were registered, a page at a time (`next_cursor` pages
+    on). A URL stored with credentials in it (before they were refused) is shown without them."""
     rows = webhooks.page(after_id=cursor, limit=limit)
-    return json_answer(Webhooks(webhooks=[Webhook(id=w.id, url=shown_url(w.url), events=w.events,
-                                                  created_utc=w.created_at, created_by=w.created_by) for w in rows],
-                                next_cursor=rows[-1].id if len(rows) == limit else None))
+    return json_answer(
+        Webhooks(
+            webhooks=[
+                Webhook(
+                    id=w.id,
+                    url=shown_url(w.url),
+                    events=w.events,
+                    created_utc=w.created_at,
+                    created_by=w.created_by,
+                )
+                for w in rows
+            ],
+            next_cursor=rows[-1].id if len(rows) == limit else None,
+        )
+    )
 
 
-@router.get("/webhooks/{webhook_id}/deliveries", response_model=Deliveries, responses=problem_responses(*READ, 404))
+@router.get(
+    "/webhooks/{webhook_id}/deliveries",
+    response_model=Deliveries,
+    responses=problem_responses(*READ, 404),
+)
 @off_loop
-def deliveries(webhook_id: WebhookId, webhooks: WebhooksRepoDep, _: Admin,
-               cursor: Annotated[int | None, Query(ge=1, le=FEED_ID_MAX, description=CURSOR)] = None,
-               limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE) -> Response:
-    """The delivery log, newest first: each event's state (pending, delivered, failed) and every attempt, a page
-    at a time (`next_cursor` pages on)."""
+def deliveries(
+    webhook_id: WebhookId,
+    webhooks: WebhooksRepoDep,
+    _: Admin,
+    cursor: Annotated[int | None, Query(ge=1, le=FEED_ID_MAX, description=CURSOR)] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE,
+) -> Response:
+    """The delivery log, newest first: each event's state (pending, delivered, failed) and every
+    attempt, a page at a time (`next_cursor` pages on)."""
     webhooks.get(webhook_id)
     found = webhooks.deliveries(webhook_id, before_id=cursor, limit=limit)
-    return json_answer(Deliveries.model_validate({"webhook_id": webhook_id,
-                                                  "next_cursor": found[-1][0].id if len(found) == limit else None,
-                                                  "deliveries": [
-        {"id": d.id, "event_id": event_json(e)["id"], "event_type": e.type, "state": d.state, "attempts": d.attempts,
-         "next_attempt_utc": d.next_attempt_at, "delivered_utc": d.delivered_at, "last_status_code": d.last_status_code,
-         "last_error": d.last_error,
-         "log": [{"time_utc": a.at, "status_code": a.status_code, "error": a.error, "duration_s": a.duration_s}
-                 for a in attempts]}
-        for d, e, attempts in found]}))  # fmt: skip
+    return json_answer(
+        Deliveries.model_validate(
+            {
+                "webhook_id": webhook_id,
+                "next_cursor": found[-1][0].id if len(found) == limit else None,
+                "deliveries": [
+                    {
+                        "id": d.id,
+                        "event_id": event_json(e)["id"],
+                        "event_type": e.type,
+                        "state": d.state,
+                        "attempts": d.attempts,
+                        "next_attempt_utc": d.next_attempt_at,
+                        "delivered_utc": d.delivered_at,
+                        "last_status_code": d.last_status_code,
+                        "last_error": d.last_error,
+                        "log": [
+                            {
+                                "time_utc": a.at,
+                                "status_code": a.status_code,
+                                "error": a.error,
+                                "duration_s": a.duration_s,
+                            }
+                            for a in attempts
+                        ],
+                    }
+                    for d, e, attempts in found
+                ],
+            }
+        )
+    )

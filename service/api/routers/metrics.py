@@ -17,17 +17,28 @@ from service.storage.outage import unreachable
 router = APIRouter(tags=["health"])
 
 
-@router.get("/metrics", response_class=Response,
-            responses={200: {"description": "Prometheus text exposition format 0.0.4",
-                             "content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}}},
-                       **problem_responses(*READ)})
-async def metrics(metrics: MetricsDep, stored_jobs: JobsRepoDep, database: DatabaseDep, _: Reader) -> Response:
-    """HTTP requests by route and status with latency histograms, serial counters per device, jobs by
-    state (left out while the database is away), WebSocket clients and dropped messages, the job writes
-    handed over, and whether the database answers (with the writes and samples waiting for it)."""
+@router.get(
+    "/metrics",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "Prometheus text exposition format 0.0.4",
+            "content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}},
+        },
+        **problem_responses(*READ),
+    },
+)
+async def metrics(
+    metrics: MetricsDep, stored_jobs: JobsRepoDep, database: DatabaseDep, _: Reader
+) -> Response:
+    """HTTP requests by route and status with latency histograms, serial counters per device, jobs
+    by state (left out while the database is away), WebSocket clients and dropped messages, the job
+    writes handed over, and whether the database answers (with the writes and samples waiting for
+    it)."""
     try:
         counts = await in_thread(stored_jobs.job_counts_by_state)
-    except DatabaseSlow:  # the database does not answer in time: everything else is still worth scraping
+    # the database does not answer in time: everything else is still worth scraping
+    except DatabaseSlow:
         counts = {}
     except Exception as exc:  # the database away: everything else is still worth scraping
         if not unreachable(exc):

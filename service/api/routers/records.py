@@ -1,4 +1,5 @@
-"""Calibration records over HTTP: list, read, MODEL.json, the raw points as a dataset CSV, activate."""
+"""Calibration records over HTTP: list, read, MODEL.json, the raw points as a dataset CSV,
+activate."""
 
 from __future__ import annotations
 
@@ -47,58 +48,106 @@ class CsvResponse(Response):
 
 
 class RecordBodies:
-    """Records as the routes show them: with their bench, whether active and their approval status."""
+    """Records as the routes show them: with their bench, whether active and their approval
+    status."""
 
-    def __init__(self, records: RecordsRepoDep, approvals: ApprovalsRepoDep, devices: DevicesRepoDep,
-                 jobs: JobsDep, store: StoreDep) -> None:
-        self.records, self.approvals, self.devices, self.jobs, self.store = records, approvals, devices, jobs, store
+    def __init__(
+        self,
+        records: RecordsRepoDep,
+        approvals: ApprovalsRepoDep,
+        devices: DevicesRepoDep,
+        jobs: JobsDep,
+        store: StoreDep,
+    ) -> None:
+        self.records, self.approvals, self.devices, self.jobs, self.store = (
+            records,
+            approvals,
+            devices,
+            jobs,
+            store,
+        )
 
     def __call__(self, rows: Sequence[CalibrationRecord]) -> list[Record]:
-        """The bodies of these records, read in four queries however many they are (and, for the records of an
-        order with a specification, those their statements of conformity need)."""
-        return record_bodies(self.records, self.approvals, self.devices, self.jobs, rows, self.store)
+        """The bodies of these records, read in four queries however many they are (and, for the
+        records of an order with a specification, those their statements of conformity need)."""
+        return record_bodies(
+            self.records, self.approvals, self.devices, self.jobs, rows, self.store
+        )
 
     def page(self, rows: Sequence[CalibrationRecord]) -> list[Record]:
         """The bodies of a page of records read without their models (see `page_ranges`)."""
-        return record_bodies(self.records, self.approvals, self.devices, self.jobs, rows, self.store,
-                             page_ranges(self.records, self.jobs, rows))
+        return record_bodies(
+            self.records,
+            self.approvals,
+            self.devices,
+            self.jobs,
+            rows,
+            self.store,
+            page_ranges(self.records, self.jobs, rows),
+        )
 
 
 RecordBodiesDep = Annotated[RecordBodies, Depends()]
 
 
-def record_bodies(records: RecordsRepo, approvals: ApprovalsRepo, devices: DevicesRepo, jobs: JobManager,
-                  rows: Sequence[CalibrationRecord], store: Store, ranges: dict[int, Any] | None = None) -> list[Record]:
-    """Records with their bench, whether active, their approval status, their budget saying whether it is traceable
-    and, where their order has a specification, their statements of conformity (and their calibrated ranges, from
-    `ranges` where given)."""
+def record_bodies(
+    records: RecordsRepo,
+    approvals: ApprovalsRepo,
+    devices: DevicesRepo,
+    jobs: JobManager,
+    rows: Sequence[CalibrationRecord],
+    store: Store,
+    ranges: dict[int, Any] | None = None,
+) -> list[Record]:
+    """Records with their bench, whether active, their approval status, their budget saying whether
+    it is traceable and, where their order has a specification, their statements of conformity (and
+    their calibrated ranges, from `ranges` where given)."""
     active = records.active_record_ids()
     specified = store.orders.specified_jobs([r.job_id for r in rows if r.job_id is not None])
     status = approvals.record_statuses([r.id for r in rows])
     # in a fleet a record's device may hang off another daemon's bench: the database knows its name
-    elsewhere = devices.bench_names_of_devices({r.device_id for r in rows if jobs.bench_of_device(r.device_id) is None})
+    elsewhere = devices.bench_names_of_devices(
+        {r.device_id for r in rows if jobs.bench_of_device(r.device_id) is None}
+    )
     out = []
     for r in rows:
         bench = jobs.bench_of_device(r.device_id)
-        out.append(Record.model_validate({
-            "id": r.id, "device_id": r.device_id, "bench": bench.name if bench else elsewhere.get(r.device_id),
-            "kind": r.kind,
-            "version": r.version, "method": r.method, "created_utc": r.created_at, "operator": r.operator,
-            "job_id": r.job_id, "active": r.id in active, "validation": r.validation, "temp_c": r.temp_c,
-            "conditions": (r.raw_data or {}).get("conditions"),
-            "budget": with_traceability((r.raw_data or {}).get("budget")),
-            "conformity": record_conformity(store, r) if r.job_id in specified else None,
-            "raw_data": r.raw_data,
-            "supersedes_id": r.supersedes_id, "content_sha256": r.content_sha256,
-            "reference_standards": r.reference_standards,
-            "status": status[r.id],  # draft | approved | rejected (LIMS approvals)
-            "calibrated_range": ranges[r.id] if ranges is not None else calibrated_range(jobs, r),
-            "bench_seconds": (r.raw_data or {}).get("bench_seconds")}))
+        out.append(
+            Record.model_validate(
+                {
+                    "id": r.id,
+                    "device_id": r.device_id,
+                    "bench": bench.name if bench else elsewhere.get(r.device_id),
+                    "kind": r.kind,
+                    "version": r.version,
+                    "method": r.method,
+                    "created_utc": r.created_at,
+                    "operator": r.operator,
+                    "job_id": r.job_id,
+                    "active": r.id in active,
+                    "validation": r.validation,
+                    "temp_c": r.temp_c,
+                    "conditions": (r.raw_data or {}).get("conditions"),
+                    "budget": with_traceability((r.raw_data or {}).get("budget")),
+                    "conformity": record_conformity(store, r) if r.job_id in specified else None,
+                    "raw_data": r.raw_data,
+                    "supersedes_id": r.supersedes_id,
+                    "content_sha256": r.content_sha256,
+                    "reference_standards": r.reference_standards,
+                    "status": status[r.id],  # draft | approved | rejected (LIMS approvals)
+                    "calibrated_range": ranges[r.id]
+                    if ranges is not None
+                    else calibrated_range(jobs, r),
+                    "bench_seconds": (r.raw_data or {}).get("bench_seconds"),
+                }
+            )
+        )
     return out
 
 
 def calibrated_range(jobs: JobManager, r: CalibrationRecord) -> dict[str, Any] | None:
-    """The table tilts a stage record was fitted on, per axis [min, max] in the reference sensor's frame."""
+    """The table tilts a stage record was fitted on, per axis [min, max] in the reference sensor's
+    frame."""
     try:
         seen = jobs.table_tilt_range_of(r)
     except InputError:  # a model this version cannot read states no range it can show
@@ -107,13 +156,19 @@ def calibrated_range(jobs: JobManager, r: CalibrationRecord) -> dict[str, Any] |
 
 
 def _range_body(seen: dict[str, list[float]] | None) -> dict[str, Any] | None:
-    return None if seen is None else {"frame": "reference_sensor", "x_deg": seen["x"], "y_deg": seen["y"]}
+    return (
+        None
+        if seen is None
+        else {"frame": "reference_sensor", "x_deg": seen["x"], "y_deg": seen["y"]}
+    )
 
 
-def page_ranges(records: RecordsRepo, jobs: JobManager, rows: Sequence[CalibrationRecord]) -> dict[int, Any]:
-    """The calibrated ranges of a page of records read without their models: known ones from memory, the rest
-    from what each model states (extracted by the database), and a record whose model states none (made before
-    models kept it) read whole, once."""
+def page_ranges(
+    records: RecordsRepo, jobs: JobManager, rows: Sequence[CalibrationRecord]
+) -> dict[int, Any]:
+    """The calibrated ranges of a page of records read without their models: known ones from memory,
+    the rest from what each model states (extracted by the database), and a record whose model
+    states none (made before models kept it) read whole, once."""
     out: dict[int, Any] = {}
     missing = []
     for r in rows:
@@ -137,94 +192,155 @@ def page_ranges(records: RecordsRepo, jobs: JobManager, rows: Sequence[Calibrati
 
 @router.get("", response_model=RecordList, responses=problem_responses(*READ, 404))
 @off_loop
-def list_records(benches: BenchesDep, records: RecordsRepoDep, devices: DevicesRepoDep, bodies: RecordBodiesDep,
-                 _: Reader,
-                 device: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description="a device's id")] = None,
-                 bench: Annotated[str | None, Query(max_length=100)] = None,
-                 cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
-                 limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE) -> Response:
-    """Records newest first, of one device or of the devices of one bench, a page at a time: `next_cursor`
-    (null on the last page) pages on."""
+def list_records(
+    benches: BenchesDep,
+    records: RecordsRepoDep,
+    devices: DevicesRepoDep,
+    bodies: RecordBodiesDep,
+    _: Reader,
+    device: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description="a device's id")] = None,
+    bench: Annotated[str | None, Query(max_length=100)] = None,
+    cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE,
+) -> Response:
+    """Records newest first, of one device or of the devices of one bench, a page at a time:
+    `next_cursor` (null on the last page) pages on."""
     of_bench: list[int] | None = None
     if bench is not None:
-        device_ids = (list(benches[bench].device_ids.values()) if bench in benches
-                      else devices.device_ids_of_bench(bench))  # another daemon's bench of the lab
+        device_ids = (
+            list(benches[bench].device_ids.values())
+            if bench in benches
+            else devices.device_ids_of_bench(bench)
+        )  # another daemon's bench of the lab
         if device_ids is None:
             find_bench(benches, bench)  # the 404 naming the benches there are
         of_bench = device_ids or []
-    found = records.newest_first(device_id=device, device_ids=of_bench, before_id=cursor, limit=limit, with_model=False)
-    return json_answer(RecordList(records=bodies.page(found), next_cursor=found[-1].id if len(found) == limit else None))
+    found = records.newest_first(
+        device_id=device, device_ids=of_bench, before_id=cursor, limit=limit, with_model=False
+    )
+    return json_answer(
+        RecordList(
+            records=bodies.page(found), next_cursor=found[-1].id if len(found) == limit else None
+        )
+    )
 
 
 @router.get("/{record_id}", response_model=Record, responses=problem_responses(*READ, 404))
 @off_loop
-def read(record_id: RecordId, records: RecordsRepoDep, bodies: RecordBodiesDep, _: Reader) -> Record:
+def read(
+    record_id: RecordId, records: RecordsRepoDep, bodies: RecordBodiesDep, _: Reader
+) -> Record:
     return bodies([records.get_record(record_id)])[0]
 
 
-@router.get("/{record_id}/model", response_model=ModelFile, response_model_exclude_unset=True,
-            responses=problem_responses(*READ, 404))
+@router.get(
+    "/{record_id}/model",
+    response_model=ModelFile,
+    response_model_exclude_unset=True,
+    responses=problem_responses(*READ, 404),
+)
 @off_loop
 def model(record_id: RecordId, records: RecordsRepoDep, _: Reader) -> ModelFile:
     """The record's MODEL.json, as `tiltlab correct --model` and `tiltlab level --model` take it."""
     return ModelFile.model_validate(records.get_record(record_id).model)
 
 
-@router.get("/{record_id}/points", response_class=CsvResponse, responses={
-    200: {"content": {"text/csv": {"schema": {"type": "string"}}},
-          "description": "the record's fit points as a dataset CSV of its kind"},
-    **problem_responses(*READ, 404, 409)})
+@router.get(
+    "/{record_id}/points",
+    response_class=CsvResponse,
+    responses={
+        200: {
+            "content": {"text/csv": {"schema": {"type": "string"}}},
+            "description": "the record's fit points as a dataset CSV of its kind",
+        },
+        **problem_responses(*READ, 404, 409),
+    },
+)
 @off_loop
 def points(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Reader) -> Response:
-    """The settled points the record was fitted on as a dataset CSV of its kind: `tiltlab calibrate` on it gives the
-    record's parameters exactly (stored values are written in their shortest exact decimal form)."""
+    """The settled points the record was fitted on as a dataset CSV of its kind: `tiltlab calibrate`
+    on it gives the record's parameters exactly (stored values are written in their shortest exact
+    decimal form)."""
     r = records.get_record(record_id)
     if r.job_id is None:
-        raise ProblemError(409, "No points", f"record {record_id} was not measured by a job of this daemon")
+        raise ProblemError(
+            409, "No points", f"record {record_id} was not measured by a job of this daemon"
+        )
     cols = jobs.fit_columns(r.job_id, int((r.raw_data or {}).get("fit_points", 10**9)))
     buf = io.StringIO()
-    order = {"stage": STAGE_DATASET, "scale": SCALE_DATASET, "rotation": ROTATION_DATASET,
-             "turntable": TURNTABLE_DATASET}.get(r.kind, tuple(cols))
+    order = {
+        "stage": STAGE_DATASET,
+        "scale": SCALE_DATASET,
+        "rotation": ROTATION_DATASET,
+        "turntable": TURNTABLE_DATASET,
+    }.get(r.kind, tuple(cols))
     names = [c for c in order if c in cols and np.isfinite(cols[c]).all()]
     buf.write(",".join(names) + "\r\n")
     for i in range(len(next(iter(cols.values())))):
         buf.write(",".join(format_value(c, cols[c][i], exact=True) for c in names) + "\r\n")
-    return CsvResponse(buf.getvalue(),
-                       headers={"Content-Disposition": f'attachment; filename="record-{record_id}-points.csv"'})
+    return CsvResponse(
+        buf.getvalue(),
+        headers={"Content-Disposition": f'attachment; filename="record-{record_id}-points.csv"'},
+    )
 
 
-@router.get("/{record_id}/residuals", response_model=Residuals, responses=problem_responses(*READ, 404, 409))
+@router.get(
+    "/{record_id}/residuals", response_model=Residuals, responses=problem_responses(*READ, 404, 409)
+)
 @off_loop
 def residuals(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Reader) -> Residuals:
-    """Per measured point of a stage record, the residual against the reference sensor before correction
-    (measurement sensor raw) and after it (through the record's model, the computation of `tiltlab correct`);
-    `role` says whether the point was fitted or kept for validation."""
+    """Per measured point of a stage record, the residual against the reference sensor before
+    correction (measurement sensor raw) and after it (through the record's model, the computation of
+    `tiltlab correct`); `role` says whether the point was fitted or kept for validation."""
     r = records.get_record(record_id)
     if r.kind != "stage":
-        raise ProblemError(409, "No residual map", f"record {record_id} is a {r.kind} record: residuals over a grid"
-                           " are served for stage records")
+        raise ProblemError(
+            409,
+            "No residual map",
+            f"record {record_id} is a {r.kind} record: residuals over a grid"
+            " are served for stage records",
+        )
     if r.job_id is None:
-        raise ProblemError(409, "No points", f"record {record_id} was not measured by a job of this daemon")
+        raise ProblemError(
+            409, "No points", f"record {record_id} was not measured by a job of this daemon"
+        )
     n_fit = int((r.raw_data or {}).get("fit_points", 10**9))
     cols = jobs.fit_columns(r.job_id, 10**9)
     fitted = CalibrationModel.from_json_dict(r.model, f"record {r.id}")
-    return Residuals.model_validate({"record_id": r.id, "method": r.method,
-                                     **stage_residual_map(get_method("stage", r.method), fitted, cols, n_fit)})
+    return Residuals.model_validate(
+        {
+            "record_id": r.id,
+            "method": r.method,
+            **stage_residual_map(get_method("stage", r.method), fitted, cols, n_fit),
+        }
+    )
 
 
-@router.post("/{record_id}/activate", response_model=Record, responses=problem_responses(*WRITE, 404, 409))
+@router.post(
+    "/{record_id}/activate", response_model=Record, responses=problem_responses(*WRITE, 404, 409)
+)
 @off_loop
-def activate(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, bodies: RecordBodiesDep,
-             who: Operator) -> Record:
-    """Make the record the active version of its device: /tilt and levelling use it from now on. A rejected
-    record, or one whose stored content no longer matches its hash, is refused (409)."""
+def activate(
+    record_id: RecordId,
+    jobs: JobsDep,
+    records: RecordsRepoDep,
+    bodies: RecordBodiesDep,
+    who: Operator,
+) -> Record:
+    """Make the record the active version of its device: /tilt and levelling use it from now on. A
+    rejected record, or one whose stored content no longer matches its hash, is refused (409)."""
     r = records.get_record(record_id)
     why = records.unusable_reason(r.id)
     if why is not None:
         raise ProblemError(409, "Record not usable", f"{why}; it cannot be activated")
     current = records.active_record(r.device_id, r.kind)
     if current is None or current.id != r.id:
-        records.activate(r.id, actor=who.name, reason="activated over HTTP", replaces=current.id if current else None)
+        records.activate(
+            r.id,
+            actor=who.name,
+            reason="activated over HTTP",
+            replaces=current.id if current else None,
+        )
     bench = jobs.bench_of_device(r.device_id)
     if bench is not None:
         jobs.load_active(bench)

@@ -17,12 +17,21 @@ router = APIRouter(prefix="/stage", tags=["stage"])
 
 
 @router.post("/home", response_model=Homed, responses=problem_responses(*WRITE, 404, 409, 503))
-async def home(benches: BenchesDep, audit: AuditRepoDep, who: Operator, body: Home | None = None) -> Homed:
+async def home(
+    benches: BenchesDep, audit: AuditRepoDep, who: Operator, body: Home | None = None
+) -> Homed:
     """Home both stage axes and answer once they stand (409 while a job holds the bench)."""
     bench = find_bench(benches, body.bench if body else None)
     if bench.kind != "stage":
-        raise ProblemError(422, "Not a stage bench", f"bench: {bench.name!r} is a {bench.kind} bench", field="bench")
+        raise ProblemError(
+            422,
+            "Not a stage bench",
+            f"bench: {bench.name!r} is a {bench.kind} bench",
+            field="bench",
+        )
     async with bench.hold(BenchHold(Hold.HOMING)):
         x, y = await bench.home_stage()
-    await in_thread(audit.action, who.name, "stage.home", "bench", bench.name, {"bench": bench.name})
+    await in_thread(
+        audit.action, who.name, "stage.home", "bench", bench.name, {"bench": bench.name}
+    )
     return Homed.model_validate({"homed": True, "stage": {"x_deg": x, "y_deg": y, "moving": False}})

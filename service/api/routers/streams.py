@@ -1,4 +1,5 @@
-"""Live streams over WebSocket: a bench's readings (`/ws/readings`) and a calibration job (`/ws/jobs/{id}`).
+"""Live streams over WebSocket: a bench's readings (`/ws/readings`) and a calibration job
+(`/ws/jobs/{id}`).
 
 The token comes as the subprotocol `bearer.<token>` (echoed in the accept) or in the `token` query
 parameter (scope read); it is asked again every few seconds, so a revoked token's streams end.
@@ -27,7 +28,15 @@ from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from service.api.auth import websocket_principal, websocket_subprotocol
-from service.api.deps import BenchesDep, JobsDep, JobsRepoDep, PointsRepoDep, RecordsRepoDep, SettingsDep, StreamsDep
+from service.api.deps import (
+    BenchesDep,
+    JobsDep,
+    JobsRepoDep,
+    PointsRepoDep,
+    RecordsRepoDep,
+    SettingsDep,
+    StreamsDep,
+)
 from service.api.offloop import in_thread
 from service.api.problems import ProblemError
 from service.api.routers.calibrations import job_body
@@ -50,13 +59,16 @@ log = logging.getLogger("tiltlab.streams")
 CLOSE_NORMAL = 1000
 CLOSE_POLICY = 1008
 CLOSE_INTERNAL = 1011
-CLOSE_TIMEOUT_S = 5.0  # a close frame that cannot be written in this long (a peer that reads nothing) is dropped
-TOKEN_RECHECK_S = 2.0  # an open stream asks for its token again this often (through the token cache)
+# a close frame that cannot be written in this long (a peer that reads nothing) is dropped
+CLOSE_TIMEOUT_S = 5.0
+# an open stream asks for its token again this often (through the token cache)
+TOKEN_RECHECK_S = 2.0
 REVOKED = "token: revoked (or no longer valid)"
 
 
 async def _accept(ws: WebSocket) -> None:
-    """Accept, naming back the `bearer.<token>` subprotocol if the client offered it (browsers insist)."""
+    """Accept, naming back the `bearer.<token>` subprotocol if the client offered it (browsers
+    insist)."""
     await ws.accept(subprotocol=websocket_subprotocol(ws))
 
 
@@ -71,7 +83,8 @@ async def _refuse(ws: WebSocket, reason: str) -> None:
 
 
 async def _authorised(ws: WebSocket) -> bool:
-    """The token checked before anything else (off the event loop when the database must be asked)."""
+    """The token checked before anything else (off the event loop when the database must be
+    asked)."""
     try:
         await websocket_principal(ws, "read")
         return True
@@ -81,13 +94,18 @@ async def _authorised(ws: WebSocket) -> bool:
             await _accept(ws)
             await ws.close(CLOSE_SLOW, _reason(f"token: {exc.detail}"))
         else:
-            await _refuse(ws, "token: unknown, revoked, or without the read scope" if given else
-                          "token: missing (give the subprotocol bearer.<token>, or ?token=...)")
+            await _refuse(
+                ws,
+                "token: unknown, revoked, or without the read scope"
+                if given
+                else "token: missing (give the subprotocol bearer.<token>, or ?token=...)",
+            )
         return False
 
 
 async def _until_token_invalid(ws: WebSocket) -> None:
-    """Return once the stream's token no longer lets it read (revoked here or by `tiltlab token revoke`).
+    """Return once the stream's token no longer lets it read (revoked here or by `tiltlab token
+    revoke`).
 
     From the token cache: a known token is answered from memory and re-checked in the background."""
     while True:
@@ -97,7 +115,11 @@ async def _until_token_invalid(ws: WebSocket) -> None:
         except ProblemError as exc:
             if exc.status in (401, 403):
                 return
-            log.warning("a stream's token could not be checked (%s); asking again in %g s", exc.detail, TOKEN_RECHECK_S)
+            log.warning(
+                "a stream's token could not be checked (%s); asking again in %g s",
+                exc.detail,
+                TOKEN_RECHECK_S,
+            )
 
 
 def _number(ws: WebSocket, name: str, default: float | None) -> float | None:
@@ -123,7 +145,10 @@ async def _until_disconnect(ws: WebSocket) -> None:
 
 
 async def _close(ws: WebSocket, code: int, reason: str) -> None:
-    if ws.application_state == WebSocketState.CONNECTED and ws.client_state == WebSocketState.CONNECTED:
+    if (
+        ws.application_state == WebSocketState.CONNECTED
+        and ws.client_state == WebSocketState.CONNECTED
+    ):
         with contextlib.suppress(Exception):
             async with asyncio.timeout(CLOSE_TIMEOUT_S):
                 await ws.close(code, _reason(reason))
@@ -137,24 +162,32 @@ async def readings(ws: WebSocket, hub: StreamsDep) -> None:
     name = ws.query_params.get("bench")
     if name is None or name == "":
         if len(hub.producers) != 1:
-            return await _refuse(ws, f"bench: the daemon runs {len(hub.producers)} benches"
-                                     f" ({', '.join(hub.producers)}); name one")
+            return await _refuse(
+                ws,
+                f"bench: the daemon runs {len(hub.producers)} benches"
+                f" ({', '.join(hub.producers)}); name one",
+            )
         producer = next(iter(hub.producers.values()))
     else:
         found = hub.find(name)
         if found is None:
-            return await _refuse(ws, f"bench: no bench named {name[:30]!r}; benches: {', '.join(hub.producers)}")
+            return await _refuse(
+                ws, f"bench: no bench named {name[:30]!r}; benches: {', '.join(hub.producers)}"
+            )
         producer = found
     try:
         rate = producer.clamp_rate(_number(ws, "rate_hz", None))
         history_s = _number(ws, "history_s", HISTORY_DEFAULT_S)
         assert history_s is not None
         if history_s > HISTORY_MAX_S:
-            raise ValueError(f"history_s: {history_s:g} is above the maximum of {HISTORY_MAX_S:g} s")
+            raise ValueError(
+                f"history_s: {history_s:g} is above the maximum of {HISTORY_MAX_S:g} s"
+            )
     except ValueError as exc:
         return await _refuse(ws, str(exc))
     await _accept(ws)
-    client = producer.connect(rate, history_s, deferred=True)  # the history copied now, the stream continues it
+    # the history copied now, the stream continues it
+    client = producer.connect(rate, history_s, deferred=True)
     try:
         if client.snapshot is not None:  # built off the event loop, long histories a few at a time
             try:
@@ -172,12 +205,14 @@ async def readings(ws: WebSocket, hub: StreamsDep) -> None:
 async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client) -> None:
     slow_close_s = producer.slow_close_s
     loop = asyncio.get_running_loop()
-    sending_since: list[float | None] = [None]  # real time the send under way began (None: none under way)
+    # real time the send under way began (None: none under way)
+    sending_since: list[float | None] = [None]
     queue = client.queue
     send_text = ws.send_text
 
     async def send() -> None:
-        # Everything queued is sent in one wake; no timer per message (the watch below times the sends).
+        # Everything queued is sent in one wake; no timer per message (the watch below times the
+        # sends).
         while True:
             text = await queue.get()
             while True:
@@ -195,24 +230,34 @@ async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client
             await asyncio.sleep(step)
             since = sending_since[0]
             if since is not None and loop.time() - since >= slow_close_s:
-                client.kick(CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s")
+                client.kick(
+                    CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s"
+                )
                 return
 
     async def token() -> None:
         await _until_token_invalid(ws)
         client.kick(CLOSE_POLICY, REVOKED)
 
-    tasks = [asyncio.create_task(send()), asyncio.create_task(_until_disconnect(ws)),
-             asyncio.create_task(client.kicked.wait()), asyncio.create_task(token()), asyncio.create_task(watch())]
+    tasks = [
+        asyncio.create_task(send()),
+        asyncio.create_task(_until_disconnect(ws)),
+        asyncio.create_task(client.kicked.wait()),
+        asyncio.create_task(token()),
+        asyncio.create_task(watch()),
+    ]
     try:
         await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
     finally:
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
-    producer.disconnect(client)  # it gets nothing more, even while its close frame waits to be written
+    # it gets nothing more, even while its close frame waits to be written
+    producer.disconnect(client)
     for t in tasks:
-        if not t.cancelled() and not isinstance(t.exception(), (type(None), WebSocketDisconnect, OSError)):
+        if not t.cancelled() and not isinstance(
+            t.exception(), (type(None), WebSocketDisconnect, OSError)
+        ):
             log.error("reading stream failed", exc_info=t.exception())
             client.kick(CLOSE_INTERNAL, "the stream failed; reconnect")
     if client.close_code is not None:
@@ -220,10 +265,18 @@ async def _serve_client(ws: WebSocket, producer: ReadingProducer, client: Client
 
 
 @router.websocket("/ws/jobs/{job_id}")
-async def job_stream(ws: WebSocket, job_id: str, stored_jobs: JobsRepoDep, records: RecordsRepoDep,
-                     points: PointsRepoDep, jobs: JobsDep, benches: BenchesDep,
-                     settings: SettingsDep) -> None:
-    """Snapshot (job and points so far), then `job` and `point` messages, then `end` and close 1000."""
+async def job_stream(
+    ws: WebSocket,
+    job_id: str,
+    stored_jobs: JobsRepoDep,
+    records: RecordsRepoDep,
+    points: PointsRepoDep,
+    jobs: JobsDep,
+    benches: BenchesDep,
+    settings: SettingsDep,
+) -> None:
+    """Snapshot (job and points so far), then `job` and `point` messages, then `end` and close
+    1000."""
     if not await _authorised(ws):
         return
     if not re.fullmatch(r"[0-9]{1,10}", job_id) or not 1 <= int(job_id) <= DB_ID_MAX:
@@ -231,7 +284,8 @@ async def job_stream(ws: WebSocket, job_id: str, stored_jobs: JobsRepoDep, recor
 
     def body(job: CalibrationJob) -> dict[str, Any]:
         record = records.records_of_jobs([job.id]).get(job.id)
-        # as the HTTP route serialises it, and as the daemon knows it (an end not stored yet included)
+        # as the HTTP route serialises it, and as the daemon knows it (an end not stored yet
+        # included)
         return job_body(jobs.as_known(job), record, benches).model_dump(mode="json")
 
     try:
@@ -250,7 +304,9 @@ async def job_stream(ws: WebSocket, job_id: str, stored_jobs: JobsRepoDep, recor
     try:
         while True:
             nxt = asyncio.ensure_future(anext(stream))
-            done, _ = await asyncio.wait({nxt, waiter, revoked}, return_when=asyncio.FIRST_COMPLETED)
+            done, _ = await asyncio.wait(
+                {nxt, waiter, revoked}, return_when=asyncio.FIRST_COMPLETED
+            )
             if nxt not in done:
                 nxt.cancel()
                 with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
@@ -266,7 +322,9 @@ async def job_stream(ws: WebSocket, job_id: str, stored_jobs: JobsRepoDep, recor
                 async with asyncio.timeout(slow_close_s):
                     await ws.send_text(json.dumps({"seq": seq, **msg}))
             except TimeoutError:
-                await _close(ws, CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s")
+                await _close(
+                    ws, CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s"
+                )
                 return
             seq += 1
         await _close(ws, CLOSE_NORMAL, "job ended")

@@ -30,21 +30,39 @@ router = APIRouter(prefix="/tokens", tags=["tokens"])
 
 def token_body(row: ApiToken) -> Token:
     person = person_of_row(row)
-    return Token(name=row.name, scopes=list(row.scopes), created_utc=row.created_at, created_by=row.created_by,
-                 revoked_utc=row.revoked_at,
-                 person=Person(name=person.name, function=person.function) if person is not None else None)
+    return Token(
+        name=row.name,
+        scopes=list(row.scopes),
+        created_utc=row.created_at,
+        created_by=row.created_by,
+        revoked_utc=row.revoked_at,
+        person=Person(name=person.name, function=person.function) if person is not None else None,
+    )
 
 
-@router.post("", status_code=201, response_model=CreatedToken, responses=problem_responses(*WRITE, 409))
-async def create(body: NewToken, response: Response, tokens: TokensRepoDep, who: Admin) -> CreatedToken:
+@router.post(
+    "", status_code=201, response_model=CreatedToken, responses=problem_responses(*WRITE, 409)
+)
+async def create(
+    body: NewToken, response: Response, tokens: TokensRepoDep, who: Admin
+) -> CreatedToken:
     """A new token; its text is in this answer only (store it now: it cannot be shown again)."""
     try:
-        person = person_of(body.person.model_dump(exclude_none=True)) if body.person is not None else None
-        row, token = await in_thread(tokens.create_token, body.name, body.scopes, actor=who.name, person=person)
+        person = (
+            person_of(body.person.model_dump(exclude_none=True))
+            if body.person is not None
+            else None
+        )
+        row, token = await in_thread(
+            tokens.create_token, body.name, body.scopes, actor=who.name, person=person
+        )
     except ConflictError as exc:
         raise ProblemError(409, "Token name taken", f"name: {exc}", field="name") from None
     except InputError as exc:
-        field = next((f for f in ("scopes", "person.name", "person.function") if str(exc).startswith(f)), "name")
+        field = next(
+            (f for f in ("scopes", "person.name", "person.function") if str(exc).startswith(f)),
+            "name",
+        )
         raise ProblemError(422, "Unusable token", str(exc), field=field) from None
     response.headers["Location"] = f"/tokens/{row.name}"
     response.headers["Cache-Control"] = "no-store"
@@ -52,22 +70,36 @@ async def create(body: NewToken, response: Response, tokens: TokensRepoDep, who:
 
 
 @router.get("", response_model=Tokens, responses=problem_responses(*READ))
-async def list_tokens(tokens: TokensRepoDep, _: Admin,
-                      include_revoked: Annotated[bool, Query(description="list revoked tokens too")] = False,
-                      cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
-                      limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE) -> Response:
-    """Every token's name, scopes, creation and revocation, never a token's text; in the order they were made, a
-    page at a time (`next_cursor` pages on)."""
-    rows = await in_thread(tokens.page, include_revoked=include_revoked, after_id=cursor, limit=limit)
-    return json_answer(Tokens(tokens=[token_body(r) for r in rows],
-                              next_cursor=rows[-1].id if len(rows) == limit else None))
+async def list_tokens(
+    tokens: TokensRepoDep,
+    _: Admin,
+    include_revoked: Annotated[bool, Query(description="list revoked tokens too")] = False,
+    cursor: Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description=CURSOR)] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description=LIMIT)] = DEFAULT_PAGE,
+) -> Response:
+    """Every token's name, scopes, creation and revocation, never a token's text; in the order they
+    were made, a page at a time (`next_cursor` pages on)."""
+    rows = await in_thread(
+        tokens.page, include_revoked=include_revoked, after_id=cursor, limit=limit
+    )
+    return json_answer(
+        Tokens(
+            tokens=[token_body(r) for r in rows],
+            next_cursor=rows[-1].id if len(rows) == limit else None,
+        )
+    )
 
 
 @router.patch("/{name}", response_model=Token, responses=problem_responses(*WRITE, 404))
-async def set_person(name: Annotated[str, Path(max_length=100)], body: TokenPersonIn, tokens: TokensRepoDep,
-                     cache: TokenCacheDep, who: Admin) -> Token:
-    """Name the person an active token belongs to (or correct it): approvals made with it from now on are signed
-    by that person. Audited as `token.person` with the person before."""
+async def set_person(
+    name: Annotated[str, Path(max_length=100)],
+    body: TokenPersonIn,
+    tokens: TokensRepoDep,
+    cache: TokenCacheDep,
+    who: Admin,
+) -> Token:
+    """Name the person an active token belongs to (or correct it): approvals made with it from now
+    on are signed by that person. Audited as `token.person` with the person before."""
     try:
         person = person_of(body.person.model_dump(exclude_none=True))
     except InputError as exc:
@@ -79,9 +111,14 @@ async def set_person(name: Annotated[str, Path(max_length=100)], body: TokenPers
 
 
 @router.delete("/{name}", response_model=Token, responses=problem_responses(*WRITE, 404, 409))
-async def revoke(name: Annotated[str, Path(max_length=100)], tokens: TokensRepoDep, cache: TokenCacheDep, who: Admin) -> Token:
-    """Revoke a token: requests with it are refused (401) from this answer on. The last admin token cannot be
-    revoked (409): the lab would be locked out of its own daemon."""
+async def revoke(
+    name: Annotated[str, Path(max_length=100)],
+    tokens: TokensRepoDep,
+    cache: TokenCacheDep,
+    who: Admin,
+) -> Token:
+    """Revoke a token: requests with it are refused (401) from this answer on. The last admin token
+    cannot be revoked (409): the lab would be locked out of its own daemon."""
     try:
         row = await in_thread(tokens.revoke_token, name, actor=who.name)
     except ConflictError as exc:

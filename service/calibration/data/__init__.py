@@ -1,4 +1,5 @@
-"""Real data shipped with the calibration methods (seed 003 Table 1), read through service.io.datasets."""
+"""Real data shipped with the calibration methods (seed 003 Table 1), read through
+service.io.datasets."""
 
 from pathlib import Path
 

@@ -1,5 +1,5 @@
-"""The calibration methods, one module per kind (`stage` a package with one module per method), and the
-one list of them the registry looks names up in: a method not listed here does not exist."""
+"""The calibration methods, one module per kind (`stage` a package with one module per method), and
+the one list of them the registry looks names up in: a method not listed here does not exist."""
 
 from __future__ import annotations
 
@@ -17,10 +17,20 @@ def _poly(match: re.Match[str]) -> Method:
 
 
 METHODS: tuple[Method, ...] = (
-    HOMOGRAPHY, COUPLING, AXIS_TRANSFORM, KINEMATIC,  # stage
-    DIRECT, IODSRA, IODSRA_COMBINED,  # rotation
+    HOMOGRAPHY,
+    COUPLING,
+    AXIS_TRANSFORM,
+    KINEMATIC,  # stage
+    DIRECT,
+    IODSRA,
+    IODSRA_COMBINED,  # rotation
     REVERSAL,  # turntable
 )
 FAMILIES: tuple[MethodFamily, ...] = (
-    MethodFamily("scale", re.compile(r"poly(\d+)"), _poly, tuple(f"poly{n}" for n in range(1, MAX_DEGREE + 1))),
+    MethodFamily(
+        "scale",
+        re.compile(r"poly(\d+)"),
+        _poly,
+        tuple(f"poly{n}" for n in range(1, MAX_DEGREE + 1)),
+    ),
 )

@@ -31,21 +31,29 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.model import CalibrationModel, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions
-from service.calibration.uncertainty import Propagated, coverage_factor, propagate_gum, welch_satterthwaite
+from service.calibration.uncertainty import (
+    Propagated,
+    coverage_factor,
+    propagate_gum,
+    welch_satterthwaite,
+)
 from service.errors import DegenerateDataError
 
 SIN45 = float(np.sin(np.radians(45.0)))
 PARAM_NAMES = ("alpha_deg", "beta_deg", "gamma_deg")
-CONSTANT_ERRORS_KEY = "theta_constant_output_errors"  # MODEL.json state: per branch, the line fit of their θ bias
+# MODEL.json state: per branch, the line fit of their θ bias
+CONSTANT_ERRORS_KEY = "theta_constant_output_errors"
 
 
 def _local(theta_deg: ArrayLike, centre_deg: float, linear: bool) -> NDArray[np.float64]:
-    """Design of a straight line in θ about a branch's centre (radians, wrapped), or of its mean alone."""
+    """Design of a straight line in θ about a branch's centre (radians, wrapped), or of its mean
+    alone."""
     d = np.radians(wrap_deg(np.asarray(theta_deg, dtype=float) - centre_deg))
     return np.column_stack([np.ones_like(d), d]) if linear else np.ones((d.size, 1))
 
 
 # --- points -------------------------------------------------------------------------------------
+
 
 def direct_points(sx: ArrayLike, sy: ArrayLike) -> NDArray[np.float64]:
     """(Sx, Sy, Sz) with Sz = +sqrt(1 - Sx² - Sy²) (eq. 6 and the direct method's Sz ≥ 0 rule)."""
@@ -54,7 +62,9 @@ def direct_points(sx: ArrayLike, sy: ArrayLike) -> NDArray[np.float64]:
     return np.column_stack([x, y, z])
 
 
-def iodsra_points(sx: ArrayLike, sy: ArrayLike, sz: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+def iodsra_points(
+    sx: ArrayLike, sy: ArrayLike, sz: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
     """Seed 002 §2.2 (2): the one component above sin 45° (if any) replaced by eq. (6), sign kept.
 
     Returns the points and, per point, the index of the replaced component (-1: none). Noise
@@ -75,8 +85,14 @@ def iodsra_points(sx: ArrayLike, sy: ArrayLike, sz: ArrayLike) -> tuple[NDArray[
     return out, replaced
 
 
-def _noise_gain(points: NDArray[np.float64], replaced: NDArray[np.intp], normal: NDArray[np.float64], sigma: float) -> NDArray[np.float64]:
-    """|∂r/∂(raw outputs)|² of the plane residual r = n·S - sin β: its variance per unit output variance.
+def _noise_gain(
+    points: NDArray[np.float64],
+    replaced: NDArray[np.intp],
+    normal: NDArray[np.float64],
+    sigma: float,
+) -> NDArray[np.float64]:
+    """|∂r/∂(raw outputs)|² of the plane residual r = n·S - sin β: its variance per unit output
+    variance.
 
     A component computed from eq. (6) carries the others' noise scaled by S_other / S_c, which is
     why the direct method's Sz is poor where Sz is near 0 (seed 002 eqs. 14-15). Where S_c² is not
@@ -90,7 +106,9 @@ def _noise_gain(points: NDArray[np.float64], replaced: NDArray[np.intp], normal:
             eff = np.sqrt(pc**2 + 2.0 * sigma + 1e-12)
             for o in range(3):
                 if o != c:
-                    grad[sel, o] = normal[o] - normal[c] * points[sel, o] / eff * np.where(pc < 0, -1.0, 1.0)
+                    grad[sel, o] = normal[o] - normal[c] * points[sel, o] / eff * np.where(
+                        pc < 0, -1.0, 1.0
+                    )
             grad[sel, c] = 0.0
     gain: NDArray[np.float64] = np.sum(grad**2, axis=1)
     return gain
@@ -98,8 +116,15 @@ def _noise_gain(points: NDArray[np.float64], replaced: NDArray[np.intp], normal:
 
 # --- geometry ------------------------------------------------------------------------------------
 
+
 def plane_normal(alpha_rad: float, gamma_rad: float) -> NDArray[np.float64]:
-    return np.array([np.sin(alpha_rad) * np.cos(gamma_rad), np.cos(alpha_rad) * np.cos(gamma_rad), -np.sin(gamma_rad)])
+    return np.array(
+        [
+            np.sin(alpha_rad) * np.cos(gamma_rad),
+            np.cos(alpha_rad) * np.cos(gamma_rad),
+            -np.sin(gamma_rad),
+        ]
+    )
 
 
 def fit_plane(points: NDArray[np.float64]) -> tuple[float, float, float]:
@@ -111,26 +136,30 @@ def fit_plane(points: NDArray[np.float64]) -> tuple[float, float, float]:
     n_pts = points.shape[0]
     if n_pts < 3:
         raise DegenerateDataError(
-            f"rotation: {n_pts} point(s); eq. (10) needs at least 3 points at different rotation angles "
-            "to determine alpha, beta and gamma")
+            f"rotation: {n_pts} point(s); eq. (10) needs at least 3 points at different rotation "
+            "angles to determine alpha, beta and gamma"
+        )
     distinct = np.unique(np.round(points, 12), axis=0).shape[0]
     if distinct < 3:
         raise DegenerateDataError(
-            f"rotation: only {distinct} distinct point(s) among {n_pts}; eq. (10) needs the sensor read at "
-            "3 or more different rotation angles")
+            f"rotation: only {distinct} distinct point(s) among {n_pts}; eq. (10) needs the "
+            "sensor read at 3 or more different rotation angles"
+        )
     centre = points.mean(axis=0)
     _, sv, vt = np.linalg.svd(points - centre, full_matrices=False)
     if sv[1] <= 1e-9 * max(sv[0], 1e-300) or sv[0] < 1e-12:
         raise DegenerateDataError(
-            "rotation: the points lie on one line (or coincide), so they do not determine the plane of "
-            "eq. (10); read the sensor at 3 or more rotation angles spread over the arc (and check the axis "
-            "is not vertical)")
+            "rotation: the points lie on one line (or coincide), so they do not determine the "
+            "plane of eq. (10); read the sensor at 3 or more rotation angles spread over the "
+            "arc (and check the axis is not vertical)"
+        )
     if sv[2] > 0.5 * sv[1]:
         raise DegenerateDataError(
-            f"rotation: the points scatter as much across the plane of eq. (10) as along it "
-            f"(singular values {sv[1]:.3g} and {sv[2]:.3g}); they do not determine the rotation axis: read "
-            "more angles over a wider arc, and check that sx, sy, sz are the sines of one sensor turning "
-            "about one fixed axis")
+            "rotation: the points scatter as much across the plane of eq. (10) as along it "
+            f"(singular values {sv[1]:.3g} and {sv[2]:.3g}); they do not determine the rotation "
+            "axis: read more angles over a wider arc, and check that sx, sy, sz are the sines "
+            "of one sensor turning about one fixed axis"
+        )
     n = vt[2]
     d = float(n @ centre)
     if d < 0:
@@ -148,9 +177,11 @@ def flip_sense(alpha: float, beta: float, gamma: float) -> tuple[float, float, f
     return a, -beta, -gamma
 
 
-def rotation_equations(points: NDArray[np.float64], alpha: float, beta: float, gamma: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
-                                                                                                      NDArray[np.float64]]:
-    """sin θ from eq. (7), cos θ from eq. (9), cos θ from eq. (8): each solved for the angle's function."""
+def rotation_equations(
+    points: NDArray[np.float64], alpha: float, beta: float, gamma: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """sin θ from eq. (7), cos θ from eq. (9), cos θ from eq. (8): each solved for the angle's
+    function."""
     sx, sy, sz = points[:, 0], points[:, 1], points[:, 2]
     cb = np.cos(beta)
     sin7 = -(sx * np.cos(alpha) - sy * np.sin(alpha)) / cb
@@ -161,13 +192,21 @@ def rotation_equations(points: NDArray[np.float64], alpha: float, beta: float, g
     return sin7, cos9, cos8
 
 
-def equation9_region(points: NDArray[np.float64], alpha: float, beta: float, gamma: float) -> NDArray[np.bool_]:
+def equation9_region(
+    points: NDArray[np.float64], alpha: float, beta: float, gamma: float
+) -> NDArray[np.bool_]:
     """Where the paper takes eq. (9): near ±90°, i.e. where |sin θ| > sin 45° (45° < |θ| < 135°)."""
     sin7, cos9, _ = rotation_equations(points, alpha, beta, gamma)
     return np.abs(np.sin(np.arctan2(sin7, cos9))) > SIN45
 
 
-def theta_switch(points: NDArray[np.float64], alpha: float, beta: float, gamma: float, use9: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:
+def theta_switch(
+    points: NDArray[np.float64],
+    alpha: float,
+    beta: float,
+    gamma: float,
+    use9: NDArray[np.bool_] | None = None,
+) -> NDArray[np.float64]:
     """θ (radians, ±π) by seed 002 §2.3: eq. (9) near ±90° with the sign of sin θ from eq. (7),
     eq. (7) elsewhere with the branch (|θ| < 90° or not) from the sign of cos θ in eq. (9)."""
     sin7, cos9, _ = rotation_equations(points, alpha, beta, gamma)
@@ -181,8 +220,11 @@ def theta_switch(points: NDArray[np.float64], alpha: float, beta: float, gamma: 
     return theta
 
 
-def theta_combined(points: NDArray[np.float64], alpha: float, beta: float, gamma: float) -> NDArray[np.float64]:
-    """θ (radians) minimising |S - S(θ)|²: atan2 of the projections on the circle's two in-plane axes.
+def theta_combined(
+    points: NDArray[np.float64], alpha: float, beta: float, gamma: float
+) -> NDArray[np.float64]:
+    """θ (radians) minimising |S - S(θ)|²: atan2 of the projections on the circle's two in-plane
+    axes.
 
     e2 = (-cos α, sin α, 0) is eq. (7); e1 = (sin α sin γ, cos α sin γ, cos γ) is eq. (9)·cos γ +
     eq. (8)·sin γ. With γ = 0 this is atan2 of eqs. (7) and (9).
@@ -198,6 +240,7 @@ def wrap_deg(x: ArrayLike) -> NDArray[np.float64]:
 
 
 # --- the methods --------------------------------------------------------------------------------
+
 
 class _RotationMethod:
     kind = "rotation"
@@ -223,8 +266,14 @@ class _RotationMethod:
         p = direct_points(data["sx"], data["sy"])
         return p, np.full(p.shape[0], 2)
 
-    def theta(self, points: NDArray[np.float64], alpha: float, beta: float, gamma: float,
-              use9: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:
+    def theta(
+        self,
+        points: NDArray[np.float64],
+        alpha: float,
+        beta: float,
+        gamma: float,
+        use9: NDArray[np.bool_] | None = None,
+    ) -> NDArray[np.float64]:
         if self.estimator == "combined":
             return theta_combined(points, alpha, beta, gamma)
         return theta_switch(points, alpha, beta, gamma, use9)
@@ -237,14 +286,19 @@ class _RotationMethod:
         sense = "beta >= 0 (no theta_ref_deg column to fix the sense of the axis)"
         if theta_ref is not None:
             cand = [(alpha, beta, gamma), flip_sense(alpha, beta, gamma)]
-            rms = [float(np.sqrt(np.mean(wrap_deg(np.degrees(self.theta(pts, *c)) - theta_ref) ** 2))) for c in cand]
+            rms = [
+                float(np.sqrt(np.mean(wrap_deg(np.degrees(self.theta(pts, *c)) - theta_ref) ** 2)))
+                for c in cand
+            ]
             if rms[1] < rms[0]:
                 alpha, beta, gamma = cand[1]
             sense = "the sense of the axis that reproduces theta_ref_deg"
         notes.append(f"axis sense: {sense}")
         if not np.isfinite(beta) or abs(np.cos(beta)) < 1e-6:
-            raise DegenerateDataError("rotation: the fitted axis is vertical (beta = ±90°): turning about it does not "
-                                      "change the tilt, so θ cannot be measured")
+            raise DegenerateDataError(
+                "rotation: the fitted axis is vertical (beta = ±90°): turning about it does not "
+                "change the tilt, so θ cannot be measured"
+            )
         n = plane_normal(alpha, gamma)
         r = pts @ n - np.sin(beta)
         n_pts = pts.shape[0]
@@ -255,60 +309,97 @@ class _RotationMethod:
             gain = _noise_gain(pts, replaced, n, float(np.sqrt(np.sum(r**2 / gain) / dof)))
         # Jacobian of r wrt (α, β, γ) in degrees
         dn_da = np.array([np.cos(alpha) * np.cos(gamma), -np.sin(alpha) * np.cos(gamma), 0.0])
-        dn_dg = np.array([-np.sin(alpha) * np.sin(gamma), -np.cos(alpha) * np.sin(gamma), -np.cos(gamma)])
-        J = np.column_stack([pts @ dn_da, np.full(n_pts, -np.cos(beta)), pts @ dn_dg]) * (np.pi / 180.0)
+        dn_dg = np.array(
+            [-np.sin(alpha) * np.sin(gamma), -np.cos(alpha) * np.sin(gamma), -np.cos(gamma)]
+        )
+        J = np.column_stack([pts @ dn_da, np.full(n_pts, -np.cos(beta)), pts @ dn_dg]) * (
+            np.pi / 180.0
+        )
         cov = None
         sigma_s = None
         if dof > 0:
             sigma_s = float(np.sqrt(np.sum(r**2 / gain) / dof))
             jtj = J.T @ J
             if np.linalg.cond(jtj) > 1e14:
-                raise DegenerateDataError("rotation: the points do not separate alpha, beta and gamma (the normal "
-                                          "equations are singular); read the sensor over a wider arc")
+                raise DegenerateDataError(
+                    "rotation: the points do not separate alpha, beta and gamma (the normal "
+                    "equations are singular); read the sensor over a wider arc"
+                )
             inv = np.linalg.inv(jtj)
-            cov = inv @ (J.T @ (J * (sigma_s**2 * gain)[:, None])) @ inv  # sandwich: per-point variance
+            # sandwich: per-point variance
+            cov = inv @ (J.T @ (J * (sigma_s**2 * gain)[:, None])) @ inv
             cov = 0.5 * (cov + cov.T)
         else:
-            notes.append("exactly 3 points: the plane is solved, not fitted; no residuals, so no covariance "
-                         "and no u_theta_deg")
+            notes.append(
+                "exactly 3 points: the plane is solved, not fitted; no residuals, so no covariance "
+                "and no u_theta_deg"
+            )
         values = np.degrees([alpha, beta, gamma])
         params = {
-            "alpha_deg": Parameter(float(values[0]), "deg",
-                                   note="angle between the y axis and L's projection on the sensor plane"),
-            "beta_deg": Parameter(float(values[1]), "deg", note="inclination of the rotation axis L to the horizontal"),
-            "gamma_deg": Parameter(float(values[2]), "deg", note="angle between L and the sensor plane"),
+            "alpha_deg": Parameter(
+                float(values[0]),
+                "deg",
+                note="angle between the y axis and L's projection on the sensor plane",
+            ),
+            "beta_deg": Parameter(
+                float(values[1]), "deg", note="inclination of the rotation axis L to the horizontal"
+            ),
+            "gamma_deg": Parameter(
+                float(values[2]), "deg", note="angle between L and the sensor plane"
+            ),
         }
         theta = np.degrees(self.theta(pts, alpha, beta, gamma))
         plane = residual_summary({"plane": r}, "1")
-        fit = {"n_points": n_pts, "dof": dof, "sigma_s": sigma_s,
-               "plane_residual": plane["columns"]["plane"],
-               "estimator": self.estimator, "sz_source": "measured (45° rule)" if self.uses_sz else "eq. (6), Sz >= 0",
-               "n_replaced_by_eq6": int(np.sum(replaced >= 0)) if self.uses_sz else n_pts}
+        fit = {
+            "n_points": n_pts,
+            "dof": dof,
+            "sigma_s": sigma_s,
+            "plane_residual": plane["columns"]["plane"],
+            "estimator": self.estimator,
+            "sz_source": "measured (45° rule)" if self.uses_sz else "eq. (6), Sz >= 0",
+            "n_replaced_by_eq6": int(np.sum(replaced >= 0)) if self.uses_sz else n_pts,
+        }
         if theta_ref is not None:
             res_theta = wrap_deg(theta_ref - theta)  # measured (dividing head) minus model
             residuals = residual_summary({"theta_deg": res_theta}, "deg")
         else:
             residuals = plane
         if not self.uses_sz:
-            notes.append("direct method: Sz from eq. (6) taken as >= 0; angles where the sensor normal points "
-                         "below the horizontal (true Sz < 0) are measured wrongly")
+            notes.append(
+                "direct method: Sz from eq. (6) taken as >= 0; angles where the sensor normal "
+                "points below the horizontal (true Sz < 0) are measured wrongly"
+            )
         if sigma_s is not None:
-            notes.append(f"output noise sigma_s = {sigma_s:.3g} (sine units) from the plane residuals, used for "
-                         "u_theta_deg")
-        model = CalibrationModel(kind=self.kind, method=self.name, columns=list(self.fit_required) + (
-            ["theta_ref_deg"] if theta_ref is not None else []), parameters=params,
-            covariance_names=list(PARAM_NAMES) if cov is not None else [], covariance=cov, residuals=residuals,
-            fit=fit, notes=notes, state={"sigma_s": sigma_s})
+            notes.append(
+                f"output noise sigma_s = {sigma_s:.3g} (sine units) from the plane residuals, "
+                "used for u_theta_deg"
+            )
+        model = CalibrationModel(
+            kind=self.kind,
+            method=self.name,
+            columns=list(self.fit_required) + (["theta_ref_deg"] if theta_ref is not None else []),
+            parameters=params,
+            covariance_names=list(PARAM_NAMES) if cov is not None else [],
+            covariance=cov,
+            residuals=residuals,
+            fit=fit,
+            notes=notes,
+            state={"sigma_s": sigma_s},
+        )
         if theta_ref is not None and cov is not None:
             ref = np.asarray(theta_ref, dtype=float)
             const = self.constant_errors(model, data, ref, wrap_deg(ref - theta))
             if const is not None:
                 model.state[CONSTANT_ERRORS_KEY] = const
-                notes.append("constant output errors (zero offsets, scale errors of sx, sy, sz) bias theta by an amount "
-                             "that depends on the angle, jumps where the method changes branch and does not show in the "
-                             "output scatter: per branch, a straight line through the theta residuals against "
-                             "theta_ref_deg gives it per angle; its square (the bias's square and its estimation variance) adds to "
-                             f"u_theta_deg (largest residual {float(np.max(np.abs(wrap_deg(ref - theta)))):.3g} deg)")
+                notes.append(
+                    "constant output errors (zero offsets, scale errors of sx, sy, sz) bias "
+                    "theta by an amount that depends on the angle, jumps where the method "
+                    "changes branch and does not show in the output scatter: per branch, a "
+                    "straight line through the theta residuals against theta_ref_deg gives it "
+                    "per angle; its square (the bias's square and its estimation variance) adds "
+                    "to u_theta_deg (largest residual "
+                    f"{float(np.max(np.abs(wrap_deg(ref - theta)))):.3g} deg)"
+                )
         return model
 
     def theta_deg(self, model: CalibrationModel, data: Columns) -> NDArray[np.float64]:
@@ -316,8 +407,11 @@ class _RotationMethod:
         pts, _ = self.points(data)
         return np.degrees(self.theta(pts, a, b, g))
 
-    def _fit_uncertainty(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], Propagated | None]:
-        """θ and its propagated standard uncertainty from the plane fit and the output noise (None without a covariance)."""
+    def _fit_uncertainty(
+        self, model: CalibrationModel, data: Columns
+    ) -> tuple[NDArray[np.float64], Propagated | None]:
+        """θ and its propagated standard uncertainty from the plane fit and the output noise (None
+        without a covariance)."""
         p0 = model.values(PARAM_NAMES)
         a, b, g = np.radians(p0)
         pts, _ = self.points(data)
@@ -335,15 +429,23 @@ class _RotationMethod:
             return theta0 + wrap_deg(t - theta0)  # no jump at ±180° inside the differences
 
         dof = float(model.fit.get("dof") or np.inf)  # cov and sigma_s both from the plane residuals
-        return theta0, propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs,
-                                     {c: float(sigma) for c in self.fit_required}, dof, dof)
+        return theta0, propagate_gum(
+            f,
+            p0,
+            model.cov_of(list(PARAM_NAMES)),
+            inputs,
+            {c: float(sigma) for c in self.fit_required},
+            dof,
+            dof,
+        )
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         theta0, g = self._fit_uncertainty(model, data)
         out = {"theta_deg": theta0}
         if g is not None:
             const = model.state.get(CONSTANT_ERRORS_KEY)
-            if const:  # the outputs' constant errors, seen in the fit's θ residuals against the dividing head
+            # the outputs' constant errors, seen in the fit's θ residuals against the dividing head
+            if const:
                 u2 = self.constant_errors_u2(model, data, theta0)
                 dof = float(model.fit.get("dof") or np.inf)
                 nu = welch_satterthwaite([(g.u**2, dof), (u2, dof)])
@@ -352,21 +454,34 @@ class _RotationMethod:
             out["k_theta"] = coverage_factor(g.dof_eff)
         return out
 
-    def regimes(self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]) -> list[str]:
-        """Which branch of the method serves each point: the component the 45° rule replaced and, for the switch,
-        the equation taken. The bias from constant output errors jumps where the branch changes."""
+    def regimes(
+        self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]
+    ) -> list[str]:
+        """Which branch of the method serves each point: the component the 45° rule replaced and,
+        for the switch, the equation taken. The bias from constant output errors jumps where the
+        branch changes."""
         a, b, g = np.radians(model.values(PARAM_NAMES))
         pts, replaced = self.points(data)
-        use9 = equation9_region(pts, a, b, g) if self.estimator == "switch" else np.zeros(pts.shape[0], dtype=bool)
+        use9 = (
+            equation9_region(pts, a, b, g)
+            if self.estimator == "switch"
+            else np.zeros(pts.shape[0], dtype=bool)
+        )
         return [f"{int(r)}{'9' if u else '7'}" for r, u in zip(replaced, use9)]
 
-    def constant_errors(self, model: CalibrationModel, data: Columns, theta_ref_deg: NDArray[np.float64],
-                        res_theta_deg: NDArray[np.float64]) -> list[dict[str, Any]] | None:
-        """How the outputs' constant errors (zero offsets, scale errors) bias θ, seen against the dividing head.
+    def constant_errors(
+        self,
+        model: CalibrationModel,
+        data: Columns,
+        theta_ref_deg: NDArray[np.float64],
+        res_theta_deg: NDArray[np.float64],
+    ) -> list[dict[str, Any]] | None:
+        """How the outputs' constant errors (zero offsets, scale errors) bias θ, seen against the
+        dividing head.
 
         They bend the points off the circle in a way the fitted plane absorbs only in part, so θ is
-        biased by an amount that depends on the angle, jumps where the method changes branch (the 45°
-        rule, the switch between equations) and does not show in the output scatter. The fit's θ
+        biased by an amount that depends on the angle, jumps where the method changes branch (the
+        45° rule, the switch between equations) and does not show in the output scatter. The fit's θ
         residuals against theta_ref_deg hold it: per arc of one branch, a straight line in θ through
         that arc's residuals (their mean where it has two points or fewer) gives each angle's bias.
         None where the points are too few to tell (fewer than 8).
@@ -374,34 +489,50 @@ class _RotationMethod:
         if res_theta_deg.size < 8:
             return None
         _, g = self._fit_uncertainty(model, data)
-        noise2 = np.zeros(res_theta_deg.size) if g is None else g.u**2  # the residuals' scatter as the fit propagates it
+        # the residuals' scatter as the fit propagates it
+        noise2 = np.zeros(res_theta_deg.size) if g is None else g.u**2
         order = np.argsort(wrap_deg(theta_ref_deg))
         regime = np.array(self.regimes(model, data, theta_ref_deg))[order]
         t_all, r_all, n_all = wrap_deg(theta_ref_deg)[order], res_theta_deg[order], noise2[order]
         starts = [0] + [i for i in range(1, regime.size) if regime[i] != regime[i - 1]]
         arcs = [list(range(a, b)) for a, b in zip(starts, starts[1:] + [regime.size])]
-        if len(arcs) > 1 and regime[0] == regime[-1] and np.ptp(t_all) > 300:  # the circle closes: one arc across ±180°
+        # the circle closes: one arc across ±180°
+        if len(arcs) > 1 and regime[0] == regime[-1] and np.ptp(t_all) > 300:
             arcs[0] = arcs.pop() + arcs[0]
         out = []
         for idx in arcs:
             t, r = t_all[idx], r_all[idx]
-            centre = float(np.degrees(np.arctan2(np.mean(np.sin(np.radians(t))), np.mean(np.cos(np.radians(t))))))
+            centre = float(
+                np.degrees(
+                    np.arctan2(np.mean(np.sin(np.radians(t))), np.mean(np.cos(np.radians(t))))
+                )
+            )
             X = _local(t, centre, linear=t.size >= 3)
             coef, *_ = np.linalg.lstsq(X, r, rcond=None)
             dof = t.size - X.shape[1]
-            # the scatter about the line: the propagated noise, or the residuals' own where they have enough
-            # degrees of freedom and say more (the dividing head's noise, which the fit does not know)
+            # the scatter about the line: the propagated noise, or the residuals' own where they
+            # have enough degrees of freedom and say more (the dividing head's noise, which the fit
+            # does not know)
             s2 = float(np.mean(n_all[idx]))
             if dof >= 3:
                 s2 = max(s2, float(np.sum((r - X @ coef) ** 2) / dof))
             half = float(np.max(np.abs(wrap_deg(t - centre))))
-            out.append({"branch": str(regime[idx[0]]), "centre_deg": centre, "half_width_deg": half,
-                        "coefficients_deg": coef.tolist(),
-                        "coefficient_covariance_deg2": (s2 * np.linalg.pinv(X.T @ X)).tolist()})
+            out.append(
+                {
+                    "branch": str(regime[idx[0]]),
+                    "centre_deg": centre,
+                    "half_width_deg": half,
+                    "coefficients_deg": coef.tolist(),
+                    "coefficient_covariance_deg2": (s2 * np.linalg.pinv(X.T @ X)).tolist(),
+                }
+            )
         return out
 
-    def constant_errors_u2(self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Per corrected angle, the variance its bias from the outputs' constant errors adds (0 where not seen)."""
+    def constant_errors_u2(
+        self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """Per corrected angle, the variance its bias from the outputs' constant errors adds (0
+        where not seen)."""
         arcs = model.state.get(CONSTANT_ERRORS_KEY) or []
         u2 = np.full(theta_deg.shape, np.nan)
         regime = np.array(self.regimes(model, data, theta_deg))
@@ -411,13 +542,22 @@ class _RotationMethod:
             c = np.asarray(arc["coefficients_deg"], dtype=float)
             X = _local(theta_deg, float(arc["centre_deg"]), linear=c.size == 2)
             b = X @ c
-            # b² estimates the bias's square plus its estimation variance: both belong to the angle's uncertainty
+            # b² estimates the bias's square plus its estimation variance: both belong to the
+            # angle's uncertainty
             v = b**2
-            # the arc of the point's branch that holds it (or is nearest), extrapolated no further than its half-width
+            # the arc of the point's branch that holds it (or is nearest), extrapolated no further
+            # than its half-width
             dist = np.abs(wrap_deg(theta_deg - float(arc["centre_deg"])))
-            X_edge = _local(np.clip(wrap_deg(theta_deg - float(arc["centre_deg"])), -arc["half_width_deg"],
-                                    arc["half_width_deg"]) + float(arc["centre_deg"]), float(arc["centre_deg"]),
-                            linear=c.size == 2)
+            X_edge = _local(
+                np.clip(
+                    wrap_deg(theta_deg - float(arc["centre_deg"])),
+                    -arc["half_width_deg"],
+                    arc["half_width_deg"],
+                )
+                + float(arc["centre_deg"]),
+                float(arc["centre_deg"]),
+                linear=c.size == 2,
+            )
             b_edge = X_edge @ c
             v = np.where(dist > arc["half_width_deg"], b_edge**2, v)
             take = (regime == arc["branch"]) & (dist < best)
@@ -426,9 +566,22 @@ class _RotationMethod:
         u2[np.isnan(u2)] = worst  # a branch the calibration never used: the largest any arc showed
         return u2
 
-DIRECT = _RotationMethod("direct", uses_sz=False, estimator="switch",
-                         doc="seed 002 §2.1: Sz from eq. (6) (Sz >= 0), θ by eqs. (7)/(9)")
-IODSRA = _RotationMethod("iodsra", uses_sz=True, estimator="switch",
-                         doc="seed 002 §2.2-2.3: measured Sz with the 45° rule, θ by eqs. (7)/(9)")
-IODSRA_COMBINED = _RotationMethod("iodsra-combined", uses_sz=True, estimator="combined",
-                                  doc="IODSRA points, θ = least-squares angle on the circle (eqs. 7-9 together)")
+
+DIRECT = _RotationMethod(
+    "direct",
+    uses_sz=False,
+    estimator="switch",
+    doc="seed 002 §2.1: Sz from eq. (6) (Sz >= 0), θ by eqs. (7)/(9)",
+)
+IODSRA = _RotationMethod(
+    "iodsra",
+    uses_sz=True,
+    estimator="switch",
+    doc="seed 002 §2.2-2.3: measured Sz with the 45° rule, θ by eqs. (7)/(9)",
+)
+IODSRA_COMBINED = _RotationMethod(
+    "iodsra-combined",
+    uses_sz=True,
+    estimator="combined",
+    doc="IODSRA points, θ = least-squares angle on the circle (eqs. 7-9 together)",
+)

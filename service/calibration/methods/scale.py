@@ -50,8 +50,8 @@ def coefficient_unit(j: int) -> str:
 
 
 class PolyFit(TypedDict):
-    """A polynomial fit: coefficients (ascending), their covariance (None without degrees of freedom),
-    residuals, RSS, dof and s (None without degrees of freedom)."""
+    """A polynomial fit: coefficients (ascending), their covariance (None without degrees of
+    freedom), residuals, RSS, dof and s (None without degrees of freedom)."""
 
     coef: NDArray[np.float64]
     cov: NDArray[np.float64] | None
@@ -62,7 +62,8 @@ class PolyFit(TypedDict):
 
 
 def polyfit(x: NDArray[np.float64], y: NDArray[np.float64], degree: int) -> PolyFit:
-    """Least-squares y = Σ c_j x^j, solved in a centred, scaled variable and returned in powers of x.
+    """Least-squares y = Σ c_j x^j, solved in a centred, scaled variable and returned in powers of
+    x.
 
     Returns coefficients (ascending), their covariance (None without degrees of freedom), the
     residuals, RSS, dof and s.
@@ -75,7 +76,9 @@ def polyfit(x: NDArray[np.float64], y: NDArray[np.float64], degree: int) -> Poly
     V = np.vander(u, degree + 1, increasing=True)
     q, r = np.linalg.qr(V)
     if np.min(np.abs(np.diag(r))) < 1e-12 * np.max(np.abs(np.diag(r))):
-        raise DegenerateDataError(f"scale: the readings do not determine a degree-{degree} polynomial")
+        raise DegenerateDataError(
+            f"scale: the readings do not determine a degree-{degree} polynomial"
+        )
     b = np.linalg.solve(r, q.T @ y)
     resid = y - V @ b
     rss = float(resid @ resid)
@@ -98,12 +101,14 @@ def polyfit(x: NDArray[np.float64], y: NDArray[np.float64], degree: int) -> Poly
 
 
 def f_test(rss_small: float, rss_big: float, dof_big: int) -> dict[str, Any] | None:
-    """F-test of one added term: F = (RSS_lower - RSS_higher) / (RSS_higher / dof_higher), F(1, dof)."""
+    """F-test of one added term: F = (RSS_lower - RSS_higher) / (RSS_higher / dof_higher), F(1,
+    dof)."""
     if dof_big <= 0:
         return None
     if rss_big <= 0:
         return {"F": None, "dof": [1, dof_big], "p_value": 0.0, "significant_at_5pct": True}
-    from scipy.special import fdtrc  # F-distribution upper tail; imported here to keep the CLI start light
+    # F-distribution upper tail; imported here to keep the CLI start light
+    from scipy.special import fdtrc
 
     F = max(rss_small - rss_big, 0.0) / (rss_big / dof_big)
     p = float(fdtrc(1, dof_big, F))
@@ -141,58 +146,94 @@ class PolyMethod:
         if n >= n_read or n >= n_ref:
             which = "readings" if n_read <= n_ref else "reference angles"
             raise DegenerateDataError(
-                f"scale: poly{n} needs at least {n + 1} distinct points, the data have {min(n_read, n_ref)} distinct "
-                f"{which} ({reading.size} rows); add points at other angles or lower the degree")
+                f"scale: poly{n} needs at least {n + 1} distinct points, the data have "
+                f"{min(n_read, n_ref)} distinct "
+                f"{which} ({reading.size} rows); add points at other angles or lower the degree"
+            )
         main = polyfit(reading, ref, n)
         names = coefficient_names(n)
         notes: list[str] = []
-        params = {name: Parameter(float(c), coefficient_unit(j)) for j, (name, c) in enumerate(zip(names, main["coef"]))}
+        params = {
+            name: Parameter(float(c), coefficient_unit(j))
+            for j, (name, c) in enumerate(zip(names, main["coef"]))
+        }
         lo, hi = float(reading.min()), float(reading.max())
         slope_mid = float(np.polyval(np.polyder(main["coef"][::-1]), 0.5 * (lo + hi)))
         se = np.sqrt(np.diag(main["cov"])) if main["cov"] is not None else None
         fit: dict[str, Any] = {
-            "n_points": int(reading.size), "dof": main["dof"], "reference_column": ref_col,
+            "n_points": int(reading.size),
+            "dof": main["dof"],
+            "reference_column": ref_col,
             "direction": "angle on reading (applied as is by correct)",
-            "residual_sigma_arcsec": main["s"], "residual_norm_arcsec": math.sqrt(main["rss"]),
-            "standard_errors": {nm: float(v) for nm, v in zip(names, se)} if se is not None else None,
+            "residual_sigma_arcsec": main["s"],
+            "residual_norm_arcsec": math.sqrt(main["rss"]),
+            "standard_errors": {nm: float(v) for nm, v in zip(names, se)}
+            if se is not None
+            else None,
             "measuring_unit_arcsec_per_count": float(main["coef"][1]) if n == 1 else slope_mid,
             "reading_range": [lo, hi],
         }
         if n > 1:
-            fit["measuring_unit_note"] = "slope d(angle)/d(reading) at the middle of the reading range"
+            fit["measuring_unit_note"] = (
+                "slope d(angle)/d(reading) at the middle of the reading range"
+            )
         lower = polyfit(reading, ref, n - 1)
-        fit["f_test_highest_term"] = dict(against_degree=n - 1, **(f_test(lower["rss"], main["rss"], main["dof"]) or {}))
+        fit["f_test_highest_term"] = dict(
+            against_degree=n - 1, **(f_test(lower["rss"], main["rss"], main["dof"]) or {})
+        )
         if reading.size - (n + 2) >= 1 and n + 1 < min(n_read, n_ref) and n + 1 <= MAX_DEGREE:
             higher = polyfit(reading, ref, n + 1)
-            fit["f_test_next_degree"] = dict(degree=n + 1, **(f_test(main["rss"], higher["rss"], higher["dof"]) or {}))
+            fit["f_test_next_degree"] = dict(
+                degree=n + 1, **(f_test(main["rss"], higher["rss"], higher["dof"]) or {})
+            )
         # the paper's direction: reading = Σ a_j angle^j
         paper = polyfit(ref, reading, n)
-        paper_fit = {"coefficients": [float(c) for c in paper["coef"]],
-                     "units": ["count"] + [f"count/arcsec^{j}" if j > 1 else "count/arcsec" for j in range(1, n + 1)],
-                     "standard_errors": (np.sqrt(np.diag(paper["cov"])).tolist() if paper["cov"] is not None else None),
-                     "residual_norm_counts": math.sqrt(paper["rss"]), "residual_sigma_counts": paper["s"]}
+        paper_fit = {
+            "coefficients": [float(c) for c in paper["coef"]],
+            "units": ["count"]
+            + [f"count/arcsec^{j}" if j > 1 else "count/arcsec" for j in range(1, n + 1)],
+            "standard_errors": (
+                np.sqrt(np.diag(paper["cov"])).tolist() if paper["cov"] is not None else None
+            ),
+            "residual_norm_counts": math.sqrt(paper["rss"]),
+            "residual_sigma_counts": paper["s"],
+        }
         if n == 1:
             paper_fit["arcsec_per_count"] = 1.0 / float(paper["coef"][1])
         fit["reading_on_angle"] = paper_fit
         monotonic = _monotonic(main["coef"], lo, hi)
         fit["monotonic_over_range"] = monotonic
         if not monotonic:
-            notes.append(f"poly{n}: the fitted angle is not monotonic in the reading over {lo:g}..{hi:g} counts: "
-                         "the degree is too high for these data")
+            notes.append(
+                f"poly{n}: the fitted angle is not monotonic in the reading over {lo:g}..{hi:g} "
+                "counts: the degree is too high for these data"
+            )
         reading_sigma = None
         if main["s"] is not None and slope_mid != 0:
             reading_sigma = main["s"] / abs(slope_mid)
-            notes.append(f"reading noise {reading_sigma:.3g} counts taken from the residual scatter "
-                         f"({main['s']:.3g} arcsec, all of it charged to the reading): used for u_angle_arcsec")
+            notes.append(
+                f"reading noise {reading_sigma:.3g} counts taken from the residual scatter "
+                f"({main['s']:.3g} arcsec, all of it charged to the reading): used for "
+                "u_angle_arcsec"
+            )
         else:
             notes.append("no degrees of freedom left: no standard errors and no u_angle_arcsec")
-        notes.append(f"angle_arcsec has the zero of the calibration's reference ({ref_col}); readings outside "
-                     f"{lo:g}..{hi:g} are extrapolated")
+        notes.append(
+            f"angle_arcsec has the zero of the calibration's reference ({ref_col}); readings "
+            f"outside {lo:g}..{hi:g} are extrapolated"
+        )
         return CalibrationModel(
-            kind="scale", method=self.name, columns=[ref_col, "reading"], parameters=params,
-            covariance_names=names if main["cov"] is not None else [], covariance=main["cov"],
-            residuals=residual_summary({"angle_arcsec": main["resid"]}, "arcsec"), fit=fit, notes=notes,
-            state={"degree": n, "reading_sigma_counts": reading_sigma, "dof": main["dof"]})
+            kind="scale",
+            method=self.name,
+            columns=[ref_col, "reading"],
+            parameters=params,
+            covariance_names=names if main["cov"] is not None else [],
+            covariance=main["cov"],
+            residuals=residual_summary({"angle_arcsec": main["resid"]}, "arcsec"),
+            fit=fit,
+            notes=notes,
+            state={"degree": n, "reading_sigma_counts": reading_sigma, "dof": main["dof"]},
+        )
 
     def angle(self, model: CalibrationModel, reading: ArrayLike) -> NDArray[np.float64]:
         coef = model.values(coefficient_names(self.degree))
@@ -207,11 +248,21 @@ class PolyMethod:
         reading = np.asarray(data["reading"], dtype=float)
         p0 = model.values(names)
         out = {"angle_arcsec": np.polyval(p0[::-1], reading)}
-        sigma = model.state.get("reading_sigma_counts") if isinstance(model.state, Mapping) else None
+        sigma = (
+            model.state.get("reading_sigma_counts") if isinstance(model.state, Mapping) else None
+        )
         if model.covariance is not None and sigma is not None:
-            dof = _dof(model)  # the covariance and the reading noise both come from the fit's residual
-            g = propagate_gum(lambda p, x: np.polyval(np.asarray(p)[::-1], x["reading"]), p0, model.cov_of(names),
-                              {"reading": reading}, {"reading": float(sigma)}, dof, dof)
+            # the covariance and the reading noise both come from the fit's residual
+            dof = _dof(model)
+            g = propagate_gum(
+                lambda p, x: np.polyval(np.asarray(p)[::-1], x["reading"]),
+                p0,
+                model.cov_of(names),
+                {"reading": reading},
+                {"reading": float(sigma)},
+                dof,
+                dof,
+            )
             out["u_angle_arcsec"] = g.expanded()
             out["k_angle"] = coverage_factor(g.dof_eff)
         return out
@@ -221,5 +272,3 @@ def _dof(model: CalibrationModel) -> float:
     """Degrees of freedom of the fit (infinite when the model does not say)."""
     dof = model.state.get("dof", model.fit.get("dof"))
     return float(dof) if dof else float("inf")
-
-

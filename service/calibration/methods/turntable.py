@@ -41,8 +41,13 @@ def half_differences(data: Columns) -> tuple[NDArray[np.float64], NDArray[np.flo
     return d1, d2
 
 
-def compensation(p: ArrayLike, azimuth_deg: ArrayLike, d1: NDArray[np.float64], d2: NDArray[np.float64],
-                 rotation_deg: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def compensation(
+    p: ArrayLike,
+    azimuth_deg: ArrayLike,
+    d1: NDArray[np.float64],
+    d2: NDArray[np.float64],
+    rotation_deg: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(ξ̂, η̂) in arcsec from the half-differences: the inverse of the 2×2 pair model."""
     beta, m1, m2, eps = (float(v) for v in np.asarray(p))
     s = np.sin(np.radians(rotation_deg) / 2.0)
@@ -55,40 +60,54 @@ def compensation(p: ArrayLike, azimuth_deg: ArrayLike, d1: NDArray[np.float64], 
     return xi, eta
 
 
-
-def _tilt_in_instrument_frame(az: NDArray[np.float64], xi: NDArray[np.float64], eta: NDArray[np.float64]) -> NDArray[np.float64]:
+def _tilt_in_instrument_frame(
+    az: NDArray[np.float64], xi: NDArray[np.float64], eta: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """The reference tilt as the turntable sees it (rotated by -A): what separates β from m."""
     a = np.radians(az)
     return np.column_stack([xi * np.sin(a) - eta * np.cos(a), xi * np.cos(a) + eta * np.sin(a)])
 
 
-def check_design(az: NDArray[np.float64], xi: NDArray[np.float64], eta: NDArray[np.float64]) -> None:
+def check_design(
+    az: NDArray[np.float64], xi: NDArray[np.float64], eta: NDArray[np.float64]
+) -> None:
     """Refuse pairs that cannot separate β, m1, m2, ε, saying what is missing."""
     n = az.size
     if n < 3:
         raise DegenerateDataError(
-            f"turntable: {n} symmetric pair(s); beta, m1, m2 and epsilon need at least 3 pairs (2 equations per "
-            "pair, and some left over to estimate the scatter)")
+            f"turntable: {n} symmetric pair(s); beta, m1, m2 and epsilon need at least 3 pairs "
+            "(2 equations per pair, and some left over to estimate the scatter)"
+        )
     tilt = np.hypot(xi, eta)
     n_az = np.unique(np.round(np.mod(az, 180.0), 6)).size
     n_tilt = np.unique(np.round(np.column_stack([xi, eta]), 6), axis=0).shape[0]
     if np.max(tilt) <= 0.0:
         raise DegenerateDataError(
-            "turntable: every reference tilt (ref_north_arcsec, ref_east_arcsec) is zero: with a plumb axis the "
-            "readings carry no information on the scale factors or the installation angle; level the instrument "
-            "off plumb (several reference tilts) before calibrating")
+            "turntable: every reference tilt (ref_north_arcsec, ref_east_arcsec) is zero: with "
+            "a plumb axis the readings carry no information on the scale factors or the "
+            "installation angle; level the instrument off plumb (several reference tilts) "
+            "before calibrating"
+        )
     g = _tilt_in_instrument_frame(az, xi, eta)
     ev = np.linalg.eigvalsh(g.T @ g)
     if ev[0] <= 1e-8 * ev[1]:
         raise DegenerateDataError(
-            f"turntable: the {n} pairs see the axis tilt along a single direction of the instrument "
-            f"({n_az} distinct azimuth(s) modulo 180°, {n_tilt} distinct reference tilt(s)), so beta cannot be "
-            "separated from m1 and m2: add pairs at another azimuth (not 180° from the first) or at another "
-            "levelling of the instrument with the tilt in another direction")
+            f"turntable: the {n} pairs see the axis tilt along a single direction of the "
+            f"instrument ({n_az} distinct azimuth(s) modulo 180°, {n_tilt} distinct reference "
+            "tilt(s)), so beta cannot be separated from m1 and m2: add pairs at another azimuth "
+            "(not 180° from the first) or at another levelling of the instrument with the tilt "
+            "in another direction"
+        )
 
 
-def _initial(az: NDArray[np.float64], d1: NDArray[np.float64], d2: NDArray[np.float64], xi: NDArray[np.float64], eta: NDArray[np.float64],
-             rotation_deg: float) -> NDArray[np.float64]:
+def _initial(
+    az: NDArray[np.float64],
+    d1: NDArray[np.float64],
+    d2: NDArray[np.float64],
+    xi: NDArray[np.float64],
+    eta: NDArray[np.float64],
+    rotation_deg: float,
+) -> NDArray[np.float64]:
     """β, m1, m2, ε solved linearly from the half-differences (start of the Gauss-Newton steps)."""
     g = _tilt_in_instrument_frame(az, xi, eta)  # columns f1, f2
     s = np.sin(np.radians(rotation_deg) / 2.0)
@@ -104,23 +123,47 @@ def _initial(az: NDArray[np.float64], d1: NDArray[np.float64], d2: NDArray[np.fl
     return np.array([beta, np.hypot(P, Q), np.hypot(R, T), eps])
 
 
-def _residuals(p: NDArray[np.float64], az: NDArray[np.float64], d1: NDArray[np.float64], d2: NDArray[np.float64], xi: NDArray[np.float64],
-               eta: NDArray[np.float64], rotation_deg: float) -> NDArray[np.float64]:
+def _residuals(
+    p: NDArray[np.float64],
+    az: NDArray[np.float64],
+    d1: NDArray[np.float64],
+    d2: NDArray[np.float64],
+    xi: NDArray[np.float64],
+    eta: NDArray[np.float64],
+    rotation_deg: float,
+) -> NDArray[np.float64]:
     xh, eh = compensation(p, az, d1, d2, rotation_deg)
     return np.concatenate([xi - xh, eta - eh])  # reference (star solution) minus model
 
 
-JACOBIAN_TYPICAL = np.array([10.0, 0.0, 0.0, 10.0])  # beta, eps in deg; the gains relative to themselves
+# beta, eps in deg; the gains relative to themselves
+JACOBIAN_TYPICAL = np.array([10.0, 0.0, 0.0, 10.0])
 
 
-def _jacobian(p: NDArray[np.float64], az: NDArray[np.float64], d1: NDArray[np.float64], d2: NDArray[np.float64], xi: NDArray[np.float64],
-              eta: NDArray[np.float64], rotation_deg: float) -> NDArray[np.float64]:
-    return central_jacobian(lambda q: _residuals(q, az, d1, d2, xi, eta, rotation_deg), p, JACOBIAN_TYPICAL)
+def _jacobian(
+    p: NDArray[np.float64],
+    az: NDArray[np.float64],
+    d1: NDArray[np.float64],
+    d2: NDArray[np.float64],
+    xi: NDArray[np.float64],
+    eta: NDArray[np.float64],
+    rotation_deg: float,
+) -> NDArray[np.float64]:
+    return central_jacobian(
+        lambda q: _residuals(q, az, d1, d2, xi, eta, rotation_deg), p, JACOBIAN_TYPICAL
+    )
 
 
-def gauss_newton(p0: ArrayLike, az: NDArray[np.float64], d1: NDArray[np.float64], d2: NDArray[np.float64], xi: NDArray[np.float64],
-                 eta: NDArray[np.float64], rotation_deg: float,
-                 max_iterations: int | None = None) -> tuple[NDArray[np.float64], int, bool]:
+def gauss_newton(
+    p0: ArrayLike,
+    az: NDArray[np.float64],
+    d1: NDArray[np.float64],
+    d2: NDArray[np.float64],
+    xi: NDArray[np.float64],
+    eta: NDArray[np.float64],
+    rotation_deg: float,
+    max_iterations: int | None = None,
+) -> tuple[NDArray[np.float64], int, bool]:
     """Seed 004 eqs. (9)-(11): x ← x + Δx with B Δx = b, until the parameters are stable."""
     max_iterations = MAX_ITERATIONS if max_iterations is None else max_iterations
     p = np.asarray(p0, dtype=float).copy()
@@ -141,7 +184,8 @@ def gauss_newton(p0: ArrayLike, az: NDArray[np.float64], d1: NDArray[np.float64]
 
 
 def zero_scatter(data: Columns) -> tuple[float, int] | None:
-    """Noise of one reading from the half-sums (the zero offsets z1, z2, constant over a cycle), with its dof.
+    """Noise of one reading from the half-sums (the zero offsets z1, z2, constant over a cycle),
+    with its dof.
 
     var((n_a + n_b)/2) = σ²/2 for white noise; pooled over both axes and, when a `cycle` column
     is present, within cycles (a slow zero drift between cycles does not count as noise).
@@ -166,7 +210,15 @@ def zero_scatter(data: Columns) -> tuple[float, int] | None:
 class ReversalMethod:
     kind = "turntable"
     name = "reversal"
-    fit_required = ("azimuth_deg", "n1_a", "n2_a", "n1_b", "n2_b", "ref_north_arcsec", "ref_east_arcsec")
+    fit_required = (
+        "azimuth_deg",
+        "n1_a",
+        "n2_a",
+        "n1_b",
+        "n2_b",
+        "ref_north_arcsec",
+        "ref_east_arcsec",
+    )
     fit_optional = ("cycle",)
     correct_required = ("azimuth_deg", "n1_a", "n2_a", "n1_b", "n2_b")
     correct_optional = ()
@@ -175,25 +227,34 @@ class ReversalMethod:
     def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
         phi = float(options.rotation_deg)
         if not np.isfinite(phi) or abs(np.sin(np.radians(phi) / 2.0)) < 0.05:
-            raise InputError(f"turntable: --rotation-deg {phi:g}: the two positions of a pair must be turned apart "
-                             "(φ near 180°); at φ near 0° or 360° the half-difference carries no tilt")
+            raise InputError(
+                f"turntable: --rotation-deg {phi:g}: the two positions of a pair must be turned "
+                "apart (φ near 180°); at φ near 0° or 360° the half-difference carries no tilt"
+            )
         az = np.asarray(data["azimuth_deg"], dtype=float)
         xi = np.asarray(data["ref_north_arcsec"], dtype=float)
         eta = np.asarray(data["ref_east_arcsec"], dtype=float)
         d1, d2 = half_differences(data)
         check_design(az, xi, eta)
         init = (options.extra or {}).get("initial")
-        p0 = (np.array([float(init[k]) for k in PARAM_NAMES]) if init is not None
-              else _initial(az, d1, d2, xi, eta, phi))
+        p0 = (
+            np.array([float(init[k]) for k in PARAM_NAMES])
+            if init is not None
+            else _initial(az, d1, d2, xi, eta, phi)
+        )
         if p0[1] <= 0 or p0[2] <= 0:
-            raise DegenerateDataError("turntable: the half-differences do not follow the reference tilts (a scale "
-                                      "factor comes out zero): check the pairing of n*_a and n*_b and the reference columns")
+            raise DegenerateDataError(
+                "turntable: the half-differences do not follow the reference tilts (a scale "
+                "factor comes out zero): check the pairing of n*_a and n*_b and the reference "
+                "columns"
+            )
         p, iterations, converged = gauss_newton(p0, az, d1, d2, xi, eta, phi)
         if not converged or not np.all(np.isfinite(p)):
             raise DegenerateDataError(
-                f"turntable: the iterated least squares (seed 004 eqs. 9-11) did not converge in {iterations} "
-                "iterations: the pairs do not determine beta, m1, m2, epsilon (more pairs, azimuths and reference "
-                "tilts are needed)")
+                "turntable: the iterated least squares (seed 004 eqs. 9-11) did not converge in "
+                f"{iterations} iterations: the pairs do not determine beta, m1, m2, epsilon "
+                "(more pairs, azimuths and reference tilts are needed)"
+            )
         p[0] = (p[0] + 180.0) % 360.0 - 180.0
         r = _residuals(p, az, d1, d2, xi, eta, phi)
         J = _jacobian(p, az, d1, d2, xi, eta, phi)
@@ -202,8 +263,10 @@ class ReversalMethod:
         jtj = J.T @ J
         scale = np.sqrt(np.diag(jtj))
         if np.any(scale == 0) or np.linalg.cond(jtj / np.outer(scale, scale)) > 1e12:
-            raise DegenerateDataError("turntable: the pairs do not separate beta, m1, m2 and epsilon (singular normal "
-                                      "equations): add pairs at other azimuths and reference tilts")
+            raise DegenerateDataError(
+                "turntable: the pairs do not separate beta, m1, m2 and epsilon (singular normal "
+                "equations): add pairs at other azimuths and reference tilts"
+            )
         s2 = float(r @ r) / dof
         cov = s2 * np.linalg.inv(jtj)
         cov = 0.5 * (cov + cov.T)
@@ -211,43 +274,82 @@ class ReversalMethod:
         bound_residual = float(np.sqrt(2.0 * s2) * m_mean)
         halfsum = zero_scatter(data)
         bound_halfsum = None if halfsum is None else halfsum[0]
-        reading_sigma = bound_residual if bound_halfsum is None else min(bound_residual, bound_halfsum)
+        reading_sigma = (
+            bound_residual if bound_halfsum is None else min(bound_residual, bound_halfsum)
+        )
         from_halfsums = halfsum is not None and halfsum[0] <= bound_residual
         reading_sigma_from = "half-sums" if from_halfsums else "residuals"
         reading_sigma_dof = halfsum[1] if from_halfsums and halfsum is not None else dof
         units = ("deg", "reading/arcsec", "reading/arcsec", "deg")
-        notes_p = ("installation angle of the X axis from the instrument's reference direction (CCD)",
-                   "scale factor of the X axis, reading units per arcsec",
-                   "scale factor of the Y axis, reading units per arcsec",
-                   "non-orthogonality of the two axes")
-        params = {nm: Parameter(float(v), u, note=nt) for nm, v, u, nt in zip(PARAM_NAMES, p, units, notes_p)}
-        params["rotation_deg"] = Parameter(phi, "deg", fixed=True,
-                                           note="assumed rotation φ between the two positions of a pair; not fitted")
+        notes_p = (
+            "installation angle of the X axis from the instrument's reference direction (CCD)",
+            "scale factor of the X axis, reading units per arcsec",
+            "scale factor of the Y axis, reading units per arcsec",
+            "non-orthogonality of the two axes",
+        )
+        params = {
+            nm: Parameter(float(v), u, note=nt)
+            for nm, v, u, nt in zip(PARAM_NAMES, p, units, notes_p)
+        }
+        params["rotation_deg"] = Parameter(
+            phi,
+            "deg",
+            fixed=True,
+            note="assumed rotation φ between the two positions of a pair; not fitted",
+        )
         n_az = int(np.unique(np.round(np.mod(az, 360.0), 6)).size)
         n_tilt = int(np.unique(np.round(np.column_stack([xi, eta]), 6), axis=0).shape[0])
         notes = [
-            (f"beta and the pair rotation phi cannot be told apart from symmetric pairs: only beta + phi/2 enters, so "
-            f"phi is held at the assumed {phi:g} deg; if the true rotation is {phi:g} + d deg, the true beta is this "
-            "beta + d/2 and m1, m2 are smaller by cos(d/2), with identical residuals (seed 004 §3.2)"),
-            (f"reading noise {reading_sigma:.3g} (reading units, one reading) from the {reading_sigma_from}: the "
-            "scatter of the half-sums (n_a + n_b)/2, which are the zero offsets, within each cycle, or the fit "
-            "residuals with all their scatter charged to the readings, whichever is smaller (both are upper "
-            "bounds); used for u_north_arcsec and u_east_arcsec"),
+            (
+                "beta and the pair rotation phi cannot be told apart from symmetric pairs: only "
+                f"beta + phi/2 enters, so phi is held at the assumed {phi:g} deg; if the true "
+                f"rotation is {phi:g} + d deg, the true beta is this beta + d/2 and m1, m2 are "
+                "smaller by cos(d/2), with identical residuals (seed 004 §3.2)"
+            ),
+            (
+                f"reading noise {reading_sigma:.3g} (reading units, one reading) from the "
+                f"{reading_sigma_from}: the scatter of the half-sums (n_a + n_b)/2, which are "
+                "the zero offsets, within each cycle, or the fit residuals with all their "
+                "scatter charged to the readings, whichever is smaller (both are upper bounds); "
+                "used for u_north_arcsec and u_east_arcsec"
+            ),
         ]
         ref_var = s2 - (reading_sigma / m_mean) ** 2 / 2.0
         ref_sigma = float(np.sqrt(ref_var)) if ref_var > 0 else 0.0
-        fit = {"n_pairs": n, "dof": dof, "iterations": iterations, "converged": True,
-               "initial": {nm: float(v) for nm, v in zip(PARAM_NAMES, p0)},
-               "initial_from": "given" if init is not None else "linear solution of the half-difference equations",
-               "residual_sigma_arcsec": float(np.sqrt(s2)), "n_azimuths": n_az, "n_reference_tilts": n_tilt,
-               "rotation_deg": phi, "reading_sigma": reading_sigma, "reading_sigma_from": reading_sigma_from,
-               "reference_sigma_arcsec": ref_sigma}
+        fit = {
+            "n_pairs": n,
+            "dof": dof,
+            "iterations": iterations,
+            "converged": True,
+            "initial": {nm: float(v) for nm, v in zip(PARAM_NAMES, p0)},
+            "initial_from": "given"
+            if init is not None
+            else "linear solution of the half-difference equations",
+            "residual_sigma_arcsec": float(np.sqrt(s2)),
+            "n_azimuths": n_az,
+            "n_reference_tilts": n_tilt,
+            "rotation_deg": phi,
+            "reading_sigma": reading_sigma,
+            "reading_sigma_from": reading_sigma_from,
+            "reference_sigma_arcsec": ref_sigma,
+        }
         return CalibrationModel(
-            kind="turntable", method=self.name, columns=list(self.fit_required), parameters=params,
-            covariance_names=list(PARAM_NAMES), covariance=cov,
+            kind="turntable",
+            method=self.name,
+            columns=list(self.fit_required),
+            parameters=params,
+            covariance_names=list(PARAM_NAMES),
+            covariance=cov,
             residuals=residual_summary({"north_arcsec": r[:n], "east_arcsec": r[n:]}, "arcsec"),
-            fit=fit, notes=notes, options={"rotation_deg": phi},
-            state={"reading_sigma": reading_sigma, "reading_sigma_dof": reading_sigma_dof, "dof": dof})
+            fit=fit,
+            notes=notes,
+            options={"rotation_deg": phi},
+            state={
+                "reading_sigma": reading_sigma,
+                "reading_sigma_dof": reading_sigma_dof,
+                "dof": dof,
+            },
+        )
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         p0 = model.values(PARAM_NAMES)
@@ -260,14 +362,23 @@ class ReversalMethod:
         if model.covariance is not None and sigma is not None:
             inputs = {c: np.asarray(data[c], dtype=float) for c in READING_COLUMNS}
 
-            def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
+            def f(
+                p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]
+            ) -> NDArray[np.float64]:
                 h1, h2 = half_differences(x)
                 return np.column_stack(compensation(p, az, h1, h2, phi))
 
             dof = float(model.state.get("dof") or model.fit.get("dof") or np.inf)
             sigma_dof = float(model.state.get("reading_sigma_dof") or np.inf)
-            g = propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs, {c: float(sigma) for c in READING_COLUMNS},
-                              dof, sigma_dof)
+            g = propagate_gum(
+                f,
+                p0,
+                model.cov_of(list(PARAM_NAMES)),
+                inputs,
+                {c: float(sigma) for c in READING_COLUMNS},
+                dof,
+                sigma_dof,
+            )
             U, k = g.expanded(), np.broadcast_to(coverage_factor(g.dof_eff), g.u.shape)
             out["u_north_arcsec"], out["u_east_arcsec"] = U[:, 0], U[:, 1]
             out["k_north"], out["k_east"] = k[:, 0], k[:, 1]

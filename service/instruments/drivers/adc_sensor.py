@@ -1,4 +1,5 @@
-"""Family (C) driver: the 12-bit ADC in front of the analog tilt sensor, counts on the wire, polled."""
+"""Family (C) driver: the 12-bit ADC in front of the analog tilt sensor, counts on the wire,
+polled."""
 
 from __future__ import annotations
 
@@ -14,8 +15,15 @@ class AdcSensor(SerialDriver, AnalogSensor):
 
     protocol = "adc"
 
-    def __init__(self, role: str, port: SerialPort, clock: Clock, timeout_s: float, conversions: int = 1,
-                 poll_rate_hz: float | None = None) -> None:
+    def __init__(
+        self,
+        role: str,
+        port: SerialPort,
+        clock: Clock,
+        timeout_s: float,
+        conversions: int = 1,
+        poll_rate_hz: float | None = None,
+    ) -> None:
         super().__init__(role, port, clock, timeout_s)
         self.conversions = conversions
         self.poll_rate_hz = poll_rate_hz
@@ -28,14 +36,18 @@ class AdcSensor(SerialDriver, AnalogSensor):
     async def read_counts(self, conversions: int = 1) -> Reading:
         n = None if conversions == 1 else conversions
         req = adc.encode_request(adc.AdcRequest(n))
-        ans: adc.AdcCounts = await self._ask(req, lambda m: isinstance(m, adc.AdcCounts) and m.conversions == n,
-                                             "read counts")
+        ans: adc.AdcCounts = await self._ask(
+            req, lambda m: isinstance(m, adc.AdcCounts) and m.conversions == n, "read counts"
+        )
         reading = self._stamp(counts=ans.counts)
         self._latest = reading
         return reading
 
     async def identify(self) -> DeviceIdentity:
-        ans: adc.AdcIdentity = await self._ask(adc.encode_request(adc.AdcRequest(identify=True)),
-                                               lambda m: isinstance(m, adc.AdcIdentity), "identify")
+        ans: adc.AdcIdentity = await self._ask(
+            adc.encode_request(adc.AdcRequest(identify=True)),
+            lambda m: isinstance(m, adc.AdcIdentity),
+            "identify",
+        )
         self.identity = DeviceIdentity(model=ans.model, serial=ans.serial)
         return self.identity

@@ -1,4 +1,5 @@
-"""What every driver shares, whatever its family: the port, the counters, the readings kept, polling.
+"""What every driver shares, whatever its family: the port, the counters, the readings kept,
+polling.
 
 Units are converted in the drivers and nowhere else: packed BCD degrees, milliradians and pulses
 come in, degrees leave. A driver never knows whether a simulator or an instrument answers.
@@ -22,7 +23,8 @@ T = TypeVar("T")
 
 
 def present(value: T | None, what: str) -> T:
-    """A field the answer must carry; an answer without it is the instrument's error, said as one."""
+    """A field the answer must carry; an answer without it is the instrument's error, said as
+    one."""
     if value is None:
         raise DeviceError(f"{what}: the answer lacks its value")
     return value
@@ -32,7 +34,8 @@ def _bench_s(reading: Reading) -> float:
     return reading.bench_s
 
 
-RECENT_READINGS = 16384  # per driver: 10 min at 25 Hz (the longest averaged tilt), over 30 s of a sped-up continuous output
+# per driver: 10 min at 25 Hz (the longest averaged tilt), over 30 s of a sped-up continuous output
+RECENT_READINGS = 16384
 
 
 class SerialDriver:
@@ -52,7 +55,8 @@ class SerialDriver:
         self.recent: collections.deque[Reading] = collections.deque(maxlen=RECENT_READINGS)
         self._last: Reading | None = None
         self._poll_task: asyncio.Task[None] | None = None
-        self._poll_read: Callable[[], Awaitable[Reading]] | None = None  # the read a polling driver repeats
+        # the read a polling driver repeats
+        self._poll_read: Callable[[], Awaitable[Reading]] | None = None
         self._poll_reading = False  # a read of the polling loop is in flight
 
     @property
@@ -67,20 +71,32 @@ class SerialDriver:
 
     def readings_after(self, bench_s: float) -> list[Reading]:
         """The readings kept that are stamped after `bench_s` (bench seconds), oldest first."""
-        kept = list(self.recent)  # one C call under the GIL: safe against the reader thread appending
-        # stamped in arrival order, so sorted: the stream asks every few milliseconds for the newest few
-        return kept[bisect.bisect_right(kept, bench_s, key=_bench_s):]
+        # one C call under the GIL: safe against the reader thread appending
+        kept = list(self.recent)
+        # stamped in arrival order, so sorted: the stream asks every few milliseconds for the newest
+        # few
+        return kept[bisect.bisect_right(kept, bench_s, key=_bench_s) :]
 
     @property
     def status(self) -> DeviceStatus:
         st = self.port.decoder.stats
         return DeviceStatus(
-            role=self.role, port=self.port.where, protocol=self.protocol, state=self.port.state,
+            role=self.role,
+            port=self.port.where,
+            protocol=self.protocol,
+            state=self.port.state,
             last_frame_utc=self.port.last_frame_utc,
-            counters=DeviceCounters(frames=st.frames, bad_checksum=st.bad_checksum, resyncs=st.resyncs,
-                                    timeouts=self.timeouts, reconnects=self.port.reconnects,
-                                    wrong_address=self.port.wrong_address),
-            identity=self.identity, error=self.port.error)
+            counters=DeviceCounters(
+                frames=st.frames,
+                bad_checksum=st.bad_checksum,
+                resyncs=st.resyncs,
+                timeouts=self.timeouts,
+                reconnects=self.port.reconnects,
+                wrong_address=self.port.wrong_address,
+            ),
+            identity=self.identity,
+            error=self.port.error,
+        )
 
     def latest(self) -> Reading | None:
         return self._latest
@@ -100,18 +116,32 @@ class SerialDriver:
         return self.clock.monotonic()
 
     def _stamp(self, **fields: Any) -> Reading:
-        return Reading(role=self.role, bench_s=self.clock.monotonic(), time_utc=dt.datetime.now(dt.UTC), **fields)
+        return Reading(
+            role=self.role,
+            bench_s=self.clock.monotonic(),
+            time_utc=dt.datetime.now(dt.UTC),
+            **fields,
+        )
 
-    async def _ask(self, data: bytes, match: Callable[[Any], bool], what: str, *,
-                   timeout_s: float | None = None) -> Any:
+    async def _ask(
+        self,
+        data: bytes,
+        match: Callable[[Any], bool],
+        what: str,
+        *,
+        timeout_s: float | None = None,
+    ) -> Any:
         try:
-            return await self.port.request(data, match, timeout_s or self.timeout_s, f"{self.role}: {what}")
+            return await self.port.request(
+                data, match, timeout_s or self.timeout_s, f"{self.role}: {what}"
+            )
         except DeviceTimeout:
             self.timeouts += 1
             raise
 
     async def start(self) -> None:
-        """Start the port's reader and give it a moment to open; a port that does not open keeps trying."""
+        """Start the port's reader and give it a moment to open; a port that does not open keeps
+        trying."""
         self.port.start()
         await asyncio.to_thread(self.port.wait_connected, self.timeout_s * 4)
 
@@ -124,7 +154,8 @@ class SerialDriver:
         if task is None:
             return
         if finish_read and self._poll_reading:
-            await asyncio.wait({task}, timeout=self.timeout_s + 1.0)  # the loop ends after this read
+            # the loop ends after this read
+            await asyncio.wait({task}, timeout=self.timeout_s + 1.0)
         while not task.done():
             task.cancel()
             await asyncio.wait({task}, timeout=0.1)
@@ -148,6 +179,7 @@ class SerialDriver:
                     self._poll_reading = False
                 if self._poll_task is None:
                     return
-                await self.clock.sleep(1.0 / rate_hz)  # bench time: a sped-up bench is polled faster too
+                # bench time: a sped-up bench is polled faster too
+                await self.clock.sleep(1.0 / rate_hz)
 
         self._poll_task = asyncio.get_running_loop().create_task(poll())

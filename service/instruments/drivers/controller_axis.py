@@ -9,7 +9,13 @@ from dataclasses import replace
 
 from service.clock import Clock
 from service.instruments import controller
-from service.instruments.base import AxisState, DeviceIdentity, DeviceStatus, MotionAxis, TwoAxisStage
+from service.instruments.base import (
+    AxisState,
+    DeviceIdentity,
+    DeviceStatus,
+    MotionAxis,
+    TwoAxisStage,
+)
 from service.instruments.drivers.common import SerialDriver, present
 from service.instruments.transport import DeviceError, DeviceRefused, DeviceTimeout, SerialPort
 
@@ -22,9 +28,17 @@ class ControllerAxis(SerialDriver, MotionAxis):
 
     protocol = "controller"
 
-    def __init__(self, role: str, port: SerialPort, clock: Clock, timeout_s: float, axis: int, pulse_deg: float,
-                 velocity_pulses_per_s: int | None = None,
-                 soft_limits_deg: tuple[float, float] | None = None) -> None:
+    def __init__(
+        self,
+        role: str,
+        port: SerialPort,
+        clock: Clock,
+        timeout_s: float,
+        axis: int,
+        pulse_deg: float,
+        velocity_pulses_per_s: int | None = None,
+        soft_limits_deg: tuple[float, float] | None = None,
+    ) -> None:
         super().__init__(role, port, clock, timeout_s)
         self.axis = axis
         self.pulse_deg = pulse_deg
@@ -48,25 +62,39 @@ class ControllerAxis(SerialDriver, MotionAxis):
             await self._send("SR", hi)
 
     async def _send(self, command: str, value: int | None = None) -> None:
-        await self.port.send(controller.encode_command(controller.ControllerCommand(self.axis, command, value)))
+        await self.port.send(
+            controller.encode_command(controller.ControllerCommand(self.axis, command, value))
+        )
 
     async def _query(self, command: str) -> controller.ControllerAnswer:
         """Ask a value. The error code is waited for longer than other answers: asking it clears it,
         so it cannot be asked again when a loaded host holds its answer past one timeout."""
-        req = controller.encode_command(controller.ControllerCommand(self.axis, command, query=True))
+        req = controller.encode_command(
+            controller.ControllerCommand(self.axis, command, query=True)
+        )
         patience = ERROR_QUERY_PATIENCE if command == "TE" else 1
         answer: controller.ControllerAnswer = await self._ask(
-            req, lambda m: isinstance(m, controller.ControllerAnswer) and m.axis == self.axis and m.command == command,
-            f"axis {self.axis} {command}?", timeout_s=self.timeout_s * patience)
+            req,
+            lambda m: (
+                isinstance(m, controller.ControllerAnswer)
+                and m.axis == self.axis
+                and m.command == command
+            ),
+            f"axis {self.axis} {command}?",
+            timeout_s=self.timeout_s * patience,
+        )
         return answer
 
     async def _checked(self, command: str, value: int | None, what: str) -> None:
-        """Send a command the controller does not answer, then ask its error code: refusals raise."""
+        """Send a command the controller does not answer, then ask its error code: refusals
+        raise."""
         await self._send(command, value)
         code = (await self._query("TE")).value
         if code:
-            raise DeviceRefused(f"{self.role}: axis {self.axis} {what}: "
-                                f"{controller.ERROR_NAMES.get(code, f'error {code}')}")
+            raise DeviceRefused(
+                f"{self.role}: axis {self.axis} {what}: "
+                f"{controller.ERROR_NAMES.get(code, f'error {code}')}"
+            )
 
     async def identify(self) -> DeviceIdentity:
         ans = await self._query("ID")
@@ -95,8 +123,10 @@ class ControllerAxis(SerialDriver, MotionAxis):
         return int(present((await self._query("VA")).value, "query VA"))
 
     async def soft_limits_pulses(self) -> tuple[int, int]:
-        return (int(present((await self._query("SL")).value, "query SL")),
-                int(present((await self._query("SR")).value, "query SR")))
+        return (
+            int(present((await self._query("SL")).value, "query SL")),
+            int(present((await self._query("SR")).value, "query SR")),
+        )
 
     async def last_error(self) -> int:
         return int(present((await self._query("TE")).value, "query TE"))
@@ -124,10 +154,14 @@ class ControllerAxis(SerialDriver, MotionAxis):
                 return asked
             if s in ("hard_limit", "error"):
                 code = await self.last_error()
-                raise DeviceError(f"{self.role}: axis {self.axis} stopped in state {s}"
-                                  f" ({controller.ERROR_NAMES.get(code, code)})")
+                raise DeviceError(
+                    f"{self.role}: axis {self.axis} stopped in state {s}"
+                    f" ({controller.ERROR_NAMES.get(code, code)})"
+                )
             if self.clock.monotonic() > deadline:
-                raise DeviceTimeout(f"{self.role}: axis {self.axis} still {s} after {timeout_s:g} s")
+                raise DeviceTimeout(
+                    f"{self.role}: axis {self.axis} still {s} after {timeout_s:g} s"
+                )
             await self.clock.sleep(poll_s)
 
     async def stop(self) -> None:
@@ -185,7 +219,11 @@ class StageController(TwoAxisStage):
         return await self.x.position_deg(), await self.y.position_deg()
 
     async def wait_until_idle(self, timeout_s: float) -> float:
-        return max(await asyncio.gather(self.x.wait_until_idle(timeout_s), self.y.wait_until_idle(timeout_s)))
+        return max(
+            await asyncio.gather(
+                self.x.wait_until_idle(timeout_s), self.y.wait_until_idle(timeout_s)
+            )
+        )
 
     async def stop(self) -> None:
         await self.x.stop()

@@ -10,7 +10,13 @@ from typing import Any
 
 from service.clock import Clock
 from service.instruments import binary
-from service.instruments.base import DeviceIdentity, Reading, TemperatureOnRequest, TiltSensor, TriaxialSensor
+from service.instruments.base import (
+    DeviceIdentity,
+    Reading,
+    TemperatureOnRequest,
+    TiltSensor,
+    TriaxialSensor,
+)
 from service.instruments.drivers.common import SerialDriver, present
 from service.instruments.transport import DeviceError, DeviceRefused, DeviceTimeout, SerialPort
 
@@ -21,16 +27,25 @@ class BinaryInclinometer(SerialDriver, TiltSensor, TemperatureOnRequest):
     """reference_sensor / measurement_sensor (family A). Automatic output keeps `latest()` fresh."""
 
     protocol = "binary"
-    resolution_deg = 1e-4  # packed BCD with four decimals of a degree: an uncertainty budget's resolution
+    # packed BCD with four decimals of a degree: an uncertainty budget's resolution
+    resolution_deg = 1e-4
 
-    def __init__(self, role: str, port: SerialPort, clock: Clock, timeout_s: float, address: int,
-                 output_rate_hz: int | str = 0) -> None:
+    def __init__(
+        self,
+        role: str,
+        port: SerialPort,
+        clock: Clock,
+        timeout_s: float,
+        address: int,
+        output_rate_hz: int | str = 0,
+    ) -> None:
         super().__init__(role, port, clock, timeout_s)
         self.address = address
         self.output_rate_hz = output_rate_hz
         # The last temperature answered (0x06): angle frames carry none, so readings carry this one.
         self.temp_c: float | None = None
-        self.temp_answered_s: float | None = None  # bench time its answer was parsed: a mark in the stream
+        # bench time its answer was parsed: a mark in the stream
+        self.temp_answered_s: float | None = None
         self.answers_temperature = True  # until an instrument of the family is found that does not
         # A temperature request timed out: its answer may still come, and be taken for the next
         # request's (answers carry no sequence number).
@@ -42,7 +57,8 @@ class BinaryInclinometer(SerialDriver, TiltSensor, TemperatureOnRequest):
         return super()._stamp(temp_c=self.temp_c, **fields)
 
     def _on_message(self, msg: object, _utc: dt.datetime) -> None:
-        # the reader thread, in the order the bytes came: stamps here order answers and automatic output
+        # the reader thread, in the order the bytes came: stamps here order answers and automatic
+        # output
         if isinstance(msg, binary.BinaryAnswer) and msg.address == self.address:
             if msg.command == binary.READ_XY | binary.ANSWER:
                 self._latest = self._stamp(x_deg=msg.x_deg, y_deg=msg.y_deg)
@@ -54,17 +70,25 @@ class BinaryInclinometer(SerialDriver, TiltSensor, TemperatureOnRequest):
                 self.temp_answered_s = self.clock.monotonic()
 
     def _match(self, command: int) -> Callable[[Any], bool]:
-        return lambda m: isinstance(m, binary.BinaryAnswer) and m.address == self.address and m.command == command
+        return lambda m: (
+            isinstance(m, binary.BinaryAnswer)
+            and m.address == self.address
+            and m.command == command
+        )
 
     async def _command(self, command: int, argument: int | None, what: str) -> binary.BinaryAnswer:
         req = binary.encode_request(binary.BinaryRequest(self.address, command, argument))
-        answer: binary.BinaryAnswer = await self._ask(req, self._match(command | binary.ANSWER), what)
+        answer: binary.BinaryAnswer = await self._ask(
+            req, self._match(command | binary.ANSWER), what
+        )
         return answer
 
     async def _status_command(self, command: int, argument: int, what: str) -> None:
         ans = await self._command(command, argument, what)
         if ans.status != binary.STATUS_DONE:
-            raise DeviceRefused(f"{self.role}: {what} refused by the instrument on {self.port.where}")
+            raise DeviceRefused(
+                f"{self.role}: {what} refused by the instrument on {self.port.where}"
+            )
 
     async def start(self) -> None:
         await super().start()
@@ -73,16 +97,24 @@ class BinaryInclinometer(SerialDriver, TiltSensor, TemperatureOnRequest):
     async def configure_output(self) -> None:
         """Set the automatic output the role asks for (after power-up or a reconnect)."""
         rate = self.output_rate_hz
-        code = 0x07 if rate == "continuous" else next(c for c, r in binary.OUTPUT_MODES.items() if r == rate)
+        code = (
+            0x07
+            if rate == "continuous"
+            else next(c for c, r in binary.OUTPUT_MODES.items() if r == rate)
+        )
         if self.port.wait_connected(0):
             with contextlib.suppress(DeviceError):
                 await self._status_command(binary.SET_OUTPUT, code, "set automatic output")
 
     async def identify(self) -> DeviceIdentity:
-        """Family (A) has no identification command: a read at the address proves the instrument is there."""
+        """Family (A) has no identification command: a read at the address proves the instrument is
+        there."""
         await self.read_tilt()
-        self.identity = DeviceIdentity(model="0x68 binary inclinometer", serial=self.port.usb_serial,
-                                       address=f"0x{self.address:02X}")
+        self.identity = DeviceIdentity(
+            model="0x68 binary inclinometer",
+            serial=self.port.usb_serial,
+            address=f"0x{self.address:02X}",
+        )
         return self.identity
 
     async def read_tilt(self) -> Reading:
@@ -125,11 +157,14 @@ class BinaryInclinometer(SerialDriver, TiltSensor, TemperatureOnRequest):
                     continue
                 answers_needed -= 1
                 if answers_needed == 0:
-                    assert self.temp_answered_s is not None  # set by the reader before the answer is handed over
+                    # set by the reader before the answer is handed over
+                    assert self.temp_answered_s is not None
                     return self.temp_answered_s
             if not angles_came:
-                raise DeviceTimeout(f"{self.role}: neither a temperature answer nor an angle frame on "
-                                    f"{self.port.where} through {SYNC_ASKS} requests of {self.timeout_s:g} s")
+                raise DeviceTimeout(
+                    f"{self.role}: neither a temperature answer nor an angle frame on "
+                    f"{self.port.where} through {SYNC_ASKS} requests of {self.timeout_s:g} s"
+                )
             self.answers_temperature = False
         return self.clock.monotonic()
 
@@ -145,8 +180,11 @@ class TriaxialModule(BinaryInclinometer, TriaxialSensor):
 
     async def identify(self) -> DeviceIdentity:
         await self.read_sines()
-        self.identity = DeviceIdentity(model="0x68 triaxial module", serial=self.port.usb_serial,
-                                       address=f"0x{self.address:02X}")
+        self.identity = DeviceIdentity(
+            model="0x68 triaxial module",
+            serial=self.port.usb_serial,
+            address=f"0x{self.address:02X}",
+        )
         return self.identity
 
     async def read_sines(self) -> Reading:

@@ -20,8 +20,15 @@ class Rs485Inclinometer(SerialDriver, TiltSensor):
     protocol = "rs485"
     resolution_deg = 1e-6 * 180.0 / math.pi  # milliradians with three decimals: 1 µrad
 
-    def __init__(self, role: str, port: SerialPort, clock: Clock, timeout_s: float, address: int,
-                 poll_rate_hz: float | None = None) -> None:
+    def __init__(
+        self,
+        role: str,
+        port: SerialPort,
+        clock: Clock,
+        timeout_s: float,
+        address: int,
+        poll_rate_hz: float | None = None,
+    ) -> None:
         super().__init__(role, port, clock, timeout_s)
         self.address = address
         self.poll_rate_hz = poll_rate_hz
@@ -29,8 +36,12 @@ class Rs485Inclinometer(SerialDriver, TiltSensor):
 
     def _match(self, kind: type, **fields: object) -> Callable[[Any], bool]:
         def match(m: Any) -> bool:
-            return (isinstance(m, kind) and getattr(m, "address", None) == self.address
-                    and all(getattr(m, k) == v for k, v in fields.items()))
+            return (
+                isinstance(m, kind)
+                and getattr(m, "address", None) == self.address
+                and all(getattr(m, k) == v for k, v in fields.items())
+            )
+
         return match
 
     async def start(self) -> None:
@@ -41,8 +52,12 @@ class Rs485Inclinometer(SerialDriver, TiltSensor):
     async def read_tilt(self) -> Reading:
         req = rs485.encode_request(rs485.Rs485Request(self.address, "RD"))
         ans: rs485.Rs485Reading = await self._ask(req, self._match(rs485.Rs485Reading), "read tilt")
-        reading = self._stamp(x_deg=rs485.mrad_to_deg(ans.x_mrad), y_deg=rs485.mrad_to_deg(ans.y_mrad),
-                              temp_c=ans.temp_c, status=ans.status)
+        reading = self._stamp(
+            x_deg=rs485.mrad_to_deg(ans.x_mrad),
+            y_deg=rs485.mrad_to_deg(ans.y_mrad),
+            temp_c=ans.temp_c,
+            status=ans.status,
+        )
         self._latest = reading
         return reading
 
@@ -51,8 +66,11 @@ class Rs485Inclinometer(SerialDriver, TiltSensor):
 
     async def _zero(self, relative: bool) -> None:
         req = rs485.encode_request(rs485.Rs485Request(self.address, "ZR" if relative else "ZA"))
-        await self._ask(req, self._match(rs485.Rs485ZeroDone, relative=relative),
-                        "set relative zero" if relative else "set absolute zero")
+        await self._ask(
+            req,
+            self._match(rs485.Rs485ZeroDone, relative=relative),
+            "set relative zero" if relative else "set absolute zero",
+        )
 
     async def set_relative_zero(self) -> None:
         await self._zero(True)
@@ -62,6 +80,8 @@ class Rs485Inclinometer(SerialDriver, TiltSensor):
 
     async def identify(self) -> DeviceIdentity:
         req = rs485.encode_request(rs485.Rs485Request(self.address, "ID"))
-        ans: rs485.Rs485Identity = await self._ask(req, self._match(rs485.Rs485Identity), "identify")
+        ans: rs485.Rs485Identity = await self._ask(
+            req, self._match(rs485.Rs485Identity), "identify"
+        )
         self.identity = DeviceIdentity(model=ans.model, serial=ans.serial, firmware=ans.firmware)
         return self.identity

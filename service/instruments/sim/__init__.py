@@ -21,7 +21,12 @@ from service.clock import Clock
 from service.errors import InputError
 from service.instruments import binary
 from service.instruments.bench_config import BenchConfig, parse_bench_config
-from service.instruments.sim.firmware import AdcFirmware, BinaryFirmware, ControllerFirmware, Rs485BusFirmware
+from service.instruments.sim.firmware import (
+    AdcFirmware,
+    BinaryFirmware,
+    ControllerFirmware,
+    Rs485BusFirmware,
+)
 from service.instruments.sim.loopback import LoopbackSimPort
 from service.instruments.sim.pty import Faults, SimPort
 from service.instruments.sim.world import RotaryWorld, StageWorld, rotary_scenarios, stage_scenario
@@ -30,12 +35,16 @@ from service.scenarios.model import ScaleScenario, load_scenario
 SimTransport = Literal["pty", "loopback"]
 PORT_CLASSES: dict[str, type[SimPort]] = {"pty": SimPort, "loopback": LoopbackSimPort}
 SIM_BAUD = {"binary": 115200, "rs485": 115200, "adc": 9600, "controller": 57600}
-DEFAULT_OUTPUT_RATE_HZ = 25  # the simulated sensors' automatic output, as their stored configuration says
+# the simulated sensors' automatic output, as their stored configuration says
+DEFAULT_OUTPUT_RATE_HZ = 25
 # At most this share of a simulated line is automatic output: the rest is left for the answers to
 # requests (temperatures, zeroing), as a lab would leave a real line headroom.
 LINE_SHARE = 0.8
 # The lines that carry automatic output on each kind of simulated bench: (role, frame bytes).
-AUTO_OUTPUT_LINES = {"stage": (("measurement_sensor", 13), ("reference_sensor", 13)), "rotary": (("triaxial_sensor", 17),)}
+AUTO_OUTPUT_LINES = {
+    "stage": (("measurement_sensor", 13), ("reference_sensor", 13)),
+    "rotary": (("triaxial_sensor", 17),),
+}
 
 
 def fastest_speed(kind: str, output_rate_hz: float = DEFAULT_OUTPUT_RATE_HZ) -> tuple[float, str]:
@@ -49,17 +58,34 @@ def fastest_speed(kind: str, output_rate_hz: float = DEFAULT_OUTPUT_RATE_HZ) -> 
     for role, frame_bytes in AUTO_OUTPUT_LINES[kind]:
         per_s = 1.0 / binary.frame_time_s(frame_bytes, SIM_BAUD["binary"])
         speed = math.floor(LINE_SHARE * per_s / output_rate_hz)
-        limits.append((speed, (f"the simulated {role} line at {SIM_BAUD['binary']} baud carries {per_s:.0f} frames a"
-                              f" second ({LINE_SHARE:.0%} of it, {LINE_SHARE * per_s:.0f}, kept for automatic output),"
-                              f" and the sensor sends {output_rate_hz:g} a bench second")))
+        limits.append(
+            (
+                speed,
+                (
+                    f"the simulated {role} line at {SIM_BAUD['binary']} baud carries {per_s:.0f} "
+                    f"frames a second ({LINE_SHARE:.0%} of it, {LINE_SHARE * per_s:.0f}, kept "
+                    f"for automatic output), and the sensor sends {output_rate_hz:g} a bench "
+                    "second"
+                ),
+            )
+        )
     return min(limits)
 
 
 class SimulatedBench:
     """Running simulated instruments; `.config` points a bench configuration at their ports."""
 
-    def __init__(self, kind: str, world: StageWorld | RotaryWorld, ports: dict[str, SimPort], directory: Path, clock: Clock,
-                 toml_text: str, bench_name: str, own_directory: bool) -> None:
+    def __init__(
+        self,
+        kind: str,
+        world: StageWorld | RotaryWorld,
+        ports: dict[str, SimPort],
+        directory: Path,
+        clock: Clock,
+        toml_text: str,
+        bench_name: str,
+        own_directory: bool,
+    ) -> None:
         self.kind = kind
         self.world = world
         self.ports = ports
@@ -68,11 +94,16 @@ class SimulatedBench:
         self.toml = toml_text
         self.bench_name = bench_name
         self._own_directory = own_directory
-        self.config: BenchConfig = parse_bench_config(_toml_loads(toml_text), "simulated bench").bench(bench_name)
+        self.config: BenchConfig = parse_bench_config(
+            _toml_loads(toml_text), "simulated bench"
+        ).bench(bench_name)
 
     def faults(self, role: str) -> Faults:
         if role not in self.ports:
-            raise KeyError(f"the simulated {self.kind} bench has no role {role!r}; it has {', '.join(self.ports)}")
+            raise KeyError(
+                f"the simulated {self.kind} bench has no role {role!r}; it has "
+                f"{', '.join(self.ports)}"
+            )
         return self.ports[role].faults
 
     def port_path(self, role: str) -> str:
@@ -97,11 +128,19 @@ def _toml_loads(text: str) -> dict[str, Any]:
     return tomllib.loads(text)
 
 
-def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock: Clock, *,
-                          directory: str | Path | None = None, adc: bool = False,
-                          output_rate_hz: int | str = DEFAULT_OUTPUT_RATE_HZ, bus_addresses: tuple[int, ...] = (1, 2, 3),
-                          bench_name: str | None = None, transport: SimTransport = "pty",
-                          ambient: bool = False) -> SimulatedBench:
+def start_simulated_bench(
+    scenario: str,
+    kind: Literal["stage", "rotary"],
+    clock: Clock,
+    *,
+    directory: str | Path | None = None,
+    adc: bool = False,
+    output_rate_hz: int | str = DEFAULT_OUTPUT_RATE_HZ,
+    bus_addresses: tuple[int, ...] = (1, 2, 3),
+    bench_name: str | None = None,
+    transport: SimTransport = "pty",
+    ambient: bool = False,
+) -> SimulatedBench:
     """Start every instrument of a simulated bench; ports appear as symlinks in `directory`.
 
     transport "pty": each instrument behind a pseudo-terminal, as a USB adapter would be;
@@ -112,8 +151,8 @@ def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock
     and with `adc` the analog sensor behind the ADC (family C, physics of the seed003 preset).
     rotary: rotary_table (family D axis 3), triaxial_sensor (family A, 0x07) and an RS-485 bus
     with inclinometers at `bus_addresses`; the configuration names the first as turntable_sensor.
-    With `ambient`, either kind also has an ambient_sensor: a thermo-hygrometer (family B, TH) on a port
-    of its own (`ambient` firmware, the air's truth).
+    With `ambient`, either kind also has an ambient_sensor: a thermo-hygrometer (family B, TH) on a
+    port of its own (`ambient` firmware, the air's truth).
     """
     if kind not in ("stage", "rotary"):
         raise InputError(f"bench kind {kind!r} is not stage or rotary")
@@ -125,27 +164,43 @@ def start_simulated_bench(scenario: str, kind: Literal["stage", "rotary"], clock
     world: StageWorld | RotaryWorld
     try:
         if kind == "stage":
-            world, ports, roles = _stage(scenario, clock, folder, adc, output_rate_hz, PORT_CLASSES[transport])
+            world, ports, roles = _stage(
+                scenario, clock, folder, adc, output_rate_hz, PORT_CLASSES[transport]
+            )
             hardware = world.scenario.bench.model_dump()
         else:
-            world, ports, roles = _rotary(scenario, clock, folder, output_rate_hz, bus_addresses,
-                                          PORT_CLASSES[transport])
+            world, ports, roles = _rotary(
+                scenario, clock, folder, output_rate_hz, bus_addresses, PORT_CLASSES[transport]
+            )
             hardware = None
         if ambient:
             from service.instruments.sim.ambient import AmbientFirmware
 
-            ports["ambient_sensor"] = PORT_CLASSES[transport](folder / "ambient_sensor", AmbientFirmware(clock))
-            roles["ambient_sensor"] = {"port": ports["ambient_sensor"].path, "baud": SIM_BAUD["rs485"], "address": "01"}
+            ports["ambient_sensor"] = PORT_CLASSES[transport](
+                folder / "ambient_sensor", AmbientFirmware(clock)
+            )
+            roles["ambient_sensor"] = {
+                "port": ports["ambient_sensor"].path,
+                "baud": SIM_BAUD["rs485"],
+                "address": "01",
+            }
     except BaseException:
         for p in ports.values():
             p.close()
         if own:
             shutil.rmtree(folder, ignore_errors=True)
         raise
-    lines = [f"# Simulated {kind} bench, scenario {scenario}, {clock.speed:g} times real time.",
-             f"sim_speed = {clock.speed:g}", "", f"[benches.{name}]", f'kind = "{kind}"',
-             f'description = "simulated {kind} bench, scenario {scenario}"', ""]
-    if hardware is not None:  # the scenario's stages: the daemon converts degrees to pulses with its gearing
+    lines = [
+        f"# Simulated {kind} bench, scenario {scenario}, {clock.speed:g} times real time.",
+        f"sim_speed = {clock.speed:g}",
+        "",
+        f"[benches.{name}]",
+        f'kind = "{kind}"',
+        f'description = "simulated {kind} bench, scenario {scenario}"',
+        "",
+    ]
+    # the scenario's stages: the daemon converts degrees to pulses with its gearing
+    if hardware is not None:
         lines.append(f"[benches.{name}.hardware]")
         lines.extend(f"{k} = {_toml_value(v)}" for k, v in hardware.items())
         lines.append("")
@@ -168,22 +223,41 @@ def _toml_value(v: object) -> str:
 Roles = dict[str, dict[str, Any]]
 
 
-def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool, rate: int | str,
-           port_class: type[SimPort]) -> tuple[StageWorld, dict[str, SimPort], Roles]:
+def _stage(
+    scenario: str,
+    clock: Clock,
+    folder: Path,
+    with_adc: bool,
+    rate: int | str,
+    port_class: type[SimPort],
+) -> tuple[StageWorld, dict[str, SimPort], Roles]:
     sc = stage_scenario(scenario)
     adc_sc = load_scenario("seed003") if with_adc else None
-    assert adc_sc is None or isinstance(adc_sc, ScaleScenario)  # the seed003 preset is a scale scenario
+    # the seed003 preset is a scale scenario
+    assert adc_sc is None or isinstance(adc_sc, ScaleScenario)
     world = StageWorld(sc, clock, adc_scenario=adc_sc)
     ports: dict[str, SimPort] = {}
     roles: Roles = {}
     for role, prefix in (("reference_sensor", "ref"), ("measurement_sensor", "meas")):
+
         def read_xy(at_s: float | None = None, p: str = prefix) -> tuple[float, float]:
             return world.reading_deg(p, at_s)
 
-        fw = BinaryFirmware(clock, read_xy, world.temp_c, address=0,
-                            baud=SIM_BAUD["binary"], output_mode=_mode(rate))
+        fw = BinaryFirmware(
+            clock,
+            read_xy,
+            world.temp_c,
+            address=0,
+            baud=SIM_BAUD["binary"],
+            output_mode=_mode(rate),
+        )
         ports[role] = port_class(folder / role, fw)
-        roles[role] = {"port": ports[role].path, "baud": SIM_BAUD["binary"], "address": 0, "output_rate_hz": rate}
+        roles[role] = {
+            "port": ports[role].path,
+            "baud": SIM_BAUD["binary"],
+            "address": 0,
+            "output_rate_hz": rate,
+        }
     ports["stage"] = port_class(folder / "stage", ControllerFirmware(world.axes))
     roles["stage"] = {"port": ports["stage"].path, "baud": SIM_BAUD["controller"]}
     if with_adc:
@@ -193,7 +267,8 @@ def _stage(scenario: str, clock: Clock, folder: Path, with_adc: bool, rate: int 
 
 
 def _mode(rate: int | str) -> int:
-    """The output mode the instrument keeps from its last configuration (as instruments store it)."""
+    """The output mode the instrument keeps from its last configuration (as instruments store
+    it)."""
     for code, hz in binary.OUTPUT_MODES.items():
         if hz == rate or (rate == "continuous" and hz is None):
             return code
@@ -204,26 +279,53 @@ def _pair(sample: dict[str, float], prefix: str) -> tuple[float, float]:
     return sample[f"{prefix}_x_deg"], sample[f"{prefix}_y_deg"]
 
 
-def _rotary(scenario: str, clock: Clock, folder: Path, rate: int | str, bus_addresses: tuple[int, ...],
-            port_class: type[SimPort]) -> tuple[RotaryWorld, dict[str, SimPort], Roles]:
+def _rotary(
+    scenario: str,
+    clock: Clock,
+    folder: Path,
+    rate: int | str,
+    bus_addresses: tuple[int, ...],
+    port_class: type[SimPort],
+) -> tuple[RotaryWorld, dict[str, SimPort], Roles]:
     rot, tt = rotary_scenarios(scenario)
     world = RotaryWorld(rot, tt, clock, bus_addresses=bus_addresses)
     ports: dict[str, SimPort] = {}
     roles: Roles = {}
-    ports["rotary_table"] = port_class(folder / "rotary_table", ControllerFirmware(world.axes, model="RT-360SIM"))
-    roles["rotary_table"] = {"port": ports["rotary_table"].path, "baud": SIM_BAUD["controller"], "axis": 3}
-    tri = BinaryFirmware(clock, lambda _at_s: (0.0, 0.0), world.temp_c, address=0, baud=SIM_BAUD["binary"],
-                         read_sines=world.sines, output_mode=_mode(rate))
+    ports["rotary_table"] = port_class(
+        folder / "rotary_table", ControllerFirmware(world.axes, model="RT-360SIM")
+    )
+    roles["rotary_table"] = {
+        "port": ports["rotary_table"].path,
+        "baud": SIM_BAUD["controller"],
+        "axis": 3,
+    }
+    tri = BinaryFirmware(
+        clock,
+        lambda _at_s: (0.0, 0.0),
+        world.temp_c,
+        address=0,
+        baud=SIM_BAUD["binary"],
+        read_sines=world.sines,
+        output_mode=_mode(rate),
+    )
     ports["triaxial_sensor"] = port_class(folder / "triaxial_sensor", tri)
-    roles["triaxial_sensor"] = {"port": ports["triaxial_sensor"].path, "baud": SIM_BAUD["binary"], "address": 0,
-                                "output_rate_hz": rate}
+    roles["triaxial_sensor"] = {
+        "port": ports["triaxial_sensor"].path,
+        "baud": SIM_BAUD["binary"],
+        "address": 0,
+        "output_rate_hz": rate,
+    }
+
     def reader(a: int) -> Callable[[], tuple[float, float]]:
         return lambda: world.turntable_mrad(a)
 
     bus = Rs485BusFirmware({a: reader(a) for a in bus_addresses}, world.temp_c)
     ports["turntable_sensor"] = port_class(folder / "rs485_bus", bus)
-    roles["turntable_sensor"] = {"port": ports["turntable_sensor"].path, "baud": SIM_BAUD["rs485"],
-                                 "address": f"{bus_addresses[0]:02X}"}
+    roles["turntable_sensor"] = {
+        "port": ports["turntable_sensor"].path,
+        "baud": SIM_BAUD["rs485"],
+        "address": f"{bus_addresses[0]:02X}",
+    }
     return world, ports, roles
 
 

@@ -1,8 +1,10 @@
-"""A simulated thermo-hygrometer (family B, command TH): the laboratory's air as a bench's ambient sensor reads it.
+"""A simulated thermo-hygrometer (family B, command TH): the laboratory's air as a bench's ambient
+sensor reads it.
 
-The air is the simulated truth: a temperature and a relative humidity that drift slowly (sinusoidally over
-bench time) around the values given; each answer adds the instrument's own reading noise and is rounded to
-the digits the protocol carries. `truth_c`/`truth_pct` give what a perfect instrument would read.
+The air is the simulated truth: a temperature and a relative humidity that drift slowly
+(sinusoidally over bench time) around the values given; each answer adds the instrument's own
+reading noise and is rounded to the digits the protocol carries. `truth_c`/`truth_pct` give what a
+perfect instrument would read.
 """
 
 from __future__ import annotations
@@ -20,9 +22,22 @@ from service.instruments.sim.firmware import AnsweringFirmware
 class AmbientFirmware(AnsweringFirmware):
     family = "rs485"
 
-    def __init__(self, clock: Clock, *, address: int = 1, temp_c: float = 20.3, humidity_pct: float = 45.0,
-                 drift_c: float = 0.15, drift_pct: float = 1.5, period_s: float = 1800.0, noise_c: float = 0.02,
-                 noise_pct: float = 0.3, seed: int = 7, model: str = "TH-200SIM", serial: str = "SIM-TH01") -> None:
+    def __init__(
+        self,
+        clock: Clock,
+        *,
+        address: int = 1,
+        temp_c: float = 20.3,
+        humidity_pct: float = 45.0,
+        drift_c: float = 0.15,
+        drift_pct: float = 1.5,
+        period_s: float = 1800.0,
+        noise_c: float = 0.02,
+        noise_pct: float = 0.3,
+        seed: int = 7,
+        model: str = "TH-200SIM",
+        serial: str = "SIM-TH01",
+    ) -> None:
         self.clock = clock
         self.address = address
         self.temp_c, self.humidity_pct = temp_c, humidity_pct
@@ -47,7 +62,13 @@ class AmbientFirmware(AnsweringFirmware):
                 continue
             if req.command == "TH":
                 t = round(self.truth_c() + float(self.rng.normal(0.0, self.noise_c)), 2)
-                rh = round(min(max(self.truth_pct() + float(self.rng.normal(0.0, self.noise_pct)), 0.0), 100.0), 1)
+                rh = round(
+                    min(
+                        max(self.truth_pct() + float(self.rng.normal(0.0, self.noise_pct)), 0.0),
+                        100.0,
+                    ),
+                    1,
+                )
                 msg: rs485.Rs485Answer = rs485.Rs485Ambient(self.address, t, rh, 0)
             elif req.command == "ID":
                 msg = rs485.Rs485Identity(self.address, self.model, self.serial, "1.2")

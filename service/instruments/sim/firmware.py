@@ -41,9 +41,16 @@ class BinaryFirmware:
 
     family = "binary"
 
-    def __init__(self, clock: Clock, read_xy: Callable[[float | None], tuple[float, float]], temp_c: Callable[[], float],
-                 address: int = 0, baud: int = 115200, read_sines: Callable[[], tuple[float, float, float]] | None = None,
-                 output_mode: int = 0) -> None:
+    def __init__(
+        self,
+        clock: Clock,
+        read_xy: Callable[[float | None], tuple[float, float]],
+        temp_c: Callable[[], float],
+        address: int = 0,
+        baud: int = 115200,
+        read_sines: Callable[[], tuple[float, float, float]] | None = None,
+        output_mode: int = 0,
+    ) -> None:
         self.clock = clock
         self.read_xy = read_xy
         self.read_sines = read_sines
@@ -59,7 +66,8 @@ class BinaryFirmware:
 
     # -- what the instrument measures (zero applied) --
     def _xy(self, at_s: float | None = None) -> tuple[float, float]:
-        """The reading now, or (automatic output) at bench time `at_s`, the time its frame was due."""
+        """The reading now, or (automatic output) at bench time `at_s`, the time its frame was
+        due."""
         x, y = self.read_xy(at_s)
         return x - self.zero[0], y - self.zero[1]
 
@@ -99,14 +107,20 @@ class BinaryFirmware:
             return binary.BinaryAnswer(a, c, sines=self.read_sines()) if self.read_sines else None
         if req.command in (binary.READ_X, binary.READ_Y, binary.READ_XY):
             x, y = self._xy()
-            return binary.BinaryAnswer(a, c, x_deg=x if req.command != binary.READ_Y else None,
-                                       y_deg=y if req.command != binary.READ_X else None)
+            return binary.BinaryAnswer(
+                a,
+                c,
+                x_deg=x if req.command != binary.READ_Y else None,
+                y_deg=y if req.command != binary.READ_X else None,
+            )
         if req.command == binary.READ_TEMP:
             return binary.BinaryAnswer(a, c, temp_c=self.temp_c())
-        ok = {binary.SET_ZERO: req.argument in (binary.ZERO_ABSOLUTE, binary.ZERO_RELATIVE),
-              binary.SET_BAUD: req.argument in binary.BAUD_CODES,
-              binary.SET_ADDRESS: True,
-              binary.SET_OUTPUT: req.argument in binary.OUTPUT_MODES}[req.command]
+        ok = {
+            binary.SET_ZERO: req.argument in (binary.ZERO_ABSOLUTE, binary.ZERO_RELATIVE),
+            binary.SET_BAUD: req.argument in binary.BAUD_CODES,
+            binary.SET_ADDRESS: True,
+            binary.SET_OUTPUT: req.argument in binary.OUTPUT_MODES,
+        }[req.command]
         if ok and req.command == binary.SET_ZERO:
             self.zero = self.read_xy(None) if req.argument == binary.ZERO_RELATIVE else (0.0, 0.0)
         if ok and req.command == binary.SET_OUTPUT and req.argument is not None:
@@ -134,7 +148,9 @@ class BinaryFirmware:
         bench_now = self.clock.monotonic()
         while self._next <= now_real and len(frames) < 64:
             # a frame sent late (a burst) still carries the reading of the time it was due
-            frames.append(self._auto_frame(bench_now - self.clock.bench_seconds(now_real - self._next)))
+            frames.append(
+                self._auto_frame(bench_now - self.clock.bench_seconds(now_real - self._next))
+            )
             self._next += interval
         if self._next <= now_real:  # fell behind (a stalled process): the instrument does not burst
             self._next = now_real + interval
@@ -157,8 +173,12 @@ class Rs485BusFirmware(AnsweringFirmware):
 
     family = "rs485"
 
-    def __init__(self, instruments: dict[int, Callable[[], tuple[float, float]]], temp_c: Callable[[], float],
-                 model: str = "NV-210SIM") -> None:
+    def __init__(
+        self,
+        instruments: dict[int, Callable[[], tuple[float, float]]],
+        temp_c: Callable[[], float],
+        model: str = "NV-210SIM",
+    ) -> None:
         self.instruments = instruments
         self.temp_c = temp_c
         self.model = model
@@ -175,8 +195,9 @@ class Rs485BusFirmware(AnsweringFirmware):
             if req.command == "RD":
                 x, y = read()
                 zx, zy = self.zero[a]
-                msg: rs485.Rs485Answer = rs485.Rs485Reading(a, round(x - zx, 3), round(y - zy, 3),
-                                                             round(self.temp_c(), 2), 0)
+                msg: rs485.Rs485Answer = rs485.Rs485Reading(
+                    a, round(x - zx, 3), round(y - zy, 3), round(self.temp_c(), 2), 0
+                )
             elif req.command == "ID":
                 msg = rs485.Rs485Identity(a, self.model, f"SIM-B{a:02X}", "1.0")
             else:
@@ -192,7 +213,7 @@ class Rs485BusFirmware(AnsweringFirmware):
     def readdress(self, frame: bytes) -> bytes:
         """The same answer as if another instrument on the bus had sent it (checksum made right)."""
         text = frame.decode().rstrip("\r\n")
-        payload = text[1:text.index(" *")]
+        payload = text[1 : text.index(" *")]
         other = (int(payload[:2], 16) + 1) & 0xFF
         payload = f"{other:02X}{payload[2:]}"
         return f"#{payload} *{rs485.checksum(payload)}\r\n".encode()
@@ -203,7 +224,9 @@ class AdcFirmware(AnsweringFirmware):
 
     family = "adc"
 
-    def __init__(self, counts: Callable[[int], float], model: str = "ADC12-SIM", serial: str = "SIM-C01") -> None:
+    def __init__(
+        self, counts: Callable[[int], float], model: str = "ADC12-SIM", serial: str = "SIM-C01"
+    ) -> None:
         self.counts = counts
         self.model, self.serial = model, serial
         self.decoder = Decoder(adc.parse_requests)
@@ -222,11 +245,14 @@ class AdcFirmware(AnsweringFirmware):
 
 
 class ControllerFirmware(AnsweringFirmware):
-    """A family (D) controller with the world's axes (1, 2 for the stages; 3 for the rotary table)."""
+    """A family (D) controller with the world's axes (1, 2 for the stages; 3 for the rotary
+    table)."""
 
     family = "controller"
 
-    def __init__(self, axes: dict[int, Axis], model: str = "SC-200SIM", serial: str = "SIM-D01") -> None:
+    def __init__(
+        self, axes: dict[int, Axis], model: str = "SC-200SIM", serial: str = "SIM-D01"
+    ) -> None:
         self.axes = axes
         self.model, self.serial = model, serial
         self.decoder = Decoder(controller.parse_commands)
@@ -245,7 +271,9 @@ class ControllerFirmware(AnsweringFirmware):
                 out.append(controller.encode(ans))
         return out
 
-    def _do(self, cmd: controller.ControllerCommand, ax: Axis) -> controller.ControllerAnswer | None:
+    def _do(
+        self, cmd: controller.ControllerCommand, ax: Axis
+    ) -> controller.ControllerAnswer | None:
         n, c = cmd.axis, cmd.command
         if cmd.query:
             if c == "ID":
@@ -253,9 +281,13 @@ class ControllerFirmware(AnsweringFirmware):
             if c == "TE":
                 code, ax.error = ax.error, controller.ERR_NONE
                 return controller.ControllerAnswer(n, "TE", code)
-            value = {"TP": lambda: ax.position_pulses(), "TS": lambda: ax.state, "VA": lambda: int(ax.velocity_pps),
-                     "SL": lambda: ax.soft[0] if ax.soft else -NO_LIMIT,
-                     "SR": lambda: ax.soft[1] if ax.soft else NO_LIMIT}[c]()
+            value = {
+                "TP": lambda: ax.position_pulses(),
+                "TS": lambda: ax.state,
+                "VA": lambda: int(ax.velocity_pps),
+                "SL": lambda: ax.soft[0] if ax.soft else -NO_LIMIT,
+                "SR": lambda: ax.soft[1] if ax.soft else NO_LIMIT,
+            }[c]()
             return controller.ControllerAnswer(n, c, value)
         err = controller.ERR_NONE
         if cmd.value is None and c in ("PA", "PR", "VA", "SL", "SR"):

@@ -67,7 +67,9 @@ class MemoryLine:
 
     def _check(self, generation: int) -> None:
         if generation != self._generation or self._closed:
-            raise LineGone(f"device reports readiness to read but returned no data ({self.url} was unplugged)")
+            raise LineGone(
+                f"device reports readiness to read but returned no data ({self.url} was unplugged)"
+            )
 
     def discard_for_host(self, generation: int) -> None:
         """Drop what waits for the driver (pyserial flushes a port's input when it opens it)."""
@@ -88,8 +90,12 @@ class MemoryLine:
     def read_host(self, generation: int, size: int, timeout_s: float | None) -> bytes:
         """Up to `size` bytes: as soon as that many are there, or what came within the timeout."""
         with self._cond:
-            self._cond.wait_for(lambda: len(self._to_host) >= size or generation != self._generation
-                                or self._closed, timeout_s)
+            self._cond.wait_for(
+                lambda: (
+                    len(self._to_host) >= size or generation != self._generation or self._closed
+                ),
+                timeout_s,
+            )
             self._check(generation)
             data = bytes(self._to_host[:size])
             del self._to_host[:size]
@@ -112,7 +118,8 @@ class MemoryLine:
             return data
 
     def write_instrument(self, data: bytes) -> int:
-        """Bytes towards the driver; returns how many the line kept (a full buffer loses the rest)."""
+        """Bytes towards the driver; returns how many the line kept (a full buffer loses the
+        rest)."""
         with self._cond:
             if not self._plugged:
                 return len(data)  # into a pulled cable: gone, as on a closed pty
@@ -147,7 +154,9 @@ def line_named(url: str) -> MemoryLine:
     with _lines_lock:
         line = _lines.get(url)
     if line is None:
-        raise LineGone(f"could not open port {url}: no simulated instrument on that line in this process")
+        raise LineGone(
+            f"could not open port {url}: no simulated instrument on that line in this process"
+        )
     return line
 
 

@@ -1,5 +1,6 @@
-"""pyserial's handler for `simloop://` names: a serial port whose other end is a simulated instrument
-in this process (see `loopback`). Found by `serial.serial_for_url`, never imported by name."""
+"""pyserial's handler for `simloop://` names: a serial port whose other end is a simulated
+instrument in this process (see `loopback`). Found by `serial.serial_for_url`, never imported by
+name."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ from service.instruments.sim.loopback import MemoryLine, line_named
 
 
 class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type information
-    """The driver's end of a memory line; settings (baud, parity) are accepted and change nothing."""
+    """The driver's end of a memory line; settings (baud, parity) are accepted and change
+    nothing."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self._line: MemoryLine | None = None

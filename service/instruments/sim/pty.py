@@ -28,7 +28,8 @@ from typing import Protocol
 # sensor's hundreds of frames a second wake the port's reader tens of times, not hundreds. Answers
 # are not held back.
 OUTPUT_LATENCY_S = 0.01
-IDLE_WAIT_S = 0.05  # the longest a port's thread sleeps with nothing due (to notice a stop or a reopen)
+# the longest a port's thread sleeps with nothing due (to notice a stop or a reopen)
+IDLE_WAIT_S = 0.05
 
 
 class Firmware(Protocol):
@@ -78,7 +79,8 @@ class Faults:
         return data
 
     def drop_bytes(self, n: int = 1) -> None:
-        """The next frame loses n bytes (in the ASCII families without a checksum: its last n, terminator first)."""
+        """The next frame loses n bytes (in the ASCII families without a checksum: its last n,
+        terminator first)."""
         with self._lock:
             self.drop_next += n
         self._count("drop")
@@ -108,12 +110,14 @@ class Faults:
         self.silent = on
 
     def disconnect(self, for_s: float = 0.5) -> None:
-        """Close the pty now (the cable is pulled); a new one appears at the same path after for_s."""
+        """Close the pty now (the cable is pulled); a new one appears at the same path after
+        for_s."""
         self._port.disconnect(for_s)
         self._count("disconnect")
 
     def take(self, frame: bytes, answer: bool) -> tuple[bytes | None, float]:
-        """Apply queued faults to a frame about to be sent: the bytes (None: nothing) and the delay."""
+        """Apply queued faults to a frame about to be sent: the bytes (None: nothing) and the
+        delay."""
         fw = self._port.firmware
         with self._lock:
             if self.silent:
@@ -129,9 +133,9 @@ class Faults:
                 self.drop_next -= n
                 if fw.family in self.CHECKSUMMED:
                     i = random.randrange(0, len(frame) - n + 1)
-                    frame = frame[:i] + frame[i + n:]
+                    frame = frame[:i] + frame[i + n :]
                 else:
-                    frame = frame[:len(frame) - n]
+                    frame = frame[: len(frame) - n]
             delay = self.slow_next.pop(0) if (self.slow_next and answer) else 0.0
         return frame, delay
 
@@ -246,7 +250,8 @@ class SimPort:
                 continue
             now = time.monotonic()
             if data or now - flushed >= OUTPUT_LATENCY_S:
-                # what is due goes out before any answer: frames made before a request never follow its answer
+                # what is due goes out before any answer: frames made before a request never follow
+                # its answer
                 flushed = now
                 for frame in self.firmware.due(now):
                     self._emit(frame, False)

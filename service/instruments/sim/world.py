@@ -22,7 +22,13 @@ from service.physics.rotation_axis import simulate_rotation
 from service.physics.settling import Move, recent, settling_of, transient_deg
 from service.physics.stage import StageGeometry, simulate_stage
 from service.physics.turntable import TurntableInclinometer, turntable_readings
-from service.scenarios.model import RotationScenario, ScaleScenario, StageScenario, TurntableScenario, load_scenario
+from service.scenarios.model import (
+    RotationScenario,
+    ScaleScenario,
+    StageScenario,
+    TurntableScenario,
+    load_scenario,
+)
 from service.scenarios.run import effect_set, hardware_of, temperature
 
 NO_LIMIT = 2_147_483_647
@@ -30,7 +36,8 @@ NO_LIMIT = 2_147_483_647
 # A sensor at rest outputs a batch of readings computed at once (vectorised over the samples
 # of its coming output intervals): the physics costs about the same for 1 point as for 32.
 READINGS_PER_BATCH = 32
-STANDS_KEPT = 64  # positioning errors remembered (a move's intermediate poses each count as a stand)
+# positioning errors remembered (a move's intermediate poses each count as a stand)
+STANDS_KEPT = 64
 
 
 class _Batch:
@@ -46,8 +53,14 @@ class _Batch:
 class Axis:
     """One controller axis: position in pulses, moving at the set velocity on the bench clock."""
 
-    def __init__(self, clock: Clock, pulse_deg: float, velocity_pps: float, soft: tuple[int, int] | None,
-                 hard: tuple[int, int] | None) -> None:
+    def __init__(
+        self,
+        clock: Clock,
+        pulse_deg: float,
+        velocity_pps: float,
+        soft: tuple[int, int] | None,
+        hard: tuple[int, int] | None,
+    ) -> None:
         self.clock = clock
         self.pulse_deg = pulse_deg
         self.velocity_pps = float(velocity_pps)
@@ -63,7 +76,8 @@ class Axis:
         self._start = 0.0
         self._mode = ctl.STATE_READY
         self._lock = threading.RLock()
-        self.recent_moves: list[Move] = []  # recent moves (bench clock times): the settling transient follows them
+        # recent moves (bench clock times): the settling transient follows them
+        self.recent_moves: list[Move] = []
 
     def _update(self) -> None:
         if self._mode not in (ctl.STATE_MOVING, ctl.STATE_HOMING):
@@ -99,10 +113,18 @@ class Axis:
         return int(round(self.position))
 
     def _go(self, target: float, mode: int) -> None:
-        self._start, self._target, self._t0, self._mode = self._pos, float(target), self.clock.monotonic(), mode
+        self._start, self._target, self._t0, self._mode = (
+            self._pos,
+            float(target),
+            self.clock.monotonic(),
+            mode,
+        )
         self.moves += 1
         span = self._target - self._start
-        self.recent_moves = [*self.recent_moves[-7:], Move(self._t0, span * self.pulse_deg, abs(span) / self.velocity_pps)]
+        self.recent_moves = [
+            *self.recent_moves[-7:],
+            Move(self._t0, span * self.pulse_deg, abs(span) / self.velocity_pps),
+        ]
         if target != self._pos:
             self.direction = 1.0 if target > self._pos else -1.0
 
@@ -145,10 +167,16 @@ class Axis:
 
 class StageWorld:
     """Two stacked swing stages (axis 1 upper x, axis 2 lower y) carrying a reference and a
-    measurement sensor (and optionally an analog sensor behind an ADC), as the scenario describes."""
+    measurement sensor (and optionally an analog sensor behind an ADC), as the scenario
+    describes."""
 
-    def __init__(self, scenario: StageScenario, clock: Clock, velocity_pps: int = 4000,
-                 adc_scenario: ScaleScenario | None = None) -> None:
+    def __init__(
+        self,
+        scenario: StageScenario,
+        clock: Clock,
+        velocity_pps: int = 4000,
+        adc_scenario: ScaleScenario | None = None,
+    ) -> None:
         self.scenario = scenario
         self.clock = clock
         self.bench = hardware_of(scenario)
@@ -161,10 +189,10 @@ class StageWorld:
         self._batches: dict[str, _Batch] = {}
         self._last_read: dict[str, tuple[float, tuple[object, ...]]] = {}
         self._true_tilt: tuple[tuple[object, ...], tuple[float, float]] | None = None
-        # the stage's positioning error of the present stand: drawn once when a stand begins, shared by everything
-        # on the table and constant until the next move (a repeatability, not a jitter)
-        # (by stand, the last few: a reader that took its stand's key just before a move ended must not make the
-        # present stand draw again)
+        # the stage's positioning error of the present stand: drawn once when a stand begins, shared
+        # by everything on the table and constant until the next move (a repeatability, not a
+        # jitter) (by stand, the last few: a reader that took its stand's key just before a move
+        # ended must not make the present stand draw again)
         self._stands: OrderedDict[tuple[object, ...], tuple[float, float]] = OrderedDict()
         travel = self.bench.travel_deg
         self.axes: dict[int, Axis] = {}
@@ -190,10 +218,17 @@ class StageWorld:
         return self.axes[1].deg, self.axes[2].deg
 
     def _stand_key(self) -> tuple[object, ...]:
-        return (*self.pose_deg, self.axes[1].direction, self.axes[2].direction, self.axes[1].moves, self.axes[2].moves)
+        return (
+            *self.pose_deg,
+            self.axes[1].direction,
+            self.axes[2].direction,
+            self.axes[1].moves,
+            self.axes[2].moves,
+        )
 
     def positioning_error_deg(self) -> tuple[float, float]:
-        """The stage's positioning error (x, y) while it stands where it stands: one draw per stand."""
+        """The stage's positioning error (x, y) while it stands where it stands: one draw per
+        stand."""
         key = self._stand_key()
         with self._lock:
             if key not in self._stands:
@@ -205,24 +240,34 @@ class StageWorld:
             return self._stands[key]
 
     def sample(self, noisy: bool = True) -> dict[str, float]:
-        """Both sensors' readings and the true table tilt at the present pose (the stand's positioning error in
-        both; `noisy=False` leaves out the sensors' own noise)."""
+        """Both sensors' readings and the true table tilt at the present pose (the stand's
+        positioning error in both; `noisy=False` leaves out the sensors' own noise)."""
         x_deg, y_deg = self.pose_deg
         error = self.positioning_error_deg()
         with self._lock:
-            out = simulate_stage(self.bench, self.effects, [x_deg], [y_deg], [self.axes[1].direction],
-                                 [self.axes[2].direction], [self.temp_c()], [self.t_s()],
-                                 rng=self.rng if noisy else None, geometry=self.geometry,
-                                 positioning_error_deg=error)
+            out = simulate_stage(
+                self.bench,
+                self.effects,
+                [x_deg],
+                [y_deg],
+                [self.axes[1].direction],
+                [self.axes[2].direction],
+                [self.temp_c()],
+                [self.t_s()],
+                rng=self.rng if noisy else None,
+                geometry=self.geometry,
+                positioning_error_deg=error,
+            )
         return {k: float(v[0]) for k, v in out.items()}
 
     def reading_deg(self, prefix: str, at_s: float | None = None) -> tuple[float, float]:
         """One sensor's reading (`ref` or `meas`) now, or at bench time `at_s` (the clock's: a frame
         sent in a burst is read at the time it was due), at the present pose. At rest the sensor's
-        next readings are computed in one batch, at the bench times its output interval will ask for them, and handed out in
-        turn; a move, a read outside the batch's time span or its end starts a new one. So every
-        reading belongs to the pose it is read at, and to its time within the batch's span
-        (READINGS_PER_BATCH output intervals; what changes with time, temperature, drifts by hours)."""
+        next readings are computed in one batch, at the bench times its output interval will ask for
+        them, and handed out in turn; a move, a read outside the batch's time span or its end starts
+        a new one. So every reading belongs to the pose it is read at, and to its time within the
+        batch's span (READINGS_PER_BATCH output intervals; what changes with time, temperature,
+        drifts by hours)."""
         x_deg, y_deg = self.pose_deg
         pose = (x_deg, y_deg, self.axes[1].direction, self.axes[2].direction)
         t = self.t_s() if at_s is None else at_s - self.t0
@@ -232,28 +277,43 @@ class StageWorld:
             last = self._last_read.get(prefix)
             self._last_read[prefix] = (t, stand)
             b = self._batches.get(prefix)
-            if (b is not None and b.pose == stand and b.next < len(b.xy)
-                    and b.t_s[0] - self._dt_s(b) <= t <= b.t_s[-1] + self._dt_s(b)):
+            if (
+                b is not None
+                and b.pose == stand
+                and b.next < len(b.xy)
+                and b.t_s[0] - self._dt_s(b) <= t <= b.t_s[-1] + self._dt_s(b)
+            ):
                 b.next += 1
                 return b.xy[b.next - 1]
-            # the interval the sensor asks at, from its last two reads at rest; one point while moving
+            # the interval the sensor asks at, from its last two reads at rest; one point while
+            # moving
             at_rest = last is not None and last[1] == stand and 0.0 < t - last[0] < 1.0
             n = READINGS_PER_BATCH if at_rest else 1
             assert last is not None or n == 1
             dt = (t - last[0]) if at_rest and last is not None else 0.0
             times = t + dt * np.arange(n)
             sx, sy = self._settling_deg(times)
-            out = simulate_stage(self.bench, self.effects, np.full(n, x_deg) + sx, np.full(n, y_deg) + sy,
-                                 np.full(n, pose[2]), np.full(n, pose[3]),
-                                 temperature(self.scenario.environment, times), times,
-                                 rng=self.rng, geometry=self.geometry, positioning_error_deg=error)
+            out = simulate_stage(
+                self.bench,
+                self.effects,
+                np.full(n, x_deg) + sx,
+                np.full(n, y_deg) + sy,
+                np.full(n, pose[2]),
+                np.full(n, pose[3]),
+                temperature(self.scenario.environment, times),
+                times,
+                rng=self.rng,
+                geometry=self.geometry,
+                positioning_error_deg=error,
+            )
             b = _Batch(stand, times, out[f"{prefix}_x_deg"], out[f"{prefix}_y_deg"])
             b.next = 1
             self._batches[prefix] = b
             return b.xy[0]
 
     def _settling_deg(self, times: np.ndarray) -> tuple[np.ndarray | float, np.ndarray | float]:
-        """Each stage's settling transient at bench times `times` (world seconds), as an angle of that stage."""
+        """Each stage's settling transient at bench times `times` (world seconds), as an angle of
+        that stage."""
         if self.settling.is_instant:
             return 0.0, 0.0
         at = times + self.t0
@@ -269,8 +329,9 @@ class StageWorld:
         return float(b.t_s[1] - b.t_s[0]) if len(b.t_s) > 1 else 0.0
 
     def true_tilt_deg(self) -> tuple[float, float]:
-        """The table's true tilt as it stands: the geometry at the angles the stages really reached, the stand's
-        positioning error included (no sensor noise, time or temperature), so one per stand."""
+        """The table's true tilt as it stands: the geometry at the angles the stages really reached,
+        the stand's positioning error included (no sensor noise, time or temperature), so one per
+        stand."""
         key = self._stand_key()
         cached = self._true_tilt
         if cached is not None and cached[0] == key:
@@ -281,32 +342,57 @@ class StageWorld:
         return tilt
 
     def aimed_tilt_deg(self) -> tuple[float, float]:
-        """The table tilt the stage's present angles make without this stand's positioning error: where a levelling
-        model's commands put the table, its stage's repeatability left out (what judges the model, not the stage)."""
+        """The table tilt the stage's present angles make without this stand's positioning error:
+        where a levelling model's commands put the table, its stage's repeatability left out (what
+        judges the model, not the stage)."""
         x_deg, y_deg = self.pose_deg
         with self._lock:
-            out = simulate_stage(self.bench, self.effects, [x_deg], [y_deg], [self.axes[1].direction],
-                                 [self.axes[2].direction], [self.temp_c()], [self.t_s()], rng=None,
-                                 geometry=self.geometry, positioning_error_deg=(0.0, 0.0))
+            out = simulate_stage(
+                self.bench,
+                self.effects,
+                [x_deg],
+                [y_deg],
+                [self.axes[1].direction],
+                [self.axes[2].direction],
+                [self.temp_c()],
+                [self.t_s()],
+                rng=None,
+                geometry=self.geometry,
+                positioning_error_deg=(0.0, 0.0),
+            )
         return float(out["tilt_x_deg"][0]), float(out["tilt_y_deg"][0])
 
     def adc_counts(self, conversions: int) -> float:
-        """The analog sensor on the table (sensing x) behind the 12-bit ADC: one or a mean of n conversions."""
+        """The analog sensor on the table (sensing x) behind the 12-bit ADC: one or a mean of n
+        conversions."""
         assert self.adc_scenario is not None
         tilt_arcsec = self.true_tilt_deg()[0] * 3600.0
         with self._lock:
-            out = simulate_scale(self.analog, self.analog_effects, np.full(conversions, tilt_arcsec),
-                                 self.adc_scenario.bench.start_arcsec, np.full(conversions, self.temp_c()),
-                                 self.rng)
+            out = simulate_scale(
+                self.analog,
+                self.analog_effects,
+                np.full(conversions, tilt_arcsec),
+                self.adc_scenario.bench.start_arcsec,
+                np.full(conversions, self.temp_c()),
+                self.rng,
+            )
         return float(np.mean(out["reading"]))
 
 
 class RotaryWorld:
     """A rotary table (controller axis 3, no limits) carrying a triaxial module about an inclined
-    axis (rotation scenario) and RS-485 inclinometers read in symmetric positions (turntable scenario)."""
+    axis (rotation scenario) and RS-485 inclinometers read in symmetric positions (turntable
+    scenario)."""
 
-    def __init__(self, rotation: RotationScenario, turntable: TurntableScenario, clock: Clock,
-                 velocity_pps: int = 20_000, pulse_deg: float = 0.001, bus_addresses: tuple[int, ...] = (1, 2, 3)) -> None:
+    def __init__(
+        self,
+        rotation: RotationScenario,
+        turntable: TurntableScenario,
+        clock: Clock,
+        velocity_pps: int = 20_000,
+        pulse_deg: float = 0.001,
+        bus_addresses: tuple[int, ...] = (1, 2, 3),
+    ) -> None:
         self.clock = clock
         self.rotation = rotation
         self.turntable = turntable
@@ -315,8 +401,10 @@ class RotaryWorld:
         self.tt_effects = effect_set(turntable)
         base: TurntableInclinometer = hardware_of(turntable)
         # Each instrument on the bus sits at its own azimuth on the table.
-        self.tt_sensors = {a: TurntableInclinometer(base.beta_deg + 40.0 * i, base.epsilon_deg, base.m1, base.m2)
-                           for i, a in enumerate(bus_addresses)}
+        self.tt_sensors = {
+            a: TurntableInclinometer(base.beta_deg + 40.0 * i, base.epsilon_deg, base.m1, base.m2)
+            for i, a in enumerate(bus_addresses)
+        }
         cycle = turntable.grid.cycles[0]
         self.axis_tilt_arcsec = (cycle.north_arcsec, cycle.east_arcsec)
         self.rng = np.random.default_rng(rotation.seed)
@@ -337,14 +425,21 @@ class RotaryWorld:
 
     def sines(self, noisy: bool = True) -> tuple[float, float, float]:
         with self._lock:
-            out = simulate_rotation(self.rot_bench, self.rot_effects, [self.table_deg], self.rng if noisy else None)
+            out = simulate_rotation(
+                self.rot_bench, self.rot_effects, [self.table_deg], self.rng if noisy else None
+            )
         return float(out["sx"][0]), float(out["sy"][0]), float(out["sz"][0])
 
     def turntable_mrad(self, address: int, noisy: bool = True) -> tuple[float, float]:
         p = self.tt_sensors[address]
         fx = self.tt_effects
-        n1, n2 = turntable_readings(p, self.table_deg, *self.axis_tilt_arcsec, fx.get("zero_offset", "z1"),
-                                    fx.get("zero_offset", "z2"))
+        n1, n2 = turntable_readings(
+            p,
+            self.table_deg,
+            *self.axis_tilt_arcsec,
+            fx.get("zero_offset", "z1"),
+            fx.get("zero_offset", "z2"),
+        )
         sigma, res = fx.get("noise", "reading_sigma"), fx.get("noise", "resolution")
         out = []
         with self._lock:
@@ -360,12 +455,15 @@ class RotaryWorld:
 def stage_scenario(name: str) -> StageScenario:
     sc = load_scenario(name)
     if not isinstance(sc, StageScenario):
-        raise InputError(f"scenario {name!r} is a {sc.kind} scenario; a stage bench needs a stage scenario")
+        raise InputError(
+            f"scenario {name!r} is a {sc.kind} scenario; a stage bench needs a stage scenario"
+        )
     return sc
 
 
 def rotary_scenarios(name: str) -> tuple[RotationScenario, TurntableScenario]:
-    """The scenario named drives its instrument; the other instrument of the rotary bench follows its preset."""
+    """The scenario named drives its instrument; the other instrument of the rotary bench follows
+    its preset."""
     sc = load_scenario(name)
     if isinstance(sc, RotationScenario):
         other = load_scenario("seed004")
@@ -375,7 +473,18 @@ def rotary_scenarios(name: str) -> tuple[RotationScenario, TurntableScenario]:
         other = load_scenario("seed002-sim")
         assert isinstance(other, RotationScenario)
         return other, sc
-    raise InputError(f"scenario {name!r} is a {sc.kind} scenario; a rotary bench needs a rotation or turntable scenario")
+    raise InputError(
+        f"scenario {name!r} is a {sc.kind} scenario; a rotary bench needs a rotation or turntable "
+        "scenario"
+    )
 
 
-__all__ = ["ARCSEC_PER_RAD", "NO_LIMIT", "Axis", "RotaryWorld", "StageWorld", "rotary_scenarios", "stage_scenario"]
+__all__ = [
+    "ARCSEC_PER_RAD",
+    "NO_LIMIT",
+    "Axis",
+    "RotaryWorld",
+    "StageWorld",
+    "rotary_scenarios",
+    "stage_scenario",
+]

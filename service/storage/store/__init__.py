@@ -1,12 +1,12 @@
-"""The lab's records, one repository per aggregate over one database: every state-changing action is one
-transaction plus its audit event.
+"""The lab's records, one repository per aggregate over one database: every state-changing action is
+one transaction plus its audit event.
 
-Each write method checks its input, writes, appends the audit event (through the database's one audit
-writer) and commits, or leaves nothing behind. `Store(engine)` builds every repository over the same
-`Database`: `store.devices`, `store.jobs`, `store.points`, `store.records`, `store.retention`,
-`store.audit`, `store.tokens`, `store.diagnoses` and the LIMS side (`store.standards`,
-`store.approvals`, `store.certificates`, `store.orders`, `store.feed`, `store.webhooks`).
-A caller that needs one of them takes that one.
+Each write method checks its input, writes, appends the audit event (through the database's one
+audit writer) and commits, or leaves nothing behind. `Store(engine)` builds every repository over
+the same `Database`: `store.devices`, `store.jobs`, `store.points`, `store.records`,
+`store.retention`, `store.audit`, `store.tokens`, `store.diagnoses` and the LIMS side
+(`store.standards`, `store.approvals`, `store.certificates`, `store.orders`, `store.feed`,
+`store.webhooks`). A caller that needs one of them takes that one.
 """
 
 from __future__ import annotations
@@ -19,7 +19,12 @@ from service.storage.store.certificates import CertificatesRepo
 from service.storage.store.database import Database
 from service.storage.store.devices import DevicesRepo
 from service.storage.store.diagnoses import DiagnosesRepo
-from service.storage.store.hashing import audit_content, point_content, points_sha256, record_content
+from service.storage.store.hashing import (
+    audit_content,
+    point_content,
+    points_sha256,
+    record_content,
+)
 from service.storage.store.jobs import TERMINAL, TRANSITIONS, JobsRepo
 from service.storage.store.orders import OrdersRepo
 from service.storage.store.points import PointsRepo

@@ -30,14 +30,24 @@ APPROVE_MEANINGS = ("review", "approval")
 
 
 class SelfApproval(RefusedWrite):
-    """Segregation of duties: the one who started the job (or ran it) may not approve or reject its record."""
+    """Segregation of duties: the one who started the job (or ran it) may not approve or reject its
+    record."""
 
 
 def approval_content(a: RecordApproval) -> dict[str, Any]:
-    """What an approval asserts; its SHA-256 is `sha256` (canonical rule of canonical.py). The signer's name and
-    function are part of it where the approval names them (approvals from before persons were kept do not)."""
-    content = {"record_id": a.record_id, "decision": a.decision, "meaning": a.meaning, "note": a.note,
-               "actor": a.actor, "at": utc_iso(a.at), "record_sha256": a.record_sha256, "prev_sha256": a.prev_sha256}
+    """What an approval asserts; its SHA-256 is `sha256` (canonical rule of canonical.py). The
+    signer's name and function are part of it where the approval names them (approvals from before
+    persons were kept do not)."""
+    content = {
+        "record_id": a.record_id,
+        "decision": a.decision,
+        "meaning": a.meaning,
+        "note": a.note,
+        "actor": a.actor,
+        "at": utc_iso(a.at),
+        "record_sha256": a.record_sha256,
+        "prev_sha256": a.prev_sha256,
+    }
     if a.signer_name is not None:
         content["signer"] = {"name": a.signer_name, "function": a.signer_function}
     return content
@@ -63,8 +73,13 @@ class ApprovalsRepo:
 
     def of_record(self, record_id: int) -> list[RecordApproval]:
         with self._db.session() as s:
-            return list(s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id == record_id)
-                                  .order_by(RecordApproval.id)))
+            return list(
+                s.scalars(
+                    sa.select(RecordApproval)
+                    .where(RecordApproval.record_id == record_id)
+                    .order_by(RecordApproval.id)
+                )
+            )
 
     @staticmethod
     def status_of(approvals: Sequence[RecordApproval]) -> str:
@@ -78,17 +93,32 @@ class ApprovalsRepo:
         if not record_ids:
             return {}
         with self._db.session() as s:
-            rows = list(s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id.in_(list(record_ids)))))
+            rows = list(
+                s.scalars(
+                    sa.select(RecordApproval).where(RecordApproval.record_id.in_(list(record_ids)))
+                )
+            )
         return {rid: approval_status([a for a in rows if a.record_id == rid]) for rid in record_ids}
 
-    def decide(self, record_id: int, *, decision: str, meaning: str, note: str, actor: str,
-               signer: Person | None = None) -> RecordApproval:
-        """Approve (meaning review or approval) or reject a draft record; never by who started or ran its job.
-        `signer` is the person behind the actor's token, kept with the decision (a certificate names them)."""
+    def decide(
+        self,
+        record_id: int,
+        *,
+        decision: str,
+        meaning: str,
+        note: str,
+        actor: str,
+        signer: Person | None = None,
+    ) -> RecordApproval:
+        """Approve (meaning review or approval) or reject a draft record; never by who started or
+        ran its job. `signer` is the person behind the actor's token, kept with the decision (a
+        certificate names them)."""
         if decision not in ("approve", "reject"):
             raise InputError(f"decision {decision!r} is not approve or reject")
         if decision == "approve" and meaning not in APPROVE_MEANINGS:
-            raise InputError(f"meaning {meaning!r}: an approval means one of {', '.join(APPROVE_MEANINGS)}")
+            raise InputError(
+                f"meaning {meaning!r}: an approval means one of {', '.join(APPROVE_MEANINGS)}"
+            )
         if decision == "reject":
             meaning = "rejection"
             require_text("reason", note, 10_000)
@@ -98,38 +128,81 @@ class ApprovalsRepo:
         with self._db.transaction() as s:
             record = row_in(s, CalibrationRecord, record_id, "calibration record")
             if sha256_hex(record_content(record)) != record.content_sha256:
-                raise RefusedWrite(f"record {record_id} does not match its hash (tampered); it cannot be signed")
+                raise RefusedWrite(
+                    f"record {record_id} does not match its hash (tampered); it cannot be signed"
+                )
             job = s.get(CalibrationJob, record.job_id) if record.job_id is not None else None
             if actor == record.operator or (job is not None and actor == job.created_by):
                 who = "started its job" if job is not None and actor == job.created_by else "ran it"
-                raise SelfApproval(f"{actor!r} {who}; record {record_id} must be {decision}d by another person"
-                                   " (segregation of duties)")
-            past = list(s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id == record_id)))
+                raise SelfApproval(
+                    f"{actor!r} {who}; record {record_id} must be {decision}d by another person"
+                    " (segregation of duties)"
+                )
+            past = list(
+                s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id == record_id))
+            )
             status = approval_status(past)
             if status != "draft":
                 raise ConflictError(f"record {record_id} is already {status}; a decision is final")
-            prev = s.execute(sa.select(RecordApproval.sha256).order_by(RecordApproval.id.desc()).limit(1)).scalar()
-            row = RecordApproval(record_id=record_id, decision=decision, meaning=meaning, note=note, actor=actor,
-                                 at=utc_now(), record_sha256=record.content_sha256, prev_sha256=prev or GENESIS_SHA256,
-                                 signer_name=signer.name if signer else None,
-                                 signer_function=signer.function if signer else None)
+            prev = s.execute(
+                sa.select(RecordApproval.sha256).order_by(RecordApproval.id.desc()).limit(1)
+            ).scalar()
+            row = RecordApproval(
+                record_id=record_id,
+                decision=decision,
+                meaning=meaning,
+                note=note,
+                actor=actor,
+                at=utc_now(),
+                record_sha256=record.content_sha256,
+                prev_sha256=prev or GENESIS_SHA256,
+                signer_name=signer.name if signer else None,
+                signer_function=signer.function if signer else None,
+            )
             row.sha256 = sha256_hex(normalise(approval_content(row)))
             s.add(row)
             s.flush()
-            action = "record.reject" if decision == "reject" else ("record.approve" if meaning == "approval" else "record.review")
-            self._db.audit(s, actor, action, "calibration_record", record_id,
-                        {"approval_id": row.id, "actor": actor, "meaning": meaning, "note": note,
-                         "record_sha256": record.content_sha256, "approval_sha256": row.sha256,
-                         "signer": {"name": signer.name, "function": signer.function} if signer else None})  # fmt: skip
+            action = (
+                "record.reject"
+                if decision == "reject"
+                else ("record.approve" if meaning == "approval" else "record.review")
+            )
+            self._db.audit(
+                s,
+                actor,
+                action,
+                "calibration_record",
+                record_id,
+                {
+                    "approval_id": row.id,
+                    "actor": actor,
+                    "meaning": meaning,
+                    "note": note,
+                    "record_sha256": record.content_sha256,
+                    "approval_sha256": row.sha256,
+                    "signer": {"name": signer.name, "function": signer.function}
+                    if signer
+                    else None,
+                },
+            )
             active = s.get(ActiveCalibration, (record.device_id, record.kind))
             if decision == "reject" and active is not None and active.record_id == record_id:
-                # a rejected record is never used: withdrawn in the same transaction as the rejection
-                deactivate_in(self._db, s, record.device_id, record.kind, actor=actor, replaces=record_id,
-                                 reason=f"record {record_id} v{record.version} was rejected: {note}")
+                # a rejected record is never used: withdrawn in the same transaction as the
+                # rejection
+                deactivate_in(
+                    self._db,
+                    s,
+                    record.device_id,
+                    record.kind,
+                    actor=actor,
+                    replaces=record_id,
+                    reason=f"record {record_id} v{record.version} was rejected: {note}",
+                )
             return row
 
     def verify_approvals(self) -> list[str]:
-        """Problems of the approval chain: a row whose content or predecessor does not match (empty when sound)."""
+        """Problems of the approval chain: a row whose content or predecessor does not match (empty
+        when sound)."""
         problems: list[str] = []
         prev = GENESIS_SHA256
         with self._db.session() as s:
@@ -137,6 +210,8 @@ class ApprovalsRepo:
                 if sha256_hex(normalise(approval_content(a))) != a.sha256:
                     problems.append(f"approval {a.id}: content does not match its SHA-256")
                 if a.prev_sha256 != prev:
-                    problems.append(f"approval {a.id}: predecessor hash does not match approval before it")
+                    problems.append(
+                        f"approval {a.id}: predecessor hash does not match approval before it"
+                    )
                 prev = a.sha256
         return problems

@@ -15,7 +15,9 @@ class AuditRepo:
     def __init__(self, db: Database) -> None:
         self._db = db
 
-    def events(self, *, entity: str | None = None, entity_id: object = None, limit: int = 1000) -> list[AuditEvent]:
+    def events(
+        self, *, entity: str | None = None, entity_id: object = None, limit: int = 1000
+    ) -> list[AuditEvent]:
         with self._db.session() as s:
             stmt = sa.select(AuditEvent).order_by(AuditEvent.id.desc()).limit(limit)
             if entity is not None:
@@ -24,7 +26,9 @@ class AuditRepo:
                 stmt = stmt.where(AuditEvent.entity_id == str(entity_id))
             return list(s.scalars(stmt))
 
-    def action(self, actor: str, action: str, entity: str, entity_id: object, details: Mapping[str, Any]) -> None:
+    def action(
+        self, actor: str, action: str, entity: str, entity_id: object, details: Mapping[str, Any]
+    ) -> None:
         """An audit event for an action that changes no row (a stage move, a stop)."""
         with self._db.transaction() as s:
             self._db.audit(s, actor, action, entity, entity_id, details)

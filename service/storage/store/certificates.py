@@ -1,4 +1,5 @@
-"""Issued certificates: the bytes as issued with their SHA-256, one per record, naming the one they replace."""
+"""Issued certificates: the bytes as issued with their SHA-256, one per record, naming the one they
+replace."""
 
 from __future__ import annotations
 
@@ -26,34 +27,68 @@ class CertificatesRepo:
             return s.scalar(sa.select(Certificate).where(Certificate.number == number))
 
     def replaced_certificate(self, record_id: int) -> Certificate | None:
-        """The newest certificate of an earlier version of the same device and kind (the one a new one replaces)."""
+        """The newest certificate of an earlier version of the same device and kind (the one a new
+        one replaces)."""
         with self._db.session() as s:
             r = s.get(CalibrationRecord, record_id)
             if r is None:
                 return None
             return s.scalar(
-                sa.select(Certificate).join(CalibrationRecord, CalibrationRecord.id == Certificate.record_id)
-                .where(CalibrationRecord.device_id == r.device_id, CalibrationRecord.kind == r.kind,
-                       CalibrationRecord.version < r.version)
-                .order_by(CalibrationRecord.version.desc()).limit(1))  # fmt: skip
+                sa.select(Certificate)
+                .join(CalibrationRecord, CalibrationRecord.id == Certificate.record_id)
+                .where(
+                    CalibrationRecord.device_id == r.device_id,
+                    CalibrationRecord.kind == r.kind,
+                    CalibrationRecord.version < r.version,
+                )
+                .order_by(CalibrationRecord.version.desc())
+                .limit(1)
+            )
 
-    def store_certificate(self, record_id: int, *, number: str, xml: bytes, approval_id: int,
-                          replaces_id: int | None, actor: str,
-                          conformity: Mapping[str, Any] | None = None) -> tuple[Certificate, bool]:
-        """Keep issued bytes with their SHA-256; if the record already has a certificate, that one is returned.
-        `conformity`: the statements of conformity it makes, which its `certificate.issued` event carries."""
+    def store_certificate(
+        self,
+        record_id: int,
+        *,
+        number: str,
+        xml: bytes,
+        approval_id: int,
+        replaces_id: int | None,
+        actor: str,
+        conformity: Mapping[str, Any] | None = None,
+    ) -> tuple[Certificate, bool]:
+        """Keep issued bytes with their SHA-256; if the record already has a certificate, that one
+        is returned. `conformity`: the statements of conformity it makes, which its
+        `certificate.issued` event carries."""
         with self._db.transaction() as s:
             existing = s.scalar(sa.select(Certificate).where(Certificate.record_id == record_id))
             if existing is not None:
                 return existing, False
-            row = Certificate(record_id=record_id, number=require_text("number", number), xml=bytes(xml),
-                              sha256=hashlib.sha256(xml).hexdigest(), approval_id=approval_id, replaces_id=replaces_id,
-                              issued_at=utc_now(), issued_by=require_text("actor", actor))  # fmt: skip
+            row = Certificate(
+                record_id=record_id,
+                number=require_text("number", number),
+                xml=bytes(xml),
+                sha256=hashlib.sha256(xml).hexdigest(),
+                approval_id=approval_id,
+                replaces_id=replaces_id,
+                issued_at=utc_now(),
+                issued_by=require_text("actor", actor),
+            )
             s.add(row)
             s.flush()
             replaced = s.get(Certificate, replaces_id) if replaces_id is not None else None
-            self._db.audit(s, actor, "certificate.issue", "certificate", row.id,
-                        {"certificate_id": row.id, "number": row.number, "record_id": record_id, "sha256": row.sha256,
-                         "replaces": replaced.number if replaced else None,
-                         "conformity": dict(conformity) if conformity is not None else None})  # fmt: skip
+            self._db.audit(
+                s,
+                actor,
+                "certificate.issue",
+                "certificate",
+                row.id,
+                {
+                    "certificate_id": row.id,
+                    "number": row.number,
+                    "record_id": record_id,
+                    "sha256": row.sha256,
+                    "replaces": replaced.number if replaced else None,
+                    "conformity": dict(conformity) if conformity is not None else None,
+                },
+            )
             return row, True

@@ -1,4 +1,5 @@
-"""Input checks shared by the write methods, and the translation of database refusals into our errors."""
+"""Input checks shared by the write methods, and the translation of database refusals into our
+errors."""
 
 from __future__ import annotations
 
@@ -70,7 +71,9 @@ def require_standards(value: object) -> list[dict[str, Any]]:
             raise InputError(f"reference_standards[{i}] must be an object")
         cert = item.get("certificate_id")
         if not isinstance(cert, str) or not cert.strip():
-            raise InputError(f"reference_standards[{i}] has no certificate_id: traceability needs it")
+            raise InputError(
+                f"reference_standards[{i}] has no certificate_id: traceability needs it"
+            )
         if not (item.get("name") or item.get("serial")):
             raise InputError(f"reference_standards[{i}] needs a name or a serial")
         out.append(dict(item))
@@ -86,7 +89,9 @@ def translate_refusal(exc: sa.exc.DBAPIError) -> RefusedWrite:
     if "append-only" in lower or "raw data" in lower or "are kept" in lower:
         return AppendOnlyViolation(f"refused by the database: {message}")
     if code == "23503" or "foreign key" in lower:
-        return UnknownEntity(f"refused by the database: a referenced row does not exist ({message})")
+        return UnknownEntity(
+            f"refused by the database: a referenced row does not exist ({message})"
+        )
     if code == "23505" or "unique" in lower:
         return ConflictError(f"refused by the database: duplicate ({message})")
     return RefusedWrite(f"refused by the database: {message}")

@@ -1,5 +1,5 @@
-"""The one database every repository shares: its engine, read sessions, serialised write transactions
-and the one audit writer that appends to the audit hash chain.
+"""The one database every repository shares: its engine, read sessions, serialised write
+transactions and the one audit writer that appends to the audit hash chain.
 
 Write transactions are serialised (SQLite: BEGIN IMMEDIATE; PostgreSQL: a transaction advisory
 lock), which keeps the audit chain and the version numbers linear; the unique constraints on the
@@ -36,7 +36,8 @@ class Database:
 
     @contextmanager
     def session(self) -> Iterator[Session]:
-        """A read session (or for callers composing their own work; flushes still pass the append-only guard)."""
+        """A read session (or for callers composing their own work; flushes still pass the
+        append-only guard)."""
         with self._read() as s:
             yield s
 
@@ -49,18 +50,30 @@ class Database:
                     if s.get_bind().dialect.name == "postgresql":
                         s.execute(sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": PG_WRITE_LOCK})
                     yield s
-            except (sa.exc.IntegrityError, sa.exc.DataError) as exc:  # the guard triggers' refusals included
+            # the guard triggers' refusals included
+            except (sa.exc.IntegrityError, sa.exc.DataError) as exc:
                 raise translate_refusal(exc) from exc
 
-    def audit(self, s: Session, actor: str, action: str, entity: str, entity_id: object,
-              details: Mapping[str, Any]) -> AuditEvent:
-        """Append an audit event to the chain inside the action's own transaction (and so its feed event). The
-        rows of the hashed tables the action added or changed get their new hash, which the event records."""
+    def audit(
+        self,
+        s: Session,
+        actor: str,
+        action: str,
+        entity: str,
+        entity_id: object,
+        details: Mapping[str, Any],
+    ) -> AuditEvent:
+        """Append an audit event to the chain inside the action's own transaction (and so its feed
+        event). The rows of the hashed tables the action added or changed get their new hash, which
+        the event records."""
         s.flush()  # the action's rows first, so their ids are known and constraints have run
-        anchors = hash_pending(s)  # the new hashes of tokens, standards, webhooks this action changed
+        # the new hashes of tokens, standards, webhooks this action changed
+        anchors = hash_pending(s)
         if anchors:
             details = {**details, ANCHORS: anchors}
-        prev = s.execute(sa.select(AuditEvent.sha256).order_by(AuditEvent.id.desc()).limit(1)).scalar()
+        prev = s.execute(
+            sa.select(AuditEvent.sha256).order_by(AuditEvent.id.desc()).limit(1)
+        ).scalar()
         event = AuditEvent(
             at=utc_now(),
             actor=require_text("actor", actor),

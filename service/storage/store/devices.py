@@ -34,12 +34,27 @@ class DevicesRepo:
             name = require_text("bench name", name)
             if s.scalar(sa.select(Bench.id).where(Bench.name == name)) is not None:
                 raise ConflictError(f"a bench named {name!r} already exists")
-            return self._insert_bench(s, name, actor=actor, stage_model=stage_model, stage_serial=stage_serial,
-                                      port=port, port_settings=port_settings)
+            return self._insert_bench(
+                s,
+                name,
+                actor=actor,
+                stage_model=stage_model,
+                stage_serial=stage_serial,
+                port=port,
+                port_settings=port_settings,
+            )
 
-    def _insert_bench(self, s: Session, name: str, *, actor: str, stage_model: str | None = None,
-                      stage_serial: str | None = None, port: str | None = None,
-                      port_settings: Mapping[str, Any] | None = None) -> Bench:
+    def _insert_bench(
+        self,
+        s: Session,
+        name: str,
+        *,
+        actor: str,
+        stage_model: str | None = None,
+        stage_serial: str | None = None,
+        port: str | None = None,
+        port_settings: Mapping[str, Any] | None = None,
+    ) -> Bench:
         port = optional_text("port", port, 200)
         bench = Bench(
             name=name,
@@ -65,18 +80,42 @@ class DevicesRepo:
         port_settings: Mapping[str, Any] | None = None,
     ) -> Device:
         with self._db.transaction() as s:
-            model, serial, role = require_text("model", model), require_text("serial", serial), require_text("role", role, 40)
+            model, serial, role = (
+                require_text("model", model),
+                require_text("serial", serial),
+                require_text("role", role, 40),
+            )
             port = optional_text("port", port, 200)
             if bench_id is not None:
                 row_in(s, Bench, bench_id, "bench")
-            existing = s.scalar(sa.select(Device.id).where(Device.model == model, Device.serial == serial))
+            existing = s.scalar(
+                sa.select(Device.id).where(Device.model == model, Device.serial == serial)
+            )
             if existing is not None:
                 raise ConflictError(f"device {model} s/n {serial} already exists (id {existing})")
-            return self._insert_device(s, model, serial, role, actor=actor, bench_id=bench_id, port=port,
-                                       port_settings=port_settings)
+            return self._insert_device(
+                s,
+                model,
+                serial,
+                role,
+                actor=actor,
+                bench_id=bench_id,
+                port=port,
+                port_settings=port_settings,
+            )
 
-    def _insert_device(self, s: Session, model: str, serial: str, role: str, *, actor: str, bench_id: int | None,
-                       port: str | None, port_settings: Mapping[str, Any] | None) -> Device:
+    def _insert_device(
+        self,
+        s: Session,
+        model: str,
+        serial: str,
+        role: str,
+        *,
+        actor: str,
+        bench_id: int | None,
+        port: str | None,
+        port_settings: Mapping[str, Any] | None,
+    ) -> Device:
         role = require_text("role", role, 40)
         port = optional_text("port", port, 200)
         if bench_id is not None:
@@ -92,20 +131,28 @@ class DevicesRepo:
         s.add(device)
         s.flush()
         self._db.audit(
-            s, actor, "device.create", "device", device.id,
+            s,
+            actor,
+            "device.create",
+            "device",
+            device.id,
             {"model": model, "serial": serial, "role": role, "bench_id": bench_id, "port": port},
-        )  # fmt: skip
+        )
         return device
 
     def update_device(self, device_id: int, *, actor: str, **changes: Any) -> Device:
         allowed = {"role", "bench_id", "port", "port_settings"}
         unknown = set(changes) - allowed
         if unknown:
-            raise InputError(f"cannot change {sorted(unknown)} of a device; changeable: {sorted(allowed)}")
+            raise InputError(
+                f"cannot change {sorted(unknown)} of a device; changeable: {sorted(allowed)}"
+            )
         with self._db.transaction() as s:
             return self._change_device(s, device_in(s, device_id), actor=actor, changes=changes)
 
-    def _change_device(self, s: Session, device: Device, *, actor: str, changes: dict[str, Any]) -> Device:
+    def _change_device(
+        self, s: Session, device: Device, *, actor: str, changes: dict[str, Any]
+    ) -> Device:
         if changes.get("bench_id") is not None:
             row_in(s, Bench, changes["bench_id"], "bench")
         if "role" in changes:
@@ -117,14 +164,16 @@ class DevicesRepo:
         before = {k: getattr(device, k) for k in changes}
         for key, value in changes.items():
             setattr(device, key, value)
-        self._db.audit(s, actor, "device.update", "device", device.id, {"before": before, "after": changes})
+        self._db.audit(
+            s, actor, "device.update", "device", device.id, {"before": before, "after": changes}
+        )
         return device
 
     def ensure_bench(self, name: str, *, actor: str, port: str | None = None) -> Bench:
         """The bench of that name, registered now if this database does not know it yet.
 
-        One serialised transaction looks and registers: daemons starting together with the same bench
-        name make one bench, and every one of them gets it."""
+        One serialised transaction looks and registers: daemons starting together with the same
+        bench name make one bench, and every one of them gets it."""
         name = require_text("bench name", name)
         with self._db.session() as s:  # the usual case, a bench registered before, needs no write
             bench = s.scalar(sa.select(Bench).where(Bench.name == name))
@@ -132,26 +181,46 @@ class DevicesRepo:
             return bench
         with self._db.transaction() as s:
             bench = s.scalar(sa.select(Bench).where(Bench.name == name))
-            return bench if bench is not None else self._insert_bench(s, name, actor=actor, port=port)
+            return (
+                bench if bench is not None else self._insert_bench(s, name, actor=actor, port=port)
+            )
 
-    def ensure_device(self, model: str, serial: str, role: str, *, actor: str, bench_id: int, port: str | None) -> Device:
-        """The device of that model and serial number, registered now or moved to this bench, role and port.
+    def ensure_device(
+        self, model: str, serial: str, role: str, *, actor: str, bench_id: int, port: str | None
+    ) -> Device:
+        """The device of that model and serial number, registered now or moved to this bench, role
+        and port.
 
-        One serialised transaction looks, registers or changes it: daemons that find the same instrument
-        while starting together make one device (an instrument is where it was seen last)."""
+        One serialised transaction looks, registers or changes it: daemons that find the same
+        instrument while starting together make one device (an instrument is where it was seen
+        last)."""
         model, serial = require_text("model", model), require_text("serial", serial)
         wanted = {"bench_id": bench_id, "port": port, "role": role}
         with self._db.session() as s:
-            device = s.scalar(sa.select(Device).where(Device.model == model, Device.serial == serial))
+            device = s.scalar(
+                sa.select(Device).where(Device.model == model, Device.serial == serial)
+            )
         if device is not None and all(getattr(device, k) == v for k, v in wanted.items()):
             return device
         with self._db.transaction() as s:
-            device = s.scalar(sa.select(Device).where(Device.model == model, Device.serial == serial))
+            device = s.scalar(
+                sa.select(Device).where(Device.model == model, Device.serial == serial)
+            )
             if device is None:
-                return self._insert_device(s, model, serial, role, actor=actor, bench_id=bench_id, port=port,
-                                           port_settings=None)
+                return self._insert_device(
+                    s,
+                    model,
+                    serial,
+                    role,
+                    actor=actor,
+                    bench_id=bench_id,
+                    port=port,
+                    port_settings=None,
+                )
             changes = {k: v for k, v in wanted.items() if getattr(device, k) != v}
-            return self._change_device(s, device, actor=actor, changes=changes) if changes else device
+            return (
+                self._change_device(s, device, actor=actor, changes=changes) if changes else device
+            )
 
     def get_device(self, device_id: int) -> Device:
         with self._db.session() as s:
@@ -166,12 +235,16 @@ class DevicesRepo:
             return list(s.scalars(sa.select(Device).order_by(Device.id)))
 
     def bench_names_of_devices(self, device_ids: Collection[int]) -> dict[int, str]:
-        """device id -> the name of the bench it was last registered on, for devices of any daemon of the lab."""
+        """device id -> the name of the bench it was last registered on, for devices of any daemon
+        of the lab."""
         if not device_ids:
             return {}
         with self._db.session() as s:
-            rows = s.execute(sa.select(Device.id, Bench.name).join(Bench, Device.bench_id == Bench.id)
-                             .where(Device.id.in_(list(device_ids))))
+            rows = s.execute(
+                sa.select(Device.id, Bench.name)
+                .join(Bench, Device.bench_id == Bench.id)
+                .where(Device.id.in_(list(device_ids)))
+            )
             return {int(device_id): str(name) for device_id, name in rows}
 
     def bench_id_of(self, name: str) -> int | None:
@@ -181,7 +254,8 @@ class DevicesRepo:
             return bench_id
 
     def device_ids_of_bench(self, name: str) -> list[int] | None:
-        """The devices registered on the bench of that name (whichever daemon runs it); None if no bench has it."""
+        """The devices registered on the bench of that name (whichever daemon runs it); None if no
+        bench has it."""
         with self._db.session() as s:
             bench_id = s.scalar(sa.select(Bench.id).where(Bench.name == name))
             if bench_id is None:

@@ -26,49 +26,102 @@ class DiagnosesRepo:
     def __init__(self, db: Database) -> None:
         self._db = db
 
-    def create_diagnosis(self, record_id: int, *, sensor: str, baseline: str, actor: str) -> Diagnosis:
+    def create_diagnosis(
+        self, record_id: int, *, sensor: str, baseline: str, actor: str
+    ) -> Diagnosis:
         with self._db.transaction() as s:
             row_in(s, CalibrationRecord, record_id, "record")
-            d = Diagnosis(record_id=record_id, sensor=require_text("sensor", sensor, 8), baseline=require_text("baseline", baseline, 20),
-                          created_by=require_text("actor", actor), created_at=utc_now())
+            d = Diagnosis(
+                record_id=record_id,
+                sensor=require_text("sensor", sensor, 8),
+                baseline=require_text("baseline", baseline, 20),
+                created_by=require_text("actor", actor),
+                created_at=utc_now(),
+            )
             s.add(d)
             s.flush()
-            self._db.audit(s, actor, "diagnosis.create", "diagnosis", d.id,
-                        {"record_id": record_id, "sensor": sensor, "baseline": baseline})
+            self._db.audit(
+                s,
+                actor,
+                "diagnosis.create",
+                "diagnosis",
+                d.id,
+                {"record_id": record_id, "sensor": sensor, "baseline": baseline},
+            )
             return d
 
-    def finish_diagnosis(self, diagnosis_id: int, *, state: str, started_at: dt.datetime | None,
-                         summary: Mapping[str, Any], report_html: str | None, error: str | None,
-                         actor: str) -> DiagnosisResult:
-        """The one result of a diagnosis; its event `diagnosis.finished` goes to the feed and webhooks."""
+    def finish_diagnosis(
+        self,
+        diagnosis_id: int,
+        *,
+        state: str,
+        started_at: dt.datetime | None,
+        summary: Mapping[str, Any],
+        report_html: str | None,
+        error: str | None,
+        actor: str,
+    ) -> DiagnosisResult:
+        """The one result of a diagnosis; its event `diagnosis.finished` goes to the feed and
+        webhooks."""
         with self._db.transaction() as s:
             d = row_in(s, Diagnosis, diagnosis_id, "diagnosis")
-            if s.scalar(sa.select(DiagnosisResult.id).where(DiagnosisResult.diagnosis_id == diagnosis_id)) is not None:
+            if (
+                s.scalar(
+                    sa.select(DiagnosisResult.id).where(
+                        DiagnosisResult.diagnosis_id == diagnosis_id
+                    )
+                )
+                is not None
+            ):
                 raise ConflictError(f"diagnosis {diagnosis_id} has already ended")
-            r = DiagnosisResult(diagnosis_id=diagnosis_id, state=state, started_at=started_at, finished_at=utc_now(),
-                                summary=require_doc("summary", summary), report_html=report_html, error=error)
+            r = DiagnosisResult(
+                diagnosis_id=diagnosis_id,
+                state=state,
+                started_at=started_at,
+                finished_at=utc_now(),
+                summary=require_doc("summary", summary),
+                report_html=report_html,
+                error=error,
+            )
             s.add(r)
             s.flush()
-            self._db.audit(s, actor, "diagnosis.finish", "diagnosis", diagnosis_id,
-                        {"diagnosis_id": diagnosis_id, "record_id": d.record_id, "state": state,
-                         "named_effects": list(summary.get("named_effects", [])), "error": error})
+            self._db.audit(
+                s,
+                actor,
+                "diagnosis.finish",
+                "diagnosis",
+                diagnosis_id,
+                {
+                    "diagnosis_id": diagnosis_id,
+                    "record_id": d.record_id,
+                    "state": state,
+                    "named_effects": list(summary.get("named_effects", [])),
+                    "error": error,
+                },
+            )
             return r
 
     def get_diagnosis(self, diagnosis_id: int) -> tuple[Diagnosis, DiagnosisResult | None]:
         with self._db.session() as s:
             d = row_in(s, Diagnosis, diagnosis_id, "diagnosis")
-            r = s.scalar(sa.select(DiagnosisResult).where(DiagnosisResult.diagnosis_id == diagnosis_id))
+            r = s.scalar(
+                sa.select(DiagnosisResult).where(DiagnosisResult.diagnosis_id == diagnosis_id)
+            )
             return d, r
 
-    def list_diagnoses(self, record_id: int | None = None, *, before_id: int | None = None,
-                       limit: int = 100) -> list[tuple[Diagnosis, DiagnosisResult | None]]:
-        """Newest first, of one record or of all, from before `before_id` (the cursor); without the report
-        pages (the largest part of a result, which a list does not show)."""
+    def list_diagnoses(
+        self, record_id: int | None = None, *, before_id: int | None = None, limit: int = 100
+    ) -> list[tuple[Diagnosis, DiagnosisResult | None]]:
+        """Newest first, of one record or of all, from before `before_id` (the cursor); without the
+        report pages (the largest part of a result, which a list does not show)."""
         with self._db.session() as s:
-            stmt = (sa.select(Diagnosis, DiagnosisResult)
-                    .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
-                    .options(defer(DiagnosisResult.report_html, raiseload=True))
-                    .order_by(Diagnosis.id.desc()).limit(limit))
+            stmt = (
+                sa.select(Diagnosis, DiagnosisResult)
+                .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
+                .options(defer(DiagnosisResult.report_html, raiseload=True))
+                .order_by(Diagnosis.id.desc())
+                .limit(limit)
+            )
             if record_id is not None:
                 stmt = stmt.where(Diagnosis.record_id == record_id)
             if before_id is not None:
@@ -77,15 +130,24 @@ class DiagnosesRepo:
 
     def unfinished_diagnoses(self) -> list[int]:
         with self._db.session() as s:
-            stmt = (sa.select(Diagnosis.id)
-                    .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
-                    .where(DiagnosisResult.id.is_(None)))
+            stmt = (
+                sa.select(Diagnosis.id)
+                .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
+                .where(DiagnosisResult.id.is_(None))
+            )
             return list(s.scalars(stmt))
 
     def mark_diagnoses_interrupted(self, *, actor: str) -> list[int]:
         """At start-up: diagnoses a previous run left without a result end as failed."""
         ids = self.unfinished_diagnoses()
         for i in ids:
-            self.finish_diagnosis(i, state="failed", started_at=None, summary={}, report_html=None,
-                                  error=INTERRUPTED_DIAGNOSIS, actor=actor)
+            self.finish_diagnosis(
+                i,
+                state="failed",
+                started_at=None,
+                summary={},
+                report_html=None,
+                error=INTERRUPTED_DIAGNOSIS,
+                actor=actor,
+            )
         return ids

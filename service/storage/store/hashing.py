@@ -1,4 +1,5 @@
-"""What a record, an audit event and a settled point assert: the content their SHA-256 covers (rule in canonical.py)."""
+"""What a record, an audit event and a settled point assert: the content their SHA-256 covers (rule
+in canonical.py)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,20 @@ from service.storage.canonical import sha256_hex, utc_iso
 from service.storage.models import AuditEvent, CalibrationRecord, SettledPoint
 
 POINT_FIELDS = (
-    "point", "cmd_x_deg", "cmd_y_deg", "n_samples", "t_start_s", "t_end_s", "ch_x_mean", "ch_y_mean",
-    "ch_z_mean", "ch_x_std", "ch_y_std", "ch_z_std", "temp_c_mean",
-)  # fmt: skip
+    "point",
+    "cmd_x_deg",
+    "cmd_y_deg",
+    "n_samples",
+    "t_start_s",
+    "t_end_s",
+    "ch_x_mean",
+    "ch_y_mean",
+    "ch_z_mean",
+    "ch_x_std",
+    "ch_y_std",
+    "ch_z_std",
+    "temp_c_mean",
+)
 POINT_REQUIRED = ("point", "n_samples", "t_start_s", "t_end_s", "ch_x_mean", "ch_y_mean")
 
 
@@ -49,8 +61,8 @@ def audit_content(e: AuditEvent) -> dict[str, Any]:
 
 
 def point_content(p: SettledPoint) -> dict[str, Any]:
-    """What a settled point asserts: its fields, and the hash of the raw samples it was averaged from (points
-    stored before those hashes were kept have none, and hash as they did)."""
+    """What a settled point asserts: its fields, and the hash of the raw samples it was averaged
+    from (points stored before those hashes were kept have none, and hash as they did)."""
     content = {name: getattr(p, name) for name in POINT_FIELDS}
     if p.samples_sha256 is not None:
         content["samples_sha256"] = p.samples_sha256
@@ -61,9 +73,14 @@ SAMPLE_FIELDS = ("t_s", "ch_x", "ch_y", "ch_z", "temp_c", "source")
 
 
 def samples_sha256(rows: Sequence[Sequence[Any]]) -> str:
-    """The SHA-256 of one point's raw samples of one device: rows of SAMPLE_FIELDS in (t_s, id) order, numbers
-    as floats (as the database gives them back)."""
-    return sha256_hex([[None if v is None else (v if isinstance(v, str) else float(v)) for v in row] for row in rows])
+    """The SHA-256 of one point's raw samples of one device: rows of SAMPLE_FIELDS in (t_s, id)
+    order, numbers as floats (as the database gives them back)."""
+    return sha256_hex(
+        [
+            [None if v is None else (v if isinstance(v, str) else float(v)) for v in row]
+            for row in rows
+        ]
+    )
 
 
 def points_sha256(points: Sequence[SettledPoint]) -> str:

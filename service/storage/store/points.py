@@ -38,40 +38,66 @@ class PointsRepo:
             job = job_in(s, job_id)
             device_in(s, device_id)
             if job.state != "running":
-                raise IllegalTransition(f"job {job_id} is {job.state}; settled points are added while it runs")
+                raise IllegalTransition(
+                    f"job {job_id} is {job.state}; settled points are added while it runs"
+                )
             rows: list[SettledPoint] = []
             for i, p in enumerate(points):
                 unknown = set(p) - set(POINT_FIELDS)
                 missing = [k for k in POINT_REQUIRED if p.get(k) is None]
                 if unknown or missing:
-                    raise InputError(f"settled point [{i}]: unknown fields {sorted(unknown)}, missing {missing}")
+                    raise InputError(
+                        f"settled point [{i}]: unknown fields {sorted(unknown)}, missing {missing}"
+                    )
                 values: dict[str, Any] = {}
                 for k in POINT_FIELDS:
                     if k in ("point", "n_samples"):
                         if not isinstance(p[k], int) or p[k] < 0:
-                            raise InputError(f"settled point [{i}]: {k} must be a non-negative integer")
+                            raise InputError(
+                                f"settled point [{i}]: {k} must be a non-negative integer"
+                            )
                         values[k] = p[k]
                     else:
                         values[k] = require_finite(f"settled point [{i}] {k}", p.get(k))
-                values["samples_sha256"] = point_samples_sha256(s, job_id, device_id, values["point"])
+                values["samples_sha256"] = point_samples_sha256(
+                    s, job_id, device_id, values["point"]
+                )
                 rows.append(SettledPoint(job_id=job_id, device_id=device_id, **values))
             s.add_all(rows)
             s.flush()
             self._db.audit(
-                s, actor, "points.add", "job", job_id,
-                {"device_id": device_id, "count": len(rows), "points": [r.point for r in rows],
-                 "points_sha256": sha256_hex([point_content(r) for r in sorted(rows, key=lambda r: r.point)])},
-            )  # fmt: skip
+                s,
+                actor,
+                "points.add",
+                "job",
+                job_id,
+                {
+                    "device_id": device_id,
+                    "count": len(rows),
+                    "points": [r.point for r in rows],
+                    "points_sha256": sha256_hex(
+                        [point_content(r) for r in sorted(rows, key=lambda r: r.point)]
+                    ),
+                },
+            )
             return rows
 
     def settle_from_samples(
-        self, job_id: int, device_id: int, *, actor: str, skip_s: float = 0.0,
+        self,
+        job_id: int,
+        device_id: int,
+        *,
+        actor: str,
+        skip_s: float = 0.0,
         commands: Mapping[int, tuple[float, float]] | None = None,
-    ) -> list[SettledPoint]:  # fmt: skip
-        """Average each grid point's raw samples after discarding the first skip_s seconds (settling)."""
+    ) -> list[SettledPoint]:
+        """Average each grid point's raw samples after discarding the first skip_s seconds
+        (settling)."""
         skip_s = require_number("skip_s", skip_s)
         if skip_s < 0:
-            raise InputError(f"skip_s={skip_s} is negative; it is the settling time discarded at each point")
+            raise InputError(
+                f"skip_s={skip_s} is negative; it is the settling time discarded at each point"
+            )
         with self._db.session() as s:
             t = SampleRow.__table__
             rows = s.execute(
@@ -89,21 +115,34 @@ class PointsRepo:
             if not rs:
                 continue
             cmd = (commands or {}).get(point, (None, None))
-            points.append({
-                "point": point, "cmd_x_deg": cmd[0], "cmd_y_deg": cmd[1], "n_samples": len(rs),
-                "t_start_s": rs[0].t_s, "t_end_s": rs[-1].t_s,
-                "ch_x_mean": mean_or_none([r.ch_x for r in rs]), "ch_y_mean": mean_or_none([r.ch_y for r in rs]),
-                "ch_z_mean": mean_or_none([r.ch_z for r in rs]), "ch_x_std": std_or_none([r.ch_x for r in rs]),
-                "ch_y_std": std_or_none([r.ch_y for r in rs]), "ch_z_std": std_or_none([r.ch_z for r in rs]),
-                "temp_c_mean": mean_or_none([r.temp_c for r in rs]),
-            })  # fmt: skip
+            points.append(
+                {
+                    "point": point,
+                    "cmd_x_deg": cmd[0],
+                    "cmd_y_deg": cmd[1],
+                    "n_samples": len(rs),
+                    "t_start_s": rs[0].t_s,
+                    "t_end_s": rs[-1].t_s,
+                    "ch_x_mean": mean_or_none([r.ch_x for r in rs]),
+                    "ch_y_mean": mean_or_none([r.ch_y for r in rs]),
+                    "ch_z_mean": mean_or_none([r.ch_z for r in rs]),
+                    "ch_x_std": std_or_none([r.ch_x for r in rs]),
+                    "ch_y_std": std_or_none([r.ch_y for r in rs]),
+                    "ch_z_std": std_or_none([r.ch_z for r in rs]),
+                    "temp_c_mean": mean_or_none([r.temp_c for r in rs]),
+                }
+            )
         if not points:
-            raise InputError(f"job {job_id} has no raw samples of device {device_id} with a grid point")
+            raise InputError(
+                f"job {job_id} has no raw samples of device {device_id} with a grid point"
+            )
         return self.add_settled_points(job_id, device_id, points, actor=actor)
 
-    def settled_points(self, job_id: int, device_id: int | None = None,
-                       from_point: int | None = None) -> list[SettledPoint]:
-        """A job's settled points (of one device; from a point index on: what a follower has not seen)."""
+    def settled_points(
+        self, job_id: int, device_id: int | None = None, from_point: int | None = None
+    ) -> list[SettledPoint]:
+        """A job's settled points (of one device; from a point index on: what a follower has not
+        seen)."""
         with self._db.session() as s:
             stmt = sa.select(SettledPoint).where(SettledPoint.job_id == job_id)
             if device_id is not None:
@@ -113,8 +152,8 @@ class PointsRepo:
             return list(s.scalars(stmt.order_by(SettledPoint.device_id, SettledPoint.point)))
 
     def points_sha256_by_job(self, job_ids: Sequence[int]) -> dict[str, dict[str, str]]:
-        """Per job, the SHA-256 of every device's settled points (keyed by job id, then device id, as text): what a
-        record fitted on those jobs' points commits to, and `db verify` checks."""
+        """Per job, the SHA-256 of every device's settled points (keyed by job id, then device id,
+        as text): what a record fitted on those jobs' points commits to, and `db verify` checks."""
         out: dict[str, dict[str, str]] = {}
         for job_id in job_ids:
             by_device: dict[int, list[SettledPoint]] = {}
@@ -125,11 +164,14 @@ class PointsRepo:
 
 
 def point_samples_sha256(s: Session, job_id: int, device_id: int, point: int) -> str | None:
-    """The SHA-256 of the raw samples stored for one point of one device of a job (None when it has none)."""
+    """The SHA-256 of the raw samples stored for one point of one device of a job (None when it has
+    none)."""
     t = SampleRow.__table__
-    rows = s.execute(sa.select(*(t.c[name] for name in SAMPLE_FIELDS))
-                     .where(t.c.job_id == job_id, t.c.device_id == device_id, t.c.point == point)
-                     .order_by(t.c.t_s, t.c.id)).all()
+    rows = s.execute(
+        sa.select(*(t.c[name] for name in SAMPLE_FIELDS))
+        .where(t.c.job_id == job_id, t.c.device_id == device_id, t.c.point == point)
+        .order_by(t.c.t_s, t.c.id)
+    ).all()
     return samples_sha256(rows) if rows else None
 
 

@@ -1,4 +1,5 @@
-"""Calibration records: append-only versions per (device, kind), hash-chained, optionally activated at once."""
+"""Calibration records: append-only versions per (device, kind), hash-chained, optionally activated
+at once."""
 
 from __future__ import annotations
 
@@ -20,7 +21,12 @@ from service.storage.models import (
     utc_now,
 )
 from service.storage.models import Sample as SampleRow
-from service.storage.store.checks import require_doc, require_finite, require_standards, require_text
+from service.storage.store.checks import (
+    require_doc,
+    require_finite,
+    require_standards,
+    require_text,
+)
 from service.storage.store.database import Database
 from service.storage.store.hashing import points_sha256, record_content
 from service.storage.store.lookups import device_in, job_in, row_in
@@ -63,34 +69,58 @@ class RecordsRepo:
             model_doc = require_doc("model", model)
             for key, expected in (("kind", kind), ("method", method)):
                 if key in model_doc and model_doc[key] != expected:
-                    raise InputError(f"model document says {key}={model_doc[key]!r} but the record is {expected!r}")
+                    raise InputError(
+                        f"model document says {key}={model_doc[key]!r} but the record is "
+                        f"{expected!r}"
+                    )
             raw = require_doc("raw_data", raw_data or {})
             if job_id is not None:
                 job = job_in(s, job_id)
                 if job.device_id != device_id:
-                    raise InputError(f"job {job_id} calibrates device {job.device_id}, not device {device_id}")
+                    raise InputError(
+                        f"job {job_id} calibrates device {job.device_id}, not device {device_id}"
+                    )
                 if job.state not in ("running", "succeeded"):
-                    raise IllegalTransition(f"job {job_id} is {job.state}; a record comes from a running or succeeded job")
-                pts = list(s.scalars(sa.select(SettledPoint).where(
-                    SettledPoint.job_id == job_id, SettledPoint.device_id == device_id)))  # fmt: skip
+                    raise IllegalTransition(
+                        f"job {job_id} is {job.state}; a record comes from a running or succeeded "
+                        "job"
+                    )
+                pts = list(
+                    s.scalars(
+                        sa.select(SettledPoint).where(
+                            SettledPoint.job_id == job_id, SettledPoint.device_id == device_id
+                        )
+                    )
+                )
                 n_samples = s.scalar(
-                    sa.select(sa.func.count()).select_from(SampleRow)
+                    sa.select(sa.func.count())
+                    .select_from(SampleRow)
                     .where(SampleRow.job_id == job_id, SampleRow.device_id == device_id)
-                )  # fmt: skip
-                raw.update({"job_id": job_id, "points": len(pts), "points_sha256": points_sha256(pts), "samples": n_samples,
-                            "settled_points_sha256": _points_by_device_sha256(s, job_id)})
+                )
+                raw.update(
+                    {
+                        "job_id": job_id,
+                        "points": len(pts),
+                        "points_sha256": points_sha256(pts),
+                        "samples": n_samples,
+                        "settled_points_sha256": _points_by_device_sha256(s, job_id),
+                    }
+                )
             active = s.get(ActiveCalibration, (device_id, kind))
             if supersedes_id is SUPERSEDES_ACTIVE:
                 supersedes_id = active.record_id if active else None
             elif supersedes_id is not None:
                 old = s.get(CalibrationRecord, supersedes_id)
                 if old is None or (old.device_id, old.kind) != (device_id, kind):
-                    raise UnknownEntity(f"record {supersedes_id} is not a {kind} record of device {device_id}")
+                    raise UnknownEntity(
+                        f"record {supersedes_id} is not a {kind} record of device {device_id}"
+                    )
             last = s.execute(
                 sa.select(CalibrationRecord.version, CalibrationRecord.content_sha256)
                 .where(CalibrationRecord.device_id == device_id, CalibrationRecord.kind == kind)
-                .order_by(CalibrationRecord.version.desc()).limit(1)
-            ).first()  # fmt: skip
+                .order_by(CalibrationRecord.version.desc())
+                .limit(1)
+            ).first()
             record = CalibrationRecord(
                 device_id=device_id,
                 kind=kind,
@@ -112,13 +142,28 @@ class RecordsRepo:
             s.add(record)
             s.flush()
             self._db.audit(
-                s, operator, "record.create", "calibration_record", record.id,
-                {"device_id": device_id, "kind": kind, "version": record.version,
-                 "content_sha256": record.content_sha256, "supersedes_id": supersedes_id},
-            )  # fmt: skip
+                s,
+                operator,
+                "record.create",
+                "calibration_record",
+                record.id,
+                {
+                    "device_id": device_id,
+                    "kind": kind,
+                    "version": record.version,
+                    "content_sha256": record.content_sha256,
+                    "supersedes_id": supersedes_id,
+                },
+            )
             if activate:
-                activate_in(self._db, s, record, actor=operator, reason=reason or f"new version {record.version}",
-                               replaces=active.record_id if active else None)  # fmt: skip
+                activate_in(
+                    self._db,
+                    s,
+                    record,
+                    actor=operator,
+                    reason=reason or f"new version {record.version}",
+                    replaces=active.record_id if active else None,
+                )
             return record
 
     def get_record(self, record_id: int) -> CalibrationRecord:
@@ -126,26 +171,34 @@ class RecordsRepo:
             return row_in(s, CalibrationRecord, record_id, "calibration record")
 
     def records_of_jobs(self, job_ids: Sequence[int]) -> dict[int, CalibrationRecord]:
-        """The record each of these jobs made, the first made from its points (an adopted diagnosis adds later
-        versions); jobs that made none are left out. One query."""
+        """The record each of these jobs made, the first made from its points (an adopted diagnosis
+        adds later versions); jobs that made none are left out. One query."""
         if not job_ids:
             return {}
         out: dict[int, CalibrationRecord] = {}
         with self._db.session() as s:
-            for r in s.scalars(sa.select(CalibrationRecord).where(CalibrationRecord.job_id.in_(list(job_ids)))
-                               .order_by(CalibrationRecord.id)):
+            for r in s.scalars(
+                sa.select(CalibrationRecord)
+                .where(CalibrationRecord.job_id.in_(list(job_ids)))
+                .order_by(CalibrationRecord.id)
+            ):
                 if r.job_id is not None:
                     out.setdefault(r.job_id, r)
         return out
 
     def fitted_ranges(self, record_ids: Sequence[int]) -> dict[int, Any]:
-        """The table tilts each record's model says it was fitted on (MODEL.json `fit.table_tilt_range_deg`, as
-        stored; None where the model has none), read out of the models by the database, not decoded here."""
+        """The table tilts each record's model says it was fitted on (MODEL.json
+        `fit.table_tilt_range_deg`, as stored; None where the model has none), read out of the
+        models by the database, not decoded here."""
         if not record_ids:
             return {}
         fitted = CalibrationRecord.model["fit"]["table_tilt_range_deg"]
         with self._db.session() as s:
-            rows = s.execute(sa.select(CalibrationRecord.id, fitted).where(CalibrationRecord.id.in_(list(record_ids))))
+            rows = s.execute(
+                sa.select(CalibrationRecord.id, fitted).where(
+                    CalibrationRecord.id.in_(list(record_ids))
+                )
+            )
             return {int(i): value for i, value in rows}
 
     def active_record_ids(self) -> set[int]:
@@ -160,12 +213,19 @@ class RecordsRepo:
                 stmt = stmt.where(CalibrationRecord.kind == kind)
             return list(s.scalars(stmt.order_by(CalibrationRecord.kind, CalibrationRecord.version)))
 
-    def newest_first(self, *, device_id: int | None = None, device_ids: Sequence[int] | None = None,
-                     before_id: int | None = None, limit: int | None = None,
-                     with_model: bool = True) -> list[CalibrationRecord]:
-        """Records newest first, of one device, of some devices (None: of every device), or both filters;
-        `before_id` is the cursor (the last id of the previous page), `limit` the page size. Without the model
-        (`with_model=False`) a page costs a fraction of the decoding: the model is most of a record."""
+    def newest_first(
+        self,
+        *,
+        device_id: int | None = None,
+        device_ids: Sequence[int] | None = None,
+        before_id: int | None = None,
+        limit: int | None = None,
+        with_model: bool = True,
+    ) -> list[CalibrationRecord]:
+        """Records newest first, of one device, of some devices (None: of every device), or both
+        filters; `before_id` is the cursor (the last id of the previous page), `limit` the page
+        size. Without the model (`with_model=False`) a page costs a fraction of the decoding: the
+        model is most of a record."""
         stmt = sa.select(CalibrationRecord).order_by(CalibrationRecord.id.desc())
         if not with_model:
             stmt = stmt.options(defer(CalibrationRecord.model, raiseload=True))
@@ -183,20 +243,27 @@ class RecordsRepo:
     def active_record(self, device_id: int, kind: str) -> CalibrationRecord | None:
         with self._db.session() as s:
             return s.scalar(
-                sa.select(CalibrationRecord).join(
-                    ActiveCalibration, ActiveCalibration.record_id == CalibrationRecord.id
-                ).where(ActiveCalibration.device_id == device_id, ActiveCalibration.kind == kind)
-            )  # fmt: skip
+                sa.select(CalibrationRecord)
+                .join(ActiveCalibration, ActiveCalibration.record_id == CalibrationRecord.id)
+                .where(ActiveCalibration.device_id == device_id, ActiveCalibration.kind == kind)
+            )
 
     def pointer_history(self, device_id: int, kind: str) -> list[ActiveCalibrationHistory]:
         with self._db.session() as s:
-            return list(s.scalars(
-                sa.select(ActiveCalibrationHistory)
-                .where(ActiveCalibrationHistory.device_id == device_id, ActiveCalibrationHistory.kind == kind)
-                .order_by(ActiveCalibrationHistory.id)
-            ))  # fmt: skip
+            return list(
+                s.scalars(
+                    sa.select(ActiveCalibrationHistory)
+                    .where(
+                        ActiveCalibrationHistory.device_id == device_id,
+                        ActiveCalibrationHistory.kind == kind,
+                    )
+                    .order_by(ActiveCalibrationHistory.id)
+                )
+            )
 
-    def activate(self, record_id: int, *, actor: str, reason: str, replaces: int | None = None) -> ActiveCalibration:
+    def activate(
+        self, record_id: int, *, actor: str, reason: str, replaces: int | None = None
+    ) -> ActiveCalibration:
         """Make a record the active version of its (device, kind).
 
         `replaces` names the record the caller believes is active now (None: none is). If another
@@ -208,29 +275,44 @@ class RecordsRepo:
             return activate_in(self._db, s, record, actor=actor, reason=reason, replaces=replaces)
 
     def unusable_reason(self, record_id: int) -> str | None:
-        """Why the record must not correct anything (rejected, or not matching its hash), or None if it may."""
+        """Why the record must not correct anything (rejected, or not matching its hash), or None if
+        it may."""
         with self._db.session() as s:
             return unusable_in(s, row_in(s, CalibrationRecord, record_id, "calibration record"))
 
     def inactive_reason(self, device_id: int, kind: str) -> str | None:
-        """Why (device, kind) has no active record, when its pointer was withdrawn: the reason of that change."""
+        """Why (device, kind) has no active record, when its pointer was withdrawn: the reason of
+        that change."""
         with self._db.session() as s:
-            last = s.scalar(sa.select(ActiveCalibrationHistory)
-                            .where(ActiveCalibrationHistory.device_id == device_id, ActiveCalibrationHistory.kind == kind)
-                            .order_by(ActiveCalibrationHistory.id.desc()).limit(1))  # fmt: skip
+            last = s.scalar(
+                sa.select(ActiveCalibrationHistory)
+                .where(
+                    ActiveCalibrationHistory.device_id == device_id,
+                    ActiveCalibrationHistory.kind == kind,
+                )
+                .order_by(ActiveCalibrationHistory.id.desc())
+                .limit(1)
+            )
         if last is None or last.record_id is not None:
             return None
-        return f"record {last.previous_record_id} was deactivated by {last.changed_by}: {last.reason}"
+        return (
+            f"record {last.previous_record_id} was deactivated by {last.changed_by}: {last.reason}"
+        )
 
-    def deactivate(self, device_id: int, kind: str, *, actor: str, reason: str, replaces: int) -> None:
-        """Withdraw the active version (e.g. the device failed validation); audited like a switch."""
+    def deactivate(
+        self, device_id: int, kind: str, *, actor: str, reason: str, replaces: int
+    ) -> None:
+        """Withdraw the active version (e.g. the device failed validation); audited like a
+        switch."""
         with self._db.transaction() as s:
-            deactivate_in(self._db, s, device_id, kind, actor=actor, reason=reason, replaces=replaces)
+            deactivate_in(
+                self._db, s, device_id, kind, actor=actor, reason=reason, replaces=replaces
+            )
 
 
 def _points_by_device_sha256(s: Session, job_id: int) -> dict[str, str]:
-    """The SHA-256 of every device's settled points in the job (the reference sensor's too: a fit uses them),
-    keyed by device id: what `db verify` checks the job's points against."""
+    """The SHA-256 of every device's settled points in the job (the reference sensor's too: a fit
+    uses them), keyed by device id: what `db verify` checks the job's points against."""
     by_device: dict[int, list[SettledPoint]] = {}
     for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == job_id)):
         by_device.setdefault(p.device_id, []).append(p)

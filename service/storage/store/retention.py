@@ -35,17 +35,30 @@ class RetentionRepo:
     ) -> samples_mod.RetentionResult:
         with self._db.transaction() as s:
             result = samples_mod.apply_retention(
-                s.connection(), older_than=older_than, policy=policy, thin_interval_s=thin_interval_s, now=now
+                s.connection(),
+                older_than=older_than,
+                policy=policy,
+                thin_interval_s=thin_interval_s,
+                now=now,
             )
             self._db.audit(
-                s, actor, "retention.apply", "samples", "monitoring",
-                {"policy": policy, "cutoff_s": result.cutoff_s, "deleted": result.deleted,
-                 "thin_interval_s": thin_interval_s if policy == "thin" else None},
-            )  # fmt: skip
+                s,
+                actor,
+                "retention.apply",
+                "samples",
+                "monitoring",
+                {
+                    "policy": policy,
+                    "cutoff_s": result.cutoff_s,
+                    "deleted": result.deleted,
+                    "thin_interval_s": thin_interval_s if policy == "thin" else None,
+                },
+            )
             return result
 
-    def apply_from_settings(self, settings: RetentionSettings, *,
-                            actor: str = "retention") -> samples_mod.RetentionResult:
+    def apply_from_settings(
+        self, settings: RetentionSettings, *, actor: str = "retention"
+    ) -> samples_mod.RetentionResult:
         return self.apply(
             actor=actor,
             older_than=dt.timedelta(days=settings.monitoring_retention_days),

@@ -23,46 +23,64 @@ CERTIFICATE_SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
 class StandardNotUsable(InputError):
-    """A job names a reference standard past its due date (or one that does not exist); `field` says which."""
+    """A job names a reference standard past its due date (or one that does not exist); `field` says
+    which."""
 
     def __init__(self, field: str, reason: str) -> None:
         super().__init__(f"{field}: {reason}")
         self.field, self.reason = field, reason
 
 
-def positive_number(name: str, value: object, *, above: float | None = None, least: float | None = None) -> float:
-    ok = not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value) \
-        and (above is None or value > above) and (least is None or value >= least)
+def positive_number(
+    name: str, value: object, *, above: float | None = None, least: float | None = None
+) -> float:
+    ok = (
+        not isinstance(value, bool)
+        and isinstance(value, int | float)
+        and math.isfinite(value)
+        and (above is None or value > above)
+        and (least is None or value >= least)
+    )
     if not ok:
-        raise InputError(f"{name}: {value!r} is not a number {f'> {above:g}' if above is not None else f'>= {least:g}'}")
+        raise InputError(
+            f"{name}: {value!r} is not a number "
+            f"{f'> {above:g}' if above is not None else f'>= {least:g}'}"
+        )
     return float(value)  # type: ignore[arg-type]
 
 
 def stated_uncertainty(fields: Mapping[str, Any], remark: str) -> tuple[float | None, float | None]:
-    """U (degrees) and k as given, else read from the remark's wording; (None, None) when neither says."""
+    """U (degrees) and k as given, else read from the remark's wording; (None, None) when neither
+    says."""
     U, k = fields.get("expanded_uncertainty_deg"), fields.get("coverage_factor")
     if U is None:
         if k is not None:
             raise InputError("coverage_factor: given without expanded_uncertainty_deg")
         parsed = parse_stated_uncertainty(remark)
         return parsed if parsed is not None else (None, None)
-    return (positive_number("expanded_uncertainty_deg", U, above=0.0),
-            positive_number("coverage_factor", 2.0 if k is None else k, least=1.0))
-
+    return (
+        positive_number("expanded_uncertainty_deg", U, above=0.0),
+        positive_number("coverage_factor", 2.0 if k is None else k, least=1.0),
+    )
 
 
 CALIBRATED_BY_FIELDS = {"name": 200, "accreditation": 100, "city": 200, "country_code": 2}
 
 
 def calibrated_by_of(value: object) -> dict[str, str] | None:
-    """Who calibrated a standard: {"name", "country_code"[, "accreditation", "city"]}, checked; None when not given."""
+    """Who calibrated a standard: {"name", "country_code"[, "accreditation", "city"]}, checked; None
+    when not given."""
     if value is None:
         return None
     if not isinstance(value, Mapping):
-        raise InputError('calibrated_by: an object {"name", "accreditation", "city", "country_code"} is needed')
+        raise InputError(
+            'calibrated_by: an object {"name", "accreditation", "city", "country_code"} is needed'
+        )
     unknown = sorted(set(value) - set(CALIBRATED_BY_FIELDS))
     if unknown:
-        raise InputError(f"calibrated_by.{unknown[0]}: unknown; give {', '.join(CALIBRATED_BY_FIELDS)}")
+        raise InputError(
+            f"calibrated_by.{unknown[0]}: unknown; give {', '.join(CALIBRATED_BY_FIELDS)}"
+        )
     out: dict[str, str] = {}
     for key, longest in CALIBRATED_BY_FIELDS.items():
         text = value.get(key)
@@ -81,8 +99,14 @@ class StandardsRepo:
     def add_standard(self, fields: Mapping[str, Any], *, actor: str) -> ReferenceStandard:
         sha = fields.get("certificate_sha256")
         if not isinstance(sha, str) or not CERTIFICATE_SHA256.fullmatch(sha):
-            raise InputError("certificate_sha256 must be the 64 lower-case hex digits of the certificate file's SHA-256")
-        calibrated, due = require_date("calibrated_on", fields.get("calibrated_on")), require_date("due_on", fields.get("due_on"))
+            raise InputError(
+                "certificate_sha256 must be the 64 lower-case hex digits of the certificate file's "
+                "SHA-256"
+            )
+        calibrated, due = (
+            require_date("calibrated_on", fields.get("calibrated_on")),
+            require_date("due_on", fields.get("due_on")),
+        )
         if due <= calibrated:
             raise InputError(f"due_on {due} must be after calibrated_on {calibrated}")
         model = fields.get("model")
@@ -90,25 +114,51 @@ class StandardsRepo:
         remark = require_text("uncertainty", remark, 500) if remark not in (None, "") else ""
         U, k = stated_uncertainty(fields, remark)
         row = ReferenceStandard(
-            name=require_text("name", fields.get("name")), serial=require_text("serial", fields.get("serial")),
+            name=require_text("name", fields.get("name")),
+            serial=require_text("serial", fields.get("serial")),
             model=require_text("model", model) if model is not None else None,
             certificate_number=require_text("certificate_number", fields.get("certificate_number")),
-            certificate_sha256=sha, calibrated_on=calibrated, due_on=due,
-            uncertainty=remark, expanded_uncertainty_deg=U, coverage_factor=k, created_at=utc_now(),
-            created_by=require_text("actor", actor), calibrated_by=calibrated_by_of(fields.get("calibrated_by")),
-        )  # fmt: skip
+            certificate_sha256=sha,
+            calibrated_on=calibrated,
+            due_on=due,
+            uncertainty=remark,
+            expanded_uncertainty_deg=U,
+            coverage_factor=k,
+            created_at=utc_now(),
+            created_by=require_text("actor", actor),
+            calibrated_by=calibrated_by_of(fields.get("calibrated_by")),
+        )
         with self._db.transaction() as s:
-            clash = s.scalar(sa.select(ReferenceStandard.id).where(
-                ReferenceStandard.serial == row.serial, ReferenceStandard.certificate_number == row.certificate_number))
+            clash = s.scalar(
+                sa.select(ReferenceStandard.id).where(
+                    ReferenceStandard.serial == row.serial,
+                    ReferenceStandard.certificate_number == row.certificate_number,
+                )
+            )
             if clash is not None:
-                raise ConflictError(f"standard {clash} already holds certificate {row.certificate_number} of serial {row.serial}")
+                raise ConflictError(
+                    f"standard {clash} already holds certificate {row.certificate_number} of "
+                    f"serial {row.serial}"
+                )
             s.add(row)
             s.flush()
-            self._db.audit(s, actor, "standard.create", "reference_standard", row.id,
-                        {"name": row.name, "serial": row.serial, "certificate_number": row.certificate_number,
-                         "certificate_sha256": sha, "due_on": due.isoformat(),
-                         "expanded_uncertainty_deg": U, "coverage_factor": k,
-                         "calibrated_by": row.calibrated_by})  # fmt: skip
+            self._db.audit(
+                s,
+                actor,
+                "standard.create",
+                "reference_standard",
+                row.id,
+                {
+                    "name": row.name,
+                    "serial": row.serial,
+                    "certificate_number": row.certificate_number,
+                    "certificate_sha256": sha,
+                    "due_on": due.isoformat(),
+                    "expanded_uncertainty_deg": U,
+                    "coverage_factor": k,
+                    "calibrated_by": row.calibrated_by,
+                },
+            )
             return row
 
     def all(self) -> list[ReferenceStandard]:
@@ -130,39 +180,73 @@ class StandardsRepo:
     def usable_standards(self, ids: Sequence[object], *, on: dt.date) -> list[ReferenceStandard]:
         """The standards a job names, refused if one is unknown or past its due date on `on`."""
         if not isinstance(ids, list | tuple):
-            raise StandardNotUsable("reference_standards", "must be a list of reference standard ids")
+            raise StandardNotUsable(
+                "reference_standards", "must be a list of reference standard ids"
+            )
         out: list[ReferenceStandard] = []
         with self._db.session() as s:
             for i, sid in enumerate(ids):
-                row = s.get(ReferenceStandard, sid) if isinstance(sid, int) and not isinstance(sid, bool) else None
+                row = (
+                    s.get(ReferenceStandard, sid)
+                    if isinstance(sid, int) and not isinstance(sid, bool)
+                    else None
+                )
                 if row is None:
-                    raise StandardNotUsable(f"reference_standards[{i}]", f"{sid!r} is not a registered reference standard")
+                    raise StandardNotUsable(
+                        f"reference_standards[{i}]",
+                        f"{sid!r} is not a registered reference standard",
+                    )
                 if row.due_on < on:
                     raise StandardNotUsable(
-                        f"reference_standards[{i}]", f"standard {row.id} ({row.name}, serial {row.serial}, certificate "
-                        f"{row.certificate_number}) was due for calibration on {row.due_on}; it cannot be used")
+                        f"reference_standards[{i}]",
+                        f"standard {row.id} ({row.name}, serial {row.serial}, certificate "
+                        f"{row.certificate_number}) was due for calibration on {row.due_on}; it "
+                        "cannot be used",
+                    )
                 if row.expanded_uncertainty_deg is None or row.coverage_factor is None:
                     raise StandardNotUsable(
-                        f"reference_standards[{i}]", f"standard {row.id} ({row.name}, serial {row.serial}, certificate "
-                        f"{row.certificate_number}) states no numeric uncertainty (its text {row.uncertainty!r} does not "
-                        "read as an angle with its coverage factor); register it again with expanded_uncertainty_deg "
-                        "and coverage_factor")
+                        f"reference_standards[{i}]",
+                        f"standard {row.id} ({row.name}, serial {row.serial}, certificate "
+                        f"{row.certificate_number}) states no numeric uncertainty (its text "
+                        f"{row.uncertainty!r} does not read as an angle with its coverage "
+                        "factor); register it again with expanded_uncertainty_deg and "
+                        "coverage_factor",
+                    )
                 out.append(row)
         return out
 
-    def notify_standards_due(self, *, today: dt.date, within_days: int, actor: str = "daemon") -> list[int]:
-        """A `standard.due_soon` event, once per due date, for each standard due within `within_days`."""
+    def notify_standards_due(
+        self, *, today: dt.date, within_days: int, actor: str = "daemon"
+    ) -> list[int]:
+        """A `standard.due_soon` event, once per due date, for each standard due within
+        `within_days`."""
         with self._db.transaction() as s:
-            rows = list(s.scalars(sa.select(ReferenceStandard).where(
-                ReferenceStandard.due_on <= today + dt.timedelta(days=within_days))))  # fmt: skip
+            rows = list(
+                s.scalars(
+                    sa.select(ReferenceStandard).where(
+                        ReferenceStandard.due_on <= today + dt.timedelta(days=within_days)
+                    )
+                )
+            )
             sent: list[int] = []
             for row in rows:
                 if row.due_soon_notified_on == row.due_on:
                     continue
                 row.due_soon_notified_on = row.due_on
-                self._db.audit(s, actor, "standard.due_soon", "reference_standard", row.id,
-                            {"standard_id": row.id, "name": row.name, "serial": row.serial,
-                             "certificate_number": row.certificate_number, "due_on": row.due_on.isoformat(),
-                             "days_left": (row.due_on - today).days})  # fmt: skip
+                self._db.audit(
+                    s,
+                    actor,
+                    "standard.due_soon",
+                    "reference_standard",
+                    row.id,
+                    {
+                        "standard_id": row.id,
+                        "name": row.name,
+                        "serial": row.serial,
+                        "certificate_number": row.certificate_number,
+                        "due_on": row.due_on.isoformat(),
+                        "days_left": (row.due_on - today).days,
+                    },
+                )
                 sent.append(row.id)
             return sent

@@ -14,18 +14,27 @@ import sqlalchemy as sa
 from service.errors import InputError
 from service.storage.errors import UnknownEntity
 from service.storage.feed import EVENT_TYPES
-from service.storage.models import FeedEvent, WebhookAttempt, WebhookDelivery, WebhookEndpoint, utc_now
+from service.storage.models import (
+    FeedEvent,
+    WebhookAttempt,
+    WebhookDelivery,
+    WebhookEndpoint,
+    utc_now,
+)
 from service.storage.store.checks import require_text
 from service.storage.store.database import Database
 from service.storage.store.lookups import row_in
 
-CREDENTIALS_REFUSED = ("credentials (user:password@) in a webhook URL would be stored and shown to every admin;"
-                       " give the URL without them (deliveries are signed with the endpoint's secret, which the"
-                       " receiver checks)")
+CREDENTIALS_REFUSED = (
+    "credentials (user:password@) in a webhook URL would be stored and shown to every admin;"
+    " give the URL without them (deliveries are signed with the endpoint's secret, which the"
+    " receiver checks)"
+)
 
 
 def webhook_url(url: object) -> str:
-    """An http(s) URL with a host and no credentials; anything else is refused before it is stored."""
+    """An http(s) URL with a host and no credentials; anything else is refused before it is
+    stored."""
     text = require_text("url", url, 2000)
     try:
         parts = urlsplit(text)
@@ -33,7 +42,9 @@ def webhook_url(url: object) -> str:
     except ValueError as exc:
         raise InputError(f"url: not a URL ({exc})") from None
     if parts.scheme not in ("http", "https") or not host:
-        raise InputError(f"url {shown_url(text)[:100]!r}: a webhook URL must be http:// or https:// with a host")
+        raise InputError(
+            f"url {shown_url(text)[:100]!r}: a webhook URL must be http:// or https:// with a host"
+        )
     if parts.username is not None or parts.password is not None:
         raise InputError(f"url: {CREDENTIALS_REFUSED}")
     return text
@@ -65,9 +76,16 @@ class FeedRepo:
     def __init__(self, db: Database) -> None:
         self._db = db
 
-    def events(self, *, after_id: int = 0, limit: int = 100, types: Sequence[str] | None = None) -> list[FeedEvent]:
+    def events(
+        self, *, after_id: int = 0, limit: int = 100, types: Sequence[str] | None = None
+    ) -> list[FeedEvent]:
         with self._db.session() as s:
-            stmt = sa.select(FeedEvent).where(FeedEvent.id > after_id).order_by(FeedEvent.id).limit(limit)
+            stmt = (
+                sa.select(FeedEvent)
+                .where(FeedEvent.id > after_id)
+                .order_by(FeedEvent.id)
+                .limit(limit)
+            )
             if types:
                 stmt = stmt.where(FeedEvent.type.in_(list(types)))
             return list(s.scalars(stmt))
@@ -77,21 +95,46 @@ class WebhooksRepo:
     def __init__(self, db: Database) -> None:
         self._db = db
 
-    def add_webhook(self, url: object, events: object, *, actor: str) -> tuple[WebhookEndpoint, str]:
-        """A webhook endpoint and its signing secret (returned here once; needed in clear to sign)."""
+    def add_webhook(
+        self, url: object, events: object, *, actor: str
+    ) -> tuple[WebhookEndpoint, str]:
+        """A webhook endpoint and its signing secret (returned here once; needed in clear to
+        sign)."""
         url = webhook_url(url)
-        if not isinstance(events, list) or not events or not all(isinstance(e, str) for e in events):
-            raise InputError(f"events must be a non-empty list of event types ({', '.join(EVENT_TYPES)}) or ['*']")
+        if (
+            not isinstance(events, list)
+            or not events
+            or not all(isinstance(e, str) for e in events)
+        ):
+            raise InputError(
+                f"events must be a non-empty list of event types ({', '.join(EVENT_TYPES)}) or "
+                "['*']"
+            )
         unknown = [e for e in events if e != "*" and e not in EVENT_TYPES]
         if unknown:
-            raise InputError(f"events: {', '.join(unknown)} unknown; event types are {', '.join(EVENT_TYPES)} (or '*')")
+            raise InputError(
+                f"events: {', '.join(unknown)} unknown; event types are {', '.join(EVENT_TYPES)} "
+                "(or '*')"
+            )
         secret = "whsec_" + base64.b64encode(secrets.token_bytes(24)).decode()
         with self._db.transaction() as s:
-            row = WebhookEndpoint(url=url, events=sorted(set(events)), secret=secret, created_at=utc_now(),
-                                  created_by=require_text("actor", actor))
+            row = WebhookEndpoint(
+                url=url,
+                events=sorted(set(events)),
+                secret=secret,
+                created_at=utc_now(),
+                created_by=require_text("actor", actor),
+            )
             s.add(row)
             s.flush()
-            self._db.audit(s, actor, "webhook.create", "webhook_endpoint", row.id, {"url": url, "events": row.events})
+            self._db.audit(
+                s,
+                actor,
+                "webhook.create",
+                "webhook_endpoint",
+                row.id,
+                {"url": url, "events": row.events},
+            )
             return row, secret
 
     def all(self) -> list[WebhookEndpoint]:
@@ -110,19 +153,34 @@ class WebhooksRepo:
         with self._db.session() as s:
             return row_in(s, WebhookEndpoint, endpoint_id, "webhook")
 
-    def deliveries(self, endpoint_id: int, *, before_id: int | None = None,
-                   limit: int = 200) -> list[tuple[WebhookDelivery, FeedEvent, list[WebhookAttempt]]]:
-        """An endpoint's deliveries newest first, from before `before_id` (the cursor), with their attempts."""
+    def deliveries(
+        self, endpoint_id: int, *, before_id: int | None = None, limit: int = 200
+    ) -> list[tuple[WebhookDelivery, FeedEvent, list[WebhookAttempt]]]:
+        """An endpoint's deliveries newest first, from before `before_id` (the cursor), with their
+        attempts."""
         with self._db.session() as s:
-            stmt = (sa.select(WebhookDelivery, FeedEvent).join(FeedEvent, FeedEvent.id == WebhookDelivery.event_id)
-                    .where(WebhookDelivery.endpoint_id == endpoint_id)
-                    .order_by(WebhookDelivery.id.desc()).limit(limit))  # fmt: skip
+            stmt = (
+                sa.select(WebhookDelivery, FeedEvent)
+                .join(FeedEvent, FeedEvent.id == WebhookDelivery.event_id)
+                .where(WebhookDelivery.endpoint_id == endpoint_id)
+                .order_by(WebhookDelivery.id.desc())
+                .limit(limit)
+            )
             if before_id is not None:
                 stmt = stmt.where(WebhookDelivery.id < before_id)
             rows = s.execute(stmt).all()
             ids = [d.id for d, _ in rows]
-            attempts = list(s.scalars(sa.select(WebhookAttempt).where(WebhookAttempt.delivery_id.in_(ids))
-                                      .order_by(WebhookAttempt.id))) if ids else []
+            attempts = (
+                list(
+                    s.scalars(
+                        sa.select(WebhookAttempt)
+                        .where(WebhookAttempt.delivery_id.in_(ids))
+                        .order_by(WebhookAttempt.id)
+                    )
+                )
+                if ids
+                else []
+            )
         return [(d, e, [a for a in attempts if a.delivery_id == d.id]) for d, e in rows]
 
     def due_deliveries(self, *, now: dt.datetime, limit: int = 50) -> list[DueDelivery]:
@@ -131,27 +189,50 @@ class WebhooksRepo:
                 sa.select(WebhookDelivery, WebhookEndpoint, FeedEvent)
                 .join(WebhookEndpoint, WebhookEndpoint.id == WebhookDelivery.endpoint_id)
                 .join(FeedEvent, FeedEvent.id == WebhookDelivery.event_id)
-                .where(WebhookDelivery.state == "pending", WebhookDelivery.next_attempt_at <= now,
-                       WebhookEndpoint.disabled_at.is_(None))
-                .order_by(WebhookDelivery.event_id, WebhookDelivery.id).limit(limit)
-            ).all()  # fmt: skip
+                .where(
+                    WebhookDelivery.state == "pending",
+                    WebhookDelivery.next_attempt_at <= now,
+                    WebhookEndpoint.disabled_at.is_(None),
+                )
+                .order_by(WebhookDelivery.event_id, WebhookDelivery.id)
+                .limit(limit)
+            ).all()
         return [DueDelivery(d.id, w.id, w.url, w.secret, d.attempts, e) for d, w, e in rows]
 
     def next_delivery_due(self) -> dt.datetime | None:
         with self._db.session() as s:
-            return s.scalar(sa.select(sa.func.min(WebhookDelivery.next_attempt_at))
-                            .where(WebhookDelivery.state == "pending"))
+            return s.scalar(
+                sa.select(sa.func.min(WebhookDelivery.next_attempt_at)).where(
+                    WebhookDelivery.state == "pending"
+                )
+            )
 
-    def record_attempt(self, delivery_id: int, *, ok: bool, status_code: int | None, error: str | None,
-                       duration_s: float, retry_at: dt.datetime | None) -> WebhookDelivery:
-        """Log one attempt; delivered when ok, else pending until `retry_at` (None: given up, failed)."""
+    def record_attempt(
+        self,
+        delivery_id: int,
+        *,
+        ok: bool,
+        status_code: int | None,
+        error: str | None,
+        duration_s: float,
+        retry_at: dt.datetime | None,
+    ) -> WebhookDelivery:
+        """Log one attempt; delivered when ok, else pending until `retry_at` (None: given up,
+        failed)."""
         now = utc_now()
         with self._db.transaction() as s:
             d = s.get(WebhookDelivery, delivery_id)
             if d is None:
                 raise UnknownEntity(f"delivery {delivery_id} does not exist")
-            s.add(WebhookAttempt(delivery_id=delivery_id, at=now, status_code=status_code,
-                                 error=(error or None) and error[:2000], duration_s=float(duration_s)))  # fmt: skip
+            s.add(
+                WebhookAttempt(
+                    delivery_id=delivery_id,
+                    at=now,
+                    status_code=status_code,
+                    error=(error or None) and error[:2000],
+                    duration_s=float(duration_s),
+                )
+            )
             d.attempts += 1
             d.last_status_code, d.last_error = status_code, (error or None) and error[:2000]
             if ok:

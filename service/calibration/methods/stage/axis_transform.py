@@ -1,5 +1,5 @@
-"""Seed 000 ref. [10] as seed 000 describes it: sensing axes non-parallel to the tilt axes, a coordinate
-transform and nothing else."""
+"""Seed 000 ref. [10] as seed 000 describes it: sensing axes non-parallel to the tilt axes, a
+coordinate transform and nothing else."""
 
 from __future__ import annotations
 
@@ -46,22 +46,37 @@ def _axis_matrix(alpha_deg: float, beta_deg: float) -> NDArray[np.float64]:
     return np.array([[np.cos(a), np.sin(a)], [-np.sin(b), np.cos(b)]])
 
 
-def _axis_forward(p: NDArray[np.float64], u_deg: ArrayLike, v_deg: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _axis_forward(
+    p: NDArray[np.float64], u_deg: ArrayLike, v_deg: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     M = _axis_matrix(p[0], p[1])
     su, sv = np.sin(np.radians(u_deg)), np.sin(np.radians(v_deg))
-    return (np.degrees(np.arcsin(np.clip(M[0, 0] * su + M[0, 1] * sv, -1, 1))),
-            np.degrees(np.arcsin(np.clip(M[1, 0] * su + M[1, 1] * sv, -1, 1))))
+    return (
+        np.degrees(np.arcsin(np.clip(M[0, 0] * su + M[0, 1] * sv, -1, 1))),
+        np.degrees(np.arcsin(np.clip(M[1, 0] * su + M[1, 1] * sv, -1, 1))),
+    )
 
 
-def _axis_inverse(p: NDArray[np.float64], a_deg: ArrayLike, b_deg: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _axis_inverse(
+    p: NDArray[np.float64], a_deg: ArrayLike, b_deg: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     Mi = np.linalg.inv(_axis_matrix(p[0], p[1]))
     sa, sb = np.sin(np.radians(a_deg)), np.sin(np.radians(b_deg))
-    return (np.degrees(np.arcsin(np.clip(Mi[0, 0] * sa + Mi[0, 1] * sb, -1, 1))),
-            np.degrees(np.arcsin(np.clip(Mi[1, 0] * sa + Mi[1, 1] * sb, -1, 1))))
+    return (
+        np.degrees(np.arcsin(np.clip(Mi[0, 0] * sa + Mi[0, 1] * sb, -1, 1))),
+        np.degrees(np.arcsin(np.clip(Mi[1, 0] * sa + Mi[1, 1] * sb, -1, 1))),
+    )
 
 
-def _fit_axis_pair(u: NDArray[np.float64], v: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64],
-                   what: str) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, NDArray[np.float64]], dict[str, Any]]:
+def _fit_axis_pair(
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    a: NDArray[np.float64],
+    b: NDArray[np.float64],
+    what: str,
+) -> tuple[
+    NDArray[np.float64], NDArray[np.float64], dict[str, NDArray[np.float64]], dict[str, Any]
+]:
     obs: NDArray[np.float64] = np.concatenate([a, b])
 
     def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -79,13 +94,15 @@ def _fit_axis_pair(u: NDArray[np.float64], v: NDArray[np.float64], a: NDArray[np
 
 
 class AxisTransformMethod(StageMethod):
-    """Ref. [10] as seed 000 describes it: both sensing axes non-parallel to the tilt axes, solved by a
-    coordinate transform; no vertical-direction errors (no zero offsets or plane tilts) and no coupling.
+    """Ref. [10] as seed 000 describes it: both sensing axes non-parallel to the tilt axes, solved
+    by a coordinate transform; no vertical-direction errors (no zero offsets or plane tilts) and no
+    coupling.
 
-    Reading: the stage angles are taken as the table's attitude (x about Y, y about X) and each sensing
-    axis lies in the table plane at a small angle to its tilt axis, so it reads the projection of gravity:
-    sin X = cos α sin x + sin α sin y, sin Y = -sin β sin x + cos β sin y. Calibration fits α, β; the
-    measurement sensor gets the same transform against the reference (its H2-like step).
+    Reading: the stage angles are taken as the table's attitude (x about Y, y about X) and each
+    sensing axis lies in the table plane at a small angle to its tilt axis, so it reads the
+    projection of gravity: sin X = cos α sin x + sin α sin y, sin Y = -sin β sin x + cos β sin y.
+    Calibration fits α, β; the measurement sensor gets the same transform against the reference (its
+    H2-like step).
     """
 
     name = "axis-transform"
@@ -95,27 +112,51 @@ class AxisTransformMethod(StageMethod):
         require_spread(sx, sy, 3, "the axis-transform model")
         p, cov, r, st = _fit_axis_pair(sx, sy, rx, ry, "stage -> reference axis angles")
         names = ["stage_to_ref.x_axis_angle_deg", "stage_to_ref.y_axis_angle_deg"]
-        params = {names[0]: Parameter(float(p[0]), "deg", note="angle of the reference x axis to the upper stage's "
-                                                               "tilt direction, in the table plane"),
-                  names[1]: Parameter(float(p[1]), "deg", note="angle of the reference y axis to the lower stage's "
-                                                               "tilt direction, in the table plane")}
+        params = {
+            names[0]: Parameter(
+                float(p[0]),
+                "deg",
+                note="angle of the reference x axis to the upper stage's "
+                "tilt direction, in the table plane",
+            ),
+            names[1]: Parameter(
+                float(p[1]),
+                "deg",
+                note="angle of the reference y axis to the lower stage's "
+                "tilt direction, in the table plane",
+            ),
+        }
         res = {"ref_x_deg": r["x"], "ref_y_deg": r["y"]}
-        notes = [("ref. [10] as read from seed 000 §0 and §4.5: a coordinate transform for two sensing axes each "
-                 "non-parallel to its tilt axis, sin(reading) = projection of gravity on the axis; the stage "
-                 "angles are taken as the attitude (no off-axis coupling) and there are no vertical-direction "
-                 "errors (no zero offsets or plane tilts)"),
-                 "levelling: (sin x, sin y) = M(alpha, beta)^-1 (sin X, sin Y), exact for this model"]
-        state: dict[str, Any] = {"has_meas": has_meas(data), **bench_state(*stage_hardware(options)[:2])}
+        notes = [
+            (
+                "ref. [10] as read from seed 000 §0 and §4.5: a coordinate transform for two "
+                "sensing axes each non-parallel to its tilt axis, sin(reading) = projection of "
+                "gravity on the axis; the stage angles are taken as the attitude (no off-axis "
+                "coupling) and there are no vertical-direction errors (no zero offsets or plane "
+                "tilts)"
+            ),
+            "levelling: (sin x, sin y) = M(alpha, beta)^-1 (sin X, sin Y), exact for this model",
+        ]
+        state: dict[str, Any] = {
+            "has_meas": has_meas(data),
+            **bench_state(*stage_hardware(options)[:2]),
+        }
         cov_all = cov
         cov_names = list(names)
         fit_info: dict[str, Any] = {"n_points": int(sx.size), "stage_to_ref": st}
         if has_meas(data):
             sign, how = meas_sign(data, options)
             mx, my = columns(data, MEAS_COLUMNS)
-            q, cq, rq, sq = _fit_axis_pair(rx, ry, sign[0] * mx, sign[1] * my, "measurement -> reference axis angles")
+            q, cq, rq, sq = _fit_axis_pair(
+                rx, ry, sign[0] * mx, sign[1] * my, "measurement -> reference axis angles"
+            )
             mnames = ["meas_to_ref.x_axis_angle_deg", "meas_to_ref.y_axis_angle_deg"]
-            params[mnames[0]] = Parameter(float(q[0]), "deg", note="angle of the measurement x axis to the reference x axis")
-            params[mnames[1]] = Parameter(float(q[1]), "deg", note="angle of the measurement y axis to the reference y axis")
+            params[mnames[0]] = Parameter(
+                float(q[0]), "deg", note="angle of the measurement x axis to the reference x axis"
+            )
+            params[mnames[1]] = Parameter(
+                float(q[1]), "deg", note="angle of the measurement y axis to the reference y axis"
+            )
             cov_all = np.block([[cov, np.zeros((2, 2))], [np.zeros((2, 2)), cq]])
             cov_names += mnames
             res.update({"meas_x_deg": rq["x"], "meas_y_deg": rq["y"]})
@@ -124,16 +165,32 @@ class AxisTransformMethod(StageMethod):
             state["meas_dof"] = sq["dof"]
             noise = meas_reading_noise(data, options, sq["sigma_deg"], sq["dof"], sign)
             state.update(noise_state(noise))
-            notes.append(f"reading noise of one measurement reading {noise.sigma_deg:.3g} deg: {noise.source}")
+            notes.append(
+                f"reading noise of one measurement reading {noise.sigma_deg:.3g} deg: "
+                f"{noise.source}"
+            )
             fit_info["meas_to_ref"] = sq
-            notes.append("the measurement sensor is mapped through the same transform against the reference "
-                         "(its H2-like step: axis angles only, no zero offsets)")
+            notes.append(
+                "the measurement sensor is mapped through the same transform against the reference "
+                "(its H2-like step: axis angles only, no zero offsets)"
+            )
             if (mn := mirror_note(sign)) is not None:
                 notes.append(f"{mn} ({how})")
-        return stage_model(self.name, used_columns(data), params, notes, covariance_names=cov_names, covariance=cov_all,
-                      residuals=residual_summary(res, "deg"), fit=fit_info, state=state)
+        return stage_model(
+            self.name,
+            used_columns(data),
+            params,
+            notes,
+            covariance_names=cov_names,
+            covariance=cov_all,
+            residuals=residual_summary(res, "deg"),
+            fit=fit_info,
+            state=state,
+        )
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def commands(
+        self, model: CalibrationModel, data: Columns
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         tx, ty = targets(data)
         p = model.values(["stage_to_ref.x_axis_angle_deg", "stage_to_ref.y_axis_angle_deg"])
         x, y = _axis_inverse(p, tx, ty)
@@ -144,12 +201,16 @@ class AxisTransformMethod(StageMethod):
         names = ["meas_to_ref.x_axis_angle_deg", "meas_to_ref.y_axis_angle_deg"]
         sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
 
-        def f(p: NDArray[np.float64], inp: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
+        def f(
+            p: NDArray[np.float64], inp: Mapping[str, NDArray[np.float64]]
+        ) -> NDArray[np.float64]:
             a, b = _axis_inverse(p, sign[0] * inp["meas_x_deg"], sign[1] * inp["meas_y_deg"])
             return np.column_stack([a, b])
 
         sigma, noise_dof = reading_noise_of(model)
-        return uncertain_correct(f, model.values(names), model.cov_of(names), data, sigma, meas_dof(model), noise_dof)
+        return uncertain_correct(
+            f, model.values(names), model.cov_of(names), data, sigma, meas_dof(model), noise_dof
+        )
 
 
 AXIS_TRANSFORM = AxisTransformMethod()

@@ -30,12 +30,21 @@ from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
 Columns = Mapping[str, NDArray[np.float64]]
 FIT_REQUIRED = STAGE_COLUMNS + REF_COLUMNS
-FIT_OPTIONAL = MEAS_COLUMNS + ("dir_x", "dir_y", "temp_c", "t_s", "point", "noise_ref_x_deg", "noise_ref_y_deg")
+FIT_OPTIONAL = MEAS_COLUMNS + (
+    "dir_x",
+    "dir_y",
+    "temp_c",
+    "t_s",
+    "point",
+    "noise_ref_x_deg",
+    "noise_ref_y_deg",
+)
 CROSS_TOL_DEG = 1e-6
 
 
 def stage_hardware(options: FitOptions) -> tuple[StageBench, str, bool]:
-    """The bench the data came from: stated by the caller (options.extra["bench"]) or assumed (seed 000's)."""
+    """The bench the data came from: stated by the caller (options.extra["bench"]) or assumed (seed
+    000's)."""
     given = options.extra.get("bench")
     if given is None:
         return StageBench(), ASSUMED_BENCH_SOURCE, False
@@ -44,7 +53,8 @@ def stage_hardware(options: FitOptions) -> tuple[StageBench, str, bool]:
 
 
 def bench_state(bench: StageBench, source: str) -> dict[str, Any]:
-    """What a stage model keeps of its bench: the hardware (levelling's travel, the kinematic chain) and its source."""
+    """What a stage model keeps of its bench: the hardware (levelling's travel, the kinematic chain)
+    and its source."""
     return {"bench": asdict(bench), "bench_source": source}
 
 
@@ -54,13 +64,15 @@ def meas_sign(data: Columns, options: FitOptions) -> tuple[NDArray[np.float64], 
 
 
 def fit_stats(r: NDArray[np.float64], n_par: int) -> dict[str, Any]:
-    """Degrees of freedom and residual sigma; no sigma when the points only just determine the parameters."""
+    """Degrees of freedom and residual sigma; no sigma when the points only just determine the
+    parameters."""
     dof = r.size - n_par
     return {"dof": dof, "sigma_deg": float(np.sqrt(r @ r / dof)) if dof > 0 else None}
 
 
 def _pooled_ref_variance(data: Columns, sign: NDArray[np.float64]) -> tuple[float, float] | None:
-    """The reference's own reading variance from repeated rows at one point, and its degrees of freedom.
+    """The reference's own reading variance from repeated rows at one point, and its degrees of
+    freedom.
 
     Within a point, the reference varies by its noise and by the stage's positioning error (from one
     move to the next); the measurement sensor sees the same table, so the positioning error is their
@@ -75,7 +87,10 @@ def _pooled_ref_variance(data: Columns, sign: NDArray[np.float64]) -> tuple[floa
     if dof < 2:
         return None
     var = cov = 0.0
-    for r, m, sg in ((data["ref_x_deg"], data["meas_x_deg"], sign[0]), (data["ref_y_deg"], data["meas_y_deg"], sign[1])):
+    for r, m, sg in (
+        (data["ref_x_deg"], data["meas_x_deg"], sign[0]),
+        (data["ref_y_deg"], data["meas_y_deg"], sign[1]),
+    ):
         r = np.asarray(r, dtype=float)
         m = sg * np.asarray(m, dtype=float)
         dr = r - (np.bincount(which, r) / counts)[which]
@@ -86,57 +101,81 @@ def _pooled_ref_variance(data: Columns, sign: NDArray[np.float64]) -> tuple[floa
 
 
 def _stated_ref_sigma(data: Columns, options: FitOptions) -> float | None:
-    """The reference's noise (1 σ of one reading) as the data's `noise_ref_*` columns or the option ref_noise_deg state it."""
+    """The reference's noise (1 σ of one reading) as the data's `noise_ref_*` columns or the option
+    ref_noise_deg state it."""
     cols = [c for c in ("noise_ref_x_deg", "noise_ref_y_deg") if c in data]
     if cols:
-        return float(np.sqrt(np.mean([np.mean(np.asarray(data[c], dtype=float) ** 2) for c in cols])))
+        return float(
+            np.sqrt(np.mean([np.mean(np.asarray(data[c], dtype=float) ** 2) for c in cols]))
+        )
     stated = options.extra.get("ref_noise_deg")
     if stated is None:
         return None
     value = float(stated)
     if not (np.isfinite(value) and value >= 0):
-        raise InputError(f"option ref_noise_deg: {stated!r} is not a standard deviation in degrees (a number >= 0)")
+        raise InputError(
+            f"option ref_noise_deg: {stated!r} is not a standard deviation in degrees (a "
+            "number >= 0)"
+        )
     return value
 
 
-RESIDUAL_FLOOR = 0.1  # the reading term is never taken below this fraction of the residual's variance
+# the reading term is never taken below this fraction of the residual's variance
+RESIDUAL_FLOOR = 0.1
 
 
-def meas_reading_noise(data: Columns, options: FitOptions, residual_sigma_deg: float, residual_dof: float,
-                       sign: NDArray[np.float64] | None = None) -> ReadingNoise:
+def meas_reading_noise(
+    data: Columns,
+    options: FitOptions,
+    residual_sigma_deg: float,
+    residual_dof: float,
+    sign: NDArray[np.float64] | None = None,
+) -> ReadingNoise:
     """u of one measurement reading = √(s_residual² − σ_ref²), with σ_ref from repeats or as stated.
 
     What the model does not describe stays in it (it is in the residual, not in σ_ref); where
     nothing says what the reference's noise is, the whole residual is taken (conservative: about √2
-    too large for two equal sensors) and the source says so. Degrees of freedom by Welch-Satterthwaite.
+    too large for two equal sensors) and the source says so. Degrees of freedom by
+    Welch-Satterthwaite.
     """
     sign = np.ones(2) if sign is None else np.asarray(sign, dtype=float)
-    s2 = residual_sigma_deg ** 2
+    s2 = residual_sigma_deg**2
     pooled = _pooled_ref_variance(data, sign) if has_meas_columns(data) else None
     if pooled is not None:
         ref_var, ref_dof = max(pooled[0], 0.0), pooled[1]
-        how = (f"the reference's noise from the repeated readings at each point (var(ref) - cov(ref, meas) "
-               f"within points, {ref_dof:.0f} degrees of freedom)")
+        how = (
+            "the reference's noise from the repeated readings at each point (var(ref) - "
+            f"cov(ref, meas) within points, {ref_dof:.0f} degrees of freedom)"
+        )
     elif (stated := _stated_ref_sigma(data, options)) is not None:
-        ref_var, ref_dof = stated ** 2, np.inf
+        ref_var, ref_dof = stated**2, np.inf
         how = f"the reference's stated noise {stated:.3g} deg"
     else:
-        return ReadingNoise(residual_sigma_deg, residual_dof,
-                            "the whole meas-vs-ref residual (it also holds the reference's noise: conservative; "
-                            "repeated readings at the points or the reference's stated noise (noise_ref_* columns, "
-                            "option ref_noise_deg) separate the two)")
+        return ReadingNoise(
+            residual_sigma_deg,
+            residual_dof,
+            "the whole meas-vs-ref residual (it also holds the reference's noise: conservative; "
+            "repeated readings at the points or the reference's stated noise (noise_ref_* columns, "
+            "option ref_noise_deg) separate the two)",
+        )
     var = s2 - ref_var
     floor = RESIDUAL_FLOOR * s2
     note = ""
     if var < floor:
-        var, note = floor, f" (floored at {RESIDUAL_FLOOR:g} of the residual's variance: the estimate left less)"
+        var, note = (
+            floor,
+            f" (floored at {RESIDUAL_FLOOR:g} of the residual's variance: the estimate left less)",
+        )
     with np.errstate(divide="ignore"):
-        denom = s2 ** 2 / residual_dof + (ref_var ** 2 / ref_dof if np.isfinite(ref_dof) else 0.0)
-    dof = float(var ** 2 / denom) if denom > 0 else float("inf")
+        denom = s2**2 / residual_dof + (ref_var**2 / ref_dof if np.isfinite(ref_dof) else 0.0)
+    dof = float(var**2 / denom) if denom > 0 else float("inf")
     dof = min(dof, float(residual_dof))
-    return ReadingNoise(float(np.sqrt(var)), dof,
-                        f"the meas-vs-ref residual ({residual_sigma_deg:.3g} deg) less {how}{note}",
-                        float(np.sqrt(ref_var)))
+    return ReadingNoise(
+        float(np.sqrt(var)),
+        dof,
+        f"the meas-vs-ref residual ({residual_sigma_deg:.3g} deg) less {how}{note}",
+        float(np.sqrt(ref_var)),
+    )
 
 
 def has_meas_columns(data: Columns) -> bool:
@@ -144,41 +183,67 @@ def has_meas_columns(data: Columns) -> bool:
 
 
 def noise_state(noise: ReadingNoise) -> dict[str, Any]:
-    """What a model keeps of the reading noise (MODEL.json state): standard uncertainties, named as such."""
-    return {"meas_reading_standard_uncertainty_deg": noise.sigma_deg, "meas_reading_dof": noise.dof,
-            "meas_reading_noise_source": noise.source,
-            **({"ref_reading_standard_uncertainty_deg": noise.ref_sigma_deg} if noise.ref_sigma_deg is not None else {})}
+    """What a model keeps of the reading noise (MODEL.json state): standard uncertainties, named as
+    such."""
+    return {
+        "meas_reading_standard_uncertainty_deg": noise.sigma_deg,
+        "meas_reading_dof": noise.dof,
+        "meas_reading_noise_source": noise.source,
+        **(
+            {"ref_reading_standard_uncertainty_deg": noise.ref_sigma_deg}
+            if noise.ref_sigma_deg is not None
+            else {}
+        ),
+    }
 
 
 def reading_noise_of(model: CalibrationModel) -> tuple[float, float]:
-    """(u of one measurement reading, its degrees of freedom) of a model; models made before the two sensors'
-    noise was separated state only the residual (`meas_sigma_deg`, `meas_dof`), read as before."""
+    """(u of one measurement reading, its degrees of freedom) of a model; models made before the two
+    sensors' noise was separated state only the residual (`meas_sigma_deg`, `meas_dof`), read as
+    before."""
     st = model.state
     if "meas_reading_standard_uncertainty_deg" in st:
         dof = st.get("meas_reading_dof")
-        return float(st["meas_reading_standard_uncertainty_deg"]), float(dof) if dof else float("inf")
+        return float(st["meas_reading_standard_uncertainty_deg"]), float(dof) if dof else float(
+            "inf"
+        )
     return float(st.get("meas_sigma_deg", 0.0)), meas_dof(model)
 
 
-def numeric_cov(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], p: NDArray[np.float64], scales: NDArray[np.float64],
-                s2: float) -> NDArray[np.float64]:
-    """Gauss-Newton covariance s²(JᵀJ)⁻¹ of parameters p of a residual function (scaled for conditioning)."""
+def numeric_cov(
+    fun: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    p: NDArray[np.float64],
+    scales: NDArray[np.float64],
+    s2: float,
+) -> NDArray[np.float64]:
+    """Gauss-Newton covariance s²(JᵀJ)⁻¹ of parameters p of a residual function (scaled for
+    conditioning)."""
     return jacobian_cov(central_jacobian(fun, p, scales), scales, s2)
 
 
-def jacobian_cov(J: NDArray[np.float64], scales: NDArray[np.float64], s2: float) -> NDArray[np.float64]:
+def jacobian_cov(
+    J: NDArray[np.float64], scales: NDArray[np.float64], s2: float
+) -> NDArray[np.float64]:
     """s²(JᵀJ)⁻¹ from the residuals' Jacobian J (unscaled), scaled by `scales` for conditioning."""
     J = J * scales
     sv = np.linalg.svd(J, compute_uv=False)
     if sv[-1] <= 1e-10 * sv[0]:
-        raise DegenerateDataError("the points do not determine every parameter of the model (singular fit)")
+        raise DegenerateDataError(
+            "the points do not determine every parameter of the model (singular fit)"
+        )
     cov: NDArray[np.float64] = np.linalg.inv(J.T @ J) * np.outer(scales, scales) * s2
     return cov
 
 
-def uncertain_correct(f: Callable[[NDArray[np.float64], Mapping[str, NDArray[np.float64]]], NDArray[np.float64]], p: NDArray[np.float64],
-                      cov: NDArray[np.float64] | None, data: Columns, sigma_deg: float,
-                      dof: float, noise_dof: float | None = None) -> dict[str, NDArray[np.float64]]:
+def uncertain_correct(
+    f: Callable[[NDArray[np.float64], Mapping[str, NDArray[np.float64]]], NDArray[np.float64]],
+    p: NDArray[np.float64],
+    cov: NDArray[np.float64] | None,
+    data: Columns,
+    sigma_deg: float,
+    dof: float,
+    noise_dof: float | None = None,
+) -> dict[str, NDArray[np.float64]]:
     """tilt = f(p, readings) and its expanded GUM uncertainty from cov and the reading noise.
 
     The covariance comes from a fit with `dof` degrees of freedom, the reading noise from an
@@ -189,8 +254,15 @@ def uncertain_correct(f: Callable[[NDArray[np.float64], Mapping[str, NDArray[np.
     y = f(p, inputs)
     out = {"tilt_x_deg": y[:, 0], "tilt_y_deg": y[:, 1]}
     if cov is not None:
-        gum = propagate_gum(f, p, cov, inputs, {c: sigma_deg for c in MEAS_COLUMNS}, dof,
-                            dof if noise_dof is None else noise_dof)
+        gum = propagate_gum(
+            f,
+            p,
+            cov,
+            inputs,
+            {c: sigma_deg for c in MEAS_COLUMNS},
+            dof,
+            dof if noise_dof is None else noise_dof,
+        )
         U, k = gum.expanded(), np.broadcast_to(coverage_factor(gum.dof_eff), gum.u.shape)
         out["u_tilt_x_deg"], out["u_tilt_y_deg"] = U[:, 0], U[:, 1]
         out[K_OUTPUTS[0]], out[K_OUTPUTS[1]] = k[:, 0], k[:, 1]
@@ -198,12 +270,15 @@ def uncertain_correct(f: Callable[[NDArray[np.float64], Mapping[str, NDArray[np.
 
 
 def meas_dof(model: CalibrationModel) -> float:
-    """Degrees of freedom of the measurement-sensor fit (infinite for models written before it was kept)."""
+    """Degrees of freedom of the measurement-sensor fit (infinite for models written before it was
+    kept)."""
     dof = model.state.get("meas_dof")
     return float(dof) if dof else float("inf")
 
 
-def stage_commands(model: CalibrationModel, x: NDArray[np.float64], y: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+def stage_commands(
+    model: CalibrationModel, x: NDArray[np.float64], y: NDArray[np.float64]
+) -> dict[str, NDArray[np.float64]]:
     """Levelling output of every stage method: refused where the bench cannot go.
 
     The travel is the bench's the model was fitted for (the kinematic model keeps it), else the
@@ -213,12 +288,16 @@ def stage_commands(model: CalibrationModel, x: NDArray[np.float64], y: NDArray[n
     bad = ~(np.isfinite(x) & np.isfinite(y))
     if bad.any():
         rows = ", ".join(str(i + 1) for i in np.flatnonzero(bad)[:5])
-        raise InputError(f"target row(s) {rows}: no stage angles reach the wanted tilt under this model")
+        raise InputError(
+            f"target row(s) {rows}: no stage angles reach the wanted tilt under this model"
+        )
     beyond = np.flatnonzero((np.abs(x) > travel) | (np.abs(y) > travel))
     if beyond.size:
         rows = ", ".join(str(i + 1) for i in beyond[:5])
-        raise InputError(f"target row(s) {rows} need stage angles beyond the bench's travel of ±{travel:g} deg "
-                         f"(e.g. stage_x_deg {x[beyond[0]]:.3f}, stage_y_deg {y[beyond[0]]:.3f})")
+        raise InputError(
+            f"target row(s) {rows} need stage angles beyond the bench's travel of ±{travel:g} deg "
+            f"(e.g. stage_x_deg {x[beyond[0]]:.3f}, stage_y_deg {y[beyond[0]]:.3f})"
+        )
     return {"stage_x_deg": x, "stage_y_deg": y}
 
 
@@ -227,8 +306,12 @@ def targets(data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return x, y
 
 
-def stage_model(method: str, used: list[str], params: dict[str, Parameter], notes: list[str], **kw: Any) -> CalibrationModel:
-    return CalibrationModel(kind="stage", method=method, columns=used, parameters=params, notes=notes, **kw)
+def stage_model(
+    method: str, used: list[str], params: dict[str, Parameter], notes: list[str], **kw: Any
+) -> CalibrationModel:
+    return CalibrationModel(
+        kind="stage", method=method, columns=used, parameters=params, notes=notes, **kw
+    )
 
 
 def used_columns(data: Columns) -> list[str]:
@@ -236,7 +319,8 @@ def used_columns(data: Columns) -> list[str]:
 
 
 class StageMethod:
-    """A stage calibration: fit (data -> model), level (wanted tilt -> stage commands), correct (readings -> tilt).
+    """A stage calibration: fit (data -> model), level (wanted tilt -> stage commands), correct
+    (readings -> tilt).
 
     Subclasses give `fit`, `commands` (the unchecked stage angles for the targets) and `correct`;
     levelling's checks (reachable, within the bench's travel) are the same for every method.
@@ -253,7 +337,9 @@ class StageMethod:
     def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
         raise NotImplementedError
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def commands(
+        self, model: CalibrationModel, data: Columns
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Stage angles for the targets in `data`, before levelling's checks."""
         raise NotImplementedError
 

@@ -1,5 +1,6 @@
-"""The kinematic chain of docs/models.md §2 as a calibration: which parameters the data can separate,
-the fit itself (service.calibration.stage_effect_fit), and the chain run forwards and backwards.
+"""The kinematic chain of docs/models.md §2 as a calibration: which parameters the data can
+separate, the fit itself (service.calibration.stage_effect_fit), and the chain run forwards and
+backwards.
 
 Identifiability. Only the up vector in the reference frame is observable, so the chain
 desk · Rot(lower axis, θy) · Rot(upper axis, θx) · top · ref seat · ref yaw has an exact 3-D
@@ -47,8 +48,10 @@ from service.physics.effects import EffectSet
 from service.physics.stage import StageBench, StageGeometry, offaxis_inverse_deg
 
 ParamKey = tuple[str, str]
-IDENTIFIABLE_REL = 1e-3  # a column closer than this (relative) to the span of the kept ones is not separable
-UNEXERCISED_REL = 1e-9  # a column smaller than this (relative to the largest) is not exercised by the points
+# a column closer than this (relative) to the span of the kept ones is not separable
+IDENTIFIABLE_REL = 1e-3
+# a column smaller than this (relative to the largest) is not exercised by the points
+UNEXERCISED_REL = 1e-9
 
 # Order of physical preference: the first of a degenerate group is kept.
 CHAIN_CANDIDATES: tuple[ParamKey, ...] = (
@@ -68,23 +71,35 @@ CHAIN_CANDIDATES: tuple[ParamKey, ...] = (
     ("mounting_tilt", "ref_x_deg"),
     ("mounting_tilt", "ref_y_deg"),
 )
-# Effects a record may add to the chain (a diagnosis names them), by the parameters each adds, parametrised so the
-# fit is linear in them from its start at zero: a worm's periodic error as a sine/cosine pair per stage (amplitude and
-# phase are singular at zero amplitude), the reference sensor's own terms because the chain is fitted to its
-# readings. Backlash is a chain candidate already; naming it only asks that the record models it.
+# Effects a record may add to the chain (a diagnosis names them), by the parameters each adds,
+# parametrised so the fit is linear in them from its start at zero: a worm's periodic error as a
+# sine/cosine pair per stage (amplitude and phase are singular at zero amplitude), the reference
+# sensor's own terms because the chain is fitted to its readings. Backlash is a chain candidate
+# already; naming it only asks that the record models it.
 EFFECT_PARAMS: dict[str, tuple[ParamKey, ...]] = {
-    "periodic_error": (("periodic_error", "x_sin_deg"), ("periodic_error", "x_cos_deg"),
-                       ("periodic_error", "y_sin_deg"), ("periodic_error", "y_cos_deg")),
+    "periodic_error": (
+        ("periodic_error", "x_sin_deg"),
+        ("periodic_error", "x_cos_deg"),
+        ("periodic_error", "y_sin_deg"),
+        ("periodic_error", "y_cos_deg"),
+    ),
     "backlash": (("backlash", "x_deg"), ("backlash", "y_deg")),
-    "sensor_nonlinearity": (("sensor_nonlinearity", "ref_x_per_deg"), ("sensor_nonlinearity", "ref_y_per_deg")),
-    "temperature_drift": (("temperature_drift", "ref_x_deg_per_k"), ("temperature_drift", "ref_y_deg_per_k"),
-                          ("temperature_drift", "ref_scale_per_k")),
+    "sensor_nonlinearity": (
+        ("sensor_nonlinearity", "ref_x_per_deg"),
+        ("sensor_nonlinearity", "ref_y_per_deg"),
+    ),
+    "temperature_drift": (
+        ("temperature_drift", "ref_x_deg_per_k"),
+        ("temperature_drift", "ref_y_deg_per_k"),
+        ("temperature_drift", "ref_scale_per_k"),
+    ),
     "time_drift": (("time_drift", "ref_x_deg_per_h"), ("time_drift", "ref_y_deg_per_h")),
 }
 EXTRA_EFFECTS = tuple(EFFECT_PARAMS)
 # The reference sensor's own reading errors among them: what the record then knows of its reference.
 REFERENCE_EFFECTS = ("sensor_nonlinearity", "temperature_drift", "time_drift")
-# Pairs that are one physical quantity (a worm's amplitude and phase): both are determined, or neither is fitted.
+# Pairs that are one physical quantity (a worm's amplitude and phase): both are determined, or
+# neither is fitted.
 PAIRED: dict[ParamKey, ParamKey] = {
     ("periodic_error", "x_sin_deg"): ("periodic_error", "x_cos_deg"),
     ("periodic_error", "x_cos_deg"): ("periodic_error", "x_sin_deg"),
@@ -92,13 +107,18 @@ PAIRED: dict[ParamKey, ParamKey] = {
     ("periodic_error", "y_cos_deg"): ("periodic_error", "y_sin_deg"),
 }
 IN_CHAIN = ("offaxis_coupling",)
-# The bench's drawings: standard uncertainties of the geometric parameters a stage bench is built to (a tilt or an
-# axis seated on machined faces and locating pins is square to about half a degree). A parameter the points
-# determine worse than PRIOR_WHEN times this is fitted with it as a prior (fit_chain).
+# The bench's drawings: standard uncertainties of the geometric parameters a stage bench is built to
+# (a tilt or an axis seated on machined faces and locating pins is square to about half a degree). A
+# parameter the points determine worse than PRIOR_WHEN times this is fitted with it as a prior
+# (fit_chain).
 PRIOR_SD: dict[str, float] = {"axis_misalignment": 0.5, "mounting_tilt": 0.5, "sensor_yaw": 0.5}
 PRIOR_WHEN = 0.5
-ESSENTIAL = (("stage_scale", "x"), ("stage_scale", "y"), ("mounting_tilt", "desk_x_deg"),
-             ("mounting_tilt", "desk_y_deg"))
+ESSENTIAL = (
+    ("stage_scale", "x"),
+    ("stage_scale", "y"),
+    ("mounting_tilt", "desk_x_deg"),
+    ("mounting_tilt", "desk_y_deg"),
+)
 REF_OBS = REF
 
 
@@ -115,14 +135,17 @@ class Selection:
     rel_residual: list[float]
 
 
-def select_identifiable(J: NDArray[np.float64], scales: NDArray[np.float64], rel_tol: float = IDENTIFIABLE_REL) -> Selection:
+def select_identifiable(
+    J: NDArray[np.float64], scales: NDArray[np.float64], rel_tol: float = IDENTIFIABLE_REL
+) -> Selection:
     """Greedy column selection in candidate order: keep a column if it adds a new direction."""
     Js = J * scales
     kept: list[int] = []
     fixed: list[int] = []
     merged: dict[int, list[tuple[int, float]]] = {}
     rels = []
-    # a column this much smaller than the largest is rounding, not signal (sin(π·k) of a worm sampled at two phases)
+    # a column this much smaller than the largest is rounding, not signal (sin(π·k) of a worm
+    # sampled at two phases)
     floor = UNEXERCISED_REL * float(np.max(np.linalg.norm(Js, axis=0), initial=0.0))
     for i in range(Js.shape[1]):
         col = Js[:, i]
@@ -143,16 +166,24 @@ def select_identifiable(J: NDArray[np.float64], scales: NDArray[np.float64], rel
             kept.append(i)
         else:
             fixed.append(i)
-            # physical coefficients: a change d of parameter i looks like changes coef_j * s_i / s_j of kept j
-            merged[i] = [(kept[j], float(coef[j] * scales[i] / scales[kept[j]])) for j in range(len(kept))
-                         if abs(coef[j]) > 0.05 * np.max(np.abs(coef))]
+            # physical coefficients: a change d of parameter i looks like changes coef_j * s_i / s_j
+            # of kept j
+            merged[i] = [
+                (kept[j], float(coef[j] * scales[i] / scales[kept[j]]))
+                for j in range(len(kept))
+                if abs(coef[j]) > 0.05 * np.max(np.abs(coef))
+            ]
     return Selection(kept, fixed, merged, rels)
 
 
-def numeric_jacobian(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], x0: NDArray[np.float64],
-                     scales: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The chain's Jacobian for identifiability and covariance: the one finite-difference rule, stepping
-    a thousandth of each parameter's typical magnitude (the linearisation the selection judges)."""
+def numeric_jacobian(
+    fun: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    x0: NDArray[np.float64],
+    scales: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """The chain's Jacobian for identifiability and covariance: the one finite-difference rule,
+    stepping a thousandth of each parameter's typical magnitude (the linearisation the selection
+    judges)."""
     return central_jacobian(fun, x0, 1e3 * np.asarray(scales))
 
 
@@ -170,14 +201,17 @@ class ChainFit:
     nfev: int
     singular_values: NDArray[np.float64]
     correlations: list[tuple[str, str, float]]
-    # effects asked for whose parameters these points determine none of -> why (every parameter held at zero)
+    # effects asked for whose parameters these points determine none of -> why (every parameter held
+    # at zero)
     undetermined: dict[str, str] = field(default_factory=dict)
-    # parameters fitted with a prior from the bench's drawings (the points alone determine them worse) -> why
+    # parameters fitted with a prior from the bench's drawings (the points alone determine them
+    # worse) -> why
     priors: dict[ParamKey, str] = field(default_factory=dict)
 
 
 def worm_phases(bench: StageBench, cmd_deg: NDArray[np.float64], axis: str) -> int:
-    """How many distinct phases of the stage's worm the commands sample (to a hundredth of a turn)."""
+    """How many distinct phases of the stage's worm the commands sample (to a hundredth of a
+    turn)."""
     qx, qy = bench.quantise(cmd_deg, cmd_deg)
     period = bench.worm_period_x_deg if axis == "x" else bench.worm_period_y_deg
     turns = (qx if axis == "x" else qy) / period
@@ -185,21 +219,28 @@ def worm_phases(bench: StageBench, cmd_deg: NDArray[np.float64], axis: str) -> i
 
 
 def _held_reason(key: ParamKey, bench: StageBench, pts: StagePoints) -> str | None:
-    """Why an effect parameter the points cannot determine is held, in the lab's words (None: the generic one)."""
+    """Why an effect parameter the points cannot determine is held, in the lab's words (None: the
+    generic one)."""
     effect, name = key
     ax = name[:1]
     if effect == "periodic_error":
         cmd = pts.stage_x_deg if ax == "x" else pts.stage_y_deg
         period = bench.worm_period_x_deg if ax == "x" else bench.worm_period_y_deg
         n = worm_phases(bench, cmd, ax)
-        return (f"the points sample the {ax} stage's worm (period {period:.6g} deg) at {n} phase{'s' * (n != 1)}: too "
-                "few to tell its periodic error's amplitude and phase from the stage's scale and zero; held at 0 "
-                f"(a scan of the {ax} stage in steps of an eighth of the period determines it)")
+        return (
+            f"the points sample the {ax} stage's worm (period {period:.6g} deg) at {n} "
+            f"phase{'s' * (n != 1)}: too few to tell its periodic error's amplitude and phase "
+            f"from the stage's scale and zero; held at 0 (a scan of the {ax} stage in steps of "
+            "an eighth of the period determines it)"
+        )
     if effect == "backlash":
         d = pts.dir_x if ax == "x" else pts.dir_y
         if not (np.any(d > 0) and np.any(d < 0)):
-            return (f"every point was approached moving the {ax} stage the same way, so its lost motion is a constant "
-                    "the zero already holds; held at 0 (points approached from both sides determine it)")
+            return (
+                f"every point was approached moving the {ax} stage the same way, so its lost "
+                "motion is a constant "
+                "the zero already holds; held at 0 (points approached from both sides determine it)"
+            )
     if effect == "temperature_drift" and (pts.temp_c is None or float(np.ptp(pts.temp_c)) < 0.05):
         return "the temperature hardly changed over the points; held at 0"
     if effect == "time_drift" and pts.t_s is None:
@@ -207,22 +248,41 @@ def _held_reason(key: ParamKey, bench: StageBench, pts: StagePoints) -> str | No
     return None
 
 
-def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], loss: str = "linear",
-              periodic: bool = False, max_nfev: int = 200, effects: Sequence[str] = (),
-              worm_axes: Sequence[str] = ("x", "y")) -> ChainFit:
-    """Least-squares fit of the identifiable chain parameters to the reference readings, with the parameters of
-    the extra `effects` (EFFECT_PARAMS) free as well, as far as the points determine them: the others are held at
-    zero with the reason (a worm's sine/cosine pair is fitted together or not at all). A periodic error is fitted
-    on the stages of `worm_axes` only (those a diagnosis saw it on)."""
+def fit_chain(
+    bench: StageBench,
+    pts: StagePoints,
+    ref_x: NDArray[np.float64],
+    ref_y: NDArray[np.float64],
+    loss: str = "linear",
+    periodic: bool = False,
+    max_nfev: int = 200,
+    effects: Sequence[str] = (),
+    worm_axes: Sequence[str] = ("x", "y"),
+) -> ChainFit:
+    """Least-squares fit of the identifiable chain parameters to the reference readings, with the
+    parameters of the extra `effects` (EFFECT_PARAMS) free as well, as far as the points determine
+    them: the others are held at zero with the reason (a worm's sine/cosine pair is fitted together
+    or not at all). A periodic error is fitted on the stages of `worm_axes` only (those a diagnosis
+    saw it on)."""
     unknown = [e for e in effects if e not in EXTRA_EFFECTS and e not in IN_CHAIN]
     if unknown:
-        raise InputError(f"effects: {', '.join(unknown)} cannot be added to the kinematic chain; it takes "
-                         f"{', '.join(EXTRA_EFFECTS)} (and has {', '.join(IN_CHAIN)} already)")
+        raise InputError(
+            f"effects: {', '.join(unknown)} cannot be added to the kinematic chain; it takes "
+            f"{', '.join(EXTRA_EFFECTS)} (and has {', '.join(IN_CHAIN)} already)"
+        )
     wanted = (["periodic_error"] if periodic else []) + [e for e in effects if e in EXTRA_EFFECTS]
     wanted = list(dict.fromkeys(wanted))
-    not_seen = [k for k in EFFECT_PARAMS["periodic_error"] if "periodic_error" in wanted and k[1][:1] not in worm_axes]
-    candidates = list(CHAIN_CANDIDATES) + [k for e in wanted for k in EFFECT_PARAMS[e]
-                                           if k not in CHAIN_CANDIDATES and k not in not_seen]
+    not_seen = [
+        k
+        for k in EFFECT_PARAMS["periodic_error"]
+        if "periodic_error" in wanted and k[1][:1] not in worm_axes
+    ]
+    candidates = list(CHAIN_CANDIDATES) + [
+        k
+        for e in wanted
+        for k in EFFECT_PARAMS[e]
+        if k not in CHAIN_CANDIDATES and k not in not_seen
+    ]
     all_model = StageEffectModel(bench, {}, candidates)
     scales = np.array([typical_scale(k) for k in candidates])
 
@@ -234,10 +294,16 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], r
     missing = [candidates[i] for i in sel.fixed if candidates[i] in ESSENTIAL]
     if missing:
         what = ", ".join(param_label(k) for k in missing)
-        raise DegenerateDataError(f"the stage points do not determine {what}: the data need both stages moved to "
-                                  "several angles each, with points off both axes (e.g. a 3 x 3 grid or larger)")
+        raise DegenerateDataError(
+            f"the stage points do not determine {what}: the data need both stages moved to "
+            "several angles each, with points off both axes (e.g. a 3 x 3 grid or larger)"
+        )
     kept = list(sel.kept)
-    alone = [i for i in kept if candidates[i] in PAIRED and candidates.index(PAIRED[candidates[i]]) not in kept]
+    alone = [
+        i
+        for i in kept
+        if candidates[i] in PAIRED and candidates.index(PAIRED[candidates[i]]) not in kept
+    ]
     kept = [i for i in kept if i not in alone]
     free = [candidates[i] for i in kept]
     fixed: dict[ParamKey, str] = {}
@@ -247,34 +313,48 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], r
         if key[0] in wanted and (why := _held_reason(key, bench, pts)) is not None:
             pass
         elif i in alone:
-            why = (f"its partner {param_label(PAIRED[key])} is not determined by these points, so the worm's "
-                   "amplitude and phase are not either; held at 0")
+            why = (
+                f"its partner {param_label(PAIRED[key])} is not determined by these points, so "
+                "the worm's amplitude and phase are not either; held at 0"
+            )
         elif into:
             parts = ", ".join(f"{param_label(candidates[j])} ({c:+.2g} per unit)" for j, c in into)
-            why = f"not separable on these points from {parts} (relative residual {sel.rel_residual[i]:.1e}); held at 0"
+            why = (
+                f"not separable on these points from {parts} (relative residual "
+                f"{sel.rel_residual[i]:.1e}); held at 0"
+            )
         else:
             why = "these points do not exercise it; held at 0"
         fixed[key] = why
     for key in not_seen:
-        fixed[key] = (f"the diagnosis saw no worm error on the {key[1][:1]} stage (its terms within three standard "
-                      "uncertainties of zero); held at 0")
+        fixed[key] = (
+            f"the diagnosis saw no worm error on the {key[1][:1]} stage (its terms within three "
+            "standard uncertainties of zero); held at 0"
+        )
     undetermined = {}
     for e in wanted:
         held = [k for k in EFFECT_PARAMS[e] if k in fixed]
         if len(held) == len(EFFECT_PARAMS[e]):
-            undetermined[e] = "; ".join(dict.fromkeys(f"{param_label(k)}: {fixed[k]}" for k in held))
+            undetermined[e] = "; ".join(
+                dict.fromkeys(f"{param_label(k)}: {fixed[k]}" for k in held)
+            )
     x0 = np.zeros(len(free))
     model = StageEffectModel(bench, {}, free)
     observed = {"ref_x_deg": ref_x, "ref_y_deg": ref_y}
     try:
-        fit = fit_stage_effects(model, pts, observed, x0=x0, loss=loss, max_nfev=max_nfev)  # robust scale: see fit_stage_effects
+        # robust scale: see fit_stage_effects
+        fit = fit_stage_effects(model, pts, observed, x0=x0, loss=loss, max_nfev=max_nfev)
     except FitError as exc:
         raise DegenerateDataError(f"the kinematic fit failed on these points: {exc}") from None
     if not fit.converged:
-        raise DegenerateDataError(f"the kinematic fit did not converge in {fit.nfev} evaluations ({fit.message}); "
-                                  "the points do not pin the bench down: add points over both stages' ranges")
+        raise DegenerateDataError(
+            f"the kinematic fit did not converge in {fit.nfev} evaluations ({fit.message}); "
+            "the points do not pin the bench down: add points over both stages' ranges"
+        )
     if not np.all(np.isfinite(fit.covariance)):
-        raise DegenerateDataError("the kinematic fit has no finite covariance: the points do not separate its parameters")
+        raise DegenerateDataError(
+            "the kinematic fit has no finite covariance: the points do not separate its parameters"
+        )
     sd = np.sqrt(np.clip(np.diag(fit.covariance), 1e-300, None))
     corr = fit.covariance / np.outer(sd, sd)
     pairs = []
@@ -282,45 +362,88 @@ def fit_chain(bench: StageBench, pts: StagePoints, ref_x: NDArray[np.float64], r
         for j in range(i + 1, len(free)):
             if abs(corr[i, j]) > 0.95:
                 pairs.append((param_label(free[i]), param_label(free[j]), float(corr[i, j])))
-    # What the points determine worse than the bench's drawings do is not stated as if they did: such a parameter
-    # (a near-degenerate partner whose data-only u exceeds half the drawings' tolerance) is fitted again with that
-    # tolerance as a prior, so its value and u are the drawings' updated by the points (the well-determined
-    # combination is still the points'); repeated fits of one bench then agree within what they state.
+    # What the points determine worse than the bench's drawings do is not stated as if they did:
+    # such a parameter (a near-degenerate partner whose data-only u exceeds half the drawings'
+    # tolerance) is fitted again with that tolerance as a prior, so its value and u are the
+    # drawings' updated by the points (the well-determined combination is still the points');
+    # repeated fits of one bench then agree within what they state.
     priors: dict[ParamKey, str] = {}
     prior_sd: list[float | None] = []
     for i, key in enumerate(free):
         tol = PRIOR_SD.get(key[0])
         if tol is not None and sd[i] > PRIOR_WHEN * tol:
-            partners = [param_label(free[j]) for j in range(len(free)) if j != i and abs(corr[i, j]) > 0.9]
-            priors[key] = (f"the points determine it only to ±{sd[i]:.2g} {unit_of(key)} (standard uncertainty"
-                           + (f"; near-degenerate with {', '.join(partners)}" if partners else "")
-                           + f"), worse than the bench's drawings: fitted with the prior 0 ± {tol:g} {unit_of(key)} "
-                           "(standard uncertainty; a stage or sensor seated on machined faces and locating pins)")
+            partners = [
+                param_label(free[j]) for j in range(len(free)) if j != i and abs(corr[i, j]) > 0.9
+            ]
+            priors[key] = (
+                f"the points determine it only to ±{sd[i]:.2g} {unit_of(key)} (standard uncertainty"
+                + (f"; near-degenerate with {', '.join(partners)}" if partners else "")
+                + f"), worse than the bench's drawings: fitted with the prior 0 ± {tol:g} "
+                f"{unit_of(key)} (standard uncertainty; a stage or sensor seated on machined "
+                "faces and locating pins)"
+            )
             prior_sd.append(tol)
         else:
             prior_sd.append(None)
     if priors:
         start = np.where([p is None for p in prior_sd], fit.values, 0.0)
         try:
-            fit = fit_stage_effects(model, pts, observed, x0=start, loss=loss, max_nfev=max_nfev, prior_sd=prior_sd,
-                                    prior_sigma=fit.sigma)
+            fit = fit_stage_effects(
+                model,
+                pts,
+                observed,
+                x0=start,
+                loss=loss,
+                max_nfev=max_nfev,
+                prior_sd=prior_sd,
+                prior_sigma=fit.sigma,
+            )
         except FitError as exc:
             raise DegenerateDataError(f"the kinematic fit failed on these points: {exc}") from None
-    return ChainFit(free, fit.values, fit.covariance, fixed, fit.residuals, fit.sigma, fit.dof, fit.converged,
-                    fit.nfev, fit.jac_singular_values, pairs, undetermined, priors)
+    return ChainFit(
+        free,
+        fit.values,
+        fit.covariance,
+        fixed,
+        fit.residuals,
+        fit.sigma,
+        fit.dof,
+        fit.converged,
+        fit.nfev,
+        fit.jac_singular_values,
+        pairs,
+        undetermined,
+        priors,
+    )
 
 
-# --- the chain run forwards and backwards (unquantised commands) ------------------------------------
-def actual_angles_deg(fx: EffectSet, bench: StageBench, cmd_x: ArrayLike, cmd_y: ArrayLike, dir_x: ArrayLike = 0.0,
-                      dir_y: ArrayLike = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+# --- the chain run forwards and backwards (unquantised commands)
+# ------------------------------------
+def actual_angles_deg(
+    fx: EffectSet,
+    bench: StageBench,
+    cmd_x: ArrayLike,
+    cmd_y: ArrayLike,
+    dir_x: ArrayLike = 0.0,
+    dir_y: ArrayLike = 0.0,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Stage angles reached for commands (no pulse rounding, no noise): the model's mean bench."""
     out = []
-    for ax, cmd, d, period in (("x", cmd_x, dir_x, bench.worm_period_x_deg), ("y", cmd_y, dir_y, bench.worm_period_y_deg)):
+    for ax, cmd, d, period in (
+        ("x", cmd_x, dir_x, bench.worm_period_x_deg),
+        ("y", cmd_y, dir_y, bench.worm_period_y_deg),
+    ):
         cmd_deg = np.asarray(cmd, dtype=float)
-        ang = cmd_deg * (1.0 + fx.get("stage_scale", ax)) - np.asarray(d, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
+        ang = (
+            cmd_deg * (1.0 + fx.get("stage_scale", ax))
+            - np.asarray(d, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
+        )
         amp = fx.get("periodic_error", f"{ax}_amp_deg")
         if amp:
-            ang = ang + amp * np.sin(2 * np.pi * cmd_deg / period + np.radians(fx.get("periodic_error", f"{ax}_phase_deg")))
+            ang = ang + amp * np.sin(
+                2 * np.pi * cmd_deg / period
+                + np.radians(fx.get("periodic_error", f"{ax}_phase_deg"))
+            )
         out.append(ang)
     return out[0], out[1]
 
@@ -342,14 +465,20 @@ class ChainModel:
             eff.setdefault(e, {})[p] = float(v)
         return cls(bench, EffectSet.from_mapping("stage", registry_effects(eff)))
 
-    def tilt(self, cmd_x: ArrayLike, cmd_y: ArrayLike, dir_x: ArrayLike = 0.0, dir_y: ArrayLike = 0.0) -> tuple[NDArray[np.float64],
-                                                                                                                NDArray[np.float64]]:
+    def tilt(
+        self, cmd_x: ArrayLike, cmd_y: ArrayLike, dir_x: ArrayLike = 0.0, dir_y: ArrayLike = 0.0
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         ax, ay = actual_angles_deg(self.fx, self.bench, cmd_x, cmd_y, dir_x, dir_y)
         r = self.geometry.readings_deg(np.radians(np.atleast_1d(ax)), np.radians(np.atleast_1d(ay)))
         return r["tilt_x"], r["tilt_y"]
 
-    def level(self, target_x: ArrayLike, target_y: ArrayLike, dir_x: ArrayLike = 1.0, dir_y: ArrayLike = 1.0) -> tuple[NDArray[np.float64],
-                                                                                                                       NDArray[np.float64]]:
+    def level(
+        self,
+        target_x: ArrayLike,
+        target_y: ArrayLike,
+        dir_x: ArrayLike = 1.0,
+        dir_y: ArrayLike = 1.0,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Commands that bring the table to the wanted tilt: 2-D Newton from the ideal inverse."""
         tx = np.atleast_1d(np.asarray(target_x, dtype=float))
         ty = np.atleast_1d(np.asarray(target_y, dtype=float))
@@ -358,7 +487,8 @@ class ChainModel:
         return newton_2d(lambda u, v: self.tilt(u, v, dir_x, dir_y), tx, ty, x0, y0)
 
 
-# --- the measurement sensor fit --------------------------------------------------------------------
+# --- the measurement sensor fit
+# --------------------------------------------------------------------
 @dataclass
 class MeasFit:
     names: list[str]  # free
@@ -374,23 +504,35 @@ class MeasFit:
     covariance_dof: float = float("inf")  # of the covariance: each axis's variance over n − p/2
 
 
-def _per_axis_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n: int,
-                         p: int) -> tuple[NDArray[np.float64], float]:
-    """The parameters' covariance, and its degrees of freedom, of a least-squares fit whose first n residuals are the x axis's and the next n
-    the y axis's, each axis with its own residual variance (the sandwich (JᵀJ)⁻¹ Jᵀ Σ J (JᵀJ)⁻¹, Σ diagonal with
-    s_x² on the x rows and s_y² on the y rows, each from its axis's residuals over n − p/2 degrees of freedom).
-    One variance pooled over both axes understates the parameters that the noisier axis determines (and
-    overstates the others) whenever the two axes' point means scatter differently, as they do where one stage
-    makes the longer moves between points."""
+def _per_axis_covariance(
+    J: NDArray[np.float64], r: NDArray[np.float64], n: int, p: int
+) -> tuple[NDArray[np.float64], float]:
+    """The parameters' covariance, and its degrees of freedom, of a least-squares fit whose first n
+    residuals are the x axis's and the next n the y axis's, each axis with its own residual variance
+    (the sandwich (JᵀJ)⁻¹ Jᵀ Σ J (JᵀJ)⁻¹, Σ diagonal with s_x² on the x rows and s_y² on the y rows,
+    each from its axis's residuals over n − p/2 degrees of freedom). One variance pooled over both
+    axes understates the parameters that the noisier axis determines (and overstates the others)
+    whenever the two axes' point means scatter differently, as they do where one stage makes the
+    longer moves between points."""
     dof_axis = max(n - p / 2.0, 1.0)
-    var = np.concatenate([np.full(n, float(r[:n] @ r[:n]) / dof_axis), np.full(n, float(r[n:] @ r[n:]) / dof_axis)])
+    var = np.concatenate(
+        [np.full(n, float(r[:n] @ r[:n]) / dof_axis), np.full(n, float(r[n:] @ r[n:]) / dof_axis)]
+    )
     bread = np.linalg.inv(J.T @ J)
     return np.asarray(bread @ (J.T * var) @ J @ bread, dtype=np.float64), dof_axis
 
 
-def fit_meas(ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], meas_x: NDArray[np.float64], meas_y: NDArray[np.float64],
-             sign: NDArray[np.float64], loss: str = "linear", max_nfev: int = 200) -> MeasFit:
-    """Mounting of the measurement sensor in the reference frame, from its readings against the reference's.
+def fit_meas(
+    ref_x: NDArray[np.float64],
+    ref_y: NDArray[np.float64],
+    meas_x: NDArray[np.float64],
+    meas_y: NDArray[np.float64],
+    sign: NDArray[np.float64],
+    loss: str = "linear",
+    max_nfev: int = 200,
+) -> MeasFit:
+    """Mounting of the measurement sensor in the reference frame, from its readings against the
+    reference's.
 
     The two sensors ride on one rigid table, so no stage parameter enters: meas = f(ref) exactly
     up to noise. Regressing on the reference (not on the stage commands) keeps stage
@@ -410,11 +552,15 @@ def fit_meas(ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], meas_x: NDA
     fixed = {}
     for i in sel.fixed:
         into = ", ".join(f"{all_names[j]} ({c:+.2g} per unit)" for j, c in sel.merged_into[i])
-        fixed[all_names[i]] = (f"not separable on these points from {into or 'the others'} "
-                               f"(relative residual {sel.rel_residual[i]:.1e}); held at 0")
+        fixed[all_names[i]] = (
+            f"not separable on these points from {into or 'the others'} "
+            f"(relative residual {sel.rel_residual[i]:.1e}); held at 0"
+        )
     if len(obs) <= len(kept):
-        raise DegenerateDataError(f"{len(meas_x)} points are too few for the {len(kept)} parameters of the "
-                                  "measurement sensor's mounting")
+        raise DegenerateDataError(
+            f"{len(meas_x)} points are too few for the {len(kept)} parameters of the "
+            "measurement sensor's mounting"
+        )
 
     def full(q: NDArray[np.float64]) -> NDArray[np.float64]:
         p = np.zeros(len(all_names))
@@ -430,24 +576,53 @@ def fit_meas(ref_x: NDArray[np.float64], ref_y: NDArray[np.float64], meas_x: NDA
         pre = least_squares(resid, q0, x_scale=scales[kept], method="trf", max_nfev=max_nfev)
         kw["f_scale"] = robust_scale(pre.fun)
         q0 = pre.x
-    sol = least_squares(resid, q0, x_scale=scales[kept], loss=loss, method="trf",
-                        max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12, **kw)
+    sol = least_squares(
+        resid,
+        q0,
+        x_scale=scales[kept],
+        loss=loss,
+        method="trf",
+        max_nfev=max_nfev,
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        **kw,
+    )
     if not sol.status > 0 or not np.all(np.isfinite(sol.x)):
-        raise DegenerateDataError(f"the measurement-sensor fit did not converge ({sol.message}); "
-                                  "the points do not determine its mounting")
+        raise DegenerateDataError(
+            f"the measurement-sensor fit did not converge ({sol.message}); "
+            "the points do not determine its mounting"
+        )
     r = resid(sol.x)
     dof = max(r.size - len(kept), 1)
     s2 = float(r @ r) / dof
     Jk = numeric_jacobian(lambda q: pred_all(full(q)), sol.x, scales[kept])
     sv = np.linalg.svd(Jk * scales[kept], compute_uv=False)
     if sv[-1] <= 1e-8 * sv[0]:
-        raise DegenerateDataError("the points do not separate the measurement sensor's mounting parameters")
+        raise DegenerateDataError(
+            "the points do not separate the measurement sensor's mounting parameters"
+        )
     n = len(meas_x)
     cov, cov_dof = _per_axis_covariance(Jk, r, n, len(kept))
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
     names = [all_names[i] for i in kept]
-    pairs = [(names[i], names[j], float(corr[i, j])) for i in range(len(kept)) for j in range(i + 1, len(kept))
-             if abs(corr[i, j]) > 0.95]
-    return MeasFit(names, full(sol.x), cov, fixed, {"meas_x_deg": r[:n], "meas_y_deg": r[n:]}, float(np.sqrt(s2)),
-                   dof, True, int(sol.nfev), pairs, cov_dof)
+    pairs = [
+        (names[i], names[j], float(corr[i, j]))
+        for i in range(len(kept))
+        for j in range(i + 1, len(kept))
+        if abs(corr[i, j]) > 0.95
+    ]
+    return MeasFit(
+        names,
+        full(sol.x),
+        cov,
+        fixed,
+        {"meas_x_deg": r[:n], "meas_y_deg": r[n:]},
+        float(np.sqrt(s2)),
+        dof,
+        True,
+        int(sol.nfev),
+        pairs,
+        cov_dof,
+    )

@@ -3,10 +3,10 @@ inverse (the relation itself is service.physics.stage's), the sensor geometry in
 the reference (table-tilt) frame, mirrored-axis detection, column checks and a vectorised
 2-D Newton solver.
 
-Frames: the *truth frame* is the reference sensor's orthogonal axes (docs/models.md §2: table tilt is
-what the reference reads without noise). An inclinometer reading depends only on the up
-vector n expressed in the frame of the body carrying it (docs/models.md §1: reading = asin(-a·n)), so a
-table tilt (X, Y) is the same thing as n = (-sin X, -sin Y, +sqrt(1 - sin²X - sin²Y)).
+Frames: the *truth frame* is the reference sensor's orthogonal axes (docs/models.md §2: table tilt
+is what the reference reads without noise). An inclinometer reading depends only on the up
+vector n expressed in the frame of the body carrying it (docs/models.md §1: reading = asin(-a·n)),
+so a table tilt (X, Y) is the same thing as n = (-sin X, -sin Y, +sqrt(1 - sin²X - sin²Y)).
 """
 
 from __future__ import annotations
@@ -31,24 +31,36 @@ GRID_12_DEG = np.arange(-12.0, 12.0 + 1e-9, 3.0)  # seed 000's validation grid (
 ROBUST_LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")
 
 
-# --- seed 000's printed compensation against the exact inverse of eq. (9) (service.physics.stage) -------------
-def offaxis_paper_forward_deg(x_decoupled_deg: ArrayLike, stage_y_deg: ArrayLike) -> NDArray[np.float64]:
-    """Seed 000's compensation as printed: add eq. (10)'s error, evaluated at the wanted angle, to x."""
-    return np.asarray(x_decoupled_deg, dtype=float) + offaxis_error_deg(x_decoupled_deg, stage_y_deg)
+# --- seed 000's printed compensation against the exact inverse of eq. (9) (service.physics.stage)
+# -------------
+def offaxis_paper_forward_deg(
+    x_decoupled_deg: ArrayLike, stage_y_deg: ArrayLike
+) -> NDArray[np.float64]:
+    """Seed 000's compensation as printed: add eq. (10)'s error, evaluated at the wanted angle, to
+    x."""
+    return np.asarray(x_decoupled_deg, dtype=float) + offaxis_error_deg(
+        x_decoupled_deg, stage_y_deg
+    )
 
 
 def offaxis_forward_vs_exact_deg(grid_deg: NDArray[np.float64] = GRID_12_DEG) -> dict[str, float]:
-    """How far the paper's forward form lands from the exact inverse over a square grid of (x', y)."""
+    """How far the paper's forward form lands from the exact inverse over a square grid of (x',
+    y)."""
     X, Y = np.meshgrid(grid_deg, grid_deg)
     d = offaxis_paper_forward_deg(X, Y) - offaxis_inverse_deg(X, Y)
     i = int(np.argmax(np.abs(d)))
-    # The command difference is also (to first order) the x tilt error it causes: dX/dx = cos y·cos x/cos X ≈ 1.
+    # The command difference is also (to first order) the x tilt error it causes: dX/dx = cos y·cos
+    # x/cos X ≈ 1.
     reached = offaxis_reading_deg(offaxis_paper_forward_deg(X, Y), Y) - X
-    return {"grid_min_deg": float(grid_deg.min()), "grid_max_deg": float(grid_deg.max()),
-            "max_abs_command_difference_deg": float(np.abs(d).max()),
-            "rms_command_difference_deg": float(np.sqrt(np.mean(d**2))),
-            "at_x_deg": float(X.ravel()[i]), "at_y_deg": float(Y.ravel()[i]),
-            "max_abs_x_tilt_error_deg": float(np.abs(reached).max())}
+    return {
+        "grid_min_deg": float(grid_deg.min()),
+        "grid_max_deg": float(grid_deg.max()),
+        "max_abs_command_difference_deg": float(np.abs(d).max()),
+        "rms_command_difference_deg": float(np.sqrt(np.mean(d**2))),
+        "at_x_deg": float(X.ravel()[i]),
+        "at_y_deg": float(Y.ravel()[i]),
+        "max_abs_x_tilt_error_deg": float(np.abs(reached).max()),
+    }
 
 
 # --- tilt <-> up vector in the truth frame --------------------------------------------------
@@ -82,7 +94,8 @@ MEAS_NAMES = tuple(p[0] for p in MEAS_PARAMS)
 
 
 def meas_axes(p: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Sensing axes (2, 3) of the measurement sensor in the truth frame: seat tilt · yaw · (x, y at 90° + ν)."""
+    """Sensing axes (2, 3) of the measurement sensor in the truth frame: seat tilt · yaw · (x, y at
+    90° + ν)."""
     yaw, nu = np.radians(p[4]), np.radians(p[5])
     seat = plane_tilt_matrix(p[6], p[7])
     c, s = np.cos(yaw), np.sin(yaw)
@@ -92,9 +105,11 @@ def meas_axes(p: NDArray[np.float64]) -> NDArray[np.float64]:
     return axes
 
 
-def meas_forward(p: NDArray[np.float64], sign: NDArray[np.float64], tilt_x_deg: ArrayLike, tilt_y_deg: ArrayLike) -> tuple[NDArray[np.float64],
-                                                                                                                           NDArray[np.float64]]:
-    """Noise-free measurement-sensor readings at table tilts (X, Y) for parameters p (MEAS_PARAMS order)."""
+def meas_forward(
+    p: NDArray[np.float64], sign: NDArray[np.float64], tilt_x_deg: ArrayLike, tilt_y_deg: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Noise-free measurement-sensor readings at table tilts (X, Y) for parameters p (MEAS_PARAMS
+    order)."""
     n = up_from_tilt(tilt_x_deg, tilt_y_deg)
     m = meas_axes(p)
     geo = np.degrees(np.arcsin(np.clip(-(n @ m.T), -1.0, 1.0)))  # (N, 2)
@@ -118,7 +133,17 @@ def _frame(P: NDArray[np.float64], full: bool = False) -> tuple[NDArray[np.float
     s, sn, sx, sy = sin[:, 0:1], sin[:, 1:2], sin[:, 2:3], sin[:, 3:4]
     u0, u1 = -(c * sn + s * cn), c * cn - s * sn  # y axis after the yaw
     sxsy = sx * sy
-    out: tuple[NDArray[np.float64], ...] = (cx * c, cy * s - sxsy * c, cx * u0, cy * u1 - sxsy * u0, sn, cn, sx, cx * sy, cx * cy)
+    out: tuple[NDArray[np.float64], ...] = (
+        cx * c,
+        cy * s - sxsy * c,
+        cx * u0,
+        cy * u1 - sxsy * u0,
+        sn,
+        cn,
+        sx,
+        cx * sy,
+        cx * cy,
+    )
     if full:
         sxcy = sx * cy
         out += (-(sxcy * c + sy * s), -(sxcy * u0 + sy * u1))
@@ -126,15 +151,21 @@ def _frame(P: NDArray[np.float64], full: bool = False) -> tuple[NDArray[np.float
 
 
 def meas_axes_batch(P: ArrayLike) -> NDArray[np.float64]:
-    """meas_axes for K parameter sets at once: P (K, 8) in MEAS_PARAMS order gives axes (K, 2, 3)."""
+    """meas_axes for K parameter sets at once: P (K, 8) in MEAS_PARAMS order gives axes (K, 2,
+    3)."""
     P = np.asarray(P, dtype=float)
     x0, x1, y0, y1, *_, x2, y2 = _frame(P, full=True)
-    axes: NDArray[np.float64] = np.concatenate([x0, x1, x2, y0, y1, y2], axis=1).reshape(P.shape[0], 2, 3)
+    axes: NDArray[np.float64] = np.concatenate([x0, x1, x2, y0, y1, y2], axis=1).reshape(
+        P.shape[0], 2, 3
+    )
     return axes
 
 
-def _solve_batch(P: NDArray[np.float64], sign: NDArray[np.float64], R: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Table tilt (2, K, N) in degrees from readings R (2, K, N) (x then y), row k read through P[k] (K, 8).
+def _solve_batch(
+    P: NDArray[np.float64], sign: NDArray[np.float64], R: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Table tilt (2, K, N) in degrees from readings R (2, K, N) (x then y), row k read through P[k]
+    (K, 8).
 
     Each axis reading fixes m·n (a plane); two planes and |n| = 1 leave two points, and the one
     with the table's normal up is the answer. Both axes are rotations of (1, 0, 0) and
@@ -144,9 +175,12 @@ def _solve_batch(P: NDArray[np.float64], sign: NDArray[np.float64], R: NDArray[n
     """
     x0, x1, y0, y1, sn, cn, w0, w1, w2 = _frame(P)  # (w0, w1, w2): the seat's third column
     inv = 1.0 / (cn * cn)  # 1 / det(m mᵀ)
-    up = np.copysign(1.0, w2)  # the unit normal to both axes is ± the seat's third column: the one with the table's normal up
+    # the unit normal to both axes is ± the seat's third column: the one with the table's normal up
+    up = np.copysign(1.0, w2)
     wx, wy = up * w0, up * w1
-    gain = (np.asarray(sign, dtype=float) * (np.pi / 180.0))[:, None, None] / (1.0 + P[:, 2:4].T[:, :, None])
+    gain = (np.asarray(sign, dtype=float) * (np.pi / 180.0))[:, None, None] / (
+        1.0 + P[:, 2:4].T[:, :, None]
+    )
     r = -np.sin(gain * (R - P[:, 0:2].T[:, :, None]))  # (m_x · n, m_y · n)
     ra, rb = r[0], r[1]
     c1 = inv * (ra + sn * rb)  # n0 = c1 m_x + c2 m_y: the minimum-norm point on both planes
@@ -155,38 +189,60 @@ def _solve_batch(P: NDArray[np.float64], sign: NDArray[np.float64], R: NDArray[n
     n = np.empty(R.shape)
     np.add(c1 * x0 + c2 * y0, t * wx, out=n[0])
     np.add(c1 * x1 + c2 * y1, t * wy, out=n[1])
-    np.negative(n, out=n)  # the reading is asin(-a·n); in place, so many readings need no further arrays
+    # the reading is asin(-a·n); in place, so many readings need no further arrays
+    np.negative(n, out=n)
     np.maximum(n, -1.0, out=n)
     np.minimum(n, 1.0, out=n)
     tilt: NDArray[np.float64] = np.degrees(np.arcsin(n, out=n), out=n)
     return tilt
 
 
-def meas_inverse_batch(P: ArrayLike, sign: NDArray[np.float64], meas_x_deg: ArrayLike,
-                       meas_y_deg: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """meas_inverse for K parameter sets at once: P (K, 8), readings (K, N) with row k read through P[k]."""
+def meas_inverse_batch(
+    P: ArrayLike, sign: NDArray[np.float64], meas_x_deg: ArrayLike, meas_y_deg: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """meas_inverse for K parameter sets at once: P (K, 8), readings (K, N) with row k read through
+    P[k]."""
     P = np.asarray(P, dtype=float)
-    R = np.stack(np.broadcast_arrays(np.asarray(meas_x_deg, dtype=float), np.asarray(meas_y_deg, dtype=float)))
+    R = np.stack(
+        np.broadcast_arrays(
+            np.asarray(meas_x_deg, dtype=float), np.asarray(meas_y_deg, dtype=float)
+        )
+    )
     Z = _solve_batch(P, sign, R.reshape(2, P.shape[0], -1)).reshape(R.shape)
     return Z[0], Z[1]
 
 
-def meas_inverse(p: NDArray[np.float64], sign: NDArray[np.float64], meas_x_deg: ArrayLike, meas_y_deg: ArrayLike) -> tuple[NDArray[np.float64],
-                                                                                                                           NDArray[np.float64]]:
-    """Table tilt from measurement readings, in closed form (exact, vectorised, no iteration; see _solve_batch)."""
-    a, b = np.broadcast_arrays(np.asarray(meas_x_deg, dtype=float), np.asarray(meas_y_deg, dtype=float))
-    Z = _solve_batch(np.asarray(p, dtype=float)[None], sign, np.stack([a, b]).reshape(2, 1, -1)).reshape((2,) + a.shape)
+def meas_inverse(
+    p: NDArray[np.float64], sign: NDArray[np.float64], meas_x_deg: ArrayLike, meas_y_deg: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Table tilt from measurement readings, in closed form (exact, vectorised, no iteration; see
+    _solve_batch)."""
+    a, b = np.broadcast_arrays(
+        np.asarray(meas_x_deg, dtype=float), np.asarray(meas_y_deg, dtype=float)
+    )
+    Z = _solve_batch(
+        np.asarray(p, dtype=float)[None], sign, np.stack([a, b]).reshape(2, 1, -1)
+    ).reshape((2,) + a.shape)
     return Z[0], Z[1]
 
 
-_STACKED_READINGS = 4096  # up to this many (case, reading) pairs, every case is solved in one evaluation
-_READING_STEPS = np.zeros((2, 5 + 2 * (len(MEAS_PARAMS) - 4)))  # sign of the step of (a, b) in each case
+# up to this many (case, reading) pairs, every case is solved in one evaluation
+_STACKED_READINGS = 4096
+# sign of the step of (a, b) in each case
+_READING_STEPS = np.zeros((2, 5 + 2 * (len(MEAS_PARAMS) - 4)))
 _READING_STEPS[0, 1:3] = _READING_STEPS[1, 3:5] = (1.0, -1.0)
 
 
-def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, sign: NDArray[np.float64], meas_x_deg: ArrayLike, meas_y_deg: ArrayLike,
-                     sigma_deg: float, dof: float = np.inf,
-                     noise_dof: float | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64], Propagated, Propagated]:
+def meas_inverse_gum(
+    p: NDArray[np.float64],
+    cov: NDArray[np.float64] | None,
+    sign: NDArray[np.float64],
+    meas_x_deg: ArrayLike,
+    meas_y_deg: ArrayLike,
+    sigma_deg: float,
+    dof: float = np.inf,
+    noise_dof: float | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], Propagated, Propagated]:
     """meas_inverse with the standard uncertainty and effective degrees of freedom of each output.
 
     Same law as service.calibration.uncertainty.propagate_gum (central differences; each reading
@@ -196,7 +252,8 @@ def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, si
     correct above 10^5 readings per second. The cases (central value, each reading stepped up and
     down, each parameter with a nonzero covariance row stepped) are one batched evaluation for a
     few readings, where call overhead rather than arithmetic is the cost (one reading is the
-    daemon's case), and two cases at a time for many, which keeps the working arrays near the input's size.
+    daemon's case), and two cases at a time for many, which keeps the working arrays near the
+    input's size.
     """
     p = np.asarray(p, dtype=float)
     a = np.asarray(meas_x_deg, dtype=float)
@@ -205,24 +262,30 @@ def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, si
         a, b = np.broadcast_arrays(a, b)
     shape, n = a.shape, a.size
     ab = np.concatenate([a.reshape(1, -1), b.reshape(1, -1)])  # (a, b) x reading
-    nonzero = np.asarray(cov.any(axis=1) if cov is not None else np.zeros(p.size, dtype=bool))  # rows of held parameters are zero
+    # rows of held parameters are zero
+    nonzero = np.asarray(cov.any(axis=1) if cov is not None else np.zeros(p.size, dtype=bool))
     has_cov = bool(nonzero.any())
-    stepped = nonzero[4:].nonzero()[0] + 4  # parameters stepped: zero and scale follow from the readings
+    # parameters stepped: zero and scale follow from the readings
+    stepped = nonzero[4:].nonzero()[0] + 4
     m = stepped.size
     h = fd_step(np.concatenate([ab.reshape(-1), p[stepped]]), 1.0)
-    hab, hp = h[:2 * n].reshape(2, n), h[2 * n:]  # steps of the readings (a, b) and of the stepped parameters
+    # steps of the readings (a, b) and of the stepped parameters
+    hab, hp = h[: 2 * n].reshape(2, n), h[2 * n :]
     n_cases = 5 + 2 * m
     P = np.repeat(p[None], n_cases, axis=0)
     flat = P.reshape(-1)
-    at = np.arange(5, n_cases, 2) * p.size + stepped  # case 5 + 2j steps parameter stepped[j] up, case 6 + 2j down
+    # case 5 + 2j steps parameter stepped[j] up, case 6 + 2j down
+    at = np.arange(5, n_cases, 2) * p.size + stepped
     flat[at] += hp
     flat[at + p.size] -= hp
     if n_cases * n <= _STACKED_READINGS:
-        R = ab[:, None] + _READING_STEPS[:, :n_cases, None] * hab[:, None]  # a ± ha in cases 1, 2, b ± hb in 3, 4
+        # a ± ha in cases 1, 2, b ± hb in 3, 4
+        R = ab[:, None] + _READING_STEPS[:, :n_cases, None] * hab[:, None]
         Z = _solve_batch(P, sign, R)  # (X, Y) x case x reading
         Z0 = Z[:, 0]
         D = (Z[:, 1:5:2] - Z[:, 2:5:2]) / (2 * hab)  # (X, Y) x (d/da, d/db) x reading
-        Dp = (Z[:, 5::2] - Z[:, 6::2]) / (2 * hp)[:, None]  # (X, Y) x d/d(stepped parameter) x reading
+        # (X, Y) x d/d(stepped parameter) x reading
+        Dp = (Z[:, 5::2] - Z[:, 6::2]) / (2 * hp)[:, None]
     else:  # the same differences, holding two cases at a time
 
         def case(c: int) -> NDArray[np.float64]:
@@ -230,7 +293,7 @@ def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, si
             if c in (1, 2, 3, 4):  # a + ha, a - ha, b + hb, b - hb
                 axis, R = (c - 1) // 2, R.copy()
                 R[axis, 0] = ab[axis] + hab[axis] if c % 2 else ab[axis] - hab[axis]
-            return _solve_batch(P[c:c + 1], sign, R)[:, 0]
+            return _solve_batch(P[c : c + 1], sign, R)[:, 0]
 
         Z0, D, Dp = case(0), np.empty((2, 2, n)), np.empty((2, m, n))
         for j in range(2):
@@ -242,9 +305,11 @@ def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, si
     parts = [(v[:, 0], nd), (v[:, 1], nd)]
     if cov is not None and has_cov:
         k = -(ab - p[0:2, None]) / (1.0 + p[2:4, None])  # d/dscale = d/da·k, d/dzero = -d/da
-        used = np.concatenate([np.arange(4), stepped])  # parameters with a zero covariance row add nothing
+        # parameters with a zero covariance row add nothing
+        used = np.concatenate([np.arange(4), stepped])
         J = np.concatenate([-D, D * k, Dp], axis=1)
-        parts.append((np.einsum("kin,ij,kjn->kn", J, cov[used[:, None], used], J), dof))  # no BLAS: steady under load
+        # no BLAS: steady under load
+        parts.append((np.einsum("kin,ij,kjn->kn", J, cov[used[:, None], used], J), dof))
     u = np.sqrt(sum(var for var, _ in parts)).reshape((2,) + shape)
     nu = welch_satterthwaite(parts).reshape((2,) + shape)
     Z0 = Z0.reshape((2,) + shape)
@@ -252,9 +317,15 @@ def meas_inverse_gum(p: NDArray[np.float64], cov: NDArray[np.float64] | None, si
 
 
 # --- mirrored axes ---------------------------------------------------------------------------
-def detect_mirror(sensor_x: ArrayLike, sensor_y: ArrayLike, ref_x: ArrayLike, ref_y: ArrayLike,
-                  what: str = "measurement sensor") -> NDArray[np.float64]:
-    """Sign of each sensor axis against the matching reference axis: -1 for an axis mounted mirrored.
+def detect_mirror(
+    sensor_x: ArrayLike,
+    sensor_y: ArrayLike,
+    ref_x: ArrayLike,
+    ref_y: ArrayLike,
+    what: str = "measurement sensor",
+) -> NDArray[np.float64]:
+    """Sign of each sensor axis against the matching reference axis: -1 for an axis mounted
+    mirrored.
 
     An upside-down sensor (docs/models.md §2) mirrors one axis; the slope of that axis against the
     reference is then near -1 instead of +1, which no small mounting error can produce.
@@ -265,13 +336,16 @@ def detect_mirror(sensor_x: ArrayLike, sensor_y: ArrayLike, ref_x: ArrayLike, re
         r = np.asarray(ref, dtype=float)
         rc = r - r.mean()
         if float(rc @ rc) <= 1e-12:
-            raise DegenerateDataError(f"the {what}'s {ax} axis cannot be related to the reference: "
-                                      f"ref_{ax}_deg does not change over the points (move the "
-                                      f"{'upper' if ax == 'x' else 'lower'} stage)")
+            raise DegenerateDataError(
+                f"the {what}'s {ax} axis cannot be related to the reference: ref_{ax}_deg does "
+                f"not change over the points (move the {'upper' if ax == 'x' else 'lower'} stage)"
+            )
         slope = float(rc @ (s - s.mean()) / (rc @ rc))
         if abs(abs(slope) - 1.0) > 0.5:
-            raise DegenerateDataError(f"the {what}'s {ax} reading does not follow ref_{ax}_deg (slope {slope:.3g}); "
-                                      f"its axes may be swapped or the columns mislabelled")
+            raise DegenerateDataError(
+                f"the {what}'s {ax} reading does not follow ref_{ax}_deg (slope {slope:.3g}); "
+                f"its axes may be swapped or the columns mislabelled"
+            )
         out.append(1.0 if slope > 0 else -1.0)
     return np.array(out)
 
@@ -282,14 +356,22 @@ def mirror_note(sign: ArrayLike) -> str | None:
     if sx > 0 and sy > 0:
         return None
     if sx < 0 and sy < 0:
-        return "measurement sensor turned 180 deg about its normal: both axes read against the reference"
+        return (
+            "measurement sensor turned 180 deg about its normal: both axes read against the "
+            "reference"
+        )
     ax, about = ("y", "x") if sy < 0 else ("x", "y")
-    return (f"measurement sensor mounted upside down (turned about its {about} axis): its {ax} axis is "
-            f"mirrored against the reference; modelled as a sign on that axis")
+    return (
+        f"measurement sensor mounted upside down (turned about its {about} axis): its {ax} axis is "
+        f"mirrored against the reference; modelled as a sign on that axis"
+    )
 
 
-def sign_from_options(options_extra: Mapping[str, Any], detected: NDArray[np.float64]) -> tuple[NDArray[np.float64], str]:
-    """The lab may state the mounting ('none', 'x', 'y': the axis it was turned about); otherwise detect it."""
+def sign_from_options(
+    options_extra: Mapping[str, Any], detected: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], str]:
+    """The lab may state the mounting ('none', 'x', 'y': the axis it was turned about); otherwise
+    detect it."""
     flip = options_extra.get("meas_flip", "auto")
     if flip == "auto":
         return detected, "detected from the data"
@@ -298,13 +380,17 @@ def sign_from_options(options_extra: Mapping[str, Any], detected: NDArray[np.flo
         raise InputError(f"option meas_flip: {flip!r} is not one of auto, none, x, y")
     sign = np.array(table[flip])
     if not np.array_equal(sign, detected):
-        raise DegenerateDataError(f"option meas_flip={flip!r} contradicts the data: the measurement readings "
-                                  f"run with signs {detected.tolist()} against the reference")
+        raise DegenerateDataError(
+            f"option meas_flip={flip!r} contradicts the data: the measurement readings "
+            f"run with signs {detected.tolist()} against the reference"
+        )
     return sign, "as stated by the lab"
 
 
 # --- input checks ----------------------------------------------------------------------------
-def columns(data: Mapping[str, NDArray[np.float64]], names: Iterable[str]) -> list[NDArray[np.float64]]:
+def columns(
+    data: Mapping[str, NDArray[np.float64]], names: Iterable[str]
+) -> list[NDArray[np.float64]]:
     names = list(names)
     missing = [n for n in names if n not in data]
     if missing:
@@ -316,15 +402,21 @@ def has_meas(data: Mapping[str, NDArray[np.float64]]) -> bool:
     return all(c in data for c in MEAS_COLUMNS)
 
 
-def require_spread(stage_x: NDArray[np.float64], stage_y: NDArray[np.float64], min_points: int, what: str) -> None:
+def require_spread(
+    stage_x: NDArray[np.float64], stage_y: NDArray[np.float64], min_points: int, what: str
+) -> None:
     """Both stages must move, at enough distinct points, for any stage model to be determined."""
     pts = np.unique(np.round(np.column_stack([stage_x, stage_y]), 6), axis=0)
     if len(pts) < min_points:
-        raise DegenerateDataError(f"{what} needs at least {min_points} distinct stage points, got {len(pts)}")
+        raise DegenerateDataError(
+            f"{what} needs at least {min_points} distinct stage points, got {len(pts)}"
+        )
     for name, v, stage in (("stage_x_deg", stage_x, "upper"), ("stage_y_deg", stage_y, "lower")):
         if np.unique(np.round(v, 6)).size < 2:
-            raise DegenerateDataError(f"{what}: {name} never changes; the data need points with the {stage} stage "
-                                      "at two or more angles")
+            raise DegenerateDataError(
+                f"{what}: {name} never changes; the data need points with the {stage} stage "
+                "at two or more angles"
+            )
 
 
 def check_loss(loss: str) -> str:
@@ -335,14 +427,25 @@ def check_loss(loss: str) -> str:
 
 def model_needs_meas(model: CalibrationModel) -> None:
     if not model.state.get("has_meas", False):
-        raise InputError(f"this {model.method} model was calibrated without meas_x_deg/meas_y_deg, so it cannot "
-                         "correct measurement readings; recalibrate with the measurement sensor's columns")
+        raise InputError(
+            f"this {model.method} model was calibrated without meas_x_deg/meas_y_deg, so it cannot "
+            "correct measurement readings; recalibrate with the measurement sensor's columns"
+        )
 
 
 # --- vectorised 2-D Newton -------------------------------------------------------------------
-def newton_2d(fun: Callable[[NDArray[np.float64], NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]],
-              target_a: NDArray[np.float64], target_b: NDArray[np.float64], u0: NDArray[np.float64], v0: NDArray[np.float64],
-              step_deg: float = 1e-5, tol_deg: float = 1e-10, max_iter: int = 30) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def newton_2d(
+    fun: Callable[
+        [NDArray[np.float64], NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]
+    ],
+    target_a: NDArray[np.float64],
+    target_b: NDArray[np.float64],
+    u0: NDArray[np.float64],
+    v0: NDArray[np.float64],
+    step_deg: float = 1e-5,
+    tol_deg: float = 1e-10,
+    max_iter: int = 30,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Solve fun(u, v) = (a, b) for every point at once (forward-difference Jacobian, 2x2 solves).
 
     All points iterate together: the cost is a handful of vectorised model evaluations, never a
@@ -374,6 +477,8 @@ def newton_2d(fun: Callable[[NDArray[np.float64], NDArray[np.float64]], tuple[ND
     bad_rows = np.flatnonzero(~(worst < 1e-7))
     if bad_rows.size:
         rows = ", ".join(str(i + 1) for i in bad_rows[:5])
-        raise InputError(f"no stage angles reach the wanted value at row(s) {rows} "
-                         f"(worst miss {np.nanmax(worst):.3g} deg): outside what the bench can do")
+        raise InputError(
+            f"no stage angles reach the wanted value at row(s) {rows} "
+            f"(worst miss {np.nanmax(worst):.3g} deg): outside what the bench can do"
+        )
     return u, v

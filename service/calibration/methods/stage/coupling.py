@@ -1,4 +1,5 @@
-"""Seed 000 ref. [9] as seed 000 describes it: the off-axis coupling model alone (one gain kappa)."""
+"""Seed 000 ref. [9] as seed 000 describes it: the off-axis coupling model alone (one gain
+kappa)."""
 
 from __future__ import annotations
 
@@ -38,11 +39,13 @@ from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg
 
 
 class CouplingMethod(StageMethod):
-    """Ref. [9] as seed 000 describes it: the off-axis coupling model alone, no linear installation errors.
+    """Ref. [9] as seed 000 describes it: the off-axis coupling model alone, no linear installation
+    errors.
 
-    Reading: the reference reads X = x - κ·error10(x, y), Y = y (κ = 1 is the bare geometry of eq. 9);
-    calibration fits κ. The measurement sensor, by the same assumption, reads the table tilt directly
-    (only an upside-down mounting, detected from the data, is undone): that is its H2-like step.
+    Reading: the reference reads X = x - κ·error10(x, y), Y = y (κ = 1 is the bare geometry of eq.
+    9); calibration fits κ. The measurement sensor, by the same assumption, reads the table tilt
+    directly (only an upside-down mounting, detected from the data, is undone): that is its H2-like
+    step.
     """
 
     name = "coupling"
@@ -52,40 +55,71 @@ class CouplingMethod(StageMethod):
         require_spread(sx, sy, 3, "the coupling model")
         e = offaxis_error_deg(sx, sy)
         if float(e @ e) < 1e-12:
-            raise DegenerateDataError("the coupling model needs points with both stages away from zero (off the "
-                                      "θx = 0 and θy = 0 lines), where eq. (10)'s error is not zero")
+            raise DegenerateDataError(
+                "the coupling model needs points with both stages away from zero (off the "
+                "θx = 0 and θy = 0 lines), where eq. (10)'s error is not zero"
+            )
         d = sx - rx
         kappa = float(e @ d / (e @ e))
         res = {"ref_x_deg": (sx - kappa * e) - rx, "ref_y_deg": sy - ry}
         r = np.concatenate(list(res.values()))
         st = fit_stats(r, 1)
         var_k = float(np.sum(res["ref_x_deg"] ** 2) / max(sx.size - 1, 1) / (e @ e))
-        params = {"offaxis_coupling.kappa": Parameter(kappa, "1", note="x reading = x - kappa * eq.(10) error; "
-                                                                        "1 is the bare stacked-stage geometry")}
-        notes = [("ref. [9] as read from seed 000 §0 and §4.5: the nonlinear coupling between the two tilt axes "
-                 "(the same as eq. 10) and nothing else; no zero offsets, yaws, scales or mounting tilts, so "
-                 "those installation errors stay in the levelled and corrected values"),
-                 ("levelling: y = Y, and x solves x - kappa * error10(x, y) = X (exact for kappa = 1: "
-                 "x = asin(sin X / cos Y))")]
-        state: dict[str, Any] = {"has_meas": has_meas(data), **bench_state(*stage_hardware(options)[:2])}
+        params = {
+            "offaxis_coupling.kappa": Parameter(
+                kappa,
+                "1",
+                note="x reading = x - kappa * eq.(10) error; 1 is the bare stacked-stage geometry",
+            )
+        }
+        notes = [
+            (
+                "ref. [9] as read from seed 000 §0 and §4.5: the nonlinear coupling between the "
+                "two tilt axes (the same as eq. 10) and nothing else; no zero offsets, yaws, "
+                "scales or mounting tilts, so those installation errors stay in the levelled "
+                "and corrected values"
+            ),
+            (
+                "levelling: y = Y, and x solves x - kappa * error10(x, y) = X (exact for kappa "
+                "= 1: x = asin(sin X / cos Y))"
+            ),
+        ]
+        state: dict[str, Any] = {
+            "has_meas": has_meas(data),
+            **bench_state(*stage_hardware(options)[:2]),
+        }
         if has_meas(data):
             sign, how = meas_sign(data, options)
             state["meas_sign"] = sign.tolist()
             mx, my = columns(data, MEAS_COLUMNS)
             res.update({"meas_x_deg": sign[0] * mx - rx, "meas_y_deg": sign[1] * my - ry})
-            state["meas_misfit_rms_deg"] = [float(np.sqrt(np.mean(res[c] ** 2))) for c in ("meas_x_deg", "meas_y_deg")]
+            state["meas_misfit_rms_deg"] = [
+                float(np.sqrt(np.mean(res[c] ** 2))) for c in ("meas_x_deg", "meas_y_deg")
+            ]
             state["meas_dof"] = int(mx.size)  # an RMS over the points, nothing fitted
-            notes.append("this model cannot describe the measurement sensor: its H2-like step takes the measurement "
-                         "reading as the table tilt (the model has no installation errors); the meas_* residuals "
-                         "show what that leaves, and u_tilt is twice their RMS (the unmodelled installation error "
-                         "taken as an uncertainty, not a GUM propagation)")
+            notes.append(
+                "this model cannot describe the measurement sensor: its H2-like step takes the "
+                "measurement reading as the table tilt (the model has no installation errors); "
+                "the meas_* residuals show what that leaves, and u_tilt is twice their RMS (the "
+                "unmodelled installation error taken as an uncertainty, not a GUM propagation)"
+            )
             if (mn := mirror_note(sign)) is not None:
                 notes.append(f"{mn} ({how})")
-        return stage_model(self.name, used_columns(data), params, notes, covariance_names=["offaxis_coupling.kappa"],
-                      covariance=np.array([[var_k]]), residuals=residual_summary(res, "deg"),
-                      fit={"n_points": int(sx.size), **st}, state=state)
+        return stage_model(
+            self.name,
+            used_columns(data),
+            params,
+            notes,
+            covariance_names=["offaxis_coupling.kappa"],
+            covariance=np.array([[var_k]]),
+            residuals=residual_summary(res, "deg"),
+            fit={"n_points": int(sx.size), **st},
+            state=state,
+        )
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def commands(
+        self, model: CalibrationModel, data: Columns
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         tx, ty = targets(data)
         k = model.value("offaxis_coupling.kappa")
         x0 = offaxis_inverse_deg(tx, ty, clip=True)
@@ -98,9 +132,14 @@ class CouplingMethod(StageMethod):
         mx, my = columns(data, MEAS_COLUMNS)
         ux, uy = model.state.get("meas_misfit_rms_deg", [0.0, 0.0])
         k = float(coverage_factor(meas_dof(model)))
-        return {"tilt_x_deg": sign[0] * mx, "tilt_y_deg": sign[1] * my,
-                "u_tilt_x_deg": np.full(mx.shape, k * ux), "u_tilt_y_deg": np.full(my.shape, k * uy),
-                K_OUTPUTS[0]: np.full(mx.shape, k), K_OUTPUTS[1]: np.full(my.shape, k)}
+        return {
+            "tilt_x_deg": sign[0] * mx,
+            "tilt_y_deg": sign[1] * my,
+            "u_tilt_x_deg": np.full(mx.shape, k * ux),
+            "u_tilt_y_deg": np.full(my.shape, k * uy),
+            K_OUTPUTS[0]: np.full(mx.shape, k),
+            K_OUTPUTS[1]: np.full(my.shape, k),
+        }
 
 
 COUPLING = CouplingMethod()

@@ -1,5 +1,5 @@
-"""Seed 000: two homographies (H1 reference -> stage, H2 measurement -> reference) and eq. (10)'s off-axis
-compensation of the upper stage."""
+"""Seed 000: two homographies (H1 reference -> stage, H2 measurement -> reference) and eq. (10)'s
+off-axis compensation of the upper stage."""
 
 from __future__ import annotations
 
@@ -43,14 +43,25 @@ from service.calibration.registry import FitOptions
 from service.errors import DegenerateDataError, InputError
 from service.physics.stage import offaxis_inverse_deg, offaxis_reading_deg
 
-H_UNITS = {"h11": "1", "h12": "1", "h13": "deg", "h21": "1", "h22": "1", "h23": "deg", "h31": "1/deg", "h32": "1/deg"}
+H_UNITS = {
+    "h11": "1",
+    "h12": "1",
+    "h13": "deg",
+    "h21": "1",
+    "h22": "1",
+    "h23": "deg",
+    "h31": "1/deg",
+    "h32": "1/deg",
+}
 H_KEYS = tuple(H_UNITS)
 H_SCALES = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1e-2, 1e-2])
 
 
 def _h_params(prefix: str, H: NDArray[np.float64], note: str = "") -> dict[str, Parameter]:
-    return {f"{prefix}.{k}": Parameter(float(v), H_UNITS[k], note=note if k == "h11" else "")
-            for k, v in zip(H_KEYS, H.ravel()[:8])}
+    return {
+        f"{prefix}.{k}": Parameter(float(v), H_UNITS[k], note=note if k == "h11" else "")
+        for k, v in zip(H_KEYS, H.ravel()[:8])
+    }
 
 
 def _h_of(model: CalibrationModel, prefix: str) -> NDArray[np.float64]:
@@ -63,13 +74,15 @@ def _forward_vs_exact() -> dict[str, float]:
     return offaxis_forward_vs_exact_deg()
 
 
-def _apply_h(h8: NDArray[np.float64], x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _apply_h(
+    h8: NDArray[np.float64], x: ArrayLike, y: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return apply_projective(np.append(h8, 1.0).reshape(3, 3), x, y)
 
 
 class HomographyMethod(StageMethod):
-    """Seed 000: H1 (reference -> stage, eq. 11) and H2 (measurement -> reference) by normalised DLT,
-    then eq. (10)'s off-axis compensation of the upper stage, applied as its exact inverse."""
+    """Seed 000: H1 (reference -> stage, eq. 11) and H2 (measurement -> reference) by normalised
+    DLT, then eq. (10)'s off-axis compensation of the upper stage, applied as its exact inverse."""
 
     name = "homography"
 
@@ -90,46 +103,80 @@ class HomographyMethod(StageMethod):
             on_y = np.unique(np.round(sy[cross & (np.abs(sx) < CROSS_TOL_DEG)], 6))
             if on_x.size < 3 or on_y.size < 3:
                 use = np.ones_like(cross)
-                used_what = "all points (the data have no usable cross: fewer than 3 stage angles on a zero line)"
-                notes.append("H1: the data lack the cross seed 000 recommends (points on the θx = 0 and θy = 0 lines); "
-                             "fitted on all points with the stage x angles decoupled by eq. (9) instead")
+                used_what = (
+                    "all points (the data have no usable cross: fewer than 3 stage angles "
+                    "on a zero line)"
+                )
+                notes.append(
+                    "H1: the data lack the cross seed 000 recommends (points on the θx = 0 and θy "
+                    "= 0 lines); "
+                    "fitted on all points with the stage x angles decoupled by eq. (9) instead"
+                )
         else:
-            used_what = "all points, stage x decoupled by eq. (9) (x' = asin(sin x cos y)) before the DLT"
-        # x' = asin(sin x cos y): the x reading an uncoupled bench would give; on the cross x' = x exactly.
+            used_what = (
+                "all points, stage x decoupled by eq. (9) (x' = asin(sin x cos y)) before the DLT"
+            )
+        # x' = asin(sin x cos y): the x reading an uncoupled bench would give; on the cross x' = x
+        # exactly.
         xd = offaxis_reading_deg(sx, sy)
         H1 = fit_projective(rx[use], ry[use], xd[use], sy[use], what="H1 (reference -> stage)")
         px, py = apply_projective(H1, rx, ry)
         res_h1 = {"stage_x_deg": px[use] - xd[use], "stage_y_deg": py[use] - sy[use]}
         # the whole levelling model on every point: command predicted from the reference reading
-        cmd_x = offaxis_inverse_deg(px, py) if offaxis == "exact" else offaxis_paper_forward_deg(px, py)
+        cmd_x = (
+            offaxis_inverse_deg(px, py) if offaxis == "exact" else offaxis_paper_forward_deg(px, py)
+        )
         unreachable = np.flatnonzero(~np.isfinite(cmd_x))
         if unreachable.size:
             rows = ", ".join(str(i + 1) for i in unreachable[:5])
-            raise DegenerateDataError(f"H1 maps the reference reading of row(s) {rows} to an x angle no upper-stage "
-                                      "command reaches (|sin x' / cos y| > 1): the homography does not describe "
-                                      "these points; calibrate over a range the stages can level")
+            raise DegenerateDataError(
+                f"H1 maps the reference reading of row(s) {rows} to an x angle no upper-stage "
+                "command reaches (|sin x' / cos y| > 1): the homography does not describe "
+                "these points; calibrate over a range the stages can level"
+            )
         level_res = {"stage_x_deg": cmd_x - sx, "stage_y_deg": py - sy}
         fwd = dict(_forward_vs_exact())
         notes += [
-            (f"H1 (reference -> stage angles, seed 000 eq. 11) fitted by normalised DLT on {int(use.sum())} points: "
-            f"{used_what}. Seed 000 §3: on those lines eq. (10)'s error vanishes, so H1 sees only the near-linear "
-            "installation errors"),
-            "levelling = H1 then eq. (10) for the upper stage: H1 gives (x', y) with x' the angle an uncoupled "
-            "upper stage would need; the command is x = asin(sin x' / cos y), the exact inverse of eq. (9)"
-            + (" (option offaxis=paper: x = x' + error(x', y) as seed 000 prints it)" if offaxis == "paper" else ""),
-            (f"eq. (10) applied forwards (x' + error) differs from the exact inverse by up to "
-            f"{fwd['max_abs_command_difference_deg']:.4f} deg (rms {fwd['rms_command_difference_deg']:.4f}) on the "
-            f"±12 deg grid, largest at x' = {fwd['at_x_deg']:g}, y = {fwd['at_y_deg']:g}"),
+            (
+                "H1 (reference -> stage angles, seed 000 eq. 11) fitted by normalised DLT on "
+                f"{int(use.sum())} points: {used_what}. Seed 000 §3: on those lines eq. (10)'s "
+                "error vanishes, so H1 sees only the near-linear installation errors"
+            ),
+            "levelling = H1 then eq. (10) for the upper stage: H1 gives (x', y) with x' the "
+            "angle an uncoupled upper stage would need; the command is x = asin(sin x' / cos "
+            "y), the exact inverse of eq. (9)"
+            + (
+                " (option offaxis=paper: x = x' + error(x', y) as seed 000 prints it)"
+                if offaxis == "paper"
+                else ""
+            ),
+            (
+                f"eq. (10) applied forwards (x' + error) differs from the exact inverse by up to "
+                f"{fwd['max_abs_command_difference_deg']:.4f} deg (rms "
+                f"{fwd['rms_command_difference_deg']:.4f}) on the "
+                f"±12 deg grid, largest at x' = {fwd['at_x_deg']:g}, y = {fwd['at_y_deg']:g}"
+            ),
         ]
-        params = _h_params("H1", H1, "H1 maps reference angles (X, Y) to stage angles (x', y), h33 = 1")
+        params = _h_params(
+            "H1", H1, "H1 maps reference angles (X, Y) to stage angles (x', y), h33 = 1"
+        )
         residuals = dict(res_h1)
-        fit_info: dict[str, Any] = {"n_points": int(sx.size), "n_points_h1": int(use.sum()), "points": points,
-                                    "offaxis": offaxis, "h1": fit_stats(np.concatenate(list(res_h1.values())), 8),
-                                    "levelling_residual_all_points": residual_summary(level_res, "deg", False),
-                                    "offaxis_forward_vs_exact": fwd}
+        fit_info: dict[str, Any] = {
+            "n_points": int(sx.size),
+            "n_points_h1": int(use.sum()),
+            "points": points,
+            "offaxis": offaxis,
+            "h1": fit_stats(np.concatenate(list(res_h1.values())), 8),
+            "levelling_residual_all_points": residual_summary(level_res, "deg", False),
+            "offaxis_forward_vs_exact": fwd,
+        }
         cov = None
         cov_names: list[str] = []
-        state: dict[str, Any] = {"has_meas": has_meas(data), "offaxis": offaxis, **bench_state(*stage_hardware(options)[:2])}
+        state: dict[str, Any] = {
+            "has_meas": has_meas(data),
+            "offaxis": offaxis,
+            **bench_state(*stage_hardware(options)[:2]),
+        }
         if has_meas(data):
             mx, my = columns(data, MEAS_COLUMNS)
             # Two sensors on one table: no stage coupling between them, so every point serves H2.
@@ -138,31 +185,59 @@ class HomographyMethod(StageMethod):
 
             r, J2 = transfer_residuals(h2, mx, my, rx, ry)
             st = fit_stats(r, 8)
-            params.update(_h_params("H2", H2, "H2 maps measurement readings (a, b) to reference angles (X, Y)"))
+            params.update(
+                _h_params(
+                    "H2", H2, "H2 maps measurement readings (a, b) to reference angles (X, Y)"
+                )
+            )
             n = mx.size
             residuals.update({"ref_x_deg": r[:n], "ref_y_deg": r[n:]})
             fit_info["h2"] = st
-            h2_note = (f"H2 (measurement -> reference) fitted by normalised DLT on all {n} points: both sensors ride "
-                       "on the table, so the stage coupling does not enter between them; ")
+            h2_note = (
+                f"H2 (measurement -> reference) fitted by normalised DLT on all {n} points: both "
+                "sensors ride on the table, so the stage coupling does not enter between them; "
+            )
             if st["sigma_deg"] is not None:
                 cov = jacobian_cov(J2, H_SCALES, st["sigma_deg"] ** 2)
                 cov_names = [f"H2.{k}" for k in H_KEYS]
-                noise = meas_reading_noise(data, options, st["sigma_deg"], st["dof"], detect_mirror(mx, my, rx, ry))
+                noise = meas_reading_noise(
+                    data, options, st["sigma_deg"], st["dof"], detect_mirror(mx, my, rx, ry)
+                )
                 state["meas_sigma_deg"] = st["sigma_deg"]
                 state["meas_dof"] = st["dof"]
                 state.update(noise_state(noise))
-                notes.append(h2_note + "the uncertainty of a corrected tilt from H2's covariance and the reading noise "
-                             f"of one measurement reading, {noise.sigma_deg:.3g} deg: {noise.source}")
+                notes.append(
+                    h2_note
+                    + "the uncertainty of a corrected tilt from H2's covariance and the reading "
+                    f"noise of one measurement reading, {noise.sigma_deg:.3g} deg: {noise.source}"
+                )
             else:
-                notes.append(h2_note + f"the {n} points determine its 8 parameters exactly and leave no residual to "
-                             "estimate the noise: no covariance and no u_tilt")
+                notes.append(
+                    h2_note
+                    + f"the {n} points determine its 8 parameters exactly and leave no residual to "
+                    "estimate the noise: no covariance and no u_tilt"
+                )
         else:
-            notes.append("no meas_x_deg/meas_y_deg columns: H2 not fitted, this model can level but not correct")
-        return stage_model(self.name, used_columns(data), params, notes, covariance_names=cov_names, covariance=cov,
-                      residuals=residual_summary(residuals, "deg"), fit=fit_info, state=state,
-                      options={"points": points, "offaxis": offaxis})
+            notes.append(
+                "no meas_x_deg/meas_y_deg columns: H2 not fitted, this model can level but not "
+                "correct"
+            )
+        return stage_model(
+            self.name,
+            used_columns(data),
+            params,
+            notes,
+            covariance_names=cov_names,
+            covariance=cov,
+            residuals=residual_summary(residuals, "deg"),
+            fit=fit_info,
+            state=state,
+            options={"points": points, "offaxis": offaxis},
+        )
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def commands(
+        self, model: CalibrationModel, data: Columns
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         tx, ty = targets(data)
         xd, y = apply_projective(_h_of(model, "H1"), tx, ty)
         if model.state.get("offaxis", "exact") == "paper":
@@ -175,12 +250,16 @@ class HomographyMethod(StageMethod):
         model_needs_meas(model)
         names = [f"H2.{k}" for k in H_KEYS]
 
-        def f(p: NDArray[np.float64], inp: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
+        def f(
+            p: NDArray[np.float64], inp: Mapping[str, NDArray[np.float64]]
+        ) -> NDArray[np.float64]:
             a, b = _apply_h(p, inp["meas_x_deg"], inp["meas_y_deg"])
             return np.column_stack([a, b])
 
         sigma, noise_dof = reading_noise_of(model)
-        return uncertain_correct(f, model.values(names), model.cov_of(names), data, sigma, meas_dof(model), noise_dof)
+        return uncertain_correct(
+            f, model.values(names), model.cov_of(names), data, sigma, meas_dof(model), noise_dof
+        )
 
 
 HOMOGRAPHY = HomographyMethod()

@@ -1,5 +1,5 @@
-"""The kinematic chain of docs/models.md §2 fitted by nonlinear least squares, with the measurement sensor's
-mounting fitted against the reference; the bench's hardware is an input."""
+"""The kinematic chain of docs/models.md §2 fitted by nonlinear least squares, with the measurement
+sensor's mounting fitted against the reference; the bench's hardware is an input."""
 
 from __future__ import annotations
 
@@ -55,8 +55,9 @@ from service.physics.stage import StageBench
 
 
 class KinematicMethod(StageMethod):
-    """The chain of docs/models.md §2 fitted by nonlinear least squares; the measurement sensor's own mounting
-    fitted against the reference. Parameters the points cannot separate are held and said so."""
+    """The chain of docs/models.md §2 fitted by nonlinear least squares; the measurement sensor's
+    own mounting fitted against the reference. Parameters the points cannot separate are held and
+    said so."""
 
     name = "kinematic"
 
@@ -66,19 +67,34 @@ class KinematicMethod(StageMethod):
         require_spread(sx, sy, 5, "the kinematic model")
         bench, source, stated = stage_hardware(options)
         if not stated and (mismatch := bench.pulse_mismatch(sx, sy)) is not None:
-            raise InputError(f"{mismatch}. The kinematic model depends on the bench's hardware and none was stated "
-                             f"({bench.describe()} assumed): give the bench the data came from with --bench FILE")
+            raise InputError(
+                f"{mismatch}. The kinematic model depends on the bench's hardware and none was "
+                "stated "
+                f"({bench.describe()} assumed): give the bench the data came from with --bench FILE"
+            )
         pts = StagePoints.from_columns(data)
         added = [str(e) for e in options.extra.get("effects", ())]
         time_origin = _time_origin(data, added)
         if time_origin is not None and pts.t_s is not None:
             pts.t_s = pts.t_s - time_origin
-        if "temperature_drift" in added and (pts.temp_c is None or not np.all(np.isfinite(pts.temp_c))):
-            raise InputError("temperature_drift: the points carry no temp_c column (or it has gaps); a temperature "
-                             "effect is fitted on the temperature of every point")
-        chain = fit_chain(bench, pts, rx, ry, loss=loss, periodic=bool(options.extra.get("periodic_error", False)),
-                          max_nfev=int(options.extra.get("max_nfev", 200)), effects=added,
-                          worm_axes=tuple(options.extra.get("worm_axes", ("x", "y"))))
+        if "temperature_drift" in added and (
+            pts.temp_c is None or not np.all(np.isfinite(pts.temp_c))
+        ):
+            raise InputError(
+                "temperature_drift: the points carry no temp_c column (or it has gaps); a "
+                "temperature effect is fitted on the temperature of every point"
+            )
+        chain = fit_chain(
+            bench,
+            pts,
+            rx,
+            ry,
+            loss=loss,
+            periodic=bool(options.extra.get("periodic_error", False)),
+            max_nfev=int(options.extra.get("max_nfev", 200)),
+            effects=added,
+            worm_axes=tuple(options.extra.get("worm_axes", ("x", "y"))),
+        )
         params: dict[str, Parameter] = {}
         for k, v in zip(chain.keys, chain.values):
             params[param_label(k)] = Parameter(float(v), unit_of(k))
@@ -88,103 +104,174 @@ class KinematicMethod(StageMethod):
         blocks = [chain.covariance]
         residuals = dict(chain.residuals)
         notes = [
-            ("chain (docs/models.md §2): desk · Rot(lower axis, y) · Rot(upper axis, x) · top · reference seat · reference yaw, "
-            "with stage scale and backlash on the commands; fitted to ref_x_deg/ref_y_deg with "
-            f"scipy.optimize.least_squares (loss {loss}); the reference is the lab's standard, so its own "
-            "zero, scale and non-orthogonality are not fitted (its readings are the table tilt)"),
-            ("gauge: a common rotation of desk, stage axes and table top changes no reading, so one parameter "
-            "of each of (lower yaw, perpendicularity, ref yaw), (desk x, lower pitch, top x), (desk y, "
-            "upper pitch, top y) and the reference seat (composes with the top) is held; the fitted "
-            "perpendicularity and ref yaw are then relative to the lower axis, desk tilts include the "
-            "stages' zero offsets"),
+            (
+                "chain (docs/models.md §2): desk · Rot(lower axis, y) · Rot(upper axis, x) · "
+                "top · reference seat · reference yaw, with stage scale and backlash on the "
+                "commands; fitted to ref_x_deg/ref_y_deg with scipy.optimize.least_squares "
+                f"(loss {loss}); the reference is the lab's standard, so its own zero, scale and "
+                "non-orthogonality are not fitted (its readings are the table tilt)"
+            ),
+            (
+                "gauge: a common rotation of desk, stage axes and table top changes no reading, "
+                "so one parameter of each of (lower yaw, perpendicularity, ref yaw), (desk x, "
+                "lower pitch, top x), (desk y, upper pitch, top y) and the reference seat "
+                "(composes with the top) is held; the fitted perpendicularity and ref yaw are "
+                "then relative to the lower axis, desk tilts include the stages' zero offsets"
+            ),
         ]
         notes.append(f"bench: {bench.describe()}; {source}")
         if stated and (mismatch := bench.pulse_mismatch(sx, sy)) is not None:
-            notes.append(f"the commands are not whole pulses of the stated bench ({mismatch.split(':')[0]}): taken "
-                         "as requested angles, executed as the nearest whole pulses")
+            notes.append(
+                "the commands are not whole pulses of the stated bench "
+                f"({mismatch.split(':')[0]}): taken "
+                "as requested angles, executed as the nearest whole pulses"
+            )
         notes += [f"{param_label(k)}: {why}" for k, why in chain.fixed.items()]
         with_prior = {param_label(k) for k in chain.priors}
-        notes += [f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - cos of the "
-                  "other stage's angle; kept, since holding either leaves that difference as model error; "
-                  + ("what the points leave open is held by the drawings' prior below)" if {a, b} & with_prior else
-                     "their sum is well determined and both are stated with the uncertainty the points give)")
-                  for a, b, c in chain.correlations]
+        notes += [
+            f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - cos "
+            "of the other stage's angle; kept, since holding either leaves that difference as "
+            "model error; "
+            + (
+                "what the points leave open is held by the drawings' prior below)"
+                if {a, b} & with_prior
+                else "their sum is well determined and both are stated with the uncertainty the "
+                "points give)"
+            )
+            for a, b, c in chain.correlations
+        ]
         notes += [f"{param_label(k)}: {why}" for k, why in chain.priors.items()]
         fit_info: dict[str, Any] = {
-            "n_points": int(sx.size), "chain": {"dof": chain.dof, "sigma_deg": chain.sigma, "converged": chain.converged,
-                                                "nfev": chain.nfev, "loss": loss,
-                                                "scaled_jacobian_singular_values": chain.singular_values.tolist()},
+            "n_points": int(sx.size),
+            "chain": {
+                "dof": chain.dof,
+                "sigma_deg": chain.sigma,
+                "converged": chain.converged,
+                "nfev": chain.nfev,
+                "loss": loss,
+                "scaled_jacobian_singular_values": chain.singular_values.tolist(),
+            },
         }
         if added:
-            notes.append(f"effects added to the chain: {', '.join(added)} (their parameters fitted with the rest, "
-                         "as far as these points determine them)")
+            notes.append(
+                f"effects added to the chain: {', '.join(added)} (their parameters fitted with "
+                "the rest, as far as these points determine them)"
+            )
         for effect, why in chain.undetermined.items():
-            notes.append(f"{effect} was asked for, but these points determine none of its parameters ({why})")
+            notes.append(
+                f"{effect} was asked for, but these points determine none of its parameters ({why})"
+            )
         fit_info["undetermined_effects"] = dict(chain.undetermined)
         fit_info["priors"] = {param_label(k): why for k, why in chain.priors.items()}
-        if (worm := periodic_summary(chain)):
+        if worm := periodic_summary(chain):
             fit_info["periodic_error"] = worm
-            notes += [f"periodic error of the {ax} stage's worm: amplitude {w['amplitude_deg']:.3g} ± "
-                      f"{w['u_amplitude_deg']:.2g} deg, phase {w['phase_deg']:.1f} ± {w['u_phase_deg']:.2g} deg "
-                      f"(from its sine/cosine pair, standard uncertainties)" for ax, w in worm.items()]
-        state: dict[str, Any] = {"has_meas": has_meas(data), **bench_state(bench, source),
-                                 "chain_parameters": [param_label(k) for k in list(chain.keys) + list(chain.fixed)],
-                                 "approach": [1.0, 1.0]}
-        ref_effects = tuple(e for e in REFERENCE_EFFECTS
-                            if any(k in chain.keys for k in EFFECT_PARAMS[e]))
+            notes += [
+                f"periodic error of the {ax} stage's worm: amplitude {w['amplitude_deg']:.3g} ± "
+                f"{w['u_amplitude_deg']:.2g} deg, phase {w['phase_deg']:.1f} ± "
+                f"{w['u_phase_deg']:.2g} deg (from its sine/cosine pair, standard uncertainties)"
+                for ax, w in worm.items()
+            ]
+        state: dict[str, Any] = {
+            "has_meas": has_meas(data),
+            **bench_state(bench, source),
+            "chain_parameters": [param_label(k) for k in list(chain.keys) + list(chain.fixed)],
+            "approach": [1.0, 1.0],
+        }
+        ref_effects = tuple(
+            e for e in REFERENCE_EFFECTS if any(k in chain.keys for k in EFFECT_PARAMS[e])
+        )
         if ref_effects:
-            span = None if time_origin is None else float(np.ptp(np.asarray(data["t_s"], dtype=float)))
-            state[reference.STATE_KEY] = reference.state_of(ref_effects, bench.temp_ref_c, time_origin, span)
+            span = (
+                None if time_origin is None else float(np.ptp(np.asarray(data["t_s"], dtype=float)))
+            )
+            state[reference.STATE_KEY] = reference.state_of(
+                ref_effects, bench.temp_ref_c, time_origin, span
+            )
         if has_meas(data):
             sign, how = meas_sign(data, options)
             mx, my = columns(data, MEAS_COLUMNS)
             ref_tx, ref_ty = rx, ry
             if ref_effects:
-                # the measurement sensor is fitted against the table tilt, which the reference reads with the errors
-                # this record models: against its readings with those taken out
+                # the measurement sensor is fitted against the table tilt, which the reference reads
+                # with the errors this record models: against its readings with those taken out
                 errors = reference.reference_errors(_with_values(params, state))
                 assert errors is not None
-                ref_tx, ref_ty = reference.true_reading(errors, rx, ry, data.get("temp_c"), data.get("t_s"))
-                notes.append(f"reference sensor: the record models its own reading errors ({errors.describe()}); "
-                             "the measurement sensor is fitted against its readings with them taken out (the "
-                             "table tilt), and everything reported from the reference goes through them")
+                ref_tx, ref_ty = reference.true_reading(
+                    errors, rx, ry, data.get("temp_c"), data.get("t_s")
+                )
+                notes.append(
+                    "reference sensor: the record models its own reading errors "
+                    f"({errors.describe()}); the measurement sensor is fitted against its "
+                    "readings with them taken out (the table tilt), and everything reported "
+                    "from the reference goes through them"
+                )
             meas = fit_meas(ref_tx, ref_ty, mx, my, sign, loss=loss)
             units = {p[0]: p[1] for p in MEAS_PARAMS}
             for name, v in zip(MEAS_NAMES, meas.values):
                 fixed = name in meas.fixed
-                params[name] = Parameter(float(v), units[name], fixed=fixed, note=meas.fixed.get(name, ""))
+                params[name] = Parameter(
+                    float(v), units[name], fixed=fixed, note=meas.fixed.get(name, "")
+                )
             cov_names += meas.names
             blocks.append(meas.covariance)
             residuals.update(meas.residuals)
-            # the parameters' part of a corrected tilt carries the covariance's degrees of freedom (per axis)
-            state.update({"meas_sign": sign.tolist(), "meas_sigma_deg": meas.sigma, "meas_dof": meas.covariance_dof})
+            # the parameters' part of a corrected tilt carries the covariance's degrees of freedom
+            # (per axis)
+            state.update(
+                {
+                    "meas_sign": sign.tolist(),
+                    "meas_sigma_deg": meas.sigma,
+                    "meas_dof": meas.covariance_dof,
+                }
+            )
             noise = meas_reading_noise(data, options, meas.sigma, meas.dof, sign)
             state.update(noise_state(noise))
-            fit_info["meas"] = {"dof": meas.dof, "covariance_dof": meas.covariance_dof, "sigma_deg": meas.sigma,
-                                "nfev": meas.nfev}
-            notes.append("measurement sensor: zero offsets, scales, yaw, non-orthogonality and seat tilt, all relative "
-                         "to the reference sensor's frame (the table-tilt frame), fitted to meas_* against ref_* "
-                         "(no stage parameter enters, stage repeatability stays out); correct inverts it in "
-                         "closed form; the uncertainty of a corrected tilt from its covariance and the noise of "
-                         f"one measurement reading, {noise.sigma_deg:.3g} deg: {noise.source}")
+            fit_info["meas"] = {
+                "dof": meas.dof,
+                "covariance_dof": meas.covariance_dof,
+                "sigma_deg": meas.sigma,
+                "nfev": meas.nfev,
+            }
+            notes.append(
+                "measurement sensor: zero offsets, scales, yaw, non-orthogonality and seat "
+                "tilt, all relative to the reference sensor's frame (the table-tilt frame), "
+                "fitted to meas_* against ref_* (no stage parameter enters, stage repeatability "
+                "stays out); correct inverts it in closed form; the uncertainty of a corrected "
+                "tilt from its covariance and the noise of one measurement reading, "
+                f"{noise.sigma_deg:.3g} deg: {noise.source}"
+            )
             notes += [f"{n}: {why}" for n, why in meas.fixed.items()]
-            notes += [f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - cos of the "
-                      "tilt; kept, their sum is well determined)"
-                      for a, b, c in meas.correlations]
+            notes += [
+                f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - "
+                "cos of the tilt; kept, their sum is well determined)"
+                for a, b, c in meas.correlations
+            ]
             if (mn := mirror_note(sign)) is not None:
                 notes.append(f"{mn} ({how})")
         else:
             notes.append("no meas_x_deg/meas_y_deg columns: this model can level but not correct")
-        notes.append("the covariance is block-diagonal between the chain and the measurement sensor (separate fits)")
+        notes.append(
+            "the covariance is block-diagonal between the chain and the measurement sensor "
+            "(separate fits)"
+        )
         k = sum(b.shape[0] for b in blocks)
         cov = np.zeros((k, k))
         i = 0
         for b in blocks:
-            cov[i:i + b.shape[0], i:i + b.shape[0]] = b
+            cov[i : i + b.shape[0], i : i + b.shape[0]] = b
             i += b.shape[0]
-        return stage_model(self.name, used_columns(data), params, notes, covariance_names=cov_names, covariance=cov,
-                      residuals=residual_summary(residuals, "deg"), fit=fit_info, state=state,
-                          options={"loss": loss, **({"effects": added} if added else {})})
+        return stage_model(
+            self.name,
+            used_columns(data),
+            params,
+            notes,
+            covariance_names=cov_names,
+            covariance=cov,
+            residuals=residual_summary(residuals, "deg"),
+            fit=fit_info,
+            state=state,
+            options={"loss": loss, **({"effects": added} if added else {})},
+        )
 
     @staticmethod
     def chain_model(model: CalibrationModel) -> ChainModel:
@@ -195,7 +282,9 @@ class KinematicMethod(StageMethod):
             values[(e, p)] = model.value(name)
         return ChainModel.from_values(bench, values)
 
-    def commands(self, model: CalibrationModel, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def commands(
+        self, model: CalibrationModel, data: Columns
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         tx, ty = targets(data)
         ap = model.state.get("approach", [1.0, 1.0])
         dx = np.asarray(data.get("dir_x", ap[0]), dtype=float)
@@ -209,31 +298,51 @@ class KinematicMethod(StageMethod):
         sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
         mx, my = columns(data, MEAS_COLUMNS)
         sigma, noise_dof = reading_noise_of(model)
-        X, Y, gx, gy = meas_inverse_gum(model.values(MEAS_NAMES), model.cov_of(list(MEAS_NAMES)), sign, mx, my,
-                                        sigma, meas_dof(model), noise_dof)
-        kx, ky = coverage_factor(gx.dof_eff), coverage_factor(gy.dof_eff)  # U = k·u_c, as Propagated.expanded
-        return {"tilt_x_deg": X, "tilt_y_deg": Y, "u_tilt_x_deg": kx * gx.u, "u_tilt_y_deg": ky * gy.u,
-                K_OUTPUTS[0]: np.broadcast_to(kx, X.shape), K_OUTPUTS[1]: np.broadcast_to(ky, Y.shape)}
+        X, Y, gx, gy = meas_inverse_gum(
+            model.values(MEAS_NAMES),
+            model.cov_of(list(MEAS_NAMES)),
+            sign,
+            mx,
+            my,
+            sigma,
+            meas_dof(model),
+            noise_dof,
+        )
+        # U = k·u_c, as Propagated.expanded
+        kx, ky = coverage_factor(gx.dof_eff), coverage_factor(gy.dof_eff)
+        return {
+            "tilt_x_deg": X,
+            "tilt_y_deg": Y,
+            "u_tilt_x_deg": kx * gx.u,
+            "u_tilt_y_deg": ky * gy.u,
+            K_OUTPUTS[0]: np.broadcast_to(kx, X.shape),
+            K_OUTPUTS[1]: np.broadcast_to(ky, Y.shape),
+        }
 
 
 def _time_origin(data: Columns, added: list[str]) -> float | None:
-    """Where a fitted time drift is zero: the time of the first point (POSIX seconds, as stored points carry it)."""
+    """Where a fitted time drift is zero: the time of the first point (POSIX seconds, as stored
+    points carry it)."""
     if "time_drift" not in added:
         return None
     if "t_s" not in data or not np.all(np.isfinite(np.asarray(data["t_s"], dtype=float))):
-        raise InputError("time_drift: the points carry no t_s column (or it has gaps); a drift is fitted on the "
-                         "time of every point")
+        raise InputError(
+            "time_drift: the points carry no t_s column (or it has gaps); a drift is fitted on the "
+            "time of every point"
+        )
     return float(np.min(np.asarray(data["t_s"], dtype=float)))
 
 
 def _with_values(params: dict[str, Parameter], state: dict[str, Any]) -> CalibrationModel:
-    """A model of just these parameters and state (to read its reference model before the model is made)."""
+    """A model of just these parameters and state (to read its reference model before the model is
+    made)."""
     return CalibrationModel("stage", "kinematic", [], params, state=state)
 
 
 def periodic_summary(chain: ChainFit) -> dict[str, dict[str, float]]:
-    """Per stage whose worm the chain fitted: the periodic error's amplitude and phase (the registry's terms)
-    with standard uncertainties, propagated from the sine/cosine pair's covariance."""
+    """Per stage whose worm the chain fitted: the periodic error's amplitude and phase (the
+    registry's terms) with standard uncertainties, propagated from the sine/cosine pair's
+    covariance."""
     out = {}
     for ax in ("x", "y"):
         ks, kc = ("periodic_error", f"{ax}_sin_deg"), ("periodic_error", f"{ax}_cos_deg")
@@ -248,9 +357,12 @@ def periodic_summary(chain: ChainFit) -> dict[str, dict[str, float]]:
         g_amp = np.array([a, b]) / amp
         g_phase = np.array([-b, a]) / amp**2
         var_amp, var_phase = float(g_amp @ cov @ g_amp), float(g_phase @ cov @ g_phase)
-        out[ax] = {"amplitude_deg": amp, "u_amplitude_deg": float(np.sqrt(max(var_amp, 0.0))),
-                   "phase_deg": float(np.degrees(np.arctan2(b, a))),
-                   "u_phase_deg": float(np.degrees(np.sqrt(max(var_phase, 0.0))))}
+        out[ax] = {
+            "amplitude_deg": amp,
+            "u_amplitude_deg": float(np.sqrt(max(var_amp, 0.0))),
+            "phase_deg": float(np.degrees(np.arctan2(b, a))),
+            "u_phase_deg": float(np.degrees(np.sqrt(max(var_phase, 0.0)))),
+        }
     return out
 
 
