@@ -233,14 +233,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise
         # Alone, the daemon's previous run left every unfinished job; a node of a fleet, only its
         # own benches' (other nodes may be running theirs while this one starts).
-        own = [b.bench_id for b in runtimes if b.bench_id is not None] if s.broker_url else None
+        own = (
+            [runtime.bench_id for runtime in runtimes if runtime.bench_id is not None]
+            if s.broker_url
+            else None
+        )
         left = store.jobs.mark_interrupted(actor="daemon", bench_ids=own)
         if left:
             log.warning(
                 "jobs %s were left unfinished by the previous run: marked interrupted (resumable)",
                 left,
             )
-        app.state.benches = {b.name: b for b in runtimes}
+        app.state.benches = {runtime.name: runtime for runtime in runtimes}
         app.state.bench = runtimes[0]
         disk = app.state.disk = DiskWatch(folders_of(s.data_dir, s.database_url), s.min_free_mb)
         jobs = app.state.jobs = JobManager(

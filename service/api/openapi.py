@@ -87,9 +87,9 @@ def _state_procedures(app: FastAPI, schemas: dict[str, Any]) -> None:
         name
         for name, procedure in PROCEDURES.items()
         if any(
-            b.kind == getattr(procedure, "bench_kind", "stage")
-            and all(role in b.devices for role in getattr(procedure, "read_roles", ()))
-            for b in benches
+            bench.kind == getattr(procedure, "bench_kind", "stage")
+            and all(role in bench.devices for role in getattr(procedure, "read_roles", ()))
+            for bench in benches
         )
     ]
     prop = request.get("properties", {}).get("procedure", {})
@@ -129,9 +129,9 @@ def _state_travel(app: FastAPI, schemas: dict[str, Any]) -> None:
     where they differ: the route checks each bench's own)."""
     benches = getattr(app.state, "benches", None) or {}
     travels = [
-        b.config.stage_bench().travel_deg
-        for b in benches.values()
-        if getattr(b, "kind", None) == "stage"
+        bench.config.stage_bench().travel_deg
+        for bench in benches.values()
+        if getattr(bench, "kind", None) == "stage"
     ]
     move = schemas.get("Move", {}).get("properties", {})
     if travels:

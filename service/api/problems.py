@@ -107,7 +107,7 @@ def install(app: FastAPI) -> None:
             detail,
             instance=str(request.url.path),
             field=where,
-            errors=[{"loc": list(map(str, e["loc"])), "msg": e["msg"]} for e in errs],
+            errors=[{"loc": list(map(str, err["loc"])), "msg": err["msg"]} for err in errs],
         )
 
     @app.exception_handler(Exception)

@@ -45,7 +45,7 @@ def install_log_redaction() -> None:
         record = current(*args, **kwargs)
         record.msg = _clean(record.msg)
         if isinstance(record.args, tuple):
-            record.args = tuple(_clean(a) for a in record.args)
+            record.args = tuple(_clean(arg) for arg in record.args)
         elif isinstance(record.args, dict):
             record.args = {k: _clean(v) for k, v in record.args.items()}
         return record

@@ -26,7 +26,9 @@ def redoc_bundle(static_url: str) -> bytes:
 
 def install(app: FastAPI, static_url: str) -> None:
     """Replace the /redoc page of FastAPIOffline by one whose script refers to nothing remote."""
-    app.router.routes = [r for r in app.router.routes if getattr(r, "path", None) != "/redoc"]
+    app.router.routes = [
+        route for route in app.router.routes if getattr(route, "path", None) != "/redoc"
+    ]
 
     @app.get("/redoc", include_in_schema=False)
     async def redoc_html() -> HTMLResponse:

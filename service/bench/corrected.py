@@ -79,8 +79,8 @@ def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> dict
     allowed for) combined with the parameters' part at the mean (which does not average down) and
     the rest of the record's budget (the standards, resolutions, temperature: none of them averages
     down either). Adds `n_readings` and `window_s`."""
-    mx = np.array([r.x_deg for r in readings], dtype=float)
-    my = np.array([r.y_deg for r in readings], dtype=float)
+    mx = np.array([reading.x_deg for reading in readings], dtype=float)
+    my = np.array([reading.y_deg for reading in readings], dtype=float)
     each = active.method.correct(
         getattr(active, "live_model", active.model), {"meas_x_deg": mx, "meas_y_deg": my}
     )

@@ -231,7 +231,7 @@ class BenchRuntime:
         return 1.0 / poll if poll else 1.0
 
     def state(self) -> str:
-        states = [s.state for s in self.devices.status()]
+        states = [statu.state for statu in self.devices.status()]
         if "failed" in states:
             return "degraded"
         if "reconnecting" in states:

@@ -52,8 +52,8 @@ def plan_benches(settings: Settings) -> list[BenchRuntime]:
             )
         except InputError as exc:
             var = "TILTLAB_BENCH_SCENARIO" if kind == "stage" else "TILTLAB_ROTARY_SCENARIO"
-            for r in runtimes:
-                r.sim.close()
+            for runtime in runtimes:
+                runtime.sim.close()
             raise InputError(f"{var}: {exc}") from exc
         config = sim.config
         if kind == "stage" and settings.sim_bench_name:

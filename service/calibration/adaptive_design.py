@@ -97,7 +97,7 @@ class AdaptivePlan:
 
     def as_json(self) -> dict[str, object]:
         return {
-            "points": [list(p) for p in self.points],
+            "points": [list(point) for point in self.points],
             "readings": self.readings,
             "predicted_expanded_uncertainty_deg": self.predicted_u_deg,
             "target_expanded_uncertainty_deg": self.target_deg,
@@ -174,8 +174,8 @@ def serpentine(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
     """Rows of equal y in increasing y, x alternating direction: short travel, every point from
     below."""
     rows: dict[float, list[tuple[float, float]]] = {}
-    for p in points:
-        rows.setdefault(round(p[1], 9), []).append(p)
+    for point in points:
+        rows.setdefault(round(point[1], 9), []).append(point)
     out: list[tuple[float, float]] = []
     for i, y in enumerate(sorted(rows)):
         out += sorted(rows[y], reverse=bool(i % 2))

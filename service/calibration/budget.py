@@ -159,14 +159,14 @@ def combine(
     parts: list[tuple[NDArray[np.float64], float]] = []
     var = uf**2
     total = var.copy()
-    for c in others:
-        total = total + c.u_deg**2
+    for other in others:
+        total = total + other.u_deg**2
     # the fit's ν may differ per reading: ν_eff = u_c⁴ / (u_fit⁴/ν_fit + Σ u_i⁴/ν_i)
     with np.errstate(divide="ignore", invalid="ignore"):
         denom = np.where(np.isfinite(nu), var**2 / np.where(np.isfinite(nu), nu, 1.0), 0.0)
-    for c in others:
-        if math.isfinite(c.dof):
-            parts.append((np.full(uf.shape, c.u_deg**2), c.dof))
+    for other in others:
+        if math.isfinite(other.dof):
+            parts.append((np.full(uf.shape, other.u_deg**2), other.dof))
     if parts:
         denom = denom + sum(v**2 / d for v, d in parts)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -223,12 +223,12 @@ def result_entry(
     rows = [{"source": "fit", "standard_uncertainty": u_fit_deg * scale, "dof": _finite(dof_fit)}]
     rows += [
         {
-            "source": o.source,
-            "name": o.name,
-            "standard_uncertainty": o.u_deg * scale,
-            "dof": _finite(o.dof),
+            "source": other.source,
+            "name": other.name,
+            "standard_uncertainty": other.u_deg * scale,
+            "dof": _finite(other.dof),
         }
-        for o in others
+        for other in others
     ]
     return {
         "quantity": quantity,
@@ -333,7 +333,7 @@ def record_budget(
                     coverage,
                 )
             )
-    angle_scale = [c for c in comps if c.source == "reference_standard"]
+    angle_scale = [comp for comp in comps if comp.source == "reference_standard"]
     for name, p in parameters.items():
         unit = str(p.get("unit", ""))
         if name not in parameter_u or not carries_reference_scale(name, unit):
@@ -351,7 +351,7 @@ def record_budget(
         )
     return {
         "coverage_probability": coverage,
-        "components": [c.as_json() for c in comps],
+        "components": [comp.as_json() for comp in comps],
         "temperature": temperature,
         "results": results,
     }

@@ -131,7 +131,7 @@ class StageEffectModel:
             rng=None,
             geometry=StageGeometry.from_effects(self.bench, fx),
         )
-        return np.column_stack([sim[o] for o in outputs])
+        return np.column_stack([sim[output] for output in outputs])
 
 
 @dataclass
@@ -157,11 +157,11 @@ class StageEffectFit:
 
     @property
     def rss(self) -> float:
-        return float(sum(np.sum(r**2) for r in self.residuals.values()))
+        return float(sum(np.sum(residual**2) for residual in self.residuals.values()))
 
     @property
     def n_obs(self) -> int:
-        return int(sum(r.size for r in self.residuals.values()))
+        return int(sum(residual.size for residual in self.residuals.values()))
 
 
 def robust_scale(residuals: NDArray[np.float64]) -> float:
@@ -190,7 +190,7 @@ def fit_stage_effects(
     stay the data's.
     """
     outputs = list(observed)
-    obs = np.column_stack([np.asarray(observed[o], dtype=float) for o in outputs])
+    obs = np.column_stack([np.asarray(observed[output], dtype=float) for output in outputs])
     n_obs, n_par = obs.size, len(model.free)
     if n_obs <= n_par:
         raise DegenerateDataError(

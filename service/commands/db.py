@@ -102,7 +102,9 @@ def _history() -> int:
 
 
 def _known_revisions() -> str:
-    return ", ".join([r.revision for r in _scripts().walk_revisions()] + ["base"])
+    return ", ".join(
+        [walk_revision.revision for walk_revision in _scripts().walk_revisions()] + ["base"]
+    )
 
 
 def _downgrade(settings: Settings, engine: Engine, target: str, yes: bool) -> int:

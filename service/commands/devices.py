@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
     benches = load_bench_config(args.config)
     config = benches.bench(args.bench)
     results = asyncio.run(probe_bench(config, Clock(benches.sim_speed or 1.0)))
-    width = max(len(r[0]) for r in results)
+    width = max(len(result[0]) for result in results)
     bad = 0
     for role, where, ok, text in results:
         if ok:

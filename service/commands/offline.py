@@ -320,7 +320,7 @@ def correct(args: argparse.Namespace) -> int:
     from service.io.columns import uncertainty_columns
 
     result = method.correct(model, ds.arrays())
-    quantities = tuple(c for c in method.outputs if not c.startswith("u_"))
+    quantities = tuple(output for output in method.outputs if not output.startswith("u_"))
     out: dict[str, Any] = uncertainty_columns(
         result, quantities, COVERAGE, deprecated=getattr(args, "deprecated_u_columns", False)
     )
@@ -389,7 +389,7 @@ def _warn_outside_calibrated_range(model: CalibrationModel, ds: Dataset, targets
         outside += [i for i, v in enumerate(values) if not lo <= v <= hi]
     if outside:
         rows = sorted(set(outside))
-        shown = ", ".join(str(r + 1) for r in rows[:5]) + (", …" if len(rows) > 5 else "")
+        shown = ", ".join(str(row + 1) for row in rows[:5]) + (", …" if len(rows) > 5 else "")
         print(
             f"  warning: {targets_path}: {len(rows)} target(s) outside the calibrated table "
             f"tilts (x {seen['x'][0]:g} to {seen['x'][1]:g}°, y {seen['y'][0]:g} to "

@@ -102,7 +102,7 @@ def _inputs() -> dict[str, Path]:
 
     files = sorted((Path(scenarios.__file__).parent / "presets").glob("*.json"))
     files += sorted(Path(data.__file__).parent.glob("*.csv"))
-    return {f.name: f for f in files}
+    return {file.name: file for file in files}
 
 
 def _append_provenance(report: Path, command: str) -> None:

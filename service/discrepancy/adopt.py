@@ -235,9 +235,9 @@ def seen_labels_of(steps: Sequence[Any]) -> dict[str, list[str]]:
 def worm_axes_of(verdicts: Sequence[Mapping[str, Any]]) -> list[str]:
     """The stages a stored adoption verdict fits a worm's error on (both for a verdict that does not
     say)."""
-    for v in verdicts:
-        if v.get("effect") == "periodic_error" and v.get("axes"):
-            return [str(a) for a in v["axes"]]
+    for verdict in verdicts:
+        if verdict.get("effect") == "periodic_error" and verdict.get("axes"):
+            return [str(a) for a in verdict["axes"]]
     return ["x", "y"]
 
 

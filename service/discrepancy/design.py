@@ -74,7 +74,7 @@ class MeasurementPlan:
 
     @property
     def points(self) -> list[PlannedPoint]:
-        return [p for part in self.parts for p in part.points]
+        return [point for part in self.parts for point in part.points]
 
     @property
     def estimated_bench_s(self) -> float:
@@ -112,7 +112,7 @@ class MeasurementPlan:
                     "why": p.why,
                     "measurement": p.measurement,
                     "n_points": len(p.points),
-                    "points": [q.as_list() for q in p.points],
+                    "points": [point.as_list() for point in p.points],
                 }
                 for p in self.parts
             ],

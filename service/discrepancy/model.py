@@ -58,12 +58,12 @@ class Fit:
 
     def block_slice(self, effect: str, occurrence: int = 0) -> slice:
         i, seen = 0, 0
-        for b in self.blocks:
-            if b.effect == effect:
+        for block in self.blocks:
+            if block.effect == effect:
                 if seen == occurrence:
-                    return slice(i, i + b.size)
+                    return slice(i, i + block.size)
                 seen += 1
-            i += b.size
+            i += block.size
         raise KeyError(effect)
 
     def block(self, effect: str, occurrence: int = 0) -> Block:
@@ -138,9 +138,9 @@ class Family:
     def unpack(blocks: list[Block], theta: NDArray[np.float64]) -> dict[str, dict[str, float]]:
         params: dict[str, dict[str, float]] = {}
         i = 0
-        for b in blocks:
-            d = params.setdefault(b.effect, {})
-            for lab in b.labels:
+        for block in blocks:
+            d = params.setdefault(block.effect, {})
+            for lab in block.labels:
                 d[lab] = float(theta[i])
                 i += 1
         return params
@@ -159,7 +159,7 @@ class Family:
         """Start values: the previous fit's values where the parameter is the same, block init
         elsewhere."""
         x = (
-            np.concatenate([np.asarray(b.init, dtype=float) for b in blocks])
+            np.concatenate([np.asarray(block.init, dtype=float) for block in blocks])
             if blocks
             else np.zeros(0)
         )
@@ -168,14 +168,14 @@ class Family:
         i = 0
         prev = {}
         j = 0
-        for b in start.blocks:
-            for lab in b.labels:
-                prev[(b.effect, lab)] = start.values[j]
+        for block in start.blocks:
+            for lab in block.labels:
+                prev[(block.effect, lab)] = start.values[j]
                 j += 1
-        for b in blocks:
-            for lab in b.labels:
-                if (b.effect, lab) in prev:
-                    x[i] = prev[(b.effect, lab)]
+        for block in blocks:
+            for lab in block.labels:
+                if (block.effect, lab) in prev:
+                    x[i] = prev[(block.effect, lab)]
                 i += 1
         return x
 
@@ -202,7 +202,7 @@ class Family:
         x0: NDArray[np.float64] | None = None,
     ) -> Fit:
         blocks = self.blocks(effects)
-        k = sum(b.size for b in blocks)
+        k = sum(block.size for block in blocks)
         if self.n_obs <= k:
             raise DegenerateDataError(
                 f"{self.n_obs // max(self.observed.shape[1], 1)} points give {self.n_obs} "
@@ -210,7 +210,7 @@ class Family:
                 f"({self.baseline} + {', '.join(effects) or 'nothing'})"
             )
         theta0 = self.initial(effects, blocks, start) if x0 is None else np.asarray(x0, dtype=float)
-        scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
+        scales = np.concatenate([np.asarray(block.scales, dtype=float) for block in blocks])
 
         def fun(q: NDArray[np.float64]) -> NDArray[np.float64]:
             return self.weighted_residual(effects, q * scales, blocks)
@@ -251,7 +251,7 @@ class Family:
     ) -> NDArray[np.float64]:
         """Jacobian of the weighted residual, d r / d theta (selected columns), by the shared
         rule."""
-        scales = np.concatenate([np.asarray(b.scales, dtype=float) for b in blocks])
+        scales = np.concatenate([np.asarray(block.scales, dtype=float) for block in blocks])
         cols = np.arange(theta.size) if columns is None else np.asarray(list(columns), dtype=int)
         if cols.size == 0:
             return np.zeros((self.n_obs, 0))
@@ -270,7 +270,11 @@ class Family:
         if `full`)."""
         effects = current.effects + (effect,)
         if full:
-            new = [b for b in self.full_blocks(effects) if b.effect == effect][-1:]
+            new = [
+                full_block
+                for full_block in self.full_blocks(effects)
+                if full_block.effect == effect
+            ][-1:]
             blocks = self.blocks(current.effects) + new
         else:
             blocks = self.blocks(effects)

@@ -169,7 +169,7 @@ def _histogram(report: dict[str, Any], fit: Fit) -> str:
 def _table(rows: list[list[str]], head: list[str]) -> str:
     h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
     b = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows
+        "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows
     )
     return f"<table><tr>{h}</tr>{b}</table>"
 

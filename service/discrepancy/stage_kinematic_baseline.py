@@ -190,7 +190,9 @@ class StageKinematic(Family):
         fx = model.effect_set(())
         key = tuple(
             sorted(
-                (e, tuple(sorted(fx.values[e].items()))) for e in _GEOMETRY_EFFECTS if e in fx.on
+                (geometry_effect, tuple(sorted(fx.values[geometry_effect].items())))
+                for geometry_effect in _GEOMETRY_EFFECTS
+                if geometry_effect in fx.on
             )
         )
         if self._geo_cache is None or self._geo_cache[0] != key:
@@ -208,7 +210,7 @@ class StageKinematic(Family):
             rng=None,
             geometry=self._geo_cache[1],
         )
-        return np.column_stack([sim[o] for o in self.outputs])
+        return np.column_stack([sim[output] for output in self.outputs])
 
     def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
         return stage_magnitude(self, fit, effect)

@@ -73,9 +73,9 @@ class Result:
     @property
     def named_effects(self) -> list[str]:
         out: list[str] = []
-        for s in self.steps:
-            if s.effect not in out:
-                out.append(s.effect)
+        for step in self.steps:
+            if step.effect not in out:
+                out.append(step.effect)
         return out
 
 

@@ -216,7 +216,9 @@ class BenchConfig(_Strict):
                     f"roles.{role}: missing; a {self.kind} bench needs "
                     f"{', '.join(REQUIRED_ROLES[self.kind])}"
                 )
-        if self.kind == "rotary" and not any(r in self.roles for r in OPTIONAL_ROLES["rotary"]):
+        if self.kind == "rotary" and not any(
+            optional_role in self.roles for optional_role in OPTIONAL_ROLES["rotary"]
+        ):
             raise ValueError("roles: a rotary bench needs a triaxial_sensor or a turntable_sensor")
         if self.kind == "rotary" and self.hardware is not None:
             raise ValueError("hardware: describes stacked swing stages; a rotary bench has none")

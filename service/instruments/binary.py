@@ -167,7 +167,7 @@ def encode_answer(msg: BinaryAnswer) -> bytes:
     elif c == READ_SINES | ANSWER:
         if msg.sines is None:
             raise ValueError("answer 0x87 needs three sines")
-        data = b"".join(encode_sine(s) for s in msg.sines)
+        data = b"".join(encode_sine(sine) for sine in msg.sines)
     elif c in STATUS_ANSWERS:
         data = bytes([_given(msg.status, c)])
     else:

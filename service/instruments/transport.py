@@ -59,7 +59,11 @@ class DeviceRefused(DeviceError):
 
 def resolve_usb_serial(usb_serial: str) -> str:
     """The device path of the USB serial adapter with this serial number."""
-    found = [p.device for p in serial.tools.list_ports.comports() if p.serial_number == usb_serial]
+    found = [
+        comport.device
+        for comport in serial.tools.list_ports.comports()
+        if comport.serial_number == usb_serial
+    ]
     if not found:
         raise DeviceUnavailable(
             f"no USB serial adapter with serial number {usb_serial} is plugged in"

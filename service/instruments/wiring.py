@@ -120,14 +120,14 @@ class BenchDevices:
         return self._stages[role]
 
     async def start(self) -> None:
-        await asyncio.gather(*(d.start() for d in self.drivers.values()))
+        await asyncio.gather(*(driver.start() for driver in self.drivers.values()))
 
     async def close(self) -> None:
-        for d in self.drivers.values():
-            await d.close()
+        for driver in self.drivers.values():
+            await driver.close()
 
     def status(self) -> list[DeviceStatus]:
-        return [d.status for d in self.drivers.values()]
+        return [driver.status for driver in self.drivers.values()]
 
     async def __aenter__(self) -> BenchDevices:
         await self.start()

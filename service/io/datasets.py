@@ -180,9 +180,9 @@ def read_dataset(
     use: list[str] = []
     for item in required:
         alts = (item,) if isinstance(item, str) else tuple(item)
-        found = next((a for a in alts if a in text), None)
+        found = next((alt for alt in alts if alt in text), None)
         if found is None:
-            names = " or ".join(repr(a) for a in alts)
+            names = " or ".join(repr(alt) for alt in alts)
             raise InputError(f"{source}: missing required column {names} for kind {kind!r}")
         use.append(found)
     # a sensor's two axes go together: one alone is a column lost, not an option left out
@@ -211,9 +211,9 @@ def _refuse_more_rows_than(source: str, path: Path, max_rows: int) -> None:
     """InputError when the file has more than `max_rows` data rows (non-blank lines under the
     header)."""
     try:
-        with path.open("rb") as f:
+        with path.open("rb") as file:
             rows = -1  # the header
-            for line in f:
+            for line in file:
                 if line.strip():
                     rows += 1
                     if rows > max_rows:

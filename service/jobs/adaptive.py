@@ -127,9 +127,9 @@ def validated_figures(
         per_axis = []
         for axis in ("x", "y"):
             var = 0.0
-            for r in rows:
-                std = getattr(r, f"ch_{axis}_std")
-                var += (std or 0.0) ** 2 / max(r.n_samples or 1, 1)
+            for row in rows:
+                std = getattr(row, f"ch_{axis}_std")
+                var += (std or 0.0) ** 2 / max(row.n_samples or 1, 1)
             per_axis.append(var)
         u_read2.append(per_axis)
     u2 = np.array(u_read2, dtype=float)  # (points, 2)
@@ -214,7 +214,7 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     assert target is not None  # the request's rule
     fixed_u = float(job.parameters.get("adaptive", {}).get("fixed_u_deg", 0.0))
     devices = {r: bench.device_ids[r] for r in SENSORS}
-    if any(d is None for d in devices.values()):
+    if any(device is None for device in devices.values()):
         raise InputError(f"bench {bench.name!r} has no registered {' or '.join(SENSORS)}")
     stored = await ctx.db(ctx.store.points.settled_points, job.id)
     if stored:

@@ -65,9 +65,10 @@ class Admission:
         from service.jobs.budgets import ROLE_WORDS, resolutions_deg
 
         u2 = sum(
-            (float(s["expanded_uncertainty_deg"]) / float(s["coverage_factor"])) ** 2
-            for s in self.standards(req.reference_standards)
-            if s.get("expanded_uncertainty_deg") is not None and s.get("coverage_factor")
+            (float(standard["expanded_uncertainty_deg"]) / float(standard["coverage_factor"])) ** 2
+            for standard in self.standards(req.reference_standards)
+            if standard.get("expanded_uncertainty_deg") is not None
+            and standard.get("coverage_factor")
         )
         u2 += sum(
             (r / math.sqrt(12.0)) ** 2
@@ -142,7 +143,9 @@ class Admission:
             "validation_points": plan.validation_points,
             "outlier_rule": OUTLIER_RULE,
             "approach": f"from below on both axes by {APPROACH_DEG} deg",
-            "device_ids": {r: bench.device_ids.get(r) for r in plan.read_roles},
+            "device_ids": {
+                read_role: bench.device_ids.get(read_role) for read_role in plan.read_roles
+            },
         }
 
     def replay(self, bench: BenchRuntime, key: str, body: dict[str, Any]) -> CalibrationJob:

@@ -233,7 +233,7 @@ def fit_adopted(
 def seconds_per_point(points: list[Any], clock_speed: float) -> tuple[float, str]:
     """Bench seconds a point took in a job (the median time between consecutive points' last
     readings), and where that figure comes from."""
-    ends = sorted(float(p.t_end_s) for p in points)
+    ends = sorted(float(point.t_end_s) for point in points)
     steps = np.diff(ends)
     steps = steps[steps > 0]
     if steps.size == 0:
@@ -247,14 +247,14 @@ def merged_columns(parts: list[dict[str, NDArray[np.float64]]]) -> dict[str, NDA
     numbers made unique (a job's point 3 is not another job's point 3)."""
     if len(parts) == 1:
         return parts[0]
-    keys = [k for k in parts[0] if all(k in p for p in parts[1:])]
-    out = {k: np.concatenate([np.asarray(p[k], dtype=float) for p in parts]) for k in keys}
+    keys = [k for k in parts[0] if all(k in part for part in parts[1:])]
+    out = {k: np.concatenate([np.asarray(part[k], dtype=float) for part in parts]) for k in keys}
     if "point" in out:
         offset = 0.0
         numbered = []
-        for p in parts:
-            numbered.append(np.asarray(p["point"], dtype=float) + offset)
-            offset += float(np.max(p["point"])) + 1.0 if len(p["point"]) else 0.0
+        for part in parts:
+            numbered.append(np.asarray(part["point"], dtype=float) + offset)
+            offset += float(np.max(part["point"])) + 1.0 if len(part["point"]) else 0.0
         out["point"] = np.concatenate(numbered)
     return out
 

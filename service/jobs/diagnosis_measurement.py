@@ -73,8 +73,8 @@ class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
     async def run(self, ctx: JobContext) -> Outcome:
         job, bench = ctx.job, ctx.bench
         points = [self.stored_point(p) for p in job.parameters["fit_points"]]
-        devices = {r: bench.device_ids.get(r) for r in self.read_roles}
-        if any(d is None for d in devices.values()) or devices != job.parameters.get(
+        devices = {read_role: bench.device_ids.get(read_role) for read_role in self.read_roles}
+        if any(device is None for device in devices.values()) or devices != job.parameters.get(
             "device_ids", devices
         ):
             raise InputError(
@@ -83,7 +83,7 @@ class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
             )
         stored = await ctx.db(ctx.store.points.settled_points, job.id)
         done = set.intersection(
-            *({p.point for p in stored if p.device_id == d} for d in devices.values())
+            *({p.point for p in stored if p.device_id == device} for device in devices.values())
         )
         await ctx.report(len(done), len(points), Phase.MEASURING)
         for i, point in enumerate(points):

@@ -31,4 +31,4 @@ class JobEvents:
             event.set()
 
     def watcher_count(self) -> int:
-        return sum(len(w) for w in self._watchers.values())
+        return sum(len(watcher) for watcher in self._watchers.values())

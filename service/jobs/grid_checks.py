@@ -32,7 +32,7 @@ def check_axis_positions(grid: Grid, points: list[StagePoint]) -> None:
     """Each stage at two or more angles: a fit relates the sensors to both stages' motion."""
     for index, axis in enumerate(("x", "y")):
         stage, count_name = AXIS_NAMES[axis]
-        angles = {round(p[index], DISTINCT_DECIMALS) for p in points}
+        angles = {round(point[index], DISTINCT_DECIMALS) for point in points}
         if len(angles) >= 2:
             continue
         at = f"{next(iter(angles)):g} deg" if angles else "no angle"

@@ -438,7 +438,9 @@ class JobManager:
         safe to repeat."""
         # before every step: a job stops with room left to store why, not on a full disk
         self.check_disk()
-        held = sum(len(a) for a in args if isinstance(a, list) and a and isinstance(a[0], Sample))
+        held = sum(
+            len(arg) for arg in args if isinstance(arg, list) and arg and isinstance(arg[0], Sample)
+        )
         return await through_outage(
             self.database,
             partial(write_in_thread, call, *args, **kwargs),
@@ -657,8 +659,8 @@ class JobManager:
     ) -> list[tuple[int, float | None, float | None]]:
         """Blocking (database): (readings, sd x, sd y) of each point a device settled in a job."""
         return [
-            (p.n_samples, p.ch_x_std, p.ch_y_std)
-            for p in self.store.points.settled_points(job_id, device_id)
+            (settled_point.n_samples, settled_point.ch_x_std, settled_point.ch_y_std)
+            for settled_point in self.store.points.settled_points(job_id, device_id)
         ]
 
     def fit_columns(self, job_id: int, n_fit: int) -> dict[str, NDArray[np.float64]]:
@@ -678,5 +680,9 @@ class JobManager:
         procedure = registry.procedure_of(job.parameters)
         if not isinstance(procedure, PointProcedure):
             raise InputError(f"job {job_id} ({procedure.name}) measured no points")
-        points = [p for p in self.store.points.settled_points(job_id) if p.point >= n_fit]
+        points = [
+            settled_point
+            for settled_point in self.store.points.settled_points(job_id)
+            if settled_point.point >= n_fit
+        ]
         return procedure.validation(method, model, procedure.columns(job, points, for_fit=False))

@@ -35,7 +35,11 @@ def store_point(
     transaction, are not written again if they are stored, nor is a settled point already stored."""
     with write_engine(store.engine).begin() as conn:
         insert_samples_once(conn, samples)
-    have = {p.device_id for p in store.points.settled_points(job_id) if p.point == index}
+    have = {
+        settled_point.device_id
+        for settled_point in store.points.settled_points(job_id)
+        if settled_point.point == index
+    }
     for device_id, point in settled_by_device.items():
         if device_id not in have:
             store.points.add_settled_points(job_id, device_id, [point], actor="daemon")

@@ -281,5 +281,11 @@ class PointProcedure(ABC, Generic[P]):
     def stored_columns(self, points: PointsRepo, job: CalibrationJob, n_fit: int) -> Columns:
         """Blocking (database): the fit columns of the job's first `n_fit` stored points."""
         return self.columns(
-            job, [p for p in points.settled_points(job.id) if p.point < n_fit], for_fit=True
+            job,
+            [
+                settled_point
+                for settled_point in points.settled_points(job.id)
+                if settled_point.point < n_fit
+            ],
+            for_fit=True,
         )

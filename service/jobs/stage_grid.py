@@ -74,7 +74,7 @@ def stage_columns(
     points_ref: Sequence[SettledPoint], points_meas: Sequence[SettledPoint]
 ) -> Columns:
     """The dataset columns of a job's settled points (reference and measurement rows by point)."""
-    meas = {p.point: p for p in points_meas}
+    meas = {points_mea.point: points_mea for points_mea in points_meas}
     rows = [(r, meas[r.point]) for r in points_ref if r.point in meas]
 
     def col(f: Callable[[SettledPoint, SettledPoint], Any]) -> NDArray[np.float64]:

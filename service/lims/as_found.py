@@ -111,7 +111,9 @@ def as_found(
     for i, axis in enumerate(AXES):
         ref = np.array([p.reference_deg[i] for p in points], dtype=float)
         ind = np.array([p.indication_deg[i] for p in points], dtype=float)
-        ref_parts = [(np.full(n, s.u_deg), np.full(n, s.dof)) for s in standards]
+        ref_parts = [
+            (np.full(n, standard.u_deg), np.full(n, standard.dof)) for standard in standards
+        ]
         if reference_resolution_deg:
             ref_parts.append((np.full(n, reference_resolution_deg / SQRT12), np.full(n, math.inf)))
         ref_parts.append(

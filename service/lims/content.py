@@ -177,20 +177,20 @@ def standards_of(
     """The reference standards as the certificate names them; `performed_on`: the day the
     calibration began."""
     out = []
-    for s in rows:
-        lab = s.get("calibrated_by") or None
-        calibrated_on, due_on = _date(s["calibrated_on"]), _date(s["due_on"])
-        U, k = s.get("expanded_uncertainty_deg"), s.get("coverage_factor")
+    for row in rows:
+        lab = row.get("calibrated_by") or None
+        calibrated_on, due_on = _date(row["calibrated_on"]), _date(row["due_on"])
+        U, k = row.get("expanded_uncertainty_deg"), row.get("coverage_factor")
         out.append(
             dcc.ReferenceStandard(
-                name=str(s["name"]),
-                serial=str(s["serial"]),
-                certificate_number=str(s["certificate_number"]),
-                certificate_sha256=str(s["certificate_sha256"]),
+                name=str(row["name"]),
+                serial=str(row["serial"]),
+                certificate_number=str(row["certificate_number"]),
+                certificate_sha256=str(row["certificate_sha256"]),
                 calibrated_on=calibrated_on,
                 due_on=due_on,
-                uncertainty=str(s.get("uncertainty") or ""),
-                model=s.get("model") or None,
+                uncertainty=str(row.get("uncertainty") or ""),
+                model=row.get("model") or None,
                 calibrated_by=dcc.CalibratingLaboratory(
                     str(lab["name"]),
                     str(lab["country_code"]),
@@ -440,7 +440,7 @@ def build_certificate(
         and (e := indication_error_result(measured_points, found)) is not None
     ):
         results.append(e)
-    fitted = [p for p in measured_points if p.fitted]
+    fitted = [measured_point for measured_point in measured_points if measured_point.fitted]
     per_point = conditions.get("samples_per_point")
     if (
         b := budget_result(

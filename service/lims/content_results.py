@@ -229,13 +229,15 @@ def validation_result(
                 "validation points name no reference_<quantity>_<unit>/measured_... pair"
             )
         for q, unit in quantities:
-            ref = tuple(float(p[f"reference_{q}_{unit}"]) for p in points)
-            meas = tuple(float(p[f"measured_{q}_{unit}"]) for p in points)
+            ref = tuple(float(point[f"reference_{q}_{unit}"]) for point in points)
+            meas = tuple(float(point[f"measured_{q}_{unit}"]) for point in points)
             err = tuple(m - r for m, r in zip(meas, ref, strict=True))
             ukey = f"u_{q}_{unit}"
-            has_u = all(isinstance(p.get(ukey), int | float) for p in points)
-            U: tuple[float, ...] | None = tuple(float(p[ukey]) for p in points) if has_u else None
-            stated = [p.get(f"k_{q}", p.get("k", validation.get("k"))) for p in points]
+            has_u = all(isinstance(point.get(ukey), int | float) for point in points)
+            U: tuple[float, ...] | None = (
+                tuple(float(point[ukey]) for point in points) if has_u else None
+            )
+            stated = [point.get(f"k_{q}", point.get("k", validation.get("k"))) for point in points]
             if has_u and any(k is None for k in stated) and k_bound is None:
                 raise CertificateRefused(
                     f"validation points give {ukey} without its coverage factor"
@@ -324,7 +326,9 @@ def calibration_points_result(
     if not points:
         return None
     keys = [
-        k for k in points[0] if "_" in k and all(isinstance(p.get(k), int | float) for p in points)
+        k
+        for k in points[0]
+        if "_" in k and all(isinstance(point.get(k), int | float) for point in points)
     ]
     columns = []
     for key in keys:
@@ -333,7 +337,7 @@ def calibration_points_result(
             dcc.Column(
                 key,
                 q.replace("_", " "),
-                tuple(float(p[key]) for p in points),
+                tuple(float(point[key]) for point in points),
                 unit,
                 ref_type="tiltlab_calibrationPoint",
             )
@@ -344,9 +348,9 @@ def calibration_points_result(
             if isinstance(span, list | tuple) and len(span) == 2 and "_" in key:
                 ranges[f"reference_{key}"] = (float(span[0]), float(span[1]))
     if not ranges:
-        for c in columns:
-            if c.label.startswith("reference_"):
-                ranges[c.label] = (min(c.values), max(c.values))
+        for column in columns:
+            if column.label.startswith("reference_"):
+                ranges[column.label] = (min(column.values), max(column.values))
     values = []
     for label, (lo, hi) in ranges.items():
         q, _, unit = label.rpartition("_")
@@ -442,7 +446,9 @@ def stage_points_result(
             ),
         ]
     ranges = _ranges(stated_range) or {
-        c.label: (min(c.values), max(c.values)) for c in cols if c.label.startswith("reference_")
+        col.label: (min(col.values), max(col.values))
+        for col in cols
+        if col.label.startswith("reference_")
     }
     return dcc.Result(
         "Calibrated range and calibration points",
@@ -495,7 +501,7 @@ def indication_error_result(
                 ref_type="tiltlab_indicationError",
             ),
         ]
-    n_fit = sum(p.fitted for p in points)
+    n_fit = sum(point.fitted for point in points)
     largest = {a: float(np.max(np.abs(found[a].error.value))) for a in AXES}
     values = tuple(
         dcc.Value(
@@ -736,7 +742,7 @@ def ambient_conditions(conditions: Mapping[str, Any] | None) -> list[dcc.Conditi
         c = (conditions or {}).get(key)
         if not isinstance(c, Mapping) or not isinstance(c.get("value"), int | float):
             continue
-        u = c.get("standard_uncertainty")
+        response = c.get("standard_uncertainty")
         source = str(c.get("source") or "request")
         values = [
             dcc.Value(
@@ -747,7 +753,7 @@ def ambient_conditions(conditions: Mapping[str, Any] | None) -> list[dcc.Conditi
                 note=AMBIENT_SOURCE.get(source, source),
                 distribution="normal",
                 ref_type="tiltlab_ambientCondition",
-                standard_u=float(u) if isinstance(u, int | float) else None,
+                standard_u=float(response) if isinstance(response, int | float) else None,
             )
         ]
         for end in ("min", "max"):

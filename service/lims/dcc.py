@@ -232,12 +232,12 @@ def _column(parent: ET.Element, c: Column, decimals: Sequence[int] | None, lang:
     for i, (v, u, k) in enumerate(zip(c.values, c.expanded_u, c.k, strict=True)):
         _check_mu(u, k, c.probability, f"column {c.label}[{i}]")
         pairs.append(gum_pair(v, u, c.label))
-    _el(lst, "valueXMLList", " ".join(p[0] for p in pairs), ns=SI_NS)
+    _el(lst, "valueXMLList", " ".join(pair[0] for pair in pairs), ns=SI_NS)
     _el(lst, "unitXMLList", dsi_unit(c.unit), ns=SI_NS)
     mu = _el(
         _el(lst, "measurementUncertaintyUnivariateXMLList", ns=SI_NS), "expandedMUXMLList", ns=SI_NS
     )
-    _el(mu, "valueExpandedMUXMLList", " ".join(p[1] for p in pairs), ns=SI_NS)
+    _el(mu, "valueExpandedMUXMLList", " ".join(pair[1] for pair in pairs), ns=SI_NS)
     _el(mu, "coverageFactorXMLList", " ".join(factor(k, c.label) for k in c.k), ns=SI_NS)
     _el(mu, "coverageProbabilityXMLList", plain(c.probability, c.label), ns=SI_NS)
     if c.distribution:
@@ -267,12 +267,12 @@ def _covariance(parent: ET.Element, c: Covariance, lang: str) -> None:
         if not var >= 0:
             raise InvalidCertificate(f"parameter covariance: the variance of {label} is {var}")
         pairs.append(gum_pair(c.values[i], c.k[i] * var**0.5, label))
-    _el(lst, "valueXMLList", " ".join(p[0] for p in pairs), ns=SI_NS)
-    _el(lst, "unitXMLList", " ".join(dsi_unit(u) for u in c.units), ns=SI_NS)
+    _el(lst, "valueXMLList", " ".join(pair[0] for pair in pairs), ns=SI_NS)
+    _el(lst, "unitXMLList", " ".join(dsi_unit(unit) for unit in c.units), ns=SI_NS)
     mu = _el(
         _el(lst, "measurementUncertaintyUnivariateXMLList", ns=SI_NS), "expandedMUXMLList", ns=SI_NS
     )
-    _el(mu, "valueExpandedMUXMLList", " ".join(p[1] for p in pairs), ns=SI_NS)
+    _el(mu, "valueExpandedMUXMLList", " ".join(pair[1] for pair in pairs), ns=SI_NS)
     _el(mu, "coverageFactorXMLList", " ".join(factor(k, "k") for k in c.k), ns=SI_NS)
     _el(mu, "coverageProbabilityXMLList", plain(c.probability, "p"), ns=SI_NS)
     _el(mu, "distributionXMLList", c.distribution, ns=SI_NS)
@@ -304,9 +304,9 @@ def _covariance(parent: ET.Element, c: Covariance, lang: str) -> None:
 def _row_decimals(columns: Sequence[Column]) -> list[int] | None:
     """Per row, the decimals of the first column's U in it: the other columns of the row are written
     to them."""
-    for c in columns:
-        if c.expanded_u:
-            return [gum_decimals(u) if u > 0 else 6 for u in c.expanded_u]
+    for column in columns:
+        if column.expanded_u:
+            return [gum_decimals(u) if u > 0 else 6 for u in column.expanded_u]
     return None
 
 
@@ -314,7 +314,7 @@ def _unique_labels(r: Result) -> None:
     """Software reads a quantity by its label: two quantities of one list never share one."""
     for what, labels in (
         ("values", [v.label for v in r.values]),
-        ("table", [c.label for c in r.columns]),
+        ("table", [column.label for column in r.columns]),
     ):
         seen = {x for x in labels if labels.count(x) > 1}
         if seen:
@@ -337,15 +337,15 @@ def _result(parent: ET.Element, r: Result, lang: str) -> None:
         for v in r.values:
             _quantity(lst, v, lang)
     if r.columns:
-        lengths = {len(c.values) for c in r.columns}
+        lengths = {len(column.values) for column in r.columns}
         if len(lengths) != 1:
             raise InvalidCertificate(
                 f"result {r.name!r}: its columns differ in length {sorted(lengths)}"
             )
         table = _el(data, "list", refType=r.table_ref_type)
         decimals = _row_decimals(r.columns)
-        for c in r.columns:
-            _column(table, c, decimals, lang)
+        for column in r.columns:
+            _column(table, column, decimals, lang)
     if r.covariance is not None:
         _covariance(_el(data, "list", refType="tiltlab_values"), r.covariance, lang)
 
@@ -494,12 +494,12 @@ def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
     _contact(lab, "contact", c.laboratory, lang)
 
     persons = _el(adm, "respPersons")
-    for p in c.persons:
+    for person in c.persons:
         e = _el(persons, "respPerson")
-        _text(_el(e, "person"), "name", p.name, lang)
-        _rich(e, "description", p.statement, lang)
-        _el(e, "role", p.role)
-        _el(e, "mainSigner", "true" if p.main_signer else "false")
+        _text(_el(e, "person"), "name", person.name, lang)
+        _rich(e, "description", person.statement, lang)
+        _el(e, "role", person.role)
+        _el(e, "mainSigner", "true" if person.main_signer else "false")
     _contact(adm, "customer", c.customer, lang)
     if c.statements:
         stmts = _el(adm, "statements")
@@ -562,7 +562,7 @@ def _define_reftypes(root: ET.Element, lang: str) -> None:
 def build_xml(c: Certificate) -> bytes:
     """The certificate as DCC 3.3.0 XML (UTF-8). Not yet validated: `issue` does that."""
     lang = c.language
-    if not c.persons or sum(p.main_signer for p in c.persons) != 1:
+    if not c.persons or sum(person.main_signer for person in c.persons) != 1:
         raise InvalidCertificate(
             "a certificate needs exactly one main signer among its responsible persons"
         )
@@ -585,8 +585,8 @@ def build_xml(c: Certificate) -> bytes:
     )
     if c.standards:
         eq = _el(results, "measuringEquipments")
-        for s in c.standards:
-            _standard(eq, s, lang)
+        for standard in c.standards:
+            _standard(eq, standard, lang)
     if c.conditions:
         conds = _el(results, "influenceConditions")
         for cond in c.conditions:
@@ -607,8 +607,8 @@ def build_xml(c: Certificate) -> bytes:
         _text(e, "name", mr.name, lang)
         _rich(e, "description", mr.description, lang)
         rl = _el(e, "results")
-        for r in mr.results:
-            _result(rl, r, lang)
+        for result in mr.results:
+            _result(rl, result, lang)
     if c.comment:
         _el(root, "comment").text = c.comment
     _define_reftypes(root, lang)

@@ -221,7 +221,7 @@ def _contact_text(c: ET.Element | None) -> str:
         f"{_t(loc, 'dcc:postCode')} {_t(loc, 'dcc:city')}".strip(),
         _t(loc, "dcc:countryCode"),
     ]
-    return ", ".join(p for p in parts if p)
+    return ", ".join(part for part in parts if part)
 
 
 def _real_text(real: ET.Element | None) -> str:
@@ -305,11 +305,11 @@ def _render_result(w: Callable[[str], None], r: ET.Element) -> None:
         quantities = lst.findall("dcc:quantity", _NS)
         if lst.get("refType") != "tiltlab_values":
             _render_table(w, quantities)
-        elif any(q.find("si:real", _NS) is not None for q in quantities):
+        elif any(quantity.find("si:real", _NS) is not None for quantity in quantities):
             _render_values(w, quantities)
-        for q in quantities:
-            if q.get("refType") == "tiltlab_parameterVector":
-                _render_correlations(w, q)
+        for quantity in quantities:
+            if quantity.get("refType") == "tiltlab_parameterVector":
+                _render_correlations(w, quantity)
 
 
 def _render_values(w: Callable[[str], None], quantities: list[ET.Element]) -> None:
@@ -330,7 +330,7 @@ def _render_values(w: Callable[[str], None], quantities: list[ET.Element]) -> No
         ("Note", lambda q, r: _t(q, "dcc:description/dcc:content"), False),
     ]
     rows = [(q, r) for q in quantities if (r := q.find("si:real", _NS)) is not None]
-    used = [c for c in columns if any(c[1](q, r) for q, r in rows)]
+    used = [column for column in columns if any(column[1](q, r) for q, r in rows)]
     w("<table><tr>" + "".join(f"<th>{esc(h)}</th>" for h, _, _ in used) + "</tr>")
     for q, r in rows:
         w(
@@ -348,8 +348,8 @@ def _render_table(w: Callable[[str], None], quantities: list[ET.Element]) -> Non
     and k."""
     esc = html.escape
     cols = []
-    for q in quantities:
-        xl = q.find("si:realListXMLList", _NS)
+    for quantity in quantities:
+        xl = quantity.find("si:realListXMLList", _NS)
         if xl is None:
             continue
         unit = _unit_text(_t(xl, "si:unitXMLList"))
@@ -360,7 +360,7 @@ def _render_table(w: Callable[[str], None], quantities: list[ET.Element]) -> Non
         )
         cols.append(
             (
-                _t(q, "dcc:name/dcc:content") + (f" / {unit}" if unit else ""),
+                _t(quantity, "dcc:name/dcc:content") + (f" / {unit}" if unit else ""),
                 _t(xl, "si:valueXMLList").split(),
             )
         )

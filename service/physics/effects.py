@@ -75,7 +75,9 @@ def _per_sensor(
     axes: tuple[str, ...] = ("x", "y"),
 ) -> tuple[Param, ...]:
     return tuple(
-        _p(fmt.format(s=s, a=a), unit, lo, hi, doc.format(s=s, a=a)) for s in sensors for a in axes
+        _p(fmt.format(s=sensor, a=axis), unit, lo, hi, doc.format(s=sensor, a=axis))
+        for sensor in sensors
+        for axis in axes
     )
 
 

@@ -63,7 +63,7 @@ def _fmt(v: float, nd: int = 4) -> str:
 def _mean_stats(
     results: list[SeedResult], method: str, kind: str, mask: NDArray[np.bool_] | None
 ) -> dict[str, float]:
-    st = [r.stats(method, kind, mask) for r in results]
+    st = [result.stats(method, kind, mask) for result in results]
     out = {k: float(np.mean([s[k] for s in st])) for k in ("rms_x", "rms_y", "max_x", "max_y")}
     out.update({f"worst_{k}": float(np.max([s[k] for s in st])) for k in ("max_x", "max_y")})
     return out
@@ -181,7 +181,7 @@ def _figures(
     for ax, (label, key, scale) in zip(
         axes, (("before (raw)", "uncorrected", 5.0), ("after, homography", "homography", 250.0))
     ):
-        ex, ey = (e[paper_mask] for e in r0.errors[key]["flow"])
+        ex, ey = (error[paper_mask] for error in r0.errors[key]["flow"])
         ax.quiver(
             tx, ty, ex * scale, ey * scale, angles="xy", scale_units="xy", scale=1.0, width=0.004
         )
@@ -277,7 +277,7 @@ def run(out_dir: Path, seeds: tuple[int, ...] = SEEDS) -> dict[str, Any]:
     means = {k: {m: _mean_stats(results, m, k, paper_mask) for m in labels} for k in KINDS}
     ratios = {}
     for grid, mask in (("paper", paper_mask), ("offset", ~paper_mask)):
-        rs = [oracle_ratios(r, "kinematic", mask) for r in results]
+        rs = [oracle_ratios(result, "kinematic", mask) for result in results]
         ratios[grid] = {
             k: {
                 "mean": float(np.mean([x[k] for x in rs])),

@@ -49,14 +49,14 @@ def folders_of(data_dir: Path, database_url: str) -> list[Path]:
     """The folders whose disk the daemon writes: its data directory, and an SQLite database's
     folder."""
     folders = [Path(data_dir)]
-    u = make_url(database_url)
+    url = make_url(database_url)
     if (
-        u.get_backend_name() == "sqlite"
-        and u.database
-        and not u.database.startswith(":memory:")
-        and not u.database.startswith("file::memory:")
+        url.get_backend_name() == "sqlite"
+        and url.database
+        and not url.database.startswith(":memory:")
+        and not url.database.startswith("file::memory:")
     ):
-        folder = Path(u.database).expanduser().parent
+        folder = Path(url.database).expanduser().parent
         if folder.resolve() != Path(data_dir).resolve():
             folders.append(folder)
     return folders

@@ -61,8 +61,11 @@ class Specification:
             out["guard_band_fraction"] = self.guard_band_fraction
         if self.parameters:
             out["parameters"] = {
-                p.name: {"nominal": p.nominal, "max_permissible_error": p.max_permissible_error}
-                for p in self.parameters
+                parameter.name: {
+                    "nominal": parameter.nominal,
+                    "max_permissible_error": parameter.max_permissible_error,
+                }
+                for parameter in self.parameters
             }
         return out
 

@@ -61,11 +61,11 @@ class VerifyReport:
 
     @property
     def tampered(self) -> list[Problem]:
-        return [p for p in self.problems if p.kind == "tampered"]
+        return [problem for problem in self.problems if problem.kind == "tampered"]
 
     @property
     def broken(self) -> list[Problem]:
-        return [p for p in self.problems if p.kind != "tampered"]
+        return [problem for problem in self.problems if problem.kind != "tampered"]
 
     def lines(self) -> list[str]:
         out = [
@@ -76,7 +76,7 @@ class VerifyReport:
             f"settled points checked against their raw samples: {self.sample_points_checked}",
             f"audit head sha256: {self.audit_head_sha256}",
         ]
-        out += [str(p) for p in self.problems]
+        out += [str(problem) for problem in self.problems]
         out.append(
             "OK: every hash and chain link verifies"
             if self.ok
@@ -87,13 +87,13 @@ class VerifyReport:
 
 def verify(engine: sa.Engine) -> VerifyReport:
     report = VerifyReport()
-    with Session(engine) as s:
-        _verify_records(s, report)
-        _verify_samples(s, report)
-        created, decided, anchors = _verify_audit(s, report)
-        _cross_check(s, report, created)
-        _verify_approvals_and_certificates(s, report, decided)
-        _verify_rows(s, report, anchors)
+    with Session(engine) as session:
+        _verify_records(session, report)
+        _verify_samples(session, report)
+        created, decided, anchors = _verify_audit(session, report)
+        _cross_check(session, report, created)
+        _verify_approvals_and_certificates(session, report, decided)
+        _verify_rows(session, report, anchors)
     return report
 
 

@@ -36,24 +36,29 @@ def job_points(
     # Points are measured in index order: only those from the first one not yet had are read, so a
     # follower's reads stay small however long the job (not all its points on every change).
     first_missing = 0 if have is None else next(i for i in range(len(have) + 1) if i not in have)
-    for p in points.settled_points(job.id, from_point=first_missing):
-        if have is not None and p.point in have:
+    for settled_point in points.settled_points(job.id, from_point=first_missing):
+        if have is not None and settled_point.point in have:
             continue
-        role = roles.get(p.device_id)
+        role = roles.get(settled_point.device_id)
         if role is None:
             continue
         pt = by_point.setdefault(
-            p.point, {"index": p.point, "x_deg": p.cmd_x_deg, "y_deg": p.cmd_y_deg}
+            settled_point.point,
+            {
+                "index": settled_point.point,
+                "x_deg": settled_point.cmd_x_deg,
+                "y_deg": settled_point.cmd_y_deg,
+            },
         )
         pt[role] = {
-            "x_deg": p.ch_x_mean,
-            "y_deg": p.ch_y_mean,
-            "z_deg": p.ch_z_mean,
-            "x_std_deg": p.ch_x_std,
-            "y_std_deg": p.ch_y_std,
-            "z_std_deg": p.ch_z_std,
-            "n_samples": p.n_samples,
-            "temp_c": p.temp_c_mean,
+            "x_deg": settled_point.ch_x_mean,
+            "y_deg": settled_point.ch_y_mean,
+            "z_deg": settled_point.ch_z_mean,
+            "x_std_deg": settled_point.ch_x_std,
+            "y_std_deg": settled_point.ch_y_std,
+            "z_std_deg": settled_point.ch_z_std,
+            "n_samples": settled_point.n_samples,
+            "temp_c": settled_point.temp_c_mean,
         }
     return [pt for i, pt in sorted(by_point.items()) if all(r in pt for r in roles.values())]
 
@@ -74,7 +79,7 @@ async def job_messages(
         # the job's body reads its record: off the event loop too
         last = await asyncio.to_thread(body, job)
         points = await asyncio.to_thread(job_points, points_repo, job)
-        have = {p["index"] for p in points}
+        have = {point["index"] for point in points}
         yield {"type": "snapshot", "job": last, "points": points}
         while job.state not in ENDED:
             with_timeout = asyncio.wait_for(event.wait(), SAFETY_REREAD_S)
@@ -101,9 +106,9 @@ async def job_messages(
                     yield {"type": "job", "job": waiting}
                 last = waiting
                 continue
-            for p in points:
-                have.add(p["index"])
-                yield {"type": "point", "point": p}
+            for point in points:
+                have.add(point["index"])
+                yield {"type": "point", "point": point}
             if _changed(last, now):
                 yield {"type": "job", "job": now}
             last = now

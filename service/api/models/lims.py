@@ -411,7 +411,7 @@ class WebhookIn(RequestBody):
     @field_validator("events")
     @classmethod
     def _known_events(cls, events: list[str]) -> list[str]:
-        unknown = [e for e in events if e != "*" and e not in EVENT_TYPES]
+        unknown = [event for event in events if event != "*" and event not in EVENT_TYPES]
         if unknown:
             raise ValueError(
                 f"{', '.join(unknown)[:200]} unknown; event types are {', '.join(EVENT_TYPES)} (or "

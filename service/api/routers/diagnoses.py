@@ -152,7 +152,7 @@ async def adopt(
     chosen = (
         None
         if body is None or body.effects is None
-        else [str(e) for e in dict.fromkeys(body.effects)]
+        else [str(fromkey) for fromkey in dict.fromkeys(body.effects)]
     )
     record = await runner.adopt(diagnosis_id, who.name, chosen)
     response.headers["Location"] = f"/records/{record.id}"

@@ -521,7 +521,7 @@ def feed(
     return json_answer(
         Feed.model_validate(
             {
-                "events": [event_json(e) for e in events],
+                "events": [event_json(event) for event in events],
                 "next_cursor": encode_cursor(events[-1].id if events else after),
             }
         )
@@ -616,12 +616,12 @@ def deliveries(
                         "last_error": d.last_error,
                         "log": [
                             {
-                                "time_utc": a.at,
-                                "status_code": a.status_code,
-                                "error": a.error,
-                                "duration_s": a.duration_s,
+                                "time_utc": attempt.at,
+                                "status_code": attempt.status_code,
+                                "error": attempt.error,
+                                "duration_s": attempt.duration_s,
                             }
-                            for a in attempts
+                            for attempt in attempts
                         ],
                     }
                     for d, e, attempts in found

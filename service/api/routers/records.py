@@ -103,42 +103,44 @@ def record_bodies(
     it is traceable and, where their order has a specification, their statements of conformity (and
     their calibrated ranges, from `ranges` where given)."""
     active = records.active_record_ids()
-    specified = store.orders.specified_jobs([r.job_id for r in rows if r.job_id is not None])
-    status = approvals.record_statuses([r.id for r in rows])
+    specified = store.orders.specified_jobs([row.job_id for row in rows if row.job_id is not None])
+    status = approvals.record_statuses([row.id for row in rows])
     # in a fleet a record's device may hang off another daemon's bench: the database knows its name
     elsewhere = devices.bench_names_of_devices(
-        {r.device_id for r in rows if jobs.bench_of_device(r.device_id) is None}
+        {row.device_id for row in rows if jobs.bench_of_device(row.device_id) is None}
     )
     out = []
-    for r in rows:
-        bench = jobs.bench_of_device(r.device_id)
+    for row in rows:
+        bench = jobs.bench_of_device(row.device_id)
         out.append(
             Record.model_validate(
                 {
-                    "id": r.id,
-                    "device_id": r.device_id,
-                    "bench": bench.name if bench else elsewhere.get(r.device_id),
-                    "kind": r.kind,
-                    "version": r.version,
-                    "method": r.method,
-                    "created_utc": r.created_at,
-                    "operator": r.operator,
-                    "job_id": r.job_id,
-                    "active": r.id in active,
-                    "validation": r.validation,
-                    "temp_c": r.temp_c,
-                    "conditions": (r.raw_data or {}).get("conditions"),
-                    "budget": with_traceability((r.raw_data or {}).get("budget")),
-                    "conformity": record_conformity(store, r) if r.job_id in specified else None,
-                    "raw_data": r.raw_data,
-                    "supersedes_id": r.supersedes_id,
-                    "content_sha256": r.content_sha256,
-                    "reference_standards": r.reference_standards,
-                    "status": status[r.id],  # draft | approved | rejected (LIMS approvals)
-                    "calibrated_range": ranges[r.id]
+                    "id": row.id,
+                    "device_id": row.device_id,
+                    "bench": bench.name if bench else elsewhere.get(row.device_id),
+                    "kind": row.kind,
+                    "version": row.version,
+                    "method": row.method,
+                    "created_utc": row.created_at,
+                    "operator": row.operator,
+                    "job_id": row.job_id,
+                    "active": row.id in active,
+                    "validation": row.validation,
+                    "temp_c": row.temp_c,
+                    "conditions": (row.raw_data or {}).get("conditions"),
+                    "budget": with_traceability((row.raw_data or {}).get("budget")),
+                    "conformity": record_conformity(store, row)
+                    if row.job_id in specified
+                    else None,
+                    "raw_data": row.raw_data,
+                    "supersedes_id": row.supersedes_id,
+                    "content_sha256": row.content_sha256,
+                    "reference_standards": row.reference_standards,
+                    "status": status[row.id],  # draft | approved | rejected (LIMS approvals)
+                    "calibrated_range": ranges[row.id]
                     if ranges is not None
-                    else calibrated_range(jobs, r),
-                    "bench_seconds": (r.raw_data or {}).get("bench_seconds"),
+                    else calibrated_range(jobs, row),
+                    "bench_seconds": (row.raw_data or {}).get("bench_seconds"),
                 }
             )
         )
@@ -171,15 +173,15 @@ def page_ranges(
     states none (made before models kept it) read whole, once."""
     out: dict[int, Any] = {}
     missing = []
-    for r in rows:
-        known, seen = jobs.known_range(r.id)
+    for row in rows:
+        known, seen = jobs.known_range(row.id)
         if known:
-            out[r.id] = _range_body(seen)
-        elif r.kind != "stage":
-            jobs.remember_range(r.id, None)
-            out[r.id] = None
+            out[row.id] = _range_body(seen)
+        elif row.kind != "stage":
+            jobs.remember_range(row.id, None)
+            out[row.id] = None
         else:
-            missing.append(r.id)
+            missing.append(row.id)
     for record_id, stated in records.fitted_ranges(missing).items():
         seen = stored_range(stated)
         if seen is None:  # an older model: worked out from the record's own points, once
@@ -261,19 +263,19 @@ def points(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Reade
     """The settled points the record was fitted on as a dataset CSV of its kind: `tiltlab calibrate`
     on it gives the record's parameters exactly (stored values are written in their shortest exact
     decimal form)."""
-    r = records.get_record(record_id)
-    if r.job_id is None:
+    record = records.get_record(record_id)
+    if record.job_id is None:
         raise ProblemError(
             409, "No points", f"record {record_id} was not measured by a job of this daemon"
         )
-    cols = jobs.fit_columns(r.job_id, int((r.raw_data or {}).get("fit_points", 10**9)))
+    cols = jobs.fit_columns(record.job_id, int((record.raw_data or {}).get("fit_points", 10**9)))
     buf = io.StringIO()
     order = {
         "stage": STAGE_DATASET,
         "scale": SCALE_DATASET,
         "rotation": ROTATION_DATASET,
         "turntable": TURNTABLE_DATASET,
-    }.get(r.kind, tuple(cols))
+    }.get(record.kind, tuple(cols))
     names = [c for c in order if c in cols and np.isfinite(cols[c]).all()]
     buf.write(",".join(names) + "\r\n")
     for i in range(len(next(iter(cols.values())))):
@@ -329,19 +331,19 @@ def activate(
 ) -> Record:
     """Make the record the active version of its device: /tilt and levelling use it from now on. A
     rejected record, or one whose stored content no longer matches its hash, is refused (409)."""
-    r = records.get_record(record_id)
-    why = records.unusable_reason(r.id)
+    record = records.get_record(record_id)
+    why = records.unusable_reason(record.id)
     if why is not None:
         raise ProblemError(409, "Record not usable", f"{why}; it cannot be activated")
-    current = records.active_record(r.device_id, r.kind)
-    if current is None or current.id != r.id:
+    current = records.active_record(record.device_id, record.kind)
+    if current is None or current.id != record.id:
         records.activate(
-            r.id,
+            record.id,
             actor=who.name,
             reason="activated over HTTP",
             replaces=current.id if current else None,
         )
-    bench = jobs.bench_of_device(r.device_id)
+    bench = jobs.bench_of_device(record.device_id)
     if bench is not None:
         jobs.load_active(bench)
-    return bodies([records.get_record(r.id)])[0]
+    return bodies([records.get_record(record.id)])[0]

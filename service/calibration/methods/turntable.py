@@ -360,7 +360,10 @@ class ReversalMethod:
         out = {"north_arcsec": xi, "east_arcsec": eta}
         sigma = model.state.get("reading_sigma") if isinstance(model.state, Mapping) else None
         if model.covariance is not None and sigma is not None:
-            inputs = {c: np.asarray(data[c], dtype=float) for c in READING_COLUMNS}
+            inputs = {
+                reading_column: np.asarray(data[reading_column], dtype=float)
+                for reading_column in READING_COLUMNS
+            }
 
             def f(
                 p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]
@@ -375,7 +378,7 @@ class ReversalMethod:
                 p0,
                 model.cov_of(list(PARAM_NAMES)),
                 inputs,
-                {c: float(sigma) for c in READING_COLUMNS},
+                {reading_column: float(sigma) for reading_column in READING_COLUMNS},
                 dof,
                 sigma_dof,
             )

@@ -182,7 +182,7 @@ class Rs485BusFirmware(AnsweringFirmware):
         self.instruments = instruments
         self.temp_c = temp_c
         self.model = model
-        self.zero = {a: (0.0, 0.0) for a in instruments}
+        self.zero = {instrument: (0.0, 0.0) for instrument in instruments}
         self.decoder = Decoder(rs485.parse_requests)
 
     def handle(self, data: bytes) -> list[bytes]:

@@ -60,9 +60,11 @@ def signer_of(a: RecordApproval) -> Person | None:
 
 def approval_status(approvals: Sequence[RecordApproval]) -> str:
     """draft, approved (an approval meaning approval) or rejected (any rejection)."""
-    if any(a.decision == "reject" for a in approvals):
+    if any(approval.decision == "reject" for approval in approvals):
         return "rejected"
-    if any(a.decision == "approve" and a.meaning == "approval" for a in approvals):
+    if any(
+        approval.decision == "approve" and approval.meaning == "approval" for approval in approvals
+    ):
         return "approved"
     return "draft"
 
@@ -125,13 +127,13 @@ class ApprovalsRepo:
         if not isinstance(note, str) or len(note) > 10_000:
             raise InputError("note must be text of at most 10,000 characters")
         actor = require_text("actor", actor)
-        with self._db.transaction() as s:
-            record = row_in(s, CalibrationRecord, record_id, "calibration record")
+        with self._db.transaction() as session:
+            record = row_in(session, CalibrationRecord, record_id, "calibration record")
             if sha256_hex(record_content(record)) != record.content_sha256:
                 raise RefusedWrite(
                     f"record {record_id} does not match its hash (tampered); it cannot be signed"
                 )
-            job = s.get(CalibrationJob, record.job_id) if record.job_id is not None else None
+            job = session.get(CalibrationJob, record.job_id) if record.job_id is not None else None
             if actor == record.operator or (job is not None and actor == job.created_by):
                 who = "started its job" if job is not None and actor == job.created_by else "ran it"
                 raise SelfApproval(
@@ -139,12 +141,14 @@ class ApprovalsRepo:
                     " (segregation of duties)"
                 )
             past = list(
-                s.scalars(sa.select(RecordApproval).where(RecordApproval.record_id == record_id))
+                session.scalars(
+                    sa.select(RecordApproval).where(RecordApproval.record_id == record_id)
+                )
             )
             status = approval_status(past)
             if status != "draft":
                 raise ConflictError(f"record {record_id} is already {status}; a decision is final")
-            prev = s.execute(
+            prev = session.execute(
                 sa.select(RecordApproval.sha256).order_by(RecordApproval.id.desc()).limit(1)
             ).scalar()
             row = RecordApproval(
@@ -160,15 +164,15 @@ class ApprovalsRepo:
                 signer_function=signer.function if signer else None,
             )
             row.sha256 = sha256_hex(normalise(approval_content(row)))
-            s.add(row)
-            s.flush()
+            session.add(row)
+            session.flush()
             action = (
                 "record.reject"
                 if decision == "reject"
                 else ("record.approve" if meaning == "approval" else "record.review")
             )
             self._db.audit(
-                s,
+                session,
                 actor,
                 action,
                 "calibration_record",
@@ -185,13 +189,13 @@ class ApprovalsRepo:
                     else None,
                 },
             )
-            active = s.get(ActiveCalibration, (record.device_id, record.kind))
+            active = session.get(ActiveCalibration, (record.device_id, record.kind))
             if decision == "reject" and active is not None and active.record_id == record_id:
                 # a rejected record is never used: withdrawn in the same transaction as the
                 # rejection
                 deactivate_in(
                     self._db,
-                    s,
+                    session,
                     record.device_id,
                     record.kind,
                     actor=actor,

@@ -30,5 +30,5 @@ class AuditRepo:
         self, actor: str, action: str, entity: str, entity_id: object, details: Mapping[str, Any]
     ) -> None:
         """An audit event for an action that changes no row (a stage move, a stop)."""
-        with self._db.transaction() as s:
-            self._db.audit(s, actor, action, entity, entity_id, details)
+        with self._db.transaction() as session:
+            self._db.audit(session, actor, action, entity, entity_id, details)

@@ -59,8 +59,10 @@ class CertificatesRepo:
         """Keep issued bytes with their SHA-256; if the record already has a certificate, that one
         is returned. `conformity`: the statements of conformity it makes, which its
         `certificate.issued` event carries."""
-        with self._db.transaction() as s:
-            existing = s.scalar(sa.select(Certificate).where(Certificate.record_id == record_id))
+        with self._db.transaction() as session:
+            existing = session.scalar(
+                sa.select(Certificate).where(Certificate.record_id == record_id)
+            )
             if existing is not None:
                 return existing, False
             row = Certificate(
@@ -73,11 +75,11 @@ class CertificatesRepo:
                 issued_at=utc_now(),
                 issued_by=require_text("actor", actor),
             )
-            s.add(row)
-            s.flush()
-            replaced = s.get(Certificate, replaces_id) if replaces_id is not None else None
+            session.add(row)
+            session.flush()
+            replaced = session.get(Certificate, replaces_id) if replaces_id is not None else None
             self._db.audit(
-                s,
+                session,
                 actor,
                 "certificate.issue",
                 "certificate",

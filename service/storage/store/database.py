@@ -44,12 +44,14 @@ class Database:
     @contextmanager
     def transaction(self) -> Iterator[Session]:
         """One serialised write transaction; the database's refusals come out as our errors."""
-        with self._write() as s:
+        with self._write() as session:
             try:
-                with s.begin():
-                    if s.get_bind().dialect.name == "postgresql":
-                        s.execute(sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": PG_WRITE_LOCK})
-                    yield s
+                with session.begin():
+                    if session.get_bind().dialect.name == "postgresql":
+                        session.execute(
+                            sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": PG_WRITE_LOCK}
+                        )
+                    yield session
             # the guard triggers' refusals included
             except (sa.exc.IntegrityError, sa.exc.DataError) as exc:
                 raise translate_refusal(exc) from exc

@@ -30,12 +30,12 @@ class DevicesRepo:
         port: str | None = None,
         port_settings: Mapping[str, Any] | None = None,
     ) -> Bench:
-        with self._db.transaction() as s:
+        with self._db.transaction() as session:
             name = require_text("bench name", name)
-            if s.scalar(sa.select(Bench.id).where(Bench.name == name)) is not None:
+            if session.scalar(sa.select(Bench.id).where(Bench.name == name)) is not None:
                 raise ConflictError(f"a bench named {name!r} already exists")
             return self._insert_bench(
-                s,
+                session,
                 name,
                 actor=actor,
                 stage_model=stage_model,
@@ -79,7 +79,7 @@ class DevicesRepo:
         port: str | None = None,
         port_settings: Mapping[str, Any] | None = None,
     ) -> Device:
-        with self._db.transaction() as s:
+        with self._db.transaction() as session:
             model, serial, role = (
                 require_text("model", model),
                 require_text("serial", serial),
@@ -87,14 +87,14 @@ class DevicesRepo:
             )
             port = optional_text("port", port, 200)
             if bench_id is not None:
-                row_in(s, Bench, bench_id, "bench")
-            existing = s.scalar(
+                row_in(session, Bench, bench_id, "bench")
+            existing = session.scalar(
                 sa.select(Device.id).where(Device.model == model, Device.serial == serial)
             )
             if existing is not None:
                 raise ConflictError(f"device {model} s/n {serial} already exists (id {existing})")
             return self._insert_device(
-                s,
+                session,
                 model,
                 serial,
                 role,
@@ -147,8 +147,10 @@ class DevicesRepo:
             raise InputError(
                 f"cannot change {sorted(unknown)} of a device; changeable: {sorted(allowed)}"
             )
-        with self._db.transaction() as s:
-            return self._change_device(s, device_in(s, device_id), actor=actor, changes=changes)
+        with self._db.transaction() as session:
+            return self._change_device(
+                session, device_in(session, device_id), actor=actor, changes=changes
+            )
 
     def _change_device(
         self, s: Session, device: Device, *, actor: str, changes: dict[str, Any]

@@ -29,8 +29,8 @@ class DiagnosesRepo:
     def create_diagnosis(
         self, record_id: int, *, sensor: str, baseline: str, actor: str
     ) -> Diagnosis:
-        with self._db.transaction() as s:
-            row_in(s, CalibrationRecord, record_id, "record")
+        with self._db.transaction() as session:
+            row_in(session, CalibrationRecord, record_id, "record")
             d = Diagnosis(
                 record_id=record_id,
                 sensor=require_text("sensor", sensor, 8),
@@ -38,10 +38,10 @@ class DiagnosesRepo:
                 created_by=require_text("actor", actor),
                 created_at=utc_now(),
             )
-            s.add(d)
-            s.flush()
+            session.add(d)
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 actor,
                 "diagnosis.create",
                 "diagnosis",
@@ -63,10 +63,10 @@ class DiagnosesRepo:
     ) -> DiagnosisResult:
         """The one result of a diagnosis; its event `diagnosis.finished` goes to the feed and
         webhooks."""
-        with self._db.transaction() as s:
-            d = row_in(s, Diagnosis, diagnosis_id, "diagnosis")
+        with self._db.transaction() as session:
+            d = row_in(session, Diagnosis, diagnosis_id, "diagnosis")
             if (
-                s.scalar(
+                session.scalar(
                     sa.select(DiagnosisResult.id).where(
                         DiagnosisResult.diagnosis_id == diagnosis_id
                     )
@@ -83,10 +83,10 @@ class DiagnosesRepo:
                 report_html=report_html,
                 error=error,
             )
-            s.add(r)
-            s.flush()
+            session.add(r)
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 actor,
                 "diagnosis.finish",
                 "diagnosis",

@@ -53,12 +53,12 @@ class JobsRepo:
         bench_id: int | None = None,
         order_id: int | None = None,
     ) -> CalibrationJob:
-        with self._db.transaction() as s:
-            device_in(s, device_id)
+        with self._db.transaction() as session:
+            device_in(session, device_id)
             if bench_id is not None:
-                row_in(s, Bench, bench_id, "bench")
+                row_in(session, Bench, bench_id, "bench")
             if order_id is not None:
-                row_in(s, Order, order_id, "order")
+                row_in(session, Order, order_id, "order")
             job = CalibrationJob(
                 device_id=device_id,
                 bench_id=bench_id,
@@ -70,10 +70,10 @@ class JobsRepo:
                 created_by=require_text("actor", actor),
                 order_id=order_id,
             )
-            s.add(job)
-            s.flush()
+            session.add(job)
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 actor,
                 "job.create",
                 "job",
@@ -106,8 +106,8 @@ class JobsRepo:
     ) -> CalibrationJob:
         if to_state not in TRANSITIONS:
             raise InputError(f"job state {to_state!r} is not one of {sorted(TRANSITIONS)}")
-        with self._db.transaction() as s:
-            job = job_in(s, job_id)
+        with self._db.transaction() as session:
+            job = job_in(session, job_id)
             if to_state not in TRANSITIONS[job.state]:
                 allowed = ", ".join(sorted(TRANSITIONS[job.state])) or "none (terminal state)"
                 raise IllegalTransition(
@@ -131,7 +131,7 @@ class JobsRepo:
                     job.progress = 1.0
                     job.phase = "done"  # a failed or cancelled job keeps the phase it ended in
             self._db.audit(
-                s,
+                session,
                 actor,
                 f"job.{to_state}",
                 "job",
@@ -157,8 +157,8 @@ class JobsRepo:
         value = require_number("progress", progress)
         if not 0.0 <= value <= 1.0:
             raise InputError(f"progress {progress} is outside [0, 1]")
-        with self._db.transaction() as s:
-            job = job_in(s, job_id)
+        with self._db.transaction() as session:
+            job = job_in(session, job_id)
             if job.state != "running":
                 raise IllegalTransition(
                     f"job {job_id} is {job.state}; progress is only kept for running jobs"
@@ -182,10 +182,10 @@ class JobsRepo:
         """A queued job, or the job an earlier request with the same Idempotency-Key created (then
         False)."""
         request_sha = sha256_hex(dict(request or {}))
-        with self._db.transaction() as s:
+        with self._db.transaction() as session:
             if idempotency_key is not None:
                 key = require_text("Idempotency-Key", idempotency_key, 200)
-                seen = s.scalar(
+                seen = session.scalar(
                     sa.select(IdempotencyKey).where(
                         IdempotencyKey.route == "calibrations", IdempotencyKey.key == key
                     )
@@ -200,7 +200,7 @@ class JobsRepo:
                         raise IdempotencyMismatch(
                             f"Idempotency-Key {key!r} belongs to a request that made no job"
                         )
-                    return job_in(s, seen.job_id), False
+                    return job_in(session, seen.job_id), False
             job = CalibrationJob(
                 device_id=device_id,
                 bench_id=bench_id,
@@ -214,10 +214,10 @@ class JobsRepo:
                 points_done=0,
                 order_id=order_id,
             )
-            s.add(job)
-            s.flush()
+            session.add(job)
+            session.flush()
             if idempotency_key is not None:
-                s.add(
+                session.add(
                     IdempotencyKey(
                         key=idempotency_key,
                         route="calibrations",
@@ -227,7 +227,7 @@ class JobsRepo:
                     )
                 )
             self._db.audit(
-                s,
+                session,
                 actor,
                 "job.create",
                 "job",
@@ -257,8 +257,8 @@ class JobsRepo:
     ) -> None:
         if phase not in PHASES:
             raise InputError(f"phase {phase!r} is not one of {', '.join(PHASES)}")
-        with self._db.transaction() as s:
-            job = job_in(s, job_id)
+        with self._db.transaction() as session:
+            job = job_in(session, job_id)
             if job.state != "running":
                 raise IllegalTransition(
                     f"job {job_id} is {job.state}; progress is only kept for running jobs"
@@ -271,8 +271,8 @@ class JobsRepo:
     def set_bench_seconds(self, job_id: int, bench_seconds: dict[str, float]) -> None:
         """The bench time a job spent in all, kept with the job as it ends (its last points after
         the last progress)."""
-        with self._db.transaction() as s:
-            job_in(s, job_id).bench_seconds = dict(bench_seconds)
+        with self._db.transaction() as session:
+            job_in(session, job_id).bench_seconds = dict(bench_seconds)
 
     def mark_interrupted(
         self, *, actor: str, bench_ids: Collection[int] | None = None
@@ -280,17 +280,17 @@ class JobsRepo:
         """At start-up and shutdown: every job a run left queued or running is failed as
         interrupted; only those of `bench_ids` when given (a node of a fleet: the other nodes' jobs
         are theirs, and may be running)."""
-        with self._db.transaction() as s:
+        with self._db.transaction() as session:
             stmt = sa.select(CalibrationJob).where(CalibrationJob.state.in_(("queued", "running")))
             if bench_ids is not None:
                 stmt = stmt.where(CalibrationJob.bench_id.in_(list(bench_ids)))
-            jobs = list(s.scalars(stmt.order_by(CalibrationJob.id)))
+            jobs = list(session.scalars(stmt.order_by(CalibrationJob.id)))
             for job in jobs:
                 previous = job.state
                 job.state, job.interrupted, job.finished_at = "failed", True, utc_now()
                 job.failure_reason = INTERRUPTED.format(id=job.id)
                 self._db.audit(
-                    s,
+                    session,
                     actor,
                     "job.failed",
                     "job",
@@ -303,8 +303,8 @@ class JobsRepo:
         """A queued or running job failed for a cause that leaves its stored points intact (a full
         disk): it may be resumed (POST /calibrations/{id}/resume) once the cause is gone."""
         reason = require_text("failure_reason", reason, 10_000)
-        with self._db.transaction() as s:
-            job = job_in(s, job_id)
+        with self._db.transaction() as session:
+            job = job_in(session, job_id)
             if job.state not in ("queued", "running"):
                 raise IllegalTransition(f"job {job_id}: {job.state} -> failed is not allowed")
             previous = job.state
@@ -315,7 +315,7 @@ class JobsRepo:
                 reason,
             )
             self._db.audit(
-                s,
+                session,
                 actor,
                 "job.failed",
                 "job",
@@ -326,8 +326,8 @@ class JobsRepo:
 
     def resume_job(self, job_id: int, *, actor: str) -> CalibrationJob:
         """An interrupted job runs again from its stored points."""
-        with self._db.transaction() as s:
-            job = job_in(s, job_id)
+        with self._db.transaction() as session:
+            job = job_in(session, job_id)
             if not (job.state == "failed" and job.interrupted):
                 raise ConflictError(
                     f"job {job_id} is {job.state}"
@@ -341,7 +341,7 @@ class JobsRepo:
                 None,
             )
             self._db.audit(
-                s,
+                session,
                 actor,
                 "job.resume",
                 "job",

@@ -61,10 +61,10 @@ class OrdersRepo:
                 "statements of conformity are made on the indication error of a "
                 f"biaxial inclinometer: a stage-grid order, not {body.get('procedure')!r}",
             )
-        with self._db.transaction() as s:
+        with self._db.transaction() as session:
             if idempotency_key is not None:
                 key = require_text("Idempotency-Key", idempotency_key, 200)
-                seen = s.scalar(sa.select(Order).where(Order.idempotency_key == key))
+                seen = session.scalar(sa.select(Order).where(Order.idempotency_key == key))
                 if seen is not None:
                     if seen.request_sha256 != request_sha:
                         raise IdempotencyKeyReused(
@@ -73,7 +73,7 @@ class OrdersRepo:
                         )
                     return seen, False
             lims_id = require_text("lims_order_id", body.get("lims_order_id"))
-            clash = s.scalar(sa.select(Order.id).where(Order.lims_order_id == lims_id))
+            clash = session.scalar(sa.select(Order.id).where(Order.lims_order_id == lims_id))
             if clash is not None:
                 raise ConflictError(f"lims_order_id {lims_id!r} is already order {clash}")
             maker, model = body.get("item_manufacturer"), body.get("item_model")
@@ -94,10 +94,10 @@ class OrdersRepo:
                 request_sha256=request_sha,
                 specification=spec.as_json() if spec is not None else None,
             )
-            s.add(row)
-            s.flush()
+            session.add(row)
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 actor,
                 "order.create",
                 "order",
@@ -152,7 +152,7 @@ class OrdersRepo:
                 if job_ids
                 else []
             )
-            rec_ids = [r.id for r in records]
+            rec_ids = [record.id for record in records]
             approvals = (
                 list(
                     s.scalars(
@@ -174,16 +174,25 @@ class OrdersRepo:
                 else []
             )
         status = {
-            r.id: approval_status([a for a in approvals if a.record_id == r.id]) for r in records
+            record.id: approval_status(
+                [approval for approval in approvals if approval.record_id == record.id]
+            )
+            for record in records
         }
         return {
             "jobs": [{"id": j.id, "state": j.state} for j in jobs],
             "records": [
-                {"id": r.id, "version": r.version, "status": status[r.id]} for r in records
+                {"id": record.id, "version": record.version, "status": status[record.id]}
+                for record in records
             ],
             "certificates": [
-                {"id": c.id, "number": c.number, "record_id": c.record_id, "sha256": c.sha256}
-                for c in certs
+                {
+                    "id": cert.id,
+                    "number": cert.number,
+                    "record_id": cert.record_id,
+                    "sha256": cert.sha256,
+                }
+                for cert in certs
             ],
             "state": order_state(jobs, records, status, certs),
         }
@@ -200,7 +209,7 @@ def order_state(
     if not jobs:
         return "open"
     latest = records[-1] if records else None
-    if latest is not None and any(c.record_id == latest.id for c in certs):
+    if latest is not None and any(cert.record_id == latest.id for cert in certs):
         return "certified"
     if latest is not None and status[latest.id] in ("approved", "rejected"):
         return status[latest.id]

@@ -34,9 +34,9 @@ class PointsRepo:
     def add_settled_points(
         self, job_id: int, device_id: int, points: Sequence[Mapping[str, Any]], *, actor: str
     ) -> list[SettledPoint]:
-        with self._db.transaction() as s:
-            job = job_in(s, job_id)
-            device_in(s, device_id)
+        with self._db.transaction() as session:
+            job = job_in(session, job_id)
+            device_in(session, device_id)
             if job.state != "running":
                 raise IllegalTransition(
                     f"job {job_id} is {job.state}; settled points are added while it runs"
@@ -60,13 +60,13 @@ class PointsRepo:
                     else:
                         values[k] = require_finite(f"settled point [{i}] {k}", p.get(k))
                 values["samples_sha256"] = point_samples_sha256(
-                    s, job_id, device_id, values["point"]
+                    session, job_id, device_id, values["point"]
                 )
                 rows.append(SettledPoint(job_id=job_id, device_id=device_id, **values))
-            s.add_all(rows)
-            s.flush()
+            session.add_all(rows)
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 actor,
                 "points.add",
                 "job",
@@ -157,8 +157,8 @@ class PointsRepo:
         out: dict[str, dict[str, str]] = {}
         for job_id in job_ids:
             by_device: dict[int, list[SettledPoint]] = {}
-            for p in self.settled_points(job_id):
-                by_device.setdefault(p.device_id, []).append(p)
+            for settled_point in self.settled_points(job_id):
+                by_device.setdefault(settled_point.device_id, []).append(settled_point)
             out[str(job_id)] = {str(d): points_sha256(pts) for d, pts in sorted(by_device.items())}
         return out
 
@@ -177,7 +177,7 @@ def point_samples_sha256(s: Session, job_id: int, device_id: int, point: int) ->
 
 def mean_or_none(values: Sequence[float | None]) -> float | None:
     """The mean, or None when a value is missing (or there are none)."""
-    known = [v for v in values if v is not None]
+    known = [value for value in values if value is not None]
     if len(known) != len(values) or not known:
         return None
     return math.fsum(known) / len(known)

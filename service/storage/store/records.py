@@ -62,8 +62,8 @@ class RecordsRepo:
 
         With activate=True the new version also becomes the active one in the same transaction.
         """
-        with self._db.transaction() as s:
-            device_in(s, device_id)
+        with self._db.transaction() as session:
+            device_in(session, device_id)
             kind, method = require_text("kind", kind, 40), require_text("method", method, 80)
             operator = require_text("operator", operator)
             model_doc = require_doc("model", model)
@@ -75,7 +75,7 @@ class RecordsRepo:
                     )
             raw = require_doc("raw_data", raw_data or {})
             if job_id is not None:
-                job = job_in(s, job_id)
+                job = job_in(session, job_id)
                 if job.device_id != device_id:
                     raise InputError(
                         f"job {job_id} calibrates device {job.device_id}, not device {device_id}"
@@ -86,13 +86,13 @@ class RecordsRepo:
                         "job"
                     )
                 pts = list(
-                    s.scalars(
+                    session.scalars(
                         sa.select(SettledPoint).where(
                             SettledPoint.job_id == job_id, SettledPoint.device_id == device_id
                         )
                     )
                 )
-                n_samples = s.scalar(
+                n_samples = session.scalar(
                     sa.select(sa.func.count())
                     .select_from(SampleRow)
                     .where(SampleRow.job_id == job_id, SampleRow.device_id == device_id)
@@ -103,19 +103,19 @@ class RecordsRepo:
                         "points": len(pts),
                         "points_sha256": points_sha256(pts),
                         "samples": n_samples,
-                        "settled_points_sha256": _points_by_device_sha256(s, job_id),
+                        "settled_points_sha256": _points_by_device_sha256(session, job_id),
                     }
                 )
-            active = s.get(ActiveCalibration, (device_id, kind))
+            active = session.get(ActiveCalibration, (device_id, kind))
             if supersedes_id is SUPERSEDES_ACTIVE:
                 supersedes_id = active.record_id if active else None
             elif supersedes_id is not None:
-                old = s.get(CalibrationRecord, supersedes_id)
+                old = session.get(CalibrationRecord, supersedes_id)
                 if old is None or (old.device_id, old.kind) != (device_id, kind):
                     raise UnknownEntity(
                         f"record {supersedes_id} is not a {kind} record of device {device_id}"
                     )
-            last = s.execute(
+            last = session.execute(
                 sa.select(CalibrationRecord.version, CalibrationRecord.content_sha256)
                 .where(CalibrationRecord.device_id == device_id, CalibrationRecord.kind == kind)
                 .order_by(CalibrationRecord.version.desc())
@@ -139,10 +139,10 @@ class RecordsRepo:
                 prev_sha256=last.content_sha256 if last else GENESIS_SHA256,
             )
             record.content_sha256 = sha256_hex(record_content(record))
-            s.add(record)
-            s.flush()
+            session.add(record)
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 operator,
                 "record.create",
                 "calibration_record",
@@ -158,7 +158,7 @@ class RecordsRepo:
             if activate:
                 activate_in(
                     self._db,
-                    s,
+                    session,
                     record,
                     actor=operator,
                     reason=reason or f"new version {record.version}",
@@ -270,9 +270,11 @@ class RecordsRepo:
         one is active the change is refused: there is never a second active pointer, and a switch
         is always a deliberate, audited act.
         """
-        with self._db.transaction() as s:
-            record = row_in(s, CalibrationRecord, record_id, "calibration record")
-            return activate_in(self._db, s, record, actor=actor, reason=reason, replaces=replaces)
+        with self._db.transaction() as session:
+            record = row_in(session, CalibrationRecord, record_id, "calibration record")
+            return activate_in(
+                self._db, session, record, actor=actor, reason=reason, replaces=replaces
+            )
 
     def unusable_reason(self, record_id: int) -> str | None:
         """Why the record must not correct anything (rejected, or not matching its hash), or None if
@@ -304,9 +306,9 @@ class RecordsRepo:
     ) -> None:
         """Withdraw the active version (e.g. the device failed validation); audited like a
         switch."""
-        with self._db.transaction() as s:
+        with self._db.transaction() as session:
             deactivate_in(
-                self._db, s, device_id, kind, actor=actor, reason=reason, replaces=replaces
+                self._db, session, device_id, kind, actor=actor, reason=reason, replaces=replaces
             )
 
 

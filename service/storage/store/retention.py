@@ -33,16 +33,16 @@ class RetentionRepo:
         thin_interval_s: float = 60.0,
         now: dt.datetime | None = None,
     ) -> samples_mod.RetentionResult:
-        with self._db.transaction() as s:
+        with self._db.transaction() as session:
             result = samples_mod.apply_retention(
-                s.connection(),
+                session.connection(),
                 older_than=older_than,
                 policy=policy,
                 thin_interval_s=thin_interval_s,
                 now=now,
             )
             self._db.audit(
-                s,
+                session,
                 actor,
                 "retention.apply",
                 "samples",

@@ -128,8 +128,8 @@ class StandardsRepo:
             created_by=require_text("actor", actor),
             calibrated_by=calibrated_by_of(fields.get("calibrated_by")),
         )
-        with self._db.transaction() as s:
-            clash = s.scalar(
+        with self._db.transaction() as session:
+            clash = session.scalar(
                 sa.select(ReferenceStandard.id).where(
                     ReferenceStandard.serial == row.serial,
                     ReferenceStandard.certificate_number == row.certificate_number,
@@ -140,10 +140,10 @@ class StandardsRepo:
                     f"standard {clash} already holds certificate {row.certificate_number} of "
                     f"serial {row.serial}"
                 )
-            s.add(row)
-            s.flush()
+            session.add(row)
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 actor,
                 "standard.create",
                 "reference_standard",
@@ -220,9 +220,9 @@ class StandardsRepo:
     ) -> list[int]:
         """A `standard.due_soon` event, once per due date, for each standard due within
         `within_days`."""
-        with self._db.transaction() as s:
+        with self._db.transaction() as session:
             rows = list(
-                s.scalars(
+                session.scalars(
                     sa.select(ReferenceStandard).where(
                         ReferenceStandard.due_on <= today + dt.timedelta(days=within_days)
                     )
@@ -234,7 +234,7 @@ class StandardsRepo:
                     continue
                 row.due_soon_notified_on = row.due_on
                 self._db.audit(
-                    s,
+                    session,
                     actor,
                     "standard.due_soon",
                     "reference_standard",

@@ -53,8 +53,8 @@ class TokensRepo:
             )
         scope_list = parse_scopes(scopes)
         token = TOKEN_PREFIX + secrets.token_urlsafe(32)
-        with self._db.transaction() as s:
-            if s.scalar(sa.select(ApiToken.id).where(ApiToken.name == name)) is not None:
+        with self._db.transaction() as session:
+            if session.scalar(sa.select(ApiToken.id).where(ApiToken.name == name)) is not None:
                 raise ConflictError(f"a token named {name!r} already exists (revoke it first)")
             row = ApiToken(
                 name=name,
@@ -65,10 +65,10 @@ class TokensRepo:
                 person_name=person.name if person else None,
                 person_function=person.function if person else None,
             )
-            s.add(row)
-            s.flush()
+            session.add(row)
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 actor,
                 "token.create",
                 "api_token",
@@ -79,8 +79,8 @@ class TokensRepo:
 
     def set_person(self, name: str, person: Person, *, actor: str) -> ApiToken:
         """The person an active token belongs to, set or changed (audited with the previous one)."""
-        with self._db.transaction() as s:
-            row = s.scalar(
+        with self._db.transaction() as session:
+            row = session.scalar(
                 sa.select(ApiToken).where(ApiToken.name == name, ApiToken.revoked_at.is_(None))
             )
             if row is None:
@@ -88,7 +88,7 @@ class TokensRepo:
             before = person_of_row(row)
             row.person_name, row.person_function = person.name, person.function
             self._db.audit(
-                s,
+                session,
                 actor,
                 "token.person",
                 "api_token",
@@ -110,10 +110,10 @@ class TokensRepo:
         The token is handed to `write` (which keeps it in `file`) before the transaction commits, so
         a token that could not be written is not kept either, and the next start tries again."""
         token = TOKEN_PREFIX + secrets.token_urlsafe(32)
-        with self._db.transaction() as s:
-            if s.scalar(sa.select(ApiToken.id).limit(1)) is not None:
+        with self._db.transaction() as session:
+            if session.scalar(sa.select(ApiToken.id).limit(1)) is not None:
                 return None
-            s.add(
+            session.add(
                 ApiToken(
                     name=FIRST_ADMIN_NAME,
                     token_sha256=token_sha256(token),
@@ -122,9 +122,9 @@ class TokensRepo:
                     created_by=FIRST_START_ACTOR,
                 )
             )
-            s.flush()
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 FIRST_START_ACTOR,
                 "token.create",
                 "api_token",
@@ -181,15 +181,15 @@ class TokensRepo:
             return (s.scalar(sa.select(sa.func.count()).select_from(ApiToken)) or 0) > 0
 
     def revoke_token(self, name: str, *, actor: str) -> ApiToken:
-        with self._db.transaction() as s:
-            row = s.scalar(
+        with self._db.transaction() as session:
+            row = session.scalar(
                 sa.select(ApiToken).where(ApiToken.name == name, ApiToken.revoked_at.is_(None))
             )
             if row is None:
                 raise UnknownEntity(f"no active token named {name!r}")
             # JSON lists of scopes: counted here, the same on every database
             if "admin" in row.scopes:
-                others = s.scalars(
+                others = session.scalars(
                     sa.select(ApiToken.scopes).where(
                         ApiToken.revoked_at.is_(None), ApiToken.id != row.id
                     )
@@ -202,7 +202,7 @@ class TokensRepo:
                         " admin token first"
                     )
             row.revoked_at = utc_now()
-            self._db.audit(s, actor, "token.revoke", "api_token", name, {})
+            self._db.audit(session, actor, "token.revoke", "api_token", name, {})
             return row
 
     def authenticate(self, token: str) -> Principal | None:

@@ -117,7 +117,7 @@ class WebhooksRepo:
                 "(or '*')"
             )
         secret = "whsec_" + base64.b64encode(secrets.token_bytes(24)).decode()
-        with self._db.transaction() as s:
+        with self._db.transaction() as session:
             row = WebhookEndpoint(
                 url=url,
                 events=sorted(set(events)),
@@ -125,10 +125,10 @@ class WebhooksRepo:
                 created_at=utc_now(),
                 created_by=require_text("actor", actor),
             )
-            s.add(row)
-            s.flush()
+            session.add(row)
+            session.flush()
             self._db.audit(
-                s,
+                session,
                 actor,
                 "webhook.create",
                 "webhook_endpoint",
@@ -181,7 +181,10 @@ class WebhooksRepo:
                 if ids
                 else []
             )
-        return [(d, e, [a for a in attempts if a.delivery_id == d.id]) for d, e in rows]
+        return [
+            (d, e, [attempt for attempt in attempts if attempt.delivery_id == d.id])
+            for d, e in rows
+        ]
 
     def due_deliveries(self, *, now: dt.datetime, limit: int = 50) -> list[DueDelivery]:
         with self._db.session() as s:
@@ -220,11 +223,11 @@ class WebhooksRepo:
         """Log one attempt; delivered when ok, else pending until `retry_at` (None: given up,
         failed)."""
         now = utc_now()
-        with self._db.transaction() as s:
-            d = s.get(WebhookDelivery, delivery_id)
+        with self._db.transaction() as session:
+            d = session.get(WebhookDelivery, delivery_id)
             if d is None:
                 raise UnknownEntity(f"delivery {delivery_id} does not exist")
-            s.add(
+            session.add(
                 WebhookAttempt(
                     delivery_id=delivery_id,
                     at=now,

@@ -179,7 +179,7 @@ def meas_reading_noise(
 
 
 def has_meas_columns(data: Columns) -> bool:
-    return all(c in data for c in MEAS_COLUMNS)
+    return all(meas_column in data for meas_column in MEAS_COLUMNS)
 
 
 def noise_state(noise: ReadingNoise) -> dict[str, Any]:
@@ -250,7 +250,9 @@ def uncertain_correct(
     estimate with `noise_dof` (the same fit's when not given); the coverage factor follows from
     the Welch-Satterthwaite effective degrees of freedom (95 %).
     """
-    inputs = {c: np.asarray(data[c], dtype=float) for c in MEAS_COLUMNS}
+    inputs = {
+        meas_column: np.asarray(data[meas_column], dtype=float) for meas_column in MEAS_COLUMNS
+    }
     y = f(p, inputs)
     out = {"tilt_x_deg": y[:, 0], "tilt_y_deg": y[:, 1]}
     if cov is not None:
@@ -259,7 +261,7 @@ def uncertain_correct(
             p,
             cov,
             inputs,
-            {c: sigma_deg for c in MEAS_COLUMNS},
+            {meas_column: sigma_deg for meas_column in MEAS_COLUMNS},
             dof,
             dof if noise_dof is None else noise_dof,
         )

@@ -399,7 +399,7 @@ def columns(
 
 
 def has_meas(data: Mapping[str, NDArray[np.float64]]) -> bool:
-    return all(c in data for c in MEAS_COLUMNS)
+    return all(meas_column in data for meas_column in MEAS_COLUMNS)
 
 
 def require_spread(

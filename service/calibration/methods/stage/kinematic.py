@@ -206,7 +206,7 @@ class KinematicMethod(StageMethod):
                     "from the reference goes through them"
                 )
             meas = fit_meas(ref_tx, ref_ty, mx, my, sign, loss=loss)
-            units = {p[0]: p[1] for p in MEAS_PARAMS}
+            units = {meas_param[0]: meas_param[1] for meas_param in MEAS_PARAMS}
             for name, v in zip(MEAS_NAMES, meas.values):
                 fixed = name in meas.fixed
                 params[name] = Parameter(
