@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from service.bench.settled import SETTLING_RULE
-from service.calibration.budget import combine, reading_components
+from service.calibration.budget import Component, combine, reading_components
 from service.calibration.methods.stage.reference import extrapolation_note, needs_note, true_reading
 from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor, mean_type_a
 from service.instruments.base import Reading
@@ -91,19 +91,23 @@ def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> dict
     table: dict[str, Any] = {}
     parts: dict[str, tuple[float, float] | None] = {}
     others = reading_components(getattr(active, "budget", None))
+    scatter: dict[str, list[Component]] = {}
     for axis, k_key in (("x", K_OUTPUTS[0]), ("y", K_OUTPUTS[1])):
         mean = mean_type_a(each[f"tilt_{axis}_deg"])
         table[f"{axis}_deg"] = mean.mean
-        fit = _fit_part(at_mean, axis, k_key)
-        if fit is None:
-            parts[axis] = None
-            continue
-        # the parameters' part and the mean's Type A, each with its own degrees of freedom
-        # (Welch-Satterthwaite)
-        u = float(np.hypot(fit[0], mean.u))
-        denom = (fit[0] ** 4 / fit[1] if np.isfinite(fit[1]) else 0.0) + mean.u**4 / mean.dof
-        parts[axis] = (u, u**4 / denom if denom > 0 else float("inf"))
-    out = with_uncertainties(table, parts, others)
+        parts[axis] = _fit_part(at_mean, axis, k_key)
+        # the mean's Type A, with its own degrees of freedom, beside the record's components
+        scatter[axis] = [
+            Component(
+                "readings",
+                f"mean of {len(readings)} readings, {axis}",
+                mean.u,
+                mean.dof,
+                "student-t",
+                "A",
+            )
+        ]
+    out = with_uncertainties(table, parts, others, scatter)
     out.update({"n_readings": len(readings), "window_s": window_s})
     return out
 
@@ -127,15 +131,19 @@ def _standard_and_dof(expanded: float, factor: float) -> tuple[float, float]:
 
 
 def with_uncertainties(
-    table: dict[str, Any], parts: dict[str, tuple[float, float] | None], others: list[Any]
+    table: dict[str, Any],
+    parts: dict[str, tuple[float, float] | None],
+    others: list[Component],
+    per_axis: dict[str, list[Component]] | None = None,
 ) -> dict[str, Any]:
     """`table` with each axis's standard and expanded uncertainty, coverage factor and degrees of
-    freedom: the fit's part (u, ν) combined with the budget's other components (GUM,
-    Welch-Satterthwaite)."""
+    freedom: the fit's part (u, ν) combined with the budget's other components and the axis's own
+    (`per_axis`) by the GUM's law and Welch-Satterthwaite."""
     for axis, part in parts.items():
         u = U = k = dof = None
         if part is not None:
-            c = combine(np.array([part[0]]), part[1], others, COVERAGE)
+            own = (per_axis or {}).get(axis, [])
+            c = combine(np.array([part[0]]), part[1], [*others, *own], COVERAGE)
             u, U, k = float(c.u[0]), float(c.U[0]), float(c.k[0])
             dof = float(c.dof_eff[0]) if np.isfinite(c.dof_eff[0]) else None
         table.update(
