@@ -8,11 +8,12 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import httpx
+
+from tests.helpers.waiting import eventually
 
 
 def free_port() -> int:
@@ -37,18 +38,20 @@ def running_service(data_dir: Path, args: Sequence[str] = (), **env: str) -> Ite
             stderr=subprocess.STDOUT,
         )
     base = f"http://127.0.0.1:{port}"
+
+    def answers() -> bool:
+        assert proc.poll() is None, f"service did not start: {log.read_text(errors='replace')}"
+        httpx.get(f"{base}/health", timeout=2)
+        return True
+
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                httpx.get(f"{base}/health", timeout=2)
-                break
-            except httpx.TransportError as exc:
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    raise AssertionError(
-                        f"service did not start: {log.read_text(errors='replace')}"
-                    ) from exc
-                time.sleep(0.2)
+        eventually(
+            answers,
+            timeout_s=60,
+            every_s=0.2,
+            ignoring=(httpx.TransportError,),
+            what=lambda: f"service answering /health; its log: {log.read_text(errors='replace')}",
+        )
         yield base
     finally:
         proc.terminate()

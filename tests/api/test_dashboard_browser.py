@@ -16,7 +16,6 @@ import json
 import math
 import os
 import re
-import shutil
 import subprocess
 import sys
 import time
@@ -28,26 +27,16 @@ import pytest
 
 from service.calibration.registry import methods_for
 from tests.api.running_service import running_service
+from tests.helpers.browser import CHROMIUM, NEEDS_A_BROWSER, T, sync_playwright
+from tests.helpers.waiting import eventually
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-try:
-    from playwright.sync_api import Browser, Page, expect, sync_playwright
-except ImportError:  # pragma: no cover - playwright is a dev dependency
-    sync_playwright = None  # type: ignore[assignment]
+if sync_playwright is not None:
+    from playwright.sync_api import Browser, Page, expect
 
-pytestmark = [
-    pytest.mark.skipif(
-        CHROMIUM is None,
-        reason="needs Debian's chromium for browser tests (apt-get install chromium)",
-    ),
-    pytest.mark.skipif(
-        sync_playwright is None, reason="needs playwright for Python (the dev dependencies)"
-    ),
-]
+pytestmark = NEEDS_A_BROWSER
 
 SIM_SPEED = "8"
 GRID = {"x_min": "-1.5", "x_max": "1.5", "n_x": "3", "y_min": "-1.5", "y_max": "1.5", "n_y": "3"}
-T = 30_000  # ms: how long a wait for something the page shows may take on a loaded machine
 
 
 class Bench:
@@ -668,10 +657,13 @@ def test_a_version_on_another_grid_is_compared_naming_both_grids(page, bench):
         timeout=30,
     )
     assert r.status_code == 202, r.text
-    deadline = datetime.datetime.now() + datetime.timedelta(seconds=300)
-    while (job := bench.get(f"/calibrations/{r.json()['id']}"))["state"] in ("queued", "running"):
-        assert datetime.datetime.now() < deadline, job
-        page.wait_for_timeout(500)
+    job = eventually(
+        lambda: bench.get(f"/calibrations/{r.json()['id']}"),
+        until=lambda job: job["state"] not in ("queued", "running"),
+        timeout_s=300,
+        every_s=0.5,
+        what="the calibration ended",
+    )
     assert job["state"] == "succeeded", job
     page.get_by_role("tab", name="Records").click()
     page.locator(f"#records tr[data-id='{job['record']['id']}']").click()
@@ -899,14 +891,15 @@ def test_the_dashboard_runs_under_its_content_security_policy(browser, bench):
         and "frame-ancestors 'none'" in policy
     )
     expect(pg.locator("#bench-select")).to_have_value("sim-stage", timeout=T)
-    # (wait_for_function would need eval)
-    deadline = datetime.datetime.now() + datetime.timedelta(milliseconds=T)
-    # the stream reads
-    while not pg.evaluate(
-        "() => !!(window.tiltlab && window.tiltlab.live && window.tiltlab.live.received > 5)"
-    ):
-        assert datetime.datetime.now() < deadline, "no readings under the policy"
-        pg.wait_for_timeout(200)
+    # the stream reads (wait_for_function would need eval)
+    eventually(
+        lambda: pg.evaluate(
+            "() => !!(window.tiltlab && window.tiltlab.live && window.tiltlab.live.received > 5)"
+        ),
+        timeout_s=T / 1000,
+        every_s=0.2,
+        what="readings under the policy",
+    )
     pg.evaluate(
         "() => { const s = document.createElement('script'); s.textContent = 'window.__ran = 1';"
         " document.body.append(s); }"

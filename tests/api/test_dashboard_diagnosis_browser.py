@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,12 +14,15 @@ import httpx
 import pytest
 
 from tests.api.running_service import running_service
-from tests.api.test_dashboard_browser import CHROMIUM, T, pytestmark, sync_playwright  # noqa: F401
-from tests.benches.conftest import scenario
-from tests.daemon.test_diagnosis import BODY, PERIODIC_X
+from tests.helpers.benches import PERIODIC_X, scenario
+from tests.helpers.browser import CHROMIUM, NEEDS_A_BROWSER, T, sync_playwright
+from tests.helpers.diagnosis import BODY
+from tests.helpers.waiting import eventually
 
 if sync_playwright is not None:
     from playwright.sync_api import expect
+
+pytestmark = NEEDS_A_BROWSER
 
 
 @pytest.fixture(scope="module")
@@ -36,12 +38,13 @@ def test_diagnose_from_the_dashboard_and_adopt(daemon):
     base, h = daemon
     r = httpx.post(f"{base}/calibrations", headers=h, json=BODY, timeout=30)
     assert r.status_code == 202, r.text
-    deadline = time.monotonic() + 600
-    while (job := httpx.get(f"{base}/calibrations/{r.json()['id']}", headers=h, timeout=30).json())[
-        "state"
-    ] in ("queued", "running"):
-        assert time.monotonic() < deadline, job
-        time.sleep(0.5)
+    job = eventually(
+        lambda: httpx.get(f"{base}/calibrations/{r.json()['id']}", headers=h, timeout=30).json(),
+        until=lambda job: job["state"] not in ("queued", "running"),
+        timeout_s=600,
+        every_s=0.5,
+        what="the calibration ended",
+    )
     assert job["state"] == "succeeded", job
     rec_id = job["record"]["id"]
     with sync_playwright() as p:

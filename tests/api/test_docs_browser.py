@@ -10,7 +10,7 @@ import httpx
 import pytest
 
 from tests.api.running_service import running_service
-from tests.api.test_dashboard_browser import CHROMIUM
+from tests.helpers.browser import CHROMIUM
 
 pytestmark = pytest.mark.skipif(
     CHROMIUM is None,

@@ -5,16 +5,8 @@ end."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
-import os
-import select
-import socket
-import subprocess
-import sys
-import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
@@ -22,136 +14,16 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from tests.api.running_service import free_port
+from tests.helpers.logged_daemon import Daemon, logged_daemon, tiltlab_cli
+from tests.helpers.raw_http import MIB, parse_problem, response_while_sending
 
 GIB = 1 << 30
-MIB = 1 << 20
-
-
-@dataclass
-class Daemon:
-    proc: subprocess.Popen[bytes]
-    base: str
-    port: int
-    token: str
-    log: Path
-    env: dict[str, str]
-
-    def rss_kb(self, field: str = "VmRSS") -> int:
-        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1])
-        raise AssertionError(f"no {field} for the daemon")
-
-
-def _cli(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "service", *args],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-
-
-@contextlib.contextmanager
-def daemon_with_log(tmp: Path) -> Iterator[Daemon]:
-    """A daemon whose whole output goes to a file; its token made by `tiltlab token create`
-    beforehand (so the first start prints none)."""
-    env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp / "data"), "TILTLAB_SIM_SPEED": "10"}
-    env.pop("TILTLAB_CONFIG", None)
-    r = _cli(env, "token", "create", "--name", "lims", "--scopes", "admin")
-    assert r.returncode == 0, r.stderr
-    token = r.stdout.strip()
-    port = free_port()
-    log = tmp / "daemon.log"
-    with log.open("wb") as out:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "service", "serve", "--port", str(port)],
-            env=env,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-        )
-    base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 90
-        while True:
-            try:
-                if httpx.get(f"{base}/health", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
-            time.sleep(0.2)
-        yield Daemon(proc, base, port, token, log, env)
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
 
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with daemon_with_log(tmp_path_factory.mktemp("edge")) as d:
+    with logged_daemon(tmp_path_factory.mktemp("edge")) as d:
         yield d
-
-
-def _response_while_sending(
-    port: int, head: bytes, chunk: bytes, limit_bytes: int
-) -> tuple[bytes, int]:
-    """Send `head`, then `chunk` after `chunk` until the daemon answers; (its answer, body bytes
-    sent).
-
-    The sender's own buffer is kept small, so what it has sent is close to what the daemon took
-    (left to autotuning, the kernels on both sides would swallow megabytes nobody read)."""
-    with socket.socket() as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 65536)
-        sock.settimeout(30)
-        sock.connect(("127.0.0.1", port))
-        sock.sendall(head)
-        sock.setblocking(False)
-        sent = 0
-        pending = b""
-        answer = b""
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            readable, writable, _ = select.select(
-                [sock], [sock] if sent < limit_bytes else [], [], 0.5
-            )
-            if readable:
-                try:
-                    data = sock.recv(65536)
-                except ConnectionResetError:
-                    data = b""
-                answer += data
-                if (
-                    not data
-                    or b"\r\n\r\n" in answer
-                    and len(answer.split(b"\r\n\r\n", 1)[1]) >= _length(answer)
-                ):
-                    return answer, sent
-            elif writable:
-                pending = pending or chunk  # a chunk goes whole, however many sends it takes
-                try:
-                    n = sock.send(pending)
-                except (BlockingIOError, BrokenPipeError, ConnectionResetError):
-                    continue
-                sent, pending = sent + n, pending[n:]
-        raise AssertionError(f"no answer after {sent} bytes: {answer[:300]!r}")
-
-
-def _length(answer: bytes) -> int:
-    head = answer.split(b"\r\n\r\n", 1)[0].decode("latin-1").lower()
-    for line in head.split("\r\n"):
-        if line.startswith("content-length:"):
-            return int(line.split(":", 1)[1])
-    return 1 << 62
-
-
-def _problem(answer: bytes) -> tuple[int, dict[str, str], dict]:
-    head, body = answer.split(b"\r\n\r\n", 1)
-    lines = head.decode("latin-1").split("\r\n")
-    headers = {k.strip().lower(): v.strip() for k, v in (x.split(":", 1) for x in lines[1:])}
-    return int(lines[0].split()[1]), headers, json.loads(body[: int(headers["content-length"])])
 
 
 def test_a_declared_gigabyte_without_a_token_is_refused_before_it_is_read(daemon: Daemon) -> None:
@@ -160,8 +32,8 @@ def test_a_declared_gigabyte_without_a_token_is_refused_before_it_is_read(daemon
         f"POST /calibrations HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
         f"Content-Length: {GIB}\r\n\r\n"
     ).encode()
-    answer, sent = _response_while_sending(daemon.port, head, b"0" * 65536, 2 * MIB)
-    status, headers, problem = _problem(answer)
+    answer, sent = response_while_sending(daemon.port, head, b"0" * 65536, 2 * MIB)
+    status, headers, problem = parse_problem(answer)
     assert status == 413 and headers["content-type"] == "application/problem+json", answer[:300]
     assert "TILTLAB_MAX_BODY_BYTES" in problem["detail"] and problem["status"] == 413
     assert sent < 2 * MIB, f"{sent} bytes were taken before the answer"
@@ -171,8 +43,8 @@ def test_a_declared_gigabyte_without_a_token_is_refused_before_it_is_read(daemon
         b"Transfer-Encoding: chunked\r\n\r\n"
     )
     chunk = b"10000\r\n" + b"0" * 65536 + b"\r\n"
-    answer, sent = _response_while_sending(daemon.port, head, chunk, 2 * MIB)
-    status, headers, problem = _problem(answer)
+    answer, sent = response_while_sending(daemon.port, head, chunk, 2 * MIB)
+    status, headers, problem = parse_problem(answer)
     assert status == 413 and headers["content-type"] == "application/problem+json", answer[:300]
     assert MIB < sent < 2 * MIB
     # The daemon's memory did not take the bodies (a read body would be a GiB).
@@ -279,10 +151,10 @@ def test_no_token_in_the_log_of_a_session_on_every_route_and_both_streams(daemon
 
 
 def test_revoking_a_token_ends_its_open_streams(tmp_path: Path) -> None:
-    with daemon_with_log(tmp_path) as d:
+    with logged_daemon(tmp_path) as d:
         ws = d.base.replace("http", "ws", 1)
         h = {"Authorization": f"Bearer {d.token}"}
-        r = _cli(d.env, "token", "create", "--name", "watcher", "--scopes", "read")
+        r = tiltlab_cli(d.env, "token", "create", "--name", "watcher", "--scopes", "read")
         assert r.returncode == 0, r.stderr
         watcher = r.stdout.strip()
         job = httpx.post(
@@ -321,7 +193,7 @@ def test_revoking_a_token_ends_its_open_streams(tmp_path: Path) -> None:
             ]
             await asyncio.wait_for(opened.wait(), 60)
             # revoked from another process: the daemon learns it from its database
-            revoked = await asyncio.to_thread(_cli, d.env, "token", "revoke", "watcher")
+            revoked = await asyncio.to_thread(tiltlab_cli, d.env, "token", "revoke", "watcher")
             assert revoked.returncode == 0, revoked.stderr
             return list(await asyncio.gather(*tasks))
 

@@ -11,7 +11,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 from types import ModuleType
 
@@ -20,6 +19,7 @@ import pytest
 
 from service.lims import dcc
 from tests.api.running_service import running_service
+from tests.helpers.waiting import eventually
 
 GENERATOR = shutil.which(
     "openapi-python-client", path=str(Path(sys.executable).parent)
@@ -179,12 +179,20 @@ def _lims_flow(pkg: ModuleType, base: str, admin_token: str) -> None:
         ),
     )
     assert isinstance(job, m.Job), job
-    deadline = time.monotonic() + 300
-    while str(job.state) not in ("succeeded", "failed", "cancelled"):
-        assert time.monotonic() < deadline, job
-        time.sleep(0.5)
-        job = read_job.sync(job.id, client=admin)
-        assert isinstance(job, m.Job), job
+    job_id = job.id
+
+    def job_now() -> m.Job:
+        read = read_job.sync(job_id, client=admin)
+        assert isinstance(read, m.Job), read
+        return read
+
+    job = eventually(
+        job_now,
+        until=lambda job: str(job.state) in ("succeeded", "failed", "cancelled"),
+        timeout_s=300,
+        every_s=0.5,
+        what=f"job {job_id} ended",
+    )
     assert str(job.state) == "succeeded", job.error
     record_id = job.record.id
 

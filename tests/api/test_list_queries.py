@@ -17,14 +17,6 @@ from service.api.routers import calibrations, lims, records
 from service.config import Settings
 from service.jobs.manager import JobManager
 from service.storage.store import Store
-from tests.storage.conftest import (  # noqa: F401 - fixtures
-    backend,
-    db_url,
-    empty_engine,
-    engine,
-    postgres_schema_sql,
-    sqlite_template,
-)
 
 # per listing request, whatever the page size (a session's own statements included)
 MAX_STATEMENTS = 10
@@ -61,7 +53,7 @@ def add_measured_jobs(store: Store, device_id: int, n: int, order_id: int) -> No
 
 
 @pytest.fixture
-def listed(engine: sa.Engine, tmp_path) -> Iterator[tuple[Store, TestClient, int, int]]:  # noqa: F811  # type: ignore[no-untyped-def]
+def listed(engine: sa.Engine, tmp_path) -> Iterator[tuple[Store, TestClient, int, int]]:  # type: ignore[no-untyped-def]
     store = Store(engine)
     device = store.devices.add_device("SCA126T", "SN-1", "measurement_sensor", actor="setup")
     order, _ = store.orders.create_order(

@@ -8,10 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
 import socket
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,58 +17,18 @@ import httpx
 import pytest
 from websockets.asyncio.client import connect
 
-from tests.api.running_service import free_port
-from tests.api.test_edge_limits import MIB, Daemon, _problem, _response_while_sending
+from tests.helpers.logged_daemon import Daemon, logged_daemon
+from tests.helpers.raw_http import MIB, parse_problem, response_while_sending
+from tests.helpers.waiting import eventually
 
 HEADER_TIMEOUT_S = 2
 MAX_CONNECTIONS = 12
 SLOW_CLOSE_S = 2
 
 
-@contextlib.contextmanager
-def daemon(tmp: Path, **settings: str) -> Iterator[Daemon]:
-    env = {
-        **os.environ,
-        "TILTLAB_DATA_DIR": str(tmp / "data"),
-        "TILTLAB_SIM_SPEED": "10",
-        **settings,
-    }
-    env.pop("TILTLAB_CONFIG", None)
-    made = subprocess.run(
-        [sys.executable, "-m", "service", "token", "create", "--name", "lims", "--scopes", "admin"],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert made.returncode == 0, made.stderr
-    port = free_port()
-    log = tmp / "daemon.log"
-    with log.open("wb") as out:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "service", "serve", "--port", str(port)],
-            env=env,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-        )
-    base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 90
-        while True:
-            with contextlib.suppress(httpx.TransportError):
-                if httpx.get(f"{base}/health", timeout=2).status_code == 200:
-                    break
-            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
-            time.sleep(0.2)
-        yield Daemon(proc, base, port, made.stdout.strip(), log, env)
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
-
-
 @pytest.fixture(scope="module")
 def bounded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with daemon(
+    with logged_daemon(
         tmp_path_factory.mktemp("bounds"),
         TILTLAB_HEADER_TIMEOUT_S=str(HEADER_TIMEOUT_S),
         TILTLAB_FAILED_TOKENS_BURST="20",
@@ -93,8 +50,8 @@ def _answer_of(sock: socket.socket, timeout_s: float = 60) -> bytes:
 def test_a_16_mib_header_is_refused_with_431_before_it_is_parsed(bounded: Daemon) -> None:
     peak_before = bounded.rss_kb("VmHWM")
     head = b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Filler: "
-    answer, sent = _response_while_sending(bounded.port, head, b"a" * 65536, 16 * MIB)
-    status, headers, problem = _problem(answer)
+    answer, sent = response_while_sending(bounded.port, head, b"a" * 65536, 16 * MIB)
+    status, headers, problem = parse_problem(answer)
     assert status == 431 and headers["content-type"] == "application/problem+json", answer[:300]
     assert "TILTLAB_MAX_HEADER_BYTES" in problem["detail"]
     assert sent < 2 * MIB, f"{sent} bytes were taken before the answer"
@@ -103,7 +60,7 @@ def test_a_16_mib_header_is_refused_with_431_before_it_is_parsed(bounded: Daemon
     with socket.create_connection(("127.0.0.1", bounded.port)) as sock:
         with contextlib.suppress(OSError):
             sock.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n" + many + b"\r\n")
-        status, _, problem = _problem(_answer_of(sock))
+        status, _, problem = parse_problem(_answer_of(sock))
     assert status == 431 and "TILTLAB_MAX_HEADERS" in problem["detail"], problem
     growth_kb = bounded.rss_kb("VmHWM") - peak_before
     assert growth_kb < 20 * 1024, f"peak memory grew by {growth_kb} kB"
@@ -120,9 +77,11 @@ def test_slow_heads_are_closed_after_the_header_timeout(bounded: Daemon) -> None
         s.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n")
         trickling.append(s)
     silent = [socket.create_connection(("127.0.0.1", bounded.port)) for _ in range(4)]
-    deadline = time.monotonic() + 10 * HEADER_TIMEOUT_S
     closed: dict[int, bytes] = {}
-    while len(closed) < len(trickling) and time.monotonic() < deadline:
+
+    def one_beat() -> dict[int, bytes] | None:
+        """One header more on each head still open, the answer of each one closed read; everyone
+        else is served meanwhile. The answers once every head is closed."""
         for i, s in enumerate(trickling):
             if i in closed:
                 continue
@@ -131,12 +90,18 @@ def test_slow_heads_are_closed_after_the_header_timeout(bounded: Daemon) -> None
             except OSError:
                 closed[i] = _answer_of(s, 5)
         assert httpx.get(f"{bounded.base}/health", timeout=30).status_code == 200
-        time.sleep(0.5)
-    assert len(closed) == len(trickling), f"{len(trickling) - len(closed)} slow heads still open"
+        return closed if len(closed) == len(trickling) else None
+
+    eventually(
+        one_beat,
+        timeout_s=10 * HEADER_TIMEOUT_S,
+        every_s=0.5,
+        what=lambda: f"every slow head closed ({len(trickling) - len(closed)} still open)",
+    )
     for answer in list(closed.values()) + [_answer_of(s) for s in silent]:
         # a reset may come before the answer could be read; an answer, when read, is a 408
         if answer:
-            status, _, problem = _problem(answer)
+            status, _, problem = parse_problem(answer)
             assert status == 408 and "TILTLAB_HEADER_TIMEOUT_S" in problem["detail"], problem
     for s in trickling + silent:
         s.close()
@@ -159,8 +124,8 @@ def test_chunked_bodies_over_the_limit_are_413_on_every_route(bounded: Daemon) -
             f"{bounded.token}\r\n"
             "Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n"
         ).encode()
-        answer, sent = _response_while_sending(bounded.port, head, chunk, 3 * MIB)
-        status, _, problem = _problem(answer)
+        answer, sent = response_while_sending(bounded.port, head, chunk, 3 * MIB)
+        status, _, problem = parse_problem(answer)
         # the body never ends (no last chunk): a 413 at all is an answer given on the count,
         # mid-body. How much the client got to send before it came is the limit plus what the
         # kernels buffered unread, which on a loaded machine is another megabyte or more; the
@@ -235,7 +200,7 @@ def test_a_stranger_gets_401_before_any_404_or_422(bounded: Daemon) -> None:
 
 
 def test_connections_of_one_address_are_bounded(tmp_path: Path) -> None:
-    with daemon(tmp_path, TILTLAB_MAX_CONNECTIONS_PER_CLIENT=str(MAX_CONNECTIONS)) as d:
+    with logged_daemon(tmp_path, TILTLAB_MAX_CONNECTIONS_PER_CLIENT=str(MAX_CONNECTIONS)) as d:
         ws = d.base.replace("http", "ws", 1)
 
         async def hold() -> tuple[int, str, int]:
@@ -277,7 +242,7 @@ def test_a_stream_client_that_never_reads_is_dropped_at_the_tcp_level(tmp_path: 
     not left ESTABLISHED for as long as the client keeps its window shut."""
     if not Path("/proc/net/tcp").exists():
         pytest.skip("reads the connection's state from /proc/net/tcp (Linux)")
-    with daemon(
+    with logged_daemon(
         tmp_path, TILTLAB_STREAM_SLOW_CLOSE_S=str(SLOW_CLOSE_S), TILTLAB_SIM_SPEED="20"
     ) as d:
         sock = socket.socket()
@@ -294,10 +259,10 @@ def test_a_stream_client_that_never_reads_is_dropped_at_the_tcp_level(tmp_path: 
         assert b"101" in sock.recv(12)  # upgraded; from now on nothing is read
         port = sock.getsockname()[1]
         assert _established(d.port, port)
-        deadline = time.monotonic() + 120
-        while _established(d.port, port) and time.monotonic() < deadline:
-            time.sleep(0.5)
-        assert not _established(d.port, port), (
-            "the daemon still holds the connection of the dropped client"
+        eventually(
+            lambda: not _established(d.port, port),
+            timeout_s=120,
+            every_s=0.5,
+            what="the daemon letting go of the dropped client's connection",
         )
         sock.close()

@@ -8,7 +8,6 @@ on such a bench homes the stage itself before its first point and succeeds.
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import httpx
 import pytest
 
 from tests.api.running_service import running_service
+from tests.helpers.waiting import eventually
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -39,6 +39,15 @@ class Daemon:
         return httpx.post(self.base + path, headers=self.h, json=body, timeout=120)
 
 
+def _wait_bench_ready(d: Daemon) -> None:
+    eventually(
+        lambda: d.get("/benches").json()["benches"][0]["state"] == "ready",
+        timeout_s=60,
+        every_s=0.2,
+        what="the bench up (ready)",
+    )
+
+
 @pytest.fixture()
 def daemon(tmp_path) -> Iterator[Daemon]:
     data = tmp_path / "data"
@@ -47,10 +56,7 @@ def daemon(tmp_path) -> Iterator[Daemon]:
         data, TILTLAB_SIM_SPEED="20", TILTLAB_BENCH_SCENARIO=str(unhomed_scenario(tmp_path))
     ) as base:
         d = Daemon(base, (data / "admin.token").read_text().strip())
-        deadline = time.monotonic() + 60
-        while d.get("/benches").json()["benches"][0]["state"] != "ready":
-            assert time.monotonic() < deadline, "the bench did not come up"
-            time.sleep(0.2)
+        _wait_bench_ready(d)
         yield d
 
 
@@ -89,14 +95,19 @@ def test_a_job_homes_the_stage_before_its_first_point(daemon: Daemon) -> None:
     assert r.status_code == 202, r.text
     job_id = r.json()["id"]
     phases = set()
-    deadline = time.monotonic() + 240
-    while True:
+
+    def job_seen() -> dict:
         job = daemon.get(f"/calibrations/{job_id}").json()
         phases.add(job["progress"]["phase"])
-        if job["state"] in ("succeeded", "failed", "cancelled"):
-            break
-        assert time.monotonic() < deadline, job
-        time.sleep(0.1)
+        return job
+
+    job = eventually(
+        job_seen,
+        until=lambda job: job["state"] in ("succeeded", "failed", "cancelled"),
+        timeout_s=240,
+        every_s=0.1,
+        what=f"job {job_id} ended",
+    )
     assert job["state"] == "succeeded", job
     assert job["progress"]["phase"] == "done", job
     # homed for good
@@ -115,20 +126,23 @@ def test_a_stop_during_homing_is_a_conflict_not_a_device_fault(tmp_path) -> None
         data, TILTLAB_SIM_SPEED="1", TILTLAB_BENCH_SCENARIO=str(unhomed_scenario(tmp_path))
     ) as base:
         d = Daemon(base, (data / "admin.token").read_text().strip())
-        deadline = time.monotonic() + 60
-        while d.get("/benches").json()["benches"][0]["state"] != "ready":
-            assert time.monotonic() < deadline, "the bench did not come up"
-            time.sleep(0.2)
+        _wait_bench_ready(d)
         assert d.post("/stage/home", {}).status_code == 200
         # far from the switches
         assert d.post("/stage/move", {"x_deg": 8.0, "y_deg": -8.0}).status_code == 200
         answers: list[httpx.Response] = []
         homing = threading.Thread(target=lambda: answers.append(d.post("/stage/home", {})))
         homing.start()
-        deadline = time.monotonic() + 60
-        while d.get("/benches").json()["benches"][0].get("held_by") is None:
-            assert time.monotonic() < deadline and homing.is_alive(), "homing never held the bench"
-            time.sleep(0.02)
+
+        def homing_holds_the_bench() -> bool:
+            if d.get("/benches").json()["benches"][0].get("held_by") is not None:
+                return True
+            assert homing.is_alive(), "homing never held the bench: it ended"
+            return False
+
+        eventually(
+            homing_holds_the_bench, timeout_s=60, every_s=0.02, what="homing holding the bench"
+        )
         stopped = d.post("/stage/stop", {})
         homing.join(timeout=120)
         assert stopped.status_code == 200, stopped.text

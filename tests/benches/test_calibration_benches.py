@@ -9,7 +9,7 @@ from service.calibration.registry import FitOptions, get_method
 from service.errors import InputError
 from service.reproduce.stage_validation import evaluate_seed, offset_grid, oracle_ratios
 from service.scenarios import parse_scenario, run_scenario
-from tests.benches.conftest import BENCHES, scenario, stage_bench
+from tests.helpers.benches import BENCHES, scenario, stage_bench
 
 SEEDS = (101, 102, 103)
 

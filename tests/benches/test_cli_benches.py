@@ -2,8 +2,6 @@
 (JSON)."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -11,7 +9,8 @@ import pytest
 from service.calibration.registry import get_method
 from service.io.model_files import read_model
 from service.scenarios import parse_scenario, run_scenario
-from tests.benches.conftest import GRID, PERIODIC_X, scenario
+from tests.helpers.benches import GRID, PERIODIC_X, scenario
+from tests.helpers.cli import tiltlab
 
 BENCH_TOML = """
 [benches.wide-worms]
@@ -30,16 +29,6 @@ port = "/dev/ttyUSB1"
 [benches.wide-worms.roles.stage]
 port = "/dev/ttyUSB2"
 """
-
-
-def tiltlab(*args, cwd):
-    return subprocess.run(
-        [sys.executable, "-m", "service", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
 
 
 @pytest.fixture(scope="module")

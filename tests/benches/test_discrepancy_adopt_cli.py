@@ -13,8 +13,8 @@ from service.io.model_files import read_model
 from service.physics.stage import StageBench
 from service.scenarios import parse_scenario
 from service.scenarios.run import effect_set, hardware_of
-from tests.benches.conftest import GRID, PERIODIC_X, scenario
-from tests.benches.test_cli_benches import tiltlab
+from tests.helpers.benches import GRID, PERIODIC_X, scenario
+from tests.helpers.cli import tiltlab
 
 TARGETS = [(1.3, -2.1), (-4.7, 3.3), (5.9, 0.7), (-2.6, -5.4), (3.5, 4.9), (-9.1, 8.2)]
 

@@ -8,7 +8,7 @@ import pytest
 from service.discrepancy.stage import stage_report
 from service.errors import InputError
 from service.scenarios import parse_scenario, run_scenario
-from tests.benches.conftest import BENCHES, GRID, PERIODIC_X, noise_sigma_deg, scenario, stage_bench
+from tests.helpers.benches import BENCHES, GRID, PERIODIC_X, noise_sigma_deg, scenario, stage_bench
 
 SEEDS = (0, 1)
 

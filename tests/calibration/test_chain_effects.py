@@ -16,7 +16,7 @@ from service.discrepancy.stage_data import StageData
 from service.physics.effects import EffectSet
 from service.physics.inclinometer import apply_reading_errors
 from service.physics.stage import StageBench, simulate_stage
-from tests.benches.conftest import scenario
+from tests.helpers.benches import scenario
 
 BENCH = StageBench(upper_gear_ratio=180, lower_gear_ratio=360)
 

@@ -10,10 +10,11 @@ import re
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+
+from tests.helpers.waiting import eventually
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCKER = ROOT / "docker"
@@ -281,12 +282,19 @@ def test_health_check_probes_where_the_daemon_serves(tmp_path: Path, given: str)
     try:
         r = _healthcheck(proc.pid)  # not answering yet, or already: probed on its port either way
         assert f"http://127.0.0.1:{port}/health" in r.stdout + r.stderr
-        deadline = time.monotonic() + 90
-        while not _answers(f"http://127.0.0.1:{port}/health"):
-            assert proc.poll() is None and time.monotonic() < deadline, (
-                tmp_path / "serve.log"
-            ).read_text()
-            time.sleep(0.2)
+
+        def answers() -> bool:
+            if _answers(f"http://127.0.0.1:{port}/health"):
+                return True
+            assert proc.poll() is None, (tmp_path / "serve.log").read_text()
+            return False
+
+        eventually(
+            answers,
+            timeout_s=90,
+            every_s=0.2,
+            what=lambda: f"the service answering; its log: {(tmp_path / 'serve.log').read_text()}",
+        )
         r = _healthcheck(proc.pid)
         assert r.returncode == 0 and r.stdout.strip() == f"http://127.0.0.1:{port}/health: 200"
     finally:

@@ -24,7 +24,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -33,6 +32,7 @@ import pytest
 
 from service.cli import build_parser
 from tests.api.running_service import free_port
+from tests.helpers.waiting import eventually
 
 ROOT = Path(__file__).resolve().parents[2]
 # the installed command, as the docs run it (`python -m service` would find the sandbox's service/
@@ -305,13 +305,15 @@ def simulator(here: Path, folder: str, *extra: str) -> Iterator[Path]:
         text=True,
     )
     config = here / folder / "bench.toml"
+
+    def written() -> bool:
+        if config.exists():
+            return True
+        assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
+        return False
+
     try:
-        deadline = time.monotonic() + 60
-        while not config.exists():
-            assert proc.poll() is None and time.monotonic() < deadline, (
-                proc.stdout.read() if proc.stdout else ""
-            )
-            time.sleep(0.2)
+        eventually(written, timeout_s=60, every_s=0.2, what=f"the simulator writing {config}")
         yield config
     finally:
         proc.send_signal(signal.SIGINT)
@@ -357,20 +359,20 @@ def _serves(here: Path, argv: list[str]) -> None:
         stderr=subprocess.STDOUT,
         text=True,
     )
+
+    def answers() -> bool:
+        try:
+            health = httpx.get(f"http://127.0.0.1:{port}/health", timeout=2)
+        except httpx.TransportError:
+            assert proc.poll() is None, (
+                f"tiltlab {' '.join(argv)}: {proc.stdout.read() if proc.stdout else ''}"
+            )
+            return False
+        assert health.status_code == 200, health.text
+        return True
+
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                assert httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200
-                break
-            except httpx.TransportError:
-                assert proc.poll() is None, (
-                    f"tiltlab {' '.join(argv)}: {proc.stdout.read() if proc.stdout else ''}"
-                )
-                assert time.monotonic() < deadline, (
-                    f"tiltlab {' '.join(argv)} did not answer in 60 s"
-                )
-                time.sleep(0.3)
+        eventually(answers, timeout_s=60, every_s=0.3, what=f"tiltlab {' '.join(argv)} answering")
     finally:
         proc.terminate()
         proc.wait(timeout=20)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.daemon.conftest import admin_headers, make_client, wait_job
+from tests.helpers.daemon import admin_headers, make_client, wait_job
 
 TARGET_DEG = 0.0012
 BODY = {

@@ -14,14 +14,14 @@ beside it.
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
 
-from tests.benches.conftest import scenario
-from tests.daemon.conftest import admin_headers, make_client, wait_job
-from tests.daemon.test_diagnosis import wait_diagnosis
+from tests.helpers.benches import scenario
+from tests.helpers.daemon import admin_headers, make_client, wait_job
+from tests.helpers.diagnosis import wait_diagnosis
+from tests.helpers.waiting import eventually
 
 SETTLE = {"tolerance_deg": 0.005, "window_s": 0.5, "timeout_s": 60}
 TARGETS = [(1.3, -2.1), (-4.7, 3.3), (5.9, 0.7), (-2.6, -5.4), (3.5, 4.9), (-6.1, -0.9)]
@@ -84,13 +84,21 @@ def diagnose(client, h, record_id: int, **extra) -> dict:
 def tilt_mean(client, h) -> tuple[np.ndarray, dict]:
     """The mean of TILT_READINGS distinct readings of /tilt's table tilt (and the last answer)."""
     seen, values, last = None, [], {}
-    deadline = time.monotonic() + 60
-    while len(values) < TILT_READINGS:
+
+    def read_on() -> list[tuple[float, float]] | None:
+        nonlocal seen, last
         last = client.get("/tilt", headers=h).json()
         if last["time_utc"] != seen and last["table_tilt"] is not None:
             seen = last["time_utc"]
             values.append((last["table_tilt"]["x_deg"], last["table_tilt"]["y_deg"]))
-        assert time.monotonic() < deadline, last
+        return values if len(values) >= TILT_READINGS else None
+
+    eventually(
+        read_on,
+        timeout_s=60,
+        every_s=0,
+        what=lambda: f"{TILT_READINGS} distinct readings of /tilt (the last answer: {last})",
+    )
     return np.mean(values, axis=0), last
 
 

@@ -9,7 +9,8 @@ import pytest
 from service.api.app import create_app
 from service.config import Settings
 from service.errors import InputError
-from tests.daemon.conftest import make_client
+from tests.helpers.daemon import make_client
+from tests.helpers.waiting import eventually
 
 
 def test_first_start_writes_the_admin_token_once_with_mode_0600(tmp_path, capsys):
@@ -41,16 +42,17 @@ def test_auth_none_only_on_loopback(tmp_path):
 
 
 def test_ready_needs_no_token_and_names_a_lost_instrument(tmp_path):
-    import time
-
     with make_client(tmp_path) as client:
         assert client.get("/ready").json() == {"ready": True, "reasons": []}
         bench = client.app.state.bench
         bench.sim.faults("reference_sensor").disconnect(3.0)
-        deadline = time.monotonic() + 10
-        while (r := client.get("/ready")).status_code == 200:
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
+        r = eventually(
+            lambda: client.get("/ready"),
+            until=lambda r: r.status_code != 200,
+            timeout_s=10,
+            every_s=0.05,
+            what="/ready no longer ready",
+        )
         assert r.status_code == 503 and any(
             "reference_sensor on " + bench.port_of("reference_sensor") in x
             for x in r.json()["reasons"]

@@ -5,7 +5,6 @@ configuration's hardware table; both reach the stage driver through the same ben
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
@@ -14,24 +13,28 @@ from service.clock import Clock
 from service.instruments.bench_config import parse_bench_config
 from service.instruments.wiring import open_bench
 from service.physics.stage import StageBench
-from tests.benches.conftest import scenario, stage_bench
-from tests.daemon.conftest import admin_headers, make_client, wait_job
+from tests.helpers.benches import scenario, stage_bench
+from tests.helpers.daemon import admin_headers, make_client, wait_job
+from tests.helpers.waiting import eventually
 
 
 def _wait_stage(client, h, want: tuple[float, float], timeout_s: float = 60.0) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        t = client.get("/tilt", headers=h).json()
+    def arrived(t: dict) -> bool:
         st = t["stage"]
-        if (
+        return (
             not st["moving"]
             and abs(st["x_deg"] - want[0]) < 1e-3
             and abs(st["y_deg"] - want[1]) < 1e-3
             and not t["stale"]
-        ):
-            return t
-        assert time.monotonic() < deadline, t
-        time.sleep(0.1)
+        )
+
+    return eventually(
+        lambda: client.get("/tilt", headers=h).json(),
+        until=arrived,
+        timeout_s=timeout_s,
+        every_s=0.1,
+        what=f"the stage standing at {want}",
+    )
 
 
 @pytest.fixture
@@ -58,10 +61,11 @@ def test_stage_moves_where_asked_and_sensors_read_the_table_there(bench_180_360)
         + bench.sim.world.settling.lasts_s()
         + 3 * bench.output_interval_s("reference_sensor")
     )
-    deadline = time.monotonic() + 30
-    while not bench.readings_after("reference_sensor", mark):
-        assert time.monotonic() < deadline, "no reference reading after the stage arrived"
-        time.sleep(0.01)
+    eventually(
+        lambda: bench.readings_after("reference_sensor", mark),
+        timeout_s=30,
+        what="a reference reading after the stage arrived",
+    )
     t = client.get("/tilt", headers=h).json()
     world = bench.sim.world
     pose = world.pose_deg

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.daemon.conftest import admin_headers, make_client, wait_job
+from tests.helpers.daemon import admin_headers, make_client, wait_job
 
 GRID = {"x_deg": [-3.0, 3.0], "y_deg": [-3.0, 3.0], "n_x": 3, "n_y": 3}
 PARTS = ("moving", "settling", "reading")

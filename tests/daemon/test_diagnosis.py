@@ -6,39 +6,15 @@ nothing and has nothing to adopt."""
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 
-from tests.benches.conftest import scenario
-from tests.daemon.conftest import admin_headers, make_client, wait_job
+from tests.helpers.benches import PERIODIC_X, scenario
+from tests.helpers.daemon import admin_headers, make_client, wait_job
+from tests.helpers.diagnosis import BODY, SMALL_BODY, wait_diagnosis
 
-# 7 x 7 points 2.4 deg apart: the 180:1 upper worm (2-deg period) and the 360:1 lower one (1 deg)
-# are each sampled at five phases
-GRID = {"x_deg": [-7.2, 7.2], "y_deg": [-7.2, 7.2], "n_x": 7, "n_y": 7}
-BODY = {
-    "procedure": "stage-grid",
-    "method": "kinematic",
-    "grid": GRID,
-    "samples_per_point": 8,
-    "validation": {"n_points": 4},
-    "settle": {"tolerance_deg": 0.005, "window_s": 0.5, "timeout_s": 60},
-}
-# A record to refer to, quickly made: 3 x 3 points
-SMALL_BODY = {**BODY, "grid": {"x_deg": [-2, 2], "y_deg": [-2, 2], "n_x": 3, "n_y": 3}}
-PERIODIC_X = {"periodic_error": {"x_amp_deg": 0.010, "x_phase_deg": 40.0}}
 # Targets between the grid points (none of them is a grid point)
 TARGETS = [(1.3, -2.1), (-4.7, 3.3), (5.9, 0.7), (-2.6, -5.4), (3.5, 4.9), (-6.1, -0.9)]
-
-
-def wait_diagnosis(client, h, diagnosis_id: int, timeout_s: float = 300.0) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        d = client.get(f"/diagnoses/{diagnosis_id}", headers=h).json()
-        if d["state"] in ("succeeded", "failed"):
-            return d
-        assert time.monotonic() < deadline, d
-        time.sleep(0.2)
 
 
 def start_daemon(tmp_path, effects: dict | None):

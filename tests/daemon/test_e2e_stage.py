@@ -4,39 +4,18 @@ level."""
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
 
 from service import cli
-from tests.daemon.conftest import wait_job
+from tests.helpers.daemon import fresh_tilt, wait_bench_seconds, wait_job
 
 GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
 
 
 def sim_temp(client) -> float:
     return client.app.state.bench.sim.world.temp_c()
-
-
-def _wait_bench_seconds(bench, seconds: float, timeout_s: float = 30.0) -> None:
-    """Until the bench's clock has run `seconds` (bench time), within a real-time deadline."""
-    until, deadline = bench.clock.monotonic() + seconds, time.monotonic() + timeout_s
-    while bench.clock.monotonic() < until:
-        assert time.monotonic() < deadline, "the bench clock did not advance"
-        time.sleep(0.01)
-
-
-def fresh_tilt(client, h, attempts: int = 40) -> dict:
-    """GET /tilt until it is not stale: a test client sharing its process with a sped-up bench may
-    see the reader a few tenths of a second behind on a loaded machine, and /tilt rightly says
-    so."""
-    for _ in range(attempts):
-        t = client.get("/tilt", headers=h).json()
-        if not t["stale"]:
-            return t
-        time.sleep(0.05)
-    raise AssertionError(f"every GET /tilt was stale: {t}")
 
 
 @pytest.mark.parametrize("method", ["kinematic", "homography"])
@@ -71,7 +50,7 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
             ).status_code
             == 200
         )
-        _wait_bench_seconds(client.app.state.bench, 6.0)  # the sensors' readings after the move
+        wait_bench_seconds(client.app.state.bench, 6.0)  # the sensors' readings after the move
         t = fresh_tilt(client, h)
         truth = sim.world.true_tilt_deg()
         assert t["table_tilt"] is not None, t

@@ -14,7 +14,8 @@ import sqlalchemy as sa
 
 from service.instruments import controller
 from tests.api.running_service import free_port
-from tests.daemon.conftest import wait_job
+from tests.helpers.daemon import wait_bench_seconds, wait_job
+from tests.helpers.waiting import eventually
 
 GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
 BODY = {
@@ -27,21 +28,15 @@ BODY = {
 
 
 def _wait_points(get, n, timeout_s=120.0) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        job = get()
-        if job["progress"]["points_done"] >= n or job["state"] not in ("queued", "running"):
-            return job
-        assert time.monotonic() < deadline, job
-        time.sleep(0.05)
-
-
-def _wait_bench_seconds(bench, seconds: float, timeout_s: float = 30.0) -> None:
-    """Until the bench's clock has run `seconds` (bench time), within a real-time deadline."""
-    until, deadline = bench.clock.monotonic() + seconds, time.monotonic() + timeout_s
-    while bench.clock.monotonic() < until:
-        assert time.monotonic() < deadline, "the bench clock did not advance"
-        time.sleep(0.01)
+    return eventually(
+        get,
+        until=lambda job: (
+            job["progress"]["points_done"] >= n or job["state"] not in ("queued", "running")
+        ),
+        timeout_s=timeout_s,
+        every_s=0.05,
+        what=f"{n} points done, or the job ended",
+    )
 
 
 def _settled(engine, job_id) -> int:
@@ -63,16 +58,16 @@ def test_sensor_lost_mid_job_fails_it_naming_role_and_port_and_keeps_points(daem
         job["state"] == "failed" and "measurement_sensor" in job["error"] and port in job["error"]
     ), job
     assert _settled(client.app.state.engine, job_id) >= 4  # two sensors per measured point, kept
-    deadline = time.monotonic() + 60
-    while True:
-        devs = {d["role"]: d for d in client.get("/devices", headers=h).json()["devices"]}
-        if (
+    eventually(
+        lambda: {d["role"]: d for d in client.get("/devices", headers=h).json()["devices"]},
+        until=lambda devs: (
             devs["measurement_sensor"]["state"] == "connected"
             and devs["measurement_sensor"]["counters"]["reconnects"] >= 1
-        ):
-            break
-        assert time.monotonic() < deadline, devs
-        time.sleep(0.2)
+        ),
+        timeout_s=60,
+        every_s=0.2,
+        what="the measurement sensor reconnected",
+    )
     again = client.post("/calibrations", headers=h, json=BODY)
     assert again.status_code == 202, again.text
     assert wait_job(client, again.json()["id"], h)["state"] == "succeeded"
@@ -82,10 +77,8 @@ def test_stop_during_a_move_acts_at_once_and_fails_the_job(daemon):
     client, h = daemon
     bench = client.app.state.bench
     job_id = client.post("/calibrations", headers=h, json=BODY).json()["id"]
-    deadline = time.monotonic() + 30
-    while not bench.pose.moving:  # catch it mid-move
-        assert time.monotonic() < deadline
-        time.sleep(0.005)
+    # catch it mid-move
+    eventually(lambda: bench.pose.moving, timeout_s=30, every_s=0.005, what="the stage moving")
     r = client.post("/stage/stop", headers=h, json={})
     assert r.status_code == 200 and r.json()["failed_job"] == job_id
     job = client.get(f"/calibrations/{job_id}", headers=h).json()
@@ -93,12 +86,13 @@ def test_stop_during_a_move_acts_at_once_and_fails_the_job(daemon):
     world = bench.sim.world
     # ST is not answered (no set command of the controller is): the answer says it was sent to every
     # axis, and the controller stops when it reads it, on a loaded machine a moment after the answer
-    deadline = time.monotonic() + 10
-    while not all(a.state == controller.STATE_READY for a in world.axes.values()):
-        assert time.monotonic() < deadline, "the axes still move 10 s after POST /stage/stop"
-        time.sleep(0.01)
+    eventually(
+        lambda: all(a.state == controller.STATE_READY for a in world.axes.values()),
+        timeout_s=10,
+        what="the axes standing after POST /stage/stop",
+    )
     pose = world.pose_deg
-    _wait_bench_seconds(bench, 6.0)
+    wait_bench_seconds(bench, 6.0)
     assert world.pose_deg == pose  # standing: nothing the job had sent moves it again
     assert all(a.state == controller.STATE_READY for a in world.axes.values())
     # the bench is free again
@@ -114,10 +108,7 @@ def test_stop_names_the_job_even_when_the_job_ends_before_the_stop_returns(daemo
     bench = client.app.state.bench
     jobs = client.app.state.jobs
     job_id = client.post("/calibrations", headers=h, json=BODY).json()["id"]
-    deadline = time.monotonic() + 30
-    while not bench.pose.moving:
-        assert time.monotonic() < deadline
-        time.sleep(0.005)
+    eventually(lambda: bench.pose.moving, timeout_s=30, every_s=0.005, what="the stage moving")
     stop = bench.stop
 
     async def stop_then_let_the_job_end_first():
@@ -158,10 +149,7 @@ def test_stop_answers_after_the_job_s_end_is_written(daemon, monkeypatch):
         assert await asyncio.to_thread(writing.wait, 30.0), "the job never wrote its end"
 
     job_id = client.post("/calibrations", headers=h, json=BODY).json()["id"]
-    deadline = time.monotonic() + 30
-    while not bench.pose.moving:
-        assert time.monotonic() < deadline
-        time.sleep(0.005)
+    eventually(lambda: bench.pose.moving, timeout_s=30, every_s=0.005, what="the stage moving")
     bench.stop = stop_then_wait_for_the_job_to_write_its_end
     r = client.post("/stage/stop", headers=h, json={})
     assert r.status_code == 200 and r.json()["failed_job"] == job_id
@@ -188,16 +176,19 @@ class _Daemon:
             stdout=subprocess.DEVNULL,
             stderr=open(data_dir / f"daemon-{self.port}.log", "w"),
         )
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                httpx.get(f"{self.base}/health", timeout=2)
-                break
-            except httpx.TransportError:
-                assert self.proc.poll() is None and time.monotonic() < deadline, (
-                    "daemon did not start"
-                )
-                time.sleep(0.2)
+
+        def answers() -> bool:
+            assert self.proc.poll() is None, "daemon did not start: it exited"
+            httpx.get(f"{self.base}/health", timeout=2)
+            return True
+
+        eventually(
+            answers,
+            timeout_s=60,
+            every_s=0.2,
+            ignoring=(httpx.TransportError,),
+            what="the daemon answering /health",
+        )
         self.h = {"Authorization": "Bearer " + (data_dir / "admin.token").read_text().strip()}
 
     def get(self, path):
@@ -207,13 +198,13 @@ class _Daemon:
         return httpx.post(self.base + path, headers=self.h, json=json, timeout=120)
 
     def wait(self, job_id):
-        deadline = time.monotonic() + 240
-        while True:
-            job = self.get(f"/calibrations/{job_id}").json()
-            if job["state"] in ("succeeded", "failed", "cancelled"):
-                return job
-            assert time.monotonic() < deadline, job
-            time.sleep(0.2)
+        return eventually(
+            lambda: self.get(f"/calibrations/{job_id}").json(),
+            until=lambda job: job["state"] in ("succeeded", "failed", "cancelled"),
+            timeout_s=240,
+            every_s=0.2,
+            what=f"job {job_id} ended",
+        )
 
     def stop(self):
         self.proc.terminate()

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from service.jobs.requests import CalibrationRequest
 from service.jobs.stage_grid import STAGE_GRID
-from tests.daemon.conftest import admin_headers, make_client
+from tests.helpers.daemon import admin_headers, make_client
 
 GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
 TABLES = (

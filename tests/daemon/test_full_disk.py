@@ -13,7 +13,6 @@ import os
 import sqlite3
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import httpx
 import pytest
 
 from tests.api.running_service import free_port
+from tests.helpers.waiting import eventually
 
 DISK_MB = 32
 MIN_FREE_MB = 4
@@ -69,16 +69,6 @@ def _fill(folder: Path) -> Path:
     return filler
 
 
-def _wait(probe, ok, timeout_s: float = 180.0, every_s: float = 0.2):  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = probe()
-        if ok(value):
-            return value
-        assert time.monotonic() < deadline, value
-        time.sleep(every_s)
-
-
 def test_a_full_disk_fails_the_job_cleanly_and_it_resumes_once_space_is_freed(
     small_disk: Path,
 ) -> None:
@@ -102,21 +92,34 @@ def test_a_full_disk_fails_the_job_cleanly_and_it_resumes_once_space_is_freed(
     base = f"http://127.0.0.1:{port}"
     filler: Path | None = None
     try:
-        _wait(lambda: _get(f"{base}/health"), lambda r: r is not None and r.status_code == 200, 90)
+        eventually(
+            lambda: httpx.get(f"{base}/health", timeout=2).status_code == 200,
+            timeout_s=90,
+            every_s=0.2,
+            ignoring=(httpx.TransportError,),
+            what="the daemon answering /health",
+        )
         h = {"Authorization": "Bearer " + (data / "admin.token").read_text().strip()}
         with httpx.Client(base_url=base, headers=h, timeout=60) as c:
             assert c.get("/ready").status_code == 200
             r = c.post("/calibrations", json=BODY)
             assert r.status_code == 202, r.text
             job_id = r.json()["id"]
-            _wait(
+            eventually(
                 lambda: c.get(f"/calibrations/{job_id}").json(),
-                lambda j: j["progress"]["points_done"] >= 2,
+                until=lambda j: j["progress"]["points_done"] >= 2,
+                timeout_s=180,
+                every_s=0.2,
+                what="two points done",
             )
 
             filler = _fill(small_disk)  # the data directory's disk is full: not a byte left
-            job = _wait(
-                lambda: c.get(f"/calibrations/{job_id}").json(), lambda j: j["state"] != "running"
+            job = eventually(
+                lambda: c.get(f"/calibrations/{job_id}").json(),
+                until=lambda j: j["state"] != "running",
+                timeout_s=180,
+                every_s=0.2,
+                what="the job no longer running",
             )
             assert job["state"] == "failed" and job["interrupted"] is True, job
             assert (
@@ -160,7 +163,13 @@ def test_a_full_disk_fails_the_job_cleanly_and_it_resumes_once_space_is_freed(
 
             filler.unlink()  # space again: the job's end is stored, then it resumes
             filler = None
-            _wait(lambda: c.get("/health").json(), lambda body: body["jobs_not_stored"] == [])
+            eventually(
+                lambda: c.get("/health").json(),
+                until=lambda body: body["jobs_not_stored"] == [],
+                timeout_s=180,
+                every_s=0.2,
+                what="the job's end stored",
+            )
             with contextlib.closing(
                 sqlite3.connect(f"file:{data / 'tiltlab.db'}?mode=ro", uri=True)
             ) as db:
@@ -176,10 +185,12 @@ def test_a_full_disk_fails_the_job_cleanly_and_it_resumes_once_space_is_freed(
             assert c.get("/ready").status_code == 200
             resumed = c.post(f"/calibrations/{job_id}/resume")
             assert resumed.status_code == 202, resumed.text
-            job = _wait(
+            job = eventually(
                 lambda: c.get(f"/calibrations/{job_id}").json(),
-                lambda j: j["state"] in ("succeeded", "failed", "cancelled"),
-                600,
+                until=lambda j: j["state"] in ("succeeded", "failed", "cancelled"),
+                timeout_s=600,
+                every_s=0.2,
+                what="the resumed job ended",
             )
             assert job["state"] == "succeeded", job
     finally:
@@ -195,10 +206,3 @@ def test_a_full_disk_fails_the_job_cleanly_and_it_resumes_once_space_is_freed(
         timeout=300,
     )
     assert verified.returncode == 0, verified.stdout + verified.stderr
-
-
-def _get(url: str) -> httpx.Response | None:
-    try:
-        return httpx.get(url, timeout=2)
-    except httpx.TransportError:
-        return None

@@ -11,7 +11,7 @@ import sqlalchemy as sa
 from starlette.websockets import WebSocketDisconnect
 
 from service.storage.feed import encode_cursor
-from tests.daemon.conftest import admin_headers, make_client
+from tests.helpers.daemon import admin_headers, make_client
 
 GRID = {"x_deg": [-1.0, 1.0], "y_deg": [-1.0, 1.0], "n_x": 3, "n_y": 3}
 JOB = {"procedure": "stage-grid", "method": "kinematic", "grid": GRID}

@@ -4,10 +4,11 @@ cancelled or stopped is audited with the person who did it."""
 from __future__ import annotations
 
 import threading
-import time
 from concurrent.futures import ThreadPoolExecutor
 
 import sqlalchemy as sa
+
+from tests.helpers.waiting import eventually
 
 GRID = {"x_deg": [-1.0, 1.0], "y_deg": [-1.0, 1.0], "n_x": 3, "n_y": 3}
 BODY = {
@@ -86,10 +87,12 @@ def test_stop_is_audited_with_the_person_who_stopped(daemon):
     bench = client.app.state.bench
     bob = _operator(client, "bob")
     job_id = client.post("/calibrations", headers=h, json=BODY).json()["id"]
-    deadline = time.monotonic() + 60
-    while client.get(f"/calibrations/{job_id}", headers=h).json()["state"] != "running":
-        assert time.monotonic() < deadline
-        time.sleep(0.02)
+    eventually(
+        lambda: client.get(f"/calibrations/{job_id}", headers=h).json()["state"] == "running",
+        timeout_s=60,
+        every_s=0.02,
+        what=f"job {job_id} running",
+    )
     r = client.post("/stage/stop", headers=bob, json={"bench": bench.name})
     assert r.status_code == 200 and r.json()["failed_job"] == job_id, r.text
     job = client.get(f"/calibrations/{job_id}", headers=h).json()

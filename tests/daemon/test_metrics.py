@@ -3,9 +3,9 @@ parser."""
 
 from __future__ import annotations
 
-import time
-
 from prometheus_client.parser import text_string_to_metric_families
+
+from tests.helpers.waiting import eventually
 
 FAMILIES = {
     "tiltlab_http_requests": "counter",
@@ -59,18 +59,19 @@ def test_the_contracts_families_are_there_and_move_with_the_bench(daemon) -> Non
         f"/ws/readings?token={headers['Authorization'].split()[1]}"
     ) as ws:
         ws.receive_json()  # the snapshot: the client is registered
-        deadline = time.monotonic() + 30
-        while True:  # the sensors stream on their own: the frame counter moves with them
-            later = scrape(client, headers)
+
+        def a_new_frame_counted() -> dict | None:
+            families = scrape(client, headers)
             frames = value(
-                later,
+                families,
                 "tiltlab_serial_frames",
                 "tiltlab_serial_frames_total",
                 role="measurement_sensor",
             )
-            if frames > frames_before:
-                break
-            assert time.monotonic() < deadline, "no new frame counted in 30 s"
+            return families if frames > frames_before else None
+
+        # the sensors stream on their own: the frame counter moves with them
+        later = eventually(a_new_frame_counted, timeout_s=30, every_s=0, what="a new frame counted")
         assert value(later, "tiltlab_websocket_clients", "tiltlab_websocket_clients") == 1
         # closed here, not by leaving the block while the stream's sender may be mid-send
         ws.close()
@@ -109,7 +110,7 @@ def test_device_series_keep_their_labels_across_restarts_and_the_port_is_an_info
     """Counters by bench and role only: a simulator's new pseudo-terminal at the next start makes no
     new series. Where the instrument is connected and what it said it is are the labels of
     tiltlab_device_info."""
-    from tests.daemon.conftest import admin_headers, make_client
+    from tests.helpers.daemon import admin_headers, make_client
 
     keys = []
     # the same data directory, started twice: each start opens new pseudo-terminals

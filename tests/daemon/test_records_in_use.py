@@ -5,14 +5,13 @@ reading stream) say whether a reading lies inside the range the record was calib
 from __future__ import annotations
 
 import json
-import time
 
 import sqlalchemy as sa
 
 from service import cli
 from service.storage.tokens import Person
-from tests.daemon.conftest import admin_headers, make_client, wait_job
-from tests.daemon.test_e2e_stage import fresh_tilt
+from tests.helpers.daemon import admin_headers, fresh_tilt, make_client, wait_job
+from tests.helpers.waiting import eventually
 
 GRID = {"x_deg": [-1.0, 1.0], "y_deg": [-1.0, 1.0], "n_x": 3, "n_y": 3}
 # room for a loaded machine at 20x
@@ -22,13 +21,13 @@ SETTLE = {"tolerance_deg": 0.002, "window_s": 2.0, "timeout_s": 600.0}
 def _tilt_when(client, h, ok, timeout_s: float = 30.0) -> dict:  # type: ignore[no-untyped-def]
     """A fresh /tilt for which `ok` holds (the stage has arrived and a new reading been taken),
     within a deadline."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        t = fresh_tilt(client, h)
-        if ok(t):
-            return t
-        assert time.monotonic() < deadline, f"/tilt never satisfied the condition: {t}"
-        time.sleep(0.05)
+    return eventually(
+        lambda: fresh_tilt(client, h),
+        until=ok,
+        timeout_s=timeout_s,
+        every_s=0.05,
+        what="/tilt satisfying the condition",
+    )
 
 
 def _stream_reading(client, token: str, ok, limit: int = 400) -> dict:  # type: ignore[no-untyped-def]

@@ -10,7 +10,7 @@ import json
 import numpy as np
 
 from service import cli
-from tests.daemon.conftest import wait_job
+from tests.helpers.daemon import wait_job
 
 GRID = {"x_deg": [-1.5, 1.5], "y_deg": [-1.5, 1.5], "n_x": 3, "n_y": 3}
 

@@ -8,7 +8,7 @@ import json
 import numpy as np
 
 from service import cli
-from tests.daemon.conftest import admin_headers, make_client, wait_job
+from tests.helpers.daemon import admin_headers, make_client, wait_job
 
 
 def _reproduces(client, h, rec_id, kind, method, tmp_path):

@@ -11,14 +11,14 @@ import socket
 import stat
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from service.errors import InputError
 from tests.api.running_service import free_port
-from tests.daemon.conftest import make_client
+from tests.helpers.daemon import make_client
+from tests.helpers.waiting import eventually
 
 
 def test_later_starts_name_the_dashboard_and_the_token_file(tmp_path, capsys):
@@ -58,15 +58,22 @@ def _first_start(tmp_path: Path, *, terminal: bool) -> str:
             command, env=env, stdin=subprocess.DEVNULL, stdout=child, stderr=child
         )
         os.close(child)
-        out = b""
-        try:
-            deadline = time.monotonic() + 90
-            while b"tiltlab: dashboard:" not in out or not out.rstrip(b" ").endswith(b"\n"):
-                assert time.monotonic() < deadline and proc.poll() is None, out.decode(
-                    errors="replace"
-                )
+        out = bytearray()
+
+        def said_its_dashboard_line() -> bool:
+            if b"tiltlab: dashboard:" not in out or not out.rstrip(b" ").endswith(b"\n"):
+                assert proc.poll() is None, out.decode(errors="replace")
                 if select.select([parent], [], [], 0.5)[0]:
-                    out += os.read(parent, 4096)
+                    out.extend(os.read(parent, 4096))
+            return b"tiltlab: dashboard:" in out and out.rstrip(b" ").endswith(b"\n")
+
+        try:
+            eventually(
+                said_its_dashboard_line,
+                timeout_s=90,
+                every_s=0,
+                what=lambda: f"the dashboard line in: {out.decode(errors='replace')}",
+            )
         finally:
             proc.terminate()
             proc.wait(timeout=30)
@@ -78,11 +85,20 @@ def _first_start(tmp_path: Path, *, terminal: bool) -> str:
         proc = subprocess.Popen(
             command, env=env, stdin=subprocess.DEVNULL, stdout=sink, stderr=sink
         )
+
+        def logged_its_dashboard_line() -> bool:
+            if "tiltlab: dashboard:" in log.read_text():
+                return True
+            assert proc.poll() is None, log.read_text()
+            return False
+
         try:
-            deadline = time.monotonic() + 90
-            while "tiltlab: dashboard:" not in log.read_text():
-                assert time.monotonic() < deadline and proc.poll() is None, log.read_text()
-                time.sleep(0.2)
+            eventually(
+                logged_its_dashboard_line,
+                timeout_s=90,
+                every_s=0.2,
+                what=lambda: f"the dashboard line in: {log.read_text()}",
+            )
         finally:
             proc.terminate()
             proc.wait(timeout=30)

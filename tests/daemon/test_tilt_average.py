@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tests.daemon.conftest import admin_headers, calibrate_and_activate, make_client
+from tests.helpers.daemon import admin_headers, calibrate_and_activate, make_client
 from tests.helpers.waiting import eventually
 
 GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}

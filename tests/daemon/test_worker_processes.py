@@ -15,7 +15,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,8 +22,9 @@ import httpx
 import pytest
 
 from tests.api.running_service import free_port
-from tests.daemon.conftest import admin_headers, make_client, wait_job
-from tests.daemon.test_diagnosis import SMALL_BODY
+from tests.helpers.daemon import admin_headers, make_client, wait_job
+from tests.helpers.diagnosis import SMALL_BODY
+from tests.helpers.waiting import eventually
 
 pytestmark = pytest.mark.skipif(
     not sys.platform.startswith("linux"), reason="follows processes through /proc (Linux)"
@@ -69,6 +69,14 @@ def _reap() -> None:
             pass
 
 
+def _cmdline(pid: int) -> str:
+    """The process's command line; empty once it has gone."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+    except OSError:
+        return ""
+
+
 def _descendants(pid: int) -> list[int]:
     kids = []
     for stat in Path("/proc").glob("[0-9]*/stat"):
@@ -107,13 +115,18 @@ def _serve(data: Path, **env: str) -> tuple[subprocess.Popen[bytes], str, dict[s
         stderr=subprocess.DEVNULL,
     )
     base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 90
-    while True:
-        with contextlib.suppress(httpx.TransportError):
-            if httpx.get(f"{base}/health", timeout=2).status_code == 200:
-                break
-        assert proc.poll() is None and time.monotonic() < deadline, "the daemon did not start"
-        time.sleep(0.2)
+
+    def serving() -> bool:
+        assert proc.poll() is None, "the daemon did not start: it exited"
+        return httpx.get(f"{base}/health", timeout=2).status_code == 200
+
+    eventually(
+        serving,
+        timeout_s=90,
+        every_s=0.2,
+        ignoring=(httpx.TransportError,),
+        what="the daemon answering /health",
+    )
     return proc, base, admin_headers(data)
 
 
@@ -134,15 +147,12 @@ def test_no_worker_process_is_left_after_the_daemon_exits(
                     f"{base}/records/{record_id}/diagnose", headers=h, json={}, timeout=60
                 )
                 assert r.status_code == 202, r.text
-            deadline = time.monotonic() + 60
-            while not any(
-                "multiprocessing"
-                in Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")
-                for p in _descendants(proc.pid)
-                if Path(f"/proc/{p}/cmdline").exists()
-            ):
-                assert time.monotonic() < deadline, "no worker process was started"
-                time.sleep(0.1)
+            eventually(
+                lambda: any("multiprocessing" in _cmdline(p) for p in _descendants(proc.pid)),
+                timeout_s=60,
+                every_s=0.1,
+                what="a worker process started",
+            )
             started = _descendants(proc.pid)
             proc.send_signal(how)
             proc.wait(timeout=60)
@@ -150,14 +160,12 @@ def test_no_worker_process_is_left_after_the_daemon_exits(
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-        deadline = time.monotonic() + 30
-        while (left := set(_children()) - before) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert not left, (
-            f"{len(left)} of the daemon's {len(started)} processes outlived it after {how.name}: "
-            + ", ".join(
-                Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")[:120] for p in left
-            )
+        eventually(
+            lambda: {p: _cmdline(p)[:120] for p in set(_children()) - before},
+            until=lambda left: not left,
+            timeout_s=30,
+            every_s=0.2,
+            what=f"none of the daemon's {len(started)} processes outliving it after {how.name}",
         )
 
 
@@ -193,10 +201,13 @@ def test_no_process_is_left_after_a_failure_at_start_up(tmp_path: Path) -> None:
                     timeout=180,
                 )
                 assert r.returncode == 2 and "bench-a" in r.stderr, r.stderr[-2000:]
-                deadline = time.monotonic() + 30
-                while (left := set(_children()) - ours) and time.monotonic() < deadline:
-                    time.sleep(0.2)
-                assert not left, f"{len(left)} processes outlived the failed start"
+                eventually(
+                    lambda: set(_children()) - ours,
+                    until=lambda left: not left,
+                    timeout_s=30,
+                    every_s=0.2,
+                    what="no process outliving the failed start",
+                )
     finally:
         server.stop()
 

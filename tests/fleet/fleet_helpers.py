@@ -9,39 +9,22 @@ import shutil
 import socket
 import subprocess
 import sys
-import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, TypeVar
 
 import httpx
 import pytest
 import sqlalchemy as sa
 
 from tests.api.running_service import free_port
+from tests.helpers.waiting import eventually
 
 PG_URL = os.environ.get(
     "TILTLAB_TEST_POSTGRES_URL", "postgresql+psycopg://root@127.0.0.1:5432/test"
 )
-T = TypeVar("T")
-
-
-def eventually(
-    probe: Callable[[], T], ok: Callable[[T], Any], timeout_s: float = 30.0, every_s: float = 0.2
-) -> T:
-    """Probe until `ok` holds; the last value otherwise, in the assertion."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            value = probe()
-        except (httpx.TransportError, OSError) as exc:
-            value = exc  # type: ignore[assignment]
-        else:
-            if ok(value):
-                return value
-        assert time.monotonic() < deadline, f"not within {timeout_s:g} s; last: {value!r}"
-        time.sleep(every_s)
+# what a probe of a daemon, a broker or a database may meet while it is starting, cut or away
+UNREACHABLE = (httpx.TransportError, OSError)
 
 
 class NatsServer:
@@ -69,16 +52,17 @@ class NatsServer:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
-        deadline = time.monotonic() + 20
-        while True:
+
+        def listens() -> bool:
             with (
                 contextlib.suppress(OSError),
                 socket.create_connection(("127.0.0.1", self.port), timeout=1),
             ):
-                return
-            assert self.proc.poll() is None, "nats-server exited"
-            assert time.monotonic() < deadline, "nats-server did not listen within 20 s"
-            time.sleep(0.1)
+                return True
+            assert self.proc is not None and self.proc.poll() is None, "nats-server exited"
+            return False
+
+        eventually(listens, timeout_s=20, every_s=0.1, what="nats-server listening")
 
     def stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
@@ -149,18 +133,25 @@ class Daemon:
 
     def wait_serving(self, timeout_s: float = 90.0) -> Daemon:
         """Once /health answers; its log in the assertion if the process ended or never answered."""
-        assert self.proc is not None
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                if httpx.get(f"{self.url}/health", timeout=2).status_code == 200:
-                    return self
-            except httpx.TransportError:
-                pass
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                self.__exit__(None, None, None)
-                raise AssertionError(f"daemon did not start: {self.log.read_text()[-3000:]}")
-            time.sleep(0.2)
+        proc = self.proc
+        assert proc is not None
+
+        def serving() -> bool:
+            assert proc.poll() is None, f"daemon did not start: {self.log.read_text()[-3000:]}"
+            return httpx.get(f"{self.url}/health", timeout=2).status_code == 200
+
+        try:
+            eventually(
+                serving,
+                timeout_s=timeout_s,
+                every_s=0.2,
+                ignoring=(httpx.TransportError,),
+                what=lambda: f"daemon serving; its log: {self.log.read_text()[-3000:]}",
+            )
+        except AssertionError:
+            self.__exit__(None, None, None)
+            raise
+        return self
 
     def __exit__(self, *exc: object) -> None:
         # the test failed inside: its daemons' last words go into the report

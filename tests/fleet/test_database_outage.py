@@ -27,8 +27,9 @@ from service.storage.migrate import upgrade
 from service.storage.samples import Sample, count_samples
 from service.storage.store import Store
 from service.storage.writer import SampleWriter
-from tests.fleet.fleet_helpers import Daemon, eventually
+from tests.fleet.fleet_helpers import UNREACHABLE, Daemon
 from tests.fleet.pg_proxy import PgProxy
+from tests.helpers.waiting import eventually
 
 pytestmark = [pytest.mark.postgres]
 
@@ -64,7 +65,13 @@ def test_sample_writer_keeps_what_it_took_through_an_outage(migrated: str, proxy
         # more than the queue holds while the database is away
         during = _samples(device.id, 800, 2_000.0)
         taken = writer.put_many(during[:100])  # the writer finds the database away with these
-        eventually(lambda: writer.database.up, lambda up: not up, timeout_s=20, every_s=0.05)
+        eventually(
+            lambda: writer.database.up,
+            until=lambda up: not up,
+            timeout_s=20,
+            every_s=0.05,
+            what="the writer seeing the database down",
+        )
         taken += writer.put_many(during[100:])
         # the newest refused, counted, never waited for
         assert writer.dropped == len(during) - taken > 0
@@ -166,9 +173,11 @@ def _start_job(url: str, auth: dict[str, str]) -> int:
     job_id = int(answer.json()["id"])
     eventually(
         lambda: _job(url, auth, job_id),
-        lambda j: j["state"] == "running" and j["progress"]["points_done"] >= 1,
+        until=lambda j: j["state"] == "running" and j["progress"]["points_done"] >= 1,
         timeout_s=60,
         every_s=0.1,
+        ignoring=UNREACHABLE,
+        what="the job running with a point done",
     )
     return job_id
 
@@ -221,21 +230,33 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
         cut_at = time.monotonic()
         away = eventually(
             lambda: _health(url),
-            lambda h: (
+            until=lambda h: (
                 h["database_state"] == "away" and job_id in h["database_outage"]["jobs_waiting"]
             ),
             timeout_s=8,
             every_s=0.1,
+            ignoring=UNREACHABLE,
+            what="the daemon saying the database is away, the job waiting",
         )
         assert (
             away["status"] == "degraded"
             and away["database_outage"]["outage_limit_s"] == OUTAGE_LIMIT_S
         )
         assert away["database_outage"]["writes_waiting"] >= 1
-        while time.monotonic() - cut_at < 10:
+
+        def served_10_s_into_the_outage() -> bool:
+            if time.monotonic() - cut_at >= 10:
+                return True
             tilt = httpx.get(f"{url}/tilt", headers=auth, timeout=5)
             assert tilt.status_code == 200, tilt.text  # the bench is served through the outage
-            time.sleep(0.5)
+            return False
+
+        eventually(
+            served_10_s_into_the_outage,
+            timeout_s=30,
+            every_s=0.5,
+            what="10 s of /tilt served through the outage",
+        )
         metrics = httpx.get(f"{url}/metrics", headers=auth, timeout=10)
         assert metrics.status_code == 200 and "tiltlab_database_up 0.0" in metrics.text
         unreadable = httpx.get(f"{url}/calibrations/{job_id}", headers=auth, timeout=10)
@@ -246,8 +267,11 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
 
         job = eventually(
             lambda: _job(url, auth, job_id),
-            lambda j: j["state"] not in ("queued", "running"),
+            until=lambda j: j["state"] not in ("queued", "running"),
             timeout_s=90,
+            every_s=0.2,
+            ignoring=UNREACHABLE,
+            what="the job ended",
         )
         assert job["state"] == "succeeded", job["error"]
         listener.join(timeout=20)
@@ -255,7 +279,14 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
         assert "waiting for the database" in phases  # the job's stream said why it paused
         assert phases[-1] == "done"
         assert (
-            eventually(lambda: _health(url), lambda h: h["database_state"] == "up")["status"]
+            eventually(
+                lambda: _health(url),
+                until=lambda h: h["database_state"] == "up",
+                timeout_s=30,
+                every_s=0.2,
+                ignoring=UNREACHABLE,
+                what="the database up again",
+            )["status"]
             == "ok"
         )
         direct = make_engine(migrated)
@@ -278,9 +309,11 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
         proxy.cut()
         eventually(
             lambda: _health(url),
-            lambda h: job_id in (h["database_outage"] or {}).get("jobs_waiting", []),
+            until=lambda h: job_id in (h["database_outage"] or {}).get("jobs_waiting", []),
             timeout_s=8,
             every_s=0.1,
+            ignoring=UNREACHABLE,
+            what="the job waiting for the database",
         )
         refused = httpx.post(
             f"{url}/records/{record_id}/approve",
@@ -296,17 +329,23 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
         )
         eventually(
             lambda: _health(url),
-            lambda h: (
+            until=lambda h: (
                 h["database_state"] == "away" and job_id not in h["database_outage"]["jobs_waiting"]
             ),
             timeout_s=OUTAGE_LIMIT_S + 10,
+            every_s=0.2,
+            ignoring=UNREACHABLE,
+            what="the job given up past the outage limit",
         )
         assert httpx.get(f"{url}/tilt", headers=auth, timeout=5).status_code == 200
         proxy.restore()
         job = eventually(
             lambda: _job(url, auth, job_id),
-            lambda j: j["state"] not in ("queued", "running"),
+            until=lambda j: j["state"] not in ("queued", "running"),
             timeout_s=30,
+            every_s=0.2,
+            ignoring=UNREACHABLE,
+            what="the job ended",
         )
         assert job["state"] == "failed" and job["error"].startswith("database_unreachable:"), job
         assert job["progress"]["points_done"] >= 1

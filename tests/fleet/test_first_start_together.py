@@ -21,7 +21,8 @@ import pytest
 import sqlalchemy as sa
 
 from tests.api.running_service import free_port
-from tests.fleet.fleet_helpers import Daemon, NatsServer, eventually, postgres_schema_url
+from tests.fleet.fleet_helpers import UNREACHABLE, Daemon, NatsServer, postgres_schema_url
+from tests.helpers.waiting import eventually
 
 pytestmark = [pytest.mark.postgres, pytest.mark.slow]
 
@@ -112,8 +113,11 @@ def test_fleet_daemons_started_together_make_one_admin_token_in_the_named_file(
                     for daemon in daemons:
                         eventually(
                             partial(_online_benches, daemon, auth),
-                            partial(operator.eq, names),
+                            until=partial(operator.eq, names),
                             timeout_s=60,
+                            every_s=0.2,
+                            ignoring=UNREACHABLE,
+                            what="every bench online",
                         )
                     assert all(d.proc is not None and d.proc.poll() is None for d in daemons)
                     assert sorted(n for (n,) in _rows(url, "SELECT name FROM benches")) == sorted(
@@ -229,8 +233,11 @@ def test_a_node_started_or_stopped_beside_a_running_job_leaves_it_running(tmp_pa
 
                 eventually(
                     job,
-                    lambda j: j["state"] == "running" and j["progress"]["points_done"] >= 1,
+                    until=lambda j: j["state"] == "running" and j["progress"]["points_done"] >= 1,
                     timeout_s=120,
+                    every_s=0.2,
+                    ignoring=UNREACHABLE,
+                    what="the job running with a point done",
                 )
                 with Daemon(
                     tmp_path / "b",
@@ -241,12 +248,22 @@ def test_a_node_started_or_stopped_beside_a_running_job_leaves_it_running(tmp_pa
                 assert after["state"] == "running" and not after["interrupted"], after
                 eventually(
                     job,
-                    lambda j: j["progress"]["points_done"] > after["progress"]["points_done"],
+                    until=lambda j: j["progress"]["points_done"] > after["progress"]["points_done"],
                     timeout_s=120,
+                    every_s=0.2,
+                    ignoring=UNREACHABLE,
+                    what="the job going on past where it was",
                 )
                 cancelled = httpx.post(f"{job_url}/cancel", headers=auth, timeout=30)
                 assert cancelled.status_code in (200, 202), cancelled.text
-                ended = eventually(job, lambda j: j["state"] != "running", timeout_s=120)
+                ended = eventually(
+                    job,
+                    until=lambda j: j["state"] != "running",
+                    timeout_s=120,
+                    every_s=0.2,
+                    ignoring=UNREACHABLE,
+                    what="the job no longer running",
+                )
                 assert ended["state"] == "cancelled" and not ended["interrupted"], ended
     finally:
         broker.stop()

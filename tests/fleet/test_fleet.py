@@ -21,7 +21,8 @@ import pytest
 from websockets.sync.client import connect as ws_connect
 
 from tests.api.running_service import free_port
-from tests.fleet.fleet_helpers import Daemon, NatsServer, eventually
+from tests.fleet.fleet_helpers import UNREACHABLE, Daemon, NatsServer
+from tests.helpers.waiting import eventually
 
 pytestmark = [pytest.mark.postgres, pytest.mark.slow]
 
@@ -61,9 +62,13 @@ def test_two_daemons_serve_one_fleet(
             for node in (a, b):
                 listing = eventually(
                     lambda node=node: _fleet_view(node.url, auth),
-                    lambda v: (
+                    until=lambda v: (
                         v.get("bench-a", {}).get("online") and v.get("bench-b", {}).get("online")
                     ),
+                    timeout_s=30,
+                    every_s=0.2,
+                    ignoring=UNREACHABLE,
+                    what="both benches online",
                 )
                 assert (
                     listing["bench-a"]["node"] == "node-a"
@@ -94,8 +99,11 @@ def test_two_daemons_serve_one_fleet(
                     lambda job_id=job_id: httpx.get(
                         f"{a.url}/calibrations/{job_id}", headers=auth
                     ).json(),
-                    lambda j: j["state"] in ("succeeded", "failed", "cancelled"),
+                    until=lambda j: j["state"] in ("succeeded", "failed", "cancelled"),
                     timeout_s=300,
+                    every_s=0.2,
+                    ignoring=UNREACHABLE,
+                    what="the job ended",
                 )
                 assert job["state"] == "succeeded", (job["error"], job)
                 assert job["bench"] == bench
@@ -154,7 +162,11 @@ def test_two_daemons_serve_one_fleet(
             )
             gone = eventually(
                 lambda: httpx.get(f"{a.url}/tilt", headers=auth, params={"bench": "bench-b"}),
-                lambda r: r.status_code == 503,
+                until=lambda r: r.status_code == 503,
+                timeout_s=30,
+                every_s=0.2,
+                ignoring=UNREACHABLE,
+                what="bench-b gone (503)",
             )
             assert "node-b" in gone.json()["detail"]
 
@@ -162,13 +174,23 @@ def test_two_daemons_serve_one_fleet(
             nats_server.start()
             back = eventually(
                 lambda: httpx.get(f"{a.url}/tilt", headers=auth, params={"bench": "bench-b"}),
-                lambda r: r.status_code == 200,
+                until=lambda r: r.status_code == 200,
                 timeout_s=60,
+                every_s=0.2,
+                ignoring=UNREACHABLE,
+                what="bench-b back (200)",
             )
             assert back.json()["node"] == "node-b"
 
         # node b stopped: its bench is listed as offline by node a
-        listing = eventually(lambda: _fleet_view(a.url, auth), lambda v: not v["bench-b"]["online"])
+        listing = eventually(
+            lambda: _fleet_view(a.url, auth),
+            until=lambda v: not v["bench-b"]["online"],
+            timeout_s=30,
+            every_s=0.2,
+            ignoring=UNREACHABLE,
+            what="bench-b offline",
+        )
         assert listing["bench-b"]["state"] == "offline"
 
     verify = subprocess.run(

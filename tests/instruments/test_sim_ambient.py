@@ -11,7 +11,7 @@ import pytest
 from service.clock import Clock
 from service.instruments.sim import start_simulated_bench
 from service.instruments.transport import DeviceError
-from tests.instruments.conftest import SPEED, run_with_devices
+from tests.helpers.instruments import SPEED, run_with_devices
 
 
 @pytest.mark.pty

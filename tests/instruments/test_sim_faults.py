@@ -8,7 +8,7 @@ import asyncio
 import pytest
 
 from service.instruments.transport import DeviceError, DeviceTimeout, DeviceUnavailable
-from tests.instruments.conftest import eventually, run_with_devices
+from tests.helpers.instruments import eventually_async, run_with_devices
 
 # role -> (a read returning a value to compare, a function of the reading giving that value)
 STAGE_ROLES = ["reference_sensor", "stage", "adc_sensor"]
@@ -191,10 +191,12 @@ def test_a_pulled_cable_is_reported_and_the_port_reopened(request, role):
         await _read_through(dev, role, sim)
         d = _driver(dev, role)
         sim.faults(role).disconnect(0.3)
-        await eventually(lambda: d.status.state == "reconnecting", "the outage shown")
+        await eventually_async(lambda: d.status.state == "reconnecting", "the outage shown")
         with pytest.raises(DeviceError):
             await _reader(dev, role)()
-        await eventually(lambda: d.status.state == "connected", "the port reopened", attempts=500)
+        await eventually_async(
+            lambda: d.status.state == "connected", "the port reopened", attempts=500
+        )
         assert d.status.counters.reconnects == 1
         await _read_through(dev, role, sim)
 
@@ -212,14 +214,16 @@ def test_a_cable_pulled_in_the_middle_of_a_read_fails_that_read_not_by_timeout(r
         d.timeout_s = 30.0  # the read would wait this long if the outage were not noticed
         sim.faults(role).slow(20.0)  # the answer is on its way when the cable goes
         read = asyncio.ensure_future(_reader(dev, role)())
-        await eventually(
+        await eventually_async(
             lambda: not sim.faults(role).slow_next, "the request reached the instrument"
         )
         sim.faults(role).disconnect(0.3)
         with pytest.raises(DeviceUnavailable, match="went away"):
             await read
         d.timeout_s = 0.5
-        await eventually(lambda: d.status.state == "connected", "the port reopened", attempts=500)
+        await eventually_async(
+            lambda: d.status.state == "connected", "the port reopened", attempts=500
+        )
         await _read_through(dev, role, sim)
 
     run_with_devices(sim, body)

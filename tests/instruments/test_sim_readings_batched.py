@@ -3,13 +3,12 @@ still the scenario's physics at the present pose, with its noise, and a move is 
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from service.clock import Clock
 from service.instruments import controller as ctl
 from service.instruments.sim.world import READINGS_PER_BATCH, StageWorld, stage_scenario
+from tests.helpers.waiting import eventually
 
 
 def _world() -> StageWorld:
@@ -21,9 +20,11 @@ def _world() -> StageWorld:
 
 def _move(world: StageWorld, axis: int, target_pulses: int) -> None:
     assert world.axes[axis].move_to(target_pulses) == ctl.ERR_NONE
-    deadline = time.monotonic() + 30
-    while world.axes[axis].state != ctl.STATE_READY:
-        assert time.monotonic() < deadline, "the simulated move did not end"
+    eventually(
+        lambda: world.axes[axis].state == ctl.STATE_READY,
+        timeout_s=30,
+        what="the simulated move ended",
+    )
 
 
 def test_batched_readings_scatter_like_single_samples_about_the_pose() -> None:

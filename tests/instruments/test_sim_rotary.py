@@ -9,7 +9,7 @@ import pytest
 
 from service.instruments import rs485
 from service.instruments.bench_config import parse_bench_config
-from tests.instruments.conftest import run_with_devices
+from tests.helpers.instruments import run_with_devices
 
 
 def test_rotary_table_turns_without_limit_and_the_sines_follow(rotary_sim):

@@ -8,7 +8,7 @@ import pytest
 
 from service.instruments import controller
 from service.instruments.transport import DeviceError, DeviceRefused
-from tests.instruments.conftest import at_rest, eventually, run_with_devices
+from tests.helpers.instruments import at_rest, eventually_async, run_with_devices
 
 NOISE_TOL_DEG = 0.02  # several sigma of the seed000 sensor and stage noise
 
@@ -41,8 +41,8 @@ def test_readings_follow_the_stage_and_the_physics(stage_sim):
 def test_automatic_output_keeps_the_latest_reading_fresh(stage_sim):
     async def body(dev):
         sensor = dev.reference_sensor
-        first = await eventually(sensor.latest, "a first automatic-output frame")
-        await eventually(lambda: sensor.latest().bench_s > first.bench_s, "a newer frame")
+        first = await eventually_async(sensor.latest, "a first automatic-output frame")
+        await eventually_async(lambda: sensor.latest().bench_s > first.bench_s, "a newer frame")
         assert sensor.latest().x_deg is not None and sensor.status.counters.frames >= 2
 
     run_with_devices(stage_sim, body)
@@ -75,7 +75,7 @@ def test_moves_take_time_and_report_the_moving_position(stage_sim):
         with pytest.raises(DeviceRefused, match="busy"):
             await x.move_to_pulses(0)
         await x.stop()
-        await eventually(lambda: _ready(x), "the axis stopped")
+        await eventually_async(lambda: _ready(x), "the axis stopped")
         stopped = await x.position_pulses()
         assert 0 <= stopped < 12000 and stage_sim.world.axes[1].position_pulses() == stopped
         await x.home()

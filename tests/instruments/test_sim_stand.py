@@ -4,14 +4,13 @@ is its own, per reading."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
 from service.clock import Clock
 from service.instruments import controller as ctl
 from service.instruments.sim.world import StageWorld, stage_scenario
+from tests.helpers.waiting import eventually
 
 N_READINGS = 400
 
@@ -27,9 +26,11 @@ def _world(seed: int) -> StageWorld:
 def _move(world: StageWorld, x_pulses: int, y_pulses: int) -> None:
     for axis, target in ((1, x_pulses), (2, y_pulses)):
         assert world.axes[axis].move_to(target) == ctl.ERR_NONE
-        deadline = time.monotonic() + 30
-        while world.axes[axis].state != ctl.STATE_READY:
-            assert time.monotonic() < deadline, "the simulated move did not end"
+        eventually(
+            lambda axis=axis: world.axes[axis].state == ctl.STATE_READY,
+            timeout_s=30,
+            what="the simulated move ended",
+        )
     # at rest: the preset's settling transient has died out
     world.clock.sleep_blocking(world.settling.lasts_s())
 

@@ -16,7 +16,7 @@ import pytest
 
 from service.instruments.drivers import SYNC_ASKS
 from service.instruments.transport import DeviceTimeout
-from tests.instruments.conftest import at_rest, eventually, run_with_devices
+from tests.helpers.instruments import at_rest, eventually_async, run_with_devices
 
 NOISE_TOL_DEG = 0.02
 
@@ -38,7 +38,7 @@ def _hold_reader(port) -> threading.Event:
 def test_readings_after_the_mark_are_of_the_new_pose(stage_sim, target):
     async def body(dev):
         sensor = dev.reference_sensor
-        await eventually(sensor.latest, "a first automatic-output frame")
+        await eventually_async(sensor.latest, "a first automatic-output frame")
         before = sensor.latest()
         release = _hold_reader(sensor.port)
         await dev.stage.move_to_deg(*target)  # the controller has its own port: its reader runs
@@ -55,7 +55,7 @@ def test_readings_after_the_mark_are_of_the_new_pose(stage_sim, target):
             "the held reader delivered no reading of the old pose after the call: nothing was "
             "tested"
         )
-        await eventually(
+        await eventually_async(
             lambda: len(sensor.readings_after(mark)) >= 5, "five readings after the mark"
         )
         fresh = sensor.readings_after(mark)
@@ -78,7 +78,7 @@ def test_an_answer_owed_from_before_the_call_does_not_mark_the_stream(stage_sim)
 
     async def body(dev):
         sensor = dev.reference_sensor
-        await eventually(sensor.latest, "a first automatic-output frame")
+        await eventually_async(sensor.latest, "a first automatic-output frame")
         release = _hold_reader(sensor.port)
         with pytest.raises(DeviceTimeout):
             # answered on the line, but the held reader does not see it
@@ -93,7 +93,7 @@ def test_an_answer_owed_from_before_the_call_does_not_mark_the_stream(stage_sim)
         called_s = sensor.clock.monotonic()
         threading.Timer(0.2, release.set).start()
         mark = await sensor.sync()
-        await eventually(
+        await eventually_async(
             lambda: len(sensor.readings_after(mark)) >= 5, "five readings after the mark"
         )
         assert any(
@@ -122,7 +122,7 @@ def test_an_instrument_without_a_temperature_answer_still_gives_a_mark(stage_sim
 
     async def body(dev):
         sensor = dev.reference_sensor
-        await eventually(sensor.latest, "a first automatic-output frame")
+        await eventually_async(sensor.latest, "a first automatic-output frame")
         firmware = stage_sim.ports["reference_sensor"].firmware
         answer, asked = firmware._answer, []
 
@@ -148,7 +148,7 @@ def test_a_lost_temperature_answer_is_asked_again(stage_sim):
 
     async def body(dev):
         sensor = dev.reference_sensor
-        await eventually(sensor.latest, "a first automatic-output frame")
+        await eventually_async(sensor.latest, "a first automatic-output frame")
         stage_sim.faults("reference_sensor").wrong_address(1)
         called_s = sensor.clock.monotonic()
         mark = await sensor.sync()
@@ -165,7 +165,7 @@ def test_a_reader_held_past_one_timeout_still_gives_a_mark(stage_sim):
 
     async def body(dev):
         sensor = dev.reference_sensor
-        await eventually(sensor.latest, "a first automatic-output frame")
+        await eventually_async(sensor.latest, "a first automatic-output frame")
         release = _hold_reader(sensor.port)
         threading.Timer(sensor.timeout_s * 1.5, release.set).start()
         called_s = sensor.clock.monotonic()
@@ -180,11 +180,11 @@ def test_a_reader_held_past_one_timeout_still_gives_a_mark(stage_sim):
 def test_a_silent_instrument_fails_the_mark_naming_role_and_port(stage_sim):
     async def body(dev):
         sensor = dev.reference_sensor
-        await eventually(sensor.latest, "a first automatic-output frame")
+        await eventually_async(sensor.latest, "a first automatic-output frame")
         stage_sim.faults("reference_sensor").silence(True)
         # the in-memory line says what is still on its way
         line = stage_sim.ports["reference_sensor"].line
-        await eventually(
+        await eventually_async(
             lambda: line.pending_for_host() == 0, "the frames sent before the silence arrived"
         )
         with pytest.raises(

@@ -19,7 +19,8 @@ from service.instruments.sim.firmware import ControllerFirmware
 from service.instruments.sim.world import Axis
 from service.instruments.transport import DeviceUnavailable, SerialPort, resolve_usb_serial
 from service.instruments.wiring import open_bench
-from tests.instruments.conftest import eventually
+from tests.helpers.instruments import eventually_async
+from tests.helpers.waiting import eventually
 
 # the ports are pseudo-terminals (device paths, USB names, servers in front)
 pytestmark = pytest.mark.pty
@@ -119,7 +120,7 @@ def test_a_port_that_never_opens_is_failed_and_says_why(tmp_path):
         await axis.start()
         try:
             assert axis.status.state in ("reconnecting", "failed")
-            await eventually(lambda: axis.status.state == "failed", "state failed")
+            await eventually_async(lambda: axis.status.state == "failed", "state failed")
             assert "ttyUSB9" in axis.status.error
             with pytest.raises(DeviceUnavailable, match="is not open"):
                 await axis.position_pulses()
@@ -235,11 +236,16 @@ def test_an_answer_in_time_is_kept_when_the_event_loop_runs_late():
         frames = table.port.decoder.stats.frames
         asked = asyncio.get_running_loop().create_task(table.identify())
         await asyncio.sleep(0)  # the request runs up to its write, in the port's thread
-        # the loop blocked past the 0.3 s timeout and until the reader thread has parsed the answer
+        # the loop blocked (eventually sleeps, it does not await) past the 0.3 s timeout and until
+        # the reader thread has parsed the answer
         blocked_from = time.monotonic()
-        while time.monotonic() - blocked_from < 0.6 or table.port.decoder.stats.frames == frames:
-            assert time.monotonic() - blocked_from < 30, "no answer was parsed"
-            time.sleep(0.01)
+        eventually(
+            lambda: (
+                time.monotonic() - blocked_from >= 0.6 and table.port.decoder.stats.frames != frames
+            ),
+            timeout_s=30,
+            what="the answer parsed, the event loop held 0.6 s",
+        )
         assert (await asked).model == "RT-360SIM"
         assert table.timeouts == 0
 

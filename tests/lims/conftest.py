@@ -1,22 +1,15 @@
-"""LIMS storage tests run on SQLite and PostgreSQL, with the storage tests' fixtures."""
+"""LIMS storage tests run on SQLite and PostgreSQL, with the storage tests' fixtures
+(tests/conftest.py)."""
 
 from __future__ import annotations
 
 import pytest
 
 from service.storage.store import Store
-from tests.storage.conftest import (  # noqa: F401 - fixtures
-    backend,
-    db_url,
-    empty_engine,
-    engine,
-    postgres_schema_sql,
-    sqlite_template,
-)
 
 
 @pytest.fixture
-def lims(engine) -> Store:  # noqa: F811 - the engine fixture  # type: ignore[no-untyped-def]
+def lims(engine) -> Store:  # type: ignore[no-untyped-def]
     """The store the daemon uses: the lab's records, jobs, tokens and the LIMS tables."""
     return Store(engine)
 

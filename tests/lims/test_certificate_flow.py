@@ -12,10 +12,10 @@ import xml.etree.ElementTree as ET
 import pytest
 
 from service.lims import dcc
-from tests.daemon.conftest import make_client, wait_job
+from tests.helpers.daemon import make_client, wait_job
+from tests.helpers.lims import GRID, LAB, ORDER, PEOPLE, STANDARD, Receiver
+from tests.helpers.waiting import eventually
 from tests.lims.external_checks import xmllint_errors, xmlsec1_verifies
-from tests.lims.test_lims_api import ORDER, PEOPLE, STANDARD, Receiver, wait_for
-from tests.lims.test_lims_daemon_flow import GRID, LAB
 
 NS = {"dcc": dcc.DCC_NS, "si": dcc.SI_NS}
 SETTLE = {"tolerance_deg": 0.002, "window_s": 2.0, "timeout_s": 600.0}
@@ -173,7 +173,12 @@ def test_order_with_specification_to_a_certificate_every_independent_check_accep
             feed = client.get("/feed", params={"limit": 1000}, headers=h["lims"]).json()["events"]
             issued = [e for e in feed if e["type"] == "certificate.issued"]
             assert len(issued) == 1 and issued[0]["data"]["conformity"] == conformity
-            wait_for(lambda: issued[0]["id"] in rx.ids, timeout_s=30)
+            eventually(
+                lambda: issued[0]["id"] in rx.ids,
+                timeout_s=30,
+                every_s=0.05,
+                what="the certificate's event delivered",
+            )
             assert rx.bad == []
             assert [e for e in rx.bodies if e["id"] == issued[0]["id"]][0]["data"][
                 "conformity"

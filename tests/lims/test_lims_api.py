@@ -5,17 +5,13 @@ library."""
 
 from __future__ import annotations
 
-import http.server
 import json
-import threading
-import time
 from contextlib import asynccontextmanager
 
 import pytest
 import sqlalchemy as sa
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
-from standardwebhooks import Webhook
 
 from service.api import problems
 from service.api.routers import lims as lims_router
@@ -24,39 +20,9 @@ from service.lims import dcc
 from service.lims.certificates import verify_certificate
 from service.lims.runtime import LimsRuntime
 from service.storage.store import Store
-from service.storage.tokens import Person
-from tests.lims.certificates import stage_record
+from tests.helpers.lims import ORDER, PEOPLE, STANDARD, Receiver, measured_record
+from tests.helpers.waiting import eventually
 from tests.storage.storage_helpers import count
-
-STANDARD = {
-    "name": "reference inclinometer",
-    "serial": "REF-77",
-    "certificate_number": "DAkkS-2026-0412",
-    "certificate_sha256": "ab" * 32,
-    "calibrated_on": "2026-01-10",
-    "due_on": "2099-01-10",
-    "uncertainty": "0.001 deg (k = 2)",
-    "calibrated_by": {
-        "name": "Angle Calibration Laboratory AG",
-        "accreditation": "D-K-12345-01-00",
-        "city": "Hamburg",
-        "country_code": "DE",
-    },
-}
-# The people behind the tokens the tests sign with: a record is approved by a person with a
-# function.
-PEOPLE = {
-    "alice": Person("Dr. Alice Example", "Head of Laboratory"),
-    "bob": Person("Bob Example", "Deputy Head of Laboratory"),
-}
-ORDER = {
-    "lims_order_id": "LIMS-118",
-    "item_serial": "CUST-55",
-    "procedure": "stage-grid",
-    "method": "homography",
-    "due_on": "2026-12-01",
-    "customer": {"name": "Survey Ltd", "city": "Berlin", "country_code": "DE"},
-}
 
 
 def make_app(store: Store, tmp_path) -> FastAPI:  # type: ignore[no-untyped-def]
@@ -101,37 +67,6 @@ def lab(engine, tmp_path):  # type: ignore[no-untyped-def]
     }
     with TestClient(make_app(store, tmp_path)) as client:
         yield store, client, {k: {"Authorization": f"Bearer {v}"} for k, v in tokens.items()}
-
-
-def measured_record(store: Store, *, started_by: str, order_id: int | None = None, version_of=None):  # type: ignore[no-untyped-def]
-    """A record as a job leaves it: real fitted model and validation table, job started by
-    `started_by`."""
-    device = store.devices.find_device("SCA126T", "SN-4711") or store.devices.add_device(
-        "SCA126T", "SN-4711", "measurement_sensor", actor="daemon"
-    )
-    job = store.jobs.create_job(
-        device.id,
-        "stage",
-        "homography",
-        actor=started_by,
-        order_id=order_id,
-        parameters={"request": {"reference_standards": [1]}},
-    )
-    store.jobs.start_job(job.id, actor="daemon")
-    r = stage_record("homography")
-    record = store.records.add_record(
-        device.id,
-        "stage",
-        "homography",
-        r["model"],
-        operator=started_by,
-        job_id=job.id,
-        validation=r["validation"],
-        temp_c=20.4,
-        raw_data={"conditions": {"firmware": {"measurement_sensor": "2.3.1"}}},
-    )
-    store.jobs.succeed_job(job.id, actor="daemon")
-    return record
 
 
 def test_standards_need_admin_and_show_their_status(lab) -> None:  # type: ignore[no-untyped-def]
@@ -305,55 +240,6 @@ def test_feed_pages_with_an_opaque_cursor(lab) -> None:  # type: ignore[no-untyp
     assert r.status_code == 422 and "cursor" in r.json()["detail"]
 
 
-class Receiver:
-    """A LIMS's webhook endpoint on 127.0.0.1: verifies each signature, answers 503 while `down`."""
-
-    def __init__(self) -> None:
-        self.secret: str | None = None
-        self.down = False
-        self.ids: list[str] = []
-        self.bodies: list[dict] = []  # the events as delivered
-        self.bad: list[str] = []
-        self.refused = 0
-        receiver = self
-
-        class Handler(http.server.BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802 - http.server's name
-                body = self.rfile.read(int(self.headers["content-length"]))
-                if receiver.down:
-                    receiver.refused += 1
-                    self.send_response(503)
-                    self.end_headers()
-                    return
-                try:
-                    event = Webhook(receiver.secret).verify(body, dict(self.headers))
-                    assert event["id"] == self.headers["webhook-id"]
-                    receiver.ids.append(event["id"])
-                    receiver.bodies.append(event)
-                except Exception as exc:  # noqa: BLE001 - recorded for the test to fail on
-                    receiver.bad.append(repr(exc))
-                self.send_response(204)
-                self.end_headers()
-
-            def log_message(self, *args) -> None:  # type: ignore[no-untyped-def]
-                pass
-
-        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_port}/hook"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
-
-
-def wait_for(predicate, timeout_s: float = 20.0) -> None:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached"
-        time.sleep(0.05)
-
-
 def test_webhooks_are_signed_retried_and_seen_once_each(lab) -> None:  # type: ignore[no-untyped-def]
     store, client, h = lab
     rx = Receiver()
@@ -365,7 +251,9 @@ def test_webhooks_are_signed_retried_and_seen_once_each(lab) -> None:  # type: i
         rx.down = True
         for i in range(3):
             client.post("/orders", json={**ORDER, "lims_order_id": f"W{i}"}, headers=h["olga"])
-        wait_for(lambda: rx.refused >= 3)
+        eventually(
+            lambda: rx.refused >= 3, timeout_s=20, every_s=0.05, what="three deliveries refused"
+        )
         rx.down = False
         record = measured_record(store, started_by="alice")
         client.post(f"/records/{record.id}/approve", json={"meaning": "approval"}, headers=h["bob"])
@@ -373,7 +261,12 @@ def test_webhooks_are_signed_retried_and_seen_once_each(lab) -> None:  # type: i
             e["id"]
             for e in client.get("/feed", params={"limit": 1000}, headers=h["rita"]).json()["events"]
         ]
-        wait_for(lambda: set(rx.ids) >= set(feed_ids))
+        eventually(
+            lambda: set(rx.ids) >= set(feed_ids),
+            timeout_s=20,
+            every_s=0.05,
+            what="every event of the feed delivered",
+        )
         assert rx.bad == []
         assert sorted(rx.ids) == sorted(feed_ids) and len(rx.ids) == len(set(rx.ids))  # each once
 
@@ -384,7 +277,12 @@ def test_webhooks_are_signed_retried_and_seen_once_each(lab) -> None:  # type: i
 
         # the receiver answers before the daemon writes the attempt down: wait for the log to catch
         # up
-        wait_for(lambda: {d["state"] for d in log_of()} == {"delivered"})
+        eventually(
+            lambda: {d["state"] for d in log_of()} == {"delivered"},
+            timeout_s=20,
+            every_s=0.05,
+            what="every delivery delivered",
+        )
         log = log_of()
         retried = [d for d in log if d["attempts"] > 1]
         assert retried and all(d["log"][0]["status_code"] == 503 for d in retried)

@@ -8,18 +8,9 @@ import pytest
 import sqlalchemy as sa
 
 from service.lims import dcc
-from tests.daemon.conftest import admin_headers, make_client, wait_job
-from tests.lims.test_lims_api import ORDER, PEOPLE, STANDARD, Receiver, wait_for
-
-LAB = {
-    "lab_name": "Inclination Lab GmbH",
-    "lab_city": "Braunschweig",
-    "lab_country_code": "DE",
-    "webhook_retry_base_s": 0.1,
-    "webhook_retry_max_s": 0.3,
-    "webhook_max_attempts": 1000,
-}
-GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
+from tests.helpers.daemon import admin_headers, make_client, wait_job
+from tests.helpers.lims import GRID, LAB, ORDER, PEOPLE, STANDARD, Receiver
+from tests.helpers.waiting import eventually
 
 
 def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -215,7 +206,12 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
                 assert t in types, t
             job_states = [e["data"]["state"] for e in feed if e["type"] == "job.state"]
             assert job_states[0] == "queued" and job_states[-1] == "succeeded"
-            wait_for(lambda: set(rx.ids) >= {e["id"] for e in feed}, timeout_s=30)
+            eventually(
+                lambda: set(rx.ids) >= {e["id"] for e in feed},
+                timeout_s=30,
+                every_s=0.05,
+                what="every event of the feed delivered",
+            )
             log = client.get(f"/webhooks/{hook['id']}/deliveries", headers=h["admin"]).json()[
                 "deliveries"
             ]

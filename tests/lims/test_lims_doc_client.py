@@ -20,7 +20,8 @@ from service.lims import dcc
 from service.storage.engine import make_engine
 from service.storage.store import Store
 from tests.api.running_service import running_service
-from tests.lims.test_lims_api import ORDER, PEOPLE, STANDARD, measured_record, wait_for
+from tests.helpers.lims import ORDER, PEOPLE, STANDARD, measured_record
+from tests.helpers.waiting import eventually
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "lims.md"
 LAB_ENV = {
@@ -152,7 +153,12 @@ def test_the_documented_client_pulls_and_receives(tmp_path, monkeypatch) -> None
                 feed = api.get("/feed", params={"limit": 1000}, headers=auth["lims"]).json()[
                     "events"
                 ]
-                wait_for(lambda: len(received(rx)) >= len(feed), timeout_s=30)
+                eventually(
+                    lambda: len(received(rx)) >= len(feed),
+                    timeout_s=30,
+                    every_s=0.05,
+                    what="every event of the feed received",
+                )
     finally:
         rx.close()
     # the puller saw every event once, in the feed's order, resuming from its stored cursor

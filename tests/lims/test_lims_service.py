@@ -14,7 +14,8 @@ from service.lims import dcc
 from service.storage.migrate import bootstrap
 from service.storage.store import Store
 from tests.api.running_service import running_service
-from tests.lims.test_lims_api import ORDER, PEOPLE, STANDARD, Receiver, measured_record, wait_for
+from tests.helpers.lims import ORDER, PEOPLE, STANDARD, Receiver, measured_record
+from tests.helpers.waiting import eventually
 
 ENV = {
     "TILTLAB_LAB_NAME": "Inclination Lab GmbH",
@@ -98,7 +99,9 @@ def test_feed_and_webhooks_across_a_restart(tmp_path) -> None:  # type: ignore[n
                 httpx.post(f"{base}/standards", json=STANDARD, headers=h["alice"]).status_code
                 == 201
             )
-            wait_for(lambda: rx.refused >= 3)
+            eventually(
+                lambda: rx.refused >= 3, timeout_s=20, every_s=0.05, what="three deliveries refused"
+            )
             poller.stop.set()
             poller.thread.join()
         # the daemon is stopped with deliveries pending; the receiver comes back; the daemon starts
@@ -127,7 +130,12 @@ def test_feed_and_webhooks_across_a_restart(tmp_path) -> None:  # type: ignore[n
             poller.base = base
             poller.drain()
             feed_ids = [e["id"] for e in poller.events]
-            wait_for(lambda: set(rx.ids) >= set(feed_ids), timeout_s=30)
+            eventually(
+                lambda: set(rx.ids) >= set(feed_ids),
+                timeout_s=30,
+                every_s=0.05,
+                what="every event of the feed delivered",
+            )
 
             def log_of() -> list[dict]:
                 return httpx.get(
@@ -135,7 +143,12 @@ def test_feed_and_webhooks_across_a_restart(tmp_path) -> None:  # type: ignore[n
                 ).json()["deliveries"]
 
             # the log follows the receiver
-            wait_for(lambda: {d["state"] for d in log_of()} == {"delivered"})
+            eventually(
+                lambda: {d["state"] for d in log_of()} == {"delivered"},
+                timeout_s=20,
+                every_s=0.05,
+                what="every delivery delivered",
+            )
             log = log_of()
     finally:
         rx.close()

@@ -25,8 +25,8 @@ from service.calibration.uncertainty import coverage_factor, dof_of_coverage_fac
 from service.instruments.base import Reading
 from service.io.columns import K_OUTPUTS
 from service.jobs.manager import ActiveModel
+from tests.helpers.lims import PEOPLE
 from tests.lims.certificates import _stage_fit
-from tests.lims.test_lims_api import PEOPLE
 
 STANDARD = {
     "name": "reference inclinometer",
@@ -132,9 +132,8 @@ def test_the_budget_names_each_result_and_the_zero_offsets_carry_the_standard() 
 
 
 def test_a_standard_of_U_0_02_deg_reaches_tilt_and_the_record_through_the_daemon(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from tests.daemon.conftest import make_client, wait_job
-    from tests.daemon.test_e2e_stage import fresh_tilt
-    from tests.lims.test_lims_daemon_flow import GRID, LAB
+    from tests.helpers.daemon import fresh_tilt, make_client, wait_job
+    from tests.helpers.lims import GRID, LAB
 
     with make_client(tmp_path, **LAB) as client:
         store = client.app.state.store

@@ -11,7 +11,7 @@ from service.config import get_settings
 from service.lims.certificates import issue_certificate
 from service.storage.migrate import bootstrap
 from service.storage.store import Store
-from tests.lims.test_lims_api import PEOPLE, STANDARD, measured_record
+from tests.helpers.lims import PEOPLE, STANDARD, measured_record
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ import numpy as np
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from tests.api.test_request_bounds import daemon
+from tests.helpers.logged_daemon import logged_daemon
 
 READERS = 20
 BUILDS, WAITING = 2, 4
@@ -48,7 +48,7 @@ async def _snapshot(url: str, token: str) -> tuple[str, int]:
 
 
 def test_twenty_hour_long_snapshots_leave_health_alone(tmp_path: Path) -> None:
-    with daemon(
+    with logged_daemon(
         tmp_path,
         TILTLAB_SIM_SPEED="20",
         TILTLAB_SIM_TRANSPORT="loopback",

@@ -30,6 +30,7 @@ from service.api.limits import STREAM_HELD_BYTES, WEBSOCKET_IMPLEMENTATION
 from service.commands.serve import bind_socket
 from service.config import Settings
 from tests.api.running_service import free_port
+from tests.helpers.waiting import eventually
 
 SPEED = 10.0
 SLOW_CLOSE_S = 2.0
@@ -79,13 +80,6 @@ class Daemon:
         return self.app.state.streams  # type: ignore[attr-defined]
 
 
-def wait_until(cond, timeout_s: float = 20.0, what: str = "") -> None:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, f"still not true after {timeout_s} s: {what}"
-        time.sleep(0.05)
-
-
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory) -> Iterator[Daemon]:
     data = tmp_path_factory.mktemp("streams")
@@ -103,7 +97,7 @@ def daemon(tmp_path_factory) -> Iterator[Daemon]:
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning", ws=WEBSOCKET_IMPLEMENTATION))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
-    wait_until(lambda: server.started, 60, "server started")
+    eventually(lambda: server.started, timeout_s=60, every_s=0.05, what="server started")
     token = (data / "admin.token").read_text().strip()
     try:
         yield Daemon(app, f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}", token)
@@ -197,7 +191,9 @@ def test_bad_requests_are_refused_with_a_reason(daemon: Daemon) -> None:
             assert code == 1008 and reason.startswith(f"{field}:"), (url, code, reason)
 
     asyncio.run(run())
-    wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty")
+    eventually(
+        lambda: daemon.hub.client_count() == 0, timeout_s=20, every_s=0.05, what="registry empty"
+    )
 
 
 def test_sequence_has_no_gaps_and_rate_is_clamped(daemon: Daemon) -> None:
@@ -221,7 +217,12 @@ def test_sequence_has_no_gaps_and_rate_is_clamped(daemon: Daemon) -> None:
             assert daemon.hub.client_count() == 1
 
     asyncio.run(run())
-    wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty after a normal close")
+    eventually(
+        lambda: daemon.hub.client_count() == 0,
+        timeout_s=20,
+        every_s=0.05,
+        what="registry empty after a normal close",
+    )
 
 
 def test_slow_client_gets_drops_then_closed_others_see_no_gap(daemon: Daemon) -> None:
@@ -243,17 +244,28 @@ def test_slow_client_gets_drops_then_closed_others_see_no_gap(daemon: Daemon) ->
         try:
             got = [raw.message()]
             # Stop reading until the server's queue for this client overflows ...
+            # (the waits in a thread of their own: the reading clients go on in this event loop)
             t0 = time.monotonic()
-            while not any(c.dropped_total for c in list(daemon.hub.producers["sim-stage"].clients)):
-                assert time.monotonic() < t0 + 40, "the stuck client's queue never overflowed"
-                await asyncio.sleep(0.05)
+            await asyncio.to_thread(
+                eventually,
+                lambda: any(
+                    c.dropped_total for c in list(daemon.hub.producers["sim-stage"].clients)
+                ),
+                timeout_s=40,
+                every_s=0.05,
+                what="the stuck client's queue overflowing",
+            )
             # ... then read again: when room returns the server says how many were dropped.
             while not any(m["type"] == "dropped" for m in got):
                 got.append(raw.message())
             # Now stop reading altogether: the server must give up on this client.
-            while daemon.hub.client_count() > 2:
-                assert time.monotonic() < t0 + 80, "the stuck client was not closed"
-                await asyncio.sleep(0.1)
+            await asyncio.to_thread(
+                eventually,
+                lambda: daemon.hub.client_count() <= 2,
+                timeout_s=80 - (time.monotonic() - t0),  # 80 s from t0 for both waits
+                every_s=0.1,
+                what="the stuck client closed",
+            )
             while True:
                 m = raw.message()
                 if m.get("type") == "close":
@@ -264,10 +276,15 @@ def test_slow_client_gets_drops_then_closed_others_see_no_gap(daemon: Daemon) ->
 
     async def run() -> tuple[list[dict], int, str]:
         tasks = [asyncio.create_task(fast(0)), asyncio.create_task(fast(1))]
-        deadline = time.monotonic() + 30
-        while daemon.hub.client_count() < 2:  # both reading clients connected before the stuck one
-            assert time.monotonic() < deadline, "the reading clients did not connect"
-            await asyncio.sleep(0.02)
+        # both reading clients connected before the stuck one (waited for in a thread: they
+        # connect in this event loop)
+        await asyncio.to_thread(
+            eventually,
+            lambda: daemon.hub.client_count() >= 2,
+            timeout_s=30,
+            every_s=0.02,
+            what="the reading clients connected",
+        )
         try:
             return await slow()
         finally:
@@ -292,8 +309,10 @@ def test_slow_client_gets_drops_then_closed_others_see_no_gap(daemon: Daemon) ->
     assert fast_types <= {"snapshot", "reading"}
     for seqs in fast_seqs:
         assert len(seqs) > 50 and seqs == list(range(len(seqs))), "a fast client saw a gap"
-    wait_until(
+    eventually(
         lambda: daemon.hub.client_count() == 0,
+        timeout_s=20,
+        every_s=0.05,
         what="registry empty after the slow client was closed",
     )
 
@@ -329,7 +348,12 @@ def test_reconnect_gets_a_snapshot_with_history(daemon: Daemon) -> None:
         times[-1],
         last,
     )
-    wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty after reconnects")
+    eventually(
+        lambda: daemon.hub.client_count() == 0,
+        timeout_s=20,
+        every_s=0.05,
+        what="registry empty after reconnects",
+    )
 
 
 def test_job_stream_follows_a_calibration_to_its_end(daemon: Daemon) -> None:
@@ -382,8 +406,10 @@ def test_job_stream_follows_a_calibration_to_its_end(daemon: Daemon) -> None:
     got, code = asyncio.run(after_end())
     assert [m["type"] for m in got] == ["snapshot", "end"] and code == 1000
     assert len(got[0]["points"]) == 10
-    wait_until(
+    eventually(
         lambda: daemon.app.state.jobs.events.watcher_count() == 0,  # type: ignore[attr-defined]
+        timeout_s=20,
+        every_s=0.05,
         what="no job watchers left",
     )
 
@@ -400,8 +426,11 @@ def test_dropped_connections_leave_nothing_behind(daemon: Daemon) -> None:
             ws.transport.abort()
 
     asyncio.run(run())
-    wait_until(
-        lambda: daemon.hub.client_count() == 0, what="registry empty after aborted connections"
+    eventually(
+        lambda: daemon.hub.client_count() == 0,
+        timeout_s=20,
+        every_s=0.05,
+        what="registry empty after aborted connections",
     )
     assert websockets.__version__  # the client library the tests speak through
 
@@ -475,4 +504,6 @@ def test_a_client_that_never_reads_is_closed_in_time_while_a_reader_sees_no_gap(
         f"{held} bytes were held for a client reading nothing"
     )
     assert seqs == list(range(len(seqs))) and len(seqs) > 20, "the reading client saw a gap"
-    wait_until(lambda: daemon.hub.client_count() == 0, what="registry empty")
+    eventually(
+        lambda: daemon.hub.client_count() == 0, timeout_s=20, every_s=0.05, what="registry empty"
+    )

@@ -1,4 +1,7 @@
-"""Benches other than seed 000's: the same mounting and noise, other stage hardware."""
+"""Benches other than seed 000's (the same mounting and noise, other stage hardware): their
+scenarios and stage hardware, and the grid and hidden effect the bench tests use."""
+
+from __future__ import annotations
 
 import copy
 

@@ -1,0 +1,31 @@
+"""The calibration requests the diagnosis tests make on the 180:1 / 360:1 bench, and the wait for a
+diagnosis to end."""
+
+from __future__ import annotations
+
+from tests.helpers.waiting import eventually
+
+# 7 x 7 points 2.4 deg apart: the 180:1 upper worm (2-deg period) and the 360:1 lower one (1 deg)
+# are each sampled at five phases
+GRID = {"x_deg": [-7.2, 7.2], "y_deg": [-7.2, 7.2], "n_x": 7, "n_y": 7}
+BODY = {
+    "procedure": "stage-grid",
+    "method": "kinematic",
+    "grid": GRID,
+    "samples_per_point": 8,
+    "validation": {"n_points": 4},
+    "settle": {"tolerance_deg": 0.005, "window_s": 0.5, "timeout_s": 60},
+}
+# A record to refer to, quickly made: 3 x 3 points
+SMALL_BODY = {**BODY, "grid": {"x_deg": [-2, 2], "y_deg": [-2, 2], "n_x": 3, "n_y": 3}}
+
+
+def wait_diagnosis(client, h, diagnosis_id: int, timeout_s: float = 300.0) -> dict:
+    """The diagnosis once it has succeeded or failed."""
+    return eventually(
+        lambda: client.get(f"/diagnoses/{diagnosis_id}", headers=h).json(),
+        until=lambda d: d["state"] in ("succeeded", "failed"),
+        timeout_s=timeout_s,
+        every_s=0.2,
+        what=f"diagnosis {diagnosis_id} ended",
+    )
