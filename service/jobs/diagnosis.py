@@ -40,6 +40,7 @@ from service.storage.models import (
     CalibrationRecord,
     Diagnosis,
     DiagnosisResult,
+    JobState,
     utc_now,
 )
 from service.storage.store import Store
@@ -432,7 +433,7 @@ class DiagnosisRunner:
                     job = await self._measure(d, record, plan, actor)
                     run.job_id = job.id
                     ended = await self.jobs.wait_for(job.id)
-                    if ended.state != "succeeded":
+                    if ended.state != JobState.SUCCEEDED:
                         raise InputError(
                             f"the planned measurement (job {job.id}) {ended.state}"
                             + (f": {ended.failure_reason}" if ended.failure_reason else "")

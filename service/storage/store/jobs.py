@@ -13,7 +13,7 @@ import sqlalchemy as sa
 from service.errors import InputError
 from service.storage.canonical import sha256_hex
 from service.storage.errors import ConflictError, IllegalTransition, UnknownEntity
-from service.storage.models import Bench, CalibrationJob, IdempotencyKey, Order, utc_now
+from service.storage.models import Bench, CalibrationJob, IdempotencyKey, JobState, Order, utc_now
 from service.storage.store.checks import require_doc, require_number, require_text
 from service.storage.store.database import Database
 from service.storage.store.lookups import device_in, job_in, row_in
@@ -113,21 +113,21 @@ class JobsRepo:
                 raise IllegalTransition(
                     f"job {job_id}: {job.state} -> {to_state} is not allowed; allowed: {allowed}"
                 )
-            if to_state == "failed":
+            if to_state == JobState.FAILED:
                 failure_reason = require_text("failure_reason", failure_reason, 10_000)
-            elif failure_reason is not None and to_state != "cancelled":
+            elif failure_reason is not None and to_state != JobState.CANCELLED:
                 raise InputError(
                     f"a failure_reason belongs to a failed or cancelled job, not {to_state}"
                 )
             now = utc_now()
             previous = job.state
             job.state = to_state
-            if to_state == "running":
+            if to_state == JobState.RUNNING:
                 job.started_at = now
             if to_state in TERMINAL:
                 job.finished_at = now
                 job.failure_reason = failure_reason
-                if to_state == "succeeded":
+                if to_state == JobState.SUCCEEDED:
                     job.progress = 1.0
                     job.phase = "done"  # a failed or cancelled job keeps the phase it ended in
             self._db.audit(
@@ -159,7 +159,7 @@ class JobsRepo:
             raise InputError(f"progress {progress} is outside [0, 1]")
         with self._db.transaction() as session:
             job = job_in(session, job_id)
-            if job.state != "running":
+            if job.state != JobState.RUNNING:
                 raise IllegalTransition(
                     f"job {job_id} is {job.state}; progress is only kept for running jobs"
                 )
@@ -259,7 +259,7 @@ class JobsRepo:
             raise InputError(f"phase {phase!r} is not one of {', '.join(PHASES)}")
         with self._db.transaction() as session:
             job = job_in(session, job_id)
-            if job.state != "running":
+            if job.state != JobState.RUNNING:
                 raise IllegalTransition(
                     f"job {job_id} is {job.state}; progress is only kept for running jobs"
                 )
@@ -305,7 +305,7 @@ class JobsRepo:
         reason = require_text("failure_reason", reason, 10_000)
         with self._db.transaction() as session:
             job = job_in(session, job_id)
-            if job.state not in ("queued", "running"):
+            if job.state not in (JobState.QUEUED, JobState.RUNNING):
                 raise IllegalTransition(f"job {job_id}: {job.state} -> failed is not allowed")
             previous = job.state
             job.state, job.interrupted, job.finished_at, job.failure_reason = (
@@ -328,10 +328,10 @@ class JobsRepo:
         """An interrupted job runs again from its stored points."""
         with self._db.transaction() as session:
             job = job_in(session, job_id)
-            if not (job.state == "failed" and job.interrupted):
+            if not (job.state == JobState.FAILED and job.interrupted):
                 raise ConflictError(
                     f"job {job_id} is {job.state}"
-                    + ("" if job.state != "failed" else f" ({job.failure_reason})")
+                    + ("" if job.state != JobState.FAILED else f" ({job.failure_reason})")
                     + "; only an interrupted job can be resumed"
                 )
             job.state, job.interrupted, job.failure_reason, job.finished_at = (

@@ -16,6 +16,7 @@ from service.storage.models import (
     CalibrationJob,
     CalibrationRecord,
     Certificate,
+    JobState,
     Order,
     RecordApproval,
     utc_now,
@@ -213,7 +214,7 @@ def order_state(
         return "certified"
     if latest is not None and status[latest.id] in ("approved", "rejected"):
         return status[latest.id]
-    if any(j.state in ("queued", "running") for j in jobs):
+    if any(j.state in (JobState.QUEUED, JobState.RUNNING) for j in jobs):
         return "in_progress"
     if latest is not None:
         return "measured"

@@ -12,8 +12,8 @@ from sqlalchemy.orm import Session
 from service.errors import InputError
 from service.storage.canonical import sha256_hex
 from service.storage.errors import IllegalTransition
+from service.storage.models import JobState, SettledPoint
 from service.storage.models import Sample as SampleRow
-from service.storage.models import SettledPoint
 from service.storage.store.checks import require_finite, require_number
 from service.storage.store.database import Database
 from service.storage.store.hashing import (
@@ -37,7 +37,7 @@ class PointsRepo:
         with self._db.transaction() as session:
             job = job_in(session, job_id)
             device_in(session, device_id)
-            if job.state != "running":
+            if job.state != JobState.RUNNING:
                 raise IllegalTransition(
                     f"job {job_id} is {job.state}; settled points are added while it runs"
                 )

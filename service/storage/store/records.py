@@ -17,6 +17,7 @@ from service.storage.models import (
     ActiveCalibration,
     ActiveCalibrationHistory,
     CalibrationRecord,
+    JobState,
     SettledPoint,
     utc_now,
 )
@@ -80,7 +81,7 @@ class RecordsRepo:
                     raise InputError(
                         f"job {job_id} calibrates device {job.device_id}, not device {device_id}"
                     )
-                if job.state not in ("running", "succeeded"):
+                if job.state not in (JobState.RUNNING, JobState.SUCCEEDED):
                     raise IllegalTransition(
                         f"job {job_id} is {job.state}; a record comes from a running or succeeded "
                         "job"
