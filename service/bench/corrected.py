@@ -143,9 +143,9 @@ def with_uncertainties(
         u = U = k = dof = None
         if part is not None:
             own = (per_axis or {}).get(axis, [])
-            c = combine(np.array([part[0]]), part[1], [*others, *own], COVERAGE)
-            u, U, k = float(c.u[0]), float(c.U[0]), float(c.k[0])
-            dof = float(c.dof_eff[0]) if np.isfinite(c.dof_eff[0]) else None
+            combined = combine(np.array([part[0]]), part[1], [*others, *own], COVERAGE)
+            u, U, k = float(combined.u[0]), float(combined.U[0]), float(combined.k[0])
+            dof = float(combined.dof_eff[0]) if np.isfinite(combined.dof_eff[0]) else None
         table.update(
             {
                 f"standard_uncertainty_{axis}_deg": u,

@@ -219,7 +219,7 @@ def result_entry(
 ) -> dict[str, Any]:
     """One result's budget: its contributions (in the result's unit) and their combination."""
     scale = ANGLE_UNITS.get(unit, 1.0)
-    c = combine(np.array([u_fit_deg]), np.array([dof_fit]), others, coverage)
+    combined = combine(np.array([u_fit_deg]), np.array([dof_fit]), others, coverage)
     rows = [{"source": "fit", "standard_uncertainty": u_fit_deg * scale, "dof": _finite(dof_fit)}]
     rows += [
         {
@@ -235,10 +235,10 @@ def result_entry(
         "name": name,
         "unit": unit,
         "contributions": rows,
-        "standard_uncertainty": float(c.u[0]) * scale,
-        "dof_eff": _finite(float(c.dof_eff[0])),
-        "coverage_factor": float(c.k[0]),
-        "expanded_uncertainty": float(c.U[0]) * scale,
+        "standard_uncertainty": float(combined.u[0]) * scale,
+        "dof_eff": _finite(float(combined.dof_eff[0])),
+        "coverage_factor": float(combined.k[0]),
+        "expanded_uncertainty": float(combined.U[0]) * scale,
         "coverage_probability": coverage,
     }
 

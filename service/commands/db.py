@@ -194,7 +194,7 @@ def _backup(settings: Settings, out: str) -> int:
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(
+    parser = add_command(
         sub,
         "db",
         "database upkeep: schema upgrade, revision, backup, downgrade, verification",
@@ -207,7 +207,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "tiltlab db downgrade base --yes",
         ],
     )
-    dbsub = add_subcommands(p, "db_command")
+    dbsub = add_subcommands(parser, "db_command")
     add_command(
         dbsub,
         "upgrade",
@@ -258,4 +258,4 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "check the hashes and chains of calibration records and audit events",
         examples=["tiltlab db verify"],
     )
-    p.set_defaults(handler=run)
+    parser.set_defaults(handler=run)

@@ -197,19 +197,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(
+    parser = add_command(
         sub,
         "devices",
         "probe every role of a bench configuration and say what answered",
         examples=["tiltlab devices --config bench.toml"],
     )
-    p.add_argument(
+    parser.add_argument(
         "--config", required=True, metavar="FILE", help="bench configuration file (TOML)"
     )
-    p.add_argument(
+    parser.add_argument(
         "--bench",
         default=None,
         metavar="NAME",
         help="bench name, when the file describes several (default: the only one)",
     )
-    p.set_defaults(handler=run)
+    parser.set_defaults(handler=run)

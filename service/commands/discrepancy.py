@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(
+    parser = add_command(
         sub,
         "discrepancy",
         "find, name and add the effects a bench model is missing",
@@ -224,40 +224,42 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "tiltlab discrepancy --kind scale --input adc.csv --out scale-report.json",
         ],
     )
-    p.add_argument("--kind", required=True, choices=["stage", "scale"], help="what was calibrated")
-    p.add_argument("--input", required=True, metavar="FILE", help="the dataset CSV")
-    p.add_argument("--out", required=True, metavar="FILE", help="the JSON report to write")
-    p.add_argument(
+    parser.add_argument(
+        "--kind", required=True, choices=["stage", "scale"], help="what was calibrated"
+    )
+    parser.add_argument("--input", required=True, metavar="FILE", help="the dataset CSV")
+    parser.add_argument("--out", required=True, metavar="FILE", help="the JSON report to write")
+    parser.add_argument(
         "--sensor",
         choices=["ref", "meas"],
         default=None,
         help="stage only: which sensor's readings to explain (default: ref)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--baseline",
         choices=["linear", "kinematic"],
         default=None,
         help="stage only: the model the search starts from (default: linear; scale data always "
         "start from a straight line)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--bench",
         default=None,
         metavar="FILE",
         help="stage only: the bench the data came from (.toml bench configuration or .json "
         "scenario) (default: the seed 000 bench, said on stderr and in the report)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--html",
         default=None,
         metavar="FILE",
         help="the report page to write (default: the --out name with .html)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--adopt",
         default=None,
         metavar="MODEL.json",
         help="stage only: also write the kinematic calibration of the data with the named effects "
         "added (its state says which and from which report); refused when nothing was named",
     )
-    p.set_defaults(handler=run)
+    parser.set_defaults(handler=run)

@@ -72,7 +72,7 @@ def _methods_text() -> str:
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(
+    parser = add_command(
         sub,
         "calibrate",
         "fit a calibration model (MODEL.json) to a recorded run",
@@ -87,27 +87,27 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "tiltlab calibrate --kind scale --method poly2 --input adc.csv --out scale.json",
         ],
     )
-    p.add_argument("--kind", required=True, choices=KINDS, help="what was calibrated")
-    p.add_argument(
+    parser.add_argument("--kind", required=True, choices=KINDS, help="what was calibrated")
+    parser.add_argument(
         "--method", required=True, help="the method, one of those listed above for the kind"
     )
-    p.add_argument("--input", required=True, metavar="FILE", help="the dataset CSV")
-    p.add_argument("--out", required=True, metavar="FILE", help="MODEL.json to write")
-    p.add_argument(
+    parser.add_argument("--input", required=True, metavar="FILE", help="the dataset CSV")
+    parser.add_argument("--out", required=True, metavar="FILE", help="MODEL.json to write")
+    parser.add_argument(
         "--rotation-deg",
         type=finite("an angle in degrees"),
         default=None,
         metavar="DEG",
         help="turntable only: the rotation between the two positions of a pair (default: 180)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--loss",
         choices=LOSSES,
         default=None,
         help="kinematic only: robust loss; soft_l1, huber, cauchy or arctan weigh outlying "
         "points down (default: linear, plain least squares)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--ref-noise-deg",
         type=finite("a standard deviation in degrees"),
         default=None,
@@ -116,7 +116,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "certificate), so the uncertainty of a corrected tilt holds the measurement sensor's noise "
         "only; repeated readings at the points (same `point`) give it from the data instead",
     )
-    p.add_argument(
+    parser.add_argument(
         "--bench",
         default=None,
         metavar="FILE",
@@ -124,7 +124,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "table) or a scenario file (.json, its bench section) (default: the seed 000 bench, "
         "said on stderr and recorded in the model)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--max-rows",
         type=row_count,
         default=MAX_FIT_ROWS,
@@ -132,9 +132,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         help="refuse a dataset of more data rows than this, before reading it (a run has one "
         f"row per settled point; default: {MAX_FIT_ROWS:,})",
     )
-    p.set_defaults(handler=calibrate)
+    parser.set_defaults(handler=calibrate)
 
-    p = add_command(
+    parser = add_command(
         sub,
         "correct",
         "apply a model to readings: corrected tilt with its uncertainty",
@@ -143,28 +143,28 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "(columns per kind in docs/datasets.md).",
         examples=["tiltlab correct --model model.json --input readings.csv --out corrected.csv"],
     )
-    p.add_argument(
+    parser.add_argument(
         "--model", required=True, metavar="FILE", help="MODEL.json from `tiltlab calibrate`"
     )
-    p.add_argument("--input", required=True, metavar="FILE", help="the readings CSV")
-    p.add_argument("--out", required=True, metavar="FILE", help="the CSV to write")
-    p.add_argument(
+    parser.add_argument("--input", required=True, metavar="FILE", help="the readings CSV")
+    parser.add_argument("--out", required=True, metavar="FILE", help="the CSV to write")
+    parser.add_argument(
         "--deprecated-u-columns",
         action="store_true",
         help="also write the columns of earlier releases, u_<quantity> (e.g. u_tilt_x_deg): the "
         "EXPANDED uncertainty, the same as expanded_uncertainty_<quantity>; for software not "
         "yet reading the new names (deprecated: to be removed in a later release)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--calibrated-range-column",
         action="store_true",
         help="stage models only: also write `in_calibrated_range` (true or false): whether the "
         "corrected tilt lies within the table tilts the model was fitted on "
         "(MODEL.json fit.table_tilt_range_deg)",
     )
-    p.set_defaults(handler=correct)
+    parser.set_defaults(handler=correct)
 
-    p = add_command(
+    parser = add_command(
         sub,
         "level",
         "stage commands that give wanted table tilts (stage models only)",
@@ -173,12 +173,12 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "the model's inverse.",
         examples=["tiltlab level --model model.json --targets targets.csv --out commands.csv"],
     )
-    p.add_argument("--model", required=True, metavar="FILE", help="a stage MODEL.json")
-    p.add_argument("--targets", required=True, metavar="FILE", help="targets CSV")
-    p.add_argument(
+    parser.add_argument("--model", required=True, metavar="FILE", help="a stage MODEL.json")
+    parser.add_argument("--targets", required=True, metavar="FILE", help="targets CSV")
+    parser.add_argument(
         "--out", required=True, metavar="FILE", help="the CSV of stage commands to write"
     )
-    p.set_defaults(handler=level)
+    parser.set_defaults(handler=level)
 
 
 def _refuse_options_that_do_not_apply(args: argparse.Namespace) -> None:

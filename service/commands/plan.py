@@ -11,7 +11,7 @@ from service.errors import InputError
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(
+    parser = add_command(
         sub,
         "plan",
         "print the adaptive calibration plan for a bench description and a target U",
@@ -25,21 +25,21 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "tiltlab plan --scenario my-bench.json --target 0.001 --json",
         ],
     )
-    p.add_argument(
+    parser.add_argument(
         "--scenario",
         metavar="NAME_OR_FILE",
         required=True,
         help="a stage preset (tiltlab simulate --list) or a stage scenario JSON file",
     )
-    p.add_argument(
+    parser.add_argument(
         "--target",
         metavar="U_DEG",
         type=finite("the target expanded uncertainty in degrees"),
         required=True,
         help="the target expanded uncertainty (k = 2) of the correction over the range, deg",
     )
-    p.add_argument("--json", action="store_true", help="print the plan as JSON")
-    p.set_defaults(handler=run)
+    parser.add_argument("--json", action="store_true", help="print the plan as JSON")
+    parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -32,7 +32,7 @@ ABOUT = {
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     papers = "\n".join(f"  {name}  {text}" for name, text in ABOUT.items())
-    p = add_command(
+    parser = add_command(
         sub,
         "reproduce",
         "rerun a paper's experiment and write its report (Markdown and figures)",
@@ -40,15 +40,15 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         f"benches,\nand write one Markdown report per paper with its figures:\n{papers}",
         examples=["tiltlab reproduce seed003", "tiltlab reproduce all --out-dir reports/reproduce"],
     )
-    p.add_argument("paper", choices=[*PAPERS, "all"], help="which paper, or all")
-    p.add_argument(
+    parser.add_argument("paper", choices=[*PAPERS, "all"], help="which paper, or all")
+    parser.add_argument(
         "--out-dir",
         default=None,
         metavar="FOLDER",
         help="folder for the reports, created if missing (default: a new folder "
         "tiltlab-reproduce-UTCSTAMP here)",
     )
-    p.set_defaults(handler=run)
+    parser.set_defaults(handler=run)
 
 
 def output_folder(out_dir: str | None) -> Path:

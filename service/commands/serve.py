@@ -261,7 +261,7 @@ def silent_devices(app: Any) -> list[str]:
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(
+    parser = add_command(
         sub,
         "serve",
         "run the lab service: HTTP API and dashboard on a simulated or real bench",
@@ -276,15 +276,15 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "tiltlab serve --bench-config bench.toml",
         ],
     )
-    p.add_argument(
+    parser.add_argument(
         "--host",
         default=None,
         help="address to listen on (default: TILTLAB_HOST, else 127.0.0.1: this computer only)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--port", type=port, default=None, help="TCP port (default: TILTLAB_PORT, else 8000)"
     )
-    p.add_argument(
+    parser.add_argument(
         "--database-wait-s",
         type=seconds,
         default=None,
@@ -292,7 +292,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         help="how long to retry an unreachable database at start-up "
         "(default: TILTLAB_DATABASE_WAIT_S, else 30)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--sim-speed",
         type=speed,
         default=None,
@@ -300,7 +300,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         help="run the simulated bench N times faster than real time (default: TILTLAB_SIM_SPEED, "
         "else 1)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--scenario",
         dest="bench_scenario",
         default=None,
@@ -308,21 +308,21 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         help="the simulated stage bench: a preset (tiltlab simulate --list) or a scenario file "
         "(default: TILTLAB_BENCH_SCENARIO, else seed000)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--bench-config",
         default=None,
         metavar="FILE",
         help="bench configuration (TOML) naming the instruments' ports "
         "(default: TILTLAB_BENCH_CONFIG, else the simulated stage bench)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--ssl-certfile",
         default=None,
         metavar="FILE",
         help="serve HTTPS with this certificate (PEM; with --ssl-keyfile): tokens then never "
         "cross the network in clear",
     )
-    p.add_argument(
+    parser.add_argument(
         "--ssl-keyfile", default=None, metavar="FILE", help="the certificate's private key (PEM)"
     )
-    p.set_defaults(handler=run)
+    parser.set_defaults(handler=run)

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(
+    parser = add_command(
         sub,
         "sim",
         "run simulated instruments on pseudo-terminals and print their bench configuration",
@@ -87,39 +87,39 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "tiltlab serve --bench-config /tmp/bench/bench.toml",
         ],
     )
-    p.add_argument(
+    parser.add_argument(
         "--scenario",
         default="seed000",
         metavar="NAME_OR_FILE",
         help="scenario preset or file that drives the physics",
     )
-    p.add_argument("--bench", choices=["stage", "rotary"], default="stage", help="which bench")
-    p.add_argument(
+    parser.add_argument("--bench", choices=["stage", "rotary"], default="stage", help="which bench")
+    parser.add_argument(
         "--speed",
         type=speed,
         default=1.0,
         help="bench seconds per real second (moves, output rates)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--adc", action="store_true", help="stage bench: add the analog sensor behind the ADC"
     )
-    p.add_argument(
+    parser.add_argument(
         "--dir",
         default=None,
         metavar="FOLDER",
         help="folder for the port links (default: a new temporary folder)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--out",
         default=None,
         metavar="FILE",
         help="bench configuration file to write (default: bench.toml in --dir)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--duration",
         type=seconds,
         default=None,
         metavar="SECONDS",
         help="stop after this many seconds (default: until Ctrl-C)",
     )
-    p.set_defaults(handler=run)
+    parser.set_defaults(handler=run)

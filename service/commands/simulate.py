@@ -11,7 +11,7 @@ from service.errors import InputError
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = add_command(
+    parser = add_command(
         sub,
         "simulate",
         "write a simulated bench run (dataset CSV) from a scenario",
@@ -25,21 +25,21 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "tiltlab simulate --scenario my-bench.json --out run2.csv --seed 2",
         ],
     )
-    p.add_argument(
+    parser.add_argument(
         "--scenario",
         metavar="NAME_OR_FILE",
         help="a preset name (see --list) or a scenario JSON file (docs/scenario.schema.json)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--out", metavar="FILE", help="the dataset CSV to write (required unless --list)"
     )
-    p.add_argument(
+    parser.add_argument(
         "--seed", type=seed, default=None, help="random seed instead of the scenario's own"
     )
-    p.add_argument(
+    parser.add_argument(
         "--list", action="store_true", help="print the presets, their kind and what they resemble"
     )
-    p.set_defaults(handler=run)
+    parser.set_defaults(handler=run)
 
 
 def list_presets() -> int:

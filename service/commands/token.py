@@ -101,7 +101,7 @@ def _person_options(q: argparse.ArgumentParser, *, required: bool) -> None:
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from service.commands._args import add_command, add_subcommands
 
-    p = add_command(
+    parser = add_command(
         sub,
         "token",
         "API tokens: create (shown once), list, set-person, revoke",
@@ -116,7 +116,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "tiltlab token revoke bench-pc",
         ],
     )
-    tsub = add_subcommands(p, "token_command")
+    tsub = add_subcommands(parser, "token_command")
     q = add_command(
         tsub,
         "create",
@@ -154,4 +154,4 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         tsub, "revoke", "revoke a token by name", examples=["tiltlab token revoke bench-pc"]
     )
     q.add_argument("name", help="the token's name")
-    p.set_defaults(handler=lambda a: run(a))
+    parser.set_defaults(handler=lambda a: run(a))

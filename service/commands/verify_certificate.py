@@ -23,7 +23,7 @@ from service.errors import InputError
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from service.commands._args import add_command
 
-    p = add_command(
+    parser = add_command(
         sub,
         "verify-certificate",
         "check a DCC certificate: schema, signature, stored hash, record and approval",
@@ -33,26 +33,26 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "tiltlab verify-certificate --offline --allow-unsigned certificate.xml",
         ],
     )
-    p.add_argument("file", metavar="FILE", help="the certificate XML file")
-    p.add_argument(
+    parser.add_argument("file", metavar="FILE", help="the certificate XML file")
+    parser.add_argument(
         "--offline",
         action="store_true",
         help="check only the file: schema and signature (no database: for a customer who has just "
         "the file)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--signer-cert",
         metavar="PEM",
         help="the laboratory's signing certificate: the signature must be made with it (an "
         "unsigned file then fails); without it, the certificate the signature carries is used",
     )
-    p.add_argument(
+    parser.add_argument(
         "--allow-unsigned",
         action="store_true",
         help="accept a file without a signature (from a laboratory that does not sign); without "
         "it an unsigned file fails unless the laboratory's database holds it unchanged",
     )
-    p.set_defaults(handler=run)
+    parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:

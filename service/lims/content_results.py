@@ -250,13 +250,13 @@ def validation_result(
             )
             if U is not None and ks is not None and others and unit == "deg":
                 k_arr = np.asarray(ks)
-                c = combine(
+                combined = combine(
                     np.asarray(U) / k_arr,
                     dof_of_coverage_factor(k_arr, probability),
                     others,
                     probability,
                 )
-                U, ks = tuple(float(x) for x in c.U), tuple(float(x) for x in c.k)
+                U, ks = tuple(float(x) for x in combined.U), tuple(float(x) for x in combined.k)
             dist = "student-t" if has_u else None
             columns += [
                 dcc.Column(

@@ -111,10 +111,10 @@ def _q(ns: str, tag: str) -> str:
 def _el(
     parent: ET.Element, tag: str, text: str | None = None, ns: str = DCC_NS, **attrs: str
 ) -> ET.Element:
-    e = ET.SubElement(parent, _q(ns, tag), {k.replace("_", ""): v for k, v in attrs.items()})
+    element = ET.SubElement(parent, _q(ns, tag), {k.replace("_", ""): v for k, v in attrs.items()})
     if text is not None:
-        e.text = text
-    return e
+        element.text = text
+    return element
 
 
 def _text(parent: ET.Element, tag: str, text: str, lang: str) -> ET.Element:
@@ -139,12 +139,12 @@ def _location(parent: ET.Element, a: Address) -> None:
 
 
 def _contact(parent: ET.Element, tag: str, c: Contact, lang: str) -> ET.Element:
-    e = _el(parent, tag)
-    _text(e, "name", c.name, lang)
+    element = _el(parent, tag)
+    _text(element, "name", c.name, lang)
     if c.email:
-        _el(e, "eMail", c.email)
-    _location(e, c.address)
-    return e
+        _el(element, "eMail", c.email)
+    _location(element, c.address)
+    return element
 
 
 def _identifications(parent: ET.Element, ids: Sequence[Identification], lang: str) -> None:
@@ -152,10 +152,10 @@ def _identifications(parent: ET.Element, ids: Sequence[Identification], lang: st
         return
     holder = _el(parent, "identifications")
     for i in ids:
-        e = _el(holder, "identification")
-        _el(e, "issuer", i.issuer)
-        _el(e, "value", i.value)
-        _text(e, "name", i.name, lang)
+        element = _el(holder, "identification")
+        _el(element, "issuer", i.issuer)
+        _el(element, "value", i.value)
+        _text(element, "name", i.name, lang)
 
 
 def _check_mu(u: float, k: float | None, p: float | None, what: str) -> tuple[float, float]:
@@ -172,11 +172,11 @@ def _check_mu(u: float, k: float | None, p: float | None, what: str) -> tuple[fl
 
 
 def _quantity(parent: ET.Element, v: Value, lang: str) -> None:
-    q = _el(parent, "quantity", refType=v.ref_type)
-    _text(q, "name", v.name, lang)
+    element = _el(parent, "quantity", refType=v.ref_type)
+    _text(element, "name", v.name, lang)
     if v.note:
-        _text(q, "description", v.note, lang)
-    real = _el(q, "real", ns=SI_NS)
+        _text(element, "description", v.note, lang)
+    real = _el(element, "real", ns=SI_NS)
     _el(real, "label", v.label, ns=SI_NS)
     if v.expanded_u is None and v.standard_u is not None:
         if not v.standard_u >= 0:
@@ -211,9 +211,9 @@ def _column(parent: ET.Element, c: Column, decimals: Sequence[int] | None, lang:
     n = len(c.values)
     if n == 0:
         raise InvalidCertificate(f"column {c.label}: no values")
-    q = _el(parent, "quantity", refType=c.ref_type or "tiltlab_table")
-    _text(q, "name", c.name, lang)
-    lst = _el(q, "realListXMLList", ns=SI_NS)
+    element = _el(parent, "quantity", refType=c.ref_type or "tiltlab_table")
+    _text(element, "name", c.name, lang)
+    lst = _el(element, "realListXMLList", ns=SI_NS)
     _el(lst, "labelXMLList", c.label, ns=SI_NS)
     if c.expanded_u is None:
         text = [
@@ -255,11 +255,11 @@ def _covariance(parent: ET.Element, c: Covariance, lang: str) -> None:
             f"parameter covariance: {n} labels need {n} values, units, factors and an {n}x{n} "
             "matrix"
         )
-    q = _el(parent, "quantity", refType="tiltlab_parameterVector")
-    _text(q, "name", "fitted parameters with their covariance", lang)
+    element = _el(parent, "quantity", refType="tiltlab_parameterVector")
+    _text(element, "name", "fitted parameters with their covariance", lang)
     if c.note:
-        _text(q, "description", c.note, lang)
-    lst = _el(q, "realListXMLList", ns=SI_NS)
+        _text(element, "description", c.note, lang)
+    lst = _el(element, "realListXMLList", ns=SI_NS)
     _el(lst, "labelXMLList", " ".join(c.labels), ns=SI_NS)
     pairs = []
     for i, label in enumerate(c.labels):
@@ -327,11 +327,11 @@ def _unique_labels(r: Result) -> None:
 def _result(parent: ET.Element, r: Result, lang: str) -> None:
     if not r.values and not r.columns and r.covariance is None:
         raise InvalidCertificate(f"result {r.name!r} has no values")
-    e = _el(parent, "result")
-    _text(e, "name", r.name, lang)
-    _rich(e, "description", r.description, lang)
+    element = _el(parent, "result")
+    _text(element, "name", r.name, lang)
+    _rich(element, "description", r.description, lang)
     _unique_labels(r)
-    data = _el(e, "data")
+    data = _el(element, "data")
     if r.values:
         lst = _el(data, "list", refType="tiltlab_values")
         for v in r.values:
@@ -353,8 +353,8 @@ def _result(parent: ET.Element, r: Result, lang: str) -> None:
 def _standard(parent: ET.Element, s: ReferenceStandard, lang: str) -> None:
     """A reference standard: its certificate (number, SHA-256, who issued it), its identity, and the
     uncertainty its certificate states as numbers (`measuringEquipmentQuantities`)."""
-    e = _el(parent, "measuringEquipment", refType="basic_referenceStandard")
-    _text(e, "name", s.name, lang)
+    element = _el(parent, "measuringEquipment", refType="basic_referenceStandard")
+    _text(element, "name", s.name, lang)
     lab = s.calibrated_by
     description = (
         f"Calibrated on {s.calibrated_on.isoformat()}, due for recalibration on "
@@ -363,8 +363,8 @@ def _standard(parent: ET.Element, s: ReferenceStandard, lang: str) -> None:
         + "."
         + (f" Its certificate states the uncertainty as: {s.uncertainty}." if s.uncertainty else "")
     )
-    _text(e, "description", description, lang)
-    cert = _el(e, "certificate")
+    _text(element, "description", description, lang)
+    cert = _el(element, "certificate")
     _text(
         cert,
         "referral",
@@ -385,7 +385,7 @@ def _standard(parent: ET.Element, s: ReferenceStandard, lang: str) -> None:
     _el(cert, "inValidityRange", "true" if s.valid_on_performance_date else "false")
     _el(cert, "traceable", "true" if lab is not None else "false")
     if s.model:
-        _el(e, "model", s.model)
+        _el(element, "model", s.model)
     ids = [Identification("manufacturer", s.serial, "serial number")]
     if lab is not None:
         ids.append(
@@ -403,9 +403,9 @@ def _standard(parent: ET.Element, s: ReferenceStandard, lang: str) -> None:
                     f"accreditation of {lab.name}, which calibrated the standard",
                 )
             )
-    _identifications(e, ids, lang)
+    _identifications(element, ids, lang)
     if s.expanded_uncertainty is not None and s.coverage_factor is not None:
-        qs = _el(e, "measuringEquipmentQuantities")
+        qs = _el(element, "measuringEquipmentQuantities")
         kind = "tiltlab_standardUncertaintyStatement"
         for v in (
             Value(
@@ -495,11 +495,11 @@ def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
 
     persons = _el(adm, "respPersons")
     for person in c.persons:
-        e = _el(persons, "respPerson")
-        _text(_el(e, "person"), "name", person.name, lang)
-        _rich(e, "description", person.statement, lang)
-        _el(e, "role", person.role)
-        _el(e, "mainSigner", "true" if person.main_signer else "false")
+        element = _el(persons, "respPerson")
+        _text(_el(element, "person"), "name", person.name, lang)
+        _rich(element, "description", person.statement, lang)
+        _el(element, "role", person.role)
+        _el(element, "mainSigner", "true" if person.main_signer else "false")
     _contact(adm, "customer", c.customer, lang)
     if c.statements:
         stmts = _el(adm, "statements")
@@ -510,21 +510,21 @@ def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
 
 def _statement(parent: ET.Element, st: Statement, lang: str) -> None:
     """A statement; one of conformity carries its outcome and the figures it rests on (dcc:data)."""
-    e = _el(parent, "statement", **({"refType": st.ref_type} if st.ref_type else {}))
+    element = _el(parent, "statement", **({"refType": st.ref_type} if st.ref_type else {}))
     if st.name:
-        _text(e, "name", st.name, lang)
+        _text(element, "name", st.name, lang)
     if st.norm:
-        _el(e, "norm", st.norm)
-    _text(e, "declaration", st.declaration, lang)
+        _el(element, "norm", st.norm)
+    _text(element, "declaration", st.declaration, lang)
     if st.conformity is not None:
         if st.conformity not in CONFORMITY:
             raise InvalidCertificate(
                 f"statement {st.name!r}: conformity {st.conformity!r} is not one of {CONFORMITY}"
             )
-        _el(e, "conformity", st.conformity)
+        _el(element, "conformity", st.conformity)
     if st.values:
         _unique_labels(Result(st.name or "statement", values=st.values))
-        data = _el(e, "data")
+        data = _el(element, "data")
         for v in st.values:
             _quantity(data, v, lang)
 
@@ -551,12 +551,12 @@ def _define_reftypes(root: ET.Element, lang: str) -> None:
         adm.remove(holder)
         return
     for t in used:
-        d = _el(holder, "refTypeDefinition", refType=t)
-        _text(d, "name", t, lang)
-        _text(d, "description", REFTYPES[t], lang)
-        _el(d, "namespace", REFTYPE_NAMESPACE)
-        _el(d, "link", REFTYPE_LINK)
-        _el(d, "value", t)
+        element = _el(holder, "refTypeDefinition", refType=t)
+        _text(element, "name", t, lang)
+        _text(element, "description", REFTYPES[t], lang)
+        _el(element, "namespace", REFTYPE_NAMESPACE)
+        _el(element, "link", REFTYPE_LINK)
+        _el(element, "value", t)
 
 
 def build_xml(c: Certificate) -> bytes:
@@ -603,10 +603,10 @@ def build_xml(c: Certificate) -> bytes:
     if not c.results:
         raise InvalidCertificate("a certificate needs at least one measurement result")
     for mr in c.results:
-        e = _el(results, "measurementResult")
-        _text(e, "name", mr.name, lang)
-        _rich(e, "description", mr.description, lang)
-        rl = _el(e, "results")
+        element = _el(results, "measurementResult")
+        _text(element, "name", mr.name, lang)
+        _rich(element, "description", mr.description, lang)
+        rl = _el(element, "results")
         for result in mr.results:
             _result(rl, result, lang)
     if c.comment:

@@ -169,11 +169,11 @@ def gauss_newton(
     p = np.asarray(p0, dtype=float).copy()
     history = []
     for it in range(1, max_iterations + 1):
-        r = _residuals(p, az, d1, d2, xi, eta, rotation_deg)
+        residuals = _residuals(p, az, d1, d2, xi, eta, rotation_deg)
         J = _jacobian(p, az, d1, d2, xi, eta, rotation_deg)
-        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        if not (np.all(np.isfinite(residuals)) and np.all(np.isfinite(J))):
             break
-        step, *_ = np.linalg.lstsq(J, -r, rcond=None)  # B Δx = b
+        step, *_ = np.linalg.lstsq(J, -residuals, rcond=None)  # B Δx = b
         p = p + step
         p[1], p[2] = abs(p[1]), abs(p[2])
         scale = np.array([1e-7, 1e-9 * max(abs(p[1]), 1e-300), 1e-9 * max(abs(p[2]), 1e-300), 1e-7])

@@ -64,7 +64,7 @@ class DiagnosesRepo:
         """The one result of a diagnosis; its event `diagnosis.finished` goes to the feed and
         webhooks."""
         with self._db.transaction() as session:
-            d = row_in(session, Diagnosis, diagnosis_id, "diagnosis")
+            row = row_in(session, Diagnosis, diagnosis_id, "diagnosis")
             if (
                 session.scalar(
                     sa.select(DiagnosisResult.id).where(
@@ -93,7 +93,7 @@ class DiagnosesRepo:
                 diagnosis_id,
                 {
                     "diagnosis_id": diagnosis_id,
-                    "record_id": d.record_id,
+                    "record_id": row.record_id,
                     "state": state,
                     "named_effects": list(summary.get("named_effects", [])),
                     "error": error,
@@ -103,11 +103,11 @@ class DiagnosesRepo:
 
     def get_diagnosis(self, diagnosis_id: int) -> tuple[Diagnosis, DiagnosisResult | None]:
         with self._db.session() as s:
-            d = row_in(s, Diagnosis, diagnosis_id, "diagnosis")
+            row = row_in(s, Diagnosis, diagnosis_id, "diagnosis")
             r = s.scalar(
                 sa.select(DiagnosisResult).where(DiagnosisResult.diagnosis_id == diagnosis_id)
             )
-            return d, r
+            return row, r
 
     def list_diagnoses(
         self, record_id: int | None = None, *, before_id: int | None = None, limit: int = 100

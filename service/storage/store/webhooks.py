@@ -224,8 +224,8 @@ class WebhooksRepo:
         failed)."""
         now = utc_now()
         with self._db.transaction() as session:
-            d = session.get(WebhookDelivery, delivery_id)
-            if d is None:
+            response = session.get(WebhookDelivery, delivery_id)
+            if response is None:
                 raise UnknownEntity(f"delivery {delivery_id} does not exist")
             session.add(
                 WebhookAttempt(
@@ -236,12 +236,19 @@ class WebhooksRepo:
                     duration_s=float(duration_s),
                 )
             )
-            d.attempts += 1
-            d.last_status_code, d.last_error = status_code, (error or None) and error[:2000]
+            response.attempts += 1
+            response.last_status_code, response.last_error = (
+                status_code,
+                (error or None) and error[:2000],
+            )
             if ok:
-                d.state, d.delivered_at, d.next_attempt_at = "delivered", now, None
+                response.state, response.delivered_at, response.next_attempt_at = (
+                    "delivered",
+                    now,
+                    None,
+                )
             elif retry_at is None:
-                d.state, d.next_attempt_at = "failed", None
+                response.state, response.next_attempt_at = "failed", None
             else:
-                d.next_attempt_at = retry_at
-            return d
+                response.next_attempt_at = retry_at
+            return response

@@ -86,11 +86,11 @@ def _fit_axis_pair(
     sol = least_squares(resid, np.zeros(2), method="lm", xtol=1e-14, ftol=1e-14)
     if not sol.success or not np.all(np.isfinite(sol.x)):
         raise DegenerateDataError(f"{what}: the fit did not converge ({sol.message})")
-    r = resid(sol.x)
-    st = fit_stats(r, 2)
+    residuals = resid(sol.x)
+    st = fit_stats(residuals, 2)
     cov = numeric_cov(resid, sol.x, np.array([0.1, 0.1]), st["sigma_deg"] ** 2)
     n = u.size
-    return sol.x, cov, {"x": r[:n], "y": r[n:]}, st
+    return sol.x, cov, {"x": residuals[:n], "y": residuals[n:]}, st
 
 
 class AxisTransformMethod(StageMethod):
