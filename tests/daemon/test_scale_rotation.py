@@ -121,7 +121,11 @@ def test_rotation_job_on_the_rotary_bench(tmp_path):
         assert r.status_code == 202, r.text
         job = wait_job(client, r.json()["id"], h)
         assert job["state"] == "succeeded", job["error"]
-        assert job["validation"]["max_deg"] < 0.1, job["validation"]
+        # the simulated rotary bench is seed002-sim's (axis tilted 75 deg), where IODSRA's own
+        # rotation-angle error over the turn reaches 0.103 deg (README's figures, `tiltlab reproduce
+        # seed002`); validation points may fall there, with the sensors' noise on top
+        assert job["validation"]["max_deg"] < 0.15, job["validation"]
+        assert job["validation"]["rms_deg"] < 0.1, job["validation"]
         model = _reproduces(client, h, job["record"]["id"], "rotation", "iodsra", tmp_path)
         # the fitted axis tilt agrees with the simulator's rotary bench
         world = client.app.state.bench.sim.world
