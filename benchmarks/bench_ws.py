@@ -8,16 +8,13 @@ receipt, same machine clock), and the daemon's CPU time from /proc/<pid>/stat.
 
     .venv/bin/python benchmarks/bench_ws.py                 # 100 clients, 60 s
     .venv/bin/python benchmarks/bench_ws.py --seconds 10
-    .venv/bin/python benchmarks/bench_ws.py --ramp          # add clients until they first wait or
-lose
-    .venv/bin/python benchmarks/bench_ws.py --ramp --event-loop asyncio   # the daemon on asyncio,
-not uvloop
+    .venv/bin/python benchmarks/bench_ws.py --ramp          # add clients until they wait or lose
+    .venv/bin/python benchmarks/bench_ws.py --ramp --event-loop asyncio   # asyncio, not uvloop
 
 The ramp's saturation point is the message rate where the reading clients first wait: the step at
 which they receive less than 95 % of what they asked for (clients x rate_hz), or lose a message.
 
-    .venv/bin/python benchmarks/bench_ws.py --ramp --client sweep   # the cheapest clients: see
-`sweep_run`
+    .venv/bin/python benchmarks/bench_ws.py --ramp --client sweep   # cheapest: see `sweep_run`
 
 Reading clients cost CPU too, and on a small machine they share it with the daemon: the saturation
 point found is the lower of the daemon's and the clients'. `--client sweep` is the cheapest way of

@@ -7,13 +7,11 @@ same script).
 Prints one line per figure:
 
 * `dict[str, Any]` / `Mapping[str, Any]` annotations (an AST count of annotations, not of text), in
-all
-  and per 1,000 code lines;
+  all and per 1,000 code lines;
 * code lines over 100 characters (comments and docstrings count; blank lines do not);
 * files `ruff format --check` would change, and `# fmt: skip` / `# fmt: off` markers;
 * one-letter assignment targets outside the mathematical i j k n m x y z t (assignments, augmented
-and
-  annotated assignments, for-loop and with targets, comprehension variables), as a share of all
+  and annotated assignments, for-loop and with targets, comprehension variables), as a share of all
   assignment targets that are plain names;
 * functions and methods with a cyclomatic complexity over 10 (radon), as a share of all;
 * the median maintainability index of the modules (radon);

@@ -4,14 +4,12 @@ colleague's browser.
 
 * The dashboard (`/`): scripts, styles, images and connections from the daemon itself only: its own
   script files (no inline script), `fetch` and the WebSocket streams to the same host; style
-attributes
-  allowed (layout only).
+  attributes allowed (layout only).
 * The API's own pages (`/docs`, `/redoc`): the same, plus the one inline script each page starts its
-  viewer with, allowed by its SHA-256 (worked out from the page as served), and the web worker ReDoc
-makes.
-* Every other page (a certificate's printable page, a diagnosis report): a document, nothing runs at
-all;
-  its own inline styles and the figures inlined as `data:` images.
+  viewer with, allowed by its SHA-256 (worked out from the page as served), and the web worker
+  ReDoc makes.
+* Every other page (a certificate's printable page, a diagnosis report): a document, nothing runs
+  at all; its own inline styles and the figures inlined as `data:` images.
 
 Every answer also carries `X-Content-Type-Options: nosniff` (a download is never run as what it is
 not).

@@ -5,8 +5,7 @@ Names on the broker:
   node and state, renewed every third of the lease while the node lives. A bench without an entry
   belongs to no live node.
 * key-value bucket `tiltlab_benches` (kept): bench -> the node that last owned it, its kind and
-roles,
-  so the fleet view still lists a bench whose node died (as offline).
+  roles, so the fleet view still lists a bench whose node died (as offline).
 * stream `TILTLAB_READINGS`, subjects `tiltlab.readings.<bench>`: each node's readings, decimated to
   `fleet_rate_hz`, kept for a minute, each with the node's `fleet_seq`.
 * subject `tiltlab.commands.<node>`: request/reply carrying a bench command to the bench's owner.

@@ -26,12 +26,10 @@ the fixed hardware of its stages, and one table per role:
     [benches.stage-1.roles.stage]
     port = "/dev/ttyUSB2"
 
-    [benches.stage-1.roles.ambient_sensor]   # optional: the laboratory's air temperature and
-humidity
+    [benches.stage-1.roles.ambient_sensor]   # optional: the laboratory's air, temperature, humidity
     port = "/dev/ttyUSB3"
     address = "01"
-    standard_uncertainty_c = 0.1             # as the thermo-hygrometer's calibration certificate
-states them
+    standard_uncertainty_c = 0.1             # as the thermo-hygrometer's certificate states them
     standard_uncertainty_pct = 2.0
 
 The hardware table is the same model as a scenario file's `bench` section, so the

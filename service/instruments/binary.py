@@ -1,7 +1,8 @@
 """Family (A): biaxial inclinometers (and the triaxial module) speaking 0x68 binary frames.
 
-    0x68 | LEN | ADDR | CMD | DATA ... | CS      LEN counts LEN..CS, CS = (LEN+ADDR+CMD+ΣDATA) &
-0xFF
+    0x68 | LEN | ADDR | CMD | DATA ... | CS
+
+LEN counts LEN..CS; CS = (LEN + ADDR + CMD + ΣDATA) & 0xFF.
 
 Angles travel as 4 bytes of packed BCD (sign nibble, 3 integer digits, 4 decimals, degrees),
 temperatures as 3 (sign, 3 integer, 2 decimals, °C), the triaxial module's sines as 4 (sign,

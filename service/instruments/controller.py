@@ -5,8 +5,8 @@ Queries end in `?` and are answered with the same axis and command and the value
 
     nPA<p> nPR<p>    move to / by p          nTP?  position          nTS?  state (0..4)
     nST              stop                    nOR   home              nVA<v> / nVA?  velocity
-    nSL<p> nSR<p>    soft limits (+ ? form)  nTE?  last error, then cleared     nID?  model and
-serial
+    nSL<p> nSR<p>    soft limits (+ ? form)  nTE?  last error, then cleared
+    nID?             model and serial
 
 Like family (C), no checksum: a line is taken only if all of it has the grammar.
 """

@@ -2,20 +2,15 @@
 time.
 
 1. The first point of the spread grid is read with the request's settle rule and NOISE_READINGS
-readings:
-   its spread is each sensor's reading noise.
+   readings: its spread is each sensor's reading noise.
 2. The plan (service.calibration.adaptive_design) chooses the points and the readings at each from
-that noise;
-   a target the bench cannot reach fails the job naming the best it can.
+   that noise; a target the bench cannot reach fails the job naming the best it can.
 3. Every other point settles by the statistical test against that noise and is read as planned.
 4. The fit; its own covariance gives the predicted expanded U of the correction over the range. If
-it is above
-   the target (the plan's noise was optimistic), the plan's points are read once more, as often as
-the missing
-   information needs; still above, the job fails naming how close it came.
+   it is above the target (the plan's noise was optimistic), the plan's points are read once more,
+   as often as the missing information needs; still above, the job fails naming how close it came.
 5. The validation points as today (statistically settled, samples_per_point readings each). The
-record states
-   the predicted and the validated figures.
+   record states the predicted and the validated figures.
 """
 
 from __future__ import annotations

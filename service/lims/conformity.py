@@ -3,12 +3,10 @@
 Pure: a measured error e with its expanded uncertainty U at each point, a largest permissible
 error (MPE) and a decision rule give one statement for the quantity:
 
-| rule | pass | conditionalPass | conditionalFail | fail |
-| --- | --- | --- | --- | --- |
-| simple acceptance | |e| <= MPE at every point | - | - | otherwise |
-| guarded acceptance (w = r·U) | |e| <= MPE - w at every point | - | - | otherwise |
-| non-binary | |e| + U <= MPE at every point | worst: |e| <= MPE < |e| + U | worst: |e| - U <= MPE <
-|e| | some |e| - U > MPE |
+* simple acceptance: pass if |e| <= MPE at every point, fail otherwise;
+* guarded acceptance (w = r·U): pass if |e| <= MPE - w at every point, fail otherwise;
+* non-binary: pass if |e| + U <= MPE at every point; fail if some |e| - U > MPE; otherwise, at the
+  worst point, conditionalPass if |e| <= MPE < |e| + U, conditionalFail if |e| - U <= MPE < |e|.
 
 The quantity's statement is that of its worst point. Beside it goes the largest probability of
 false acceptance over the points (the probability that the true error lies beyond the MPE while

@@ -16,11 +16,9 @@ What is left out, and why:
   refused for what JSON Schema cannot state: `POST /calibrations` (the grid must lie within the
   bench's travel and hold as many points as the method needs, a product of two counts; the standards
   and order it names must exist and be valid: the lab's stored data), `POST /standards` (`due_on`
-must
-  come after `calibrated_on`: two values compared) and `GET /feed` (a cursor must be one the feed
-gave
-  out: it is opaque). Everything else the routes enforce the document states (docs/api.md, "The
-  OpenAPI document and request validation").
+  must come after `calibrated_on`: two values compared) and `GET /feed` (a cursor must be one the
+  feed gave out: it is opaque). Everything else the routes enforce the document states
+  (docs/api.md, "The OpenAPI document and request validation").
 
 Webhook URLs the generator invents never leave the machine: the daemon's outgoing HTTP goes to a
 closed loopback port.
