@@ -24,6 +24,7 @@ import sqlalchemy as sa
 
 from tests.fleet.fleet_helpers import Daemon
 from tests.fleet.pg_proxy import PgProxy
+from tests.helpers.waiting import eventually
 
 pytestmark = [pytest.mark.postgres]
 
@@ -167,12 +168,19 @@ def test_health_and_tilt_keep_their_latency_while_api_tokens_is_locked(
                         time.sleep(REQUEST_TIMEOUT_S + 1)
                         sick = _latencies(client, token)
                     trans.rollback()
-                # the lock gone, an unseen valid token is checked again as before
+                # the lock gone, an unseen valid token is checked again as before, once the
+                # daemon's next look at the database has found it back (503 until then)
                 admin = {
                     "Authorization": "Bearer "
                     + (daemon.data_dir / "admin.token").read_text().strip()
                 }
-                assert client.get("/records", headers=admin).status_code == 200
+                eventually(
+                    lambda: client.get("/records", headers=admin).status_code,
+                    until=lambda status: status == 200,
+                    timeout_s=30,
+                    every_s=0.2,
+                    what="/records answering 200 after the lock is gone",
+                )
         finally:
             locker.dispose()
         _named_the_database(answers)
