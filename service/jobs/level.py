@@ -1,5 +1,11 @@
 """Closed-loop levelling: stage commands from the active record, move, read the reference sensor
-back, and aim again by the remaining error until within tolerance.
+back, and aim again until within tolerance.
+
+Each read-back shows the record's error where the stage stands (a bias that stays) and the stage's
+positioning error of that move (repeatability, drawn anew with every move). The next aim corrects
+the mean of the offsets seen so far (achieved minus aimed), not the last one alone: chasing the
+last move's positioning error would add it to the next move's, doubling its variance, where the
+mean leaves σ²(1 + 1/k) after k read-backs.
 
 A record that models the stage's backlash aims for the side the stage will arrive from (each move's
 direction from where the stage stands); a record that models the reference sensor's own errors reads
@@ -31,6 +37,15 @@ def models_backlash(model: CalibrationModel) -> bool:
         name in model.parameters and not model.parameters[name].fixed and model.value(name) != 0.0
         for name in ("backlash.x_deg", "backlash.y_deg")
     )
+
+
+def next_aim(
+    target_deg: tuple[float, float], offsets_deg: list[tuple[float, float]]
+) -> tuple[float, float]:
+    """The tilt to aim at next: the target less the mean offset (achieved - aimed) of the read-backs
+    so far, the record's local error estimated without chasing one move's positioning error."""
+    bias = np.mean(np.asarray(offsets_deg, dtype=float), axis=0)
+    return target_deg[0] - float(bias[0]), target_deg[1] - float(bias[1])
 
 
 def _aim(
@@ -108,6 +123,7 @@ async def level(
 ) -> dict[str, Any]:
     aim_x, aim_y = x_deg, y_deg
     sx, sy = commands(active, aim_x, aim_y, bench.pose)  # refused before anything moves
+    offsets: list[tuple[float, float]] = []  # achieved - aimed, one per read-back
     achieved = raw = (float("nan"), float("nan"))
     how = "reference sensor, mean of the settled read-back"
     to_epoch = bench_epoch(bench)
@@ -134,7 +150,8 @@ async def level(
             return _answer(achieved, raw, how, it, (sx, sy), True)
         if it == max_iterations:
             break
-        aim_x, aim_y = aim_x + ex, aim_y + ey
+        offsets.append((achieved[0] - aim_x, achieved[1] - aim_y))
+        aim_x, aim_y = next_aim((x_deg, y_deg), offsets)
         sx, sy = commands(active, aim_x, aim_y, bench.pose)
     return _answer(achieved, raw, how, max_iterations, (sx, sy), False)
 

@@ -76,8 +76,10 @@ def test_calibrate_activate_tilt_and_level(daemon, method, tmp_path):
             json={
                 "x_deg": target[0],
                 "y_deg": target[1],
+                # twice the stage's repeatability (2.5 mdeg per axis): one move meets it on both
+                # axes about 0.91 of the time, so the loop is given room for the unlucky ones
                 "tolerance_deg": 0.005,
-                "max_iterations": 5,
+                "max_iterations": 8,
             },
         )
         assert r.status_code == 200, r.text
