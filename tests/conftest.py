@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import io
 import shutil
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -20,7 +19,7 @@ from alembic import command
 
 from service.storage.engine import make_engine
 from service.storage.migrate import alembic_config, upgrade
-from tests.helpers.postgres import PG_URL, pg_admin
+from tests.helpers.postgres import fresh_schema_url
 
 
 @pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
@@ -34,28 +33,9 @@ def db_url(backend: str, tmp_path) -> Iterator[str]:  # type: ignore[no-untyped-
     if backend == "sqlite":
         yield f"sqlite:///{tmp_path / 'tiltlab.db'}"
         return
-    admin = pg_admin()
-    schema = f"tiltlab_test_{uuid.uuid4().hex[:12]}"
-    with admin.begin() as conn:
-        conn.execute(sa.text(f'CREATE SCHEMA "{schema}"'))
-    # synchronous_commit=off: tests need no durability, and DDL-heavy commits wait less.
-    options = f"-csearch_path={schema} -csynchronous_commit=off"
-    # application_name marks the schema's connections, so teardown can end them (a killed writer's
-    # backend may still hold locks that DROP SCHEMA would wait on for ever)
-    url = sa.make_url(PG_URL).update_query_dict({"options": options, "application_name": schema})
-    try:
-        yield url.render_as_string(hide_password=False)
-    finally:
-        with admin.begin() as conn:
-            conn.execute(
-                sa.text(
-                    "SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
-                    " WHERE application_name = :schema"
-                ),
-                {"schema": schema},
-            )
-            conn.execute(sa.text("SET lock_timeout = '20s'"))
-            conn.execute(sa.text(f'DROP SCHEMA "{schema}" CASCADE'))
+    # synchronous_commit=off: tests need no durability, and DDL-heavy commits wait less
+    with fresh_schema_url("tiltlab_test", "-csynchronous_commit=off") as url:
+        yield url
 
 
 @pytest.fixture

@@ -23,6 +23,7 @@ covariance will show). Points are visited in serpentine order (rows of y, x alte
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -180,6 +181,81 @@ def serpentine(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
     for i, y in enumerate(sorted(rows)):
         out += sorted(rows[y], reverse=bool(i % 2))
     return out
+
+
+EXACT_TOUR_POINTS = 9  # up to this many points the shortest order is found exactly (Held-Karp)
+TWO_OPT_POINTS = 150  # up to this many the nearest-neighbour order is improved by 2-opt
+
+
+def short_tour(
+    start: tuple[float, float], points: list[tuple[float, float]]
+) -> list[tuple[float, float]]:
+    """`points` in an order that keeps the stages' travel short, from `start`: the shortest order
+    (Held-Karp) for a few points, else nearest neighbour, improved by 2-opt reversals up to
+    TWO_OPT_POINTS. Distance is the larger of the two axes' moves (the two stages move at once)."""
+    stops = np.array([start, *points], dtype=float).reshape(-1, 2)
+    n = len(points)
+    d = np.abs(stops[:, None, :] - stops[None, :, :]).max(axis=2)
+    if n <= EXACT_TOUR_POINTS:
+        return [points[i - 1] for i in _held_karp(d)]
+    order = _nearest_neighbour(d)
+    return [points[i - 1] for i in (_two_opt(d, order) if n <= TWO_OPT_POINTS else order)]
+
+
+def _two_opt(d: NDArray[np.float64], order: list[int]) -> list[int]:
+    """Reverse stretches of the open path from stop 0 while any reversal shortens it."""
+    path = [0, *order]
+    improved = True
+    while improved:
+        improved = False
+        for i in range(1, len(path) - 1):
+            for j in range(i + 1, len(path)):
+                after = d[path[i], path[j + 1]] if j + 1 < len(path) else 0.0
+                before = d[path[j], path[j + 1]] if j + 1 < len(path) else 0.0
+                gain = d[path[i - 1], path[i]] + before - d[path[i - 1], path[j]] - after
+                if gain > 1e-12:
+                    path[i : j + 1] = path[i : j + 1][::-1]
+                    improved = True
+    return path[1:]
+
+
+def _nearest_neighbour(d: NDArray[np.float64]) -> list[int]:
+    seen = np.zeros(d.shape[0], dtype=bool)
+    seen[0] = True
+    here, order = 0, []
+    for _ in range(d.shape[0] - 1):
+        here = int(np.argmin(np.where(seen, np.inf, d[here])))
+        seen[here] = True
+        order.append(here)
+    return order
+
+
+def _held_karp(d: NDArray[np.float64]) -> list[int]:
+    """The shortest open path from stop 0 through every other stop (indices 1..n)."""
+    n = d.shape[0] - 1
+    if n == 0:
+        return []
+    # best[(visited set as bits, last stop)] = (length, previous stop)
+    best: dict[tuple[int, int], tuple[float, int]] = {
+        (1 << (k - 1), k): (float(d[0, k]), 0) for k in range(1, n + 1)
+    }
+    for size in range(2, n + 1):
+        for subset in itertools.combinations(range(1, n + 1), size):
+            bits = sum(1 << (k - 1) for k in subset)
+            for last in subset:
+                rest = bits & ~(1 << (last - 1))
+                best[(bits, last)] = min(
+                    (best[(rest, prev)][0] + float(d[prev, last]), prev)
+                    for prev in subset
+                    if prev != last
+                )
+    bits = (1 << n) - 1
+    last = min(range(1, n + 1), key=lambda k: best[(bits, k)][0])
+    order = []
+    while last != 0:
+        order.append(last)
+        bits, last = bits & ~(1 << (last - 1)), best[(bits, last)][1]
+    return order[::-1]
 
 
 def spread_indices(n_x: int, n_y: int, min_grid: int) -> list[int]:

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from service.bench.readings import fresh_readings, robust_mean, settle, settle_statistical
 from service.bench.runtime import BenchRuntime, StageNotHomed
+from service.calibration.adaptive_design import short_tour
 from service.calibration.methods.stage import reference
 from service.calibration.model import CalibrationModel, table_tilt_range
 from service.calibration.registry import FitOptions, Method, get_method
@@ -155,13 +156,16 @@ class StageGrid(PointProcedure[StagePoint]):
         )
         xs, ys = np.array(points).T
         rng = validation_rng(len(points), req.validation.n_points)
-        val = [
+        drawn = [
             (float(round(x, 4)), float(round(y, 4)))
             for x, y in zip(
                 rng.uniform(xs.min(), xs.max(), req.validation.n_points),
                 rng.uniform(ys.min(), ys.max(), req.validation.n_points),
             )
         ]
+        # visited after the grid, from its last point, in the order of shortest travel (random
+        # order crossed the range between each two)
+        val = short_tour(points[-1], drawn)
         return Plan(points, val, "measurement_sensor", SENSORS)
 
     def stored_point(self, value: Any) -> StagePoint:

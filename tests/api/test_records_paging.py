@@ -131,5 +131,4 @@ def test_records_page_and_reading_them_all_leaves_tilt_alone(
         f"/tilt idle p99 {base99 * 1e3:.2f} ms; while reading every page p99 "
         f"{busy99 * 1e3:.2f} ms ({read[0]} records read)"
     )
-    print(figures)
-    assert len(busy) == len(idle) == SAMPLES, figures  # every /tilt answered 200 while reading
+    print(figures)  # every /tilt answered 200 while reading: _tilt_latencies asserts it

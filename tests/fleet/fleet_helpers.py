@@ -9,20 +9,16 @@ import shutil
 import socket
 import subprocess
 import sys
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
-import sqlalchemy as sa
 
 from tests.api.running_service import free_port
+from tests.helpers.postgres import fresh_schema_url
 from tests.helpers.waiting import eventually
 
-PG_URL = os.environ.get(
-    "TILTLAB_TEST_POSTGRES_URL", "postgresql+psycopg://root@127.0.0.1:5432/test"
-)
 # what a probe of a daemon, a broker or a database may meet while it is starting, cut or away
 UNREACHABLE = (httpx.TransportError, OSError)
 
@@ -75,33 +71,8 @@ class NatsServer:
 def postgres_schema_url() -> Iterator[str]:
     """A fresh schema in the test database, dropped afterwards (its sessions ended first: a killed
     daemon's connection must not hold the drop)."""
-    admin = sa.create_engine(PG_URL, connect_args={"connect_timeout": 3})
-    try:
-        with admin.connect() as conn:
-            conn.execute(sa.text("SELECT 1"))
-    except Exception as exc:  # noqa: BLE001 - any failure to connect means "no server here"
-        admin.dispose()
-        pytest.skip(f"PostgreSQL does not answer: {type(exc).__name__}")
-    schema = f"tiltlab_fleet_{uuid.uuid4().hex[:12]}"
-    with admin.begin() as conn:
-        conn.execute(sa.text(f'CREATE SCHEMA "{schema}"'))
-    url = sa.make_url(PG_URL).update_query_dict(
-        {"options": f"-csearch_path={schema}", "application_name": schema}
-    )
-    try:
-        yield url.render_as_string(hide_password=False)
-    finally:
-        with admin.begin() as conn:
-            conn.execute(
-                sa.text(
-                    "SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
-                    " WHERE application_name = :schema"
-                ),
-                {"schema": schema},
-            )
-            conn.execute(sa.text("SET lock_timeout = '20s'"))
-            conn.execute(sa.text(f'DROP SCHEMA "{schema}" CASCADE'))
-        admin.dispose()
+    with fresh_schema_url("tiltlab_fleet") as url:
+        yield url
 
 
 class Daemon:

@@ -4,7 +4,10 @@ schema; a test skips, saying why, if no server answers."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import uuid
+from collections.abc import Iterator
 
 import pytest
 import sqlalchemy as sa
@@ -35,3 +38,32 @@ def pg_admin() -> sa.Engine:
     if "error" in _pg_state:
         pytest.skip(str(_pg_state["error"]))
     return _pg_state["engine"]  # type: ignore[return-value]
+
+
+@contextlib.contextmanager
+def fresh_schema_url(prefix: str = "tiltlab_test", options: str = "") -> Iterator[str]:
+    """The URL of a fresh, empty schema in the test database (search_path on it, plus `options`),
+    dropped afterwards; skips the test if no server answers.
+
+    The schema's connections carry its name as application_name, so the drop can end them first (a
+    killed writer's backend may still hold locks that DROP SCHEMA would wait on for ever)."""
+    admin = pg_admin()
+    schema = f"{prefix}_{uuid.uuid4().hex[:12]}"
+    with admin.begin() as conn:
+        conn.execute(sa.text(f'CREATE SCHEMA "{schema}"'))
+    url = sa.make_url(PG_URL).update_query_dict(
+        {"options": f"-csearch_path={schema} {options}".strip(), "application_name": schema}
+    )
+    try:
+        yield url.render_as_string(hide_password=False)
+    finally:
+        with admin.begin() as conn:
+            conn.execute(
+                sa.text(
+                    "SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
+                    " WHERE application_name = :schema"
+                ),
+                {"schema": schema},
+            )
+            conn.execute(sa.text("SET lock_timeout = '20s'"))
+            conn.execute(sa.text(f'DROP SCHEMA "{schema}" CASCADE'))
