@@ -15,15 +15,57 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from enum import StrEnum
 
 from service.instruments.framing import Parsed, ParseStats, ascii_lines, reject_line
 
 EOL = b"\r\n"
-# Commands with an integer argument, queries (answered with an integer, or ID with text), bare
-# actions.
-SET_COMMANDS = ("PA", "PR", "VA", "SL", "SR")
-QUERIES = ("TP", "TS", "VA", "SL", "SR", "TE", "ID")
-ACTIONS = ("ST", "OR")
+
+
+class Mnemonic(StrEnum):
+    """The controller's two-letter commands, named for what they do."""
+
+    MOVE_TO = "PA"
+    MOVE_BY = "PR"
+    VELOCITY = "VA"
+    SOFT_LIMIT_LOW = "SL"
+    SOFT_LIMIT_HIGH = "SR"
+    POSITION = "TP"
+    STATE = "TS"
+    LAST_ERROR = "TE"
+    IDENTITY = "ID"
+    STOP = "ST"
+    HOME = "OR"
+
+
+@dataclass(frozen=True)
+class Form:
+    """How a mnemonic may be sent: with an integer argument (`sets`), as a query (`asks`: its
+    answer a number, or for ID text), bare (`acts`)."""
+
+    sets: bool = False
+    asks: bool = False
+    acts: bool = False
+
+
+# The one table of the protocol: the codec's grammar, the driver and the simulator read it.
+FORMS: dict[Mnemonic, Form] = {
+    Mnemonic.MOVE_TO: Form(sets=True),
+    Mnemonic.MOVE_BY: Form(sets=True),
+    Mnemonic.VELOCITY: Form(sets=True, asks=True),
+    Mnemonic.SOFT_LIMIT_LOW: Form(sets=True, asks=True),
+    Mnemonic.SOFT_LIMIT_HIGH: Form(sets=True, asks=True),
+    Mnemonic.POSITION: Form(asks=True),
+    Mnemonic.STATE: Form(asks=True),
+    Mnemonic.LAST_ERROR: Form(asks=True),
+    Mnemonic.IDENTITY: Form(asks=True),
+    Mnemonic.STOP: Form(acts=True),
+    Mnemonic.HOME: Form(acts=True),
+}
+SET_COMMANDS = tuple(m for m, form in FORMS.items() if form.sets)
+QUERIES = tuple(m for m, form in FORMS.items() if form.asks)
+ACTIONS = tuple(m for m, form in FORMS.items() if form.acts)
+NUMBER_QUERIES = tuple(m for m in QUERIES if m is not Mnemonic.IDENTITY)
 
 STATE_READY, STATE_MOVING, STATE_HOMING, STATE_HARD_LIMIT, STATE_ERROR = 0, 1, 2, 3, 4
 STATE_NAMES = {0: "ready", 1: "moving", 2: "homing", 3: "hard_limit", 4: "error"}
@@ -44,7 +86,7 @@ class ControllerCommand:
     forms."""
 
     axis: int
-    command: str
+    command: Mnemonic
     value: int | None = None
     query: bool = False
 
@@ -54,7 +96,7 @@ class ControllerAnswer:
     """The answer to a query: `value` for numbers, `text` for ID (`<model> <serial>`)."""
 
     axis: int
-    command: str
+    command: Mnemonic
     value: int | None = None
     text: str | None = None
 
@@ -71,8 +113,16 @@ class UnknownCommand:
 ControllerMessage = ControllerCommand | ControllerAnswer
 
 _INT = r"[+-]?\d{1,10}"
-_CMD = re.compile(rf"([1-9])(?:(PA|PR|VA|SL|SR)({_INT})|(TP|TS|VA|SL|SR|TE|ID)\?|(ST|OR))")
-_ANS = re.compile(rf"([1-9])(?:(TP|TS|VA|SL|SR|TE)({_INT})|ID([!-~]+ [!-~]+))")
+
+
+def _either(mnemonics: tuple[Mnemonic, ...]) -> str:
+    return "|".join(m.value for m in mnemonics)
+
+
+_CMD = re.compile(
+    rf"([1-9])(?:({_either(SET_COMMANDS)})({_INT})|({_either(QUERIES)})\?|({_either(ACTIONS)}))"
+)
+_ANS = re.compile(rf"([1-9])(?:({_either(NUMBER_QUERIES)})({_INT})|ID([!-~]+ [!-~]+))")
 
 
 def _axis(n: int) -> str:
@@ -98,7 +148,7 @@ def encode_command(msg: ControllerCommand) -> bytes:
 
 def encode_answer(msg: ControllerAnswer) -> bytes:
     a = _axis(msg.axis)
-    if msg.command == "ID":
+    if msg.command == Mnemonic.IDENTITY:
         if msg.text is None or not re.fullmatch(r"[!-~]+ [!-~]+", msg.text):
             raise ValueError("an ID answer is '<model> <serial>', printable, one space")
         return f"{a}ID{msg.text}".encode() + EOL
@@ -111,7 +161,7 @@ def encode(msg: ControllerMessage) -> bytes:
     return encode_command(msg) if isinstance(msg, ControllerCommand) else encode_answer(msg)
 
 
-_SECOND_HEAD = re.compile(rb".[1-9](?:PA|PR|VA|SL|SR|TP|TS|TE|ID|ST|OR)")
+_SECOND_HEAD = re.compile(rf".[1-9](?:{_either(tuple(FORMS))})".encode())
 
 
 def parse_commands(buf: bytes) -> Parsed[ControllerCommand | UnknownCommand]:
@@ -129,11 +179,11 @@ def parse_commands(buf: bytes) -> Parsed[ControllerCommand | UnknownCommand]:
             continue
         axis = int(m[1])
         if m[2]:
-            out.append(ControllerCommand(axis, m[2], int(m[3])))
+            out.append(ControllerCommand(axis, Mnemonic(m[2]), int(m[3])))
         elif m[4]:
-            out.append(ControllerCommand(axis, m[4], query=True))
+            out.append(ControllerCommand(axis, Mnemonic(m[4]), query=True))
         else:
-            out.append(ControllerCommand(axis, m[5]))
+            out.append(ControllerCommand(axis, Mnemonic(m[5])))
         st.frames += 1
     return Parsed(out, rest, st)
 
@@ -149,8 +199,8 @@ def parse_answers(buf: bytes) -> Parsed[ControllerAnswer]:
             reject_line(st, line)
             continue
         if m[2]:
-            out.append(ControllerAnswer(int(m[1]), m[2], value=int(m[3])))
+            out.append(ControllerAnswer(int(m[1]), Mnemonic(m[2]), value=int(m[3])))
         else:
-            out.append(ControllerAnswer(int(m[1]), "ID", text=m[4]))
+            out.append(ControllerAnswer(int(m[1]), Mnemonic.IDENTITY, text=m[4]))
         st.frames += 1
     return Parsed(out, rest, st)

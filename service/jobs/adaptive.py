@@ -32,6 +32,7 @@ from service.calibration.adaptive_design import (
     TargetUnreachable,
     plan_adaptive,
     predicted_u_of_covariance,
+    short_tour,
 )
 from service.calibration.methods.stage.common import MEAS_NAMES
 from service.calibration.model import CalibrationModel
@@ -273,7 +274,9 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     proc.fitted(model, fit_cols)
     n_fit = len(measured)
     await ctx.report(n_fit, n_fit + len(val_pts), Phase.VALIDATING)
-    for k, p in enumerate(val_pts):
+    # from where the stage stands after the plan (or its top-up pass), in the order of shortest
+    # travel
+    for k, p in enumerate(short_tour(measured[-1], val_pts)):
         await measure_stage_point(ctx, n_fit + k, *p, noise_deg=noise)
         await ctx.report(n_fit + k + 1, n_fit + len(val_pts), Phase.VALIDATING)
     points = await ctx.db(ctx.store.points.settled_points, job.id)

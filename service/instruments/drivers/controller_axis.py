@@ -16,6 +16,7 @@ from service.instruments.base import (
     MotionAxis,
     TwoAxisStage,
 )
+from service.instruments.controller import Mnemonic
 from service.instruments.drivers.common import SerialDriver, present
 from service.instruments.transport import DeviceError, DeviceRefused, DeviceTimeout, SerialPort
 
@@ -55,24 +56,24 @@ class ControllerAxis(SerialDriver, MotionAxis):
     async def configure(self) -> None:
         """Velocity and soft limits from the bench configuration."""
         if self.velocity_pulses_per_s is not None:
-            await self._send("VA", self.velocity_pulses_per_s)
+            await self._send(Mnemonic.VELOCITY, self.velocity_pulses_per_s)
         if self.soft_limits_deg is not None:
             lo, hi = (round(v / self.pulse_deg) for v in self.soft_limits_deg)
-            await self._send("SL", lo)
-            await self._send("SR", hi)
+            await self._send(Mnemonic.SOFT_LIMIT_LOW, lo)
+            await self._send(Mnemonic.SOFT_LIMIT_HIGH, hi)
 
-    async def _send(self, command: str, value: int | None = None) -> None:
+    async def _send(self, command: Mnemonic, value: int | None = None) -> None:
         await self.port.send(
             controller.encode_command(controller.ControllerCommand(self.axis, command, value))
         )
 
-    async def _query(self, command: str) -> controller.ControllerAnswer:
+    async def _query(self, command: Mnemonic) -> controller.ControllerAnswer:
         """Ask a value. The error code is waited for longer than other answers: asking it clears it,
         so it cannot be asked again when a loaded host holds its answer past one timeout."""
         req = controller.encode_command(
             controller.ControllerCommand(self.axis, command, query=True)
         )
-        patience = ERROR_QUERY_PATIENCE if command == "TE" else 1
+        patience = ERROR_QUERY_PATIENCE if command == Mnemonic.LAST_ERROR else 1
         answer: controller.ControllerAnswer = await self._ask(
             req,
             lambda m: (
@@ -85,11 +86,11 @@ class ControllerAxis(SerialDriver, MotionAxis):
         )
         return answer
 
-    async def _checked(self, command: str, value: int | None, what: str) -> None:
+    async def _checked(self, command: Mnemonic, value: int | None, what: str) -> None:
         """Send a command the controller does not answer, then ask its error code: refusals
         raise."""
         await self._send(command, value)
-        code = (await self._query("TE")).value
+        code = (await self._query(Mnemonic.LAST_ERROR)).value
         if code:
             raise DeviceRefused(
                 f"{self.role}: axis {self.axis} {what}: "
@@ -97,16 +98,16 @@ class ControllerAxis(SerialDriver, MotionAxis):
             )
 
     async def identify(self) -> DeviceIdentity:
-        ans = await self._query("ID")
+        ans = await self._query(Mnemonic.IDENTITY)
         model, _, serial = str(present(ans.text, "identify")).partition(" ")
         self.identity = DeviceIdentity(model=model, serial=serial)
         return self.identity
 
     async def move_to_pulses(self, pulses: int) -> None:
-        await self._checked("PA", int(pulses), f"move to {int(pulses)} pulses")
+        await self._checked(Mnemonic.MOVE_TO, int(pulses), f"move to {int(pulses)} pulses")
 
     async def move_by_pulses(self, pulses: int) -> None:
-        await self._checked("PR", int(pulses), f"move by {int(pulses)} pulses")
+        await self._checked(Mnemonic.MOVE_BY, int(pulses), f"move by {int(pulses)} pulses")
 
     async def move_to_deg(self, angle_deg: float) -> int:
         pulses = round(angle_deg / self.pulse_deg)
@@ -114,25 +115,25 @@ class ControllerAxis(SerialDriver, MotionAxis):
         return pulses
 
     async def position_pulses(self) -> int:
-        return int(present((await self._query("TP")).value, "query TP"))
+        return int(present((await self._query(Mnemonic.POSITION)).value, "query TP"))
 
     async def position_deg(self) -> float:
         return await self.position_pulses() * self.pulse_deg
 
     async def velocity_pulses(self) -> int:
-        return int(present((await self._query("VA")).value, "query VA"))
+        return int(present((await self._query(Mnemonic.VELOCITY)).value, "query VA"))
 
     async def soft_limits_pulses(self) -> tuple[int, int]:
         return (
-            int(present((await self._query("SL")).value, "query SL")),
-            int(present((await self._query("SR")).value, "query SR")),
+            int(present((await self._query(Mnemonic.SOFT_LIMIT_LOW)).value, "query SL")),
+            int(present((await self._query(Mnemonic.SOFT_LIMIT_HIGH)).value, "query SR")),
         )
 
     async def last_error(self) -> int:
-        return int(present((await self._query("TE")).value, "query TE"))
+        return int(present((await self._query(Mnemonic.LAST_ERROR)).value, "query TE"))
 
     async def state(self) -> AxisState:
-        code = int(present((await self._query("TS")).value, "query TS"))
+        code = int(present((await self._query(Mnemonic.STATE)).value, "query TS"))
         return controller.STATE_NAMES.get(code, "error")  # type: ignore[return-value]
 
     async def wait_until_idle(self, timeout_s: float, poll_s: float = 0.05) -> float:
@@ -165,10 +166,10 @@ class ControllerAxis(SerialDriver, MotionAxis):
             await self.clock.sleep(poll_s)
 
     async def stop(self) -> None:
-        await self._send("ST")
+        await self._send(Mnemonic.STOP)
 
     async def home(self) -> None:
-        await self._checked("OR", None, "home")
+        await self._checked(Mnemonic.HOME, None, "home")
 
 
 class StageController(TwoAxisStage):

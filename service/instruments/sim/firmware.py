@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 from service.clock import Clock
 from service.instruments import adc, binary, controller, rs485
+from service.instruments.controller import Mnemonic
 from service.instruments.framing import Decoder
 from service.instruments.sim.world import NO_LIMIT, Axis
 
@@ -276,40 +277,40 @@ class ControllerFirmware(AnsweringFirmware):
     ) -> controller.ControllerAnswer | None:
         n, c = cmd.axis, cmd.command
         if cmd.query:
-            if c == "ID":
-                return controller.ControllerAnswer(n, "ID", text=f"{self.model} {self.serial}")
-            if c == "TE":
+            if c == Mnemonic.IDENTITY:
+                return controller.ControllerAnswer(n, c, text=f"{self.model} {self.serial}")
+            if c == Mnemonic.LAST_ERROR:
                 code, ax.error = ax.error, controller.ERR_NONE
-                return controller.ControllerAnswer(n, "TE", code)
+                return controller.ControllerAnswer(n, c, code)
             value = {
-                "TP": lambda: ax.position_pulses(),
-                "TS": lambda: ax.state,
-                "VA": lambda: int(ax.velocity_pps),
-                "SL": lambda: ax.soft[0] if ax.soft else -NO_LIMIT,
-                "SR": lambda: ax.soft[1] if ax.soft else NO_LIMIT,
+                Mnemonic.POSITION: lambda: ax.position_pulses(),
+                Mnemonic.STATE: lambda: ax.state,
+                Mnemonic.VELOCITY: lambda: int(ax.velocity_pps),
+                Mnemonic.SOFT_LIMIT_LOW: lambda: ax.soft[0] if ax.soft else -NO_LIMIT,
+                Mnemonic.SOFT_LIMIT_HIGH: lambda: ax.soft[1] if ax.soft else NO_LIMIT,
             }[c]()
             return controller.ControllerAnswer(n, c, value)
         err = controller.ERR_NONE
-        if cmd.value is None and c in ("PA", "PR", "VA", "SL", "SR"):
+        if cmd.value is None and c in controller.SET_COMMANDS:
             ax.error = controller.ERR_UNKNOWN  # a setting without its number
             return None
         value = int(cmd.value or 0)
-        if c == "PA":
+        if c == Mnemonic.MOVE_TO:
             err = ax.move_to(value)
-        elif c == "PR":
+        elif c == Mnemonic.MOVE_BY:
             err = ax.move_to(ax.position_pulses() + value)
-        elif c == "ST":
+        elif c == Mnemonic.STOP:
             ax.stop()
-        elif c == "OR":
+        elif c == Mnemonic.HOME:
             err = ax.home()
-        elif c == "VA":
+        elif c == Mnemonic.VELOCITY:
             if value <= 0:
                 err = controller.ERR_UNKNOWN
             else:
                 ax.velocity_pps = float(value)
-        elif c in ("SL", "SR"):
+        elif c in (Mnemonic.SOFT_LIMIT_LOW, Mnemonic.SOFT_LIMIT_HIGH):
             lo, hi = ax.soft if ax.soft else (-NO_LIMIT, NO_LIMIT)
-            ax.soft = (value, hi) if c == "SL" else (lo, value)
+            ax.soft = (value, hi) if c == Mnemonic.SOFT_LIMIT_LOW else (lo, value)
         if err:
             ax.error = err
         return None
