@@ -64,8 +64,8 @@ class BenchTimes:
     approach_deg: float = 0.1
 
     def move_s(self, a: tuple[float, float], b: tuple[float, float]) -> float:
-        d = max(abs(b[0] - a[0]), abs(b[1] - a[1]))  # the two stages move at once
-        return (d + 2 * self.approach_deg) / self.stage_rate_deg_per_s
+        travel_deg = max(abs(b[0] - a[0]), abs(b[1] - a[1]))  # the two stages move at once
+        return (travel_deg + 2 * self.approach_deg) / self.stage_rate_deg_per_s
 
     def point_s(self, n: int) -> float:
         return self.settle_s + n / self.output_rate_hz
@@ -117,14 +117,14 @@ def jacobian(
     sign = np.ones(2)
     out = np.empty((points.shape[0], 2, p0.size))
     for j, (_, _, scale) in enumerate(MEAS_PARAMS):
-        h = 1e-3 * scale
+        step = 1e-3 * scale
         up, dn = p0.copy(), p0.copy()
-        up[j] += h
-        dn[j] -= h
+        up[j] += step
+        dn[j] -= step
         a1, b1 = meas_forward(up, sign, points[:, 0], points[:, 1])
         a0, b0 = meas_forward(dn, sign, points[:, 0], points[:, 1])
-        out[:, 0, j] = (a1 - a0) / (2 * h)
-        out[:, 1, j] = (b1 - b0) / (2 * h)
+        out[:, 0, j] = (a1 - a0) / (2 * step)
+        out[:, 1, j] = (b1 - b0) / (2 * step)
     return out
 
 
@@ -157,18 +157,18 @@ class Design:
             return None
         if not np.all(np.isfinite(cov)) or np.linalg.cond(info) > 1e14:
             return None
-        v: NDArray[np.float64] = np.einsum("eap,pq,eaq->ea", self.je, cov, self.je)
-        return v
+        variance: NDArray[np.float64] = np.einsum("eap,pq,eaq->ea", self.je, cov, self.je)
+        return variance
 
     def criterion(self, counts: NDArray[np.float64]) -> float:
-        v = self.variances(counts)
-        return math.inf if v is None else float(v.mean())
+        variance = self.variances(counts)
+        return math.inf if variance is None else float(variance.mean())
 
     def expanded_u(self, counts: NDArray[np.float64]) -> float:
-        v = self.variances(counts)
-        if v is None:
+        variance = self.variances(counts)
+        if variance is None:
             return math.inf
-        return K_EXPANDED * math.sqrt(float(v.max()) + self.noise.fixed_u_deg**2)
+        return K_EXPANDED * math.sqrt(float(variance.max()) + self.noise.fixed_u_deg**2)
 
 
 def serpentine(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
@@ -195,11 +195,11 @@ def short_tour(
     TWO_OPT_POINTS. Distance is the larger of the two axes' moves (the two stages move at once)."""
     stops = np.array([start, *points], dtype=float).reshape(-1, 2)
     n = len(points)
-    d = np.abs(stops[:, None, :] - stops[None, :, :]).max(axis=2)
+    distances = np.abs(stops[:, None, :] - stops[None, :, :]).max(axis=2)
     if n <= EXACT_TOUR_POINTS:
-        return [points[i - 1] for i in _held_karp(d)]
-    order = _nearest_neighbour(d)
-    return [points[i - 1] for i in (_two_opt(d, order) if n <= TWO_OPT_POINTS else order)]
+        return [points[i - 1] for i in _held_karp(distances)]
+    order = _nearest_neighbour(distances)
+    return [points[i - 1] for i in (_two_opt(distances, order) if n <= TWO_OPT_POINTS else order)]
 
 
 def _two_opt(d: NDArray[np.float64], order: list[int]) -> list[int]:
@@ -260,8 +260,8 @@ def _held_karp(d: NDArray[np.float64]) -> list[int]:
 
 def spread_indices(n_x: int, n_y: int, min_grid: int) -> list[int]:
     """The candidate lattice's points nearest a min_grid x min_grid grid over the whole range."""
-    ix = sorted({int(round(v)) for v in np.linspace(0, n_x - 1, min(min_grid, n_x))})
-    iy = sorted({int(round(v)) for v in np.linspace(0, n_y - 1, min(min_grid, n_y))})
+    ix = sorted({int(round(position)) for position in np.linspace(0, n_x - 1, min(min_grid, n_x))})
+    iy = sorted({int(round(position)) for position in np.linspace(0, n_y - 1, min(min_grid, n_y))})
     return [j * n_x + i for j in iy for i in ix]
 
 
@@ -323,26 +323,28 @@ def plan_adaptive(
     aim = PLAN_MARGIN * target_deg
 
     def n_for(mask: NDArray[np.bool_]) -> float:
-        v = design.variances(mask.astype(float))
+        variance = design.variances(mask.astype(float))
         return (
             math.inf
-            if v is None
-            else max(readings_needed(float(v.max()), aim, noise.fixed_u_deg), float(MIN_READINGS))
+            if variance is None
+            else max(
+                readings_needed(float(variance.max()), aim, noise.fixed_u_deg), float(MIN_READINGS)
+            )
         )
 
     def cost(mask: NDArray[np.bool_], n: float) -> float:
         tour = serpentine([(float(cand[i, 0]), float(cand[i, 1])) for i in np.nonzero(mask)[0]])
-        travel = sum(times.move_s(a, b) for a, b in zip(tour, tour[1:]))
+        travel = sum(times.move_s(from_pt, to_pt) for from_pt, to_pt in zip(tour, tour[1:]))
         return travel + float(mask.sum()) * times.point_s(int(math.ceil(n)))
 
     n = n_for(chosen)
     while True:
         here = design.criterion(chosen.astype(float))
         options = []
-        for c in np.nonzero(~chosen)[0]:
+        for candidate in np.nonzero(~chosen)[0]:
             trial = chosen.copy()
-            trial[c] = True
-            options.append((design.criterion(trial.astype(float)), int(c)))
+            trial[candidate] = True
+            options.append((design.criterion(trial.astype(float)), int(candidate)))
         if not options:
             break
         crit, pick = min(options)
@@ -359,9 +361,9 @@ def plan_adaptive(
     readings = [n_int] * len(order)
     counts = chosen.astype(float) * n_int
     seconds, here_pt = 0.0, (x_deg[0], y_deg[0])
-    for p in order:
-        seconds += times.move_s(here_pt, p) + times.point_s(n_int)
-        here_pt = p
+    for point in order:
+        seconds += times.move_s(here_pt, point) + times.point_s(n_int)
+        here_pt = point
     return AdaptivePlan(
         order,
         readings,
@@ -390,5 +392,5 @@ def predicted_u_of_covariance(
     """The expanded U of the correction over the range from a fitted model's covariance of
     MEAS_PARAMS."""
     je = jacobian(lattice(x_deg, y_deg, EVAL_GRID, EVAL_GRID), p0)
-    v = np.einsum("eap,pq,eaq->ea", je, cov, je)
-    return K_EXPANDED * math.sqrt(float(v.max()) + fixed_u_deg**2)
+    variance = np.einsum("eap,pq,eaq->ea", je, cov, je)
+    return K_EXPANDED * math.sqrt(float(variance.max()) + fixed_u_deg**2)

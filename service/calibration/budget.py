@@ -50,9 +50,9 @@ class Component:
     note: str = ""
 
     def as_json(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["dof"] = None if not math.isfinite(self.dof) else self.dof
-        return d
+        record = asdict(self)
+        record["dof"] = None if not math.isfinite(self.dof) else self.dof
+        return record
 
 
 def component_of_json(d: Mapping[str, Any]) -> Component:
@@ -110,9 +110,9 @@ def temperature_component(
     counts.
     """
     t = np.asarray(temps_c, dtype=float)
-    e = np.asarray(errors_deg, dtype=float).reshape(t.size, -1)
-    ok = np.isfinite(t) & np.all(np.isfinite(e), axis=1)
-    t, e = t[ok], e[ok]
+    errors = np.asarray(errors_deg, dtype=float).reshape(t.size, -1)
+    ok = np.isfinite(t) & np.all(np.isfinite(errors), axis=1)
+    t, errors = t[ok], errors[ok]
     if t.size < 3:
         return None, {"n_points": int(t.size)}
     span = float(t.max() - t.min())
@@ -125,16 +125,17 @@ def temperature_component(
     }
     if span < TEMPERATURE_VARIED_C:
         return None, stats
-    A = np.column_stack([np.ones_like(t), t - t.mean()])
-    slopes = np.linalg.lstsq(A, e, rcond=None)[0][1]
-    c = float(np.max(np.abs(slopes)))
-    stats["coefficient_deg_per_c"] = c
+    design = np.column_stack([np.ones_like(t), t - t.mean()])
+    slopes = np.linalg.lstsq(design, errors, rcond=None)[0][1]
+    coefficient = float(np.max(np.abs(slopes)))
+    stats["coefficient_deg_per_c"] = coefficient
     return Component(
         "temperature",
         f"temperature influence over {span:.2f} °C (not corrected by the model)",
-        c * span / SQRT12,
+        coefficient * span / SQRT12,
         distribution="rectangular",
-        note=f"|c| = {c:.3g} deg/°C from the fit's residuals against temperature: u = |c|·ΔT/√12",
+        note=f"|c| = {coefficient:.3g} deg/°C from the fit's residuals against temperature: "
+        "u = |c|·ΔT/√12",
     ), stats
 
 
@@ -168,12 +169,12 @@ def combine(
         if math.isfinite(other.dof):
             parts.append((np.full(uf.shape, other.u_deg**2), other.dof))
     if parts:
-        denom = denom + sum(v**2 / d for v, d in parts)
+        denom = denom + sum(part_var**2 / part_dof for part_var, part_dof in parts)
     with np.errstate(divide="ignore", invalid="ignore"):
         dof = np.where(denom > 0, total**2 / np.where(denom > 0, denom, 1.0), np.inf)
     k = np.asarray(coverage_factor(dof, coverage), dtype=float)
-    u = np.sqrt(total)
-    return Combined(u, dof, k, k * u)
+    u_c = np.sqrt(total)
+    return Combined(u_c, dof, k, k * u_c)
 
 
 def model_dof(model: Mapping[str, Any]) -> float:
@@ -188,16 +189,16 @@ def model_dof(model: Mapping[str, Any]) -> float:
 
     def walk(node: Any) -> None:
         if isinstance(node, Mapping):
-            for k, v in node.items():
+            for k, value in node.items():
                 if (
                     k in ("dof", "meas_dof")
-                    and isinstance(v, int | float)
-                    and not isinstance(v, bool)
-                    and v > 0
+                    and isinstance(value, int | float)
+                    and not isinstance(value, bool)
+                    and value > 0
                 ):
-                    found.append(float(v))
+                    found.append(float(value))
                 else:
-                    walk(v)
+                    walk(value)
 
     walk(model.get("fit") or {})
     walk(model.get("state") or {})
@@ -259,11 +260,14 @@ def current_names(budget: Mapping[str, Any] | None) -> dict[str, Any] | None:
     if budget is None:
         return None
     results = []
-    for r in budget.get("results") or []:
-        entry = {_FORMER_RESULT_KEYS.get(key, key): v for key, v in r.items()}
+    for result in budget.get("results") or []:
+        entry = {_FORMER_RESULT_KEYS.get(key, key): value for key, value in result.items()}
         entry["contributions"] = [
-            {("standard_uncertainty" if key == "u" else key): v for key, v in c.items()}
-            for c in r.get("contributions") or []
+            {
+                ("standard_uncertainty" if key == "u" else key): value
+                for key, value in contribution.items()
+            }
+            for contribution in result.get("contributions") or []
         ]
         results.append(entry)
     return {**budget, "results": results}
@@ -299,20 +303,23 @@ def record_budget(
     influence.
     """
     comps: list[Component] = []
-    for s in standards:
-        U, k = s.get("expanded_uncertainty_deg"), s.get("coverage_factor")
-        if U is None or k is None:
-            raise ValueError(f"reference standard {s.get('name')!r} states no numeric uncertainty")
+    for standard in standards:
+        expanded, k = standard.get("expanded_uncertainty_deg"), standard.get("coverage_factor")
+        if expanded is None or k is None:
+            raise ValueError(
+                f"reference standard {standard.get('name')!r} states no numeric uncertainty"
+            )
         comps.append(
             standard_component(
-                f"{s['name']} (serial {s['serial']}, certificate {s.get('certificate_id')})",
-                float(U),
+                f"{standard['name']} (serial {standard['serial']}, "
+                f"certificate {standard.get('certificate_id')})",
+                float(expanded),
                 float(k),
             )
         )
-    for what, r in resolutions_deg.items():
-        if r:
-            comps.append(resolution_component(f"{what} resolution", float(r)))
+    for what, resolution in resolutions_deg.items():
+        if resolution:
+            comps.append(resolution_component(f"{what} resolution", float(resolution)))
     temperature: dict[str, Any] = {}
     if temps_c is not None and errors_deg is not None:
         tc, temperature = temperature_component(temps_c, errors_deg)
@@ -334,8 +341,8 @@ def record_budget(
                 )
             )
     angle_scale = [comp for comp in comps if comp.source == "reference_standard"]
-    for name, p in parameters.items():
-        unit = str(p.get("unit", ""))
+    for name, param in parameters.items():
+        unit = str(param.get("unit", ""))
         if name not in parameter_u or not carries_reference_scale(name, unit):
             continue
         results.append(
@@ -362,4 +369,4 @@ def reading_components(budget: Mapping[str, Any] | None) -> list[Component]:
     temperature)."""
     if not budget:
         return []
-    return [component_of_json(c) for c in budget.get("components") or []]
+    return [component_of_json(component) for component in budget.get("components") or []]

@@ -19,10 +19,10 @@ REL_STEP = 1e-6
 
 def fd_step(value: ArrayLike, typical: ArrayLike = 0.0) -> NDArray[np.float64]:
     """Finite-difference step for `value` (array or scalar) whose typical magnitude is `typical`."""
-    h = REL_STEP * np.maximum(
+    step = REL_STEP * np.maximum(
         np.abs(np.asarray(value, dtype=float)), np.asarray(typical, dtype=float)
     )
-    return np.where(h > 0, h, REL_STEP)
+    return np.where(step > 0, step, REL_STEP)
 
 
 def central_jacobian(
@@ -36,7 +36,7 @@ def central_jacobian(
     steps = np.broadcast_to(fd_step(x, typical), x.shape)
     cols = []
     for i in range(x.size):
-        e = np.zeros_like(x)
-        e[i] = steps[i]
-        cols.append((np.asarray(fun(x + e)) - np.asarray(fun(x - e))) / (2 * steps[i]))
+        offset = np.zeros_like(x)
+        offset[i] = steps[i]
+        cols.append((np.asarray(fun(x + offset)) - np.asarray(fun(x - offset))) / (2 * steps[i]))
     return np.stack(cols, axis=-1)

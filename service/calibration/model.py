@@ -29,12 +29,12 @@ class Parameter:
     note: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"value": _num(self.value), "unit": self.unit}
+        entry: dict[str, Any] = {"value": _num(self.value), "unit": self.unit}
         if self.fixed:
-            d["fixed"] = True
+            entry["fixed"] = True
         if self.note:
-            d["note"] = self.note
-        return d
+            entry["note"] = self.note
+        return entry
 
 
 @dataclass
@@ -67,7 +67,7 @@ class CalibrationModel:
             return None
         idx = {n: i for i, n in enumerate(self.covariance_names)}
         out = np.zeros((len(names), len(names)))
-        listed = [(a, idx[n]) for a, n in enumerate(names) if n in idx]
+        listed = [(position, idx[n]) for position, n in enumerate(names) if n in idx]
         if listed:
             at, src = np.array(listed).T
             out[at[:, None], at] = np.asarray(self.covariance)[src[:, None], src]
@@ -81,12 +81,12 @@ class CalibrationModel:
 
     # --- JSON -------------------------------------------------------------------------
     def to_json_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {
+        doc: dict[str, Any] = {
             "format_version": FORMAT_VERSION,
             "kind": self.kind,
             "method": self.method,
             "columns": list(self.columns),
-            "parameters": {k: p.to_dict() for k, p in self.parameters.items()},
+            "parameters": {k: param.to_dict() for k, param in self.parameters.items()},
             "covariance": None,
             "residuals": _jsonable(self.residuals),
             "fit": _jsonable(self.fit),
@@ -95,13 +95,13 @@ class CalibrationModel:
             "state": _jsonable(self.state),
         }
         if self.covariance is not None:
-            d["covariance"] = {
+            doc["covariance"] = {
                 "names": list(self.covariance_names),
-                "matrix": [[_num(v) for v in row] for row in np.asarray(self.covariance)],
+                "matrix": [[_num(value) for value in row] for row in np.asarray(self.covariance)],
             }
         if self.provenance:
-            d["provenance"] = _jsonable(self.provenance)
-        return d
+            doc["provenance"] = _jsonable(self.provenance)
+        return doc
 
     @classmethod
     def from_json_dict(cls, d: Any, source: str = "model") -> CalibrationModel:
@@ -119,7 +119,9 @@ class CalibrationModel:
         for key in ("kind", "method"):
             if not isinstance(d[key], str):
                 raise InputError(f"{source}: field {key}: must be a string")
-        if not isinstance(d["columns"], list) or not all(isinstance(c, str) for c in d["columns"]):
+        if not isinstance(d["columns"], list) or not all(
+            isinstance(column, str) for column in d["columns"]
+        ):
             raise InputError(f"{source}: field columns: must be a list of column names")
         for key, kind in (
             ("residuals", dict),
@@ -136,20 +138,23 @@ class CalibrationModel:
         params = {}
         if not isinstance(d["parameters"], dict):
             raise InputError(f"{source}: field parameters: must be an object")
-        for name, p in d["parameters"].items():
-            if not isinstance(p, dict) or "value" not in p or "unit" not in p:
+        for name, entry in d["parameters"].items():
+            if not isinstance(entry, dict) or "value" not in entry or "unit" not in entry:
                 raise InputError(f"{source}: field parameters.{name}: needs value and unit")
-            v = p["value"]
+            value = entry["value"]
             if (
-                not isinstance(v, (int, float))
-                or isinstance(v, bool)
-                or not math.isfinite(float(v))
+                not isinstance(value, (int, float))
+                or isinstance(value, bool)
+                or not math.isfinite(float(value))
             ):
                 raise InputError(
-                    f"{source}: field parameters.{name}.value: {v!r} is not a finite number"
+                    f"{source}: field parameters.{name}.value: {value!r} is not a finite number"
                 )
             params[name] = Parameter(
-                float(v), str(p["unit"]), bool(p.get("fixed", False)), str(p.get("note", ""))
+                float(value),
+                str(entry["unit"]),
+                bool(entry.get("fixed", False)),
+                str(entry.get("note", "")),
             )
         cov = d.get("covariance")
         names: list[str] = []
@@ -189,15 +194,15 @@ class CalibrationModel:
 
 
 def _num(v: float | np.floating) -> float | None:
-    f = float(v)
-    return f if math.isfinite(f) else None
+    number = float(v)
+    return number if math.isfinite(number) else None
 
 
 def _jsonable(obj: Any) -> Any:
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): _jsonable(item) for k, item in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [_jsonable(item) for item in obj]
     if isinstance(obj, np.ndarray):
         return _jsonable(obj.tolist())
     if isinstance(obj, (np.floating, float)):
@@ -240,7 +245,7 @@ def stored_range(seen: Any) -> dict[str, list[float]] | None:
         if not (
             isinstance(pair, list)
             and len(pair) == 2
-            and all(isinstance(v, int | float) for v in pair)
+            and all(isinstance(bound, int | float) for bound in pair)
         ):
             return None
         out[axis] = [float(pair[0]), float(pair[1])]
@@ -252,13 +257,13 @@ def residual_summary(
 ) -> dict[str, Any]:
     """RMS, max |r| (and the values) of each residual column: what every model reports."""
     cols = {}
-    for name, r in residuals.items():
-        r = np.asarray(r, dtype=float)
+    for name, values in residuals.items():
+        values = np.asarray(values, dtype=float)
         entry: dict[str, Any] = {
-            "rms": float(np.sqrt(np.mean(r**2))) if r.size else 0.0,
-            "max_abs": float(np.max(np.abs(r))) if r.size else 0.0,
+            "rms": float(np.sqrt(np.mean(values**2))) if values.size else 0.0,
+            "max_abs": float(np.max(np.abs(values))) if values.size else 0.0,
         }
         if keep_values:
-            entry["values"] = r.tolist()
+            entry["values"] = values.tolist()
         cols[name] = entry
     return {"unit": unit, "columns": cols}

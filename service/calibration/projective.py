@@ -34,8 +34,8 @@ def check_general_position(
         raise DegenerateDataError(
             f"{what}: a homography needs at least 4 distinct points, got {len(pts)}"
         )
-    c = pts - pts.mean(axis=0)
-    sv = np.linalg.svd(c, compute_uv=False)
+    centred = pts - pts.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)
     if sv[1] <= 1e-9 * max(sv[0], 1e-12):
         raise DegenerateDataError(
             f"{what}: all {len(pts)} points lie on one line; a homography needs points "
@@ -55,14 +55,14 @@ def _clearly_general(X: NDArray[np.float64], M: list[list[float]]) -> bool:
     picks = np.sort(X, axis=1)[:, : 3 * k + 1 : k].tolist()
     gap = 1e-6 * (1.0 + max(max(row[3], -row[0]) for row in picks))  # far above the check's 1e-9
     for i, j in ((0, 1), (3, 4)):
-        u, v = picks[i], picks[j]
+        picks_i, picks_j = picks[i], picks[j]
         if not (
-            min(u[1] - u[0], u[2] - u[1], u[3] - u[2]) > gap
-            or min(v[1] - v[0], v[2] - v[1], v[3] - v[2]) > gap
+            min(picks_i[1] - picks_i[0], picks_i[2] - picks_i[1], picks_i[3] - picks_i[2]) > gap
+            or min(picks_j[1] - picks_j[0], picks_j[2] - picks_j[1], picks_j[3] - picks_j[2]) > gap
         ):
             return False
-        a, b, d = M[i][i], M[i][j], M[j][j]
-        if not a * d - b * b > 1e-6 * (a + d) ** 2:
+        s_ii, s_ij, s_jj = M[i][i], M[i][j], M[j][j]
+        if not s_ii * s_jj - s_ij * s_ij > 1e-6 * (s_ii + s_jj) ** 2:
             return False
     return True
 
@@ -74,9 +74,9 @@ def _points(
     dy: NDArray[np.float64],
 ) -> NDArray[np.float64]:
     """Rows src x, src y, 1, dst x, dst y: the layout the transfer error and its Jacobian read."""
-    X = np.empty((5, sx.size))
-    X[0], X[1], X[2], X[3], X[4] = sx, sy, 1.0, dx, dy
-    return X
+    layout = np.empty((5, sx.size))
+    layout[0], layout[1], layout[2], layout[3], layout[4] = sx, sy, 1.0, dx, dy
+    return layout
 
 
 class _Transfer:
@@ -126,7 +126,7 @@ def transfer_residuals(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Transfer error [H·src - dst in x; in y] (2n) of H = (h8, 1) and, analytically, its Jacobian
     (2n x 8)."""
-    t = _Transfer(_points(*(np.asarray(v, dtype=float) for v in (sx, sy, dx, dy))))
+    t = _Transfer(_points(*(np.asarray(coord, dtype=float) for coord in (sx, sy, dx, dy))))
     neg_r, neg_p, neg_w_inv = t.negative_residuals(np.asarray(h8, dtype=float))
     return -neg_r.ravel(), -t.negative_jacobian_t(neg_p, neg_w_inv).T
 
@@ -138,24 +138,24 @@ def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float6
     products."""
     t = _Transfer(X)
     neg_R, neg_p, neg_w_inv = t.negative_residuals(h)
-    r = neg_R.ravel()  # the residuals' sign does not matter below: only with the Jacobian's
-    cost = float(np.vdot(r, r))
+    residual = neg_R.ravel()  # the residuals' sign does not matter below: only with the Jacobian's
+    cost = float(np.vdot(residual, residual))
     Kt = t.negative_jacobian_t(neg_p, neg_w_inv)
-    N = Kt @ Kt.T
-    norms = np.sqrt(N.diagonal())  # the columns' scales hardly move: taken once
+    normal = Kt @ Kt.T
+    norms = np.sqrt(normal.diagonal())  # the columns' scales hardly move: taken once
     norms[norms == 0] = 1.0
     inv_norms = 1.0 / norms
-    N *= np.multiply.outer(inv_norms, inv_norms)
-    g = (Kt @ r) * inv_norms
+    normal *= np.multiply.outer(inv_norms, inv_norms)
+    gradient = (Kt @ residual) * inv_norms
     neg_inv_norms = -inv_norms
     damping = 0.0
     for _ in range(REFINE_MAX_ITERATIONS):
         if damping:
-            Nd = N.copy()
-            Nd.flat[::9] *= 1.0 + damping
+            damped = normal.copy()
+            damped.flat[::9] *= 1.0 + damping
         else:
-            Nd = N
-        _, _, step, info = lapack.dgesv(Nd, g)  # LU with pivoting, as np.linalg.solve
+            damped = normal
+        _, _, step, info = lapack.dgesv(damped, gradient)  # LU with pivoting, as np.linalg.solve
         if info:  # singular: no step (damp harder)
             step = np.full(8, np.nan)
         step *= neg_inv_norms
@@ -170,15 +170,15 @@ def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float6
                 break
             continue
         if cost - cost_new <= REFINE_COST_TOL * cost or all(
-            abs(s) <= REFINE_STEP_TOL * (abs(v) + REFINE_STEP_TOL)
-            for s, v in zip(step.tolist(), h.tolist())
+            abs(step_i) <= REFINE_STEP_TOL * (abs(value_i) + REFINE_STEP_TOL)
+            for step_i, value_i in zip(step.tolist(), h.tolist())
         ):
             return trial
-        h, r, cost = trial, r_new, cost_new
+        h, residual, cost = trial, r_new, cost_new
         Kt = t.negative_jacobian_t(neg_p, neg_w_inv)
         Kt *= inv_norms[:, None]
-        N = Kt @ Kt.T
-        g = Kt @ r
+        normal = Kt @ Kt.T
+        gradient = Kt @ residual
         damping *= 0.1
     return h
 
@@ -192,28 +192,29 @@ def fit_projective(
     what: str = "points",
 ) -> NDArray[np.float64]:
     """H with dst ~ H · src (homogeneous), h33 = 1."""
-    sx, sy, dx, dy = (np.asarray(v, dtype=float) for v in (src_x, src_y, dst_x, dst_y))
+    sx, sy, dx, dy = (np.asarray(coord, dtype=float) for coord in (src_x, src_y, dst_x, dst_y))
     n = sx.size
-    X = _points(sx, sy, dx, dy)
-    centre = X.sum(axis=1) / n
-    C = X - centre[:, None]  # the row of ones becomes zeros
+    layout = _points(sx, sy, dx, dy)
+    centre = layout.sum(axis=1) / n
+    centred = layout - centre[:, None]  # the row of ones becomes zeros
     # both point sets at once; only data that are not clearly fine get the full check and its
     # message
-    if not _clearly_general(X, (C @ C.T).tolist()):
+    if not _clearly_general(layout, (centred @ centred.T).tolist()):
         check_general_position(sx, sy, what)
         check_general_position(dx, dy, what)
     # Hartley's normalisation of each set: centroid at 0, mean distance from it √2
     ss, ds = (
-        SQRT2 * n / d if d > 0 else 1.0 for d in np.hypot(C[0::3], C[1::3]).sum(axis=1).tolist()
+        SQRT2 * n / spread if spread > 0 else 1.0
+        for spread in np.hypot(centred[0::3], centred[1::3]).sum(axis=1).tolist()
     )
     scx, scy, _, dcx, dcy = centre.tolist()
     # Aᵀ of the DLT system A h = 0: per point an x row (P, 0, -u P) and a y row (0, P, -v P), with P
     # and (u, v) the normalised source and target points
     At = np.zeros((9, 2, n))
-    np.multiply(C[0:2], ss, out=At[0:2, 0])
+    np.multiply(centred[0:2], ss, out=At[0:2, 0])
     At[2, 0] = 1.0
     At[3:6, 1] = At[0:3, 0]
-    np.multiply(At[0:3, 0, None], C[3:5] * -ds, out=At[6:9])
+    np.multiply(At[0:3, 0, None], centred[3:5] * -ds, out=At[6:9])
     At2 = At.reshape(9, 2 * n)
     # The null vector of A from the 9 x 9 AᵀA (eigenvalues = squared singular values) when the 8th
     # is clearly above rounding; otherwise from the SVD of A itself, which also tells a
@@ -223,10 +224,10 @@ def fit_projective(
         hn = vec[:, 0].tolist()
     else:
         # U is not needed (2n x 2n: O(n²) memory); all 9 rows of V are, also with only 4 points
-        _, s, vt = np.linalg.svd(At2.T, full_matrices=2 * n < 9)
+        _, sing, vt = np.linalg.svd(At2.T, full_matrices=2 * n < 9)
         # the 8 free entries of H need rank 8 (s[7] is the 8th singular value, with 4 points the
         # last)
-        if s[7] <= 1e-12 * s[0]:
+        if sing[7] <= 1e-12 * sing[0]:
             raise DegenerateDataError(
                 f"{what}: the points do not determine a homography (rank-deficient system)"
             )
@@ -234,20 +235,23 @@ def fit_projective(
     # H = Td⁻¹ Hn Ts, with Ts = [[s, 0, -s cx], [0, s, -s cy], [0, 0, 1]] (Td likewise), entry by
     # entry
     rows = [hn[0:3], hn[3:6], hn[6:9]]
-    rows = [[ss * a, ss * b, c - ss * (scx * a + scy * b)] for a, b, c in rows]
+    rows = [
+        [ss * coef_x, ss * coef_y, coef_1 - ss * (scx * coef_x + scy * coef_y)]
+        for coef_x, coef_y, coef_1 in rows
+    ]
     last = rows[2]
     if abs(last[2]) < 1e-12:
         raise DegenerateDataError(f"{what}: the fitted homography maps the origin to infinity")
     k = 1.0 / last[2]
     h8 = [
-        (a / ds + cx * z) * k
+        (entry / ds + cx * last_entry) * k
         for row, cx in ((rows[0], dcx), (rows[1], dcy))
-        for a, z in zip(row, last)
+        for entry, last_entry in zip(row, last)
     ] + [last[0] * k, last[1] * k]
-    h = np.array(h8)
+    estimate = np.array(h8)
     if refine and n > 4:
-        h = _refine(h, X)
-    return np.append(h, 1.0).reshape(3, 3)
+        estimate = _refine(estimate, layout)
+    return np.append(estimate, 1.0).reshape(3, 3)
 
 
 def apply_projective(
@@ -255,5 +259,7 @@ def apply_projective(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     xa = np.asarray(x, dtype=float)
     ya = np.asarray(y, dtype=float)
-    w = H[2, 0] * xa + H[2, 1] * ya + H[2, 2]
-    return (H[0, 0] * xa + H[0, 1] * ya + H[0, 2]) / w, (H[1, 0] * xa + H[1, 1] * ya + H[1, 2]) / w
+    denom = H[2, 0] * xa + H[2, 1] * ya + H[2, 2]
+    return (H[0, 0] * xa + H[0, 1] * ya + H[0, 2]) / denom, (
+        H[1, 0] * xa + H[1, 1] * ya + H[1, 2]
+    ) / denom

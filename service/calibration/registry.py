@@ -99,7 +99,7 @@ def get_method(kind: str, name: str) -> Method:
         if family.kind == kind and (m := family.pattern.fullmatch(name)):
             return family.build(m)
     known = sorted(n for (k, n) in methods if k == kind) + [
-        f.pattern.pattern for f in families if f.kind == kind
+        method_family.pattern.pattern for method_family in families if method_family.kind == kind
     ]
     raise InputError(
         f"unknown method {name!r} for kind {kind!r}; known: {', '.join(known) or 'none yet'}"
@@ -111,7 +111,7 @@ def known_methods(kind: str) -> list[str]:
     members."""
     methods, families = _table()
     return sorted(n for (k, n) in methods if k == kind) + [
-        n for f in families if f.kind == kind for n in f.members
+        n for family in families if family.kind == kind for n in family.members
     ]
 
 

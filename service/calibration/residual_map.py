@@ -17,12 +17,12 @@ def stage_residual_map(
     """Points (`role` fit for the first `n_fit` point indices, else validation) with their residuals
     in degrees, and the RMS of the residual vector lengths before and after correction."""
     out = method.correct(model, cols)
-    ref = {a: cols[f"ref_{a}_deg"] for a in ("x", "y")}
-    before = {a: cols[f"meas_{a}_deg"] - ref[a] for a in ("x", "y")}
-    after = {a: out[f"tilt_{a}_deg"] - ref[a] for a in ("x", "y")}
+    ref = {axis: cols[f"ref_{axis}_deg"] for axis in ("x", "y")}
+    before = {axis: cols[f"meas_{axis}_deg"] - ref[axis] for axis in ("x", "y")}
+    after = {axis: out[f"tilt_{axis}_deg"] - ref[axis] for axis in ("x", "y")}
     points = []
     for i in range(cols["point"].size):
-        p = {
+        point = {
             "point": int(cols["point"][i]),
             "role": "fit" if cols["point"][i] < n_fit else "validation",
             "stage_x_deg": float(cols["stage_x_deg"][i]),
@@ -30,10 +30,10 @@ def stage_residual_map(
             "ref_x_deg": float(ref["x"][i]),
             "ref_y_deg": float(ref["y"][i]),
         }
-        for a in ("x", "y"):
-            p[f"before_{a}_deg"] = float(before[a][i])
-            p[f"after_{a}_deg"] = float(after[a][i])
-        points.append(p)
+        for axis in ("x", "y"):
+            point[f"before_{axis}_deg"] = float(before[axis][i])
+            point[f"after_{axis}_deg"] = float(after[axis][i])
+        points.append(point)
     return {
         "n_fit": min(n_fit, len(points)),
         "rms_before_deg": _rms(np.hypot(before["x"], before["y"])),

@@ -57,15 +57,15 @@ def typical_scale(key: ParamKey) -> float:
 def registry_effects(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, float]]:
     """Effect values in the registry's parameters (what the simulator takes): a periodic error's
     sine/cosine pair becomes its amplitude and phase."""
-    out = {e: dict(v) for e, v in effects.items()}
+    out = {effect: dict(values) for effect, values in effects.items()}
     pe = out.get("periodic_error")
     if pe is not None:
         for ax in ("x", "y"):
-            a, b = pe.pop(f"{ax}_sin_deg", None), pe.pop(f"{ax}_cos_deg", None)
-            if a is not None or b is not None:
-                a, b = a or 0.0, b or 0.0
-                pe[f"{ax}_amp_deg"] = float(np.hypot(a, b))
-                pe[f"{ax}_phase_deg"] = float(np.degrees(np.arctan2(b, a)))
+            sin_term, cos_term = pe.pop(f"{ax}_sin_deg", None), pe.pop(f"{ax}_cos_deg", None)
+            if sin_term is not None or cos_term is not None:
+                sin_term, cos_term = sin_term or 0.0, cos_term or 0.0
+                pe[f"{ax}_amp_deg"] = float(np.hypot(sin_term, cos_term))
+                pe[f"{ax}_phase_deg"] = float(np.degrees(np.arctan2(cos_term, sin_term)))
     return out
 
 
@@ -107,9 +107,9 @@ class StageEffectModel:
     free: list[ParamKey]
 
     def effect_set(self, values: Iterable[float]) -> EffectSet:
-        eff: dict[str, dict[str, float]] = {k: dict(v) for k, v in self.fixed.items()}
-        for (e, p), v in zip(self.free, values):
-            eff.setdefault(e, {})[p] = float(v)
+        eff: dict[str, dict[str, float]] = {k: dict(value) for k, value in self.fixed.items()}
+        for (effect, param), value in zip(self.free, values):
+            eff.setdefault(effect, {})[param] = float(value)
         eff.pop("noise", None)
         return EffectSet.from_mapping("stage", registry_effects(eff))
 
@@ -166,8 +166,8 @@ class StageEffectFit:
 
 def robust_scale(residuals: NDArray[np.float64]) -> float:
     """Soft threshold of a robust loss: 3 x the MAD-based standard deviation of the residuals."""
-    r = np.asarray(residuals, dtype=float)
-    mad = float(np.median(np.abs(r - np.median(r))))
+    values = np.asarray(residuals, dtype=float)
+    mad = float(np.median(np.abs(values - np.median(values))))
     return max(3.0 * 1.4826 * mad, 1e-5)
 
 
@@ -210,8 +210,8 @@ def fit_stage_effects(
     )
 
     def data_resid(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        r: NDArray[np.float64] = (model.predict(x, pts, outputs) - obs).ravel()
-        return r
+        residual: NDArray[np.float64] = (model.predict(x, pts, outputs) - obs).ravel()
+        return residual
 
     def resid(x: NDArray[np.float64]) -> NDArray[np.float64]:
         if not with_prior:
@@ -219,12 +219,12 @@ def fit_stage_effects(
         return np.concatenate([data_resid(x), prior_w * x[with_prior]])
 
     if n_par == 0:
-        r = resid(start)
+        data_res = resid(start)
         return _result(
             model,
             start,
             np.zeros((0, 0)),
-            r,
+            data_res,
             outputs,
             obs.shape,
             0.0,
@@ -263,18 +263,18 @@ def fit_stage_effects(
         raise FitError(f"bench fit failed: {exc}") from exc
     if not np.all(np.isfinite(sol.x)):
         raise FitError("bench fit diverged (non-finite parameters)")
-    J = sol.jac
-    r = sol.fun if loss == "linear" else resid(sol.x)
-    r = r[:n_obs]  # the data's residuals (the prior rows are not readings)
+    jac = sol.jac
+    data_res = sol.fun if loss == "linear" else resid(sol.x)
+    data_res = data_res[:n_obs]  # the data's residuals (the prior rows are not readings)
     dof = max(n_obs - n_par, 1)
-    s2 = float(r @ r) / dof
-    sv = np.linalg.svd(J * scales, compute_uv=False)
+    s2 = float(data_res @ data_res) / dof
+    sv = np.linalg.svd(jac * scales, compute_uv=False)
     if sv[-1] <= 1e-8 * sv[0]:
         raise DegenerateDataError(
             "the data do not separate the free bench parameters "
             f"({', '.join(param_label(k) for k in model.free)}): the fit is singular"
         )
-    JtJ = J[:n_obs].T @ J[:n_obs]
+    JtJ = jac[:n_obs].T @ jac[:n_obs]
     if with_prior:
         JtJ[with_prior, with_prior] += (
             s2 / np.array([float((prior_sd or [])[i] or 1.0) for i in with_prior]) ** 2
@@ -284,7 +284,7 @@ def fit_stage_effects(
         model,
         sol.x,
         cov,
-        r,
+        data_res,
         outputs,
         obs.shape,
         s2,
@@ -309,7 +309,7 @@ def _result(
     sv: NDArray[np.float64] | None,
 ) -> StageEffectFit:
     rr = np.asarray(r).reshape(shape)
-    res = {o: rr[:, i] for i, o in enumerate(outputs)}
+    res = {output: rr[:, i] for i, output in enumerate(outputs)}
     dof = max(rr.size - len(model.free), 1)
     return StageEffectFit(
         model,

@@ -48,16 +48,16 @@ def coverage_factor(dof_eff: ArrayLike, coverage: float = COVERAGE) -> NDArray[n
     A fixed k = 2 covers about 95 % only for many degrees of freedom: at 10 it covers 92.7 %.
     """
     nu = np.asarray(dof_eff, dtype=float)
-    q = 0.5 + coverage / 2.0
+    prob = 0.5 + coverage / 2.0
     if nu.size > _TABLE_ABOVE and np.all(nu >= 1.0):
         # one value per corrected reading: interpolated in 1/ν on a fine table (relative error below
         # 1e-7), since the exact inverse costs microseconds per value and correct handles 10^5-10^6
         # readings
-        grid, k = _coverage_table(q)
+        grid, k = _coverage_table(prob)
         k_nu: NDArray[np.float64] = np.interp(1.0 / nu, grid, k)
         return k_nu
     # scipy.special's inverse t (scipy.stats would add a slow import to every command-line start)
-    return np.asarray(special.stdtrit(nu, q))
+    return np.asarray(special.stdtrit(nu, prob))
 
 
 _TABLE_ABOVE = 256
@@ -67,10 +67,10 @@ def dof_of_coverage_factor(k: ArrayLike, coverage: float = COVERAGE) -> NDArray[
     """The degrees of freedom ν whose Student's t factor is k (coverage_factor's inverse; infinite
     at the normal's)."""
     kk = np.asarray(k, dtype=float)
-    q = 0.5 + coverage / 2.0
-    normal = float(special.ndtri(q))
+    prob = 0.5 + coverage / 2.0
+    normal = float(special.ndtri(prob))
     with np.errstate(all="ignore"):
-        nu = special.stdtridf(q, np.maximum(kk, normal))
+        nu = special.stdtridf(prob, np.maximum(kk, normal))
     return np.asarray(np.where(kk <= normal * (1 + 1e-9), np.inf, nu), dtype=float)
 
 
@@ -96,11 +96,11 @@ def welch_satterthwaite(
     finite ν is zero (or u_c is zero).
     """
     groups: dict[float, NDArray[np.float64]] = {}
-    for v, nu in components:
+    for variance, nu in components:
         if np.isfinite(nu):
-            groups[nu] = groups.get(nu, 0.0) + np.asarray(v, dtype=float)
-    total = sum(np.asarray(v, dtype=float) for v, _ in components)
-    denom = sum(v**2 / nu for nu, v in groups.items())
+            groups[nu] = groups.get(nu, 0.0) + np.asarray(variance, dtype=float)
+    total = sum(np.asarray(variance, dtype=float) for variance, _ in components)
+    denom = sum(variance**2 / nu for nu, variance in groups.items())
     with np.errstate(divide="ignore", invalid="ignore"):
         nu_eff = np.where(
             np.asarray(denom) > 0,
@@ -147,27 +147,29 @@ def propagate_gum(
     if cov is not None and params.size:
         jac = []
         for i in range(params.size):
-            h = _step(params[i], cov[i][i])
+            step = _step(params[i], cov[i][i])
             pp, pm = params.copy(), params.copy()
-            pp[i] += h
-            pm[i] -= h
-            jac.append((np.asarray(f(pp, inputs)) - np.asarray(f(pm, inputs))) / (2 * h))
-        J = np.stack(jac, axis=-1)  # (..., n_params)
-        components.append((np.einsum("...i,ij,...j->...", J, np.asarray(cov), J), params_dof))
+            pp[i] += step
+            pm[i] -= step
+            jac.append((np.asarray(f(pp, inputs)) - np.asarray(f(pm, inputs))) / (2 * step))
+        jacobian = np.stack(jac, axis=-1)  # (..., n_params)
+        components.append(
+            (np.einsum("...i,ij,...j->...", jacobian, np.asarray(cov), jacobian), params_dof)
+        )
     for name, sigma in (input_sigma or {}).items():
         if not sigma:
             continue
         x = np.asarray(inputs[name], dtype=float)
-        h = _step(x, sigma**2)
+        step = _step(x, sigma**2)
         up = dict(inputs)
         dn = dict(inputs)
-        up[name] = x + h
-        dn[name] = x - h
-        d = (np.asarray(f(params, up)) - np.asarray(f(params, dn))) / (
-            2 * h if y0.ndim == 1 else (2 * h)[:, None]
+        up[name] = x + step
+        dn[name] = x - step
+        sensitivity = (np.asarray(f(params, up)) - np.asarray(f(params, dn))) / (
+            2 * step if y0.ndim == 1 else (2 * step)[:, None]
         )
-        components.append(((d * sigma) ** 2, inputs_dof))
-    var = sum((c for c, _ in components), np.zeros_like(y0))
+        components.append(((sensitivity * sigma) ** 2, inputs_dof))
+    var = sum((variance for variance, _ in components), np.zeros_like(y0))
     return Propagated(
         np.sqrt(var), welch_satterthwaite(components) if components else np.full(y0.shape, np.inf)
     )
@@ -194,15 +196,15 @@ def mean_type_a(values: ArrayLike) -> MeanTypeA:
     series the mean is worth n_eff = n (1 − ρ)/(1 + ρ) independent readings (never more than n: a
     negative ρ is taken as 0), and u = s/√n_eff with n_eff − 1 degrees of freedom. Needs two
     readings or more."""
-    v = np.asarray(values, dtype=float)
-    n = int(v.size)
+    readings = np.asarray(values, dtype=float)
+    n = int(readings.size)
     if n < 2:
         raise ValueError(f"a mean's Type A uncertainty needs two readings or more, got {n}")
-    mean = float(v.mean())
-    d = v - mean
-    var = float(d @ d)
-    rho = float(d[1:] @ d[:-1] / var) if var > 0 and n > 2 else 0.0
+    mean = float(readings.mean())
+    deviations = readings - mean
+    var = float(deviations @ deviations)
+    rho = float(deviations[1:] @ deviations[:-1] / var) if var > 0 and n > 2 else 0.0
     rho = min(max(rho, 0.0), 0.99)
     n_eff = max(1.0, min(float(n), n * (1.0 - rho) / (1.0 + rho)))
-    s = float(np.std(v, ddof=1))
-    return MeanTypeA(mean, s / float(np.sqrt(n_eff)), max(n_eff - 1.0, 1.0), n, n_eff, rho)
+    sd = float(np.std(readings, ddof=1))
+    return MeanTypeA(mean, sd / float(np.sqrt(n_eff)), max(n_eff - 1.0, 1.0), n, n_eff, rho)

@@ -48,8 +48,12 @@ CONSTANT_ERRORS_KEY = "theta_constant_output_errors"
 def _local(theta_deg: ArrayLike, centre_deg: float, linear: bool) -> NDArray[np.float64]:
     """Design of a straight line in θ about a branch's centre (radians, wrapped), or of its mean
     alone."""
-    d = np.radians(wrap_deg(np.asarray(theta_deg, dtype=float) - centre_deg))
-    return np.column_stack([np.ones_like(d), d]) if linear else np.ones((d.size, 1))
+    offset_rad = np.radians(wrap_deg(np.asarray(theta_deg, dtype=float) - centre_deg))
+    return (
+        np.column_stack([np.ones_like(offset_rad), offset_rad])
+        if linear
+        else np.ones((offset_rad.size, 1))
+    )
 
 
 # --- points -------------------------------------------------------------------------------------
@@ -70,18 +74,18 @@ def iodsra_points(
     Returns the points and, per point, the index of the replaced component (-1: none). Noise
     can push two components just above sin 45°; then the larger is the one replaced.
     """
-    p = np.column_stack([np.asarray(v, dtype=float) for v in (sx, sy, sz)])
-    mag = np.abs(p)
+    raw = np.column_stack([np.asarray(column, dtype=float) for column in (sx, sy, sz)])
+    mag = np.abs(raw)
     big = np.argmax(mag, axis=1)
-    rows = np.arange(p.shape[0])
+    rows = np.arange(raw.shape[0])
     replaced = np.where(mag[rows, big] > SIN45, big, -1)
-    out = p.copy()
-    for c in range(3):
-        sel = replaced == c
+    out = raw.copy()
+    for component in range(3):
+        sel = replaced == component
         if np.any(sel):
-            others = np.delete(p[sel], c, axis=1)
+            others = np.delete(raw[sel], component, axis=1)
             val = np.sqrt(np.clip(1.0 - np.sum(others**2, axis=1), 0.0, None))
-            out[sel, c] = np.where(p[sel, c] < 0, -val, val)
+            out[sel, component] = np.where(raw[sel, component] < 0, -val, val)
     return out, replaced
 
 
@@ -99,17 +103,17 @@ def _noise_gain(
     large against its own noise (about 2σ) the derivative overstates it, so S_c² is floored there.
     """
     grad = np.tile(normal, (points.shape[0], 1))
-    for c in range(3):
-        sel = replaced == c
+    for component in range(3):
+        sel = replaced == component
         if np.any(sel):
-            pc = points[sel, c]
+            pc = points[sel, component]
             eff = np.sqrt(pc**2 + 2.0 * sigma + 1e-12)
-            for o in range(3):
-                if o != c:
-                    grad[sel, o] = normal[o] - normal[c] * points[sel, o] / eff * np.where(
-                        pc < 0, -1.0, 1.0
-                    )
-            grad[sel, c] = 0.0
+            for other in range(3):
+                if other != component:
+                    grad[sel, other] = normal[other] - normal[component] * points[
+                        sel, other
+                    ] / eff * np.where(pc < 0, -1.0, 1.0)
+            grad[sel, component] = 0.0
     gain: NDArray[np.float64] = np.sum(grad**2, axis=1)
     return gain
 
@@ -161,20 +165,20 @@ def fit_plane(points: NDArray[np.float64]) -> tuple[float, float, float]:
             "of one sensor turning about one fixed axis"
         )
     n = vt[2]
-    d = float(n @ centre)
-    if d < 0:
-        n, d = -n, -d
+    dist = float(n @ centre)
+    if dist < 0:
+        n, dist = -n, -dist
     gamma = float(np.arcsin(np.clip(-n[2], -1.0, 1.0)))
     alpha = float(np.arctan2(n[0], n[1]))
-    beta = float(np.arcsin(np.clip(d, -1.0, 1.0)))
+    beta = float(np.arcsin(np.clip(dist, -1.0, 1.0)))
     return alpha, beta, gamma
 
 
 def flip_sense(alpha: float, beta: float, gamma: float) -> tuple[float, float, float]:
     """The same plane described with the axis reversed (-L): θ changes sign."""
-    a = alpha + np.pi
-    a = (a + np.pi) % (2 * np.pi) - np.pi
-    return a, -beta, -gamma
+    alpha_flipped = alpha + np.pi
+    alpha_flipped = (alpha_flipped + np.pi) % (2 * np.pi) - np.pi
+    return alpha_flipped, -beta, -gamma
 
 
 def rotation_equations(
@@ -263,8 +267,8 @@ class _RotationMethod:
     def points(self, data: Columns) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
         if self.uses_sz:
             return iodsra_points(data["sx"], data["sy"], data["sz"])
-        p = direct_points(data["sx"], data["sy"])
-        return p, np.full(p.shape[0], 2)
+        pts = direct_points(data["sx"], data["sy"])
+        return pts, np.full(pts.shape[0], 2)
 
     def theta(
         self,
@@ -287,8 +291,12 @@ class _RotationMethod:
         if theta_ref is not None:
             cand = [(alpha, beta, gamma), flip_sense(alpha, beta, gamma)]
             rms = [
-                float(np.sqrt(np.mean(wrap_deg(np.degrees(self.theta(pts, *c)) - theta_ref) ** 2)))
-                for c in cand
+                float(
+                    np.sqrt(
+                        np.mean(wrap_deg(np.degrees(self.theta(pts, *candidate)) - theta_ref) ** 2)
+                    )
+                )
+                for candidate in cand
             ]
             if rms[1] < rms[0]:
                 alpha, beta, gamma = cand[1]
@@ -300,26 +308,26 @@ class _RotationMethod:
                 "change the tilt, so θ cannot be measured"
             )
         n = plane_normal(alpha, gamma)
-        r = pts @ n - np.sin(beta)
+        plane_res = pts @ n - np.sin(beta)
         n_pts = pts.shape[0]
         dof = n_pts - 3
-        sigma_guess = float(np.sqrt(np.sum(r**2) / dof)) if dof > 0 else 0.0
+        sigma_guess = float(np.sqrt(np.sum(plane_res**2) / dof)) if dof > 0 else 0.0
         gain = _noise_gain(pts, replaced, n, sigma_guess)
         if dof > 0:  # once more with the noise the gains imply
-            gain = _noise_gain(pts, replaced, n, float(np.sqrt(np.sum(r**2 / gain) / dof)))
+            gain = _noise_gain(pts, replaced, n, float(np.sqrt(np.sum(plane_res**2 / gain) / dof)))
         # Jacobian of r wrt (α, β, γ) in degrees
         dn_da = np.array([np.cos(alpha) * np.cos(gamma), -np.sin(alpha) * np.cos(gamma), 0.0])
         dn_dg = np.array(
             [-np.sin(alpha) * np.sin(gamma), -np.cos(alpha) * np.sin(gamma), -np.cos(gamma)]
         )
-        J = np.column_stack([pts @ dn_da, np.full(n_pts, -np.cos(beta)), pts @ dn_dg]) * (
+        jacobian = np.column_stack([pts @ dn_da, np.full(n_pts, -np.cos(beta)), pts @ dn_dg]) * (
             np.pi / 180.0
         )
         cov = None
         sigma_s = None
         if dof > 0:
-            sigma_s = float(np.sqrt(np.sum(r**2 / gain) / dof))
-            jtj = J.T @ J
+            sigma_s = float(np.sqrt(np.sum(plane_res**2 / gain) / dof))
+            jtj = jacobian.T @ jacobian
             if np.linalg.cond(jtj) > 1e14:
                 raise DegenerateDataError(
                     "rotation: the points do not separate alpha, beta and gamma (the normal "
@@ -327,7 +335,7 @@ class _RotationMethod:
                 )
             inv = np.linalg.inv(jtj)
             # sandwich: per-point variance
-            cov = inv @ (J.T @ (J * (sigma_s**2 * gain)[:, None])) @ inv
+            cov = inv @ (jacobian.T @ (jacobian * (sigma_s**2 * gain)[:, None])) @ inv
             cov = 0.5 * (cov + cov.T)
         else:
             notes.append(
@@ -349,7 +357,7 @@ class _RotationMethod:
             ),
         }
         theta = np.degrees(self.theta(pts, alpha, beta, gamma))
-        plane = residual_summary({"plane": r}, "1")
+        plane = residual_summary({"plane": plane_res}, "1")
         fit = {
             "n_points": n_pts,
             "dof": dof,
@@ -403,9 +411,9 @@ class _RotationMethod:
         return model
 
     def theta_deg(self, model: CalibrationModel, data: Columns) -> NDArray[np.float64]:
-        a, b, g = np.radians(model.values(PARAM_NAMES))
+        alpha, beta, gamma = np.radians(model.values(PARAM_NAMES))
         pts, _ = self.points(data)
-        return np.degrees(self.theta(pts, a, b, g))
+        return np.degrees(self.theta(pts, alpha, beta, gamma))
 
     def _fit_uncertainty(
         self, model: CalibrationModel, data: Columns
@@ -413,14 +421,14 @@ class _RotationMethod:
         """θ and its propagated standard uncertainty from the plane fit and the output noise (None
         without a covariance)."""
         p0 = model.values(PARAM_NAMES)
-        a, b, g = np.radians(p0)
+        alpha, beta, gamma = np.radians(p0)
         pts, _ = self.points(data)
-        use9 = equation9_region(pts, a, b, g)
-        theta0 = np.degrees(self.theta(pts, a, b, g, use9))
+        use9 = equation9_region(pts, alpha, beta, gamma)
+        theta0 = np.degrees(self.theta(pts, alpha, beta, gamma, use9))
         sigma = model.state.get("sigma_s") if isinstance(model.state, Mapping) else None
         if model.covariance is None or sigma is None:
             return theta0, None
-        inputs = {c: np.asarray(data[c], dtype=float) for c in self.fit_required}
+        inputs = {column: np.asarray(data[column], dtype=float) for column in self.fit_required}
 
         def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
             pp, _ = self.points(x)
@@ -434,24 +442,24 @@ class _RotationMethod:
             p0,
             model.cov_of(list(PARAM_NAMES)),
             inputs,
-            {c: float(sigma) for c in self.fit_required},
+            {column: float(sigma) for column in self.fit_required},
             dof,
             dof,
         )
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
-        theta0, g = self._fit_uncertainty(model, data)
+        theta0, propagated = self._fit_uncertainty(model, data)
         out = {"theta_deg": theta0}
-        if g is not None:
+        if propagated is not None:
             const = model.state.get(CONSTANT_ERRORS_KEY)
             # the outputs' constant errors, seen in the fit's θ residuals against the dividing head
             if const:
                 u2 = self.constant_errors_u2(model, data, theta0)
                 dof = float(model.fit.get("dof") or np.inf)
-                nu = welch_satterthwaite([(g.u**2, dof), (u2, dof)])
-                g = Propagated(np.sqrt(g.u**2 + u2), nu)
-            out["u_theta_deg"] = g.expanded()
-            out["k_theta"] = coverage_factor(g.dof_eff)
+                nu = welch_satterthwaite([(propagated.u**2, dof), (u2, dof)])
+                propagated = Propagated(np.sqrt(propagated.u**2 + u2), nu)
+            out["u_theta_deg"] = propagated.expanded()
+            out["k_theta"] = coverage_factor(propagated.dof_eff)
         return out
 
     def regimes(
@@ -460,14 +468,14 @@ class _RotationMethod:
         """Which branch of the method serves each point: the component the 45° rule replaced and,
         for the switch, the equation taken. The bias from constant output errors jumps where the
         branch changes."""
-        a, b, g = np.radians(model.values(PARAM_NAMES))
+        alpha, beta, gamma = np.radians(model.values(PARAM_NAMES))
         pts, replaced = self.points(data)
         use9 = (
-            equation9_region(pts, a, b, g)
+            equation9_region(pts, alpha, beta, gamma)
             if self.estimator == "switch"
             else np.zeros(pts.shape[0], dtype=bool)
         )
-        return [f"{int(r)}{'9' if u else '7'}" for r, u in zip(replaced, use9)]
+        return [f"{int(component)}{'9' if eq9 else '7'}" for component, eq9 in zip(replaced, use9)]
 
     def constant_errors(
         self,
@@ -488,34 +496,34 @@ class _RotationMethod:
         """
         if res_theta_deg.size < 8:
             return None
-        _, g = self._fit_uncertainty(model, data)
+        _, propagated = self._fit_uncertainty(model, data)
         # the residuals' scatter as the fit propagates it
-        noise2 = np.zeros(res_theta_deg.size) if g is None else g.u**2
+        noise2 = np.zeros(res_theta_deg.size) if propagated is None else propagated.u**2
         order = np.argsort(wrap_deg(theta_ref_deg))
         regime = np.array(self.regimes(model, data, theta_ref_deg))[order]
         t_all, r_all, n_all = wrap_deg(theta_ref_deg)[order], res_theta_deg[order], noise2[order]
         starts = [0] + [i for i in range(1, regime.size) if regime[i] != regime[i - 1]]
-        arcs = [list(range(a, b)) for a, b in zip(starts, starts[1:] + [regime.size])]
+        arcs = [list(range(start, stop)) for start, stop in zip(starts, starts[1:] + [regime.size])]
         # the circle closes: one arc across ±180°
         if len(arcs) > 1 and regime[0] == regime[-1] and np.ptp(t_all) > 300:
             arcs[0] = arcs.pop() + arcs[0]
         out = []
         for idx in arcs:
-            t, r = t_all[idx], r_all[idx]
+            t, residual = t_all[idx], r_all[idx]
             centre = float(
                 np.degrees(
                     np.arctan2(np.mean(np.sin(np.radians(t))), np.mean(np.cos(np.radians(t))))
                 )
             )
-            X = _local(t, centre, linear=t.size >= 3)
-            coef, *_ = np.linalg.lstsq(X, r, rcond=None)
-            dof = t.size - X.shape[1]
+            design = _local(t, centre, linear=t.size >= 3)
+            coef, *_ = np.linalg.lstsq(design, residual, rcond=None)
+            dof = t.size - design.shape[1]
             # the scatter about the line: the propagated noise, or the residuals' own where they
             # have enough degrees of freedom and say more (the dividing head's noise, which the fit
             # does not know)
             s2 = float(np.mean(n_all[idx]))
             if dof >= 3:
-                s2 = max(s2, float(np.sum((r - X @ coef) ** 2) / dof))
+                s2 = max(s2, float(np.sum((residual - design @ coef) ** 2) / dof))
             half = float(np.max(np.abs(wrap_deg(t - centre))))
             out.append(
                 {
@@ -523,7 +531,9 @@ class _RotationMethod:
                     "centre_deg": centre,
                     "half_width_deg": half,
                     "coefficients_deg": coef.tolist(),
-                    "coefficient_covariance_deg2": (s2 * np.linalg.pinv(X.T @ X)).tolist(),
+                    "coefficient_covariance_deg2": (
+                        s2 * np.linalg.pinv(design.T @ design)
+                    ).tolist(),
                 }
             )
         return out
@@ -539,16 +549,16 @@ class _RotationMethod:
         best = np.full(theta_deg.shape, np.inf)
         worst = 0.0
         for arc in arcs:
-            c = np.asarray(arc["coefficients_deg"], dtype=float)
-            X = _local(theta_deg, float(arc["centre_deg"]), linear=c.size == 2)
-            b = X @ c
+            coef = np.asarray(arc["coefficients_deg"], dtype=float)
+            design = _local(theta_deg, float(arc["centre_deg"]), linear=coef.size == 2)
+            bias = design @ coef
             # b² estimates the bias's square plus its estimation variance: both belong to the
             # angle's uncertainty
-            v = b**2
+            var = bias**2
             # the arc of the point's branch that holds it (or is nearest), extrapolated no further
             # than its half-width
             dist = np.abs(wrap_deg(theta_deg - float(arc["centre_deg"])))
-            X_edge = _local(
+            design_edge = _local(
                 np.clip(
                     wrap_deg(theta_deg - float(arc["centre_deg"])),
                     -arc["half_width_deg"],
@@ -556,13 +566,13 @@ class _RotationMethod:
                 )
                 + float(arc["centre_deg"]),
                 float(arc["centre_deg"]),
-                linear=c.size == 2,
+                linear=coef.size == 2,
             )
-            b_edge = X_edge @ c
-            v = np.where(dist > arc["half_width_deg"], b_edge**2, v)
+            bias_edge = design_edge @ coef
+            var = np.where(dist > arc["half_width_deg"], bias_edge**2, var)
             take = (regime == arc["branch"]) & (dist < best)
-            u2[take], best[take] = v[take], dist[take]
-            worst = max(worst, float(np.max(v, initial=0.0)))
+            u2[take], best[take] = var[take], dist[take]
+            worst = max(worst, float(np.max(var, initial=0.0)))
         u2[np.isnan(u2)] = worst  # a branch the calibration never used: the largest any arc showed
         return u2
 

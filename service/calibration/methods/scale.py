@@ -72,32 +72,32 @@ def polyfit(x: NDArray[np.float64], y: NDArray[np.float64], degree: int) -> Poly
     y = np.asarray(y, dtype=float)
     centre = 0.5 * (x.max() + x.min())
     half = 0.5 * (x.max() - x.min()) or 1.0
-    u = (x - centre) / half
-    V = np.vander(u, degree + 1, increasing=True)
-    q, r = np.linalg.qr(V)
-    if np.min(np.abs(np.diag(r))) < 1e-12 * np.max(np.abs(np.diag(r))):
+    scaled = (x - centre) / half
+    vander = np.vander(scaled, degree + 1, increasing=True)
+    ortho, tri = np.linalg.qr(vander)
+    if np.min(np.abs(np.diag(tri))) < 1e-12 * np.max(np.abs(np.diag(tri))):
         raise DegenerateDataError(
             f"scale: the readings do not determine a degree-{degree} polynomial"
         )
-    b = np.linalg.solve(r, q.T @ y)
-    resid = y - V @ b
+    coef_scaled = np.linalg.solve(tri, ortho.T @ y)
+    resid = y - vander @ coef_scaled
     rss = float(resid @ resid)
     dof = x.size - (degree + 1)
     # T maps coefficients in u to coefficients in x: u^k = Σ_j C(k,j) x^j (-centre)^(k-j) / half^k
-    T = np.zeros((degree + 1, degree + 1))
+    to_powers = np.zeros((degree + 1, degree + 1))
     for k in range(degree + 1):
         for j in range(k + 1):
-            T[j, k] = math.comb(k, j) * (-centre) ** (k - j) / half**k
-    coef = T @ b
+            to_powers[j, k] = math.comb(k, j) * (-centre) ** (k - j) / half**k
+    coef = to_powers @ coef_scaled
     cov = None
-    s = None
+    sigma = None
     if dof > 0:
-        s = math.sqrt(rss / dof)
-        rinv = np.linalg.inv(r)
-        cov_u = s**2 * (rinv @ rinv.T)
-        cov = T @ cov_u @ T.T
+        sigma = math.sqrt(rss / dof)
+        rinv = np.linalg.inv(tri)
+        cov_u = sigma**2 * (rinv @ rinv.T)
+        cov = to_powers @ cov_u @ to_powers.T
         cov = 0.5 * (cov + cov.T)
-    return {"coef": coef, "cov": cov, "resid": resid, "rss": rss, "dof": dof, "s": s}
+    return {"coef": coef, "cov": cov, "resid": resid, "rss": rss, "dof": dof, "s": sigma}
 
 
 def f_test(rss_small: float, rss_big: float, dof_big: int) -> dict[str, Any] | None:
@@ -110,15 +110,20 @@ def f_test(rss_small: float, rss_big: float, dof_big: int) -> dict[str, Any] | N
     # F-distribution upper tail; imported here to keep the CLI start light
     from scipy.special import fdtrc
 
-    F = max(rss_small - rss_big, 0.0) / (rss_big / dof_big)
-    p = float(fdtrc(1, dof_big, F))
-    return {"F": F, "dof": [1, dof_big], "p_value": p, "significant_at_5pct": bool(p < 0.05)}
+    f_stat = max(rss_small - rss_big, 0.0) / (rss_big / dof_big)
+    p_value = float(fdtrc(1, dof_big, f_stat))
+    return {
+        "F": f_stat,
+        "dof": [1, dof_big],
+        "p_value": p_value,
+        "significant_at_5pct": bool(p_value < 0.05),
+    }
 
 
 def _monotonic(coef: NDArray[np.float64], lo: float, hi: float) -> bool:
     xs = np.linspace(lo, hi, 2001)
-    d = np.polyval(np.polyder(coef[::-1]), xs)
-    return bool(np.all(d > 0) or np.all(d < 0))
+    slope = np.polyval(np.polyder(coef[::-1]), xs)
+    return bool(np.all(slope > 0) or np.all(slope < 0))
 
 
 class PolyMethod:
@@ -154,8 +159,8 @@ class PolyMethod:
         names = coefficient_names(n)
         notes: list[str] = []
         params = {
-            name: Parameter(float(c), coefficient_unit(j))
-            for j, (name, c) in enumerate(zip(names, main["coef"]))
+            name: Parameter(float(coef), coefficient_unit(j))
+            for j, (name, coef) in enumerate(zip(names, main["coef"]))
         }
         lo, hi = float(reading.min()), float(reading.max())
         slope_mid = float(np.polyval(np.polyder(main["coef"][::-1]), 0.5 * (lo + hi)))
@@ -167,7 +172,7 @@ class PolyMethod:
             "direction": "angle on reading (applied as is by correct)",
             "residual_sigma_arcsec": main["s"],
             "residual_norm_arcsec": math.sqrt(main["rss"]),
-            "standard_errors": {nm: float(v) for nm, v in zip(names, se)}
+            "standard_errors": {nm: float(std_error) for nm, std_error in zip(names, se)}
             if se is not None
             else None,
             "measuring_unit_arcsec_per_count": float(main["coef"][1]) if n == 1 else slope_mid,
@@ -189,7 +194,7 @@ class PolyMethod:
         # the paper's direction: reading = Σ a_j angle^j
         paper = polyfit(ref, reading, n)
         paper_fit = {
-            "coefficients": [float(c) for c in paper["coef"]],
+            "coefficients": [float(coef) for coef in paper["coef"]],
             "units": ["count"]
             + [f"count/arcsec^{j}" if j > 1 else "count/arcsec" for j in range(1, n + 1)],
             "standard_errors": (
@@ -254,7 +259,7 @@ class PolyMethod:
         if model.covariance is not None and sigma is not None:
             # the covariance and the reading noise both come from the fit's residual
             dof = _dof(model)
-            g = propagate_gum(
+            gum = propagate_gum(
                 lambda p, x: np.polyval(np.asarray(p)[::-1], x["reading"]),
                 p0,
                 model.cov_of(names),
@@ -263,8 +268,8 @@ class PolyMethod:
                 dof,
                 dof,
             )
-            out["u_angle_arcsec"] = g.expanded()
-            out["k_angle"] = coverage_factor(g.dof_eff)
+            out["u_angle_arcsec"] = gum.expanded()
+            out["k_angle"] = coverage_factor(gum.dof_eff)
         return out
 
 

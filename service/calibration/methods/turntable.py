@@ -49,14 +49,14 @@ def compensation(
     rotation_deg: float,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(ξ̂, η̂) in arcsec from the half-differences: the inverse of the 2×2 pair model."""
-    beta, m1, m2, eps = (float(v) for v in np.asarray(p))
-    s = np.sin(np.radians(rotation_deg) / 2.0)
-    u = np.radians(np.asarray(azimuth_deg, dtype=float) + beta + rotation_deg / 2.0)
-    v = u + np.radians(eps)
-    k = s * np.cos(np.radians(eps))
+    beta, m1, m2, eps = (float(phase_2) for phase_2 in np.asarray(p))
+    half_sin = np.sin(np.radians(rotation_deg) / 2.0)
+    phase_1 = np.radians(np.asarray(azimuth_deg, dtype=float) + beta + rotation_deg / 2.0)
+    phase_2 = phase_1 + np.radians(eps)
+    k = half_sin * np.cos(np.radians(eps))
     a1, a2 = d1 / m1, d2 / m2
-    xi = (np.sin(v) * a1 + np.cos(u) * a2) / k
-    eta = (-np.cos(v) * a1 + np.sin(u) * a2) / k
+    xi = (np.sin(phase_2) * a1 + np.cos(phase_1) * a2) / k
+    eta = (-np.cos(phase_2) * a1 + np.sin(phase_1) * a2) / k
     return xi, eta
 
 
@@ -64,8 +64,10 @@ def _tilt_in_instrument_frame(
     az: NDArray[np.float64], xi: NDArray[np.float64], eta: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     """The reference tilt as the turntable sees it (rotated by -A): what separates β from m."""
-    a = np.radians(az)
-    return np.column_stack([xi * np.sin(a) - eta * np.cos(a), xi * np.cos(a) + eta * np.sin(a)])
+    az_rad = np.radians(az)
+    return np.column_stack(
+        [xi * np.sin(az_rad) - eta * np.cos(az_rad), xi * np.cos(az_rad) + eta * np.sin(az_rad)]
+    )
 
 
 def check_design(
@@ -88,8 +90,8 @@ def check_design(
             "installation angle; level the instrument off plumb (several reference tilts) "
             "before calibrating"
         )
-    g = _tilt_in_instrument_frame(az, xi, eta)
-    ev = np.linalg.eigvalsh(g.T @ g)
+    frame_tilt = _tilt_in_instrument_frame(az, xi, eta)
+    ev = np.linalg.eigvalsh(frame_tilt.T @ frame_tilt)
     if ev[0] <= 1e-8 * ev[1]:
         raise DegenerateDataError(
             f"turntable: the {n} pairs see the axis tilt along a single direction of the "
@@ -109,18 +111,20 @@ def _initial(
     rotation_deg: float,
 ) -> NDArray[np.float64]:
     """β, m1, m2, ε solved linearly from the half-differences (start of the Gauss-Newton steps)."""
-    g = _tilt_in_instrument_frame(az, xi, eta)  # columns f1, f2
-    s = np.sin(np.radians(rotation_deg) / 2.0)
+    frame_tilt = _tilt_in_instrument_frame(az, xi, eta)  # columns f1, f2
+    half_sin = np.sin(np.radians(rotation_deg) / 2.0)
     # m·cos and m·sin of β + φ/2 (divided by sin(φ/2) with its sign: φ may be negative)
-    (P, Q), *_ = np.linalg.lstsq(g, d1 / s, rcond=None)
-    (R, T), *_ = np.linalg.lstsq(np.column_stack([g[:, 1], -g[:, 0]]), d2 / s, rcond=None)
-    b_half = np.degrees(np.arctan2(Q, P))
-    c_half = np.degrees(np.arctan2(T, R))
+    (m1_cos, m1_sin), *_ = np.linalg.lstsq(frame_tilt, d1 / half_sin, rcond=None)
+    (m2_cos, m2_sin), *_ = np.linalg.lstsq(
+        np.column_stack([frame_tilt[:, 1], -frame_tilt[:, 0]]), d2 / half_sin, rcond=None
+    )
+    b_half = np.degrees(np.arctan2(m1_sin, m1_cos))
+    c_half = np.degrees(np.arctan2(m2_sin, m2_cos))
     beta = b_half - rotation_deg / 2.0
     eps = c_half - b_half
     beta = (beta + 180.0) % 360.0 - 180.0
     eps = (eps + 180.0) % 360.0 - 180.0
-    return np.array([beta, np.hypot(P, Q), np.hypot(R, T), eps])
+    return np.array([beta, np.hypot(m1_cos, m1_sin), np.hypot(m2_cos, m2_sin), eps])
 
 
 def _residuals(
@@ -166,21 +170,23 @@ def gauss_newton(
 ) -> tuple[NDArray[np.float64], int, bool]:
     """Seed 004 eqs. (9)-(11): x ← x + Δx with B Δx = b, until the parameters are stable."""
     max_iterations = MAX_ITERATIONS if max_iterations is None else max_iterations
-    p = np.asarray(p0, dtype=float).copy()
+    params = np.asarray(p0, dtype=float).copy()
     history = []
     for it in range(1, max_iterations + 1):
-        residuals = _residuals(p, az, d1, d2, xi, eta, rotation_deg)
-        J = _jacobian(p, az, d1, d2, xi, eta, rotation_deg)
-        if not (np.all(np.isfinite(residuals)) and np.all(np.isfinite(J))):
+        residuals = _residuals(params, az, d1, d2, xi, eta, rotation_deg)
+        jacobian = _jacobian(params, az, d1, d2, xi, eta, rotation_deg)
+        if not (np.all(np.isfinite(residuals)) and np.all(np.isfinite(jacobian))):
             break
-        step, *_ = np.linalg.lstsq(J, -residuals, rcond=None)  # B Δx = b
-        p = p + step
-        p[1], p[2] = abs(p[1]), abs(p[2])
-        scale = np.array([1e-7, 1e-9 * max(abs(p[1]), 1e-300), 1e-9 * max(abs(p[2]), 1e-300), 1e-7])
+        step, *_ = np.linalg.lstsq(jacobian, -residuals, rcond=None)  # B Δx = b
+        params = params + step
+        params[1], params[2] = abs(params[1]), abs(params[2])
+        scale = np.array(
+            [1e-7, 1e-9 * max(abs(params[1]), 1e-300), 1e-9 * max(abs(params[2]), 1e-300), 1e-7]
+        )
         history.append(float(np.max(np.abs(step) / scale)))
         if np.all(np.abs(step) <= scale):
-            return p, it, True
-    return p, len(history), False
+            return params, it, True
+    return params, len(history), False
 
 
 def zero_scatter(data: Columns) -> tuple[float, int] | None:
@@ -194,13 +200,13 @@ def zero_scatter(data: Columns) -> tuple[float, int] | None:
     s2 = (np.asarray(data["n2_a"], dtype=float) + np.asarray(data["n2_b"], dtype=float)) / 2.0
     groups = np.asarray(data["cycle"]) if "cycle" in data else np.zeros(s1.size)
     ss, dof = 0.0, 0
-    for g in np.unique(groups):
-        sel = groups == g
+    for group in np.unique(groups):
+        sel = groups == group
         k = int(np.sum(sel))
         if k < 2:
             continue
-        for h in (s1[sel], s2[sel]):
-            ss += float(np.sum((h - h.mean()) ** 2))
+        for half_sums in (s1[sel], s2[sel]):
+            ss += float(np.sum((half_sums - half_sums.mean()) ** 2))
             dof += k - 1
     if dof < 2:
         return None
@@ -248,29 +254,29 @@ class ReversalMethod:
                 "factor comes out zero): check the pairing of n*_a and n*_b and the reference "
                 "columns"
             )
-        p, iterations, converged = gauss_newton(p0, az, d1, d2, xi, eta, phi)
-        if not converged or not np.all(np.isfinite(p)):
+        fitted, iterations, converged = gauss_newton(p0, az, d1, d2, xi, eta, phi)
+        if not converged or not np.all(np.isfinite(fitted)):
             raise DegenerateDataError(
                 "turntable: the iterated least squares (seed 004 eqs. 9-11) did not converge in "
                 f"{iterations} iterations: the pairs do not determine beta, m1, m2, epsilon "
                 "(more pairs, azimuths and reference tilts are needed)"
             )
-        p[0] = (p[0] + 180.0) % 360.0 - 180.0
-        r = _residuals(p, az, d1, d2, xi, eta, phi)
-        J = _jacobian(p, az, d1, d2, xi, eta, phi)
+        fitted[0] = (fitted[0] + 180.0) % 360.0 - 180.0
+        residuals = _residuals(fitted, az, d1, d2, xi, eta, phi)
+        jacobian = _jacobian(fitted, az, d1, d2, xi, eta, phi)
         n = az.size
         dof = 2 * n - 4
-        jtj = J.T @ J
+        jtj = jacobian.T @ jacobian
         scale = np.sqrt(np.diag(jtj))
         if np.any(scale == 0) or np.linalg.cond(jtj / np.outer(scale, scale)) > 1e12:
             raise DegenerateDataError(
                 "turntable: the pairs do not separate beta, m1, m2 and epsilon (singular normal "
                 "equations): add pairs at other azimuths and reference tilts"
             )
-        s2 = float(r @ r) / dof
+        s2 = float(residuals @ residuals) / dof
         cov = s2 * np.linalg.inv(jtj)
         cov = 0.5 * (cov + cov.T)
-        m_mean = 0.5 * (p[1] + p[2])
+        m_mean = 0.5 * (fitted[1] + fitted[2])
         bound_residual = float(np.sqrt(2.0 * s2) * m_mean)
         halfsum = zero_scatter(data)
         bound_halfsum = None if halfsum is None else halfsum[0]
@@ -288,8 +294,8 @@ class ReversalMethod:
             "non-orthogonality of the two axes",
         )
         params = {
-            nm: Parameter(float(v), u, note=nt)
-            for nm, v, u, nt in zip(PARAM_NAMES, p, units, notes_p)
+            nm: Parameter(float(value), unit, note=nt)
+            for nm, value, unit, nt in zip(PARAM_NAMES, fitted, units, notes_p)
         }
         params["rotation_deg"] = Parameter(
             phi,
@@ -321,7 +327,7 @@ class ReversalMethod:
             "dof": dof,
             "iterations": iterations,
             "converged": True,
-            "initial": {nm: float(v) for nm, v in zip(PARAM_NAMES, p0)},
+            "initial": {nm: float(value) for nm, value in zip(PARAM_NAMES, p0)},
             "initial_from": "given"
             if init is not None
             else "linear solution of the half-difference equations",
@@ -340,7 +346,9 @@ class ReversalMethod:
             parameters=params,
             covariance_names=list(PARAM_NAMES),
             covariance=cov,
-            residuals=residual_summary({"north_arcsec": r[:n], "east_arcsec": r[n:]}, "arcsec"),
+            residuals=residual_summary(
+                {"north_arcsec": residuals[:n], "east_arcsec": residuals[n:]}, "arcsec"
+            ),
             fit=fit,
             notes=notes,
             options={"rotation_deg": phi},
@@ -373,7 +381,7 @@ class ReversalMethod:
 
             dof = float(model.state.get("dof") or model.fit.get("dof") or np.inf)
             sigma_dof = float(model.state.get("reading_sigma_dof") or np.inf)
-            g = propagate_gum(
+            gum = propagate_gum(
                 f,
                 p0,
                 model.cov_of(list(PARAM_NAMES)),
@@ -382,8 +390,8 @@ class ReversalMethod:
                 dof,
                 sigma_dof,
             )
-            U, k = g.expanded(), np.broadcast_to(coverage_factor(g.dof_eff), g.u.shape)
-            out["u_north_arcsec"], out["u_east_arcsec"] = U[:, 0], U[:, 1]
+            expanded, k = gum.expanded(), np.broadcast_to(coverage_factor(gum.dof_eff), gum.u.shape)
+            out["u_north_arcsec"], out["u_east_arcsec"] = expanded[:, 0], expanded[:, 1]
             out["k_north"], out["k_east"] = k[:, 0], k[:, 1]
         return out
 

@@ -42,18 +42,18 @@ from service.errors import DegenerateDataError
 
 
 def _axis_matrix(alpha_deg: float, beta_deg: float) -> NDArray[np.float64]:
-    a, b = np.radians(alpha_deg), np.radians(beta_deg)
-    return np.array([[np.cos(a), np.sin(a)], [-np.sin(b), np.cos(b)]])
+    alpha, beta = np.radians(alpha_deg), np.radians(beta_deg)
+    return np.array([[np.cos(alpha), np.sin(alpha)], [-np.sin(beta), np.cos(beta)]])
 
 
 def _axis_forward(
     p: NDArray[np.float64], u_deg: ArrayLike, v_deg: ArrayLike
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    M = _axis_matrix(p[0], p[1])
+    matrix = _axis_matrix(p[0], p[1])
     su, sv = np.sin(np.radians(u_deg)), np.sin(np.radians(v_deg))
     return (
-        np.degrees(np.arcsin(np.clip(M[0, 0] * su + M[0, 1] * sv, -1, 1))),
-        np.degrees(np.arcsin(np.clip(M[1, 0] * su + M[1, 1] * sv, -1, 1))),
+        np.degrees(np.arcsin(np.clip(matrix[0, 0] * su + matrix[0, 1] * sv, -1, 1))),
+        np.degrees(np.arcsin(np.clip(matrix[1, 0] * su + matrix[1, 1] * sv, -1, 1))),
     )
 
 
@@ -110,23 +110,25 @@ class AxisTransformMethod(StageMethod):
     def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
         sx, sy, rx, ry = columns(data, FIT_REQUIRED)
         require_spread(sx, sy, 3, "the axis-transform model")
-        p, cov, r, st = _fit_axis_pair(sx, sy, rx, ry, "stage -> reference axis angles")
+        angles, cov, stage_res, st = _fit_axis_pair(
+            sx, sy, rx, ry, "stage -> reference axis angles"
+        )
         names = ["stage_to_ref.x_axis_angle_deg", "stage_to_ref.y_axis_angle_deg"]
         params = {
             names[0]: Parameter(
-                float(p[0]),
+                float(angles[0]),
                 "deg",
                 note="angle of the reference x axis to the upper stage's "
                 "tilt direction, in the table plane",
             ),
             names[1]: Parameter(
-                float(p[1]),
+                float(angles[1]),
                 "deg",
                 note="angle of the reference y axis to the lower stage's "
                 "tilt direction, in the table plane",
             ),
         }
-        res = {"ref_x_deg": r["x"], "ref_y_deg": r["y"]}
+        res = {"ref_x_deg": stage_res["x"], "ref_y_deg": stage_res["y"]}
         notes = [
             (
                 "ref. [10] as read from seed 000 §0 and §4.5: a coordinate transform for two "
@@ -147,15 +149,19 @@ class AxisTransformMethod(StageMethod):
         if has_meas(data):
             sign, how = meas_sign(data, options)
             mx, my = columns(data, MEAS_COLUMNS)
-            q, cq, rq, sq = _fit_axis_pair(
+            meas_angles, cq, rq, sq = _fit_axis_pair(
                 rx, ry, sign[0] * mx, sign[1] * my, "measurement -> reference axis angles"
             )
             mnames = ["meas_to_ref.x_axis_angle_deg", "meas_to_ref.y_axis_angle_deg"]
             params[mnames[0]] = Parameter(
-                float(q[0]), "deg", note="angle of the measurement x axis to the reference x axis"
+                float(meas_angles[0]),
+                "deg",
+                note="angle of the measurement x axis to the reference x axis",
             )
             params[mnames[1]] = Parameter(
-                float(q[1]), "deg", note="angle of the measurement y axis to the reference y axis"
+                float(meas_angles[1]),
+                "deg",
+                note="angle of the measurement y axis to the reference y axis",
             )
             cov_all = np.block([[cov, np.zeros((2, 2))], [np.zeros((2, 2)), cq]])
             cov_names += mnames
@@ -192,8 +198,8 @@ class AxisTransformMethod(StageMethod):
         self, model: CalibrationModel, data: Columns
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         tx, ty = targets(data)
-        p = model.values(["stage_to_ref.x_axis_angle_deg", "stage_to_ref.y_axis_angle_deg"])
-        x, y = _axis_inverse(p, tx, ty)
+        angles = model.values(["stage_to_ref.x_axis_angle_deg", "stage_to_ref.y_axis_angle_deg"])
+        x, y = _axis_inverse(angles, tx, ty)
         return x, y
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
@@ -204,8 +210,10 @@ class AxisTransformMethod(StageMethod):
         def f(
             p: NDArray[np.float64], inp: Mapping[str, NDArray[np.float64]]
         ) -> NDArray[np.float64]:
-            a, b = _axis_inverse(p, sign[0] * inp["meas_x_deg"], sign[1] * inp["meas_y_deg"])
-            return np.column_stack([a, b])
+            tilt_x, tilt_y = _axis_inverse(
+                p, sign[0] * inp["meas_x_deg"], sign[1] * inp["meas_y_deg"]
+            )
+            return np.column_stack([tilt_x, tilt_y])
 
         sigma, noise_dof = reading_noise_of(model)
         return uncertain_correct(

@@ -87,13 +87,13 @@ def _pooled_ref_variance(data: Columns, sign: NDArray[np.float64]) -> tuple[floa
     if dof < 2:
         return None
     var = cov = 0.0
-    for r, m, sg in (
+    for ref, m, sg in (
         (data["ref_x_deg"], data["meas_x_deg"], sign[0]),
         (data["ref_y_deg"], data["meas_y_deg"], sign[1]),
     ):
-        r = np.asarray(r, dtype=float)
+        ref = np.asarray(ref, dtype=float)
         m = sg * np.asarray(m, dtype=float)
-        dr = r - (np.bincount(which, r) / counts)[which]
+        dr = ref - (np.bincount(which, ref) / counts)[which]
         dm = m - (np.bincount(which, m) / counts)[which]
         var += float(dr @ dr)
         cov += float(dr @ dm)
@@ -103,10 +103,12 @@ def _pooled_ref_variance(data: Columns, sign: NDArray[np.float64]) -> tuple[floa
 def _stated_ref_sigma(data: Columns, options: FitOptions) -> float | None:
     """The reference's noise (1 σ of one reading) as the data's `noise_ref_*` columns or the option
     ref_noise_deg state it."""
-    cols = [c for c in ("noise_ref_x_deg", "noise_ref_y_deg") if c in data]
+    cols = [column for column in ("noise_ref_x_deg", "noise_ref_y_deg") if column in data]
     if cols:
         return float(
-            np.sqrt(np.mean([np.mean(np.asarray(data[c], dtype=float) ** 2) for c in cols]))
+            np.sqrt(
+                np.mean([np.mean(np.asarray(data[column], dtype=float) ** 2) for column in cols])
+            )
         )
     stated = options.extra.get("ref_noise_deg")
     if stated is None:
@@ -265,8 +267,8 @@ def uncertain_correct(
             dof,
             dof if noise_dof is None else noise_dof,
         )
-        U, k = gum.expanded(), np.broadcast_to(coverage_factor(gum.dof_eff), gum.u.shape)
-        out["u_tilt_x_deg"], out["u_tilt_y_deg"] = U[:, 0], U[:, 1]
+        expanded, k = gum.expanded(), np.broadcast_to(coverage_factor(gum.dof_eff), gum.u.shape)
+        out["u_tilt_x_deg"], out["u_tilt_y_deg"] = expanded[:, 0], expanded[:, 1]
         out[K_OUTPUTS[0]], out[K_OUTPUTS[1]] = k[:, 0], k[:, 1]
     return out
 
@@ -317,7 +319,7 @@ def stage_model(
 
 
 def used_columns(data: Columns) -> list[str]:
-    return [c for c in FIT_REQUIRED + FIT_OPTIONAL if c in data]
+    return [column for column in FIT_REQUIRED + FIT_OPTIONAL if column in data]
 
 
 class StageMethod:

@@ -156,9 +156,9 @@ def select_identifiable(
             merged[i] = []
             continue
         if kept:
-            A = Js[:, kept]
-            coef = np.linalg.lstsq(A, col, rcond=None)[0]
-            rel = float(np.linalg.norm(col - A @ coef)) / norm
+            basis = Js[:, kept]
+            coef = np.linalg.lstsq(basis, col, rcond=None)[0]
+            rel = float(np.linalg.norm(col - basis @ coef)) / norm
         else:
             coef, rel = np.zeros(0), 1.0
         rels.append(rel)
@@ -234,8 +234,8 @@ def _held_reason(key: ParamKey, bench: StageBench, pts: StagePoints) -> str | No
             "an eighth of the period determines it)"
         )
     if effect == "backlash":
-        d = pts.dir_x if ax == "x" else pts.dir_y
-        if not (np.any(d > 0) and np.any(d < 0)):
+        direction = pts.dir_x if ax == "x" else pts.dir_y
+        if not (np.any(direction > 0) and np.any(direction < 0)):
             return (
                 f"every point was approached moving the {ax} stage the same way, so its lost "
                 "motion is a constant "
@@ -264,13 +264,17 @@ def fit_chain(
     them: the others are held at zero with the reason (a worm's sine/cosine pair is fitted together
     or not at all). A periodic error is fitted on the stages of `worm_axes` only (those a diagnosis
     saw it on)."""
-    unknown = [e for e in effects if e not in EXTRA_EFFECTS and e not in IN_CHAIN]
+    unknown = [
+        effect for effect in effects if effect not in EXTRA_EFFECTS and effect not in IN_CHAIN
+    ]
     if unknown:
         raise InputError(
             f"effects: {', '.join(unknown)} cannot be added to the kinematic chain; it takes "
             f"{', '.join(EXTRA_EFFECTS)} (and has {', '.join(IN_CHAIN)} already)"
         )
-    wanted = (["periodic_error"] if periodic else []) + [e for e in effects if e in EXTRA_EFFECTS]
+    wanted = (["periodic_error"] if periodic else []) + [
+        effect for effect in effects if effect in EXTRA_EFFECTS
+    ]
     wanted = list(dict.fromkeys(wanted))
     not_seen = [
         k
@@ -279,8 +283,8 @@ def fit_chain(
     ]
     candidates = list(CHAIN_CANDIDATES) + [
         k
-        for e in wanted
-        for k in EFFECT_PARAMS[e]
+        for effect in wanted
+        for k in EFFECT_PARAMS[effect]
         if k not in CHAIN_CANDIDATES and k not in not_seen
     ]
     all_model = StageEffectModel(bench, {}, candidates)
@@ -289,8 +293,8 @@ def fit_chain(
     def pred(x: NDArray[np.float64]) -> NDArray[np.float64]:
         return all_model.predict(x, pts, REF_OBS).ravel()
 
-    J = numeric_jacobian(pred, np.zeros(len(candidates)), scales)
-    sel = select_identifiable(J, scales)
+    jacobian = numeric_jacobian(pred, np.zeros(len(candidates)), scales)
+    sel = select_identifiable(jacobian, scales)
     missing = [candidates[i] for i in sel.fixed if candidates[i] in ESSENTIAL]
     if missing:
         what = ", ".join(param_label(k) for k in missing)
@@ -318,7 +322,9 @@ def fit_chain(
                 "the worm's amplitude and phase are not either; held at 0"
             )
         elif into:
-            parts = ", ".join(f"{param_label(candidates[j])} ({c:+.2g} per unit)" for j, c in into)
+            parts = ", ".join(
+                f"{param_label(candidates[j])} ({coef:+.2g} per unit)" for j, coef in into
+            )
             why = (
                 f"not separable on these points from {parts} (relative residual "
                 f"{sel.rel_residual[i]:.1e}); held at 0"
@@ -332,10 +338,10 @@ def fit_chain(
             "standard uncertainties of zero); held at 0"
         )
     undetermined = {}
-    for e in wanted:
-        held = [k for k in EFFECT_PARAMS[e] if k in fixed]
-        if len(held) == len(EFFECT_PARAMS[e]):
-            undetermined[e] = "; ".join(
+    for effect in wanted:
+        held = [k for k in EFFECT_PARAMS[effect] if k in fixed]
+        if len(held) == len(EFFECT_PARAMS[effect]):
+            undetermined[effect] = "; ".join(
                 dict.fromkeys(f"{param_label(k)}: {fixed[k]}" for k in held)
             )
     x0 = np.zeros(len(free))
@@ -386,7 +392,7 @@ def fit_chain(
         else:
             prior_sd.append(None)
     if priors:
-        start = np.where([p is None for p in prior_sd], fit.values, 0.0)
+        start = np.where([prior is None for prior in prior_sd], fit.values, 0.0)
         try:
             fit = fit_stage_effects(
                 model,
@@ -429,14 +435,14 @@ def actual_angles_deg(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Stage angles reached for commands (no pulse rounding, no noise): the model's mean bench."""
     out = []
-    for ax, cmd, d, period in (
+    for ax, cmd, direction, period in (
         ("x", cmd_x, dir_x, bench.worm_period_x_deg),
         ("y", cmd_y, dir_y, bench.worm_period_y_deg),
     ):
         cmd_deg = np.asarray(cmd, dtype=float)
         ang = (
             cmd_deg * (1.0 + fx.get("stage_scale", ax))
-            - np.asarray(d, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
+            - np.asarray(direction, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
         )
         amp = fx.get("periodic_error", f"{ax}_amp_deg")
         if amp:
@@ -459,18 +465,20 @@ class ChainModel:
     @classmethod
     def from_values(cls, bench: StageBench, values: Mapping[ParamKey, float]) -> ChainModel:
         eff: dict[str, dict[str, float]] = {}
-        for (e, p), v in values.items():
-            if e == "noise":
+        for (effect, param), value in values.items():
+            if effect == "noise":
                 continue
-            eff.setdefault(e, {})[p] = float(v)
+            eff.setdefault(effect, {})[param] = float(value)
         return cls(bench, EffectSet.from_mapping("stage", registry_effects(eff)))
 
     def tilt(
         self, cmd_x: ArrayLike, cmd_y: ArrayLike, dir_x: ArrayLike = 0.0, dir_y: ArrayLike = 0.0
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         ax, ay = actual_angles_deg(self.fx, self.bench, cmd_x, cmd_y, dir_x, dir_y)
-        r = self.geometry.readings_deg(np.radians(np.atleast_1d(ax)), np.radians(np.atleast_1d(ay)))
-        return r["tilt_x"], r["tilt_y"]
+        readings = self.geometry.readings_deg(
+            np.radians(np.atleast_1d(ax)), np.radians(np.atleast_1d(ay))
+        )
+        return readings["tilt_x"], readings["tilt_y"]
 
     def level(
         self,
@@ -538,20 +546,20 @@ def fit_meas(
     up to noise. Regressing on the reference (not on the stage commands) keeps stage
     repeatability out of the fit.
     """
-    all_names = [p[0] for p in MEAS_PARAMS]
-    scales = np.array([p[2] for p in MEAS_PARAMS])
+    all_names = [meas_param[0] for meas_param in MEAS_PARAMS]
+    scales = np.array([meas_param[2] for meas_param in MEAS_PARAMS])
     obs: NDArray[np.float64] = np.concatenate([meas_x, meas_y])
 
     def pred_all(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        a, b = meas_forward(p, sign, ref_x, ref_y)
-        return np.concatenate([a, b])
+        meas_a, meas_b = meas_forward(p, sign, ref_x, ref_y)
+        return np.concatenate([meas_a, meas_b])
 
-    J = numeric_jacobian(pred_all, np.zeros(len(all_names)), scales)
-    sel = select_identifiable(J, scales)
+    jacobian = numeric_jacobian(pred_all, np.zeros(len(all_names)), scales)
+    sel = select_identifiable(jacobian, scales)
     kept = sel.kept
     fixed = {}
     for i in sel.fixed:
-        into = ", ".join(f"{all_names[j]} ({c:+.2g} per unit)" for j, c in sel.merged_into[i])
+        into = ", ".join(f"{all_names[j]} ({coef:+.2g} per unit)" for j, coef in sel.merged_into[i])
         fixed[all_names[i]] = (
             f"not separable on these points from {into or 'the others'} "
             f"(relative residual {sel.rel_residual[i]:.1e}); held at 0"
@@ -563,9 +571,9 @@ def fit_meas(
         )
 
     def full(q: NDArray[np.float64]) -> NDArray[np.float64]:
-        p = np.zeros(len(all_names))
-        p[kept] = q
-        return p
+        params = np.zeros(len(all_names))
+        params[kept] = q
+        return params
 
     def resid(q: NDArray[np.float64]) -> NDArray[np.float64]:
         return pred_all(full(q)) - obs
@@ -593,9 +601,9 @@ def fit_meas(
             f"the measurement-sensor fit did not converge ({sol.message}); "
             "the points do not determine its mounting"
         )
-    r = resid(sol.x)
-    dof = max(r.size - len(kept), 1)
-    s2 = float(r @ r) / dof
+    residual = resid(sol.x)
+    dof = max(residual.size - len(kept), 1)
+    s2 = float(residual @ residual) / dof
     Jk = numeric_jacobian(lambda q: pred_all(full(q)), sol.x, scales[kept])
     sv = np.linalg.svd(Jk * scales[kept], compute_uv=False)
     if sv[-1] <= 1e-8 * sv[0]:
@@ -603,7 +611,7 @@ def fit_meas(
             "the points do not separate the measurement sensor's mounting parameters"
         )
     n = len(meas_x)
-    cov, cov_dof = _per_axis_covariance(Jk, r, n, len(kept))
+    cov, cov_dof = _per_axis_covariance(Jk, residual, n, len(kept))
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
     names = [all_names[i] for i in kept]
@@ -618,7 +626,7 @@ def fit_meas(
         full(sol.x),
         cov,
         fixed,
-        {"meas_x_deg": r[:n], "meas_y_deg": r[n:]},
+        {"meas_x_deg": residual[:n], "meas_y_deg": residual[n:]},
         float(np.sqrt(s2)),
         dof,
         True,

@@ -46,19 +46,19 @@ def offaxis_paper_forward_deg(
 def offaxis_forward_vs_exact_deg(grid_deg: NDArray[np.float64] = GRID_12_DEG) -> dict[str, float]:
     """How far the paper's forward form lands from the exact inverse over a square grid of (x',
     y)."""
-    X, Y = np.meshgrid(grid_deg, grid_deg)
-    d = offaxis_paper_forward_deg(X, Y) - offaxis_inverse_deg(X, Y)
-    i = int(np.argmax(np.abs(d)))
+    grid_x, grid_y = np.meshgrid(grid_deg, grid_deg)
+    diff = offaxis_paper_forward_deg(grid_x, grid_y) - offaxis_inverse_deg(grid_x, grid_y)
+    i = int(np.argmax(np.abs(diff)))
     # The command difference is also (to first order) the x tilt error it causes: dX/dx = cos y·cos
     # x/cos X ≈ 1.
-    reached = offaxis_reading_deg(offaxis_paper_forward_deg(X, Y), Y) - X
+    reached = offaxis_reading_deg(offaxis_paper_forward_deg(grid_x, grid_y), grid_y) - grid_x
     return {
         "grid_min_deg": float(grid_deg.min()),
         "grid_max_deg": float(grid_deg.max()),
-        "max_abs_command_difference_deg": float(np.abs(d).max()),
-        "rms_command_difference_deg": float(np.sqrt(np.mean(d**2))),
-        "at_x_deg": float(X.ravel()[i]),
-        "at_y_deg": float(Y.ravel()[i]),
+        "max_abs_command_difference_deg": float(np.abs(diff).max()),
+        "rms_command_difference_deg": float(np.sqrt(np.mean(diff**2))),
+        "at_x_deg": float(grid_x.ravel()[i]),
+        "at_y_deg": float(grid_y.ravel()[i]),
         "max_abs_x_tilt_error_deg": float(np.abs(reached).max()),
     }
 
@@ -98,8 +98,8 @@ def meas_axes(p: NDArray[np.float64]) -> NDArray[np.float64]:
     90° + ν)."""
     yaw, nu = np.radians(p[4]), np.radians(p[5])
     seat = plane_tilt_matrix(p[6], p[7])
-    c, s = np.cos(yaw), np.sin(yaw)
-    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    cos_yaw, sin_yaw = np.cos(yaw), np.sin(yaw)
+    rz = np.array([[cos_yaw, -sin_yaw, 0.0], [sin_yaw, cos_yaw, 0.0], [0.0, 0.0, 1.0]])
     base = np.array([[1.0, 0.0, 0.0], [-np.sin(nu), np.cos(nu), 0.0]])
     axes: NDArray[np.float64] = (seat @ rz @ base.T).T
     return axes
@@ -113,9 +113,9 @@ def meas_forward(
     n = up_from_tilt(tilt_x_deg, tilt_y_deg)
     m = meas_axes(p)
     geo = np.degrees(np.arcsin(np.clip(-(n @ m.T), -1.0, 1.0)))  # (N, 2)
-    a = p[0] + (1.0 + p[2]) * sign[0] * geo[..., 0]
-    b = p[1] + (1.0 + p[3]) * sign[1] * geo[..., 1]
-    return a, b
+    read_a = p[0] + (1.0 + p[2]) * sign[0] * geo[..., 0]
+    read_b = p[1] + (1.0 + p[3]) * sign[1] * geo[..., 1]
+    return read_a, read_b
 
 
 def _frame(P: NDArray[np.float64], full: bool = False) -> tuple[NDArray[np.float64], ...]:
@@ -129,13 +129,13 @@ def _frame(P: NDArray[np.float64], full: bool = False) -> tuple[NDArray[np.float
     """
     ang = (np.pi / 180.0) * P[:, 4:8]  # yaw, non-orthogonality, seat x, seat y
     cos, sin = np.cos(ang), np.sin(ang)
-    c, cn, cx, cy = cos[:, 0:1], cos[:, 1:2], cos[:, 2:3], cos[:, 3:4]
-    s, sn, sx, sy = sin[:, 0:1], sin[:, 1:2], sin[:, 2:3], sin[:, 3:4]
-    u0, u1 = -(c * sn + s * cn), c * cn - s * sn  # y axis after the yaw
+    cos_yaw, cn, cx, cy = cos[:, 0:1], cos[:, 1:2], cos[:, 2:3], cos[:, 3:4]
+    sin_yaw, sn, sx, sy = sin[:, 0:1], sin[:, 1:2], sin[:, 2:3], sin[:, 3:4]
+    u0, u1 = -(cos_yaw * sn + sin_yaw * cn), cos_yaw * cn - sin_yaw * sn  # y axis after the yaw
     sxsy = sx * sy
     out: tuple[NDArray[np.float64], ...] = (
-        cx * c,
-        cy * s - sxsy * c,
+        cx * cos_yaw,
+        cy * sin_yaw - sxsy * cos_yaw,
         cx * u0,
         cy * u1 - sxsy * u0,
         sn,
@@ -146,7 +146,7 @@ def _frame(P: NDArray[np.float64], full: bool = False) -> tuple[NDArray[np.float
     )
     if full:
         sxcy = sx * cy
-        out += (-(sxcy * c + sy * s), -(sxcy * u0 + sy * u1))
+        out += (-(sxcy * cos_yaw + sy * sin_yaw), -(sxcy * u0 + sy * u1))
     return out
 
 
@@ -181,8 +181,8 @@ def _solve_batch(
     gain = (np.asarray(sign, dtype=float) * (np.pi / 180.0))[:, None, None] / (
         1.0 + P[:, 2:4].T[:, :, None]
     )
-    r = -np.sin(gain * (R - P[:, 0:2].T[:, :, None]))  # (m_x · n, m_y · n)
-    ra, rb = r[0], r[1]
+    rhs = -np.sin(gain * (R - P[:, 0:2].T[:, :, None]))  # (m_x · n, m_y · n)
+    ra, rb = rhs[0], rhs[1]
     c1 = inv * (ra + sn * rb)  # n0 = c1 m_x + c2 m_y: the minimum-norm point on both planes
     c2 = inv * (rb + sn * ra)
     t = np.sqrt(np.maximum(1.0 - (c1 * ra + c2 * rb), 0.0))  # |n0|² = rhsᵀ G⁻¹ rhs
@@ -203,13 +203,13 @@ def meas_inverse_batch(
     """meas_inverse for K parameter sets at once: P (K, 8), readings (K, N) with row k read through
     P[k]."""
     P = np.asarray(P, dtype=float)
-    R = np.stack(
+    readings = np.stack(
         np.broadcast_arrays(
             np.asarray(meas_x_deg, dtype=float), np.asarray(meas_y_deg, dtype=float)
         )
     )
-    Z = _solve_batch(P, sign, R.reshape(2, P.shape[0], -1)).reshape(R.shape)
-    return Z[0], Z[1]
+    tilt = _solve_batch(P, sign, readings.reshape(2, P.shape[0], -1)).reshape(readings.shape)
+    return tilt[0], tilt[1]
 
 
 def meas_inverse(
@@ -217,13 +217,13 @@ def meas_inverse(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Table tilt from measurement readings, in closed form (exact, vectorised, no iteration; see
     _solve_batch)."""
-    a, b = np.broadcast_arrays(
+    read_a, read_b = np.broadcast_arrays(
         np.asarray(meas_x_deg, dtype=float), np.asarray(meas_y_deg, dtype=float)
     )
-    Z = _solve_batch(
-        np.asarray(p, dtype=float)[None], sign, np.stack([a, b]).reshape(2, 1, -1)
-    ).reshape((2,) + a.shape)
-    return Z[0], Z[1]
+    tilt = _solve_batch(
+        np.asarray(p, dtype=float)[None], sign, np.stack([read_a, read_b]).reshape(2, 1, -1)
+    ).reshape((2,) + read_a.shape)
+    return tilt[0], tilt[1]
 
 
 # up to this many (case, reading) pairs, every case is solved in one evaluation
@@ -256,64 +256,68 @@ def meas_inverse_gum(
     input's size.
     """
     p = np.asarray(p, dtype=float)
-    a = np.asarray(meas_x_deg, dtype=float)
-    b = np.asarray(meas_y_deg, dtype=float)
-    if a.shape != b.shape:
-        a, b = np.broadcast_arrays(a, b)
-    shape, n = a.shape, a.size
-    ab = np.concatenate([a.reshape(1, -1), b.reshape(1, -1)])  # (a, b) x reading
+    read_a = np.asarray(meas_x_deg, dtype=float)
+    read_b = np.asarray(meas_y_deg, dtype=float)
+    if read_a.shape != read_b.shape:
+        read_a, read_b = np.broadcast_arrays(read_a, read_b)
+    shape, n = read_a.shape, read_a.size
+    ab = np.concatenate([read_a.reshape(1, -1), read_b.reshape(1, -1)])  # (a, b) x reading
     # rows of held parameters are zero
     nonzero = np.asarray(cov.any(axis=1) if cov is not None else np.zeros(p.size, dtype=bool))
     has_cov = bool(nonzero.any())
     # parameters stepped: zero and scale follow from the readings
     stepped = nonzero[4:].nonzero()[0] + 4
     m = stepped.size
-    h = fd_step(np.concatenate([ab.reshape(-1), p[stepped]]), 1.0)
+    steps = fd_step(np.concatenate([ab.reshape(-1), p[stepped]]), 1.0)
     # steps of the readings (a, b) and of the stepped parameters
-    hab, hp = h[: 2 * n].reshape(2, n), h[2 * n :]
+    hab, hp = steps[: 2 * n].reshape(2, n), steps[2 * n :]
     n_cases = 5 + 2 * m
-    P = np.repeat(p[None], n_cases, axis=0)
-    flat = P.reshape(-1)
+    case_params = np.repeat(p[None], n_cases, axis=0)
+    flat = case_params.reshape(-1)
     # case 5 + 2j steps parameter stepped[j] up, case 6 + 2j down
     at = np.arange(5, n_cases, 2) * p.size + stepped
     flat[at] += hp
     flat[at + p.size] -= hp
     if n_cases * n <= _STACKED_READINGS:
         # a ± ha in cases 1, 2, b ± hb in 3, 4
-        R = ab[:, None] + _READING_STEPS[:, :n_cases, None] * hab[:, None]
-        Z = _solve_batch(P, sign, R)  # (X, Y) x case x reading
-        Z0 = Z[:, 0]
-        D = (Z[:, 1:5:2] - Z[:, 2:5:2]) / (2 * hab)  # (X, Y) x (d/da, d/db) x reading
+        case_readings = ab[:, None] + _READING_STEPS[:, :n_cases, None] * hab[:, None]
+        case_tilts = _solve_batch(case_params, sign, case_readings)  # (X, Y) x case x reading
+        Z0 = case_tilts[:, 0]
+        d_reading = (case_tilts[:, 1:5:2] - case_tilts[:, 2:5:2]) / (
+            2 * hab
+        )  # (X, Y) x (d/da, d/db) x reading
         # (X, Y) x d/d(stepped parameter) x reading
-        Dp = (Z[:, 5::2] - Z[:, 6::2]) / (2 * hp)[:, None]
+        d_params = (case_tilts[:, 5::2] - case_tilts[:, 6::2]) / (2 * hp)[:, None]
     else:  # the same differences, holding two cases at a time
 
         def case(c: int) -> NDArray[np.float64]:
-            R = ab[:, None]
+            case_readings = ab[:, None]
             if c in (1, 2, 3, 4):  # a + ha, a - ha, b + hb, b - hb
-                axis, R = (c - 1) // 2, R.copy()
-                R[axis, 0] = ab[axis] + hab[axis] if c % 2 else ab[axis] - hab[axis]
-            return _solve_batch(P[c : c + 1], sign, R)[:, 0]
+                axis, case_readings = (c - 1) // 2, case_readings.copy()
+                case_readings[axis, 0] = ab[axis] + hab[axis] if c % 2 else ab[axis] - hab[axis]
+            return _solve_batch(case_params[c : c + 1], sign, case_readings)[:, 0]
 
-        Z0, D, Dp = case(0), np.empty((2, 2, n)), np.empty((2, m, n))
+        Z0, d_reading, d_params = case(0), np.empty((2, 2, n)), np.empty((2, m, n))
         for j in range(2):
-            D[:, j] = (case(1 + 2 * j) - case(2 + 2 * j)) / (2 * hab[j])
+            d_reading[:, j] = (case(1 + 2 * j) - case(2 + 2 * j)) / (2 * hab[j])
         for j in range(m):
-            Dp[:, j] = (case(5 + 2 * j) - case(6 + 2 * j)) / (2 * hp[j])
-    v = (sigma_deg * D) ** 2
+            d_params[:, j] = (case(5 + 2 * j) - case(6 + 2 * j)) / (2 * hp[j])
+    var_reading = (sigma_deg * d_reading) ** 2
     nd = dof if noise_dof is None else noise_dof  # the reading noise may rest on its own estimate
-    parts = [(v[:, 0], nd), (v[:, 1], nd)]
+    parts = [(var_reading[:, 0], nd), (var_reading[:, 1], nd)]
     if cov is not None and has_cov:
         k = -(ab - p[0:2, None]) / (1.0 + p[2:4, None])  # d/dscale = d/da·k, d/dzero = -d/da
         # parameters with a zero covariance row add nothing
         used = np.concatenate([np.arange(4), stepped])
-        J = np.concatenate([-D, D * k, Dp], axis=1)
+        jacobian = np.concatenate([-d_reading, d_reading * k, d_params], axis=1)
         # no BLAS: steady under load
-        parts.append((np.einsum("kin,ij,kjn->kn", J, cov[used[:, None], used], J), dof))
-    u = np.sqrt(sum(var for var, _ in parts)).reshape((2,) + shape)
+        parts.append(
+            (np.einsum("kin,ij,kjn->kn", jacobian, cov[used[:, None], used], jacobian), dof)
+        )
+    u_c = np.sqrt(sum(var for var, _ in parts)).reshape((2,) + shape)
     nu = welch_satterthwaite(parts).reshape((2,) + shape)
     Z0 = Z0.reshape((2,) + shape)
-    return Z0[0], Z0[1], Propagated(u[0], nu[0]), Propagated(u[1], nu[1])
+    return Z0[0], Z0[1], Propagated(u_c[0], nu[0]), Propagated(u_c[1], nu[1])
 
 
 # --- mirrored axes ---------------------------------------------------------------------------
@@ -332,15 +336,15 @@ def detect_mirror(
     """
     out = []
     for sensor, ref, ax in ((sensor_x, ref_x, "x"), (sensor_y, ref_y, "y")):
-        s = np.asarray(sensor, dtype=float)
-        r = np.asarray(ref, dtype=float)
-        rc = r - r.mean()
+        sensor_deg = np.asarray(sensor, dtype=float)
+        ref_deg = np.asarray(ref, dtype=float)
+        rc = ref_deg - ref_deg.mean()
         if float(rc @ rc) <= 1e-12:
             raise DegenerateDataError(
                 f"the {what}'s {ax} axis cannot be related to the reference: ref_{ax}_deg does "
                 f"not change over the points (move the {'upper' if ax == 'x' else 'lower'} stage)"
             )
-        slope = float(rc @ (s - s.mean()) / (rc @ rc))
+        slope = float(rc @ (sensor_deg - sensor_deg.mean()) / (rc @ rc))
         if abs(abs(slope) - 1.0) > 0.5:
             raise DegenerateDataError(
                 f"the {what}'s {ax} reading does not follow ref_{ax}_deg (slope {slope:.3g}); "
@@ -411,8 +415,11 @@ def require_spread(
         raise DegenerateDataError(
             f"{what} needs at least {min_points} distinct stage points, got {len(pts)}"
         )
-    for name, v, stage in (("stage_x_deg", stage_x, "upper"), ("stage_y_deg", stage_y, "lower")):
-        if np.unique(np.round(v, 6)).size < 2:
+    for name, angles, stage in (
+        ("stage_x_deg", stage_x, "upper"),
+        ("stage_y_deg", stage_y, "lower"),
+    ):
+        if np.unique(np.round(angles, 6)).size < 2:
             raise DegenerateDataError(
                 f"{what}: {name} never changes; the data need points with the {stage} stage "
                 "at two or more angles"
@@ -451,17 +458,17 @@ def newton_2d(
     All points iterate together: the cost is a handful of vectorised model evaluations, never a
     Python loop over points. Points that fail to converge raise InputError naming them.
     """
-    u = np.array(u0, dtype=float, copy=True)
-    v = np.array(v0, dtype=float, copy=True)
-    a = np.asarray(target_a, dtype=float)
-    b = np.asarray(target_b, dtype=float)
+    u_deg = np.array(u0, dtype=float, copy=True)
+    v_deg = np.array(v0, dtype=float, copy=True)
+    want_a = np.asarray(target_a, dtype=float)
+    want_b = np.asarray(target_b, dtype=float)
     for _ in range(max_iter):
-        fa, fb = fun(u, v)
-        ra, rb = fa - a, fb - b
+        fa, fb = fun(u_deg, v_deg)
+        ra, rb = fa - want_a, fb - want_b
         if np.all(np.abs(ra) < tol_deg) and np.all(np.abs(rb) < tol_deg):
-            return u, v
-        fua, fub = fun(u + step_deg, v)
-        fva, fvb = fun(u, v + step_deg)
+            return u_deg, v_deg
+        fua, fub = fun(u_deg + step_deg, v_deg)
+        fva, fvb = fun(u_deg, v_deg + step_deg)
         j11, j21 = (fua - fa) / step_deg, (fub - fb) / step_deg
         j12, j22 = (fva - fa) / step_deg, (fvb - fb) / step_deg
         det = j11 * j22 - j12 * j21
@@ -471,9 +478,9 @@ def newton_2d(
         dv = (-j21 * ra + j11 * rb) / det
         du = np.where(bad, 0.0, np.clip(du, -5.0, 5.0))
         dv = np.where(bad, 0.0, np.clip(dv, -5.0, 5.0))
-        u, v = u - du, v - dv
-    fa, fb = fun(u, v)
-    worst = np.maximum(np.abs(fa - a), np.abs(fb - b))
+        u_deg, v_deg = u_deg - du, v_deg - dv
+    fa, fb = fun(u_deg, v_deg)
+    worst = np.maximum(np.abs(fa - want_a), np.abs(fb - want_b))
     bad_rows = np.flatnonzero(~(worst < 1e-7))
     if bad_rows.size:
         rows = ", ".join(str(i + 1) for i in bad_rows[:5])
@@ -481,4 +488,4 @@ def newton_2d(
             f"no stage angles reach the wanted value at row(s) {rows} "
             f"(worst miss {np.nanmax(worst):.3g} deg): outside what the bench can do"
         )
-    return u, v
+    return u_deg, v_deg

@@ -53,18 +53,18 @@ class CouplingMethod(StageMethod):
     def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
         sx, sy, rx, ry = columns(data, FIT_REQUIRED)
         require_spread(sx, sy, 3, "the coupling model")
-        e = offaxis_error_deg(sx, sy)
-        if float(e @ e) < 1e-12:
+        err10 = offaxis_error_deg(sx, sy)
+        if float(err10 @ err10) < 1e-12:
             raise DegenerateDataError(
                 "the coupling model needs points with both stages away from zero (off the "
                 "θx = 0 and θy = 0 lines), where eq. (10)'s error is not zero"
             )
-        d = sx - rx
-        kappa = float(e @ d / (e @ e))
-        res = {"ref_x_deg": (sx - kappa * e) - rx, "ref_y_deg": sy - ry}
-        r = np.concatenate(list(res.values()))
-        st = fit_stats(r, 1)
-        var_k = float(np.sum(res["ref_x_deg"] ** 2) / max(sx.size - 1, 1) / (e @ e))
+        diff = sx - rx
+        kappa = float(err10 @ diff / (err10 @ err10))
+        res = {"ref_x_deg": (sx - kappa * err10) - rx, "ref_y_deg": sy - ry}
+        all_res = np.concatenate(list(res.values()))
+        st = fit_stats(all_res, 1)
+        var_k = float(np.sum(res["ref_x_deg"] ** 2) / max(sx.size - 1, 1) / (err10 @ err10))
         params = {
             "offaxis_coupling.kappa": Parameter(
                 kappa,
@@ -94,7 +94,7 @@ class CouplingMethod(StageMethod):
             mx, my = columns(data, MEAS_COLUMNS)
             res.update({"meas_x_deg": sign[0] * mx - rx, "meas_y_deg": sign[1] * my - ry})
             state["meas_misfit_rms_deg"] = [
-                float(np.sqrt(np.mean(res[c] ** 2))) for c in ("meas_x_deg", "meas_y_deg")
+                float(np.sqrt(np.mean(res[column] ** 2))) for column in ("meas_x_deg", "meas_y_deg")
             ]
             state["meas_dof"] = int(mx.size)  # an RMS over the points, nothing fitted
             notes.append(

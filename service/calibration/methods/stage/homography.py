@@ -59,8 +59,8 @@ H_SCALES = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1e-2, 1e-2])
 
 def _h_params(prefix: str, H: NDArray[np.float64], note: str = "") -> dict[str, Parameter]:
     return {
-        f"{prefix}.{k}": Parameter(float(v), H_UNITS[k], note=note if k == "h11" else "")
-        for k, v in zip(H_KEYS, H.ravel()[:8])
+        f"{prefix}.{k}": Parameter(float(value), H_UNITS[k], note=note if k == "h11" else "")
+        for k, value in zip(H_KEYS, H.ravel()[:8])
     }
 
 
@@ -183,15 +183,15 @@ class HomographyMethod(StageMethod):
             H2 = fit_projective(mx, my, rx, ry, what="H2 (measurement -> reference)")
             h2 = H2.ravel()[:8]
 
-            r, J2 = transfer_residuals(h2, mx, my, rx, ry)
-            st = fit_stats(r, 8)
+            res_h2, J2 = transfer_residuals(h2, mx, my, rx, ry)
+            st = fit_stats(res_h2, 8)
             params.update(
                 _h_params(
                     "H2", H2, "H2 maps measurement readings (a, b) to reference angles (X, Y)"
                 )
             )
             n = mx.size
-            residuals.update({"ref_x_deg": r[:n], "ref_y_deg": r[n:]})
+            residuals.update({"ref_x_deg": res_h2[:n], "ref_y_deg": res_h2[n:]})
             fit_info["h2"] = st
             h2_note = (
                 f"H2 (measurement -> reference) fitted by normalised DLT on all {n} points: both "
@@ -253,8 +253,8 @@ class HomographyMethod(StageMethod):
         def f(
             p: NDArray[np.float64], inp: Mapping[str, NDArray[np.float64]]
         ) -> NDArray[np.float64]:
-            a, b = _apply_h(p, inp["meas_x_deg"], inp["meas_y_deg"])
-            return np.column_stack([a, b])
+            tilt_x, tilt_y = _apply_h(p, inp["meas_x_deg"], inp["meas_y_deg"])
+            return np.column_stack([tilt_x, tilt_y])
 
         sigma, noise_dof = reading_noise_of(model)
         return uncertain_correct(

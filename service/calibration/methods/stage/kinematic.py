@@ -73,7 +73,7 @@ class KinematicMethod(StageMethod):
                 f"({bench.describe()} assumed): give the bench the data came from with --bench FILE"
             )
         pts = StagePoints.from_columns(data)
-        added = [str(e) for e in options.extra.get("effects", ())]
+        added = [str(effect_name) for effect_name in options.extra.get("effects", ())]
         time_origin = _time_origin(data, added)
         if time_origin is not None and pts.t_s is not None:
             pts.t_s = pts.t_s - time_origin
@@ -96,8 +96,8 @@ class KinematicMethod(StageMethod):
             worm_axes=tuple(options.extra.get("worm_axes", ("x", "y"))),
         )
         params: dict[str, Parameter] = {}
-        for k, v in zip(chain.keys, chain.values):
-            params[param_label(k)] = Parameter(float(v), unit_of(k))
+        for k, value in zip(chain.keys, chain.values):
+            params[param_label(k)] = Parameter(float(value), unit_of(k))
         for k, why in chain.fixed.items():
             params[param_label(k)] = Parameter(0.0, unit_of(k), fixed=True, note=why)
         cov_names = [param_label(k) for k in chain.keys]
@@ -166,10 +166,11 @@ class KinematicMethod(StageMethod):
         if worm := periodic_summary(chain):
             fit_info["periodic_error"] = worm
             notes += [
-                f"periodic error of the {ax} stage's worm: amplitude {w['amplitude_deg']:.3g} ± "
-                f"{w['u_amplitude_deg']:.2g} deg, phase {w['phase_deg']:.1f} ± "
-                f"{w['u_phase_deg']:.2g} deg (from its sine/cosine pair, standard uncertainties)"
-                for ax, w in worm.items()
+                f"periodic error of the {ax} stage's worm: amplitude "
+                f"{terms['amplitude_deg']:.3g} ± {terms['u_amplitude_deg']:.2g} deg, phase "
+                f"{terms['phase_deg']:.1f} ± {terms['u_phase_deg']:.2g} deg (from its sine/cosine "
+                "pair, standard uncertainties)"
+                for ax, terms in worm.items()
             ]
         state: dict[str, Any] = {
             "has_meas": has_meas(data),
@@ -178,7 +179,9 @@ class KinematicMethod(StageMethod):
             "approach": [1.0, 1.0],
         }
         ref_effects = tuple(
-            e for e in REFERENCE_EFFECTS if any(k in chain.keys for k in EFFECT_PARAMS[e])
+            effect_name
+            for effect_name in REFERENCE_EFFECTS
+            if any(k in chain.keys for k in EFFECT_PARAMS[effect_name])
         )
         if ref_effects:
             span = (
@@ -207,10 +210,10 @@ class KinematicMethod(StageMethod):
                 )
             meas = fit_meas(ref_tx, ref_ty, mx, my, sign, loss=loss)
             units = {meas_param[0]: meas_param[1] for meas_param in MEAS_PARAMS}
-            for name, v in zip(MEAS_NAMES, meas.values):
+            for name, value in zip(MEAS_NAMES, meas.values):
                 fixed = name in meas.fixed
                 params[name] = Parameter(
-                    float(v), units[name], fixed=fixed, note=meas.fixed.get(name, "")
+                    float(value), units[name], fixed=fixed, note=meas.fixed.get(name, "")
                 )
             cov_names += meas.names
             blocks.append(meas.covariance)
@@ -278,8 +281,8 @@ class KinematicMethod(StageMethod):
         bench = StageBench(**model.state.get("bench", {}))
         values = {}
         for name in model.state.get("chain_parameters", []):
-            e, p = name.split(".", 1)
-            values[(e, p)] = model.value(name)
+            effect, param = name.split(".", 1)
+            values[(effect, param)] = model.value(name)
         return ChainModel.from_values(bench, values)
 
     def commands(
@@ -298,7 +301,7 @@ class KinematicMethod(StageMethod):
         sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
         mx, my = columns(data, MEAS_COLUMNS)
         sigma, noise_dof = reading_noise_of(model)
-        X, Y, gx, gy = meas_inverse_gum(
+        tilt_x, tilt_y, gx, gy = meas_inverse_gum(
             model.values(MEAS_NAMES),
             model.cov_of(list(MEAS_NAMES)),
             sign,
@@ -311,12 +314,12 @@ class KinematicMethod(StageMethod):
         # U = k·u_c, as Propagated.expanded
         kx, ky = coverage_factor(gx.dof_eff), coverage_factor(gy.dof_eff)
         return {
-            "tilt_x_deg": X,
-            "tilt_y_deg": Y,
+            "tilt_x_deg": tilt_x,
+            "tilt_y_deg": tilt_y,
             "u_tilt_x_deg": kx * gx.u,
             "u_tilt_y_deg": ky * gy.u,
-            K_OUTPUTS[0]: np.broadcast_to(kx, X.shape),
-            K_OUTPUTS[1]: np.broadcast_to(ky, Y.shape),
+            K_OUTPUTS[0]: np.broadcast_to(kx, tilt_x.shape),
+            K_OUTPUTS[1]: np.broadcast_to(ky, tilt_y.shape),
         }
 
 
@@ -349,18 +352,18 @@ def periodic_summary(chain: ChainFit) -> dict[str, dict[str, float]]:
         if ks not in chain.keys or kc not in chain.keys:
             continue
         i, j = chain.keys.index(ks), chain.keys.index(kc)
-        a, b = float(chain.values[i]), float(chain.values[j])
+        sin_amp, cos_amp = float(chain.values[i]), float(chain.values[j])
         cov = chain.covariance[np.ix_([i, j], [i, j])]
-        amp = float(np.hypot(a, b))
+        amp = float(np.hypot(sin_amp, cos_amp))
         if amp == 0.0:
             continue
-        g_amp = np.array([a, b]) / amp
-        g_phase = np.array([-b, a]) / amp**2
+        g_amp = np.array([sin_amp, cos_amp]) / amp
+        g_phase = np.array([-cos_amp, sin_amp]) / amp**2
         var_amp, var_phase = float(g_amp @ cov @ g_amp), float(g_phase @ cov @ g_phase)
         out[ax] = {
             "amplitude_deg": amp,
             "u_amplitude_deg": float(np.sqrt(max(var_amp, 0.0))),
-            "phase_deg": float(np.degrees(np.arctan2(b, a))),
+            "phase_deg": float(np.degrees(np.arctan2(cos_amp, sin_amp))),
             "u_phase_deg": float(np.degrees(np.sqrt(max(var_phase, 0.0)))),
         }
     return out

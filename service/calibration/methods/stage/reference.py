@@ -78,13 +78,13 @@ def reference_errors(model: CalibrationModel) -> ReferenceErrors | None:
         return None
 
     def v(name: str) -> float:
-        p = model.parameters.get(name)
-        return 0.0 if p is None else float(p.value)
+        param = model.parameters.get(name)
+        return 0.0 if param is None else float(param.value)
 
     origin = st.get("time_origin_s")
     span = st.get("time_span_s")
     return ReferenceErrors(
-        tuple(str(e) for e in st["effects"]),
+        tuple(str(effect) for effect in st["effects"]),
         (v("sensor_nonlinearity.ref_x_per_deg"), v("sensor_nonlinearity.ref_y_per_deg")),
         (v("temperature_drift.ref_x_deg_per_k"), v("temperature_drift.ref_y_deg_per_k")),
         v("temperature_drift.ref_scale_per_k"),
@@ -129,9 +129,9 @@ def _invert(
 ) -> NDArray[np.float64]:
     """t with gain·t + quad·t² + offset = raw: the root near raw (stable form of the quadratic
     formula)."""
-    c = offset - raw
-    disc = np.sqrt(np.clip(gain * gain - 4.0 * quad * c, 0.0, None))
-    t: NDArray[np.float64] = -2.0 * c / (gain + disc)
+    const = offset - raw
+    disc = np.sqrt(np.clip(gain * gain - 4.0 * quad * const, 0.0, None))
+    t: NDArray[np.float64] = -2.0 * const / (gain + disc)
     return t
 
 
