@@ -31,9 +31,9 @@ def wilson(hits: int, n: int, z: float = Z_95) -> tuple[float, float]:
     """Wilson score interval of a binomial proportion (95 % for z = 1.96)."""
     if n == 0:
         return (0.0, 1.0)
-    p = hits / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    proportion = hits / n
+    centre = (proportion + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(proportion * (1 - proportion) / n + z * z / (4 * n * n)) / (1 + z * z / n)
     return float(centre - half), float(centre + half)
 
 
@@ -66,10 +66,10 @@ class _Tally:
 
     def add(self, axis: str, err: NDArray[np.float64], U: NDArray[np.float64]) -> None:
         ok = np.isfinite(err) & np.isfinite(U)
-        e, u = err[ok], U[ok]
-        self.hits[axis] = self.hits.get(axis, 0) + int(np.sum(np.abs(e) <= u))
-        self.n[axis] = self.n.get(axis, 0) + int(e.size)
-        self.z2[axis] = self.z2.get(axis, 0.0) + float(np.sum((e / u) ** 2))
+        error, expanded = err[ok], U[ok]
+        self.hits[axis] = self.hits.get(axis, 0) + int(np.sum(np.abs(error) <= expanded))
+        self.n[axis] = self.n.get(axis, 0) + int(error.size)
+        self.z2[axis] = self.z2.get(axis, 0.0) + float(np.sum((error / expanded) ** 2))
 
     def rows(self, kind: str, method: str, scenario: str) -> list[Row]:
         return [
@@ -77,12 +77,12 @@ class _Tally:
                 kind,
                 method,
                 scenario,
-                a,
-                self.hits[a],
-                self.n[a],
-                float(np.sqrt(self.z2[a] / self.n[a])),
+                axis,
+                self.hits[axis],
+                self.n[axis],
+                float(np.sqrt(self.z2[axis] / self.n[axis])),
             )
-            for a in self.n
+            for axis in self.n
         ]
 
 
@@ -122,8 +122,10 @@ def stage_coverage(
         cx, cy = oracle.level(tx[pick], ty[pick])
         val = execute(run.bench, run.effects, cx, cy, 700_000 + seed, sc.environment.temp_c)
         out = m.correct(model, {"meas_x_deg": val["meas_x_deg"], "meas_y_deg": val["meas_y_deg"]})
-        for a in ("x", "y"):
-            tally.add(a, out[f"tilt_{a}_deg"] - val[f"tilt_{a}_deg"], out[f"u_tilt_{a}_deg"])
+        for axis in ("x", "y"):
+            tally.add(
+                axis, out[f"tilt_{axis}_deg"] - val[f"tilt_{axis}_deg"], out[f"u_tilt_{axis}_deg"]
+            )
     return tally.rows("stage", method, f"seed000, {variant}")
 
 

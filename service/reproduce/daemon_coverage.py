@@ -73,14 +73,14 @@ def calibrated_daemon(
             )
         )
     ) as client:
-        h = {"Authorization": "Bearer " + (data_dir / "admin.token").read_text().strip()}
-        calibrate_and_activate(client, h)
-        yield client, h
+        headers = {"Authorization": "Bearer " + (data_dir / "admin.token").read_text().strip()}
+        calibrate_and_activate(client, headers)
+        yield client, headers
 
 
 def calibrate_and_activate(client: TestClient, h: dict[str, str]) -> None:
     """Calibrate GRID (kinematic, 10 readings per point) and make the record the active one."""
-    r = client.post(
+    response = client.post(
         "/calibrations",
         headers=h,
         json={
@@ -91,11 +91,11 @@ def calibrate_and_activate(client: TestClient, h: dict[str, str]) -> None:
             "validation": {"n_points": 0},
         },
     )
-    if r.status_code != 202:
-        raise RuntimeError(f"calibration refused: {r.text}")
+    if response.status_code != 202:
+        raise RuntimeError(f"calibration refused: {response.text}")
     job = _until(
         lambda: (
-            (j := client.get(f"/calibrations/{r.json()['id']}", headers=h).json())["state"]
+            (j := client.get(f"/calibrations/{response.json()['id']}", headers=h).json())["state"]
             in ("succeeded", "failed", "cancelled")
             and j
         ),
@@ -190,8 +190,8 @@ def measure(
     for k in range(calibrations):
         with (
             tempfile.TemporaryDirectory(prefix="tiltlab-coverage-") as tmp,
-            calibrated_daemon(Path(tmp), scenario) as (client, h),
+            calibrated_daemon(Path(tmp), scenario) as (client, headers),
         ):
             yield readings_at_stands(
-                client, h, stands, readings_per_stand, seed=1000 * k + len(scenario)
+                client, headers, stands, readings_per_stand, seed=1000 * k + len(scenario)
             )

@@ -48,8 +48,8 @@ def _rotation(sc: Scenario) -> RotationScenario:
 
 
 def _variant(base: dict[str, Any], **changes: Any) -> RotationScenario:
-    d = {**base, **changes}
-    return _rotation(parse_scenario(d))
+    data = {**base, **changes}
+    return _rotation(parse_scenario(data))
 
 
 def _fit_params(points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -82,15 +82,15 @@ def parameter_errors(
     truth = np.array([sc.bench.alpha_deg, sc.bench.beta_deg, sc.bench.gamma_deg])
     out: dict[str, list[NDArray[np.float64]]] = {"direct": [], "iodsra": []}
     for seed in range(n):
-        c = run_scenario(sc, seed=seed).columns
+        columns = run_scenario(sc, seed=seed).columns
         for name, pts in (
-            ("direct", direct_points(c["sx"], c["sy"])),
-            ("iodsra", iodsra(c["sx"], c["sy"], c["sz"])[0]),
+            ("direct", direct_points(columns["sx"], columns["sy"])),
+            ("iodsra", iodsra(columns["sx"], columns["sy"], columns["sz"])[0]),
         ):
-            e = solver(pts) - truth
-            e[0] = wrap_deg(e[0])
-            out[name].append(np.abs(e))
-    return {k: np.array(v) for k, v in out.items()}
+            error = solver(pts) - truth
+            error[0] = wrap_deg(error[0])
+            out[name].append(np.abs(error))
+    return {k: np.array(rows) for k, rows in out.items()}
 
 
 def _reduction(err: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
@@ -118,17 +118,21 @@ def _sz_errors(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """RMS error of Sz per point: from eq. (6) (direct) and as measured (IODSRA)."""
     theta = np.zeros(0)
-    d, i = [], []
+    direct_err, iodsra_err = [], []
     for seed in range(n):
         run = run_scenario(sc, seed=seed)
-        c = run.columns
+        columns = run.columns
         theta = run.truth["theta_true_deg"]
         true_sz = rotation_outputs(
             sc.bench.alpha_deg, sc.bench.beta_deg, sc.bench.gamma_deg, theta
         )[2]
-        d.append(direct_points(c["sx"], c["sy"])[:, 2] - true_sz)
-        i.append(c["sz"] - true_sz)
-    return theta, np.sqrt(np.mean(np.square(d), axis=0)), np.sqrt(np.mean(np.square(i), axis=0))
+        direct_err.append(direct_points(columns["sx"], columns["sy"])[:, 2] - true_sz)
+        iodsra_err.append(columns["sz"] - true_sz)
+    return (
+        theta,
+        np.sqrt(np.mean(np.square(direct_err), axis=0)),
+        np.sqrt(np.mean(np.square(iodsra_err), axis=0)),
+    )
 
 
 def _theta_errors_sim(sc: RotationScenario, n: int) -> dict[str, NDArray[np.float64]]:
@@ -142,7 +146,7 @@ def _theta_errors_sim(sc: RotationScenario, n: int) -> dict[str, NDArray[np.floa
             m = get_method("rotation", name)
             th = m.correct(m.fit(cal, FitOptions()), meas.columns)["theta_deg"]
             out[name].append(wrap_deg(th - meas.truth["theta_true_deg"]))
-    return {k: np.array(v) for k, v in out.items()}
+    return {k: np.array(errors) for k, errors in out.items()}
 
 
 def bench_errors(preset: str, n: int) -> dict[str, Any]:
@@ -160,7 +164,7 @@ def bench_errors(preset: str, n: int) -> dict[str, Any]:
             fit_on = cal
             if name == "direct":
                 sel = np.abs(cal["theta_ref_deg"]) <= DIRECT_CAL_RANGE_DEG
-                fit_on = {c: v[sel] for c, v in cal.items()}
+                fit_on = {column: values[sel] for column, values in cal.items()}
             model = m.fit(fit_on, FitOptions())
             out = m.correct(model, meas.columns)
             res[name].append(wrap_deg(out["theta_deg"] - theta))
@@ -168,7 +172,7 @@ def bench_errors(preset: str, n: int) -> dict[str, Any]:
                 example[name] = (model, out)
     return {
         "theta": theta,
-        "errors": {k: np.array(v) for k, v in res.items()},
+        "errors": {k: np.array(errors) for k, errors in res.items()},
         "example": example,
         "scenario": sc,
     }
@@ -203,15 +207,15 @@ def fig4_curves(
         which: int,
     ) -> Callable[[NDArray[np.float64], Mapping[str, NDArray[np.float64]]], NDArray[np.float64]]:
         def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
-            a, b, g = np.radians(p)
-            P = np.column_stack([x["sx"], x["sy"], x["sz"]])
-            s7, c9, c8 = rotation_equations(P, a, b, g)
+            alpha_rad, beta_rad, gamma_rad = np.radians(p)
+            points = np.column_stack([x["sx"], x["sy"], x["sz"]])
+            s7, c9, c8 = rotation_equations(points, alpha_rad, beta_rad, gamma_rad)
             if which == 7:
                 t = np.arcsin(np.clip(s7, -1, 1))
                 t = np.where(np.cos(true) < 0, np.copysign(np.pi, t) - t, t)
             else:
-                c = c9 if which == 9 else c8
-                t = np.arccos(np.clip(c, -1, 1)) * np.where(np.sin(true) < 0, -1, 1)
+                cosine = c9 if which == 9 else c8
+                t = np.arccos(np.clip(cosine, -1, 1)) * np.where(np.sin(true) < 0, -1, 1)
             return theta + wrap_deg(np.degrees(t) - theta)
 
         return f
@@ -219,12 +223,17 @@ def fig4_curves(
     def combined(
         p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]
     ) -> NDArray[np.float64]:
-        P = np.column_stack([x["sx"], x["sy"], x["sz"]])
-        a, b, g = np.radians(p)
-        return theta + wrap_deg(np.degrees(theta_combined(P, a, b, g)) - theta)
+        points = np.column_stack([x["sx"], x["sy"], x["sz"]])
+        alpha_rad, beta_rad, gamma_rad = np.radians(p)
+        return theta + wrap_deg(
+            np.degrees(theta_combined(points, alpha_rad, beta_rad, gamma_rad)) - theta
+        )
 
-    sig = {c: sigma_s for c in inputs}
-    curves = {f"eq. ({w})": propagate(single(w), p0, cov, inputs, sig) for w in (7, 8, 9)}
+    sig = {column: sigma_s for column in inputs}
+    curves = {
+        f"eq. ({equation})": propagate(single(equation), p0, cov, inputs, sig)
+        for equation in (7, 8, 9)
+    }
     curves["combined"] = propagate(combined, p0, cov, inputs, sig)
     return theta, curves
 
@@ -240,10 +249,16 @@ def combined_benefit(preset: str, n: int) -> dict[str, Any]:
         cal = run_scenario(sc, seed=k).columns
         meas = run_scenario(sc, seed=2000 + k)
         theta = meas.truth["theta_true_deg"]
-        a, b, g = fit_plane(iodsra_points(cal["sx"], cal["sy"], cal["sz"])[0])
+        alpha_rad, beta_rad, gamma_rad = fit_plane(
+            iodsra_points(cal["sx"], cal["sy"], cal["sz"])[0]
+        )
         pts, _ = iodsra_points(meas.columns["sx"], meas.columns["sy"], meas.columns["sz"])
-        sw_list.append(wrap_deg(np.degrees(theta_switch(pts, a, b, g)) - theta))
-        co_list.append(wrap_deg(np.degrees(theta_combined(pts, a, b, g)) - theta))
+        sw_list.append(
+            wrap_deg(np.degrees(theta_switch(pts, alpha_rad, beta_rad, gamma_rad)) - theta)
+        )
+        co_list.append(
+            wrap_deg(np.degrees(theta_combined(pts, alpha_rad, beta_rad, gamma_rad)) - theta)
+        )
     sw, co = np.array(sw_list), np.array(co_list)
     return {
         "theta": theta,
@@ -254,18 +269,12 @@ def combined_benefit(preset: str, n: int) -> dict[str, Any]:
     }
 
 
-def run(out_dir: Path) -> dict[str, Any]:
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(2016)
-    sim = _rotation(load_scenario("seed002-sim"))
-    base = sim.model_dump()
-    err = parameter_errors(sim, N_SIM)
-    red = _reduction(err)
-    ci = _reduction_interval(err, rng)
-
-    # the lost details, varied one at a time
-    variants = []
+def _lost_detail_variants(
+    sim: RotationScenario, base: dict[str, Any], err: Mapping[str, NDArray[np.float64]]
+) -> list[tuple[str, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
+    """The details the paper's simulation lost, varied one at a time: label, MAE of the direct
+    method and of IODSRA, and the reductions (the preset's own row reuses `err`)."""
+    variants: list[tuple[str, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] = []
     for label, sc, solver, pts in (
         ("18 points over ±70° (preset), least-squares plane", sim, _fit_params, iodsra_points),
         (
@@ -304,20 +313,37 @@ def run(out_dir: Path) -> dict[str, Any]:
         ),
     ):
         first = sc is sim and solver is _fit_params and pts is iodsra_points
-        e = err if first else parameter_errors(sc, 200, solver, pts)
-        variants.append((label, e["direct"].mean(axis=0), e["iodsra"].mean(axis=0), _reduction(e)))
+        errors = err if first else parameter_errors(sc, 200, solver, pts)
+        variants.append(
+            (
+                label,
+                errors["direct"].mean(axis=0),
+                errors["iodsra"].mean(axis=0),
+                _reduction(errors),
+            )
+        )
+    return variants
 
-    theta_sz, sz_direct, sz_iodsra = _sz_errors(sim, 200)
+
+def _theta_rms_sim(sim: RotationScenario) -> tuple[dict[str, Any], dict[str, Any]]:
+    """RMS θ error of each method at the simulation's 18 points (§3, Table 2): over all of them,
+    and over those within ±45° (where the direct method's Sz is not near zero)."""
     th_sim = _theta_errors_sim(sim, 200)
-    rms_sim = {k: np.sqrt(np.mean(v**2)) for k, v in th_sim.items()}
+    rms_sim = {k: np.sqrt(np.mean(errors**2)) for k, errors in th_sim.items()}
     th18 = run_scenario(sim).truth["theta_true_deg"]
-    rms45 = {k: np.sqrt(np.mean(v[:, np.abs(th18) <= 45] ** 2)) for k, v in th_sim.items()}
+    rms45 = {
+        k: np.sqrt(np.mean(errors[:, np.abs(th18) <= 45] ** 2)) for k, errors in th_sim.items()
+    }
+    return rms_sim, rms45
 
-    benches = {p: bench_errors(p, N_BENCH) for p in ("seed002-b55", "seed002-b75")}
-    fig4_theta, fig4 = fig4_curves()
-    benefit = {p: combined_benefit(p, 200) for p in ("seed002-b55", "seed002-b75")}
 
-    # --- figures ---------------------------------------------------------------------------
+def _fig5_sz_errors(
+    out_dir: Path,
+    theta_sz: NDArray[np.float64],
+    sz_direct: NDArray[np.float64],
+    sz_iodsra: NDArray[np.float64],
+) -> str:
+    """Like the paper's Fig. 5: the RMS error of Sz along the arc, from eq. (6) and as measured."""
     fig, ax = new_figure(1, 1, (7.5, 4.2))
     ax.semilogy(theta_sz, sz_direct, "o-", label="direct: Sz from eq. (6)")
     ax.semilogy(theta_sz, sz_iodsra, "s-", label="IODSRA: Sz measured")
@@ -327,15 +353,19 @@ def run(out_dir: Path) -> dict[str, Any]:
         ylabel="RMS error of Sz",
     )
     ax.legend()
-    f5 = "seed002_fig5_sz_error.png"
-    save_figure(fig, out_dir / f5)
+    name = "seed002_fig5_sz_error.png"
+    save_figure(fig, out_dir / name)
+    return name
 
+
+def _fig6_theta_errors(out_dir: Path, benches: dict[str, dict[str, Any]]) -> str:
+    """Like the paper's Fig. 6: each method's worst |θ error| over ±180° on the two benches."""
     fig, axes = new_figure(1, 2, (12, 4.5))
-    for ax, (preset, b) in zip(axes.ravel(), benches.items()):
+    for ax, (preset, bench) in zip(axes.ravel(), benches.items()):
         for name, style in (("direct", "o-"), ("iodsra", "s-"), ("iodsra-combined", "^--")):
-            worst = np.max(np.abs(b["errors"][name]), axis=0)
+            worst = np.max(np.abs(bench["errors"][name]), axis=0)
             ax.semilogy(
-                b["theta"],
+                bench["theta"],
                 np.maximum(worst, 1e-4),
                 style,
                 ms=4,
@@ -349,12 +379,18 @@ def run(out_dir: Path) -> dict[str, Any]:
             ylim=(1e-4, 300),
         )
         ax.legend(fontsize=8, loc="upper left")
-    f6 = "seed002_fig6_theta_error.png"
-    save_figure(fig, out_dir / f6)
+    name = "seed002_fig6_theta_error.png"
+    save_figure(fig, out_dir / name)
+    return name
 
+
+def _fig4_equation_errors(
+    out_dir: Path, fig4_theta: NDArray[np.float64], fig4: dict[str, NDArray[np.float64]]
+) -> str:
+    """Like the paper's Fig. 4: the composite θ error of each equation alone and combined."""
     fig, ax = new_figure(1, 1, (7.5, 4.5))
-    for k, v in fig4.items():
-        ax.semilogy(fig4_theta, v, label=k)
+    for label, curve in fig4.items():
+        ax.semilogy(fig4_theta, curve, label=label)
     ax.set(
         title="composite θ error (1σ) of each equation, α=30°, β=60°, γ=10°, δS=0.0005, "
         "δparam=0.1° (Fig. 4)",
@@ -363,9 +399,13 @@ def run(out_dir: Path) -> dict[str, Any]:
     )
     ax.title.set_fontsize(9)
     ax.legend()
-    f4 = "seed002_fig4_equation_errors.png"
-    save_figure(fig, out_dir / f4)
+    name = "seed002_fig4_equation_errors.png"
+    save_figure(fig, out_dir / name)
+    return name
 
+
+def _combined_estimator_figure(out_dir: Path, benefit: dict[str, dict[str, Any]]) -> str:
+    """RMS θ error of the paper's switch against the combined estimator on the two benches."""
     fig, axes = new_figure(1, 2, (12, 4.5))
     for ax, (preset, bb) in zip(axes.ravel(), benefit.items()):
         ax.plot(bb["theta"], bb["rms_switch"], "o-", label="paper's switch (7)/(9)")
@@ -376,13 +416,20 @@ def run(out_dir: Path) -> dict[str, Any]:
             ylabel="RMS error / deg",
         )
         ax.legend()
-    fc = "seed002_combined_estimator.png"
-    save_figure(fig, out_dir / fc)
+    name = "seed002_combined_estimator.png"
+    save_figure(fig, out_dir / name)
+    return name
 
-    # --- report ----------------------------------------------------------------------------
-    mae_d, mae_i = err["direct"].mean(axis=0), err["iodsra"].mean(axis=0)
+
+def _table1_rows(
+    mae_d: NDArray[np.float64],
+    mae_i: NDArray[np.float64],
+    red: NDArray[np.float64],
+    ci: NDArray[np.float64],
+) -> list[list[str]]:
+    """The rows of the paper's Table 1 rerun: both methods' MAE and the reduction per parameter."""
     names = ("α", "β", "γ")
-    table1 = [
+    return [
         [
             names[j],
             f"{mae_d[j]:.4f}",
@@ -392,28 +439,42 @@ def run(out_dir: Path) -> dict[str, Any]:
         ]
         for j in range(3)
     ]
-    var_rows = [
+
+
+def _variant_rows(
+    variants: list[tuple[str, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
+) -> list[list[str]]:
+    """The rows of the variants table: MAE of α / β / γ of each method and the reductions."""
+    return [
         [
-            lab,
-            " / ".join(f"{v:.4f}" for v in d),
-            " / ".join(f"{v:.4f}" for v in i),
-            " / ".join(f"{v:.0f}" for v in r),
+            label,
+            " / ".join(f"{value:.4f}" for value in mae_direct),
+            " / ".join(f"{value:.4f}" for value in mae_iodsra),
+            " / ".join(f"{value:.0f}" for value in reduction),
         ]
-        for lab, d, i, r in variants
+        for label, mae_direct, mae_iodsra, reduction in variants
     ]
-    bench_rows = []
-    summary = {}
-    for preset, b in benches.items():
-        e = b["errors"]
-        worst = {k: np.max(np.abs(v), axis=1) for k, v in e.items()}
-        rng_direct = direct_range(b["theta"], e["direct"])
+
+
+def _bench_summary(
+    benches: dict[str, dict[str, Any]],
+) -> tuple[dict[str, dict[str, float]], list[list[str]]]:
+    """Each §4 bench's headline errors (for the returned numbers) and its row of the bench table."""
+    bench_rows: list[list[str]] = []
+    summary: dict[str, dict[str, float]] = {}
+    for preset, bench in benches.items():
+        errors = bench["errors"]
+        worst = {k: np.max(np.abs(repeats), axis=1) for k, repeats in errors.items()}
+        rng_direct = direct_range(bench["theta"], errors["direct"])
         summary[preset] = {
             "iodsra_max": float(worst["iodsra"].max()),
             "combined_max": float(worst["iodsra-combined"].max()),
             "direct_range_deg": rng_direct,
-            "direct_max_within_70": float(np.max(np.abs(e["direct"][:, np.abs(b["theta"]) <= 70]))),
+            "direct_max_within_70": float(
+                np.max(np.abs(errors["direct"][:, np.abs(bench["theta"]) <= 70]))
+            ),
             "direct_median_within_70": float(
-                np.max(np.median(np.abs(e["direct"][:, np.abs(b["theta"]) <= 70]), axis=0))
+                np.max(np.median(np.abs(errors["direct"][:, np.abs(bench["theta"]) <= 70]), axis=0))
             ),
         }
         bench_rows.append(
@@ -426,59 +487,101 @@ def run(out_dir: Path) -> dict[str, Any]:
                 f"{np.median(worst['direct']):.0f}",
             ]
         )
+    return summary, bench_rows
 
-    def example_table(preset: str) -> str:
-        b = benches[preset]
-        rows = []
-        for j, t in enumerate(b["theta"]):
-            rows.append(
-                [f"{t:.0f}"]
-                + [
-                    f"{b['example'][n][1]['theta_deg'][j]:.3f} ({b['errors'][n][0, j]:+.3f})"
-                    for n in ("iodsra", "iodsra-combined", "direct")
-                ]
-                + [f"{b['example']['iodsra'][1]['u_theta_deg'][j]:.3f}"]
-            )
-        return md_table(
-            [
-                "standard θ / deg",
-                "IODSRA (error)",
-                "combined (error)",
-                "direct (error)",
-                "IODSRA U (95 %)",
-            ],
-            rows,
+
+def _example_table(bench: dict[str, Any]) -> str:
+    """A bench's first repeat at each standard angle, like the paper's Tables 4 and 5."""
+    rows = []
+    for j, t in enumerate(bench["theta"]):
+        rows.append(
+            [f"{t:.0f}"]
+            + [
+                f"{bench['example'][n][1]['theta_deg'][j]:.3f} ({bench['errors'][n][0, j]:+.3f})"
+                for n in ("iodsra", "iodsra-combined", "direct")
+            ]
+            + [f"{bench['example']['iodsra'][1]['u_theta_deg'][j]:.3f}"]
         )
+    return md_table(
+        [
+            "standard θ / deg",
+            "IODSRA (error)",
+            "combined (error)",
+            "direct (error)",
+            "IODSRA U (95 %)",
+        ],
+        rows,
+    )
 
-    def params_row(preset: str) -> list[str]:
-        m = benches[preset]["example"]["iodsra"][0]
-        sc = benches[preset]["scenario"]
-        k = float(coverage_factor(m.fit["dof"]))
-        return [preset] + [
-            f"{m.value(n):.3f} ± {k * m.std(n):.3f} (true {t:g})"
-            for n, t in zip(
-                ("alpha_deg", "beta_deg", "gamma_deg"),
-                (sc.bench.alpha_deg, sc.bench.beta_deg, sc.bench.gamma_deg),
-            )
-        ]
 
-    def ben_rows(preset: str) -> list[list[str]]:
-        bb = benefit[preset]
-        rows = []
-        for t in (0, 30, 45, 60, 90, 120, 135, 150, 180):
-            j = int(np.argmin(np.abs(np.abs(bb["theta"]) - t) + (bb["theta"] < 0) * 1e-3))
-            rows.append(
-                [
-                    f"{bb['theta'][j]:.0f}",
-                    f"{bb['rms_switch'][j]:.4f}",
-                    f"{bb['rms_combined'][j]:.4f}",
-                    f"{bb['rms_combined'][j] / bb['rms_switch'][j]:.2f}",
-                ]
-            )
-        return rows
+def _params_row(preset: str, bench: dict[str, Any]) -> list[str]:
+    """IODSRA's fitted α, β, γ on a bench (first repeat) with U = k·u, beside the true values."""
+    m = bench["example"]["iodsra"][0]
+    sc = bench["scenario"]
+    k = float(coverage_factor(m.fit["dof"]))
+    return [preset] + [
+        f"{m.value(n):.3f} ± {k * m.std(n):.3f} (true {t:g})"
+        for n, t in zip(
+            ("alpha_deg", "beta_deg", "gamma_deg"),
+            (sc.bench.alpha_deg, sc.bench.beta_deg, sc.bench.gamma_deg),
+        )
+    ]
+
+
+def _benefit_rows(bb: dict[str, Any]) -> list[list[str]]:
+    """RMS θ error of the switch and of the combined estimator at the table's angles."""
+    rows = []
+    for t in (0, 30, 45, 60, 90, 120, 135, 150, 180):
+        j = int(np.argmin(np.abs(np.abs(bb["theta"]) - t) + (bb["theta"] < 0) * 1e-3))
+        rows.append(
+            [
+                f"{bb['theta'][j]:.0f}",
+                f"{bb['rms_switch'][j]:.4f}",
+                f"{bb['rms_combined'][j]:.4f}",
+                f"{bb['rms_combined'][j] / bb['rms_switch'][j]:.2f}",
+            ]
+        )
+    return rows
+
+
+def run(out_dir: Path) -> dict[str, Any]:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(2016)
+    sim = _rotation(load_scenario("seed002-sim"))
+    base = sim.model_dump()
+    err = parameter_errors(sim, N_SIM)
+    red = _reduction(err)
+    ci = _reduction_interval(err, rng)
+
+    variants = _lost_detail_variants(sim, base, err)
+
+    theta_sz, sz_direct, sz_iodsra = _sz_errors(sim, 200)
+    rms_sim, rms45 = _theta_rms_sim(sim)
+
+    benches = {
+        preset_name: bench_errors(preset_name, N_BENCH)
+        for preset_name in ("seed002-b55", "seed002-b75")
+    }
+    fig4_theta, fig4 = fig4_curves()
+    benefit = {
+        preset_name: combined_benefit(preset_name, 200)
+        for preset_name in ("seed002-b55", "seed002-b75")
+    }
+
+    f5 = _fig5_sz_errors(out_dir, theta_sz, sz_direct, sz_iodsra)
+    f6 = _fig6_theta_errors(out_dir, benches)
+    f4 = _fig4_equation_errors(out_dir, fig4_theta, fig4)
+    fc = _combined_estimator_figure(out_dir, benefit)
+
+    # --- report ----------------------------------------------------------------------------
+    mae_d, mae_i = err["direct"].mean(axis=0), err["iodsra"].mean(axis=0)
+    table1 = _table1_rows(mae_d, mae_i, red, ci)
+    var_rows = _variant_rows(variants)
+    summary, bench_rows = _bench_summary(benches)
 
     i45 = int(np.argmin(np.abs(fig4_theta - 45.0)))
-    no_rule = next(r for lab, _, _, r in variants if "without the 45° rule" in lab)
+    no_rule = next(reduction for lab, _, _, reduction in variants if "without the 45° rule" in lab)
     b55 = benches["seed002-b55"]
     d75 = [
         b55["errors"]["direct"][0, int(np.argmin(np.abs(b55["theta"] - t)))] for t in (-75.0, 75.0)
@@ -631,7 +734,10 @@ def run(out_dir: Path) -> dict[str, Any]:
             "freedom, 95 %):"
         ),
         "",
-        md_table(["bench", "α / deg", "β / deg", "γ / deg"], [params_row(p) for p in benches]),
+        md_table(
+            ["bench", "α / deg", "β / deg", "γ / deg"],
+            [_params_row(preset, bench) for preset, bench in benches.items()],
+        ),
         "",
         (
             "The U of the parameters comes from the fit's scatter only. The benches' constant "
@@ -649,11 +755,11 @@ def run(out_dir: Path) -> dict[str, Any]:
         "",
         "β = 55°:",
         "",
-        example_table("seed002-b55"),
+        _example_table(benches["seed002-b55"]),
         "",
         "β = 75°:",
         "",
-        example_table("seed002-b75"),
+        _example_table(benches["seed002-b75"]),
         "",
         "## Why the switch between eqs. (7) and (9) (Fig. 4), and the combined estimator",
         "",
@@ -683,14 +789,14 @@ def run(out_dir: Path) -> dict[str, Any]:
         "",
         md_table(
             ["θ / deg", "RMS error, switch / deg", "RMS error, combined / deg", "ratio"],
-            ben_rows("seed002-b55"),
+            _benefit_rows(benefit["seed002-b55"]),
         ),
         "",
         "β = 75°:",
         "",
         md_table(
             ["θ / deg", "RMS error, switch / deg", "RMS error, combined / deg", "ratio"],
-            ben_rows("seed002-b75"),
+            _benefit_rows(benefit["seed002-b75"]),
         ),
         "",
         f"![combined estimator]({fc})",
@@ -714,11 +820,18 @@ def run(out_dir: Path) -> dict[str, Any]:
         "paper_reduction_pct": PAPER_REDUCTION,
         "mae_direct_deg": mae_d.tolist(),
         "mae_iodsra_deg": mae_i.tolist(),
-        "variants": [(lab, d.tolist(), i.tolist(), r.tolist()) for lab, d, i, r in variants],
+        "variants": [
+            (label, mae_direct.tolist(), mae_iodsra.tolist(), reduction.tolist())
+            for label, mae_direct, mae_iodsra, reduction in variants
+        ],
         "theta_rms_sim_deg": rms_sim,
         "theta_rms_sim_within_45_deg": rms45,
         "benches": summary,
-        "combined_max_error_deg": {p: float(b["max_combined"]) for p, b in benefit.items()},
-        "switch_max_error_deg": {p: float(b["max_switch"]) for p, b in benefit.items()},
+        "combined_max_error_deg": {
+            preset_name: float(bb["max_combined"]) for preset_name, bb in benefit.items()
+        },
+        "switch_max_error_deg": {
+            preset_name: float(bb["max_switch"]) for preset_name, bb in benefit.items()
+        },
         "figures": [f5, f6, f4, fc],
     }

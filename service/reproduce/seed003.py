@@ -54,10 +54,10 @@ def variant_columns(
     ref = np.asarray(table["ref_arcsec"], dtype=float).copy()
     reading = np.asarray(table["reading"], dtype=float).copy()
     if ref9 == "theodolite":
-        t = np.array([_dms_arcsec(s) for s in table["t3a_reading"]], dtype=float)
+        t = np.array([_dms_arcsec(cell) for cell in table["t3a_reading"]], dtype=float)
         ref = t - t[0]
     if counts == "hex":
-        reading = np.array([int(h, 16) for h in table["adc_hex"]], dtype=float)
+        reading = np.array([int(hex_cell, 16) for hex_cell in table["adc_hex"]], dtype=float)
     sel = slice(1, None) if rows == "1-11" else slice(None)
     return {"ref_arcsec": ref[sel], "reading": reading[sel]}
 
@@ -85,36 +85,36 @@ def _figure(table: dict[str, Any], main: dict[str, Any], out: Path) -> None:
     lin, quad = main["lin"], main["quad"]
     xs = np.linspace(0, 4095, 400)
     fig, axes = new_figure(2, 2, (10, 7.5))
-    a, b, c, d = axes.ravel()
-    a.plot(x, y, "o", color="k")
-    a.set(
+    ax_table, ax_linear, ax_quadratic, ax_residuals = axes.ravel()
+    ax_table.plot(x, y, "o", color="k")
+    ax_table.set(
         title="(a) Table 1: angle against ADC reading",
         xlabel="ADC reading / count",
         ylabel="angle change / arcsec",
     )
     for ax, model, label, coef in (
-        (b, lin, "(b) linear fit (poly1)", ["c0_arcsec", "c1_arcsec_per_count"]),
+        (ax_linear, lin, "(b) linear fit (poly1)", ["c0_arcsec", "c1_arcsec_per_count"]),
         (
-            c,
+            ax_quadratic,
             quad,
             "(c) quadratic fit (poly2)",
             ["c0_arcsec", "c1_arcsec_per_count", "c2_arcsec_per_count2"],
         ),
     ):
-        p = model.values(coef)
+        coeffs = model.values(coef)
         ax.plot(x, y, "o", color="k", label="Table 1")
-        ax.plot(xs, np.polyval(p[::-1], xs), "-", color="tab:blue", label="fit")
+        ax.plot(xs, np.polyval(coeffs[::-1], xs), "-", color="tab:blue", label="fit")
         ax.set(title=label, xlabel="ADC reading / count", ylabel="angle change / arcsec")
         ax.legend(loc="upper left")
     rl = lin.residuals["columns"]["angle_arcsec"]["values"]
     rq = quad.residuals["columns"]["angle_arcsec"]["values"]
-    d.axhline(0, color="0.6", lw=0.8)
-    d.plot(x, rl, "o-", label=f"linear, ‖r‖ = {main['resid_linear']:.2f}″")
-    d.plot(x, rq, "s--", label=f"quadratic, ‖r‖ = {main['resid_quadratic']:.2f}″")
-    d.set(
+    ax_residuals.axhline(0, color="0.6", lw=0.8)
+    ax_residuals.plot(x, rl, "o-", label=f"linear, ‖r‖ = {main['resid_linear']:.2f}″")
+    ax_residuals.plot(x, rq, "s--", label=f"quadratic, ‖r‖ = {main['resid_quadratic']:.2f}″")
+    ax_residuals.set(
         title="(d) residuals (reference minus fit)", xlabel="ADC reading / count", ylabel="arcsec"
     )
-    d.legend()
+    ax_residuals.legend()
     save_figure(fig, out)
 
 
@@ -147,35 +147,29 @@ def _simulated_check(n_seeds: int = 300) -> dict[str, Any]:
     }
 
 
-def run(out_dir: Path) -> dict[str, Any]:
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    table = load_table1()
-    main = fit_both(variant_columns(table, "angle", "decimal", "all"))
+def _variant_fits(table: dict[str, Any]) -> list[dict[str, Any]]:
+    """Both fits for every reading of the disputed cells (rows, row 9's reference, rows 3-4's
+    counts), without the fitted models."""
     variants = []
     for rows in ("all", "1-11"):
         for ref9 in ("angle", "theodolite"):
             for counts in ("decimal", "hex"):
-                v = fit_both(variant_columns(table, ref9, counts, rows))
+                fitted = fit_both(variant_columns(table, ref9, counts, rows))
                 variants.append(
                     {
                         "rows": rows,
                         "ref9": ref9,
                         "counts": counts,
-                        **{k: v[k] for k in v if k not in ("lin", "quad")},
+                        **{k: fitted[k] for k in fitted if k not in ("lin", "quad")},
                     }
                 )
-    paper_reading = next(
-        v
-        for v in variants
-        if v["rows"] == "1-11" and v["ref9"] == "angle" and v["counts"] == "decimal"
-    )
-    fig_name = "seed003_fig6_table1_fits.png"
-    _figure(table, main, out_dir / fig_name)
-    sim = _simulated_check()
+    return variants
 
-    t3a = np.array([_dms_arcsec(s) for s in table["t3a_reading"]])
-    rows_md = []
+
+def _table1_rows(table: dict[str, Any]) -> list[list[object]]:
+    """Table 1 as shipped, one row per line, with where its columns disagree with each other."""
+    t3a = np.array([_dms_arcsec(cell) for cell in table["t3a_reading"]])
+    rows_md: list[list[object]] = []
     for i in range(len(table["reading"])):
         hexv = int(table["adc_hex"][i], 16)
         theo = t3a[i] - t3a[0]
@@ -196,24 +190,52 @@ def run(out_dir: Path) -> dict[str, Any]:
                 "; ".join(flag) or ("start state" if i == 0 else ""),
             ]
         )
+    return rows_md
 
-    def vrow(v: dict[str, Any]) -> list[object]:
-        return [
-            v["rows"],
-            "2871″ (angle column)" if v["ref9"] == "angle" else "2891″ (theodolite)",
-            "decimal" if v["counts"] == "decimal" else "hex (1130, 1523)",
-            f"{v['a1_linear']:.5f}",
-            f"{v['resid_linear']:.2f}",
-            f"{v['a1_quadratic']:.4f}",
-            f"{v['a2_quadratic']:.3e}",
-            f"{v['resid_quadratic']:.2f}",
-            f"{v['f_p']:.2f}",
-        ]
+
+def _variant_row(variant: dict[str, Any]) -> list[object]:
+    """One variant's row of the disputed-cells table."""
+    return [
+        variant["rows"],
+        "2871″ (angle column)" if variant["ref9"] == "angle" else "2891″ (theodolite)",
+        "decimal" if variant["counts"] == "decimal" else "hex (1130, 1523)",
+        f"{variant['a1_linear']:.5f}",
+        f"{variant['resid_linear']:.2f}",
+        f"{variant['a1_quadratic']:.4f}",
+        f"{variant['a2_quadratic']:.3e}",
+        f"{variant['resid_quadratic']:.2f}",
+        f"{variant['f_p']:.2f}",
+    ]
+
+
+def _paper_reading(variants: list[dict[str, Any]]) -> dict[str, Any]:
+    """The reading of the disputed cells that reproduces the paper's printed figures: rows 1-11,
+    the angle column, the decimal counts."""
+    return next(
+        fit
+        for fit in variants
+        if fit["rows"] == "1-11" and fit["ref9"] == "angle" and fit["counts"] == "decimal"
+    )
+
+
+def run(out_dir: Path) -> dict[str, Any]:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    table = load_table1()
+    main = fit_both(variant_columns(table, "angle", "decimal", "all"))
+    variants = _variant_fits(table)
+    paper_reading = _paper_reading(variants)
+    fig_name = "seed003_fig6_table1_fits.png"
+    _figure(table, main, out_dir / fig_name)
+    sim = _simulated_check()
+
+    rows_md = _table1_rows(table)
 
     lin = main["lin"]
     c0 = lin.value("c0_arcsec")
     se = lin.fit["standard_errors"]
     k95 = float(coverage_factor(lin.fit["dof"]))
+    all_rows_slopes = [fit["a1_linear"] for fit in variants if fit["rows"] == "all"]
     md = [
         "# Seed 003: measuring unit of the electrolytic tilt sensor by least squares",
         "",
@@ -307,7 +329,7 @@ def run(out_dir: Path) -> dict[str, Any]:
                 "poly2 ‖r‖ ″",
                 "F-test p",
             ],
-            [vrow(v) for v in variants]
+            [_variant_row(variant) for variant in variants]
             + [
                 [
                     "paper",
@@ -326,8 +348,7 @@ def run(out_dir: Path) -> dict[str, Any]:
         (
             "With all 12 rows no reading of the disputed cells gives the paper's numbers: the "
             "slope stays at "
-            f"{min(v['a1_linear'] for v in variants if v['rows'] == 'all'):.4f}-"
-            f"{max(v['a1_linear'] for v in variants if v['rows'] == 'all'):.4f} ″/count against "
+            f"{min(all_rows_slopes):.4f}-{max(all_rows_slopes):.4f} ″/count against "
             "the printed 0.8756, and "
             'the quadratic c2 comes out negative. Leaving out row 0, the "start state" (开始状态), '
             "with the angle column "

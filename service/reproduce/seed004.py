@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.calibration.model import CalibrationModel
-from service.calibration.registry import FitOptions, get_method
+from service.calibration.registry import FitOptions, Method, get_method
 from service.calibration.uncertainty import coverage_factor
 from service.io.datasets import write_text_atomic
 from service.reproduce._report_kit import md_table, new_figure, of_kind, save_figure
@@ -31,65 +31,44 @@ def _fit(cols: Mapping[str, NDArray[np.float64]], phi: float) -> CalibrationMode
     return get_method("turntable", "reversal").fit(cols, FitOptions(rotation_deg=float(phi)))
 
 
-def run(out_dir: Path) -> dict[str, Any]:
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    sc = of_kind(load_scenario("seed004"), TurntableScenario)
-    b = sc.bench
-    truth = {
-        "beta_deg": b.beta_deg,
-        "m1_per_arcsec": b.m1,
-        "m2_per_arcsec": b.m2,
-        "epsilon_deg": b.epsilon_deg,
-    }
-    run0 = run_scenario(sc)
-    cols = run0.columns
-    method = get_method("turntable", "reversal")
-    base = _fit(cols, 180.0)
-
-    # the paper's Fig. 4: parameters against the assumed φ
-    sweep = [_fit(cols, p) for p in PHI_SWEEP]
-    vals = {n: np.array([f.value(n) for f in sweep]) for n in PARAMS}
-    sds = {n: np.array([f.std(n) for f in sweep]) for n in PARAMS}
-    rms = np.array(
-        [
-            np.hypot(
-                f.residuals["columns"]["north_arcsec"]["rms"],
-                f.residuals["columns"]["east_arcsec"]["rms"],
-            )
-            for f in sweep
-        ]
-    )
-    slope = float(np.polyfit(PHI_SWEEP, vals["beta_deg"], 1)[0])
-    corrected = [method.correct(f, cols) for f in sweep]
+def _corrected_spread(
+    method: Method, sweep: list[CalibrationModel], cols: Mapping[str, NDArray[np.float64]]
+) -> float:
+    """Largest difference of the corrected axis tilt between the fits of the φ sweep, north or
+    east, against the first: the β-φ ambiguity does not reach the corrected tilt."""
+    corrected = [method.correct(model, cols) for model in sweep]
     spread_corr = max(
-        float(np.max(np.abs(c["north_arcsec"] - corrected[0]["north_arcsec"]))) for c in corrected
+        float(np.max(np.abs(tilt["north_arcsec"] - corrected[0]["north_arcsec"])))
+        for tilt in corrected
     )
-    spread_corr = max(
+    return max(
         spread_corr,
         max(
-            float(np.max(np.abs(c["east_arcsec"] - corrected[0]["east_arcsec"]))) for c in corrected
+            float(np.max(np.abs(tilt["east_arcsec"] - corrected[0]["east_arcsec"])))
+            for tilt in corrected
         ),
     )
 
-    # a bench that really turns 181°, calibrated with the usual assumption of 180°
-    data = sc.model_dump()
-    data["bench"]["rotation_deg"] = 181.0
-    run181 = run_scenario(parse_scenario(data))
-    wrong = _fit(run181.columns, 180.0)
-    right = _fit(run181.columns, 181.0)
-    n_seeds = 200
+
+def _beta_shifts(data: dict[str, Any], n_seeds: int) -> NDArray[np.float64]:
+    """β fitted with φ = 180° minus β fitted with φ = 181°, on `n_seeds` runs of the bench in
+    `data` (one that really turns 181°)."""
     shift_list = []
     for seed in range(n_seeds):
-        c = run_scenario(parse_scenario(data), seed=seed).columns
-        shift_list.append(_fit(c, 180.0).value("beta_deg") - _fit(c, 181.0).value("beta_deg"))
-    shifts = np.array(shift_list)
+        columns = run_scenario(parse_scenario(data), seed=seed).columns
+        shift_list.append(
+            _fit(columns, 180.0).value("beta_deg") - _fit(columns, 181.0).value("beta_deg")
+        )
+    return np.array(shift_list)
 
-    # the paper's initial-value iteration: from rough start values
-    rough = {"beta_deg": 0.0, "m1_per_arcsec": 0.005, "m2_per_arcsec": 0.005, "epsilon_deg": 0.0}
-    from_rough = method.fit(cols, FitOptions(extra={"initial": rough}))
 
-    # figure like Fig. 4
+def _fig4_parameters(
+    out_dir: Path,
+    vals: dict[str, NDArray[np.float64]],
+    sds: dict[str, NDArray[np.float64]],
+    truth: dict[str, float],
+) -> str:
+    """Like the paper's Fig. 4: each parameter against the assumed φ, beside the bench's truth."""
     fig, axes = new_figure(2, 2, (10, 7.5))
     labels = {
         "beta_deg": "(a) installation angle β / deg",
@@ -97,23 +76,35 @@ def run(out_dir: Path) -> dict[str, Any]:
         "m2_per_arcsec": "(c) scale factor m2 / (mrad/″)",
         "epsilon_deg": "(d) non-orthogonality ε / deg",
     }
-    for ax, n in zip(axes.ravel(), PARAMS):
+    for ax, name in zip(axes.ravel(), PARAMS):
         ax.errorbar(
-            PHI_SWEEP, vals[n], yerr=2 * sds[n], fmt="o-", ms=3, capsize=2, label="fit (±2u)"
+            PHI_SWEEP, vals[name], yerr=2 * sds[name], fmt="o-", ms=3, capsize=2, label="fit (±2u)"
         )
-        ax.axhline(truth[n], color="tab:red", ls="--", lw=1, label="bench truth")
-        ax.set(title=labels[n], xlabel="assumed rotation φ / deg")
+        ax.axhline(truth[name], color="tab:red", ls="--", lw=1, label="bench truth")
+        ax.set(title=labels[name], xlabel="assumed rotation φ / deg")
         ax.legend(loc="best", fontsize=8)
     fig_name = "seed004_fig4_parameters_vs_phi.png"
     save_figure(fig, out_dir / fig_name)
+    return fig_name
 
+
+def _residuals_figure(
+    out_dir: Path, base: CalibrationModel, cols: Mapping[str, NDArray[np.float64]]
+) -> str:
+    """The residuals of the calibration at φ = 180°, pair by pair, cycles side by side."""
     fig, ax = new_figure(1, 1, (7, 4))
-    r = base.residuals["columns"]
+    residuals = base.residuals["columns"]
     ax.plot(
-        cols["azimuth_deg"] + 3 * cols["cycle"], r["north_arcsec"]["values"], "o", label="north (ξ)"
+        cols["azimuth_deg"] + 3 * cols["cycle"],
+        residuals["north_arcsec"]["values"],
+        "o",
+        label="north (ξ)",
     )
     ax.plot(
-        cols["azimuth_deg"] + 3 * cols["cycle"], r["east_arcsec"]["values"], "s", label="east (η)"
+        cols["azimuth_deg"] + 3 * cols["cycle"],
+        residuals["east_arcsec"]["values"],
+        "s",
+        label="east (η)",
     )
     ax.axhline(0, color="0.6", lw=0.8)
     ax.set(
@@ -124,22 +115,95 @@ def run(out_dir: Path) -> dict[str, Any]:
     ax.legend()
     res_name = "seed004_residuals.png"
     save_figure(fig, out_dir / res_name)
+    return res_name
 
-    def prow(n: str, fmt: str) -> list[str]:
-        v, u = base.value(n), base.std(n)
-        assert u is not None  # the reversal fit has a covariance for every parameter
-        return [
-            n,
-            fmt.format(truth[n]),
-            fmt.format(v),
-            fmt.format(k95 * u),
-            f"{(v - truth[n]) / u:+.2f}",
+
+def _param_row(
+    base: CalibrationModel, truth: dict[str, float], k95: float, n: str, fmt: str
+) -> list[str]:
+    """One parameter's row of the calibration table: truth, fitted value, U and the normalised
+    error."""
+    value, uncertainty = base.value(n), base.std(n)
+    assert uncertainty is not None  # the reversal fit has a covariance for every parameter
+    return [
+        n,
+        fmt.format(truth[n]),
+        fmt.format(value),
+        fmt.format(k95 * uncertainty),
+        f"{(value - truth[n]) / uncertainty:+.2f}",
+    ]
+
+
+def _sweep_rows(vals: dict[str, NDArray[np.float64]], rms: NDArray[np.float64]) -> list[list[str]]:
+    """The rows of the φ table: the fitted parameters and residual rms at every whole degree."""
+    return [
+        [
+            f"{phi:.1f}",
+            f"{vals['beta_deg'][i]:.4f}",
+            f"{vals['m1_per_arcsec'][i]:.7f}",
+            f"{vals['m2_per_arcsec'][i]:.7f}",
+            f"{vals['epsilon_deg'][i]:.4f}",
+            f"{rms[i]:.6f}",
         ]
+        for i, phi in enumerate(PHI_SWEEP)
+        if abs(phi - round(phi)) < 1e-9
+    ]
+
+
+def run(out_dir: Path) -> dict[str, Any]:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sc = of_kind(load_scenario("seed004"), TurntableScenario)
+    bench = sc.bench
+    truth = {
+        "beta_deg": bench.beta_deg,
+        "m1_per_arcsec": bench.m1,
+        "m2_per_arcsec": bench.m2,
+        "epsilon_deg": bench.epsilon_deg,
+    }
+    run0 = run_scenario(sc)
+    cols = run0.columns
+    method = get_method("turntable", "reversal")
+    base = _fit(cols, 180.0)
+
+    # the paper's Fig. 4: parameters against the assumed φ
+    sweep = [_fit(cols, phi) for phi in PHI_SWEEP]
+    vals = {n: np.array([model.value(n) for model in sweep]) for n in PARAMS}
+    sds = {n: np.array([model.std(n) for model in sweep]) for n in PARAMS}
+    rms = np.array(
+        [
+            np.hypot(
+                model.residuals["columns"]["north_arcsec"]["rms"],
+                model.residuals["columns"]["east_arcsec"]["rms"],
+            )
+            for model in sweep
+        ]
+    )
+    slope = float(np.polyfit(PHI_SWEEP, vals["beta_deg"], 1)[0])
+    spread_corr = _corrected_spread(method, sweep, cols)
+
+    # a bench that really turns 181°, calibrated with the usual assumption of 180°
+    data = sc.model_dump()
+    data["bench"]["rotation_deg"] = 181.0
+    run181 = run_scenario(parse_scenario(data))
+    wrong = _fit(run181.columns, 180.0)
+    right = _fit(run181.columns, 181.0)
+    n_seeds = 200
+    shifts = _beta_shifts(data, n_seeds)
+
+    # the paper's initial-value iteration: from rough start values
+    rough = {"beta_deg": 0.0, "m1_per_arcsec": 0.005, "m2_per_arcsec": 0.005, "epsilon_deg": 0.0}
+    from_rough = method.fit(cols, FitOptions(extra={"initial": rough}))
+
+    fig_name = _fig4_parameters(out_dir, vals, sds, truth)
+    res_name = _residuals_figure(out_dir, base, cols)
 
     k95 = float(coverage_factor(base.fit["dof"]))
 
     i180 = int(np.argmin(np.abs(PHI_SWEEP - 180.0)))
-    rel_m = {d: 1.0 / np.cos(np.radians(d) / 2.0) - 1.0 for d in (1.0, 2.0, 5.0)}
+    rel_m = {
+        dphi_deg: 1.0 / np.cos(np.radians(dphi_deg) / 2.0) - 1.0 for dphi_deg in (1.0, 2.0, 5.0)
+    }
     md = [
         "# Seed 004: inclinometer parameters from symmetric pairs, and the assumed rotation",
         "",
@@ -159,10 +223,10 @@ def run(out_dir: Path) -> dict[str, Any]:
         md_table(
             ["parameter", "bench truth", "fitted", f"U (95 %, k = {k95:.2f})", "(fit - truth) / u"],
             [
-                prow("beta_deg", "{:.4f}"),
-                prow("m1_per_arcsec", "{:.7f}"),
-                prow("m2_per_arcsec", "{:.7f}"),
-                prow("epsilon_deg", "{:.4f}"),
+                _param_row(base, truth, k95, "beta_deg", "{:.4f}"),
+                _param_row(base, truth, k95, "m1_per_arcsec", "{:.7f}"),
+                _param_row(base, truth, k95, "m2_per_arcsec", "{:.7f}"),
+                _param_row(base, truth, k95, "epsilon_deg", "{:.4f}"),
             ],
         ),
         "",
@@ -195,18 +259,7 @@ def run(out_dir: Path) -> dict[str, Any]:
                 "ε / deg",
                 "residual rms (north ⊕ east) / ″",
             ],
-            [
-                [
-                    f"{p:.1f}",
-                    f"{vals['beta_deg'][i]:.4f}",
-                    f"{vals['m1_per_arcsec'][i]:.7f}",
-                    f"{vals['m2_per_arcsec'][i]:.7f}",
-                    f"{vals['epsilon_deg'][i]:.4f}",
-                    f"{rms[i]:.6f}",
-                ]
-                for i, p in enumerate(PHI_SWEEP)
-                if abs(p - round(p)) < 1e-9
-            ],
+            _sweep_rows(vals, rms),
         ),
         "",
         (

@@ -39,21 +39,21 @@ STAGE_METHODS = ("homography", "coupling", "axis-transform", "kinematic")
 
 def paper_grid() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Seed 000 §4.4: 9 x 9 targets at 3 deg over ±12 deg."""
-    g = np.arange(-12.0, 12.0 + 1e-9, 3.0)
-    X, Y = np.meshgrid(g, g)
-    return X.ravel(), Y.ravel()
+    steps = np.arange(-12.0, 12.0 + 1e-9, 3.0)
+    grid_x, grid_y = np.meshgrid(steps, steps)
+    return grid_x.ravel(), grid_y.ravel()
 
 
 def offset_grid() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """8 x 8 targets at 3 deg over ±10.5 deg: between the calibration points."""
-    g = np.arange(-10.5, 10.5 + 1e-9, 3.0)
-    X, Y = np.meshgrid(g, g)
-    return X.ravel(), Y.ravel()
+    steps = np.arange(-10.5, 10.5 + 1e-9, 3.0)
+    grid_x, grid_y = np.meshgrid(steps, steps)
+    return grid_x.ravel(), grid_y.ravel()
 
 
 def noise_free(fx: EffectSet) -> EffectSet:
     """The same bench without its random parts (for the oracle's model of it)."""
-    eff = {e: dict(fx.values[e]) for e in fx.on if e != "noise"}
+    eff = {effect: dict(fx.values[effect]) for effect in fx.on if effect != "noise"}
     return EffectSet.from_mapping("stage", eff)
 
 
@@ -77,15 +77,15 @@ class Oracle:
         fx, dT = self.fx, self.temp_c - self.bench.temp_ref_c
         geo = self.chain.geometry.readings_deg(np.radians(ax_deg), np.radians(ay_deg))
         out = []
-        for a in ("x", "y"):
+        for axis in ("x", "y"):
             out.append(
                 apply_reading_errors(
-                    geo[f"meas_{a}"],
-                    zero_deg=fx.get("zero_offset", f"meas_{a}_deg"),
-                    scale=fx.get("scale_factor", f"meas_{a}"),
-                    quad_per_deg=fx.get("sensor_nonlinearity", f"meas_{a}_per_deg"),
+                    geo[f"meas_{axis}"],
+                    zero_deg=fx.get("zero_offset", f"meas_{axis}_deg"),
+                    scale=fx.get("scale_factor", f"meas_{axis}"),
+                    quad_per_deg=fx.get("sensor_nonlinearity", f"meas_{axis}_per_deg"),
                     temp_delta_k=dT,
-                    zero_per_k=fx.get("temperature_drift", f"meas_{a}_deg_per_k"),
+                    zero_per_k=fx.get("temperature_drift", f"meas_{axis}_deg_per_k"),
                     scale_per_k=fx.get("temperature_drift", "meas_scale_per_k"),
                 )
             )
@@ -100,8 +100,10 @@ class Oracle:
             -1.0 if self.bench.meas_flip == "y" else 1.0,
             -1.0 if self.bench.meas_flip == "x" else 1.0,
         )
-        u, v = newton_2d(lambda u, v: self._meas(u, v)[:2], mx, my, sign[0] * mx, sign[1] * my)
-        geo = self._meas(u, v)[2]
+        stage_x, stage_y = newton_2d(
+            lambda u, v: self._meas(u, v)[:2], mx, my, sign[0] * mx, sign[1] * my
+        )
+        geo = self._meas(stage_x, stage_y)[2]
         return geo["tilt_x"], geo["tilt_y"]
 
 
@@ -188,12 +190,12 @@ def evaluate_seed(
         cmd = m.level(model, {"target_x_deg": tx, "target_y_deg": ty})
         run = execute(bench, fx, cmd["stage_x_deg"], cmd["stage_y_deg"], val_seed, temp)
         own = m.correct(model, {"meas_x_deg": run["meas_x_deg"], "meas_y_deg": run["meas_y_deg"]})
-        c = m.correct(
+        shared_corrected = m.correct(
             model, {"meas_x_deg": shared["meas_x_deg"], "meas_y_deg": shared["meas_y_deg"]}
         )
         corr[label] = (
-            c["tilt_x_deg"] - shared["tilt_x_deg"],
-            c["tilt_y_deg"] - shared["tilt_y_deg"],
+            shared_corrected["tilt_x_deg"] - shared["tilt_x_deg"],
+            shared_corrected["tilt_y_deg"] - shared["tilt_y_deg"],
         )
         out.errors[label] = {
             "level": (run["tilt_x_deg"] - tx, run["tilt_y_deg"] - ty),
@@ -226,7 +228,10 @@ def oracle_ratios(
     """RMS and max of `method` over the oracle's, per error kind and axis."""
     out: dict[str, float] = {}
     for kind in ("level", "correct"):
-        a, o = result.stats(method, kind, mask), result.stats("oracle", kind, mask)
+        method_stats, oracle_stats = (
+            result.stats(method, kind, mask),
+            result.stats("oracle", kind, mask),
+        )
         for stat in ("rms_x", "rms_y", "max_x", "max_y"):
-            out[f"{kind}_{stat}"] = a[stat] / o[stat]
+            out[f"{kind}_{stat}"] = method_stats[stat] / oracle_stats[stat]
     return out
