@@ -44,7 +44,7 @@ def add_command(
     description: str | None = None,
 ) -> argparse.ArgumentParser:
     """A sub-command whose help has a description and at least one example."""
-    lines = "\n".join(f"  {e}" for e in examples)
+    lines = "\n".join(f"  {example}" for example in examples)
     return sub.add_parser(
         name,
         help=summary,

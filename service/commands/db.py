@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     from service.config import get_settings
     from service.storage.backup import database_exists, sqlite_path
     from service.storage.engine import make_engine, redacted
-    from service.storage.migrate import current_revision, head_revision
+    from service.storage.migrate import current_revision
 
     settings = get_settings()
     command = args.db_command
@@ -44,46 +44,61 @@ def run(args: argparse.Namespace) -> int:
         return _backup(settings, args.out)
     where = redacted(settings.database_url)
     if not database_exists(settings.database_url):
-        path = sqlite_path(settings.database_url)
-        if command == "current":
-            print(
-                f"{where}: revision none (no database file at {path} yet; `tiltlab db upgrade` "
-                "creates it)"
-            )
-            return 0
-        if command == "verify":
-            print(
-                f"{where}: no database file at {path} (run `tiltlab db upgrade`)", file=sys.stderr
-            )
-            return 1
-        raise InputError(f"{where}: no database file at {path}; nothing to downgrade")
+        return _without_database(command, where, sqlite_path(settings.database_url))
     engine = make_engine(settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms)
     try:
         if command == "current":
-            rev = current_revision(engine)
-            head = head_revision()
-            state = (
-                "empty, run `tiltlab db upgrade`"
-                if rev is None
-                else ("head" if rev == head else f"head is {head}")
-            )
-            print(f"{where}: revision {rev or 'none'} ({state})")
-            return 0
+            return _current(engine, where)
         if command == "downgrade":
             return _downgrade(settings, engine, args.revision, args.yes)
         if command == "verify":
-            from service.storage.verify import verify
-
-            if current_revision(engine) is None:
-                print(f"{where}: no schema yet (run `tiltlab db upgrade`)", file=sys.stderr)
-                return 1
-            report = verify(engine)
-            for line in report.lines():
-                print(line)
-            return 0 if report.ok else 1
+            return _verify(engine, where)
         raise ValueError(f"unknown db command {command!r}")
     finally:
         engine.dispose()
+
+
+def _current(engine: Engine, where: str) -> int:
+    """`current` on an existing database: its revision, and where it stands against the head."""
+    from service.storage.migrate import current_revision, head_revision
+
+    rev = current_revision(engine)
+    head = head_revision()
+    state = (
+        "empty, run `tiltlab db upgrade`"
+        if rev is None
+        else ("head" if rev == head else f"head is {head}")
+    )
+    print(f"{where}: revision {rev or 'none'} ({state})")
+    return 0
+
+
+def _without_database(command: str, where: str, path: Path | None) -> int:
+    """`current`, `verify` and `downgrade` when there is no database file: say so, create none."""
+    if command == "current":
+        print(
+            f"{where}: revision none (no database file at {path} yet; `tiltlab db upgrade` "
+            "creates it)"
+        )
+        return 0
+    if command == "verify":
+        print(f"{where}: no database file at {path} (run `tiltlab db upgrade`)", file=sys.stderr)
+        return 1
+    raise InputError(f"{where}: no database file at {path}; nothing to downgrade")
+
+
+def _verify(engine: Engine, where: str) -> int:
+    """`verify` on an existing database: every line of the report; exit 1 if anything is off."""
+    from service.storage.migrate import current_revision
+    from service.storage.verify import verify
+
+    if current_revision(engine) is None:
+        print(f"{where}: no schema yet (run `tiltlab db upgrade`)", file=sys.stderr)
+        return 1
+    report = verify(engine)
+    for line in report.lines():
+        print(line)
+    return 0 if report.ok else 1
 
 
 def _scripts() -> ScriptDirectory:
@@ -107,9 +122,38 @@ def _known_revisions() -> str:
     )
 
 
-def _downgrade(settings: Settings, engine: Engine, target: str, yes: bool) -> int:
+def _named_revision(scripts: ScriptDirectory, target: str) -> str:
+    """The full revision id the user's `target` names; refused, with the known ones, if none."""
     from alembic.util.exc import CommandError
 
+    try:
+        found = scripts.get_revision(target)
+    except CommandError:
+        found = None
+    if found is None:
+        raise InputError(
+            f"downgrade: no revision {target!r}; name one of {_known_revisions()} "
+            "(`tiltlab db history` lists them)"
+        )
+    return found.revision
+
+
+def _revisions_undone(scripts: ScriptDirectory, current: str, target: str) -> list[str]:
+    """The migrations a downgrade from `current` to `target` undoes; refused if `target` is not
+    below `current`."""
+    undone = [script.revision for script in scripts.iterate_revisions(current, target)]
+    if target != "base":
+        below = {script.revision for script in scripts.iterate_revisions(current, "base")}
+        if target not in below:
+            raise InputError(
+                f"downgrade: revision {target} is not below the current revision {current} "
+                "(`tiltlab db upgrade` moves up)"
+            )
+        undone = [revision for revision in undone if revision != target]
+    return undone
+
+
+def _downgrade(settings: Settings, engine: Engine, target: str, yes: bool) -> int:
     from service.storage.backup import (
         backup_sqlite,
         pg_dump_command,
@@ -122,16 +166,7 @@ def _downgrade(settings: Settings, engine: Engine, target: str, yes: bool) -> in
     where = redacted(settings.database_url)
     scripts = _scripts()
     if target != "base":
-        try:
-            found = scripts.get_revision(target)
-        except CommandError:
-            found = None
-        if found is None:
-            raise InputError(
-                f"downgrade: no revision {target!r}; name one of {_known_revisions()} "
-                "(`tiltlab db history` lists them)"
-            )
-        target = found.revision
+        target = _named_revision(scripts, target)
     current = current_revision(engine)
     if current is None:
         print(f"{where}: already at base (no schema); nothing to downgrade", file=sys.stderr)
@@ -139,15 +174,7 @@ def _downgrade(settings: Settings, engine: Engine, target: str, yes: bool) -> in
     if current == target:
         print(f"{where}: already at revision {current}; nothing to downgrade", file=sys.stderr)
         return 0
-    undone = [r.revision for r in scripts.iterate_revisions(current, target)]
-    if target != "base":
-        below = {r.revision for r in scripts.iterate_revisions(current, "base")}
-        if target not in below:
-            raise InputError(
-                f"downgrade: revision {target} is not below the current revision {current} "
-                "(`tiltlab db upgrade` moves up)"
-            )
-        undone = [r for r in undone if r != target]
+    undone = _revisions_undone(scripts, current, target)
     what = "every table" if target == "base" else "the tables of migration(s) " + ", ".join(undone)
     path = sqlite_path(settings.database_url)
     if not yes:
@@ -223,7 +250,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     add_command(
         dbsub, "history", "list the schema revisions, newest first", examples=["tiltlab db history"]
     )
-    q = add_command(
+    command_parser = add_command(
         dbsub,
         "downgrade",
         "step the schema back to a named revision, dropping newer tables",
@@ -233,23 +260,23 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "PostgreSQL the pg_dump command to run first\nis printed.",
         examples=["tiltlab db downgrade base --yes"],
     )
-    q.add_argument(
+    command_parser.add_argument(
         "revision",
         help="the revision to go back to (see `tiltlab db history`), or base for no schema",
     )
-    q.add_argument(
+    command_parser.add_argument(
         "--yes",
         action="store_true",
         help="go ahead: the data in the dropped tables are lost (SQLite is backed up first)",
     )
-    q = add_command(
+    command_parser = add_command(
         dbsub,
         "backup",
         "copy the SQLite database to a new file, also while the service runs; "
         "for PostgreSQL print the pg_dump command",
         examples=["tiltlab db backup --out /backups/tiltlab-2026-11-23.db"],
     )
-    q.add_argument(
+    command_parser.add_argument(
         "--out", required=True, metavar="FILE", help="the backup file to write (must not exist)"
     )
     add_command(

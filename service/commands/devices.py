@@ -78,56 +78,63 @@ async def _probe(role: str, driver: RoleDriver) -> str:
             f"{await driver.position_deg():.3f} deg"
         )
     if isinstance(driver, TriaxialModule):
-        r = await driver.read_sines()
+        reading = await driver.read_sines()
         return (
-            f"triaxial module at address 0x{driver.address:02X}: sines {r.sx:+.6f} {r.sy:+.6f} "
-            f"{r.sz:+.6f} g"
+            f"triaxial module at address 0x{driver.address:02X}: sines {reading.sx:+.6f} "
+            f"{reading.sy:+.6f} {reading.sz:+.6f} g"
         )
     if isinstance(driver, BinaryInclinometer):
-        r = await driver.read_tilt()
+        reading = await driver.read_tilt()
         return (
-            f"binary inclinometer at address 0x{driver.address:02X}: x {r.x_deg:+.4f} y "
-            f"{r.y_deg:+.4f} deg"
+            f"binary inclinometer at address 0x{driver.address:02X}: x {reading.x_deg:+.4f} y "
+            f"{reading.y_deg:+.4f} deg"
         )
     ident = await driver.identify()
     if isinstance(driver, Rs485Inclinometer):
-        r = await driver.read_tilt()
+        reading = await driver.read_tilt()
         return (
             f"{ident.model} serial {ident.serial} firmware {ident.firmware} at address "
-            f"{driver.address:02X}: x {r.x_deg:+.5f} y {r.y_deg:+.5f} deg"
+            f"{driver.address:02X}: x {reading.x_deg:+.5f} y {reading.y_deg:+.5f} deg"
         )
     if isinstance(driver, Rs485Thermohygrometer):
-        r = await driver.read_ambient()
+        reading = await driver.read_ambient()
         return (
             f"{ident.model} serial {ident.serial} at address {driver.address:02X}: air "
-            f"{r.temp_c:+.2f} °C, relative humidity {r.humidity_pct:.1f} %"
+            f"{reading.temp_c:+.2f} °C, relative humidity {reading.humidity_pct:.1f} %"
         )
-    r = await driver.read_counts(1)
-    return f"{ident.model} serial {ident.serial}: {r.counts:.0f} counts"
+    reading = await driver.read_counts(1)
+    return f"{ident.model} serial {ident.serial}: {reading.counts:.0f} counts"
 
 
-def _why(role: str, spec: PortRole, driver: RoleDriver) -> str:
+def _answered_elsewhere(role: str, spec: PortRole, senders: list[int]) -> str | None:
+    """Who answered instead, when the port heard another address (or axis) than the role's."""
     from service.instruments.bench_config import (
         AmbientSensorRole,
         BinaryInclinometerRole,
         Rs485InclinometerRole,
     )
+
+    if senders and isinstance(
+        spec, BinaryInclinometerRole | Rs485InclinometerRole | AmbientSensorRole
+    ):
+        return "answered from address " + ", ".join(
+            f"0x{address:02X}" if isinstance(spec, BinaryInclinometerRole) else f"{address:02X}"
+            for address in senders
+        )
+    if senders and role in ("stage", "rotary_table"):
+        return "answered on axis " + ", ".join(map(str, senders))
+    return None
+
+
+def _why(role: str, spec: PortRole, driver: RoleDriver) -> str:
     from service.instruments.drivers import StageController
 
     port = driver.x.port if isinstance(driver, StageController) else driver.port
     if port.state != "connected":
         return f"cannot be opened ({port.error or 'not found'})"
-    addresses = sorted(port.foreign_senders)
-    if addresses and isinstance(
-        spec, BinaryInclinometerRole | Rs485InclinometerRole | AmbientSensorRole
-    ):
-        return "answered from address " + ", ".join(
-            f"0x{a:02X}" if isinstance(spec, BinaryInclinometerRole) else f"{a:02X}"
-            for a in addresses
-        )
-    axes = sorted(port.foreign_senders)
-    if axes and role in ("stage", "rotary_table"):
-        return "answered on axis " + ", ".join(map(str, axes))
+    elsewhere = _answered_elsewhere(role, spec, sorted(port.foreign_senders))
+    if elsewhere is not None:
+        return elsewhere
     st = port.decoder.stats
     if st.resyncs or st.bad_checksum or port.decoder.pending:
         return f"sent {port.bytes_read} bytes in another protocol"
@@ -149,30 +156,32 @@ async def probe_bench(config: BenchConfig, clock: Clock) -> list[tuple[str, str,
         for role, spec in config.role_specs.items()
     }
     ports = {
-        id(p): p
-        for d in drivers.values()
-        for p in ([d.x.port] if isinstance(d, StageController) else [d.port])
+        id(port): port
+        for driver in drivers.values()
+        for port in ([driver.x.port] if isinstance(driver, StageController) else [driver.port])
     }
-    for p in ports.values():
-        p.start()
+    for port in ports.values():
+        port.start()
     try:
-        await asyncio.gather(*(asyncio.to_thread(p.wait_connected, 2.0) for p in ports.values()))
-        for role, d in drivers.items():
+        await asyncio.gather(
+            *(asyncio.to_thread(port.wait_connected, 2.0) for port in ports.values())
+        )
+        for role, driver in drivers.items():
             spec = config.role(role)
             try:
-                results.append((role, spec.where, True, await _probe(role, d)))
+                results.append((role, spec.where, True, await _probe(role, driver)))
             except DeviceError:
                 results.append(
                     (
                         role,
                         spec.where,
                         False,
-                        (f"{_why(role, spec, d)}; expected {expected(role, spec)}"),
+                        (f"{_why(role, spec, driver)}; expected {expected(role, spec)}"),
                     )
                 )
     finally:
-        for p in ports.values():
-            p.stop()
+        for port in ports.values():
+            port.stop()
     return results
 
 

@@ -19,12 +19,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from service.commands._args import add_command
 from service.errors import InputError
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
+    from service.calibration.model import CalibrationModel
     from service.datasets import Dataset
 
 # numpy, the dataset reader and the workflow are imported when the command runs, not by --help.
@@ -35,37 +38,28 @@ def _constant_column(ds: Dataset, col: str) -> float | None:
 
     if col not in ds.numeric:
         return None
-    v = ds.numeric[col]
-    bad = np.flatnonzero(v <= 0)
+    values = ds.numeric[col]
+    bad = np.flatnonzero(values <= 0)
     if bad.size:
         i = int(bad[0])
         raise InputError(
             f"{ds.where(i + 1, col)}: a noise level must be positive, got {ds.text[col][i]}"
         )
-    diff = np.flatnonzero(v != v[0])
+    diff = np.flatnonzero(values != values[0])
     if diff.size:
         i = int(diff[0])
         raise InputError(
             f"{ds.where(i + 1, col)}: {ds.text[col][i]} differs from "
             f"the first row's {ds.text[col][0]}; the instrument's noise level is one value per axis"
         )
-    return float(v[0])
+    return float(values[0])
 
 
-def run(args: argparse.Namespace) -> int:
-    from service.io.datasets import (
-        about,
-        check_not_overwriting,
-        check_output_path,
-        read_dataset,
-        write_text_atomic,
-    )
-    from service.io.provenance import provenance
+def _output_paths(args: argparse.Namespace, kind: str) -> tuple[Path, Path, Path | None]:
+    """The report, its page and the adopted model's paths, each checked before any work, so a bad
+    one leaves no file behind."""
+    from service.io.datasets import check_not_overwriting, check_output_path
 
-    kind = args.kind
-    baseline = getattr(args, "baseline", None) or "linear"
-    inputs = {"input": str(args.input)}
-    # Both output paths are checked before the work, so a bad one leaves neither file behind.
     out = check_output_path(args.out)
     html_path = check_output_path(
         args.html if getattr(args, "html", None) else out.with_suffix(".html")
@@ -75,7 +69,6 @@ def run(args: argparse.Namespace) -> int:
     check_not_overwriting(out, input=args.input)
     check_not_overwriting(html_path, "--html", input=args.input)
     adopt_path = None
-    adopted = None
     if getattr(args, "adopt", None):
         if kind != "stage":
             raise InputError("--adopt writes a kinematic stage model; kind 'scale' has none")
@@ -83,97 +76,161 @@ def run(args: argparse.Namespace) -> int:
         if adopt_path.resolve() in (out.resolve(), html_path.resolve()):
             raise InputError(f"--adopt {adopt_path} would overwrite the report")
         check_not_overwriting(adopt_path, "--adopt", input=args.input)
+    return out, html_path, adopt_path
+
+
+def _stated_noise(ds: Dataset, nx: str, ny: str) -> list[float] | None:
+    """The sensor's noise level per axis from its constant columns: both or neither."""
+    noise = None
+    cx, cy = _constant_column(ds, nx), _constant_column(ds, ny)
+    if cx is not None or cy is not None:
+        if cx is None or cy is None:
+            raise InputError(
+                f"{ds.source}: give both {nx!r} and {ny!r} (one noise level per axis), or neither"
+            )
+        noise = [cx, cy]
+    return noise
+
+
+def _stage_report(
+    args: argparse.Namespace,
+    baseline: str,
+    inputs: dict[str, str],
+    prov: dict[str, Any],
+    out: Path,
+    adopt_path: Path | None,
+) -> tuple[dict[str, Any], str, CalibrationModel | None]:
+    """Stage data: the report, its page, and the calibration with the named effects added when
+    --adopt asks for it."""
+    from service.discrepancy.stage import stage_diagnosis
+    from service.io.datasets import about, read_dataset
+
+    sensor = getattr(args, "sensor", None) or "ref"
+    nx, ny = f"noise_{sensor}_x_deg", f"noise_{sensor}_y_deg"
+    ds = read_dataset(
+        args.input,
+        "stage",
+        ("stage_x_deg", "stage_y_deg", f"{sensor}_x_deg", f"{sensor}_y_deg"),
+        ("dir_x", "dir_y", "temp_c", "t_s", "point", nx, ny),
+    )
+    noise = _stated_noise(ds, nx, ny)
+    from service.commands.offline import stage_bench_options
+
+    stated = stage_bench_options("stage", getattr(args, "bench", None))
+    adopted = None
+    with about(args.input):
+        report, page, result, _ = stage_diagnosis(
+            ds.arrays(),
+            sensor,
+            baseline,
+            noise,
+            bench=stated.get("bench"),
+            inputs=inputs,
+            bench_source=stated.get("bench_source"),
+            provenance=prov,
+        )
+        # the last step: the calibration with the named effects added
+        if adopt_path is not None:
+            from service.discrepancy.adopt import adopted_model, seen_labels_of
+            from service.physics.stage import StageBench
+
+            worm = sorted(
+                {lab[:1] for lab in seen_labels_of(result.steps).get("periodic_error", [])}
+            ) or ["x", "y"]
+            adopted = adopted_model(
+                ds.arrays(),
+                report["named_effects"],
+                sensor,
+                stated.get("bench") or StageBench(),
+                str(stated.get("bench_source") or report["bench"]["source"]),
+                {
+                    "what": f"the discrepancy report {out}",
+                    "report": str(out),
+                    "input": str(args.input),
+                    "sensor": sensor,
+                    "baseline": baseline,
+                },
+                worm_axes=worm,
+            )
+    return report, page, adopted
+
+
+def _scale_report(
+    args: argparse.Namespace, baseline: str, inputs: dict[str, str], prov: dict[str, Any]
+) -> tuple[dict[str, Any], str]:
+    """Scale data: the report and its page; the stage-only options are refused."""
+    from service.discrepancy.scale import scale_report
+    from service.io.datasets import about, read_dataset
+
+    if getattr(args, "bench", None) is not None:
+        raise InputError("--bench describes a bench of stacked stages; kind 'scale' has none")
+    if getattr(args, "sensor", None) is not None:
+        raise InputError(
+            "--sensor chooses between the two sensors of stage data; kind 'scale' has one "
+            "sensor, leave it out"
+        )
+
+    if baseline not in ("linear", "poly1"):
+        raise InputError(
+            f"kind 'scale' has one baseline, poly1 (a straight line); --baseline {baseline} "
+            "applies to stage data"
+        )
+    ds = read_dataset(
+        args.input,
+        "scale",
+        (("ref_arcsec", "ref_deg"), "reading"),
+        ("point", "temp_c", "t_s", "noise_arcsec"),
+    )
+    noise_arcsec = _constant_column(ds, "noise_arcsec")
+    from service.discrepancy.report import clean, render_html
+
+    with about(args.input):
+        report, result, fam = scale_report(ds.arrays(), noise_arcsec, inputs=inputs)
+    report["provenance"] = prov
+    report = clean(report)
+    page = render_html(report, result, fam)
+    return report, page
+
+
+def _tell_what_was_written(
+    args: argparse.Namespace, kind: str, report: dict[str, Any], out: Path, html_path: Path
+) -> None:
+    """The closing lines on stderr: the chain, the final RMS against the noise, the files, the
+    effects skipped, and the bench assumed."""
+    chain = " → ".join(report["chain"])
+    print(
+        f"{kind}/{report['baseline']}: {chain}; final RMS "
+        f"{', '.join(f'{value:.3g}' for value in report['final_rms'])} "
+        f"{report['unit']} (noise {', '.join(f'{value:.3g}' for value in report['noise_level'])}, "
+        f"{report['noise_source']}); wrote {out} and {html_path}",
+        file=sys.stderr,
+    )
+    for skipped in report["skipped"]:
+        print(f"  skipped {skipped['effect']}: {skipped['reason']}", file=sys.stderr)
+    if kind == "stage" and getattr(args, "bench", None) is None:
+        from service.commands.offline import assumed_bench_note
+
+        print(assumed_bench_note(), file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.io.datasets import write_text_atomic
+    from service.io.provenance import provenance
+
+    kind = args.kind
+    baseline = getattr(args, "baseline", None) or "linear"
+    inputs = {"input": str(args.input)}
+    # Both output paths are checked before the work, so a bad one leaves neither file behind.
+    out, html_path, adopt_path = _output_paths(args, kind)
+    adopted = None
     prov = provenance(
         getattr(args, "command_line", "tiltlab discrepancy"),
         {"input": args.input, "bench": getattr(args, "bench", None)},
     )
     if kind == "stage":
-        from service.discrepancy.stage import stage_diagnosis
-
-        sensor = getattr(args, "sensor", None) or "ref"
-        nx, ny = f"noise_{sensor}_x_deg", f"noise_{sensor}_y_deg"
-        ds = read_dataset(
-            args.input,
-            "stage",
-            ("stage_x_deg", "stage_y_deg", f"{sensor}_x_deg", f"{sensor}_y_deg"),
-            ("dir_x", "dir_y", "temp_c", "t_s", "point", nx, ny),
-        )
-        noise = None
-        cx, cy = _constant_column(ds, nx), _constant_column(ds, ny)
-        if cx is not None or cy is not None:
-            if cx is None or cy is None:
-                raise InputError(
-                    f"{ds.source}: give both {nx!r} and {ny!r} (one noise level per axis), or "
-                    "neither"
-                )
-            noise = [cx, cy]
-        from service.commands.offline import stage_bench_options
-
-        stated = stage_bench_options("stage", getattr(args, "bench", None))
-        with about(args.input):
-            report, page, result, _ = stage_diagnosis(
-                ds.arrays(),
-                sensor,
-                baseline,
-                noise,
-                bench=stated.get("bench"),
-                inputs=inputs,
-                bench_source=stated.get("bench_source"),
-                provenance=prov,
-            )
-            # the last step: the calibration with the named effects added
-            if adopt_path is not None:
-                from service.discrepancy.adopt import adopted_model, seen_labels_of
-                from service.physics.stage import StageBench
-
-                worm = sorted(
-                    {lab[:1] for lab in seen_labels_of(result.steps).get("periodic_error", [])}
-                ) or ["x", "y"]
-                adopted = adopted_model(
-                    ds.arrays(),
-                    report["named_effects"],
-                    sensor,
-                    stated.get("bench") or StageBench(),
-                    str(stated.get("bench_source") or report["bench"]["source"]),
-                    {
-                        "what": f"the discrepancy report {out}",
-                        "report": str(out),
-                        "input": str(args.input),
-                        "sensor": sensor,
-                        "baseline": baseline,
-                    },
-                    worm_axes=worm,
-                )
+        report, page, adopted = _stage_report(args, baseline, inputs, prov, out, adopt_path)
     elif kind == "scale":
-        from service.discrepancy.scale import scale_report
-
-        if getattr(args, "bench", None) is not None:
-            raise InputError("--bench describes a bench of stacked stages; kind 'scale' has none")
-        if getattr(args, "sensor", None) is not None:
-            raise InputError(
-                "--sensor chooses between the two sensors of stage data; kind 'scale' has one "
-                "sensor, leave it out"
-            )
-
-        if baseline not in ("linear", "poly1"):
-            raise InputError(
-                f"kind 'scale' has one baseline, poly1 (a straight line); --baseline {baseline} "
-                "applies to stage data"
-            )
-        ds = read_dataset(
-            args.input,
-            "scale",
-            (("ref_arcsec", "ref_deg"), "reading"),
-            ("point", "temp_c", "t_s", "noise_arcsec"),
-        )
-        noise_arcsec = _constant_column(ds, "noise_arcsec")
-        from service.discrepancy.report import clean, render_html
-
-        with about(args.input):
-            report, result, fam = scale_report(ds.arrays(), noise_arcsec, inputs=inputs)
-        report["provenance"] = prov
-        report = clean(report)
-        page = render_html(report, result, fam)
+        report, page = _scale_report(args, baseline, inputs, prov)
     else:
         raise InputError(f"discrepancy supports kinds stage and scale, not {kind!r}")
     text = json.dumps(report, indent=1, ensure_ascii=False, allow_nan=False)
@@ -190,20 +247,7 @@ def run(args: argparse.Namespace) -> int:
         out.unlink(missing_ok=True)
         html_path.unlink(missing_ok=True)
         raise
-    chain = " → ".join(report["chain"])
-    print(
-        f"{kind}/{report['baseline']}: {chain}; final RMS "
-        f"{', '.join(f'{v:.3g}' for v in report['final_rms'])} "
-        f"{report['unit']} (noise {', '.join(f'{v:.3g}' for v in report['noise_level'])}, "
-        f"{report['noise_source']}); wrote {out} and {html_path}",
-        file=sys.stderr,
-    )
-    for s in report["skipped"]:
-        print(f"  skipped {s['effect']}: {s['reason']}", file=sys.stderr)
-    if kind == "stage" and getattr(args, "bench", None) is None:
-        from service.commands.offline import assumed_bench_note
-
-        print(assumed_bench_note(), file=sys.stderr)
+    _tell_what_was_written(args, kind, report, out, html_path)
     return 0
 
 

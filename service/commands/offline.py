@@ -182,6 +182,12 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 
 
 def _refuse_options_that_do_not_apply(args: argparse.Namespace) -> None:
+    _refuse_method_options(args)
+    _refuse_stage_options(args)
+
+
+def _refuse_method_options(args: argparse.Namespace) -> None:
+    """--rotation-deg and --loss, which only the turntable and the kinematic stage method take."""
     if args.rotation_deg is not None and args.kind != "turntable":
         raise InputError(
             f"--rotation-deg applies to kind turntable only, not {args.kind!r}; leave it out"
@@ -191,6 +197,10 @@ def _refuse_options_that_do_not_apply(args: argparse.Namespace) -> None:
             f"--loss applies to the stage method kinematic only, not {args.kind}/{args.method}; "
             "leave it out"
         )
+
+
+def _refuse_stage_options(args: argparse.Namespace) -> None:
+    """--ref-noise-deg and --bench, which describe a stage bench: refused for other kinds."""
     if getattr(args, "ref_noise_deg", None) is not None and args.kind != "stage":
         raise InputError(
             f"--ref-noise-deg is the reference sensor's noise of a stage bench; kind {args.kind!r} "
@@ -248,7 +258,8 @@ def calibrate(args: argparse.Namespace) -> int:
     )
     write_model(args.out, model)
     stats = ", ".join(
-        f"{c} rms {v['rms']:.4g}" for c, v in model.residuals.get("columns", {}).items()
+        f"{column} rms {residual['rms']:.4g}"
+        for column, residual in model.residuals.get("columns", {}).items()
     )
     print(
         f"{args.kind}/{args.method}: fitted on {ds.n_rows} rows of {args.input}; {stats}; wrote "
@@ -331,10 +342,10 @@ def correct(args: argparse.Namespace) -> int:
             & (seen["y"][0] <= out["tilt_y_deg"])
             & (out["tilt_y_deg"] <= seen["y"][1])
         )
-        out["in_calibrated_range"] = ["true" if v else "false" for v in inside]
+        out["in_calibrated_range"] = ["true" if is_inside else "false" for is_inside in inside]
     # an input that is itself an earlier output: its uncertainty columns are replaced, not kept
     # beside the new ones
-    stale = set(out) | {f"u_{q}" for q in quantities}
+    stale = set(out) | {f"u_{quantity}" for quantity in quantities}
     cols: dict[str, Any] = {**ds.passthrough(exclude=stale), **out}
     write_dataset(args.out, cols)
     print(
@@ -386,7 +397,7 @@ def _warn_outside_calibrated_range(model: CalibrationModel, ds: Dataset, targets
     for axis in "xy":
         lo, hi = seen[axis]
         values = arrays[f"target_{axis}_deg"]
-        outside += [i for i, v in enumerate(values) if not lo <= v <= hi]
+        outside += [i for i, value in enumerate(values) if not lo <= value <= hi]
     if outside:
         rows = sorted(set(outside))
         shown = ", ".join(str(row + 1) for row in rows[:5]) + (", …" if len(rows) > 5 else "")

@@ -16,10 +16,13 @@ import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from service.commands._args import add_command, port, seconds, speed
 from service.errors import InputError
+
+if TYPE_CHECKING:
+    from service.config import Settings
 
 SWITCH_INTERVAL_S = 0.001
 
@@ -132,19 +135,9 @@ def _guard_lifespan(app: Any, guard: _StartupGuard) -> None:
     app.router.lifespan_context = guarded
 
 
-def run(args: argparse.Namespace) -> int:
-    import uvicorn
-
-    from service.api.app import create_app
-    from service.api.server import protocols
-    from service.config import ensure_data_dir, get_settings
-
-    # The event loop (every request, the streams) gets the interpreter back within 1 ms of asking,
-    # not 5 ms (Python's default), while request threads decode a page of records or build a
-    # snapshot.
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
-    settings = get_settings()
-    # command-line options override the environment; validated like it (one line naming the setting)
+def _with_overrides(settings: Settings, args: argparse.Namespace) -> Settings:
+    """The settings with the command-line options that were given in place of the environment's,
+    validated like it (one line naming the setting)."""
     overrides = {
         name: getattr(args, name, None)
         for name in (
@@ -156,21 +149,54 @@ def run(args: argparse.Namespace) -> int:
             "bench_scenario",
         )
     }
-    overrides = {k: v for k, v in overrides.items() if v is not None}
+    overrides = {name: value for name, value in overrides.items() if value is not None}
     if overrides:
         settings = type(settings)(**overrides)
+    return settings
+
+
+def _tls_refusal(tls: dict[str, Any]) -> str | None:
+    """Why the TLS options cannot work (one of the pair alone, a file missing), or None."""
+    if bool(tls["ssl_certfile"]) != bool(tls["ssl_keyfile"]):
+        return "--ssl-certfile and --ssl-keyfile go together: give both, or neither for plain HTTP"
+    for opt, path in tls.items():
+        if path and not Path(path).is_file():
+            return f"--{opt.replace('_', '-')} {path}: no such file"
+    return None
+
+
+def _startup_failed(failure: BaseException | None) -> int:
+    """Say in one line why the application did not start; exit 2 for a setting, else 1."""
+    reason = (
+        f"{type(failure).__name__}: {failure}"
+        if failure is not None
+        else "the application did not start"
+    )
+    _say(f"start-up failed: {' '.join(reason.split())}")
+    return 2 if isinstance(failure, InputError) else 1
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.api.app import create_app
+    from service.api.server import protocols
+    from service.config import ensure_data_dir, get_settings
+
+    # The event loop (every request, the streams) gets the interpreter back within 1 ms of asking,
+    # not 5 ms (Python's default), while request threads decode a page of records or build a
+    # snapshot.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    settings = _with_overrides(get_settings(), args)
     host, port = settings.host, settings.port
     tls = {
         "ssl_certfile": getattr(args, "ssl_certfile", None),
         "ssl_keyfile": getattr(args, "ssl_keyfile", None),
     }
-    if bool(tls["ssl_certfile"]) != bool(tls["ssl_keyfile"]):
-        _say("--ssl-certfile and --ssl-keyfile go together: give both, or neither for plain HTTP")
+    refusal = _tls_refusal(tls)
+    if refusal is not None:
+        _say(refusal)
         return 2
-    for opt, path in tls.items():
-        if path and not Path(path).is_file():
-            _say(f"--{opt.replace('_', '-')} {path}: no such file")
-            return 2
     scheme = "https" if tls["ssl_certfile"] else "http"
     try:
         ensure_data_dir(settings)
@@ -218,7 +244,7 @@ def run(args: argparse.Namespace) -> int:
                 http=http_protocol,
                 ws=ws_protocol,
                 ws_per_message_deflate=False,
-                **{k: v for k, v in tls.items() if v},
+                **{opt: path for opt, path in tls.items() if path},
             )
         )
         try:
@@ -229,14 +255,7 @@ def run(args: argparse.Namespace) -> int:
                 return 0
             raise
         if not announced:
-            failure = guard.failure
-            reason = (
-                f"{type(failure).__name__}: {failure}"
-                if failure is not None
-                else "the application did not start"
-            )
-            _say(f"start-up failed: {' '.join(reason.split())}")
-            return 2 if isinstance(failure, InputError) else 1
+            return _startup_failed(guard.failure)
         return 0
     finally:
         sock.close()

@@ -52,13 +52,13 @@ def list_presets() -> int:
     width = max(60, shutil.get_terminal_size((100, 24)).columns)
     indent = " " * 24
     for name in preset_names():
-        s = load_scenario(name)
-        about = " ".join((s.description or "").split())
+        scenario = load_scenario(name)
+        about = " ".join((scenario.description or "").split())
         print(
             textwrap.fill(
                 about,
                 width=width,
-                initial_indent=f"{name:12s} {s.kind:10s} ",
+                initial_indent=f"{name:12s} {scenario.kind:10s} ",
                 subsequent_indent=indent,
                 break_on_hyphens=False,
             )
@@ -71,7 +71,11 @@ def run(args: argparse.Namespace) -> int:
         if args.scenario or args.out is not None or args.seed is not None:
             raise InputError("--list prints the presets; it takes no --scenario, --out or --seed")
         return list_presets()
-    missing = [o for o, v in (("--scenario", args.scenario), ("--out", args.out)) if v is None]
+    missing = [
+        option
+        for option, value in (("--scenario", args.scenario), ("--out", args.out))
+        if value is None
+    ]
     if missing:
         raise InputError(f"required: {', '.join(missing)} (or --list to see the presets)")
     from service.io.datasets import check_not_overwriting, check_output_path, write_dataset

@@ -43,12 +43,17 @@ def run(args: argparse.Namespace) -> int:
             )
         elif args.token_command == "list":
             rows = tokens.all(include_revoked=args.all)
-            for r in rows:
-                state = f"revoked {r.revoked_at:%Y-%m-%dT%H:%M:%SZ}" if r.revoked_at else "active"
-                p = person_of_row(r)
+            for entry in rows:
+                state = (
+                    f"revoked {entry.revoked_at:%Y-%m-%dT%H:%M:%SZ}"
+                    if entry.revoked_at
+                    else "active"
+                )
+                holder = person_of_row(entry)
                 print(
-                    f"{r.name}\t{','.join(r.scopes)}\tcreated {r.created_at:%Y-%m-%dT%H:%M:%SZ} "
-                    f"by {r.created_by}\t{state}\t{p.described() if p else 'no person'}"
+                    f"{entry.name}\t{','.join(entry.scopes)}\t"
+                    f"created {entry.created_at:%Y-%m-%dT%H:%M:%SZ} by {entry.created_by}\t"
+                    f"{state}\t{holder.described() if holder else 'no person'}"
                 )
             if not rows:
                 print("no tokens", file=sys.stderr)
@@ -117,27 +122,27 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         ],
     )
     tsub = add_subcommands(parser, "token_command")
-    q = add_command(
+    command_parser = add_command(
         tsub,
         "create",
         "make a token and print it (only now)",
         examples=["tiltlab token create --name bench-pc --scopes read,operate"],
     )
-    q.add_argument("--name", required=True, help="a name to know the token by")
-    q.add_argument(
+    command_parser.add_argument("--name", required=True, help="a name to know the token by")
+    command_parser.add_argument(
         "--scopes",
         required=True,
         help="comma-separated: read, operate, admin (admin implies the others)",
     )
-    _person_options(q, required=False)
-    q = add_command(
+    _person_options(command_parser, required=False)
+    command_parser = add_command(
         tsub,
         "list",
         "tokens by name and scopes (never the tokens themselves)",
         examples=["tiltlab token list"],
     )
-    q.add_argument("--all", action="store_true", help="also revoked tokens")
-    q = add_command(
+    command_parser.add_argument("--all", action="store_true", help="also revoked tokens")
+    command_parser = add_command(
         tsub,
         "set-person",
         "name the person a token belongs to",
@@ -148,10 +153,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             )
         ],
     )
-    q.add_argument("name", help="the token's name")
-    _person_options(q, required=True)
-    q = add_command(
+    command_parser.add_argument("name", help="the token's name")
+    _person_options(command_parser, required=True)
+    command_parser = add_command(
         tsub, "revoke", "revoke a token by name", examples=["tiltlab token revoke bench-pc"]
     )
-    q.add_argument("name", help="the token's name")
+    command_parser.add_argument("name", help="the token's name")
     parser.set_defaults(handler=lambda a: run(a))

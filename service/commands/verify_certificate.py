@@ -16,8 +16,14 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from service.errors import InputError
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Engine
+
+    from service.storage.store import Store
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -55,41 +61,57 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     parser.set_defaults(handler=run)
 
 
-def run(args: argparse.Namespace) -> int:
+def _read_file(path: Path) -> bytes:
+    """The certificate's bytes, or one line saying why they cannot be read."""
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror}") from None
+
+
+def _trusted_signer(signer_cert: str | None) -> bytes | None:
+    """The lab's signing certificate given with --signer-cert, if any."""
+    if not signer_cert:
+        return None
+    try:
+        return Path(signer_cert).read_bytes()
+    except OSError as exc:
+        raise InputError(f"{signer_cert}: cannot read: {exc.strerror}") from None
+
+
+def _open_store() -> tuple[Store, Engine]:
+    """The lab's database, which must exist and have a schema, to check the file against."""
     from service.config import get_settings
-    from service.lims.certificates import verify_certificate
     from service.storage.backup import database_exists, sqlite_path
     from service.storage.engine import make_engine, redacted
     from service.storage.migrate import current_revision
     from service.storage.store import Store
 
+    settings = get_settings()
+    where = redacted(settings.database_url)
+    if not database_exists(settings.database_url):
+        raise InputError(
+            f"{where}: no database file at {sqlite_path(settings.database_url)};"
+            " use --offline to check only the schema"
+        )
+    engine = make_engine(settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms)
+    if current_revision(engine) is None:
+        engine.dispose()
+        raise InputError(f"{where}: no schema yet; use --offline to check only the schema")
+    return Store(engine), engine
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.lims.certificates import verify_certificate
+
     path = Path(args.file)
-    try:
-        xml = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read: {exc.strerror}") from None
-    trusted = None
-    if args.signer_cert:
-        try:
-            trusted = Path(args.signer_cert).read_bytes()
-        except OSError as exc:
-            raise InputError(f"{args.signer_cert}: cannot read: {exc.strerror}") from None
+    xml = _read_file(path)
+    trusted = _trusted_signer(args.signer_cert)
     store = engine = None
     if not args.offline:
-        settings = get_settings()
-        where = redacted(settings.database_url)
-        if not database_exists(settings.database_url):
-            raise InputError(
-                f"{where}: no database file at {sqlite_path(settings.database_url)};"
-                " use --offline to check only the schema"
-            )
-        engine = make_engine(settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms)
-        if current_revision(engine) is None:
-            engine.dispose()
-            raise InputError(f"{where}: no schema yet; use --offline to check only the schema")
-        store = Store(engine)
+        store, engine = _open_store()
     try:
         report = verify_certificate(xml, store, trusted, allow_unsigned=args.allow_unsigned)
     finally:
