@@ -64,9 +64,9 @@ def encode_request(msg: AdcRequest) -> bytes:
 
 def encode_answer(msg: AdcAnswer) -> bytes:
     if isinstance(msg, AdcIdentity):
-        for v in (msg.model, msg.serial):
-            if not re.fullmatch(_FIELD, v):
-                raise ValueError(f"{v!r} must be printable ASCII without spaces or commas")
+        for field in (msg.model, msg.serial):
+            if not re.fullmatch(_FIELD, field):
+                raise ValueError(f"{field!r} must be printable ASCII without spaces or commas")
         return f"ID,{msg.model},{msg.serial}".encode() + EOL
     if not 0 <= msg.counts <= COUNTS - 1:
         raise ValueError(f"counts {msg.counts} outside 0..{COUNTS - 1}")

@@ -200,6 +200,18 @@ class BenchConfig(_Strict):
 
     @model_validator(mode="after")
     def _roles(self) -> BenchConfig:
+        self._check_role_names()
+        if self.kind == "rotary" and self.hardware is not None:
+            raise ValueError("hardware: describes stacked swing stages; a rotary bench has none")
+        if self.kind == "stage" and self.hardware is None:
+            self.hardware = StageBenchSpec()
+        self.role_specs = self._typed_roles()
+        if self.kind == "stage":
+            self._check_soft_limits()
+        return self
+
+    def _check_role_names(self) -> None:
+        """Every role known and one this kind of bench has; every role it needs present."""
         allowed = REQUIRED_ROLES[self.kind] + OPTIONAL_ROLES[self.kind]
         for role in self.roles:
             if role not in ROLES:
@@ -218,10 +230,9 @@ class BenchConfig(_Strict):
             optional_role in self.roles for optional_role in OPTIONAL_ROLES["rotary"]
         ):
             raise ValueError("roles: a rotary bench needs a triaxial_sensor or a turntable_sensor")
-        if self.kind == "rotary" and self.hardware is not None:
-            raise ValueError("hardware: describes stacked swing stages; a rotary bench has none")
-        if self.kind == "stage" and self.hardware is None:
-            self.hardware = StageBenchSpec()
+
+    def _typed_roles(self) -> dict[str, PortRole]:
+        """Each role's table validated as its own model; the first problem names the role."""
         specs: dict[str, PortRole] = {}
         for role, table in self.roles.items():
             try:
@@ -231,10 +242,7 @@ class BenchConfig(_Strict):
                 raise ValueError(
                     f"roles.{role}{'.' if ': ' in problem else ': '}{problem}"
                 ) from None
-        self.role_specs = specs
-        if self.kind == "stage":
-            self._check_soft_limits()
-        return self
+        return specs
 
     def _check_soft_limits(self) -> None:
         stage = self.role_specs["stage"]
@@ -281,27 +289,8 @@ class BenchesFile(_Strict):
             for role, spec in bench.role_specs.items():
                 users.setdefault(spec.where, []).append((bname, role, spec))
         for where, on_port in users.items():
-            if len(on_port) < 2:
-                continue
-            names = ", ".join(f"{b}.{r}" for b, r, _ in on_port)
-            if any(
-                not isinstance(s, Rs485InclinometerRole | AmbientSensorRole) for _, _, s in on_port
-            ):
-                raise ValueError(
-                    f"port {where} is given to {names}; only RS-485 instruments may share a port"
-                )
-            addresses = [
-                s.address.upper()
-                for _, _, s in on_port
-                if isinstance(s, Rs485InclinometerRole | AmbientSensorRole)
-            ]
-            if len(set(addresses)) != len(addresses):
-                raise ValueError(
-                    f"port {where}: {names} share an address; each instrument on a bus needs its "
-                    "own"
-                )
-            if len({s.baud for _, _, s in on_port}) > 1:
-                raise ValueError(f"port {where}: {names} give different baud rates for one bus")
+            if len(on_port) >= 2:
+                _check_bus(where, on_port)
 
     def bench(self, name: str | None = None) -> BenchConfig:
         """A bench by name; without a name, the file's only bench."""
@@ -319,18 +308,41 @@ class BenchesFile(_Strict):
         return self.benches[name]
 
 
+def _check_bus(where: str, on_port: list[tuple[str, str, PortRole]]) -> None:
+    """The instruments given one port (bench, role, spec): RS-485 ones only, each at its own
+    address, all at one baud rate."""
+    names = ", ".join(f"{bench_name}.{role}" for bench_name, role, _ in on_port)
+    if any(
+        not isinstance(spec, Rs485InclinometerRole | AmbientSensorRole) for _, _, spec in on_port
+    ):
+        raise ValueError(
+            f"port {where} is given to {names}; only RS-485 instruments may share a port"
+        )
+    addresses = [
+        spec.address.upper()
+        for _, _, spec in on_port
+        if isinstance(spec, Rs485InclinometerRole | AmbientSensorRole)
+    ]
+    if len(set(addresses)) != len(addresses):
+        raise ValueError(
+            f"port {where}: {names} share an address; each instrument on a bus needs its own"
+        )
+    if len({spec.baud for _, _, spec in on_port}) > 1:
+        raise ValueError(f"port {where}: {names} give different baud rates for one bus")
+
+
 def _first(exc: ValidationError) -> str:
     """The first problem as `field.path: message` (or the message alone when it is about the whole
     table)."""
-    e = exc.errors()[0]
-    loc = ".".join(str(x) for x in e["loc"] if not str(x).startswith("function-"))
-    msg = e["msg"].removeprefix("Value error, ")
-    if e["type"] == "extra_forbidden":
+    error = exc.errors()[0]
+    loc = ".".join(str(x) for x in error["loc"] if not str(x).startswith("function-"))
+    msg = error["msg"].removeprefix("Value error, ")
+    if error["type"] == "extra_forbidden":
         msg = "unknown field"
-    elif e["type"] == "missing":
+    elif error["type"] == "missing":
         msg = "missing required field"
-    elif "input" in e and not isinstance(e["input"], dict | list):
-        msg = f"{msg} (got {e['input']!r})"
+    elif "input" in error and not isinstance(error["input"], dict | list):
+        msg = f"{msg} (got {error['input']!r})"
     return f"{loc}: {msg}" if loc else msg
 
 
@@ -344,16 +356,16 @@ def parse_bench_config(data: Any, source: str = "bench configuration") -> Benche
 
 
 def load_bench_config(path: str | Path) -> BenchesFile:
-    p = Path(path).expanduser()
+    config_path = Path(path).expanduser()
     try:
-        data = tomllib.loads(p.read_text(encoding="utf-8-sig"))
+        data = tomllib.loads(config_path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
-        raise InputError(f"{p}: no such bench configuration file") from None
+        raise InputError(f"{config_path}: no such bench configuration file") from None
     except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"{p}: not valid TOML: {exc}") from None
+        raise InputError(f"{config_path}: not valid TOML: {exc}") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: cannot read: {exc}") from None
-    return parse_bench_config(data, source=str(p))
+        raise InputError(f"{config_path}: cannot read: {exc}") from None
+    return parse_bench_config(data, source=str(config_path))
 
 
 def load_stage_bench(path: str | Path) -> tuple[StageBench, str]:
@@ -364,26 +376,32 @@ def load_stage_bench(path: str | Path) -> tuple[StageBench, str]:
     configuration with several stage benches is refused: name the file of the one the data came
     from.
     """
-    p = Path(path).expanduser()
-    if p.suffix.lower() == ".toml":
-        benches = [b for b in load_bench_config(p).benches.values() if b.kind == "stage"]
+    bench_path = Path(path).expanduser()
+    if bench_path.suffix.lower() == ".toml":
+        benches = [
+            bench
+            for bench in load_bench_config(bench_path).benches.values()
+            if bench.kind == "stage"
+        ]
         if len(benches) != 1:
-            names = ", ".join(b.name for b in benches) or "none"
+            names = ", ".join(bench.name for bench in benches) or "none"
             raise InputError(
-                f"{p}: --bench needs a configuration with one stage bench, this one has "
+                f"{bench_path}: --bench needs a configuration with one stage bench, this one has "
                 f"{len(benches)} ({names})"
             )
-        return benches[0].stage_bench(), f"{p} (bench {benches[0].name!r}, hardware table)"
-    if p.suffix.lower() == ".json":
+        return benches[0].stage_bench(), f"{bench_path} (bench {benches[0].name!r}, hardware table)"
+    if bench_path.suffix.lower() == ".json":
         from service.scenarios.model import StageScenario, load_scenario
 
-        if not p.is_file():
-            raise InputError(f"{p}: no such scenario file")
-        scenario = load_scenario(p)
+        if not bench_path.is_file():
+            raise InputError(f"{bench_path}: no such scenario file")
+        scenario = load_scenario(bench_path)
         if not isinstance(scenario, StageScenario):
             raise InputError(
-                f"{p}: a {scenario.kind} scenario has no stacked stages; --bench needs a stage "
-                "bench"
+                f"{bench_path}: a {scenario.kind} scenario has no stacked stages; --bench needs a "
+                "stage bench"
             )
-        return StageBench(**scenario.bench.model_dump()), f"{p} (scenario's bench section)"
-    raise InputError(f"{p}: --bench takes a bench configuration (.toml) or a scenario file (.json)")
+        return StageBench(**scenario.bench.model_dump()), f"{bench_path} (scenario's bench section)"
+    raise InputError(
+        f"{bench_path}: --bench takes a bench configuration (.toml) or a scenario file (.json)"
+    )

@@ -31,7 +31,7 @@ ANSWER = 0x80
 ZERO_ABSOLUTE, ZERO_RELATIVE = 0x00, 0x01
 STATUS_DONE, STATUS_REFUSED = 0x00, 0xFF
 BAUD_CODES = {0x00: 2400, 0x01: 4800, 0x02: 9600, 0x03: 19200, 0x04: 38400, 0x05: 115200}
-CODE_OF_BAUD = {v: k for k, v in BAUD_CODES.items()}
+CODE_OF_BAUD = {baud: code for code, baud in BAUD_CODES.items()}
 # Output mode code -> frames per second (0: answers only; None: continuous, back to back at the line
 # rate).
 OUTPUT_MODES: dict[int, float | None] = {
@@ -157,23 +157,23 @@ def encode_request(msg: BinaryRequest) -> bytes:
 
 
 def encode_answer(msg: BinaryAnswer) -> bytes:
-    c = msg.command
-    if c in (READ_X | ANSWER, READ_Y | ANSWER):
-        value = msg.x_deg if c == READ_X | ANSWER else msg.y_deg
-        data = encode_angle(_given(value, c))
-    elif c == READ_XY | ANSWER:
-        data = encode_angle(_given(msg.x_deg, c)) + encode_angle(_given(msg.y_deg, c))
-    elif c == READ_TEMP | ANSWER:
-        data = encode_temperature(_given(msg.temp_c, c))
-    elif c == READ_SINES | ANSWER:
+    command = msg.command
+    if command in (READ_X | ANSWER, READ_Y | ANSWER):
+        value = msg.x_deg if command == READ_X | ANSWER else msg.y_deg
+        data = encode_angle(_given(value, command))
+    elif command == READ_XY | ANSWER:
+        data = encode_angle(_given(msg.x_deg, command)) + encode_angle(_given(msg.y_deg, command))
+    elif command == READ_TEMP | ANSWER:
+        data = encode_temperature(_given(msg.temp_c, command))
+    elif command == READ_SINES | ANSWER:
         if msg.sines is None:
             raise ValueError("answer 0x87 needs three sines")
         data = b"".join(encode_sine(sine) for sine in msg.sines)
-    elif c in STATUS_ANSWERS:
-        data = bytes([_given(msg.status, c)])
+    elif command in STATUS_ANSWERS:
+        data = bytes([_given(msg.status, command)])
     else:
-        raise ValueError(f"0x{c:02X} is not an answer of the binary protocol")
-    return frame(msg.address, c, data)
+        raise ValueError(f"0x{command:02X} is not an answer of the binary protocol")
+    return frame(msg.address, command, data)
 
 
 def encode(msg: BinaryMessage) -> bytes:
@@ -188,11 +188,11 @@ def _given(value: T | None, command: int) -> T:
 
 def _decode_answer(address: int, command: int, data: bytes) -> BinaryAnswer:
     if command in (READ_X | ANSWER, READ_Y | ANSWER):
-        v = decode_bcd(data, 4)
+        angle_deg = decode_bcd(data, 4)
         return (
-            BinaryAnswer(address, command, x_deg=v)
+            BinaryAnswer(address, command, x_deg=angle_deg)
             if command == READ_X | ANSWER
-            else BinaryAnswer(address, command, y_deg=v)
+            else BinaryAnswer(address, command, y_deg=angle_deg)
         )
     if command == READ_XY | ANSWER:
         return BinaryAnswer(
@@ -210,6 +210,18 @@ def _decode_answer(address: int, command: int, data: bytes) -> BinaryAnswer:
     if status not in (STATUS_DONE, STATUS_REFUSED):
         raise BcdError(f"status byte 0x{status:02X}")
     return BinaryAnswer(address, command, status=status)
+
+
+def _decode_message(direction: str, address: int, command: int, data: bytes) -> BinaryMessage:
+    """The request or answer in a frame whose length and checksum hold; BcdError when its command
+    or its data length is not one the family has (a damaged frame)."""
+    if direction == "request":
+        if command not in REQUEST_ARG or REQUEST_ARG[command] != (len(data) == 1):
+            raise BcdError("unknown request")
+        return BinaryRequest(address, command, data[0] if data else None)
+    if ANSWER_DATA_LEN.get(command) != len(data):
+        raise BcdError("unknown answer")
+    return _decode_answer(address, command, data)
 
 
 def _parse(buf: bytes, direction: str) -> Parsed[BinaryMessage]:
@@ -246,14 +258,7 @@ def _parse(buf: bytes, direction: str) -> Parsed[BinaryMessage]:
             continue
         address, command, data = body[1], body[2], body[3:]
         try:
-            if direction == "request":
-                if command not in REQUEST_ARG or REQUEST_ARG[command] != (len(data) == 1):
-                    raise BcdError("unknown request")
-                msg: BinaryMessage = BinaryRequest(address, command, data[0] if data else None)
-            else:
-                if ANSWER_DATA_LEN.get(command) != len(data):
-                    raise BcdError("unknown answer")
-                msg = _decode_answer(address, command, data)
+            msg = _decode_message(direction, address, command, data)
         except BcdError:
             st.resyncs += 1
             st.skipped_bytes += 1

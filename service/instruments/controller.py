@@ -132,29 +132,29 @@ def _axis(n: int) -> str:
 
 
 def encode_command(msg: ControllerCommand) -> bytes:
-    a = _axis(msg.axis)
+    axis = _axis(msg.axis)
     if msg.query:
         if msg.command not in QUERIES:
             raise ValueError(f"{msg.command}? is not a query of the controller")
-        return f"{a}{msg.command}?".encode() + EOL
+        return f"{axis}{msg.command}?".encode() + EOL
     if msg.command in SET_COMMANDS:
         if msg.value is None:
             raise ValueError(f"{msg.command} needs a value")
-        return f"{a}{msg.command}{int(msg.value)}".encode() + EOL
+        return f"{axis}{msg.command}{int(msg.value)}".encode() + EOL
     if msg.command in ACTIONS:
-        return f"{a}{msg.command}".encode() + EOL
+        return f"{axis}{msg.command}".encode() + EOL
     raise ValueError(f"{msg.command} is not a command of the controller")
 
 
 def encode_answer(msg: ControllerAnswer) -> bytes:
-    a = _axis(msg.axis)
+    axis = _axis(msg.axis)
     if msg.command == Mnemonic.IDENTITY:
         if msg.text is None or not re.fullmatch(r"[!-~]+ [!-~]+", msg.text):
             raise ValueError("an ID answer is '<model> <serial>', printable, one space")
-        return f"{a}ID{msg.text}".encode() + EOL
+        return f"{axis}ID{msg.text}".encode() + EOL
     if msg.command not in QUERIES or msg.value is None:
         raise ValueError(f"{msg.command} is not answered with a number")
-    return f"{a}{msg.command}{int(msg.value)}".encode() + EOL
+    return f"{axis}{msg.command}{int(msg.value)}".encode() + EOL
 
 
 def encode(msg: ControllerMessage) -> bytes:

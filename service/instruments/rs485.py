@@ -104,32 +104,43 @@ def encode_request(msg: Rs485Request) -> bytes:
     return f"#{_addr(msg.address)}{msg.command}\r".encode("ascii")
 
 
-def encode_answer(msg: Rs485Answer) -> bytes:
-    a = _addr(msg.address)
-    if isinstance(msg, Rs485Reading):
-        if msg.status not in (0, 1, 2):
-            raise ValueError(f"status {msg.status} is not 0, 1 or 2")
-        payload = (
-            f"{a}RD X={msg.x_mrad:+.3f} Y={msg.y_mrad:+.3f} T={msg.temp_c:+.2f} ST={msg.status}"
+def _reading_payload(address: str, msg: Rs485Reading) -> str:
+    """An RD answer's payload; refused when the status or a value does not fit its fields."""
+    if msg.status not in (0, 1, 2):
+        raise ValueError(f"status {msg.status} is not 0, 1 or 2")
+    payload = (
+        f"{address}RD X={msg.x_mrad:+.3f} Y={msg.y_mrad:+.3f} T={msg.temp_c:+.2f} ST={msg.status}"
+    )
+    for value, limit in ((msg.x_mrad, 1e6), (msg.y_mrad, 1e6), (msg.temp_c, 1e3)):
+        if not abs(round(value, 3)) < limit:
+            raise ValueError(f"{value!r} is out of the range the answer carries")
+    return payload
+
+
+def _ambient_payload(address: str, msg: Rs485Ambient) -> str:
+    """A TH answer's payload; refused when the status or a value does not fit its fields."""
+    if msg.status not in (0, 1):
+        raise ValueError(f"status {msg.status} is not 0 or 1")
+    if not (abs(round(msg.temp_c, 2)) < 1e3 and 0.0 <= round(msg.humidity_pct, 1) < 1e3):
+        raise ValueError(
+            f"T={msg.temp_c!r}, RH={msg.humidity_pct!r} are out of the range the answer carries"
         )
-        for v, lim in ((msg.x_mrad, 1e6), (msg.y_mrad, 1e6), (msg.temp_c, 1e3)):
-            if not abs(round(v, 3)) < lim:
-                raise ValueError(f"{v!r} is out of the range the answer carries")
+    return f"{address}TH T={msg.temp_c:+.2f} RH={msg.humidity_pct:.1f} ST={msg.status}"
+
+
+def encode_answer(msg: Rs485Answer) -> bytes:
+    address = _addr(msg.address)
+    if isinstance(msg, Rs485Reading):
+        payload = _reading_payload(address, msg)
     elif isinstance(msg, Rs485Ambient):
-        if msg.status not in (0, 1):
-            raise ValueError(f"status {msg.status} is not 0 or 1")
-        if not (abs(round(msg.temp_c, 2)) < 1e3 and 0.0 <= round(msg.humidity_pct, 1) < 1e3):
-            raise ValueError(
-                f"T={msg.temp_c!r}, RH={msg.humidity_pct!r} are out of the range the answer carries"
-            )
-        payload = f"{a}TH T={msg.temp_c:+.2f} RH={msg.humidity_pct:.1f} ST={msg.status}"
+        payload = _ambient_payload(address, msg)
     elif isinstance(msg, Rs485Identity):
         payload = (
-            f"{a}ID {_word(msg.model, 'model')} SN={_word(msg.serial, 'serial')} "
+            f"{address}ID {_word(msg.model, 'model')} SN={_word(msg.serial, 'serial')} "
             f"FW={_word(msg.firmware, 'firmware')}"
         )
     else:
-        payload = f"{a}{'ZR' if msg.relative else 'ZA'} OK"
+        payload = f"{address}{'ZR' if msg.relative else 'ZA'} OK"
     return f"#{payload} *{checksum(payload)}\r\n".encode("ascii")
 
 
@@ -150,7 +161,11 @@ def _parse_answer_line(line: bytes) -> Rs485Answer | str:
     head, body = payload[:2], payload[2:]
     if not re.fullmatch(r"[0-9A-F]{2}", head):
         return "malformed"
-    address = int(head, 16)
+    return _answer_of(int(head, 16), body)
+
+
+def _answer_of(address: int, body: str) -> Rs485Answer | str:
+    """The answer a checked line's body (after the address) has the grammar of, or 'malformed'."""
     if m := _RD.fullmatch(body):
         return Rs485Reading(address, float(m[1]), float(m[2]), float(m[3]), int(m[4]))
     if m := _ID.fullmatch(body):
@@ -191,6 +206,12 @@ def parse_answers(buf: bytes) -> Parsed[Rs485Answer]:
         else:
             out.append(got)
             st.frames += 1
+    return Parsed(out, _pending_answer(rest, st), st)
+
+
+def _pending_answer(rest: bytes, st: ParseStats) -> bytes:
+    """The unfinished tail to keep for the next read: from its last '#', or nothing when it has
+    none or is longer than any answer (what is dropped is counted)."""
     start = rest.rfind(b"#")
     if start != 0 or len(rest) > MAX_PENDING_BYTES:
         if rest:
@@ -198,7 +219,7 @@ def parse_answers(buf: bytes) -> Parsed[Rs485Answer]:
             keep = rest[start:] if 0 <= start and len(rest) - start <= MAX_PENDING_BYTES else b""
             st.skipped_bytes += len(rest) - len(keep)
             rest = keep
-    return Parsed(out, rest, st)
+    return rest
 
 
 def parse_requests(buf: bytes) -> Parsed[Rs485Request]:

@@ -229,7 +229,7 @@ class SerialPort:
             for fn in self._listeners:
                 fn(msg, now)
             with self._lock:
-                hit = next((p for p in self._pending if p.match(msg)), None)
+                hit = next((waiting for waiting in self._pending if waiting.match(msg)), None)
                 if hit is not None:
                     self._pending.remove(hit)
             if hit is not None:
@@ -238,8 +238,8 @@ class SerialPort:
     def _fail_pending(self, exc: Exception) -> None:
         with self._lock:
             pending, self._pending = self._pending, []
-        for p in pending:
-            p.loop.call_soon_threadsafe(_fail, p.future, exc)
+        for waiting in pending:
+            waiting.loop.call_soon_threadsafe(_fail, waiting.future, exc)
 
     # --- requests -------------------------------------------------------------------------------
 

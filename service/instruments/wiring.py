@@ -71,9 +71,17 @@ class BenchDevices:
         self.clock = clock
         self.drivers: dict[str, Driver] = dict(drivers)
         # Sorted by protocol once: the bench asks for a role as what it plays, many times a second.
-        self._sensors = {r: d for r, d in self.drivers.items() if isinstance(d, Sensor)}
-        self._axes = {r: d for r, d in self.drivers.items() if isinstance(d, MotionAxis)}
-        self._stages = {r: d for r, d in self.drivers.items() if isinstance(d, TwoAxisStage)}
+        self._sensors = {
+            role: driver for role, driver in self.drivers.items() if isinstance(driver, Sensor)
+        }
+        self._axes = {
+            role: driver for role, driver in self.drivers.items() if isinstance(driver, MotionAxis)
+        }
+        self._stages = {
+            role: driver
+            for role, driver in self.drivers.items()
+            if isinstance(driver, TwoAxisStage)
+        }
 
     def __getitem__(self, role: str) -> Driver:
         return self.drivers[role]
@@ -98,18 +106,18 @@ class BenchDevices:
     def tilt_sensor(self, role: str) -> TiltSensor | None:
         """The role's driver if it reads tilt and temperature (a biaxial inclinometer), else
         None."""
-        d = self._sensors.get(role)
-        return d if isinstance(d, TiltSensor) else None
+        driver = self._sensors.get(role)
+        return driver if isinstance(driver, TiltSensor) else None
 
     def temperature_on_request(self, role: str) -> TemperatureOnRequest | None:
         """The role's driver if its temperature must be asked for (family A), else None."""
-        d = self._sensors.get(role)
-        return d if isinstance(d, TemperatureOnRequest) else None
+        driver = self._sensors.get(role)
+        return driver if isinstance(driver, TemperatureOnRequest) else None
 
     def ambient_sensor(self) -> AmbientSensor | None:
         """The bench's thermo-hygrometer (role ambient_sensor), None where it has none."""
-        d = self._sensors.get("ambient_sensor")
-        return d if isinstance(d, AmbientSensor) else None
+        driver = self._sensors.get("ambient_sensor")
+        return driver if isinstance(driver, AmbientSensor) else None
 
     def axis(self, role: str) -> MotionAxis:
         """A role of one controller axis (the rotary table)."""

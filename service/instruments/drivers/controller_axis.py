@@ -58,7 +58,7 @@ class ControllerAxis(SerialDriver, MotionAxis):
         if self.velocity_pulses_per_s is not None:
             await self._send(Mnemonic.VELOCITY, self.velocity_pulses_per_s)
         if self.soft_limits_deg is not None:
-            lo, hi = (round(v / self.pulse_deg) for v in self.soft_limits_deg)
+            lo, hi = (round(limit_deg / self.pulse_deg) for limit_deg in self.soft_limits_deg)
             await self._send(Mnemonic.SOFT_LIMIT_LOW, lo)
             await self._send(Mnemonic.SOFT_LIMIT_HIGH, hi)
 
@@ -144,24 +144,24 @@ class ControllerAxis(SerialDriver, MotionAxis):
         while True:
             asked = self.clock.monotonic()
             try:
-                s = await self.state()
+                state = await self.state()
             except DeviceTimeout:
                 misses += 1
                 if misses >= IDLE_POLL_MISSES or self.clock.monotonic() > deadline:
                     raise
                 continue
             misses = 0
-            if s == "ready":
+            if state == "ready":
                 return asked
-            if s in ("hard_limit", "error"):
+            if state in ("hard_limit", "error"):
                 code = await self.last_error()
                 raise DeviceError(
-                    f"{self.role}: axis {self.axis} stopped in state {s}"
+                    f"{self.role}: axis {self.axis} stopped in state {state}"
                     f" ({controller.ERROR_NAMES.get(code, code)})"
                 )
             if self.clock.monotonic() > deadline:
                 raise DeviceTimeout(
-                    f"{self.role}: axis {self.axis} still {s} after {timeout_s:g} s"
+                    f"{self.role}: axis {self.axis} still {state} after {timeout_s:g} s"
                 )
             await self.clock.sleep(poll_s)
 
@@ -195,9 +195,9 @@ class StageController(TwoAxisStage):
 
     @property
     def status(self) -> DeviceStatus:
-        s = self.x.status
-        s.counters.timeouts += self.y.timeouts
-        return replace(s, role=self.role)
+        x_status = self.x.status
+        x_status.counters.timeouts += self.y.timeouts
+        return replace(x_status, role=self.role)
 
     async def start(self) -> None:
         await self.x.start()

@@ -100,7 +100,11 @@ class BinaryInclinometer(SerialDriver, TiltSensor, TemperatureOnRequest):
         code = (
             0x07
             if rate == "continuous"
-            else next(c for c, r in binary.OUTPUT_MODES.items() if r == rate)
+            else next(
+                mode_code
+                for mode_code, mode_rate in binary.OUTPUT_MODES.items()
+                if mode_rate == rate
+            )
         )
         if self.port.wait_connected(0):
             with contextlib.suppress(DeviceError):

@@ -39,7 +39,7 @@ class Rs485Inclinometer(SerialDriver, TiltSensor):
             return (
                 isinstance(m, kind)
                 and getattr(m, "address", None) == self.address
-                and all(getattr(m, k) == v for k, v in fields.items())
+                and all(getattr(m, field) == wanted for field, wanted in fields.items())
             )
 
         return match

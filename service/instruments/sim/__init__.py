@@ -110,7 +110,7 @@ class SimulatedBench:
         return self.ports[role].path
 
     def close(self) -> None:
-        for port in {id(p): p for p in self.ports.values()}.values():
+        for port in {id(sim_port): sim_port for sim_port in self.ports.values()}.values():
             port.close()
         if self._own_directory:
             shutil.rmtree(self.directory, ignore_errors=True)
@@ -185,11 +185,24 @@ def start_simulated_bench(
                 "address": "01",
             }
     except BaseException:
-        for p in ports.values():
-            p.close()
+        for port in ports.values():
+            port.close()
         if own:
             shutil.rmtree(folder, ignore_errors=True)
         raise
+    config = _config_text(kind, scenario, clock, name, hardware, roles)
+    return SimulatedBench(kind, world, ports, folder, clock, config, name, own)
+
+
+def _config_text(
+    kind: str,
+    scenario: str,
+    clock: Clock,
+    name: str,
+    hardware: dict[str, Any] | None,
+    roles: Roles,
+) -> str:
+    """The bench configuration (TOML) the daemon reads to find the simulated bench's ports."""
     lines = [
         f"# Simulated {kind} bench, scenario {scenario}, {clock.speed:g} times real time.",
         f"sim_speed = {clock.speed:g}",
@@ -202,14 +215,14 @@ def start_simulated_bench(
     # the scenario's stages: the daemon converts degrees to pulses with its gearing
     if hardware is not None:
         lines.append(f"[benches.{name}.hardware]")
-        lines.extend(f"{k} = {_toml_value(v)}" for k, v in hardware.items())
+        lines.extend(f"{key} = {_toml_value(value)}" for key, value in hardware.items())
         lines.append("")
     for role, table in roles.items():
         lines.append(f"[benches.{name}.roles.{role}]")
-        for k, v in table.items():
-            lines.append(f"{k} = {_toml_value(v)}")
+        for key, value in table.items():
+            lines.append(f"{key} = {_toml_value(value)}")
         lines.append("")
-    return SimulatedBench(kind, world, ports, folder, clock, "\n".join(lines), name, own)
+    return "\n".join(lines)
 
 
 def _toml_value(v: object) -> str:
@@ -319,7 +332,7 @@ def _rotary(
     def reader(a: int) -> Callable[[], tuple[float, float]]:
         return lambda: world.turntable_mrad(a)
 
-    bus = Rs485BusFirmware({a: reader(a) for a in bus_addresses}, world.temp_c)
+    bus = Rs485BusFirmware({address: reader(address) for address in bus_addresses}, world.temp_c)
     ports["turntable_sensor"] = port_class(folder / "rs485_bus", bus)
     roles["turntable_sensor"] = {
         "port": ports["turntable_sensor"].path,

@@ -103,19 +103,31 @@ class BinaryFirmware:
         return out
 
     def _answer(self, req: binary.BinaryRequest) -> binary.BinaryAnswer | None:
-        a, c = self.address, req.command | binary.ANSWER
+        address, answer_command = self.address, req.command | binary.ANSWER
         if req.command == binary.READ_SINES:
-            return binary.BinaryAnswer(a, c, sines=self.read_sines()) if self.read_sines else None
+            return (
+                binary.BinaryAnswer(address, answer_command, sines=self.read_sines())
+                if self.read_sines
+                else None
+            )
         if req.command in (binary.READ_X, binary.READ_Y, binary.READ_XY):
             x, y = self._xy()
             return binary.BinaryAnswer(
-                a,
-                c,
+                address,
+                answer_command,
                 x_deg=x if req.command != binary.READ_Y else None,
                 y_deg=y if req.command != binary.READ_X else None,
             )
         if req.command == binary.READ_TEMP:
-            return binary.BinaryAnswer(a, c, temp_c=self.temp_c())
+            return binary.BinaryAnswer(address, answer_command, temp_c=self.temp_c())
+        ok = self._apply_setting(req)
+        return binary.BinaryAnswer(
+            address, answer_command, status=binary.STATUS_DONE if ok else binary.STATUS_REFUSED
+        )
+
+    def _apply_setting(self, req: binary.BinaryRequest) -> bool:
+        """Whether the instrument takes a setting's argument; the zero and the output mode change
+        at once (baud rate and address once the answer is out, in `_after`)."""
         ok = {
             binary.SET_ZERO: req.argument in (binary.ZERO_ABSOLUTE, binary.ZERO_RELATIVE),
             binary.SET_BAUD: req.argument in binary.BAUD_CODES,
@@ -126,7 +138,7 @@ class BinaryFirmware:
             self.zero = self.read_xy(None) if req.argument == binary.ZERO_RELATIVE else (0.0, 0.0)
         if ok and req.command == binary.SET_OUTPUT and req.argument is not None:
             self._set_mode(req.argument)
-        return binary.BinaryAnswer(a, c, status=binary.STATUS_DONE if ok else binary.STATUS_REFUSED)
+        return ok
 
     def _after(self, req: binary.BinaryRequest) -> None:
         """Changes that apply once the answer is out."""
@@ -192,18 +204,18 @@ class Rs485BusFirmware(AnsweringFirmware):
             read = self.instruments.get(req.address)
             if read is None:
                 continue
-            a = req.address
+            address = req.address
             if req.command == "RD":
                 x, y = read()
-                zx, zy = self.zero[a]
+                zx, zy = self.zero[address]
                 msg: rs485.Rs485Answer = rs485.Rs485Reading(
-                    a, round(x - zx, 3), round(y - zy, 3), round(self.temp_c(), 2), 0
+                    address, round(x - zx, 3), round(y - zy, 3), round(self.temp_c(), 2), 0
                 )
             elif req.command == "ID":
-                msg = rs485.Rs485Identity(a, self.model, f"SIM-B{a:02X}", "1.0")
+                msg = rs485.Rs485Identity(address, self.model, f"SIM-B{address:02X}", "1.0")
             else:
-                self.zero[a] = read() if req.command == "ZR" else (0.0, 0.0)
-                msg = rs485.Rs485ZeroDone(a, req.command == "ZR")
+                self.zero[address] = read() if req.command == "ZR" else (0.0, 0.0)
+                msg = rs485.Rs485ZeroDone(address, req.command == "ZR")
             out.append(rs485.encode(msg))
         return out
 
@@ -275,47 +287,65 @@ class ControllerFirmware(AnsweringFirmware):
     def _do(
         self, cmd: controller.ControllerCommand, ax: Axis
     ) -> controller.ControllerAnswer | None:
-        n, c = cmd.axis, cmd.command
         if cmd.query:
-            if c == Mnemonic.IDENTITY:
-                return controller.ControllerAnswer(n, c, text=f"{self.model} {self.serial}")
-            if c == Mnemonic.LAST_ERROR:
-                code, ax.error = ax.error, controller.ERR_NONE
-                return controller.ControllerAnswer(n, c, code)
-            value = {
-                Mnemonic.POSITION: lambda: ax.position_pulses(),
-                Mnemonic.STATE: lambda: ax.state,
-                Mnemonic.VELOCITY: lambda: int(ax.velocity_pps),
-                Mnemonic.SOFT_LIMIT_LOW: lambda: ax.soft[0] if ax.soft else -NO_LIMIT,
-                Mnemonic.SOFT_LIMIT_HIGH: lambda: ax.soft[1] if ax.soft else NO_LIMIT,
-            }[c]()
-            return controller.ControllerAnswer(n, c, value)
-        err = controller.ERR_NONE
-        if cmd.value is None and c in controller.SET_COMMANDS:
+            return self._query(cmd, ax)
+        mnemonic = cmd.command
+        if cmd.value is None and mnemonic in controller.SET_COMMANDS:
             ax.error = controller.ERR_UNKNOWN  # a setting without its number
             return None
         value = int(cmd.value or 0)
-        if c == Mnemonic.MOVE_TO:
-            err = ax.move_to(value)
-        elif c == Mnemonic.MOVE_BY:
-            err = ax.move_to(ax.position_pulses() + value)
-        elif c == Mnemonic.STOP:
-            ax.stop()
-        elif c == Mnemonic.HOME:
-            err = ax.home()
-        elif c == Mnemonic.VELOCITY:
-            if value <= 0:
-                err = controller.ERR_UNKNOWN
-            else:
-                ax.velocity_pps = float(value)
-        elif c in (Mnemonic.SOFT_LIMIT_LOW, Mnemonic.SOFT_LIMIT_HIGH):
-            lo, hi = ax.soft if ax.soft else (-NO_LIMIT, NO_LIMIT)
-            ax.soft = (value, hi) if c == Mnemonic.SOFT_LIMIT_LOW else (lo, value)
+        if mnemonic in (Mnemonic.VELOCITY, Mnemonic.SOFT_LIMIT_LOW, Mnemonic.SOFT_LIMIT_HIGH):
+            err = _set(ax, mnemonic, value)
+        else:
+            err = _act(ax, mnemonic, value)
         if err:
             ax.error = err
         return None
+
+    def _query(self, cmd: controller.ControllerCommand, ax: Axis) -> controller.ControllerAnswer:
+        """The answer to a query: the identity, the last error (which it clears), or a number of
+        the axis."""
+        n, mnemonic = cmd.axis, cmd.command
+        if mnemonic == Mnemonic.IDENTITY:
+            return controller.ControllerAnswer(n, mnemonic, text=f"{self.model} {self.serial}")
+        if mnemonic == Mnemonic.LAST_ERROR:
+            code, ax.error = ax.error, controller.ERR_NONE
+            return controller.ControllerAnswer(n, mnemonic, code)
+        value = {
+            Mnemonic.POSITION: lambda: ax.position_pulses(),
+            Mnemonic.STATE: lambda: ax.state,
+            Mnemonic.VELOCITY: lambda: int(ax.velocity_pps),
+            Mnemonic.SOFT_LIMIT_LOW: lambda: ax.soft[0] if ax.soft else -NO_LIMIT,
+            Mnemonic.SOFT_LIMIT_HIGH: lambda: ax.soft[1] if ax.soft else NO_LIMIT,
+        }[mnemonic]()
+        return controller.ControllerAnswer(n, mnemonic, value)
 
     def readdress(self, frame: bytes) -> bytes:
         """The answer as an axis this controller does not have would give it."""
         other = next(n for n in range(9, 0, -1) if n not in self.axes)
         return str(other).encode() + frame[1:]
+
+
+def _set(ax: Axis, mnemonic: Mnemonic, value: int) -> int:
+    """A setting of the axis (velocity, a soft limit); the error code a bad value earns."""
+    if mnemonic == Mnemonic.VELOCITY:
+        if value <= 0:
+            return controller.ERR_UNKNOWN
+        ax.velocity_pps = float(value)
+        return controller.ERR_NONE
+    lo, hi = ax.soft if ax.soft else (-NO_LIMIT, NO_LIMIT)
+    ax.soft = (value, hi) if mnemonic == Mnemonic.SOFT_LIMIT_LOW else (lo, value)
+    return controller.ERR_NONE
+
+
+def _act(ax: Axis, mnemonic: Mnemonic, value: int) -> int:
+    """A motion of the axis (move, stop, home); the error code it earns (a limit, a fault)."""
+    if mnemonic == Mnemonic.MOVE_TO:
+        return ax.move_to(value)
+    if mnemonic == Mnemonic.MOVE_BY:
+        return ax.move_to(ax.position_pulses() + value)
+    if mnemonic == Mnemonic.STOP:
+        ax.stop()
+    elif mnemonic == Mnemonic.HOME:
+        return ax.home()
+    return controller.ERR_NONE

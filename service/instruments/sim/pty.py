@@ -226,6 +226,23 @@ class SimPort:
         self.write(out)
         self.sent_frames += 1
 
+    def _send_delayed(self, now: float) -> None:
+        """Send the frames a fault held back whose time has come."""
+        while self._later and self._later[0][0] <= now:
+            self.write(heapq.heappop(self._later)[2])
+            self.sent_frames += 1
+
+    def _wait_s(self, now: float, flushed: float) -> float:
+        """How long to wait for the driver's bytes: until the next automatic frame is due (no
+        sooner than the output latency after the last), the next held-back frame, or IDLE_WAIT_S."""
+        waits = [IDLE_WAIT_S]
+        nd = self.firmware.next_due()
+        if nd is not None:
+            waits.append(max(nd, flushed + OUTPUT_LATENCY_S) - now)
+        if self._later:
+            waits.append(self._later[0][0] - now)
+        return max(0.0, min(waits))
+
     def _run(self) -> None:
         flushed = 0.0  # real time automatic output last left
         while not self._stop.is_set():
@@ -236,16 +253,8 @@ class SimPort:
                     continue
                 self._reopen_at = None
                 self._open()
-            while self._later and self._later[0][0] <= now:
-                self.write(heapq.heappop(self._later)[2])
-                self.sent_frames += 1
-            waits = [IDLE_WAIT_S]
-            nd = self.firmware.next_due()
-            if nd is not None:
-                waits.append(max(nd, flushed + OUTPUT_LATENCY_S) - now)
-            if self._later:
-                waits.append(self._later[0][0] - now)
-            data = self._receive(max(0.0, min(waits)))
+            self._send_delayed(now)
+            data = self._receive(self._wait_s(now, flushed))
             if data is None:
                 continue
             now = time.monotonic()

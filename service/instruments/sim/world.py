@@ -85,12 +85,12 @@ class Axis:
         t = self.clock.monotonic()
         span = self._target - self._start
         done = min(self.velocity_pps * (t - self._t0), abs(span))
-        p = self._start + math.copysign(done, span)
-        if self.hard is not None and not self.hard[0] <= p <= self.hard[1]:
-            self._pos = float(min(max(p, self.hard[0]), self.hard[1]))
+        reached = self._start + math.copysign(done, span)
+        if self.hard is not None and not self.hard[0] <= reached <= self.hard[1]:
+            self._pos = float(min(max(reached, self.hard[0]), self.hard[1]))
             self._mode, self.error = ctl.STATE_HARD_LIMIT, ctl.ERR_HARD_LIMIT
             return
-        self._pos = p
+        self._pos = reached
         if done >= abs(span):
             self._pos = self._target
             if self._mode == ctl.STATE_HOMING:
@@ -138,12 +138,19 @@ class Axis:
                 return ctl.ERR_NOT_HOMED
             if self.soft is not None and not self.soft[0] <= target <= self.soft[1]:
                 return ctl.ERR_SOFT_LIMIT
-            if self._mode == ctl.STATE_HARD_LIMIT and self.hard is not None:
-                at_low = self._pos <= self.hard[0]
-                if (at_low and target <= self._pos) or (not at_low and target >= self._pos):
-                    return ctl.ERR_HARD_LIMIT
+            if self._into_hard_limit(target):
+                return ctl.ERR_HARD_LIMIT
             self._go(target, ctl.STATE_MOVING)
             return ctl.ERR_NONE
+
+    def _into_hard_limit(self, target: int) -> bool:
+        """Whether an axis stopped on a hard limit is asked further into it (only moves back out
+        are let through)."""
+        if self._mode == ctl.STATE_HARD_LIMIT and self.hard is not None:
+            at_low = self._pos <= self.hard[0]
+            if (at_low and target <= self._pos) or (not at_low and target >= self._pos):
+                return True
+        return False
 
     def home(self) -> int:
         with self._lock:
@@ -258,7 +265,7 @@ class StageWorld:
                 geometry=self.geometry,
                 positioning_error_deg=error,
             )
-        return {k: float(v[0]) for k, v in out.items()}
+        return {k: float(values[0]) for k, values in out.items()}
 
     def reading_deg(self, prefix: str, at_s: float | None = None) -> tuple[float, float]:
         """One sensor's reading (`ref` or `meas`) now, or at bench time `at_s` (the clock's: a frame
@@ -276,15 +283,10 @@ class StageWorld:
         with self._lock:
             last = self._last_read.get(prefix)
             self._last_read[prefix] = (t, stand)
-            b = self._batches.get(prefix)
-            if (
-                b is not None
-                and b.pose == stand
-                and b.next < len(b.xy)
-                and b.t_s[0] - self._dt_s(b) <= t <= b.t_s[-1] + self._dt_s(b)
-            ):
-                b.next += 1
-                return b.xy[b.next - 1]
+            batch = self._batches.get(prefix)
+            if batch is not None and self._still_serves(batch, stand, t):
+                batch.next += 1
+                return batch.xy[batch.next - 1]
             # the interval the sensor asks at, from its last two reads at rest; one point while
             # moving
             at_rest = last is not None and last[1] == stand and 0.0 < t - last[0] < 1.0
@@ -306,10 +308,19 @@ class StageWorld:
                 geometry=self.geometry,
                 positioning_error_deg=error,
             )
-            b = _Batch(stand, times, out[f"{prefix}_x_deg"], out[f"{prefix}_y_deg"])
-            b.next = 1
-            self._batches[prefix] = b
-            return b.xy[0]
+            batch = _Batch(stand, times, out[f"{prefix}_x_deg"], out[f"{prefix}_y_deg"])
+            batch.next = 1
+            self._batches[prefix] = batch
+            return batch.xy[0]
+
+    def _still_serves(self, batch: _Batch, stand: tuple[object, ...], t: float) -> bool:
+        """Whether a sensor's batch hands out the next reading: made at this stand, readings left,
+        and `t` within its time span (give or take one output interval)."""
+        return (
+            batch.pose == stand
+            and batch.next < len(batch.xy)
+            and batch.t_s[0] - self._dt_s(batch) <= t <= batch.t_s[-1] + self._dt_s(batch)
+        )
 
     def _settling_deg(self, times: np.ndarray) -> tuple[np.ndarray | float, np.ndarray | float]:
         """Each stage's settling transient at bench times `times` (world seconds), as an angle of
@@ -336,8 +347,8 @@ class StageWorld:
         cached = self._true_tilt
         if cached is not None and cached[0] == key:
             return cached[1]
-        s = self.sample(noisy=False)
-        tilt = s["tilt_x_deg"], s["tilt_y_deg"]
+        sample = self.sample(noisy=False)
+        tilt = sample["tilt_x_deg"], sample["tilt_y_deg"]
         self._true_tilt = (key, tilt)
         return tilt
 
@@ -402,8 +413,10 @@ class RotaryWorld:
         base: TurntableInclinometer = hardware_of(turntable)
         # Each instrument on the bus sits at its own azimuth on the table.
         self.tt_sensors = {
-            a: TurntableInclinometer(base.beta_deg + 40.0 * i, base.epsilon_deg, base.m1, base.m2)
-            for i, a in enumerate(bus_addresses)
+            address: TurntableInclinometer(
+                base.beta_deg + 40.0 * i, base.epsilon_deg, base.m1, base.m2
+            )
+            for i, address in enumerate(bus_addresses)
         }
         cycle = turntable.grid.cycles[0]
         self.axis_tilt_arcsec = (cycle.north_arcsec, cycle.east_arcsec)
@@ -431,10 +444,10 @@ class RotaryWorld:
         return float(out["sx"][0]), float(out["sy"][0]), float(out["sz"][0])
 
     def turntable_mrad(self, address: int, noisy: bool = True) -> tuple[float, float]:
-        p = self.tt_sensors[address]
+        sensor = self.tt_sensors[address]
         fx = self.tt_effects
         n1, n2 = turntable_readings(
-            p,
+            sensor,
             self.table_deg,
             *self.axis_tilt_arcsec,
             fx.get("zero_offset", "z1"),
