@@ -140,16 +140,20 @@ def with_uncertainties(
     freedom: the fit's part (u, ν) combined with the budget's other components and the axis's own
     (`per_axis`) by the GUM's law and Welch-Satterthwaite."""
     for axis, part in parts.items():
-        u = U = k = dof = None
+        standard_u = expanded_u = k = dof = None
         if part is not None:
             own = (per_axis or {}).get(axis, [])
             combined = combine(np.array([part[0]]), part[1], [*others, *own], COVERAGE)
-            u, U, k = float(combined.u[0]), float(combined.U[0]), float(combined.k[0])
+            standard_u, expanded_u, k = (
+                float(combined.u[0]),
+                float(combined.U[0]),
+                float(combined.k[0]),
+            )
             dof = float(combined.dof_eff[0]) if np.isfinite(combined.dof_eff[0]) else None
         table.update(
             {
-                f"standard_uncertainty_{axis}_deg": u,
-                f"expanded_uncertainty_{axis}_deg": U,
+                f"standard_uncertainty_{axis}_deg": standard_u,
+                f"expanded_uncertainty_{axis}_deg": expanded_u,
                 f"coverage_factor_{axis}": k,
                 f"degrees_of_freedom_{axis}": dof,
             }
@@ -178,8 +182,10 @@ def from_expanded(
     Student's t at."""
     parts: dict[str, tuple[float, float] | None] = {}
     for axis in ("x", "y"):
-        U, k = expanded[axis], factors[axis]
-        parts[axis] = None if U is None or k is None or k <= 0 else _standard_and_dof(U, k)
+        expanded_u, k = expanded[axis], factors[axis]
+        parts[axis] = (
+            None if expanded_u is None or k is None or k <= 0 else _standard_and_dof(expanded_u, k)
+        )
     out = with_uncertainties(table, parts, [])
     out["coverage_probability"] = coverage
     return out
@@ -284,6 +290,43 @@ def calibration_json(active: Any) -> dict[str, Any] | None:
     }
 
 
+def _at_stand(kept: list[Reading], still: float, meas: Reading) -> list[Reading]:
+    """The kept readings of both axes made while the stage stood where it stands, up to `meas`."""
+    return [
+        reading
+        for reading in kept
+        if still < reading.bench_s <= meas.bench_s
+        and reading.x_deg is not None
+        and reading.y_deg is not None
+    ]
+
+
+def _window_begins(
+    bench: BenchRuntime, active: Any, still: float, stand: list[Reading], meas: Reading
+) -> tuple[float | None, str]:
+    """Where the averaging window may begin, and how the note names that moment: the end of the
+    stage's last move or, with a known reading noise, when the readings settled after it (None,
+    and why, while they have not)."""
+    noise = getattr(active, "reading_noise", None)
+    if not (noise is not None and noise.sigma_deg > 0):
+        return still, "the end of the stage's last move"
+    # the table rings and the sensor lags after a move: the window starts once the readings have
+    # settled
+    settled = bench.stand_settling.settled_since(
+        still,
+        np.array([[reading.x_deg, reading.y_deg] for reading in stand], dtype=float),
+        [reading.bench_s for reading in stand],
+        noise.sigma_deg,
+    )
+    if settled is None:
+        return None, (
+            "the readings since the end of the stage's last move "
+            f"({meas.bench_s - still:.3g} s ago) have not yet settled within one reading's "
+            f"noise ({noise.sigma_deg:.2g} deg, {SETTLING_RULE}): no average of a transient"
+        )
+    return settled, "when the readings settled after the stage's last move"
+
+
 def averaged_at_stand(
     bench: BenchRuntime, active: Any, meas: Reading, average_s: float
 ) -> tuple[dict[str, Any] | None, str]:
@@ -297,31 +340,12 @@ def averaged_at_stand(
         )
     # the driver keeps the latest few thousand
     kept = bench.readings_after("measurement_sensor", float("-inf"))
-    stand = [
-        r
-        for r in kept
-        if still < r.bench_s <= meas.bench_s and r.x_deg is not None and r.y_deg is not None
-    ]
-    began, since = still, "the end of the stage's last move"
-    noise = getattr(active, "reading_noise", None)
-    if noise is not None and noise.sigma_deg > 0:
-        # the table rings and the sensor lags after a move: the window starts once the readings have
-        # settled
-        settled = bench.stand_settling.settled_since(
-            still,
-            np.array([[r.x_deg, r.y_deg] for r in stand], dtype=float),
-            [r.bench_s for r in stand],
-            noise.sigma_deg,
-        )
-        if settled is None:
-            return None, (
-                "the readings since the end of the stage's last move "
-                f"({meas.bench_s - still:.3g} s ago) have not yet settled within one reading's "
-                f"noise ({noise.sigma_deg:.2g} deg, {SETTLING_RULE}): no average of a transient"
-            )
-        began, since = settled, "when the readings settled after the stage's last move"
+    stand = _at_stand(kept, still, meas)
+    began, since = _window_begins(bench, active, still, stand, meas)
+    if began is None:
+        return None, since
     start = max(meas.bench_s - average_s, began)
-    readings = [r for r in stand if r.bench_s > start]
+    readings = [reading for reading in stand if reading.bench_s > start]
     window_s = meas.bench_s - start
     if len(readings) < 2:
         return None, (

@@ -70,16 +70,22 @@ class Averaged:
 
 
 def robust_mean(readings: list[Reading]) -> Averaged:
-    v = np.array([channels(r) for r in readings], dtype=float)
-    med = np.median(v, axis=0)
-    mad = np.median(np.abs(v - med), axis=0)
+    samples = np.array([channels(reading) for reading in readings], dtype=float)
+    med = np.median(samples, axis=0)
+    mad = np.median(np.abs(samples - med), axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        z = np.where(mad > 0, 0.6745 * np.abs(v - med) / mad, 0.0)
+        z = np.where(mad > 0, 0.6745 * np.abs(samples - med) / mad, 0.0)
     keep = ~(z > OUTLIER_Z).any(axis=1)
-    kept = v[keep]
-    temps = [r.temp_c for r, k in zip(readings, np.atleast_1d(keep)) if k and r.temp_c is not None]
+    kept = samples[keep]
+    temps = [
+        reading.temp_c
+        for reading, k in zip(readings, np.atleast_1d(keep))
+        if k and reading.temp_c is not None
+    ]
     std = (
-        tuple(float(s) for s in kept.std(axis=0, ddof=1)) if len(kept) > 1 else (None,) * v.shape[1]
+        tuple(float(spread) for spread in kept.std(axis=0, ddof=1))
+        if len(kept) > 1
+        else (None,) * samples.shape[1]
     )
     return Averaged(
         tuple(float(m) for m in kept.mean(axis=0)),
@@ -113,27 +119,16 @@ async def settle(
     # only readings made after the call count: a lagging reader may still hold some from the move
     start = await bench.sync(roles)
     waited_from = time.monotonic()
-    history: dict[str, list[Reading]] = {r: [] for r in roles}
+    history: dict[str, list[Reading]] = {role: [] for role in roles}
     while True:
         now = bench.clock.monotonic()
         moving = []
         for role in roles:
-            # a sensor lost while waiting fails the wait at once, naming role and port
-            bench.require(role)
-            h = history[role]
-            h += bench.readings_after(role, h[-1].bench_s if h else start)
-            while h and h[0].bench_s < now - 2 * window_s:
-                h.pop(0)
-            if now - start < 2 * window_s:
-                moving.append(role)
-                continue
-            older = [channels(x) for x in h if x.bench_s < now - window_s]
-            newer = [channels(x) for x in h if x.bench_s >= now - window_s]
-            if (
-                not older
-                or not newer
-                or np.abs(np.mean(newer, axis=0) - np.mean(older, axis=0)).max() > tolerance_deg
-            ):
+            held = history[role]
+            _gather(bench, role, held, start)
+            while held and held[0].bench_s < now - 2 * window_s:
+                held.pop(0)
+            if now - start < 2 * window_s or _drifting(held, now, window_s, tolerance_deg):
                 moving.append(role)
         if not moving:
             return now
@@ -142,7 +137,31 @@ async def settle(
                 f"readings of {', '.join(moving)} did not settle within {tolerance_deg:g} deg"
                 f" between windows of {window_s:g} s in {timeout_s:g} s"
             )
-        await bench.clock.sleep(min(bench.output_interval_s(r) for r in roles) / 2)
+        await bench.clock.sleep(_poll_interval_s(bench, roles))
+
+
+def _gather(bench: BenchRuntime, role: str, held: list[Reading], start: float) -> None:
+    """Append to `held` the role's readings made since the last one held (since `start` at first);
+    a sensor lost while waiting fails the wait at once, naming role and port."""
+    bench.require(role)
+    held += bench.readings_after(role, held[-1].bench_s if held else start)
+
+
+def _drifting(held: list[Reading], now: float, window_s: float, tolerance_deg: float) -> bool:
+    """Whether the mean over the last `window_s` differs from the mean over the window before by
+    more than `tolerance_deg` on some channel (or either window is still empty)."""
+    older = [channels(x) for x in held if x.bench_s < now - window_s]
+    newer = [channels(x) for x in held if x.bench_s >= now - window_s]
+    return bool(
+        not older
+        or not newer
+        or np.abs(np.mean(newer, axis=0) - np.mean(older, axis=0)).max() > tolerance_deg
+    )
+
+
+def _poll_interval_s(bench: BenchRuntime, roles: tuple[str, ...]) -> float:
+    """Half the shortest output interval of the roles: how long to wait for their next readings."""
+    return min(bench.output_interval_s(role) for role in roles) / 2
 
 
 async def settle_statistical(
@@ -153,34 +172,57 @@ async def settle_statistical(
     the reading at which the last of them passed. `timeout_s` is bench time (a transient is bench
     physics); past it, TimeoutError names the roles still moving. DeviceNotAnswering as soon as one
     is not connected."""
-    from service.bench.settled import SettleTest
-
     start = await bench.sync(roles)
-    history: dict[str, list[Reading]] = {r: [] for r in roles}
+    history: dict[str, list[Reading]] = {role: [] for role in roles}
     passed: dict[str, float] = {}
     checked = dict.fromkeys(roles, 0)
     waited_from = time.monotonic()
     while True:
         for role in roles:
-            bench.require(role)
-            h = history[role]
-            h += bench.readings_after(role, h[-1].bench_s if h else start)
-            if role not in passed and h:
-                n = SettleTest(noise_deg[role]).settled_after(
-                    [channels(x) for x in h], checked[role]
-                )
-                checked[role] = len(h)
-                if n is not None:
-                    passed[role] = h[n - 1].bench_s
+            held = history[role]
+            _gather(bench, role, held, start)
+            if role not in passed and held:
+                settled_s = _settled_at(noise_deg[role], held, checked[role])
+                checked[role] = len(held)
+                if settled_s is not None:
+                    passed[role] = settled_s
         if len(passed) == len(roles):
             return max(passed.values())
-        last = max((h[-1].bench_s for h in history.values() if h), default=start)
-        if last - start > timeout_s or time.monotonic() - waited_from > max(
-            bench.clock.real_seconds(timeout_s) * 3, 10.0
-        ):
-            moving = [r for r in roles if r not in passed]
-            raise TimeoutError(
-                f"readings of {', '.join(moving)} did not settle within the reading noise "
-                f"({', '.join(f'{noise_deg[r]:.2g} deg' for r in moving)}) in {timeout_s:g} s"
-            )
-        await bench.clock.sleep(min(bench.output_interval_s(r) for r in roles) / 2)
+        if _past_timeout(bench, history, start, timeout_s, waited_from):
+            raise _not_settled(roles, passed, noise_deg, timeout_s)
+        await bench.clock.sleep(_poll_interval_s(bench, roles))
+
+
+def _not_settled(
+    roles: tuple[str, ...], passed: dict[str, float], noise_deg: dict[str, float], timeout_s: float
+) -> TimeoutError:
+    """The error naming the roles still moving, beside the reading noise each was judged by."""
+    moving = [role for role in roles if role not in passed]
+    return TimeoutError(
+        f"readings of {', '.join(moving)} did not settle within the reading noise "
+        f"({', '.join(f'{noise_deg[role]:.2g} deg' for role in moving)}) in {timeout_s:g} s"
+    )
+
+
+def _settled_at(noise_deg: float, held: list[Reading], checked: int) -> float | None:
+    """The bench time of the reading at which `held` passes the statistical settling test (its
+    first `checked` readings were tested before), or None while it does not."""
+    from service.bench.settled import SettleTest
+
+    n = SettleTest(noise_deg).settled_after([channels(x) for x in held], checked)
+    return None if n is None else held[n - 1].bench_s
+
+
+def _past_timeout(
+    bench: BenchRuntime,
+    history: dict[str, list[Reading]],
+    start: float,
+    timeout_s: float,
+    waited_from: float,
+) -> bool:
+    """Whether the wait is over: readings made `timeout_s` bench seconds after the start, or three
+    times that in real time (at least 10 s) gone by while the bench clock lags."""
+    last = max((held[-1].bench_s for held in history.values() if held), default=start)
+    return last - start > timeout_s or time.monotonic() - waited_from > max(
+        bench.clock.real_seconds(timeout_s) * 3, 10.0
+    )

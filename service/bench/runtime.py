@@ -250,12 +250,12 @@ class BenchRuntime:
         """Binary inclinometers send angles only; their temperature (0x06) is asked now and then, so
         GET /tilt and the streams carry one between jobs too (a job asks at every point)."""
         drivers = [
-            d
-            for d in (
-                self.devices.temperature_on_request(r)
-                for r in ("reference_sensor", "measurement_sensor", "triaxial_sensor")
+            sensor
+            for sensor in (
+                self.devices.temperature_on_request(role)
+                for role in ("reference_sensor", "measurement_sensor", "triaxial_sensor")
             )
-            if d is not None
+            if sensor is not None
         ]
         while drivers:
             for driver in drivers:
@@ -343,9 +343,9 @@ class BenchRuntime:
         standing: a sync mark, since a lagging reader may still hand out readings made during the
         move (the present time where no sensor answers)."""
         roles = tuple(
-            r
-            for r in ("measurement_sensor", "reference_sensor")
-            if r in self.devices and self.devices[r].status.state == "connected"
+            role
+            for role in ("measurement_sensor", "reference_sensor")
+            if role in self.devices and self.devices[role].status.state == "connected"
         )
         with contextlib.suppress(DeviceError):
             return await self.sync(roles) if roles else self.clock.monotonic()

@@ -39,16 +39,16 @@ class SettleTest:
         """The number of readings (from the first after the move) after which the test first passes,
         or None. `values` is (n,) or (n, channels); counts up to `checked` are known not to pass (an
         earlier call)."""
-        v = np.asarray(values, dtype=float)
-        if v.ndim == 1:
-            v = v[:, None]
-        for end in range(max(3 * self.block, checked + 1), v.shape[0] + 1):
-            b = max(self.block, end // 12)
-            m3 = v[end - b : end].mean(axis=0)
-            m2 = v[end - 2 * b : end - b].mean(axis=0)
-            m1 = v[end - 3 * b : end - 2 * b].mean(axis=0)
-            if np.abs(m3 - m2).max() < self.threshold(b) and np.abs(m3 - m1).max() < self.threshold(
-                b
+        samples = np.asarray(values, dtype=float)
+        if samples.ndim == 1:
+            samples = samples[:, None]
+        for end in range(max(3 * self.block, checked + 1), samples.shape[0] + 1):
+            k = max(self.block, end // 12)
+            m3 = samples[end - k : end].mean(axis=0)
+            m2 = samples[end - 2 * k : end - k].mean(axis=0)
+            m1 = samples[end - 3 * k : end - 2 * k].mean(axis=0)
+            if np.abs(m3 - m2).max() < self.threshold(k) and np.abs(m3 - m1).max() < self.threshold(
+                k
             ):
                 return end
         return None
@@ -74,9 +74,9 @@ class StandSettling:
         if stand_bench_s != self.stand_bench_s:
             self.stand_bench_s, self.checked, self.settled_bench_s = stand_bench_s, 0, None
         if self.settled_bench_s is None:
-            v = np.asarray(values, dtype=float)
-            n = SettleTest(noise_deg).settled_after(v, self.checked)
-            self.checked = int(v.shape[0])
+            samples = np.asarray(values, dtype=float)
+            n = SettleTest(noise_deg).settled_after(samples, self.checked)
+            self.checked = int(samples.shape[0])
             if n is not None:
                 self.settled_bench_s = float(np.asarray(stamps, dtype=float)[n - 1])
         return self.settled_bench_s

@@ -3,7 +3,7 @@ simulated stage bench on pseudo-terminals, reached through the same drivers as h
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from service.bench.runtime import BenchRuntime
 from service.clock import Clock
@@ -35,28 +35,36 @@ def plan_benches(settings: Settings) -> list[BenchRuntime]:
         speed = benches_file.sim_speed or settings.sim_speed
         clock = Clock(speed)
         return [BenchRuntime(cfg, clock) for cfg in benches_file.benches.values()]
-    from service.instruments.sim import start_simulated_bench
-
     clock = Clock(settings.sim_speed)
     runtimes: list[Any] = []
     for kind in settings.sim_benches:
-        scenario = settings.bench_scenario if kind == "stage" else settings.rotary_scenario
-        try:
-            sim = start_simulated_bench(
-                scenario,
-                kind,
-                clock,
-                adc=(kind == "stage"),
-                transport=settings.sim_transport,
-                ambient=settings.sim_ambient_sensor,
-            )
-        except InputError as exc:
-            var = "TILTLAB_BENCH_SCENARIO" if kind == "stage" else "TILTLAB_ROTARY_SCENARIO"
-            for runtime in runtimes:
-                runtime.sim.close()
-            raise InputError(f"{var}: {exc}") from exc
-        config = sim.config
-        if kind == "stage" and settings.sim_bench_name:
-            config = config.model_copy(update={"name": settings.sim_bench_name})
-        runtimes.append(BenchRuntime(config, clock, sim=sim))
+        runtimes.append(_simulated_runtime(settings, kind, clock, runtimes))
     return runtimes
+
+
+def _simulated_runtime(
+    settings: Settings, kind: Literal["stage", "rotary"], clock: Clock, started: list[Any]
+) -> BenchRuntime:
+    """A simulated bench of `kind` on its scenario; a scenario refused closes the benches `started`
+    so far and is named by its setting."""
+    from service.instruments.sim import start_simulated_bench
+
+    scenario = settings.bench_scenario if kind == "stage" else settings.rotary_scenario
+    try:
+        sim = start_simulated_bench(
+            scenario,
+            kind,
+            clock,
+            adc=(kind == "stage"),
+            transport=settings.sim_transport,
+            ambient=settings.sim_ambient_sensor,
+        )
+    except InputError as exc:
+        var = "TILTLAB_BENCH_SCENARIO" if kind == "stage" else "TILTLAB_ROTARY_SCENARIO"
+        for runtime in started:
+            runtime.sim.close()
+        raise InputError(f"{var}: {exc}") from exc
+    config = sim.config
+    if kind == "stage" and settings.sim_bench_name:
+        config = config.model_copy(update={"name": settings.sim_bench_name})
+    return BenchRuntime(config, clock, sim=sim)

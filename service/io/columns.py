@@ -81,19 +81,19 @@ def uncertainty_columns(
 
     out: dict[str, Any] = {}
     any_u = False
-    for q in quantities:
-        out[q] = result[q]
-        U = result.get(f"u_{q}")
-        if U is None:
+    for quantity in quantities:
+        out[quantity] = result[quantity]
+        expanded = result.get(f"u_{quantity}")
+        if expanded is None:
             continue
         any_u = True
-        k = np.asarray(result[f"k_{_bare(q)}"], dtype=float)
-        names = uncertainty_names(q)
-        out[names["expanded"]] = U
-        out[names["standard"]] = np.asarray(U, dtype=float) / k
-        out[names["coverage_factor"]] = np.broadcast_to(k, np.shape(U))
+        k = np.asarray(result[f"k_{_bare(quantity)}"], dtype=float)
+        names = uncertainty_names(quantity)
+        out[names["expanded"]] = expanded
+        out[names["standard"]] = np.asarray(expanded, dtype=float) / k
+        out[names["coverage_factor"]] = np.broadcast_to(k, np.shape(expanded))
         if deprecated:
-            out[f"u_{q}"] = U
+            out[f"u_{quantity}"] = expanded
     if any_u:
         out[COVERAGE_PROBABILITY] = np.full(np.shape(result[quantities[0]]), coverage)
     return out

@@ -73,7 +73,7 @@ class Dataset:
 
     def passthrough(self, exclude: Iterable[str] = ()) -> dict[str, list[str]]:
         ex = set(exclude)
-        return {c: self.text[c] for c in self.header if c not in ex}
+        return {name: self.text[name] for name in self.header if name not in ex}
 
 
 def _where(source: str, row: int, col: str, line: int | None = None) -> str:
@@ -135,48 +135,84 @@ def read_dataset(
     source = str(path)
     if max_rows is not None:
         _refuse_more_rows_than(source, Path(path), max_rows)
+    rows, lines = _csv_rows(source, _read_bytes(source, Path(path)))
+    header = _checked_header(source, rows)
+    body, lines = rows[1:], lines[1:]
+    if not body:
+        raise InputError(f"{source}: no data rows under the header")
+    _check_row_lengths(source, body, lines, header)
+    text = {name: [row[j].strip(_BLANK) for row in body] for j, name in enumerate(header)}
+    ds = Dataset(source, kind, header, text, lines=lines)
+    for col in _columns_used(source, kind, text, required, optional):
+        ds.numeric[col] = _numeric_column(ds, col)
+    return ds
+
+
+def _read_bytes(source: str, path: Path) -> bytes:
+    """The file's bytes, or one line saying why they cannot be read."""
     try:
-        data = Path(path).read_bytes()
+        return path.read_bytes()
     except FileNotFoundError:
         raise InputError(f"{source}: no such file") from None
     except OSError as exc:
         raise InputError(f"{source}: cannot read: {exc.strerror or exc}") from None
+
+
+def _csv_rows(source: str, data: bytes) -> tuple[list[list[str]], list[int]]:
+    """The CSV's rows that are not blank, and the line of the file each starts on."""
     rows: list[list[str]] = []
     lines: list[int] = []  # the line each kept row starts on
     reader = csv.reader(io.StringIO(_decode(source, data), newline=""))
     try:
         start = 1
-        for r in reader:
-            if any(c.strip(_BLANK) for c in r):
-                rows.append(r)
+        for row in reader:
+            if any(cell.strip(_BLANK) for cell in row):
+                rows.append(row)
                 lines.append(start)
             start = reader.line_num + 1
     except csv.Error as exc:
         raise InputError(f"{source}, line {reader.line_num}: cannot read as CSV: {exc}") from None
+    return rows, lines
+
+
+def _checked_header(source: str, rows: list[list[str]]) -> list[str]:
+    """The header's column names: comma-separated, none empty, none twice."""
     if not rows:
         raise InputError(f"{source}: empty file (a header row is required)")
     if len(rows[0]) == 1 and (err := _separator_error(source, rows[0][0])):
         raise err
-    header = [c.strip(_BLANK) for c in rows[0]]
-    if any(not c for c in header):
+    header = [cell.strip(_BLANK) for cell in rows[0]]
+    if any(not name for name in header):
         raise InputError(
             f"{source}: header has an empty column name at position {header.index('') + 1}"
         )
-    dup = sorted({c for c in header if header.count(c) > 1})
+    dup = sorted({name for name in header if header.count(name) > 1})
     if dup:
         raise InputError(f"{source}: column {dup[0]!r} appears more than once in the header")
-    body, lines = rows[1:], lines[1:]
-    if not body:
-        raise InputError(f"{source}: no data rows under the header")
-    for i, r in enumerate(body, start=1):
-        if len(r) != len(header):
+    return header
+
+
+def _check_row_lengths(
+    source: str, body: list[list[str]], lines: list[int], header: list[str]
+) -> None:
+    """Every data row has as many cells as the header."""
+    for i, row in enumerate(body, start=1):
+        if len(row) != len(header):
             raise InputError(
-                f"{source}, row {i} (line {lines[i - 1]}): {len(r)} cells where the header has "
+                f"{source}, row {i} (line {lines[i - 1]}): {len(row)} cells where the header has "
                 f"{len(header)}"
             )
-    text = {c: [r[j].strip(_BLANK) for r in body] for j, c in enumerate(header)}
-    ds = Dataset(source, kind, header, text, lines=lines)
 
+
+def _columns_used(
+    source: str,
+    kind: str,
+    text: dict[str, list[str]],
+    required: Sequence[str | tuple[str, ...]],
+    optional: Sequence[str],
+) -> list[str]:
+    """The columns to read as numbers: each required one (the first alternative present), then the
+    optional ones present."""
     use: list[str] = []
     for item in required:
         alts = (item,) if isinstance(item, str) else tuple(item)
@@ -185,7 +221,13 @@ def read_dataset(
             names = " or ".join(repr(alt) for alt in alts)
             raise InputError(f"{source}: missing required column {names} for kind {kind!r}")
         use.append(found)
-    # a sensor's two axes go together: one alone is a column lost, not an option left out
+    _check_axis_pairs(source, text, optional)
+    use += [col for col in optional if col in text and col not in use]
+    return use
+
+
+def _check_axis_pairs(source: str, text: dict[str, list[str]], optional: Sequence[str]) -> None:
+    """A sensor's two axes go together: one alone is a column lost, not an option left out."""
     for col in optional:
         partner = _partner(col)
         if col in text and partner is not None and partner in optional and partner not in text:
@@ -193,17 +235,13 @@ def read_dataset(
                 f"{source}: has column {col!r} but not {partner!r}: the two axes of a sensor go "
                 f"together; add {partner!r}, or leave out both"
             )
-    use += [c for c in optional if c in text and c not in use]
-    for col in use:
-        ds.numeric[col] = _numeric_column(ds, col)
-    return ds
 
 
 def _partner(col: str) -> str | None:
     """The other axis's column of a per-axis column (`meas_x_deg` <-> `meas_y_deg`), or None."""
-    for a, b in (("_x_", "_y_"), ("_y_", "_x_")):
-        if a in col:
-            return col.replace(a, b, 1)
+    for axis, other in (("_x_", "_y_"), ("_y_", "_x_")):
+        if axis in col:
+            return col.replace(axis, other, 1)
     return None
 
 
@@ -232,25 +270,37 @@ def _refuse_more_rows_than(source: str, path: Path, max_rows: int) -> None:
 
 
 def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
-    kind, cells = ds.kind, ds.text[col]
+    cells = ds.text[col]
     values = np.empty(len(cells))
     for i, cell in enumerate(cells):
-        if cell == "":
-            if not any(cells):
-                raise InputError(
-                    f"{ds.where(i + 1, col)}: empty cell (the column is empty in every row)"
-                )
-            raise InputError(f"{ds.where(i + 1, col)}: empty cell")
         if not _NUMBER.fullmatch(cell):
-            if cell.lower().lstrip("+-") in _NON_FINITE:
-                raise InputError(f"{ds.where(i + 1, col)}: {cell!r} is not a finite number")
-            hint = " (the decimal mark must be '.')" if _DECIMAL_COMMA.fullmatch(cell) else ""
-            raise InputError(f"{ds.where(i + 1, col)}: {cell!r} is not a number{hint}")
-        v = float(cell)
-        if not math.isfinite(v):
+            raise _not_a_number(ds, col, i, cell)
+        value = float(cell)
+        if not math.isfinite(value):
             raise InputError(f"{ds.where(i + 1, col)}: {cell!r} is not a finite number")
-        values[i] = v
-    rng = _range_for(kind, col)
+        values[i] = value
+    _check_range(ds, col, values)
+    _check_column_rules(ds, col, values)
+    return values
+
+
+def _not_a_number(ds: Dataset, col: str, i: int, cell: str) -> InputError:
+    """Why a cell is not a number: empty (in every row?), not finite, or with a decimal comma."""
+    if cell == "":
+        if not any(ds.text[col]):
+            return InputError(
+                f"{ds.where(i + 1, col)}: empty cell (the column is empty in every row)"
+            )
+        return InputError(f"{ds.where(i + 1, col)}: empty cell")
+    if cell.lower().lstrip("+-") in _NON_FINITE:
+        return InputError(f"{ds.where(i + 1, col)}: {cell!r} is not a finite number")
+    hint = " (the decimal mark must be '.')" if _DECIMAL_COMMA.fullmatch(cell) else ""
+    return InputError(f"{ds.where(i + 1, col)}: {cell!r} is not a number{hint}")
+
+
+def _check_range(ds: Dataset, col: str, values: NDArray[np.float64]) -> None:
+    """The column's values within the range its quantity can have (a tilt within ±90 deg, ...)."""
+    rng = _range_for(ds.kind, col)
     if rng is not None:
         lo, hi = rng
         bad = np.flatnonzero((values < lo) | (values > hi))
@@ -262,8 +312,14 @@ def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
                 else ""
             )
             raise InputError(
-                f"{ds.where(i + 1, col)}: {cells[i]} is outside [{lo:g}, {hi:g}]{unit}"
+                f"{ds.where(i + 1, col)}: {ds.text[col][i]} is outside [{lo:g}, {hi:g}]{unit}"
             )
+
+
+def _check_column_rules(ds: Dataset, col: str, values: NDArray[np.float64]) -> None:
+    """The rules of particular columns: a direction is -1, 0 or 1; t_s never decreases; point
+    and cycle are whole numbers of 0 or more."""
+    cells = ds.text[col]
     if col.startswith("dir_"):
         bad = np.flatnonzero(~np.isin(values, (-1.0, 0.0, 1.0)))
         if bad.size:
@@ -284,7 +340,6 @@ def _numeric_column(ds: Dataset, col: str) -> NDArray[np.float64]:
             raise InputError(
                 f"{ds.where(i + 1, col)}: {cells[i]} is not a non-negative whole number"
             )
-    return values
 
 
 _INTEGER_COLUMNS = INTEGER_COLUMNS
@@ -307,20 +362,29 @@ def format_value(col: str, v: str | float, *, exact: bool = False) -> str:
     """
     if isinstance(v, str):
         return v
-    f = float(v)
-    if col in _INTEGER_COLUMNS and f == round(f):
-        return str(int(round(f)))
-    if exact or not math.isfinite(f):
-        return repr(f)
-    decimals = DECIMALS_BY_COLUMN.get(col)
+    number = float(v)
+    if col in _INTEGER_COLUMNS and number == round(number):
+        return str(int(round(number)))
+    if exact or not math.isfinite(number):
+        return repr(number)
+    decimals = _decimals(col)
     if decimals is None:
-        decimals = next((d for suffix, d in DECIMALS_BY_SUFFIX if col.endswith(suffix)), None)
-    if decimals is None:
-        text = f"{f:.{SIGNIFICANT_DIGITS}g}"
+        text = f"{number:.{SIGNIFICANT_DIGITS}g}"
         return "0" if text == "-0" else text
-    text = f"{f:.{decimals}f}".rstrip("0")
+    text = f"{number:.{decimals}f}".rstrip("0")
     text = text + "0" if text.endswith(".") else text
     return "0.0" if text in ("-0.0", "0.0") else text
+
+
+def _decimals(col: str) -> int | None:
+    """The decimals a column is written with, by its name or else its unit's suffix; None for a
+    column in another unit (written to SIGNIFICANT_DIGITS)."""
+    decimals = DECIMALS_BY_COLUMN.get(col)
+    if decimals is None:
+        decimals = next(
+            (digits for suffix, digits in DECIMALS_BY_SUFFIX if col.endswith(suffix)), None
+        )
+    return decimals
 
 
 @contextmanager
@@ -423,16 +487,16 @@ def write_dataset(
     if not names:
         raise ValueError("nothing to write")
     n = len(columns[names[0]])
-    for c in names:
-        if len(columns[c]) != n:
-            raise ValueError(f"column {c!r} has {len(columns[c])} values, expected {n}")
+    for name in names:
+        if len(columns[name]) != n:
+            raise ValueError(f"column {name!r} has {len(columns[name])} values, expected {n}")
 
     def write(fh: TextIO) -> None:
-        w = csv.writer(_RowLines(fh), lineterminator="\r\n")
-        w.writerow(names)
-        cols = [columns[c] for c in names]
+        writer = csv.writer(_RowLines(fh), lineterminator="\r\n")
+        writer.writerow(names)
+        cols = [columns[name] for name in names]
         for i in range(n):
-            w.writerow([format_value(names[j], cols[j][i]) for j in range(len(names))])
+            writer.writerow([format_value(names[j], cols[j][i]) for j in range(len(names))])
 
     _atomic_write(path, write)
 
@@ -464,6 +528,21 @@ def check_stage_units(ds: Dataset, travel_deg: float) -> None:
     A fit on such data fails far from the cause; this names the column.
     """
     cols = ds.numeric
+    _check_stage_travel(ds, travel_deg)
+    stage = [cols[column] for column in ("stage_x_deg", "stage_y_deg") if column in cols]
+    if not stage:
+        return
+    stage_span = max(float(np.ptp(angles)) for angles in stage)
+    _check_sensor_tilts(ds, travel_deg, stage_span)
+    # A sensor's two axes together span about what the stages do (a run may move one stage only, and
+    # a sensor may sit turned on the table, so an axis is not compared with one stage alone).
+    for sensor in ("ref", "meas"):
+        _check_sensor_span(ds, sensor, stage_span)
+
+
+def _check_stage_travel(ds: Dataset, travel_deg: float) -> None:
+    """The stage angles within the bench's travel (degrees, not another unit)."""
+    cols = ds.numeric
     for col in ("stage_x_deg", "stage_y_deg"):
         if col in cols and (beyond := np.flatnonzero(np.abs(cols[col]) > travel_deg + 1e-9)).size:
             i = int(beyond[0])
@@ -471,10 +550,11 @@ def check_stage_units(ds: Dataset, travel_deg: float) -> None:
                 f"{ds.where(i + 1, col)}: {ds.text[col][i]} is beyond the stage's travel of "
                 f"±{travel_deg:g} deg; the column must hold the stage angle in degrees"
             )
-    stage = [cols[c] for c in ("stage_x_deg", "stage_y_deg") if c in cols]
-    if not stage:
-        return
-    stage_span = max(float(np.ptp(v)) for v in stage)
+
+
+def _check_sensor_tilts(ds: Dataset, travel_deg: float, stage_span: float) -> None:
+    """No sensor reading more tilt than the table can show: the travel and a mounting's margin."""
+    cols = ds.numeric
     limit = travel_deg + TILT_MARGIN_DEG
     for col in ("ref_x_deg", "ref_y_deg", "meas_x_deg", "meas_y_deg"):
         if col in cols and (beyond := np.flatnonzero(np.abs(cols[col]) > limit)).size:
@@ -484,35 +564,38 @@ def check_stage_units(ds: Dataset, travel_deg: float) -> None:
                 f"(the stage travels ±{travel_deg:g} deg): the column must hold the sensor's "
                 "reading in degrees" + _unit_hint(float(np.ptp(cols[col])), stage_span)
             )
-    # A sensor's two axes together span about what the stages do (a run may move one stage only, and
-    # a sensor may sit turned on the table, so an axis is not compared with one stage alone).
-    for sensor in ("ref", "meas"):
-        pair = [c for c in (f"{sensor}_x_deg", f"{sensor}_y_deg") if c in cols]
-        if not pair:
-            continue
-        col = max(pair, key=lambda c: float(np.ptp(cols[c])))
-        span = float(np.ptp(cols[col]))
-        if (
-            max(span, stage_span) < STAGE_SPAN_TO_JUDGE_DEG
-            or 0.5 <= span / max(stage_span, 1e-12) <= 2.0
-        ):
-            continue
-        # the sensor reads far less than the stage tilts: it is not in degrees
-        if span < stage_span:
-            raise InputError(
-                f"{ds.source}: column {col}: its readings span {span:.4g} while the stage spans "
-                f"{stage_span:.4g} deg (a sensor on the table reads about what the stage tilts): "
-                "the column must hold degrees" + _unit_hint(span, stage_span)
-            )
-        stage_col = max(
-            (c for c in ("stage_x_deg", "stage_y_deg") if c in cols),
-            key=lambda c: float(np.ptp(cols[c])),
-        )
+
+
+def _check_sensor_span(ds: Dataset, sensor: str, stage_span: float) -> None:
+    """A sensor's wider axis spans within a factor of two of the stages' span; otherwise the
+    sensor's column or the stage's is in another unit, named with the unit it looks like."""
+    cols = ds.numeric
+    pair = [column for column in (f"{sensor}_x_deg", f"{sensor}_y_deg") if column in cols]
+    if not pair:
+        return
+    col = max(pair, key=lambda c: float(np.ptp(cols[c])))
+    span = float(np.ptp(cols[col]))
+    if (
+        max(span, stage_span) < STAGE_SPAN_TO_JUDGE_DEG
+        or 0.5 <= span / max(stage_span, 1e-12) <= 2.0
+    ):
+        return
+    # the sensor reads far less than the stage tilts: it is not in degrees
+    if span < stage_span:
         raise InputError(
-            f"{ds.source}: column {stage_col}: the stage spans {stage_span:.4g} while {col} "
-            f"reads a tilt spanning {span:.4g} deg (a sensor on the table reads about what the "
-            "stage tilts): the stage angles must be in degrees" + _unit_hint(stage_span, span)
+            f"{ds.source}: column {col}: its readings span {span:.4g} while the stage spans "
+            f"{stage_span:.4g} deg (a sensor on the table reads about what the stage tilts): "
+            "the column must hold degrees" + _unit_hint(span, stage_span)
         )
+    stage_col = max(
+        (column for column in ("stage_x_deg", "stage_y_deg") if column in cols),
+        key=lambda c: float(np.ptp(cols[c])),
+    )
+    raise InputError(
+        f"{ds.source}: column {stage_col}: the stage spans {stage_span:.4g} while {col} "
+        f"reads a tilt spanning {span:.4g} deg (a sensor on the table reads about what the "
+        "stage tilts): the stage angles must be in degrees" + _unit_hint(stage_span, span)
+    )
 
 
 def _unit_hint(span: float, stage_span_deg: float) -> str:

@@ -42,6 +42,6 @@ def provenance_lines(record: Mapping[str, Any]) -> list[str]:
         f"tiltlab {record.get('tiltlab_version', '?')}, {record.get('utc', '?')}",
         f"command: {record.get('command', '?')}",
     ]
-    for role, f in (record.get("inputs") or {}).items():
-        lines.append(f"{role}: {f['path']} (SHA-256 {f['sha256']})")
+    for role, input_file in (record.get("inputs") or {}).items():
+        lines.append(f"{role}: {input_file['path']} (SHA-256 {input_file['sha256']})")
     return lines

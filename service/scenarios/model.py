@@ -21,6 +21,9 @@ from service.physics.rotation_axis import RotationBench
 from service.physics.stage import StageBench
 from service.physics.turntable import TurntableInclinometer
 
+if TYPE_CHECKING:
+    from pydantic_core import ErrorDetails
+
 PRESET_DIR = Path(__file__).parent / "presets"
 
 
@@ -32,14 +35,20 @@ def _effects_model(kind: str) -> type[BaseModel]:
     fields: dict[str, Any] = {}
     for eff in EFFECTS_BY_KIND[kind].values():
         pf: dict[str, Any] = {}
-        for p in eff.params:
-            if p.is_bool:
-                pf[p.name] = (bool, Field(p.default, description=p.doc or p.unit))
+        for param in eff.params:
+            if param.is_bool:
+                pf[param.name] = (bool, Field(param.default, description=param.doc or param.unit))
             else:
-                desc = f"[{p.unit}] {p.doc}".strip()
-                pf[p.name] = (
+                desc = f"[{param.unit}] {param.doc}".strip()
+                pf[param.name] = (
                     float,
-                    Field(p.default, ge=p.lo, le=p.hi, description=desc, allow_inf_nan=False),
+                    Field(
+                        param.default,
+                        ge=param.lo,
+                        le=param.hi,
+                        description=desc,
+                        allow_inf_nan=False,
+                    ),
                 )
         m = create_model(
             f"{kind.title()}_{eff.name}", __config__=ConfigDict(extra="forbid", strict=True), **pf
@@ -65,14 +74,18 @@ def hardware_model(name: str, hardware: type, **run_fields: Any) -> type[BaseMod
     """
     hints = typing.get_type_hints(hardware)
     fields: dict[str, Any] = {}
-    for f in dataclasses.fields(hardware):
-        meta = dict(f.metadata)
-        typ: Any = hints[f.name]
+    for hardware_field in dataclasses.fields(hardware):
+        meta = dict(hardware_field.metadata)
+        typ: Any = hints[hardware_field.name]
         if "choices" in meta:
             typ = Literal[tuple(meta.pop("choices"))]
-        default = f.default if f.default is not dataclasses.MISSING else meta.pop("default", ...)
+        default = (
+            hardware_field.default
+            if hardware_field.default is not dataclasses.MISSING
+            else meta.pop("default", ...)
+        )
         meta.pop("default", None)
-        fields[f.name] = (Annotated[typ, Field(**meta)] if meta else typ, default)
+        fields[hardware_field.name] = (Annotated[typ, Field(**meta)] if meta else typ, default)
     return create_model(name, __base__=_Strict, **fields, **run_fields)
 
 
@@ -126,7 +139,7 @@ class AxisRange(_Strict):
         import numpy as np
 
         if self.count is not None:
-            return [float(v) for v in np.linspace(self.start, self.stop, self.count)]
+            return [float(value) for value in np.linspace(self.start, self.stop, self.count)]
         assert self.step is not None
         sign = 1.0 if self.stop >= self.start else -1.0
         return [float(self.start + sign * i * self.step) for i in range(self.size())]
@@ -146,9 +159,9 @@ def axis_size(a: list[float] | AxisRange) -> int:
 def _rows(sc: Scenario) -> tuple[int, str]:
     """Rows the scenario would simulate, and the grid fields that set them."""
     if isinstance(sc, StageScenario):
-        g = sc.grid
+        grid = sc.grid
         return (
-            axis_size(g.x_deg) * axis_size(g.y_deg) * g.repeats * g.readings_per_stand,
+            axis_size(grid.x_deg) * axis_size(grid.y_deg) * grid.repeats * grid.readings_per_stand,
             "grid.x_deg × grid.y_deg × grid.repeats × grid.readings_per_stand",
         )
     if isinstance(sc, RotationScenario):
@@ -313,30 +326,43 @@ def _format_error(source: str, err: ValidationError) -> str:
     errors.sort(
         key=lambda e: e["type"].endswith("_type") and any(_union_tag(str(x)) for x in e["loc"])
     )
-    e = errors[0]
-    loc = [str(x) for x in e["loc"]]
+    first = errors[0]
+    loc = _field_path(first)
+    field = ".".join(loc) or "(top level)"
+    msg = _problem(first, loc)
+    more = len(err.errors()) - 1
+    return f"{source}: field {field}: {msg}" + (
+        f" (and {more} more problem{'s' * (more > 1)})" if more else ""
+    )
+
+
+def _field_path(error: ErrorDetails) -> list[str]:
+    """The scenario fields an error is about, without the wrapper's root and pydantic's
+    union-branch tags."""
+    loc = [str(x) for x in error["loc"]]
     if loc and loc[0] == "root":
         loc = loc[1:]
     # drop pydantic's union-branch tags ("stage", "AxisRange", "list[...]") from the path
-    loc = [
+    return [
         x for x in loc if x not in ("stage", "rotation", "scale", "turntable") and not _union_tag(x)
     ]
-    field = ".".join(loc) or "(top level)"
-    msg = e["msg"].removeprefix("Value error, ")
-    if e["type"] == "extra_forbidden":
+
+
+def _problem(error: ErrorDetails, loc: list[str]) -> str:
+    """What is wrong, in the scenario's words: an unknown effect or field, a missing one, or
+    pydantic's message with the value given."""
+    msg = error["msg"].removeprefix("Value error, ")
+    if error["type"] == "extra_forbidden":
         parent = ".".join(loc[:-1])
         if parent == "effects":
             msg = f"unknown effect {loc[-1]!r}"
         else:
             msg = f"unknown field {loc[-1]!r}"
-    elif e["type"] == "missing":
+    elif error["type"] == "missing":
         msg = "missing required field"
-    elif "input" in e and not isinstance(e["input"], (dict, list)):
-        msg = f"{msg} (got {e['input']!r})"
-    more = len(err.errors()) - 1
-    return f"{source}: field {field}: {msg}" + (
-        f" (and {more} more problem{'s' * (more > 1)})" if more else ""
-    )
+    elif "input" in error and not isinstance(error["input"], (dict, list)):
+        msg = f"{msg} (got {error['input']!r})"
+    return msg
 
 
 def parse_scenario(data: Any, source: str = "scenario") -> Scenario:
@@ -366,7 +392,7 @@ def parse_scenario(data: Any, source: str = "scenario") -> Scenario:
         travel = sc.bench.travel_deg
         for ax in ("x_deg", "y_deg"):
             vals = axis_values(getattr(sc.grid, ax))
-            worst = max(abs(v) for v in vals)
+            worst = max(abs(value) for value in vals)
             if worst > travel + 1e-9:
                 raise InputError(
                     f"{source}: field grid.{ax}: {worst:g} deg is beyond the stage travel of "
@@ -376,31 +402,31 @@ def parse_scenario(data: Any, source: str = "scenario") -> Scenario:
 
 
 def preset_names() -> list[str]:
-    return sorted(p.stem for p in PRESET_DIR.glob("*.json"))
+    return sorted(path.stem for path in PRESET_DIR.glob("*.json"))
 
 
 def scenario_data(name_or_path: str | Path) -> tuple[dict[str, Any], str]:
     """The raw JSON object of a preset (by name) or a scenario file, and where it came from."""
-    p = Path(name_or_path)
-    if not p.suffix and (PRESET_DIR / f"{p.name}.json").exists() and not p.exists():
-        p = PRESET_DIR / f"{p.name}.json"
-    elif not p.exists():
+    path = Path(name_or_path)
+    if not path.suffix and (PRESET_DIR / f"{path.name}.json").exists() and not path.exists():
+        path = PRESET_DIR / f"{path.name}.json"
+    elif not path.exists():
         raise InputError(
             f"scenario {str(name_or_path)!r}: no such preset or file (presets: "
             f"{', '.join(preset_names())})"
         )
     try:
         # a byte-order mark from an editor is harmless
-        data = json.loads(p.read_text(encoding="utf-8-sig"))
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
     except json.JSONDecodeError as exc:
         raise InputError(
-            f"{p}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}"
+            f"{path}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}"
         ) from None
     except RecursionError:
-        raise InputError(f"{p}: not a scenario: JSON nested too deeply") from None
+        raise InputError(f"{path}: not a scenario: JSON nested too deeply") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: cannot read: {exc}") from None
-    return data, str(p)
+        raise InputError(f"{path}: cannot read: {exc}") from None
+    return data, str(path)
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
@@ -417,7 +443,7 @@ def json_schema() -> dict[str, Any]:
     root = schema["properties"]["root"]
     schema.pop("properties", None)
     schema.pop("required", None)
-    schema.update({k: v for k, v in root.items() if k != "title"})
+    schema.update({key: value for key, value in root.items() if key != "title"})
     schema["description"] = (
         "A tiltlab scenario: bench parameters, per-effect magnitudes (names of docs/models.md "
         "§5 with units in the parameter names or descriptions), the point grid, environment and "

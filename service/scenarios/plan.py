@@ -20,13 +20,15 @@ def scenario_noise(sc: StageScenario) -> BenchNoise:
     """Each sensor's reading noise (σ, with its resolution's r/√12) and the resolutions' part of a
     corrected tilt."""
     fx = effect_set(sc)
-    res = {s: fx.get("noise", f"{s}_resolution_deg") for s in ("meas", "ref")}
+    res = {sensor: fx.get("noise", f"{sensor}_resolution_deg") for sensor in ("meas", "ref")}
     sig = {
-        s: math.hypot(fx.get("noise", f"{s}_sigma_deg"), res[s] / math.sqrt(12.0))
-        for s in ("meas", "ref")
+        sensor: math.hypot(fx.get("noise", f"{sensor}_sigma_deg"), res[sensor] / math.sqrt(12.0))
+        for sensor in ("meas", "ref")
     }
     return BenchNoise(
-        sig["meas"], sig["ref"], math.sqrt(sum((r / math.sqrt(12.0)) ** 2 for r in res.values()))
+        sig["meas"],
+        sig["ref"],
+        math.sqrt(sum((resolution / math.sqrt(12.0)) ** 2 for resolution in res.values())),
     )
 
 

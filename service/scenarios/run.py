@@ -61,16 +61,18 @@ def hardware_of(
 ) -> StageBench | RotationBench | AnalogSensor | TurntableInclinometer:
     """The physics model of the scenario's fixed hardware (stacked stages, rotary table, ADC sensor
     or turntable)."""
-    b = scenario.bench
+    spec = scenario.bench
     if isinstance(scenario, StageScenario):
-        return StageBench(**b.model_dump())
+        return StageBench(**spec.model_dump())
     if isinstance(scenario, RotationScenario):
-        return RotationBench(**b.model_dump())
+        return RotationBench(**spec.model_dump())
     if isinstance(scenario, ScaleScenario):
-        d = b.model_dump()
-        d.pop("start_arcsec")
-        return AnalogSensor(**d)
-    return TurntableInclinometer(beta_deg=b.beta_deg, epsilon_deg=b.epsilon_deg, m1=b.m1, m2=b.m2)
+        fields = spec.model_dump()
+        fields.pop("start_arcsec")
+        return AnalogSensor(**fields)
+    return TurntableInclinometer(
+        beta_deg=spec.beta_deg, epsilon_deg=spec.epsilon_deg, m1=spec.m1, m2=spec.m2
+    )
 
 
 def effect_set(scenario: Scenario) -> EffectSet:
@@ -91,11 +93,11 @@ def move_directions(cmd: NDArray[np.float64], start: float) -> NDArray[np.float6
     """Direction of the last move that reached each command (+1/-1); a point not moved to keeps the
     last."""
     prev = np.concatenate([[start], cmd[:-1]])
-    d = np.sign(cmd - prev)
+    steps = np.sign(cmd - prev)
     last = 1.0
-    out: NDArray[np.float64] = np.empty_like(d)
-    for i, v in enumerate(d):
-        last = v if v != 0 else last
+    out: NDArray[np.float64] = np.empty_like(steps)
+    for i, step in enumerate(steps):
+        last = step if step != 0 else last
         out[i] = last
     return out
 
@@ -158,71 +160,103 @@ def run_scenario(
     rng = np.random.default_rng(scenario.seed if seed is None else seed)
     fx = effect_set(scenario)
     noise_rng = None if noiseless else rng
-    cols: dict[str, NDArray[Any]]
     if isinstance(scenario, StageScenario):
-        bench = hardware_of(scenario)
-        cx, cy, point = stage_sequence(scenario, rng)
-        # The dataset records what the controller executes: whole pulses of this bench.
-        cx, cy = bench.quantise(cx, cy)
-        dx = move_directions(cx, -bench.travel_deg)
-        dy = move_directions(cy, -bench.travel_deg)
-        t_s = np.arange(len(cx), dtype=float) * scenario.grid.settle_s
-        stand = None
-        if (per := scenario.grid.readings_per_stand) > 1:
-            # each stand read `per` times while the stage stands: one move, one positioning draw,
-            # `per` rows
-            k = np.tile(np.arange(per), len(cx))
-            t_s = (
-                np.arange(len(cx), dtype=float)
-                * (scenario.grid.settle_s + (per - 1) * scenario.grid.reading_interval_s)
-            ).repeat(per) + k * scenario.grid.reading_interval_s
-            cx, cy, point, dx, dy = (np.repeat(v, per) for v in (cx, cy, point, dx, dy))
-            stand = np.arange(len(cx)) // per
-        temp = temperature(scenario.environment, t_s)
-        sx, sy = settling_transient_deg(scenario, bench, fx, cx, cy, t_s)
-        sim = simulate_stage(bench, fx, cx + sx, cy + sy, dx, dy, temp, t_s, noise_rng, stand=stand)
-        cols = {
-            "point": point,
-            "stage_x_deg": cx,
-            "stage_y_deg": cy,
-            "dir_x": dx,
-            "dir_y": dy,
-            **{k: sim[k] for k in columns.REF + columns.MEAS},
-            "temp_c": temp,
-            "t_s": t_s,
-        }
-        truth = {k: sim[k] for k in ("tilt_x_deg", "tilt_y_deg", "actual_x_deg", "actual_y_deg")}
-        return SimulatedRun("stage", cols, truth, bench, fx)
+        return _run_stage(scenario, rng, fx, noise_rng)
     if isinstance(scenario, RotationScenario):
-        rotation_bench = hardware_of(scenario)
-        theta = np.tile(np.array(axis_values(scenario.grid.theta_deg)), scenario.grid.repeats)
-        sim = simulate_rotation(rotation_bench, fx, theta, noise_rng)
-        cols = {
-            "point": np.arange(len(theta)) % (len(theta) // scenario.grid.repeats),
-            **{k: sim[k] for k in columns.ROTATION_DATASET[1:]},
-        }
-        return SimulatedRun(
-            "rotation", cols, {"theta_true_deg": sim["theta_true_deg"]}, rotation_bench, fx
-        )
+        return _run_rotation(scenario, fx, noise_rng)
     if isinstance(scenario, ScaleScenario):
-        sensor = hardware_of(scenario)
-        ref = np.tile(np.array(axis_values(scenario.grid.ref_arcsec)), scenario.grid.repeats)
-        temp = np.full(ref.shape, scenario.environment.temp_c)
-        sim = simulate_scale(sensor, fx, ref, scenario.bench.start_arcsec, temp, noise_rng)
-        cols = {
-            "point": np.arange(len(ref)) % (len(ref) // scenario.grid.repeats),
-            "ref_arcsec": sim["ref_arcsec"],
-            "reading": sim["reading"],
-        }
-        return SimulatedRun("scale", cols, {"true_ref_arcsec": sim["true_ref_arcsec"]}, sensor, fx)
+        return _run_scale(scenario, fx, noise_rng)
     assert isinstance(scenario, TurntableScenario)
+    return _run_turntable(scenario, fx, noise_rng)
+
+
+def _run_stage(
+    scenario: StageScenario,
+    rng: np.random.Generator,
+    fx: EffectSet,
+    noise_rng: np.random.Generator | None,
+) -> SimulatedRun:
+    """The stage grid in visiting order (`rng` draws the order first), each stand read
+    readings_per_stand times, the sensors' readings drawn with `noise_rng`."""
+    cols: dict[str, NDArray[Any]]
+    bench = hardware_of(scenario)
+    cx, cy, point = stage_sequence(scenario, rng)
+    # The dataset records what the controller executes: whole pulses of this bench.
+    cx, cy = bench.quantise(cx, cy)
+    dx = move_directions(cx, -bench.travel_deg)
+    dy = move_directions(cy, -bench.travel_deg)
+    t_s = np.arange(len(cx), dtype=float) * scenario.grid.settle_s
+    stand = None
+    if (per := scenario.grid.readings_per_stand) > 1:
+        # each stand read `per` times while the stage stands: one move, one positioning draw,
+        # `per` rows
+        k = np.tile(np.arange(per), len(cx))
+        t_s = (
+            np.arange(len(cx), dtype=float)
+            * (scenario.grid.settle_s + (per - 1) * scenario.grid.reading_interval_s)
+        ).repeat(per) + k * scenario.grid.reading_interval_s
+        cx, cy, point, dx, dy = (np.repeat(column, per) for column in (cx, cy, point, dx, dy))
+        stand = np.arange(len(cx)) // per
+    temp = temperature(scenario.environment, t_s)
+    sx, sy = settling_transient_deg(scenario, bench, fx, cx, cy, t_s)
+    sim = simulate_stage(bench, fx, cx + sx, cy + sy, dx, dy, temp, t_s, noise_rng, stand=stand)
+    cols = {
+        "point": point,
+        "stage_x_deg": cx,
+        "stage_y_deg": cy,
+        "dir_x": dx,
+        "dir_y": dy,
+        **{k: sim[k] for k in columns.REF + columns.MEAS},
+        "temp_c": temp,
+        "t_s": t_s,
+    }
+    truth = {k: sim[k] for k in ("tilt_x_deg", "tilt_y_deg", "actual_x_deg", "actual_y_deg")}
+    return SimulatedRun("stage", cols, truth, bench, fx)
+
+
+def _run_rotation(
+    scenario: RotationScenario, fx: EffectSet, noise_rng: np.random.Generator | None
+) -> SimulatedRun:
+    """The rotation angles of the grid, repeated, read by the triaxial module."""
+    rotation_bench = hardware_of(scenario)
+    theta = np.tile(np.array(axis_values(scenario.grid.theta_deg)), scenario.grid.repeats)
+    sim = simulate_rotation(rotation_bench, fx, theta, noise_rng)
+    cols = {
+        "point": np.arange(len(theta)) % (len(theta) // scenario.grid.repeats),
+        **{k: sim[k] for k in columns.ROTATION_DATASET[1:]},
+    }
+    return SimulatedRun(
+        "rotation", cols, {"theta_true_deg": sim["theta_true_deg"]}, rotation_bench, fx
+    )
+
+
+def _run_scale(
+    scenario: ScaleScenario, fx: EffectSet, noise_rng: np.random.Generator | None
+) -> SimulatedRun:
+    """The reference angles of the grid, repeated, read by the analog sensor behind the ADC."""
+    sensor = hardware_of(scenario)
+    ref = np.tile(np.array(axis_values(scenario.grid.ref_arcsec)), scenario.grid.repeats)
+    temp = np.full(ref.shape, scenario.environment.temp_c)
+    sim = simulate_scale(sensor, fx, ref, scenario.bench.start_arcsec, temp, noise_rng)
+    cols = {
+        "point": np.arange(len(ref)) % (len(ref) // scenario.grid.repeats),
+        "ref_arcsec": sim["ref_arcsec"],
+        "reading": sim["reading"],
+    }
+    return SimulatedRun("scale", cols, {"true_ref_arcsec": sim["true_ref_arcsec"]}, sensor, fx)
+
+
+def _run_turntable(
+    scenario: TurntableScenario, fx: EffectSet, noise_rng: np.random.Generator | None
+) -> SimulatedRun:
+    """Every cycle's pairs at the grid's azimuths, each cycle with its own axis tilt."""
     turntable = hardware_of(scenario)
     az = np.array(axis_values(scenario.grid.azimuth_deg))
     cyc = scenario.grid.cycles
     azimuth = np.tile(az, len(cyc))
     cycle = np.repeat(np.arange(len(cyc)), len(az))
-    north = np.repeat([c.north_arcsec for c in cyc], len(az))
-    east = np.repeat([c.east_arcsec for c in cyc], len(az))
+    north = np.repeat([entry.north_arcsec for entry in cyc], len(az))
+    east = np.repeat([entry.east_arcsec for entry in cyc], len(az))
     sim = simulate_turntable(
         turntable,
         fx,
