@@ -20,7 +20,9 @@ import math
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
+from service.bench.runtime import BenchRuntime
 from service.calibration.adaptive_design import (
     CAP_READINGS,
     K_EXPANDED,
@@ -52,21 +54,27 @@ MIN_NOISE_DEG = 1e-6
 def _noise_of(settled: dict[int, dict[str, Any]], devices: dict[str, int]) -> dict[str, float]:
     out = {}
     for role in SENSORS:
-        s = settled[devices[role]]
-        stds = [v for v in (s["ch_x_std"], s["ch_y_std"]) if v is not None]
+        point = settled[devices[role]]
+        stds = [std for std in (point["ch_x_std"], point["ch_y_std"]) if std is not None]
         out[role] = max(max(stds, default=0.0), MIN_NOISE_DEG)
     return out
 
 
 def _range(ctx: JobContext) -> tuple[tuple[float, float], tuple[float, float], int, int]:
-    g = ctx.request.grid
+    grid = ctx.request.grid
     # the request's rule
-    assert g is not None and g.x_deg is not None and g.y_deg is not None and g.n_x and g.n_y
+    assert (
+        grid is not None
+        and grid.x_deg is not None
+        and grid.y_deg is not None
+        and grid.n_x
+        and grid.n_y
+    )
     return (
-        (float(g.x_deg[0]), float(g.x_deg[1])),
-        (float(g.y_deg[0]), float(g.y_deg[1])),
-        g.n_x,
-        g.n_y,
+        (float(grid.x_deg[0]), float(grid.x_deg[1])),
+        (float(grid.y_deg[0]), float(grid.y_deg[1])),
+        grid.n_x,
+        grid.n_y,
     )
 
 
@@ -115,8 +123,8 @@ def validated_figures(
     within each point's expanded uncertainty (the predicted U of the correction with the point's
     reading noise added)."""
     by_point: dict[int, list[SettledPoint]] = {}
-    for p in points:
-        by_point.setdefault(p.point, []).append(p)
+    for point in points:
+        by_point.setdefault(point.point, []).append(point)
     u_read2 = []
     for idx in sorted(by_point):
         rows = by_point[idx]
@@ -129,18 +137,18 @@ def validated_figures(
             per_axis.append(var)
         u_read2.append(per_axis)
     u2 = np.array(u_read2, dtype=float)  # (points, 2)
-    e = np.asarray(errors_xy, dtype=float)  # (points, 2)
-    if e.size == 0:
+    errors = np.asarray(errors_xy, dtype=float)  # (points, 2)
+    if errors.size == 0:
         return {}
-    excess = float(np.mean(e**2) - np.mean(u2))
-    within = np.abs(e) <= K_EXPANDED * np.sqrt((predicted_u / K_EXPANDED) ** 2 + u2)
+    excess = float(np.mean(errors**2) - np.mean(u2))
+    within = np.abs(errors) <= K_EXPANDED * np.sqrt((predicted_u / K_EXPANDED) ** 2 + u2)
     # errors within the validation readings' own noise leave the correction's U unresolved, not
     # zero: null
     return {
         "validated_expanded_uncertainty_deg": K_EXPANDED * math.sqrt(excess)
         if excess > 0
         else None,
-        "validation_rms_axis_deg": float(np.sqrt(np.mean(e**2))),
+        "validation_rms_axis_deg": float(np.sqrt(np.mean(errors**2))),
         "validation_reading_u_deg": float(np.sqrt(np.mean(u2))),
         "validated_coverage": float(np.mean(within)),
         "validated_components": int(within.size),
@@ -150,17 +158,14 @@ def validated_figures(
 async def add_correction_figures(ctx: JobContext, outcome: Outcome) -> Outcome:
     """A grid job's record states the same figures an adaptive one does: the predicted expanded U of
     the correction over the range its points span, and the validated figures against it."""
-    if (
-        outcome.model is None
-        or not outcome.validation.get("points")
-        or not all(n in outcome.model.parameters for n in MEAS_NAMES)
-    ):
+    model = outcome.model
+    if model is None or not _predicts_u(model, outcome.validation):
         # a method without the measurement-sensor model (homography, ...) predicts no U this way
         return outcome
     fixed_u = float(outcome.validation.get("fixed_u_deg") or _fixed_u(ctx))
-    xs = [float(p[0]) for p in ctx.job.parameters["fit_points"]]
-    ys = [float(p[1]) for p in ctx.job.parameters["fit_points"]]
-    cov = outcome.model.cov_of(list(MEAS_NAMES))
+    xs = [float(point[0]) for point in ctx.job.parameters["fit_points"]]
+    ys = [float(point[1]) for point in ctx.job.parameters["fit_points"]]
+    cov = model.cov_of(list(MEAS_NAMES))
     if cov is None:
         return outcome
     predicted = predicted_u_of_covariance(
@@ -168,17 +173,11 @@ async def add_correction_figures(ctx: JobContext, outcome: Outcome) -> Outcome:
         (min(xs), max(xs)),
         (min(ys), max(ys)),
         fixed_u,
-        np.asarray(outcome.model.values(MEAS_NAMES), dtype=float),
+        np.asarray(model.values(MEAS_NAMES), dtype=float),
     )
     points = await ctx.db(ctx.store.points.settled_points, ctx.job.id)
-    val_points = [p for p in points if p.point >= outcome.n_fit]
-    errors = np.array(
-        [
-            [q["measured_x_deg"] - q["reference_x_deg"], q["measured_y_deg"] - q["reference_y_deg"]]
-            for q in outcome.validation["points"]
-        ],
-        dtype=float,
-    ).reshape(-1, 2)
+    val_points = [point for point in points if point.point >= outcome.n_fit]
+    errors = _validation_errors_xy(outcome.validation["points"])
     outcome.validation.update(
         {
             "predicted_expanded_uncertainty_deg": predicted,
@@ -189,6 +188,27 @@ async def add_correction_figures(ctx: JobContext, outcome: Outcome) -> Outcome:
     return outcome
 
 
+def _predicts_u(model: CalibrationModel, validation: dict[str, Any]) -> bool:
+    """Whether a grid job's model and validation give what the predicted U needs: the
+    measurement-sensor parameters, and validation points to check it against."""
+    return bool(validation.get("points")) and all(name in model.parameters for name in MEAS_NAMES)
+
+
+def _validation_errors_xy(validation_points: list[dict[str, Any]]) -> NDArray[np.float64]:
+    """The validation's errors (measured - reference) per point and axis, shaped (points, 2) even
+    when there are none."""
+    return np.array(
+        [
+            [
+                row["measured_x_deg"] - row["reference_x_deg"],
+                row["measured_y_deg"] - row["reference_y_deg"],
+            ]
+            for row in validation_points
+        ],
+        dtype=float,
+    ).reshape(-1, 2)
+
+
 def _fixed_u(ctx: JobContext) -> float:
     """The resolutions' part of every corrected tilt (r/√12 of each sensor), as the record's budget
     states it."""
@@ -196,9 +216,9 @@ def _fixed_u(ctx: JobContext) -> float:
 
     return math.sqrt(
         sum(
-            (r / math.sqrt(12.0)) ** 2
-            for role, r in resolutions_deg(ctx.bench).items()
-            if role in ROLE_WORDS and r
+            (resolution / math.sqrt(12.0)) ** 2
+            for role, resolution in resolutions_deg(ctx.bench).items()
+            if role in ROLE_WORDS and resolution
         )
     )
 
@@ -209,29 +229,17 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     target = req.target_expanded_uncertainty_deg
     assert target is not None  # the request's rule
     fixed_u = float(job.parameters.get("adaptive", {}).get("fixed_u_deg", 0.0))
-    devices = {r: bench.device_ids[r] for r in SENSORS}
-    if any(device is None for device in devices.values()):
-        raise InputError(f"bench {bench.name!r} has no registered {' or '.join(SENSORS)}")
-    stored = await ctx.db(ctx.store.points.settled_points, job.id)
-    if stored:
-        raise InputError(
-            "an adaptive job chooses its points as it measures; it is not resumed: start a new job"
-        )
-    spread = [proc.stored_point(p) for p in job.parameters["fit_points"]]
-    val_pts = [proc.stored_point(p) for p in job.parameters["validation_points"]]
+    devices = _sensor_devices(bench)
+    await _refuse_resuming(ctx)
+    spread = [proc.stored_point(point) for point in job.parameters["fit_points"]]
+    val_pts = [proc.stored_point(point) for point in job.parameters["validation_points"]]
     total_guess = len(spread) + len(val_pts)
     await ctx.report(0, total_guess, Phase.MEASURING)
     first = spread[0]
     settled = await measure_stage_point(ctx, 0, *first, n=NOISE_READINGS)
     noise = _noise_of(settled, devices)
     plan = _plan(ctx, noise, fixed_u, target)
-    measured: list[tuple[float, float]] = [first]
-    todo = [(p, n) for p, n in zip(plan.points, plan.readings) if p != first]
-    await ctx.report(1, len(plan.points) + len(val_pts), Phase.MEASURING)
-    for p, n in todo:
-        await measure_stage_point(ctx, len(measured), *p, n=n, noise_deg=noise)
-        measured.append(p)
-        await ctx.report(len(measured), len(plan.points) + len(val_pts), Phase.MEASURING)
+    measured = await _measure_plan(ctx, plan, first, noise, len(val_pts))
     method = get_method("stage", job.method)
     rounds = [plan.as_json()]
     for attempt in range(2):
@@ -242,22 +250,8 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
         if predicted <= target:
             break
         if attempt == 1:
-            raise InputError(
-                f"target_expanded_uncertainty_deg {target:g} deg not reached: after "
-                f"{len(measured)} points the predicted expanded uncertainty of the correction "
-                f"over the range is {predicted:.4g} deg ({predicted / target:.2f} x the target); "
-                f"the plan's reading noise was {noise['measurement_sensor']:.2g} / "
-                f"{noise['reference_sensor']:.2g} deg"
-            )
-        # the fit sees the points noisier than the plan assumed (the first point's spread scatters,
-        # a transient, a model that fits less well): read the plan's points once more, as many times
-        # as the missing information needs (the variance falls as 1 / the readings of the same
-        # points), in reverse order (shortest travel)
-        extra = max(
-            MIN_TOP_UP,
-            math.ceil(plan.readings[0] * ((predicted / (PLAN_MARGIN * target)) ** 2 - 1.0)),
-        )
-        extra = min(extra, CAP_READINGS)
+            raise InputError(_target_missed(target, len(measured), predicted, noise))
+        extra = _top_up_readings(plan, predicted, target)
         rounds.append(
             {
                 "top_up": {
@@ -267,29 +261,15 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
                 }
             }
         )
-        for p in reversed(plan.points):
-            await measure_stage_point(ctx, len(measured), *p, n=extra, noise_deg=noise)
-            measured.append(p)
-            await ctx.report(len(measured), len(measured) + len(val_pts), Phase.MEASURING)
+        await _top_up(ctx, plan, measured, extra, noise, len(val_pts))
     proc.fitted(model, fit_cols)
     n_fit = len(measured)
-    await ctx.report(n_fit, n_fit + len(val_pts), Phase.VALIDATING)
-    # from where the stage stands after the plan (or its top-up pass), in the order of shortest
-    # travel
-    for k, p in enumerate(short_tour(measured[-1], val_pts)):
-        await measure_stage_point(ctx, n_fit + k, *p, noise_deg=noise)
-        await ctx.report(n_fit + k + 1, n_fit + len(val_pts), Phase.VALIDATING)
+    await _measure_validation(ctx, measured[-1], val_pts, n_fit, noise)
     points = await ctx.db(ctx.store.points.settled_points, job.id)
-    val_points = [p for p in points if p.point >= n_fit]
+    val_points = [point for point in points if point.point >= n_fit]
     val_cols = proc.columns(job, val_points, for_fit=False)
     validation = await asyncio.to_thread(proc.validation, method, model, val_cols)
-    errors = np.array(
-        [
-            [q["measured_x_deg"] - q["reference_x_deg"], q["measured_y_deg"] - q["reference_y_deg"]]
-            for q in validation.get("points", [])
-        ],
-        dtype=float,
-    ).reshape(-1, 2)
+    errors = _validation_errors_xy(validation.get("points", []))
     validation.update(
         {
             "design": "adaptive",
@@ -306,3 +286,101 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     return Outcome(
         job.device_id, proc.kind, model, validation, conditions, n_fit, ctx.bench_time.as_json()
     )
+
+
+def _sensor_devices(bench: BenchRuntime) -> dict[str, int]:
+    """The bench's two sensors by role; InputError when either is not registered."""
+    devices = {role: bench.device_ids[role] for role in SENSORS}
+    if any(device is None for device in devices.values()):
+        raise InputError(f"bench {bench.name!r} has no registered {' or '.join(SENSORS)}")
+    return devices
+
+
+async def _refuse_resuming(ctx: JobContext) -> None:
+    """An adaptive job's plan depends on what it measured first, so one with stored points is not
+    resumed."""
+    stored = await ctx.db(ctx.store.points.settled_points, ctx.job.id)
+    if stored:
+        raise InputError(
+            "an adaptive job chooses its points as it measures; it is not resumed: start a new job"
+        )
+
+
+async def _measure_plan(
+    ctx: JobContext,
+    plan: AdaptivePlan,
+    first: tuple[float, float],
+    noise: dict[str, float],
+    n_validation: int,
+) -> list[tuple[float, float]]:
+    """The plan's points after the first one (read already), each read as often as the plan says:
+    every point measured so far, in order."""
+    measured: list[tuple[float, float]] = [first]
+    todo = [
+        (point, n_readings)
+        for point, n_readings in zip(plan.points, plan.readings)
+        if point != first
+    ]
+    await ctx.report(1, len(plan.points) + n_validation, Phase.MEASURING)
+    for point, n_readings in todo:
+        await measure_stage_point(ctx, len(measured), *point, n=n_readings, noise_deg=noise)
+        measured.append(point)
+        await ctx.report(len(measured), len(plan.points) + n_validation, Phase.MEASURING)
+    return measured
+
+
+def _target_missed(target: float, n_points: int, predicted: float, noise: dict[str, float]) -> str:
+    """Why an adaptive job fails after its top-up pass: how close it came, and the noise the plan
+    assumed."""
+    return (
+        f"target_expanded_uncertainty_deg {target:g} deg not reached: after "
+        f"{n_points} points the predicted expanded uncertainty of the correction "
+        f"over the range is {predicted:.4g} deg ({predicted / target:.2f} x the target); "
+        f"the plan's reading noise was {noise['measurement_sensor']:.2g} / "
+        f"{noise['reference_sensor']:.2g} deg"
+    )
+
+
+def _top_up_readings(plan: AdaptivePlan, predicted: float, target: float) -> int:
+    """The readings of each plan point in the top-up pass, as many as the missing information
+    needs."""
+    # the fit sees the points noisier than the plan assumed (the first point's spread scatters,
+    # a transient, a model that fits less well): read the plan's points once more, as many times
+    # as the missing information needs (the variance falls as 1 / the readings of the same
+    # points)
+    extra = max(
+        MIN_TOP_UP,
+        math.ceil(plan.readings[0] * ((predicted / (PLAN_MARGIN * target)) ** 2 - 1.0)),
+    )
+    return min(extra, CAP_READINGS)
+
+
+async def _top_up(
+    ctx: JobContext,
+    plan: AdaptivePlan,
+    measured: list[tuple[float, float]],
+    readings: int,
+    noise: dict[str, float],
+    n_validation: int,
+) -> None:
+    """The plan's points read once more, `readings` each, in reverse order (shortest travel), added
+    to `measured`."""
+    for point in reversed(plan.points):
+        await measure_stage_point(ctx, len(measured), *point, n=readings, noise_deg=noise)
+        measured.append(point)
+        await ctx.report(len(measured), len(measured) + n_validation, Phase.MEASURING)
+
+
+async def _measure_validation(
+    ctx: JobContext,
+    start: tuple[float, float],
+    val_pts: list[tuple[float, float]],
+    n_fit: int,
+    noise: dict[str, float],
+) -> None:
+    """The validation points, numbered after the `n_fit` fit points, visited from where the stage
+    stands after the plan (or its top-up pass) in the order of shortest travel."""
+    await ctx.report(n_fit, n_fit + len(val_pts), Phase.VALIDATING)
+    for k, point in enumerate(short_tour(start, val_pts)):
+        await measure_stage_point(ctx, n_fit + k, *point, noise_deg=noise)
+        await ctx.report(n_fit + k + 1, n_fit + len(val_pts), Phase.VALIDATING)

@@ -71,9 +71,9 @@ class Admission:
             and standard.get("coverage_factor")
         )
         u2 += sum(
-            (r / math.sqrt(12.0)) ** 2
-            for role, r in resolutions_deg(bench).items()
-            if role in ROLE_WORDS and r
+            (resolution / math.sqrt(12.0)) ** 2
+            for role, resolution in resolutions_deg(bench).items()
+            if role in ROLE_WORDS and resolution
         )
         floor = K_EXPANDED * math.sqrt(u2)
         target = req.target_expanded_uncertainty_deg

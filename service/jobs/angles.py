@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,7 +33,7 @@ from service.jobs.procedure import (
     bench_epoch,
     validation_rng,
 )
-from service.jobs.requests import CalibrationRequest, RequestProblem
+from service.jobs.requests import CalibrationRequest, Grid, RequestProblem
 from service.storage.models import CalibrationJob, SettledPoint
 from service.storage.samples import Sample
 
@@ -53,20 +53,12 @@ class AngleProcedure(PointProcedure[float]):
 
     def travel(self, bench: BenchRuntime) -> tuple[float, float]:
         if self.bench_kind == "stage":
-            t = bench.config.stage_bench().travel_deg
-            return -t, t
+            travel_deg = bench.config.stage_bench().travel_deg
+            return -travel_deg, travel_deg
         return -720.0, 720.0
 
     def plan(self, req: CalibrationRequest, bench: BenchRuntime) -> Plan[float]:
-        if bench.kind != self.bench_kind:
-            raise RequestProblem(
-                "bench",
-                f"{bench.name!r} is a {bench.kind} bench; {self.name} needs a "
-                f"{self.bench_kind} bench",
-            )
-        for role in self.read_roles:
-            if role not in bench.devices:
-                raise RequestProblem("bench", f"{bench.name!r} has no {role}; {self.name} needs it")
+        self._check_bench(bench)
         try:
             get_method(self.kind, req.method)
         except InputError as exc:
@@ -77,40 +69,63 @@ class AngleProcedure(PointProcedure[float]):
                 f"a {self.name} job needs angles: grid.angles_deg, or grid.range_deg and grid.n",
             )
         pts = req.grid.angles()
+        self._check_travel(req.grid, pts, bench)
+        self._check_distinct(req.method, pts)
+        rng = validation_rng(len(pts), req.validation.n_points)
+        val = [
+            float(round(angle, 4))
+            for angle in rng.uniform(min(pts), max(pts), req.validation.n_points)
+        ]
+        if self.name == "turntable":
+            pts, val = _with_half_turns(req, pts, val)
+        return Plan(pts, val, self.device_role, self.read_roles)
+
+    def _check_bench(self, bench: BenchRuntime) -> None:
+        """The bench is of the kind the procedure runs on and carries every instrument it reads."""
+        if bench.kind != self.bench_kind:
+            raise RequestProblem(
+                "bench",
+                f"{bench.name!r} is a {bench.kind} bench; {self.name} needs a "
+                f"{self.bench_kind} bench",
+            )
+        for role in self.read_roles:
+            if role not in bench.devices:
+                raise RequestProblem("bench", f"{bench.name!r} has no {role}; {self.name} needs it")
+
+    def _check_travel(self, grid: Grid, angles: list[float], bench: BenchRuntime) -> None:
+        """Every angle within the bench's travel; RequestProblem names the first one outside."""
         lo, hi = self.travel(bench)
-        for i, a in enumerate(pts):
-            if not lo <= a <= hi:
+        for i, angle in enumerate(angles):
+            if not lo <= angle <= hi:
                 raise RequestProblem(
-                    "grid.angles_deg" if req.grid.angles_deg is not None else "grid.range_deg",
-                    f"angle {i} ({a:g} deg) is outside [{lo:g}, {hi:g}] deg",
+                    "grid.angles_deg" if grid.angles_deg is not None else "grid.range_deg",
+                    f"angle {i} ({angle:g} deg) is outside [{lo:g}, {hi:g}] deg",
                 )
-        need = self.min_points
-        if self.name == "scale" and req.method.startswith("poly") and req.method[4:].isdigit():
-            need = int(req.method[4:]) + 2
-        turntable = self.name == "turntable"
+
+    def _points_needed(self, method: str) -> int:
+        """The fewest distinct angles the fit needs: the procedure's own minimum, or a scale
+        polynomial's degree + 2."""
+        if self.name == "scale" and method.startswith("poly") and method[4:].isdigit():
+            return int(method[4:]) + 2
+        return self.min_points
+
+    def _check_distinct(self, method: str, angles: list[float]) -> None:
+        """Enough distinct angles for the fit, counting the orientations that repeat (a turntable's
+        half-turn, a rotation's full turn) once."""
+        need = self._points_needed(method)
         # a turntable job reads each azimuth and its half-turn; a rotation is the same orientation
         # every full turn
         period = {"turntable": 180.0, "rotation": 360.0}.get(self.name)
-        distinct = len({round(a % period, 6) % period for a in pts}) if period else len(set(pts))
+        distinct = (
+            len({round(angle % period, 6) % period for angle in angles})
+            if period
+            else len(set(angles))
+        )
         if distinct < need:
             modulo = f" (modulo {period:g} deg)" if period else ""
             raise RequestProblem(
-                "grid", f"{distinct} distinct angles{modulo}; {req.method} needs at least {need}"
+                "grid", f"{distinct} distinct angles{modulo}; {method} needs at least {need}"
             )
-        rng = validation_rng(len(pts), req.validation.n_points)
-        val = [float(round(a, 4)) for a in rng.uniform(min(pts), max(pts), req.validation.n_points)]
-        if turntable:
-            if req.reference is None:
-                raise RequestProblem(
-                    "reference",
-                    "a turntable job needs the axis reference: "
-                    '{"north_arcsec": ..., "east_arcsec": ...}',
-                )
-            pts, val = (
-                [x for a in pts for x in (a, a + 180.0)],
-                [x for a in val for x in (a, a + 180.0)],
-            )
-        return Plan(pts, val, self.device_role, self.read_roles)
 
     def stored_point(self, value: Any) -> float:
         return float(value)
@@ -122,8 +137,8 @@ class AngleProcedure(PointProcedure[float]):
         self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool
     ) -> Columns:
         by_device: dict[int, list[SettledPoint]] = {}
-        for p in points:
-            by_device.setdefault(p.device_id, []).append(p)
+        for point in points:
+            by_device.setdefault(point.device_id, []).append(point)
         request = job.parameters["request"]
         return columns(self, by_device, job.parameters["device_ids"], request.get("reference"))
 
@@ -143,79 +158,129 @@ TURNTABLE = AngleProcedure(
 )
 
 
+def _with_half_turns(
+    req: CalibrationRequest, angles: list[float], validation_angles: list[float]
+) -> tuple[list[float], list[float]]:
+    """A turntable job's fit and validation angles, each followed by its half-turn (points 2k and
+    2k + 1); such a job needs the axis reference."""
+    if req.reference is None:
+        raise RequestProblem(
+            "reference",
+            'a turntable job needs the axis reference: {"north_arcsec": ..., "east_arcsec": ...}',
+        )
+    return (
+        [angle for azimuth in angles for angle in (azimuth, azimuth + 180.0)],
+        [angle for azimuth in validation_angles for angle in (azimuth, azimuth + 180.0)],
+    )
+
+
 async def measure_angle(ctx: JobContext, proc: AngleProcedure, index: int, angle: float) -> None:
     bench, st = ctx.bench, ctx.request.settle
     began = bench.clock.monotonic()
-    if proc.bench_kind == "stage":
-        lo, _ = proc.travel(bench)
-        await bench.move_stage(max(angle - APPROACH_SCALE_DEG, lo), 0.0)
-        reached, _ = await bench.move_stage(angle, 0.0)
-        settle_roles: tuple[str, ...] = ("reference_sensor",)
-        tol = st.tolerance_deg
-    else:
-        await bench.move_rotary(angle - APPROACH_ROTARY_DEG)
-        reached = await bench.move_rotary(angle)
-        settle_roles = proc.read_roles
-        tol = st.tolerance_deg
-        if proc is ROTATION:
-            tol = math.radians(tol)  # sines: a small angle in radians
+    reached, settle_roles, tol = await _approach(bench, proc, angle, st.tolerance_deg)
     # when the controller was found standing (see measure_stage_point)
     stood = bench.stopped_bench_s
     t0 = await settle(
         bench, settle_roles, tolerance_deg=tol, window_s=st.window_s, timeout_s=st.timeout_s
     )
     n = ctx.request.samples_per_point
-    timeout = max(5.0, 20 * n * max(bench.output_interval_s(r) for r in proc.read_roles))
+    timeout = max(5.0, 20 * n * max(bench.output_interval_s(role) for role in proc.read_roles))
     got = await asyncio.gather(
-        *(fresh_readings(bench, r, n, after_bench_s=t0, timeout_s=timeout) for r in proc.read_roles)
+        *(
+            fresh_readings(bench, role, n, after_bench_s=t0, timeout_s=timeout)
+            for role in proc.read_roles
+        )
     )
     ctx.bench_time.add(
         moving=stood - began,
         settling=t0 - stood,
-        reading=max(r.bench_s for readings in got for r in readings) - t0,
+        reading=max(reading.bench_s for readings in got for reading in readings) - t0,
     )
+    _check_adc_range(bench, proc.read_roles, got, angle)
+    to_epoch = bench_epoch(bench)
+    rows: list[Sample] = []
+    settled: dict[int, dict[str, Any]] = {}
     for role, readings in zip(proc.read_roles, got):
+        dev = bench.device_ids[role]
+        for reading in readings:
+            x, y, z = _channels(reading)
+            rows.append(
+                Sample(
+                    dev,
+                    to_epoch(reading.bench_s),
+                    x,
+                    y,
+                    z,
+                    reading.temp_c,
+                    ctx.job_id,
+                    index,
+                    "calibration",
+                )
+            )
+        settled[dev] = _settled_means(readings, index, reached, to_epoch)
+    await ctx.db(store_point, ctx.store, ctx.job_id, index, rows, settled)
+
+
+async def _approach(
+    bench: BenchRuntime, proc: AngleProcedure, angle: float, tolerance_deg: float
+) -> tuple[float, tuple[str, ...], float]:
+    """Move to `angle` from below (backlash taken up on one side): the angle reached, the roles that
+    settle there and the tolerance they settle to."""
+    if proc.bench_kind == "stage":
+        lo, _ = proc.travel(bench)
+        await bench.move_stage(max(angle - APPROACH_SCALE_DEG, lo), 0.0)
+        reached, _ = await bench.move_stage(angle, 0.0)
+        return reached, ("reference_sensor",), tolerance_deg
+    await bench.move_rotary(angle - APPROACH_ROTARY_DEG)
+    reached = await bench.move_rotary(angle)
+    if proc is ROTATION:
+        # sines: a small angle in radians
+        return reached, proc.read_roles, math.radians(tolerance_deg)
+    return reached, proc.read_roles, tolerance_deg
+
+
+def _check_adc_range(
+    bench: BenchRuntime, roles: tuple[str, ...], got: Sequence[list[Reading]], angle: float
+) -> None:
+    """InputError when the ADC sensor read the end of its range: the grid reaches beyond what it
+    measures."""
+    for role, readings in zip(roles, got):
         if role == "adc_sensor" and any(
-            r.counts is not None and not 0 < r.counts < ADC_FULL_COUNTS for r in readings
+            reading.counts is not None and not 0 < reading.counts < ADC_FULL_COUNTS
+            for reading in readings
         ):
             raise InputError(
                 f"adc_sensor on {bench.port_of(role)} is at the end of its range (0 or "
                 f"{ADC_FULL_COUNTS}"
                 f" counts) at {angle:g} deg: the grid reaches beyond what the sensor measures"
             )
-    to_epoch = bench_epoch(bench)
-    rows: list[Sample] = []
-    settled: dict[int, dict[str, Any]] = {}
-    for role, readings in zip(proc.read_roles, got):
-        dev = bench.device_ids[role]
-        for r in readings:
-            x, y, z = _channels(r)
-            rows.append(
-                Sample(
-                    dev, to_epoch(r.bench_s), x, y, z, r.temp_c, ctx.job_id, index, "calibration"
-                )
-            )
-        a = robust_mean(readings)
-        m: list[float | None] = [*a.mean, *[None] * (3 - len(a.mean))]
-        sd: list[float | None] = [*a.std, *[None] * (3 - len(a.std))]
-        if len(a.mean) == 1:  # one channel (ADC counts): ch_y is stored as 0
-            m[1], sd[1] = 0.0, None
-        settled[dev] = {
-            "point": index,
-            "cmd_x_deg": reached,
-            "cmd_y_deg": None,
-            "n_samples": a.n_used,
-            "t_start_s": to_epoch(a.t_start_s),
-            "t_end_s": to_epoch(a.t_end_s),
-            "ch_x_mean": m[0],
-            "ch_y_mean": m[1],
-            "ch_z_mean": m[2],
-            "ch_x_std": sd[0],
-            "ch_y_std": sd[1],
-            "ch_z_std": sd[2],
-            "temp_c_mean": a.temp_c,
-        }
-    await ctx.db(store_point, ctx.store, ctx.job_id, index, rows, settled)
+
+
+def _settled_means(
+    readings: list[Reading], index: int, reached: float, to_epoch: Callable[[float], float]
+) -> dict[str, Any]:
+    """One device's settled point: its readings averaged after the outlier rule, three channels
+    (the missing ones None; one ADC channel stores ch_y as 0)."""
+    averaged = robust_mean(readings)
+    means: list[float | None] = [*averaged.mean, *[None] * (3 - len(averaged.mean))]
+    stds: list[float | None] = [*averaged.std, *[None] * (3 - len(averaged.std))]
+    if len(averaged.mean) == 1:  # one channel (ADC counts): ch_y is stored as 0
+        means[1], stds[1] = 0.0, None
+    return {
+        "point": index,
+        "cmd_x_deg": reached,
+        "cmd_y_deg": None,
+        "n_samples": averaged.n_used,
+        "t_start_s": to_epoch(averaged.t_start_s),
+        "t_end_s": to_epoch(averaged.t_end_s),
+        "ch_x_mean": means[0],
+        "ch_y_mean": means[1],
+        "ch_z_mean": means[2],
+        "ch_x_std": stds[0],
+        "ch_y_std": stds[1],
+        "ch_z_std": stds[2],
+        "temp_c_mean": averaged.temp_c,
+    }
 
 
 def _channels(r: Reading) -> tuple[float, float, float | None]:
@@ -247,34 +312,63 @@ def columns(
 ) -> Columns:
     """The dataset columns of a job's settled points, as `tiltlab calibrate` reads them."""
     if proc.name == "turntable":
-        pts = {p.point: p for p in points_by_device.get(device_ids["turntable_sensor"], [])}
-        pairs = [(pts[k], pts[k + 1]) for k in sorted(pts) if k % 2 == 0 and k + 1 in pts]
-        axis = reference or {"north_arcsec": float("nan"), "east_arcsec": float("nan")}
-        return {
-            "cycle": np.zeros(len(pairs)),
-            "azimuth_deg": np.array([a.cmd_x_deg for a, _ in pairs]),
-            "n1_a": np.array([mrad(a.ch_x_mean) for a, _ in pairs]),
-            "n2_a": np.array([mrad(a.ch_y_mean) for a, _ in pairs]),
-            "n1_b": np.array([mrad(b.ch_x_mean) for _, b in pairs]),
-            "n2_b": np.array([mrad(b.ch_y_mean) for _, b in pairs]),
-            "ref_north_arcsec": np.full(len(pairs), axis["north_arcsec"]),
-            "ref_east_arcsec": np.full(len(pairs), axis["east_arcsec"]),
-        }
+        return _turntable_columns(
+            points_by_device.get(device_ids["turntable_sensor"], []), reference
+        )
     if proc.name == "scale":
-        ref = {p.point: p for p in points_by_device.get(device_ids["reference_sensor"], [])}
-        adc = [p for p in points_by_device.get(device_ids["adc_sensor"], []) if p.point in ref]
-        return {
-            "point": np.array([p.point for p in adc], dtype=float),
-            "ref_arcsec": np.array([ref[p.point].ch_x_mean * 3600.0 for p in adc]),
-            "reading": np.array([p.ch_x_mean for p in adc]),
-        }
-    tri = points_by_device.get(device_ids["triaxial_sensor"], [])
+        return _scale_columns(
+            points_by_device.get(device_ids["reference_sensor"], []),
+            points_by_device.get(device_ids["adc_sensor"], []),
+        )
+    return _rotation_columns(points_by_device.get(device_ids["triaxial_sensor"], []))
+
+
+def _turntable_columns(points: list[SettledPoint], reference: dict[str, float] | None) -> Columns:
+    """A turntable job's columns: each azimuth a whose half-turn was read too, the two readings in
+    milliradians as the inclinometer sent them, and the stated axis reference."""
+    pairs = _half_turn_pairs(points)
+    axis = reference or {"north_arcsec": float("nan"), "east_arcsec": float("nan")}
     return {
-        "point": np.array([p.point for p in tri], dtype=float),
-        "theta_ref_deg": np.array([p.cmd_x_deg for p in tri]),
-        "sx": np.array([p.ch_x_mean for p in tri]),
-        "sy": np.array([p.ch_y_mean for p in tri]),
-        "sz": np.array([p.ch_z_mean for p in tri]),
+        "cycle": np.zeros(len(pairs)),
+        "azimuth_deg": np.array([at_a.cmd_x_deg for at_a, _ in pairs]),
+        "n1_a": np.array([mrad(at_a.ch_x_mean) for at_a, _ in pairs]),
+        "n2_a": np.array([mrad(at_a.ch_y_mean) for at_a, _ in pairs]),
+        "n1_b": np.array([mrad(at_b.ch_x_mean) for _, at_b in pairs]),
+        "n2_b": np.array([mrad(at_b.ch_y_mean) for _, at_b in pairs]),
+        "ref_north_arcsec": np.full(len(pairs), axis["north_arcsec"]),
+        "ref_east_arcsec": np.full(len(pairs), axis["east_arcsec"]),
+    }
+
+
+def _half_turn_pairs(points: list[SettledPoint]) -> list[tuple[SettledPoint, SettledPoint]]:
+    """Each azimuth's point (2k) with its half-turn's (2k + 1), where both were read."""
+    by_point = {point.point: point for point in points}
+    return [
+        (by_point[k], by_point[k + 1]) for k in sorted(by_point) if k % 2 == 0 and k + 1 in by_point
+    ]
+
+
+def _scale_columns(ref_points: list[SettledPoint], adc_points: list[SettledPoint]) -> Columns:
+    """A scale job's columns: the ADC reading at each point the reference sensor read too, against
+    the reference's x in arcseconds."""
+    ref = {point.point: point for point in ref_points}
+    adc = [point for point in adc_points if point.point in ref]
+    return {
+        "point": np.array([point.point for point in adc], dtype=float),
+        "ref_arcsec": np.array([ref[point.point].ch_x_mean * 3600.0 for point in adc]),
+        "reading": np.array([point.ch_x_mean for point in adc]),
+    }
+
+
+def _rotation_columns(tri: list[SettledPoint]) -> Columns:
+    """A rotation job's columns: the triaxial module's three channels against the rotary table's
+    angle."""
+    return {
+        "point": np.array([point.point for point in tri], dtype=float),
+        "theta_ref_deg": np.array([point.cmd_x_deg for point in tri]),
+        "sx": np.array([point.ch_x_mean for point in tri]),
+        "sy": np.array([point.ch_y_mean for point in tri]),
+        "sz": np.array([point.ch_z_mean for point in tri]),
     }
 
 
@@ -299,34 +393,34 @@ def validation(
             "max_deg": float(err.max()),
             "compared_with": "the stated axis reference (north, east) at each validation azimuth",
             "points": [
-                {"azimuth_deg": float(a), "error_deg": float(e)}
-                for a, e in zip(cols["azimuth_deg"], err)
+                {"azimuth_deg": float(azimuth), "error_deg": float(error)}
+                for azimuth, error in zip(cols["azimuth_deg"], err)
             ],
         }
     if proc.name == "scale":
-        q, ref, meas = "angle_arcsec", cols["ref_arcsec"], out["angle_arcsec"]
+        quantity, ref, meas = "angle_arcsec", cols["ref_arcsec"], out["angle_arcsec"]
         err = (meas - ref) / 3600.0
         against = "reference sensor x reading at each validation point"
-        u = out.get("u_angle_arcsec")
+        u_meas = out.get("u_angle_arcsec")
     else:
-        d = out["theta_deg"] - cols["theta_ref_deg"]
-        err = (d + 180.0) % 360.0 - 180.0
-        q, ref = "theta_deg", cols["theta_ref_deg"]
+        turned = out["theta_deg"] - cols["theta_ref_deg"]
+        err = (turned + 180.0) % 360.0 - 180.0
+        quantity, ref = "theta_deg", cols["theta_ref_deg"]
         meas = ref + err  # the measured angle on the reference's turn
         against = "rotary table angle at each validation point"
-        u = out.get("u_theta_deg")
+        u_meas = out.get("u_theta_deg")
     points = []
-    for i, p in enumerate(cols["point"]):
+    for i, point_number in enumerate(cols["point"]):
         # reference, corrected measurement and its expanded uncertainty: a certificate's validation
         # table
         point = {
-            "point": int(p),
+            "point": int(point_number),
             "error_deg": float(abs(err[i])),
-            f"reference_{q}": float(ref[i]),
-            f"measured_{q}": float(meas[i]),
+            f"reference_{quantity}": float(ref[i]),
+            f"measured_{quantity}": float(meas[i]),
         }
-        if u is not None:
-            point[f"u_{q}"] = float(u[i])
+        if u_meas is not None:
+            point[f"u_{quantity}"] = float(u_meas[i])
         points.append(point)
     err = np.abs(err)
     return {

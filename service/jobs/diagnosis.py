@@ -71,8 +71,8 @@ class Running:
 def gap(residuals: NDArray[np.float64]) -> dict[str, float]:
     """The gap between model and measured points as one angle per point (x and y together): its RMS
     and maximum."""
-    r = np.hypot(residuals[:, 0], residuals[:, 1])
-    return {"rms": float(np.sqrt(np.mean(r**2))), "max": float(np.max(r))}
+    per_point = np.hypot(residuals[:, 0], residuals[:, 1])
+    return {"rms": float(np.sqrt(np.mean(per_point**2))), "max": float(np.max(per_point))}
 
 
 @dataclass(frozen=True)
@@ -125,12 +125,12 @@ def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
     named = list(report["named_effects"])
     seen = seen_labels_of(result.steps)
     verdicts = [
-        a.as_dict()
-        for a in adoption(
+        verdict.as_dict()
+        for verdict in adoption(
             w.columns, named, w.sensor, bench, w.bench_source, w.have, seen, w.keep, w.worm_axes
         )
     ]
-    by_effect = {a["effect"]: a for a in verdicts}
+    by_effect = {verdict["effect"]: verdict for verdict in verdicts}
     hw = bench or StageBench()
     data = StageData.from_columns(w.columns, w.sensor, hw)
     needs = needs_of(report, fam.active, verdicts, WEAK_SEPARABILITY, data)
@@ -143,11 +143,11 @@ def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
         "noise_source": report["noise_source"],
         "effects": [
             {
-                "effect": s["effect"],
-                "summary": s["summary"],
-                "magnitude": s["magnitude"],
+                "effect": step["effect"],
+                "summary": step["summary"],
+                "magnitude": step["magnitude"],
                 "evidence": {
-                    k: s["evidence"].get(k)
+                    k: step["evidence"].get(k)
                     for k in (
                         "test",
                         "f_stat",
@@ -158,25 +158,25 @@ def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
                         "where_before",
                     )
                 },
-                "rms_before_deg": s["rms_before"],
-                "rms_after_deg": s["rms_after"],
-                "adoptable": by_effect.get(s["effect"], {}).get("adoptable", False),
-                "adoption": by_effect.get(s["effect"], {}).get("reason"),
-                "measurement": by_effect.get(s["effect"], {}).get("measurement"),
+                "rms_before_deg": step["rms_before"],
+                "rms_after_deg": step["rms_after"],
+                "adoptable": by_effect.get(step["effect"], {}).get("adoptable", False),
+                "adoption": by_effect.get(step["effect"], {}).get("reason"),
+                "measurement": by_effect.get(step["effect"], {}).get("measurement"),
             }
-            for s in report["steps"]
+            for step in report["steps"]
         ],
         "steps": [
             {
-                "effect": s["effect"],
-                "summary": s["summary"],
-                "rms_before_deg": s["rms_before"],
-                "rms_after_deg": s["rms_after"],
+                "effect": step["effect"],
+                "summary": step["summary"],
+                "rms_before_deg": step["rms_before"],
+                "rms_after_deg": step["rms_after"],
             }
-            for s in report["steps"]
+            for step in report["steps"]
         ],
         "untestable": report["skipped"],
-        "adoptable": any(a["adoptable"] for a in verdicts),
+        "adoptable": any(verdict["adoptable"] for verdict in verdicts),
         "adoption": verdicts,
         "measurement_plan": plan.as_dict(),
         "n_points": int(len(result.fits[0].residuals)),
@@ -193,8 +193,8 @@ def residual_maps(
     """The residual (measured - model) at every point diagnosed, with the baseline alone and with
     the named effects: the two maps a page draws side by side to show the gap shrink."""
 
-    def rows(a: NDArray[np.float64]) -> list[list[float]]:
-        return [[round(float(u), 9), round(float(v), 9)] for u, v in np.asarray(a, dtype=float)]
+    def rows(pairs: NDArray[np.float64]) -> list[list[float]]:
+        return [[round(float(x), 9), round(float(y), 9)] for x, y in np.asarray(pairs, dtype=float)]
 
     pts = np.column_stack([columns["stage_x_deg"], columns["stage_y_deg"]])
     dirs = np.column_stack(
@@ -281,6 +281,124 @@ def _worker_start(parent_pid: int) -> None:
     threading.Thread(target=watch, name="tiltlab-worker-parent-watch", daemon=True).start()
 
 
+def _diagnosis_command(
+    diagnosis: Diagnosis, record: CalibrationRecord, extra_jobs: list[int]
+) -> str:
+    """The diagnosis in words, as its report states its input: the record, the measurement jobs
+    whose points were added, the sensor and the baseline."""
+    extra = (
+        f", with the points of measurement job{'s' * (len(extra_jobs) > 1)} "
+        f"{', '.join(map(str, extra_jobs))}"
+        if extra_jobs
+        else ""
+    )
+    return (
+        f"diagnosis {diagnosis.id} of record {record.id}{extra} (sensor {diagnosis.sensor}, "
+        f"baseline {diagnosis.baseline})"
+    )
+
+
+def _worm_axes(model: dict[str, Any]) -> tuple[str, ...]:
+    """The stages whose worm (periodic) error the record fits already: any of its terms free."""
+    return tuple(
+        ax
+        for ax in ("x", "y")
+        if any(
+            not (
+                model.get("parameters", {}).get(f"periodic_error.{ax}_{t}_deg") or {"fixed": True}
+            ).get("fixed", False)
+            for t in ("sin", "cos", "amp")
+        )
+    )
+
+
+def _measurement_summary(first: dict[str, Any], extra_jobs: list[int]) -> dict[str, Any]:
+    """What a `measure` diagnosis keeps of its measurement: the plan, the job that measured it,
+    and the first look's figures from the record's points alone."""
+    return {
+        "plan": first["measurement_plan"],
+        "job_id": extra_jobs[0] if extra_jobs else None,
+        "before": {
+            k: first.get(k)
+            for k in (
+                "named_effects",
+                "gap_before_deg",
+                "gap_after_deg",
+                "untestable",
+                "adoptable",
+                "adoption",
+                "n_points",
+            )
+        },
+    }
+
+
+def _measurement_jobs(summary: dict[str, Any]) -> list[int]:
+    """The measurement jobs whose points a diagnosis added to the record's."""
+    return [int(j) for j in (summary.get("data") or {}).get("measurement_job_ids", [])]
+
+
+def _progress(
+    result: DiagnosisResult | None, run: Running | None
+) -> tuple[str, str | None, dt.datetime | None]:
+    """A diagnosis's state, phase and start: as stored once it ended, else as the daemon follows
+    it (a diagnosis neither stored nor followed failed: the daemon stopped meanwhile)."""
+    if result is not None:
+        return result.state, None, result.started_at
+    if run is None:
+        return "failed", None, None
+    return run.state, run.phase, run.started_at
+
+
+def _measurement_shown(summary: dict[str, Any], run: Running | None) -> Any:
+    """The measurement a diagnosis shows: as stored, else (a `measure` diagnosis still running) the
+    plan and the job so far."""
+    measurement = summary.get("measurement")
+    if measurement is None and run is not None and run.measure:
+        return {"plan": run.plan, "job_id": run.job_id}
+    return measurement
+
+
+def _effects_to_add(named: list[str], sensor: str, have: frozenset[str]) -> list[str]:
+    """The named effects the record can add, as they are; ConflictError (409) with the reason when
+    it can add none of them."""
+    try:
+        return effects_to_add(named, sensor, have)
+    except InputError as exc:
+        raise ConflictError(str(exc)) from None
+
+
+def _blocked(verdicts: list[dict[str, Any]], have: frozenset[str]) -> list[dict[str, Any]]:
+    """The verdicts on effects the record could add (neither in the chain nor fitted already) that
+    these points do not let it adopt."""
+    return [
+        verdict
+        for verdict in verdicts
+        if not verdict.get("adoptable")
+        and verdict["effect"] not in IN_CHAIN
+        and verdict["effect"] not in have
+    ]
+
+
+def _why_blocked(blocked: list[dict[str, Any]]) -> str:
+    """Each blocked effect with the reason, and the measurement that would let it be adopted."""
+    return "; ".join(
+        f"{verdict['effect']}: {verdict['reason']}"
+        + (f" (what would: {verdict['measurement']})" if verdict.get("measurement") else "")
+        for verdict in blocked
+    )
+
+
+def _why_not_adoptable(summary: dict[str, Any], effect: str) -> str:
+    """The reason the diagnosis gave for not finding `effect` adoptable, as a ": ..." suffix (empty
+    without one)."""
+    verdict = next(
+        (verdict for verdict in summary.get("adoption") or [] if verdict.get("effect") == effect),
+        None,
+    )
+    return f": {verdict['reason']}" if verdict is not None and verdict.get("reason") else ""
+
+
 class DiagnosesBusy(RuntimeError):
     """As many diagnoses as the daemon takes are queued or running already."""
 
@@ -356,16 +474,18 @@ class DiagnosisRunner:
         self._refuse_when_busy()
         if measure:
             self.bench_for(record)
-        d: Diagnosis = await asyncio.to_thread(
+        diagnosis: Diagnosis = await asyncio.to_thread(
             self.store.diagnoses.create_diagnosis,
             record.id,
             sensor=sensor,
             baseline=baseline,
             actor=actor,
         )
-        run = self.running[d.id] = Running(measure=measure)
-        run.task = asyncio.create_task(self._run(d, record, actor), name=f"diagnosis {d.id}")
-        return d
+        run = self.running[diagnosis.id] = Running(measure=measure)
+        run.task = asyncio.create_task(
+            self._run(diagnosis, record, actor), name=f"diagnosis {diagnosis.id}"
+        )
+        return diagnosis
 
     def _refuse_when_busy(self) -> None:
         if len(self.running) + self.planning >= self.max_diagnoses:
@@ -423,23 +543,7 @@ class DiagnosisRunner:
             extra_jobs: list[int] = []
             first: dict[str, Any] | None = None
             if run.measure:
-                run.phase = "planning"
-                inputs = await asyncio.to_thread(self._inputs, d, record, [])
-                looked, _ = await loop.run_in_executor(self._executor(), run_workflow, inputs)
-                first = looked
-                plan = run.plan = looked["measurement_plan"]
-                if plan["n_points"]:
-                    run.phase = "measuring"
-                    job = await self._measure(d, record, plan, actor)
-                    run.job_id = job.id
-                    ended = await self.jobs.wait_for(job.id)
-                    if ended.state != JobState.SUCCEEDED:
-                        raise InputError(
-                            f"the planned measurement (job {job.id}) {ended.state}"
-                            + (f": {ended.failure_reason}" if ended.failure_reason else "")
-                            + "; its points are kept, the diagnosis is not made"
-                        )
-                    extra_jobs.append(job.id)
+                first, extra_jobs = await self._look_and_measure(d, record, actor, run)
             run.phase = "loading"
             inputs = await asyncio.to_thread(self._inputs, d, record, extra_jobs)
             run.phase = "analysing"
@@ -451,22 +555,7 @@ class DiagnosisRunner:
                 "n_points": summary.get("n_points"),
             }
             if first is not None:
-                summary["measurement"] = {
-                    "plan": first["measurement_plan"],
-                    "job_id": extra_jobs[0] if extra_jobs else None,
-                    "before": {
-                        k: first.get(k)
-                        for k in (
-                            "named_effects",
-                            "gap_before_deg",
-                            "gap_after_deg",
-                            "untestable",
-                            "adoptable",
-                            "adoption",
-                            "n_points",
-                        )
-                    },
-                }
+                summary["measurement"] = _measurement_summary(first, extra_jobs)
             run.phase = "storing"
             await asyncio.to_thread(
                 self.store.diagnoses.finish_diagnosis,
@@ -488,23 +577,52 @@ class DiagnosisRunner:
             )
             if not isinstance(exc, InputError | BenchBusy):
                 log.exception("diagnosis %s failed", d.id)
-            try:
-                await asyncio.to_thread(
-                    self.store.diagnoses.finish_diagnosis,
-                    d.id,
-                    state="failed",
-                    started_at=run.started_at,
-                    summary={"measurement": {"plan": run.plan, "job_id": run.job_id}}
-                    if run.plan
-                    else {},
-                    report_html=None,
-                    error=reason,
-                    actor="daemon",
-                )
-            except Exception:
-                log.exception("diagnosis %s: the failure could not be stored", d.id)
+            await self._store_failure(d, run, reason)
         finally:
             self.running.pop(d.id, None)
+
+    async def _look_and_measure(
+        self, diagnosis: Diagnosis, record: CalibrationRecord, actor: str, run: Running
+    ) -> tuple[dict[str, Any], list[int]]:
+        """A `measure` diagnosis's first look at the record's points, then the measurement it plans
+        run as a job (when the plan has points): the look, and the job whose points it adds."""
+        run.phase = "planning"
+        loop = asyncio.get_running_loop()
+        inputs = await asyncio.to_thread(self._inputs, diagnosis, record, [])
+        looked, _ = await loop.run_in_executor(self._executor(), run_workflow, inputs)
+        plan = run.plan = looked["measurement_plan"]
+        if not plan["n_points"]:
+            return looked, []
+        run.phase = "measuring"
+        job = await self._measure(diagnosis, record, plan, actor)
+        run.job_id = job.id
+        ended = await self.jobs.wait_for(job.id)
+        if ended.state != JobState.SUCCEEDED:
+            raise InputError(
+                f"the planned measurement (job {job.id}) {ended.state}"
+                + (f": {ended.failure_reason}" if ended.failure_reason else "")
+                + "; its points are kept, the diagnosis is not made"
+            )
+        return looked, [job.id]
+
+    async def _store_failure(self, diagnosis: Diagnosis, run: Running, reason: str) -> None:
+        """The diagnosis stored as failed with the reason (and the measurement it planned, if any);
+        a failure that cannot be stored is logged, the daemon goes on."""
+        try:
+            await asyncio.to_thread(
+                self.store.diagnoses.finish_diagnosis,
+                diagnosis.id,
+                state="failed",
+                started_at=run.started_at,
+                summary={"measurement": {"plan": run.plan, "job_id": run.job_id}}
+                if run.plan
+                else {},
+                report_html=None,
+                error=reason,
+                actor="daemon",
+            )
+        except Exception:
+            log.exception("diagnosis %s: the failure could not be stored", diagnosis.id)
 
     async def _measure(
         self, d: Diagnosis, record: CalibrationRecord, plan: dict[str, Any], actor: str
@@ -520,7 +638,9 @@ class DiagnosisRunner:
             "bench": bench.name,
             "procedure": "stage-grid",
             "method": record.method,
-            "grid": {"points": [[p["stage_x_deg"], p["stage_y_deg"]] for p in plan["points"]]},
+            "grid": {
+                "points": [[point["stage_x_deg"], point["stage_y_deg"]] for point in plan["points"]]
+            },
             "samples_per_point": own.get("samples_per_point", 10),
             "validation": {"n_points": 0},
             "note": f"the measurement diagnosis {d.id} of record {record.id} planned",
@@ -530,7 +650,8 @@ class DiagnosisRunner:
         # how each point is settled and read: a stage grid's rules
         CalibrationRequest.model_validate(request)
         points = [
-            [p["stage_x_deg"], p["stage_y_deg"], p["dir_x"], p["dir_y"]] for p in plan["points"]
+            [point["stage_x_deg"], point["stage_y_deg"], point["dir_x"], point["dir_y"]]
+            for point in plan["points"]
         ]
         return await self.jobs.submit_measurement(
             bench,
@@ -552,82 +673,63 @@ class DiagnosisRunner:
         noise of a point, the bench the points came from and what the record fits already."""
         assert record.job_id is not None
         n_fit = int((record.raw_data or {}).get("fit_points", 10**9))
-        cols = merged_columns(
-            [self.jobs.fit_columns(record.job_id, n_fit)]
-            + [self.jobs.fit_columns(j, 10**9) for j in extra_jobs]
-        )
+        cols = self._merged_columns(record.job_id, n_fit, extra_jobs)
         job = self.store.jobs.get_job(record.job_id)
 
         # the diagnosed sensor's settled points of a job
         def sensor_points(job_id: int) -> list[Any]:
             return [
-                p
-                for p in self.store.points.settled_points(job_id)
-                if (p.device_id == job.device_id) == (d.sensor == "meas")
+                point
+                for point in self.store.points.settled_points(job_id)
+                if (point.device_id == job.device_id) == (d.sensor == "meas")
             ]
 
-        own_points = [p for p in sensor_points(record.job_id) if p.point < n_fit]
+        own_points = [point for point in sensor_points(record.job_id) if point.point < n_fit]
         model = record.model or {}
         state = model.get("state", {})
         bench = state.get("bench")
         source = f"record {record.id}'s bench ({state.get('bench_source', 'as calibrated')})"
-        extra = (
-            f", with the points of measurement job{'s' * (len(extra_jobs) > 1)} "
-            f"{', '.join(map(str, extra_jobs))}"
-            if extra_jobs
-            else ""
-        )
-        command = (
-            f"diagnosis {d.id} of record {record.id}{extra} (sensor {d.sensor}, baseline "
-            f"{d.baseline})"
-        )
         speed = float(((record.raw_data or {}).get("conditions") or {}).get("clock_speed") or 1.0)
         per, source_text = seconds_per_point(own_points, speed)
-        worm = tuple(
-            ax
-            for ax in ("x", "y")
-            if any(
-                not (
-                    model.get("parameters", {}).get(f"periodic_error.{ax}_{t}_deg")
-                    or {"fixed": True}
-                ).get("fixed", False)
-                for t in ("sin", "cos", "amp")
-            )
-        )
         return WorkflowInputs(
             cols,
             d.sensor,
             d.baseline,
             bench,
             source,
-            command,
+            _diagnosis_command(d, record, extra_jobs),
             frozenset(record_effects(model)),
             tuple(state.get("added_effects", [])),
-            worm,
+            _worm_axes(model),
             per,
             source_text,
+        )
+
+    def _merged_columns(
+        self, job_id: int, n_fit: int, extra_jobs: list[int]
+    ) -> dict[str, NDArray[np.float64]]:
+        """Blocking (database): the first `n_fit` points of the record's job and every point of the
+        measurement jobs made for it, as one set of columns."""
+        return merged_columns(
+            [self.jobs.fit_columns(job_id, n_fit)]
+            + [self.jobs.fit_columns(j, 10**9) for j in extra_jobs]
         )
 
     def state_of(self, d: Diagnosis, result: DiagnosisResult | None) -> dict[str, Any]:
         """The diagnosis as GET /diagnoses/{id} shows it."""
         summary = result.summary if result is not None else {}
         run = self.running.get(d.id)
-        state = result.state if result is not None else (run.state if run is not None else "failed")
-        measurement = summary.get("measurement")
-        if measurement is None and run is not None and run.measure:
-            measurement = {"plan": run.plan, "job_id": run.job_id}
+        state, phase, started = _progress(result, run)
         return {
             "id": d.id,
             "record_id": d.record_id,
             "sensor": d.sensor,
             "baseline": d.baseline,
             "state": state,
-            "phase": None if result is not None or run is None else run.phase,
+            "phase": phase,
             "created_utc": d.created_at,
             "created_by": d.created_by,
-            "started_utc": result.started_at
-            if result is not None
-            else (run.started_at if run else None),
+            "started_utc": started,
             "finished_utc": result.finished_at if result is not None else None,
             "named_effects": summary.get("named_effects", []),
             "effects": summary.get("effects", []),
@@ -640,7 +742,7 @@ class DiagnosisRunner:
             "adoptable": summary.get("adoptable"),
             "adoption": summary.get("adoption", []),
             "measurement_plan": summary.get("measurement_plan"),
-            "measurement": measurement,
+            "measurement": _measurement_shown(summary, run),
             "residual_maps": summary.get("residual_maps"),
             "data": summary.get("data"),
             "conclusion": summary.get("conclusion"),
@@ -655,42 +757,30 @@ class DiagnosisRunner:
         calibration code, with its validation figures (a draft like any new record). 409 when the
         diagnosis named nothing the record can adopt, or a chosen effect it did not find adoptable,
         with the reason."""
-        d, result = await asyncio.to_thread(self.store.diagnoses.get_diagnosis, diagnosis_id)
-        if result is None or result.state != "succeeded":
-            state = "running" if result is None else f"failed ({result.error})"
-            raise ConflictError(
-                f"diagnosis {diagnosis_id} is {state}: only a finished diagnosis can be adopted"
-            )
-        record = await asyncio.to_thread(self.store.records.get_record, d.record_id)
+        diagnosis, result = await self._succeeded(diagnosis_id)
+        record = await asyncio.to_thread(self.store.records.get_record, diagnosis.record_id)
         assert record.job_id is not None  # a diagnosed record has stored points
         model_doc_before = record.model or {}
         state = model_doc_before.get("state", {})
         have = frozenset(record_effects(model_doc_before))
         named = list(result.summary.get("named_effects", []))
-        effects = self._adoptable(diagnosis_id, result.summary, named, d.sensor, have)
+        effects = self._adoptable(diagnosis_id, result.summary, named, diagnosis.sensor, have)
         if chosen is not None:
             effects = self._chosen(diagnosis_id, result.summary, named, effects, chosen)
         raw = dict(record.raw_data or {})
         n_fit = int(raw.get("fit_points", 10**9))
-        extra_jobs = [
-            int(j) for j in (result.summary.get("data") or {}).get("measurement_job_ids", [])
-        ]
-        cols = await asyncio.to_thread(
-            lambda: merged_columns(
-                [self.jobs.fit_columns(record.job_id or 0, n_fit)]
-                + [self.jobs.fit_columns(j, 10**9) for j in extra_jobs]
-            )
-        )
+        extra_jobs = _measurement_jobs(result.summary)
+        cols = await asyncio.to_thread(self._merged_columns, record.job_id, n_fit, extra_jobs)
         if "bench" not in state:
             raise ConflictError(f"record {record.id} does not state the bench it was calibrated on")
         source = f"record {record.id}'s bench ({state.get('bench_source', 'as calibrated')})"
         origin = {
-            "id": d.id,
+            "id": diagnosis.id,
             "record_id": record.id,
-            "sensor": d.sensor,
-            "baseline": d.baseline,
+            "sensor": diagnosis.sensor,
+            "baseline": diagnosis.baseline,
             "measurement_job_ids": extra_jobs,
-            "what": f"diagnosis {d.id} of record {record.id} (v{record.version})",
+            "what": f"diagnosis {diagnosis.id} of record {record.id} (v{record.version})",
         }
         loop = asyncio.get_running_loop()
         try:
@@ -699,7 +789,7 @@ class DiagnosisRunner:
                 fit_adopted,
                 cols,
                 effects,
-                d.sensor,
+                diagnosis.sensor,
                 state["bench"],
                 source,
                 origin,
@@ -712,23 +802,11 @@ class DiagnosisRunner:
         except InputError as exc:  # a diagnosis stored before adoption was decided with it
             raise ConflictError(f"diagnosis {diagnosis_id}: {exc}") from None
         method = get_method("stage", "kinematic")
-        model = CalibrationModel.from_json_dict(model_doc, f"diagnosis {d.id}")
+        model = CalibrationModel.from_json_dict(model_doc, f"diagnosis {diagnosis.id}")
         validation = await asyncio.to_thread(
             self.jobs.validate, record.job_id, n_fit, method, model
         )
-        raw.pop("job_id", None)
-        raw.update(
-            {
-                "diagnosis_id": d.id,
-                "added_effects": model.state.get("added_effects", []),
-                "adopted_from_record_id": record.id,
-            }
-        )
-        if extra_jobs:
-            raw["measurement_job_ids"] = extra_jobs
-            raw["measurement_points_sha256"] = await asyncio.to_thread(
-                self.store.points.points_sha256_by_job, extra_jobs
-            )
+        await self._note_adoption(raw, diagnosis, record, model, extra_jobs)
         return await asyncio.to_thread(
             self.store.records.add_record,
             record.device_id,
@@ -743,6 +821,45 @@ class DiagnosisRunner:
             raw_data=raw,
         )
 
+    async def _succeeded(self, diagnosis_id: int) -> tuple[Diagnosis, DiagnosisResult]:
+        """The diagnosis and its result; ConflictError (409) unless it finished successfully (only
+        such a diagnosis can be adopted)."""
+        diagnosis, result = await asyncio.to_thread(
+            self.store.diagnoses.get_diagnosis, diagnosis_id
+        )
+        if result is None or result.state != "succeeded":
+            state = "running" if result is None else f"failed ({result.error})"
+            raise ConflictError(
+                f"diagnosis {diagnosis_id} is {state}: only a finished diagnosis can be adopted"
+            )
+        return diagnosis, result
+
+    async def _note_adoption(
+        self,
+        raw: dict[str, Any],
+        diagnosis: Diagnosis,
+        record: CalibrationRecord,
+        model: CalibrationModel,
+        extra_jobs: list[int],
+    ) -> None:
+        """What the adopted version's raw data says of where it comes from: the diagnosis, the
+        record it was adopted from, the effects added and the measurements (their points' hashes)
+        whose points it was fitted on too. The record's own job is kept by the new version's
+        job_id, not in its raw data."""
+        raw.pop("job_id", None)
+        raw.update(
+            {
+                "diagnosis_id": diagnosis.id,
+                "added_effects": model.state.get("added_effects", []),
+                "adopted_from_record_id": record.id,
+            }
+        )
+        if extra_jobs:
+            raw["measurement_job_ids"] = extra_jobs
+            raw["measurement_points_sha256"] = await asyncio.to_thread(
+                self.store.points.points_sha256_by_job, extra_jobs
+            )
+
     @staticmethod
     def _adoptable(
         diagnosis_id: int,
@@ -756,35 +873,20 @@ class DiagnosisRunner:
         verdicts = summary.get("adoption")
         # a diagnosis stored before adoption was decided with it: the named effects as they are
         if verdicts is None:
-            try:
-                return effects_to_add(named, sensor, have)
-            except InputError as exc:
-                raise ConflictError(str(exc)) from None
-        ok = [str(a["effect"]) for a in verdicts if a.get("adoptable")]
+            return _effects_to_add(named, sensor, have)
+        ok = [str(verdict["effect"]) for verdict in verdicts if verdict.get("adoptable")]
         if ok:
             return ok
-        blocked = [
-            a
-            for a in verdicts
-            if not a.get("adoptable") and a["effect"] not in IN_CHAIN and a["effect"] not in have
-        ]
+        blocked = _blocked(verdicts, have)
         if not blocked:
-            try:
-                effects_to_add(named, sensor, have)
-            except InputError as exc:
-                raise ConflictError(str(exc)) from None
+            _effects_to_add(named, sensor, have)
             raise ConflictError(
                 f"diagnosis {diagnosis_id} named nothing the record can adopt: there is nothing to "
                 "adopt"
             )
-        why = "; ".join(
-            f"{a['effect']}: {a['reason']}"
-            + (f" (what would: {a['measurement']})" if a.get("measurement") else "")
-            for a in blocked
-        )
         raise ConflictError(
-            f"diagnosis {diagnosis_id} named {', '.join(a['effect'] for a in blocked)}, which "
-            f"the record cannot adopt from these points: {why}"
+            f"diagnosis {diagnosis_id} named {', '.join(verdict['effect'] for verdict in blocked)}"
+            f", which the record cannot adopt from these points: {_why_blocked(blocked)}"
         )
 
     @staticmethod
@@ -804,19 +906,11 @@ class DiagnosisRunner:
                     f"{', '.join(named) or 'nothing'}): only a named effect can be adopted"
                 )
             if effect not in adoptable:
-                verdict = next(
-                    (a for a in summary.get("adoption") or [] if a.get("effect") == effect), None
-                )
-                why = (
-                    f": {verdict['reason']}"
-                    if verdict is not None and verdict.get("reason")
-                    else ""
-                )
                 raise ConflictError(
                     f"diagnosis {diagnosis_id} named {effect} but did not find it adoptable from "
-                    f"these points{why}"
+                    f"these points{_why_not_adoptable(summary, effect)}"
                 )
-        return [e for e in adoptable if e in chosen]
+        return [name for name in adoptable if name in chosen]
 
     async def wait(self, diagnosis_id: int) -> None:
         run = self.running.get(diagnosis_id)

@@ -54,10 +54,10 @@ class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
     def columns(
         self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool
     ) -> Columns:
-        meas = [p for p in points if p.device_id == job.device_id]
-        ref = [p for p in points if p.device_id != job.device_id]
+        meas = [point for point in points if point.device_id == job.device_id]
+        ref = [point for point in points if point.device_id != job.device_id]
         cols = stage_columns(ref, meas)
-        planned = [self.stored_point(p) for p in job.parameters["fit_points"]]
+        planned = [self.stored_point(point) for point in job.parameters["fit_points"]]
         index = cols["point"].astype(int)
         cols["dir_x"] = np.array([planned[i][2] for i in index], dtype=float)
         cols["dir_y"] = np.array([planned[i][3] for i in index], dtype=float)
@@ -72,18 +72,14 @@ class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
 
     async def run(self, ctx: JobContext) -> Outcome:
         job, bench = ctx.job, ctx.bench
-        points = [self.stored_point(p) for p in job.parameters["fit_points"]]
-        devices = {read_role: bench.device_ids.get(read_role) for read_role in self.read_roles}
-        if any(device is None for device in devices.values()) or devices != job.parameters.get(
-            "device_ids", devices
-        ):
-            raise InputError(
-                f"the bench's instruments are not those the measurement was planned with "
-                f"({job.parameters.get('device_ids')}); its points cannot be measured with others"
-            )
+        points = [self.stored_point(point) for point in job.parameters["fit_points"]]
+        devices = self._devices_as_planned(job, bench)
         stored = await ctx.db(ctx.store.points.settled_points, job.id)
         done = set.intersection(
-            *({p.point for p in stored if p.device_id == device} for device in devices.values())
+            *(
+                {point.point for point in stored if point.device_id == device}
+                for device in devices.values()
+            )
         )
         await ctx.report(len(done), len(points), Phase.MEASURING)
         for i, point in enumerate(points):
@@ -92,6 +88,21 @@ class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
                 done.add(i)
                 await ctx.report(len(done), len(points), Phase.MEASURING)
         return Outcome(job.device_id, self.kind, None, {}, {}, len(points))
+
+    def _devices_as_planned(
+        self, job: CalibrationJob, bench: BenchRuntime
+    ) -> dict[str, int | None]:
+        """The bench's instruments by role; InputError unless they are those the measurement was
+        planned with (its points are measured with the same ones)."""
+        devices = {read_role: bench.device_ids.get(read_role) for read_role in self.read_roles}
+        if any(device is None for device in devices.values()) or devices != job.parameters.get(
+            "device_ids", devices
+        ):
+            raise InputError(
+                f"the bench's instruments are not those the measurement was planned with "
+                f"({job.parameters.get('device_ids')}); its points cannot be measured with others"
+            )
+        return devices
 
 
 DIAGNOSIS_MEASUREMENT = DiagnosisMeasurement()

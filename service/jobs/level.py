@@ -84,13 +84,23 @@ def commands(
     ):
         return sx, sy
     for _ in range(3):  # the lag shifts the command, which may turn the direction: settle on one
-        dx = 1.0 if sx > pose.x_deg else -1.0 if sx < pose.x_deg else pose.dir_x
-        dy = 1.0 if sy > pose.y_deg else -1.0 if sy < pose.y_deg else pose.dir_y
+        dx = _arrival_side(sx, pose.x_deg, pose.dir_x)
+        dy = _arrival_side(sy, pose.y_deg, pose.dir_y)
         nx, ny = _aim(active, x_deg, y_deg, dx, dy)
         if (nx, ny) == (sx, sy):
             break
         sx, sy = nx, ny
     return sx, sy
+
+
+def _arrival_side(command_deg: float, stands_deg: float, last_dir: float) -> float:
+    """The side a stage arrives at `command_deg` from: +1 from below, -1 from above, and the side of
+    its last move when it stays where it stands."""
+    if command_deg > stands_deg:
+        return 1.0
+    if command_deg < stands_deg:
+        return -1.0
+    return last_dir
 
 
 def read_back(
@@ -136,14 +146,17 @@ async def level(
             window_s=0.3,
             timeout_s=30.0,
         )
-        a = robust_mean(
+        readback = robust_mean(
             await fresh_readings(
                 bench, "reference_sensor", READBACK_SAMPLES, after_bench_s=t0, timeout_s=10.0
             )
         )
-        raw = a.mean[0], a.mean[1]
+        raw = readback.mean[0], readback.mean[1]
         achieved, how = read_back(
-            active, raw, a.temp_c if a.temp_c is not None else _temp(bench), to_epoch(a.t_end_s)
+            active,
+            raw,
+            readback.temp_c if readback.temp_c is not None else _temp(bench),
+            to_epoch(readback.t_end_s),
         )
         ex, ey = x_deg - achieved[0], y_deg - achieved[1]
         if max(abs(ex), abs(ey)) <= tolerance_deg:
@@ -160,9 +173,9 @@ def _temp(bench: BenchRuntime) -> float | None:
     """The latest temperature a sensor of the bench gave (the read-back's own readings may carry
     none)."""
     for role in ("reference_sensor", "measurement_sensor"):
-        r = bench.latest(role)
-        if r is not None and r.temp_c is not None:
-            return r.temp_c
+        reading = bench.latest(role)
+        if reading is not None and reading.temp_c is not None:
+            return reading.temp_c
     return None
 
 

@@ -56,6 +56,25 @@ DISK_RETRY_S = 2.0  # how often a job's end that found the disk full is tried ag
 T = TypeVar("T")
 
 
+def _check_identified(bench: BenchRuntime, roles: tuple[str, ...]) -> None:
+    """DeviceNotAnswering naming the first instrument a job reads that did not identify itself at
+    start-up (it has no device id to store its points under)."""
+    for role in roles:
+        if bench.device_ids.get(role) is None:
+            raise DeviceNotAnswering(
+                f"{role} on {bench.port_of(role)} did not identify itself at start-up"
+            )
+
+
+def _add_operator(parameters: dict[str, Any], principal: Principal) -> None:
+    """Who runs the job, as the token names them now (certificates state it)."""
+    if principal.person is not None:
+        parameters["operator_person"] = {
+            "name": principal.person.name,
+            "function": principal.person.function,
+        }
+
+
 class JobManager:
     def __init__(
         self,
@@ -126,7 +145,10 @@ class JobManager:
         self._ranges[record_id] = seen
 
     def bench_of_device(self, device_id: int) -> BenchRuntime | None:
-        return next((b for b in self.benches.values() if device_id in b.device_ids.values()), None)
+        return next(
+            (bench for bench in self.benches.values() if device_id in bench.device_ids.values()),
+            None,
+        )
 
     # ------------------------------------------------------------ submitting
 
@@ -143,24 +165,13 @@ class JobManager:
         plan = await asyncio.to_thread(self.admission.plan, req, bench)
         body = req.model_dump(mode="json")
         body["bench"] = bench.name
-        for r in plan.read_roles:
-            if bench.device_ids.get(r) is None:
-                raise DeviceNotAnswering(
-                    f"{r} on {bench.port_of(r)} did not identify itself at start-up"
-                )
+        _check_identified(bench, plan.read_roles)
         device_id = bench.device_ids[plan.device_role]
         parameters = self.admission.parameters(body, bench, plan)
-        # who runs the job, as the token names them now (certificates state it)
-        if principal.person is not None:
-            parameters["operator_person"] = {
-                "name": principal.person.name,
-                "function": principal.person.function,
-            }
+        _add_operator(parameters, principal)
         if bench.bench_id is None:
             raise BenchBusy(f"bench {bench.name!r} is not registered in the database yet")
-        while idempotency_key is not None and idempotency_key in self._creating:
-            # The same key's first request is writing its job: wait for it, then answer that job.
-            await asyncio.shield(self._creating[idempotency_key])
+        await self._same_key_written(idempotency_key)
         if bench.holder is not None:
             if idempotency_key is None:
                 raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
@@ -201,6 +212,13 @@ class JobManager:
             bench.holder = None  # the key's earlier job, already run or running elsewhere
         return job, created
 
+    async def _same_key_written(self, idempotency_key: str | None) -> None:
+        """Wait while a first request with the same Idempotency-Key is writing its job (then the
+        repeat answers that job)."""
+        while idempotency_key is not None and idempotency_key in self._creating:
+            # The same key's first request is writing its job: wait for it, then answer that job.
+            await asyncio.shield(self._creating[idempotency_key])
+
     async def submit_measurement(
         self,
         bench: BenchRuntime,
@@ -216,11 +234,7 @@ class JobManager:
         made."""
         from service.jobs.diagnosis_measurement import NAME
 
-        for role in ("reference_sensor", "measurement_sensor"):
-            if bench.device_ids.get(role) is None:
-                raise DeviceNotAnswering(
-                    f"{role} on {bench.port_of(role)} did not identify itself at start-up"
-                )
+        _check_identified(bench, ("reference_sensor", "measurement_sensor"))
         if bench.bench_id is None:
             raise BenchBusy(f"bench {bench.name!r} is not registered in the database yet")
         if bench.holder is not None:
@@ -234,7 +248,8 @@ class JobManager:
             "approach": "per point from the side the plan says (dir +1 from below, -1 from "
             "above) by 0.1 deg",
             "device_ids": {
-                r: bench.device_ids.get(r) for r in ("reference_sensor", "measurement_sensor")
+                role: bench.device_ids.get(role)
+                for role in ("reference_sensor", "measurement_sensor")
             },
         }
         bench.holder = BenchHold(Hold.JOB_BEING_CREATED)
@@ -302,7 +317,14 @@ class JobManager:
                 raise DiskFull(errno.ENOSPC, self._disk_reason(exc)) from None
             self.unwritten.pop(job_id, None)
         job = await asyncio.to_thread(self.store.jobs.get_job, job_id)
-        bench = next((b for b in self.benches.values() if b.bench_id == job.bench_id), None)
+        bench = next(
+            (
+                candidate
+                for candidate in self.benches.values()
+                if candidate.bench_id == job.bench_id
+            ),
+            None,
+        )
         if bench is None:
             raise RequestProblem(
                 "id", f"job {job_id} ran on a bench this daemon does not run", status=409
@@ -488,7 +510,9 @@ class JobManager:
             await write_in_thread(
                 self.store.jobs.mark_interrupted,
                 actor=DAEMON,
-                bench_ids=[b.bench_id for b in self.benches.values() if b.bench_id is not None],
+                bench_ids=[
+                    bench.bench_id for bench in self.benches.values() if bench.bench_id is not None
+                ],
             )
         except Exception as exc:
             if not unreachable(exc):
@@ -590,10 +614,10 @@ class JobManager:
     @staticmethod
     def _reason(bench: BenchRuntime, exc: Exception) -> str:
         text = str(exc)
-        down = [s for s in bench.devices.status() if s.state != "connected"]
+        down = [status for status in bench.devices.status() if status.state != "connected"]
         if down:
             text += "; not answering: " + ", ".join(
-                f"{s.role} on {s.port} ({s.state})" for s in down
+                f"{status.role} on {status.port} ({status.state})" for status in down
             )
         return text
 
@@ -609,18 +633,8 @@ class JobManager:
         ids = job.parameters["request"].get("reference_standards") or []
         standards = self.admission.standards(ids)
         method = get_method(outcome.kind, job.method)
-        procedure = registry.procedure_of(job.parameters)
-        fit_cols = (
-            procedure.stored_columns(self.store.points, job, outcome.n_fit)
-            if outcome.kind == "stage" and isinstance(procedure, PointProcedure)
-            else None
-        )
-        if self.require_conditions and not outcome.conditions.get("ambient_temperature_c"):
-            raise InputError(
-                "the laboratory requires the ambient conditions of every calibration, and none "
-                "was recorded: the bench's ambient sensor gave no reading during the job and "
-                "the request gave no conditions.ambient_temperature_c"
-            )
+        fit_cols = self._budget_columns(job, outcome)
+        self._check_conditions_recorded(outcome)
         budget = budget_of_record(
             method,
             outcome.model,
@@ -651,6 +665,26 @@ class JobManager:
             raw_data=raw,
         )
         self.store.jobs.succeed_job(job.id, actor=DAEMON)
+
+    def _budget_columns(
+        self, job: CalibrationJob, outcome: Outcome
+    ) -> dict[str, NDArray[np.float64]] | None:
+        """Blocking (database): the fit columns a stage record's budget judges the corrected tilt
+        on (None for other kinds, whose budget has no such entries)."""
+        procedure = registry.procedure_of(job.parameters)
+        if outcome.kind == "stage" and isinstance(procedure, PointProcedure):
+            return procedure.stored_columns(self.store.points, job, outcome.n_fit)
+        return None
+
+    def _check_conditions_recorded(self, outcome: Outcome) -> None:
+        """Where the laboratory requires conditions, a job that recorded no ambient temperature
+        makes no record."""
+        if self.require_conditions and not outcome.conditions.get("ambient_temperature_c"):
+            raise InputError(
+                "the laboratory requires the ambient conditions of every calibration, and none "
+                "was recorded: the bench's ambient sensor gave no reading during the job and "
+                "the request gave no conditions.ambient_temperature_c"
+            )
 
     # ------------------------------------------------------------ a finished job's points
 

@@ -31,6 +31,7 @@ from service.bench.runtime import BenchRuntime
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, Method, get_method
 from service.errors import InputError
+from service.instruments.base import AmbientSensor
 from service.jobs.bench_time import BenchTime
 from service.jobs.budgets import resolutions_deg
 from service.jobs.requests import CalibrationRequest
@@ -128,7 +129,7 @@ def ambient_conditions(
     out: dict[str, Any] = {}
     sensor = bench.devices.ambient_sensor()
     readings = (
-        [r for r in sensor.readings_after(since_bench_s) if r.status in (None, 0)]
+        [reading for reading in sensor.readings_after(since_bench_s) if reading.status in (None, 0)]
         if sensor is not None
         else []
     )
@@ -136,27 +137,47 @@ def ambient_conditions(
         ("ambient_temperature_c", "temp_c", "standard_uncertainty_c"),
         ("relative_humidity_pct", "humidity_pct", "standard_uncertainty_pct"),
     ):
-        values = [v for r in readings if isinstance(v := getattr(r, field), int | float)]
+        values = [
+            value
+            for reading in readings
+            if isinstance(value := getattr(reading, field), int | float)
+        ]
         if sensor is not None and values:
-            lo, hi = min(values), max(values)
-            u = float(np.hypot(getattr(sensor, u_sensor), (hi - lo) / 2.0 / np.sqrt(3.0)))
-            out[key] = {
-                "value": float(np.mean(values)),
-                "standard_uncertainty": u,
-                "min": lo,
-                "max": hi,
-                "n_readings": len(values),
-                "source": "ambient_sensor",
-            }
+            out[key] = _as_read(sensor, values, u_sensor)
             continue
-        entered = getattr(req.conditions, key, None) if req.conditions is not None else None
+        entered = _as_entered(req, key)
         if entered is not None:
-            out[key] = {
-                "value": entered.value,
-                "standard_uncertainty": entered.standard_uncertainty,
-                "source": "request",
-            }
+            out[key] = entered
     return out
+
+
+def _as_read(sensor: AmbientSensor, values: list[float], u_sensor: str) -> dict[str, Any]:
+    """One ambient condition as the bench's sensor read it: the mean, range and count of its
+    readings, u combining the sensor's stated u (attribute `u_sensor`) with the range as a
+    rectangular half-width."""
+    lo, hi = min(values), max(values)
+    u_combined = float(np.hypot(getattr(sensor, u_sensor), (hi - lo) / 2.0 / np.sqrt(3.0)))
+    return {
+        "value": float(np.mean(values)),
+        "standard_uncertainty": u_combined,
+        "min": lo,
+        "max": hi,
+        "n_readings": len(values),
+        "source": "ambient_sensor",
+    }
+
+
+def _as_entered(req: CalibrationRequest, key: str) -> dict[str, Any] | None:
+    """One ambient condition as the request states it (its value and u); None where it states
+    none."""
+    entered = getattr(req.conditions, key, None) if req.conditions is not None else None
+    if entered is None:
+        return None
+    return {
+        "value": entered.value,
+        "standard_uncertainty": entered.standard_uncertainty,
+        "source": "request",
+    }
 
 
 def job_conditions(
@@ -174,8 +195,14 @@ def job_conditions(
         **ambient,
         "temp_c_mean": float(np.mean(temps_c)) if len(temps_c) else None,
         "software_version": __version__,
-        "firmware": {r: (i.firmware if i else None) for r, i in bench.identities.items()},
-        "instruments": {r: (i.in_words() if i else None) for r, i in bench.identities.items()},
+        "firmware": {
+            role: (identity.firmware if identity else None)
+            for role, identity in bench.identities.items()
+        },
+        "instruments": {
+            role: (identity.in_words() if identity else None)
+            for role, identity in bench.identities.items()
+        },
         "resolution_deg": resolutions_deg(bench),
         "bench": bench.name,
         "clock_speed": bench.clock.speed,
@@ -228,17 +255,51 @@ class PointProcedure(ABC, Generic[P]):
 
     def temperatures_c(self, fit_cols: Columns, points: Sequence[SettledPoint]) -> list[float]:
         """The temperatures a record's mean temperature is taken over."""
-        return [p.temp_c_mean for p in points if p.temp_c_mean is not None]
+        return [point.temp_c_mean for point in points if point.temp_c_mean is not None]
 
     async def run(self, ctx: JobContext) -> Outcome:
         job, bench = ctx.job, ctx.bench
         # the ambient sensor's readings count from here (this run of the job)
         began = bench.clock.monotonic()
-        fit_pts = [self.stored_point(p) for p in job.parameters["fit_points"]]
-        val_pts = [self.stored_point(p) for p in job.parameters["validation_points"]]
+        fit_pts = [self.stored_point(point) for point in job.parameters["fit_points"]]
+        val_pts = [self.stored_point(point) for point in job.parameters["validation_points"]]
         n_fit, total = len(fit_pts), len(fit_pts) + len(val_pts)
-        devices = {r: bench.device_ids.get(r) for r in self.read_roles}
-        missing = [r for r, d in devices.items() if d is None]
+        devices = self._devices_started_with(job, bench)
+        stored = await ctx.db(ctx.store.points.settled_points, job.id)
+        done = set.intersection(
+            *(
+                {point.point for point in stored if point.device_id == device_id}
+                for device_id in devices.values()
+            )
+        )
+        await ctx.report(len(done), total, Phase.MEASURING)
+        await self._measure_missing(ctx, fit_pts, 0, done, total, Phase.MEASURING)
+        await ctx.report(len(done), total, Phase.FITTING)
+        method = get_method(self.kind, job.method)
+        fit_cols = await ctx.db(self.stored_columns, ctx.store.points, job, n_fit)
+        model = await asyncio.to_thread(method.fit, fit_cols, self.fit_options(bench))
+        self.fitted(model, fit_cols)
+        await ctx.report(len(done), total, Phase.VALIDATING)
+        await self._measure_missing(ctx, val_pts, n_fit, done, total, Phase.VALIDATING)
+        points = await ctx.db(ctx.store.points.settled_points, job.id)
+        val_cols = self.columns(
+            job, [point for point in points if point.point >= n_fit], for_fit=False
+        )
+        validation = await asyncio.to_thread(self.validation, method, model, val_cols)
+        conditions = job_conditions(
+            bench, ctx.request, self.temperatures_c(fit_cols, points), began
+        )
+        return Outcome(
+            job.device_id, self.kind, model, validation, conditions, n_fit, ctx.bench_time.as_json()
+        )
+
+    def _devices_started_with(
+        self, job: CalibrationJob, bench: BenchRuntime
+    ) -> dict[str, int | None]:
+        """The bench's instruments the job reads, by role; InputError when one is not registered, or
+        when they are not those the job started with (a resumed job's points stay one set)."""
+        devices = {role: bench.device_ids.get(role) for role in self.read_roles}
+        missing = [role for role, device_id in devices.items() if device_id is None]
         if missing:
             raise InputError(f"bench {bench.name!r} has no registered {', '.join(missing)}")
         started_with = job.parameters.get("device_ids", {})
@@ -247,36 +308,25 @@ class PointProcedure(ABC, Generic[P]):
                 f"the bench's instruments are not those the job started with ({started_with});"
                 " its points cannot be continued with other instruments"
             )
-        stored = await ctx.db(ctx.store.points.settled_points, job.id)
-        done = set.intersection(
-            *({p.point for p in stored if p.device_id == d} for d in devices.values())
-        )
-        await ctx.report(len(done), total, Phase.MEASURING)
-        for i, point in enumerate(fit_pts):
-            if i not in done:
-                await self.measure(ctx, i, point)
-                done.add(i)
-                await ctx.report(len(done), total, Phase.MEASURING)
-        await ctx.report(len(done), total, Phase.FITTING)
-        method = get_method(self.kind, job.method)
-        fit_cols = await ctx.db(self.stored_columns, ctx.store.points, job, n_fit)
-        model = await asyncio.to_thread(method.fit, fit_cols, self.fit_options(bench))
-        self.fitted(model, fit_cols)
-        await ctx.report(len(done), total, Phase.VALIDATING)
-        for k, point in enumerate(val_pts):
-            if n_fit + k not in done:
-                await self.measure(ctx, n_fit + k, point)
-                done.add(n_fit + k)
-                await ctx.report(len(done), total, Phase.VALIDATING)
-        points = await ctx.db(ctx.store.points.settled_points, job.id)
-        val_cols = self.columns(job, [p for p in points if p.point >= n_fit], for_fit=False)
-        validation = await asyncio.to_thread(self.validation, method, model, val_cols)
-        conditions = job_conditions(
-            bench, ctx.request, self.temperatures_c(fit_cols, points), began
-        )
-        return Outcome(
-            job.device_id, self.kind, model, validation, conditions, n_fit, ctx.bench_time.as_json()
-        )
+        return devices
+
+    async def _measure_missing(
+        self,
+        ctx: JobContext,
+        points: list[P],
+        first_index: int,
+        done: set[int],
+        total: int,
+        phase: Phase,
+    ) -> None:
+        """The points (numbered from `first_index`) not stored yet, each measured and reported;
+        a resumed job goes on from those it stored."""
+        for k, point in enumerate(points):
+            index = first_index + k
+            if index not in done:
+                await self.measure(ctx, index, point)
+                done.add(index)
+                await ctx.report(len(done), total, phase)
 
     def stored_columns(self, points: PointsRepo, job: CalibrationJob, n_fit: int) -> Columns:
         """Blocking (database): the fit columns of the job's first `n_fit` stored points."""

@@ -143,9 +143,9 @@ class Grid(RequestBody):
 
     def angles(self) -> list[float]:
         if self.angles_deg is not None:
-            return [float(a) for a in self.angles_deg]
+            return [float(angle) for angle in self.angles_deg]
         assert self.range_deg is not None and self.n is not None  # checked by the validator
-        return [float(a) for a in np.linspace(self.range_deg[0], self.range_deg[1], self.n)]
+        return [float(angle) for angle in np.linspace(self.range_deg[0], self.range_deg[1], self.n)]
 
     def is_angles(self) -> bool:
         return self.angles_deg is not None or self.range_deg is not None
@@ -153,21 +153,29 @@ class Grid(RequestBody):
     @model_validator(mode="after")
     def _one_form(self) -> Grid:
         if self.angles_deg is not None or self.range_deg is not None or self.n is not None:
-            if any(
-                v is not None for v in (self.x_deg, self.y_deg, self.n_x, self.n_y, self.points)
-            ):
-                raise ValueError(
-                    "give either angles (angles_deg, or range_deg and n) or a stage grid, not both"
-                )
-            if self.angles_deg is None and (self.range_deg is None or self.n is None):
-                raise ValueError("angles need angles_deg, or range_deg and n")
-            return self
-        rect = [self.x_deg, self.y_deg, self.n_x, self.n_y]
-        if self.points is not None and any(v is not None for v in rect):
-            raise ValueError("give either points or x_deg, y_deg, n_x, n_y, not both")
-        if self.points is None and any(v is None for v in rect):
-            raise ValueError("a grid needs x_deg, y_deg, n_x and n_y (or points)")
+            self._check_angles_form()
+        else:
+            self._check_stage_form()
         return self
+
+    def _check_angles_form(self) -> None:
+        """Angles alone (no stage grid beside them): angles_deg, or range_deg and n."""
+        if any(
+            value is not None for value in (self.x_deg, self.y_deg, self.n_x, self.n_y, self.points)
+        ):
+            raise ValueError(
+                "give either angles (angles_deg, or range_deg and n) or a stage grid, not both"
+            )
+        if self.angles_deg is None and (self.range_deg is None or self.n is None):
+            raise ValueError("angles need angles_deg, or range_deg and n")
+
+    def _check_stage_form(self) -> None:
+        """A stage grid in one form: explicit points, or the whole rectangle."""
+        rect = [self.x_deg, self.y_deg, self.n_x, self.n_y]
+        if self.points is not None and any(value is not None for value in rect):
+            raise ValueError("give either points or x_deg, y_deg, n_x, n_y, not both")
+        if self.points is None and any(value is None for value in rect):
+            raise ValueError("a grid needs x_deg, y_deg, n_x and n_y (or points)")
 
     def stage_points(self) -> list[tuple[float, float]]:
         if self.points is not None:

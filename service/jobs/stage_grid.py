@@ -38,7 +38,7 @@ from service.jobs.procedure import (
     bench_epoch,
     validation_rng,
 )
-from service.jobs.requests import CalibrationRequest, RequestProblem
+from service.jobs.requests import CalibrationRequest, Grid, RequestProblem
 from service.storage.models import CalibrationJob, SettledPoint
 from service.storage.samples import Sample
 
@@ -75,11 +75,15 @@ def stage_columns(
     points_ref: Sequence[SettledPoint], points_meas: Sequence[SettledPoint]
 ) -> Columns:
     """The dataset columns of a job's settled points (reference and measurement rows by point)."""
-    meas = {points_mea.point: points_mea for points_mea in points_meas}
-    rows = [(r, meas[r.point]) for r in points_ref if r.point in meas]
+    meas = {point.point: point for point in points_meas}
+    rows = [
+        (ref_point, meas[ref_point.point]) for ref_point in points_ref if ref_point.point in meas
+    ]
 
-    def col(f: Callable[[SettledPoint, SettledPoint], Any]) -> NDArray[np.float64]:
-        return np.array([f(r, m) for r, m in rows], dtype=float)
+    def col(value_of: Callable[[SettledPoint, SettledPoint], Any]) -> NDArray[np.float64]:
+        return np.array(
+            [value_of(ref_point, meas_point) for ref_point, meas_point in rows], dtype=float
+        )
 
     return {
         "point": col(lambda r, m: r.point),
@@ -94,6 +98,62 @@ def stage_columns(
         "temp_c": col(lambda r, m: m.temp_c_mean if m.temp_c_mean is not None else np.nan),
         "t_s": col(lambda r, m: r.t_end_s),
     }
+
+
+def _adaptive_spread(grid: Grid) -> list[StagePoint]:
+    """An adaptive job's first points: the spread grid over the lattice of candidate points (the
+    plan chooses among the rest once the first point's noise is known)."""
+    from service.calibration.adaptive_design import MIN_GRID, lattice, spread_indices
+
+    # the request's validator requires them
+    assert grid.x_deg is not None and grid.y_deg is not None and grid.n_x and grid.n_y
+    if grid.n_x * grid.n_y > MAX_CANDIDATES:
+        raise RequestProblem(
+            "grid",
+            f"design adaptive chooses among at most {MAX_CANDIDATES} candidate points; "
+            f"n_x x n_y is {grid.n_x * grid.n_y}",
+        )
+    cand = lattice(
+        (grid.x_deg[0], grid.x_deg[1]), (grid.y_deg[0], grid.y_deg[1]), grid.n_x, grid.n_y
+    )
+    return [
+        (float(cand[i, 0]), float(cand[i, 1])) for i in spread_indices(grid.n_x, grid.n_y, MIN_GRID)
+    ]
+
+
+def _check_travel(grid: Grid, points: list[StagePoint], travel: float) -> None:
+    """Every point within the stage's travel; RequestProblem names the first one outside, and the
+    field that put it there."""
+    for i, (x, y) in enumerate(points):
+        if abs(x) > travel or abs(y) > travel:
+            field = (
+                "grid.points"
+                if grid.points is not None
+                else "grid.x_deg"
+                if abs(x) > travel
+                else "grid.y_deg"
+            )
+            raise RequestProblem(
+                field,
+                f"point {i} ({x:g}, {y:g}) deg is outside the stage travel of ±{travel:g} deg",
+            )
+
+
+def _validation_points(points: list[StagePoint], n_points: int) -> list[StagePoint]:
+    """`n_points` validation points drawn reproducibly over the grid's range, in the order they are
+    visited."""
+    xs, ys = np.array(points).T
+    rng = validation_rng(len(points), n_points)
+    drawn = [
+        (float(round(x, 4)), float(round(y, 4)))
+        for x, y in zip(
+            rng.uniform(xs.min(), xs.max(), n_points),
+            rng.uniform(ys.min(), ys.max(), n_points),
+        )
+    ]
+    # visited after the grid, from its last point, in the order of shortest travel (random
+    # order crossed the range between each two)
+    return short_tour(points[-1], drawn)
 
 
 class StageGrid(PointProcedure[StagePoint]):
@@ -121,51 +181,12 @@ class StageGrid(PointProcedure[StagePoint]):
             )
         # the lattice gives the range and the candidates; the spread grid starts it
         if req.design == "adaptive":
-            from service.calibration.adaptive_design import MIN_GRID, lattice, spread_indices
-
-            g = req.grid
-            # the request's validator requires them
-            assert g.x_deg is not None and g.y_deg is not None and g.n_x and g.n_y
-            if g.n_x * g.n_y > MAX_CANDIDATES:
-                raise RequestProblem(
-                    "grid",
-                    f"design adaptive chooses among at most {MAX_CANDIDATES} candidate points; "
-                    f"n_x x n_y is {g.n_x * g.n_y}",
-                )
-            cand = lattice((g.x_deg[0], g.x_deg[1]), (g.y_deg[0], g.y_deg[1]), g.n_x, g.n_y)
-            points = [
-                (float(cand[i, 0]), float(cand[i, 1]))
-                for i in spread_indices(g.n_x, g.n_y, MIN_GRID)
-            ]
-        travel = bench.config.stage_bench().travel_deg
-        for i, (x, y) in enumerate(points):
-            if abs(x) > travel or abs(y) > travel:
-                field = (
-                    "grid.points"
-                    if req.grid.points is not None
-                    else "grid.x_deg"
-                    if abs(x) > travel
-                    else "grid.y_deg"
-                )
-                raise RequestProblem(
-                    field,
-                    f"point {i} ({x:g}, {y:g}) deg is outside the stage travel of ±{travel:g} deg",
-                )
+            points = _adaptive_spread(req.grid)
+        _check_travel(req.grid, points, bench.config.stage_bench().travel_deg)
         check_stage_grid(
             req.method, req.grid, points, bench.config.stage_bench(), self.fit_options(bench)
         )
-        xs, ys = np.array(points).T
-        rng = validation_rng(len(points), req.validation.n_points)
-        drawn = [
-            (float(round(x, 4)), float(round(y, 4)))
-            for x, y in zip(
-                rng.uniform(xs.min(), xs.max(), req.validation.n_points),
-                rng.uniform(ys.min(), ys.max(), req.validation.n_points),
-            )
-        ]
-        # visited after the grid, from its last point, in the order of shortest travel (random
-        # order crossed the range between each two)
-        val = short_tour(points[-1], drawn)
+        val = _validation_points(points, req.validation.n_points)
         return Plan(points, val, "measurement_sensor", SENSORS)
 
     def stored_point(self, value: Any) -> StagePoint:
@@ -203,8 +224,8 @@ class StageGrid(PointProcedure[StagePoint]):
     def columns(
         self, job: CalibrationJob, points: Sequence[SettledPoint], *, for_fit: bool
     ) -> Columns:
-        meas = [p for p in points if p.device_id == job.device_id]
-        ref = [p for p in points if p.device_id != job.device_id]
+        meas = [point for point in points if point.device_id == job.device_id]
+        ref = [point for point in points if point.device_id != job.device_id]
         cols = stage_columns(ref, meas)
         if for_fit and not np.isfinite(cols["temp_c"]).all():
             del cols["temp_c"]  # the same columns the points CSV carries
@@ -258,14 +279,14 @@ async def measure_stage_point(
             timeout_s=req.settle.timeout_s,
         )
     n = req.samples_per_point if n is None else n
-    timeout = max(5.0, 20 * n * max(bench.output_interval_s(r) for r in SENSORS))
+    timeout = max(5.0, 20 * n * max(bench.output_interval_s(role) for role in SENSORS))
     got = await asyncio.gather(
-        *(fresh_readings(bench, r, n, after_bench_s=t0, timeout_s=timeout) for r in SENSORS)
+        *(fresh_readings(bench, role, n, after_bench_s=t0, timeout_s=timeout) for role in SENSORS)
     )
     ctx.bench_time.add(
         moving=stood - began,
         settling=t0 - stood,
-        reading=max(r.bench_s for readings in got for r in readings) - t0,
+        reading=max(reading.bench_s for readings in got for reading in readings) - t0,
     )
     to_epoch = bench_epoch(bench)
     rows: list[Sample] = []
@@ -275,32 +296,32 @@ async def measure_stage_point(
         rows += [
             Sample(
                 dev,
-                to_epoch(r.bench_s),
-                _tilt(r.x_deg),
-                _tilt(r.y_deg),
+                to_epoch(reading.bench_s),
+                _tilt(reading.x_deg),
+                _tilt(reading.y_deg),
                 None,
-                r.temp_c,
+                reading.temp_c,
                 ctx.job_id,
                 index,
                 "calibration",
             )
-            for r in readings
+            for reading in readings
         ]
-        a = robust_mean(readings)
+        averaged = robust_mean(readings)
         settled[dev] = {
             "point": index,
             "cmd_x_deg": cx,
             "cmd_y_deg": cy,
-            "n_samples": a.n_used,
-            "t_start_s": to_epoch(a.t_start_s),
-            "t_end_s": to_epoch(a.t_end_s),
-            "ch_x_mean": a.mean[0],
-            "ch_y_mean": a.mean[1],
+            "n_samples": averaged.n_used,
+            "t_start_s": to_epoch(averaged.t_start_s),
+            "t_end_s": to_epoch(averaged.t_end_s),
+            "ch_x_mean": averaged.mean[0],
+            "ch_y_mean": averaged.mean[1],
             "ch_z_mean": None,
-            "ch_x_std": a.std[0],
-            "ch_y_std": a.std[1],
+            "ch_x_std": averaged.std[0],
+            "ch_y_std": averaged.std[1],
             "ch_z_std": None,
-            "temp_c_mean": a.temp_c,
+            "temp_c_mean": averaged.temp_c,
         }
     await ctx.db(store_point, ctx.store, ctx.job_id, index, rows, settled)
     return settled
