@@ -340,16 +340,10 @@ def plan_adaptive(
     n = n_for(chosen)
     while True:
         here = design.criterion(chosen.astype(float))
-        options = []
-        for candidate in np.nonzero(~chosen)[0]:
-            trial = chosen.copy()
-            trial[candidate] = True
-            options.append((design.criterion(trial.astype(float)), int(candidate)))
-        if not options:
+        addition = _best_addition(design, chosen)
+        if addition is None:
             break
-        crit, pick = min(options)
-        trial = chosen.copy()
-        trial[pick] = True
+        crit, trial = addition
         n_trial = n_for(trial)
         if crit < here and (n > CAP_READINGS or cost(trial, n_trial) < cost(chosen, n)):
             chosen, n = trial, n_trial
@@ -360,10 +354,7 @@ def plan_adaptive(
     order = serpentine([(float(cand[i, 0]), float(cand[i, 1])) for i in idx])
     readings = [n_int] * len(order)
     counts = chosen.astype(float) * n_int
-    seconds, here_pt = 0.0, (x_deg[0], y_deg[0])
-    for point in order:
-        seconds += times.move_s(here_pt, point) + times.point_s(n_int)
-        here_pt = point
+    seconds = _tour_seconds((x_deg[0], y_deg[0]), order, n_int, times)
     return AdaptivePlan(
         order,
         readings,
@@ -380,6 +371,34 @@ def plan_adaptive(
             )
         ],
     )
+
+
+def _best_addition(
+    design: Design, chosen: NDArray[np.bool_]
+) -> tuple[float, NDArray[np.bool_]] | None:
+    """The greedy step: (criterion, choice) with the best candidate added; None when all are in."""
+    options = []
+    for candidate in np.nonzero(~chosen)[0]:
+        trial = chosen.copy()
+        trial[candidate] = True
+        options.append((design.criterion(trial.astype(float)), int(candidate)))
+    if not options:
+        return None
+    crit, pick = min(options)
+    trial = chosen.copy()
+    trial[pick] = True
+    return crit, trial
+
+
+def _tour_seconds(
+    start: tuple[float, float], order: list[tuple[float, float]], readings: int, times: BenchTimes
+) -> float:
+    """The plan's bench time: each move of the tour from `start`, then settling and the readings."""
+    seconds, here_pt = 0.0, start
+    for point in order:
+        seconds += times.move_s(here_pt, point) + times.point_s(readings)
+        here_pt = point
+    return seconds
 
 
 def predicted_u_of_covariance(

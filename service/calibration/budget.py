@@ -302,24 +302,12 @@ def record_budget(
     calibration points' temperatures and residuals (corrected minus reference) for the temperature's
     influence.
     """
-    comps: list[Component] = []
-    for standard in standards:
-        expanded, k = standard.get("expanded_uncertainty_deg"), standard.get("coverage_factor")
-        if expanded is None or k is None:
-            raise ValueError(
-                f"reference standard {standard.get('name')!r} states no numeric uncertainty"
-            )
-        comps.append(
-            standard_component(
-                f"{standard['name']} (serial {standard['serial']}, "
-                f"certificate {standard.get('certificate_id')})",
-                float(expanded),
-                float(k),
-            )
-        )
-    for what, resolution in resolutions_deg.items():
-        if resolution:
-            comps.append(resolution_component(f"{what} resolution", float(resolution)))
+    comps: list[Component] = [_certificate_component(standard) for standard in standards]
+    comps += [
+        resolution_component(f"{what} resolution", float(resolution))
+        for what, resolution in resolutions_deg.items()
+        if resolution
+    ]
     temperature: dict[str, Any] = {}
     if temps_c is not None and errors_deg is not None:
         tc, temperature = temperature_component(temps_c, errors_deg)
@@ -328,19 +316,62 @@ def record_budget(
     results = []
     if tilt_u_fit_deg is not None:
         dofs = tilt_dof_fit or (dof_fit, dof_fit)
-        for axis, u_fit, nu in zip("xy", tilt_u_fit_deg, dofs, strict=True):
-            results.append(
-                result_entry(
-                    f"tilt_{axis}_deg",
-                    f"corrected table tilt, {axis} (at the calibration points)",
-                    "deg",
-                    u_fit,
-                    nu,
-                    comps,
-                    coverage,
-                )
-            )
+        results += _tilt_results(tilt_u_fit_deg, dofs, comps, coverage)
+    results += _reference_scale_results(parameters, parameter_u, dof_fit, comps, coverage)
+    return {
+        "coverage_probability": coverage,
+        "components": [comp.as_json() for comp in comps],
+        "temperature": temperature,
+        "results": results,
+    }
+
+
+def _certificate_component(standard: Mapping[str, Any]) -> Component:
+    """A reference standard as its certificate states it; refused when it states no uncertainty."""
+    expanded, k = standard.get("expanded_uncertainty_deg"), standard.get("coverage_factor")
+    if expanded is None or k is None:
+        raise ValueError(
+            f"reference standard {standard.get('name')!r} states no numeric uncertainty"
+        )
+    return standard_component(
+        f"{standard['name']} (serial {standard['serial']}, "
+        f"certificate {standard.get('certificate_id')})",
+        float(expanded),
+        float(k),
+    )
+
+
+def _tilt_results(
+    tilt_u_fit_deg: tuple[float, float],
+    dofs: tuple[float, float],
+    comps: Sequence[Component],
+    coverage: float,
+) -> list[dict[str, Any]]:
+    """The corrected tilt's result per axis: every shared component adds to it."""
+    return [
+        result_entry(
+            f"tilt_{axis}_deg",
+            f"corrected table tilt, {axis} (at the calibration points)",
+            "deg",
+            u_fit,
+            nu,
+            comps,
+            coverage,
+        )
+        for axis, u_fit, nu in zip("xy", tilt_u_fit_deg, dofs, strict=True)
+    ]
+
+
+def _reference_scale_results(
+    parameters: Mapping[str, Mapping[str, Any]],
+    parameter_u: Mapping[str, float],
+    dof_fit: float,
+    comps: Sequence[Component],
+    coverage: float,
+) -> list[dict[str, Any]]:
+    """A result per parameter read on the reference's angle scale: only the standards add to it."""
     angle_scale = [comp for comp in comps if comp.source == "reference_standard"]
+    results = []
     for name, param in parameters.items():
         unit = str(param.get("unit", ""))
         if name not in parameter_u or not carries_reference_scale(name, unit):
@@ -356,12 +387,7 @@ def record_budget(
                 coverage,
             )
         )
-    return {
-        "coverage_probability": coverage,
-        "components": [comp.as_json() for comp in comps],
-        "temperature": temperature,
-        "results": results,
-    }
+    return results
 
 
 def reading_components(budget: Mapping[str, Any] | None) -> list[Component]:

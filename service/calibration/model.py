@@ -105,78 +105,10 @@ class CalibrationModel:
 
     @classmethod
     def from_json_dict(cls, d: Any, source: str = "model") -> CalibrationModel:
-        if not isinstance(d, dict):
-            raise InputError(f"{source}: a model is a JSON object")
-        fv = d.get("format_version")
-        if fv != FORMAT_VERSION:
-            raise InputError(
-                f"{source}: field format_version: {fv!r} is not supported (expected "
-                f"{FORMAT_VERSION})"
-            )
-        for key in ("kind", "method", "columns", "parameters"):
-            if key not in d:
-                raise InputError(f"{source}: field {key}: missing required field")
-        for key in ("kind", "method"):
-            if not isinstance(d[key], str):
-                raise InputError(f"{source}: field {key}: must be a string")
-        if not isinstance(d["columns"], list) or not all(
-            isinstance(column, str) for column in d["columns"]
-        ):
-            raise InputError(f"{source}: field columns: must be a list of column names")
-        for key, kind in (
-            ("residuals", dict),
-            ("fit", dict),
-            ("state", dict),
-            ("options", dict),
-            ("notes", list),
-            ("provenance", dict),
-        ):
-            if d.get(key) is not None and not isinstance(d[key], kind):
-                raise InputError(
-                    f"{source}: field {key}: must be {'an object' if kind is dict else 'a list'}"
-                )
-        params = {}
-        if not isinstance(d["parameters"], dict):
-            raise InputError(f"{source}: field parameters: must be an object")
-        for name, entry in d["parameters"].items():
-            if not isinstance(entry, dict) or "value" not in entry or "unit" not in entry:
-                raise InputError(f"{source}: field parameters.{name}: needs value and unit")
-            value = entry["value"]
-            if (
-                not isinstance(value, (int, float))
-                or isinstance(value, bool)
-                or not math.isfinite(float(value))
-            ):
-                raise InputError(
-                    f"{source}: field parameters.{name}.value: {value!r} is not a finite number"
-                )
-            params[name] = Parameter(
-                float(value),
-                str(entry["unit"]),
-                bool(entry.get("fixed", False)),
-                str(entry.get("note", "")),
-            )
-        cov = d.get("covariance")
-        names: list[str] = []
-        matrix = None
-        if cov is not None:
-            try:
-                names = [str(n) for n in cov["names"]]
-                matrix = np.array(cov["matrix"], dtype=float)
-            except (KeyError, TypeError, ValueError):
-                raise InputError(
-                    f"{source}: field covariance: needs names and a numeric matrix"
-                ) from None
-            if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
-                raise InputError(
-                    f"{source}: field covariance.matrix: must be a finite "
-                    f"{len(names)}x{len(names)} matrix"
-                )
-            unknown = [n for n in names if n not in params]
-            if unknown:
-                raise InputError(
-                    f"{source}: field covariance.names: {unknown[0]!r} is not a parameter"
-                )
+        _check_required_fields(d, source)
+        _check_optional_fields(d, source)
+        params = _parameters_of(d["parameters"], source)
+        names, matrix = _covariance_of(d.get("covariance"), params, source)
         return cls(
             kind=str(d["kind"]),
             method=str(d["method"]),
@@ -191,6 +123,90 @@ class CalibrationModel:
             options=d.get("options") or {},
             provenance=d.get("provenance") or {},
         )
+
+
+def _check_required_fields(doc: Any, source: str) -> None:
+    """Refuse a document that lacks what every model has (named field by field)."""
+    if not isinstance(doc, dict):
+        raise InputError(f"{source}: a model is a JSON object")
+    fv = doc.get("format_version")
+    if fv != FORMAT_VERSION:
+        raise InputError(
+            f"{source}: field format_version: {fv!r} is not supported (expected {FORMAT_VERSION})"
+        )
+    for key in ("kind", "method", "columns", "parameters"):
+        if key not in doc:
+            raise InputError(f"{source}: field {key}: missing required field")
+    for key in ("kind", "method"):
+        if not isinstance(doc[key], str):
+            raise InputError(f"{source}: field {key}: must be a string")
+    if not isinstance(doc["columns"], list) or not all(
+        isinstance(column, str) for column in doc["columns"]
+    ):
+        raise InputError(f"{source}: field columns: must be a list of column names")
+
+
+def _check_optional_fields(doc: dict[str, Any], source: str) -> None:
+    """Refuse an optional field of the wrong JSON type (an absent or null one is empty)."""
+    for key, kind in (
+        ("residuals", dict),
+        ("fit", dict),
+        ("state", dict),
+        ("options", dict),
+        ("notes", list),
+        ("provenance", dict),
+    ):
+        if doc.get(key) is not None and not isinstance(doc[key], kind):
+            raise InputError(
+                f"{source}: field {key}: must be {'an object' if kind is dict else 'a list'}"
+            )
+
+
+def _parameters_of(entries: Any, source: str) -> dict[str, Parameter]:
+    """The `parameters` object read back, each entry checked for a unit and a finite value."""
+    params = {}
+    if not isinstance(entries, dict):
+        raise InputError(f"{source}: field parameters: must be an object")
+    for name, entry in entries.items():
+        if not isinstance(entry, dict) or "value" not in entry or "unit" not in entry:
+            raise InputError(f"{source}: field parameters.{name}: needs value and unit")
+        value = entry["value"]
+        if (
+            not isinstance(value, (int, float))
+            or isinstance(value, bool)
+            or not math.isfinite(float(value))
+        ):
+            raise InputError(
+                f"{source}: field parameters.{name}.value: {value!r} is not a finite number"
+            )
+        params[name] = Parameter(
+            float(value),
+            str(entry["unit"]),
+            bool(entry.get("fixed", False)),
+            str(entry.get("note", "")),
+        )
+    return params
+
+
+def _covariance_of(
+    cov: Any, params: dict[str, Parameter], source: str
+) -> tuple[list[str], NDArray[np.float64] | None]:
+    """The `covariance` object as (names, matrix), its names checked against the parameters."""
+    if cov is None:
+        return [], None
+    try:
+        names = [str(n) for n in cov["names"]]
+        matrix = np.array(cov["matrix"], dtype=float)
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"{source}: field covariance: needs names and a numeric matrix") from None
+    if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
+        raise InputError(
+            f"{source}: field covariance.matrix: must be a finite {len(names)}x{len(names)} matrix"
+        )
+    unknown = [n for n in names if n not in params]
+    if unknown:
+        raise InputError(f"{source}: field covariance.names: {unknown[0]!r} is not a parameter")
+    return names, matrix
 
 
 def _num(v: float | np.floating) -> float | None:

@@ -136,8 +136,9 @@ def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float6
     analytic Jacobian, columns scaled to unit norm (the perspective terms are orders of magnitude
     smaller). The normal equations come straight from the (scaled) Jᵀ, 8 x 2n: JᵀJ and Jᵀr are two
     products."""
+    estimate = h  # the DLT's, then each accepted step's
     t = _Transfer(X)
-    neg_R, neg_p, neg_w_inv = t.negative_residuals(h)
+    neg_R, neg_p, neg_w_inv = t.negative_residuals(estimate)
     residual = neg_R.ravel()  # the residuals' sign does not matter below: only with the Jacobian's
     cost = float(np.vdot(residual, residual))
     Kt = t.negative_jacobian_t(neg_p, neg_w_inv)
@@ -159,7 +160,7 @@ def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float6
         if info:  # singular: no step (damp harder)
             step = np.full(8, np.nan)
         step *= neg_inv_norms
-        trial: NDArray[np.float64] = h + step
+        trial: NDArray[np.float64] = estimate + step
         neg_R, neg_p, neg_w_inv = t.negative_residuals(trial)
         r_new = neg_R.ravel()
         cost_new = float(np.vdot(r_new, r_new))
@@ -171,16 +172,16 @@ def _refine(h: NDArray[np.float64], X: NDArray[np.float64]) -> NDArray[np.float6
             continue
         if cost - cost_new <= REFINE_COST_TOL * cost or all(
             abs(step_i) <= REFINE_STEP_TOL * (abs(value_i) + REFINE_STEP_TOL)
-            for step_i, value_i in zip(step.tolist(), h.tolist())
+            for step_i, value_i in zip(step.tolist(), estimate.tolist())
         ):
             return trial
-        h, residual, cost = trial, r_new, cost_new
+        estimate, residual, cost = trial, r_new, cost_new
         Kt = t.negative_jacobian_t(neg_p, neg_w_inv)
         Kt *= inv_norms[:, None]
         normal = Kt @ Kt.T
         gradient = Kt @ residual
         damping *= 0.1
-    return h
+    return estimate
 
 
 def fit_projective(
@@ -207,7 +208,6 @@ def fit_projective(
         SQRT2 * n / spread if spread > 0 else 1.0
         for spread in np.hypot(centred[0::3], centred[1::3]).sum(axis=1).tolist()
     )
-    scx, scy, _, dcx, dcy = centre.tolist()
     # Aᵀ of the DLT system A h = 0: per point an x row (P, 0, -u P) and a y row (0, P, -v P), with P
     # and (u, v) the normalised source and target points
     At = np.zeros((9, 2, n))
@@ -216,22 +216,40 @@ def fit_projective(
     At[3:6, 1] = At[0:3, 0]
     np.multiply(At[0:3, 0, None], centred[3:5] * -ds, out=At[6:9])
     At2 = At.reshape(9, 2 * n)
+    hn = _dlt_null_vector(At2, n, what)
+    h8 = _denormalised_h8(hn, ss, ds, centre.tolist(), what)
+    estimate = np.array(h8)
+    if refine and n > 4:
+        estimate = _refine(estimate, layout)
+    return np.append(estimate, 1.0).reshape(3, 3)
+
+
+def _dlt_null_vector(At2: NDArray[np.float64], n: int, what: str) -> list[float]:
+    """The normalised DLT's solution Hn (9 entries): the null vector of A, whose Aᵀ is `At2`."""
     # The null vector of A from the 9 x 9 AᵀA (eigenvalues = squared singular values) when the 8th
     # is clearly above rounding; otherwise from the SVD of A itself, which also tells a
     # rank-deficient system.
     lam, vec, info = lapack.dsyevd(At2 @ At2.T, lower=1)  # as np.linalg.eigh
     if info == 0 and lam[1] > 1e-8 * lam[-1]:
-        hn = vec[:, 0].tolist()
-    else:
-        # U is not needed (2n x 2n: O(n²) memory); all 9 rows of V are, also with only 4 points
-        _, sing, vt = np.linalg.svd(At2.T, full_matrices=2 * n < 9)
-        # the 8 free entries of H need rank 8 (s[7] is the 8th singular value, with 4 points the
-        # last)
-        if sing[7] <= 1e-12 * sing[0]:
-            raise DegenerateDataError(
-                f"{what}: the points do not determine a homography (rank-deficient system)"
-            )
-        hn = vt[-1].tolist()
+        hn: list[float] = vec[:, 0].tolist()
+        return hn
+    # U is not needed (2n x 2n: O(n²) memory); all 9 rows of V are, also with only 4 points
+    _, sing, vt = np.linalg.svd(At2.T, full_matrices=2 * n < 9)
+    # the 8 free entries of H need rank 8 (sing[7] is the 8th singular value, with 4 points the
+    # last)
+    if sing[7] <= 1e-12 * sing[0]:
+        raise DegenerateDataError(
+            f"{what}: the points do not determine a homography (rank-deficient system)"
+        )
+    hn = vt[-1].tolist()
+    return hn
+
+
+def _denormalised_h8(
+    hn: list[float], ss: float, ds: float, centre: list[float], what: str
+) -> list[float]:
+    """Hn taken back from Hartley's normalisation to the points' units, h33 = 1: H's 8 entries."""
+    scx, scy, _, dcx, dcy = centre
     # H = Td⁻¹ Hn Ts, with Ts = [[s, 0, -s cx], [0, s, -s cy], [0, 0, 1]] (Td likewise), entry by
     # entry
     rows = [hn[0:3], hn[3:6], hn[6:9]]
@@ -243,15 +261,11 @@ def fit_projective(
     if abs(last[2]) < 1e-12:
         raise DegenerateDataError(f"{what}: the fitted homography maps the origin to infinity")
     k = 1.0 / last[2]
-    h8 = [
+    return [
         (entry / ds + cx * last_entry) * k
         for row, cx in ((rows[0], dcx), (rows[1], dcy))
         for entry, last_entry in zip(row, last)
     ] + [last[0] * k, last[1] * k]
-    estimate = np.array(h8)
-    if refine and n > 4:
-        estimate = _refine(estimate, layout)
-    return np.append(estimate, 1.0).reshape(3, 3)
 
 
 def apply_projective(

@@ -9,12 +9,13 @@ variance per degree of freedom.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from service.errors import DegenerateDataError, FitError
 from service.physics.effects import STAGE_EFFECTS, EffectSet
@@ -200,14 +201,7 @@ def fit_stage_effects(
     start = np.zeros(n_par) if x0 is None else np.asarray(x0, dtype=float)
     scales = np.array([typical_scale(k) for k in model.free])
 
-    with_prior = [i for i, sd in enumerate(prior_sd or []) if sd]
-    prior_w = (
-        np.array(
-            [float(prior_sigma or 0.0) / float((prior_sd or [])[i] or 1.0) for i in with_prior]
-        )
-        if with_prior
-        else np.zeros(0)
-    )
+    with_prior, prior_w = _prior_rows(prior_sd, prior_sigma)
 
     def data_resid(x: NDArray[np.float64]) -> NDArray[np.float64]:
         residual: NDArray[np.float64] = (model.predict(x, pts, outputs) - obs).ravel()
@@ -236,15 +230,69 @@ def fit_stage_effects(
     kw = {}
     if loss != "linear":
         if f_scale is None:
-            # Residuals at the starting bench are no guide to the scale of good residuals: fit
-            # plainly first, take the scale robustly (MAD) from that fit, and start the robust fit
-            # there.
-            pre = fit_stage_effects(
-                model, pts, observed, x0=start, loss="linear", max_nfev=max_nfev
-            )
-            f_scale = robust_scale(np.concatenate(list(pre.residuals.values())))
-            start = pre.values
+            f_scale, start = _robust_start(model, pts, observed, start, max_nfev)
         kw["f_scale"] = f_scale
+    sol = _solve(resid, start, scales, loss, max_nfev, kw)
+    jac = sol.jac
+    data_res = sol.fun if loss == "linear" else resid(sol.x)
+    data_res = data_res[:n_obs]  # the data's residuals (the prior rows are not readings)
+    dof = max(n_obs - n_par, 1)
+    s2 = float(data_res @ data_res) / dof
+    sv = _singular_values(jac, scales, model.free)
+    cov = _covariance(jac, n_obs, with_prior, prior_sd, s2)
+    return _result(
+        model,
+        sol.x,
+        cov,
+        data_res,
+        outputs,
+        obs.shape,
+        s2,
+        bool(sol.status > 0),
+        int(sol.nfev),
+        str(sol.message),
+        sv,
+    )
+
+
+def _prior_rows(
+    prior_sd: Sequence[float | None] | None, prior_sigma: float | None
+) -> tuple[list[int], NDArray[np.float64]]:
+    """The parameters with a prior, and the weight of each prior's residual row (noise over sd)."""
+    with_prior = [i for i, sd in enumerate(prior_sd or []) if sd]
+    prior_w = (
+        np.array(
+            [float(prior_sigma or 0.0) / float((prior_sd or [])[i] or 1.0) for i in with_prior]
+        )
+        if with_prior
+        else np.zeros(0)
+    )
+    return with_prior, prior_w
+
+
+def _robust_start(
+    model: StageEffectModel,
+    pts: StagePoints,
+    observed: Mapping[str, NDArray[np.float64]],
+    start: NDArray[np.float64],
+    max_nfev: int,
+) -> tuple[float, NDArray[np.float64]]:
+    """A robust fit's soft threshold and start, taken from a plain fit of the same points."""
+    # Residuals at the starting bench are no guide to the scale of good residuals: fit plainly
+    # first, take the scale robustly (MAD) from that fit, and start the robust fit there.
+    pre = fit_stage_effects(model, pts, observed, x0=start, loss="linear", max_nfev=max_nfev)
+    return robust_scale(np.concatenate(list(pre.residuals.values()))), pre.values
+
+
+def _solve(
+    resid: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    start: NDArray[np.float64],
+    scales: NDArray[np.float64],
+    loss: str,
+    max_nfev: int,
+    kw: dict[str, float],
+) -> OptimizeResult:
+    """scipy's least squares as the bench fit sets it; a failure or divergence is a FitError."""
     try:
         sol = least_squares(
             resid,
@@ -263,36 +311,37 @@ def fit_stage_effects(
         raise FitError(f"bench fit failed: {exc}") from exc
     if not np.all(np.isfinite(sol.x)):
         raise FitError("bench fit diverged (non-finite parameters)")
-    jac = sol.jac
-    data_res = sol.fun if loss == "linear" else resid(sol.x)
-    data_res = data_res[:n_obs]  # the data's residuals (the prior rows are not readings)
-    dof = max(n_obs - n_par, 1)
-    s2 = float(data_res @ data_res) / dof
-    sv = np.linalg.svd(jac * scales, compute_uv=False)
+    return sol
+
+
+def _singular_values(
+    jac: Any, scales: NDArray[np.float64], free: list[ParamKey]
+) -> NDArray[np.float64]:
+    """The scaled Jacobian's singular values, refused when they say the fit is singular."""
+    sv: NDArray[np.float64] = np.linalg.svd(jac * scales, compute_uv=False)
     if sv[-1] <= 1e-8 * sv[0]:
         raise DegenerateDataError(
             "the data do not separate the free bench parameters "
-            f"({', '.join(param_label(k) for k in model.free)}): the fit is singular"
+            f"({', '.join(param_label(k) for k in free)}): the fit is singular"
         )
-    JtJ = jac[:n_obs].T @ jac[:n_obs]
+    return sv
+
+
+def _covariance(
+    jac: Any,
+    n_obs: int,
+    with_prior: list[int],
+    prior_sd: Sequence[float | None] | None,
+    s2: float,
+) -> NDArray[np.float64]:
+    """s²(JᵀJ)⁻¹ over the data's rows, each prior adding s²/sd² to its diagonal: the posterior's."""
+    jtj = jac[:n_obs].T @ jac[:n_obs]
     if with_prior:
-        JtJ[with_prior, with_prior] += (
+        jtj[with_prior, with_prior] += (
             s2 / np.array([float((prior_sd or [])[i] or 1.0) for i in with_prior]) ** 2
         )
-    cov = np.linalg.pinv(JtJ) * s2
-    return _result(
-        model,
-        sol.x,
-        cov,
-        data_res,
-        outputs,
-        obs.shape,
-        s2,
-        bool(sol.status > 0),
-        int(sol.nfev),
-        str(sol.message),
-        sv,
-    )
+    cov: NDArray[np.float64] = np.linalg.pinv(jtj) * s2
+    return cov
 
 
 def _result(

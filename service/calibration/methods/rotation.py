@@ -284,78 +284,21 @@ class _RotationMethod:
 
     def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
         pts, replaced = self.points(data)
-        alpha, beta, gamma = fit_plane(pts)
         notes = []
         theta_ref = data.get("theta_ref_deg") if hasattr(data, "get") else None
-        sense = "beta >= 0 (no theta_ref_deg column to fix the sense of the axis)"
-        if theta_ref is not None:
-            cand = [(alpha, beta, gamma), flip_sense(alpha, beta, gamma)]
-            rms = [
-                float(
-                    np.sqrt(
-                        np.mean(wrap_deg(np.degrees(self.theta(pts, *candidate)) - theta_ref) ** 2)
-                    )
-                )
-                for candidate in cand
-            ]
-            if rms[1] < rms[0]:
-                alpha, beta, gamma = cand[1]
-            sense = "the sense of the axis that reproduces theta_ref_deg"
+        (alpha, beta, gamma), sense = self._oriented(pts, fit_plane(pts), theta_ref)
         notes.append(f"axis sense: {sense}")
-        if not np.isfinite(beta) or abs(np.cos(beta)) < 1e-6:
-            raise DegenerateDataError(
-                "rotation: the fitted axis is vertical (beta = ±90°): turning about it does not "
-                "change the tilt, so θ cannot be measured"
-            )
+        _check_not_vertical(beta)
         n = plane_normal(alpha, gamma)
         plane_res = pts @ n - np.sin(beta)
         n_pts = pts.shape[0]
         dof = n_pts - 3
-        sigma_guess = float(np.sqrt(np.sum(plane_res**2) / dof)) if dof > 0 else 0.0
-        gain = _noise_gain(pts, replaced, n, sigma_guess)
-        if dof > 0:  # once more with the noise the gains imply
-            gain = _noise_gain(pts, replaced, n, float(np.sqrt(np.sum(plane_res**2 / gain) / dof)))
-        # Jacobian of r wrt (α, β, γ) in degrees
-        dn_da = np.array([np.cos(alpha) * np.cos(gamma), -np.sin(alpha) * np.cos(gamma), 0.0])
-        dn_dg = np.array(
-            [-np.sin(alpha) * np.sin(gamma), -np.cos(alpha) * np.sin(gamma), -np.cos(gamma)]
-        )
-        jacobian = np.column_stack([pts @ dn_da, np.full(n_pts, -np.cos(beta)), pts @ dn_dg]) * (
-            np.pi / 180.0
-        )
-        cov = None
-        sigma_s = None
-        if dof > 0:
-            sigma_s = float(np.sqrt(np.sum(plane_res**2 / gain) / dof))
-            jtj = jacobian.T @ jacobian
-            if np.linalg.cond(jtj) > 1e14:
-                raise DegenerateDataError(
-                    "rotation: the points do not separate alpha, beta and gamma (the normal "
-                    "equations are singular); read the sensor over a wider arc"
-                )
-            inv = np.linalg.inv(jtj)
-            # sandwich: per-point variance
-            cov = inv @ (jacobian.T @ (jacobian * (sigma_s**2 * gain)[:, None])) @ inv
-            cov = 0.5 * (cov + cov.T)
-        else:
+        cov, sigma_s = _plane_covariance(pts, replaced, n, plane_res, alpha, beta, gamma)
+        if dof <= 0:
             notes.append(
                 "exactly 3 points: the plane is solved, not fitted; no residuals, so no covariance "
                 "and no u_theta_deg"
             )
-        values = np.degrees([alpha, beta, gamma])
-        params = {
-            "alpha_deg": Parameter(
-                float(values[0]),
-                "deg",
-                note="angle between the y axis and L's projection on the sensor plane",
-            ),
-            "beta_deg": Parameter(
-                float(values[1]), "deg", note="inclination of the rotation axis L to the horizontal"
-            ),
-            "gamma_deg": Parameter(
-                float(values[2]), "deg", note="angle between L and the sensor plane"
-            ),
-        }
         theta = np.degrees(self.theta(pts, alpha, beta, gamma))
         plane = residual_summary({"plane": plane_res}, "1")
         fit = {
@@ -372,6 +315,46 @@ class _RotationMethod:
             residuals = residual_summary({"theta_deg": res_theta}, "deg")
         else:
             residuals = plane
+        notes += self._source_notes(sigma_s)
+        model = CalibrationModel(
+            kind=self.kind,
+            method=self.name,
+            columns=list(self.fit_required) + (["theta_ref_deg"] if theta_ref is not None else []),
+            parameters=_plane_parameters(alpha, beta, gamma),
+            covariance_names=list(PARAM_NAMES) if cov is not None else [],
+            covariance=cov,
+            residuals=residuals,
+            fit=fit,
+            notes=notes,
+            state={"sigma_s": sigma_s},
+        )
+        if theta_ref is not None and cov is not None:
+            self._keep_constant_errors(model, data, np.asarray(theta_ref, dtype=float), theta)
+        return model
+
+    def _oriented(
+        self,
+        pts: NDArray[np.float64],
+        plane: tuple[float, float, float],
+        theta_ref: NDArray[np.float64] | None,
+    ) -> tuple[tuple[float, float, float], str]:
+        """The plane's (α, β, γ) in the axis's sense that theta_ref_deg fixes, and which sense."""
+        if theta_ref is None:
+            return plane, "beta >= 0 (no theta_ref_deg column to fix the sense of the axis)"
+        cand = [plane, flip_sense(*plane)]
+        rms = [
+            float(
+                np.sqrt(np.mean(wrap_deg(np.degrees(self.theta(pts, *candidate)) - theta_ref) ** 2))
+            )
+            for candidate in cand
+        ]
+        return (cand[1] if rms[1] < rms[0] else plane), (
+            "the sense of the axis that reproduces theta_ref_deg"
+        )
+
+    def _source_notes(self, sigma_s: float | None) -> list[str]:
+        """What the notes say of where the method's Sz and the output noise come from."""
+        notes = []
         if not self.uses_sz:
             notes.append(
                 "direct method: Sz from eq. (6) taken as >= 0; angles where the sensor normal "
@@ -382,33 +365,28 @@ class _RotationMethod:
                 f"output noise sigma_s = {sigma_s:.3g} (sine units) from the plane residuals, "
                 "used for u_theta_deg"
             )
-        model = CalibrationModel(
-            kind=self.kind,
-            method=self.name,
-            columns=list(self.fit_required) + (["theta_ref_deg"] if theta_ref is not None else []),
-            parameters=params,
-            covariance_names=list(PARAM_NAMES) if cov is not None else [],
-            covariance=cov,
-            residuals=residuals,
-            fit=fit,
-            notes=notes,
-            state={"sigma_s": sigma_s},
-        )
-        if theta_ref is not None and cov is not None:
-            ref = np.asarray(theta_ref, dtype=float)
-            const = self.constant_errors(model, data, ref, wrap_deg(ref - theta))
-            if const is not None:
-                model.state[CONSTANT_ERRORS_KEY] = const
-                notes.append(
-                    "constant output errors (zero offsets, scale errors of sx, sy, sz) bias "
-                    "theta by an amount that depends on the angle, jumps where the method "
-                    "changes branch and does not show in the output scatter: per branch, a "
-                    "straight line through the theta residuals against theta_ref_deg gives it "
-                    "per angle; its square (the bias's square and its estimation variance) adds "
-                    "to u_theta_deg (largest residual "
-                    f"{float(np.max(np.abs(wrap_deg(ref - theta)))):.3g} deg)"
-                )
-        return model
+        return notes
+
+    def _keep_constant_errors(
+        self,
+        model: CalibrationModel,
+        data: Columns,
+        ref: NDArray[np.float64],
+        theta: NDArray[np.float64],
+    ) -> None:
+        """Keep the per-branch θ bias of the outputs' constant errors the dividing head shows."""
+        const = self.constant_errors(model, data, ref, wrap_deg(ref - theta))
+        if const is not None:
+            model.state[CONSTANT_ERRORS_KEY] = const
+            model.notes.append(
+                "constant output errors (zero offsets, scale errors of sx, sy, sz) bias "
+                "theta by an amount that depends on the angle, jumps where the method "
+                "changes branch and does not show in the output scatter: per branch, a "
+                "straight line through the theta residuals against theta_ref_deg gives it "
+                "per angle; its square (the bias's square and its estimation variance) adds "
+                "to u_theta_deg (largest residual "
+                f"{float(np.max(np.abs(wrap_deg(ref - theta)))):.3g} deg)"
+            )
 
     def theta_deg(self, model: CalibrationModel, data: Columns) -> NDArray[np.float64]:
         alpha, beta, gamma = np.radians(model.values(PARAM_NAMES))
@@ -502,41 +480,10 @@ class _RotationMethod:
         order = np.argsort(wrap_deg(theta_ref_deg))
         regime = np.array(self.regimes(model, data, theta_ref_deg))[order]
         t_all, r_all, n_all = wrap_deg(theta_ref_deg)[order], res_theta_deg[order], noise2[order]
-        starts = [0] + [i for i in range(1, regime.size) if regime[i] != regime[i - 1]]
-        arcs = [list(range(start, stop)) for start, stop in zip(starts, starts[1:] + [regime.size])]
-        # the circle closes: one arc across ±180°
-        if len(arcs) > 1 and regime[0] == regime[-1] and np.ptp(t_all) > 300:
-            arcs[0] = arcs.pop() + arcs[0]
-        out = []
-        for idx in arcs:
-            t, residual = t_all[idx], r_all[idx]
-            centre = float(
-                np.degrees(
-                    np.arctan2(np.mean(np.sin(np.radians(t))), np.mean(np.cos(np.radians(t))))
-                )
-            )
-            design = _local(t, centre, linear=t.size >= 3)
-            coef, *_ = np.linalg.lstsq(design, residual, rcond=None)
-            dof = t.size - design.shape[1]
-            # the scatter about the line: the propagated noise, or the residuals' own where they
-            # have enough degrees of freedom and say more (the dividing head's noise, which the fit
-            # does not know)
-            s2 = float(np.mean(n_all[idx]))
-            if dof >= 3:
-                s2 = max(s2, float(np.sum((residual - design @ coef) ** 2) / dof))
-            half = float(np.max(np.abs(wrap_deg(t - centre))))
-            out.append(
-                {
-                    "branch": str(regime[idx[0]]),
-                    "centre_deg": centre,
-                    "half_width_deg": half,
-                    "coefficients_deg": coef.tolist(),
-                    "coefficient_covariance_deg2": (
-                        s2 * np.linalg.pinv(design.T @ design)
-                    ).tolist(),
-                }
-            )
-        return out
+        return [
+            _arc_line(str(regime[idx[0]]), t_all[idx], r_all[idx], n_all[idx])
+            for idx in _branch_arcs(regime, t_all)
+        ]
 
     def constant_errors_u2(
         self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]
@@ -552,7 +499,7 @@ class _RotationMethod:
             coef = np.asarray(arc["coefficients_deg"], dtype=float)
             design = _local(theta_deg, float(arc["centre_deg"]), linear=coef.size == 2)
             bias = design @ coef
-            # b² estimates the bias's square plus its estimation variance: both belong to the
+            # bias² estimates the bias's square plus its estimation variance: both belong to the
             # angle's uncertainty
             var = bias**2
             # the arc of the point's branch that holds it (or is nearest), extrapolated no further
@@ -575,6 +522,108 @@ class _RotationMethod:
             worst = max(worst, float(np.max(var, initial=0.0)))
         u2[np.isnan(u2)] = worst  # a branch the calibration never used: the largest any arc showed
         return u2
+
+
+def _branch_arcs(regime: NDArray[np.str_], t_sorted: NDArray[np.float64]) -> list[list[int]]:
+    """The runs of one branch along the sorted angles (indices), the circle closed across ±180°."""
+    starts = [0] + [i for i in range(1, regime.size) if regime[i] != regime[i - 1]]
+    arcs = [list(range(start, stop)) for start, stop in zip(starts, starts[1:] + [regime.size])]
+    # the circle closes: one arc across ±180°
+    if len(arcs) > 1 and regime[0] == regime[-1] and np.ptp(t_sorted) > 300:
+        arcs[0] = arcs.pop() + arcs[0]
+    return arcs
+
+
+def _arc_line(
+    branch: str, t: NDArray[np.float64], residual: NDArray[np.float64], noise2: NDArray[np.float64]
+) -> dict[str, Any]:
+    """One arc's θ bias for MODEL.json: a line in θ about the arc's centre, and its covariance."""
+    centre = float(
+        np.degrees(np.arctan2(np.mean(np.sin(np.radians(t))), np.mean(np.cos(np.radians(t)))))
+    )
+    design = _local(t, centre, linear=t.size >= 3)
+    coef, *_ = np.linalg.lstsq(design, residual, rcond=None)
+    dof = t.size - design.shape[1]
+    # the scatter about the line: the propagated noise, or the residuals' own where they have
+    # enough degrees of freedom and say more (the dividing head's noise, which the fit does not
+    # know)
+    s2 = float(np.mean(noise2))
+    if dof >= 3:
+        s2 = max(s2, float(np.sum((residual - design @ coef) ** 2) / dof))
+    half = float(np.max(np.abs(wrap_deg(t - centre))))
+    return {
+        "branch": branch,
+        "centre_deg": centre,
+        "half_width_deg": half,
+        "coefficients_deg": coef.tolist(),
+        "coefficient_covariance_deg2": (s2 * np.linalg.pinv(design.T @ design)).tolist(),
+    }
+
+
+def _check_not_vertical(beta: float) -> None:
+    """Refuse a vertical axis: turning about it does not change the tilt, so θ is not measured."""
+    if not np.isfinite(beta) or abs(np.cos(beta)) < 1e-6:
+        raise DegenerateDataError(
+            "rotation: the fitted axis is vertical (beta = ±90°): turning about it does not "
+            "change the tilt, so θ cannot be measured"
+        )
+
+
+def _plane_covariance(
+    pts: NDArray[np.float64],
+    replaced: NDArray[np.intp],
+    n: NDArray[np.float64],
+    plane_res: NDArray[np.float64],
+    alpha: float,
+    beta: float,
+    gamma: float,
+) -> tuple[NDArray[np.float64] | None, float | None]:
+    """The covariance of (α, β, γ) in degrees and the output noise σ_s; (None, None) at 3 points."""
+    n_pts = pts.shape[0]
+    dof = n_pts - 3
+    if dof <= 0:
+        return None, None
+    sigma_guess = float(np.sqrt(np.sum(plane_res**2) / dof))
+    gain = _noise_gain(pts, replaced, n, sigma_guess)
+    # once more with the noise the gains imply
+    gain = _noise_gain(pts, replaced, n, float(np.sqrt(np.sum(plane_res**2 / gain) / dof)))
+    # Jacobian of the plane residual wrt (α, β, γ) in degrees
+    dn_da = np.array([np.cos(alpha) * np.cos(gamma), -np.sin(alpha) * np.cos(gamma), 0.0])
+    dn_dg = np.array(
+        [-np.sin(alpha) * np.sin(gamma), -np.cos(alpha) * np.sin(gamma), -np.cos(gamma)]
+    )
+    jacobian = np.column_stack([pts @ dn_da, np.full(n_pts, -np.cos(beta)), pts @ dn_dg]) * (
+        np.pi / 180.0
+    )
+    sigma_s = float(np.sqrt(np.sum(plane_res**2 / gain) / dof))
+    jtj = jacobian.T @ jacobian
+    if np.linalg.cond(jtj) > 1e14:
+        raise DegenerateDataError(
+            "rotation: the points do not separate alpha, beta and gamma (the normal "
+            "equations are singular); read the sensor over a wider arc"
+        )
+    inv = np.linalg.inv(jtj)
+    # sandwich: per-point variance
+    cov = inv @ (jacobian.T @ (jacobian * (sigma_s**2 * gain)[:, None])) @ inv
+    return 0.5 * (cov + cov.T), sigma_s
+
+
+def _plane_parameters(alpha: float, beta: float, gamma: float) -> dict[str, Parameter]:
+    """The plane's angles (radians) as the model's parameters in degrees, each saying what it is."""
+    values = np.degrees([alpha, beta, gamma])
+    return {
+        "alpha_deg": Parameter(
+            float(values[0]),
+            "deg",
+            note="angle between the y axis and L's projection on the sensor plane",
+        ),
+        "beta_deg": Parameter(
+            float(values[1]), "deg", note="inclination of the rotation axis L to the horizontal"
+        ),
+        "gamma_deg": Parameter(
+            float(values[2]), "deg", note="angle between L and the sensor plane"
+        ),
+    }
 
 
 DIRECT = _RotationMethod(

@@ -83,7 +83,7 @@ def polyfit(x: NDArray[np.float64], y: NDArray[np.float64], degree: int) -> Poly
     resid = y - vander @ coef_scaled
     rss = float(resid @ resid)
     dof = x.size - (degree + 1)
-    # T maps coefficients in u to coefficients in x: u^k = Σ_j C(k,j) x^j (-centre)^(k-j) / half^k
+    # to_powers maps coefficients in u to those in x: u^k = Σ_j C(k,j) x^j (-centre)^(k-j) / half^k
     to_powers = np.zeros((degree + 1, degree + 1))
     for k in range(degree + 1):
         for j in range(k + 1):
@@ -147,14 +147,7 @@ class PolyMethod:
         ref = reference_arcsec(data)
         reading = np.asarray(data["reading"], dtype=float)
         ref_col = "ref_arcsec" if "ref_arcsec" in data else "ref_deg"
-        n_read, n_ref = np.unique(reading).size, np.unique(ref).size
-        if n >= n_read or n >= n_ref:
-            which = "readings" if n_read <= n_ref else "reference angles"
-            raise DegenerateDataError(
-                f"scale: poly{n} needs at least {n + 1} distinct points, the data have "
-                f"{min(n_read, n_ref)} distinct "
-                f"{which} ({reading.size} rows); add points at other angles or lower the degree"
-            )
+        n_distinct = _distinct_points(n, reading, ref)
         main = polyfit(reading, ref, n)
         names = coefficient_names(n)
         notes: list[str] = []
@@ -182,30 +175,8 @@ class PolyMethod:
             fit["measuring_unit_note"] = (
                 "slope d(angle)/d(reading) at the middle of the reading range"
             )
-        lower = polyfit(reading, ref, n - 1)
-        fit["f_test_highest_term"] = dict(
-            against_degree=n - 1, **(f_test(lower["rss"], main["rss"], main["dof"]) or {})
-        )
-        if reading.size - (n + 2) >= 1 and n + 1 < min(n_read, n_ref) and n + 1 <= MAX_DEGREE:
-            higher = polyfit(reading, ref, n + 1)
-            fit["f_test_next_degree"] = dict(
-                degree=n + 1, **(f_test(main["rss"], higher["rss"], higher["dof"]) or {})
-            )
-        # the paper's direction: reading = Σ a_j angle^j
-        paper = polyfit(ref, reading, n)
-        paper_fit = {
-            "coefficients": [float(coef) for coef in paper["coef"]],
-            "units": ["count"]
-            + [f"count/arcsec^{j}" if j > 1 else "count/arcsec" for j in range(1, n + 1)],
-            "standard_errors": (
-                np.sqrt(np.diag(paper["cov"])).tolist() if paper["cov"] is not None else None
-            ),
-            "residual_norm_counts": math.sqrt(paper["rss"]),
-            "residual_sigma_counts": paper["s"],
-        }
-        if n == 1:
-            paper_fit["arcsec_per_count"] = 1.0 / float(paper["coef"][1])
-        fit["reading_on_angle"] = paper_fit
+        fit.update(_f_tests(reading, ref, n, main, n_distinct))
+        fit["reading_on_angle"] = _reading_on_angle(reading, ref, n)
         monotonic = _monotonic(main["coef"], lo, hi)
         fit["monotonic_over_range"] = monotonic
         if not monotonic:
@@ -213,16 +184,8 @@ class PolyMethod:
                 f"poly{n}: the fitted angle is not monotonic in the reading over {lo:g}..{hi:g} "
                 "counts: the degree is too high for these data"
             )
-        reading_sigma = None
-        if main["s"] is not None and slope_mid != 0:
-            reading_sigma = main["s"] / abs(slope_mid)
-            notes.append(
-                f"reading noise {reading_sigma:.3g} counts taken from the residual scatter "
-                f"({main['s']:.3g} arcsec, all of it charged to the reading): used for "
-                "u_angle_arcsec"
-            )
-        else:
-            notes.append("no degrees of freedom left: no standard errors and no u_angle_arcsec")
+        reading_sigma, noise_note = _reading_noise(main["s"], slope_mid)
+        notes.append(noise_note)
         notes.append(
             f"angle_arcsec has the zero of the calibration's reference ({ref_col}); readings "
             f"outside {lo:g}..{hi:g} are extrapolated"
@@ -271,6 +234,73 @@ class PolyMethod:
             out["u_angle_arcsec"] = gum.expanded()
             out["k_angle"] = coverage_factor(gum.dof_eff)
         return out
+
+
+def _distinct_points(n: int, reading: NDArray[np.float64], ref: NDArray[np.float64]) -> int:
+    """The data's distinct points (the fewer of readings and angles), refused below degree + 1."""
+    n_read, n_ref = np.unique(reading).size, np.unique(ref).size
+    if n >= n_read or n >= n_ref:
+        which = "readings" if n_read <= n_ref else "reference angles"
+        raise DegenerateDataError(
+            f"scale: poly{n} needs at least {n + 1} distinct points, the data have "
+            f"{min(n_read, n_ref)} distinct "
+            f"{which} ({reading.size} rows); add points at other angles or lower the degree"
+        )
+    return min(n_read, n_ref)
+
+
+def _f_tests(
+    reading: NDArray[np.float64],
+    ref: NDArray[np.float64],
+    n: int,
+    main: PolyFit,
+    n_distinct: int,
+) -> dict[str, Any]:
+    """The degree's F-tests: is its highest term needed, and would the next degree help."""
+    lower = polyfit(reading, ref, n - 1)
+    tests = {
+        "f_test_highest_term": dict(
+            against_degree=n - 1, **(f_test(lower["rss"], main["rss"], main["dof"]) or {})
+        )
+    }
+    if reading.size - (n + 2) >= 1 and n + 1 < n_distinct and n + 1 <= MAX_DEGREE:
+        higher = polyfit(reading, ref, n + 1)
+        tests["f_test_next_degree"] = dict(
+            degree=n + 1, **(f_test(main["rss"], higher["rss"], higher["dof"]) or {})
+        )
+    return tests
+
+
+def _reading_on_angle(
+    reading: NDArray[np.float64], ref: NDArray[np.float64], n: int
+) -> dict[str, Any]:
+    """The paper's direction, reading = Σ a_j angle^j, reported beside the model (seed 003)."""
+    paper = polyfit(ref, reading, n)
+    paper_fit = {
+        "coefficients": [float(coef) for coef in paper["coef"]],
+        "units": ["count"]
+        + [f"count/arcsec^{j}" if j > 1 else "count/arcsec" for j in range(1, n + 1)],
+        "standard_errors": (
+            np.sqrt(np.diag(paper["cov"])).tolist() if paper["cov"] is not None else None
+        ),
+        "residual_norm_counts": math.sqrt(paper["rss"]),
+        "residual_sigma_counts": paper["s"],
+    }
+    if n == 1:
+        paper_fit["arcsec_per_count"] = 1.0 / float(paper["coef"][1])
+    return paper_fit
+
+
+def _reading_noise(sigma_arcsec: float | None, slope_mid: float) -> tuple[float | None, str]:
+    """The reading noise the residual scatter implies (None without one), and the note saying so."""
+    if sigma_arcsec is not None and slope_mid != 0:
+        reading_sigma = sigma_arcsec / abs(slope_mid)
+        return reading_sigma, (
+            f"reading noise {reading_sigma:.3g} counts taken from the residual scatter "
+            f"({sigma_arcsec:.3g} arcsec, all of it charged to the reading): used for "
+            "u_angle_arcsec"
+        )
+    return None, "no degrees of freedom left: no standard errors and no u_angle_arcsec"
 
 
 def _dof(model: CalibrationModel) -> float:

@@ -213,6 +213,104 @@ def zero_scatter(data: Columns) -> tuple[float, int] | None:
     return float(np.sqrt(2.0 * ss / dof)), dof
 
 
+def _check_rotation(phi: float) -> None:
+    """Refuse an assumed pair rotation that leaves no tilt in the half-differences (φ near 0°)."""
+    if not np.isfinite(phi) or abs(np.sin(np.radians(phi) / 2.0)) < 0.05:
+        raise InputError(
+            f"turntable: --rotation-deg {phi:g}: the two positions of a pair must be turned "
+            "apart (φ near 180°); at φ near 0° or 360° the half-difference carries no tilt"
+        )
+
+
+def _start(
+    init: Mapping[str, float] | None,
+    az: NDArray[np.float64],
+    d1: NDArray[np.float64],
+    d2: NDArray[np.float64],
+    xi: NDArray[np.float64],
+    eta: NDArray[np.float64],
+    phi: float,
+) -> NDArray[np.float64]:
+    """Where the iteration starts (given, or the linear solution); refused at a scale ≤ 0."""
+    p0 = (
+        np.array([float(init[k]) for k in PARAM_NAMES])
+        if init is not None
+        else _initial(az, d1, d2, xi, eta, phi)
+    )
+    if p0[1] <= 0 or p0[2] <= 0:
+        raise DegenerateDataError(
+            "turntable: the half-differences do not follow the reference tilts (a scale "
+            "factor comes out zero): check the pairing of n*_a and n*_b and the reference "
+            "columns"
+        )
+    return p0
+
+
+def _iterate(
+    p0: NDArray[np.float64],
+    az: NDArray[np.float64],
+    d1: NDArray[np.float64],
+    d2: NDArray[np.float64],
+    xi: NDArray[np.float64],
+    eta: NDArray[np.float64],
+    phi: float,
+) -> tuple[NDArray[np.float64], int]:
+    """The paper's iteration and its iteration count, refused unless it converges; β to ±180°."""
+    fitted, iterations, converged = gauss_newton(p0, az, d1, d2, xi, eta, phi)
+    if not converged or not np.all(np.isfinite(fitted)):
+        raise DegenerateDataError(
+            "turntable: the iterated least squares (seed 004 eqs. 9-11) did not converge in "
+            f"{iterations} iterations: the pairs do not determine beta, m1, m2, epsilon "
+            "(more pairs, azimuths and reference tilts are needed)"
+        )
+    fitted[0] = (fitted[0] + 180.0) % 360.0 - 180.0
+    return fitted, iterations
+
+
+def _check_separable(jtj: NDArray[np.float64]) -> None:
+    """Refuse normal equations that are singular once scaled: the pairs do not separate β, m, ε."""
+    scale = np.sqrt(np.diag(jtj))
+    if np.any(scale == 0) or np.linalg.cond(jtj / np.outer(scale, scale)) > 1e12:
+        raise DegenerateDataError(
+            "turntable: the pairs do not separate beta, m1, m2 and epsilon (singular normal "
+            "equations): add pairs at other azimuths and reference tilts"
+        )
+
+
+def _reading_noise(
+    halfsum: tuple[float, int] | None, bound_residual: float, dof: int
+) -> tuple[float, str, float]:
+    """One reading's noise: the smaller upper bound (half-sums or residuals), which, and its dof."""
+    bound_halfsum = None if halfsum is None else halfsum[0]
+    reading_sigma = bound_residual if bound_halfsum is None else min(bound_residual, bound_halfsum)
+    from_halfsums = halfsum is not None and halfsum[0] <= bound_residual
+    reading_sigma_from = "half-sums" if from_halfsums else "residuals"
+    reading_sigma_dof = halfsum[1] if from_halfsums and halfsum is not None else dof
+    return reading_sigma, reading_sigma_from, reading_sigma_dof
+
+
+def _parameters(fitted: NDArray[np.float64], phi: float) -> dict[str, Parameter]:
+    """The fitted β, m1, m2, ε as the model's parameters, and φ held at the assumed rotation."""
+    units = ("deg", "reading/arcsec", "reading/arcsec", "deg")
+    notes_p = (
+        "installation angle of the X axis from the instrument's reference direction (CCD)",
+        "scale factor of the X axis, reading units per arcsec",
+        "scale factor of the Y axis, reading units per arcsec",
+        "non-orthogonality of the two axes",
+    )
+    params = {
+        nm: Parameter(float(value), unit, note=nt)
+        for nm, value, unit, nt in zip(PARAM_NAMES, fitted, units, notes_p)
+    }
+    params["rotation_deg"] = Parameter(
+        phi,
+        "deg",
+        fixed=True,
+        note="assumed rotation φ between the two positions of a pair; not fitted",
+    )
+    return params
+
+
 class ReversalMethod:
     kind = "turntable"
     name = "reversal"
@@ -232,77 +330,29 @@ class ReversalMethod:
 
     def fit(self, data: Columns, options: FitOptions) -> CalibrationModel:
         phi = float(options.rotation_deg)
-        if not np.isfinite(phi) or abs(np.sin(np.radians(phi) / 2.0)) < 0.05:
-            raise InputError(
-                f"turntable: --rotation-deg {phi:g}: the two positions of a pair must be turned "
-                "apart (φ near 180°); at φ near 0° or 360° the half-difference carries no tilt"
-            )
+        _check_rotation(phi)
         az = np.asarray(data["azimuth_deg"], dtype=float)
         xi = np.asarray(data["ref_north_arcsec"], dtype=float)
         eta = np.asarray(data["ref_east_arcsec"], dtype=float)
         d1, d2 = half_differences(data)
         check_design(az, xi, eta)
         init = (options.extra or {}).get("initial")
-        p0 = (
-            np.array([float(init[k]) for k in PARAM_NAMES])
-            if init is not None
-            else _initial(az, d1, d2, xi, eta, phi)
-        )
-        if p0[1] <= 0 or p0[2] <= 0:
-            raise DegenerateDataError(
-                "turntable: the half-differences do not follow the reference tilts (a scale "
-                "factor comes out zero): check the pairing of n*_a and n*_b and the reference "
-                "columns"
-            )
-        fitted, iterations, converged = gauss_newton(p0, az, d1, d2, xi, eta, phi)
-        if not converged or not np.all(np.isfinite(fitted)):
-            raise DegenerateDataError(
-                "turntable: the iterated least squares (seed 004 eqs. 9-11) did not converge in "
-                f"{iterations} iterations: the pairs do not determine beta, m1, m2, epsilon "
-                "(more pairs, azimuths and reference tilts are needed)"
-            )
-        fitted[0] = (fitted[0] + 180.0) % 360.0 - 180.0
+        p0 = _start(init, az, d1, d2, xi, eta, phi)
+        fitted, iterations = _iterate(p0, az, d1, d2, xi, eta, phi)
         residuals = _residuals(fitted, az, d1, d2, xi, eta, phi)
         jacobian = _jacobian(fitted, az, d1, d2, xi, eta, phi)
         n = az.size
         dof = 2 * n - 4
         jtj = jacobian.T @ jacobian
-        scale = np.sqrt(np.diag(jtj))
-        if np.any(scale == 0) or np.linalg.cond(jtj / np.outer(scale, scale)) > 1e12:
-            raise DegenerateDataError(
-                "turntable: the pairs do not separate beta, m1, m2 and epsilon (singular normal "
-                "equations): add pairs at other azimuths and reference tilts"
-            )
+        _check_separable(jtj)
         s2 = float(residuals @ residuals) / dof
         cov = s2 * np.linalg.inv(jtj)
         cov = 0.5 * (cov + cov.T)
         m_mean = 0.5 * (fitted[1] + fitted[2])
-        bound_residual = float(np.sqrt(2.0 * s2) * m_mean)
-        halfsum = zero_scatter(data)
-        bound_halfsum = None if halfsum is None else halfsum[0]
-        reading_sigma = (
-            bound_residual if bound_halfsum is None else min(bound_residual, bound_halfsum)
+        reading_sigma, reading_sigma_from, reading_sigma_dof = _reading_noise(
+            zero_scatter(data), float(np.sqrt(2.0 * s2) * m_mean), dof
         )
-        from_halfsums = halfsum is not None and halfsum[0] <= bound_residual
-        reading_sigma_from = "half-sums" if from_halfsums else "residuals"
-        reading_sigma_dof = halfsum[1] if from_halfsums and halfsum is not None else dof
-        units = ("deg", "reading/arcsec", "reading/arcsec", "deg")
-        notes_p = (
-            "installation angle of the X axis from the instrument's reference direction (CCD)",
-            "scale factor of the X axis, reading units per arcsec",
-            "scale factor of the Y axis, reading units per arcsec",
-            "non-orthogonality of the two axes",
-        )
-        params = {
-            nm: Parameter(float(value), unit, note=nt)
-            for nm, value, unit, nt in zip(PARAM_NAMES, fitted, units, notes_p)
-        }
-        params["rotation_deg"] = Parameter(
-            phi,
-            "deg",
-            fixed=True,
-            note="assumed rotation φ between the two positions of a pair; not fitted",
-        )
+        params = _parameters(fitted, phi)
         n_az = int(np.unique(np.round(np.mod(az, 360.0), 6)).size)
         n_tilt = int(np.unique(np.round(np.column_stack([xi, eta]), 6), axis=0).shape[0])
         notes = [

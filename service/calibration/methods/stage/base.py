@@ -227,13 +227,13 @@ def jacobian_cov(
     J: NDArray[np.float64], scales: NDArray[np.float64], s2: float
 ) -> NDArray[np.float64]:
     """s²(JᵀJ)⁻¹ from the residuals' Jacobian J (unscaled), scaled by `scales` for conditioning."""
-    J = J * scales
-    sv = np.linalg.svd(J, compute_uv=False)
+    scaled = J * scales
+    sv = np.linalg.svd(scaled, compute_uv=False)
     if sv[-1] <= 1e-10 * sv[0]:
         raise DegenerateDataError(
             "the points do not determine every parameter of the model (singular fit)"
         )
-    cov: NDArray[np.float64] = np.linalg.inv(J.T @ J) * np.outer(scales, scales) * s2
+    cov: NDArray[np.float64] = np.linalg.inv(scaled.T @ scaled) * np.outer(scales, scales) * s2
     return cov
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from service.calibration.differences import central_jacobian
 from service.calibration.methods.stage.common import (
@@ -33,6 +33,7 @@ from service.calibration.methods.stage.common import (
     newton_2d,
 )
 from service.calibration.stage_effect_fit import (
+    StageEffectFit,
     StageEffectModel,
     StagePoints,
     fit_stage_effects,
@@ -218,34 +219,58 @@ def worm_phases(bench: StageBench, cmd_deg: NDArray[np.float64], axis: str) -> i
     return int(np.unique(np.round((turns % 1.0) * 100) % 100).size)
 
 
+def _worm_reason(ax: str, bench: StageBench, pts: StagePoints) -> str | None:
+    """A worm seen at too few phases: its periodic error looks like the stage's scale and zero."""
+    cmd = pts.stage_x_deg if ax == "x" else pts.stage_y_deg
+    period = bench.worm_period_x_deg if ax == "x" else bench.worm_period_y_deg
+    n = worm_phases(bench, cmd, ax)
+    return (
+        f"the points sample the {ax} stage's worm (period {period:.6g} deg) at {n} "
+        f"phase{'s' * (n != 1)}: too few to tell its periodic error's amplitude and phase "
+        f"from the stage's scale and zero; held at 0 (a scan of the {ax} stage in steps of "
+        "an eighth of the period determines it)"
+    )
+
+
+def _backlash_reason(ax: str, bench: StageBench, pts: StagePoints) -> str | None:
+    """A stage approached from one side only: its lost motion is a constant, part of the zero."""
+    direction = pts.dir_x if ax == "x" else pts.dir_y
+    if not (np.any(direction > 0) and np.any(direction < 0)):
+        return (
+            f"every point was approached moving the {ax} stage the same way, so its lost "
+            "motion is a constant "
+            "the zero already holds; held at 0 (points approached from both sides determine it)"
+        )
+    return None
+
+
+def _temperature_reason(ax: str, bench: StageBench, pts: StagePoints) -> str | None:
+    """Points at one temperature: nothing to fit a temperature effect on."""
+    if pts.temp_c is None or float(np.ptp(pts.temp_c)) < 0.05:
+        return "the temperature hardly changed over the points; held at 0"
+    return None
+
+
+def _time_reason(ax: str, bench: StageBench, pts: StagePoints) -> str | None:
+    """Points without a time: nothing to fit a drift on."""
+    return "the points carry no time; held at 0" if pts.t_s is None else None
+
+
+# the reason, in the lab's words, an effect's parameter is held where the points cannot determine it
+_HELD_REASONS: dict[str, Callable[[str, StageBench, StagePoints], str | None]] = {
+    "periodic_error": _worm_reason,
+    "backlash": _backlash_reason,
+    "temperature_drift": _temperature_reason,
+    "time_drift": _time_reason,
+}
+
+
 def _held_reason(key: ParamKey, bench: StageBench, pts: StagePoints) -> str | None:
     """Why an effect parameter the points cannot determine is held, in the lab's words (None: the
     generic one)."""
     effect, name = key
-    ax = name[:1]
-    if effect == "periodic_error":
-        cmd = pts.stage_x_deg if ax == "x" else pts.stage_y_deg
-        period = bench.worm_period_x_deg if ax == "x" else bench.worm_period_y_deg
-        n = worm_phases(bench, cmd, ax)
-        return (
-            f"the points sample the {ax} stage's worm (period {period:.6g} deg) at {n} "
-            f"phase{'s' * (n != 1)}: too few to tell its periodic error's amplitude and phase "
-            f"from the stage's scale and zero; held at 0 (a scan of the {ax} stage in steps of "
-            "an eighth of the period determines it)"
-        )
-    if effect == "backlash":
-        direction = pts.dir_x if ax == "x" else pts.dir_y
-        if not (np.any(direction > 0) and np.any(direction < 0)):
-            return (
-                f"every point was approached moving the {ax} stage the same way, so its lost "
-                "motion is a constant "
-                "the zero already holds; held at 0 (points approached from both sides determine it)"
-            )
-    if effect == "temperature_drift" and (pts.temp_c is None or float(np.ptp(pts.temp_c)) < 0.05):
-        return "the temperature hardly changed over the points; held at 0"
-    if effect == "time_drift" and pts.t_s is None:
-        return "the points carry no time; held at 0"
-    return None
+    reason = _HELD_REASONS.get(effect)
+    return None if reason is None else reason(name[:1], bench, pts)
 
 
 def fit_chain(
@@ -264,6 +289,53 @@ def fit_chain(
     them: the others are held at zero with the reason (a worm's sine/cosine pair is fitted together
     or not at all). A periodic error is fitted on the stages of `worm_axes` only (those a diagnosis
     saw it on)."""
+    wanted = _wanted_effects(effects, periodic)
+    candidates, not_seen = _candidates(wanted, worm_axes)
+    sel = _selection(bench, pts, candidates)
+    kept, alone = _paired_only(sel.kept, candidates)
+    free = [candidates[i] for i in kept]
+    fixed: dict[ParamKey, str] = {
+        candidates[i]: _why_held(i, candidates, sel, alone, wanted, bench, pts)
+        for i in sorted(set(range(len(candidates))) - set(kept))
+    }
+    for key in not_seen:
+        fixed[key] = (
+            f"the diagnosis saw no worm error on the {key[1][:1]} stage (its terms within three "
+            "standard uncertainties of zero); held at 0"
+        )
+    undetermined = _undetermined(wanted, fixed)
+    model = StageEffectModel(bench, {}, free)
+    observed = {"ref_x_deg": ref_x, "ref_y_deg": ref_y}
+    fit = _fit_or_refuse(model, pts, observed, np.zeros(len(free)), loss, max_nfev)
+    _check_fit(fit)
+    sd = np.sqrt(np.clip(np.diag(fit.covariance), 1e-300, None))
+    corr = fit.covariance / np.outer(sd, sd)
+    pairs = _correlated_pairs([param_label(key) for key in free], corr)
+    priors, prior_sd = _priors(free, sd, corr)
+    if priors:
+        start = np.where([prior is None for prior in prior_sd], fit.values, 0.0)
+        fit = _fit_or_refuse(
+            model, pts, observed, start, loss, max_nfev, prior_sd=prior_sd, prior_sigma=fit.sigma
+        )
+    return ChainFit(
+        free,
+        fit.values,
+        fit.covariance,
+        fixed,
+        fit.residuals,
+        fit.sigma,
+        fit.dof,
+        fit.converged,
+        fit.nfev,
+        fit.jac_singular_values,
+        pairs,
+        undetermined,
+        priors,
+    )
+
+
+def _wanted_effects(effects: Sequence[str], periodic: bool) -> list[str]:
+    """The extra effects asked for, each once (`periodic` asks for the worm's); others refused."""
     unknown = [
         effect for effect in effects if effect not in EXTRA_EFFECTS and effect not in IN_CHAIN
     ]
@@ -275,7 +347,13 @@ def fit_chain(
     wanted = (["periodic_error"] if periodic else []) + [
         effect for effect in effects if effect in EXTRA_EFFECTS
     ]
-    wanted = list(dict.fromkeys(wanted))
+    return list(dict.fromkeys(wanted))
+
+
+def _candidates(
+    wanted: list[str], worm_axes: Sequence[str]
+) -> tuple[list[ParamKey], list[ParamKey]]:
+    """The chain's candidates and the wanted effects' parameters; and the worm terms left out."""
     not_seen = [
         k
         for k in EFFECT_PARAMS["periodic_error"]
@@ -287,6 +365,21 @@ def fit_chain(
         for k in EFFECT_PARAMS[effect]
         if k not in CHAIN_CANDIDATES and k not in not_seen
     ]
+    return candidates, not_seen
+
+
+def _paired_only(kept: list[int], candidates: list[ParamKey]) -> tuple[list[int], list[int]]:
+    """The kept candidates less a worm term whose partner is not kept; and those left alone."""
+    alone = [
+        i
+        for i in kept
+        if candidates[i] in PAIRED and candidates.index(PAIRED[candidates[i]]) not in kept
+    ]
+    return [i for i in kept if i not in alone], alone
+
+
+def _selection(bench: StageBench, pts: StagePoints, candidates: list[ParamKey]) -> Selection:
+    """Which candidates these points separate; refused where an essential one is not."""
     all_model = StageEffectModel(bench, {}, candidates)
     scales = np.array([typical_scale(k) for k in candidates])
 
@@ -302,41 +395,41 @@ def fit_chain(
             f"the stage points do not determine {what}: the data need both stages moved to "
             "several angles each, with points off both axes (e.g. a 3 x 3 grid or larger)"
         )
-    kept = list(sel.kept)
-    alone = [
-        i
-        for i in kept
-        if candidates[i] in PAIRED and candidates.index(PAIRED[candidates[i]]) not in kept
-    ]
-    kept = [i for i in kept if i not in alone]
-    free = [candidates[i] for i in kept]
-    fixed: dict[ParamKey, str] = {}
-    for i in sorted(set(range(len(candidates))) - set(kept)):
-        key = candidates[i]
-        into = sel.merged_into.get(i, [])
-        if key[0] in wanted and (why := _held_reason(key, bench, pts)) is not None:
-            pass
-        elif i in alone:
-            why = (
-                f"its partner {param_label(PAIRED[key])} is not determined by these points, so "
-                "the worm's amplitude and phase are not either; held at 0"
-            )
-        elif into:
-            parts = ", ".join(
-                f"{param_label(candidates[j])} ({coef:+.2g} per unit)" for j, coef in into
-            )
-            why = (
-                f"not separable on these points from {parts} (relative residual "
-                f"{sel.rel_residual[i]:.1e}); held at 0"
-            )
-        else:
-            why = "these points do not exercise it; held at 0"
-        fixed[key] = why
-    for key in not_seen:
-        fixed[key] = (
-            f"the diagnosis saw no worm error on the {key[1][:1]} stage (its terms within three "
-            "standard uncertainties of zero); held at 0"
+    return sel
+
+
+def _why_held(
+    i: int,
+    candidates: list[ParamKey],
+    sel: Selection,
+    alone: list[int],
+    wanted: list[str],
+    bench: StageBench,
+    pts: StagePoints,
+) -> str:
+    """Why candidate i is held at zero: its effect's own reason first, then the selection's."""
+    key = candidates[i]
+    into = sel.merged_into.get(i, [])
+    if key[0] in wanted and (why := _held_reason(key, bench, pts)) is not None:
+        return why
+    if i in alone:
+        return (
+            f"its partner {param_label(PAIRED[key])} is not determined by these points, so "
+            "the worm's amplitude and phase are not either; held at 0"
         )
+    if into:
+        parts = ", ".join(
+            f"{param_label(candidates[j])} ({coef:+.2g} per unit)" for j, coef in into
+        )
+        return (
+            f"not separable on these points from {parts} (relative residual "
+            f"{sel.rel_residual[i]:.1e}); held at 0"
+        )
+    return "these points do not exercise it; held at 0"
+
+
+def _undetermined(wanted: list[str], fixed: dict[ParamKey, str]) -> dict[str, str]:
+    """The effects asked for whose every parameter is held, with the reasons (each said once)."""
     undetermined = {}
     for effect in wanted:
         held = [k for k in EFFECT_PARAMS[effect] if k in fixed]
@@ -344,14 +437,39 @@ def fit_chain(
             undetermined[effect] = "; ".join(
                 dict.fromkeys(f"{param_label(k)}: {fixed[k]}" for k in held)
             )
-    x0 = np.zeros(len(free))
-    model = StageEffectModel(bench, {}, free)
-    observed = {"ref_x_deg": ref_x, "ref_y_deg": ref_y}
+    return undetermined
+
+
+def _fit_or_refuse(
+    model: StageEffectModel,
+    pts: StagePoints,
+    observed: dict[str, NDArray[np.float64]],
+    x0: NDArray[np.float64],
+    loss: str,
+    max_nfev: int,
+    prior_sd: list[float | None] | None = None,
+    prior_sigma: float | None = None,
+) -> StageEffectFit:
+    """The chain's bench fit, its failure refused in the kinematic fit's words."""
     try:
         # robust scale: see fit_stage_effects
-        fit = fit_stage_effects(model, pts, observed, x0=x0, loss=loss, max_nfev=max_nfev)
+        fit = fit_stage_effects(
+            model,
+            pts,
+            observed,
+            x0=x0,
+            loss=loss,
+            max_nfev=max_nfev,
+            prior_sd=prior_sd,
+            prior_sigma=prior_sigma,
+        )
     except FitError as exc:
         raise DegenerateDataError(f"the kinematic fit failed on these points: {exc}") from None
+    return fit
+
+
+def _check_fit(fit: StageEffectFit) -> None:
+    """Refuse a fit that did not converge or has no finite covariance: the points do not pin it."""
     if not fit.converged:
         raise DegenerateDataError(
             f"the kinematic fit did not converge in {fit.nfev} evaluations ({fit.message}); "
@@ -361,13 +479,22 @@ def fit_chain(
         raise DegenerateDataError(
             "the kinematic fit has no finite covariance: the points do not separate its parameters"
         )
-    sd = np.sqrt(np.clip(np.diag(fit.covariance), 1e-300, None))
-    corr = fit.covariance / np.outer(sd, sd)
-    pairs = []
-    for i in range(len(free)):
-        for j in range(i + 1, len(free)):
-            if abs(corr[i, j]) > 0.95:
-                pairs.append((param_label(free[i]), param_label(free[j]), float(corr[i, j])))
+
+
+def _correlated_pairs(labels: list[str], corr: NDArray[np.float64]) -> list[tuple[str, str, float]]:
+    """The pairs of parameters correlated beyond ±0.95 (near-degenerate), as the notes name them."""
+    return [
+        (labels[i], labels[j], float(corr[i, j]))
+        for i in range(len(labels))
+        for j in range(i + 1, len(labels))
+        if abs(corr[i, j]) > 0.95
+    ]
+
+
+def _priors(
+    free: list[ParamKey], sd: NDArray[np.float64], corr: NDArray[np.float64]
+) -> tuple[dict[ParamKey, str], list[float | None]]:
+    """Which parameters to fit again with the drawings' prior, and why; the prior sd of each."""
     # What the points determine worse than the bench's drawings do is not stated as if they did:
     # such a parameter (a near-degenerate partner whose data-only u exceeds half the drawings'
     # tolerance) is fitted again with that tolerance as a prior, so its value and u are the
@@ -391,36 +518,7 @@ def fit_chain(
             prior_sd.append(tol)
         else:
             prior_sd.append(None)
-    if priors:
-        start = np.where([prior is None for prior in prior_sd], fit.values, 0.0)
-        try:
-            fit = fit_stage_effects(
-                model,
-                pts,
-                observed,
-                x0=start,
-                loss=loss,
-                max_nfev=max_nfev,
-                prior_sd=prior_sd,
-                prior_sigma=fit.sigma,
-            )
-        except FitError as exc:
-            raise DegenerateDataError(f"the kinematic fit failed on these points: {exc}") from None
-    return ChainFit(
-        free,
-        fit.values,
-        fit.covariance,
-        fixed,
-        fit.residuals,
-        fit.sigma,
-        fit.dof,
-        fit.converged,
-        fit.nfev,
-        fit.jac_singular_values,
-        pairs,
-        undetermined,
-        priors,
-    )
+    return priors, prior_sd
 
 
 # --- the chain run forwards and backwards (unquantised commands)
@@ -557,13 +655,7 @@ def fit_meas(
     jacobian = numeric_jacobian(pred_all, np.zeros(len(all_names)), scales)
     sel = select_identifiable(jacobian, scales)
     kept = sel.kept
-    fixed = {}
-    for i in sel.fixed:
-        into = ", ".join(f"{all_names[j]} ({coef:+.2g} per unit)" for j, coef in sel.merged_into[i])
-        fixed[all_names[i]] = (
-            f"not separable on these points from {into or 'the others'} "
-            f"(relative residual {sel.rel_residual[i]:.1e}); held at 0"
-        )
+    fixed = _meas_held(sel, all_names)
     if len(obs) <= len(kept):
         raise DegenerateDataError(
             f"{len(meas_x)} points are too few for the {len(kept)} parameters of the "
@@ -578,29 +670,7 @@ def fit_meas(
     def resid(q: NDArray[np.float64]) -> NDArray[np.float64]:
         return pred_all(full(q)) - obs
 
-    q0 = np.zeros(len(kept))
-    kw = {}
-    if loss != "linear":
-        pre = least_squares(resid, q0, x_scale=scales[kept], method="trf", max_nfev=max_nfev)
-        kw["f_scale"] = robust_scale(pre.fun)
-        q0 = pre.x
-    sol = least_squares(
-        resid,
-        q0,
-        x_scale=scales[kept],
-        loss=loss,
-        method="trf",
-        max_nfev=max_nfev,
-        xtol=1e-12,
-        ftol=1e-12,
-        gtol=1e-12,
-        **kw,
-    )
-    if not sol.status > 0 or not np.all(np.isfinite(sol.x)):
-        raise DegenerateDataError(
-            f"the measurement-sensor fit did not converge ({sol.message}); "
-            "the points do not determine its mounting"
-        )
+    sol = _meas_least_squares(resid, np.zeros(len(kept)), scales[kept], loss, max_nfev)
     residual = resid(sol.x)
     dof = max(residual.size - len(kept), 1)
     s2 = float(residual @ residual) / dof
@@ -615,12 +685,7 @@ def fit_meas(
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
     names = [all_names[i] for i in kept]
-    pairs = [
-        (names[i], names[j], float(corr[i, j]))
-        for i in range(len(kept))
-        for j in range(i + 1, len(kept))
-        if abs(corr[i, j]) > 0.95
-    ]
+    pairs = _correlated_pairs(names, corr)
     return MeasFit(
         names,
         full(sol.x),
@@ -634,3 +699,48 @@ def fit_meas(
         pairs,
         cov_dof,
     )
+
+
+def _meas_held(sel: Selection, all_names: list[str]) -> dict[str, str]:
+    """Why each mounting parameter the points cannot separate is held: what it merges into."""
+    fixed = {}
+    for i in sel.fixed:
+        into = ", ".join(f"{all_names[j]} ({coef:+.2g} per unit)" for j, coef in sel.merged_into[i])
+        fixed[all_names[i]] = (
+            f"not separable on these points from {into or 'the others'} "
+            f"(relative residual {sel.rel_residual[i]:.1e}); held at 0"
+        )
+    return fixed
+
+
+def _meas_least_squares(
+    resid: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    q0: NDArray[np.float64],
+    x_scale: NDArray[np.float64],
+    loss: str,
+    max_nfev: int,
+) -> OptimizeResult:
+    """The mounting's least squares (a robust loss scaled by a plain fit's); refused unconverged."""
+    kw = {}
+    if loss != "linear":
+        pre = least_squares(resid, q0, x_scale=x_scale, method="trf", max_nfev=max_nfev)
+        kw["f_scale"] = robust_scale(pre.fun)
+        q0 = pre.x
+    sol = least_squares(
+        resid,
+        q0,
+        x_scale=x_scale,
+        loss=loss,
+        method="trf",
+        max_nfev=max_nfev,
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        **kw,
+    )
+    if not sol.status > 0 or not np.all(np.isfinite(sol.x)):
+        raise DegenerateDataError(
+            f"the measurement-sensor fit did not converge ({sol.message}); "
+            "the points do not determine its mounting"
+        )
+    return sol

@@ -90,7 +90,7 @@ MEAS_PARAMS = (  # (name in MODEL.json, unit, typical magnitude for the solver)
     ("mounting_tilt.meas_x_deg", "deg", 0.1),
     ("mounting_tilt.meas_y_deg", "deg", 0.1),
 )
-MEAS_NAMES = tuple(p[0] for p in MEAS_PARAMS)
+MEAS_NAMES = tuple(meas_param[0] for meas_param in MEAS_PARAMS)
 
 
 def meas_axes(p: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -153,10 +153,10 @@ def _frame(P: NDArray[np.float64], full: bool = False) -> tuple[NDArray[np.float
 def meas_axes_batch(P: ArrayLike) -> NDArray[np.float64]:
     """meas_axes for K parameter sets at once: P (K, 8) in MEAS_PARAMS order gives axes (K, 2,
     3)."""
-    P = np.asarray(P, dtype=float)
-    x0, x1, y0, y1, *_, x2, y2 = _frame(P, full=True)
+    param_sets = np.asarray(P, dtype=float)
+    x0, x1, y0, y1, *_, x2, y2 = _frame(param_sets, full=True)
     axes: NDArray[np.float64] = np.concatenate([x0, x1, x2, y0, y1, y2], axis=1).reshape(
-        P.shape[0], 2, 3
+        param_sets.shape[0], 2, 3
     )
     return axes
 
@@ -202,13 +202,15 @@ def meas_inverse_batch(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """meas_inverse for K parameter sets at once: P (K, 8), readings (K, N) with row k read through
     P[k]."""
-    P = np.asarray(P, dtype=float)
+    param_sets = np.asarray(P, dtype=float)
     readings = np.stack(
         np.broadcast_arrays(
             np.asarray(meas_x_deg, dtype=float), np.asarray(meas_y_deg, dtype=float)
         )
     )
-    tilt = _solve_batch(P, sign, readings.reshape(2, P.shape[0], -1)).reshape(readings.shape)
+    tilt = _solve_batch(param_sets, sign, readings.reshape(2, param_sets.shape[0], -1)).reshape(
+        readings.shape
+    )
     return tilt[0], tilt[1]
 
 
@@ -255,7 +257,7 @@ def meas_inverse_gum(
     daemon's case), and two cases at a time for many, which keeps the working arrays near the
     input's size.
     """
-    p = np.asarray(p, dtype=float)
+    params = np.asarray(p, dtype=float)
     read_a = np.asarray(meas_x_deg, dtype=float)
     read_b = np.asarray(meas_y_deg, dtype=float)
     if read_a.shape != read_b.shape:
@@ -263,21 +265,21 @@ def meas_inverse_gum(
     shape, n = read_a.shape, read_a.size
     ab = np.concatenate([read_a.reshape(1, -1), read_b.reshape(1, -1)])  # (a, b) x reading
     # rows of held parameters are zero
-    nonzero = np.asarray(cov.any(axis=1) if cov is not None else np.zeros(p.size, dtype=bool))
+    nonzero = np.asarray(cov.any(axis=1) if cov is not None else np.zeros(params.size, dtype=bool))
     has_cov = bool(nonzero.any())
     # parameters stepped: zero and scale follow from the readings
     stepped = nonzero[4:].nonzero()[0] + 4
     m = stepped.size
-    steps = fd_step(np.concatenate([ab.reshape(-1), p[stepped]]), 1.0)
+    steps = fd_step(np.concatenate([ab.reshape(-1), params[stepped]]), 1.0)
     # steps of the readings (a, b) and of the stepped parameters
     hab, hp = steps[: 2 * n].reshape(2, n), steps[2 * n :]
     n_cases = 5 + 2 * m
-    case_params = np.repeat(p[None], n_cases, axis=0)
+    case_params = np.repeat(params[None], n_cases, axis=0)
     flat = case_params.reshape(-1)
     # case 5 + 2j steps parameter stepped[j] up, case 6 + 2j down
-    at = np.arange(5, n_cases, 2) * p.size + stepped
+    at = np.arange(5, n_cases, 2) * params.size + stepped
     flat[at] += hp
-    flat[at + p.size] -= hp
+    flat[at + params.size] -= hp
     if n_cases * n <= _STACKED_READINGS:
         # a ± ha in cases 1, 2, b ± hb in 3, 4
         case_readings = ab[:, None] + _READING_STEPS[:, :n_cases, None] * hab[:, None]
@@ -306,7 +308,9 @@ def meas_inverse_gum(
     nd = dof if noise_dof is None else noise_dof  # the reading noise may rest on its own estimate
     parts = [(var_reading[:, 0], nd), (var_reading[:, 1], nd)]
     if cov is not None and has_cov:
-        k = -(ab - p[0:2, None]) / (1.0 + p[2:4, None])  # d/dscale = d/da·k, d/dzero = -d/da
+        k = -(ab - params[0:2, None]) / (
+            1.0 + params[2:4, None]
+        )  # d/dscale = d/da·k, d/dzero = -d/da
         # parameters with a zero covariance row add nothing
         used = np.concatenate([np.arange(4), stepped])
         jacobian = np.concatenate([-d_reading, d_reading * k, d_params], axis=1)

@@ -80,6 +80,55 @@ def _apply_h(
     return apply_projective(np.append(h8, 1.0).reshape(3, 3), x, y)
 
 
+def _check_options(points: Any, offaxis: Any) -> None:
+    """Refuse an unknown `points` or `offaxis` option, naming the choices."""
+    if points not in ("cross", "all"):
+        raise InputError(f"option points: {points!r} is not one of cross, all")
+    if offaxis not in ("exact", "paper"):
+        raise InputError(f"option offaxis: {offaxis!r} is not one of exact, paper")
+
+
+def _h1_points(
+    sx: NDArray[np.float64], sy: NDArray[np.float64], points: str
+) -> tuple[NDArray[np.bool_], str, list[str]]:
+    """The points H1 is fitted on (the cross unless it is unusable, or all), in words, and notes."""
+    notes = []
+    cross = (np.abs(sx) < CROSS_TOL_DEG) | (np.abs(sy) < CROSS_TOL_DEG)
+    use = cross if points == "cross" else np.ones_like(cross)
+    used_what = "the cross (points with stage_x_deg = 0 or stage_y_deg = 0)"
+    if points == "cross":
+        on_x = np.unique(np.round(sx[cross & (np.abs(sy) < CROSS_TOL_DEG)], 6))
+        on_y = np.unique(np.round(sy[cross & (np.abs(sx) < CROSS_TOL_DEG)], 6))
+        if on_x.size < 3 or on_y.size < 3:
+            use = np.ones_like(cross)
+            used_what = (
+                "all points (the data have no usable cross: fewer than 3 stage angles "
+                "on a zero line)"
+            )
+            notes.append(
+                "H1: the data lack the cross seed 000 recommends (points on the θx = 0 and θy "
+                "= 0 lines); "
+                "fitted on all points with the stage x angles decoupled by eq. (9) instead"
+            )
+    else:
+        used_what = (
+            "all points, stage x decoupled by eq. (9) (x' = asin(sin x cos y)) before the DLT"
+        )
+    return use, used_what, notes
+
+
+def _check_reachable(cmd_x: NDArray[np.float64]) -> None:
+    """Refuse an H1 that sends a reference reading to an x angle no upper-stage command reaches."""
+    unreachable = np.flatnonzero(~np.isfinite(cmd_x))
+    if unreachable.size:
+        rows = ", ".join(str(i + 1) for i in unreachable[:5])
+        raise DegenerateDataError(
+            f"H1 maps the reference reading of row(s) {rows} to an x angle no upper-stage "
+            "command reaches (|sin x' / cos y| > 1): the homography does not describe "
+            "these points; calibrate over a range the stages can level"
+        )
+
+
 class HomographyMethod(StageMethod):
     """Seed 000: H1 (reference -> stage, eq. 11) and H2 (measurement -> reference) by normalised
     DLT, then eq. (10)'s off-axis compensation of the upper stage, applied as its exact inverse."""
@@ -90,32 +139,8 @@ class HomographyMethod(StageMethod):
         sx, sy, rx, ry = columns(data, FIT_REQUIRED)
         points = options.extra.get("points", "cross")
         offaxis = options.extra.get("offaxis", "exact")
-        if points not in ("cross", "all"):
-            raise InputError(f"option points: {points!r} is not one of cross, all")
-        if offaxis not in ("exact", "paper"):
-            raise InputError(f"option offaxis: {offaxis!r} is not one of exact, paper")
-        notes = []
-        cross = (np.abs(sx) < CROSS_TOL_DEG) | (np.abs(sy) < CROSS_TOL_DEG)
-        use = cross if points == "cross" else np.ones_like(cross)
-        used_what = "the cross (points with stage_x_deg = 0 or stage_y_deg = 0)"
-        if points == "cross":
-            on_x = np.unique(np.round(sx[cross & (np.abs(sy) < CROSS_TOL_DEG)], 6))
-            on_y = np.unique(np.round(sy[cross & (np.abs(sx) < CROSS_TOL_DEG)], 6))
-            if on_x.size < 3 or on_y.size < 3:
-                use = np.ones_like(cross)
-                used_what = (
-                    "all points (the data have no usable cross: fewer than 3 stage angles "
-                    "on a zero line)"
-                )
-                notes.append(
-                    "H1: the data lack the cross seed 000 recommends (points on the θx = 0 and θy "
-                    "= 0 lines); "
-                    "fitted on all points with the stage x angles decoupled by eq. (9) instead"
-                )
-        else:
-            used_what = (
-                "all points, stage x decoupled by eq. (9) (x' = asin(sin x cos y)) before the DLT"
-            )
+        _check_options(points, offaxis)
+        use, used_what, notes = _h1_points(sx, sy, points)
         # x' = asin(sin x cos y): the x reading an uncoupled bench would give; on the cross x' = x
         # exactly.
         xd = offaxis_reading_deg(sx, sy)
@@ -126,14 +151,7 @@ class HomographyMethod(StageMethod):
         cmd_x = (
             offaxis_inverse_deg(px, py) if offaxis == "exact" else offaxis_paper_forward_deg(px, py)
         )
-        unreachable = np.flatnonzero(~np.isfinite(cmd_x))
-        if unreachable.size:
-            rows = ", ".join(str(i + 1) for i in unreachable[:5])
-            raise DegenerateDataError(
-                f"H1 maps the reference reading of row(s) {rows} to an x angle no upper-stage "
-                "command reaches (|sin x' / cos y| > 1): the homography does not describe "
-                "these points; calibrate over a range the stages can level"
-            )
+        _check_reachable(cmd_x)
         level_res = {"stage_x_deg": cmd_x - sx, "stage_y_deg": py - sy}
         fwd = dict(_forward_vs_exact())
         notes += [

@@ -29,6 +29,7 @@ from service.calibration.methods.stage.chain import (
     REFERENCE_EFFECTS,
     ChainFit,
     ChainModel,
+    MeasFit,
     fit_chain,
     fit_meas,
     unit_of,
@@ -66,24 +67,9 @@ class KinematicMethod(StageMethod):
         loss = check_loss(options.loss)
         require_spread(sx, sy, 5, "the kinematic model")
         bench, source, stated = stage_hardware(options)
-        if not stated and (mismatch := bench.pulse_mismatch(sx, sy)) is not None:
-            raise InputError(
-                f"{mismatch}. The kinematic model depends on the bench's hardware and none was "
-                "stated "
-                f"({bench.describe()} assumed): give the bench the data came from with --bench FILE"
-            )
-        pts = StagePoints.from_columns(data)
+        mismatch = _pulse_mismatch(bench, stated, sx, sy)
         added = [str(effect_name) for effect_name in options.extra.get("effects", ())]
-        time_origin = _time_origin(data, added)
-        if time_origin is not None and pts.t_s is not None:
-            pts.t_s = pts.t_s - time_origin
-        if "temperature_drift" in added and (
-            pts.temp_c is None or not np.all(np.isfinite(pts.temp_c))
-        ):
-            raise InputError(
-                "temperature_drift: the points carry no temp_c column (or it has gaps); a "
-                "temperature effect is fitted on the temperature of every point"
-            )
+        pts, time_origin = _stage_points(data, added)
         chain = fit_chain(
             bench,
             pts,
@@ -95,52 +81,11 @@ class KinematicMethod(StageMethod):
             effects=added,
             worm_axes=tuple(options.extra.get("worm_axes", ("x", "y"))),
         )
-        params: dict[str, Parameter] = {}
-        for k, value in zip(chain.keys, chain.values):
-            params[param_label(k)] = Parameter(float(value), unit_of(k))
-        for k, why in chain.fixed.items():
-            params[param_label(k)] = Parameter(0.0, unit_of(k), fixed=True, note=why)
+        params = _chain_parameters(chain)
         cov_names = [param_label(k) for k in chain.keys]
         blocks = [chain.covariance]
         residuals = dict(chain.residuals)
-        notes = [
-            (
-                "chain (docs/models.md §2): desk · Rot(lower axis, y) · Rot(upper axis, x) · "
-                "top · reference seat · reference yaw, with stage scale and backlash on the "
-                "commands; fitted to ref_x_deg/ref_y_deg with scipy.optimize.least_squares "
-                f"(loss {loss}); the reference is the lab's standard, so its own zero, scale and "
-                "non-orthogonality are not fitted (its readings are the table tilt)"
-            ),
-            (
-                "gauge: a common rotation of desk, stage axes and table top changes no reading, "
-                "so one parameter of each of (lower yaw, perpendicularity, ref yaw), (desk x, "
-                "lower pitch, top x), (desk y, upper pitch, top y) and the reference seat "
-                "(composes with the top) is held; the fitted perpendicularity and ref yaw are "
-                "then relative to the lower axis, desk tilts include the stages' zero offsets"
-            ),
-        ]
-        notes.append(f"bench: {bench.describe()}; {source}")
-        if stated and (mismatch := bench.pulse_mismatch(sx, sy)) is not None:
-            notes.append(
-                "the commands are not whole pulses of the stated bench "
-                f"({mismatch.split(':')[0]}): taken "
-                "as requested angles, executed as the nearest whole pulses"
-            )
-        notes += [f"{param_label(k)}: {why}" for k, why in chain.fixed.items()]
-        with_prior = {param_label(k) for k in chain.priors}
-        notes += [
-            f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - cos "
-            "of the other stage's angle; kept, since holding either leaves that difference as "
-            "model error; "
-            + (
-                "what the points leave open is held by the drawings' prior below)"
-                if {a, b} & with_prior
-                else "their sum is well determined and both are stated with the uncertainty the "
-                "points give)"
-            )
-            for a, b, c in chain.correlations
-        ]
-        notes += [f"{param_label(k)}: {why}" for k, why in chain.priors.items()]
+        notes = _chain_notes(chain, loss, f"bench: {bench.describe()}; {source}", mismatch)
         fit_info: dict[str, Any] = {
             "n_points": int(sx.size),
             "chain": {
@@ -152,124 +97,47 @@ class KinematicMethod(StageMethod):
                 "scaled_jacobian_singular_values": chain.singular_values.tolist(),
             },
         }
-        if added:
-            notes.append(
-                f"effects added to the chain: {', '.join(added)} (their parameters fitted with "
-                "the rest, as far as these points determine them)"
-            )
-        for effect, why in chain.undetermined.items():
-            notes.append(
-                f"{effect} was asked for, but these points determine none of its parameters ({why})"
-            )
+        notes += _effect_notes(chain, added)
         fit_info["undetermined_effects"] = dict(chain.undetermined)
         fit_info["priors"] = {param_label(k): why for k, why in chain.priors.items()}
         if worm := periodic_summary(chain):
             fit_info["periodic_error"] = worm
-            notes += [
-                f"periodic error of the {ax} stage's worm: amplitude "
-                f"{terms['amplitude_deg']:.3g} ± {terms['u_amplitude_deg']:.2g} deg, phase "
-                f"{terms['phase_deg']:.1f} ± {terms['u_phase_deg']:.2g} deg (from its sine/cosine "
-                "pair, standard uncertainties)"
-                for ax, terms in worm.items()
-            ]
+            notes += _worm_notes(worm)
         state: dict[str, Any] = {
             "has_meas": has_meas(data),
             **bench_state(bench, source),
             "chain_parameters": [param_label(k) for k in list(chain.keys) + list(chain.fixed)],
             "approach": [1.0, 1.0],
         }
-        ref_effects = tuple(
-            effect_name
-            for effect_name in REFERENCE_EFFECTS
-            if any(k in chain.keys for k in EFFECT_PARAMS[effect_name])
-        )
+        ref_effects = _reference_effects(chain)
         if ref_effects:
-            span = (
-                None if time_origin is None else float(np.ptp(np.asarray(data["t_s"], dtype=float)))
-            )
-            state[reference.STATE_KEY] = reference.state_of(
-                ref_effects, bench.temp_ref_c, time_origin, span
-            )
+            state[reference.STATE_KEY] = _reference_state(ref_effects, bench, data, time_origin)
         if has_meas(data):
-            sign, how = meas_sign(data, options)
-            mx, my = columns(data, MEAS_COLUMNS)
-            ref_tx, ref_ty = rx, ry
-            if ref_effects:
-                # the measurement sensor is fitted against the table tilt, which the reference reads
-                # with the errors this record models: against its readings with those taken out
-                errors = reference.reference_errors(_with_values(params, state))
-                assert errors is not None
-                ref_tx, ref_ty = reference.true_reading(
-                    errors, rx, ry, data.get("temp_c"), data.get("t_s")
-                )
-                notes.append(
-                    "reference sensor: the record models its own reading errors "
-                    f"({errors.describe()}); the measurement sensor is fitted against its "
-                    "readings with them taken out (the table tilt), and everything reported "
-                    "from the reference goes through them"
-                )
-            meas = fit_meas(ref_tx, ref_ty, mx, my, sign, loss=loss)
-            units = {meas_param[0]: meas_param[1] for meas_param in MEAS_PARAMS}
-            for name, value in zip(MEAS_NAMES, meas.values):
-                fixed = name in meas.fixed
-                params[name] = Parameter(
-                    float(value), units[name], fixed=fixed, note=meas.fixed.get(name, "")
-                )
+            meas = _add_measurement_sensor(
+                data, options, loss, (rx, ry), bool(ref_effects), params, state, notes
+            )
             cov_names += meas.names
             blocks.append(meas.covariance)
             residuals.update(meas.residuals)
-            # the parameters' part of a corrected tilt carries the covariance's degrees of freedom
-            # (per axis)
-            state.update(
-                {
-                    "meas_sign": sign.tolist(),
-                    "meas_sigma_deg": meas.sigma,
-                    "meas_dof": meas.covariance_dof,
-                }
-            )
-            noise = meas_reading_noise(data, options, meas.sigma, meas.dof, sign)
-            state.update(noise_state(noise))
             fit_info["meas"] = {
                 "dof": meas.dof,
                 "covariance_dof": meas.covariance_dof,
                 "sigma_deg": meas.sigma,
                 "nfev": meas.nfev,
             }
-            notes.append(
-                "measurement sensor: zero offsets, scales, yaw, non-orthogonality and seat "
-                "tilt, all relative to the reference sensor's frame (the table-tilt frame), "
-                "fitted to meas_* against ref_* (no stage parameter enters, stage repeatability "
-                "stays out); correct inverts it in closed form; the uncertainty of a corrected "
-                "tilt from its covariance and the noise of one measurement reading, "
-                f"{noise.sigma_deg:.3g} deg: {noise.source}"
-            )
-            notes += [f"{n}: {why}" for n, why in meas.fixed.items()]
-            notes += [
-                f"{a} and {b} are correlated {c:+.5f} (near-degenerate: they differ only by 1 - "
-                "cos of the tilt; kept, their sum is well determined)"
-                for a, b, c in meas.correlations
-            ]
-            if (mn := mirror_note(sign)) is not None:
-                notes.append(f"{mn} ({how})")
         else:
             notes.append("no meas_x_deg/meas_y_deg columns: this model can level but not correct")
         notes.append(
             "the covariance is block-diagonal between the chain and the measurement sensor "
             "(separate fits)"
         )
-        k = sum(b.shape[0] for b in blocks)
-        cov = np.zeros((k, k))
-        i = 0
-        for b in blocks:
-            cov[i : i + b.shape[0], i : i + b.shape[0]] = b
-            i += b.shape[0]
         return stage_model(
             self.name,
             used_columns(data),
             params,
             notes,
             covariance_names=cov_names,
-            covariance=cov,
+            covariance=_block_diagonal(blocks),
             residuals=residual_summary(residuals, "deg"),
             fit=fit_info,
             state=state,
@@ -334,6 +202,206 @@ def _time_origin(data: Columns, added: list[str]) -> float | None:
             "time of every point"
         )
     return float(np.min(np.asarray(data["t_s"], dtype=float)))
+
+
+def _pulse_mismatch(
+    bench: StageBench, stated: bool, sx: NDArray[np.float64], sy: NDArray[np.float64]
+) -> str | None:
+    """Commands that are not whole pulses: refused on an assumed bench, returned on a stated one."""
+    mismatch = bench.pulse_mismatch(sx, sy)
+    if not stated and mismatch is not None:
+        raise InputError(
+            f"{mismatch}. The kinematic model depends on the bench's hardware and none was "
+            "stated "
+            f"({bench.describe()} assumed): give the bench the data came from with --bench FILE"
+        )
+    return mismatch
+
+
+def _stage_points(data: Columns, added: list[str]) -> tuple[StagePoints, float | None]:
+    """The points the chain is fitted on (times from the drift's origin) and that origin."""
+    pts = StagePoints.from_columns(data)
+    time_origin = _time_origin(data, added)
+    if time_origin is not None and pts.t_s is not None:
+        pts.t_s = pts.t_s - time_origin
+    if "temperature_drift" in added and (pts.temp_c is None or not np.all(np.isfinite(pts.temp_c))):
+        raise InputError(
+            "temperature_drift: the points carry no temp_c column (or it has gaps); a "
+            "temperature effect is fitted on the temperature of every point"
+        )
+    return pts, time_origin
+
+
+def _chain_parameters(chain: ChainFit) -> dict[str, Parameter]:
+    """The chain's fitted parameters, then those held at zero with why."""
+    params: dict[str, Parameter] = {}
+    for k, value in zip(chain.keys, chain.values):
+        params[param_label(k)] = Parameter(float(value), unit_of(k))
+    for k, why in chain.fixed.items():
+        params[param_label(k)] = Parameter(0.0, unit_of(k), fixed=True, note=why)
+    return params
+
+
+def _chain_notes(chain: ChainFit, loss: str, bench_note: str, mismatch: str | None) -> list[str]:
+    """The chain's notes: model and gauge, the bench, what is held, correlated or given a prior."""
+    notes = [
+        (
+            "chain (docs/models.md §2): desk · Rot(lower axis, y) · Rot(upper axis, x) · "
+            "top · reference seat · reference yaw, with stage scale and backlash on the "
+            "commands; fitted to ref_x_deg/ref_y_deg with scipy.optimize.least_squares "
+            f"(loss {loss}); the reference is the lab's standard, so its own zero, scale and "
+            "non-orthogonality are not fitted (its readings are the table tilt)"
+        ),
+        (
+            "gauge: a common rotation of desk, stage axes and table top changes no reading, "
+            "so one parameter of each of (lower yaw, perpendicularity, ref yaw), (desk x, "
+            "lower pitch, top x), (desk y, upper pitch, top y) and the reference seat "
+            "(composes with the top) is held; the fitted perpendicularity and ref yaw are "
+            "then relative to the lower axis, desk tilts include the stages' zero offsets"
+        ),
+    ]
+    notes.append(bench_note)
+    if mismatch is not None:
+        notes.append(
+            "the commands are not whole pulses of the stated bench "
+            f"({mismatch.split(':')[0]}): taken "
+            "as requested angles, executed as the nearest whole pulses"
+        )
+    notes += [f"{param_label(k)}: {why}" for k, why in chain.fixed.items()]
+    with_prior = {param_label(k) for k in chain.priors}
+    notes += [
+        f"{first} and {second} are correlated {corr:+.5f} (near-degenerate: they differ only by "
+        "1 - cos of the other stage's angle; kept, since holding either leaves that difference "
+        "as model error; "
+        + (
+            "what the points leave open is held by the drawings' prior below)"
+            if {first, second} & with_prior
+            else "their sum is well determined and both are stated with the uncertainty the "
+            "points give)"
+        )
+        for first, second, corr in chain.correlations
+    ]
+    notes += [f"{param_label(k)}: {why}" for k, why in chain.priors.items()]
+    return notes
+
+
+def _effect_notes(chain: ChainFit, added: list[str]) -> list[str]:
+    """What the notes say of the effects a record added: fitted with the rest, or undetermined."""
+    notes = []
+    if added:
+        notes.append(
+            f"effects added to the chain: {', '.join(added)} (their parameters fitted with "
+            "the rest, as far as these points determine them)"
+        )
+    for effect, why in chain.undetermined.items():
+        notes.append(
+            f"{effect} was asked for, but these points determine none of its parameters ({why})"
+        )
+    return notes
+
+
+def _worm_notes(worm: dict[str, dict[str, float]]) -> list[str]:
+    """Each fitted worm's periodic error in the registry's terms, with standard uncertainties."""
+    return [
+        f"periodic error of the {ax} stage's worm: amplitude "
+        f"{terms['amplitude_deg']:.3g} ± {terms['u_amplitude_deg']:.2g} deg, phase "
+        f"{terms['phase_deg']:.1f} ± {terms['u_phase_deg']:.2g} deg (from its sine/cosine "
+        "pair, standard uncertainties)"
+        for ax, terms in worm.items()
+    ]
+
+
+def _reference_effects(chain: ChainFit) -> tuple[str, ...]:
+    """The reference sensor's own reading errors among what the chain fitted."""
+    return tuple(
+        effect_name
+        for effect_name in REFERENCE_EFFECTS
+        if any(k in chain.keys for k in EFFECT_PARAMS[effect_name])
+    )
+
+
+def _reference_state(
+    ref_effects: tuple[str, ...], bench: StageBench, data: Columns, time_origin: float | None
+) -> dict[str, object]:
+    """The state's record of the reference model: effects, temperature and time origins, span."""
+    span = None if time_origin is None else float(np.ptp(np.asarray(data["t_s"], dtype=float)))
+    return reference.state_of(ref_effects, bench.temp_ref_c, time_origin, span)
+
+
+def _add_measurement_sensor(
+    data: Columns,
+    options: FitOptions,
+    loss: str,
+    ref_xy: tuple[NDArray[np.float64], NDArray[np.float64]],
+    models_reference: bool,
+    params: dict[str, Parameter],
+    state: dict[str, Any],
+    notes: list[str],
+) -> MeasFit:
+    """Fit the measurement sensor against the table tilt, adding its parameters, state and notes."""
+    sign, how = meas_sign(data, options)
+    mx, my = columns(data, MEAS_COLUMNS)
+    ref_tx, ref_ty = ref_xy
+    if models_reference:
+        # the measurement sensor is fitted against the table tilt, which the reference reads with
+        # the errors this record models: against its readings with those taken out
+        errors = reference.reference_errors(_with_values(params, state))
+        assert errors is not None
+        ref_tx, ref_ty = reference.true_reading(
+            errors, ref_tx, ref_ty, data.get("temp_c"), data.get("t_s")
+        )
+        notes.append(
+            "reference sensor: the record models its own reading errors "
+            f"({errors.describe()}); the measurement sensor is fitted against its "
+            "readings with them taken out (the table tilt), and everything reported "
+            "from the reference goes through them"
+        )
+    meas = fit_meas(ref_tx, ref_ty, mx, my, sign, loss=loss)
+    units = {meas_param[0]: meas_param[1] for meas_param in MEAS_PARAMS}
+    for name, value in zip(MEAS_NAMES, meas.values):
+        fixed = name in meas.fixed
+        params[name] = Parameter(
+            float(value), units[name], fixed=fixed, note=meas.fixed.get(name, "")
+        )
+    # the parameters' part of a corrected tilt carries the covariance's degrees of freedom (per
+    # axis)
+    state.update(
+        {
+            "meas_sign": sign.tolist(),
+            "meas_sigma_deg": meas.sigma,
+            "meas_dof": meas.covariance_dof,
+        }
+    )
+    noise = meas_reading_noise(data, options, meas.sigma, meas.dof, sign)
+    state.update(noise_state(noise))
+    notes.append(
+        "measurement sensor: zero offsets, scales, yaw, non-orthogonality and seat "
+        "tilt, all relative to the reference sensor's frame (the table-tilt frame), "
+        "fitted to meas_* against ref_* (no stage parameter enters, stage repeatability "
+        "stays out); correct inverts it in closed form; the uncertainty of a corrected "
+        "tilt from its covariance and the noise of one measurement reading, "
+        f"{noise.sigma_deg:.3g} deg: {noise.source}"
+    )
+    notes += [f"{n}: {why}" for n, why in meas.fixed.items()]
+    notes += [
+        f"{first} and {second} are correlated {corr:+.5f} (near-degenerate: they differ only by "
+        "1 - cos of the tilt; kept, their sum is well determined)"
+        for first, second, corr in meas.correlations
+    ]
+    if (mn := mirror_note(sign)) is not None:
+        notes.append(f"{mn} ({how})")
+    return meas
+
+
+def _block_diagonal(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+    """The separate fits' covariances as one matrix, zero between them."""
+    k = sum(block.shape[0] for block in blocks)
+    cov = np.zeros((k, k))
+    i = 0
+    for block in blocks:
+        cov[i : i + block.shape[0], i : i + block.shape[0]] = block
+        i += block.shape[0]
+    return cov
 
 
 def _with_values(params: dict[str, Parameter], state: dict[str, Any]) -> CalibrationModel:
