@@ -90,10 +90,23 @@ def record_effects(model: CalibrationModel | Mapping[str, Any] | None) -> set[st
             have.add(effect)
     # a model fitted with amplitude and phase (before the sine/cosine pair) has its worm free too
     if any(
-        n.startswith("periodic_error.") and not p.get("fixed", False) for n, p in params.items()
+        name.startswith("periodic_error.") and not param.get("fixed", False)
+        for name, param in params.items()
     ):
         have.add("periodic_error")
     return have
+
+
+def _nothing_to_adopt(named: Sequence[str], have: set[str] | frozenset[str]) -> NothingToAdopt:
+    """The refusal when every named effect is in the chain or the record already: what was named,
+    and what the record fits."""
+    already = [effect for effect in named if effect in have]
+    return NothingToAdopt(
+        "the diagnosis named no effect beyond what the kinematic calibration already has"
+        + (f" ({', '.join(named)})" if named else "")
+        + (f"; the record fits {', '.join(already)} already" if already else "")
+        + ": there is nothing to adopt"
+    )
 
 
 def effects_to_add(
@@ -101,30 +114,30 @@ def effects_to_add(
 ) -> list[str]:
     """The named effects the calibration adds; NothingToAdopt when none is left, InputError for one
     it cannot add."""
-    extra = [e for e in named if e not in IN_CHAIN and e not in have]
+    extra = [effect for effect in named if effect not in IN_CHAIN and effect not in have]
     if not extra:
-        already = [e for e in named if e in have]
-        raise NothingToAdopt(
-            "the diagnosis named no effect beyond what the kinematic calibration already has"
-            + (f" ({', '.join(named)})" if named else "")
-            + (f"; the record fits {', '.join(already)} already" if already else "")
-            + ": there is nothing to adopt"
-        )
-    cannot = [e for e in extra if e not in EXTRA_EFFECTS]
+        raise _nothing_to_adopt(named, have)
+    _refuse_terms_not_taken(extra, sensor)
+    return extra
+
+
+def _refuse_terms_not_taken(extra: list[str], sensor: str) -> None:
+    """InputError for an effect the kinematic record has no term for: one it does not take, or a
+    term of the measurement sensor's own."""
+    cannot = [effect for effect in extra if effect not in EXTRA_EFFECTS]
     if cannot:
         raise InputError(
             f"{', '.join(cannot)} cannot be added to the kinematic calibration (it takes "
             f"{', '.join(EXTRA_EFFECTS)})"
         )
-    if sensor != "ref" and any(e in REFERENCE_EFFECTS for e in extra):
-        own = [e for e in extra if e in REFERENCE_EFFECTS]
+    if sensor != "ref" and any(effect in REFERENCE_EFFECTS for effect in extra):
+        own = [effect for effect in extra if effect in REFERENCE_EFFECTS]
         raise InputError(
             f"the diagnosis explained the measurement sensor's readings; {', '.join(own)} of "
             "that sensor is not a term of the kinematic record, whose correction of the "
             "measurement sensor is its mounting (zeros, scales, yaw, non-orthogonality, seat "
             "tilt): diagnose with sensor 'ref' for the bench's and the reference's effects"
         )
-    return extra
 
 
 def adopted_model(
@@ -143,14 +156,14 @@ def adopted_model(
     `diagnosis` says where they came from (kept in the model's state with the effects). NotAdoptable
     when the points determine none of an added effect's parameters."""
     effects = effects_to_add(named, sensor, have)
-    kept = [e for e in keep if e not in effects]
+    kept = [effect for effect in keep if effect not in effects]
     model = _fit(columns, kept + effects, bench, bench_source, worm_axes)
     undetermined = model.fit.get("undetermined_effects") or {}
     if undetermined:
         raise NotAdoptable(
             "; ".join(
-                f"{e}: these points determine none of its parameters ({why})"
-                for e, why in undetermined.items()
+                f"{effect}: these points determine none of its parameters ({why})"
+                for effect, why in undetermined.items()
             )
         )
     model.state["added_effects"] = kept + effects
@@ -191,8 +204,8 @@ def _axes_short(model: CalibrationModel, effect: str, axes_named: Sequence[str])
     short = []
     for ax in axes_named:
         for lab in (f"{ax}_sin_deg", f"{ax}_cos_deg"):
-            p = model.parameters.get(f"periodic_error.{lab}")
-            if p is None or p.fixed:
+            param = model.parameters.get(f"periodic_error.{lab}")
+            if param is None or param.fixed:
                 short.append(ax)
                 break
     return short
@@ -208,10 +221,10 @@ def worm_axes_seen(
     `z` standard uncertainties from zero (else the stage with the clearest term). A stage the points
     sample at two phases may keep one term that shows nothing: the error is not there, and the refit
     holding that stage's pair at zero loses nothing."""
-    u = np.sqrt(np.clip(np.diag(covariance), 1e-300, None))
+    std = np.sqrt(np.clip(np.diag(covariance), 1e-300, None))
     score: dict[str, float] = {}
-    for lab, v, s in zip(labels, values, u):
-        score[lab[:1]] = max(score.get(lab[:1], 0.0), abs(float(v)) / float(s))
+    for lab, value, sigma in zip(labels, values, std):
+        score[lab[:1]] = max(score.get(lab[:1], 0.0), abs(float(value)) / float(sigma))
     seen = [ax for ax in ("x", "y") if score.get(ax, 0.0) > z]
     if not seen and score:
         seen = [max(score, key=lambda ax: score[ax])]
@@ -237,7 +250,7 @@ def worm_axes_of(verdicts: Sequence[Mapping[str, Any]]) -> list[str]:
     say)."""
     for verdict in verdicts:
         if verdict.get("effect") == "periodic_error" and verdict.get("axes"):
-            return [str(a) for a in verdict["axes"]]
+            return [str(axis) for axis in verdict["axes"]]
     return ["x", "y"]
 
 
@@ -262,73 +275,108 @@ def adoption(
     the others held at zero."""
     out: list[Adoption] = []
     candidates: list[str] = []
-    for e in dict.fromkeys(named):
-        if e in IN_CHAIN:
-            out.append(
-                Adoption(
-                    e,
-                    False,
-                    "the kinematic calibration models it already (the stacked-stage geometry)",
-                )
-            )
-        elif e in have:
-            out.append(Adoption(e, False, "the record fits it already"))
-        elif e not in EXTRA_EFFECTS:
-            out.append(
-                Adoption(
-                    e,
-                    False,
-                    f"not a term the kinematic calibration can take ({', '.join(EXTRA_EFFECTS)})",
-                )
-            )
-        elif sensor != "ref" and e in REFERENCE_EFFECTS:
-            out.append(
-                Adoption(
-                    e,
-                    False,
-                    "the measurement sensor's own term: the kinematic record corrects that "
-                    "sensor by its mounting (zeros, scales, yaw, non-orthogonality, seat tilt), "
-                    "of which this is none; diagnose with sensor 'ref' for the reference's and "
-                    "the bench's effects",
-                )
-            )
-        elif bench is None:
-            out.append(
-                Adoption(e, False, "the record does not state the bench it was calibrated on")
-            )
+    for effect in dict.fromkeys(named):
+        refusal = _refusal_without_refit(effect, sensor, bench, have)
+        if refusal is None:
+            candidates.append(effect)
         else:
-            candidates.append(e)
+            out.append(Adoption(effect, False, refusal))
     if not candidates:
         return out
     assert bench is not None
-    seen_worm = sorted(
+    seen_worm = _worm_stages_seen(seen_labels)
+    axes = sorted(set(seen_worm) | set(worm_axes)) or ["x", "y"]
+    verdicts = {
+        effect: _one(
+            columns,
+            effect,
+            bench,
+            bench_source,
+            seen_worm if effect == "periodic_error" else (),
+            keep,
+            axes,
+        )
+        for effect in candidates
+    }
+    _check_together(columns, verdicts, keep, bench, bench_source, axes)
+    out += [verdicts[effect] for effect in candidates]
+    return out
+
+
+def _refusal_without_refit(
+    effect: str,
+    sensor: str,
+    bench: StageBench | Mapping[str, Any] | None,
+    have: set[str] | frozenset[str],
+) -> str | None:
+    """Why an effect cannot be adopted whatever the points say (None: only a refit can tell)."""
+    if effect in IN_CHAIN:
+        return "the kinematic calibration models it already (the stacked-stage geometry)"
+    if effect in have:
+        return "the record fits it already"
+    if effect not in EXTRA_EFFECTS:
+        return f"not a term the kinematic calibration can take ({', '.join(EXTRA_EFFECTS)})"
+    if sensor != "ref" and effect in REFERENCE_EFFECTS:
+        return (
+            "the measurement sensor's own term: the kinematic record corrects that "
+            "sensor by its mounting (zeros, scales, yaw, non-orthogonality, seat tilt), "
+            "of which this is none; diagnose with sensor 'ref' for the reference's and "
+            "the bench's effects"
+        )
+    if bench is None:
+        return "the record does not state the bench it was calibrated on"
+    return None
+
+
+def _worm_stages_seen(seen_labels: Mapping[str, Sequence[str]] | None) -> list[str]:
+    """The stages the diagnosis fitted a worm's periodic error on, from its parameter labels."""
+    return sorted(
         {lab[:1] for lab in (seen_labels or {}).get("periodic_error", ()) if lab[:1] in "xy"}
     )
-    axes = sorted(set(seen_worm) | set(worm_axes)) or ["x", "y"]
-    verdicts: dict[str, Adoption] = {}
-    for e in candidates:
-        verdicts[e] = _one(
-            columns, e, bench, bench_source, seen_worm if e == "periodic_error" else (), keep, axes
+
+
+def _check_together(
+    columns: Mapping[str, NDArray[np.float64]],
+    verdicts: dict[str, Adoption],
+    keep: Sequence[str],
+    bench: StageBench | Mapping[str, Any],
+    bench_source: str,
+    axes: Sequence[str],
+) -> None:
+    """Effects each adoptable alone may not separate from one another: refit them together and
+    turn the verdict of any the joint refit leaves undetermined (in `verdicts`)."""
+    ok = [effect for effect, verdict in verdicts.items() if verdict.adoptable]
+    if len(ok) <= 1:
+        return
+    left = _left_undetermined(columns, ok, keep, bench, bench_source, axes)
+    for effect, why in left.items():
+        if effect not in ok:
+            continue
+        verdicts[effect] = Adoption(
+            effect,
+            False,
+            f"not separable from the other named effects on these points ({why})",
+            MEASUREMENTS.get(effect),
+            verdicts[effect].axes,
         )
-    ok = [e for e in candidates if verdicts[e].adoptable]
-    if len(ok) > 1:
-        try:
-            joint = _fit(columns, [k for k in keep if k not in ok] + ok, bench, bench_source, axes)
-            left = joint.fit.get("undetermined_effects") or {}
-        except (DegenerateDataError, FitError, InputError, np.linalg.LinAlgError) as exc:
-            left = {e: str(exc) for e in ok}
-        for e, why in left.items():
-            if e not in ok:
-                continue
-            verdicts[e] = Adoption(
-                e,
-                False,
-                f"not separable from the other named effects on these points ({why})",
-                MEASUREMENTS.get(e),
-                verdicts[e].axes,
-            )
-    out += [verdicts[e] for e in candidates]
-    return out
+
+
+def _left_undetermined(
+    columns: Mapping[str, NDArray[np.float64]],
+    ok: list[str],
+    keep: Sequence[str],
+    bench: StageBench | Mapping[str, Any],
+    bench_source: str,
+    axes: Sequence[str],
+) -> Mapping[str, Any]:
+    """The effects the joint refit leaves undetermined, with the reason (every one of them when
+    the joint refit itself fails)."""
+    try:
+        joint = _fit(columns, [k for k in keep if k not in ok] + ok, bench, bench_source, axes)
+        left: Mapping[str, Any] = joint.fit.get("undetermined_effects") or {}
+    except (DegenerateDataError, FitError, InputError, np.linalg.LinAlgError) as exc:
+        left = {effect: str(exc) for effect in ok}
+    return left
 
 
 def _one(
@@ -340,6 +388,7 @@ def _one(
     keep: Sequence[str],
     axes: Sequence[str],
 ) -> Adoption:
+    """One effect's verdict from the refit that adds it alone (to the effects the record keeps)."""
     worm = list(axes) if effect == "periodic_error" else None
     try:
         model = _fit(
@@ -353,15 +402,18 @@ def _one(
             MEASUREMENTS.get(effect),
             worm,
         )
+    reason = _why_undetermined(model, effect, seen_axes)
+    if reason is not None:
+        return Adoption(effect, False, reason, MEASUREMENTS.get(effect), worm)
+    return Adoption(effect, True, _determined_sentence(model, effect), None, worm)
+
+
+def _why_undetermined(model: CalibrationModel, effect: str, seen_axes: Sequence[str]) -> str | None:
+    """Why the refit that adds the effect does not determine it: none of its parameters, or not
+    both terms of a worm seen on a stage (None when it is determined)."""
     undetermined = (model.fit.get("undetermined_effects") or {}).get(effect)
     if undetermined:
-        return Adoption(
-            effect,
-            False,
-            f"these points determine none of its parameters ({undetermined})",
-            MEASUREMENTS.get(effect),
-            worm,
-        )
+        return f"these points determine none of its parameters ({undetermined})"
     short = _axes_short(model, effect, seen_axes)
     if short:
         notes = [
@@ -369,25 +421,23 @@ def _one(
             or model.parameters[f"periodic_error.{ax}_cos_deg"].note
             for ax in short
         ]
-        return Adoption(
-            effect,
-            False,
+        return (
             f"seen on the {' and '.join(short)} stage, whose worm error's amplitude and "
-            f"phase these points do not determine ({'; '.join(n for n in notes if n)})",
-            MEASUREMENTS.get(effect),
-            worm,
+            f"phase these points do not determine ({'; '.join(n for n in notes if n)})"
         )
-    free = [n for n, p in model.parameters.items() if n.startswith(f"{effect}.") and not p.fixed]
-    held = [n for n, p in model.parameters.items() if n.startswith(f"{effect}.") and p.fixed]
-    return Adoption(
-        effect,
-        True,
-        f"the refit determines {', '.join(free)}"
-        + (
-            f" (and holds {', '.join(held)} at zero, with the reason in the model's notes)"
-            if held
-            else ""
-        ),
-        None,
-        worm,
+    return None
+
+
+def _determined_sentence(model: CalibrationModel, effect: str) -> str:
+    """What the refit determines of an adoptable effect, and what it holds at zero."""
+    free = [
+        n for n, param in model.parameters.items() if n.startswith(f"{effect}.") and not param.fixed
+    ]
+    held = [
+        n for n, param in model.parameters.items() if n.startswith(f"{effect}.") and param.fixed
+    ]
+    return f"the refit determines {', '.join(free)}" + (
+        f" (and holds {', '.join(held)} at zero, with the reason in the model's notes)"
+        if held
+        else ""
     )

@@ -14,7 +14,7 @@ Pure computation: the daemon runs the plan as a job (service.jobs.diagnosis_meas
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -86,35 +86,37 @@ class MeasurementPlan:
             summary = (
                 f"{len(pts)} points, about {self.estimated_bench_s / 60:.1f} min of bench time: "
                 + "; ".join(
-                    f"{p.effect}: {p.measurement} ({len(p.points)} points)"
-                    for p in self.parts
-                    if p.points
+                    f"{part.effect}: {part.measurement} ({len(part.points)} points)"
+                    for part in self.parts
+                    if part.points
                 )
             )
         else:
             summary = "nothing to measure: the stored points test every candidate the bench can"
         if self.cannot:
-            summary += "; cannot be measured here: " + ", ".join(c["effect"] for c in self.cannot)
+            summary += "; cannot be measured here: " + ", ".join(
+                entry["effect"] for entry in self.cannot
+            )
         return {
             "n_points": len(pts),
             "points": [
                 {
-                    "stage_x_deg": p.stage_x_deg,
-                    "stage_y_deg": p.stage_y_deg,
-                    "dir_x": p.dir_x,
-                    "dir_y": p.dir_y,
+                    "stage_x_deg": point.stage_x_deg,
+                    "stage_y_deg": point.stage_y_deg,
+                    "dir_x": point.dir_x,
+                    "dir_y": point.dir_y,
                 }
-                for p in pts
+                for point in pts
             ],
             "parts": [
                 {
-                    "effect": p.effect,
-                    "why": p.why,
-                    "measurement": p.measurement,
-                    "n_points": len(p.points),
-                    "points": [point.as_list() for point in p.points],
+                    "effect": part.effect,
+                    "why": part.why,
+                    "measurement": part.measurement,
+                    "n_points": len(part.points),
+                    "points": [point.as_list() for point in part.points],
                 }
-                for p in self.parts
+                for part in self.parts
             ],
             "cannot": list(self.cannot),
             "estimated_bench_s": self.estimated_bench_s,
@@ -152,8 +154,8 @@ def _poses(data: StageData, n: int = 5) -> list[tuple[float, float]]:
     ][:n]
     out: list[tuple[float, float]] = []
     for ax, ay in aims:
-        d = np.hypot(x - ax, y - ay)
-        for i in np.argsort(d):
+        dist = np.hypot(x - ax, y - ay)
+        for i in np.argsort(dist):
             pose = (float(x[i]), float(y[i]))
             if pose not in out:
                 out.append(pose)
@@ -183,8 +185,8 @@ def _worm_scan(data: StageData, bench: StageBench, axis: str, travel: float) -> 
     other = _inside(float(across[np.argmin(np.abs(across - np.median(across)))]), travel)
     pts = []
     for k in range(EIGHTHS):
-        a = start + k * period / 8
-        x, y = (a, other) if axis == "x" else (other, a)
+        position = start + k * period / 8
+        x, y = (position, other) if axis == "x" else (other, position)
         x, y = _q(bench, x, y)
         pts.append(PlannedPoint(x, y, 1.0, 1.0))
     return pts
@@ -208,6 +210,139 @@ def _wide(data: StageData, bench: StageBench, travel: float) -> list[PlannedPoin
     return pts
 
 
+# what a planner adds: parts of the measurement, and needs it cannot meet on this bench
+_PlanResult = tuple[list[PlanPart], list[dict[str, str]]]
+
+
+def _plan_backlash(
+    data: StageData, bench: StageBench, travel_deg: float, need: Need, parts: list[PlanPart]
+) -> _PlanResult:
+    """Hysteresis: a few record poses approached from both sides."""
+    return [
+        PlanPart(
+            "backlash",
+            need.why,
+            "five of the record's poses, each approached from above and again "
+            "from below: lost motion is the difference",
+            _backlash(data, bench, travel_deg),
+        )
+    ], []
+
+
+def _plan_worm(
+    data: StageData, bench: StageBench, travel_deg: float, need: Need, parts: list[PlanPart]
+) -> _PlanResult:
+    """A worm's periodic error: one scan in eighths of a period per stage it is needed on."""
+    worm_parts = []
+    for ax in need.axes or ("x", "y"):
+        period = bench.worm_period_x_deg if ax == "x" else bench.worm_period_y_deg
+        worm_parts.append(
+            PlanPart(
+                "periodic_error",
+                need.why,
+                f"a scan of the {ax} stage over one worm period ({period:.6g} deg) in "
+                "eighths, at the middle of the other stage's range",
+                _worm_scan(data, bench, ax, travel_deg),
+            )
+        )
+    return worm_parts, []
+
+
+def _plan_time_drift(
+    data: StageData, bench: StageBench, travel_deg: float, need: Need, parts: list[PlanPart]
+) -> _PlanResult:
+    """A drift in time: record poses measured again later (the backlash part's serve, if
+    planned)."""
+    if any(part.effect == "backlash" for part in parts):
+        return [
+            PlanPart(
+                "time_drift",
+                need.why,
+                "the backlash part's points approached from below are record "
+                "poses measured again later: they test it too (no further points)",
+            )
+        ], []
+    pts = [
+        PlannedPoint(*_q(bench, _inside(x, travel_deg), _inside(y, travel_deg)), 1.0, 1.0)
+        for x, y in reversed(_poses(data))
+    ]
+    return [
+        PlanPart(
+            "time_drift",
+            need.why,
+            "five of the record's poses measured again now, in another "
+            "order: a drift moves them, the geometry does not",
+            pts,
+        )
+    ], []
+
+
+def _plan_wide_range(
+    data: StageData, bench: StageBench, travel_deg: float, need: Need, parts: list[PlanPart]
+) -> _PlanResult:
+    """A non-linearity: points over a wider range of tilts, if the travel leaves one."""
+    span = float(max(np.max(np.abs(data.cmd_x_deg)), np.max(np.abs(data.cmd_y_deg))))
+    if span < WIDE_FRACTION * travel_deg - 0.5:
+        return [
+            PlanPart(
+                "sensor_nonlinearity",
+                need.why,
+                f"eight points at ±{WIDE_FRACTION * travel_deg:.3g} deg "
+                f"(the record spans ±{span:.3g} deg of the ±{travel_deg:g} deg travel)",
+                _wide(data, bench, travel_deg),
+            )
+        ], []
+    return [], [
+        {
+            "effect": "sensor_nonlinearity",
+            "reason": f"{need.why}; the record's points already span the "
+            "stages' travel: no wider range can be measured on this bench",
+        }
+    ]
+
+
+def _plan_temperature(
+    data: StageData, bench: StageBench, travel_deg: float, need: Need, parts: list[PlanPart]
+) -> _PlanResult:
+    """A temperature effect: never measurable here (the bench cannot set its temperature)."""
+    span = 0.0 if data.temp_c is None else float(np.ptp(data.temp_c))
+    at = "" if data.temp_c is None else f" at {float(np.mean(data.temp_c)):.1f} °C"
+    return [], [
+        {
+            "effect": "temperature_drift",
+            "reason": f"{need.why}; the points span {span:.2g} K{at} and this bench cannot set "
+            "its temperature: repeat the calibration when the room's temperature differs by "
+            "a few kelvin, or on a bench in a climate chamber",
+        }
+    ]
+
+
+# in this order: the time-drift part reuses the backlash part's points when there is one
+_PLANNERS: dict[
+    str, Callable[[StageData, StageBench, float, Need, list[PlanPart]], _PlanResult]
+] = {
+    "backlash": _plan_backlash,
+    "periodic_error": _plan_worm,
+    "time_drift": _plan_time_drift,
+    "sensor_nonlinearity": _plan_wide_range,
+    "temperature_drift": _plan_temperature,
+}
+
+
+def _merged_needs(needs: Sequence[Need]) -> dict[str, Need]:
+    """One need per effect: the first reason, and the stages of every need for it together."""
+    by_effect: dict[str, Need] = {}
+    for need in needs:
+        if need.effect in by_effect:
+            was = by_effect[need.effect]
+            by_effect[need.effect] = Need(
+                need.effect, was.why, tuple(sorted(set(was.axes) | set(need.axes)))
+            )
+        else:
+            by_effect[need.effect] = need
+    return by_effect
+
+
 def plan_measurement(
     data: StageData,
     bench: StageBench,
@@ -220,104 +355,18 @@ def plan_measurement(
     points already serve adds none)."""
     parts: list[PlanPart] = []
     cannot: list[dict[str, str]] = []
-    by_effect: dict[str, Need] = {}
-    for need in needs:
-        if need.effect in by_effect:
-            was = by_effect[need.effect]
-            by_effect[need.effect] = Need(
-                need.effect, was.why, tuple(sorted(set(was.axes) | set(need.axes)))
-            )
-        else:
-            by_effect[need.effect] = need
-    if (n := by_effect.get("backlash")) is not None:
-        parts.append(
-            PlanPart(
-                "backlash",
-                n.why,
-                "five of the record's poses, each approached from above and again "
-                "from below: lost motion is the difference",
-                _backlash(data, bench, travel_deg),
-            )
-        )
-    if (n := by_effect.get("periodic_error")) is not None:
-        for ax in n.axes or ("x", "y"):
-            period = bench.worm_period_x_deg if ax == "x" else bench.worm_period_y_deg
-            parts.append(
-                PlanPart(
-                    "periodic_error",
-                    n.why,
-                    f"a scan of the {ax} stage over one worm period ({period:.6g} deg) in "
-                    "eighths, at the middle of the other stage's range",
-                    _worm_scan(data, bench, ax, travel_deg),
-                )
-            )
-    if (n := by_effect.get("time_drift")) is not None:
-        if any(p.effect == "backlash" for p in parts):
-            parts.append(
-                PlanPart(
-                    "time_drift",
-                    n.why,
-                    "the backlash part's points approached from below are record "
-                    "poses measured again later: they test it too (no further points)",
-                )
-            )
-        else:
-            pts = [
-                PlannedPoint(*_q(bench, _inside(x, travel_deg), _inside(y, travel_deg)), 1.0, 1.0)
-                for x, y in reversed(_poses(data))
-            ]
-            parts.append(
-                PlanPart(
-                    "time_drift",
-                    n.why,
-                    "five of the record's poses measured again now, in another "
-                    "order: a drift moves them, the geometry does not",
-                    pts,
-                )
-            )
-    if (n := by_effect.get("sensor_nonlinearity")) is not None:
-        span = float(max(np.max(np.abs(data.cmd_x_deg)), np.max(np.abs(data.cmd_y_deg))))
-        if span < WIDE_FRACTION * travel_deg - 0.5:
-            parts.append(
-                PlanPart(
-                    "sensor_nonlinearity",
-                    n.why,
-                    f"eight points at ±{WIDE_FRACTION * travel_deg:.3g} deg "
-                    f"(the record spans ±{span:.3g} deg of the ±{travel_deg:g} deg travel)",
-                    _wide(data, bench, travel_deg),
-                )
-            )
-        else:
-            cannot.append(
-                {
-                    "effect": "sensor_nonlinearity",
-                    "reason": f"{n.why}; the record's points already span the "
-                    "stages' travel: no wider range can be measured on this bench",
-                }
-            )
-    if (n := by_effect.get("temperature_drift")) is not None:
-        span = 0.0 if data.temp_c is None else float(np.ptp(data.temp_c))
-        at = "" if data.temp_c is None else f" at {float(np.mean(data.temp_c)):.1f} °C"
-        cannot.append(
-            {
-                "effect": "temperature_drift",
-                "reason": f"{n.why}; the points span {span:.2g} K{at} and this bench cannot set "
-                "its temperature: repeat the calibration when the room's temperature differs by "
-                "a few kelvin, or on a bench in a climate chamber",
-            }
-        )
-    for effect, n in by_effect.items():
-        if effect not in (
-            "backlash",
-            "periodic_error",
-            "time_drift",
-            "sensor_nonlinearity",
-            "temperature_drift",
-        ):
+    by_effect = _merged_needs(needs)
+    for effect, planner in _PLANNERS.items():
+        if (need := by_effect.get(effect)) is not None:
+            new_parts, new_cannot = planner(data, bench, travel_deg, need, parts)
+            parts += new_parts
+            cannot += new_cannot
+    for effect, need in by_effect.items():
+        if effect not in _PLANNERS:
             cannot.append(
                 {
                     "effect": effect,
-                    "reason": f"{n.why}; no measurement on this bench is planned for it",
+                    "reason": f"{need.why}; no measurement on this bench is planned for it",
                 }
             )
     return MeasurementPlan(parts, cannot, seconds_per_point, estimate_source)
@@ -335,70 +384,100 @@ def needs_of(
     weakly visible (separability below `weak`), a drift in time when no pose was measured twice, and
     named effects the record cannot adopt from these points."""
     needs: list[Need] = []
-    if (
-        data is not None
-        and data.t_s is not None
-        and "time_drift" not in report.get("named_effects", [])
-    ):
-        poses = np.round(np.column_stack([data.cmd_x_deg, data.cmd_y_deg]), 6)
-        if np.unique(poses, axis=0).shape[0] == len(poses):
-            needs.append(
-                Need(
-                    "time_drift",
-                    "every pose was measured once, in one pass: a drift in time is told from "
-                    "the bench's geometry only as far as the order of the points differs from "
-                    "their place on the grid",
-                )
-            )
-    for s in report.get("skipped", []):
-        e = str(s["effect"])
+    if data is not None and _one_pass_without_drift(report, data):
         needs.append(
             Need(
-                e,
-                f"untestable on the stored points: {s['reason']}",
-                ("x", "y") if e == "periodic_error" else (),
+                "time_drift",
+                "every pose was measured once, in one pass: a drift in time is told from "
+                "the bench's geometry only as far as the order of the points differs from "
+                "their place on the grid",
             )
         )
+    needs += _skipped_needs(report)
     worm = active.get("periodic_error")
     if worm is not None and not any(n.effect == "periodic_error" for n in needs):
-        short = tuple(
-            ax for ax in ("x", "y") if not {f"{ax}_sin_deg", f"{ax}_cos_deg"} <= set(worm)
-        )
-        if short:
-            needs.append(
-                Need(
-                    "periodic_error",
-                    "the stored points sample the worm of the "
-                    f"{' and '.join(short)} stage at too few phases to tell its periodic error",
-                    short,
-                )
+        needs += _worm_phase_needs(worm)
+    needs += _weak_needs(report, weak)
+    needs += _unadoptable_needs(adoption)
+    return needs
+
+
+def _one_pass_without_drift(report: Mapping[str, Any], data: StageData) -> bool:
+    """Timed points, no pose measured twice, and no drift named: the drift was barely testable."""
+    if data.t_s is None or "time_drift" in report.get("named_effects", []):
+        return False
+    poses = np.round(np.column_stack([data.cmd_x_deg, data.cmd_y_deg]), 6)
+    return bool(np.unique(poses, axis=0).shape[0] == len(poses))
+
+
+def _skipped_needs(report: Mapping[str, Any]) -> list[Need]:
+    """The candidates the diagnosis skipped as untestable, with its reason."""
+    needs = []
+    for skip in report.get("skipped", []):
+        effect = str(skip["effect"])
+        needs.append(
+            Need(
+                effect,
+                f"untestable on the stored points: {skip['reason']}",
+                ("x", "y") if effect == "periodic_error" else (),
             )
-    for e, fracs in (report.get("separability") or {}).items():
-        low = {lab: f for lab, f in fracs.items() if f < weak}
+        )
+    return needs
+
+
+def _worm_phase_needs(worm: Sequence[str]) -> list[Need]:
+    """The stages whose worm sine or cosine the diagnosis had to leave out (too few phases)."""
+    short = tuple(ax for ax in ("x", "y") if not {f"{ax}_sin_deg", f"{ax}_cos_deg"} <= set(worm))
+    if not short:
+        return []
+    return [
+        Need(
+            "periodic_error",
+            "the stored points sample the worm of the "
+            f"{' and '.join(short)} stage at too few phases to tell its periodic error",
+            short,
+        )
+    ]
+
+
+def _weak_needs(report: Mapping[str, Any], weak: float) -> list[Need]:
+    """The remaining candidates the final model sees less than `weak` of."""
+    needs = []
+    for effect, fracs in (report.get("separability") or {}).items():
+        low = {lab: frac for lab, frac in fracs.items() if frac < weak}
         if not low:
             continue
-        axes = tuple(sorted({lab[:1] for lab in low})) if e == "periodic_error" else ()
+        axes = tuple(sorted({lab[:1] for lab in low})) if effect == "periodic_error" else ()
         worst = min(low.values())
         needs.append(
             Need(
-                e,
+                effect,
                 f"only {100 * worst:.0f} % visible on the stored points (the rest of its "
                 "signature is a change of what the model already fits)",
                 axes,
             )
         )
-    for a in adoption:
-        if not a.get("adoptable") and a.get("measurement"):
-            e = str(a["effect"])
+    return needs
+
+
+def _unadoptable_needs(adoption: Sequence[Mapping[str, Any]]) -> list[Need]:
+    """The named effects the record cannot adopt and a measurement would determine."""
+    needs = []
+    for verdict in adoption:
+        if not verdict.get("adoptable") and verdict.get("measurement"):
+            effect = str(verdict["effect"])
             axes = (
-                tuple(ax for ax in ("x", "y") if f"the {ax} stage" in str(a.get("reason", "")))
-                if e == "periodic_error"
+                tuple(
+                    ax for ax in ("x", "y") if f"the {ax} stage" in str(verdict.get("reason", ""))
+                )
+                if effect == "periodic_error"
                 else ()
             )
             needs.append(
                 Need(
-                    e,
-                    f"named, but the record cannot adopt it from the stored points: {a['reason']}",
+                    effect,
+                    "named, but the record cannot adopt it from the stored points: "
+                    f"{verdict['reason']}",
                     axes,
                 )
             )

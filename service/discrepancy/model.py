@@ -68,17 +68,17 @@ class Fit:
 
     def block(self, effect: str, occurrence: int = 0) -> Block:
         seen = 0
-        for b in self.blocks:
-            if b.effect == effect:
+        for candidate in self.blocks:
+            if candidate.effect == effect:
                 if seen == occurrence:
-                    return b
+                    return candidate
                 seen += 1
         raise KeyError(effect)
 
     def rms(self) -> list[float]:
         return [
-            float(np.sqrt(np.mean(self.residuals[:, a] ** 2)))
-            for a in range(self.residuals.shape[1])
+            float(np.sqrt(np.mean(self.residuals[:, axis] ** 2)))
+            for axis in range(self.residuals.shape[1])
         ]
 
 
@@ -120,18 +120,18 @@ class Family:
     # -- parameters --------------------------------------------------------------------------------
     def blocks(self, effects: tuple[str, ...]) -> list[Block]:
         out = []
-        for b in self.full_blocks(effects):
-            keep = self.active.get(b.effect)
+        for block in self.full_blocks(effects):
+            keep = self.active.get(block.effect)
             if keep is not None:
-                idx = [i for i, lab in enumerate(b.labels) if lab in keep]
-                b = Block(
-                    b.effect,
-                    tuple(b.labels[i] for i in idx),
-                    tuple(b.units[i] for i in idx),
-                    tuple(b.scales[i] for i in idx),
-                    tuple(b.init[i] for i in idx),
+                idx = [i for i, lab in enumerate(block.labels) if lab in keep]
+                block = Block(
+                    block.effect,
+                    tuple(block.labels[i] for i in idx),
+                    tuple(block.units[i] for i in idx),
+                    tuple(block.scales[i] for i in idx),
+                    tuple(block.init[i] for i in idx),
                 )
-            out.append(b)
+            out.append(block)
         return out
 
     @staticmethod
@@ -139,9 +139,9 @@ class Family:
         params: dict[str, dict[str, float]] = {}
         i = 0
         for block in blocks:
-            d = params.setdefault(block.effect, {})
+            values = params.setdefault(block.effect, {})
             for lab in block.labels:
-                d[lab] = float(theta[i])
+                values[lab] = float(theta[i])
                 i += 1
         return params
 
@@ -190,10 +190,10 @@ class Family:
         theta: NDArray[np.float64],
         blocks: list[Block] | None = None,
     ) -> NDArray[np.float64]:
-        r: NDArray[np.float64] = (
+        residual: NDArray[np.float64] = (
             (self.observed - self.predict(effects, theta, blocks)) * self.weights
         ).ravel()
-        return r
+        return residual
 
     def fit(
         self,
@@ -233,14 +233,14 @@ class Family:
             raise FitError(f"fit of {self.baseline} + {', '.join(effects)} diverged")
         theta = sol.x * scales
         # d(weighted residual)/d(theta), by the shared rule
-        J = self.jacobian(effects, blocks, theta)
+        jacobian = self.jacobian(effects, blocks, theta)
         pred = self.predict(effects, theta, blocks)
         resid = self.observed - pred
         rss_w = float(np.sum((resid * self.weights) ** 2))
         s2 = rss_w / max(self.n_obs - k, 1)
         # known noise: the noise variance, raised (Birge ratio) if the residual says it is larger
-        cov = _covariance(J) * (max(1.0, s2) if self.noise_known else s2)
-        return Fit(tuple(effects), blocks, theta, cov, resid, pred, rss_w, self.n_obs, J)
+        cov = _covariance(jacobian) * (max(1.0, s2) if self.noise_known else s2)
+        return Fit(tuple(effects), blocks, theta, cov, resid, pred, rss_w, self.n_obs, jacobian)
 
     def jacobian(
         self,
@@ -299,19 +299,27 @@ class Family:
         if same_start:
             # the current model's columns are unchanged: reuse them
             J_new = self.jacobian(effects, blocks, theta, range(k0, theta.size))
-            J = np.column_stack([current.jacobian_w, J_new])
+            jacobian = np.column_stack([current.jacobian_w, J_new])
         else:
-            J = self.jacobian(effects, blocks, theta)
-        delta, *_ = np.linalg.lstsq(J, -r0, rcond=1e-12)
-        r1 = r0 + J @ delta
+            jacobian = self.jacobian(effects, blocks, theta)
+        delta, *_ = np.linalg.lstsq(jacobian, -r0, rcond=1e-12)
+        r1 = r0 + jacobian @ delta
         if r1 @ r1 > r0 @ r0:
             delta, r1 = np.zeros_like(delta), r0
         rss_w = float(r1 @ r1)
         s2 = rss_w / max(self.n_obs - theta.size, 1)
-        cov = _covariance(J) * (max(1.0, s2) if self.noise_known else s2)
+        cov = _covariance(jacobian) * (max(1.0, s2) if self.noise_known else s2)
         resid = r1.reshape(self.observed.shape) / self.weights
         return Fit(
-            effects, blocks, theta + delta, cov, resid, self.observed - resid, rss_w, self.n_obs, J
+            effects,
+            blocks,
+            theta + delta,
+            cov,
+            resid,
+            self.observed - resid,
+            rss_w,
+            self.n_obs,
+            jacobian,
         )
 
     def separability(self, current: Fit, effect: str) -> list[float]:
@@ -328,18 +336,22 @@ class Family:
             Jm = current.jacobian_w
             Jc = self.jacobian(effects, blocks, theta, range(n0, theta.size))
         else:
-            J = self.jacobian(effects, blocks, theta)
-            Jm, Jc = J[:, :n0], J[:, n0:]
+            jacobian = self.jacobian(effects, blocks, theta)
+            Jm, Jc = jacobian[:, :n0], jacobian[:, n0:]
         if Jm.size:
-            u, s, _ = np.linalg.svd(Jm, full_matrices=False)
-            u = u[:, s > 1e-10 * s[0]] if s.size and s[0] > 0 else u[:, :0]
+            basis, singular, _ = np.linalg.svd(Jm, full_matrices=False)
+            basis = (
+                basis[:, singular > 1e-10 * singular[0]]
+                if singular.size and singular[0] > 0
+                else basis[:, :0]
+            )
         out = []
-        for c in Jc.T:
-            nc = float(np.linalg.norm(c))
+        for column in Jc.T:
+            nc = float(np.linalg.norm(column))
             if nc == 0.0 or not np.isfinite(nc):
                 out.append(0.0)
                 continue
-            rest = c - u @ (u.T @ c) if Jm.size else c
+            rest = column - basis @ (basis.T @ column) if Jm.size else column
             out.append(float(np.linalg.norm(rest) / nc))
         return out
 
@@ -349,7 +361,7 @@ def _covariance(J: NDArray[np.float64]) -> NDArray[np.float64]:
     if J.size == 0:
         return np.zeros((0, 0))
     JtJ = J.T @ J
-    d = np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
-    C = np.linalg.pinv(JtJ / np.outer(d, d), rcond=1e-12)
-    cov: NDArray[np.float64] = C / np.outer(d, d)
+    scale = np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
+    cov_scaled = np.linalg.pinv(JtJ / np.outer(scale, scale), rcond=1e-12)
+    cov: NDArray[np.float64] = cov_scaled / np.outer(scale, scale)
     return cov

@@ -38,8 +38,8 @@ def from_repeats(
     if dof < MIN_REPEAT_DOF:
         return None
     per_axis = []
-    for a in range(observed.shape[1]):
-        col = observed[:, a]
+    for axis in range(observed.shape[1]):
+        col = observed[:, axis]
         means = np.bincount(inv, weights=col) / counts
         ss = float(np.sum((col - means[inv]) ** 2))
         per_axis.append(np.sqrt(ss / dof))
@@ -58,9 +58,9 @@ def from_repeats(
 
 
 def from_specification(sigma: ArrayLike) -> NoiseLevel:
-    s = np.atleast_1d(np.asarray(sigma, dtype=float))
+    sigma_per_axis = np.atleast_1d(np.asarray(sigma, dtype=float))
     return NoiseLevel(
-        s,
+        sigma_per_axis,
         "instrument specification",
         float("inf"),
         "1-sigma noise of one reading as given with the data (instrument specification)",
@@ -70,7 +70,7 @@ def from_specification(sigma: ArrayLike) -> NoiseLevel:
 def from_residual(resid: NDArray[np.float64], k: int) -> NoiseLevel:
     """Per-axis residual standard deviation of the final model, corrected for the fitted
     parameters."""
-    n, a = resid.shape
+    n, n_axes = resid.shape
     dof_total = resid.size - k
     frac = max(dof_total, 1) / resid.size
     sig = np.sqrt(np.sum(resid**2, axis=0) / (n * frac))

@@ -30,14 +30,14 @@ REPORT_SIGNIFICANT_DIGITS = 8
 def clean(o: Any) -> Any:
     """JSON-safe: numpy scalars to Python, non-finite numbers to null, 8 significant digits."""
     if isinstance(o, dict):
-        return {str(k): clean(v) for k, v in o.items()}
+        return {str(k): clean(value) for k, value in o.items()}
     if isinstance(o, (list, tuple)):
-        return [clean(v) for v in o]
+        return [clean(value) for value in o]
     if isinstance(o, (np.floating, float)):
-        f = float(o)
+        number = float(o)
         # 8 significant digits: more than any statistic or magnitude here is known to
         # (docs/models.md, "Digits")
-        return float(f"{f:.{REPORT_SIGNIFICANT_DIGITS}g}") if math.isfinite(f) else None
+        return float(f"{number:.{REPORT_SIGNIFICANT_DIGITS}g}") if math.isfinite(number) else None
     if isinstance(o, (np.integer,)):
         return int(o)
     if isinstance(o, np.bool_):
@@ -61,21 +61,30 @@ def _img(uri: str, alt: str) -> str:
 
 
 def _labels(report: dict[str, Any]) -> list[str]:
-    return [report["baseline"]] + [f"+ {s['effect']}" for s in report["steps"]]
+    return [report["baseline"]] + [f"+ {step['effect']}" for step in report["steps"]]
 
 
 def _rms_figure(report: dict[str, Any]) -> str:
     labels = _labels(report)
-    rms = np.array([report["baseline_rms"]] + [s["rms_after"] for s in report["steps"]])
+    rms = np.array([report["baseline_rms"]] + [step["rms_after"] for step in report["steps"]])
     noise = np.array(report["noise_level"])
     fig, axs = _figure(6.5, 3.4, left=0.15, right=0.97, bottom=0.2, top=0.9)
     ax = axs[0, 0]
     width = 0.8 / rms.shape[1]
     x = np.arange(len(labels))
-    for a, name in enumerate(report["axes"]):
-        ax.bar(x + (a - (rms.shape[1] - 1) / 2) * width, rms[:, a], width, label=f"RMS {name}")
+    for column, name in enumerate(report["axes"]):
+        ax.bar(
+            x + (column - (rms.shape[1] - 1) / 2) * width,
+            rms[:, column],
+            width,
+            label=f"RMS {name}",
+        )
         ax.axhline(
-            noise[a], ls="--", lw=1, color=f"C{a}", label=f"noise {name} ({report['noise_source']})"
+            noise[column],
+            ls="--",
+            lw=1,
+            color=f"C{column}",
+            label=f"noise {name} ({report['noise_source']})",
         )
     ax.set_xticks(x, labels, rotation=15)
     ax.set_yscale("log")
@@ -91,28 +100,28 @@ def _stage_maps(
     """All residual maps in one figure: a row per stage of the chain, x and y side by side."""
     x, y = fam.data.cmd_x_deg, fam.data.cmd_y_deg
     n = len(fits)
-    h = 3.1 * n
+    height_in = 3.1 * n
     fig, axs = _figure(
         8.0,
-        h,
+        height_in,
         n,
         2,
         left=0.08,
         right=0.97,
-        bottom=0.5 / h,
-        top=1 - 0.35 / h,
+        bottom=0.5 / height_in,
+        top=1 - 0.35 / height_in,
         hspace=0.45,
         wspace=0.5,
     )
     for i, (fit, title) in enumerate(zip(fits, titles)):
-        r = fit.residuals
-        for a, name in enumerate(("x", "y")):
-            ax = axs[i, a]
-            lim = float(np.max(np.abs(r[:, a]))) or 1.0
+        resid = fit.residuals
+        for column, name in enumerate(("x", "y")):
+            ax = axs[i, column]
+            lim = float(np.max(np.abs(resid[:, column]))) or 1.0
             sc = ax.scatter(
                 x,
                 y,
-                c=r[:, a],
+                c=resid[:, column],
                 cmap="RdBu_r",
                 vmin=-lim,
                 vmax=lim,
@@ -123,7 +132,8 @@ def _stage_maps(
             ax.set_xlabel("stage x [deg]", fontsize=8)
             ax.set_ylabel("stage y [deg]", fontsize=8)
             ax.set_title(
-                f"{title}: {name} residual, RMS {np.sqrt(np.mean(r[:, a] ** 2)):.3g} {unit}",
+                f"{title}: {name} residual, "
+                f"RMS {np.sqrt(np.mean(resid[:, column] ** 2)):.3g} {unit}",
                 fontsize=8,
             )
             ax.set_aspect("equal", adjustable="datalim")
@@ -133,9 +143,17 @@ def _stage_maps(
 
 def _scale_plots(fam: ScalePoly, fits: Sequence[Fit], titles: Sequence[str], unit: str) -> str:
     n = len(fits)
-    h = 2.4 * n
+    height_in = 2.4 * n
     fig, axs = _figure(
-        6.0, h, n, 1, left=0.14, right=0.97, bottom=0.45 / h, top=1 - 0.3 / h, hspace=0.6
+        6.0,
+        height_in,
+        n,
+        1,
+        left=0.14,
+        right=0.97,
+        bottom=0.45 / height_in,
+        top=1 - 0.3 / height_in,
+        hspace=0.6,
     )
     for i, (fit, title) in enumerate(zip(fits, titles)):
         ax = axs[i, 0]
@@ -150,28 +168,29 @@ def _scale_plots(fam: ScalePoly, fits: Sequence[Fit], titles: Sequence[str], uni
 
 
 def _histogram(report: dict[str, Any], fit: Fit) -> str:
-    r = fit.residuals
+    resid = fit.residuals
     noise = np.array(report["noise_level"])
     fig, axs = _figure(
-        3.4 * r.shape[1], 3.0, 1, r.shape[1], left=0.1, right=0.97, bottom=0.18, top=0.85
+        3.4 * resid.shape[1], 3.0, 1, resid.shape[1], left=0.1, right=0.97, bottom=0.18, top=0.85
     )
-    for a, name in enumerate(report["axes"]):
-        ax = axs[0, a]
-        z = r[:, a] / noise[a]
+    for column, name in enumerate(report["axes"]):
+        ax = axs[0, column]
+        z = resid[:, column] / noise[column]
         ax.hist(z, bins=max(8, int(np.sqrt(z.size))), density=True, alpha=0.7)
-        g = np.linspace(-4, 4, 200)
-        ax.plot(g, np.exp(-(g**2) / 2) / np.sqrt(2 * np.pi), "k-", lw=1)
+        grid = np.linspace(-4, 4, 200)
+        ax.plot(grid, np.exp(-(grid**2) / 2) / np.sqrt(2 * np.pi), "k-", lw=1)
         ax.set_xlabel(f"final {name} residual / noise level")
     fig.suptitle("final residual against the noise level (curve: the noise alone)", fontsize=9)
     return _png(fig)
 
 
 def _table(rows: list[list[str]], head: list[str]) -> str:
-    h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
-    b = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows
+    header = "".join(f"<th>{html.escape(cell)}</th>" for cell in head)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(str(cell))}</td>" for cell in row) + "</tr>"
+        for row in rows
     )
-    return f"<table><tr>{h}</tr>{b}</table>"
+    return f"<table><tr>{header}</tr>{body}</table>"
 
 
 def _p(v: float | None) -> str:
@@ -199,159 +218,194 @@ th{background:#eee}img{max-width:100%}
 details{margin:.3em 0}code{background:#f3f3f3}"""
 
 
+_esc = html.escape
+_CANDIDATE_HEAD = ["statistic", "p", "ΔBIC", "significant"]
+
+
 def render_html(report: dict[str, Any], result: Result, fam: Family) -> str:
     """The whole page as one string (no external resources)."""
     unit = report["unit"]
-    e = html.escape
     parts = [
         (
             "<!doctype html><html><head><meta charset='utf-8'><title>tiltlab discrepancy: "
-            f"{e(report['kind'])}</title><style>{CSS}</style></head><body>"
+            f"{_esc(report['kind'])}</title><style>{CSS}</style></head><body>"
         )
     ]
-    parts.append(f"<h1>Where the {e(report['baseline'])} model and the measurement disagree</h1>")
+    parts += _summary_section(report, unit)
+    parts += _where_section(report)
+    parts += _residuals_section(report, result, fam, unit)
+    parts += _candidates_section(report, unit)
+    parts += _not_tested_section(report)
+    parts += _provenance_section(report)
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def _summary_section(report: dict[str, Any], unit: str) -> list[str]:
+    """The page's top: the data, the conclusion, the chain of named effects, why it stopped,
+    the noise level and the bench."""
+    parts = [f"<h1>Where the {_esc(report['baseline'])} model and the measurement disagree</h1>"]
     src = report.get("input", "")
     parts.append(
-        f"<p>Data: <code>{e(str(src))}</code>, kind <b>{e(report['kind'])}</b>"
-        + (f", sensor <b>{e(report['sensor'])}</b>" if "sensor" in report else "")
-        + f", {report.get('n_rows', '')} rows. Residual = measured − model, in {e(unit)}.</p>"
+        f"<p>Data: <code>{_esc(str(src))}</code>, kind <b>{_esc(report['kind'])}</b>"
+        + (f", sensor <b>{_esc(report['sensor'])}</b>" if "sensor" in report else "")
+        + f", {report.get('n_rows', '')} rows. Residual = measured − model, in {_esc(unit)}.</p>"
     )
-    parts.append(f"<p class='concl'>{e(report['conclusion'])}</p>")
+    parts.append(f"<p class='concl'>{_esc(report['conclusion'])}</p>")
     parts.append("<h2>Chain of named effects</h2>")
+    parts.append(_chain_table(report, unit))
+    parts.append(f"<p><b>Stop:</b> {_esc(report['stop']['reason'])}</p>")
+    parts.append(_img(_rms_figure(report), "RMS per step against the noise level"))
+    parts.append(
+        f"<p><b>Noise level</b> {_esc(_fmt(report['noise_level']))} {_esc(unit)} from the "
+        f"<b>{_esc(report['noise_source'])}</b>: {_esc(report['noise_detail'])}</p>"
+    )
+    parts.append(
+        "<p><b>Final residual against the noise:</b> "
+        f"{_esc(report['final_vs_noise']['sentence'])}</p>"
+    )
+    if (bench := report.get("bench")) is not None:
+        parts.append(
+            f"<p><b>Bench</b> ({_esc(bench['source'])}): upper {bench['upper_gear_ratio']:g}:1, "
+            f"lower {bench['lower_gear_ratio']:g}:1, {bench['microsteps']} microsteps of "
+            f"{bench['step_angle_deg']:g}°; worm periods {bench['worm_period_x_deg']:.6g}° / "
+            f"{bench['worm_period_y_deg']:.6g}°</p>"
+        )
+    return parts
+
+
+def _chain_table(report: dict[str, Any], unit: str) -> str:
+    """One row per named effect: its size, the RMS it took away and the test that named it."""
     rows = []
-    for i, s in enumerate(report["steps"], 1):
-        ev = s["evidence"]
+    for i, step in enumerate(report["steps"], 1):
+        ev = step["evidence"]
         rows.append(
             [
                 str(i),
-                s["effect"],
-                s["summary"].split(": ", 1)[-1],
-                _fmt(s["rms_before"]),
-                _fmt(s["rms_after"]),
+                step["effect"],
+                step["summary"].split(": ", 1)[-1],
+                _fmt(step["rms_before"]),
+                _fmt(step["rms_after"]),
                 f"{ev['test']} {ev['f_stat']:.3g}",
                 _p(ev["p_value"]),
                 f"{ev['alpha']:.2g}",
                 f"{ev['delta_bic']:+.1f}",
             ]
         )
-    if rows:
-        parts.append(
-            _table(
-                rows,
-                [
-                    "step",
-                    "effect",
-                    "fitted magnitude (± standard uncertainty)",
-                    f"RMS before [{unit}]",
-                    f"RMS after [{unit}]",
-                    "statistic",
-                    "p",
-                    "level",
-                    "ΔBIC",
-                ],
-            )
-        )
-    else:
-        parts.append("<p>No effect named: the baseline already describes the data.</p>")
-    parts.append(f"<p><b>Stop:</b> {e(report['stop']['reason'])}</p>")
-    parts.append(_img(_rms_figure(report), "RMS per step against the noise level"))
-    parts.append(
-        f"<p><b>Noise level</b> {e(_fmt(report['noise_level']))} {e(unit)} from the "
-        f"<b>{e(report['noise_source'])}</b>: {e(report['noise_detail'])}</p>"
+    if not rows:
+        return "<p>No effect named: the baseline already describes the data.</p>"
+    return _table(
+        rows,
+        [
+            "step",
+            "effect",
+            "fitted magnitude (± standard uncertainty)",
+            f"RMS before [{unit}]",
+            f"RMS after [{unit}]",
+            "statistic",
+            "p",
+            "level",
+            "ΔBIC",
+        ],
     )
-    parts.append(
-        f"<p><b>Final residual against the noise:</b> {e(report['final_vs_noise']['sentence'])}</p>"
-    )
-    if (bench := report.get("bench")) is not None:
-        parts.append(
-            f"<p><b>Bench</b> ({e(bench['source'])}): upper {bench['upper_gear_ratio']:g}:1, "
-            f"lower {bench['lower_gear_ratio']:g}:1, {bench['microsteps']} microsteps of "
-            f"{bench['step_angle_deg']:g}°; worm periods {bench['worm_period_x_deg']:.6g}° / "
-            f"{bench['worm_period_y_deg']:.6g}°</p>"
-        )
 
-    parts.append("<h2>Where they disagree</h2><p>Before the first step (strongest first):</p><ul>")
-    parts += [f"<li>{e(w)}</li>" for w in report["where"]]
-    parts += [f"<li>{e(w)}</li>" for w in report.get("where_largest", [])]
+
+def _where_section(report: dict[str, Any]) -> list[str]:
+    """Where the disagreement was before the first step, and what is left after the last."""
+    parts = ["<h2>Where they disagree</h2><p>Before the first step (strongest first):</p><ul>"]
+    parts += [f"<li>{_esc(where)}</li>" for where in report["where"]]
+    parts += [f"<li>{_esc(where)}</li>" for where in report.get("where_largest", [])]
     parts.append("</ul><p>After the last step:</p><ul>")
-    parts += [f"<li>{e(w)}</li>" for w in report["where_final"]]
+    parts += [f"<li>{_esc(where)}</li>" for where in report["where_final"]]
     parts.append("</ul>")
+    return parts
 
-    parts.append("<h2>Residuals before and after each step</h2>")
+
+def _residuals_section(report: dict[str, Any], result: Result, fam: Family, unit: str) -> list[str]:
+    """The residual figures of every stage of the chain, drawn as the data kind is read."""
+    parts = ["<h2>Residuals before and after each step</h2>"]
     titles = [f"baseline {report['baseline']}"] + [
-        f"after step {i}: + {s['effect']}" for i, s in enumerate(report["steps"], 1)
+        f"after step {i}: + {step['effect']}" for i, step in enumerate(report["steps"], 1)
     ]
     if isinstance(fam, StageLinear | StageKinematic):
         parts.append(_img(_stage_maps(fam, result.fits, titles, unit), "residual maps"))
     elif isinstance(fam, ScalePoly):
         parts.append(_img(_scale_plots(fam, result.fits, titles, unit), "residual plots"))
     parts.append(_img(_histogram(report, result.final), "final residual histogram"))
+    return parts
 
-    parts.append("<h2>Candidates at each step</h2>")
-    for i, s in enumerate(report["steps"], 1):
-        rows = [
-            [
-                c["effect"],
-                _fmt(c.get("rms_after")),
-                _fmt(c.get("f_stat")),
-                _p(c.get("p_value")),
-                _fmt(c.get("delta_bic")),
-                "yes" if c.get("significant") else c.get("error", "no"),
-            ]
-            for c in s["evidence"]["candidates"]
+
+def _candidate_rows(candidates: list[dict[str, Any]]) -> list[list[str]]:
+    """The candidates one step tried, as table rows (the same for every step and the last)."""
+    return [
+        [
+            candidate["effect"],
+            _fmt(candidate.get("rms_after")),
+            _fmt(candidate.get("f_stat")),
+            _p(candidate.get("p_value")),
+            _fmt(candidate.get("delta_bic")),
+            "yes" if candidate.get("significant") else candidate.get("error", "no"),
         ]
+        for candidate in candidates
+    ]
+
+
+def _candidates_section(report: dict[str, Any], unit: str) -> list[str]:
+    """What each step tried (folded), and the last step's candidates, none significant (open)."""
+    parts = ["<h2>Candidates at each step</h2>"]
+    for i, step in enumerate(report["steps"], 1):
+        rows = _candidate_rows(step["evidence"]["candidates"])
         parts.append(
-            f"<details><summary>step {i}: {e(s['effect'])} chosen</summary>"
-            + _table(
-                rows, ["candidate", f"RMS after [{unit}]", "statistic", "p", "ΔBIC", "significant"]
-            )
+            f"<details><summary>step {i}: {_esc(step['effect'])} chosen</summary>"
+            + _table(rows, ["candidate", f"RMS after [{unit}]", *_CANDIDATE_HEAD])
             + "</details>"
         )
-    rows = [
-        [
-            c["effect"],
-            _fmt(c.get("rms_after")),
-            _fmt(c.get("f_stat")),
-            _p(c.get("p_value")),
-            _fmt(c.get("delta_bic")),
-            "yes" if c.get("significant") else c.get("error", "no"),
-        ]
-        for c in report["stop"]["candidates"]
-    ]
+    rows = _candidate_rows(report["stop"]["candidates"])
     if rows:
         parts.append(
             "<details open><summary>last step: nothing significant</summary>"
-            + _table(
-                rows, ["candidate", f"RMS after [{unit}]", "statistic", "p", "ΔBIC", "significant"]
-            )
+            + _table(rows, ["candidate", f"RMS after [{unit}]", *_CANDIDATE_HEAD])
             + "</details>"
         )
-    parts.append("<h2>Not tested</h2>")
+    return parts
+
+
+def _not_tested_section(report: dict[str, Any]) -> list[str]:
+    """What the workflow did not test and why, its notes, and how significance was judged."""
+    parts = ["<h2>Not tested</h2>"]
     if report["skipped"]:
         parts.append(
             "<p>Candidates the data cannot support:</p>"
-            + _table([[s["effect"], s["reason"]] for s in report["skipped"]], ["effect", "reason"])
+            + _table(
+                [[skip["effect"], skip["reason"]] for skip in report["skipped"]],
+                ["effect", "reason"],
+            )
         )
     parts.append(
         "<p>Effects the baseline already represents:</p>"
         + _table(
-            [[s["effect"], s["reason"]] for s in report["already_in_model"]], ["effect", "why"]
+            [[entry["effect"], entry["reason"]] for entry in report["already_in_model"]],
+            ["effect", "why"],
         )
     )
     if report["notes"]:
-        parts.append("<ul>" + "".join(f"<li>{e(n)}</li>" for n in report["notes"]) + "</ul>")
+        parts.append("<ul>" + "".join(f"<li>{_esc(n)}</li>" for n in report["notes"]) + "</ul>")
     parts.append(
         "<p style='font-size:80%'>Significance: extra-sum-of-squares test at level "
         f"{report['alpha']:g} per step, Bonferroni-corrected over the candidates of the step, "
         "and a BIC gain. Names of effects are those of docs/models.md §5.</p>"
     )
+    return parts
+
+
+def _provenance_section(report: dict[str, Any]) -> list[str]:
+    """Where the report came from, when it says (nothing otherwise)."""
     if prov := report.get("provenance"):
         from service.io.provenance import provenance_lines
 
-        parts.append(
+        return [
             "<h2>Provenance</h2><p style='font-size:80%'>"
-            + "<br>".join(e(line) for line in provenance_lines(prov))
+            + "<br>".join(_esc(line) for line in provenance_lines(prov))
             + "</p>"
-        )
-    parts.append("</body></html>")
-    return "\n".join(parts)
+        ]
+    return []

@@ -67,41 +67,41 @@ class ScalePoly(Family):
             )
         ]
         deg = 1
-        for e in effects:
-            if e == "sensor_nonlinearity":
+        for effect in effects:
+            if effect == "sensor_nonlinearity":
                 deg += 1
-                out.append(Block(e, (f"c{deg}",), ("arcsec",), (0.01 * self._typ,), (0.0,)))
-            elif e == "temperature_drift":
-                out.append(Block(e, ("arcsec_per_k",), ("arcsec/K",), (1.0,), (0.0,)))
+                out.append(Block(effect, (f"c{deg}",), ("arcsec",), (0.01 * self._typ,), (0.0,)))
+            elif effect == "temperature_drift":
+                out.append(Block(effect, ("arcsec_per_k",), ("arcsec/K",), (1.0,), (0.0,)))
             else:
-                raise KeyError(f"no scale term for {e!r}")
+                raise KeyError(f"no scale term for {effect!r}")
         return out
 
     def predict_params(
         self, effects: tuple[str, ...], p: dict[str, dict[str, float]]
     ) -> NDArray[np.float64]:
         coeffs: dict[int, float] = {}
-        for d in (p.get("baseline", {}), p.get("sensor_nonlinearity", {})):
-            for lab, v in d.items():
-                coeffs[int(lab[1:])] = v
+        for block in (p.get("baseline", {}), p.get("sensor_nonlinearity", {})):
+            for lab, value in block.items():
+                coeffs[int(lab[1:])] = value
         y = np.zeros_like(self.z)
-        for j, c in coeffs.items():
-            y = y + c * self.z**j
+        for j, coeff in coeffs.items():
+            y = y + coeff * self.z**j
         if "temperature_drift" in effects and self.dT is not None:
             y = y + p["temperature_drift"].get("arcsec_per_k", 0.0) * self.dT
         return y.reshape(-1, 1)
 
     def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
-        occ = sum(1 for b in fit.blocks if b.effect == effect) - 1
+        occ = sum(1 for block in fit.blocks if block.effect == effect) - 1
         sl = fit.block_slice(effect, occ)
         blk = fit.block(effect, occ)
-        v = float(fit.values[sl][0])
-        u = float(np.sqrt(max(fit.covariance[sl, sl][0, 0], 0.0)))
+        value = float(fit.values[sl][0])
+        uncertainty = float(np.sqrt(max(fit.covariance[sl, sl][0, 0], 0.0)))
         if effect == "temperature_drift":
             return {
                 "arcsec_per_k": {
-                    "value": v,
-                    "uncertainty": u,
+                    "value": value,
+                    "uncertainty": uncertainty,
                     "unit": "arcsec/K",
                     "what": "zero coefficient of the angle read from the output",
                 }
@@ -113,14 +113,14 @@ class ScalePoly(Family):
         peak = float(np.max(dep))
         out = {
             f"c{j}_arcsec_per_count{j}": {
-                "value": v / self.half**j,
-                "uncertainty": u / self.half**j,
+                "value": value / self.half**j,
+                "uncertainty": uncertainty / self.half**j,
                 "unit": f"arcsec/count^{j}",
                 "what": f"coefficient of (output - {self.mid:g})^{j} in the angle",
             },
             "peak_departure_arcsec": {
-                "value": abs(v) * peak,
-                "uncertainty": u * peak,
+                "value": abs(value) * peak,
+                "uncertainty": uncertainty * peak,
                 "unit": "arcsec",
                 "what": "largest departure of this term from a straight line over the data",
             },
@@ -128,10 +128,10 @@ class ScalePoly(Family):
         }
         if j == 2:
             c1 = fit.values[fit.block_slice("baseline")][1] / self.half
-            k = -v / self.half**2 / c1**3 if c1 else 0.0
+            k = -value / self.half**2 / c1**3 if c1 else 0.0
             out["counts_per_arcsec2"] = {
                 "value": float(k),
-                "uncertainty": float(abs(k) * u / abs(v)) if v else 0.0,
+                "uncertainty": float(abs(k) * uncertainty / abs(value)) if value else 0.0,
                 "unit": "count/arcsec^2",
                 "what": "the same term in the registry's form, output += k·angle² "
                 "(first-order inverse)",
@@ -140,11 +140,11 @@ class ScalePoly(Family):
 
     def baseline_line(self, fit: Fit) -> dict[str, Any]:
         c0, c1 = fit.values[fit.block_slice("baseline")]
-        u = np.sqrt(np.maximum(np.diag(fit.covariance[:2, :2]), 0.0))
+        std = np.sqrt(np.maximum(np.diag(fit.covariance[:2, :2]), 0.0))
         return {
             "arcsec_per_count": {
                 "value": float(c1 / self.half),
-                "uncertainty": float(u[1] / self.half),
+                "uncertainty": float(std[1] / self.half),
                 "unit": "arcsec/count",
                 "what": "measurement equivalent (slope)",
             },
@@ -162,11 +162,11 @@ def scale_structure(
     t_s: NDArray[np.float64] | None,
     alpha: float = 0.01,
 ) -> list[stats.StructureTest]:
-    r = resid[:, 0]
+    resid_angle = resid[:, 0]
     tests: list[stats.StructureTest] = []
     z = (reading - reading.mean()) / max(float(np.ptp(reading)), 1e-9)
-    if r.size >= 6:
-        base = r - np.polyval(np.polyfit(z, r, 1), z)
+    if resid_angle.size >= 6:
+        base = resid_angle - np.polyval(np.polyfit(z, resid_angle, 1), z)
         tests.append(
             stats.shape_test(
                 base,
@@ -178,55 +178,54 @@ def scale_structure(
             )
         )
     if temp_c is not None and np.ptp(temp_c) >= TEMP_MIN_SPAN_K:
-        t = stats.correlation_test(r, temp_c, "angle", "temp_c", "temperature", "K", "arcsec")
-        if t:
-            tests.append(t)
-    order = t_s if t_s is not None else np.arange(r.size, dtype=float)
-    t = stats.runs_test(r, order, "angle")
-    if t:
-        tests.append(t)
+        test = stats.correlation_test(
+            resid_angle, temp_c, "angle", "temp_c", "temperature", "K", "arcsec"
+        )
+        if test:
+            tests.append(test)
+    order = t_s if t_s is not None else np.arange(resid_angle.size, dtype=float)
+    test = stats.runs_test(resid_angle, order, "angle")
+    if test:
+        tests.append(test)
     return stats.mark_significant(tests, alpha)
 
 
-def analyse_scale(
-    columns: Mapping[str, NDArray[np.float64]],
-    noise_sigma: ArrayLike | None = None,
-    alpha: float = DEFAULT_ALPHA,
-) -> tuple[Result, ScalePoly]:
+def _reference_arcsec(columns: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
+    """The reference angle in arcsec, whichever of the two units the data give it in."""
     if "ref_arcsec" in columns:
-        ref = np.asarray(columns["ref_arcsec"], dtype=float)
-    elif "ref_deg" in columns:
-        ref = np.asarray(columns["ref_deg"], dtype=float) * 3600.0
-    else:
-        raise InputError("missing required column 'ref_arcsec' or 'ref_deg' for kind 'scale'")
-    reading = np.asarray(columns["reading"], dtype=float)
-    if np.unique(reading).size < 3:
-        raise InputError(
-            f"{np.unique(reading).size} distinct output values: a line and a test need at least 3"
-        )
-    temp = None if "temp_c" not in columns else np.asarray(columns["temp_c"], dtype=float)
-    t_s = None if "t_s" not in columns else np.asarray(columns["t_s"], dtype=float)
+        return np.asarray(columns["ref_arcsec"], dtype=float)
+    if "ref_deg" in columns:
+        return np.asarray(columns["ref_deg"], dtype=float) * 3600.0
+    raise InputError("missing required column 'ref_arcsec' or 'ref_deg' for kind 'scale'")
+
+
+def _scale_noise(
+    columns: Mapping[str, NDArray[np.float64]],
+    reading: NDArray[np.float64],
+    ref: NDArray[np.float64],
+    noise_sigma: ArrayLike | None,
+) -> noise_mod.NoiseLevel | None:
+    """Repeated points first, then the stated noise level; None means 'from the final
+    residual'."""
     noise = None
     if "point" in columns:
         # the scatter of repeated points, in the residual's terms: reference minus the line through
         # the outputs
         slope, icpt = np.polyfit(reading, ref, 1)
-        q = ref - (slope * reading + icpt)
+        scatter = ref - (slope * reading + icpt)
         noise = noise_mod.from_repeats(
-            q.reshape(-1, 1), np.asarray(columns["point"]).reshape(-1, 1)
+            scatter.reshape(-1, 1), np.asarray(columns["point"]).reshape(-1, 1)
         )
     if noise is None and noise_sigma is not None:
-        s = float(np.atleast_1d(noise_sigma)[0])
-        if not s > 0:
-            raise InputError(f"noise level must be positive, got {s}")
-        noise = noise_mod.from_specification([s])
-    fam = ScalePoly(
-        reading,
-        ref,
-        temp,
-        1.0 if noise is None or noise.sigma is None else 1.0 / float(noise.sigma[0]),
-    )
-    fam.noise_known = noise is not None
+        sigma = float(np.atleast_1d(noise_sigma)[0])
+        if not sigma > 0:
+            raise InputError(f"noise level must be positive, got {sigma}")
+        noise = noise_mod.from_specification([sigma])
+    return noise
+
+
+def _scale_skips(temp: NDArray[np.float64] | None) -> dict[str, str]:
+    """Candidates the data cannot support at all, with the reason in the lab's words."""
     skips = {}
     if temp is None:
         skips["temperature_drift"] = "no temp_c column"
@@ -235,10 +234,34 @@ def analyse_scale(
             f"temperature constant within {np.ptp(temp):.3g} K: a temperature coefficient "
             "cannot be told from the zero"
         )
+    return skips
+
+
+def analyse_scale(
+    columns: Mapping[str, NDArray[np.float64]],
+    noise_sigma: ArrayLike | None = None,
+    alpha: float = DEFAULT_ALPHA,
+) -> tuple[Result, ScalePoly]:
+    ref = _reference_arcsec(columns)
+    reading = np.asarray(columns["reading"], dtype=float)
+    if np.unique(reading).size < 3:
+        raise InputError(
+            f"{np.unique(reading).size} distinct output values: a line and a test need at least 3"
+        )
+    temp = None if "temp_c" not in columns else np.asarray(columns["temp_c"], dtype=float)
+    t_s = None if "t_s" not in columns else np.asarray(columns["t_s"], dtype=float)
+    noise = _scale_noise(columns, reading, ref, noise_sigma)
+    fam = ScalePoly(
+        reading,
+        ref,
+        temp,
+        1.0 if noise is None or noise.sigma is None else 1.0 / float(noise.sigma[0]),
+    )
+    fam.noise_known = noise is not None
     res = find_missing_effects(
         fam,
         CANDIDATES,
-        skips,
+        _scale_skips(temp),
         noise or noise_mod.NoiseLevel(None, "final residual", np.inf, ""),
         lambda r: scale_structure(reading, r, temp, t_s),
         alpha=alpha,
@@ -246,7 +269,7 @@ def analyse_scale(
         max_steps=MAX_DEGREE,
     )
     res.extra["baseline_fit"] = fam.baseline_line(res.fits[0])
-    deg = 1 + sum(1 for s in res.steps if s.effect == "sensor_nonlinearity")
+    deg = 1 + sum(1 for step in res.steps if step.effect == "sensor_nonlinearity")
     res.extra["supported_degree"] = deg
     res.extra["supported_model"] = f"poly{deg}"
     return res, fam

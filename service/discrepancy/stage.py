@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -20,6 +20,10 @@ from service.discrepancy.workflow import DEFAULT_ALPHA, Result, find_missing_eff
 from service.errors import InputError
 from service.physics.stage import ASSUMED_BENCH_SOURCE, StageBench
 
+if TYPE_CHECKING:
+    from service.discrepancy.stage_kinematic_baseline import StageKinematic
+    from service.discrepancy.stage_linear_baseline import StageLinear
+
 
 def stage_noise(
     data: StageData, spec_sigma: ArrayLike | noise_mod.NoiseLevel | None = None
@@ -33,19 +37,19 @@ def stage_noise(
         stated = None
     if data.point is not None:
         keys = [data.point]
-        for d in (data.dir_x, data.dir_y):
-            if d is not None:
-                keys.append(d)
-        n = noise_mod.from_repeats(data.observed, np.column_stack(keys))
-        if n is not None:
-            return n
+        for direction in (data.dir_x, data.dir_y):
+            if direction is not None:
+                keys.append(direction)
+        repeats = noise_mod.from_repeats(data.observed, np.column_stack(keys))
+        if repeats is not None:
+            return repeats
     if spec_sigma is not None:
-        s = np.broadcast_to(np.asarray(spec_sigma, dtype=float), (2,)).copy()
-        if np.any(s <= 0) or not np.all(np.isfinite(s)):
-            raise InputError(f"noise level must be positive, got {s.tolist()}")
+        sigma_per_axis = np.broadcast_to(np.asarray(spec_sigma, dtype=float), (2,)).copy()
+        if np.any(sigma_per_axis <= 0) or not np.all(np.isfinite(sigma_per_axis)):
+            raise InputError(f"noise level must be positive, got {sigma_per_axis.tolist()}")
         if stated is not None:
-            return noise_mod.NoiseLevel(s, stated.source, stated.df, stated.detail)
-        return noise_mod.from_specification(s)
+            return noise_mod.NoiseLevel(sigma_per_axis, stated.source, stated.df, stated.detail)
+        return noise_mod.from_specification(sigma_per_axis)
     return None
 
 
@@ -71,19 +75,9 @@ def _explain_drop(data: StageData) -> Callable[[str, str], str | None]:
     return explain
 
 
-def analyse_stage(
-    columns: Mapping[str, NDArray[np.float64]],
-    sensor: str = "ref",
-    baseline: str = "linear",
-    noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None,
-    bench: StageBench | None = None,
-    alpha: float = DEFAULT_ALPHA,
-    candidates: tuple[str, ...] | None = None,
-    bench_source: str | None = None,
-) -> tuple[Result, Family]:
-    """Run the workflow on stage columns; returns the result and the fitted family (for the
-    report)."""
-    data = StageData.from_columns(columns, sensor, bench)
+def _check_analysable(data: StageData, bench: StageBench | None) -> None:
+    """Refuse data the workflow cannot judge: commands of another bench than the assumed one, or
+    too few rows for a baseline and a test."""
     if (
         bench is None
         and (mismatch := data.bench.pulse_mismatch(data.cmd_x_deg, data.cmd_y_deg)) is not None
@@ -98,21 +92,42 @@ def analyse_stage(
             f"{len(data)} rows: the discrepancy workflow needs at least 6 points for a baseline "
             "and a test"
         )
-    noise = stage_noise(data, noise_sigma)
-    weights = np.ones(2) if noise is None or noise.sigma is None else 1.0 / noise.sigma
-    fam: Family
+
+
+def _baseline_family(
+    baseline: str, data: StageData, weights: NDArray[np.float64]
+) -> StageLinear | StageKinematic:
+    """The model family the named baseline starts from (imported on demand: each is heavy)."""
     if baseline == "linear":
         from service.discrepancy.stage_linear_baseline import StageLinear
 
-        fam = StageLinear(data, weights)
-    elif baseline == "kinematic":
+        return StageLinear(data, weights)
+    if baseline == "kinematic":
         from service.discrepancy.stage_kinematic_baseline import StageKinematic
 
-        fam = StageKinematic(data, weights)
-    else:
-        raise InputError(f"unknown baseline {baseline!r} for kind 'stage' (linear or kinematic)")
+        return StageKinematic(data, weights)
+    raise InputError(f"unknown baseline {baseline!r} for kind 'stage' (linear or kinematic)")
+
+
+def analyse_stage(
+    columns: Mapping[str, NDArray[np.float64]],
+    sensor: str = "ref",
+    baseline: str = "linear",
+    noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None,
+    bench: StageBench | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    candidates: tuple[str, ...] | None = None,
+    bench_source: str | None = None,
+) -> tuple[Result, Family]:
+    """Run the workflow on stage columns; returns the result and the fitted family (for the
+    report)."""
+    data = StageData.from_columns(columns, sensor, bench)
+    _check_analysable(data, bench)
+    noise = stage_noise(data, noise_sigma)
+    weights = np.ones(2) if noise is None or noise.sigma is None else 1.0 / noise.sigma
+    fam = _baseline_family(baseline, data, weights)
     fam.noise_known = noise is not None
-    cands = tuple(c for c in (candidates or fam.candidates) if c in fam.candidates)
+    cands = tuple(effect for effect in (candidates or fam.candidates) if effect in fam.candidates)
     skips = common_skips(data)
     res = find_missing_effects(
         fam,

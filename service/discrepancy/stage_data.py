@@ -90,8 +90,8 @@ class StageData:
         return self.dir_x if axis == "x" else self.dir_y
 
     def both_directions(self, axis: str) -> bool:
-        d = self.dir(axis)
-        return d is not None and bool(np.any(d > 0)) and bool(np.any(d < 0))
+        direction = self.dir(axis)
+        return direction is not None and bool(np.any(direction > 0)) and bool(np.any(direction < 0))
 
     def temp_varies(self) -> bool:
         return self.temp_c is not None and float(np.ptp(self.temp_c)) >= TEMP_MIN_SPAN_K
@@ -103,17 +103,20 @@ class StageData:
         """Phase of the worm (rad) at each point and the worm period in output degrees."""
         qx, qy = self.quantised()
         period = self.bench.worm_period_x_deg if axis == "x" else self.bench.worm_period_y_deg
-        c = qx if axis == "x" else qy
-        return 2.0 * np.pi * c / period, period
+        stage_deg = qx if axis == "x" else qy
+        return 2.0 * np.pi * stage_deg / period, period
 
 
 def sensor_param_names(sensor: str) -> dict[str, tuple[str, ...]]:
     """Registry parameter names of the sensor-side candidates, for the sensor being modelled."""
-    s = sensor
     return {
-        "sensor_nonlinearity": (f"{s}_x_per_deg", f"{s}_y_per_deg"),
-        "temperature_drift": (f"{s}_x_deg_per_k", f"{s}_y_deg_per_k", f"{s}_scale_per_k"),
-        "time_drift": (f"{s}_x_deg_per_h", f"{s}_y_deg_per_h"),
+        "sensor_nonlinearity": (f"{sensor}_x_per_deg", f"{sensor}_y_per_deg"),
+        "temperature_drift": (
+            f"{sensor}_x_deg_per_k",
+            f"{sensor}_y_deg_per_k",
+            f"{sensor}_scale_per_k",
+        ),
+        "time_drift": (f"{sensor}_x_deg_per_h", f"{sensor}_y_deg_per_h"),
     }
 
 
@@ -183,58 +186,109 @@ def stage_structure(
 ) -> list[stats.StructureTest]:
     """Residual structure tests per axis against every covariate the data carry."""
     x, y = data.cmd_x_deg, data.cmd_y_deg
-    s = max(float(np.max(np.abs(np.concatenate([x, y])))), 1e-9)
-    u, v = x / s, y / s
-    terms = np.column_stack([u * u, u * v, v * v, u**3, u * u * v, u * v * v, v**3])
+    scale = max(float(np.max(np.abs(np.concatenate([x, y])))), 1e-9)
+    scaled_x, scaled_y = x / scale, y / scale
+    terms = np.column_stack(
+        [
+            scaled_x * scaled_x,
+            scaled_x * scaled_y,
+            scaled_y * scaled_y,
+            scaled_x**3,
+            scaled_x * scaled_x * scaled_y,
+            scaled_x * scaled_y * scaled_y,
+            scaled_y**3,
+        ]
+    )
     tests: list[stats.StructureTest] = []
-    for a, name in enumerate(("x", "y")):
-        r = resid[:, a]
-        if (
-            len(data) >= 12
-            and np.unique(np.round(np.column_stack([x, y]), 6), axis=0).shape[0] >= 10
-        ):
-            # the linear part is what any baseline fits; test the shape beyond it
-            base_r = (
-                r
-                - np.column_stack([np.ones_like(u), u, v])
-                @ np.linalg.lstsq(np.column_stack([np.ones_like(u), u, v]), r, rcond=None)[0]
-            )
-            tests.append(
-                stats.shape_test(base_r, list(_SHAPE_TERMS), terms, name, "deg", _SHAPE_WORDS)
-            )
-        for st in ("x", "y"):
-            d = data.dir(st)
-            if d is not None and data.both_directions(st):
-                t = stats.direction_test(r, d, name, st, "deg")
-                if t:
-                    tests.append(t)
-        if data.temp_c is not None and data.temp_varies():
-            t = stats.correlation_test(r, data.temp_c, name, "temp_c", "temperature", "K", "deg")
-            if t:
-                tests.append(t)
-        if data.t_s is not None and data.time_varies():
-            t = stats.correlation_test(r, data.t_s / 3600.0, name, "t_s", "time", "h", "deg")
-            if t:
-                tests.append(t)
-            t = stats.runs_test(r, data.t_s, name)
-            if t:
-                tests.append(t)
-        for st in ("x", "y"):
-            ph, period = data.worm_phase(st)
-            t = stats.periodic_test(r, ph, name, st, period, "deg")
-            if t:
-                tests.append(t)
+    for axis, name in enumerate(("x", "y")):
+        resid_axis = resid[:, axis]
+        if _shape_testable(data):
+            tests.append(_shape_beyond_linear(resid_axis, scaled_x, scaled_y, terms, name))
+        tests += _found(
+            *_direction_tests(data, resid_axis, name),
+            *_drift_tests(data, resid_axis, name),
+            *_worm_tests(data, resid_axis, name),
+        )
     return stats.mark_significant(tests, alpha)
+
+
+def _shape_testable(data: StageData) -> bool:
+    """Enough rows on enough distinct grid points for the cubic shape terms to mean something."""
+    x, y = data.cmd_x_deg, data.cmd_y_deg
+    return (
+        len(data) >= 12 and np.unique(np.round(np.column_stack([x, y]), 6), axis=0).shape[0] >= 10
+    )
+
+
+def _shape_beyond_linear(
+    resid_axis: NDArray[np.float64],
+    scaled_x: NDArray[np.float64],
+    scaled_y: NDArray[np.float64],
+    terms: NDArray[np.float64],
+    name: str,
+) -> stats.StructureTest:
+    """The shape test on what the residual has beyond a plane: the linear part is what any
+    baseline fits."""
+    plane = np.column_stack([np.ones_like(scaled_x), scaled_x, scaled_y])
+    base_resid = resid_axis - plane @ np.linalg.lstsq(plane, resid_axis, rcond=None)[0]
+    return stats.shape_test(base_resid, list(_SHAPE_TERMS), terms, name, "deg", _SHAPE_WORDS)
+
+
+def _direction_tests(
+    data: StageData, resid_axis: NDArray[np.float64], name: str
+) -> list[stats.StructureTest | None]:
+    """Lost motion: a step between the two approach directions, for each stage that has both."""
+    tests: list[stats.StructureTest | None] = []
+    for stage in ("x", "y"):
+        direction = data.dir(stage)
+        if direction is not None and data.both_directions(stage):
+            tests.append(stats.direction_test(resid_axis, direction, name, stage, "deg"))
+    return tests
+
+
+def _drift_tests(
+    data: StageData, resid_axis: NDArray[np.float64], name: str
+) -> list[stats.StructureTest | None]:
+    """Temperature and time drift: a trend with whichever of the two the data record and vary."""
+    tests: list[stats.StructureTest | None] = []
+    if data.temp_c is not None and data.temp_varies():
+        tests.append(
+            stats.correlation_test(
+                resid_axis, data.temp_c, name, "temp_c", "temperature", "K", "deg"
+            )
+        )
+    if data.t_s is not None and data.time_varies():
+        tests.append(
+            stats.correlation_test(resid_axis, data.t_s / 3600.0, name, "t_s", "time", "h", "deg")
+        )
+        tests.append(stats.runs_test(resid_axis, data.t_s, name))
+    return tests
+
+
+def _worm_tests(
+    data: StageData, resid_axis: NDArray[np.float64], name: str
+) -> list[stats.StructureTest | None]:
+    """Periodic error: an oscillation at each stage's worm period."""
+    tests: list[stats.StructureTest | None] = []
+    for stage in ("x", "y"):
+        phase, period = data.worm_phase(stage)
+        tests.append(stats.periodic_test(resid_axis, phase, name, stage, period, "deg"))
+    return tests
+
+
+def _found(*tests: stats.StructureTest | None) -> list[stats.StructureTest]:
+    """The tests that could be run (a test returns None when the data cannot support it)."""
+    return [test for test in tests if test]
 
 
 def largest_residuals(data: StageData, resid: NDArray[np.float64], n: int = 3) -> list[str]:
     """Where the largest disagreements sit on the grid, per axis (a sentence each)."""
     out = []
-    for a, name in enumerate(("x", "y")):
-        idx = np.argsort(-np.abs(resid[:, a]))[:n]
+    for axis, name in enumerate(("x", "y")):
+        idx = np.argsort(-np.abs(resid[:, axis]))[:n]
         where = ", ".join(f"({data.cmd_x_deg[i]:g}, {data.cmd_y_deg[i]:g})" for i in idx)
         out.append(
-            f"largest {name} residuals ({', '.join(f'{resid[i, a]:+.3g}' for i in idx)} deg) at "
+            f"largest {name} residuals ({', '.join(f'{resid[i, axis]:+.3g}' for i in idx)} deg) at "
             f"stage (θx, θy) = {where} deg"
         )
     return out

@@ -117,17 +117,17 @@ class StageKinematic(Family):
     def __init__(self, data: StageData, weights: NDArray[np.float64]):
         super().__init__(data.observed, weights)
         self.data = data
-        b = data.bench
+        bench = data.bench
         flip = detect_flip(data)
-        temp_ref = float(np.mean(data.temp_c)) if data.temp_c is not None else b.temp_ref_c
+        temp_ref = float(np.mean(data.temp_c)) if data.temp_c is not None else bench.temp_ref_c
         self.bench = dataclasses.replace(
-            b, travel_deg=max(b.travel_deg, 90.0), meas_flip=flip, temp_ref_c=temp_ref
+            bench, travel_deg=max(bench.travel_deg, 90.0), meas_flip=flip, temp_ref_c=temp_ref
         )
         cols = {"stage_x_deg": data.cmd_x_deg, "stage_y_deg": data.cmd_y_deg}
-        for c in ("dir_x", "dir_y", "temp_c"):
-            v = getattr(data, c)
-            if v is not None:
-                cols[c] = v
+        for column in ("dir_x", "dir_y", "temp_c"):
+            values = getattr(data, column)
+            if values is not None:
+                cols[column] = values
         if data.t_s is not None:
             cols["t_s"] = data.t_s - float(data.t_s[0])
         self.pts = StagePoints.from_columns(cols)
@@ -139,7 +139,7 @@ class StageKinematic(Family):
             "kinematic": {
                 "meas_flip": flip,
                 "temp_ref_c": temp_ref,
-                "free_geometry": [f"{e}.{p}" for e, p in self.geometry_keys],
+                "free_geometry": [f"{effect}.{param}" for effect, param in self.geometry_keys],
             }
         }
 
@@ -148,17 +148,17 @@ class StageKinematic(Family):
         out = [
             Block(
                 "baseline",
-                tuple(f"{e}.{p}" for e, p in keys),
-                tuple(STAGE_EFFECTS[e].param(p).unit for e, p in keys),
+                tuple(f"{effect}.{param}" for effect, param in keys),
+                tuple(STAGE_EFFECTS[effect].param(param).unit for effect, param in keys),
                 tuple(typical_scale(k) for k in keys),
                 (0.0,) * len(keys),
             )
         ]
-        for e in effects:
-            if (block := candidate_block(e, self.names)) is not None:
+        for effect in effects:
+            if (block := candidate_block(effect, self.names)) is not None:
                 out.append(block)
             else:
-                raise KeyError(f"the kinematic baseline has no candidate term for {e!r}")
+                raise KeyError(f"the kinematic baseline has no candidate term for {effect!r}")
         return out
 
     def effects_mapping(
@@ -166,20 +166,21 @@ class StageKinematic(Family):
     ) -> dict[str, dict[str, float]]:
         """The registry's effect mapping (what a scenario would say) for these parameter values."""
         eff: dict[str, dict[str, float]] = {}
-        for lab, v in p.get("baseline", {}).items():
-            e, par = lab.split(".", 1)
-            eff.setdefault(e, {})[par] = v
-        for e in effects:
-            q = p.get(e, {})
-            if e == "periodic_error":
-                d = {}
+        for lab, value in p.get("baseline", {}).items():
+            effect, par = lab.split(".", 1)
+            eff.setdefault(effect, {})[par] = value
+        for effect in effects:
+            given = p.get(effect, {})
+            if effect == "periodic_error":
+                periodic = {}
                 for ax in ("x", "y"):
-                    a, b = q.get(f"{ax}_sin_deg", 0.0), q.get(f"{ax}_cos_deg", 0.0)
-                    d[f"{ax}_amp_deg"] = float(np.hypot(a, b))
-                    d[f"{ax}_phase_deg"] = float(np.degrees(np.arctan2(b, a)))
-                eff[e] = d
+                    sin_deg = given.get(f"{ax}_sin_deg", 0.0)
+                    cos_deg = given.get(f"{ax}_cos_deg", 0.0)
+                    periodic[f"{ax}_amp_deg"] = float(np.hypot(sin_deg, cos_deg))
+                    periodic[f"{ax}_phase_deg"] = float(np.degrees(np.arctan2(cos_deg, sin_deg)))
+                eff[effect] = periodic
             else:
-                eff[e] = dict(q)
+                eff[effect] = dict(given)
         return eff
 
     def predict_params(

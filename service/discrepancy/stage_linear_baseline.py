@@ -91,21 +91,21 @@ class StageLinear(Family):
                 (1, 0, 0, 0, 1, 0, 0, 0),
             )
         ]
-        for e in effects:
-            if e == "offaxis_coupling":
+        for effect in effects:
+            if effect == "offaxis_coupling":
                 out.append(
                     Block(
-                        e,
+                        effect,
                         ("kappa", "level_x_deg", "level_y_deg"),
                         ("1", "deg", "deg"),
                         (1.0, 0.1, 0.1),
                         (1.0, 0.0, 0.0),
                     )
                 )
-            elif (block := candidate_block(e, self.names)) is not None:
+            elif (block := candidate_block(effect, self.names)) is not None:
                 out.append(block)
             else:
-                raise KeyError(f"the linear baseline has no term for {e!r}")
+                raise KeyError(f"the linear baseline has no term for {effect!r}")
         return out
 
     # -- the model ---------------------------------------------------------------------------------
@@ -114,24 +114,24 @@ class StageLinear(Family):
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Angles the stages reach (deg): actuator effects before the geometry and the map."""
         tx, ty = self.qx.copy(), self.qy.copy()
-        d = self.data
+        data = self.data
         if "backlash" in effects:
-            b = p["backlash"]
-            if d.dir_x is not None:
-                tx = tx - d.dir_x * b.get("x_deg", 0.0) / 2.0
-            if d.dir_y is not None:
-                ty = ty - d.dir_y * b.get("y_deg", 0.0) / 2.0
+            backlash = p["backlash"]
+            if data.dir_x is not None:
+                tx = tx - data.dir_x * backlash.get("x_deg", 0.0) / 2.0
+            if data.dir_y is not None:
+                ty = ty - data.dir_y * backlash.get("y_deg", 0.0) / 2.0
         if "periodic_error" in effects:
-            q = p["periodic_error"]
+            periodic = p["periodic_error"]
             tx = (
                 tx
-                + q.get("x_sin_deg", 0.0) * np.sin(self.wx)
-                + q.get("x_cos_deg", 0.0) * np.cos(self.wx)
+                + periodic.get("x_sin_deg", 0.0) * np.sin(self.wx)
+                + periodic.get("x_cos_deg", 0.0) * np.cos(self.wx)
             )
             ty = (
                 ty
-                + q.get("y_sin_deg", 0.0) * np.sin(self.wy)
-                + q.get("y_cos_deg", 0.0) * np.cos(self.wy)
+                + periodic.get("y_sin_deg", 0.0) * np.sin(self.wy)
+                + periodic.get("y_cos_deg", 0.0) * np.cos(self.wy)
             )
         return tx, ty
 
@@ -146,39 +146,39 @@ class StageLinear(Family):
         modelled."""
         if "offaxis_coupling" not in effects:
             return tx, ty
-        c = p["offaxis_coupling"]
-        xa = tx + c.get("level_x_deg", 0.0)
-        yb = ty + c.get("level_y_deg", 0.0)
-        return xa - c.get("kappa", 1.0) * offaxis_error_deg(xa, yb), yb
+        coupling = p["offaxis_coupling"]
+        xa = tx + coupling.get("level_x_deg", 0.0)
+        yb = ty + coupling.get("level_y_deg", 0.0)
+        return xa - coupling.get("kappa", 1.0) * offaxis_error_deg(xa, yb), yb
 
     def predict_params(
         self, effects: tuple[str, ...], p: dict[str, dict[str, float]]
     ) -> NDArray[np.float64]:
         tx, ty = self.stage_angles(effects, p)
-        u, v = self.map_inputs(effects, p, tx, ty)
-        h = p["baseline"]
-        un, vn = u / self.s, v / self.s
-        w = h["h31"] * un + h["h32"] * vn + 1.0
-        w = np.where(np.abs(w) < 1e-9, 1e-9, w)
-        X0 = self.s * (h["h11"] * un + h["h12"] * vn + h["h13"]) / w
-        Y0 = self.s * (h["h21"] * un + h["h22"] * vn + h["h23"]) / w
-        X, Y = X0.copy(), Y0.copy()
+        map_x, map_y = self.map_inputs(effects, p, tx, ty)
+        homography = p["baseline"]
+        un, vn = map_x / self.s, map_y / self.s
+        denom = homography["h31"] * un + homography["h32"] * vn + 1.0
+        denom = np.where(np.abs(denom) < 1e-9, 1e-9, denom)
+        X0 = self.s * (homography["h11"] * un + homography["h12"] * vn + homography["h13"]) / denom
+        Y0 = self.s * (homography["h21"] * un + homography["h22"] * vn + homography["h23"]) / denom
+        pred_x, pred_y = X0.copy(), Y0.copy()
         if "sensor_nonlinearity" in effects:
-            q = p["sensor_nonlinearity"]
+            coeffs = p["sensor_nonlinearity"]
             nx, ny = self.names["sensor_nonlinearity"]
-            X += q.get(nx, 0.0) * X0**2
-            Y += q.get(ny, 0.0) * Y0**2
+            pred_x += coeffs.get(nx, 0.0) * X0**2
+            pred_y += coeffs.get(ny, 0.0) * Y0**2
         if "temperature_drift" in effects and self.dT is not None:
-            q = p["temperature_drift"]
+            coeffs = p["temperature_drift"]
             zx, zy, sc = self.names["temperature_drift"]
-            X += q.get(zx, 0.0) * self.dT + q.get(sc, 0.0) * X0 * self.dT
-            Y += q.get(zy, 0.0) * self.dT + q.get(sc, 0.0) * Y0 * self.dT
+            pred_x += coeffs.get(zx, 0.0) * self.dT + coeffs.get(sc, 0.0) * X0 * self.dT
+            pred_y += coeffs.get(zy, 0.0) * self.dT + coeffs.get(sc, 0.0) * Y0 * self.dT
         if "time_drift" in effects and self.t_h is not None:
-            q = p["time_drift"]
+            coeffs = p["time_drift"]
             rx, ry = self.names["time_drift"]
-            X += q.get(rx, 0.0) * self.t_h
-            Y += q.get(ry, 0.0) * self.t_h
-        return np.column_stack([X, Y])
+            pred_x += coeffs.get(rx, 0.0) * self.t_h
+            pred_y += coeffs.get(ry, 0.0) * self.t_h
+        return np.column_stack([pred_x, pred_y])
 
     def initial(
         self, effects: tuple[str, ...], blocks: list[Block], start: Fit | None
@@ -190,18 +190,18 @@ class StageLinear(Family):
             "offaxis_coupling" in start.effects
         )
         if changed:
-            p = self.unpack(blocks, x)
-            tx, ty = self.stage_angles(effects, p)
-            u, v = self.map_inputs(effects, p, tx, ty)
-            H = fit_projective(
-                u / self.s,
-                v / self.s,
+            params = self.unpack(blocks, x)
+            tx, ty = self.stage_angles(effects, params)
+            map_x, map_y = self.map_inputs(effects, params, tx, ty)
+            homography = fit_projective(
+                map_x / self.s,
+                map_y / self.s,
                 self.observed[:, 0] / self.s,
                 self.observed[:, 1] / self.s,
                 refine=False,
                 what=f"{self.data.sensor} readings against stage angles",
             )
-            x[:8] = H.ravel()[:8]
+            x[:8] = homography.ravel()[:8]
         return x
 
     # -- reporting
@@ -211,10 +211,10 @@ class StageLinear(Family):
 
 
 def _entry(value: float, std: float, unit: str, doc: str | None = None) -> dict[str, Any]:
-    d = {"value": float(value), "uncertainty": float(std), "unit": unit}
+    entry = {"value": float(value), "uncertainty": float(std), "unit": unit}
     if doc:
-        d["what"] = doc
-    return d
+        entry["what"] = doc
+    return entry
 
 
 def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
@@ -223,44 +223,70 @@ def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
     blk = fit.block(effect)
     vals = fit.values[sl]
     cov = fit.covariance[sl, sl]
+    if effect == "periodic_error":
+        return _periodic_magnitude(fam, blk, vals, cov)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     out: dict[str, Any] = {}
-    if effect == "periodic_error":
-        for ax in ("x", "y"):
-            ls, lc = f"{ax}_sin_deg", f"{ax}_cos_deg"
-            if ls not in blk.labels or lc not in blk.labels:
-                # one of the pair held (the points sample too few phases of the worm): no amplitude
-                continue
-            i, j = blk.labels.index(ls), blk.labels.index(lc)
-            a, b = vals[i], vals[j]
-            amp = float(np.hypot(a, b))
-            g = np.array([a, b]) / amp if amp > 0 else np.array([1.0, 0.0])
-            c2 = cov[np.ix_([i, j], [i, j])]
-            u_amp = float(np.sqrt(max(float(g @ c2 @ g), 0.0)))
-            gp = np.array([-b, a]) / amp**2 if amp > 0 else np.zeros(2)
-            u_ph = float(np.degrees(np.sqrt(max(float(gp @ c2 @ gp), 0.0)))) if amp > 0 else 180.0
-            period = (
-                fam.data.bench.worm_period_x_deg if ax == "x" else fam.data.bench.worm_period_y_deg
-            )
-            out[f"{ax}_amp_deg"] = _entry(
-                amp, u_amp, "deg", f"amplitude at the worm period {period:g} deg"
-            )
-            out[f"{ax}_phase_deg"] = _entry(float(np.degrees(np.arctan2(b, a))), u_ph, "deg")
-        return out
-    for lab, unit, v, s in zip(blk.labels, blk.units, vals, std):
-        out[lab] = _entry(v, s, unit)
+    for lab, unit, value, sigma in zip(blk.labels, blk.units, vals, std):
+        out[lab] = _entry(value, sigma, unit)
     if effect == "offaxis_coupling" and "kappa" in out:
-        out["kappa"]["what"] = "1 = the stacked-stage geometry of seed 000 eq. (9)"
-        x, y = fam.data.cmd_x_deg, fam.data.cmd_y_deg
-        err = -offaxis_error_deg(x, y) * out["kappa"]["value"]
-        out["peak_offaxis_error_deg"] = _entry(
-            float(np.max(np.abs(err))),
-            float(
-                np.max(np.abs(err))
-                * out["kappa"]["uncertainty"]
-                / max(abs(out["kappa"]["value"]), 1e-12)
-            ),
-            "deg",
-            "largest off-axis error of the x reading over the grid (seed 000 eq. 10)",
-        )
+        _add_offaxis_peak(fam, out)
     return out
+
+
+def _periodic_magnitude(
+    fam: OnStageData, blk: Block, vals: NDArray[np.float64], cov: NDArray[np.float64]
+) -> dict[str, Any]:
+    """The worm's periodic error as the registry states it (amplitude and phase per stage), not as
+    the sine and cosine terms it is fitted by."""
+    out: dict[str, Any] = {}
+    for ax in ("x", "y"):
+        ls, lc = f"{ax}_sin_deg", f"{ax}_cos_deg"
+        if ls not in blk.labels or lc not in blk.labels:
+            # one of the pair held (the points sample too few phases of the worm): no amplitude
+            continue
+        i, j = blk.labels.index(ls), blk.labels.index(lc)
+        amp, u_amp, phase_deg, u_ph = _amplitude_phase(
+            vals[i], vals[j], cov[np.ix_([i, j], [i, j])]
+        )
+        period = fam.data.bench.worm_period_x_deg if ax == "x" else fam.data.bench.worm_period_y_deg
+        out[f"{ax}_amp_deg"] = _entry(
+            amp, u_amp, "deg", f"amplitude at the worm period {period:g} deg"
+        )
+        out[f"{ax}_phase_deg"] = _entry(phase_deg, u_ph, "deg")
+    return out
+
+
+def _amplitude_phase(
+    sin_coef: float, cos_coef: float, c2: NDArray[np.float64]
+) -> tuple[float, float, float, float]:
+    """Amplitude and phase (deg) of a sine-cosine pair with their uncertainties, propagated from
+    the pair's covariance `c2` through the gradients (phase uncertainty 180 deg at zero
+    amplitude)."""
+    amp = float(np.hypot(sin_coef, cos_coef))
+    grad_amp = np.array([sin_coef, cos_coef]) / amp if amp > 0 else np.array([1.0, 0.0])
+    u_amp = float(np.sqrt(max(float(grad_amp @ c2 @ grad_amp), 0.0)))
+    grad_phase = np.array([-cos_coef, sin_coef]) / amp**2 if amp > 0 else np.zeros(2)
+    u_ph = (
+        float(np.degrees(np.sqrt(max(float(grad_phase @ c2 @ grad_phase), 0.0))))
+        if amp > 0
+        else 180.0
+    )
+    return amp, u_amp, float(np.degrees(np.arctan2(cos_coef, sin_coef))), u_ph
+
+
+def _add_offaxis_peak(fam: OnStageData, out: dict[str, Any]) -> None:
+    """Say what κ means and what it amounts to: the largest off-axis error over the grid."""
+    out["kappa"]["what"] = "1 = the stacked-stage geometry of seed 000 eq. (9)"
+    x, y = fam.data.cmd_x_deg, fam.data.cmd_y_deg
+    err = -offaxis_error_deg(x, y) * out["kappa"]["value"]
+    out["peak_offaxis_error_deg"] = _entry(
+        float(np.max(np.abs(err))),
+        float(
+            np.max(np.abs(err))
+            * out["kappa"]["uncertainty"]
+            / max(abs(out["kappa"]["value"]), 1e-12)
+        ),
+        "deg",
+        "largest off-axis error of the x reading over the grid (seed 000 eq. 10)",
+    )

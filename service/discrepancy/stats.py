@@ -57,11 +57,11 @@ def pearson(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, floa
     den = math.sqrt(float(xc @ xc) * float(yc @ yc))
     if den == 0 or n < 3:
         return 0.0, 1.0
-    r = max(-1.0, min(1.0, float(xc @ yc) / den))
-    if abs(r) >= 1.0:
-        return r, 0.0
-    t = r * math.sqrt((n - 2) / (1.0 - r * r))
-    return r, t_two_sided(t, n - 2)
+    rho = max(-1.0, min(1.0, float(xc @ yc) / den))
+    if abs(rho) >= 1.0:
+        return rho, 0.0
+    t = rho * math.sqrt((n - 2) / (1.0 - rho * rho))
+    return rho, t_two_sided(t, n - 2)
 
 
 @dataclass
@@ -129,10 +129,10 @@ def nested_test(
     variance and the residual variance of model 1, so structure that no candidate explains
     cannot be mistaken for the candidate that happens to absorb a bit of it.
     """
-    p = k1 - k0
+    df_added = k1 - k0
     dof1 = n_obs - k1
-    if p <= 0 or dof1 <= 0:
-        return Significance(0.0, max(p, 0), 0.0, max(dof1, 0), 1.0, alpha, 0.0, 0.0, "none")
+    if df_added <= 0 or dof1 <= 0:
+        return Significance(0.0, max(df_added, 0), 0.0, max(dof1, 0), 1.0, alpha, 0.0, 0.0, "none")
     resid_var = rss1 / dof1
     known = noise_var is not None
     if noise_var is not None and noise_var >= resid_var:
@@ -140,13 +140,13 @@ def nested_test(
     else:
         denom, df2, source = resid_var, float(dof1), "residual of the extended model"
     drop = max(rss0 - rss1, 0.0)
-    f = (drop / p) / denom if denom > 0 else math.inf
-    pv = chi2_sf(f * p, p) if math.isinf(df2) else f_sf(f, p, df2)
+    f_stat = (drop / df_added) / denom if denom > 0 else math.inf
+    pv = chi2_sf(f_stat * df_added, df_added) if math.isinf(df2) else f_sf(f_stat, df_added, df2)
     scale = noise_var if noise_var is not None else 1.0
     return Significance(
         drop,
-        p,
-        float(f),
+        df_added,
+        float(f_stat),
         float(df2),
         pv,
         alpha,
@@ -209,12 +209,17 @@ def _ols_f(
     rss1 = float(np.sum((r - X1 @ c1) ** 2))
     rank1 = np.linalg.matrix_rank(X1)
     rank0 = np.linalg.matrix_rank(X0)
-    p = rank1 - rank0
+    rank_added = rank1 - rank0
     dof = n - rank1
-    if p <= 0 or dof <= 0 or rss1 <= 0:
+    if rank_added <= 0 or dof <= 0 or rss1 <= 0:
         return 0.0, 1.0, c1[X0.shape[1] :].astype(np.float64, copy=False), dof
-    f = ((rss0 - rss1) / p) / (rss1 / dof)
-    return float(f), f_sf(f, p, dof), c1[X0.shape[1] :].astype(np.float64, copy=False), int(dof)
+    f_stat = ((rss0 - rss1) / rank_added) / (rss1 / dof)
+    return (
+        float(f_stat),
+        f_sf(f_stat, rank_added, dof),
+        c1[X0.shape[1] :].astype(np.float64, copy=False),
+        int(dof),
+    )
 
 
 def shape_test(
@@ -228,7 +233,7 @@ def shape_test(
     """Does the residual follow a smooth function of the stage angles (beyond what the model
     fitted)?"""
     base = np.ones((r.size, 1))
-    f, p, coef, _ = _ols_f(r, base, terms)
+    f_stat, p_value, coef, _ = _ols_f(r, base, terms)
     # the single term that explains most on its own
     best, best_f = None, -1.0
     for j, nm in enumerate(names):
@@ -247,8 +252,8 @@ def shape_test(
         axis,
         "stage angles",
         "F (cubic polynomial in the stage angles)",
-        f,
-        p,
+        f_stat,
+        p_value,
         sentence,
         {"strongest_term": best, "strongest_term_span": span},
     )
@@ -261,14 +266,14 @@ def direction_test(
     plus, minus = r[d > 0], r[d < 0]
     if plus.size < 2 or minus.size < 2:
         return None
-    t, p = welch_t(plus, minus)
+    t, p_value = welch_t(plus, minus)
     jump = float(plus.mean() - minus.mean())
     sentence = (
         f"{axis} residual jumps by {jump:.3g} {unit} with the approach direction of the {stage} "
         "stage (mean after a + move minus mean after a - move)"
     )
     return StructureTest(
-        axis, f"dir_{stage}", "Welch t", float(t), float(p), sentence, {"jump": jump}
+        axis, f"dir_{stage}", "Welch t", float(t), float(p_value), sentence, {"jump": jump}
     )
 
 
@@ -302,19 +307,19 @@ def runs_test(
     r: NDArray[np.float64], order: NDArray[np.float64], axis: str
 ) -> StructureTest | None:
     """Wald-Wolfowitz runs test of residual signs in time order: too few runs means slow wander."""
-    s = r[np.argsort(order, kind="stable")] - np.median(r)
-    s = s[s != 0]
-    n1, n2 = int(np.sum(s > 0)), int(np.sum(s < 0))
+    centred = r[np.argsort(order, kind="stable")] - np.median(r)
+    centred = centred[centred != 0]
+    n1, n2 = int(np.sum(centred > 0)), int(np.sum(centred < 0))
     if n1 < 2 or n2 < 2:
         return None
-    runs = 1 + int(np.sum(np.diff(np.sign(s)) != 0))
+    runs = 1 + int(np.sum(np.diff(np.sign(centred)) != 0))
     n = n1 + n2
     mu = 2.0 * n1 * n2 / n + 1.0
     var = 2.0 * n1 * n2 * (2.0 * n1 * n2 - n) / (n * n * (n - 1.0))
     if var <= 0:
         return None
     z = (runs - mu) / math.sqrt(var)
-    p = float(special.ndtr(z))  # one-sided: wander gives too few runs
+    p_value = float(special.ndtr(z))  # one-sided: wander gives too few runs
     sentence = (
         f"{axis} residual wanders slowly in time ({runs} runs of one sign where {mu:.0f} "
         "are expected)"
@@ -324,7 +329,7 @@ def runs_test(
         "t_s (order)",
         "runs (one-sided)",
         float(z),
-        p,
+        p_value,
         sentence,
         {"runs": runs, "expected": mu},
     )
@@ -346,8 +351,8 @@ def periodic_test(
     extra = np.column_stack([np.sin(phase_rad), np.cos(phase_rad)])
     if np.linalg.matrix_rank(np.column_stack([base, extra])) < 3:
         return None
-    f, p, c, _ = _ols_f(r, base, extra)
-    amp = float(np.hypot(*c))
+    f_stat, p_value, coef, _ = _ols_f(r, base, extra)
+    amp = float(np.hypot(*coef))
     sentence = (
         f"{axis} residual oscillates with the {stage} stage's worm period ({period_deg:g} deg of "
         f"stage angle), amplitude {amp:.3g} {unit}"
@@ -356,8 +361,8 @@ def periodic_test(
         axis,
         f"worm phase {stage}",
         "F (periodogram at the worm period)",
-        f,
-        p,
+        f_stat,
+        p_value,
         sentence,
         {"amplitude": amp, "period_deg": period_deg},
     )

@@ -99,35 +99,9 @@ def find_missing_effects(
 ) -> Result:
     """Run the workflow on one family; `structure(resid)` gives the residual structure tests."""
     base = family.fit(())
-    skipped = [{"effect": e, "reason": r} for e, r in skips.items() if e in candidates]
+    skipped = _skips_asked_for(skips, candidates)
     notes: list[str] = []
-    remaining: list[str] = []
-    for e in candidates:
-        if e in skips:
-            continue
-        frac = family.separability(base, e)
-        labels = [b for b in family.full_blocks(base.effects + (e,)) if b.effect == e][-1].labels
-        keep = tuple(lab for lab, f in zip(labels, frac) if f >= SEPARABLE_MIN)
-        if not keep:
-            skipped.append(
-                {
-                    "effect": e,
-                    "reason": "not separable from the baseline on these data: "
-                    f"{100 * (1 - max(frac, default=0)):.2f} % or more of its signature is a "
-                    "change of the baseline's own parameters (the grid does not sample it)",
-                }
-            )
-            continue
-        dropped = [lab for lab in labels if lab not in keep]
-        if dropped:
-            family.active[e] = keep
-            for lab in dropped:
-                why = explain_drop(e, lab) if explain_drop else None
-                notes.append(
-                    f"{e}: parameter {lab} left out: "
-                    + (why or "not separable from the baseline on these data")
-                )
-        remaining.append(e)
+    remaining = _separable_candidates(family, base, candidates, skips, explain_drop, skipped, notes)
     noise_var, noise_df = _noise_var(noise)
     fits = [base]
     steps: list[Step] = []
@@ -136,110 +110,25 @@ def find_missing_effects(
     stop_scores: list[dict[str, Any]] = []
     stop_reason = ""
     while remaining and len(steps) < max_steps:
-        scores = []
-        tried: list[tuple[str, Fit | None, stats.Significance]] = []
-        testable = []
-        for e in remaining:
-            k_new = (
-                current.k
-                + sum(b.size for b in family.blocks(current.effects + (e,)))
-                - sum(b.size for b in family.blocks(current.effects))
-            )
-            if family.n_obs - k_new < MIN_DOF_LEFT:
-                left = family.n_obs - k_new
-                skipped.append(
-                    {
-                        "effect": e,
-                        "reason": f"too few points: {family.n_obs} readings leave {left} "
-                        f"degree{'s' * (left != 1)} of freedom for a model with {k_new} parameters "
-                        f"(at least {MIN_DOF_LEFT} needed)",
-                    }
-                )
-                continue
-            testable.append(e)
-        remaining = [e for e in remaining if e in testable]
+        testable = _testable(family, current, remaining, skipped)
+        remaining = [effect for effect in remaining if effect in testable]
         m = max(len(testable), 1)
-        for e in testable:
-            try:
-                lin = family.linearised_fit(current, e)
-                pre = stats.nested_test(
-                    current.rss_w,
-                    current.k,
-                    lin.rss_w,
-                    lin.k,
-                    family.n_obs,
-                    alpha / m,
-                    noise_var,
-                    noise_df,
-                )
-            except (DegenerateDataError, FitError, np.linalg.LinAlgError, ValueError):
-                pre = None
-            if pre is not None and pre.p_value >= PRESCREEN_P:
-                # far from significant even by the one-step preview: not worth a nonlinear fit
-                tried.append((e, None, pre))
-                scores.append(
-                    {
-                        "effect": e,
-                        "approximate": True,
-                        "rms_after": lin.rms(),
-                        "magnitude": _safe_magnitude(family, lin, e),
-                        **pre.as_dict(),
-                    }
-                )
-                continue
-            try:
-                f1 = family.fit(current.effects + (e,), start=current)
-            except (DegenerateDataError, FitError) as exc:
-                scores.append({"effect": e, "error": str(exc)})
-                continue
-            sig = stats.nested_test(
-                current.rss_w,
-                current.k,
-                f1.rss_w,
-                f1.k,
-                family.n_obs,
-                alpha / m,
-                noise_var,
-                noise_df,
-            )
-            tried.append((e, f1, sig))
-            scores.append(
-                {
-                    "effect": e,
-                    "rms_after": f1.rms(),
-                    "magnitude": _safe_magnitude(family, f1, e),
-                    **sig.as_dict(),
-                }
-            )
-        winners = [(e, f, s) for e, f, s in tried if f is not None and s.significant]
-        if not winners:
+        tried, scores = _try_candidates(family, current, testable, alpha / m, noise_var, noise_df)
+        winner = _best_significant(tried)
+        if winner is None:
             stop_scores = scores
             stop_reason = _stop_sentence(tried, alpha, m)
             break
-        e, f1, sig = min(winners, key=lambda t: (t[2].delta_bic, t[2].p_value))
+        effect, f1, sig = winner
         struct_after = structure(f1.residuals)
-        steps.append(Step(e, current, f1, sig, scores, struct_now, struct_after))
+        steps.append(Step(effect, current, f1, sig, scores, struct_now, struct_after))
         fits.append(f1)
         current, struct_now = f1, struct_after
-        if e not in repeatable:
-            remaining.remove(e)
+        if effect not in repeatable:
+            remaining.remove(effect)
     if not stop_reason:
-        stop_reason = (
-            "no further effect: every candidate the data can support is in the model"
-            if not remaining
-            else f"stopped after {max_steps} steps"
-        )
-    separability: dict[str, dict[str, float]] = {}
-    for e in remaining:
-        try:
-            frac = family.separability(current, e)
-        except (DegenerateDataError, FitError, np.linalg.LinAlgError, ValueError):
-            continue
-        labels = family.blocks(current.effects + (e,))[-1].labels
-        separability[e] = dict(zip(labels, frac))
-        for lab, f in zip(labels, frac):
-            if f < WEAK_SEPARABILITY:
-                notes.append(_separability_note(family, e, lab, f))
+        stop_reason = _ran_out_sentence(remaining, max_steps)
+    separability = _final_separability(family, current, remaining, notes)
     if not noise.known:
         noise = from_residual(current.residuals, current.k)
     where_first = stats.where_summary(steps[0].structure_before if steps else struct_now)
@@ -251,7 +140,7 @@ def find_missing_effects(
         fits,
         steps,
         skipped,
-        [{"effect": e, "reason": r} for e, r in getattr(family, "already_in_model", {}).items()],
+        _already_in_model(family),
         notes,
         noise,
         stop_scores,
@@ -261,6 +150,224 @@ def find_missing_effects(
         alpha,
         {"separability": separability},
     )
+
+
+def _skips_asked_for(skips: dict[str, str], candidates: tuple[str, ...]) -> list[dict[str, Any]]:
+    """The family's up-front skips, as the report lists them, of the candidates asked for."""
+    return [
+        {"effect": effect, "reason": reason}
+        for effect, reason in skips.items()
+        if effect in candidates
+    ]
+
+
+def _already_in_model(family: Family) -> list[dict[str, Any]]:
+    """The effects the baseline represents already, with the reason, as the report lists them."""
+    return [
+        {"effect": effect, "reason": reason}
+        for effect, reason in getattr(family, "already_in_model", {}).items()
+    ]
+
+
+def _best_significant(
+    tried: list[tuple[str, Fit | None, stats.Significance]],
+) -> tuple[str, Fit, stats.Significance] | None:
+    """The step's winner: of the significant refits, the largest BIC gain (then the smallest p);
+    None when no candidate passes."""
+    winners = [
+        (effect, fit, sig) for effect, fit, sig in tried if fit is not None and sig.significant
+    ]
+    if not winners:
+        return None
+    return min(winners, key=lambda t: (t[2].delta_bic, t[2].p_value))
+
+
+def _ran_out_sentence(remaining: list[str], max_steps: int) -> str:
+    """Why the selection ended when no step failed: nothing left to add, or the step limit."""
+    return (
+        "no further effect: every candidate the data can support is in the model"
+        if not remaining
+        else f"stopped after {max_steps} steps"
+    )
+
+
+def _candidate_labels(family: Family, base: Fit, effect: str) -> tuple[str, ...]:
+    """Every parameter a candidate would add to the baseline fit, before any is left out."""
+    return [
+        block for block in family.full_blocks(base.effects + (effect,)) if block.effect == effect
+    ][-1].labels
+
+
+def _separable_candidates(
+    family: Family,
+    base: Fit,
+    candidates: tuple[str, ...],
+    skips: dict[str, str],
+    explain_drop: Callable[[str, str], str | None] | None,
+    skipped: list[dict[str, Any]],
+    notes: list[str],
+) -> list[str]:
+    """The candidates the baseline leaves room for: a candidate none of whose parameters the
+    baseline fit can tell from its own is skipped; parameters it cannot tell are left out, with
+    a note (both appended to `skipped` and `notes`)."""
+    remaining: list[str] = []
+    for effect in candidates:
+        if effect in skips:
+            continue
+        frac = family.separability(base, effect)
+        labels = _candidate_labels(family, base, effect)
+        keep = tuple(lab for lab, lab_frac in zip(labels, frac) if lab_frac >= SEPARABLE_MIN)
+        if not keep:
+            skipped.append(
+                {
+                    "effect": effect,
+                    "reason": "not separable from the baseline on these data: "
+                    f"{100 * (1 - max(frac, default=0)):.2f} % or more of its signature is a "
+                    "change of the baseline's own parameters (the grid does not sample it)",
+                }
+            )
+            continue
+        dropped = [lab for lab in labels if lab not in keep]
+        if dropped:
+            family.active[effect] = keep
+            notes += _drop_notes(effect, dropped, explain_drop)
+        remaining.append(effect)
+    return remaining
+
+
+def _drop_notes(
+    effect: str, dropped: list[str], explain_drop: Callable[[str, str], str | None] | None
+) -> list[str]:
+    """One note per parameter left out of a candidate, with the family's reason when it has one."""
+    notes = []
+    for lab in dropped:
+        why = explain_drop(effect, lab) if explain_drop else None
+        notes.append(
+            f"{effect}: parameter {lab} left out: "
+            + (why or "not separable from the baseline on these data")
+        )
+    return notes
+
+
+def _testable(
+    family: Family, current: Fit, remaining: list[str], skipped: list[dict[str, Any]]
+) -> list[str]:
+    """The remaining candidates that leave enough residual degrees of freedom to be tested; the
+    others are appended to `skipped` with the count that rules them out."""
+    testable = []
+    for effect in remaining:
+        k_new = (
+            current.k
+            + sum(block.size for block in family.blocks(current.effects + (effect,)))
+            - sum(block.size for block in family.blocks(current.effects))
+        )
+        if family.n_obs - k_new < MIN_DOF_LEFT:
+            left = family.n_obs - k_new
+            skipped.append(
+                {
+                    "effect": effect,
+                    "reason": f"too few points: {family.n_obs} readings leave {left} "
+                    f"degree{'s' * (left != 1)} of freedom for a model with {k_new} parameters "
+                    f"(at least {MIN_DOF_LEFT} needed)",
+                }
+            )
+            continue
+        testable.append(effect)
+    return testable
+
+
+def _try_candidates(
+    family: Family,
+    current: Fit,
+    testable: list[str],
+    level: float,
+    noise_var: float | None,
+    noise_df: float,
+) -> tuple[list[tuple[str, Fit | None, stats.Significance]], list[dict[str, Any]]]:
+    """One selection step: each testable candidate added to the current model in turn and
+    tested at the corrected `level`; what was tried, and the scores the report shows."""
+    tried: list[tuple[str, Fit | None, stats.Significance]] = []
+    scores = []
+    for effect in testable:
+        outcome, score = _try_candidate(family, current, effect, level, noise_var, noise_df)
+        if outcome is not None:
+            tried.append(outcome)
+        scores.append(score)
+    return tried, scores
+
+
+def _try_candidate(
+    family: Family,
+    current: Fit,
+    effect: str,
+    level: float,
+    noise_var: float | None,
+    noise_df: float,
+) -> tuple[tuple[str, Fit | None, stats.Significance] | None, dict[str, Any]]:
+    """Test one candidate: the one-step preview first, the nonlinear refit only when the preview
+    does not already rule it out (no outcome when the refit fails)."""
+    try:
+        lin = family.linearised_fit(current, effect)
+        pre = stats.nested_test(
+            current.rss_w,
+            current.k,
+            lin.rss_w,
+            lin.k,
+            family.n_obs,
+            level,
+            noise_var,
+            noise_df,
+        )
+    except (DegenerateDataError, FitError, np.linalg.LinAlgError, ValueError):
+        pre = None
+    if pre is not None and pre.p_value >= PRESCREEN_P:
+        # far from significant even by the one-step preview: not worth a nonlinear fit
+        return (effect, None, pre), {
+            "effect": effect,
+            "approximate": True,
+            "rms_after": lin.rms(),
+            "magnitude": _safe_magnitude(family, lin, effect),
+            **pre.as_dict(),
+        }
+    try:
+        f1 = family.fit(current.effects + (effect,), start=current)
+    except (DegenerateDataError, FitError) as exc:
+        return None, {"effect": effect, "error": str(exc)}
+    sig = stats.nested_test(
+        current.rss_w,
+        current.k,
+        f1.rss_w,
+        f1.k,
+        family.n_obs,
+        level,
+        noise_var,
+        noise_df,
+    )
+    return (effect, f1, sig), {
+        "effect": effect,
+        "rms_after": f1.rms(),
+        "magnitude": _safe_magnitude(family, f1, effect),
+        **sig.as_dict(),
+    }
+
+
+def _final_separability(
+    family: Family, current: Fit, remaining: list[str], notes: list[str]
+) -> dict[str, dict[str, float]]:
+    """How visible each remaining candidate's parameters are to the final model; a note (appended
+    to `notes`) for each one too weakly visible to have shown."""
+    separability: dict[str, dict[str, float]] = {}
+    for effect in remaining:
+        try:
+            frac = family.separability(current, effect)
+        except (DegenerateDataError, FitError, np.linalg.LinAlgError, ValueError):
+            continue
+        labels = family.blocks(current.effects + (effect,))[-1].labels
+        separability[effect] = dict(zip(labels, frac))
+        for lab, lab_frac in zip(labels, frac):
+            if lab_frac < WEAK_SEPARABILITY:
+                notes.append(_separability_note(family, effect, lab, lab_frac))
+    return separability
 
 
 def _separability_note(family: Family, effect: str, label: str, frac: float) -> str:
@@ -295,60 +402,72 @@ def _stop_sentence(
     if not tried:
         return "no further effect: no candidate could be fitted"
     best = min(tried, key=lambda t: t[2].p_value)
-    e, _, sig = best
+    effect, _, sig = best
     why = []
     if sig.p_value >= alpha / m:
         why.append(f"p = {sig.p_value:.3g} is above the corrected level {alpha / m:.3g}")
     if sig.delta_bic >= 0:
         why.append(f"it does not lower the BIC (ΔBIC = {sig.delta_bic:+.1f})")
     return (
-        f"no further effect: the most likely candidate, {e}, is not significant "
+        f"no further effect: the most likely candidate, {effect}, is not significant "
         f"({'; '.join(why)}); the data hold nothing more these candidates can explain"
     )
 
 
 def _rms(fit: Fit) -> list[float]:
-    return [float(v) for v in fit.rms()]
+    return [float(value) for value in fit.rms()]
 
 
-def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The JSON report of docs/datasets.md (`discrepancy`), plus the evidence behind each step."""
-    steps: list[dict[str, Any]] = []
-    for s in res.steps:
-        mag = family.magnitude(s.after, s.effect)
-        steps.append(
-            {
-                "effect": s.effect,
-                "rms_before": _rms(s.before),
-                "rms_after": _rms(s.after),
-                "magnitude": mag,
-                "summary": magnitude_sentence(s.effect, mag),
-                "evidence": {
-                    **s.significance.as_dict(),
-                    "rss_reduction_pct": 100.0
-                    * s.significance.delta_rss
-                    / max(s.before.rss_w, 1e-300),
-                    "candidates": s.scores,
-                    "where_before": stats.where_summary(s.structure_before),
-                    "structure_before": [t.as_dict() for t in s.structure_before],
-                    "structure_after": [t.as_dict() for t in s.structure_after],
-                },
-            }
-        )
+def _step_report(family: Family, step: Step) -> dict[str, Any]:
+    """One named effect as the report states it: its size, and the evidence that named it."""
+    mag = family.magnitude(step.after, step.effect)
+    return {
+        "effect": step.effect,
+        "rms_before": _rms(step.before),
+        "rms_after": _rms(step.after),
+        "magnitude": mag,
+        "summary": magnitude_sentence(step.effect, mag),
+        "evidence": {
+            **step.significance.as_dict(),
+            "rss_reduction_pct": 100.0
+            * step.significance.delta_rss
+            / max(step.before.rss_w, 1e-300),
+            "candidates": step.scores,
+            "where_before": stats.where_summary(step.structure_before),
+            "structure_before": [test.as_dict() for test in step.structure_before],
+            "structure_after": [test.as_dict() for test in step.structure_after],
+        },
+    }
+
+
+def _final_vs_noise(res: Result, sigma: list[float]) -> dict[str, Any]:
+    """Whether the final model leaves only noise: RMS over the noise level per axis, and the
+    goodness-of-fit test against it."""
     final = res.final
-    # the workflow sets it from the final residual when nothing else did
-    assert res.noise.sigma is not None
-    sigma = [float(v) for v in np.atleast_1d(res.noise.sigma)]
-    noise_var, noise_df = (
-        _noise_var(res.noise) if res.noise.source != "final residual" else (None, res.noise.df)
-    )
     rss_w_final = float(np.sum((final.residuals / np.asarray(sigma)) ** 2))
     gof = stats.goodness_of_fit(
         rss_w_final,
         final.dof,
         res.noise.df if res.noise.source != "final residual" else float("inf"),
     )
-    ratio = [float(r / s) if s > 0 else None for r, s in zip(_rms(final), sigma)]
+    ratio = [
+        float(rms / noise_sigma) if noise_sigma > 0 else None
+        for rms, noise_sigma in zip(_rms(final), sigma)
+    ]
+    return {
+        "rms_over_noise": ratio,
+        **gof,
+        "sentence": final_sentence(ratio, gof, res.noise.source),
+    }
+
+
+def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The JSON report of docs/datasets.md (`discrepancy`), plus the evidence behind each step."""
+    steps = [_step_report(family, step) for step in res.steps]
+    final = res.final
+    # the workflow sets it from the final residual when nothing else did
+    assert res.noise.sigma is not None
+    sigma = [float(value) for value in np.atleast_1d(res.noise.sigma)]
     report = {
         "format_version": 1,
         "kind": res.kind,
@@ -357,7 +476,7 @@ def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None)
         "axes": list(res.axes),
         **(inputs or {}),
         "named_effects": res.named_effects,
-        "chain": [res.baseline] + [s["effect"] for s in steps],
+        "chain": [res.baseline] + [step["effect"] for step in steps],
         "steps": steps,
         "skipped": res.skipped,
         "already_in_model": res.already_in_model,
@@ -368,14 +487,10 @@ def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None)
         "noise_dof": None if np.isinf(res.noise.df) else res.noise.df,
         "baseline_rms": _rms(res.fits[0]),
         "final_rms": _rms(final),
-        "final_vs_noise": {
-            "rms_over_noise": ratio,
-            **gof,
-            "sentence": final_sentence(ratio, gof, res.noise.source),
-        },
+        "final_vs_noise": _final_vs_noise(res, sigma),
         "where": res.where_first,
         "where_final": stats.where_summary(res.structure_final),
-        "structure_final": [t.as_dict() for t in res.structure_final],
+        "structure_final": [test.as_dict() for test in res.structure_final],
         "stop": {"reason": res.stop_reason, "candidates": res.stop_scores},
         "alpha": res.alpha,
         "conclusion": conclusion(res, steps),
@@ -386,11 +501,11 @@ def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None)
 
 def magnitude_sentence(effect: str, mag: dict[str, Any]) -> str:
     parts = []
-    for k, v in mag.items():
-        if not isinstance(v, dict) or "value" not in v:
+    for k, entry in mag.items():
+        if not isinstance(entry, dict) or "value" not in entry:
             continue
-        unit = "" if v["unit"] == "1" else f" {v['unit']}"
-        parts.append(f"{k} = {_fmt(v['value'])} ± {_fmt(v['uncertainty'])}{unit}")
+        unit = "" if entry["unit"] == "1" else f" {entry['unit']}"
+        parts.append(f"{k} = {_fmt(entry['value'])} ± {_fmt(entry['uncertainty'])}{unit}")
     return f"{effect}: " + "; ".join(parts)
 
 
@@ -399,31 +514,31 @@ def _fmt(x: float) -> str:
 
 
 def final_sentence(ratio: Sequence[float | None], gof: dict[str, Any], source: str) -> str:
-    rs = ", ".join("n/a" if r is None else f"{r:.2f}" for r in ratio)
+    rs = ", ".join("n/a" if value is None else f"{value:.2f}" for value in ratio)
     if source == "final residual":
         return (
             "final residual is the noise level by construction (noise taken from it); "
             f"RMS/noise = {rs}"
         )
-    p = gof.get("p_value")
+    p_value = gof.get("p_value")
     verdict = (
         "consistent with the noise level"
-        if p is not None and p >= 0.01
+        if p_value is not None and p_value >= 0.01
         else "above the noise level: something no candidate describes is left"
     )
-    return f"final RMS / noise = {rs} per axis; chi-square p = {p:.3g}: {verdict}"
+    return f"final RMS / noise = {rs} per axis; chi-square p = {p_value:.3g}: {verdict}"
 
 
 def conclusion(res: Result, steps: list[dict[str, Any]]) -> str:
     if steps:
-        chain = " → ".join([res.baseline] + [f"+ {s['effect']}" for s in steps])
+        chain = " → ".join([res.baseline] + [f"+ {step['effect']}" for step in steps])
         first = steps[0]["rms_before"]
         last = steps[-1]["rms_after"]
-        gap = ", ".join(f"{a:.3g} → {b:.3g}" for a, b in zip(first, last))
+        gap = ", ".join(f"{before:.3g} → {after:.3g}" for before, after in zip(first, last))
         assert res.noise.sigma is not None
         return (
             f"{chain}: RMS {gap} {res.unit} per axis (noise "
-            f"{', '.join(f'{s:.3g}' for s in np.atleast_1d(res.noise.sigma))} "
+            f"{', '.join(f'{sigma:.3g}' for sigma in np.atleast_1d(res.noise.sigma))} "
             f"{res.unit}, from the {res.noise.source}); {res.stop_reason}"
         )
     return f"the {res.baseline} baseline already describes the data: {res.stop_reason}"

@@ -53,9 +53,9 @@ class Effect:
     default_on: bool = False
 
     def param(self, name: str) -> Param:
-        for p in self.params:
-            if p.name == name:
-                return p
+        for candidate in self.params:
+            if candidate.name == name:
+                return candidate
         raise KeyError(name)
 
 
@@ -84,8 +84,8 @@ def _per_sensor(
 # --- stacked swing stages (seed 000, docs/models.md §2)
 # ---------------------------------------------
 STAGE_EFFECTS: dict[str, Effect] = {
-    e.name: e
-    for e in (
+    effect.name: effect
+    for effect in (
         Effect(
             "zero_offset",
             "constant added to a sensor axis reading",
@@ -117,14 +117,14 @@ STAGE_EFFECTS: dict[str, Effect] = {
             "desk under the bench, table top on the upper stage, seat of each sensor",
             tuple(
                 _p(
-                    f"{plane}_{a}_deg",
+                    f"{plane}_{axis}_deg",
                     "deg",
                     -3.0,
                     3.0,
-                    f"tilt of the {plane} plane seen by {a} readings",
+                    f"tilt of the {plane} plane seen by {axis} readings",
                 )
                 for plane in ("desk", "top", "ref", "meas")
-                for a in ("x", "y")
+                for axis in ("x", "y")
             ),
         ),
         Effect(
@@ -238,22 +238,22 @@ _S_AXES = ("sx", "sy", "sz")
 # --- rotation about an inclined axis (seed 002, docs/models.md §3); sensor errors in the sine
 # domain ---
 ROTATION_EFFECTS: dict[str, Effect] = {
-    e.name: e
-    for e in (
+    effect.name: effect
+    for effect in (
         Effect(
             "zero_offset",
             "offset of a sensor output (sine units)",
-            tuple(_p(a, "1", -0.05, 0.05) for a in _S_AXES),
+            tuple(_p(axis, "1", -0.05, 0.05) for axis in _S_AXES),
         ),
         Effect(
             "scale_factor",
             "relative gain error of a sensor output",
-            tuple(_p(a, "1", -0.05, 0.05) for a in _S_AXES),
+            tuple(_p(axis, "1", -0.05, 0.05) for axis in _S_AXES),
         ),
         Effect(
             "sensor_nonlinearity",
             "quadratic term in the output: S += k * S^2",
-            tuple(_p(a, "1", -0.05, 0.05) for a in _S_AXES),
+            tuple(_p(axis, "1", -0.05, 0.05) for axis in _S_AXES),
         ),
         Effect(
             "noise",
@@ -266,8 +266,8 @@ ROTATION_EFFECTS: dict[str, Effect] = {
 
 # --- analog sensor behind a 12-bit ADC (seed 003) ---------------------------------------------
 SCALE_EFFECTS: dict[str, Effect] = {
-    e.name: e
-    for e in (
+    effect.name: effect
+    for effect in (
         Effect(
             "zero_offset",
             "offset of the output, in ADC counts",
@@ -299,8 +299,8 @@ SCALE_EFFECTS: dict[str, Effect] = {
 # --- inclinometer on a turntable (seed 004, docs/models.md §4)
 # ------------------------------------------
 TURNTABLE_EFFECTS: dict[str, Effect] = {
-    e.name: e
-    for e in (
+    effect.name: effect
+    for effect in (
         Effect(
             "zero_offset",
             "zero offsets z1, z2 (reading units)",
@@ -334,6 +334,26 @@ EFFECTS_BY_KIND: dict[str, dict[str, Effect]] = {
 assert all(name in EFFECT_NAMES for table in EFFECTS_BY_KIND.values() for name in table)
 
 
+def _reject_unknown_effects(
+    kind: str, table: Mapping[str, Effect], effects: Mapping[str, object]
+) -> None:
+    """A scenario naming an effect its kind does not have is an error, not a silent no-op."""
+    unknown = [n for n in effects if n not in table]
+    if unknown:
+        raise KeyError(
+            f"unknown effect {unknown[0]!r} for kind {kind!r}; known: {', '.join(table)}"
+        )
+
+
+def _resolved_params(name: str, eff: Effect, given: Mapping[str, Any]) -> dict[str, float]:
+    """Every parameter of one effect: the given values checked against its table, the rest at
+    their defaults."""
+    bad = [k for k in given if k not in {param.name for param in eff.params}]
+    if bad:
+        raise KeyError(f"effect {name!r} has no parameter {bad[0]!r}")
+    return {param.name: given.get(param.name, param.default) for param in eff.params}
+
+
 @dataclass(frozen=True)
 class EffectSet:
     """Effect magnitudes of one bench: every parameter resolved, off effects at their defaults."""
@@ -349,19 +369,11 @@ class EffectSet:
     ) -> EffectSet:
         table = EFFECTS_BY_KIND[kind]
         effects = dict(effects or {})
-        unknown = [n for n in effects if n not in table]
-        if unknown:
-            raise KeyError(
-                f"unknown effect {unknown[0]!r} for kind {kind!r}; known: {', '.join(table)}"
-            )
+        _reject_unknown_effects(kind, table, effects)
         values: dict[str, dict[str, float]] = {}
         on = set()
         for name, eff in table.items():
-            given = dict(effects.get(name) or {})
-            bad = [k for k in given if k not in {p.name for p in eff.params}]
-            if bad:
-                raise KeyError(f"effect {name!r} has no parameter {bad[0]!r}")
-            values[name] = {p.name: given.get(p.name, p.default) for p in eff.params}
+            values[name] = _resolved_params(name, eff, dict(effects.get(name) or {}))
             if name in effects or eff.default_on:
                 on.add(name)
         if name_off := [n for n in on if table[n].default_on and not all(values[n].values())]:
@@ -372,8 +384,8 @@ class EffectSet:
         """The parameter's value if its effect is on, else the value meaning 'absent'."""
         eff = EFFECTS_BY_KIND[self.kind][effect]
         if effect not in self.on:
-            p = eff.param(param)
-            return p.default if not eff.default_on else (False if p.is_bool else 0.0)
+            spec = eff.param(param)
+            return spec.default if not eff.default_on else (False if spec.is_bool else 0.0)
         return self.values[effect][param]
 
 
@@ -387,9 +399,9 @@ def markdown_tables() -> str:
             "--- | --- | --- |"
         )
         for eff in table.values():
-            for p in eff.params:
-                rng = "true/false" if p.is_bool else f"{p.lo:g} .. {p.hi:g}"
-                default = str(p.default).lower() if p.is_bool else f"{p.default:g}"
-                out.append(f"| `{eff.name}` | `{p.name}` | {p.unit} | {rng} | {default} |")
+            for param in eff.params:
+                rng = "true/false" if param.is_bool else f"{param.lo:g} .. {param.hi:g}"
+                default = str(param.default).lower() if param.is_bool else f"{param.default:g}"
+                out.append(f"| `{eff.name}` | `{param.name}` | {param.unit} | {rng} | {default} |")
         out.append("")
     return "\n".join(out)

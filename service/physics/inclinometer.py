@@ -43,7 +43,7 @@ def apply_reading_errors(
 ) -> NDArray[np.float64]:
     """The error terms a real sensor adds to the geometric angle (docs/models.md §1, named in
     §5)."""
-    r = (
+    reading_deg = (
         true_deg * (1.0 + scale + scale_per_k * temp_delta_k)
         + quad_per_deg * true_deg**2
         + zero_deg
@@ -52,5 +52,5 @@ def apply_reading_errors(
         + noise_deg
     )
     if resolution_deg > 0:
-        r = np.round(r / resolution_deg) * resolution_deg
-    return r
+        reading_deg = np.round(reading_deg / resolution_deg) * resolution_deg
+    return reading_deg

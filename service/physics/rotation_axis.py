@@ -29,14 +29,15 @@ def rotation_outputs(
     alpha_deg: ArrayLike, beta_deg: ArrayLike, gamma_deg: ArrayLike, theta_deg: ArrayLike
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Ideal (Sx, Sy, Sz) at rotation angle θ."""
-    a, b, g, t = (
-        np.radians(np.asarray(v, dtype=float)) for v in (alpha_deg, beta_deg, gamma_deg, theta_deg)
+    alpha, beta, gamma, theta = (
+        np.radians(np.asarray(angle_deg, dtype=float))
+        for angle_deg in (alpha_deg, beta_deg, gamma_deg, theta_deg)
     )
-    in_plane = np.cos(g) * np.sin(b) + np.sin(g) * np.cos(b) * np.cos(t)
-    across = np.cos(b) * np.sin(t)
-    sx = -across * np.cos(a) + in_plane * np.sin(a)
-    sy = across * np.sin(a) + in_plane * np.cos(a)
-    sz = -np.sin(g) * np.sin(b) + np.cos(g) * np.cos(b) * np.cos(t)
+    in_plane = np.cos(gamma) * np.sin(beta) + np.sin(gamma) * np.cos(beta) * np.cos(theta)
+    across = np.cos(beta) * np.sin(theta)
+    sx = -across * np.cos(alpha) + in_plane * np.sin(alpha)
+    sy = across * np.sin(alpha) + in_plane * np.cos(alpha)
+    sz = -np.sin(gamma) * np.sin(beta) + np.cos(gamma) * np.cos(beta) * np.cos(theta)
     return sx, sy, sz
 
 
@@ -60,15 +61,15 @@ def simulate_rotation(
     )
     sigma = fx.get("noise", "sigma_s")
     out: dict[str, NDArray[np.float64]] = {}
-    for ax, s in ideal.items():
-        r = (
-            s * (1.0 + fx.get("scale_factor", ax))
-            + fx.get("sensor_nonlinearity", ax) * s**2
+    for ax, ideal_sine in ideal.items():
+        output = (
+            ideal_sine * (1.0 + fx.get("scale_factor", ax))
+            + fx.get("sensor_nonlinearity", ax) * ideal_sine**2
             + fx.get("zero_offset", ax)
         )
         if rng is not None and sigma > 0:
-            r = r + rng.normal(0.0, sigma, r.shape)
-        out[ax] = r
+            output = output + rng.normal(0.0, sigma, output.shape)
+        out[ax] = output
     ref_sigma = fx.get("noise", "theta_ref_sigma_deg")
     out["theta_ref_deg"] = theta + (
         rng.normal(0.0, ref_sigma, theta.shape) if rng is not None and ref_sigma > 0 else 0.0

@@ -7,18 +7,18 @@ from numpy.typing import ArrayLike, NDArray
 
 
 def rx(a: float) -> NDArray[np.float64]:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    cos_a, sin_a = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, cos_a, -sin_a], [0.0, sin_a, cos_a]])
 
 
 def ry(a: float) -> NDArray[np.float64]:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    cos_a, sin_a = np.cos(a), np.sin(a)
+    return np.array([[cos_a, 0.0, sin_a], [0.0, 1.0, 0.0], [-sin_a, 0.0, cos_a]])
 
 
 def rz(a: float) -> NDArray[np.float64]:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    cos_a, sin_a = np.cos(a), np.sin(a)
+    return np.array([[cos_a, -sin_a, 0.0], [sin_a, cos_a, 0.0], [0.0, 0.0, 1.0]])
 
 
 def plane_tilt(tilt_x: float, tilt_y: float) -> NDArray[np.float64]:
@@ -30,6 +30,6 @@ def plane_tilt(tilt_x: float, tilt_y: float) -> NDArray[np.float64]:
 
 
 def unit(v: ArrayLike) -> NDArray[np.float64]:
-    u = np.asarray(v, dtype=float)
-    out: NDArray[np.float64] = u / np.linalg.norm(u)
+    vector = np.asarray(v, dtype=float)
+    out: NDArray[np.float64] = vector / np.linalg.norm(vector)
     return out

@@ -53,8 +53,8 @@ def settling_of(fx: EffectSet) -> Settling:
     """A stage bench's settling from its effects (all zero when `settling` is not named)."""
     return Settling(
         *(
-            fx.get("settling", p)
-            for p in (
+            fx.get("settling", param)
+            for param in (
                 "sensor_time_constant_s",
                 "ringing_amplitude_deg_per_deg",
                 "ringing_frequency_hz",
@@ -98,23 +98,37 @@ def move_transient_deg(st: Settling, move: Move, t_s: ArrayLike) -> NDArray[np.f
     if not after.any():
         return out
     dt = t[after] - move.end_s
-    if tau <= 0:
-        y0 = 0.0
-    elif big_t <= 0:
-        y0 = -delta
-    else:
-        y0 = -delta * (tau / big_t) * (1.0 - np.exp(-big_t / tau))
-    a = st.ringing_amplitude_deg_per_deg * delta
-    if a != 0 and st.ringing_decay_s > 0:
-        s = complex(-1.0 / st.ringing_decay_s, 2.0 * np.pi * st.ringing_frequency_hz)
-        h = 1.0 / (1.0 + s * tau)
-        forced = np.real(a * h * np.exp(s * dt))
-        start = float(np.real(a * h))
-    else:
-        forced, start = np.zeros_like(dt), 0.0
+    y0 = _lag_at_end_deg(tau, big_t, delta)
+    forced, start = _filtered_ringing_deg(st, delta, dt)
     free = (y0 - start) * np.exp(-dt / tau) if tau > 0 else 0.0 * dt
     out[after] = forced + free
     return out
+
+
+def _lag_at_end_deg(tau: float, big_t: float, delta: float) -> float:
+    """y0 of the model: how far the sensor lags the ramp when the move ends (the whole step when
+    the move is instant, nothing for an instant sensor)."""
+    if tau <= 0:
+        return 0.0
+    if big_t <= 0:
+        return -delta
+    return float(-delta * (tau / big_t) * (1.0 - np.exp(-big_t / tau)))
+
+
+def _filtered_ringing_deg(
+    st: Settling, delta: float, dt: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], float]:
+    """The forced part Re[a·H·e^(st)] at times `dt` after the move, and its value at the move's end,
+    kept apart because the free part starts from that value."""
+    tau = st.sensor_time_constant_s
+    ringing_deg = st.ringing_amplitude_deg_per_deg * delta
+    if ringing_deg != 0 and st.ringing_decay_s > 0:
+        pole = complex(-1.0 / st.ringing_decay_s, 2.0 * np.pi * st.ringing_frequency_hz)
+        sensor_gain = 1.0 / (1.0 + pole * tau)
+        forced = np.real(ringing_deg * sensor_gain * np.exp(pole * dt))
+        start = float(np.real(ringing_deg * sensor_gain))
+        return forced, start
+    return np.zeros_like(dt), 0.0
 
 
 def transient_deg(st: Settling, moves: Iterable[Move], t_s: ArrayLike) -> NDArray[np.float64]:
@@ -150,11 +164,17 @@ def moves_along(
     """The moves of a stage axis that visits `positions_deg` in turn from `start_deg`, leaving for
     each at `t_depart_s` and running at `rate_deg_per_s`: how an offline run is replayed."""
     moves, prev = [], start_deg
-    for p, t in zip(positions_deg, t_depart_s):
-        d = float(p) - prev
-        if d != 0:
-            moves.append(Move(float(t), d, abs(d) / rate_deg_per_s if rate_deg_per_s > 0 else 0.0))
-        prev = float(p)
+    for position, t in zip(positions_deg, t_depart_s):
+        step_deg = float(position) - prev
+        if step_deg != 0:
+            moves.append(
+                Move(
+                    float(t),
+                    step_deg,
+                    abs(step_deg) / rate_deg_per_s if rate_deg_per_s > 0 else 0.0,
+                )
+            )
+        prev = float(position)
     return moves
 
 
@@ -199,9 +219,9 @@ def step_response_fit(
     best = None
     for decay0 in (0.2, 1.0):
         for sign in (1.0, -1.0):
-            r = least_squares(lambda p: model(p) - dev, [abs(lag.x[0]), sign * amp0, f0, decay0])
-            if best is None or r.cost < best.cost:
-                best = r
+            fit = least_squares(lambda p: model(p) - dev, [abs(lag.x[0]), sign * amp0, f0, decay0])
+            if best is None or fit.cost < best.cost:
+                best = fit
     assert best is not None
-    p = best.x
-    return Settling(abs(p[0]), float(p[1]), abs(p[2]), abs(p[3]))
+    params = best.x
+    return Settling(abs(params[0]), float(params[1]), abs(params[2]), abs(params[3]))

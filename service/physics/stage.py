@@ -130,30 +130,30 @@ class StageBench:
             ("x", "stage_x_deg", cmd_x_deg, self.pulse_x_deg, self.upper_gear_ratio),
             ("y", "stage_y_deg", cmd_y_deg, self.pulse_y_deg, self.lower_gear_ratio),
         ):
-            c = np.asarray(cmd, dtype=float)
-            frac = np.abs(c / pulse - np.rint(c / pulse))
+            commands = np.asarray(cmd, dtype=float)
+            frac = np.abs(commands / pulse - np.rint(commands / pulse))
             off = np.flatnonzero(frac > PULSE_TOL)
             if off.size == 0:
                 continue
             i = int(off[0])
             fits = sorted(
                 (
-                    g
-                    for g in COMMON_GEAR_RATIOS
-                    if np.all(_whole(c, self.step_angle_deg / (self.microsteps * g)))
+                    gear
+                    for gear in COMMON_GEAR_RATIOS
+                    if np.all(_whole(commands, self.step_angle_deg / (self.microsteps * gear)))
                 ),
                 # nearest to the assumed ratio first
-                key=lambda g: abs(np.log(g / ratio)),
+                key=lambda gear: abs(np.log(gear / ratio)),
             )
             fits_micro = [
                 m
                 for m in (1, 2, 4, 8, 16, 32, 64, 128, 256)
-                if np.all(_whole(c, self.step_angle_deg / (m * ratio)))
+                if np.all(_whole(commands, self.step_angle_deg / (m * ratio)))
             ]
             if fits:
                 hint = (
                     "they are whole pulses at gear ratio "
-                    f"{', '.join(f'{g:g}:1' for g in fits[:4])} "
+                    f"{', '.join(f'{gear:g}:1' for gear in fits[:4])} "
                     f"({self.microsteps} microsteps of {self.step_angle_deg:g} deg)"
                 )
             elif fits_micro:
@@ -167,9 +167,10 @@ class StageBench:
                     "rather than executed angles"
                 )
             return (
-                f"{name} {c[i]:.9g} at row {i + 1} is {c[i] / pulse:.3f} pulses of the {axis} "
-                f"stage ({pulse:.9g} deg = {self.step_angle_deg:g} deg / ({self.microsteps} "
-                f"microsteps x {ratio:g}:1)), not a whole number ({off.size} of {c.size} rows): "
+                f"{name} {commands[i]:.9g} at row {i + 1} is {commands[i] / pulse:.3f} pulses "
+                f"of the {axis} stage ({pulse:.9g} deg = {self.step_angle_deg:g} deg / "
+                f"({self.microsteps} microsteps x {ratio:g}:1)), not a whole number "
+                f"({off.size} of {commands.size} rows): "
                 "the data likely come from a bench with another gear ratio or microstepping; "
                 f"{hint}"
             )
@@ -196,34 +197,39 @@ class StageGeometry:
 
     @classmethod
     def from_effects(cls, bench: StageBench, fx: EffectSet) -> StageGeometry:
-        r = np.radians
+        rad = np.radians
 
         def g(e: str, p: str) -> float:
             return float(fx.get(e, p))
 
-        desk = plane_tilt(r(g("mounting_tilt", "desk_x_deg")), r(g("mounting_tilt", "desk_y_deg")))
-        top = plane_tilt(r(g("mounting_tilt", "top_x_deg")), r(g("mounting_tilt", "top_y_deg")))
+        desk = plane_tilt(
+            rad(g("mounting_tilt", "desk_x_deg")), rad(g("mounting_tilt", "desk_y_deg"))
+        )
+        top = plane_tilt(rad(g("mounting_tilt", "top_x_deg")), rad(g("mounting_tilt", "top_y_deg")))
         u_lower = unit(
-            rz(r(g("axis_misalignment", "lower_yaw_deg")))
-            @ ry(r(g("axis_misalignment", "lower_pitch_deg")))
+            rz(rad(g("axis_misalignment", "lower_yaw_deg")))
+            @ ry(rad(g("axis_misalignment", "lower_pitch_deg")))
             @ np.array([-1.0, 0.0, 0.0])
         )
         u_upper = unit(
-            rz(r(g("axis_misalignment", "perpendicularity_deg")))
-            @ rx(r(g("axis_misalignment", "upper_pitch_deg")))
+            rz(rad(g("axis_misalignment", "perpendicularity_deg")))
+            @ rx(rad(g("axis_misalignment", "upper_pitch_deg")))
             @ np.array([0.0, 1.0, 0.0])
         )
         seat: dict[str, NDArray[np.float64]] = {}
         axes: dict[str, NDArray[np.float64]] = {}
-        for s in SENSORS:
-            seat[s] = plane_tilt(
-                r(g("mounting_tilt", f"{s}_x_deg")), r(g("mounting_tilt", f"{s}_y_deg"))
+        for sensor in SENSORS:
+            seat[sensor] = plane_tilt(
+                rad(g("mounting_tilt", f"{sensor}_x_deg")),
+                rad(g("mounting_tilt", f"{sensor}_y_deg")),
             )
-            flip = bench.meas_flip if s == "meas" else "none"
-            axes[s] = sensor_axes(
-                r(g("sensor_yaw", f"{s}_deg")), r(g("non_orthogonality", f"{s}_deg")), flip
+            flip = bench.meas_flip if sensor == "meas" else "none"
+            axes[sensor] = sensor_axes(
+                rad(g("sensor_yaw", f"{sensor}_deg")),
+                rad(g("non_orthogonality", f"{sensor}_deg")),
+                flip,
             )
-        truth_axes = sensor_axes(r(g("sensor_yaw", "ref_deg")), 0.0)
+        truth_axes = sensor_axes(rad(g("sensor_yaw", "ref_deg")), 0.0)
         return cls(
             desk,
             top,
@@ -242,18 +248,24 @@ class StageGeometry:
         theta_y: NDArray[np.float64],
     ) -> NDArray[np.float64]:
         """World z of table-frame vectors (K, 3) at stage angles (N,) [rad] -> (N, K)."""
-        d = self.desk[2]
+        desk_z = self.desk[2]
         ul, uu = self.u_lower, self.u_upper
         cy, sy = np.cos(theta_y), np.sin(theta_y)
-        # d · Rot(ul, θy) w = w · g(θy)
-        g = cy[:, None] * d + sy[:, None] * np.cross(d, ul) + ((1.0 - cy) * (ul @ d))[:, None] * ul
-        v = vectors_table
-        a = g @ v.T
-        b = g @ np.cross(uu, v).T
-        p = g @ uu
+        # desk_z · Rot(ul, θy) w = w · z_row(θy)
+        z_row = (
+            cy[:, None] * desk_z
+            + sy[:, None] * np.cross(desk_z, ul)
+            + ((1.0 - cy) * (ul @ desk_z))[:, None] * ul
+        )
+        vectors = vectors_table
+        cos_term = z_row @ vectors.T
+        sin_term = z_row @ np.cross(uu, vectors).T
+        axial_term = z_row @ uu
         cx, sx = np.cos(theta_x), np.sin(theta_x)
         z: NDArray[np.float64] = (
-            cx[:, None] * a + sx[:, None] * b + ((1.0 - cx) * p)[:, None] * (v @ uu)[None, :]
+            cx[:, None] * cos_term
+            + sx[:, None] * sin_term
+            + ((1.0 - cx) * axial_term)[:, None] * (vectors @ uu)[None, :]
         )
         return z
 
@@ -265,10 +277,10 @@ class StageGeometry:
             theta_x = np.radians(
                 offaxis_inverse_deg(np.degrees(theta_x), np.degrees(theta_y), clip=True)
             )
-        vecs = [self.top @ self.seat[s] @ self.axes[s].T for s in SENSORS]
+        vecs = [self.top @ self.seat[sensor] @ self.axes[sensor].T for sensor in SENSORS]
         vecs.append(self.top @ self.seat["ref"] @ self.truth_axes.T)
-        v = np.concatenate(vecs, axis=1).T  # (6, 3)
-        deg = np.degrees(np.arcsin(np.clip(-self.axis_z(v, theta_x, theta_y), -1.0, 1.0)))
+        table_axes = np.concatenate(vecs, axis=1).T  # (6, 3)
+        deg = np.degrees(np.arcsin(np.clip(-self.axis_z(table_axes, theta_x, theta_y), -1.0, 1.0)))
         names = ("ref_x", "ref_y", "meas_x", "meas_y", "tilt_x", "tilt_y")
         return {n: deg[:, i] for i, n in enumerate(names)}
 
@@ -293,12 +305,12 @@ def stage_angles_deg(
     """
     nom_x, nom_y = bench.quantise(cmd_x_deg, cmd_y_deg)
     out = []
-    for ax, nom, d, period in (
+    for ax, nom, direction, period in (
         ("x", nom_x, dir_x, bench.worm_period_x_deg),
         ("y", nom_y, dir_y, bench.worm_period_y_deg),
     ):
         ang = nom * (1.0 + fx.get("stage_scale", ax))
-        ang = ang - np.asarray(d, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
+        ang = ang - np.asarray(direction, dtype=float) * fx.get("backlash", f"{ax}_deg") / 2.0
         amp = fx.get("periodic_error", f"{ax}_amp_deg")
         if amp:
             ang = ang + amp * np.sin(
@@ -378,21 +390,21 @@ def simulate_stage(
         "actual_x_deg": np.broadcast_to(act_x, n).copy(),
         "actual_y_deg": np.broadcast_to(act_y, n).copy(),
     }
-    for s in SENSORS:
-        sigma = fx.get("noise", f"{s}_sigma_deg")
-        for a in ("x", "y"):
+    for sensor in SENSORS:
+        sigma = fx.get("noise", f"{sensor}_sigma_deg")
+        for axis in ("x", "y"):
             noise = rng.normal(0.0, sigma, n) if (rng is not None and sigma > 0) else 0.0
-            out[f"{s}_{a}_deg"] = apply_reading_errors(
-                geo[f"{s}_{a}"],
-                zero_deg=fx.get("zero_offset", f"{s}_{a}_deg"),
-                scale=fx.get("scale_factor", f"{s}_{a}"),
-                quad_per_deg=fx.get("sensor_nonlinearity", f"{s}_{a}_per_deg"),
+            out[f"{sensor}_{axis}_deg"] = apply_reading_errors(
+                geo[f"{sensor}_{axis}"],
+                zero_deg=fx.get("zero_offset", f"{sensor}_{axis}_deg"),
+                scale=fx.get("scale_factor", f"{sensor}_{axis}"),
+                quad_per_deg=fx.get("sensor_nonlinearity", f"{sensor}_{axis}_per_deg"),
                 temp_delta_k=dT,
-                zero_per_k=fx.get("temperature_drift", f"{s}_{a}_deg_per_k"),
-                scale_per_k=fx.get("temperature_drift", f"{s}_scale_per_k"),
-                drift_deg=_drift(fx, s, a, t, rng),
+                zero_per_k=fx.get("temperature_drift", f"{sensor}_{axis}_deg_per_k"),
+                scale_per_k=fx.get("temperature_drift", f"{sensor}_scale_per_k"),
+                drift_deg=_drift(fx, sensor, axis, t, rng),
                 noise_deg=noise,
-                resolution_deg=fx.get("noise", f"{s}_resolution_deg"),
+                resolution_deg=fx.get("noise", f"{sensor}_resolution_deg"),
             )
     return out
 
@@ -430,7 +442,7 @@ def offaxis_inverse_deg(
     NaN where no upper-stage angle gives X (|sin X / cos θy| > 1; the caller names those rows), or
     with clip=True the nearest reachable angle (a starting point for a solver).
     """
-    s = np.sin(np.radians(x_reading_deg)) / np.cos(np.radians(theta_y_deg))
-    s = np.clip(s, -1.0, 1.0) if clip else np.where(np.abs(s) > 1.0, np.nan, s)
-    angle: NDArray[np.float64] = np.degrees(np.arcsin(s))
+    sine = np.sin(np.radians(x_reading_deg)) / np.cos(np.radians(theta_y_deg))
+    sine = np.clip(sine, -1.0, 1.0) if clip else np.where(np.abs(sine) > 1.0, np.nan, sine)
+    angle: NDArray[np.float64] = np.degrees(np.arcsin(sine))
     return angle

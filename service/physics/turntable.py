@@ -33,11 +33,11 @@ def turntable_readings(
     z2: float = 0.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """n1(A), n2(A) of docs/models.md §4 for axis tilt (ξ north, η east) in arcsec."""
-    a = np.radians(np.asarray(azimuth_deg, dtype=float) + p.beta_deg)
-    e = np.radians(p.epsilon_deg)
+    angle_rad = np.radians(np.asarray(azimuth_deg, dtype=float) + p.beta_deg)
+    epsilon_rad = np.radians(p.epsilon_deg)
     xi, eta = np.asarray(north_arcsec, dtype=float), np.asarray(east_arcsec, dtype=float)
-    n1 = p.m1 * (xi * np.cos(a) + eta * np.sin(a)) + z1
-    n2 = p.m2 * (-xi * np.sin(a + e) + eta * np.cos(a + e)) + z2
+    n1 = p.m1 * (xi * np.cos(angle_rad) + eta * np.sin(angle_rad)) + z1
+    n2 = p.m2 * (-xi * np.sin(angle_rad + epsilon_rad) + eta * np.cos(angle_rad + epsilon_rad)) + z2
     return n1, n2
 
 
@@ -60,8 +60,8 @@ def simulate_turntable(
     drift = fx.get("time_drift", "reading_per_h") * pair_interval_s / 3600.0
     sigma, res = fx.get("noise", "reading_sigma"), fx.get("noise", "resolution")
     out: dict[str, NDArray[np.float64]] = {"azimuth_deg": az}
-    for tag, a, dz in (("a", az, 0.0), ("b", az + rotation_deg, drift)):
-        n1, n2 = turntable_readings(p, a, xi, eta, z1 + dz, z2 + dz)
+    for tag, azimuth, dz in (("a", az, 0.0), ("b", az + rotation_deg, drift)):
+        n1, n2 = turntable_readings(p, azimuth, xi, eta, z1 + dz, z2 + dz)
         for name, n in (("n1", n1), ("n2", n2)):
             if rng is not None and sigma > 0:
                 n = n + rng.normal(0.0, sigma, n.shape)
@@ -69,9 +69,11 @@ def simulate_turntable(
                 n = np.round(n / res) * res
             out[f"{name}_{tag}"] = n
     ref_sigma = fx.get("noise", "ref_sigma_arcsec")
-    for col, v in (("ref_north_arcsec", xi), ("ref_east_arcsec", eta)):
-        out[col] = v + (
-            rng.normal(0.0, ref_sigma, v.shape) if rng is not None and ref_sigma > 0 else 0.0
+    for col, ref_true_arcsec in (("ref_north_arcsec", xi), ("ref_east_arcsec", eta)):
+        out[col] = ref_true_arcsec + (
+            rng.normal(0.0, ref_sigma, ref_true_arcsec.shape)
+            if rng is not None and ref_sigma > 0
+            else 0.0
         )
     out["true_north_arcsec"], out["true_east_arcsec"] = xi.copy(), eta.copy()
     return out
