@@ -22,6 +22,8 @@ from service.calibration.budget import SQRT12, Component
 from service.calibration.uncertainty import COVERAGE, coverage_factor
 
 AXES = ("x", "y")
+# one independent part of an uncertainty: (u_i, ν_i) per point
+_Part = tuple[NDArray[np.float64], NDArray[np.float64]]
 
 
 @dataclass(frozen=True)
@@ -66,13 +68,19 @@ def _noise(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The standard uncertainty of each point's mean (s/√n) and its degrees of freedom (n − 1); zero
     where unknown."""
-    u = np.array(
-        [s / math.sqrt(k) if s is not None and k > 1 else 0.0 for s, k in zip(std, n, strict=True)]
+    u_mean = np.array(
+        [
+            spread / math.sqrt(count) if spread is not None and count > 1 else 0.0
+            for spread, count in zip(std, n, strict=True)
+        ]
     )
     dof = np.array(
-        [float(k - 1) if s is not None and k > 1 else math.inf for s, k in zip(std, n, strict=True)]
+        [
+            float(count - 1) if spread is not None and count > 1 else math.inf
+            for spread, count in zip(std, n, strict=True)
+        ]
     )
-    return u, dof
+    return u_mean, dof
 
 
 def _combined(
@@ -82,11 +90,11 @@ def _combined(
 ) -> Uncertain:
     """Root sum of squares of independent parts (u_i, ν_i) per point, Welch-Satterthwaite, k from
     Student's t."""
-    var = sum((u**2 for u, _ in parts), np.zeros_like(value))
+    var = sum((u_part**2 for u_part, _ in parts), np.zeros_like(value))
     denom = sum(
         (
-            np.where(np.isfinite(nu), u**4 / np.where(np.isfinite(nu), nu, 1.0), 0.0)
-            for u, nu in parts
+            np.where(np.isfinite(nu), u_part**4 / np.where(np.isfinite(nu), nu, 1.0), 0.0)
+            for u_part, nu in parts
         ),
         np.zeros_like(value),
     )
@@ -95,6 +103,49 @@ def _combined(
     return Uncertain(
         value, np.sqrt(var), dof, np.asarray(coverage_factor(dof, coverage), dtype=float)
     )
+
+
+def _resolution_part(n: int, resolution_deg: float | None) -> list[_Part]:
+    """A sensor's resolution as a rectangular part (r/√12, exact), none when it is not stated."""
+    if not resolution_deg:
+        return []
+    return [(np.full(n, resolution_deg / SQRT12), np.full(n, math.inf))]
+
+
+def _reference_parts(
+    points: Sequence[MeasuredPoint],
+    axis_index: int,
+    standards: Sequence[Component],
+    resolution_deg: float | None,
+) -> list[_Part]:
+    """The reference value's parts on one axis: the standards, the sensor's resolution and the noise
+    of its mean."""
+    n = len(points)
+    parts: list[_Part] = [
+        (np.full(n, standard.u_deg), np.full(n, standard.dof)) for standard in standards
+    ]
+    parts += _resolution_part(n, resolution_deg)
+    parts.append(
+        _noise(
+            [point.reference_std_deg[axis_index] for point in points],
+            [point.reference_n for point in points],
+        )
+    )
+    return parts
+
+
+def _indication_parts(
+    points: Sequence[MeasuredPoint], axis_index: int, resolution_deg: float | None
+) -> list[_Part]:
+    """The item's indication's parts on one axis: its resolution and the noise of its mean."""
+    parts = _resolution_part(len(points), resolution_deg)
+    parts.append(
+        _noise(
+            [point.indication_std_deg[axis_index] for point in points],
+            [point.indication_n for point in points],
+        )
+    )
+    return parts
 
 
 def as_found(
@@ -106,25 +157,12 @@ def as_found(
 ) -> dict[str, AxisAsFound]:
     """Per axis: the reference values, the item's indications and the indication errors, each with
     its uncertainty."""
-    n = len(points)
     out: dict[str, AxisAsFound] = {}
     for i, axis in enumerate(AXES):
-        ref = np.array([p.reference_deg[i] for p in points], dtype=float)
-        ind = np.array([p.indication_deg[i] for p in points], dtype=float)
-        ref_parts = [
-            (np.full(n, standard.u_deg), np.full(n, standard.dof)) for standard in standards
-        ]
-        if reference_resolution_deg:
-            ref_parts.append((np.full(n, reference_resolution_deg / SQRT12), np.full(n, math.inf)))
-        ref_parts.append(
-            _noise([p.reference_std_deg[i] for p in points], [p.reference_n for p in points])
-        )
-        ind_parts = []
-        if indication_resolution_deg:
-            ind_parts.append((np.full(n, indication_resolution_deg / SQRT12), np.full(n, math.inf)))
-        ind_parts.append(
-            _noise([p.indication_std_deg[i] for p in points], [p.indication_n for p in points])
-        )
+        ref = np.array([point.reference_deg[i] for point in points], dtype=float)
+        ind = np.array([point.indication_deg[i] for point in points], dtype=float)
+        ref_parts = _reference_parts(points, i, standards, reference_resolution_deg)
+        ind_parts = _indication_parts(points, i, indication_resolution_deg)
         out[axis] = AxisAsFound(
             _combined(ref, ref_parts, coverage),
             _combined(ind, ind_parts, coverage),
@@ -139,13 +177,15 @@ def single_reading_noise(points: Sequence[MeasuredPoint]) -> dict[str, tuple[flo
     out: dict[str, tuple[float, float]] = {}
     for i, axis in enumerate(AXES):
         pairs = [
-            (p.indication_std_deg[i], p.indication_n)
-            for p in points
-            if p.indication_std_deg[i] is not None and p.indication_n > 1
+            (point.indication_std_deg[i], point.indication_n)
+            for point in points
+            if point.indication_std_deg[i] is not None and point.indication_n > 1
         ]
         if not pairs:
             return None
         dof = sum(n - 1 for _, n in pairs)
-        s2 = sum((n - 1) * float(s) ** 2 for s, n in pairs if s is not None) / dof
-        out[axis] = (math.sqrt(s2), float(dof))
+        variance = (
+            sum((n - 1) * float(spread) ** 2 for spread, n in pairs if spread is not None) / dof
+        )
+        out[axis] = (math.sqrt(variance), float(dof))
     return out

@@ -25,7 +25,14 @@ from service.lims.content import (
 from service.lims.content_results import parameter_result
 from service.storage.canonical import sha256_hex
 from service.storage.errors import UnknownEntity
-from service.storage.models import CalibrationJob, CalibrationRecord, Certificate, Order
+from service.storage.models import (
+    CalibrationJob,
+    CalibrationRecord,
+    Certificate,
+    Order,
+    RecordApproval,
+    ReferenceStandard,
+)
 from service.storage.specification import Specification, specification_of
 from service.storage.store import Store
 from service.storage.store.approvals import signer_of
@@ -66,9 +73,9 @@ class IntegrityFailure(Exception):
 
 def laboratory(settings: Settings) -> Laboratory:
     missing = [
-        f"TILTLAB_{n.upper()}"
-        for n in ("lab_name", "lab_city", "lab_country_code")
-        if not getattr(settings, n)
+        f"TILTLAB_{setting.upper()}"
+        for setting in ("lab_name", "lab_city", "lab_country_code")
+        if not getattr(settings, setting)
     ]
     if missing:
         raise NotConfigured(
@@ -131,14 +138,14 @@ def _calibration_points(store: Store, r: CalibrationRecord) -> list[dict[str, fl
         return []
     n_fit = int((r.raw_data or {}).get("fit_points", 10**9))
     points = [
-        p
-        for p in store.points.settled_points(r.job_id)
-        if p.point < n_fit and p.device_id == r.device_id
+        point
+        for point in store.points.settled_points(r.job_id)
+        if point.point < n_fit and point.device_id == r.device_id
     ]
     return [
-        {"commanded_angle_deg": float(p.cmd_x_deg)}
-        for p in sorted(points, key=lambda p: p.point)
-        if p.cmd_x_deg is not None
+        {"commanded_angle_deg": float(point.cmd_x_deg)}
+        for point in sorted(points, key=lambda point: point.point)
+        if point.cmd_x_deg is not None
     ]
 
 
@@ -150,24 +157,27 @@ def measured_points(store: Store, r: CalibrationRecord) -> list[MeasuredPoint]:
         return []
     n_fit = int((r.raw_data or {}).get("fit_points", 10**9))
     points = store.points.settled_points(r.job_id)
-    item = {p.point: p for p in points if p.device_id == r.device_id}
+    item = {point.point: point for point in points if point.device_id == r.device_id}
     out = []
-    for ref in sorted((p for p in points if p.device_id != r.device_id), key=lambda p: p.point):
-        m = item.get(ref.point)
-        if m is not None:
+    for ref in sorted(
+        (point for point in points if point.device_id != r.device_id),
+        key=lambda point: point.point,
+    ):
+        indicated = item.get(ref.point)
+        if indicated is not None:
             out.append(
                 MeasuredPoint(
                     ref.point,
                     ref.point < n_fit,
                     (ref.ch_x_mean, ref.ch_y_mean),
-                    (m.ch_x_mean, m.ch_y_mean),
+                    (indicated.ch_x_mean, indicated.ch_y_mean),
                     (ref.ch_x_std, ref.ch_y_std),
-                    (m.ch_x_std, m.ch_y_std),
+                    (indicated.ch_x_std, indicated.ch_y_std),
                     ref.n_samples,
-                    m.n_samples,
+                    indicated.n_samples,
                 )
             )
-    return sorted(out, key=lambda p: (not p.fitted, p.point))
+    return sorted(out, key=lambda point: (not point.fitted, point.point))
 
 
 def _device_json(store: Store, r: CalibrationRecord) -> dict[str, Any]:
@@ -184,42 +194,61 @@ def _device_json(store: Store, r: CalibrationRecord) -> dict[str, Any]:
     }
 
 
+def _requested_standard_ids(job: CalibrationJob | None) -> list[Any]:
+    """The standards the job's request named by id (older jobs kept them beside the request)."""
+    if job is None:
+        return []
+    request = (job.parameters or {}).get("request") or {}
+    ids: list[Any] = (
+        request.get("reference_standards")
+        or (job.parameters or {}).get("reference_standards")
+        or []
+    )
+    return ids
+
+
+def _standard_json(standard: ReferenceStandard) -> dict[str, Any]:
+    """A registered standard as the certificate's content reads it."""
+    return {
+        "name": standard.name,
+        "serial": standard.serial,
+        "model": standard.model,
+        "certificate_number": standard.certificate_number,
+        "certificate_sha256": standard.certificate_sha256,
+        "calibrated_on": standard.calibrated_on,
+        "due_on": standard.due_on,
+        "uncertainty": standard.uncertainty,
+        "expanded_uncertainty_deg": standard.expanded_uncertainty_deg,
+        "coverage_factor": standard.coverage_factor,
+        "calibrated_by": standard.calibrated_by,
+    }
+
+
+def _listed_standards(
+    registered: dict[int, ReferenceStandard], r: CalibrationRecord
+) -> list[ReferenceStandard]:
+    """The registered standards whose certificate numbers the record lists (when the job named none
+    by id)."""
+    by_number = {standard.certificate_number: standard for standard in registered.values()}
+    return [
+        by_number[listed["certificate_id"]]
+        for listed in r.reference_standards or []
+        if listed.get("certificate_id") in by_number
+    ]
+
+
 def _standards_of(store: Store, r: CalibrationRecord, job: CalibrationJob | None) -> list[Any]:
     """The registered standards the job named (by id), else those the record lists (by certificate
     number)."""
-    registered = {s.id: s for s in store.standards.all()}
-    ids: list[Any] = []
-    if job is not None:
-        request = (job.parameters or {}).get("request") or {}
-        ids = (
-            request.get("reference_standards")
-            or (job.parameters or {}).get("reference_standards")
-            or []
-        )
-    out = [registered[int(i)] for i in ids if str(i).isdigit() and int(i) in registered]
-    if not out:
-        by_number = {s.certificate_number: s for s in registered.values()}
-        out = [
-            by_number[s["certificate_id"]]
-            for s in r.reference_standards or []
-            if s.get("certificate_id") in by_number
-        ]
-    return [
-        {
-            "name": s.name,
-            "serial": s.serial,
-            "model": s.model,
-            "certificate_number": s.certificate_number,
-            "certificate_sha256": s.certificate_sha256,
-            "calibrated_on": s.calibrated_on,
-            "due_on": s.due_on,
-            "uncertainty": s.uncertainty,
-            "expanded_uncertainty_deg": s.expanded_uncertainty_deg,
-            "coverage_factor": s.coverage_factor,
-            "calibrated_by": s.calibrated_by,
-        }
-        for s in out
+    registered = {standard.id: standard for standard in store.standards.all()}
+    out = [
+        registered[int(i)]
+        for i in _requested_standard_ids(job)
+        if str(i).isdigit() and int(i) in registered
     ]
+    if not out:
+        out = _listed_standards(registered, r)
+    return [_standard_json(standard) for standard in out]
 
 
 def _operator_person(
@@ -246,11 +275,19 @@ def _specification(order: Order | None) -> Specification | None:
     )
 
 
+def _job_and_order(
+    store: Store, record: CalibrationRecord
+) -> tuple[CalibrationJob | None, Order | None]:
+    """The job that made the record and the order it ran for, each None where there is none."""
+    job = store.jobs.get_job(record.job_id) if record.job_id is not None else None
+    order = store.orders.get(job.order_id) if job is not None and job.order_id is not None else None
+    return job, order
+
+
 def record_conformity(store: Store, record: CalibrationRecord) -> dict[str, Any] | None:
     """The statements of conformity the record's order asks for (None without a specification), as
     records, orders and the feed show them: the same figures its certificate states."""
-    job = store.jobs.get_job(record.job_id) if record.job_id is not None else None
-    order = store.orders.get(job.order_id) if job is not None and job.order_id is not None else None
+    job, order = _job_and_order(store, record)
     spec = _specification(order)
     points = measured_points(store, record)
     if spec is None or not points:
@@ -260,6 +297,47 @@ def record_conformity(store: Store, record: CalibrationRecord) -> dict[str, Any]
     found = found_as(points, named, facts["conditions"])
     params = parameter_figures(parameter_result(record.model, facts["budget"]))
     return assess(spec, found, params).as_json()
+
+
+def _approval_of(store: Store, record_id: int) -> RecordApproval:
+    """The approval a certificate rests on (the last one); NotApproved for a draft or rejected
+    record."""
+    approvals = store.approvals.of_record(record_id)
+    status = store.approvals.status_of(approvals)
+    if status != "approved":
+        raise NotApproved(
+            f"record {record_id} is {status}; a certificate is issued only for an approved record"
+            " (POST /records/{id}/approve by a second person)"
+        )
+    return [
+        event for event in approvals if event.decision == "approve" and event.meaning == "approval"
+    ][-1]
+
+
+def _approval_content(approval: RecordApproval) -> Approval:
+    """The stored approval event as the certificate's content names it."""
+    return Approval(
+        actor=approval.actor,
+        at=approval.at,
+        meaning=approval.meaning,
+        record_sha256=approval.record_sha256,
+        event_sha256=approval.sha256,
+        note=approval.note,
+        signer=signer_of(approval),
+    )
+
+
+def _order_json(order: Order | None) -> dict[str, Any] | None:
+    """What the certificate's content reads of the order, None for an in-house calibration."""
+    if order is None:
+        return None
+    return {
+        "lims_order_id": order.lims_order_id,
+        "item_serial": order.item_serial,
+        "customer": order.customer,
+        "item_manufacturer": order.item_manufacturer,
+        "item_model": order.item_model,
+    }
 
 
 def issue_certificate(
@@ -278,17 +356,9 @@ def issue_certificate(
         raise IntegrityFailure(
             f"record {record_id} does not match its hash (tampered); no certificate is issued"
         )
-    approvals = store.approvals.of_record(record_id)
-    status = store.approvals.status_of(approvals)
-    if status != "approved":
-        raise NotApproved(
-            f"record {record_id} is {status}; a certificate is issued only for an approved record"
-            " (POST /records/{id}/approve by a second person)"
-        )
-    approval = [a for a in approvals if a.decision == "approve" and a.meaning == "approval"][-1]
+    approval = _approval_of(store, record_id)
     lab = laboratory(settings)
-    job = store.jobs.get_job(record.job_id) if record.job_id is not None else None
-    order = store.orders.get(job.order_id) if job is not None and job.order_id is not None else None
+    job, order = _job_and_order(store, record)
     replaced = store.certificates.replaced_certificate(record_id)
     today = today or dt.datetime.now(dt.UTC).date()
     spec = _specification(order)
@@ -296,15 +366,7 @@ def issue_certificate(
         number=f"{lab.certificate_prefix}-{today.year}-{record.id:06d}",
         record=_record_json(record),
         device=_device_json(store, record),
-        approval=Approval(
-            actor=approval.actor,
-            at=approval.at,
-            meaning=approval.meaning,
-            record_sha256=approval.record_sha256,
-            event_sha256=approval.sha256,
-            note=approval.note,
-            signer=signer_of(approval),
-        ),
+        approval=_approval_content(approval),
         operator=record.operator,
         operator_person=_operator_person(store, record, job),
         job_id=record.job_id,
@@ -313,15 +375,7 @@ def issue_certificate(
         issued_on=today,
         begin_on=_performed_on(record, job),
         standards=_standards_of(store, record, job),
-        order={
-            "lims_order_id": order.lims_order_id,
-            "item_serial": order.item_serial,
-            "customer": order.customer,
-            "item_manufacturer": order.item_manufacturer,
-            "item_model": order.item_model,
-        }
-        if order is not None
-        else None,
+        order=_order_json(order),
         calibration_points=_calibration_points(store, record),
         measured_points=measured_points(store, record),
         specification=spec,
@@ -363,6 +417,88 @@ class Verification:
         return not self.problems
 
 
+def _check_signature(
+    verification: Verification,
+    xml: bytes,
+    store: Store | None,
+    trusted_cert_pem: bytes | None,
+    allow_unsigned: bool,
+) -> bool:
+    """Checks the enveloped signature into the verification; True when the file is unsigned and no
+    certificate was given to check it with."""
+    from service.lims import signature  # signxml and lxml load only when a certificate is checked
+
+    sig = signature.check(xml, trusted_cert_pem)
+    unsigned = not sig.signed and trusted_cert_pem is None
+    if sig.ok:
+        verification.facts.append(
+            f"{sig.detail}; signed by {sig.signer} (certificate SHA-256 {sig.cert_sha256})"
+            + (", the certificate given" if trusted_cert_pem else "")
+        )
+    elif not unsigned:
+        verification.problems.append(f"signature: {sig.detail}")
+    elif allow_unsigned:
+        verification.facts.append(
+            "not signed, accepted as asked (--allow-unsigned): nothing in the file shows "
+            "whether it was altered"
+        )
+    elif store is None:
+        verification.problems.append(
+            "not signed: the file carries no signature, so nothing shows it is unaltered (a "
+            "signature may have been stripped); check it against the laboratory's database "
+            "(without --offline), or accept an unsigned file with --allow-unsigned"
+        )
+    return unsigned
+
+
+def _check_stored_copy(verification: Verification, stored: Certificate, unsigned: bool) -> None:
+    """The stored copy still matches its hash, and the file matches the stored copy."""
+    if hashlib.sha256(stored.xml).hexdigest() != stored.sha256:
+        verification.problems.append(
+            f"the stored copy of {verification.number} no longer matches its SHA-256 (the "
+            "database was altered)"
+        )
+    if verification.sha256 != stored.sha256:
+        verification.problems.append(
+            f"this file's SHA-256 {verification.sha256} differs from the one stored at issue "
+            f"{stored.sha256}: the file was altered"
+            + (" (its signature may have been stripped)" if unsigned else "")
+        )
+    else:
+        verification.facts.append(
+            f"SHA-256 {verification.sha256} equals the one stored when it was issued"
+            + (" (the laboratory issued it unsigned)" if unsigned else "")
+        )
+
+
+def _check_record(verification: Verification, store: Store, stored: Certificate) -> None:
+    """The record the certificate states still matches its hash, and its approval is bound to
+    it."""
+    try:
+        record = store.records.get_record(stored.record_id)
+    except UnknownEntity:
+        verification.problems.append(
+            f"record {stored.record_id} of {verification.number} is missing"
+        )
+        return
+    if sha256_hex(record_content(record)) != record.content_sha256:
+        verification.problems.append(f"record {record.id} no longer matches its hash (tampered)")
+    approvals = {event.id: event for event in store.approvals.of_record(record.id)}
+    approval = approvals.get(stored.approval_id)
+    if approval is None or approval.record_sha256 != record.content_sha256:
+        verification.problems.append(
+            f"the approval of record {record.id} is missing or bound to another hash"
+        )
+    else:
+        person = signer_of(approval)
+        verification.facts.append(
+            f"record {record.id} v{record.version} (SHA-256 {record.content_sha256}) approved by "
+            + (f"{person.described()} (token {approval.actor})" if person else approval.actor)
+            + f" at {approval.at:%Y-%m-%d %H:%M:%S} UTC ({approval.meaning})"
+        )
+    verification.problems += store.approvals.verify_approvals()
+
+
 def verify_certificate(
     xml: bytes,
     store: Store | None = None,
@@ -377,76 +513,24 @@ def verify_certificate(
     A file without a signature fails (its signature may have been stripped) unless `allow_unsigned`,
     or unless the laboratory's database holds it byte for byte (a laboratory that does not sign its
     certificates)."""
-    v = Verification(sha256=hashlib.sha256(xml).hexdigest())
+    verification = Verification(sha256=hashlib.sha256(xml).hexdigest())
     errors = dcc.certificate_errors(xml)
     if errors:
-        v.problems.append(f"not a valid DCC {dcc.DCC_VERSION} document: {errors[0]}")
-        return v
-    v.facts.append(
+        verification.problems.append(f"not a valid DCC {dcc.DCC_VERSION} document: {errors[0]}")
+        return verification
+    verification.facts.append(
         f"valid DCC {dcc.DCC_VERSION} document (checked offline against the shipped schemas)"
     )
-    v.number = dcc.unique_identifier(xml)
-    from service.lims import signature  # signxml and lxml load only when a certificate is checked
-
-    sig = signature.check(xml, trusted_cert_pem)
-    unsigned = not sig.signed and trusted_cert_pem is None
-    if sig.ok:
-        v.facts.append(
-            f"{sig.detail}; signed by {sig.signer} (certificate SHA-256 {sig.cert_sha256})"
-            + (", the certificate given" if trusted_cert_pem else "")
-        )
-    elif not unsigned:
-        v.problems.append(f"signature: {sig.detail}")
-    elif allow_unsigned:
-        v.facts.append(
-            "not signed, accepted as asked (--allow-unsigned): nothing in the file shows "
-            "whether it was altered"
-        )
-    elif store is None:
-        v.problems.append(
-            "not signed: the file carries no signature, so nothing shows it is unaltered (a "
-            "signature may have been stripped); check it against the laboratory's database "
-            "(without --offline), or accept an unsigned file with --allow-unsigned"
-        )
+    verification.number = dcc.unique_identifier(xml)
+    unsigned = _check_signature(verification, xml, store, trusted_cert_pem, allow_unsigned)
     if store is None:
-        return v
-    stored = store.certificates.certificate_by_number(v.number)
+        return verification
+    stored = store.certificates.certificate_by_number(verification.number)
     if stored is None:
-        v.problems.append(f"certificate {v.number} was not issued by this laboratory's database")
-        return v
-    if hashlib.sha256(stored.xml).hexdigest() != stored.sha256:
-        v.problems.append(
-            f"the stored copy of {v.number} no longer matches its SHA-256 (the database was "
-            "altered)"
+        verification.problems.append(
+            f"certificate {verification.number} was not issued by this laboratory's database"
         )
-    if v.sha256 != stored.sha256:
-        v.problems.append(
-            f"this file's SHA-256 {v.sha256} differs from the one stored at issue {stored.sha256}:"
-            " the file was altered"
-            + (" (its signature may have been stripped)" if unsigned else "")
-        )
-    else:
-        v.facts.append(
-            f"SHA-256 {v.sha256} equals the one stored when it was issued"
-            + (" (the laboratory issued it unsigned)" if unsigned else "")
-        )
-    try:
-        record = store.records.get_record(stored.record_id)
-    except UnknownEntity:
-        v.problems.append(f"record {stored.record_id} of {v.number} is missing")
-        return v
-    if sha256_hex(record_content(record)) != record.content_sha256:
-        v.problems.append(f"record {record.id} no longer matches its hash (tampered)")
-    approvals = {a.id: a for a in store.approvals.of_record(record.id)}
-    approval = approvals.get(stored.approval_id)
-    if approval is None or approval.record_sha256 != record.content_sha256:
-        v.problems.append(f"the approval of record {record.id} is missing or bound to another hash")
-    else:
-        person = signer_of(approval)
-        v.facts.append(
-            f"record {record.id} v{record.version} (SHA-256 {record.content_sha256}) approved by "
-            + (f"{person.described()} (token {approval.actor})" if person else approval.actor)
-            + f" at {approval.at:%Y-%m-%d %H:%M:%S} UTC ({approval.meaning})"
-        )
-    v.problems += store.approvals.verify_approvals()
-    return v
+        return verification
+    _check_stored_copy(verification, stored, unsigned)
+    _check_record(verification, store, stored)
+    return verification

@@ -39,7 +39,7 @@ class Conformity(StrEnum):
     FAIL = "fail"
 
 
-_SEVERITY = {c: i for i, c in enumerate(Conformity)}
+_SEVERITY = {conformity: i for i, conformity in enumerate(Conformity)}
 IN_WORDS = {
     Conformity.PASS: "conforms (pass)",
     Conformity.CONDITIONAL_PASS: "conforms, but the expanded uncertainty reaches beyond the limit "
@@ -94,16 +94,17 @@ def point_conformity(
     p: PointError, mpe: float, rule: DecisionRule, guard_band_fraction: float = 1.0
 ) -> Conformity:
     """One point's statement by the rule (the table in this module's docstring)."""
-    e, U = abs(p.error), p.expanded_u
+    abs_error, expanded_u = abs(p.error), p.expanded_u
     if rule is DecisionRule.SIMPLE_ACCEPTANCE:
-        return Conformity.PASS if e <= mpe else Conformity.FAIL
+        return Conformity.PASS if abs_error <= mpe else Conformity.FAIL
     if rule is DecisionRule.GUARDED_ACCEPTANCE:
-        return Conformity.PASS if e <= mpe - guard_band_fraction * U else Conformity.FAIL
-    if e + U <= mpe:
+        guard_band = guard_band_fraction * expanded_u
+        return Conformity.PASS if abs_error <= mpe - guard_band else Conformity.FAIL
+    if abs_error + expanded_u <= mpe:
         return Conformity.PASS
-    if e <= mpe:
+    if abs_error <= mpe:
         return Conformity.CONDITIONAL_PASS
-    if e - U <= mpe:
+    if abs_error - expanded_u <= mpe:
         return Conformity.CONDITIONAL_FAIL
     return Conformity.FAIL
 
@@ -112,15 +113,15 @@ def false_acceptance_probability(p: PointError, mpe: float) -> float:
     """The probability that the true error lies outside ±MPE, given the measured e and u = U/k with
     Student's t at the error's degrees of freedom (normal when infinite): what accepting this point
     risks."""
-    u = p.expanded_u / p.k if p.k > 0 else 0.0
-    if u <= 0:
+    standard_u = p.expanded_u / p.k if p.k > 0 else 0.0
+    if standard_u <= 0:
         return 0.0 if abs(p.error) <= mpe else 1.0
     nu = p.dof if math.isfinite(p.dof) and p.dof > 0 else math.inf
 
     def cdf(t: float) -> float:
         return float(special.ndtr(t)) if math.isinf(nu) else float(special.stdtr(nu, t))
 
-    return cdf((-mpe - p.error) / u) + 1.0 - cdf((mpe - p.error) / u)
+    return cdf((-mpe - p.error) / standard_u) + 1.0 - cdf((mpe - p.error) / standard_u)
 
 
 def decide(
@@ -132,27 +133,27 @@ def decide(
         raise ValueError("a statement of conformity needs at least one measured point")
     if not (mpe > 0 and math.isfinite(mpe)):
         raise ValueError(f"the largest permissible error {mpe!r} is not a number > 0")
-    verdicts = [point_conformity(p, mpe, rule, guard_band_fraction) for p in points]
+    verdicts = [point_conformity(point, mpe, rule, guard_band_fraction) for point in points]
     worst = max(
         range(len(points)),
         key=lambda i: (_SEVERITY[verdicts[i]], abs(points[i].error) + points[i].expanded_u),
     )
     passed = [
-        false_acceptance_probability(p, mpe)
-        for p, v in zip(points, verdicts, strict=True)
-        if v in (Conformity.PASS, Conformity.CONDITIONAL_PASS)
+        false_acceptance_probability(point, mpe)
+        for point, verdict in zip(points, verdicts, strict=True)
+        if verdict in (Conformity.PASS, Conformity.CONDITIONAL_PASS)
     ]
-    w = points[worst]
+    worst_point = points[worst]
     return Decision(
         verdicts[worst],
         rule,
         mpe,
         guard_band_fraction,
         worst,
-        w.error,
-        w.expanded_u,
-        w.k,
-        w.dof,
+        worst_point.error,
+        worst_point.expanded_u,
+        worst_point.k,
+        worst_point.dof,
         max(passed) if passed else None,
         len(points),
     )
@@ -188,11 +189,7 @@ class ConformityReport:
     def as_json(self) -> dict[str, Any]:
         """As records, orders, the feed and webhooks show it."""
         spec = self.specification
-        out: dict[str, Any] = {
-            q.quantity: q.decision.conformity.value if q.decision else None
-            for q in self.quantities
-            if q.quantity in AXES
-        }
+        out: dict[str, Any] = _verdicts(self.quantities, on_axes=True)
         out.update(
             {
                 "decision_rule": spec.decision_rule.value,
@@ -200,40 +197,54 @@ class ConformityReport:
                 "guard_band_fraction": spec.guard_band_fraction
                 if spec.decision_rule is DecisionRule.GUARDED_ACCEPTANCE
                 else None,
-                "parameters": {
-                    q.quantity: q.decision.conformity.value if q.decision else None
-                    for q in self.quantities
-                    if q.quantity not in AXES
-                }
+                "parameters": _verdicts(self.quantities, on_axes=False)
                 if spec.parameters
                 else None,
             }
         )
+        decided = [
+            (quantity.quantity, quantity.decision, quantity.unit)
+            for quantity in self.quantities
+            if quantity.decision
+        ]
         out["largest_probability_of_false_acceptance"] = {
-            q.quantity: q.decision.largest_false_acceptance for q in self.quantities if q.decision
+            name: decision.largest_false_acceptance for name, decision, _ in decided
         }
         out["worst_point"] = {
-            q.quantity: {
-                "error": q.decision.worst_error,
-                "expanded_uncertainty": q.decision.worst_expanded_u,
-                "unit": q.unit,
+            name: {
+                "error": decision.worst_error,
+                "expanded_uncertainty": decision.worst_expanded_u,
+                "unit": unit,
             }
-            for q in self.quantities
-            if q.decision
+            for name, decision, unit in decided
         }
         return out
+
+
+def _verdicts(quantities: Sequence[QuantityDecision], *, on_axes: bool) -> dict[str, str | None]:
+    """The statement's word per quantity (None: not assessable), of the axes' indication errors or
+    of the named parameters."""
+    return {
+        quantity.quantity: quantity.decision.conformity.value if quantity.decision else None
+        for quantity in quantities
+        if (quantity.quantity in AXES) == on_axes
+    }
 
 
 def axis_errors(found: Mapping[str, AxisAsFound]) -> dict[str, list[PointError]]:
     """Each axis's indication errors as points to decide on."""
     return {
         axis: [
-            PointError(float(e), float(U), float(k), float(nu))
-            for e, U, k, nu in zip(
-                f.error.value, f.error.expanded_u, f.error.k, f.error.dof, strict=True
+            PointError(float(error), float(expanded_u), float(k), float(nu))
+            for error, expanded_u, k, nu in zip(
+                axis_found.error.value,
+                axis_found.error.expanded_u,
+                axis_found.error.k,
+                axis_found.error.dof,
+                strict=True,
             )
         ]
-        for axis, f in found.items()
+        for axis, axis_found in found.items()
     }
 
 
@@ -244,7 +255,7 @@ def assess(
     named parameter."""
     out = []
     for axis, points in axis_errors(found).items():
-        d = (
+        decision = (
             decide(
                 points, spec.max_permissible_error_deg, spec.decision_rule, spec.guard_band_fraction
             )
@@ -256,13 +267,13 @@ def assess(
                 axis,
                 f"indication error, {axis} axis",
                 "deg",
-                d,
+                decision,
                 "" if points else "no measured points",
             )
         )
     for limit in spec.parameters:
-        p = parameters.get(limit.name)
-        if p is None:
+        figure = parameters.get(limit.name)
+        if figure is None:
             out.append(
                 QuantityDecision(
                     limit.name,
@@ -273,24 +284,24 @@ def assess(
                 )
             )
             continue
-        if p.expanded_u is None or p.k is None:
+        if figure.expanded_u is None or figure.k is None:
             out.append(
                 QuantityDecision(
                     limit.name,
                     f"parameter {limit.name}",
-                    p.unit,
+                    figure.unit,
                     None,
                     "the parameter was held fixed, not measured",
                 )
             )
             continue
-        nu = float(dof_of_coverage_factor(p.k))
-        point = PointError(p.value - limit.nominal, p.expanded_u, p.k, nu)
+        nu = float(dof_of_coverage_factor(figure.k))
+        point = PointError(figure.value - limit.nominal, figure.expanded_u, figure.k, nu)
         out.append(
             QuantityDecision(
                 limit.name,
-                f"parameter {limit.name} (deviation from {limit.nominal:g} {p.unit})",
-                p.unit,
+                f"parameter {limit.name} (deviation from {limit.nominal:g} {figure.unit})",
+                figure.unit,
                 decide(
                     [point],
                     limit.max_permissible_error,

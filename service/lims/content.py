@@ -23,6 +23,7 @@ from service.lims.conformity import (
     ConformityReport,
     Decision,
     ParameterFigure,
+    QuantityDecision,
     assess,
 )
 from service.lims.content_results import (
@@ -135,12 +136,11 @@ def _date(value: Any) -> dt.date:
     return dt.date.fromisoformat(str(value)[:10])
 
 
-def item_of(device: Mapping[str, Any], order: Mapping[str, Any] | None) -> dcc.Item:
-    """What identifies the item: the order's item serial, and the instrument's own serial where it
-    reports one; manufacturer and model from the order, else from the instrument's identification.
-    Never a port or role."""
-    # only an instrument that answers an identification states these
-    reported = bool(device.get("firmware"))
+def _item_identifications(
+    device: Mapping[str, Any], order: Mapping[str, Any] | None, reported: bool
+) -> list[dcc.Identification]:
+    """The order's item serial, then the instrument's own where it reports a different one; the
+    laboratory's device record only when neither names the item."""
     ids: list[dcc.Identification] = []
     if order is not None and order.get("item_serial"):
         ids.append(dcc.Identification("manufacturer", str(order["item_serial"]), "serial number"))
@@ -158,6 +158,16 @@ def item_of(device: Mapping[str, Any], order: Mapping[str, Any] | None) -> dcc.I
                 "the laboratory's device record (the instrument reports no serial number)",
             )
         )
+    return ids
+
+
+def item_of(device: Mapping[str, Any], order: Mapping[str, Any] | None) -> dcc.Item:
+    """What identifies the item: the order's item serial, and the instrument's own serial where it
+    reports one; manufacturer and model from the order, else from the instrument's identification.
+    Never a port or role."""
+    # only an instrument that answers an identification states these
+    reported = bool(device.get("firmware"))
+    ids = _item_identifications(device, order, reported)
     model = (order or {}).get("item_model") or (
         str(device["model"]) if reported and device.get("model") else None
     )
@@ -180,7 +190,7 @@ def standards_of(
     for row in rows:
         lab = row.get("calibrated_by") or None
         calibrated_on, due_on = _date(row["calibrated_on"]), _date(row["due_on"])
-        U, k = row.get("expanded_uncertainty_deg"), row.get("coverage_factor")
+        expanded_u, k = row.get("expanded_uncertainty_deg"), row.get("coverage_factor")
         out.append(
             dcc.ReferenceStandard(
                 name=str(row["name"]),
@@ -199,7 +209,9 @@ def standards_of(
                 )
                 if lab
                 else None,
-                expanded_uncertainty=float(U) if isinstance(U, int | float) else None,
+                expanded_uncertainty=float(expanded_u)
+                if isinstance(expanded_u, int | float)
+                else None,
                 coverage_factor=float(k) if isinstance(k, int | float) else None,
                 valid_on_performance_date=performed_on is None
                 or calibrated_on <= performed_on <= due_on,
@@ -217,22 +229,24 @@ def check_traceability(standards: Sequence[dcc.ReferenceStandard], performed_on:
             f"{NOT_TRACEABLE}: the record was calibrated without a registered reference standard; "
             "no certificate is issued (calibrate again naming a standard in reference_standards)"
         )
-    for s in standards:
+    for standard in standards:
         where = (
-            f"reference standard {s.name} (serial {s.serial}, certificate {s.certificate_number})"
+            f"reference standard {standard.name} (serial {standard.serial}, certificate "
+            f"{standard.certificate_number})"
         )
-        if not s.valid_on_performance_date:
+        if not standard.valid_on_performance_date:
             raise CertificateRefused(
-                f"{where} was not valid on {performed_on} (calibrated on {s.calibrated_on}, due on "
-                f"{s.due_on}); no certificate is issued"
+                f"{where} was not valid on {performed_on} (calibrated on {standard.calibrated_on}, "
+                f"due on {standard.due_on}); no certificate is issued"
             )
-        if s.calibrated_by is None:
+        if standard.calibrated_by is None:
             raise CertificateRefused(
                 f"{where} does not name the laboratory that calibrated it, so the result's "
                 "traceability cannot be stated; register its certificate again with calibrated_by"
             )
     if not any(
-        s.expanded_uncertainty is not None and s.coverage_factor is not None for s in standards
+        standard.expanded_uncertainty is not None and standard.coverage_factor is not None
+        for standard in standards
     ):
         raise CertificateRefused(
             f"{NOT_TRACEABLE}: no reference standard of the record states its uncertainty as a "
@@ -284,87 +298,106 @@ def persons_of(
     return ran, approver
 
 
+def _conformity_words(
+    quantity: QuantityDecision, decision: Decision, limit: float, shown: str
+) -> str:
+    """The statement in words: the outcome, the specification, the rule and the worst point (with
+    the probability of false acceptance where a point passed)."""
+    value, expanded_u, _ = gum_pair(
+        decision.worst_error, decision.worst_expanded_u, quantity.quantity
+    )
+    words = (
+        f"{quantity.name[:1].upper()}{quantity.name[1:]}: {IN_WORDS[decision.conformity]}. "
+        f"Specification: |error| <= {limit:g}{shown} (largest permissible error, MPE). Decision "
+        f"rule: {decision.rule_text()}; U is the expanded uncertainty (95 %) of the error at each "
+        f"point. The statement is that of the worst of the {decision.n_points} point(s): error "
+        f"{'+' if decision.worst_error > 0 else ''}{value}{shown} with U = {expanded_u}{shown}."
+    )
+    if decision.largest_false_acceptance is not None:
+        pfa = decision.largest_false_acceptance
+        words += " The largest probability of false acceptance over the points that pass is " + (
+            "below 0.01 %." if pfa < 1e-4 else f"{pfa:.2%}."
+        )
+    return words
+
+
+def _conformity_values(decision: Decision, limit: float, unit: str) -> list[dcc.Value]:
+    """The figures a statement of conformity rests on: the MPE, the worst point's error with its U,
+    the guard band and the probability of false acceptance where they apply."""
+    k = decision.worst_expanded_u / _u_of(decision) if _u_of(decision) > 0 else None
+    values = [
+        dcc.Value(
+            "max_permissible_error",
+            "largest permissible error (MPE)",
+            limit,
+            unit,
+            ref_type="tiltlab_conformityStatement",
+        ),
+        dcc.Value(
+            "worst_error",
+            "error at the worst point, with its expanded uncertainty",
+            decision.worst_error,
+            unit,
+            decision.worst_expanded_u if k else None,
+            k,
+            COVERAGE if k else None,
+            distribution="student-t" if k and math.isfinite(decision.worst_dof) else "normal",
+            ref_type="tiltlab_conformityStatement",
+        ),
+    ]
+    if decision.rule is DecisionRule.GUARDED_ACCEPTANCE:
+        values.append(
+            dcc.Value(
+                "guard_band_fraction",
+                "guard band w as a fraction of U",
+                decision.guard_band_fraction,
+                "1",
+                ref_type="tiltlab_conformityStatement",
+            )
+        )
+    if decision.largest_false_acceptance is not None:
+        values.append(
+            dcc.Value(
+                "largest_probability_of_false_acceptance",
+                "largest probability of false acceptance",
+                float(f"{decision.largest_false_acceptance:.2g}"),
+                "1",
+                ref_type="tiltlab_conformityStatement",
+            )
+        )
+    return values
+
+
 def conformity_statements(report: ConformityReport) -> list[dcc.Statement]:
     """One statement of conformity per quantity the specification names (17025 7.8.6, ILAC-G8)."""
     out = []
     spec = report.specification
-    for q in report.quantities:
-        d = q.decision
-        name = f"statement of conformity: {q.name}"
-        if d is None:
+    for quantity in report.quantities:
+        decision = quantity.decision
+        name = f"statement of conformity: {quantity.name}"
+        if decision is None:
             out.append(
                 dcc.Statement(
-                    f"No statement of conformity for {q.name}: {q.reason}.",
+                    f"No statement of conformity for {quantity.name}: {quantity.reason}.",
                     name=name,
                     ref_type="tiltlab_conformityStatement",
                 )
             )
             continue
-        unit = q.unit or "1"
+        unit = quantity.unit or "1"
         shown = "°" if unit == "deg" else f" {unit}"
-        limit = spec.max_permissible_error_deg if q.quantity in AXES else d.max_permissible_error
-        value, U, _ = gum_pair(d.worst_error, d.worst_expanded_u, q.quantity)
-        words = (
-            f"{q.name[:1].upper()}{q.name[1:]}: {IN_WORDS[d.conformity]}. Specification: |error| "
-            f"<= {limit:g}{shown} (largest permissible error, MPE). Decision rule: "
-            f"{d.rule_text()}; U is the expanded uncertainty (95 %) of the error at each point. "
-            f"The statement is that of the worst of the {d.n_points} point(s): error "
-            f"{'+' if d.worst_error > 0 else ''}{value}{shown} with U = {U}{shown}."
+        limit = (
+            spec.max_permissible_error_deg
+            if quantity.quantity in AXES
+            else decision.max_permissible_error
         )
-        if d.largest_false_acceptance is not None:
-            pfa = d.largest_false_acceptance
-            words += (
-                " The largest probability of false acceptance over the points that pass is "
-                + ("below 0.01 %." if pfa < 1e-4 else f"{pfa:.2%}.")
-            )
-        k = d.worst_expanded_u / _u_of(d) if _u_of(d) > 0 else None
-        values = [
-            dcc.Value(
-                "max_permissible_error",
-                "largest permissible error (MPE)",
-                limit,
-                unit,
-                ref_type="tiltlab_conformityStatement",
-            ),
-            dcc.Value(
-                "worst_error",
-                "error at the worst point, with its expanded uncertainty",
-                d.worst_error,
-                unit,
-                d.worst_expanded_u if k else None,
-                k,
-                COVERAGE if k else None,
-                distribution="student-t" if k and math.isfinite(d.worst_dof) else "normal",
-                ref_type="tiltlab_conformityStatement",
-            ),
-        ]
-        if d.rule is DecisionRule.GUARDED_ACCEPTANCE:
-            values.append(
-                dcc.Value(
-                    "guard_band_fraction",
-                    "guard band w as a fraction of U",
-                    d.guard_band_fraction,
-                    "1",
-                    ref_type="tiltlab_conformityStatement",
-                )
-            )
-        if d.largest_false_acceptance is not None:
-            values.append(
-                dcc.Value(
-                    "largest_probability_of_false_acceptance",
-                    "largest probability of false acceptance",
-                    float(f"{d.largest_false_acceptance:.2g}"),
-                    "1",
-                    ref_type="tiltlab_conformityStatement",
-                )
-            )
         out.append(
             dcc.Statement(
-                words,
+                _conformity_words(quantity, decision, limit, shown),
                 name=name,
-                conformity=d.conformity.value,
+                conformity=decision.conformity.value,
                 norm=ILAC_G8,
-                values=tuple(values),
+                values=tuple(_conformity_values(decision, limit, unit)),
                 ref_type="tiltlab_conformityStatement",
             )
         )
@@ -378,7 +411,140 @@ def _u_of(d: Decision) -> float:
 def parameter_figures(params: dcc.Result) -> dict[str, ParameterFigure]:
     """The parameters as the certificate states them (value, U, k), for statements about named
     parameters."""
-    return {v.label: ParameterFigure(v.value, v.expanded_u, v.k, v.unit) for v in params.values}
+    return {
+        value.label: ParameterFigure(value.value, value.expanded_u, value.k, value.unit)
+        for value in params.values
+    }
+
+
+def _point_results(
+    measured_points: Sequence[MeasuredPoint],
+    calibration_points: Sequence[Mapping[str, Any]],
+    standards: Sequence[dcc.ReferenceStandard],
+    conditions: Mapping[str, Any],
+    stated_range: Mapping[str, Any] | None,
+) -> tuple[list[dcc.Result], dict[str, AxisAsFound] | None]:
+    """The calibration points and, for a stage job's measured points, the indication errors as
+    found; with those errors, which statements of conformity rest on (None without measured
+    points)."""
+    if not measured_points:
+        points = calibration_points_result(calibration_points, stated_range)
+        return ([points] if points is not None else []), None
+    found = found_as(measured_points, standards, conditions)
+    points = stage_points_result(measured_points, found, stated_range)
+    errors = indication_error_result(measured_points, found)
+    return [result for result in (points, errors) if result is not None], found
+
+
+def _budget_stated(
+    budget: Mapping[str, Any] | None,
+    conditions: Mapping[str, Any],
+    measured_points: Sequence[MeasuredPoint],
+) -> dcc.Result | None:
+    """The uncertainty budget, with a single reading's U where the calibration points state how
+    many readings each mean took and their spread."""
+    fitted = [measured_point for measured_point in measured_points if measured_point.fitted]
+    per_point = conditions.get("samples_per_point")
+    return budget_result(
+        budget,
+        int(per_point) if isinstance(per_point, int) else None,
+        single_reading_noise(fitted) if fitted else None,
+    )
+
+
+def _influence_conditions(
+    record: Mapping[str, Any], budget: Mapping[str, Any] | None, conditions: Mapping[str, Any]
+) -> list[dcc.Condition]:
+    """The laboratory's ambient conditions, then the item's internal temperature, where the record
+    states them."""
+    return ambient_conditions(conditions) + [
+        condition for condition in (temperature_condition(record, budget),) if condition is not None
+    ]
+
+
+def _customer(order: Mapping[str, Any]) -> dcc.Contact:
+    """The customer the order names."""
+    customer = order["customer"]
+    return dcc.Contact(
+        str(customer["name"]),
+        dcc.Address(
+            str(customer["city"]),
+            str(customer["country_code"]),
+            customer.get("street") or None,
+            customer.get("post_code") or None,
+        ),
+        customer.get("email") or None,
+    )
+
+
+def _record_identifications(
+    record: Mapping[str, Any], approval: Approval, order: Mapping[str, Any] | None
+) -> list[dcc.Identification]:
+    """What ties the certificate to its order, the record (version and hash) and the approval."""
+    ids = [
+        dcc.Identification(
+            "calibrationLaboratory",
+            f"record {record['id']} version {record['version']}",
+            "calibration record",
+        ),
+        dcc.Identification(
+            "calibrationLaboratory", str(record["content_sha256"]), "record SHA-256"
+        ),
+        dcc.Identification(
+            "calibrationLaboratory", approval.event_sha256, "approval event SHA-256"
+        ),
+    ]
+    if order is not None:
+        ids.insert(0, dcc.Identification("customer", str(order["lims_order_id"]), "order"))
+    return ids
+
+
+def _statements(approval: Approval, order: Mapping[str, Any] | None) -> list[str | dcc.Statement]:
+    """The statements every certificate makes: how uncertainties are stated, who authorised it,
+    traceability; and that a calibration without an order is in-house."""
+    signer = approval.signer
+    assert signer is not None  # persons_of refused an approval without one
+    statements: list[str | dcc.Statement] = [
+        (
+            "Expanded uncertainties U = k·u are stated for a coverage probability of "
+            f"{COVERAGE:.0%}; k is Student's t at the degrees of freedom of each uncertainty "
+            "(the fit's, or the Welch-Satterthwaite effective degrees of freedom of a "
+            "combination), which each quantity's description states. Standard uncertainties u "
+            "are stated as such. Uncertainties are rounded to two significant digits and values "
+            "to the same decimal place (GUM 7.2.6)."
+        ),
+        (
+            "The results relate only to the item calibrated. This certificate was authorised by "
+            f"{signer.described()}, who approved the calibration record on "
+            f"{approval.at.astimezone(dt.UTC):%Y-%m-%d %H:%M} UTC ({approval.meaning}), bound to "
+            f"the record hash {approval.record_sha256}."
+        ),
+        (
+            "The results are traceable to the SI through the reference standards listed under "
+            "measuring equipment, "
+            "each calibrated by the laboratory named there and valid on the day of the calibration."
+        ),
+    ]
+    if order is None:
+        statements.append("In-house calibration: no customer order names this record.")
+    return statements
+
+
+def _conformity_stated(
+    specification: Specification | None,
+    found: Mapping[str, AxisAsFound] | None,
+    params: dcc.Result,
+) -> list[dcc.Statement]:
+    """The statements of conformity the order's specification asks for (none without one); refused
+    when the record has no measured points to state them on."""
+    if specification is None:
+        return []
+    if found is None:
+        raise CertificateRefused(
+            "the order asks for statements of conformity, but the record has no measured "
+            "points to state them on"
+        )
+    return conformity_statements(assess(specification, found, parameter_figures(params)))
 
 
 def build_certificate(
@@ -426,94 +592,22 @@ def build_certificate(
     )
     if validation is not None:
         results.append(validation)
-    found = None
-    if measured_points:
-        found = found_as(measured_points, named_standards, conditions)
-        points = stage_points_result(measured_points, found, record.get("calibrated_range"))
-    else:
-        points = calibration_points_result(calibration_points, record.get("calibrated_range"))
-    if points is not None:
-        results.append(points)
-    if (
-        found is not None
-        and measured_points
-        and (e := indication_error_result(measured_points, found)) is not None
-    ):
-        results.append(e)
-    fitted = [measured_point for measured_point in measured_points if measured_point.fitted]
-    per_point = conditions.get("samples_per_point")
-    if (
-        b := budget_result(
-            budget,
-            int(per_point) if isinstance(per_point, int) else None,
-            single_reading_noise(fitted) if fitted else None,
-        )
-    ) is not None:
-        results.append(b)
-    influence = ambient_conditions(conditions) + [
-        c for c in (temperature_condition(record, budget),) if c is not None
-    ]
-    if order is not None:
-        c = order["customer"]
-        customer = dcc.Contact(
-            str(c["name"]),
-            dcc.Address(
-                str(c["city"]),
-                str(c["country_code"]),
-                c.get("street") or None,
-                c.get("post_code") or None,
-            ),
-            c.get("email") or None,
-        )
-    else:
-        customer = laboratory.contact()
-    ids = [
-        dcc.Identification(
-            "calibrationLaboratory",
-            f"record {record['id']} version {record['version']}",
-            "calibration record",
-        ),
-        dcc.Identification(
-            "calibrationLaboratory", str(record["content_sha256"]), "record SHA-256"
-        ),
-        dcc.Identification(
-            "calibrationLaboratory", approval.event_sha256, "approval event SHA-256"
-        ),
-    ]
-    if order is not None:
-        ids.insert(0, dcc.Identification("customer", str(order["lims_order_id"]), "order"))
-    signer = approval.signer
-    assert signer is not None  # persons_of refused an approval without one
-    statements: list[str | dcc.Statement] = [
-        (
-            "Expanded uncertainties U = k·u are stated for a coverage probability of "
-            f"{COVERAGE:.0%}; k is Student's t at the degrees of freedom of each uncertainty "
-            "(the fit's, or the Welch-Satterthwaite effective degrees of freedom of a "
-            "combination), which each quantity's description states. Standard uncertainties u "
-            "are stated as such. Uncertainties are rounded to two significant digits and values "
-            "to the same decimal place (GUM 7.2.6)."
-        ),
-        (
-            "The results relate only to the item calibrated. This certificate was authorised by "
-            f"{signer.described()}, who approved the calibration record on "
-            f"{approval.at.astimezone(dt.UTC):%Y-%m-%d %H:%M} UTC ({approval.meaning}), bound to "
-            f"the record hash {approval.record_sha256}."
-        ),
-        (
-            "The results are traceable to the SI through the reference standards listed under "
-            "measuring equipment, "
-            "each calibrated by the laboratory named there and valid on the day of the calibration."
-        ),
-    ]
-    if order is None:
-        statements.append("In-house calibration: no customer order names this record.")
-    if specification is not None:
-        if found is None:
-            raise CertificateRefused(
-                "the order asks for statements of conformity, but the record has no measured "
-                "points to state them on"
-            )
-        statements += conformity_statements(assess(specification, found, parameter_figures(params)))
+    point_results, found = _point_results(
+        measured_points,
+        calibration_points,
+        named_standards,
+        conditions,
+        record.get("calibrated_range"),
+    )
+    results += point_results
+    budget_stated = _budget_stated(budget, conditions, measured_points)
+    if budget_stated is not None:
+        results.append(budget_stated)
+    influence = _influence_conditions(record, budget, conditions)
+    customer = _customer(order) if order is not None else laboratory.contact()
+    ids = _record_identifications(record, approval, order)
+    statements = _statements(approval, order)
+    statements += _conformity_stated(specification, found, params)
     return dcc.Certificate(
         number=number,
         software_name="tiltlab",
@@ -554,17 +648,20 @@ def found_as(
     reference values and the sensors' resolutions the record's conditions state."""
     components: list[Component] = [
         standard_component(
-            f"{s.name} (serial {s.serial}, certificate {s.certificate_number})",
-            s.expanded_uncertainty,
-            s.coverage_factor,
+            f"{standard.name} (serial {standard.serial}, certificate "
+            f"{standard.certificate_number})",
+            standard.expanded_uncertainty,
+            standard.coverage_factor,
         )
-        for s in standards
-        if s.expanded_uncertainty is not None and s.coverage_factor is not None and s.unit == "deg"
+        for standard in standards
+        if standard.expanded_uncertainty is not None
+        and standard.coverage_factor is not None
+        and standard.unit == "deg"
     ]
 
     def resolution(role: str) -> float | None:
-        r = (conditions.get("resolution_deg") or {}).get(role)
-        return float(r) if isinstance(r, int | float) and r > 0 else None
+        stated = (conditions.get("resolution_deg") or {}).get(role)
+        return float(stated) if isinstance(stated, int | float) and stated > 0 else None
 
     return as_found(
         points, components, resolution("reference_sensor"), resolution("measurement_sensor")

@@ -111,7 +111,9 @@ def _q(ns: str, tag: str) -> str:
 def _el(
     parent: ET.Element, tag: str, text: str | None = None, ns: str = DCC_NS, **attrs: str
 ) -> ET.Element:
-    element = ET.SubElement(parent, _q(ns, tag), {k.replace("_", ""): v for k, v in attrs.items()})
+    element = ET.SubElement(
+        parent, _q(ns, tag), {name.replace("_", ""): value for name, value in attrs.items()}
+    )
     if text is not None:
         element.text = text
     return element
@@ -151,11 +153,11 @@ def _identifications(parent: ET.Element, ids: Sequence[Identification], lang: st
     if not ids:
         return
     holder = _el(parent, "identifications")
-    for i in ids:
+    for identification in ids:
         element = _el(holder, "identification")
-        _el(element, "issuer", i.issuer)
-        _el(element, "value", i.value)
-        _text(element, "name", i.name, lang)
+        _el(element, "issuer", identification.issuer)
+        _el(element, "value", identification.value)
+        _text(element, "name", identification.name, lang)
 
 
 def _check_mu(u: float, k: float | None, p: float | None, what: str) -> tuple[float, float]:
@@ -181,11 +183,11 @@ def _quantity(parent: ET.Element, v: Value, lang: str) -> None:
     if v.expanded_u is None and v.standard_u is not None:
         if not v.standard_u >= 0:
             raise InvalidCertificate(f"{v.label}: standard uncertainty {v.standard_u} is not >= 0")
-        value, u, _ = gum_pair(v.value, v.standard_u, v.label)
+        value, standard_u, _ = gum_pair(v.value, v.standard_u, v.label)
         _el(real, "value", value, ns=SI_NS)
         _el(real, "unit", dsi_unit(v.unit), ns=SI_NS)
         mu = _el(_el(real, "measurementUncertaintyUnivariate", ns=SI_NS), "standardMU", ns=SI_NS)
-        _el(mu, "valueStandardMU", u, ns=SI_NS)
+        _el(mu, "valueStandardMU", standard_u, ns=SI_NS)
         if v.distribution:
             _el(mu, "distribution", v.distribution, ns=SI_NS)
         return
@@ -193,94 +195,103 @@ def _quantity(parent: ET.Element, v: Value, lang: str) -> None:
         _el(real, "value", plain(v.value, v.label), ns=SI_NS)
         _el(real, "unit", dsi_unit(v.unit), ns=SI_NS)
         return
-    k, p = _check_mu(v.expanded_u, v.k, v.probability, v.label)
-    value, u, _ = gum_pair(v.value, v.expanded_u, v.label)
+    k, probability = _check_mu(v.expanded_u, v.k, v.probability, v.label)
+    value, expanded_u, _ = gum_pair(v.value, v.expanded_u, v.label)
     _el(real, "value", value, ns=SI_NS)
     _el(real, "unit", dsi_unit(v.unit), ns=SI_NS)
     mu = _el(_el(real, "measurementUncertaintyUnivariate", ns=SI_NS), "expandedMU", ns=SI_NS)
-    _el(mu, "valueExpandedMU", u, ns=SI_NS)
+    _el(mu, "valueExpandedMU", expanded_u, ns=SI_NS)
     _el(mu, "coverageFactor", factor(k, v.label), ns=SI_NS)
-    _el(mu, "coverageProbability", plain(p, v.label), ns=SI_NS)
+    _el(mu, "coverageProbability", plain(probability, v.label), ns=SI_NS)
     if v.distribution:
         _el(mu, "distribution", v.distribution, ns=SI_NS)
+
+
+def _column_pairs(c: Column) -> tuple[list[tuple[str, str, int]], Sequence[float], float]:
+    """Each value with its U as GUM writes them, the coverage factors and the probability: one
+    uncertainty and factor per value, each checked."""
+    n = len(c.values)
+    if (
+        c.expanded_u is None
+        or len(c.expanded_u) != n
+        or c.k is None
+        or len(c.k) != n
+        or c.probability is None
+    ):
+        raise InvalidCertificate(
+            f"column {c.label}: {n} values need {n} uncertainties, coverage factors and a "
+            "probability"
+        )
+    pairs = []
+    for i, (value, expanded_u, k) in enumerate(zip(c.values, c.expanded_u, c.k, strict=True)):
+        _check_mu(expanded_u, k, c.probability, f"column {c.label}[{i}]")
+        pairs.append(gum_pair(value, expanded_u, c.label))
+    return pairs, c.k, c.probability
+
+
+def _plain_values(c: Column, decimals: Sequence[int] | None) -> str:
+    """A column without uncertainties of its own: each value to its row's decimals, else plain."""
+    return " ".join(
+        at_decimals(value, decimals[i], c.label) if decimals else plain(value, c.label)
+        for i, value in enumerate(c.values)
+    )
 
 
 def _column(parent: ET.Element, c: Column, decimals: Sequence[int] | None, lang: str) -> None:
     """One column; without uncertainties of its own, its values take the row's decimals (those of
     the row's U)."""
-    n = len(c.values)
-    if n == 0:
+    if len(c.values) == 0:
         raise InvalidCertificate(f"column {c.label}: no values")
     element = _el(parent, "quantity", refType=c.ref_type or "tiltlab_table")
     _text(element, "name", c.name, lang)
     lst = _el(element, "realListXMLList", ns=SI_NS)
     _el(lst, "labelXMLList", c.label, ns=SI_NS)
     if c.expanded_u is None:
-        text = [
-            at_decimals(v, decimals[i], c.label) if decimals else plain(v, c.label)
-            for i, v in enumerate(c.values)
-        ]
-        _el(lst, "valueXMLList", " ".join(text), ns=SI_NS)
+        _el(lst, "valueXMLList", _plain_values(c, decimals), ns=SI_NS)
         _el(lst, "unitXMLList", dsi_unit(c.unit), ns=SI_NS)
         return
-    if len(c.expanded_u) != n or c.k is None or len(c.k) != n or c.probability is None:
-        raise InvalidCertificate(
-            f"column {c.label}: {n} values need {n} uncertainties, coverage factors and a "
-            "probability"
-        )
-    pairs = []
-    for i, (v, u, k) in enumerate(zip(c.values, c.expanded_u, c.k, strict=True)):
-        _check_mu(u, k, c.probability, f"column {c.label}[{i}]")
-        pairs.append(gum_pair(v, u, c.label))
+    pairs, ks, probability = _column_pairs(c)
     _el(lst, "valueXMLList", " ".join(pair[0] for pair in pairs), ns=SI_NS)
     _el(lst, "unitXMLList", dsi_unit(c.unit), ns=SI_NS)
     mu = _el(
         _el(lst, "measurementUncertaintyUnivariateXMLList", ns=SI_NS), "expandedMUXMLList", ns=SI_NS
     )
     _el(mu, "valueExpandedMUXMLList", " ".join(pair[1] for pair in pairs), ns=SI_NS)
-    _el(mu, "coverageFactorXMLList", " ".join(factor(k, c.label) for k in c.k), ns=SI_NS)
-    _el(mu, "coverageProbabilityXMLList", plain(c.probability, c.label), ns=SI_NS)
+    _el(mu, "coverageFactorXMLList", " ".join(factor(k, c.label) for k in ks), ns=SI_NS)
+    _el(mu, "coverageProbabilityXMLList", plain(probability, c.label), ns=SI_NS)
     if c.distribution:
         _el(mu, "distributionXMLList", c.distribution, ns=SI_NS)
 
 
-def _covariance(parent: ET.Element, c: Covariance, lang: str) -> None:
+def _check_covariance_shape(c: Covariance) -> None:
+    """n labels need n values, units and factors, and an n×n matrix."""
     n = len(c.labels)
     if (
         not n
-        or any(len(x) != n for x in (c.values, c.units, c.k, c.matrix))
-        or any(len(r) != n for r in c.matrix)
+        or any(len(part) != n for part in (c.values, c.units, c.k, c.matrix))
+        or any(len(row) != n for row in c.matrix)
     ):
         raise InvalidCertificate(
             f"parameter covariance: {n} labels need {n} values, units, factors and an {n}x{n} "
             "matrix"
         )
-    element = _el(parent, "quantity", refType="tiltlab_parameterVector")
-    _text(element, "name", "fitted parameters with their covariance", lang)
-    if c.note:
-        _text(element, "description", c.note, lang)
-    lst = _el(element, "realListXMLList", ns=SI_NS)
-    _el(lst, "labelXMLList", " ".join(c.labels), ns=SI_NS)
+
+
+def _covariance_pairs(c: Covariance) -> list[tuple[str, str, int]]:
+    """Each parameter's value and U = k·√variance as GUM writes them; a negative variance is
+    refused."""
     pairs = []
     for i, label in enumerate(c.labels):
         var = float(c.matrix[i][i])
         if not var >= 0:
             raise InvalidCertificate(f"parameter covariance: the variance of {label} is {var}")
         pairs.append(gum_pair(c.values[i], c.k[i] * var**0.5, label))
-    _el(lst, "valueXMLList", " ".join(pair[0] for pair in pairs), ns=SI_NS)
-    _el(lst, "unitXMLList", " ".join(dsi_unit(unit) for unit in c.units), ns=SI_NS)
-    mu = _el(
-        _el(lst, "measurementUncertaintyUnivariateXMLList", ns=SI_NS), "expandedMUXMLList", ns=SI_NS
-    )
-    _el(mu, "valueExpandedMUXMLList", " ".join(pair[1] for pair in pairs), ns=SI_NS)
-    _el(mu, "coverageFactorXMLList", " ".join(factor(k, "k") for k in c.k), ns=SI_NS)
-    _el(mu, "coverageProbabilityXMLList", plain(c.probability, "p"), ns=SI_NS)
-    _el(mu, "distributionXMLList", c.distribution, ns=SI_NS)
-    region = _el(
-        _el(lst, "measurementUncertaintyMultivariateXMLList", ns=SI_NS),
-        "ellipsoidalRegionMUXMLList",
-        ns=SI_NS,
-    )
+    return pairs
+
+
+def _covariance_columns(region: ET.Element, c: Covariance) -> None:
+    """The covariance matrix column by column, each entry in the product of its two units."""
+    n = len(c.labels)
     matrix = _el(region, "covarianceMatrixXMLList", ns=SI_NS)
     for j in range(n):
         cov = _el(_el(matrix, "columnXMLList", ns=SI_NS), "covarianceXMLList", ns=SI_NS)
@@ -296,6 +307,32 @@ def _covariance(parent: ET.Element, c: Covariance, lang: str) -> None:
             " ".join(dsi_product(c.units[i], c.units[j]) for i in range(n)),
             ns=SI_NS,
         )
+
+
+def _covariance(parent: ET.Element, c: Covariance, lang: str) -> None:
+    _check_covariance_shape(c)
+    element = _el(parent, "quantity", refType="tiltlab_parameterVector")
+    _text(element, "name", "fitted parameters with their covariance", lang)
+    if c.note:
+        _text(element, "description", c.note, lang)
+    lst = _el(element, "realListXMLList", ns=SI_NS)
+    _el(lst, "labelXMLList", " ".join(c.labels), ns=SI_NS)
+    pairs = _covariance_pairs(c)
+    _el(lst, "valueXMLList", " ".join(pair[0] for pair in pairs), ns=SI_NS)
+    _el(lst, "unitXMLList", " ".join(dsi_unit(unit) for unit in c.units), ns=SI_NS)
+    mu = _el(
+        _el(lst, "measurementUncertaintyUnivariateXMLList", ns=SI_NS), "expandedMUXMLList", ns=SI_NS
+    )
+    _el(mu, "valueExpandedMUXMLList", " ".join(pair[1] for pair in pairs), ns=SI_NS)
+    _el(mu, "coverageFactorXMLList", " ".join(factor(k, "k") for k in c.k), ns=SI_NS)
+    _el(mu, "coverageProbabilityXMLList", plain(c.probability, "p"), ns=SI_NS)
+    _el(mu, "distributionXMLList", c.distribution, ns=SI_NS)
+    region = _el(
+        _el(lst, "measurementUncertaintyMultivariateXMLList", ns=SI_NS),
+        "ellipsoidalRegionMUXMLList",
+        ns=SI_NS,
+    )
+    _covariance_columns(region, c)
     _el(region, "coverageFactorXMLList", factor(c.region_k, "region k"), ns=SI_NS)
     _el(region, "coverageProbabilityXMLList", plain(c.probability, "p"), ns=SI_NS)
     _el(region, "distributionXMLList", c.distribution, ns=SI_NS)
@@ -306,22 +343,38 @@ def _row_decimals(columns: Sequence[Column]) -> list[int] | None:
     to them."""
     for column in columns:
         if column.expanded_u:
-            return [gum_decimals(u) if u > 0 else 6 for u in column.expanded_u]
+            return [
+                gum_decimals(expanded_u) if expanded_u > 0 else 6
+                for expanded_u in column.expanded_u
+            ]
     return None
 
 
 def _unique_labels(r: Result) -> None:
     """Software reads a quantity by its label: two quantities of one list never share one."""
     for what, labels in (
-        ("values", [v.label for v in r.values]),
+        ("values", [value.label for value in r.values]),
         ("table", [column.label for column in r.columns]),
     ):
-        seen = {x for x in labels if labels.count(x) > 1}
+        seen = {label for label in labels if labels.count(label) > 1}
         if seen:
             raise InvalidCertificate(
                 f"result {r.name!r}: the label(s) {', '.join(sorted(seen))} appear more than once "
                 f"in its {what}"
             )
+
+
+def _table(data: ET.Element, r: Result, lang: str) -> None:
+    """A result's table: columns of equal length, written to the decimals of each row's U."""
+    lengths = {len(column.values) for column in r.columns}
+    if len(lengths) != 1:
+        raise InvalidCertificate(
+            f"result {r.name!r}: its columns differ in length {sorted(lengths)}"
+        )
+    table = _el(data, "list", refType=r.table_ref_type)
+    decimals = _row_decimals(r.columns)
+    for column in r.columns:
+        _column(table, column, decimals, lang)
 
 
 def _result(parent: ET.Element, r: Result, lang: str) -> None:
@@ -334,18 +387,10 @@ def _result(parent: ET.Element, r: Result, lang: str) -> None:
     data = _el(element, "data")
     if r.values:
         lst = _el(data, "list", refType="tiltlab_values")
-        for v in r.values:
-            _quantity(lst, v, lang)
+        for value in r.values:
+            _quantity(lst, value, lang)
     if r.columns:
-        lengths = {len(column.values) for column in r.columns}
-        if len(lengths) != 1:
-            raise InvalidCertificate(
-                f"result {r.name!r}: its columns differ in length {sorted(lengths)}"
-            )
-        table = _el(data, "list", refType=r.table_ref_type)
-        decimals = _row_decimals(r.columns)
-        for column in r.columns:
-            _column(table, column, decimals, lang)
+        _table(data, r, lang)
     if r.covariance is not None:
         _covariance(_el(data, "list", refType="tiltlab_values"), r.covariance, lang)
 
@@ -386,6 +431,15 @@ def _standard(parent: ET.Element, s: ReferenceStandard, lang: str) -> None:
     _el(cert, "traceable", "true" if lab is not None else "false")
     if s.model:
         _el(element, "model", s.model)
+    _identifications(element, _standard_identifications(s), lang)
+    if s.expanded_uncertainty is not None and s.coverage_factor is not None:
+        _standard_quantities(element, s, s.expanded_uncertainty, s.coverage_factor, lang)
+
+
+def _standard_identifications(s: ReferenceStandard) -> list[Identification]:
+    """A standard's serial number, and its certificate number and the accreditation of the
+    laboratory that issued it, where that laboratory is named."""
+    lab = s.calibrated_by
     ids = [Identification("manufacturer", s.serial, "serial number")]
     if lab is not None:
         ids.append(
@@ -403,46 +457,56 @@ def _standard(parent: ET.Element, s: ReferenceStandard, lang: str) -> None:
                     f"accreditation of {lab.name}, which calibrated the standard",
                 )
             )
-    _identifications(element, ids, lang)
-    if s.expanded_uncertainty is not None and s.coverage_factor is not None:
-        qs = _el(element, "measuringEquipmentQuantities")
-        kind = "tiltlab_standardUncertaintyStatement"
-        for v in (
-            Value(
-                "expanded_uncertainty_of_the_standard",
-                "expanded uncertainty U of the standard's angle, as its certificate states it",
-                s.expanded_uncertainty,
-                s.unit,
-                ref_type=kind,
-            ),
-            Value(
-                "coverage_factor_of_the_standard",
-                "coverage factor k of that expanded uncertainty",
-                s.coverage_factor,
-                "1",
-                ref_type=kind,
-            ),
-            Value(
-                "coverage_probability_of_the_standard",
-                "coverage probability p of that expanded uncertainty",
-                s.coverage_probability,
-                "1",
-                ref_type=kind,
-            ),
-            Value(
-                "standard_uncertainty_of_the_standard",
-                "standard uncertainty u = U/k that enters the results",
-                s.expanded_uncertainty / s.coverage_factor,
-                s.unit,
-                ref_type=kind,
-            ),
-        ):
-            q = _el(qs, "measuringEquipmentQuantity", refType=v.ref_type)
-            _text(q, "name", v.name, lang)
-            real = _el(q, "real", ns=SI_NS)
-            _el(real, "label", v.label, ns=SI_NS)
-            _el(real, "value", plain(v.value, v.label), ns=SI_NS)
-            _el(real, "unit", dsi_unit(v.unit), ns=SI_NS)
+    return ids
+
+
+def _standard_quantities(
+    element: ET.Element,
+    s: ReferenceStandard,
+    expanded_uncertainty: float,
+    coverage_factor: float,
+    lang: str,
+) -> None:
+    """The uncertainty a standard's certificate states, as numbers: U, k, p and the u = U/k that
+    enters the results."""
+    qs = _el(element, "measuringEquipmentQuantities")
+    kind = "tiltlab_standardUncertaintyStatement"
+    for value in (
+        Value(
+            "expanded_uncertainty_of_the_standard",
+            "expanded uncertainty U of the standard's angle, as its certificate states it",
+            expanded_uncertainty,
+            s.unit,
+            ref_type=kind,
+        ),
+        Value(
+            "coverage_factor_of_the_standard",
+            "coverage factor k of that expanded uncertainty",
+            coverage_factor,
+            "1",
+            ref_type=kind,
+        ),
+        Value(
+            "coverage_probability_of_the_standard",
+            "coverage probability p of that expanded uncertainty",
+            s.coverage_probability,
+            "1",
+            ref_type=kind,
+        ),
+        Value(
+            "standard_uncertainty_of_the_standard",
+            "standard uncertainty u = U/k that enters the results",
+            expanded_uncertainty / coverage_factor,
+            s.unit,
+            ref_type=kind,
+        ),
+    ):
+        quantity = _el(qs, "measuringEquipmentQuantity", refType=value.ref_type)
+        _text(quantity, "name", value.name, lang)
+        real = _el(quantity, "real", ns=SI_NS)
+        _el(real, "label", value.label, ns=SI_NS)
+        _el(real, "value", plain(value.value, value.label), ns=SI_NS)
+        _el(real, "unit", dsi_unit(value.unit), ns=SI_NS)
 
 
 def _software(parent: ET.Element, name: str, release: str, kind: str, lang: str) -> None:
@@ -452,10 +516,9 @@ def _software(parent: ET.Element, name: str, release: str, kind: str, lang: str)
     _el(sw, "type", kind)
 
 
-def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
-    adm = _el(root, "administrativeData")
-    _software(_el(adm, "dccSoftware"), c.software_name, c.software_version, "application", lang)
-    _el(adm, "refTypeDefinitions")  # filled once the rest is written: it defines what is used
+def _core_data(adm: ET.Element, c: Certificate, lang: str) -> None:
+    """The certificate's core data: country, language, number, identifications, dates, and the
+    certificate it substitutes."""
     core = _el(adm, "coreData")
     _el(core, "countryCodeISO3166_1", c.country_code)
     _el(core, "usedLangCodeISO639_1", lang)
@@ -476,6 +539,10 @@ def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
         _el(ras, "typeOfChange", "substituted")
         _el(ras, "replacedUniqueIdentifier", c.replaces)
 
+
+def _item(adm: ET.Element, c: Certificate, lang: str) -> None:
+    """The calibrated item: name, firmware, manufacturer, model and at least one
+    identification."""
     item = _el(_el(adm, "items"), "item")
     _text(item, "name", c.item.name, lang)
     if c.item.firmware:
@@ -487,6 +554,14 @@ def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
     if not c.item.identifications:
         raise InvalidCertificate("the item needs an identification (its serial number)")
     _identifications(item, c.item.identifications, lang)
+
+
+def _administrative(root: ET.Element, c: Certificate, lang: str) -> ET.Element:
+    adm = _el(root, "administrativeData")
+    _software(_el(adm, "dccSoftware"), c.software_name, c.software_version, "application", lang)
+    _el(adm, "refTypeDefinitions")  # filled once the rest is written: it defines what is used
+    _core_data(adm, c, lang)
+    _item(adm, c, lang)
 
     lab = _el(adm, "calibrationLaboratory")
     if c.laboratory_code:
@@ -525,8 +600,20 @@ def _statement(parent: ET.Element, st: Statement, lang: str) -> None:
     if st.values:
         _unique_labels(Result(st.name or "statement", values=st.values))
         data = _el(element, "data")
-        for v in st.values:
-            _quantity(data, v, lang)
+        for value in st.values:
+            _quantity(data, value, lang)
+
+
+def _used_reftypes(root: ET.Element) -> list[str]:
+    """Every tiltlab_* refType the document uses, sorted, each once."""
+    return sorted(
+        {
+            ref_type
+            for element in root.iter()
+            for ref_type in (element.get("refType") or "").split()
+            if ref_type.startswith("tiltlab_")
+        }
+    )
 
 
 def _define_reftypes(root: ET.Element, lang: str) -> None:
@@ -534,15 +621,8 @@ def _define_reftypes(root: ET.Element, lang: str) -> None:
     refused."""
     holder = root.find(f"{_q(DCC_NS, 'administrativeData')}/{_q(DCC_NS, 'refTypeDefinitions')}")
     assert holder is not None
-    used = sorted(
-        {
-            t
-            for e in root.iter()
-            for t in (e.get("refType") or "").split()
-            if t.startswith("tiltlab_")
-        }
-    )
-    unknown = [t for t in used if t not in REFTYPES]
+    used = _used_reftypes(root)
+    unknown = [ref_type for ref_type in used if ref_type not in REFTYPES]
     if unknown:
         raise InvalidCertificate(f"refType(s) {', '.join(unknown)} have no definition")
     if not used:
@@ -550,13 +630,60 @@ def _define_reftypes(root: ET.Element, lang: str) -> None:
         assert adm is not None
         adm.remove(holder)
         return
-    for t in used:
-        element = _el(holder, "refTypeDefinition", refType=t)
-        _text(element, "name", t, lang)
-        _text(element, "description", REFTYPES[t], lang)
+    for ref_type in used:
+        element = _el(holder, "refTypeDefinition", refType=ref_type)
+        _text(element, "name", ref_type, lang)
+        _text(element, "description", REFTYPES[ref_type], lang)
         _el(element, "namespace", REFTYPE_NAMESPACE)
         _el(element, "link", REFTYPE_LINK)
-        _el(element, "value", t)
+        _el(element, "value", ref_type)
+
+
+def _used_methods(results: ET.Element, c: Certificate, lang: str) -> None:
+    """The methods the calibration followed, with their procedure and the papers they rest on."""
+    if not c.methods:
+        return
+    methods = _el(results, "usedMethods")
+    for method in c.methods:
+        used = _el(methods, "usedMethod")
+        _text(used, "name", method.name, lang)
+        _rich(used, "description", method.description, lang)
+        if method.procedure:
+            _el(used, "norm", method.procedure)
+        for ref in method.references:
+            _el(used, "reference", ref)
+
+
+def _influence_conditions(results: ET.Element, c: Certificate, lang: str) -> None:
+    """The conditions during the calibration, each with its values (a basic_ refType from its label
+    where it names none)."""
+    if not c.conditions:
+        return
+    conds = _el(results, "influenceConditions")
+    for cond in c.conditions:
+        ic = _el(
+            conds,
+            "influenceCondition",
+            refType=cond.ref_type or "basic_" + re.sub(r"[^A-Za-z0-9_]", "_", cond.label),
+        )
+        _text(ic, "name", cond.name, lang)
+        _rich(ic, "description", cond.description, lang)
+        data = _el(ic, "data")
+        for value in cond.values:
+            _quantity(data, value, lang)
+
+
+def _measurement_results(results: ET.Element, c: Certificate, lang: str) -> None:
+    """The measurement results, each with its results; a certificate needs at least one."""
+    if not c.results:
+        raise InvalidCertificate("a certificate needs at least one measurement result")
+    for mr in c.results:
+        element = _el(results, "measurementResult")
+        _text(element, "name", mr.name, lang)
+        _rich(element, "description", mr.description, lang)
+        rl = _el(element, "results")
+        for result in mr.results:
+            _result(rl, result, lang)
 
 
 def build_xml(c: Certificate) -> bytes:
@@ -570,16 +697,7 @@ def build_xml(c: Certificate) -> bytes:
     _administrative(root, c, lang)
 
     results = _el(root, "measurementResults")
-    if c.methods:
-        methods = _el(results, "usedMethods")
-        for m in c.methods:
-            um = _el(methods, "usedMethod")
-            _text(um, "name", m.name, lang)
-            _rich(um, "description", m.description, lang)
-            if m.procedure:
-                _el(um, "norm", m.procedure)
-            for ref in m.references:
-                _el(um, "reference", ref)
+    _used_methods(results, c, lang)
     _software(
         _el(results, "usedSoftware"), c.software_name, c.software_version, "application", lang
     )
@@ -587,28 +705,8 @@ def build_xml(c: Certificate) -> bytes:
         eq = _el(results, "measuringEquipments")
         for standard in c.standards:
             _standard(eq, standard, lang)
-    if c.conditions:
-        conds = _el(results, "influenceConditions")
-        for cond in c.conditions:
-            ic = _el(
-                conds,
-                "influenceCondition",
-                refType=cond.ref_type or "basic_" + re.sub(r"[^A-Za-z0-9_]", "_", cond.label),
-            )
-            _text(ic, "name", cond.name, lang)
-            _rich(ic, "description", cond.description, lang)
-            data = _el(ic, "data")
-            for v in cond.values:
-                _quantity(data, v, lang)
-    if not c.results:
-        raise InvalidCertificate("a certificate needs at least one measurement result")
-    for mr in c.results:
-        element = _el(results, "measurementResult")
-        _text(element, "name", mr.name, lang)
-        _rich(element, "description", mr.description, lang)
-        rl = _el(element, "results")
-        for result in mr.results:
-            _result(rl, result, lang)
+    _influence_conditions(results, c, lang)
+    _measurement_results(results, c, lang)
     if c.comment:
         _el(root, "comment").text = c.comment
     _define_reftypes(root, lang)
@@ -623,9 +721,8 @@ def issue(c: Certificate, signer: Any = None) -> bytes:
     validate: the only way certificate bytes leave this module. The signed content names the signing
     certificate's SHA-256, so the certificate the signature carries cannot be exchanged
     unnoticed."""
-    if signer is not None:
-        c = replace(c, signing_cert_sha256=signer.cert_sha256)
-    xml = build_xml(c)
+    certificate = replace(c, signing_cert_sha256=signer.cert_sha256) if signer is not None else c
+    xml = build_xml(certificate)
     if signer is not None:
         xml = signer(xml)
     validate(xml)

@@ -30,16 +30,39 @@ def render_html(xml: bytes) -> str:
     esc = html.escape
     number = _t(core, "dcc:uniqueIdentifier")
     out: list[str] = []
-    w = out.append
-    w("<!doctype html><html lang='en'><head><meta charset='utf-8'>")
-    w(f"<title>Calibration certificate {esc(number)}</title><style>{_CSS}</style></head><body>")
-    w(f"<h1>Calibration certificate</h1><p class='number'>{esc(number)}</p>")
+    write = out.append
+    write("<!doctype html><html lang='en'><head><meta charset='utf-8'>")
+    write(f"<title>Calibration certificate {esc(number)}</title><style>{_CSS}</style></head><body>")
+    write(f"<h1>Calibration certificate</h1><p class='number'>{esc(number)}</p>")
+    _render_substitution(write, core)
+    _table(write, "Certificate", _certificate_rows(core))
+    _table(write, "Calibration item", _item_rows(adm))
+    _table(write, "Laboratory and customer", _party_rows(adm))
+    stmts = adm.findall("dcc:statements/dcc:statement", _NS) if adm is not None else []
+    conformity = [st for st in stmts if st.get("refType") == "tiltlab_conformityStatement"]
+    _render_conformity(write, conformity)
+    _table(write, "Responsible persons", _person_rows(adm))
+    results = root.find("dcc:measurementResults", _NS)
+    if results is not None:
+        _render_measurement_results(write, results)
+    _render_statements(write, [st for st in stmts if st not in conformity])
+    _render_footer(write, root, adm)
+    write("</body></html>\n")
+    return "".join(out)
+
+
+def _render_substitution(write: Callable[[str], None], core: ET.Element | None) -> None:
+    """The notice that this certificate substitutes another, which is withdrawn."""
     ras = core.find("dcc:reportAmendedSubstituted", _NS) if core is not None else None
     if ras is not None:
-        w(
+        write(
             f"<p class='notice'>This certificate substitutes certificate "
-            f"{esc(_t(ras, 'dcc:replacedUniqueIdentifier'))}, which is withdrawn.</p>"
+            f"{html.escape(_t(ras, 'dcc:replacedUniqueIdentifier'))}, which is withdrawn.</p>"
         )
+
+
+def _certificate_rows(core: ET.Element | None) -> list[tuple[str, str]]:
+    """The certificate's dates, location and identifications."""
     rows = [
         ("Issued", _t(core, "dcc:issueDate")),
         (
@@ -52,7 +75,11 @@ def render_html(xml: bytes) -> str:
         core.findall("dcc:identifications/dcc:identification", _NS) if core is not None else []
     ):
         rows.append((_t(ident, "dcc:name/dcc:content"), _t(ident, "dcc:value")))
-    _table(w, "Certificate", rows)
+    return rows
+
+
+def _item_rows(adm: ET.Element | None) -> list[tuple[str, str]]:
+    """The calibrated item: name, model, manufacturer, identifications and firmware."""
     item = adm.find("dcc:items/dcc:item", _NS) if adm is not None else None
     rows = [
         ("Item", _t(item, "dcc:name/dcc:content")),
@@ -63,109 +90,147 @@ def render_html(xml: bytes) -> str:
         item.findall("dcc:identifications/dcc:identification", _NS) if item is not None else []
     ):
         rows.append((_t(ident, "dcc:name/dcc:content").capitalize(), _t(ident, "dcc:value")))
-    fw = _t(item, "dcc:installedSoftwares/dcc:software/dcc:release")
-    if fw:
-        rows.append(("Firmware", fw))
-    _table(w, "Calibration item", rows)
+    firmware = _t(item, "dcc:installedSoftwares/dcc:software/dcc:release")
+    if firmware:
+        rows.append(("Firmware", firmware))
+    return rows
+
+
+def _party_rows(adm: ET.Element | None) -> list[tuple[str, str]]:
+    """The laboratory (with its accreditation) and the customer."""
     lab = adm.find("dcc:calibrationLaboratory", _NS) if adm is not None else None
     cust = adm.find("dcc:customer", _NS) if adm is not None else None
-    _table(
-        w,
-        "Laboratory and customer",
-        [
-            (
-                "Laboratory",
-                _contact_text(lab.find("dcc:contact", _NS) if lab is not None else None),
-            ),
-            ("Accreditation", _t(lab, "dcc:calibrationLaboratoryCode")),
-            ("Customer", _contact_text(cust)),
-        ],
+    return [
+        (
+            "Laboratory",
+            _contact_text(lab.find("dcc:contact", _NS) if lab is not None else None),
+        ),
+        ("Accreditation", _t(lab, "dcc:calibrationLaboratoryCode")),
+        ("Customer", _contact_text(cust)),
+    ]
+
+
+def _render_conformity(write: Callable[[str], None], conformity: list[ET.Element]) -> None:
+    """The statements of conformity as one table: quantity, outcome, decision and figures."""
+    if not conformity:
+        return
+    esc = html.escape
+    write(
+        "<h2>Statements of conformity</h2><table "
+        "class='verdicts'><tr><th>Quantity</th><th>Statement</th><th>Decision</th>"
+        "<th>Figures</th></tr>"
     )
-    stmts = adm.findall("dcc:statements/dcc:statement", _NS) if adm is not None else []
-    conformity = [st for st in stmts if st.get("refType") == "tiltlab_conformityStatement"]
-    if conformity:
-        w(
-            "<h2>Statements of conformity</h2><table "
-            "class='verdicts'><tr><th>Quantity</th><th>Statement</th><th>Decision</th>"
-            "<th>Figures</th></tr>"
+    for st in conformity:
+        verdict = _t(st, "dcc:conformity")
+        figures = "; ".join(
+            f"{_t(quantity, 'dcc:name/dcc:content')} {_real_text(quantity.find('si:real', _NS))}"
+            for quantity in st.findall("dcc:data/dcc:quantity", _NS)
         )
-        for st in conformity:
-            verdict = _t(st, "dcc:conformity")
-            figures = "; ".join(
-                f"{_t(q, 'dcc:name/dcc:content')} {_real_text(q.find('si:real', _NS))}"
-                for q in st.findall("dcc:data/dcc:quantity", _NS)
-            )
-            w(
-                "<tr><td>"
-                f"{esc(_t(st, 'dcc:name/dcc:content').removeprefix('statement of conformity: '))}"
-                "</td>"
-                "<td class='verdict "
-                f"{esc(verdict)}'>{esc(CONFORMITY_WORDS.get(verdict, 'no statement'))}</td>"
-                f"<td>{esc(_t(st, 'dcc:declaration/dcc:content'))} {esc(_t(st, 'dcc:norm'))}</td>"
-                f"<td>{esc(figures)}</td></tr>"
-            )
-        w("</table>")
+        write(
+            "<tr><td>"
+            f"{esc(_t(st, 'dcc:name/dcc:content').removeprefix('statement of conformity: '))}"
+            "</td>"
+            "<td class='verdict "
+            f"{esc(verdict)}'>{esc(CONFORMITY_WORDS.get(verdict, 'no statement'))}</td>"
+            f"<td>{esc(_t(st, 'dcc:declaration/dcc:content'))} {esc(_t(st, 'dcc:norm'))}</td>"
+            f"<td>{esc(figures)}</td></tr>"
+        )
+    write("</table>")
+
+
+def _person_rows(adm: ET.Element | None) -> list[tuple[str, str]]:
+    """The responsible persons: the main signer who authorised it, and who performed it."""
     rows = []
-    for p in adm.findall("dcc:respPersons/dcc:respPerson", _NS) if adm is not None else []:
+    for person in adm.findall("dcc:respPersons/dcc:respPerson", _NS) if adm is not None else []:
         main = (
-            "Authorised by (main signer)" if _t(p, "dcc:mainSigner") == "true" else "Performed by"
+            "Authorised by (main signer)"
+            if _t(person, "dcc:mainSigner") == "true"
+            else "Performed by"
         )
         rows.append(
             (
                 main,
-                f"{_t(p, 'dcc:person/dcc:name/dcc:content')}, {_t(p, 'dcc:role')} — "
-                + _t(p, "dcc:description/dcc:content"),
+                f"{_t(person, 'dcc:person/dcc:name/dcc:content')}, {_t(person, 'dcc:role')} — "
+                + _t(person, "dcc:description/dcc:content"),
             )
         )
-    _table(w, "Responsible persons", rows)
-    results = root.find("dcc:measurementResults", _NS)
-    if results is not None:
-        rows = [
+    return rows
+
+
+def _method_rows(results: ET.Element) -> list[tuple[str, str]]:
+    """Each method used: its name, with its description, procedure and references."""
+    return [
+        (
+            _t(method, "dcc:name/dcc:content"),
+            " ".join(
+                filter(
+                    None,
+                    [
+                        _t(method, "dcc:description/dcc:content"),
+                        _t(method, "dcc:norm"),
+                        "; ".join(
+                            (reference.text or "")
+                            for reference in method.findall("dcc:reference", _NS)
+                        ),
+                    ],
+                )
+            ),
+        )
+        for method in results.findall("dcc:usedMethods/dcc:usedMethod", _NS)
+    ]
+
+
+def _condition_rows(results: ET.Element) -> list[tuple[str, str]]:
+    """Each influence condition: its values, then its description."""
+    rows = []
+    for condition in results.findall("dcc:influenceConditions/dcc:influenceCondition", _NS):
+        reals = "; ".join(
+            f"{_t(quantity, 'dcc:name/dcc:content')} {_real_text(quantity.find('si:real', _NS))}"
+            for quantity in condition.findall("dcc:data/dcc:quantity", _NS)
+        )
+        rows.append(
             (
-                _t(m, "dcc:name/dcc:content"),
-                " ".join(
-                    filter(
-                        None,
-                        [
-                            _t(m, "dcc:description/dcc:content"),
-                            _t(m, "dcc:norm"),
-                            "; ".join((r.text or "") for r in m.findall("dcc:reference", _NS)),
-                        ],
-                    )
-                ),
+                _t(condition, "dcc:name/dcc:content"),
+                f"{reals}. {_t(condition, 'dcc:description/dcc:content')}",
             )
-            for m in results.findall("dcc:usedMethods/dcc:usedMethod", _NS)
-        ]
-        _table(w, "Method", rows)
-        _render_standards(w, results.findall("dcc:measuringEquipments/dcc:measuringEquipment", _NS))
-        rows = []
-        for c in results.findall("dcc:influenceConditions/dcc:influenceCondition", _NS):
-            reals = "; ".join(
-                f"{_t(q, 'dcc:name/dcc:content')} {_real_text(q.find('si:real', _NS))}"
-                for q in c.findall("dcc:data/dcc:quantity", _NS)
-            )
-            rows.append(
-                (_t(c, "dcc:name/dcc:content"), f"{reals}. {_t(c, 'dcc:description/dcc:content')}")
-            )
-        _table(w, "Conditions", rows)
-        for mr in results.findall("dcc:measurementResult", _NS):
-            w(f"<h2>{esc(_t(mr, 'dcc:name/dcc:content'))}</h2>")
-            desc = _t(mr, "dcc:description/dcc:content")
-            if desc:
-                w(f"<p>{esc(desc)}</p>")
-            for r in mr.findall("dcc:results/dcc:result", _NS):
-                _render_result(w, r)
-    others = [_t(st, "dcc:declaration/dcc:content") for st in stmts if st not in conformity]
-    if others:
-        w("<h2>Statements</h2>" + "".join(f"<p>{esc(s)}</p>" for s in others))
+        )
+    return rows
+
+
+def _render_measurement_results(write: Callable[[str], None], results: ET.Element) -> None:
+    """The methods, the reference standards, the conditions, then each measurement result."""
+    esc = html.escape
+    _table(write, "Method", _method_rows(results))
+    _render_standards(write, results.findall("dcc:measuringEquipments/dcc:measuringEquipment", _NS))
+    _table(write, "Conditions", _condition_rows(results))
+    for mr in results.findall("dcc:measurementResult", _NS):
+        write(f"<h2>{esc(_t(mr, 'dcc:name/dcc:content'))}</h2>")
+        desc = _t(mr, "dcc:description/dcc:content")
+        if desc:
+            write(f"<p>{esc(desc)}</p>")
+        for result in mr.findall("dcc:results/dcc:result", _NS):
+            _render_result(write, result)
+
+
+def _render_statements(write: Callable[[str], None], others: list[ET.Element]) -> None:
+    """The certificate's other statements, each a paragraph."""
+    declarations = [_t(st, "dcc:declaration/dcc:content") for st in others]
+    if declarations:
+        write(
+            "<h2>Statements</h2>"
+            + "".join(f"<p>{html.escape(declaration)}</p>" for declaration in declarations)
+        )
+
+
+def _render_footer(write: Callable[[str], None], root: ET.Element, adm: ET.Element | None) -> None:
+    """The software that issued it, and that the XML is the authoritative version."""
+    esc = html.escape
     sw = adm.find("dcc:dccSoftware/dcc:software", _NS) if adm is not None else None
-    w(
+    write(
         f"<p class='foot'>Issued by {esc(_t(sw, 'dcc:name/dcc:content'))} "
         f"{esc(_t(sw, 'dcc:release'))} as a DCC {esc(root.get('schemaVersion', ''))} document; "
         "the XML certificate is the authoritative version.</p>"
     )
-    w("</body></html>\n")
-    return "".join(out)
 
 
 CONFORMITY_WORDS = {
@@ -242,12 +307,12 @@ def _real_text(real: ET.Element | None) -> str:
 
 
 def _table(w: Callable[[str], None], title: str, rows: list[tuple[str, str]]) -> None:
-    rows = [(k, v) for k, v in rows if v and v.strip(" —")]
+    rows = [(heading, value) for heading, value in rows if value and value.strip(" —")]
     if not rows:
         return
     w(f"<h2>{html.escape(title)}</h2><table>")
-    for k, v in rows:
-        w(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>")
+    for heading, value in rows:
+        w(f"<tr><th>{html.escape(heading)}</th><td>{html.escape(value)}</td></tr>")
     w("</table>")
 
 
@@ -265,8 +330,8 @@ def _render_standards(w: Callable[[str], None], standards: list[ET.Element]) -> 
     for eq in standards:
         cert = eq.find("dcc:certificate", _NS)
         quantities = "; ".join(
-            f"{_t(q, 'dcc:name/dcc:content')}: {_real_text(q.find('si:real', _NS))}"
-            for q in eq.findall(
+            f"{_t(quantity, 'dcc:name/dcc:content')}: {_real_text(quantity.find('si:real', _NS))}"
+            for quantity in eq.findall(
                 "dcc:measuringEquipmentQuantities/dcc:measuringEquipmentQuantity", _NS
             )
         )
@@ -279,8 +344,8 @@ def _render_standards(w: Callable[[str], None], standards: list[ET.Element]) -> 
             else "NOT VALID on the day of the calibration",
         ]
         ids = "; ".join(
-            f"{_t(i, 'dcc:name/dcc:content')}: {_t(i, 'dcc:value')}"
-            for i in eq.findall("dcc:identifications/dcc:identification", _NS)
+            f"{_t(ident, 'dcc:name/dcc:content')}: {_t(ident, 'dcc:value')}"
+            for ident in eq.findall("dcc:identifications/dcc:identification", _NS)
         )
         w(
             f"<tr><td>{esc(_t(eq, 'dcc:name/dcc:content'))}<br>{esc(ids)}</td>"
@@ -321,32 +386,46 @@ def _render_values(w: Callable[[str], None], quantities: list[ET.Element]) -> No
         "si:measurementUncertaintyUnivariate/si:standardMU/",
     )
     columns: list[tuple[str, Callable[[ET.Element, ET.Element], str], bool]] = [
-        ("Quantity", lambda q, r: _t(q, "dcc:name/dcc:content"), False),
-        ("Value", lambda q, r: _t(r, "si:value"), True),
-        ("Expanded uncertainty U", lambda q, r: _t(r, mu + "si:valueExpandedMU"), True),
-        ("k", lambda q, r: _t(r, mu + "si:coverageFactor"), True),
-        ("Standard uncertainty u", lambda q, r: _t(r, su + "si:valueStandardMU"), True),
-        ("Unit", lambda q, r: _unit_text(_t(r, "si:unit")), False),
-        ("Note", lambda q, r: _t(q, "dcc:description/dcc:content"), False),
+        ("Quantity", lambda quantity, real: _t(quantity, "dcc:name/dcc:content"), False),
+        ("Value", lambda quantity, real: _t(real, "si:value"), True),
+        (
+            "Expanded uncertainty U",
+            lambda quantity, real: _t(real, mu + "si:valueExpandedMU"),
+            True,
+        ),
+        ("k", lambda quantity, real: _t(real, mu + "si:coverageFactor"), True),
+        (
+            "Standard uncertainty u",
+            lambda quantity, real: _t(real, su + "si:valueStandardMU"),
+            True,
+        ),
+        ("Unit", lambda quantity, real: _unit_text(_t(real, "si:unit")), False),
+        ("Note", lambda quantity, real: _t(quantity, "dcc:description/dcc:content"), False),
     ]
-    rows = [(q, r) for q in quantities if (r := q.find("si:real", _NS)) is not None]
-    used = [column for column in columns if any(column[1](q, r) for q, r in rows)]
-    w("<table><tr>" + "".join(f"<th>{esc(h)}</th>" for h, _, _ in used) + "</tr>")
-    for q, r in rows:
+    rows = [
+        (quantity, real)
+        for quantity in quantities
+        if (real := quantity.find("si:real", _NS)) is not None
+    ]
+    used = [
+        column for column in columns if any(column[1](quantity, real) for quantity, real in rows)
+    ]
+    w("<table><tr>" + "".join(f"<th>{esc(heading)}</th>" for heading, _, _ in used) + "</tr>")
+    for quantity, real in rows:
         w(
             "<tr>"
             + "".join(
-                ("<td class='n'>" if n else "<td>") + esc(get(q, r)) + "</td>" for _, get, n in used
+                ("<td class='n'>" if numeric else "<td>") + esc(get(quantity, real)) + "</td>"
+                for _, get, numeric in used
             )
             + "</tr>"
         )
     w("</table>")
 
 
-def _render_table(w: Callable[[str], None], quantities: list[ET.Element]) -> None:
-    """Columns of equal length as one table: each quantity's values, then its expanded uncertainty
-    and k."""
-    esc = html.escape
+def _table_columns(quantities: list[ET.Element]) -> list[tuple[str, list[str]]]:
+    """Each list quantity's heading and values, followed by its expanded uncertainties and k where
+    it has them."""
     cols = []
     for quantity in quantities:
         xl = quantity.find("si:realListXMLList", _NS)
@@ -369,20 +448,45 @@ def _render_table(w: Callable[[str], None], quantities: list[ET.Element]) -> Non
                 (f"expanded uncertainty U / {unit}" if unit else "expanded uncertainty U", us)
             )
             cols.append(("k", ks))
+    return cols
+
+
+def _render_table(w: Callable[[str], None], quantities: list[ET.Element]) -> None:
+    """Columns of equal length as one table: each quantity's values, then its expanded uncertainty
+    and k."""
+    esc = html.escape
+    cols = _table_columns(quantities)
     if not cols:
         return
     w(
         "<table class='points'><tr><th>#</th>"
-        + "".join(f"<th>{esc(h)}</th>" for h, _ in cols)
+        + "".join(f"<th>{esc(heading)}</th>" for heading, _ in cols)
         + "</tr>"
     )
-    for i in range(max(len(v) for _, v in cols)):
+    for i in range(max(len(values) for _, values in cols)):
         w(
             f"<tr><td class='n'>{i + 1}</td>"
-            + "".join(f"<td class='n'>{esc(v[i] if i < len(v) else '')}</td>" for _, v in cols)
+            + "".join(
+                f"<td class='n'>{esc(values[i] if i < len(values) else '')}</td>"
+                for _, values in cols
+            )
             + "</tr>"
         )
     w("</table>")
+
+
+def _covariance_columns(xl: ET.Element | None) -> list[list[float]]:
+    """The parameters' covariance matrix, column by column (none without a parameter list)."""
+    if xl is None:
+        return []
+    return [
+        [float(value) for value in _t(column, "si:covarianceXMLList/si:valueXMLList").split()]
+        for column in xl.findall(
+            "si:measurementUncertaintyMultivariateXMLList/si:ellipsoidalRegionMUXMLList/"
+            "si:covarianceMatrixXMLList/si:columnXMLList",
+            _NS,
+        )
+    ]
 
 
 def _render_correlations(w: Callable[[str], None], q: ET.Element) -> None:
@@ -390,18 +494,7 @@ def _render_correlations(w: Callable[[str], None], q: ET.Element) -> None:
     esc = html.escape
     xl = q.find("si:realListXMLList", _NS)
     labels = _t(xl, "si:labelXMLList").split()
-    cols = [
-        [float(v) for v in _t(c, "si:covarianceXMLList/si:valueXMLList").split()]
-        for c in (
-            xl.findall(
-                "si:measurementUncertaintyMultivariateXMLList/si:ellipsoidalRegionMUXMLList/"
-                "si:covarianceMatrixXMLList/si:columnXMLList",
-                _NS,
-            )
-            if xl is not None
-            else []
-        )
-    ]
+    cols = _covariance_columns(xl)
     if not labels or len(cols) != len(labels):
         return
     sd = [math.sqrt(cols[i][i]) if cols[i][i] > 0 else 0.0 for i in range(len(labels))]
@@ -409,13 +502,13 @@ def _render_correlations(w: Callable[[str], None], q: ET.Element) -> None:
         "<p>Correlation coefficients of the parameters (the certificate's XML carries their full "
         "covariance matrix):</p>"
     )
-    w("<table><tr><th></th>" + "".join(f"<th>{esc(n)}</th>" for n in labels) + "</tr>")
-    for i, n in enumerate(labels):
+    w("<table><tr><th></th>" + "".join(f"<th>{esc(label)}</th>" for label in labels) + "</tr>")
+    for i, label in enumerate(labels):
         cells = "".join(
             f"<td class='n'>{cols[j][i] / (sd[i] * sd[j]):+.4f}</td>"
             if sd[i] and sd[j]
             else "<td></td>"
             for j in range(len(labels))
         )
-        w(f"<tr><th>{esc(n)}</th>{cells}</tr>")
+        w(f"<tr><th>{esc(label)}</th>{cells}</tr>")
     w("</table>")

@@ -106,7 +106,7 @@ class CalibratingLaboratory:
     city: str | None = None
 
     def described(self) -> str:
-        where = ", ".join(p for p in (self.city, self.country_code) if p)
+        where = ", ".join(part for part in (self.city, self.country_code) if part)
         return f"{self.name} ({where})" + (
             f", accreditation {self.accreditation}" if self.accreditation else ""
         )

@@ -33,6 +33,19 @@ _DSI_UNIT = {
 SIGNIFICANT = 6
 
 
+def _term_power(unit: str, term: str, sign: int) -> tuple[str, int]:
+    """One factor of a unit ('count^2') as its D-SI unit and signed exponent; refused when the word
+    has no D-SI equivalent or the power is not an integer."""
+    word, _, power = term.strip().partition("^")
+    if word not in _DSI_UNIT:
+        raise InvalidCertificate(f"unit {unit!r}: {word!r} has no D-SI equivalent")
+    try:
+        exponent = sign * (int(power) if power else 1)
+    except ValueError:
+        raise InvalidCertificate(f"unit {unit!r}: exponent {power!r} is not an integer") from None
+    return _DSI_UNIT[word], exponent
+
+
 def unit_powers(unit: str) -> dict[str, int]:
     """{D-SI unit: exponent} of 'deg', 'arcsec/count^2', '1/deg' and the like (pure numbers
     dropped)."""
@@ -44,25 +57,20 @@ def unit_powers(unit: str) -> dict[str, int]:
     for side, sign in ((num, 1), (den, -1)):
         if not side:
             continue
-        for factor in side.split("*"):
-            word, _, power = factor.strip().partition("^")
-            if word not in _DSI_UNIT:
-                raise InvalidCertificate(f"unit {unit!r}: {word!r} has no D-SI equivalent")
-            try:
-                exponent = sign * (int(power) if power else 1)
-            except ValueError:
-                raise InvalidCertificate(
-                    f"unit {unit!r}: exponent {power!r} is not an integer"
-                ) from None
-            if _DSI_UNIT[word] != r"\one":
-                out[_DSI_UNIT[word]] = out.get(_DSI_UNIT[word], 0) + exponent
-    return {u: e for u, e in out.items() if e}
+        for term in side.split("*"):
+            dsi, exponent = _term_power(unit, term, sign)
+            if dsi != r"\one":
+                out[dsi] = out.get(dsi, 0) + exponent
+    return {dsi: exponent for dsi, exponent in out.items() if exponent}
 
 
 def render_powers(powers: dict[str, int]) -> str:
     if not powers:
         return r"\one"
-    return "".join(u + (rf"\tothe{{{e}}}" if e != 1 else "") for u, e in powers.items())
+    return "".join(
+        dsi + (rf"\tothe{{{exponent}}}" if exponent != 1 else "")
+        for dsi, exponent in powers.items()
+    )
 
 
 def dsi_unit(unit: str) -> str:
@@ -74,16 +82,16 @@ def dsi_unit(unit: str) -> str:
 def dsi_product(a: str, b: str) -> str:
     """The D-SI unit of the product of two quantities (a covariance's unit)."""
     powers = dict(unit_powers(a))
-    for u, e in unit_powers(b).items():
-        powers[u] = powers.get(u, 0) + e
-    return render_powers({u: e for u, e in powers.items() if e})
+    for dsi, exponent in unit_powers(b).items():
+        powers[dsi] = powers.get(dsi, 0) + exponent
+    return render_powers({dsi: exponent for dsi, exponent in powers.items() if exponent})
 
 
 def _finite(value: float, what: str) -> float:
-    f = float(value)
-    if not math.isfinite(f):
+    number = float(value)
+    if not math.isfinite(number):
         raise InvalidCertificate(f"{what}: {value!r} is not a finite number")
-    return f
+    return number
 
 
 def _fixed(x: float, decimals: int) -> str:
@@ -93,20 +101,21 @@ def _fixed(x: float, decimals: int) -> str:
 
 def gum_decimals(u: float) -> int:
     """Decimal places that give u two significant digits after rounding (0.00996 -> 3: '0.010')."""
-    d = 1 - math.floor(math.log10(u))
-    if abs(round(u, d)) >= 10 ** (2 - d) - 10 ** -(d + 9):  # rounding carried into a third digit
-        d -= 1
-    return d
+    decimals = 1 - math.floor(math.log10(u))
+    # rounding carried into a third digit
+    if abs(round(u, decimals)) >= 10 ** (2 - decimals) - 10 ** -(decimals + 9):
+        decimals -= 1
+    return decimals
 
 
 def gum_pair(value: float, u: float, what: str) -> tuple[str, str, int]:
     """(value, U, decimals) as GUM 7.2.6 gives them: U to two significant digits, the value to the
     same place."""
-    v, uu = _finite(value, what), _finite(u, what)
-    if uu <= 0:
-        return plain(v, what), "0", 0
-    d = gum_decimals(uu)
-    return _fixed(v, d), _fixed(uu, d), d
+    number, uncertainty = _finite(value, what), _finite(u, what)
+    if uncertainty <= 0:
+        return plain(number, what), "0", 0
+    decimals = gum_decimals(uncertainty)
+    return _fixed(number, decimals), _fixed(uncertainty, decimals), decimals
 
 
 def at_decimals(value: float, decimals: int, what: str) -> str:
@@ -115,10 +124,10 @@ def at_decimals(value: float, decimals: int, what: str) -> str:
 
 def plain(value: float, what: str, significant: int = SIGNIFICANT) -> str:
     """A number without an uncertainty of its own, to `significant` digits (no float artefacts)."""
-    f = _finite(value, what)
-    if f == 0:
+    number = _finite(value, what)
+    if number == 0:
         return "0"
-    text = f"{f:.{significant}g}"
+    text = f"{number:.{significant}g}"
     if "e" in text:
         mant, _, exp = text.partition("e")
         return f"{mant}e{int(exp)}"

@@ -47,7 +47,7 @@ def certificate_errors(xml: bytes) -> list[str]:
         )
     except (ET.ParseError, xmlschema.XMLSchemaException, UnicodeDecodeError) as exc:
         return [f"not well-formed XML: {exc}"]
-    return [f"{e.path or '/'}: {e.reason or e.message}" for e in errors]
+    return [f"{error.path or '/'}: {error.reason or error.message}" for error in errors]
 
 
 def validate(xml: bytes) -> None:

@@ -119,6 +119,23 @@ def check(xml: bytes, trusted_cert_pem: bytes | None = None) -> SignatureCheck:
         + "".join(embedded.split()).encode()
         + b"\n-----END CERTIFICATE-----\n"
     )
+    return _check_signed(xml, root, cert_pem)
+
+
+def _named_signing_certs(signed_root: etree._Element) -> list[str | None]:
+    """The SHA-256s the signed content names as the certificate that signs it (one, when it is
+    right)."""
+    return [
+        identification.findtext(f"{{{DCC_NS}}}value")
+        for identification in signed_root.iter(f"{{{DCC_NS}}}identification")
+        if (identification.findtext(f"{{{DCC_NS}}}name/{{{DCC_NS}}}content") or "")
+        == SIGNING_CERT_NAME
+    ]
+
+
+def _check_signed(xml: bytes, root: etree._Element, cert_pem: bytes) -> SignatureCheck:
+    """The one enveloped signature verifies with the certificate, covers the whole certificate, the
+    file is as it was written and its signed content names that certificate as its signer."""
     try:
         cert = x509.load_pem_x509_certificate(cert_pem)
         result = XMLVerifier().verify(xml, x509_cert=cert, parser=_parser())
@@ -132,11 +149,7 @@ def check(xml: bytes, trusted_cert_pem: bytes | None = None) -> SignatureCheck:
             True, False, "the file differs from the signed form outside the signed element"
         )
     fingerprint = hashlib.sha256(cert.public_bytes(serialization.Encoding.DER)).hexdigest()
-    named = [
-        i.findtext(f"{{{DCC_NS}}}value")
-        for i in signed_root.iter(f"{{{DCC_NS}}}identification")
-        if (i.findtext(f"{{{DCC_NS}}}name/{{{DCC_NS}}}content") or "") == SIGNING_CERT_NAME
-    ]
+    named = _named_signing_certs(signed_root)
     if named != [fingerprint]:
         return SignatureCheck(
             True,

@@ -104,8 +104,8 @@ class Dispatcher:
 
     async def send_due(self, client: httpx.AsyncClient) -> int:
         due = await asyncio.to_thread(self.webhooks.due_deliveries, now=dt.datetime.now(dt.UTC))
-        for d in due:
-            await self.deliver(client, d)
+        for delivery in due:
+            await self.deliver(client, delivery)
         return len(due)
 
     async def deliver(self, client: httpx.AsyncClient, d: DueDelivery) -> None:
