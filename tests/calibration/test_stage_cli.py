@@ -192,7 +192,9 @@ def test_correct_names_its_uncertainties_standard_and_expanded(data_dir):
                 float(r[f"standard_uncertainty_tilt_{a}_deg"]),
             )
             k = float(r[f"coverage_factor_tilt_{a}"])
-            assert 1.95 < k < 2.1 and u * k == pytest.approx(U, rel=1e-4)
+            # Student's t at the effective degrees of freedom (the reading noise's three-way
+            # estimate has some tens)
+            assert 1.96 < k < 2.6 and u * k == pytest.approx(U, rel=1e-4)
             assert o[f"u_tilt_{a}_deg"] == r[f"expanded_uncertainty_tilt_{a}_deg"]
         assert r["coverage_probability"] == "0.95"
     # an earlier output corrected again: its uncertainty columns are replaced, not carried beside

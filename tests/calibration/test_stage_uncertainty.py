@@ -65,10 +65,9 @@ def test_kinematic_gum_matches_monte_carlo(seed):
     )
     # MC standard deviation from 4000 draws is good to ~1.1 % (1 sigma)
     assert np.max(np.abs(u_mc / u_gum - 1.0)) < 0.06
-    # the expanded uncertainty covers the true error (conservative: the reading noise taken from the
-    # fit residual also holds the reference's own noise)
-    err = np.stack([out["tilt_x_deg"] - val["tilt_x_deg"], out["tilt_y_deg"] - val["tilt_y_deg"]])
-    assert np.mean(np.abs(err) <= np.stack([out["u_tilt_x_deg"], out["u_tilt_y_deg"]])) >= 0.9
+    # whether U covers the truth is tests/calibration/test_coverage.py's, pooled over realisations:
+    # one realisation's 42 errors share its parameter error and its estimate of the reading noise
+    assert np.all(np.isfinite(out["u_tilt_x_deg"])) and np.all(out["u_tilt_y_deg"] > 0)
 
 
 def test_homography_gum_matches_monte_carlo():
@@ -118,8 +117,13 @@ def test_kinematic_fast_gum_equals_the_generic_propagation():
     U = g.expanded()
     assert np.allclose(out["u_tilt_x_deg"], U[:, 0], rtol=1e-6, atol=0)
     assert np.allclose(out["u_tilt_y_deg"], U[:, 1], rtol=1e-6, atol=0)
-    # 160 degrees of freedom: k just under 2
-    assert np.all(g.dof_eff >= dof) and np.all(U < 2.0 * g.u)
+    # Welch-Satterthwaite: the effective degrees of freedom are at least the fewest of the parts'
+    # (the reading noise's from its three-way estimate, the parameters' from the fit), and k is
+    # Student's t at them
+    from scipy.stats import t as student_t
+
+    assert np.all(g.dof_eff >= min(dof, noise_dof) - 1e-9), (g.dof_eff.min(), dof, noise_dof)
+    assert np.allclose(U / g.u, student_t.ppf(0.975, g.dof_eff), rtol=1e-6)
 
 
 def _seed000(**grid):
@@ -136,7 +140,7 @@ def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_re
     the reference's noise stated) the reading term of a corrected tilt is the measurement sensor's,
     not the residual."""
     m = get_method("stage", method)
-    sigmas = []
+    sigmas, three_way = [], []
     for seed in (301, 302, 303):
         run = run_scenario(_seed000(readings_per_stand=3), seed=seed)
         model = m.fit(run.columns, FitOptions())
@@ -154,9 +158,12 @@ def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_re
         stated = m.fit(single, FitOptions(extra={"ref_noise_deg": 0.001})).state
         assert "stated noise" in stated["meas_reading_noise_source"]
         plain = m.fit(single, FitOptions()).state
-        # nothing to separate with
-        assert plain["meas_reading_standard_uncertainty_deg"] == plain["meas_sigma_deg"]
-        assert "conservative" in plain["meas_reading_noise_source"]
+        if method == "axis-transform":  # no stage prediction to compare with: nothing to separate
+            assert plain["meas_reading_standard_uncertainty_deg"] == plain["meas_sigma_deg"]
+            assert "conservative" in plain["meas_reading_noise_source"]
+        else:  # the stage model's prediction is the third instrument
+            assert "three-way" in plain["meas_reading_noise_source"]
+            three_way.append(plain["meas_reading_standard_uncertainty_deg"])
     s = np.array(sigmas)
     # the model describes the bench: what is left is the measurement sensor's noise
     if method == "kinematic":
@@ -168,3 +175,9 @@ def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_re
     else:
         assert np.all((s[:, 0] > 0.00085) & (s[:, 0] < s[:, 2])), s
     assert np.all(np.abs(s[:, 1] / 0.001 - 1) < 0.15), s  # the reference's, from the repeats
+    if method == "kinematic":
+        # one reading a stand, nothing stated: the three-way estimate is the measurement sensor's
+        # noise too (each to about 16 %: the mean of three within 25 %), below the residual
+        assert abs(np.mean(three_way) / 0.001 - 1) < 0.25, three_way
+    if three_way:
+        assert np.all(np.array(three_way) < s[:, 2]), (three_way, s)

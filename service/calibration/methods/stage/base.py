@@ -4,7 +4,7 @@ output (refused beyond the bench's travel), the statistics and the GUM correctio
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -126,19 +126,34 @@ def _stated_ref_sigma(data: Columns, options: FitOptions) -> float | None:
 RESIDUAL_FLOOR = 0.1
 
 
+@dataclass(frozen=True)
+class ThreeWay:
+    """The three instruments that read one table at every point, as residuals (2 x n: x row, y row):
+    the measurement sensor against the reference, in the reference's frame (its noise less the
+    reference's), and the reference against the stage model's prediction (the reference's noise
+    plus the stage's positioning error and whatever the stage model leaves out)."""
+
+    meas_minus_ref_deg: NDArray[np.float64]
+    ref_minus_stage_deg: NDArray[np.float64]
+
+
 def meas_reading_noise(
     data: Columns,
     options: FitOptions,
     residual_sigma_deg: float,
     residual_dof: float,
     sign: NDArray[np.float64] | None = None,
+    three_way: ThreeWay | None = None,
 ) -> ReadingNoise:
-    """u of one measurement reading = √(s_residual² − σ_ref²), with σ_ref from repeats or as stated.
+    """u of one measurement reading = √(s_residual² − σ_ref²), with σ_ref from repeats, as stated,
+    or from the three-way comparison of stage, reference and measurement sensor.
 
-    What the model does not describe stays in it (it is in the residual, not in σ_ref); where
-    nothing says what the reference's noise is, the whole residual is taken (conservative: about √2
-    too large for two equal sensors) and the source says so. Degrees of freedom by
-    Welch-Satterthwaite.
+    What the model does not describe stays in it (it is in the residual, not in σ_ref). With one
+    reading per point and nothing stated, the reference's noise is the one thing the meas-vs-ref
+    residual shares with the ref-vs-stage residual, with opposite signs: −cov of the two (Grubbs'
+    three-instrument method); without a stage prediction the whole residual is taken (conservative:
+    about √2 too large for two equal sensors). The source says which. Degrees of freedom by
+    Welch-Satterthwaite, or from the scatter of the three-way products.
     """
     sign = np.ones(2) if sign is None else np.asarray(sign, dtype=float)
     s2 = residual_sigma_deg**2
@@ -152,6 +167,8 @@ def meas_reading_noise(
     elif (stated := _stated_ref_sigma(data, options)) is not None:
         ref_var, ref_dof = stated**2, np.inf
         how = f"the reference's stated noise {stated:.3g} deg"
+    elif three_way is not None:
+        return _three_way_noise(three_way, residual_sigma_deg, residual_dof)
     else:
         return ReadingNoise(
             residual_sigma_deg,
@@ -177,6 +194,43 @@ def meas_reading_noise(
         dof,
         f"the meas-vs-ref residual ({residual_sigma_deg:.3g} deg) less {how}{note}",
         float(np.sqrt(ref_var)),
+    )
+
+
+def _three_way_noise(
+    three_way: ThreeWay, residual_sigma_deg: float, residual_dof: float
+) -> ReadingNoise:
+    """One measurement reading's noise with the reference's taken out by the three-way comparison.
+
+    Per point, d = meas − ref ≈ e_meas − e_ref and r = ref − stage ≈ e_ref + e_stage: the mean of
+    d·r is −σ_ref², whatever the stage's positioning error and the stage model's misfit (they are
+    not in d). σ_meas² = (Σd² + Σd·r) / ν with ν the meas fit's degrees of freedom, floored like the
+    other estimates; its own degrees of freedom 2 σ⁴ / var(σ̂²) from the scatter of d² + d·r (a
+    noisy estimate is said to be one, and its coverage factor grows)."""
+    d = np.asarray(three_way.meas_minus_ref_deg, dtype=float).ravel()
+    r = np.asarray(three_way.ref_minus_stage_deg, dtype=float).ravel()
+    s2 = residual_sigma_deg**2
+    ref_var = -float(d @ r) / residual_dof
+    var = s2 - ref_var
+    note = ""
+    if var < RESIDUAL_FLOOR * s2:
+        var, note = (
+            RESIDUAL_FLOOR * s2,
+            f" (floored at {RESIDUAL_FLOOR:g} of the residual's variance: the estimate left less)",
+        )
+    products = d * d + d * r
+    spread = float(np.var(products, ddof=1)) if products.size > 1 else 0.0
+    dof = 2.0 * float(np.mean(products)) ** 2 / (spread / products.size) if spread > 0 else np.inf
+    dof = float(min(max(dof, 1.0), residual_dof))
+    ref_sigma = float(np.sqrt(max(ref_var, 0.0)))
+    return ReadingNoise(
+        float(np.sqrt(var)),
+        dof,
+        f"the meas-vs-ref residual ({residual_sigma_deg:.3g} deg) less the reference's noise from "
+        "the three-way comparison of stage, reference and measurement sensor (one reading per "
+        f"point: the reference's variance is -cov(meas - ref, ref - stage), {ref_sigma:.3g} deg, "
+        f"{dof:.0f} degrees of freedom){note}",
+        ref_sigma,
     )
 
 

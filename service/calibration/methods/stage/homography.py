@@ -15,6 +15,7 @@ from service.calibration.methods.stage.base import (
     FIT_REQUIRED,
     Columns,
     StageMethod,
+    ThreeWay,
     bench_state,
     fit_stats,
     jacobian_cov,
@@ -218,8 +219,18 @@ class HomographyMethod(StageMethod):
             if st["sigma_deg"] is not None:
                 cov = jacobian_cov(J2, H_SCALES, st["sigma_deg"] ** 2)
                 cov_names = [f"H2.{k}" for k in H_KEYS]
+                # the three instruments at every point: H2(meas) − ref in the reference's frame,
+                # H1(ref) − the stage's angles (x decoupled) in the stage's
+                three_way = ThreeWay(
+                    np.array([res_h2[:n], res_h2[n:]]), np.array([px - xd, py - sy])
+                )
                 noise = meas_reading_noise(
-                    data, options, st["sigma_deg"], st["dof"], detect_mirror(mx, my, rx, ry)
+                    data,
+                    options,
+                    st["sigma_deg"],
+                    st["dof"],
+                    detect_mirror(mx, my, rx, ry),
+                    three_way,
                 )
                 state["meas_sigma_deg"] = st["sigma_deg"]
                 state["meas_dof"] = st["dof"]

@@ -13,6 +13,7 @@ from service.calibration.methods.stage.base import (
     FIT_REQUIRED,
     Columns,
     StageMethod,
+    ThreeWay,
     bench_state,
     meas_dof,
     meas_reading_noise,
@@ -113,8 +114,20 @@ class KinematicMethod(StageMethod):
         if ref_effects:
             state[reference.STATE_KEY] = _reference_state(ref_effects, bench, data, time_origin)
         if has_meas(data):
+            # the chain's residuals are prediction − reference reading, per point as the data's
+            ref_minus_stage = -np.array(
+                [chain.residuals["ref_x_deg"], chain.residuals["ref_y_deg"]]
+            )
             meas = _add_measurement_sensor(
-                data, options, loss, (rx, ry), bool(ref_effects), params, state, notes
+                data,
+                options,
+                loss,
+                (rx, ry),
+                bool(ref_effects),
+                params,
+                state,
+                notes,
+                ref_minus_stage,
             )
             cov_names += meas.names
             blocks.append(meas.covariance)
@@ -337,8 +350,11 @@ def _add_measurement_sensor(
     params: dict[str, Parameter],
     state: dict[str, Any],
     notes: list[str],
+    ref_minus_stage: NDArray[np.float64],
 ) -> MeasFit:
-    """Fit the measurement sensor against the table tilt, adding its parameters, state and notes."""
+    """Fit the measurement sensor against the table tilt, adding its parameters, state and notes;
+    `ref_minus_stage` (2 x n) is the chain's residual, the third instrument of the reading noise's
+    three-way estimate."""
     sign, how = meas_sign(data, options)
     mx, my = columns(data, MEAS_COLUMNS)
     ref_tx, ref_ty = ref_xy
@@ -372,7 +388,14 @@ def _add_measurement_sensor(
             "meas_dof": meas.covariance_dof,
         }
     )
-    noise = meas_reading_noise(data, options, meas.sigma, meas.dof, sign)
+    # the fit's residuals are prediction − reading in the sensor's own frame: −sign × them is
+    # meas − ref in the reference's
+    meas_minus_ref = -sign[:, None] * np.array(
+        [meas.residuals["meas_x_deg"], meas.residuals["meas_y_deg"]]
+    )
+    noise = meas_reading_noise(
+        data, options, meas.sigma, meas.dof, sign, ThreeWay(meas_minus_ref, ref_minus_stage)
+    )
     state.update(noise_state(noise))
     notes.append(
         "measurement sensor: zero offsets, scales, yaw, non-orthogonality and seat "
