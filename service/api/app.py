@@ -176,39 +176,104 @@ async def _register(store: Store, bench: BenchRuntime) -> None:
         bench.device_ids[role] = dev.id
 
 
+async def _start_benches(
+    store: Store, runtimes: list[BenchRuntime], calls: DatabaseCalls, engine: sa.Engine
+) -> None:
+    """Every bench started and registered; if one fails, all are closed, and the database
+    released, before the failure is raised."""
+    try:
+        for bench in runtimes:
+            await bench.start()
+            await _register(store, bench)
+    except BaseException:
+        for bench in runtimes:
+            await bench.close()
+        calls.shutdown()
+        engine.dispose()
+        raise
+
+
+def _mark_jobs_left(store: Store, runtimes: list[BenchRuntime], s: Settings) -> None:
+    """The jobs the previous run left unfinished marked interrupted (resumable)."""
+    # Alone, the daemon's previous run left every unfinished job; a node of a fleet, only its
+    # own benches' (other nodes may be running theirs while this one starts).
+    own = (
+        [runtime.bench_id for runtime in runtimes if runtime.bench_id is not None]
+        if s.broker_url
+        else None
+    )
+    left = store.jobs.mark_interrupted(actor="daemon", bench_ids=own)
+    if left:
+        log.warning(
+            "jobs %s were left unfinished by the previous run: marked interrupted (resumable)",
+            left,
+        )
+
+
+async def _join_fleet(
+    app: FastAPI,
+    s: Settings,
+    hub: StreamHub,
+    jobs: JobManager,
+    runtimes: list[BenchRuntime],
+    calls: DatabaseCalls,
+    engine: sa.Engine,
+) -> Fleet:
+    """This node in the fleet, its benches claimed; if that fails, everything started so far is
+    stopped before the failure is raised."""
+    fleet = Fleet(
+        s,
+        app.state.benches,
+        lambda name: hub.producers[name].latest_message,
+        partial(run_forwarded, app),
+    )
+    try:
+        await fleet.start()
+    except BaseException:
+        await hub.stop()
+        await jobs.shutdown()
+        for bench in runtimes:
+            await bench.close()
+        await app.state.diagnoses.shutdown()
+        calls.shutdown()
+        engine.dispose()
+        raise
+    return fleet
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The application; unusable settings are refused here (InputError, one line), before
     serving."""
-    s = settings or get_settings()
-    normalise_url(s.database_url)
-    if s.auth == "none" and not is_loopback(s.host):
+    config = settings or get_settings()
+    normalise_url(config.database_url)
+    if config.auth == "none" and not is_loopback(config.host):
         raise InputError(
-            f"TILTLAB_AUTH=none is refused on {s.host}: without authentication the daemon"
+            f"TILTLAB_AUTH=none is refused on {config.host}: without authentication the daemon"
             " binds only a loopback address (127.0.0.1, ::1)"
         )
-    _check_benches(s)
+    _check_benches(config)
     # the access log prints query strings; a WebSocket's may carry its token
     install_log_redaction()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        app.state.settings = s
-        app.state.engine = engine = bootstrap(s)  # brings the database to the current schema
+        app.state.settings = config
+        app.state.engine = engine = bootstrap(config)  # brings the database to the current schema
         store = app.state.store = Store(engine)
-        database = app.state.database = DatabaseState(redacted(engine.url), s.db_outage_s)
+        database = app.state.database = DatabaseState(redacted(engine.url), config.db_outage_s)
         # a request's database work: in threads of its own, each call with a deadline (never the
         # event loop)
         calls = app.state.db_calls = DatabaseCalls(
             redacted(engine.url),
-            s.db_request_timeout_s,
-            s.db_request_threads,
+            config.db_request_timeout_s,
+            config.db_request_threads,
             on_timeout=database.away,
         )
         app.state.token_checks = TokenChecks(
             store.tokens.authenticate,
             calls,
             database,
-            throttle=FailedTokens(s.failed_tokens_burst, s.failed_tokens_every_s),
+            throttle=FailedTokens(config.failed_tokens_burst, config.failed_tokens_every_s),
         )
         # /health and /ready ask the database at most once a second (and so notice it going away)
         app.state.schema_revision = SchemaRevision(database=database)
@@ -217,49 +282,28 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             log.warning(
                 "diagnoses %s were left unfinished by the previous run: marked failed", lost
             )
-        announce_dashboard(store, s, terminal=sys.stderr.isatty())
-        runtimes = plan_benches(s)
-        started: list[BenchRuntime] = []
-        try:
-            for bench in runtimes:
-                await bench.start()
-                started.append(bench)
-                await _register(store, bench)
-        except BaseException:
-            for bench in runtimes:
-                await bench.close()
-            calls.shutdown()
-            engine.dispose()
-            raise
-        # Alone, the daemon's previous run left every unfinished job; a node of a fleet, only its
-        # own benches' (other nodes may be running theirs while this one starts).
-        own = (
-            [runtime.bench_id for runtime in runtimes if runtime.bench_id is not None]
-            if s.broker_url
-            else None
-        )
-        left = store.jobs.mark_interrupted(actor="daemon", bench_ids=own)
-        if left:
-            log.warning(
-                "jobs %s were left unfinished by the previous run: marked interrupted (resumable)",
-                left,
-            )
+        announce_dashboard(store, config, terminal=sys.stderr.isatty())
+        runtimes = plan_benches(config)
+        await _start_benches(store, runtimes, calls, engine)
+        _mark_jobs_left(store, runtimes, config)
         app.state.benches = {runtime.name: runtime for runtime in runtimes}
         app.state.bench = runtimes[0]
-        disk = app.state.disk = DiskWatch(folders_of(s.data_dir, s.database_url), s.min_free_mb)
+        disk = app.state.disk = DiskWatch(
+            folders_of(config.data_dir, config.database_url), config.min_free_mb
+        )
         jobs = app.state.jobs = JobManager(
-            store, app.state.benches, database, disk, require_conditions=s.require_conditions
+            store, app.state.benches, database, disk, require_conditions=config.require_conditions
         )
         for bench in runtimes:
             jobs.load_active(bench)
         # the workflow on stored points, in a worker process: never the bench, never the event loop
-        app.state.diagnoses = DiagnosisRunner(store, jobs, max_diagnoses=s.max_diagnoses)
+        app.state.diagnoses = DiagnosisRunner(store, jobs, max_diagnoses=config.max_diagnoses)
         hub = app.state.streams = StreamHub(
             app.state.benches,
             jobs,
-            queue_size=s.stream_queue_size,
-            slow_close_s=s.stream_slow_close_s,
-            snapshots=SnapshotGate(s.max_snapshots, s.snapshot_queue),
+            queue_size=config.stream_queue_size,
+            slow_close_s=config.stream_slow_close_s,
+            snapshots=SnapshotGate(config.max_snapshots, config.snapshot_queue),
         )
         hub.start()  # one reading producer per bench
         metrics.sources.update(
@@ -270,27 +314,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
         app.state.fleet = fleet = None
         # joins the fleet: claims this node's benches (exit 2 if a live node owns one)
-        if s.broker_url:
-            fleet = Fleet(
-                s,
-                app.state.benches,
-                lambda name: hub.producers[name].latest_message,
-                partial(run_forwarded, app),
-            )
-            try:
-                await fleet.start()
-            except BaseException:
-                await hub.stop()
-                await jobs.shutdown()
-                for bench in runtimes:
-                    await bench.close()
-                await app.state.diagnoses.shutdown()
-                calls.shutdown()
-                engine.dispose()
-                raise
+        if config.broker_url:
+            fleet = await _join_fleet(app, config, hub, jobs, runtimes, calls, engine)
             app.state.fleet = hub.remote = fleet
         # webhook deliveries from the outbox, reference standards coming due
-        lims = LimsRuntime(store, s)
+        lims = LimsRuntime(store, config)
         app.state.webhooks = lims.dispatcher
         await lims.start()
         log.info(
@@ -331,7 +359,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(Authentication, state_of=app)
     # outside the token check and every route: a large body is refused unread, with or without a
     # token
-    app.add_middleware(BodySizeLimit, max_bytes=s.max_body_bytes)
+    app.add_middleware(BodySizeLimit, max_bytes=config.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     problems.install(app)  # with the one mapping of an unknown entity to 404
     openapi.install(app)
@@ -341,7 +369,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(PreparedTilt, state_of=app)
     redoc.install(app, "/docs-assets")
     _install_errors(app)
-    for r in (
+    for router_module in (
         health,
         metrics_router,
         benches,
@@ -355,17 +383,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         streams,
         tokens,
     ):
-        app.include_router(r.router)
+        app.include_router(router_module.router)
     dashboard.install(app)
     return app
 
 
 def _install_errors(app: FastAPI) -> None:
-    P = problems.problem
+    problem = problems.problem
 
     @app.exception_handler(RequestProblem)
     async def _request(request: Request, exc: RequestProblem) -> Response:
-        return P(
+        return problem(
             exc.status,
             "Unusable request" if exc.status == 422 else "Conflict",
             str(exc),
@@ -378,7 +406,7 @@ def _install_errors(app: FastAPI) -> None:
 
     @app.exception_handler(DiagnosesBusy)
     async def _diagnoses_busy(request: Request, exc: DiagnosesBusy) -> Response:
-        answer = P(503, "Diagnoses busy", str(exc), instance=str(request.url.path))
+        answer = problem(503, "Diagnoses busy", str(exc), instance=str(request.url.path))
         answer.headers["Retry-After"] = str(DIAGNOSES_RETRY_AFTER_S)
         return answer
 
@@ -387,7 +415,7 @@ def _install_errors(app: FastAPI) -> None:
         is room)."""
         disk = getattr(request.app.state, "disk", None)
         said = disk.described(exc) if isinstance(disk, DiskWatch) else f"disk full: {exc}"
-        return P(
+        return problem(
             507,
             "Insufficient Storage",
             f"{said}; nothing was stored: free space and ask again",
@@ -400,7 +428,7 @@ def _install_errors(app: FastAPI) -> None:
     async def _os_error(request: Request, exc: OSError) -> Response:
         if disk_full(exc):
             return await _disk(request, exc)
-        return P(
+        return problem(
             500,
             "Internal Server Error",
             f"the service failed on this request ({type(exc).__name__});"

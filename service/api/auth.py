@@ -187,7 +187,9 @@ class FailedTokens:
         now = time.monotonic()
         if len(self._buckets) >= self.max_addresses:  # forget the addresses that are full again
             self._buckets = {
-                a: b for a, b in self._buckets.items() if self._level(a, now) < self.burst
+                other: bucket
+                for other, bucket in self._buckets.items()
+                if self._level(other, now) < self.burst
             }
             if len(self._buckets) >= self.max_addresses:
                 self._buckets.clear()

@@ -45,11 +45,30 @@ def policy_of(path: str, body: bytes = b"") -> str:
         return DASHBOARD
     if path in _API_PAGES:
         hashes = " ".join(
-            f"'sha256-{base64.b64encode(hashlib.sha256(s).digest()).decode()}'"
-            for s in _INLINE_SCRIPT.findall(body)
+            f"'sha256-{base64.b64encode(hashlib.sha256(script).digest()).decode()}'"
+            for script in _INLINE_SCRIPT.findall(body)
         )
         return API_PAGES.format(hashes=hashes).replace("  ", " ")
     return DOCUMENT
+
+
+def _with_nosniff(message: Message) -> list[tuple[bytes, bytes]]:
+    """An answer's headers with nosniff, once, whatever the application said of it."""
+    headers = [
+        (name, value)
+        for name, value in message.get("headers", [])
+        if name.lower() != b"x-content-type-options"
+    ]
+    headers.append((b"x-content-type-options", b"nosniff"))
+    return headers
+
+
+def _is_html(headers: list[tuple[bytes, bytes]]) -> bool:
+    """Whether the answer is an HTML page, which gets a Content-Security-Policy."""
+    return any(
+        name.lower() == b"content-type" and value.lower().startswith(b"text/html")
+        for name, value in headers
+    )
 
 
 class ContentSecurity:
@@ -68,17 +87,9 @@ class ContentSecurity:
 
         async def secured(message: Message) -> None:
             if message["type"] == "http.response.start":
-                headers = [
-                    (k, v)
-                    for k, v in message.get("headers", [])
-                    if k.lower() != b"x-content-type-options"
-                ]
-                headers.append((b"x-content-type-options", b"nosniff"))
+                headers = _with_nosniff(message)
                 message = {**message, "headers": headers}
-                html = any(
-                    k.lower() == b"content-type" and v.lower().startswith(b"text/html")
-                    for k, v in headers
-                )
+                html = _is_html(headers)
                 if html and path in _API_PAGES:
                     held.append(message)
                     return

@@ -34,18 +34,11 @@ class FleetRouting:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        fleet: Fleet | None = getattr(scope["app"].state, "fleet", None) if "app" in scope else None
-        path, method = scope.get("path", ""), scope.get("method", "")
-        if (
-            scope["type"] != "http"
-            or fleet is None
-            or not (
-                (method == "GET" and path in BENCH_READS)
-                or (method == "POST" and path in BENCH_COMMANDS)
-            )
-        ):
+        fleet = _fleet_to_route(scope)
+        if fleet is None:
             await self.app(scope, receive, send)
             return
+        path, method = scope.get("path", ""), scope.get("method", "")
         query = scope.get("query_string", b"").decode("latin-1")
         bench = (parse_qs(query).get("bench") or [None])[0]
         body = b""
@@ -57,14 +50,7 @@ class FleetRouting:
             await self.app(scope, _replay(body, receive), send)
             return
         assert bench is not None
-        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"]}
-        request = {
-            "method": method,
-            "path": path,
-            "query": query,
-            "body": body.decode("utf-8", "replace"),
-            "headers": {k: headers[k] for k in FORWARDED_HEADERS if k in headers},
-        }
+        request = _forwarded_request(scope, query, body)
         try:
             answer, round_trip_s = await fleet.forward(bench, request)
         except FleetUnavailable as exc:
@@ -76,20 +62,56 @@ class FleetRouting:
         content = answer.get("body", "").encode()
         if path == "/tilt" and answer.get("status") == 200:
             content = _tilt_via(content, fleet.remote[bench].node, round_trip_s)
-        out_headers = [
-            (k.encode(), str(v).encode())
-            for k, v in answer.get("headers", {}).items()
-            if k in ANSWER_HEADERS
-        ]
-        out_headers.append((b"content-length", str(len(content)).encode()))
-        await send(
-            {
-                "type": "http.response.start",
-                "status": int(answer.get("status", 502)),
-                "headers": out_headers,
-            }
+        await _send_answer(send, answer, content)
+
+
+def _fleet_to_route(scope: Scope) -> Fleet | None:
+    """The fleet, when the request is a bench read or command it may carry to another node; None
+    when the request is this node's own to answer."""
+    fleet: Fleet | None = getattr(scope["app"].state, "fleet", None) if "app" in scope else None
+    path, method = scope.get("path", ""), scope.get("method", "")
+    if (
+        scope["type"] != "http"
+        or fleet is None
+        or not (
+            (method == "GET" and path in BENCH_READS)
+            or (method == "POST" and path in BENCH_COMMANDS)
         )
-        await send({"type": "http.response.body", "body": content})
+    ):
+        return None
+    return fleet
+
+
+def _forwarded_request(scope: Scope, query: str, body: bytes) -> dict[str, Any]:
+    """The request as the bench's owner gets it: the caller's own headers (the token, the
+    Idempotency-Key) with it."""
+    headers = {name.decode("latin-1"): value.decode("latin-1") for name, value in scope["headers"]}
+    return {
+        "method": scope.get("method", ""),
+        "path": scope.get("path", ""),
+        "query": query,
+        "body": body.decode("utf-8", "replace"),
+        "headers": {k: headers[k] for k in FORWARDED_HEADERS if k in headers},
+    }
+
+
+async def _send_answer(send: Send, answer: dict[str, Any], content: bytes) -> None:
+    """The owner's answer passed on: its status, the headers that describe its content, the
+    content."""
+    out_headers = [
+        (name.encode(), str(value).encode())
+        for name, value in answer.get("headers", {}).items()
+        if name in ANSWER_HEADERS
+    ]
+    out_headers.append((b"content-length", str(len(content)).encode()))
+    await send(
+        {
+            "type": "http.response.start",
+            "status": int(answer.get("status", 502)),
+            "headers": out_headers,
+        }
+    )
+    await send({"type": "http.response.body", "body": content})
 
 
 def _tilt_via(content: bytes, node: str, round_trip_s: float) -> bytes:

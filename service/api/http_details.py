@@ -65,7 +65,11 @@ class HttpDetails:
                 return  # a HEAD answer is complete once its headers are out
             if message["type"] == "http.response.start" and message["status"] == 405:
                 allow = ", ".join(allowed_methods(self._routes_of.router.routes, scope))
-                headers = [(k, v) for k, v in message.get("headers", []) if k.lower() != b"allow"]
+                headers = [
+                    (name, value)
+                    for name, value in message.get("headers", [])
+                    if name.lower() != b"allow"
+                ]
                 message = {**message, "headers": [*headers, (b"allow", allow.encode("latin-1"))]}
             await send(message)
             if head and message["type"] == "http.response.start":

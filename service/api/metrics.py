@@ -67,6 +67,20 @@ def _database_families(database: Any) -> Iterable[GaugeMetricFamily]:
     yield samples
 
 
+def _info_labels(key: list[str], st: Any) -> list[str]:
+    """The labels of an instrument's `tiltlab_device_info`: where it is connected and what it said
+    it is (empty before it said)."""
+    ident = st.identity
+    return [
+        *key,
+        str(st.port),
+        str(st.protocol),
+        ident.model if ident else "",
+        (ident.serial or "") if ident else "",
+        (ident.firmware or "") if ident else "",
+    ]
+
+
 def _device_families(benches: dict[str, Any]) -> Iterable[CounterMetricFamily | GaugeMetricFamily]:
     """Per instrument by bench and role, labels that stay the same when the daemon or a simulator
     restarts (a port can be a new pseudo-terminal each time); where it is connected and what it said
@@ -94,28 +108,17 @@ def _device_families(benches: dict[str, Any]) -> Iterable[CounterMetricFamily | 
     for bench_name, bench in benches.items():
         for st in bench.devices.status():
             key = [bench_name, st.role]
-            c = st.counters
+            counters = st.counters
             for name, value in (
-                ("frames", c.frames),
-                ("bad_checksums", c.bad_checksum),
-                ("resyncs", c.resyncs),
-                ("timeouts", c.timeouts),
-                ("reconnects", c.reconnects),
+                ("frames", counters.frames),
+                ("bad_checksums", counters.bad_checksum),
+                ("resyncs", counters.resyncs),
+                ("timeouts", counters.timeouts),
+                ("reconnects", counters.reconnects),
             ):
                 families[name].add_metric(key, float(value))
             connected.add_metric(key, 1.0 if st.state == "connected" else 0.0)
-            ident = st.identity
-            info.add_metric(
-                [
-                    *key,
-                    str(st.port),
-                    str(st.protocol),
-                    ident.model if ident else "",
-                    (ident.serial or "") if ident else "",
-                    (ident.firmware or "") if ident else "",
-                ],
-                1.0,
-            )
+            info.add_metric(_info_labels(key, st), 1.0)
     yield from families.values()
     yield connected
     yield info

@@ -43,6 +43,21 @@ def document(app: FastAPI) -> dict[str, Any]:
     problem = Problem.model_json_schema(ref_template="#/components/schemas/{model}")
     schemas.update(problem.pop("$defs", {}))
     schemas["Problem"] = problem
+    _errors_as_problems(doc)
+    _location_headers(doc)
+    _defaults_in_words(schemas, _request_only_schemas(doc))
+    if not any(name in str(doc["paths"]) for name in _FASTAPI_VALIDATION):
+        for name in _FASTAPI_VALIDATION:
+            schemas.pop(name, None)
+    _state_travel(app, schemas)
+    _state_procedures(app, schemas)
+    _json_schema_bounds(doc)
+    return doc
+
+
+def _errors_as_problems(doc: dict[str, Any]) -> None:
+    """Every error answer of every operation declared a problem: FastAPI's 422 body replaced, the
+    other 4xx and 5xx given the problem schema (503 keeps what its route declares)."""
     validation = problem_responses(422)[422]
     for path in doc.get("paths", {}).values():
         for operation in path.values():
@@ -59,31 +74,22 @@ def document(app: FastAPI) -> dict[str, Any]:
                     and status != "503"
                 ):
                     answer["content"] = {PROBLEM_MEDIA_TYPE: {"schema": PROBLEM_SCHEMA_REF}}
+
+
+def _location_headers(doc: dict[str, Any]) -> None:
+    """The `Location` header declared on every 201 and 202 answer."""
     for path in doc.get("paths", {}).values():
         for operation in path.values():
             for status in ("201", "202"):
                 if status in operation.get("responses", {}):
                     operation["responses"][status].setdefault("headers", {}).update(LOCATION_HEADER)
-    _defaults_in_words(schemas, _request_only_schemas(doc))
-    if not any(name in str(doc["paths"]) for name in _FASTAPI_VALIDATION):
-        for name in _FASTAPI_VALIDATION:
-            schemas.pop(name, None)
-    _state_travel(app, schemas)
-    _state_procedures(app, schemas)
-    _json_schema_bounds(doc)
-    return doc
 
 
-def _state_procedures(app: FastAPI, schemas: dict[str, Any]) -> None:
-    """`POST /calibrations` procedures: those a bench of this daemon runs (its kind and
-    instruments)."""
+def _runnable(benches: list[Any]) -> list[str]:
+    """The procedures some bench of this daemon runs: one of its kind, whose instruments it has."""
     from service.jobs.registry import PROCEDURES
 
-    benches = list((getattr(app.state, "benches", None) or {}).values())
-    request = schemas.get("CalibrationRequest")
-    if not benches or request is None:
-        return
-    runnable = [
+    return [
         name
         for name, procedure in PROCEDURES.items()
         if any(
@@ -92,16 +98,28 @@ def _state_procedures(app: FastAPI, schemas: dict[str, Any]) -> None:
             for bench in benches
         )
     ]
+
+
+def _state_procedures(app: FastAPI, schemas: dict[str, Any]) -> None:
+    """`POST /calibrations` procedures: those a bench of this daemon runs (its kind and
+    instruments)."""
+    benches = list((getattr(app.state, "benches", None) or {}).values())
+    request = schemas.get("CalibrationRequest")
+    if not benches or request is None:
+        return
+    runnable = _runnable(benches)
     prop = request.get("properties", {}).get("procedure", {})
     if "enum" in prop:
-        prop["enum"] = [p for p in prop["enum"] if p in runnable]
+        prop["enum"] = [name for name in prop["enum"] if name in runnable]
         prop["description"] = (
             "a procedure a bench of this daemon runs (its kind and instruments): "
             + ", ".join(runnable)
         )
     if "allOf" in request:
         request["allOf"] = [
-            c for c in request["allOf"] if c["if"]["properties"]["procedure"]["const"] in runnable
+            case
+            for case in request["allOf"]
+            if case["if"]["properties"]["procedure"]["const"] in runnable
         ]
 
 
@@ -158,9 +176,9 @@ def _refs(node: Any) -> set[str]:
     """The component schemas a part of the document names."""
     if isinstance(node, dict):
         found = {str(node["$ref"]).rsplit("/", 1)[1]} if "$ref" in node else set()
-        return found.union(*(_refs(v) for k, v in node.items() if k != "$ref"))
+        return found.union(*(_refs(value) for key, value in node.items() if key != "$ref"))
     if isinstance(node, list):
-        return set().union(*(_refs(v) for v in node))
+        return set().union(*(_refs(value) for value in node))
     return set()
 
 

@@ -74,31 +74,44 @@ class PreparedTilt:
             or getattr(state, "fleet", None) is not None
         ):
             return None
-        authorization = None
-        for name, value in scope["headers"]:
-            if name == b"authorization":
-                # the first, as the route reads
-                authorization = value if authorization is None else authorization
-            elif name in _BODY_HEADERS:
-                return None
+        authorization, has_body = _authorization_of(scope)
+        if has_body:
+            return None
         if settings.auth != "none" and not _may_read(
-            getattr(state, "token_checks", None), authorization or b""
+            getattr(state, "token_checks", None), authorization
         ):
             return None
-        query = scope.get("query_string", b"")
-        if query:
-            pairs = parse_qsl(query.decode("latin-1"), keep_blank_values=True)
-            if len(pairs) != 1 or pairs[0][0] != "bench" or len(pairs[0][1]) > MAX_BENCH_NAME:
-                return None
-            bench = benches.get(pairs[0][1])
-        else:
-            bench = next(iter(benches.values())) if len(benches) == 1 else None
+        bench = _bench_asked(scope, benches)
         if bench is None:
             return None
         try:
             return tilt_answer(bench, jobs)
         except Exception:
             return None  # the full application answers it, with its own error handling
+
+
+def _authorization_of(scope: Scope) -> tuple[bytes, bool]:
+    """The request's first Authorization header (as the route reads; empty when it has none), and
+    whether a header says it has a body (then it is not the plain case)."""
+    authorization = None
+    for name, value in scope["headers"]:
+        if name == b"authorization":
+            authorization = value if authorization is None else authorization
+        elif name in _BODY_HEADERS:
+            return authorization or b"", True
+    return authorization or b"", False
+
+
+def _bench_asked(scope: Scope, benches: dict[str, Any]) -> Any:
+    """The bench the query names (`bench=<name>` and nothing else), or the only bench when it names
+    none; None when neither fits."""
+    query = scope.get("query_string", b"")
+    if query:
+        pairs = parse_qsl(query.decode("latin-1"), keep_blank_values=True)
+        if len(pairs) != 1 or pairs[0][0] != "bench" or len(pairs[0][1]) > MAX_BENCH_NAME:
+            return None
+        return benches.get(pairs[0][1])
+    return next(iter(benches.values())) if len(benches) == 1 else None
 
 
 def _may_read(checks: TokenChecks | None, authorization: bytes) -> bool:

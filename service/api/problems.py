@@ -54,8 +54,8 @@ def field_path(loc: Sequence[int | str]) -> str:
     out)."""
     parts = list(loc[1:] if loc and loc[0] in ("body", "query", "path", "header") else loc)
     out = ""
-    for p in parts:
-        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    for part in parts:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
     return out or (str(loc[0]) if loc else "")
 
 
@@ -73,8 +73,8 @@ def install(app: FastAPI) -> None:
         response = problem(
             exc.status, exc.title, exc.detail, instance=str(request.url.path), **exc.extra
         )
-        for k, v in (exc.headers or {}).items():
-            response.headers[k] = v
+        for name, value in (exc.headers or {}).items():
+            response.headers[name] = value
         return response
 
     @app.exception_handler(InputError)

@@ -47,7 +47,7 @@ def install_log_redaction() -> None:
         if isinstance(record.args, tuple):
             record.args = tuple(_clean(arg) for arg in record.args)
         elif isinstance(record.args, dict):
-            record.args = {k: _clean(v) for k, v in record.args.items()}
+            record.args = {key: _clean(value) for key, value in record.args.items()}
         return record
 
     factory.redacts_tokens = True  # type: ignore[attr-defined]  # a mark on the function: installed once per process

@@ -51,7 +51,7 @@ def _answer(
         f"content-type: {PROBLEM}",
         f"content-length: {len(body)}",
         "connection: close",
-        *(f"{k}: {v}" for k, v in (headers or {}).items()),
+        *(f"{name}: {value}" for name, value in (headers or {}).items()),
     ]
     return ("\r\n".join(lines) + "\r\n\r\n").encode("latin-1") + body
 

@@ -293,30 +293,40 @@ class Fleet:
         while True:
             await asyncio.sleep(self.lease_s / 3)
             try:
-                if self._nc is None:
-                    await self._connect()
-                if not self._client().is_connected:
-                    self._mark_unreachable()
-                    continue
-                if not self._ready.is_set():
-                    await self._setup()
-                    continue
-                for name in self.local:
-                    await self._lease_bucket().put(name, self._lease(name))
-                await self._refresh_view()
+                await self._renew()
             except FleetConflict as exc:
                 log.error("fleet: %s", exc)
             # e.g. a broker that came back without its storage: set it up again
             except JetStreamError as exc:
                 log.info("fleet: %s; setting up the buckets and the stream again", exc)
-                try:
-                    await self._setup()
-                except FleetConflict as conflict:
-                    log.error("fleet: %s", conflict)
-                except Exception as again:  # noqa: BLE001 - tried again on the next tick
-                    log.info("fleet: setting up again failed: %s", again)
+                await self._set_up_again()
             except Exception as exc:  # noqa: BLE001 - the broker's troubles never stop the node
                 log.info("fleet: renewing leases failed: %s", exc)
+
+    async def _renew(self) -> None:
+        """One tick of `_keep`: connected (and set up) first if need be, then this node's leases
+        renewed and the fleet view refreshed."""
+        if self._nc is None:
+            await self._connect()
+        if not self._client().is_connected:
+            self._mark_unreachable()
+            return
+        if not self._ready.is_set():
+            await self._setup()
+            return
+        for name in self.local:
+            await self._lease_bucket().put(name, self._lease(name))
+        await self._refresh_view()
+
+    async def _set_up_again(self) -> None:
+        """The buckets and the stream set up again after the broker lost them; a failure is left
+        for the next tick."""
+        try:
+            await self._setup()
+        except FleetConflict as conflict:
+            log.error("fleet: %s", conflict)
+        except Exception as again:  # noqa: BLE001 - tried again on the next tick
+            log.info("fleet: setting up again failed: %s", again)
 
     def _mark_unreachable(self) -> None:
         for bench in self.remote.values():
@@ -340,19 +350,26 @@ class Fleet:
                 lease = json.loads((await self._leases.get(name)).value or b"{}")
             except KeyNotFoundError:
                 lease = {}
-            bench = self.remote.get(name) or RemoteBench(name, static.get("node", "?"))
-            bench.node = lease.get("node") or static.get("node", bench.node)
-            bench.kind, bench.roles = static.get("kind", ""), list(static.get("roles", []))
-            bench.description = static.get("description", "")
-            bench.online = bool(lease)
-            bench.state = lease.get("state", "offline")
-            self.remote[name] = bench
+            self.remote[name] = self._viewed(name, static, lease)
+
+    def _viewed(self, name: str, static: dict[str, Any], lease: dict[str, Any]) -> RemoteBench:
+        """Another node's bench as its entries in the two buckets describe it (offline without a
+        lease)."""
+        bench = self.remote.get(name) or RemoteBench(name, static.get("node", "?"))
+        bench.node = lease.get("node") or static.get("node", bench.node)
+        bench.kind, bench.roles = static.get("kind", ""), list(static.get("roles", []))
+        bench.description = static.get("description", "")
+        bench.online = bool(lease)
+        bench.state = lease.get("state", "offline")
+        return bench
 
     # ------------------------------------------------------------ the fleet view
 
     def benches(self) -> list[dict[str, Any]]:
         """The other nodes' benches, as GET /benches lists them."""
-        return [b.listing() for b in sorted(self.remote.values(), key=lambda b: b.name)]
+        return [
+            bench.listing() for bench in sorted(self.remote.values(), key=lambda bench: bench.name)
+        ]
 
     def is_remote(self, name: str | None) -> bool:
         return name is not None and name not in self.local and name in self.remote
@@ -521,16 +538,20 @@ class RemoteProducer(ReadingProducer):
         return SnapshotBuild(head, np.empty((0, 0)), rate_hz, 0.0)
 
     def _on_reading(self, payload: dict[str, Any]) -> None:
-        msg = {k: v for k, v in payload.items() if k not in ("bench", "node", "fleet_seq")}
+        msg = {
+            key: value
+            for key, value in payload.items()
+            if key not in ("bench", "node", "fleet_seq")
+        }
         self._latest = msg
         self.messages += 1
         body = json.dumps(msg)[1:]
         loop_now = asyncio.get_running_loop().time()
-        for c in list(self.clients):
-            if c.rate_hz >= self.sensor_rate_hz:
-                self._offer(c, body, loop_now)
+        for client in list(self.clients):
+            if client.rate_hz >= self.sensor_rate_hz:
+                self._offer(client, body, loop_now)
                 continue
-            nxt = due(loop_now, c.next_bench_s, 1.0 / c.rate_hz, 0.25 * self.interval_s)
+            nxt = due(loop_now, client.next_bench_s, 1.0 / client.rate_hz, 0.25 * self.interval_s)
             if nxt is not None:
-                c.next_bench_s = nxt
-                self._offer(c, body, loop_now)
+                client.next_bench_s = nxt
+                self._offer(client, body, loop_now)

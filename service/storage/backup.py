@@ -23,10 +23,10 @@ from service.storage.engine import normalise_url
 
 def sqlite_path(url: str | sa.URL) -> Path | None:
     """The database file of a SQLite URL; None for PostgreSQL. In-memory SQLite is refused."""
-    u = normalise_url(url) if isinstance(url, str) else url
-    if u.get_backend_name() != "sqlite":
+    db_url = normalise_url(url) if isinstance(url, str) else url
+    if db_url.get_backend_name() != "sqlite":
         return None
-    database = u.database or ""
+    database = db_url.database or ""
     if database in ("", ":memory:") or database.startswith("file::memory:"):
         raise InputError(
             "the database is an in-memory SQLite database; there is no file to back up"
@@ -90,17 +90,17 @@ def pg_dump_command(url: str | sa.URL, out: str | Path) -> str:
 
     The password is never printed: pg_dump asks for it, or takes it from PGPASSWORD or ~/.pgpass.
     """
-    u = normalise_url(url) if isinstance(url, str) else url
+    db_url = normalise_url(url) if isinstance(url, str) else url
     parts = ["pg_dump", "--format=custom", f"--file={out}"]
-    if u.host:
-        parts.append(f"--host={u.host}")
-    if u.port:
-        parts.append(f"--port={u.port}")
-    if u.username:
-        parts.append(f"--username={u.username}")
-    options = u.query.get("options")
+    if db_url.host:
+        parts.append(f"--host={db_url.host}")
+    if db_url.port:
+        parts.append(f"--port={db_url.port}")
+    if db_url.username:
+        parts.append(f"--username={db_url.username}")
+    options = db_url.query.get("options")
     if isinstance(options, str) and "search_path=" in options:
         schema = options.split("search_path=", 1)[1].split()[0]
         parts.append(f"--schema={schema}")
-    parts.append(u.database or "")
+    parts.append(db_url.database or "")
     return shlex.join(parts)

@@ -38,11 +38,11 @@ def _check_finite(value: Any, path: str) -> None:
     if isinstance(value, float) and not math.isfinite(value):
         raise InputError(f"{path}: {value} is not a finite number; stored content must be finite")
     if isinstance(value, dict):
-        for k, v in value.items():
-            _check_finite(v, f"{path}.{k}")
+        for k, child in value.items():
+            _check_finite(child, f"{path}.{k}")
     elif isinstance(value, list | tuple):
-        for i, v in enumerate(value):
-            _check_finite(v, f"{path}[{i}]")
+        for i, child in enumerate(value):
+            _check_finite(child, f"{path}[{i}]")
 
 
 def canonical_json(value: Any) -> str:

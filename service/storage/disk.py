@@ -91,8 +91,8 @@ class DiskWatch:
 
     def short(self) -> Space | None:
         """The folder with less free space than the daemon keeps (the emptiest of them), or None."""
-        low = [s for s in self.spaces() if s.free_mb < self.min_free_mb]
-        return min(low, key=lambda s: s.free_bytes) if low else None
+        low = [space for space in self.spaces() if space.free_mb < self.min_free_mb]
+        return min(low, key=lambda space: space.free_bytes) if low else None
 
     def reason(self, space: Space) -> str:
         return (

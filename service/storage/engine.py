@@ -32,28 +32,28 @@ _PG_CONNECT_TIMEOUTS = {
 
 def normalise_url(url: str) -> sa.URL:
     try:
-        u = make_url(url)
+        db_url = make_url(url)
     except sa.exc.ArgumentError as exc:
         raise InputError(f"database URL {url!r} is not a valid SQLAlchemy URL") from exc
-    if u.drivername in ("postgresql", "postgres"):
-        u = u.set(drivername="postgresql+psycopg")
-    if u.get_backend_name() not in ("sqlite", "postgresql"):
+    if db_url.drivername in ("postgresql", "postgres"):
+        db_url = db_url.set(drivername="postgresql+psycopg")
+    if db_url.get_backend_name() not in ("sqlite", "postgresql"):
         raise InputError(
-            f"database URL {u.render_as_string()!r}: only sqlite and postgresql are supported"
+            f"database URL {db_url.render_as_string()!r}: only sqlite and postgresql are supported"
         )
-    return u
+    return db_url
 
 
 def make_engine(url: str | sa.URL, *, busy_timeout_ms: int = 30_000, **kwargs: Any) -> sa.Engine:
-    u = normalise_url(url) if isinstance(url, str) else url
-    if u.get_backend_name() == "sqlite":
-        return _sqlite_engine(u, busy_timeout_ms, **kwargs)
+    db_url = normalise_url(url) if isinstance(url, str) else url
+    if db_url.get_backend_name() == "sqlite":
+        return _sqlite_engine(db_url, busy_timeout_ms, **kwargs)
     kwargs.setdefault("pool_pre_ping", True)
     # A server that vanishes without a word (a cable pulled, a host frozen) must fail a connection
     # in seconds, not hang it: the daemon then knows the database is away and waits it out
     # (outage.py).
     connect_args = {**_PG_CONNECT_TIMEOUTS, **kwargs.pop("connect_args", {})}
-    return sa.create_engine(u, connect_args=connect_args, **kwargs)
+    return sa.create_engine(db_url, connect_args=connect_args, **kwargs)
 
 
 def _sqlite_engine(u: sa.URL, busy_timeout_ms: int, **kwargs: Any) -> sa.Engine:
@@ -105,5 +105,5 @@ def write_engine(engine: sa.Engine) -> sa.Engine:
 
 
 def redacted(url: str | sa.URL) -> str:
-    u = make_url(url) if isinstance(url, str) else url
-    return u.render_as_string(hide_password=True)
+    db_url = make_url(url) if isinstance(url, str) else url
+    return db_url.render_as_string(hide_password=True)

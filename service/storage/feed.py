@@ -57,65 +57,80 @@ def _job_event(s: Session, e: AuditEvent, state: str) -> dict[str, Any]:
 
 
 def _record_event(s: Session, record_id: int, extra: Mapping[str, Any]) -> dict[str, Any]:
-    r = s.get(CalibrationRecord, record_id)
-    job = s.get(CalibrationJob, r.job_id) if r is not None and r.job_id is not None else None
+    record = s.get(CalibrationRecord, record_id)
+    job = (
+        s.get(CalibrationJob, record.job_id)
+        if record is not None and record.job_id is not None
+        else None
+    )
     base: dict[str, Any] = {"record_id": record_id}
-    if r is not None:
+    if record is not None:
         base.update(
             {
-                "device_id": r.device_id,
-                "kind": r.kind,
-                "version": r.version,
-                "method": r.method,
-                "content_sha256": r.content_sha256,
-                "job_id": r.job_id,
+                "device_id": record.device_id,
+                "kind": record.kind,
+                "version": record.version,
+                "method": record.method,
+                "content_sha256": record.content_sha256,
+                "job_id": record.job_id,
                 "order_id": job.order_id if job else None,
             }
         )
     return {**base, **extra}
 
 
-def event_for(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
-    """The feed event (type, data) an audit event stands for, or None if a LIMS need not hear of
-    it."""
-    action, d = e.action, e.details
-    if action == "job.create":
-        return "job.state", _job_event(s, e, "queued")
-    if action.startswith("job.") and action.removeprefix("job.") in _JOB_STATES:
-        return "job.state", _job_event(s, e, action.removeprefix("job."))
-    if action == "job.resume":
-        return "job.state", _job_event(s, e, "running")
+# the job state each job action reports
+_JOB_ACTION_STATES = {
+    "job.create": "queued",
+    **{f"job.{state}": state for state in _JOB_STATES},
+    "job.resume": "running",
+}
+# record decisions (review, approval, rejection) and the details their feed events carry
+_DECISION_EVENTS = {
+    "record.review": "record.reviewed",
+    "record.approve": "record.approved",
+    "record.reject": "record.rejected",
+}
+_DECISION_KEYS = ("approval_id", "actor", "signer", "meaning", "note", "record_sha256")
+# actions reported with their audit details as they are
+_PLAIN_EVENTS = {
+    "diagnosis.finish": "diagnosis.finished",
+    "certificate.issue": "certificate.issued",
+    "standard.due_soon": "standard.due_soon",
+    "order.create": "order.created",
+}
+
+
+def _record_feed_event(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
+    """The feed event of a record's creation, activation or decision; None for other actions."""
+    action, details = e.action, e.details
     if action == "record.create":
         return "record.created", _record_event(s, int(e.entity_id), {})
     if action == "pointer.set":
         return "record.activated", _record_event(
-            s, int(d["record_id"]), {"previous_record_id": d.get("previous_record_id")}
+            s, int(details["record_id"]), {"previous_record_id": details.get("previous_record_id")}
         )
-    if action in ("record.review", "record.approve", "record.reject"):
-        kind = {
-            "record.review": "record.reviewed",
-            "record.approve": "record.approved",
-            "record.reject": "record.rejected",
-        }[action]
-        return kind, _record_event(
-            s,
-            int(e.entity_id),
-            {
-                k: d.get(k)
-                for k in ("approval_id", "actor", "signer", "meaning", "note", "record_sha256")
-            },
-        )
+    kind = _DECISION_EVENTS.get(action)
+    if kind is None:
+        return None
+    return kind, _record_event(
+        s, int(e.entity_id), {key: details.get(key) for key in _DECISION_KEYS}
+    )
+
+
+def event_for(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
+    """The feed event (type, data) an audit event stands for, or None if a LIMS need not hear of
+    it."""
+    job_state = _JOB_ACTION_STATES.get(e.action)
+    if job_state is not None:
+        return "job.state", _job_event(s, e, job_state)
+    record_event = _record_feed_event(s, e)
+    if record_event is not None:
+        return record_event
     # the rows' hashes are the audit chain's, not news
-    data = {k: v for k, v in d.items() if k != ROW_ANCHORS}
-    if action == "diagnosis.finish":
-        return "diagnosis.finished", data
-    if action in ("certificate.issue", "standard.due_soon", "order.create"):
-        return {
-            "certificate.issue": "certificate.issued",
-            "standard.due_soon": "standard.due_soon",
-            "order.create": "order.created",
-        }[action], data
-    return None
+    data = {key: value for key, value in e.details.items() if key != ROW_ANCHORS}
+    kind = _PLAIN_EVENTS.get(e.action)
+    return None if kind is None else (kind, data)
 
 
 def append_for_audit(s: Session, e: AuditEvent) -> FeedEvent | None:

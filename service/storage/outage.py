@@ -133,6 +133,14 @@ class DatabaseState:
         )
 
 
+async def _back_off(state: DatabaseState, delay_s: float, give_up: bool) -> None:
+    """One back-off pause of a waiting write, never past the outage's end when it gives up."""
+    left_s = state.outage_s - state.away_for_s()
+    if give_up and left_s <= 0:
+        raise state.outage_error() from None
+    await asyncio.sleep(max(0.01, min(delay_s, left_s) if give_up else delay_s))
+
+
 async def through_outage(
     state: DatabaseState,
     attempt: Callable[[], Awaitable[T]],
@@ -164,10 +172,7 @@ async def through_outage(
                     state.waiting(+1, samples)
                     if on_wait is not None:
                         on_wait(True)
-                left_s = state.outage_s - state.away_for_s()
-                if give_up and left_s <= 0:
-                    raise state.outage_error() from None
-                await asyncio.sleep(max(0.01, min(delay_s, left_s) if give_up else delay_s))
+                await _back_off(state, delay_s, give_up)
                 delay_s = min(delay_s * 2, BACKOFF_MAX_S)
                 continue
             state.back()

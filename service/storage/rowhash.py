@@ -89,7 +89,9 @@ def _refuse_unanchored_changes(session: Session) -> None:
     code."""
     pending = session.info.get(_PENDING, set()) | _changed_rows(session)
     if pending:
-        names = ", ".join(sorted(f"{o.__tablename__} id={getattr(o, 'id', None)}" for o in pending))
+        names = ", ".join(
+            sorted(f"{row.__tablename__} id={getattr(row, 'id', None)}" for row in pending)
+        )
         session.info.pop(_PENDING, None)
         raise RuntimeError(
             f"{names} changed without an audit event in the same transaction: every change of these"

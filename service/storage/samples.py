@@ -59,6 +59,11 @@ def check_sample(s: Sample) -> None:
         raise InputError(f"sample t_s={t_s!r} is not a finite time in seconds")
     if isinstance(device_id, bool) or not isinstance(device_id, int):
         raise InputError(f"sample device_id={device_id!r} is not an integer id")
+    _check_readings(t_s, ch_x, ch_y, ch_z, temp_c)
+
+
+def _check_readings(t_s: object, ch_x: object, ch_y: object, ch_z: object, temp_c: object) -> None:
+    """check_sample's last step: the channels (required) and temperature (optional) are finite."""
     for name, value, optional in (
         ("ch_x", ch_x, False),
         ("ch_y", ch_y, False),
@@ -69,39 +74,45 @@ def check_sample(s: Sample) -> None:
             raise InputError(f"sample {name}={value!r} at t_s={t_s!r} is not a finite number")
 
 
+def _numbers_look_fine(rows: Sequence[Sample]) -> bool:
+    """check_samples' pass over the shape and numbers of a batch (raises on text or None)."""
+    return (
+        set(map(len, rows)) <= {len(COLUMNS)}
+        # a str or None raises, a float spoils the type
+        and type(sum(map(itemgetter(0), rows))) is int
+        # A NaN or inf anywhere spoils the sum, text raises; the optional columns drop None (and
+        # zeros).
+        and math.isfinite(
+            sum(chain(map(itemgetter(1), rows), map(itemgetter(2), rows), map(itemgetter(3), rows)))
+        )
+        and math.isfinite(
+            sum(
+                chain(
+                    filter(None, map(itemgetter(4), rows)),
+                    filter(None, map(itemgetter(5), rows)),
+                )
+            )
+        )
+        and set(map(type, map(itemgetter(1), rows))) <= {float, int}  # not bool
+    )
+
+
+def _sources_look_fine(rows: Sequence[Sample]) -> bool:
+    """check_samples' pass over the sources: known ones, and a job for every calibration sample."""
+    return set(map(itemgetter(8), rows)) <= set(SAMPLE_SOURCES) and not any(
+        sample[6] is None for sample in rows if sample[8] == "calibration"
+    )
+
+
 def check_samples(rows: Sequence[Sample]) -> None:
     """check_sample for a whole batch, in C-speed passes; the slow path only to name the culprit."""
     try:
-        ok = (
-            set(map(len, rows)) <= {len(COLUMNS)}
-            # a str or None raises, a float spoils the type
-            and type(sum(map(itemgetter(0), rows))) is int
-            # A NaN or inf anywhere spoils the sum, text raises; the optional columns drop None (and
-            # zeros).
-            and math.isfinite(
-                sum(
-                    chain(
-                        map(itemgetter(1), rows), map(itemgetter(2), rows), map(itemgetter(3), rows)
-                    )
-                )
-            )
-            and math.isfinite(
-                sum(
-                    chain(
-                        filter(None, map(itemgetter(4), rows)),
-                        filter(None, map(itemgetter(5), rows)),
-                    )
-                )
-            )
-            and set(map(type, map(itemgetter(1), rows))) <= {float, int}  # not bool
-            and set(map(itemgetter(8), rows)) <= set(SAMPLE_SOURCES)
-            and not any(s[6] is None for s in rows if s[8] == "calibration")
-        )
+        ok = _numbers_look_fine(rows) and _sources_look_fine(rows)
     except (TypeError, ValueError, OverflowError, IndexError):
         ok = False
     if not ok:
-        for s in rows:
-            check_sample(s)
+        for sample in rows:
+            check_sample(sample)
 
 
 _ROWS_PER_STATEMENT = 100  # 900 parameters: below SQLite's limit even in old builds (999)
@@ -155,15 +166,15 @@ def samples_stored(conn: sa.Connection, rows: Sequence[Sample]) -> bool:
     if not rows:
         return True
     for row in (rows[0], rows[-1]):
-        s = Sample._make(row)
+        sample = Sample._make(row)
         found = conn.execute(
             sa.select(_t.c.id)
             .where(
-                _t.c.device_id == s.device_id,
-                _t.c.t_s == s.t_s,
-                _t.c.source == s.source,
-                _t.c.job_id.is_not_distinct_from(s.job_id),
-                _t.c.point.is_not_distinct_from(s.point),
+                _t.c.device_id == sample.device_id,
+                _t.c.t_s == sample.t_s,
+                _t.c.source == sample.source,
+                _t.c.job_id.is_not_distinct_from(sample.job_id),
+                _t.c.point.is_not_distinct_from(sample.point),
             )
             .limit(1)
         ).first()
@@ -187,8 +198,8 @@ def write_samples(engine: sa.Engine, rows: Iterable[Sample], *, batch_size: int 
 
     total, batch = 0, []
     weng = write_engine(engine)
-    for s in rows:
-        batch.append(s)
+    for sample in rows:
+        batch.append(sample)
         if len(batch) >= batch_size:
             check_samples(batch)
             with weng.begin() as conn:
@@ -263,6 +274,37 @@ class RetentionResult:
     kept_thinned: int
 
 
+def _check_retention(
+    older_than: dt.timedelta, policy: str, thin_interval_s: float, now: dt.datetime | None
+) -> None:
+    """apply_retention's arguments checked before anything is deleted."""
+    if policy not in ("thin", "drop"):
+        raise InputError(f"retention policy {policy!r} is not 'thin' or 'drop'")
+    if not isinstance(older_than, dt.timedelta):
+        raise InputError(f"retention age {older_than!r} must be a datetime.timedelta")
+    if older_than <= dt.timedelta(0):
+        raise InputError("retention age must be positive")
+    if now is not None and now.tzinfo is None:
+        raise InputError(f"retention time now={now.isoformat()} has no timezone; give it in UTC")
+    if policy == "thin" and not (thin_interval_s > 0):
+        raise InputError("thin interval must be positive")
+
+
+def _thin(
+    conn: sa.Connection, scope: sa.ColumnElement[bool], thin_interval_s: float
+) -> tuple[int, int]:
+    """One device's old samples thinned to the first of each interval: (deleted, kept)."""
+    bucket: sa.ColumnElement[Any]
+    if conn.dialect.name == "postgresql":
+        bucket = sa.func.floor(_t.c.t_s / thin_interval_s)
+    else:
+        bucket = sa.cast(_t.c.t_s / thin_interval_s, sa.Integer)  # t_s > 0: truncation is floor
+    keep = sa.select(sa.func.min(_t.c.id)).where(scope).group_by(bucket)
+    deleted = conn.execute(sa.delete(_t).where(scope, _t.c.id.not_in(keep))).rowcount
+    kept = int(conn.execute(sa.select(sa.func.count()).select_from(_t).where(scope)).scalar_one())
+    return deleted, kept
+
+
 def apply_retention(
     conn: sa.Connection,
     *,
@@ -277,35 +319,21 @@ def apply_retention(
     Only rows with source='monitoring' are touched; the database triggers refuse the deletion of
     any other sample, so a mistake here cannot reach calibration data.
     """
-    if policy not in ("thin", "drop"):
-        raise InputError(f"retention policy {policy!r} is not 'thin' or 'drop'")
-    if not isinstance(older_than, dt.timedelta):
-        raise InputError(f"retention age {older_than!r} must be a datetime.timedelta")
-    if older_than <= dt.timedelta(0):
-        raise InputError("retention age must be positive")
-    if now is not None and now.tzinfo is None:
-        raise InputError(f"retention time now={now.isoformat()} has no timezone; give it in UTC")
-    if policy == "thin" and not (thin_interval_s > 0):
-        raise InputError("thin interval must be positive")
+    _check_retention(older_than, policy, thin_interval_s, now)
     now = now or dt.datetime.now(dt.UTC)
     cutoff_s = (now - older_than).timestamp()
     old = sa.and_(_t.c.source == "monitoring", _t.c.t_s < cutoff_s)
     kept = 0
-    devices = [d for (d,) in conn.execute(sa.select(_t.c.device_id).where(old).distinct())]
+    devices = [
+        device for (device,) in conn.execute(sa.select(_t.c.device_id).where(old).distinct())
+    ]
     deleted = 0
     for device_id in devices:  # one device at a time: each delete walks the (device_id, t_s) index
         scope = sa.and_(_t.c.device_id == device_id, old)
         if policy == "drop":
             deleted += conn.execute(sa.delete(_t).where(scope)).rowcount
             continue
-        bucket: sa.ColumnElement[Any]
-        if conn.dialect.name == "postgresql":
-            bucket = sa.func.floor(_t.c.t_s / thin_interval_s)
-        else:
-            bucket = sa.cast(_t.c.t_s / thin_interval_s, sa.Integer)  # t_s > 0: truncation is floor
-        keep = sa.select(sa.func.min(_t.c.id)).where(scope).group_by(bucket)
-        deleted += conn.execute(sa.delete(_t).where(scope, _t.c.id.not_in(keep))).rowcount
-        kept += int(
-            conn.execute(sa.select(sa.func.count()).select_from(_t).where(scope)).scalar_one()
-        )
+        thinned_away, thinned_kept = _thin(conn, scope, thin_interval_s)
+        deleted += thinned_away
+        kept += thinned_kept
     return RetentionResult(cutoff_s=cutoff_s, policy=policy, deleted=deleted, kept_thinned=kept)

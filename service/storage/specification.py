@@ -102,56 +102,72 @@ def specification_of(value: object) -> Specification | None:
         above=0.0,
         most=MAX_ERROR_DEG,
     )
-    rule_text = value.get("decision_rule")
+    rule = _decision_rule_of(value.get("decision_rule"))
+    guard = _guard_band_of(value, rule)
+    params = _parameter_limits_of(value.get("parameters") or {})
+    return Specification(mpe, rule, guard, tuple(params))
+
+
+def _decision_rule_of(rule_text: object) -> DecisionRule:
+    """The decision rule a specification names; SpecificationProblem lists the known ones."""
     try:
-        rule = DecisionRule(str(rule_text))
+        return DecisionRule(str(rule_text))
     except ValueError:
         raise SpecificationProblem(
             "specification.decision_rule",
-            f"{rule_text!r} is not one of {', '.join(r.value for r in DecisionRule)}",
+            f"{rule_text!r} is not one of {', '.join(member.value for member in DecisionRule)}",
         ) from None
-    guard = 1.0
-    if value.get("guard_band_fraction") is not None:
-        if rule is not DecisionRule.GUARDED_ACCEPTANCE:
-            raise SpecificationProblem(
-                "specification.guard_band_fraction",
-                f"a guard band belongs to guarded_acceptance, not {rule.value}",
-            )
-        guard = _number(
+
+
+def _guard_band_of(value: Mapping[Any, Any], rule: DecisionRule) -> float:
+    """The guard band fraction, given only with guarded acceptance (1.0 when not given)."""
+    if value.get("guard_band_fraction") is None:
+        return 1.0
+    if rule is not DecisionRule.GUARDED_ACCEPTANCE:
+        raise SpecificationProblem(
             "specification.guard_band_fraction",
-            value["guard_band_fraction"],
-            above=0.0,
-            most=GUARD_BAND_MAX,
+            f"a guard band belongs to guarded_acceptance, not {rule.value}",
         )
-    params: list[ParameterLimit] = []
-    given = value.get("parameters") or {}
+    return _number(
+        "specification.guard_band_fraction",
+        value["guard_band_fraction"],
+        above=0.0,
+        most=GUARD_BAND_MAX,
+    )
+
+
+def _parameter_limits_of(given: object) -> list[ParameterLimit]:
+    """The limits on named parameters of the model, each checked where it is given."""
     if not isinstance(given, Mapping):
         raise SpecificationProblem(
             "specification.parameters",
             'an object {"<parameter>": {"nominal": ..., "max_permissible_error": ...}} is needed',
         )
-    for name, limit in given.items():
-        field = f"specification.parameters.{name}"
-        if not isinstance(name, str) or not _PARAMETER_NAME.fullmatch(name):
-            raise SpecificationProblem(
-                field, "not a parameter name of a model (letters, digits, '_' and '.')"
-            )
-        if not isinstance(limit, Mapping) or set(limit) - {"nominal", "max_permissible_error"}:
-            raise SpecificationProblem(
-                field, 'an object {"nominal": ..., "max_permissible_error": ...} is needed'
-            )
-        nominal = limit.get("nominal", 0.0)
-        if (
-            isinstance(nominal, bool)
-            or not isinstance(nominal, int | float)
-            or not math.isfinite(nominal)
-        ):
-            raise SpecificationProblem(f"{field}.nominal", f"{nominal!r} is not a number")
-        mpe_p = _number(
-            f"{field}.max_permissible_error",
-            limit.get("max_permissible_error"),
-            above=0.0,
-            most=1e9,
+    return [_parameter_limit(name, limit) for name, limit in given.items()]
+
+
+def _parameter_limit(name: object, limit: object) -> ParameterLimit:
+    """One parameter's limit {nominal, max_permissible_error}; the problem names the parameter."""
+    field = f"specification.parameters.{name}"
+    if not isinstance(name, str) or not _PARAMETER_NAME.fullmatch(name):
+        raise SpecificationProblem(
+            field, "not a parameter name of a model (letters, digits, '_' and '.')"
         )
-        params.append(ParameterLimit(name, float(nominal), mpe_p))
-    return Specification(mpe, rule, guard, tuple(params))
+    if not isinstance(limit, Mapping) or set(limit) - {"nominal", "max_permissible_error"}:
+        raise SpecificationProblem(
+            field, 'an object {"nominal": ..., "max_permissible_error": ...} is needed'
+        )
+    nominal = limit.get("nominal", 0.0)
+    if (
+        isinstance(nominal, bool)
+        or not isinstance(nominal, int | float)
+        or not math.isfinite(nominal)
+    ):
+        raise SpecificationProblem(f"{field}.nominal", f"{nominal!r} is not a number")
+    mpe_p = _number(
+        f"{field}.max_permissible_error",
+        limit.get("max_permissible_error"),
+        above=0.0,
+        most=1e9,
+    )
+    return ParameterLimit(name, float(nominal), mpe_p)

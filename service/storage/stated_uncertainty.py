@@ -31,7 +31,7 @@ ANGLE_UNITS_DEG = {
     "rad": 180.0 / math.pi,
 }
 
-_UNIT = "|".join(sorted((re.escape(u) for u in ANGLE_UNITS_DEG), key=len, reverse=True))
+_UNIT = "|".join(sorted((re.escape(unit) for unit in ANGLE_UNITS_DEG), key=len, reverse=True))
 _TEXT = re.compile(
     rf"^\s*(?:U\s*=\s*)?(?:±|\+/-)?\s*(?P<value>\d+(?:\.\d*)?(?:[eE][-+]?\d+)?|\.\d+)\s*(?P<unit>{_UNIT})(?![A-Za-z])"
     r"\s*[,;(]?\s*k\s*=\s*(?P<k>\d+(?:\.\d*)?)\s*\)?\s*$"

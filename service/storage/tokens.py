@@ -24,21 +24,26 @@ def token_sha256(token: str) -> str:
     return hashlib.sha256(token.encode("utf-8")).hexdigest()
 
 
+def _listed(scopes: str | Iterable[str]) -> list[str]:
+    """The scope names given (comma-separated text or a list), stripped, blanks dropped."""
+    items = [scope.strip() for scope in (scopes.split(",") if isinstance(scopes, str) else scopes)]
+    return [scope for scope in items if scope]
+
+
 def parse_scopes(scopes: str | Iterable[str]) -> list[str]:
-    items = [s.strip() for s in (scopes.split(",") if isinstance(scopes, str) else scopes)]
-    items = [s for s in items if s]
+    items = _listed(scopes)
     if not items:
         raise InputError(f"scopes: give at least one of {', '.join(SCOPES)}")
-    unknown = [s for s in items if s not in SCOPES]
+    unknown = [scope for scope in items if scope not in SCOPES]
     if unknown:
         raise InputError(f"scopes: {', '.join(unknown)} unknown; scopes are {', '.join(SCOPES)}")
-    return [s for s in SCOPES if s in items]
+    return [scope for scope in SCOPES if scope in items]
 
 
 def granted(scopes: Iterable[str]) -> set[str]:
     out: set[str] = set()
-    for s in scopes:
-        out |= IMPLIED.get(s, set())
+    for scope in scopes:
+        out |= IMPLIED.get(scope, set())
     return out
 
 
@@ -57,6 +62,21 @@ class Person:
 PERSON_TEXT_MAX = 200
 
 
+def _check_person_text(what: str, key: str, value: object) -> None:
+    """A person's name or function: printable text, not blank, at most PERSON_TEXT_MAX long."""
+    if not isinstance(value, str) or not value.strip():
+        need = (
+            "the person's full name"
+            if key == "name"
+            else "their function in the laboratory, as text"
+        )
+        raise InputError(f"{what}.{key}: give {need}")
+    if len(value) > PERSON_TEXT_MAX:
+        raise InputError(f"{what}.{key}: longer than {PERSON_TEXT_MAX} characters")
+    if any(ord(char) < 32 or 127 <= ord(char) < 160 for char in value):
+        raise InputError(f"{what}.{key}: control characters are not allowed")
+
+
 def person_of(fields: object, what: str = "person") -> Person:
     """A person from {"name", "function"}: a name of 1-200 printable characters, optionally a
     function as long."""
@@ -69,17 +89,7 @@ def person_of(fields: object, what: str = "person") -> Person:
     for key, value, needed in (("name", name, True), ("function", function, False)):
         if value is None and not needed:
             continue
-        if not isinstance(value, str) or not value.strip():
-            need = (
-                "the person's full name"
-                if key == "name"
-                else "their function in the laboratory, as text"
-            )
-            raise InputError(f"{what}.{key}: give {need}")
-        if len(value) > PERSON_TEXT_MAX:
-            raise InputError(f"{what}.{key}: longer than {PERSON_TEXT_MAX} characters")
-        if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in value):
-            raise InputError(f"{what}.{key}: control characters are not allowed")
+        _check_person_text(what, key, value)
     assert isinstance(name, str)
     return Person(name.strip(), function.strip() if isinstance(function, str) else None)
 

@@ -104,44 +104,47 @@ def _verify_records(s: Session, report: VerifyReport) -> None:
         )
     )
     prev: CalibrationRecord | None = None
-    for r in records:
+    for record in records:
         report.records_checked += 1
-        if sha256_hex(record_content(r)) != r.content_sha256:
+        if sha256_hex(record_content(record)) != record.content_sha256:
             report.problems.append(
                 Problem(
                     "calibration_records",
-                    r.id,
+                    record.id,
                     "tampered",
-                    f"device {r.device_id} {r.kind} v{r.version}: content does not match its "
-                    "SHA-256",
+                    f"device {record.device_id} {record.kind} v{record.version}: content does not "
+                    "match its SHA-256",
                 )
             )
-        same_chain = prev is not None and (prev.device_id, prev.kind) == (r.device_id, r.kind)
+        same_chain = prev is not None and (prev.device_id, prev.kind) == (
+            record.device_id,
+            record.kind,
+        )
         expected_version = prev.version + 1 if same_chain else 1  # type: ignore[union-attr]
         expected_prev = prev.content_sha256 if same_chain else GENESIS_SHA256  # type: ignore[union-attr]
-        if r.version != expected_version:
+        if record.version != expected_version:
             report.problems.append(
                 Problem(
                     "calibration_records",
-                    r.id,
+                    record.id,
                     "broken_chain",
-                    f"device {r.device_id} {r.kind}: v{r.version} follows "
+                    f"device {record.device_id} {record.kind}: v{record.version} follows "
                     f"v{expected_version - 1}; a version is missing",
                 )
             )
-        elif r.prev_sha256 != expected_prev:
+        elif record.prev_sha256 != expected_prev:
             report.problems.append(
                 Problem(
                     "calibration_records",
-                    r.id,
+                    record.id,
                     "broken_chain",
-                    f"device {r.device_id} {r.kind} v{r.version}: predecessor hash does not match "
-                    f"v{r.version - 1}",
+                    f"device {record.device_id} {record.kind} v{record.version}: predecessor hash "
+                    f"does not match v{record.version - 1}",
                 )
             )
-        if r.job_id is not None:
-            _verify_points(s, report, r)
-        prev = r
+        if record.job_id is not None:
+            _verify_points(s, report, record)
+        prev = record
 
 
 def _verify_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> None:
@@ -153,9 +156,7 @@ def _verify_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> No
         by_device = (
             {str(r.device_id): r.raw_data["points_sha256"]} if "points_sha256" in r.raw_data else {}
         )
-    stored: dict[str, list[SettledPoint]] = {}
-    for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == r.job_id)):
-        stored.setdefault(str(p.device_id), []).append(p)
+    stored = _settled_by_device(s, r.job_id)
     for device, sha in sorted(by_device.items()):
         if points_sha256(stored.get(device, [])) != sha:
             report.problems.append(
@@ -178,13 +179,23 @@ def _verify_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> No
                     "not record",
                 )
             )
-    # a version adopted from a diagnosis that measured more points was fitted on those jobs' points
-    # too
+    _verify_measurement_points(s, report, r)
+
+
+def _settled_by_device(s: Session, job_id: int | None) -> dict[str, list[SettledPoint]]:
+    """A job's settled points by device id as text, the keys the records' point hashes use."""
+    by_device: dict[str, list[SettledPoint]] = {}
+    for point in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == job_id)):
+        by_device.setdefault(str(point.device_id), []).append(point)
+    return by_device
+
+
+def _verify_measurement_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> None:
+    """A version adopted from a diagnosis that measured more points was fitted on those jobs'
+    points too: each of them against the hashes the record holds."""
     measured = r.raw_data.get("measurement_points_sha256")
     for job_id, hashes in measured.items() if isinstance(measured, dict) else ():
-        held: dict[str, list[SettledPoint]] = {}
-        for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == int(job_id))):
-            held.setdefault(str(p.device_id), []).append(p)
+        held = _settled_by_device(s, int(job_id))
         for device in sorted(set(hashes) | set(held)):
             if device not in hashes or points_sha256(held.get(device, [])) != hashes[device]:
                 report.problems.append(
@@ -215,36 +226,39 @@ def _verify_audit(
     decided: dict[int, tuple[int, str]] = {}
     anchors: Anchors = {}
     prev_sha = GENESIS_SHA256
-    for e in s.scalars(sa.select(AuditEvent).order_by(AuditEvent.id)).yield_per(1000):
+    for event in s.scalars(sa.select(AuditEvent).order_by(AuditEvent.id)).yield_per(1000):
         report.audit_events_checked += 1
-        if sha256_hex(audit_content(e)) != e.sha256:
+        if sha256_hex(audit_content(event)) != event.sha256:
             report.problems.append(
                 Problem(
                     "audit_events",
-                    e.id,
+                    event.id,
                     "tampered",
-                    f"{e.action} by {e.actor} at {e.at:%Y-%m-%d %H:%M:%S}: content does not "
-                    "match its SHA-256",
+                    f"{event.action} by {event.actor} at {event.at:%Y-%m-%d %H:%M:%S}: content "
+                    "does not match its SHA-256",
                 )
             )
-        if e.prev_sha256 != prev_sha:
+        if event.prev_sha256 != prev_sha:
             report.problems.append(
                 Problem(
                     "audit_events",
-                    e.id,
+                    event.id,
                     "broken_chain",
                     "predecessor hash does not match the previous event; an event was removed or "
                     "altered",
                 )
             )
-        if e.action == "record.create":
-            created[int(e.entity_id)] = str(e.details.get("content_sha256"))
-        elif e.action in _DECISIONS and isinstance(e.details.get("approval_id"), int):
-            decided[e.details["approval_id"]] = (e.id, str(e.details.get("approval_sha256")))
-        rows = e.details.get(ANCHORS) if isinstance(e.details, dict) else None
+        if event.action == "record.create":
+            created[int(event.entity_id)] = str(event.details.get("content_sha256"))
+        elif event.action in _DECISIONS and isinstance(event.details.get("approval_id"), int):
+            decided[event.details["approval_id"]] = (
+                event.id,
+                str(event.details.get("approval_sha256")),
+            )
+        rows = event.details.get(ANCHORS) if isinstance(event.details, dict) else None
         if isinstance(rows, dict):
-            anchors.update({str(key): (e.id, str(sha)) for key, sha in rows.items()})
-        prev_sha = e.sha256
+            anchors.update({str(key): (event.id, str(sha)) for key, sha in rows.items()})
+        prev_sha = event.sha256
     report.audit_head_sha256 = prev_sha
     return created, decided, anchors
 
@@ -294,49 +308,50 @@ def _verify_approvals_and_certificates(
     from service.storage.store.approvals import approval_content
 
     prev = GENESIS_SHA256
-    for a in s.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):
-        if sha256_hex(normalise(approval_content(a))) != a.sha256:
+    for approval in s.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):
+        if sha256_hex(normalise(approval_content(approval))) != approval.sha256:
             report.problems.append(
                 Problem(
                     "record_approvals",
-                    a.id,
+                    approval.id,
                     "tampered",
-                    f"{a.decision} of record {a.record_id} by {a.actor}: content does not match "
-                    "its SHA-256",
+                    f"{approval.decision} of record {approval.record_id} by {approval.actor}: "
+                    "content does not match its SHA-256",
                 )
             )
-        if a.prev_sha256 != prev:
+        if approval.prev_sha256 != prev:
             report.problems.append(
                 Problem(
                     "record_approvals",
-                    a.id,
+                    approval.id,
                     "broken_chain",
                     "predecessor hash does not match the previous approval; one was removed or "
                     "altered",
                 )
             )
-        audited = decided.pop(a.id, None)
+        audited = decided.pop(approval.id, None)
         if audited is None:
             report.problems.append(
                 Problem(
                     "record_approvals",
-                    a.id,
+                    approval.id,
                     "missing",
-                    f"no audit event records the {a.decision} of record {a.record_id} by {a.actor}",
+                    f"no audit event records the {approval.decision} of record "
+                    f"{approval.record_id} by {approval.actor}",
                 )
             )
-        elif audited[1] != a.sha256:
+        elif audited[1] != approval.sha256:
             report.problems.append(
                 Problem(
                     "record_approvals",
-                    a.id,
+                    approval.id,
                     "tampered",
                     f"its hash differs from the one audit event {audited[0]} recorded at the "
                     "decision",
                 )
             )
         report.approvals_checked += 1
-        prev = a.sha256
+        prev = approval.sha256
     for approval_id, (event_id, _sha) in sorted(decided.items()):
         event = s.get(AuditEvent, event_id)
         what = (
@@ -353,15 +368,15 @@ def _verify_approvals_and_certificates(
                 "status would read as if that decision was never made)",
             )
         )
-    for c in s.scalars(sa.select(Certificate).order_by(Certificate.id)):
-        if hashlib.sha256(c.xml).hexdigest() != c.sha256:
+    for certificate in s.scalars(sa.select(Certificate).order_by(Certificate.id)):
+        if hashlib.sha256(certificate.xml).hexdigest() != certificate.sha256:
             report.problems.append(
                 Problem(
                     "certificates",
-                    c.id,
+                    certificate.id,
                     "tampered",
-                    f"certificate {c.number}: stored bytes do not match the SHA-256 recorded at "
-                    "issue",
+                    f"certificate {certificate.number}: stored bytes do not match the SHA-256 "
+                    "recorded at issue",
                 )
             )
 
@@ -432,7 +447,7 @@ def _verify_rows(s: Session, report: VerifyReport, anchors: Anchors) -> None:
 def _verify_samples(s: Session, report: VerifyReport) -> None:
     """Each settled point that holds the hash of its raw samples against the samples stored now."""
     t = SampleRow.__table__
-    for p in s.scalars(
+    for settled in s.scalars(
         sa.select(SettledPoint)
         .where(SettledPoint.samples_sha256.is_not(None))
         .order_by(SettledPoint.id)
@@ -440,17 +455,21 @@ def _verify_samples(s: Session, report: VerifyReport) -> None:
         report.sample_points_checked += 1
         rows = s.execute(
             sa.select(*(t.c[name] for name in SAMPLE_FIELDS))
-            .where(t.c.job_id == p.job_id, t.c.device_id == p.device_id, t.c.point == p.point)
+            .where(
+                t.c.job_id == settled.job_id,
+                t.c.device_id == settled.device_id,
+                t.c.point == settled.point,
+            )
             .order_by(t.c.t_s, t.c.id)
         ).all()
-        if not rows or samples_sha256(rows) != p.samples_sha256:
+        if not rows or samples_sha256(rows) != settled.samples_sha256:
             report.problems.append(
                 Problem(
                     "samples",
                     None,
                     "raw_data_changed",
-                    f"the raw samples of device {p.device_id} at point {p.point} of job "
-                    f"{p.job_id} ({len(rows)} stored now) no longer hash to what settled point "
-                    f"id={p.id} recorded: a sample was changed, added or removed",
+                    f"the raw samples of device {settled.device_id} at point {settled.point} of "
+                    f"job {settled.job_id} ({len(rows)} stored now) no longer hash to what settled "
+                    f"point id={settled.id} recorded: a sample was changed, added or removed",
                 )
             )

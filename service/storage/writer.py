@@ -188,36 +188,48 @@ class SampleWriter:
         for i in range(0, len(rows), self.batch_size):
             chunk = rows[i : i + self.batch_size]
             if not self.database.up:
-                took = self._queue.put_what_fits(chunk)
+                took = self._put_what_fits(chunk, accepted, len(rows))
                 accepted += took
-                with self._progress:
-                    self.handed_over += took
-                    if took < len(chunk):
-                        self.dropped += len(rows) - accepted
                 if took < len(chunk):
-                    if self._queue.closed:
-                        raise RuntimeError("SampleWriter is closed")
-                    log.warning(
-                        "database away and the sample queue full: %d samples refused",
-                        len(rows) - accepted,
-                    )
                     return accepted
                 continue
-            try:
-                if not self._queue.put_chunk(chunk, self.put_timeout_s):
-                    raise RuntimeError(
-                        f"SampleWriter is closed; {accepted} of these {len(rows)} samples were "
-                        "accepted, the rest were not"
-                    )
-            except queue.Full:
-                raise BackPressureTimeout(
-                    f"sample queue full for {self.put_timeout_s} s: the database is not keeping up;"
-                    f" {accepted} of these {len(rows)} samples were accepted, the rest were not"
-                ) from None
+            self._put_waiting(chunk, accepted, len(rows))
             accepted += len(chunk)
-            with self._progress:
-                self.handed_over += len(chunk)
         return accepted
+
+    def _put_what_fits(self, chunk: list[Sample], accepted: int, total: int) -> int:
+        """While the database is away a producer does not wait: the samples the queue has no room
+        for are refused and counted in `dropped`. Returns how many of the chunk were taken."""
+        took = self._queue.put_what_fits(chunk)
+        with self._progress:
+            self.handed_over += took
+            if took < len(chunk):
+                self.dropped += total - (accepted + took)
+        if took < len(chunk):
+            if self._queue.closed:
+                raise RuntimeError("SampleWriter is closed")
+            log.warning(
+                "database away and the sample queue full: %d samples refused",
+                total - (accepted + took),
+            )
+        return took
+
+    def _put_waiting(self, chunk: list[Sample], accepted: int, total: int) -> None:
+        """While the database answers a producer waits for room, up to put_timeout_s per chunk:
+        the back pressure of a database not keeping up."""
+        try:
+            if not self._queue.put_chunk(chunk, self.put_timeout_s):
+                raise RuntimeError(
+                    f"SampleWriter is closed; {accepted} of these {total} samples were "
+                    "accepted, the rest were not"
+                )
+        except queue.Full:
+            raise BackPressureTimeout(
+                f"sample queue full for {self.put_timeout_s} s: the database is not keeping up;"
+                f" {accepted} of these {total} samples were accepted, the rest were not"
+            ) from None
+        with self._progress:
+            self.handed_over += len(chunk)
 
     def flush(self, timeout: float | None = None) -> None:
         """Wait until every sample handed over so far is committed (or rejected)."""
@@ -288,53 +300,70 @@ class SampleWriter:
                 with self._engine.begin() as conn:
                     (insert_samples_once if tried else insert_samples)(conn, batch)
                 self.database.back()
-                with self._progress:
-                    self.committed += len(batch)
-                    self._progress.notify_all()
+                self._count_committed(len(batch))
                 return
             except sa.exc.OperationalError as exc:  # locked or unreachable: worth waiting for
                 tried = True
-                if unreachable(exc):
-                    # The database is away: the batch waits for it (in order, the queue behind it),
-                    # given up only when the writer is being closed and the outage outlasts
-                    # outage_s.
-                    self.database.away(exc)
-                    if not (
-                        self._queue.closed and self.database.away_for_s() >= self.database.outage_s
-                    ):
-                        time.sleep(delay)
-                        delay = min(delay * 2, 2.0)
-                        continue
-                if time.monotonic() >= deadline or unreachable(exc):
+                next_delay = self._wait_to_retry(exc, deadline, delay)
+                if next_delay is None:
                     # Not the rows' fault: trying them one by one would only wait out the same lock
                     # or outage once per row while the queue fills.
                     log.error("sample batch failed after retries: %s", exc)
-                    with self._progress:
-                        self.rejected.extend((row, _reason(exc)) for row in batch)
-                        self._progress.notify_all()
+                    self._reject(batch, exc)
                     return
-                time.sleep(delay)
-                delay = min(delay * 2, 1.0)
+                delay = next_delay
             except Exception as exc:  # noqa: BLE001 - a bad row in the batch: find it, keep the others
                 # an earlier try may have stored it: row by row would store those rows twice
                 if tried:
-                    with self._progress:
-                        self.rejected.extend((row, _reason(exc)) for row in batch)
-                        self._progress.notify_all()
+                    self._reject(batch, exc)
                     return
                 log.warning("sample batch refused (%s); writing it row by row", _reason(exc))
                 break
+        self._write_row_by_row(batch)
+
+    def _wait_to_retry(
+        self, exc: sa.exc.OperationalError, deadline: float, delay: float
+    ) -> float | None:
+        """After a batch met a locked or unreachable database: waits `delay` and returns the next
+        delay, or None when the batch is given up (the lock outlasted the retries, or the writer is
+        closing and the outage has outlasted outage_s)."""
+        if unreachable(exc):
+            # The database is away: the batch waits for it (in order, the queue behind it),
+            # given up only when the writer is being closed and the outage outlasts
+            # outage_s.
+            self.database.away(exc)
+            if not (self._queue.closed and self.database.away_for_s() >= self.database.outage_s):
+                time.sleep(delay)
+                return min(delay * 2, 2.0)
+        if time.monotonic() >= deadline or unreachable(exc):
+            return None
+        time.sleep(delay)
+        return min(delay * 2, 1.0)
+
+    def _write_row_by_row(self, batch: list[Sample]) -> None:
+        """A batch the database refused, written row by row: the bad rows are rejected, the others
+        kept."""
         for row in batch:
             try:
                 with self._engine.begin() as conn:
                     insert_samples(conn, [row])
-                with self._progress:
-                    self.committed += 1
-                    self._progress.notify_all()
+                self._count_committed(1)
             except Exception as exc:  # noqa: BLE001 - recorded, and raised to the producer at flush/close
                 with self._progress:
                     self.rejected.append((row, _reason(exc)))
                     self._progress.notify_all()
+
+    def _count_committed(self, count: int) -> None:
+        """Samples committed, counted and told to whoever waits in flush."""
+        with self._progress:
+            self.committed += count
+            self._progress.notify_all()
+
+    def _reject(self, batch: list[Sample], exc: BaseException) -> None:
+        """A whole batch refused with the reason, raised to the producer at flush/close."""
+        with self._progress:
+            self.rejected.extend((row, _reason(exc)) for row in batch)
+            self._progress.notify_all()
 
 
 def _reason(exc: BaseException) -> str:

@@ -10,7 +10,7 @@ from typing import Any
 
 from service.jobs.events import JobEvents
 from service.jobs.manager import WAITING_FOR_DATABASE
-from service.storage.models import CalibrationJob
+from service.storage.models import CalibrationJob, SettledPoint
 from service.storage.outage import unreachable
 from service.storage.store import JobsRepo, PointsRepo
 
@@ -25,18 +25,11 @@ def job_points(
     leaving out those in `have`: {"index", "x_deg", "y_deg" (commanded stage angles; y null on a
     one-axis procedure), and per role {"x_deg", "y_deg", "z_deg", "x_std_deg", "y_std_deg",
     "z_std_deg", "n_samples", "temp_c"} of the robust means}."""
-    roles = {
-        dev: role
-        for role, dev in (job.parameters or {}).get("device_ids", {}).items()
-        if dev is not None
-    }
-    if not roles:
-        roles = {job.device_id: "measurement_sensor"}
+    roles = _roles_of(job)
     by_point: dict[int, dict[str, Any]] = {}
     # Points are measured in index order: only those from the first one not yet had are read, so a
     # follower's reads stay small however long the job (not all its points on every change).
-    first_missing = 0 if have is None else next(i for i in range(len(have) + 1) if i not in have)
-    for settled_point in points.settled_points(job.id, from_point=first_missing):
+    for settled_point in points.settled_points(job.id, from_point=_first_missing(have)):
         if have is not None and settled_point.point in have:
             continue
         role = roles.get(settled_point.device_id)
@@ -50,17 +43,40 @@ def job_points(
                 "y_deg": settled_point.cmd_y_deg,
             },
         )
-        pt[role] = {
-            "x_deg": settled_point.ch_x_mean,
-            "y_deg": settled_point.ch_y_mean,
-            "z_deg": settled_point.ch_z_mean,
-            "x_std_deg": settled_point.ch_x_std,
-            "y_std_deg": settled_point.ch_y_std,
-            "z_std_deg": settled_point.ch_z_std,
-            "n_samples": settled_point.n_samples,
-            "temp_c": settled_point.temp_c_mean,
-        }
-    return [pt for i, pt in sorted(by_point.items()) if all(r in pt for r in roles.values())]
+        pt[role] = _means_of(settled_point)
+    return [
+        pt for i, pt in sorted(by_point.items()) if all(needed in pt for needed in roles.values())
+    ]
+
+
+def _first_missing(have: frozenset[int] | set[int] | None) -> int:
+    """The first point index not in `have` (0 when nothing is had yet)."""
+    return 0 if have is None else next(i for i in range(len(have) + 1) if i not in have)
+
+
+def _roles_of(job: CalibrationJob) -> dict[int, str]:
+    """The role of each instrument of the job, by device id (a job that names none: its device,
+    as the measurement sensor)."""
+    roles = {
+        dev: role
+        for role, dev in (job.parameters or {}).get("device_ids", {}).items()
+        if dev is not None
+    }
+    return roles or {job.device_id: "measurement_sensor"}
+
+
+def _means_of(settled_point: SettledPoint) -> dict[str, Any]:
+    """One instrument's robust means at a point, as the stream shows them."""
+    return {
+        "x_deg": settled_point.ch_x_mean,
+        "y_deg": settled_point.ch_y_mean,
+        "z_deg": settled_point.ch_z_mean,
+        "x_std_deg": settled_point.ch_x_std,
+        "y_std_deg": settled_point.ch_y_std,
+        "z_std_deg": settled_point.ch_z_std,
+        "n_samples": settled_point.n_samples,
+        "temp_c": settled_point.temp_c_mean,
+    }
 
 
 async def job_messages(

@@ -127,12 +127,12 @@ def history_objects(rows: NDArray[np.float64], rate_hz: float, eps: float) -> li
     out: list[dict[str, Any]] = []
     next_t = -math.inf
     period = 1.0 / rate_hz
-    for r in rows:
-        nxt = due(r[_C["bench_s"]], next_t, period, eps)
+    for row in rows:
+        nxt = due(row[_C["bench_s"]], next_t, period, eps)
         if nxt is None:
             continue
         next_t = nxt
-        out.append(_row_object(r))
+        out.append(_row_object(row))
     return out
 
 
@@ -255,7 +255,7 @@ class ReadingProducer:
         self.queue_size = queue_size
         self.slow_close_s = slow_close_s
         self.role = next(
-            (r for r in ("measurement_sensor", *SENSOR_ROLES) if r in bench.devices), None
+            (role for role in ("measurement_sensor", *SENSOR_ROLES) if role in bench.devices), None
         )
         self.interval_s = bench.output_interval_s(self.role) if self.role else 1.0
         self.sensor_rate_hz = 1.0 / self.interval_s
@@ -275,8 +275,8 @@ class ReadingProducer:
         )
 
     async def stop(self) -> None:
-        for c in list(self.clients):
-            c.kick(CLOSE_GOING_AWAY, "daemon shutting down")
+        for client in list(self.clients):
+            client.kick(CLOSE_GOING_AWAY, "daemon shutting down")
         task, self._task = self._task, None
         if task is not None:
             task.cancel()
@@ -360,10 +360,10 @@ class ReadingProducer:
                 new = self._new_readings(last_seen)
                 if new:
                     last_seen = new[-1].bench_s
-                    for r in new:
-                        if r.bench_s - last_emitted >= min_gap:
-                            last_emitted, last_emit = r.bench_s, now
-                            self._emit(now, r)
+                    for reading in new:
+                        if reading.bench_s - last_emitted >= min_gap:
+                            last_emitted, last_emit = reading.bench_s, now
+                            self._emit(now, reading)
                 # a silent sensor still gets one message per interval
                 elif now - last_emit >= self.interval_s:
                     last_emit = now
@@ -377,8 +377,8 @@ class ReadingProducer:
         if self.role is None:
             return []
         if last_seen is None:
-            r = self.bench.latest(self.role)
-            return [] if r is None else [r]
+            latest = self.bench.latest(self.role)
+            return [] if latest is None else [latest]
         new = self.bench.readings_after(self.role, last_seen)
         return new[-max(1, int(self.sensor_rate_hz)) :]
 
@@ -393,24 +393,26 @@ class ReadingProducer:
         t = row[0]
         loop_now = asyncio.get_running_loop().time()
         eps = 0.25 * self.interval_s
-        for c in list(self.clients):
-            if c.rate_hz >= self.sensor_rate_hz:  # the full rate: every reading
-                self._offer(c, body, loop_now)
+        for client in list(self.clients):
+            if client.rate_hz >= self.sensor_rate_hz:  # the full rate: every reading
+                self._offer(client, body, loop_now)
                 continue
-            nxt = due(t, c.next_bench_s, 1.0 / c.rate_hz, eps)
+            nxt = due(t, client.next_bench_s, 1.0 / client.rate_hz, eps)
             if nxt is not None:
-                c.next_bench_s = nxt
-                self._offer(c, body, loop_now)
+                client.next_bench_s = nxt
+                self._offer(client, body, loop_now)
 
     def _offer(self, c: Client, body: str, loop_now: float) -> None:
-        q = c.queue
-        if c.pending_drops and q.maxsize - q.qsize() >= 2:
+        client_queue = c.queue
+        if c.pending_drops and client_queue.maxsize - client_queue.qsize() >= 2:
             c.seq += 1
-            q.put_nowait(json.dumps({"seq": c.seq, "type": "dropped", "count": c.pending_drops}))
+            client_queue.put_nowait(
+                json.dumps({"seq": c.seq, "type": "dropped", "count": c.pending_drops})
+            )
             c.pending_drops = 0
         c.seq += 1
-        if not c.pending_drops and not q.full():
-            q.put_nowait(f'{{"seq":{c.seq},{body}')
+        if not c.pending_drops and not client_queue.full():
+            client_queue.put_nowait(f'{{"seq":{c.seq},{body}')
             c.dropping_since = None
             return
         c.pending_drops += 1
@@ -433,10 +435,15 @@ class ReadingProducer:
         limit = clock.bench_seconds(stale_after_s(bench, self.role)) if self.role else math.inf
 
         def fresh(role: str) -> Reading | None:
-            r = reading if reading is not None and role == self.role else bench.latest(role)
-            if r is None or r.x_deg is None or r.y_deg is None or now_bench_s - r.bench_s > limit:
+            found = reading if reading is not None and role == self.role else bench.latest(role)
+            if (
+                found is None
+                or found.x_deg is None
+                or found.y_deg is None
+                or now_bench_s - found.bench_s > limit
+            ):
                 return None
-            return r
+            return found
 
         meas, ref = fresh("measurement_sensor"), fresh("reference_sensor")
         active = self._active_of()
@@ -454,16 +461,12 @@ class ReadingProducer:
         temp = sensor_temp_c(meas, ref)
         when = meas.time_utc if meas is not None else clock.utc()
         t_bench = meas.bench_s if meas is not None else now_bench_s
-
-        def pair(r: Reading | None) -> dict[str, float | None] | None:
-            return None if r is None else {"x_deg": r.x_deg, "y_deg": r.y_deg}
-
         in_range = in_calibrated_range(active, table)
         through = reference_tilt(active, ref, temp) if bench.kind == "stage" else None
         msg = {
             "time_utc": utc_text(when),
             "type": "reading",
-            "raw": {"measurement_sensor": pair(meas), "reference_sensor": pair(ref)},
+            "raw": {"measurement_sensor": _pair(meas), "reference_sensor": _pair(ref)},
             "reference_tilt": through,
             "table_tilt": table,
             "in_calibrated_range": in_range,
@@ -471,36 +474,68 @@ class ReadingProducer:
             "temp_c": temp,
             "calibration": calibration_of(active),
         }  # an activation shows with the next reading
-        nan = math.nan
-
-        def f(v: float | None) -> float:
-            return nan if v is None else float(v)
-
-        row = [
-            t_bench,
-            when.timestamp(),
-            f(meas.x_deg if meas else None),
-            f(meas.y_deg if meas else None),
-            f(ref.x_deg if ref else None),
-            f(ref.y_deg if ref else None),
-            f(table["x_deg"] if table else None),
-            f(table["y_deg"] if table else None),
-            f(table["u_x_deg"] if table else None),
-            f(table["u_y_deg"] if table else None),
-            1.0 if table else nan,
-            f(stage["x_deg"] if stage else None),
-            f(stage["y_deg"] if stage else None),
-            1.0 if stage and stage["moving"] else 0.0,
-            1.0 if stage else nan,
-            f(temp),
-            f(table["k"] if table else None),
-            f(table["k_y"] if table else None),
-            f(table["coverage_probability"] if table else None),
-            nan if in_range is None else float(in_range),
-            f(through["x_deg"] if through else None),
-            f(through["y_deg"] if through else None),
-        ]
+        row = _history_row(t_bench, when, meas, ref, table, stage, temp, in_range, through)
         return msg, row
+
+
+def _pair(reading: Reading | None) -> dict[str, float | None] | None:
+    """A raw reading as a message shows it."""
+    return None if reading is None else {"x_deg": reading.x_deg, "y_deg": reading.y_deg}
+
+
+def _as_float(value: float | None) -> float:
+    """A value for a history row, NaN where there is none."""
+    return math.nan if value is None else float(value)
+
+
+def _of_reading(reading: Reading | None, name: str) -> float:
+    """A reading's value for a history row (NaN without the reading)."""
+    return _as_float(getattr(reading, name) if reading else None)
+
+
+def _of_values(values: dict[str, Any] | None, key: str) -> float:
+    """An entry of a table tilt, stage pose or reference tilt for a history row (NaN without
+    them)."""
+    return _as_float(values[key] if values else None)
+
+
+def _history_row(
+    t_bench: float,
+    when: dt.datetime,
+    meas: Reading | None,
+    ref: Reading | None,
+    table: dict[str, Any] | None,
+    stage: dict[str, Any] | None,
+    temp: float | None,
+    in_range: bool | None,
+    through: dict[str, Any] | None,
+) -> list[float]:
+    """A reading message's row of the history ring, in the order of its columns (_COLS)."""
+    nan = math.nan
+    return [
+        t_bench,
+        when.timestamp(),
+        _of_reading(meas, "x_deg"),
+        _of_reading(meas, "y_deg"),
+        _of_reading(ref, "x_deg"),
+        _of_reading(ref, "y_deg"),
+        _of_values(table, "x_deg"),
+        _of_values(table, "y_deg"),
+        _of_values(table, "u_x_deg"),
+        _of_values(table, "u_y_deg"),
+        1.0 if table else nan,
+        _of_values(stage, "x_deg"),
+        _of_values(stage, "y_deg"),
+        1.0 if stage and stage["moving"] else 0.0,
+        1.0 if stage else nan,
+        _as_float(temp),
+        _of_values(table, "k"),
+        _of_values(table, "k_y"),
+        _of_values(table, "coverage_probability"),
+        nan if in_range is None else float(in_range),
+        _of_values(through, "x_deg"),
+        _of_values(through, "y_deg"),
+    ]
 
 
 class StreamHub:
@@ -518,23 +553,23 @@ class StreamHub:
         self.snapshots = snapshots or SnapshotGate()
         self.producers = {
             name: ReadingProducer(
-                b,
+                bench,
                 (lambda n=name: jobs.active.get(n)),
                 queue_size=queue_size,
                 slow_close_s=slow_close_s,
             )
-            for name, b in benches.items()
+            for name, bench in benches.items()
         }
         self.queue_size, self.slow_close_s = queue_size, slow_close_s
         self.remote: Any = None  # the fleet, when the daemon is part of one: other nodes' benches
 
     def start(self) -> None:
-        for p in self.producers.values():
-            p.start()
+        for producer in self.producers.values():
+            producer.start()
 
     async def stop(self) -> None:
-        for p in self.producers.values():
-            await p.stop()
+        for producer in self.producers.values():
+            await producer.stop()
 
     def find(self, name: str) -> ReadingProducer | None:
         """The stream of a bench of this daemon or, in a fleet, of another node's bench."""
@@ -548,4 +583,4 @@ class StreamHub:
         return None
 
     def client_count(self) -> int:
-        return sum(len(p.clients) for p in self.producers.values())
+        return sum(len(producer.clients) for producer in self.producers.values())

@@ -28,19 +28,21 @@ def benches(all_benches: BenchesDep, settings: SettingsDep, fleet: FleetDep, _: 
     it."""
     local = [
         BenchInfo(
-            name=b.name,
-            kind=b.kind,
-            roles=b.roles(),
-            state=b.state(),
-            held_by=None if b.holder is None else str(b.holder),
-            description=b.config.description,
-            simulated=_simulated(b),
+            name=bench.name,
+            kind=bench.kind,
+            roles=bench.roles(),
+            state=bench.state(),
+            held_by=None if bench.holder is None else str(bench.holder),
+            description=bench.config.description,
+            simulated=_simulated(bench),
             node=settings.node,
             online=True,
         )
-        for b in all_benches.values()
+        for bench in all_benches.values()
     ]
-    remote = [BenchInfo.model_validate(b) for b in fleet.benches()] if fleet is not None else []
+    remote = (
+        [BenchInfo.model_validate(bench) for bench in fleet.benches()] if fleet is not None else []
+    )
     return Benches(benches=local + remote)
 
 
@@ -49,7 +51,7 @@ def devices(bench: BenchQuery, _: Reader) -> Devices:
     """Per device: role, port, protocol, state, last frame time, counters and identity."""
     out = []
     for st in bench.devices.status():
-        c = st.counters
+        counters = st.counters
         ident = bench.identities.get(st.role) or st.identity
         out.append(
             DeviceStatus(
@@ -59,11 +61,11 @@ def devices(bench: BenchQuery, _: Reader) -> Devices:
                 state=st.state,
                 last_frame_utc=st.last_frame_utc,
                 counters=Counters(
-                    frames=c.frames,
-                    bad_checksum=c.bad_checksum,
-                    resyncs=c.resyncs,
-                    timeouts=c.timeouts,
-                    reconnects=c.reconnects,
+                    frames=counters.frames,
+                    bad_checksum=counters.bad_checksum,
+                    resyncs=counters.resyncs,
+                    timeouts=counters.timeouts,
+                    reconnects=counters.reconnects,
                 ),
                 identity=None
                 if ident is None
@@ -83,14 +85,14 @@ def _simulated(bench: BenchRuntime) -> Simulated | None:
     """For a simulated bench: its scenario(s) and speed-up; None on hardware."""
     if bench.sim is None:
         return None
-    w = bench.sim.world
+    world = bench.sim.world
     names = [
-        sc.name
-        for sc in (
-            getattr(w, "scenario", None),
-            getattr(w, "rotation", None),
-            getattr(w, "turntable", None),
+        scenario.name
+        for scenario in (
+            getattr(world, "scenario", None),
+            getattr(world, "rotation", None),
+            getattr(world, "turntable", None),
         )
-        if sc is not None and hasattr(sc, "name")
+        if scenario is not None and hasattr(scenario, "name")
     ]
     return Simulated(scenario=names[0] if names else None, scenarios=names, speed=bench.clock.speed)

@@ -39,8 +39,10 @@ def job_body(
     """A job as the routes and the job stream show it, from the job and the record it made."""
     params = job.parameters or {}
     req = params.get("request", {})
-    bench = next((b.name for b in benches.values() if b.bench_id == job.bench_id), None)
-    v = record.validation if record else None
+    bench = next(
+        (runtime.name for runtime in benches.values() if runtime.bench_id == job.bench_id), None
+    )
+    validation = record.validation if record else None
     return Job.model_validate(
         {
             "id": job.id,
@@ -62,13 +64,17 @@ def job_body(
             "error": job.failure_reason,
             "record": {"id": record.id, "version": record.version} if record else None,
             "validation": None
-            if not v
+            if not validation
             else {
-                "rms_deg": v.get("rms_deg"),
-                "max_deg": v.get("max_deg"),
-                "n_points": v.get("n_points"),
-                "predicted_expanded_uncertainty_deg": v.get("predicted_expanded_uncertainty_deg"),
-                "target_expanded_uncertainty_deg": v.get("target_expanded_uncertainty_deg"),
+                "rms_deg": validation.get("rms_deg"),
+                "max_deg": validation.get("max_deg"),
+                "n_points": validation.get("n_points"),
+                "predicted_expanded_uncertainty_deg": validation.get(
+                    "predicted_expanded_uncertainty_deg"
+                ),
+                "target_expanded_uncertainty_deg": validation.get(
+                    "target_expanded_uncertainty_deg"
+                ),
             },
             "bench_seconds": job.bench_seconds,
             "request": req,

@@ -31,8 +31,8 @@ router = APIRouter(tags=["diagnoses"])
 
 
 def _body(diagnoses: DiagnosesRepo, runner: DiagnosisRunner, diagnosis_id: int) -> DiagnosisBody:
-    d, r = diagnoses.get_diagnosis(diagnosis_id)
-    return DiagnosisBody.model_validate(runner.state_of(d, r))
+    diagnosis, result = diagnoses.get_diagnosis(diagnosis_id)
+    return DiagnosisBody.model_validate(runner.state_of(diagnosis, result))
 
 
 @router.post(
@@ -67,9 +67,11 @@ async def diagnose(
     if body.plan_only:
         plan = DiagnosisPlan.model_validate(await runner.plan(record, body.sensor, body.baseline))
         return JSONResponse(plan.model_dump(mode="json"), status_code=200)
-    d = await runner.submit(record, body.sensor, body.baseline, who.name, measure=body.measure)
-    response.headers["Location"] = f"/diagnoses/{d.id}"
-    return await in_thread(_body, diagnoses, runner, d.id)
+    diagnosis = await runner.submit(
+        record, body.sensor, body.baseline, who.name, measure=body.measure
+    )
+    response.headers["Location"] = f"/diagnoses/{diagnosis.id}"
+    return await in_thread(_body, diagnoses, runner, diagnosis.id)
 
 
 @router.get("/diagnoses", response_model=Diagnoses, responses=problem_responses(*READ))
@@ -87,7 +89,10 @@ def list_diagnoses(
     rows = diagnoses.list_diagnoses(record, before_id=cursor, limit=limit)
     return json_answer(
         Diagnoses(
-            diagnoses=[DiagnosisBody.model_validate(runner.state_of(d, r)) for d, r in rows],
+            diagnoses=[
+                DiagnosisBody.model_validate(runner.state_of(diagnosis, result))
+                for diagnosis, result in rows
+            ],
             next_cursor=rows[-1][0].id if len(rows) == limit else None,
         )
     )
@@ -119,13 +124,13 @@ def read(
 @off_loop
 def report(diagnosis_id: DiagnosisId, diagnoses: DiagnosesRepoDep, _: Reader) -> HTMLResponse:
     """The workflow's HTML report (the page `tiltlab discrepancy --html` writes): figures inline."""
-    _d, r = diagnoses.get_diagnosis(diagnosis_id)
-    if r is None or r.report_html is None:
-        state = "failed" if r is not None else "not finished"
+    _diagnosis, result = diagnoses.get_diagnosis(diagnosis_id)
+    if result is None or result.report_html is None:
+        state = "failed" if result is not None else "not finished"
         raise ProblemError(
             409, "No report", f"diagnosis {diagnosis_id} is {state}: it has no report"
         )
-    return HTMLResponse(r.report_html)
+    return HTMLResponse(result.report_html)
 
 
 @router.post(

@@ -10,8 +10,11 @@ from service import __version__
 from service.api.deps import BenchesDep, DatabaseDep, DiskDep, EngineDep, JobsIfAnyDep, RevisionDep
 from service.api.models.health import DatabaseOutageState, DiskState, Health, Readiness
 from service.api.revision import REVISION_TTL_S, SchemaRevision
+from service.jobs.manager import JobManager
+from service.storage.disk import DiskWatch
 from service.storage.engine import redacted
 from service.storage.migrate import head_revision
+from service.storage.outage import DatabaseState
 
 __all__ = ["REVISION_TTL_S", "SchemaRevision", "router"]
 
@@ -33,31 +36,9 @@ async def health(
     revision.database = database
     rev = await revision.get(engine)
     names = list(benches)
-    outage = None
-    if database.away_since_utc is not None:
-        outage = DatabaseOutageState(
-            away_since_utc=database.away_since_utc,
-            away_s=round(database.away_for_s(), 3),
-            error=database.error,
-            outage_limit_s=database.outage_s,
-            jobs_waiting=sorted(jobs.waiting_for_database) if jobs else [],
-            writes_waiting=database.writes_waiting,
-            samples_waiting=database.samples_waiting,
-        )
-    disks = (
-        [
-            DiskState(
-                folder=str(d.folder),
-                free_mb=round(d.free_mb, 3),
-                min_free_mb=watch.min_free_mb,
-                full=d.free_mb < watch.min_free_mb,
-            )
-            for d in watch.spaces()
-        ]
-        if watch is not None
-        else []
-    )
-    degraded = rev != _head() or outage is not None or any(d.full for d in disks)
+    outage = _outage_state(database, jobs)
+    disks = _disk_states(watch)
+    degraded = rev != _head() or outage is not None or any(space.full for space in disks)
     return Health(
         status="degraded" if degraded else "ok",
         version=__version__,
@@ -70,6 +51,37 @@ async def health(
         disk=disks,
         jobs_not_stored=sorted(jobs.unwritten) if jobs else [],
     )
+
+
+def _outage_state(database: DatabaseState, jobs: JobManager | None) -> DatabaseOutageState | None:
+    """The database's outage as /health shows it (since when, why, what waits); None while it is
+    up."""
+    if database.away_since_utc is None:
+        return None
+    return DatabaseOutageState(
+        away_since_utc=database.away_since_utc,
+        away_s=round(database.away_for_s(), 3),
+        error=database.error,
+        outage_limit_s=database.outage_s,
+        jobs_waiting=sorted(jobs.waiting_for_database) if jobs else [],
+        writes_waiting=database.writes_waiting,
+        samples_waiting=database.samples_waiting,
+    )
+
+
+def _disk_states(watch: DiskWatch | None) -> list[DiskState]:
+    """The free space of each folder the daemon writes, against the least it keeps."""
+    if watch is None:
+        return []
+    return [
+        DiskState(
+            folder=str(space.folder),
+            free_mb=round(space.free_mb, 3),
+            min_free_mb=watch.min_free_mb,
+            full=space.free_mb < watch.min_free_mb,
+        )
+        for space in watch.spaces()
+    ]
 
 
 @router.get(

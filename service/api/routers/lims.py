@@ -152,7 +152,7 @@ def list_standards(
     rows = standards.page(after_id=cursor, limit=limit)
     return json_answer(
         Standards(
-            standards=[standard_body(s, today, days) for s in rows],
+            standards=[standard_body(standard, today, days) for standard in rows],
             next_cursor=rows[-1].id if len(rows) == limit else None,
         )
     )
@@ -318,12 +318,12 @@ def approvals(
     pages on); `status` is the record's, from all of them."""
     records.get_record(record_id)
     rows = approvals.of_record(record_id)
-    page = [a for a in rows if cursor is None or a.id > cursor][:limit]
+    page = [approval for approval in rows if cursor is None or approval.id > cursor][:limit]
     return Approvals.model_validate(
         {
             "record_id": record_id,
             "status": approvals.status_of(rows),
-            "approvals": [approval_body(a) for a in page],
+            "approvals": [approval_body(approval) for approval in page],
             "next_cursor": page[-1].id if len(page) == limit else None,
         }
     )
@@ -568,13 +568,13 @@ def list_webhooks(
         Webhooks(
             webhooks=[
                 Webhook(
-                    id=w.id,
-                    url=shown_url(w.url),
-                    events=w.events,
-                    created_utc=w.created_at,
-                    created_by=w.created_by,
+                    id=webhook.id,
+                    url=shown_url(webhook.url),
+                    events=webhook.events,
+                    created_utc=webhook.created_at,
+                    created_by=webhook.created_by,
                 )
-                for w in rows
+                for webhook in rows
             ],
             next_cursor=rows[-1].id if len(rows) == limit else None,
         )
@@ -605,15 +605,15 @@ def deliveries(
                 "next_cursor": found[-1][0].id if len(found) == limit else None,
                 "deliveries": [
                     {
-                        "id": d.id,
-                        "event_id": event_json(e)["id"],
-                        "event_type": e.type,
-                        "state": d.state,
-                        "attempts": d.attempts,
-                        "next_attempt_utc": d.next_attempt_at,
-                        "delivered_utc": d.delivered_at,
-                        "last_status_code": d.last_status_code,
-                        "last_error": d.last_error,
+                        "id": delivery.id,
+                        "event_id": event_json(event)["id"],
+                        "event_type": event.type,
+                        "state": delivery.state,
+                        "attempts": delivery.attempts,
+                        "next_attempt_utc": delivery.next_attempt_at,
+                        "delivered_utc": delivery.delivered_at,
+                        "last_status_code": delivery.last_status_code,
+                        "last_error": delivery.last_error,
                         "log": [
                             {
                                 "time_utc": attempt.at,
@@ -624,7 +624,7 @@ def deliveries(
                             for attempt in attempts
                         ],
                     }
-                    for d, e, attempts in found
+                    for delivery, event, attempts in found
                 ],
             }
         )

@@ -112,39 +112,63 @@ def record_bodies(
     out = []
     for row in rows:
         bench = jobs.bench_of_device(row.device_id)
+        bench_name = bench.name if bench else elsewhere.get(row.device_id)
         out.append(
-            Record.model_validate(
-                {
-                    "id": row.id,
-                    "device_id": row.device_id,
-                    "bench": bench.name if bench else elsewhere.get(row.device_id),
-                    "kind": row.kind,
-                    "version": row.version,
-                    "method": row.method,
-                    "created_utc": row.created_at,
-                    "operator": row.operator,
-                    "job_id": row.job_id,
-                    "active": row.id in active,
-                    "validation": row.validation,
-                    "temp_c": row.temp_c,
-                    "conditions": (row.raw_data or {}).get("conditions"),
-                    "budget": with_traceability((row.raw_data or {}).get("budget")),
-                    "conformity": record_conformity(store, row)
-                    if row.job_id in specified
-                    else None,
-                    "raw_data": row.raw_data,
-                    "supersedes_id": row.supersedes_id,
-                    "content_sha256": row.content_sha256,
-                    "reference_standards": row.reference_standards,
-                    "status": status[row.id],  # draft | approved | rejected (LIMS approvals)
-                    "calibrated_range": ranges[row.id]
-                    if ranges is not None
-                    else calibrated_range(jobs, row),
-                    "bench_seconds": (row.raw_data or {}).get("bench_seconds"),
-                }
+            _record_body(
+                row,
+                bench_name,
+                store=store,
+                jobs=jobs,
+                active=active,
+                specified=specified,
+                status=status,
+                ranges=ranges,
             )
         )
     return out
+
+
+def _record_body(
+    row: CalibrationRecord,
+    bench_name: str | None,
+    *,
+    store: Store,
+    jobs: JobManager,
+    active: set[int],
+    specified: set[int],
+    status: dict[int, str],
+    ranges: dict[int, Any] | None,
+) -> Record:
+    """One record's body: its row, with what record_bodies looked up for the whole page."""
+    raw = row.raw_data or {}
+    return Record.model_validate(
+        {
+            "id": row.id,
+            "device_id": row.device_id,
+            "bench": bench_name,
+            "kind": row.kind,
+            "version": row.version,
+            "method": row.method,
+            "created_utc": row.created_at,
+            "operator": row.operator,
+            "job_id": row.job_id,
+            "active": row.id in active,
+            "validation": row.validation,
+            "temp_c": row.temp_c,
+            "conditions": raw.get("conditions"),
+            "budget": with_traceability(raw.get("budget")),
+            "conformity": record_conformity(store, row) if row.job_id in specified else None,
+            "raw_data": row.raw_data,
+            "supersedes_id": row.supersedes_id,
+            "content_sha256": row.content_sha256,
+            "reference_standards": row.reference_standards,
+            "status": status[row.id],  # draft | approved | rejected (LIMS approvals)
+            "calibrated_range": ranges[row.id]
+            if ranges is not None
+            else calibrated_range(jobs, row),
+            "bench_seconds": raw.get("bench_seconds"),
+        }
+    )
 
 
 def calibrated_range(jobs: JobManager, r: CalibrationRecord) -> dict[str, Any] | None:
@@ -276,10 +300,12 @@ def points(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Reade
         "rotation": ROTATION_DATASET,
         "turntable": TURNTABLE_DATASET,
     }.get(record.kind, tuple(cols))
-    names = [c for c in order if c in cols and np.isfinite(cols[c]).all()]
+    names = [column for column in order if column in cols and np.isfinite(cols[column]).all()]
     buf.write(",".join(names) + "\r\n")
     for i in range(len(next(iter(cols.values())))):
-        buf.write(",".join(format_value(c, cols[c][i], exact=True) for c in names) + "\r\n")
+        buf.write(
+            ",".join(format_value(column, cols[column][i], exact=True) for column in names) + "\r\n"
+        )
     return CsvResponse(
         buf.getvalue(),
         headers={"Content-Disposition": f'attachment; filename="record-{record_id}-points.csv"'},
@@ -294,26 +320,26 @@ def residuals(record_id: RecordId, jobs: JobsDep, records: RecordsRepoDep, _: Re
     """Per measured point of a stage record, the residual against the reference sensor before
     correction (measurement sensor raw) and after it (through the record's model, the computation of
     `tiltlab correct`); `role` says whether the point was fitted or kept for validation."""
-    r = records.get_record(record_id)
-    if r.kind != "stage":
+    record = records.get_record(record_id)
+    if record.kind != "stage":
         raise ProblemError(
             409,
             "No residual map",
-            f"record {record_id} is a {r.kind} record: residuals over a grid"
+            f"record {record_id} is a {record.kind} record: residuals over a grid"
             " are served for stage records",
         )
-    if r.job_id is None:
+    if record.job_id is None:
         raise ProblemError(
             409, "No points", f"record {record_id} was not measured by a job of this daemon"
         )
-    n_fit = int((r.raw_data or {}).get("fit_points", 10**9))
-    cols = jobs.fit_columns(r.job_id, 10**9)
-    fitted = CalibrationModel.from_json_dict(r.model, f"record {r.id}")
+    n_fit = int((record.raw_data or {}).get("fit_points", 10**9))
+    cols = jobs.fit_columns(record.job_id, 10**9)
+    fitted = CalibrationModel.from_json_dict(record.model, f"record {record.id}")
     return Residuals.model_validate(
         {
-            "record_id": r.id,
-            "method": r.method,
-            **stage_residual_map(get_method("stage", r.method), fitted, cols, n_fit),
+            "record_id": record.id,
+            "method": record.method,
+            **stage_residual_map(get_method("stage", record.method), fitted, cols, n_fit),
         }
     )
 

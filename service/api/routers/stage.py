@@ -47,13 +47,14 @@ async def move(body: Move, benches: BenchesDep, audit: AuditRepoDep, who: Operat
     bench)."""
     bench = _stage_bench(benches, body.bench)
     travel = bench.config.stage_bench().travel_deg
-    for f in ("x_deg", "y_deg"):
-        if abs(getattr(body, f)) > travel:
+    for axis in ("x_deg", "y_deg"):
+        if abs(getattr(body, axis)) > travel:
             raise ProblemError(
                 422,
                 "Outside travel",
-                f"{f}: {getattr(body, f):g} deg is outside the stage travel of ±{travel:g} deg",
-                field=f,
+                f"{axis}: {getattr(body, axis):g} deg is "
+                f"outside the stage travel of ±{travel:g} deg",
+                field=axis,
             )
     async with bench.hold(BenchHold(Hold.STAGE_MOVE)):
         x, y = await bench.move_stage(body.x_deg, body.y_deg)

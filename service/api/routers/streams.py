@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import re
+from collections.abc import AsyncIterator
 from typing import Any
 
 from fastapi import APIRouter, WebSocket
@@ -51,6 +52,7 @@ from service.streams.readings import (
     Client,
     ReadingProducer,
     SnapshotsBusy,
+    StreamHub,
 )
 
 router = APIRouter(tags=["streams"])
@@ -154,35 +156,48 @@ async def _close(ws: WebSocket, code: int, reason: str) -> None:
                 await ws.close(code, _reason(reason))
 
 
+async def _producer_asked(ws: WebSocket, hub: StreamHub) -> ReadingProducer | None:
+    """The producer of the bench the query names (or of the only bench); None once a stream naming
+    no bench of this daemon, or none of several, has been refused."""
+    name = ws.query_params.get("bench")
+    if name is None or name == "":
+        if len(hub.producers) != 1:
+            await _refuse(
+                ws,
+                f"bench: the daemon runs {len(hub.producers)} benches"
+                f" ({', '.join(hub.producers)}); name one",
+            )
+            return None
+        return next(iter(hub.producers.values()))
+    found = hub.find(name)
+    if found is None:
+        await _refuse(
+            ws, f"bench: no bench named {name[:30]!r}; benches: {', '.join(hub.producers)}"
+        )
+    return found
+
+
+def _stream_asked(ws: WebSocket, producer: ReadingProducer) -> tuple[float, float]:
+    """The rate (clamped to what the bench gives) and history the query asks for; ValueError
+    naming the parameter that cannot be used."""
+    rate = producer.clamp_rate(_number(ws, "rate_hz", None))
+    history_s = _number(ws, "history_s", HISTORY_DEFAULT_S)
+    assert history_s is not None
+    if history_s > HISTORY_MAX_S:
+        raise ValueError(f"history_s: {history_s:g} is above the maximum of {HISTORY_MAX_S:g} s")
+    return rate, history_s
+
+
 @router.websocket("/ws/readings")
 async def readings(ws: WebSocket, hub: StreamsDep) -> None:
     """Snapshot (with history), then one reading per interval at `rate_hz`; see docs/api.md."""
     if not await _authorised(ws):
         return
-    name = ws.query_params.get("bench")
-    if name is None or name == "":
-        if len(hub.producers) != 1:
-            return await _refuse(
-                ws,
-                f"bench: the daemon runs {len(hub.producers)} benches"
-                f" ({', '.join(hub.producers)}); name one",
-            )
-        producer = next(iter(hub.producers.values()))
-    else:
-        found = hub.find(name)
-        if found is None:
-            return await _refuse(
-                ws, f"bench: no bench named {name[:30]!r}; benches: {', '.join(hub.producers)}"
-            )
-        producer = found
+    producer = await _producer_asked(ws, hub)
+    if producer is None:
+        return
     try:
-        rate = producer.clamp_rate(_number(ws, "rate_hz", None))
-        history_s = _number(ws, "history_s", HISTORY_DEFAULT_S)
-        assert history_s is not None
-        if history_s > HISTORY_MAX_S:
-            raise ValueError(
-                f"history_s: {history_s:g} is above the maximum of {HISTORY_MAX_S:g} s"
-            )
+        rate, history_s = _stream_asked(ws, producer)
     except ValueError as exc:
         return await _refuse(ws, str(exc))
     await _accept(ws)
@@ -300,34 +315,8 @@ async def job_stream(
     revoked = asyncio.create_task(_until_token_invalid(ws))
     stream = job_messages(stored_jobs, points, jobs.events, int(job_id), body)
     slow_close_s = settings.stream_slow_close_s
-    seq = 0
     try:
-        while True:
-            nxt = asyncio.ensure_future(anext(stream))
-            done, _ = await asyncio.wait(
-                {nxt, waiter, revoked}, return_when=asyncio.FIRST_COMPLETED
-            )
-            if nxt not in done:
-                nxt.cancel()
-                with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
-                    await nxt
-                if revoked in done:
-                    await _close(ws, CLOSE_POLICY, REVOKED)
-                return  # the client went, or its token did
-            try:
-                msg = nxt.result()
-            except StopAsyncIteration:
-                break
-            try:
-                async with asyncio.timeout(slow_close_s):
-                    await ws.send_text(json.dumps({"seq": seq, **msg}))
-            except TimeoutError:
-                await _close(
-                    ws, CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s"
-                )
-                return
-            seq += 1
-        await _close(ws, CLOSE_NORMAL, "job ended")
+        await _send_job_messages(ws, stream, waiter, revoked, slow_close_s)
     except WebSocketDisconnect:
         return
     finally:
@@ -336,3 +325,39 @@ async def job_stream(
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
         await stream.aclose()
+
+
+async def _send_job_messages(
+    ws: WebSocket,
+    stream: AsyncIterator[dict[str, Any]],
+    waiter: asyncio.Task[None],
+    revoked: asyncio.Task[None],
+    slow_close_s: float,
+) -> None:
+    """The job's messages, numbered, until its end (close 1000), the client going, its token
+    going (1008) or a message it does not take in time (1013)."""
+    seq = 0
+    while True:
+        nxt = asyncio.ensure_future(anext(stream))
+        done, _ = await asyncio.wait({nxt, waiter, revoked}, return_when=asyncio.FIRST_COMPLETED)
+        if nxt not in done:
+            nxt.cancel()
+            with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
+                await nxt
+            if revoked in done:
+                await _close(ws, CLOSE_POLICY, REVOKED)
+            return  # the client went, or its token did
+        try:
+            msg = nxt.result()
+        except StopAsyncIteration:
+            break
+        try:
+            async with asyncio.timeout(slow_close_s):
+                await ws.send_text(json.dumps({"seq": seq, **msg}))
+        except TimeoutError:
+            await _close(
+                ws, CLOSE_SLOW, f"too slow: a message could not be sent for {slow_close_s:g} s"
+            )
+            return
+        seq += 1
+    await _close(ws, CLOSE_NORMAL, "job ended")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Annotated, Any
+from typing import Annotated, Any, NamedTuple
 
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
@@ -23,6 +23,7 @@ from service.bench.corrected import (
     stale_after_s,
 )
 from service.bench.runtime import BenchRuntime
+from service.instruments.base import Reading
 from service.jobs.manager import JobManager
 
 router = APIRouter(tags=["tilt"])
@@ -89,36 +90,9 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager, average_s: float | None =
         st = bench.devices["measurement_sensor"].status
         notes.append(f"no reading from measurement_sensor on {st.port} ({st.state})")
     else:
-        if active is not None and average_s is None:
-            # computed before the age: it may pick the one before
-            meas, table = corrected_reading(bench, active, meas)
-        age_s = max(0.0, (now - meas.time_utc).total_seconds())
-        limit = stale_after_s(bench, "measurement_sensor")
-        stale = age_s > limit
-        if stale:
-            st = bench.devices["measurement_sensor"].status
-            notes.append(
-                f"measurement_sensor on {st.port} has sent nothing for {age_s:.2f} s ({st.state})"
-            )
-        if active is None:
-            why = jobs.inactive_notes.get(bench.name)
-            notes.append(
-                "no active calibration record: raw readings only (POST /records/{id}/activate)"
-                + (f"; {why}" if why else "")
-            )
-        elif stale:
-            table = None
-        else:
-            if average_s is not None:
-                table, said = averaged_at_stand(bench, active, meas, average_s)
-                notes.append(said)
-            notes.append(
-                f"corrected through record {active.record_id} v{active.version} "
-                f"({active.method_name}, {active.status})"
-            )
-            in_range = in_calibrated_range(active, table) if table is not None else None
-            if in_range is False and table is not None:
-                notes.append(calibrated_range_note(active, table))
+        meas, table, age_s, stale, in_range = _stage_tilt(
+            bench, jobs, active, meas, now, average_s, notes
+        )
     pose = bench.pose
     body = Tilt.model_validate(
         {
@@ -142,3 +116,74 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager, average_s: float | None =
     )
     # serialised here, once, by the model's own serialiser (the route's response model documents it)
     return body.model_dump_json().encode()
+
+
+class _StageTilt(NamedTuple):
+    """What a stage bench's latest reading gives `GET /tilt`."""
+
+    meas: Reading  # the reading served (the correction may pick the one before the latest)
+    table: dict[str, Any] | None  # the corrected (or averaged) table tilt
+    age_s: float
+    stale: bool
+    in_range: bool | None  # whether `table` lies in the calibrated range
+
+
+def _stage_tilt(
+    bench: BenchRuntime,
+    jobs: JobManager,
+    active: Any,
+    meas: Reading,
+    now: dt.datetime,
+    average_s: float | None,
+    notes: list[str],
+) -> _StageTilt:
+    """The latest reading's age and its table tilt through the active record, when there is one
+    and the reading is fresh; what stands in the way is said in `notes`."""
+    table: dict[str, Any] | None = None
+    in_range = None
+    if active is not None and average_s is None:
+        # computed before the age: it may pick the one before
+        meas, table = corrected_reading(bench, active, meas)
+    age_s = max(0.0, (now - meas.time_utc).total_seconds())
+    limit = stale_after_s(bench, "measurement_sensor")
+    stale = age_s > limit
+    if stale:
+        st = bench.devices["measurement_sensor"].status
+        notes.append(
+            f"measurement_sensor on {st.port} has sent nothing for {age_s:.2f} s ({st.state})"
+        )
+    if active is None:
+        why = jobs.inactive_notes.get(bench.name)
+        notes.append(
+            "no active calibration record: raw readings only (POST /records/{id}/activate)"
+            + (f"; {why}" if why else "")
+        )
+    elif stale:
+        table = None
+    else:
+        table, in_range = _corrected(bench, active, meas, table, average_s, notes)
+    return _StageTilt(meas, table, age_s, stale, in_range)
+
+
+def _corrected(
+    bench: BenchRuntime,
+    active: Any,
+    meas: Reading,
+    table: dict[str, Any] | None,
+    average_s: float | None,
+    notes: list[str],
+) -> tuple[dict[str, Any] | None, bool | None]:
+    """The table tilt through the active record (averaged when asked) and whether it lies in the
+    calibrated range; the record it went through, and a tilt outside that range, said in
+    `notes`."""
+    if average_s is not None:
+        table, said = averaged_at_stand(bench, active, meas, average_s)
+        notes.append(said)
+    notes.append(
+        f"corrected through record {active.record_id} v{active.version} "
+        f"({active.method_name}, {active.status})"
+    )
+    in_range = in_calibrated_range(active, table) if table is not None else None
+    if in_range is False and table is not None:
+        notes.append(calibrated_range_note(active, table))
+    return table, in_range

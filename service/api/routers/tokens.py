@@ -60,7 +60,11 @@ async def create(
         raise ProblemError(409, "Token name taken", f"name: {exc}", field="name") from None
     except InputError as exc:
         field = next(
-            (f for f in ("scopes", "person.name", "person.function") if str(exc).startswith(f)),
+            (
+                prefix
+                for prefix in ("scopes", "person.name", "person.function")
+                if str(exc).startswith(prefix)
+            ),
             "name",
         )
         raise ProblemError(422, "Unusable token", str(exc), field=field) from None
@@ -84,7 +88,7 @@ async def list_tokens(
     )
     return json_answer(
         Tokens(
-            tokens=[token_body(r) for r in rows],
+            tokens=[token_body(row) for row in rows],
             next_cursor=rows[-1].id if len(rows) == limit else None,
         )
     )

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import sqlalchemy as sa
+from sqlalchemy.orm import Session
 
 from service.errors import InputError
 from service.storage.canonical import normalise, sha256_hex, utc_iso
@@ -69,14 +70,50 @@ def approval_status(approvals: Sequence[RecordApproval]) -> str:
     return "draft"
 
 
+def _checked_meaning(decision: str, meaning: str, note: str) -> str:
+    """What a decision means, checked with its note before anything is read: a rejection means
+    rejection and gives its reason."""
+    if decision not in ("approve", "reject"):
+        raise InputError(f"decision {decision!r} is not approve or reject")
+    if decision == "approve" and meaning not in APPROVE_MEANINGS:
+        raise InputError(
+            f"meaning {meaning!r}: an approval means one of {', '.join(APPROVE_MEANINGS)}"
+        )
+    if decision == "reject":
+        meaning = "rejection"
+        require_text("reason", note, 10_000)
+    if not isinstance(note, str) or len(note) > 10_000:
+        raise InputError("note must be text of at most 10,000 characters")
+    return meaning
+
+
+def _signable_record(
+    session: Session, record_id: int, decision: str, actor: str
+) -> CalibrationRecord:
+    """The record to decide on: untampered, and neither started nor run by the one deciding."""
+    record = row_in(session, CalibrationRecord, record_id, "calibration record")
+    if sha256_hex(record_content(record)) != record.content_sha256:
+        raise RefusedWrite(
+            f"record {record_id} does not match its hash (tampered); it cannot be signed"
+        )
+    job = session.get(CalibrationJob, record.job_id) if record.job_id is not None else None
+    if actor == record.operator or (job is not None and actor == job.created_by):
+        who = "started its job" if job is not None and actor == job.created_by else "ran it"
+        raise SelfApproval(
+            f"{actor!r} {who}; record {record_id} must be {decision}d by another person"
+            " (segregation of duties)"
+        )
+    return record
+
+
 class ApprovalsRepo:
     def __init__(self, db: Database) -> None:
         self._db = db
 
     def of_record(self, record_id: int) -> list[RecordApproval]:
-        with self._db.session() as s:
+        with self._db.session() as session:
             return list(
-                s.scalars(
+                session.scalars(
                     sa.select(RecordApproval)
                     .where(RecordApproval.record_id == record_id)
                     .order_by(RecordApproval.id)
@@ -94,13 +131,16 @@ class ApprovalsRepo:
         """The status of each of these records, in one query."""
         if not record_ids:
             return {}
-        with self._db.session() as s:
+        with self._db.session() as session:
             rows = list(
-                s.scalars(
+                session.scalars(
                     sa.select(RecordApproval).where(RecordApproval.record_id.in_(list(record_ids)))
                 )
             )
-        return {rid: approval_status([a for a in rows if a.record_id == rid]) for rid in record_ids}
+        return {
+            rid: approval_status([approval for approval in rows if approval.record_id == rid])
+            for rid in record_ids
+        }
 
     def decide(
         self,
@@ -115,31 +155,10 @@ class ApprovalsRepo:
         """Approve (meaning review or approval) or reject a draft record; never by who started or
         ran its job. `signer` is the person behind the actor's token, kept with the decision (a
         certificate names them)."""
-        if decision not in ("approve", "reject"):
-            raise InputError(f"decision {decision!r} is not approve or reject")
-        if decision == "approve" and meaning not in APPROVE_MEANINGS:
-            raise InputError(
-                f"meaning {meaning!r}: an approval means one of {', '.join(APPROVE_MEANINGS)}"
-            )
-        if decision == "reject":
-            meaning = "rejection"
-            require_text("reason", note, 10_000)
-        if not isinstance(note, str) or len(note) > 10_000:
-            raise InputError("note must be text of at most 10,000 characters")
+        meaning = _checked_meaning(decision, meaning, note)
         actor = require_text("actor", actor)
         with self._db.transaction() as session:
-            record = row_in(session, CalibrationRecord, record_id, "calibration record")
-            if sha256_hex(record_content(record)) != record.content_sha256:
-                raise RefusedWrite(
-                    f"record {record_id} does not match its hash (tampered); it cannot be signed"
-                )
-            job = session.get(CalibrationJob, record.job_id) if record.job_id is not None else None
-            if actor == record.operator or (job is not None and actor == job.created_by):
-                who = "started its job" if job is not None and actor == job.created_by else "ran it"
-                raise SelfApproval(
-                    f"{actor!r} {who}; record {record_id} must be {decision}d by another person"
-                    " (segregation of duties)"
-                )
+            record = _signable_record(session, record_id, decision, actor)
             past = list(
                 session.scalars(
                     sa.select(RecordApproval).where(RecordApproval.record_id == record_id)
@@ -189,33 +208,39 @@ class ApprovalsRepo:
                     else None,
                 },
             )
-            active = session.get(ActiveCalibration, (record.device_id, record.kind))
-            if decision == "reject" and active is not None and active.record_id == record_id:
-                # a rejected record is never used: withdrawn in the same transaction as the
-                # rejection
-                deactivate_in(
-                    self._db,
-                    session,
-                    record.device_id,
-                    record.kind,
-                    actor=actor,
-                    replaces=record_id,
-                    reason=f"record {record_id} v{record.version} was rejected: {note}",
-                )
+            self._withdraw_if_rejected(session, record, decision, note, actor)
             return row
+
+    def _withdraw_if_rejected(
+        self, session: Session, record: CalibrationRecord, decision: str, note: str, actor: str
+    ) -> None:
+        """A rejected record is never used: withdrawn (if active) in the rejection's own
+        transaction."""
+        active = session.get(ActiveCalibration, (record.device_id, record.kind))
+        if decision == "reject" and active is not None and active.record_id == record.id:
+            deactivate_in(
+                self._db,
+                session,
+                record.device_id,
+                record.kind,
+                actor=actor,
+                replaces=record.id,
+                reason=f"record {record.id} v{record.version} was rejected: {note}",
+            )
 
     def verify_approvals(self) -> list[str]:
         """Problems of the approval chain: a row whose content or predecessor does not match (empty
         when sound)."""
         problems: list[str] = []
         prev = GENESIS_SHA256
-        with self._db.session() as s:
-            for a in s.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):
-                if sha256_hex(normalise(approval_content(a))) != a.sha256:
-                    problems.append(f"approval {a.id}: content does not match its SHA-256")
-                if a.prev_sha256 != prev:
+        with self._db.session() as session:
+            for approval in session.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):
+                if sha256_hex(normalise(approval_content(approval))) != approval.sha256:
+                    problems.append(f"approval {approval.id}: content does not match its SHA-256")
+                if approval.prev_sha256 != prev:
                     problems.append(
-                        f"approval {a.id}: predecessor hash does not match approval before it"
+                        f"approval {approval.id}: predecessor "
+                        "hash does not match approval before it"
                     )
-                prev = a.sha256
+                prev = approval.sha256
         return problems

@@ -18,13 +18,13 @@ class AuditRepo:
     def events(
         self, *, entity: str | None = None, entity_id: object = None, limit: int = 1000
     ) -> list[AuditEvent]:
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = sa.select(AuditEvent).order_by(AuditEvent.id.desc()).limit(limit)
             if entity is not None:
                 stmt = stmt.where(AuditEvent.entity == entity)
             if entity_id is not None:
                 stmt = stmt.where(AuditEvent.entity_id == str(entity_id))
-            return list(s.scalars(stmt))
+            return list(session.scalars(stmt))
 
     def action(
         self, actor: str, action: str, entity: str, entity_id: object, details: Mapping[str, Any]

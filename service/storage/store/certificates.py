@@ -19,27 +19,27 @@ class CertificatesRepo:
         self._db = db
 
     def certificate_of(self, record_id: int) -> Certificate | None:
-        with self._db.session() as s:
-            return s.scalar(sa.select(Certificate).where(Certificate.record_id == record_id))
+        with self._db.session() as session:
+            return session.scalar(sa.select(Certificate).where(Certificate.record_id == record_id))
 
     def certificate_by_number(self, number: str) -> Certificate | None:
-        with self._db.session() as s:
-            return s.scalar(sa.select(Certificate).where(Certificate.number == number))
+        with self._db.session() as session:
+            return session.scalar(sa.select(Certificate).where(Certificate.number == number))
 
     def replaced_certificate(self, record_id: int) -> Certificate | None:
         """The newest certificate of an earlier version of the same device and kind (the one a new
         one replaces)."""
-        with self._db.session() as s:
-            r = s.get(CalibrationRecord, record_id)
-            if r is None:
+        with self._db.session() as session:
+            record = session.get(CalibrationRecord, record_id)
+            if record is None:
                 return None
-            return s.scalar(
+            return session.scalar(
                 sa.select(Certificate)
                 .join(CalibrationRecord, CalibrationRecord.id == Certificate.record_id)
                 .where(
-                    CalibrationRecord.device_id == r.device_id,
-                    CalibrationRecord.kind == r.kind,
-                    CalibrationRecord.version < r.version,
+                    CalibrationRecord.device_id == record.device_id,
+                    CalibrationRecord.kind == record.kind,
+                    CalibrationRecord.version < record.version,
                 )
                 .order_by(CalibrationRecord.version.desc())
                 .limit(1)

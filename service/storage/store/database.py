@@ -38,8 +38,8 @@ class Database:
     def session(self) -> Iterator[Session]:
         """A read session (or for callers composing their own work; flushes still pass the
         append-only guard)."""
-        with self._read() as s:
-            yield s
+        with self._read() as session:
+            yield session
 
     @contextmanager
     def transaction(self) -> Iterator[Session]:

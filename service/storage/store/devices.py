@@ -177,14 +177,17 @@ class DevicesRepo:
         One serialised transaction looks and registers: daemons starting together with the same
         bench name make one bench, and every one of them gets it."""
         name = require_text("bench name", name)
-        with self._db.session() as s:  # the usual case, a bench registered before, needs no write
-            bench = s.scalar(sa.select(Bench).where(Bench.name == name))
+        # the usual case, a bench registered before, needs no write
+        with self._db.session() as session:
+            bench = session.scalar(sa.select(Bench).where(Bench.name == name))
         if bench is not None:
             return bench
-        with self._db.transaction() as s:
-            bench = s.scalar(sa.select(Bench).where(Bench.name == name))
+        with self._db.transaction() as session:
+            bench = session.scalar(sa.select(Bench).where(Bench.name == name))
             return (
-                bench if bench is not None else self._insert_bench(s, name, actor=actor, port=port)
+                bench
+                if bench is not None
+                else self._insert_bench(session, name, actor=actor, port=port)
             )
 
     def ensure_device(
@@ -198,19 +201,21 @@ class DevicesRepo:
         last)."""
         model, serial = require_text("model", model), require_text("serial", serial)
         wanted = {"bench_id": bench_id, "port": port, "role": role}
-        with self._db.session() as s:
-            device = s.scalar(
+        with self._db.session() as session:
+            device = session.scalar(
                 sa.select(Device).where(Device.model == model, Device.serial == serial)
             )
-        if device is not None and all(getattr(device, k) == v for k, v in wanted.items()):
+        if device is not None and all(
+            getattr(device, key) == value for key, value in wanted.items()
+        ):
             return device
-        with self._db.transaction() as s:
-            device = s.scalar(
+        with self._db.transaction() as session:
+            device = session.scalar(
                 sa.select(Device).where(Device.model == model, Device.serial == serial)
             )
             if device is None:
                 return self._insert_device(
-                    s,
+                    session,
                     model,
                     serial,
                     role,
@@ -219,30 +224,34 @@ class DevicesRepo:
                     port=port,
                     port_settings=None,
                 )
-            changes = {k: v for k, v in wanted.items() if getattr(device, k) != v}
+            changes = {key: value for key, value in wanted.items() if getattr(device, key) != value}
             return (
-                self._change_device(s, device, actor=actor, changes=changes) if changes else device
+                self._change_device(session, device, actor=actor, changes=changes)
+                if changes
+                else device
             )
 
     def get_device(self, device_id: int) -> Device:
-        with self._db.session() as s:
-            return device_in(s, device_id)
+        with self._db.session() as session:
+            return device_in(session, device_id)
 
     def find_device(self, model: str, serial: str) -> Device | None:
-        with self._db.session() as s:
-            return s.scalar(sa.select(Device).where(Device.model == model, Device.serial == serial))
+        with self._db.session() as session:
+            return session.scalar(
+                sa.select(Device).where(Device.model == model, Device.serial == serial)
+            )
 
     def all(self) -> list[Device]:
-        with self._db.session() as s:
-            return list(s.scalars(sa.select(Device).order_by(Device.id)))
+        with self._db.session() as session:
+            return list(session.scalars(sa.select(Device).order_by(Device.id)))
 
     def bench_names_of_devices(self, device_ids: Collection[int]) -> dict[int, str]:
         """device id -> the name of the bench it was last registered on, for devices of any daemon
         of the lab."""
         if not device_ids:
             return {}
-        with self._db.session() as s:
-            rows = s.execute(
+        with self._db.session() as session:
+            rows = session.execute(
                 sa.select(Device.id, Bench.name)
                 .join(Bench, Device.bench_id == Bench.id)
                 .where(Device.id.in_(list(device_ids)))
@@ -251,19 +260,19 @@ class DevicesRepo:
 
     def bench_id_of(self, name: str) -> int | None:
         """The id of the bench of that name, whichever daemon of the lab runs it."""
-        with self._db.session() as s:
-            bench_id: int | None = s.scalar(sa.select(Bench.id).where(Bench.name == name))
+        with self._db.session() as session:
+            bench_id: int | None = session.scalar(sa.select(Bench.id).where(Bench.name == name))
             return bench_id
 
     def device_ids_of_bench(self, name: str) -> list[int] | None:
         """The devices registered on the bench of that name (whichever daemon runs it); None if no
         bench has it."""
-        with self._db.session() as s:
-            bench_id = s.scalar(sa.select(Bench.id).where(Bench.name == name))
+        with self._db.session() as session:
+            bench_id = session.scalar(sa.select(Bench.id).where(Bench.name == name))
             if bench_id is None:
                 return None
-            return list(s.scalars(sa.select(Device.id).where(Device.bench_id == bench_id)))
+            return list(session.scalars(sa.select(Device.id).where(Device.bench_id == bench_id)))
 
     def benches(self) -> list[Bench]:
-        with self._db.session() as s:
-            return list(s.scalars(sa.select(Bench).order_by(Bench.id)))
+        with self._db.session() as session:
+            return list(session.scalars(sa.select(Bench).order_by(Bench.id)))

@@ -31,24 +31,24 @@ class DiagnosesRepo:
     ) -> Diagnosis:
         with self._db.transaction() as session:
             row_in(session, CalibrationRecord, record_id, "record")
-            d = Diagnosis(
+            diagnosis = Diagnosis(
                 record_id=record_id,
                 sensor=require_text("sensor", sensor, 8),
                 baseline=require_text("baseline", baseline, 20),
                 created_by=require_text("actor", actor),
                 created_at=utc_now(),
             )
-            session.add(d)
+            session.add(diagnosis)
             session.flush()
             self._db.audit(
                 session,
                 actor,
                 "diagnosis.create",
                 "diagnosis",
-                d.id,
+                diagnosis.id,
                 {"record_id": record_id, "sensor": sensor, "baseline": baseline},
             )
-            return d
+            return diagnosis
 
     def finish_diagnosis(
         self,
@@ -74,7 +74,7 @@ class DiagnosesRepo:
                 is not None
             ):
                 raise ConflictError(f"diagnosis {diagnosis_id} has already ended")
-            r = DiagnosisResult(
+            result = DiagnosisResult(
                 diagnosis_id=diagnosis_id,
                 state=state,
                 started_at=started_at,
@@ -83,7 +83,7 @@ class DiagnosesRepo:
                 report_html=report_html,
                 error=error,
             )
-            session.add(r)
+            session.add(result)
             session.flush()
             self._db.audit(
                 session,
@@ -99,22 +99,22 @@ class DiagnosesRepo:
                     "error": error,
                 },
             )
-            return r
+            return result
 
     def get_diagnosis(self, diagnosis_id: int) -> tuple[Diagnosis, DiagnosisResult | None]:
-        with self._db.session() as s:
-            row = row_in(s, Diagnosis, diagnosis_id, "diagnosis")
-            r = s.scalar(
+        with self._db.session() as session:
+            row = row_in(session, Diagnosis, diagnosis_id, "diagnosis")
+            result = session.scalar(
                 sa.select(DiagnosisResult).where(DiagnosisResult.diagnosis_id == diagnosis_id)
             )
-            return row, r
+            return row, result
 
     def list_diagnoses(
         self, record_id: int | None = None, *, before_id: int | None = None, limit: int = 100
     ) -> list[tuple[Diagnosis, DiagnosisResult | None]]:
         """Newest first, of one record or of all, from before `before_id` (the cursor); without the
         report pages (the largest part of a result, which a list does not show)."""
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = (
                 sa.select(Diagnosis, DiagnosisResult)
                 .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
@@ -126,16 +126,16 @@ class DiagnosesRepo:
                 stmt = stmt.where(Diagnosis.record_id == record_id)
             if before_id is not None:
                 stmt = stmt.where(Diagnosis.id < before_id)
-            return [(d, r) for d, r in s.execute(stmt).all()]
+            return [(diagnosis, result) for diagnosis, result in session.execute(stmt).all()]
 
     def unfinished_diagnoses(self) -> list[int]:
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = (
                 sa.select(Diagnosis.id)
                 .outerjoin(DiagnosisResult, DiagnosisResult.diagnosis_id == Diagnosis.id)
                 .where(DiagnosisResult.id.is_(None))
             )
-            return list(s.scalars(stmt))
+            return list(session.scalars(stmt))
 
     def mark_diagnoses_interrupted(self, *, actor: str) -> list[int]:
         """At start-up: diagnoses a previous run left without a result end as failed."""

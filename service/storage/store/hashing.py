@@ -77,11 +77,16 @@ def samples_sha256(rows: Sequence[Sequence[Any]]) -> str:
     order, numbers as floats (as the database gives them back)."""
     return sha256_hex(
         [
-            [None if v is None else (v if isinstance(v, str) else float(v)) for v in row]
+            [
+                None if value is None else (value if isinstance(value, str) else float(value))
+                for value in row
+            ]
             for row in rows
         ]
     )
 
 
 def points_sha256(points: Sequence[SettledPoint]) -> str:
-    return sha256_hex([point_content(p) for p in sorted(points, key=lambda p: p.point)])
+    return sha256_hex(
+        [point_content(point) for point in sorted(points, key=lambda point: point.point)]
+    )

@@ -27,7 +27,7 @@ TRANSITIONS: dict[str, frozenset[str]] = {
     "failed": frozenset(),
     "cancelled": frozenset(),
 }
-TERMINAL = frozenset(s for s, nxt in TRANSITIONS.items() if not nxt)
+TERMINAL = frozenset(state for state, nxt in TRANSITIONS.items() if not nxt)
 PHASES = ("homing", "measuring", "fitting", "validating")  # a succeeded job's phase is "done"
 INTERRUPTED = (
     "interrupted: the daemon stopped while the job ran; POST /calibrations/{id}/resume continues it"
@@ -83,20 +83,20 @@ class JobsRepo:
             return job
 
     def get_job(self, job_id: int) -> CalibrationJob:
-        with self._db.session() as s:
-            return job_in(s, job_id)
+        with self._db.session() as session:
+            return job_in(session, job_id)
 
     def all(self, *, state: str | None = None) -> list[CalibrationJob]:
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = sa.select(CalibrationJob).order_by(CalibrationJob.id)
             if state is not None:
                 stmt = stmt.where(CalibrationJob.state == state)
-            return list(s.scalars(stmt))
+            return list(session.scalars(stmt))
 
     def job_counts_by_state(self) -> dict[str, int]:
         """How many jobs are in each state (one grouped query; for the daemon's metrics)."""
-        with self._db.session() as s:
-            rows = s.execute(
+        with self._db.session() as session:
+            rows = session.execute(
                 sa.select(CalibrationJob.state, sa.func.count()).group_by(CalibrationJob.state)
             )
             return {str(state): int(n) for state, n in rows}
@@ -239,8 +239,8 @@ class JobsRepo:
     def idempotency_key(self, key: str, *, route: str = "calibrations") -> IdempotencyKey | None:
         """What the database knows of a request's Idempotency-Key (its body's SHA-256 and the job it
         made)."""
-        with self._db.session() as s:
-            return s.scalar(
+        with self._db.session() as session:
+            return session.scalar(
                 sa.select(IdempotencyKey).where(
                     IdempotencyKey.route == route, IdempotencyKey.key == key
                 )
@@ -360,7 +360,7 @@ class JobsRepo:
         limit: int = 50,
     ) -> list[CalibrationJob]:
         """Newest first; `before_id` is the cursor (the last id of the previous page)."""
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = sa.select(CalibrationJob).order_by(CalibrationJob.id.desc()).limit(limit)
             if state is not None:
                 stmt = stmt.where(CalibrationJob.state == state)
@@ -370,7 +370,7 @@ class JobsRepo:
                 stmt = stmt.where(CalibrationJob.updated_at >= updated_since)
             if before_id is not None:
                 stmt = stmt.where(CalibrationJob.id < before_id)
-            return list(s.scalars(stmt))
+            return list(session.scalars(stmt))
 
     def job_or_none(self, job_id: int) -> CalibrationJob | None:
         try:

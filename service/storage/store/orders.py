@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 import sqlalchemy as sa
+from sqlalchemy.orm import Session
 
 from service.errors import InputError
 from service.storage.canonical import normalise, sha256_hex
@@ -21,15 +22,79 @@ from service.storage.models import (
     RecordApproval,
     utc_now,
 )
-from service.storage.specification import SpecificationProblem, specification_of
+from service.storage.specification import (
+    Specification,
+    SpecificationProblem,
+    specification_of,
+)
 from service.storage.store.approvals import approval_status
 from service.storage.store.checks import require_date, require_text
 from service.storage.store.database import Database
 from service.storage.store.lookups import row_in
 
+_Row = TypeVar("_Row", CalibrationRecord, RecordApproval, Certificate)
+
 
 class IdempotencyKeyReused(InputError):
     """The same Idempotency-Key came with another body."""
+
+
+def _customer_of(body: Mapping[str, Any]) -> Mapping[str, Any]:
+    """The order's customer, checked: a name, a city and an ISO 3166-1 country code at least."""
+    customer = body.get("customer")
+    if not isinstance(customer, Mapping):
+        raise InputError(
+            "customer must be an object {name, city, country_code[, street, post_code, email]}"
+        )
+    for key in ("name", "city"):
+        require_text(f"customer.{key}", customer.get(key), 200)
+    if not isinstance(customer.get("country_code"), str) or not re.fullmatch(
+        r"[A-Z]{2}", customer["country_code"]
+    ):
+        raise InputError("customer.country_code must be two upper-case letters (ISO 3166-1)")
+    return customer
+
+
+def _specification_of_order(body: Mapping[str, Any]) -> Specification | None:
+    """The order's specification, if any: conformity is stated on a stage-grid order's indication
+    error only."""
+    spec = specification_of(body.get("specification"))
+    if spec is not None and body.get("procedure") != "stage-grid":
+        raise SpecificationProblem(
+            "specification",
+            "statements of conformity are made on the indication error of a "
+            f"biaxial inclinometer: a stage-grid order, not {body.get('procedure')!r}",
+        )
+    return spec
+
+
+def _order_of_key(session: Session, idempotency_key: str, request_sha: str) -> Order | None:
+    """The order an earlier request with this Idempotency-Key created (None: a new key); the key
+    may not come back with another body."""
+    key = require_text("Idempotency-Key", idempotency_key, 200)
+    seen = session.scalar(sa.select(Order).where(Order.idempotency_key == key))
+    if seen is not None and seen.request_sha256 != request_sha:
+        raise IdempotencyKeyReused(
+            f"Idempotency-Key {key!r} was used for another request body "
+            f"(order {seen.id}); use a new key for a new order"
+        )
+    return seen
+
+
+def _rows_with_ids_in(
+    session: Session,
+    entity: type[_Row],
+    column: sa.orm.InstrumentedAttribute[int | None],
+    ids: list[int],
+    *order_by: sa.orm.InstrumentedAttribute[int],
+) -> list[_Row]:
+    """The rows whose `column` is one of `ids` (none asked for: no query), in order."""
+    if not ids:
+        return []
+    stmt = sa.select(entity).where(column.in_(ids))
+    if order_by:
+        stmt = stmt.order_by(*order_by)
+    return list(session.scalars(stmt))
 
 
 class OrdersRepo:
@@ -43,35 +108,13 @@ class OrdersRepo:
         created."""
         body = normalise(dict(fields))
         request_sha = sha256_hex(body)
-        customer = body.get("customer")
-        if not isinstance(customer, Mapping):
-            raise InputError(
-                "customer must be an object {name, city, country_code[, street, post_code, email]}"
-            )
-        for key in ("name", "city"):
-            require_text(f"customer.{key}", customer.get(key), 200)
-        if not isinstance(customer.get("country_code"), str) or not re.fullmatch(
-            r"[A-Z]{2}", customer["country_code"]
-        ):
-            raise InputError("customer.country_code must be two upper-case letters (ISO 3166-1)")
+        customer = _customer_of(body)
         due = body.get("due_on")
-        spec = specification_of(body.get("specification"))
-        if spec is not None and body.get("procedure") != "stage-grid":
-            raise SpecificationProblem(
-                "specification",
-                "statements of conformity are made on the indication error of a "
-                f"biaxial inclinometer: a stage-grid order, not {body.get('procedure')!r}",
-            )
+        spec = _specification_of_order(body)
         with self._db.transaction() as session:
             if idempotency_key is not None:
-                key = require_text("Idempotency-Key", idempotency_key, 200)
-                seen = session.scalar(sa.select(Order).where(Order.idempotency_key == key))
+                seen = _order_of_key(session, idempotency_key, request_sha)
                 if seen is not None:
-                    if seen.request_sha256 != request_sha:
-                        raise IdempotencyKeyReused(
-                            f"Idempotency-Key {key!r} was used for another request body "
-                            f"(order {seen.id}); use a new key for a new order"
-                        )
                     return seen, False
             lims_id = require_text("lims_order_id", body.get("lims_order_id"))
             clash = session.scalar(sa.select(Order.id).where(Order.lims_order_id == lims_id))
@@ -113,16 +156,16 @@ class OrdersRepo:
             return row, True
 
     def get(self, order_id: int) -> Order:
-        with self._db.session() as s:
-            return row_in(s, Order, order_id, "order")
+        with self._db.session() as session:
+            return row_in(session, Order, order_id, "order")
 
     def specified_jobs(self, job_ids: Sequence[int]) -> set[int]:
         """Which of these jobs work on an order with a specification (their records state
         conformity), in one query."""
         if not job_ids:
             return set()
-        with self._db.session() as s:
-            rows = s.execute(
+        with self._db.session() as session:
+            rows = session.execute(
                 sa.select(CalibrationJob.id, Order.specification)
                 .join(Order, Order.id == CalibrationJob.order_id)
                 .where(CalibrationJob.id.in_(list(job_ids)))
@@ -133,46 +176,24 @@ class OrdersRepo:
     def order_links(self, order_id: int) -> dict[str, Any]:
         """The order's jobs, records (with status) and certificates, and the state they put it
         in."""
-        with self._db.session() as s:
+        with self._db.session() as session:
             jobs = list(
-                s.scalars(
+                session.scalars(
                     sa.select(CalibrationJob)
                     .where(CalibrationJob.order_id == order_id)
                     .order_by(CalibrationJob.id)
                 )
             )
-            job_ids = [j.id for j in jobs]
-            records = (
-                list(
-                    s.scalars(
-                        sa.select(CalibrationRecord)
-                        .where(CalibrationRecord.job_id.in_(job_ids))
-                        .order_by(CalibrationRecord.id)
-                    )
-                )
-                if job_ids
-                else []
+            job_ids = [job.id for job in jobs]
+            records = _rows_with_ids_in(
+                session, CalibrationRecord, CalibrationRecord.job_id, job_ids, CalibrationRecord.id
             )
             rec_ids = [record.id for record in records]
-            approvals = (
-                list(
-                    s.scalars(
-                        sa.select(RecordApproval).where(RecordApproval.record_id.in_(rec_ids))
-                    )
-                )
-                if rec_ids
-                else []
+            approvals = _rows_with_ids_in(
+                session, RecordApproval, RecordApproval.record_id, rec_ids
             )
-            certs = (
-                list(
-                    s.scalars(
-                        sa.select(Certificate)
-                        .where(Certificate.record_id.in_(rec_ids))
-                        .order_by(Certificate.id)
-                    )
-                )
-                if rec_ids
-                else []
+            certs = _rows_with_ids_in(
+                session, Certificate, Certificate.record_id, rec_ids, Certificate.id
             )
         status = {
             record.id: approval_status(
@@ -181,7 +202,7 @@ class OrdersRepo:
             for record in records
         }
         return {
-            "jobs": [{"id": j.id, "state": j.state} for j in jobs],
+            "jobs": [{"id": job.id, "state": job.state} for job in jobs],
             "records": [
                 {"id": record.id, "version": record.version, "status": status[record.id]}
                 for record in records
@@ -210,12 +231,23 @@ def order_state(
     if not jobs:
         return "open"
     latest = records[-1] if records else None
-    if latest is not None and any(cert.record_id == latest.id for cert in certs):
-        return "certified"
-    if latest is not None and status[latest.id] in ("approved", "rejected"):
-        return status[latest.id]
-    if any(j.state in (JobState.QUEUED, JobState.RUNNING) for j in jobs):
+    decided = _decided_state(latest, status, certs)
+    if decided is not None:
+        return decided
+    if any(job.state in (JobState.QUEUED, JobState.RUNNING) for job in jobs):
         return "in_progress"
     if latest is not None:
         return "measured"
     return "failed" if jobs[-1].state in ("failed", "cancelled") else "in_progress"
+
+
+def _decided_state(
+    latest: CalibrationRecord | None, status: dict[int, str], certs: list[Certificate]
+) -> str | None:
+    """The state the latest record's decision puts an order in (certified, approved, rejected),
+    or None while it has none."""
+    if latest is not None and any(cert.record_id == latest.id for cert in certs):
+        return "certified"
+    if latest is not None and status[latest.id] in ("approved", "rejected"):
+        return status[latest.id]
+    return None

@@ -42,23 +42,8 @@ class PointsRepo:
                     f"job {job_id} is {job.state}; settled points are added while it runs"
                 )
             rows: list[SettledPoint] = []
-            for i, p in enumerate(points):
-                unknown = set(p) - set(POINT_FIELDS)
-                missing = [k for k in POINT_REQUIRED if p.get(k) is None]
-                if unknown or missing:
-                    raise InputError(
-                        f"settled point [{i}]: unknown fields {sorted(unknown)}, missing {missing}"
-                    )
-                values: dict[str, Any] = {}
-                for k in POINT_FIELDS:
-                    if k in ("point", "n_samples"):
-                        if not isinstance(p[k], int) or p[k] < 0:
-                            raise InputError(
-                                f"settled point [{i}]: {k} must be a non-negative integer"
-                            )
-                        values[k] = p[k]
-                    else:
-                        values[k] = require_finite(f"settled point [{i}] {k}", p.get(k))
+            for i, given in enumerate(points):
+                values = _point_values(i, given)
                 values["samples_sha256"] = point_samples_sha256(
                     session, job_id, device_id, values["point"]
                 )
@@ -74,9 +59,9 @@ class PointsRepo:
                 {
                     "device_id": device_id,
                     "count": len(rows),
-                    "points": [r.point for r in rows],
+                    "points": [row.point for row in rows],
                     "points_sha256": sha256_hex(
-                        [point_content(r) for r in sorted(rows, key=lambda r: r.point)]
+                        [point_content(row) for row in sorted(rows, key=lambda row: row.point)]
                     ),
                 },
             )
@@ -98,40 +83,24 @@ class PointsRepo:
             raise InputError(
                 f"skip_s={skip_s} is negative; it is the settling time discarded at each point"
             )
-        with self._db.session() as s:
+        with self._db.session() as session:
             t = SampleRow.__table__
-            rows = s.execute(
+            rows = session.execute(
                 sa.select(t.c.point, t.c.t_s, t.c.ch_x, t.c.ch_y, t.c.ch_z, t.c.temp_c)
                 .where(t.c.job_id == job_id, t.c.device_id == device_id, t.c.point.is_not(None))
                 .order_by(t.c.point, t.c.t_s)
             ).all()
         by_point: dict[int, list[Any]] = {}
-        for r in rows:
-            by_point.setdefault(r.point, []).append(r)
+        for row in rows:
+            by_point.setdefault(row.point, []).append(row)
         points: list[dict[str, Any]] = []
-        for point, rs in sorted(by_point.items()):
-            t0 = rs[0].t_s + skip_s
-            rs = [r for r in rs if r.t_s >= t0]
-            if not rs:
+        for point, samples in sorted(by_point.items()):
+            t0 = samples[0].t_s + skip_s
+            settled = [sample for sample in samples if sample.t_s >= t0]
+            if not settled:
                 continue
             cmd = (commands or {}).get(point, (None, None))
-            points.append(
-                {
-                    "point": point,
-                    "cmd_x_deg": cmd[0],
-                    "cmd_y_deg": cmd[1],
-                    "n_samples": len(rs),
-                    "t_start_s": rs[0].t_s,
-                    "t_end_s": rs[-1].t_s,
-                    "ch_x_mean": mean_or_none([r.ch_x for r in rs]),
-                    "ch_y_mean": mean_or_none([r.ch_y for r in rs]),
-                    "ch_z_mean": mean_or_none([r.ch_z for r in rs]),
-                    "ch_x_std": std_or_none([r.ch_x for r in rs]),
-                    "ch_y_std": std_or_none([r.ch_y for r in rs]),
-                    "ch_z_std": std_or_none([r.ch_z for r in rs]),
-                    "temp_c_mean": mean_or_none([r.temp_c for r in rs]),
-                }
-            )
+            points.append(_point_from_samples(point, settled, cmd))
         if not points:
             raise InputError(
                 f"job {job_id} has no raw samples of device {device_id} with a grid point"
@@ -143,13 +112,13 @@ class PointsRepo:
     ) -> list[SettledPoint]:
         """A job's settled points (of one device; from a point index on: what a follower has not
         seen)."""
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = sa.select(SettledPoint).where(SettledPoint.job_id == job_id)
             if device_id is not None:
                 stmt = stmt.where(SettledPoint.device_id == device_id)
             if from_point is not None:
                 stmt = stmt.where(SettledPoint.point >= from_point)
-            return list(s.scalars(stmt.order_by(SettledPoint.device_id, SettledPoint.point)))
+            return list(session.scalars(stmt.order_by(SettledPoint.device_id, SettledPoint.point)))
 
     def points_sha256_by_job(self, job_ids: Sequence[int]) -> dict[str, dict[str, str]]:
         """Per job, the SHA-256 of every device's settled points (keyed by job id, then device id,
@@ -159,8 +128,55 @@ class PointsRepo:
             by_device: dict[int, list[SettledPoint]] = {}
             for settled_point in self.settled_points(job_id):
                 by_device.setdefault(settled_point.device_id, []).append(settled_point)
-            out[str(job_id)] = {str(d): points_sha256(pts) for d, pts in sorted(by_device.items())}
+            out[str(job_id)] = {
+                str(device_id): points_sha256(pts) for device_id, pts in sorted(by_device.items())
+            }
         return out
+
+
+def _point_values(i: int, given: Mapping[str, Any]) -> dict[str, Any]:
+    """The fields of the i-th settled point given, checked: known ones only, the required ones
+    there, counts non-negative integers and every other value finite."""
+    unknown = set(given) - set(POINT_FIELDS)
+    missing = [k for k in POINT_REQUIRED if given.get(k) is None]
+    if unknown or missing:
+        raise InputError(
+            f"settled point [{i}]: unknown fields {sorted(unknown)}, missing {missing}"
+        )
+    values: dict[str, Any] = {}
+    for k in POINT_FIELDS:
+        if k in ("point", "n_samples"):
+            if not isinstance(given[k], int) or given[k] < 0:
+                raise InputError(f"settled point [{i}]: {k} must be a non-negative integer")
+            values[k] = given[k]
+        else:
+            values[k] = require_finite(f"settled point [{i}] {k}", given.get(k))
+    return values
+
+
+def _point_from_samples(
+    point: int, samples: Sequence[Any], cmd: tuple[float | None, float | None]
+) -> dict[str, Any]:
+    """A grid point's settled values from its samples after settling: their means and spreads."""
+    channels = {
+        name: [getattr(sample, name) for sample in samples]
+        for name in ("ch_x", "ch_y", "ch_z", "temp_c")
+    }
+    return {
+        "point": point,
+        "cmd_x_deg": cmd[0],
+        "cmd_y_deg": cmd[1],
+        "n_samples": len(samples),
+        "t_start_s": samples[0].t_s,
+        "t_end_s": samples[-1].t_s,
+        "ch_x_mean": mean_or_none(channels["ch_x"]),
+        "ch_y_mean": mean_or_none(channels["ch_y"]),
+        "ch_z_mean": mean_or_none(channels["ch_z"]),
+        "ch_x_std": std_or_none(channels["ch_x"]),
+        "ch_y_std": std_or_none(channels["ch_y"]),
+        "ch_z_std": std_or_none(channels["ch_z"]),
+        "temp_c_mean": mean_or_none(channels["temp_c"]),
+    }
 
 
 def point_samples_sha256(s: Session, job_id: int, device_id: int, point: int) -> str | None:
@@ -185,8 +201,8 @@ def mean_or_none(values: Sequence[float | None]) -> float | None:
 
 def std_or_none(values: Sequence[float | None]) -> float | None:
     """Sample standard deviation (n - 1), two-pass for precision."""
-    known = [v for v in values if v is not None]
+    known = [value for value in values if value is not None]
     if len(known) < 2 or len(known) != len(values):
         return None
-    m = math.fsum(known) / len(known)
-    return math.sqrt(math.fsum((v - m) ** 2 for v in known) / (len(known) - 1))
+    mean = math.fsum(known) / len(known)
+    return math.sqrt(math.fsum((value - mean) ** 2 for value in known) / (len(known) - 1))

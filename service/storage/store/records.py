@@ -68,54 +68,12 @@ class RecordsRepo:
             kind, method = require_text("kind", kind, 40), require_text("method", method, 80)
             operator = require_text("operator", operator)
             model_doc = require_doc("model", model)
-            for key, expected in (("kind", kind), ("method", method)):
-                if key in model_doc and model_doc[key] != expected:
-                    raise InputError(
-                        f"model document says {key}={model_doc[key]!r} but the record is "
-                        f"{expected!r}"
-                    )
+            _check_model_names(model_doc, kind, method)
             raw = require_doc("raw_data", raw_data or {})
             if job_id is not None:
-                job = job_in(session, job_id)
-                if job.device_id != device_id:
-                    raise InputError(
-                        f"job {job_id} calibrates device {job.device_id}, not device {device_id}"
-                    )
-                if job.state not in (JobState.RUNNING, JobState.SUCCEEDED):
-                    raise IllegalTransition(
-                        f"job {job_id} is {job.state}; a record comes from a running or succeeded "
-                        "job"
-                    )
-                pts = list(
-                    session.scalars(
-                        sa.select(SettledPoint).where(
-                            SettledPoint.job_id == job_id, SettledPoint.device_id == device_id
-                        )
-                    )
-                )
-                n_samples = session.scalar(
-                    sa.select(sa.func.count())
-                    .select_from(SampleRow)
-                    .where(SampleRow.job_id == job_id, SampleRow.device_id == device_id)
-                )
-                raw.update(
-                    {
-                        "job_id": job_id,
-                        "points": len(pts),
-                        "points_sha256": points_sha256(pts),
-                        "samples": n_samples,
-                        "settled_points_sha256": _points_by_device_sha256(session, job_id),
-                    }
-                )
+                raw.update(_job_raw_data(session, job_id, device_id))
             active = session.get(ActiveCalibration, (device_id, kind))
-            if supersedes_id is SUPERSEDES_ACTIVE:
-                supersedes_id = active.record_id if active else None
-            elif supersedes_id is not None:
-                old = session.get(CalibrationRecord, supersedes_id)
-                if old is None or (old.device_id, old.kind) != (device_id, kind):
-                    raise UnknownEntity(
-                        f"record {supersedes_id} is not a {kind} record of device {device_id}"
-                    )
+            supersedes_id = _superseded_id(session, supersedes_id, active, device_id, kind)
             last = session.execute(
                 sa.select(CalibrationRecord.version, CalibrationRecord.content_sha256)
                 .where(CalibrationRecord.device_id == device_id, CalibrationRecord.kind == kind)
@@ -168,8 +126,8 @@ class RecordsRepo:
             return record
 
     def get_record(self, record_id: int) -> CalibrationRecord:
-        with self._db.session() as s:
-            return row_in(s, CalibrationRecord, record_id, "calibration record")
+        with self._db.session() as session:
+            return row_in(session, CalibrationRecord, record_id, "calibration record")
 
     def records_of_jobs(self, job_ids: Sequence[int]) -> dict[int, CalibrationRecord]:
         """The record each of these jobs made, the first made from its points (an adopted diagnosis
@@ -177,14 +135,14 @@ class RecordsRepo:
         if not job_ids:
             return {}
         out: dict[int, CalibrationRecord] = {}
-        with self._db.session() as s:
-            for r in s.scalars(
+        with self._db.session() as session:
+            for record in session.scalars(
                 sa.select(CalibrationRecord)
                 .where(CalibrationRecord.job_id.in_(list(job_ids)))
                 .order_by(CalibrationRecord.id)
             ):
-                if r.job_id is not None:
-                    out.setdefault(r.job_id, r)
+                if record.job_id is not None:
+                    out.setdefault(record.job_id, record)
         return out
 
     def fitted_ranges(self, record_ids: Sequence[int]) -> dict[int, Any]:
@@ -194,8 +152,8 @@ class RecordsRepo:
         if not record_ids:
             return {}
         fitted = CalibrationRecord.model["fit"]["table_tilt_range_deg"]
-        with self._db.session() as s:
-            rows = s.execute(
+        with self._db.session() as session:
+            rows = session.execute(
                 sa.select(CalibrationRecord.id, fitted).where(
                     CalibrationRecord.id.in_(list(record_ids))
                 )
@@ -204,15 +162,17 @@ class RecordsRepo:
 
     def active_record_ids(self) -> set[int]:
         """The ids of every record in use (one per device and kind)."""
-        with self._db.session() as s:
-            return set(s.scalars(sa.select(ActiveCalibration.record_id)))
+        with self._db.session() as session:
+            return set(session.scalars(sa.select(ActiveCalibration.record_id)))
 
     def of_device(self, device_id: int, kind: str | None = None) -> list[CalibrationRecord]:
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = sa.select(CalibrationRecord).where(CalibrationRecord.device_id == device_id)
             if kind is not None:
                 stmt = stmt.where(CalibrationRecord.kind == kind)
-            return list(s.scalars(stmt.order_by(CalibrationRecord.kind, CalibrationRecord.version)))
+            return list(
+                session.scalars(stmt.order_by(CalibrationRecord.kind, CalibrationRecord.version))
+            )
 
     def newest_first(
         self,
@@ -238,21 +198,21 @@ class RecordsRepo:
             stmt = stmt.where(CalibrationRecord.device_id == device_id)
         if device_ids is not None:
             stmt = stmt.where(CalibrationRecord.device_id.in_(list(device_ids)))
-        with self._db.session() as s:
-            return list(s.scalars(stmt))
+        with self._db.session() as session:
+            return list(session.scalars(stmt))
 
     def active_record(self, device_id: int, kind: str) -> CalibrationRecord | None:
-        with self._db.session() as s:
-            return s.scalar(
+        with self._db.session() as session:
+            return session.scalar(
                 sa.select(CalibrationRecord)
                 .join(ActiveCalibration, ActiveCalibration.record_id == CalibrationRecord.id)
                 .where(ActiveCalibration.device_id == device_id, ActiveCalibration.kind == kind)
             )
 
     def pointer_history(self, device_id: int, kind: str) -> list[ActiveCalibrationHistory]:
-        with self._db.session() as s:
+        with self._db.session() as session:
             return list(
-                s.scalars(
+                session.scalars(
                     sa.select(ActiveCalibrationHistory)
                     .where(
                         ActiveCalibrationHistory.device_id == device_id,
@@ -280,14 +240,16 @@ class RecordsRepo:
     def unusable_reason(self, record_id: int) -> str | None:
         """Why the record must not correct anything (rejected, or not matching its hash), or None if
         it may."""
-        with self._db.session() as s:
-            return unusable_in(s, row_in(s, CalibrationRecord, record_id, "calibration record"))
+        with self._db.session() as session:
+            return unusable_in(
+                session, row_in(session, CalibrationRecord, record_id, "calibration record")
+            )
 
     def inactive_reason(self, device_id: int, kind: str) -> str | None:
         """Why (device, kind) has no active record, when its pointer was withdrawn: the reason of
         that change."""
-        with self._db.session() as s:
-            last = s.scalar(
+        with self._db.session() as session:
+            last = session.scalar(
                 sa.select(ActiveCalibrationHistory)
                 .where(
                     ActiveCalibrationHistory.device_id == device_id,
@@ -313,10 +275,70 @@ class RecordsRepo:
             )
 
 
+def _check_model_names(model_doc: Mapping[str, Any], kind: str, method: str) -> None:
+    """A model document that names its kind or method must name the record's."""
+    for key, expected in (("kind", kind), ("method", method)):
+        if key in model_doc and model_doc[key] != expected:
+            raise InputError(
+                f"model document says {key}={model_doc[key]!r} but the record is {expected!r}"
+            )
+
+
+def _job_raw_data(session: Session, job_id: int, device_id: int) -> dict[str, Any]:
+    """What a record made by a job keeps of the job's data: its points and their hashes, its count
+    of samples; the job must calibrate this device and be running or done."""
+    job = job_in(session, job_id)
+    if job.device_id != device_id:
+        raise InputError(f"job {job_id} calibrates device {job.device_id}, not device {device_id}")
+    if job.state not in (JobState.RUNNING, JobState.SUCCEEDED):
+        raise IllegalTransition(
+            f"job {job_id} is {job.state}; a record comes from a running or succeeded job"
+        )
+    pts = list(
+        session.scalars(
+            sa.select(SettledPoint).where(
+                SettledPoint.job_id == job_id, SettledPoint.device_id == device_id
+            )
+        )
+    )
+    n_samples = session.scalar(
+        sa.select(sa.func.count())
+        .select_from(SampleRow)
+        .where(SampleRow.job_id == job_id, SampleRow.device_id == device_id)
+    )
+    return {
+        "job_id": job_id,
+        "points": len(pts),
+        "points_sha256": points_sha256(pts),
+        "samples": n_samples,
+        "settled_points_sha256": _points_by_device_sha256(session, job_id),
+    }
+
+
+def _superseded_id(
+    session: Session,
+    supersedes_id: int | None,
+    active: ActiveCalibration | None,
+    device_id: int,
+    kind: str,
+) -> int | None:
+    """The version a new record supersedes: the active one by default, else one given of the same
+    device and kind (or none)."""
+    if supersedes_id is SUPERSEDES_ACTIVE:
+        return active.record_id if active else None
+    if supersedes_id is not None:
+        old = session.get(CalibrationRecord, supersedes_id)
+        if old is None or (old.device_id, old.kind) != (device_id, kind):
+            raise UnknownEntity(
+                f"record {supersedes_id} is not a {kind} record of device {device_id}"
+            )
+    return supersedes_id
+
+
 def _points_by_device_sha256(s: Session, job_id: int) -> dict[str, str]:
     """The SHA-256 of every device's settled points in the job (the reference sensor's too: a fit
     uses them), keyed by device id: what `db verify` checks the job's points against."""
     by_device: dict[int, list[SettledPoint]] = {}
-    for p in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == job_id)):
-        by_device.setdefault(p.device_id, []).append(p)
+    for point in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == job_id)):
+        by_device.setdefault(point.device_id, []).append(point)
     return {str(device): points_sha256(pts) for device, pts in sorted(by_device.items())}

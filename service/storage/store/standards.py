@@ -52,14 +52,14 @@ def positive_number(
 def stated_uncertainty(fields: Mapping[str, Any], remark: str) -> tuple[float | None, float | None]:
     """U (degrees) and k as given, else read from the remark's wording; (None, None) when neither
     says."""
-    U, k = fields.get("expanded_uncertainty_deg"), fields.get("coverage_factor")
-    if U is None:
+    expanded_deg, k = fields.get("expanded_uncertainty_deg"), fields.get("coverage_factor")
+    if expanded_deg is None:
         if k is not None:
             raise InputError("coverage_factor: given without expanded_uncertainty_deg")
         parsed = parse_stated_uncertainty(remark)
         return parsed if parsed is not None else (None, None)
     return (
-        positive_number("expanded_uncertainty_deg", U, above=0.0),
+        positive_number("expanded_uncertainty_deg", expanded_deg, above=0.0),
         positive_number("coverage_factor", 2.0 if k is None else k, least=1.0),
     )
 
@@ -112,7 +112,7 @@ class StandardsRepo:
         model = fields.get("model")
         remark = fields.get("uncertainty")
         remark = require_text("uncertainty", remark, 500) if remark not in (None, "") else ""
-        U, k = stated_uncertainty(fields, remark)
+        expanded_deg, k = stated_uncertainty(fields, remark)
         row = ReferenceStandard(
             name=require_text("name", fields.get("name")),
             serial=require_text("serial", fields.get("serial")),
@@ -122,7 +122,7 @@ class StandardsRepo:
             calibrated_on=calibrated,
             due_on=due,
             uncertainty=remark,
-            expanded_uncertainty_deg=U,
+            expanded_uncertainty_deg=expanded_deg,
             coverage_factor=k,
             created_at=utc_now(),
             created_by=require_text("actor", actor),
@@ -154,7 +154,7 @@ class StandardsRepo:
                     "certificate_number": row.certificate_number,
                     "certificate_sha256": sha,
                     "due_on": due.isoformat(),
-                    "expanded_uncertainty_deg": U,
+                    "expanded_uncertainty_deg": expanded_deg,
                     "coverage_factor": k,
                     "calibrated_by": row.calibrated_by,
                 },
@@ -162,20 +162,22 @@ class StandardsRepo:
             return row
 
     def all(self) -> list[ReferenceStandard]:
-        with self._db.session() as s:
-            return list(s.scalars(sa.select(ReferenceStandard).order_by(ReferenceStandard.id)))
+        with self._db.session() as session:
+            return list(
+                session.scalars(sa.select(ReferenceStandard).order_by(ReferenceStandard.id))
+            )
 
     def page(self, *, after_id: int | None = None, limit: int = 50) -> list[ReferenceStandard]:
         """Standards in id order from after `after_id` (the cursor), at most `limit`."""
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = sa.select(ReferenceStandard).order_by(ReferenceStandard.id).limit(limit)
             if after_id is not None:
                 stmt = stmt.where(ReferenceStandard.id > after_id)
-            return list(s.scalars(stmt))
+            return list(session.scalars(stmt))
 
     def get(self, standard_id: int) -> ReferenceStandard:
-        with self._db.session() as s:
-            return row_in(s, ReferenceStandard, standard_id, "reference standard")
+        with self._db.session() as session:
+            return row_in(session, ReferenceStandard, standard_id, "reference standard")
 
     def usable_standards(self, ids: Sequence[object], *, on: dt.date) -> list[ReferenceStandard]:
         """The standards a job names, refused if one is unknown or past its due date on `on`."""
@@ -184,10 +186,10 @@ class StandardsRepo:
                 "reference_standards", "must be a list of reference standard ids"
             )
         out: list[ReferenceStandard] = []
-        with self._db.session() as s:
+        with self._db.session() as session:
             for i, sid in enumerate(ids):
                 row = (
-                    s.get(ReferenceStandard, sid)
+                    session.get(ReferenceStandard, sid)
                     if isinstance(sid, int) and not isinstance(sid, bool)
                     else None
                 )

@@ -137,8 +137,8 @@ class TokensRepo:
     def first_admin_token(self) -> FirstAdminToken | None:
         """Which daemon wrote the lab's first admin token, and where (None for a database that has
         none, or whose first token was made before daemons recorded this)."""
-        with self._db.session() as s:
-            details = s.scalar(
+        with self._db.session() as session:
+            details = session.scalar(
                 sa.select(AuditEvent.details)
                 .where(
                     AuditEvent.action == "token.create",
@@ -157,28 +157,28 @@ class TokensRepo:
         return FirstAdminToken(node=details["node"], file=details["file"])
 
     def all(self, *, include_revoked: bool = False) -> list[ApiToken]:
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = sa.select(ApiToken).order_by(ApiToken.id)
             if not include_revoked:
                 stmt = stmt.where(ApiToken.revoked_at.is_(None))
-            return list(s.scalars(stmt))
+            return list(session.scalars(stmt))
 
     def page(
         self, *, include_revoked: bool = False, after_id: int | None = None, limit: int = 50
     ) -> list[ApiToken]:
         """Tokens in the order they were made from after `after_id` (the cursor), at most
         `limit`."""
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = sa.select(ApiToken).order_by(ApiToken.id).limit(limit)
             if not include_revoked:
                 stmt = stmt.where(ApiToken.revoked_at.is_(None))
             if after_id is not None:
                 stmt = stmt.where(ApiToken.id > after_id)
-            return list(s.scalars(stmt))
+            return list(session.scalars(stmt))
 
     def has_tokens(self) -> bool:
-        with self._db.session() as s:
-            return (s.scalar(sa.select(sa.func.count()).select_from(ApiToken)) or 0) > 0
+        with self._db.session() as session:
+            return (session.scalar(sa.select(sa.func.count()).select_from(ApiToken)) or 0) > 0
 
     def revoke_token(self, name: str, *, actor: str) -> ApiToken:
         with self._db.transaction() as session:
@@ -209,8 +209,8 @@ class TokensRepo:
         """The principal of a presented token, or None for an unknown or revoked one."""
         if not token:
             return None
-        with self._db.session() as s:
-            row = s.scalar(
+        with self._db.session() as session:
+            row = session.scalar(
                 sa.select(ApiToken).where(
                     ApiToken.token_sha256 == token_sha256(token), ApiToken.revoked_at.is_(None)
                 )
@@ -222,8 +222,8 @@ class TokensRepo:
     def person_of_token(self, name: str) -> Person | None:
         """The person a token (active or revoked) names now, None for a token without one or no such
         token."""
-        with self._db.session() as s:
-            row = s.scalar(sa.select(ApiToken).where(ApiToken.name == name))
+        with self._db.session() as session:
+            row = session.scalar(sa.select(ApiToken).where(ApiToken.name == name))
         return person_of_row(row) if row is not None else None
 
 

@@ -79,7 +79,7 @@ class FeedRepo:
     def events(
         self, *, after_id: int = 0, limit: int = 100, types: Sequence[str] | None = None
     ) -> list[FeedEvent]:
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = (
                 sa.select(FeedEvent)
                 .where(FeedEvent.id > after_id)
@@ -88,7 +88,7 @@ class FeedRepo:
             )
             if types:
                 stmt = stmt.where(FeedEvent.type.in_(list(types)))
-            return list(s.scalars(stmt))
+            return list(session.scalars(stmt))
 
 
 class WebhooksRepo:
@@ -104,13 +104,13 @@ class WebhooksRepo:
         if (
             not isinstance(events, list)
             or not events
-            or not all(isinstance(e, str) for e in events)
+            or not all(isinstance(event, str) for event in events)
         ):
             raise InputError(
                 f"events must be a non-empty list of event types ({', '.join(EVENT_TYPES)}) or "
                 "['*']"
             )
-        unknown = [e for e in events if e != "*" and e not in EVENT_TYPES]
+        unknown = [event for event in events if event != "*" and event not in EVENT_TYPES]
         if unknown:
             raise InputError(
                 f"events: {', '.join(unknown)} unknown; event types are {', '.join(EVENT_TYPES)} "
@@ -138,27 +138,27 @@ class WebhooksRepo:
             return row, secret
 
     def all(self) -> list[WebhookEndpoint]:
-        with self._db.session() as s:
-            return list(s.scalars(sa.select(WebhookEndpoint).order_by(WebhookEndpoint.id)))
+        with self._db.session() as session:
+            return list(session.scalars(sa.select(WebhookEndpoint).order_by(WebhookEndpoint.id)))
 
     def page(self, *, after_id: int | None = None, limit: int = 50) -> list[WebhookEndpoint]:
         """Endpoints in id order from after `after_id` (the cursor), at most `limit`."""
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = sa.select(WebhookEndpoint).order_by(WebhookEndpoint.id).limit(limit)
             if after_id is not None:
                 stmt = stmt.where(WebhookEndpoint.id > after_id)
-            return list(s.scalars(stmt))
+            return list(session.scalars(stmt))
 
     def get(self, endpoint_id: int) -> WebhookEndpoint:
-        with self._db.session() as s:
-            return row_in(s, WebhookEndpoint, endpoint_id, "webhook")
+        with self._db.session() as session:
+            return row_in(session, WebhookEndpoint, endpoint_id, "webhook")
 
     def deliveries(
         self, endpoint_id: int, *, before_id: int | None = None, limit: int = 200
     ) -> list[tuple[WebhookDelivery, FeedEvent, list[WebhookAttempt]]]:
         """An endpoint's deliveries newest first, from before `before_id` (the cursor), with their
         attempts."""
-        with self._db.session() as s:
+        with self._db.session() as session:
             stmt = (
                 sa.select(WebhookDelivery, FeedEvent)
                 .join(FeedEvent, FeedEvent.id == WebhookDelivery.event_id)
@@ -168,11 +168,11 @@ class WebhooksRepo:
             )
             if before_id is not None:
                 stmt = stmt.where(WebhookDelivery.id < before_id)
-            rows = s.execute(stmt).all()
-            ids = [d.id for d, _ in rows]
+            rows = session.execute(stmt).all()
+            ids = [delivery.id for delivery, _ in rows]
             attempts = (
                 list(
-                    s.scalars(
+                    session.scalars(
                         sa.select(WebhookAttempt)
                         .where(WebhookAttempt.delivery_id.in_(ids))
                         .order_by(WebhookAttempt.id)
@@ -182,13 +182,17 @@ class WebhooksRepo:
                 else []
             )
         return [
-            (d, e, [attempt for attempt in attempts if attempt.delivery_id == d.id])
-            for d, e in rows
+            (
+                delivery,
+                event,
+                [attempt for attempt in attempts if attempt.delivery_id == delivery.id],
+            )
+            for delivery, event in rows
         ]
 
     def due_deliveries(self, *, now: dt.datetime, limit: int = 50) -> list[DueDelivery]:
-        with self._db.session() as s:
-            rows = s.execute(
+        with self._db.session() as session:
+            rows = session.execute(
                 sa.select(WebhookDelivery, WebhookEndpoint, FeedEvent)
                 .join(WebhookEndpoint, WebhookEndpoint.id == WebhookDelivery.endpoint_id)
                 .join(FeedEvent, FeedEvent.id == WebhookDelivery.event_id)
@@ -200,11 +204,16 @@ class WebhooksRepo:
                 .order_by(WebhookDelivery.event_id, WebhookDelivery.id)
                 .limit(limit)
             ).all()
-        return [DueDelivery(d.id, w.id, w.url, w.secret, d.attempts, e) for d, w, e in rows]
+        return [
+            DueDelivery(
+                delivery.id, endpoint.id, endpoint.url, endpoint.secret, delivery.attempts, event
+            )
+            for delivery, endpoint, event in rows
+        ]
 
     def next_delivery_due(self) -> dt.datetime | None:
-        with self._db.session() as s:
-            return s.scalar(
+        with self._db.session() as session:
+            return session.scalar(
                 sa.select(sa.func.min(WebhookDelivery.next_attempt_at)).where(
                     WebhookDelivery.state == "pending"
                 )
