@@ -346,24 +346,27 @@ def test_8_components_resting_on_one_fit_s_sigma_keep_that_fit_s_degrees_of_free
         (3.5e-6 + 1e-6) ** 2 / (3.5e-6**2 / 154 + 1e-6**2 / 20), rel=1e-12
     )
     run = run_scenario(load_scenario("seed000"), seed=3)
-    model = CalibrationModel.from_json_dict(_stage_fit("homography", 3)[0])
-    out = get_method("stage", "homography").correct(model, run.columns)
+    # the axis transform's reading term is its fit's whole residual (it has no stage prediction to
+    # take the reference's noise out with): the parameters' part and the noise part rest on the
+    # measurement fit's one σ, so k is Student's t at that fit's ν
+    model = CalibrationModel.from_json_dict(_stage_fit("axis-transform", 3)[0])
+    out = get_method("stage", "axis-transform").correct(model, run.columns)
     nu = float(model.state["meas_dof"])
-    assert nu == 154.0
-    # the corrected reading's parameters' part and noise part rest on the measurement fit's σ: k at
-    # 154
+    assert nu == 160.0 and model.state["meas_reading_dof"] == nu
     assert np.allclose(out["k_tilt_x"], float(coverage_factor(nu)), rtol=1e-9, atol=0)
     assert np.allclose(out["k_tilt_y"], float(coverage_factor(nu)), rtol=1e-9, atol=0)
     # the kinematic measurement fit gives each axis its own variance (81 points, 8 parameters: 77
-    # degrees of freedom each) for its parameters' part; one reading's noise rests on the residual
-    # over both axes (154): two estimates, combined by Welch-Satterthwaite (whose ν may exceed
-    # either's), so k is at most Student's t at 77 and at least the normal's 1.96
+    # degrees of freedom each) for its parameters' part; one reading's noise is its own estimate
+    # (the three-way comparison, with its own ν): two estimates, combined by Welch-Satterthwaite
+    # (whose ν may exceed either's), so k is at most Student's t at the fewer and at least the
+    # normal's 1.96
     model = CalibrationModel.from_json_dict(_stage_fit("kinematic", 3)[0])
     out = get_method("stage", "kinematic").correct(model, run.columns)
     assert float(model.state["meas_dof"]) == 77.0 and model.fit["meas"]["dof"] == 154
+    fewest = min(77.0, float(model.state["meas_reading_dof"]))
     for k in (out["k_tilt_x"], out["k_tilt_y"]):
         assert np.all(
-            (k >= float(coverage_factor(np.inf))) & (k <= float(coverage_factor(77.0)) + 1e-12)
+            (k >= float(coverage_factor(np.inf))) & (k <= float(coverage_factor(fewest)) + 1e-12)
         ), k
     # and a budget combining that fit part with the independent standard and resolutions has its WS
     # ν

@@ -124,6 +124,10 @@ def _stated_ref_sigma(data: Columns, options: FitOptions) -> float | None:
 
 # the reading term is never taken below this fraction of the residual's variance
 RESIDUAL_FLOOR = 0.1
+# Below this many points the three-way estimate of the reference's noise has a handful of degrees
+# of freedom (9 points: about 2.5), and its coverage factor would swamp what it saves; the whole
+# residual is taken instead. A count fixed in advance, not chosen by the estimate.
+MIN_THREE_WAY_POINTS = 30
 
 
 @dataclass(frozen=True)
@@ -167,15 +171,21 @@ def meas_reading_noise(
     elif (stated := _stated_ref_sigma(data, options)) is not None:
         ref_var, ref_dof = stated**2, np.inf
         how = f"the reference's stated noise {stated:.3g} deg"
-    elif three_way is not None:
+    elif three_way is not None and _points_of(three_way) >= MIN_THREE_WAY_POINTS:
         return _three_way_noise(three_way, residual_sigma_deg, residual_dof)
     else:
+        too_few = (
+            f"; the three-way comparison with the stage needs at least {MIN_THREE_WAY_POINTS} "
+            f"points, these data have {_points_of(three_way)}"
+            if three_way is not None
+            else ""
+        )
         return ReadingNoise(
             residual_sigma_deg,
             residual_dof,
             "the whole meas-vs-ref residual (it also holds the reference's noise: conservative; "
             "repeated readings at the points or the reference's stated noise (noise_ref_* columns, "
-            "option ref_noise_deg) separate the two)",
+            f"option ref_noise_deg) separate the two{too_few})",
         )
     var = s2 - ref_var
     floor = RESIDUAL_FLOOR * s2
@@ -195,6 +205,10 @@ def meas_reading_noise(
         f"the meas-vs-ref residual ({residual_sigma_deg:.3g} deg) less {how}{note}",
         float(np.sqrt(ref_var)),
     )
+
+
+def _points_of(three_way: ThreeWay) -> int:
+    return int(np.asarray(three_way.meas_minus_ref_deg).shape[-1])
 
 
 def _three_way_noise(
