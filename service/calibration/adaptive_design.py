@@ -210,9 +210,12 @@ def _two_opt(d: NDArray[np.float64], order: list[int]) -> list[int]:
         improved = False
         for i in range(1, len(path) - 1):
             for j in range(i + 1, len(path)):
-                after = d[path[i], path[j + 1]] if j + 1 < len(path) else 0.0
-                before = d[path[j], path[j + 1]] if j + 1 < len(path) else 0.0
-                gain = d[path[i - 1], path[i]] + before - d[path[i - 1], path[j]] - after
+                # reversing path[i..j] swaps the edges (i-1, i) and (j, j+1) for (i-1, j) and
+                # (i, j+1); an open path's last stop has no edge after it
+                has_next = j + 1 < len(path)
+                old_tail = d[path[j], path[j + 1]] if has_next else 0.0
+                new_tail = d[path[i], path[j + 1]] if has_next else 0.0
+                gain = d[path[i - 1], path[i]] + old_tail - d[path[i - 1], path[j]] - new_tail
                 if gain > 1e-12:
                     path[i : j + 1] = path[i : j + 1][::-1]
                     improved = True
