@@ -13,6 +13,7 @@ from pathlib import Path
 
 import httpx
 
+from tests.helpers.processes import spawn
 from tests.helpers.waiting import eventually
 
 
@@ -31,7 +32,7 @@ def running_service(data_dir: Path, args: Sequence[str] = (), **env: str) -> Ite
     # 64 kB of access log and then holds the daemon's event loop on its next log line
     log = Path(data_dir).parent / f"{Path(data_dir).name}.serve.log"
     with log.open("wb") as out:
-        proc = subprocess.Popen(
+        proc = spawn(
             [sys.executable, "-m", "service", "serve", "--port", str(port), *args],
             env={**os.environ, "TILTLAB_DATA_DIR": str(data_dir), **env},
             stdout=out,

@@ -23,6 +23,7 @@ from service.storage.store import Store
 from tests.helpers.daemon import admin_headers, make_client, wait_job
 from tests.helpers.diagnosis import SMALL_BODY
 from tests.helpers.logged_daemon import logged_daemon
+from tests.helpers.processes import spawn
 
 READER = """
 import pathlib, sys, httpx
@@ -113,7 +114,7 @@ def test_records_page_and_reading_them_all_leaves_tilt_alone(
         # the reader in a process of its own: decoding its pages must not hold the measuring
         # client's interpreter
         stop = tmp_path / "stop"
-        reader = subprocess.Popen(
+        reader = spawn(
             [sys.executable, "-c", READER, d.base, d.token, str(stop)],
             stdout=subprocess.PIPE,
             text=True,

@@ -16,6 +16,7 @@ import httpx
 import pytest
 
 from tests.api.running_service import free_port
+from tests.helpers.processes import spawn
 
 
 def _serve(tmp_path: Path, *args: str, **env: str) -> subprocess.CompletedProcess[str]:
@@ -116,7 +117,7 @@ def test_announces_only_once_listening(tmp_path: Path) -> None:
     port = free_port()
     env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data")}
     env.pop("TILTLAB_CONFIG", None)
-    proc = subprocess.Popen(
+    proc = spawn(
         [sys.executable, "-m", "service", "serve", "--port", str(port)],
         env=env,
         stdout=subprocess.DEVNULL,
@@ -162,7 +163,7 @@ def test_names_each_device_that_does_not_answer(tmp_path: Path) -> None:
     port = free_port()
     env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data")}
     env.pop("TILTLAB_CONFIG", None)
-    proc = subprocess.Popen(
+    proc = spawn(
         [
             sys.executable,
             "-m",
@@ -239,7 +240,7 @@ def test_serves_https_with_a_certificate(tmp_path: Path) -> None:
     port = free_port()
     env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data")}
     env.pop("TILTLAB_CONFIG", None)
-    proc = subprocess.Popen(
+    proc = spawn(
         [
             sys.executable,
             "-m",

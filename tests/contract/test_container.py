@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers.processes import spawn
 from tests.helpers.waiting import eventually
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -278,7 +279,7 @@ def test_health_check_probes_where_the_daemon_serves(tmp_path: Path, given: str)
     else:
         env["TILTLAB_PORT"] = str(port)
     with (tmp_path / "serve.log").open("w") as log:
-        proc = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+        proc = spawn(command, env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
         r = _healthcheck(proc.pid)  # not answering yet, or already: probed on its port either way
         assert f"http://127.0.0.1:{port}/health" in r.stdout + r.stderr

@@ -32,6 +32,7 @@ import pytest
 
 from service.cli import build_parser
 from tests.api.running_service import free_port
+from tests.helpers.processes import spawn
 from tests.helpers.waiting import eventually
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -297,7 +298,7 @@ def test_every_offline_command_runs(sandbox: Path, form: tuple[str, ...]) -> Non
 
 @contextlib.contextmanager
 def simulator(here: Path, folder: str, *extra: str) -> Iterator[Path]:
-    proc = subprocess.Popen(
+    proc = spawn(
         [TILTLAB, "sim", "--dir", folder, *extra],
         cwd=here,
         stdout=subprocess.PIPE,
@@ -351,7 +352,7 @@ def in_sandbox(argv: tuple[str, ...]) -> list[str]:
 def _serves(here: Path, argv: list[str]) -> None:
     port = free_port()
     data = here / f"serve-{port}"
-    proc = subprocess.Popen(
+    proc = spawn(
         [TILTLAB, *argv, "--port", str(port)],
         cwd=here,
         env={**os.environ, "TILTLAB_DATA_DIR": str(data)},

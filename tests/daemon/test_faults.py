@@ -15,6 +15,7 @@ import sqlalchemy as sa
 from service.instruments import controller
 from tests.api.running_service import free_port
 from tests.helpers.daemon import wait_bench_seconds, wait_job
+from tests.helpers.processes import spawn
 from tests.helpers.waiting import eventually
 
 GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}
@@ -161,7 +162,7 @@ class _Daemon:
     def __init__(self, data_dir) -> None:
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
-        self.proc = subprocess.Popen(
+        self.proc = spawn(
             [
                 sys.executable,
                 "-m",

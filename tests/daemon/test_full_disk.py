@@ -20,6 +20,7 @@ import httpx
 import pytest
 
 from tests.api.running_service import free_port
+from tests.helpers.processes import spawn
 from tests.helpers.waiting import eventually
 
 DISK_MB = 32
@@ -83,7 +84,7 @@ def test_a_full_disk_fails_the_job_cleanly_and_it_resumes_once_space_is_freed(
     }
     log = small_disk.parent / "daemon.log"
     with log.open("wb") as out:
-        proc = subprocess.Popen(
+        proc = spawn(
             [sys.executable, "-m", "service", "serve", "--port", str(port)],
             env=env,
             stdout=out,

@@ -18,6 +18,7 @@ import pytest
 from service.errors import InputError
 from tests.api.running_service import free_port
 from tests.helpers.daemon import make_client
+from tests.helpers.processes import spawn
 from tests.helpers.waiting import eventually
 
 
@@ -54,9 +55,7 @@ def _first_start(tmp_path: Path, *, terminal: bool) -> str:
     command = [sys.executable, "-m", "service", "serve", "--port", str(free_port())]
     if terminal:
         parent, child = pty.openpty()
-        proc = subprocess.Popen(
-            command, env=env, stdin=subprocess.DEVNULL, stdout=child, stderr=child
-        )
+        proc = spawn(command, env=env, stdin=subprocess.DEVNULL, stdout=child, stderr=child)
         os.close(child)
         out = bytearray()
 
@@ -82,9 +81,7 @@ def _first_start(tmp_path: Path, *, terminal: bool) -> str:
     tmp_path.mkdir(parents=True, exist_ok=True)
     log = tmp_path / "serve.log"
     with log.open("wb") as sink:
-        proc = subprocess.Popen(
-            command, env=env, stdin=subprocess.DEVNULL, stdout=sink, stderr=sink
-        )
+        proc = spawn(command, env=env, stdin=subprocess.DEVNULL, stdout=sink, stderr=sink)
 
         def logged_its_dashboard_line() -> bool:
             if "tiltlab: dashboard:" in log.read_text():

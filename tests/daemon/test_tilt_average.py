@@ -65,7 +65,10 @@ def test_the_average_of_the_settled_stand_states_the_uncertainty_of_the_mean(
         assert 20 * table["window_s"] <= table["n_readings"] <= 30 * table["window_s"], table
 
         short = client.get("/tilt", headers=h, params={"average_s": 2}).json()["table_tilt"]
-        assert 1.5 <= short["window_s"] <= 2.0 and 20 <= short["n_readings"] <= 80, short
+        # readings are stamped when they are parsed: on a loaded machine a bench sped up 20 times
+        # (2 bench seconds are 0.1 s of the machine's) delivers them in bursts, so a short window
+        # holds about its share, give or take a burst; the long window above holds the rate
+        assert 1.5 <= short["window_s"] <= 2.0 and 10 <= short["n_readings"] <= 150, short
         for axis in ("x", "y"):
             u, U = (
                 short[f"standard_uncertainty_{axis}_deg"],

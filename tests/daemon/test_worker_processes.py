@@ -24,6 +24,7 @@ import pytest
 from tests.api.running_service import free_port
 from tests.helpers.daemon import admin_headers, make_client, wait_job
 from tests.helpers.diagnosis import SMALL_BODY
+from tests.helpers.processes import spawn
 from tests.helpers.waiting import eventually
 
 pytestmark = pytest.mark.skipif(
@@ -102,7 +103,7 @@ def with_a_record(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
 
 def _serve(data: Path, **env: str) -> tuple[subprocess.Popen[bytes], str, dict[str, str]]:
     port = free_port()
-    proc = subprocess.Popen(
+    proc = spawn(
         [sys.executable, "-m", "service", "serve", "--port", str(port)],
         env={
             **os.environ,

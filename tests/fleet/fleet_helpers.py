@@ -17,6 +17,7 @@ import pytest
 
 from tests.api.running_service import free_port
 from tests.helpers.postgres import fresh_schema_url
+from tests.helpers.processes import spawn
 from tests.helpers.waiting import eventually
 
 # what a probe of a daemon, a broker or a database may meet while it is starting, cut or away
@@ -43,7 +44,7 @@ class NatsServer:
 
     def start(self) -> None:
         self.store.mkdir(parents=True, exist_ok=True)
-        self.proc = subprocess.Popen(
+        self.proc = spawn(
             [self.binary, "-a", "127.0.0.1", "-p", str(self.port), "-js", "-sd", str(self.store)],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
@@ -93,7 +94,7 @@ class Daemon:
         together)."""
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self._log = self.log.open("w")
-        self.proc = subprocess.Popen(
+        self.proc = spawn(
             [sys.executable, "-m", "service", "serve", "--port", str(self.port)],
             env={**os.environ, "TILTLAB_DATA_DIR": str(self.data_dir), **self.env},
             stdout=self._log,

@@ -9,8 +9,9 @@ import pytest
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 try:
-    from playwright.sync_api import sync_playwright
+    from playwright.sync_api import expect, sync_playwright
 except ImportError:  # pragma: no cover - playwright is a dev dependency
+    expect = None  # type: ignore[assignment]
     sync_playwright = None  # type: ignore[assignment]
 
 # a module's `pytestmark`: skipped without the browser or without playwright
@@ -25,3 +26,5 @@ NEEDS_A_BROWSER = [
 ]
 
 T = 30_000  # ms: how long a wait for something the page shows may take on a loaded machine
+if expect is not None:  # every `expect` without a timeout of its own waits as long (not 5 s)
+    expect.set_options(timeout=T)

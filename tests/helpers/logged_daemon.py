@@ -14,6 +14,7 @@ from pathlib import Path
 import httpx
 
 from tests.api.running_service import free_port
+from tests.helpers.processes import spawn
 from tests.helpers.waiting import eventually
 
 
@@ -60,7 +61,7 @@ def logged_daemon(tmp: Path, **settings: str) -> Iterator[Daemon]:
     port = free_port()
     log = tmp / "daemon.log"
     with log.open("wb") as out:
-        proc = subprocess.Popen(
+        proc = spawn(
             [sys.executable, "-m", "service", "serve", "--port", str(port)],
             env=env,
             stdout=out,

@@ -11,6 +11,7 @@ import sys
 import pytest
 
 from service.cli import main
+from tests.helpers.processes import spawn
 
 # the ports are pseudo-terminals: device paths, as the command line and adapters name them
 pytestmark = pytest.mark.pty
@@ -131,7 +132,7 @@ def test_sim_command_prints_ports_and_a_configuration_devices_accepts(tmp_path):
     """The real console script in its own process, as a lab would run it."""
     folder = tmp_path / "ports"
     out = tmp_path / "sim.toml"
-    proc = subprocess.Popen(
+    proc = spawn(
         [
             sys.executable,
             "-m",

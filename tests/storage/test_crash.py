@@ -13,6 +13,7 @@ import pytest
 import sqlalchemy as sa
 
 from service.storage import Store
+from tests.helpers.processes import spawn
 
 CAPACITY, BATCH = 8000, 2000
 HANDED = 40_000
@@ -27,7 +28,7 @@ def test_sigkill_mid_stream(store: Store, device, db_url: str) -> None:  # type:
         "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])),
     }
     argv = [db_url, str(device.id), str(CAPACITY), str(BATCH), str(HANDED)]
-    child = subprocess.Popen(
+    child = spawn(
         [sys.executable, str(HERE / "crash_writer.py"), *argv],
         stdout=subprocess.PIPE,
         text=True,

@@ -19,6 +19,7 @@ import sqlalchemy as sa
 
 from service.storage.store import Store
 from service.storage.verify import verify
+from tests.helpers.processes import spawn
 from tests.storage.storage_helpers import count
 
 WRITER = Path(__file__).with_name("fleet_writer.py")
@@ -43,7 +44,7 @@ def test_four_processes_appending_at_once_keep_every_chain_and_lose_nothing(
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     seconds = _seconds(backend)
     procs = [
-        subprocess.Popen(
+        spawn(
             [sys.executable, str(WRITER), db_url, f"node{n}", str(shared.id), str(seconds)],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
