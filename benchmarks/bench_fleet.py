@@ -32,8 +32,8 @@ from websockets.asyncio.client import connect
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from tests.api.running_service import free_port  # noqa: E402
-from tests.fleet.fleet_helpers import Daemon, NatsServer, eventually, postgres_schema_url  # noqa: E402
+from tests.helpers.fleet import Daemon, NatsServer, eventually, postgres_schema_url  # noqa: E402
+from tests.helpers.running_service import free_port  # noqa: E402
 
 BENCHES = 4
 RATE_HZ = 25.0

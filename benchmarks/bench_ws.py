@@ -47,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from service.clock import Clock  # noqa: E402
 from service.instruments.sim import start_simulated_bench  # noqa: E402
 from service.io.datasets import write_text_atomic  # noqa: E402
-from tests.api.running_service import free_port  # noqa: E402
+from tests.helpers.running_service import free_port  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.api.running_service import running_service
+from tests.helpers.running_service import running_service
 
 ROOT = Path(__file__).resolve().parents[1]
 VENV = Path(sys.prefix)

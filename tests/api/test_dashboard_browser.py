@@ -26,8 +26,8 @@ import httpx
 import pytest
 
 from service.calibration.registry import methods_for
-from tests.api.running_service import running_service
 from tests.helpers.browser import CHROMIUM, NEEDS_A_BROWSER, T, sync_playwright
+from tests.helpers.running_service import running_service
 from tests.helpers.waiting import eventually
 
 if sync_playwright is not None:

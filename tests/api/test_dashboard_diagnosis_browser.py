@@ -13,10 +13,10 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.api.running_service import running_service
 from tests.helpers.benches import PERIODIC_X, scenario
 from tests.helpers.browser import CHROMIUM, NEEDS_A_BROWSER, T, sync_playwright
 from tests.helpers.diagnosis import BODY
+from tests.helpers.running_service import running_service
 from tests.helpers.waiting import eventually
 
 if sync_playwright is not None:

@@ -9,8 +9,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.api.running_service import running_service
 from tests.helpers.browser import CHROMIUM
+from tests.helpers.running_service import running_service
 
 pytestmark = pytest.mark.skipif(
     CHROMIUM is None,

@@ -18,7 +18,7 @@ import httpx
 import pytest
 
 from service.lims import dcc
-from tests.api.running_service import running_service
+from tests.helpers.running_service import running_service
 from tests.helpers.waiting import eventually
 
 GENERATOR = shutil.which(

@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 
 from service.api.app import create_app
 from service.config import Settings
-from tests.api.running_service import free_port, running_service
+from tests.helpers.running_service import free_port, running_service
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.api.running_service import running_service
+from tests.helpers.running_service import running_service
 from tests.helpers.waiting import eventually
 
 ROOT = Path(__file__).resolve().parents[2]

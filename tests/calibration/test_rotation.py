@@ -29,7 +29,7 @@ from service.errors import DegenerateDataError
 from service.physics.rotation_axis import rotation_outputs
 from service.scenarios import load_scenario, run_scenario
 from service.scenarios.model import parse_scenario
-from tests.calibration.gum import Z95, without_dof
+from tests.helpers.gum import Z95, without_dof
 
 PARAMS = ["alpha_deg", "beta_deg", "gamma_deg"]
 

@@ -18,7 +18,7 @@ from service.errors import DegenerateDataError, InputError
 from service.io.datasets import read_dataset
 from service.scenarios import load_scenario, run_scenario
 from service.scenarios.model import parse_scenario
-from tests.calibration.gum import Z95, without_dof
+from tests.helpers.gum import Z95, without_dof
 
 
 def _table1():

@@ -9,7 +9,7 @@ from service.calibration.projective import apply_projective
 from service.calibration.registry import FitOptions, get_method
 from service.reproduce.stage_validation import Oracle, execute, paper_grid
 from service.scenarios import load_scenario, run_scenario
-from tests.calibration.gum import Z95, without_dof
+from tests.helpers.gum import Z95, without_dof
 
 N_MC = 4000
 

@@ -19,7 +19,7 @@ from service.physics.effects import EffectSet
 from service.physics.turntable import TurntableInclinometer, simulate_turntable
 from service.scenarios import load_scenario, run_scenario
 from service.scenarios.model import parse_scenario
-from tests.calibration.gum import Z95, without_dof
+from tests.helpers.gum import Z95, without_dof
 
 PARAMS = ["beta_deg", "m1_per_arcsec", "m2_per_arcsec", "epsilon_deg"]
 REVERSAL = get_method("turntable", "reversal")

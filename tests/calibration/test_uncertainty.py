@@ -119,7 +119,7 @@ def test_seed003_table1_expanded_uncertainty_uses_its_ten_degrees_of_freedom():
     assert model.fit["dof"] == 10
     reading = {"reading": np.array([500.0, 2000.0, 3500.0])}
     U = m.correct(model, reading)["u_angle_arcsec"]
-    from tests.calibration.gum import Z95, without_dof
+    from tests.helpers.gum import Z95, without_dof
 
     u = m.correct(without_dof(model), reading)["u_angle_arcsec"] / Z95
     k = U / u

@@ -266,7 +266,7 @@ def test_health_check_probes_where_the_daemon_serves(tmp_path: Path, given: str)
     """The image's health check reads the serve process's own command line and environment: a daemon
     told
     --port (while TILTLAB_PORT says otherwise), or told only TILTLAB_PORT, is probed on its port."""
-    from tests.api.running_service import free_port
+    from tests.helpers.running_service import free_port
 
     port = free_port()
     env = {**os.environ, "TILTLAB_DATA_DIR": str(tmp_path / "data"), "TILTLAB_SIM_SPEED": "20"}

@@ -31,8 +31,8 @@ import httpx
 import pytest
 
 from service.cli import build_parser
-from tests.api.running_service import free_port
 from tests.helpers.processes import spawn
+from tests.helpers.running_service import free_port
 from tests.helpers.waiting import eventually
 
 ROOT = Path(__file__).resolve().parents[2]

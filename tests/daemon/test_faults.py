@@ -13,9 +13,9 @@ import numpy as np
 import sqlalchemy as sa
 
 from service.instruments import controller
-from tests.api.running_service import free_port
 from tests.helpers.daemon import wait_bench_seconds, wait_job
 from tests.helpers.processes import spawn
+from tests.helpers.running_service import free_port
 from tests.helpers.waiting import eventually
 
 GRID = {"x_deg": [-2.0, 2.0], "y_deg": [-2.0, 2.0], "n_x": 3, "n_y": 3}

@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 
 from service.errors import InputError
-from tests.api.running_service import free_port
 from tests.helpers.daemon import make_client
 from tests.helpers.processes import spawn
+from tests.helpers.running_service import free_port
 from tests.helpers.waiting import eventually
 
 

@@ -108,7 +108,7 @@ def test_a_token_names_its_person_who_alone_may_sign(daemon, tmp_path) -> None: 
     meas = client.app.state.bench.device_ids["measurement_sensor"]
     job = store.jobs.create_job(meas, "stage", "kinematic", actor="admin")
     store.jobs.start_job(job.id, actor="daemon")
-    from tests.lims.certificates import stage_record
+    from tests.helpers.certificates import stage_record
 
     record = store.records.add_record(
         meas,

@@ -21,10 +21,10 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.api.running_service import free_port
 from tests.helpers.daemon import admin_headers, make_client, wait_job
 from tests.helpers.diagnosis import SMALL_BODY
 from tests.helpers.processes import spawn
+from tests.helpers.running_service import free_port
 from tests.helpers.waiting import eventually
 
 pytestmark = pytest.mark.skipif(
@@ -174,8 +174,8 @@ def test_no_worker_process_is_left_after_the_daemon_exits(
 def test_no_process_is_left_after_a_failure_at_start_up(tmp_path: Path) -> None:
     """A daemon whose start fails once its bench runs (the bench's name is owned by another live
     node of the fleet: exit 2) leaves nothing running."""
-    from tests.fleet.fleet_helpers import Daemon as FleetDaemon
-    from tests.fleet.fleet_helpers import NatsServer, postgres_schema_url
+    from tests.helpers.fleet import Daemon as FleetDaemon
+    from tests.helpers.fleet import NatsServer, postgres_schema_url
 
     server = NatsServer(tmp_path / "nats", free_port())
     server.start()

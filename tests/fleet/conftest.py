@@ -8,8 +8,8 @@ from collections.abc import Iterator
 import pytest
 import sqlalchemy as sa
 
-from tests.fleet.fleet_helpers import postgres_schema_url
-from tests.fleet.pg_proxy import PgProxy
+from tests.helpers.fleet import postgres_schema_url
+from tests.helpers.pg_proxy import PgProxy
 
 
 @pytest.fixture

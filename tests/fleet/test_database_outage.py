@@ -27,8 +27,8 @@ from service.storage.migrate import upgrade
 from service.storage.samples import Sample, count_samples
 from service.storage.store import Store
 from service.storage.writer import SampleWriter
-from tests.fleet.fleet_helpers import UNREACHABLE, Daemon
-from tests.fleet.pg_proxy import PgProxy
+from tests.helpers.fleet import UNREACHABLE, Daemon
+from tests.helpers.pg_proxy import PgProxy
 from tests.helpers.waiting import eventually
 
 pytestmark = [pytest.mark.postgres]

@@ -20,8 +20,8 @@ import httpx
 import pytest
 import sqlalchemy as sa
 
-from tests.api.running_service import free_port
-from tests.fleet.fleet_helpers import UNREACHABLE, Daemon, NatsServer, postgres_schema_url
+from tests.helpers.fleet import UNREACHABLE, Daemon, NatsServer, postgres_schema_url
+from tests.helpers.running_service import free_port
 from tests.helpers.waiting import eventually
 
 pytestmark = [pytest.mark.postgres, pytest.mark.slow]

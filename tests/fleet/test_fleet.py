@@ -20,8 +20,8 @@ import httpx
 import pytest
 from websockets.sync.client import connect as ws_connect
 
-from tests.api.running_service import free_port
-from tests.fleet.fleet_helpers import UNREACHABLE, Daemon, NatsServer
+from tests.helpers.fleet import UNREACHABLE, Daemon, NatsServer
+from tests.helpers.running_service import free_port
 from tests.helpers.waiting import eventually
 
 pytestmark = [pytest.mark.postgres, pytest.mark.slow]

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.api.running_service import free_port
-from tests.fleet.fleet_helpers import Daemon, NatsServer, postgres_schema_url
+from tests.helpers.fleet import Daemon, NatsServer, postgres_schema_url
+from tests.helpers.running_service import free_port
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 try:

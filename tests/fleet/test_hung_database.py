@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 import sqlalchemy as sa
 
-from tests.fleet.fleet_helpers import Daemon
-from tests.fleet.pg_proxy import PgProxy
+from tests.helpers.fleet import Daemon
+from tests.helpers.pg_proxy import PgProxy
 from tests.helpers.waiting import eventually
 
 pytestmark = [pytest.mark.postgres]

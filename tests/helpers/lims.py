@@ -11,7 +11,7 @@ from standardwebhooks import Webhook
 
 from service.storage.store import Store
 from service.storage.tokens import Person
-from tests.lims.certificates import stage_record
+from tests.helpers.certificates import stage_record
 
 STANDARD = {
     "name": "reference inclinometer",

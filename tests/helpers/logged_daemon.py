@@ -13,8 +13,8 @@ from pathlib import Path
 
 import httpx
 
-from tests.api.running_service import free_port
 from tests.helpers.processes import spawn
+from tests.helpers.running_service import free_port
 from tests.helpers.waiting import eventually
 
 

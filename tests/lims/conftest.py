@@ -17,7 +17,7 @@ def lims(engine) -> Store:  # type: ignore[no-untyped-def]
 @pytest.fixture(scope="session")
 def lab_signing_files(tmp_path_factory):  # type: ignore[no-untyped-def]
     """A self-signed key and certificate as a lab would configure them (PEM files)."""
-    from tests.lims.reviewer import self_signed
+    from tests.helpers.reviewer import self_signed
 
     key_pem, cert_pem = self_signed("Inclination Lab certificate signing")
     where = tmp_path_factory.mktemp("signing")
@@ -29,10 +29,10 @@ def lab_signing_files(tmp_path_factory):  # type: ignore[no-untyped-def]
 @pytest.fixture(autouse=True)
 def reviewed_certificates(monkeypatch, lab_signing_files):  # type: ignore[no-untyped-def]
     """Every certificate a LIMS test issues is signed with the lab's key (configured as a lab would)
-    and checked as a reviewer would (tests/lims/reviewer.py), its signature included."""
+    and checked as a reviewer would (tests/helpers/reviewer.py), its signature included."""
     from service.lims import dcc
     from service.lims.signature import load_signer
-    from tests.lims.reviewer import problems
+    from tests.helpers.reviewer import problems
 
     key, cert = lab_signing_files
     monkeypatch.setenv("TILTLAB_CERTIFICATE_SIGNING_KEY", str(key))

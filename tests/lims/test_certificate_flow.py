@@ -13,9 +13,9 @@ import pytest
 
 from service.lims import dcc
 from tests.helpers.daemon import make_client, wait_job
+from tests.helpers.external_checks import xmllint_errors, xmlsec1_verifies
 from tests.helpers.lims import GRID, LAB, ORDER, PEOPLE, STANDARD, Receiver
 from tests.helpers.waiting import eventually
-from tests.lims.external_checks import xmllint_errors, xmlsec1_verifies
 
 NS = {"dcc": dcc.DCC_NS, "si": dcc.SI_NS}
 SETTLE = {"tolerance_deg": 0.002, "window_s": 2.0, "timeout_s": 600.0}

@@ -26,8 +26,8 @@ from service.lims.conformity import (
 )
 from service.lims.content import build_certificate
 from service.storage.specification import DecisionRule, SpecificationProblem, specification_of
-from tests.lims.certificates import APPROVAL, DEVICE, LAB, OPERATOR, STANDARDS, stage_record
-from tests.lims.external_checks import xmllint_errors, xmlsec1_verifies
+from tests.helpers.certificates import APPROVAL, DEVICE, LAB, OPERATOR, STANDARDS, stage_record
+from tests.helpers.external_checks import xmllint_errors, xmlsec1_verifies
 
 NS = {"dcc": dcc.DCC_NS, "si": dcc.SI_NS}
 MPE = 0.05

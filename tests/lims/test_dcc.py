@@ -15,7 +15,7 @@ import pytest
 
 from service.lims import dcc
 from service.lims.content import build_certificate, model_dof
-from tests.lims.certificates import (
+from tests.helpers.certificates import (
     APPROVAL,
     CUSTOMER,
     DEVICE,
@@ -278,9 +278,9 @@ def test_html_rendering_shows_what_the_xml_says():
 
 
 def test_a_reviewer_finds_what_an_unreviewed_certificate_had():
-    """The checks every issued certificate passes (tests/lims/reviewer.py) catch each finding of a
-    review."""
-    from tests.lims.reviewer import problems
+    """The checks every issued certificate passes (tests/helpers/reviewer.py) catch each finding of
+    a review."""
+    from tests.helpers.reviewer import problems
 
     good = dcc.issue(certificate(stage_record("kinematic")))
     assert problems(good) == []

@@ -21,8 +21,8 @@ from service.lims.certificates import verify_certificate
 from service.lims.runtime import LimsRuntime
 from service.storage.store import Store
 from tests.helpers.lims import ORDER, PEOPLE, STANDARD, Receiver, measured_record
+from tests.helpers.storage import count
 from tests.helpers.waiting import eventually
-from tests.storage.storage_helpers import count
 
 
 def make_app(store: Store, tmp_path) -> FastAPI:  # type: ignore[no-untyped-def]

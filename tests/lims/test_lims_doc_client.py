@@ -19,8 +19,8 @@ import pytest
 from service.lims import dcc
 from service.storage.engine import make_engine
 from service.storage.store import Store
-from tests.api.running_service import running_service
 from tests.helpers.lims import ORDER, PEOPLE, STANDARD, measured_record
+from tests.helpers.running_service import running_service
 from tests.helpers.waiting import eventually
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "lims.md"

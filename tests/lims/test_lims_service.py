@@ -13,8 +13,8 @@ from service.config import Settings
 from service.lims import dcc
 from service.storage.migrate import bootstrap
 from service.storage.store import Store
-from tests.api.running_service import running_service
 from tests.helpers.lims import ORDER, PEOPLE, STANDARD, Receiver, measured_record
+from tests.helpers.running_service import running_service
 from tests.helpers.waiting import eventually
 
 ENV = {

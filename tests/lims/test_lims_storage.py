@@ -15,7 +15,7 @@ from service.storage.feed import decode_cursor, encode_cursor
 from service.storage.store.approvals import SelfApproval
 from service.storage.store.orders import IdempotencyKeyReused
 from service.storage.store.standards import StandardNotUsable
-from tests.storage.storage_helpers import count
+from tests.helpers.storage import count
 
 STANDARD = {
     "name": "reference inclinometer",

@@ -21,7 +21,7 @@ from service.lims import dcc
 from service.lims.content import CertificateRefused, build_certificate
 from service.scenarios import load_scenario
 from service.scenarios.run import run_scenario
-from tests.lims.certificates import (
+from tests.helpers.certificates import (
     APPROVAL,
     CUSTOMER,
     DEVICE,

@@ -25,8 +25,8 @@ from service.calibration.uncertainty import coverage_factor, dof_of_coverage_fac
 from service.instruments.base import Reading
 from service.io.columns import K_OUTPUTS
 from service.jobs.manager import ActiveModel
+from tests.helpers.certificates import _stage_fit
 from tests.helpers.lims import PEOPLE
-from tests.lims.certificates import _stage_fit
 
 STANDARD = {
     "name": "reference inclinometer",

@@ -129,7 +129,7 @@ def test_the_signer_is_the_labs_own(issued, lab_signing_files, tmp_path, capsys)
     from lxml import etree
 
     from service.lims.signature import DSIG_NS, Signer, written
-    from tests.lims.reviewer import self_signed
+    from tests.helpers.reviewer import self_signed
 
     _, path = issued
     other_key, other_cert = self_signed("someone else")

@@ -7,7 +7,7 @@ import sqlalchemy as sa
 
 from service.storage import AppendOnlyViolation, Sample, Store
 from service.storage.samples import write_samples
-from tests.storage.storage_helpers import MODEL, STANDARDS, count
+from tests.helpers.storage import MODEL, STANDARDS, count
 
 REFUSED = (sa.exc.IntegrityError, sa.exc.OperationalError, sa.exc.InternalError)
 

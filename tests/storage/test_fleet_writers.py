@@ -20,7 +20,7 @@ import sqlalchemy as sa
 from service.storage.store import Store
 from service.storage.verify import verify
 from tests.helpers.processes import spawn
-from tests.storage.storage_helpers import count
+from tests.helpers.storage import count
 
 WRITER = Path(__file__).with_name("fleet_writer.py")
 WRITERS = 4

@@ -6,7 +6,7 @@ import pytest
 
 from service.errors import InputError
 from service.storage import IllegalTransition, Store, UnknownEntity
-from tests.storage.storage_helpers import count
+from tests.helpers.storage import count
 
 
 def test_happy_path_with_progress(store: Store, device) -> None:  # type: ignore[no-untyped-def]

@@ -19,7 +19,7 @@ from service.storage import (
 from service.storage.canonical import sha256_hex
 from service.storage.models import GENESIS_SHA256
 from service.storage.store import record_content
-from tests.storage.storage_helpers import MODEL, STANDARDS, count
+from tests.helpers.storage import MODEL, STANDARDS, count
 
 WRITE_TABLES = (
     "calibration_records",

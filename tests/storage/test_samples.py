@@ -24,7 +24,7 @@ from service.storage import (
 )
 from service.storage.engine import make_engine
 from service.storage.samples import count_samples, job_samples, write_samples
-from tests.storage.storage_helpers import MODEL, STANDARDS, count
+from tests.helpers.storage import MODEL, STANDARDS, count
 
 NOW = dt.datetime(2026, 3, 1, 12, 0, tzinfo=dt.UTC)
 DAY_S = 86400.0

@@ -21,7 +21,7 @@ from service.storage import Store, verify
 from service.storage.engine import make_engine
 from service.storage.migrate import downgrade, upgrade
 from service.storage.samples import Sample, write_samples
-from tests.storage.storage_helpers import MODEL, STANDARDS
+from tests.helpers.storage import MODEL, STANDARDS
 
 SHA = "a" * 64
 

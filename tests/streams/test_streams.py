@@ -29,7 +29,7 @@ from service.api.app import create_app
 from service.api.limits import STREAM_HELD_BYTES, WEBSOCKET_IMPLEMENTATION
 from service.commands.serve import bind_socket
 from service.config import Settings
-from tests.api.running_service import free_port
+from tests.helpers.running_service import free_port
 from tests.helpers.waiting import eventually
 
 SPEED = 10.0

@@ -15,9 +15,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.api.running_service import free_port
 from tests.helpers.postgres import fresh_schema_url
 from tests.helpers.processes import spawn
+from tests.helpers.running_service import free_port
 from tests.helpers.waiting import eventually
 
 # what a probe of a daemon, a broker or a database may meet while it is starting, cut or away
