@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import dataclass
+from typing import NotRequired, TypedDict, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,6 +34,80 @@ SQRT12 = math.sqrt(12.0)
 # a span below this is a constant temperature (the sensors' 0.01 °C digits, noise)
 TEMPERATURE_VARIED_C = 0.05
 ANGLE_UNITS = {"deg": 1.0, "arcsec": 3600.0, "arcmin": 60.0}  # unit per degree
+
+
+class BudgetComponent(TypedDict):
+    """A shared component as a record's budget keeps it (`components`): a standard uncertainty in
+    degrees; `dof` null where infinite. Budgets stored before distribution, evaluation and note
+    were kept lack them."""
+
+    source: str
+    name: str
+    u_deg: float
+    dof: float | None
+    distribution: NotRequired[str]
+    evaluation: NotRequired[str]
+    note: NotRequired[str]
+
+
+class BudgetContribution(TypedDict):
+    """One row of a result's budget: a component's standard uncertainty in the result's unit (the
+    fit's own row has no name)."""
+
+    source: str
+    name: NotRequired[str]
+    standard_uncertainty: float
+    dof: float | None
+
+
+class BudgetResult(TypedDict):
+    """One result's budget (`results`): its contributions and their combination, in `unit`."""
+
+    quantity: str
+    name: str
+    unit: str
+    contributions: list[BudgetContribution]
+    standard_uncertainty: float
+    dof_eff: float | None
+    coverage_factor: float
+    expanded_uncertainty: float
+    coverage_probability: float
+
+
+class TemperatureStats(TypedDict, total=False):
+    """The calibration points' temperature (°C): empty without temperatures, only `n_points` when
+    too few carry one, the coefficient only where the temperature varied."""
+
+    min_c: float
+    max_c: float
+    mean_c: float
+    span_c: float
+    n_points: int
+    coefficient_deg_per_c: float
+
+
+class UncertaintyBudget(TypedDict):
+    """A record's uncertainty budget (the record's `budget`, results under their present names):
+    the shared components, the temperature and one entry per result; `traceable` (and `warning`
+    where it is not) once service.jobs.budgets has judged it."""
+
+    coverage_probability: float
+    components: list[BudgetComponent]
+    temperature: TemperatureStats
+    results: list[BudgetResult]
+    traceable: NotRequired[bool]
+    warning: NotRequired[str]
+
+
+class ReferenceStandard(TypedDict):
+    """A reference standard as the budget reads it: its certificate's expanded uncertainty
+    (degrees) and coverage factor, None where the certificate states none."""
+
+    name: str
+    serial: str
+    certificate_id: NotRequired[str]
+    expanded_uncertainty_deg: float | None
+    coverage_factor: float | None
 
 
 @dataclass(frozen=True)
@@ -49,13 +123,19 @@ class Component:
     evaluation: str = "B"  # A (statistics of the data) or B (stated: a certificate, a resolution)
     note: str = ""
 
-    def as_json(self) -> dict[str, Any]:
-        record = asdict(self)
-        record["dof"] = None if not math.isfinite(self.dof) else self.dof
-        return record
+    def as_json(self) -> BudgetComponent:
+        return {
+            "source": self.source,
+            "name": self.name,
+            "u_deg": self.u_deg,
+            "dof": None if not math.isfinite(self.dof) else self.dof,
+            "distribution": self.distribution,
+            "evaluation": self.evaluation,
+            "note": self.note,
+        }
 
 
-def component_of_json(d: Mapping[str, Any]) -> Component:
+def component_of_json(d: BudgetComponent) -> Component:
     dof = d.get("dof")
     return Component(
         str(d["source"]),
@@ -102,7 +182,7 @@ def resolution_component(name: str, resolution_deg: float) -> Component:
 
 def temperature_component(
     temps_c: NDArray[np.float64], errors_deg: NDArray[np.float64]
-) -> tuple[Component | None, dict[str, Any]]:
+) -> tuple[Component | None, TemperatureStats]:
     """The temperature's influence left in the fit's residuals, and the temperature's statistics.
 
     Returns (None, stats) where the temperature did not vary (span below TEMPERATURE_VARIED_C) or
@@ -116,7 +196,7 @@ def temperature_component(
     if t.size < 3:
         return None, {"n_points": int(t.size)}
     span = float(t.max() - t.min())
-    stats: dict[str, Any] = {
+    stats: TemperatureStats = {
         "min_c": float(t.min()),
         "max_c": float(t.max()),
         "mean_c": float(t.mean()),
@@ -177,7 +257,7 @@ def combine(
     return Combined(u_c, dof, k, k * u_c)
 
 
-def model_dof(model: Mapping[str, Any]) -> float:
+def model_dof(model: Mapping[str, object]) -> float:
     """Degrees of freedom of the fit behind the parameters' covariance: the smallest any part
     states.
 
@@ -187,7 +267,7 @@ def model_dof(model: Mapping[str, Any]) -> float:
     """
     found: list[float] = []
 
-    def walk(node: Any) -> None:
+    def walk(node: object) -> None:
         if isinstance(node, Mapping):
             for k, value in node.items():
                 if (
@@ -217,11 +297,13 @@ def result_entry(
     dof_fit: float,
     others: Sequence[Component],
     coverage: float = COVERAGE,
-) -> dict[str, Any]:
+) -> BudgetResult:
     """One result's budget: its contributions (in the result's unit) and their combination."""
     scale = ANGLE_UNITS.get(unit, 1.0)
     combined = combine(np.array([u_fit_deg]), np.array([dof_fit]), others, coverage)
-    rows = [{"source": "fit", "standard_uncertainty": u_fit_deg * scale, "dof": _finite(dof_fit)}]
+    rows: list[BudgetContribution] = [
+        {"source": "fit", "standard_uncertainty": u_fit_deg * scale, "dof": _finite(dof_fit)}
+    ]
     rows += [
         {
             "source": other.source,
@@ -254,23 +336,25 @@ _FORMER_RESULT_KEYS = {
 }
 
 
-def current_names(budget: Mapping[str, Any] | None) -> dict[str, Any] | None:
+def current_names(budget: Mapping[str, object] | None) -> UncertaintyBudget | None:
     """A stored budget with its results' uncertainties under their present names, whenever it was
     stored."""
     if budget is None:
         return None
     results = []
-    for result in budget.get("results") or []:
+    for result in cast("list[Mapping[str, object]]", budget.get("results") or []):
         entry = {_FORMER_RESULT_KEYS.get(key, key): value for key, value in result.items()}
+        contributions = cast("list[Mapping[str, object]]", result.get("contributions") or [])
         entry["contributions"] = [
             {
                 ("standard_uncertainty" if key == "u" else key): value
                 for key, value in contribution.items()
             }
-            for contribution in result.get("contributions") or []
+            for contribution in contributions
         ]
         results.append(entry)
-    return {**budget, "results": results}
+    # the stored keys, renamed: what UncertaintyBudget states
+    return cast(UncertaintyBudget, {**budget, "results": results})
 
 
 def carries_reference_scale(name: str, unit: str) -> bool:
@@ -281,17 +365,17 @@ def carries_reference_scale(name: str, unit: str) -> bool:
 
 def record_budget(
     *,
-    parameters: Mapping[str, Mapping[str, Any]],
+    parameters: Mapping[str, Mapping[str, object]],
     parameter_u: Mapping[str, float],
     dof_fit: float,
-    standards: Sequence[Mapping[str, Any]],
+    standards: Sequence[ReferenceStandard],
     resolutions_deg: Mapping[str, float | None],
     tilt_u_fit_deg: tuple[float, float] | None = None,
     tilt_dof_fit: tuple[float, float] | None = None,
     temps_c: NDArray[np.float64] | None = None,
     errors_deg: NDArray[np.float64] | None = None,
     coverage: float = COVERAGE,
-) -> dict[str, Any]:
+) -> UncertaintyBudget:
     """The budget a record keeps: the shared components and one entry per result.
 
     `standards`: {"name", "serial", "certificate_id", "expanded_uncertainty_deg", "coverage_factor"}
@@ -308,12 +392,12 @@ def record_budget(
         for what, resolution in resolutions_deg.items()
         if resolution
     ]
-    temperature: dict[str, Any] = {}
+    temperature: TemperatureStats = {}
     if temps_c is not None and errors_deg is not None:
         tc, temperature = temperature_component(temps_c, errors_deg)
         if tc is not None:
             comps.append(tc)
-    results = []
+    results: list[BudgetResult] = []
     if tilt_u_fit_deg is not None:
         dofs = tilt_dof_fit or (dof_fit, dof_fit)
         results += _tilt_results(tilt_u_fit_deg, dofs, comps, coverage)
@@ -326,7 +410,7 @@ def record_budget(
     }
 
 
-def _certificate_component(standard: Mapping[str, Any]) -> Component:
+def _certificate_component(standard: ReferenceStandard) -> Component:
     """A reference standard as its certificate states it; refused when it states no uncertainty."""
     expanded, k = standard.get("expanded_uncertainty_deg"), standard.get("coverage_factor")
     if expanded is None or k is None:
@@ -346,7 +430,7 @@ def _tilt_results(
     dofs: tuple[float, float],
     comps: Sequence[Component],
     coverage: float,
-) -> list[dict[str, Any]]:
+) -> list[BudgetResult]:
     """The corrected tilt's result per axis: every shared component adds to it."""
     return [
         result_entry(
@@ -363,15 +447,15 @@ def _tilt_results(
 
 
 def _reference_scale_results(
-    parameters: Mapping[str, Mapping[str, Any]],
+    parameters: Mapping[str, Mapping[str, object]],
     parameter_u: Mapping[str, float],
     dof_fit: float,
     comps: Sequence[Component],
     coverage: float,
-) -> list[dict[str, Any]]:
+) -> list[BudgetResult]:
     """A result per parameter read on the reference's angle scale: only the standards add to it."""
     angle_scale = [comp for comp in comps if comp.source == "reference_standard"]
-    results = []
+    results: list[BudgetResult] = []
     for name, param in parameters.items():
         unit = str(param.get("unit", ""))
         if name not in parameter_u or not carries_reference_scale(name, unit):
@@ -390,9 +474,10 @@ def _reference_scale_results(
     return results
 
 
-def reading_components(budget: Mapping[str, Any] | None) -> list[Component]:
+def reading_components(budget: Mapping[str, object] | None) -> list[Component]:
     """What adds to the fit's uncertainty of every corrected reading (the standards, resolutions,
     temperature)."""
     if not budget:
         return []
-    return [component_of_json(component) for component in budget.get("components") or []]
+    components = cast("list[BudgetComponent]", budget.get("components") or [])
+    return [component_of_json(component) for component in components]

@@ -8,10 +8,11 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import math
-from typing import Any
+from typing import Any, TypedDict
 
 from service.bench.readings import OUTLIER_RULE
 from service.bench.runtime import BenchBusy, BenchRuntime
+from service.calibration.budget import ReferenceStandard
 from service.jobs import registry
 from service.jobs.procedure import Plan
 from service.jobs.requests import CalibrationRequest, RequestProblem
@@ -24,6 +25,22 @@ from service.storage.store.jobs import IdempotencyMismatch
 from service.storage.store.standards import StandardNotUsable
 
 IDEMPOTENCY_ROUTE = "calibrations"
+
+
+class RegisteredStandard(ReferenceStandard):
+    """A registered reference standard a job named, as its record keeps it (the traceability of
+    the result)."""
+
+    id: int
+    certificate_sha256: str
+
+
+class AdaptiveAdmission(TypedDict):
+    """What an adaptive job keeps of its admission (degrees): the standard uncertainty every
+    corrected tilt carries whatever is measured, and that part expanded (k = 2)."""
+
+    fixed_u_deg: float
+    floor_fixed_deg: float
 
 
 class Admission:
@@ -57,19 +74,18 @@ class Admission:
             )
         return plan
 
-    def adaptive_admission(self, req: CalibrationRequest, bench: BenchRuntime) -> dict[str, Any]:
+    def adaptive_admission(self, req: CalibrationRequest, bench: BenchRuntime) -> AdaptiveAdmission:
         """Blocking (database): an adaptive job's target against what every corrected tilt carries
         whatever is measured (the named standards' u = U/k, the sensors' resolutions r/sqrt(12)); a
         target at or below that floor is refused naming it."""
         from service.calibration.adaptive_design import K_EXPANDED
         from service.jobs.budgets import ROLE_WORDS, resolutions_deg
 
-        u2 = sum(
-            (float(standard["expanded_uncertainty_deg"]) / float(standard["coverage_factor"])) ** 2
-            for standard in self.standards(req.reference_standards)
-            if standard.get("expanded_uncertainty_deg") is not None
-            and standard.get("coverage_factor")
-        )
+        u2 = 0.0
+        for standard in self.standards(req.reference_standards):
+            expanded, k = standard["expanded_uncertainty_deg"], standard["coverage_factor"]
+            if expanded is not None and k:
+                u2 += (float(expanded) / float(k)) ** 2
         u2 += sum(
             (resolution / math.sqrt(12.0)) ** 2
             for role, resolution in resolutions_deg(bench).items()
@@ -117,7 +133,7 @@ class Admission:
                 '{"value": <°C>, "standard_uncertainty": <°C>} as read on a calibrated thermometer',
             )
 
-    def standards(self, ids: list[int]) -> list[dict[str, Any]]:
+    def standards(self, ids: list[int]) -> list[RegisteredStandard]:
         """Blocking (database): the registered standards a job named, as its record keeps them (the
         traceability of the result)."""
         return [

@@ -4,12 +4,18 @@ the calibration points, the reference standards the job named and the sensors' r
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
-from service.calibration.budget import current_names, model_dof, record_budget
+from service.calibration.budget import (
+    ReferenceStandard,
+    UncertaintyBudget,
+    current_names,
+    model_dof,
+    record_budget,
+)
 from service.calibration.model import CalibrationModel
 from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor
 from service.io.columns import K_OUTPUTS
@@ -18,7 +24,7 @@ ROLE_WORDS = {"measurement_sensor": "measurement sensor", "reference_sensor": "r
 NOT_TRACEABLE = "no reference standard: not traceable"
 
 
-def with_traceability(budget: Mapping[str, Any] | None) -> dict[str, Any] | None:
+def with_traceability(budget: Mapping[str, object] | None) -> UncertaintyBudget | None:
     """The budget saying whether a reference standard's uncertainty is in it: one without a standard
     says "no reference standard: not traceable" (such a record gets no certificate)."""
     budget = current_names(budget)
@@ -28,7 +34,10 @@ def with_traceability(budget: Mapping[str, Any] | None) -> dict[str, Any] | None
         component.get("source") == "reference_standard"
         for component in budget.get("components") or []
     )
-    out = {key: value for key, value in budget.items() if key not in ("traceable", "warning")}
+    out = cast(
+        UncertaintyBudget,
+        {key: value for key, value in budget.items() if key not in ("traceable", "warning")},
+    )
     out["traceable"] = traceable
     if not traceable:
         out["warning"] = NOT_TRACEABLE
@@ -53,9 +62,9 @@ def budget_of_record(
     method: Any,
     model: CalibrationModel,
     fit_columns: Mapping[str, NDArray[np.float64]] | None,
-    standards: Sequence[Mapping[str, Any]],
+    standards: Sequence[ReferenceStandard],
     resolutions: Mapping[str, float | None],
-) -> dict[str, Any]:
+) -> UncertaintyBudget:
     """The record's budget; the corrected tilt's entries where the method corrects readings (stage
     records)."""
     model_json = model.to_json_dict()
