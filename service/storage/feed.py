@@ -44,22 +44,22 @@ _JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ROW_ANCHORS = "rows_sha256"
 
 
-def _job_event(s: Session, e: AuditEvent, state: str) -> dict[str, Any]:
-    job = s.get(CalibrationJob, int(e.entity_id))
+def _job_event(session: Session, audit_event: AuditEvent, state: str) -> dict[str, Any]:
+    job = session.get(CalibrationJob, int(audit_event.entity_id))
     return {
-        "job_id": int(e.entity_id),
+        "job_id": int(audit_event.entity_id),
         "state": state,
-        "previous_state": e.details.get("from"),
-        "failure_reason": e.details.get("failure_reason"),
+        "previous_state": audit_event.details.get("from"),
+        "failure_reason": audit_event.details.get("failure_reason"),
         "order_id": job.order_id if job else None,
         "bench_id": job.bench_id if job else None,
     }
 
 
-def _record_event(s: Session, record_id: int, extra: Mapping[str, Any]) -> dict[str, Any]:
-    record = s.get(CalibrationRecord, record_id)
+def _record_event(session: Session, record_id: int, extra: Mapping[str, Any]) -> dict[str, Any]:
+    record = session.get(CalibrationRecord, record_id)
     job = (
-        s.get(CalibrationJob, record.job_id)
+        session.get(CalibrationJob, record.job_id)
         if record is not None and record.job_id is not None
         else None
     )
@@ -101,74 +101,78 @@ _PLAIN_EVENTS = {
 }
 
 
-def _record_feed_event(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
+def _record_feed_event(
+    session: Session, audit_event: AuditEvent
+) -> tuple[str, dict[str, Any]] | None:
     """The feed event of a record's creation, activation or decision; None for other actions."""
-    action, details = e.action, e.details
+    action, details = audit_event.action, audit_event.details
     if action == "record.create":
-        return "record.created", _record_event(s, int(e.entity_id), {})
+        return "record.created", _record_event(session, int(audit_event.entity_id), {})
     if action == "pointer.set":
         return "record.activated", _record_event(
-            s, int(details["record_id"]), {"previous_record_id": details.get("previous_record_id")}
+            session,
+            int(details["record_id"]),
+            {"previous_record_id": details.get("previous_record_id")},
         )
     kind = _DECISION_EVENTS.get(action)
     if kind is None:
         return None
     return kind, _record_event(
-        s, int(e.entity_id), {key: details.get(key) for key in _DECISION_KEYS}
+        session, int(audit_event.entity_id), {key: details.get(key) for key in _DECISION_KEYS}
     )
 
 
-def event_for(s: Session, e: AuditEvent) -> tuple[str, dict[str, Any]] | None:
+def event_for(session: Session, audit_event: AuditEvent) -> tuple[str, dict[str, Any]] | None:
     """The feed event (type, data) an audit event stands for, or None if a LIMS need not hear of
     it."""
-    job_state = _JOB_ACTION_STATES.get(e.action)
+    job_state = _JOB_ACTION_STATES.get(audit_event.action)
     if job_state is not None:
-        return "job.state", _job_event(s, e, job_state)
-    record_event = _record_feed_event(s, e)
+        return "job.state", _job_event(session, audit_event, job_state)
+    record_event = _record_feed_event(session, audit_event)
     if record_event is not None:
         return record_event
     # the rows' hashes are the audit chain's, not news
-    data = {key: value for key, value in e.details.items() if key != ROW_ANCHORS}
-    kind = _PLAIN_EVENTS.get(e.action)
+    data = {key: value for key, value in audit_event.details.items() if key != ROW_ANCHORS}
+    kind = _PLAIN_EVENTS.get(audit_event.action)
     return None if kind is None else (kind, data)
 
 
-def append_for_audit(s: Session, e: AuditEvent) -> FeedEvent | None:
+def append_for_audit(session: Session, audit_event: AuditEvent) -> FeedEvent | None:
     """Called for every audit event inside its transaction: the feed event and its outbox rows."""
-    found = event_for(s, e)
+    found = event_for(session, audit_event)
     if found is None:
         return None
     kind, data = found
-    event = FeedEvent(type=kind, at=e.at, data=data, audit_event_id=e.id)
-    s.add(event)
-    s.flush()
-    endpoints = s.execute(
+    event = FeedEvent(type=kind, at=audit_event.at, data=data, audit_event_id=audit_event.id)
+    session.add(event)
+    session.flush()
+    endpoints = session.execute(
         sa.select(WebhookEndpoint.id, WebhookEndpoint.events).where(
             WebhookEndpoint.disabled_at.is_(None)
         )
     )
     for endpoint_id, events in endpoints:
         if "*" in events or kind in events:
-            s.add(
+            session.add(
                 WebhookDelivery(
                     endpoint_id=endpoint_id,
                     event_id=event.id,
                     state="pending",
                     attempts=0,
-                    next_attempt_at=e.at,
-                    created_at=e.at,
+                    next_attempt_at=audit_event.at,
+                    created_at=audit_event.at,
                 )
             )
     return event
 
 
-def event_json(e: FeedEvent) -> dict[str, Any]:
+def event_json(event: FeedEvent) -> dict[str, Any]:
     """An event as the feed and the webhooks show it."""
     return {
-        "id": event_id(e.id),
-        "type": e.type,
-        "time_utc": e.at.strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
-        "data": e.data,
+        "id": event_id(event.id),
+        "type": event.type,
+        "time_utc": event.at.strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
+        "data": event.data,
     }
 
 

@@ -97,8 +97,8 @@ def verify(engine: sa.Engine) -> VerifyReport:
     return report
 
 
-def _verify_records(s: Session, report: VerifyReport) -> None:
-    records = s.scalars(
+def _verify_records(session: Session, report: VerifyReport) -> None:
+    records = session.scalars(
         sa.select(CalibrationRecord).order_by(
             CalibrationRecord.device_id, CalibrationRecord.kind, CalibrationRecord.version
         )
@@ -143,11 +143,11 @@ def _verify_records(s: Session, report: VerifyReport) -> None:
                 )
             )
         if record.job_id is not None:
-            _verify_points(s, report, record)
+            _verify_points(session, report, record)
         prev = record
 
 
-def _verify_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> None:
+def _verify_points(session: Session, report: VerifyReport, r: CalibrationRecord) -> None:
     """The job's settled points against the hashes the record holds: every device's (records made
     since the per-device hashes exist), else the record's own device's (older records: all they
     committed to)."""
@@ -156,7 +156,7 @@ def _verify_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> No
         by_device = (
             {str(r.device_id): r.raw_data["points_sha256"]} if "points_sha256" in r.raw_data else {}
         )
-    stored = _settled_by_device(s, r.job_id)
+    stored = _settled_by_device(session, r.job_id)
     for device, sha in sorted(by_device.items()):
         if points_sha256(stored.get(device, [])) != sha:
             report.problems.append(
@@ -179,23 +179,25 @@ def _verify_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> No
                     "not record",
                 )
             )
-    _verify_measurement_points(s, report, r)
+    _verify_measurement_points(session, report, r)
 
 
-def _settled_by_device(s: Session, job_id: int | None) -> dict[str, list[SettledPoint]]:
+def _settled_by_device(session: Session, job_id: int | None) -> dict[str, list[SettledPoint]]:
     """A job's settled points by device id as text, the keys the records' point hashes use."""
     by_device: dict[str, list[SettledPoint]] = {}
-    for point in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == job_id)):
+    for point in session.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == job_id)):
         by_device.setdefault(str(point.device_id), []).append(point)
     return by_device
 
 
-def _verify_measurement_points(s: Session, report: VerifyReport, r: CalibrationRecord) -> None:
+def _verify_measurement_points(
+    session: Session, report: VerifyReport, r: CalibrationRecord
+) -> None:
     """A version adopted from a diagnosis that measured more points was fitted on those jobs'
     points too: each of them against the hashes the record holds."""
     measured = r.raw_data.get("measurement_points_sha256")
     for job_id, hashes in measured.items() if isinstance(measured, dict) else ():
-        held = _settled_by_device(s, int(job_id))
+        held = _settled_by_device(session, int(job_id))
         for device in sorted(set(hashes) | set(held)):
             if device not in hashes or points_sha256(held.get(device, [])) != hashes[device]:
                 report.problems.append(
@@ -217,7 +219,7 @@ Anchors = dict[str, tuple[int, str]]
 
 
 def _verify_audit(
-    s: Session, report: VerifyReport
+    session: Session, report: VerifyReport
 ) -> tuple[dict[int, str], dict[int, tuple[int, str]], Anchors]:
     """Walks the chain in id order; returns record id -> content hash from record.create events,
     approval id -> (audit event id, approval hash) from the decisions' events, and the newest hash
@@ -226,7 +228,7 @@ def _verify_audit(
     decided: dict[int, tuple[int, str]] = {}
     anchors: Anchors = {}
     prev_sha = GENESIS_SHA256
-    for event in s.scalars(sa.select(AuditEvent).order_by(AuditEvent.id)).yield_per(1000):
+    for event in session.scalars(sa.select(AuditEvent).order_by(AuditEvent.id)).yield_per(1000):
         report.audit_events_checked += 1
         if sha256_hex(audit_content(event)) != event.sha256:
             report.problems.append(
@@ -263,10 +265,12 @@ def _verify_audit(
     return created, decided, anchors
 
 
-def _cross_check(s: Session, report: VerifyReport, created: dict[int, str]) -> None:
+def _cross_check(session: Session, report: VerifyReport, created: dict[int, str]) -> None:
     stored = {
         rid: sha
-        for rid, sha in s.execute(sa.select(CalibrationRecord.id, CalibrationRecord.content_sha256))
+        for rid, sha in session.execute(
+            sa.select(CalibrationRecord.id, CalibrationRecord.content_sha256)
+        )
     }
     for record_id, sha in sorted(created.items()):
         if record_id not in stored:
@@ -296,7 +300,7 @@ def _cross_check(s: Session, report: VerifyReport, created: dict[int, str]) -> N
 
 
 def _verify_approvals_and_certificates(
-    s: Session, report: VerifyReport, decided: dict[int, tuple[int, str]]
+    session: Session, report: VerifyReport, decided: dict[int, tuple[int, str]]
 ) -> None:
     """Approvals: content against hash, the chain, and each against the audit event of its decision
     (the audit chain anchors the approvals' newest end); issued certificates: stored bytes against
@@ -308,7 +312,7 @@ def _verify_approvals_and_certificates(
     from service.storage.store.approvals import approval_content
 
     prev = GENESIS_SHA256
-    for approval in s.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):
+    for approval in session.scalars(sa.select(RecordApproval).order_by(RecordApproval.id)):
         if sha256_hex(normalise(approval_content(approval))) != approval.sha256:
             report.problems.append(
                 Problem(
@@ -353,7 +357,7 @@ def _verify_approvals_and_certificates(
         report.approvals_checked += 1
         prev = approval.sha256
     for approval_id, (event_id, _sha) in sorted(decided.items()):
-        event = s.get(AuditEvent, event_id)
+        event = session.get(AuditEvent, event_id)
         what = (
             f"{event.action} of record {event.entity_id} by {event.actor}"
             if event is not None
@@ -368,7 +372,7 @@ def _verify_approvals_and_certificates(
                 "status would read as if that decision was never made)",
             )
         )
-    for certificate in s.scalars(sa.select(Certificate).order_by(Certificate.id)):
+    for certificate in session.scalars(sa.select(Certificate).order_by(Certificate.id)):
         if hashlib.sha256(certificate.xml).hexdigest() != certificate.sha256:
             report.problems.append(
                 Problem(
@@ -391,14 +395,14 @@ def _what(row: object) -> str:
     return f"webhook endpoint {row.id}"  # type: ignore[attr-defined]
 
 
-def _verify_rows(s: Session, report: VerifyReport, anchors: Anchors) -> None:
+def _verify_rows(session: Session, report: VerifyReport, anchors: Anchors) -> None:
     """Tokens (scopes, person, revocation ...), reference standards (every field) and webhook
     endpoints: each row against its own hash, and that hash against the newest one the audit chain
     recorded for it."""
     left = dict(anchors)
     for cls in HASHED_CLASSES:
         table = cls.__tablename__
-        for row in s.scalars(sa.select(cls).order_by(cls.id)):  # type: ignore[attr-defined]
+        for row in session.scalars(sa.select(cls).order_by(cls.id)):  # type: ignore[attr-defined]
             report.rows_checked += 1
             stored = getattr(row, HASH_COLUMN)
             audited = left.pop(anchor_key(row), None)
@@ -444,16 +448,16 @@ def _verify_rows(s: Session, report: VerifyReport, anchors: Anchors) -> None:
         )
 
 
-def _verify_samples(s: Session, report: VerifyReport) -> None:
+def _verify_samples(session: Session, report: VerifyReport) -> None:
     """Each settled point that holds the hash of its raw samples against the samples stored now."""
     t = SampleRow.__table__
-    for settled in s.scalars(
+    for settled in session.scalars(
         sa.select(SettledPoint)
         .where(SettledPoint.samples_sha256.is_not(None))
         .order_by(SettledPoint.id)
     ):
         report.sample_points_checked += 1
-        rows = s.execute(
+        rows = session.execute(
             sa.select(*(t.c[name] for name in SAMPLE_FIELDS))
             .where(
                 t.c.job_id == settled.job_id,

@@ -58,7 +58,7 @@ class Database:
 
     def audit(
         self,
-        s: Session,
+        session: Session,
         actor: str,
         action: str,
         entity: str,
@@ -68,12 +68,12 @@ class Database:
         """Append an audit event to the chain inside the action's own transaction (and so its feed
         event). The rows of the hashed tables the action added or changed get their new hash, which
         the event records."""
-        s.flush()  # the action's rows first, so their ids are known and constraints have run
+        session.flush()  # the action's rows first, so their ids are known and constraints have run
         # the new hashes of tokens, standards, webhooks this action changed
-        anchors = hash_pending(s)
+        anchors = hash_pending(session)
         if anchors:
             details = {**details, ANCHORS: anchors}
-        prev = s.execute(
+        prev = session.execute(
             sa.select(AuditEvent.sha256).order_by(AuditEvent.id.desc()).limit(1)
         ).scalar()
         event = AuditEvent(
@@ -86,7 +86,8 @@ class Database:
             prev_sha256=prev or GENESIS_SHA256,
         )
         event.sha256 = sha256_hex(audit_content(event))
-        s.add(event)
-        s.flush()
-        append_for_audit(s, event)  # the LIMS feed and webhook outbox, in this same transaction
+        session.add(event)
+        session.flush()
+        # the LIMS feed and webhook outbox, in this same transaction
+        append_for_audit(session, event)
         return event

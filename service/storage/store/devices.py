@@ -46,7 +46,7 @@ class DevicesRepo:
 
     def _insert_bench(
         self,
-        s: Session,
+        session: Session,
         name: str,
         *,
         actor: str,
@@ -63,9 +63,11 @@ class DevicesRepo:
             port=port,
             port_settings=require_doc("port_settings", port_settings or {}),
         )
-        s.add(bench)
-        s.flush()
-        self._db.audit(s, actor, "bench.create", "bench", bench.id, {"name": name, "port": port})
+        session.add(bench)
+        session.flush()
+        self._db.audit(
+            session, actor, "bench.create", "bench", bench.id, {"name": name, "port": port}
+        )
         return bench
 
     def add_device(
@@ -106,7 +108,7 @@ class DevicesRepo:
 
     def _insert_device(
         self,
-        s: Session,
+        session: Session,
         model: str,
         serial: str,
         role: str,
@@ -119,7 +121,7 @@ class DevicesRepo:
         role = require_text("role", role, 40)
         port = optional_text("port", port, 200)
         if bench_id is not None:
-            row_in(s, Bench, bench_id, "bench")
+            row_in(session, Bench, bench_id, "bench")
         device = Device(
             model=model,
             serial=serial,
@@ -128,10 +130,10 @@ class DevicesRepo:
             port=port,
             port_settings=require_doc("port_settings", port_settings or {}),
         )
-        s.add(device)
-        s.flush()
+        session.add(device)
+        session.flush()
         self._db.audit(
-            s,
+            session,
             actor,
             "device.create",
             "device",
@@ -153,10 +155,10 @@ class DevicesRepo:
             )
 
     def _change_device(
-        self, s: Session, device: Device, *, actor: str, changes: dict[str, Any]
+        self, session: Session, device: Device, *, actor: str, changes: dict[str, Any]
     ) -> Device:
         if changes.get("bench_id") is not None:
-            row_in(s, Bench, changes["bench_id"], "bench")
+            row_in(session, Bench, changes["bench_id"], "bench")
         if "role" in changes:
             changes["role"] = require_text("role", changes["role"], 40)
         if "port" in changes:
@@ -167,7 +169,12 @@ class DevicesRepo:
         for key, value in changes.items():
             setattr(device, key, value)
         self._db.audit(
-            s, actor, "device.update", "device", device.id, {"before": before, "after": changes}
+            session,
+            actor,
+            "device.update",
+            "device",
+            device.id,
+            {"before": before, "after": changes},
         )
         return device
 

@@ -26,7 +26,7 @@ from service.storage.store.hashing import record_content
 
 def activate_in(
     db: Database,
-    s: Session,
+    session: Session,
     record: CalibrationRecord,
     *,
     actor: str,
@@ -36,10 +36,10 @@ def activate_in(
     """Make `record` the active version inside the caller's transaction (see
     RecordsRepo.activate)."""
     actor, reason = require_text("actor", actor), require_text("reason", reason, 10_000)
-    why = unusable_in(s, record)
+    why = unusable_in(session, record)
     if why is not None:
         raise RecordNotUsable(f"{why}; it cannot be activated")
-    current = s.get(ActiveCalibration, (record.device_id, record.kind))
+    current = session.get(ActiveCalibration, (record.device_id, record.kind))
     current_id = current.record_id if current else None
     if current_id != replaces:
         if current is None:
@@ -62,7 +62,7 @@ def activate_in(
             set_by=actor,
             reason=reason,
         )
-        s.add(current)
+        session.add(current)
     else:
         current.record_id, current.set_at, current.set_by, current.reason = (
             record.id,
@@ -70,7 +70,7 @@ def activate_in(
             actor,
             reason,
         )
-    s.add(
+    session.add(
         ActiveCalibrationHistory(
             device_id=record.device_id,
             kind=record.kind,
@@ -82,7 +82,7 @@ def activate_in(
         )
     )
     db.audit(
-        s,
+        session,
         actor,
         "pointer.set",
         "active_calibration",
@@ -98,7 +98,7 @@ def activate_in(
     return current
 
 
-def unusable_in(s: Session, record: CalibrationRecord) -> str | None:
+def unusable_in(session: Session, record: CalibrationRecord) -> str | None:
     """Why the record must not correct anything (rejected, or not matching its hash), or None if it
     may."""
     if sha256_hex(record_content(record)) != record.content_sha256:
@@ -106,7 +106,7 @@ def unusable_in(s: Session, record: CalibrationRecord) -> str | None:
             f"record {record.id} v{record.version}: its stored content does not match its SHA-256"
             " (tampered: changed after it was made)"
         )
-    rejection = s.scalar(
+    rejection = session.scalar(
         sa.select(RecordApproval)
         .where(RecordApproval.record_id == record.id, RecordApproval.decision == "reject")
         .limit(1)
@@ -120,18 +120,25 @@ def unusable_in(s: Session, record: CalibrationRecord) -> str | None:
 
 
 def deactivate_in(
-    db: Database, s: Session, device_id: int, kind: str, *, actor: str, reason: str, replaces: int
+    db: Database,
+    session: Session,
+    device_id: int,
+    kind: str,
+    *,
+    actor: str,
+    reason: str,
+    replaces: int,
 ) -> None:
     """Withdraw the active version inside the caller's transaction (see RecordsRepo.deactivate)."""
     actor, reason = require_text("actor", actor), require_text("reason", reason, 10_000)
-    current = s.get(ActiveCalibration, (device_id, kind))
+    current = session.get(ActiveCalibration, (device_id, kind))
     if current is None or current.record_id != replaces:
         raise ConflictError(
             f"device {device_id} {kind}: active record is "
             f"{current.record_id if current else None}, not {replaces}"
         )
-    s.delete(current)
-    s.add(
+    session.delete(current)
+    session.add(
         ActiveCalibrationHistory(
             device_id=device_id,
             kind=kind,
@@ -143,7 +150,7 @@ def deactivate_in(
         )
     )
     db.audit(
-        s,
+        session,
         actor,
         "pointer.clear",
         "active_calibration",

@@ -179,11 +179,11 @@ def _point_from_samples(
     }
 
 
-def point_samples_sha256(s: Session, job_id: int, device_id: int, point: int) -> str | None:
+def point_samples_sha256(session: Session, job_id: int, device_id: int, point: int) -> str | None:
     """The SHA-256 of the raw samples stored for one point of one device of a job (None when it has
     none)."""
     t = SampleRow.__table__
-    rows = s.execute(
+    rows = session.execute(
         sa.select(*(t.c[name] for name in SAMPLE_FIELDS))
         .where(t.c.job_id == job_id, t.c.device_id == device_id, t.c.point == point)
         .order_by(t.c.t_s, t.c.id)

@@ -335,10 +335,10 @@ def _superseded_id(
     return supersedes_id
 
 
-def _points_by_device_sha256(s: Session, job_id: int) -> dict[str, str]:
+def _points_by_device_sha256(session: Session, job_id: int) -> dict[str, str]:
     """The SHA-256 of every device's settled points in the job (the reference sensor's too: a fit
     uses them), keyed by device id: what `db verify` checks the job's points against."""
     by_device: dict[int, list[SettledPoint]] = {}
-    for point in s.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == job_id)):
+    for point in session.scalars(sa.select(SettledPoint).where(SettledPoint.job_id == job_id)):
         by_device.setdefault(point.device_id, []).append(point)
     return {str(device): points_sha256(pts) for device, pts in sorted(by_device.items())}
