@@ -23,7 +23,7 @@ import logging
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypedDict, cast
 
 import nats
 import numpy as np
@@ -46,6 +46,7 @@ from service.bench.runtime import BenchRuntime
 from service.config import Settings
 from service.errors import InputError
 from service.storage.engine import redacted
+from service.streams.messages import PublishedReading, ReadingMessage, SnapshotHead
 from service.streams.readings import Client, ReadingProducer, SnapshotBuild, due
 
 log = logging.getLogger("tiltlab.fleet")
@@ -63,6 +64,36 @@ def readings_subject(bench: str) -> str:
 
 def commands_subject(node: str) -> str:
     return f"tiltlab.commands.{node}"
+
+
+class BenchEntry(TypedDict, total=False):
+    """A bench's entry in `tiltlab_benches`: the node that last owned it, its kind and roles (as
+    read back: an entry written by another version may lack a key)."""
+
+    node: str
+    kind: str
+    roles: list[str]
+    description: str
+
+
+class LeaseEntry(BenchEntry, total=False):
+    """A bench's lease in `tiltlab_bench_leases`: its entry and the bench's state now."""
+
+    state: str
+
+
+class BenchListing(TypedDict):
+    """Another node's bench as GET /benches lists it."""
+
+    name: str
+    kind: str
+    roles: list[str]
+    description: str
+    state: str
+    held_by: None
+    simulated: None
+    node: str
+    online: bool
 
 
 class FleetConflict(InputError):
@@ -86,11 +117,11 @@ class RemoteBench:
     description: str = ""
     state: str = "offline"
     online: bool = False
-    latest: dict[str, Any] | None = None  # the last reading message received
+    latest: PublishedReading | None = None  # the last reading message received
     received_at: float | None = None  # time.monotonic() when it came
-    listeners: set[Callable[[dict[str, Any]], None]] = field(default_factory=set)
+    listeners: set[Callable[[PublishedReading], None]] = field(default_factory=set)
 
-    def listing(self) -> dict[str, Any]:
+    def listing(self) -> BenchListing:
         return {
             "name": self.name,
             "kind": self.kind,
@@ -114,7 +145,7 @@ class Fleet:
         self,
         settings: Settings,
         benches: dict[str, BenchRuntime],
-        latest_message: Callable[[str], dict[str, Any] | None],
+        latest_message: Callable[[str], ReadingMessage | None],
         handler: Handler,
     ) -> None:
         assert settings.broker_url
@@ -253,15 +284,14 @@ class Fleet:
 
     def _lease(self, name: str) -> bytes:
         bench = self.local[name]
-        return json.dumps(
-            {
-                "node": self.node,
-                "state": bench.state(),
-                "kind": bench.kind,
-                "roles": bench.roles(),
-                "description": bench.config.description,
-            }
-        ).encode()
+        lease: LeaseEntry = {
+            "node": self.node,
+            "state": bench.state(),
+            "kind": bench.kind,
+            "roles": bench.roles(),
+            "description": bench.config.description,
+        }
+        return json.dumps(lease).encode()
 
     async def _claim(self, name: str) -> None:
         assert self._leases is not None and self._benches is not None
@@ -343,16 +373,17 @@ class Fleet:
             if name in self.local:
                 continue
             try:
-                static = json.loads((await self._benches.get(name)).value or b"{}")
+                static: BenchEntry = json.loads((await self._benches.get(name)).value or b"{}")
             except KeyNotFoundError:
                 continue
+            lease: LeaseEntry
             try:
                 lease = json.loads((await self._leases.get(name)).value or b"{}")
             except KeyNotFoundError:
                 lease = {}
             self.remote[name] = self._viewed(name, static, lease)
 
-    def _viewed(self, name: str, static: dict[str, Any], lease: dict[str, Any]) -> RemoteBench:
+    def _viewed(self, name: str, static: BenchEntry, lease: LeaseEntry) -> RemoteBench:
         """Another node's bench as its entries in the two buckets describe it (offline without a
         lease)."""
         bench = self.remote.get(name) or RemoteBench(name, static.get("node", "?"))
@@ -365,7 +396,7 @@ class Fleet:
 
     # ------------------------------------------------------------ the fleet view
 
-    def benches(self) -> list[dict[str, Any]]:
+    def benches(self) -> list[BenchListing]:
         """The other nodes' benches, as GET /benches lists them."""
         return [
             bench.listing() for bench in sorted(self.remote.values(), key=lambda bench: bench.name)
@@ -407,7 +438,12 @@ class Fleet:
                     self.dropped += 1
                     continue
                 seq += 1
-                payload = {**msg, "bench": name, "node": self.node, "fleet_seq": seq}
+                payload: PublishedReading = {
+                    **msg,
+                    "bench": name,
+                    "node": self.node,
+                    "fleet_seq": seq,
+                }
                 try:
                     await self._client().publish(
                         readings_subject(name), json.dumps(payload).encode()
@@ -418,7 +454,7 @@ class Fleet:
 
     async def _on_reading(self, msg: Msg) -> None:
         try:
-            payload = json.loads(msg.data)
+            payload: PublishedReading = json.loads(msg.data)  # as another node's `_publish` sent it
             name = payload["bench"]
         except (ValueError, KeyError, TypeError):
             return
@@ -521,8 +557,9 @@ class RemoteProducer(ReadingProducer):
 
     def snapshot_later(self, rate_hz: float, history_s: float) -> SnapshotBuild:
         """The newest reading the owner published; no history (the owner's dashboard has it)."""
-        latest = self.remote.latest or {}
-        head = {
+        # no reading received yet: every value None
+        latest: PublishedReading | dict[str, None] = self.remote.latest or {}
+        head: SnapshotHead = {
             "type": "snapshot",
             "seq": 0,
             "time_utc": latest.get("time_utc"),
@@ -537,12 +574,16 @@ class RemoteProducer(ReadingProducer):
         }
         return SnapshotBuild(head, np.empty((0, 0)), rate_hz, 0.0)
 
-    def _on_reading(self, payload: dict[str, Any]) -> None:
-        msg = {
-            key: value
-            for key, value in payload.items()
-            if key not in ("bench", "node", "fleet_seq")
-        }
+    def _on_reading(self, payload: PublishedReading) -> None:
+        # the owner's reading message as its producer built it (the keys it had, in its order)
+        msg = cast(
+            ReadingMessage,
+            {
+                key: value
+                for key, value in payload.items()
+                if key not in ("bench", "node", "fleet_seq")
+            },
+        )
         self._latest = msg
         self.messages += 1
         body = json.dumps(msg)[1:]

@@ -5,8 +5,8 @@ reads the job once per change; a slow safety re-read covers a change made by ano
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncGenerator, Callable
-from typing import Any
+from collections.abc import AsyncGenerator, Callable, Mapping
+from typing import Any, TypedDict, cast
 
 from service.jobs.events import JobEvents
 from service.jobs.manager import WAITING_FOR_DATABASE
@@ -18,15 +18,39 @@ ENDED = frozenset({"succeeded", "failed", "cancelled"})
 SAFETY_REREAD_S = 5.0  # real seconds between re-reads when no event came
 
 
+class PointMeans(TypedDict):
+    """One instrument's robust means at a point, as the stream shows them (degrees, °C)."""
+
+    x_deg: float
+    y_deg: float
+    z_deg: float | None
+    x_std_deg: float | None
+    y_std_deg: float | None
+    z_std_deg: float | None
+    n_samples: int
+    temp_c: float | None
+
+
+# A job's point in its stream: "index", the commanded stage angles "x_deg", "y_deg" (None without a
+# stage or a second axis), and under each role of the job's instruments (its keys vary by job)
+# their PointMeans.
+JobPoint = dict[str, int | float | PointMeans | None]
+
+
+def point_index(point: JobPoint) -> int:
+    """A job point's index (an int by construction in `job_points`)."""
+    return cast(int, point["index"])
+
+
 def job_points(
     points: PointsRepo, job: CalibrationJob, have: frozenset[int] | set[int] | None = None
-) -> list[dict[str, Any]]:
+) -> list[JobPoint]:
     """The job's points measured so far (every instrument of the job has its mean), by index,
     leaving out those in `have`: {"index", "x_deg", "y_deg" (commanded stage angles; y null on a
     one-axis procedure), and per role {"x_deg", "y_deg", "z_deg", "x_std_deg", "y_std_deg",
     "z_std_deg", "n_samples", "temp_c"} of the robust means}."""
     roles = _roles_of(job)
-    by_point: dict[int, dict[str, Any]] = {}
+    by_point: dict[int, JobPoint] = {}
     # Points are measured in index order: only those from the first one not yet had are read, so a
     # follower's reads stay small however long the job (not all its points on every change).
     for settled_point in points.settled_points(job.id, from_point=_first_missing(have)):
@@ -65,7 +89,7 @@ def _roles_of(job: CalibrationJob) -> dict[int, str]:
     return roles or {job.device_id: "measurement_sensor"}
 
 
-def _means_of(settled_point: SettledPoint) -> dict[str, Any]:
+def _means_of(settled_point: SettledPoint) -> PointMeans:
     """One instrument's robust means at a point, as the stream shows them."""
     return {
         "x_deg": settled_point.ch_x_mean,
@@ -95,7 +119,7 @@ async def job_messages(
         # the job's body reads its record: off the event loop too
         last = await asyncio.to_thread(body, job)
         points = await asyncio.to_thread(job_points, points_repo, job)
-        have = {point["index"] for point in points}
+        have = {point_index(point) for point in points}
         yield {"type": "snapshot", "job": last, "points": points}
         while job.state not in ENDED:
             with_timeout = asyncio.wait_for(event.wait(), SAFETY_REREAD_S)
@@ -123,7 +147,7 @@ async def job_messages(
                 last = waiting
                 continue
             for point in points:
-                have.add(point["index"])
+                have.add(point_index(point))
                 yield {"type": "point", "point": point}
             if _changed(last, now):
                 yield {"type": "job", "job": now}
@@ -133,7 +157,7 @@ async def job_messages(
         events.unsubscribe(job_id, event)
 
 
-def _changed(a: dict[str, Any], b: dict[str, Any]) -> bool:
+def _changed(a: Mapping[str, object], b: Mapping[str, object]) -> bool:
     """State, progress, error, record or validation differ (not only the update time)."""
     keys = (
         "state",

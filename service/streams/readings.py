@@ -17,8 +17,9 @@ import datetime as dt
 import json
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, SupportsFloat
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,6 +36,17 @@ from service.bench.corrected import (
 )
 from service.bench.runtime import SENSOR_ROLES, BenchRuntime
 from service.instruments.base import Reading
+from service.streams.messages import (
+    BenchTilt,
+    CalibrationStatus,
+    DroppedMessage,
+    HistoryReading,
+    ReadingMessage,
+    SensorTilt,
+    SnapshotHead,
+    SnapshotMessage,
+    StageTilt,
+)
 
 log = logging.getLogger("tiltlab.streams")
 
@@ -77,7 +89,7 @@ def utc_text(t: dt.datetime) -> str:
     return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
 
 
-def calibration_of(active: Any) -> dict[str, Any] | None:
+def calibration_of(active: Any) -> CalibrationStatus | None:
     """The record a message's corrected tilt comes from, with its status (None: no active
     record)."""
     return calibration_json(active)
@@ -121,10 +133,10 @@ def due(t: float, next_t: float, period: float, eps: float) -> float | None:
     return next_t + period if next_t + period > t else t + period
 
 
-def history_objects(rows: NDArray[np.float64], rate_hz: float, eps: float) -> list[dict[str, Any]]:
+def history_objects(rows: NDArray[np.float64], rate_hz: float, eps: float) -> list[HistoryReading]:
     """Reading-shaped objects (no seq) of history rows, decimated to at most `rate_hz` (bench
     time)."""
-    out: list[dict[str, Any]] = []
+    out: list[HistoryReading] = []
     next_t = -math.inf
     period = 1.0 / rate_hz
     for row in rows:
@@ -136,11 +148,11 @@ def history_objects(rows: NDArray[np.float64], rate_hz: float, eps: float) -> li
     return out
 
 
-def _row_object(r: NDArray[np.float64]) -> dict[str, Any]:
+def _row_object(r: NDArray[np.float64]) -> HistoryReading:
     def c(name: str) -> float | None:
         return _num(r[_C[name]])
 
-    def pair(a: str, b: str) -> dict[str, Any] | None:
+    def pair(a: str, b: str) -> SensorTilt | None:
         return None if math.isnan(r[_C[a]]) else {"x_deg": c(a), "y_deg": c(b)}
 
     return {
@@ -172,7 +184,7 @@ class SnapshotBuild:
     and its history rows. Building the message from them is pure work on copies: a thread may do
     it."""
 
-    head: dict[str, Any]
+    head: SnapshotHead
     rows: NDArray[np.float64]
     rate_hz: float
     eps: float
@@ -181,7 +193,7 @@ class SnapshotBuild:
     def size(self) -> int:
         return len(self.rows)
 
-    def document(self) -> dict[str, Any]:
+    def document(self) -> SnapshotMessage:
         return {**self.head, "history": history_objects(self.rows, self.rate_hz, self.eps)}
 
     def __call__(self) -> str:
@@ -264,7 +276,7 @@ class ReadingProducer:
         # messages dropped for slow clients since start (the daemon's metrics)
         self.dropped_total = 0
         self.messages = 0
-        self._latest: dict[str, Any] | None = None  # the last message built (without seq)
+        self._latest: ReadingMessage | None = None  # the last message built (without seq)
         self._task: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------ life
@@ -284,7 +296,7 @@ class ReadingProducer:
                 await task
 
     @property
-    def latest_message(self) -> dict[str, Any] | None:
+    def latest_message(self) -> ReadingMessage | None:
         """The newest reading message built (without seq), the one the fleet publishes."""
         return self._latest
 
@@ -314,7 +326,7 @@ class ReadingProducer:
     def disconnect(self, client: Client) -> None:
         self.clients.discard(client)
 
-    def snapshot(self, rate_hz: float, history_s: float) -> dict[str, Any]:
+    def snapshot(self, rate_hz: float, history_s: float) -> SnapshotMessage:
         return self.snapshot_later(rate_hz, history_s).document()
 
     def snapshot_later(self, rate_hz: float, history_s: float) -> SnapshotBuild:
@@ -322,7 +334,7 @@ class ReadingProducer:
         anywhere."""
         latest = self._latest or self._build(self.bench.clock.monotonic())[0]
         rows = self.history.since(self.bench.clock.monotonic() - history_s)
-        head = {
+        head: SnapshotHead = {
             "type": "snapshot",
             "seq": 0,
             "time_utc": latest["time_utc"],
@@ -406,9 +418,8 @@ class ReadingProducer:
         client_queue = c.queue
         if c.pending_drops and client_queue.maxsize - client_queue.qsize() >= 2:
             c.seq += 1
-            client_queue.put_nowait(
-                json.dumps({"seq": c.seq, "type": "dropped", "count": c.pending_drops})
-            )
+            dropped: DroppedMessage = {"seq": c.seq, "type": "dropped", "count": c.pending_drops}
+            client_queue.put_nowait(json.dumps(dropped))
             c.pending_drops = 0
         c.seq += 1
         if not c.pending_drops and not client_queue.full():
@@ -426,7 +437,7 @@ class ReadingProducer:
 
     def _build(
         self, now_bench_s: float, reading: Reading | None = None
-    ) -> tuple[dict[str, Any], list[float]]:
+    ) -> tuple[ReadingMessage, list[float]]:
         """The message of `reading` (the stream role's; None: its latest) with the bench's other
         values now."""
         bench = self.bench
@@ -453,7 +464,7 @@ class ReadingProducer:
             else None
         )
         pose = bench.pose
-        stage = (
+        stage: StageTilt | None = (
             {"x_deg": pose.x_deg, "y_deg": pose.y_deg, "moving": pose.moving}
             if bench.kind == "stage"
             else None
@@ -463,7 +474,7 @@ class ReadingProducer:
         t_bench = meas.bench_s if meas is not None else now_bench_s
         in_range = in_calibrated_range(active, table)
         through = reference_tilt(active, ref, temp) if bench.kind == "stage" else None
-        msg = {
+        msg: ReadingMessage = {
             "time_utc": utc_text(when),
             "type": "reading",
             "raw": {"measurement_sensor": _pair(meas), "reference_sensor": _pair(ref)},
@@ -478,14 +489,18 @@ class ReadingProducer:
         return msg, row
 
 
-def _pair(reading: Reading | None) -> dict[str, float | None] | None:
+def _pair(reading: Reading | None) -> SensorTilt | None:
     """A raw reading as a message shows it."""
     return None if reading is None else {"x_deg": reading.x_deg, "y_deg": reading.y_deg}
 
 
-def _as_float(value: float | None) -> float:
+def _as_float(value: object) -> float:
     """A value for a history row, NaN where there is none."""
-    return math.nan if value is None else float(value)
+    if value is None:
+        return math.nan
+    if not isinstance(value, SupportsFloat):
+        raise TypeError(f"a history row takes numbers, not {value!r}")
+    return float(value)
 
 
 def _of_reading(reading: Reading | None, name: str) -> float:
@@ -493,7 +508,7 @@ def _of_reading(reading: Reading | None, name: str) -> float:
     return _as_float(getattr(reading, name) if reading else None)
 
 
-def _of_values(values: dict[str, Any] | None, key: str) -> float:
+def _of_values(values: Mapping[str, object] | None, key: str) -> float:
     """An entry of a table tilt, stage pose or reference tilt for a history row (NaN without
     them)."""
     return _as_float(values[key] if values else None)
@@ -504,11 +519,11 @@ def _history_row(
     when: dt.datetime,
     meas: Reading | None,
     ref: Reading | None,
-    table: dict[str, Any] | None,
-    stage: dict[str, Any] | None,
+    table: BenchTilt | None,
+    stage: StageTilt | None,
     temp: float | None,
     in_range: bool | None,
-    through: dict[str, Any] | None,
+    through: BenchTilt | None,
 ) -> list[float]:
     """A reading message's row of the history ring, in the order of its columns (_COLS)."""
     nan = math.nan
