@@ -7,12 +7,12 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, cast
 
 from service import __version__
 from service.lims import dcc
 from service.lims.as_found import MeasuredPoint
-from service.lims.conformity import assess
+from service.lims.conformity import ConformityJson, assess
 from service.lims.content import (
     Approval,
     CertificateRefused,
@@ -23,6 +23,17 @@ from service.lims.content import (
     standards_of,
 )
 from service.lims.content_results import parameter_result
+from service.lims.facts import (
+    CalibratingLab,
+    CustomerFacts,
+    DeviceFacts,
+    ModelDocument,
+    OrderFacts,
+    RecordConditions,
+    RecordFacts,
+    StandardFacts,
+    Validation,
+)
 from service.storage.canonical import sha256_hex
 from service.storage.errors import UnknownEntity
 from service.storage.models import (
@@ -113,21 +124,23 @@ def signer(settings: Settings) -> Signer | None:
         raise NotConfigured(f"certificate signing: {exc}") from None
 
 
-def _record_json(r: CalibrationRecord) -> dict[str, Any]:
+def _record_json(r: CalibrationRecord) -> RecordFacts:
+    """The record as the certificate's content reads it; its JSON columns as stored (MODEL.json,
+    the validation, the raw data's budget, range and conditions)."""
     raw = r.raw_data or {}
     return {
         "id": r.id,
         "version": r.version,
         "kind": r.kind,
         "method": r.method,
-        "model": r.model,
-        "validation": r.validation,
+        "model": cast(ModelDocument, r.model),
+        "validation": cast(Validation, r.validation),
         "temp_c": r.temp_c,
         "content_sha256": r.content_sha256,
         "created_at": r.created_at,
         "budget": raw.get("budget"),
         "calibrated_range": raw.get("calibrated_range"),
-        "conditions": raw.get("conditions") or {},
+        "conditions": cast(RecordConditions, raw.get("conditions") or {}),
     }
 
 
@@ -180,7 +193,7 @@ def measured_points(store: Store, r: CalibrationRecord) -> list[MeasuredPoint]:
     return sorted(out, key=lambda point: (not point.fitted, point.point))
 
 
-def _device_json(store: Store, r: CalibrationRecord) -> dict[str, Any]:
+def _device_json(store: Store, r: CalibrationRecord) -> DeviceFacts:
     device = store.devices.get_device(r.device_id)
     conditions = (r.raw_data or {}).get("conditions") or {}
     firmware = conditions.get("firmware")
@@ -194,12 +207,12 @@ def _device_json(store: Store, r: CalibrationRecord) -> dict[str, Any]:
     }
 
 
-def _requested_standard_ids(job: CalibrationJob | None) -> list[Any]:
+def _requested_standard_ids(job: CalibrationJob | None) -> list[object]:
     """The standards the job's request named by id (older jobs kept them beside the request)."""
     if job is None:
         return []
     request = (job.parameters or {}).get("request") or {}
-    ids: list[Any] = (
+    ids: list[object] = (
         request.get("reference_standards")
         or (job.parameters or {}).get("reference_standards")
         or []
@@ -207,7 +220,7 @@ def _requested_standard_ids(job: CalibrationJob | None) -> list[Any]:
     return ids
 
 
-def _standard_json(standard: ReferenceStandard) -> dict[str, Any]:
+def _standard_json(standard: ReferenceStandard) -> StandardFacts:
     """A registered standard as the certificate's content reads it."""
     return {
         "name": standard.name,
@@ -220,7 +233,7 @@ def _standard_json(standard: ReferenceStandard) -> dict[str, Any]:
         "uncertainty": standard.uncertainty,
         "expanded_uncertainty_deg": standard.expanded_uncertainty_deg,
         "coverage_factor": standard.coverage_factor,
-        "calibrated_by": standard.calibrated_by,
+        "calibrated_by": cast(CalibratingLab | None, standard.calibrated_by),
     }
 
 
@@ -237,15 +250,14 @@ def _listed_standards(
     ]
 
 
-def _standards_of(store: Store, r: CalibrationRecord, job: CalibrationJob | None) -> list[Any]:
+def _standards_of(
+    store: Store, r: CalibrationRecord, job: CalibrationJob | None
+) -> list[StandardFacts]:
     """The registered standards the job named (by id), else those the record lists (by certificate
     number)."""
     registered = {standard.id: standard for standard in store.standards.all()}
-    out = [
-        registered[int(i)]
-        for i in _requested_standard_ids(job)
-        if str(i).isdigit() and int(i) in registered
-    ]
+    named = [int(str(i)) for i in _requested_standard_ids(job) if str(i).isdigit()]
+    out = [registered[i] for i in named if i in registered]
     if not out:
         out = _listed_standards(registered, r)
     return [_standard_json(standard) for standard in out]
@@ -284,7 +296,7 @@ def _job_and_order(
     return job, order
 
 
-def record_conformity(store: Store, record: CalibrationRecord) -> dict[str, Any] | None:
+def record_conformity(store: Store, record: CalibrationRecord) -> ConformityJson | None:
     """The statements of conformity the record's order asks for (None without a specification), as
     records, orders and the feed show them: the same figures its certificate states."""
     job, order = _job_and_order(store, record)
@@ -295,7 +307,7 @@ def record_conformity(store: Store, record: CalibrationRecord) -> dict[str, Any]
     facts = _record_json(record)
     named = standards_of(_standards_of(store, record, job), _performed_on(record, job))
     found = found_as(points, named, facts["conditions"])
-    params = parameter_figures(parameter_result(record.model, facts["budget"]))
+    params = parameter_figures(parameter_result(facts["model"], facts["budget"]))
     return assess(spec, found, params).as_json()
 
 
@@ -327,14 +339,14 @@ def _approval_content(approval: RecordApproval) -> Approval:
     )
 
 
-def _order_json(order: Order | None) -> dict[str, Any] | None:
+def _order_json(order: Order | None) -> OrderFacts | None:
     """What the certificate's content reads of the order, None for an in-house calibration."""
     if order is None:
         return None
     return {
         "lims_order_id": order.lims_order_id,
         "item_serial": order.item_serial,
-        "customer": order.customer,
+        "customer": cast(CustomerFacts, order.customer),
         "item_manufacturer": order.item_manufacturer,
         "item_model": order.item_model,
     }

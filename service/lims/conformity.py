@@ -19,7 +19,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any
+from typing import TypedDict
 
 from scipy import special
 
@@ -181,44 +181,81 @@ class ParameterFigure:
     unit: str
 
 
+class AxisVerdicts(TypedDict, total=False):
+    """The statement's word per axis's indication error (None: not assessable)."""
+
+    x: str | None
+    y: str | None
+
+
+class WorstPoint(TypedDict):
+    """The error and its expanded uncertainty at the point a quantity's statement rests on."""
+
+    error: float
+    expanded_uncertainty: float
+    unit: str
+
+
+class ConformityJson(AxisVerdicts):
+    """The statements of conformity as records, orders, the feed and webhooks show them: the word
+    per axis, the specification's rule and limit, the word per named parameter (None when the
+    specification names none), and per decided quantity the largest probability of false
+    acceptance and the worst point."""
+
+    decision_rule: str
+    max_permissible_error_deg: float
+    guard_band_fraction: float | None
+    parameters: dict[str, str | None] | None
+    largest_probability_of_false_acceptance: dict[str, float | None]
+    worst_point: dict[str, WorstPoint]
+
+
 @dataclass(frozen=True)
 class ConformityReport:
     specification: Specification
     quantities: tuple[QuantityDecision, ...]
 
-    def as_json(self) -> dict[str, Any]:
+    def as_json(self) -> ConformityJson:
         """As records, orders, the feed and webhooks show it."""
         spec = self.specification
-        out: dict[str, Any] = _verdicts(self.quantities, on_axes=True)
-        out.update(
-            {
-                "decision_rule": spec.decision_rule.value,
-                "max_permissible_error_deg": spec.max_permissible_error_deg,
-                "guard_band_fraction": spec.guard_band_fraction
-                if spec.decision_rule is DecisionRule.GUARDED_ACCEPTANCE
-                else None,
-                "parameters": _verdicts(self.quantities, on_axes=False)
-                if spec.parameters
-                else None,
-            }
-        )
         decided = [
             (quantity.quantity, quantity.decision, quantity.unit)
             for quantity in self.quantities
             if quantity.decision
         ]
-        out["largest_probability_of_false_acceptance"] = {
-            name: decision.largest_false_acceptance for name, decision, _ in decided
+        return {
+            **_axis_verdicts(self.quantities),
+            "decision_rule": spec.decision_rule.value,
+            "max_permissible_error_deg": spec.max_permissible_error_deg,
+            "guard_band_fraction": spec.guard_band_fraction
+            if spec.decision_rule is DecisionRule.GUARDED_ACCEPTANCE
+            else None,
+            "parameters": _verdicts(self.quantities, on_axes=False) if spec.parameters else None,
+            "largest_probability_of_false_acceptance": {
+                name: decision.largest_false_acceptance for name, decision, _ in decided
+            },
+            "worst_point": {
+                name: {
+                    "error": decision.worst_error,
+                    "expanded_uncertainty": decision.worst_expanded_u,
+                    "unit": unit,
+                }
+                for name, decision, unit in decided
+            },
         }
-        out["worst_point"] = {
-            name: {
-                "error": decision.worst_error,
-                "expanded_uncertainty": decision.worst_expanded_u,
-                "unit": unit,
-            }
-            for name, decision, unit in decided
-        }
-        return out
+
+
+def _axis_verdicts(quantities: Sequence[QuantityDecision]) -> AxisVerdicts:
+    """The statement's word per axis (None: not assessable), in the order of the quantities."""
+    out: AxisVerdicts = {}
+    for quantity in quantities:
+        word = quantity.decision.conformity.value if quantity.decision else None
+        # the axes of AXES
+        if quantity.quantity == "x":
+            out["x"] = word
+        elif quantity.quantity == "y":
+            out["y"] = word
+    return out
 
 
 def _verdicts(quantities: Sequence[QuantityDecision], *, on_axes: bool) -> dict[str, str | None]:

@@ -11,9 +11,14 @@ import datetime as dt
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
-from service.calibration.budget import Component, current_names, model_dof, standard_component
+from service.calibration.budget import (
+    Component,
+    UncertaintyBudget,
+    current_names,
+    model_dof,
+    standard_component,
+)
 from service.calibration.uncertainty import COVERAGE, coverage_factor
 from service.lims import dcc
 from service.lims.as_found import AXES, AxisAsFound, MeasuredPoint, as_found, single_reading_noise
@@ -39,6 +44,15 @@ from service.lims.content_results import (
     validation_result,
 )
 from service.lims.dcc_numbers import gum_pair
+from service.lims.facts import (
+    CalibrationPoint,
+    DeviceFacts,
+    OrderFacts,
+    RecordConditions,
+    RecordFacts,
+    StandardFacts,
+    StatedRange,
+)
 from service.storage.specification import DecisionRule, Specification
 from service.storage.tokens import Person
 
@@ -128,7 +142,7 @@ class Approval:
     signer: Person | None = None  # the person behind the actor's token when they signed
 
 
-def _date(value: Any) -> dt.date:
+def _date(value: dt.date | str) -> dt.date:
     if isinstance(value, dt.datetime):
         return value.astimezone(dt.UTC).date()
     if isinstance(value, dt.date):
@@ -137,7 +151,7 @@ def _date(value: Any) -> dt.date:
 
 
 def _item_identifications(
-    device: Mapping[str, Any], order: Mapping[str, Any] | None, reported: bool
+    device: DeviceFacts, order: OrderFacts | None, reported: bool
 ) -> list[dcc.Identification]:
     """The order's item serial, then the instrument's own where it reports a different one; the
     laboratory's device record only when neither names the item."""
@@ -161,17 +175,17 @@ def _item_identifications(
     return ids
 
 
-def item_of(device: Mapping[str, Any], order: Mapping[str, Any] | None) -> dcc.Item:
+def item_of(device: DeviceFacts, order: OrderFacts | None) -> dcc.Item:
     """What identifies the item: the order's item serial, and the instrument's own serial where it
     reports one; manufacturer and model from the order, else from the instrument's identification.
     Never a port or role."""
     # only an instrument that answers an identification states these
     reported = bool(device.get("firmware"))
     ids = _item_identifications(device, order, reported)
-    model = (order or {}).get("item_model") or (
-        str(device["model"]) if reported and device.get("model") else None
-    )
-    maker = (order or {}).get("item_manufacturer") or device.get("manufacturer") or None
+    stated_model = order.get("item_model") if order else None
+    model = stated_model or (str(device["model"]) if reported and device.get("model") else None)
+    stated_maker = order.get("item_manufacturer") if order else None
+    maker = stated_maker or device.get("manufacturer") or None
     return dcc.Item(
         name=f"inclinometer {model}" if model else "inclinometer",
         identifications=tuple(ids),
@@ -182,7 +196,7 @@ def item_of(device: Mapping[str, Any], order: Mapping[str, Any] | None) -> dcc.I
 
 
 def standards_of(
-    rows: Iterable[Mapping[str, Any]], performed_on: dt.date | None = None
+    rows: Iterable[StandardFacts], performed_on: dt.date | None = None
 ) -> tuple[dcc.ReferenceStandard, ...]:
     """The reference standards as the certificate names them; `performed_on`: the day the
     calibration began."""
@@ -419,10 +433,10 @@ def parameter_figures(params: dcc.Result) -> dict[str, ParameterFigure]:
 
 def _point_results(
     measured_points: Sequence[MeasuredPoint],
-    calibration_points: Sequence[Mapping[str, Any]],
+    calibration_points: Sequence[CalibrationPoint],
     standards: Sequence[dcc.ReferenceStandard],
-    conditions: Mapping[str, Any],
-    stated_range: Mapping[str, Any] | None,
+    conditions: RecordConditions,
+    stated_range: StatedRange | None,
 ) -> tuple[list[dcc.Result], dict[str, AxisAsFound] | None]:
     """The calibration points and, for a stage job's measured points, the indication errors as
     found; with those errors, which statements of conformity rest on (None without measured
@@ -437,8 +451,8 @@ def _point_results(
 
 
 def _budget_stated(
-    budget: Mapping[str, Any] | None,
-    conditions: Mapping[str, Any],
+    budget: UncertaintyBudget | None,
+    conditions: RecordConditions,
     measured_points: Sequence[MeasuredPoint],
 ) -> dcc.Result | None:
     """The uncertainty budget, with a single reading's U where the calibration points state how
@@ -453,7 +467,7 @@ def _budget_stated(
 
 
 def _influence_conditions(
-    record: Mapping[str, Any], budget: Mapping[str, Any] | None, conditions: Mapping[str, Any]
+    record: RecordFacts, budget: UncertaintyBudget | None, conditions: RecordConditions
 ) -> list[dcc.Condition]:
     """The laboratory's ambient conditions, then the item's internal temperature, where the record
     states them."""
@@ -462,7 +476,7 @@ def _influence_conditions(
     ]
 
 
-def _customer(order: Mapping[str, Any]) -> dcc.Contact:
+def _customer(order: OrderFacts) -> dcc.Contact:
     """The customer the order names."""
     customer = order["customer"]
     return dcc.Contact(
@@ -478,7 +492,7 @@ def _customer(order: Mapping[str, Any]) -> dcc.Contact:
 
 
 def _record_identifications(
-    record: Mapping[str, Any], approval: Approval, order: Mapping[str, Any] | None
+    record: RecordFacts, approval: Approval, order: OrderFacts | None
 ) -> list[dcc.Identification]:
     """What ties the certificate to its order, the record (version and hash) and the approval."""
     ids = [
@@ -499,7 +513,7 @@ def _record_identifications(
     return ids
 
 
-def _statements(approval: Approval, order: Mapping[str, Any] | None) -> list[str | dcc.Statement]:
+def _statements(approval: Approval, order: OrderFacts | None) -> list[str | dcc.Statement]:
     """The statements every certificate makes: how uncertainties are stated, who authorised it,
     traceability; and that a calibration without an order is in-house."""
     signer = approval.signer
@@ -550,18 +564,18 @@ def _conformity_stated(
 def build_certificate(
     *,
     number: str,
-    record: Mapping[str, Any],
-    device: Mapping[str, Any],
+    record: RecordFacts,
+    device: DeviceFacts,
     approval: Approval,
     operator: str,
     laboratory: Laboratory,
     software_version: str,
     issued_on: dt.date,
     begin_on: dt.date,
-    standards: Sequence[Mapping[str, Any]] = (),
-    order: Mapping[str, Any] | None = None,
+    standards: Sequence[StandardFacts] = (),
+    order: OrderFacts | None = None,
     replaces: str | None = None,
-    calibration_points: Sequence[Mapping[str, Any]] = (),
+    calibration_points: Sequence[CalibrationPoint] = (),
     measured_points: Sequence[MeasuredPoint] = (),
     operator_person: Person | None = None,
     job_id: int | None = None,
@@ -642,7 +656,7 @@ def build_certificate(
 def found_as(
     points: Sequence[MeasuredPoint],
     standards: Sequence[dcc.ReferenceStandard],
-    conditions: Mapping[str, Any],
+    conditions: RecordConditions,
 ) -> dict[str, AxisAsFound]:
     """The indication errors as found at a stage job's points, with the standards' u = U/k in the
     reference values and the sensors' resolutions the record's conditions state."""

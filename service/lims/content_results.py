@@ -11,16 +11,35 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any, NamedTuple, cast
+from typing import Literal, NamedTuple, cast
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import special
 
-from service.calibration.budget import Component, combine, model_dof, reading_components
+from service.calibration.budget import (
+    BudgetResult,
+    Component,
+    TemperatureStats,
+    UncertaintyBudget,
+    combine,
+    model_dof,
+    reading_components,
+)
 from service.calibration.uncertainty import COVERAGE, coverage_factor, dof_of_coverage_factor
 from service.lims import dcc
 from service.lims.as_found import AXES, AxisAsFound, MeasuredPoint, Uncertain
+from service.lims.facts import (
+    AmbientCondition,
+    CalibrationPoint,
+    ModelDocument,
+    ModelParameter,
+    RecordConditions,
+    RecordFacts,
+    StatedRange,
+    Validation,
+    ValidationPoint,
+)
 
 
 class CertificateRefused(ValueError):
@@ -39,7 +58,7 @@ def _dof_text(dof: float | None) -> str:
     )
 
 
-def bench_parameters(model: Mapping[str, Any]) -> set[str]:
+def bench_parameters(model: ModelDocument) -> set[str]:
     """The parameters that describe the bench (stage scales, desk tilt, the reference's mounting),
     not the item."""
     return set((model.get("state") or {}).get("chain_parameters") or [])
@@ -63,7 +82,7 @@ class _Fit(NamedTuple):
     k: float
 
 
-def _fit_of(model: Mapping[str, Any], probability: float) -> _Fit:
+def _fit_of(model: ModelDocument, probability: float) -> _Fit:
     """The fit's covariance, symmetrised, with its degrees of freedom and k (no names without a
     covariance)."""
     cov = model.get("covariance") or None
@@ -77,8 +96,8 @@ def _fit_of(model: Mapping[str, Any], probability: float) -> _Fit:
 
 def _parameter_value(
     name: str,
-    param: Mapping[str, Any],
-    from_budget: Mapping[str, Mapping[str, Any]],
+    param: ModelParameter,
+    from_budget: Mapping[str, BudgetResult],
     fit: _Fit,
     probability: float,
 ) -> tuple[dcc.Value, bool]:
@@ -135,8 +154,8 @@ def _parameter_value(
 
 def _parameter_covariance(
     fitted: Sequence[str],
-    params: Mapping[str, Any],
-    from_budget: Mapping[str, Mapping[str, Any]],
+    params: Mapping[str, ModelParameter],
+    from_budget: Mapping[str, BudgetResult],
     fit: _Fit,
     probability: float,
 ) -> dcc.Covariance:
@@ -187,7 +206,7 @@ def _parameters_description(left_out: Sequence[str]) -> str:
 
 
 def parameter_result(
-    model: Mapping[str, Any], budget: Mapping[str, Any] | None, probability: float = COVERAGE
+    model: ModelDocument, budget: UncertaintyBudget | None, probability: float = COVERAGE
 ) -> dcc.Result:
     """The item's parameters with expanded uncertainties, and as one vector with their covariance.
 
@@ -197,7 +216,7 @@ def parameter_result(
     params = model.get("parameters") or {}
     bench = bench_parameters(model)
     fit = _fit_of(model, probability)
-    from_budget = {entry["quantity"]: entry for entry in (budget or {}).get("results") or []}
+    from_budget = {entry["quantity"]: entry for entry in _results_of(budget)}
     values: list[dcc.Value] = []
     fitted: list[str] = []
     for name, param in params.items():
@@ -220,7 +239,7 @@ def parameter_result(
     )
 
 
-def _quantities(points: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
+def _quantities(points: Sequence[ValidationPoint]) -> list[tuple[str, str]]:
     """(quantity, unit) pairs that every validation point gives as reference_<q>_<unit> and
     measured_<q>_<unit>."""
     first = points[0]
@@ -234,20 +253,24 @@ def _quantities(points: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
     return out
 
 
-def _validation_summary(validation: Mapping[str, Any]) -> list[dcc.Value]:
+def _validation_summary(validation: Validation) -> list[dcc.Value]:
     """The validation's summary figures it states: RMS and largest |error|, number of points."""
     summary = []
-    for key, name in (("rms_deg", "RMS of the errors"), ("max_deg", "largest |error|")):
-        if isinstance(validation.get(key), int | float):
-            summary.append(
-                dcc.Value(key, name, float(validation[key]), "deg", ref_type="tiltlab_summary")
-            )
-    if isinstance(validation.get("n_points"), int):
+    figures: tuple[tuple[Literal["rms_deg", "max_deg"], str], ...] = (
+        ("rms_deg", "RMS of the errors"),
+        ("max_deg", "largest |error|"),
+    )
+    for key, name in figures:
+        figure = validation.get(key)
+        if isinstance(figure, int | float):
+            summary.append(dcc.Value(key, name, float(figure), "deg", ref_type="tiltlab_summary"))
+    n_points = validation.get("n_points")
+    if isinstance(n_points, int):
         summary.append(
             dcc.Value(
                 "n_points",
                 "validation points",
-                float(validation["n_points"]),
+                float(n_points),
                 "1",
                 ref_type="tiltlab_summary",
             )
@@ -256,10 +279,10 @@ def _validation_summary(validation: Mapping[str, Any]) -> list[dcc.Value]:
 
 
 def _stated_uncertainty(
-    points: Sequence[Mapping[str, Any]],
+    points: Sequence[ValidationPoint],
     quantity: str,
     unit: str,
-    validation: Mapping[str, Any],
+    validation: Validation,
     k_bound: float | None,
 ) -> tuple[tuple[float, ...] | None, tuple[float, ...] | None]:
     """Each point's U of the measured value and its k as the points state them (None unless every
@@ -294,10 +317,10 @@ def _with_budget(
 
 
 def _validation_columns(
-    points: Sequence[Mapping[str, Any]],
+    points: Sequence[ValidationPoint],
     quantity: str,
     unit: str,
-    validation: Mapping[str, Any],
+    validation: Validation,
     k_bound: float | None,
     others: Sequence[Component],
     probability: float,
@@ -370,10 +393,10 @@ def _validation_description(others: Sequence[Component], k_bound: float | None) 
 
 
 def validation_result(
-    validation: Mapping[str, Any],
+    validation: Validation,
     probability: float = COVERAGE,
     k_bound: float | None = None,
-    budget: Mapping[str, Any] | None = None,
+    budget: UncertaintyBudget | None = None,
 ) -> dcc.Result | None:
     """The validation table (reference, measured, error, each with its expanded uncertainty) and its
     summary.
@@ -412,7 +435,7 @@ def validation_result(
 
 
 def calibration_points_result(
-    points: Sequence[Mapping[str, Any]], stated_range: Mapping[str, Any] | None = None
+    points: Sequence[CalibrationPoint], stated_range: StatedRange | None = None
 ) -> dcc.Result | None:
     """The calibrated range (stated by the record, else the points' extremes of each reference
     quantity) and the calibration points themselves: one column per `<quantity>_<unit>` key of the
@@ -447,7 +470,7 @@ def calibration_points_result(
     )
 
 
-def _ranges(stated_range: Mapping[str, Any] | None) -> dict[str, tuple[float, float]]:
+def _ranges(stated_range: StatedRange | None) -> dict[str, tuple[float, float]]:
     ranges: dict[str, tuple[float, float]] = {}
     for key, span in (stated_range or {}).items():
         if isinstance(span, list | tuple) and len(span) == 2 and "_" in key:
@@ -499,7 +522,7 @@ def _uncertain_column(
 def stage_points_result(
     points: Sequence[MeasuredPoint],
     found: Mapping[str, AxisAsFound],
-    stated_range: Mapping[str, Any] | None = None,
+    stated_range: StatedRange | None = None,
 ) -> dcc.Result | None:
     """The calibrated range and the calibration points of a stage record: at each point the model
     was fitted on, the reference's value and the item's indication, each with its expanded
@@ -618,7 +641,7 @@ NOT_TRACEABLE = "no reference standard: not traceable"
 _COMBINATION = "tiltlab_uncertaintyCombination"
 
 
-def _component_values(entry: Mapping[str, Any]) -> list[dcc.Value]:
+def _component_values(entry: BudgetResult) -> list[dcc.Value]:
     """One result's components, each its standard uncertainty (labelled by source, and by name
     where a source gives several)."""
     unit, quantity = str(entry["unit"]), str(entry["quantity"])
@@ -646,7 +669,7 @@ def _component_values(entry: Mapping[str, Any]) -> list[dcc.Value]:
     return values
 
 
-def _combination_values(entry: Mapping[str, Any]) -> list[dcc.Value]:
+def _combination_values(entry: BudgetResult) -> list[dcc.Value]:
     """One result's combination: u_c, k and U = k·u_c."""
     unit, quantity = str(entry["unit"]), str(entry["quantity"])
     dof = entry.get("dof_eff")
@@ -680,7 +703,7 @@ def _combination_values(entry: Mapping[str, Any]) -> list[dcc.Value]:
 
 
 def _single_reading_value(
-    entry: Mapping[str, Any], readings_per_point: int, s_one: float, nu_one: float
+    entry: BudgetResult, readings_per_point: int, s_one: float, nu_one: float
 ) -> dcc.Value:
     """A corrected tilt's U for a single reading: u_c with one reading's noise beyond that of the
     mean the calibration points took, Welch-Satterthwaite degrees of freedom."""
@@ -735,7 +758,12 @@ def _budget_description(readings_per_point: int | None, traceable: bool) -> str:
     )
 
 
-def _has_reference_standard(entries: Sequence[Mapping[str, Any]]) -> bool:
+def _results_of(budget: UncertaintyBudget | None) -> list[BudgetResult]:
+    """The budget's results (none without a budget)."""
+    return (budget.get("results") if budget else None) or []
+
+
+def _has_reference_standard(entries: Sequence[BudgetResult]) -> bool:
     """Whether a reference standard's uncertainty is in the budget: without one the result is not
     traceable."""
     return any(
@@ -746,7 +774,7 @@ def _has_reference_standard(entries: Sequence[Mapping[str, Any]]) -> bool:
 
 
 def budget_result(
-    budget: Mapping[str, Any] | None,
+    budget: UncertaintyBudget | None,
     readings_per_point: int | None = None,
     single_reading: Mapping[str, tuple[float, float]] | None = None,
 ) -> dcc.Result | None:
@@ -757,7 +785,7 @@ def budget_result(
     U holds for such a mean. `single_reading`: the item's noise of one reading per axis (s, degrees
     of freedom), which gives the U of a single corrected reading beside it.
     """
-    entries = (budget or {}).get("results") or []
+    entries = _results_of(budget)
     if not entries:
         return None
     values: list[dcc.Value] = []
@@ -783,11 +811,11 @@ def budget_result(
 
 
 def temperature_condition(
-    record: Mapping[str, Any], budget: Mapping[str, Any] | None
+    record: RecordFacts, budget: UncertaintyBudget | None
 ) -> dcc.Condition | None:
     """The measurement sensor's internal temperature: its mean, with the range it lay in as a
     rectangular U."""
-    t = (budget or {}).get("temperature") or {}
+    t: TemperatureStats = (budget.get("temperature") if budget else None) or {}
     mean = (
         record.get("temp_c") if isinstance(record.get("temp_c"), int | float) else t.get("mean_c")
     )
@@ -837,7 +865,9 @@ def temperature_condition(
     )
 
 
-AMBIENT = (
+AMBIENT: tuple[
+    tuple[Literal["ambient_temperature_c", "relative_humidity_pct"], str, str, str], ...
+] = (
     ("ambient_temperature_c", "temperature", "degC", "ambient air temperature of the laboratory"),
     ("relative_humidity_pct", "humidity", "%", "relative humidity of the laboratory's air"),
 )
@@ -849,7 +879,7 @@ AMBIENT_SOURCE = {
 
 
 def _ambient_condition(
-    key: str, label: str, unit: str, name: str, stated: Mapping[str, Any]
+    key: str, label: str, unit: str, name: str, stated: AmbientCondition
 ) -> dcc.Condition:
     """One ambient condition as the record states it: its value or mean with its standard
     uncertainty, and the range the readings lay in where the bench's sensor read it."""
@@ -887,13 +917,13 @@ def _ambient_condition(
     )
 
 
-def ambient_conditions(conditions: Mapping[str, Any] | None) -> list[dcc.Condition]:
+def ambient_conditions(conditions: RecordConditions | None) -> list[dcc.Condition]:
     """The laboratory's ambient temperature and relative humidity during the calibration, each with
     its standard uncertainty, where the record states them (from the bench's ambient sensor or the
     job request)."""
     out = []
     for key, label, unit, name in AMBIENT:
-        stated = (conditions or {}).get(key)
+        stated = conditions.get(key) if conditions else None
         if not isinstance(stated, Mapping) or not isinstance(stated.get("value"), int | float):
             continue
         out.append(_ambient_condition(key, label, unit, name, stated))
