@@ -19,16 +19,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from service.commands._args import add_command
 from service.errors import InputError
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
     from pathlib import Path
 
     from service.calibration.model import CalibrationModel
     from service.datasets import Dataset
+    from service.discrepancy.report_types import DiscrepancyReport, ReportInputs
 
 # numpy, the dataset reader and the workflow are imported when the command runs, not by --help.
 
@@ -95,11 +97,11 @@ def _stated_noise(ds: Dataset, nx: str, ny: str) -> list[float] | None:
 def _stage_report(
     args: argparse.Namespace,
     baseline: str,
-    inputs: dict[str, str],
-    prov: dict[str, Any],
+    inputs: ReportInputs,
+    prov: Mapping[str, object],
     out: Path,
     adopt_path: Path | None,
-) -> tuple[dict[str, Any], str, CalibrationModel | None]:
+) -> tuple[DiscrepancyReport, str, CalibrationModel | None]:
     """Stage data: the report, its page, and the calibration with the named effects added when
     --adopt asks for it."""
     from service.discrepancy.stage import stage_diagnosis
@@ -156,8 +158,8 @@ def _stage_report(
 
 
 def _scale_report(
-    args: argparse.Namespace, baseline: str, inputs: dict[str, str], prov: dict[str, Any]
-) -> tuple[dict[str, Any], str]:
+    args: argparse.Namespace, baseline: str, inputs: ReportInputs, prov: Mapping[str, object]
+) -> tuple[DiscrepancyReport, str]:
     """Scale data: the report and its page; the stage-only options are refused."""
     from service.discrepancy.scale import scale_report
     from service.io.datasets import about, read_dataset
@@ -182,18 +184,18 @@ def _scale_report(
         ("point", "temp_c", "t_s", "noise_arcsec"),
     )
     noise_arcsec = _constant_column(ds, "noise_arcsec")
-    from service.discrepancy.report import clean, render_html
+    from service.discrepancy.report import clean_report, render_html
 
     with about(args.input):
         report, result, fam = scale_report(ds.arrays(), noise_arcsec, inputs=inputs)
     report["provenance"] = prov
-    report = clean(report)
+    report = clean_report(report)
     page = render_html(report, result, fam)
     return report, page
 
 
 def _tell_what_was_written(
-    args: argparse.Namespace, kind: str, report: dict[str, Any], out: Path, html_path: Path
+    args: argparse.Namespace, kind: str, report: DiscrepancyReport, out: Path, html_path: Path
 ) -> None:
     """The closing lines on stderr: the chain, the final RMS against the noise, the files, the
     effects skipped, and the bench assumed."""
@@ -219,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
 
     kind = args.kind
     baseline = getattr(args, "baseline", None) or "linear"
-    inputs = {"input": str(args.input)}
+    inputs: ReportInputs = {"input": str(args.input)}
     # Both output paths are checked before the work, so a bad one leaves neither file behind.
     out, html_path, adopt_path = _output_paths(args, kind)
     adopted = None

@@ -9,13 +9,13 @@ term is separable from what the model already holds on the data at hand.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from service.calibration.differences import central_jacobian
+from service.discrepancy.report_types import Magnitude
 from service.errors import DegenerateDataError, FitError
 
 
@@ -113,7 +113,7 @@ class Family:
         value."""
         raise NotImplementedError
 
-    def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
+    def magnitude(self, fit: Fit, effect: str) -> Magnitude:
         """The fitted size of an effect in its own units, with standard uncertainties."""
         raise NotImplementedError
 

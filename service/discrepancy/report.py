@@ -11,11 +11,12 @@ from __future__ import annotations
 import html
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from service.discrepancy.model import Family, Fit
+from service.discrepancy.report_types import CandidateScore, DiscrepancyReport, JSONValue
 from service.discrepancy.scale import ScalePoly
 from service.discrepancy.stage_kinematic_baseline import StageKinematic
 from service.discrepancy.stage_linear_baseline import StageLinear
@@ -27,7 +28,7 @@ if TYPE_CHECKING:
 REPORT_SIGNIFICANT_DIGITS = 8
 
 
-def clean(o: Any) -> Any:
+def clean(o: object) -> JSONValue:
     """JSON-safe: numpy scalars to Python, non-finite numbers to null, 8 significant digits."""
     if isinstance(o, dict):
         return {str(k): clean(value) for k, value in o.items()}
@@ -44,7 +45,14 @@ def clean(o: Any) -> Any:
         return bool(o)
     if isinstance(o, np.ndarray):
         return clean(o.tolist())
-    return o
+    # str, int, bool and None are JSON already (anything else stays for json.dumps to refuse)
+    return cast(JSONValue, o)
+
+
+def clean_report(report: DiscrepancyReport) -> DiscrepancyReport:
+    """`clean` over a whole report: the same keys in the same order, its numbers Python's, to 8
+    significant digits (a non-finite one null, which the report's types do not spell out)."""
+    return cast(DiscrepancyReport, clean(report))
 
 
 def _figure(w: float, h: float, rows: int = 1, cols: int = 1, **_margins: float) -> tuple[Any, Any]:
@@ -60,11 +68,11 @@ def _img(uri: str, alt: str) -> str:
     return f'<img src="{uri}" alt="{html.escape(alt)}">'
 
 
-def _labels(report: dict[str, Any]) -> list[str]:
+def _labels(report: DiscrepancyReport) -> list[str]:
     return [report["baseline"]] + [f"+ {step['effect']}" for step in report["steps"]]
 
 
-def _rms_figure(report: dict[str, Any]) -> str:
+def _rms_figure(report: DiscrepancyReport) -> str:
     labels = _labels(report)
     rms = np.array([report["baseline_rms"]] + [step["rms_after"] for step in report["steps"]])
     noise = np.array(report["noise_level"])
@@ -167,7 +175,7 @@ def _scale_plots(fam: ScalePoly, fits: Sequence[Fit], titles: Sequence[str], uni
     return _png(fig)
 
 
-def _histogram(report: dict[str, Any], fit: Fit) -> str:
+def _histogram(report: DiscrepancyReport, fit: Fit) -> str:
     resid = fit.residuals
     noise = np.array(report["noise_level"])
     fig, axs = _figure(
@@ -222,7 +230,7 @@ _esc = html.escape
 _CANDIDATE_HEAD = ["statistic", "p", "ΔBIC", "significant"]
 
 
-def render_html(report: dict[str, Any], result: Result, fam: Family) -> str:
+def render_html(report: DiscrepancyReport, result: Result, fam: Family) -> str:
     """The whole page as one string (no external resources)."""
     unit = report["unit"]
     parts = [
@@ -241,7 +249,7 @@ def render_html(report: dict[str, Any], result: Result, fam: Family) -> str:
     return "\n".join(parts)
 
 
-def _summary_section(report: dict[str, Any], unit: str) -> list[str]:
+def _summary_section(report: DiscrepancyReport, unit: str) -> list[str]:
     """The page's top: the data, the conclusion, the chain of named effects, why it stopped,
     the noise level and the bench."""
     parts = [f"<h1>Where the {_esc(report['baseline'])} model and the measurement disagree</h1>"]
@@ -266,7 +274,8 @@ def _summary_section(report: dict[str, Any], unit: str) -> list[str]:
     )
     if (bench := report.get("bench")) is not None:
         parts.append(
-            f"<p><b>Bench</b> ({_esc(bench['source'])}): upper {bench['upper_gear_ratio']:g}:1, "
+            f"<p><b>Bench</b> ({_esc(str(bench['source']))}): "
+            f"upper {bench['upper_gear_ratio']:g}:1, "
             f"lower {bench['lower_gear_ratio']:g}:1, {bench['microsteps']} microsteps of "
             f"{bench['step_angle_deg']:g}°; worm periods {bench['worm_period_x_deg']:.6g}° / "
             f"{bench['worm_period_y_deg']:.6g}°</p>"
@@ -274,7 +283,7 @@ def _summary_section(report: dict[str, Any], unit: str) -> list[str]:
     return parts
 
 
-def _chain_table(report: dict[str, Any], unit: str) -> str:
+def _chain_table(report: DiscrepancyReport, unit: str) -> str:
     """One row per named effect: its size, the RMS it took away and the test that named it."""
     rows = []
     for i, step in enumerate(report["steps"], 1):
@@ -310,7 +319,7 @@ def _chain_table(report: dict[str, Any], unit: str) -> str:
     )
 
 
-def _where_section(report: dict[str, Any]) -> list[str]:
+def _where_section(report: DiscrepancyReport) -> list[str]:
     """Where the disagreement was before the first step, and what is left after the last."""
     parts = ["<h2>Where they disagree</h2><p>Before the first step (strongest first):</p><ul>"]
     parts += [f"<li>{_esc(where)}</li>" for where in report["where"]]
@@ -321,7 +330,9 @@ def _where_section(report: dict[str, Any]) -> list[str]:
     return parts
 
 
-def _residuals_section(report: dict[str, Any], result: Result, fam: Family, unit: str) -> list[str]:
+def _residuals_section(
+    report: DiscrepancyReport, result: Result, fam: Family, unit: str
+) -> list[str]:
     """The residual figures of every stage of the chain, drawn as the data kind is read."""
     parts = ["<h2>Residuals before and after each step</h2>"]
     titles = [f"baseline {report['baseline']}"] + [
@@ -335,22 +346,33 @@ def _residuals_section(report: dict[str, Any], result: Result, fam: Family, unit
     return parts
 
 
-def _candidate_rows(candidates: list[dict[str, Any]]) -> list[list[str]]:
+def _candidate_rows(candidates: list[CandidateScore]) -> list[list[str]]:
     """The candidates one step tried, as table rows (the same for every step and the last)."""
-    return [
-        [
+    return [_candidate_row(candidate) for candidate in candidates]
+
+
+def _candidate_row(candidate: CandidateScore) -> list[str]:
+    """One candidate's row: its figures and whether it was significant, or why its refit failed."""
+    if "significant" not in candidate:  # the refit failed: no figures, the reason
+        return [
             candidate["effect"],
-            _fmt(candidate.get("rms_after")),
-            _fmt(candidate.get("f_stat")),
-            _p(candidate.get("p_value")),
-            _fmt(candidate.get("delta_bic")),
-            "yes" if candidate.get("significant") else candidate.get("error", "no"),
+            _fmt(None),
+            _fmt(None),
+            _p(None),
+            _fmt(None),
+            candidate["error"],
         ]
-        for candidate in candidates
+    return [
+        candidate["effect"],
+        _fmt(candidate["rms_after"]),
+        _fmt(candidate["f_stat"]),
+        _p(candidate["p_value"]),
+        _fmt(candidate["delta_bic"]),
+        "yes" if candidate["significant"] else "no",
     ]
 
 
-def _candidates_section(report: dict[str, Any], unit: str) -> list[str]:
+def _candidates_section(report: DiscrepancyReport, unit: str) -> list[str]:
     """What each step tried (folded), and the last step's candidates, none significant (open)."""
     parts = ["<h2>Candidates at each step</h2>"]
     for i, step in enumerate(report["steps"], 1):
@@ -370,7 +392,7 @@ def _candidates_section(report: dict[str, Any], unit: str) -> list[str]:
     return parts
 
 
-def _not_tested_section(report: dict[str, Any]) -> list[str]:
+def _not_tested_section(report: DiscrepancyReport) -> list[str]:
     """What the workflow did not test and why, its notes, and how significance was judged."""
     parts = ["<h2>Not tested</h2>"]
     if report["skipped"]:
@@ -398,7 +420,7 @@ def _not_tested_section(report: dict[str, Any]) -> list[str]:
     return parts
 
 
-def _provenance_section(report: dict[str, Any]) -> list[str]:
+def _provenance_section(report: DiscrepancyReport) -> list[str]:
     """Where the report came from, when it says (nothing otherwise)."""
     if prov := report.get("provenance"):
         from service.io.provenance import provenance_lines

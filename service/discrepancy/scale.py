@@ -11,7 +11,6 @@ varies. Residuals are in arcsec.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -19,6 +18,12 @@ from numpy.typing import ArrayLike, NDArray
 from service.discrepancy import noise as noise_mod
 from service.discrepancy import stats
 from service.discrepancy.model import Block, Family, Fit
+from service.discrepancy.report_types import (
+    BaselineLine,
+    DiscrepancyReport,
+    MagnitudeEntry,
+    ReportInputs,
+)
 from service.discrepancy.stage_data import TEMP_MIN_SPAN_K
 from service.discrepancy.workflow import DEFAULT_ALPHA, Result, find_missing_effects, to_report
 from service.errors import InputError
@@ -91,7 +96,7 @@ class ScalePoly(Family):
             y = y + p["temperature_drift"].get("arcsec_per_k", 0.0) * self.dT
         return y.reshape(-1, 1)
 
-    def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
+    def magnitude(self, fit: Fit, effect: str) -> dict[str, MagnitudeEntry | int]:
         occ = sum(1 for block in fit.blocks if block.effect == effect) - 1
         sl = fit.block_slice(effect, occ)
         blk = fit.block(effect, occ)
@@ -111,7 +116,7 @@ class ScalePoly(Family):
         line = np.polyval(np.polyfit(self.z, zj, 1), self.z)
         dep = np.abs(zj - line)
         peak = float(np.max(dep))
-        out = {
+        out: dict[str, MagnitudeEntry | int] = {
             f"c{j}_arcsec_per_count{j}": {
                 "value": value / self.half**j,
                 "uncertainty": uncertainty / self.half**j,
@@ -138,7 +143,7 @@ class ScalePoly(Family):
             }
         return out
 
-    def baseline_line(self, fit: Fit) -> dict[str, Any]:
+    def baseline_line(self, fit: Fit) -> BaselineLine:
         c0, c1 = fit.values[fit.block_slice("baseline")]
         std = np.sqrt(np.maximum(np.diag(fit.covariance[:2, :2]), 0.0))
         return {
@@ -279,8 +284,8 @@ def scale_report(
     columns: Mapping[str, NDArray[np.float64]],
     noise_sigma: ArrayLike | None = None,
     alpha: float = DEFAULT_ALPHA,
-    inputs: dict[str, Any] | None = None,
-) -> tuple[dict[str, Any], Result, ScalePoly]:
+    inputs: ReportInputs | None = None,
+) -> tuple[DiscrepancyReport, Result, ScalePoly]:
     res, fam = analyse_scale(columns, noise_sigma, alpha)
     rep = to_report(res, fam, {"n_rows": int(fam.reading.size), **(inputs or {})})
     return rep, res, fam

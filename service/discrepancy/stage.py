@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.discrepancy import noise as noise_mod
 from service.discrepancy.model import Family
+from service.discrepancy.report_types import DiscrepancyReport, ReportExtra, ReportInputs
 from service.discrepancy.stage_data import (
     StageData,
     common_skips,
@@ -142,7 +143,8 @@ def analyse_stage(
     res.extra["bench"] = data.bench.record(
         bench_source or (ASSUMED_BENCH_SOURCE if bench is None else "stated by the caller")
     )
-    res.extra.update(getattr(fam, "report_extra", {}))
+    extra: ReportExtra = getattr(fam, "report_extra", ReportExtra())  # the kinematic baseline's
+    res.extra.update(extra)
     return res, fam
 
 
@@ -153,9 +155,9 @@ def stage_report(
     noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None,
     bench: StageBench | None = None,
     alpha: float = DEFAULT_ALPHA,
-    inputs: dict[str, Any] | None = None,
+    inputs: ReportInputs | None = None,
     bench_source: str | None = None,
-) -> tuple[dict[str, Any], Result, Family]:
+) -> tuple[DiscrepancyReport, Result, Family]:
     res, fam = analyse_stage(
         columns, sensor, baseline, noise_sigma, bench, alpha, bench_source=bench_source
     )
@@ -169,19 +171,19 @@ def stage_diagnosis(
     baseline: str = "linear",
     noise_sigma: ArrayLike | noise_mod.NoiseLevel | None = None,
     bench: StageBench | None = None,
-    inputs: dict[str, Any] | None = None,
+    inputs: ReportInputs | None = None,
     bench_source: str | None = None,
-    provenance: dict[str, Any] | None = None,
-) -> tuple[dict[str, Any], str, Result, Family]:
+    provenance: Mapping[str, object] | None = None,
+) -> tuple[DiscrepancyReport, str, Result, Family]:
     """The whole workflow on stage columns as `tiltlab discrepancy` and the daemon's diagnosis run
     it: the JSON-ready report (with its provenance) and its HTML page, plus the result and fitted
     family behind them."""
-    from service.discrepancy.report import clean, render_html
+    from service.discrepancy.report import clean_report, render_html
 
     report, result, fam = stage_report(
         columns, sensor, baseline, noise_sigma, bench, inputs=inputs, bench_source=bench_source
     )
     if provenance is not None:
         report["provenance"] = provenance
-    report = clean(report)
+    report = clean_report(report)
     return report, render_html(report, result, fam), result, fam

@@ -18,13 +18,13 @@ stage scale to first order (they differ only through the off-axis coupling).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.calibration.stage_effect_fit import StageEffectModel, StagePoints, typical_scale
 from service.discrepancy.model import Block, Family, Fit
+from service.discrepancy.report_types import Magnitude, ReportExtra
 from service.discrepancy.stage_data import (
     STAGE_SEPARABILITY_HINTS,
     StageData,
@@ -135,7 +135,7 @@ class StageKinematic(Family):
         self.geometry_keys = geometry_params(data.sensor)
         self.names = sensor_param_names(data.sensor)
         self._geo_cache: tuple[tuple[object, ...], StageGeometry] | None = None
-        self.report_extra = {
+        self.report_extra: ReportExtra = {
             "kinematic": {
                 "meas_flip": flip,
                 "temp_ref_c": temp_ref,
@@ -213,5 +213,5 @@ class StageKinematic(Family):
         )
         return np.column_stack([sim[output] for output in self.outputs])
 
-    def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
+    def magnitude(self, fit: Fit, effect: str) -> Magnitude:
         return stage_magnitude(self, fit, effect)

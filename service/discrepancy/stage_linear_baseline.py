@@ -18,13 +18,14 @@ sensor yaw and non-orthogonality, mounting tilts, stage-axis misalignment, stage
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.calibration.projective import fit_projective
 from service.discrepancy.model import Block, Family, Fit
+from service.discrepancy.report_types import MagnitudeEntry
 from service.discrepancy.stage_data import (
     STAGE_CANDIDATES,
     STAGE_SEPARABILITY_HINTS,
@@ -206,18 +207,18 @@ class StageLinear(Family):
 
     # -- reporting
     # -----------------------------------------------------------------------------------
-    def magnitude(self, fit: Fit, effect: str) -> dict[str, Any]:
+    def magnitude(self, fit: Fit, effect: str) -> dict[str, MagnitudeEntry]:
         return stage_magnitude(self, fit, effect)
 
 
-def _entry(value: float, std: float, unit: str, doc: str | None = None) -> dict[str, Any]:
-    entry = {"value": float(value), "uncertainty": float(std), "unit": unit}
+def _entry(value: float, std: float, unit: str, doc: str | None = None) -> MagnitudeEntry:
+    entry: MagnitudeEntry = {"value": float(value), "uncertainty": float(std), "unit": unit}
     if doc:
         entry["what"] = doc
     return entry
 
 
-def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
+def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, MagnitudeEntry]:
     """Fitted parameters of one effect, in the registry's names and units where it has them."""
     sl = fit.block_slice(effect)
     blk = fit.block(effect)
@@ -226,7 +227,7 @@ def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
     if effect == "periodic_error":
         return _periodic_magnitude(fam, blk, vals, cov)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    out: dict[str, Any] = {}
+    out: dict[str, MagnitudeEntry] = {}
     for lab, unit, value, sigma in zip(blk.labels, blk.units, vals, std):
         out[lab] = _entry(value, sigma, unit)
     if effect == "offaxis_coupling" and "kappa" in out:
@@ -236,10 +237,10 @@ def stage_magnitude(fam: OnStageData, fit: Fit, effect: str) -> dict[str, Any]:
 
 def _periodic_magnitude(
     fam: OnStageData, blk: Block, vals: NDArray[np.float64], cov: NDArray[np.float64]
-) -> dict[str, Any]:
+) -> dict[str, MagnitudeEntry]:
     """The worm's periodic error as the registry states it (amplitude and phase per stage), not as
     the sine and cosine terms it is fitted by."""
-    out: dict[str, Any] = {}
+    out: dict[str, MagnitudeEntry] = {}
     for ax in ("x", "y"):
         ls, lc = f"{ax}_sin_deg", f"{ax}_cos_deg"
         if ls not in blk.labels or lc not in blk.labels:
@@ -275,7 +276,7 @@ def _amplitude_phase(
     return amp, u_amp, float(np.degrees(np.arctan2(cos_coef, sin_coef))), u_ph
 
 
-def _add_offaxis_peak(fam: OnStageData, out: dict[str, Any]) -> None:
+def _add_offaxis_peak(fam: OnStageData, out: dict[str, MagnitudeEntry]) -> None:
     """Say what κ means and what it amounts to: the largest off-axis error over the grid."""
     out["kappa"]["what"] = "1 = the stacked-stage geometry of seed 000 eq. (9)"
     x, y = fam.data.cmd_x_deg, fam.data.cmd_y_deg

@@ -18,11 +18,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import special
+
+from service.discrepancy.report_types import (
+    GoodnessOfFit,
+    SignificanceJSON,
+    StructureDetail,
+    StructureTestJSON,
+)
 
 
 def chi2_sf(x: float, k: float) -> float:
@@ -86,7 +92,7 @@ class Significance:
     def significant(self) -> bool:
         return bool(self.p_value < self.alpha and self.delta_bic < 0.0)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> SignificanceJSON:
         return {
             "delta_rss_weighted": self.delta_rss,
             "df_added": self.df_added,
@@ -156,7 +162,7 @@ def nested_test(
     )
 
 
-def goodness_of_fit(rss_w: float, dof: int, noise_df: float) -> dict[str, Any]:
+def goodness_of_fit(rss_w: float, dof: int, noise_df: float) -> GoodnessOfFit:
     """Is the final residual consistent with the noise level? (chi-square or F of the variance
     ratio)."""
     if dof <= 0:
@@ -177,11 +183,11 @@ class StructureTest:
     statistic: float
     p_value: float
     sentence: str
-    detail: dict[str, Any] = field(default_factory=dict)
+    detail: StructureDetail = field(default_factory=lambda: StructureDetail())
     significant: bool = False
 
-    def as_dict(self) -> dict[str, Any]:
-        return {
+    def as_dict(self) -> StructureTestJSON:
+        out: StructureTestJSON = {
             "axis": self.axis,
             "covariate": self.covariate,
             "test": self.test,
@@ -189,8 +195,10 @@ class StructureTest:
             "p_value": self.p_value,
             "significant": self.significant,
             "sentence": self.sentence,
-            **({"detail": self.detail} if self.detail else {}),
         }
+        if self.detail:
+            out["detail"] = self.detail
+        return out
 
 
 def _ols_f(

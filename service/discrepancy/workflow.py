@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +21,17 @@ from numpy.typing import NDArray
 from service.discrepancy import stats
 from service.discrepancy.model import Family, Fit
 from service.discrepancy.noise import NoiseLevel, from_residual
+from service.discrepancy.report_types import (
+    CandidateScore,
+    DiscrepancyReport,
+    EffectReason,
+    FinalVsNoise,
+    GoodnessOfFit,
+    Magnitude,
+    ReportExtra,
+    ReportInputs,
+    StepReport,
+)
 from service.errors import DegenerateDataError, FitError
 
 DEFAULT_ALPHA = 0.01  # family-wise level of one selection step
@@ -40,7 +50,7 @@ class Step:
     before: Fit
     after: Fit
     significance: stats.Significance
-    scores: list[dict[str, Any]]
+    scores: list[CandidateScore]
     structure_before: list[stats.StructureTest]
     structure_after: list[stats.StructureTest]
 
@@ -55,16 +65,16 @@ class Result:
     axes: tuple[str, ...]
     fits: list[Fit]  # baseline, then after each named effect
     steps: list[Step]
-    skipped: list[dict[str, Any]]
-    already_in_model: list[dict[str, Any]]
+    skipped: list[EffectReason]
+    already_in_model: list[EffectReason]
     notes: list[str]
     noise: NoiseLevel
-    stop_scores: list[dict[str, Any]]
+    stop_scores: list[CandidateScore]
     stop_reason: str
     structure_final: list[stats.StructureTest]
     where_first: list[str]
     alpha: float
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: ReportExtra = field(default_factory=lambda: ReportExtra())
 
     @property
     def final(self) -> Fit:
@@ -107,7 +117,7 @@ def find_missing_effects(
     steps: list[Step] = []
     current = base
     struct_now = structure(current.residuals)
-    stop_scores: list[dict[str, Any]] = []
+    stop_scores: list[CandidateScore] = []
     stop_reason = ""
     while remaining and len(steps) < max_steps:
         testable = _testable(family, current, remaining, skipped)
@@ -152,7 +162,7 @@ def find_missing_effects(
     )
 
 
-def _skips_asked_for(skips: dict[str, str], candidates: tuple[str, ...]) -> list[dict[str, Any]]:
+def _skips_asked_for(skips: dict[str, str], candidates: tuple[str, ...]) -> list[EffectReason]:
     """The family's up-front skips, as the report lists them, of the candidates asked for."""
     return [
         {"effect": effect, "reason": reason}
@@ -161,7 +171,7 @@ def _skips_asked_for(skips: dict[str, str], candidates: tuple[str, ...]) -> list
     ]
 
 
-def _already_in_model(family: Family) -> list[dict[str, Any]]:
+def _already_in_model(family: Family) -> list[EffectReason]:
     """The effects the baseline represents already, with the reason, as the report lists them."""
     return [
         {"effect": effect, "reason": reason}
@@ -204,7 +214,7 @@ def _separable_candidates(
     candidates: tuple[str, ...],
     skips: dict[str, str],
     explain_drop: Callable[[str, str], str | None] | None,
-    skipped: list[dict[str, Any]],
+    skipped: list[EffectReason],
     notes: list[str],
 ) -> list[str]:
     """The candidates the baseline leaves room for: a candidate none of whose parameters the
@@ -250,7 +260,7 @@ def _drop_notes(
 
 
 def _testable(
-    family: Family, current: Fit, remaining: list[str], skipped: list[dict[str, Any]]
+    family: Family, current: Fit, remaining: list[str], skipped: list[EffectReason]
 ) -> list[str]:
     """The remaining candidates that leave enough residual degrees of freedom to be tested; the
     others are appended to `skipped` with the count that rules them out."""
@@ -283,11 +293,11 @@ def _try_candidates(
     level: float,
     noise_var: float | None,
     noise_df: float,
-) -> tuple[list[tuple[str, Fit | None, stats.Significance]], list[dict[str, Any]]]:
+) -> tuple[list[tuple[str, Fit | None, stats.Significance]], list[CandidateScore]]:
     """One selection step: each testable candidate added to the current model in turn and
     tested at the corrected `level`; what was tried, and the scores the report shows."""
     tried: list[tuple[str, Fit | None, stats.Significance]] = []
-    scores = []
+    scores: list[CandidateScore] = []
     for effect in testable:
         outcome, score = _try_candidate(family, current, effect, level, noise_var, noise_df)
         if outcome is not None:
@@ -303,7 +313,7 @@ def _try_candidate(
     level: float,
     noise_var: float | None,
     noise_df: float,
-) -> tuple[tuple[str, Fit | None, stats.Significance] | None, dict[str, Any]]:
+) -> tuple[tuple[str, Fit | None, stats.Significance] | None, CandidateScore]:
     """Test one candidate: the one-step preview first, the nonlinear refit only when the preview
     does not already rule it out (no outcome when the refit fails)."""
     try:
@@ -389,7 +399,7 @@ def _separability_note(family: Family, effect: str, label: str, frac: float) -> 
     return f"{text}; {hint}" if hint else text
 
 
-def _safe_magnitude(family: Family, fit: Fit, effect: str) -> dict[str, Any]:
+def _safe_magnitude(family: Family, fit: Fit, effect: str) -> Magnitude:
     try:
         return family.magnitude(fit, effect)
     except (KeyError, ValueError, IndexError, ZeroDivisionError, FloatingPointError):
@@ -418,7 +428,7 @@ def _rms(fit: Fit) -> list[float]:
     return [float(value) for value in fit.rms()]
 
 
-def _step_report(family: Family, step: Step) -> dict[str, Any]:
+def _step_report(family: Family, step: Step) -> StepReport:
     """One named effect as the report states it: its size, and the evidence that named it."""
     mag = family.magnitude(step.after, step.effect)
     return {
@@ -440,7 +450,7 @@ def _step_report(family: Family, step: Step) -> dict[str, Any]:
     }
 
 
-def _final_vs_noise(res: Result, sigma: list[float]) -> dict[str, Any]:
+def _final_vs_noise(res: Result, sigma: list[float]) -> FinalVsNoise:
     """Whether the final model leaves only noise: RMS over the noise level per axis, and the
     goodness-of-fit test against it."""
     final = res.final
@@ -461,14 +471,14 @@ def _final_vs_noise(res: Result, sigma: list[float]) -> dict[str, Any]:
     }
 
 
-def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None) -> dict[str, Any]:
+def to_report(res: Result, family: Family, inputs: ReportInputs | None = None) -> DiscrepancyReport:
     """The JSON report of docs/datasets.md (`discrepancy`), plus the evidence behind each step."""
     steps = [_step_report(family, step) for step in res.steps]
     final = res.final
     # the workflow sets it from the final residual when nothing else did
     assert res.noise.sigma is not None
     sigma = [float(value) for value in np.atleast_1d(res.noise.sigma)]
-    report = {
+    report: DiscrepancyReport = {
         "format_version": 1,
         "kind": res.kind,
         "baseline": res.baseline,
@@ -499,7 +509,7 @@ def to_report(res: Result, family: Family, inputs: dict[str, Any] | None = None)
     return report
 
 
-def magnitude_sentence(effect: str, mag: dict[str, Any]) -> str:
+def magnitude_sentence(effect: str, mag: Magnitude) -> str:
     parts = []
     for k, entry in mag.items():
         if not isinstance(entry, dict) or "value" not in entry:
@@ -513,7 +523,7 @@ def _fmt(x: float) -> str:
     return f"{x:.3g}" if x != 0 else "0"
 
 
-def final_sentence(ratio: Sequence[float | None], gof: dict[str, Any], source: str) -> str:
+def final_sentence(ratio: Sequence[float | None], gof: GoodnessOfFit, source: str) -> str:
     rs = ", ".join("n/a" if value is None else f"{value:.2f}" for value in ratio)
     if source == "final residual":
         return (
@@ -529,7 +539,7 @@ def final_sentence(ratio: Sequence[float | None], gof: dict[str, Any], source: s
     return f"final RMS / noise = {rs} per axis; chi-square p = {p_value:.3g}: {verdict}"
 
 
-def conclusion(res: Result, steps: list[dict[str, Any]]) -> str:
+def conclusion(res: Result, steps: list[StepReport]) -> str:
     if steps:
         chain = " → ".join([res.baseline] + [f"+ {step['effect']}" for step in steps])
         first = steps[0]["rms_before"]
