@@ -9,9 +9,9 @@ layout is documented by docs/model.schema.json.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NotRequired, TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,6 +21,170 @@ from service.errors import InputError
 FORMAT_VERSION = 1
 
 
+class ParameterJSON(TypedDict):
+    """A parameter as MODEL.json keeps it: its value (null where not finite) and unit; `fixed` and
+    `note` only when it was held."""
+
+    value: float | None
+    unit: str
+    fixed: NotRequired[bool]
+    note: NotRequired[str]
+
+
+class ResidualColumn(TypedDict):
+    """One residual column's RMS and max |r| (the model's residual unit), and its values where
+    kept."""
+
+    rms: float
+    max_abs: float
+    values: NotRequired[list[float]]
+
+
+class ResidualSummary(TypedDict, total=False):
+    """MODEL.json `residuals`: their unit and each column's summary (empty in a model without
+    them)."""
+
+    unit: str
+    columns: dict[str, ResidualColumn]
+
+
+class StageBenchJSON(TypedDict, total=False):
+    """The stage hardware as a stage model's state keeps it (service.physics.stage.StageBench's
+    fields)."""
+
+    upper_gear_ratio: float
+    lower_gear_ratio: float
+    step_angle_deg: float
+    microsteps: int
+    travel_deg: float
+    meas_flip: str
+    temp_ref_c: float
+
+
+class ReferenceErrorsState(TypedDict):
+    """What a stage model's state keeps of its model of the reference sensor's errors (their
+    parameters are the model's own)."""
+
+    effects: list[str]
+    temp_ref_c: float
+    time_origin_s: float | None
+    time_span_s: float | None
+
+
+class ConstantErrorArc(TypedDict):
+    """Rotation: one branch's θ bias from the outputs' constant errors, a line in θ about the
+    arc's centre (degrees) with its covariance."""
+
+    branch: str
+    centre_deg: float
+    half_width_deg: float
+    coefficients_deg: list[float]
+    coefficient_covariance_deg2: list[list[float]]
+
+
+class TurntableState(TypedDict, total=False):
+    """Turntable models' state: one reading's noise (arcsec) and its degrees of freedom, the fit's
+    degrees of freedom."""
+
+    reading_sigma: float | None
+    reading_sigma_dof: float
+    dof: float
+
+
+class ScaleState(TypedDict, total=False):
+    """Scale models' state: the polynomial's degree, one reading's noise (counts; None without
+    degrees of freedom), the fit's degrees of freedom."""
+
+    degree: int
+    reading_sigma_counts: float | None
+    dof: float
+
+
+class RotationState(TypedDict, total=False):
+    """Rotation models' state: the outputs' noise (`sigma_s`) and, where seen, the θ bias of
+    their constant errors per branch."""
+
+    sigma_s: float | None
+    theta_constant_output_errors: list[ConstantErrorArc]
+
+
+class ReadingNoiseState(TypedDict, total=False):
+    """Stage models: one measurement reading's noise (degrees) and where it comes from; the
+    reference's where the two sensors' noise was separated."""
+
+    meas_reading_standard_uncertainty_deg: float
+    meas_reading_dof: float
+    meas_reading_noise_source: str
+    ref_reading_standard_uncertainty_deg: float
+
+
+class StageState(ReadingNoiseState, total=False):
+    """What every stage model's state keeps: its bench and, with a measurement sensor fitted, the
+    sensor's sign, the fit's residual sigma (degrees) and degrees of freedom."""
+
+    has_meas: bool
+    bench: StageBenchJSON
+    bench_source: str
+    meas_sign: list[float]
+    meas_sigma_deg: float | None
+    meas_dof: float
+
+
+class KinematicState(StageState, total=False):
+    """The kinematic chain's state: whether it corrects, the chain's parameters, the approach
+    direction, and its model of the reference sensor's errors."""
+
+    chain_parameters: list[str]
+    approach: list[float]
+    reference_errors: ReferenceErrorsState
+
+
+class HomographyState(StageState, total=False):
+    """The homography's state: how the off-axis term is taken (exact or paper)."""
+
+    offaxis: str
+
+
+class CouplingState(StageState, total=False):
+    """The coupling method's state: the measurement sensor's misfit RMS per axis (degrees)."""
+
+    meas_misfit_rms_deg: list[float]
+
+
+class AdoptedEffectsState(TypedDict, total=False):
+    """A model a diagnosis's effects were adopted into: the effects and the diagnosis they came
+    from (service.discrepancy.adopt)."""
+
+    added_effects: list[str]
+    diagnosis: dict[str, object]
+
+
+class ModelState(
+    TurntableState,
+    ScaleState,
+    RotationState,
+    KinematicState,
+    HomographyState,
+    CouplingState,
+    AdoptedEffectsState,
+    total=False,
+):
+    """MODEL.json `state`: what a method keeps to apply its model beyond the parameters, each
+    method's keys as its part above states them (JSON-serialisable)."""
+
+
+class ModelOptions(TypedDict, total=False):
+    """MODEL.json `options`: the fit options a method was given (turntable: the rotation between
+    a pair's positions; homography: the points and off-axis term; kinematic: the loss and the
+    effects added)."""
+
+    rotation_deg: float
+    points: str
+    offaxis: str
+    loss: str
+    effects: list[str]
+
+
 @dataclass
 class Parameter:
     value: float
@@ -28,8 +192,8 @@ class Parameter:
     fixed: bool = False  # held at this value, not fitted (the data cannot separate it)
     note: str = ""
 
-    def to_dict(self) -> dict[str, Any]:
-        entry: dict[str, Any] = {"value": _num(self.value), "unit": self.unit}
+    def to_dict(self) -> ParameterJSON:
+        entry: ParameterJSON = {"value": _num(self.value), "unit": self.unit}
         if self.fixed:
             entry["fixed"] = True
         if self.note:
@@ -46,13 +210,13 @@ class CalibrationModel:
     covariance_names: list[str] = field(default_factory=list)
     covariance: NDArray[np.float64] | None = None
     # {"unit": ..., "columns": {col: {"rms": .., "max_abs": .., "values": [..]}}}
-    residuals: dict[str, Any] = field(default_factory=dict)
+    residuals: ResidualSummary = field(default_factory=lambda: ResidualSummary())
     fit: dict[str, Any] = field(default_factory=dict)  # n_points, dof, sigma, converged, ...
     notes: list[str] = field(default_factory=list)
-    state: dict[str, Any] = field(default_factory=dict)  # method-specific, JSON-serialisable
-    options: dict[str, Any] = field(default_factory=dict)
-    # version, UTC time, command, inputs' SHA-256
-    provenance: dict[str, Any] = field(default_factory=dict)
+    state: ModelState = field(default_factory=lambda: ModelState())  # method-specific
+    options: ModelOptions = field(default_factory=lambda: ModelOptions())
+    # version, UTC time, command, inputs' SHA-256 (service.io.provenance's record)
+    provenance: Mapping[str, object] = field(default_factory=dict)
 
     # --- parameter access -------------------------------------------------------------
     def value(self, name: str) -> float:
@@ -109,6 +273,10 @@ class CalibrationModel:
         _check_optional_fields(d, source)
         params = _parameters_of(d["parameters"], source)
         names, matrix = _covariance_of(d.get("covariance"), params, source)
+        # checked to be JSON objects above; their keys are the method's
+        residuals: ResidualSummary = d.get("residuals") or ResidualSummary()
+        state: ModelState = d.get("state") or ModelState()
+        options: ModelOptions = d.get("options") or ModelOptions()
         return cls(
             kind=str(d["kind"]),
             method=str(d["method"]),
@@ -116,11 +284,11 @@ class CalibrationModel:
             parameters=params,
             covariance_names=names,
             covariance=matrix,
-            residuals=d.get("residuals") or {},
+            residuals=residuals,
             fit=d.get("fit") or {},
             notes=list(d.get("notes") or []),
-            state=d.get("state") or {},
-            options=d.get("options") or {},
+            state=state,
+            options=options,
             provenance=d.get("provenance") or {},
         )
 
@@ -146,7 +314,7 @@ def _check_required_fields(doc: Any, source: str) -> None:
         raise InputError(f"{source}: field columns: must be a list of column names")
 
 
-def _check_optional_fields(doc: dict[str, Any], source: str) -> None:
+def _check_optional_fields(doc: Mapping[str, object], source: str) -> None:
     """Refuse an optional field of the wrong JSON type (an absent or null one is empty)."""
     for key, kind in (
         ("residuals", dict),
@@ -230,7 +398,7 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
-def table_tilt_range(columns: dict[str, Any]) -> dict[str, list[float]] | None:
+def table_tilt_range(columns: Mapping[str, NDArray[np.float64]]) -> dict[str, list[float]] | None:
     """The table tilts a stage model was fitted on: per axis [min, max] of the reference sensor's
     readings (the frame the model corrects to), as MODEL.json `fit.table_tilt_range_deg` keeps them;
     None without them."""
@@ -270,12 +438,12 @@ def stored_range(seen: Any) -> dict[str, list[float]] | None:
 
 def residual_summary(
     residuals: dict[str, NDArray[np.float64]], unit: str, keep_values: bool = True
-) -> dict[str, Any]:
+) -> ResidualSummary:
     """RMS, max |r| (and the values) of each residual column: what every model reports."""
     cols = {}
     for name, values in residuals.items():
         values = np.asarray(values, dtype=float)
-        entry: dict[str, Any] = {
+        entry: ResidualColumn = {
             "rms": float(np.sqrt(np.mean(values**2))) if values.size else 0.0,
             "max_abs": float(np.max(np.abs(values))) if values.size else 0.0,
         }

@@ -24,12 +24,17 @@ The sense of the axis (L or -L) is a convention the points alone cannot fix: β 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Final
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.model import (
+    CalibrationModel,
+    ConstantErrorArc,
+    Parameter,
+    residual_summary,
+)
 from service.calibration.registry import Columns, FitOptions
 from service.calibration.uncertainty import (
     Propagated,
@@ -42,7 +47,7 @@ from service.errors import DegenerateDataError
 SIN45 = float(np.sin(np.radians(45.0)))
 PARAM_NAMES = ("alpha_deg", "beta_deg", "gamma_deg")
 # MODEL.json state: per branch, the line fit of their θ bias
-CONSTANT_ERRORS_KEY = "theta_constant_output_errors"
+CONSTANT_ERRORS_KEY: Final = "theta_constant_output_errors"
 
 
 def _local(theta_deg: ArrayLike, centre_deg: float, linear: bool) -> NDArray[np.float64]:
@@ -461,7 +466,7 @@ class _RotationMethod:
         data: Columns,
         theta_ref_deg: NDArray[np.float64],
         res_theta_deg: NDArray[np.float64],
-    ) -> list[dict[str, Any]] | None:
+    ) -> list[ConstantErrorArc] | None:
         """How the outputs' constant errors (zero offsets, scale errors) bias θ, seen against the
         dividing head.
 
@@ -536,7 +541,7 @@ def _branch_arcs(regime: NDArray[np.str_], t_sorted: NDArray[np.float64]) -> lis
 
 def _arc_line(
     branch: str, t: NDArray[np.float64], residual: NDArray[np.float64], noise2: NDArray[np.float64]
-) -> dict[str, Any]:
+) -> ConstantErrorArc:
     """One arc's θ bias for MODEL.json: a line in θ about the arc's centre, and its covariance."""
     centre = float(
         np.degrees(np.arctan2(np.mean(np.sin(np.radians(t))), np.mean(np.cos(np.radians(t)))))

@@ -4,7 +4,7 @@ coordinate transform and nothing else."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -13,6 +13,7 @@ from scipy.optimize import least_squares
 from service.calibration.methods.stage.base import (
     FIT_REQUIRED,
     Columns,
+    FitStats,
     StageMethod,
     bench_state,
     fit_stats,
@@ -36,7 +37,7 @@ from service.calibration.methods.stage.common import (
     model_needs_meas,
     require_spread,
 )
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.model import CalibrationModel, ModelState, Parameter, residual_summary
 from service.calibration.registry import FitOptions
 from service.errors import DegenerateDataError
 
@@ -74,9 +75,7 @@ def _fit_axis_pair(
     a: NDArray[np.float64],
     b: NDArray[np.float64],
     what: str,
-) -> tuple[
-    NDArray[np.float64], NDArray[np.float64], dict[str, NDArray[np.float64]], dict[str, Any]
-]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, NDArray[np.float64]], FitStats]:
     obs: NDArray[np.float64] = np.concatenate([a, b])
 
     def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -88,7 +87,8 @@ def _fit_axis_pair(
         raise DegenerateDataError(f"{what}: the fit did not converge ({sol.message})")
     residuals = resid(sol.x)
     st = fit_stats(residuals, 2)
-    cov = numeric_cov(resid, sol.x, np.array([0.1, 0.1]), st["sigma_deg"] ** 2)
+    # no sigma only without degrees of freedom (one point), where this fails as it always has
+    cov = numeric_cov(resid, sol.x, np.array([0.1, 0.1]), cast(float, st["sigma_deg"]) ** 2)
     n = u.size
     return sol.x, cov, {"x": residuals[:n], "y": residuals[n:]}, st
 
@@ -139,7 +139,7 @@ class AxisTransformMethod(StageMethod):
             ),
             "levelling: (sin x, sin y) = M(alpha, beta)^-1 (sin X, sin Y), exact for this model",
         ]
-        state: dict[str, Any] = {
+        state: ModelState = {
             "has_meas": has_meas(data),
             **bench_state(*stage_hardware(options)[:2]),
         }
@@ -169,6 +169,8 @@ class AxisTransformMethod(StageMethod):
             state["meas_sign"] = sign.tolist()
             state["meas_sigma_deg"] = sq["sigma_deg"]
             state["meas_dof"] = sq["dof"]
+            # _fit_axis_pair has a sigma whenever it returns (it needs one for the covariance)
+            assert sq["sigma_deg"] is not None
             noise = meas_reading_noise(data, options, sq["sigma_deg"], sq["dof"], sign)
             state.update(noise_state(noise))
             notes.append(

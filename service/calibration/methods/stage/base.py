@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, TypedDict, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,7 +20,12 @@ from service.calibration.methods.stage.common import (
     detect_mirror,
     sign_from_options,
 )
-from service.calibration.model import CalibrationModel, Parameter
+from service.calibration.model import (
+    CalibrationModel,
+    ModelState,
+    Parameter,
+    StageBenchJSON,
+)
 from service.calibration.reading_noise import ReadingNoise
 from service.calibration.registry import FitOptions
 from service.calibration.uncertainty import coverage_factor, propagate_gum
@@ -52,10 +57,18 @@ def stage_hardware(options: FitOptions) -> tuple[StageBench, str, bool]:
     return bench, str(options.extra.get("bench_source", "stated by the caller")), True
 
 
-def bench_state(bench: StageBench, source: str) -> dict[str, Any]:
+class FitStats(TypedDict):
+    """A fit's degrees of freedom and residual sigma (degrees; None without degrees of freedom)."""
+
+    dof: int
+    sigma_deg: float | None
+
+
+def bench_state(bench: StageBench, source: str) -> ModelState:
     """What a stage model keeps of its bench: the hardware (levelling's travel, the kinematic chain)
     and its source."""
-    return {"bench": asdict(bench), "bench_source": source}
+    # StageBenchJSON states StageBench's fields
+    return {"bench": cast(StageBenchJSON, asdict(bench)), "bench_source": source}
 
 
 def meas_sign(data: Columns, options: FitOptions) -> tuple[NDArray[np.float64], str]:
@@ -63,7 +76,7 @@ def meas_sign(data: Columns, options: FitOptions) -> tuple[NDArray[np.float64], 
     return sign_from_options(options.extra, detect_mirror(mx, my, rx, ry))
 
 
-def fit_stats(r: NDArray[np.float64], n_par: int) -> dict[str, Any]:
+def fit_stats(r: NDArray[np.float64], n_par: int) -> FitStats:
     """Degrees of freedom and residual sigma; no sigma when the points only just determine the
     parameters."""
     dof = r.size - n_par
@@ -252,19 +265,17 @@ def has_meas_columns(data: Columns) -> bool:
     return all(meas_column in data for meas_column in MEAS_COLUMNS)
 
 
-def noise_state(noise: ReadingNoise) -> dict[str, Any]:
+def noise_state(noise: ReadingNoise) -> ModelState:
     """What a model keeps of the reading noise (MODEL.json state): standard uncertainties, named as
     such."""
-    return {
+    state: ModelState = {
         "meas_reading_standard_uncertainty_deg": noise.sigma_deg,
         "meas_reading_dof": noise.dof,
         "meas_reading_noise_source": noise.source,
-        **(
-            {"ref_reading_standard_uncertainty_deg": noise.ref_sigma_deg}
-            if noise.ref_sigma_deg is not None
-            else {}
-        ),
     }
+    if noise.ref_sigma_deg is not None:
+        state["ref_reading_standard_uncertainty_deg"] = noise.ref_sigma_deg
+    return state
 
 
 def reading_noise_of(model: CalibrationModel) -> tuple[float, float]:
@@ -277,7 +288,8 @@ def reading_noise_of(model: CalibrationModel) -> tuple[float, float]:
         return float(st["meas_reading_standard_uncertainty_deg"]), float(dof) if dof else float(
             "inf"
         )
-    return float(st.get("meas_sigma_deg", 0.0)), meas_dof(model)
+    # a model that kept no sigma has no meas_reading_* either: read as before (None is refused)
+    return float(cast(float, st.get("meas_sigma_deg", 0.0))), meas_dof(model)
 
 
 def numeric_cov(

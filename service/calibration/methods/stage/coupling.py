@@ -3,8 +3,6 @@ kappa)."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 from numpy.typing import NDArray
 
@@ -30,7 +28,7 @@ from service.calibration.methods.stage.common import (
     newton_2d,
     require_spread,
 )
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.model import CalibrationModel, ModelState, Parameter, residual_summary
 from service.calibration.registry import FitOptions
 from service.calibration.uncertainty import coverage_factor
 from service.errors import DegenerateDataError
@@ -84,7 +82,7 @@ class CouplingMethod(StageMethod):
                 "= 1: x = asin(sin X / cos Y))"
             ),
         ]
-        state: dict[str, Any] = {
+        state: ModelState = {
             "has_meas": has_meas(data),
             **bench_state(*stage_hardware(options)[:2]),
         }

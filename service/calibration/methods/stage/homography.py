@@ -38,7 +38,7 @@ from service.calibration.methods.stage.common import (
     offaxis_forward_vs_exact_deg,
     offaxis_paper_forward_deg,
 )
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.model import CalibrationModel, ModelState, Parameter, residual_summary
 from service.calibration.projective import apply_projective, fit_projective, transfer_residuals
 from service.calibration.registry import FitOptions
 from service.errors import DegenerateDataError, InputError
@@ -191,7 +191,7 @@ class HomographyMethod(StageMethod):
         }
         cov = None
         cov_names: list[str] = []
-        state: dict[str, Any] = {
+        state: ModelState = {
             "has_meas": has_meas(data),
             "offaxis": offaxis,
             **bench_state(*stage_hardware(options)[:2]),

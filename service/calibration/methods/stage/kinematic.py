@@ -47,7 +47,13 @@ from service.calibration.methods.stage.common import (
     model_needs_meas,
     require_spread,
 )
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.model import (
+    CalibrationModel,
+    ModelState,
+    Parameter,
+    ReferenceErrorsState,
+    residual_summary,
+)
 from service.calibration.registry import FitOptions
 from service.calibration.stage_effect_fit import StagePoints, param_label
 from service.calibration.uncertainty import coverage_factor
@@ -104,7 +110,7 @@ class KinematicMethod(StageMethod):
         if worm := periodic_summary(chain):
             fit_info["periodic_error"] = worm
             notes += _worm_notes(worm)
-        state: dict[str, Any] = {
+        state: ModelState = {
             "has_meas": has_meas(data),
             **bench_state(bench, source),
             "chain_parameters": [param_label(k) for k in list(chain.keys) + list(chain.fixed)],
@@ -335,7 +341,7 @@ def _reference_effects(chain: ChainFit) -> tuple[str, ...]:
 
 def _reference_state(
     ref_effects: tuple[str, ...], bench: StageBench, data: Columns, time_origin: float | None
-) -> dict[str, object]:
+) -> ReferenceErrorsState:
     """The state's record of the reference model: effects, temperature and time origins, span."""
     span = None if time_origin is None else float(np.ptp(np.asarray(data["t_s"], dtype=float)))
     return reference.state_of(ref_effects, bench.temp_ref_c, time_origin, span)
@@ -348,7 +354,7 @@ def _add_measurement_sensor(
     ref_xy: tuple[NDArray[np.float64], NDArray[np.float64]],
     models_reference: bool,
     params: dict[str, Parameter],
-    state: dict[str, Any],
+    state: ModelState,
     notes: list[str],
     ref_minus_stage: NDArray[np.float64],
 ) -> MeasFit:
@@ -427,7 +433,7 @@ def _block_diagonal(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:
     return cov
 
 
-def _with_values(params: dict[str, Parameter], state: dict[str, Any]) -> CalibrationModel:
+def _with_values(params: dict[str, Parameter], state: ModelState) -> CalibrationModel:
     """A model of just these parameters and state (to read its reference model before the model is
     made)."""
     return CalibrationModel("stage", "kinematic", [], params, state=state)

@@ -17,13 +17,14 @@ quadratic in t).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Final
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.calibration.model import CalibrationModel
+from service.calibration.model import CalibrationModel, ReferenceErrorsState
 
-STATE_KEY = "reference_errors"
+STATE_KEY: Final = "reference_errors"
 
 
 @dataclass(frozen=True)
@@ -100,7 +101,7 @@ def state_of(
     temp_ref_c: float,
     time_origin_s: float | None,
     time_span_s: float | None = None,
-) -> dict[str, object]:
+) -> ReferenceErrorsState:
     """What a model's state keeps of its reference model (its parameters are the model's own)."""
     return {
         "effects": list(effects),
