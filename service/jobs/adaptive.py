@@ -40,7 +40,13 @@ from service.calibration.methods.stage.common import MEAS_NAMES
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import get_method
 from service.errors import InputError
-from service.jobs.procedure import JobContext, Outcome, Phase, job_conditions
+from service.jobs.procedure import (
+    AdaptiveJobConditions,
+    JobContext,
+    Outcome,
+    Phase,
+    job_conditions,
+)
 from service.jobs.stage_grid import SENSORS, StageGrid, measure_stage_point
 from service.storage.models import SettledPoint
 
@@ -281,8 +287,10 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
             "fixed_u_deg": fixed_u,
         }
     )
-    conditions = job_conditions(bench, req, proc.temperatures_c(fit_cols, points), began)
-    conditions["design"] = "adaptive"
+    conditions: AdaptiveJobConditions = {
+        **job_conditions(bench, req, proc.temperatures_c(fit_cols, points), began),
+        "design": "adaptive",
+    }
     return Outcome(
         job.device_id, proc.kind, model, validation, conditions, n_fit, ctx.bench_time.as_json()
     )

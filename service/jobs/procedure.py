@@ -20,7 +20,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any, Generic, Protocol, TypeVar
+from typing import Any, Generic, NotRequired, Protocol, TypedDict, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,7 +31,7 @@ from service.bench.runtime import BenchRuntime
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, Method, get_method
 from service.errors import InputError
-from service.instruments.base import AmbientSensor
+from service.instruments.base import AmbientSensor, Reading
 from service.jobs.bench_time import BenchTime
 from service.jobs.budgets import resolutions_deg
 from service.jobs.requests import CalibrationRequest
@@ -40,6 +40,50 @@ from service.storage.store import PointsRepo, Store
 
 P = TypeVar("P")
 Columns = dict[str, NDArray[np.float64]]
+
+
+class AmbientCondition(TypedDict):
+    """One ambient condition as a record keeps it: its value and standard uncertainty, and where it
+    came from (`ambient_sensor`: the mean of its readings, with their range and count; `request`:
+    as entered)."""
+
+    value: float
+    standard_uncertainty: float
+    min: NotRequired[float]
+    max: NotRequired[float]
+    n_readings: NotRequired[int]
+    source: str
+
+
+class AmbientConditions(TypedDict, total=False):
+    """The laboratory's air during a job (°C, % relative humidity), each where it is known."""
+
+    ambient_temperature_c: AmbientCondition
+    relative_humidity_pct: AmbientCondition
+
+
+class JobConditions(AmbientConditions, total=False):
+    """What a record keeps of the conditions it was measured under (the record's `conditions`):
+    the air, the table's mean temperature (°C), the software and instruments, each sensor's
+    resolution (degrees, by role), the bench, how its points were measured. A measurement that
+    makes no record keeps none."""
+
+    temp_c_mean: float | None
+    software_version: str
+    firmware: dict[str, str | None]
+    instruments: dict[str, str | None]
+    resolution_deg: dict[str, float | None]
+    bench: str
+    clock_speed: float
+    outlier_rule: str
+    samples_per_point: int
+    settle: dict[str, float]
+
+
+class AdaptiveJobConditions(JobConditions, total=False):
+    """An adaptive job's conditions: its design said too."""
+
+    design: str
 
 
 class Phase(StrEnum):
@@ -72,7 +116,7 @@ class Outcome:
     # None: a measurement that makes no record (a diagnosis reads its points)
     model: CalibrationModel | None
     validation: dict[str, Any]
-    conditions: dict[str, Any]
+    conditions: JobConditions
     n_fit: int  # the first n_fit points were fitted, the rest validated
     # the bench time the job spent (BenchTime.as_json)
     bench_seconds: dict[str, float] | None = None
@@ -122,36 +166,49 @@ def validation_rng(n_points: int, n_validation: int) -> np.random.Generator:
 
 def ambient_conditions(
     bench: BenchRuntime, req: CalibrationRequest, since_bench_s: float
-) -> dict[str, Any]:
+) -> AmbientConditions:
     """The laboratory's air during the job: read by the bench's ambient sensor since `since_bench_s`
     (its mean, range and count; u combines the sensor's stated u with the range, as a rectangular
     half-width), else as entered with the request (its value and u)."""
-    out: dict[str, Any] = {}
+    out: AmbientConditions = {}
     sensor = bench.devices.ambient_sensor()
     readings = (
         [reading for reading in sensor.readings_after(since_bench_s) if reading.status in (None, 0)]
         if sensor is not None
         else []
     )
-    for key, field, u_sensor in (
-        ("ambient_temperature_c", "temp_c", "standard_uncertainty_c"),
-        ("relative_humidity_pct", "humidity_pct", "standard_uncertainty_pct"),
-    ):
-        values = [
-            value
-            for reading in readings
-            if isinstance(value := getattr(reading, field), int | float)
-        ]
-        if sensor is not None and values:
-            out[key] = _as_read(sensor, values, u_sensor)
-            continue
-        entered = _as_entered(req, key)
-        if entered is not None:
-            out[key] = entered
+    temperature = _condition(
+        sensor, readings, req, "ambient_temperature_c", "temp_c", "standard_uncertainty_c"
+    )
+    if temperature is not None:
+        out["ambient_temperature_c"] = temperature
+    humidity = _condition(
+        sensor, readings, req, "relative_humidity_pct", "humidity_pct", "standard_uncertainty_pct"
+    )
+    if humidity is not None:
+        out["relative_humidity_pct"] = humidity
     return out
 
 
-def _as_read(sensor: AmbientSensor, values: list[float], u_sensor: str) -> dict[str, Any]:
+def _condition(
+    sensor: AmbientSensor | None,
+    readings: Sequence[Reading],
+    req: CalibrationRequest,
+    key: str,
+    field: str,
+    u_sensor: str,
+) -> AmbientCondition | None:
+    """One ambient condition: as the sensor read it (reading attribute `field`), else as the
+    request entered it (`key`), else None."""
+    values = [
+        value for reading in readings if isinstance(value := getattr(reading, field), int | float)
+    ]
+    if sensor is not None and values:
+        return _as_read(sensor, values, u_sensor)
+    return _as_entered(req, key)
+
+
+def _as_read(sensor: AmbientSensor, values: list[float], u_sensor: str) -> AmbientCondition:
     """One ambient condition as the bench's sensor read it: the mean, range and count of its
     readings, u combining the sensor's stated u (attribute `u_sensor`) with the range as a
     rectangular half-width."""
@@ -167,7 +224,7 @@ def _as_read(sensor: AmbientSensor, values: list[float], u_sensor: str) -> dict[
     }
 
 
-def _as_entered(req: CalibrationRequest, key: str) -> dict[str, Any] | None:
+def _as_entered(req: CalibrationRequest, key: str) -> AmbientCondition | None:
     """One ambient condition as the request states it (its value and u); None where it states
     none."""
     entered = getattr(req.conditions, key, None) if req.conditions is not None else None
@@ -185,7 +242,7 @@ def job_conditions(
     req: CalibrationRequest,
     temps_c: Sequence[float],
     since_bench_s: float | None = None,
-) -> dict[str, Any]:
+) -> JobConditions:
     """What a record keeps of the conditions it was measured under (the ambient ones since
     `since_bench_s`)."""
     ambient = ambient_conditions(
