@@ -7,13 +7,15 @@ One place for each, used by both, so they serve the same numbers by the same rul
 from __future__ import annotations
 
 import weakref
-from typing import TYPE_CHECKING, Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, NotRequired, TypedDict, cast
 
 import numpy as np
 
 from service.bench.settled import SETTLING_RULE
 from service.calibration.budget import Component, combine, reading_components
 from service.calibration.methods.stage.reference import extrapolation_note, needs_note, true_reading
+from service.calibration.registry import Columns
 from service.calibration.uncertainty import COVERAGE, dof_of_coverage_factor, mean_type_a
 from service.instruments.base import Reading
 from service.io.columns import K_OUTPUTS
@@ -29,6 +31,62 @@ STALE_SLACK_S = 0.25  # real seconds: a loaded machine's delay in handing a read
 MIN_CORRECTION_GAP_S = 0.004
 
 
+class TableTilt(TypedDict):
+    """A table tilt (degrees, the reference sensor's frame); None where it is not known."""
+
+    x_deg: float | None
+    y_deg: float | None
+
+
+class CorrectedTilt(TypedDict):
+    """The corrected table tilt `GET /tilt` and the stream serve (degrees), with per axis its
+    standard and expanded uncertainty, coverage factor and degrees of freedom (None: unknown, or
+    infinite degrees of freedom); `u_x_deg`, `u_y_deg`, `k`, `k_y` are the expanded uncertainties
+    and their factors under their former names. An averaged tilt adds `n_readings`, `window_s`."""
+
+    x_deg: float | None
+    y_deg: float | None
+    standard_uncertainty_x_deg: float | None
+    expanded_uncertainty_x_deg: float | None
+    coverage_factor_x: float | None
+    degrees_of_freedom_x: float | None
+    standard_uncertainty_y_deg: float | None
+    expanded_uncertainty_y_deg: float | None
+    coverage_factor_y: float | None
+    degrees_of_freedom_y: float | None
+    coverage_probability: float | None
+    u_x_deg: float | None
+    u_y_deg: float | None
+    k: float | None
+    k_y: float | None
+    n_readings: NotRequired[int]
+    window_s: NotRequired[float]
+
+
+class ReferenceTableTilt(TypedDict):
+    """The table tilt the reference sensor's reading stands for through the active record's model
+    of its errors (degrees; None, and `note` says why, without what the model needs)."""
+
+    x_deg: float | None
+    y_deg: float | None
+    record_id: int
+    note: NotRequired[str]
+
+
+class CalibrationInUse(TypedDict):
+    """The `calibration` object of /tilt and the stream's snapshot: the record that corrects."""
+
+    record_id: int
+    version: int
+    method: str
+    status: str
+    reading_noise: str | None
+
+
+# the standard uncertainty, expanded uncertainty, coverage factor and degrees of freedom of an axis
+_AxisUncertainty = tuple[float | None, float | None, float | None, float | None]
+
+
 def stale_after_s(bench: BenchRuntime, role: str) -> float:
     """Real seconds after which the role's latest reading is stale (the sensor counts as silent)."""
     return STALE_INTERVALS * bench.clock.real_seconds(bench.output_interval_s(role)) + STALE_SLACK_S
@@ -41,7 +99,7 @@ def sensor_temp_c(meas: Reading | None, ref: Reading | None) -> float | None:
     return ref.temp_c if ref is not None else None
 
 
-def corrected_tilt(active: Any, meas: Reading) -> dict[str, Any]:
+def corrected_tilt(active: Any, meas: Reading) -> CorrectedTilt:
     """Table tilt in the reference sensor's frame with its uncertainties (GUM, 95 % coverage), per
     axis: the standard uncertainty u, the expanded U = k·u, the coverage factor k (Student's t at
     the Welch-Satterthwaite effective degrees of freedom) and those degrees of freedom (None:
@@ -62,7 +120,7 @@ def corrected_tilt(active: Any, meas: Reading) -> dict[str, Any]:
             "meas_y_deg": np.array([meas.y_deg], dtype=float),
         },
     )
-    table: dict[str, Any] = {
+    table: TableTilt = {
         "x_deg": float(out["tilt_x_deg"][0]),
         "y_deg": float(out["tilt_y_deg"][0]),
     }
@@ -72,7 +130,7 @@ def corrected_tilt(active: Any, meas: Reading) -> dict[str, Any]:
     return with_uncertainties(table, parts, reading_components(getattr(active, "budget", None)))
 
 
-def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> dict[str, Any]:
+def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> CorrectedTilt:
     """The mean of `readings` (the measurement sensor's, at one stand of the stage) corrected
     through the active record, with the uncertainty of that mean: per axis, the Type A uncertainty
     of the mean of the corrected readings (`mean_type_a`: their own scatter, their correlation
@@ -88,13 +146,13 @@ def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> dict
         getattr(active, "parameter_model", active.model),
         {"meas_x_deg": np.array([mx.mean()]), "meas_y_deg": np.array([my.mean()])},
     )
-    table: dict[str, Any] = {}
+    means: dict[str, float] = {}
     parts: dict[str, tuple[float, float] | None] = {}
     others = reading_components(getattr(active, "budget", None))
     scatter: dict[str, list[Component]] = {}
     for axis, k_key in (("x", K_OUTPUTS[0]), ("y", K_OUTPUTS[1])):
         mean = mean_type_a(each[f"tilt_{axis}_deg"])
-        table[f"{axis}_deg"] = mean.mean
+        means[axis] = mean.mean
         parts[axis] = _fit_part(at_mean, axis, k_key)
         # the mean's Type A, with its own degrees of freedom, beside the record's components
         scatter[axis] = [
@@ -107,12 +165,13 @@ def averaged_tilt(active: Any, readings: list[Reading], window_s: float) -> dict
                 "A",
             )
         ]
+    table: TableTilt = {"x_deg": means["x"], "y_deg": means["y"]}
     out = with_uncertainties(table, parts, others, scatter)
     out.update({"n_readings": len(readings), "window_s": window_s})
     return out
 
 
-def _fit_part(out: dict[str, Any], axis: str, k_key: str) -> tuple[float, float] | None:
+def _fit_part(out: Columns, axis: str, k_key: str) -> tuple[float, float] | None:
     """(u, degrees of freedom) of the method's part of one axis, from its expanded uncertainty and
     factor."""
 
@@ -131,52 +190,58 @@ def _standard_and_dof(expanded: float, factor: float) -> tuple[float, float]:
 
 
 def with_uncertainties(
-    table: dict[str, Any],
-    parts: dict[str, tuple[float, float] | None],
+    table: TableTilt,
+    parts: Mapping[str, tuple[float, float] | None],
     others: list[Component],
-    per_axis: dict[str, list[Component]] | None = None,
-) -> dict[str, Any]:
+    per_axis: Mapping[str, list[Component]] | None = None,
+) -> CorrectedTilt:
     """`table` with each axis's standard and expanded uncertainty, coverage factor and degrees of
-    freedom: the fit's part (u, ν) combined with the budget's other components and the axis's own
-    (`per_axis`) by the GUM's law and Welch-Satterthwaite."""
-    for axis, part in parts.items():
-        standard_u = expanded_u = k = dof = None
-        if part is not None:
-            own = (per_axis or {}).get(axis, [])
-            combined = combine(np.array([part[0]]), part[1], [*others, *own], COVERAGE)
-            standard_u, expanded_u, k = (
-                float(combined.u[0]),
-                float(combined.U[0]),
-                float(combined.k[0]),
-            )
-            dof = float(combined.dof_eff[0]) if np.isfinite(combined.dof_eff[0]) else None
-        table.update(
-            {
-                f"standard_uncertainty_{axis}_deg": standard_u,
-                f"expanded_uncertainty_{axis}_deg": expanded_u,
-                f"coverage_factor_{axis}": k,
-                f"degrees_of_freedom_{axis}": dof,
-            }
-        )
-    table["coverage_probability"] = COVERAGE
-    # the former names, kept for one release: the expanded uncertainties and their coverage factors
-    table.update(
-        {
-            "u_x_deg": table.get("expanded_uncertainty_x_deg"),
-            "u_y_deg": table.get("expanded_uncertainty_y_deg"),
-            "k": table.get("coverage_factor_x"),
-            "k_y": table.get("coverage_factor_y"),
-        }
-    )
-    return table
+    freedom: the fit's part (u, ν) of each axis (x and y) combined with the budget's other
+    components and the axis's own (`per_axis`) by the GUM's law and Welch-Satterthwaite."""
+    u_x, expanded_x, k_x, dof_x = _axis_uncertainty(parts["x"], others, per_axis, "x")
+    u_y, expanded_y, k_y, dof_y = _axis_uncertainty(parts["y"], others, per_axis, "y")
+    return {
+        "x_deg": table["x_deg"],
+        "y_deg": table["y_deg"],
+        "standard_uncertainty_x_deg": u_x,
+        "expanded_uncertainty_x_deg": expanded_x,
+        "coverage_factor_x": k_x,
+        "degrees_of_freedom_x": dof_x,
+        "standard_uncertainty_y_deg": u_y,
+        "expanded_uncertainty_y_deg": expanded_y,
+        "coverage_factor_y": k_y,
+        "degrees_of_freedom_y": dof_y,
+        "coverage_probability": COVERAGE,
+        # the former names, kept for one release: the expanded uncertainties and their factors
+        "u_x_deg": expanded_x,
+        "u_y_deg": expanded_y,
+        "k": k_x,
+        "k_y": k_y,
+    }
+
+
+def _axis_uncertainty(
+    part: tuple[float, float] | None,
+    others: list[Component],
+    per_axis: Mapping[str, list[Component]] | None,
+    axis: str,
+) -> _AxisUncertainty:
+    """One axis's (u, U, k, degrees of freedom): all None without the fit's part; the degrees of
+    freedom None where infinite."""
+    if part is None:
+        return None, None, None, None
+    own = (per_axis or {}).get(axis, [])
+    combined = combine(np.array([part[0]]), part[1], [*others, *own], COVERAGE)
+    dof = float(combined.dof_eff[0]) if np.isfinite(combined.dof_eff[0]) else None
+    return float(combined.u[0]), float(combined.U[0]), float(combined.k[0]), dof
 
 
 def from_expanded(
-    table: dict[str, Any],
-    expanded: dict[str, float | None],
-    factors: dict[str, float | None],
+    table: TableTilt,
+    expanded: Mapping[str, float | None],
+    factors: Mapping[str, float | None],
     coverage: float | None,
-) -> dict[str, Any]:
+) -> CorrectedTilt:
     """`table` with the uncertainties of every name, from the expanded uncertainties and coverage
     factors alone (what the stream's history keeps): u = U/k, and the degrees of freedom k is
     Student's t at."""
@@ -192,12 +257,12 @@ def from_expanded(
 
 
 # Per bench: the last reading corrected, the record it went through and the result.
-_LAST_CORRECTED: weakref.WeakKeyDictionary[BenchRuntime, tuple[Reading, Any, dict[str, Any]]] = (
+_LAST_CORRECTED: weakref.WeakKeyDictionary[BenchRuntime, tuple[Reading, Any, CorrectedTilt]] = (
     weakref.WeakKeyDictionary()
 )
 
 
-def corrected_once(bench: BenchRuntime, active: Any, meas: Reading) -> dict[str, Any]:
+def corrected_once(bench: BenchRuntime, active: Any, meas: Reading) -> CorrectedTilt:
     """`corrected_tilt` of the bench's reading, computed once per new reading (or newly active
     record): the sensor sends tens of readings a second, `GET /tilt` and the stream may ask
     thousands of times. The answer is shared between callers; nobody changes it."""
@@ -216,7 +281,8 @@ def corrected_reading(
     `corrected_once`; on a bench sped up past one reading per MIN_CORRECTION_GAP_S of real time, the
     last reading corrected while `meas` came less than that after it (a simulation at 20 times real
     time sends a reading a millisecond, and each would cost a correction). A bench at its own pace
-    always gets its latest reading corrected."""
+    always gets its latest reading corrected. The tilt is a CorrectedTilt, handed on as the route
+    reads it."""
     last = _LAST_CORRECTED.get(bench)
     if (
         last is not None
@@ -227,11 +293,13 @@ def corrected_reading(
         <= bench.clock.real_seconds(meas.bench_s - last[0].bench_s)
         < MIN_CORRECTION_GAP_S * 0.999
     ):
-        return last[0], last[2]
-    return meas, corrected_once(bench, active, meas)
+        return last[0], cast("dict[str, Any]", last[2])
+    return meas, cast("dict[str, Any]", corrected_once(bench, active, meas))
 
 
-def reference_tilt(active: Any, ref: Reading | None, temp_c: float | None) -> dict[str, Any] | None:
+def reference_tilt(
+    active: Any, ref: Reading | None, temp_c: float | None
+) -> ReferenceTableTilt | None:
     """The reference sensor's reading through the active record's model of its own errors (a
     non-linearity, a temperature effect, a drift): the table tilt it stands for, {"x_deg", "y_deg",
     "record_id"}; None when there is no reading or the record models none of them (its readings are
@@ -246,13 +314,13 @@ def reference_tilt(active: Any, ref: Reading | None, temp_c: float | None) -> di
         return {"x_deg": None, "y_deg": None, "record_id": active.record_id, "note": why}
     t_s = ref.time_utc.timestamp()
     x, y = true_reading(errors, ref.x_deg, ref.y_deg, temp, t_s)
-    out = {"x_deg": float(x), "y_deg": float(y), "record_id": active.record_id}
+    out: ReferenceTableTilt = {"x_deg": float(x), "y_deg": float(y), "record_id": active.record_id}
     if (far := extrapolation_note(errors, t_s)) is not None:
         out["note"] = far
     return out
 
 
-def in_calibrated_range(active: Any, table: dict[str, Any] | None) -> bool | None:
+def in_calibrated_range(active: Any, table: Mapping[str, Any] | None) -> bool | None:
     """Whether a corrected table tilt lies within the table tilts the active record was fitted on
     (per axis, the reference sensor's frame); None when there is no corrected tilt or the record
     states no range."""
@@ -265,7 +333,7 @@ def in_calibrated_range(active: Any, table: dict[str, Any] | None) -> bool | Non
     )
 
 
-def calibrated_range_note(active: Any, table: dict[str, Any]) -> str:
+def calibrated_range_note(active: Any, table: Mapping[str, Any]) -> str:
     """What `note` says of a corrected tilt outside the calibrated range: served, but
     extrapolated."""
     seen = active.table_tilt_range_deg
@@ -276,7 +344,7 @@ def calibrated_range_note(active: Any, table: dict[str, Any]) -> str:
     )
 
 
-def calibration_json(active: Any) -> dict[str, Any] | None:
+def calibration_json(active: Any) -> CalibrationInUse | None:
     """The `calibration` object of /tilt and the stream's snapshot: which record corrects, and its
     status."""
     if active is None:
@@ -360,6 +428,5 @@ def averaged_at_stand(
     if kept[0].bench_s > start:  # the oldest reading kept is younger than the window
         window_s = meas.bench_s - kept[0].bench_s
         reach += f"; only the last {window_s:.3g} s of readings are kept"
-    return averaged_tilt(
-        active, readings, window_s
-    ), f"mean of {len(readings)} readings over {window_s:.3g} s{reach}"
+    table = cast("dict[str, Any]", averaged_tilt(active, readings, window_s))
+    return table, f"mean of {len(readings)} readings over {window_s:.3g} s{reach}"
