@@ -12,7 +12,7 @@ from __future__ import annotations
 import base64
 import binascii
 from collections.abc import Mapping
-from typing import Any
+from typing import TypedDict
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
@@ -44,7 +44,29 @@ _JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ROW_ANCHORS = "rows_sha256"
 
 
-def _job_event(session: Session, audit_event: AuditEvent, state: str) -> dict[str, Any]:
+class JobStateData(TypedDict):
+    """The data of a `job.state` event."""
+
+    job_id: int
+    state: str
+    previous_state: str | None
+    failure_reason: str | None
+    order_id: int | None
+    bench_id: int | None
+
+
+class FeedEventJson(TypedDict):
+    """An event as the feed and the webhooks show it."""
+
+    id: str
+    type: str
+    time_utc: str
+    # a job.state event's JobStateData, a record event's record facts and the action's own keys,
+    # or the audit details of the other actions
+    data: Mapping[str, object]
+
+
+def _job_event(session: Session, audit_event: AuditEvent, state: str) -> JobStateData:
     job = session.get(CalibrationJob, int(audit_event.entity_id))
     return {
         "job_id": int(audit_event.entity_id),
@@ -56,14 +78,16 @@ def _job_event(session: Session, audit_event: AuditEvent, state: str) -> dict[st
     }
 
 
-def _record_event(session: Session, record_id: int, extra: Mapping[str, Any]) -> dict[str, Any]:
+def _record_event(
+    session: Session, record_id: int, extra: Mapping[str, object]
+) -> dict[str, object]:
     record = session.get(CalibrationRecord, record_id)
     job = (
         session.get(CalibrationJob, record.job_id)
         if record is not None and record.job_id is not None
         else None
     )
-    base: dict[str, Any] = {"record_id": record_id}
+    base: dict[str, object] = {"record_id": record_id}
     if record is not None:
         base.update(
             {
@@ -103,7 +127,7 @@ _PLAIN_EVENTS = {
 
 def _record_feed_event(
     session: Session, audit_event: AuditEvent
-) -> tuple[str, dict[str, Any]] | None:
+) -> tuple[str, dict[str, object]] | None:
     """The feed event of a record's creation, activation or decision; None for other actions."""
     action, details = audit_event.action, audit_event.details
     if action == "record.create":
@@ -122,7 +146,7 @@ def _record_feed_event(
     )
 
 
-def event_for(session: Session, audit_event: AuditEvent) -> tuple[str, dict[str, Any]] | None:
+def event_for(session: Session, audit_event: AuditEvent) -> tuple[str, Mapping[str, object]] | None:
     """The feed event (type, data) an audit event stands for, or None if a LIMS need not hear of
     it."""
     job_state = _JOB_ACTION_STATES.get(audit_event.action)
@@ -166,7 +190,7 @@ def append_for_audit(session: Session, audit_event: AuditEvent) -> FeedEvent | N
     return event
 
 
-def event_json(event: FeedEvent) -> dict[str, Any]:
+def event_json(event: FeedEvent) -> FeedEventJson:
     """An event as the feed and the webhooks show it."""
     return {
         "id": event_id(event.id),

@@ -16,6 +16,7 @@ from sqlalchemy import event
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 
 from service.storage.errors import AppendOnlyViolation
+from service.storage.specification import SpecificationJson
 
 APPEND_ONLY_TABLES = (
     "calibration_records",
@@ -91,7 +92,12 @@ class Base(DeclarativeBase):
     type_annotation_map = {
         dt.datetime: UTCDateTime(),
         float: sa.Double(),
+        # JSON documents: those of one shape typed as such, the varied ones (a fitted model, a job's
+        # parameters, an audit event's details...) as dict[str, Any]
         dict[str, Any]: sa.JSON(),
+        dict[str, object]: sa.JSON(),
+        dict[str, float]: sa.JSON(),
+        dict[str, str]: sa.JSON(),
         list[Any]: sa.JSON(),
     }
 
@@ -104,7 +110,8 @@ class Bench(Base):
     stage_model: Mapped[str | None] = mapped_column(sa.String(100))
     stage_serial: Mapped[str | None] = mapped_column(sa.String(100))
     port: Mapped[str | None] = mapped_column(sa.String(200))
-    port_settings: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    # the serial port's settings as the operator gave them (any JSON object)
+    port_settings: Mapped[dict[str, object]] = mapped_column(default=dict)
     created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
 
 
@@ -119,7 +126,8 @@ class Device(Base):
     role: Mapped[str] = mapped_column(sa.String(40))
     bench_id: Mapped[int | None] = mapped_column(sa.ForeignKey("benches.id"))
     port: Mapped[str | None] = mapped_column(sa.String(200))
-    port_settings: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    # the serial port's settings as the operator gave them (any JSON object)
+    port_settings: Mapped[dict[str, object]] = mapped_column(default=dict)
     created_at: Mapped[dt.datetime] = mapped_column(default=utc_now)
 
 
@@ -140,6 +148,7 @@ class CalibrationJob(Base):
     method: Mapped[str] = mapped_column(sa.String(80))
     state: Mapped[str] = mapped_column(sa.String(16), default="queued")
     progress: Mapped[float] = mapped_column(sa.Double(), default=0.0)
+    # The job's request and plan: their keys vary by procedure (service/jobs).
     parameters: Mapped[dict[str, Any]] = mapped_column(default=dict)
     failure_reason: Mapped[str | None] = mapped_column(sa.Text)
     created_by: Mapped[str] = mapped_column(sa.String(100))
@@ -159,7 +168,7 @@ class CalibrationJob(Base):
     order_id: Mapped[int | None] = mapped_column(sa.ForeignKey("orders.id"), index=True)
     # Bench time spent so far, by activity ({"total", "moving", "settling", "reading"}, bench
     # seconds).
-    bench_seconds: Mapped[dict[str, Any] | None]
+    bench_seconds: Mapped[dict[str, float] | None]
 
 
 class CalibrationRecord(Base):
@@ -181,8 +190,10 @@ class CalibrationRecord(Base):
     version: Mapped[int]
     content_format: Mapped[int] = mapped_column(sa.SmallInteger, default=1)
     method: Mapped[str] = mapped_column(sa.String(80))
-    # The fitted model document: parameters, covariance, residual statistics.
+    # The fitted model document: parameters, covariance, residual statistics (varied: each method
+    # has its own).
     model: Mapped[dict[str, Any]]
+    # The validation's statistics, as the method that made the record states them (varied).
     validation: Mapped[dict[str, Any]] = mapped_column(default=dict)
     temp_c: Mapped[float | None] = mapped_column(sa.Double())
     # [{"name", "serial", "certificate_id"}] of the reference standards used.
@@ -190,7 +201,9 @@ class CalibrationRecord(Base):
     operator: Mapped[str] = mapped_column(sa.String(100))
     created_at: Mapped[dt.datetime] = mapped_column(index=True)
     job_id: Mapped[int | None] = mapped_column(sa.ForeignKey("calibration_jobs.id"), index=True)
-    # Which raw data the fit came from (job points hash and counts, or an offline dataset's hash).
+    # Which raw data the fit came from (job points hash and counts, or an offline dataset's hash),
+    # with the conditions, the uncertainty budget and what an adoption kept: varied by how the
+    # record was made.
     raw_data: Mapped[dict[str, Any]] = mapped_column(default=dict)
     supersedes_id: Mapped[int | None] = mapped_column(sa.ForeignKey("calibration_records.id"))
     prev_sha256: Mapped[str] = mapped_column(Sha256)
@@ -242,6 +255,7 @@ class AuditEvent(Base):
     action: Mapped[str] = mapped_column(sa.String(60))
     entity: Mapped[str] = mapped_column(sa.String(60))
     entity_id: Mapped[str] = mapped_column(sa.String(100))
+    # What the action did: its keys vary by action.
     details: Mapped[dict[str, Any]] = mapped_column(default=dict)
     prev_sha256: Mapped[str] = mapped_column(Sha256, unique=True)
     sha256: Mapped[str] = mapped_column(Sha256, unique=True)
@@ -372,7 +386,7 @@ class ReferenceStandard(Base):
     due_soon_notified_on: Mapped[dt.date | None] = mapped_column(sa.Date())
     # Who calibrated the standard: {"name", "country_code"[, "accreditation", "city"]}; certificates
     # name it.
-    calibrated_by: Mapped[dict[str, Any] | None] = mapped_column(sa.JSON())
+    calibrated_by: Mapped[dict[str, str] | None] = mapped_column(sa.JSON())
     # SHA-256 of every other column, anchored in the audit chain at each change
     # (service/storage/rowhash.py)
     row_sha256: Mapped[str | None] = mapped_column(Sha256)
@@ -391,7 +405,8 @@ class Order(Base):
     # report it)
     item_manufacturer: Mapped[str | None] = mapped_column(sa.String(100))
     item_model: Mapped[str | None] = mapped_column(sa.String(100))
-    customer: Mapped[dict[str, Any]]
+    # {"name", "city", "country_code"[, "street", "post_code", "email"]}, as the order gave them
+    customer: Mapped[dict[str, str]]
     procedure: Mapped[str] = mapped_column(sa.String(40))
     method: Mapped[str] = mapped_column(sa.String(80))
     due_on: Mapped[dt.date | None] = mapped_column(sa.Date())
@@ -401,7 +416,7 @@ class Order(Base):
     request_sha256: Mapped[str] = mapped_column(Sha256)
     # What the item must meet: {"max_permissible_error_deg", "decision_rule"[,
     # "guard_band_fraction", "parameters"]}; its certificate then states conformity.
-    specification: Mapped[dict[str, Any] | None] = mapped_column(sa.JSON())
+    specification: Mapped[SpecificationJson | None] = mapped_column(sa.JSON())
 
 
 class RecordApproval(Base):
@@ -456,6 +471,7 @@ class FeedEvent(Base):
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     type: Mapped[str] = mapped_column(sa.String(40), index=True)
     at: Mapped[dt.datetime]
+    # What the event reports: its keys vary by type (the LIMS's documentation lists them).
     data: Mapped[dict[str, Any]]
     # The audit event it reports (no foreign key: the audit log's own checks must see a removal).
     audit_event_id: Mapped[int | None] = mapped_column(BigId)
@@ -543,7 +559,8 @@ class DiagnosisResult(Base):
     state: Mapped[str] = mapped_column(sa.String(16))
     started_at: Mapped[dt.datetime | None]
     finished_at: Mapped[dt.datetime]
-    # named_effects, gap_before_deg, gap_after_deg, noise_deg, steps and the full report
+    # named_effects, gap_before_deg, gap_after_deg, noise_deg, steps and the full report (the
+    # discrepancy workflow's document)
     summary: Mapped[dict[str, Any]] = mapped_column(default=dict)
     report_html: Mapped[str | None] = mapped_column(sa.Text)
     error: Mapped[str | None] = mapped_column(sa.Text)

@@ -42,10 +42,10 @@ def _value(value: Any) -> Any:
     return value
 
 
-def row_content(table: sa.Table, values: Any) -> dict[str, Any]:
+def row_content(table: sa.Table, values: Any) -> dict[str, object]:
     """What a row's hash covers, from anything with the columns as attributes (an ORM row, a
     Row)."""
-    out: dict[str, Any] = {}
+    out: dict[str, object] = {}
     for column in table.columns:
         if column.name == HASH_COLUMN:
             continue

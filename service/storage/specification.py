@@ -9,7 +9,7 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any
+from typing import Any, NotRequired, TypedDict
 
 from service.errors import InputError
 
@@ -35,6 +35,23 @@ class SpecificationProblem(InputError):
         self.field = field
 
 
+class ParameterLimitJson(TypedDict):
+    """A parameter's limit as an order keeps it (in the parameter's unit)."""
+
+    nominal: float
+    max_permissible_error: float
+
+
+class SpecificationJson(TypedDict):
+    """A specification as an order keeps it (`Order.specification`): the guard band only for
+    guarded acceptance, the parameters' limits by name only where there are some."""
+
+    max_permissible_error_deg: float
+    decision_rule: str
+    guard_band_fraction: NotRequired[float]
+    parameters: NotRequired[dict[str, ParameterLimitJson]]
+
+
 @dataclass(frozen=True)
 class ParameterLimit:
     """A named parameter of the model must lie within nominal ± max_permissible_error (in the
@@ -52,8 +69,8 @@ class Specification:
     guard_band_fraction: float = 1.0  # guarded acceptance: w = guard_band_fraction · U
     parameters: tuple[ParameterLimit, ...] = ()
 
-    def as_json(self) -> dict[str, Any]:
-        out: dict[str, Any] = {
+    def as_json(self) -> SpecificationJson:
+        out: SpecificationJson = {
             "max_permissible_error_deg": self.max_permissible_error_deg,
             "decision_rule": self.decision_rule.value,
         }

@@ -6,6 +6,7 @@ import hashlib
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TypedDict
 
 from service.errors import InputError
 
@@ -45,6 +46,13 @@ def granted(scopes: Iterable[str]) -> set[str]:
     for scope in scopes:
         out |= IMPLIED.get(scope, set())
     return out
+
+
+class NamedPerson(TypedDict):
+    """A person as the audit trail and an approval's hashed content name them."""
+
+    name: str
+    function: str | None
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ approvals form their own hash chain, and a rejection withdraws its record from u
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import NotRequired, TypedDict
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
@@ -25,7 +25,7 @@ from service.storage.store.database import Database
 from service.storage.store.hashing import record_content
 from service.storage.store.lookups import row_in
 from service.storage.store.pointer import deactivate_in
-from service.storage.tokens import Person
+from service.storage.tokens import NamedPerson, Person
 
 APPROVE_MEANINGS = ("review", "approval")
 
@@ -35,11 +35,26 @@ class SelfApproval(RefusedWrite):
     record."""
 
 
-def approval_content(a: RecordApproval) -> dict[str, Any]:
+class ApprovalContent(TypedDict):
+    """What an approval asserts, hashed into its `sha256`; the signer where the approval names
+    one."""
+
+    record_id: int
+    decision: str
+    meaning: str
+    note: str
+    actor: str
+    at: str
+    record_sha256: str
+    prev_sha256: str
+    signer: NotRequired[NamedPerson]
+
+
+def approval_content(a: RecordApproval) -> ApprovalContent:
     """What an approval asserts; its SHA-256 is `sha256` (canonical rule of canonical.py). The
     signer's name and function are part of it where the approval names them (approvals from before
     persons were kept do not)."""
-    content = {
+    content: ApprovalContent = {
         "record_id": a.record_id,
         "decision": a.decision,
         "meaning": a.meaning,

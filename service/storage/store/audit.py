@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
 
 import sqlalchemy as sa
 
@@ -27,7 +26,7 @@ class AuditRepo:
             return list(session.scalars(stmt))
 
     def action(
-        self, actor: str, action: str, entity: str, entity_id: object, details: Mapping[str, Any]
+        self, actor: str, action: str, entity: str, entity_id: object, details: Mapping[str, object]
     ) -> None:
         """An audit event for an action that changes no row (a stage move, a stop)."""
         with self._db.transaction() as session:

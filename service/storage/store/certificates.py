@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping
-from typing import Any
 
 import sqlalchemy as sa
 
@@ -54,7 +53,7 @@ class CertificatesRepo:
         approval_id: int,
         replaces_id: int | None,
         actor: str,
-        conformity: Mapping[str, Any] | None = None,
+        conformity: Mapping[str, object] | None = None,
     ) -> tuple[Certificate, bool]:
         """Keep issued bytes with their SHA-256; if the record already has a certificate, that one
         is returned. `conformity`: the statements of conformity it makes, which its

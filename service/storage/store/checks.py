@@ -6,7 +6,6 @@ from __future__ import annotations
 import datetime as dt
 import math
 from collections.abc import Mapping
-from typing import Any
 
 import sqlalchemy as sa
 
@@ -55,17 +54,20 @@ def require_date(name: str, value: object) -> dt.date:
     raise InputError(f"{name}: {value!r} is not a date (YYYY-MM-DD)")
 
 
-def require_doc(name: str, value: object) -> dict[str, Any]:
+def require_doc(name: str, value: object) -> dict[str, object]:
+    """A JSON object as it will be stored and read back (its shape is the caller's)."""
     if not isinstance(value, Mapping):
         raise InputError(f"{name} must be a JSON object (dict)")
-    doc: dict[str, Any] = normalise(dict(value))
+    doc: dict[str, object] = normalise(dict(value))
     return doc
 
 
-def require_standards(value: object) -> list[dict[str, Any]]:
+def require_standards(value: object) -> list[dict[str, object]]:
+    """The reference standards a record names, as stored: each with a certificate_id and a name or
+    a serial."""
     if not isinstance(value, list | tuple):
         raise InputError("reference_standards must be a list of {name, serial, certificate_id}")
-    out: list[dict[str, Any]] = []
+    out: list[dict[str, object]] = []
     for i, item in enumerate(value):
         if not isinstance(item, Mapping):
             raise InputError(f"reference_standards[{i}] must be an object")
@@ -77,7 +79,7 @@ def require_standards(value: object) -> list[dict[str, Any]]:
         if not (item.get("name") or item.get("serial")):
             raise InputError(f"reference_standards[{i}] needs a name or a serial")
         out.append(dict(item))
-    checked: list[dict[str, Any]] = normalise(out)
+    checked: list[dict[str, object]] = normalise(out)
     return checked
 
 

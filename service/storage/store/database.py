@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
@@ -63,7 +62,7 @@ class Database:
         action: str,
         entity: str,
         entity_id: object,
-        details: Mapping[str, Any],
+        details: Mapping[str, object],
     ) -> AuditEvent:
         """Append an audit event to the chain inside the action's own transaction (and so its feed
         event). The rows of the hashed tables the action added or changed get their new hash, which

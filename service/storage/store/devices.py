@@ -28,7 +28,7 @@ class DevicesRepo:
         stage_model: str | None = None,
         stage_serial: str | None = None,
         port: str | None = None,
-        port_settings: Mapping[str, Any] | None = None,
+        port_settings: Mapping[str, object] | None = None,
     ) -> Bench:
         with self._db.transaction() as session:
             name = require_text("bench name", name)
@@ -53,7 +53,7 @@ class DevicesRepo:
         stage_model: str | None = None,
         stage_serial: str | None = None,
         port: str | None = None,
-        port_settings: Mapping[str, Any] | None = None,
+        port_settings: Mapping[str, object] | None = None,
     ) -> Bench:
         port = optional_text("port", port, 200)
         bench = Bench(
@@ -79,7 +79,7 @@ class DevicesRepo:
         actor: str,
         bench_id: int | None = None,
         port: str | None = None,
-        port_settings: Mapping[str, Any] | None = None,
+        port_settings: Mapping[str, object] | None = None,
     ) -> Device:
         with self._db.transaction() as session:
             model, serial, role = (
@@ -116,7 +116,7 @@ class DevicesRepo:
         actor: str,
         bench_id: int | None,
         port: str | None,
-        port_settings: Mapping[str, Any] | None,
+        port_settings: Mapping[str, object] | None,
     ) -> Device:
         role = require_text("role", role, 40)
         port = optional_text("port", port, 200)

@@ -7,8 +7,8 @@ daemon lost by a restart is ended as failed when the daemon starts again.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Iterable, Mapping
+from typing import cast
 
 import sqlalchemy as sa
 from sqlalchemy.orm import defer
@@ -56,7 +56,7 @@ class DiagnosesRepo:
         *,
         state: str,
         started_at: dt.datetime | None,
-        summary: Mapping[str, Any],
+        summary: Mapping[str, object],
         report_html: str | None,
         error: str | None,
         actor: str,
@@ -95,7 +95,10 @@ class DiagnosesRepo:
                     "diagnosis_id": diagnosis_id,
                     "record_id": row.record_id,
                     "state": state,
-                    "named_effects": list(summary.get("named_effects", [])),
+                    # the workflow's summary lists the effects it named
+                    "named_effects": list(
+                        cast("Iterable[object]", summary.get("named_effects", []))
+                    ),
                     "error": error,
                 },
             )

@@ -3,8 +3,8 @@ in canonical.py)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import Any, NotRequired, TypedDict
 
 from service.storage.canonical import sha256_hex, utc_iso
 from service.storage.models import AuditEvent, CalibrationRecord, SettledPoint
@@ -27,7 +27,63 @@ POINT_FIELDS = (
 POINT_REQUIRED = ("point", "n_samples", "t_start_s", "t_end_s", "ch_x_mean", "ch_y_mean")
 
 
-def record_content(r: CalibrationRecord) -> dict[str, Any]:
+class SettledPointFields(TypedDict):
+    """A settled point's fields (POINT_FIELDS), as given or averaged from samples, with the hash of
+    the raw samples it came from once that is known."""
+
+    point: int
+    cmd_x_deg: float | None
+    cmd_y_deg: float | None
+    n_samples: int
+    t_start_s: float | None
+    t_end_s: float | None
+    ch_x_mean: float | None
+    ch_y_mean: float | None
+    ch_z_mean: float | None
+    ch_x_std: float | None
+    ch_y_std: float | None
+    ch_z_std: float | None
+    temp_c_mean: float | None
+    samples_sha256: NotRequired[str | None]
+
+
+class RecordContent(TypedDict):
+    """Everything a record asserts (its JSON documents as stored), hashed into `content_sha256`."""
+
+    content_format: int
+    device_id: int
+    kind: str
+    version: int
+    method: str
+    model: Mapping[str, object]
+    validation: Mapping[str, object]
+    temp_c: float | None
+    reference_standards: Sequence[object]
+    operator: str
+    created_at: str
+    job_id: int | None
+    raw_data: Mapping[str, object]
+    supersedes_id: int | None
+    prev_sha256: str
+
+
+class AuditContent(TypedDict):
+    """What an audit event asserts, hashed into its `sha256`."""
+
+    at: str
+    actor: str
+    action: str
+    entity: str
+    entity_id: str
+    details: Mapping[str, object]
+    prev_sha256: str
+
+
+# What a settled point asserts: its POINT_FIELDS and, where kept, its samples' "samples_sha256".
+PointContent = dict[str, int | float | str | None]
+
+
+def record_content(r: CalibrationRecord) -> RecordContent:
     """Everything a record asserts; its SHA-256 is `content_sha256` (rule in canonical.py)."""
     return {
         "content_format": r.content_format,
@@ -48,7 +104,7 @@ def record_content(r: CalibrationRecord) -> dict[str, Any]:
     }
 
 
-def audit_content(e: AuditEvent) -> dict[str, Any]:
+def audit_content(e: AuditEvent) -> AuditContent:
     return {
         "at": utc_iso(e.at),
         "actor": e.actor,
@@ -60,10 +116,10 @@ def audit_content(e: AuditEvent) -> dict[str, Any]:
     }
 
 
-def point_content(p: SettledPoint) -> dict[str, Any]:
+def point_content(p: SettledPoint) -> PointContent:
     """What a settled point asserts: its fields, and the hash of the raw samples it was averaged
     from (points stored before those hashes were kept have none, and hash as they did)."""
-    content = {name: getattr(p, name) for name in POINT_FIELDS}
+    content: PointContent = {name: getattr(p, name) for name in POINT_FIELDS}
     if p.samples_sha256 is not None:
         content["samples_sha256"] = p.samples_sha256
     return content

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import datetime as dt
 from collections.abc import Collection, Mapping
-from typing import Any
 
 import sqlalchemy as sa
 
@@ -49,7 +48,7 @@ class JobsRepo:
         method: str,
         *,
         actor: str,
-        parameters: Mapping[str, Any] | None = None,
+        parameters: Mapping[str, object] | None = None,
         bench_id: int | None = None,
         order_id: int | None = None,
     ) -> CalibrationJob:
@@ -172,11 +171,11 @@ class JobsRepo:
         device_id: int,
         kind: str,
         method: str,
-        parameters: Mapping[str, Any],
+        parameters: Mapping[str, object],
         actor: str,
         points_total: int,
         idempotency_key: str | None = None,
-        request: Mapping[str, Any] | None = None,
+        request: Mapping[str, object] | None = None,
         order_id: int | None = None,
     ) -> tuple[CalibrationJob, bool]:
         """A queued job, or the job an earlier request with the same Idempotency-Key created (then

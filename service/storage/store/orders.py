@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any, TypeVar
+from typing import TypedDict, TypeVar
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
@@ -39,8 +39,37 @@ class IdempotencyKeyReused(InputError):
     """The same Idempotency-Key came with another body."""
 
 
-def _customer_of(body: Mapping[str, Any]) -> Mapping[str, Any]:
-    """The order's customer, checked: a name, a city and an ISO 3166-1 country code at least."""
+class JobLink(TypedDict):
+    id: int
+    state: str
+
+
+class RecordLink(TypedDict):
+    id: int
+    version: int
+    status: str  # draft, approved or rejected
+
+
+class CertificateLink(TypedDict):
+    id: int
+    number: str
+    record_id: int
+    sha256: str
+
+
+class OrderLinks(TypedDict):
+    """An order's jobs, records (with their approval status) and certificates, and the state they
+    put it in."""
+
+    jobs: list[JobLink]
+    records: list[RecordLink]
+    certificates: list[CertificateLink]
+    state: str
+
+
+def _customer_of(body: Mapping[str, object]) -> Mapping[str, str]:
+    """The order's customer, checked: a name, a city and an ISO 3166-1 country code at least (its
+    values text, as the API's order model gives them)."""
     customer = body.get("customer")
     if not isinstance(customer, Mapping):
         raise InputError(
@@ -55,7 +84,7 @@ def _customer_of(body: Mapping[str, Any]) -> Mapping[str, Any]:
     return customer
 
 
-def _specification_of_order(body: Mapping[str, Any]) -> Specification | None:
+def _specification_of_order(body: Mapping[str, object]) -> Specification | None:
     """The order's specification, if any: conformity is stated on a stage-grid order's indication
     error only."""
     spec = specification_of(body.get("specification"))
@@ -102,7 +131,7 @@ class OrdersRepo:
         self._db = db
 
     def create_order(
-        self, fields: Mapping[str, Any], *, actor: str, idempotency_key: str | None = None
+        self, fields: Mapping[str, object], *, actor: str, idempotency_key: str | None = None
     ) -> tuple[Order, bool]:
         """A new order, or (False) the one an earlier request with the same Idempotency-Key
         created."""
@@ -173,7 +202,7 @@ class OrdersRepo:
             # a JSON column keeps "no specification" as null
             return {int(job_id) for job_id, spec in rows if spec}
 
-    def order_links(self, order_id: int) -> dict[str, Any]:
+    def order_links(self, order_id: int) -> OrderLinks:
         """The order's jobs, records (with status) and certificates, and the state they put it
         in."""
         with self._db.session() as session:

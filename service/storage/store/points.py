@@ -20,6 +20,7 @@ from service.storage.store.hashing import (
     POINT_FIELDS,
     POINT_REQUIRED,
     SAMPLE_FIELDS,
+    SettledPointFields,
     point_content,
     points_sha256,
     samples_sha256,
@@ -32,7 +33,7 @@ class PointsRepo:
         self._db = db
 
     def add_settled_points(
-        self, job_id: int, device_id: int, points: Sequence[Mapping[str, Any]], *, actor: str
+        self, job_id: int, device_id: int, points: Sequence[Mapping[str, object]], *, actor: str
     ) -> list[SettledPoint]:
         with self._db.transaction() as session:
             job = job_in(session, job_id)
@@ -93,7 +94,7 @@ class PointsRepo:
         by_point: dict[int, list[Any]] = {}
         for row in rows:
             by_point.setdefault(row.point, []).append(row)
-        points: list[dict[str, Any]] = []
+        points: list[SettledPointFields] = []
         for point, samples in sorted(by_point.items()):
             t0 = samples[0].t_s + skip_s
             settled = [sample for sample in samples if sample.t_s >= t0]
@@ -134,29 +135,46 @@ class PointsRepo:
         return out
 
 
-def _point_values(i: int, given: Mapping[str, Any]) -> dict[str, Any]:
+def _point_values(i: int, given: Mapping[str, object]) -> SettledPointFields:
     """The fields of the i-th settled point given, checked: known ones only, the required ones
-    there, counts non-negative integers and every other value finite."""
+    there, counts non-negative integers and every other value finite (checked in the order of
+    POINT_FIELDS)."""
     unknown = set(given) - set(POINT_FIELDS)
     missing = [k for k in POINT_REQUIRED if given.get(k) is None]
     if unknown or missing:
         raise InputError(
             f"settled point [{i}]: unknown fields {sorted(unknown)}, missing {missing}"
         )
-    values: dict[str, Any] = {}
-    for k in POINT_FIELDS:
-        if k in ("point", "n_samples"):
-            if not isinstance(given[k], int) or given[k] < 0:
-                raise InputError(f"settled point [{i}]: {k} must be a non-negative integer")
-            values[k] = given[k]
-        else:
-            values[k] = require_finite(f"settled point [{i}] {k}", given.get(k))
-    return values
+
+    def count(k: str) -> int:
+        value = given[k]
+        if not isinstance(value, int) or value < 0:
+            raise InputError(f"settled point [{i}]: {k} must be a non-negative integer")
+        return value
+
+    def finite(k: str) -> float | None:
+        return require_finite(f"settled point [{i}] {k}", given.get(k))
+
+    return {
+        "point": count("point"),
+        "cmd_x_deg": finite("cmd_x_deg"),
+        "cmd_y_deg": finite("cmd_y_deg"),
+        "n_samples": count("n_samples"),
+        "t_start_s": finite("t_start_s"),
+        "t_end_s": finite("t_end_s"),
+        "ch_x_mean": finite("ch_x_mean"),
+        "ch_y_mean": finite("ch_y_mean"),
+        "ch_z_mean": finite("ch_z_mean"),
+        "ch_x_std": finite("ch_x_std"),
+        "ch_y_std": finite("ch_y_std"),
+        "ch_z_std": finite("ch_z_std"),
+        "temp_c_mean": finite("temp_c_mean"),
+    }
 
 
 def _point_from_samples(
     point: int, samples: Sequence[Any], cmd: tuple[float | None, float | None]
-) -> dict[str, Any]:
+) -> SettledPointFields:
     """A grid point's settled values from its samples after settling: their means and spreads."""
     channels = {
         name: [getattr(sample, name) for sample in samples]

@@ -4,7 +4,7 @@ at once."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, TypedDict
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session, defer
@@ -36,6 +36,16 @@ from service.storage.store.pointer import activate_in, deactivate_in, unusable_i
 SUPERSEDES_ACTIVE: Any = object()  # a new version supersedes whichever version is active
 
 
+class JobRawData(TypedDict):
+    """What a record made by a job keeps of the job's data in its `raw_data`."""
+
+    job_id: int
+    points: int
+    points_sha256: str
+    samples: int | None
+    settled_points_sha256: dict[str, str]  # by device id (as text)
+
+
 class RecordsRepo:
     """Calibration records and the active pointer of each (device, kind)."""
 
@@ -47,14 +57,14 @@ class RecordsRepo:
         device_id: int,
         kind: str,
         method: str,
-        model: Mapping[str, Any],
+        model: Mapping[str, object],
         *,
         operator: str,
-        reference_standards: Sequence[Mapping[str, Any]] = (),
-        validation: Mapping[str, Any] | None = None,
+        reference_standards: Sequence[Mapping[str, object]] = (),
+        validation: Mapping[str, object] | None = None,
         temp_c: float | None = None,
         job_id: int | None = None,
-        raw_data: Mapping[str, Any] | None = None,
+        raw_data: Mapping[str, object] | None = None,
         supersedes_id: int | None = SUPERSEDES_ACTIVE,
         activate: bool = False,
         reason: str | None = None,
@@ -275,7 +285,7 @@ class RecordsRepo:
             )
 
 
-def _check_model_names(model_doc: Mapping[str, Any], kind: str, method: str) -> None:
+def _check_model_names(model_doc: Mapping[str, object], kind: str, method: str) -> None:
     """A model document that names its kind or method must name the record's."""
     for key, expected in (("kind", kind), ("method", method)):
         if key in model_doc and model_doc[key] != expected:
@@ -284,7 +294,7 @@ def _check_model_names(model_doc: Mapping[str, Any], kind: str, method: str) -> 
             )
 
 
-def _job_raw_data(session: Session, job_id: int, device_id: int) -> dict[str, Any]:
+def _job_raw_data(session: Session, job_id: int, device_id: int) -> JobRawData:
     """What a record made by a job keeps of the job's data: its points and their hashes, its count
     of samples; the job must calibrate this device and be running or done."""
     job = job_in(session, job_id)

@@ -7,7 +7,6 @@ import datetime as dt
 import math
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any
 
 import sqlalchemy as sa
 
@@ -49,7 +48,9 @@ def positive_number(
     return float(value)  # type: ignore[arg-type]
 
 
-def stated_uncertainty(fields: Mapping[str, Any], remark: str) -> tuple[float | None, float | None]:
+def stated_uncertainty(
+    fields: Mapping[str, object], remark: str
+) -> tuple[float | None, float | None]:
     """U (degrees) and k as given, else read from the remark's wording; (None, None) when neither
     says."""
     expanded_deg, k = fields.get("expanded_uncertainty_deg"), fields.get("coverage_factor")
@@ -96,7 +97,7 @@ class StandardsRepo:
     def __init__(self, db: Database) -> None:
         self._db = db
 
-    def add_standard(self, fields: Mapping[str, Any], *, actor: str) -> ReferenceStandard:
+    def add_standard(self, fields: Mapping[str, object], *, actor: str) -> ReferenceStandard:
         sha = fields.get("certificate_sha256")
         if not isinstance(sha, str) or not CERTIFICATE_SHA256.fullmatch(sha):
             raise InputError(

@@ -6,7 +6,7 @@ from __future__ import annotations
 import secrets
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import TypedDict
 
 import sqlalchemy as sa
 
@@ -17,6 +17,7 @@ from service.storage.store.database import Database
 from service.storage.tokens import (
     TOKEN_NAME,
     TOKEN_PREFIX,
+    NamedPerson,
     Person,
     Principal,
     granted,
@@ -231,6 +232,12 @@ def person_of_row(row: ApiToken) -> Person | None:
     return Person(row.person_name, row.person_function) if row.person_name else None
 
 
-def _person_details(person: Person | None) -> dict[str, Any]:
+class PersonDetails(TypedDict, total=False):
+    """An audit event's details about the person behind a token (none: no person)."""
+
+    person: NamedPerson
+
+
+def _person_details(person: Person | None) -> PersonDetails:
     """How the audit trail names a person."""
     return {} if person is None else {"person": {"name": person.name, "function": person.function}}
