@@ -14,8 +14,8 @@ points cannot determine is said so, with the reason and the measurement that wou
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, TypedDict, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,11 +26,17 @@ from service.calibration.methods.stage.chain import (
     IN_CHAIN,
     REFERENCE_EFFECTS,
 )
-from service.calibration.model import CalibrationModel
+from service.calibration.model import CalibrationModel, ParameterJSON, StageBenchJSON
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.stage_effect_fit import param_label
 from service.errors import DegenerateDataError, FitError, InputError
 from service.physics.stage import StageBench
+
+if TYPE_CHECKING:
+    from service.discrepancy.workflow import Step
+
+# a bench as the caller has it: the hardware, or its fields as a record's model states them
+BenchGiven = StageBench | StageBenchJSON
 
 
 class NothingToAdopt(InputError):
@@ -58,6 +64,30 @@ MEASUREMENTS = {
 }
 
 
+class AdoptionVerdict(TypedDict):
+    """An `Adoption` as a diagnosis stores and shows it."""
+
+    effect: str
+    adoptable: bool
+    reason: str
+    measurement: str | None
+    axes: list[str] | None
+
+
+class AdoptedFrom(TypedDict, total=False):
+    """Where an adopted model's added effects come from, as its state keeps it: a diagnosis of a
+    record (the daemon) or a report of a dataset (the command line); `what` says it in words."""
+
+    id: int  # the diagnosis
+    record_id: int
+    sensor: str
+    baseline: str
+    measurement_job_ids: list[int]
+    report: str  # the report file
+    input: str  # the dataset
+    what: str
+
+
 @dataclass
 class Adoption:
     """Whether one named effect can be added to the record, and if not why and what would make it
@@ -70,17 +100,24 @@ class Adoption:
     # a worm's periodic error: the stages it is fitted on (those it was seen on)
     axes: list[str] | None = None
 
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+    def as_dict(self) -> AdoptionVerdict:
+        return {
+            "effect": self.effect,
+            "adoptable": self.adoptable,
+            "reason": self.reason,
+            "measurement": self.measurement,
+            "axes": None if self.axes is None else list(self.axes),
+        }
 
 
-def record_effects(model: CalibrationModel | Mapping[str, Any] | None) -> set[str]:
+def record_effects(model: CalibrationModel | Mapping[str, object] | None) -> set[str]:
     """The effects a record's model fits already: those with a free parameter in its chain (adding
     them again would change nothing)."""
     if model is None:
         return set()
     doc = model.to_json_dict() if isinstance(model, CalibrationModel) else model
-    params = doc.get("parameters", {})
+    # a stored model (MODEL.json) states its parameters so
+    params = cast("Mapping[str, ParameterJSON]", doc.get("parameters", {}))
     have = set()
     for effect, keys in EFFECT_PARAMS.items():
         if any(
@@ -144,9 +181,9 @@ def adopted_model(
     columns: Mapping[str, NDArray[np.float64]],
     named: Sequence[str],
     sensor: str,
-    bench: StageBench | Mapping[str, Any],
+    bench: BenchGiven,
     bench_source: str,
-    diagnosis: Mapping[str, Any],
+    diagnosis: AdoptedFrom,
     have: set[str] | frozenset[str] = frozenset(),
     keep: Sequence[str] = (),
     worm_axes: Sequence[str] = ("x", "y"),
@@ -178,7 +215,7 @@ def adopted_model(
 def _fit(
     columns: Mapping[str, NDArray[np.float64]],
     effects: Sequence[str],
-    bench: StageBench | Mapping[str, Any],
+    bench: BenchGiven,
     bench_source: str,
     worm_axes: Sequence[str] = ("x", "y"),
 ) -> CalibrationModel:
@@ -231,7 +268,7 @@ def worm_axes_seen(
     return seen
 
 
-def seen_labels_of(steps: Sequence[Any]) -> dict[str, list[str]]:
+def seen_labels_of(steps: Sequence[Step]) -> dict[str, list[str]]:
     """Per effect a diagnosis named (its workflow's steps), the parameters that carry it: a worm's
     periodic error only on the stages its fit shows it on."""
     seen: dict[str, list[str]] = {}
@@ -245,12 +282,13 @@ def seen_labels_of(steps: Sequence[Any]) -> dict[str, list[str]]:
     return seen
 
 
-def worm_axes_of(verdicts: Sequence[Mapping[str, Any]]) -> list[str]:
+def worm_axes_of(verdicts: Sequence[AdoptionVerdict]) -> list[str]:
     """The stages a stored adoption verdict fits a worm's error on (both for a verdict that does not
     say)."""
     for verdict in verdicts:
-        if verdict.get("effect") == "periodic_error" and verdict.get("axes"):
-            return [str(axis) for axis in verdict["axes"]]
+        # a verdict stored before the stages were kept has no `axes`
+        if verdict.get("effect") == "periodic_error" and (axes := verdict.get("axes")):
+            return [str(axis) for axis in axes]
     return ["x", "y"]
 
 
@@ -258,7 +296,7 @@ def adoption(
     columns: Mapping[str, NDArray[np.float64]],
     named: Sequence[str],
     sensor: str,
-    bench: StageBench | Mapping[str, Any] | None,
+    bench: BenchGiven | None,
     bench_source: str,
     have: set[str] | frozenset[str] = frozenset(),
     seen_labels: Mapping[str, Sequence[str]] | None = None,
@@ -306,7 +344,7 @@ def adoption(
 def _refusal_without_refit(
     effect: str,
     sensor: str,
-    bench: StageBench | Mapping[str, Any] | None,
+    bench: BenchGiven | None,
     have: set[str] | frozenset[str],
 ) -> str | None:
     """Why an effect cannot be adopted whatever the points say (None: only a refit can tell)."""
@@ -339,7 +377,7 @@ def _check_together(
     columns: Mapping[str, NDArray[np.float64]],
     verdicts: dict[str, Adoption],
     keep: Sequence[str],
-    bench: StageBench | Mapping[str, Any],
+    bench: BenchGiven,
     bench_source: str,
     axes: Sequence[str],
 ) -> None:
@@ -365,15 +403,15 @@ def _left_undetermined(
     columns: Mapping[str, NDArray[np.float64]],
     ok: list[str],
     keep: Sequence[str],
-    bench: StageBench | Mapping[str, Any],
+    bench: BenchGiven,
     bench_source: str,
     axes: Sequence[str],
-) -> Mapping[str, Any]:
+) -> Mapping[str, str]:
     """The effects the joint refit leaves undetermined, with the reason (every one of them when
     the joint refit itself fails)."""
     try:
         joint = _fit(columns, [k for k in keep if k not in ok] + ok, bench, bench_source, axes)
-        left: Mapping[str, Any] = joint.fit.get("undetermined_effects") or {}
+        left: Mapping[str, str] = joint.fit.get("undetermined_effects") or {}
     except (DegenerateDataError, FitError, InputError, np.linalg.LinAlgError) as exc:
         left = {effect: str(exc) for effect in ok}
     return left
@@ -382,7 +420,7 @@ def _left_undetermined(
 def _one(
     columns: Mapping[str, NDArray[np.float64]],
     effect: str,
-    bench: StageBench | Mapping[str, Any],
+    bench: BenchGiven,
     bench_source: str,
     seen_axes: Sequence[str],
     keep: Sequence[str],

@@ -16,12 +16,16 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 
+from service.discrepancy.report_types import DiscrepancyReport, EffectReason
 from service.discrepancy.stage_data import StageData
 from service.physics.stage import StageBench
+
+if TYPE_CHECKING:
+    from service.discrepancy.adopt import AdoptionVerdict
 
 # a worm scan: one period in steps of an eighth (nine points, the last a turn after the first)
 EIGHTHS = 9
@@ -65,10 +69,43 @@ class Need:
     axes: tuple[str, ...] = ()
 
 
+class PlannedPointJSON(TypedDict):
+    """A planned point as the plan lists it (approach +1 from below, -1 from above)."""
+
+    stage_x_deg: float
+    stage_y_deg: float
+    dir_x: float
+    dir_y: float
+
+
+class PlanPartJSON(TypedDict):
+    """One candidate's part of the plan; its points as [stage_x_deg, stage_y_deg, dir_x, dir_y]."""
+
+    effect: str
+    why: str
+    measurement: str
+    n_points: int
+    points: list[list[float]]
+
+
+class MeasurementPlanJSON(TypedDict):
+    """The designed measurement as a diagnosis stores and shows it (`MeasurementPlan.as_dict`)."""
+
+    n_points: int
+    points: list[PlannedPointJSON]
+    parts: list[PlanPartJSON]
+    cannot: list[EffectReason]  # what this bench cannot measure, and why
+    estimated_bench_s: float
+    seconds_per_point: float
+    estimate_source: str
+    approach: str
+    summary: str
+
+
 @dataclass
 class MeasurementPlan:
     parts: list[PlanPart]
-    cannot: list[dict[str, str]]
+    cannot: list[EffectReason]
     seconds_per_point: float
     estimate_source: str
 
@@ -80,7 +117,7 @@ class MeasurementPlan:
     def estimated_bench_s(self) -> float:
         return len(self.points) * self.seconds_per_point
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> MeasurementPlanJSON:
         pts = self.points
         if pts:
             summary = (
@@ -211,7 +248,7 @@ def _wide(data: StageData, bench: StageBench, travel: float) -> list[PlannedPoin
 
 
 # what a planner adds: parts of the measurement, and needs it cannot meet on this bench
-_PlanResult = tuple[list[PlanPart], list[dict[str, str]]]
+_PlanResult = tuple[list[PlanPart], list[EffectReason]]
 
 
 def _plan_backlash(
@@ -354,7 +391,7 @@ def plan_measurement(
     """The shortest measurement that tests every need: one part per candidate (a part another part's
     points already serve adds none)."""
     parts: list[PlanPart] = []
-    cannot: list[dict[str, str]] = []
+    cannot: list[EffectReason] = []
     by_effect = _merged_needs(needs)
     for effect, planner in _PLANNERS.items():
         if (need := by_effect.get(effect)) is not None:
@@ -373,9 +410,9 @@ def plan_measurement(
 
 
 def needs_of(
-    report: Mapping[str, Any],
+    report: DiscrepancyReport,
     active: Mapping[str, Sequence[str]],
-    adoption: Sequence[Mapping[str, Any]],
+    adoption: Sequence[AdoptionVerdict],
     weak: float,
     data: StageData | None = None,
 ) -> list[Need]:
@@ -402,7 +439,7 @@ def needs_of(
     return needs
 
 
-def _one_pass_without_drift(report: Mapping[str, Any], data: StageData) -> bool:
+def _one_pass_without_drift(report: DiscrepancyReport, data: StageData) -> bool:
     """Timed points, no pose measured twice, and no drift named: the drift was barely testable."""
     if data.t_s is None or "time_drift" in report.get("named_effects", []):
         return False
@@ -410,7 +447,7 @@ def _one_pass_without_drift(report: Mapping[str, Any], data: StageData) -> bool:
     return bool(np.unique(poses, axis=0).shape[0] == len(poses))
 
 
-def _skipped_needs(report: Mapping[str, Any]) -> list[Need]:
+def _skipped_needs(report: DiscrepancyReport) -> list[Need]:
     """The candidates the diagnosis skipped as untestable, with its reason."""
     needs = []
     for skip in report.get("skipped", []):
@@ -440,7 +477,7 @@ def _worm_phase_needs(worm: Sequence[str]) -> list[Need]:
     ]
 
 
-def _weak_needs(report: Mapping[str, Any], weak: float) -> list[Need]:
+def _weak_needs(report: DiscrepancyReport, weak: float) -> list[Need]:
     """The remaining candidates the final model sees less than `weak` of."""
     needs = []
     for effect, fracs in (report.get("separability") or {}).items():
@@ -460,7 +497,7 @@ def _weak_needs(report: Mapping[str, Any], weak: float) -> list[Need]:
     return needs
 
 
-def _unadoptable_needs(adoption: Sequence[Mapping[str, Any]]) -> list[Need]:
+def _unadoptable_needs(adoption: Sequence[AdoptionVerdict]) -> list[Need]:
     """The named effects the record cannot adopt and a measurement would determine."""
     needs = []
     for verdict in adoption:

@@ -20,17 +20,31 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, NotRequired, TypedDict, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.bench.runtime import BenchBusy, BenchRuntime
 from service.calibration.methods.stage.chain import IN_CHAIN
-from service.calibration.model import CalibrationModel
+from service.calibration.model import CalibrationModel, ParameterJSON, StageBenchJSON
 from service.calibration.registry import get_method
-from service.discrepancy.adopt import NothingToAdopt, effects_to_add, record_effects, worm_axes_of
+from service.discrepancy.adopt import (
+    AdoptedFrom,
+    AdoptionVerdict,
+    NothingToAdopt,
+    effects_to_add,
+    record_effects,
+    worm_axes_of,
+)
+from service.discrepancy.report_types import (
+    DiscrepancyReport,
+    EffectReason,
+    Magnitude,
+    StepReport,
+)
 from service.errors import InputError
 from service.jobs.manager import JobManager
 from service.jobs.requests import CalibrationRequest
@@ -45,6 +59,9 @@ from service.storage.models import (
 )
 from service.storage.store import Store
 
+if TYPE_CHECKING:
+    from service.discrepancy.design import MeasurementPlanJSON
+
 log = logging.getLogger("tiltlab.diagnosis")
 
 SENSORS = ("ref", "meas")
@@ -53,6 +70,165 @@ PHASES = ("loading", "planning", "measuring", "analysing", "storing")
 WORKER_END_S = 5.0  # a worker asked to end (SIGTERM) is killed after this long
 # bench seconds a point takes when the record's job gives no timing
 DEFAULT_SECONDS_PER_POINT = 30.0
+
+
+class Gap(TypedDict):
+    """The gap between model and points as one angle per point (x and y together), deg."""
+
+    rms: float
+    max: float
+
+
+class EvidenceSummary(TypedDict):
+    """The test that named an effect, as the diagnosis shows it (the report has the rest)."""
+
+    test: str
+    f_stat: float
+    p_value: float
+    alpha: float
+    delta_bic: float
+    rss_reduction_pct: float
+    where_before: list[str]
+
+
+class EffectSummary(TypedDict):
+    """One named effect: its size, its evidence, and whether the record can adopt it."""
+
+    effect: str
+    summary: str
+    magnitude: Magnitude
+    evidence: EvidenceSummary
+    rms_before_deg: list[float]  # per axis
+    rms_after_deg: list[float]
+    adoptable: bool
+    adoption: str | None  # the verdict's reason
+    measurement: str | None  # what would let it be adopted
+
+
+class StepSummary(TypedDict):
+    """One step of the chain of named effects."""
+
+    effect: str
+    summary: str
+    rms_before_deg: list[float]
+    rms_after_deg: list[float]
+
+
+class ResidualMaps(TypedDict):
+    """Per point diagnosed, its stand, approach and residual before and after the named effects."""
+
+    stage_deg: list[list[float]]  # [x, y] per point
+    approach: list[list[float]]  # [dir_x, dir_y]
+    before_deg: list[list[float]]  # residual [x, y], the baseline alone
+    after_deg: list[list[float]]  # with the named effects
+    unit: str
+    what: str
+
+
+class DiagnosisData(TypedDict):
+    """The points diagnosed: the record's, and those of measurements made for it."""
+
+    record_id: int
+    record_job_id: int | None
+    measurement_job_ids: list[int]
+    n_points: int | None
+
+
+class MeasurementBefore(TypedDict):
+    """What a `measure` diagnosis's first look at the record's points alone showed."""
+
+    named_effects: list[str]
+    gap_before_deg: Gap
+    gap_after_deg: Gap
+    untestable: list[EffectReason]
+    adoptable: bool
+    adoption: list[AdoptionVerdict]
+    n_points: int
+
+
+class MeasurementSummary(TypedDict):
+    """A `measure` diagnosis's measurement: the plan, the job that measured it, the first look."""
+
+    plan: MeasurementPlanJSON | None
+    job_id: int | None
+    before: NotRequired[MeasurementBefore]  # once the diagnosis is stored
+
+
+class DiagnosisSummary(TypedDict, total=False):
+    """A diagnosis's result as stored (JSON) and shown. `run_workflow` fills every key but `data`
+    and `measurement`, which the runner adds; a failed diagnosis stores at most `measurement`, and
+    one stored by an older version may lack later keys: read them with .get."""
+
+    named_effects: list[str]
+    gap_before_deg: Gap
+    gap_after_deg: Gap
+    noise_deg: float
+    noise_source: str
+    effects: list[EffectSummary]
+    steps: list[StepSummary]
+    untestable: list[EffectReason]
+    adoptable: bool
+    adoption: list[AdoptionVerdict]
+    measurement_plan: MeasurementPlanJSON
+    n_points: int
+    residual_maps: ResidualMaps
+    conclusion: str
+    report: DiscrepancyReport
+    data: DiagnosisData
+    measurement: MeasurementSummary
+
+
+class DiagnosisPlanJSON(TypedDict):
+    """What a record's points show and cannot test, and the measurement `measure` would run."""
+
+    record_id: int
+    sensor: str
+    baseline: str
+    named_effects: list[str]
+    gap_before_deg: Gap
+    gap_after_deg: Gap
+    noise_deg: float
+    untestable: list[EffectReason]
+    adoptable: bool
+    adoption: list[AdoptionVerdict]
+    n_points: int
+    plan: MeasurementPlanJSON
+
+
+class DiagnosisState(TypedDict):
+    """A diagnosis as GET /diagnoses/{id} shows it (the stored result's keys null until it ends)."""
+
+    id: int
+    record_id: int
+    sensor: str
+    baseline: str
+    state: str
+    phase: str | None
+    created_utc: dt.datetime
+    created_by: str
+    started_utc: dt.datetime | None
+    finished_utc: dt.datetime | None
+    named_effects: list[str]
+    effects: list[EffectSummary]
+    gap_before_deg: Gap | None
+    gap_after_deg: Gap | None
+    noise_deg: float | None
+    noise_source: str | None
+    steps: list[StepSummary]
+    untestable: list[EffectReason]
+    adoptable: bool | None
+    adoption: list[AdoptionVerdict]
+    measurement_plan: MeasurementPlanJSON | None
+    measurement: MeasurementSummary | None
+    residual_maps: ResidualMaps | None
+    data: DiagnosisData | None
+    conclusion: str | None
+    error: str | None
+
+
+def stored_summary(result: DiagnosisResult) -> DiagnosisSummary:
+    """A stored result's summary: the JSON this module wrote (`DiagnosisSummary`)."""
+    return cast(DiagnosisSummary, result.summary)
 
 
 @dataclass
@@ -64,11 +240,11 @@ class Running:
     started_at: dt.datetime | None = None
     task: asyncio.Task[None] | None = field(default=None, repr=False)
     measure: bool = False  # measure what the stored points cannot test first
-    plan: dict[str, Any] | None = None  # the measurement planned, once it is
+    plan: MeasurementPlanJSON | None = None  # the measurement planned, once it is
     job_id: int | None = None  # the job measuring it
 
 
-def gap(residuals: NDArray[np.float64]) -> dict[str, float]:
+def gap(residuals: NDArray[np.float64]) -> Gap:
     """The gap between model and measured points as one angle per point (x and y together): its RMS
     and maximum."""
     per_point = np.hypot(residuals[:, 0], residuals[:, 1])
@@ -82,7 +258,7 @@ class WorkflowInputs:
     columns: dict[str, NDArray[np.float64]]
     sensor: str
     baseline: str
-    bench: dict[str, Any] | None
+    bench: StageBenchJSON | None
     bench_source: str
     command: str
     have: frozenset[str] = frozenset()  # effects the record fits already
@@ -93,7 +269,7 @@ class WorkflowInputs:
     estimate_source: str = ""
 
 
-def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
+def run_workflow(w: WorkflowInputs) -> tuple[DiagnosisSummary, str]:
     """In the worker process: the workflow of `tiltlab discrepancy`, the figures the service shows
     of it, whether each named effect can be adopted from these points (by the refit adopting makes),
     and the measurement that would test what the points cannot."""
@@ -135,36 +311,14 @@ def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
     data = StageData.from_columns(w.columns, w.sensor, hw)
     needs = needs_of(report, fam.active, verdicts, WEAK_SEPARABILITY, data)
     plan = plan_measurement(data, hw, hw.travel_deg, needs, w.seconds_per_point, w.estimate_source)
-    summary = {
+    summary: DiagnosisSummary = {
         "named_effects": named,
         "gap_before_deg": gap(result.fits[0].residuals),
         "gap_after_deg": gap(result.final.residuals),
         "noise_deg": float(np.sqrt(np.sum(sigma**2))),
         "noise_source": report["noise_source"],
         "effects": [
-            {
-                "effect": step["effect"],
-                "summary": step["summary"],
-                "magnitude": step["magnitude"],
-                "evidence": {
-                    k: step["evidence"].get(k)
-                    for k in (
-                        "test",
-                        "f_stat",
-                        "p_value",
-                        "alpha",
-                        "delta_bic",
-                        "rss_reduction_pct",
-                        "where_before",
-                    )
-                },
-                "rms_before_deg": step["rms_before"],
-                "rms_after_deg": step["rms_after"],
-                "adoptable": by_effect.get(step["effect"], {}).get("adoptable", False),
-                "adoption": by_effect.get(step["effect"], {}).get("reason"),
-                "measurement": by_effect.get(step["effect"], {}).get("measurement"),
-            }
-            for step in report["steps"]
+            _effect_summary(step, by_effect.get(step["effect"])) for step in report["steps"]
         ],
         "steps": [
             {
@@ -181,15 +335,40 @@ def run_workflow(w: WorkflowInputs) -> tuple[dict[str, Any], str]:
         "measurement_plan": plan.as_dict(),
         "n_points": int(len(result.fits[0].residuals)),
         "residual_maps": residual_maps(w.columns, result.fits[0].residuals, result.final.residuals),
-        "conclusion": report.get("conclusion"),
+        "conclusion": report["conclusion"],
         "report": report,
     }
     return summary, page
 
 
+def _effect_summary(step: StepReport, verdict: AdoptionVerdict | None) -> EffectSummary:
+    """A named effect as the diagnosis shows it: the report's step, the evidence's figures, and the
+    adoption verdict on it (not adoptable without one)."""
+    evidence = step["evidence"]
+    return {
+        "effect": step["effect"],
+        "summary": step["summary"],
+        "magnitude": step["magnitude"],
+        "evidence": {
+            "test": evidence["test"],
+            "f_stat": evidence["f_stat"],
+            "p_value": evidence["p_value"],
+            "alpha": evidence["alpha"],
+            "delta_bic": evidence["delta_bic"],
+            "rss_reduction_pct": evidence["rss_reduction_pct"],
+            "where_before": evidence["where_before"],
+        },
+        "rms_before_deg": step["rms_before"],
+        "rms_after_deg": step["rms_after"],
+        "adoptable": verdict["adoptable"] if verdict is not None else False,
+        "adoption": verdict["reason"] if verdict is not None else None,
+        "measurement": verdict["measurement"] if verdict is not None else None,
+    }
+
+
 def residual_maps(
     columns: dict[str, NDArray[np.float64]], before: NDArray[np.float64], after: NDArray[np.float64]
-) -> dict[str, Any]:
+) -> ResidualMaps:
     """The residual (measured - model) at every point diagnosed, with the baseline alone and with
     the named effects: the two maps a page draws side by side to show the gap shrink."""
 
@@ -215,13 +394,13 @@ def fit_adopted(
     columns: dict[str, NDArray[np.float64]],
     effects: list[str],
     sensor: str,
-    bench: dict[str, Any],
+    bench: StageBenchJSON,
     bench_source: str,
-    diagnosis: dict[str, Any],
+    diagnosis: AdoptedFrom,
     have: frozenset[str],
     keep: tuple[str, ...],
     worm_axes: list[str],
-) -> dict[str, Any]:
+) -> Mapping[str, object]:
     """In the worker process: the kinematic calibration with the adoptable named effects added, as
     MODEL.json."""
     from service.discrepancy.adopt import adopted_model
@@ -298,44 +477,42 @@ def _diagnosis_command(
     )
 
 
-def _worm_axes(model: dict[str, Any]) -> tuple[str, ...]:
+def _worm_axes(model: Mapping[str, object]) -> tuple[str, ...]:
     """The stages whose worm (periodic) error the record fits already: any of its terms free."""
+    # a stored model (MODEL.json) states its parameters so
+    params = cast("Mapping[str, ParameterJSON]", model.get("parameters", {}))
     return tuple(
         ax
         for ax in ("x", "y")
         if any(
-            not (
-                model.get("parameters", {}).get(f"periodic_error.{ax}_{t}_deg") or {"fixed": True}
-            ).get("fixed", False)
+            not (params.get(f"periodic_error.{ax}_{t}_deg") or {"fixed": True}).get("fixed", False)
             for t in ("sin", "cos", "amp")
         )
     )
 
 
-def _measurement_summary(first: dict[str, Any], extra_jobs: list[int]) -> dict[str, Any]:
+def _measurement_summary(first: DiagnosisSummary, extra_jobs: list[int]) -> MeasurementSummary:
     """What a `measure` diagnosis keeps of its measurement: the plan, the job that measured it,
-    and the first look's figures from the record's points alone."""
+    and the first look's figures from the record's points alone (`run_workflow`'s, all there)."""
     return {
         "plan": first["measurement_plan"],
         "job_id": extra_jobs[0] if extra_jobs else None,
         "before": {
-            k: first.get(k)
-            for k in (
-                "named_effects",
-                "gap_before_deg",
-                "gap_after_deg",
-                "untestable",
-                "adoptable",
-                "adoption",
-                "n_points",
-            )
+            "named_effects": first["named_effects"],
+            "gap_before_deg": first["gap_before_deg"],
+            "gap_after_deg": first["gap_after_deg"],
+            "untestable": first["untestable"],
+            "adoptable": first["adoptable"],
+            "adoption": first["adoption"],
+            "n_points": first["n_points"],
         },
     }
 
 
-def _measurement_jobs(summary: dict[str, Any]) -> list[int]:
+def _measurement_jobs(summary: DiagnosisSummary) -> list[int]:
     """The measurement jobs whose points a diagnosis added to the record's."""
-    return [int(j) for j in (summary.get("data") or {}).get("measurement_job_ids", [])]
+    data = summary.get("data")
+    return [int(j) for j in (data.get("measurement_job_ids", []) if data else [])]
 
 
 def _progress(
@@ -350,7 +527,7 @@ def _progress(
     return run.state, run.phase, run.started_at
 
 
-def _measurement_shown(summary: dict[str, Any], run: Running | None) -> Any:
+def _measurement_shown(summary: DiagnosisSummary, run: Running | None) -> MeasurementSummary | None:
     """The measurement a diagnosis shows: as stored, else (a `measure` diagnosis still running) the
     plan and the job so far."""
     measurement = summary.get("measurement")
@@ -368,7 +545,7 @@ def _effects_to_add(named: list[str], sensor: str, have: frozenset[str]) -> list
         raise ConflictError(str(exc)) from None
 
 
-def _blocked(verdicts: list[dict[str, Any]], have: frozenset[str]) -> list[dict[str, Any]]:
+def _blocked(verdicts: list[AdoptionVerdict], have: frozenset[str]) -> list[AdoptionVerdict]:
     """The verdicts on effects the record could add (neither in the chain nor fitted already) that
     these points do not let it adopt."""
     return [
@@ -380,7 +557,7 @@ def _blocked(verdicts: list[dict[str, Any]], have: frozenset[str]) -> list[dict[
     ]
 
 
-def _why_blocked(blocked: list[dict[str, Any]]) -> str:
+def _why_blocked(blocked: list[AdoptionVerdict]) -> str:
     """Each blocked effect with the reason, and the measurement that would let it be adopted."""
     return "; ".join(
         f"{verdict['effect']}: {verdict['reason']}"
@@ -389,7 +566,7 @@ def _why_blocked(blocked: list[dict[str, Any]]) -> str:
     )
 
 
-def _why_not_adoptable(summary: dict[str, Any], effect: str) -> str:
+def _why_not_adoptable(summary: DiagnosisSummary, effect: str) -> str:
     """The reason the diagnosis gave for not finding `effect` adoptable, as a ": ..." suffix (empty
     without one)."""
     verdict = next(
@@ -495,7 +672,9 @@ class DiagnosisRunner:
                 " (TILTLAB_MAX_DIAGNOSES); ask again once one has finished"
             )
 
-    async def plan(self, record: CalibrationRecord, sensor: str, baseline: str) -> dict[str, Any]:
+    async def plan(
+        self, record: CalibrationRecord, sensor: str, baseline: str
+    ) -> DiagnosisPlanJSON:
         """What the record's points cannot test and the measurement that would, without moving
         anything (or storing a diagnosis): the look `measure` takes first."""
         self.check(record, sensor, baseline)
@@ -519,19 +698,14 @@ class DiagnosisRunner:
             "record_id": record.id,
             "sensor": sensor,
             "baseline": baseline,
-            **{
-                k: summary[k]
-                for k in (
-                    "named_effects",
-                    "gap_before_deg",
-                    "gap_after_deg",
-                    "noise_deg",
-                    "untestable",
-                    "adoptable",
-                    "adoption",
-                    "n_points",
-                )
-            },
+            "named_effects": summary["named_effects"],
+            "gap_before_deg": summary["gap_before_deg"],
+            "gap_after_deg": summary["gap_after_deg"],
+            "noise_deg": summary["noise_deg"],
+            "untestable": summary["untestable"],
+            "adoptable": summary["adoptable"],
+            "adoption": summary["adoption"],
+            "n_points": summary["n_points"],
             "plan": summary["measurement_plan"],
         }
 
@@ -541,7 +715,7 @@ class DiagnosisRunner:
             run.state, run.phase, run.started_at = "running", "loading", utc_now()
             loop = asyncio.get_running_loop()
             extra_jobs: list[int] = []
-            first: dict[str, Any] | None = None
+            first: DiagnosisSummary | None = None
             if run.measure:
                 first, extra_jobs = await self._look_and_measure(d, record, actor, run)
             run.phase = "loading"
@@ -583,7 +757,7 @@ class DiagnosisRunner:
 
     async def _look_and_measure(
         self, diagnosis: Diagnosis, record: CalibrationRecord, actor: str, run: Running
-    ) -> tuple[dict[str, Any], list[int]]:
+    ) -> tuple[DiagnosisSummary, list[int]]:
         """A `measure` diagnosis's first look at the record's points, then the measurement it plans
         run as a job (when the plan has points): the look, and the job whose points it adds."""
         run.phase = "planning"
@@ -625,7 +799,7 @@ class DiagnosisRunner:
             log.exception("diagnosis %s: the failure could not be stored", diagnosis.id)
 
     async def _measure(
-        self, d: Diagnosis, record: CalibrationRecord, plan: dict[str, Any], actor: str
+        self, d: Diagnosis, record: CalibrationRecord, plan: MeasurementPlanJSON, actor: str
     ) -> CalibrationJob:
         """The planned points as a job on the record's bench, settled and read as the record's own
         job read its."""
@@ -661,7 +835,11 @@ class DiagnosisRunner:
             {
                 "diagnosis_id": d.id,
                 "record_id": record.id,
-                "plan": {k: plan[k] for k in ("parts", "cannot", "estimated_bench_s")},
+                "plan": {
+                    "parts": plan["parts"],
+                    "cannot": plan["cannot"],
+                    "estimated_bench_s": plan["estimated_bench_s"],
+                },
             },
             actor,
         )
@@ -715,9 +893,9 @@ class DiagnosisRunner:
             + [self.jobs.fit_columns(j, 10**9) for j in extra_jobs]
         )
 
-    def state_of(self, d: Diagnosis, result: DiagnosisResult | None) -> dict[str, Any]:
+    def state_of(self, d: Diagnosis, result: DiagnosisResult | None) -> DiagnosisState:
         """The diagnosis as GET /diagnoses/{id} shows it."""
-        summary = result.summary if result is not None else {}
+        summary = stored_summary(result) if result is not None else DiagnosisSummary()
         run = self.running.get(d.id)
         state, phase, started = _progress(result, run)
         return {
@@ -763,18 +941,19 @@ class DiagnosisRunner:
         model_doc_before = record.model or {}
         state = model_doc_before.get("state", {})
         have = frozenset(record_effects(model_doc_before))
-        named = list(result.summary.get("named_effects", []))
-        effects = self._adoptable(diagnosis_id, result.summary, named, diagnosis.sensor, have)
+        summary = stored_summary(result)
+        named = list(summary.get("named_effects", []))
+        effects = self._adoptable(diagnosis_id, summary, named, diagnosis.sensor, have)
         if chosen is not None:
-            effects = self._chosen(diagnosis_id, result.summary, named, effects, chosen)
+            effects = self._chosen(diagnosis_id, summary, named, effects, chosen)
         raw = dict(record.raw_data or {})
         n_fit = int(raw.get("fit_points", 10**9))
-        extra_jobs = _measurement_jobs(result.summary)
+        extra_jobs = _measurement_jobs(summary)
         cols = await asyncio.to_thread(self._merged_columns, record.job_id, n_fit, extra_jobs)
         if "bench" not in state:
             raise ConflictError(f"record {record.id} does not state the bench it was calibrated on")
         source = f"record {record.id}'s bench ({state.get('bench_source', 'as calibrated')})"
-        origin = {
+        origin: AdoptedFrom = {
             "id": diagnosis.id,
             "record_id": record.id,
             "sensor": diagnosis.sensor,
@@ -795,7 +974,7 @@ class DiagnosisRunner:
                 origin,
                 have,
                 tuple(state.get("added_effects", [])),
-                worm_axes_of(result.summary.get("adoption") or []),
+                worm_axes_of(summary.get("adoption") or []),
             )
         except NothingToAdopt as exc:
             raise ConflictError(str(exc)) from None
@@ -836,7 +1015,7 @@ class DiagnosisRunner:
 
     async def _note_adoption(
         self,
-        raw: dict[str, Any],
+        raw: dict[str, object],
         diagnosis: Diagnosis,
         record: CalibrationRecord,
         model: CalibrationModel,
@@ -863,7 +1042,7 @@ class DiagnosisRunner:
     @staticmethod
     def _adoptable(
         diagnosis_id: int,
-        summary: dict[str, Any],
+        summary: DiagnosisSummary,
         named: list[str],
         sensor: str,
         have: frozenset[str],
@@ -892,7 +1071,7 @@ class DiagnosisRunner:
     @staticmethod
     def _chosen(
         diagnosis_id: int,
-        summary: dict[str, Any],
+        summary: DiagnosisSummary,
         named: list[str],
         adoptable: list[str],
         chosen: list[str],
