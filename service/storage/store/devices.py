@@ -155,7 +155,7 @@ class DevicesRepo:
             )
 
     def _change_device(
-        self, session: Session, device: Device, *, actor: str, changes: dict[str, Any]
+        self, session: Session, device: Device, *, actor: str, changes: dict[str, object]
     ) -> Device:
         if changes.get("bench_id") is not None:
             row_in(session, Bench, changes["bench_id"], "bench")
@@ -231,7 +231,9 @@ class DevicesRepo:
                     port=port,
                     port_settings=None,
                 )
-            changes = {key: value for key, value in wanted.items() if getattr(device, key) != value}
+            changes: dict[str, object] = {
+                key: value for key, value in wanted.items() if getattr(device, key) != value
+            }
             return (
                 self._change_device(session, device, actor=actor, changes=changes)
                 if changes
