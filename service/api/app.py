@@ -307,10 +307,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
         hub.start()  # one reading producer per bench
         metrics.sources.update(
-            benches=app.state.benches,
-            streams=hub,
-            writes_in_flight=writes_in_flight,
-            database=database,
+            {
+                "benches": app.state.benches,
+                "streams": hub,
+                "writes_in_flight": writes_in_flight,
+                "database": database,
+            }
         )
         app.state.fleet = fleet = None
         # joins the fleet: claims this node's benches (exit 2 if a live node owns one)

@@ -9,8 +9,8 @@ table, the stream producers and the job writes in flight. Nothing is polled in b
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Iterator
-from typing import Annotated, Any
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from typing import Annotated, Any, TypedDict
 
 from fastapi import Depends, Request
 from prometheus_client import CollectorRegistry, Counter, Histogram
@@ -19,17 +19,33 @@ from prometheus_client.registry import Collector
 from starlette.routing import Mount
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.bench.runtime import BenchRuntime
+from service.storage.outage import DatabaseState
+from service.streams.readings import StreamHub
+
 # Latency buckets for a local service: /tilt answers in milliseconds, a job start in tens of them.
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
 
 
+class MetricSources(TypedDict, total=False):
+    """The live objects a scrape reads, each absent until the daemon has it: the benches, the jobs
+    per state (set by each scrape), the stream producers, the job writes in flight and the
+    database's state."""
+
+    benches: Mapping[str, BenchRuntime]
+    job_counts: Callable[[], dict[str, int]]
+    streams: StreamHub
+    writes_in_flight: Callable[[], int]
+    database: DatabaseState
+
+
 class DaemonState(Collector):
     """Scrape-time readings of the daemon's own state; `sources` gives the live objects (or None
     before start-up)."""
 
-    def __init__(self, sources: Callable[[], dict[str, Any]]) -> None:
+    def __init__(self, sources: Callable[[], MetricSources]) -> None:
         self._sources = sources
 
     def collect(self) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
@@ -81,7 +97,9 @@ def _info_labels(key: list[str], st: Any) -> list[str]:
     ]
 
 
-def _device_families(benches: dict[str, Any]) -> Iterable[CounterMetricFamily | GaugeMetricFamily]:
+def _device_families(
+    benches: Mapping[str, BenchRuntime],
+) -> Iterable[CounterMetricFamily | GaugeMetricFamily]:
     """Per instrument by bench and role, labels that stay the same when the daemon or a simulator
     restarts (a port can be a new pseudo-terminal each time); where it is connected and what it said
     it is are the labels of `tiltlab_device_info`, the usual Prometheus info metric (value 1),
@@ -168,7 +186,7 @@ class Metrics:
             buckets=LATENCY_BUCKETS_S,
             registry=self.registry,
         )
-        self.sources: dict[str, Any] = {}
+        self.sources: MetricSources = {}
         self.registry.register(DaemonState(lambda: self.sources))
 
     def observe(self, route: str, method: str, status: int, seconds: float) -> None:

@@ -11,6 +11,7 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
+from service.api.json_value import JSONObject, JSONValue, items, members
 from service.api.models.problem import (
     PROBLEM_MEDIA_TYPE,
     PROBLEM_SCHEMA_REF,
@@ -20,7 +21,7 @@ from service.api.models.problem import (
 
 _FASTAPI_VALIDATION = ("HTTPValidationError", "ValidationError")
 # Every 201 and 202 of the API says where what it made (or started) is read.
-LOCATION_HEADER = {
+LOCATION_HEADER: JSONObject = {
     "Location": {
         "description": "the address of what was made or started, e.g. /calibrations/7",
         "schema": {"type": "string"},
@@ -28,10 +29,10 @@ LOCATION_HEADER = {
 }
 
 
-def document(app: FastAPI) -> dict[str, Any]:
+def document(app: FastAPI) -> JSONObject:
     """The document of the application's routes, with the problem model in place of FastAPI's 422
     body."""
-    doc = get_openapi(
+    doc: JSONObject = get_openapi(
         title=app.title,
         version=app.version,
         description=app.description,
@@ -39,7 +40,7 @@ def document(app: FastAPI) -> dict[str, Any]:
         tags=app.openapi_tags,
         servers=app.servers,
     )
-    schemas = doc.setdefault("components", {}).setdefault("schemas", {})
+    schemas = members(members(doc.setdefault("components", {})).setdefault("schemas", {}))
     problem = Problem.model_json_schema(ref_template="#/components/schemas/{model}")
     schemas.update(problem.pop("$defs", {}))
     schemas["Problem"] = problem
@@ -55,14 +56,14 @@ def document(app: FastAPI) -> dict[str, Any]:
     return doc
 
 
-def _errors_as_problems(doc: dict[str, Any]) -> None:
+def _errors_as_problems(doc: JSONObject) -> None:
     """Every error answer of every operation declared a problem: FastAPI's 422 body replaced, the
     other 4xx and 5xx given the problem schema (503 keeps what its route declares)."""
     validation = problem_responses(422)[422]
-    for path in doc.get("paths", {}).values():
-        for operation in path.values():
-            responses = operation.get("responses", {})
-            content = responses.get("422", {}).get("content", {})
+    for path in members(doc.get("paths", {})).values():
+        for operation in members(path).values():
+            responses = members(members(operation).get("responses", {}))
+            content = members(members(responses.get("422", {})).get("content", {}))
             if "application/json" in content and "HTTPValidationError" in str(
                 content["application/json"]
             ):
@@ -70,19 +71,23 @@ def _errors_as_problems(doc: dict[str, Any]) -> None:
             for status, answer in responses.items():
                 if (
                     status[0] in "45"
-                    and PROBLEM_MEDIA_TYPE not in answer.get("content", {})
+                    and PROBLEM_MEDIA_TYPE not in members(members(answer).get("content", {}))
                     and status != "503"
                 ):
-                    answer["content"] = {PROBLEM_MEDIA_TYPE: {"schema": PROBLEM_SCHEMA_REF}}
+                    members(answer)["content"] = {
+                        PROBLEM_MEDIA_TYPE: {"schema": PROBLEM_SCHEMA_REF}
+                    }
 
 
-def _location_headers(doc: dict[str, Any]) -> None:
+def _location_headers(doc: JSONObject) -> None:
     """The `Location` header declared on every 201 and 202 answer."""
-    for path in doc.get("paths", {}).values():
-        for operation in path.values():
+    for path in members(doc.get("paths", {})).values():
+        for operation in members(path).values():
             for status in ("201", "202"):
-                if status in operation.get("responses", {}):
-                    operation["responses"][status].setdefault("headers", {}).update(LOCATION_HEADER)
+                responses = members(members(operation).get("responses", {}))
+                if status in responses:
+                    headers = members(members(responses[status]).setdefault("headers", {}))
+                    headers.update(LOCATION_HEADER)
 
 
 def _runnable(benches: list[Any]) -> list[str]:
@@ -100,7 +105,7 @@ def _runnable(benches: list[Any]) -> list[str]:
     ]
 
 
-def _state_procedures(app: FastAPI, schemas: dict[str, Any]) -> None:
+def _state_procedures(app: FastAPI, schemas: JSONObject) -> None:
     """`POST /calibrations` procedures: those a bench of this daemon runs (its kind and
     instruments)."""
     benches = list((getattr(app.state, "benches", None) or {}).values())
@@ -108,25 +113,30 @@ def _state_procedures(app: FastAPI, schemas: dict[str, Any]) -> None:
     if not benches or request is None:
         return
     runnable = _runnable(benches)
-    prop = request.get("properties", {}).get("procedure", {})
+    request = members(request)
+    prop = members(members(request.get("properties", {})).get("procedure", {}))
     if "enum" in prop:
-        prop["enum"] = [name for name in prop["enum"] if name in runnable]
+        prop["enum"] = [name for name in items(prop["enum"]) if name in runnable]
         prop["description"] = (
             "a procedure a bench of this daemon runs (its kind and instruments): "
             + ", ".join(runnable)
         )
     if "allOf" in request:
         request["allOf"] = [
-            case
-            for case in request["allOf"]
-            if case["if"]["properties"]["procedure"]["const"] in runnable
+            case for case in items(request["allOf"]) if _procedure_of(case) in runnable
         ]
+
+
+def _procedure_of(case: JSONValue) -> JSONValue:
+    """The procedure a case of `CalibrationRequest`'s allOf is for (its `if`'s constant)."""
+    condition = members(members(case)["if"])
+    return members(members(condition["properties"])["procedure"])["const"]
 
 
 _BOUNDS = {"ge": "minimum", "le": "maximum", "gt": "exclusiveMinimum", "lt": "exclusiveMaximum"}
 
 
-def _json_schema_bounds(node: Any) -> None:
+def _json_schema_bounds(node: JSONValue) -> None:
     """Bounds of the counts (whole numbers that may be written 18.0) as JSON Schema words: pydantic
     leaves a bound it cannot place inside a validator under its own name (`ge`, `le`), which no
     client reads."""
@@ -142,7 +152,7 @@ def _json_schema_bounds(node: Any) -> None:
             _json_schema_bounds(value)
 
 
-def _state_travel(app: FastAPI, schemas: dict[str, Any]) -> None:
+def _state_travel(app: FastAPI, schemas: JSONObject) -> None:
     """`POST /stage/move` angles within the stage travel of the daemon's stage benches (the widest,
     where they differ: the route checks each bench's own)."""
     benches = getattr(app.state, "benches", None) or {}
@@ -151,11 +161,11 @@ def _state_travel(app: FastAPI, schemas: dict[str, Any]) -> None:
         for bench in benches.values()
         if getattr(bench, "kind", None) == "stage"
     ]
-    move = schemas.get("Move", {}).get("properties", {})
+    move = members(members(schemas.get("Move", {})).get("properties", {}))
     if travels:
         for axis in ("x_deg", "y_deg"):
             if axis in move:
-                move[axis].update(
+                members(move[axis]).update(
                     minimum=-max(travels),
                     maximum=max(travels),
                     description=f"raw stage angle, within the stage's travel (±{max(travels):g} "
@@ -164,7 +174,7 @@ def _state_travel(app: FastAPI, schemas: dict[str, Any]) -> None:
 
 
 def install(app: FastAPI) -> None:
-    def openapi() -> dict[str, Any]:
+    def openapi() -> JSONObject:
         if app.openapi_schema is None:
             app.openapi_schema = document(app)
         return app.openapi_schema
@@ -172,7 +182,7 @@ def install(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to supply the schema
 
 
-def _refs(node: Any) -> set[str]:
+def _refs(node: JSONValue) -> set[str]:
     """The component schemas a part of the document names."""
     if isinstance(node, dict):
         found = {str(node["$ref"]).rsplit("/", 1)[1]} if "$ref" in node else set()
@@ -182,7 +192,7 @@ def _refs(node: Any) -> set[str]:
     return set()
 
 
-def _closure(names: set[str], schemas: dict[str, Any]) -> set[str]:
+def _closure(names: set[str], schemas: JSONObject) -> set[str]:
     seen: set[str] = set()
     todo = list(names)
     while todo:
@@ -194,24 +204,25 @@ def _closure(names: set[str], schemas: dict[str, Any]) -> set[str]:
     return seen
 
 
-def _request_only_schemas(doc: dict[str, Any]) -> set[str]:
+def _request_only_schemas(doc: JSONObject) -> set[str]:
     """Component schemas only request bodies use (what a client sends, never what it reads back)."""
-    schemas = doc["components"]["schemas"]
+    schemas = members(members(doc["components"])["schemas"])
     sent: set[str] = set()
     read: set[str] = set()
-    for path in doc.get("paths", {}).values():
-        for operation in path.values():
-            sent |= _refs(operation.get("requestBody", {}))
-            read |= _refs(operation.get("responses", {}))
+    for path in members(doc.get("paths", {})).values():
+        for operation in members(path).values():
+            sent |= _refs(members(operation).get("requestBody", {}))
+            read |= _refs(members(operation).get("responses", {}))
     return _closure(sent, schemas) - _closure(read, schemas)
 
 
-def _defaults_in_words(schemas: dict[str, Any], names: set[str]) -> None:
+def _defaults_in_words(schemas: JSONObject, names: set[str]) -> None:
     """A request field with a default may be left out: it is not `required`, and its default is said
     in its description rather than as the `default` keyword, which common TypeScript generators
     (openapi-typescript's default settings) turn into a field the client must send."""
     for name in names:
-        for prop in schemas[name].get("properties", {}).values():
+        for member in members(members(schemas[name]).get("properties", {})).values():
+            prop = members(member)
             if "default" not in prop:
                 continue
             default = prop.pop("default")

@@ -15,6 +15,7 @@ once.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from typing import Any
 from urllib.parse import parse_qsl
 
@@ -22,6 +23,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from service.api.auth import TokenChecks
 from service.api.routers.tilt import tilt_answer
+from service.bench.runtime import BenchRuntime
 
 PATH = "/tilt"
 MAX_BENCH_NAME = 100  # the route's own limit on `bench`
@@ -102,7 +104,7 @@ def _authorization_of(scope: Scope) -> tuple[bytes, bool]:
     return authorization or b"", False
 
 
-def _bench_asked(scope: Scope, benches: dict[str, Any]) -> Any:
+def _bench_asked(scope: Scope, benches: Mapping[str, BenchRuntime]) -> BenchRuntime | None:
     """The bench the query names (`bench=<name>` and nothing else), or the only bench when it names
     none; None when neither fits."""
     query = scope.get("query_string", b"")

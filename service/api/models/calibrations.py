@@ -4,7 +4,7 @@ service.jobs.requests.CalibrationRequest)."""
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import Field
 
@@ -69,7 +69,7 @@ class Job(Answer):
     bench_seconds: BenchSeconds | None = Field(
         None, description="bench time spent so far (null for jobs run before it was counted)"
     )
-    request: dict[str, Any] = Field(description="the request the job was started with")
+    request: dict[str, object] = Field(description="the request the job was started with")
 
 
 class JobList(Answer):

@@ -90,7 +90,7 @@ class DiagnosisPlan(Answer):
     adoptable: bool
     adoption: list[Adoption]
     n_points: int
-    plan: dict[str, Any] = Field(
+    plan: dict[str, object] = Field(
         description="points (stage_x_deg, stage_y_deg, dir_x, dir_y: +1 approached from "
         "below, -1 from above), parts (per candidate: why, the measurement, its points), "
         "what cannot be measured on this bench, estimated_bench_s, summary"
@@ -132,21 +132,21 @@ class DiagnosisBody(Answer):
         description="per named effect: whether the record can "
         "adopt it from these points, why not, and the measurement that would tell",
     )
-    measurement_plan: dict[str, Any] | None = Field(
+    measurement_plan: dict[str, object] | None = Field(
         None,
         description="the measurement that would test what these "
         "points cannot (what measure: true runs)",
     )
-    measurement: dict[str, Any] | None = Field(
+    measurement: dict[str, object] | None = Field(
         None,
         description="with measure: true: the plan, the job that measured "
         "it, and what the record's points alone showed before",
     )
-    data: dict[str, Any] | None = Field(
+    data: dict[str, object] | None = Field(
         None,
         description="the points diagnosed: the record's, and those of measurements made for it",
     )
-    residual_maps: dict[str, Any] | None = Field(
+    residual_maps: dict[str, object] | None = Field(
         None,
         description="per point diagnosed: stage_deg [x, y], approach [dir_x, dir_y], and the "
         "residual [x, y] (measured - model, deg) with the baseline alone (before_deg) and with "

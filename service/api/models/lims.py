@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 from urllib.parse import urlsplit
 
 from pydantic import ConfigDict, Field, ValidationInfo, field_validator
@@ -334,7 +334,7 @@ class Order(Answer):
     item_serial: str
     item_manufacturer: str | None = None
     item_model: str | None = None
-    customer: dict[str, Any]
+    customer: dict[str, object]
     procedure: str
     method: str
     due_on: dt.date | None
@@ -361,7 +361,7 @@ class Event(Answer):
     id: str = Field(description="evt_<n>, increasing")
     type: str = Field(description=f"one of {', '.join(EVENT_TYPES)}")
     time_utc: str
-    data: dict[str, Any]
+    data: dict[str, object]
 
 
 class Feed(Answer):

@@ -3,9 +3,9 @@ application/problem+json."""
 
 from __future__ import annotations
 
-from typing import Any
-
 from pydantic import BaseModel, ConfigDict, Field
+
+from service.api.json_value import JSONObject
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 
@@ -46,10 +46,10 @@ _WHEN = {
     " not configured; `Retry-After` says when to try again where waiting mends it",
     507: "The data directory's disk (or the database server's) is full: nothing was stored",
 }
-PROBLEM_SCHEMA_REF = {"$ref": "#/components/schemas/Problem"}
+PROBLEM_SCHEMA_REF: JSONObject = {"$ref": "#/components/schemas/Problem"}
 
 
-def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+def problem_responses(*statuses: int) -> dict[int | str, JSONObject]:
     """The `responses=` of a route for the error statuses it can give, each a problem."""
     return {
         status: {

@@ -31,7 +31,7 @@ class Conformity(Answer):
     largest_probability_of_false_acceptance: dict[str, float | None] = Field(
         description="per quantity, over its points that pass (null when none passes)"
     )
-    worst_point: dict[str, dict[str, Any]] = Field(
+    worst_point: dict[str, dict[str, object]] = Field(
         description="per quantity, the error and U the statement rests on"
     )
 
@@ -47,10 +47,10 @@ class Record(Answer):
     operator: str
     job_id: int | None
     active: bool = Field(description="whether /tilt and levelling use this record")
-    validation: dict[str, Any] | None
+    validation: dict[str, object] | None
     temp_c: float | None
-    conditions: dict[str, Any] | None
-    raw_data: dict[str, Any] | None
+    conditions: dict[str, object] | None
+    raw_data: dict[str, object] | None
     supersedes_id: int | None
     content_sha256: str
     reference_standards: list[Any] | None
@@ -93,7 +93,7 @@ class ModelFile(Answer):
     kind: str
     method: str
     columns: list[str]
-    parameters: dict[str, dict[str, Any]]
+    parameters: dict[str, dict[str, object]]
     covariance: Covariance | None = None
     residuals: Any = None
     fit: Any = None

@@ -4,7 +4,7 @@ webhooks."""
 from __future__ import annotations
 
 import datetime as dt
-from typing import Annotated, Any
+from typing import Annotated, Any, TypedDict
 
 from fastapi import APIRouter, Header, Query
 from fastapi.responses import HTMLResponse, Response
@@ -171,7 +171,30 @@ def read_standard(
 # ---------------------------------------------------------------- approvals
 
 
-def approval_body(a: RecordApproval) -> dict[str, Any]:
+class SignerBody(TypedDict):
+    """The person who signed a decision, as its body names them."""
+
+    name: str
+    function: str | None
+
+
+class ApprovalBody(TypedDict):
+    """A review decision on a record as the API states it (`Approval`)."""
+
+    id: int
+    record_id: int
+    decision: str
+    meaning: str
+    note: str
+    actor: str
+    signer: SignerBody | None
+    time_utc: dt.datetime
+    record_sha256: str
+    prev_sha256: str
+    sha256: str
+
+
+def approval_body(a: RecordApproval) -> ApprovalBody:
     person = signer_of(a)
     return {
         "id": a.id,

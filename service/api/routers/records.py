@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import io
 from collections.abc import Sequence
-from typing import Annotated, Any
+from typing import Annotated, TypedDict
 
 import numpy as np
 from fastapi import APIRouter, Depends, Query
@@ -90,6 +90,15 @@ class RecordBodies:
 RecordBodiesDep = Annotated[RecordBodies, Depends()]
 
 
+class RangeBody(TypedDict):
+    """A stage record's calibrated range as its body states it: per axis [min, max] of the table
+    tilts it was fitted on, in the reference sensor's frame."""
+
+    frame: str
+    x_deg: list[float]
+    y_deg: list[float]
+
+
 def record_bodies(
     records: RecordsRepo,
     approvals: ApprovalsRepo,
@@ -97,7 +106,7 @@ def record_bodies(
     jobs: JobManager,
     rows: Sequence[CalibrationRecord],
     store: Store,
-    ranges: dict[int, Any] | None = None,
+    ranges: dict[int, RangeBody | None] | None = None,
 ) -> list[Record]:
     """Records with their bench, whether active, their approval status, their budget saying whether
     it is traceable and, where their order has a specification, their statements of conformity (and
@@ -137,7 +146,7 @@ def _record_body(
     active: set[int],
     specified: set[int],
     status: dict[int, str],
-    ranges: dict[int, Any] | None,
+    ranges: dict[int, RangeBody | None] | None,
 ) -> Record:
     """One record's body: its row, with what record_bodies looked up for the whole page."""
     raw = row.raw_data or {}
@@ -171,7 +180,7 @@ def _record_body(
     )
 
 
-def calibrated_range(jobs: JobManager, r: CalibrationRecord) -> dict[str, Any] | None:
+def calibrated_range(jobs: JobManager, r: CalibrationRecord) -> RangeBody | None:
     """The table tilts a stage record was fitted on, per axis [min, max] in the reference sensor's
     frame."""
     try:
@@ -181,7 +190,7 @@ def calibrated_range(jobs: JobManager, r: CalibrationRecord) -> dict[str, Any] |
     return _range_body(seen)
 
 
-def _range_body(seen: dict[str, list[float]] | None) -> dict[str, Any] | None:
+def _range_body(seen: dict[str, list[float]] | None) -> RangeBody | None:
     return (
         None
         if seen is None
@@ -191,11 +200,11 @@ def _range_body(seen: dict[str, list[float]] | None) -> dict[str, Any] | None:
 
 def page_ranges(
     records: RecordsRepo, jobs: JobManager, rows: Sequence[CalibrationRecord]
-) -> dict[int, Any]:
+) -> dict[int, RangeBody | None]:
     """The calibrated ranges of a page of records read without their models: known ones from memory,
     the rest from what each model states (extracted by the database), and a record whose model
     states none (made before models kept it) read whole, once."""
-    out: dict[int, Any] = {}
+    out: dict[int, RangeBody | None] = {}
     missing = []
     for row in rows:
         known, seen = jobs.known_range(row.id)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Mapping
 
 from fastapi import APIRouter
 
@@ -21,7 +21,7 @@ router = APIRouter(prefix="/stage", tags=["stage"])
 
 
 async def _audit(
-    audit: AuditRepo, actor: str, action: str, bench: str, details: dict[str, Any]
+    audit: AuditRepo, actor: str, action: str, bench: str, details: Mapping[str, object]
 ) -> None:
     """The audit event of a stage action, written in the worker thread pool: a write waiting for the
     database's write lock (a job storing its points) must not hold up the event loop, which serves

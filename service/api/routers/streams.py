@@ -22,8 +22,7 @@ import json
 import logging
 import math
 import re
-from collections.abc import AsyncIterator
-from typing import Any
+from collections.abc import AsyncIterator, Mapping
 
 from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
@@ -297,7 +296,7 @@ async def job_stream(
     if not re.fullmatch(r"[0-9]{1,10}", job_id) or not 1 <= int(job_id) <= DB_ID_MAX:
         return await _refuse(ws, f"id: {ascii(job_id[:20])} is not a job id")
 
-    def body(job: CalibrationJob) -> dict[str, Any]:
+    def body(job: CalibrationJob) -> dict[str, object]:
         record = records.records_of_jobs([job.id]).get(job.id)
         # as the HTTP route serialises it, and as the daemon knows it (an end not stored yet
         # included)
@@ -329,7 +328,7 @@ async def job_stream(
 
 async def _send_job_messages(
     ws: WebSocket,
-    stream: AsyncIterator[dict[str, Any]],
+    stream: AsyncIterator[Mapping[str, object]],
     waiter: asyncio.Task[None],
     revoked: asyncio.Task[None],
     slow_close_s: float,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Mapping
 from typing import Annotated, Any, NamedTuple
 
 from fastapi import APIRouter, Query
@@ -27,6 +28,8 @@ from service.instruments.base import Reading
 from service.jobs.manager import JobManager
 
 router = APIRouter(tags=["tilt"])
+# The corrected (or averaged) table tilt as the bench computes it, handed on to the answer unread
+TableTiltBody = Mapping[str, object]
 MAX_AVERAGE_S = 600.0  # the longest averaging window asked for (bench seconds)
 
 
@@ -80,7 +83,7 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager, average_s: float | None =
     active = jobs.active.get(bench.name)
     age_s = stale = None
     notes: list[str] = []
-    table: dict[str, Any] | None = None
+    table: TableTiltBody | None = None
     in_range = None
     if bench.kind != "stage":
         notes.append(
@@ -122,7 +125,7 @@ class _StageTilt(NamedTuple):
     """What a stage bench's latest reading gives `GET /tilt`."""
 
     meas: Reading  # the reading served (the correction may pick the one before the latest)
-    table: dict[str, Any] | None  # the corrected (or averaged) table tilt
+    table: TableTiltBody | None  # the corrected (or averaged) table tilt
     age_s: float
     stale: bool
     in_range: bool | None  # whether `table` lies in the calibrated range
@@ -139,7 +142,7 @@ def _stage_tilt(
 ) -> _StageTilt:
     """The latest reading's age and its table tilt through the active record, when there is one
     and the reading is fresh; what stands in the way is said in `notes`."""
-    table: dict[str, Any] | None = None
+    table: TableTiltBody | None = None
     in_range = None
     if active is not None and average_s is None:
         # computed before the age: it may pick the one before
@@ -169,10 +172,10 @@ def _corrected(
     bench: BenchRuntime,
     active: Any,
     meas: Reading,
-    table: dict[str, Any] | None,
+    table: TableTiltBody | None,
     average_s: float | None,
     notes: list[str],
-) -> tuple[dict[str, Any] | None, bool | None]:
+) -> tuple[TableTiltBody | None, bool | None]:
     """The table tilt through the active record (averaged when asked) and whether it lies in the
     calibrated range; the record it went through, and a tilt outside that range, said in
     `notes`."""
