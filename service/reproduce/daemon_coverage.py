@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TypedDict, TypeVar
 
 import numpy as np
 from fastapi.testclient import TestClient
@@ -36,6 +36,28 @@ POSES_WITHIN_DEG = 3.5  # the stands lie inside the calibrated range
 SETTLED_AFTER_S = 3.0
 
 
+class TableTiltAnswer(TypedDict):
+    """The part of `GET /tilt`'s `table_tilt` read here (the API's TableTilt)."""
+
+    x_deg: float
+    y_deg: float
+    expanded_uncertainty_x_deg: float | None
+    expanded_uncertainty_y_deg: float | None
+    n_readings: int | None  # with average_s
+
+
+class TiltAnswer(TypedDict):
+    """The part of a `GET /tilt` answer read here (the API's Tilt)."""
+
+    time_utc: str
+    stale: bool | None
+    table_tilt: TableTiltAnswer | None
+    note: str
+
+
+_Found = TypeVar("_Found")
+
+
 @dataclass
 class StandReadings:
     """Errors (corrected - true) and stated expanded uncertainties, columns x and y: one row per
@@ -48,7 +70,8 @@ class StandReadings:
     mean_readings: NDArray[np.float64]  # how many readings each averaged tilt is of
 
 
-def _until(condition: Callable[[], Any], timeout_s: float, what: str) -> Any:
+def _until(condition: Callable[[], _Found | None], timeout_s: float, what: str) -> _Found:
+    """The first truthy value `condition` gives, asked again until `timeout_s` has passed."""
     deadline = time.monotonic() + timeout_s
     while not (value := condition()):
         if time.monotonic() > deadline:
@@ -132,8 +155,8 @@ def readings_at_stands(
         )[0]
         seen: set[str] = set()
 
-        def new_reading(seen: set[str] = seen, first: Reading = first) -> dict[str, Any] | None:
-            t: dict[str, Any] = client.get("/tilt", headers=h).json()
+        def new_reading(seen: set[str] = seen, first: Reading = first) -> TiltAnswer | None:
+            t: TiltAnswer = client.get("/tilt", headers=h).json()
             fresh = (
                 t["time_utc"] not in seen
                 and dt.datetime.fromisoformat(t["time_utc"]) >= first.time_utc
@@ -144,6 +167,8 @@ def readings_at_stands(
             tilt = _until(new_reading, 30, "a new reading on /tilt")
             seen.add(tilt["time_utc"])
             table, truth = tilt["table_tilt"], world.true_tilt_deg()
+            if table is None:  # the record is active and the sensor reads: never
+                raise RuntimeError(f"a reading on /tilt without a table tilt: {tilt['note']}")
             errors.append([table["x_deg"] - truth[0], table["y_deg"] - truth[1]])
             expanded.append(
                 [table["expanded_uncertainty_x_deg"], table["expanded_uncertainty_y_deg"]]
@@ -151,17 +176,16 @@ def readings_at_stands(
         # the average of the readings at rest; asked again while the latest reading is stale (a
         # sped-up bench on a busy machine can miss a few of its output intervals in real time), for
         # at most 10 s
-        answers: list[dict[str, Any]] = []
+        answers: list[TiltAnswer] = []
 
         def average(
-            answers: list[dict[str, Any]] = answers, settled_at: float = settled_at
-        ) -> dict[str, Any] | None:
+            answers: list[TiltAnswer] = answers, settled_at: float = settled_at
+        ) -> TableTiltAnswer | None:
             at_rest_s = bench.clock.monotonic() - settled_at  # bench seconds of readings at rest
             answers.append(
                 client.get("/tilt", headers=h, params={"average_s": round(at_rest_s, 3)}).json()
             )
-            table: dict[str, Any] | None = answers[-1]["table_tilt"]
-            return table
+            return answers[-1]["table_tilt"]
 
         try:
             table = _until(average, 10, "an averaged tilt of the readings at rest")

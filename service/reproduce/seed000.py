@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -49,6 +49,37 @@ TABLE_ORDER = (
     "kinematic",
     "oracle",
 )
+# per error kind (flow, level, correct), per method: its statistics (rms_x, max_x, worst_max_x, ...)
+# averaged over the seeds, deg
+MeanStats = dict[str, dict[str, dict[str, float]]]
+
+
+class RatioOverSeeds(TypedDict):
+    """The kinematic model's error over the oracle's for one statistic, over the seeds."""
+
+    mean: float
+    worst: float
+
+
+# per grid (paper, offset), per statistic (e.g. flow_rms_x)
+OracleRatios = dict[str, dict[str, RatioOverSeeds]]
+
+
+class Seed000Result(TypedDict):
+    """The headline numbers `run` returns beside the report."""
+
+    paper_before: tuple[float, float]
+    paper_after: tuple[float, float]
+    seeds: list[int]
+    uncorrected_max: list[float]  # mean over seeds, x and y, deg
+    homography_flow_max: list[float]
+    means: MeanStats
+    kinematic_oracle_ratios: OracleRatios
+    offaxis_forward_vs_exact: dict[str, float]
+    figures: list[str]
+    seconds: float
+
+
 KINDS = {
     "flow": "flow (target - corrected, Fig. 12)",
     "level": "levelling (reached - target)",
@@ -80,9 +111,7 @@ def _mean_stats(
 ORACLE_RATIO_TARGET = 1.2  # the kinematic model's error at most this many times the oracle's
 
 
-def conclusions(
-    means: dict[str, Any], ratios: dict[str, Any], fwd: dict[str, float]
-) -> dict[str, str]:
+def conclusions(means: MeanStats, ratios: OracleRatios, fwd: dict[str, float]) -> dict[str, str]:
     """The report's verdicts, computed from the numbers it prints (never typed in)."""
     ok_h = all(
         means[k]["homography"][f"max_{axis}"] <= PAPER_AFTER[i]
@@ -244,7 +273,7 @@ def _comparison_maps(out_dir: Path, r0: SeedResult, paper_mask: NDArray[np.bool_
     return name
 
 
-def _method_bars(out_dir: Path, means: dict[str, Any], n_seeds: int) -> str:
+def _method_bars(out_dir: Path, means: MeanStats, n_seeds: int) -> str:
     """Bars of the mean RMS and mean max of the flow error over seeds, per method, log scale."""
     from service.io.figures import new_figure, save_figure
 
@@ -309,7 +338,7 @@ def _figures(
     out_dir: Path,
     r0: SeedResult,
     paper_mask: NDArray[np.bool_],
-    means: dict[str, Any],
+    means: MeanStats,
     n_seeds: int,
 ) -> list[str]:
     """Draw the report's five figures into out_dir, in order; their file names."""
@@ -322,12 +351,10 @@ def _figures(
     ]
 
 
-def _oracle_ratio_summary(
-    results: list[SeedResult], paper_mask: NDArray[np.bool_]
-) -> dict[str, dict[str, dict[str, float]]]:
+def _oracle_ratio_summary(results: list[SeedResult], paper_mask: NDArray[np.bool_]) -> OracleRatios:
     """The kinematic model's error over the oracle's, per grid and statistic: the mean and the
     worst over seeds."""
-    ratios = {}
+    ratios: OracleRatios = {}
     for grid, mask in (("paper", paper_mask), ("offset", ~paper_mask)):
         per_seed = [oracle_ratios(result, "kinematic", mask) for result in results]
         ratios[grid] = {
@@ -376,7 +403,7 @@ def _intro_lines(elapsed: float, seeds: tuple[int, ...]) -> list[str]:
 
 
 def _paper_comparison_lines(
-    seeds: tuple[int, ...], s0: dict[str, dict[str, float]], means: dict[str, Any]
+    seeds: tuple[int, ...], s0: dict[str, dict[str, float]], means: MeanStats
 ) -> list[str]:
     """The table of the paper's maximum errors beside the rerun's, before and after correction."""
     return [
@@ -418,7 +445,7 @@ def _paper_comparison_lines(
     ]
 
 
-def _error_table_lines(means: dict[str, Any], labels: list[str], n_seeds: int) -> list[str]:
+def _error_table_lines(means: MeanStats, labels: list[str], n_seeds: int) -> list[str]:
     """One table per error kind (flow, levelling, correction): each method's mean statistics."""
     lines: list[str] = []
     for k, title in KINDS.items():
@@ -439,7 +466,7 @@ def _error_table_lines(means: dict[str, Any], labels: list[str], n_seeds: int) -
     return lines
 
 
-def _oracle_lines(ratios: dict[str, Any], verdict: str) -> list[str]:
+def _oracle_lines(ratios: OracleRatios, verdict: str) -> list[str]:
     """The section on the kinematic model against the oracle: its ratio table and verdict."""
     lines = [
         "## Kinematic against the oracle",
@@ -548,7 +575,7 @@ def _model_lines(r0: SeedResult, first_seed: int) -> list[str]:
     return lines
 
 
-def run(out_dir: Path, seeds: tuple[int, ...] = SEEDS) -> dict[str, Any]:
+def run(out_dir: Path, seeds: tuple[int, ...] = SEEDS) -> Seed000Result:
     """Write out_dir/seed000.md and its PNG figures; return the headline numbers (`seeds`: fewer for
     a smoke test)."""
     t0 = time.perf_counter()

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -41,13 +41,51 @@ N_BENCH = 50  # calibrate/measure repeats on the §4 benches
 DIRECT_CAL_RANGE_DEG = 70.0
 
 
+class BenchErrors(TypedDict):
+    """θ errors on a §4 bench over the repeats, and the first repeat's models and outputs."""
+
+    theta: NDArray[np.float64]  # the standard angles, deg
+    errors: dict[str, NDArray[np.float64]]  # per method: (repeat, angle), deg
+    example: dict[str, tuple[CalibrationModel, dict[str, NDArray[np.float64]]]]
+    scenario: RotationScenario
+
+
+class CombinedBenefit(TypedDict):
+    """The paper's switch against the combined estimator on one bench, same fitted parameters."""
+
+    theta: NDArray[np.float64]
+    rms_switch: NDArray[np.float64]  # per angle, deg
+    rms_combined: NDArray[np.float64]
+    max_switch: float  # over angles and repeats, deg
+    max_combined: float
+
+
+class Seed002Result(TypedDict):
+    """The headline numbers `run` returns beside the report."""
+
+    reduction_pct: dict[str, float]  # per parameter (alpha, beta, gamma)
+    reduction_ci_pct: list[list[float]]
+    paper_reduction_pct: dict[str, float]
+    mae_direct_deg: list[float]
+    mae_iodsra_deg: list[float]
+    # label, MAE of the direct method and of IODSRA, reductions (each alpha, beta, gamma)
+    variants: list[tuple[str, list[float], list[float], list[float]]]
+    theta_rms_sim_deg: dict[str, float]  # per method
+    theta_rms_sim_within_45_deg: dict[str, float]
+    benches: dict[str, dict[str, float]]  # per preset: its headline errors
+    combined_max_error_deg: dict[str, float]  # per preset
+    switch_max_error_deg: dict[str, float]
+    figures: list[str]
+
+
 def _rotation(sc: Scenario) -> RotationScenario:
     if not isinstance(sc, RotationScenario):
         raise TypeError(f"seed 002 runs on rotation scenarios, not {type(sc).__name__}")
     return sc
 
 
-def _variant(base: dict[str, Any], **changes: Any) -> RotationScenario:
+def _variant(base: Mapping[str, object], **changes: object) -> RotationScenario:
+    """The scenario `base` (its JSON document) with some top-level sections replaced."""
     data = {**base, **changes}
     return _rotation(parse_scenario(data))
 
@@ -149,7 +187,7 @@ def _theta_errors_sim(sc: RotationScenario, n: int) -> dict[str, NDArray[np.floa
     return {k: np.array(errors) for k, errors in out.items()}
 
 
-def bench_errors(preset: str, n: int) -> dict[str, Any]:
+def bench_errors(preset: str, n: int) -> BenchErrors:
     """θ errors over ±180° on a §4 bench: calibrate on one run, measure another, n times."""
     sc = _rotation(load_scenario(preset))
     res: dict[str, list[NDArray[np.float64]]] = {"direct": [], "iodsra": [], "iodsra-combined": []}
@@ -170,6 +208,8 @@ def bench_errors(preset: str, n: int) -> dict[str, Any]:
             res[name].append(wrap_deg(out["theta_deg"] - theta))
             if k == 0:
                 example[name] = (model, out)
+    if theta is None:
+        raise ValueError(f"{preset}: {n} repeats, at least one is needed")
     return {
         "theta": theta,
         "errors": {k: np.array(errors) for k, errors in res.items()},
@@ -238,7 +278,7 @@ def fig4_curves(
     return theta, curves
 
 
-def combined_benefit(preset: str, n: int) -> dict[str, Any]:
+def combined_benefit(preset: str, n: int) -> CombinedBenefit:
     """RMS θ error of the paper's switch and of the combined estimator, same fitted parameters, over
     n repeats."""
     sc = _rotation(load_scenario(preset))
@@ -259,6 +299,8 @@ def combined_benefit(preset: str, n: int) -> dict[str, Any]:
         co_list.append(
             wrap_deg(np.degrees(theta_combined(pts, alpha_rad, beta_rad, gamma_rad)) - theta)
         )
+    if theta is None:
+        raise ValueError(f"{preset}: {n} repeats, at least one is needed")
     sw, co = np.array(sw_list), np.array(co_list)
     return {
         "theta": theta,
@@ -270,7 +312,7 @@ def combined_benefit(preset: str, n: int) -> dict[str, Any]:
 
 
 def _lost_detail_variants(
-    sim: RotationScenario, base: dict[str, Any], err: Mapping[str, NDArray[np.float64]]
+    sim: RotationScenario, base: Mapping[str, object], err: Mapping[str, NDArray[np.float64]]
 ) -> list[tuple[str, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
     """The details the paper's simulation lost, varied one at a time: label, MAE of the direct
     method and of IODSRA, and the reductions (the preset's own row reuses `err`)."""
@@ -325,7 +367,7 @@ def _lost_detail_variants(
     return variants
 
 
-def _theta_rms_sim(sim: RotationScenario) -> tuple[dict[str, Any], dict[str, Any]]:
+def _theta_rms_sim(sim: RotationScenario) -> tuple[dict[str, float], dict[str, float]]:
     """RMS θ error of each method at the simulation's 18 points (§3, Table 2): over all of them,
     and over those within ±45° (where the direct method's Sz is not near zero)."""
     th_sim = _theta_errors_sim(sim, 200)
@@ -358,7 +400,7 @@ def _fig5_sz_errors(
     return name
 
 
-def _fig6_theta_errors(out_dir: Path, benches: dict[str, dict[str, Any]]) -> str:
+def _fig6_theta_errors(out_dir: Path, benches: dict[str, BenchErrors]) -> str:
     """Like the paper's Fig. 6: each method's worst |θ error| over ±180° on the two benches."""
     fig, axes = new_figure(1, 2, (12, 4.5))
     for ax, (preset, bench) in zip(axes.ravel(), benches.items()):
@@ -404,7 +446,7 @@ def _fig4_equation_errors(
     return name
 
 
-def _combined_estimator_figure(out_dir: Path, benefit: dict[str, dict[str, Any]]) -> str:
+def _combined_estimator_figure(out_dir: Path, benefit: dict[str, CombinedBenefit]) -> str:
     """RMS θ error of the paper's switch against the combined estimator on the two benches."""
     fig, axes = new_figure(1, 2, (12, 4.5))
     for ax, (preset, bb) in zip(axes.ravel(), benefit.items()):
@@ -457,7 +499,7 @@ def _variant_rows(
 
 
 def _bench_summary(
-    benches: dict[str, dict[str, Any]],
+    benches: dict[str, BenchErrors],
 ) -> tuple[dict[str, dict[str, float]], list[list[str]]]:
     """Each §4 bench's headline errors (for the returned numbers) and its row of the bench table."""
     bench_rows: list[list[str]] = []
@@ -490,7 +532,7 @@ def _bench_summary(
     return summary, bench_rows
 
 
-def _example_table(bench: dict[str, Any]) -> str:
+def _example_table(bench: BenchErrors) -> str:
     """A bench's first repeat at each standard angle, like the paper's Tables 4 and 5."""
     rows = []
     for j, t in enumerate(bench["theta"]):
@@ -514,13 +556,21 @@ def _example_table(bench: dict[str, Any]) -> str:
     )
 
 
-def _params_row(preset: str, bench: dict[str, Any]) -> list[str]:
+def _std(model: CalibrationModel, name: str) -> float:
+    """A fitted parameter's standard uncertainty (IODSRA's fit states one for each)."""
+    std = model.std(name)
+    if std is None:
+        raise ValueError(f"{name}: the fit states no uncertainty")
+    return std
+
+
+def _params_row(preset: str, bench: BenchErrors) -> list[str]:
     """IODSRA's fitted α, β, γ on a bench (first repeat) with U = k·u, beside the true values."""
     m = bench["example"]["iodsra"][0]
     sc = bench["scenario"]
     k = float(coverage_factor(m.fit["dof"]))
     return [preset] + [
-        f"{m.value(n):.3f} ± {k * m.std(n):.3f} (true {t:g})"
+        f"{m.value(n):.3f} ± {k * _std(m, n):.3f} (true {t:g})"
         for n, t in zip(
             ("alpha_deg", "beta_deg", "gamma_deg"),
             (sc.bench.alpha_deg, sc.bench.beta_deg, sc.bench.gamma_deg),
@@ -528,7 +578,7 @@ def _params_row(preset: str, bench: dict[str, Any]) -> list[str]:
     ]
 
 
-def _benefit_rows(bb: dict[str, Any]) -> list[list[str]]:
+def _benefit_rows(bb: CombinedBenefit) -> list[list[str]]:
     """RMS θ error of the switch and of the combined estimator at the table's angles."""
     rows = []
     for t in (0, 30, 45, 60, 90, 120, 135, 150, 180):
@@ -544,7 +594,7 @@ def _benefit_rows(bb: dict[str, Any]) -> list[list[str]]:
     return rows
 
 
-def run(out_dir: Path) -> dict[str, Any]:
+def run(out_dir: Path) -> Seed002Result:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(2016)

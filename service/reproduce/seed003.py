@@ -9,12 +9,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.calibration.data import SEED003_TABLE1
+from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, get_method
 from service.calibration.uncertainty import coverage_factor
 from service.io.datasets import read_dataset, write_text_atomic
@@ -32,12 +33,82 @@ PAPER = {
 DESIGN_ARCSEC_PER_COUNT = 3600.0 / 4096.0  # ±0.5° over 0-5 V into 12 bits (seed 003 §2)
 
 
-def load_table1() -> dict[str, Any]:
+class Table1(TypedDict):
+    """Seed 003's Table 1 as shipped: the angle and decimal ADC columns, and the theodolite's
+    readings and the ADC's hex words as printed."""
+
+    ref_arcsec: NDArray[np.float64]
+    reading: NDArray[np.float64]
+    t3a_reading: list[str]  # deg ° min ' sec "
+    adc_hex: list[str]
+
+
+class FitFigures(TypedDict):
+    """The figures of the linear and quadratic fits of one reading of Table 1."""
+
+    a1_linear: float  # arcsec per count
+    se_a1_linear: float
+    resid_linear: float  # residual norm, arcsec
+    a1_quadratic: float
+    a2_quadratic: float
+    resid_quadratic: float
+    f_p: float  # F-test of the quadratic term
+    f: float
+    reading_on_angle_arcsec_per_count: float
+
+
+class BothFits(FitFigures):
+    """The two fitted models, with their figures."""
+
+    lin: CalibrationModel
+    quad: CalibrationModel
+
+
+class VariantFit(FitFigures):
+    """The fits of one reading of the disputed cells: which rows, row 9's reference, rows 3-4's
+    counts."""
+
+    rows: str
+    ref9: str
+    counts: str
+
+
+class SimulatedCheck(TypedDict):
+    """poly1 on the simulated seed003 bench over many seeds."""
+
+    truth: float  # the bench's scale, arcsec per count
+    mean: float
+    sd: float
+    mean_se: float
+    false_alarm: float  # share of runs whose F-test finds a quadratic term
+    n: int
+    reading_sigma_counts: float
+    ref_sigma_arcsec: float
+
+
+class Seed003Result(TypedDict):
+    """The headline numbers `run` returns beside the report."""
+
+    a1_arcsec_per_count: float
+    se_a1: float
+    resid_norm_linear: float
+    resid_norm_quadratic: float
+    quadratic_p_value: float
+    paper_reading: dict[str, float]
+    variants: list[VariantFit]
+    simulated: SimulatedCheck
+    figures: list[str]
+
+
+def load_table1() -> Table1:
     ds = read_dataset(SEED003_TABLE1, "scale", [("ref_arcsec", "ref_deg"), "reading"])
-    cols: dict[str, Any] = dict(ds.arrays())
-    cols["t3a_reading"] = ds.text["t3a_reading"]
-    cols["adc_hex"] = ds.text["adc_hex"]
-    return cols
+    arrays = ds.arrays()
+    return {
+        "ref_arcsec": arrays["ref_arcsec"],
+        "reading": arrays["reading"],
+        "t3a_reading": ds.text["t3a_reading"],
+        "adc_hex": ds.text["adc_hex"],
+    }
 
 
 def _dms_arcsec(text: str) -> int:
@@ -47,7 +118,7 @@ def _dms_arcsec(text: str) -> int:
 
 
 def variant_columns(
-    table: dict[str, Any], ref9: str, counts: str, rows: str
+    table: Table1, ref9: str, counts: str, rows: str
 ) -> dict[str, NDArray[np.float64]]:
     """One reading of the disputed cells: row 9 from the angle column or the theodolite; rows 3-4
     decimal or hex; all 12 rows or rows 1-11 (without the start state)."""
@@ -62,7 +133,7 @@ def variant_columns(
     return {"ref_arcsec": ref[sel], "reading": reading[sel]}
 
 
-def fit_both(cols: Mapping[str, NDArray[np.float64]]) -> dict[str, Any]:
+def fit_both(cols: Mapping[str, NDArray[np.float64]]) -> BothFits:
     lin = get_method("scale", "poly1").fit(cols, FitOptions())
     quad = get_method("scale", "poly2").fit(cols, FitOptions())
     return {
@@ -80,7 +151,7 @@ def fit_both(cols: Mapping[str, NDArray[np.float64]]) -> dict[str, Any]:
     }
 
 
-def _figure(table: dict[str, Any], main: dict[str, Any], out: Path) -> None:
+def _figure(table: Table1, main: BothFits, out: Path) -> None:
     x, y = np.asarray(table["reading"], dtype=float), np.asarray(table["ref_arcsec"], dtype=float)
     lin, quad = main["lin"], main["quad"]
     xs = np.linspace(0, 4095, 400)
@@ -118,7 +189,7 @@ def _figure(table: dict[str, Any], main: dict[str, Any], out: Path) -> None:
     save_figure(fig, out)
 
 
-def _simulated_check(n_seeds: int = 300) -> dict[str, Any]:
+def _simulated_check(n_seeds: int = 300) -> SimulatedCheck:
     """The seed003 bench: does poly1 recover its scale, and does the F-test keep its 5 % false-alarm
     rate?"""
     sc = of_kind(load_scenario("seed003"), ScaleScenario)
@@ -147,10 +218,10 @@ def _simulated_check(n_seeds: int = 300) -> dict[str, Any]:
     }
 
 
-def _variant_fits(table: dict[str, Any]) -> list[dict[str, Any]]:
+def _variant_fits(table: Table1) -> list[VariantFit]:
     """Both fits for every reading of the disputed cells (rows, row 9's reference, rows 3-4's
     counts), without the fitted models."""
-    variants = []
+    variants: list[VariantFit] = []
     for rows in ("all", "1-11"):
         for ref9 in ("angle", "theodolite"):
             for counts in ("decimal", "hex"):
@@ -160,13 +231,23 @@ def _variant_fits(table: dict[str, Any]) -> list[dict[str, Any]]:
                         "rows": rows,
                         "ref9": ref9,
                         "counts": counts,
-                        **{k: fitted[k] for k in fitted if k not in ("lin", "quad")},
+                        "a1_linear": fitted["a1_linear"],
+                        "se_a1_linear": fitted["se_a1_linear"],
+                        "resid_linear": fitted["resid_linear"],
+                        "a1_quadratic": fitted["a1_quadratic"],
+                        "a2_quadratic": fitted["a2_quadratic"],
+                        "resid_quadratic": fitted["resid_quadratic"],
+                        "f_p": fitted["f_p"],
+                        "f": fitted["f"],
+                        "reading_on_angle_arcsec_per_count": fitted[
+                            "reading_on_angle_arcsec_per_count"
+                        ],
                     }
                 )
     return variants
 
 
-def _table1_rows(table: dict[str, Any]) -> list[list[object]]:
+def _table1_rows(table: Table1) -> list[list[object]]:
     """Table 1 as shipped, one row per line, with where its columns disagree with each other."""
     t3a = np.array([_dms_arcsec(cell) for cell in table["t3a_reading"]])
     rows_md: list[list[object]] = []
@@ -193,7 +274,7 @@ def _table1_rows(table: dict[str, Any]) -> list[list[object]]:
     return rows_md
 
 
-def _variant_row(variant: dict[str, Any]) -> list[object]:
+def _variant_row(variant: VariantFit) -> list[object]:
     """One variant's row of the disputed-cells table."""
     return [
         variant["rows"],
@@ -208,7 +289,7 @@ def _variant_row(variant: dict[str, Any]) -> list[object]:
     ]
 
 
-def _paper_reading(variants: list[dict[str, Any]]) -> dict[str, Any]:
+def _paper_reading(variants: list[VariantFit]) -> VariantFit:
     """The reading of the disputed cells that reproduces the paper's printed figures: rows 1-11,
     the angle column, the decimal counts."""
     return next(
@@ -218,7 +299,7 @@ def _paper_reading(variants: list[dict[str, Any]]) -> dict[str, Any]:
     )
 
 
-def run(out_dir: Path) -> dict[str, Any]:
+def run(out_dir: Path) -> Seed003Result:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     table = load_table1()
@@ -411,7 +492,13 @@ def run(out_dir: Path) -> dict[str, Any]:
         "resid_norm_linear": main["resid_linear"],
         "resid_norm_quadratic": main["resid_quadratic"],
         "quadratic_p_value": main["f_p"],
-        "paper_reading": {k: paper_reading[k] for k in PAPER},
+        "paper_reading": {  # the figures the paper prints (PAPER), from that reading
+            "a1_linear": paper_reading["a1_linear"],
+            "a1_quadratic": paper_reading["a1_quadratic"],
+            "a2_quadratic": paper_reading["a2_quadratic"],
+            "resid_linear": paper_reading["resid_linear"],
+            "resid_quadratic": paper_reading["resid_quadratic"],
+        },
         "variants": variants,
         "simulated": sim,
         "figures": [fig_name],

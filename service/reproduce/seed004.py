@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,6 +25,21 @@ from service.scenarios.model import TurntableScenario, parse_scenario
 
 PARAMS = ("beta_deg", "m1_per_arcsec", "m2_per_arcsec", "epsilon_deg")
 PHI_SWEEP = np.arange(175.0, 185.01, 0.5)
+
+
+class Seed004Result(TypedDict):
+    """The headline numbers `run` returns beside the report."""
+
+    beta_per_phi_slope: float  # deg of beta per deg of assumed rotation
+    beta_shift_for_1deg: float  # mean over the seeds, deg
+    fit_at_180: dict[str, tuple[float, float | None]]  # per parameter: value, standard uncertainty
+    truth: dict[str, float]
+    residual_rms_spread: float
+    corrected_spread_arcsec: float
+    iterations_from_rough: int
+    epsilon_spread: float
+    m1_at_180: float
+    figures: list[str]
 
 
 def _fit(cols: Mapping[str, NDArray[np.float64]], phi: float) -> CalibrationModel:
@@ -50,7 +65,7 @@ def _corrected_spread(
     )
 
 
-def _beta_shifts(data: dict[str, Any], n_seeds: int) -> NDArray[np.float64]:
+def _beta_shifts(data: Mapping[str, object], n_seeds: int) -> NDArray[np.float64]:
     """β fitted with φ = 180° minus β fitted with φ = 181°, on `n_seeds` runs of the bench in
     `data` (one that really turns 181°)."""
     shift_list = []
@@ -150,7 +165,7 @@ def _sweep_rows(vals: dict[str, NDArray[np.float64]], rms: NDArray[np.float64]) 
     ]
 
 
-def run(out_dir: Path) -> dict[str, Any]:
+def run(out_dir: Path) -> Seed004Result:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     sc = of_kind(load_scenario("seed004"), TurntableScenario)

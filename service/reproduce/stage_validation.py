@@ -17,9 +17,9 @@ order), so the comparison isolates what calibration gets wrong.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -35,6 +35,14 @@ from service.scenarios import run_scenario
 from service.scenarios.model import StageScenario
 
 STAGE_METHODS = ("homography", "coupling", "axis-transform", "kinematic")
+
+
+class FitKwargs(TypedDict, total=False):
+    """Fit options of one method, as `FitOptions` takes them."""
+
+    rotation_deg: float
+    loss: str
+    extra: dict[str, object]
 
 
 def paper_grid() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -157,15 +165,16 @@ class SeedResult:
 def evaluate_seed(
     scenario: StageScenario,
     seed: int,
-    methods: Sequence[str | tuple[str, str, dict[str, Any]]] = STAGE_METHODS,
+    methods: Sequence[str | tuple[str, str, Mapping[str, object]]] = STAGE_METHODS,
     targets: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
-    fit_options: dict[str, dict[str, Any]] | None = None,
+    fit_options: Mapping[str, FitKwargs] | None = None,
     keep_models: bool = False,
 ) -> SeedResult:
     """Calibrate each method on the scenario's run with `seed`, validate on fresh noise at
     `targets`.
 
-    `methods` holds method names, or (label, method name, extra fit options) for variants.
+    `methods` holds method names, or (label, method name, extra fit options) for variants;
+    `fit_options` the fit options of a label.
     """
     cal = run_scenario(scenario, seed=seed)
     bench, fx = cal.bench, cal.effects
@@ -182,8 +191,8 @@ def evaluate_seed(
     for spec in methods:
         label, name, extra = (spec, spec, {}) if isinstance(spec, str) else spec
         m = levelling_method("stage", name)
-        opts = dict((fit_options or {}).get(label, {}))
-        opts["extra"] = {**opts.get("extra", {}), **extra}
+        given = (fit_options or {}).get(label, FitKwargs())
+        opts: FitKwargs = {**given, "extra": {**given.get("extra", {}), **extra}}
         model = m.fit(cal.columns, FitOptions(**opts))
         if keep_models:
             out.models[label] = model
