@@ -10,15 +10,17 @@ request without the token is refused (`ignored_auth`), unsupported methods are 4
 
 What is left out, and why:
 
-* `DELETE /tokens/{name}`: the generator learns token names from `GET /tokens` and would revoke the
-  very token it runs with (tests/daemon/test_tokens_routes.py tests that route).
-* `positive_data_acceptance` also takes 422 on three operations, where a schema-valid request can be
+* `DELETE /tokens/{name}` (alone: `PATCH /tokens/{name}` is fuzzed): the generator learns token
+  names from `GET /tokens` and would revoke the very token it runs with
+  (tests/daemon/test_tokens_routes.py tests that route, the last admin token's refusal included).
+* `positive_data_acceptance` also takes 422 on four operations, where a schema-valid request can be
   refused for what JSON Schema cannot state: `POST /calibrations` (the grid must lie within the
   bench's travel and hold as many points as the method needs, a product of two counts; the standards
   and order it names must exist and be valid: the lab's stored data), `POST /standards` (`due_on`
-  must come after `calibrated_on`: two values compared) and `GET /feed` (a cursor must be one the
-  feed gave out: it is opaque). Everything else the routes enforce the document states
-  (docs/api.md, "The OpenAPI document and request validation").
+  must come after `calibrated_on`: two values compared), `POST /orders` (an `Idempotency-Key` used
+  before for another body is 422, as the IETF draft on that header asks: the lab's stored data) and
+  `GET /feed` (a cursor must be one the feed gave out: it is opaque). Everything else the routes
+  enforce the document states (docs/api.md, "The OpenAPI document and request validation").
 
 Webhook URLs the generator invents never leave the machine: the daemon's outgoing HTTP goes to a
 closed loopback port.
@@ -45,15 +47,23 @@ pytestmark = pytest.mark.skipif(
 )
 
 ACCEPTED_WITH_422 = ("2xx", "3xx", "401", "403", "404", "409", "422", "429", "5xx")
-CONFIG = "\n".join(
-    f"""
+# one `[[operations]]` entry per operation, named as Schemathesis names it ("METHOD /path"): in an
+# entry, `include-path` and `include-method` would each select on their own (every POST, say)
+CONFIG = (
+    "\n".join(
+        f"""
 [[operations]]
-include-path = "{path}"
-include-method = "{method}"
+include-name = "{operation}"
 checks.positive_data_acceptance.expected-statuses = {list(ACCEPTED_WITH_422)!r}
 """
-    for method, path in (("POST", "/calibrations"), ("POST", "/standards"), ("GET", "/feed"))
-).replace("'", '"')
+        for operation in ("POST /calibrations", "POST /standards", "POST /orders", "GET /feed")
+    ).replace("'", '"')
+    + """
+[[operations]]
+include-name = "DELETE /tokens/{name}"
+enabled = false
+"""
+)
 
 
 def test_every_operation_answers_as_documented(tmp_path: Path) -> None:
@@ -103,8 +113,6 @@ def test_every_operation_answers_as_documented(tmp_path: Path) -> None:
                 "60",
                 "--generation-with-security-parameters",
                 "false",
-                "--exclude-path-regex",
-                "^/tokens/",
             ],
             capture_output=True,
             text=True,

@@ -159,3 +159,28 @@ def test_a_token_names_its_person_who_alone_may_sign(daemon, tmp_path) -> None: 
     )
     r = client.post(f"/records/{record2.id}/reject", headers=admin, json={"reason": "no"})
     assert r.status_code == 403 and "names no person" in r.json()["detail"]
+
+
+def test_the_last_admin_token_cannot_be_revoked(daemon) -> None:
+    """Revoking the only active admin token would lock everyone out of administration: 409, and
+    the token still works; with a second admin token the first may go, and then the second is the
+    last."""
+    client, admin = daemon
+    names = [t["name"] for t in client.get("/tokens", headers=admin).json()["tokens"]]
+    assert names == ["admin"], names  # the first start's token, alone
+    refused = client.delete("/tokens/admin", headers=admin)
+    assert refused.status_code == 409, refused.text
+    assert "last admin token" in refused.json()["detail"], refused.text
+    assert client.get("/tokens", headers=admin).status_code == 200  # still an admin
+    made = client.post("/tokens", headers=admin, json={"name": "deputy", "scopes": ["admin"]})
+    assert made.status_code == 201, made.text
+    deputy = {"Authorization": f"Bearer {made.json()['token']}"}
+    # a read-only token does not count as an admin
+    assert (
+        client.post("/tokens", headers=admin, json={"name": "reader", "scopes": ["read"]})
+    ).status_code == 201
+    assert client.delete("/tokens/admin", headers=deputy).status_code == 200
+    assert client.get("/tokens", headers=admin).status_code == 401
+    last = client.delete("/tokens/deputy", headers=deputy)
+    assert last.status_code == 409 and "last admin token" in last.json()["detail"], last.text
+    assert client.get("/tokens", headers=deputy).status_code == 200
