@@ -7,15 +7,19 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypedDict
 
 from service.commands._args import add_command, finite, row_count
 from service.errors import InputError
 
 # the methods and the dataset reader are imported when the command runs, not by --help
 if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
+
     from service.calibration.model import CalibrationModel
     from service.datasets import Dataset
+    from service.physics.stage import StageBench
 
 # The methods, the dataset reader and numpy are imported by the commands that use them, so that
 # `--help` starts at once.
@@ -282,7 +286,14 @@ def assumed_bench_note() -> str:
     )
 
 
-def stage_bench_options(kind: str, bench_path: str | None) -> dict[str, Any]:
+class StatedBench(TypedDict, total=False):
+    """`--bench FILE` as fit options: the bench's hardware and where it was read."""
+
+    bench: StageBench
+    bench_source: str
+
+
+def stage_bench_options(kind: str, bench_path: str | None) -> StatedBench:
     """`--bench FILE` as fit options (empty without it: the methods then assume seed 000's and
     record so)."""
     if bench_path is None:
@@ -332,21 +343,28 @@ def correct(args: argparse.Namespace) -> int:
 
     result = method.correct(model, ds.arrays())
     quantities = tuple(output for output in method.outputs if not output.startswith("u_"))
-    out: dict[str, Any] = uncertainty_columns(
-        result, quantities, COVERAGE, deprecated=getattr(args, "deprecated_u_columns", False)
-    )
+    # the columns written: numbers, and text (the range flag; an input's columns passed through)
+    out: dict[str, NDArray[np.float64] | list[str]] = {
+        **uncertainty_columns(
+            result, quantities, COVERAGE, deprecated=getattr(args, "deprecated_u_columns", False)
+        )
+    }
     if seen is not None:
+        import numpy as np
+
+        tilt_x = np.asarray(out["tilt_x_deg"], dtype=float)  # the corrected tilts, as they are
+        tilt_y = np.asarray(out["tilt_y_deg"], dtype=float)
         inside = (
-            (seen["x"][0] <= out["tilt_x_deg"])
-            & (out["tilt_x_deg"] <= seen["x"][1])
-            & (seen["y"][0] <= out["tilt_y_deg"])
-            & (out["tilt_y_deg"] <= seen["y"][1])
+            (seen["x"][0] <= tilt_x)
+            & (tilt_x <= seen["x"][1])
+            & (seen["y"][0] <= tilt_y)
+            & (tilt_y <= seen["y"][1])
         )
         out["in_calibrated_range"] = ["true" if is_inside else "false" for is_inside in inside]
     # an input that is itself an earlier output: its uncertainty columns are replaced, not kept
     # beside the new ones
     stale = set(out) | {f"u_{quantity}" for quantity in quantities}
-    cols: dict[str, Any] = {**ds.passthrough(exclude=stale), **out}
+    cols: dict[str, NDArray[np.float64] | list[str]] = {**ds.passthrough(exclude=stale), **out}
     write_dataset(args.out, cols)
     print(
         f"{model.kind}/{model.method}: corrected {ds.n_rows} rows; wrote {args.out}",
@@ -377,7 +395,7 @@ def level(args: argparse.Namespace) -> int:
     with about(args.targets):
         out = method.level(model, ds.arrays())
     _warn_outside_calibrated_range(model, ds, args.targets)
-    cols: dict[str, Any] = {**ds.passthrough(exclude=out), **out}
+    cols: dict[str, NDArray[np.float64] | list[str]] = {**ds.passthrough(exclude=out), **out}
     write_dataset(args.out, cols)
     print(
         f"stage/{model.method}: stage commands for {ds.n_rows} targets; wrote {args.out}",

@@ -13,7 +13,7 @@ import errno
 import logging
 import socket
 import sys
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Mapping
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -155,7 +155,7 @@ def _with_overrides(settings: Settings, args: argparse.Namespace) -> Settings:
     return settings
 
 
-def _tls_refusal(tls: dict[str, Any]) -> str | None:
+def _tls_refusal(tls: Mapping[str, str | None]) -> str | None:
     """Why the TLS options cannot work (one of the pair alone, a file missing), or None."""
     if bool(tls["ssl_certfile"]) != bool(tls["ssl_keyfile"]):
         return "--ssl-certfile and --ssl-keyfile go together: give both, or neither for plain HTTP"
@@ -189,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     settings = _with_overrides(get_settings(), args)
     host, port = settings.host, settings.port
-    tls = {
+    tls: dict[str, str | None] = {  # uvicorn's option: the file (None: plain HTTP)
         "ssl_certfile": getattr(args, "ssl_certfile", None),
         "ssl_keyfile": getattr(args, "ssl_keyfile", None),
     }
@@ -244,7 +244,9 @@ def run(args: argparse.Namespace) -> int:
                 http=http_protocol,
                 ws=ws_protocol,
                 ws_per_message_deflate=False,
-                **{opt: path for opt, path in tls.items() if path},
+                # a file not given is uvicorn's default (None: plain HTTP)
+                ssl_certfile=tls["ssl_certfile"] or None,
+                ssl_keyfile=tls["ssl_keyfile"] or None,
             )
         )
         try:
