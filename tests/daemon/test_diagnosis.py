@@ -89,6 +89,10 @@ def named_adopted_and_levelled(tmp_path, effects: dict, effect: str) -> None:
         page = client.get(f"/diagnoses/{d['id']}/report", headers=h)
         assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
         assert effect in page.text
+        # a document: nothing in it runs (its figures are data: images)
+        policy = page.headers["content-security-policy"]
+        assert "default-src 'none'" in policy and "script-src" not in policy, policy
+        assert "img-src data:" in policy and "<script" not in page.text.lower()
         listed = client.get("/diagnoses", headers=h, params={"record": rec["id"]}).json()[
             "diagnoses"
         ]

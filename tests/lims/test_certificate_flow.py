@@ -167,8 +167,13 @@ def test_order_with_specification_to_a_certificate_every_independent_check_accep
                 "dcc:certificate/dcc:referral/dcc:content", "", NS
             )
             assert eq.find("dcc:measuringEquipmentQuantities", NS) is not None
-            page = client.get(f"/records/{rid}/certificate.html", headers=h["lims"]).text
+            answer = client.get(f"/records/{rid}/certificate.html", headers=h["lims"])
+            page = answer.text
             assert "Statements of conformity" in page and "ambient air temperature" in page
+            # a document: nothing in it runs, whatever text was stored (a customer's name, say)
+            policy = answer.headers["content-security-policy"]
+            assert "default-src 'none'" in policy and "script-src" not in policy, policy
+            assert "<script" not in page.lower()
             # the feed and the webhook carry the statements with the issued certificate
             feed = client.get("/feed", params={"limit": 1000}, headers=h["lims"]).json()["events"]
             issued = [e for e in feed if e["type"] == "certificate.issued"]

@@ -191,6 +191,18 @@ EDITS: list[tuple[str, Callable[[sa.Connection, Lab], None], tuple[str, str], st
         "revoked_id",
     ),
     (
+        "a token's person changed (who signs what it approves)",
+        lambda c, lab: c.execute(
+            sa.text(
+                "UPDATE api_tokens SET person_name = 'Mallory Example', person_function = "
+                "'Head of Laboratory' WHERE id = :id"
+            ),
+            {"id": lab.reader_id},
+        ),
+        ("api_tokens", "tampered"),
+        "reader_id",
+    ),
+    (
         "a token's scopes raised and its row hashed again",
         _rehash_token,
         ("api_tokens", "tampered"),
