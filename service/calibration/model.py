@@ -185,6 +185,193 @@ class ModelOptions(TypedDict, total=False):
     effects: list[str]
 
 
+class FitStats(TypedDict):
+    """A fit's degrees of freedom and residual sigma (degrees; None without degrees of freedom)."""
+
+    dof: int
+    sigma_deg: float | None
+
+
+class FTestResult(TypedDict):
+    """An F-test of one added polynomial term: F(1, dof) (None where the larger fit leaves no
+    residual), its degrees of freedom [1, dof], the upper-tail p and whether p < 0.05."""
+
+    F: float | None
+    dof: list[int]
+    p_value: float
+    significant_at_5pct: bool
+
+
+class DegreeFTest(TypedDict, total=False):
+    """Scale: an F-test of a degree against the one below (`against_degree`) or of the next degree
+    (`degree`); the test's own keys only where the larger fit had degrees of freedom."""
+
+    against_degree: int
+    degree: int
+    F: float | None
+    dof: list[int]
+    p_value: float
+    significant_at_5pct: bool
+
+
+class ReadingOnAngle(TypedDict):
+    """Scale: the paper's direction, reading = Σ a_j angle^j (counts, arcsec), beside the model;
+    `arcsec_per_count` for degree 1 only."""
+
+    coefficients: list[float]
+    units: list[str]
+    standard_errors: list[float] | None
+    residual_norm_counts: float
+    residual_sigma_counts: float | None
+    arcsec_per_count: NotRequired[float]
+
+
+class ChainFitStats(TypedDict):
+    """Kinematic: the chain fit's degrees of freedom, residual sigma (degrees), convergence,
+    function evaluations, loss and the scaled Jacobian's singular values."""
+
+    dof: int
+    sigma_deg: float
+    converged: bool
+    nfev: int
+    loss: str
+    scaled_jacobian_singular_values: list[float]
+
+
+class MeasFitStats(TypedDict):
+    """Kinematic: the measurement sensor's fit, its degrees of freedom (of the residuals and of the
+    covariance), residual sigma (degrees) and function evaluations."""
+
+    dof: int
+    covariance_dof: float
+    sigma_deg: float
+    nfev: int
+
+
+class CommonFit(TypedDict, total=False):
+    """What several methods' `fit` state: the points, degrees of freedom, convergence and residual
+    sigma (arcsec)."""
+
+    n_points: int
+    dof: int
+    converged: bool
+    residual_sigma_arcsec: float | None
+
+
+class TurntableFit(CommonFit, total=False):
+    """Turntable: the pairs, iterations and start values, the azimuths and reference tilts seen, the
+    pair rotation held, the reading noise (and where from) and the reference's sigma (arcsec)."""
+
+    n_pairs: int
+    iterations: int
+    initial: dict[str, float]
+    initial_from: str
+    n_azimuths: int
+    n_reference_tilts: int
+    rotation_deg: float
+    reading_sigma: float
+    reading_sigma_from: str
+    reference_sigma_arcsec: float
+
+
+class ScaleFit(CommonFit, total=False):
+    """Scale: the reference column and direction, the residual norm, standard errors, measuring
+    unit, reading range, the F-tests, the paper's direction and monotonicity."""
+
+    reference_column: str
+    direction: str
+    residual_norm_arcsec: float
+    standard_errors: dict[str, float] | None
+    measuring_unit_arcsec_per_count: float
+    reading_range: list[float]
+    measuring_unit_note: str
+    f_test_highest_term: DegreeFTest
+    f_test_next_degree: DegreeFTest
+    reading_on_angle: ReadingOnAngle
+    monotonic_over_range: bool
+
+
+class RotationFit(CommonFit, total=False):
+    """Rotation: the outputs' noise, the plane residual, the estimator, where Sz came from and how
+    many points took eq. (6)."""
+
+    sigma_s: float | None
+    plane_residual: ResidualColumn
+    estimator: str
+    sz_source: str
+    n_replaced_by_eq6: int
+
+
+class StageFit(CommonFit, total=False):
+    """Every stage method: the residual sigma (degrees; coupling) and the table tilts fitted on per
+    axis [min, max] (added by the job or command that fitted it)."""
+
+    sigma_deg: float | None
+    table_tilt_range_deg: dict[str, list[float]] | None
+
+
+class HomographyFit(StageFit, total=False):
+    """Homography: H1's points and statistics, the off-axis term, levelling's residual on every
+    point, eq. (10) forwards against the exact inverse, and H2's statistics."""
+
+    n_points_h1: int
+    points: str
+    offaxis: str
+    h1: FitStats
+    h2: FitStats
+    levelling_residual_all_points: ResidualSummary
+    offaxis_forward_vs_exact: dict[str, float]
+
+
+class AxisTransformFit(StageFit, total=False):
+    """Axis transform: the statistics of the stage -> reference and measurement -> reference
+    fits."""
+
+    stage_to_ref: FitStats
+    meas_to_ref: FitStats
+
+
+class KinematicFit(StageFit, total=False):
+    """Kinematic: the chain's fit, the effects asked for that the points do not determine and the
+    priors used (each with why), the worms' periodic error, the measurement sensor's fit."""
+
+    chain: ChainFitStats
+    undetermined_effects: dict[str, str]
+    priors: dict[str, str]
+    periodic_error: dict[str, dict[str, float]]
+    meas: MeasFitStats
+
+
+class FitInfo(TurntableFit, ScaleFit, RotationFit, HomographyFit, AxisTransformFit, KinematicFit):
+    """MODEL.json `fit`: the fit's statistics, each method's keys as its part above states them
+    (JSON-serialisable)."""
+
+
+class CovarianceJSON(TypedDict):
+    """MODEL.json `covariance`: the parameters' names in the matrix's order and the matrix (null
+    where not finite)."""
+
+    names: list[str]
+    matrix: list[list[float | None]]
+
+
+class ModelJSON(TypedDict):
+    """MODEL.json as a model writes it (docs/model.schema.json); `provenance` where recorded."""
+
+    format_version: int
+    kind: str
+    method: str
+    columns: list[str]
+    parameters: dict[str, ParameterJSON]
+    covariance: CovarianceJSON | None
+    residuals: ResidualSummary
+    fit: FitInfo
+    notes: list[str]
+    options: ModelOptions
+    state: ModelState
+    provenance: NotRequired[dict[str, object]]
+
+
 @dataclass
 class Parameter:
     value: float
@@ -211,7 +398,7 @@ class CalibrationModel:
     covariance: NDArray[np.float64] | None = None
     # {"unit": ..., "columns": {col: {"rms": .., "max_abs": .., "values": [..]}}}
     residuals: ResidualSummary = field(default_factory=lambda: ResidualSummary())
-    fit: dict[str, Any] = field(default_factory=dict)  # n_points, dof, sigma, converged, ...
+    fit: FitInfo = field(default_factory=lambda: FitInfo())  # n_points, dof, sigma, ...
     notes: list[str] = field(default_factory=list)
     state: ModelState = field(default_factory=lambda: ModelState())  # method-specific
     options: ModelOptions = field(default_factory=lambda: ModelOptions())
@@ -244,8 +431,8 @@ class CalibrationModel:
         return float(math.sqrt(max(self.covariance[i, i], 0.0)))
 
     # --- JSON -------------------------------------------------------------------------
-    def to_json_dict(self) -> dict[str, Any]:
-        doc: dict[str, Any] = {
+    def to_json_dict(self) -> ModelJSON:
+        doc: ModelJSON = {
             "format_version": FORMAT_VERSION,
             "kind": self.kind,
             "method": self.method,
@@ -277,6 +464,7 @@ class CalibrationModel:
         residuals: ResidualSummary = d.get("residuals") or ResidualSummary()
         state: ModelState = d.get("state") or ModelState()
         options: ModelOptions = d.get("options") or ModelOptions()
+        fit: FitInfo = d.get("fit") or FitInfo()
         return cls(
             kind=str(d["kind"]),
             method=str(d["method"]),
@@ -285,7 +473,7 @@ class CalibrationModel:
             covariance_names=names,
             covariance=matrix,
             residuals=residuals,
-            fit=d.get("fit") or {},
+            fit=fit,
             notes=list(d.get("notes") or []),
             state=state,
             options=options,

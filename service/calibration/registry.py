@@ -14,22 +14,43 @@ import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import cache
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, TypedDict, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.calibration.model import CalibrationModel
 from service.errors import InputError
+from service.physics.stage import StageBench
 
 Columns = Mapping[str, NDArray[np.float64]]
+
+
+class FitExtras(TypedDict, total=False):
+    """A method's own fit options. Turntable: the iteration's start values (`initial`, by
+    parameter). Stage: the bench and where it was stated, the measurement sensor's mounting
+    (`meas_flip`: auto, none, x, y), the reference's noise (degrees, one reading); homography: the
+    H1 points and the off-axis term; kinematic: the effects added, the worm's periodic error, the
+    solver's evaluations and the stages whose worm is fitted."""
+
+    initial: Mapping[str, float]
+    bench: StageBench
+    bench_source: str
+    meas_flip: str
+    ref_noise_deg: float
+    points: str
+    offaxis: str
+    effects: list[str]
+    periodic_error: bool
+    max_nfev: int
+    worm_axes: list[str]
 
 
 @dataclass
 class FitOptions:
     rotation_deg: float = 180.0  # turntable: assumed φ between the two positions of a pair
     loss: str = "linear"  # kinematic: robust loss of least_squares
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: FitExtras = field(default_factory=lambda: FitExtras())
 
 
 class Method(Protocol):

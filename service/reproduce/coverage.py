@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.calibration.registry import FitOptions, get_method
+from service.calibration.registry import FitExtras, FitOptions, get_method
 from service.reproduce.stage_validation import Oracle, execute, paper_grid
 from service.scenarios import load_scenario, parse_scenario, run_scenario
 
@@ -112,7 +112,7 @@ def stage_coverage(
         seed = seed0 + k
         run = run_scenario(sc, seed=seed)
         assert run.effects is not None
-        extra = (
+        extra: FitExtras = (
             {"ref_noise_deg": run.effects.get("noise", "ref_sigma_deg")}
             if variant == "ref noise stated"
             else {}

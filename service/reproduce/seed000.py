@@ -19,6 +19,7 @@ from service.calibration.methods.stage.common import (
     offaxis_forward_vs_exact_deg,
     offaxis_paper_forward_deg,
 )
+from service.calibration.registry import FitExtras
 from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg
 from service.reproduce._report_kit import of_kind
 from service.reproduce.stage_validation import (
@@ -35,9 +36,11 @@ SEEDS = tuple(range(30))
 PAPER_BEFORE = (0.559, -0.216)  # seed 000 §4.4, max errors before correction (x, y)
 PAPER_AFTER = (0.025, 0.013)  # and after
 MAIN = ("homography", "coupling", "axis-transform", "kinematic")
+ALL_POINTS: FitExtras = {"points": "all"}
+PAPER_FORWARD: FitExtras = {"offaxis": "paper"}
 SPECS = MAIN + (
-    ("homography, all points", "homography", {"points": "all"}),
-    ("homography, eq. 10 forward", "homography", {"offaxis": "paper"}),
+    ("homography, all points", "homography", ALL_POINTS),
+    ("homography, eq. 10 forward", "homography", PAPER_FORWARD),
 )
 TABLE_ORDER = (
     "uncorrected",

@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from service.calibration.methods.stage.chain import ChainModel
 from service.calibration.methods.stage.common import newton_2d
 from service.calibration.model import CalibrationModel
-from service.calibration.registry import FitOptions, levelling_method
+from service.calibration.registry import FitExtras, FitOptions, levelling_method
 from service.physics.effects import EffectSet
 from service.physics.inclinometer import apply_reading_errors
 from service.physics.stage import StageBench, simulate_stage
@@ -42,7 +42,7 @@ class FitKwargs(TypedDict, total=False):
 
     rotation_deg: float
     loss: str
-    extra: dict[str, object]
+    extra: FitExtras
 
 
 def paper_grid() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -165,7 +165,7 @@ class SeedResult:
 def evaluate_seed(
     scenario: StageScenario,
     seed: int,
-    methods: Sequence[str | tuple[str, str, Mapping[str, object]]] = STAGE_METHODS,
+    methods: Sequence[str | tuple[str, str, FitExtras]] = STAGE_METHODS,
     targets: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     fit_options: Mapping[str, FitKwargs] | None = None,
     keep_models: bool = False,

@@ -32,6 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from service.calibration.model import (
     CalibrationModel,
     ConstantErrorArc,
+    FitInfo,
     Parameter,
     residual_summary,
 )
@@ -306,7 +307,7 @@ class _RotationMethod:
             )
         theta = np.degrees(self.theta(pts, alpha, beta, gamma))
         plane = residual_summary({"plane": plane_res}, "1")
-        fit = {
+        fit: FitInfo = {
             "n_points": n_pts,
             "dof": dof,
             "sigma_s": sigma_s,

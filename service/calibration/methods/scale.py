@@ -20,12 +20,20 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any, TypedDict
+from typing import TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.model import (
+    CalibrationModel,
+    DegreeFTest,
+    FitInfo,
+    FTestResult,
+    Parameter,
+    ReadingOnAngle,
+    residual_summary,
+)
 from service.calibration.registry import Columns, FitOptions
 from service.calibration.uncertainty import coverage_factor, propagate_gum
 from service.errors import DegenerateDataError, InputError
@@ -100,7 +108,7 @@ def polyfit(x: NDArray[np.float64], y: NDArray[np.float64], degree: int) -> Poly
     return {"coef": coef, "cov": cov, "resid": resid, "rss": rss, "dof": dof, "s": sigma}
 
 
-def f_test(rss_small: float, rss_big: float, dof_big: int) -> dict[str, Any] | None:
+def f_test(rss_small: float, rss_big: float, dof_big: int) -> FTestResult | None:
     """F-test of one added term: F = (RSS_lower - RSS_higher) / (RSS_higher / dof_higher), F(1,
     dof)."""
     if dof_big <= 0:
@@ -158,7 +166,7 @@ class PolyMethod:
         lo, hi = float(reading.min()), float(reading.max())
         slope_mid = float(np.polyval(np.polyder(main["coef"][::-1]), 0.5 * (lo + hi)))
         se = np.sqrt(np.diag(main["cov"])) if main["cov"] is not None else None
-        fit: dict[str, Any] = {
+        fit: FitInfo = {
             "n_points": int(reading.size),
             "dof": main["dof"],
             "reference_column": ref_col,
@@ -255,28 +263,35 @@ def _f_tests(
     n: int,
     main: PolyFit,
     n_distinct: int,
-) -> dict[str, Any]:
+) -> FitInfo:
     """The degree's F-tests: is its highest term needed, and would the next degree help."""
     lower = polyfit(reading, ref, n - 1)
-    tests = {
-        "f_test_highest_term": dict(
-            against_degree=n - 1, **(f_test(lower["rss"], main["rss"], main["dof"]) or {})
-        )
+    highest: DegreeFTest = {"against_degree": n - 1}
+    tests: FitInfo = {
+        "f_test_highest_term": _with_test(highest, f_test(lower["rss"], main["rss"], main["dof"]))
     }
     if reading.size - (n + 2) >= 1 and n + 1 < n_distinct and n + 1 <= MAX_DEGREE:
         higher = polyfit(reading, ref, n + 1)
-        tests["f_test_next_degree"] = dict(
-            degree=n + 1, **(f_test(main["rss"], higher["rss"], higher["dof"]) or {})
+        next_degree: DegreeFTest = {"degree": n + 1}
+        tests["f_test_next_degree"] = _with_test(
+            next_degree, f_test(main["rss"], higher["rss"], higher["dof"])
         )
     return tests
 
 
+def _with_test(degrees: DegreeFTest, test: FTestResult | None) -> DegreeFTest:
+    """The degrees tested followed by the test's result (nothing more without one)."""
+    if test is None:
+        return degrees
+    return {**degrees, **test}
+
+
 def _reading_on_angle(
     reading: NDArray[np.float64], ref: NDArray[np.float64], n: int
-) -> dict[str, Any]:
+) -> ReadingOnAngle:
     """The paper's direction, reading = Σ a_j angle^j, reported beside the model (seed 003)."""
     paper = polyfit(ref, reading, n)
-    paper_fit = {
+    paper_fit: ReadingOnAngle = {
         "coefficients": [float(coef) for coef in paper["coef"]],
         "units": ["count"]
         + [f"count/arcsec^{j}" if j > 1 else "count/arcsec" for j in range(1, n + 1)],

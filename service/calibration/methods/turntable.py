@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.differences import central_jacobian
-from service.calibration.model import CalibrationModel, Parameter, residual_summary
+from service.calibration.model import CalibrationModel, FitInfo, Parameter, residual_summary
 from service.calibration.registry import Columns, FitOptions
 from service.calibration.uncertainty import coverage_factor, propagate_gum
 from service.errors import DegenerateDataError, InputError
@@ -372,7 +372,7 @@ class ReversalMethod:
         ]
         ref_var = s2 - (reading_sigma / m_mean) ** 2 / 2.0
         ref_sigma = float(np.sqrt(ref_var)) if ref_var > 0 else 0.0
-        fit = {
+        fit: FitInfo = {
             "n_pairs": n,
             "dof": dof,
             "iterations": iterations,

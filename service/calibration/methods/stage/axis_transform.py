@@ -4,7 +4,7 @@ coordinate transform and nothing else."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -13,7 +13,6 @@ from scipy.optimize import least_squares
 from service.calibration.methods.stage.base import (
     FIT_REQUIRED,
     Columns,
-    FitStats,
     StageMethod,
     bench_state,
     fit_stats,
@@ -37,7 +36,14 @@ from service.calibration.methods.stage.common import (
     model_needs_meas,
     require_spread,
 )
-from service.calibration.model import CalibrationModel, ModelState, Parameter, residual_summary
+from service.calibration.model import (
+    CalibrationModel,
+    FitInfo,
+    FitStats,
+    ModelState,
+    Parameter,
+    residual_summary,
+)
 from service.calibration.registry import FitOptions
 from service.errors import DegenerateDataError
 
@@ -145,7 +151,7 @@ class AxisTransformMethod(StageMethod):
         }
         cov_all = cov
         cov_names = list(names)
-        fit_info: dict[str, Any] = {"n_points": int(sx.size), "stage_to_ref": st}
+        fit_info: FitInfo = {"n_points": int(sx.size), "stage_to_ref": st}
         if has_meas(data):
             sign, how = meas_sign(data, options)
             mx, my = columns(data, MEAS_COLUMNS)

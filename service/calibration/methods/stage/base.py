@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
-from typing import Any, TypedDict, cast
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +22,7 @@ from service.calibration.methods.stage.common import (
 )
 from service.calibration.model import (
     CalibrationModel,
+    FitStats,
     ModelState,
     Parameter,
     StageBenchJSON,
@@ -55,13 +56,6 @@ def stage_hardware(options: FitOptions) -> tuple[StageBench, str, bool]:
         return StageBench(), ASSUMED_BENCH_SOURCE, False
     bench = given if isinstance(given, StageBench) else StageBench(**given)
     return bench, str(options.extra.get("bench_source", "stated by the caller")), True
-
-
-class FitStats(TypedDict):
-    """A fit's degrees of freedom and residual sigma (degrees; None without degrees of freedom)."""
-
-    dof: int
-    sigma_deg: float | None
 
 
 def bench_state(bench: StageBench, source: str) -> ModelState:

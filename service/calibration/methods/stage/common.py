@@ -12,13 +12,13 @@ so a table tilt (X, Y) is the same thing as n = (-sin X, -sin Y, +sqrt(1 - sin²
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.calibration.differences import fd_step
 from service.calibration.model import CalibrationModel
+from service.calibration.registry import FitExtras
 from service.calibration.uncertainty import Propagated, welch_satterthwaite
 from service.errors import DegenerateDataError, InputError
 from service.io import columns as columns_
@@ -376,7 +376,7 @@ def mirror_note(sign: ArrayLike) -> str | None:
 
 
 def sign_from_options(
-    options_extra: Mapping[str, Any], detected: NDArray[np.float64]
+    options_extra: FitExtras, detected: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], str]:
     """The lab may state the mounting ('none', 'x', 'y': the axis it was turned about); otherwise
     detect it."""

@@ -38,7 +38,13 @@ from service.calibration.methods.stage.common import (
     offaxis_forward_vs_exact_deg,
     offaxis_paper_forward_deg,
 )
-from service.calibration.model import CalibrationModel, ModelState, Parameter, residual_summary
+from service.calibration.model import (
+    CalibrationModel,
+    FitInfo,
+    ModelState,
+    Parameter,
+    residual_summary,
+)
 from service.calibration.projective import apply_projective, fit_projective, transfer_residuals
 from service.calibration.registry import FitOptions
 from service.errors import DegenerateDataError, InputError
@@ -180,7 +186,7 @@ class HomographyMethod(StageMethod):
             "H1", H1, "H1 maps reference angles (X, Y) to stage angles (x', y), h33 = 1"
         )
         residuals = dict(res_h1)
-        fit_info: dict[str, Any] = {
+        fit_info: FitInfo = {
             "n_points": int(sx.size),
             "n_points_h1": int(use.sum()),
             "points": points,

@@ -3,8 +3,6 @@ sensor's mounting fitted against the reference; the bench's hardware is an input
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 from numpy.typing import NDArray
 
@@ -49,6 +47,7 @@ from service.calibration.methods.stage.common import (
 )
 from service.calibration.model import (
     CalibrationModel,
+    FitInfo,
     ModelState,
     Parameter,
     ReferenceErrorsState,
@@ -93,7 +92,7 @@ class KinematicMethod(StageMethod):
         blocks = [chain.covariance]
         residuals = dict(chain.residuals)
         notes = _chain_notes(chain, loss, f"bench: {bench.describe()}; {source}", mismatch)
-        fit_info: dict[str, Any] = {
+        fit_info: FitInfo = {
             "n_points": int(sx.size),
             "chain": {
                 "dof": chain.dof,
