@@ -11,14 +11,13 @@ the `node` it came from and its `age_s` grows by the round trip. Everything else
 from __future__ import annotations
 
 import json
-from typing import Any
 from urllib.parse import parse_qs
 
 import httpx
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api import problems
-from service.fleet.node import Fleet, FleetUnavailable
+from service.fleet.node import Fleet, FleetUnavailable, ForwardedAnswer, ForwardedRequest
 
 BENCH_READS = frozenset({"/tilt", "/devices"})
 BENCH_COMMANDS = frozenset(
@@ -82,7 +81,7 @@ def _fleet_to_route(scope: Scope) -> Fleet | None:
     return fleet
 
 
-def _forwarded_request(scope: Scope, query: str, body: bytes) -> dict[str, Any]:
+def _forwarded_request(scope: Scope, query: str, body: bytes) -> ForwardedRequest:
     """The request as the bench's owner gets it: the caller's own headers (the token, the
     Idempotency-Key) with it."""
     headers = {name.decode("latin-1"): value.decode("latin-1") for name, value in scope["headers"]}
@@ -95,7 +94,7 @@ def _forwarded_request(scope: Scope, query: str, body: bytes) -> dict[str, Any]:
     }
 
 
-async def _send_answer(send: Send, answer: dict[str, Any], content: bytes) -> None:
+async def _send_answer(send: Send, answer: ForwardedAnswer, content: bytes) -> None:
     """The owner's answer passed on: its status, the headers that describe its content, the
     content."""
     out_headers = [
@@ -145,7 +144,7 @@ async def _read_body(receive: Receive) -> bytes:
 
 def _bench_of(body: bytes) -> str | None:
     try:
-        doc: Any = json.loads(body)
+        doc: object = json.loads(body)
     except ValueError:
         return None
     bench = doc.get("bench") if isinstance(doc, dict) else None
@@ -167,7 +166,7 @@ def _replay(body: bytes, receive: Receive) -> Receive:
     return again
 
 
-async def run_forwarded(app: ASGIApp, request: dict[str, Any]) -> dict[str, Any]:
+async def run_forwarded(app: ASGIApp, request: ForwardedRequest) -> ForwardedAnswer:
     """On the bench's owner: a request another node carried here, run through this daemon's own
     application."""
     transport = httpx.ASGITransport(app=app)

@@ -11,13 +11,13 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from service.api.json_value import JSONObject, JSONValue, items, members
 from service.api.models.problem import (
     PROBLEM_MEDIA_TYPE,
     PROBLEM_SCHEMA_REF,
     Problem,
     problem_responses,
 )
+from service.io.json_value import JSONObject, JSONValue, items, members
 
 _FASTAPI_VALIDATION = ("HTTPValidationError", "ValidationError")
 # Every 201 and 202 of the API says where what it made (or started) is read.

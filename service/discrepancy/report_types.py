@@ -9,8 +9,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import NotRequired, TypedDict, final
 
-# What `report.clean` makes of anything: JSON values (the report page and the files take these).
-JSONValue = str | int | float | bool | None | list["JSONValue"] | dict[str, "JSONValue"]
+# What `report.clean` makes of anything: JSON values (the report page and the files take these);
+# the one JSON alias of the service, kept in service/io.
+from service.io.json_value import JSONValue as JSONValue
 
 
 class EffectReason(TypedDict):

@@ -96,6 +96,26 @@ class BenchListing(TypedDict):
     online: bool
 
 
+class ForwardedRequest(TypedDict):
+    """A bench read or command carried to the bench's owner on `tiltlab.commands.<node>`: the HTTP
+    request as the caller sent it, with the caller's own headers (token, Idempotency-Key)."""
+
+    method: str
+    path: str
+    query: str  # the query string, without the `?`; "" for none
+    body: str
+    headers: dict[str, str]
+
+
+class ForwardedAnswer(TypedDict):
+    """The owner's answer to a `ForwardedRequest`: its HTTP status, the headers that describe its
+    content (content-type, location), and the content as text."""
+
+    status: int
+    headers: dict[str, str]
+    body: str
+
+
 class FleetConflict(InputError):
     """A bench this node would start is owned by another live node (the daemon exits 2)."""
 
@@ -135,7 +155,7 @@ class RemoteBench:
         }
 
 
-Handler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
+Handler = Callable[[ForwardedRequest], Awaitable[ForwardedAnswer]]
 
 
 class Fleet:
@@ -473,7 +493,8 @@ class Fleet:
 
     async def _on_command(self, msg: Msg) -> None:
         try:
-            answer = await self._handler(json.loads(msg.data))
+            request: ForwardedRequest = json.loads(msg.data)  # as another node's `forward` sent it
+            answer = await self._handler(request)
         except Exception as exc:  # noqa: BLE001 - the caller gets a problem, never silence
             log.exception("fleet: a command from another node failed")
             answer = {
@@ -490,8 +511,8 @@ class Fleet:
         await msg.respond(json.dumps(answer).encode())
 
     async def forward(
-        self, bench_name: str, request: dict[str, Any]
-    ) -> tuple[dict[str, Any], float]:
+        self, bench_name: str, request: ForwardedRequest
+    ) -> tuple[ForwardedAnswer, float]:
         """Carry a request for another node's bench to its owner; its answer and the round trip in
         seconds."""
         bench = self.remote[bench_name]
@@ -521,7 +542,7 @@ class Fleet:
                 f"node {bench.node!r} did not answer for bench {bench_name!r} within"
                 f" {self.command_timeout_s:g} s"
             ) from None
-        answer: dict[str, Any] = json.loads(reply.data)
+        answer: ForwardedAnswer = json.loads(reply.data)  # as the owner's `_on_command` sent it
         return answer, time.monotonic() - start
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.api.json_value import JSONObject
+from service.io.json_value import JSONObject
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 

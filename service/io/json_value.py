@@ -1,5 +1,8 @@
-"""JSON of any shape, where the API handles a document it does not define: the OpenAPI document
-FastAPI and pydantic generate, and the parts of it the routes declare."""
+"""JSON of any shape, for the places that handle a document they do not define: the OpenAPI
+document FastAPI and pydantic generate, what `discrepancy.report.clean` makes of a report, a job's
+API body passed through to its live stream. Where the shape is known, a TypedDict names it instead.
+
+The lowest layer both the API and the discrepancy workflow import (nothing here runs)."""
 
 from __future__ import annotations
 
