@@ -26,6 +26,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
@@ -85,6 +86,20 @@ class BenchNoise:
         return self.meas_sigma_deg**2 + self.ref_sigma_deg**2
 
 
+class AdaptivePlanJSON(TypedDict):
+    """An adaptive plan as a record's validation keeps it: the points (table tilts, degrees) and
+    readings at each, the predicted, target and floor expanded uncertainties (degrees), the expected
+    bench seconds and the criterion (degrees squared)."""
+
+    points: list[list[float]]
+    readings: list[int]
+    predicted_expanded_uncertainty_deg: float
+    target_expanded_uncertainty_deg: float
+    floor_expanded_uncertainty_deg: float
+    expected_bench_seconds: float
+    criterion_mean_variance_deg2: float
+
+
 @dataclass
 class AdaptivePlan:
     points: list[tuple[float, float]]
@@ -96,7 +111,7 @@ class AdaptivePlan:
     floor_deg: float  # every candidate at the cap
     notes: list[str] = field(default_factory=list)
 
-    def as_json(self) -> dict[str, object]:
+    def as_json(self) -> AdaptivePlanJSON:
         return {
             "points": [list(point) for point in self.points],
             "readings": self.readings,

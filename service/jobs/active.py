@@ -8,12 +8,12 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import cached_property
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.bench.runtime import BenchRuntime
+from service.calibration.budget import UncertaintyBudget
 from service.calibration.methods.stage.base import noise_state
 from service.calibration.methods.stage.reference import ReferenceErrors, reference_errors
 from service.calibration.model import CalibrationModel, stored_table_tilt_range, table_tilt_range
@@ -35,7 +35,7 @@ class ActiveModel:
     model: CalibrationModel
     method: Method
     # the record's uncertainty budget (what adds to the fit's part)
-    budget: dict[str, Any] | None = None
+    budget: UncertaintyBudget | None = None
     status: str = "draft"  # draft | approved (a rejected record is never loaded)
     # the table tilts (reference sensor's frame) the record was fitted on: {"x": [min, max], "y":
     # [min, max]}

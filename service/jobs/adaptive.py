@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +28,7 @@ from service.calibration.adaptive_design import (
     MIN_READINGS,
     PLAN_MARGIN,
     AdaptivePlan,
+    AdaptivePlanJSON,
     BenchNoise,
     BenchTimes,
     TargetUnreachable,
@@ -45,10 +45,14 @@ from service.jobs.procedure import (
     JobContext,
     Outcome,
     Phase,
+    RecordValidation,
+    TopUp,
+    ValidationPoint,
     job_conditions,
 )
 from service.jobs.stage_grid import SENSORS, StageGrid, measure_stage_point
 from service.storage.models import SettledPoint
+from service.storage.store.hashing import SettledPointFields
 
 MIN_TOP_UP = MIN_READINGS
 # readings of the first point, whose spread is the reading noise the plan starts from
@@ -57,7 +61,7 @@ NOISE_READINGS = 20
 MIN_NOISE_DEG = 1e-6
 
 
-def _noise_of(settled: dict[int, dict[str, Any]], devices: dict[str, int]) -> dict[str, float]:
+def _noise_of(settled: dict[int, SettledPointFields], devices: dict[str, int]) -> dict[str, float]:
     out = {}
     for role in SENSORS:
         point = settled[devices[role]]
@@ -123,11 +127,11 @@ def _predicted_u(model: CalibrationModel, ctx: JobContext, fixed_u: float) -> fl
 
 def validated_figures(
     points: list[SettledPoint], meas_device: int, errors_xy: np.ndarray, predicted_u: float
-) -> dict[str, Any]:
-    """The validation's own figures for the correction: its expanded uncertainty estimated from the
-    validation errors with the validation readings' own noise taken out, and the share of errors
-    within each point's expanded uncertainty (the predicted U of the correction with the point's
-    reading noise added)."""
+) -> RecordValidation:
+    """The validation's own figures for the correction (a record validation's ValidatedFigures):
+    its expanded uncertainty estimated from the validation errors with the validation readings' own
+    noise taken out, and the share of errors within each point's expanded uncertainty (the
+    predicted U of the correction with the point's reading noise added)."""
     by_point: dict[int, list[SettledPoint]] = {}
     for point in points:
         by_point.setdefault(point.point, []).append(point)
@@ -184,23 +188,21 @@ async def add_correction_figures(ctx: JobContext, outcome: Outcome) -> Outcome:
     points = await ctx.db(ctx.store.points.settled_points, ctx.job.id)
     val_points = [point for point in points if point.point >= outcome.n_fit]
     errors = _validation_errors_xy(outcome.validation["points"])
+    # in this order: the prediction, then the validated figures
     outcome.validation.update(
-        {
-            "predicted_expanded_uncertainty_deg": predicted,
-            "fixed_u_deg": fixed_u,
-            **validated_figures(val_points, 0, errors, predicted),
-        }
+        {"predicted_expanded_uncertainty_deg": predicted, "fixed_u_deg": fixed_u}
     )
+    outcome.validation.update(validated_figures(val_points, 0, errors, predicted))
     return outcome
 
 
-def _predicts_u(model: CalibrationModel, validation: dict[str, Any]) -> bool:
+def _predicts_u(model: CalibrationModel, validation: RecordValidation) -> bool:
     """Whether a grid job's model and validation give what the predicted U needs: the
     measurement-sensor parameters, and validation points to check it against."""
     return bool(validation.get("points")) and all(name in model.parameters for name in MEAS_NAMES)
 
 
-def _validation_errors_xy(validation_points: list[dict[str, Any]]) -> NDArray[np.float64]:
+def _validation_errors_xy(validation_points: list[ValidationPoint]) -> NDArray[np.float64]:
     """The validation's errors (measured - reference) per point and axis, shaped (points, 2) even
     when there are none."""
     return np.array(
@@ -247,7 +249,7 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     plan = _plan(ctx, noise, fixed_u, target)
     measured = await _measure_plan(ctx, plan, first, noise, len(val_pts))
     method = get_method("stage", job.method)
-    rounds = [plan.as_json()]
+    rounds: list[AdaptivePlanJSON | TopUp] = [plan.as_json()]
     for attempt in range(2):
         await ctx.report(len(measured), len(measured) + len(val_pts), Phase.FITTING)
         fit_cols = await ctx.db(proc.stored_columns, ctx.store.points, job, len(measured))
@@ -276,17 +278,18 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     val_cols = proc.columns(job, val_points, for_fit=False)
     validation = await asyncio.to_thread(proc.validation, method, model, val_cols)
     errors = _validation_errors_xy(validation.get("points", []))
+    # in this order: the design and prediction, the validated figures, the plan
     validation.update(
         {
             "design": "adaptive",
             "target_expanded_uncertainty_deg": target,
             "predicted_expanded_uncertainty_deg": predicted,
-            **validated_figures(val_points, devices["measurement_sensor"], errors, predicted),
-            "plan": rounds,
-            "reading_noise_deg": noise,
-            "fixed_u_deg": fixed_u,
         }
     )
+    validation.update(
+        validated_figures(val_points, devices["measurement_sensor"], errors, predicted)
+    )
+    validation.update({"plan": rounds, "reading_noise_deg": noise, "fixed_u_deg": fixed_u})
     conditions: AdaptiveJobConditions = {
         **job_conditions(bench, req, proc.temperatures_c(fit_cols, points), began),
         "design": "adaptive",

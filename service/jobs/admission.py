@@ -8,12 +8,13 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import math
-from typing import Any, TypedDict
+from typing import Any
 
 from service.bench.readings import OUTLIER_RULE
 from service.bench.runtime import BenchBusy, BenchRuntime
 from service.calibration.budget import ReferenceStandard
 from service.jobs import registry
+from service.jobs.job_parameters import AdaptiveAdmission, JobParameters, RequestJSON
 from service.jobs.procedure import Plan
 from service.jobs.requests import CalibrationRequest, RequestProblem
 from service.jobs.stage_grid import APPROACH_DEG
@@ -33,14 +34,6 @@ class RegisteredStandard(ReferenceStandard):
 
     id: int
     certificate_sha256: str
-
-
-class AdaptiveAdmission(TypedDict):
-    """What an adaptive job keeps of its admission (degrees): the standard uncertainty every
-    corrected tilt carries whatever is measured, and that part expanded (k = 2)."""
-
-    fixed_u_deg: float
-    floor_fixed_deg: float
 
 
 class Admission:
@@ -150,7 +143,7 @@ class Admission:
         ]
 
     @staticmethod
-    def parameters(body: dict[str, Any], bench: BenchRuntime, plan: Plan[Any]) -> dict[str, Any]:
+    def parameters(body: RequestJSON, bench: BenchRuntime, plan: Plan[Any]) -> JobParameters:
         """What a job keeps of its request: the request, its points and how they are measured."""
         return {
             **plan.extra,
@@ -164,7 +157,7 @@ class Admission:
             },
         }
 
-    def replay(self, bench: BenchRuntime, key: str, body: dict[str, Any]) -> CalibrationJob:
+    def replay(self, bench: BenchRuntime, key: str, body: RequestJSON) -> CalibrationJob:
         """Blocking (database): the job an earlier request with this Idempotency-Key made. A busy
         bench still answers a repeated request with its job; a key the database does not know is
         409."""

@@ -30,12 +30,15 @@ from service.jobs.procedure import (
     JobContext,
     Plan,
     PointProcedure,
+    RecordValidation,
+    ValidationPoint,
     bench_epoch,
     validation_rng,
 )
 from service.jobs.requests import CalibrationRequest, Grid, RequestProblem
 from service.storage.models import CalibrationJob, SettledPoint
 from service.storage.samples import Sample
+from service.storage.store.hashing import SettledPointFields
 
 APPROACH_SCALE_DEG = 0.1
 ADC_FULL_COUNTS = 4095  # the 12-bit converter of the adc_sensor role
@@ -142,7 +145,9 @@ class AngleProcedure(PointProcedure[float]):
         request = job.parameters["request"]
         return columns(self, by_device, job.parameters["device_ids"], request.get("reference"))
 
-    def validation(self, method: Method, model: CalibrationModel, cols: Columns) -> dict[str, Any]:
+    def validation(
+        self, method: Method, model: CalibrationModel, cols: Columns
+    ) -> RecordValidation:
         return validation(self, method, model, cols)
 
 
@@ -199,7 +204,7 @@ async def measure_angle(ctx: JobContext, proc: AngleProcedure, index: int, angle
     _check_adc_range(bench, proc.read_roles, got, angle)
     to_epoch = bench_epoch(bench)
     rows: list[Sample] = []
-    settled: dict[int, dict[str, Any]] = {}
+    settled: dict[int, SettledPointFields] = {}
     for role, readings in zip(proc.read_roles, got):
         dev = bench.device_ids[role]
         for reading in readings:
@@ -258,7 +263,7 @@ def _check_adc_range(
 
 def _settled_means(
     readings: list[Reading], index: int, reached: float, to_epoch: Callable[[float], float]
-) -> dict[str, Any]:
+) -> SettledPointFields:
     """One device's settled point: its readings averaged after the outlier rule, three channels
     (the missing ones None; one ADC channel stores ch_y as 0)."""
     averaged = robust_mean(readings)
@@ -374,7 +379,7 @@ def _rotation_columns(tri: list[SettledPoint]) -> Columns:
 
 def validation(
     proc: AngleProcedure, method: Method, model: CalibrationModel, cols: Columns
-) -> dict[str, Any]:
+) -> RecordValidation:
     key = "azimuth_deg" if proc.name == "turntable" else "point"
     if cols[key].size == 0:
         return {"n_points": 0, "rms_deg": None, "max_deg": None}
@@ -409,19 +414,19 @@ def validation(
         meas = ref + err  # the measured angle on the reference's turn
         against = "rotary table angle at each validation point"
         u_meas = out.get("u_theta_deg")
-    points = []
+    points: list[ValidationPoint] = []
     for i, point_number in enumerate(cols["point"]):
         # reference, corrected measurement and its expanded uncertainty: a certificate's validation
         # table
-        point = {
-            "point": int(point_number),
-            "error_deg": float(abs(err[i])),
-            f"reference_{quantity}": float(ref[i]),
-            f"measured_{quantity}": float(meas[i]),
-        }
-        if u_meas is not None:
-            point[f"u_{quantity}"] = float(u_meas[i])
-        points.append(point)
+        points.append(
+            _angle_point(
+                quantity,
+                int(point_number),
+                float(abs(err[i])),
+                (float(ref[i]), float(meas[i])),
+                None if u_meas is None else float(u_meas[i]),
+            )
+        )
     err = np.abs(err)
     return {
         "n_points": int(err.size),
@@ -431,3 +436,28 @@ def validation(
         "coverage_probability": COVERAGE,
         "points": points,
     }
+
+
+def _angle_point(
+    quantity: str,
+    point: int,
+    error_deg: float,
+    reference_measured: tuple[float, float],
+    u_measured: float | None,
+) -> ValidationPoint:
+    """One validation point of a scale (`angle_arcsec`) or rotation (`theta_deg`) job: the
+    reference, the corrected measurement and its expanded uncertainty where the model gives
+    one."""
+    reference, measured = reference_measured
+    entry: ValidationPoint = {"point": point, "error_deg": error_deg}
+    if quantity == "angle_arcsec":
+        entry["reference_angle_arcsec"] = reference
+        entry["measured_angle_arcsec"] = measured
+        if u_measured is not None:
+            entry["u_angle_arcsec"] = u_measured
+    else:
+        entry["reference_theta_deg"] = reference
+        entry["measured_theta_deg"] = measured
+        if u_measured is not None:
+            entry["u_theta_deg"] = u_measured
+    return entry

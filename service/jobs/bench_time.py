@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 
 @dataclass
@@ -39,7 +38,7 @@ class BenchTime:
         }
 
     @classmethod
-    def from_json(cls, stored: Mapping[str, Any] | None) -> BenchTime:
+    def from_json(cls, stored: Mapping[str, float] | None) -> BenchTime:
         """What a job had counted before (a resumed job goes on counting from there)."""
         if not stored:
             return cls()

@@ -46,6 +46,7 @@ from service.discrepancy.report_types import (
     StepReport,
 )
 from service.errors import InputError
+from service.jobs.job_parameters import RequestJSON
 from service.jobs.manager import JobManager
 from service.jobs.requests import CalibrationRequest
 from service.storage.errors import ConflictError
@@ -808,7 +809,7 @@ class DiagnosisRunner:
         own = (await asyncio.to_thread(self.store.jobs.get_job, record.job_id)).parameters.get(
             "request", {}
         )
-        request = {
+        request: RequestJSON = {
             "bench": bench.name,
             "procedure": "stage-grid",
             "method": record.method,

@@ -20,7 +20,15 @@ from service.bench.runtime import BenchRuntime
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import Method
 from service.errors import InputError
-from service.jobs.procedure import Columns, JobContext, Outcome, Phase, Plan, PointProcedure
+from service.jobs.procedure import (
+    Columns,
+    JobContext,
+    Outcome,
+    Phase,
+    Plan,
+    PointProcedure,
+    RecordValidation,
+)
 from service.jobs.requests import CalibrationRequest, RequestProblem
 from service.jobs.stage_grid import SENSORS, measure_stage_point, stage_columns
 from service.storage.models import CalibrationJob, SettledPoint
@@ -65,7 +73,9 @@ class DiagnosisMeasurement(PointProcedure[PlannedStagePoint]):
             del cols["temp_c"]
         return cols
 
-    def validation(self, method: Method, model: CalibrationModel, cols: Columns) -> dict[str, Any]:
+    def validation(
+        self, method: Method, model: CalibrationModel, cols: Columns
+    ) -> RecordValidation:
         raise InputError(
             "a diagnosis's measurement validates nothing: it adds points to a record's"
         )

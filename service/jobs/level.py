@@ -14,7 +14,7 @@ raw mean is kept beside it as `reference_raw`)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 
@@ -123,6 +123,26 @@ def read_back(
     )
 
 
+class AxesDeg(TypedDict):
+    """A tilt or a stage position, per axis (degrees)."""
+
+    x_deg: float
+    y_deg: float
+
+
+class LevelAnswer(TypedDict):
+    """What levelling answers: the tilt achieved (as the reference read it back, through the
+    record's model of its errors where it has one) and its raw reading, the iterations, the stage
+    position, whether it is within the tolerance, and how it was measured."""
+
+    achieved: AxesDeg
+    reference_raw: AxesDeg
+    iterations: int
+    stage: AxesDeg
+    within_tolerance: bool
+    measured_by: str
+
+
 async def level(
     bench: BenchRuntime,
     active: ActiveModel,
@@ -130,7 +150,7 @@ async def level(
     y_deg: float,
     tolerance_deg: float,
     max_iterations: int,
-) -> dict[str, Any]:
+) -> LevelAnswer:
     aim_x, aim_y = x_deg, y_deg
     sx, sy = commands(active, aim_x, aim_y, bench.pose)  # refused before anything moves
     offsets: list[tuple[float, float]] = []  # achieved - aimed, one per read-back
@@ -186,7 +206,7 @@ def _answer(
     iterations: int,
     stage: tuple[float, float],
     ok: bool,
-) -> dict[str, Any]:
+) -> LevelAnswer:
     return {
         "achieved": {"x_deg": achieved[0], "y_deg": achieved[1]},
         "reference_raw": {"x_deg": raw[0], "y_deg": raw[1]},

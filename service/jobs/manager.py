@@ -15,12 +15,13 @@ import errno
 import logging
 from collections.abc import Callable
 from functools import partial
-from typing import Any, TypeVar
+from typing import Any, TypedDict, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.bench.runtime import BenchBusy, BenchHold, BenchRuntime, DeviceNotAnswering, Hold
+from service.calibration.budget import UncertaintyBudget
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import Method, get_method
 from service.errors import InputError
@@ -31,8 +32,22 @@ from service.jobs.admission import Admission
 from service.jobs.bench_time import BenchTime
 from service.jobs.budgets import budget_of_record
 from service.jobs.events import JobEvents
+from service.jobs.job_parameters import (
+    JobParameters,
+    OperatorPerson,
+    RequestJSON,
+    parameters_of,
+    request_json,
+)
 from service.jobs.points import write_in_thread
-from service.jobs.procedure import JobContext, Outcome, Phase, PointProcedure
+from service.jobs.procedure import (
+    JobConditions,
+    JobContext,
+    Outcome,
+    Phase,
+    PointProcedure,
+    RecordValidation,
+)
 from service.jobs.requests import KIND_OF_PROCEDURE, CalibrationRequest, RequestProblem
 from service.jobs.state import DAEMON, Ending, JobState, Stop
 from service.storage.disk import DiskFull, DiskWatch, disk_full
@@ -66,7 +81,18 @@ def _check_identified(bench: BenchRuntime, roles: tuple[str, ...]) -> None:
             )
 
 
-def _add_operator(parameters: dict[str, Any], principal: Principal) -> None:
+class RecordRawData(TypedDict, total=False):
+    """What a record made by a job keeps beside the job's data in its `raw_data`: the conditions,
+    how many points were fitted, the uncertainty budget, the bench seconds and the operator."""
+
+    conditions: JobConditions
+    fit_points: int
+    budget: UncertaintyBudget
+    bench_seconds: dict[str, float]
+    operator_person: OperatorPerson
+
+
+def _add_operator(parameters: JobParameters, principal: Principal) -> None:
     """Who runs the job, as the token names them now (certificates state it)."""
     if principal.person is not None:
         parameters["operator_person"] = {
@@ -163,8 +189,7 @@ class JobManager:
         made and False."""
         self.check_disk()
         plan = await asyncio.to_thread(self.admission.plan, req, bench)
-        body = req.model_dump(mode="json")
-        body["bench"] = bench.name
+        body = request_json(req, bench.name)
         _check_identified(bench, plan.read_roles)
         device_id = bench.device_ids[plan.device_role]
         parameters = self.admission.parameters(body, bench, plan)
@@ -223,9 +248,9 @@ class JobManager:
         self,
         bench: BenchRuntime,
         device_id: int,
-        request: dict[str, Any],
+        request: RequestJSON,
         points: list[list[float]],
-        extra: dict[str, Any],
+        extra: JobParameters,
         actor: str,
     ) -> CalibrationJob:
         """A job measuring planned points (service.jobs.diagnosis_measurement) for a diagnosis: it
@@ -239,7 +264,7 @@ class JobManager:
             raise BenchBusy(f"bench {bench.name!r} is not registered in the database yet")
         if bench.holder is not None:
             raise BenchBusy(f"bench {bench.name!r} is held by {bench.holder}")
-        parameters = {
+        parameters: JobParameters = {
             **extra,
             "procedure": NAME,
             "request": request,
@@ -556,7 +581,7 @@ class JobManager:
             if job.state == JobState.QUEUED:
                 await self._db(job_id, self._start_job, job_id)
                 self.events.changed(job_id)
-            procedure = registry.procedure_of(job.parameters)
+            procedure = registry.procedure_of(parameters_of(job))
             request = CalibrationRequest.model_validate(job.parameters["request"])
 
             bench_time = BenchTime.from_json(job.bench_seconds)  # a resumed job goes on counting
@@ -642,7 +667,7 @@ class JobManager:
             standards,
             outcome.conditions.get("resolution_deg") or {},
         )
-        raw: dict[str, Any] = {
+        raw: RecordRawData = {
             "conditions": outcome.conditions,
             "fit_points": outcome.n_fit,
             "budget": budget,
@@ -671,7 +696,7 @@ class JobManager:
     ) -> dict[str, NDArray[np.float64]] | None:
         """Blocking (database): the fit columns a stage record's budget judges the corrected tilt
         on (None for other kinds, whose budget has no such entries)."""
-        procedure = registry.procedure_of(job.parameters)
+        procedure = registry.procedure_of(parameters_of(job))
         if outcome.kind == "stage" and isinstance(procedure, PointProcedure):
             return procedure.stored_columns(self.store.points, job, outcome.n_fit)
         return None
@@ -700,18 +725,18 @@ class JobManager:
     def fit_columns(self, job_id: int, n_fit: int) -> dict[str, NDArray[np.float64]]:
         """Blocking (database): the dataset columns of a job's first `n_fit` settled points."""
         job = self.store.jobs.get_job(job_id)
-        procedure = registry.procedure_of(job.parameters)
+        procedure = registry.procedure_of(parameters_of(job))
         if not isinstance(procedure, PointProcedure):
             raise InputError(f"job {job_id} ({procedure.name}) measured no points")
         return procedure.stored_columns(self.store.points, job, n_fit)
 
     def validate(
         self, job_id: int, n_fit: int, method: Method, model: CalibrationModel
-    ) -> dict[str, Any]:
+    ) -> RecordValidation:
         """Blocking (database): a model against the job's points from `n_fit` on (its validation
         points)."""
         job = self.store.jobs.get_job(job_id)
-        procedure = registry.procedure_of(job.parameters)
+        procedure = registry.procedure_of(parameters_of(job))
         if not isinstance(procedure, PointProcedure):
             raise InputError(f"job {job_id} ({procedure.name}) measured no points")
         points = [

@@ -11,6 +11,7 @@ from typing import Any, TypeVar
 from service.storage.engine import write_engine
 from service.storage.samples import Sample, insert_samples_once
 from service.storage.store import Store
+from service.storage.store.hashing import SettledPointFields
 
 log = logging.getLogger("tiltlab.jobs")
 T = TypeVar("T")
@@ -27,7 +28,7 @@ def store_point(
     job_id: int,
     index: int,
     samples: list[Sample],
-    settled_by_device: dict[int, dict[str, Any]],
+    settled_by_device: dict[int, SettledPointFields],
 ) -> None:
     """Blocking (database): call through `write_in_thread`. A point half stored when the daemon
     was killed keeps its stored half; only the devices it lacks are added. Safe to repeat after a

@@ -28,12 +28,14 @@ from numpy.typing import NDArray
 from service import __version__
 from service.bench.readings import OUTLIER_RULE
 from service.bench.runtime import BenchRuntime
+from service.calibration.adaptive_design import AdaptivePlanJSON
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, Method, get_method
 from service.errors import InputError
 from service.instruments.base import AmbientSensor, Reading
 from service.jobs.bench_time import BenchTime
 from service.jobs.budgets import resolutions_deg
+from service.jobs.job_parameters import JobParameters
 from service.jobs.requests import CalibrationRequest
 from service.storage.models import CalibrationJob, SettledPoint
 from service.storage.store import PointsRepo, Store
@@ -86,6 +88,82 @@ class AdaptiveJobConditions(JobConditions, total=False):
     design: str
 
 
+class ValidationPoint(TypedDict, total=False):
+    """One validation point as a record keeps it (a certificate's validation table): its index
+    (turntable: its azimuth), the stage's angles, the error's magnitude (degrees), and per axis or
+    quantity the reference's reading (its raw reading beside where read through the record's model
+    of the reference's errors), the corrected measurement and its expanded uncertainty."""
+
+    point: int
+    azimuth_deg: float
+    stage_x_deg: float
+    stage_y_deg: float
+    error_deg: float
+    reference_x_deg: float
+    reference_raw_x_deg: float
+    measured_x_deg: float
+    u_x_deg: float
+    reference_y_deg: float
+    reference_raw_y_deg: float
+    measured_y_deg: float
+    u_y_deg: float
+    reference_angle_arcsec: float
+    measured_angle_arcsec: float
+    u_angle_arcsec: float
+    reference_theta_deg: float
+    measured_theta_deg: float
+    u_theta_deg: float
+
+
+class ValidatedFigures(TypedDict, total=False):
+    """A stage correction's figures from its validation (degrees): its expanded uncertainty with the
+    validation readings' own noise taken out (null when that noise explains the errors), the errors'
+    RMS per axis, the readings' noise, and the share of error components within each point's
+    expanded uncertainty (of how many)."""
+
+    validated_expanded_uncertainty_deg: float | None
+    validation_rms_axis_deg: float
+    validation_reading_u_deg: float
+    validated_coverage: float
+    validated_components: int
+
+
+class TopUpRound(TypedDict):
+    """An adaptive job's top-up: the points read again, the readings added to each, and the
+    predicted expanded uncertainty before it (degrees)."""
+
+    points: int
+    readings: int
+    predicted_before_deg: float
+
+
+class TopUp(TypedDict):
+    """An adaptive plan's round of top-up readings."""
+
+    top_up: TopUpRound
+
+
+class RecordValidation(ValidatedFigures, total=False):
+    """A record's `validation`: the model against points it was not fitted on (their number, RMS
+    and largest error in degrees, null without points; what they were compared with; the coverage
+    probability of the points' U; the points), and for stage corrections the predicted expanded
+    uncertainty with its fixed part and the validated figures; an adaptive job's design, target,
+    plan rounds and reading noise by role."""
+
+    n_points: int
+    rms_deg: float | None
+    max_deg: float | None
+    compared_with: str
+    coverage_probability: float
+    points: list[ValidationPoint]
+    predicted_expanded_uncertainty_deg: float
+    fixed_u_deg: float
+    design: str
+    target_expanded_uncertainty_deg: float
+    plan: list[AdaptivePlanJSON | TopUp]
+    reading_noise_deg: dict[str, float]
+
+
 class Phase(StrEnum):
     """What a running job is doing (its progress says which)."""
 
@@ -104,7 +182,7 @@ class Plan(Generic[P]):
     device_role: str  # the instrument calibrated: the job's and the record's device
     read_roles: tuple[str, ...]  # every instrument read at each point (all must have identified)
     # what else the job keeps in its parameters
-    extra: dict[str, Any] = dataclasses.field(default_factory=dict)
+    extra: JobParameters = dataclasses.field(default_factory=lambda: JobParameters())
 
 
 @dataclass(frozen=True)
@@ -115,7 +193,7 @@ class Outcome:
     kind: str
     # None: a measurement that makes no record (a diagnosis reads its points)
     model: CalibrationModel | None
-    validation: dict[str, Any]
+    validation: RecordValidation
     conditions: JobConditions
     n_fit: int  # the first n_fit points were fitted, the rest validated
     # the bench time the job spent (BenchTime.as_json)
@@ -301,7 +379,9 @@ class PointProcedure(ABC, Generic[P]):
         """The dataset columns of settled points, as `tiltlab calibrate` reads them."""
 
     @abstractmethod
-    def validation(self, method: Method, model: CalibrationModel, cols: Columns) -> dict[str, Any]:
+    def validation(
+        self, method: Method, model: CalibrationModel, cols: Columns
+    ) -> RecordValidation:
         """The fitted model against the validation points' columns."""
 
     def fit_options(self, bench: BenchRuntime) -> FitOptions:

@@ -6,11 +6,9 @@ A new procedure is a module of its own with one object satisfying `Procedure`
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
-
 from service.jobs.angles import ROTATION, SCALE, TURNTABLE
 from service.jobs.diagnosis_measurement import DIAGNOSIS_MEASUREMENT
+from service.jobs.job_parameters import JobParameters
 from service.jobs.procedure import Procedure
 from service.jobs.stage_grid import STAGE_GRID
 
@@ -33,7 +31,7 @@ def procedure_named(name: str) -> Procedure | None:
     return PROCEDURES.get(name)
 
 
-def procedure_of(parameters: Mapping[str, Any] | None) -> Procedure:
+def procedure_of(parameters: JobParameters | None) -> Procedure:
     """The procedure a stored job ran (jobs stored before procedures had names were stage grids); a
     job a diagnosis started names its procedure beside its request."""
     name = (

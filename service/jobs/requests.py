@@ -16,6 +16,7 @@ from pydantic import (
     Strict,
     model_validator,
 )
+from pydantic.config import JsonDict
 from pydantic.json_schema import JsonSchemaValue
 
 from service.errors import InputError
@@ -222,7 +223,7 @@ class Conditions(RequestBody):
     relative_humidity_pct: RelativeHumidity | None = None
 
 
-def method_per_procedure(schema: dict[str, Any]) -> None:
+def method_per_procedure(schema: JsonDict) -> None:
     """States in the JSON Schema which methods each procedure takes (the request's rule `method` is
     checked by)."""
     from service.calibration.registry import known_methods
@@ -233,7 +234,7 @@ def method_per_procedure(schema: dict[str, Any]) -> None:
         {
             "if": {"properties": {"procedure": {"const": procedure}}, "required": ["procedure"]},
             "then": {
-                "properties": {"method": {"enum": known_methods(KIND_OF_PROCEDURE[procedure])}}
+                "properties": {"method": {"enum": [*known_methods(KIND_OF_PROCEDURE[procedure])]}}
             },
         }
         for procedure in PROCEDURES

@@ -35,12 +35,15 @@ from service.jobs.procedure import (
     Phase,
     Plan,
     PointProcedure,
+    RecordValidation,
+    ValidationPoint,
     bench_epoch,
     validation_rng,
 )
 from service.jobs.requests import CalibrationRequest, Grid, RequestProblem
 from service.storage.models import CalibrationJob, SettledPoint
 from service.storage.samples import Sample
+from service.storage.store.hashing import SettledPointFields
 
 log = logging.getLogger("tiltlab.jobs")
 
@@ -231,7 +234,9 @@ class StageGrid(PointProcedure[StagePoint]):
             del cols["temp_c"]  # the same columns the points CSV carries
         return cols
 
-    def validation(self, method: Method, model: CalibrationModel, cols: Columns) -> dict[str, Any]:
+    def validation(
+        self, method: Method, model: CalibrationModel, cols: Columns
+    ) -> RecordValidation:
         return stage_validation(method, model, cols)
 
 
@@ -245,7 +250,7 @@ async def measure_stage_point(
     *,
     n: int | None = None,
     noise_deg: dict[str, float] | None = None,
-) -> dict[int, dict[str, Any]]:
+) -> dict[int, SettledPointFields]:
     """Approach a stage point from the given side of each stage (+1 from below, -1 from above),
     settle both sensors, read, and store the point's samples and settled means (returned by device
     id). `n` readings (the request's samples_per_point by default); with `noise_deg` (each role's
@@ -290,7 +295,7 @@ async def measure_stage_point(
     )
     to_epoch = bench_epoch(bench)
     rows: list[Sample] = []
-    settled: dict[int, dict[str, Any]] = {}
+    settled: dict[int, SettledPointFields] = {}
     for role, readings in zip(SENSORS, got):
         dev = bench.device_ids[role]
         rows += [
@@ -327,7 +332,7 @@ async def measure_stage_point(
     return settled
 
 
-def stage_validation(method: Method, model: CalibrationModel, cols: Columns) -> dict[str, Any]:
+def stage_validation(method: Method, model: CalibrationModel, cols: Columns) -> RecordValidation:
     """A stage model against validation points: the corrected measurement sensor against the
     reference, read through what the record knows of the reference's own errors (the raw reference
     kept beside)."""
@@ -381,24 +386,29 @@ def _validation_point(
     reference_deg: tuple[NDArray[np.float64], NDArray[np.float64]],
     i: int,
     error_deg: float,
-) -> dict[str, Any]:
+) -> ValidationPoint:
     """One validation point: the reference sensor's reading (through the record's model of its own
     errors, the raw reading beside when that differs), the corrected measurement and its expanded
     uncertainty per axis (what a certificate's validation table shows), and the error's
     magnitude."""
-    point: dict[str, Any] = {
+    point: ValidationPoint = {
         "point": int(cols["point"][i]),
         "stage_x_deg": float(cols["stage_x_deg"][i]),
         "stage_y_deg": float(cols["stage_y_deg"][i]),
         "error_deg": error_deg,
+        "reference_x_deg": float(reference_deg[0][i]),
     }
-    for n, axis in enumerate(("x", "y")):
-        point[f"reference_{axis}_deg"] = float(reference_deg[n][i])
-        if reference_deg[n] is not cols[f"ref_{axis}_deg"]:
-            point[f"reference_raw_{axis}_deg"] = float(cols[f"ref_{axis}_deg"][i])
-        point[f"measured_{axis}_deg"] = float(out[f"tilt_{axis}_deg"][i])
-        if f"u_tilt_{axis}_deg" in out:
-            point[f"u_{axis}_deg"] = float(out[f"u_tilt_{axis}_deg"][i])
+    if reference_deg[0] is not cols["ref_x_deg"]:
+        point["reference_raw_x_deg"] = float(cols["ref_x_deg"][i])
+    point["measured_x_deg"] = float(out["tilt_x_deg"][i])
+    if "u_tilt_x_deg" in out:
+        point["u_x_deg"] = float(out["u_tilt_x_deg"][i])
+    point["reference_y_deg"] = float(reference_deg[1][i])
+    if reference_deg[1] is not cols["ref_y_deg"]:
+        point["reference_raw_y_deg"] = float(cols["ref_y_deg"][i])
+    point["measured_y_deg"] = float(out["tilt_y_deg"][i])
+    if "u_tilt_y_deg" in out:
+        point["u_y_deg"] = float(out["u_tilt_y_deg"][i])
     return point
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
 
 EFFECT_NAMES = (
     "zero_offset",
@@ -345,7 +344,7 @@ def _reject_unknown_effects(
         )
 
 
-def _resolved_params(name: str, eff: Effect, given: Mapping[str, Any]) -> dict[str, float]:
+def _resolved_params(name: str, eff: Effect, given: Mapping[str, float]) -> dict[str, float]:
     """Every parameter of one effect: the given values checked against its table, the rest at
     their defaults."""
     bad = [k for k in given if k not in {param.name for param in eff.params}]
@@ -365,7 +364,7 @@ class EffectSet:
 
     @classmethod
     def from_mapping(
-        cls, kind: str, effects: Mapping[str, Mapping[str, Any]] | None = None
+        cls, kind: str, effects: Mapping[str, Mapping[str, float]] | None = None
     ) -> EffectSet:
         table = EFFECTS_BY_KIND[kind]
         effects = dict(effects or {})

@@ -311,8 +311,9 @@ class ScenarioFile(BaseModel):
 Scenario = StageScenario | RotationScenario | ScaleScenario | TurntableScenario
 
 
-def effects_dict(scenario: Scenario) -> dict[str, dict[str, Any]]:
-    """The effects the scenario names, with every parameter filled in."""
+def effects_dict(scenario: Scenario) -> dict[str, dict[str, float]]:
+    """The effects the scenario names, with every parameter filled in (a switch's bool is a number
+    too)."""
     return {name: dict(val) for name, val in scenario.effects.model_dump(exclude_none=True).items()}
 
 
@@ -405,8 +406,9 @@ def preset_names() -> list[str]:
     return sorted(path.stem for path in PRESET_DIR.glob("*.json"))
 
 
-def scenario_data(name_or_path: str | Path) -> tuple[dict[str, Any], str]:
-    """The raw JSON object of a preset (by name) or a scenario file, and where it came from."""
+def scenario_data(name_or_path: str | Path) -> tuple[object, str]:
+    """The raw JSON of a preset (by name) or a scenario file (an object if it is a scenario: as
+    parse_scenario checks), and where it came from."""
     path = Path(name_or_path)
     if not path.suffix and (PRESET_DIR / f"{path.name}.json").exists() and not path.exists():
         path = PRESET_DIR / f"{path.name}.json"
@@ -435,12 +437,14 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     return parse_scenario(data, source=source)
 
 
-def json_schema() -> dict[str, Any]:
-    schema = ScenarioFile.model_json_schema()
+def json_schema() -> dict[str, object]:
+    """docs/scenario.schema.json: the JSON Schema of a scenario file."""
+    generated = ScenarioFile.model_json_schema()
+    schema: dict[str, object] = generated
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["$id"] = "https://tiltlab.example/schemas/scenario.schema.json"
     # the file is the scenario object itself, not the wrapper
-    root = schema["properties"]["root"]
+    root: dict[str, object] = generated["properties"]["root"]
     schema.pop("properties", None)
     schema.pop("required", None)
     schema.update({key: value for key, value in root.items() if key != "title"})
