@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import weakref
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any, NotRequired, TypedDict, cast
+from typing import TYPE_CHECKING, Any, NotRequired, TypedDict
 
 import numpy as np
 
@@ -276,13 +276,12 @@ def corrected_once(bench: BenchRuntime, active: Any, meas: Reading) -> Corrected
 
 def corrected_reading(
     bench: BenchRuntime, active: Any, meas: Reading
-) -> tuple[Reading, dict[str, Any]]:
+) -> tuple[Reading, CorrectedTilt]:
     """The reading `GET /tilt` serves and its corrected tilt: `meas`, the bench's latest, through
     `corrected_once`; on a bench sped up past one reading per MIN_CORRECTION_GAP_S of real time, the
     last reading corrected while `meas` came less than that after it (a simulation at 20 times real
     time sends a reading a millisecond, and each would cost a correction). A bench at its own pace
-    always gets its latest reading corrected. The tilt is a CorrectedTilt, handed on as the route
-    reads it."""
+    always gets its latest reading corrected."""
     last = _LAST_CORRECTED.get(bench)
     if (
         last is not None
@@ -293,8 +292,8 @@ def corrected_reading(
         <= bench.clock.real_seconds(meas.bench_s - last[0].bench_s)
         < MIN_CORRECTION_GAP_S * 0.999
     ):
-        return last[0], cast("dict[str, Any]", last[2])
-    return meas, cast("dict[str, Any]", corrected_once(bench, active, meas))
+        return last[0], last[2]
+    return meas, corrected_once(bench, active, meas)
 
 
 def reference_tilt(
@@ -320,7 +319,7 @@ def reference_tilt(
     return out
 
 
-def in_calibrated_range(active: Any, table: Mapping[str, Any] | None) -> bool | None:
+def in_calibrated_range(active: Any, table: CorrectedTilt | None) -> bool | None:
     """Whether a corrected table tilt lies within the table tilts the active record was fitted on
     (per axis, the reference sensor's frame); None when there is no corrected tilt or the record
     states no range."""
@@ -333,7 +332,7 @@ def in_calibrated_range(active: Any, table: Mapping[str, Any] | None) -> bool | 
     )
 
 
-def calibrated_range_note(active: Any, table: Mapping[str, Any]) -> str:
+def calibrated_range_note(active: Any, table: CorrectedTilt) -> str:
     """What `note` says of a corrected tilt outside the calibrated range: served, but
     extrapolated."""
     seen = active.table_tilt_range_deg
@@ -397,7 +396,7 @@ def _window_begins(
 
 def averaged_at_stand(
     bench: BenchRuntime, active: Any, meas: Reading, average_s: float
-) -> tuple[dict[str, Any] | None, str]:
+) -> tuple[CorrectedTilt | None, str]:
     """`GET /tilt?average_s`: the averaged table tilt over the readings up to `meas` (the latest)
     since the readings settled at the stage's present stand, and what `note` says of its window."""
     still = bench.pose.still_since_bench_s
@@ -428,5 +427,5 @@ def averaged_at_stand(
     if kept[0].bench_s > start:  # the oldest reading kept is younger than the window
         window_s = meas.bench_s - kept[0].bench_s
         reach += f"; only the last {window_s:.3g} s of readings are kept"
-    table = cast("dict[str, Any]", averaged_tilt(active, readings, window_s))
+    table = averaged_tilt(active, readings, window_s)
     return table, f"mean of {len(readings)} readings over {window_s:.3g} s{reach}"

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncGenerator, Callable, Mapping
-from typing import Any, TypedDict, cast
+from typing import Literal, TypedDict, cast
 
+from service.io.json_value import JSONObject, members
 from service.jobs.events import JobEvents
 from service.jobs.manager import WAITING_FOR_DATABASE
 from service.storage.models import CalibrationJob, SettledPoint
@@ -35,6 +36,34 @@ class PointMeans(TypedDict):
 # stage or a second axis), and under each role of the job's instruments (its keys vary by job)
 # their PointMeans.
 JobPoint = dict[str, int | float | PointMeans | None]
+
+
+class JobSnapshotMessage(TypedDict):
+    """A job stream's first message: the job as GET /calibrations/{id} answers it, its points so
+    far."""
+
+    type: Literal["snapshot"]
+    job: JSONObject
+    points: list[JobPoint]
+
+
+class JobPointMessage(TypedDict):
+    """A point of the job, once every instrument of the job has its mean there."""
+
+    type: Literal["point"]
+    point: JobPoint
+
+
+class JobChangeMessage(TypedDict):
+    """The job again, when its state, progress, error, record or validation changed; or its end
+    (the last message), the job as it ended."""
+
+    type: Literal["job", "end"]
+    job: JSONObject
+
+
+# One message of a job's stream, before the stream numbers it (`seq`).
+JobStreamMessage = JobSnapshotMessage | JobPointMessage | JobChangeMessage
 
 
 def point_index(point: JobPoint) -> int:
@@ -108,10 +137,11 @@ async def job_messages(
     points_repo: PointsRepo,
     events: JobEvents,
     job_id: int,
-    body: Callable[[CalibrationJob], dict[str, Any]],
-) -> AsyncGenerator[dict[str, Any], None]:
+    body: Callable[[CalibrationJob], JSONObject],
+) -> AsyncGenerator[JobStreamMessage, None]:
     """The messages of one job's stream without seq, ending with its `end` (UnknownEntity if no such
-    job)."""
+    job). `body` is the job as the API serialises it, read through, not looked into (but for its
+    progress's phase)."""
     event = events.subscribe(job_id)
     try:
         # database reads off the event loop
@@ -138,9 +168,9 @@ async def job_messages(
                 # The database away: the job's last state, its phase saying what it waits for (its
                 # next step waits too); the stream goes on and reads again on the next change or
                 # re-read.
-                waiting = {
+                waiting: JSONObject = {
                     **last,
-                    "progress": {**(last.get("progress") or {}), "phase": WAITING_FOR_DATABASE},
+                    "progress": {**members(last.get("progress")), "phase": WAITING_FOR_DATABASE},
                 }
                 if _changed(last, waiting):
                     yield {"type": "job", "job": waiting}

@@ -7,13 +7,15 @@ is added or reordered at run time.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Literal, NotRequired, TypedDict
 
-# A tilt of the bench's (a corrected table tilt, the tilt through the reference sensor) and the
-# active record's status: built by service.bench.corrected, whose types name their keys.
-BenchTilt = Mapping[str, object]
-CalibrationStatus = Mapping[str, object]
+# The corrected table tilt, the tilt through the reference sensor and the active record's status:
+# built by service.bench.corrected, whose types name their keys.
+from service.bench.corrected import CalibrationInUse, CorrectedTilt, ReferenceTableTilt, TableTilt
+
+# The tilt through the reference sensor: a live message's carries its record (and a note); a
+# history row keeps only its angles.
+ReferenceTilt = ReferenceTableTilt | TableTilt
 
 
 class SensorTilt(TypedDict):
@@ -44,8 +46,8 @@ class HistoryReading(TypedDict):
     time_utc: str
     type: Literal["reading"]
     raw: RawReadings
-    table_tilt: BenchTilt | None
-    reference_tilt: BenchTilt | None
+    table_tilt: CorrectedTilt | None
+    reference_tilt: ReferenceTilt | None
     in_calibrated_range: bool | None
     stage: StageTilt | None
     temp_c: float | None
@@ -55,7 +57,7 @@ class ReadingMessage(HistoryReading):
     """A reading message of the stream without its seq: what clients get and the fleet
     publishes."""
 
-    calibration: CalibrationStatus | None
+    calibration: CalibrationInUse | None
 
 
 class PublishedReading(ReadingMessage):
@@ -77,11 +79,11 @@ class SnapshotHead(TypedDict):
     node: NotRequired[str]
     rate_hz: float
     raw: RawReadings | None
-    table_tilt: BenchTilt | None
-    reference_tilt: NotRequired[BenchTilt | None]
+    table_tilt: CorrectedTilt | None
+    reference_tilt: NotRequired[ReferenceTilt | None]
     stage: StageTilt | None
     temp_c: float | None
-    calibration: CalibrationStatus | None
+    calibration: CalibrationInUse | None
     in_calibrated_range: NotRequired[bool | None]
 
 

@@ -26,6 +26,9 @@ from numpy.typing import NDArray
 
 from service.bench.corrected import (
     MIN_CORRECTION_GAP_S,
+    CalibrationInUse,
+    CorrectedTilt,
+    ReferenceTableTilt,
     calibration_json,
     corrected_once,
     from_expanded,
@@ -37,8 +40,6 @@ from service.bench.corrected import (
 from service.bench.runtime import SENSOR_ROLES, BenchRuntime
 from service.instruments.base import Reading
 from service.streams.messages import (
-    BenchTilt,
-    CalibrationStatus,
     DroppedMessage,
     HistoryReading,
     ReadingMessage,
@@ -89,7 +90,7 @@ def utc_text(t: dt.datetime) -> str:
     return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
 
 
-def calibration_of(active: Any) -> CalibrationStatus | None:
+def calibration_of(active: Any) -> CalibrationInUse | None:
     """The record a message's corrected tilt comes from, with its status (None: no active
     record)."""
     return calibration_json(active)
@@ -519,11 +520,11 @@ def _history_row(
     when: dt.datetime,
     meas: Reading | None,
     ref: Reading | None,
-    table: BenchTilt | None,
+    table: CorrectedTilt | None,
     stage: StageTilt | None,
     temp: float | None,
     in_range: bool | None,
-    through: BenchTilt | None,
+    through: ReferenceTableTilt | None,
 ) -> list[float]:
     """A reading message's row of the history ring, in the order of its columns (_COLS)."""
     nan = math.nan

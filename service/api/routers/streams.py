@@ -22,7 +22,7 @@ import json
 import logging
 import math
 import re
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator
 
 from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
@@ -40,10 +40,11 @@ from service.api.deps import (
 from service.api.offloop import in_thread
 from service.api.problems import ProblemError
 from service.api.routers.calibrations import job_body
+from service.io.json_value import JSONObject
 from service.jobs.requests import DB_ID_MAX
 from service.storage.errors import UnknownEntity
 from service.storage.models import CalibrationJob
-from service.streams.jobs import job_messages
+from service.streams.jobs import JobStreamMessage, job_messages
 from service.streams.readings import (
     CLOSE_SLOW,
     HISTORY_DEFAULT_S,
@@ -296,7 +297,7 @@ async def job_stream(
     if not re.fullmatch(r"[0-9]{1,10}", job_id) or not 1 <= int(job_id) <= DB_ID_MAX:
         return await _refuse(ws, f"id: {ascii(job_id[:20])} is not a job id")
 
-    def body(job: CalibrationJob) -> dict[str, object]:
+    def body(job: CalibrationJob) -> JSONObject:
         record = records.records_of_jobs([job.id]).get(job.id)
         # as the HTTP route serialises it, and as the daemon knows it (an end not stored yet
         # included)
@@ -328,7 +329,7 @@ async def job_stream(
 
 async def _send_job_messages(
     ws: WebSocket,
-    stream: AsyncIterator[Mapping[str, object]],
+    stream: AsyncIterator[JobStreamMessage],
     waiter: asyncio.Task[None],
     revoked: asyncio.Task[None],
     slow_close_s: float,

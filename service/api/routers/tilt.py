@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Mapping
 from typing import Annotated, Any, NamedTuple
 
 from fastapi import APIRouter, Query
@@ -14,6 +13,7 @@ from service.api.deps import BenchQuery, JobsDep
 from service.api.models.problem import READ, problem_responses
 from service.api.models.tilt import Tilt
 from service.bench.corrected import (
+    CorrectedTilt,
     averaged_at_stand,
     calibrated_range_note,
     calibration_json,
@@ -28,8 +28,6 @@ from service.instruments.base import Reading
 from service.jobs.manager import JobManager
 
 router = APIRouter(tags=["tilt"])
-# The corrected (or averaged) table tilt as the bench computes it, handed on to the answer unread
-TableTiltBody = Mapping[str, object]
 MAX_AVERAGE_S = 600.0  # the longest averaging window asked for (bench seconds)
 
 
@@ -83,7 +81,7 @@ def tilt_answer(bench: BenchRuntime, jobs: JobManager, average_s: float | None =
     active = jobs.active.get(bench.name)
     age_s = stale = None
     notes: list[str] = []
-    table: TableTiltBody | None = None
+    table: CorrectedTilt | None = None
     in_range = None
     if bench.kind != "stage":
         notes.append(
@@ -125,7 +123,7 @@ class _StageTilt(NamedTuple):
     """What a stage bench's latest reading gives `GET /tilt`."""
 
     meas: Reading  # the reading served (the correction may pick the one before the latest)
-    table: TableTiltBody | None  # the corrected (or averaged) table tilt
+    table: CorrectedTilt | None  # the corrected (or averaged) table tilt
     age_s: float
     stale: bool
     in_range: bool | None  # whether `table` lies in the calibrated range
@@ -142,7 +140,7 @@ def _stage_tilt(
 ) -> _StageTilt:
     """The latest reading's age and its table tilt through the active record, when there is one
     and the reading is fresh; what stands in the way is said in `notes`."""
-    table: TableTiltBody | None = None
+    table: CorrectedTilt | None = None
     in_range = None
     if active is not None and average_s is None:
         # computed before the age: it may pick the one before
@@ -172,10 +170,10 @@ def _corrected(
     bench: BenchRuntime,
     active: Any,
     meas: Reading,
-    table: TableTiltBody | None,
+    table: CorrectedTilt | None,
     average_s: float | None,
     notes: list[str],
-) -> tuple[TableTiltBody | None, bool | None]:
+) -> tuple[CorrectedTilt | None, bool | None]:
     """The table tilt through the active record (averaged when asked) and whether it lies in the
     calibrated range; the record it went through, and a tilt outside that range, said in
     `notes`."""
