@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import socket
 import tomllib
+from collections.abc import Mapping
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Literal
@@ -234,7 +235,7 @@ class Settings(BaseSettings):
         return tuple(sources)
 
 
-def _refuse_unknown_keys(config_file: str, data: dict[str, Any], known: set[str]) -> None:
+def _refuse_unknown_keys(config_file: str, data: Mapping[str, object], known: set[str]) -> None:
     """A key the settings do not have (a typo such as `sim_sped`) is refused, not silently
     ignored."""
     import difflib

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -194,7 +194,9 @@ class BenchConfig(_Strict):
     kind: Literal["stage", "rotary"]
     description: str = ""
     hardware: StageBenchSpec | None = None
-    roles: dict[str, dict[str, Any]]
+    # Each role's table as the file has it (any TOML values): validated as its role's model into
+    # `role_specs`, where the keys each role takes are named.
+    roles: dict[str, dict[str, object]]
     # Filled by validation: each role's table as its typed model.
     role_specs: dict[str, PortRole] = Field(default_factory=dict, exclude=True)
 
@@ -346,7 +348,7 @@ def _first(exc: ValidationError) -> str:
     return f"{loc}: {msg}" if loc else msg
 
 
-def parse_bench_config(data: Any, source: str = "bench configuration") -> BenchesFile:
+def parse_bench_config(data: object, source: str = "bench configuration") -> BenchesFile:
     if not isinstance(data, dict):
         raise InputError(f"{source}: a bench configuration is a TOML table")
     try:

@@ -8,7 +8,11 @@ order, the methods read them, and `read_dataset` checks their values.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # numpy is imported where the columns are computed, not with their names
+    import numpy as np
+    from numpy.typing import NDArray
 
 # stage: two stacked swing stages, a reference and a measurement sensor on the table
 POINT = "point"
@@ -70,16 +74,16 @@ def uncertainty_names(q: str) -> dict[str, str]:
 
 
 def uncertainty_columns(
-    result: Mapping[str, Any],
+    result: Mapping[str, NDArray[np.float64]],
     quantities: tuple[str, ...],
     coverage: float,
     deprecated: bool = False,
-) -> dict[str, Any]:
+) -> dict[str, NDArray[np.float64]]:
     """A method's corrected values as `correct` writes them: each value, then its uncertainty
     columns, named."""
     import numpy as np
 
-    out: dict[str, Any] = {}
+    out: dict[str, NDArray[np.float64]] = {}
     any_u = False
     for quantity in quantities:
         out[quantity] = result[quantity]

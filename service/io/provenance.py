@@ -8,7 +8,23 @@ import datetime as dt
 import hashlib
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TypedDict, cast
+
+
+class ProvenanceInput(TypedDict):
+    """One input file of an artefact: where it was read, and the SHA-256 of its bytes (hex)."""
+
+    path: str
+    sha256: str
+
+
+class Provenance(TypedDict):
+    """Where an artefact came from, as MODEL.json files and reports carry it (`provenance`)."""
+
+    tiltlab_version: str
+    utc: str  # ISO 8601 to the second, with a Z
+    command: str
+    inputs: dict[str, ProvenanceInput]  # by the input's role (option name)
 
 
 def sha256_of(path: str | Path) -> str:
@@ -19,11 +35,11 @@ def sha256_of(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-def provenance(command: str, inputs: Mapping[str, str | Path | None]) -> dict[str, Any]:
+def provenance(command: str, inputs: Mapping[str, str | Path | None]) -> Provenance:
     """The provenance record; `inputs` maps each input's role (option name) to its file."""
     from service import __version__
 
-    files = {
+    files: dict[str, ProvenanceInput] = {
         role: {"path": str(path), "sha256": sha256_of(path)}
         for role, path in inputs.items()
         if path is not None and Path(path).is_file()
@@ -36,12 +52,14 @@ def provenance(command: str, inputs: Mapping[str, str | Path | None]) -> dict[st
     }
 
 
-def provenance_lines(record: Mapping[str, Any]) -> list[str]:
-    """The record as short lines for a page or a report."""
+def provenance_lines(record: Mapping[str, object]) -> list[str]:
+    """The record as short lines for a page or a report: a `Provenance` as read back (a key
+    missing shows as ?)."""
     lines = [
         f"tiltlab {record.get('tiltlab_version', '?')}, {record.get('utc', '?')}",
         f"command: {record.get('command', '?')}",
     ]
-    for role, input_file in (record.get("inputs") or {}).items():
+    inputs = cast("Mapping[str, ProvenanceInput]", record.get("inputs") or {})
+    for role, input_file in inputs.items():
         lines.append(f"{role}: {input_file['path']} (SHA-256 {input_file['sha256']})")
     return lines

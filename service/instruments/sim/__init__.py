@@ -13,9 +13,9 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal, Required, TypedDict
 
 from service.clock import Clock
 from service.errors import InputError
@@ -122,7 +122,8 @@ class SimulatedBench:
         self.close()
 
 
-def _toml_loads(text: str) -> dict[str, Any]:
+def _toml_loads(text: str) -> dict[str, object]:
+    """A TOML document (its shape is for `parse_bench_config` to check)."""
     import tomllib
 
     return tomllib.loads(text)
@@ -199,7 +200,7 @@ def _config_text(
     scenario: str,
     clock: Clock,
     name: str,
-    hardware: dict[str, Any] | None,
+    hardware: Mapping[str, object] | None,
     roles: Roles,
 ) -> str:
     """The bench configuration (TOML) the daemon reads to find the simulated bench's ports."""
@@ -233,7 +234,19 @@ def _toml_value(v: object) -> str:
     return repr(v)
 
 
-Roles = dict[str, dict[str, Any]]
+class SimRoleTable(TypedDict, total=False):
+    """A simulated instrument's table in the bench configuration (`[benches.<name>.roles.<role>]`):
+    its port, line speed, bus address or axis, and output rate, as the role's model reads them."""
+
+    port: Required[str]
+    baud: Required[int]
+    address: int | str  # a binary inclinometer's number; an RS-485 address in hex ("01")
+    axis: int  # the controller's axis
+    output_rate_hz: int | str  # readings a second, or "continuous"
+
+
+# Each role's table, by role
+Roles = dict[str, SimRoleTable]
 
 
 def _stage(
