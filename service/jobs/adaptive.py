@@ -40,6 +40,7 @@ from service.calibration.methods.stage.common import MEAS_NAMES
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import get_method
 from service.errors import InputError
+from service.jobs.job_parameters import parameters_of
 from service.jobs.procedure import (
     AdaptiveJobConditions,
     JobContext,
@@ -236,7 +237,7 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     began = bench.clock.monotonic()
     target = req.target_expanded_uncertainty_deg
     assert target is not None  # the request's rule
-    fixed_u = float(job.parameters.get("adaptive", {}).get("fixed_u_deg", 0.0))
+    fixed_u = float(parameters_of(job).get("adaptive", {}).get("fixed_u_deg", 0.0))
     devices = _sensor_devices(bench)
     await _refuse_resuming(ctx)
     spread = [proc.stored_point(point) for point in job.parameters["fit_points"]]

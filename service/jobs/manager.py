@@ -582,7 +582,7 @@ class JobManager:
                 await self._db(job_id, self._start_job, job_id)
                 self.events.changed(job_id)
             procedure = registry.procedure_of(parameters_of(job))
-            request = CalibrationRequest.model_validate(job.parameters["request"])
+            request = CalibrationRequest.model_validate(parameters_of(job)["request"])
 
             bench_time = BenchTime.from_json(job.bench_seconds)  # a resumed job goes on counting
 
@@ -655,7 +655,7 @@ class JobManager:
             if self.store.jobs.get_job(job.id).state != JobState.SUCCEEDED:
                 self.store.jobs.succeed_job(job.id, actor=DAEMON)
             return
-        ids = job.parameters["request"].get("reference_standards") or []
+        ids = parameters_of(job)["request"].get("reference_standards") or []
         standards = self.admission.standards(ids)
         method = get_method(outcome.kind, job.method)
         fit_cols = self._budget_columns(job, outcome)
@@ -675,8 +675,8 @@ class JobManager:
         if outcome.bench_seconds is not None:
             raw["bench_seconds"] = outcome.bench_seconds
             self.store.jobs.set_bench_seconds(job.id, outcome.bench_seconds)
-        if job.parameters.get("operator_person"):
-            raw["operator_person"] = job.parameters["operator_person"]
+        if operator := parameters_of(job).get("operator_person"):
+            raw["operator_person"] = operator
         self.store.records.add_record(
             outcome.device_id,
             outcome.kind,

@@ -35,7 +35,7 @@ from service.errors import InputError
 from service.instruments.base import AmbientSensor, Reading
 from service.jobs.bench_time import BenchTime
 from service.jobs.budgets import resolutions_deg
-from service.jobs.job_parameters import JobParameters
+from service.jobs.job_parameters import JobParameters, parameters_of
 from service.jobs.requests import CalibrationRequest
 from service.storage.models import CalibrationJob, SettledPoint
 from service.storage.store import PointsRepo, Store
@@ -439,7 +439,7 @@ class PointProcedure(ABC, Generic[P]):
         missing = [role for role, device_id in devices.items() if device_id is None]
         if missing:
             raise InputError(f"bench {bench.name!r} has no registered {', '.join(missing)}")
-        started_with = job.parameters.get("device_ids", {})
+        started_with = parameters_of(job).get("device_ids", {})
         if started_with and started_with != devices:
             raise InputError(
                 f"the bench's instruments are not those the job started with ({started_with});"
