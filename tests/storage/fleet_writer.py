@@ -17,15 +17,8 @@ import time
 from service.storage import make_engine
 from service.storage.errors import ConflictError
 from service.storage.store import Store
+from tests.helpers.storage import MODEL
 from tests.helpers.waiting import eventually
-
-MODEL = {
-    "kind": "scale",
-    "method": "linear",
-    "parameters": {"gain_x": 1.0012, "gain_y": 0.9987},
-    "covariance": [[1e-8, 0.0], [0.0, 1.1e-8]],
-    "residuals": {"rms_deg": 0.0021},
-}
 
 
 def main() -> None:
