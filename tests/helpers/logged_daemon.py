@@ -11,11 +11,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import httpx
-
-from tests.helpers.processes import spawn
-from tests.helpers.running_service import free_port
-from tests.helpers.waiting import eventually
+from tests.helpers.running_service import serving
 
 
 @dataclass
@@ -58,30 +54,6 @@ def logged_daemon(tmp: Path, **settings: str) -> Iterator[Daemon]:
     env.pop("TILTLAB_CONFIG", None)
     made = tiltlab_cli(env, "token", "create", "--name", "lims", "--scopes", "admin")
     assert made.returncode == 0, made.stderr
-    port = free_port()
     log = tmp / "daemon.log"
-    with log.open("wb") as out:
-        proc = spawn(
-            [sys.executable, "-m", "service", "serve", "--port", str(port)],
-            env=env,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-        )
-    base = f"http://127.0.0.1:{port}"
-
-    def serving() -> bool:
-        assert proc.poll() is None, log.read_text()
-        return httpx.get(f"{base}/health", timeout=2).status_code == 200
-
-    try:
-        eventually(
-            serving,
-            timeout_s=90,
-            every_s=0.2,
-            ignoring=(httpx.TransportError,),
-            what=lambda: f"the daemon answering /health; its log: {log.read_text()}",
-        )
+    with serving((), env, log, timeout_s=90, healthy=True) as (proc, port, base):
         yield Daemon(proc, base, port, made.stdout.strip(), log, env)
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
