@@ -1412,6 +1412,14 @@ def test_record_budget_says_which_u_holds_for_a_mean_and_which_for_one_reading(p
     rec_id = bench.get("/tilt")["calibration"]["record_id"]
     record = bench.get(f"/records/{rec_id}")
     n = record["conditions"]["samples_per_point"]
+    # the page asks /tilt once when the record opens: the table stands still (an earlier test's
+    # move may still be settling on a loaded machine), so there is a corrected tilt to say
+    eventually(
+        lambda: bench.get("/tilt")["table_tilt"] is not None,
+        timeout_s=60,
+        every_s=0.2,
+        what="a corrected table tilt at rest",
+    )
     _open_record(page, rec_id)
     holds = page.locator("#budget-holds")
     expect(holds).to_have_attribute("data-holds", "means", timeout=T)
