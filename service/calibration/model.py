@@ -151,6 +151,14 @@ class CouplingState(StageState, total=False):
     meas_misfit_rms_deg: list[float]
 
 
+class AxisTransformState(StageState, total=False):
+    """The axis-transform method's state: the corrected tilt's bias its model cannot absorb (no
+    zero offsets) and the random part of one reading about it, per axis (degrees)."""
+
+    meas_uncorrected_bias_deg: list[float]
+    meas_axis_reading_standard_uncertainty_deg: list[float]
+
+
 class AdoptedEffectsState(TypedDict, total=False):
     """A model a diagnosis's effects were adopted into: the effects and the diagnosis they came
     from (service.discrepancy.adopt)."""
@@ -166,6 +174,7 @@ class ModelState(
     KinematicState,
     HomographyState,
     CouplingState,
+    AxisTransformState,
     AdoptedEffectsState,
     total=False,
 ):

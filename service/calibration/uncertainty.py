@@ -208,3 +208,48 @@ def mean_type_a(values: ArrayLike) -> MeanTypeA:
     n_eff = max(1.0, min(float(n), n * (1.0 - rho) / (1.0 + rho)))
     sd = float(np.std(readings, ddof=1))
     return MeanTypeA(mean, sd / float(np.sqrt(n_eff)), max(n_eff - 1.0, 1.0), n, n_eff, rho)
+
+
+def bias_interval(
+    bias: ArrayLike, u: ArrayLike, coverage: float = COVERAGE
+) -> NDArray[np.float64]:
+    """Half-width U of the interval ±U about zero that holds `coverage` of an error N(bias, u²):
+    Φ((U − b)/u) − Φ((−U − b)/u) = p, the quantile of a folded normal.
+
+    For a result that keeps a known, uncorrected bias b beside a random part u (Phillips, Eberhardt
+    and Parry, J. Res. NIST 102 (1997) 577: "uncertainty of measurement results containing
+    uncorrected bias"). U is 1.96 u at b = 0 and tends to |b| + 1.645 u for |b| ≫ u; k·u with
+    u = √(b² + u²) would cover an error near b every time, which is not a 95 % interval."""
+    b = np.abs(np.asarray(bias, dtype=float))
+    s = np.asarray(u, dtype=float)
+    b, s = np.broadcast_arrays(b, s)
+    lo = np.zeros(b.shape)
+    hi = b + 10.0 * s + 1e-300
+    for _ in range(80):  # bisection: the coverage is monotonic in U
+        mid = 0.5 * (lo + hi)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            held = special.ndtr((mid - b) / s) - special.ndtr((-mid - b) / s)
+        held = np.where(s > 0, held, (mid >= b).astype(float))
+        below = held < coverage
+        lo = np.where(below, mid, lo)
+        hi = np.where(below, hi, mid)
+    return np.asarray(0.5 * (lo + hi), dtype=float)
+
+
+def expanded_with_bias(
+    bias: ArrayLike, u: ArrayLike, k_random: ArrayLike, coverage: float = COVERAGE
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(U, k) for a result with a known, uncorrected bias b beside a random part u whose own
+    coverage factor is `k_random` (Student's t at its degrees of freedom): bias_interval with u
+    widened by k_random/z, so that b = 0 gives k_random·u as before; k = U / √(b² + u²), the factor
+    on the root-sum-square, which is what is reported as the standard uncertainty."""
+    b = np.asarray(bias, dtype=float)
+    random_part = np.asarray(u, dtype=float)
+    k_random = np.asarray(k_random, dtype=float)
+    expanded = bias_interval(
+        b, random_part * k_random / special.ndtri(0.5 + coverage / 2.0), coverage
+    )
+    rss = np.hypot(b, random_part)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = np.where(rss > 0, expanded / np.where(rss > 0, rss, 1.0), k_random)
+    return expanded, np.asarray(k, dtype=float)

@@ -31,6 +31,14 @@ CASES = {
     "stage kinematic, 3 readings per stand": lambda: stage_coverage(
         "kinematic", "3 readings per stand", 8, seed0=1000
     ),
+    # a model without zero offsets: its error is mostly a bias it states (U the folded normal's
+    # 95 % point, not k × the rms); pooled coverage 0.941-0.959 over five sets of ten
+    "stage axis-transform": lambda: stage_coverage(
+        "axis-transform", "ref noise stated", 10, seed0=1000
+    ),
+    "stage axis-transform, 3 readings per stand": lambda: stage_coverage(
+        "axis-transform", "3 readings per stand", 10, seed0=1000
+    ),
     "rotation iodsra": lambda: rotation_coverage("iodsra", "seed002-b55", 64, seed0=1000),
     "rotation iodsra-combined": lambda: rotation_coverage(
         "iodsra-combined", "seed002-b55", 64, seed0=1000
@@ -46,6 +54,11 @@ def test_offline_method_covers_about_95_percent(case):
     hits, n = sum(r.hits for r in rows), sum(r.n for r in rows)
     assert n >= 1200, n
     assert 0.92 <= hits / n <= 0.98, (case, hits / n, n)
-    # and the errors are the size U says, not merely inside it: rms(error / U) near 1/1.96
+    # and the errors are the size U says, not merely inside it: rms(error / U) near 1/1.96 (for
+    # an error about zero; axis-transform's sits near its bias, just inside U: about 0.95)
+    if "axis-transform" in case:
+        for r in rows:
+            assert 0.85 <= r.rms_error_over_u <= 1.0, (case, r)
+        return
     for r in rows if rows[0].kind != "rotation" else []:
         assert 0.40 <= r.rms_error_over_u <= 0.60, (case, r)

@@ -159,8 +159,11 @@ def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_re
         assert "stated noise" in stated["meas_reading_noise_source"]
         plain = m.fit(single, FitOptions()).state
         if method == "axis-transform":  # no stage prediction to compare with: nothing to separate
-            assert plain["meas_reading_standard_uncertainty_deg"] == plain["meas_sigma_deg"]
+            # the whole scatter about the bias its model leaves (no zero offsets), far below the
+            # residual's rms, which that bias dominates
             assert "conservative" in plain["meas_reading_noise_source"]
+            assert plain["meas_reading_standard_uncertainty_deg"] < 0.1 * plain["meas_sigma_deg"]
+            assert np.all(np.abs(plain["meas_uncorrected_bias_deg"]) > 0.03)
         else:  # the stage model's prediction is the third instrument
             assert "three-way" in plain["meas_reading_noise_source"]
             three_way.append(plain["meas_reading_standard_uncertainty_deg"])
@@ -170,8 +173,8 @@ def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_re
         # the measurement sensor's sigma 0.001 deg
         assert np.all(np.abs(s[:, 0] / 0.001 - 1) < 0.15), s
         assert np.all(s[:, 2] > 1.3 * s[:, 0])  # the residual holds both (√2 for two equal sensors)
-    # a misfit of the model (H2's projective map; the axis transform has no zero offsets) stays in
-    # the reading term
+    # a misfit of the model (H2's projective map; what varies along the range of the axis
+    # transform's, whose bias is kept apart) stays in the reading term
     else:
         assert np.all((s[:, 0] > 0.00085) & (s[:, 0] < s[:, 2])), s
     assert np.all(np.abs(s[:, 1] / 0.001 - 1) < 0.15), s  # the reference's, from the repeats

@@ -8,13 +8,14 @@ import dataclasses
 import datetime as dt
 import math
 import re
+from typing import cast
 import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
 
 from service.calibration.budget import combine, record_budget
-from service.calibration.model import CalibrationModel
+from service.calibration.model import CalibrationModel, ModelState
 from service.calibration.registry import get_method
 from service.calibration.uncertainty import coverage_factor, welch_satterthwaite
 from service.lims import dcc
@@ -346,15 +347,24 @@ def test_8_components_resting_on_one_fit_s_sigma_keep_that_fit_s_degrees_of_free
         (3.5e-6 + 1e-6) ** 2 / (3.5e-6**2 / 154 + 1e-6**2 / 20), rel=1e-12
     )
     run = run_scenario(load_scenario("seed000"), seed=3)
-    # the axis transform's reading term is its fit's whole residual (it has no stage prediction to
-    # take the reference's noise out with): the parameters' part and the noise part rest on the
-    # measurement fit's one σ, so k is Student's t at that fit's ν
+    # the axis transform's reading term is its fit's whole scatter about its uncorrected bias (it
+    # has no stage prediction to take the reference's noise out with): the parameters' part and the
+    # noise part rest on that one σ (162 rows, two angles and two means: ν = 158), so the random
+    # part's k is Student's t at that ν; the bias then widens U (k on √(b² + u²), below)
     model = CalibrationModel.from_json_dict(_stage_fit("axis-transform", 3)[0])
-    out = get_method("stage", "axis-transform").correct(model, run.columns)
     nu = float(model.state["meas_dof"])
-    assert nu == 160.0 and model.state["meas_reading_dof"] == nu
+    assert nu == 158.0 and model.state["meas_reading_dof"] == nu
+    random_only = CalibrationModel.from_json_dict(_stage_fit("axis-transform", 3)[0])
+    random_only.state = cast(
+        ModelState,
+        {k: v for k, v in model.state.items() if k != "meas_uncorrected_bias_deg"},
+    )
+    out = get_method("stage", "axis-transform").correct(random_only, run.columns)
     assert np.allclose(out["k_tilt_x"], float(coverage_factor(nu)), rtol=1e-9, atol=0)
     assert np.allclose(out["k_tilt_y"], float(coverage_factor(nu)), rtol=1e-9, atol=0)
+    biased = get_method("stage", "axis-transform").correct(model, run.columns)
+    for axis, bias in zip("xy", model.state["meas_uncorrected_bias_deg"], strict=True):
+        assert np.all(biased[f"u_tilt_{axis}_deg"] > abs(bias))
     # the kinematic measurement fit gives each axis its own variance (81 points, 8 parameters: 77
     # degrees of freedom each) for its parameters' part; one reading's noise is its own estimate
     # (the three-way comparison, with its own ν): two estimates, combined by Welch-Satterthwaite

@@ -40,6 +40,7 @@ from service.calibration.registry import Columns, FitOptions
 from service.calibration.uncertainty import (
     Propagated,
     coverage_factor,
+    expanded_with_bias,
     propagate_gum,
     welch_satterthwaite,
 )
@@ -431,6 +432,22 @@ class _RotationMethod:
             dof,
         )
 
+    def _parameter_part(self, model: CalibrationModel, data: Columns) -> NDArray[np.float64]:
+        """The standard uncertainty θ has from the plane's parameters alone, per angle."""
+        p0 = model.values(PARAM_NAMES)
+        alpha, beta, gamma = np.radians(p0)
+        pts, _ = self.points(data)
+        use9 = equation9_region(pts, alpha, beta, gamma)
+        theta0 = np.degrees(self.theta(pts, alpha, beta, gamma, use9))
+        inputs = {column: np.asarray(data[column], dtype=float) for column in self.fit_required}
+
+        def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
+            pp, _ = self.points(x)
+            pa, pb, pg = np.radians(p)
+            return theta0 + wrap_deg(np.degrees(self.theta(pp, pa, pb, pg, use9)) - theta0)
+
+        return propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs).u
+
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         theta0, propagated = self._fit_uncertainty(model, data)
         out = {"theta_deg": theta0}
@@ -438,13 +455,51 @@ class _RotationMethod:
             const = model.state.get(CONSTANT_ERRORS_KEY)
             # the outputs' constant errors, seen in the fit's θ residuals against the dividing head
             if const:
-                u2 = self.constant_errors_u2(model, data, theta0)
-                dof = float(model.fit.get("dof") or np.inf)
-                nu = welch_satterthwaite([(propagated.u**2, dof), (u2, dof)])
-                propagated = Propagated(np.sqrt(propagated.u**2 + u2), nu)
+                out["u_theta_deg"], out["k_theta"] = self._with_constant_errors(
+                    model, data, theta0, propagated
+                )
+                return out
             out["u_theta_deg"] = propagated.expanded()
             out["k_theta"] = coverage_factor(propagated.dof_eff)
         return out
+
+    def _with_constant_errors(
+        self,
+        model: CalibrationModel,
+        data: Columns,
+        theta0: NDArray[np.float64],
+        propagated: Propagated,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(U, k) of θ with the bias the arcs' lines show against the dividing head.
+
+        A line's value b̂ at an angle holds this model's whole θ error there (the outputs' constant
+        errors and the plane's own error, since the plane was fitted without theta_ref_deg) and its
+        estimation error (variance v). Where the line says little beyond its own noise
+        (|b̂| ≤ 2√v), b̂² − v (which estimates b²) counts as a variance beside the propagated u.
+        Where it shows a bias (|b̂| > 2√v: the `direct` method's, whose plane error its
+        linearised u understates), that bias is known but not corrected: U is the 95 % interval
+        about zero of an error near it (`expanded_with_bias`), with the reading's own noise and
+        v as the random part; k·√(b² + u²) would hold an error sitting at the bias every time."""
+        bias, bias_var = self.constant_errors_bias(model, data, theta0)
+        dof = float(model.fit.get("dof") or np.inf)
+        # the bias's square as a variance: b̂² − v estimates b² (the estimation error is not in the
+        # error of a θ the line does not correct)
+        size2 = np.maximum(bias**2 - bias_var, 0.0)
+        nu = welch_satterthwaite([(propagated.u**2, dof), (size2, dof)])
+        k_quadrature = coverage_factor(nu)
+        u_quadrature = np.sqrt(propagated.u**2 + size2)
+        # a known bias: the parameters' part is in the line already
+        noise2 = np.maximum(propagated.u**2 - self._parameter_part(model, data) ** 2, 0.0)
+        nu_random = welch_satterthwaite([(noise2, dof), (bias_var, dof)])
+        known = np.sign(bias) * np.sqrt(np.maximum(bias**2 - bias_var, 0.0))
+        u_biased, k_biased = expanded_with_bias(
+            known, np.sqrt(noise2 + bias_var), coverage_factor(nu_random)
+        )
+        shows_bias = np.abs(bias) > 2.0 * np.sqrt(bias_var)
+        return (
+            np.where(shows_bias, u_biased, k_quadrature * u_quadrature),
+            np.where(shows_bias, k_biased, k_quadrature),
+        )
 
     def regimes(
         self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]
@@ -481,8 +536,13 @@ class _RotationMethod:
         if res_theta_deg.size < 8:
             return None
         _, propagated = self._fit_uncertainty(model, data)
-        # the residuals' scatter as the fit propagates it
-        noise2 = np.zeros(res_theta_deg.size) if propagated is None else propagated.u**2
+        # the residuals' scatter about an arc's line as the fit propagates it: the readings' own
+        # noise, not the parameters' part (smooth along the arc, it is in the line)
+        noise2 = (
+            np.zeros(res_theta_deg.size)
+            if propagated is None
+            else np.maximum(propagated.u**2 - self._parameter_part(model, data) ** 2, 0.0)
+        )
         order = np.argsort(wrap_deg(theta_ref_deg))
         regime = np.array(self.regimes(model, data, theta_ref_deg))[order]
         t_all, r_all, n_all = wrap_deg(theta_ref_deg)[order], res_theta_deg[order], noise2[order]
@@ -491,43 +551,34 @@ class _RotationMethod:
             for idx in _branch_arcs(regime, t_all)
         ]
 
-    def constant_errors_u2(
+    def constant_errors_bias(
         self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]
-    ) -> NDArray[np.float64]:
-        """Per corrected angle, the variance its bias from the outputs' constant errors adds (0
-        where not seen)."""
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Per corrected angle, the θ bias of the outputs' constant errors (measured minus model,
+        as the arcs hold it) and its estimate's variance, from the arc of the angle's branch that
+        holds it (or is nearest, extrapolated no further than its half-width). A branch the
+        calibration never used: no bias known, the largest square any arc showed as a variance."""
         arcs = model.state.get(CONSTANT_ERRORS_KEY) or []
-        u2 = np.full(theta_deg.shape, np.nan)
+        bias = np.full(theta_deg.shape, np.nan)
+        var = np.full(theta_deg.shape, np.nan)
         regime = np.array(self.regimes(model, data, theta_deg))
         best = np.full(theta_deg.shape, np.inf)
         worst = 0.0
         for arc in arcs:
             coef = np.asarray(arc["coefficients_deg"], dtype=float)
-            design = _local(theta_deg, float(arc["centre_deg"]), linear=coef.size == 2)
-            bias = design @ coef
-            # bias² estimates the bias's square plus its estimation variance: both belong to the
-            # angle's uncertainty
-            var = bias**2
-            # the arc of the point's branch that holds it (or is nearest), extrapolated no further
-            # than its half-width
-            dist = np.abs(wrap_deg(theta_deg - float(arc["centre_deg"])))
-            design_edge = _local(
-                np.clip(
-                    wrap_deg(theta_deg - float(arc["centre_deg"])),
-                    -arc["half_width_deg"],
-                    arc["half_width_deg"],
-                )
-                + float(arc["centre_deg"]),
-                float(arc["centre_deg"]),
-                linear=coef.size == 2,
-            )
-            bias_edge = design_edge @ coef
-            var = np.where(dist > arc["half_width_deg"], bias_edge**2, var)
+            coef_cov = np.asarray(arc["coefficient_covariance_deg2"], dtype=float)
+            centre, half = float(arc["centre_deg"]), float(arc["half_width_deg"])
+            offset = wrap_deg(theta_deg - centre)
+            design = _local(np.clip(offset, -half, half) + centre, centre, linear=coef.size == 2)
+            arc_bias = design @ coef
+            arc_var = np.einsum("ij,jk,ik->i", design, coef_cov, design)
+            dist = np.abs(offset)
             take = (regime == arc["branch"]) & (dist < best)
-            u2[take], best[take] = var[take], dist[take]
-            worst = max(worst, float(np.max(var, initial=0.0)))
-        u2[np.isnan(u2)] = worst  # a branch the calibration never used: the largest any arc showed
-        return u2
+            bias[take], var[take], best[take] = arc_bias[take], arc_var[take], dist[take]
+            worst = max(worst, float(np.max(arc_bias**2 + arc_var, initial=0.0)))
+        unseen = np.isnan(bias)
+        bias[unseen], var[unseen] = 0.0, worst
+        return bias, var
 
 
 def _branch_arcs(regime: NDArray[np.str_], t_sorted: NDArray[np.float64]) -> list[list[int]]:
@@ -555,7 +606,7 @@ def _arc_line(
     # know)
     s2 = float(np.mean(noise2))
     if dof >= 3:
-        s2 = max(s2, float(np.sum((residual - design @ coef) ** 2) / dof))
+        s2 = float(np.sum((residual - design @ coef) ** 2) / dof)
     half = float(np.max(np.abs(wrap_deg(t - centre))))
     return {
         "branch": branch,

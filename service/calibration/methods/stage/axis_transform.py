@@ -45,6 +45,8 @@ from service.calibration.model import (
     residual_summary,
 )
 from service.calibration.registry import FitOptions
+from service.calibration.uncertainty import expanded_with_bias
+from service.io.columns import K_OUTPUTS
 from service.errors import DegenerateDataError
 
 
@@ -97,6 +99,40 @@ def _fit_axis_pair(
     cov = numeric_cov(resid, sol.x, np.array([0.1, 0.1]), cast(float, st["sigma_deg"]) ** 2)
     n = u.size
     return sol.x, cov, {"x": residuals[:n], "y": residuals[n:]}, st
+
+
+def _uncorrected_bias(
+    angles: NDArray[np.float64],
+    ref_x: NDArray[np.float64],
+    ref_y: NDArray[np.float64],
+    meas_x: NDArray[np.float64],
+    meas_y: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], FitStats, list[float]]:
+    """The corrected calibration readings' mean offset from the reference per axis (what a model
+    without zero offsets leaves), the axis angles' covariance from the scatter about that offset
+    the scatter's statistics (two angles and two means fitted) and each axis's scatter variance.
+
+    The offset is the same at every point of the range, so it is no noise: counted as one, it
+    would inflate every uncertainty until the interval held every point."""
+    tilt_x, tilt_y = _axis_inverse(angles, meas_x, meas_y)
+    diff = np.concatenate([tilt_x - ref_x, tilt_y - ref_y])
+    n = ref_x.size
+    bias = np.array([diff[:n].mean(), diff[n:].mean()])
+    centred = diff - np.repeat(bias, n)
+    scatter = fit_stats(centred, 4)
+    # per axis: n - 2 degrees of freedom (its mean and its angle)
+    axis_s2 = [float(part @ part / max(n - 2, 1)) for part in (centred[:n], centred[n:])]
+    if scatter["sigma_deg"] is None:
+        raise DegenerateDataError(
+            "measurement -> reference axis angles: the points leave no degrees of freedom"
+        )
+
+    def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        fa, fb = _axis_forward(p, ref_x, ref_y)
+        return np.concatenate([fa, fb]) - np.concatenate([meas_x, meas_y])
+
+    cov = numeric_cov(resid, angles, np.array([0.1, 0.1]), scatter["sigma_deg"] ** 2)
+    return bias, cov, scatter, axis_s2
 
 
 class AxisTransformMethod(StageMethod):
@@ -155,8 +191,11 @@ class AxisTransformMethod(StageMethod):
         if has_meas(data):
             sign, how = meas_sign(data, options)
             mx, my = columns(data, MEAS_COLUMNS)
-            meas_angles, cq, rq, sq = _fit_axis_pair(
+            meas_angles, _, rq, sq = _fit_axis_pair(
                 rx, ry, sign[0] * mx, sign[1] * my, "measurement -> reference axis angles"
+            )
+            bias, cq, scatter, axis_scatter = _uncorrected_bias(
+                meas_angles, rx, ry, sign[0] * mx, sign[1] * my
             )
             mnames = ["meas_to_ref.x_axis_angle_deg", "meas_to_ref.y_axis_angle_deg"]
             params[mnames[0]] = Parameter(
@@ -174,11 +213,24 @@ class AxisTransformMethod(StageMethod):
             res.update({"meas_x_deg": rq["x"], "meas_y_deg": rq["y"]})
             state["meas_sign"] = sign.tolist()
             state["meas_sigma_deg"] = sq["sigma_deg"]
-            state["meas_dof"] = sq["dof"]
-            # _fit_axis_pair has a sigma whenever it returns (it needs one for the covariance)
-            assert sq["sigma_deg"] is not None
-            noise = meas_reading_noise(data, options, sq["sigma_deg"], sq["dof"], sign)
+            state["meas_dof"] = scatter["dof"]
+            state["meas_uncorrected_bias_deg"] = bias.tolist()
+            # _uncorrected_bias has a sigma whenever it returns (it needs one for the covariance)
+            assert scatter["sigma_deg"] is not None
+            noise = meas_reading_noise(data, options, scatter["sigma_deg"], scatter["dof"], sign)
             state.update(noise_state(noise))
+            # each axis's own scatter about its bias: the misfit left along the range differs by
+            # axis (the model's shape error is in x), and a pooled figure would blur the two
+            ref_var = (noise.ref_sigma_deg or 0.0) ** 2 if noise.ref_sigma_deg is not None else 0.0
+            state["meas_axis_reading_standard_uncertainty_deg"] = [
+                float(np.sqrt(max(axis_s2 - ref_var, 0.0))) for axis_s2 in axis_scatter
+            ]
+            notes.append(
+                "uncorrected bias of the corrected tilt (the mean of corrected - reference over the "
+                f"points, which axis angles alone cannot absorb: no zero offsets) x {bias[0]:+.4f} "
+                f"deg, y {bias[1]:+.4f} deg; U is the 95 % interval about zero of an error with "
+                "that bias and the random part (not k x the rms, which would cover every point)"
+            )
             notes.append(
                 f"reading noise of one measurement reading {noise.sigma_deg:.3g} deg: "
                 f"{noise.source}"
@@ -224,9 +276,22 @@ class AxisTransformMethod(StageMethod):
             return np.column_stack([tilt_x, tilt_y])
 
         sigma, noise_dof = reading_noise_of(model)
-        return uncertain_correct(
-            f, model.values(names), model.cov_of(names), data, sigma, meas_dof(model), noise_dof
-        )
+        p, cov = model.values(names), model.cov_of(names)
+        out = uncertain_correct(f, p, cov, data, sigma, meas_dof(model), noise_dof)
+        bias = model.state.get("meas_uncorrected_bias_deg")
+        per_axis = model.state.get("meas_axis_reading_standard_uncertainty_deg")
+        if bias is not None and "u_tilt_x_deg" in out:
+            for i, (axis, b, k_key) in enumerate(zip("xy", bias, K_OUTPUTS, strict=True)):
+                own = (
+                    out
+                    if per_axis is None
+                    else uncertain_correct(
+                        f, p, cov, data, per_axis[i], meas_dof(model), noise_dof
+                    )
+                )
+                expanded, k = own[f"u_tilt_{axis}_deg"], own[k_key]
+                out[f"u_tilt_{axis}_deg"], out[k_key] = expanded_with_bias(b, expanded / k, k)
+        return out
 
 
 AXIS_TRANSFORM = AxisTransformMethod()
