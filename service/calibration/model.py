@@ -146,9 +146,11 @@ class HomographyState(StageState, total=False):
 
 
 class CouplingState(StageState, total=False):
-    """The coupling method's state: the measurement sensor's misfit RMS per axis (degrees)."""
+    """The coupling method's state: the measurement sensor's misfit RMS and the 95th percentile
+    of its size, per axis (degrees)."""
 
     meas_misfit_rms_deg: list[float]
+    meas_misfit_p95_deg: list[float]
 
 
 class AxisTransformState(StageState, total=False):

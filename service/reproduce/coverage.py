@@ -189,6 +189,12 @@ def offline_cases(realisations: int) -> Iterator[tuple[str, Callable[[], list[Ro
                 f"stage {method} ({variant})",
                 partial(stage_coverage, method, variant, realisations),
             )
+    # the coupling method corrects nothing of the measurement sensor: its U is the size of the
+    # installation error it leaves, the same whatever is known of the reference's noise
+    yield (
+        "stage coupling (ref noise stated)",
+        partial(stage_coverage, "coupling", "ref noise stated", realisations),
+    )
     for preset in ("seed002-b55", "seed002-b75", "seed002-sim"):
         for method in ("iodsra", "iodsra-combined"):
             yield (

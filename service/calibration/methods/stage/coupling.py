@@ -36,6 +36,14 @@ from service.io.columns import K_OUTPUTS
 from service.physics.stage import offaxis_error_deg, offaxis_inverse_deg
 
 
+def _prediction_bound(sizes: NDArray[np.float64], coverage: float = 0.95) -> float:
+    """The ⌈p (n + 1)⌉-th smallest of n sizes: a new point's size from the same range lies below
+    it with probability at least p, whatever their distribution (the largest where n is small)."""
+    ordered = np.sort(sizes)
+    rank = min(int(np.ceil(coverage * (ordered.size + 1))), ordered.size)
+    return float(ordered[rank - 1])
+
+
 class CouplingMethod(StageMethod):
     """Ref. [9] as seed 000 describes it: the off-axis coupling model alone, no linear installation
     errors.
@@ -95,11 +103,18 @@ class CouplingMethod(StageMethod):
                 float(np.sqrt(np.mean(res[column] ** 2))) for column in ("meas_x_deg", "meas_y_deg")
             ]
             state["meas_dof"] = int(mx.size)  # an RMS over the points, nothing fitted
+            # the installation error left is a fixed function of the pose, not noise: U is the 95th
+            # percentile of its size over the calibrated range (k × the RMS would hold every point)
+            state["meas_misfit_p95_deg"] = [
+                _prediction_bound(np.abs(res[column])) for column in ("meas_x_deg", "meas_y_deg")
+            ]
             notes.append(
                 "this model cannot describe the measurement sensor: its H2-like step takes the "
                 "measurement reading as the table tilt (the model has no installation errors); "
-                "the meas_* residuals show what that leaves, and u_tilt is twice their RMS (the "
-                "unmodelled installation error taken as an uncertainty, not a GUM propagation)"
+                "the meas_* residuals show what that leaves, and the expanded uncertainty is the "
+                "95th percentile of their size over the points (the unmodelled installation error, "
+                "a fixed function of the pose, taken as an uncertainty for the calibrated range, "
+                "not a GUM propagation); the standard uncertainty is their RMS"
             )
             if (mn := mirror_note(sign)) is not None:
                 notes.append(f"{mn} ({how})")
@@ -130,13 +145,15 @@ class CouplingMethod(StageMethod):
         mx, my = columns(data, MEAS_COLUMNS)
         ux, uy = model.state.get("meas_misfit_rms_deg", [0.0, 0.0])
         k = float(coverage_factor(meas_dof(model)))
+        # models made before the percentile was kept: k × the RMS, as they were
+        px, py = model.state.get("meas_misfit_p95_deg", [k * ux, k * uy])
         return {
             "tilt_x_deg": sign[0] * mx,
             "tilt_y_deg": sign[1] * my,
-            "u_tilt_x_deg": np.full(mx.shape, k * ux),
-            "u_tilt_y_deg": np.full(my.shape, k * uy),
-            K_OUTPUTS[0]: np.full(mx.shape, k),
-            K_OUTPUTS[1]: np.full(my.shape, k),
+            "u_tilt_x_deg": np.full(mx.shape, px),
+            "u_tilt_y_deg": np.full(my.shape, py),
+            K_OUTPUTS[0]: np.full(mx.shape, px / ux if ux > 0 else k),
+            K_OUTPUTS[1]: np.full(my.shape, py / uy if uy > 0 else k),
         }
 
 
