@@ -210,9 +210,7 @@ def mean_type_a(values: ArrayLike) -> MeanTypeA:
     return MeanTypeA(mean, sd / float(np.sqrt(n_eff)), max(n_eff - 1.0, 1.0), n, n_eff, rho)
 
 
-def bias_interval(
-    bias: ArrayLike, u: ArrayLike, coverage: float = COVERAGE
-) -> NDArray[np.float64]:
+def bias_interval(bias: ArrayLike, u: ArrayLike, coverage: float = COVERAGE) -> NDArray[np.float64]:
     """Half-width U of the interval ±U about zero that holds `coverage` of an error N(bias, u²):
     Φ((U − b)/u) − Φ((−U − b)/u) = p, the quantile of a folded normal.
 

@@ -8,8 +8,8 @@ import dataclasses
 import datetime as dt
 import math
 import re
-from typing import cast
 import xml.etree.ElementTree as ET
+from typing import cast
 
 import numpy as np
 import pytest

@@ -46,8 +46,8 @@ from service.calibration.model import (
 )
 from service.calibration.registry import FitOptions
 from service.calibration.uncertainty import expanded_with_bias
-from service.io.columns import K_OUTPUTS
 from service.errors import DegenerateDataError
+from service.io.columns import K_OUTPUTS
 
 
 def _axis_matrix(alpha_deg: float, beta_deg: float) -> NDArray[np.float64]:
@@ -129,7 +129,8 @@ def _uncorrected_bias(
 
     def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
         fa, fb = _axis_forward(p, ref_x, ref_y)
-        return np.concatenate([fa, fb]) - np.concatenate([meas_x, meas_y])
+        residual: NDArray[np.float64] = np.concatenate([fa, fb]) - np.concatenate([meas_x, meas_y])
+        return residual
 
     cov = numeric_cov(resid, angles, np.array([0.1, 0.1]), scatter["sigma_deg"] ** 2)
     return bias, cov, scatter, axis_s2
@@ -226,8 +227,9 @@ class AxisTransformMethod(StageMethod):
                 float(np.sqrt(max(axis_s2 - ref_var, 0.0))) for axis_s2 in axis_scatter
             ]
             notes.append(
-                "uncorrected bias of the corrected tilt (the mean of corrected - reference over the "
-                f"points, which axis angles alone cannot absorb: no zero offsets) x {bias[0]:+.4f} "
+                "uncorrected bias of the corrected tilt (the mean of corrected - reference over "
+                "the points, which axis angles alone cannot absorb: no zero offsets) x "
+                f"{bias[0]:+.4f} "
                 f"deg, y {bias[1]:+.4f} deg; U is the 95 % interval about zero of an error with "
                 "that bias and the random part (not k x the rms, which would cover every point)"
             )
@@ -285,9 +287,7 @@ class AxisTransformMethod(StageMethod):
                 own = (
                     out
                     if per_axis is None
-                    else uncertain_correct(
-                        f, p, cov, data, per_axis[i], meas_dof(model), noise_dof
-                    )
+                    else uncertain_correct(f, p, cov, data, per_axis[i], meas_dof(model), noise_dof)
                 )
                 expanded, k = own[f"u_tilt_{axis}_deg"], own[k_key]
                 out[f"u_tilt_{axis}_deg"], out[k_key] = expanded_with_bias(b, expanded / k, k)
