@@ -142,8 +142,7 @@ def level_and_read(client, h, record_id: int) -> dict[str, np.ndarray]:
 
 
 def adopt(client, h, d: dict, rec: dict, effect: str) -> dict:
-    # only the effect put in: one of weaker evidence named beside it (see named_only) is left out,
-    # as a lab would
+    # the effect named (named_only: the only one)
     r = client.post(f"/diagnoses/{d['id']}/adopt", headers=h, json={"effects": [effect]})
     assert r.status_code == 201, r.text
     new = r.json()
@@ -164,10 +163,8 @@ def adopt(client, h, d: dict, rec: dict, effect: str) -> dict:
 
 
 def named_only(d: dict, effect: str) -> None:
-    # the effect put in is named first; a second effect of smaller evidence may be named beside it
-    # on the settling simulator (seen under load: sensor_nonlinearity or time_drift), and is not
-    # adopted here
-    assert d["named_effects"][:1] == [effect], d
+    # the effect put in, and only it
+    assert d["named_effects"] == [effect], d
     assert d["adoptable"] is True, d["adoption"]
     verdict = next(a for a in d["adoption"] if a["effect"] == effect)
     assert verdict["adoptable"], verdict
