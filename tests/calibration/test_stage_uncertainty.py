@@ -158,15 +158,15 @@ def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_re
         stated = m.fit(single, FitOptions(extra={"ref_noise_deg": 0.001})).state
         assert "stated noise" in stated["meas_reading_noise_source"]
         plain = m.fit(single, FitOptions()).state
-        if method == "axis-transform":  # no stage prediction to compare with: nothing to separate
-            # the whole scatter about the bias its model leaves (no zero offsets), far below the
-            # residual's rms, which that bias dominates
-            assert "conservative" in plain["meas_reading_noise_source"]
+        # the stage model's prediction is the third instrument (the axis transform's own misses by
+        # tenths of a degree: a projective map of the stage stands in for it)
+        assert "three-way" in plain["meas_reading_noise_source"]
+        three_way.append(plain["meas_reading_standard_uncertainty_deg"])
+        if method == "axis-transform":
+            # taken about the bias its model leaves (no zero offsets), which dominates its
+            # residual's rms
             assert plain["meas_reading_standard_uncertainty_deg"] < 0.1 * plain["meas_sigma_deg"]
             assert np.all(np.abs(plain["meas_uncorrected_bias_deg"]) > 0.03)
-        else:  # the stage model's prediction is the third instrument
-            assert "three-way" in plain["meas_reading_noise_source"]
-            three_way.append(plain["meas_reading_standard_uncertainty_deg"])
     s = np.array(sigmas)
     # the model describes the bench: what is left is the measurement sensor's noise
     if method == "kinematic":
@@ -182,5 +182,9 @@ def test_reading_noise_is_the_measurement_sensors_alone_when_the_data_say_the_re
         # one reading a stand, nothing stated: the three-way estimate is the measurement sensor's
         # noise too (each to about 16 %: the mean of three within 25 %), below the residual
         assert abs(np.mean(three_way) / 0.001 - 1) < 0.25, three_way
+    elif method == "axis-transform":
+        # the same with what the model leaves along the range in it (y: about 0.001 deg), as
+        # with the reference's noise known from repeats
+        assert np.all((np.array(three_way) > 0.00085) & (np.array(three_way) < 0.0025)), three_way
     if three_way:
         assert np.all(np.array(three_way) < s[:, 2]), (three_way, s)

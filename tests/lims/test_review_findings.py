@@ -347,21 +347,24 @@ def test_8_components_resting_on_one_fit_s_sigma_keep_that_fit_s_degrees_of_free
         (3.5e-6 + 1e-6) ** 2 / (3.5e-6**2 / 154 + 1e-6**2 / 20), rel=1e-12
     )
     run = run_scenario(load_scenario("seed000"), seed=3)
-    # the axis transform's reading term is its fit's whole scatter about its uncorrected bias (it
-    # has no stage prediction to take the reference's noise out with): the parameters' part and the
-    # noise part rest on that one σ (162 rows, two angles and two means: ν = 158), so the random
-    # part's k is Student's t at that ν; the bias then widens U (k on √(b² + u²), below)
+    # the axis transform's parameters rest on the scatter about its uncorrected bias (162 rows, two
+    # angles and two means: ν = 158); one reading's noise is its own estimate (the three-way
+    # comparison, with its own ν): two estimates, so the random part's k lies between the normal's
+    # and Student's t at the fewer; the bias then widens U beyond |b| (k on √(b² + u²))
     model = CalibrationModel.from_json_dict(_stage_fit("axis-transform", 3)[0])
     nu = float(model.state["meas_dof"])
-    assert nu == 158.0 and model.state["meas_reading_dof"] == nu
+    assert nu == 158.0
+    fewest = min(nu, float(model.state["meas_reading_dof"]))
     random_only = CalibrationModel.from_json_dict(_stage_fit("axis-transform", 3)[0])
     random_only.state = cast(
         ModelState,
         {k: v for k, v in model.state.items() if k != "meas_uncorrected_bias_deg"},
     )
     out = get_method("stage", "axis-transform").correct(random_only, run.columns)
-    assert np.allclose(out["k_tilt_x"], float(coverage_factor(nu)), rtol=1e-9, atol=0)
-    assert np.allclose(out["k_tilt_y"], float(coverage_factor(nu)), rtol=1e-9, atol=0)
+    for k in (out["k_tilt_x"], out["k_tilt_y"]):
+        assert np.all(
+            (k >= float(coverage_factor(np.inf))) & (k <= float(coverage_factor(fewest)) + 1e-12)
+        ), k
     biased = get_method("stage", "axis-transform").correct(model, run.columns)
     for axis, bias in zip("xy", model.state["meas_uncorrected_bias_deg"], strict=True):
         assert np.all(biased[f"u_tilt_{axis}_deg"] > abs(bias))

@@ -12,8 +12,10 @@ from scipy.optimize import least_squares
 
 from service.calibration.methods.stage.base import (
     FIT_REQUIRED,
+    MIN_THREE_WAY_POINTS,
     Columns,
     StageMethod,
+    ThreeWay,
     bench_state,
     fit_stats,
     meas_dof,
@@ -44,10 +46,12 @@ from service.calibration.model import (
     Parameter,
     residual_summary,
 )
+from service.calibration.projective import apply_projective, fit_projective
 from service.calibration.registry import FitOptions
 from service.calibration.uncertainty import expanded_with_bias
 from service.errors import DegenerateDataError
 from service.io.columns import K_OUTPUTS
+from service.physics.stage import offaxis_reading_deg
 
 
 def _axis_matrix(alpha_deg: float, beta_deg: float) -> NDArray[np.float64]:
@@ -136,6 +140,38 @@ def _uncorrected_bias(
     return bias, cov, scatter, axis_s2
 
 
+def _three_way(
+    stage_x: NDArray[np.float64],
+    stage_y: NDArray[np.float64],
+    ref_x: NDArray[np.float64],
+    ref_y: NDArray[np.float64],
+    meas_angles: NDArray[np.float64],
+    meas_x: NDArray[np.float64],
+    meas_y: NDArray[np.float64],
+    bias: NDArray[np.float64],
+) -> ThreeWay | None:
+    """The three instruments at every point, for the reference's noise alone: the corrected
+    measurement less the reference about its bias, and the reference less a stage prediction.
+
+    This model's own stage prediction misses by tenths of a degree (no zero offsets, no coupling),
+    far too much to tell a thousandth's noise from; a projective map of the reference onto the
+    decoupled stage angles (the homography's H1 on every point, fitted here for nothing else) leaves
+    thousandths. None where that map cannot be fitted."""
+    if stage_x.size < MIN_THREE_WAY_POINTS:  # too few to tell (meas_reading_noise says so)
+        return None
+    decoupled_x = offaxis_reading_deg(stage_x, stage_y)
+    try:
+        stage_map = fit_projective(ref_x, ref_y, decoupled_x, stage_y, what="stage prediction")
+    except DegenerateDataError:
+        return None
+    predicted_x, predicted_y = apply_projective(stage_map, ref_x, ref_y)
+    tilt_x, tilt_y = _axis_inverse(meas_angles, meas_x, meas_y)
+    return ThreeWay(
+        np.array([tilt_x - ref_x - bias[0], tilt_y - ref_y - bias[1]]),
+        np.array([predicted_x - decoupled_x, predicted_y - stage_y]),
+    )
+
+
 class AxisTransformMethod(StageMethod):
     """Ref. [10] as seed 000 describes it: both sensing axes non-parallel to the tilt axes, solved
     by a coordinate transform; no vertical-direction errors (no zero offsets or plane tilts) and no
@@ -218,7 +254,14 @@ class AxisTransformMethod(StageMethod):
             state["meas_uncorrected_bias_deg"] = bias.tolist()
             # _uncorrected_bias has a sigma whenever it returns (it needs one for the covariance)
             assert scatter["sigma_deg"] is not None
-            noise = meas_reading_noise(data, options, scatter["sigma_deg"], scatter["dof"], sign)
+            noise = meas_reading_noise(
+                data,
+                options,
+                scatter["sigma_deg"],
+                scatter["dof"],
+                sign,
+                _three_way(sx, sy, rx, ry, meas_angles, sign[0] * mx, sign[1] * my, bias),
+            )
             state.update(noise_state(noise))
             # each axis's own scatter about its bias: the misfit left along the range differs by
             # axis (the model's shape error is in x), and a pooled figure would blur the two
