@@ -146,11 +146,14 @@ class HomographyState(StageState, total=False):
 
 
 class CouplingState(StageState, total=False):
-    """The coupling method's state: the measurement sensor's misfit RMS and the 95th percentile
-    of its size, per axis (degrees)."""
+    """The coupling method's state: the measurement sensor's misfit RMS and the bound on its size,
+    per axis (degrees); how fast it grows with the tilt (per axis: |d/dX|, |d/dY|) and the range
+    the bound holds over."""
 
     meas_misfit_rms_deg: list[float]
     meas_misfit_p95_deg: list[float]
+    meas_misfit_slope: list[list[float]]
+    meas_misfit_range_deg: dict[str, list[float]]
 
 
 class AxisTransformState(StageState, total=False):

@@ -108,6 +108,17 @@ class CouplingMethod(StageMethod):
             state["meas_misfit_p95_deg"] = [
                 _prediction_bound(np.abs(res[column])) for column in ("meas_x_deg", "meas_y_deg")
             ]
+            # beyond the calibrated range the misfit (installation errors: offsets and small
+            # rotations, near-linear in the tilt) keeps growing at its slope over the range
+            design = np.column_stack([np.ones_like(rx), rx, ry])
+            state["meas_misfit_slope"] = [
+                np.abs(np.linalg.lstsq(design, res[column], rcond=None)[0][1:]).tolist()
+                for column in ("meas_x_deg", "meas_y_deg")
+            ]
+            state["meas_misfit_range_deg"] = {
+                "x": [float(rx.min()), float(rx.max())],
+                "y": [float(ry.min()), float(ry.max())],
+            }
             notes.append(
                 "this model cannot describe the measurement sensor: its H2-like step takes the "
                 "measurement reading as the table tilt (the model has no installation errors); "
@@ -147,13 +158,25 @@ class CouplingMethod(StageMethod):
         k = float(coverage_factor(meas_dof(model)))
         # models made before the percentile was kept: k × the RMS, as they were
         px, py = model.state.get("meas_misfit_p95_deg", [k * ux, k * uy])
+        tilt_x, tilt_y = sign[0] * mx, sign[1] * my
+        expanded_x, expanded_y = np.full(mx.shape, px), np.full(my.shape, py)
+        seen = model.state.get("meas_misfit_range_deg")
+        slopes = model.state.get("meas_misfit_slope")
+        if seen is not None and slopes is not None:
+            # how far each reading lies beyond the calibrated range, per axis
+            beyond = [
+                np.maximum(0.0, np.maximum(tilt - seen[axis][1], seen[axis][0] - tilt))
+                for axis, tilt in (("x", tilt_x), ("y", tilt_y))
+            ]
+            expanded_x = expanded_x + slopes[0][0] * beyond[0] + slopes[0][1] * beyond[1]
+            expanded_y = expanded_y + slopes[1][0] * beyond[0] + slopes[1][1] * beyond[1]
         return {
-            "tilt_x_deg": sign[0] * mx,
-            "tilt_y_deg": sign[1] * my,
-            "u_tilt_x_deg": np.full(mx.shape, px),
-            "u_tilt_y_deg": np.full(my.shape, py),
-            K_OUTPUTS[0]: np.full(mx.shape, px / ux if ux > 0 else k),
-            K_OUTPUTS[1]: np.full(my.shape, py / uy if uy > 0 else k),
+            "tilt_x_deg": tilt_x,
+            "tilt_y_deg": tilt_y,
+            "u_tilt_x_deg": expanded_x,
+            "u_tilt_y_deg": expanded_y,
+            K_OUTPUTS[0]: expanded_x / ux if ux > 0 else np.full(mx.shape, k),
+            K_OUTPUTS[1]: expanded_y / uy if uy > 0 else np.full(my.shape, k),
         }
 
 
