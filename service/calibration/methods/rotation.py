@@ -401,10 +401,10 @@ class _RotationMethod:
         return np.degrees(self.theta(pts, alpha, beta, gamma))
 
     def _fit_uncertainty(
-        self, model: CalibrationModel, data: Columns
+        self, model: CalibrationModel, data: Columns, readings: bool = True
     ) -> tuple[NDArray[np.float64], Propagated | None]:
-        """θ and its propagated standard uncertainty from the plane fit and the output noise (None
-        without a covariance)."""
+        """θ and its propagated standard uncertainty from the plane fit and the output noise (the
+        plane's parameters alone with `readings=False`; None without a covariance)."""
         p0 = model.values(PARAM_NAMES)
         alpha, beta, gamma = np.radians(p0)
         pts, _ = self.points(data)
@@ -427,26 +427,17 @@ class _RotationMethod:
             p0,
             model.cov_of(list(PARAM_NAMES)),
             inputs,
-            {column: float(sigma) for column in self.fit_required},
+            {column: float(sigma) for column in self.fit_required} if readings else None,
             dof,
             dof,
         )
 
     def _parameter_part(self, model: CalibrationModel, data: Columns) -> NDArray[np.float64]:
-        """The standard uncertainty θ has from the plane's parameters alone, per angle."""
-        p0 = model.values(PARAM_NAMES)
-        alpha, beta, gamma = np.radians(p0)
-        pts, _ = self.points(data)
-        use9 = equation9_region(pts, alpha, beta, gamma)
-        theta0 = np.degrees(self.theta(pts, alpha, beta, gamma, use9))
-        inputs = {column: np.asarray(data[column], dtype=float) for column in self.fit_required}
-
-        def f(p: NDArray[np.float64], x: Mapping[str, NDArray[np.float64]]) -> NDArray[np.float64]:
-            pp, _ = self.points(x)
-            pa, pb, pg = np.radians(p)
-            return theta0 + wrap_deg(np.degrees(self.theta(pp, pa, pb, pg, use9)) - theta0)
-
-        return propagate_gum(f, p0, model.cov_of(list(PARAM_NAMES)), inputs).u
+        """The standard uncertainty θ has from the plane's parameters alone, per angle (called
+        only where the model has a covariance)."""
+        _, propagated = self._fit_uncertainty(model, data, readings=False)
+        assert propagated is not None
+        return propagated.u
 
     def correct(self, model: CalibrationModel, data: Columns) -> dict[str, NDArray[np.float64]]:
         theta0, propagated = self._fit_uncertainty(model, data)
@@ -491,7 +482,7 @@ class _RotationMethod:
         # a known bias: the parameters' part is in the line already
         noise2 = np.maximum(propagated.u**2 - self._parameter_part(model, data) ** 2, 0.0)
         nu_random = welch_satterthwaite([(noise2, dof), (bias_var, dof)])
-        known = np.sign(bias) * np.sqrt(np.maximum(bias**2 - bias_var, 0.0))
+        known = np.sign(bias) * np.sqrt(size2)
         u_biased, k_biased = expanded_with_bias(
             known, np.sqrt(noise2 + bias_var), coverage_factor(nu_random)
         )
@@ -554,8 +545,9 @@ class _RotationMethod:
     def constant_errors_bias(
         self, model: CalibrationModel, data: Columns, theta_deg: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Per corrected angle, the θ bias of the outputs' constant errors (measured minus model,
-        as the arcs hold it) and its estimate's variance, from the arc of the angle's branch that
+        """Per corrected angle, the θ bias the arcs' lines show against the dividing head (measured
+        minus model: the outputs' constant errors and the plane's own error) and its estimate's
+        variance, from the arc of the angle's branch that
         holds it (or is nearest, extrapolated no further than its half-width). A branch the
         calibration never used: no bias known, the largest square any arc showed as a variance."""
         arcs = model.state.get(CONSTANT_ERRORS_KEY) or []

@@ -81,6 +81,19 @@ def _axis_inverse(
     )
 
 
+def _pair_residuals(
+    p: NDArray[np.float64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    a: NDArray[np.float64],
+    b: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """The transform of (u, v) less the readings (a, b), x rows then y rows."""
+    fa, fb = _axis_forward(p, u, v)
+    residuals: NDArray[np.float64] = np.concatenate([fa - a, fb - b])
+    return residuals
+
+
 def _fit_axis_pair(
     u: NDArray[np.float64],
     v: NDArray[np.float64],
@@ -88,11 +101,8 @@ def _fit_axis_pair(
     b: NDArray[np.float64],
     what: str,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, NDArray[np.float64]], FitStats]:
-    obs: NDArray[np.float64] = np.concatenate([a, b])
-
     def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        fa, fb = _axis_forward(p, u, v)
-        return np.concatenate([fa, fb]) - obs
+        return _pair_residuals(p, u, v, a, b)
 
     sol = least_squares(resid, np.zeros(2), method="lm", xtol=1e-14, ftol=1e-14)
     if not sol.success or not np.all(np.isfinite(sol.x)):
@@ -111,33 +121,36 @@ def _uncorrected_bias(
     ref_y: NDArray[np.float64],
     meas_x: NDArray[np.float64],
     meas_y: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], FitStats, list[float]]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64], FitStats, NDArray[np.float64]]:
     """The corrected calibration readings' mean offset from the reference per axis (what a model
-    without zero offsets leaves), the axis angles' covariance from the scatter about that offset
-    the scatter's statistics (two angles and two means fitted) and each axis's scatter variance.
+    without zero offsets leaves), the axis angles' covariance from the scatter about that offset,
+    the scatter's statistics (two angles and two means fitted) and the scatter itself (2 x n: x
+    row, y row).
 
     The offset is the same at every point of the range, so it is no noise: counted as one, it
     would inflate every uncertainty until the interval held every point."""
     tilt_x, tilt_y = _axis_inverse(angles, meas_x, meas_y)
-    diff = np.concatenate([tilt_x - ref_x, tilt_y - ref_y])
-    n = ref_x.size
-    bias = np.array([diff[:n].mean(), diff[n:].mean()])
-    centred = diff - np.repeat(bias, n)
-    scatter = fit_stats(centred, 4)
-    # per axis: n - 2 degrees of freedom (its mean and its angle)
-    axis_s2 = [float(part @ part / max(n - 2, 1)) for part in (centred[:n], centred[n:])]
+    diff = np.array([tilt_x - ref_x, tilt_y - ref_y])
+    bias = diff.mean(axis=1)
+    centred = diff - bias[:, None]
+    scatter = fit_stats(centred.ravel(), 4)
     if scatter["sigma_deg"] is None:
         raise DegenerateDataError(
             "measurement -> reference axis angles: the points leave no degrees of freedom"
         )
+    cov = numeric_cov(
+        lambda p: _pair_residuals(p, ref_x, ref_y, meas_x, meas_y),
+        angles,
+        np.array([0.1, 0.1]),
+        scatter["sigma_deg"] ** 2,
+    )
+    return bias, cov, scatter, centred
 
-    def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        fa, fb = _axis_forward(p, ref_x, ref_y)
-        residual: NDArray[np.float64] = np.concatenate([fa, fb]) - np.concatenate([meas_x, meas_y])
-        return residual
 
-    cov = numeric_cov(resid, angles, np.array([0.1, 0.1]), scatter["sigma_deg"] ** 2)
-    return bias, cov, scatter, axis_s2
+def _axis_scatter_variances(centred: NDArray[np.float64]) -> list[float]:
+    """Each axis's variance about its bias, on n - 2 degrees of freedom (its mean and its angle)."""
+    dof = max(centred.shape[1] - 2, 1)
+    return [float(row @ row / dof) for row in centred]
 
 
 def _three_way(
@@ -145,13 +158,11 @@ def _three_way(
     stage_y: NDArray[np.float64],
     ref_x: NDArray[np.float64],
     ref_y: NDArray[np.float64],
-    meas_angles: NDArray[np.float64],
-    meas_x: NDArray[np.float64],
-    meas_y: NDArray[np.float64],
-    bias: NDArray[np.float64],
+    centred: NDArray[np.float64],
 ) -> ThreeWay | None:
     """The three instruments at every point, for the reference's noise alone: the corrected
-    measurement less the reference about its bias, and the reference less a stage prediction.
+    measurement less the reference about its bias (`centred`), and the reference less a stage
+    prediction.
 
     This model's own stage prediction misses by tenths of a degree (no zero offsets, no coupling),
     far too much to tell a thousandth's noise from; a projective map of the reference onto the
@@ -165,11 +176,7 @@ def _three_way(
     except DegenerateDataError:
         return None
     predicted_x, predicted_y = apply_projective(stage_map, ref_x, ref_y)
-    tilt_x, tilt_y = _axis_inverse(meas_angles, meas_x, meas_y)
-    return ThreeWay(
-        np.array([tilt_x - ref_x - bias[0], tilt_y - ref_y - bias[1]]),
-        np.array([predicted_x - decoupled_x, predicted_y - stage_y]),
-    )
+    return ThreeWay(centred, np.array([predicted_x - decoupled_x, predicted_y - stage_y]))
 
 
 class AxisTransformMethod(StageMethod):
@@ -231,7 +238,7 @@ class AxisTransformMethod(StageMethod):
             meas_angles, _, rq, sq = _fit_axis_pair(
                 rx, ry, sign[0] * mx, sign[1] * my, "measurement -> reference axis angles"
             )
-            bias, cq, scatter, axis_scatter = _uncorrected_bias(
+            bias, cq, scatter, centred = _uncorrected_bias(
                 meas_angles, rx, ry, sign[0] * mx, sign[1] * my
             )
             mnames = ["meas_to_ref.x_axis_angle_deg", "meas_to_ref.y_axis_angle_deg"]
@@ -260,21 +267,22 @@ class AxisTransformMethod(StageMethod):
                 scatter["sigma_deg"],
                 scatter["dof"],
                 sign,
-                _three_way(sx, sy, rx, ry, meas_angles, sign[0] * mx, sign[1] * my, bias),
+                _three_way(sx, sy, rx, ry, centred),
             )
             state.update(noise_state(noise))
             # each axis's own scatter about its bias: the misfit left along the range differs by
             # axis (the model's shape error is in x), and a pooled figure would blur the two
-            ref_var = (noise.ref_sigma_deg or 0.0) ** 2 if noise.ref_sigma_deg is not None else 0.0
+            ref_var = (noise.ref_sigma_deg or 0.0) ** 2
             state["meas_axis_reading_standard_uncertainty_deg"] = [
-                float(np.sqrt(max(axis_s2 - ref_var, 0.0))) for axis_s2 in axis_scatter
+                float(np.sqrt(max(axis_s2 - ref_var, 0.0)))
+                for axis_s2 in _axis_scatter_variances(centred)
             ]
             notes.append(
                 "uncorrected bias of the corrected tilt (the mean of corrected - reference over "
                 "the points, which axis angles alone cannot absorb: no zero offsets) x "
-                f"{bias[0]:+.4f} "
-                f"deg, y {bias[1]:+.4f} deg; U is the 95 % interval about zero of an error with "
-                "that bias and the random part (not k x the rms, which would cover every point)"
+                f"{bias[0]:+.4f} deg, y {bias[1]:+.4f} deg; U is the 95 % interval about zero of "
+                "an error with that bias and the random part (not k x the rms, which would cover "
+                "every point)"
             )
             notes.append(
                 f"reading noise of one measurement reading {noise.sigma_deg:.3g} deg: "

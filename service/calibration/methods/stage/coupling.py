@@ -103,8 +103,9 @@ class CouplingMethod(StageMethod):
                 float(np.sqrt(np.mean(res[column] ** 2))) for column in ("meas_x_deg", "meas_y_deg")
             ]
             state["meas_dof"] = int(mx.size)  # an RMS over the points, nothing fitted
-            # the installation error left is a fixed function of the pose, not noise: U is the 95th
-            # percentile of its size over the calibrated range (k × the RMS would hold every point)
+            # the installation error left is a fixed function of the pose, not noise: U is a
+            # distribution-free 95 % bound on its size over the calibrated range (k × the RMS would
+            # hold every point)
             state["meas_misfit_p95_deg"] = [
                 _prediction_bound(np.abs(res[column])) for column in ("meas_x_deg", "meas_y_deg")
             ]
@@ -122,10 +123,11 @@ class CouplingMethod(StageMethod):
             notes.append(
                 "this model cannot describe the measurement sensor: its H2-like step takes the "
                 "measurement reading as the table tilt (the model has no installation errors); "
-                "the meas_* residuals show what that leaves, and the expanded uncertainty is the "
-                "95th percentile of their size over the points (the unmodelled installation error, "
-                "a fixed function of the pose, taken as an uncertainty for the calibrated range, "
-                "not a GUM propagation); the standard uncertainty is their RMS"
+                "the meas_* residuals show what that leaves, and the expanded uncertainty is a "
+                "distribution-free 95 % bound on their size over the points, the "
+                "ceil(0.95 (n + 1))-th smallest, grown beyond the calibrated range at their slope "
+                "(the unmodelled installation error, a fixed function of the pose, taken as an "
+                "uncertainty, not a GUM propagation); the standard uncertainty is their RMS"
             )
             if (mn := mirror_note(sign)) is not None:
                 notes.append(f"{mn} ({how})")
@@ -156,7 +158,7 @@ class CouplingMethod(StageMethod):
         mx, my = columns(data, MEAS_COLUMNS)
         ux, uy = model.state.get("meas_misfit_rms_deg", [0.0, 0.0])
         k = float(coverage_factor(meas_dof(model)))
-        # models made before the percentile was kept: k × the RMS, as they were
+        # models made before the bound was kept: k × the RMS, as they were
         px, py = model.state.get("meas_misfit_p95_deg", [k * ux, k * uy])
         tilt_x, tilt_y = sign[0] * mx, sign[1] * my
         expanded_x, expanded_y = np.full(mx.shape, px), np.full(my.shape, py)
