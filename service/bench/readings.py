@@ -110,34 +110,60 @@ async def settle(
     before by at most `tolerance_deg` on every channel (a drift criterion: reading noise averages
     out).
 
+    Judged at the readings' own stamps, not at the moment the daemon looks: the returned bench time
+    is the stamp of the first reading at which every role's windows, ending there, agree. So it is
+    what the readings say, whatever the polling interval, the machine's load or the simulation's
+    speed (a sped-up bench would otherwise count the daemon's real time between looks as settling).
     `timeout_s` is real seconds, whatever the simulation speed: a loaded machine running a sped-up
     simulation must not run out of it while its bench clock lags. Only readings made after the call
-    count (`bench.sync`). Returns the bench time at which they settled; raises TimeoutError naming
-    the roles that did not, DeviceNotAnswering (role and port) as soon as one of them is not
-    connected.
+    count (`bench.sync`). Raises TimeoutError naming the roles that did not settle,
+    DeviceNotAnswering (role and port) as soon as one of them is not connected.
     """
     # only readings made after the call count: a lagging reader may still hold some from the move
     start = await bench.sync(roles)
     waited_from = time.monotonic()
     history: dict[str, list[Reading]] = {role: [] for role in roles}
+    judged_to = start + 2 * window_s  # windows ending before this are not judged (or did not pass)
     while True:
-        now = bench.clock.monotonic()
-        moving = []
         for role in roles:
-            held = history[role]
-            _gather(bench, role, held, start)
-            while held and held[0].bench_s < now - 2 * window_s:
+            _gather(bench, role, history[role], start)
+        settled_at = _first_settled(history, judged_to, window_s, tolerance_deg)
+        if settled_at is not None:
+            return settled_at
+        # every stamp up to the newest reading all roles have is judged: only later ones are new
+        complete_to = min((held[-1].bench_s for held in history.values() if held), default=start)
+        judged_to = max(judged_to, complete_to + 1e-9)
+        for held in history.values():
+            while held and held[0].bench_s < judged_to - 2 * window_s - 1e-9:
                 held.pop(0)
-            if now - start < 2 * window_s or _drifting(held, now, window_s, tolerance_deg):
-                moving.append(role)
-        if not moving:
-            return now
         if time.monotonic() - waited_from > timeout_s:
+            moving = [
+                role
+                for role in roles
+                if _drifting(history[role], complete_to, window_s, tolerance_deg)
+            ]
             raise TimeoutError(
-                f"readings of {', '.join(moving)} did not settle within {tolerance_deg:g} deg"
-                f" between windows of {window_s:g} s in {timeout_s:g} s"
+                f"readings of {', '.join(moving or roles)} did not settle within "
+                f"{tolerance_deg:g} deg between windows of {window_s:g} s in {timeout_s:g} s"
             )
         await bench.clock.sleep(_poll_interval_s(bench, roles))
+
+
+def _first_settled(
+    history: dict[str, list[Reading]], from_s: float, window_s: float, tolerance_deg: float
+) -> float | None:
+    """The first reading stamp at or after `from_s`, up to the newest reading every role has, at
+    which no role drifts (windows ending at that stamp); None if there is none yet."""
+    if any(not held for held in history.values()):
+        return None
+    complete_to = min(held[-1].bench_s for held in history.values())
+    stamps = sorted(
+        {x.bench_s for held in history.values() for x in held if from_s <= x.bench_s <= complete_to}
+    )
+    for at in stamps:
+        if not any(_drifting(held, at, window_s, tolerance_deg) for held in history.values()):
+            return at
+    return None
 
 
 def _gather(bench: BenchRuntime, role: str, held: list[Reading], start: float) -> None:
@@ -147,11 +173,11 @@ def _gather(bench: BenchRuntime, role: str, held: list[Reading], start: float) -
     held += bench.readings_after(role, held[-1].bench_s if held else start)
 
 
-def _drifting(held: list[Reading], now: float, window_s: float, tolerance_deg: float) -> bool:
-    """Whether the mean over the last `window_s` differs from the mean over the window before by
-    more than `tolerance_deg` on some channel (or either window is still empty)."""
-    older = [channels(x) for x in held if x.bench_s < now - window_s]
-    newer = [channels(x) for x in held if x.bench_s >= now - window_s]
+def _drifting(held: list[Reading], at: float, window_s: float, tolerance_deg: float) -> bool:
+    """Whether the mean over the `window_s` ending at `at` differs from the mean over the window
+    before by more than `tolerance_deg` on some channel (or either window is still empty)."""
+    older = [channels(x) for x in held if at - 2 * window_s <= x.bench_s < at - window_s]
+    newer = [channels(x) for x in held if at - window_s <= x.bench_s <= at]
     return bool(
         not older
         or not newer

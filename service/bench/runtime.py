@@ -317,9 +317,11 @@ class BenchRuntime:
             )
 
     async def move_stage(
-        self, x_deg: float, y_deg: float, *, timeout_s: float = 600.0
+        self, x_deg: float, y_deg: float, *, timeout_s: float = 600.0, passing: bool = False
     ) -> tuple[float, float]:
-        """Move both stages and wait until they stand; returns the position reached (degrees)."""
+        """Move both stages and wait until they stand; returns the position reached (degrees).
+        `passing`: a position only passed through (an approach from one side), never read at: the
+        sensors are not synchronised to its stand, which saves a sensor output interval a move."""
         self.require("stage")
         stage = self.devices.stage_axes()
         async with self._motion_lock:
@@ -335,7 +337,8 @@ class BenchRuntime:
             self.pose.moving, self.pose.still_since_bench_s = True, None
             self.stopped_bench_s = await self._until_idle(stage.wait_until_idle, timeout_s)
             await self.refresh_pose()
-            self.pose.still_since_bench_s = await self._stood_mark()
+            # a position passed through is no stand to average readings over
+            self.pose.still_since_bench_s = None if passing else await self._stood_mark()
             return self._stage_position()
 
     async def _stood_mark(self) -> float:

@@ -217,6 +217,41 @@ def short_tour(
     return [points[i - 1] for i in (_two_opt(distances, order) if n <= TWO_OPT_POINTS else order)]
 
 
+def stage_travel_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """The travel between two stage points: the larger of the two axes' moves (the two stages move
+    at once)."""
+    return max(abs(a[0] - b[0]), abs(a[1] - b[1]))
+
+
+def on_the_way(
+    start: tuple[float, float],
+    tour: list[tuple[float, float]],
+    stops: list[tuple[float, float]],
+) -> list[tuple[tuple[float, float], bool]]:
+    """`tour` (visited in its order from `start`) with each of `stops` inserted where it lengthens
+    the travel least, in visiting order: (point, True for one of `stops`). A grid tour passes near
+    most points of its range, so a stop on the way costs a short detour where a tour of the stops
+    after it crosses the range again."""
+    path: list[tuple[tuple[float, float], bool]] = [(point, False) for point in tour]
+    for stop in stops:
+        places = [start, *(point for point, _ in path)]
+        nexts = [*places[1:], None]  # the last place has nothing after it to rejoin
+        costs = [_detour_deg(here, stop, after) for here, after in zip(places, nexts)]
+        path.insert(int(np.argmin(costs)), (stop, True))
+    return path
+
+
+def _detour_deg(
+    here: tuple[float, float], stop: tuple[float, float], after: tuple[float, float] | None
+) -> float:
+    """The travel a stop adds between `here` and `after` (at the end of the tour: just getting
+    there)."""
+    there = stage_travel_deg(here, stop)
+    if after is None:
+        return there
+    return there + stage_travel_deg(stop, after) - stage_travel_deg(here, after)
+
+
 def _two_opt(d: NDArray[np.float64], order: list[int]) -> list[int]:
     """Reverse stretches of the open path from stop 0 while any reversal shortens it."""
     path = [0, *order]

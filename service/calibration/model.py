@@ -146,14 +146,20 @@ class HomographyState(StageState, total=False):
 
 
 class CouplingState(StageState, total=False):
-    """The coupling method's state: the measurement sensor's misfit RMS and the bound on its size,
-    per axis (degrees); how fast it grows with the tilt (per axis: |d/dX|, |d/dY|) and the range
-    the bound holds over."""
+    """The coupling method's state: the measurement sensor's misfit RMS and its envelope over the
+    pose, per axis (degrees), with the bound on its size relative to that envelope; models made
+    before kept one bound per axis, how fast it grows with the tilt and the range it holds over."""
 
     meas_misfit_rms_deg: list[float]
     meas_misfit_p95_deg: list[float]
     meas_misfit_slope: list[list[float]]
     meas_misfit_range_deg: dict[str, list[float]]
+    # the misfit's envelope over the pose (per axis: the plane [a, b, c] of a + b·X + c·Y, the
+    # scatter about it) and the 95 % bound and RMS of |misfit| / envelope over the points
+    meas_misfit_plane_deg: list[list[float]]
+    meas_misfit_scatter_deg: list[float]
+    meas_misfit_score_p95: list[float]
+    meas_misfit_score_rms: list[float]
 
 
 class AxisTransformState(StageState, total=False):

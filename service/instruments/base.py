@@ -212,8 +212,9 @@ class MotionAxis(Driver, Protocol):
 
     async def wait_until_idle(self, timeout_s: float) -> float:
         """Return once the axis is ready; raise on a hard limit, an error, or the timeout (bench
-        seconds). Returns the bench time of the query that found it ready: it stood by then, give or
-        take the line's transit, however late the answer was read."""
+        seconds). Returns the bench time it stopped: between the last state query that found it
+        moving and the first that found it ready (their midpoint), however late the answers were
+        read."""
         ...
 
     async def stop(self) -> None: ...

@@ -6,11 +6,14 @@ time.
 2. The plan (service.calibration.adaptive_design) chooses the points and the readings at each from
    that noise; a target the bench cannot reach fails the job naming the best it can.
 3. Every other point settles by the statistical test against that noise and is read as planned.
+   The validation points are measured on the way (each where it lengthens the tour least: a tour
+   of them after the plan's would cross the range again), read as in any job and held, to be
+   stored after the fit points.
 4. The fit; its own covariance gives the predicted expanded U of the correction over the range. If
    it is above the target (the plan's noise was optimistic), the plan's points are read once more,
    as often as the missing information needs; still above, the job fails naming how close it came.
-5. The validation points as today (statistically settled, samples_per_point readings each). The
-   record states the predicted and the validated figures.
+5. The validation points stored, numbered after the fit points (top-up included), and the
+   validation computed as in any job. The record states the predicted and the validated figures.
 """
 
 from __future__ import annotations
@@ -32,9 +35,9 @@ from service.calibration.adaptive_design import (
     BenchNoise,
     BenchTimes,
     TargetUnreachable,
+    on_the_way,
     plan_adaptive,
     predicted_u_of_covariance,
-    short_tour,
 )
 from service.calibration.methods.stage.common import MEAS_NAMES
 from service.calibration.model import CalibrationModel
@@ -51,7 +54,14 @@ from service.jobs.procedure import (
     ValidationPoint,
     job_conditions,
 )
-from service.jobs.stage_grid import SENSORS, StageGrid, measure_stage_point
+from service.jobs.stage_grid import (
+    SENSORS,
+    MeasuredPoint,
+    StageGrid,
+    measure_stage_point,
+    read_stage_point,
+    store_stage_point,
+)
 from service.storage.models import SettledPoint
 from service.storage.store.hashing import SettledPointFields
 
@@ -248,7 +258,7 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     settled = await measure_stage_point(ctx, 0, *first, n=NOISE_READINGS)
     noise = _noise_of(settled, devices)
     plan = _plan(ctx, noise, fixed_u, target)
-    measured = await _measure_plan(ctx, plan, first, noise, len(val_pts))
+    measured, held = await _measure_plan(ctx, plan, first, noise, val_pts)
     method = get_method("stage", job.method)
     rounds: list[AdaptivePlanJSON | TopUp] = [plan.as_json()]
     for attempt in range(2):
@@ -273,7 +283,7 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
         await _top_up(ctx, plan, measured, extra, noise, len(val_pts))
     proc.fitted(model, fit_cols)
     n_fit = len(measured)
-    await _measure_validation(ctx, measured[-1], val_pts, n_fit, noise)
+    await _store_validation(ctx, held, n_fit)
     points = await ctx.db(ctx.store.points.settled_points, job.id)
     val_points = [point for point in points if point.point >= n_fit]
     val_cols = proc.columns(job, val_points, for_fit=False)
@@ -323,22 +333,32 @@ async def _measure_plan(
     plan: AdaptivePlan,
     first: tuple[float, float],
     noise: dict[str, float],
-    n_validation: int,
-) -> list[tuple[float, float]]:
-    """The plan's points after the first one (read already), each read as often as the plan says:
-    every point measured so far, in order."""
+    val_pts: list[tuple[float, float]],
+) -> tuple[list[tuple[float, float]], list[MeasuredPoint]]:
+    """The plan's points after the first one (read already), each read as often as the plan says
+    and stored, with the validation points on the way (statistically settled, samples_per_point
+    readings each, held): every fit point measured so far in order, and the validation points as
+    measured."""
     measured: list[tuple[float, float]] = [first]
+    held: list[MeasuredPoint] = []
     todo = [
         (point, n_readings)
         for point, n_readings in zip(plan.points, plan.readings)
         if point != first
     ]
-    await ctx.report(1, len(plan.points) + n_validation, Phase.MEASURING)
-    for point, n_readings in todo:
-        await measure_stage_point(ctx, len(measured), *point, n=n_readings, noise_deg=noise)
-        measured.append(point)
-        await ctx.report(len(measured), len(plan.points) + n_validation, Phase.MEASURING)
-    return measured
+    readings = iter(n_readings for _, n_readings in todo)
+    total = len(plan.points) + len(val_pts)
+    await ctx.report(1, total, Phase.MEASURING)
+    for point, validating in on_the_way(first, [point for point, _ in todo], val_pts):
+        if validating:
+            # numbered when stored, after the fit points
+            held.append(await read_stage_point(ctx, total + len(held), *point, noise_deg=noise))
+        else:
+            n_readings = next(readings)
+            await measure_stage_point(ctx, len(measured), *point, n=n_readings, noise_deg=noise)
+            measured.append(point)
+        await ctx.report(len(measured) + len(held), total, Phase.MEASURING)
+    return measured, held
 
 
 def _target_missed(target: float, n_points: int, predicted: float, noise: dict[str, float]) -> str:
@@ -383,16 +403,10 @@ async def _top_up(
         await ctx.report(len(measured), len(measured) + n_validation, Phase.MEASURING)
 
 
-async def _measure_validation(
-    ctx: JobContext,
-    start: tuple[float, float],
-    val_pts: list[tuple[float, float]],
-    n_fit: int,
-    noise: dict[str, float],
-) -> None:
-    """The validation points, numbered after the `n_fit` fit points, visited from where the stage
-    stands after the plan (or its top-up pass) in the order of shortest travel."""
-    await ctx.report(n_fit, n_fit + len(val_pts), Phase.VALIDATING)
-    for k, point in enumerate(short_tour(start, val_pts)):
-        await measure_stage_point(ctx, n_fit + k, *point, noise_deg=noise)
-        await ctx.report(n_fit + k + 1, n_fit + len(val_pts), Phase.VALIDATING)
+async def _store_validation(ctx: JobContext, held: list[MeasuredPoint], n_fit: int) -> None:
+    """The validation points measured on the way, stored in the order measured and numbered after
+    the `n_fit` fit points (the record's fit points come first, its validation points after)."""
+    await ctx.report(n_fit, n_fit + len(held), Phase.VALIDATING)
+    for k, point in enumerate(held):
+        await store_stage_point(ctx, point.numbered(n_fit + k))
+        await ctx.report(n_fit + k + 1, n_fit + len(held), Phase.VALIDATING)

@@ -233,7 +233,7 @@ async def _approach(
     settle there and the tolerance they settle to."""
     if proc.bench_kind == "stage":
         lo, _ = proc.travel(bench)
-        await bench.move_stage(max(angle - APPROACH_SCALE_DEG, lo), 0.0)
+        await bench.move_stage(max(angle - APPROACH_SCALE_DEG, lo), 0.0, passing=True)
         reached, _ = await bench.move_stage(angle, 0.0)
         return reached, ("reference_sensor",), tolerance_deg
     await bench.move_rotary(angle - APPROACH_ROTARY_DEG)

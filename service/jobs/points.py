@@ -8,8 +8,7 @@ import logging
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from service.storage.engine import write_engine
-from service.storage.samples import Sample, insert_samples_once
+from service.storage.samples import Sample
 from service.storage.store import Store
 from service.storage.store.hashing import SettledPointFields
 
@@ -30,20 +29,10 @@ def store_point(
     samples: list[Sample],
     settled_by_device: dict[int, SettledPointFields],
 ) -> None:
-    """Blocking (database): call through `write_in_thread`. A point half stored when the daemon
-    was killed keeps its stored half; only the devices it lacks are added. Safe to repeat after a
-    write whose outcome is unknown (a COMMIT whose answer was lost): the samples, written in one
-    transaction, are not written again if they are stored, nor is a settled point already stored."""
-    with write_engine(store.engine).begin() as conn:
-        insert_samples_once(conn, samples)
-    have = {
-        settled_point.device_id
-        for settled_point in store.points.settled_points(job_id)
-        if settled_point.point == index
-    }
-    for device_id, point in settled_by_device.items():
-        if device_id not in have:
-            store.points.add_settled_points(job_id, device_id, [point], actor="daemon")
+    """Blocking (database): call through `write_in_thread`. The point's raw samples and settled
+    means in one transaction (see `PointsRepo.add_measured_point`): a failed write leaves nothing,
+    and a repeat after a COMMIT whose answer was lost writes nothing twice."""
+    store.points.add_measured_point(job_id, index, samples, settled_by_device, actor="daemon")
 
 
 async def write_in_thread(write: Callable[..., T], /, *args: Any, **kwargs: Any) -> T:

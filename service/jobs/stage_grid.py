@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -240,6 +241,24 @@ class StageGrid(PointProcedure[StagePoint]):
         return stage_validation(method, model, cols)
 
 
+@dataclass(frozen=True)
+class MeasuredPoint:
+    """A stage point's raw samples and each device's settled means, as stored under its index."""
+
+    index: int
+    samples: list[Sample]
+    settled: dict[int, SettledPointFields]
+
+    def numbered(self, index: int) -> MeasuredPoint:
+        """The same point stored under another index (a point measured on the way, numbered when
+        it is stored)."""
+        return MeasuredPoint(
+            index,
+            [sample._replace(point=index) for sample in self.samples],
+            {device: {**fields, "point": index} for device, fields in self.settled.items()},
+        )
+
+
 async def measure_stage_point(
     ctx: JobContext,
     index: int,
@@ -255,6 +274,28 @@ async def measure_stage_point(
     settle both sensors, read, and store the point's samples and settled means (returned by device
     id). `n` readings (the request's samples_per_point by default); with `noise_deg` (each role's
     reading noise) settling ends by the statistical test, else by the request's settle rule."""
+    point = await read_stage_point(ctx, index, x, y, dir_x, dir_y, n=n, noise_deg=noise_deg)
+    await store_stage_point(ctx, point)
+    return point.settled
+
+
+async def store_stage_point(ctx: JobContext, point: MeasuredPoint) -> None:
+    """A measured point's samples and settled means, stored whole under its index."""
+    await ctx.db(store_point, ctx.store, ctx.job_id, point.index, point.samples, point.settled)
+
+
+async def read_stage_point(
+    ctx: JobContext,
+    index: int,
+    x: float,
+    y: float,
+    dir_x: float = 1.0,
+    dir_y: float = 1.0,
+    *,
+    n: int | None = None,
+    noise_deg: dict[str, float] | None = None,
+) -> MeasuredPoint:
+    """`measure_stage_point` without the storing: the point as it would be stored under `index`."""
     bench, req = ctx.bench, ctx.request
     travel = bench.config.stage_bench().travel_deg
     approach = (
@@ -264,14 +305,14 @@ async def measure_stage_point(
     clock = bench.clock
     began = clock.monotonic()
     try:
-        await bench.move_stage(*approach)
+        await bench.move_stage(*approach, passing=True)
     except StageNotHomed:
         await _home_stage(ctx)
-        await bench.move_stage(*approach)
+        await bench.move_stage(*approach, passing=True)
     cx, cy = await bench.move_stage(x, y)
-    # moving ends when the controller was found standing, not when the daemon got round to reading
-    # that (on a loaded machine running a sped-up bench, that latency would count as bench seconds
-    # of moving)
+    # moving ends when the stage stopped (between the controller's last "moving" and first "ready"
+    # answers), not when the daemon got round to reading them (on a loaded machine running a
+    # sped-up bench, that latency would count as bench seconds of moving)
     stood = bench.stopped_bench_s
     if noise_deg is not None:
         t0 = await settle_statistical(bench, SENSORS, noise_deg, timeout_s=req.settle.timeout_s)
@@ -328,8 +369,7 @@ async def measure_stage_point(
             "ch_z_std": None,
             "temp_c_mean": averaged.temp_c,
         }
-    await ctx.db(store_point, ctx.store, ctx.job_id, index, rows, settled)
-    return settled
+    return MeasuredPoint(index, rows, settled)
 
 
 def stage_validation(method: Method, model: CalibrationModel, cols: Columns) -> RecordValidation:

@@ -85,6 +85,21 @@ def page(browser, bench) -> Iterator[Page]:
     ctx.close()
 
 
+@pytest.fixture(autouse=True)
+def _contexts_closed(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A browser context a test opens is closed when the test ends, passed or failed: a failed test's
+    page would otherwise stream on, and the routes it left would hold up every test after it."""
+    if "browser" not in request.fixturenames:
+        yield
+        return
+    browser: Browser = request.getfixturevalue("browser")
+    before = set(browser.contexts)
+    yield
+    for ctx in browser.contexts:
+        if ctx not in before:
+            ctx.close()
+
+
 def test_token_is_kept_for_the_session_and_leaves_the_address_bar(page, bench):
     expect(page.locator("#bench-select")).to_have_value("sim-stage", timeout=T)
     assert "token" not in page.url
@@ -113,6 +128,12 @@ def test_live_chart_receives_and_draws_readings(page, bench):
         "({received: window.tiltlab.live.received, draws: window.tiltlab.live.draws})"
     )
     assert 0 < live["draws"] <= live["received"] + 1, live
+    # a simulated bench at 8x speed is asked for at most 50 readings a real second (a screen draws
+    # no more): its rate in bench time, and both named in the header
+    assert page.evaluate("window.tiltlab.live.rateHz") == pytest.approx(50 / float(SIM_SPEED))
+    expect(page.locator("#stream-state")).to_have_text(
+        re.compile(rf"^\S+, 6\.3 Hz of bench time \({SIM_SPEED}× speed: 50 a second\)$")
+    )
     # the numbers shown are the bench's, with their units
     ref_x = page.locator("#ref_x").inner_text()
     assert ref_x.endswith("°"), ref_x
@@ -1371,9 +1392,8 @@ def test_live_card_reads_uncertainties_by_their_names(browser, bench):
     sent = {"at": 0.0}
 
     def forward(ws, message: str) -> None:  # type: ignore[no-untyped-def]
-        # the page asks 50 readings a second of bench time, 400 a second at this bench's speed:
-        # passing each through this process falls behind on a loaded machine (minutes), so readings
-        # go on at most ten a second
+        # the page asks for up to 50 readings a real second: passing each through this process
+        # falls behind on a loaded machine (minutes), so readings go on at most ten a second
         now = time.monotonic()
         if '"snapshot"' in message or now - sent["at"] >= 0.1:
             sent["at"] = now

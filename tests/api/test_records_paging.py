@@ -1,8 +1,13 @@
 """`GET /records` pages, and reading every page in a loop does not hold `/tilt` hostage: with 2,000
 records (each with its model, as a job stores it), `/tilt` answers every request while a client
-reads page after page. The pages are made and serialised in a request thread, never on the event
-loop. `/tilt`'s p99 idle and while the pages are read is printed (`pytest -s`), the figure
-docs/api.md quotes; it is not asserted, since another process on the machine moves it.
+reads page after page, and its p99 then stays within 3x of its p99 idle in the same run. The pages
+are made and serialised in a request thread, never on the event loop.
+
+Idle and busy are measured in turns (three of each), so a load that comes and goes on the machine
+falls on both. The reading client runs at a lower CPU priority (nice 5): a LIMS runs on a machine
+of its own, and here it would otherwise take one of the daemon's two cores for its own JSON
+decoding, which is not the daemon's latency. The figures are printed (`pytest -s`); docs/api.md
+quotes them.
 """
 
 from __future__ import annotations
@@ -41,7 +46,8 @@ with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, t
 print(read)
 """
 RECORDS = 2000
-SAMPLES = 400
+SAMPLES = 300  # /tilt requests in each turn
+TURNS = 3
 
 
 @pytest.fixture(scope="module")
@@ -110,26 +116,31 @@ def test_records_page_and_reading_them_all_leaves_tilt_alone(
             and pages == RECORDS // 50 + 1
         )
         _tilt_latencies(d.base, d.token)  # warm: the token known, the route's path taken once
-        idle = _tilt_latencies(d.base, d.token)
-        # the reader in a process of its own: decoding its pages must not hold the measuring
-        # client's interpreter
-        stop = tmp_path / "stop"
-        reader = spawn(
-            [sys.executable, "-c", READER, d.base, d.token, str(stop)],
-            stdout=subprocess.PIPE,
-            text=True,
-        )
-        try:
-            time.sleep(2.0)
-            busy = _tilt_latencies(d.base, d.token)
-        finally:
-            stop.touch()
-            out, _ = reader.communicate(timeout=120)
-        read = [int(out.split()[-1])]
-    assert read[0] >= RECORDS, f"the reader got through {read[0]} records"
+        idle: list[float] = []
+        busy: list[float] = []
+        read = []
+        for turn in range(TURNS):
+            idle += _tilt_latencies(d.base, d.token)
+            # the reader in a process of its own: decoding its pages must not hold the measuring
+            # client's interpreter
+            stop = tmp_path / f"stop-{turn}"
+            reader = spawn(
+                ["nice", "-n", "5", sys.executable, "-c", READER, d.base, d.token, str(stop)],
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            try:
+                time.sleep(1.0)
+                busy += _tilt_latencies(d.base, d.token)
+            finally:
+                stop.touch()
+                out, _ = reader.communicate(timeout=120)
+            read.append(int(out.split()[-1]))
+    assert sum(read) >= RECORDS and min(read) > 0, f"the reader got through {read} records"
     base99, busy99 = np.percentile(idle, 99), np.percentile(busy, 99)
     figures = (
         f"/tilt idle p99 {base99 * 1e3:.2f} ms; while reading every page p99 "
-        f"{busy99 * 1e3:.2f} ms ({read[0]} records read)"
+        f"{busy99 * 1e3:.2f} ms ({busy99 / base99:.2f}x; {sum(read)} records read in {TURNS} turns)"
     )
     print(figures)  # every /tilt answered 200 while reading: _tilt_latencies asserts it
+    assert busy99 <= 3 * base99, figures

@@ -13,6 +13,10 @@ What is left out, and why:
 * `DELETE /tokens/{name}` (alone: `PATCH /tokens/{name}` is fuzzed): the generator learns token
   names from `GET /tokens` and would revoke the very token it runs with
   (tests/daemon/test_tokens_routes.py tests that route, the last admin token's refusal included).
+  For the same reason `PATCH /tokens/{name}` is fuzzed on a token of its own (`PATCHED_TOKEN`):
+  its bodies change a token's person, and the fuzzer's token must keep the person with a function
+  that approving and rejecting a record ask of their signer (without one both are 403 whatever
+  the record, and the run would not reach them).
 * `positive_data_acceptance` also takes 422 on four operations, where a schema-valid request can be
   refused for what JSON Schema cannot state: `POST /calibrations` (the grid must lie within the
   bench's travel and hold as many points as the method needs, a product of two counts; the standards
@@ -46,6 +50,9 @@ pytestmark = pytest.mark.skipif(
     SCHEMATHESIS is None, reason="schemathesis is part of the dev extra"
 )
 
+PATCHED_TOKEN = "lims-reader"
+# the person a record's approval names; the fuzzer's token signs as them
+FUZZER_PERSON = {"name": "Dr. Fuzz Example", "function": "Quality manager"}
 ACCEPTED_WITH_422 = ("2xx", "3xx", "401", "403", "404", "409", "422", "429", "5xx")
 # one `[[operations]]` entry per operation, named as Schemathesis names it ("METHOD /path"): in an
 # entry, `include-path` and `include-method` would each select on their own (every POST, say)
@@ -58,10 +65,14 @@ checks.positive_data_acceptance.expected-statuses = {list(ACCEPTED_WITH_422)!r}
 """
         for operation in ("POST /calibrations", "POST /standards", "POST /orders", "GET /feed")
     ).replace("'", '"')
-    + """
+    + f"""
 [[operations]]
-include-name = "DELETE /tokens/{name}"
+include-name = "DELETE /tokens/{{name}}"
 enabled = false
+
+[[operations]]
+include-name = "PATCH /tokens/{{name}}"
+parameters = {{ "path.name" = "{PATCHED_TOKEN}" }}
 """
 )
 
@@ -87,11 +98,18 @@ def test_every_operation_answers_as_documented(tmp_path: Path) -> None:
         admin = {"Authorization": "Bearer " + (data / "admin.token").read_text().strip()}
         made = httpx.post(
             f"{base}/tokens",
-            json={"name": "fuzzer", "scopes": ["admin"]},
+            json={"name": "fuzzer", "scopes": ["admin"], "person": FUZZER_PERSON},
             headers=admin,
             timeout=30,
         )
         assert made.status_code == 201, made.text
+        patched = httpx.post(
+            f"{base}/tokens",
+            json={"name": PATCHED_TOKEN, "scopes": ["read"]},
+            headers=admin,
+            timeout=30,
+        )
+        assert patched.status_code == 201, patched.text
         r = subprocess.run(
             [
                 str(SCHEMATHESIS),

@@ -1,5 +1,7 @@
-"""The validation points' visiting order: every point once; up to nine points the shortest order
-(as trying every order finds it), beyond that within a few per cent of it."""
+"""The stage tours. The validation points' visiting order: every point once; up to nine points the
+shortest order (as trying every order finds it), beyond that within a few per cent of it. Stops on
+the way of a tour (an adaptive job's validation points): each where its detour is least, cheaper
+than a tour of them after it."""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ import itertools
 import numpy as np
 import pytest
 
-from service.calibration.adaptive_design import short_tour
+from service.calibration.adaptive_design import on_the_way, short_tour
 
 
 def travel(start, path) -> float:
@@ -41,3 +43,31 @@ def test_beyond_nine_points_the_tour_is_much_shorter_than_the_drawn_order(draw):
 def test_no_points_and_one_point():
     assert short_tour((0.0, 0.0), []) == []
     assert short_tour((0.0, 0.0), [(1.0, 2.0)]) == [(1.0, 2.0)]
+
+
+@pytest.mark.parametrize("draw", range(10))
+def test_a_stop_on_the_way_goes_where_the_detour_is_least(draw):
+    rng = np.random.default_rng()
+    tour = [tuple(p) for p in rng.uniform(-12, 12, (12, 2)).round(4)]
+    stop = tuple(rng.uniform(-12, 12, 2).round(4))
+    start = (0.0, 0.0)
+    path = on_the_way(start, tour, [stop])
+    # the tour's own order is kept, the stop is marked and visited once
+    assert [point for point, extra in path if not extra] == tour
+    assert [point for point, extra in path if extra] == [stop]
+    # no other place (tried every one) makes the travel shorter
+    best = min(travel(start, tour[:i] + [stop] + tour[i:]) for i in range(len(tour) + 1))
+    assert travel(start, [point for point, _ in path]) == pytest.approx(best, abs=1e-9)
+
+
+def test_validation_stops_on_a_grid_tour_cost_less_than_a_tour_of_them_after_it():
+    # the adaptive job's 4 x 4 spread over ±12° in serpentine order, and eight stops drawn over the
+    # range: on the way they add a few degrees of travel, a tour of them after the grid tens
+    grid = [(x, y) for y in (-12, -3, 3, 12) for x in (-12, -3, 3, 12)]
+    grid = [p for row in range(4) for p in (grid[4 * row : 4 * row + 4][:: 1 - 2 * (row % 2)])]
+    rng = np.random.default_rng()
+    for _ in range(20):
+        stops = [tuple(p) for p in rng.uniform(-12, 12, (8, 2)).round(4)]
+        interleaved = travel((0.0, 0.0), [point for point, _ in on_the_way((0, 0), grid, stops)])
+        after = travel((0.0, 0.0), grid + short_tour(grid[-1], stops))
+        assert interleaved < after

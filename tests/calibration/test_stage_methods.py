@@ -224,7 +224,9 @@ def test_model_json_round_trip_gives_identical_predictions(method, extra):
         == set(b)
         == {"tilt_x_deg", "tilt_y_deg", "u_tilt_x_deg", "u_tilt_y_deg", "k_tilt_x", "k_tilt_y"}
     )
-    if "meas_uncorrected_bias_deg" in model.state or "meas_misfit_p95_deg" in model.state:
+    if {"meas_uncorrected_bias_deg", "meas_misfit_p95_deg", "meas_misfit_score_p95"} & set(
+        model.state
+    ):
         # a bias the model keeps (U the folded normal's 95 % point, k = U / √(b² + u²)), or the
         # error it leaves bounded by its size over the points (k = that bound / their RMS): k ≥ 1
         assert np.all(a["k_tilt_x"] >= 1.0) and np.all(a["k_tilt_y"] >= 1.0)

@@ -37,11 +37,12 @@ def adaptive(tmp_path_factory):
         refused = client.post(
             "/calibrations", headers=h, json={**BODY, "target_expanded_uncertainty_deg": 0.00005}
         )
-        yield job, record, refused
+        points = client.app.state.store.points.settled_points(job["id"])
+        yield job, record, refused, points
 
 
 def test_adaptive_job_meets_its_target_and_validation_bears_it_out(adaptive):
-    job, record, _ = adaptive
+    job, record, _, _ = adaptive
     assert job["state"] == "succeeded", job["error"]
     v = record["validation"]
     assert v["design"] == "adaptive" and v["target_expanded_uncertainty_deg"] == TARGET_DEG
@@ -65,7 +66,7 @@ def test_adaptive_job_meets_its_target_and_validation_bears_it_out(adaptive):
 
 
 def test_adaptive_job_reports_bench_seconds_that_add_up(adaptive):
-    job, record, _ = adaptive
+    job, record, _, _ = adaptive
     b = job["bench_seconds"]
     assert b["total"] == pytest.approx(b["moving"] + b["settling"] + b["reading"], abs=0.01)
     assert record["bench_seconds"] == b
@@ -74,8 +75,28 @@ def test_adaptive_job_reports_bench_seconds_that_add_up(adaptive):
 
 
 def test_unreachable_target_is_refused_naming_the_floor(adaptive):
-    _, _, refused = adaptive
+    _, _, refused, _ = adaptive
     assert refused.status_code == 422
     body = refused.json()
     assert body["field"] == "target_expanded_uncertainty_deg"
     assert "cannot be reached" in body["detail"] and "8.16e-05 deg" in body["detail"]
+
+
+def test_validation_points_are_measured_on_the_way_and_numbered_after_the_fit_points(adaptive):
+    job, record, _, points = adaptive
+    n_fit = record["raw_data"]["fit_points"]
+    by_index: dict[int, list] = {}
+    for point in points:
+        by_index.setdefault(point.point, []).append(point)
+    # every point of the job stored with both sensors, the validation points after the fit points
+    assert sorted(by_index) == list(range(n_fit + BODY["validation"]["n_points"]))
+    assert all(len(rows) == 2 for rows in by_index.values())
+    started = {index: min(row.t_start_s for row in rows) for index, rows in by_index.items()}
+    fit_times = [started[i] for i in range(n_fit)]
+    validation = [i for i in by_index if i >= n_fit]
+    # measured on the plan's tour, not after it: some before the last fit point
+    assert any(started[i] < max(fit_times) for i in validation), started
+    # read as in any job: samples_per_point readings of each sensor (fewer only where the
+    # outlier rule set some aside)
+    used = [row.n_samples for i in validation for row in by_index[i]]
+    assert all(0.8 * BODY["samples_per_point"] <= n <= BODY["samples_per_point"] for n in used)

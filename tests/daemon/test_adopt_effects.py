@@ -24,8 +24,16 @@ from tests.helpers.diagnosis import wait_diagnosis
 from tests.helpers.waiting import eventually
 
 SETTLE = {"tolerance_deg": 0.005, "window_s": 0.5, "timeout_s": 60}
-TARGETS = [(1.3, -2.1), (-4.7, 3.3), (5.9, 0.7), (-2.6, -5.4), (3.5, 4.9), (-6.1, -0.9)]
-TILT_READINGS = 10  # distinct /tilt readings averaged at each target
+# Levelling targets off every test's grid. The table's true tilt carries the stand's positioning
+# error (2.5 mdeg per axis, drawn anew at each move): over 18 moves its share of the mean distance
+# from the targets varies by about 0.4 mdeg, small beside the 40 % asked of the adopted record.
+TARGETS = [
+    (1.3, -2.1), (-4.7, 3.3), (5.9, 0.7), (-2.6, -5.4), (3.5, 4.9), (-6.1, -0.9),
+    (0.3, 5.7), (-1.7, 1.1), (4.3, -3.9), (-5.3, -3.1), (2.7, 2.3), (-3.3, 5.1),
+    (5.1, -5.9), (-0.9, -3.7), (1.9, 0.5), (-5.7, 1.9), (3.1, -1.3), (-2.1, 3.9),
+]  # fmt: skip
+TILT_AT = TARGETS[:6]  # where /tilt is read against the truth (its readings take the time)
+TILT_READINGS = 10  # distinct /tilt readings averaged at each of those
 
 
 # The upper stage's worm error in the 180:1 tests: large enough to stand out of the stage's
@@ -136,8 +144,9 @@ def level_and_read(client, h, record_id: int) -> dict[str, np.ndarray]:
             float(np.hypot(achieved["x_deg"] - truth[0], achieved["y_deg"] - truth[1]))
         )
         out["raw"].append(float(np.hypot(raw["x_deg"] - truth[0], raw["y_deg"] - truth[1])))
-        mean, _ = tilt_mean(client, h)
-        out["tilt"].append(float(np.hypot(*(mean - truth))))
+        if (tx, ty) in TILT_AT:
+            mean, _ = tilt_mean(client, h)
+            out["tilt"].append(float(np.hypot(*(mean - truth))))
     return {k: np.array(v) for k, v in out.items()}
 
 
@@ -196,7 +205,7 @@ def noise_allowance(client) -> float:
     simulator's true tilt is the pose's, without it)."""
     fx = client.app.state.bench.sim.world.effects
     sigma = float(np.hypot(fx.get("noise", "meas_sigma_deg"), fx.get("noise", "stage_sigma_deg")))
-    return 3.0 * np.sqrt(2.0) * sigma / np.sqrt(TILT_READINGS * len(TARGETS))
+    return 3.0 * np.sqrt(2.0) * sigma / np.sqrt(TILT_READINGS * len(TILT_AT))
 
 
 def closer(before: dict[str, np.ndarray], after: dict[str, np.ndarray], client) -> None:
@@ -211,7 +220,7 @@ def closer(before: dict[str, np.ndarray], after: dict[str, np.ndarray], client) 
     )
     # the adopted record levels at least 40 % closer: where its commands aim the table, and where
     # the table truly stands (the stand's positioning error, 2.5 mdeg per axis drawn anew at each
-    # move, is in both sides of the latter and no model takes it out)
+    # move, is in both sides of the latter and no model takes it out: hence the 18 moves)
     assert after["level"].mean() <= 0.6 * before["level"].mean(), (before["level"], after["level"])
     assert after["level_truth"].mean() <= 0.6 * before["level_truth"].mean(), (
         before["level_truth"],

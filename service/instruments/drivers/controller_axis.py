@@ -138,9 +138,15 @@ class ControllerAxis(SerialDriver, MotionAxis):
 
     async def wait_until_idle(self, timeout_s: float, poll_s: float = 0.05) -> float:
         """Poll the state until ready. A state query left unanswered (an answer lost on the line) is
-        polled again; IDLE_POLL_MISSES of them in a row raise."""
+        polled again; IDLE_POLL_MISSES of them in a row raise.
+
+        The axis stopped between the last query that found it moving and the first that found it
+        ready: the midpoint of the two queries' bench times is returned, not the later one, which
+        would count half a poll cycle (the sleep, and the answer's round trip, which a sped-up or
+        loaded simulation stretches) as moving every time."""
         deadline = self.clock.monotonic() + timeout_s
         misses = 0
+        moving_asked: float | None = None
         while True:
             asked = self.clock.monotonic()
             try:
@@ -152,7 +158,8 @@ class ControllerAxis(SerialDriver, MotionAxis):
                 continue
             misses = 0
             if state == "ready":
-                return asked
+                return asked if moving_asked is None else 0.5 * (moving_asked + asked)
+            moving_asked = asked
             if state in ("hard_limit", "error"):
                 code = await self.last_error()
                 raise DeviceError(

@@ -14,6 +14,7 @@ from service.storage.canonical import sha256_hex
 from service.storage.errors import IllegalTransition
 from service.storage.models import JobState, SettledPoint
 from service.storage.models import Sample as SampleRow
+from service.storage.samples import Sample, insert_samples_once
 from service.storage.store.checks import require_finite, require_number
 from service.storage.store.database import Database
 from service.storage.store.hashing import (
@@ -36,37 +37,77 @@ class PointsRepo:
         self, job_id: int, device_id: int, points: Sequence[Mapping[str, object]], *, actor: str
     ) -> list[SettledPoint]:
         with self._db.transaction() as session:
-            job = job_in(session, job_id)
-            device_in(session, device_id)
-            if job.state != JobState.RUNNING:
-                raise IllegalTransition(
-                    f"job {job_id} is {job.state}; settled points are added while it runs"
+            return self._add(session, job_id, device_id, points, actor)
+
+    def add_measured_point(
+        self,
+        job_id: int,
+        index: int,
+        samples: Sequence[Sample],
+        settled_by_device: Mapping[int, SettledPointFields],
+        *,
+        actor: str,
+    ) -> None:
+        """A point a job measured, stored whole or not at all: its raw samples and every device's
+        settled means in one transaction, so a write that fails (a full disk) leaves nothing of it
+        and the point is measured again whole on resume. A device whose settled point is already
+        stored at this index (a point half stored by an earlier version of the daemon) keeps it
+        and its samples: the new samples of that device are not added to them, which would break
+        the hash the stored point holds. Safe to repeat after a COMMIT whose answer was lost."""
+        with self._db.transaction() as session:
+            have = set(
+                session.scalars(
+                    sa.select(SettledPoint.device_id).where(
+                        SettledPoint.job_id == job_id, SettledPoint.point == index
+                    )
                 )
-            rows: list[SettledPoint] = []
-            for i, given in enumerate(points):
-                values = _point_values(i, given)
-                values["samples_sha256"] = point_samples_sha256(
-                    session, job_id, device_id, values["point"]
-                )
-                rows.append(SettledPoint(job_id=job_id, device_id=device_id, **values))
-            session.add_all(rows)
-            session.flush()
-            self._db.audit(
-                session,
-                actor,
-                "points.add",
-                "job",
-                job_id,
-                {
-                    "device_id": device_id,
-                    "count": len(rows),
-                    "points": [row.point for row in rows],
-                    "points_sha256": sha256_hex(
-                        [point_content(row) for row in sorted(rows, key=lambda row: row.point)]
-                    ),
-                },
             )
-            return rows
+            insert_samples_once(
+                session.connection(), [sample for sample in samples if sample.device_id not in have]
+            )
+            for device_id, point in settled_by_device.items():
+                if device_id not in have:
+                    self._add(session, job_id, device_id, [point], actor)
+
+    def _add(
+        self,
+        session: Session,
+        job_id: int,
+        device_id: int,
+        points: Sequence[Mapping[str, object]],
+        actor: str,
+    ) -> list[SettledPoint]:
+        job = job_in(session, job_id)
+        device_in(session, device_id)
+        if job.state != JobState.RUNNING:
+            raise IllegalTransition(
+                f"job {job_id} is {job.state}; settled points are added while it runs"
+            )
+        rows: list[SettledPoint] = []
+        for i, given in enumerate(points):
+            values = _point_values(i, given)
+            values["samples_sha256"] = point_samples_sha256(
+                session, job_id, device_id, values["point"]
+            )
+            rows.append(SettledPoint(job_id=job_id, device_id=device_id, **values))
+        session.add_all(rows)
+        session.flush()
+        self._db.audit(
+            session,
+            actor,
+            "points.add",
+            "job",
+            job_id,
+            {
+                "device_id": device_id,
+                "count": len(rows),
+                "points": [row.point for row in rows],
+                "points_sha256": sha256_hex(
+                    [point_content(row) for row in sorted(rows, key=lambda row: row.point)]
+                ),
+            },
+        )
+        return rows
 
     def settle_from_samples(
         self,

@@ -123,7 +123,9 @@ function onMessage(m) {
     addReading(m);
     live.snapshots += 1;
     live.calibration = m.calibration;
-    setText("stream-state", `${m.bench}, ${isNum(m.rate_hz) ? m.rate_hz.toFixed(1) : "?"} Hz`);
+    const speed = shared.benches.find((b) => b.name === m.bench)?.simulated?.speed || 1;
+    const shown = isNum(m.rate_hz) ? `${m.rate_hz.toFixed(1)} Hz` : "? Hz";
+    setText("stream-state", `${m.bench}, ${shown}${speed !== 1 && isNum(m.rate_hz) ? ` of bench time (${speed}× speed: ${(m.rate_hz * speed).toFixed(0)} a second)` : ""}`);
   } else if (m.type === "reading") {
     live.received += 1;
     // each reading names the record that corrected it: an activation shows with the next reading
@@ -146,13 +148,26 @@ function historyS() {
   return Math.ceil(Math.min(windowS, missedS, HISTORY_MAX_S));
 }
 
+/**
+ * A screen draws at most about 60 frames a second: more messages a real second than that are parsed for nothing.
+ * A simulated bench runs `speed` times faster than the clock, so its rate (in bench seconds) is asked lower.
+ */
+const MAX_MESSAGES_PER_REAL_S = 50;
+
+/** The rate to ask, in bench Hz: the one chosen, at most MAX_MESSAGES_PER_REAL_S a real second. */
+function askedRateHz() {
+  const chosen = Number(byIdAs("rate", HTMLSelectElement).value);
+  const speed = shared.benches.find((b) => b.name === shared.bench)?.simulated?.speed || 1;
+  return Math.min(chosen, MAX_MESSAGES_PER_REAL_S / speed);
+}
+
 export function openReadings() {
   if (readings) readings.close();
   ring.clear();
   live.latest = null;
   live.dirty = true;
   readings = new Stream("readings", () => wsUrl("/ws/readings", {
-    bench: shared.bench || "", rate_hz: byIdAs("rate", HTMLSelectElement).value,
+    bench: shared.bench || "", rate_hz: String(askedRateHz()),
     history_s: String(historyS()),
   }), {
     onMessage,

@@ -3,6 +3,8 @@ kappa)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -42,6 +44,41 @@ def _prediction_bound(sizes: NDArray[np.float64], coverage: float = 0.95) -> flo
     ordered = np.sort(sizes)
     rank = min(int(np.ceil(coverage * (ordered.size + 1))), ordered.size)
     return float(ordered[rank - 1])
+
+
+@dataclass(frozen=True)
+class MisfitEnvelope:
+    """How large the misfit one axis is left with is expected to be at a pose: |plane| + scatter,
+    and the bound and RMS of the points' |misfit| relative to it."""
+
+    plane: list[float]  # a, b, c of a + b·X + c·Y (degrees, degrees per degree)
+    scatter_deg: float  # the misfit's RMS about the plane (n − 3 degrees of freedom)
+    score_p95: float
+    score_rms: float
+
+    def at(self, tilt_x: NDArray[np.float64], tilt_y: NDArray[np.float64]) -> NDArray[np.float64]:
+        a, b, c = self.plane
+        return np.abs(a + b * tilt_x + c * tilt_y) + self.scatter_deg
+
+
+def _misfit_envelope(
+    x: NDArray[np.float64], y: NDArray[np.float64], misfit: NDArray[np.float64]
+) -> MisfitEnvelope:
+    design = np.column_stack([np.ones_like(x), x, y])
+    plane = np.linalg.lstsq(design, misfit, rcond=None)[0]
+    left = misfit - design @ plane
+    scatter = float(np.sqrt(left @ left / max(misfit.size - 3, 1)))
+    shape = MisfitEnvelope([float(v) for v in plane], scatter, 1.0, 1.0)
+    envelope = shape.at(x, y)
+    if not np.all(envelope > 0):  # a misfit that is exactly a plane through zero: nothing left
+        envelope = np.maximum(envelope, np.finfo(float).tiny)
+    score = np.abs(misfit) / envelope
+    return MisfitEnvelope(
+        shape.plane,
+        scatter,
+        _prediction_bound(score),
+        float(np.sqrt(np.mean(score**2))),
+    )
 
 
 class CouplingMethod(StageMethod):
@@ -103,31 +140,26 @@ class CouplingMethod(StageMethod):
                 float(np.sqrt(np.mean(res[column] ** 2))) for column in ("meas_x_deg", "meas_y_deg")
             ]
             state["meas_dof"] = int(mx.size)  # an RMS over the points, nothing fitted
-            # the installation error left is a fixed function of the pose, not noise: U is a
-            # distribution-free 95 % bound on its size over the calibrated range (k × the RMS would
-            # hold every point)
-            state["meas_misfit_p95_deg"] = [
-                _prediction_bound(np.abs(res[column])) for column in ("meas_x_deg", "meas_y_deg")
-            ]
-            # beyond the calibrated range the misfit (installation errors: offsets and small
-            # rotations, near-linear in the tilt) keeps growing at its slope over the range
-            design = np.column_stack([np.ones_like(rx), rx, ry])
-            state["meas_misfit_slope"] = [
-                np.abs(np.linalg.lstsq(design, res[column], rcond=None)[0][1:]).tolist()
-                for column in ("meas_x_deg", "meas_y_deg")
-            ]
-            state["meas_misfit_range_deg"] = {
-                "x": [float(rx.min()), float(rx.max())],
-                "y": [float(ry.min()), float(ry.max())],
-            }
+            # the installation error left is a fixed function of the pose, not noise: near-linear
+            # in the tilt (offsets and small rotations), so its size follows an envelope over the
+            # pose, |a + b·X + c·Y| plus the scatter about that plane; U is a distribution-free
+            # 95 % bound on |misfit| / envelope over the points, times the envelope where a
+            # reading lies (one bound for the whole range would hold the middle and miss the edges)
+            envelopes = [_misfit_envelope(rx, ry, res[column]) for column in MEAS_COLUMNS]
+            state["meas_misfit_plane_deg"] = [e.plane for e in envelopes]
+            state["meas_misfit_scatter_deg"] = [e.scatter_deg for e in envelopes]
+            state["meas_misfit_score_p95"] = [e.score_p95 for e in envelopes]
+            state["meas_misfit_score_rms"] = [e.score_rms for e in envelopes]
             notes.append(
                 "this model cannot describe the measurement sensor: its H2-like step takes the "
                 "measurement reading as the table tilt (the model has no installation errors); "
-                "the meas_* residuals show what that leaves, and the expanded uncertainty is a "
-                "distribution-free 95 % bound on their size over the points, the "
-                "ceil(0.95 (n + 1))-th smallest, grown beyond the calibrated range at their slope "
-                "(the unmodelled installation error, a fixed function of the pose, taken as an "
-                "uncertainty, not a GUM propagation); the standard uncertainty is their RMS"
+                "the meas_* residuals show what that leaves; their size follows an envelope over "
+                "the pose (|a + b X + c Y| fitted to them, plus their scatter about that plane), "
+                "and the expanded uncertainty is the envelope times a distribution-free 95 % "
+                "bound on |residual| / envelope over the points (the ceil(0.95 (n + 1))-th "
+                "smallest), the standard uncertainty the envelope times their RMS: the unmodelled "
+                "installation error, a fixed function of the pose, taken as an uncertainty, not a "
+                "GUM propagation"
             )
             if (mn := mirror_note(sign)) is not None:
                 notes.append(f"{mn} ({how})")
@@ -157,10 +189,37 @@ class CouplingMethod(StageMethod):
         sign = np.asarray(model.state.get("meas_sign", [1.0, 1.0]), dtype=float)
         mx, my = columns(data, MEAS_COLUMNS)
         ux, uy = model.state.get("meas_misfit_rms_deg", [0.0, 0.0])
-        k = float(coverage_factor(meas_dof(model)))
-        # models made before the bound was kept: k × the RMS, as they were
-        px, py = model.state.get("meas_misfit_p95_deg", [k * ux, k * uy])
         tilt_x, tilt_y = sign[0] * mx, sign[1] * my
+        planes = model.state.get("meas_misfit_plane_deg")
+        if planes is not None:
+            envelopes = [
+                MisfitEnvelope(
+                    planes[axis],
+                    model.state["meas_misfit_scatter_deg"][axis],
+                    model.state["meas_misfit_score_p95"][axis],
+                    model.state["meas_misfit_score_rms"][axis],
+                )
+                for axis in (0, 1)
+            ]
+            at = [e.at(tilt_x, tilt_y) for e in envelopes]
+            # a misfit of exactly nothing (a bench the model represents, without noise): U = 0,
+            # its k the one of the points' degrees of freedom
+            ks = [
+                e.score_p95 / e.score_rms if e.score_rms > 0 else coverage_factor(meas_dof(model))
+                for e in envelopes
+            ]
+            return {
+                "tilt_x_deg": tilt_x,
+                "tilt_y_deg": tilt_y,
+                "u_tilt_x_deg": envelopes[0].score_p95 * at[0],
+                "u_tilt_y_deg": envelopes[1].score_p95 * at[1],
+                K_OUTPUTS[0]: np.full(mx.shape, float(ks[0])),
+                K_OUTPUTS[1]: np.full(my.shape, float(ks[1])),
+            }
+        k = float(coverage_factor(meas_dof(model)))
+        # models made before the envelope: one bound per axis grown beyond the range at the
+        # misfit's slope; before the bound, k × the RMS
+        px, py = model.state.get("meas_misfit_p95_deg", [k * ux, k * uy])
         expanded_x, expanded_y = np.full(mx.shape, px), np.full(my.shape, py)
         seen = model.state.get("meas_misfit_range_deg")
         slopes = model.state.get("meas_misfit_slope")
