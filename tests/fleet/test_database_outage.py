@@ -36,7 +36,9 @@ pytestmark = [pytest.mark.postgres]
 GRID = {"x_deg": [-1.0, 1.0], "y_deg": [-1.0, 1.0], "n_x": 3, "n_y": 3}
 SETTLE = {"tolerance_deg": 0.002, "window_s": 1.0, "timeout_s": 600.0}
 SAMPLES_PER_POINT = 6
-OUTAGE_LIMIT_S = 12  # TILTLAB_DB_OUTAGE_S of the daemon under test
+# TILTLAB_DB_OUTAGE_S of the daemon under test: well past the 10-s outage below, on a busy machine
+# too
+OUTAGE_LIMIT_S = 20
 
 
 @pytest.fixture
@@ -243,6 +245,14 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
             and away["database_outage"]["outage_limit_s"] == OUTAGE_LIMIT_S
         )
         assert away["database_outage"]["writes_waiting"] >= 1
+        # said inside the 10 s, so that the outage ends well before the limit however busy the
+        # machine
+        metrics = httpx.get(f"{url}/metrics", headers=auth, timeout=10)
+        assert metrics.status_code == 200 and "tiltlab_database_up 0.0" in metrics.text
+        unreadable = httpx.get(f"{url}/calibrations/{job_id}", headers=auth, timeout=10)
+        assert (
+            unreadable.status_code == 503 and unreadable.json()["title"] == "Database unreachable"
+        )
 
         def served_10_s_into_the_outage() -> bool:
             if time.monotonic() - cut_at >= 10:
@@ -257,12 +267,8 @@ def test_daemon_waits_through_an_outage_and_fails_a_job_only_past_the_limit(
             every_s=0.5,
             what="10 s of /tilt served through the outage",
         )
-        metrics = httpx.get(f"{url}/metrics", headers=auth, timeout=10)
-        assert metrics.status_code == 200 and "tiltlab_database_up 0.0" in metrics.text
-        unreadable = httpx.get(f"{url}/calibrations/{job_id}", headers=auth, timeout=10)
-        assert (
-            unreadable.status_code == 503 and unreadable.json()["title"] == "Database unreachable"
-        )
+        outage_s = time.monotonic() - cut_at
+        assert outage_s < OUTAGE_LIMIT_S - 2, f"the test's own outage ran {outage_s:.1f} s"
         proxy.restore()
 
         job = eventually(
