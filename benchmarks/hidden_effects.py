@@ -35,9 +35,12 @@ VARIANTS: dict[str, tuple[str, str]] = {
 
 # Designs as the daemon's jobs record them (a point is a mean of readings): "grid10" today's 9 x 9
 # job, 10 readings a point; "adaptive" the adaptive job at that job's U: its 4 x 4 spread of the
-# +-12 deg lattice and, the total readings being about the same, 81 x 10 / 16 ~ 50 readings a point.
-ADAPTIVE_SPREAD_DEG = (-12.0, -3.0, 3.0, 12.0)
-ADAPTIVE_READINGS = 50
+# +-12 deg lattice and, the total readings being about the same, 81 x 10 / 16 ~ 50 readings a point;
+# "adaptive3" the same on a 3 x 3 spread (81 x 10 / 9 = 90 readings a point).
+ADAPTIVE_DESIGNS: dict[str, tuple[tuple[float, ...], int]] = {
+    "adaptive": ((-12.0, -3.0, 3.0, 12.0), 50),
+    "adaptive3": ((-12.0, 0.0, 12.0), 90),
+}
 _MOUNTING = (
     "mounting_tilt",
     "sensor_yaw",
@@ -89,10 +92,9 @@ def bench_with_hidden(
     sc = base_scenario()
     sc["environment"] = dict(ENVIRONMENT)
     sc["grid"]["order"] = "random" if design == "random" else "serpentine"
-    # an adaptive record at the fixed 9 x 9 job's U: its 4 x 4 spread, each point a mean
-    if design == "adaptive":
-        # of ADAPTIVE_READINGS readings
-        sc["grid"]["x_deg"] = sc["grid"]["y_deg"] = list(ADAPTIVE_SPREAD_DEG)
+    # an adaptive record at the fixed 9 x 9 job's U: its spread, each point a mean of readings
+    if design in ADAPTIVE_DESIGNS:
+        sc["grid"]["x_deg"] = sc["grid"]["y_deg"] = list(ADAPTIVE_DESIGNS[design][0])
     rng = np.random.default_rng(10_000 + seed)
     if randomise_mounting:
         for e in _MOUNTING:
@@ -101,7 +103,7 @@ def bench_with_hidden(
     # sizes: multiples of one reading's noise, whatever the design
     sigma = noise_sigma_deg(sc, sensor)
     point_sigma = sigma
-    readings = {"adaptive": ADAPTIVE_READINGS, "grid10": 10}.get(design)
+    readings = {**{k: v[1] for k, v in ADAPTIVE_DESIGNS.items()}, "grid10": 10}.get(design)
     # the sensor's noise averages over a point's readings, the stage's repeatability does not
     if readings:
         n = sc["effects"]["noise"]

@@ -121,3 +121,24 @@ def test_where_says_what_a_metrologist_would_write():
     step = next(s for s in rep["steps"] if s["effect"] == "backlash")
     assert any("approach direction of the x stage" in w for w in step["evidence"]["where_before"])
     assert rep["where_final"][0].startswith("no structure left")
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_an_adaptive_record_still_shows_a_reference_quadratic_and_names_nothing_false(seed):
+    """The adaptive job's 4 x 4 spread of 50-reading means (docs/discrepancy.md, "Records made
+    adaptively"): the x quadratic it still sees, and nothing it does not hold."""
+    rep, hb = run({"sensor_nonlinearity": 5.0}, seed, "kinematic", "adaptive")
+    assert len(hb.columns["ref_x_deg"]) == 16
+    assert "sensor_nonlinearity" in rep["named_effects"]
+    assert not others(rep, {"sensor_nonlinearity": 5.0})
+
+
+def test_a_size_the_bench_description_cannot_hold_is_said_not_run():
+    """A time drift that would change a nine-point record by 5 x noise is faster than a bench
+    allows: the sweep says so instead of failing or counting a miss as a run."""
+    from benchmarks.sweep_discrepancy import one_run
+
+    row = one_run(
+        {"hidden": {"time_drift": 5.0}, "seed": 0, "design": "adaptive3", "baseline": "kinematic"}
+    )
+    assert "time_drift" in row["unrepresentable"] and row["hit"] is False
