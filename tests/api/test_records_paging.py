@@ -1,7 +1,11 @@
 """`GET /records` pages, and reading every page in a loop does not hold `/tilt` hostage: with 2,000
 records (each with its model, as a job stores it), `/tilt` answers every request while a client
-reads page after page, and its p99 then stays within 3x of its p99 idle in the same run. The pages
+reads page after page, and its p99 then stays within 10x of its p99 idle in the same run. The pages
 are made and serialised in a request thread, never on the event loop.
+
+Why 10x: pages made on the event loop held `/tilt`'s p99 at 66x its idle figure (231 ms against
+3.5 ms); with them in a thread it is 2-3x, and a whole suite run beside two busy loops reached 3.09x.
+The bound sits between the fault and the machine's scheduling noise.
 
 Idle and busy are measured in turns (three of each), so a load that comes and goes on the machine
 falls on both. The reading client runs at a lower CPU priority (nice 5): a LIMS runs on a machine
@@ -143,4 +147,4 @@ def test_records_page_and_reading_them_all_leaves_tilt_alone(
         f"{busy99 * 1e3:.2f} ms ({busy99 / base99:.2f}x; {sum(read)} records read in {TURNS} turns)"
     )
     print(figures)  # every /tilt answered 200 while reading: _tilt_latencies asserts it
-    assert busy99 <= 3 * base99, figures
+    assert busy99 <= 10 * base99, figures
