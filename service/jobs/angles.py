@@ -188,11 +188,16 @@ async def measure_angle(ctx: JobContext, proc: AngleProcedure, index: int, angle
     t0 = await settle(
         bench, settle_roles, tolerance_deg=tol, window_s=st.window_s, timeout_s=st.timeout_s
     )
+    # a role read but not settled (the ADC beside the reference): readings are stamped when their
+    # answer is parsed, so one asked during the move can arrive after t0 on a lagging line; only
+    # those asked after its sync mark count
+    unsettled = tuple(role for role in proc.read_roles if role not in settle_roles)
+    after = max(t0, await bench.sync(unsettled)) if unsettled else t0
     n = ctx.request.samples_per_point
     timeout = max(5.0, 20 * n * max(bench.output_interval_s(role) for role in proc.read_roles))
     got = await asyncio.gather(
         *(
-            fresh_readings(bench, role, n, after_bench_s=t0, timeout_s=timeout)
+            fresh_readings(bench, role, n, after_bench_s=after, timeout_s=timeout)
             for role in proc.read_roles
         )
     )

@@ -54,7 +54,11 @@ def test_diagnose_from_the_dashboard_and_adopt(daemon):
         try:
             page = browser.new_page(bypass_csp=True, viewport={"width": 1280, "height": 900})
             page.goto(f"{base}/#token={h['Authorization'].split()[1]}")
+            # the page knows its bench (its first answers are in) before it is used, as a person
+            # sees the header before clicking
+            expect(page.locator("body")).to_have_attribute("data-bench", "sim-stage", timeout=T)
             page.get_by_role("tab", name="Records").click()
+            expect(page.locator("#view-records")).to_be_visible(timeout=T)
             page.locator(f"#records tr[data-id='{rec_id}']").click()
             expect(page.locator("#record-detail")).to_have_attribute(
                 "data-id", str(rec_id), timeout=T

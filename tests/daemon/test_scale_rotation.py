@@ -8,6 +8,7 @@ import json
 import numpy as np
 
 from service import cli
+from service.storage.samples import job_samples
 from tests.helpers.daemon import admin_headers, make_client, wait_job
 
 
@@ -75,6 +76,43 @@ def test_scale_job_against_the_reference_sensor(daemon, tmp_path):
     )
     job = wait_job(client, r.json()["id"], h)
     assert job["state"] == "failed" and "end of its range" in job["error"], job
+
+
+def test_a_scale_job_counts_only_adc_readings_asked_at_the_point(daemon):
+    """Readings are stamped when their answer is parsed. With every ADC answer leaving 0.2 s late (4
+    bench seconds at 20x, longer than the reference takes to settle), an answer asked during the
+    approach from below arrives after the reference settled: the job reads the ADC only after a
+    mark of its own, so the points are those of the present pose, within the sensor's noise."""
+    client, h = daemon
+    client.app.state.bench.sim.faults("adc_sensor").slow(0.2, answers=100_000)
+    r = client.post(
+        "/calibrations",
+        headers=h,
+        json={
+            "procedure": "scale",
+            "method": "poly1",
+            "grid": {"range_deg": [-0.2, 0.7], "n": 5},
+            "samples_per_point": 4,
+            "validation": {"n_points": 2},
+        },
+    )
+    assert r.status_code == 202, r.text
+    job = wait_job(client, r.json()["id"], h)
+    assert job["state"] == "succeeded", job["error"]
+    # 4 x 10 conversions a point: well inside one conversion's noise (25 counts, 22 arcsec)
+    assert job["validation"]["rms_deg"] * 3600 < 22, job["validation"]
+    # every ADC sample of a point of the same pose: a mean of 10 conversions scatters by about 8
+    # counts, while the approach 0.1 deg below is some 400 counts away (or the end of the range)
+    adc = client.app.state.bench.device_ids["adc_sensor"]
+    store = client.app.state.store
+    with store.engine.connect() as conn:
+        samples = [x for x in job_samples(conn, job["id"]) if x.device_id == adc]
+    by_point: dict[int, list[float]] = {}
+    for sample in samples:
+        by_point.setdefault(sample.point or 0, []).append(sample.ch_x)
+    assert len(by_point) == 7
+    spread = {point: max(xs) - min(xs) for point, xs in by_point.items()}
+    assert max(spread.values()) < 80, spread
 
 
 def test_rotation_job_on_the_rotary_bench(tmp_path):
