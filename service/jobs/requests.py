@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -82,19 +83,28 @@ Count = Annotated[int, BeforeValidator(_whole), Strict()]
 DbId = Annotated[int, BeforeValidator(_whole), Strict(), Field(ge=1, le=DB_ID_MAX)]
 
 
+@dataclass(frozen=True)
 class _StatedPattern:
-    """States the text rule in the JSON Schema as a pattern (checked by `_printable`, whose message
-    says where)."""
+    """States a text rule in the JSON Schema as a pattern (checked by a validator of its own, whose
+    message says where)."""
+
+    pattern: str = TEXT_PATTERN
 
     def __get_pydantic_json_schema__(
         self, core_schema: Any, handler: GetJsonSchemaHandler
     ) -> JsonSchemaValue:
         schema = handler(core_schema)
-        schema["pattern"] = TEXT_PATTERN
+        schema["pattern"] = self.pattern
         return schema
 
 
 Text = Annotated[str, AfterValidator(_printable), _StatedPattern()]
+# One line that says something (a person's name or function): no control character at all, tab and
+# line breaks included, and not only blanks, as service.storage.tokens checks it
+_LINE_CONTROL = CONTROL_CHARACTERS + r"\x09\x0a\x0d"
+# (the lookahead: a pattern's "$" in Python also matches before a final line break)
+LINE_PATTERN = f"^(?!.*\\n)[^{_LINE_CONTROL}]*[^\\s{_LINE_CONTROL}][^{_LINE_CONTROL}]*$"
+Line = Annotated[str, AfterValidator(_printable), _StatedPattern(LINE_PATTERN)]
 
 
 class RequestBody(BaseModel):

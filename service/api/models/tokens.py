@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from service.api.models.base import Answer
-from service.jobs.requests import RequestBody, Text
+from service.jobs.requests import Line, RequestBody
 from service.storage.tokens import SCOPES, TOKEN_NAME
 
 Scope = Literal["read", "operate", "admin"]
@@ -16,7 +16,7 @@ Scope = Literal["read", "operate", "admin"]
 
 class PersonIn(RequestBody):
     name: Annotated[
-        Text,
+        Line,
         Field(
             min_length=1,
             max_length=200,
@@ -26,7 +26,7 @@ class PersonIn(RequestBody):
     ]
     function: (
         Annotated[
-            Text,
+            Line,
             Field(
                 min_length=1,
                 max_length=200,
