@@ -98,11 +98,6 @@ def main() -> None:
     )
     ap.add_argument("--scenarios", nargs="+", default=["seed000", "seed000-worm", "seed000-slow"])
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
-    ap.add_argument(
-        "--skip-procedure",
-        action="store_true",
-        help="leave out seed 000's procedure (the fixed and adaptive jobs only)",
-    )
     args = ap.parse_args()
     results: dict[str, Any] = {}
     print(
@@ -128,24 +123,15 @@ def main() -> None:
                     "samples_per_point": 10,
                     "validation": {"n_points": 8},
                 }
-                seed000 = (
-                    {"state": "not run", "bench_seconds": None}
-                    if args.skip_procedure
-                    else run_job(
-                        client,
-                        h,
-                        {
-                            **base,
-                            "settle": {
-                                "tolerance_deg": 0.002,
-                                "window_s": 10.0,
-                                "timeout_s": 600.0,
-                            },
-                        },
-                    )
+                seed000 = run_job(
+                    client,
+                    h,
+                    {
+                        **base,
+                        "settle": {"tolerance_deg": 0.002, "window_s": 10.0, "timeout_s": 600.0},
+                    },
                 )
-                if not args.skip_procedure:
-                    print(row(f"{name}: seed 000 procedure (20 s settling)", seed000), flush=True)
+                print(row(f"{name}: seed 000 procedure (20 s settling)", seed000), flush=True)
                 fixed = run_job(client, h, base)
                 print(row(f"{name}: fixed 9 x 9 job", fixed), flush=True)
                 target = (fixed.get("validation") or {}).get("predicted_expanded_uncertainty_deg")
@@ -186,14 +172,10 @@ def main() -> None:
     for name, r in results.items():
         a, f = r["adaptive"]["bench_seconds"], r["fixed"]["bench_seconds"]
         if a and f:
-            procedure = r["seed000_procedure"]["bench_seconds"]
             print(
-                f"{name}: adaptive / fixed 9 x 9 bench time = {a['total'] / f['total']:.2f}"
-                + (
-                    f"; seed 000 procedure / fixed = {procedure['total'] / f['total']:.2f}"
-                    if procedure
-                    else ""
-                )
+                f"{name}: adaptive / fixed 9 x 9 bench time = {a['total'] / f['total']:.2f}; "
+                "seed 000 procedure / fixed = "
+                f"{r['seed000_procedure']['bench_seconds']['total'] / f['total']:.2f}"
             )
     if args.json:
         for r in results.values():

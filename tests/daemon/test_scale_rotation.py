@@ -41,21 +41,27 @@ def _reproduces(client, h, rec_id, kind, method, tmp_path):
     return model
 
 
-def test_scale_job_against_the_reference_sensor(daemon, tmp_path):
-    client, h = daemon
+def _scale_job(client, h, method: str, range_deg: list[float], n: int, **body) -> dict:
+    """A scale job on the daemon's stage bench, once it ended."""
     r = client.post(
         "/calibrations",
         headers=h,
         json={
             "procedure": "scale",
-            "method": "poly3",
-            "grid": {"range_deg": [-0.2, 0.7], "n": 9},
-            "samples_per_point": 6,
-            "validation": {"n_points": 3},
+            "method": method,
+            "grid": {"range_deg": range_deg, "n": n},
+            **body,
         },
     )
     assert r.status_code == 202, r.text
-    job = wait_job(client, r.json()["id"], h)
+    return wait_job(client, r.json()["id"], h)
+
+
+def test_scale_job_against_the_reference_sensor(daemon, tmp_path):
+    client, h = daemon
+    job = _scale_job(
+        client, h, "poly3", [-0.2, 0.7], 9, samples_per_point=6, validation={"n_points": 3}
+    )
     assert job["state"] == "succeeded", job["error"]
     assert job["validation"]["n_points"] == 3
     # the ADC sensor read through its record agrees with the reference within the sensor's noise of
@@ -64,17 +70,7 @@ def test_scale_job_against_the_reference_sensor(daemon, tmp_path):
     assert job["validation"]["rms_deg"] * 3600 < 22, job["validation"]
     _reproduces(client, h, job["record"]["id"], "scale", "poly3", tmp_path)
     # a grid reaching beyond the sensor's range fails, saying so
-    r = client.post(
-        "/calibrations",
-        headers=h,
-        json={
-            "procedure": "scale",
-            "method": "poly1",
-            "grid": {"range_deg": [-0.6, 0.6], "n": 5},
-            "samples_per_point": 3,
-        },
-    )
-    job = wait_job(client, r.json()["id"], h)
+    job = _scale_job(client, h, "poly1", [-0.6, 0.6], 5, samples_per_point=3)
     assert job["state"] == "failed" and "end of its range" in job["error"], job
 
 
@@ -85,19 +81,9 @@ def test_a_scale_job_counts_only_adc_readings_asked_at_the_point(daemon):
     mark of its own, so the points are those of the present pose, within the sensor's noise."""
     client, h = daemon
     client.app.state.bench.sim.faults("adc_sensor").slow(0.2, answers=100_000)
-    r = client.post(
-        "/calibrations",
-        headers=h,
-        json={
-            "procedure": "scale",
-            "method": "poly1",
-            "grid": {"range_deg": [-0.2, 0.7], "n": 5},
-            "samples_per_point": 4,
-            "validation": {"n_points": 2},
-        },
+    job = _scale_job(
+        client, h, "poly1", [-0.2, 0.7], 5, samples_per_point=4, validation={"n_points": 2}
     )
-    assert r.status_code == 202, r.text
-    job = wait_job(client, r.json()["id"], h)
     assert job["state"] == "succeeded", job["error"]
     # 4 x 10 conversions a point: well inside one conversion's noise (25 counts, 22 arcsec)
     assert job["validation"]["rms_deg"] * 3600 < 22, job["validation"]

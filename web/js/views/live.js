@@ -123,7 +123,7 @@ function onMessage(m) {
     addReading(m);
     live.snapshots += 1;
     live.calibration = m.calibration;
-    const speed = shared.benches.find((b) => b.name === m.bench)?.simulated?.speed || 1;
+    const speed = simulationSpeed(m.bench);
     const shown = isNum(m.rate_hz) ? `${m.rate_hz.toFixed(1)} Hz` : "? Hz";
     setText("stream-state", `${m.bench}, ${shown}${speed !== 1 && isNum(m.rate_hz) ? ` of bench time (${speed}× speed: ${(m.rate_hz * speed).toFixed(0)} a second)` : ""}`);
   } else if (m.type === "reading") {
@@ -157,8 +157,12 @@ const MAX_MESSAGES_PER_REAL_S = 50;
 /** The rate to ask, in bench Hz: the one chosen, at most MAX_MESSAGES_PER_REAL_S a real second. */
 function askedRateHz() {
   const chosen = Number(byIdAs("rate", HTMLSelectElement).value);
-  const speed = shared.benches.find((b) => b.name === shared.bench)?.simulated?.speed || 1;
-  return Math.min(chosen, MAX_MESSAGES_PER_REAL_S / speed);
+  return Math.min(chosen, MAX_MESSAGES_PER_REAL_S / simulationSpeed(shared.bench));
+}
+
+/** How many times faster than the clock a bench runs (1: a real bench, or not known yet). @param {string | null | undefined} name */
+function simulationSpeed(name) {
+  return shared.benches.find((b) => b.name === name)?.simulated?.speed || 1;
 }
 
 export function openReadings() {
