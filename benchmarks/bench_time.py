@@ -67,7 +67,12 @@ def run_job(client: TestClient, h: dict[str, str], body: dict[str, Any]) -> dict
         if job["state"] in ("succeeded", "failed", "cancelled"):
             break
         time.sleep(0.5)
-    out = {"state": job["state"], "error": job["error"], "bench_seconds": job["bench_seconds"]}
+    out = {
+        "id": job_id,
+        "state": job["state"],
+        "error": job["error"],
+        "bench_seconds": job["bench_seconds"],
+    }
     if job["record"]:
         out["validation"] = client.get(f"/records/{job['record']['id']}", headers=h).json()[
             "validation"

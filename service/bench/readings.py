@@ -6,6 +6,8 @@ Outlier rule, stated once: a sample whose modified z-score |0.6745 (v - median) 
 
 from __future__ import annotations
 
+import asyncio
+import math
 import time
 from dataclasses import dataclass
 
@@ -16,6 +18,8 @@ from service.instruments.base import Reading
 
 OUTLIER_Z = 3.5
 OUTLIER_RULE = "modified z-score |0.6745 (v - median) / MAD| > 3.5 on any channel rejects a sample"
+# a sensor whose readings do not vary at all (quantised) is taken as this noisy
+MIN_NOISE_DEG = 1e-6
 
 
 def channels(r: Reading) -> tuple[float, ...]:
@@ -191,14 +195,23 @@ def _poll_interval_s(bench: BenchRuntime, roles: tuple[str, ...]) -> float:
 
 
 async def settle_statistical(
-    bench: BenchRuntime, roles: tuple[str, ...], noise_deg: dict[str, float], *, timeout_s: float
+    bench: BenchRuntime,
+    roles: tuple[str, ...],
+    noise_deg: dict[str, float],
+    *,
+    timeout_s: float,
+    since_bench_s: float | None = None,
 ) -> float:
     """Wait until every role's readings since the call pass the statistical settling test
     (service.bench.settled) against its reading noise `noise_deg[role]`; returns the bench time of
     the reading at which the last of them passed. `timeout_s` is bench time (a transient is bench
     physics); past it, TimeoutError names the roles still moving. DeviceNotAnswering as soon as one
-    is not connected."""
-    start = await bench.sync(roles)
+    is not connected.
+
+    With `since_bench_s` (the stage's stop) the test takes the readings kept since then, as if it
+    had watched from the stop: the test's blocks grow with the time since the move, and a test
+    begun late, with short blocks, would not see what is left of a slow sensor's transient."""
+    start = await bench.sync(roles) if since_bench_s is None else since_bench_s
     history: dict[str, list[Reading]] = {role: [] for role in roles}
     passed: dict[str, float] = {}
     checked = dict.fromkeys(roles, 0)
@@ -217,6 +230,32 @@ async def settle_statistical(
         if _past_timeout(bench, history, start, timeout_s, waited_from):
             raise _not_settled(roles, passed, noise_deg, timeout_s)
         await bench.clock.sleep(_poll_interval_s(bench, roles))
+
+
+async def probe_reading_noise(
+    bench: BenchRuntime, roles: tuple[str, ...], n: int, *, after_bench_s: float, timeout_s: float
+) -> dict[str, float]:
+    """Each role's reading noise (deg, the larger of its channels) from its next `n` readings after
+    `after_bench_s`: the standard deviation of successive differences over √2, which a transient
+    still decaying slowly under the readings hardly touches (their plain spread would take it for
+    noise). At least MIN_NOISE_DEG (a sensor whose quantised readings do not vary)."""
+    got = await asyncio.gather(
+        *(
+            fresh_readings(bench, role, n, after_bench_s=after_bench_s, timeout_s=timeout_s)
+            for role in roles
+        )
+    )
+    return {
+        role: noise_of_successive_differences([channels(x) for x in readings])
+        for role, readings in zip(roles, got, strict=True)
+    }
+
+
+def noise_of_successive_differences(values: list[tuple[float, ...]]) -> float:
+    """One reading's noise (the larger of the channels) from readings in time order: the standard
+    deviation of their successive differences over √2, insensitive to a slow trend under them."""
+    steps = np.diff(np.array(values, dtype=float), axis=0)
+    return max(float(steps.std(axis=0, ddof=1).max()) / math.sqrt(2.0), MIN_NOISE_DEG)
 
 
 def _not_settled(

@@ -1,8 +1,10 @@
 """An adaptive stage-grid job: the target expanded uncertainty of the correction in the least bench
 time.
 
-1. The first point of the spread grid is read with the request's settle rule and NOISE_READINGS
-   readings: its spread is each sensor's reading noise.
+1. The first point of the spread grid waits for the request's settle rule, probes the reading
+   noise from successive differences, settles by the statistical test against it (the request's
+   rule, a fixed tolerance, stops well inside a slow sensor's transient) and is read
+   NOISE_READINGS times: its spread is each sensor's reading noise.
 2. The plan (service.calibration.adaptive_design) chooses the points and the readings at each from
    that noise; a target the bench cannot reach fails the job naming the best it can.
 3. Every other point settles by the statistical test against that noise and is read as planned.
@@ -24,6 +26,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from service.bench.readings import MIN_NOISE_DEG
 from service.bench.runtime import BenchRuntime
 from service.calibration.adaptive_design import (
     CAP_READINGS,
@@ -68,8 +71,6 @@ from service.storage.store.hashing import SettledPointFields
 MIN_TOP_UP = MIN_READINGS
 # readings of the first point, whose spread is the reading noise the plan starts from
 NOISE_READINGS = 20
-# a sensor whose readings do not vary at all (quantised) is taken as this noisy
-MIN_NOISE_DEG = 1e-6
 
 
 def _noise_of(settled: dict[int, SettledPointFields], devices: dict[str, int]) -> dict[str, float]:
@@ -255,7 +256,7 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     total_guess = len(spread) + len(val_pts)
     await ctx.report(0, total_guess, Phase.MEASURING)
     first = spread[0]
-    settled = await measure_stage_point(ctx, 0, *first, n=NOISE_READINGS)
+    settled = await measure_stage_point(ctx, 0, *first, n=NOISE_READINGS, probe_noise=True)
     noise = _noise_of(settled, devices)
     plan = _plan(ctx, noise, fixed_u, target)
     measured, held = await _measure_plan(ctx, plan, first, noise, val_pts)

@@ -18,7 +18,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.bench.readings import fresh_readings, robust_mean, settle, settle_statistical
+from service.bench.readings import (
+    fresh_readings,
+    probe_reading_noise,
+    robust_mean,
+    settle,
+    settle_statistical,
+)
 from service.bench.runtime import BenchRuntime, StageNotHomed
 from service.calibration.adaptive_design import short_tour
 from service.calibration.methods.stage import reference
@@ -52,6 +58,8 @@ log = logging.getLogger("tiltlab.jobs")
 MAX_CANDIDATES = 41 * 41
 APPROACH_DEG = 0.1  # every point is approached from this far below on both axes
 SENSORS = ("reference_sensor", "measurement_sensor")
+# readings whose successive differences give the noise a point without one settles against
+NOISE_PROBE_READINGS = 20
 
 StagePoint = tuple[float, float]
 
@@ -269,14 +277,24 @@ async def measure_stage_point(
     *,
     n: int | None = None,
     noise_deg: dict[str, float] | None = None,
+    probe_noise: bool = False,
 ) -> dict[int, SettledPointFields]:
     """Approach a stage point from the given side of each stage (+1 from below, -1 from above),
     settle both sensors, read, and store the point's samples and settled means (returned by device
     id). `n` readings (the request's samples_per_point by default); with `noise_deg` (each role's
-    reading noise) settling ends by the statistical test, else by the request's settle rule."""
-    point = await read_stage_point(ctx, index, x, y, dir_x, dir_y, n=n, noise_deg=noise_deg)
+    reading noise) settling ends by the statistical test, else by the request's settle rule, and
+    with `probe_noise` then by the statistical test against the noise probed once that rule passed
+    (a point that must settle properly before any noise is known)."""
+    point = await read_stage_point(
+        ctx, index, x, y, dir_x, dir_y, n=n, noise_deg=noise_deg, probe_noise=probe_noise
+    )
     await store_stage_point(ctx, point)
     return point.settled
+
+
+def _read_timeout(bench: BenchRuntime, n: int) -> float:
+    """Bench seconds `n` readings of a sensor may need: 20 output intervals each, 5 s at least."""
+    return max(5.0, 20 * n * max(bench.output_interval_s(role) for role in SENSORS))
 
 
 async def store_stage_point(ctx: JobContext, point: MeasuredPoint) -> None:
@@ -294,6 +312,7 @@ async def read_stage_point(
     *,
     n: int | None = None,
     noise_deg: dict[str, float] | None = None,
+    probe_noise: bool = False,
 ) -> MeasuredPoint:
     """`measure_stage_point` without the storing: the point as it would be stored under `index`."""
     bench, req = ctx.bench, ctx.request
@@ -324,8 +343,19 @@ async def read_stage_point(
             window_s=req.settle.window_s,
             timeout_s=req.settle.timeout_s,
         )
+        if probe_noise:
+            probed = await probe_reading_noise(
+                bench,
+                SENSORS,
+                NOISE_PROBE_READINGS,
+                after_bench_s=t0,
+                timeout_s=_read_timeout(bench, NOISE_PROBE_READINGS),
+            )
+            t0 = await settle_statistical(
+                bench, SENSORS, probed, timeout_s=req.settle.timeout_s, since_bench_s=stood
+            )
     n = req.samples_per_point if n is None else n
-    timeout = max(5.0, 20 * n * max(bench.output_interval_s(role) for role in SENSORS))
+    timeout = _read_timeout(bench, n)
     got = await asyncio.gather(
         *(fresh_readings(bench, role, n, after_bench_s=t0, timeout_s=timeout) for role in SENSORS)
     )

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from service.bench.readings import MIN_NOISE_DEG, noise_of_successive_differences
 from service.bench.settled import BLOCK, SettleTest
 from service.physics.settling import Move, Settling, move_transient_deg
 
@@ -52,3 +53,19 @@ def test_a_bench_without_settling_ends_at_once(seed):
     n = SettleTest(SIGMA).settled_after(read)
     # three blocks, a few more readings when the noise says so
     assert n is not None and n <= 3 * BLOCK + 8
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_noise_probed_under_a_slow_transient_is_the_reading_noise(seed):
+    """A point that has no reading noise yet probes it from 20 readings taken while a 1.5 s
+    transient still decays under them (20 x the noise left, 8 x the noise of it gone within the 20
+    readings): their successive differences give the noise (within 0.5-1.7 of it: the 0.1 and 99.9
+    percentiles of 2,000 draws are 0.50 and 1.62), where their plain spread takes the trend for
+    noise (at least 1.98 x it in the same draws)."""
+    t, truth, read = _step(Settling(sensor_time_constant_s=1.5), seed, span_s=40.0)
+    start = int(np.argmax(np.abs(truth) < 20 * SIGMA))
+    values = read[start : start + 20]
+    probed = noise_of_successive_differences([(float(v),) for v in values])
+    assert 0.5 * SIGMA < probed < 1.7 * SIGMA, probed
+    assert np.std(values, ddof=1) > 1.9 * SIGMA
+    assert noise_of_successive_differences([(1.0,)] * 20) == MIN_NOISE_DEG

@@ -201,6 +201,9 @@ class StageWorld:
         # jitter) (by stand, the last few: a reader that took its stand's key just before a move
         # ended must not make the present stand draw again)
         self._stands: OrderedDict[tuple[object, ...], tuple[float, float]] = OrderedDict()
+        # truth a bench never shows: what the settling transient added to the readings, (bench
+        # times, stage x, stage y), kept only when a benchmark sets a list here
+        self.transient_log: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         travel = self.bench.travel_deg
         self.axes: dict[int, Axis] = {}
         for n, pulse in ((1, self.bench.pulse_x_deg), (2, self.bench.pulse_y_deg)):
@@ -332,6 +335,9 @@ class StageWorld:
         for n in (1, 2):
             moves = recent(self.settling, self.axes[n].recent_moves, float(at[0]))
             out.append(transient_deg(self.settling, moves, at) if moves else 0.0)
+        if self.transient_log is not None:
+            x_deg, y_deg = (np.broadcast_to(part, at.shape).astype(float) for part in out)
+            self.transient_log.append((at, x_deg, y_deg))
         return out[0], out[1]
 
     @staticmethod
