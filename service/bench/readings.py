@@ -10,10 +10,12 @@ import asyncio
 import math
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from service.bench.runtime import BenchRuntime, DeviceNotAnswering
+from service.bench.settled import BLOCK, SettleTest
 from service.instruments.base import Reading
 
 OUTLIER_Z = 3.5
@@ -194,6 +196,14 @@ def _poll_interval_s(bench: BenchRuntime, roles: tuple[str, ...]) -> float:
     return min(bench.output_interval_s(role) for role in roles) / 2
 
 
+class Settled(NamedTuple):
+    """Where the statistical settling test passed: the bench time of the reading, and the longest
+    block (readings) a role passed with (how long a transient this sensor takes to show)."""
+
+    bench_s: float
+    block: int
+
+
 async def settle_statistical(
     bench: BenchRuntime,
     roles: tuple[str, ...],
@@ -201,10 +211,12 @@ async def settle_statistical(
     *,
     timeout_s: float,
     since_bench_s: float | None = None,
-) -> float:
+    block: int = BLOCK,
+) -> Settled:
     """Wait until every role's readings since the call pass the statistical settling test
-    (service.bench.settled) against its reading noise `noise_deg[role]`; returns the bench time of
-    the reading at which the last of them passed. `timeout_s` is bench time (a transient is bench
+    (service.bench.settled, its blocks at least `block` readings) against its reading noise
+    `noise_deg[role]`; returns the bench time of the reading at which the last of them passed, and
+    the longest block a role passed with. `timeout_s` is bench time (a transient is bench
     physics); past it, TimeoutError names the roles still moving. DeviceNotAnswering as soon as one
     is not connected.
 
@@ -214,19 +226,22 @@ async def settle_statistical(
     start = await bench.sync(roles) if since_bench_s is None else since_bench_s
     history: dict[str, list[Reading]] = {role: [] for role in roles}
     passed: dict[str, float] = {}
+    blocks: list[int] = []
     checked = dict.fromkeys(roles, 0)
     waited_from = time.monotonic()
+    test = {role: SettleTest(noise_deg[role], block=block) for role in roles}
     while True:
         for role in roles:
             held = history[role]
             _gather(bench, role, held, start)
             if role not in passed and held:
-                settled_s = _settled_at(noise_deg[role], held, checked[role])
+                n = test[role].settled_after([channels(x) for x in held], checked[role])
                 checked[role] = len(held)
-                if settled_s is not None:
-                    passed[role] = settled_s
+                if n is not None:
+                    passed[role] = held[n - 1].bench_s
+                    blocks.append(test[role].block_at(n))
         if len(passed) == len(roles):
-            return max(passed.values())
+            return Settled(max(passed.values()), max(blocks))
         if _past_timeout(bench, history, start, timeout_s, waited_from):
             raise _not_settled(roles, passed, noise_deg, timeout_s)
         await bench.clock.sleep(_poll_interval_s(bench, roles))
@@ -267,15 +282,6 @@ def _not_settled(
         f"readings of {', '.join(moving)} did not settle within the reading noise "
         f"({', '.join(f'{noise_deg[role]:.2g} deg' for role in moving)}) in {timeout_s:g} s"
     )
-
-
-def _settled_at(noise_deg: float, held: list[Reading], checked: int) -> float | None:
-    """The bench time of the reading at which `held` passes the statistical settling test (its
-    first `checked` readings were tested before), or None while it does not."""
-    from service.bench.settled import SettleTest
-
-    n = SettleTest(noise_deg).settled_after([channels(x) for x in held], checked)
-    return None if n is None else held[n - 1].bench_s
 
 
 def _past_timeout(

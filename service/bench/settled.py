@@ -7,6 +7,9 @@ the means of each of the two before it by less than `z` standard errors of a blo
 every channel, σ being the reading noise (known from an earlier point at rest). While a transient
 decays, the block means walk away from each other and the test fails; once what is left of it is
 within the noise, it passes. On a bench without settling it passes after three blocks of `block`.
+A small transient of a slow sensor (a short move) would pass on short blocks that cannot see it: a
+job raises `block` to half the block its longest transient so far passed with (the sensor's
+slowness, learnt where it showed).
 The rule is pure (arrays in, a count out) so it is tested on recorded steps.
 """
 
@@ -35,6 +38,10 @@ class SettleTest:
     def threshold(self, k: int) -> float:
         return self.z * self.noise_deg / float(np.sqrt(k))
 
+    def block_at(self, n: int) -> int:
+        """The block (readings) the test uses after `n` readings: `block`, or n / 12 once longer."""
+        return max(self.block, n // 12)
+
     def settled_after(self, values: ArrayLike, checked: int = 0) -> int | None:
         """The number of readings (from the first after the move) after which the test first passes,
         or None. `values` is (n,) or (n, channels); counts up to `checked` are known not to pass (an
@@ -43,7 +50,7 @@ class SettleTest:
         if samples.ndim == 1:
             samples = samples[:, None]
         for end in range(max(3 * self.block, checked + 1), samples.shape[0] + 1):
-            k = max(self.block, end // 12)
+            k = self.block_at(end)
             m3 = samples[end - k : end].mean(axis=0)
             m2 = samples[end - 2 * k : end - k].mean(axis=0)
             m1 = samples[end - 3 * k : end - 2 * k].mean(axis=0)

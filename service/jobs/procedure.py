@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from service import __version__
 from service.bench.readings import OUTLIER_RULE
 from service.bench.runtime import BenchRuntime
+from service.bench.settled import BLOCK
 from service.calibration.adaptive_design import AdaptivePlanJSON
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import FitOptions, Method, get_method
@@ -200,6 +201,14 @@ class Outcome:
     bench_seconds: dict[str, float] | None = None
 
 
+@dataclasses.dataclass
+class SettleMemory:
+    """The shortest block (readings) of the statistical settling test at a job's next point: half
+    the block the longest transient so far passed with (service.bench.settled)."""
+
+    block: int = BLOCK
+
+
 @dataclass(frozen=True)
 class JobContext:
     """A running job as a procedure sees it."""
@@ -216,6 +225,8 @@ class JobContext:
     db: Callable[..., Awaitable[Any]]
     # counted by the procedure as it moves, settles, reads
     bench_time: BenchTime = dataclasses.field(default_factory=BenchTime)
+    # what the statistical settling test has learnt of the bench's sensors during the job
+    settling: SettleMemory = dataclasses.field(default_factory=SettleMemory)
 
     @property
     def job_id(self) -> int:

@@ -292,6 +292,23 @@ async def measure_stage_point(
     return point.settled
 
 
+async def _settle_statistically(
+    ctx: JobContext, noise_deg: dict[str, float], *, since_bench_s: float | None
+) -> float:
+    """The statistical settling test at a point, its blocks at least the job's `settling.block`,
+    which it then raises to half the block this point passed with."""
+    settled = await settle_statistical(
+        ctx.bench,
+        SENSORS,
+        noise_deg,
+        timeout_s=ctx.request.settle.timeout_s,
+        since_bench_s=since_bench_s,
+        block=ctx.settling.block,
+    )
+    ctx.settling.block = max(ctx.settling.block, settled.block // 2)
+    return settled.bench_s
+
+
 def _read_timeout(bench: BenchRuntime, n: int) -> float:
     """Bench seconds `n` readings of a sensor may need: 20 output intervals each, 5 s at least."""
     return max(5.0, 20 * n * max(bench.output_interval_s(role) for role in SENSORS))
@@ -334,7 +351,7 @@ async def read_stage_point(
     # sped-up bench, that latency would count as bench seconds of moving)
     stood = bench.stopped_bench_s
     if noise_deg is not None:
-        t0 = await settle_statistical(bench, SENSORS, noise_deg, timeout_s=req.settle.timeout_s)
+        t0 = await _settle_statistically(ctx, noise_deg, since_bench_s=None)
     else:
         t0 = await settle(
             bench,
@@ -351,9 +368,7 @@ async def read_stage_point(
                 after_bench_s=t0,
                 timeout_s=_read_timeout(bench, NOISE_PROBE_READINGS),
             )
-            t0 = await settle_statistical(
-                bench, SENSORS, probed, timeout_s=req.settle.timeout_s, since_bench_s=stood
-            )
+            t0 = await _settle_statistically(ctx, probed, since_bench_s=stood)
     n = req.samples_per_point if n is None else n
     timeout = _read_timeout(bench, n)
     got = await asyncio.gather(

@@ -69,3 +69,26 @@ def test_noise_probed_under_a_slow_transient_is_the_reading_noise(seed):
     assert 0.5 * SIGMA < probed < 1.7 * SIGMA, probed
     assert np.std(values, ddof=1) > 1.9 * SIGMA
     assert noise_of_successive_differences([(1.0,)] * 20) == MIN_NOISE_DEG
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_slow_sensors_small_transient_needs_the_blocks_its_large_one_passed_with(seed):
+    """After a short move (0.02 deg) a 1.5 s sensor's transient is small: blocks of 4 readings
+    (0.16 s) cannot see it decay and pass while some 4 x the noise is left. A job raises the
+    shortest block to half the block the test passed with after a large move (8 deg, where the
+    blocks had grown with the wait), and the small transient then passes within the noise. Over
+    1,000 draws: short blocks left at least 2.3 x the noise in a point's 30 readings, the raised
+    ones at most 0.81 x the noise when passing and 0.55 x it in the point."""
+    st = Settling(1.5, 0.002, 2.5, 1.0)
+    t_big, truth_big, read_big = _step(st, 100 + seed, delta=8.0, duration=0.8, span_s=40.0)
+    test = SettleTest(SIGMA)
+    learnt = test.block_at(test.settled_after(read_big) or 0) // 2
+    assert learnt > 2 * BLOCK
+    t, truth, read = _step(st, seed, delta=0.02, duration=0.002, span_s=40.0)
+    short = SettleTest(SIGMA).settled_after(read)
+    floored = SettleTest(SIGMA, block=learnt).settled_after(read)
+    assert short is not None and floored is not None
+    # what is left when each passes, and over the 30 readings a point then takes
+    assert np.abs(truth[short : short + 30]).mean() > 2 * SIGMA
+    assert np.all(np.abs(truth[floored - 1 :]) < SIGMA)
+    assert np.abs(truth[floored : floored + 30]).mean() < 0.75 * SIGMA
