@@ -5,7 +5,13 @@ import json
 import subprocess
 import sys
 
-from service.calibration.adaptive_design import BenchNoise, Design, lattice
+from service.calibration.adaptive_design import (
+    PLAN_MARGINS,
+    BenchNoise,
+    Design,
+    lattice,
+    top_up_probability,
+)
 from service.scenarios.model import load_scenario
 from service.scenarios.plan import scenario_noise
 
@@ -18,11 +24,11 @@ def test_plan_prints_points_readings_bench_time_and_predicted_u():
     r = tiltlab("plan", "--scenario", "seed000", "--target", "0.0006", "--json")
     assert r.returncode == 0, r.stderr
     plan = json.loads(r.stdout)
-    assert (
-        plan["predicted_expanded_uncertainty_deg"]
-        <= 0.0006
-        < 1.2 * plan["predicted_expanded_uncertainty_deg"]
-    )
+    # it aims below the target by the margin whose readings and top-up risk cost least
+    predicted = plan["predicted_expanded_uncertainty_deg"]
+    assert predicted <= plan["aimed_expanded_uncertainty_deg"] * (1 + 1e-9)
+    assert min(PLAN_MARGINS) * 0.0006 <= plan["aimed_expanded_uncertainty_deg"] < 0.0006
+    assert plan["top_up_probability"] == top_up_probability(predicted / 0.0006, len(plan["points"]))
     assert len(plan["points"]) >= 16 and len(plan["readings"]) == len(plan["points"])
     assert plan["expected_bench_seconds"] > 0
     # the prediction is the planner's formula on the scenario's noise: recomputed here from the

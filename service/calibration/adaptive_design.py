@@ -30,6 +30,7 @@ from typing import TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 
 from service.calibration.methods.stage.common import MEAS_PARAMS, meas_forward
 
@@ -37,8 +38,11 @@ K_EXPANDED = 2.0  # coverage factor of the expanded uncertainty (95 %, many degr
 MIN_READINGS = 5
 CAP_READINGS = 200  # at most this many readings at one point
 MIN_GRID = 4  # the spread grid: min_grid x min_grid points over the range
-# the plan aims at this share of the target (the fit's estimate of the noise scatters about 15 %)
-PLAN_MARGIN = 0.85
+# the shares of the target a plan may aim at (the fit's own estimate of the noise scatters, and a
+# fit above the target costs a top-up pass): the one with the least expected bench time is chosen
+PLAN_MARGINS = (0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9)
+# readings of the job's first point, whose spread (each sensor's) is the noise a plan starts from
+NOISE_READINGS = 20
 EVAL_GRID = 13  # the range is evaluated on this lattice per axis
 
 
@@ -89,7 +93,8 @@ class BenchNoise:
 class AdaptivePlanJSON(TypedDict):
     """An adaptive plan as a record's validation keeps it: the points (table tilts, degrees) and
     readings at each, the predicted, target and floor expanded uncertainties (degrees), the expected
-    bench seconds and the criterion (degrees squared)."""
+    bench seconds and the criterion (degrees squared), the expanded uncertainty aimed at and the
+    probability that the fit then predicts more than the target (a top-up pass)."""
 
     points: list[list[float]]
     readings: list[int]
@@ -98,6 +103,8 @@ class AdaptivePlanJSON(TypedDict):
     floor_expanded_uncertainty_deg: float
     expected_bench_seconds: float
     criterion_mean_variance_deg2: float
+    aimed_expanded_uncertainty_deg: float
+    top_up_probability: float
 
 
 @dataclass
@@ -110,9 +117,13 @@ class AdaptivePlan:
     target_deg: float
     floor_deg: float  # every candidate at the cap
     notes: list[str] = field(default_factory=list)
+    margin: float = 1.0  # the share of the target the plan aims at
+    top_up_probability: float = 0.0  # that the fit then predicts more than the target
 
     def as_json(self) -> AdaptivePlanJSON:
         return {
+            "aimed_expanded_uncertainty_deg": self.margin * self.target_deg,
+            "top_up_probability": self.top_up_probability,
             "points": [list(point) for point in self.points],
             "readings": self.readings,
             "predicted_expanded_uncertainty_deg": self.predicted_u_deg,
@@ -338,6 +349,7 @@ def plan_adaptive(
     noise: BenchNoise,
     times: BenchTimes = BenchTimes(),
     min_grid: int = MIN_GRID,
+    margins: tuple[float, ...] = PLAN_MARGINS,
 ) -> AdaptivePlan:
     """The adaptive plan over the candidate lattice n_x x n_y of the range; TargetUnreachable when
     even the floor (every candidate at the cap) is above the target, or the fixed components alone
@@ -345,7 +357,9 @@ def plan_adaptive(
 
     The fit weighs every point alike (its point means are fitted unweighted), so every chosen point
     is read the same number of times n: the n at which the point's share of the variance brings the
-    predicted U to PLAN_MARGIN x the target. Points are added greedily, each time the candidate that
+    predicted U to a margin x the target. Of the `margins`, the plan whose bench time, a top-up
+    pass weighed by its probability (`top_up_probability`), is least: a low margin costs readings,
+    a high one a likely second pass. Points are added greedily, each time the candidate that
     most lowers the mean predicted variance over the range (the criterion), as long as the n it
     saves at every point is worth more bench time than the point costs (a move, settling, its
     readings); and while n would exceed the cap.
@@ -370,10 +384,29 @@ def plan_adaptive(
             f"{noise.ref_sigma_deg:.2g} deg a reading), every one of the "
             f"{cand.shape[0]} candidate points read {CAP_READINGS} times",
         )
+    options = [
+        _plan_at(design, cand, margin, (x_deg, y_deg, n_x, n_y, min_grid), target_deg, best, times)
+        for margin in margins
+    ]
+    # a top-up pass reads the plan's points again: about the plan's bench time once more
+    return min(options, key=lambda plan: plan.bench_seconds * (1.0 + plan.top_up_probability))
+
+
+def _plan_at(
+    design: Design,
+    cand: NDArray[np.float64],
+    margin: float,
+    grid: tuple[tuple[float, float], tuple[float, float], int, int, int],
+    target_deg: float,
+    best: float,
+    times: BenchTimes,
+) -> AdaptivePlan:
+    """The plan that aims at `margin` x the target, with the probability of its top-up."""
+    x_deg, y_deg, n_x, n_y, min_grid = grid
+    noise = design.noise
     chosen = np.zeros(cand.shape[0], dtype=bool)
     chosen[spread_indices(n_x, n_y, min_grid)] = True
-    # the fit's own estimate of the noise scatters: aim a little below
-    aim = PLAN_MARGIN * target_deg
+    aim = margin * target_deg
 
     def n_for(mask: NDArray[np.bool_]) -> float:
         variance = design.variances(mask.astype(float))
@@ -405,25 +438,46 @@ def plan_adaptive(
     n_int = int(min(math.ceil(n), CAP_READINGS))
     idx = np.nonzero(chosen)[0]
     order = serpentine([(float(cand[i, 0]), float(cand[i, 1])) for i in idx])
-    readings = [n_int] * len(order)
     counts = chosen.astype(float) * n_int
-    seconds = _tour_seconds((x_deg[0], y_deg[0]), order, n_int, times)
+    predicted = design.expanded_u(counts)
     return AdaptivePlan(
         order,
-        readings,
-        design.expanded_u(counts),
+        [n_int] * len(order),
+        predicted,
         design.criterion(counts),
-        seconds,
+        _tour_seconds((x_deg[0], y_deg[0]), order, n_int, times),
         target_deg,
         best,
         [
             (
                 f"{len(order)} points ({min_grid} x {min_grid} spread for the diagnosis, the "
                 "rest chosen for the mean predicted variance of the corrected tilt over the "
-                f"range), {n_int} readings each"
+                f"range), {n_int} readings each, aimed at {margin:g} x the target"
             )
         ],
+        margin,
+        top_up_probability(predicted / target_deg, len(order)),
     )
+
+
+def top_up_probability(share: float, n_points: int, noise_readings: int = NOISE_READINGS) -> float:
+    """The probability that a fit of `n_points` points predicts more than the target when the plan
+    predicts `share` x it from a noise estimated on `noise_readings` readings of each sensor.
+
+    The fit estimates each axis's residual variance on n − p/2 degrees of freedom (p the
+    measurement sensor's parameters, service.calibration.methods.stage.chain) and states the larger
+    axis's; the plan's noise has 2 (noise_readings − 1). So the fit's prediction over the plan's is
+    √(max(X₁, X₂) / D), X ~ χ²(a)/a per axis, D ~ χ²(b)/b: it exceeds 1/share with
+    1 − E_D[F_a(D a / share²)²]."""
+    if share <= 0.0:
+        return 0.0
+    a = max(n_points - len(MEAS_PARAMS) / 2.0, 1.0)
+    b = 2.0 * max(noise_readings - 1, 1)
+    q = 1.0 / share**2
+    d = np.linspace(1e-6, 6.0, 4001)
+    weight = stats.chi2.pdf(d * b, b) * b
+    below = np.trapezoid(stats.chi2.cdf(q * d * a, a) ** 2 * weight, d)
+    return float(min(max(1.0 - below, 0.0), 1.0))
 
 
 def _best_addition(

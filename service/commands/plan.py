@@ -73,6 +73,10 @@ def run(args: argparse.Namespace) -> int:
         f"{len(plan.points)} points, {plan.readings[0]} readings each; expected bench time "
         f"{plan.bench_seconds:.0f} s (fit points; validation points come on top)"
     )
+    print(
+        f"aimed at {plan.margin:g} x the target: the fit predicts more than the target, and the "
+        f"job reads the points again, with probability {plan.top_up_probability:.2f}"
+    )
     print("order  x_deg    y_deg    readings")
     for i, ((x, y), n) in enumerate(zip(plan.points, plan.readings), 1):
         print(f"{i:5d}  {x:7.3f}  {y:7.3f}  {n:8d}")

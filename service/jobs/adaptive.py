@@ -32,7 +32,7 @@ from service.calibration.adaptive_design import (
     CAP_READINGS,
     K_EXPANDED,
     MIN_READINGS,
-    PLAN_MARGIN,
+    NOISE_READINGS,
     AdaptivePlan,
     AdaptivePlanJSON,
     BenchNoise,
@@ -69,8 +69,6 @@ from service.storage.models import SettledPoint
 from service.storage.store.hashing import SettledPointFields
 
 MIN_TOP_UP = MIN_READINGS
-# readings of the first point, whose spread is the reading noise the plan starts from
-NOISE_READINGS = 20
 
 
 def _noise_of(settled: dict[int, SettledPointFields], devices: dict[str, int]) -> dict[str, float]:
@@ -103,8 +101,9 @@ def _range(ctx: JobContext) -> tuple[tuple[float, float], tuple[float, float], i
 def _plan(ctx: JobContext, noise: dict[str, float], fixed_u: float, target: float) -> AdaptivePlan:
     x_rng, y_rng, n_x, n_y = _range(ctx)
     bench = ctx.bench
-    points_so_far = max(1, len(ctx.job.parameters.get("fit_points", [])))
-    settle_s = max(ctx.bench_time.settling / points_so_far, 0.2)
+    # what the first point (the only one measured when the plan is made) took to settle: what a
+    # stand costs on this bench (a slow sensor's long settling makes a second pass dear)
+    settle_s = max(ctx.bench_time.settling, 0.2)
     times = BenchTimes(
         settle_s=settle_s,
         output_rate_hz=1.0 / max(bench.output_interval_s("measurement_sensor"), 1e-3),
@@ -383,7 +382,7 @@ def _top_up_readings(plan: AdaptivePlan, predicted: float, target: float) -> int
     # points)
     extra = max(
         MIN_TOP_UP,
-        math.ceil(plan.readings[0] * ((predicted / (PLAN_MARGIN * target)) ** 2 - 1.0)),
+        math.ceil(plan.readings[0] * ((predicted / (plan.margin * target)) ** 2 - 1.0)),
     )
     return min(extra, CAP_READINGS)
 
