@@ -4,7 +4,8 @@ time.
 1. The first point of the spread grid waits for the request's settle rule, probes the reading
    noise from successive differences, settles by the statistical test against it (the request's
    rule, a fixed tolerance, stops well inside a slow sensor's transient) and is read
-   NOISE_READINGS times: its spread is each sensor's reading noise.
+   NOISE_READINGS times: its spread is each sensor's reading noise. Once the plan says how often a
+   point is read, the first point is read that often (the stage still stands there) and stored.
 2. The plan (service.calibration.adaptive_design) chooses the points and the readings at each from
    that noise; a target the bench cannot reach fails the job naming the best it can.
 3. Every other point settles by the statistical test against that noise and is read as planned.
@@ -62,6 +63,7 @@ from service.jobs.stage_grid import (
     MeasuredPoint,
     StageGrid,
     measure_stage_point,
+    read_more,
     read_stage_point,
     store_stage_point,
 )
@@ -255,9 +257,12 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     total_guess = len(spread) + len(val_pts)
     await ctx.report(0, total_guess, Phase.MEASURING)
     first = spread[0]
-    settled = await measure_stage_point(ctx, 0, *first, n=NOISE_READINGS, probe_noise=True)
-    noise = _noise_of(settled, devices)
+    probe = await read_stage_point(ctx, 0, *first, n=NOISE_READINGS, probe_noise=True)
+    noise = _noise_of(probe.settled, devices)
     plan = _plan(ctx, noise, fixed_u, target)
+    # read as often as every other point of the plan (the fit weighs point means alike: a point
+    # read less would scatter more than the plan assumed), where the stage still stands
+    await store_stage_point(ctx, await read_more(ctx, probe, plan.readings[0] - NOISE_READINGS))
     measured, held = await _measure_plan(ctx, plan, first, noise, val_pts)
     method = get_method("stage", job.method)
     rounds: list[AdaptivePlanJSON | TopUp] = [plan.as_json()]

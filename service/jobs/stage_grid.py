@@ -32,6 +32,7 @@ from service.calibration.model import CalibrationModel, table_tilt_range
 from service.calibration.registry import FitOptions, Method, get_method
 from service.calibration.uncertainty import COVERAGE
 from service.errors import InputError
+from service.instruments.base import Reading
 from service.instruments.transport import DeviceError
 from service.jobs.grid_checks import check_stage_grid
 from service.jobs.points import store_point
@@ -256,6 +257,9 @@ class MeasuredPoint:
     index: int
     samples: list[Sample]
     settled: dict[int, SettledPointFields]
+    # what they were made from: each sensor's readings (SENSORS' order) and the stage's command
+    readings: tuple[list[Reading], ...] = ()
+    command_deg: tuple[float, float] = (0.0, 0.0)
 
     def numbered(self, index: int) -> MeasuredPoint:
         """The same point stored under another index (a point measured on the way, numbered when
@@ -264,6 +268,8 @@ class MeasuredPoint:
             index,
             [sample._replace(point=index) for sample in self.samples],
             {device: {**fields, "point": index} for device, fields in self.settled.items()},
+            self.readings,
+            self.command_deg,
         )
 
 
@@ -379,6 +385,38 @@ async def read_stage_point(
         settling=t0 - stood,
         reading=max(reading.bench_s for readings in got for reading in readings) - t0,
     )
+    return _point_of(ctx, index, (cx, cy), tuple(got))
+
+
+async def read_more(ctx: JobContext, point: MeasuredPoint, n: int) -> MeasuredPoint:
+    """`point` with `n` more readings of each sensor, taken where the stage still stands (the
+    readings that follow its last ones): a point read before the job knew how often to read it."""
+    if n <= 0:
+        return point
+    bench = ctx.bench
+    last = max(reading.bench_s for readings in point.readings for reading in readings)
+    more = await asyncio.gather(
+        *(
+            fresh_readings(bench, role, n, after_bench_s=last, timeout_s=_read_timeout(bench, n))
+            for role in SENSORS
+        )
+    )
+    newest = max(reading.bench_s for readings in more for reading in readings)
+    ctx.bench_time.add(reading=newest - last)
+    return _point_of(
+        ctx,
+        point.index,
+        point.command_deg,
+        tuple(old + new for old, new in zip(point.readings, more, strict=True)),
+    )
+
+
+def _point_of(
+    ctx: JobContext, index: int, command_deg: tuple[float, float], got: tuple[list[Reading], ...]
+) -> MeasuredPoint:
+    """The point as stored under `index`: each sensor's raw samples and settled means."""
+    bench = ctx.bench
+    cx, cy = command_deg
     to_epoch = bench_epoch(bench)
     rows: list[Sample] = []
     settled: dict[int, SettledPointFields] = {}
@@ -414,7 +452,7 @@ async def read_stage_point(
             "ch_z_std": None,
             "temp_c_mean": averaged.temp_c,
         }
-    return MeasuredPoint(index, rows, settled)
+    return MeasuredPoint(index, rows, settled, got, command_deg)
 
 
 def stage_validation(method: Method, model: CalibrationModel, cols: Columns) -> RecordValidation:

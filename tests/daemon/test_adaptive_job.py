@@ -9,7 +9,7 @@ import pytest
 
 from tests.helpers.daemon import admin_headers, make_client, wait_job
 
-TARGET_DEG = 0.0012
+TARGET_DEG = 0.0006
 BODY = {
     "procedure": "stage-grid",
     "method": "kinematic",
@@ -100,3 +100,21 @@ def test_validation_points_are_measured_on_the_way_and_numbered_after_the_fit_po
     # outlier rule set some aside)
     used = [row.n_samples for i in validation for row in by_index[i]]
     assert all(0.8 * BODY["samples_per_point"] <= n <= BODY["samples_per_point"] for n in used)
+
+
+def test_the_first_point_is_read_as_often_as_the_plan_reads_every_point(adaptive):
+    # read 20 times for the noise the plan starts from, then as often as the plan says where the
+    # stage still stands: the fit weighs point means alike, and a point read less would scatter
+    # more than the plan assumed
+    job, record, _, points = adaptive
+    planned = record["validation"]["plan"][0]["readings"][0]
+    assert planned > 20, planned  # the target asks for more than the noise's 20 readings
+    first = [row for row in points if row.point == 0]
+    assert len(first) == 2
+    # fewer only where the outlier rule set some aside
+    assert all(0.9 * planned <= row.n_samples <= planned for row in first), (
+        planned,
+        [row.n_samples for row in first],
+    )
+    # and in one stand: its readings follow each other without a gap for a move
+    assert all(row.t_end_s - row.t_start_s < 60 for row in first)
