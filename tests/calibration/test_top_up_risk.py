@@ -1,5 +1,5 @@
-"""The adaptive plan's margin: how far below the target it aims, chosen for the least bench time with
-the risk of a top-up pass weighed in. The probability of that pass is checked against draws of what
+"""The adaptive plan's margin: how far below the target it aims, chosen for the least bench time
+with the risk of a top-up pass weighed in. The probability of that pass is checked against draws of what
 the fit does (each axis's residual variance on its own degrees of freedom, the larger one stated,
 against a plan whose noise came from the first point's readings), not against its own formula."""
 
