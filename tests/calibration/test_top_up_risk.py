@@ -1,7 +1,8 @@
 """The adaptive plan's margin: how far below the target it aims, chosen for the least bench time
-with the risk of a top-up pass weighed in. The probability of that pass is checked against draws of what
-the fit does (each axis's residual variance on its own degrees of freedom, the larger one stated,
-against a plan whose noise came from the first point's readings), not against its own formula."""
+with the risk of a top-up pass weighed in. The probability of that pass is checked against draws
+of what the fit does (each axis's residual variance on its own degrees of freedom, the larger one
+stated, against a plan whose noise came from the first point's readings), not against its own
+formula."""
 
 from __future__ import annotations
 
