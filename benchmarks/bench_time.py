@@ -22,9 +22,11 @@ simulated clock's (docs/api.md, "Bench time").
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +58,34 @@ def scenario_file(name: str, folder: Path) -> str:
     path = folder / "seed000-slow.json"
     path.write_text(json.dumps(data))
     return str(path)
+
+
+# every job here: kinematic over +-12 deg, 10 readings a point, 8 validation points
+BASE_JOB: dict[str, Any] = {
+    "procedure": "stage-grid",
+    "method": "kinematic",
+    "grid": GRID,
+    "samples_per_point": 10,
+    "validation": {"n_points": 8},
+}
+
+
+@contextlib.contextmanager
+def daemon_on(name: str, speed: float) -> Iterator[tuple[TestClient, dict[str, str], str]]:
+    """An in-process daemon on the scenario `name` (a preset, or seed000-slow), sped up `speed`
+    times, in a data directory of its own: its client, admin headers and the scenario's path."""
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        path = scenario_file(name, folder)
+        settings = Settings(
+            data_dir=folder, sim_speed=speed, sim_transport="loopback", bench_scenario=path
+        )
+        with TestClient(create_app(settings)) as client:
+            yield (
+                client,
+                {"Authorization": "Bearer " + (folder / "admin.token").read_text().strip()},
+                path,
+            )
 
 
 def run_job(client: TestClient, h: dict[str, str], body: dict[str, Any]) -> dict[str, Any]:
@@ -111,68 +141,53 @@ def main() -> None:
     )
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for name in args.scenarios:
-        with tempfile.TemporaryDirectory() as tmp:
-            folder = Path(tmp)
-            settings = Settings(
-                data_dir=folder,
-                sim_speed=args.speed,
-                sim_transport="loopback",
-                bench_scenario=scenario_file(name, folder),
+        with daemon_on(name, args.speed) as (client, h, _):
+            base = BASE_JOB
+            seed000 = run_job(
+                client,
+                h,
+                {
+                    **base,
+                    "settle": {"tolerance_deg": 0.002, "window_s": 10.0, "timeout_s": 600.0},
+                },
             )
-            with TestClient(create_app(settings)) as client:
-                h = {"Authorization": "Bearer " + (folder / "admin.token").read_text().strip()}
-                base = {
-                    "procedure": "stage-grid",
-                    "method": "kinematic",
-                    "grid": GRID,
-                    "samples_per_point": 10,
-                    "validation": {"n_points": 8},
-                }
-                seed000 = run_job(
+            print(row(f"{name}: seed 000 procedure (20 s settling)", seed000), flush=True)
+            fixed = run_job(client, h, base)
+            print(row(f"{name}: fixed 9 x 9 job", fixed), flush=True)
+            target = (fixed.get("validation") or {}).get("predicted_expanded_uncertainty_deg")
+            adaptive = (
+                run_job(
                     client,
                     h,
                     {
                         **base,
-                        "settle": {"tolerance_deg": 0.002, "window_s": 10.0, "timeout_s": 600.0},
+                        "design": "adaptive",
+                        "target_expanded_uncertainty_deg": round(float(target), 6),
                     },
                 )
-                print(row(f"{name}: seed 000 procedure (20 s settling)", seed000), flush=True)
-                fixed = run_job(client, h, base)
-                print(row(f"{name}: fixed 9 x 9 job", fixed), flush=True)
-                target = (fixed.get("validation") or {}).get("predicted_expanded_uncertainty_deg")
-                adaptive = (
-                    run_job(
-                        client,
-                        h,
-                        {
-                            **base,
-                            "design": "adaptive",
-                            "target_expanded_uncertainty_deg": round(float(target), 6),
-                        },
-                    )
-                    if target
-                    else {"state": "not run", "bench_seconds": None}
-                )
-                print(
-                    row(
-                        f"{name}: adaptive, target {target:.5f}" if target else f"{name}: adaptive",
-                        adaptive,
-                    ),
-                    flush=True,
-                )
-                for label, res in (
-                    ("seed 000 procedure", seed000),
-                    ("fixed", fixed),
-                    ("adaptive", adaptive),
-                ):
-                    if res.get("error"):
-                        print(f"  {name} {label} error: {res['error']}", flush=True)
-                results[name] = {
-                    "seed000_procedure": seed000,
-                    "fixed": fixed,
-                    "adaptive": adaptive,
-                    "target": target,
-                }
+                if target
+                else {"state": "not run", "bench_seconds": None}
+            )
+            print(
+                row(
+                    f"{name}: adaptive, target {target:.5f}" if target else f"{name}: adaptive",
+                    adaptive,
+                ),
+                flush=True,
+            )
+            for label, res in (
+                ("seed 000 procedure", seed000),
+                ("fixed", fixed),
+                ("adaptive", adaptive),
+            ):
+                if res.get("error"):
+                    print(f"  {name} {label} error: {res['error']}", flush=True)
+            results[name] = {
+                "seed000_procedure": seed000,
+                "fixed": fixed,
+                "adaptive": adaptive,
+                "target": target,
+            }
     print()
     for name, r in results.items():
         a, f = r["adaptive"]["bench_seconds"], r["fixed"]["bench_seconds"]

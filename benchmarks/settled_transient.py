@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -32,11 +31,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_time import GRID, run_job, scenario_file  # noqa: E402
-from fastapi.testclient import TestClient  # noqa: E402
+from bench_time import BASE_JOB, daemon_on, run_job  # noqa: E402
 
-from service.api.app import create_app  # noqa: E402
-from service.config import Settings  # noqa: E402
 from service.reproduce.settled_transient import transient_in_points  # noqa: E402
 from service.scenarios import parse_scenario  # noqa: E402
 from service.scenarios.model import StageScenario, scenario_data  # noqa: E402
@@ -56,65 +52,47 @@ def main() -> None:
     )
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for name in args.scenarios:
-        with tempfile.TemporaryDirectory() as tmp:
-            folder = Path(tmp)
-            path = scenario_file(name, folder)
+        with daemon_on(name, args.speed) as (client, h, path):
             scenario = parse_scenario(*scenario_data(path))
             assert isinstance(scenario, StageScenario), name
             noise = scenario_noise(scenario)
-            settings = Settings(
-                data_dir=folder,
-                sim_speed=args.speed,
-                sim_transport="loopback",
-                bench_scenario=path,
-            )
-            with TestClient(create_app(settings)) as client:
-                h = {"Authorization": "Bearer " + (folder / "admin.token").read_text().strip()}
-                world = client.app.state.bench.sim.world  # type: ignore[attr-defined]
-                base = {
-                    "procedure": "stage-grid",
-                    "method": "kinematic",
-                    "grid": GRID,
-                    "samples_per_point": 10,
-                    "validation": {"n_points": 8},
-                }
-                strict = {**base, "settle": STRICT_SETTLE}
-                target = None
-                for label, body in (
-                    ("fixed 9 x 9, default settle rule", base),
-                    ("fixed 9 x 9, 2 s windows within 0.0005 deg", strict),
-                    ("adaptive", None),
-                ):
-                    if body is None:
-                        if target is None:
-                            continue
-                        label = f"adaptive, target {target:.5f}"
-                        body = {
-                            **base,
-                            "design": "adaptive",
-                            "target_expanded_uncertainty_deg": round(float(target), 6),
-                        }
-                    log: list[Any] = []
-                    world.transient_log = log
-                    res = run_job(client, h, body)
-                    world.transient_log = None
+            world = client.app.state.bench.sim.world  # type: ignore[attr-defined]
+            base = BASE_JOB
+            strict = {**base, "settle": STRICT_SETTLE}
+            target = None
+            for label, body in (
+                ("fixed 9 x 9, default settle rule", base),
+                ("fixed 9 x 9, 2 s windows within 0.0005 deg", strict),
+                ("adaptive", None),
+            ):
+                if body is None:
                     if target is None:
-                        target = (res.get("validation") or {}).get(
-                            "predicted_expanded_uncertainty_deg"
-                        )
-                    bias, counts = transient_in_points(client.app, res["id"], log)
-                    standard_error = noise.ref_sigma_deg / np.sqrt(counts)
-                    above = (np.abs(bias).max(axis=1) > standard_error).mean()
-                    rms = np.sqrt((bias**2).mean(axis=0))
-                    largest = np.abs(bias).max(axis=0)
-                    b = res["bench_seconds"] or {}
-                    print(
-                        f"| {name}: {label} | {res['state']} | {b.get('total', 0):.0f} | "
-                        f"{b.get('settling', 0):.0f} | {len(counts)} | {counts.mean():.0f} | "
-                        f"{rms[0]:.1e} / {rms[1]:.1e} | {largest[0]:.1e} / {largest[1]:.1e} | "
-                        f"{above * 100:.0f} % |",
-                        flush=True,
-                    )
+                        continue
+                    label = f"adaptive, target {target:.5f}"
+                    body = {
+                        **base,
+                        "design": "adaptive",
+                        "target_expanded_uncertainty_deg": round(float(target), 6),
+                    }
+                log: list[Any] = []
+                world.transient_log = log
+                res = run_job(client, h, body)
+                world.transient_log = None
+                if target is None:
+                    target = (res.get("validation") or {}).get("predicted_expanded_uncertainty_deg")
+                bias, counts = transient_in_points(client.app, res["id"], log)
+                standard_error = noise.ref_sigma_deg / np.sqrt(counts)
+                above = (np.abs(bias).max(axis=1) > standard_error).mean()
+                rms = np.sqrt((bias**2).mean(axis=0))
+                largest = np.abs(bias).max(axis=0)
+                b = res["bench_seconds"] or {}
+                print(
+                    f"| {name}: {label} | {res['state']} | {b.get('total', 0):.0f} | "
+                    f"{b.get('settling', 0):.0f} | {len(counts)} | {counts.mean():.0f} | "
+                    f"{rms[0]:.1e} / {rms[1]:.1e} | {largest[0]:.1e} / {largest[1]:.1e} | "
+                    f"{above * 100:.0f} % |",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":
