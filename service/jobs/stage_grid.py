@@ -258,8 +258,8 @@ class MeasuredPoint:
     samples: list[Sample]
     settled: dict[int, SettledPointFields]
     # what they were made from: each sensor's readings (SENSORS' order) and the stage's command
-    readings: tuple[list[Reading], ...] = ()
-    command_deg: tuple[float, float] = (0.0, 0.0)
+    readings: tuple[list[Reading], ...]
+    command_deg: tuple[float, float]
 
     def numbered(self, index: int) -> MeasuredPoint:
         """The same point stored under another index (a point measured on the way, numbered when

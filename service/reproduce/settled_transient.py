@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from service.jobs.procedure import bench_epoch
 from service.storage.samples import job_samples
 
 TransientLog = list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]
@@ -24,10 +25,10 @@ def transient_in_points(
     """Per stored point of the job (in point order): the transient (stage x, stage y, deg) averaged
     over the role's stored readings of it, and how many readings that is. Samples are stamped in
     POSIX seconds from bench seconds (service.jobs.procedure.bench_epoch); the same mapping taken
-    back here, to within a millisecond of real time."""
+    back here."""
     bench = app.state.bench
     clock = bench.clock
-    epoch = clock.utc().timestamp() - clock.real_seconds(clock.monotonic())
+    epoch = bench_epoch(bench)(0.0)  # POSIX seconds of bench second 0
     at = np.concatenate([entry[0] for entry in log])
     order = np.argsort(at, kind="stable")
     at = at[order]
