@@ -9,7 +9,10 @@ validation points whose true value lies within the stated U (95 %), its Wilson 9
 the number of points and rms(error / U) (about 0.51 for an honest U at k ≈ 1.96). Definitions
 in service/reproduce/coverage.py. The daemon path (GET /tilt, one reading and `average_s`) with
 `--daemon N`: N calibrations per bench, each on a fresh in-process daemon, 60 stands each (about a
-minute per calibration); `--daemon N --only daemon` runs only those rows.
+minute per calibration); `--daemon N --only daemon` runs only those rows. The averaged tilt over
+many calibrations, made by the daemon's own chain without lines and clock
+(service/reproduce/averaged_coverage.py), with `--averaged N`: N calibrations per bench, 5 stands
+each (about 20 s per 300 calibrations); `--averaged N --only averaged` runs only those rows.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from service.instruments.sim.world import stage_scenario  # noqa: E402
+from service.reproduce.averaged_coverage import averaged_rows  # noqa: E402
 from service.reproduce.coverage import Row, daemon_rows, offline_cases  # noqa: E402
 
 
@@ -66,6 +71,20 @@ def main() -> int:
         help="also the daemon path: N calibrations per bench",
     )
     ap.add_argument(
+        "--averaged",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also the averaged tilt over N calibrations per bench by the daemon's chain",
+    )
+    ap.add_argument(
+        "--stands",
+        type=int,
+        default=5,
+        help="with --averaged: stands per calibration (default 5)",
+    )
+    ap.add_argument("--seed", type=int, default=0, help="with --averaged: the first seed")
+    ap.add_argument(
         "--summary",
         action="store_true",
         help="rotation: one row per case (worst angle named) instead of one per angle",
@@ -76,7 +95,7 @@ def main() -> int:
     print("| kind | method | scenario | axis | coverage | interval | points | rms(e/U) |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for name, case in offline_cases(n):
-        if args.only and args.only not in name:
+        if args.only in ("daemon", "averaged") or (args.only and args.only not in name):
             continue
         t0 = time.perf_counter()
         rows = case()
@@ -97,6 +116,12 @@ def main() -> int:
         for r in daemon_rows(args.daemon, each=one_calibration):
             print(line(r))
         print(f"  (daemon: {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    if args.averaged:
+        t0 = time.perf_counter()
+        benches = [(name, stage_scenario(name)) for name in ("seed000", "rough")]
+        for r in averaged_rows(benches, args.averaged, args.stands, seed=args.seed):
+            print(line(r))
+        print(f"  (averaged: {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
     return 0
 
 

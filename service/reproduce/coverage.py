@@ -58,7 +58,9 @@ class Row:
         return wilson(self.hits, self.n)
 
 
-class _Tally:
+class Tally:
+    """Hits, points and the sum of (error / U)² per axis, added up over realisations."""
+
     def __init__(self) -> None:
         self.hits: dict[str, int] = {}
         self.n: dict[str, int] = {}
@@ -107,7 +109,7 @@ def stage_coverage(
     m = get_method("stage", method)
     tx, ty = paper_grid()
     pick = np.linspace(0, tx.size - 1, min(points, tx.size)).round().astype(int)
-    tally = _Tally()
+    tally = Tally()
     for k in range(realisations):
         seed = seed0 + k
         run = run_scenario(sc, seed=seed)
@@ -134,7 +136,7 @@ def rotation_coverage(method: str, preset: str, realisations: int, seed0: int = 
     sweep."""
     sc = load_scenario(preset)
     m = get_method("rotation", method)
-    tally = _Tally()
+    tally = Tally()
     for k in range(realisations):
         cal = run_scenario(sc, seed=seed0 + 2 * k)
         val = run_scenario(sc, seed=seed0 + 2 * k + 1)
@@ -152,7 +154,7 @@ def scale_coverage(method: str, realisations: int, seed0: int = 0) -> list[Row]:
     angle."""
     sc = load_scenario("seed003")
     m = get_method("scale", method)
-    tally = _Tally()
+    tally = Tally()
     for k in range(realisations):
         model = m.fit(run_scenario(sc, seed=seed0 + 2 * k).columns, FitOptions())
         val = run_scenario(sc, seed=seed0 + 2 * k + 1)
@@ -168,7 +170,7 @@ def turntable_coverage(realisations: int, seed0: int = 0) -> list[Row]:
     tilt."""
     sc = load_scenario("seed004")
     m = get_method("turntable", "reversal")
-    tally = _Tally()
+    tally = Tally()
     for k in range(realisations):
         model = m.fit(run_scenario(sc, seed=seed0 + 2 * k).columns, FitOptions())
         val = run_scenario(sc, seed=seed0 + 2 * k + 1)
@@ -224,7 +226,7 @@ def daemon_rows(
 
     rows = []
     for scenario in scenarios:
-        single, averaged = _Tally(), _Tally()
+        single, averaged = Tally(), Tally()
         for k, got in enumerate(measure(scenario, calibrations)):
             if each is not None:
                 each(scenario, k, got)
