@@ -52,10 +52,11 @@ def test_adaptive_job_meets_its_target_and_validation_bears_it_out(adaptive):
         == v["predicted_expanded_uncertainty_deg"]
     )
     # 6 validation points, 2 axes: each error within the predicted U of the correction combined with
-    # the point's own reading noise (95 % each; at most 2 of 12 outside, a margin for a small
-    # sample)
+    # the point's own reading noise (95 % each). Of 12 honest components, 3 or more fall outside
+    # in 2 % of jobs (binomial), 4 or more in 0.2 %: at most 3 outside (a U understated to a true
+    # 70 % would put 3.6 outside on average; the coverage benchmarks judge U over many jobs)
     assert v["validated_components"] == 12
-    assert v["validated_coverage"] >= 10 / 12
+    assert v["validated_coverage"] >= 9 / 12
     # the validation's own estimate of the correction's expanded U (reading noise taken out) is of
     # the target's size: within 2x (12 components estimate a variance to about +-40 %)
     # (null where the errors lie within the validation readings' own noise: unresolved, not zero)

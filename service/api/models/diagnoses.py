@@ -5,7 +5,7 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, Strict, model_validator
+from pydantic import ConfigDict, Field, Strict, model_validator
 
 from service.api.models.base import Answer
 from service.jobs.requests import RequestBody
@@ -14,6 +14,16 @@ from service.jobs.requests import RequestBody
 class DiagnoseRequest(RequestBody):
     """Which sensor's readings to explain, the model the search starts from, and whether to measure
     first what the stored points cannot test."""
+
+    # the document states what the validator below refuses: `measure` and `plan_only` not both true
+    model_config = ConfigDict(
+        json_schema_extra={
+            "not": {
+                "required": ["measure", "plan_only"],
+                "properties": {"measure": {"const": True}, "plan_only": {"const": True}},
+            }
+        }
+    )
 
     sensor: Literal["ref", "meas"] = "ref"
     baseline: Literal["kinematic", "linear"] = "kinematic"
