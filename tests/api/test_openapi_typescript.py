@@ -138,3 +138,47 @@ def test_generated_typescript_types_compile_the_readme_bodies(document, tmp_path
     assert checked.returncode == 0, (
         checked.stdout + checked.stderr + (tmp_path / "readme.ts").read_text()
     )
+
+
+NEW_NAMES = (
+    "standard_uncertainty_x_deg",
+    "standard_uncertainty_y_deg",
+    "expanded_uncertainty_x_deg",
+    "expanded_uncertainty_y_deg",
+    "coverage_factor_x",
+    "coverage_factor_y",
+    "coverage_probability",
+    "degrees_of_freedom_x",
+    "degrees_of_freedom_y",
+)
+FORMER_NAMES = ("u_x_deg", "u_y_deg", "k", "k_y")
+
+
+@needs_tools
+def test_generated_types_carry_the_new_names_and_mark_the_former_ones_deprecated(
+    document, tmp_path
+):
+    """An integrator's generated client sees `/tilt`'s table tilt under both names, and the former
+    ones (the expanded uncertainties and their factors) flagged `@deprecated` in its editor."""
+    spec = tmp_path / "openapi.json"
+    spec.write_text(json.dumps(document))
+    made = subprocess.run(
+        [str(BIN / "openapi-typescript"), str(spec), "-o", str(tmp_path / "api.ts")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert made.returncode == 0, made.stdout + made.stderr
+    text = (tmp_path / "api.ts").read_text()
+    table = re.search(r"\n        TableTilt: \{\n(.*?)\n        \};", text, flags=re.S)
+    assert table is not None, "no TableTilt type in the generated types"
+    # each property with the JSDoc block just above it
+    fields = dict(
+        (name, doc)
+        for doc, name in re.findall(r"/\*\*(.*?)\*/\s*\n\s*(\w+)\??:", table.group(1), flags=re.S)
+    )
+    for name in NEW_NAMES:
+        assert name in fields and "@deprecated" not in fields[name], name
+    for name in FORMER_NAMES:
+        assert name in fields and "@deprecated" in fields[name], name
+    assert "EXPANDED" in fields["u_x_deg"] and "EXPANDED" in fields["u_y_deg"]
