@@ -18,9 +18,9 @@ import functools
 import tempfile
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TypedDict, TypeVar
+from typing import Any, TypedDict, TypeVar
 
 import numpy as np
 from fastapi.testclient import TestClient
@@ -44,6 +44,7 @@ class TableTiltAnswer(TypedDict):
     expanded_uncertainty_x_deg: float | None
     expanded_uncertainty_y_deg: float | None
     n_readings: int | None  # with average_s
+    window_s: float | None  # with average_s
 
 
 class TiltAnswer(TypedDict):
@@ -68,6 +69,8 @@ class StandReadings:
     mean_errors: NDArray[np.float64]
     mean_expanded: NDArray[np.float64]
     mean_readings: NDArray[np.float64]  # how many readings each averaged tilt is of
+    # each averaged tilt as served, with the measurement sensor's readings it is the mean of
+    averaged: list[tuple[TableTiltAnswer, list[Reading]]] = field(default_factory=list)
 
 
 def _until(condition: Callable[[], _Found | None], timeout_s: float, what: str) -> _Found:
@@ -139,6 +142,7 @@ def readings_at_stands(
     world = bench.sim.world
     rng = np.random.default_rng(seed)
     errors, expanded, mean_errors, mean_expanded, counts = [], [], [], [], []
+    averaged: list[tuple[TableTiltAnswer, list[Reading]]] = []
     for _ in range(stands):
         pose = rng.uniform(-POSES_WITHIN_DEG, POSES_WITHIN_DEG, 2).round(3)
         client.post(
@@ -192,6 +196,7 @@ def readings_at_stands(
         except TimeoutError:
             raise RuntimeError(f"no averaged tilt at rest: {answers[-1]['note']}") from None
         truth = world.true_tilt_deg()
+        averaged.append((table, _window_of(bench, answers[-1], table)))
         mean_errors.append([table["x_deg"] - truth[0], table["y_deg"] - truth[1]])
         mean_expanded.append(
             [table["expanded_uncertainty_x_deg"], table["expanded_uncertainty_y_deg"]]
@@ -203,7 +208,23 @@ def readings_at_stands(
         np.asarray(mean_errors),
         np.asarray(mean_expanded),
         np.asarray(counts, dtype=float),
+        averaged,
     )
+
+
+def _window_of(bench: Any, answer: TiltAnswer, table: TableTiltAnswer) -> list[Reading]:
+    """The readings an averaged tilt is the mean of: its `n_readings` readings of both axes up to
+    the latest, the reading the answer is stamped with."""
+    latest_utc = dt.datetime.fromisoformat(answer["time_utc"])
+    kept = [
+        reading
+        for reading in bench.readings_after("measurement_sensor", float("-inf"))
+        if reading.x_deg is not None and reading.y_deg is not None
+    ]
+    ends = [i for i, reading in enumerate(kept) if reading.time_utc == latest_utc]
+    if not ends or table["n_readings"] is None:
+        raise RuntimeError(f"the averaged tilt's readings are not kept: {answer['time_utc']}")
+    return kept[ends[-1] - table["n_readings"] + 1 : ends[-1] + 1]
 
 
 def measure(

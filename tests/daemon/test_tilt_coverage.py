@@ -8,10 +8,13 @@ all (an overstatement): coverage of each axis in [0.92, 0.98], and rms(error / U
 
 The averaged tilt's U is mostly the record's parameter part, shared by every stand of one
 calibration, so its coverage is a statement over calibrations: 300 of each bench, made by the
-daemon's own chain without lines and clock (service/reproduce/averaged_coverage.py), and a test
-that this chain makes, from a daemon job's stored points, the very record the daemon serves with."""
+daemon's own chain without lines and clock (service/reproduce/averaged_coverage.py), with a test
+that this chain makes, from a daemon job's stored points, the very record the daemon serves with,
+and every averaged tilt `/tilt` serves here is the chain's of the same readings."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 import pytest
@@ -32,6 +35,7 @@ from service.reproduce.daemon_coverage import StandReadings, calibrated_daemon, 
 # per bench, benchmarks/coverage.py --daemon); pooling three narrows that spread.
 CALIBRATIONS, STANDS_EACH, READINGS_PER_STAND = 3, 20, 20
 STANDS = CALIBRATIONS * STANDS_EACH
+SERVED_KEYS = ("x_deg", "y_deg", "expanded_uncertainty_x_deg", "expanded_uncertainty_y_deg")
 
 
 def pooled(parts: list[StandReadings]) -> StandReadings:
@@ -43,6 +47,26 @@ def pooled(parts: list[StandReadings]) -> StandReadings:
     )
 
 
+def records_of(client: Any) -> tuple[Any, Any]:
+    """The record the daemon serves with (its active model) and the one the chain without lines
+    makes of the same job's stored points."""
+    app = client.app
+    bench = app.state.bench
+    store = app.state.store
+    served = app.state.jobs.active[bench.name]
+    record = store.records.get_record(served.record_id)
+    points = store.points.settled_points(record.job_id)
+    meas_id = bench.device_ids["measurement_sensor"]
+    ours = active_model_of_points(
+        record.method,
+        bench.config.stage_bench(),
+        [point for point in points if point.device_id != meas_id],
+        [point for point in points if point.device_id == meas_id],
+        resolutions_deg(bench),
+    )
+    return ours, served
+
+
 @pytest.mark.parametrize("scenario", ["seed000", "rough"])
 def test_tilt_uncertainty_covers_the_true_tilt(tmp_path, scenario):
     parts = []
@@ -50,6 +74,20 @@ def test_tilt_uncertainty_covers_the_true_tilt(tmp_path, scenario):
         with calibrated_daemon(tmp_path / f"calibration-{n}", scenario) as (client, h):
             seed = 100 * n + len(scenario)
             parts.append(readings_at_stands(client, h, STANDS_EACH, READINGS_PER_STAND, seed=seed))
+            ours, _ = records_of(client)
+        # every averaged tilt /tilt served is the chain's averaged tilt of the same readings (the
+        # averaged coverage test below runs that chain over hundreds of calibrations)
+        assert len(parts[-1].averaged) == STANDS_EACH
+        for table, window in parts[-1].averaged:
+            assert len(window) == table["n_readings"]
+            mine = averaged_tilt(ours, window, float(table["window_s"] or 0.0))
+            for key in (
+                "x_deg",
+                "y_deg",
+                "expanded_uncertainty_x_deg",
+                "expanded_uncertainty_y_deg",
+            ):
+                assert mine[key] == pytest.approx(table[key], rel=1e-9, abs=1e-15), key  # type: ignore[literal-required]
     got = pooled(parts)
     errors, expanded = got.errors, got.expanded
     assert errors.shape == (STANDS * READINGS_PER_STAND, 2)
@@ -109,21 +147,8 @@ def test_the_chain_without_lines_makes_the_record_the_daemon_serves_with(tmp_pat
     with, to rounding: the same corrected tilt and uncertainties for the same reading, one and
     averaged."""
     with calibrated_daemon(tmp_path, "seed000") as (client, _headers):
-        app = client.app
-        bench = app.state.bench  # type: ignore[attr-defined]
-        store = app.state.store  # type: ignore[attr-defined]
-        served = app.state.jobs.active[bench.name]  # type: ignore[attr-defined]
-        record = store.records.get_record(served.record_id)
-        points = store.points.settled_points(record.job_id)
-        meas_id = bench.device_ids["measurement_sensor"]
-        ours = active_model_of_points(
-            record.method,
-            bench.config.stage_bench(),
-            [point for point in points if point.device_id != meas_id],
-            [point for point in points if point.device_id == meas_id],
-            resolutions_deg(bench),
-        )
-        readings = bench.readings_after("measurement_sensor", float("-inf"))[-40:]
+        ours, served = records_of(client)
+        readings = client.app.state.bench.readings_after("measurement_sensor", float("-inf"))[-40:]  # type: ignore[attr-defined]
     assert ours.reading_noise == served.reading_noise
     # and its readings are the simulated sensors': one reading's noise as the daemon's job found it
     # (each pooled on 225 degrees of freedom, so within 5 % of the truth at one sigma)
