@@ -97,17 +97,23 @@ def test_the_description_names_every_open_route(document):
     assert "/health" in description and "/ready" in description
 
 
-@needs_tools
-def test_generated_typescript_types_compile_the_readme_bodies(document, tmp_path):
-    spec = tmp_path / "openapi.json"
+def generate_types(document: dict[str, Any], folder: Path) -> Path:
+    """openapi-typescript's types of the document (default settings), written to folder/api.ts."""
+    spec = folder / "openapi.json"
     spec.write_text(json.dumps(document))
     made = subprocess.run(
-        [str(BIN / "openapi-typescript"), str(spec), "-o", str(tmp_path / "api.ts")],
+        [str(BIN / "openapi-typescript"), str(spec), "-o", str(folder / "api.ts")],
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert made.returncode == 0, made.stdout + made.stderr
+    return folder / "api.ts"
+
+
+@needs_tools
+def test_generated_typescript_types_compile_the_readme_bodies(document, tmp_path):
+    generate_types(document, tmp_path)
     lines = ['import type { paths } from "./api";']
     for i, (method, route, body) in enumerate(readme_bodies()):
         template = schema_path(document, route)
@@ -160,16 +166,7 @@ def test_generated_types_carry_the_new_names_and_mark_the_former_ones_deprecated
 ):
     """An integrator's generated client sees `/tilt`'s table tilt under both names, and the former
     ones (the expanded uncertainties and their factors) flagged `@deprecated` in its editor."""
-    spec = tmp_path / "openapi.json"
-    spec.write_text(json.dumps(document))
-    made = subprocess.run(
-        [str(BIN / "openapi-typescript"), str(spec), "-o", str(tmp_path / "api.ts")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert made.returncode == 0, made.stdout + made.stderr
-    text = (tmp_path / "api.ts").read_text()
+    text = generate_types(document, tmp_path).read_text()
     table = re.search(r"\n        TableTilt: \{\n(.*?)\n        \};", text, flags=re.S)
     assert table is not None, "no TableTilt type in the generated types"
     # each property with the JSDoc block just above it
