@@ -42,6 +42,8 @@ from service.calibration.reading_noise import pooled_reading_noise
 from service.calibration.registry import Columns, FitOptions, get_method
 from service.instruments.base import Reading
 from service.instruments.binary import decode_bcd, encode_angle, encode_temperature
+from service.instruments.drivers.inclinometer import BinaryInclinometer
+from service.instruments.sim import DEFAULT_OUTPUT_RATE_HZ
 from service.jobs.active import ActiveModel
 from service.jobs.budgets import budget_of_record
 from service.jobs.requests import Grid
@@ -57,10 +59,8 @@ from service.storage.models import SettledPoint
 GRID = Grid(x_deg=[-4.0, 4.0], y_deg=[-4.0, 4.0], n_x=5, n_y=5)
 SAMPLES_PER_POINT = 10
 POSES_WITHIN_DEG = 3.5
-# the simulated sensors' output interval (25 readings a second) and their resolution (the binary
-# frame's packed BCD: 4 decimals of a degree)
-OUTPUT_INTERVAL_S = 0.04
-RESOLUTION_DEG = 1e-4
+# the simulated sensors' output interval (their automatic output's rate)
+OUTPUT_INTERVAL_S = 1.0 / DEFAULT_OUTPUT_RATE_HZ
 # bench seconds from one point's readings to the next's (travel and settling): the time the
 # environment's drifts see
 POINT_SPACING_S = 4.0
@@ -233,8 +233,8 @@ def calibrate(virtual: VirtualStageBench, method_name: str = "kinematic") -> Act
         measurement.append(_settled_point(index, (x_deg, y_deg), got["measurement_sensor"], 2))
     # in the order the bench lists its sensors, as the job's record states them
     resolutions: dict[str, float | None] = {
-        "reference_sensor": RESOLUTION_DEG,
-        "measurement_sensor": RESOLUTION_DEG,
+        "reference_sensor": BinaryInclinometer.resolution_deg,
+        "measurement_sensor": BinaryInclinometer.resolution_deg,
     }
     return active_model_of_points(method_name, virtual.bench, reference, measurement, resolutions)
 
