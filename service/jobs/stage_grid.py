@@ -49,6 +49,7 @@ from service.jobs.procedure import (
     validation_rng,
 )
 from service.jobs.requests import CalibrationRequest, Grid, RequestProblem
+from service.physics.stage import StageBench
 from service.storage.models import CalibrationJob, SettledPoint
 from service.storage.samples import Sample
 from service.storage.store.hashing import SettledPointFields
@@ -111,6 +112,23 @@ def stage_columns(
         "temp_c": col(lambda r, m: m.temp_c_mean if m.temp_c_mean is not None else np.nan),
         "t_s": col(lambda r, m: r.t_end_s),
     }
+
+
+def stage_fit_columns(
+    points_ref: Sequence[SettledPoint], points_meas: Sequence[SettledPoint]
+) -> Columns:
+    """The columns a stage record is fitted on: `stage_columns`, less a temperature column some
+    point lacks (the same columns the points CSV carries)."""
+    cols = stage_columns(points_ref, points_meas)
+    if np.isfinite(cols["temp_c"]).all():
+        return cols
+    return {name: values for name, values in cols.items() if name != "temp_c"}
+
+
+def stage_fit_options(stage_bench: StageBench, source: str) -> FitOptions:
+    """What a stage fit is told of the bench: its stacked stages' hardware and where that came
+    from."""
+    return FitOptions(extra={"bench": stage_bench, "bench_source": source})
 
 
 def _adaptive_spread(grid: Grid) -> list[StagePoint]:
@@ -220,12 +238,7 @@ class StageGrid(PointProcedure[StagePoint]):
         return await add_correction_figures(ctx, await super().run(ctx))
 
     def fit_options(self, bench: BenchRuntime) -> FitOptions:
-        return FitOptions(
-            extra={
-                "bench": bench.config.stage_bench(),
-                "bench_source": f"bench configuration {bench.name}",
-            }
-        )
+        return stage_fit_options(bench.config.stage_bench(), f"bench configuration {bench.name}")
 
     def fitted(self, model: CalibrationModel, fit_cols: Columns) -> None:
         # the calibrated range, kept with the record
@@ -239,10 +252,7 @@ class StageGrid(PointProcedure[StagePoint]):
     ) -> Columns:
         meas = [point for point in points if point.device_id == job.device_id]
         ref = [point for point in points if point.device_id != job.device_id]
-        cols = stage_columns(ref, meas)
-        if for_fit and not np.isfinite(cols["temp_c"]).all():
-            del cols["temp_c"]  # the same columns the points CSV carries
-        return cols
+        return stage_fit_columns(ref, meas) if for_fit else stage_columns(ref, meas)
 
     def validation(
         self, method: Method, model: CalibrationModel, cols: Columns

@@ -37,9 +37,9 @@ from numpy.typing import NDArray
 from service.bench.corrected import averaged_tilt
 from service.bench.readings import robust_mean
 from service.calibration.budget import ReferenceStandard, UncertaintyBudget
-from service.calibration.model import CalibrationModel, table_tilt_range
+from service.calibration.model import CalibrationModel, stored_table_tilt_range
 from service.calibration.reading_noise import pooled_reading_noise
-from service.calibration.registry import Columns, FitOptions, get_method
+from service.calibration.registry import get_method
 from service.instruments.base import Reading
 from service.instruments.binary import decode_bcd, encode_angle, encode_temperature
 from service.instruments.drivers.inclinometer import BinaryInclinometer
@@ -47,7 +47,7 @@ from service.instruments.sim import DEFAULT_OUTPUT_RATE_HZ
 from service.jobs.active import ActiveModel
 from service.jobs.budgets import budget_of_record
 from service.jobs.requests import Grid
-from service.jobs.stage_grid import stage_columns
+from service.jobs.stage_grid import StageGrid, stage_fit_columns, stage_fit_options
 from service.physics.stage import StageBench, StageGeometry, simulate_stage
 from service.reproduce.coverage import Row, Tally
 from service.scenarios.model import StageScenario
@@ -103,9 +103,9 @@ class VirtualStageBench:
             round(x_deg / self.bench.pulse_x_deg) * self.bench.pulse_x_deg,
             round(y_deg / self.bench.pulse_y_deg) * self.bench.pulse_y_deg,
         )
-        self.direction = tuple(  # type: ignore[assignment]
-            (1.0 if new > old else -1.0) if new != old else before
-            for new, old, before in zip(pose, self.pose_deg, self.direction)
+        self.direction = (
+            _direction(pose[0], self.pose_deg[0], self.direction[0]),
+            _direction(pose[1], self.pose_deg[1], self.direction[1]),
         )
         self.pose_deg = pose
         self.t_s += after_s
@@ -160,6 +160,14 @@ class VirtualStageBench:
         return float(out["tilt_x_deg"][0]), float(out["tilt_y_deg"][0])
 
 
+def _direction(new_deg: float, old_deg: float, before: float) -> float:
+    """The side a stage approached its new angle from (+1 from below): the last move's when it
+    did not move."""
+    if new_deg == old_deg:
+        return before
+    return 1.0 if new_deg > old_deg else -1.0
+
+
 def _settled_point(
     index: int, command_deg: tuple[float, float], readings: list[Reading], device_id: int
 ) -> SettledPoint:
@@ -195,12 +203,9 @@ def active_model_of_points(
     model and budget through their stored JSON, the single-reading noise pooled from the
     measurement sensor's points."""
     method = get_method("stage", method_name)
-    cols: Columns = dict(stage_columns(reference_points, measurement_points))
-    if not np.isfinite(cols["temp_c"]).all():
-        # the same columns the job fits (and the points CSV carries)
-        cols = {name: values for name, values in cols.items() if name != "temp_c"}
-    model = method.fit(cols, FitOptions(extra={"bench": bench, "bench_source": "scenario"}))
-    model.fit["table_tilt_range_deg"] = table_tilt_range(cols)
+    cols = stage_fit_columns(reference_points, measurement_points)
+    model = method.fit(cols, stage_fit_options(bench, "scenario"))
+    StageGrid().fitted(model, cols)
     budget = budget_of_record(method, model, cols, standards, resolutions_deg)
     stored_model = CalibrationModel.from_json_dict(
         json.loads(json.dumps(model.to_json_dict())), "virtual record"
@@ -213,7 +218,7 @@ def active_model_of_points(
         stored_model,
         method,
         stored_budget,
-        table_tilt_range_deg=stored_model.fit.get("table_tilt_range_deg"),
+        table_tilt_range_deg=stored_table_tilt_range(stored_model),
         reading_noise=pooled_reading_noise(
             (point.n_samples, point.ch_x_std, point.ch_y_std) for point in measurement_points
         ),
