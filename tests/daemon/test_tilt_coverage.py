@@ -81,12 +81,7 @@ def test_tilt_uncertainty_covers_the_true_tilt(tmp_path, scenario):
         for table, window in parts[-1].averaged:
             assert len(window) == table["n_readings"]
             mine = averaged_tilt(ours, window, float(table["window_s"] or 0.0))
-            for key in (
-                "x_deg",
-                "y_deg",
-                "expanded_uncertainty_x_deg",
-                "expanded_uncertainty_y_deg",
-            ):
+            for key in SERVED_KEYS:
                 assert mine[key] == pytest.approx(table[key], rel=1e-9, abs=1e-15), key  # type: ignore[literal-required]
     got = pooled(parts)
     errors, expanded = got.errors, got.expanded
