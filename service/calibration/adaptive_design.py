@@ -218,14 +218,42 @@ def short_tour(
 ) -> list[tuple[float, float]]:
     """`points` in an order that keeps the stages' travel short, from `start`: the shortest order
     (Held-Karp) for a few points, else nearest neighbour, improved by 2-opt reversals up to
-    TWO_OPT_POINTS. Distance is the larger of the two axes' moves (the two stages move at once)."""
+    TWO_OPT_POINTS, or a serpentine through the points where one is shorter (a lattice). Distance
+    is the larger of the two axes' moves (the two stages move at once)."""
     stops = np.array([start, *points], dtype=float).reshape(-1, 2)
     n = len(points)
     distances = np.abs(stops[:, None, :] - stops[None, :, :]).max(axis=2)
     if n <= EXACT_TOUR_POINTS:
         return [points[i - 1] for i in _held_karp(distances)]
     order = _nearest_neighbour(distances)
-    return [points[i - 1] for i in (_two_opt(distances, order) if n <= TWO_OPT_POINTS else order)]
+    tour = [points[i - 1] for i in (_two_opt(distances, order) if n <= TWO_OPT_POINTS else order)]
+    # on a lattice, nearest neighbour and 2-opt can end a row on the wrong side; a serpentine from
+    # the nearest corner cannot
+    return min((tour, *_serpentines(points)), key=lambda path: _path_deg(start, path))
+
+
+def _serpentines(points: list[tuple[float, float]]) -> list[list[tuple[float, float]]]:
+    """The points in serpentine order every way there is: rows along either axis, taken from
+    either end, the first row run either way (eight orders)."""
+    orders = []
+    for across in (0, 1):  # rows of equal coordinate `across`, run along the other axis
+        rows: dict[float, list[tuple[float, float]]] = {}
+        for point in points:
+            rows.setdefault(round(point[across], 9), []).append(point)
+        for rows_up in (True, False):
+            for first_up in (True, False):
+                order: list[tuple[float, float]] = []
+                for i, key in enumerate(sorted(rows, reverse=not rows_up)):
+                    up = first_up if i % 2 == 0 else not first_up
+                    order += sorted(rows[key], key=lambda point: point[1 - across], reverse=not up)
+                orders.append(order)
+    return orders
+
+
+def _path_deg(start: tuple[float, float], path: list[tuple[float, float]]) -> float:
+    """The stages' travel along `path` from `start`."""
+    stops = [start, *path]
+    return sum(stage_travel_deg(a, b) for a, b in zip(stops, stops[1:]))
 
 
 def stage_travel_deg(a: tuple[float, float], b: tuple[float, float]) -> float:

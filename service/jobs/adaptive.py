@@ -1,14 +1,16 @@
 """An adaptive stage-grid job: the target expanded uncertainty of the correction in the least bench
 time.
 
-1. The first point of the spread grid waits for the request's settle rule, probes the reading
-   noise from successive differences, settles by the statistical test against it (the request's
-   rule, a fixed tolerance, stops well inside a slow sensor's transient) and is read
-   NOISE_READINGS times: its spread is each sensor's reading noise. Once the plan says how often a
-   point is read, the first point is read that often (the stage still stands there) and stored.
+1. The point of the spread grid nearest where the stage stands (a job after another starts near
+   where that one ended) waits for the request's settle rule, probes the reading noise from
+   successive differences, settles by the statistical test against it (the request's rule, a fixed
+   tolerance, stops well inside a slow sensor's transient) and is read NOISE_READINGS times: its
+   spread is each sensor's reading noise. Once the plan says how often a point is read, the first
+   point is read that often (the stage still stands there) and stored.
 2. The plan (service.calibration.adaptive_design) chooses the points and the readings at each from
    that noise; a target the bench cannot reach fails the job naming the best it can.
-3. Every other point settles by the statistical test against that noise and is read as planned.
+3. Every other point of the plan, on a short tour from the first, settles by the statistical test
+   against that noise and is read as planned.
    The validation points are measured on the way (each where it lengthens the tour least: a tour
    of them after the plan's would cross the range again), read as in any job and held, to be
    stored after the fit points.
@@ -42,6 +44,8 @@ from service.calibration.adaptive_design import (
     on_the_way,
     plan_adaptive,
     predicted_u_of_covariance,
+    short_tour,
+    stage_travel_deg,
 )
 from service.calibration.methods.stage.common import MEAS_NAMES
 from service.calibration.model import CalibrationModel
@@ -256,7 +260,7 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     val_pts = [proc.stored_point(point) for point in job.parameters["validation_points"]]
     total_guess = len(spread) + len(val_pts)
     await ctx.report(0, total_guess, Phase.MEASURING)
-    first = spread[0]
+    first = _nearest(spread, bench)
     probe = await read_stage_point(ctx, 0, *first, n=NOISE_READINGS, probe_noise=True)
     noise = _noise_of(probe.settled, devices)
     plan = _plan(ctx, noise, fixed_u, target)
@@ -285,7 +289,7 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
                 }
             }
         )
-        await _top_up(ctx, plan, measured, extra, noise, len(val_pts))
+        await _top_up(ctx, measured[: len(plan.points)], measured, extra, noise, len(val_pts))
     proc.fitted(model, fit_cols)
     n_fit = len(measured)
     await _store_validation(ctx, held, n_fit)
@@ -315,6 +319,16 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     )
 
 
+def _nearest(spread: list[tuple[float, float]], bench: BenchRuntime) -> tuple[float, float]:
+    """The spread point the stage reaches soonest from where it stands: the job's first point (a
+    job that follows another starts near where that one ended, not across the range); the first of
+    them while the stage's position is not known."""
+    x_deg, y_deg = bench.pose.x_deg, bench.pose.y_deg
+    if x_deg is None or y_deg is None:
+        return spread[0]
+    return min(spread, key=lambda point: stage_travel_deg(point, (x_deg, y_deg)))
+
+
 def _sensor_devices(bench: BenchRuntime) -> dict[str, int]:
     """The bench's two sensors by role; InputError when either is not registered."""
     devices = {role: bench.device_ids[role] for role in SENSORS}
@@ -340,27 +354,25 @@ async def _measure_plan(
     noise: dict[str, float],
     val_pts: list[tuple[float, float]],
 ) -> tuple[list[tuple[float, float]], list[MeasuredPoint]]:
-    """The plan's points after the first one (read already), each read as often as the plan says
-    and stored, with the validation points on the way (statistically settled, samples_per_point
-    readings each, held): every fit point measured so far in order, and the validation points as
-    measured."""
+    """The plan's points after the first one (read already), on a short tour from it, each read as
+    often as the plan says and stored, with the validation points on the way (statistically
+    settled, samples_per_point readings each, held): every fit point measured so far in order, and
+    the validation points as measured."""
     measured: list[tuple[float, float]] = [first]
     held: list[MeasuredPoint] = []
-    todo = [
-        (point, n_readings)
-        for point, n_readings in zip(plan.points, plan.readings)
-        if point != first
-    ]
-    readings = iter(n_readings for _, n_readings in todo)
+    readings_at = {
+        point: n_readings for point, n_readings in zip(plan.points, plan.readings) if point != first
+    }
     total = len(plan.points) + len(val_pts)
     await ctx.report(1, total, Phase.MEASURING)
-    for point, validating in on_the_way(first, [point for point, _ in todo], val_pts):
+    for point, validating in on_the_way(first, short_tour(first, list(readings_at)), val_pts):
         if validating:
             # numbered when stored, after the fit points
             held.append(await read_stage_point(ctx, total + len(held), *point, noise_deg=noise))
         else:
-            n_readings = next(readings)
-            await measure_stage_point(ctx, len(measured), *point, n=n_readings, noise_deg=noise)
+            await measure_stage_point(
+                ctx, len(measured), *point, n=readings_at[point], noise_deg=noise
+            )
             measured.append(point)
         await ctx.report(len(measured) + len(held), total, Phase.MEASURING)
     return measured, held
@@ -394,15 +406,15 @@ def _top_up_readings(plan: AdaptivePlan, predicted: float, target: float) -> int
 
 async def _top_up(
     ctx: JobContext,
-    plan: AdaptivePlan,
+    tour: list[tuple[float, float]],
     measured: list[tuple[float, float]],
     readings: int,
     noise: dict[str, float],
     n_validation: int,
 ) -> None:
-    """The plan's points read once more, `readings` each, in reverse order (shortest travel), added
-    to `measured`."""
-    for point in reversed(plan.points):
+    """The plan's points (`tour`, in the order first measured) read once more, `readings` each, in
+    reverse order (the stage ends near the last of them), added to `measured`."""
+    for point in reversed(tour):
         await measure_stage_point(ctx, len(measured), *point, n=readings, noise_deg=noise)
         measured.append(point)
         await ctx.report(len(measured), len(measured) + n_validation, Phase.MEASURING)

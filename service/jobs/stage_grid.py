@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -309,17 +310,21 @@ async def measure_stage_point(
 
 
 async def _settle_statistically(
-    ctx: JobContext, noise_deg: dict[str, float], *, since_bench_s: float | None
+    ctx: JobContext,
+    noise_deg: dict[str, float],
+    *,
+    since_bench_s: float | None,
+    block: int | None = None,
 ) -> float:
-    """The statistical settling test at a point, its blocks at least the job's `settling.block`,
-    which it then raises to half the block this point passed with."""
+    """The statistical settling test at a point, its blocks at least the job's `settling.block`
+    (or `block`, if longer), which it then raises to half the block this point passed with."""
     settled = await settle_statistical(
         ctx.bench,
         SENSORS,
         noise_deg,
         timeout_s=ctx.request.settle.timeout_s,
         since_bench_s=since_bench_s,
-        block=ctx.settling.block,
+        block=max(ctx.settling.block, block or 0),
     )
     ctx.settling.block = max(ctx.settling.block, settled.block // 2)
     return settled.bench_s
@@ -384,7 +389,13 @@ async def read_stage_point(
                 after_bench_s=t0,
                 timeout_s=_read_timeout(bench, NOISE_PROBE_READINGS),
             )
-            t0 = await _settle_statistically(ctx, probed, since_bench_s=stood)
+            # nothing learnt yet of how slow this sensor is, and the move may have been short (the
+            # stage stood at or near the point: a small, slow transient that blocks of a few
+            # readings do not see move): blocks as long as the request's settle window
+            window = math.ceil(
+                req.settle.window_s / max(bench.output_interval_s(role) for role in SENSORS)
+            )
+            t0 = await _settle_statistically(ctx, probed, since_bench_s=stood, block=window)
     n = req.samples_per_point if n is None else n
     timeout = _read_timeout(bench, n)
     got = await asyncio.gather(

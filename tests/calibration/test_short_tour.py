@@ -40,6 +40,21 @@ def test_beyond_nine_points_the_tour_is_much_shorter_than_the_drawn_order(draw):
     assert travel((12.0, 12.0), tour) < 0.5 * travel((12.0, 12.0), points)
 
 
+@pytest.mark.parametrize("n", [4, 5, 9])
+def test_a_lattice_from_any_corner_is_toured_without_a_detour(n):
+    # an adaptive job starts at the spread corner nearest the stage: from each corner the tour
+    # moves only to neighbours, (n x n - 1) steps of the lattice's spacing in all
+    spacing = 24.0 / (n - 1)
+    lattice_points = [
+        (-12.0 + i * spacing, -12.0 + j * spacing) for j in range(n) for i in range(n)
+    ]
+    for corner in [(-12.0, -12.0), (12.0, -12.0), (-12.0, 12.0), (12.0, 12.0)]:
+        rest = [point for point in lattice_points if point != corner]
+        tour = short_tour(corner, rest)
+        assert sorted(tour) == sorted(rest)
+        assert travel(corner, tour) == pytest.approx((n * n - 1) * spacing), corner
+
+
 def test_no_points_and_one_point():
     assert short_tour((0.0, 0.0), []) == []
     assert short_tour((0.0, 0.0), [(1.0, 2.0)]) == [(1.0, 2.0)]

@@ -20,12 +20,19 @@ BODY = {
     "validation": {"n_points": 6},
 }
 
+STANDS_AT = (3.5, 2.5)  # where the stage stands when the job starts
+
 
 @pytest.fixture(scope="module")
 def adaptive(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("adaptive")
     with make_client(tmp, sim_speed=20.0) as client:
         h = admin_headers(tmp)
+        # the stage left standing near the range's (+4, +4) corner, as a job before might
+        moved = client.post(
+            "/stage/move", headers=h, json={"x_deg": STANDS_AT[0], "y_deg": STANDS_AT[1]}
+        )
+        assert moved.status_code == 200, moved.text
         r = client.post("/calibrations", headers=h, json=BODY)
         assert r.status_code == 202, r.text
         job = wait_job(client, r.json()["id"], h)
@@ -119,3 +126,22 @@ def test_the_first_point_is_read_as_often_as_the_plan_reads_every_point(adaptive
     )
     # and in one stand: its readings follow each other without a gap for a move
     assert all(row.t_end_s - row.t_start_s < 60 for row in first)
+
+
+def test_the_job_starts_at_the_spread_point_nearest_where_the_stage_stands(adaptive):
+    # a job after another starts near where that one ended, not across the range: from (3.5, 2.5)
+    # the spread's (+4, +4) corner is the nearest (0.5 and 1.5 deg away); every other spread point
+    # is at least 4 deg away on some axis
+    _, _, _, points = adaptive
+    # (as commanded: the stage's angles, within its step of the lattice point)
+    first = [(row.cmd_x_deg, row.cmd_y_deg) for row in points if row.point == 0]
+    assert len(first) == 2 and all(
+        (x, y) == (pytest.approx(4.0, abs=0.01), pytest.approx(4.0, abs=0.01)) for x, y in first
+    ), first
+    # and the plan's other points follow on a short tour: each move to the next fit point is to a
+    # neighbour of the 3 x 3 lattice (4 deg, on each axis at most), never across the range
+    fit = sorted({row.point for row in points if row.point < 9})
+    stands = [next((row.cmd_x_deg, row.cmd_y_deg) for row in points if row.point == i) for i in fit]
+    assert all(
+        max(abs(a[0] - b[0]), abs(a[1] - b[1])) <= 4.01 for a, b in zip(stands, stands[1:])
+    ), stands
