@@ -317,16 +317,20 @@ async def _settle_statistically(
     block: int | None = None,
 ) -> float:
     """The statistical settling test at a point, its blocks at least the job's `settling.block`
-    (or `block`, if longer), which it then raises to half the block this point passed with."""
+    (or `block`, if longer), which it then raises to half the block this point passed with where
+    its transient asked for longer blocks than that (a block imposed here says nothing of the
+    sensor)."""
+    shortest = max(ctx.settling.block, block or 0)
     settled = await settle_statistical(
         ctx.bench,
         SENSORS,
         noise_deg,
         timeout_s=ctx.request.settle.timeout_s,
         since_bench_s=since_bench_s,
-        block=max(ctx.settling.block, block or 0),
+        block=shortest,
     )
-    ctx.settling.block = max(ctx.settling.block, settled.block // 2)
+    if settled.block > shortest:
+        ctx.settling.block = max(ctx.settling.block, settled.block // 2)
     return settled.bench_s
 
 
