@@ -242,7 +242,6 @@ def main() -> None:
             results[name] = {
                 "seed000_procedure": seed000,
                 "fixed": fixed,
-                "adaptive": adaptive_runs[0],
                 "adaptive_runs": adaptive_runs,
                 "target": target,
             }

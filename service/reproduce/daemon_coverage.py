@@ -20,13 +20,14 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypedDict, TypeVar
+from typing import TypedDict, TypeVar
 
 import numpy as np
 from fastapi.testclient import TestClient
 from numpy.typing import NDArray
 
 from service.api.app import create_app
+from service.bench.runtime import BenchRuntime
 from service.config import Settings
 from service.instruments.base import Reading
 
@@ -212,7 +213,7 @@ def readings_at_stands(
     )
 
 
-def _window_of(bench: Any, answer: TiltAnswer, table: TableTiltAnswer) -> list[Reading]:
+def _window_of(bench: BenchRuntime, answer: TiltAnswer, table: TableTiltAnswer) -> list[Reading]:
     """The readings an averaged tilt is the mean of: its `n_readings` readings of both axes up to
     the latest, the reading the answer is stamped with."""
     latest_utc = dt.datetime.fromisoformat(answer["time_utc"])

@@ -21,6 +21,7 @@ import pytest
 
 from service.bench.corrected import averaged_tilt, corrected_tilt
 from service.instruments.sim.world import stage_scenario
+from service.jobs.active import ActiveModel
 from service.jobs.budgets import resolutions_deg
 from service.reproduce.averaged_coverage import (
     VirtualStageBench,
@@ -47,7 +48,7 @@ def pooled(parts: list[StandReadings]) -> StandReadings:
     )
 
 
-def records_of(client: Any) -> tuple[Any, Any]:
+def records_of(client: Any) -> tuple[ActiveModel, ActiveModel]:
     """The record the daemon serves with (its active model) and the one the chain without lines
     makes of the same job's stored points."""
     app = client.app
@@ -82,7 +83,7 @@ def test_tilt_uncertainty_covers_the_true_tilt(tmp_path, scenario):
             assert len(window) == table["n_readings"]
             mine = averaged_tilt(ours, window, float(table["window_s"] or 0.0))
             for key in SERVED_KEYS:
-                assert mine[key] == pytest.approx(table[key], rel=1e-9, abs=1e-15), key  # type: ignore[literal-required]
+                assert mine[key] == pytest.approx(table[key], rel=1e-9, abs=1e-15), key
     got = pooled(parts)
     errors, expanded = got.errors, got.expanded
     assert errors.shape == (STANDS * READINGS_PER_STAND, 2)
@@ -143,7 +144,7 @@ def test_the_chain_without_lines_makes_the_record_the_daemon_serves_with(tmp_pat
     averaged."""
     with calibrated_daemon(tmp_path, "seed000") as (client, _headers):
         ours, served = records_of(client)
-        readings = client.app.state.bench.readings_after("measurement_sensor", float("-inf"))[-40:]  # type: ignore[attr-defined]
+        readings = client.app.state.bench.readings_after("measurement_sensor", float("-inf"))[-40:]
     assert ours.reading_noise == served.reading_noise
     # and its readings are the simulated sensors': one reading's noise as the daemon's job found it
     # (each pooled on 225 degrees of freedom, so within 5 % of the truth at one sigma)
@@ -158,4 +159,4 @@ def test_the_chain_without_lines_makes_the_record_the_daemon_serves_with(tmp_pat
     for mine, theirs in pairs:
         assert mine.keys() == theirs.keys()
         for key, value in theirs.items():
-            assert mine[key] == pytest.approx(value, rel=1e-9, abs=1e-15), key  # type: ignore[literal-required]
+            assert mine[key] == pytest.approx(value, rel=1e-9, abs=1e-15), key
