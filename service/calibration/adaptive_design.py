@@ -4,8 +4,9 @@ plan out.
 
 What a stage record corrects with is the measurement sensor's model against the reference (zero
 offsets, scales, yaw, non-orthogonality, seat tilt: MEAS_PARAMS), fitted to the point means.
-Linearised about a nominal mounting, a point at table tilt (X, Y) read n times contributes J(X,
-Y)ᵀJ(X, Y)·n/σ² to the information matrix (σ² = σ_meas² + σ_ref², one reading of each), and the
+Linearised about a nominal mounting, a point at table tilt (X, Y) read n times contributes
+Σ_axis J_a(X, Y)ᵀJ_a(X, Y)·n/σ_a² to the information matrix (σ_a² = σ_meas,a² + σ_ref,a², one
+reading of each on axis a: each axis weighed by its own noise, as the fit weighs it), and the
 corrected tilt's variance at (X, Y) from the parameters is g C gᵀ, C the inverse information and g
 the same Jacobian (the correction is the model inverted, whose sensitivity to a parameter is minus
 the forward one). The criterion is the mean of that variance over the requested range
@@ -79,15 +80,22 @@ class BenchTimes:
 @dataclass(frozen=True)
 class BenchNoise:
     """One reading's noise of each sensor (σ, deg), and the components every corrected tilt carries
-    (u, deg)."""
+    (u, deg); where the axes' noises are known apart, one reading's variance of meas − ref on each
+    axis (x, y; deg²)."""
 
     meas_sigma_deg: float
     ref_sigma_deg: float
     fixed_u_deg: float = 0.0  # standards and resolutions, combined
+    axis_variances_deg2: tuple[float, float] | None = None
 
     @property
     def sigma2(self) -> float:
         return self.meas_sigma_deg**2 + self.ref_sigma_deg**2
+
+    @property
+    def axis_sigma2(self) -> tuple[float, float]:
+        """One reading's variance of meas − ref on the x and on the y axis."""
+        return self.axis_variances_deg2 or (self.sigma2, self.sigma2)
 
 
 class AdaptivePlanJSON(TypedDict):
@@ -169,7 +177,9 @@ class Design:
     ) -> None:
         self.candidates = candidates
         self.jc = jacobian(candidates)  # (C, 2, P)
-        self.info_c = np.einsum("cap,caq->cpq", self.jc, self.jc) / noise.sigma2  # per reading
+        # per reading, each axis weighed by its own noise
+        weight = 1.0 / np.asarray(noise.axis_sigma2, dtype=float)
+        self.info_c = np.einsum("cap,a,caq->cpq", self.jc, weight, self.jc)
         self.je = jacobian(evaluation)  # (E, 2, P)
         self.noise = noise
 
@@ -490,13 +500,14 @@ def _plan_at(
 
 def top_up_probability(share: float, n_points: int, noise_readings: int = NOISE_READINGS) -> float:
     """The probability that a fit of `n_points` points predicts more than the target when the plan
-    predicts `share` x it from a noise estimated on `noise_readings` readings of each sensor.
+    predicts `share` x it from each axis's noise estimated on `noise_readings` readings of each
+    sensor.
 
     The fit estimates each axis's residual variance on n − p/2 degrees of freedom (p the
     measurement sensor's parameters, service.calibration.methods.stage.chain) and states the larger
-    axis's; the plan's noise has 2 (noise_readings − 1). So the fit's prediction over the plan's is
-    √(max(X₁, X₂) / D), X ~ χ²(a)/a per axis, D ~ χ²(b)/b: it exceeds 1/share with
-    1 − E_D[F_a(D a / share²)²]."""
+    axis's; the plan's noise of each axis has 2 (noise_readings − 1) (two sensors). So the fit's
+    prediction over the plan's is √(max over the axes of X_a / D_a), X ~ χ²(a)/a, D ~ χ²(b)/b, all
+    four independent: it exceeds 1/share with 1 − E_D[F_a(D a / share²)]²."""
     if share <= 0.0:
         return 0.0
     a = max(n_points - len(MEAS_PARAMS) / 2.0, 1.0)
@@ -504,8 +515,8 @@ def top_up_probability(share: float, n_points: int, noise_readings: int = NOISE_
     q = 1.0 / share**2
     d = np.linspace(1e-6, 6.0, 4001)
     weight = stats.chi2.pdf(d * b, b) * b
-    below = np.trapezoid(stats.chi2.cdf(q * d * a, a) ** 2 * weight, d)
-    return float(min(max(1.0 - below, 0.0), 1.0))
+    below_one_axis = np.trapezoid(stats.chi2.cdf(q * d * a, a) * weight, d)
+    return float(min(max(1.0 - below_one_axis**2, 0.0), 1.0))
 
 
 def _best_addition(

@@ -85,22 +85,29 @@ def _coverage_table(q: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]
 
 
 def welch_satterthwaite(
-    components: Sequence[tuple[NDArray[np.float64], float]],
+    components: Sequence[tuple[ArrayLike, float]],
+    *,
+    same_dof_shared: bool = True,
 ) -> NDArray[np.float64]:
     """ν_eff = u_c⁴ / Σ u_i⁴ / ν_i over the variance components (u_i², ν_i) (JCGM 100 eq. G.2b).
 
     Components given the same finite ν rest on one estimated standard deviation (one fit's σ̂, as
     the parameters' covariance and the reading noise of a corrected value do): they are one estimate
     with that ν, not independent ones, so their variances are summed before the formula (which would
-    otherwise give more degrees of freedom than the fit has). Infinite where every component with a
-    finite ν is zero (or u_c is zero).
+    otherwise give more degrees of freedom than the fit has). With `same_dof_shared` false every
+    component is its own estimate (two sensors' noises, each from its own readings). Infinite where
+    every component with a finite ν is zero (or u_c is zero).
     """
-    groups: dict[float, NDArray[np.float64]] = {}
-    for variance, nu in components:
-        if np.isfinite(nu):
-            groups[nu] = groups.get(nu, 0.0) + np.asarray(variance, dtype=float)
+    finite = [
+        (np.asarray(variance, dtype=float), nu) for variance, nu in components if np.isfinite(nu)
+    ]
+    if same_dof_shared:
+        groups: dict[float, NDArray[np.float64]] = {}
+        for variance, nu in finite:
+            groups[nu] = groups.get(nu, 0.0) + variance
+        finite = [(variance, nu) for nu, variance in groups.items()]
     total = sum(np.asarray(variance, dtype=float) for variance, _ in components)
-    denom = sum(variance**2 / nu for nu, variance in groups.items())
+    denom = sum(variance**2 / nu for variance, nu in finite)
     with np.errstate(divide="ignore", invalid="ignore"):
         nu_eff = np.where(
             np.asarray(denom) > 0,

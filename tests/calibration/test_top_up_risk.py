@@ -1,8 +1,8 @@
 """The adaptive plan's margin: how far below the target it aims, chosen for the least bench time
 with the risk of a top-up pass weighed in. The probability of that pass is checked against draws
-of what the fit does (each axis's residual variance on its own degrees of freedom, the larger one
-stated, against a plan whose noise came from the first point's readings), not against its own
-formula."""
+of what the fit does (each axis's residual variance on its own degrees of freedom, against that
+axis's noise in the plan, from the first point's readings; the larger ratio stated), not against
+its own formula."""
 
 from __future__ import annotations
 
@@ -27,10 +27,10 @@ def test_top_up_probability_matches_draws_of_the_fits_variance(share, n_points):
     draws = 200_000
     per_axis = n_points - len(MEAS_PARAMS) / 2
     noise_dof = 2 * (NOISE_READINGS - 1)
-    axes = rng.chisquare(per_axis, (draws, 2)).max(axis=1) / per_axis
-    plan_noise = rng.chisquare(noise_dof, draws) / noise_dof
-    # the fit's prediction over the plan's is the square root of the variances' ratio
-    drawn = np.mean(np.sqrt(axes / plan_noise) > 1 / share)
+    fit_axes = rng.chisquare(per_axis, (draws, 2)) / per_axis
+    plan_axes = rng.chisquare(noise_dof, (draws, 2)) / noise_dof  # each axis's noise its own
+    # the fit's prediction over the plan's is the square root of the larger axis's variance ratio
+    drawn = np.mean(np.sqrt((fit_axes / plan_axes).max(axis=1)) > 1 / share)
     # 200,000 draws: a binomial standard error under 0.0012
     assert top_up_probability(share, n_points) == pytest.approx(drawn, abs=0.005)
 
