@@ -5,6 +5,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from service.calibration.adaptive_design import (
     PLAN_MARGINS,
     BenchNoise,
@@ -65,3 +67,37 @@ def test_unreachable_target_exits_2_naming_the_floor():
 def test_bench_noise_of_the_scenario():
     n = scenario_noise(load_scenario("seed000"))
     assert isinstance(n, BenchNoise) and 0.001 < n.meas_sigma_deg < 0.00101
+
+
+def test_plan_prints_the_jobs_route_from_where_the_stage_stands():
+    r = tiltlab(
+        "plan", "--scenario", "seed000", "--target", "0.0006", "--from", "11", "-10",
+        "--validation-points", "6", "--samples-per-point", "12", "--json",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    plan = json.loads(r.stdout)
+    route = plan["route"]
+    # the spread point nearest (11, -10) first; every fit point once, in the plan's order
+    assert (route[0]["x_deg"], route[0]["y_deg"], route[0]["validation"]) == (12.0, -12.0, False)
+    fit = [stop for stop in route if not stop["validation"]]
+    assert [[stop["x_deg"], stop["y_deg"]] for stop in fit] == plan["points"]
+    assert [stop["readings"] for stop in fit] == plan["readings"]
+    validation = [stop for stop in route if stop["validation"]]
+    assert len(validation) == 6 and all(stop["readings"] == 12 for stop in validation)
+    assert all(-12 <= stop["x_deg"] <= 12 and -12 <= stop["y_deg"] <= 12 for stop in validation)
+    assert 0 < plan["expected_validation_bench_seconds"] < plan["expected_bench_seconds"]
+    text = tiltlab("plan", "--scenario", "seed000", "--target", "0.0006").stdout
+    assert "4 validation points on the way" in text and text.count("validation\n") == 4
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        (["--validation-points", "-1"], "--validation-points -1"),
+        (["--samples-per-point", "0"], "--samples-per-point 0"),
+        (["--from", "nan", "0"], "--from"),
+    ],
+)
+def test_bad_route_options_exit_2_naming_them(args, named):
+    r = tiltlab("plan", "--scenario", "seed000", "--target", "0.0006", *args)
+    assert r.returncode == 2 and named in r.stderr, r.stderr

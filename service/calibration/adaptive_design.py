@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TypedDict
 
 import numpy as np
@@ -99,10 +99,12 @@ class BenchNoise:
 
 
 class AdaptivePlanJSON(TypedDict):
-    """An adaptive plan as a record's validation keeps it: the points (table tilts, degrees) and
-    readings at each, the predicted, target and floor expanded uncertainties (degrees), the expected
-    bench seconds and the criterion (degrees squared), the expanded uncertainty aimed at and the
-    probability that the fit then predicts more than the target (a top-up pass)."""
+    """An adaptive plan as a record's validation keeps it: the points (table tilts, degrees, in the
+    order the job measures them) and readings at each, the predicted, target and floor expanded
+    uncertainties (degrees), the expected bench seconds of the fit points and of the validation
+    points (on the job's route from where the stage stood) and the criterion (degrees squared), the
+    expanded uncertainty aimed at and the probability that the fit then predicts more than the
+    target (a top-up pass)."""
 
     points: list[list[float]]
     readings: list[int]
@@ -110,9 +112,20 @@ class AdaptivePlanJSON(TypedDict):
     target_expanded_uncertainty_deg: float
     floor_expanded_uncertainty_deg: float
     expected_bench_seconds: float
+    expected_validation_bench_seconds: float
     criterion_mean_variance_deg2: float
     aimed_expanded_uncertainty_deg: float
     top_up_probability: float
+
+
+@dataclass(frozen=True)
+class Stop:
+    """One stand of an adaptive job's route: where (table tilt, deg), whether it is a validation
+    point, and how many readings it takes."""
+
+    point: tuple[float, float]
+    validating: bool
+    readings: int
 
 
 @dataclass
@@ -127,6 +140,49 @@ class AdaptivePlan:
     notes: list[str] = field(default_factory=list)
     margin: float = 1.0  # the share of the target the plan aims at
     top_up_probability: float = 0.0  # that the fit then predicts more than the target
+    times: BenchTimes = field(default_factory=BenchTimes)  # what the bench time was reckoned with
+    validation_bench_seconds: float = 0.0  # expected, on the route (`along`)
+    route: list[Stop] = field(default_factory=list)  # fit and validation points as measured
+
+    def along(
+        self,
+        start: tuple[float, float],
+        first: tuple[float, float],
+        validation_points: list[tuple[float, float]],
+        validation_readings: int,
+    ) -> AdaptivePlan:
+        """The plan on the route a job takes from `start` (where the stage stands): `first` (one
+        of the plan's points, the one nearest), the others on a short tour from it, each validation
+        point inserted where it lengthens the tour least; the points in that order, and the bench
+        time of the fit points and of the validation points along it."""
+        readings_at = dict(zip(self.points, self.readings))
+        rest = [point for point in self.points if point != first]
+        path = on_the_way(first, short_tour(first, rest), validation_points)
+        route = [
+            Stop(first, False, readings_at[first]),
+            *(
+                Stop(point, validating, validation_readings if validating else readings_at[point])
+                for point, validating in path
+            ),
+        ]
+        fit_s = validation_s = 0.0
+        here = start
+        for stop in route:
+            seconds = self.times.move_s(here, stop.point) + self.times.point_s(stop.readings)
+            if stop.validating:
+                validation_s += seconds
+            else:
+                fit_s += seconds
+            here = stop.point
+        fit = [stop for stop in route if not stop.validating]
+        return replace(
+            self,
+            points=[stop.point for stop in fit],
+            readings=[stop.readings for stop in fit],
+            bench_seconds=fit_s,
+            validation_bench_seconds=validation_s,
+            route=route,
+        )
 
     def as_json(self) -> AdaptivePlanJSON:
         return {
@@ -138,8 +194,20 @@ class AdaptivePlan:
             "target_expanded_uncertainty_deg": self.target_deg,
             "floor_expanded_uncertainty_deg": self.floor_deg,
             "expected_bench_seconds": self.bench_seconds,
+            "expected_validation_bench_seconds": self.validation_bench_seconds,
             "criterion_mean_variance_deg2": self.mean_variance_deg2,
         }
+
+
+def nearest_point(
+    points: list[tuple[float, float]], pose: tuple[float, float] | None
+) -> tuple[float, float]:
+    """The one of `points` the stage reaches soonest from `pose` (an adaptive job's first point:
+    a job that follows another starts near where that one ended, not across the range); the first
+    of them while the pose is not known."""
+    if pose is None:
+        return points[0]
+    return min(points, key=lambda point: stage_travel_deg(point, pose))
 
 
 def jacobian(
@@ -367,6 +435,15 @@ def spread_indices(n_x: int, n_y: int, min_grid: int) -> list[int]:
     return [j * n_x + i for j in iy for i in ix]
 
 
+def spread_points(
+    x_deg: tuple[float, float], y_deg: tuple[float, float], n_x: int, n_y: int
+) -> list[tuple[float, float]]:
+    """An adaptive job's spread grid over the candidate lattice n_x x n_y of the range (table tilts,
+    deg): its first points, among which it starts."""
+    cand = lattice(x_deg, y_deg, n_x, n_y)
+    return [(float(cand[i, 0]), float(cand[i, 1])) for i in spread_indices(n_x, n_y, MIN_GRID)]
+
+
 def floor_u(design: Design) -> float:
     """The best expanded U over the range: every candidate read the cap number of times."""
     return design.expanded_u(np.full(design.candidates.shape[0], float(CAP_READINGS)))
@@ -495,6 +572,7 @@ def _plan_at(
         ],
         margin,
         top_up_probability(predicted / target_deg, len(order)),
+        times,
     )
 
 

@@ -41,11 +41,9 @@ from service.calibration.adaptive_design import (
     BenchNoise,
     BenchTimes,
     TargetUnreachable,
-    on_the_way,
+    nearest_point,
     plan_adaptive,
     predicted_u_of_covariance,
-    short_tour,
-    stage_travel_deg,
 )
 from service.calibration.methods.stage.base import meas_dof
 from service.calibration.methods.stage.common import MEAS_NAMES
@@ -139,6 +137,7 @@ def _plan(
     # stand costs on this bench (a slow sensor's long settling makes a second pass dear)
     settle_s = max(ctx.bench_time.settling, 0.2)
     times = BenchTimes(
+        stage_rate_deg_per_s=bench.config.stage_rate_deg_per_s(),
         settle_s=settle_s,
         output_rate_hz=1.0 / max(bench.output_interval_s("measurement_sensor"), 1e-3),
     )
@@ -310,14 +309,17 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     val_pts = [proc.stored_point(point) for point in job.parameters["validation_points"]]
     total_guess = len(spread) + len(val_pts)
     await ctx.report(0, total_guess, Phase.MEASURING)
-    first = _nearest(spread, bench)
+    stood_at = _pose(bench)
+    first = nearest_point(spread, stood_at)
     probe = await read_stage_point(ctx, 0, *first, n=NOISE_READINGS, probe_noise=True)
     noise = _noise_of(probe.settled, devices)
-    plan = _plan(ctx, noise, _axis_variances(probe.settled, devices), fixed_u, target)
+    plan = _plan(ctx, noise, _axis_variances(probe.settled, devices), fixed_u, target).along(
+        stood_at or first, first, val_pts, req.samples_per_point
+    )
     # read as often as every other point of the plan (the fit weighs point means alike: a point
     # read less would scatter more than the plan assumed), where the stage still stands
     await store_stage_point(ctx, await read_more(ctx, probe, plan.readings[0] - NOISE_READINGS))
-    measured, held = await _measure_plan(ctx, plan, first, noise, val_pts)
+    measured, held = await _measure_plan(ctx, plan, noise)
     method = get_method("stage", job.method)
     rounds: list[AdaptivePlanJSON | TopUp] = [plan.as_json()]
     for attempt in range(2):
@@ -367,14 +369,10 @@ async def run_adaptive(proc: StageGrid, ctx: JobContext) -> Outcome:
     )
 
 
-def _nearest(spread: list[tuple[float, float]], bench: BenchRuntime) -> tuple[float, float]:
-    """The spread point the stage reaches soonest from where it stands: the job's first point (a
-    job that follows another starts near where that one ended, not across the range); the first of
-    them while the stage's position is not known."""
+def _pose(bench: BenchRuntime) -> tuple[float, float] | None:
+    """Where the stage stands (table tilt, deg); None while that is not known."""
     x_deg, y_deg = bench.pose.x_deg, bench.pose.y_deg
-    if x_deg is None or y_deg is None:
-        return spread[0]
-    return min(spread, key=lambda point: stage_travel_deg(point, (x_deg, y_deg)))
+    return None if x_deg is None or y_deg is None else (x_deg, y_deg)
 
 
 def _sensor_devices(bench: BenchRuntime) -> dict[str, int]:
@@ -396,32 +394,29 @@ async def _refuse_resuming(ctx: JobContext) -> None:
 
 
 async def _measure_plan(
-    ctx: JobContext,
-    plan: AdaptivePlan,
-    first: tuple[float, float],
-    noise: dict[str, float],
-    val_pts: list[tuple[float, float]],
+    ctx: JobContext, plan: AdaptivePlan, noise: dict[str, float]
 ) -> tuple[list[tuple[float, float]], list[MeasuredPoint]]:
-    """The plan's points after the first one (read already), on a short tour from it, each read as
-    often as the plan says and stored, with the validation points on the way (statistically
-    settled, samples_per_point readings each, held): every fit point measured so far in order, and
-    the validation points as measured."""
-    measured: list[tuple[float, float]] = [first]
+    """The plan's route after its first point (read already): each fit point read as often as the
+    plan says and stored, each validation point on the way statistically settled, read
+    samples_per_point times and held. Every fit point measured so far in order, and the validation
+    points as measured."""
+    measured: list[tuple[float, float]] = [plan.route[0].point]
     held: list[MeasuredPoint] = []
-    readings_at = {
-        point: n_readings for point, n_readings in zip(plan.points, plan.readings) if point != first
-    }
-    total = len(plan.points) + len(val_pts)
+    total = len(plan.route)
     await ctx.report(1, total, Phase.MEASURING)
-    for point, validating in on_the_way(first, short_tour(first, list(readings_at)), val_pts):
-        if validating:
+    for stop in plan.route[1:]:
+        if stop.validating:
             # numbered when stored, after the fit points
-            held.append(await read_stage_point(ctx, total + len(held), *point, noise_deg=noise))
+            held.append(
+                await read_stage_point(
+                    ctx, total + len(held), *stop.point, n=stop.readings, noise_deg=noise
+                )
+            )
         else:
             await measure_stage_point(
-                ctx, len(measured), *point, n=readings_at[point], noise_deg=noise
+                ctx, len(measured), *stop.point, n=stop.readings, noise_deg=noise
             )
-            measured.append(point)
+            measured.append(stop.point)
         await ctx.report(len(measured) + len(held), total, Phase.MEASURING)
     return measured, held
 

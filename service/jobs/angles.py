@@ -21,6 +21,7 @@ from service.bench.runtime import BenchRuntime
 from service.calibration.model import CalibrationModel
 from service.calibration.registry import Method, get_method
 from service.calibration.uncertainty import COVERAGE
+from service.calibration.validation import validation_rng
 from service.errors import InputError
 from service.instruments.base import Reading
 from service.instruments.transport import DeviceError
@@ -33,7 +34,6 @@ from service.jobs.procedure import (
     RecordValidation,
     ValidationPoint,
     bench_epoch,
-    validation_rng,
 )
 from service.jobs.requests import CalibrationRequest, Grid, RequestProblem
 from service.storage.models import CalibrationJob, SettledPoint

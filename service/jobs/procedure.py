@@ -247,12 +247,6 @@ class Procedure(Protocol):
     async def run(self, ctx: JobContext) -> Outcome: ...
 
 
-def validation_rng(n_points: int, n_validation: int) -> np.random.Generator:
-    """Validation points are drawn reproducibly from the request's size (a repeated request measures
-    the same)."""
-    return np.random.default_rng(n_points * 7919 + n_validation)
-
-
 def ambient_conditions(
     bench: BenchRuntime, req: CalibrationRequest, since_bench_s: float
 ) -> AmbientConditions:

@@ -27,11 +27,11 @@ from service.bench.readings import (
     settle_statistical,
 )
 from service.bench.runtime import BenchRuntime, StageNotHomed
-from service.calibration.adaptive_design import short_tour
 from service.calibration.methods.stage import reference
 from service.calibration.model import CalibrationModel, table_tilt_range
 from service.calibration.registry import FitOptions, Method, get_method
 from service.calibration.uncertainty import COVERAGE
+from service.calibration.validation import stage_validation_points
 from service.errors import InputError
 from service.instruments.base import Reading
 from service.instruments.transport import DeviceError
@@ -47,7 +47,6 @@ from service.jobs.procedure import (
     RecordValidation,
     ValidationPoint,
     bench_epoch,
-    validation_rng,
 )
 from service.jobs.requests import CalibrationRequest, Grid, RequestProblem
 from service.physics.stage import StageBench
@@ -135,7 +134,7 @@ def stage_fit_options(stage_bench: StageBench, source: str) -> FitOptions:
 def _adaptive_spread(grid: Grid) -> list[StagePoint]:
     """An adaptive job's first points: the spread grid over the lattice of candidate points (the
     plan chooses among the rest once the first point's noise is known)."""
-    from service.calibration.adaptive_design import MIN_GRID, lattice, spread_indices
+    from service.calibration.adaptive_design import spread_points
 
     # the request's validator requires them
     assert grid.x_deg is not None and grid.y_deg is not None and grid.n_x and grid.n_y
@@ -145,12 +144,9 @@ def _adaptive_spread(grid: Grid) -> list[StagePoint]:
             f"design adaptive chooses among at most {MAX_CANDIDATES} candidate points; "
             f"n_x x n_y is {grid.n_x * grid.n_y}",
         )
-    cand = lattice(
+    return spread_points(
         (grid.x_deg[0], grid.x_deg[1]), (grid.y_deg[0], grid.y_deg[1]), grid.n_x, grid.n_y
     )
-    return [
-        (float(cand[i, 0]), float(cand[i, 1])) for i in spread_indices(grid.n_x, grid.n_y, MIN_GRID)
-    ]
 
 
 def _check_travel(grid: Grid, points: list[StagePoint], travel: float) -> None:
@@ -169,23 +165,6 @@ def _check_travel(grid: Grid, points: list[StagePoint], travel: float) -> None:
                 field,
                 f"point {i} ({x:g}, {y:g}) deg is outside the stage travel of ±{travel:g} deg",
             )
-
-
-def _validation_points(points: list[StagePoint], n_points: int) -> list[StagePoint]:
-    """`n_points` validation points drawn reproducibly over the grid's range, in the order they are
-    visited."""
-    xs, ys = np.array(points).T
-    rng = validation_rng(len(points), n_points)
-    drawn = [
-        (float(round(x, 4)), float(round(y, 4)))
-        for x, y in zip(
-            rng.uniform(xs.min(), xs.max(), n_points),
-            rng.uniform(ys.min(), ys.max(), n_points),
-        )
-    ]
-    # visited after the grid, from its last point, in the order of shortest travel (random
-    # order crossed the range between each two)
-    return short_tour(points[-1], drawn)
 
 
 class StageGrid(PointProcedure[StagePoint]):
@@ -218,7 +197,7 @@ class StageGrid(PointProcedure[StagePoint]):
         check_stage_grid(
             req.method, req.grid, points, bench.config.stage_bench(), self.fit_options(bench)
         )
-        val = _validation_points(points, req.validation.n_points)
+        val = stage_validation_points(points, req.validation.n_points)
         return Plan(points, val, "measurement_sensor", SENSORS)
 
     def stored_point(self, value: Any) -> StagePoint:

@@ -8,7 +8,15 @@ import math
 
 import numpy as np
 
-from service.calibration.adaptive_design import AdaptivePlan, BenchNoise, BenchTimes, plan_adaptive
+from service.calibration.adaptive_design import (
+    AdaptivePlan,
+    BenchNoise,
+    BenchTimes,
+    nearest_point,
+    plan_adaptive,
+    spread_points,
+)
+from service.calibration.validation import stage_validation_points
 from service.physics.settling import SIM_STAGE_VELOCITY_PPS, Move, move_transient_deg, settling_of
 from service.scenarios.model import StageScenario, axis_values
 from service.scenarios.run import effect_set, hardware_of
@@ -50,12 +58,27 @@ def scenario_times(sc: StageScenario, step_deg: float, noise_deg: float) -> Benc
     )
 
 
-def plan_for_scenario(sc: StageScenario, target_deg: float) -> AdaptivePlan:
-    """The plan over the scenario's grid (its range, its points as the candidates)."""
+def plan_for_scenario(
+    sc: StageScenario,
+    target_deg: float,
+    start: tuple[float, float] = (0.0, 0.0),
+    n_validation: int = 4,
+    validation_readings: int = 10,
+) -> AdaptivePlan:
+    """The plan over the scenario's grid (its range, its points as the candidates), on the route a
+    job takes from `start` (where the stage stands): from the spread point nearest it, with
+    `n_validation` validation points of `validation_readings` readings on the way, drawn as the job
+    draws them."""
     xs, ys = axis_values(sc.grid.x_deg), axis_values(sc.grid.y_deg)
+    x_deg, y_deg = (min(xs), max(xs)), (min(ys), max(ys))
     noise = scenario_noise(sc)
     step = max((max(xs) - min(xs)) / max(len(xs) - 1, 1), (max(ys) - min(ys)) / max(len(ys) - 1, 1))
     times = scenario_times(sc, step, min(noise.meas_sigma_deg, noise.ref_sigma_deg))
-    return plan_adaptive(
-        (min(xs), max(xs)), (min(ys), max(ys)), len(xs), len(ys), target_deg, noise, times
+    plan = plan_adaptive(x_deg, y_deg, len(xs), len(ys), target_deg, noise, times)
+    spread = spread_points(x_deg, y_deg, len(xs), len(ys))
+    return plan.along(
+        start,
+        nearest_point(spread, start),
+        stage_validation_points(spread, n_validation),
+        validation_readings,
     )

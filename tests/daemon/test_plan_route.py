@@ -1,0 +1,81 @@
+"""The plan an adaptive job follows is the one `tiltlab plan` prints for the same bench: the same
+route (its first point the spread point nearest where the stage stands, the others on a short tour,
+the validation points on the way) stop for stop, and an expected bench time that a simulated job's
+measured bench time bears out (the fit points' and the validation points' together)."""
+
+from __future__ import annotations
+
+import pytest
+
+from service.scenarios.model import load_scenario
+from service.scenarios.plan import plan_for_scenario
+from tests.helpers.daemon import admin_headers, make_client, wait_job
+
+TARGET_DEG = 0.0006
+N_VALIDATION = 4
+BODY = {
+    "procedure": "stage-grid",
+    "method": "kinematic",
+    "design": "adaptive",
+    "target_expanded_uncertainty_deg": TARGET_DEG,
+    "grid": {"x_deg": [-12.0, 12.0], "y_deg": [-12.0, 12.0], "n_x": 9, "n_y": 9},
+    "samples_per_point": 10,
+    "validation": {"n_points": N_VALIDATION},
+}
+STANDS_AT = (0.0, 0.0)
+
+
+@pytest.fixture(scope="module")
+def job_and_points(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("plan-route")
+    with make_client(tmp, bench_scenario="seed000") as client:
+        h = admin_headers(tmp)
+        moved = client.post(
+            "/stage/move", headers=h, json={"x_deg": STANDS_AT[0], "y_deg": STANDS_AT[1]}
+        )
+        assert moved.status_code == 200, moved.text
+        r = client.post("/calibrations", headers=h, json=BODY)
+        assert r.status_code == 202, r.text
+        job = wait_job(client, r.json()["id"], h)
+        assert job["state"] == "succeeded", job["error"]
+        record = client.get(f"/records/{job['record']['id']}", headers=h).json()
+        meas = client.app.state.bench.device_ids["measurement_sensor"]
+        points = client.app.state.store.points.settled_points(job["id"], meas)
+        yield job, record, points
+
+
+def test_the_job_measures_the_route_the_offline_plan_prints(job_and_points):
+    _, record, points = job_and_points
+    offline = plan_for_scenario(load_scenario("seed000"), TARGET_DEG, STANDS_AT, N_VALIDATION, 10)
+    in_time = sorted(points, key=lambda point: point.t_start_s)
+    assert [point.point >= len(offline.points) for point in in_time] == [
+        stop.validating for stop in offline.route
+    ]
+    # the commanded tilts, to the stages' pulse (some 0.0003 deg)
+    assert [(point.cmd_x_deg, point.cmd_y_deg) for point in in_time] == [
+        pytest.approx(stop.point, abs=0.001) for stop in offline.route
+    ]
+    # and the record's plan lists the fit points in that order
+    plan = record["validation"]["plan"][0]
+    assert [tuple(point) for point in plan["points"]] == offline.points
+
+
+def test_the_expected_bench_time_is_borne_out(job_and_points):
+    job, record, _ = job_and_points
+    actual = job["bench_seconds"]["total"]
+    rounds = record["validation"]["plan"]
+    plan = rounds[0]
+    expected = plan["expected_bench_seconds"] + plan["expected_validation_bench_seconds"]
+    offline = plan_for_scenario(load_scenario("seed000"), TARGET_DEG, STANDS_AT, N_VALIDATION, 10)
+    offline_expected = offline.bench_seconds + offline.validation_bench_seconds
+    # the validation points' part is of their share: 4 stands of 10 readings against 16 of more
+    assert 0 < plan["expected_validation_bench_seconds"] < 0.3 * plan["expected_bench_seconds"]
+    if len(rounds) == 1:
+        # measured on this bench: the job's own plan +6 % and +10 %, the offline plan +11 % and
+        # +13 % of the job's bench time (it reckons settling from the scenario's transient with a
+        # margin); without the validation points or at another stage rate they were 14-25 % off
+        assert expected == pytest.approx(actual, rel=0.2)
+        assert offline_expected == pytest.approx(actual, rel=0.2)
+    else:
+        # a top-up pass (about one job in ten) reads every point again: more than the plan
+        assert actual > expected
