@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.helpers.daemon import admin_headers, make_client, wait_job
+from tests.helpers.daemon import admin_headers, job_from, make_client
 
 TARGET_DEG = 0.0006
 BODY = {
@@ -29,18 +29,7 @@ def adaptive(tmp_path_factory):
     with make_client(tmp, sim_speed=20.0) as client:
         h = admin_headers(tmp)
         # the stage left standing near the range's (+4, +4) corner, as a job before might
-        moved = client.post(
-            "/stage/move", headers=h, json={"x_deg": STANDS_AT[0], "y_deg": STANDS_AT[1]}
-        )
-        assert moved.status_code == 200, moved.text
-        r = client.post("/calibrations", headers=h, json=BODY)
-        assert r.status_code == 202, r.text
-        job = wait_job(client, r.json()["id"], h)
-        record = (
-            client.get(f"/records/{job['record']['id']}", headers=h).json()
-            if job["record"]
-            else None
-        )
+        job, record = job_from(client, h, BODY, STANDS_AT)
         refused = client.post(
             "/calibrations", headers=h, json={**BODY, "target_expanded_uncertainty_deg": 0.00005}
         )

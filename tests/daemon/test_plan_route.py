@@ -9,7 +9,7 @@ import pytest
 
 from service.scenarios.model import load_scenario
 from service.scenarios.plan import plan_for_scenario
-from tests.helpers.daemon import admin_headers, make_client, wait_job
+from tests.helpers.daemon import admin_headers, job_from, make_client
 
 TARGET_DEG = 0.0006
 N_VALIDATION = 4
@@ -30,15 +30,8 @@ def job_and_points(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("plan-route")
     with make_client(tmp, bench_scenario="seed000") as client:
         h = admin_headers(tmp)
-        moved = client.post(
-            "/stage/move", headers=h, json={"x_deg": STANDS_AT[0], "y_deg": STANDS_AT[1]}
-        )
-        assert moved.status_code == 200, moved.text
-        r = client.post("/calibrations", headers=h, json=BODY)
-        assert r.status_code == 202, r.text
-        job = wait_job(client, r.json()["id"], h)
+        job, record = job_from(client, h, BODY, STANDS_AT)
         assert job["state"] == "succeeded", job["error"]
-        record = client.get(f"/records/{job['record']['id']}", headers=h).json()
         meas = client.app.state.bench.device_ids["measurement_sensor"]
         points = client.app.state.store.points.settled_points(job["id"], meas)
         yield job, record, points

@@ -70,3 +70,23 @@ def wait_bench_seconds(bench, seconds: float, timeout_s: float = 30.0) -> None:
         timeout_s=timeout_s,
         what="the bench clock to advance",
     )
+
+
+def job_from(
+    client, headers, body: dict, stands_at: tuple[float, float]
+) -> tuple[dict, dict | None]:
+    """A calibration job run to its end with the stage first moved to `stands_at` (where a job
+    before might have left it): the job, and its record where it made one."""
+    moved = client.post(
+        "/stage/move", headers=headers, json={"x_deg": stands_at[0], "y_deg": stands_at[1]}
+    )
+    assert moved.status_code == 200, moved.text
+    r = client.post("/calibrations", headers=headers, json=body)
+    assert r.status_code == 202, r.text
+    job = wait_job(client, r.json()["id"], headers)
+    record = (
+        client.get(f"/records/{job['record']['id']}", headers=headers).json()
+        if job["record"]
+        else None
+    )
+    return job, record
