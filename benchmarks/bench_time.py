@@ -21,7 +21,8 @@ simulated clock's (docs/api.md, "Bench time").
 One adaptive job's bench time depends on its draws: whether its fit predicts more than the target
 and reads every point again (a top-up pass). `--adaptive-runs N` runs it N times at the same target
 and prints, per bench, the median and range of its fraction of the fixed job's bench time, how many
-runs came within 0.35 x and how many needed a top-up pass. `--no-seed000-procedure` leaves out the
+runs came within 0.35 x, how many needed a top-up pass, and what the plan expected over
+what the job took. `--no-seed000-procedure` leaves out the
 longest job (some 2,000 bench s a bench) when only the other two are wanted.
 """
 
@@ -139,6 +140,16 @@ def top_up_passes(res: dict[str, Any]) -> int:
     return sum(1 for step in plan if "top_up" in step)
 
 
+def plan_expected_share(res: dict[str, Any]) -> float | None:
+    """What an adaptive job's plan expected (fit and validation points) over the bench time it
+    took."""
+    plan = (res.get("validation") or {}).get("plan") or []
+    if not plan or "expected_validation_bench_seconds" not in plan[0]:
+        return None
+    expected = plan[0]["expected_bench_seconds"] + plan[0]["expected_validation_bench_seconds"]
+    return float(expected / res["bench_seconds"]["total"])
+
+
 def summary(name: str, r: dict[str, Any]) -> str:
     """The adaptive job's bench time as a fraction of the fixed job's (each run's, or their median
     and range), and seed 000's procedure's."""
@@ -156,6 +167,11 @@ def summary(name: str, r: dict[str, Any]) -> str:
             f"{float(np.median(ratios)):.2f}, {ratios[0]:.2f}-{ratios[-1]:.2f}, "
             f"{sum(ratio <= 0.35 for ratio in ratios)} at or below 0.35, "
             f"{sum(top_up_passes(res) > 0 for res in done)} with a top-up pass;"
+        )
+    expected = sorted(filter(None, (plan_expected_share(res) for res in done)))
+    if expected:
+        parts.append(
+            f"the plan expected {expected[0]:.2f}-{expected[-1]:.2f} x the bench time a job took;"
         )
     failed = len(r["adaptive_runs"]) - len(done)
     if failed:

@@ -61,6 +61,10 @@ def test_the_expected_bench_time_is_borne_out(job_and_points):
     expected = plan["expected_bench_seconds"] + plan["expected_validation_bench_seconds"]
     offline = plan_for_scenario(load_scenario("seed000"), TARGET_DEG, STANDS_AT, N_VALIDATION, 10)
     offline_expected = offline.bench_seconds + offline.validation_bench_seconds
+    print(
+        f"\nbench s: the job took {actual:.0f}, its plan expected {expected:.0f}, the offline plan "
+        f"{offline_expected:.0f}"
+    )
     # the validation points' part is of their share: 4 stands of 10 readings against 16 of more
     assert 0 < plan["expected_validation_bench_seconds"] < 0.3 * plan["expected_bench_seconds"]
     if len(rounds) == 1:
