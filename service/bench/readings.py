@@ -40,8 +40,10 @@ async def fresh_readings(
     bench: BenchRuntime, role: str, n: int, *, after_bench_s: float, timeout_s: float
 ) -> list[Reading]:
     """The next `n` readings of a role stamped after `after_bench_s` (bench seconds). `timeout_s` is
-    bench time (what the readings take to come), waited for in real time, and never less than 2 real
-    seconds: a sped-up simulation on a loaded machine lags its bench clock."""
+    the longest wait for the next reading: bench time, waited for in real time, and never less than
+    2 real seconds (a sped-up simulation on a loaded machine lags its bench clock). Each reading
+    that comes starts the wait again, so a slow device still answering is not taken for a silent
+    one."""
     out: list[Reading] = []
     last = after_bench_s
     interval = bench.output_interval_s(role)
@@ -52,6 +54,7 @@ async def fresh_readings(
         if new:
             out += new
             last = new[-1].bench_s
+            deadline = time.monotonic() + timeout_s
         elif time.monotonic() > deadline:
             st = bench.devices[role].status
             raise DeviceNotAnswering(
