@@ -22,7 +22,10 @@ One adaptive job's bench time depends on its draws: whether its fit predicts mor
 and reads every point again (a top-up pass). `--adaptive-runs N` runs it N times at the same target
 and prints, per bench, the median and range of its fraction of the fixed job's bench time, how many
 runs came within 0.35 x, how many needed a top-up pass, and what the plan expected over
-what the job took. `--no-seed000-procedure` leaves out the
+what the job took. Each bench's summary also states the adaptive design's floor there
+(service.scenarios.plan.design_floor): the least bench time any adaptive job could take on it, with
+every stand settled only until its transient is within one reading's noise and its readings
+exactly at the target. `--no-seed000-procedure` leaves out the
 longest job (some 2,000 bench s a bench) when only the other two are wanted.
 """
 
@@ -34,6 +37,7 @@ import json
 import tempfile
 import time
 from collections.abc import Iterator
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +46,9 @@ from fastapi.testclient import TestClient
 
 from service.api.app import create_app
 from service.config import Settings
+from service.scenarios import load_scenario
 from service.scenarios.model import scenario_data
+from service.scenarios.plan import design_floor
 
 GRID = {"x_deg": [-12.0, 12.0], "y_deg": [-12.0, 12.0], "n_x": 9, "n_y": 9}
 SLOW = {
@@ -69,12 +75,13 @@ def scenario_file(name: str, folder: Path) -> str:
 
 
 # every job here: kinematic over +-12 deg, 10 readings a point, 8 validation points
+READINGS, VALIDATION_POINTS = 10, 8
 BASE_JOB: dict[str, Any] = {
     "procedure": "stage-grid",
     "method": "kinematic",
     "grid": GRID,
-    "samples_per_point": 10,
-    "validation": {"n_points": 8},
+    "samples_per_point": READINGS,
+    "validation": {"n_points": VALIDATION_POINTS},
 }
 
 
@@ -176,6 +183,13 @@ def summary(name: str, r: dict[str, Any]) -> str:
     failed = len(r["adaptive_runs"]) - len(done)
     if failed:
         parts.append(f"{failed} adaptive run(s) without bench time;")
+    floor = r.get("floor")
+    if floor:
+        parts.append(
+            f"the adaptive design's floor on this bench {floor['total']:.0f} s (moving "
+            f"{floor['moving']:.0f}, settling {floor['settling']:.0f}, reading "
+            f"{floor['reading']:.0f}) = {floor['total'] / fixed['total']:.2f} x the fixed job;"
+        )
     seed = r["seed000_procedure"]["bench_seconds"]
     if seed:
         parts.append(f"seed 000 procedure / fixed = {seed['total'] / fixed['total']:.2f}")
@@ -211,7 +225,7 @@ def main() -> None:
     )
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for name in args.scenarios:
-        with daemon_on(name, args.speed) as (client, h, _):
+        with daemon_on(name, args.speed) as (client, h, path):
             base = BASE_JOB
             seed000 = (
                 {"state": "not run", "bench_seconds": None}
@@ -255,11 +269,17 @@ def main() -> None:
             ):
                 if res.get("error"):
                     print(f"  {name} {label} error: {res['error']}", flush=True)
+            floor = (
+                design_floor(load_scenario(path), float(target), VALIDATION_POINTS, READINGS)
+                if target
+                else None
+            )
             results[name] = {
                 "seed000_procedure": seed000,
                 "fixed": fixed,
                 "adaptive_runs": adaptive_runs,
                 "target": target,
+                "floor": asdict(floor) | {"total": floor.total} if floor else None,
             }
     print()
     for name, r in results.items():

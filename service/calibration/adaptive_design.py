@@ -64,14 +64,18 @@ class BenchTimes:
     """What a point costs in bench time: moving at the stage's rate, settling, reading at the output
     rate."""
 
-    stage_rate_deg_per_s: float = 2.8
+    stage_rates_deg_per_s: tuple[float, float] = (2.8, 2.8)  # each stage's (x, y)
     settle_s: float = 1.5
     output_rate_hz: float = 25.0
     approach_deg: float = 0.1
 
+    def axis_move_s(self, axis: int, delta_deg: float) -> float:
+        """One stage's move of `delta_deg`, with its approach from below."""
+        return (abs(delta_deg) + 2 * self.approach_deg) / self.stage_rates_deg_per_s[axis]
+
     def move_s(self, a: tuple[float, float], b: tuple[float, float]) -> float:
-        travel_deg = max(abs(b[0] - a[0]), abs(b[1] - a[1]))  # the two stages move at once
-        return (travel_deg + 2 * self.approach_deg) / self.stage_rate_deg_per_s
+        """A move of the table: the two stages move at once, each at its own rate."""
+        return max(self.axis_move_s(axis, b[axis] - a[axis]) for axis in (0, 1))
 
     def point_s(self, n: int) -> float:
         return self.settle_s + n / self.output_rate_hz

@@ -261,13 +261,16 @@ class BenchConfig(_Strict):
     def role(self, role: str) -> PortRole:
         return self.role_specs[role]
 
-    def stage_rate_deg_per_s(self) -> float:
-        """How fast the stacked stages tilt the table: the controller's velocity on the coarser of
-        the two stages' pulse equivalents (the slower axis, which a move waits for)."""
+    def stage_rates_deg_per_s(self) -> tuple[float, float]:
+        """How fast each of the stacked stages tilts the table (x, y): the controller's velocity on
+        each stage's pulse equivalent (a move of both waits for the slower)."""
         stage = self.role("stage")
         assert isinstance(stage, StageControllerRole)
         bench = self.stage_bench()
-        return stage.velocity_pulses_per_s * min(bench.pulse_x_deg, bench.pulse_y_deg)
+        return (
+            stage.velocity_pulses_per_s * bench.pulse_x_deg,
+            stage.velocity_pulses_per_s * bench.pulse_y_deg,
+        )
 
     def stage_bench(self) -> StageBench:
         """The stacked stages' hardware as the physics and calibration code take it."""

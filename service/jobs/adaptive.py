@@ -137,7 +137,7 @@ def _plan(
     # stand costs on this bench (a slow sensor's long settling makes a second pass dear)
     settle_s = max(ctx.bench_time.settling, 0.2)
     times = BenchTimes(
-        stage_rate_deg_per_s=bench.config.stage_rate_deg_per_s(),
+        stage_rates_deg_per_s=bench.config.stage_rates_deg_per_s(),
         settle_s=settle_s,
         output_rate_hz=1.0 / max(bench.output_interval_s("measurement_sensor"), 1e-3),
     )

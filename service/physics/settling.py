@@ -105,6 +105,23 @@ def move_transient_deg(st: Settling, move: Move, t_s: ArrayLike) -> NDArray[np.f
     return out
 
 
+def settled_within_s(
+    st: Settling, delta_deg: float, rate_deg_per_s: float, level_deg: float, step_s: float = 0.01
+) -> float:
+    """How long after a move of `delta_deg` at `rate_deg_per_s` ends its transient stays within
+    `level_deg` for good (on a grid of `step_s`): the least settling any rule can give a stand whose
+    readings must carry no more of it than that."""
+    if st.is_instant or delta_deg == 0 or rate_deg_per_s <= 0:
+        return 0.0
+    duration = abs(delta_deg) / rate_deg_per_s
+    t = np.arange(0.0, st.lasts_s() + step_s, step_s)
+    transient = move_transient_deg(st, Move(-duration, delta_deg, duration), t)
+    above = np.nonzero(np.abs(transient) >= level_deg)[0]
+    if not above.size:
+        return 0.0
+    return float(t[min(above[-1] + 1, t.size - 1)])
+
+
 def _lag_at_end_deg(tau: float, big_t: float, delta: float) -> float:
     """y0 of the model: how far the sensor lags the ramp when the move ends (the whole step when
     the move is instant, nothing for an instant sensor)."""

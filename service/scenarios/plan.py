@@ -5,10 +5,10 @@ measure."""
 from __future__ import annotations
 
 import math
-
-import numpy as np
+from dataclasses import dataclass
 
 from service.calibration.adaptive_design import (
+    PLAN_MARGINS,
     AdaptivePlan,
     BenchNoise,
     BenchTimes,
@@ -17,7 +17,7 @@ from service.calibration.adaptive_design import (
     spread_points,
 )
 from service.calibration.validation import stage_validation_points
-from service.physics.settling import SIM_STAGE_VELOCITY_PPS, Move, move_transient_deg, settling_of
+from service.physics.settling import SIM_STAGE_VELOCITY_PPS, settled_within_s, settling_of
 from service.scenarios.model import StageScenario, axis_values
 from service.scenarios.run import effect_set, hardware_of
 
@@ -40,19 +40,21 @@ def scenario_noise(sc: StageScenario) -> BenchNoise:
     )
 
 
-def scenario_times(sc: StageScenario, step_deg: float, noise_deg: float) -> BenchTimes:
-    """Bench time of a point: the stage's rate, and the time a move of `step_deg` takes to settle
-    within the noise (from the scenario's settling, with the statistical test's 1.4 x and three
-    blocks of margin)."""
+def stage_rates_deg_per_s(sc: StageScenario) -> tuple[float, float]:
+    """How fast each simulated stage tilts the table (x, y)."""
     bench = hardware_of(sc)
-    rate = SIM_STAGE_VELOCITY_PPS * min(bench.pulse_x_deg, bench.pulse_y_deg)
+    return (SIM_STAGE_VELOCITY_PPS * bench.pulse_x_deg, SIM_STAGE_VELOCITY_PPS * bench.pulse_y_deg)
+
+
+def scenario_times(sc: StageScenario, step_deg: float, noise_deg: float) -> BenchTimes:
+    """Bench time of a point: each stage's rate, and the time a move of `step_deg` on the slower
+    stage takes to settle within the noise (from the scenario's settling, with the statistical
+    test's 1.4 x and three blocks of margin)."""
+    rates = stage_rates_deg_per_s(sc)
     st = settling_of(effect_set(sc))
-    t = np.arange(0.0, 60.0, 1.0 / OUTPUT_RATE_HZ)
-    tr = move_transient_deg(st, Move(-step_deg / rate, step_deg, step_deg / rate), t)
-    above = np.nonzero(np.abs(tr) >= noise_deg)[0]
-    below_s = float(t[above[-1] + 1]) if above.size and above[-1] + 1 < t.size else 0.0
+    below_s = settled_within_s(st, step_deg, min(rates), noise_deg, step_s=1.0 / OUTPUT_RATE_HZ)
     return BenchTimes(
-        stage_rate_deg_per_s=rate,
+        stage_rates_deg_per_s=rates,
         settle_s=1.4 * below_s + 12 / OUTPUT_RATE_HZ,
         output_rate_hz=OUTPUT_RATE_HZ,
     )
@@ -64,17 +66,18 @@ def plan_for_scenario(
     start: tuple[float, float] = (0.0, 0.0),
     n_validation: int = 4,
     validation_readings: int = 10,
+    margins: tuple[float, ...] = PLAN_MARGINS,
 ) -> AdaptivePlan:
     """The plan over the scenario's grid (its range, its points as the candidates), on the route a
     job takes from `start` (where the stage stands): from the spread point nearest it, with
     `n_validation` validation points of `validation_readings` readings on the way, drawn as the job
-    draws them."""
+    draws them; aimed at the best of `margins` x the target."""
     xs, ys = axis_values(sc.grid.x_deg), axis_values(sc.grid.y_deg)
     x_deg, y_deg = (min(xs), max(xs)), (min(ys), max(ys))
     noise = scenario_noise(sc)
     step = max((max(xs) - min(xs)) / max(len(xs) - 1, 1), (max(ys) - min(ys)) / max(len(ys) - 1, 1))
     times = scenario_times(sc, step, min(noise.meas_sigma_deg, noise.ref_sigma_deg))
-    plan = plan_adaptive(x_deg, y_deg, len(xs), len(ys), target_deg, noise, times)
+    plan = plan_adaptive(x_deg, y_deg, len(xs), len(ys), target_deg, noise, times, margins=margins)
     spread = spread_points(x_deg, y_deg, len(xs), len(ys))
     return plan.along(
         start,
@@ -82,3 +85,54 @@ def plan_for_scenario(
         stage_validation_points(spread, n_validation),
         validation_readings,
     )
+
+
+@dataclass(frozen=True)
+class DesignFloor:
+    """The least bench time the adaptive design can take on a bench (seconds)."""
+
+    moving: float
+    settling: float
+    reading: float
+
+    @property
+    def total(self) -> float:
+        return self.moving + self.settling + self.reading
+
+
+def design_floor(
+    sc: StageScenario, target_deg: float, n_validation: int = 4, validation_readings: int = 10
+) -> DesignFloor:
+    """The least bench time of an adaptive job on the scenario's bench, whatever its settling rule
+    and however well it knew the noise: its route from its first point (no move to it), each move at
+    the stage's rate, each stand settled only until the move's transient stays within one reading's
+    noise (the physics of the scenario's settling, per axis: the shorter axis settles while the
+    longer still moves), and readings exactly at the target (the plan aimed at 1 x it, no margin
+    for a top-up pass)."""
+    xs, ys = axis_values(sc.grid.x_deg), axis_values(sc.grid.y_deg)
+    spread = spread_points((min(xs), max(xs)), (min(ys), max(ys)), len(xs), len(ys))
+    first = nearest_point(spread, (0.0, 0.0))
+    plan = plan_for_scenario(sc, target_deg, first, n_validation, validation_readings, (1.0,))
+    st = settling_of(effect_set(sc))
+    noise = scenario_noise(sc)
+    level = max(noise.meas_sigma_deg, noise.ref_sigma_deg)
+    times = plan.times
+    moving = settling = reading = 0.0
+    here = first
+    for stop in plan.route:
+        if stop.point != here:
+            move_s = times.move_s(here, stop.point)
+            moving += move_s
+            settling += max(
+                0.0,
+                *(
+                    settled_within_s(
+                        st, stop.point[axis] - here[axis], times.stage_rates_deg_per_s[axis], level
+                    )
+                    - (move_s - times.axis_move_s(axis, stop.point[axis] - here[axis]))
+                    for axis in (0, 1)
+                ),
+            )
+        reading += stop.readings / times.output_rate_hz
+        here = stop.point
+    return DesignFloor(moving, settling, reading)

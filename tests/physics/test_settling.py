@@ -14,6 +14,7 @@ from service.physics.settling import (
     Settling,
     move_transient_deg,
     moves_along,
+    settled_within_s,
     step_response_fit,
     transient_along_deg,
 )
@@ -156,3 +157,32 @@ def test_offline_run_sees_the_transient_the_simulated_bench_shows():
     positions = [round(p / axis.pulse_deg) * axis.pulse_deg for p in (3.0, -1.5, 0.75)]
     moves = moves_along(positions, 0.0, depart, axis.velocity_pps * axis.pulse_deg)
     assert transient_along_deg(world.settling, moves, reads) == pytest.approx(got, abs=1e-12)
+
+
+@pytest.mark.parametrize("tau", [0.3, 1.5])
+@pytest.mark.parametrize("delta", [-9.0, 0.5, 12.0])
+def test_settled_within_is_the_first_order_lag_decaying_to_the_level(tau, delta):
+    """Without ringing the sensor lags a ramp at `rate` by y0 = δ (τ/T)(1 − e^(−T/τ)) when the move
+    ends (T = |δ|/rate) and the lag decays as e^(−t/τ): it stays within `level` after
+    τ ln(|y0| / level)."""
+    rate, level = 2.0, 0.001
+    duration = abs(delta) / rate
+    lag = abs(delta) * tau / duration * (1.0 - np.exp(-duration / tau))
+    expected = tau * np.log(lag / level)
+    st = Settling(tau, 0.0, 0.0, 0.0)
+    assert settled_within_s(st, delta, rate, level, step_s=0.001) == pytest.approx(
+        expected, abs=0.002
+    )
+    # a level above the whole lag is held at once, a bench without settling at once
+    assert settled_within_s(st, delta, rate, 1.1 * lag) == 0.0
+    assert settled_within_s(Settling(), delta, rate, level) == 0.0
+
+
+def test_settled_within_waits_out_the_ringing_too():
+    """The table's ringing (0.002 deg/deg, decaying over 0.5 s) after a 9 deg move, through a
+    0.05 s sensor, starts near 0.018 deg: within 0.001 deg it takes about 0.5 ln(18) = 1.4 s, well
+    past the sensor's own lag (0.05 ln(0.1 / 0.001) = 0.23 s)."""
+    ringing = Settling(0.05, 0.002, 4.0, 0.5)
+    waited = settled_within_s(ringing, 9.0, 2.0, 0.001, step_s=0.001)
+    assert 1.0 < waited <= 0.5 * np.log(0.018 / 0.001) + 0.01
+    assert waited > settled_within_s(Settling(0.05, 0.0, 0.0, 0.0), 9.0, 2.0, 0.001) + 0.8
