@@ -21,12 +21,13 @@ simulated clock's (docs/api.md, "Bench time").
 One adaptive job's bench time depends on its draws: whether its fit predicts more than the target
 and reads every point again (a top-up pass). `--adaptive-runs N` runs it N times at the same target
 and prints, per bench, the median and range of its fraction of the fixed job's bench time, how many
-runs came within 0.35 x, how many needed a top-up pass, and what the plan expected over
-what the job took. Each bench's summary also states the adaptive design's floor there
-(service.scenarios.plan.design_floor): the least bench time any adaptive job could take on it, with
-every stand settled only until its transient is within one reading's noise and its readings
-exactly at the target. `--no-seed000-procedure` leaves out the
-longest job (some 2,000 bench s a bench) when only the other two are wanted.
+runs came within 0.35 x, how many needed a top-up pass, how many of their validation components
+lay within their expanded uncertainty, and what the plan expected over what the job took. Each
+bench's summary also states the adaptive design's floor there (service.scenarios.plan.design_floor):
+the least bench time any adaptive job could take on it, with every stand settled only until its
+transient is within one reading's noise and its readings exactly at the target.
+`--no-seed000-procedure` leaves out the longest job (some 2,000 bench s a bench) when only the other
+two are wanted.
 """
 
 from __future__ import annotations
@@ -157,6 +158,19 @@ def plan_expected_share(res: dict[str, Any]) -> float | None:
     return float(expected / res["bench_seconds"]["total"])
 
 
+def validation_within(runs: list[dict[str, Any]]) -> tuple[int, int]:
+    """How many of the runs' validation components lay within their expanded uncertainty, of how
+    many."""
+    within = components = 0
+    for res in runs:
+        validation = res.get("validation") or {}
+        if validation.get("validated_components"):
+            n = int(validation["validated_components"])
+            within += round(float(validation["validated_coverage"]) * n)
+            components += n
+    return within, components
+
+
 def summary(name: str, r: dict[str, Any]) -> str:
     """The adaptive job's bench time as a fraction of the fixed job's (each run's, or their median
     and range), and seed 000's procedure's."""
@@ -174,6 +188,12 @@ def summary(name: str, r: dict[str, Any]) -> str:
             f"{float(np.median(ratios)):.2f}, {ratios[0]:.2f}-{ratios[-1]:.2f}, "
             f"{sum(ratio <= 0.35 for ratio in ratios)} at or below 0.35, "
             f"{sum(top_up_passes(res) > 0 for res in done)} with a top-up pass;"
+        )
+    within, components = validation_within(done)
+    if components:
+        parts.append(
+            f"{within} of {components} validation components ({within / components:.1%}) within "
+            "their U;"
         )
     expected = sorted(filter(None, (plan_expected_share(res) for res in done)))
     if expected:
