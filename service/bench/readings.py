@@ -74,6 +74,8 @@ OUTLIER_CUTS: dict[int, tuple[float, float, float]] = {
     200: (4.29, 4.47, 4.59),
 }
 TABLED_READINGS = (*range(3, 31), 35, 40, 45, 50, 60, 70, 80, 100, 120, 150, 200)
+# a gap between two readings longer than this many output intervals is a stall, not watching
+STALL_INTERVALS = 4
 # a sensor whose readings do not vary at all (quantised) is taken as this noisy
 MIN_NOISE_DEG = 1e-6
 
@@ -372,9 +374,19 @@ def _past_timeout(
     timeout_s: float,
     waited_from: float,
 ) -> bool:
-    """Whether the wait is over: readings made `timeout_s` bench seconds after the start, or three
-    times that in real time (at least 10 s) gone by while the bench clock lags."""
-    last = max((held[-1].bench_s for held in history.values() if held), default=start)
-    return last - start > timeout_s or time.monotonic() - waited_from > max(
+    """Whether the wait is over: some role watched for `timeout_s` bench seconds since the start, or
+    three times that in real time (at least 10 s) gone by while the bench clock lags.
+
+    A role is watched while its readings come: a gap between two of them longer than
+    STALL_INTERVALS output intervals counts as that many. A loaded machine running a sped-up
+    simulation can stall for a real second, twenty bench seconds, in which the sensor's frames are
+    lost, not sent late; the transient decays meanwhile, so the readings after the gap are
+    settled, but counting the gap would time the wait out before the test has seen them."""
+    watched = 0.0
+    for role, held in history.items():
+        longest_gap = STALL_INTERVALS * bench.output_interval_s(role)
+        stamps = np.array([start, *(reading.bench_s for reading in held)])
+        watched = max(watched, float(np.minimum(np.diff(stamps), longest_gap).sum()))
+    return watched > timeout_s or time.monotonic() - waited_from > max(
         bench.clock.real_seconds(timeout_s) * 3, 10.0
     )
