@@ -122,6 +122,34 @@ def settled_within_s(
     return float(t[min(above[-1] + 1, t.size - 1)])
 
 
+def mean_settled_within_s(
+    st: Settling,
+    delta_deg: float,
+    rate_deg_per_s: float,
+    level_deg: float,
+    readings: int,
+    interval_s: float,
+    step_s: float = 0.01,
+) -> float:
+    """How long after a move of `delta_deg` at `rate_deg_per_s` ends the mean of `readings`
+    readings `interval_s` apart, the first of them taken then, carries at most `level_deg` of the
+    transient, and so does the mean of any set begun later: the least settling that keeps the
+    transient out of a point's mean to that level. A point's mean of n readings has a standard
+    error of σ/√n; a transient within one reading's noise σ at the first of them can still be
+    several of those (a slow sensor's remnant decays over the readings but not to nothing)."""
+    if st.is_instant or delta_deg == 0 or rate_deg_per_s <= 0 or readings < 1:
+        return 0.0
+    duration = abs(delta_deg) / rate_deg_per_s
+    starts = np.arange(0.0, st.lasts_s() + step_s, step_s)
+    t = starts[:, None] + interval_s * np.arange(readings)[None, :]
+    transient = move_transient_deg(st, Move(-duration, delta_deg, duration), t.ravel())
+    means = transient.reshape(t.shape).mean(axis=1)
+    above = np.nonzero(np.abs(means) >= level_deg)[0]
+    if not above.size:
+        return 0.0
+    return float(starts[min(above[-1] + 1, starts.size - 1)])
+
+
 def _lag_at_end_deg(tau: float, big_t: float, delta: float) -> float:
     """y0 of the model: how far the sensor lags the ramp when the move ends (the whole step when
     the move is instant, nothing for an instant sensor)."""

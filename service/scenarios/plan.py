@@ -17,7 +17,13 @@ from service.calibration.adaptive_design import (
     spread_points,
 )
 from service.calibration.validation import stage_validation_points
-from service.physics.settling import SIM_STAGE_VELOCITY_PPS, settled_within_s, settling_of
+from service.physics.settling import (
+    SIM_STAGE_VELOCITY_PPS,
+    Settling,
+    mean_settled_within_s,
+    settled_within_s,
+    settling_of,
+)
 from service.scenarios.model import StageScenario, axis_values
 from service.scenarios.run import effect_set, hardware_of
 
@@ -101,14 +107,23 @@ class DesignFloor:
 
 
 def design_floor(
-    sc: StageScenario, target_deg: float, n_validation: int = 4, validation_readings: int = 10
+    sc: StageScenario,
+    target_deg: float,
+    n_validation: int = 4,
+    validation_readings: int = 10,
+    mean_share: float | None = None,
 ) -> DesignFloor:
     """The least bench time of an adaptive job on the scenario's bench, whatever its settling rule
     and however well it knew the noise: its route from its first point (no move to it), each move at
     the stage's rate, each stand settled only until the move's transient stays within one reading's
     noise (the physics of the scenario's settling, per axis: the shorter axis settles while the
     longer still moves), and readings exactly at the target (the plan aimed at 1 x it, no margin
-    for a top-up pass)."""
+    for a top-up pass).
+
+    With `mean_share`, each stand settles instead until the transient in the mean of its readings
+    is within that share of the mean's standard error (σ/√n): the floor of a job whose points'
+    means carry no more of the transient than that (one reading's noise at the first reading can
+    still bias a long mean by several standard errors on a slow sensor)."""
     xs, ys = axis_values(sc.grid.x_deg), axis_values(sc.grid.y_deg)
     spread = spread_points((min(xs), max(xs)), (min(ys), max(ys)), len(xs), len(ys))
     first = nearest_point(spread, (0.0, 0.0))
@@ -126,8 +141,12 @@ def design_floor(
             settling += max(
                 0.0,
                 *(
-                    settled_within_s(
-                        st, stop.point[axis] - here[axis], times.stage_rates_deg_per_s[axis], level
+                    _settled_s(
+                        st,
+                        stop.point[axis] - here[axis],
+                        times.stage_rates_deg_per_s[axis],
+                        level,
+                        None if mean_share is None else (mean_share, stop.readings, times),
                     )
                     - (move_s - times.axis_move_s(axis, stop.point[axis] - here[axis]))
                     for axis in (0, 1)
@@ -136,3 +155,26 @@ def design_floor(
         reading += stop.readings / times.output_rate_hz
         here = stop.point
     return DesignFloor(moving, settling, reading)
+
+
+def _settled_s(
+    st: Settling,
+    delta_deg: float,
+    rate_deg_per_s: float,
+    level_deg: float,
+    in_mean: tuple[float, int, BenchTimes] | None,
+) -> float:
+    """One axis's settling after its move: until the transient is within `level_deg` (one reading's
+    noise), or with `in_mean` (share, readings, times) until it is within that share of the
+    standard error of the mean of the stand's readings."""
+    if in_mean is None:
+        return settled_within_s(st, delta_deg, rate_deg_per_s, level_deg)
+    share, readings, times = in_mean
+    return mean_settled_within_s(
+        st,
+        delta_deg,
+        rate_deg_per_s,
+        share * level_deg / math.sqrt(readings),
+        readings,
+        1.0 / times.output_rate_hz,
+    )

@@ -45,3 +45,24 @@ def test_a_slower_sensor_raises_only_the_floor_s_settling():
     # to the noise (0.3 ln(600) = 1.9 s, 1.5 ln(3000) = 12.0 s)
     assert 20 * 1.5 < a.settling < 24 * 2.1
     assert 20 * 11 < b.settling < 24 * 12.1
+
+
+def test_keeping_the_transient_out_of_the_means_raises_a_slow_sensor_s_floor_most():
+    """A floor whose point means carry at most half their standard error of the transient settles
+    longer than one settled to a reading's noise: on the 0.3 s sensor by a fraction of a second a
+    stand (the remnant decays within the first readings), on a 1.5 s one by seconds a stand (it
+    decays over them). Moving and reading are the same route's."""
+    fast = load_scenario("seed000")
+    data = fast.model_dump(mode="json")
+    data["effects"]["settling"]["sensor_time_constant_s"] = 1.5
+    slow = parse_scenario(data)
+    for sc, per_stand_s in ((fast, (0.05, 1.0)), (slow, (1.5, 5.0))):
+        loose, kept_out = design_floor(sc, 0.0005, 8, 10), design_floor(sc, 0.0005, 8, 10, 0.5)
+        assert kept_out.moving == pytest.approx(loose.moving)
+        assert kept_out.reading == pytest.approx(loose.reading)
+        stands = 24
+        assert (
+            loose.settling + stands * per_stand_s[0]
+            < kept_out.settling
+            < loose.settling + stands * per_stand_s[1]
+        )

@@ -12,6 +12,7 @@ from service.instruments.sim.world import StageWorld
 from service.physics.settling import (
     Move,
     Settling,
+    mean_settled_within_s,
     move_transient_deg,
     moves_along,
     settled_within_s,
@@ -186,3 +187,34 @@ def test_settled_within_waits_out_the_ringing_too():
     waited = settled_within_s(ringing, 9.0, 2.0, 0.001, step_s=0.001)
     assert 1.0 < waited <= 0.5 * np.log(0.018 / 0.001) + 0.01
     assert waited > settled_within_s(Settling(0.05, 0.0, 0.0, 0.0), 9.0, 2.0, 0.001) + 0.8
+
+
+@pytest.mark.parametrize("tau", [0.3, 1.5])
+@pytest.mark.parametrize("readings", [1, 30, 118])
+def test_mean_settled_within_is_the_decaying_lag_averaged_over_the_readings(tau, readings):
+    """Readings dt apart from w after the move carry y0 e^(−w/τ) e^(−k dt/τ): their mean is
+    y0 e^(−w/τ) S / n, S = (1 − e^(−n dt/τ)) / (1 − e^(−dt/τ)), within `level` from
+    w = τ ln(|y0| S / (n level)). One reading is settled_within_s."""
+    delta, rate, dt, level = 8.0, 2.8, 0.04, 0.0003
+    duration = delta / rate
+    lag = delta * tau / duration * (1.0 - np.exp(-duration / tau))
+    s = (1.0 - np.exp(-readings * dt / tau)) / (1.0 - np.exp(-dt / tau))
+    expected = tau * np.log(lag * s / (readings * level))
+    st = Settling(tau, 0.0, 0.0, 0.0)
+    waited = mean_settled_within_s(st, delta, rate, level, readings, dt, step_s=0.001)
+    assert waited == pytest.approx(expected, abs=0.002)
+    if readings == 1:
+        assert waited == pytest.approx(settled_within_s(st, delta, rate, level, step_s=0.001))
+    assert mean_settled_within_s(Settling(), delta, rate, level, readings, dt) == 0.0
+
+
+def test_a_slow_sensor_settled_to_one_reading_s_noise_still_biases_a_long_mean():
+    """The floor's level (the transient within one reading's noise σ) leaves a slow sensor's
+    remnant in a point's mean of many readings: keeping it within half the mean's standard error,
+    σ/(2√n), takes longer; for a fast sensor the difference is a fraction of a second."""
+    sigma, n, dt = 0.0012, 118, 0.04
+    slow, fast = Settling(1.5, 0.002, 2.5, 1.0), Settling(0.3, 0.002, 4.0, 0.5)
+    for st, longer_s in ((slow, (2.5, 4.0)), (fast, (0.05, 1.0))):
+        per_reading = settled_within_s(st, 8.0, 2.8, sigma)
+        in_mean = mean_settled_within_s(st, 8.0, 2.8, 0.5 * sigma / np.sqrt(n), n, dt)
+        assert per_reading + longer_s[0] < in_mean < per_reading + longer_s[1]
