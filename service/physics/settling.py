@@ -110,16 +110,8 @@ def settled_within_s(
 ) -> float:
     """How long after a move of `delta_deg` at `rate_deg_per_s` ends its transient stays within
     `level_deg` for good (on a grid of `step_s`): the least settling any rule can give a stand whose
-    readings must carry no more of it than that."""
-    if st.is_instant or delta_deg == 0 or rate_deg_per_s <= 0:
-        return 0.0
-    duration = abs(delta_deg) / rate_deg_per_s
-    t = np.arange(0.0, st.lasts_s() + step_s, step_s)
-    transient = move_transient_deg(st, Move(-duration, delta_deg, duration), t)
-    above = np.nonzero(np.abs(transient) >= level_deg)[0]
-    if not above.size:
-        return 0.0
-    return float(t[min(above[-1] + 1, t.size - 1)])
+    readings must carry no more of it than that (a mean of one reading)."""
+    return mean_settled_within_s(st, delta_deg, rate_deg_per_s, level_deg, 1, 0.0, step_s)
 
 
 def mean_settled_within_s(

@@ -19,7 +19,6 @@ from service.calibration.adaptive_design import (
 from service.calibration.validation import stage_validation_points
 from service.physics.settling import (
     SIM_STAGE_VELOCITY_PPS,
-    Settling,
     mean_settled_within_s,
     settled_within_s,
     settling_of,
@@ -131,6 +130,14 @@ def design_floor(
     st = settling_of(effect_set(sc))
     noise = scenario_noise(sc)
     level = max(noise.meas_sigma_deg, noise.ref_sigma_deg)
+
+    def in_mean(readings: int) -> tuple[float, int]:
+        """(level, readings) a stand's transient is held to: one reading within the noise, or
+        with `mean_share` the mean of its readings within that share of its standard error."""
+        if mean_share is None:
+            return level, 1
+        return mean_share * level / math.sqrt(readings), readings
+
     times = plan.times
     moving = settling = reading = 0.0
     here = first
@@ -141,12 +148,12 @@ def design_floor(
             settling += max(
                 0.0,
                 *(
-                    _settled_s(
+                    mean_settled_within_s(
                         st,
                         stop.point[axis] - here[axis],
                         times.stage_rates_deg_per_s[axis],
-                        level,
-                        None if mean_share is None else (mean_share, stop.readings, times),
+                        *in_mean(stop.readings),
+                        1.0 / times.output_rate_hz,
                     )
                     - (move_s - times.axis_move_s(axis, stop.point[axis] - here[axis]))
                     for axis in (0, 1)
@@ -155,26 +162,3 @@ def design_floor(
         reading += stop.readings / times.output_rate_hz
         here = stop.point
     return DesignFloor(moving, settling, reading)
-
-
-def _settled_s(
-    st: Settling,
-    delta_deg: float,
-    rate_deg_per_s: float,
-    level_deg: float,
-    in_mean: tuple[float, int, BenchTimes] | None,
-) -> float:
-    """One axis's settling after its move: until the transient is within `level_deg` (one reading's
-    noise), or with `in_mean` (share, readings, times) until it is within that share of the
-    standard error of the mean of the stand's readings."""
-    if in_mean is None:
-        return settled_within_s(st, delta_deg, rate_deg_per_s, level_deg)
-    share, readings, times = in_mean
-    return mean_settled_within_s(
-        st,
-        delta_deg,
-        rate_deg_per_s,
-        share * level_deg / math.sqrt(readings),
-        readings,
-        1.0 / times.output_rate_hz,
-    )
