@@ -60,7 +60,7 @@ def _scale_job(client, h, method: str, range_deg: list[float], n: int, **body) -
 def test_scale_job_against_the_reference_sensor(daemon, tmp_path):
     client, h = daemon
     job = _scale_job(
-        client, h, "poly3", [-0.2, 0.7], 9, samples_per_point=6, validation={"n_points": 3}
+        client, h, "poly3", [-0.15, 0.7], 9, samples_per_point=6, validation={"n_points": 3}
     )
     assert job["state"] == "succeeded", job["error"]
     assert job["validation"]["n_points"] == 3
@@ -82,7 +82,7 @@ def test_a_scale_job_counts_only_adc_readings_asked_at_the_point(daemon):
     client, h = daemon
     client.app.state.bench.sim.faults("adc_sensor").slow(0.2, answers=100_000)
     job = _scale_job(
-        client, h, "poly1", [-0.2, 0.7], 5, samples_per_point=4, validation={"n_points": 2}
+        client, h, "poly1", [-0.15, 0.7], 5, samples_per_point=4, validation={"n_points": 2}
     )
     assert job["state"] == "succeeded", job["error"]
     # 4 x 10 conversions a point: well inside one conversion's noise (25 counts, 22 arcsec)
