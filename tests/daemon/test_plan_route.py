@@ -68,11 +68,15 @@ def test_the_expected_bench_time_is_borne_out(job_and_points):
     # the validation points' part is of their share: 4 stands of 10 readings against 16 of more
     assert 0 < plan["expected_validation_bench_seconds"] < 0.3 * plan["expected_bench_seconds"]
     if len(rounds) == 1:
-        # measured on this bench (docs/calibration-stage.md): both plans some 10-17 % above the
-        # job's bench time (the job's plan reckons every stand's settling from its first point's,
-        # the offline plan from the scenario's transient with a margin); without the validation
-        # points or at another stage rate they were 14-25 % off
-        assert expected == pytest.approx(actual, rel=0.2)
+        # measured on this bench (docs/calibration-stage.md): the offline plan 9-15 % above the
+        # job's bench time (it reckons settling from the scenario's transient with a margin); the
+        # job's plan 13-33 % above over 17 jobs, most within 13-22 %: it reckons every stand's
+        # settling from its first point's, which also waits for the request's settle rule and
+        # then for three of its windows of readings (the noise not yet known): after a move of
+        # 3 deg to that point it did not reckon short, and a first stand that happened to settle
+        # slowly made it reckon long (on a slow sensor, after a short first move, it reckons
+        # short: docs/calibration-stage.md)
+        assert actual <= expected <= 1.5 * actual
         assert offline_expected == pytest.approx(actual, rel=0.2)
     else:
         # a top-up pass (about one job in ten) reads every point again: more than the plan
