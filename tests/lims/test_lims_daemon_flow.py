@@ -231,9 +231,10 @@ def test_order_job_approval_certificate_feed_and_webhooks(tmp_path) -> None:  # 
         (
             "scale",
             "poly3",
-            # the ADC sensor's null sits near stage x 0.3 deg (seed 003's start state, 16 counts,
-            # at the table's tilt at x -0.2): from -0.15 a reading, a mean of 10 conversions
-            # scattering by some 8 counts, stays some 230 counts off the converter's end
+            # the ADC sensor's null sits near stage x 0.3 deg, and at x -0.2, where the table
+            # stands level, it reads seed 003's start state (16 counts): from -0.15 a reading, a
+            # mean of 10 conversions scattering by some 8 counts, stays some 230 counts off the
+            # converter's end
             {"range_deg": [-0.15, 0.7], "n": 9},
             ["stage"],
             "angle_arcsec",
