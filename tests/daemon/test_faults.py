@@ -264,9 +264,9 @@ def test_sigkill_mid_job_restart_and_resume_matches_an_uninterrupted_run(tmp_pat
         # so each free parameter's difference over the two records' combined standard uncertainty
         # is Student-t distributed with the records' degrees of freedom (Welch-Satterthwaite of the
         # two; a 3 x 3 grid leaves the mounting's covariance 6 of them). The bound is that t's
-        # quantile at a false-failure rate of 1e-3 over all free parameters (Bonferroni): the
-        # records' own uncertainty alone, each estimated from 6 degrees of freedom, fails a correct
-        # resume in some runs in 15.
+        # quantile at a false-failure rate of 1e-3 over all free parameters (Bonferroni). One
+        # record's uncertainty alone, estimated from 6 degrees of freedom, failed a correct resume
+        # in 2 of 27 runs.
         tail = 1e-3 / len(free) / 2
         for name in free:
             u_a, nu_a = _standard_uncertainty(ma, name)
