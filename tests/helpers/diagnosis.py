@@ -29,3 +29,21 @@ def wait_diagnosis(client, h, diagnosis_id: int, timeout_s: float = 300.0) -> di
         every_s=0.2,
         what=f"diagnosis {diagnosis_id} ended",
     )
+
+
+# A diagnosis names an effect when its test passes at a family-wise 1 % a selection step, so on a
+# bench that holds nothing more it names a second, chance effect in about one diagnosis in a
+# hundred (and a test that asks for "nothing else" fails as often). An effect the bench really holds
+# is named with a far smaller p-value (the hidden effects of these tests: 1e-20 and below). So the
+# tests ask that nothing else is named beyond chance: any other effect's p-value at least this.
+CHANCE_P = 1e-4
+
+
+def named_beyond_chance(d: dict, planted: tuple[str, ...] = ()) -> list[tuple[str, float]]:
+    """The effects a diagnosis named, other than `planted`, with a p-value below CHANCE_P: what a
+    test that hid only `planted` must not see."""
+    return [
+        (effect["effect"], effect["evidence"]["p_value"])
+        for effect in d["effects"]
+        if effect["effect"] not in planted and effect["evidence"]["p_value"] < CHANCE_P
+    ]
