@@ -9,6 +9,7 @@ through the connection's search_path and dropped afterwards; skipped only if no 
 from __future__ import annotations
 
 import io
+import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,6 +21,13 @@ from alembic import command
 from service.storage.engine import make_engine
 from service.storage.migrate import alembic_config, upgrade
 from tests.helpers.postgres import fresh_schema_url
+
+
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """`-n auto`: half as many workers again as the cores this process may use. Most of a daemon
+    test's time is simulated bench time the test waits out (a 2-core run kept its cores 62-68 % busy
+    with one worker a core); PYTEST_XDIST_AUTO_NUM_WORKERS overrides it."""
+    return max(1, len(os.sched_getaffinity(0)) * 3 // 2)
 
 
 @pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
