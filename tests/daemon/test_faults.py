@@ -14,6 +14,7 @@ import sqlalchemy as sa
 from scipy import stats
 
 from service.calibration.methods.stage.common import MEAS_NAMES
+from service.calibration.uncertainty import welch_satterthwaite
 from service.instruments import controller
 from tests.helpers.daemon import wait_bench_seconds, wait_job
 from tests.helpers.processes import spawn
@@ -272,7 +273,8 @@ def test_sigkill_mid_job_restart_and_resume_matches_an_uninterrupted_run(tmp_pat
             u_a, nu_a = _standard_uncertainty(ma, name)
             u_b, nu_b = _standard_uncertainty(mb, name)
             u_diff = math.hypot(u_a, u_b)
-            nu = u_diff**4 / (u_a**4 / nu_a + u_b**4 / nu_b)
+            # two records, two independent estimates of their noise
+            nu = float(welch_satterthwaite([(u_a**2, nu_a), (u_b**2, nu_b)], same_dof_shared=False))
             bound = float(stats.t.isf(tail, nu))
             difference = a[name]["value"] - b[name]["value"]
             assert abs(difference) <= bound * u_diff, (name, difference, u_a, u_b, nu, bound)
