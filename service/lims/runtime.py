@@ -43,7 +43,7 @@ class LimsRuntime:
                     within_days=self.settings.standards_due_soon_days,
                 )
                 if sent:
-                    self.dispatcher.wake.set()
+                    self.dispatcher.nudge()
             except asyncio.CancelledError:
                 raise
             except Exception:  # noqa: BLE001 - checked again at the next interval

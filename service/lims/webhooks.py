@@ -54,9 +54,28 @@ class Dispatcher:
         self.webhooks, self.settings = webhooks, settings
         self.wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
         self._task = asyncio.create_task(self.run(), name="webhook-dispatcher")
+
+    def nudge(self) -> None:
+        """Wake the dispatcher to send what is due now. Safe from any thread: routes that store a
+        webhook run off the event loop, and an asyncio.Event set from another thread corrupts its
+        waiters."""
+        loop = self._loop
+        if loop is None:  # not started: nothing waits on the event
+            self.wake.set()
+            return
+        try:
+            on_loop = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            on_loop = False
+        if on_loop:
+            self.wake.set()
+        elif not loop.is_closed():
+            loop.call_soon_threadsafe(self.wake.set)
 
     async def stop(self) -> None:
         if self._task is not None:

@@ -569,7 +569,7 @@ def add_webhook(
     once."""
     row, secret = webhooks.add_webhook(body.url, body.events, actor=who.name)
     if dispatcher is not None:
-        dispatcher.wake.set()
+        dispatcher.nudge()
     response.headers["Location"] = f"/webhooks/{row.id}"
     return NewWebhook(
         id=row.id, url=row.url, events=row.events, secret=secret, created_utc=row.created_at
