@@ -26,6 +26,10 @@ What is left out, and why:
   `GET /feed` (a cursor must be one the feed gave out: it is opaque). Everything else the routes
   enforce the document states (docs/api.md, "The OpenAPI document and request validation").
 
+A longer, concurrent run (more thread-safety and state bugs surface with several workers):
+`TILTLAB_SCHEMATHESIS_MAX_EXAMPLES=50 TILTLAB_SCHEMATHESIS_WORKERS=4 .venv/bin/pytest -n0
+tests/api/test_schemathesis.py`, its report in `TILTLAB_SCHEMATHESIS_REPORT` if set.
+
 Webhook URLs the generator invents never leave the machine: the daemon's outgoing HTTP goes to a
 closed loopback port.
 """
@@ -124,9 +128,9 @@ def test_every_operation_answers_as_documented(tmp_path: Path) -> None:
                 "--phases",
                 "examples,coverage,fuzzing,stateful",
                 "--max-examples",
-                "5",
+                os.environ.get("TILTLAB_SCHEMATHESIS_MAX_EXAMPLES", "5"),
                 "--workers",
-                "1",
+                os.environ.get("TILTLAB_SCHEMATHESIS_WORKERS", "1"),
                 "--request-timeout",
                 "60",
                 "--generation-with-security-parameters",
