@@ -194,6 +194,7 @@ async def settle(
     tolerance_deg: float,
     window_s: float,
     timeout_s: float,
+    since_bench_s: float | None = None,
 ) -> float:
     """Wait until every role's mean over the last `window_s` differs from its mean over the window
     before by at most `tolerance_deg` on every channel (a drift criterion: reading noise averages
@@ -204,12 +205,17 @@ async def settle(
     what the readings say, whatever the polling interval, the machine's load or the simulation's
     speed (a sped-up bench would otherwise count the daemon's real time between looks as settling).
     `timeout_s` is real seconds, whatever the simulation speed: a loaded machine running a sped-up
-    simulation must not run out of it while its bench clock lags. Only readings made after the call
-    count (`bench.sync`). Raises TimeoutError naming the roles that did not settle,
+    simulation must not run out of it while its bench clock lags. With `since_bench_s` (the stage's
+    stop) the readings kept since then count, as if the daemon had watched from the stop: the
+    daemon's own lateness in starting to look is not settling (on a loaded machine running a
+    sped-up bench it is many bench seconds a point). A reading asked during the move and stamped
+    after the stop only makes the windows differ, never agree. Without it, only readings made after
+    the call count (`bench.sync`). Raises TimeoutError naming the roles that did not settle,
     DeviceNotAnswering (role and port) as soon as one of them is not connected.
     """
-    # only readings made after the call count: a lagging reader may still hold some from the move
-    start = await bench.sync(roles)
+    # without the stop: only readings made after the call, a lagging reader may still hold some
+    # from the move
+    start = await bench.sync(roles) if since_bench_s is None else since_bench_s
     waited_from = time.monotonic()
     history: dict[str, list[Reading]] = {role: [] for role in roles}
     judged_to = start + 2 * window_s  # windows ending before this are not judged (or did not pass)

@@ -186,7 +186,12 @@ async def measure_angle(ctx: JobContext, proc: AngleProcedure, index: int, angle
     # when the controller was found standing (see measure_stage_point)
     stood = bench.stopped_bench_s
     t0 = await settle(
-        bench, settle_roles, tolerance_deg=tol, window_s=st.window_s, timeout_s=st.timeout_s
+        bench,
+        settle_roles,
+        tolerance_deg=tol,
+        window_s=st.window_s,
+        timeout_s=st.timeout_s,
+        since_bench_s=stood if stood >= began else None,
     )
     # a role read but not settled (the ADC beside the reference): readings are stamped when their
     # answer is parsed, so one asked during the move can arrive after t0 on a lagging line; only

@@ -168,6 +168,11 @@ def adopt(client, h, d: dict, rec: dict, effect: str) -> dict:
         if n.startswith(f"{effect}.") and not p.get("fixed")
     ]
     assert free, model["parameters"]
+    verdicts = [v for v in d["adoption"] if v["effect"] == effect]
+    print(
+        f"adopted {effect} (on {verdicts[0].get('axes') if verdicts else None}): "
+        + ", ".join(f"{n} = {model['parameters'][n]['value']:.5f}" for n in free)
+    )
     return new
 
 

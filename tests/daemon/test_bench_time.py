@@ -57,9 +57,11 @@ def test_bench_seconds_do_not_change_with_the_simulation_speed(runs):
     daemon's own real time between a point's commands (its queries' round trips, the move commands):
     speed x that many bench seconds: about 30 ms of real time a point on this machine idle and 50 ms
     with both cores busy elsewhere, so 2.6 s more moving at 12x than at 4x over this job's 11 points
-    (4.5 s busy), and half that between 2x and 6x (1.5 s measured busy). Settling ends at the stamp
-    of the reading at which the settle rule holds, so the daemon's looks add nothing to it (judged
-    when the daemon looked, one loaded run gave 27.1 bench s at 2x and 34.2 at 6x)."""
+    (4.5 s busy), and half that between 2x and 6x (1.5 s measured busy). Settling is judged on the
+    readings since the stage stopped, at their own stamps: neither the daemon's looks nor its
+    lateness in beginning to look add to it (judged when the daemon looked, one loaded run gave
+    27.1 bench s at 2x and 34.2 at 6x; judged from when it began to look, another 27.4 and 32.7;
+    from the stop, under the same load, 27.5 and 27.2)."""
     slow, fast = runs[2.0][0]["bench_seconds"], runs[6.0][0]["bench_seconds"]
     print(f"bench seconds at 2x {slow}, at 6x {fast}")
     assert fast["total"] == pytest.approx(slow["total"], rel=0.10), (slow, fast)

@@ -1,7 +1,8 @@
 """The drift settle rule (`tolerance_deg` between two windows) is judged at the readings' own
 stamps: the bench time it returns is a reading's stamp, the same however often, and how late, the
 daemon looks. A sped-up simulator on a busy machine looks late in bench time; a real bench's daemon
-looks late under load. Neither may count as settling."""
+looks late under load. Neither may count as settling, nor may the daemon's lateness in beginning
+to look: given the stage's stop, the rule takes the readings since then."""
 
 from __future__ import annotations
 
@@ -38,8 +39,9 @@ class FakeBench:
     """Two sensors reading a first-order approach to a new tilt, stamped at their output rate; a
     reading exists once the clock has passed its stamp."""
 
-    def __init__(self, lag: float, seed: int) -> None:
+    def __init__(self, lag: float, seed: int, looks_from_s: float = 0.0) -> None:
         self.clock = FakeClock(lag)
+        self.clock.now = looks_from_s  # when the daemon begins to look (the stage stopped at 0)
         rng = np.random.default_rng(seed)
         t = np.arange(1, int(20 * RATE_HZ)) / RATE_HZ
         self.stamps = t
@@ -49,7 +51,7 @@ class FakeBench:
         }
 
     async def sync(self, roles: tuple[str, ...]) -> float:
-        return 0.0
+        return self.clock.now
 
     def require(self, role: str) -> None:
         assert role in self.values
@@ -66,10 +68,19 @@ class FakeBench:
         ]
 
 
-def _settled_at(lag: float, seed: int) -> float:
-    bench = FakeBench(lag, seed)
+def _settled_at(
+    lag: float, seed: int, looks_from_s: float = 0.0, since_bench_s: float | None = None
+) -> float:
+    bench = FakeBench(lag, seed, looks_from_s)
     return asyncio.run(
-        settle(bench, tuple(bench.values), tolerance_deg=0.001, window_s=0.5, timeout_s=30)  # type: ignore[arg-type]
+        settle(
+            bench,  # type: ignore[arg-type]
+            tuple(bench.values),
+            tolerance_deg=0.001,
+            window_s=0.5,
+            timeout_s=30,
+            since_bench_s=since_bench_s,
+        )
     )
 
 
@@ -89,3 +100,14 @@ def test_the_settled_time_is_a_reading_stamp_whatever_the_polling(seed):
     assert step(prompt) < 0.001 + noise, prompt
     # and not much later than needed: a second earlier the transient still moved the windows apart
     assert step(prompt - 1.0) > 0.001 - noise, prompt
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_daemon_that_begins_to_look_late_settles_at_the_same_stamp_given_the_stop(seed):
+    prompt = _settled_at(1.0, seed)
+    # the daemon begins to look only once the transient is over (a loaded machine running a
+    # sped-up bench): from the stop, the same reading; from when it began to look, two windows later
+    late_s = prompt + 0.2
+    assert _settled_at(1.0, seed, looks_from_s=late_s, since_bench_s=0.0) == prompt
+    assert _settled_at(3.0, seed, looks_from_s=late_s, since_bench_s=0.0) == prompt
+    assert _settled_at(1.0, seed, looks_from_s=late_s) >= late_s + 2 * 0.5
