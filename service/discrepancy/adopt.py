@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, TypedDict, cast
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 
 from service.calibration.methods.stage.chain import (
     EFFECT_PARAMS,
@@ -248,21 +249,42 @@ def _axes_short(model: CalibrationModel, effect: str, axes_named: Sequence[str])
     return short
 
 
+# the chance that a stage without a worm error is taken for one, over both stages (Bonferroni)
+WORM_STAGE_ALPHA = 1e-3
+
+
 def worm_axes_seen(
     labels: Sequence[str],
     values: NDArray[np.float64],
     covariance: NDArray[np.float64],
-    z: float = 3.0,
+    alpha: float = WORM_STAGE_ALPHA,
 ) -> list[str]:
-    """The stages whose worm error a diagnosis's fit shows: a fitted sine or cosine term more than
-    `z` standard uncertainties from zero (else the stage with the clearest term). A stage the points
-    sample at two phases may keep one term that shows nothing: the error is not there, and the refit
-    holding that stage's pair at zero loses nothing."""
-    std = np.sqrt(np.clip(np.diag(covariance), 1e-300, None))
+    """The stages whose worm error a diagnosis's fit shows: a stage's sine and cosine terms together
+    (chi-square on their covariance, one degree of freedom per term the points determine) beyond
+    chance at `alpha` over the stages; else the stage with the clearest terms. A stage whose terms
+    the points hardly separate from the rest of the model (a grid step near a whole number of worm
+    turns samples a short arc of the worm) has a large covariance there, and a term taken on one
+    look at it would fit the model's other errors into a sinusoid that levelling then extrapolates;
+    its sine and cosine judged together, at a level for both stages, keep that to `alpha`. A stage
+    the points sample at two phases may keep one term that shows nothing: the error is not there,
+    and the refit holding that stage's pair at zero loses nothing."""
+    by_stage: dict[str, list[int]] = {}
+    for i, lab in enumerate(labels):
+        by_stage.setdefault(lab[:1], []).append(i)
     score: dict[str, float] = {}
-    for lab, value, sigma in zip(labels, values, std):
-        score[lab[:1]] = max(score.get(lab[:1], 0.0), abs(float(value)) / float(sigma))
-    seen = [ax for ax in ("x", "y") if score.get(ax, 0.0) > z]
+    for stage, rows in by_stage.items():
+        block = covariance[np.ix_(rows, rows)]
+        determined = np.isfinite(np.diag(block)) & (np.diag(block) > 0)
+        if not determined.any():
+            continue
+        picked = [row for row, ok in zip(rows, determined) if ok]
+        part = covariance[np.ix_(picked, picked)]
+        value = values[picked]
+        chi2 = float(value @ np.linalg.pinv(part) @ value)
+        # how far beyond chance: the chi-square's tail probability, small where clear
+        score[stage] = -float(stats.chi2.logsf(chi2, len(picked)))
+    level = -np.log(alpha / max(len(by_stage), 1))
+    seen = [ax for ax in ("x", "y") if score.get(ax, 0.0) > level]
     if not seen and score:
         seen = [max(score, key=lambda ax: score[ax])]
     return seen
