@@ -61,7 +61,7 @@ def test_bench_seconds_do_not_change_with_the_simulation_speed(runs):
     readings since the stage stopped, at their own stamps: neither the daemon's looks nor its
     lateness in beginning to look add to it (judged when the daemon looked, one loaded run gave
     27.1 bench s at 2x and 34.2 at 6x; judged from when it began to look, another 27.4 and 32.7;
-    from the stop, under the same load, 27.5 and 27.2)."""
+    from the stop, beside three other test processes, 27.5 and 27.2)."""
     slow, fast = runs[2.0][0]["bench_seconds"], runs[6.0][0]["bench_seconds"]
     print(f"bench seconds at 2x {slow}, at 6x {fast}")
     assert fast["total"] == pytest.approx(slow["total"], rel=0.10), (slow, fast)
