@@ -4,8 +4,11 @@ them."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
+from service.bench.readings import STALL_INTERVALS
+from service.storage.samples import job_samples
 from tests.helpers.daemon import admin_headers, make_client, wait_job
 
 GRID = {"x_deg": [-3.0, 3.0], "y_deg": [-3.0, 3.0], "n_x": 3, "n_y": 3}
@@ -30,7 +33,28 @@ def _run(tmp_path, speed: float) -> tuple[dict, dict]:
         job = wait_job(client, r.json()["id"], h)
         assert job["state"] == "succeeded", job
         record = client.get(f"/records/{job['record']['id']}", headers=h).json()
+        job["stalled_s"] = _stalled_s(client, job["id"])
         return job, record
+
+
+def _stalled_s(client, job_id: int) -> float:
+    """Bench seconds the simulation lost while the points were read: a sped-up simulation that a
+    loaded machine starves loses a sensor's frames for the time it stalls (0.9 real s is 5 bench s
+    at 6x), which the readings' stamps show as a gap of more than STALL_INTERVALS output
+    intervals; per point the larger of the two sensors' excess over one interval."""
+    bench = client.app.state.bench
+    interval = bench.output_interval_s("reference_sensor")
+    with client.app.state.store.engine.connect() as conn:
+        samples = job_samples(conn, job_id)
+    stamps: dict[tuple[int, int], list[float]] = {}
+    for sample in samples:
+        stamps.setdefault((sample.point or 0, sample.device_id), []).append(sample.t_s)
+    lost: dict[int, float] = {}
+    for (point, _), times in stamps.items():
+        gaps = np.diff(sorted(times))
+        excess = float(np.sum(gaps[gaps > STALL_INTERVALS * interval] - interval))
+        lost[point] = max(lost.get(point, 0.0), excess)
+    return sum(lost.values())
 
 
 @pytest.fixture(scope="module")
@@ -63,9 +87,13 @@ def test_bench_seconds_do_not_change_with_the_simulation_speed(runs):
     27.1 bench s at 2x and 34.2 at 6x; judged from when it began to look, another 27.4 and 32.7;
     from the stop, beside three other test processes, 27.5 and 27.2)."""
     slow, fast = runs[2.0][0]["bench_seconds"], runs[6.0][0]["bench_seconds"]
-    print(f"bench seconds at 2x {slow}, at 6x {fast}")
-    assert fast["total"] == pytest.approx(slow["total"], rel=0.10), (slow, fast)
+    # what the simulation lost to stalls of the machine while points were read (none on an idle
+    # machine): a figure a real bench does not have, allowed for as measured
+    stalled = runs[2.0][0]["stalled_s"] + runs[6.0][0]["stalled_s"]
+    print(f"bench seconds at 2x {slow}, at 6x {fast}; lost to stalls while reading {stalled:.2f}")
+    assert fast["total"] == pytest.approx(slow["total"], rel=0.10, abs=stalled), (slow, fast)
     for p in PARTS:
         # a part of a few seconds (reading) also moves by the sensors' 10 ms bursts, which are 0.12
         # bench s at 12x for each point's last reading: one bench second over the job's nine points
-        assert fast[p] == pytest.approx(slow[p], rel=0.20, abs=1.0), (p, slow, fast)
+        allowed = 1.0 + (stalled if p == "reading" else 0.0)
+        assert fast[p] == pytest.approx(slow[p], rel=0.20, abs=allowed), (p, slow, fast)
