@@ -212,6 +212,12 @@ class BenchRuntime:
     def latest(self, role: str) -> Reading | None:
         return self.devices.sensor(role).latest() if role in self.devices else None
 
+    def stopped_after(self, began_s: float) -> float | None:
+        """When the last motion stopped, if that was at or after `began_s` (the end of a move begun
+        then); None otherwise: an older stop mark is not this move's end, and readings since it
+        would hold the move."""
+        return self.stopped_bench_s if self.stopped_bench_s >= began_s else None
+
     def readings_after(self, role: str, bench_s: float) -> list[Reading]:
         """Every kept reading of the role stamped after `bench_s`, oldest first (the latest only,
         for a device that keeps no history)."""

@@ -273,14 +273,12 @@ def worm_axes_seen(
         by_stage.setdefault(lab[:1], []).append(i)
     score: dict[str, float] = {}
     for stage, rows in by_stage.items():
-        block = covariance[np.ix_(rows, rows)]
-        determined = np.isfinite(np.diag(block)) & (np.diag(block) > 0)
-        if not determined.any():
+        variances = np.diag(covariance)[rows]
+        picked = [row for row, var in zip(rows, variances) if np.isfinite(var) and var > 0]
+        if not picked:
             continue
-        picked = [row for row, ok in zip(rows, determined) if ok]
-        part = covariance[np.ix_(picked, picked)]
         value = values[picked]
-        chi2 = float(value @ np.linalg.pinv(part) @ value)
+        chi2 = float(value @ np.linalg.pinv(covariance[np.ix_(picked, picked)]) @ value)
         # how far beyond chance: the chi-square's tail probability, small where clear
         score[stage] = -float(stats.chi2.logsf(chi2, len(picked)))
     level = -np.log(alpha / max(len(by_stage), 1))

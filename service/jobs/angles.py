@@ -191,7 +191,7 @@ async def measure_angle(ctx: JobContext, proc: AngleProcedure, index: int, angle
         tolerance_deg=tol,
         window_s=st.window_s,
         timeout_s=st.timeout_s,
-        since_bench_s=stood if stood >= began else None,
+        since_bench_s=bench.stopped_after(began),
     )
     # a role read but not settled (the ADC beside the reference): readings are stamped when their
     # answer is parsed, so one asked during the move can arrive after t0 on a lagging line; only

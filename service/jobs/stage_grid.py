@@ -363,7 +363,7 @@ async def read_stage_point(
             tolerance_deg=req.settle.tolerance_deg,
             window_s=req.settle.window_s,
             timeout_s=req.settle.timeout_s,
-            since_bench_s=stood if stood >= began else None,
+            since_bench_s=bench.stopped_after(began),
         )
         if probe_noise:
             probed = await probe_reading_noise(

@@ -26,11 +26,11 @@ What is left out, and why:
   before for another body is 422, as the IETF draft on that header asks: the lab's stored data),
   `GET /feed` (a cursor must be one the feed gave out: it is opaque) and `POST /stage/level` (a
   table tilt is reached only where stage angles within the travel give it through the active
-  record's model: the lab's stored data).
+  record's model: the lab's stored data). Everything else the routes enforce the document states
+  (docs/api.md, "The OpenAPI document and request validation").
 * `POST /records/{record_id}/diagnose` may answer 503 "Diagnoses busy" (with `Retry-After`) once
   `TILTLAB_MAX_DIAGNOSES` diagnoses are queued or running: the fuzzer asks for them faster than they
-  finish, and the document states that answer. Everything else the routes
-  enforce the document states (docs/api.md, "The OpenAPI document and request validation").
+  finish, and the document states that answer.
 
 A longer run: `TILTLAB_SCHEMATHESIS_MAX_EXAMPLES=60 .venv/bin/pytest -n0
 tests/api/test_schemathesis.py` (its report in the file `TILTLAB_SCHEMATHESIS_REPORT` names, if
@@ -58,8 +58,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests.helpers.daemon import calibrate_and_activate
+from tests.helpers.diagnosis import wait_diagnosis
 from tests.helpers.running_service import free_port, running_service
-from tests.helpers.waiting import eventually
 
 SCHEMATHESIS = shutil.which("schemathesis", path=str(Path(sys.executable).parent)) or shutil.which(
     "schemathesis"
@@ -211,29 +212,20 @@ def _hold_a_record_and_a_diagnosis(base: str, token: str) -> None:
     """Job 1 (a 3 x 3 stage grid) with its record 1, active (`POST /stage/level` levels with it),
     and diagnosis 1 of it, finished."""
     auth = {"Authorization": f"Bearer {token}"}
-    started = httpx.post(
-        f"{base}/calibrations",
-        json={
-            "procedure": "stage-grid",
-            "method": "kinematic",
-            "grid": {"x_deg": [-4, 4], "y_deg": [-4, 4], "n_x": 3, "n_y": 3},
-        },
-        headers=auth,
-        timeout=30,
-    )
-    assert started.status_code == 202, started.text
-
-    def finished(url: str) -> dict[str, object] | None:
-        body: dict[str, object] = httpx.get(url, headers=auth, timeout=30).json()
-        return body if body["state"] in ("succeeded", "failed", "cancelled") else None
-
-    job = eventually(lambda: finished(f"{base}/calibrations/1"), timeout_s=300, every_s=0.5)
-    assert job["state"] == "succeeded", job
-    activated = httpx.post(f"{base}/records/1/activate", headers=auth, timeout=30)
-    assert activated.status_code == 200, activated.text
-    diagnosing = httpx.post(
-        f"{base}/records/1/diagnose", json={"baseline": "kinematic"}, headers=auth, timeout=30
-    )
-    assert diagnosing.status_code == 202, diagnosing.text
-    diagnosis = eventually(lambda: finished(f"{base}/diagnoses/1"), timeout_s=300, every_s=0.5)
-    assert diagnosis["state"] == "succeeded", diagnosis
+    with httpx.Client(base_url=base, timeout=30) as client:
+        job = calibrate_and_activate(
+            client,
+            auth,
+            {
+                "procedure": "stage-grid",
+                "method": "kinematic",
+                "grid": {"x_deg": [-4, 4], "y_deg": [-4, 4], "n_x": 3, "n_y": 3},
+            },
+        )
+        assert job["record"]["id"] == 1, job
+        diagnosing = client.post(
+            "/records/1/diagnose", json={"baseline": "kinematic"}, headers=auth
+        )
+        assert diagnosing.status_code == 202, diagnosing.text
+        diagnosis = wait_diagnosis(client, auth, diagnosing.json()["id"])
+        assert diagnosis["id"] == 1 and diagnosis["state"] == "succeeded", diagnosis
