@@ -181,8 +181,12 @@ class StageGrid(PointProcedure[StagePoint]):
             get_method("stage", req.method)
         except InputError as exc:
             raise RequestProblem("method", str(exc)) from None
-        if req.grid is None:
-            raise RequestProblem("grid", "a stage-grid job needs a grid")
+        if req.grid is None or req.grid.is_angles():
+            raise RequestProblem(
+                "grid",
+                "a stage-grid job needs a stage grid: grid.x_deg, grid.y_deg, grid.n_x and "
+                "grid.n_y, or grid.points (angles are for the scale and rotation procedures)",
+            )
         points = req.grid.stage_points()
         if req.design == "adaptive" and req.method != "kinematic":
             raise RequestProblem(

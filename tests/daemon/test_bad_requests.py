@@ -52,6 +52,12 @@ def test_bad_calibration_requests_change_nothing(daemon):
         422,
         "grid",
     )
+    # angles (the scale and rotation procedures' points) for a stage grid: refused, not a 500
+    for angles in ({"angles_deg": [-1.0, 0.0, 1.0]}, {"range_deg": [-1.0, 1.0], "n": 5}):
+        body = _problem(
+            client.post("/calibrations", headers=h, json={**ok, "grid": angles}), 422, "stage grid"
+        )
+        assert body["field"] == "grid", body
     _problem(client.post("/calibrations", headers=h, json={**ok, "method": "magic"}), 422, "method")
     _problem(
         client.post("/calibrations", headers=h, json={**ok, "samples_per_point": 0}),
